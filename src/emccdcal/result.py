@@ -1,0 +1,663 @@
+"""The calibration result: an xarray dataset, its files, and their summary.
+
+Every calibration method ends here. :func:`make_dataset` labels the per-pixel estimates
+(dimensions, coordinates, units), :func:`save` writes ``OUT/calibration.nc`` and
+``OUT/summary.json`` atomically, :func:`load` reads a result back and checks that it is
+one, and :func:`summarize` reduces it to per-parameter statistics over pixels.
+``docs/results.md`` describes the files for users.
+
+Dimensions and variables (``R`` rows, ``C`` columns)
+----------------------------------------------------
+============================  ==========================  ==========
+variable                      dims                        units
+============================  ==========================  ==========
+``e_per_adu`` (+ ``_se``)     (row, col)                  e-/ADU
+``adu_per_e`` (+ ``_se``)     (row, col)                  ADU/e-
+``em_gain`` (+ ``_se``)       (setpoint, row, col)        1
+``photoelectrons`` (+ _se)    (row, col), or (level|setpoint, row, col)   e-
+``loglik``                    (row, col)                  nat
+``converged``                 (row, col), bool            1
+============================  ==========================  ==========
+
+Coordinates: ``row`` and ``col`` (sensor pixel indices, integers; ``origin`` shifts them
+for a tile of a larger sensor), ``setpoint`` (the camera's EM-gain set-points, float,
+ascending as given) and ``level`` (illumination-level labels, str).
+
+Which dims ``photoelectrons`` gets
+----------------------------------
+Pass ``photoelectrons_dims`` to say it outright. Otherwise the rule is:
+
+* a 2-D array is ``(row, col)`` — one intensity shared by all acquisitions (``gs``);
+* a 3-D array is ``(level, row, col)`` if ``levels`` is given and ``setpoints`` is not,
+  ``(setpoint, row, col)`` if ``setpoints`` is given and ``levels`` is not;
+* anything else (both given, neither given, other ranks) needs ``photoelectrons_dims``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+import re
+import tempfile
+from numbers import Number
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+__all__ = [
+    "UNITS",
+    "LONG_NAMES",
+    "REQUIRED_VARIABLES",
+    "CALIBRATION_FILE",
+    "SUMMARY_FILE",
+    "make_dataset",
+    "save",
+    "load",
+    "summarize",
+    "format_setpoint",
+]
+
+CALIBRATION_FILE = "calibration.nc"
+SUMMARY_FILE = "summary.json"
+
+#: ``units`` attribute of every standard variable and coordinate (ASCII; "1" is
+#: dimensionless, "nat" the natural-log unit of a log-likelihood).
+UNITS = {
+    "e_per_adu": "e-/ADU",
+    "adu_per_e": "ADU/e-",
+    "em_gain": "1",
+    "photoelectrons": "e-",
+    "loglik": "nat",
+    "converged": "1",
+    "offset": "ADU",
+    "read_noise": "ADU",
+    "setpoint": "1",
+    "level": "1",
+    "row": "pixel",
+    "col": "pixel",
+}
+
+LONG_NAMES = {
+    "e_per_adu": "ADU conversion factor phi (photoelectrons per ADU count)",
+    "adu_per_e": "inverse ADU conversion factor 1/phi (ADU counts per photoelectron)",
+    "em_gain": "true mean EM gain g at each gain set-point",
+    "photoelectrons": "mean photoelectrons E per pixel per frame",
+    "loglik": "maximised log-likelihood (natural log) of the pixel's data",
+    "converged": "fit converged (estimates usable)",
+    "offset": "offset S0",
+    "read_noise": "read-noise standard deviation sigma",
+    "setpoint": "EM gain set-point of the camera",
+    "level": "illumination level label",
+    "row": "sensor row index",
+    "col": "sensor column index",
+}
+
+#: Variables every result file must hold (``em_gain`` only where there are set-points).
+REQUIRED_VARIABLES = (
+    "e_per_adu",
+    "e_per_adu_se",
+    "photoelectrons",
+    "photoelectrons_se",
+    "loglik",
+    "converged",
+)
+
+_UNITS_NOTE = (
+    "e_per_adu is phi in photoelectrons per ADU count (e-/ADU), adu_per_e = 1/e_per_adu; "
+    "em_gain is dimensionless (1 = no multiplication); photoelectrons in e- per pixel per "
+    "frame; offset and read_noise in ADU; loglik in nats; every <name>_se is the standard "
+    "error of <name>, in the units of <name>"
+)
+_RESERVED_ATTRS = (
+    "method",
+    "emccdcal_version",
+    "manifest_sha256",
+    "manifest_path",
+    "created",
+    "units_note",
+)
+_PIXEL_DIMS = ("row", "col")
+_HEX64 = re.compile(r"^[0-9a-f]{64}$")
+
+
+def format_setpoint(value) -> str:
+    """Canonical text of a set-point: integral values without a decimal point.
+
+    Used for the keys of ``summary.json`` and in messages, so that ``5`` and ``5.0`` are
+    the same key.
+
+    Parameters
+    ----------
+    value : float
+        A gain set-point (dimensionless), finite.
+
+    Returns
+    -------
+    str
+        ``"5"`` for 5.0, ``"1.5"`` for 1.5 (the shortest text that reads back as the
+        same float).
+
+    Examples
+    --------
+    >>> format_setpoint(5.0), format_setpoint(1.5), format_setpoint(300)
+    ('5', '1.5', '300')
+    """
+    v = float(value)
+    if not math.isfinite(v):
+        raise ValueError(f"set-point must be finite, got {value!r}")
+    if v.is_integer():
+        return str(int(v))
+    return repr(v)
+
+
+def _package_version() -> str:
+    from . import __version__
+
+    return __version__
+
+
+def _major(version: str) -> int | None:
+    m = re.match(r"\s*(\d+)", str(version))
+    return int(m.group(1)) if m else None
+
+
+# --------------------------------------------------------------------------------------
+# make_dataset
+# --------------------------------------------------------------------------------------
+def _float_array(name, value, shape, dims):
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim == 0:
+        return np.full(shape, float(arr))
+    if arr.shape != shape:
+        raise ValueError(
+            f"{name} has shape {arr.shape}; expected {shape} for dims {dims}"
+        )
+    return arr
+
+
+def _attr_value(key, value):
+    """NetCDF-storable version of an attribute value (bool -> int), or ValueError."""
+    if isinstance(value, (bool, np.bool_)):
+        return int(value)
+    if isinstance(value, (str, Number, np.number)):
+        return value
+    if isinstance(value, (list, tuple, np.ndarray)):
+        items = list(np.asarray(value).ravel()) if isinstance(value, np.ndarray) else list(value)
+        if all(isinstance(v, (str, Number, np.number)) and not isinstance(v, bool) for v in items):
+            return value
+    raise ValueError(
+        f"dataset attribute {key!r} must be a str, a number, or a list of them; "
+        f"got {type(value).__name__}"
+    )
+
+
+def make_dataset(
+    *,
+    method: str,
+    setpoints=None,
+    levels=None,
+    e_per_adu,
+    e_per_adu_se,
+    em_gain=None,
+    em_gain_se=None,
+    photoelectrons,
+    photoelectrons_se,
+    loglik=None,
+    converged,
+    manifest_hash: str,
+    manifest_path=None,
+    extra: dict | None = None,
+    attrs: dict | None = None,
+    photoelectrons_dims: tuple[str, ...] | None = None,
+    origin: tuple[int, int] = (0, 0),
+) -> xr.Dataset:
+    """Label a calibration's per-pixel estimates as an xarray dataset.
+
+    The pixel grid ``(R, C)`` is taken from the last two axes of ``photoelectrons``.
+
+    Parameters
+    ----------
+    method : str
+        The calibration method (``"gs"``, ``"mv-adu"``, ...).
+    setpoints : sequence of float, optional
+        EM-gain set-points (dimensionless, positive, distinct): the ``setpoint`` coordinate.
+        Required with ``em_gain``.
+    levels : sequence of str, optional
+        Illumination-level labels (distinct): the ``level`` coordinate.
+    e_per_adu, e_per_adu_se : array_like, shape (R, C), or scalar
+        φ and its standard error (e⁻/ADU). A scalar is broadcast (e.g. a fixed φ with SE 0).
+    em_gain, em_gain_se : array_like, shape (S, R, C), optional
+        True EM gain per set-point and its SE (dimensionless). Where a set-point is 1 the
+        gain must be 1 (or NaN) and its SE 0 (or NaN): 1× means no multiplication.
+    photoelectrons, photoelectrons_se : array_like
+        E and its SE (e⁻ per pixel per frame); dims by ``photoelectrons_dims`` or the rule
+        in the module docstring.
+    loglik : array_like, shape (R, C), optional
+        Maximised log-likelihood per pixel (nats). Absent (e.g. mean–variance) → NaN.
+    converged : array_like of bool, shape (R, C), or scalar
+        Whether each pixel's fit converged.
+    manifest_hash : str
+        SHA-256 of the manifest file's bytes, 64 hex digits.
+    manifest_path : str or Path, optional
+        Where the manifest was (stored as text; "" when not given).
+    extra : dict, optional
+        Method-specific variables, ``name -> (dims, array, units)`` or
+        ``(dims, array, units, long_name)``, e.g.
+        ``{"offset": (("setpoint", "row", "col"), s0, "ADU")}``. Known dims must have
+        their sizes; names must not clash with the standard variables.
+    attrs : dict, optional
+        Further dataset attributes (str, numbers or lists of them; bool becomes 0/1). May
+        not replace the standard ones.
+    photoelectrons_dims : tuple of str, optional
+        Dims of ``photoelectrons`` outright, ending in ``("row", "col")``.
+    origin : (int, int), optional
+        Sensor index of pixel (0, 0) of these arrays, for a tile of a larger sensor; the
+        ``row``/``col`` coordinates start there. Default (0, 0).
+
+    Returns
+    -------
+    xarray.Dataset
+        With the variables, coordinates and attributes of the module docstring, plus
+        ``adu_per_e`` and ``adu_per_e_se`` derived from φ.
+
+    Raises
+    ------
+    ValueError
+        Any shape that does not fit the pixel grid and the coordinates, duplicate
+        set-points or levels, an ``em_gain`` without ``setpoints``, a 1× gain that is not
+        1, a malformed ``manifest_hash``, an unusable attribute, or ambiguous
+        ``photoelectrons`` dims.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> ds = make_dataset(
+    ...     method="mv-adu", levels=["L1", "L2"],
+    ...     e_per_adu=np.full((2, 3), 3.8), e_per_adu_se=0.05,
+    ...     photoelectrons=np.full((2, 2, 3), 100.0), photoelectrons_se=2.0,
+    ...     converged=True, manifest_hash="0" * 64)
+    >>> ds.photoelectrons.dims, ds.e_per_adu.attrs["units"]
+    (('level', 'row', 'col'), 'e-/ADU')
+    """
+    if not isinstance(method, str) or not method:
+        raise ValueError("method must be a non-empty string")
+    if not isinstance(manifest_hash, str) or not _HEX64.match(manifest_hash.lower()):
+        raise ValueError(
+            f"manifest_hash must be the SHA-256 hex digest (64 hex digits); got {manifest_hash!r}"
+        )
+
+    coords: dict = {}
+    if setpoints is not None:
+        sp = np.asarray(setpoints, dtype=float).ravel()
+        if sp.size == 0 or not np.all(np.isfinite(sp) & (sp > 0)):
+            raise ValueError("setpoints must be one or more positive finite numbers")
+        if np.unique(sp).size != sp.size:
+            raise ValueError(f"setpoints must be distinct; got {sp.tolist()}")
+        coords["setpoint"] = sp
+    if levels is not None:
+        lv = [str(v) for v in (levels if not isinstance(levels, str) else [levels])]
+        if not lv:
+            raise ValueError("levels must hold at least one label")
+        if len(set(lv)) != len(lv):
+            raise ValueError(f"level labels must be distinct; got {lv}")
+        coords["level"] = np.array(lv, dtype=str)
+    sizes = {k: len(v) for k, v in coords.items()}
+
+    # Pixel grid and the dims of photoelectrons.
+    E = np.asarray(photoelectrons, dtype=float)
+    if E.ndim < 2:
+        raise ValueError(f"photoelectrons must be at least 2-D (row, col); got shape {E.shape}")
+    if photoelectrons_dims is None:
+        if E.ndim == 2:
+            e_dims = _PIXEL_DIMS
+        elif E.ndim == 3 and (levels is None) != (setpoints is None):
+            e_dims = ("level" if levels is not None else "setpoint",) + _PIXEL_DIMS
+        else:
+            raise ValueError(
+                f"cannot tell the dims of photoelectrons with shape {E.shape} "
+                f"(setpoints {'given' if setpoints is not None else 'not given'}, levels "
+                f"{'given' if levels is not None else 'not given'}); pass photoelectrons_dims"
+            )
+    else:
+        e_dims = tuple(photoelectrons_dims)
+        if e_dims[-2:] != _PIXEL_DIMS or len(set(e_dims)) != len(e_dims):
+            raise ValueError(f"photoelectrons_dims must end in ('row', 'col'); got {e_dims}")
+        unknown = [d for d in e_dims[:-2] if d not in sizes]
+        if unknown:
+            raise ValueError(
+                f"photoelectrons_dims names {unknown}, which need the matching "
+                "setpoints/levels argument"
+            )
+    if len(e_dims) != E.ndim:
+        raise ValueError(f"photoelectrons has shape {E.shape} but dims {e_dims}")
+    R, C = E.shape[-2:]
+    sizes.update(row=R, col=C)
+    for d, n in zip(e_dims, E.shape):
+        if sizes[d] != n:
+            raise ValueError(
+                f"photoelectrons has {n} entries along {d!r} but there are {sizes[d]} {d}s"
+            )
+    pix = (R, C)
+
+    data = {}
+
+    def put(name, dims, arr, units=None, long_name=None):
+        data[name] = xr.Variable(
+            dims,
+            arr,
+            attrs={
+                "units": units if units is not None else UNITS[name.removesuffix("_se")],
+                "long_name": long_name
+                if long_name is not None
+                else (
+                    "standard error of " + LONG_NAMES[name[:-3]]
+                    if name.endswith("_se")
+                    else LONG_NAMES[name]
+                ),
+            },
+        )
+
+    phi = _float_array("e_per_adu", e_per_adu, pix, _PIXEL_DIMS)
+    phi_se = _float_array("e_per_adu_se", e_per_adu_se, pix, _PIXEL_DIMS)
+    put("e_per_adu", _PIXEL_DIMS, phi)
+    put("e_per_adu_se", _PIXEL_DIMS, phi_se)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        put("adu_per_e", _PIXEL_DIMS, 1.0 / phi)
+        put("adu_per_e_se", _PIXEL_DIMS, phi_se / phi**2)
+
+    if em_gain is not None or em_gain_se is not None:
+        if em_gain is None or em_gain_se is None:
+            raise ValueError("em_gain and em_gain_se must be given together")
+        if setpoints is None:
+            raise ValueError("em_gain needs setpoints (the setpoint coordinate)")
+        g_dims = ("setpoint",) + _PIXEL_DIMS
+        g_shape = (sizes["setpoint"],) + pix
+        g = _float_array("em_gain", em_gain, g_shape, g_dims)
+        g_se = _float_array("em_gain_se", em_gain_se, g_shape, g_dims)
+        one = coords["setpoint"] == 1.0
+        if np.any(one):
+            g1, s1 = g[one], g_se[one]
+            if not np.all(np.isnan(g1) | (g1 == 1.0)) or not np.all(np.isnan(s1) | (s1 == 0.0)):
+                raise ValueError(
+                    "em_gain at set-point 1 must be 1 with standard error 0 (no multiplication)"
+                )
+        put("em_gain", g_dims, g)
+        put("em_gain_se", g_dims, g_se)
+
+    e_shape = tuple(sizes[d] for d in e_dims)
+    put("photoelectrons", e_dims, E)
+    put("photoelectrons_se", e_dims, _float_array("photoelectrons_se", photoelectrons_se, e_shape, e_dims))
+    put("loglik", _PIXEL_DIMS, np.full(pix, np.nan) if loglik is None else _float_array("loglik", loglik, pix, _PIXEL_DIMS))
+
+    conv = np.asarray(converged)
+    if conv.dtype != bool:
+        if conv.dtype.kind not in "iuf" or not np.all(np.isin(conv, (0, 1))):
+            raise ValueError("converged must be boolean (or 0/1)")
+        conv = conv.astype(bool)
+    if conv.ndim == 0:
+        conv = np.full(pix, bool(conv))
+    if conv.shape != pix:
+        raise ValueError(f"converged has shape {conv.shape}; expected {pix} for dims ('row', 'col')")
+    put("converged", _PIXEL_DIMS, conv)
+
+    reserved = (set(UNITS) - {"offset", "read_noise"}) | set(data) | {
+        f"{v}_se" for v in ("e_per_adu", "adu_per_e", "em_gain", "photoelectrons")
+    }
+    for name, spec in (extra or {}).items():
+        if name in reserved:
+            raise ValueError(f"extra variable {name!r} clashes with a standard variable or coordinate")
+        if not isinstance(spec, tuple) or len(spec) not in (3, 4):
+            raise ValueError(f"extra[{name!r}] must be (dims, array, units[, long_name])")
+        dims = (spec[0],) if isinstance(spec[0], str) else tuple(spec[0])
+        arr, units = np.asarray(spec[1]), spec[2]
+        if not isinstance(units, str):
+            raise ValueError(f"extra[{name!r}]: units must be a string")
+        if arr.ndim != len(dims):
+            raise ValueError(f"extra[{name!r}] has shape {arr.shape} but dims {dims}")
+        for d, n in zip(dims, arr.shape):
+            if d in sizes and sizes[d] != n:
+                raise ValueError(
+                    f"extra[{name!r}] has {n} entries along {d!r}; expected {sizes[d]}"
+                )
+        if len(spec) == 4:
+            long_name = str(spec[3])
+        elif name in LONG_NAMES:
+            long_name = LONG_NAMES[name]
+        elif name.endswith("_se") and name[:-3] in LONG_NAMES:
+            long_name = "standard error of " + LONG_NAMES[name[:-3]]
+        else:
+            long_name = name.replace("_", " ")
+        put(name, dims, arr, units=units, long_name=long_name)
+
+    ds_attrs = {
+        "method": method,
+        "emccdcal_version": _package_version(),
+        "manifest_sha256": manifest_hash.lower(),
+        "manifest_path": "" if manifest_path is None else str(manifest_path),
+        "created": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "units_note": _UNITS_NOTE,
+    }
+    for key, value in (attrs or {}).items():
+        if key in _RESERVED_ATTRS:
+            raise ValueError(f"attribute {key!r} is set by emccdcal and cannot be replaced")
+        ds_attrs[key] = _attr_value(key, value)
+
+    r0, c0 = (int(v) for v in origin)
+    all_coords = {
+        "row": ("row", np.arange(r0, r0 + R), {"units": UNITS["row"], "long_name": LONG_NAMES["row"]}),
+        "col": ("col", np.arange(c0, c0 + C), {"units": UNITS["col"], "long_name": LONG_NAMES["col"]}),
+    }
+    for name, values in coords.items():
+        all_coords[name] = (name, values, {"units": UNITS[name], "long_name": LONG_NAMES[name]})
+    return xr.Dataset(data, coords=all_coords, attrs=ds_attrs)
+
+
+# --------------------------------------------------------------------------------------
+# summarize
+# --------------------------------------------------------------------------------------
+def _json_number(v):
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def _stats(values, se=None) -> dict:
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    out = {
+        "n": int(v.size),
+        "mean": _json_number(v.mean()) if v.size else None,
+        "sd": _json_number(v.std(ddof=1)) if v.size > 1 else None,
+        "median": _json_number(np.median(v)) if v.size else None,
+    }
+    if se is not None:
+        s = np.asarray(se, dtype=float)
+        s = s[np.isfinite(s)]
+        out["se_median"] = _json_number(np.median(s)) if s.size else None
+    return out
+
+
+def _coord_key(ds, dim, i):
+    if dim in ds.coords:
+        value = ds[dim].values[i]
+        return format_setpoint(value) if dim == "setpoint" else str(value)
+    return str(i)
+
+
+def _nested_stats(ds, da, se, mask):
+    """Stats over the pixels of ``mask``, nested as ``by_<dim>`` over other dims."""
+    other = [d for d in da.dims if d not in _PIXEL_DIMS]
+    if not other:
+        return _stats(da.values[mask], None if se is None else se.values[mask])
+    dim = other[0]
+    out = {}
+    for i in range(da.sizes[dim]):
+        out[_coord_key(ds, dim, i)] = _nested_stats(
+            ds, da.isel({dim: i}), None if se is None else se.isel({dim: i}), mask
+        )
+    return {f"by_{dim}": out}
+
+
+def summarize(ds: xr.Dataset, seconds: float | None = None) -> dict:
+    """Aggregate a result over pixels, as written to ``summary.json``.
+
+    Statistics use the **converged pixels only** and, of those, the finite values: the
+    count used is ``n`` in each entry. ``sd`` has ``ddof=1``; ``se_median`` is the median
+    standard error (from ``<name>_se``) over the same pixels. Parameters with dims besides
+    (row, col) are nested under ``by_setpoint`` / ``by_level`` with keys from the
+    coordinate (set-points formatted by :func:`format_setpoint`: ``"5"``, not ``"5.0"``).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A result from :func:`make_dataset` or :func:`load`.
+    seconds : float, optional
+        Wall time of the calibration (s), recorded as ``seconds`` (null when not given).
+
+    Returns
+    -------
+    dict
+        JSON-serialisable: ``method``, ``emccdcal_version``, ``manifest_sha256``,
+        ``manifest_path``, ``created``, ``seconds``, ``pixels`` (``total``, ``converged``,
+        ``rows``, ``cols``), ``statistics_over``, and ``parameters`` mapping each variable
+        name (not the ``_se`` ones, not ``converged``) to ``units`` and its statistics.
+        Non-finite numbers become null.
+    """
+    conv = ds["converged"].transpose("row", "col").values.astype(bool)
+    params = {}
+    for name, da in ds.data_vars.items():
+        if name == "converged" or name.endswith("_se") or da.dtype.kind not in "iuf":
+            continue
+        if not set(_PIXEL_DIMS) <= set(da.dims):
+            continue
+        order = [d for d in da.dims if d not in _PIXEL_DIMS] + list(_PIXEL_DIMS)
+        da = da.transpose(*order)
+        se = ds[name + "_se"].transpose(*order) if name + "_se" in ds else None
+        entry = {"units": da.attrs.get("units", "")}
+        entry.update(_nested_stats(ds, da, se, conv))
+        params[name] = entry
+    return {
+        "method": str(ds.attrs.get("method", "")),
+        "emccdcal_version": str(ds.attrs.get("emccdcal_version", "")),
+        "manifest_sha256": str(ds.attrs.get("manifest_sha256", "")),
+        "manifest_path": str(ds.attrs.get("manifest_path", "")),
+        "created": str(ds.attrs.get("created", "")),
+        "seconds": None if seconds is None else _json_number(seconds),
+        "pixels": {
+            "total": int(conv.size),
+            "converged": int(conv.sum()),
+            "rows": int(ds.sizes["row"]),
+            "cols": int(ds.sizes["col"]),
+        },
+        "statistics_over": "converged pixels only (finite values)",
+        "parameters": params,
+    }
+
+
+# --------------------------------------------------------------------------------------
+# save / load
+# --------------------------------------------------------------------------------------
+def _atomic_write(path: Path, write) -> None:
+    """Write through ``write(tmp_path)`` to a temp file beside ``path``, then replace it."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        write(tmp)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None) -> dict[str, Path]:
+    """Write ``calibration.nc`` and ``summary.json`` into ``out_dir``, each atomically.
+
+    Each file is written to a temporary file in ``out_dir`` and moved into place with
+    ``os.replace``, so a reader never sees a half-written file and an interrupted run
+    leaves any earlier file of the same name intact. The NetCDF file (NetCDF4/HDF5
+    through xarray's ``h5netcdf`` engine) is written first, then the summary.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A result from :func:`make_dataset`.
+    out_dir : str or Path
+        Output directory; created (with parents) if missing.
+    seconds : float, optional
+        Wall time of the calibration (s), for the summary.
+
+    Returns
+    -------
+    dict of str to Path
+        ``{"calibration": OUT/calibration.nc, "summary": OUT/summary.json}``.
+
+    Notes
+    -----
+    ``converged`` is stored as an 8-bit integer with the attribute ``dtype = "bool"``;
+    xarray (and :func:`load`) read it back as bool. Other NetCDF readers see 0/1.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    nc_path = out / CALIBRATION_FILE
+    json_path = out / SUMMARY_FILE
+    summary = summarize(ds, seconds=seconds)
+    text = json.dumps(summary, indent=2, allow_nan=False) + "\n"
+    _atomic_write(nc_path, lambda p: ds.to_netcdf(p, engine="h5netcdf"))
+    _atomic_write(json_path, lambda p: p.write_text(text, encoding="utf-8"))
+    return {"calibration": nc_path, "summary": json_path}
+
+
+def load(path) -> xr.Dataset:
+    """Read a result written by :func:`save`, checking that it is one.
+
+    Parameters
+    ----------
+    path : str or Path
+        A ``calibration.nc`` file, or a directory that holds one.
+
+    Returns
+    -------
+    xarray.Dataset
+        Loaded into memory (the file is closed on return).
+
+    Raises
+    ------
+    FileNotFoundError
+        No such file (or no ``calibration.nc`` in the directory).
+    ValueError
+        The file is not a NetCDF/HDF5 file, is not an emccdcal result (no ``method`` or
+        ``emccdcal_version`` attribute, or a standard variable missing), or was written by
+        an incompatible major version of emccdcal. The message names the file.
+    """
+    p = Path(path)
+    if p.is_dir():
+        p = p / CALIBRATION_FILE
+    if not p.is_file():
+        raise FileNotFoundError(f"{p}: no such file")
+    try:
+        with xr.open_dataset(p, engine="h5netcdf") as f:
+            ds = f.load()
+    except (OSError, ValueError, TypeError, KeyError) as exc:
+        raise ValueError(f"{p}: not a readable NetCDF file ({exc.__class__.__name__}: {exc})") from None
+    missing_attrs = [a for a in ("method", "emccdcal_version") if a not in ds.attrs]
+    if missing_attrs:
+        raise ValueError(
+            f"{p}: not an emccdcal calibration result (no {' or '.join(missing_attrs)} attribute)"
+        )
+    missing = [v for v in REQUIRED_VARIABLES if v not in ds.variables]
+    if missing:
+        raise ValueError(f"{p}: not a complete emccdcal result (missing variables: {', '.join(missing)})")
+    file_major, our_major = _major(ds.attrs["emccdcal_version"]), _major(_package_version())
+    if file_major is None or (our_major is not None and file_major != our_major):
+        raise ValueError(
+            f"{p}: written by emccdcal {ds.attrs['emccdcal_version']}, which is not compatible "
+            f"with this emccdcal {_package_version()} (different major version)"
+        )
+    if ds["converged"].dtype != bool:
+        ds["converged"] = ds["converged"].astype(bool)
+    return ds
