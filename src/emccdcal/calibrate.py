@@ -1,0 +1,367 @@
+"""The main job: a manifest in, a labelled calibration out (``emccdcal calibrate``).
+
+files → :mod:`io` (manifest) → :mod:`stats` (per-pixel histograms) → :mod:`fitting`
+driven by a :mod:`methods` layout, tile by tile → :mod:`result` (dataset, files).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from . import fitting, io, methods, mv, result, stats
+
+__all__ = ["METHODS", "calibrate", "add_parser"]
+
+METHODS = ("mv-adu", "mv-gain") + methods.LIKELIHOOD_METHODS
+
+#: Pixels fitted together: large enough to amortise Python overhead, small enough that
+#: the FFT windows of a block (pixels × window × derivatives) stay within a few hundred MB.
+DEFAULT_BLOCK = 256
+
+
+def _load(manifest):
+    if isinstance(manifest, io.Manifest):
+        return manifest
+    return io.read_manifest(manifest)
+
+
+def _e_per_adu_map(manifest, override, shape):
+    value = manifest.e_per_adu if override is None else override
+    if value is None:
+        return None
+    arr = np.broadcast_to(np.asarray(value, dtype=float), shape).astype(float)
+    if not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+        raise ValueError("e_per_adu must be positive and finite (e-/ADU)")
+    return arr
+
+
+def _labels(acqs):
+    return [a.level if a.level is not None else a.name for a in acqs]
+
+
+def _statistics(manifest, acqs, progress):
+    """Per-pixel histograms of every acquisition, with saturation warnings."""
+    found = []
+    hists = []
+    for acq in _progress(acqs, progress, "reading"):
+        h = stats.histograms(acq.frames(), adc_max=manifest.adc_max)
+        n_sat = int(h.n_saturated.sum())
+        if n_sat:
+            found.append(
+                f"{acq.frames_path.name}: {n_sat} frame values at the ADC maximum "
+                f"({manifest.adc_max} ADU) in {int((h.n_saturated > 0).sum())} pixel(s) were "
+                "excluded from the fit"
+            )
+        if np.any(h.n < 2):
+            raise ValueError(f"{acq.frames_path}: fewer than 2 usable frames in some pixels")
+        hists.append(h)
+    return hists, found
+
+
+def _progress(iterable, enabled, desc):
+    if not enabled:
+        return iterable
+    from tqdm import tqdm
+
+    return tqdm(iterable, desc=desc, unit="acq", file=sys.stderr, leave=False)
+
+
+def calibrate(
+    manifest,
+    method="gs",
+    *,
+    e_per_adu=None,
+    out=None,
+    block_size=DEFAULT_BLOCK,
+    options=None,
+    progress=False,
+):
+    """Calibrate a camera from the acquisitions of a manifest.
+
+    Parameters
+    ----------
+    manifest : str, Path or :class:`emccdcal.io.Manifest`
+        The TOML manifest (see ``docs/manifest.md``).
+    method : str
+        One of :data:`METHODS`: ``mv-adu``, ``mv-gain``, ``is-adu``, ``is-gain``, ``gs``,
+        ``gs-no1x``, ``gs-hierarchical``.
+    e_per_adu : float or ndarray (rows, cols), optional
+        φ (e⁻/ADU) overriding the manifest's, for the methods that hold it fixed.
+    out : str or Path, optional
+        Directory to write ``calibration.nc`` and ``summary.json`` into.
+    block_size : int
+        Pixels fitted together.
+    options : dict, optional
+        Method options (``gs-hierarchical``: ``mu_sd``, ``sigma_sd`` in photoelectrons).
+    progress : bool
+        Show progress bars on stderr.
+
+    Returns
+    -------
+    xarray.Dataset
+        The calibration (see ``docs/results.md``); ``ds.attrs["seconds"]`` is the wall time.
+
+    Examples
+    --------
+    >>> ds = calibrate("gain-series/manifest.toml", method="gs")  # doctest: +SKIP
+    >>> ds.em_gain.sel(setpoint=300).mean().item()                 # doctest: +SKIP
+    261.6
+    """
+    t0 = time.perf_counter()
+    if method not in METHODS:
+        raise methods.MethodError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    manifest = _load(manifest)
+    acqs = manifest.acquisitions
+    rows, cols = manifest.shape
+    phi_map = _e_per_adu_map(manifest, e_per_adu, (rows, cols))
+    setpoints_all = [a.em_gain_setpoint for a in acqs]
+
+    if method.startswith("mv-"):
+        idx = _select_mv(method, setpoints_all, phi_map is not None)
+    else:
+        idx = methods.select_acquisitions(
+            method, setpoints_all, [a.level for a in acqs], phi_map is not None
+        )
+    used = [acqs[i] for i in idx]
+    hists, found = _statistics(manifest, used, progress)
+    for w in found:  # the manifest's own warnings were issued when it was read
+        warnings.warn(w, stacklevel=2)
+
+    if method.startswith("mv-"):
+        ds = _calibrate_mv(method, manifest, used, hists, phi_map)
+    else:
+        ds = _calibrate_likelihood(
+            method, manifest, used, hists, phi_map, block_size, options or {}, progress
+        )
+    ds.attrs["warnings"] = list(manifest.warnings + found)
+    seconds = time.perf_counter() - t0
+    ds.attrs["seconds"] = seconds
+    if out is not None:
+        result.save(ds, out, seconds=seconds)
+    return ds
+
+
+def _select_mv(method, setpoints, has_phi):
+    sp = np.asarray(setpoints, dtype=float)
+    if method == "mv-adu":
+        if np.any(sp != 1):
+            raise methods.MethodError("mv-adu needs 1x (EM gain off) data only")
+        return np.arange(sp.size)
+    if not has_phi:
+        raise methods.MethodError(
+            "mv-gain needs e_per_adu (e-/ADU): set it in the manifest or pass --e-per-adu"
+        )
+    return np.argsort(sp, kind="stable")
+
+
+def _common(manifest, used, hists):
+    """Per-acquisition maps and statistics stacked as (A, P)."""
+    offsets = np.stack([a.offset.ravel() for a in used])
+    read_noise = np.stack([a.read_noise.ravel() for a in used])
+    return offsets, read_noise
+
+
+def _grid(values, rows, cols):
+    return np.asarray(values).reshape(values.shape[:-1] + (rows, cols))
+
+
+def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, options, progress):
+    rows, cols = manifest.shape
+    P = rows * cols
+    setpoints = np.array([a.em_gain_setpoint for a in used])
+    offsets, read_noise = _common(manifest, used, hists)
+    phi = None if phi_map is None else phi_map.ravel()
+    A = len(used)
+    est = {k: np.full((P, A), np.nan) for k in (
+        "photoelectrons", "photoelectrons_se", "em_gain", "em_gain_se", "e_per_adu",
+        "e_per_adu_se")}
+    loglik = np.full(P, np.nan)
+    converged = np.zeros(P, dtype=bool)
+    n_floored = np.zeros(P, dtype=np.int64)
+    iterations = np.zeros(P, dtype=np.int64)
+    hyper = {"hyper_photoelectrons": np.full(P, np.nan), "hyper_sd_photoelectrons": np.full(P, np.nan)}
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=P, desc=f"fitting {method}", unit="px", file=sys.stderr, leave=False)
+    for start in range(0, P, block_size):
+        idx = np.arange(start, min(P, start + block_size))
+        blocks = methods.make_blocks(hists, offsets, read_noise, setpoints, idx)
+        series = methods.Series(blocks, setpoints, _labels(used),
+                                None if phi is None else phi[idx])
+        layout, x0 = methods.build_layout(method, series, options)
+        fit = fitting.fit(layout, blocks, x0)
+        e = methods.acquisition_estimates(layout, fit.x, fit.cov)
+        for k in est:
+            est[k][idx] = e[k]
+        loglik[idx] = fit.loglik
+        converged[idx] = fit.converged
+        n_floored[idx] = fit.n_floored
+        iterations[idx] = fit.iterations
+        if method == "gs-hierarchical":
+            mu, sigma_e = layout.hyperparameters(fit.x)
+            hyper["hyper_photoelectrons"][idx] = mu
+            hyper["hyper_sd_photoelectrons"][idx] = sigma_e
+        if bar is not None:
+            bar.update(idx.size)
+    if bar is not None:
+        bar.close()
+
+    not_conv = int((~converged).sum())
+    if not_conv:
+        warnings.warn(f"{method}: {not_conv} of {P} pixel(s) did not converge (see 'converged')",
+                      stacklevel=3)
+    grid = lambda a: a.T.reshape((-1, rows, cols)) if a.ndim == 2 else a.reshape(rows, cols)  # noqa: E731
+    labels = _labels(used)
+    per_acq_dim = "level" if method.startswith("is-") else "setpoint"
+    coords = {"level": labels} if per_acq_dim == "level" else {}
+    extra = {
+        "offset": ((per_acq_dim, "row", "col"), grid(offsets.T), "ADU"),
+        "read_noise": ((per_acq_dim, "row", "col"), grid(read_noise.T), "ADU"),
+        "n_saturated": ((per_acq_dim, "row", "col"),
+                        np.stack([h.n_saturated.reshape(rows, cols) for h in hists]), "1"),
+        "n_floored": (("row", "col"), grid(n_floored), "1"),
+        "iterations": (("row", "col"), grid(iterations), "1"),
+    }
+    fixed_phi_se = np.full((rows, cols), np.nan)
+    if method == "is-adu":
+        return result.make_dataset(
+            method=method, setpoints=[1.0], levels=labels,
+            e_per_adu=grid(est["e_per_adu"][:, 0]), e_per_adu_se=grid(est["e_per_adu_se"][:, 0]),
+            em_gain=np.ones((1, rows, cols)), em_gain_se=np.zeros((1, rows, cols)),
+            photoelectrons=grid(est["photoelectrons"]), photoelectrons_se=grid(est["photoelectrons_se"]),
+            photoelectrons_dims=("level", "row", "col"),
+            loglik=grid(loglik), converged=grid(converged),
+            manifest_hash=manifest.content_hash, manifest_path=str(manifest.path), extra=extra,
+        )
+    if method == "is-gain":
+        return result.make_dataset(
+            method=method, setpoints=[float(setpoints[0])], levels=labels,
+            e_per_adu=grid(est["e_per_adu"][:, 0]), e_per_adu_se=fixed_phi_se,
+            em_gain=grid(est["em_gain"][:, :1]), em_gain_se=grid(est["em_gain_se"][:, :1]),
+            photoelectrons=grid(est["photoelectrons"]), photoelectrons_se=grid(est["photoelectrons_se"]),
+            photoelectrons_dims=("level", "row", "col"),
+            loglik=grid(loglik), converged=grid(converged),
+            manifest_hash=manifest.content_hash, manifest_path=str(manifest.path), extra=extra,
+        )
+    shared = method in ("gs", "gs-no1x")
+    if method == "gs-hierarchical":
+        extra["hyper_photoelectrons"] = (("row", "col"), grid(hyper["hyper_photoelectrons"]), "e-")
+        extra["hyper_sd_photoelectrons"] = (("row", "col"), grid(hyper["hyper_sd_photoelectrons"]), "e-")
+    return result.make_dataset(
+        method=method, setpoints=[float(s) for s in setpoints],
+        e_per_adu=grid(est["e_per_adu"][:, 0]), e_per_adu_se=fixed_phi_se,
+        em_gain=grid(est["em_gain"]), em_gain_se=grid(est["em_gain_se"]),
+        photoelectrons=grid(est["photoelectrons"][:, 0]) if shared else grid(est["photoelectrons"]),
+        photoelectrons_se=grid(est["photoelectrons_se"][:, 0]) if shared else grid(est["photoelectrons_se"]),
+        photoelectrons_dims=("row", "col") if shared else ("setpoint", "row", "col"),
+        loglik=grid(loglik), converged=grid(converged),
+        manifest_hash=manifest.content_hash, manifest_path=str(manifest.path), extra=extra,
+        attrs={"options": str(options)} if options else None,
+    )
+
+
+def _calibrate_mv(method, manifest, used, hists, phi_map):
+    rows, cols = manifest.shape
+    offsets, read_noise = _common(manifest, used, hists)
+    mean = np.stack([h.mean for h in hists])
+    var = np.stack([h.var for h in hists])
+    n = np.stack([h.n for h in hists])
+    grid = lambda a: np.asarray(a).reshape(np.shape(a)[:-1] + (rows, cols))  # noqa: E731
+    labels = _labels(used)
+    setpoints = [a.em_gain_setpoint for a in used]
+    if method == "mv-adu":
+        fit = mv.fit_mv_adu(mean, var, offsets, read_noise, n)
+        return result.make_dataset(
+            method=method, setpoints=[1.0], levels=labels,
+            e_per_adu=grid(fit.e_per_adu), e_per_adu_se=grid(fit.e_per_adu_se),
+            em_gain=np.ones((1, rows, cols)), em_gain_se=np.zeros((1, rows, cols)),
+            photoelectrons=grid(fit.photoelectrons), photoelectrons_se=grid(fit.photoelectrons_se),
+            photoelectrons_dims=("level", "row", "col"),
+            converged=grid(fit.valid), manifest_hash=manifest.content_hash,
+            manifest_path=str(manifest.path),
+        )
+    phi = phi_map.ravel()
+    fit = mv.fit_mv_gain(mean, var, offsets, read_noise, n, phi, np.asarray(setpoints))
+    by_level = len(set(setpoints)) == 1 and len(setpoints) > 1
+    return result.make_dataset(
+        method=method, setpoints=[float(s) for s in fit.setpoints],
+        levels=labels if by_level else None,
+        e_per_adu=phi_map, e_per_adu_se=np.full((rows, cols), np.nan),
+        em_gain=grid(fit.em_gain), em_gain_se=grid(fit.em_gain_se),
+        photoelectrons=grid(fit.photoelectrons), photoelectrons_se=grid(fit.photoelectrons_se),
+        photoelectrons_dims=(("level" if by_level else "setpoint"), "row", "col"),
+        converged=grid(np.all(fit.valid, axis=0) if np.ndim(fit.valid) > 1 else fit.valid),
+        manifest_hash=manifest.content_hash, manifest_path=str(manifest.path),
+    )
+
+
+# --------------------------------------------------------------------------------------
+# CLI
+# --------------------------------------------------------------------------------------
+def add_parser(subparsers):
+    p = subparsers.add_parser(
+        "calibrate",
+        help="calibrate from a manifest (the main job)",
+        description="Fit a calibration method to the acquisitions of a manifest and write "
+        "OUT/calibration.nc and OUT/summary.json.",
+    )
+    p.add_argument("manifest", type=Path, help="TOML manifest of the acquisitions")
+    p.add_argument("--method", "-m", default="gs", choices=METHODS, help="calibration method (default: gs)")
+    p.add_argument("-o", "--out", type=Path, required=True, help="output directory")
+    p.add_argument("--e-per-adu", type=float, default=None,
+                   help="ADU conversion factor (e-/ADU) overriding the manifest's")
+    p.add_argument("--block-size", type=int, default=DEFAULT_BLOCK, help="pixels fitted together")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bars, no summary")
+    p.set_defaults(func=_run)
+    return p
+
+
+def _run(args):
+    if args.block_size < 1:
+        raise ValueError("--block-size must be a positive integer")
+    if args.e_per_adu is not None and not args.e_per_adu > 0:
+        raise ValueError("--e-per-adu must be positive (e-/ADU)")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ds = calibrate(args.manifest, args.method, e_per_adu=args.e_per_adu, out=args.out,
+                       block_size=args.block_size, progress=not args.quiet)
+    if not args.quiet:
+        print(format_summary(ds))
+        print(f"wrote {args.out / result.CALIBRATION_FILE} and {args.out / result.SUMMARY_FILE}")
+    for w in dict.fromkeys(str(c.message) for c in caught):
+        print(f"warning: {w}", file=sys.stderr)
+    return 0
+
+
+def format_summary(ds):
+    """A short human-readable table of a calibration (median over converged pixels)."""
+    ok = ds.converged.values
+    lines = [f"method {ds.attrs['method']}: {int(ok.sum())}/{ok.size} pixels converged, "
+             f"{ds.attrs.get('seconds', float('nan')):.1f} s"]
+
+    def med(v):
+        vals = np.asarray(v)[..., ok] if ok.any() else np.asarray(v).reshape(v.shape[:-2] + (-1,))
+        return np.nanmedian(vals, axis=-1)
+
+    lines.append(f"  e_per_adu  {med(ds.e_per_adu.values):.4f} e-/ADU "
+                 f"(adu_per_e {1 / med(ds.e_per_adu.values):.4f} ADU/e-)")
+    for i, sp in enumerate(ds.setpoint.values):
+        g, se = med(ds.em_gain.values[i]), med(ds.em_gain_se.values[i])
+        lines.append(f"  em_gain at {result.format_setpoint(sp)}x: {g:.4f} ± {se:.4f}")
+    pe = ds.photoelectrons
+    if pe.ndim == 2:
+        lines.append(f"  photoelectrons {med(pe.values):.2f} ± {med(ds.photoelectrons_se.values):.2f} e-")
+    else:
+        dim = pe.dims[0]
+        for i, lab in enumerate(pe[dim].values):
+            lines.append(f"  photoelectrons [{dim} {lab}] {med(pe.values[i]):.2f} ± "
+                         f"{med(ds.photoelectrons_se.values[i]):.2f} e-")
+    return "\n".join(lines)

@@ -1,0 +1,334 @@
+"""The likelihood engine: a series of acquisitions, a block of pixels, one optimiser.
+
+Every likelihood method of the paper (Table 2) is a *parameter layout* over this engine
+(:mod:`emccdcal.methods`): which of the per-acquisition parameters — photoelectrons E,
+EM gain g, ADU conversion factor φ — are free, shared across acquisitions or fixed. The
+engine only sees a per-pixel vector ``x`` of free parameters and the layout's map from
+``x`` to each acquisition's ``(ln E, ln g, ln φ)``.
+
+For each acquisition the exact log-likelihood of a pixel is ``Σ_k n_k ln p(k)`` over its
+histogram (:mod:`emccdcal.stats`), with ``p`` the noise model of :mod:`emccdcal.noise`
+evaluated on one FFT window per pixel, batched over the block. The same FFTs give the
+gradient, the expected (Fisher) information and, at the end, the observed information.
+
+Optimisation is Fisher scoring with Levenberg–Marquardt damping, vectorised over pixels:
+each iteration evaluates only the pixels that have not converged, there is no Python loop
+over pixels. Standard errors come from the inverse observed information at the optimum.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from . import noise
+
+__all__ = ["AcquisitionBlock", "FitResult", "Layout", "fit", "log_likelihood"]
+
+# Values whose model probability is below this fraction of the pixel's peak are beyond
+# what the FFT resolves (round-off ~1e-16 of the peak): they count at this floor, with
+# zero gradient, and are reported as ``n_floored`` (cosmic rays, hot events).
+_FLOOR = 1e-14
+
+
+@dataclass
+class AcquisitionBlock:
+    """The data of one acquisition for a block of P pixels.
+
+    Attributes
+    ----------
+    values, counts : ndarray, shape (P, K)
+        Histogram of each pixel's counts (ADU values, and frames at each; padding has
+        count 0), as :class:`emccdcal.stats.PixelHistograms`.
+    offset, read_noise : ndarray, shape (P,)
+        S0 and σ maps (ADU).
+    poisson_normal : bool
+        True for the 1× acquisition (no EM multiplication).
+    mean, var : ndarray, shape (P,)
+        Moments of the counts (ADU, ADU²), for starting values.
+    n : ndarray, shape (P,)
+        Frames used.
+    """
+
+    values: np.ndarray
+    counts: np.ndarray
+    offset: np.ndarray
+    read_noise: np.ndarray
+    poisson_normal: bool
+    mean: np.ndarray
+    var: np.ndarray
+    n: np.ndarray
+
+    def take(self, idx):
+        """The block restricted to pixels ``idx``."""
+        return AcquisitionBlock(
+            self.values[idx], self.counts[idx], self.offset[idx], self.read_noise[idx],
+            self.poisson_normal, self.mean[idx], self.var[idx], self.n[idx],
+        )
+
+
+@dataclass
+class Layout:
+    """A parameter layout: free parameters ``x`` (P, F) → per-acquisition log-parameters.
+
+    Linear layouts (every method but the hierarchical one) set ``matrix`` (A, 3, F) and
+    ``constant`` (P, A, 3) so that ``(ln E, ln g, ln φ)[a] = constant[:, a] + matrix[a] @ x``.
+    Subclasses may override :meth:`native` and :meth:`log_prior`.
+
+    Attributes
+    ----------
+    names : list of str
+        Names of the free parameters (F).
+    lower, upper : ndarray, shape (F,)
+        Bounds on ``x``.
+    """
+
+    names: list[str]
+    lower: np.ndarray
+    upper: np.ndarray
+    matrix: np.ndarray
+    constant: np.ndarray
+
+    def subset(self, idx):
+        """The layout restricted to pixels ``idx`` (per-pixel constants follow them)."""
+        return replace(self, constant=self.constant[idx])
+
+    @property
+    def n_free(self) -> int:
+        return len(self.names)
+
+    def native(self, x):
+        """Log-parameters (P, A, 3), their Jacobian (P, A, 3, F) and Hessian (or None)."""
+        logs = self.constant + np.einsum("ajf,pf->paj", self.matrix, x)
+        jac = np.broadcast_to(self.matrix, (x.shape[0],) + self.matrix.shape)
+        return logs, jac, None
+
+    def log_prior(self, x):
+        """Log prior density (P,), gradient (P, F) and Hessian (P, F, F); flat here."""
+        P, F = x.shape
+        return np.zeros(P), np.zeros((P, F)), np.zeros((P, F, F))
+
+
+@dataclass
+class FitResult:
+    """Per-pixel outcome of :func:`fit`.
+
+    Attributes
+    ----------
+    x : ndarray, shape (P, F)
+        Free parameters at the optimum.
+    cov : ndarray, shape (P, F, F)
+        Inverse observed information of ``x`` (NaN where it is not positive definite).
+    loglik : ndarray, shape (P,)
+        Log-likelihood at the optimum, nats (without the prior).
+    converged : ndarray of bool, shape (P,)
+        Optimiser converged and the information is positive definite.
+    iterations : ndarray of int, shape (P,)
+    n_floored : ndarray of int, shape (P,)
+        Frames whose probability was below the resolvable floor (outliers).
+    loglik_per_acquisition : ndarray, shape (P, A)
+    """
+
+    x: np.ndarray
+    cov: np.ndarray
+    loglik: np.ndarray
+    converged: np.ndarray
+    iterations: np.ndarray
+    n_floored: np.ndarray
+    loglik_per_acquisition: np.ndarray = field(default=None)
+
+
+def _acquisition_terms(acq, log_e, log_scale, level):
+    """Log-likelihood of one acquisition and its derivatives by (ln E, ln scale).
+
+    ``level`` 0: value only; 1: gradient and expected information; 2: also the observed
+    information. Returns ``(loglik (P,), grad (P, 2), info (P, 2, 2), n_floored (P,))``.
+    """
+    P = acq.values.shape[0]
+    E = np.exp(log_e)
+    scale = np.exp(log_scale)
+    pn = np.full(P, acq.poisson_normal)
+    lo_model, hi_model = noise._extent(E, scale, acq.offset, acq.read_noise, pn)
+    start = np.minimum(acq.values[:, 0], np.floor(lo_model).astype(np.int64))
+    stop = np.maximum(acq.values.max(axis=1), np.ceil(hi_model).astype(np.int64))
+    n = noise._fast_len(int((stop - start).max()) + 1)
+    p, d1, d2 = noise._window(
+        E, scale, acq.offset - start, acq.read_noise, pn, n,
+        derivs=level >= 1, second=level >= 2,
+    )
+    y = acq.values - start[:, None]
+    pv = np.take_along_axis(p, y, axis=1)
+    floor = _FLOOR * p.max(axis=1, keepdims=True)
+    low = pv < floor
+    pv = np.where(low, floor, pv)
+    loglik = np.sum(acq.counts * np.log(pv), axis=1)
+    n_floored = np.sum(acq.counts * low, axis=1).astype(np.int64)
+    if level == 0:
+        return loglik, None, None, n_floored
+    names = ("photoelectrons", "scale")
+    factor = np.stack([E, scale], axis=1)  # d λ / d ln λ
+    w = np.where(low, 0.0, acq.counts / pv)
+    scores = [np.take_along_axis(d1[nm], y, axis=1) for nm in names]
+    grad = np.stack([np.sum(w * s, axis=1) for s in scores], axis=1) * factor
+    # Expected information per frame, Σ_y f'_i f'_j / f over the window, times frames.
+    safe = p > floor
+    inv_p = np.where(safe, 1.0 / np.where(safe, p, 1.0), 0.0)
+    info = np.empty((P, 2, 2))
+    for i, a in enumerate(names):
+        for j, b in enumerate(names[i:], start=i):
+            val = np.sum(d1[a] * d1[b] * inv_p, axis=1) * acq.n * factor[:, i] * factor[:, j]
+            info[:, i, j] = info[:, j, i] = val
+    if level >= 2:
+        obs = np.empty((P, 2, 2))
+        for i, a in enumerate(names):
+            for j, b in enumerate(names[i:], start=i):
+                d2v = np.take_along_axis(d2[(a, b)], y, axis=1)
+                h = np.sum(w * d2v, axis=1) - np.sum(w * scores[i] * scores[j] / pv, axis=1)
+                h = h * factor[:, i] * factor[:, j]
+                if i == j:  # d²/d(ln λ)² picks up λ · d/dλ
+                    h = h + grad[:, i]
+                obs[:, i, j] = obs[:, j, i] = -h
+        info = obs
+    return loglik, grad, info, n_floored
+
+
+def _native_to_model(logs, poisson_normal):
+    """(ln E, ln g, ln φ) → (ln E, ln scale) and d(ln scale)/d(ln g, ln φ)."""
+    log_e, log_g, log_phi = logs[:, 0], logs[:, 1], logs[:, 2]
+    if poisson_normal:
+        return log_e, -log_phi, np.array([0.0, -1.0])
+    return log_e, log_g - log_phi, np.array([1.0, -1.0])
+
+
+def _evaluate(layout, blocks, x, level):
+    """Objective (log-likelihood + log prior), gradient and information in ``x``."""
+    P, F = x.shape
+    logs, jac, hess = layout.native(x)
+    total = np.zeros(P)
+    per_acq = np.zeros((P, len(blocks)))
+    grad = np.zeros((P, F))
+    info = np.zeros((P, F, F))
+    floored = np.zeros(P, dtype=np.int64)
+    for a, acq in enumerate(blocks):
+        log_e, log_scale, dscale = _native_to_model(logs[:, a], acq.poisson_normal)
+        ll, g_u, i_u, nf = _acquisition_terms(acq, log_e, log_scale, level)
+        per_acq[:, a] = ll
+        total += ll
+        floored += nf
+        if level == 0:
+            continue
+        # u = (ln E, ln scale) as a function of x through (ln E, ln g, ln φ).
+        j_u = np.stack([jac[:, a, 0], dscale[0] * jac[:, a, 1] + dscale[1] * jac[:, a, 2]], 1)
+        grad += np.einsum("pu,puf->pf", g_u, j_u)
+        info += np.einsum("puf,puv,pvg->pfg", j_u, i_u, j_u)
+        if hess is not None and level >= 2:
+            h_u = np.stack([hess[:, a, 0], dscale[0] * hess[:, a, 1] + dscale[1] * hess[:, a, 2]], 1)
+            info -= np.einsum("pu,pufg->pfg", g_u, h_u)
+    lp, lp_grad, lp_hess = layout.log_prior(x)
+    objective = total + lp
+    if level >= 1:
+        grad = grad + lp_grad
+        info = info - lp_hess
+    return objective, total, per_acq, grad, info, floored
+
+
+def log_likelihood(layout, blocks, x):
+    """Log-likelihood (P,) of free parameters ``x`` (P, F), nats; no prior."""
+    return _evaluate(layout, blocks, x, 0)[1]
+
+
+def fit(layout, blocks, x0, *, max_iter=100, tol=1e-9, progress=None):
+    """Maximise the likelihood (times the layout's prior) for every pixel of a block.
+
+    Parameters
+    ----------
+    layout : Layout
+        The method's parameter layout.
+    blocks : list of AcquisitionBlock
+        The acquisitions, each over the same P pixels.
+    x0 : ndarray, shape (P, F)
+        Starting values (e.g. from moments).
+    max_iter : int
+        Iteration limit; pixels still moving then are flagged not converged.
+    tol : float
+        Convergence when the predicted gain of the step (Newton decrement ½ gᵀΔ) is below
+        ``tol`` nats and the step below 1e-7 in every log-parameter.
+    progress : callable, optional
+        Called with the number of pixels that finished at each iteration.
+
+    Returns
+    -------
+    FitResult
+    """
+    x = np.clip(np.array(x0, dtype=float), layout.lower, layout.upper)
+    P, F = x.shape
+    # Fisher scoring (expected information) unless the layout asks for Newton steps with
+    # the observed information: the hierarchical layout's prior terms are ill-conditioned
+    # and converge slowly by scoring.
+    level = 2 if getattr(layout, "newton", False) else 1
+    damping = np.full(P, 1e-3)
+    iterations = np.zeros(P, dtype=int)
+    done = np.zeros(P, dtype=bool)
+    obj, _, _, grad, info, _ = _evaluate(layout, blocks, x, level)
+    eye = np.eye(F)
+    for _ in range(max_iter):
+        active = np.flatnonzero(~done)
+        if active.size == 0:
+            break
+        sub = [b.take(active) for b in blocks]
+        g, I = grad[active], info[active]
+        scale = np.sqrt(np.maximum(np.abs(np.einsum("pii->pi", I)), 1e-300))
+        A = I + damping[active, None, None] * (scale[:, :, None] * scale[:, None, :]) * eye
+        step = _solve(A, g)
+        # At most a factor e per iteration in log-parameters (or the layout's own limit).
+        limit = getattr(layout, "step_limit", None)
+        limit = 1.0 if limit is None else limit
+        step = np.clip(step, -limit, limit)
+        x_new = np.clip(x[active] + step, layout.lower, layout.upper)
+        step = x_new - x[active]
+        res = _evaluate(layout.subset(active), sub, x_new, level)
+        better = res[0] >= obj[active] - 1e-12 * np.abs(obj[active])
+        idx = active[better]
+        x[idx] = x_new[better]
+        obj[idx] = res[0][better]
+        grad[idx], info[idx] = res[3][better], res[4][better]
+        damping[idx] = np.maximum(damping[idx] / 10.0, 1e-12)
+        damping[active[~better]] *= 10.0
+        iterations[active] += 1
+        decrement = 0.5 * np.einsum("pf,pf->p", g, step)
+        small = (np.abs(decrement) < tol) | (np.max(np.abs(step), axis=1) < 1e-10)
+        finished = (better & small) | (damping[active] > 1e8)
+        done[active[finished]] = True
+        if progress is not None:
+            progress(int(finished.sum()))
+    objective, loglik, per_acq, grad, obs, floored = _evaluate(layout, blocks, x, 2)
+    cov, pos_def = _invert(obs)
+    gnorm = np.einsum("pf,pfg,pg->p", grad, np.nan_to_num(cov), grad)
+    converged = done & pos_def & (gnorm < 1e-4) & (damping <= 1e8)
+    if progress is not None:
+        progress(int((~done).sum()))
+    return FitResult(x, cov, loglik, converged, iterations, floored, per_acq)
+
+
+def _solve(A, b):
+    try:
+        return np.linalg.solve(A, b[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        out = np.zeros_like(b)
+        for i in range(A.shape[0]):  # rare: only when a matrix in the stack is singular
+            out[i] = np.linalg.lstsq(A[i], b[i], rcond=None)[0]
+        return out
+
+
+def _invert(H):
+    """Inverse of a stack of information matrices and whether each is positive definite."""
+    P, F, _ = H.shape
+    cov = np.full((P, F, F), np.nan)
+    ok = np.all(np.isfinite(H), axis=(1, 2))
+    eig = np.full((P, F), -1.0)
+    eig[ok] = np.linalg.eigvalsh(H[ok])
+    pos = ok & np.all(eig > 0, axis=1)
+    if pos.any():
+        cov[pos] = np.linalg.inv(H[pos])
+    return cov, pos
