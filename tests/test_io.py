@@ -108,7 +108,8 @@ def test_round_trip(files):
     assert a1.frames_path == files / "data/1x.tif"
     assert a1.offset.dtype == np.float64 and a1.offset.shape == SHAPE
     np.testing.assert_array_equal(a1.offset, 588.5)
-    np.testing.assert_allclose(a1.read_noise, np.linspace(15, 16, 12, dtype=np.float32).reshape(SHAPE))
+    sigma = np.linspace(15, 16, 12, dtype=np.float32).reshape(SHAPE)
+    np.testing.assert_allclose(a1.read_noise, sigma)
     assert a1.offset_source == str(files / "data/1x_S0.tif")
     assert a1.n_frames == N_FRAMES and a1.shape == SHAPE
     np.testing.assert_array_equal(a1.frames(), stack(1))
@@ -162,7 +163,8 @@ def test_no_e_per_adu_and_paths_relative_to_the_manifest(files, monkeypatch, tmp
 
 
 def test_absolute_paths_name_and_level_as_number(files):
-    text = ONE_1X.replace('"data/1x.tif"', f'"{files / "data/1x.tif"}"') + 'name = "ref"\nlevel = 3\n'
+    absolute = f'"{files / "data/1x.tif"}"'
+    text = ONE_1X.replace('"data/1x.tif"', absolute) + 'name = "ref"\nlevel = 3\n'
     m = read_manifest(write(files, text))
     assert m.acquisitions[0].name == "ref"
     assert m.acquisitions[0].level == "3"
@@ -252,7 +254,11 @@ def test_toml_syntax_error_names_file_and_line(files):
     "text, key, suggestion",
     [
         (ONE_1X.replace("offset =", "ofset ="), "ofset", "offset"),
-        (ONE_1X.replace("em_gain_setpoint", "em_gain_setpiont"), "em_gain_setpiont", "em_gain_setpoint"),
+        (
+            ONE_1X.replace("em_gain_setpoint", "em_gain_setpiont"),
+            "em_gain_setpiont",
+            "em_gain_setpoint",
+        ),
         ("e_per_adus = 3.8\n" + ONE_1X, "e_per_adus", "e_per_adu"),
         (ONE_1X + "skipframes = 3\n", "skipframes", "skip_frames"),
     ],
@@ -483,7 +489,8 @@ def test_read_stack_and_read_map(files):
     np.testing.assert_array_equal(s, stack(1))
     m = read_map(files / "data/1x_S0.tif", SHAPE, name="offset")
     assert m.dtype == np.float64 and m.shape == SHAPE
-    with pytest.raises(InputError, match=r"1x_S0.tif.*offset map has shape \(3, 4\), but the stacks are \(4, 3\)"):
+    expected = r"1x_S0.tif.*offset map has shape \(3, 4\), but the stacks are \(4, 3\)"
+    with pytest.raises(InputError, match=expected):
         read_map(files / "data/1x_S0.tif", (4, 3), name="offset")
     with pytest.raises(InputError, match="not a 3-D"):
         read_stack(files / "data/1x_S0.tif")
@@ -491,6 +498,16 @@ def test_read_stack_and_read_map(files):
         read_stack(files / "nothing.tif")
     with pytest.raises(InputError, match=r"above the ADC maximum 600"):
         read_stack(files / "data/1x.tif", adc_max=600)
+
+
+def test_tiff_with_several_series_is_refused(files):
+    with tifffile.TiffWriter(files / "data/two.tif") as tif:
+        tif.write(stack(1), photometric="minisblack")
+        tif.write(np.zeros((2, 2), np.uint16), photometric="minisblack")
+    with pytest.raises(InputError, match=r"two.tif'.*holds 2 image series"):
+        read_stack(files / "data/two.tif")
+    msg = error_of(write(files, ONE_1X.replace("1x.tif", "two.tif")))
+    assert "two.tif" in msg and "expected one (frames, rows, cols) stack" in msg
 
 
 class _Untouchable:
@@ -515,9 +532,25 @@ def test_unsigned_stacks_are_not_scanned():
         io.check_counts(_Untouchable(np.uint16), "x.tif", adc_max=4095)
 
 
+class _Recording:
+    """A stack that records how many frames each read asks for."""
+
+    def __init__(self, data):
+        self.data, self.dtype, self.shape, self.size = data, data.dtype, data.shape, data.size
+        self.reads = []
+
+    def __getitem__(self, item):
+        out = self.data[item]
+        self.reads.append(out.shape[0])
+        return out
+
+
 def test_scan_is_chunked_and_reports_the_right_frame(monkeypatch):
-    monkeypatch.setattr(io, "_SCAN_ELEMENTS", 2 * 12)  # two frames per chunk
+    monkeypatch.setattr(io, "_SCAN_ELEMENTS", 2 * 12)  # two (3, 4) frames per chunk
     data = stack(1).astype(np.float32)
+    rec = _Recording(data)
+    io.check_counts(rec, "x.tif")
+    assert sum(rec.reads) == N_FRAMES and max(rec.reads) == 2
     data[13, 2, 0] = -1
     with pytest.raises(InputError, match=r"frame 13, pixel \(2, 0\)"):
         io.check_counts(data, "x.tif")

@@ -289,7 +289,8 @@ def real_adu():
     mean = np.array([s[0] for s in stats])
     var = np.array([s[1] for s in stats])
     n = [s[2] for s in stats]
-    return mean, var, _map(d / "1x-gain_no-signal_S0.tif"), _map(d / "1x-gain_no-signal_sigma.tif"), n
+    offset, sigma = _map(d / "1x-gain_no-signal_S0.tif"), _map(d / "1x-gain_no-signal_sigma.tif")
+    return mean, var, offset, sigma, n
 
 
 @pytest.fixture(scope="module")

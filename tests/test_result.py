@@ -236,6 +236,9 @@ def test_round_trip(tmp_path):
     summary = json.loads(paths["summary"].read_text())
     assert summary == json.loads(json.dumps(summarize(ds, seconds=1.25)))
     assert not [p for p in paths["calibration"].parent.iterdir() if p.name.startswith(".")]
+    # a loaded result can be saved again, over itself
+    save(back, tmp_path / "out" / "nested")
+    xr.testing.assert_identical(load(tmp_path / "out/nested"), ds)
 
 
 def test_round_trip_levels(tmp_path):

@@ -219,11 +219,12 @@ def _header(path: Path) -> tuple[tuple[int, ...], np.dtype]:
         with tifffile.TiffFile(path) as tif:
             if not tif.series:
                 raise InputError(f"'{path}': TIFF file holds no image")
-            shapes = {tuple(s.shape) for s in tif.series}
-            if len(tif.series) > 1 and len(shapes) > 1:
+            if len(tif.series) > 1:  # reading only the first would drop frames silently
+                shapes = [tuple(s.shape) for s in tif.series]
                 raise InputError(
-                    f"'{path}': TIFF file holds {len(tif.series)} image series of different "
-                    f"shapes {sorted(shapes)}; expected one (frames, rows, cols) stack"
+                    f"'{path}': TIFF file holds {len(shapes)} image series (shapes "
+                    f"{', '.join(map(str, shapes[:4]))}{', ...' if len(shapes) > 4 else ''}); "
+                    "expected one (frames, rows, cols) stack"
                 )
             series = tif.series[0]
             return tuple(series.shape), np.dtype(series.dtype)
@@ -239,6 +240,7 @@ def _load_stack(path: Path) -> np.ndarray:
     try:
         if path.suffix.lower() == ".npy":
             return np.load(path, mmap_mode="r", allow_pickle=False)
+        _header(path)  # one image series, or an error
         try:
             return tifffile.memmap(path, mode="r")
         except ValueError:  # compressed, tiled or scattered pages: not memory-mappable
@@ -265,7 +267,7 @@ def default_adc_max(dtype) -> int:
 
 def _where(arr: np.ndarray, mask: np.ndarray, frame0: int) -> str:
     idx = tuple(int(i) for i in np.argwhere(mask)[0])
-    value = arr[idx]
+    value = arr[idx].item()  # a Python number: "600.5", not "np.float32(600.5)"
     idx = (idx[0] + frame0,) + idx[1:]
     if len(idx) == 3:
         return f"{value!r} at frame {idx[0]}, pixel ({idx[1]}, {idx[2]})"
@@ -316,7 +318,9 @@ def check_counts(stack, path, *, adc_max: int | None = None, adc_bits_hint: str 
         if kind == "f":
             bad = ~np.isfinite(chunk)
             if bad.any():
-                raise InputError(f"'{path}': contains NaN or infinite values ({_where(chunk, bad, f0)})")
+                raise InputError(
+                    f"'{path}': contains NaN or infinite values ({_where(chunk, bad, f0)})"
+                )
             bad = chunk != np.floor(chunk)
             if bad.any():
                 raise InputError(
@@ -418,13 +422,17 @@ def read_map(
     data = data.astype(np.float64)
     bad = ~np.isfinite(data)
     if bad.any():
-        raise InputError(f"'{path}': {name} map contains NaN or infinite values ({_where(data, bad, 0)})")
+        raise InputError(
+            f"'{path}': {name} map contains NaN or infinite values ({_where(data, bad, 0)})"
+        )
     if positive and np.any(data <= 0):
         raise InputError(
             f"'{path}': {name} map must be > 0 everywhere ({_where(data, data <= 0, 0)})"
         )
     if nonnegative and np.any(data < 0):
-        raise InputError(f"'{path}': {name} map must be >= 0 everywhere ({_where(data, data < 0, 0)})")
+        raise InputError(
+            f"'{path}': {name} map must be >= 0 everywhere ({_where(data, data < 0, 0)})"
+        )
     return data
 
 

@@ -40,8 +40,8 @@ Choices, and why
   least squares (every level counts the same, so the bright, noisy levels dominate).
 * **Standard errors by first-order error propagation (delta method)** through the
   closed-form estimator, with the weights held fixed, over the sampling variances above:
-  ``Var(β) = Σ_j (∂β/∂x_j)²·Var(x_j) + (∂β/∂y_j)²·Var(y_j)``, and likewise for every ``E``
-  (which is correlated with φ: both are computed from the same points). These SEs are
+  ``Var(β) = Σ_j (∂β/∂x_j)²·Var(x_j) + (∂β/∂y_j)²·Var(y_j)``, and likewise for every
+  ``E`` (which is correlated with φ: both are computed from the same points). These SEs are
   model-based; they hold for unweighted fits too.
 * **What the SEs leave out.** The dark maps (``offset``, ``read_noise``) are treated as
   exact; the mean and the sample variance are treated as uncorrelated (exact for symmetric
@@ -52,8 +52,11 @@ Choices, and why
   −11 % on g at 5×), ADC non-linearity, clock-induced charge in the dark σ — are biases,
   not sampling noise, and no SE covers them. Finally φ = 1/β (and E ∝ 1/β) is a
   non-linear function of the fitted slope, so it carries a second-order bias of about
-  ``φ·(SE/φ)²``: negligible at the 1–2 % precision of a good series, +0.4 % at 6 %. ``chi2`` (the weighted residual sum of
-  squares with ``dof`` degrees of freedom) tells how well a multi-level line fits.
+  ``φ·(SE/φ)²``: negligible at the 1–2 % precision of a good series, +0.4 % at 6 %.
+* **Goodness of fit.** ``chi2`` (the residual sum of squares over the effective sampling
+  variances, with ``dof`` degrees of freedom) tells how well a multi-level line fits; well
+  above ``dof`` means the straight line or the sampling variances do not describe the
+  data, and the SEs are then too small.
 
 Inputs
 ------
@@ -260,8 +263,8 @@ def _fit_line(x, y, read_var, n, sample_var, *, intercept, weighted, iterations)
         w = 1.0 / (var_y + beta**2 * var_x)
         beta, a, dx, dy, sxx = solve(w)
     var_x, var_y = sampling(beta, a)
-    # ∂β/∂y_j = w_j·dx_j / Sxx;  ∂β/∂x_j = w_j·(dy_j − 2β·dx_j) / Sxx  (weights fixed;
-    # the centring terms drop out because Σ w·dx = Σ w·dy = 0).
+    # ∂β/∂y_j = w_j·dx_j / Sxx;  ∂β/∂x_j = w_j·(dy_j − 2β·dx_j) / Sxx  (weights
+    # fixed; the centring terms drop out because Σ w·dx = Σ w·dy = 0).
     dbeta_dy = w * dx / sxx
     dbeta_dx = w * (dy - 2.0 * beta * dx) / sxx
     var_beta = (dbeta_dx**2 * var_x + dbeta_dy**2 * var_y).sum(axis=0)
@@ -274,7 +277,8 @@ def _intensity(x, line, scale):
     """E_i = scale·x_i/β and its delta-method variance over all points of the line."""
     beta = line.beta
     E = scale * x / beta
-    # ∂E_i/∂x_j = scale·(δ_ij/β − x_i·∂β/∂x_j / β²);  ∂E_i/∂y_j = −scale·x_i·∂β/∂y_j / β²
+    # ∂E_i/∂x_j = scale·(δ_ij/β − x_i·∂β/∂x_j / β²)
+    # ∂E_i/∂y_j = −scale·x_i·∂β/∂y_j / β²
     coef = x / beta**2  # (A, ...) indexed by i
     d_x = -coef[:, None] * line.dbeta_dx[None, :]  # (i, j, ...)
     idx = np.arange(x.shape[0])
@@ -447,7 +451,9 @@ def fit_mv_gain(
     A, pixels = x.shape[0], x.shape[1:]
     sp = np.asarray(setpoint, dtype=float)
     if sp.shape != (A,):
-        raise ValueError(f"setpoint must have one entry per acquisition, shape ({A},); got {sp.shape}")
+        raise ValueError(
+            f"setpoint must have one entry per acquisition, shape ({A},); got {sp.shape}"
+        )
     if not np.all(np.isfinite(sp) & (sp > 0)):
         raise ValueError("setpoint values must be positive and finite")
     phi = _pixel_param("e_per_adu", e_per_adu, pixels, positive=True)
@@ -495,8 +501,8 @@ def fit_mv_gain(
 def mean_ratio_gains(mean, var, offset, n, setpoint) -> MeanRatioGains:
     """Gains relative to the 1× acquisition from the ratio of offset-subtracted means.
 
-    ``g_i = (⟨S_i⟩ − S0_i) / (⟨S_1⟩ − S0_1)``, where acquisition 1 is the one at set-point
-    1. This assumes the illumination (E) is the same in every acquisition, as in a gain
+    ``g_i = (⟨S_i⟩ − S0_i) / (⟨S_1⟩ − S0_1)``, where acquisition 1 is the one at
+    set-point 1. This assumes the illumination (E) is the same in every acquisition, as in a gain
     series; it does not depend on φ or on the excess-noise factor, so it is free of the
     F² bias of :func:`fit_mv_gain` at low gain (METHODS §3.1) and is a good starting value
     for the likelihood fits.
@@ -539,7 +545,9 @@ def mean_ratio_gains(mean, var, offset, n, setpoint) -> MeanRatioGains:
     A = x.shape[0]
     sp = np.asarray(setpoint, dtype=float)
     if sp.shape != (A,):
-        raise ValueError(f"setpoint must have one entry per acquisition, shape ({A},); got {sp.shape}")
+        raise ValueError(
+            f"setpoint must have one entry per acquisition, shape ({A},); got {sp.shape}"
+        )
     ref = np.flatnonzero(sp == 1.0)
     if ref.size != 1:
         raise ValueError(

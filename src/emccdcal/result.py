@@ -8,20 +8,21 @@ one, and :func:`summarize` reduces it to per-parameter statistics over pixels.
 
 Dimensions and variables (``R`` rows, ``C`` columns)
 ----------------------------------------------------
-============================  ==========================  ==========
-variable                      dims                        units
-============================  ==========================  ==========
-``e_per_adu`` (+ ``_se``)     (row, col)                  e-/ADU
-``adu_per_e`` (+ ``_se``)     (row, col)                  ADU/e-
-``em_gain`` (+ ``_se``)       (setpoint, row, col)        1
-``photoelectrons`` (+ _se)    (row, col), or (level|setpoint, row, col)   e-
-``loglik``                    (row, col)                  nat
-``converged``                 (row, col), bool            1
-============================  ==========================  ==========
+==============================  ===============================  ========
+variable (each with ``_se``)    dims                             units
+==============================  ===============================  ========
+``e_per_adu``                   (row, col)                       e-/ADU
+``adu_per_e``                   (row, col)                       ADU/e-
+``em_gain``                     (setpoint, row, col)             1
+``photoelectrons``              (row, col) or (D, row, col) [*]  e-
+==============================  ===============================  ========
+
+[*] ``D`` is ``level`` or ``setpoint``, see below. Without ``_se``: ``loglik`` (row, col)
+in nat, and ``converged`` (row, col), bool, units "1".
 
 Coordinates: ``row`` and ``col`` (sensor pixel indices, integers; ``origin`` shifts them
-for a tile of a larger sensor), ``setpoint`` (the camera's EM-gain set-points, float,
-ascending as given) and ``level`` (illumination-level labels, str).
+for a tile of a larger sensor), ``setpoint`` (the camera's EM-gain set-points, float, in the
+order given) and ``level`` (illumination-level labels, str).
 
 Which dims ``photoelectrons`` gets
 ----------------------------------
@@ -389,8 +390,12 @@ def make_dataset(
 
     e_shape = tuple(sizes[d] for d in e_dims)
     put("photoelectrons", e_dims, E)
-    put("photoelectrons_se", e_dims, _float_array("photoelectrons_se", photoelectrons_se, e_shape, e_dims))
-    put("loglik", _PIXEL_DIMS, np.full(pix, np.nan) if loglik is None else _float_array("loglik", loglik, pix, _PIXEL_DIMS))
+    put("photoelectrons_se", e_dims,
+        _float_array("photoelectrons_se", photoelectrons_se, e_shape, e_dims))
+    if loglik is None:
+        put("loglik", _PIXEL_DIMS, np.full(pix, np.nan))
+    else:
+        put("loglik", _PIXEL_DIMS, _float_array("loglik", loglik, pix, _PIXEL_DIMS))
 
     conv = np.asarray(converged)
     if conv.dtype != bool:
@@ -400,7 +405,9 @@ def make_dataset(
     if conv.ndim == 0:
         conv = np.full(pix, bool(conv))
     if conv.shape != pix:
-        raise ValueError(f"converged has shape {conv.shape}; expected {pix} for dims ('row', 'col')")
+        raise ValueError(
+            f"converged has shape {conv.shape}; expected {pix} for dims ('row', 'col')"
+        )
     put("converged", _PIXEL_DIMS, conv)
 
     reserved = (set(UNITS) - {"offset", "read_noise"}) | set(data) | {
@@ -408,7 +415,9 @@ def make_dataset(
     }
     for name, spec in (extra or {}).items():
         if name in reserved:
-            raise ValueError(f"extra variable {name!r} clashes with a standard variable or coordinate")
+            raise ValueError(
+                f"extra variable {name!r} clashes with a standard variable or coordinate"
+            )
         if not isinstance(spec, tuple) or len(spec) not in (3, 4):
             raise ValueError(f"extra[{name!r}] must be (dims, array, units[, long_name])")
         dims = (spec[0],) if isinstance(spec[0], str) else tuple(spec[0])
@@ -446,12 +455,11 @@ def make_dataset(
         ds_attrs[key] = _attr_value(key, value)
 
     r0, c0 = (int(v) for v in origin)
+    coords = {"row": np.arange(r0, r0 + R), "col": np.arange(c0, c0 + C), **coords}
     all_coords = {
-        "row": ("row", np.arange(r0, r0 + R), {"units": UNITS["row"], "long_name": LONG_NAMES["row"]}),
-        "col": ("col", np.arange(c0, c0 + C), {"units": UNITS["col"], "long_name": LONG_NAMES["col"]}),
+        name: (name, values, {"units": UNITS[name], "long_name": LONG_NAMES[name]})
+        for name, values in coords.items()
     }
-    for name, values in coords.items():
-        all_coords[name] = (name, values, {"units": UNITS[name], "long_name": LONG_NAMES[name]})
     return xr.Dataset(data, coords=all_coords, attrs=ds_attrs)
 
 
@@ -643,7 +651,9 @@ def load(path) -> xr.Dataset:
         with xr.open_dataset(p, engine="h5netcdf") as f:
             ds = f.load()
     except (OSError, ValueError, TypeError, KeyError) as exc:
-        raise ValueError(f"{p}: not a readable NetCDF file ({exc.__class__.__name__}: {exc})") from None
+        raise ValueError(
+            f"{p}: not a readable NetCDF file ({exc.__class__.__name__}: {exc})"
+        ) from None
     missing_attrs = [a for a in ("method", "emccdcal_version") if a not in ds.attrs]
     if missing_attrs:
         raise ValueError(
@@ -651,7 +661,9 @@ def load(path) -> xr.Dataset:
         )
     missing = [v for v in REQUIRED_VARIABLES if v not in ds.variables]
     if missing:
-        raise ValueError(f"{p}: not a complete emccdcal result (missing variables: {', '.join(missing)})")
+        raise ValueError(
+            f"{p}: not a complete emccdcal result (missing variables: {', '.join(missing)})"
+        )
     file_major, our_major = _major(ds.attrs["emccdcal_version"]), _major(_package_version())
     if file_major is None or (our_major is not None and file_major != our_major):
         raise ValueError(

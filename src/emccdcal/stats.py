@@ -109,7 +109,9 @@ def _block_histograms(block: np.ndarray, adc_max: int | None):
     kind = "stable" if block.dtype.itemsize <= 2 else "quicksort"  # radix for 8/16 bit
     s = np.sort(block, axis=1, kind=kind)
     if n_frames and s.dtype.kind == "i" and np.any(s[:, 0] < 0):
-        raise ValueError("frames contain negative values; counts must be raw ADU (never offset-subtracted)")
+        raise ValueError(
+            "frames contain negative values; counts must be raw ADU (never offset-subtracted)"
+        )
     if adc_max is None:
         usable = np.ones(s.shape, dtype=bool)
     else:
