@@ -24,3 +24,7 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree
 from . import noise  # noqa: E402
 
 __all__ = ["__version__", "noise"]
+
+from .calibrate import calibrate  # noqa: E402
+
+__all__ += ["calibrate"]

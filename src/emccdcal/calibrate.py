@@ -6,8 +6,10 @@ driven by a :mod:`methods` layout, tile by tile → :mod:`result` (dataset, file
 
 from __future__ import annotations
 
+import os
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 import warnings
 from pathlib import Path
 
@@ -80,6 +82,7 @@ def calibrate(
     block_size=DEFAULT_BLOCK,
     options=None,
     progress=False,
+    workers=None,
 ):
     """Calibrate a camera from the acquisitions of a manifest.
 
@@ -100,6 +103,8 @@ def calibrate(
         Method options (``gs-hierarchical``: ``mu_sd``, ``sigma_sd`` in photoelectrons).
     progress : bool
         Show progress bars on stderr.
+    workers : int, optional
+        Threads fitting blocks at once (default: the number of CPUs).
 
     Returns
     -------
@@ -136,7 +141,8 @@ def calibrate(
         ds = _calibrate_mv(method, manifest, used, hists, phi_map)
     else:
         ds = _calibrate_likelihood(
-            method, manifest, used, hists, phi_map, block_size, options or {}, progress
+            method, manifest, used, hists, phi_map, block_size, options or {}, progress,
+            os.cpu_count() if workers is None else workers,
         )
     ds.attrs["warnings"] = list(manifest.warnings + found)
     seconds = time.perf_counter() - t0
@@ -170,7 +176,8 @@ def _grid(values, rows, cols):
     return np.asarray(values).reshape(values.shape[:-1] + (rows, cols))
 
 
-def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, options, progress):
+def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, options, progress,
+                          workers):
     rows, cols = manifest.shape
     P = rows * cols
     setpoints = np.array([a.em_gain_setpoint for a in used])
@@ -186,31 +193,36 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
     iterations = np.zeros(P, dtype=np.int64)
     hyper = {"hyper_photoelectrons": np.full(P, np.nan), "hyper_sd_photoelectrons": np.full(P, np.nan)}
 
+    def fit_block(idx):
+        blocks = methods.make_blocks(hists, offsets, read_noise, setpoints, idx)
+        series = methods.Series(blocks, setpoints, _labels(used),
+                                None if phi is None else phi[idx])
+        layout, x0 = methods.build_layout(method, series, options)
+        return idx, layout, fitting.fit(layout, blocks, x0)
+
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=P, desc=f"fitting {method}", unit="px", file=sys.stderr, leave=False)
-    for start in range(0, P, block_size):
-        idx = np.arange(start, min(P, start + block_size))
-        blocks = methods.make_blocks(hists, offsets, read_noise, setpoints, idx)
-        series = methods.Series(blocks, setpoints, _labels(used),
-                                None if phi is None else phi[idx])
-        layout, x0 = methods.build_layout(method, series, options)
-        fit = fitting.fit(layout, blocks, x0)
-        e = methods.acquisition_estimates(layout, fit.x, fit.cov)
-        for k in est:
-            est[k][idx] = e[k]
-        loglik[idx] = fit.loglik
-        converged[idx] = fit.converged
-        n_floored[idx] = fit.n_floored
-        iterations[idx] = fit.iterations
-        if method == "gs-hierarchical":
-            mu, sigma_e = layout.hyperparameters(fit.x)
-            hyper["hyper_photoelectrons"][idx] = mu
-            hyper["hyper_sd_photoelectrons"][idx] = sigma_e
-        if bar is not None:
-            bar.update(idx.size)
+    tiles = [np.arange(s, min(P, s + block_size)) for s in range(0, P, block_size)]
+    # Blocks are independent: threads overlap them (NumPy and the FFT release the GIL),
+    # and the result does not depend on how many there are.
+    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        for idx, layout, fit in pool.map(fit_block, tiles):
+            e = methods.acquisition_estimates(layout, fit.x, fit.cov)
+            for k in est:
+                est[k][idx] = e[k]
+            loglik[idx] = fit.loglik
+            converged[idx] = fit.converged
+            n_floored[idx] = fit.n_floored
+            iterations[idx] = fit.iterations
+            if method == "gs-hierarchical":
+                mu, sigma_e = layout.hyperparameters(fit.x)
+                hyper["hyper_photoelectrons"][idx] = mu
+                hyper["hyper_sd_photoelectrons"][idx] = sigma_e
+            if bar is not None:
+                bar.update(idx.size)
     if bar is not None:
         bar.close()
 

@@ -11,7 +11,8 @@ histogram (:mod:`emccdcal.stats`), with ``p`` the noise model of :mod:`emccdcal.
 evaluated on one FFT window per pixel, batched over the block. The same FFTs give the
 gradient, the expected (Fisher) information and, at the end, the observed information.
 
-Optimisation is Fisher scoring with Levenberg–Marquardt damping, vectorised over pixels:
+Optimisation is BHHH (the information estimated by the outer product of the per-frame
+scores) with Levenberg–Marquardt damping, vectorised over pixels:
 each iteration evaluates only the pixels that have not converged, there is no Python loop
 over pixels. Standard errors come from the inverse observed information at the optimum.
 """
@@ -119,7 +120,8 @@ class FitResult:
     x : ndarray, shape (P, F)
         Free parameters at the optimum.
     cov : ndarray, shape (P, F, F)
-        Inverse observed information of ``x`` (NaN where it is not positive definite).
+        Covariance of ``x``: the inverse observed information (with a prior: the sandwich
+        H⁻¹ I H⁻¹); NaN where the information is not positive definite.
     loglik : ndarray, shape (P,)
         Log-likelihood at the optimum, nats (without the prior).
     converged : ndarray of bool, shape (P,)
@@ -142,27 +144,38 @@ class FitResult:
 def _acquisition_terms(acq, log_e, log_scale, level):
     """Log-likelihood of one acquisition and its derivatives by (ln E, ln scale).
 
-    ``level`` 0: value only; 1: gradient and expected information; 2: also the observed
-    information. Returns ``(loglik (P,), grad (P, 2), info (P, 2, 2), n_floored (P,))``.
+    ``level`` 0: value only; 1: gradient and the outer-product (BHHH) information; 2: the
+    observed information instead. Returns ``(loglik (P,), grad (P, 2), info (P, 2, 2), n_floored (P,))``.
     """
     P = acq.values.shape[0]
     E = np.exp(log_e)
     scale = np.exp(log_scale)
     pn = np.full(P, acq.poisson_normal)
-    lo_model, hi_model = noise._extent(E, scale, acq.offset, acq.read_noise, pn)
-    start = np.minimum(acq.values[:, 0], np.floor(lo_model).astype(np.int64))
-    stop = np.maximum(acq.values.max(axis=1), np.ceil(hi_model).astype(np.int64))
+    # Eight SDs of margin: what wraps around the window is then below 1e-15 of the pmf
+    # at the data's extremes (the data themselves set the rest of the window).
+    lo_model, hi_model = noise._extent(E, scale, acq.offset, acq.read_noise, pn, width=8.0)
+    first, last = acq.values[:, 0], acq.values.max(axis=1)
+    start = np.minimum(first, np.floor(lo_model).astype(np.int64))
+    stop = np.maximum(last, np.ceil(hi_model).astype(np.int64))
+    # A trial step far from the data can ask for an enormous window; such parameters
+    # are hopeless anyway: they get log-likelihood -inf (the step is refused) and a
+    # window of bounded size.
+    span = last - first + 1
+    limit = first - 8 * span - 64 * np.ceil(acq.read_noise).astype(np.int64) - 64
+    hopeless = (start < limit) | (stop - start > 32 * span + 256 * np.ceil(acq.read_noise) + 512)
+    start = np.where(hopeless, limit, start)
+    stop = np.where(hopeless, last + 8 * span + 64, stop)
     n = noise._fast_len(int((stop - start).max()) + 1)
     p, d1, d2 = noise._window(
         E, scale, acq.offset - start, acq.read_noise, pn, n,
-        derivs=level >= 1, second=level >= 2,
+        derivs=level >= 1, second=level >= 2, names=("photoelectrons", "scale"),
     )
     y = acq.values - start[:, None]
     pv = np.take_along_axis(p, y, axis=1)
     floor = _FLOOR * p.max(axis=1, keepdims=True)
     low = pv < floor
     pv = np.where(low, floor, pv)
-    loglik = np.sum(acq.counts * np.log(pv), axis=1)
+    loglik = np.where(hopeless, -np.inf, np.sum(acq.counts * np.log(pv), axis=1))
     n_floored = np.sum(acq.counts * low, axis=1).astype(np.int64)
     if level == 0:
         return loglik, None, None, n_floored
@@ -171,13 +184,12 @@ def _acquisition_terms(acq, log_e, log_scale, level):
     w = np.where(low, 0.0, acq.counts / pv)
     scores = [np.take_along_axis(d1[nm], y, axis=1) for nm in names]
     grad = np.stack([np.sum(w * s, axis=1) for s in scores], axis=1) * factor
-    # Expected information per frame, Σ_y f'_i f'_j / f over the window, times frames.
-    safe = p > floor
-    inv_p = np.where(safe, 1.0 / np.where(safe, p, 1.0), 0.0)
+    # Outer product of the per-frame scores (BHHH): a positive semi-definite estimate of
+    # the information from the data points alone, cheap because the histogram is short.
     info = np.empty((P, 2, 2))
-    for i, a in enumerate(names):
-        for j, b in enumerate(names[i:], start=i):
-            val = np.sum(d1[a] * d1[b] * inv_p, axis=1) * acq.n * factor[:, i] * factor[:, j]
+    for i in range(2):
+        for j in range(i, 2):
+            val = np.sum(w * scores[i] * scores[j] / pv, axis=1) * factor[:, i] * factor[:, j]
             info[:, i, j] = info[:, j, i] = val
     if level >= 2:
         obs = np.empty((P, 2, 2))
@@ -263,9 +275,8 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-9, progress=None):
     """
     x = np.clip(np.array(x0, dtype=float), layout.lower, layout.upper)
     P, F = x.shape
-    # Fisher scoring (expected information) unless the layout asks for Newton steps with
-    # the observed information: the hierarchical layout's prior terms are ill-conditioned
-    # and converge slowly by scoring.
+    # BHHH steps unless the layout asks for Newton steps with the observed information:
+    # the hierarchical layout's prior terms converge slowly without their curvature.
     level = 2 if getattr(layout, "newton", False) else 1
     damping = np.full(P, 1e-3)
     iterations = np.zeros(P, dtype=int)
@@ -298,12 +309,20 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-9, progress=None):
         iterations[active] += 1
         decrement = 0.5 * np.einsum("pf,pf->p", g, step)
         small = (np.abs(decrement) < tol) | (np.max(np.abs(step), axis=1) < 1e-10)
-        finished = (better & small) | (damping[active] > 1e8)
+        # A step that promises less than ``tol`` is done, taken or not: the objective's
+        # round-off (~1e-8 nats) can refuse a step that small.
+        finished = small | (damping[active] > 1e8)
         done[active[finished]] = True
         if progress is not None:
             progress(int(finished.sum()))
     objective, loglik, per_acq, grad, obs, floored = _evaluate(layout, blocks, x, 2)
     cov, pos_def = _invert(obs)
+    # With a prior (the hierarchical MAP) the frequentist covariance of the estimate is the
+    # sandwich H⁻¹ I H⁻¹ of the penalised Hessian H and the likelihood's information I;
+    # without one it is H⁻¹ itself.
+    prior_hess = layout.log_prior(x)[2]
+    if np.any(prior_hess):
+        cov = np.einsum("pfg,pgh,phk->pfk", cov, obs + prior_hess, cov)
     gnorm = np.einsum("pf,pfg,pg->p", grad, np.nan_to_num(cov), grad)
     converged = done & pos_def & (gnorm < 1e-4) & (damping <= 1e8)
     if progress is not None:

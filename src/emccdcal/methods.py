@@ -23,6 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from . import fitting
 from .fitting import AcquisitionBlock, Layout
 
 __all__ = [
@@ -44,8 +45,9 @@ BOUNDS = {
     "e_per_adu": (1e-3, 1e3),
 }
 
-#: Hyperprior scales of the hierarchical gain series (photoelectrons), as the authors'.
-HIERARCHICAL_DEFAULTS = {"mu_sd": 25.0, "sigma_sd": 25.0}
+#: Hyperprior of the hierarchical gain series: scales (photoelectrons) as the authors';
+#: the centre of μ's prior is the shared-E (``gs``) estimate, or ``"setpoint"`` for theirs.
+HIERARCHICAL_DEFAULTS = {"mu_sd": 25.0, "sigma_sd": 25.0, "centre": "gs"}
 
 
 class MethodError(ValueError):
@@ -244,31 +246,46 @@ def build_layout(method, series, options=None):
         sigma_sd = float(options.get("sigma_sd", HIERARCHICAL_DEFAULTS["sigma_sd"]))
         if mu_sd <= 0 or sigma_sd <= 0:
             raise MethodError("hierarchical prior scales mu_sd and sigma_sd must be positive")
-        # Each acquisition's own E estimate; the prior centre is their mean (per pixel,
-        # not pixel (0,0)'s as in the authors' code).
-        own = np.array([E0 if sp[a] == 1 else _shape_photoelectrons(blocks[a]) for a in range(A)])
+        own = np.array([_signal(blocks[a]) * phi / sp[a] for a in range(A)])
         own = np.clip(own, *BOUNDS["photoelectrons"])
-        centre = own.mean(axis=0)
+        # Warm start from the shared-E gain series, the MAP's limit of strong pooling:
+        # moments alone can start far off when the 1× anchor is weak (few e⁻, big φ).
+        gs_layout, gs_x0 = build_layout("gs" if sp[0] == 1 else "gs-no1x", series)
+        shared = fitting.fit(gs_layout, blocks, gs_x0).x
+        mu0 = np.exp(shared[:, 0])
+        centre_rule = options.get("centre", "gs")
+        if centre_rule == "gs":
+            centre = mu0  # the shared-E maximum-likelihood estimate, per pixel
+        elif centre_rule == "setpoint":
+            # The authors': mean over acquisitions of (⟨S⟩ − S0)·φ/set-point (they used
+            # pixel (0,0)'s for every pixel; this is per pixel). Biased where the true
+            # gains differ from the set-points, which they do (METHODS §13).
+            centre = own.mean(axis=0)
+        else:
+            raise MethodError(f"unknown hierarchical centre {centre_rule!r}; use 'gs' or 'setpoint'")
+        # x = [μ, ln E_1 … ln E_A, ln g_a for the EM acquisitions]
+        F = 1 + A + em.size
+        M = np.zeros((A, 3, F))
+        M[np.arange(A), 0, 1 + np.arange(A)] = 1.0
+        M[em, 1, 1 + A + np.arange(em.size)] = 1.0
         const = np.zeros((P, A, 3))
         const[:, :, 2] = np.log(phi)[:, None]
-        span = BOUNDS["photoelectrons"][1]
         layout = HierarchicalLayout(
-            names=["mu"] + [f"d[{a}]" for a in range(A)] + [f"ln_em_gain[{a}]" for a in em],
-            lower=np.r_[BOUNDS["photoelectrons"][0], np.full(A, -span),
+            names=["mu"] + [f"ln_photoelectrons[{a}]" for a in range(A)]
+            + [f"ln_em_gain[{a}]" for a in em],
+            lower=np.r_[BOUNDS["photoelectrons"][0], np.full(A, log_b["photoelectrons"][0]),
                         np.full(em.size, log_b["em_gain"][0])],
-            upper=np.r_[BOUNDS["photoelectrons"][1], np.full(A, span),
+            upper=np.r_[BOUNDS["photoelectrons"][1], np.full(A, log_b["photoelectrons"][1]),
                         np.full(em.size, log_b["em_gain"][1])],
-            matrix=np.zeros((A, 3, 1 + A + em.size)),
+            matrix=M,
             constant=const,
-            em_index=em,
             centre=centre,
             mu_sd=mu_sd,
             sigma_sd=sigma_sd,
-            step_limit=np.r_[np.full(1 + A, np.inf), np.ones(em.size)],
+            step_limit=np.r_[np.inf, np.ones(A + em.size)],
         )
-        mu0 = np.clip(E0, *BOUNDS["photoelectrons"])
-        d0 = 0.5 * (own - mu0)  # away from the kink at d = 0, towards each own estimate
-        x0 = np.column_stack([mu0, d0.T] + [_clip_log(g, "em_gain") for g in g0])
+        E_start = mu0[:, None] * np.exp(0.01 * np.sign(own.T - mu0[:, None]))  # off the kink
+        x0 = np.column_stack([mu0, np.log(E_start), shared[:, 1:]])
         return layout, x0
     raise MethodError(f"unknown method {method!r}")
 
@@ -282,63 +299,51 @@ class HierarchicalLayout(Layout):
     With d_i = E_i − μ, the maximum over (σ_E, z) for given d is attained at
     σ_E² = sigma_sd·‖d‖ and equals −‖d‖/sigma_sd, so the same MAP is
 
-        max over (μ, d, g):  Σ_i ln L_i(μ + d_i, g_i) − (μ − centre)²/(2 mu_sd²) − ‖d‖/sigma_sd,
+        max over (μ, E, g):  Σ_i ln L_i(E_i, g_i) − (μ − centre)²/(2 mu_sd²) − ‖E − μ‖/sigma_sd,
 
-    a well-conditioned problem where (σ_E, z) has a saddle at σ_E → 0. ``x = [μ, d_1 …
-    d_A, ln g_i (EM acquisitions)]``, μ and d in photoelectrons; ‖d‖ is smoothed by
-    1e-3 e⁻ at 0. σ_E and z are recovered from d.
+    a well-posed problem, where (σ_E, z) has a saddle at σ_E → 0. ``x = [μ, ln E_1 …
+    ln E_A, ln g_i (EM acquisitions)]`` (μ in photoelectrons), so the likelihood part is
+    an ordinary linear layout; ‖·‖ is smoothed by 0.1 e⁻ at 0 (worth at most
+    0.1/sigma_sd nats). σ_E and z are recovered from E − μ.
     """
 
-    em_index: np.ndarray = None
     centre: np.ndarray = None
     mu_sd: float = 25.0
     sigma_sd: float = 25.0
-    newton: bool = True  # Newton steps with the observed information (see fitting.fit)
-    smoothing: float = 1e-3
+    smoothing: float = 0.1
     step_limit: np.ndarray = None
 
     def subset(self, idx):
         return replace(self, constant=self.constant[idx], centre=self.centre[idx])
 
-    def native(self, x):
-        P, F = x.shape
-        A = self.constant.shape[1]
-        E = np.maximum(x[:, :1] + x[:, 1 : 1 + A], 1e-300)
-        logs = self.constant.copy()
-        logs[:, :, 0] = np.log(E)
-        jac = np.zeros((P, A, 3, F))
-        hess = np.zeros((P, A, 3, F, F))
-        dE = np.zeros((P, A, F))
-        dE[:, :, 0] = 1.0
-        dE[:, np.arange(A), 1 + np.arange(A)] = 1.0
-        jac[:, :, 0, :] = dE / E[:, :, None]
-        hess[:, :, 0] = -np.einsum("paf,pag->pafg", dE, dE) / (E[:, :, None, None] ** 2)
-        k = 1 + A
-        for j, a in enumerate(self.em_index):
-            logs[:, a, 1] = x[:, k + j]
-            jac[:, a, 1, k + j] = 1.0
-        return logs, jac, hess
-
     def log_prior(self, x):
         P, F = x.shape
         A = self.constant.shape[1]
-        mu, d = x[:, 0], x[:, 1 : 1 + A]
+        mu, E = x[:, 0], np.exp(x[:, 1 : 1 + A])
+        d = E - mu[:, None]
         r = np.sqrt(np.sum(d * d, axis=1) + self.smoothing**2)
-        s_mu2 = self.mu_sd**2
-        value = -0.5 * (mu - self.centre) ** 2 / s_mu2 - r / self.sigma_sd
+        s, s_mu2 = self.sigma_sd, self.mu_sd**2
+        value = -0.5 * (mu - self.centre) ** 2 / s_mu2 - r / s
+        # derivatives of the penalty by d, then through d = e^y − μ
+        g_d = -d / (s * r[:, None])
+        h_d = -(np.eye(A)[None] / r[:, None, None]
+                - np.einsum("pa,pb->pab", d, d) / r[:, None, None] ** 3) / s
+        D = np.zeros((P, A, 1 + A))  # ∂d/∂(μ, y)
+        D[:, :, 0] = -1.0
+        D[:, np.arange(A), 1 + np.arange(A)] = E
         grad = np.zeros((P, F))
         hess = np.zeros((P, F, F))
-        grad[:, 0] = -(mu - self.centre) / s_mu2
-        hess[:, 0, 0] = -1.0 / s_mu2
-        grad[:, 1 : 1 + A] = -d / (self.sigma_sd * r[:, None])
-        block = np.eye(A)[None] / r[:, None, None] - np.einsum("pa,pb->pab", d, d) / r[:, None, None] ** 3
-        hess[:, 1 : 1 + A, 1 : 1 + A] = -block / self.sigma_sd
+        grad[:, : 1 + A] = np.einsum("pa,pak->pk", g_d, D)
+        grad[:, 0] += -(mu - self.centre) / s_mu2
+        hess[:, : 1 + A, : 1 + A] = np.einsum("pak,pab,pbl->pkl", D, h_d, D)
+        hess[:, 1 + np.arange(A), 1 + np.arange(A)] += g_d * E
+        hess[:, 0, 0] += -1.0 / s_mu2
         return value, grad, hess
 
     def hyperparameters(self, x):
-        """μ and σ_E = sqrt(sigma_sd ‖d‖) (photoelectrons) of the authors' model."""
+        """μ and σ_E = sqrt(sigma_sd ‖E − μ‖) (photoelectrons) of the authors' model."""
         A = self.constant.shape[1]
-        d = x[:, 1 : 1 + A]
+        d = np.exp(x[:, 1 : 1 + A]) - x[:, :1]
         return x[:, 0], np.sqrt(self.sigma_sd * np.sqrt(np.sum(d * d, axis=1)))
 
 

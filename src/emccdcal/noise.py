@@ -228,18 +228,19 @@ def _real_cgf(t, E, scale, shift, sigma, pn):
     return t * shift + 0.5 * (sigma * t) ** 2 + E * np.where(pn, np.expm1(ta), ta / (1.0 - ta))
 
 
-def _extent(E, scale, shift, sigma, pn):
+def _extent(E, scale, shift, sigma, pn, width=12.0):
     """Window [lo, hi] (ADU, relative) outside which the distribution's mass is negligible.
 
-    Twelve standard deviations either side of the mean, never less than twelve read-noise
-    widths around the zero-electron peak, plus forty single-electron scales on the right
-    for the exponential tail of a PGN with few photoelectrons.
+    ``width`` standard deviations either side of the mean; below 80 photoelectrons also
+    ``width`` read-noise widths around the zero-electron peak (which carries e^-E) and,
+    for the PGN, forty single-electron scales more on the right for the exponential tail.
     """
     mu, var = _cumulants(E, scale, shift, sigma, pn)
     sd = np.sqrt(var)
-    # The zero-electron peak at the offset carries e^-E: beyond E = 80 it is negligible.
-    lo = np.where(E < 80.0, np.minimum(mu - 12.0 * sd, shift - 12.0 * sigma), mu - 12.0 * sd)
-    hi = mu + 12.0 * sd + np.where(pn, 12.0 * scale, 40.0 * scale) + 1.0
+    few = E < 80.0
+    lo = np.where(few, np.minimum(mu - width * sd, shift - width * sigma), mu - width * sd)
+    tail = np.where(pn, width * scale, np.where(few, 40.0 * scale, width * scale))
+    hi = mu + width * sd + tail + 1.0
     return lo, hi
 
 
@@ -274,7 +275,8 @@ def _band_limit(E, scale, sigma, pn, n):
     return np.where(full, n // 2 + 1, np.minimum(m, n // 2 + 1))
 
 
-def _window(E, scale, shift, sigma, pn, n, *, tilt=None, derivs=False, second=False):
+def _window(E, scale, shift, sigma, pn, n, *, tilt=None, derivs=False, second=False,
+            names=NATIVE):
     """Tilted pmf of the counts 0 … n−1 relative to the window start, and derivatives.
 
     Parameters
@@ -291,7 +293,9 @@ def _window(E, scale, shift, sigma, pn, n, *, tilt=None, derivs=False, second=Fa
         Exponential tilt t per row (1/ADU); ``None`` means 0.
     derivs, second : bool
         Also return first (and second) derivatives of the tilted density by the native
-        parameters, on the same tilted scale.
+        parameters ``names``, on the same tilted scale.
+    names : tuple of str
+        Which of :data:`NATIVE` to differentiate by (each costs one inverse FFT).
 
     Returns
     -------
@@ -315,7 +319,7 @@ def _window(E, scale, shift, sigma, pn, n, *, tilt=None, derivs=False, second=Fa
     omega = 2.0 * np.pi * np.arange(m_hi) / n
     K_t = _real_cgf(t, E, scale, shift, sigma, pn)
     phi = 0.0
-    d1 = {name: 0.0 for name in NATIVE} if derivs else {}
+    d1 = {name: 0.0 for name in names} if derivs else {}
     d2 = {}
     for j in range(-J, J + 1):
         s = t[:, None] + 1j * (omega[None, :] + 2.0 * np.pi * j)
@@ -323,11 +327,11 @@ def _window(E, scale, shift, sigma, pn, n, *, tilt=None, derivs=False, second=Fa
         phi = phi + cf
         if derivs:
             first, sec = _cgf_derivatives(s, E, scale, shift, sigma, pn, second)
-            for name in NATIVE:
+            for name in names:
                 d1[name] = d1[name] + first[name] * cf
             if second:
-                for a_i, a in enumerate(NATIVE):
-                    for b in NATIVE[a_i:]:
+                for a_i, a in enumerate(names):
+                    for b in names[a_i:]:
                         term = first[a] * first[b] + sec.get((a, b), 0.0)
                         d2[(a, b)] = d2.get((a, b), 0.0) + term * cf
 
@@ -354,6 +358,8 @@ def _irfft(spectrum, n):
 #: A window value is trusted where it is at least this fraction of the window's peak:
 #: FFT round-off is ~1e-16 of the peak, so the relative error there is below ~1e-9.
 _TRUSTED = 1e-7
+#: Longest tilted window (counts) before the few-electron PGN tail goes to quadrature.
+_MAX_WINDOW = 2**20
 
 
 def _window_start(E, scale, S0, sigma, pn):
@@ -422,13 +428,30 @@ def _evaluate(E, scale, S0, sigma, pn, row, k, grad=False):
     todo = np.ones(Q, dtype=bool)
     mean_u = S0 + E * scale
     tilt_u = np.zeros(E.shape[0])
+    quad_rows = ~pn & (scale > sigma)
     first_round = True
-    for _ in range(200):
-        if not todo.any():
-            break
+    rounds = 0
+    while todo.any():
+        rounds += 1
+        if rounds > 20000:  # pragma: no cover - a safeguard, never a silent NaN
+            raise RuntimeError("noise model: tail evaluation did not finish")
         if first_round:
             rows = np.unique(row)
             targets = None
+        elif quad_rows.any():
+            # The exponential tail of a PGN whose single-electron scale exceeds the read
+            # noise: tilted windows would have to be enormous, quadrature is exact there.
+            q = np.flatnonzero(todo & quad_rows[row])
+            for chunk in np.array_split(q, max(1, q.size // 4096)):
+                r = row[chunk]
+                lf, dq = _quadrature_logpdf(k[chunk].astype(float), E[r], scale[r], S0[r],
+                                            sigma[r], grad=grad)
+                logp[chunk] = lf
+                for name in grads:
+                    grads[name][chunk] = dq[name]
+            todo[q] = False
+            quad_rows[:] = False
+            continue
         else:
             # Next target of each row: its unfinished query nearest to the mean.
             q = np.flatnonzero(todo)
@@ -441,6 +464,17 @@ def _evaluate(E, scale, S0, sigma, pn, row, k, grad=False):
         t = tilt_u[rows]
         fam = _tilted_family(t, E[rows], scale[rows], S0[rows], sigma[rows], pn[rows])
         start, length = _window_start(*fam, pn[rows])
+        if targets is not None:
+            # Far in a few-electron PGN tail the tilted window grows without bound: hand
+            # those rows to the quadrature, which is exact there.
+            huge = ~pn[rows] & (length > _MAX_WINDOW)
+            if huge.any():
+                quad_rows[rows[huge]] = True
+                keep = ~huge
+                rows, t, start, length = rows[keep], t[keep], start[keep], length[keep]
+                targets = targets[keep]
+                if rows.size == 0:
+                    continue
         # Rows of similar window length share one batched FFT.
         group = np.ceil(np.log2(np.maximum(length, 2))).astype(int)
         for gval in np.unique(group):
@@ -465,10 +499,14 @@ def _evaluate(E, scale, S0, sigma, pn, row, k, grad=False):
             if targets is not None:
                 ok |= np.isin(qi, targets)
             qi, li, y, pv = qi[ok], li[ok], y[ok], pv[ok]
+            # A forced target can still sit in an unresolvable valley (a Poisson–normal
+            # comb with read noise below the electron spacing, far out): its value is
+            # below round-off, reported as probability 0 rather than a wrong number.
+            pv = np.where(pv > 0, pv, 0.0)
             with np.errstate(divide="ignore", invalid="ignore"):
                 logp[qi] = np.log(pv) + K_t[li] - t[sel][li] * y
                 for name in grads:
-                    grads[name][qi] = d1[name][li, y] / pv
+                    grads[name][qi] = np.where(pv > 0, d1[name][li, y] / pv, 0.0)
             todo[qi] = False
         first_round = False
     logZ, dlogZ = _log_normaliser(E, scale, S0, sigma, pn, derivs=grad)
@@ -476,6 +514,61 @@ def _evaluate(E, scale, S0, sigma, pn, row, k, grad=False):
     for name in grads:
         grads[name] -= dlogZ[name][row]
     return logp, grads
+
+
+def _quadrature_logpdf(k, E, theta, S0, sigma, grad=False):
+    """log f(k) of the PGN by Gauss–Legendre quadrature of its Bessel form (METHODS §1.3 C).
+
+    ``f(k) = e^{-E} N(k; S0, σ) + ∫ q_c(u) N(k; S0 + u, σ) du`` with the Poisson–gamma
+    density ``q_c`` evaluated through ``i1e`` (never overflows). The integrand is positive,
+    so the result has full *relative* precision far into the tails, where an FFT window
+    cannot reach: used for the exponential tail of few-electron PGN (θ > σ). Arrays of
+    shape (Q,), one parameter set per query. With ``grad``, also ∂ log f/∂E and ∂/∂θ.
+    """
+    from scipy import special
+
+    nodes, weights = np.polynomial.legendre.leggauss(16)
+    x = (k - S0)[:, None]
+    width = 2.0 * np.minimum(sigma, theta)
+    lo = np.maximum(0.0, k - S0 - 12.0 * sigma)
+    hi = np.maximum(lo, k - S0 + 12.0 * sigma)
+    n_panel = np.clip(np.ceil((hi - lo) / width), 1, 256).astype(int)
+    M = int(n_panel.max())
+    panel = np.arange(M)[None, :]
+    h = ((hi - lo) / n_panel)[:, None]
+    a = lo[:, None] + panel * h
+    u = (a[:, :, None] + 0.5 * h[:, :, None] * (nodes + 1.0)).reshape(k.size, -1)
+    w = (0.5 * h[:, :, None] * weights * (panel < n_panel[:, None])[:, :, None]).reshape(k.size, -1)
+    Ec, tc, sc = E[:, None], theta[:, None], sigma[:, None]
+    u = np.maximum(u, 1e-300)
+    z = 2.0 * np.sqrt(Ec * u / tc)
+    log_q = 0.5 * np.log(Ec / (tc * u)) - (np.sqrt(u / tc) - np.sqrt(Ec)) ** 2 + np.log(special.i1e(z))
+    log_n = -0.5 * ((x - u) / sc) ** 2 - np.log(np.sqrt(2.0 * np.pi) * sc)
+    with np.errstate(divide="ignore"):
+        log_terms = log_q + log_n + np.log(w)
+    atom = -E - 0.5 * ((k - S0) / sigma) ** 2 - np.log(np.sqrt(2.0 * np.pi) * sigma)
+    stacked = np.concatenate([log_terms, atom[:, None]], axis=1)
+    top = stacked.max(axis=1, keepdims=True)
+    weight = np.exp(stacked - top)
+    total = weight.sum(axis=1)
+    logf = top[:, 0] + np.log(total)
+    if not grad:
+        return logf, {}
+    # ∂ ln q_c/∂E = −1 + √(u/(θE))·R(z), ∂ ln q_c/∂θ = (u/θ − (z/2)R(z))/θ, R = I0/I1.
+    R = special.i0e(z) / special.i1e(z)
+    dE = -1.0 + np.sqrt(u / (tc * Ec)) * R
+    dT = (u / tc - 0.5 * z * R) / tc
+    share = weight[:, :-1] / total[:, None]
+    atom_share = weight[:, -1] / total
+    # Offset and read noise act through the Gaussian factor, atom (u = 0) included.
+    resid = np.concatenate([x - u, x], axis=1)
+    all_share = weight / total[:, None]
+    return logf, {
+        "photoelectrons": np.sum(share * dE, axis=1) - atom_share,
+        "scale": np.sum(share * dT, axis=1),
+        "offset": np.sum(all_share * resid, axis=1) / sigma**2,
+        "read_noise": (np.sum(all_share * resid**2, axis=1) / sigma**2 - 1.0) / sigma,
+    }
 
 
 def _fast_len(n):
@@ -583,3 +676,67 @@ def logpmf_grad(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise):
         "read_noise": d["read_noise"],
     }
     return logp.reshape(shape), {name: v.reshape(shape) for name, v in grad.items()}
+
+
+# --------------------------------------------------------------------------------------
+# The authors' grid model, for cross-checks only
+# --------------------------------------------------------------------------------------
+#: Grid length of the authors' model (``s_bit = 17``) and its probability floor.
+PAPER_GRID = 2**17
+PAPER_FLOOR = 1e-16
+
+
+def paper_pmf_grid(photoelectrons, em_gain, e_per_adu, offset, read_noise):
+    """The authors' noise model on their 2^17-point grid, for cross-checks only.
+
+    Reproduces ``NoiseModel_TFv1.py`` of ryand-LANL/EMCCD-calibration as METHODS §1.3 A
+    and §1.4 describe it, including what we believe are its flaws: the zero-electron bin
+    carries ``φ·e^{-E}(1 + E/g)`` (mass φ·e^{-E} instead of e^{-E}), the PGN density is
+    sampled at unit spacing without quadrature, the 1× model is the continuous
+    interpolation ``φ·E^{Sφ}e^{-E}/Γ(Sφ+1)`` of the Poisson pmf, the Gaussian read-out is
+    a circular FFT convolution, and values below 1e-16 are replaced by 1e-16. The result
+    is therefore not normalised (Σ p ≈ 2.86 at E = 0.5, g = 5, φ = 3.859). Use
+    :func:`logpmf` for anything but comparisons with the authors' numbers.
+
+    Parameters
+    ----------
+    photoelectrons, em_gain, e_per_adu, offset, read_noise : float
+        Scalars, as :func:`logpmf`.
+
+    Returns
+    -------
+    ndarray, shape (131072,)
+        p(S) for S = 0 … 2^17 − 1.
+    """
+    from scipy import fft, special
+
+    E, g, phi, S0, sigma = (float(v) for v in _check_params(
+        photoelectrons, em_gain, e_per_adu, offset, read_noise))
+    s = np.arange(PAPER_GRID, dtype=float)
+    if g == 1:
+        with np.errstate(divide="ignore"):
+            log_q = s * phi * np.log(E) - E - special.gammaln(s * phi + 1.0)
+        q = phi * np.exp(log_q)
+    else:
+        r = phi / g
+        u = s[1:]
+        z = 2.0 * np.sqrt(E * u * r)
+        # sqrt(E r/u) e^{-ur-E} I1(z), with I1 scaled: i1e(z) = e^{-z} I1(z).
+        q = np.empty_like(s)
+        q[1:] = np.sqrt(E * r / u) * np.exp(-u * r - E + z) * special.i1e(z)
+        q[0] = phi * np.exp(-E) * (1.0 + E / g)
+    kernel = np.exp(-0.5 * ((s - S0) / sigma) ** 2) / (np.sqrt(2.0 * np.pi) * sigma)
+    p = fft.ifft(fft.fft(q) * fft.fft(kernel)).real
+    return np.maximum(p, PAPER_FLOOR)
+
+
+def paper_logpmf(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise):
+    """Log of :func:`paper_pmf_grid` at ``counts`` (0 ≤ counts < 2^17); cross-checks only.
+
+    Note the convolution: the grid's Gaussian kernel is centred at the offset, so the
+    output index is the count itself, as in the authors' code.
+    """
+    k = _check_counts(counts)
+    if np.any(k >= PAPER_GRID):
+        raise ValueError(f"counts must be below {PAPER_GRID} in the paper's grid model")
+    return np.log(paper_pmf_grid(photoelectrons, em_gain, e_per_adu, offset, read_noise)[k])

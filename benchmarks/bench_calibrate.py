@@ -1,0 +1,76 @@
+"""Benchmark: manifest → written result for paper-size series (issue: calibration engine).
+
+Simulates (once, into a temporary directory) a 32 × 32 px gain series — set-points
+1/5/25/100/300, 5000 frames each — and a six-level 1× intensity series, then times
+``emccdcal calibrate`` for ``gs``, ``gs-no1x``, ``is-adu`` (and the other methods) in a
+fresh subprocess each, reporting wall time and peak resident memory.
+
+Run: ``.venv/bin/python benchmarks/bench_calibrate.py [--methods gs,is-adu]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+CHILD = r"""
+import resource, sys, time, warnings
+warnings.simplefilter("ignore")
+t0 = time.perf_counter()
+from emccdcal.calibrate import calibrate
+calibrate(sys.argv[1], sys.argv[2], out=sys.argv[3])
+wall = time.perf_counter() - t0
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+print(f"{wall:.2f} {peak:.0f}")
+"""
+
+
+def machine():
+    cpu = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{platform.node()}: {os.cpu_count()} cores, {cpu}, Python {platform.python_version()}"
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--methods", default="gs,gs-no1x,gs-hierarchical,mv-gain,is-adu,mv-adu")
+    parser.add_argument("--rows", type=int, default=32)
+    parser.add_argument("--frames", type=int, default=5000)
+    args = parser.parse_args()
+    from emccdcal.simulate import simulate_gain_series, simulate_intensity_series
+
+    print(machine())
+    print(time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        kw = dict(rows=args.rows, cols=args.rows, frames=args.frames, seed=1)
+        gs = simulate_gain_series(tmp / "gs", **kw)
+        adu = simulate_intensity_series(tmp / "adu", **kw)
+        print(f"{args.rows}x{args.rows} px, {args.frames} frames per acquisition")
+        print(f"{'method':<18}{'wall s':>8}{'peak MB':>9}")
+        for method in args.methods.split(","):
+            manifest = adu.manifest if method in ("is-adu", "mv-adu") else gs.manifest
+            out = tmp / f"out-{method}"
+            res = subprocess.run(
+                [sys.executable, "-c", CHILD, str(manifest), method, str(out)],
+                capture_output=True, text=True, check=True,
+            )
+            wall, peak = res.stdout.split()
+            print(f"{method:<18}{float(wall):>8.2f}{float(peak):>9.0f}")
+
+
+if __name__ == "__main__":
+    main()
