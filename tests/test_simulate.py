@@ -445,21 +445,32 @@ def test_console_entry_point(tmp_path):
     assert proc.stderr.count("\n") == 1 and "frames" in proc.stderr
 
 
-def test_demo_agrees_with_model(tmp_path):
+def test_demo_calibrates_and_recovers_truth(tmp_path):
     text = io.StringIO()
-    rows = run_demo(tmp_path, rows=4, cols=4, frames=3000, out=text)
-    assert "set-point" in text.getvalue()
-    assert [r["em_gain_setpoint"] for r in rows] == [1, 5, 25, 100, 300]
-    for r in rows:
-        assert abs(r["mean"] - r["mean_model"]) < 4.5 * r["mean_se"]
-        assert abs(r["variance"] - r["variance_model"]) < 4.5 * r["variance_se"]
+    res = run_demo(tmp_path, rows=4, cols=4, frames=3000, out=text)
+    out = text.getvalue()
+    assert "is-adu" in out and "em_gain at 300x" in out
+    adu, gs = res["adu"], res["gs"]
+    assert bool(adu.converged.all()) and bool(gs.converged.all())
+    # truth of the demo: φ = 3.859, E = 370, gains 4.78 / 22.95 / 90.06 / 261.6
+    phi = adu.e_per_adu.values
+    assert abs(np.median(phi) - 3.859) < np.median(adu.e_per_adu_se.values)
+    truth = {5: 4.78, 25: 22.95, 100: 90.06, 300: 261.6}
+    for sp, g in truth.items():
+        est = gs.em_gain.sel(setpoint=sp).values
+        # φ from step 1 carries its own error into the gains (∝ φ): allow for it
+        se = np.hypot(gs.em_gain_se.sel(setpoint=sp).values, g * adu.e_per_adu_se.values / phi)
+        assert abs(np.mean(est) - g) < 2 * np.mean(se)  # 8 SE of the 16-pixel mean
+    assert (tmp_path / "result-gs" / "calibration.nc").exists()
 
 
 def test_demo_cli(tmp_path, capsys):
-    assert cli.main(["demo", str(tmp_path / "d"), "--rows", "2", "--cols", "2", "--frames", "500", "--quiet"]) == 0
+    assert cli.main(["demo", str(tmp_path / "d"), "--rows", "2", "--cols", "2", "--frames", "500",
+                     "--quiet"]) == 0
     out = capsys.readouterr().out
-    assert "set-point" in out and "300×" in out
-    assert (tmp_path / "d" / "manifest.toml").exists()
+    assert "em_gain at 300x" in out and "e_per_adu" in out
+    assert (tmp_path / "d" / "gain-series" / "manifest.toml").exists()
+    assert cli.main(["demo", str(tmp_path / "e"), "--frames", "0"]) == 2
 
 
 def test_docstring_examples():

@@ -250,7 +250,7 @@ def log_likelihood(layout, blocks, x):
     return _evaluate(layout, blocks, x, 0)[1]
 
 
-def fit(layout, blocks, x0, *, max_iter=100, tol=1e-9, progress=None):
+def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None):
     """Maximise the likelihood (times the layout's prior) for every pixel of a block.
 
     Parameters

@@ -263,29 +263,26 @@ def build_layout(method, series, options=None):
             centre = own.mean(axis=0)
         else:
             raise MethodError(f"unknown hierarchical centre {centre_rule!r}; use 'gs' or 'setpoint'")
-        # x = [μ, ln E_1 … ln E_A, ln g_a for the EM acquisitions]
-        F = 1 + A + em.size
+        # x = [ln E_1 … ln E_A, ln g_a for the EM acquisitions]; μ is profiled out.
+        F = A + em.size
         M = np.zeros((A, 3, F))
-        M[np.arange(A), 0, 1 + np.arange(A)] = 1.0
-        M[em, 1, 1 + A + np.arange(em.size)] = 1.0
+        M[np.arange(A), 0, np.arange(A)] = 1.0
+        M[em, 1, A + np.arange(em.size)] = 1.0
         const = np.zeros((P, A, 3))
         const[:, :, 2] = np.log(phi)[:, None]
         layout = HierarchicalLayout(
-            names=["mu"] + [f"ln_photoelectrons[{a}]" for a in range(A)]
+            names=[f"ln_photoelectrons[{a}]" for a in range(A)]
             + [f"ln_em_gain[{a}]" for a in em],
-            lower=np.r_[BOUNDS["photoelectrons"][0], np.full(A, log_b["photoelectrons"][0]),
-                        np.full(em.size, log_b["em_gain"][0])],
-            upper=np.r_[BOUNDS["photoelectrons"][1], np.full(A, log_b["photoelectrons"][1]),
-                        np.full(em.size, log_b["em_gain"][1])],
+            lower=np.r_[np.full(A, log_b["photoelectrons"][0]), np.full(em.size, log_b["em_gain"][0])],
+            upper=np.r_[np.full(A, log_b["photoelectrons"][1]), np.full(em.size, log_b["em_gain"][1])],
             matrix=M,
             constant=const,
             centre=centre,
             mu_sd=mu_sd,
             sigma_sd=sigma_sd,
-            step_limit=np.r_[np.inf, np.ones(A + em.size)],
         )
         E_start = mu0[:, None] * np.exp(0.01 * np.sign(own.T - mu0[:, None]))  # off the kink
-        x0 = np.column_stack([mu0, np.log(E_start), shared[:, 1:]])
+        x0 = np.column_stack([np.log(E_start), shared[:, 1:]])
         return layout, x0
     raise MethodError(f"unknown method {method!r}")
 
@@ -299,52 +296,73 @@ class HierarchicalLayout(Layout):
     With d_i = E_i − μ, the maximum over (σ_E, z) for given d is attained at
     σ_E² = sigma_sd·‖d‖ and equals −‖d‖/sigma_sd, so the same MAP is
 
-        max over (μ, E, g):  Σ_i ln L_i(E_i, g_i) − (μ − centre)²/(2 mu_sd²) − ‖E − μ‖/sigma_sd,
+        max over (E, g):  Σ_i ln L_i(E_i, g_i) + max over μ of
+                          [−(μ − centre)²/(2 mu_sd²) − ‖E − μ‖/sigma_sd],
 
-    a well-posed problem, where (σ_E, z) has a saddle at σ_E → 0. ``x = [μ, ln E_1 …
-    ln E_A, ln g_i (EM acquisitions)]`` (μ in photoelectrons), so the likelihood part is
-    an ordinary linear layout; ‖·‖ is smoothed by 0.1 e⁻ at 0 (worth at most
-    0.1/sigma_sd nats). σ_E and z are recovered from E − μ.
+    where the inner maximum over μ (one-dimensional, concave) is solved exactly at every
+    evaluation: the (σ_E, z) coordinates have a saddle at σ_E → 0 and μ alone a nearly
+    flat valley, both of which stall an optimiser. ``x = [ln E_1 … ln E_A, ln g_i (EM
+    acquisitions)]``, an ordinary linear layout for the likelihood; ‖·‖ is smoothed by
+    1 e⁻ at 0 (worth at most 1/sigma_sd nats; it keeps the problem well conditioned
+    where E_i = μ). μ, σ_E and z are recovered from the optimum.
     """
 
     centre: np.ndarray = None
     mu_sd: float = 25.0
     sigma_sd: float = 25.0
-    smoothing: float = 0.1
-    step_limit: np.ndarray = None
+    smoothing: float = 1.0
 
     def subset(self, idx):
         return replace(self, constant=self.constant[idx], centre=self.centre[idx])
 
+    def _penalty(self, E):
+        """μ* and the prior terms' value, gradient and Hessian by (μ, d) at μ*."""
+        a2, b = self.mu_sd**2, self.sigma_sd
+        # ∂/∂μ of the concave 1-D objective decreases in μ: bisection is exact and safe
+        # (Newton overshoots where the norm is nearly linear).
+        lo = np.minimum(self.centre, E.min(axis=1)) - 10.0 * self.mu_sd
+        hi = np.maximum(self.centre, E.max(axis=1)) + 10.0 * self.mu_sd
+        for _ in range(100):
+            mu = 0.5 * (lo + hi)
+            d = E - mu[:, None]
+            r = np.sqrt(np.sum(d * d, axis=1) + self.smoothing**2)
+            slope = -(mu - self.centre) / a2 + np.sum(d, axis=1) / (b * r)
+            lo = np.where(slope > 0, mu, lo)
+            hi = np.where(slope > 0, hi, mu)
+        mu = 0.5 * (lo + hi)
+        d = E - mu[:, None]
+        r = np.sqrt(np.sum(d * d, axis=1) + self.smoothing**2)
+        value = -0.5 * (mu - self.centre) ** 2 / a2 - r / b
+        return mu, d, r, value
+
     def log_prior(self, x):
         P, F = x.shape
         A = self.constant.shape[1]
-        mu, E = x[:, 0], np.exp(x[:, 1 : 1 + A])
-        d = E - mu[:, None]
-        r = np.sqrt(np.sum(d * d, axis=1) + self.smoothing**2)
-        s, s_mu2 = self.sigma_sd, self.mu_sd**2
-        value = -0.5 * (mu - self.centre) ** 2 / s_mu2 - r / s
-        # derivatives of the penalty by d, then through d = e^y − μ
-        g_d = -d / (s * r[:, None])
-        h_d = -(np.eye(A)[None] / r[:, None, None]
-                - np.einsum("pa,pb->pab", d, d) / r[:, None, None] ** 3) / s
-        D = np.zeros((P, A, 1 + A))  # ∂d/∂(μ, y)
-        D[:, :, 0] = -1.0
-        D[:, np.arange(A), 1 + np.arange(A)] = E
+        E = np.exp(x[:, :A])
+        mu, d, r, value = self._penalty(E)
+        a2, b = self.mu_sd**2, self.sigma_sd
+        # Second derivatives of Q(μ, E) = −(μ−c)²/2a² − ‖E − μ‖/b.
+        M = (np.eye(A)[None] / r[:, None, None]
+             - np.einsum("pa,pb->pab", d, d) / r[:, None, None] ** 3) / b
+        Q_E = -d / (b * r[:, None])
+        Q_EE = -M
+        Q_Emu = M.sum(axis=2)                      # ∂²Q/∂E∂μ
+        Q_mumu = -1.0 / a2 - M.sum(axis=(1, 2))
+        # Profile over μ: Hessian is the Schur complement (envelope theorem for the gradient).
+        H_E = Q_EE - np.einsum("pa,pb->pab", Q_Emu, Q_Emu) / Q_mumu[:, None, None]
+        # Chain rule to y = ln E.
         grad = np.zeros((P, F))
         hess = np.zeros((P, F, F))
-        grad[:, : 1 + A] = np.einsum("pa,pak->pk", g_d, D)
-        grad[:, 0] += -(mu - self.centre) / s_mu2
-        hess[:, : 1 + A, : 1 + A] = np.einsum("pak,pab,pbl->pkl", D, h_d, D)
-        hess[:, 1 + np.arange(A), 1 + np.arange(A)] += g_d * E
-        hess[:, 0, 0] += -1.0 / s_mu2
+        grad[:, :A] = Q_E * E
+        hess[:, :A, :A] = H_E * E[:, :, None] * E[:, None, :]
+        hess[:, np.arange(A), np.arange(A)] += Q_E * E
         return value, grad, hess
 
     def hyperparameters(self, x):
         """μ and σ_E = sqrt(sigma_sd ‖E − μ‖) (photoelectrons) of the authors' model."""
         A = self.constant.shape[1]
-        d = np.exp(x[:, 1 : 1 + A]) - x[:, :1]
-        return x[:, 0], np.sqrt(self.sigma_sd * np.sqrt(np.sum(d * d, axis=1)))
+        mu, d, _, _ = self._penalty(np.exp(x[:, :A]))
+        return mu, np.sqrt(self.sigma_sd * np.sqrt(np.sum(d * d, axis=1)))
 
 
 def acquisition_estimates(layout, x, cov):

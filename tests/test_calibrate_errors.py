@@ -1,0 +1,116 @@
+"""Bad input to the main job: clear one-line errors, flagged pixels, never a crash."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import tifffile
+
+from emccdcal import cli
+from emccdcal.calibrate import calibrate
+from emccdcal.methods import MethodError
+from emccdcal.simulate import simulate_gain_series, simulate_intensity_series
+
+
+@pytest.fixture(scope="module")
+def series(tmp_path_factory):
+    base = tmp_path_factory.mktemp("errors")
+    gs = simulate_gain_series(base / "gs", rows=6, cols=6, frames=1000, seed=3)
+    adu = simulate_intensity_series(base / "adu", rows=6, cols=6, frames=1000, seed=4,
+                                    levels=(2000, 8000))
+    return gs, adu
+
+
+def _edit(manifest, tmp_path, old, new, name="edited.toml"):
+    text = manifest.read_text()
+    assert old in text
+    path = manifest.parent / name
+    path.write_text(text.replace(old, new))
+    return path
+
+
+def test_gain_series_needs_two_setpoints(series, tmp_path):
+    gs, _ = series
+    text = gs.manifest.read_text()
+    one = text.split("[[acquisition]]")
+    path = gs.manifest.parent / "one.toml"
+    path.write_text(one[0] + "[[acquisition]]" + one[1])  # the 1x acquisition only
+    with pytest.raises(MethodError, match="at least two set-points"):
+        calibrate(path, "gs")
+
+
+def test_gs_without_1x_suggests_gs_no1x(series):
+    gs, _ = series
+    text = gs.manifest.read_text()
+    parts = text.split("[[acquisition]]")
+    path = gs.manifest.parent / "no1x.toml"
+    path.write_text(parts[0] + "".join("[[acquisition]]" + p for p in parts[2:]))
+    with pytest.raises(MethodError, match="gs-no1x"):
+        calibrate(path, "gs")
+    assert calibrate(path, "gs-no1x").em_gain.shape[0] == 4
+
+
+def test_is_adu_refuses_em_data(series):
+    gs, _ = series
+    with pytest.raises(MethodError, match="1x .*only.*5x"):
+        calibrate(gs.manifest, "is-adu")
+
+
+@pytest.mark.parametrize("method", ["gs", "gs-no1x", "gs-hierarchical", "is-gain", "mv-gain"])
+def test_gain_methods_need_e_per_adu(series, tmp_path, method):
+    gs, _ = series
+    path = _edit(gs.manifest, tmp_path, "e_per_adu = 3.859", "", name="nophi.toml")
+    with pytest.raises(MethodError, match="e_per_adu"):
+        calibrate(path, method)
+
+
+def test_unknown_method(series):
+    gs, _ = series
+    with pytest.raises(MethodError, match="unknown method 'gs2'"):
+        calibrate(gs.manifest, "gs2")
+
+
+def test_cli_errors_are_one_line_exit_2(series, tmp_path, capsys):
+    gs, _ = series
+    code = cli.main(["calibrate", str(tmp_path / "missing.toml"), "-o", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err and "missing.toml" in err
+    code = cli.main(["calibrate", str(gs.manifest), "--method", "is-adu", "-o", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err and "is-adu" in err
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["calibrate", str(gs.manifest), "--method", "nonsense", "-o", "x"])
+    assert exc.value.code == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+
+def test_saturated_frames_are_excluded_counted_and_warned(tmp_path):
+    # A 15-bit ADC saturates part of the 300x data (mean ≈ 29 000 ADU, SD ≈ 2 100 ADU).
+    gs = simulate_gain_series(tmp_path / "sat", rows=4, cols=4, frames=2000, seed=5,
+                              adc_bits=15, setpoints=(1, 25, 300))
+    with pytest.warns(UserWarning, match="ADC maximum"):
+        ds = calibrate(gs.manifest, "gs")
+    n_sat = ds.n_saturated.sel(setpoint=300).values
+    assert n_sat.sum() > 0 and ds.n_saturated.sel(setpoint=1).values.sum() == 0
+    assert bool(ds.converged.all())
+
+
+def test_a_pixel_that_cannot_converge_is_flagged(series, tmp_path):
+    gs, _ = series
+    # Make pixel (2, 3) of the 25x stack constant at its offset: no signal, no noise.
+    src = gs.outdir / "gain-GS" / "25x-gain.tif"
+    data = tifffile.imread(src)
+    data[:, 2, 3] = int(round(float(np.median(data[:, 0, 0])) / 10))
+    bad = tmp_path / "25x-bad.tif"
+    tifffile.imwrite(bad, data, photometric="minisblack")
+    path = _edit(gs.manifest, tmp_path, 'frames = "gain-GS/25x-gain.tif"',
+                 f'frames = "{bad}"', name="bad.toml")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ds = calibrate(path, "gs")
+    assert not bool(ds.converged.values[2, 3])
+    others = np.ones(ds.converged.shape, bool)
+    others[2, 3] = False
+    assert bool(ds.converged.values[others].all())
