@@ -165,15 +165,11 @@ def _select_mv(method, setpoints, has_phi):
     return np.argsort(sp, kind="stable")
 
 
-def _common(manifest, used, hists):
-    """Per-acquisition maps and statistics stacked as (A, P)."""
+def _maps(used):
+    """Offset and read-noise maps of the acquisitions, stacked as (A, P), ADU."""
     offsets = np.stack([a.offset.ravel() for a in used])
     read_noise = np.stack([a.read_noise.ravel() for a in used])
     return offsets, read_noise
-
-
-def _grid(values, rows, cols):
-    return np.asarray(values).reshape(values.shape[:-1] + (rows, cols))
 
 
 def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, options, progress,
@@ -181,7 +177,7 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
     rows, cols = manifest.shape
     P = rows * cols
     setpoints = np.array([a.em_gain_setpoint for a in used])
-    offsets, read_noise = _common(manifest, used, hists)
+    offsets, read_noise = _maps(used)
     phi = None if phi_map is None else phi_map.ravel()
     A = len(used)
     est = {k: np.full((P, A), np.nan) for k in (
@@ -282,7 +278,7 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
 
 def _calibrate_mv(method, manifest, used, hists, phi_map):
     rows, cols = manifest.shape
-    offsets, read_noise = _common(manifest, used, hists)
+    offsets, read_noise = _maps(used)
     mean = np.stack([h.mean for h in hists])
     var = np.stack([h.var for h in hists])
     n = np.stack([h.n for h in hists])

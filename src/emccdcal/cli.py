@@ -29,7 +29,11 @@ class UsageError(Exception):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="emccdcal", description=__doc__.splitlines()[0])
+    parser = _Parser(
+        prog="emccdcal",
+        description="Calibrate EMCCD cameras: the ADU conversion factor (e-/ADU) and the true "
+        "EM gain at every set-point, per pixel, with standard errors.",
+    )
     parser.add_argument("--version", action="version", version=f"emccdcal {__version__}")
     subparsers = parser.add_subparsers(dest="verb", metavar="VERB", parser_class=_Parser)
     for name in _VERB_MODULES:

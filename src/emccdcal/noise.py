@@ -374,9 +374,9 @@ def _saddlepoint(k, E, scale, S0, sigma, pn):
 
     def dcgf(t):
         ta = t * scale
-        with np.errstate(over="ignore"):
+        with np.errstate(over="ignore", invalid="ignore"):
             growth = np.where(pn, np.exp(ta), 1.0 / (1.0 - ta) ** 2)
-        return S0 + sigma**2 * t + E * scale * growth
+            return S0 + sigma**2 * t + E * scale * growth
 
     t_lo = np.minimum(0.0, (k - S0 - E * scale) / sigma**2)
     t_hi = np.maximum(0.0, (k - S0) / sigma**2)
