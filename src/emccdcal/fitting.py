@@ -73,9 +73,9 @@ class AcquisitionBlock:
 class Layout:
     """A parameter layout: free parameters ``x`` (P, F) → per-acquisition log-parameters.
 
-    Linear layouts (every method but the hierarchical one) set ``matrix`` (A, 3, F) and
-    ``constant`` (P, A, 3) so that ``(ln E, ln g, ln φ)[a] = constant[:, a] + matrix[a] @ x``.
-    Subclasses may override :meth:`native` and :meth:`log_prior`.
+    ``matrix`` (A, 3, F) and ``constant`` (P, A, 3) map the free parameters linearly:
+    ``(ln E, ln g, ln φ)[a] = constant[:, a] + matrix[a] @ x``. A layout with a prior
+    (the hierarchical gain series) overrides :meth:`log_prior`.
 
     Attributes
     ----------
@@ -100,10 +100,10 @@ class Layout:
         return len(self.names)
 
     def native(self, x):
-        """Log-parameters (P, A, 3), their Jacobian (P, A, 3, F) and Hessian (or None)."""
+        """Log-parameters (P, A, 3) and their Jacobian (P, A, 3, F)."""
         logs = self.constant + np.einsum("ajf,pf->paj", self.matrix, x)
         jac = np.broadcast_to(self.matrix, (x.shape[0],) + self.matrix.shape)
-        return logs, jac, None
+        return logs, jac
 
     def log_prior(self, x):
         """Log prior density (P,), gradient (P, F) and Hessian (P, F, F); flat here."""
@@ -216,7 +216,7 @@ def _native_to_model(logs, poisson_normal):
 def _evaluate(layout, blocks, x, level):
     """Objective (log-likelihood + log prior), gradient and information in ``x``."""
     P, F = x.shape
-    logs, jac, hess = layout.native(x)
+    logs, jac = layout.native(x)
     total = np.zeros(P)
     per_acq = np.zeros((P, len(blocks)))
     grad = np.zeros((P, F))
@@ -234,9 +234,6 @@ def _evaluate(layout, blocks, x, level):
         j_u = np.stack([jac[:, a, 0], dscale[0] * jac[:, a, 1] + dscale[1] * jac[:, a, 2]], 1)
         grad += np.einsum("pu,puf->pf", g_u, j_u)
         info += np.einsum("puf,puv,pvg->pfg", j_u, i_u, j_u)
-        if hess is not None and level >= 2:
-            h_u = np.stack([hess[:, a, 0], dscale[0] * hess[:, a, 1] + dscale[1] * hess[:, a, 2]], 1)
-            info -= np.einsum("pu,pufg->pfg", g_u, h_u)
     lp, lp_grad, lp_hess = layout.log_prior(x)
     objective = total + lp
     if level >= 1:
@@ -275,13 +272,10 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None):
     """
     x = np.clip(np.array(x0, dtype=float), layout.lower, layout.upper)
     P, F = x.shape
-    # BHHH steps unless the layout asks for Newton steps with the observed information:
-    # the hierarchical layout's prior terms converge slowly without their curvature.
-    level = 2 if getattr(layout, "newton", False) else 1
     damping = np.full(P, 1e-3)
     iterations = np.zeros(P, dtype=int)
     done = np.zeros(P, dtype=bool)
-    obj, _, _, grad, info, _ = _evaluate(layout, blocks, x, level)
+    obj, _, _, grad, info, _ = _evaluate(layout, blocks, x, 1)
     eye = np.eye(F)
     for _ in range(max_iter):
         active = np.flatnonzero(~done)
@@ -292,13 +286,10 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None):
         scale = np.sqrt(np.maximum(np.abs(np.einsum("pii->pi", I)), 1e-300))
         A = I + damping[active, None, None] * (scale[:, :, None] * scale[:, None, :]) * eye
         step = _solve(A, g)
-        # At most a factor e per iteration in log-parameters (or the layout's own limit).
-        limit = getattr(layout, "step_limit", None)
-        limit = 1.0 if limit is None else limit
-        step = np.clip(step, -limit, limit)
+        step = np.clip(step, -1.0, 1.0)  # at most a factor e per iteration
         x_new = np.clip(x[active] + step, layout.lower, layout.upper)
         step = x_new - x[active]
-        res = _evaluate(layout.subset(active), sub, x_new, level)
+        res = _evaluate(layout.subset(active), sub, x_new, 1)
         better = res[0] >= obj[active] - 1e-12 * np.abs(obj[active])
         idx = active[better]
         x[idx] = x_new[better]

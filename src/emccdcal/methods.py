@@ -374,7 +374,7 @@ def acquisition_estimates(layout, x, cov):
         ``photoelectrons``, ``em_gain``, ``e_per_adu`` (P, A) and ``<name>_se`` (P, A);
         an SE is 0 where the parameter is fixed by the layout.
     """
-    logs, jac, _ = layout.native(x)
+    logs, jac = layout.native(x)
     out = {}
     for j, name in enumerate(("photoelectrons", "em_gain", "e_per_adu")):
         value = np.exp(logs[:, :, j])
