@@ -46,12 +46,16 @@ def _labels(acqs):
     return [a.level if a.level is not None else a.name for a in acqs]
 
 
-def _statistics(manifest, acqs, progress):
-    """Per-pixel histograms of every acquisition, with saturation warnings."""
+def _statistics(manifest, acqs, progress, workers):
+    """Per-pixel histograms of every acquisition (threads: sorting releases the GIL)."""
+
+    def one(acq):
+        return stats.histograms(acq.frames(), adc_max=manifest.adc_max)
+
+    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        hists = list(_progress(pool.map(one, acqs), progress, "reading", total=len(acqs)))
     found = []
-    hists = []
-    for acq in _progress(acqs, progress, "reading"):
-        h = stats.histograms(acq.frames(), adc_max=manifest.adc_max)
+    for acq, h in zip(acqs, hists):
         n_sat = int(h.n_saturated.sum())
         if n_sat:
             found.append(
@@ -61,16 +65,15 @@ def _statistics(manifest, acqs, progress):
             )
         if np.any(h.n < 2):
             raise ValueError(f"{acq.frames_path}: fewer than 2 usable frames in some pixels")
-        hists.append(h)
     return hists, found
 
 
-def _progress(iterable, enabled, desc):
+def _progress(iterable, enabled, desc, total=None):
     if not enabled:
         return iterable
     from tqdm import tqdm
 
-    return tqdm(iterable, desc=desc, unit="acq", file=sys.stderr, leave=False)
+    return tqdm(iterable, desc=desc, unit="acq", total=total, file=sys.stderr, leave=False)
 
 
 def calibrate(
@@ -133,7 +136,8 @@ def calibrate(
             method, setpoints_all, [a.level for a in acqs], phi_map is not None
         )
     used = [acqs[i] for i in idx]
-    hists, found = _statistics(manifest, used, progress)
+    workers = os.cpu_count() if workers is None else workers
+    hists, found = _statistics(manifest, used, progress, workers)
     for w in found:  # the manifest's own warnings were issued when it was read
         warnings.warn(w, stacklevel=2)
 
@@ -141,8 +145,7 @@ def calibrate(
         ds = _calibrate_mv(method, manifest, used, hists, phi_map)
     else:
         ds = _calibrate_likelihood(
-            method, manifest, used, hists, phi_map, block_size, options or {}, progress,
-            os.cpu_count() if workers is None else workers,
+            method, manifest, used, hists, phi_map, block_size, options or {}, progress, workers
         )
     ds.attrs["warnings"] = list(manifest.warnings + found)
     seconds = time.perf_counter() - t0
