@@ -83,6 +83,18 @@ def test_real_gain_series_reproduces_reference(tmp_path, method, reference):
 
 
 @needs_real
+def test_real_gain_series_goodness_of_fit_flags_5x(tmp_path):
+    """The gamma model misfits the real 5x data (excess-noise factor < 2, METHODS §3.1)."""
+    ds = calibrate(_real_manifest(tmp_path, "gs"), "gs")
+    p = ds.gof_pvalue
+    assert p.dims == ("setpoint", "row", "col") and p.attrs["units"] == "1"
+    assert float((p.sel(setpoint=5) < 0.05).mean()) >= 0.7  # 7 of 9 (5 % expected)
+    assert float((p.sel(setpoint=[25, 100, 300]) < 0.01).mean()) < 0.2
+    assert any("set-point 5x" in w and "misfit" in w for w in ds.attrs["warnings"])
+    assert not any("set-point 300x" in w for w in ds.attrs["warnings"])
+
+
+@needs_real
 def test_real_adu_series_reproduces_reference(tmp_path):
     ds = calibrate(_real_manifest(tmp_path, "adu"), "is-adu")
     assert bool(ds.converged.all())

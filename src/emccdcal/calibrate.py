@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import fitting, io, methods, mv, result, stats
+from . import fitting, gof, io, methods, mv, result, stats
 
 __all__ = ["METHODS", "calibrate", "add_parser"]
 
@@ -123,6 +123,23 @@ def calibrate(
     t0 = time.perf_counter()
     if method not in METHODS:
         raise methods.MethodError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    # Every warning of the run (manifest, saturation, convergence, misfit) is recorded in
+    # the result and issued again to the caller.
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ds = _run_calibration(manifest, method, e_per_adu, block_size, options, progress, workers)
+    messages = list(dict.fromkeys(str(w.message) for w in caught))
+    for w in dict.fromkeys((str(w.message), w.category) for w in caught):
+        warnings.warn(w[0], w[1], stacklevel=2)
+    ds.attrs["warnings"] = messages
+    seconds = time.perf_counter() - t0
+    ds.attrs["seconds"] = seconds
+    if out is not None:
+        result.save(ds, out, seconds=seconds)
+    return ds
+
+
+def _run_calibration(manifest, method, e_per_adu, block_size, options, progress, workers):
     manifest = _load(manifest)
     acqs = manifest.acquisitions
     rows, cols = manifest.shape
@@ -138,21 +155,14 @@ def calibrate(
     used = [acqs[i] for i in idx]
     workers = os.cpu_count() if workers is None else workers
     hists, found = _statistics(manifest, used, progress, workers)
-    for w in found:  # the manifest's own warnings were issued when it was read
+    for w in found:
         warnings.warn(w, stacklevel=2)
 
     if method.startswith("mv-"):
-        ds = _calibrate_mv(method, manifest, used, hists, phi_map)
-    else:
-        ds = _calibrate_likelihood(
-            method, manifest, used, hists, phi_map, block_size, options or {}, progress, workers
-        )
-    ds.attrs["warnings"] = list(manifest.warnings + found)
-    seconds = time.perf_counter() - t0
-    ds.attrs["seconds"] = seconds
-    if out is not None:
-        result.save(ds, out, seconds=seconds)
-    return ds
+        return _calibrate_mv(method, manifest, used, hists, phi_map)
+    return _calibrate_likelihood(
+        method, manifest, used, hists, phi_map, block_size, options or {}, progress, workers
+    )
 
 
 def _select_mv(method, setpoints, has_phi):
@@ -187,6 +197,7 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
         "photoelectrons", "photoelectrons_se", "em_gain", "em_gain_se", "e_per_adu",
         "e_per_adu_se")}
     loglik = np.full(P, np.nan)
+    gof_p = np.full((P, A), np.nan)
     converged = np.zeros(P, dtype=bool)
     n_floored = np.zeros(P, dtype=np.int64)
     iterations = np.zeros(P, dtype=np.int64)
@@ -197,7 +208,19 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
         series = methods.Series(blocks, setpoints, _labels(used),
                                 None if phi is None else phi[idx])
         layout, x0 = methods.build_layout(method, series, options)
-        return idx, layout, fitting.fit(layout, blocks, x0)
+        fit = fitting.fit(layout, blocks, x0)
+        e = methods.acquisition_estimates(layout, fit.x, fit.cov)
+        # Goodness of fit per acquisition; a free parameter shared by k acquisitions
+        # counts 1/k towards each one's fitted-parameter number.
+        touches = np.any(layout.matrix != 0, axis=1)  # (A, F)
+        n_fitted = (touches / np.maximum(touches.sum(axis=0), 1)).sum(axis=1)
+        pvals = np.stack([
+            gof.gof_pvalues(blocks[a], e["photoelectrons"][:, a], e["em_gain"][:, a],
+                            e["e_per_adu"][:, a], blocks[a].offset, blocks[a].read_noise,
+                            n_fitted_params=float(n_fitted[a]))[0]
+            for a in range(len(blocks))
+        ], axis=1)
+        return idx, layout, fit, e, pvals
 
     bar = None
     if progress:
@@ -208,8 +231,8 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
     # Blocks are independent: threads overlap them (NumPy and the FFT release the GIL),
     # and the result does not depend on how many there are.
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        for idx, layout, fit in pool.map(fit_block, tiles):
-            e = methods.acquisition_estimates(layout, fit.x, fit.cov)
+        for idx, layout, fit, e, pvals in pool.map(fit_block, tiles):
+            gof_p[idx] = pvals
             for k in est:
                 est[k][idx] = e[k]
             loglik[idx] = fit.loglik
@@ -229,6 +252,10 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
     if not_conv:
         warnings.warn(f"{method}: {not_conv} of {P} pixel(s) did not converge (see 'converged')",
                       stacklevel=3)
+    kind = "level" if method.startswith("is-") else "set-point"
+    keys = _labels(used) if kind == "level" else [result.format_setpoint(s) + "x" for s in setpoints]
+    for w in gof.misfit_warnings(dict(zip(keys, gof_p.T)), kind=kind):
+        warnings.warn(w, stacklevel=3)
     grid = lambda a: a.T.reshape((-1, rows, cols)) if a.ndim == 2 else a.reshape(rows, cols)  # noqa: E731
     labels = _labels(used)
     per_acq_dim = "level" if method.startswith("is-") else "setpoint"
@@ -240,6 +267,8 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
                         np.stack([h.n_saturated.reshape(rows, cols) for h in hists]), "1"),
         "n_floored": (("row", "col"), grid(n_floored), "1"),
         "iterations": (("row", "col"), grid(iterations), "1"),
+        "gof_pvalue": ((per_acq_dim, "row", "col"), grid(gof_p), "1",
+                       "p-value of the binned chi-square goodness-of-fit test"),
     }
     fixed_phi_se = np.full((rows, cols), np.nan)
     if method == "is-adu":
