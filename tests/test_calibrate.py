@@ -114,6 +114,12 @@ def test_real_data_cli_writes_result(tmp_path, capsys):
     assert ds.attrs["method"] == "gs"
     summary = json.loads((out / "summary.json").read_text())
     assert summary["method"] == "gs"
+    # data-quality checks ride along: per acquisition, with the findings as warnings
+    quality = summary["quality"]
+    assert set(quality["acquisitions"]) == {"1x-gain", "5x-gain", "25x-gain", "100x-gain",
+                                            "300x-gain"}
+    assert any("read noise" in w for w in summary["warnings"])
+    assert json.loads(ds.attrs["quality"]) == quality
 
 
 # --------------------------------------------------------------------------------------

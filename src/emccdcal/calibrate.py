@@ -6,6 +6,8 @@ driven by a :mod:`methods` layout, tile by tile → :mod:`result` (dataset, file
 
 from __future__ import annotations
 
+import copy
+import json
 import os
 import sys
 import time
@@ -15,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import fitting, gof, io, methods, mv, result, stats
+from . import fitting, gof, io, methods, mv, quality, result, stats
 
 __all__ = ["METHODS", "calibrate", "add_parser"]
 
@@ -86,6 +88,7 @@ def calibrate(
     options=None,
     progress=False,
     workers=None,
+    checks=True,
 ):
     """Calibrate a camera from the acquisitions of a manifest.
 
@@ -108,6 +111,10 @@ def calibrate(
         Show progress bars on stderr.
     workers : int, optional
         Threads fitting blocks at once (default: the number of CPUs).
+    checks : bool
+        Run the data-quality checks (:mod:`emccdcal.quality`: illumination stationarity
+        and drift, saturation, hot/dead pixels) and store them in the result
+        (``attrs["quality"]``, JSON) and ``summary.json``; findings are warnings.
 
     Returns
     -------
@@ -127,7 +134,8 @@ def calibrate(
     # the result and issued again to the caller.
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        ds = _run_calibration(manifest, method, e_per_adu, block_size, options, progress, workers)
+        ds = _run_calibration(manifest, method, e_per_adu, block_size, options, progress,
+                              workers, checks)
     messages = list(dict.fromkeys(str(w.message) for w in caught))
     for w in dict.fromkeys((str(w.message), w.category) for w in caught):
         warnings.warn(w[0], w[1], stacklevel=2)
@@ -139,7 +147,8 @@ def calibrate(
     return ds
 
 
-def _run_calibration(manifest, method, e_per_adu, block_size, options, progress, workers):
+def _run_calibration(manifest, method, e_per_adu, block_size, options, progress, workers,
+                     checks):
     manifest = _load(manifest)
     acqs = manifest.acquisitions
     rows, cols = manifest.shape
@@ -157,12 +166,33 @@ def _run_calibration(manifest, method, e_per_adu, block_size, options, progress,
     hists, found = _statistics(manifest, used, progress, workers)
     for w in found:
         warnings.warn(w, stacklevel=2)
+    report = _quality(manifest, used) if checks else None
 
     if method.startswith("mv-"):
-        return _calibrate_mv(method, manifest, used, hists, phi_map)
-    return _calibrate_likelihood(
-        method, manifest, used, hists, phi_map, block_size, options or {}, progress, workers
-    )
+        ds = _calibrate_mv(method, manifest, used, hists, phi_map)
+    else:
+        ds = _calibrate_likelihood(
+            method, manifest, used, hists, phi_map, block_size, options or {}, progress, workers
+        )
+    if report is not None:
+        ds.attrs["quality"] = json.dumps(report)
+    return ds
+
+
+def _quality(manifest, used):
+    """Data-quality checks (stationarity, drift, saturation, defects) of the used stacks."""
+    sub = copy.copy(manifest)
+    sub.acquisitions = list(used)
+    try:
+        report = quality.check_manifest(sub)
+    except ValueError as exc:  # e.g. too few frames for the stationarity tests
+        warnings.warn(f"data-quality checks skipped: {exc}", stacklevel=3)
+        return None
+    grown = set(manifest.warnings)  # read-noise growth was already reported by io
+    for w in report["warnings"]:
+        if not any(w in g or g in w for g in grown):
+            warnings.warn(w, stacklevel=3)
+    return report
 
 
 def _select_mv(method, setpoints, has_phi):
@@ -359,6 +389,8 @@ def add_parser(subparsers):
     p.add_argument("--e-per-adu", type=float, default=None,
                    help="ADU conversion factor (e-/ADU) overriding the manifest's")
     p.add_argument("--block-size", type=int, default=DEFAULT_BLOCK, help="pixels fitted together")
+    p.add_argument("--no-checks", action="store_true",
+                   help="skip the data-quality checks (see 'emccdcal check')")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars, no summary")
     p.set_defaults(func=_run)
     return p
@@ -372,7 +404,8 @@ def _run(args):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         ds = calibrate(args.manifest, args.method, e_per_adu=args.e_per_adu, out=args.out,
-                       block_size=args.block_size, progress=not args.quiet)
+                       block_size=args.block_size, progress=not args.quiet,
+                       checks=not args.no_checks)
     if not args.quiet:
         print(format_summary(ds))
         print(f"wrote {args.out / result.CALIBRATION_FILE} and {args.out / result.SUMMARY_FILE}")

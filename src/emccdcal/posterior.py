@@ -382,7 +382,8 @@ def sample_posterior(
         (pixel, draw), nats; per (pixel, parameter) ``median``, ``sd``, ``q16``, ``q84``,
         ``q025``, ``q975``, ``ess``, ``autocorr_time`` (steps), ``mle`` and ``mle_se``
         (the engine's estimate and delta-method standard error); per pixel
-        ``acceptance``, ``n_steps``, ``burn``, ``thin``, ``n_draws``, ``n_walkers``.
+        ``acceptance``, ``n_steps``, ``burn``, ``thin``, ``n_draws``, ``n_walkers``,
+        ``mle_converged`` and ``seconds`` (wall time: reading, fit and sampling).
         ``attrs["seconds"]`` is the wall time.
 
     Raises
@@ -428,6 +429,7 @@ def sample_posterior(
     per_pixel = []
     names = units = None
     for row, col in pixels:
+        t_pixel = time.perf_counter()
         where = f"{method} pixel ({row}, {col})"
         blocks, layout, x0 = _pixel_series(manifest, used, method, row, col, phi_map, options)
         if names is None:
@@ -453,7 +455,8 @@ def sample_posterior(
         mle_se = np.exp(x_hat) * np.sqrt(np.where(np.isfinite(np.diag(cov)), np.diag(cov), np.nan))
         per_pixel.append(dict(row=row, col=col, samples=np.exp(chain), log_posterior=lp,
                               diag=d, thin=thin, n_walkers=W, mle=np.exp(x_hat), mle_se=mle_se,
-                              mle_converged=bool(fit.converged[0])))
+                              mle_converged=bool(fit.converged[0]),
+                              seconds=time.perf_counter() - t_pixel))
 
     n_draw = max(p["samples"].shape[0] for p in per_pixel)
     Pn, F = len(per_pixel), len(names)
@@ -488,6 +491,8 @@ def sample_posterior(
             "n_draws": (pdim, np.array([p["samples"].shape[0] for p in per_pixel])),
             "n_walkers": (pdim, col("n_walkers")),
             "mle_converged": (pdim, col("mle_converged")),
+            "seconds": (pdim, col("seconds"), {"long_name": "wall time of the pixel",
+                                               "units": "s"}),
         },
         coords={
             "pixel": np.arange(Pn), "row": ("pixel", col("row")), "col": ("pixel", col("col")),
@@ -537,6 +542,7 @@ def summary(ds):
             "burn": int(ds.burn.values[i]), "thin": int(ds["thin"].values[i]),
             "n_draws": int(ds.n_draws.values[i]),
             "mle_converged": bool(ds.mle_converged.values[i]),
+            "seconds": _num(ds.seconds.values[i]),
             "parameters": params,
         })
     return {

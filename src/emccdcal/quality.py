@@ -43,6 +43,7 @@ __all__ = [
     "MAX_LISTED",
     "stationarity",
     "linear_drift",
+    "frame_means",
     "saturation",
     "pixel_defects",
     "check_acquisition",
@@ -73,11 +74,6 @@ _CHUNK_ELEMENTS = 2**23
 # --------------------------------------------------------------------------------------
 # Small helpers
 # --------------------------------------------------------------------------------------
-def _finite_or_none(x) -> float | None:
-    x = float(x)
-    return x if math.isfinite(x) else None
-
-
 def _pixels(mask: np.ndarray) -> list[list[int]]:
     """Coordinates [row, col] of the True pixels, at most :data:`MAX_LISTED`."""
     rc = np.argwhere(mask)[:MAX_LISTED]
@@ -743,7 +739,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         type=float,
         default=DEFAULT_DRIFT_THRESHOLD,
         metavar="PCT",
-        help=f"|drift| over an acquisition that is a finding, %% (default {DEFAULT_DRIFT_THRESHOLD:g})",
+        help="|drift| over an acquisition that is a finding, %% "
+        f"(default {DEFAULT_DRIFT_THRESHOLD:g})",
     )
     p.add_argument(
         "--k",

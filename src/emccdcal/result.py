@@ -562,6 +562,7 @@ def summarize(ds: xr.Dataset, seconds: float | None = None) -> dict:
         "statistics_over": "converged pixels only (finite values)",
         "parameters": params,
         "warnings": [str(w) for w in np.atleast_1d(ds.attrs.get("warnings", []))],
+        "quality": json.loads(ds.attrs["quality"]) if "quality" in ds.attrs else None,
     }
 
 
