@@ -254,25 +254,27 @@ def _alias_count(sigma_min):
 
 
 def _band_limit(E, scale, sigma, pn, n):
-    """Highest rfft bin m where |Φ(2πm/n)| may exceed e^-80 (for J = 0)."""
-    # Monotone lower bound B(ω) of -log|Φ(ω)| on [0, π]; bisection for B(ω_c) = 80.
-    def bound(w):
-        gauss = 0.5 * (sigma * w) ** 2
-        wa = w * scale
-        pgn = E * wa * wa / (1.0 + wa * wa)
-        pn_part = np.where(scale <= 1.0, E * (1.0 - np.cos(np.minimum(wa, np.pi))), 0.0)
-        return gauss + np.where(pn, pn_part, pgn)
+    """Highest rfft bin m beyond which |Φ(2πm/n)| < e^-80 (for J = 0), in closed form.
 
-    lo = np.zeros_like(E)
-    hi = np.full_like(E, np.pi)
-    full = bound(hi) < 80.0
-    for _ in range(50):
-        mid = 0.5 * (lo + hi)
-        above = bound(mid) >= 80.0
-        hi = np.where(above, mid, hi)
-        lo = np.where(above, lo, mid)
-    m = np.ceil(hi * n / (2.0 * np.pi)).astype(np.int64) + 2
-    return np.where(full, n // 2 + 1, np.minimum(m, n // 2 + 1))
+    −ln|Φ(ω)| is at least B(ω) = σ²ω²/2 + E·ω²θ²/(1 + ω²θ²) for the PGN, and at least
+    σ²ω²/2 + 2Eψ²ω²/π² for the PN while ωψ ≤ π (1 − cos x ≥ 2x²/π² there; beyond, the
+    Gaussian factor alone). B is increasing, so the ω_c solving B(ω_c) = 80 bounds the
+    band; for the PGN it is the root of a quadratic in ω².
+    """
+    level = 80.0
+    s2 = 0.5 * sigma**2
+    t2 = scale**2
+    # PGN: s2·u + E·t2·u/(1 + t2·u) = level, u = ω²  →  a u² + b u − level = 0
+    a = s2 * t2
+    b = s2 + E * t2 - level * t2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u_pgn = np.where(a > 0, (-b + np.sqrt(b * b + 4.0 * a * level)) / (2.0 * a), level / s2)
+        u_pn = level / (s2 + 2.0 * E * t2 / np.pi**2)
+    w_pn = np.sqrt(u_pn)
+    w_pn = np.where(w_pn * scale <= np.pi, w_pn, np.sqrt(level / s2))  # Gaussian bound only
+    w = np.where(pn, w_pn, np.sqrt(u_pgn))
+    m = np.ceil(w * n / (2.0 * np.pi)).astype(np.int64) + 2
+    return np.where(w >= np.pi, n // 2 + 1, np.minimum(m, n // 2 + 1))
 
 
 def _window(E, scale, shift, sigma, pn, n, *, tilt=None, derivs=False, second=False,
