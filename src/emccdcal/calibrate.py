@@ -166,33 +166,34 @@ def _run_calibration(manifest, method, e_per_adu, block_size, options, progress,
     hists, found = _statistics(manifest, used, progress, workers)
     for w in found:
         warnings.warn(w, stacklevel=2)
-    report = _quality(manifest, used) if checks else None
-
+    # The data-quality checks read the stacks once more (warnings are process-global, so
+    # they are not run on a side thread).
+    report, messages = _quality(manifest, used) if checks else (None, [])
+    for w in messages:
+        warnings.warn(w, stacklevel=2)
     if method.startswith("mv-"):
         ds = _calibrate_mv(method, manifest, used, hists, phi_map)
     else:
-        ds = _calibrate_likelihood(
-            method, manifest, used, hists, phi_map, block_size, options or {}, progress, workers
-        )
+        ds = _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size,
+                                   options or {}, progress, workers)
     if report is not None:
         ds.attrs["quality"] = json.dumps(report)
     return ds
 
 
 def _quality(manifest, used):
-    """Data-quality checks (stationarity, drift, saturation, defects) of the used stacks."""
+    """Data-quality checks (stationarity, drift, saturation, defects) of the used stacks.
+
+    Returns the report and its findings as messages for the caller to issue.
+    """
     sub = copy.copy(manifest)
     sub.acquisitions = list(used)
     try:
         report = quality.check_manifest(sub)
     except ValueError as exc:  # e.g. too few frames for the stationarity tests
-        warnings.warn(f"data-quality checks skipped: {exc}", stacklevel=3)
-        return None
+        return None, [f"data-quality checks skipped: {exc}"]
     grown = set(manifest.warnings)  # read-noise growth was already reported by io
-    for w in report["warnings"]:
-        if not any(w in g or g in w for g in grown):
-            warnings.warn(w, stacklevel=3)
-    return report
+    return report, [w for w in report["warnings"] if not any(w in g or g in w for g in grown)]
 
 
 def _select_mv(method, setpoints, has_phi):
