@@ -19,10 +19,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from test_calibrate import CAMERAS, COLS, FRAMES, ROWS, _truth_manifest  # noqa: E402
+from test_calibrate import CAMERAS, simulate_camera  # noqa: E402
 
 from emccdcal.calibrate import calibrate  # noqa: E402
-from emccdcal.simulate import simulate_gain_series, simulate_intensity_series  # noqa: E402
 
 
 def row(method, what, est, se, truth):
@@ -39,21 +38,12 @@ def main():
     warnings.simplefilter("ignore")
     with tempfile.TemporaryDirectory() as tmp:
         for name, cam in CAMERAS.items():
-            base = Path(tmp) / name
-            common = dict(rows=ROWS, cols=COLS, frames=FRAMES, dark_frames=10,
-                          e_per_adu=cam["e_per_adu"], read_noise=cam["read_noise"],
-                          offset=cam["offset"])
-            gs = simulate_gain_series(base / "gs", setpoints=cam["setpoints"], em_gain=cam["em_gain"],
-                                      photoelectrons=cam["photoelectrons"], seed=31, **common)
-            adu = simulate_intensity_series(base / "adu", levels=cam["levels"], seed=14, **common)
-            isg = simulate_intensity_series(base / "isg", levels=cam["is_gain_levels"],
-                                            setpoint=cam["is_gain_setpoint"], em_gain=cam["is_gain"],
-                                            seed=13, **common)
+            manifests = simulate_camera(Path(tmp) / name, cam)
             print(f"\n### camera '{name}': {cam}\n")
             print("| method | parameter | truth | mean over pixels | median | 95 % coverage | pixels |")
             print("| --- | --- | --- | --- | --- | --- | --- |")
             for method in ("gs", "gs-no1x", "gs-hierarchical", "mv-gain"):
-                ds = calibrate(_truth_manifest(gs, cam["read_noise"]), method)
+                ds = calibrate(manifests["gs"], method)
                 for sp, g in zip(cam["setpoints"][1:], cam["em_gain"][1:]):
                     s = ds.sel(setpoint=sp)
                     row(method, f"em_gain {sp}x", s.em_gain.values, s.em_gain_se.values, g)
@@ -66,10 +56,10 @@ def main():
                         row(method, f"photoelectrons {sp:g}x", pe.values[i],
                             ds.photoelectrons_se.values[i], cam["photoelectrons"])
             for method in ("is-adu", "mv-adu"):
-                ds = calibrate(_truth_manifest(adu, cam["read_noise"]), method)
+                ds = calibrate(manifests["adu"], method)
                 row(method, "e_per_adu", ds.e_per_adu.values, ds.e_per_adu_se.values, cam["e_per_adu"])
             for method in ("is-gain", "mv-gain"):
-                ds = calibrate(_truth_manifest(isg, cam["read_noise"]), method)
+                ds = calibrate(manifests["isg"], method)
                 s = ds.sel(setpoint=cam["is_gain_setpoint"])
                 row(method + " (IS)", f"em_gain {cam['is_gain_setpoint']}x", s.em_gain.values,
                     s.em_gain_se.values, cam["is_gain"])

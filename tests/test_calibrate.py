@@ -159,11 +159,9 @@ def _truth_manifest(sim, read_noise):
     return path
 
 
-@pytest.fixture(scope="module", params=list(CAMERAS))
-def camera(request, tmp_path_factory):
-    name = request.param
-    cam = CAMERAS[name]
-    base = tmp_path_factory.mktemp(name)
+def simulate_camera(base, cam):
+    """The three series of a camera (gain series, 1× and EM intensity series), with
+    manifests that carry the true maps; also used by ``benchmarks/coverage_study.py``."""
     common = dict(rows=ROWS, cols=COLS, frames=FRAMES, dark_frames=10, e_per_adu=cam["e_per_adu"],
                   read_noise=cam["read_noise"], offset=cam["offset"])
     gs = simulate_gain_series(base / "gs", setpoints=cam["setpoints"], em_gain=cam["em_gain"],
@@ -172,9 +170,15 @@ def camera(request, tmp_path_factory):
     isg = simulate_intensity_series(base / "isg", levels=cam["is_gain_levels"],
                                     setpoint=cam["is_gain_setpoint"], em_gain=cam["is_gain"],
                                     seed=13, **common)
-    manifests = {k: _truth_manifest(s, cam["read_noise"]) for k, s in
-                 (("gs", gs), ("adu", adu), ("isg", isg))}
-    return name, cam, manifests
+    return {k: _truth_manifest(s, cam["read_noise"]) for k, s in
+            (("gs", gs), ("adu", adu), ("isg", isg))}
+
+
+@pytest.fixture(scope="module", params=list(CAMERAS))
+def camera(request, tmp_path_factory):
+    name = request.param
+    cam = CAMERAS[name]
+    return name, cam, simulate_camera(tmp_path_factory.mktemp(name), cam)
 
 
 def _check(estimate, se, truth, what, upper=0.97, centre=np.mean):
