@@ -12,7 +12,6 @@ import tifffile
 
 from emccdcal import cli, result
 from emccdcal.calibrate import calibrate
-from emccdcal.methods import MethodError
 from emccdcal.simulate import simulate_gain_series, simulate_intensity_series
 
 REAL = (Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "lanl-proem").resolve()

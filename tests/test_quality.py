@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from emccdcal import cli, io, quality
+from emccdcal import cli, io
 from emccdcal.quality import (
     MIN_FRAMES,
     add_parser,

@@ -290,7 +290,6 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
     grid = lambda a: a.T.reshape((-1, rows, cols)) if a.ndim == 2 else a.reshape(rows, cols)  # noqa: E731
     labels = _labels(used)
     per_acq_dim = "level" if method.startswith("is-") else "setpoint"
-    coords = {"level": labels} if per_acq_dim == "level" else {}
     extra = {
         "offset": ((per_acq_dim, "row", "col"), grid(offsets.T), "ADU"),
         "read_noise": ((per_acq_dim, "row", "col"), grid(read_noise.T), "ADU"),
