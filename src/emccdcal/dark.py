@@ -16,11 +16,25 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["maps_from_dark", "check_read_noise_growth", "DEFAULT_CHUNK_ELEMENTS"]
+__all__ = ["as_stack", "maps_from_dark", "check_read_noise_growth", "DEFAULT_CHUNK_ELEMENTS"]
 
 #: Elements (frames × pixels) converted to float64 at a time when streaming a dark
 #: stack: 2**23 elements = 64 MiB.
 DEFAULT_CHUNK_ELEMENTS = 2**23
+
+
+def as_stack(stack, what="stack"):
+    """``stack`` as a (frames, rows, cols) array of numbers (memory maps stay as they are).
+
+    Raises a ValueError naming ``what`` for another shape or a non-numeric dtype.
+    """
+    if not hasattr(stack, "shape") or not hasattr(stack, "dtype"):
+        stack = np.asarray(stack)
+    if stack.ndim != 3:
+        raise ValueError(f"{what} must be 3-D (frames, rows, cols), got shape {tuple(stack.shape)}")
+    if stack.dtype.kind not in "uif":
+        raise ValueError(f"{what} must hold numbers, got dtype {stack.dtype}")
+    return stack
 
 
 def maps_from_dark(stack, *, chunk_frames: int | None = None):
@@ -60,14 +74,7 @@ def maps_from_dark(stack, *, chunk_frames: int | None = None):
     >>> offset.tolist(), read_noise.tolist()
     ([[102.0, 200.0]], [[2.0, 0.0]])
     """
-    if not hasattr(stack, "shape") or not hasattr(stack, "dtype"):
-        stack = np.asarray(stack)
-    if stack.ndim != 3:
-        raise ValueError(
-            f"dark stack must be 3-D (frames, rows, cols), got shape {tuple(stack.shape)}"
-        )
-    if stack.dtype.kind not in "uif":
-        raise ValueError(f"dark stack must hold numbers, got dtype {stack.dtype}")
+    stack = as_stack(stack, "dark stack")
     n_frames, rows, cols = stack.shape
     if n_frames < 2:
         raise ValueError(

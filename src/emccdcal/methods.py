@@ -162,6 +162,27 @@ def _clip_log(value, name):
 # --------------------------------------------------------------------------------------
 # Layouts
 # --------------------------------------------------------------------------------------
+def _intensity_series(shared, start, photoelectrons, const):
+    """Layout of an intensity series: one ``shared`` parameter (``e_per_adu`` or
+    ``em_gain``) and one E per level; ``x = [ln shared, ln E_1 … ln E_A]``.
+
+    ``start`` (P,) and ``photoelectrons`` (A, P) are the starting values, ``const``
+    (P, A, 3) the fixed log-parameters.
+    """
+    A = photoelectrons.shape[0]
+    col = {"em_gain": 1, "e_per_adu": 2}[shared]
+    M = np.zeros((A, 3, 1 + A))
+    M[:, col, 0] = 1.0
+    M[np.arange(A), 0, 1 + np.arange(A)] = 1.0
+    x0 = np.column_stack([_clip_log(start, shared)]
+                         + [_clip_log(e, "photoelectrons") for e in photoelectrons])
+    names = [f"ln_{shared}"] + [f"ln_photoelectrons[{a}]" for a in range(A)]
+    lo_e, hi_e = np.log(BOUNDS["photoelectrons"])
+    lower = np.r_[np.log(BOUNDS[shared][0]), np.full(A, lo_e)]
+    upper = np.r_[np.log(BOUNDS[shared][1]), np.full(A, hi_e)]
+    return Layout(names, lower, upper, M, const), x0
+
+
 def build_layout(method, series, options=None):
     """The parameter layout and per-pixel starting values of a method.
 
@@ -177,45 +198,21 @@ def build_layout(method, series, options=None):
     log_b = {k: np.log(v) for k, v in BOUNDS.items()}
 
     if method == "is-adu":
-        # x = [ln φ, ln E_1 … ln E_A]
-        F = 1 + A
-        M = np.zeros((A, 3, F))
-        M[:, 2, 0] = 1.0
-        M[np.arange(A), 0, 1 + np.arange(A)] = 1.0
-        const = np.zeros((P, A, 3))
         signal = np.stack([_signal(b) for b in blocks])
         excess = np.stack([np.maximum(b.var - b.read_noise**2, 1e-6) for b in blocks])
         phi0 = signal.sum(axis=0) / excess.sum(axis=0)  # photon transfer through origin
-        x0 = np.column_stack(
-            [_clip_log(phi0, "e_per_adu")]
-            + [_clip_log(signal[a] * phi0, "photoelectrons") for a in range(A)]
-        )
-        names = ["ln_e_per_adu"] + [f"ln_photoelectrons[{a}]" for a in range(A)]
-        lower = np.r_[log_b["e_per_adu"][0], np.full(A, log_b["photoelectrons"][0])]
-        upper = np.r_[log_b["e_per_adu"][1], np.full(A, log_b["photoelectrons"][1])]
-        return Layout(names, lower, upper, M, const), x0
+        return _intensity_series("e_per_adu", phi0, signal * phi0, np.zeros((P, A, 3)))
 
     phi = series.e_per_adu
     if method == "is-gain":
-        # x = [ln g, ln E_1 … ln E_A]
-        F = 1 + A
-        M = np.zeros((A, 3, F))
-        M[:, 1, 0] = 1.0
-        M[np.arange(A), 0, 1 + np.arange(A)] = 1.0
-        const = np.zeros((P, A, 3))
-        const[:, :, 2] = np.log(phi)[:, None]
         theta = np.stack([
             np.maximum(b.var - b.read_noise**2, 1e-6) / (2.0 * _signal(b)) for b in blocks
         ])
         g0 = np.exp(np.median(np.log(theta), axis=0)) * phi
-        x0 = np.column_stack(
-            [_clip_log(g0, "em_gain")]
-            + [_clip_log(_signal(b) * phi / g0, "photoelectrons") for b in blocks]
-        )
-        names = ["ln_em_gain"] + [f"ln_photoelectrons[{a}]" for a in range(A)]
-        lower = np.r_[log_b["em_gain"][0], np.full(A, log_b["photoelectrons"][0])]
-        upper = np.r_[log_b["em_gain"][1], np.full(A, log_b["photoelectrons"][1])]
-        return Layout(names, lower, upper, M, const), x0
+        const = np.zeros((P, A, 3))
+        const[:, :, 2] = np.log(phi)[:, None]
+        E0 = np.stack([_signal(b) * phi / g0 for b in blocks])
+        return _intensity_series("em_gain", g0, E0, const)
 
     # Gain series: E from the 1× acquisition where there is one, else from the shapes.
     em = np.flatnonzero(sp != 1)

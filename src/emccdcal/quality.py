@@ -33,7 +33,7 @@ import math
 import warnings
 import numpy as np
 
-from .dark import check_read_noise_growth, maps_from_dark
+from .dark import as_stack, check_read_noise_growth, maps_from_dark
 
 __all__ = [
     "MIN_FRAMES",
@@ -78,18 +78,6 @@ def _pixels(mask: np.ndarray) -> list[list[int]]:
     """Coordinates [row, col] of the True pixels, at most :data:`MAX_LISTED`."""
     rc = np.argwhere(mask)[:MAX_LISTED]
     return [[int(r), int(c)] for r, c in rc]
-
-
-def _as_stack(stack) -> np.ndarray:
-    if not hasattr(stack, "shape") or not hasattr(stack, "dtype"):
-        stack = np.asarray(stack)
-    if stack.ndim != 3:
-        raise ValueError(
-            f"stack must be 3-D (frames, rows, cols), got shape {tuple(stack.shape)}"
-        )
-    if stack.dtype.kind not in "uif":
-        raise ValueError(f"stack must hold numbers, got dtype {stack.dtype}")
-    return stack
 
 
 def _has_result_object(func) -> bool:
@@ -310,7 +298,7 @@ def frame_means(stack, offset=None) -> np.ndarray:
     ndarray of float64, shape (frames,)
         ADU.
     """
-    stack = _as_stack(stack)
+    stack = as_stack(stack)
     off = 0.0 if offset is None else float(np.mean(np.asarray(offset, dtype=np.float64)))
     out = np.empty(stack.shape[0])
     for f0, chunk in _chunks(stack):
@@ -344,7 +332,7 @@ def saturation(stack, adc_max: int) -> dict:
     >>> s["n_values"], s["n_frames"], s["n_pixels"]
     (2, 2, 2)
     """
-    stack = _as_stack(stack)
+    stack = as_stack(stack)
     if isinstance(adc_max, bool) or int(adc_max) != adc_max or adc_max < 1:
         raise ValueError(f"adc_max must be a positive integer, got {adc_max!r}")
     per_pixel = np.zeros(stack.shape[1:], dtype=np.int64)
@@ -394,7 +382,7 @@ def pixel_defects(stack, offset=None, *, k: float = DEFAULT_K) -> dict:
     """
     if not (math.isfinite(k) and k > 0):
         raise ValueError(f"k must be a positive number, got {k!r}")
-    stack = _as_stack(stack)
+    stack = as_stack(stack)
     n_frames = int(stack.shape[0])
     if n_frames < 2:
         raise ValueError(f"pixel_defects needs at least 2 frames, got {n_frames}")
