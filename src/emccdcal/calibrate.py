@@ -89,6 +89,7 @@ def calibrate(
     progress=False,
     workers=None,
     checks=True,
+    map_errors=True,
 ):
     """Calibrate a camera from the acquisitions of a manifest.
 
@@ -115,6 +116,12 @@ def calibrate(
         Run the data-quality checks (:mod:`emccdcal.quality`: illumination stationarity
         and drift, saturation, hot/dead pixels) and store them in the result
         (``attrs["quality"]``, JSON) and ``summary.json``; findings are warnings.
+    map_errors : bool
+        Include in the standard errors of the likelihood methods the error of offset and
+        read-noise maps estimated from dark frames (``dark`` stacks, or maps with
+        ``dark_frames`` in the manifest): the offset map's own SE is σ/√n_dark, which moves
+        E at 1× by φσ/√n_dark. ``False`` gives SEs conditional on the maps. Maps without a
+        known number of dark frames are always taken as exact.
 
     Returns
     -------
@@ -135,7 +142,7 @@ def calibrate(
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         ds = _run_calibration(manifest, method, e_per_adu, block_size, options, progress,
-                              workers, checks)
+                              workers, checks, map_errors)
     messages = list(dict.fromkeys(str(w.message) for w in caught))
     for w in dict.fromkeys((str(w.message), w.category) for w in caught):
         warnings.warn(w[0], w[1], stacklevel=2)
@@ -148,7 +155,7 @@ def calibrate(
 
 
 def _run_calibration(manifest, method, e_per_adu, block_size, options, progress, workers,
-                     checks):
+                     checks, map_errors):
     manifest = _load(manifest)
     acqs = manifest.acquisitions
     rows, cols = manifest.shape
@@ -173,9 +180,12 @@ def _run_calibration(manifest, method, e_per_adu, block_size, options, progress,
         warnings.warn(w, stacklevel=2)
     if method.startswith("mv-"):
         ds = _calibrate_mv(method, manifest, used, hists, phi_map)
+        ds.attrs["standard_errors"] = "from the photon-transfer fit, conditional on the offset maps"
     else:
+        dark_frames, map_groups, se_note = _map_error_sources(used, map_errors)
         ds = _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size,
-                                   options or {}, progress, workers)
+                                   options or {}, progress, workers, dark_frames, map_groups)
+        ds.attrs["standard_errors"] = se_note
     if report is not None:
         ds.attrs["quality"] = json.dumps(report)
     return ds
@@ -216,8 +226,27 @@ def _maps(used):
     return offsets, read_noise
 
 
+def _map_error_sources(used, map_errors):
+    """Dark-frame counts and sharing groups of the maps, and a note for the result."""
+    dark_frames = [a.dark_frames if map_errors else None for a in used]
+    # Acquisitions whose maps come from one file (or one dark stack) share their errors.
+    groups = [a.offset_source if not a.offset_source.startswith("value") else i
+              for i, a in enumerate(used)]
+    known = [f"{a.name}: {n} dark frames" for a, n in zip(used, dark_frames) if n is not None]
+    exact = [a.name for a, n in zip(used, dark_frames) if n is None]
+    if not map_errors:
+        note = "conditional on the offset and read-noise maps (map errors not included)"
+    elif not known:
+        note = ("conditional on the offset and read-noise maps (no dark-frame counts known; "
+                "give 'dark' stacks or 'dark_frames' in the manifest to include their errors)")
+    else:
+        note = "include the errors of the offset and read-noise maps (" + "; ".join(known)
+        note += (f"; taken as exact: {', '.join(exact)})" if exact else ")")
+    return dark_frames, groups, note
+
+
 def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, options, progress,
-                          workers):
+                          workers, dark_frames, map_groups):
     rows, cols = manifest.shape
     P = rows * cols
     setpoints = np.array([a.em_gain_setpoint for a in used])
@@ -235,7 +264,8 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
     hyper = {"hyper_photoelectrons": np.full(P, np.nan), "hyper_sd_photoelectrons": np.full(P, np.nan)}
 
     def fit_block(idx):
-        blocks = methods.make_blocks(hists, offsets, read_noise, setpoints, idx)
+        blocks = methods.make_blocks(hists, offsets, read_noise, setpoints, idx,
+                                     dark_frames, map_groups)
         series = methods.Series(blocks, setpoints, _labels(used),
                                 None if phi is None else phi[idx])
         layout, x0 = methods.build_layout(method, series, options)
@@ -391,6 +421,9 @@ def add_parser(subparsers):
     p.add_argument("--block-size", type=int, default=DEFAULT_BLOCK, help="pixels fitted together")
     p.add_argument("--no-checks", action="store_true",
                    help="skip the data-quality checks (see 'emccdcal check')")
+    p.add_argument("--conditional-se", action="store_true",
+                   help="standard errors conditional on the offset/read-noise maps (leave out "
+                   "the error of maps estimated from dark frames)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars, no summary")
     p.set_defaults(func=_run)
     return p
@@ -405,7 +438,7 @@ def _run(args):
         warnings.simplefilter("always")
         ds = calibrate(args.manifest, args.method, e_per_adu=args.e_per_adu, out=args.out,
                        block_size=args.block_size, progress=not args.quiet,
-                       checks=not args.no_checks)
+                       checks=not args.no_checks, map_errors=not args.conditional_se)
     if not args.quiet:
         print(format_summary(ds))
         print(f"wrote {args.out / result.CALIBRATION_FILE} and {args.out / result.SUMMARY_FILE}")

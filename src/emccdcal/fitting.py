@@ -50,6 +50,12 @@ class AcquisitionBlock:
         Moments of the counts (ADU, ADU²), for starting values.
     n : ndarray, shape (P,)
         Frames used.
+    offset_var, read_noise_var : ndarray, shape (P,), optional
+        Variance of the S0 and σ maps themselves (ADU²), from the dark frames they were
+        estimated from; ``None`` for exact maps.
+    map_group : hashable, optional
+        Acquisitions with the same group share one pair of maps (one dark stack), so their
+        map errors are the same draw.
     """
 
     values: np.ndarray
@@ -60,12 +66,17 @@ class AcquisitionBlock:
     mean: np.ndarray
     var: np.ndarray
     n: np.ndarray
+    offset_var: np.ndarray | None = None
+    read_noise_var: np.ndarray | None = None
+    map_group: object = None
 
     def take(self, idx):
         """The block restricted to pixels ``idx``."""
+        sub = lambda a: None if a is None else a[idx]  # noqa: E731
         return AcquisitionBlock(
             self.values[idx], self.counts[idx], self.offset[idx], self.read_noise[idx],
             self.poisson_normal, self.mean[idx], self.var[idx], self.n[idx],
+            sub(self.offset_var), sub(self.read_noise_var), self.map_group,
         )
 
 
@@ -121,7 +132,8 @@ class FitResult:
         Free parameters at the optimum.
     cov : ndarray, shape (P, F, F)
         Covariance of ``x``: the inverse observed information (with a prior: the sandwich
-        H⁻¹ I H⁻¹); NaN where the information is not positive definite.
+        H⁻¹ I H⁻¹), plus what the errors of the offset and read-noise maps add where the
+        blocks give their variances; NaN where the information is not positive definite.
     loglik : ndarray, shape (P,)
         Log-likelihood at the optimum, nats (without the prior).
     converged : ndarray of bool, shape (P,)
@@ -141,16 +153,15 @@ class FitResult:
     loglik_per_acquisition: np.ndarray = field(default=None)
 
 
-def _acquisition_terms(acq, log_e, log_scale, level):
-    """Log-likelihood of one acquisition and its derivatives by (ln E, ln scale).
+def _model_at_data(acq, E, scale, *, derivs=False, second=False, names=("photoelectrons", "scale")):
+    """The pmf of each pixel at its histogram's values, with derivatives by ``names``.
 
-    ``level`` 0: value only; 1: gradient and the outer-product (BHHH) information; 2: the
-    observed information instead. Returns ``(loglik (P,), grad (P, 2), info (P, 2, 2), n_floored (P,))``.
+    Returns ``(pv, scores, d2, y, low, hopeless)``: the probabilities (P, K) (floored),
+    first derivatives at the values (dict of (P, K); None without ``derivs``), the
+    second-derivative windows, the value indices in the window, the floored mask and the
+    pixels whose parameters are hopelessly far from their data.
     """
-    P = acq.values.shape[0]
-    E = np.exp(log_e)
-    scale = np.exp(log_scale)
-    pn = np.full(P, acq.poisson_normal)
+    pn = np.full(E.shape, acq.poisson_normal)
     # Eight SDs of margin: what wraps around the window is then below 1e-15 of the pmf
     # at the data's extremes (the data themselves set the rest of the window).
     lo_model, hi_model = noise._extent(E, scale, acq.offset, acq.read_noise, pn, width=8.0)
@@ -168,13 +179,27 @@ def _acquisition_terms(acq, log_e, log_scale, level):
     n = noise._fast_len(int((stop - start).max()) + 1)
     p, d1, d2 = noise._window(
         E, scale, acq.offset - start, acq.read_noise, pn, n,
-        derivs=level >= 1, second=level >= 2, names=("photoelectrons", "scale"),
+        derivs=derivs, second=second, names=names,
     )
     y = acq.values - start[:, None]
     pv = np.take_along_axis(p, y, axis=1)
     floor = _FLOOR * p.max(axis=1, keepdims=True)
     low = pv < floor
     pv = np.where(low, floor, pv)
+    scores = {nm: np.take_along_axis(d1[nm], y, axis=1) for nm in names} if derivs else None
+    return pv, scores, d2, y, low, hopeless
+
+
+def _acquisition_terms(acq, log_e, log_scale, level):
+    """Log-likelihood of one acquisition and its derivatives by (ln E, ln scale).
+
+    ``level`` 0: value only; 1: gradient and the outer-product (BHHH) information; 2: the
+    observed information instead. Returns ``(loglik (P,), grad (P, 2), info (P, 2, 2), n_floored (P,))``.
+    """
+    P = acq.values.shape[0]
+    E = np.exp(log_e)
+    scale = np.exp(log_scale)
+    pv, d1, d2, y, low, hopeless = _model_at_data(acq, E, scale, derivs=level >= 1, second=level >= 2)
     loglik = np.where(hopeless, -np.inf, np.sum(acq.counts * np.log(pv), axis=1))
     n_floored = np.sum(acq.counts * low, axis=1).astype(np.int64)
     if level == 0:
@@ -182,7 +207,7 @@ def _acquisition_terms(acq, log_e, log_scale, level):
     names = ("photoelectrons", "scale")
     factor = np.stack([E, scale], axis=1)  # d λ / d ln λ
     w = np.where(low, 0.0, acq.counts / pv)
-    scores = [np.take_along_axis(d1[nm], y, axis=1) for nm in names]
+    scores = [d1[nm] for nm in names]
     grad = np.stack([np.sum(w * s, axis=1) for s in scores], axis=1) * factor
     # Outer product of the per-frame scores (BHHH): a positive semi-definite estimate of
     # the information from the data points alone, cheap because the histogram is short.
@@ -240,6 +265,43 @@ def _evaluate(layout, blocks, x, level):
         grad = grad + lp_grad
         info = info - lp_hess
     return objective, total, per_acq, grad, info, floored
+
+
+def _map_covariance(layout, blocks, x, cov):
+    """Covariance of ``x`` (P, F, F) caused by the errors of the offset and read-noise maps.
+
+    The estimate moves with the maps by ``dx/dm = H⁻¹ ∂²ℓ/∂x∂m`` (implicit function theorem,
+    ``H`` the observed information, ``cov = H⁻¹``); the cross term is estimated by the
+    outer product of the per-frame scores, as the information is. Acquisitions that share
+    a pair of maps (``map_group``) move together: their sensitivities add before squaring.
+    """
+    P, F = x.shape
+    logs, jac = layout.native(x)
+    groups: dict = {}
+    for a, acq in enumerate(blocks):
+        if acq.offset_var is None and acq.read_noise_var is None:
+            continue
+        log_e, log_scale, dscale = _native_to_model(logs[:, a], acq.poisson_normal)
+        E, scale = np.exp(log_e), np.exp(log_scale)
+        names = ("photoelectrons", "scale", "offset", "read_noise")
+        pv, d1, _, _, low, _ = _model_at_data(acq, E, scale, derivs=True, names=names)
+        w = np.where(low, 0.0, acq.counts / pv**2)
+        factor = np.stack([E, scale], axis=1)
+        cross = np.empty((P, 2, 2))  # (ln E, ln scale) × (offset, read_noise)
+        for i, u in enumerate(names[:2]):
+            for j, m in enumerate(names[2:]):
+                cross[:, i, j] = np.sum(w * d1[u] * d1[m], axis=1) * factor[:, i]
+        j_u = np.stack([jac[:, a, 0], dscale[0] * jac[:, a, 1] + dscale[1] * jac[:, a, 2]], 1)
+        sens = np.einsum("pfg,pug,pum->pfm", cov, j_u, cross)  # dx/d(offset, read_noise)
+        var = np.stack([np.zeros(P) if v is None else v
+                        for v in (acq.offset_var, acq.read_noise_var)], axis=1)
+        key = a if acq.map_group is None else acq.map_group
+        total, _ = groups.get(key, (0.0, var))
+        groups[key] = (total + sens, var)
+    out = np.zeros((P, F, F))
+    for sens, var in groups.values():
+        out += np.einsum("pfm,pm,pgm->pfg", sens, var, sens)
+    return out
 
 
 def log_likelihood(layout, blocks, x):
@@ -312,9 +374,12 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None):
     # sandwich H⁻¹ I H⁻¹ of the penalised Hessian H and the likelihood's information I;
     # without one it is H⁻¹ itself.
     prior_hess = layout.log_prior(x)[2]
+    h_inv = cov
     if np.any(prior_hess):
         cov = np.einsum("pfg,pgh,phk->pfk", cov, obs + prior_hess, cov)
-    gnorm = np.einsum("pf,pfg,pg->p", grad, np.nan_to_num(cov), grad)
+    if any(b.offset_var is not None or b.read_noise_var is not None for b in blocks):
+        cov = cov + _map_covariance(layout, blocks, x, np.nan_to_num(h_inv))
+    gnorm = np.einsum("pf,pfg,pg->p", grad, np.nan_to_num(h_inv), grad)
     converged = done & pos_def & (gnorm < 1e-4) & (damping <= 1e8)
     if progress is not None:
         progress(int((~done).sum()))

@@ -61,6 +61,7 @@ ACQUISITION_KEYS = (
     "level",
     "skip_frames",
     "name",
+    "dark_frames",
 )
 #: File name suffixes of stacks and maps that can be read.
 STACK_SUFFIXES = (".tif", ".tiff", ".npy")
@@ -112,6 +113,9 @@ class Acquisition:
         ``"value <number>"`` for a number in the manifest.
     n_frames_total : int
         Frames in the file, before ``skip_frames``.
+    dark_frames : int or None
+        Dark frames behind the offset and read-noise maps: the dark stack's length, or the
+        manifest's ``dark_frames``. ``None`` means the maps are taken as exact.
     """
 
     name: str
@@ -124,6 +128,7 @@ class Acquisition:
     offset_source: str
     read_noise_source: str
     n_frames_total: int
+    dark_frames: int | None = None
 
     @property
     def n_frames(self) -> int:
@@ -605,6 +610,7 @@ def read_manifest(path) -> Manifest:
                     i,
                     spec["label"],
                 )
+            spec["dark_frames"] = dark_shape[0]
             if dark_shape[0] < 2:
                 raise r.error(
                     f"dark stack '{spec['dark_path']}' has {dark_shape[0]} frame(s); at least "
@@ -683,6 +689,7 @@ def read_manifest(path) -> Manifest:
             offset_source=spec["offset_source"],
             read_noise_source=spec["read_noise_source"],
             n_frames_total=spec["n_frames_total"],
+            dark_frames=spec["dark_frames"],
         )
         for spec in specs
     ]
@@ -783,6 +790,22 @@ def _check_entry(r: _Reader, i: int, entry: dict) -> dict:
     dark = entry.get("dark")
     if "dark" in entry and (not isinstance(dark, str) or not dark.strip()):
         raise r.error(f"'dark' must be the path of a dark stack, got {dark!r}", i, label)
+    dark_frames = entry.get("dark_frames")
+    if dark_frames is not None:
+        if "dark" in entry:
+            raise r.error(
+                "'dark_frames' is for offset/read_noise maps; with a 'dark' stack the number "
+                "of dark frames is the stack's",
+                i,
+                label,
+            )
+        if not isinstance(dark_frames, int) or isinstance(dark_frames, bool) or dark_frames < 2:
+            raise r.error(
+                f"'dark_frames' (the number of dark frames the maps were computed from) must "
+                f"be an integer >= 2, got {dark_frames!r}",
+                i,
+                label,
+            )
 
     skip = entry.get("skip_frames", 0)
     if not isinstance(skip, int) or isinstance(skip, bool) or skip < 0:
@@ -807,6 +830,7 @@ def _check_entry(r: _Reader, i: int, entry: dict) -> dict:
         "em_gain_setpoint": float(g),
         "skip_frames": skip,
         "level": level,
+        "dark_frames": dark_frames,
     }
     for key in has_maps:
         spec[key] = entry[key]

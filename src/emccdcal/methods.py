@@ -384,15 +384,27 @@ def acquisition_estimates(layout, x, cov):
     return out
 
 
-def make_blocks(histograms, offsets, read_noises, setpoints, idx):
-    """AcquisitionBlocks of pixels ``idx`` from per-acquisition statistics."""
+def make_blocks(histograms, offsets, read_noises, setpoints, idx, dark_frames=None, map_groups=None):
+    """AcquisitionBlocks of pixels ``idx`` from per-acquisition statistics.
+
+    ``dark_frames`` (one int or None per acquisition) gives the maps' own variances:
+    σ²/n for the offset (the SE of a mean) and σ²/(2(n−1)) for the read noise (of an SD),
+    ADU²; ``map_groups`` says which acquisitions share a pair of maps.
+    """
+    A = len(histograms)
+    dark_frames = [None] * A if dark_frames is None else dark_frames
+    map_groups = [None] * A if map_groups is None else map_groups
     blocks = []
-    for h, s0, rn, sp in zip(histograms, offsets, read_noises, setpoints):
+    for h, s0, rn, sp, nd, grp in zip(histograms, offsets, read_noises, setpoints, dark_frames, map_groups):
         values, counts = h.values[idx], h.counts[idx]
+        sigma2 = rn[idx] ** 2
         blocks.append(
             AcquisitionBlock(
                 values=values, counts=counts, offset=s0[idx], read_noise=rn[idx],
                 poisson_normal=bool(sp == 1), mean=h.mean[idx], var=h.var[idx], n=h.n[idx],
+                offset_var=None if nd is None else sigma2 / nd,
+                read_noise_var=None if nd is None else sigma2 / (2.0 * (nd - 1)),
+                map_group=grp,
             )
         )
     return blocks

@@ -560,6 +560,7 @@ def summarize(ds: xr.Dataset, seconds: float | None = None) -> dict:
             "cols": int(ds.sizes["col"]),
         },
         "statistics_over": "converged pixels only (finite values)",
+        "standard_errors": str(ds.attrs.get("standard_errors", "")),
         "parameters": params,
         "warnings": [str(w) for w in np.atleast_1d(ds.attrs.get("warnings", []))],
         "quality": json.loads(ds.attrs["quality"]) if "quality" in ds.attrs else None,
