@@ -466,7 +466,7 @@ def test_demo_calibrates_and_recovers_truth(tmp_path):
 
 def test_demo_cli(tmp_path, capsys):
     assert cli.main(["demo", str(tmp_path / "d"), "--rows", "2", "--cols", "2", "--frames", "500",
-                     "--quiet"]) == 0
+                     "--quiet", "--no-report"]) == 0
     out = capsys.readouterr().out
     assert "em_gain at 300x" in out and "e_per_adu" in out
     assert (tmp_path / "d" / "gain-series" / "manifest.toml").exists()
@@ -476,3 +476,95 @@ def test_demo_cli(tmp_path, capsys):
 def test_docstring_examples():
     result = doctest.testmod(simulate, optionflags=doctest.ELLIPSIS)
     assert result.attempted > 5 and result.failed == 0
+
+
+# --------------------------------------------------------------------------------------
+# Beads (issue 5)
+# --------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def bead_movies(tmp_path_factory):
+    out = tmp_path_factory.mktemp("beads")
+    return simulate.simulate_beads(out, beads=3, photoelectrons=[4000, 5000, 6000], rows=40,
+                                   cols=36, frames=150, dark_frames=200, setpoints=[1, 25],
+                                   seed=9)
+
+
+def test_bead_scene_is_the_psf_model():
+    from emccdcal import psf
+
+    E = simulate.bead_scene([[10.2, 12.7], [25.0, 20.4]], [5000.0, 3000.0], 1.3, 10.0, 36, 30)
+    assert E.shape == (36, 30)
+    assert E.sum() == pytest.approx(8000.0 + 10.0 * 36 * 30, rel=1e-9)
+    one = psf.spot_image([12.7, 10.2, 1.3, 5000.0, 0.0], np.arange(36), np.arange(30))
+    np.testing.assert_allclose(E[:18], (one + 10.0)[:18], rtol=1e-6)
+
+
+def test_bead_files_truth_and_true_calibration(bead_movies):
+    from emccdcal import io as emio
+    from emccdcal import result
+
+    res = bead_movies
+    t = res.truth
+    assert t["kind"] == "beads" and t["seed"] == 9 and t["width"] == 1.3
+    assert t["background"] == 10.0 and t["calibration"] == "truth_calibration.nc"
+    assert [b["photoelectrons"] for b in t["beads"]] == [4000.0, 5000.0, 6000.0]
+    pos = np.array([[b["row"], b["col"]] for b in t["beads"]])
+    # placement: inside the margins and apart
+    assert np.all(pos >= 6) and np.all(pos[:, 0] <= 40 - 7) and np.all(pos[:, 1] <= 36 - 7)
+    d = np.hypot(*(pos[:, None, :] - pos[None, :, :]).transpose(2, 0, 1))
+    assert d[np.triu_indices(3, 1)].min() >= 12
+    assert [a["em_gain"] for a in t["acquisitions"]] == [1.0, 22.95]
+    m = emio.read_manifest(res.manifest)
+    assert m.shape == (40, 36) and m.setpoints == (1.0, 25.0) and m.e_per_adu == 3.859
+    cal = result.load(res.outdir / "truth_calibration.nc")
+    assert cal.attrs["method"] == "truth"
+    assert cal.attrs["manifest_sha256"] == m.content_hash
+    np.testing.assert_array_equal(cal["em_gain"].sel(setpoint=25).values, 22.95)
+    np.testing.assert_array_equal(cal["e_per_adu"].values, 3.859)
+    scene = simulate.bead_scene(pos, [4000, 5000, 6000], 1.3, 10.0, 40, 36)
+    np.testing.assert_allclose(cal["photoelectrons"].values, scene)
+    pattern = tifffile.imread(res.outdir / "truth-offset-pattern.tif")
+    np.testing.assert_allclose(cal["offset"].sel(setpoint=1).values, 587.7 + pattern)
+    # the 25× stack: offset-subtracted mean, in photoelectrons, is the scene
+    stack = tifffile.imread(res.outdir / "beads/25x-beads.tif").astype(float)
+    assert stack.shape == (150, 40, 36)
+    off = cal["offset"].sel(setpoint=25).values
+    e = (stack.mean(axis=0) - off) * 3.859 / 22.95
+    sd = np.sqrt(2 * scene / 150 + (15.5 * 3.859 / 22.95) ** 2 / 150)
+    z = (e - scene) / sd
+    assert abs(z.mean()) < 4 / np.sqrt(z.size) and 0.8 < z.std() < 1.2
+    assert not [p for p in res.outdir.rglob(".*")]
+
+
+def test_beads_reproducible_and_options(tmp_path):
+    kw = dict(beads=2, rows=30, cols=30, frames=5, dark_frames=4, setpoints=[1, 5],
+              multiplication="cascade")
+    a = simulate.simulate_beads(tmp_path / "a", seed=3, **kw)
+    b = simulate.simulate_beads(tmp_path / "b", seed=3, **kw)
+    for rel in ("beads/5x-beads.tif", "beads/1x-beads_no-signal.tif", "truth.json"):
+        assert (a.outdir / rel).read_bytes() == (b.outdir / rel).read_bytes()
+    assert a.truth["multiplication"] == "cascade" and a.truth["stages"] == 536
+    with pytest.raises(ValueError, match="cannot place 30 beads"):
+        simulate.simulate_beads(tmp_path / "c", beads=30, rows=30, cols=30, frames=2)
+    with pytest.raises(ValueError, match="photoelectrons has 2 values but there are 3 beads"):
+        simulate.simulate_beads(tmp_path / "c", beads=3, photoelectrons=[1, 2], frames=2)
+    with pytest.raises(ValueError, match="outside the 30×30 sensor"):
+        simulate.simulate_beads(tmp_path / "c", positions=[[5, 31]], rows=30, cols=30, frames=2)
+    with pytest.raises(ValueError, match="width must be > 0"):
+        simulate.simulate_beads(tmp_path / "c", width=0, frames=2)
+    assert not (tmp_path / "c").exists()
+
+
+def test_cli_beads(tmp_path, capsys):
+    out = tmp_path / "b"
+    argv = ["simulate", "beads", str(out), "--beads", "2", "--rows", "30", "--cols", "30",
+            "--frames", "4", "--dark-frames", "3", "--setpoints", "1,100", "--width", "1.5",
+            "--background", "5", "--photoelectrons", "3000", "--seed", "2", "--quiet"]
+    assert cli.main(argv) == 0
+    captured = capsys.readouterr()
+    assert "truth_calibration.nc" in captured.out and captured.err == ""
+    truth = json.loads((out / "truth.json").read_text())
+    assert truth["width"] == 1.5 and truth["background"] == 5.0 and len(truth["beads"]) == 2
+    assert tifffile.imread(out / "beads/100x-beads.tif").shape == (4, 30, 30)
+    assert tifffile.imread(out / "beads/100x-beads_no-signal.tif").shape == (3, 30, 30)
+    assert cli.main(["simulate", "beads", str(tmp_path / "x"), "--beads", "-1"]) == 2

@@ -22,6 +22,8 @@ from . import fitting, gof, io, methods, mv, quality, result, stats
 __all__ = ["METHODS", "calibrate", "add_parser"]
 
 METHODS = ("mv-adu", "mv-gain") + methods.LIKELIHOOD_METHODS
+#: Interval kinds of :func:`calibrate`: ``estimate ± 1.96 SE`` only, or profile bounds too.
+INTERVALS = ("wald", "profile")
 
 #: Pixels fitted together: large enough to amortise Python overhead, small enough that
 #: the FFT windows of a block (pixels × window × derivatives) stay within a few hundred MB.
@@ -90,6 +92,7 @@ def calibrate(
     workers=None,
     checks=True,
     map_errors=True,
+    intervals="wald",
 ):
     """Calibrate a camera from the acquisitions of a manifest.
 
@@ -122,6 +125,11 @@ def calibrate(
         ``dark_frames`` in the manifest): the offset map's own SE is σ/√n_dark, which moves
         E at 1× by φσ/√n_dark. ``False`` gives SEs conditional on the maps. Maps without a
         known number of dark frames are always taken as exact.
+    intervals : {"wald", "profile"}
+        ``"profile"`` adds 95 % profile-likelihood bounds ``<name>_lower``/``<name>_upper``
+        for the likelihood methods' free parameters: they follow a skewed likelihood
+        (few photoelectrons, weak set-points) where ``estimate ± 1.96 SE`` does not. They
+        are conditional on the maps and cost about ten refits per parameter.
 
     Returns
     -------
@@ -137,12 +145,17 @@ def calibrate(
     t0 = time.perf_counter()
     if method not in METHODS:
         raise methods.MethodError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    if intervals not in INTERVALS:
+        raise ValueError(f"unknown intervals {intervals!r}; choose one of {', '.join(INTERVALS)}")
+    if intervals == "profile" and method.startswith("mv-"):
+        raise methods.MethodError(f"{method} has no likelihood: profile intervals need a "
+                                  "likelihood method")
     # Every warning of the run (manifest, saturation, convergence, misfit) is recorded in
     # the result and issued again to the caller.
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         ds = _run_calibration(manifest, method, e_per_adu, block_size, options, progress,
-                              workers, checks, map_errors)
+                              workers, checks, map_errors, intervals)
     messages = list(dict.fromkeys(str(w.message) for w in caught))
     for w in dict.fromkeys((str(w.message), w.category) for w in caught):
         warnings.warn(w[0], w[1], stacklevel=2)
@@ -155,7 +168,7 @@ def calibrate(
 
 
 def _run_calibration(manifest, method, e_per_adu, block_size, options, progress, workers,
-                     checks, map_errors):
+                     checks, map_errors, intervals):
     manifest = _load(manifest)
     acqs = manifest.acquisitions
     rows, cols = manifest.shape
@@ -184,7 +197,8 @@ def _run_calibration(manifest, method, e_per_adu, block_size, options, progress,
     else:
         dark_frames, map_groups, se_note = _map_error_sources(used, map_errors)
         ds = _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size,
-                                   options or {}, progress, workers, dark_frames, map_groups)
+                                   options or {}, progress, workers, dark_frames, map_groups,
+                                   intervals)
         ds.attrs["standard_errors"] = se_note
     if report is not None:
         ds.attrs["quality"] = json.dumps(report)
@@ -246,7 +260,7 @@ def _map_error_sources(used, map_errors):
 
 
 def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, options, progress,
-                          workers, dark_frames, map_groups):
+                          workers, dark_frames, map_groups, intervals):
     rows, cols = manifest.shape
     P = rows * cols
     setpoints = np.array([a.em_gain_setpoint for a in used])
@@ -271,6 +285,8 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
         layout, x0 = methods.build_layout(method, series, options)
         fit = fitting.fit(layout, blocks, x0)
         e = methods.acquisition_estimates(layout, fit.x, fit.cov)
+        if intervals == "profile":
+            e.update(methods.acquisition_bounds(layout, blocks, fit))
         # Goodness of fit per acquisition; a free parameter shared by k acquisitions
         # counts 1/k towards each one's fitted-parameter number.
         touches = np.any(layout.matrix != 0, axis=1)  # (A, F)
@@ -294,8 +310,8 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         for idx, layout, fit, e, pvals in pool.map(fit_block, tiles):
             gof_p[idx] = pvals
-            for k in est:
-                est[k][idx] = e[k]
+            for k in e:
+                est.setdefault(k, np.full((P, A), np.nan))[idx] = e[k]
             loglik[idx] = fit.loglik
             converged[idx] = fit.converged
             n_floored[idx] = fit.n_floored
@@ -332,40 +348,61 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
     }
     fixed_phi_se = np.full((rows, cols), np.nan)
     if method == "is-adu":
-        return result.make_dataset(
+        ds = result.make_dataset(
             method=method, setpoints=[1.0], levels=labels,
             e_per_adu=grid(est["e_per_adu"][:, 0]), e_per_adu_se=grid(est["e_per_adu_se"][:, 0]),
             em_gain=np.ones((1, rows, cols)), em_gain_se=np.zeros((1, rows, cols)),
             photoelectrons=grid(est["photoelectrons"]), photoelectrons_se=grid(est["photoelectrons_se"]),
             photoelectrons_dims=("level", "row", "col"),
             loglik=grid(loglik), converged=grid(converged),
-            manifest_hash=manifest.content_hash, manifest_path=str(manifest.path), extra=extra,
+            manifest_hash=manifest.content_hash, manifest_path=str(manifest.path.resolve()), extra=extra,
         )
-    if method == "is-gain":
-        return result.make_dataset(
+    elif method == "is-gain":
+        ds = result.make_dataset(
             method=method, setpoints=[float(setpoints[0])], levels=labels,
             e_per_adu=grid(est["e_per_adu"][:, 0]), e_per_adu_se=fixed_phi_se,
             em_gain=grid(est["em_gain"][:, :1]), em_gain_se=grid(est["em_gain_se"][:, :1]),
             photoelectrons=grid(est["photoelectrons"]), photoelectrons_se=grid(est["photoelectrons_se"]),
             photoelectrons_dims=("level", "row", "col"),
             loglik=grid(loglik), converged=grid(converged),
-            manifest_hash=manifest.content_hash, manifest_path=str(manifest.path), extra=extra,
+            manifest_hash=manifest.content_hash, manifest_path=str(manifest.path.resolve()), extra=extra,
         )
-    shared = method in ("gs", "gs-no1x")
-    if method == "gs-hierarchical":
-        extra["hyper_photoelectrons"] = (("row", "col"), grid(hyper["hyper_photoelectrons"]), "e-")
-        extra["hyper_sd_photoelectrons"] = (("row", "col"), grid(hyper["hyper_sd_photoelectrons"]), "e-")
-    return result.make_dataset(
-        method=method, setpoints=[float(s) for s in setpoints],
-        e_per_adu=grid(est["e_per_adu"][:, 0]), e_per_adu_se=fixed_phi_se,
-        em_gain=grid(est["em_gain"]), em_gain_se=grid(est["em_gain_se"]),
-        photoelectrons=grid(est["photoelectrons"][:, 0]) if shared else grid(est["photoelectrons"]),
-        photoelectrons_se=grid(est["photoelectrons_se"][:, 0]) if shared else grid(est["photoelectrons_se"]),
-        photoelectrons_dims=("row", "col") if shared else ("setpoint", "row", "col"),
-        loglik=grid(loglik), converged=grid(converged),
-        manifest_hash=manifest.content_hash, manifest_path=str(manifest.path), extra=extra,
-        attrs={"options": str(options)} if options else None,
-    )
+    else:
+        shared = method in ("gs", "gs-no1x")
+        if method == "gs-hierarchical":
+            extra["hyper_photoelectrons"] = (("row", "col"), grid(hyper["hyper_photoelectrons"]), "e-")
+            extra["hyper_sd_photoelectrons"] = (("row", "col"), grid(hyper["hyper_sd_photoelectrons"]), "e-")
+        ds = result.make_dataset(
+            method=method, setpoints=[float(s) for s in setpoints],
+            e_per_adu=grid(est["e_per_adu"][:, 0]), e_per_adu_se=fixed_phi_se,
+            em_gain=grid(est["em_gain"]), em_gain_se=grid(est["em_gain_se"]),
+            photoelectrons=grid(est["photoelectrons"][:, 0]) if shared else grid(est["photoelectrons"]),
+            photoelectrons_se=grid(est["photoelectrons_se"][:, 0]) if shared else grid(est["photoelectrons_se"]),
+            photoelectrons_dims=("row", "col") if shared else ("setpoint", "row", "col"),
+            loglik=grid(loglik), converged=grid(converged),
+            manifest_hash=manifest.content_hash, manifest_path=str(manifest.path.resolve()), extra=extra,
+            attrs={"options": str(options)} if options else None,
+        )
+    if intervals == "profile":
+        _add_bounds(ds, est, grid)
+    return ds
+
+
+def _add_bounds(ds, est, grid):
+    """Profile bounds ``<name>_lower/_upper`` beside each estimate, on its dims."""
+    for name in ("photoelectrons", "em_gain", "e_per_adu"):
+        lower, upper = est[f"{name}_lower"], est[f"{name}_upper"]
+        if np.all(np.isnan(lower)):
+            continue  # fixed by the method
+        da = ds[name]
+        pick = (lambda a: a[:, 0]) if da.ndim == 2 else (lambda a: a[:, : da.shape[0]])  # noqa: E731
+        for side, arr in (("lower", lower), ("upper", upper)):
+            ds[f"{name}_{side}"] = (da.dims, grid(pick(arr)), {
+                "units": da.attrs["units"],
+                "long_name": f"{side} bound of the 95 % profile-likelihood interval of {name}",
+            })
+    ds.attrs["intervals"] = "profile likelihood, 95 %, conditional on the offset/read-noise maps"
+
 
 
 def _calibrate_mv(method, manifest, used, hists, phi_map):
@@ -386,7 +423,7 @@ def _calibrate_mv(method, manifest, used, hists, phi_map):
             photoelectrons=grid(fit.photoelectrons), photoelectrons_se=grid(fit.photoelectrons_se),
             photoelectrons_dims=("level", "row", "col"),
             converged=grid(fit.valid), manifest_hash=manifest.content_hash,
-            manifest_path=str(manifest.path),
+            manifest_path=str(manifest.path.resolve()),
         )
     phi = phi_map.ravel()
     fit = mv.fit_mv_gain(mean, var, offsets, read_noise, n, phi, np.asarray(setpoints))
@@ -399,7 +436,7 @@ def _calibrate_mv(method, manifest, used, hists, phi_map):
         photoelectrons=grid(fit.photoelectrons), photoelectrons_se=grid(fit.photoelectrons_se),
         photoelectrons_dims=(("level" if by_level else "setpoint"), "row", "col"),
         converged=grid(np.all(fit.valid, axis=0) if np.ndim(fit.valid) > 1 else fit.valid),
-        manifest_hash=manifest.content_hash, manifest_path=str(manifest.path),
+        manifest_hash=manifest.content_hash, manifest_path=str(manifest.path.resolve()),
     )
 
 
@@ -421,9 +458,14 @@ def add_parser(subparsers):
     p.add_argument("--block-size", type=int, default=DEFAULT_BLOCK, help="pixels fitted together")
     p.add_argument("--no-checks", action="store_true",
                    help="skip the data-quality checks (see 'emccdcal check')")
+    p.add_argument("--intervals", choices=INTERVALS, default="wald",
+                   help="'profile': also write 95 %% profile-likelihood bounds "
+                   "(<name>_lower/_upper), for skewed likelihoods; slower (default: wald)")
     p.add_argument("--conditional-se", action="store_true",
                    help="standard errors conditional on the offset/read-noise maps (leave out "
                    "the error of maps estimated from dark frames)")
+    p.add_argument("--report", action="store_true",
+                   help="also write OUT/report.html (figures, summary, provenance)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars, no summary")
     p.set_defaults(func=_run)
     return p
@@ -438,10 +480,17 @@ def _run(args):
         warnings.simplefilter("always")
         ds = calibrate(args.manifest, args.method, e_per_adu=args.e_per_adu, out=args.out,
                        block_size=args.block_size, progress=not args.quiet,
-                       checks=not args.no_checks, map_errors=not args.conditional_se)
+                       checks=not args.no_checks, map_errors=not args.conditional_se,
+                       intervals=args.intervals)
+        if args.report:
+            from .report import REPORT_FILE, write_report
+
+            write_report([args.out], args.out / REPORT_FILE, progress=not args.quiet)
     if not args.quiet:
         print(format_summary(ds))
         print(f"wrote {args.out / result.CALIBRATION_FILE} and {args.out / result.SUMMARY_FILE}")
+        if args.report:
+            print(f"wrote {args.out / REPORT_FILE}")
     for w in dict.fromkeys(str(c.message) for c in caught):
         print(f"warning: {w}", file=sys.stderr)
     return 0

@@ -14,7 +14,7 @@ import sys
 from . import __version__
 
 # Modules that contribute verbs, in the order they appear in ``--help``.
-_VERB_MODULES = ("demo", "simulate", "calibrate", "posterior", "quality")
+_VERB_MODULES = ("demo", "simulate", "calibrate", "posterior", "quality", "report", "validation", "cots")
 
 
 class _Parser(argparse.ArgumentParser):

@@ -5,7 +5,9 @@ and a gain series (set-points 1/5/25/100/300), then does what a user does with r
 data: calibrates φ (e⁻/ADU) with ``is-adu``, then the true EM gains and the intensity
 with ``gs`` using that φ, and prints truth against estimate ± standard error (medians
 over pixels). Works offline; writes only into DIR (default: a new temporary directory),
-including both results (``calibration.nc``, ``summary.json``).
+including both results (``calibration.nc``, ``summary.json``) and — the command's default,
+``report=True`` in Python — the HTML report of both (``report.html``,
+:mod:`emccdcal.report`), whose path it prints last.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ def _median(da):
 
 
 def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication="gamma",
-             seed=DEMO_SEED, progress=False, out=None):
+             seed=DEMO_SEED, progress=False, report=False, out=None):
     """Simulate, calibrate φ then the gains, and print truth against estimate.
 
     Parameters
@@ -49,13 +51,17 @@ def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication="gamm
         Seed of the simulation.
     progress : bool, optional
         Progress bars on stderr.
+    report : bool, optional
+        Also write ``DIR/report.html`` of both results (default False here; the
+        ``emccdcal demo`` command writes it unless ``--no-report``).
     out : file, optional
         Where to print (default stdout).
 
     Returns
     -------
     dict
-        ``adu`` and ``gs``: the two result datasets; ``outdir``: where everything is.
+        ``adu`` and ``gs``: the two result datasets; ``outdir``: where everything is;
+        ``report``: the HTML report (None without ``report``).
     """
     out = sys.stdout if out is None else out
     outdir = Path(tempfile.mkdtemp(prefix="emccdcal-demo-") if outdir is None else outdir)
@@ -74,6 +80,12 @@ def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication="gamm
         phi = adu.e_per_adu.values
         gs = calibrate(gs_sim.manifest, "gs", e_per_adu=phi, out=outdir / "result-gs",
                        progress=progress)
+        html = None
+        if report:
+            from .report import REPORT_FILE, write_report
+
+            html = write_report([outdir / "result-is-adu", outdir / "result-gs"],
+                                outdir / REPORT_FILE, progress=progress)
 
     print("\nstep 1: ADU conversion factor from the 1x intensity series (is-adu)", file=out)
     header = f"  {'quantity':<28}{'truth':>12}{'estimate':>12}{'± SE':>10}"
@@ -102,7 +114,9 @@ def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication="gamm
     print(f"  results: {outdir / 'result-is-adu'}, {outdir / 'result-gs'}", file=out)
     for w in dict.fromkeys(str(c.message) for c in caught):
         print(f"  warning: {w}", file=out)
-    return {"adu": adu, "gs": gs, "outdir": outdir}
+    if html is not None:
+        print(f"\nreport: {html}", file=out)
+    return {"adu": adu, "gs": gs, "outdir": outdir, "report": html}
 
 
 def _run(args) -> int:
@@ -112,7 +126,7 @@ def _run(args) -> int:
                              + (" of at least 2" if name == "frames" else ""))
     run_demo(Path(args.dir) if args.dir else None, rows=args.rows, cols=args.cols,
              frames=args.frames, multiplication=args.multiplication, seed=args.seed,
-             progress=not args.quiet)
+             progress=not args.quiet, report=not args.no_report)
     return 0
 
 
@@ -132,6 +146,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--multiplication", choices=("gamma", "cascade"), default="gamma",
                    help="EM register model of the simulation (default %(default)s)")
     p.add_argument("--seed", type=int, default=DEMO_SEED, help="random seed (default %(default)s)")
+    p.add_argument("--no-report", action="store_true", help="skip the HTML report")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
     p.set_defaults(func=_run)
     return p

@@ -25,7 +25,7 @@ import numpy as np
 
 from . import noise
 
-__all__ = ["AcquisitionBlock", "FitResult", "Layout", "fit", "log_likelihood"]
+__all__ = ["AcquisitionBlock", "FitResult", "Layout", "fit", "log_likelihood", "profile_bounds"]
 
 # Values whose model probability is below this fraction of the pixel's peak are beyond
 # what the FFT resolves (round-off ~1e-16 of the peak): they count at this floor, with
@@ -142,6 +142,8 @@ class FitResult:
     n_floored : ndarray of int, shape (P,)
         Frames whose probability was below the resolvable floor (outliers).
     loglik_per_acquisition : ndarray, shape (P, A)
+    objective : ndarray, shape (P,)
+        Log-likelihood plus log prior at the optimum (the maximised function), nats.
     """
 
     x: np.ndarray
@@ -151,6 +153,7 @@ class FitResult:
     iterations: np.ndarray
     n_floored: np.ndarray
     loglik_per_acquisition: np.ndarray = field(default=None)
+    objective: np.ndarray = field(default=None)
 
 
 def _model_at_data(acq, E, scale, *, derivs=False, second=False, names=("photoelectrons", "scale")):
@@ -383,7 +386,7 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None):
     converged = done & pos_def & (gnorm < 1e-4) & (damping <= 1e8)
     if progress is not None:
         progress(int((~done).sum()))
-    return FitResult(x, cov, loglik, converged, iterations, floored, per_acq)
+    return FitResult(x, cov, loglik, converged, iterations, floored, per_acq, objective)
 
 
 def _solve(A, b):
@@ -404,6 +407,128 @@ def _invert(H):
     eig = np.full((P, F), -1.0)
     eig[ok] = np.linalg.eigvalsh(H[ok])
     pos = ok & np.all(eig > 0, axis=1)
-    if pos.any():
-        cov[pos] = np.linalg.inv(H[pos])
+    for i in np.flatnonzero(pos):  # one by one: a stack with one singular matrix fails whole
+        try:
+            cov[i] = np.linalg.inv(H[i])
+        except np.linalg.LinAlgError:  # positive eigenvalues, yet numerically singular
+            pos[i] = False
     return cov, pos
+
+
+@dataclass
+class _Pinned:
+    """A layout with its free parameter ``j`` held at per-pixel values (P,)."""
+
+    base: Layout
+    j: int
+    value: np.ndarray
+
+    @property
+    def lower(self):
+        return np.delete(self.base.lower, self.j)
+
+    @property
+    def upper(self):
+        return np.delete(self.base.upper, self.j)
+
+    def subset(self, idx):
+        return _Pinned(self.base.subset(idx), self.j, self.value[idx])
+
+    def _full(self, x):
+        return np.insert(x, self.j, self.value, axis=1)
+
+    def native(self, x):
+        logs, jac = self.base.native(self._full(x))
+        return logs, np.delete(jac, self.j, axis=-1)
+
+    def log_prior(self, x):
+        value, grad, hess = self.base.log_prior(self._full(x))
+        return value, np.delete(grad, self.j, 1), np.delete(np.delete(hess, self.j, 1), self.j, 2)
+
+
+def profile_bounds(layout, blocks, result, j, *, level=0.95, tol=0.005, max_steps=12):
+    """Profile-likelihood interval of the free parameter ``x[:, j]`` for every pixel.
+
+    The bounds are where the profile deviance ``2 (ℓ̂ − max ℓ | x_j)`` (with a prior: of
+    the penalised objective) reaches the χ²₁ quantile of ``level``. They follow the
+    likelihood where it is skewed, unlike the Wald interval ``x̂ ± z·SE``. Each side is
+    searched on the signed root deviance r, which is close to linear in x_j: from the
+    Wald bound, secant steps extend outwards until r passes its target, then regula falsi
+    inside the bracket. Every step refits the other parameters, warm-started.
+
+    Parameters
+    ----------
+    layout, blocks : as for :func:`fit`.
+    result : FitResult
+        The unconstrained fit (its ``x``, ``cov`` and ``objective``).
+    j : int
+        Index of the free parameter.
+    level : float
+        Confidence level of the interval.
+    tol : float
+        Accept a bound when the signed root deviance is within ``tol`` of its target.
+    max_steps : int
+        Refits per side; pixels whose bound is not found then get NaN.
+
+    Returns
+    -------
+    lower, upper : ndarray, shape (P,)
+        Bounds on ``x[:, j]`` (the free parameter's own scale, e.g. a logarithm); the
+        layout's bound where the deviance stays below the quantile up to it. NaN where
+        not found.
+    """
+    from scipy import stats
+
+    z = float(np.sqrt(stats.chi2.ppf(level, 1)))
+    x_hat, P = result.x, result.x.shape[0]
+    se = np.sqrt(np.abs(result.cov[:, j, j]))
+    out = []
+    for side in (-1.0, 1.0):
+        bound = np.full(P, np.nan)
+        edge = layout.lower[j] if side < 0 else layout.upper[j]
+        room = side * (edge - x_hat[:, j])  # distance to the layout's bound, ≥ 0
+        ok = np.isfinite(se) & np.isfinite(result.objective)
+        bound[ok & (room <= 0)] = edge
+        active = np.flatnonzero(ok & (room > 0))
+        # |t| = distance from the optimum; (t_in, r_in): farthest point still inside,
+        # (t_out, r_out): nearest point beyond the target (NaN until found).
+        t = np.minimum(z * np.maximum(se[active], 1e-6), room[active])
+        t_in, r_in = np.zeros(active.size), np.zeros(active.size)    # farthest inside
+        t_pre, r_pre = np.zeros(active.size), np.zeros(active.size)  # the one before
+        t_out, r_out = np.full(active.size, np.nan), np.full(active.size, np.nan)
+        last_inside = np.full(active.size, -1)  # which end the last step replaced
+        start = np.delete(x_hat[active], j, axis=1)
+        for _ in range(max_steps):
+            if active.size == 0:
+                break
+            value = x_hat[active, j] + side * t
+            pinned = _Pinned(layout.subset(active), j, value)
+            fitted = fit(pinned, [b.take(active) for b in blocks], start, max_iter=50)
+            r = np.sqrt(np.maximum(2.0 * (result.objective[active] - fitted.objective), 0.0))
+            done = (np.abs(r - z) < tol) | ((t >= room[active]) & (r < z))
+            bound[active[done]] = value[done]
+            inside = r < z
+            # Illinois: an end kept twice in a row has its offset from the target halved,
+            # which keeps regula falsi from crawling on a curved r.
+            r_in = np.where(~inside & (last_inside == 0), z - 0.5 * (z - r_in), r_in)
+            r_out = np.where(inside & (last_inside == 1), z + 0.5 * (r_out - z), r_out)
+            last_inside = inside.astype(int)
+            t_pre, r_pre = np.where(inside, t_in, t_pre), np.where(inside, r_in, r_pre)
+            t_in, r_in = np.where(inside, t, t_in), np.where(inside, r, r_in)
+            t_out, r_out = np.where(inside, t_out, t), np.where(inside, r_out, r)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                # before a bracket: secant through the last two inside points, extending
+                # by a factor 1.2 to 4; inside one: regula falsi, kept off its ends.
+                ext = t_in + (z - r_in) * (t_in - t_pre) / (r_in - r_pre)
+                ext = np.minimum(np.clip(np.nan_to_num(ext, nan=2 * t_in), 1.2 * t_in, 4 * t_in),
+                                 room[active])
+                mid = t_in + (z - r_in) * (t_out - t_in) / (r_out - r_in)
+                mid = np.clip(np.nan_to_num(mid, nan=0.5 * (t_in + t_out)),
+                              t_in + 0.05 * (t_out - t_in), t_out - 0.05 * (t_out - t_in))
+            t_new = np.where(np.isfinite(t_out), mid, ext)
+            keep = ~done
+            active, t, start = active[keep], t_new[keep], fitted.x[keep]
+            t_in, r_in, t_pre, r_pre = t_in[keep], r_in[keep], t_pre[keep], r_pre[keep]
+            t_out, r_out, last_inside = t_out[keep], r_out[keep], last_inside[keep]
+        out.append(bound)
+    return out[0], out[1]

@@ -384,6 +384,30 @@ def acquisition_estimates(layout, x, cov):
     return out
 
 
+def acquisition_bounds(layout, blocks, fit, level=0.95):
+    """Profile-likelihood bounds of E, g and φ per acquisition (:func:`fitting.profile_bounds`).
+
+    Returns
+    -------
+    dict
+        ``<name>_lower`` and ``<name>_upper`` (P, A) for ``photoelectrons``, ``em_gain``
+        and ``e_per_adu``; NaN where the quantity is fixed by the layout.
+    """
+    P, A = fit.x.shape[0], layout.matrix.shape[0]
+    out = {f"{n}_{s}": np.full((P, A), np.nan) for n in ("photoelectrons", "em_gain", "e_per_adu")
+           for s in ("lower", "upper")}
+    for j in range(layout.n_free):
+        lo, hi = fitting.profile_bounds(layout, blocks, fit, j, level=level)
+        # every quantity that is this parameter alone (a unit row of the layout's matrix)
+        for a, k in zip(*np.nonzero(layout.matrix[:, :, j] == 1.0)):
+            if np.count_nonzero(layout.matrix[a, k]) != 1:
+                continue
+            name = ("photoelectrons", "em_gain", "e_per_adu")[k]
+            out[f"{name}_lower"][:, a] = np.exp(layout.constant[:, a, k] + lo)
+            out[f"{name}_upper"][:, a] = np.exp(layout.constant[:, a, k] + hi)
+    return out
+
+
 def make_blocks(histograms, offsets, read_noises, setpoints, idx, dark_frames=None, map_groups=None):
     """AcquisitionBlocks of pixels ``idx`` from per-acquisition statistics.
 

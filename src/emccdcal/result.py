@@ -576,6 +576,7 @@ def _atomic_write(path: Path, write) -> None:
     os.close(fd)
     tmp = Path(tmp)
     try:
+        os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide a shared result from colleagues
         write(tmp)
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())

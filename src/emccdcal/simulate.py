@@ -24,13 +24,17 @@ not σ (Sheppard's correction); the noise model's ``read_noise`` is the former.
 calibration session produces: uint16 TIFF stacks ``(frames, rows, cols)``, a dark stack
 per set-point with its per-pixel ``offset`` and ``read_noise`` maps (float32 TIFF, ADU),
 a ``manifest.toml`` in the DESIGN format, and ``truth.json`` with the true values.
-``emccdcal simulate gain-series|intensity-series OUTDIR`` is the command line.
-``docs/simulation.md`` has examples.
+:func:`simulate_beads` writes bead movies for the bead validation (isolated emitters with
+a pixel-integrated Gaussian PSF, :func:`bead_scene`) with the same camera, plus
+``truth_calibration.nc``, the true calibration in the result contract.
+``emccdcal simulate gain-series|intensity-series|beads OUTDIR`` is the command line.
+``docs/simulation.md`` and ``docs/beads.md`` have examples.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import operator
@@ -50,6 +54,8 @@ __all__ = [
     "simulate_frames",
     "simulate_gain_series",
     "simulate_intensity_series",
+    "simulate_beads",
+    "bead_scene",
     "expected_moments",
     "default_em_gain",
     "offset_at_setpoint",
@@ -534,16 +540,25 @@ def _setpoint_offset(name: str, value: float, setpoint: float, opts: dict) -> fl
     return off
 
 
-def _run_series(outdir, kind: str, acqs: list[dict], darks: list[dict], opts: dict, progress: bool):
-    """Simulate and write the stacks of ``acqs`` (signal) and ``darks``; return the result."""
-    from tqdm import tqdm
-
+def _output_dir(outdir) -> Path:
     outdir = Path(outdir)
     if outdir.exists() and not outdir.is_dir():
         raise ValueError(f"outdir '{outdir}' exists and is not a directory")
     outdir.mkdir(parents=True, exist_ok=True)
+    return outdir
+
+
+def _write_stacks(outdir: Path, kind: str, acqs: list[dict], darks: list[dict], opts: dict,
+                  progress: bool, seeds) -> tuple[list[Path], np.ndarray, str]:
+    """Simulate and write the signal stacks ``acqs`` and the dark stacks ``darks``.
+
+    ``seeds`` are ``1 + len(acqs) + len(darks)`` children of the run's SeedSequence: the
+    offset pattern, then one per signal stack, then one per dark stack. Returns the
+    files written, the offset pattern (ADU, as stored) and its file name.
+    """
+    from tqdm import tqdm
+
     shape = (opts["rows"], opts["cols"])
-    seeds = np.random.SeedSequence(opts["seed"]).spawn(1 + len(acqs) + len(darks))
     pattern = np.random.default_rng(seeds[0]).normal(0.0, opts["offset_spread"], shape)
     pattern = pattern.astype(np.float32).astype(np.float64)  # exactly what the file holds
     files: list[Path] = []
@@ -594,6 +609,21 @@ def _run_series(outdir, kind: str, acqs: list[dict], darks: list[dict], opts: di
             del stack
     pattern_file = "truth-offset-pattern.tif"
     files.append(_write_tiff(outdir / pattern_file, pattern.astype(np.float32)))
+    return files, pattern, pattern_file
+
+
+def _run_series(outdir, kind: str, acqs: list[dict], darks: list[dict], opts: dict, progress: bool):
+    """Simulate and write the stacks of ``acqs`` (signal) and ``darks``; return the result."""
+    outdir = _output_dir(outdir)
+    seeds = np.random.SeedSequence(opts["seed"]).spawn(1 + len(acqs) + len(darks))
+    files, _, pattern_file = _write_stacks(outdir, kind, acqs, darks, opts, progress, seeds)
+    common = dict(
+        e_per_adu=opts["e_per_adu"],
+        read_noise=opts["read_noise"],
+        multiplication=opts["multiplication"],
+        stages=opts["stages"],
+        cic=opts["cic"],
+    )
 
     # truth.json
     truth_acqs = []
@@ -671,6 +701,14 @@ def _run_series(outdir, kind: str, acqs: list[dict], darks: list[dict], opts: di
     files.append(_write_text(truth_path, json.dumps(truth, indent=2) + "\n"))
 
     # manifest.toml, last: its presence means the series is complete
+    lines = _manifest_lines(kind, acqs, opts)
+    manifest = outdir / "manifest.toml"
+    files.append(_write_text(manifest, "\n".join(lines) + "\n"))
+    return SimulatedSeries(outdir, manifest, truth_path, truth, tuple(files))
+
+
+def _manifest_lines(kind: str, acqs: list[dict], opts: dict) -> list[str]:
+    """Lines of the manifest of a simulated series (DESIGN format)."""
     lines = [
         f"# Synthetic {kind} written by emccdcal {__version__} (emccdcal simulate {kind}).",
         "# Known truth: truth.json. Paths are relative to this file.",
@@ -693,9 +731,7 @@ def _run_series(outdir, kind: str, acqs: list[dict], darks: list[dict], opts: di
             f"read_noise = {_toml_value(a['read_noise_map'])}",
             f"# dark = {_toml_value(a['dark'])}  (the stack the maps were computed from)",
         ]
-    manifest = outdir / "manifest.toml"
-    files.append(_write_text(manifest, "\n".join(lines) + "\n"))
-    return SimulatedSeries(outdir, manifest, truth_path, truth, tuple(files))
+    return lines
 
 
 def _gains(em_gain, setpoints) -> list[float]:
@@ -930,6 +966,338 @@ def simulate_intensity_series(
 
 
 # --------------------------------------------------------------------------------------
+# Beads
+# --------------------------------------------------------------------------------------
+#: Defaults of the bead simulation (``docs/beads.md``).
+BEAD_DEFAULTS = {
+    "beads": 10,
+    "photoelectrons": 5000.0,
+    "width": 1.3,
+    "background": 10.0,
+    "rows": 64,
+    "cols": 64,
+    "frames": 500,
+    "dark_frames": 2000,
+    "min_separation": 12.0,
+    "margin": 6.0,
+}
+#: File written beside the stacks: the true calibration in the result contract.
+TRUTH_CALIBRATION_FILE = "truth_calibration.nc"
+
+
+def _place_beads(n, rows, cols, margin, min_separation, rng) -> np.ndarray:
+    """Random bead centres (row, col), at least ``margin`` px from the edges and
+    ``min_separation`` px apart, by sequential rejection sampling."""
+    lo_r, hi_r = margin, rows - 1 - margin
+    lo_c, hi_c = margin, cols - 1 - margin
+    if hi_r < lo_r or hi_c < lo_c:
+        raise ValueError(
+            f"a {rows}×{cols} sensor has no room for beads {margin:g} px from every edge"
+        )
+    placed: list[tuple[float, float]] = []
+    for _ in range(200 * n + 1000):
+        if len(placed) == n:
+            break
+        r, c = rng.uniform(lo_r, hi_r), rng.uniform(lo_c, hi_c)
+        if all(math.hypot(r - pr, c - pc) >= min_separation for pr, pc in placed):
+            placed.append((r, c))
+    if len(placed) < n:
+        raise ValueError(
+            f"cannot place {n} beads at least {min_separation:g} px apart and {margin:g} px "
+            f"from the edges of a {rows}×{cols} sensor; use fewer beads, a smaller "
+            "min_separation or a larger sensor"
+        )
+    return np.array(placed)
+
+
+def bead_scene(positions, photoelectrons, width, background, rows, cols) -> np.ndarray:
+    """Expected photoelectrons per pixel per frame of a field of beads, e⁻.
+
+    ``E_k = Σ_b N_b·P_k(x_b, y_b, s) + background`` with the pixel-integrated Gaussian
+    :func:`emccdcal.psf.spot_image`.
+
+    Parameters
+    ----------
+    positions : array_like, shape (B, 2)
+        Bead centres (row, col), pixel (pixel (r, c) is centred at integer indices).
+    photoelectrons : float or array_like, shape (B,)
+        N_b, each bead's total photoelectrons per frame (e⁻).
+    width : float
+        PSF standard deviation s (pixel).
+    background : float
+        Uniform background b (e⁻ per pixel per frame).
+    rows, cols : int
+        Sensor size (pixel).
+
+    Returns
+    -------
+    ndarray, shape (rows, cols)
+
+    Examples
+    --------
+    >>> E = bead_scene([[10.0, 12.0]], 5000.0, 1.3, 10.0, 24, 24)
+    >>> round(float(E.sum() - 10.0 * 24 * 24))
+    5000
+    """
+    from .psf import spot_image
+
+    pos = np.asarray(positions, dtype=float).reshape(-1, 2)
+    n = np.broadcast_to(np.asarray(photoelectrons, dtype=float), (len(pos),))
+    params = np.column_stack([pos[:, 1], pos[:, 0], np.full(len(pos), width), n,
+                              np.zeros(len(pos))])
+    image = spot_image(params, np.arange(rows), np.arange(cols)).sum(axis=0) if len(pos) \
+        else np.zeros((rows, cols))
+    return image + background
+
+
+def simulate_beads(
+    outdir,
+    *,
+    beads=BEAD_DEFAULTS["beads"],
+    photoelectrons=BEAD_DEFAULTS["photoelectrons"],
+    width=BEAD_DEFAULTS["width"],
+    background=BEAD_DEFAULTS["background"],
+    positions=None,
+    min_separation=BEAD_DEFAULTS["min_separation"],
+    margin=BEAD_DEFAULTS["margin"],
+    setpoints=PAPER_SETPOINTS,
+    em_gain=None,
+    e_per_adu=_DEFAULTS["e_per_adu"],
+    rows=BEAD_DEFAULTS["rows"],
+    cols=BEAD_DEFAULTS["cols"],
+    frames=BEAD_DEFAULTS["frames"],
+    dark_frames=BEAD_DEFAULTS["dark_frames"],
+    offset=DEFAULT_OFFSET,
+    offset_drop=DEFAULT_OFFSET_DROP,
+    offsets=None,
+    offset_spread=_DEFAULTS["offset_spread"],
+    read_noise=_DEFAULTS["read_noise"],
+    multiplication="gamma",
+    stages=DEFAULT_STAGES,
+    cic=0.0,
+    drift=0.0,
+    adc_bits=16,
+    seed=None,
+    cascade_method="pmf",
+    progress=False,
+) -> SimulatedSeries:
+    """Simulate bead movies at several EM gain set-points, with darks and the true calibration.
+
+    A field of isolated fluorescent beads (the paper's validation, METHODS §5.1): every
+    pixel receives Poisson photoelectrons with mean ``E_k = Σ_b N_b·P_k + b``
+    (:func:`bead_scene`: pixel-integrated Gaussian PSF of SD ``width``, ``N_b``
+    photoelectrons per bead per frame, uniform background b), then the camera of
+    :func:`simulate_frames` (multiplication, read noise, offset pattern, ADC) at each
+    set-point. Writes ``outdir/beads/<s>x-beads.tif`` per set-point, a dark stack
+    ``<s>x-beads_no-signal.tif`` with its offset and read-noise maps ``_S0.tif`` /
+    ``_sigma.tif`` per set-point, ``truth-offset-pattern.tif``, ``truth.json`` (with
+    ``beads``: a list of ``{"row", "col", "photoelectrons"}``), ``truth_calibration.nc``
+    (the true φ and gains in the calibration result contract, method ``"truth"``) and
+    ``manifest.toml`` (last).
+
+    Parameters
+    ----------
+    outdir : path
+        Output directory (created; files of the same names are replaced).
+    beads : int, optional
+        Number of beads (10), placed at random unless ``positions`` is given.
+    photoelectrons : float or sequence of float, optional
+        Photoelectrons per bead per frame, e⁻ (5000), one value or one per bead.
+    width : float, optional
+        PSF standard deviation, pixel (1.3).
+    background : float, optional
+        Uniform background, e⁻ per pixel per frame (10).
+    positions : array_like (beads, 2), optional
+        Bead centres (row, col), pixel; overrides the random placement.
+    min_separation, margin : float, optional
+        Random placement: least distance between beads (12 px) and from the sensor's
+        edges (6 px), so that each bead has a clean fitting box.
+    setpoints, em_gain, e_per_adu, offset, offset_drop, offsets, offset_spread, read_noise
+        As in :func:`simulate_gain_series` (set-points 1, 5, 25, 100, 300 and the paper's
+        true gains by default).
+    rows, cols, frames, dark_frames : int, optional
+        Sensor size (64 × 64 px), frames per bead movie (500) and per dark stack (2000).
+    multiplication, stages, cic, drift, adc_bits, cascade_method, seed, progress
+        As in :func:`simulate_gain_series`.
+
+    Returns
+    -------
+    SimulatedSeries
+    """
+    opts = _check_common(locals() | {"progress": None})
+    for key in ("outdir", "progress", "positions"):
+        opts.pop(key)
+    sps = _setpoint_list(setpoints)
+    gains = _gains(em_gain, sps)
+    n_beads = _int("beads", beads, minimum=0) if positions is None else None
+    s = _number("width", width, positive=True)
+    b = _number("background", background, minimum=0.0)
+    sep = _number("min_separation", min_separation, minimum=0.0)
+    edge = _number("margin", margin, minimum=0.0)
+    shape = (opts["rows"], opts["cols"])
+    if offsets is not None:
+        offs = [offsets] if np.ndim(offsets) == 0 else list(offsets)
+        if len(offs) != len(sps):
+            raise ValueError(
+                f"offsets has {len(offs)} value(s) but there are {len(sps)} set-points"
+            )
+    else:
+        offs = [None] * len(sps)
+    children = np.random.SeedSequence(opts["seed"]).spawn(2 + 2 * len(sps))
+    if positions is None:
+        pos = _place_beads(n_beads, shape[0], shape[1], edge, sep,
+                           np.random.default_rng(children[-1]))
+    else:
+        pos = np.asarray(_number("positions", positions, scalar=False), dtype=float)
+        pos = pos.reshape(-1, 2) if pos.size else np.zeros((0, 2))
+        if pos.ndim != 2 or pos.shape[1] != 2:
+            raise ValueError(f"positions must be (beads, 2) rows and columns, got shape {pos.shape}")
+        outside = (pos < 0).any(axis=1) | (pos[:, 0] > shape[0] - 1) | (pos[:, 1] > shape[1] - 1)
+        if outside.any():
+            raise ValueError(
+                f"bead position {pos[np.argmax(outside)].tolist()} is outside the "
+                f"{shape[0]}×{shape[1]} sensor"
+            )
+        n_beads = len(pos)
+    n_values = [photoelectrons] if np.ndim(photoelectrons) == 0 else list(photoelectrons)
+    if len(n_values) not in (1, n_beads):
+        raise ValueError(
+            f"photoelectrons has {len(n_values)} values but there are {n_beads} beads"
+        )
+    n_values = [_number("photoelectrons", v, minimum=0.0) for v in n_values]
+    N = np.broadcast_to(np.array(n_values), (n_beads,)).astype(float)
+    scene = bead_scene(pos, N, s, b, *shape)
+    opts.update(setpoints=sps, em_gain=gains, beads=n_beads, photoelectrons=n_values, width=s,
+                background=b, min_separation=sep, margin=edge)
+    acqs = []
+    for sp, g, off in zip(sps, gains, offs):
+        lab = _label(sp)
+        stem = f"beads/{lab}-beads"
+        acqs.append(
+            {
+                "label": lab,
+                "setpoint": sp,
+                "em_gain": g,
+                "photoelectrons": scene,
+                "offset": _setpoint_offset("offsets" if off is not None else "offset", off, sp, opts),
+                "frames": f"{stem}.tif",
+                "frames_n": opts["frames"],
+                "dark": f"{stem}_no-signal.tif",
+                "offset_map": f"{stem}_no-signal_S0.tif",
+                "read_noise_map": f"{stem}_no-signal_sigma.tif",
+            }
+        )
+    opts["offsets"] = [a["offset"] for a in acqs]
+    darks = [a | {"frames_n": opts["dark_frames"]} for a in acqs]
+
+    outdir = _output_dir(outdir)
+    files, pattern, pattern_file = _write_stacks(outdir, "beads", acqs, darks, opts, progress,
+                                                 children[:-1])
+    dark_sd = math.sqrt(opts["read_noise"] ** 2 + 1.0 / 12.0)
+    truth_acqs = []
+    for a in acqs:
+        if a["em_gain"] == 1.0:
+            f2 = 1.0
+        elif opts["multiplication"] == "gamma":
+            f2 = 2.0
+        else:
+            f2 = float(excess_noise_factor(a["em_gain"], opts["stages"]))
+        truth_acqs.append({
+            "name": a["label"],
+            "frames": a["frames"],
+            "dark": a["dark"],
+            "offset_map": a["offset_map"],
+            "read_noise_map": a["read_noise_map"],
+            "n_frames": a["frames_n"],
+            "n_dark_frames": opts["dark_frames"],
+            "em_gain_setpoint": a["setpoint"],
+            "em_gain": a["em_gain"],
+            "offset": a["offset"],
+            "excess_noise_factor": f2,
+        })
+    lines = _manifest_lines("beads", acqs, opts)
+    lines[0] = f"# Synthetic bead movies written by emccdcal {__version__} (emccdcal simulate beads)."
+    manifest_text = "\n".join(lines) + "\n"
+    manifest = outdir / "manifest.toml"
+
+    # The true calibration, in the result contract (emccdcal.result).
+    from . import result
+
+    ds = result.make_dataset(
+        method="truth",
+        setpoints=sps,
+        e_per_adu=opts["e_per_adu"],
+        e_per_adu_se=0.0,
+        em_gain=np.broadcast_to(np.array(gains)[:, None, None], (len(sps),) + shape),
+        em_gain_se=0.0,
+        photoelectrons=scene,
+        photoelectrons_se=0.0,
+        converged=True,
+        manifest_hash=hashlib.sha256(manifest_text.encode("utf-8")).hexdigest(),
+        manifest_path=str(manifest.resolve()),
+        extra={
+            "offset": (("setpoint", "row", "col"),
+                       np.stack([np.clip(a["offset"] + pattern, 0.0, None) for a in acqs]),
+                       "ADU", "true offset S0 (set-point level plus the pixel pattern)"),
+            "read_noise": (("setpoint", "row", "col"),
+                           np.full((len(sps),) + shape, dark_sd), "ADU",
+                           "true read noise: SD of dark counts, sqrt(sigma^2 + 1/12)"),
+        },
+        attrs={
+            "note": "true values of a bead simulation (emccdcal simulate beads); "
+                    "photoelectrons is the expected bead scene per pixel per frame, "
+                    "background included, CIC excluded",
+            "multiplication": opts["multiplication"],
+        },
+    )
+    nc_path = outdir / TRUTH_CALIBRATION_FILE
+    _atomic_write(nc_path, lambda tmp: ds.to_netcdf(tmp, engine="h5netcdf"))
+    files.append(nc_path)
+
+    options = {k: opts[k] for k in sorted(opts)}
+    units = dict(_UNITS) | {"width": "pixel", "background": "e-/px/frame",
+                            "bead photoelectrons": "e-/frame (whole bead)",
+                            "row": "pixel", "col": "pixel"}
+    truth = {
+        "kind": "beads",
+        "emccdcal_version": __version__,
+        "seed": opts["seed"],
+        "units": units,
+        "beads": [{"row": float(r), "col": float(c), "photoelectrons": float(n)}
+                  for (r, c), n in zip(pos, N)],
+        "width": s,
+        "background": b,
+        "e_per_adu": opts["e_per_adu"],
+        "read_noise": opts["read_noise"],
+        "read_noise_dark_sd": dark_sd,
+        "cic": opts["cic"],
+        "drift": opts["drift"],
+        "multiplication": opts["multiplication"],
+        "stages": opts["stages"] if opts["multiplication"] == "cascade" else None,
+        "adc_bits": opts["adc_bits"],
+        "offset_pattern": {
+            "file": pattern_file,
+            "sd": opts["offset_spread"],
+            "note": "per-pixel offset = acquisition offset + this map (same at every set-point)",
+        },
+        "calibration": TRUTH_CALIBRATION_FILE,
+        "acquisitions": truth_acqs,
+        "notes": [
+            "beads: centre (row, col) in pixels, pixel (r, c) centred at integer indices; "
+            "photoelectrons per bead per frame (the whole PSF, also beyond any box)",
+            "every pixel: Poisson photoelectrons with mean sum_b N_b P_k + background (+ cic)",
+            "read_noise is the SD of the Gaussian read-out before rounding; "
+            "dark-map SD ~ sqrt(read_noise^2 + 1/12)",
+        ],
+        "options": options,
+    }
+    truth_path = outdir / "truth.json"
+    files.append(_write_text(truth_path, json.dumps(truth, indent=2) + "\n"))
+    files.append(_write_text(manifest, manifest_text))
+    return SimulatedSeries(outdir, manifest, truth_path, truth, tuple(files))
+
+
+# --------------------------------------------------------------------------------------
 # Command line
 # --------------------------------------------------------------------------------------
 def _number_list(text: str) -> list[float]:
@@ -947,30 +1315,32 @@ def _label_list(text: str) -> list[str]:
     return [p.strip() for p in text.split(",")]
 
 
-def _common_options(p: argparse.ArgumentParser) -> None:
+def _common_options(p: argparse.ArgumentParser, sizes: dict | None = None) -> None:
+    sizes = {**_DEFAULTS, "dark_frames": None, **(sizes or {})}
     p.add_argument(
         "--rows",
         type=int,
-        default=_DEFAULTS["rows"],
+        default=sizes["rows"],
         help="frame rows, px (default %(default)s)",
     )
     p.add_argument(
         "--cols",
         type=int,
-        default=_DEFAULTS["cols"],
+        default=sizes["cols"],
         help="frame columns, px (default %(default)s)",
     )
     p.add_argument(
         "--frames",
         type=int,
-        default=_DEFAULTS["frames"],
+        default=sizes["frames"],
         help="frames per stack (default %(default)s)",
     )
     p.add_argument(
         "--dark-frames",
         type=int,
-        default=None,
-        help="frames per dark stack (default: --frames)",
+        default=sizes["dark_frames"],
+        help="frames per dark stack (default: "
+        + ("--frames)" if sizes["dark_frames"] is None else "%(default)s)"),
     )
     p.add_argument(
         "--e-per-adu",
@@ -1110,8 +1480,27 @@ def _run_intensity_series(args) -> int:
     return 0
 
 
+def _run_beads(args) -> int:
+    res = simulate_beads(
+        args.outdir,
+        beads=args.beads,
+        photoelectrons=args.photoelectrons,
+        width=args.width,
+        background=args.background,
+        min_separation=args.min_separation,
+        margin=args.margin,
+        setpoints=args.setpoints,
+        em_gain=args.em_gain,
+        offsets=args.offsets,
+        **_common_kwargs(args),
+    )
+    _report(res, "bead movies")
+    print(f"  true calibration: {res.outdir / TRUTH_CALIBRATION_FILE}")
+    return 0
+
+
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    """Add ``simulate {gain-series,intensity-series}`` to the ``emccdcal`` command line."""
+    """Add ``simulate {gain-series,intensity-series,beads}`` to the ``emccdcal`` command line."""
     p = subparsers.add_parser(
         "simulate",
         help="write synthetic stacks, darks, a manifest and truth.json",
@@ -1120,7 +1509,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
     def no_kind(args) -> int:
         p.print_usage(sys.stderr)
-        print("emccdcal simulate: error: choose gain-series or intensity-series", file=sys.stderr)
+        print("emccdcal simulate: error: choose gain-series, intensity-series or beads",
+              file=sys.stderr)
         return 2
 
     p.set_defaults(func=no_kind)
@@ -1190,4 +1580,52 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     )
     _common_options(is_)
     is_.set_defaults(func=_run_intensity_series)
+
+    bd = kinds.add_parser(
+        "beads",
+        help="isolated beads at several EM gain set-points (bead validation)",
+        description="Simulate bead movies: isolated emitters with a pixel-integrated Gaussian "
+        "PSF on a uniform background at several EM gain set-points, with a dark stack and "
+        "offset/read-noise maps per set-point, truth.json and truth_calibration.nc "
+        "(docs/beads.md).",
+    )
+    bd.add_argument("outdir", metavar="OUTDIR", help="output directory (created)")
+    bd.add_argument("--beads", type=int, default=BEAD_DEFAULTS["beads"],
+                    help="number of beads (default %(default)s)")
+    bd.add_argument(
+        "--photoelectrons",
+        type=_number_list,
+        default=[BEAD_DEFAULTS["photoelectrons"]],
+        help="photoelectrons per bead per frame, e⁻: one value or one per bead, "
+        "comma-separated (default %(default)s)",
+    )
+    bd.add_argument("--width", type=float, default=BEAD_DEFAULTS["width"],
+                    help="PSF standard deviation, px (default %(default)s)")
+    bd.add_argument("--background", type=float, default=BEAD_DEFAULTS["background"],
+                    help="uniform background, e⁻/px/frame (default %(default)s)")
+    bd.add_argument("--min-separation", type=float, default=BEAD_DEFAULTS["min_separation"],
+                    help="least distance between beads, px (default %(default)s)")
+    bd.add_argument("--margin", type=float, default=BEAD_DEFAULTS["margin"],
+                    help="least distance of a bead from the sensor edge, px (default %(default)s)")
+    bd.add_argument(
+        "--setpoints",
+        type=_number_list,
+        default=list(PAPER_SETPOINTS),
+        help="EM gain set-points, comma-separated (default 1,5,25,100,300)",
+    )
+    bd.add_argument(
+        "--em-gain",
+        type=_number_list,
+        default=None,
+        help="true mean EM gain per set-point, comma-separated "
+        "(default 1,4.78,22.95,90.06,261.6 at the paper's set-points, else the set-point)",
+    )
+    bd.add_argument(
+        "--offsets",
+        type=_number_list,
+        default=None,
+        help="offset per set-point, ADU, comma-separated (overrides --offset/--offset-drop)",
+    )
+    _common_options(bd, {k: BEAD_DEFAULTS[k] for k in ("rows", "cols", "frames", "dark_frames")})
+    bd.set_defaults(func=_run_beads)
     return p

@@ -1,0 +1,134 @@
+"""Benchmark: fitting 10 beads × 500 frames × 5 set-points, and its accuracy under the truth.
+
+Simulates (once, into a temporary directory) the default bead movies of
+``emccdcal simulate beads`` — 64 × 64 px, 10 beads of 5000 e⁻ per frame, width 1.3 px,
+background 10 e⁻/px, set-points 1/5/25/100/300× with the paper's true gains, 500 frames
+each, 2000-frame darks — then fits every bead in every frame under the true calibration
+(``emccdcal.beads.fit_beads`` per acquisition, the dark maps of the manifest) and reports:
+
+* wall time per set-point and in all (target: ≤ 60 s), and the peak resident memory;
+* the done-when figures of issue 5: per set-point, the mean over frames of each bead's
+  intensity against the truth (pooled over beads and the worst bead), and the RMS
+  standard error against the scatter over frames.
+
+``--multiplication cascade`` simulates the exact register instead of the gamma model (the
+fit still uses the paper's gamma model, so 5× shows the model mismatch).
+
+Run: ``.venv/bin/python benchmarks/bench_beads.py [--multiplication cascade] [--seed 1]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+
+def machine():
+    cpu = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    import numpy
+    import scipy
+
+    return (f"{os.cpu_count()} cores, {cpu}, Python {platform.python_version()}, "
+            f"NumPy {numpy.__version__}, SciPy {scipy.__version__}")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--multiplication", choices=("gamma", "cascade"), default="gamma")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--frames", type=int, default=500)
+    parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
+    args = parser.parse_args()
+    from emccdcal import beads, io, result
+    from emccdcal.simulate import simulate_beads
+
+    print(machine())
+    print(time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        sim = simulate_beads(Path(tmp) / "beads", multiplication=args.multiplication,
+                             frames=args.frames, seed=args.seed)
+        print(f"simulated the bead movies ({args.multiplication}) in "
+              f"{time.perf_counter() - t0:.1f} s")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            manifest = io.read_manifest(sim.manifest)
+        truth = result.load(sim.outdir / "truth_calibration.nc")
+        phi = truth["e_per_adu"].values
+        t_all = time.perf_counter()
+        acq0 = max(manifest.acquisitions, key=lambda a: a.em_gain_setpoint)
+        t0 = time.perf_counter()
+        found = beads.detect_beads(acq0.frames(), acq0.offset)
+        t_detect = time.perf_counter() - t0
+        true_pos = np.array([[b["row"], b["col"]] for b in sim.truth["beads"]])
+        true_n = np.array([b["photoelectrons"] for b in sim.truth["beads"]])
+        # match found beads to the truth
+        d = np.hypot(*(found.positions[:, None, :] - true_pos[None, :, :]).transpose(2, 0, 1))
+        match = d.argmin(axis=1)
+        rows = []
+        for acq in manifest.acquisitions:
+            s = acq.em_gain_setpoint
+            g = truth["em_gain"].sel(setpoint=s).values
+            t0 = time.perf_counter()
+            fit = beads.fit_beads(acq.frames(), found.positions, offset=acq.offset,
+                                  read_noise=acq.read_noise, e_per_adu=phi, em_gain=g,
+                                  adc_max=manifest.adc_max)
+            dt = time.perf_counter() - t0
+            ok = fit.converged
+            N = np.where(ok, fit.intensity, np.nan)
+            se = np.where(ok, fit.intensity_se, np.nan)
+            n = ok.sum(axis=1)
+            mean = np.nanmean(N, axis=1)
+            sem = np.nanstd(N, axis=1, ddof=1) / np.sqrt(n)
+            rel = mean / true_n[match] - 1
+            ratio = np.sqrt(np.nanmean(se**2, axis=1)) / np.nanstd(N, axis=1, ddof=1)
+            pooled = np.nansum(N) / np.nansum(np.where(ok, true_n[match][:, None], np.nan)) - 1
+            rows.append({
+                "setpoint": s, "seconds": dt, "converged": float(ok.mean()),
+                "bias_pooled": float(pooled),
+                "bias_pooled_se": float(np.sqrt(np.sum(sem**2)) / np.sum(true_n[match])),
+                "bias_worst_bead": float(rel[np.argmax(np.abs(rel))]),
+                "bias_worst_bead_z": float((rel / (sem / true_n[match]))[np.argmax(np.abs(rel))]),
+                "se_over_scatter_mean": float(np.mean(ratio)),
+                "se_over_scatter_range": [float(ratio.min()), float(ratio.max())],
+                "retabulated": fit.retabulated, "iterations": fit.iterations,
+            })
+        total = time.perf_counter() - t_all
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"beads found: {len(found.positions)} (detection {t_detect:.1f} s)")
+    print(f"{'set-point':>9} {'s':>6} {'conv':>6} {'bias (pooled)':>16} {'worst bead':>18} "
+          f"{'SE/scatter mean [min, max]':>28}")
+    for r in rows:
+        print(f"{r['setpoint']:>8g}x {r['seconds']:6.1f} {r['converged']:6.3f} "
+              f"{100 * r['bias_pooled']:+7.3f}% ± {100 * r['bias_pooled_se']:.3f}% "
+              f"{100 * r['bias_worst_bead']:+7.3f}% ({r['bias_worst_bead_z']:+.1f} SE) "
+              f"{r['se_over_scatter_mean']:8.3f} [{r['se_over_scatter_range'][0]:.3f}, "
+              f"{r['se_over_scatter_range'][1]:.3f}]")
+    print(f"total fit time (detection + 5 set-points): {total:.1f} s (target 60 s); "
+          f"peak memory {peak:.0f} MB")
+    if args.json is not None:
+        args.json.write_text(json.dumps({"machine": machine(), "multiplication": args.multiplication,
+                                         "seconds": total, "peak_mb": peak, "rows": rows},
+                                        indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,145 @@
+"""Per-frame bead fitting with the exact noise model (emccdcal.beads)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from emccdcal import beads, noise, psf
+from emccdcal.simulate import bead_scene, simulate_frames
+
+PHI = 3.859
+SIGMA = 15.5
+SIGMA_DARK = math.sqrt(SIGMA**2 + 1.0 / 12.0)  # SD of dark counts: what a fit uses
+SHAPE = (32, 48)
+TRUE_POS = np.array([[8.3, 9.6], [22.7, 24.2], [12.4, 37.8]])
+N_TRUE = 5000.0
+WIDTH = 1.3
+BACKGROUND = 10.0
+FRAMES = 300
+
+
+def _offset_map():
+    rng = np.random.default_rng(5)
+    return 580.0 + rng.normal(0.0, 0.5, SHAPE)
+
+
+def _stack(g, seed, frames=FRAMES, **kw):
+    scene = bead_scene(TRUE_POS, N_TRUE, WIDTH, BACKGROUND, *SHAPE)
+    return simulate_frames(scene, em_gain=g, e_per_adu=PHI, offset=_offset_map(),
+                           read_noise=SIGMA, frames=frames, seed=seed, **kw)
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    """Fits under the true calibration at 1× (PN), 5× and 300× (gamma data)."""
+    out = {}
+    for g, seed in ((1.0, 11), (4.78, 12), (261.6, 13)):
+        frames = _stack(g, seed)
+        pos = np.rint(TRUE_POS).astype(int)
+        out[g] = (frames, beads.fit_beads(frames, pos, offset=_offset_map(),
+                                          read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=g))
+    return out
+
+
+@pytest.mark.parametrize("g", [1.0, 4.78, 261.6])
+def test_true_calibration_gives_unbiased_intensities_and_honest_errors(fitted, g):
+    _, fit = fitted[g]
+    assert fit.intensity.shape == (3, FRAMES) and fit.params.shape == (3, FRAMES, 5)
+    ok = fit.converged
+    assert ok.mean() > 0.98
+    N, se = fit.intensity[ok], fit.intensity_se[ok]
+    scatter = N.std(ddof=1)
+    se_of_mean = scatter / math.sqrt(N.size)
+    # unbiased: the mean over frames (and beads) within 1 % of the truth, and within 4 SE
+    assert abs(N.mean() / N_TRUE - 1) < 0.01
+    assert abs(N.mean() - N_TRUE) < 4 * se_of_mean
+    # honest: the RMS standard error agrees with the scatter over frames within 10 %
+    assert np.sqrt(np.mean(se**2)) / scatter == pytest.approx(1.0, abs=0.10)
+    # positions (sensor coordinates), width and background
+    y, x = fit.params[..., 1], fit.params[..., 0]
+    np.testing.assert_allclose(np.median(y, axis=1), TRUE_POS[:, 0], atol=0.05)
+    np.testing.assert_allclose(np.median(x, axis=1), TRUE_POS[:, 1], atol=0.05)
+    assert np.median(fit.params[..., 2][ok]) == pytest.approx(WIDTH, rel=0.02)
+    assert np.mean(fit.params[..., 4][ok]) == pytest.approx(BACKGROUND, abs=1.0)
+
+
+def test_fit_is_the_maximum_of_the_exact_likelihood(fitted):
+    frames, fit = fitted[4.78]
+    h = beads.DEFAULT_HALF_SIZE
+    b, f = 1, 7
+    r, c = fit.positions[b]
+    box = np.asarray(frames[f, r - h:r + h + 1, c - h:c + h + 1])
+    off = _offset_map()[r - h:r + h + 1, c - h:c + h + 1]
+    rows = np.arange(r - h, r + h + 1)
+    cols = np.arange(c - h, c + h + 1)
+
+    def loglik(p):
+        E = psf.spot_image(p, rows, cols)
+        return noise.logpmf(box, E, 4.78, PHI, off, SIGMA_DARK).sum()
+
+    p = fit.params[b, f]
+    assert loglik(p) == pytest.approx(fit.loglik[b, f], abs=1e-6)
+    for i in range(5):
+        for sign in (-1, 1):
+            q = p.copy()
+            q[i] += sign * 0.3 * fit.se[b, f, i]
+            assert loglik(q) < loglik(p)
+
+
+def test_wrong_gain_scales_the_intensities(fitted):
+    frames, right = fitted[4.78]
+    wrong = beads.fit_beads(frames, right.positions, offset=_offset_map(),
+                            read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.1 * 4.78)
+    ok = right.converged & wrong.converged
+    ratio = wrong.intensity[ok].mean() / right.intensity[ok].mean()
+    assert ratio == pytest.approx(1 / 1.1, rel=0.01)
+
+
+def test_detect_beads_on_the_mean_image():
+    frames = _stack(22.95, 3, frames=40)
+    found = beads.detect_beads(frames, _offset_map(), width=WIDTH)
+    assert sorted(map(tuple, found.positions)) == sorted(map(tuple, np.rint(TRUE_POS).astype(int)))
+    img = beads.mean_image(frames, _offset_map())
+    assert img.shape == SHAPE
+    # offset-subtracted mean in ADU: the background level times g/φ
+    assert np.median(img) == pytest.approx(BACKGROUND * 22.95 / PHI, rel=0.05)
+
+
+def test_saturated_counts_are_left_out():
+    frames = _stack(22.95, 4, frames=30)
+    pos = np.rint(TRUE_POS).astype(int)
+    adc_max = int(np.percentile(frames, 99.9))
+    clipped = np.minimum(frames, adc_max)
+    fit = beads.fit_beads(clipped, pos, offset=_offset_map(), read_noise=SIGMA_DARK,
+                          e_per_adu=PHI, em_gain=22.95, adc_max=adc_max)
+    h = beads.DEFAULT_HALF_SIZE
+    in_boxes = sum(int((clipped[:, r - h:r + h + 1, c - h:c + h + 1] >= adc_max).sum())
+                   for r, c in pos)
+    assert fit.n_saturated == in_boxes > 0
+    assert fit.converged.mean() > 0.9
+    assert np.mean(fit.intensity[fit.converged]) == pytest.approx(N_TRUE, rel=0.03)
+
+
+def test_bad_input():
+    frames = _stack(1.0, 6, frames=5)
+    kw = dict(offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0)
+    with pytest.raises(ValueError, match=r"bead at \(row 2, col 20\) is closer than half_size"):
+        beads.fit_beads(frames, [[2, 20]], **kw)
+    phi = np.full(SHAPE, PHI)
+    phi[22, 25] = np.nan
+    with pytest.raises(ValueError, match=r"e_per_adu is not finite > 0 in the box of the bead "
+                                         r"at \(row 23, col 24\)"):
+        beads.fit_beads(frames, [[8, 10], [23, 24]], **(kw | {"e_per_adu": phi}))
+    with pytest.raises(ValueError, match="em_gain"):
+        beads.fit_beads(frames, [[8, 10]], **(kw | {"em_gain": 0.5}))
+    with pytest.raises(ValueError, match="frames, rows, cols"):
+        beads.fit_beads(frames[0], [[8, 10]], **kw)
+    with pytest.raises(ValueError, match="half_size must be at least 2"):
+        beads.fit_beads(frames, [[8, 10]], half_size=1, **kw)
+    with pytest.raises(ValueError, match="offset has shape"):
+        beads.fit_beads(frames, [[8, 10]], **(kw | {"offset": np.zeros((3, 3))}))
+    empty = beads.fit_beads(frames, np.zeros((0, 2), int), **kw)
+    assert empty.params.shape == (0, 5, 5)

@@ -1,0 +1,156 @@
+"""The HTML report in a real browser: headless Chromium renders every figure and section.
+
+A copy of the report gets a small script that, on load, measures every ``<img>`` (decoded
+size, and the spread of its pixel values drawn on a canvas: a blank image has none) and
+lists the section ids; ``--dump-dom`` prints the resulting DOM. A screenshot of the top of
+the page must not be blank either; it is kept in the test's temporary directory (and
+copied into ``$EMCCDCAL_SCREENSHOTS`` when that is set). Skips cleanly without Chromium
+(Debian package ``chromium``; ``.ci/run`` installs it).
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import os
+import re
+import resource
+import shutil
+import subprocess
+import warnings
+from pathlib import Path
+
+import matplotlib.image
+import numpy as np
+import pytest
+from test_report import demo_run
+
+from emccdcal import report
+from emccdcal.calibrate import calibrate
+
+CHROMIUM = next((p for p in map(shutil.which, ("chromium", "chromium-browser", "google-chrome"))
+                 if p), None)
+pytestmark = pytest.mark.skipif(CHROMIUM is None,
+                                reason="no Chromium on this machine (Debian package 'chromium')")
+REAL = (Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "lanl-proem").resolve()
+FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+         "--disable-background-networking", "--disable-component-update", "--disable-sync",
+         "--hide-scrollbars", "--mute-audio"]
+
+PROBE = """<script>
+window.addEventListener("load", () => {
+  const images = Array.from(document.images).map((img) => {
+    let sd = -1;
+    if (img.complete && img.naturalWidth > 0) {
+      const c = document.createElement("canvas");
+      c.width = img.naturalWidth; c.height = img.naturalHeight;
+      const ctx = c.getContext("2d");
+      ctx.drawImage(img, 0, 0);
+      const d = ctx.getImageData(0, 0, c.width, c.height).data;
+      let n = 0, s = 0, s2 = 0;
+      for (let i = 0; i < d.length; i += 4) { const v = d[i] + d[i + 1] + d[i + 2]; n++; s += v; s2 += v * v; }
+      sd = Math.sqrt(s2 / n - (s / n) ** 2) / 3;
+    }
+    const fig = img.closest("figure");
+    return {figure: fig ? fig.id : "", width: img.naturalWidth, height: img.naturalHeight,
+            shown: img.getBoundingClientRect().width, sd: sd};
+  });
+  const sections = Array.from(document.querySelectorAll("section[id]")).map((s) => s.id);
+  const out = document.createElement("pre");
+  out.id = "probe-result";
+  out.textContent = JSON.stringify({images: images, sections: sections});
+  document.body.appendChild(out);
+});
+</script>"""
+
+
+def _raise_address_space_limit():
+    """Chromium reserves tens of GB of address space: lift a soft ``ulimit -v``."""
+    hard = resource.getrlimit(resource.RLIMIT_AS)[1]
+    resource.setrlimit(resource.RLIMIT_AS, (hard, hard))
+
+
+def _chromium(tmp_path, *args):
+    profile = tmp_path / "chromium-profile"
+    proc = subprocess.run([CHROMIUM, *FLAGS, f"--user-data-dir={profile}", *args],
+                          capture_output=True, text=True, timeout=120, check=False,
+                          preexec_fn=_raise_address_space_limit)
+    hard = resource.getrlimit(resource.RLIMIT_AS)[1]
+    if proc.returncode != 0 and hard != resource.RLIM_INFINITY:
+        pytest.skip(f"Chromium failed under a hard address-space limit (ulimit -v {hard // 1024} "
+                    "KiB); it needs an unlimited one (set the limit with ulimit -S -v)")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return proc.stdout
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    """Chromium starts at all (checked once, on a trivial page; skips where it cannot)."""
+    out = _chromium(tmp_path_factory.mktemp("chromium"), "--dump-dom", "data:text/html,<p>ok</p>")
+    assert "<p>ok</p>" in out
+
+
+def check_in_browser(report_path, tmp_path, name):
+    """Open a report in Chromium; assert every figure rendered; return the screenshot path."""
+    text = report_path.read_text(encoding="utf-8")
+    n_img = text.count("<img ")
+    probe = tmp_path / f"{name}-probe.html"
+    probe.write_text(text.replace("</body>", PROBE + "</body>"), encoding="utf-8")
+    dom = _chromium(tmp_path, "--virtual-time-budget=10000", "--dump-dom", probe.as_uri())
+    m = re.search(r'<pre id="probe-result">(.*?)</pre>', dom, re.DOTALL)
+    assert m, "the probe script did not run"
+    found = json.loads(html.unescape(m.group(1)))
+    assert {"summary", "warnings", "gof", "figures", "provenance"} <= set(found["sections"])
+    assert len(found["images"]) == n_img > 0
+    for img in found["images"]:
+        assert img["width"] > 100 and img["height"] > 100, img  # decoded
+        assert img["shown"] > 100, img  # laid out on the page
+        assert img["sd"] > 5, img  # not blank (pixel values 0-255)
+    shot = tmp_path / f"{name}.png"
+    _chromium(tmp_path, "--window-size=1280,1600", f"--screenshot={shot}", report_path.as_uri())
+    pixels = matplotlib.image.imread(shot)
+    assert pixels.shape[:2] == (1600, 1280) and pixels[..., :3].std() > 0.05
+    keep = os.environ.get("EMCCDCAL_SCREENSHOTS")
+    if keep:
+        Path(keep).mkdir(parents=True, exist_ok=True)
+        shutil.copy(shot, Path(keep) / shot.name)
+    return found
+
+
+def test_demo_report_renders_in_chromium(browser, tmp_path_factory, tmp_path):
+    run, _ = demo_run(tmp_path_factory.getbasetemp())
+    found = check_in_browser(run["report"], tmp_path, "demo-report")
+    assert {"fig-result-1-histograms", "fig-result-2-photon-transfer", "fig-gain"} <= {
+        i["figure"] for i in found["images"]}
+
+
+def _real_manifest(d, kind):
+    if kind == "gs":
+        acqs = [(f"gain-GS/{g}x-gain.tif", g, f"gain-GS/{g}x-gain_no-signal") for g in
+                (1, 5, 25, 100, 300)]
+        head = "e_per_adu = 3.859\n"
+    else:
+        acqs = [(f"ADU/1x-gain_level-0{k}.tif", 1, "ADU/1x-gain_no-signal") for k in range(1, 7)]
+        head = ""
+    lines = [head] + [f'[[acquisition]]\nframes = "{REAL}/{f}"\nem_gain_setpoint = {g}\n'
+                      f'offset = "{REAL}/{dark}_S0.tif"\nread_noise = "{REAL}/{dark}_sigma.tif"\n'
+                      + (f'level = "L{i + 1}"\n' if kind == "adu" else "")
+                      for i, (f, g, dark) in enumerate(acqs)]
+    path = d / f"{kind}.toml"
+    path.write_text("".join(lines))
+    return path
+
+
+@pytest.mark.skipif(not REAL.is_dir(), reason="shared ProEM data not present")
+def test_real_proem_report_renders_in_chromium(browser, tmp_path):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the camera's read noise grows with set-point
+        calibrate(_real_manifest(tmp_path, "adu"), "is-adu", out=tmp_path / "is-adu",
+                  checks=False)  # the slow part; gs keeps its data-quality checks
+        calibrate(_real_manifest(tmp_path, "gs"), "gs", out=tmp_path / "gs")
+        path = report.write_report([tmp_path / "is-adu", tmp_path / "gs"], tmp_path / "r.html")
+    found = check_in_browser(path, tmp_path, "proem-report")
+    assert len(found["images"]) == 10  # 4 per result and 2 comparisons: nothing left out
+    text = path.read_text(encoding="utf-8")
+    assert "set-point 5x: " in text and "misfit the noise model" in text  # METHODS §3.1
+    assert np.isfinite(float(re.search(r"<td>5×</td><td>([0-9.]+)</td>", text).group(1)))

@@ -1,0 +1,267 @@
+"""Bead validation: the consistency metric, calibration groups, validate, bad input."""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from emccdcal import cli, result, validation
+from emccdcal.simulate import simulate_beads
+
+PHI = 3.859
+SHAPE = (32, 40)
+SETPOINTS = [1.0, 25.0]
+GAINS = [1.0, 22.95]
+POSITIONS = [[9.3, 10.6], [21.7, 28.2], [10.4, 30.8]]
+
+
+def _result(path, *, method, setpoints, gains, phi=PHI, shape=SHAPE, origin=(0, 0),
+            converged=True):
+    R, C = shape
+    ds = result.make_dataset(
+        method=method, setpoints=setpoints, e_per_adu=phi, e_per_adu_se=0.0,
+        em_gain=np.broadcast_to(np.array(gains, float)[:, None, None], (len(setpoints), R, C)),
+        em_gain_se=0.0, photoelectrons=np.zeros(shape), photoelectrons_se=0.0,
+        converged=converged, manifest_hash="0" * 64, origin=origin,
+    )
+    result.save(ds, path)
+    return path / result.CALIBRATION_FILE
+
+
+@pytest.fixture(scope="module")
+def beads_data(tmp_path_factory):
+    d = tmp_path_factory.mktemp("beads")
+    sim = simulate_beads(d / "sim", positions=POSITIONS, rows=SHAPE[0], cols=SHAPE[1],
+                         frames=80, dark_frames=300, setpoints=SETPOINTS, seed=42)
+    cal = {
+        "truth": d / "sim" / "truth_calibration.nc",
+        "wrong": _result(d / "wrong", method="gs", setpoints=SETPOINTS,
+                         gains=[1.0, 1.1 * GAINS[1]]),
+        "adu": _result(d / "adu", method="is-adu", setpoints=[1.0], gains=[1.0]),
+        "g25": _result(d / "g25", method="is-gain", setpoints=[25.0], gains=[GAINS[1]]),
+    }
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        doc = validation.validate(
+            sim.manifest, [str(cal["truth"]), str(cal["wrong"]), f"{cal['adu']},{cal['g25']}"],
+            out=d / "val", figures=False)
+    return sim, cal, doc, d / "val"
+
+
+# --------------------------------------------------------------------------------------
+# The metric (METHODS §10 case 14)
+# --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("scale", [1.0, 5000.0])
+def test_metric_case_14(scale):
+    means = {1: 1.00 * scale, 5: 1.10 * scale, 25: 0.99 * scale, 100: 1.01 * scale,
+             300: 1.00 * scale}
+    incl, excl = validation.consistency(means)
+    assert incl == pytest.approx(0.040497, abs=5e-7)
+    assert excl == pytest.approx(0.043875, abs=5e-7)
+    incl1, excl1 = validation.consistency(means, ddof=1)
+    assert incl1 == pytest.approx(0.045277, abs=5e-7)
+    assert excl1 == pytest.approx(0.050662, abs=5e-7)
+    # scaled to the 1× mean: a bead 10 % brighter at 1× changes the numbers
+    shifted = {**means, 1: 1.10 * scale}
+    assert validation.consistency(shifted)[1] == pytest.approx(0.043875 / 1.10, abs=5e-7)
+
+
+def test_metric_edge_cases():
+    with pytest.raises(ValueError, match="set-point 1 is needed"):
+        validation.consistency({5: 1.0, 25: 1.0})
+    incl, excl = validation.consistency({1: 100.0, 5: 110.0}, ddof=1)
+    assert incl == pytest.approx(np.std([1.0, 1.1], ddof=1)) and math.isnan(excl)
+    assert math.isnan(validation.consistency({1: 100.0, 5: np.nan})[0])
+
+
+# --------------------------------------------------------------------------------------
+# validate: the files
+# --------------------------------------------------------------------------------------
+def test_validation_json_schema_and_ranking(beads_data):
+    sim, cal, doc, out = beads_data
+    on_disk = json.loads((out / validation.VALIDATION_FILE).read_text())
+    assert on_disk["calibrations"] == doc["calibrations"]
+    assert doc["ddof"] == 0
+    assert [c["file"] for c in doc["calibrations"]] == [
+        str(cal["truth"]), str(cal["wrong"]), f"{cal['adu']},{cal['g25']}"]
+    assert [c["method"] for c in doc["calibrations"]] == ["truth", "gs", "is-adu+is-gain"]
+    for c in doc["calibrations"]:
+        assert {"file", "method", "beads", "sigma_means_incl_1x", "sigma_means_excl_1x"} <= set(c)
+        assert len(c["beads"]) == 3
+        for b in c["beads"]:
+            assert {"row", "col", "mean_intensity", "mean_intensity_se", "sigma_means_incl_1x",
+                    "sigma_means_excl_1x"} <= set(b)
+            assert list(b["mean_intensity"]) == ["1", "25"] == list(b["mean_intensity_se"])
+            assert isinstance(b["row"], int) and isinstance(b["col"], int)
+    # beads at the truth's positions
+    found = sorted((b["row"], b["col"]) for b in doc["calibrations"][0]["beads"])
+    assert found == sorted(tuple(round(v) for v in p) for p in POSITIONS)
+    truth, wrong, group = doc["calibrations"]
+    # the wrong gain at 25× makes the 25× intensities 1/1.1 of the truth's
+    for bt, bw in zip(truth["beads"], wrong["beads"]):
+        assert bw["mean_intensity"]["1"] == bt["mean_intensity"]["1"]
+        assert bw["mean_intensity"]["25"] / bt["mean_intensity"]["25"] == pytest.approx(
+            1 / 1.1, rel=0.01)
+        assert bt["mean_intensity"]["25"] == pytest.approx(5000.0, rel=0.02)
+    assert doc["ranking"][-1] == str(cal["wrong"])
+    assert wrong["sigma_means_incl_1x"] > 0.03 > truth["sigma_means_incl_1x"]
+    # the group (φ from is-adu, 25× gain from is-gain) is the truth again
+    assert group["beads"] == truth["beads"]
+    # per-bead metric recomputed from the means (ddof 0 headline, ddof 1 beside it)
+    b = wrong["beads"][0]
+    m = {float(k): v for k, v in b["mean_intensity"].items()}
+    assert b["sigma_means_incl_1x"] == pytest.approx(validation.consistency(m)[0])
+    assert b["sigma_means_incl_1x_ddof1"] == pytest.approx(validation.consistency(m, ddof=1)[0])
+    assert wrong["sigma_means_incl_1x"] == pytest.approx(
+        np.mean([x["sigma_means_incl_1x"] for x in wrong["beads"]]))
+
+
+def test_intensities_file(beads_data):
+    _, cal, doc, out = beads_data
+    with xr.open_dataset(out / validation.INTENSITIES_FILE, engine="h5netcdf") as ds:
+        ds = ds.load()
+    assert ds["intensity"].dims == ("calibration", "bead", "setpoint", "frame")
+    assert ds.sizes == {"calibration": 3, "bead": 3, "setpoint": 2, "frame": 80}
+    assert ds["intensity"].attrs["units"] == "e-" and ds["intensity_se"].attrs["units"] == "e-"
+    assert ds["converged"].dtype == bool and ds["converged"].mean() > 0.95
+    assert list(ds["calibration"].values) == [c["file"] for c in doc["calibrations"]]
+    assert list(ds["method"].values) == ["truth", "gs", "is-adu+is-gain"]
+    assert ds["setpoint"].values.tolist() == SETPOINTS
+    rows = [b["row"] for b in doc["calibrations"][0]["beads"]]
+    assert ds["bead_row"].values.tolist() == rows
+    # validation.json's means are the means of these over converged frames
+    I = ds["intensity"].where(ds["converged"])
+    mean = I.isel(calibration=1, bead=0, setpoint=1).mean().item()
+    assert mean == pytest.approx(doc["calibrations"][1]["beads"][0]["mean_intensity"]["25"])
+
+
+# --------------------------------------------------------------------------------------
+# Calibrations and bad input
+# --------------------------------------------------------------------------------------
+def test_load_calibration_groups(tmp_path):
+    adu = _result(tmp_path / "adu", method="is-adu", setpoints=[1.0], gains=[1.0], phi=3.9)
+    g5 = _result(tmp_path / "g5", method="is-gain", setpoints=[5.0], gains=[4.78])
+    g25 = _result(tmp_path / "g25", method="is-gain", setpoints=[25.0], gains=[22.95])
+    with pytest.warns(UserWarning, match="fitted with another e_per_adu"):
+        c = validation.load_calibration(f"{adu},{g5},{g25}", SHAPE)
+    assert c.method == "is-adu+is-gain" and c.setpoints == (1.0, 5.0, 25.0)
+    assert np.all(c.e_per_adu == 3.9) and np.all(c.gain(25) == 22.95) and np.all(c.gain(1) == 1)
+    with pytest.raises(ValueError, match=r"set-point 100x of the bead data is missing .*\(it has "
+                                         r"1x, 5x, 25x\)"):
+        c.gain(100)
+    other = _result(tmp_path / "g5b", method="is-gain", setpoints=[5.0], gains=[4.7])
+    with pytest.raises(ValueError, match="set-point 5x is in both"):
+        validation.load_calibration([g5, other])
+    adu2 = _result(tmp_path / "adu2", method="mv-adu", setpoints=[1.0], gains=[1.0])
+    with pytest.raises(ValueError, match="both measured e_per_adu"):
+        validation.load_calibration([adu, adu2])
+    # non-converged pixels are missing values
+    mask = np.ones(SHAPE, bool)
+    mask[3, 4] = False
+    part = _result(tmp_path / "part", method="gs", setpoints=[1.0, 5.0], gains=[1.0, 4.78],
+                   converged=mask)
+    c = validation.load_calibration(part)
+    assert np.isnan(c.gain(5)[3, 4]) and np.isnan(c.e_per_adu[3, 4])
+
+
+def test_calibration_of_another_sensor_or_region(tmp_path):
+    small = _result(tmp_path / "small", method="gs", setpoints=[1.0, 25.0], gains=GAINS,
+                    shape=(16, 16))
+    with pytest.raises(ValueError, match=r"small/calibration.nc: calibration covers rows 0–15 "
+                                         r"and columns 0–15, but the bead frames are 32×40"):
+        validation.load_calibration(small, SHAPE)
+    moved = _result(tmp_path / "moved", method="gs", setpoints=[1.0, 25.0], gains=GAINS,
+                    origin=(4, 0))
+    with pytest.raises(ValueError, match="rows 4–35"):
+        validation.load_calibration(moved, SHAPE)
+    with pytest.raises(FileNotFoundError, match="nope.nc"):
+        validation.load_calibration(tmp_path / "nope.nc")
+    junk = tmp_path / "junk.nc"
+    junk.write_text("not netcdf")
+    with pytest.raises(ValueError, match="junk.nc: not a readable NetCDF"):
+        validation.load_calibration(junk)
+
+
+def _cli(capsys, *argv):
+    code = cli.main(["validate", *map(str, argv)])
+    return code, capsys.readouterr()
+
+
+def test_cli_bad_input_is_one_line(beads_data, tmp_path, capsys):
+    sim, cal, _, _ = beads_data
+    missing = _result(tmp_path / "no25", method="gs", setpoints=[1.0, 5.0], gains=[1.0, 4.78])
+    cases = [
+        ((missing,), "set-point 25x of the bead data is missing from this calibration"),
+        ((tmp_path / "absent.nc",), "absent.nc: no such file"),
+        ((_result(tmp_path / "small", method="gs", setpoints=SETPOINTS, gains=GAINS,
+                  shape=(8, 8)),), "but the bead frames are 32×40"),
+    ]
+    for cals, message in cases:
+        code, io_ = _cli(capsys, sim.manifest, "--calibration", *cals, "-o", tmp_path / "o",
+                         "--quiet")
+        assert code == 2
+        lines = io_.err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("emccdcal validate: error: ")
+        assert message in lines[0]
+    assert not (tmp_path / "o" / validation.VALIDATION_FILE).exists()
+
+
+def test_no_beads_and_beads_at_the_edge(tmp_path, capsys):
+    empty = simulate_beads(tmp_path / "empty", beads=0, rows=24, cols=24, frames=20,
+                           dark_frames=50, setpoints=SETPOINTS, seed=1)
+    truth = tmp_path / "empty" / "truth_calibration.nc"
+    code, io_ = _cli(capsys, empty.manifest, "-c", truth, "-o", tmp_path / "o", "-q")
+    assert code == 2 and "no beads found" in io_.err and "25x-beads.tif" in io_.err
+    # one bead at the edge (skipped with a warning), one inside
+    edge = simulate_beads(tmp_path / "edge", positions=[[2.2, 12.0], [12.4, 11.7]], rows=24,
+                          cols=24, frames=20, dark_frames=50, setpoints=SETPOINTS, seed=2)
+    truth = tmp_path / "edge" / "truth_calibration.nc"
+    with pytest.warns(UserWarning, match=r"skipped 1 bead\(s\) closer than 4 px to the frame's "
+                                         r"edge at \(row, col\) \(2, 12\)"):
+        doc = validation.validate(edge.manifest, [truth], figures=False)
+    assert [(b["row"], b["col"]) for b in doc["calibrations"][0]["beads"]] == [(12, 12)]
+    # only a bead at the edge: nothing left to fit
+    only = simulate_beads(tmp_path / "only", positions=[[12.0, 1.6]], rows=24, cols=24,
+                          frames=20, dark_frames=50, setpoints=SETPOINTS, seed=3)
+    code, io_ = _cli(capsys, only.manifest, "-c", tmp_path / "only" / "truth_calibration.nc",
+                     "-o", tmp_path / "o", "-q")
+    assert code == 2 and "all 1 bead(s) found are at the edge" in io_.err
+
+
+def test_bead_with_missing_calibration_pixels_is_left_out(beads_data, tmp_path):
+    sim, _, _, _ = beads_data
+    mask = np.ones(SHAPE, bool)
+    mask[22, 28] = False  # inside the box of the bead at (22, 28)
+    part = _result(tmp_path / "part", method="gs", setpoints=SETPOINTS, gains=GAINS,
+                   converged=mask)
+    with pytest.warns(UserWarning, match=r"in the box of 1 bead\(s\) at \(row, col\) \(22, 28\)"):
+        doc = validation.validate(sim.manifest, [part], figures=False)
+    c = doc["calibrations"][0]
+    left_out = next(b for b in c["beads"] if (b["row"], b["col"]) == (22, 28))
+    assert left_out["mean_intensity"]["1"] is None and left_out["sigma_means_incl_1x"] is None
+    assert c["beads_used"] == 2 and c["sigma_means_incl_1x"] is not None
+
+
+def test_cli_writes_files_and_figures(beads_data, tmp_path, capsys):
+    sim, cal, _, _ = beads_data
+    out = tmp_path / "v"
+    code, io_ = _cli(capsys, sim.manifest, "--calibration", cal["truth"], cal["wrong"], "-o", out)
+    assert code == 0
+    assert "rank" in io_.out and "truth" in io_.out and "fitting beads" in io_.err
+    assert (out / "validation.json").is_file() and (out / "intensities.nc").is_file()
+    assert (out / "bead_consistency.png").is_file()
+    assert sorted(p.name for p in out.glob("bead_intensities_*.png")) == [
+        f"bead_intensities_{i}.png" for i in range(3)]
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary files
+
+
+def test_docstring_examples():
+    import doctest
+
+    res = doctest.testmod(validation)
+    assert res.attempted >= 1 and res.failed == 0
