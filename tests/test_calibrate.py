@@ -217,16 +217,16 @@ def test_gain_series_recovers_truth(camera, method):
         assert not ds.converged.values[blind].any()
         ds = ds.drop_sel(setpoint=10)
     # The hierarchical MAP shrinks each set-point's E to the shared one whenever the data
-    # pull it by less than SE²/sigma_sd (an L2-norm penalty, METHODS §6): there the
-    # estimate varies less than its local curvature says, and intervals over-cover
-    # (up to 99.0 % measured; docs/validation.md). Where a set-point's own data hardly
+    # pull it by less than SE²/sigma_sd (an L2-norm penalty, METHODS §6), a thresholding
+    # that the influence-function SE (centre included) linearises: intervals cover up to
+    # 97.5 % (docs/validation.md). Where a set-point's own data hardly
     # see E (10x of the "other" camera) the MAP's distribution over pixels is skewed: a
     # few pixels take a low E and a high gain; its median is on the truth, its mean not.
     # Mean–variance estimates are ratios of sample moments, with a finite-sample bias of
     # order CV² (+0.6 % for E at 50x of the "other" camera, 2000 frames): their median is
     # checked, and the bias is written down in docs/validation.md.
     hierarchical = method == "gs-hierarchical"
-    upper = 0.995 if hierarchical else 0.97
+    upper = 0.98 if hierarchical else 0.97
     centre = np.median if method in ("gs-hierarchical", "mv-gain") else np.mean
     for sp, g in zip(cam["setpoints"][1:], cam["em_gain"][1:]):
         if sp not in ds.setpoint:

@@ -529,7 +529,9 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         info = curvature(w_m[s] * -d2, J)
         info = np.where(free[:, :, None] & free[:, None, :], info, 0.0) \
             + (~free)[:, :, None] * np.eye(_NP)
-        eig_ok = np.all(np.linalg.eigvalsh(info) > 0, axis=1)
+        # A frame whose fit ran off (non-finite curvature) has no SE, not a crash.
+        eig_ok = np.all(np.isfinite(info), axis=(1, 2))
+        eig_ok[eig_ok] = np.all(np.linalg.eigvalsh(info[eig_ok]) > 0, axis=1)
         cov = np.full_like(info, np.nan)
         if eig_ok.any():
             cov[eig_ok] = np.linalg.inv(info[eig_ok])

@@ -132,8 +132,9 @@ class FitResult:
         Free parameters at the optimum.
     cov : ndarray, shape (P, F, F)
         Covariance of ``x``: the inverse observed information (with a prior: the sandwich
-        H⁻¹ I H⁻¹), plus what the errors of the offset and read-noise maps add where the
-        blocks give their variances; NaN where the information is not positive definite.
+        H⁻¹ I H⁻¹, or the layout's own ``estimator_covariance`` where it has one), plus
+        what the errors of the offset and read-noise maps add where the blocks give their
+        variances; NaN where the information is not positive definite.
     loglik : ndarray, shape (P,)
         Log-likelihood at the optimum, nats (without the prior).
     converged : ndarray of bool, shape (P,)
@@ -307,6 +308,28 @@ def _map_covariance(layout, blocks, x, cov):
     return out
 
 
+def value_scores(layout, blocks, x):
+    """Per-frame scores of each acquisition by ``x``, at every histogram value.
+
+    Returns
+    -------
+    list of (scores (P, K, F), counts (P, K))
+        One pair per acquisition: the derivative of ln p(value) by ``x`` (zero where the
+        value is below the resolvable floor) and the frames at each value.
+    """
+    logs, jac = layout.native(x)
+    out = []
+    for a, acq in enumerate(blocks):
+        log_e, log_scale, dscale = _native_to_model(logs[:, a], acq.poisson_normal)
+        E, scale = np.exp(log_e), np.exp(log_scale)
+        pv, d1, _, _, low, _ = _model_at_data(acq, E, scale, derivs=True)
+        u = np.stack([d1["photoelectrons"] * E[:, None], d1["scale"] * scale[:, None]], -1)
+        u = np.where(low[..., None], 0.0, u / pv[..., None])  # (P, K, 2) by (ln E, ln scale)
+        j_u = np.stack([jac[:, a, 0], dscale[0] * jac[:, a, 1] + dscale[1] * jac[:, a, 2]], 1)
+        out.append((np.einsum("pku,puf->pkf", u, j_u), acq.counts))
+    return out
+
+
 def log_likelihood(layout, blocks, x):
     """Log-likelihood (P,) of free parameters ``x`` (P, F), nats; no prior."""
     return _evaluate(layout, blocks, x, 0)[1]
@@ -378,7 +401,10 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None):
     # without one it is H⁻¹ itself.
     prior_hess = layout.log_prior(x)[2]
     h_inv = cov
-    if np.any(prior_hess):
+    if hasattr(layout, "estimator_covariance"):  # a data-dependent prior knows its own
+        cov = layout.estimator_covariance(blocks, x, np.nan_to_num(h_inv))
+        cov[~pos_def] = np.nan
+    elif np.any(prior_hess):
         cov = np.einsum("pfg,pgh,phk->pfk", cov, obs + prior_hess, cov)
     if any(b.offset_var is not None or b.read_noise_var is not None for b in blocks):
         cov = cov + _map_covariance(layout, blocks, x, np.nan_to_num(h_inv))

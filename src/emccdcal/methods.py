@@ -248,7 +248,8 @@ def build_layout(method, series, options=None):
         # Warm start from the shared-E gain series, the MAP's limit of strong pooling:
         # moments alone can start far off when the 1× anchor is weak (few e⁻, big φ).
         gs_layout, gs_x0 = build_layout("gs" if sp[0] == 1 else "gs-no1x", series)
-        shared = fitting.fit(gs_layout, blocks, gs_x0).x
+        gs_fit = fitting.fit(gs_layout, blocks, gs_x0)
+        shared = gs_fit.x
         mu0 = np.exp(shared[:, 0])
         centre_rule = options.get("centre", "gs")
         if centre_rule == "gs":
@@ -277,6 +278,7 @@ def build_layout(method, series, options=None):
             centre=centre,
             mu_sd=mu_sd,
             sigma_sd=sigma_sd,
+            centre_fit=(gs_layout, gs_fit) if centre_rule == "gs" else None,
         )
         E_start = mu0[:, None] * np.exp(0.01 * np.sign(own.T - mu0[:, None]))  # off the kink
         x0 = np.column_stack([np.log(E_start), shared[:, 1:]])
@@ -308,9 +310,55 @@ class HierarchicalLayout(Layout):
     mu_sd: float = 25.0
     sigma_sd: float = 25.0
     smoothing: float = 1.0
+    #: (layout, FitResult) of the shared-E fit whose E is the prior's centre, or None
+    #: for a centre fixed in advance.
+    centre_fit: tuple | None = None
 
     def subset(self, idx):
-        return replace(self, constant=self.constant[idx], centre=self.centre[idx])
+        centre_fit = None
+        if self.centre_fit is not None:
+            lay, res = self.centre_fit
+            centre_fit = (lay.subset(idx), fitting.FitResult(
+                res.x[idx], res.cov[idx], res.loglik[idx], res.converged[idx],
+                res.iterations[idx], res.n_floored[idx]))
+        return replace(self, constant=self.constant[idx], centre=self.centre[idx],
+                       centre_fit=centre_fit)
+
+    def estimator_covariance(self, blocks, x, h_inv):
+        """Covariance of the MAP as a function of the data, the prior's centre included.
+
+        With the centre c = Ê of a shared-E fit to the same frames, the MAP moves with
+        every frame both directly and through c. Stacking the two estimating equations,
+        each frame's influence on x is ``H⁻¹ (s + b · c · [I_c⁻¹ s_c]_E)``: s and s_c its
+        scores in the two models, ``b = ∂²Q/∂x∂c`` and ``I_c⁻¹`` the centre fit's
+        covariance. The covariance is the sum over frames of the influences' outer
+        products. With a centre fixed in advance (``centre="setpoint"``) only the direct
+        term remains: the sandwich H⁻¹ I H⁻¹, I by outer products of the scores. (That
+        sandwich, applied to the gs-centred MAP, treats c as fixed and over-covers.)
+        """
+        P, F = x.shape
+        A = self.constant.shape[1]
+        b_vec = np.zeros((P, F))
+        if self.centre_fit is not None:
+            E = np.exp(x[:, :A])
+            mu, d, r, _ = self._penalty(E)
+            M = (np.eye(A)[None] / r[:, None, None]
+                 - np.einsum("pa,pb->pab", d, d) / r[:, None, None] ** 3) / self.sigma_sd
+            q_mumu = -1.0 / self.mu_sd**2 - M.sum(axis=(1, 2))
+            dmu_dc = (1.0 / self.mu_sd**2) / -q_mumu  # the profiled μ follows its centre
+            b_vec[:, :A] = M.sum(axis=2) * dmu_dc[:, None] * E  # ∂(∂Q/∂ln E)/∂c
+            c_layout, c_fit = self.centre_fit
+            c_scores = fitting.value_scores(c_layout, blocks, c_fit.x)
+            c_row = np.nan_to_num(c_fit.cov[:, 0, :]) * self.centre[:, None]  # dc per score
+        cov = np.zeros((P, F, F))
+        for a, (scores, counts) in enumerate(fitting.value_scores(self, blocks, x)):
+            infl = scores
+            if self.centre_fit is not None:
+                dc = np.einsum("pf,pkf->pk", c_row, c_scores[a][0])
+                infl = scores + b_vec[:, None, :] * dc[..., None]
+            infl = np.einsum("pfg,pkg->pkf", h_inv, infl)
+            cov += np.einsum("pk,pkf,pkg->pfg", counts, infl, infl)
+        return cov
 
     def _penalty(self, E):
         """μ* and the prior terms' value, gradient and Hessian by (μ, d) at μ*."""
