@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import warnings
 from pathlib import Path
 
@@ -141,8 +142,8 @@ FRAMES = 2000
 def _truth_manifest(sim, read_noise):
     """Rewrite a simulated manifest with the true offset and read-noise maps.
 
-    Dark-derived maps carry their own sampling error (σ/√frames in the offset), which the
-    standard errors do not include; coverage is a property of the fit given the maps.
+    The true maps are exact: their ``dark_frames`` lines go (the maps' own errors are
+    tested in ``test_map_errors.py``).
     """
     truth = sim.truth
     pattern = tifffile.imread(sim.outdir / truth["offset_pattern"]["file"]).astype(float)
@@ -153,6 +154,7 @@ def _truth_manifest(sim, read_noise):
         tifffile.imwrite(true_map, (acq["offset"] + pattern).astype(np.float64))
         text = text.replace(f'offset = "{acq["offset_map"]}"', f'offset = "{true_map.name}"')
         text = text.replace(f'read_noise = "{acq["read_noise_map"]}"', f"read_noise = {sigma!r}")
+    text = re.sub(r"\ndark_frames = .*", "", text)
     path = sim.outdir / "manifest-truth.toml"
     path.write_text(text)
     return path

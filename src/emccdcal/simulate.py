@@ -729,6 +729,7 @@ def _manifest_lines(kind: str, acqs: list[dict], opts: dict) -> list[str]:
         lines += [
             f"offset = {_toml_value(a['offset_map'])}",
             f"read_noise = {_toml_value(a['read_noise_map'])}",
+            f"dark_frames = {opts['dark_frames']}  # the maps' own errors enter the SEs",
             f"# dark = {_toml_value(a['dark'])}  (the stack the maps were computed from)",
         ]
     return lines
