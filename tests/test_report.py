@@ -423,3 +423,16 @@ def test_calibrate_report_flag_writes_report_beside_result(runs, tmp_path, capsy
     # mv-adu has no gain: that figure is left out, said once on stderr
     err = capsys.readouterr().err
     assert err.count("EM gain above 1×") == 1
+
+
+def test_summary_says_what_the_standard_errors_include(tmp_path):
+    from emccdcal.calibrate import calibrate
+    from emccdcal.report import write_report
+    from emccdcal.simulate import simulate_gain_series
+
+    sim = simulate_gain_series(tmp_path / "gs", rows=2, cols=2, frames=300, setpoints=(1, 100),
+                               seed=3, progress=False)
+    calibrate(sim.manifest, "gs", out=tmp_path / "out", intervals="profile", checks=False)
+    html = write_report([tmp_path / "out"], tmp_path / "r.html").read_text()
+    assert "Standard errors include the errors of the offset and read-noise maps" in html
+    assert "profile likelihood, 95 %" in html

@@ -187,6 +187,11 @@ def _summary_html(inp):
             f"({ds.sizes['row']} × {ds.sizes['col']} px); statistics are over the converged "
             "pixels: median, the median per-pixel standard error (SE), and the SD over "
             "pixels.</p>"),
+           *([f"<p class=note>Standard errors {_e(ds.attrs['standard_errors'])}.</p>"]
+             if ds.attrs.get("standard_errors") else []),
+           *([f"<p class=note>Per-pixel intervals: {_e(ds.attrs['intervals'])} "
+              "(variables <code>&lt;name&gt;_lower</code>, <code>&lt;name&gt;_upper</code> in "
+              "the result file).</p>"] if ds.attrs.get("intervals") else []),
            _table(["quantity", "unit", "median", "SE", "SD over pixels", "pixels"],
                   [[_e(str(c)) for c in r] for r in rows])]
     if "em_gain" in ds and np.any(ds["setpoint"].values != 1):
