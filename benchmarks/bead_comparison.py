@@ -25,8 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import shutil
 import sys
 import time
@@ -35,23 +33,13 @@ from pathlib import Path
 
 import numpy as np
 
+from bench_calibrate import machine  # one description of the machine for every benchmark
+
 REPO = Path(__file__).resolve().parents[1]
 FIGURES = REPO / "docs" / "figures" / "beads"
 GAIN_SETPOINTS = (5, 25, 100, 300)
 TRUE_GAIN = {1: 1.0, 5: 4.78, 25: 22.95, 100: 90.06, 300: 261.6}
 PHI = 3.859
-
-
-def machine():
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{os.cpu_count()} cores, {cpu}, Python {platform.python_version()}"
 
 
 def log(msg):

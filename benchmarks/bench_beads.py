@@ -21,8 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import resource
 import sys
 import tempfile
@@ -32,21 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-
-def machine():
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    import numpy
-    import scipy
-
-    return (f"{os.cpu_count()} cores, {cpu}, Python {platform.python_version()}, "
-            f"NumPy {numpy.__version__}, SciPy {scipy.__version__}")
+from bench_calibrate import machine  # one description of the machine for every benchmark
 
 
 def main():

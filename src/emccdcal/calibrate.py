@@ -10,7 +10,6 @@ import copy
 import json
 import os
 import sys
-import time
 from concurrent.futures import ThreadPoolExecutor
 import warnings
 from pathlib import Path
@@ -142,7 +141,6 @@ def calibrate(
     >>> ds.em_gain.sel(setpoint=300).mean().item()                 # doctest: +SKIP
     261.6
     """
-    t0 = time.perf_counter()
     if method not in METHODS:
         raise methods.MethodError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     if intervals not in INTERVALS:
@@ -152,19 +150,11 @@ def calibrate(
                                   "likelihood method")
     # Every warning of the run (manifest, saturation, convergence, misfit) is recorded in
     # the result and issued again to the caller.
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        ds = _run_calibration(manifest, method, e_per_adu, block_size, options, progress,
-                              workers, checks, map_errors, intervals)
-    messages = list(dict.fromkeys(str(w.message) for w in caught))
-    for w in dict.fromkeys((str(w.message), w.category) for w in caught):
-        warnings.warn(w[0], w[1], stacklevel=2)
-    ds.attrs["warnings"] = messages
-    seconds = time.perf_counter() - t0
-    ds.attrs["seconds"] = seconds
-    if out is not None:
-        result.save(ds, out, seconds=seconds)
-    return ds
+    return result.run_recorded(
+        lambda: _run_calibration(manifest, method, e_per_adu, block_size, options, progress,
+                                 workers, checks, map_errors, intervals),
+        out,
+    )
 
 
 def _run_calibration(manifest, method, e_per_adu, block_size, options, progress, workers,

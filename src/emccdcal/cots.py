@@ -32,7 +32,6 @@ assumptions (F² = 2 and no read noise: biased at low gain) and measured figures
 from __future__ import annotations
 
 import sys
-import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -942,19 +941,7 @@ def cots_calibrate(manifest, *, half_size=DEFAULT_HALF_SIZE, width=DEFAULT_WIDTH
         No ``e_per_adu``; no acquisition above set-point 1; an acquisition with fewer than
         :data:`MIN_FRAMES` frames; no beads found. One line naming the file.
     """
-    t0 = time.perf_counter()
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        ds = _cots_calibrate(manifest, half_size, width, progress)
-    messages = list(dict.fromkeys(str(w.message) for w in caught))
-    for w in dict.fromkeys((str(w.message), w.category) for w in caught):
-        warnings.warn(w[0], w[1], stacklevel=2)
-    ds.attrs["warnings"] = messages
-    seconds = time.perf_counter() - t0
-    ds.attrs["seconds"] = seconds
-    if out is not None:
-        result.save(ds, out, seconds=seconds)
-    return ds
+    return result.run_recorded(lambda: _cots_calibrate(manifest, half_size, width, progress), out)
 
 
 def _cots_calibrate(manifest, half_size, width, progress):

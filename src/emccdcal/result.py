@@ -42,6 +42,8 @@ import math
 import os
 import re
 import tempfile
+import time
+import warnings
 from numbers import Number
 from pathlib import Path
 
@@ -59,6 +61,7 @@ __all__ = [
     "load",
     "summarize",
     "format_setpoint",
+    "run_recorded",
 ]
 
 CALIBRATION_FILE = "calibration.nc"
@@ -584,6 +587,27 @@ def _atomic_write(path: Path, write) -> None:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def run_recorded(build, out=None) -> xr.Dataset:
+    """Build a result, recording its warnings and wall time in it; save it if asked.
+
+    Every warning issued while ``build()`` runs goes, each once, into
+    ``ds.attrs["warnings"]`` and is issued again to the caller; the wall time (s) goes
+    into ``ds.attrs["seconds"]``. With ``out`` the result is written by :func:`save`.
+    """
+    t0 = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ds = build()
+    for message, category in dict.fromkeys((str(w.message), w.category) for w in caught):
+        warnings.warn(message, category, stacklevel=3)
+    ds.attrs["warnings"] = list(dict.fromkeys(str(w.message) for w in caught))
+    seconds = time.perf_counter() - t0
+    ds.attrs["seconds"] = seconds
+    if out is not None:
+        save(ds, out, seconds=seconds)
+    return ds
 
 
 def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None) -> dict[str, Path]:
