@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from emccdcal.mv import fit_mv_adu, fit_mv_gain, mean_ratio_gains
+from emccdcal.mv import fieller_interval, fit_mv_adu, fit_mv_gain, mean_ratio_gains
 
 DATA = Path(__file__).parents[1] / "../shared/data/lanl-proem"
 Z95 = 1.959963984540054
@@ -349,3 +349,58 @@ def test_real_mv_gains_reproduce_reference(real_gs):
     )
     # the 5× single-point MV gain sits ~10 % below the mean ratio (F² < 2, METHODS §3.1)
     assert 0.87 < fit.em_gain[1].mean() / r.em_gain[1].mean() < 0.92
+
+
+def test_fieller_interval_closed_form():
+    """With an exact numerator the bounds are a/(b ± z·SE_b); b within z·SE of 0 → ∞."""
+    lo, hi = fieller_interval(6.0, [2.0, 0.3], 0.0, 0.04)
+    z = 1.959964
+    np.testing.assert_allclose(lo, [6 / (2 + 0.2 * z), 6 / (0.3 + 0.2 * z)])
+    np.testing.assert_allclose(hi, [6 / (2 - 0.2 * z), np.inf])
+    # b significantly negative: no positive ratio fits
+    assert np.isnan(fieller_interval(6.0, -2.0, 0.0, 0.04)).all()
+
+
+def test_fieller_interval_covers_where_wald_does_not():
+    """A ratio whose denominator is 1.5 SE from zero (the weak set-point of a gain series):
+    Fieller's bounds cover 95 %, estimate ± 1.96·(delta-method SE) far less."""
+    rng = np.random.default_rng(8)
+    n, a0, b0, sa, sb, rho = 20000, 10.0, 1.5, 0.5, 1.0, 0.3
+    za, zb = rng.standard_normal((2, n))
+    a = a0 + sa * za
+    b = b0 + sb * (rho * za + np.sqrt(1 - rho**2) * zb)
+    cov = rho * sa * sb
+    lo, hi = fieller_interval(a, b, sa**2, sb**2, cov)
+    truth = a0 / b0
+    cover = np.mean((lo <= truth) & (truth <= hi))
+    assert 0.94 <= cover <= 0.96
+    r = a / b
+    se = np.abs(r) * np.sqrt(sa**2 / a**2 + sb**2 / b**2 - 2 * cov / (a * b))
+    wald = np.mean(np.abs(r - truth) <= 1.959964 * se)
+    assert wald < 0.9
+    assert np.isinf(hi).mean() > 0.3  # often the data cannot bound the ratio above
+
+
+def test_mv_gain_bounds_where_the_excess_variance_is_not_seen():
+    """A set-point whose excess variance is buried in read noise: the estimate is NaN in
+    some pixels, the bounds exist everywhere and contain every defined estimate."""
+    rng = np.random.default_rng(2)
+    P, n, phi, s0, sigma, E, g = 4000, 2000, 12.0, 1000.0, 40.0, 60.0, 9.1
+    x = g * E / phi
+    v = sigma**2 + 2 * E * (g / phi) ** 2
+    mean = np.stack([s0 + E / phi + rng.normal(0, np.sqrt((sigma**2 + E / phi**2) / n), P),
+                     s0 + x + rng.normal(0, np.sqrt(v / n), P)])
+    var = np.stack([np.full(P, sigma**2 + E / phi**2),
+                    v + rng.normal(0, v * np.sqrt(2 / (n - 1)), P)])
+    fit = fit_mv_gain(mean, var, s0, sigma, n, phi, [1, 10])
+    undefined = ~np.isfinite(fit.em_gain[1])
+    assert 0.02 < undefined.mean() < 0.2
+    ok = ~undefined
+    assert np.all((fit.em_gain_lower[1][ok] <= fit.em_gain[1][ok])
+                  & (fit.em_gain[1][ok] <= fit.em_gain_upper[1][ok]))
+    assert np.all((fit.photoelectrons_lower[1][ok] <= fit.photoelectrons[1][ok])
+                  & (fit.photoelectrons[1][ok] <= fit.photoelectrons_upper[1][ok]))
+    for lo, hi, truth in ((fit.em_gain_lower[1], fit.em_gain_upper[1], g),
+                          (fit.photoelectrons_lower[1], fit.photoelectrons_upper[1], E)):
+        assert 0.93 <= np.mean((lo <= truth) & (truth <= hi)) <= 0.97
+    assert np.isnan(fit.em_gain_lower[0]).all()  # g at 1× is fixed

@@ -309,6 +309,23 @@ def test_gain_series_options(tmp_path):
     assert [a["offset"] for a in res2.truth["acquisitions"]] == [590.0, 580.0]
 
 
+def test_gain_series_illumination_per_setpoint(tmp_path):
+    """One E per set-point: recorded in truth.json, and seen in the frames' means."""
+    res = simulate_gain_series(tmp_path, setpoints=[1, 10], em_gain=[1.0, 10.0],
+                               photoelectrons=[200.0, 400.0], rows=4, cols=4, frames=400,
+                               offset=500.0, offset_drop=0.0, offset_spread=0.0, seed=3)
+    acqs = res.truth["acquisitions"]
+    assert [a["photoelectrons"] for a in acqs] == [200.0, 400.0]
+    phi = res.truth["e_per_adu"]
+    for a in acqs:
+        signal = tifffile.imread(tmp_path / a["frames"]).mean() - 500.0  # ADU
+        expected = a["photoelectrons"] * a["em_gain"] / phi
+        assert signal == pytest.approx(expected, rel=0.02), a["label"]
+    with pytest.raises(ValueError, match="photoelectrons has 3 value"):
+        simulate_gain_series(tmp_path / "b", setpoints=[1, 10], photoelectrons=[1.0, 2.0, 3.0],
+                             rows=2, cols=2, frames=2, seed=1)
+
+
 def test_gain_series_reproducible(tmp_path):
     kw = dict(rows=4, cols=3, frames=30, dark_frames=10, multiplication="cascade", cic=0.1, drift=0.05)
     a = simulate_gain_series(tmp_path / "a", seed=5, **kw)

@@ -128,7 +128,9 @@ def calibrate(
         ``"profile"`` adds 95 % profile-likelihood bounds ``<name>_lower``/``<name>_upper``
         for the likelihood methods' free parameters: they follow a skewed likelihood
         (few photoelectrons, weak set-points) where ``estimate ± 1.96 SE`` does not. They
-        are conditional on the maps and cost about ten refits per parameter.
+        are conditional on the maps and cost about ten refits per parameter. The
+        mean–variance methods have no likelihood; their results always carry 95 % Fieller
+        bounds (:func:`emccdcal.mv.fieller_interval`), whatever this says.
 
     Returns
     -------
@@ -147,7 +149,8 @@ def calibrate(
         raise ValueError(f"unknown intervals {intervals!r}; choose one of {', '.join(INTERVALS)}")
     if intervals == "profile" and method.startswith("mv-"):
         raise methods.MethodError(f"{method} has no likelihood: profile intervals need a "
-                                  "likelihood method")
+                                  "likelihood method ({method} results always carry Fieller "
+                                  "bounds)")
     # Every warning of the run (manifest, saturation, convergence, misfit) is recorded in
     # the result and issued again to the caller.
     return result.run_recorded(
@@ -380,19 +383,28 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
 
 def _add_bounds(ds, est, grid):
     """Profile bounds ``<name>_lower/_upper`` beside each estimate, on its dims."""
+    bounds = {}
     for name in ("photoelectrons", "em_gain", "e_per_adu"):
         lower, upper = est[f"{name}_lower"], est[f"{name}_upper"]
         if np.all(np.isnan(lower)):
             continue  # fixed by the method
         da = ds[name]
         pick = (lambda a: a[:, 0]) if da.ndim == 2 else (lambda a: a[:, : da.shape[0]])  # noqa: E731
-        for side, arr in (("lower", lower), ("upper", upper)):
-            ds[f"{name}_{side}"] = (da.dims, grid(pick(arr)), {
-                "units": da.attrs["units"],
-                "long_name": f"{side} bound of the 95 % profile-likelihood interval of {name}",
-            })
-    ds.attrs["intervals"] = "profile likelihood, 95 %, conditional on the offset/read-noise maps"
+        bounds[name] = grid(pick(lower)), grid(pick(upper))
+    _add_interval_vars(ds, bounds, "profile-likelihood",
+                       "profile likelihood, 95 %, conditional on the offset/read-noise maps")
 
+
+def _add_interval_vars(ds, bounds, kind, description):
+    """Store ``{name: (lower, upper)}`` as ``<name>_lower/_upper`` on the dims of ``name``."""
+    for name, pair in bounds.items():
+        da = ds[name]
+        for side, arr in zip(("lower", "upper"), pair):
+            ds[f"{name}_{side}"] = (da.dims, np.asarray(arr), {
+                "units": da.attrs["units"],
+                "long_name": f"{side} bound of the 95 % {kind} interval of {name}",
+            })
+    ds.attrs["intervals"] = description
 
 
 def _calibrate_mv(method, manifest, used, hists, phi_map):
@@ -406,7 +418,7 @@ def _calibrate_mv(method, manifest, used, hists, phi_map):
     setpoints = [a.em_gain_setpoint for a in used]
     if method == "mv-adu":
         fit = mv.fit_mv_adu(mean, var, offsets, read_noise, n)
-        return result.make_dataset(
+        ds = result.make_dataset(
             method=method, setpoints=[1.0], levels=labels,
             e_per_adu=grid(fit.e_per_adu), e_per_adu_se=grid(fit.e_per_adu_se),
             em_gain=np.ones((1, rows, cols)), em_gain_se=np.zeros((1, rows, cols)),
@@ -415,19 +427,29 @@ def _calibrate_mv(method, manifest, used, hists, phi_map):
             converged=grid(fit.valid), manifest_hash=manifest.content_hash,
             manifest_path=str(manifest.path.resolve()),
         )
-    phi = phi_map.ravel()
-    fit = mv.fit_mv_gain(mean, var, offsets, read_noise, n, phi, np.asarray(setpoints))
-    by_level = len(set(setpoints)) == 1 and len(setpoints) > 1
-    return result.make_dataset(
-        method=method, setpoints=[float(s) for s in fit.setpoints],
-        levels=labels if by_level else None,
-        e_per_adu=phi_map, e_per_adu_se=np.full((rows, cols), np.nan),
-        em_gain=grid(fit.em_gain), em_gain_se=grid(fit.em_gain_se),
-        photoelectrons=grid(fit.photoelectrons), photoelectrons_se=grid(fit.photoelectrons_se),
-        photoelectrons_dims=(("level" if by_level else "setpoint"), "row", "col"),
-        converged=grid(np.all(fit.valid, axis=0) if np.ndim(fit.valid) > 1 else fit.valid),
-        manifest_hash=manifest.content_hash, manifest_path=str(manifest.path.resolve()),
-    )
+        bounds = {"e_per_adu": (grid(fit.e_per_adu_lower), grid(fit.e_per_adu_upper))}
+    else:
+        phi = phi_map.ravel()
+        fit = mv.fit_mv_gain(mean, var, offsets, read_noise, n, phi, np.asarray(setpoints))
+        by_level = len(set(setpoints)) == 1 and len(setpoints) > 1
+        ds = result.make_dataset(
+            method=method, setpoints=[float(s) for s in fit.setpoints],
+            levels=labels if by_level else None,
+            e_per_adu=phi_map, e_per_adu_se=np.full((rows, cols), np.nan),
+            em_gain=grid(fit.em_gain), em_gain_se=grid(fit.em_gain_se),
+            photoelectrons=grid(fit.photoelectrons), photoelectrons_se=grid(fit.photoelectrons_se),
+            photoelectrons_dims=(("level" if by_level else "setpoint"), "row", "col"),
+            converged=grid(np.all(fit.valid, axis=0) if np.ndim(fit.valid) > 1 else fit.valid),
+            manifest_hash=manifest.content_hash, manifest_path=str(manifest.path.resolve()),
+        )
+        bounds = {"em_gain": (grid(fit.em_gain_lower), grid(fit.em_gain_upper))}
+    bounds["photoelectrons"] = grid(fit.photoelectrons_lower), grid(fit.photoelectrons_upper)
+    # Ratios of sample moments: Fieller bounds, valid where the slope is poorly determined
+    # (and defined where the estimate is not), unlike estimate ± 1.96 SE.
+    _add_interval_vars(ds, bounds, "Fieller",
+                       "Fieller, 95 %, from the photon-transfer fit, conditional on the "
+                       "offset/read-noise maps")
+    return ds
 
 
 # --------------------------------------------------------------------------------------

@@ -53,6 +53,15 @@ Choices, and why
   not sampling noise, and no SE covers them. Finally φ = 1/β (and E ∝ 1/β) is a
   non-linear function of the fitted slope, so it carries a second-order bias of about
   ``φ·(SE/φ)²``: negligible at the 1–2 % precision of a good series, +0.4 % at 6 %.
+* **Intervals by Fieller's theorem.** φ = 1/β and every E are ratios whose denominator,
+  the slope, can be poorly determined (a set-point where the signal variance is small
+  against the read noise): there ``estimate ± 1.96 SE`` is far from a 95 % interval, and
+  the estimate itself is undefined where the slope comes out ≤ 0. Each fit therefore also
+  returns 95 % bounds (``*_lower``, ``*_upper``) by Fieller's theorem: the set of ratios R
+  for which ``a − R·b`` (numerator minus R times denominator, approximately normal) is
+  within ``z`` of its standard error (:func:`fieller_interval`). They are defined where
+  the estimate is not, and reach to infinity where the slope is not significantly
+  positive. The gains, linear in the slope, get the interval of the slope scaled.
 * **Goodness of fit.** ``chi2`` (the residual sum of squares over the effective sampling
   variances, with ``dof`` degrees of freedom) tells how well a multi-level line fits; well
   above ``dof`` means the straight line or the sampling variances do not describe the
@@ -77,9 +86,13 @@ __all__ = [
     "MVGainFit",
     "MeanRatioGains",
     "fit_mv_adu",
+    "fieller_interval",
     "fit_mv_gain",
     "mean_ratio_gains",
 ]
+
+
+_Z95 = 1.959964  # two-sided 95 % normal quantile
 
 
 class MVADUFit(NamedTuple):
@@ -92,6 +105,11 @@ class MVADUFit(NamedTuple):
     photoelectrons, photoelectrons_se : ndarray, shape ``(A, *pixels)``
         E per acquisition, ``(mean − offset)·φ``, and its standard error (e⁻ per pixel per
         frame), including the uncertainty of φ and of the mean.
+    e_per_adu_lower, e_per_adu_upper : ndarray, shape ``pixels``
+        95 % Fieller bounds of φ (e⁻/ADU); the upper bound is ``inf`` where the slope is not
+        significantly positive. Defined also where ``e_per_adu`` is NaN.
+    photoelectrons_lower, photoelectrons_upper : ndarray, shape ``(A, *pixels)``
+        95 % Fieller bounds of E (e⁻).
     chi2 : ndarray, shape ``pixels``
         Σ residual² / effective variance at the fitted line (dimensionless); ≈ ``dof`` when
         the straight line and the sampling variances describe the data.
@@ -108,6 +126,10 @@ class MVADUFit(NamedTuple):
     chi2: np.ndarray
     dof: int
     valid: np.ndarray
+    e_per_adu_lower: np.ndarray
+    e_per_adu_upper: np.ndarray
+    photoelectrons_lower: np.ndarray
+    photoelectrons_upper: np.ndarray
 
 
 class MVGainFit(NamedTuple):
@@ -124,6 +146,13 @@ class MVGainFit(NamedTuple):
         E per acquisition, ``(mean − offset)·φ/g``, and its standard error (e⁻ per pixel
         per frame). At gain this does not depend on φ (it is ``2·x/β``); at 1× it is
         ``x·φ`` and its SE includes ``e_per_adu_se``.
+    em_gain_lower, em_gain_upper : ndarray, shape ``(S, *pixels)``
+        95 % bounds of g: the slope's interval times φ/2 (Fieller over φ's error when
+        ``e_per_adu_se`` is given), at least 0; NaN at set-point 1. Defined also where
+        ``em_gain`` is NaN (a slope ≤ 0): then the upper bound says how small g must be.
+    photoelectrons_lower, photoelectrons_upper : ndarray, shape ``(A, *pixels)``
+        95 % Fieller bounds of E (e⁻); the upper bound is ``inf`` where the set-point's slope
+        is not significantly positive (the data cannot tell E from infinity).
     chi2 : ndarray, shape ``(S, *pixels)``
         Weighted residual sum of squares of each set-point's line (0 for one level, and
         at set-point 1, which is not fitted).
@@ -141,6 +170,10 @@ class MVGainFit(NamedTuple):
     chi2: np.ndarray
     dof: np.ndarray
     valid: np.ndarray
+    em_gain_lower: np.ndarray
+    em_gain_upper: np.ndarray
+    photoelectrons_lower: np.ndarray
+    photoelectrons_upper: np.ndarray
 
 
 class MeanRatioGains(NamedTuple):
@@ -290,8 +323,74 @@ def _intensity(x, line, scale):
     return E, var_E
 
 
+def _intensity_bounds(x, line, scale, z):
+    """Fieller bounds of E_i = scale·x_i/β (numerator and slope correlated through x_i)."""
+    cov_xb = line.dbeta_dx * line.var_x  # Cov(x_i, β) = ∂β/∂x_i · Var(x_i)
+    return fieller_interval(scale * x, line.beta, scale**2 * line.var_x, line.var_beta,
+                            scale * cov_xb, z=z)
+
+
 def _positive_or_nan(beta):
     return np.where(beta > 0, beta, np.nan)
+
+
+def fieller_interval(a, b, var_a, var_b, cov_ab=0.0, *, z=_Z95):
+    """Confidence bounds of a positive ratio ``a/b`` by Fieller's theorem.
+
+    The set of ratios R with ``(a − R·b)² ≤ z²·Var(a − R·b)`` — the values of R that a
+    normal test of ``a − R·b = 0`` does not reject — intersected with R > 0. Unlike
+    ``a/b ± z·SE`` it stays a valid interval when b is poorly determined: it then reaches
+    to infinity (b not significantly different from 0), and it exists where ``a/b`` does
+    not (b ≤ 0).
+
+    Parameters
+    ----------
+    a, b : array_like
+        Numerator and denominator estimates (any units; the bounds are in those of a/b).
+    var_a, var_b, cov_ab : array_like
+        Their sampling variances and covariance (broadcast together).
+    z : float, optional
+        Normal quantile; 1.959964 (the default) gives 95 % bounds.
+
+    Returns
+    -------
+    lower, upper : ndarray
+        The bounds; ``lower`` is 0 and/or ``upper`` is ``inf`` where the confidence set
+        reaches there, and both are NaN where it holds no positive ratio.
+
+    Examples
+    --------
+    >>> from emccdcal.mv import fieller_interval
+    >>> lo, hi = fieller_interval(10.0, 2.0, 0.0, 0.01)  # 1/β-type: 10/(2 ± 1.96·0.1)
+    >>> round(float(lo), 4), round(float(hi), 4)
+    (4.5537, 5.5432)
+    >>> lo, hi = fieller_interval(10.0, 0.1, 0.0, 0.01)  # b within 1.96 SE of 0
+    >>> round(float(lo), 2), float(hi)  # 10/(0.1 + 1.96·0.1) and beyond
+    (33.78, inf)
+    """
+    a, b, var_a, var_b, cov_ab = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in
+                                                       (a, b, var_a, var_b, cov_ab)))
+    z2 = z * z
+    # (b² − z²V_b)·R² − 2(ab − z²C)·R + (a² − z²V_a) ≤ 0
+    qa = b * b - z2 * var_b
+    qb = a * b - z2 * cov_ab
+    qc = a * a - z2 * var_a
+    disc = qb * qb - qa * qc
+    root = np.sqrt(np.maximum(disc, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r1, r2 = (qb - root) / qa, (qb + root) / qa
+    lo_root, hi_root = np.minimum(r1, r2), np.maximum(r1, r2)
+    bounded = qa > 0  # b significantly non-zero: the set is [lo_root, hi_root]
+    lower = np.where(bounded, np.maximum(lo_root, 0.0), 0.0)
+    upper = np.where(bounded, hi_root, np.inf)
+    # Unbounded (qa ≤ 0): the set is (−∞, lo_root] ∪ [hi_root, ∞), or everything when
+    # disc < 0; its positive part is [hi_root, ∞) only when lo_root ≤ 0 < hi_root.
+    tail = ~bounded & (disc >= 0) & (lo_root <= 0) & (hi_root > 0)
+    lower = np.where(tail, hi_root, lower)
+    empty = (bounded & ((disc < 0) | (hi_root <= 0))) | ~np.isfinite(qa * qb * qc)
+    lower = np.where(empty, np.nan, lower)
+    upper = np.where(empty, np.nan, upper)
+    return lower, upper
 
 
 # --------------------------------------------------------------------------------------
@@ -368,6 +467,8 @@ def fit_mv_adu(
         x, y, read_var, n_arr, sample_var,
         intercept=intercept, weighted=weighted, iterations=int(iterations),
     )
+    phi_lower, phi_upper = fieller_interval(1.0, line.beta, 0.0, line.var_beta, z=_Z95)
+    E_lower, E_upper = _intensity_bounds(x, line, 1.0, _Z95)
     beta = _positive_or_nan(line.beta)
     line = line._replace(beta=beta)
     phi = 1.0 / beta
@@ -376,7 +477,8 @@ def fit_mv_adu(
     E_se = np.sqrt(var_E)
     valid = np.isfinite(phi) & np.isfinite(phi_se) & np.all(np.isfinite(E_se), axis=0)
     dof = x.shape[0] - (2 if intercept else 1)
-    return MVADUFit(phi, phi_se, E, E_se, line.chi2, dof, valid)
+    return MVADUFit(phi, phi_se, E, E_se, line.chi2, dof, valid,
+                    phi_lower, phi_upper, E_lower, E_upper)
 
 
 def fit_mv_gain(
@@ -470,6 +572,8 @@ def fit_mv_gain(
     dof = np.zeros(S, dtype=int)
     E = np.empty_like(x)
     E_se = np.empty_like(x)
+    g_lower, g_upper = np.full_like(g, np.nan), np.full_like(g, np.nan)
+    E_lower, E_upper = np.empty_like(x), np.empty_like(x)
     for k, s in enumerate(setpoints):  # a loop over set-points, not pixels
         rows = np.flatnonzero(sp == s)
         xs = x[rows]
@@ -478,11 +582,18 @@ def fit_mv_gain(
             E[rows] = xs * phi
             var_x = sample_var[rows] / n_arr[rows]
             E_se[rows] = np.sqrt(phi**2 * var_x + xs**2 * phi_var)
+            # E = x·φ: a product of two well-determined numbers, a Wald interval
+            E_lower[rows] = np.maximum(E[rows] - _Z95 * E_se[rows], 0.0)
+            E_upper[rows] = E[rows] + _Z95 * E_se[rows]
             continue
         line = _fit_line(
             xs, y[rows], read_var[rows], n_arr[rows], sample_var[rows],
             intercept=intercept, weighted=weighted, iterations=int(iterations),
         )
+        # g = β/(2/φ): the slope's interval scaled, widened by φ's error if given
+        g_lower[k], g_upper[k] = fieller_interval(line.beta, 2.0 / phi, line.var_beta,
+                                                  4.0 * phi_var / phi**4, z=_Z95)
+        E_lower[rows], E_upper[rows] = _intensity_bounds(xs, line, 2.0, _Z95)
         beta = _positive_or_nan(line.beta)
         line = line._replace(beta=beta)
         g[k] = phi * beta / 2.0
@@ -495,7 +606,8 @@ def fit_mv_gain(
         np.all(np.isfinite(g) & np.isfinite(g_se), axis=0)
         & np.all(np.isfinite(E) & np.isfinite(E_se), axis=0)
     )
-    return MVGainFit(setpoints, g, g_se, E, E_se, chi2, dof, valid)
+    return MVGainFit(setpoints, g, g_se, E, E_se, chi2, dof, valid,
+                     g_lower, g_upper, E_lower, E_upper)
 
 
 def mean_ratio_gains(mean, var, offset, n, setpoint) -> MeanRatioGains:

@@ -798,8 +798,10 @@ def simulate_gain_series(
         True mean EM gain per set-point (≥ 1; 1 = no multiplication). Default
         :func:`default_em_gain` of each set-point (the paper's 4.78, 22.95, 90.06, 261.6
         at 5, 25, 100, 300).
-    photoelectrons : float, optional
-        E, photoelectrons per pixel per frame (e⁻), the same at every set-point (370).
+    photoelectrons : float or sequence of float, optional
+        E, photoelectrons per pixel per frame (e⁻): one number for the same illumination
+        at every set-point (370), or one per set-point for an illumination that differs
+        between acquisitions (what ``gs-hierarchical`` models, METHODS §6).
     e_per_adu : float, optional
         φ, e⁻/ADU (3.859).
     rows, cols, frames : int, optional
@@ -833,7 +835,12 @@ def simulate_gain_series(
     opts.pop("progress")
     sps = _setpoint_list(setpoints)
     gains = _gains(em_gain, sps)
-    E = _number("photoelectrons", photoelectrons, minimum=0.0)
+    Es = [photoelectrons] * len(sps) if np.ndim(photoelectrons) == 0 else list(photoelectrons)
+    if len(Es) != len(sps):
+        raise ValueError(
+            f"photoelectrons has {len(Es)} value(s) but there are {len(sps)} set-points"
+        )
+    Es = [_number("photoelectrons", v, minimum=0.0) for v in Es]
     if offsets is not None:
         offs = [offsets] if np.ndim(offsets) == 0 else list(offsets)
         if len(offs) != len(sps):
@@ -842,9 +849,10 @@ def simulate_gain_series(
             )
     else:
         offs = [None] * len(sps)
-    opts.update(setpoints=sps, em_gain=gains, photoelectrons=E)
+    opts.update(setpoints=sps, em_gain=gains,
+                photoelectrons=Es[0] if len(set(Es)) == 1 else Es)
     acqs = []
-    for s, g, off in zip(sps, gains, offs):
+    for s, g, E, off in zip(sps, gains, Es, offs):
         lab = _label(s)
         stem = f"gain-GS/{lab}-gain"
         off_name = "offsets" if off is not None else "offset"
