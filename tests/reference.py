@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import mpmath as mp
 
-mp.mp.dps = 40
+mp.mp.dps = 25  # 25 digits: far beyond the 1e-8 the tests ask, and ~40 % faster than 40
 
 
 def _normal(x, sigma):

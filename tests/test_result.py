@@ -210,6 +210,17 @@ def test_summary_keys_and_converged_only():
     assert "se_median" not in params["loglik"]
 
 
+def test_summary_leaves_out_interval_bounds():
+    """Bounds may be infinite (a Fieller interval open above): per pixel only."""
+    ds = gs_dataset()
+    ds["photoelectrons_lower"] = ds.photoelectrons - 3.0
+    ds["photoelectrons_upper"] = ds.photoelectrons.where(ds.photoelectrons < 0, np.inf)
+    s = summarize(ds)
+    assert "photoelectrons_lower" not in s["parameters"]
+    assert "photoelectrons_upper" not in s["parameters"]
+    json.dumps(s, allow_nan=False)
+
+
 def test_summary_levels_and_missing_values():
     ds = is_dataset()
     s = summarize(ds)

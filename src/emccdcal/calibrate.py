@@ -129,8 +129,8 @@ def calibrate(
         for the likelihood methods' free parameters: they follow a skewed likelihood
         (few photoelectrons, weak set-points) where ``estimate ± 1.96 SE`` does not. They
         are conditional on the maps and cost about ten refits per parameter. The
-        mean–variance methods have no likelihood; their results always carry 95 % Fieller
-        bounds (:func:`emccdcal.mv.fieller_interval`), whatever this says.
+        mean–variance methods have no likelihood (``"profile"`` is an error there); their
+        results always carry 95 % Fieller bounds (:func:`emccdcal.mv.fieller_interval`).
 
     Returns
     -------
@@ -472,7 +472,8 @@ def add_parser(subparsers):
                    help="skip the data-quality checks (see 'emccdcal check')")
     p.add_argument("--intervals", choices=INTERVALS, default="wald",
                    help="'profile': also write 95 %% profile-likelihood bounds "
-                   "(<name>_lower/_upper), for skewed likelihoods; slower (default: wald)")
+                   "(<name>_lower/_upper), for skewed likelihoods; slower (default: wald). "
+                   "mv-adu and mv-gain always write Fieller bounds")
     p.add_argument("--conditional-se", action="store_true",
                    help="standard errors conditional on the offset/read-noise maps (leave out "
                    "the error of maps estimated from dark frames)")

@@ -533,13 +533,17 @@ def summarize(ds: xr.Dataset, seconds: float | None = None) -> dict:
         JSON-serialisable: ``method``, ``emccdcal_version``, ``manifest_sha256``,
         ``manifest_path``, ``created``, ``seconds``, ``pixels`` (``total``, ``converged``,
         ``rows``, ``cols``), ``statistics_over``, and ``parameters`` mapping each variable
-        name (not the ``_se`` ones, not ``converged``) to ``units`` and its statistics.
+        name (not the ``_se``, ``_lower`` and ``_upper`` ones, not ``converged``) to
+        ``units`` and its statistics.
         Non-finite numbers become null.
     """
     conv = ds["converged"].transpose("row", "col").values.astype(bool)
     params = {}
     for name, da in ds.data_vars.items():
-        if name == "converged" or name.endswith("_se") or da.dtype.kind not in "iuf":
+        # Standard errors and interval bounds belong to a parameter, not beside it (an
+        # average of bounds that may be infinite says nothing).
+        if (name == "converged" or name.endswith(("_se", "_lower", "_upper"))
+                or da.dtype.kind not in "iuf"):
             continue
         if not set(_PIXEL_DIMS) <= set(da.dims):
             continue
