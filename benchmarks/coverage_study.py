@@ -8,7 +8,8 @@ whether the truth is in its 3σ order-statistic band, and the fraction of per-pi
 intervals that cover the truth. A last part runs ``gs-hierarchical`` where the
 illumination truly differs between set-points.
 
-Run: ``.venv/bin/python benchmarks/coverage_study.py``
+Run: ``.venv/bin/python benchmarks/coverage_study.py [FIGURE.png]`` (the figure: the
+coverage of every row, docs/figures/validation/coverage.png)
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ def row(method, what, est, se, truth, bounds=None, undefined=np.nan):
         lo, hi = (np.ravel(b) for b in bounds)
         cover = np.mean((lo <= truth) & (truth <= hi))
         kind = "Fieller"
+    ROWS_SEEN.append((SECTION[0], method, what, cover, kind))
     print(f"| {method} | {what} | {truth:g} | {est[ok].mean():.5g} ({(est[ok].mean() - truth) / sem:+.1f} SEM) "
           f"| {np.median(ranked):.5g} ({'in' if band else 'OUT of'} band) | {cover:.3f} ({kind}) "
           f"| {ok.sum()} of {est.size} |")
@@ -63,7 +65,13 @@ def bounds(ds, name, **sel):
     return tuple(ds[f"{name}_{side}"].sel(**sel).values for side in ("lower", "upper"))
 
 
-def header(title):
+#: (section, method, parameter, coverage, interval kind) of every row printed, for the figure
+ROWS_SEEN: list[tuple] = []
+SECTION = [""]
+
+
+def header(title, short):
+    SECTION[0] = short
     print(f"\n### {title}\n")
     print("| method | parameter | truth | mean over defined pixels | median over all pixels "
           "| 95 % coverage | defined pixels |")
@@ -84,12 +92,12 @@ def gain_series_rows(ds, method, cam, photoelectrons):
             photoelectrons[i], bounds(ds, "photoelectrons", setpoint=sp), np.inf)
 
 
-def main():
+def main(figure=None):
     warnings.simplefilter("ignore")
     with tempfile.TemporaryDirectory() as tmp:
         for name, cam in CAMERAS.items():
             manifests = simulate_camera(Path(tmp) / name, cam)
-            header(f"camera '{name}': {cam}")
+            header(f"camera '{name}': {cam}", f"camera '{name}'")
             E = [cam["photoelectrons"]] * len(cam["setpoints"])
             for method in ("gs", "gs-no1x", "gs-hierarchical", "mv-gain"):
                 gain_series_rows(calibrate(manifests["gs"], method), method, cam, E)
@@ -112,10 +120,40 @@ def main():
                 e_per_adu=cam["e_per_adu"], read_noise=cam["read_noise"], offset=cam["offset"],
                 seed=31)
             header(f"camera '{name}', illumination × {ILLUMINATION_FACTORS.tolist()} at "
-                   f"set-points {cam['setpoints']}")
+                   f"set-points {cam['setpoints']}", f"camera '{name}', E differs")
             ds = calibrate(_truth_manifest(sim, cam["read_noise"]), "gs-hierarchical")
             gain_series_rows(ds, "gs-hierarchical", cam, E)
+    if figure is not None:
+        figure.parent.mkdir(parents=True, exist_ok=True)
+        coverage_figure(ROWS_SEEN).savefig(figure, dpi=110)
+        print(f"\nwrote {figure}")
+
+
+def coverage_figure(rows):
+    """Coverage of every row, one panel per section, with the 93–97 % band."""
+    from matplotlib.figure import Figure
+
+    sections = list(dict.fromkeys(r[0] for r in rows))
+    heights = [sum(r[0] == s for r in rows) for s in sections]
+    fig = Figure(figsize=(7.5, 0.16 * sum(heights) + 1.2 * len(sections)), layout="constrained")
+    axes = fig.subplots(len(sections), 1, height_ratios=heights, sharex=True, squeeze=False)[:, 0]
+    colours = {"gs": "C0", "gs-no1x": "C1", "gs-hierarchical": "C3", "mv-gain": "C2",
+               "is-adu": "C4", "mv-adu": "C5", "is-gain (IS)": "C6", "mv-gain (IS)": "C7"}
+    for ax, section in zip(axes, sections):
+        mine = [r for r in rows if r[0] == section]
+        y = np.arange(len(mine))[::-1]
+        ax.axvspan(0.93, 0.97, color="0.9", zorder=0)
+        ax.axvline(0.95, color="0.5", lw=0.8)
+        for yi, (_, method, what, cover, kind) in zip(y, mine):
+            ax.plot(cover, yi, "o" if kind.startswith("±") else "s", ms=4,
+                    color=colours.get(method, "k"))
+        ax.set_yticks(y, [f"{m}: {w}" for _, m, w, _, _ in mine], fontsize=6)
+        ax.set_title(section, fontsize=8, loc="left")
+    axes[-1].set_xlabel("fraction of 95 % intervals covering the truth "
+                        "(grey: 93–97 %; squares: Fieller bounds)")
+    axes[-1].set_xlim(0.88, 1.0)
+    return fig
 
 
 if __name__ == "__main__":
-    main()
+    main(Path(sys.argv[1]) if len(sys.argv) > 1 else None)

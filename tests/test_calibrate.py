@@ -256,7 +256,8 @@ def test_gain_series_recovers_truth(camera, method):
     # ± 1.96 SE covers up to 97.5 % (where it is not, it covers less; see
     # test_hierarchical_shrinks_a_differing_illumination and docs/validation.md).
     # Where a set-point's own data hardly see E (10x of the "other" camera) the MAP's
-    # distribution over pixels is skewed; its median is on the truth, its mean not.
+    # distribution over pixels is skewed and its gain biased (below). Elsewhere its
+    # median is checked.
     # Mean–variance estimates are ratios of sample moments, which have no mean where the
     # slope can be ≤ 0 and a bias of order CV² elsewhere: their median is checked over
     # every pixel, and their intervals are Fieller's.

@@ -323,11 +323,11 @@ def _intensity(x, line, scale):
     return E, var_E
 
 
-def _intensity_bounds(x, line, scale, z):
+def _intensity_bounds(x, line, scale):
     """Fieller bounds of E_i = scale·x_i/β (numerator and slope correlated through x_i)."""
     cov_xb = line.dbeta_dx * line.var_x  # Cov(x_i, β) = ∂β/∂x_i · Var(x_i)
     return fieller_interval(scale * x, line.beta, scale**2 * line.var_x, line.var_beta,
-                            scale * cov_xb, z=z)
+                            scale * cov_xb)
 
 
 def _positive_or_nan(beta):
@@ -387,7 +387,8 @@ def fieller_interval(a, b, var_a, var_b, cov_ab=0.0, *, z=_Z95):
     # disc < 0; its positive part is [hi_root, ∞) only when lo_root ≤ 0 < hi_root.
     tail = ~bounded & (disc >= 0) & (lo_root <= 0) & (hi_root > 0)
     lower = np.where(tail, hi_root, lower)
-    empty = (bounded & ((disc < 0) | (hi_root <= 0))) | ~np.isfinite(qa * qb * qc)
+    finite = np.isfinite(qa) & np.isfinite(qb) & np.isfinite(qc)
+    empty = (bounded & ((disc < 0) | (hi_root <= 0))) | ~finite
     lower = np.where(empty, np.nan, lower)
     upper = np.where(empty, np.nan, upper)
     return lower, upper
@@ -467,8 +468,8 @@ def fit_mv_adu(
         x, y, read_var, n_arr, sample_var,
         intercept=intercept, weighted=weighted, iterations=int(iterations),
     )
-    phi_lower, phi_upper = fieller_interval(1.0, line.beta, 0.0, line.var_beta, z=_Z95)
-    E_lower, E_upper = _intensity_bounds(x, line, 1.0, _Z95)
+    phi_lower, phi_upper = fieller_interval(1.0, line.beta, 0.0, line.var_beta)
+    E_lower, E_upper = _intensity_bounds(x, line, 1.0)
     beta = _positive_or_nan(line.beta)
     line = line._replace(beta=beta)
     phi = 1.0 / beta
@@ -592,8 +593,8 @@ def fit_mv_gain(
         )
         # g = β/(2/φ): the slope's interval scaled, widened by φ's error if given
         g_lower[k], g_upper[k] = fieller_interval(line.beta, 2.0 / phi, line.var_beta,
-                                                  4.0 * phi_var / phi**4, z=_Z95)
-        E_lower[rows], E_upper[rows] = _intensity_bounds(xs, line, 2.0, _Z95)
+                                                  4.0 * phi_var / phi**4)
+        E_lower[rows], E_upper[rows] = _intensity_bounds(xs, line, 2.0)
         beta = _positive_or_nan(line.beta)
         line = line._replace(beta=beta)
         g[k] = phi * beta / 2.0
