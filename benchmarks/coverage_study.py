@@ -53,7 +53,7 @@ def row(method, what, est, se, truth, bounds=None, undefined=np.nan):
         lo, hi = (np.ravel(b) for b in bounds)
         cover = np.mean((lo <= truth) & (truth <= hi))
         kind = "Fieller"
-    ROWS_SEEN.append((SECTION[0], method, what, cover, kind))
+    ROWS_SEEN.append((ROWS_SEEN.section, method, what, cover, kind))
     print(f"| {method} | {what} | {truth:g} | {est[ok].mean():.5g} ({(est[ok].mean() - truth) / sem:+.1f} SEM) "
           f"| {np.median(ranked):.5g} ({'in' if band else 'OUT of'} band) | {cover:.3f} ({kind}) "
           f"| {ok.sum()} of {est.size} |")
@@ -65,13 +65,18 @@ def bounds(ds, name, **sel):
     return tuple(ds[f"{name}_{side}"].sel(**sel).values for side in ("lower", "upper"))
 
 
-#: (section, method, parameter, coverage, interval kind) of every row printed, for the figure
-ROWS_SEEN: list[tuple] = []
-SECTION = [""]
+class _Rows(list):
+    """(section, method, parameter, coverage, interval kind) of every row printed."""
+
+    section = ""
+
+
+#: what the figure shows
+ROWS_SEEN = _Rows()
 
 
 def header(title, short):
-    SECTION[0] = short
+    ROWS_SEEN.section = short
     print(f"\n### {title}\n")
     print("| method | parameter | truth | mean over defined pixels | median over all pixels "
           "| 95 % coverage | defined pixels |")
