@@ -23,7 +23,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from test_calibrate import (  # noqa: E402
-    CAMERAS, COLS, FRAMES, ROWS, _truth_manifest, simulate_camera)
+    CAMERAS, COLS, FRAMES, ROWS, _truth_manifest, coverage, median_band, result_bounds,
+    simulate_camera)
 
 from emccdcal.calibrate import calibrate  # noqa: E402
 from emccdcal.simulate import simulate_gain_series  # noqa: E402
@@ -32,7 +33,7 @@ from emccdcal.simulate import simulate_gain_series  # noqa: E402
 ILLUMINATION_FACTORS = np.array([1.0, 1.04, 0.98, 1.02, 0.96])
 
 
-def row(method, what, est, se, truth, bounds=None, undefined=np.nan):
+def row(method, what, est, se, truth, bounds=None, undefined=None):
     """One table row: mean (± SEM), median over every pixel and interval coverage.
 
     The median ranks undefined estimates (NaN) at ``undefined`` (±inf: a mean–variance
@@ -43,26 +44,14 @@ def row(method, what, est, se, truth, bounds=None, undefined=np.nan):
     est, se = np.ravel(est), np.ravel(se)
     ok = np.isfinite(est) & np.isfinite(se)
     sem = est[ok].std(ddof=1) / np.sqrt(ok.sum())
-    ranked = np.sort(np.where(np.isnan(est), undefined, est))
-    n, half = ranked.size, 1.5 * np.sqrt(ranked.size)
-    band = ranked[int(np.floor(n / 2 - half))] <= truth <= ranked[int(np.ceil(n / 2 + half))]
-    if bounds is None:
-        cover = np.mean(np.abs(est - truth) <= 1.959964 * se)
-        kind = "± 1.96 SE"
-    else:
-        lo, hi = (np.ravel(b) for b in bounds)
-        cover = np.mean((lo <= truth) & (truth <= hi))
-        kind = "Fieller"
+    median, lo, hi = median_band(est, undefined)
+    band = lo <= truth <= hi
+    cover = coverage(est, se, truth, bounds)
+    kind = "± 1.96 SE" if bounds is None else "Fieller"
     ROWS_SEEN.append((ROWS_SEEN.section, method, what, cover, kind))
     print(f"| {method} | {what} | {truth:g} | {est[ok].mean():.5g} ({(est[ok].mean() - truth) / sem:+.1f} SEM) "
-          f"| {np.median(ranked):.5g} ({'in' if band else 'OUT of'} band) | {cover:.3f} ({kind}) "
+          f"| {median:.5g} ({'in' if band else 'OUT of'} band) | {cover:.3f} ({kind}) "
           f"| {ok.sum()} of {est.size} |")
-
-
-def bounds(ds, name, **sel):
-    if f"{name}_lower" not in ds:
-        return None
-    return tuple(ds[f"{name}_{side}"].sel(**sel).values for side in ("lower", "upper"))
 
 
 class _Rows(list):
@@ -87,14 +76,14 @@ def gain_series_rows(ds, method, cam, photoelectrons):
     for sp, g in zip(cam["setpoints"][1:], cam["em_gain"][1:]):
         s = ds.sel(setpoint=sp)
         row(method, f"em_gain {sp}x", s.em_gain.values, s.em_gain_se.values, g,
-            bounds(ds, "em_gain", setpoint=sp), -np.inf)
+            result_bounds(ds, "em_gain", setpoint=sp), -np.inf)
     pe = ds.photoelectrons
     if pe.ndim == 2:
         row(method, "photoelectrons", pe.values, ds.photoelectrons_se.values, photoelectrons[0])
         return
     for i, sp in enumerate(ds.setpoint.values):
         row(method, f"photoelectrons {sp:g}x", pe.values[i], ds.photoelectrons_se.values[i],
-            photoelectrons[i], bounds(ds, "photoelectrons", setpoint=sp), np.inf)
+            photoelectrons[i], result_bounds(ds, "photoelectrons", setpoint=sp), np.inf)
 
 
 def main(figure=None):
@@ -109,13 +98,13 @@ def main(figure=None):
             for method in ("is-adu", "mv-adu"):
                 ds = calibrate(manifests["adu"], method)
                 row(method, "e_per_adu", ds.e_per_adu.values, ds.e_per_adu_se.values,
-                    cam["e_per_adu"], bounds(ds, "e_per_adu"), np.inf)
+                    cam["e_per_adu"], result_bounds(ds, "e_per_adu"), np.inf)
             for method in ("is-gain", "mv-gain"):
                 ds = calibrate(manifests["isg"], method)
                 sp = cam["is_gain_setpoint"]
                 s = ds.sel(setpoint=sp)
                 row(method + " (IS)", f"em_gain {sp}x", s.em_gain.values, s.em_gain_se.values,
-                    cam["is_gain"], bounds(ds, "em_gain", setpoint=sp), -np.inf)
+                    cam["is_gain"], result_bounds(ds, "em_gain", setpoint=sp), -np.inf)
         # gs-hierarchical where the illumination truly differs between set-points
         for name, cam in CAMERAS.items():
             E = list(cam["photoelectrons"] * ILLUMINATION_FACTORS)

@@ -182,42 +182,57 @@ def camera(request, tmp_path_factory):
     return name, cam, simulate_camera(tmp_path_factory.mktemp(name), cam)
 
 
+def median_band(estimate, undefined=None):
+    """Median over every pixel and its 3σ band by order statistics: the sample values at
+    ranks N/2 ± 3·√N/2, free of the distribution's shape.
+
+    ``undefined`` (+inf or −inf) ranks the pixels whose estimate is NaN above or below
+    every number (a mean–variance slope ≤ 0 means g below any positive value and E beyond
+    any), so the median is that of every pixel, not of the defined ones only.
+    Also used by ``benchmarks/coverage_study.py``.
+    """
+    estimate = np.ravel(estimate)
+    ranked = np.sort(np.where(np.isnan(estimate), np.nan if undefined is None else undefined,
+                              estimate))
+    n, half = ranked.size, 1.5 * np.sqrt(ranked.size)  # 3 SDs of a Binomial(n, ½) rank
+    return (np.median(ranked), ranked[int(np.floor(n / 2 - half))],
+            ranked[int(np.ceil(n / 2 + half))])
+
+
+def coverage(estimate, se, truth, bounds=None):
+    """Fraction of 95 % intervals covering the truth: ``bounds`` (lower, upper) where the
+    result has them, else estimate ± 1.96 SE. Also used by the coverage study."""
+    if bounds is None:
+        return float(np.mean(np.abs(np.ravel(estimate) - truth) <= 1.959964 * np.ravel(se)))
+    lower, upper = (np.ravel(b) for b in bounds)
+    return float(np.mean((lower <= truth) & (truth <= upper)))
+
+
 def _check(estimate, se, truth, what, upper=0.97, centre=np.mean, bounds=None, undefined=None):
     """Centre over pixels within 3 of its standard errors of the truth; 95 % intervals
-    (``bounds``, or ± 1.96 SE) cover the truth in 93–97 % of the pixels.
-
-    ``centre=np.median`` is judged by order statistics, free of the distribution's shape:
-    the truth must lie between the sample quantiles at ranks N/2 ± 3·√N/2. ``undefined``
-    (+inf or −inf) ranks the pixels whose estimate is NaN above or below every number (a
-    mean–variance slope ≤ 0 means g below any positive value and E beyond any), so the
-    median is that of every pixel, not of the defined ones only.
+    cover the truth in 93–97 % of the pixels. ``centre=np.median`` is judged by
+    :func:`median_band`.
     """
     estimate, se = np.ravel(estimate), np.ravel(se)
     assert estimate.size >= 1000
     if centre is np.median:
-        ranked = np.sort(np.where(np.isnan(estimate), undefined or np.nan, estimate))
-        assert not np.isnan(ranked).any(), f"{what}: undefined estimates"
-        n, half = ranked.size, 1.5 * np.sqrt(ranked.size)  # 3 SDs of a Binomial(n, ½) rank
-        lo, hi = ranked[int(np.floor(n / 2 - half))], ranked[int(np.ceil(n / 2 + half))]
-        assert lo <= truth <= hi, f"{what}: median {np.median(ranked)} vs {truth} ({lo}, {hi})"
+        assert undefined is not None or not np.isnan(estimate).any(), f"{what}: undefined"
+        median, lo, hi = median_band(estimate, undefined)
+        assert lo <= truth <= hi, f"{what}: median {median} vs {truth} ({lo}, {hi})"
     else:
         sem = estimate.std(ddof=1) / np.sqrt(estimate.size)
         value = estimate.mean()
         assert abs(value - truth) < 3 * sem, f"{what}: mean {value} vs {truth}"
-    if bounds is None:
-        cover = np.mean(np.abs(estimate - truth) <= 1.959964 * se)
-    else:
-        lower, upper_bound = (np.ravel(b) for b in bounds)
-        cover = np.mean((lower <= truth) & (truth <= upper_bound))
+    cover = coverage(estimate, se, truth, bounds)
     assert 0.93 <= cover <= upper, f"{what}: 95% interval coverage {cover:.3f}"
 
 
-def _bounds(ds, name, **sel):
-    """``(<name>_lower, <name>_upper)`` at ``sel`` when the result carries them."""
+def result_bounds(ds, name, **sel):
+    """``(<name>_lower, <name>_upper)`` at ``sel`` when the result carries them, else None.
+    Also used by the coverage study."""
     if f"{name}_lower" not in ds:
         return None
-    return tuple(ds[f"{name}_{side}"].sel(**sel).values if sel else ds[f"{name}_{side}"].values
-                 for side in ("lower", "upper"))
+    return tuple(ds[f"{name}_{side}"].sel(**sel).values for side in ("lower", "upper"))
 
 
 def _calibrate(manifest, method, all_converged=True):
@@ -272,11 +287,11 @@ def test_gain_series_recovers_truth(camera, method):
             # median −0.8 % (outside the 3σ order-statistic band, docs/validation.md).
             # Its interval coverage still holds.
             assert abs(np.median(sel.em_gain.values) / g - 1) < 0.02, what
-            cover = np.mean(np.abs(sel.em_gain.values - g) <= 1.959964 * sel.em_gain_se.values)
+            cover = coverage(sel.em_gain.values, sel.em_gain_se.values, g)
             assert 0.93 <= cover <= upper, f"{what}: coverage {cover:.3f}"
             continue
         _check(sel.em_gain.values, sel.em_gain_se.values, g, what, upper,
-               centre, _bounds(ds, "em_gain", setpoint=sp), undefined=-np.inf)
+               centre, result_bounds(ds, "em_gain", setpoint=sp), undefined=-np.inf)
     E = cam["photoelectrons"]
     if ds.photoelectrons.ndim == 2:
         _check(ds.photoelectrons.values, ds.photoelectrons_se.values, E, f"{name} {method} E")
@@ -284,7 +299,7 @@ def test_gain_series_recovers_truth(camera, method):
         for i, sp in enumerate(ds.setpoint.values):
             _check(ds.photoelectrons.values[i], ds.photoelectrons_se.values[i], E,
                    f"{name} {method} E({sp}x)", upper, centre,
-                   _bounds(ds, "photoelectrons", setpoint=sp), undefined=np.inf)
+                   result_bounds(ds, "photoelectrons", setpoint=sp), undefined=np.inf)
 
 
 @pytest.mark.parametrize("method", ["is-adu", "mv-adu"])
@@ -293,11 +308,11 @@ def test_adu_series_recovers_truth(camera, method):
     ds = _calibrate(manifests["adu"], method)
     centre = np.median if method.startswith("mv") else np.mean  # see the gain-series test
     _check(ds.e_per_adu.values, ds.e_per_adu_se.values, cam["e_per_adu"], f"{name} {method} phi",
-           centre=centre, bounds=_bounds(ds, "e_per_adu"), undefined=np.inf)
+           centre=centre, bounds=result_bounds(ds, "e_per_adu"), undefined=np.inf)
     for i, E in enumerate(cam["levels"]):
         _check(ds.photoelectrons.values[i], ds.photoelectrons_se.values[i], E,
                f"{name} {method} E(level {i})", centre=centre,
-               bounds=_bounds(ds, "photoelectrons", level=ds.level.values[i]), undefined=np.inf)
+               bounds=result_bounds(ds, "photoelectrons", level=ds.level.values[i]), undefined=np.inf)
 
 
 @pytest.mark.parametrize("method", ["is-gain", "mv-gain"])
@@ -307,12 +322,12 @@ def test_gain_intensity_series_recovers_truth(camera, method):
     centre = np.median if method.startswith("mv") else np.mean  # see the gain-series test
     sel = ds.sel(setpoint=cam["is_gain_setpoint"])
     _check(sel.em_gain.values, sel.em_gain_se.values, cam["is_gain"], f"{name} {method} g",
-           centre=centre, bounds=_bounds(ds, "em_gain", setpoint=cam["is_gain_setpoint"]),
+           centre=centre, bounds=result_bounds(ds, "em_gain", setpoint=cam["is_gain_setpoint"]),
            undefined=-np.inf)
     for i, E in enumerate(cam["is_gain_levels"]):
         _check(ds.photoelectrons.values[i], ds.photoelectrons_se.values[i], E,
                f"{name} {method} E(level {i})", centre=centre,
-               bounds=_bounds(ds, "photoelectrons", level=ds.level.values[i]), undefined=np.inf)
+               bounds=result_bounds(ds, "photoelectrons", level=ds.level.values[i]), undefined=np.inf)
 
 
 def test_hierarchical_shrinks_a_differing_illumination(tmp_path):
@@ -336,7 +351,7 @@ def test_hierarchical_shrinks_a_differing_illumination(tmp_path):
     se_5x = ds.photoelectrons_se.sel(setpoint=5).values.ravel()
     pulled_back = (true_5x - np.median(E_5x)) / (true_5x - shared)
     assert 0.1 < pulled_back < 0.6, f"median E(5x) {np.median(E_5x):.1f}"
-    assert np.mean(np.abs(E_5x - true_5x) <= 1.959964 * se_5x) < 0.94
+    assert coverage(E_5x, se_5x, true_5x) < 0.94
     # The 1× acquisition pins its own E: no shrinkage there.
     E_1x = ds.photoelectrons.sel(setpoint=1).values.ravel()
     assert abs(E_1x.mean() - shared) < 3 * E_1x.std(ddof=1) / np.sqrt(E_1x.size)
