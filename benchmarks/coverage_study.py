@@ -39,7 +39,10 @@ def row(method, what, est, se, truth, bounds=None, undefined=None):
     The median ranks undefined estimates (NaN) at ``undefined`` (±inf: a mean–variance
     slope ≤ 0 means g below and E beyond any number); "in band" says whether the truth
     lies between the order statistics at ranks N/2 ± 3√N/2. Coverage uses the result's
-    ``<name>_lower/_upper`` when it has them (Fieller for mean–variance), else ± 1.96 SE.
+    ``<name>_lower/_upper`` when it has them (Fieller for mean–variance; for
+    gs-hierarchical those of the fit without the prior, printed beside the coverage of
+    its MAP ± 1.96 SE and the ratio of the MAP's SD over pixels to its RMS SE), else
+    ± 1.96 SE.
     """
     est, se = np.ravel(est), np.ravel(se)
     ok = np.isfinite(est) & np.isfinite(se)
@@ -47,10 +50,14 @@ def row(method, what, est, se, truth, bounds=None, undefined=None):
     median, lo, hi = median_band(est, undefined)
     band = lo <= truth <= hi
     cover = coverage(est, se, truth, bounds)
-    kind = "± 1.96 SE" if bounds is None else "Fieller"
+    kind = "± 1.96 SE" if bounds is None else "Fieller" if method.startswith("mv") else "unpooled"
     ROWS_SEEN.append((ROWS_SEEN.section, method, what, cover, kind))
+    note = ""
+    if kind == "unpooled":  # the MAP's SE against its spread over pixels
+        spread = est[ok].std(ddof=1) / np.sqrt(np.mean(se[ok] ** 2))
+        note = f"; MAP ± 1.96 SE: {coverage(est, se, truth):.3f}, SD/SE {spread:.2f}"
     print(f"| {method} | {what} | {truth:g} | {est[ok].mean():.5g} ({(est[ok].mean() - truth) / sem:+.1f} SEM) "
-          f"| {median:.5g} ({'in' if band else 'OUT of'} band) | {cover:.3f} ({kind}) "
+          f"| {median:.5g} ({'in' if band else 'OUT of'} band) | {cover:.3f} ({kind}{note}) "
           f"| {ok.sum()} of {est.size} |")
 
 
@@ -138,13 +145,13 @@ def coverage_figure(rows):
         y = np.arange(len(mine))[::-1]
         ax.axvspan(0.93, 0.97, color="0.9", zorder=0)
         ax.axvline(0.95, color="0.5", lw=0.8)
+        marker = {"± 1.96 SE": "o", "Fieller": "s", "unpooled": "^"}
         for yi, (_, method, what, cover, kind) in zip(y, mine):
-            ax.plot(cover, yi, "o" if kind.startswith("±") else "s", ms=4,
-                    color=colours.get(method, "k"))
+            ax.plot(cover, yi, marker[kind], ms=4, color=colours.get(method, "k"))
         ax.set_yticks(y, [f"{m}: {w}" for _, m, w, _, _ in mine], fontsize=6)
         ax.set_title(section, fontsize=8, loc="left")
     axes[-1].set_xlabel("fraction of 95 % intervals covering the truth "
-                        "(grey: 93–97 %; squares: Fieller bounds)")
+                        "(grey: 93–97 %; squares: Fieller; triangles: fit without the prior)")
     axes[-1].set_xlim(0.88, 1.0)
     return fig
 

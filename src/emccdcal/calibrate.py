@@ -128,9 +128,13 @@ def calibrate(
         ``"profile"`` adds 95 % profile-likelihood bounds ``<name>_lower``/``<name>_upper``
         for the likelihood methods' free parameters: they follow a skewed likelihood
         (few photoelectrons, weak set-points) where ``estimate ± 1.96 SE`` does not. They
-        are conditional on the maps and cost about ten refits per parameter. The
+        include the maps' errors as the SEs do (their deviance target grows by the ratio
+        of the variances with and without them) and cost about ten refits per parameter. The
         mean–variance methods have no likelihood (``"profile"`` is an error there); their
         results always carry 95 % Fieller bounds (:func:`emccdcal.mv.fieller_interval`).
+        ``gs-hierarchical`` results always carry bounds too, those of the same model
+        without its prior (:func:`emccdcal.methods.unpooled_bounds`): its MAP ± 1.96 SE
+        over-covers where the true E is shared and under-covers where it is not.
 
     Returns
     -------
@@ -280,6 +284,8 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
         e = methods.acquisition_estimates(layout, fit.x, fit.cov)
         if intervals == "profile":
             e.update(methods.acquisition_bounds(layout, blocks, fit))
+        elif method == "gs-hierarchical":
+            e.update(methods.unpooled_bounds(layout, blocks, fit))
         # Goodness of fit per acquisition; a free parameter shared by k acquisitions
         # counts 1/k towards each one's fitted-parameter number.
         touches = np.any(layout.matrix != 0, axis=1)  # (A, F)
@@ -377,12 +383,19 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
             attrs={"options": str(options)} if options else None,
         )
     if intervals == "profile":
-        _add_bounds(ds, est, grid)
+        _add_bounds(ds, est, grid, "profile-likelihood",
+                    "profile likelihood, 95 %, widened by the errors of the offset and "
+                    "read-noise maps where the standard errors include them")
+    elif method == "gs-hierarchical":
+        _add_bounds(ds, est, grid, "unpooled",
+                    "95 %, of the same model without the prior (each set-point its own E): "
+                    "Wald on the log scale, profile likelihood where that is unreliable; "
+                    "the MAP's own ± 1.96 SE reflect its shrinkage")
     return ds
 
 
-def _add_bounds(ds, est, grid):
-    """Profile bounds ``<name>_lower/_upper`` beside each estimate, on its dims."""
+def _add_bounds(ds, est, grid, kind, description):
+    """Bounds ``<name>_lower/_upper`` of ``est`` beside each estimate, on its dims."""
     bounds = {}
     for name in ("photoelectrons", "em_gain", "e_per_adu"):
         lower, upper = est[f"{name}_lower"], est[f"{name}_upper"]
@@ -391,8 +404,7 @@ def _add_bounds(ds, est, grid):
         da = ds[name]
         pick = (lambda a: a[:, 0]) if da.ndim == 2 else (lambda a: a[:, : da.shape[0]])  # noqa: E731
         bounds[name] = grid(pick(lower)), grid(pick(upper))
-    _add_interval_vars(ds, bounds, "profile-likelihood",
-                       "profile likelihood, 95 %, conditional on the offset/read-noise maps")
+    _add_interval_vars(ds, bounds, kind, description)
 
 
 def _add_interval_vars(ds, bounds, kind, description):

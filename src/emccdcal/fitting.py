@@ -371,6 +371,15 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None):
             break
         sub = [b.take(active) for b in blocks]
         g, I = grad[active], info[active]
+        # A parameter at its bound whose gradient points outwards stays there, and the
+        # step is solved in the others (an active-set step): clipping a full step would
+        # leave them moving as though it had moved too, and stall on the bound.
+        x_a = x[active]
+        held = ((x_a <= layout.lower) & (g < 0)) | ((x_a >= layout.upper) & (g > 0))
+        if held.any():
+            free = ~held
+            g = np.where(held, 0.0, g)
+            I = I * free[:, :, None] * free[:, None, :] + held[:, :, None] * eye
         scale = np.sqrt(np.maximum(np.abs(np.einsum("pii->pi", I)), 1e-300))
         A = I + damping[active, None, None] * (scale[:, :, None] * scale[:, None, :]) * eye
         step = _solve(A, g)
@@ -387,7 +396,7 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None):
         damping[active[~better]] *= 10.0
         iterations[active] += 1
         decrement = 0.5 * np.einsum("pf,pf->p", g, step)
-        small = (np.abs(decrement) < tol) | (np.max(np.abs(step), axis=1) < 1e-10)
+        small = (np.abs(decrement) < tol) | (np.max(np.abs(step), axis=1, initial=0.0) < 1e-10)
         # A step that promises less than ``tol`` is done, taken or not: the objective's
         # round-off (~1e-8 nats) can refuse a step that small.
         finished = small | (damping[active] > 1e8)
@@ -472,29 +481,43 @@ class _Pinned:
         return value, np.delete(grad, self.j, 1), np.delete(np.delete(hess, self.j, 1), self.j, 2)
 
 
-def profile_bounds(layout, blocks, result, j, *, level=0.95, tol=0.005, max_steps=12):
+def profile_bounds(layout, blocks, result, j, *, level=0.95, tol=0.005, xtol=1e-4, max_steps=20,
+                   first_step=1.0):
     """Profile-likelihood interval of the free parameter ``x[:, j]`` for every pixel.
 
     The bounds are where the profile deviance ``2 (ℓ̂ − max ℓ | x_j)`` (with a prior: of
     the penalised objective) reaches the χ²₁ quantile of ``level``. They follow the
-    likelihood where it is skewed, unlike the Wald interval ``x̂ ± z·SE``. Each side is
+    likelihood where it is skewed, unlike the Wald interval ``x̂ ± z·SE``. The likelihood
+    is conditional on the offset and read-noise maps: where ``result.cov`` includes the
+    maps' errors (and there is no prior), the target grows by the ratio of that variance
+    of ``x_j`` to the inverse observed information's, which widens a Gaussian profile to
+    exactly ``± z·SE`` and keeps a skewed one's shape. Each side is
     searched on the signed root deviance r, which is close to linear in x_j: from the
     Wald bound, secant steps extend outwards until r passes its target, then regula falsi
-    inside the bracket. Every step refits the other parameters, warm-started.
+    inside the bracket (bisection where r is lopsided over it). Every step refits the
+    other parameters, warm-started from the farthest point found inside.
 
     Parameters
     ----------
     layout, blocks : as for :func:`fit`.
     result : FitResult
-        The unconstrained fit (its ``x``, ``cov`` and ``objective``).
+        The unconstrained fit (its ``x``, ``cov`` and ``objective``; a pixel whose ``cov``
+        is NaN, such as one stopped at a bound, is searched from ``first_step``).
     j : int
         Index of the free parameter.
     level : float
         Confidence level of the interval.
     tol : float
         Accept a bound when the signed root deviance is within ``tol`` of its target.
+    xtol : float
+        ... or when it is bracketed within ``xtol`` in ``x_j`` (where the deviance rises
+        too steeply for ``tol``: a parameter pushed against another one's bound).
     max_steps : int
         Refits per side; pixels whose bound is not found then get NaN.
+    first_step : float
+        Largest first step from the optimum in ``x_j`` (where the SE is large because the
+        information is nearly singular, the Wald bound can be far beyond the model's
+        reach).
 
     Returns
     -------
@@ -505,20 +528,27 @@ def profile_bounds(layout, blocks, result, j, *, level=0.95, tol=0.005, max_step
     """
     from scipy import stats
 
-    z = float(np.sqrt(stats.chi2.ppf(level, 1)))
     x_hat, P = result.x, result.x.shape[0]
     se = np.sqrt(np.abs(result.cov[:, j, j]))
+    target = np.full(P, np.sqrt(stats.chi2.ppf(level, 1)))
+    if not hasattr(layout, "estimator_covariance") and not np.any(layout.log_prior(x_hat)[2]):
+        conditional, pos_def = _invert(_evaluate(layout, blocks, x_hat, 2)[4])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = result.cov[:, j, j] / conditional[:, j, j]
+        target *= np.sqrt(np.where(pos_def & np.isfinite(ratio) & (ratio > 1), ratio, 1.0))
     out = []
     for side in (-1.0, 1.0):
         bound = np.full(P, np.nan)
         edge = layout.lower[j] if side < 0 else layout.upper[j]
         room = side * (edge - x_hat[:, j])  # distance to the layout's bound, ≥ 0
-        ok = np.isfinite(se) & np.isfinite(result.objective)
+        ok = np.isfinite(result.objective)
         bound[ok & (room <= 0)] = edge
         active = np.flatnonzero(ok & (room > 0))
+        z = target[active]
         # |t| = distance from the optimum; (t_in, r_in): farthest point still inside,
         # (t_out, r_out): nearest point beyond the target (NaN until found).
-        t = np.minimum(z * np.maximum(se[active], 1e-6), room[active])
+        # The first step: z·SE, at most first_step (also where the SE is NaN).
+        t = np.minimum(np.fmin(z * np.maximum(se[active], 1e-6), first_step), room[active])
         t_in, r_in = np.zeros(active.size), np.zeros(active.size)    # farthest inside
         t_pre, r_pre = np.zeros(active.size), np.zeros(active.size)  # the one before
         t_out, r_out = np.full(active.size, np.nan), np.full(active.size, np.nan)
@@ -542,6 +572,10 @@ def profile_bounds(layout, blocks, result, j, *, level=0.95, tol=0.005, max_step
             t_pre, r_pre = np.where(inside, t_in, t_pre), np.where(inside, r_in, r_pre)
             t_in, r_in = np.where(inside, t, t_in), np.where(inside, r, r_in)
             t_out, r_out = np.where(inside, t_out, t), np.where(inside, r_out, r)
+            narrow = ~done & (t_out - t_in < xtol)  # False while t_out is NaN
+            bound[active[narrow]] = x_hat[active[narrow], j] + side * 0.5 * (
+                t_in[narrow] + t_out[narrow])
+            done |= narrow
             with np.errstate(divide="ignore", invalid="ignore"):
                 # before a bracket: secant through the last two inside points, extending
                 # by a factor 1.2 to 4; inside one: regula falsi, kept off its ends.
@@ -551,9 +585,15 @@ def profile_bounds(layout, blocks, result, j, *, level=0.95, tol=0.005, max_step
                 mid = t_in + (z - r_in) * (t_out - t_in) / (r_out - r_in)
                 mid = np.clip(np.nan_to_num(mid, nan=0.5 * (t_in + t_out)),
                               t_in + 0.05 * (t_out - t_in), t_out - 0.05 * (t_out - t_in))
+                # ... and bisection where the deviance is so lopsided over the bracket (a
+                # wall, or a refit that failed far out) that regula falsi would creep.
+                mid = np.where(r_out - z > 10.0 * (z - r_in), 0.5 * (t_in + t_out), mid)
             t_new = np.where(np.isfinite(t_out), mid, ext)
+            # Warm start from the farthest point inside: one beyond the target can be far
+            # off, with nuisance parameters from which the next fit does not recover.
+            start = np.where(inside[:, None], fitted.x, start)
             keep = ~done
-            active, t, start = active[keep], t_new[keep], fitted.x[keep]
+            active, t, start, z = active[keep], t_new[keep], start[keep], z[keep]
             t_in, r_in, t_pre, r_pre = t_in[keep], r_in[keep], t_pre[keep], r_pre[keep]
             t_out, r_out, last_inside = t_out[keep], r_out[keep], last_inside[keep]
         out.append(bound)
