@@ -485,7 +485,8 @@ def add_parser(subparsers):
     p.add_argument("--intervals", choices=INTERVALS, default="wald",
                    help="'profile': also write 95 %% profile-likelihood bounds "
                    "(<name>_lower/_upper), for skewed likelihoods; slower (default: wald). "
-                   "mv-adu and mv-gain always write Fieller bounds")
+                   "mv-adu and mv-gain always write Fieller bounds, gs-hierarchical those "
+                   "of its model without the prior")
     p.add_argument("--conditional-se", action="store_true",
                    help="standard errors conditional on the offset/read-noise maps (leave out "
                    "the error of maps estimated from dark frames)")
