@@ -461,7 +461,7 @@ def unpooled_bounds(layout, blocks, fit, level=0.95, weak_se=0.1):
     g, started from the MAP: Wald on the log scale, and profile-likelihood bounds where
     the Wald one is unreliable (``SE(ln θ) > weak_se``, or the fit did not converge,
     as where a set-point's own data barely see E and its gain runs to 1). Measured
-    coverage: 93.5–95.7 % for every E and g on both known-truth cameras, with the same
+    coverage: 94.3–95.7 % for every E and g on both known-truth cameras, with the same
     and with differing illumination (docs/validation.md).
 
     Returns
