@@ -361,3 +361,20 @@ def test_hierarchical_shrinks_a_differing_illumination(tmp_path):
     # The 1× acquisition pins its own E: no shrinkage there.
     E_1x = ds.photoelectrons.sel(setpoint=1).values.ravel()
     assert abs(E_1x.mean() - shared) < 3 * E_1x.std(ddof=1) / np.sqrt(E_1x.size)
+
+
+@pytest.mark.parametrize("method", ["gs", "gs-hierarchical"])
+def test_result_does_not_depend_on_blocks_or_threads(tmp_path, method):
+    """Pixels are fitted independently: tiles of 7 pixels on one thread give the result
+    of the default tiles on two (only each tile's FFT length differs: round-off)."""
+    sim = simulate_gain_series(tmp_path, rows=5, cols=5, frames=300, seed=8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        default = calibrate(sim.manifest, method, checks=False, workers=2)
+        small = calibrate(sim.manifest, method, checks=False, workers=1, block_size=7)
+    assert default.converged.values.all()
+    np.testing.assert_array_equal(default.converged.values, small.converged.values)
+    for name in default.data_vars:
+        if np.issubdtype(default[name].dtype, np.floating):
+            np.testing.assert_allclose(small[name].values, default[name].values, rtol=1e-7,
+                                       atol=1e-12, equal_nan=True, err_msg=name)

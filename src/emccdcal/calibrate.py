@@ -25,8 +25,10 @@ METHODS = ("mv-adu", "mv-gain") + methods.LIKELIHOOD_METHODS
 INTERVALS = ("wald", "profile")
 
 #: Pixels fitted together: large enough to amortise Python overhead, small enough that
-#: the FFT windows of a block (pixels × window × derivatives) stay within a few hundred MB.
-DEFAULT_BLOCK = 256
+#: the FFT windows of a block (pixels × window × derivatives) stay within a few hundred MB
+#: and that two threads share the blocks evenly (128 fitted a 32 × 32 gain series 11 %
+#: faster than 256 on two cores; docs/benchmarks.md).
+DEFAULT_BLOCK = 128
 
 
 def _load(manifest):
