@@ -91,19 +91,19 @@ def test_bad_intervals(gain_series):
 def test_profile_bounds_where_the_information_is_nearly_singular(tmp_path):
     """A set-point whose own data hardly see E (10× on a noisy camera): the profile
     deviance is flat over a decade of E and then rises as a wall where the gain reaches
-    its bound of 1. The bounds must still be found (no NaN), on the quantile."""
+    its bound of 1. The bounds must still be found (no NaN), on the quantile or at g = 1."""
     sim = simulate_gain_series(tmp_path, setpoints=(1, 10), em_gain=(1, 9.1), photoelectrons=60.0,
                                rows=4, cols=4, frames=2000, e_per_adu=12.0, read_noise=40.0,
                                offset=1000.0, seed=3, progress=False)
     acqs = io.read_manifest(sim.manifest).acquisitions[1:]  # the 10× acquisition alone
     layout, blocks, fit = _layout_and_fit_acquisitions(acqs, "gs-no1x", 12.0)
     # Where the excess variance is below what a gain of 1 gives the optimum is at g = 1:
-    # the fit gets there (an active-set step), though without a covariance.
+    # the fit gets there (an active-set step), with E·g the mean signal, and flags it.
     at_one = fit.x[:, 1] <= layout.lower[1]
     assert at_one.any() and np.isfinite(fit.objective).all()
-    signal = (blocks[0].mean - blocks[0].offset) * 12.0
-    np.testing.assert_allclose(np.exp(fit.x[at_one, 0]), signal[at_one], rtol=0.01)
-    assert not fit.converged[at_one].any()  # an optimum at a bound is flagged
+    log_signal = np.log((blocks[0].mean - blocks[0].offset) * 12.0)  # ln(E·g), e⁻
+    np.testing.assert_allclose(fit.x[at_one, 0], log_signal[at_one], atol=0.01)
+    assert not fit.converged[at_one].any()
     target = stats.chi2.ppf(0.95, 1)
     for j in (0, 1):
         lower, upper = fitting.profile_bounds(layout, blocks, fit, j)
@@ -111,9 +111,8 @@ def test_profile_bounds_where_the_information_is_nearly_singular(tmp_path):
         assert np.all(upper - lower > 1.0)  # wider than a factor e: E is barely seen
         for bound, edge in ((lower, layout.lower[j]), (upper, layout.upper[j])):
             pinned = fitting._Pinned(layout, j, bound)
-            # the other parameter started where g·E gives the mean signal
-            signal = np.log((blocks[0].mean - blocks[0].offset) * 12.0)
-            refit = fitting.fit(pinned, blocks, (signal - bound)[:, None])
+            # the other parameter started where E·g gives the mean signal
+            refit = fitting.fit(pinned, blocks, (log_signal - bound)[:, None])
             deviance = 2 * (fit.objective - refit.objective)
             # on the quantile, or at the layout's bound (g = 1) with the deviance below it
             at_edge = np.abs(bound - edge) < 1e-6
