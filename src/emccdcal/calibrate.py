@@ -275,6 +275,17 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
     n_floored = np.zeros(P, dtype=np.int64)
     iterations = np.zeros(P, dtype=np.int64)
     hyper = {"hyper_photoelectrons": np.full(P, np.nan), "hyper_sd_photoelectrons": np.full(P, np.nan)}
+    # Interval bounds: (function of a fitted block, kind, description), or None.
+    bounds = None
+    if intervals == "profile":
+        bounds = (methods.acquisition_bounds, "profile-likelihood",
+                  "profile likelihood, 95 %, widened by the errors of the offset and "
+                  "read-noise maps where the standard errors include them")
+    elif method == "gs-hierarchical":
+        bounds = (methods.unpooled_bounds, "unpooled",
+                  "95 %, of the same model without the prior (each set-point its own E): "
+                  "Wald on the log scale, profile likelihood where that is unreliable; "
+                  "the MAP's own ± 1.96 SE reflect its shrinkage")
 
     def fit_block(idx):
         blocks = methods.make_blocks(hists, offsets, read_noise, setpoints, idx,
@@ -284,10 +295,8 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
         layout, x0 = methods.build_layout(method, series, options)
         fit = fitting.fit(layout, blocks, x0)
         e = methods.acquisition_estimates(layout, fit.x, fit.cov)
-        if intervals == "profile":
-            e.update(methods.acquisition_bounds(layout, blocks, fit))
-        elif method == "gs-hierarchical":
-            e.update(methods.unpooled_bounds(layout, blocks, fit))
+        if bounds is not None:
+            e.update(bounds[0](layout, blocks, fit))
         # Goodness of fit per acquisition; a free parameter shared by k acquisitions
         # counts 1/k towards each one's fitted-parameter number.
         touches = np.any(layout.matrix != 0, axis=1)  # (A, F)
@@ -384,15 +393,8 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
             manifest_hash=manifest.content_hash, manifest_path=str(manifest.path.resolve()), extra=extra,
             attrs={"options": str(options)} if options else None,
         )
-    if intervals == "profile":
-        _add_bounds(ds, est, grid, "profile-likelihood",
-                    "profile likelihood, 95 %, widened by the errors of the offset and "
-                    "read-noise maps where the standard errors include them")
-    elif method == "gs-hierarchical":
-        _add_bounds(ds, est, grid, "unpooled",
-                    "95 %, of the same model without the prior (each set-point its own E): "
-                    "Wald on the log scale, profile likelihood where that is unreliable; "
-                    "the MAP's own ± 1.96 SE reflect its shrinkage")
+    if bounds is not None:
+        _add_bounds(ds, est, grid, *bounds[1:])
     return ds
 
 
