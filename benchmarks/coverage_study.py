@@ -5,8 +5,11 @@ true offset and read-noise maps in the manifest), printed as a table for
 ``docs/validation.md``: for each method and parameter, the mean over pixels against the
 truth (in units of the standard error of the mean, SEM), the median over all pixels and
 whether the truth is in its 3σ order-statistic band, and the fraction of per-pixel 95 %
-intervals that cover the truth. A last part runs ``gs-hierarchical`` where the
-illumination truly differs between set-points.
+intervals that cover the truth. ``gs-hierarchical`` runs with the authors' hyperprior
+scales in proportion to the camera's illumination (``hierarchical_options``: their 25 e⁻
+on the paper's camera), and where that differs from their absolute 25 e⁻ also with
+those. A last part runs ``gs-hierarchical`` where the illumination truly differs between
+set-points.
 
 Run: ``.venv/bin/python benchmarks/coverage_study.py [FIGURE.png]`` (the figure: the
 coverage of every row, docs/figures/validation/coverage.png)
@@ -23,8 +26,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from test_calibrate import (  # noqa: E402
-    CAMERAS, COLS, FRAMES, ROWS, _truth_manifest, coverage, median_band, result_bounds,
-    simulate_camera)
+    CAMERAS, COLS, FRAMES, ROWS, _truth_manifest, coverage, hierarchical_options, median_band,
+    result_bounds, simulate_camera)
 
 from emccdcal.calibrate import calibrate  # noqa: E402
 from emccdcal.simulate import simulate_gain_series  # noqa: E402
@@ -100,8 +103,14 @@ def main(figure=None):
             manifests = simulate_camera(Path(tmp) / name, cam)
             header(f"camera '{name}': {cam}", f"camera '{name}'")
             E = [cam["photoelectrons"]] * len(cam["setpoints"])
+            options = hierarchical_options(cam)
             for method in ("gs", "gs-no1x", "gs-hierarchical", "mv-gain"):
-                gain_series_rows(calibrate(manifests["gs"], method), method, cam, E)
+                ds = calibrate(manifests["gs"], method,
+                               options=options if method == "gs-hierarchical" else None)
+                gain_series_rows(ds, method, cam, E)
+            if options["sigma_sd"] != 25.0:  # the authors' absolute scales as well
+                ds = calibrate(manifests["gs"], "gs-hierarchical")
+                gain_series_rows(ds, "gs-hierarchical (25 e-)", cam, E)
             for method in ("is-adu", "mv-adu"):
                 ds = calibrate(manifests["adu"], method)
                 row(method, "e_per_adu", ds.e_per_adu.values, ds.e_per_adu_se.values,
@@ -122,7 +131,8 @@ def main(figure=None):
                 seed=31)
             header(f"camera '{name}', illumination × {ILLUMINATION_FACTORS.tolist()} at "
                    f"set-points {cam['setpoints']}", f"camera '{name}', E differs")
-            ds = calibrate(_truth_manifest(sim, cam["read_noise"]), "gs-hierarchical")
+            ds = calibrate(_truth_manifest(sim, cam["read_noise"]), "gs-hierarchical",
+                           options=hierarchical_options(cam))
             gain_series_rows(ds, "gs-hierarchical", cam, E)
     if figure is not None:
         figure.parent.mkdir(parents=True, exist_ok=True)
@@ -138,7 +148,8 @@ def coverage_figure(rows):
     heights = [sum(r[0] == s for r in rows) for s in sections]
     fig = Figure(figsize=(7.5, 0.16 * sum(heights) + 1.2 * len(sections)), layout="constrained")
     axes = fig.subplots(len(sections), 1, height_ratios=heights, sharex=True, squeeze=False)[:, 0]
-    colours = {"gs": "C0", "gs-no1x": "C1", "gs-hierarchical": "C3", "mv-gain": "C2",
+    colours = {"gs": "C0", "gs-no1x": "C1", "gs-hierarchical": "C3",
+               "gs-hierarchical (25 e-)": "C8", "mv-gain": "C2",
                "is-adu": "C4", "mv-adu": "C5", "is-gain (IS)": "C6", "mv-gain (IS)": "C7"}
     for ax, section in zip(axes, sections):
         mine = [r for r in rows if r[0] == section]

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from emccdcal import cli, result
+from emccdcal import cli, methods, result
 from emccdcal.calibrate import calibrate
 from emccdcal.simulate import simulate_gain_series, simulate_intensity_series
 
@@ -235,10 +235,19 @@ def result_bounds(ds, name, **sel):
     return tuple(ds[f"{name}_{side}"].sel(**sel).values for side in ("lower", "upper"))
 
 
-def _calibrate(manifest, method, all_converged=True):
+def hierarchical_options(cam):
+    """The authors' hyperprior scales (25 e⁻ for their ~370 e⁻) in proportion to a camera's
+    illumination: 25 e⁻ absolute is 7 % of E on the paper's camera but 42 % on the "other"
+    one, a prior that hardly pools. Also used by the coverage study, which measures the
+    authors' absolute scales too (their 10x gain is biased there, docs/validation.md)."""
+    sd = methods.HIERARCHICAL_DEFAULTS["sigma_sd"] * cam["photoelectrons"] / 370.0
+    return {"mu_sd": sd, "sigma_sd": sd}
+
+
+def _calibrate(manifest, method, all_converged=True, options=None):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        ds = calibrate(manifest, method)
+        ds = calibrate(manifest, method, options=options)
     if all_converged:
         assert float(ds.converged.mean()) == 1.0, f"{method}: not every pixel converged"
     return ds
@@ -253,7 +262,9 @@ def test_gain_series_recovers_truth(camera, method):
     # flagged (converged False, NaN), never returned as numbers; their Fieller bounds
     # still exist, and cover.
     mv_blind = method == "mv-gain" and name == "other"
-    ds = _calibrate(manifests["gs"], method, all_converged=not mv_blind)
+    hierarchical = method == "gs-hierarchical"
+    options = hierarchical_options(cam) if hierarchical else None
+    ds = _calibrate(manifests["gs"], method, all_converged=not mv_blind, options=options)
     if mv_blind:
         blind = ~np.isfinite(ds.em_gain.sel(setpoint=10).values)
         assert 0 < blind.mean() < 0.2
@@ -265,31 +276,22 @@ def test_gain_series_recovers_truth(camera, method):
         E_upper = ds.photoelectrons_upper.values[1][blind]
         assert np.isfinite(g_upper).mean() > 0.9 and not np.isinf(g_upper).any()
         assert np.isinf(E_upper).mean() > 0.9 and np.all(np.isinf(E_upper) | np.isnan(E_upper))
+    if hierarchical:  # the hyperprior used is recorded
+        assert json.loads(ds.attrs["options"]) == {**methods.HIERARCHICAL_DEFAULTS, **options}
     # The hierarchical MAP shrinks each set-point's E to the shared one whenever the data
     # pull it by less than SE²/sigma_sd (an L2-norm penalty, METHODS §6); its ± 1.96 SE
     # over-covers where the truth is that shared E, as here, and under-covers where it is
     # not. Its result's intervals are those of the fit without the prior
     # (methods.unpooled_bounds), which cover (also where the illumination differs:
-    # test_hierarchical_shrinks_a_differing_illumination). Where a set-point's own data
-    # hardly see E (10x of the "other" camera) the MAP's gain is biased (below).
-    # Elsewhere its median is checked: its distribution over pixels is skewed.
+    # test_hierarchical_shrinks_a_differing_illumination). Its median is checked: its
+    # distribution over pixels is skewed where a set-point's own data hardly see E.
     # Mean–variance estimates are ratios of sample moments, which have no mean where the
     # slope can be ≤ 0 and a bias of order CV² elsewhere: their median is checked over
     # every pixel, and their intervals are Fieller's.
-    hierarchical = method == "gs-hierarchical"
     centre = np.median if method in ("gs-hierarchical", "mv-gain") else np.mean
     for sp, g in zip(cam["setpoints"][1:], cam["em_gain"][1:]):
         sel = ds.sel(setpoint=sp)
-        what = f"{name} {method} g({sp}x)"
-        if hierarchical and name == "other" and sp == 10:
-            # Not recovered: where E is nearly unidentified the penalised MAP is biased,
-            # median −0.8 % (outside the 3σ order-statistic band, docs/validation.md).
-            # Its interval coverage still holds.
-            assert abs(np.median(sel.em_gain.values) / g - 1) < 0.02, what
-            cover = coverage(sel.em_gain.values, None, g, result_bounds(ds, "em_gain", setpoint=sp))
-            assert 0.93 <= cover <= 0.97, f"{what}: coverage {cover:.3f}"
-            continue
-        _check(sel.em_gain.values, sel.em_gain_se.values, g, what,
+        _check(sel.em_gain.values, sel.em_gain_se.values, g, f"{name} {method} g({sp}x)",
                centre, result_bounds(ds, "em_gain", setpoint=sp), undefined=-np.inf)
     E = cam["photoelectrons"]
     if ds.photoelectrons.ndim == 2:

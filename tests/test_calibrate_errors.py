@@ -72,6 +72,41 @@ def test_unknown_method(series):
         calibrate(gs.manifest, "gs2")
 
 
+@pytest.mark.parametrize("method,options,message", [
+    ("gs", {"mu_sd": 4.0}, "gs takes no options"),
+    ("gs-hierarchical", {"mu_sdev": 4.0}, "unknown gs-hierarchical option.*'mu_sdev'.*known: mu_sd"),
+    ("gs-hierarchical", {"sigma_sd": -1.0}, "sigma_sd must be a positive number of photoelectrons"),
+    ("gs-hierarchical", {"mu_sd": "wide"}, "mu_sd must be a positive number"),
+    ("gs-hierarchical", {"centre": "pixel"}, "unknown hierarchical centre 'pixel'"),
+])
+def test_bad_method_options(series, method, options, message):
+    gs, _ = series
+    with pytest.raises(MethodError, match=message):
+        calibrate(gs.manifest, method, options=options)
+
+
+def test_cli_hyperprior_options_are_used_and_recorded(series, tmp_path):
+    import json
+
+    from emccdcal import result
+
+    gs, _ = series
+    out = tmp_path / "hier"
+    argv = ["calibrate", str(gs.manifest), "-m", "gs-hierarchical", "-o", str(out), "--quiet",
+            "--no-checks", "--mu-sd", "5", "--sigma-sd", "2.5", "--prior-centre", "setpoint"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert cli.main(argv) == 0
+    ds = result.load(out)
+    assert json.loads(ds.attrs["options"]) == {"mu_sd": 5.0, "sigma_sd": 2.5, "centre": "setpoint"}
+    # a tighter σ_E prior pools harder: the set-points' E spread less about μ than by default
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        default = calibrate(gs.manifest, "gs-hierarchical", checks=False)
+    assert float(ds.hyper_sd_photoelectrons.median()) < float(default.hyper_sd_photoelectrons.median())
+    assert cli.main(argv[:-6] + ["-m", "gs", "--mu-sd", "5"]) == 2  # gs takes no hyperprior
+
+
 def test_cli_errors_are_one_line_exit_2(series, tmp_path, capsys):
     gs, _ = series
     code = cli.main(["calibrate", str(tmp_path / "missing.toml"), "-o", str(tmp_path / "o")])

@@ -32,6 +32,7 @@ __all__ = [
     "MethodError",
     "Series",
     "select_acquisitions",
+    "check_options",
     "build_layout",
     "acquisition_estimates",
     "acquisition_bounds",
@@ -49,6 +50,8 @@ BOUNDS = {
 
 #: Hyperprior of the hierarchical gain series: scales (photoelectrons) as the authors';
 #: the centre of μ's prior is the shared-E (``gs``) estimate, or ``"setpoint"`` for theirs.
+#: The authors' scales are absolute: 25 e⁻ is 7 % of their 370 e⁻ illumination, but 42 %
+#: of a 60 e⁻ one, where the prior hardly pools (docs/validation.md); scale them with E.
 HIERARCHICAL_DEFAULTS = {"mu_sd": 25.0, "sigma_sd": 25.0, "centre": "gs"}
 
 
@@ -137,6 +140,37 @@ def select_acquisitions(method, setpoints, levels, has_e_per_adu):
     return idx[np.argsort(sp[idx], kind="stable")]
 
 
+def check_options(method, options):
+    """The method options, checked, with defaults filled in; a clear error otherwise.
+
+    Only ``gs-hierarchical`` takes options: ``mu_sd`` and ``sigma_sd`` (photoelectrons,
+    positive: the scales of μ's normal prior and σ_E's half-normal one) and ``centre``
+    (``"gs"`` or ``"setpoint"``, the centre of μ's prior).
+    """
+    options = dict(options or {})
+    if method != "gs-hierarchical":
+        if options:
+            raise MethodError(f"{method} takes no options (given: {', '.join(map(str, options))}); "
+                              "only gs-hierarchical does")
+        return options
+    unknown = sorted(set(options) - set(HIERARCHICAL_DEFAULTS))
+    if unknown:
+        raise MethodError(f"unknown gs-hierarchical option(s) {', '.join(map(repr, unknown))}; "
+                          f"known: {', '.join(HIERARCHICAL_DEFAULTS)}")
+    out = {**HIERARCHICAL_DEFAULTS, **options}
+    for key in ("mu_sd", "sigma_sd"):
+        try:
+            out[key] = float(out[key])
+        except (TypeError, ValueError):
+            out[key] = float("nan")
+        if not (np.isfinite(out[key]) and out[key] > 0):
+            raise MethodError(f"gs-hierarchical option {key} must be a positive number of "
+                              f"photoelectrons (e-); got {options[key]!r}")
+    if out["centre"] not in ("gs", "setpoint"):
+        raise MethodError(f"unknown hierarchical centre {out['centre']!r}; use 'gs' or 'setpoint'")
+    return out
+
+
 def _fmt(values):
     return ", ".join(f"{float(v):g}x" for v in values) or "none"
 
@@ -196,7 +230,7 @@ def build_layout(method, series, options=None):
     layout : Layout
     x0 : ndarray, shape (P, F)
     """
-    options = options or {}
+    options = check_options(method, options)
     blocks, sp = series.blocks, series.setpoints
     A = len(blocks)
     P = blocks[0].values.shape[0]
@@ -244,10 +278,7 @@ def build_layout(method, series, options=None):
         return Layout(names, lower, upper, M, const), x0
 
     if method == "gs-hierarchical":
-        mu_sd = float(options.get("mu_sd", HIERARCHICAL_DEFAULTS["mu_sd"]))
-        sigma_sd = float(options.get("sigma_sd", HIERARCHICAL_DEFAULTS["sigma_sd"]))
-        if mu_sd <= 0 or sigma_sd <= 0:
-            raise MethodError("hierarchical prior scales mu_sd and sigma_sd must be positive")
+        mu_sd, sigma_sd = options["mu_sd"], options["sigma_sd"]
         own = np.array([_signal(blocks[a]) * phi / sp[a] for a in range(A)])
         own = np.clip(own, *BOUNDS["photoelectrons"])
         # Warm start from the shared-E gain series, the MAP's limit of strong pooling:
@@ -256,7 +287,7 @@ def build_layout(method, series, options=None):
         gs_fit = fitting.fit(gs_layout, blocks, gs_x0)
         shared = gs_fit.x
         mu0 = np.exp(shared[:, 0])
-        centre_rule = options.get("centre", "gs")
+        centre_rule = options["centre"]
         if centre_rule == "gs":
             centre = mu0  # the shared-E maximum-likelihood estimate, per pixel
         elif centre_rule == "setpoint":
@@ -264,8 +295,6 @@ def build_layout(method, series, options=None):
             # pixel (0,0)'s for every pixel; this is per pixel). Biased where the true
             # gains differ from the set-points, which they do (METHODS §13).
             centre = own.mean(axis=0)
-        else:
-            raise MethodError(f"unknown hierarchical centre {centre_rule!r}; use 'gs' or 'setpoint'")
         # x = [ln E_1 … ln E_A, ln g_a for the EM acquisitions]; μ is profiled out.
         F = A + em.size
         M = np.zeros((A, 3, F))

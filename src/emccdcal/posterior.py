@@ -417,6 +417,7 @@ def sample_posterior(
             raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
     if n_steps is not None and (isinstance(n_steps, bool) or int(n_steps) != n_steps or n_steps < 10):
         raise ValueError(f"n_steps must be an integer >= 10, got {n_steps!r}")
+    options = methods.check_options(method, options)
     if not isinstance(manifest, io.Manifest):
         manifest = io.read_manifest(manifest)
     pixels = _check_pixels(pixels, manifest.shape)
