@@ -111,7 +111,10 @@ def calibrate(
     block_size : int
         Pixels fitted together.
     options : dict, optional
-        Method options (``gs-hierarchical``: ``mu_sd``, ``sigma_sd`` in photoelectrons).
+        Method options; only ``gs-hierarchical`` takes any (:func:`emccdcal.methods.check_options`):
+        ``mu_sd`` and ``sigma_sd``, the scales of its hyperpriors in photoelectrons (the
+        authors' 25 e⁻ by default, for an illumination of about 370 e⁻: scale them in
+        proportion to yours), and ``centre`` (``"gs"`` or the authors' ``"setpoint"``).
     progress : bool
         Show progress bars on stderr.
     workers : int, optional
@@ -174,6 +177,9 @@ def _run_calibration(manifest, method, e_per_adu, block_size, options, progress,
     phi_map = _e_per_adu_map(manifest, e_per_adu, (rows, cols))
     setpoints_all = [a.em_gain_setpoint for a in acqs]
 
+    if method not in METHODS:
+        raise methods.MethodError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    options = methods.check_options(method, options)  # before any stack is read
     if method.startswith("mv-"):
         idx = _select_mv(method, setpoints_all, phi_map is not None)
     else:
@@ -182,6 +188,8 @@ def _run_calibration(manifest, method, e_per_adu, block_size, options, progress,
         )
     used = [acqs[i] for i in idx]
     workers = os.cpu_count() if workers is None else workers
+    if checks:
+        quality.prefetch()  # its imports overlap the reading of the stacks
     hists, found = _statistics(manifest, used, progress, workers)
     for w in found:
         warnings.warn(w, stacklevel=2)
@@ -196,7 +204,7 @@ def _run_calibration(manifest, method, e_per_adu, block_size, options, progress,
     else:
         dark_frames, map_groups, se_note = _map_error_sources(used, map_errors)
         ds = _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size,
-                                   options or {}, progress, workers, dark_frames, map_groups,
+                                   options, progress, workers, dark_frames, map_groups,
                                    intervals)
         ds.attrs["standard_errors"] = se_note
     if report is not None:
@@ -391,7 +399,7 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
             photoelectrons_dims=("row", "col") if shared else ("setpoint", "row", "col"),
             loglik=grid(loglik), converged=grid(converged),
             manifest_hash=manifest.content_hash, manifest_path=str(manifest.path.resolve()), extra=extra,
-            attrs={"options": str(options)} if options else None,
+            attrs={"options": json.dumps(options)} if options else None,
         )
     if bounds is not None:
         _add_bounds(ds, est, grid, *bounds[1:])
@@ -491,6 +499,15 @@ def add_parser(subparsers):
                    "(<name>_lower/_upper), for skewed likelihoods; slower (default: wald). "
                    "mv-adu and mv-gain always write Fieller bounds, gs-hierarchical those "
                    "of its model without the prior")
+    prior = p.add_argument_group("gs-hierarchical hyperprior (METHODS §6)")
+    prior.add_argument("--mu-sd", type=float, metavar="E",
+                       help="scale of mu's normal prior, e- (default: the authors' 25, for an "
+                       "illumination of ~370 e-; scale it in proportion to yours)")
+    prior.add_argument("--sigma-sd", type=float, metavar="E",
+                       help="scale of sigma_E's half-normal prior, e- (default 25; as --mu-sd)")
+    prior.add_argument("--prior-centre", choices=("gs", "setpoint"),
+                       help="centre of mu's prior: each pixel's shared-E (gs) estimate (default) "
+                       "or the authors' (<S> - S0)*phi/set-point")
     p.add_argument("--conditional-se", action="store_true",
                    help="standard errors conditional on the offset/read-noise maps (leave out "
                    "the error of maps estimated from dark frames)")
@@ -506,10 +523,12 @@ def _run(args):
         raise ValueError("--block-size must be a positive integer")
     if args.e_per_adu is not None and not args.e_per_adu > 0:
         raise ValueError("--e-per-adu must be positive (e-/ADU)")
+    options = {key: value for key, value in (("mu_sd", args.mu_sd), ("sigma_sd", args.sigma_sd),
+                                             ("centre", args.prior_centre)) if value is not None}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         ds = calibrate(args.manifest, args.method, e_per_adu=args.e_per_adu, out=args.out,
-                       block_size=args.block_size, progress=not args.quiet,
+                       block_size=args.block_size, options=options, progress=not args.quiet,
                        checks=not args.no_checks, map_errors=not args.conditional_se,
                        intervals=args.intervals)
         if args.report:

@@ -157,81 +157,123 @@ class FitResult:
     objective: np.ndarray = field(default=None)
 
 
-def _model_at_data(acq, E, scale, *, derivs=False, second=False, names=("photoelectrons", "scale")):
-    """The pmf of each pixel at its histogram's values, with derivatives by ``names``.
+class _ModelAtData:
+    """The pmf of each pixel of a block at its histogram's values, with derivatives.
 
-    Returns ``(pv, scores, d2, y, low, hopeless)``: the probabilities (P, K) (floored),
-    first derivatives at the values (dict of (P, K); None without ``derivs``), the
-    second-derivative windows, the value indices in the window, the floored mask and the
-    pixels whose parameters are hopelessly far from their data.
+    Attributes
+    ----------
+    pv : ndarray, shape (P, K)
+        Probabilities at the values, floored at ``_FLOOR`` of the pixel's peak.
+    scores : dict or None
+        name -> (P, K) first derivatives of the probability at the values.
+    second : dict
+        (name, name) -> :class:`noise.Spectrum` of the second derivatives (upper triangle).
+    flat : ndarray of int, shape (P, K)
+        Index of every value in the flattened (P, n) window.
+    n : int
+        Window length.
+    low : ndarray of bool, shape (P, K)
+        Values below the floor (no gradient there).
+    hopeless : ndarray of bool, shape (P,)
+        Pixels whose parameters are hopelessly far from their data.
     """
-    pn = np.full(E.shape, acq.poisson_normal)
-    # Eight SDs of margin: what wraps around the window is then below 1e-15 of the pmf
-    # at the data's extremes (the data themselves set the rest of the window).
-    lo_model, hi_model = noise._extent(E, scale, acq.offset, acq.read_noise, pn, width=8.0)
-    first, last = acq.values[:, 0], acq.values.max(axis=1)
-    start = np.minimum(first, np.floor(lo_model).astype(np.int64))
-    stop = np.maximum(last, np.ceil(hi_model).astype(np.int64))
-    # A trial step far from the data can ask for an enormous window; such parameters
-    # are hopeless anyway: they get log-likelihood -inf (the step is refused) and a
-    # window of bounded size.
-    span = last - first + 1
-    limit = first - 8 * span - 64 * np.ceil(acq.read_noise).astype(np.int64) - 64
-    hopeless = (start < limit) | (stop - start > 32 * span + 256 * np.ceil(acq.read_noise) + 512)
-    start = np.where(hopeless, limit, start)
-    stop = np.where(hopeless, last + 8 * span + 64, stop)
-    n = noise._fast_len(int((stop - start).max()) + 1)
-    p, d1, d2 = noise._window(
-        E, scale, acq.offset - start, acq.read_noise, pn, n,
-        derivs=derivs, second=second, names=names,
-    )
-    y = acq.values - start[:, None]
-    pv = np.take_along_axis(p, y, axis=1)
-    floor = _FLOOR * p.max(axis=1, keepdims=True)
-    low = pv < floor
-    pv = np.where(low, floor, pv)
-    scores = {nm: np.take_along_axis(d1[nm], y, axis=1) for nm in names} if derivs else None
-    return pv, scores, d2, y, low, hopeless
+
+    def __init__(self, acq, E, scale, *, derivs=False, second=False,
+                 names=("photoelectrons", "scale")):
+        pn = np.full(E.shape, acq.poisson_normal)
+        # The model's mass lies within [lo, hi] (eight SDs and the tails, outside of
+        # which the pmf is below ~1e-15 of its peak).
+        lo, hi = noise._extent(E, scale, acq.offset, acq.read_noise, pn, width=8.0)
+        lo, hi = np.floor(lo).astype(np.int64), np.ceil(hi).astype(np.int64)
+        first, last = acq.values[:, 0], acq.values.max(axis=1)
+        # The FFT gives the pmf wrapped with period n: at a datum k, p(k) + Σ p(k ± jn).
+        # Those aliases lie beyond [lo, hi] for every datum once n ≥ hi − first and
+        # n ≥ last − lo, wherever the window starts: it starts at the first datum, which
+        # makes n the data's span plus one margin, not plus the model's on both sides.
+        start = first
+        stop = first + np.maximum(last - first, np.maximum(hi - first, last - lo))
+        # A trial step far from the data can ask for an enormous window; such parameters
+        # are hopeless anyway: they get log-likelihood -inf (the step is refused) and a
+        # window of bounded size.
+        span = last - first + 1
+        limit = first - 8 * span - 64 * np.ceil(acq.read_noise).astype(np.int64) - 64
+        hopeless = ((np.minimum(first, lo) < limit)
+                    | (stop - start > 32 * span + 256 * np.ceil(acq.read_noise) + 512))
+        start = np.where(hopeless, limit, start)
+        stop = np.where(hopeless, last + 8 * span + 64, stop)
+        n = noise._fast_len(int((stop - start).max()) + 1)
+        p, d1, d2 = noise._window(
+            E, scale, acq.offset - start, acq.read_noise, pn, n,
+            derivs=derivs, second=second, names=names,
+        )
+        P = E.shape[0]
+        # One flat gather per window (faster than take_along_axis, which rebuilds indices).
+        self.flat = acq.values - start[:, None] + (np.arange(P) * n)[:, None]
+        pv = p.ravel()[self.flat]
+        floor = _FLOOR * p.max(axis=1, keepdims=True)
+        self.low = pv < floor
+        self.pv = np.where(self.low, floor, pv)
+        self.scores = {nm: d1[nm].ravel()[self.flat] for nm in names} if derivs else None
+        self.second, self.n, self.hopeless = d2, n, hopeless
+
+    def second_sums(self, weights):
+        """``Σ_values weights · ∂²p`` (P,) for every pair in ``second``: one forward FFT
+        of the weights placed on the window grid (values are distinct within a pixel;
+        padding carries weight 0), then a dot with each pair's spectrum."""
+        P = self.pv.shape[0]
+        grid = np.bincount(self.flat.ravel(), weights=weights.ravel(),
+                           minlength=P * self.n).reshape(P, self.n)
+        m = next(iter(self.second.values())).spectrum.shape[1]
+        hat = noise.Spectrum.weights_spectrum(grid, m)
+        return {key: spec.dot(hat) for key, spec in self.second.items()}
 
 
-def _acquisition_terms(acq, log_e, log_scale, level):
+def _acquisition_terms(acq, log_e, log_scale, level, map_cross=False):
     """Log-likelihood of one acquisition and its derivatives by (ln E, ln scale).
 
     ``level`` 0: value only; 1: gradient and the outer-product (BHHH) information; 2: the
-    observed information instead. Returns ``(loglik (P,), grad (P, 2), info (P, 2, 2), n_floored (P,))``.
+    observed information instead. With ``map_cross`` (level ≥ 1) also the outer-product
+    cross information of (ln E, ln scale) with the (offset, read-noise) maps, (P, 2, 2),
+    for :func:`_map_covariance`, from the same windows.
+    Returns ``(loglik (P,), grad (P, 2), info (P, 2, 2), n_floored (P,), cross)``.
     """
-    P = acq.values.shape[0]
     E = np.exp(log_e)
     scale = np.exp(log_scale)
-    pv, d1, d2, y, low, hopeless = _model_at_data(acq, E, scale, derivs=level >= 1, second=level >= 2)
-    loglik = np.where(hopeless, -np.inf, np.sum(acq.counts * np.log(pv), axis=1))
+    names = ("photoelectrons", "scale") + (("offset", "read_noise") if map_cross else ())
+    model = _ModelAtData(acq, E, scale, derivs=level >= 1, second=level >= 2, names=names)
+    pv, low = model.pv, model.low
+    loglik = np.where(model.hopeless, -np.inf, np.sum(acq.counts * np.log(pv), axis=1))
     n_floored = np.sum(acq.counts * low, axis=1).astype(np.int64)
     if level == 0:
-        return loglik, None, None, n_floored
-    names = ("photoelectrons", "scale")
+        return loglik, None, None, n_floored, None
     factor = np.stack([E, scale], axis=1)  # d λ / d ln λ
     w = np.where(low, 0.0, acq.counts / pv)
-    scores = [d1[nm] for nm in names]
-    grad = np.stack([np.sum(w * s, axis=1) for s in scores], axis=1) * factor
-    # Outer product of the per-frame scores (BHHH): a positive semi-definite estimate of
+    scores = [model.scores[nm] for nm in names]
+    grad = np.stack([np.sum(w * s, axis=1) for s in scores[:2]], axis=1) * factor
+    # Outer products of the per-frame scores (BHHH): a positive semi-definite estimate of
     # the information from the data points alone, cheap because the histogram is short.
-    info = np.empty((P, 2, 2))
+    ws = [w * s / pv for s in scores]
+    outer = {(i, j): np.sum(ws[i] * scores[j], axis=1)
+             for i in range(2) for j in range(i, len(names))}
+    info = np.empty((acq.values.shape[0], 2, 2))
     for i in range(2):
         for j in range(i, 2):
-            val = np.sum(w * scores[i] * scores[j] / pv, axis=1) * factor[:, i] * factor[:, j]
-            info[:, i, j] = info[:, j, i] = val
+            info[:, i, j] = info[:, j, i] = outer[i, j] * factor[:, i] * factor[:, j]
+    cross = None
+    if map_cross:
+        cross = np.stack([np.stack([outer[i, j] for j in (2, 3)], axis=1) for i in range(2)],
+                         axis=1) * factor[:, :, None]
     if level >= 2:
-        obs = np.empty((P, 2, 2))
-        for i, a in enumerate(names):
-            for j, b in enumerate(names[i:], start=i):
-                d2v = np.take_along_axis(d2[(a, b)], y, axis=1)
-                h = np.sum(w * d2v, axis=1) - np.sum(w * scores[i] * scores[j] / pv, axis=1)
-                h = h * factor[:, i] * factor[:, j]
+        sums = model.second_sums(w)
+        obs = np.empty_like(info)
+        for i, a in enumerate(names[:2]):
+            for j, b in enumerate(names[i:2], start=i):
+                h = (sums[(a, b)] - outer[i, j]) * factor[:, i] * factor[:, j]
                 if i == j:  # d²/d(ln λ)² picks up λ · d/dλ
                     h = h + grad[:, i]
                 obs[:, i, j] = obs[:, j, i] = -h
         info = obs
-    return loglik, grad, info, n_floored
+    return loglik, grad, info, n_floored, cross
 
 
 def _native_to_model(logs, poisson_normal):
@@ -242,8 +284,13 @@ def _native_to_model(logs, poisson_normal):
     return log_e, log_g - log_phi, np.array([1.0, -1.0])
 
 
-def _evaluate(layout, blocks, x, level):
-    """Objective (log-likelihood + log prior), gradient and information in ``x``."""
+def _evaluate(layout, blocks, x, level, map_cross=False):
+    """Objective (log-likelihood + log prior), gradient and information in ``x``.
+
+    Returns ``(objective, loglik, per_acq, grad, info, n_floored, cross)``; ``cross`` is
+    the list of each acquisition's map cross information (:func:`_acquisition_terms`),
+    or None without ``map_cross`` (only acquisitions whose maps have errors get one).
+    """
     P, F = x.shape
     logs, jac = layout.native(x)
     total = np.zeros(P)
@@ -251,16 +298,20 @@ def _evaluate(layout, blocks, x, level):
     grad = np.zeros((P, F))
     info = np.zeros((P, F, F))
     floored = np.zeros(P, dtype=np.int64)
+    crosses = [] if map_cross else None
     for a, acq in enumerate(blocks):
         log_e, log_scale, dscale = _native_to_model(logs[:, a], acq.poisson_normal)
-        ll, g_u, i_u, nf = _acquisition_terms(acq, log_e, log_scale, level)
+        with_maps = map_cross and (acq.offset_var is not None or acq.read_noise_var is not None)
+        ll, g_u, i_u, nf, cross = _acquisition_terms(acq, log_e, log_scale, level, with_maps)
         per_acq[:, a] = ll
         total += ll
         floored += nf
+        if map_cross:
+            crosses.append(cross)
         if level == 0:
             continue
         # u = (ln E, ln scale) as a function of x through (ln E, ln g, ln φ).
-        j_u = np.stack([jac[:, a, 0], dscale[0] * jac[:, a, 1] + dscale[1] * jac[:, a, 2]], 1)
+        j_u = _model_jacobian(jac, a, dscale)
         grad += np.einsum("pu,puf->pf", g_u, j_u)
         info += np.einsum("puf,puv,pvg->pfg", j_u, i_u, j_u)
     lp, lp_grad, lp_hess = layout.log_prior(x)
@@ -268,34 +319,31 @@ def _evaluate(layout, blocks, x, level):
     if level >= 1:
         grad = grad + lp_grad
         info = info - lp_hess
-    return objective, total, per_acq, grad, info, floored
+    return objective, total, per_acq, grad, info, floored, crosses
 
 
-def _map_covariance(layout, blocks, x, cov):
+def _model_jacobian(jac, a, dscale):
+    """d(ln E, ln scale)/dx (P, 2, F) of acquisition ``a`` from the layout's Jacobian."""
+    return np.stack([jac[:, a, 0], dscale[0] * jac[:, a, 1] + dscale[1] * jac[:, a, 2]], 1)
+
+
+def _map_covariance(layout, blocks, x, cov, crosses):
     """Covariance of ``x`` (P, F, F) caused by the errors of the offset and read-noise maps.
 
     The estimate moves with the maps by ``dx/dm = H⁻¹ ∂²ℓ/∂x∂m`` (implicit function theorem,
     ``H`` the observed information, ``cov = H⁻¹``); the cross term is estimated by the
-    outer product of the per-frame scores, as the information is. Acquisitions that share
-    a pair of maps (``map_group``) move together: their sensitivities add before squaring.
+    outer product of the per-frame scores, as the information is (``crosses``, from
+    :func:`_evaluate` with ``map_cross``). Acquisitions that share a pair of maps
+    (``map_group``) move together: their sensitivities add before squaring.
     """
     P, F = x.shape
     logs, jac = layout.native(x)
     groups: dict = {}
-    for a, acq in enumerate(blocks):
-        if acq.offset_var is None and acq.read_noise_var is None:
+    for a, (acq, cross) in enumerate(zip(blocks, crosses)):
+        if cross is None:
             continue
-        log_e, log_scale, dscale = _native_to_model(logs[:, a], acq.poisson_normal)
-        E, scale = np.exp(log_e), np.exp(log_scale)
-        names = ("photoelectrons", "scale", "offset", "read_noise")
-        pv, d1, _, _, low, _ = _model_at_data(acq, E, scale, derivs=True, names=names)
-        w = np.where(low, 0.0, acq.counts / pv**2)
-        factor = np.stack([E, scale], axis=1)
-        cross = np.empty((P, 2, 2))  # (ln E, ln scale) × (offset, read_noise)
-        for i, u in enumerate(names[:2]):
-            for j, m in enumerate(names[2:]):
-                cross[:, i, j] = np.sum(w * d1[u] * d1[m], axis=1) * factor[:, i]
-        j_u = np.stack([jac[:, a, 0], dscale[0] * jac[:, a, 1] + dscale[1] * jac[:, a, 2]], 1)
+        dscale = _native_to_model(logs[:, a], acq.poisson_normal)[2]
+        j_u = _model_jacobian(jac, a, dscale)
         sens = np.einsum("pfg,pug,pum->pfm", cov, j_u, cross)  # dx/d(offset, read_noise)
         var = np.stack([np.zeros(P) if v is None else v
                         for v in (acq.offset_var, acq.read_noise_var)], axis=1)
@@ -322,10 +370,11 @@ def value_scores(layout, blocks, x):
     for a, acq in enumerate(blocks):
         log_e, log_scale, dscale = _native_to_model(logs[:, a], acq.poisson_normal)
         E, scale = np.exp(log_e), np.exp(log_scale)
-        pv, d1, _, _, low, _ = _model_at_data(acq, E, scale, derivs=True)
+        model = _ModelAtData(acq, E, scale, derivs=True)
+        d1, pv = model.scores, model.pv
         u = np.stack([d1["photoelectrons"] * E[:, None], d1["scale"] * scale[:, None]], -1)
-        u = np.where(low[..., None], 0.0, u / pv[..., None])  # (P, K, 2) by (ln E, ln scale)
-        j_u = np.stack([jac[:, a, 0], dscale[0] * jac[:, a, 1] + dscale[1] * jac[:, a, 2]], 1)
+        u = np.where(model.low[..., None], 0.0, u / pv[..., None])  # (P, K, 2) by (ln E, ln scale)
+        j_u = _model_jacobian(jac, a, dscale)
         out.append((np.einsum("pku,puf->pkf", u, j_u), acq.counts))
     return out
 
@@ -349,8 +398,8 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None):
     max_iter : int
         Iteration limit; pixels still moving then are flagged not converged.
     tol : float
-        Convergence when the predicted gain of the step (Newton decrement ½ gᵀΔ) is below
-        ``tol`` nats and the step below 1e-7 in every log-parameter.
+        Convergence when the predicted gain of the next step (Newton decrement ½ gᵀΔ) is
+        below ``tol`` nats, or the step below 1e-10 in every free parameter.
     progress : callable, optional
         Called with the number of pixels that finished at each iteration.
 
@@ -363,13 +412,12 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None):
     damping = np.full(P, 1e-3)
     iterations = np.zeros(P, dtype=int)
     done = np.zeros(P, dtype=bool)
-    obj, _, _, grad, info, _ = _evaluate(layout, blocks, x, 1)
+    obj, _, _, grad, info, _, _ = _evaluate(layout, blocks, x, 1)
     eye = np.eye(F)
     for _ in range(max_iter):
         active = np.flatnonzero(~done)
         if active.size == 0:
             break
-        sub = [b.take(active) for b in blocks]
         g, I = grad[active], info[active]
         # A parameter at its bound whose gradient points outwards stays there, and the
         # step is solved in the others (an active-set step): clipping a full step would
@@ -386,24 +434,31 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None):
         step = np.clip(step, -1.0, 1.0)  # at most a factor e per iteration
         x_new = np.clip(x[active] + step, layout.lower, layout.upper)
         step = x_new - x[active]
-        res = _evaluate(layout.subset(active), sub, x_new, 1)
-        better = res[0] >= obj[active] - 1e-12 * np.abs(obj[active])
-        idx = active[better]
-        x[idx] = x_new[better]
-        obj[idx] = res[0][better]
-        grad[idx], info[idx] = res[3][better], res[4][better]
-        damping[idx] = np.maximum(damping[idx] / 10.0, 1e-12)
-        damping[active[~better]] *= 10.0
-        iterations[active] += 1
+        # A step that promises less than ``tol`` nats is not worth its evaluation (the
+        # objective's round-off, ~1e-8 nats, could even refuse it): the pixel is done.
         decrement = 0.5 * np.einsum("pf,pf->p", g, step)
         small = (np.abs(decrement) < tol) | (np.max(np.abs(step), axis=1, initial=0.0) < 1e-10)
-        # A step that promises less than ``tol`` is done, taken or not: the objective's
-        # round-off (~1e-8 nats) can refuse a step that small.
-        finished = small | (damping[active] > 1e8)
-        done[active[finished]] = True
+        done[active[small]] = True
+        move = ~small
+        active, x_new = active[move], x_new[move]
+        if active.size:
+            sub = [b.take(active) for b in blocks]
+            res = _evaluate(layout.subset(active), sub, x_new, 1)
+            better = res[0] >= obj[active] - 1e-12 * np.abs(obj[active])
+            idx = active[better]
+            x[idx] = x_new[better]
+            obj[idx] = res[0][better]
+            grad[idx], info[idx] = res[3][better], res[4][better]
+            damping[idx] = np.maximum(damping[idx] / 10.0, 1e-12)
+            damping[active[~better]] *= 10.0
+            iterations[active] += 1
+        stuck = damping[active] > 1e8
+        done[active[stuck]] = True
         if progress is not None:
-            progress(int(finished.sum()))
-    objective, loglik, per_acq, grad, obs, floored = _evaluate(layout, blocks, x, 2)
+            progress(int(small.sum() + stuck.sum()))
+    map_errors = any(b.offset_var is not None or b.read_noise_var is not None for b in blocks)
+    objective, loglik, per_acq, grad, obs, floored, crosses = _evaluate(
+        layout, blocks, x, 2, map_cross=map_errors)
     cov, pos_def = _invert(obs)
     # With a prior (the hierarchical MAP) the frequentist covariance of the estimate is the
     # sandwich H⁻¹ I H⁻¹ of the penalised Hessian H and the likelihood's information I;
@@ -415,8 +470,8 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None):
         cov[~pos_def] = np.nan
     elif np.any(prior_hess):
         cov = np.einsum("pfg,pgh,phk->pfk", cov, obs + prior_hess, cov)
-    if any(b.offset_var is not None or b.read_noise_var is not None for b in blocks):
-        cov = cov + _map_covariance(layout, blocks, x, np.nan_to_num(h_inv))
+    if map_errors:
+        cov = cov + _map_covariance(layout, blocks, x, np.nan_to_num(h_inv), crosses)
     gnorm = np.einsum("pf,pfg,pg->p", grad, np.nan_to_num(h_inv), grad)
     converged = done & pos_def & (gnorm < 1e-4) & (damping <= 1e8)
     if progress is not None:

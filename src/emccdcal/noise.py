@@ -310,7 +310,10 @@ def _window(E, scale, shift, sigma, pn, n, *, tilt=None, derivs=False, second=Fa
         name -> (P, n) first derivatives (same tilted scale; divide by ``p`` for the
         derivative of log f).
     d2 : dict
-        (name, name) -> (P, n) second derivatives of f (tilted scale), upper triangle.
+        (name, name) -> second derivatives of f, upper triangle, as :class:`Spectrum`:
+        not transformed, because they are only ever summed against weights at the data
+        (:meth:`Spectrum.dot`), which costs one forward FFT for all pairs instead of an
+        inverse FFT for each.
     """
     P = E.shape[0]
     t = np.zeros(P) if tilt is None else tilt
@@ -338,22 +341,54 @@ def _window(E, scale, shift, sigma, pn, n, *, tilt=None, derivs=False, second=Fa
                     for b in names[a_i:]:
                         term = first[a] * first[b] + sec.get((a, b), 0.0)
                         d2[(a, b)] = d2.get((a, b), 0.0) + term * cf
-
-    def inverse(spectrum):
-        full = np.zeros((P, n // 2 + 1), dtype=complex)
-        full[:, :m_hi] = np.conj(spectrum)
-        return _irfft(full, n)
-
-    p = inverse(phi)
-    d1 = {name: inverse(v) for name, v in d1.items()}
-    d2 = {key: inverse(v) for key, v in d2.items()}
+    p = _irfft(phi, n)
+    d1 = {name: _irfft(v, n) for name, v in d1.items()}
+    d2 = {key: Spectrum(v, n) for key, v in d2.items()}
     return p, d1, d2
 
 
+class Spectrum:
+    """The first ``m`` DFT bins (P, m) of a real window of length ``n``, as :func:`_window`
+    builds them (the characteristic function at ω = 2πk/n; the window is its inverse).
+
+    Summing a window against weights needs no inverse FFT: by Parseval,
+    ``Σ_y w(y) f(y) = (1/n) Σ_k c_k Re(F_k Ŵ_k)`` with ``Ŵ = rfft(w)``, ``c_0 = 1``,
+    ``c_k = 2`` for the bins that stand for a conjugate pair, and 1 at Nyquist.
+    """
+
+    def __init__(self, spectrum, n):
+        self.spectrum, self.n = spectrum, n
+
+    def window(self):
+        """The window itself (P, n)."""
+        return _irfft(self.spectrum, self.n)
+
+    @staticmethod
+    def weights_spectrum(weights, m):
+        """``rfft`` of a (P, n) weight grid, its first ``m`` bins: shared by every dot."""
+        from scipy import fft
+
+        return fft.rfft(weights, axis=-1, workers=-1)[:, :m]
+
+    def dot(self, weights_hat):
+        """``Σ_y w(y) f(y)`` per row, from ``weights_spectrum(w, m)`` (P, m)."""
+        m, n = self.spectrum.shape[1], self.n
+        c = np.full(m, 2.0)
+        c[0] = 1.0
+        if n % 2 == 0 and m == n // 2 + 1:
+            c[-1] = 1.0
+        return np.einsum("k,pk->p", c, (self.spectrum * weights_hat).real) / n
+
+
 def _irfft(spectrum, n):
+    """The window (P, n) of the first DFT bins (P, m) of the density (m ≤ n//2 + 1).
+
+    The density's DFT is the characteristic function at −ω, the conjugate of the one
+    evaluated at +ω; the bins beyond ``m`` are zero (irfft pads them).
+    """
     from scipy import fft
 
-    return fft.irfft(spectrum, n=n, axis=-1, workers=-1)
+    return fft.irfft(np.conj(spectrum), n=n, axis=-1, workers=-1)
 
 
 # --------------------------------------------------------------------------------------

@@ -48,6 +48,7 @@ __all__ = [
     "pixel_defects",
     "check_acquisition",
     "check_manifest",
+    "prefetch",
     "format_report",
     "add_parser",
 ]
@@ -484,6 +485,24 @@ def check_acquisition(
         "saturation": saturation(stack, adc_max),
         "pixels": pixel_defects(stack, acq.offset, k=k),
     }
+
+
+def prefetch():
+    """Import the stationarity tests' statsmodels modules on a background thread.
+
+    Importing them takes about 2 s, almost all of it Python that a caller can overlap
+    with work that releases the GIL (``calibrate`` reads and sorts its stacks meanwhile);
+    :func:`stationarity` then finds them imported, or waits on the import lock. Nothing
+    else happens on that thread (warnings filters are process-global, so the checks
+    themselves run on the caller's).
+    """
+    import threading
+
+    def load():
+        import statsmodels.tools.sm_exceptions  # noqa: F401
+        import statsmodels.tsa.stattools  # noqa: F401
+
+    threading.Thread(target=load, name="emccdcal-prefetch", daemon=True).start()
 
 
 # --------------------------------------------------------------------------------------

@@ -104,7 +104,11 @@ def _as_count_block(block: np.ndarray) -> np.ndarray:
 
 
 def _block_histograms(block: np.ndarray, adc_max: int | None):
-    """Histograms of a (Pc, F) block of counts, in compact (run-list) form."""
+    """Histograms of a (Pc, F) block of counts, in compact (run-list) form.
+
+    Runs are addressed by flat positions in the sorted block (row-major, so the runs of
+    a row are consecutive): one 1-D gather, no 2-D fancy indexing.
+    """
     n_pix, n_frames = block.shape
     kind = "stable" if block.dtype.itemsize <= 2 else "quicksort"  # radix for 8/16 bit
     s = np.sort(block, axis=1, kind=kind)
@@ -113,20 +117,22 @@ def _block_histograms(block: np.ndarray, adc_max: int | None):
             "frames contain negative values; counts must be raw ADU (never offset-subtracted)"
         )
     if adc_max is None:
-        usable = np.ones(s.shape, dtype=bool)
-    else:
-        usable = s < adc_max  # saturated values sort to the end of each row
-    n_used = usable.sum(axis=1)
-    starts = usable.copy()
+        n_used = np.full(n_pix, n_frames, dtype=np.int64)
+        starts = np.ones(s.shape, dtype=bool)
+    else:  # saturated values sort to the end of each row
+        starts = s < adc_max
+        n_used = starts.sum(axis=1)
     starts[:, 1:] &= s[:, 1:] != s[:, :-1]
-    run_row, run_col = np.nonzero(starts)  # row-major: runs of a row are consecutive
-    run_value = s[run_row, run_col].astype(np.int64)
-    run_end = np.empty_like(run_col)
-    run_end[:-1] = run_col[1:]
+    run_pos = np.flatnonzero(starts)
+    run_row = run_pos // max(n_frames, 1)
+    run_value = s.ravel()[run_pos].astype(np.int64)
+    # A run ends where the next one starts, or at the end of its row's usable values.
+    run_end = np.empty_like(run_pos)
+    run_end[:-1] = run_pos[1:]
     last_of_row = np.ones(run_row.shape, dtype=bool)
     last_of_row[:-1] = run_row[1:] != run_row[:-1]
-    run_end[last_of_row] = n_used[run_row[last_of_row]]
-    run_len = (run_end - run_col).astype(np.float64)
+    run_end[last_of_row] = run_row[last_of_row] * n_frames + n_used[run_row[last_of_row]]
+    run_len = (run_end - run_pos).astype(np.float64)
     n_runs = np.bincount(run_row, minlength=n_pix)
     return run_row, run_value, run_len, n_runs, n_used, n_frames - n_used
 
@@ -205,13 +211,16 @@ def histograms(frames, adc_max: int | None = None, *, chunk_pixels: int | None =
     n_bins = max(1, int(n_runs.max(initial=0)))
     first_run = np.concatenate(([0], np.cumsum(n_runs)[:-1]))
     rank = np.arange(run_row.size) - first_run[run_row]
-    values = np.zeros((n_pix, n_bins), dtype=np.int64)
+    cell = run_row * n_bins + rank
     counts = np.zeros((n_pix, n_bins), dtype=np.float64)
-    values[run_row, rank] = run_value
-    counts[run_row, rank] = run_len
-    # Padding repeats the last value of each pixel.
-    clamp = np.minimum(np.arange(n_bins)[None, :], np.maximum(n_runs, 1)[:, None] - 1)
-    values = np.take_along_axis(values, clamp, axis=1)
+    counts.ravel()[cell] = run_len
+    # Padding repeats the last value of each pixel: every cell takes the value of the last
+    # run at or before it, found by a running maximum of the runs' cell numbers.
+    last_run = np.zeros(n_pix * n_bins, dtype=np.int64)
+    last_run[cell] = np.arange(cell.size)
+    np.maximum.accumulate(last_run, out=last_run)
+    values = (run_value[last_run] if cell.size else last_run).reshape(n_pix, n_bins)
+    values[n_runs == 0] = 0  # no usable frame (the running maximum crossed rows there)
 
     with np.errstate(invalid="ignore", divide="ignore"):
         total = np.bincount(run_row, weights=run_len * run_value, minlength=n_pix)
