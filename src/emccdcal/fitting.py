@@ -8,8 +8,10 @@ engine only sees a per-pixel vector ``x`` of free parameters and the layout's ma
 
 For each acquisition the exact log-likelihood of a pixel is ``Σ_k n_k ln p(k)`` over its
 histogram (:mod:`emccdcal.stats`), with ``p`` the noise model of :mod:`emccdcal.noise`
-evaluated on one FFT window per pixel, batched over the block. The same FFTs give the
-gradient, the expected (Fisher) information and, at the end, the observed information.
+evaluated on one FFT window per pixel, batched over the block. One more inverse FFT per
+parameter gives the scores, hence the gradient and the outer-product information; at
+the end, the observed information needs the second derivatives only summed against the
+data, which one forward FFT of the data's weights gives for every pair (Parseval).
 
 Optimisation is BHHH (the information estimated by the outer product of the per-frame
 scores) with Levenberg–Marquardt damping, vectorised over pixels:

@@ -1,0 +1,112 @@
+"""The engine's per-acquisition terms against independent evaluations.
+
+The log-likelihood against ``noise.logpmf`` (which picks its own, wider windows), the
+gradient and the observed information against finite differences, the map cross terms
+against finite differences of the pmf by offset and read noise, and the Parseval sum of
+a window against weights against the window itself.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from emccdcal import fitting, noise, stats
+from emccdcal.simulate import simulate_frames
+
+# (photoelectrons, em_gain, e_per_adu, offset, read_noise): 1×, a low and a high gain,
+# and few electrons at high gain (exponential right tail).
+CASES = {
+    "1x": (370.0, 1.0, 3.859, 587.0, 15.5),
+    "5x": (370.0, 4.78, 3.859, 587.0, 15.5),
+    "300x": (370.0, 261.6, 3.859, 587.0, 15.5),
+    "few-electrons": (3.0, 300.0, 12.0, 1000.0, 40.0),
+}
+
+
+def _block(case, frames=3000, pixels=3, seed=7):
+    E, g, phi, S0, sigma = CASES[case]
+    data = simulate_frames(E, g, phi, S0, sigma, frames=frames, rows=1, cols=pixels, seed=seed)
+    h = stats.histograms(data)
+    P = h.n.size
+    return fitting.AcquisitionBlock(
+        values=h.values, counts=h.counts, offset=np.full(P, S0), read_noise=np.full(P, sigma),
+        poisson_normal=g == 1.0, mean=h.mean, var=h.var, n=h.n,
+        offset_var=np.full(P, 1.0), read_noise_var=np.full(P, 0.5))
+
+
+def _log_params(case, P, shift=(0.01, -0.02)):
+    """(ln E, ln scale) near the truth, off the optimum so the gradient is not ~0."""
+    E, g, phi, _, _ = CASES[case]
+    scale = 1.0 / phi if g == 1.0 else g / phi
+    return np.full(P, np.log(E) + shift[0]), np.full(P, np.log(scale) + shift[1])
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_loglik_is_that_of_the_public_noise_model(case):
+    acq = _block(case)
+    log_e, log_scale = _log_params(case, acq.n.size)
+    loglik = fitting._acquisition_terms(acq, log_e, log_scale, 0)[0]
+    E, g, phi, S0, sigma = CASES[case]
+    ref_g = 1.0 if g == 1.0 else np.exp(log_scale[0]) * phi
+    ref_phi = 1.0 / np.exp(log_scale[0]) if g == 1.0 else phi
+    ref = [np.sum(acq.counts[p] * noise.logpmf(acq.values[p], np.exp(log_e[p]), ref_g, ref_phi,
+                                                S0, sigma)) for p in range(acq.n.size)]
+    np.testing.assert_allclose(loglik, ref, rtol=1e-11)
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_gradient_and_observed_information_are_the_derivatives(case):
+    acq = _block(case)
+    log_e, log_scale = _log_params(case, acq.n.size)
+    _, grad, obs, _, _ = fitting._acquisition_terms(acq, log_e, log_scale, 2)
+    h = 1e-4
+
+    def terms(de, ds):
+        return fitting._acquisition_terms(acq, log_e + de, log_scale + ds, 1)
+
+    steps = [(h, 0.0), (0.0, h)]
+    for i, (de, ds) in enumerate(steps):
+        ll_plus, ll_minus = (fitting._acquisition_terms(acq, log_e + s * de, log_scale + s * ds, 0)[0]
+                             for s in (1, -1))
+        np.testing.assert_allclose(grad[:, i], (ll_plus - ll_minus) / (2 * h), rtol=1e-5,
+                                   atol=1e-4)
+        g_plus, g_minus = terms(de, ds)[1], terms(-de, -ds)[1]
+        hess_col = (g_plus - g_minus) / (2 * h)  # d grad / d u_i
+        scale = np.abs(obs).max()
+        np.testing.assert_allclose(-obs[:, :, i], hess_col, rtol=1e-4, atol=1e-6 * scale)
+
+
+@pytest.mark.parametrize("case", ["1x", "300x"])
+def test_map_cross_terms_are_outer_products_of_the_scores(case):
+    """cross[i, m] = Σ_k n_k (∂p/∂u_i)(∂p/∂m)/p², the ∂p/∂m by finite differences of p."""
+    acq = _block(case)
+    log_e, log_scale = _log_params(case, acq.n.size)
+    cross = fitting._acquisition_terms(acq, log_e, log_scale, 2, map_cross=True)[4]
+    E, scale = np.exp(log_e), np.exp(log_scale)
+    model = fitting._ModelAtData(acq, E, scale, derivs=True)
+    w = np.where(model.low, 0.0, acq.counts / model.pv**2)
+    factor = np.stack([E, scale], axis=1)
+    for m, field in enumerate(("offset", "read_noise")):
+        h = 1e-3
+        pv = []
+        for sign in (1, -1):
+            shifted = fitting.AcquisitionBlock(**{**acq.__dict__,
+                                                  field: getattr(acq, field) + sign * h})
+            pv.append(fitting._ModelAtData(shifted, E, scale).pv)
+        dp = (pv[0] - pv[1]) / (2 * h)
+        for i, name in enumerate(("photoelectrons", "scale")):
+            ref = np.sum(w * model.scores[name] * dp, axis=1) * factor[:, i]
+            np.testing.assert_allclose(cross[:, i, m], ref, rtol=1e-5,
+                                       atol=1e-8 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("n,m", [(64, 20), (64, 33), (63, 32), (100, 7)])
+def test_spectrum_dot_is_the_window_summed_against_weights(n, m):
+    rng = np.random.default_rng(n + m)
+    spectrum = rng.normal(size=(3, m)) + 1j * rng.normal(size=(3, m))
+    weights = rng.normal(size=(3, n))
+    spec = noise.Spectrum(spectrum, n)
+    direct = np.sum(weights * spec.window(), axis=1)
+    np.testing.assert_allclose(spec.dot(noise.Spectrum.weights_spectrum(weights, m)), direct,
+                               rtol=1e-12, atol=1e-12)
