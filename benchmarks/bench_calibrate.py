@@ -6,13 +6,19 @@ Simulates (once, into a temporary directory) a 32 × 32 px gain series — set-p
 fresh subprocess each, reporting wall time and peak resident memory (with the
 data-quality checks, which are on by default, and for ``gs`` also without them).
 
-Run: ``.venv/bin/python benchmarks/bench_calibrate.py [--methods gs,is-adu]``
+Run: ``.venv/bin/python benchmarks/bench_calibrate.py [--methods gs,is-adu] [--repeat 3]``
+
+``--against SRC`` also times another version of the package (the ``src`` folder of a
+checkout, e.g. made by ``git worktree add /tmp/old REV``) on the same data, alternating
+the two in every repetition, and prints the ratio of the medians: on a shared, noisy
+machine a ratio is only meaningful when both sides were measured in one run.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import platform
 import subprocess
 import sys
@@ -48,6 +54,20 @@ def machine():
             f"NumPy {numpy.__version__}, SciPy {scipy.__version__}")
 
 
+def _time(manifest, method, out, checks, src=None):
+    """Wall time (s) and peak memory (MB) of one calibration in a fresh process."""
+    env = dict(os.environ)
+    if src is not None:
+        env["PYTHONPATH"] = str(Path(src).resolve())
+    res = subprocess.run(
+        [sys.executable, "-c", CHILD, str(manifest), method, str(out),
+         "checks" if checks else "no-checks"],
+        capture_output=True, text=True, check=True, env=env,
+    )
+    wall, peak = res.stdout.split()
+    return float(wall), float(peak)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--methods",
@@ -55,6 +75,9 @@ def main():
                         help="comma-separated; ':no-checks' skips the data-quality checks")
     parser.add_argument("--rows", type=int, default=32)
     parser.add_argument("--frames", type=int, default=5000)
+    parser.add_argument("--repeat", type=int, default=1, help="runs per method (median shown)")
+    parser.add_argument("--against", type=Path, default=None,
+                        help="the src folder of another version to time alternately")
     args = parser.parse_args()
     from emccdcal.simulate import simulate_gain_series, simulate_intensity_series
 
@@ -65,19 +88,28 @@ def main():
         kw = dict(rows=args.rows, cols=args.rows, frames=args.frames, seed=1)
         gs = simulate_gain_series(tmp / "gs", **kw)
         adu = simulate_intensity_series(tmp / "adu", **kw)
-        print(f"{args.rows}x{args.rows} px, {args.frames} frames per acquisition")
-        print(f"{'method':<18}{'wall s':>8}{'peak MB':>9}")
+        print(f"{args.rows}x{args.rows} px, {args.frames} frames per acquisition, "
+              f"median of {args.repeat}")
+        head = f"{'method':<18}{'wall s':>8}{'peak MB':>9}"
+        if args.against is not None:
+            head += f"{'other s':>9}{'other MB':>10}{'ratio':>7}"
+        print(head)
         for entry in args.methods.split(","):
             method, _, flag = entry.partition(":")
             manifest = adu.manifest if method in ("is-adu", "mv-adu") else gs.manifest
             out = tmp / f"out-{method}"
-            res = subprocess.run(
-                [sys.executable, "-c", CHILD, str(manifest), method, str(out),
-                 "no-checks" if flag == "no-checks" else "checks"],
-                capture_output=True, text=True, check=True,
-            )
-            wall, peak = res.stdout.split()
-            print(f"{entry:<18}{float(wall):>8.2f}{float(peak):>9.0f}")
+            checks = flag != "no-checks"
+            mine, other = [], []
+            for _ in range(args.repeat):
+                mine.append(_time(manifest, method, out, checks))
+                if args.against is not None:
+                    other.append(_time(manifest, method, out, checks, args.against))
+            wall = statistics.median(w for w, _ in mine)
+            line = f"{entry:<18}{wall:>8.2f}{max(p for _, p in mine):>9.0f}"
+            if other:
+                wall_o = statistics.median(w for w, _ in other)
+                line += f"{wall_o:>9.2f}{max(p for _, p in other):>10.0f}{wall / wall_o:>7.2f}"
+            print(line)
 
 
 if __name__ == "__main__":

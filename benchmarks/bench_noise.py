@@ -4,7 +4,8 @@ One "pixel-evaluation" is the log-likelihood of one pixel's 5000-frame histogram
 set-point, with its gradient by (E, scale) and the outer-product information: exactly
 what the engine computes per pixel, per acquisition and per iteration. Measured for the
 paper's five set-points (1/5/25/100/300, E = 370 e⁻, φ = 3.859 e⁻/ADU, σ = 15.5 ADU) on
-blocks of 256 pixels, single thread, and for the public ``noise.logpmf`` on a vector.
+blocks of 256 pixels (the window: the block's FFT length), and for the public
+``noise.logpmf`` on a vector.
 
 Run: ``.venv/bin/python benchmarks/bench_noise.py``
 """
@@ -42,9 +43,8 @@ def main():
             fitting._acquisition_terms(*args)
         dt = (time.perf_counter() - t0) / reps
         total += dt
-        lo, hi = noise._extent(np.full(1, E), scale[:1], np.full(1, S0), np.full(1, sigma),
-                               np.full(1, sp == 1), width=8.0)
-        print(f"{sp:>9}x{int(hi[0] - lo[0]):>9}{P / dt:>15.0f}")
+        window = fitting._ModelAtData(acq, np.full(P, E), scale).n
+        print(f"{sp:>9}x{window:>9}{P / dt:>15.0f}")
     print(f"{'all five':>10}{'':>9}{P / total:>15.0f}  (pixel-series evaluations/s)")
     k = np.arange(0, 40000)
     t0 = time.perf_counter()
