@@ -162,7 +162,7 @@ def coverage_figure(rows):
         ax.set_yticks(y, [f"{m}: {w}" for _, m, w, _, _ in mine], fontsize=6)
         ax.set_title(section, fontsize=8, loc="left")
     axes[-1].set_xlabel("fraction of 95 % intervals covering the truth\n(grey: 93–97 %; "
-                        "circles: ± 1.96 SE; squares: Fieller; triangles: fit without the prior)")
+                        "circles: ± 1.96 SE; squares: Fieller; triangles: no prior)", fontsize=8)
     axes[-1].set_xlim(0.88, 1.0)
     return fig
 
