@@ -499,7 +499,7 @@ def add_parser(subparsers):
                    "(<name>_lower/_upper), for skewed likelihoods; slower (default: wald). "
                    "mv-adu and mv-gain always write Fieller bounds, gs-hierarchical those "
                    "of its model without the prior")
-    prior = p.add_argument_group("gs-hierarchical hyperprior (METHODS §6)")
+    prior = p.add_argument_group("gs-hierarchical hyperprior (docs/methods.md)")
     prior.add_argument("--mu-sd", type=float, metavar="E",
                        help="scale of mu's normal prior, e- (default: the authors' 25, for an "
                        "illumination of ~370 e-; scale it in proportion to yours)")
