@@ -222,6 +222,8 @@ class _ModelAtData:
         """``Σ_values weights · ∂²p`` (P,) for every pair in ``second``: one forward FFT
         of the weights placed on the window grid (values are distinct within a pixel;
         padding carries weight 0), then a dot with each pair's spectrum."""
+        if not self.second:
+            return {}
         P = self.pv.shape[0]
         grid = np.bincount(self.flat.ravel(), weights=weights.ravel(),
                            minlength=P * self.n).reshape(P, self.n)
