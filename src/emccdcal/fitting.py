@@ -72,6 +72,11 @@ class AcquisitionBlock:
     read_noise_var: np.ndarray | None = None
     map_group: object = None
 
+    @property
+    def has_map_errors(self) -> bool:
+        """Whether the offset or read-noise map carries a variance of its own."""
+        return self.offset_var is not None or self.read_noise_var is not None
+
     def take(self, idx):
         """The block restricted to pixels ``idx``."""
         sub = lambda a: None if a is None else a[idx]  # noqa: E731
@@ -305,8 +310,8 @@ def _evaluate(layout, blocks, x, level, map_cross=False):
     crosses = [] if map_cross else None
     for a, acq in enumerate(blocks):
         log_e, log_scale, dscale = _native_to_model(logs[:, a], acq.poisson_normal)
-        with_maps = map_cross and (acq.offset_var is not None or acq.read_noise_var is not None)
-        ll, g_u, i_u, nf, cross = _acquisition_terms(acq, log_e, log_scale, level, with_maps)
+        ll, g_u, i_u, nf, cross = _acquisition_terms(acq, log_e, log_scale, level,
+                                                     map_cross and acq.has_map_errors)
         per_acq[:, a] = ll
         total += ll
         floored += nf
@@ -460,7 +465,7 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None):
         done[active[stuck]] = True
         if progress is not None:
             progress(int(small.sum() + stuck.sum()))
-    map_errors = any(b.offset_var is not None or b.read_noise_var is not None for b in blocks)
+    map_errors = any(b.has_map_errors for b in blocks)
     objective, loglik, per_acq, grad, obs, floored, crosses = _evaluate(
         layout, blocks, x, 2, map_cross=map_errors)
     cov, pos_def = _invert(obs)
