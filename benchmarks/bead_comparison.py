@@ -32,8 +32,9 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-
-from bench_calibrate import machine  # one description of the machine for every benchmark
+from bench_calibrate import (
+    machine,  # one description of the machine for every benchmark
+)
 
 REPO = Path(__file__).resolve().parents[1]
 FIGURES = REPO / "docs" / "figures" / "beads"
@@ -47,7 +48,8 @@ def log(msg):
 
 
 def simulate(work, args):
-    from emccdcal.simulate import simulate_beads, simulate_gain_series, simulate_intensity_series
+    from emccdcal.simulate.beads import simulate_beads
+    from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
 
     common = dict(rows=args.rows, cols=args.cols, multiplication="cascade", seed=None)
     jobs = [("adu", lambda d, s: simulate_intensity_series(
@@ -72,8 +74,7 @@ def simulate(work, args):
 
 
 def calibrate_all(work):
-    from emccdcal import result
-    from emccdcal.calibrate import calibrate
+    from emccdcal import calibrate, result
 
     def run(name, manifest, method, phi=None):
         out = work / "cal" / name
@@ -97,7 +98,7 @@ def calibrate_all(work):
     for method in ("gs", "gs-no1x", "gs-hierarchical"):
         files[method] = run(method, work / "gs" / "manifest.toml", method, phi_is)
     try:
-        from emccdcal import cots
+        from emccdcal.beads.cots_calibration import cots_calibrate
     except ImportError:
         cots = None
     if cots is not None:
@@ -106,7 +107,7 @@ def calibrate_all(work):
             t0 = time.perf_counter()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                cots.cots_calibrate(work / "beads" / "manifest.toml", out=out)
+                cots_calibrate(work / "beads" / "manifest.toml", out=out)
             log(f"calibrated cots in {time.perf_counter() - t0:.0f} s")
         files["cots"] = out / result.CALIBRATION_FILE
     return files
@@ -114,7 +115,7 @@ def calibrate_all(work):
 
 def gain_table(files):
     """Median over the beads' pixels of each calibration's gain per set-point, and φ."""
-    from emccdcal import validation
+    from emccdcal.beads import validation
 
     rows = {}
     for label, spec in files.items():
@@ -144,7 +145,7 @@ def main():
     simulate(work, args)
     files = calibrate_all(work)
 
-    from emccdcal import validation
+    from emccdcal.beads import validation
 
     specs = {
         "truth": str(work / "beads" / "truth_calibration.nc"),

@@ -4,10 +4,10 @@ Simulates (once, into a temporary directory) the default bead movies of
 ``emccdcal simulate beads`` — 64 × 64 px, 10 beads of 5000 e⁻ per frame, width 1.3 px,
 background 10 e⁻/px, set-points 1/5/25/100/300× with the paper's true gains, 500 frames
 each, 2000-frame darks — then fits every bead in every frame under the true calibration
-(``emccdcal.beads.fit_beads`` per acquisition, the dark maps of the manifest) and reports:
+(``emccdcal.bead_fit.fit_beads`` per acquisition, the dark maps of the manifest) and reports:
 
 * wall time per set-point and in all (target: ≤ 60 s), and the peak resident memory;
-* the done-when figures of issue 5: per set-point, the mean over frames of each bead's
+* the done-when figures of: per set-point, the mean over frames of each bead's
   intensity against the truth (pooled over beads and the worst bead), and the RMS
   standard error against the scatter over frames.
 
@@ -29,8 +29,9 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-
-from bench_calibrate import machine  # one description of the machine for every benchmark
+from bench_calibrate import (
+    machine,  # one description of the machine for every benchmark
+)
 
 
 def main():
@@ -40,8 +41,10 @@ def main():
     parser.add_argument("--frames", type=int, default=500)
     parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
     args = parser.parse_args()
-    from emccdcal import beads, io, result
-    from emccdcal.simulate import simulate_beads
+    from emccdcal import result
+    from emccdcal.beads import fit as bead_fit
+    from emccdcal.data.manifest import read_manifest
+    from emccdcal.simulate.beads import simulate_beads
 
     print(machine())
     print(time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))
@@ -53,13 +56,13 @@ def main():
               f"{time.perf_counter() - t0:.1f} s")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            manifest = io.read_manifest(sim.manifest)
+            manifest = read_manifest(sim.manifest)
         truth = result.load(sim.outdir / "truth_calibration.nc")
         phi = truth["e_per_adu"].values
         t_all = time.perf_counter()
         acq0 = max(manifest.acquisitions, key=lambda a: a.em_gain_setpoint)
         t0 = time.perf_counter()
-        found = beads.detect_beads(acq0.frames(), acq0.offset)
+        found = bead_fit.detect_beads(acq0.frames(), acq0.offset)
         t_detect = time.perf_counter() - t0
         true_pos = np.array([[b["row"], b["col"]] for b in sim.truth["beads"]])
         true_n = np.array([b["photoelectrons"] for b in sim.truth["beads"]])
@@ -71,7 +74,7 @@ def main():
             s = acq.em_gain_setpoint
             g = truth["em_gain"].sel(setpoint=s).values
             t0 = time.perf_counter()
-            fit = beads.fit_beads(acq.frames(), found.positions, offset=acq.offset,
+            fit = bead_fit.fit_beads(acq.frames(), found.positions, offset=acq.offset,
                                   read_noise=acq.read_noise, e_per_adu=phi, em_gain=g,
                                   adc_max=manifest.adc_max)
             dt = time.perf_counter() - t0

@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
 import platform
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -30,7 +30,7 @@ CHILD = r"""
 import resource, sys, time, warnings
 warnings.simplefilter("ignore")
 t0 = time.perf_counter()
-from emccdcal.calibrate import calibrate
+from emccdcal import calibrate
 calibrate(sys.argv[1], sys.argv[2], out=sys.argv[3], checks=sys.argv[4] == "checks")
 wall = time.perf_counter() - t0
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -79,7 +79,7 @@ def main():
     parser.add_argument("--against", type=Path, default=None,
                         help="the src folder of another version to time alternately")
     args = parser.parse_args()
-    from emccdcal.simulate import simulate_gain_series, simulate_intensity_series
+    from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
 
     print(machine())
     print(time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))

@@ -15,11 +15,12 @@ from __future__ import annotations
 import time
 
 import numpy as np
-
-from emccdcal import fitting, noise, stats
-from emccdcal.simulate import simulate_frames
-
 from bench_calibrate import machine
+
+from emccdcal.data import stats
+from emccdcal.fit import engine
+from emccdcal.model import noise
+from emccdcal.simulate.camera import simulate_frames
 
 
 def main():
@@ -32,18 +33,18 @@ def main():
     for sp, g in gains.items():
         counts = simulate_frames(E, g, phi, S0, sigma, frames=frames, rows=16, cols=16, seed=sp)
         h = stats.histograms(counts)
-        acq = fitting.AcquisitionBlock(h.values, h.counts, np.full(P, S0), np.full(P, sigma),
+        acq = engine.AcquisitionBlock(h.values, h.counts, np.full(P, S0), np.full(P, sigma),
                                        sp == 1, h.mean, h.var, h.n)
         scale = np.full(P, 1 / phi if sp == 1 else g / phi)
         args = (acq, np.full(P, np.log(E)), np.log(scale), 1)
-        fitting._acquisition_terms(*args)  # warm-up
+        engine._acquisition_terms(*args)  # warm-up
         reps = 5
         t0 = time.perf_counter()
         for _ in range(reps):
-            fitting._acquisition_terms(*args)
+            engine._acquisition_terms(*args)
         dt = (time.perf_counter() - t0) / reps
         total += dt
-        window = fitting._ModelAtData(acq, np.full(P, E), scale).n
+        window = engine._ModelAtData(acq, np.full(P, E), scale).n
         print(f"{sp:>9}x{window:>9}{P / dt:>15.0f}")
     print(f"{'all five':>10}{'':>9}{P / total:>15.0f}  (pixel-series evaluations/s)")
     k = np.arange(0, 40000)

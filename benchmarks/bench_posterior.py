@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from emccdcal import posterior
-from emccdcal.calibrate import calibrate
+from emccdcal import calibrate
+from emccdcal.fit import posterior
 
 REAL = Path(os.environ.get("EMCCDCAL_PROEM", "/work/shared/data/lanl-proem"))
 

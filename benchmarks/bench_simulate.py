@@ -1,7 +1,7 @@
 """Benchmark: simulating a paper-size gain series (emccdcal.simulate, emccdcal.cascade).
 
 Paper size: set-points 1/5/25/100/300 (true gains 1, 4.78, 22.95, 90.06, 261.6),
-32×32 px, 5000 frames per set-point, E = 370 e⁻/px/frame. Targets (issue 2): ≤ 10 s with
+32×32 px, 5000 frames per set-point, E = 370 e⁻/px/frame. Targets: ≤ 10 s with
 gamma multiplication, ≤ 60 s with the exact 536-stage cascade.
 
 Timed:
@@ -33,15 +33,16 @@ import time
 
 import numpy as np
 
-from emccdcal import __version__, cascade
-from emccdcal.cascade import sample_cascade
-from emccdcal.simulate import (
+from emccdcal import __version__
+from emccdcal.model import cascade
+from emccdcal.model.cascade import sample_cascade
+from emccdcal.simulate.camera import (
     PAPER_SETPOINTS,
     default_em_gain,
     offset_at_setpoint,
     simulate_frames,
-    simulate_gain_series,
 )
+from emccdcal.simulate.series import simulate_gain_series
 
 ROWS, COLS, FRAMES, E = 32, 32, 5000, 370.0
 

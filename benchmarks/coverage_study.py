@@ -24,13 +24,20 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from test_calibrate import (  # noqa: E402
-    CAMERAS, COLS, FRAMES, ROWS, _truth_manifest, coverage, hierarchical_options, median_band,
-    result_bounds, simulate_camera)
-
-from emccdcal.calibrate import calibrate  # noqa: E402
-from emccdcal.simulate import simulate_gain_series  # noqa: E402
+from emccdcal import calibrate
+from emccdcal.simulate.known_truth import (
+    CAMERAS,
+    COLS,
+    FRAMES,
+    ROWS,
+    coverage,
+    hierarchical_options,
+    median_band,
+    result_bounds,
+    simulate_camera,
+    truth_manifest,
+)
+from emccdcal.simulate.series import simulate_gain_series
 
 #: The illumination at each set-point relative to 1× in the varying-illumination study.
 ILLUMINATION_FACTORS = np.array([1.0, 1.04, 0.98, 1.02, 0.96])
@@ -131,7 +138,7 @@ def main(figure=None):
                 seed=31)
             header(f"camera '{name}', illumination × {ILLUMINATION_FACTORS.tolist()} at "
                    f"set-points {cam['setpoints']}", f"camera '{name}', E differs")
-            ds = calibrate(_truth_manifest(sim, cam["read_noise"]), "gs-hierarchical",
+            ds = calibrate(truth_manifest(sim, cam["read_noise"]), "gs-hierarchical",
                            options=hierarchical_options(cam))
             gain_series_rows(ds, "gs-hierarchical", cam, E)
     if figure is not None:

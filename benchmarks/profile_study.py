@@ -17,17 +17,19 @@ docs/validation.md, "Profile-likelihood intervals").
 
 from __future__ import annotations
 
-import sys
 import tempfile
 import time
 import warnings
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from test_calibrate import CAMERAS, coverage, result_bounds, simulate_camera  # noqa: E402
-
-from emccdcal.calibrate import calibrate  # noqa: E402
-from emccdcal.simulate import simulate_intensity_series  # noqa: E402
+from emccdcal import calibrate
+from emccdcal.simulate.known_truth import (
+    CAMERAS,
+    coverage,
+    result_bounds,
+    simulate_camera,
+)
+from emccdcal.simulate.series import simulate_intensity_series
 
 
 def line(case, what, est, se, truth, bounds):

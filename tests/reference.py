@@ -2,7 +2,7 @@
 
 Written from the model's definition, not from the package's characteristic-function
 code: a direct Poisson sum for the Poisson–normal model and adaptive quadrature of the
-Bessel form of the Poisson–gamma density (METHODS §1.1) for Poisson–gamma–normal.
+Bessel form of the Poisson–gamma density (docs/methods.md) for Poisson–gamma–normal.
 Returns the *density at the integer* f(k); the package's pmf divides by Σ_k f(k), which
 differs from 1 only for read noise below ~3 ADU.
 """

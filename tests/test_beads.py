@@ -7,8 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from emccdcal import beads, noise, psf
-from emccdcal.simulate import bead_scene, simulate_frames
+from emccdcal.beads import fit as bead_fit
+from emccdcal.model import noise, psf
+from emccdcal.simulate.beads import bead_scene
+from emccdcal.simulate.camera import simulate_frames
 
 PHI = 3.859
 SIGMA = 15.5
@@ -39,7 +41,7 @@ def fitted():
     for g, seed in ((1.0, 11), (4.78, 12), (261.6, 13)):
         frames = _stack(g, seed)
         pos = np.rint(TRUE_POS).astype(int)
-        out[g] = (frames, beads.fit_beads(frames, pos, offset=_offset_map(),
+        out[g] = (frames, bead_fit.fit_beads(frames, pos, offset=_offset_map(),
                                           read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=g))
     return out
 
@@ -68,7 +70,7 @@ def test_true_calibration_gives_unbiased_intensities_and_honest_errors(fitted, g
 
 def test_fit_is_the_maximum_of_the_exact_likelihood(fitted):
     frames, fit = fitted[4.78]
-    h = beads.DEFAULT_HALF_SIZE
+    h = bead_fit.DEFAULT_HALF_SIZE
     b, f = 1, 7
     r, c = fit.positions[b]
     box = np.asarray(frames[f, r - h:r + h + 1, c - h:c + h + 1])
@@ -91,7 +93,7 @@ def test_fit_is_the_maximum_of_the_exact_likelihood(fitted):
 
 def test_wrong_gain_scales_the_intensities(fitted):
     frames, right = fitted[4.78]
-    wrong = beads.fit_beads(frames, right.positions, offset=_offset_map(),
+    wrong = bead_fit.fit_beads(frames, right.positions, offset=_offset_map(),
                             read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.1 * 4.78)
     ok = right.converged & wrong.converged
     ratio = wrong.intensity[ok].mean() / right.intensity[ok].mean()
@@ -100,9 +102,9 @@ def test_wrong_gain_scales_the_intensities(fitted):
 
 def test_detect_beads_on_the_mean_image():
     frames = _stack(22.95, 3, frames=40)
-    found = beads.detect_beads(frames, _offset_map(), width=WIDTH)
+    found = bead_fit.detect_beads(frames, _offset_map(), width=WIDTH)
     assert sorted(map(tuple, found.positions)) == sorted(map(tuple, np.rint(TRUE_POS).astype(int)))
-    img = beads.mean_image(frames, _offset_map())
+    img = bead_fit.mean_image(frames, _offset_map())
     assert img.shape == SHAPE
     # offset-subtracted mean in ADU: the background level times g/φ
     assert np.median(img) == pytest.approx(BACKGROUND * 22.95 / PHI, rel=0.05)
@@ -113,9 +115,9 @@ def test_saturated_counts_are_left_out():
     pos = np.rint(TRUE_POS).astype(int)
     adc_max = int(np.percentile(frames, 99.9))
     clipped = np.minimum(frames, adc_max)
-    fit = beads.fit_beads(clipped, pos, offset=_offset_map(), read_noise=SIGMA_DARK,
+    fit = bead_fit.fit_beads(clipped, pos, offset=_offset_map(), read_noise=SIGMA_DARK,
                           e_per_adu=PHI, em_gain=22.95, adc_max=adc_max)
-    h = beads.DEFAULT_HALF_SIZE
+    h = bead_fit.DEFAULT_HALF_SIZE
     in_boxes = sum(int((clipped[:, r - h:r + h + 1, c - h:c + h + 1] >= adc_max).sum())
                    for r, c in pos)
     assert fit.n_saturated == in_boxes > 0
@@ -127,19 +129,19 @@ def test_bad_input():
     frames = _stack(1.0, 6, frames=5)
     kw = dict(offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0)
     with pytest.raises(ValueError, match=r"bead at \(row 2, col 20\) is closer than half_size"):
-        beads.fit_beads(frames, [[2, 20]], **kw)
+        bead_fit.fit_beads(frames, [[2, 20]], **kw)
     phi = np.full(SHAPE, PHI)
     phi[22, 25] = np.nan
     with pytest.raises(ValueError, match=r"e_per_adu is not finite > 0 in the box of the bead "
                                          r"at \(row 23, col 24\)"):
-        beads.fit_beads(frames, [[8, 10], [23, 24]], **(kw | {"e_per_adu": phi}))
+        bead_fit.fit_beads(frames, [[8, 10], [23, 24]], **(kw | {"e_per_adu": phi}))
     with pytest.raises(ValueError, match="em_gain"):
-        beads.fit_beads(frames, [[8, 10]], **(kw | {"em_gain": 0.5}))
+        bead_fit.fit_beads(frames, [[8, 10]], **(kw | {"em_gain": 0.5}))
     with pytest.raises(ValueError, match="frames, rows, cols"):
-        beads.fit_beads(frames[0], [[8, 10]], **kw)
+        bead_fit.fit_beads(frames[0], [[8, 10]], **kw)
     with pytest.raises(ValueError, match="half_size must be at least 2"):
-        beads.fit_beads(frames, [[8, 10]], half_size=1, **kw)
+        bead_fit.fit_beads(frames, [[8, 10]], half_size=1, **kw)
     with pytest.raises(ValueError, match="offset has shape"):
-        beads.fit_beads(frames, [[8, 10]], **(kw | {"offset": np.zeros((3, 3))}))
-    empty = beads.fit_beads(frames, np.zeros((0, 2), int), **kw)
+        bead_fit.fit_beads(frames, [[8, 10]], **(kw | {"offset": np.zeros((3, 3))}))
+    empty = bead_fit.fit_beads(frames, np.zeros((0, 2), int), **kw)
     assert empty.params.shape == (0, 5, 5)

@@ -23,16 +23,16 @@ from pathlib import Path
 import matplotlib.image
 import numpy as np
 import pytest
-from test_report import demo_run
 
-from emccdcal import report
-from emccdcal.calibrate import calibrate
+from emccdcal import calibrate
+from emccdcal.report import html as report_html
 
 CHROMIUM = next((p for p in map(shutil.which, ("chromium", "chromium-browser", "google-chrome"))
                  if p), None)
 pytestmark = pytest.mark.skipif(CHROMIUM is None,
                                 reason="no Chromium on this machine (Debian package 'chromium')")
-REAL = (Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "lanl-proem").resolve()
+from conftest import write_real_manifest
+
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
          "--disable-background-networking", "--disable-component-update", "--disable-sync",
          "--hide-scrollbars", "--mute-audio"]
@@ -117,40 +117,23 @@ def check_in_browser(report_path, tmp_path, name):
     return found
 
 
-def test_demo_report_renders_in_chromium(browser, tmp_path_factory, tmp_path):
-    run, _ = demo_run(tmp_path_factory.getbasetemp())
+def test_demo_report_renders_in_chromium(browser, demo_run, tmp_path):
+    run, _ = demo_run
     found = check_in_browser(run["report"], tmp_path, "demo-report")
     assert {"fig-result-1-histograms", "fig-result-2-photon-transfer", "fig-gain"} <= {
         i["figure"] for i in found["images"]}
 
 
-def _real_manifest(d, kind):
-    if kind == "gs":
-        acqs = [(f"gain-GS/{g}x-gain.tif", g, f"gain-GS/{g}x-gain_no-signal") for g in
-                (1, 5, 25, 100, 300)]
-        head = "e_per_adu = 3.859\n"
-    else:
-        acqs = [(f"ADU/1x-gain_level-0{k}.tif", 1, "ADU/1x-gain_no-signal") for k in range(1, 7)]
-        head = ""
-    lines = [head] + [f'[[acquisition]]\nframes = "{REAL}/{f}"\nem_gain_setpoint = {g}\n'
-                      f'offset = "{REAL}/{dark}_S0.tif"\nread_noise = "{REAL}/{dark}_sigma.tif"\n'
-                      + (f'level = "L{i + 1}"\n' if kind == "adu" else "")
-                      for i, (f, g, dark) in enumerate(acqs)]
-    path = d / f"{kind}.toml"
-    path.write_text("".join(lines))
-    return path
-
-
-@pytest.mark.skipif(not REAL.is_dir(), reason="shared ProEM data not present")
+@pytest.mark.real_data
 def test_real_proem_report_renders_in_chromium(browser, tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the camera's read noise grows with set-point
-        calibrate(_real_manifest(tmp_path, "adu"), "is-adu", out=tmp_path / "is-adu",
+        calibrate(write_real_manifest(tmp_path, "adu"), "is-adu", out=tmp_path / "is-adu",
                   checks=False)  # the slow part; gs keeps its data-quality checks
-        calibrate(_real_manifest(tmp_path, "gs"), "gs", out=tmp_path / "gs")
-        path = report.write_report([tmp_path / "is-adu", tmp_path / "gs"], tmp_path / "r.html")
+        calibrate(write_real_manifest(tmp_path, "gs"), "gs", out=tmp_path / "gs")
+        path = report_html.write_report([tmp_path / "is-adu", tmp_path / "gs"], tmp_path / "r.html")
     found = check_in_browser(path, tmp_path, "proem-report")
     assert len(found["images"]) == 10  # 4 per result and 2 comparisons: nothing left out
     text = path.read_text(encoding="utf-8")
-    assert "set-point 5x: " in text and "misfit the noise model" in text  # METHODS §3.1
+    assert "set-point 5x: " in text and "misfit the noise model" in text  # docs/simulation.md
     assert np.isfinite(float(re.search(r"<td>5×</td><td>([0-9.]+)</td>", text).group(1)))

@@ -3,50 +3,36 @@
 from __future__ import annotations
 
 import json
-import re
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
-import tifffile
+from conftest import write_real_manifest
 
-from emccdcal import cli, methods, result
-from emccdcal.calibrate import calibrate
-from emccdcal.simulate import simulate_gain_series, simulate_intensity_series
+from emccdcal import calibrate, cli, result
+from emccdcal.fit import layouts
+from emccdcal.simulate.known_truth import (
+    CAMERAS,
+    COLS,
+    FRAMES,
+    ROWS,
+    coverage,
+    hierarchical_options,
+    median_band,
+    result_bounds,
+    simulate_camera,
+    truth_manifest,
+)
+from emccdcal.simulate.series import simulate_gain_series
 
-REAL = (Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "lanl-proem").resolve()
-needs_real = pytest.mark.skipif(not REAL.is_dir(), reason="shared ProEM data not present")
+needs_real = pytest.mark.real_data
 
 
 # --------------------------------------------------------------------------------------
-# Real data: METHODS §13 (the authors' code and an independent re-implementation)
+# Real data: docs/validation.md (the authors' code and an independent re-implementation)
 # --------------------------------------------------------------------------------------
 def _real_manifest(tmp_path, kind):
-    lines = []
-    if kind == "gs":
-        lines.append(f'e_per_adu = "{REAL}/gain-GS/ADU_map.tif"')
-        for g in (1, 5, 25, 100, 300):
-            lines += [
-                "[[acquisition]]",
-                f'frames = "{REAL}/gain-GS/{g}x-gain.tif"',
-                f"em_gain_setpoint = {g}",
-                f'offset = "{REAL}/gain-GS/{g}x-gain_no-signal_S0.tif"',
-                f'read_noise = "{REAL}/gain-GS/{g}x-gain_no-signal_sigma.tif"',
-            ]
-    else:
-        for level in range(1, 7):
-            lines += [
-                "[[acquisition]]",
-                f'frames = "{REAL}/ADU/1x-gain_level-0{level}.tif"',
-                "em_gain_setpoint = 1",
-                f'level = "L{level}"',
-                f'offset = "{REAL}/ADU/1x-gain_no-signal_S0.tif"',
-                f'read_noise = "{REAL}/ADU/1x-gain_no-signal_sigma.tif"',
-            ]
-    path = tmp_path / f"{kind}.toml"
-    path.write_text("\n".join(lines) + "\n")
-    return path
+    return write_real_manifest(tmp_path, kind)
 
 
 # pixel -> (E, g5, g25, g100, g300)
@@ -84,7 +70,7 @@ def test_real_gain_series_reproduces_reference(tmp_path, method, reference):
 
 @needs_real
 def test_real_gain_series_goodness_of_fit_flags_5x(tmp_path):
-    """The gamma model misfits the real 5x data (excess-noise factor < 2, METHODS §3.1)."""
+    """The gamma model misfits the real 5x data (excess-noise factor < 2, docs/simulation.md)."""
     ds = calibrate(_real_manifest(tmp_path, "gs"), "gs")
     p = ds.gof_pvalue
     assert p.dims == ("setpoint", "row", "col") and p.attrs["units"] == "1"
@@ -125,87 +111,11 @@ def test_real_data_cli_writes_result(tmp_path, capsys):
 # --------------------------------------------------------------------------------------
 # Known truth: two very different cameras, every method, ≥ 1000 pixels
 # --------------------------------------------------------------------------------------
-CAMERAS = {
-    "paper": dict(e_per_adu=3.859, read_noise=15.5, offset=587.7, photoelectrons=370.0,
-                  setpoints=(1, 5, 25, 100, 300), em_gain=(1, 4.78, 22.95, 90.06, 261.6),
-                  levels=(2000, 4000, 8000, 16000, 32000, 64000), is_gain_setpoint=25,
-                  is_gain=22.95, is_gain_levels=(50, 100, 200, 400, 800, 1600)),
-    "other": dict(e_per_adu=12.0, read_noise=40.0, offset=1000.0, photoelectrons=60.0,
-                  setpoints=(1, 10, 50, 200, 1000), em_gain=(1, 9.1, 44.0, 180.0, 870.0),
-                  levels=(20000, 40000, 80000, 160000, 320000, 600000), is_gain_setpoint=200,
-                  is_gain=180.0, is_gain_levels=(5, 10, 20, 40, 80, 160)),
-}
-ROWS = COLS = 32  # 1024 pixels
-FRAMES = 2000
-
-
-def _truth_manifest(sim, read_noise):
-    """Rewrite a simulated manifest with the true offset and read-noise maps.
-
-    The true maps are exact: their ``dark_frames`` lines go (the maps' own errors are
-    tested in ``test_map_errors.py``).
-    """
-    truth = sim.truth
-    pattern = tifffile.imread(sim.outdir / truth["offset_pattern"]["file"]).astype(float)
-    text = sim.manifest.read_text()
-    sigma = float(np.sqrt(read_noise**2 + 1.0 / 12.0))  # rounding to integer counts
-    for i, acq in enumerate(truth["acquisitions"]):
-        true_map = sim.outdir / f"true-offset-{i}.tif"
-        tifffile.imwrite(true_map, (acq["offset"] + pattern).astype(np.float64))
-        text = text.replace(f'offset = "{acq["offset_map"]}"', f'offset = "{true_map.name}"')
-        text = text.replace(f'read_noise = "{acq["read_noise_map"]}"', f"read_noise = {sigma!r}")
-    text = re.sub(r"\ndark_frames = .*", "", text)
-    path = sim.outdir / "manifest-truth.toml"
-    path.write_text(text)
-    return path
-
-
-def simulate_camera(base, cam):
-    """The three series of a camera (gain series, 1× and EM intensity series), with
-    manifests that carry the true maps; also used by ``benchmarks/coverage_study.py``."""
-    common = dict(rows=ROWS, cols=COLS, frames=FRAMES, dark_frames=10, e_per_adu=cam["e_per_adu"],
-                  read_noise=cam["read_noise"], offset=cam["offset"])
-    gs = simulate_gain_series(base / "gs", setpoints=cam["setpoints"], em_gain=cam["em_gain"],
-                              photoelectrons=cam["photoelectrons"], seed=31, **common)
-    adu = simulate_intensity_series(base / "adu", levels=cam["levels"], seed=14, **common)
-    isg = simulate_intensity_series(base / "isg", levels=cam["is_gain_levels"],
-                                    setpoint=cam["is_gain_setpoint"], em_gain=cam["is_gain"],
-                                    seed=13, **common)
-    return {k: _truth_manifest(s, cam["read_noise"]) for k, s in
-            (("gs", gs), ("adu", adu), ("isg", isg))}
-
-
 @pytest.fixture(scope="module", params=list(CAMERAS))
 def camera(request, tmp_path_factory):
     name = request.param
     cam = CAMERAS[name]
     return name, cam, simulate_camera(tmp_path_factory.mktemp(name), cam)
-
-
-def median_band(estimate, undefined=None):
-    """Median over every pixel and its 3σ band by order statistics: the sample values at
-    ranks N/2 ± 3·√N/2, free of the distribution's shape.
-
-    ``undefined`` (+inf or −inf) ranks the pixels whose estimate is NaN above or below
-    every number (a mean–variance slope ≤ 0 means g below any positive value and E beyond
-    any), so the median is that of every pixel, not of the defined ones only.
-    Also used by ``benchmarks/coverage_study.py``.
-    """
-    estimate = np.ravel(estimate)
-    ranked = np.sort(np.where(np.isnan(estimate), np.nan if undefined is None else undefined,
-                              estimate))
-    n, half = ranked.size, 1.5 * np.sqrt(ranked.size)  # 3 SDs of a Binomial(n, ½) rank
-    return (np.median(ranked), ranked[int(np.floor(n / 2 - half))],
-            ranked[int(np.ceil(n / 2 + half))])
-
-
-def coverage(estimate, se, truth, bounds=None):
-    """Fraction of 95 % intervals covering the truth: ``bounds`` (lower, upper) where the
-    result has them, else estimate ± 1.96 SE. Also used by the coverage study."""
-    if bounds is None:
-        return float(np.mean(np.abs(np.ravel(estimate) - truth) <= 1.959964 * np.ravel(se)))
-    lower, upper = (np.ravel(b) for b in bounds)
-    return float(np.mean((lower <= truth) & (truth <= upper)))
 
 
 def _check(estimate, se, truth, what, centre=np.mean, bounds=None, undefined=None):
@@ -227,23 +137,6 @@ def _check(estimate, se, truth, what, centre=np.mean, bounds=None, undefined=Non
     assert 0.93 <= cover <= 0.97, f"{what}: 95% interval coverage {cover:.3f}"
 
 
-def result_bounds(ds, name, **sel):
-    """``(<name>_lower, <name>_upper)`` at ``sel`` when the result carries them, else None.
-    Also used by the coverage study."""
-    if f"{name}_lower" not in ds:
-        return None
-    return tuple(ds[f"{name}_{side}"].sel(**sel).values for side in ("lower", "upper"))
-
-
-def hierarchical_options(cam):
-    """The authors' hyperprior scales (25 e⁻ for their ~370 e⁻) in proportion to a camera's
-    illumination: 25 e⁻ absolute is 7 % of E on the paper's camera but 42 % on the "other"
-    one, a prior that hardly pools. Also used by the coverage study, which measures the
-    authors' absolute scales too (their 10x gain is biased there, docs/validation.md)."""
-    sd = methods.HIERARCHICAL_DEFAULTS["sigma_sd"] * cam["photoelectrons"] / 370.0
-    return {"mu_sd": sd, "sigma_sd": sd}
-
-
 def _calibrate(manifest, method, all_converged=True, options=None):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -253,6 +146,7 @@ def _calibrate(manifest, method, all_converged=True, options=None):
     return ds
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["gs", "gs-no1x", "gs-hierarchical", "mv-gain"])
 def test_gain_series_recovers_truth(camera, method):
     name, cam, manifests = camera
@@ -277,12 +171,12 @@ def test_gain_series_recovers_truth(camera, method):
         assert np.isfinite(g_upper).mean() > 0.9 and not np.isinf(g_upper).any()
         assert np.isinf(E_upper).mean() > 0.9 and np.all(np.isinf(E_upper) | np.isnan(E_upper))
     if hierarchical:  # the hyperprior used is recorded
-        assert json.loads(ds.attrs["options"]) == {**methods.HIERARCHICAL_DEFAULTS, **options}
+        assert json.loads(ds.attrs["options"]) == {**layouts.HIERARCHICAL_DEFAULTS, **options}
     # The hierarchical MAP shrinks each set-point's E to the shared one whenever the data
-    # pull it by less than SE²/sigma_sd (an L2-norm penalty, METHODS §6); its ± 1.96 SE
+    # pull it by less than SE²/sigma_sd (an L2-norm penalty, docs/methods.md); its ± 1.96 SE
     # over-covers where the truth is that shared E, as here, and under-covers where it is
     # not. Its result's intervals are those of the fit without the prior
-    # (methods.unpooled_bounds), which cover (also where the illumination differs:
+    # (layouts.unpooled_bounds), which cover (also where the illumination differs:
     # test_hierarchical_shrinks_a_differing_illumination). Its median is checked: its
     # distribution over pixels is skewed where a set-point's own data hardly see E.
     # Mean–variance estimates are ratios of sample moments, which have no mean where the
@@ -316,6 +210,7 @@ def test_adu_series_recovers_truth(camera, method):
                bounds=result_bounds(ds, "photoelectrons", level=ds.level.values[i]), undefined=np.inf)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["is-gain", "mv-gain"])
 def test_gain_intensity_series_recovers_truth(camera, method):
     name, cam, manifests = camera
@@ -331,9 +226,10 @@ def test_gain_intensity_series_recovers_truth(camera, method):
                bounds=result_bounds(ds, "photoelectrons", level=ds.level.values[i]), undefined=np.inf)
 
 
+@pytest.mark.slow
 def test_hierarchical_shrinks_a_differing_illumination(tmp_path):
     """Where E truly differs between set-points, gs-hierarchical pulls each set-point's
-    E towards the shared one (METHODS §6): biased, and ± 1.96 SE covers less than 95 %.
+    E towards the shared one (docs/methods.md): biased, and ± 1.96 SE covers less than 95 %.
 
     The paper camera with the illumination 4 % higher at 5× than at 1× (and −2, +2, −4 %
     at 25, 100, 300×). Measured (docs/validation.md): median E(5×) 380.7 e⁻ against the
@@ -347,7 +243,7 @@ def test_hierarchical_shrinks_a_differing_illumination(tmp_path):
         photoelectrons=list(cam["photoelectrons"] * factors), rows=ROWS, cols=COLS,
         frames=FRAMES, dark_frames=10, e_per_adu=cam["e_per_adu"],
         read_noise=cam["read_noise"], offset=cam["offset"], seed=31)
-    ds = _calibrate(_truth_manifest(sim, cam["read_noise"]), "gs-hierarchical")
+    ds = _calibrate(truth_manifest(sim, cam["read_noise"]), "gs-hierarchical")
     true_5x, shared = cam["photoelectrons"] * factors[1], cam["photoelectrons"]
     E_5x = ds.photoelectrons.sel(setpoint=5).values.ravel()
     se_5x = ds.photoelectrons_se.sel(setpoint=5).values.ravel()

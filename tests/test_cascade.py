@@ -1,4 +1,4 @@
-"""The EM register as a Bernoulli cascade: algebra, exact pmf, samplers (METHODS §3, §10 case 9)."""
+"""The EM register as a Bernoulli cascade: algebra, exact pmf, samplers (docs/simulation.md, §10 case 9)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import stats
 
-from emccdcal import cascade
-from emccdcal.cascade import (
+from emccdcal.model import cascade
+from emccdcal.model.cascade import (
     excess_noise_factor,
     mean_gain,
     output_pmf,
@@ -21,7 +21,7 @@ from emccdcal.cascade import (
     stage_probability,
 )
 
-# METHODS §3.1 table of F²(g, N), 4 decimals.
+# docs/simulation.md table of F²(g, N), 4 decimals.
 F2_TABLE = {
     2: (1.4987, 1.4987, 1.4988, 1.4989),
     5: (1.7950, 1.7952, 1.7957, 1.7957),
@@ -154,7 +154,7 @@ def test_indexed_search_equals_binary_search(g, m):
 
 
 # --------------------------------------------------------------------------------------
-# Samplers: Monte Carlo of METHODS §10 case 9
+# Samplers: Monte Carlo of docs/validation.md case 9
 # --------------------------------------------------------------------------------------
 @pytest.mark.parametrize("method", ["stages", "pmf"])
 def test_cascade_monte_carlo_case9(method):

@@ -1,6 +1,6 @@
 """Calibration-on-the-spot (COTS): the core on one spot, the manifest verb, bad input.
 
-METHODS §10 case 13: a 10 × 10 ROI Gaussian spot (N = 5000 e⁻, b = 20 e⁻/px), gamma EM
+docs/validation.md case 13: a 10 × 10 ROI Gaussian spot (N = 5000 e⁻, b = 20 e⁻/px), gamma EM
 register, G = 5 ADU/e⁻, negligible read noise, 200 frames. Tolerances were set on a first
 run and checked against the scatter over seeds (docs/cots.md has the figures).
 """
@@ -14,7 +14,12 @@ import pytest
 import tifffile
 from scipy import optimize
 
-from emccdcal import cli, cots, io, psf, result, simulate
+from emccdcal import cli, errors, result
+from emccdcal.beads import cots
+from emccdcal.beads.cots_calibration import cots_calibrate
+from emccdcal.model import psf
+from emccdcal.simulate.beads import simulate_beads
+from emccdcal.simulate.camera import simulate_frames
 
 G_TRUE = 5.0  # ADU per photoelectron
 S0_TRUE = 100.0  # ADU
@@ -25,7 +30,7 @@ def _spot_stack(seed, frames=200, gain=G_TRUE, size=10, spot=SPOT):
     """Raw counts of one spot: φ = 1 so that the EM gain g equals G (ADU/e⁻)."""
     c = np.arange(size) - (size - 1) / 2
     photo = psf.spot_image(list(spot), c, c)
-    return simulate.simulate_frames(photo, em_gain=gain, e_per_adu=1.0, offset=S0_TRUE,
+    return simulate_frames(photo, em_gain=gain, e_per_adu=1.0, offset=S0_TRUE,
                                     read_noise=0.01, frames=frames, seed=seed)
 
 
@@ -131,7 +136,7 @@ def test_roi_follows_a_moving_spot():
     """A spot 2.4 px off the ROI centre: the ROI is moved and the gain still recovered."""
     c = np.arange(16) - 7.5
     photo = psf.spot_image([2.4, -1.6, 1.3, 5000.0, 20.0], c, c)
-    stack = simulate.simulate_frames(photo, em_gain=G_TRUE, e_per_adu=1.0, offset=S0_TRUE,
+    stack = simulate_frames(photo, em_gain=G_TRUE, e_per_adu=1.0, offset=S0_TRUE,
                                      read_noise=0.01, frames=60, seed=5)
     r = cots.cots_spot(stack, roi=(3, 3, 10, 10))
     assert np.all(r.frame_shift[r.usable] == [-2, 2])
@@ -176,7 +181,7 @@ def _write_beads(d, *, setpoints=(1, 100, 300), frames=60, e_per_adu=True, beads
             [x + rng.uniform(-0.3, 0.3), y + rng.uniform(-0.3, 0.3), 1.3, 3000.0, 0.0], r, c)
     lines = [f"e_per_adu = {PHI}"] if e_per_adu else []
     for i, sp in enumerate(setpoints):
-        stack = simulate.simulate_frames(photo, em_gain=sp, e_per_adu=PHI, offset=S0_TRUE,
+        stack = simulate_frames(photo, em_gain=sp, e_per_adu=PHI, offset=S0_TRUE,
                                          read_noise=0.01, frames=frames, seed=seed * 10 + i)
         tifffile.imwrite(d / f"beads_{sp}x.tif", stack)
         lines += ["[[acquisition]]", f'frames = "beads_{sp}x.tif"', f"em_gain_setpoint = {sp}",
@@ -243,16 +248,14 @@ def test_cli_prints_a_summary(bead_run, capsys):
     assert result.load(out / "again").sizes["bead"] == 3
 
 
-@pytest.mark.skipif(not hasattr(simulate, "simulate_beads"),
-                    reason="emccdcal.simulate.simulate_beads not available yet")
 def test_on_simulated_beads(tmp_path):
     """End to end on the project's own bead simulator (gamma EM), at the highest gains."""
-    fn = simulate.simulate_beads
+    fn = simulate_beads
     wanted = {"frames": 100, "seed": 11, "multiplication": "gamma", "beads": 4,
               "setpoints": (1, 100, 300)}
     kwargs = {k: v for k, v in wanted.items() if k in inspect.signature(fn).parameters}
     fn(tmp_path / "beads", **kwargs)
-    ds = cots.cots_calibrate(tmp_path / "beads" / "manifest.toml")
+    ds = cots_calibrate(tmp_path / "beads" / "manifest.toml")
     truth = result.load(tmp_path / "beads" / "truth_calibration.nc")
     top = float(ds.setpoint.values.max())
     g_true = float(np.nanmedian(truth.em_gain.sel(setpoint=top).values))
@@ -274,8 +277,8 @@ def _cli_error(capsys, *argv):
 
 def test_missing_e_per_adu(tmp_path, capsys):
     manifest = _write_beads(tmp_path, setpoints=(100,), frames=12, e_per_adu=False)
-    with pytest.raises(io.ManifestError, match="needs e_per_adu"):
-        cots.cots_calibrate(manifest)
+    with pytest.raises(errors.ManifestError, match="needs e_per_adu"):
+        cots_calibrate(manifest)
     err = _cli_error(capsys, manifest, "-o", tmp_path / "out")
     assert str(manifest) in err and "e_per_adu" in err
 
@@ -294,16 +297,16 @@ def test_too_few_frames(tmp_path, capsys):
 
 def test_no_beads_found(tmp_path, capsys):
     manifest = _write_beads(tmp_path, setpoints=(100,), frames=12, beads=())
-    with pytest.raises(io.InputError, match="no beads found"):
-        cots.cots_calibrate(manifest)
+    with pytest.raises(errors.InputError, match="no beads found"):
+        cots_calibrate(manifest)
     err = _cli_error(capsys, manifest, "-o", tmp_path / "out")
     assert "beads_100x.tif" in err and "no beads found" in err
 
 
 def test_beads_only_at_the_edge(tmp_path):
     manifest = _write_beads(tmp_path, setpoints=(100,), frames=12, beads=((2, 20),))
-    with pytest.raises(io.InputError, match="1 candidate.*edge"):
-        cots.cots_calibrate(manifest)
+    with pytest.raises(errors.InputError, match="1 candidate.*edge"):
+        cots_calibrate(manifest)
 
 
 def test_bad_options(tmp_path, capsys):

@@ -2,15 +2,11 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import tifffile
 
-from emccdcal.dark import check_read_noise_growth, maps_from_dark
-
-REAL = Path(__file__).parents[1] / "../shared/data/lanl-proem"
+from emccdcal.data.dark import check_read_noise_growth, maps_from_dark
 
 
 def dark_stack(seed=0, n=200, shape=(5, 7), offset=588.0, sigma=15.5, dtype=np.uint16):
@@ -127,10 +123,8 @@ def test_growth_check_bad_input():
         check_read_noise_growth([1, 5], [np.zeros((2, 2)), np.ones((2, 2))])
 
 
-def test_growth_on_the_real_sigma_maps():
-    gs = REAL / "gain-GS"
-    if not gs.is_dir():
-        pytest.skip("shared ProEM data not present")
+def test_growth_on_the_real_sigma_maps(real_data):
+    gs = real_data / "gain-GS"
     setpoints = [1, 5, 25, 100, 300]
     maps = [tifffile.imread(gs / f"{g}x-gain_no-signal_sigma.tif") for g in setpoints]
     msgs = check_read_noise_growth(setpoints, maps)
@@ -152,7 +146,7 @@ class _Recording:
 
 
 def test_default_streams_in_bounded_chunks(monkeypatch):
-    import emccdcal.dark as dark
+    import emccdcal.data.dark as dark
 
     monkeypatch.setattr(dark, "DEFAULT_CHUNK_ELEMENTS", 3 * 35)  # three (5, 7) frames
     d = dark_stack(seed=5, n=50)

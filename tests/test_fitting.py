@@ -11,8 +11,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from emccdcal import fitting, noise, stats
-from emccdcal.simulate import simulate_frames
+from emccdcal.data import stats
+from emccdcal.fit import engine
+from emccdcal.model import noise
+from emccdcal.simulate.camera import simulate_frames
 
 # (photoelectrons, em_gain, e_per_adu, offset, read_noise): 1×, a low and a high gain,
 # and few electrons at high gain (exponential right tail).
@@ -29,7 +31,7 @@ def _block(case, frames=3000, pixels=3, seed=7):
     data = simulate_frames(E, g, phi, S0, sigma, frames=frames, rows=1, cols=pixels, seed=seed)
     h = stats.histograms(data)
     P = h.n.size
-    return fitting.AcquisitionBlock(
+    return engine.AcquisitionBlock(
         values=h.values, counts=h.counts, offset=np.full(P, S0), read_noise=np.full(P, sigma),
         poisson_normal=g == 1.0, mean=h.mean, var=h.var, n=h.n,
         offset_var=np.full(P, 1.0), read_noise_var=np.full(P, 0.5))
@@ -46,7 +48,7 @@ def _log_params(case, P, shift=(0.01, -0.02)):
 def test_loglik_is_that_of_the_public_noise_model(case):
     acq = _block(case)
     log_e, log_scale = _log_params(case, acq.n.size)
-    loglik = fitting._acquisition_terms(acq, log_e, log_scale, 0)[0]
+    loglik = engine._acquisition_terms(acq, log_e, log_scale, 0)[0]
     E, g, phi, S0, sigma = CASES[case]
     ref_g = 1.0 if g == 1.0 else np.exp(log_scale[0]) * phi
     ref_phi = 1.0 / np.exp(log_scale[0]) if g == 1.0 else phi
@@ -59,15 +61,15 @@ def test_loglik_is_that_of_the_public_noise_model(case):
 def test_gradient_and_observed_information_are_the_derivatives(case):
     acq = _block(case)
     log_e, log_scale = _log_params(case, acq.n.size)
-    _, grad, obs, _, _ = fitting._acquisition_terms(acq, log_e, log_scale, 2)
+    _, grad, obs, _, _ = engine._acquisition_terms(acq, log_e, log_scale, 2)
     h = 1e-4
 
     def terms(de, ds):
-        return fitting._acquisition_terms(acq, log_e + de, log_scale + ds, 1)
+        return engine._acquisition_terms(acq, log_e + de, log_scale + ds, 1)
 
     steps = [(h, 0.0), (0.0, h)]
     for i, (de, ds) in enumerate(steps):
-        ll_plus, ll_minus = (fitting._acquisition_terms(acq, log_e + s * de, log_scale + s * ds, 0)[0]
+        ll_plus, ll_minus = (engine._acquisition_terms(acq, log_e + s * de, log_scale + s * ds, 0)[0]
                              for s in (1, -1))
         np.testing.assert_allclose(grad[:, i], (ll_plus - ll_minus) / (2 * h), rtol=1e-5,
                                    atol=1e-4)
@@ -82,18 +84,18 @@ def test_map_cross_terms_are_outer_products_of_the_scores(case):
     """cross[i, m] = Σ_k n_k (∂p/∂u_i)(∂p/∂m)/p², the ∂p/∂m by finite differences of p."""
     acq = _block(case)
     log_e, log_scale = _log_params(case, acq.n.size)
-    cross = fitting._acquisition_terms(acq, log_e, log_scale, 2, map_cross=True)[4]
+    cross = engine._acquisition_terms(acq, log_e, log_scale, 2, map_cross=True)[4]
     E, scale = np.exp(log_e), np.exp(log_scale)
-    model = fitting._ModelAtData(acq, E, scale, derivs=True)
+    model = engine._ModelAtData(acq, E, scale, derivs=True)
     w = np.where(model.low, 0.0, acq.counts / model.pv**2)
     factor = np.stack([E, scale], axis=1)
     for m, field in enumerate(("offset", "read_noise")):
         h = 1e-3
         pv = []
         for sign in (1, -1):
-            shifted = fitting.AcquisitionBlock(**{**acq.__dict__,
+            shifted = engine.AcquisitionBlock(**{**acq.__dict__,
                                                   field: getattr(acq, field) + sign * h})
-            pv.append(fitting._ModelAtData(shifted, E, scale).pv)
+            pv.append(engine._ModelAtData(shifted, E, scale).pv)
         dp = (pv[0] - pv[1]) / (2 * h)
         for i, name in enumerate(("photoelectrons", "scale")):
             ref = np.sum(w * model.scores[name] * dp, axis=1) * factor[:, i]

@@ -4,7 +4,10 @@ import numpy as np
 import pytest
 from scipy import stats as st
 
-from emccdcal import fitting, gof, methods, noise, simulate, stats
+from emccdcal.data import stats
+from emccdcal.fit import engine, gof, layouts
+from emccdcal.model import noise
+from emccdcal.simulate.camera import simulate_frames
 
 PHI, S0, SIG = 3.859, 587.0, 15.5
 #: The model's read noise is the SD of the rounded counts (simulate's docstring).
@@ -12,7 +15,7 @@ RN = float(np.hypot(SIG, 12**-0.5))
 
 
 def _sim(E, g, *, frames, rows, cols, seed, mult="gamma"):
-    fr = simulate.simulate_frames(E, g, PHI, S0, SIG, frames=frames, rows=rows, cols=cols,
+    fr = simulate_frames(E, g, PHI, S0, SIG, frames=frames, rows=rows, cols=cols,
                                   multiplication=mult, seed=seed)
     return stats.histograms(fr)
 
@@ -93,7 +96,7 @@ def test_vectorised_mixed_pixels_and_blocks_match_separate_calls(monkeypatch):
         return v, c
 
     (va, ca), (vb, cb) = pad(ha), pad(hb)
-    mixed = fitting.AcquisitionBlock(
+    mixed = engine.AcquisitionBlock(
         values=np.concatenate([va, vb]), counts=np.concatenate([ca, cb]),
         offset=np.full(6, S0), read_noise=np.full(6, RN), poisson_normal=False,
         mean=np.r_[ha.mean, hb.mean], var=np.r_[ha.var, hb.var], n=np.r_[ha.n, hb.n])
@@ -114,7 +117,7 @@ def test_outliers_land_in_the_tail_bins():
     # Add a far outlier (a cosmic ray, 60000 ADU) and a frame at count 0 to pixel 0.
     v = np.concatenate([[[0], [0]], h.values, [[60000], [60000]]], axis=1)
     c = np.concatenate([[[1.0], [0.0]], h.counts, [[1.0], [0.0]]], axis=1)
-    blk = fitting.AcquisitionBlock(v, c, np.full(2, S0), np.full(2, RN), False,
+    blk = engine.AcquisitionBlock(v, c, np.full(2, S0), np.full(2, RN), False,
                                    h.mean, h.var, h.n + np.array([2, 0]))
     p, chi2, _ = gof.gof_pvalues(blk, 30.0, 100.0, PHI, S0, RN)
     assert np.isfinite(chi2).all()
@@ -140,14 +143,14 @@ def test_untestable_pixels_are_nan():
 # --------------------------------------------------------------------------------------
 # The issue's demonstration: exact cascade data fitted by the gamma model
 # --------------------------------------------------------------------------------------
-E_TRUE = 370.0  # the authors' sample pixel (METHODS §3.1)
+E_TRUE = 370.0  # the authors' sample pixel (docs/simulation.md)
 FRAMES = 20000
-LOG_B = {k: np.log(v) for k, v in methods.BOUNDS.items()}
+LOG_B = {k: np.log(v) for k, v in layouts.BOUNDS.items()}
 
 
 def _block(h, pn):
     P = h.n.size
-    return fitting.AcquisitionBlock(h.values, h.counts, np.full(P, S0), np.full(P, RN), pn,
+    return engine.AcquisitionBlock(h.values, h.counts, np.full(P, S0), np.full(P, RN), pn,
                                     h.mean, h.var, h.n)
 
 
@@ -160,13 +163,13 @@ def _gain_series_fit(h1, h_em):
     M[1, 1, 1] = 1.0   # ln g of the EM acquisition (1× has g = 1)
     C = np.zeros((P, 2, 3))
     C[:, :, 2] = np.log(PHI)
-    layout = fitting.Layout(
+    layout = engine.Layout(
         ["ln_photoelectrons", "ln_em_gain"],
         np.r_[LOG_B["photoelectrons"][0], LOG_B["em_gain"][0]],
         np.r_[LOG_B["photoelectrons"][1], LOG_B["em_gain"][1]], M, C)
     E0 = (h1.mean - S0) * PHI
     g0 = (h_em.mean - S0) * PHI / E0
-    res = fitting.fit(layout, [_block(h1, True), _block(h_em, False)],
+    res = engine.fit(layout, [_block(h1, True), _block(h_em, False)],
                       np.stack([np.log(E0), np.log(g0)], axis=1))
     assert res.converged.all()
     return np.exp(res.x[:, 0]), np.exp(res.x[:, 1])

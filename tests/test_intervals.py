@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from emccdcal import fitting, io, methods
-from emccdcal import stats as pixel_stats
-from emccdcal.calibrate import calibrate
-from emccdcal.simulate import simulate_gain_series
+from emccdcal import calibrate
+from emccdcal.data import stats as pixel_stats
+from emccdcal.data.manifest import read_manifest
+from emccdcal.fit import engine, layouts
+from emccdcal.simulate.series import simulate_gain_series
 
 
 @pytest.fixture(scope="module")
@@ -19,7 +20,7 @@ def gain_series(tmp_path_factory):
 
 
 def _layout_and_fit(manifest, method, phi):
-    return _layout_and_fit_acquisitions(io.read_manifest(manifest).acquisitions, method, phi)
+    return _layout_and_fit_acquisitions(read_manifest(manifest).acquisitions, method, phi)
 
 
 def _layout_and_fit_acquisitions(acqs, method, phi, dark_frames=None):
@@ -28,10 +29,10 @@ def _layout_and_fit_acquisitions(acqs, method, phi, dark_frames=None):
     offsets = np.stack([a.offset.ravel() for a in acqs])
     read_noise = np.stack([a.read_noise.ravel() for a in acqs])
     setpoints = np.array([a.em_gain_setpoint for a in acqs])
-    blocks = methods.make_blocks(hists, offsets, read_noise, setpoints, np.arange(P), dark_frames)
-    series = methods.Series(blocks, setpoints, [a.name for a in acqs], np.full(P, phi))
-    layout, x0 = methods.build_layout(method, series, {})
-    return layout, blocks, fitting.fit(layout, blocks, x0)
+    blocks = layouts.make_blocks(hists, offsets, read_noise, setpoints, np.arange(P), dark_frames)
+    series = layouts.Series(blocks, setpoints, [a.name for a in acqs], np.full(P, phi))
+    layout, x0 = layouts.build_layout(method, series, {})
+    return layout, blocks, engine.fit(layout, blocks, x0)
 
 
 def test_bounds_are_where_the_deviance_reaches_the_quantile(gain_series):
@@ -39,11 +40,11 @@ def test_bounds_are_where_the_deviance_reaches_the_quantile(gain_series):
     assert fit.converged.all()
     target = stats.chi2.ppf(0.95, 1)
     for j in (0, layout.n_free - 1):  # ln E and ln g at the highest set-point
-        lower, upper = fitting.profile_bounds(layout, blocks, fit, j)
+        lower, upper = engine.profile_bounds(layout, blocks, fit, j)
         assert np.all(lower < fit.x[:, j]) and np.all(fit.x[:, j] < upper)
         for bound in (lower, upper):
-            pinned = fitting._Pinned(layout, j, bound)
-            refit = fitting.fit(pinned, blocks, np.delete(fit.x, j, axis=1))
+            pinned = engine._Pinned(layout, j, bound)
+            refit = engine.fit(pinned, blocks, np.delete(fit.x, j, axis=1))
             np.testing.assert_allclose(2 * (fit.objective - refit.objective), target, atol=0.05)
         # a well-determined parameter: the profile interval is the Wald interval
         se = np.sqrt(fit.cov[:, j, j])
@@ -53,13 +54,13 @@ def test_bounds_are_where_the_deviance_reaches_the_quantile(gain_series):
 def test_bounds_include_the_errors_of_the_maps(gain_series):
     """Maps from few dark frames: the profile interval of a well-determined parameter is
     the Wald interval of the SE that includes the maps' errors, not the conditional one."""
-    acqs = io.read_manifest(gain_series.manifest).acquisitions
+    acqs = read_manifest(gain_series.manifest).acquisitions
     layout, blocks, fit = _layout_and_fit_acquisitions(acqs, "gs", gain_series.truth["e_per_adu"],
                                                        dark_frames=[10] * len(acqs))
-    conditional = np.linalg.inv(fitting._evaluate(layout, blocks, fit.x, 2)[4])
+    conditional = np.linalg.inv(engine._evaluate(layout, blocks, fit.x, 2)[4])
     j = 0  # ln E, whose variance the error of the 1× offset map more than doubles here
     assert np.all(fit.cov[:, j, j] > 2 * conditional[:, j, j])
-    lower, upper = fitting.profile_bounds(layout, blocks, fit, j)
+    lower, upper = engine.profile_bounds(layout, blocks, fit, j)
     np.testing.assert_allclose((upper - lower) / (2 * 1.959964 * np.sqrt(fit.cov[:, j, j])),
                                1.0, atol=0.03)
 
@@ -95,7 +96,7 @@ def test_profile_bounds_where_the_information_is_nearly_singular(tmp_path):
     sim = simulate_gain_series(tmp_path, setpoints=(1, 10), em_gain=(1, 9.1), photoelectrons=60.0,
                                rows=4, cols=4, frames=2000, e_per_adu=12.0, read_noise=40.0,
                                offset=1000.0, seed=3, progress=False)
-    acqs = io.read_manifest(sim.manifest).acquisitions[1:]  # the 10× acquisition alone
+    acqs = read_manifest(sim.manifest).acquisitions[1:]  # the 10× acquisition alone
     layout, blocks, fit = _layout_and_fit_acquisitions(acqs, "gs-no1x", 12.0)
     # Where the excess variance is below what a gain of 1 gives the optimum is at g = 1:
     # the fit gets there (an active-set step), with E·g the mean signal, and flags it.
@@ -106,13 +107,13 @@ def test_profile_bounds_where_the_information_is_nearly_singular(tmp_path):
     assert not fit.converged[at_one].any()
     target = stats.chi2.ppf(0.95, 1)
     for j in (0, 1):
-        lower, upper = fitting.profile_bounds(layout, blocks, fit, j)
+        lower, upper = engine.profile_bounds(layout, blocks, fit, j)
         assert np.all(np.isfinite(lower) & np.isfinite(upper))
         assert np.all(upper - lower > 1.0)  # wider than a factor e: E is barely seen
         for bound, edge in ((lower, layout.lower[j]), (upper, layout.upper[j])):
-            pinned = fitting._Pinned(layout, j, bound)
+            pinned = engine._Pinned(layout, j, bound)
             # the other parameter started where E·g gives the mean signal
-            refit = fitting.fit(pinned, blocks, (log_signal - bound)[:, None])
+            refit = engine.fit(pinned, blocks, (log_signal - bound)[:, None])
             deviance = 2 * (fit.objective - refit.objective)
             # on the quantile, or at the layout's bound (g = 1) with the deviance below it
             at_edge = np.abs(bound - edge) < 1e-6
@@ -130,7 +131,7 @@ def test_hierarchical_intervals_are_those_of_each_set_point_alone(tmp_path):
         warnings.simplefilter("ignore")
         ds = calibrate(sim.manifest, "gs-hierarchical", checks=False, map_errors=False)
     assert ds.attrs["intervals"].startswith("95 %, of the same model without the prior")
-    acqs = io.read_manifest(sim.manifest).acquisitions
+    acqs = read_manifest(sim.manifest).acquisitions
     phi = sim.truth["e_per_adu"]
     z = stats.norm.ppf(0.975)
     n_weak = n_wald = 0
@@ -143,7 +144,7 @@ def test_hierarchical_intervals_are_those_of_each_set_point_alone(tmp_path):
             weak = ~(se <= 0.1) | ~fit.converged
             n_weak, n_wald = n_weak + weak.sum(), n_wald + (~weak).sum()
             if weak.any():
-                lo, hi = fitting.profile_bounds(layout, blocks, fit, j)
+                lo, hi = engine.profile_bounds(layout, blocks, fit, j)
                 lower[weak], upper[weak] = np.exp(lo[weak]), np.exp(hi[weak])
             got = ds[f"{name}_lower"].sel(setpoint=sp).values.ravel()
             np.testing.assert_allclose(got, lower, rtol=2e-3, err_msg=f"{name} {sp}x")

@@ -10,13 +10,17 @@ import numpy as np
 import pytest
 import tifffile
 
-from emccdcal import io
-from emccdcal.dark import maps_from_dark
-from emccdcal.io import InputError, ManifestError, read_manifest, read_map, read_stack
+from emccdcal import errors
+from emccdcal.data import manifest as manifest_module
+from emccdcal.data import stacks
+from emccdcal.data.dark import maps_from_dark
+from emccdcal.data.manifest import read_manifest
+from emccdcal.data.stacks import read_map, read_stack
+from emccdcal.errors import InputError, ManifestError
 
 SHAPE = (3, 4)  # rows != cols, so that a transposition cannot pass
 N_FRAMES = 20
-REAL = Path(__file__).parents[1] / "../shared/data/lanl-proem"
+from conftest import write_real_manifest
 
 
 # --------------------------------------------------------------------------------------
@@ -206,7 +210,7 @@ em_gain_setpoint = 300
 offset = 566
 read_noise = "data/hi_sigma.tif"
 """
-    with pytest.warns(io.ReadNoiseGrowthWarning, match="clock-induced charge"):
+    with pytest.warns(errors.ReadNoiseGrowthWarning, match="clock-induced charge"):
         m = read_manifest(write(files, text))
     assert len(m.warnings) == 1
     assert "set-point 300" in m.warnings[0] and "manifest.toml" in m.warnings[0]
@@ -214,13 +218,13 @@ read_noise = "data/hi_sigma.tif"
 
 def test_a_dark_used_twice_is_reduced_once(files, monkeypatch):
     calls = []
-    real = io.maps_from_dark
+    real = manifest_module.maps_from_dark
 
     def counting(stack_):
         calls.append(1)
         return real(stack_)
 
-    monkeypatch.setattr(io, "maps_from_dark", counting)
+    monkeypatch.setattr(manifest_module, "maps_from_dark", counting)
     text = GOOD + """
 [[acquisition]]
 frames = "data/1x.tif"
@@ -524,12 +528,12 @@ class _Untouchable:
 
 
 def test_unsigned_stacks_are_not_scanned():
-    io.check_counts(_Untouchable(np.uint16), "x.tif")  # no read: passes
-    io.check_counts(_Untouchable(np.uint16), "x.tif", adc_max=65535)
+    stacks.check_counts(_Untouchable(np.uint16), "x.tif")  # no read: passes
+    stacks.check_counts(_Untouchable(np.uint16), "x.tif", adc_max=65535)
     with pytest.raises(AssertionError, match="data were read"):
-        io.check_counts(_Untouchable(np.float32), "x.tif")
+        stacks.check_counts(_Untouchable(np.float32), "x.tif")
     with pytest.raises(AssertionError, match="data were read"):
-        io.check_counts(_Untouchable(np.uint16), "x.tif", adc_max=4095)
+        stacks.check_counts(_Untouchable(np.uint16), "x.tif", adc_max=4095)
 
 
 class _Recording:
@@ -546,33 +550,21 @@ class _Recording:
 
 
 def test_scan_is_chunked_and_reports_the_right_frame(monkeypatch):
-    monkeypatch.setattr(io, "_SCAN_ELEMENTS", 2 * 12)  # two (3, 4) frames per chunk
+    monkeypatch.setattr(stacks, "_SCAN_ELEMENTS", 2 * 12)  # two (3, 4) frames per chunk
     data = stack(1).astype(np.float32)
     rec = _Recording(data)
-    io.check_counts(rec, "x.tif")
+    stacks.check_counts(rec, "x.tif")
     assert sum(rec.reads) == N_FRAMES and max(rec.reads) == 2
     data[13, 2, 0] = -1
     with pytest.raises(InputError, match=r"frame 13, pixel \(2, 0\)"):
-        io.check_counts(data, "x.tif")
+        stacks.check_counts(data, "x.tif")
 
 
 # --------------------------------------------------------------------------------------
 # The real data (skipped where the folder is absent)
 # --------------------------------------------------------------------------------------
-def test_real_gain_series_manifest(tmp_path):
-    gs = (REAL / "gain-GS").resolve()
-    if not gs.is_dir():
-        pytest.skip("shared ProEM data not present")
-    lines = [f'e_per_adu = "{gs / "ADU_map.tif"}"']
-    for g in (1, 5, 25, 100, 300):
-        lines += [
-            "[[acquisition]]",
-            f'frames = "{gs / f"{g}x-gain.tif"}"',
-            f"em_gain_setpoint = {g}",
-            f'offset = "{gs / f"{g}x-gain_no-signal_S0.tif"}"',
-            f'read_noise = "{gs / f"{g}x-gain_no-signal_sigma.tif"}"',
-        ]
-    path = write(tmp_path, "\n".join(lines) + "\n")
+def test_real_gain_series_manifest(real_data, tmp_path):
+    path = write_real_manifest(tmp_path, "gs")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         m = read_manifest(path)
@@ -583,11 +575,11 @@ def test_real_gain_series_manifest(tmp_path):
     np.testing.assert_allclose(m.e_per_adu, 3.859, rtol=1e-6)
     for a in m.acquisitions:
         assert a.n_frames == 5000 and a.frames().shape == (5000, 3, 3)
-    # dark offset drifts down with set-point (METHODS §7): about 588 at 1x, 566 at 300x
+    # dark offset drifts down with set-point (docs/quality.md): about 588 at 1x, 566 at 300x
     offsets = [float(a.offset.mean()) for a in m.acquisitions]
     assert offsets == sorted(offsets, reverse=True)
     assert 585 < offsets[0] < 591 and 563 < offsets[-1] < 569
     # read noise grows at 300x (clock-induced charge): the manifest warns about it
     assert any("set-point 300" in w for w in m.warnings)
-    assert any(issubclass(w.category, io.ReadNoiseGrowthWarning) for w in caught)
+    assert any(issubclass(w.category, errors.ReadNoiseGrowthWarning) for w in caught)
     assert not any("set-point 5 " in w or "set-point 25 " in w for w in m.warnings)

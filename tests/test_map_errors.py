@@ -10,9 +10,9 @@ import warnings
 import numpy as np
 import pytest
 
-from emccdcal.calibrate import calibrate
-from emccdcal.io import read_manifest
-from emccdcal.simulate import simulate_gain_series, simulate_intensity_series
+from emccdcal import calibrate
+from emccdcal.data.manifest import read_manifest
+from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
 
 DARK_FRAMES = 60
 

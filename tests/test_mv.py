@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from conftest import REAL_DATA as DATA
 
-from emccdcal.mv import fieller_interval, fit_mv_adu, fit_mv_gain, mean_ratio_gains
+from emccdcal.fit.mv import fieller_interval, fit_mv_adu, fit_mv_gain, mean_ratio_gains
 
-DATA = Path(__file__).parents[1] / "../shared/data/lanl-proem"
 Z95 = 1.959963984540054
 
 
@@ -264,9 +262,9 @@ def test_negative_slope_is_flagged_not_raised():
 
 
 # --------------------------------------------------------------------------------------
-# Real data (METHODS §13)
+# Real data (docs/validation.md)
 # --------------------------------------------------------------------------------------
-needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"real data not found at {DATA}")
+needs_data = pytest.mark.real_data
 
 
 def _stack_moments(path):
@@ -310,7 +308,7 @@ def real_gs():
 
 @needs_data
 def test_real_mv_adu_classical_fit_reproduces_reference(real_adu):
-    # METHODS §13 "ADU 3.780 ± 0.070" is the unweighted fit with a free intercept.
+    # docs/validation.md "ADU 3.780 ± 0.070" is the unweighted fit with a free intercept.
     fit = fit_mv_adu(*real_adu, intercept=True, weighted=False)
     assert fit.valid.all() and fit.e_per_adu.shape == (3, 3)
     assert abs(fit.e_per_adu.mean() - 3.780) < 1e-3
@@ -321,7 +319,7 @@ def test_real_mv_adu_classical_fit_reproduces_reference(real_adu):
 def test_real_mv_adu_default_fit(real_adu):
     # Our default (weighted, through the origin with the dark-map read noise) gives
     # 3.861 ± 0.079 over the 9 pixels: 0.08 above the classical fit, about one per-pixel
-    # SE pair apart, and within a per-pixel SE of the IS-MLE φ of METHODS §13.
+    # SE pair apart, and within a per-pixel SE of the IS-MLE φ of docs/validation.md
     fit = fit_mv_adu(*real_adu)
     assert fit.valid.all()
     assert abs(fit.e_per_adu.mean() - 3.780) < 0.12
@@ -342,12 +340,12 @@ def test_real_mv_gains_reproduce_reference(real_gs):
         [1e-9, 5e-3, 5e-3, 5e-3, 5e-3],
     )
     r = mean_ratio_gains(mean, var, offset, n, sp)
-    # to the digits METHODS §13 gives
+    # to the digits docs/validation.md gives
     np.testing.assert_array_less(
         np.abs(r.em_gain.mean(axis=(1, 2)) - [1.0, 4.791, 23.004, 90.105, 262.10]),
         [1e-9, 5e-4, 5e-4, 5e-4, 5e-3],
     )
-    # the 5× single-point MV gain sits ~10 % below the mean ratio (F² < 2, METHODS §3.1)
+    # the 5× single-point MV gain sits ~10 % below the mean ratio (F² < 2, docs/simulation.md)
     assert 0.87 < fit.em_gain[1].mean() / r.em_gain[1].mean() < 0.92
 
 

@@ -1,4 +1,4 @@
-"""The noise model against METHODS §10 (cases 1–8), an independent mpmath evaluation,
+"""The noise model against docs/validation.md (cases 1–8), an independent mpmath evaluation,
 property-based normalisation and moments, gradients, and bad input."""
 
 from __future__ import annotations
@@ -7,11 +7,10 @@ import numpy as np
 import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
+from reference import density
 from scipy import integrate, special, stats
 
-from emccdcal import noise
-
-from reference import density
+from emccdcal.model import noise
 
 PHI, S0, SIGMA = 3.859, 587.0, 15.0
 
@@ -154,7 +153,7 @@ def test_gradients_match_finite_differences(point):
 
 
 def test_derivative_identity_in_photoelectrons():
-    """∂p/∂E = p ⊛ h − p with h the single-electron output density (METHODS §2.1)."""
+    """∂p/∂E = p ⊛ h − p with h the single-electron output density (docs/methods.md)."""
     E, g, phi, s0, sigma = 12.0, 37.0, 3.6, 500.0, 12.0
     theta = g / phi
     k = np.arange(0, 4000)
@@ -184,6 +183,7 @@ ACCURACY_CASES = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ACCURACY_CASES)
 def test_logpmf_against_independent_high_precision(case):
     """Within 1e-8 (absolute) of mpmath wherever the pmf exceeds 1e-10 of its peak."""
@@ -228,6 +228,7 @@ def test_small_read_noise_normaliser_by_direct_sum(sigma):
     s0=st.floats(0.0, 1e4),
     sigma=st.floats(0.7, 200.0),
 )
+@pytest.mark.slow
 def test_normalisation_and_moments_property(E, g, phi, s0, sigma):
     # Counts are non-negative: keep the model's mass away from count 0.
     assume(s0 > 14 * sigma + 14)

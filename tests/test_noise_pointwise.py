@@ -7,7 +7,7 @@ import doctest
 import numpy as np
 import pytest
 
-from emccdcal import noise
+from emccdcal.model import noise
 
 PHI = 3.859
 

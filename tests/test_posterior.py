@@ -4,45 +4,27 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import write_real_manifest
 
-from emccdcal import posterior
-from emccdcal.methods import MethodError
+from emccdcal._util import parse_pixel
+from emccdcal.errors import MethodError, NotConvergedError
+from emccdcal.fit import posterior
 
-ADU = Path("/work/shared/data/lanl-proem/ADU")
-needs_real = pytest.mark.skipif(not ADU.is_dir(), reason="shared ProEM ADU data not present")
-
-
-def _adu_manifest(tmp_path):
-    lines = []
-    for level in range(1, 7):
-        lines += [
-            "[[acquisition]]",
-            f'frames = "{ADU}/1x-gain_level-0{level}.tif"',
-            "em_gain_setpoint = 1",
-            f'level = "L{level}"',
-            f'offset = "{ADU}/1x-gain_no-signal_S0.tif"',
-            f'read_noise = "{ADU}/1x-gain_no-signal_sigma.tif"',
-        ]
-    path = tmp_path / "adu.toml"
-    path.write_text("\n".join(lines) + "\n")
-    return path
+needs_real = pytest.mark.real_data
 
 
 @pytest.fixture(scope="module")
-def adu_manifest(tmp_path_factory):
-    if not ADU.is_dir():
-        pytest.skip("shared ProEM ADU data not present")
-    return _adu_manifest(tmp_path_factory.mktemp("adu"))
+def adu_manifest(real_data, tmp_path_factory):
+    return write_real_manifest(tmp_path_factory.mktemp("adu"), "adu")
 
 
 @pytest.fixture(scope="module")
 def adu_run(adu_manifest, tmp_path_factory):
     """One converged is-adu posterior of pixel (1, 1), written to disk (about 20 s)."""
-    from emccdcal.calibrate import calibrate
+    from emccdcal import calibrate
 
     out = tmp_path_factory.mktemp("post")
     ds = posterior.sample_posterior(adu_manifest, "is-adu", [(1, 1)], seed=0, out=out)
@@ -53,6 +35,7 @@ def adu_run(adu_manifest, tmp_path_factory):
 # --------------------------------------------------------------------------------------
 # The done-when criteria on the real data
 # --------------------------------------------------------------------------------------
+@pytest.mark.slow
 @needs_real
 def test_adu_pixel_posterior_matches_engine(adu_run):
     ds, engine, _ = adu_run
@@ -68,6 +51,7 @@ def test_adu_pixel_posterior_matches_engine(adu_run):
     assert ds.units.sel(parameter="e_per_adu").item() == "e-/ADU"
 
 
+@pytest.mark.slow
 @needs_real
 def test_adu_pixel_diagnostics_meet_the_criteria(adu_run):
     ds, engine, _ = adu_run
@@ -87,6 +71,7 @@ def test_adu_pixel_diagnostics_meet_the_criteria(adu_run):
     assert float(q.q025) < float(q.q16) < float(q["median"]) < float(q.q84) < float(q.q975)
 
 
+@pytest.mark.slow
 @needs_real
 def test_outputs_are_written(adu_run):
     import xarray as xr
@@ -104,7 +89,10 @@ def test_outputs_are_written(adu_run):
     with xr.open_dataset(out / posterior.POSTERIOR_FILE, engine="h5netcdf") as back:
         np.testing.assert_array_equal(back.samples.values, ds.samples.values)
         assert back.units.values.tolist()[0] == "e-/ADU"
-    png = out / "posterior_1_1.png"
+    from emccdcal.report.corner import write_corner_figures
+
+    (png,) = write_corner_figures(ds, out)
+    assert png == out / "posterior_1_1.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert not list(out.glob("*.tmp"))  # atomic writes left no temporary files
 
@@ -114,7 +102,7 @@ def test_outputs_are_written(adu_run):
 # --------------------------------------------------------------------------------------
 @needs_real
 def test_unconverged_chain_is_refused(adu_manifest):
-    with pytest.raises(posterior.NotConvergedError) as err:
+    with pytest.raises(NotConvergedError) as err:
         posterior.sample_posterior(adu_manifest, "is-adu", [(0, 0)], n_steps=40, max_steps=60)
     msg = str(err.value)
     assert "\n" not in msg
@@ -125,7 +113,7 @@ def test_unconverged_chain_is_refused(adu_manifest):
 @needs_real
 def test_refusal_is_reproducible_with_the_seed(adu_manifest):
     def message(seed):
-        with pytest.raises(posterior.NotConvergedError) as err:
+        with pytest.raises(NotConvergedError) as err:
             posterior.sample_posterior(adu_manifest, "is-adu", [(2, 2)], n_steps=30,
                                        max_steps=30, seed=seed)
         return str(err.value)
@@ -157,11 +145,11 @@ def test_pixel_outside_the_array(adu_manifest, pixel):
 @pytest.mark.parametrize("text", ["1;1", "a,b", "1,2,3", "1", "1.5,2", ""])
 def test_malformed_pixel(text):
     with pytest.raises(ValueError, match=r"malformed pixel .*ROW,COL"):
-        posterior.parse_pixel(text)
+        parse_pixel(text)
 
 
 def test_parse_pixel():
-    assert posterior.parse_pixel(" 2 , 0") == (2, 0)
+    assert parse_pixel(" 2 , 0") == (2, 0)
 
 
 @needs_real
@@ -191,18 +179,20 @@ def test_bad_options(adu_manifest, kwargs, match):
 
 
 @needs_real
-def test_cli_bad_pixel_is_a_value_error(adu_manifest, tmp_path):
-    args = _parse(["posterior", str(adu_manifest), "--method", "is-adu", "--pixel", "1-1",
-                   "-o", str(tmp_path)])
-    with pytest.raises(ValueError, match="malformed pixel '1-1'"):
-        args.func(args)
-    args = _parse(["posterior", str(adu_manifest), "--method", "is-adu", "--pixel", "9,9",
-                   "-o", str(tmp_path)])
-    with pytest.raises(ValueError, match="outside the array of shape 3x3"):
-        args.func(args)
+def test_cli_bad_pixel_is_one_line_and_exit_2(adu_manifest, tmp_path, capsys):
+    from emccdcal.cli import main
+
+    for pixel, message in (("1-1", "malformed pixel '1-1'"),
+                           ("9,9", "outside the array of shape 3x3")):
+        code = main(["posterior", str(adu_manifest), "--method", "is-adu", "--pixel", pixel,
+                     "-o", str(tmp_path)])
+        err = capsys.readouterr().err
+        assert code == 2 and message in err and len(err.strip().splitlines()) == 1
 
 
 def _parse(argv):
+    from emccdcal.cli.posterior import add_parser
+
     parser = argparse.ArgumentParser(prog="emccdcal")
-    posterior.add_parser(parser.add_subparsers(dest="verb"))
+    add_parser(parser.add_subparsers(dest="verb"))
     return parser.parse_args(argv)

@@ -9,9 +9,11 @@ import warnings
 import numpy as np
 import pytest
 
-from emccdcal import cli, posterior
-from emccdcal.calibrate import calibrate
-from emccdcal.simulate import simulate_gain_series, simulate_intensity_series
+from emccdcal import calibrate, cli
+from emccdcal.fit import posterior
+from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
+
+pytestmark = pytest.mark.slow  # about 35 s: every likelihood method sampled to convergence
 
 PIXEL = (0, 1)
 
@@ -33,7 +35,6 @@ def _engine(manifest, method):
         return calibrate(manifest, method, checks=False, map_errors=False)  # as the posterior
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("method, source", [("is-gain", "isg"), ("gs-no1x", "gs"),
                                             ("gs-hierarchical", "gs")])
 def test_posterior_agrees_with_the_engine(series, method, source):
@@ -41,7 +42,7 @@ def test_posterior_agrees_with_the_engine(series, method, source):
     (the hierarchical MAP within half an SD, and not by SD: its SE is a sandwich, not a
     posterior SD)."""
     manifest = series[source]
-    ds = posterior.sample_posterior(manifest, method, [PIXEL], seed=1, plot=False)
+    ds = posterior.sample_posterior(manifest, method, [PIXEL], seed=1)
     engine = _engine(manifest, method)
     assert np.all(ds.ess.values >= posterior.DEFAULT_MIN_ESS)
     names = [str(p) for p in ds.parameter.values]

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from emccdcal import psf
+from emccdcal.model import psf
 
 
 def test_fractions_sum_to_one_and_match_integral():

@@ -5,15 +5,16 @@ from __future__ import annotations
 import argparse
 import json
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import write_real_manifest
 
-from emccdcal import cli, io
-from emccdcal.quality import (
+from emccdcal import cli, errors
+from emccdcal.cli.check import add_parser
+from emccdcal.data.manifest import read_manifest
+from emccdcal.data.quality import (
     MIN_FRAMES,
-    add_parser,
     check_acquisition,
     check_manifest,
     format_report,
@@ -22,20 +23,19 @@ from emccdcal.quality import (
     saturation,
     stationarity,
 )
-from emccdcal.simulate import simulate_gain_series
+from emccdcal.simulate.series import simulate_gain_series
 
-REAL = (Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "lanl-proem").resolve()
 N = 5000
 
 
 def read(path):
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", io.ReadNoiseGrowthWarning)
-        return io.read_manifest(path)
+        warnings.simplefilter("ignore", errors.ReadNoiseGrowthWarning)
+        return read_manifest(path)
 
 
 # --------------------------------------------------------------------------------------
-# METHODS §10 case 12 (statsmodels 0.15.0; numpy.random.default_rng(0), n = 5000)
+# docs/validation.md case 12 (statsmodels 0.15.0; numpy.random.default_rng(0), n = 5000)
 # --------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def case12():
@@ -310,9 +310,6 @@ def test_cli_human_and_json(tmp_path, capsys):
 
 
 def test_cli_through_main(tmp_path, capsys, monkeypatch):
-    # register the verb in a local copy of the verb list, as cli.py will
-    if "quality" not in cli._VERB_MODULES:
-        monkeypatch.setattr(cli, "_VERB_MODULES", cli._VERB_MODULES + ("quality",))
     manifest = _sim(tmp_path, "main")
     assert cli.main(["check", str(manifest), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["warnings"] == []
@@ -334,19 +331,8 @@ def test_cli_bad_manifest_raises_valueerror(tmp_path):
 # Real data (shared ProEM gain series)
 # --------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def real_report(tmp_path_factory):
-    d = REAL / "gain-GS"
-    if not d.is_dir():
-        pytest.skip(f"real data not found at {REAL}")
-    text = ""
-    for g in (1, 5, 25, 100, 300):
-        text += (
-            f'[[acquisition]]\nframes = "{d / f"{g}x-gain.tif"}"\nem_gain_setpoint = {g}\n'
-            f'offset = "{d / f"{g}x-gain_no-signal_S0.tif"}"\n'
-            f'read_noise = "{d / f"{g}x-gain_no-signal_sigma.tif"}"\n\n'
-        )
-    path = tmp_path_factory.mktemp("real") / "manifest.toml"
-    path.write_text(text)
+def real_report(real_data, tmp_path_factory):
+    path = write_real_manifest(tmp_path_factory.mktemp("real"), "gs")
     return check_manifest(read(path))
 
 

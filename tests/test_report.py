@@ -1,9 +1,8 @@
-"""Figures and the HTML report (issue 6): content checked against the data, not just drawn."""
+"""Figures and the HTML report: content checked against the data, not just drawn."""
 
 from __future__ import annotations
 
 import base64
-import functools
 import hashlib
 import io as _io
 import json
@@ -17,30 +16,21 @@ import numpy as np
 import pytest
 import tifffile
 import xarray as xr
+from conftest import DEMO_COLS as COLS
+from conftest import DEMO_ROWS as ROWS
 
-from emccdcal import cli, figures, noise, report, result
-from emccdcal.calibrate import calibrate
-from emccdcal.demo import run_demo
-from emccdcal.io import read_manifest
+from emccdcal import calibrate, cli, result
+from emccdcal.beads import validation
+from emccdcal.data.manifest import read_manifest
+from emccdcal.model import noise
+from emccdcal.report import figures
+from emccdcal.report import html as report_html
 
-ROWS, COLS, FRAMES = 4, 3, 300  # not square: a transposed map would not fit
 PIXEL = (1, 2)  # not the centre, not on the diagonal
 
 
-@functools.cache
-def demo_run(base):
-    """``run_demo`` of a tiny sensor with its report, once per test session (shared with
-    test_browser.py): {"adu", "gs", "outdir", "report"} and what it printed."""
-    printed = _io.StringIO()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # chance non-stationarity findings of tiny series
-        run = run_demo(Path(base) / "demo", rows=ROWS, cols=COLS, frames=FRAMES, seed=5,
-                       report=True, out=printed)
-    return run, printed.getvalue()
-
-
 def write_validation(d, setpoints=(1, 5, 25), n_beads=3, frames=200, seed=0):
-    """A validation directory in the contract of issue 5, with known numbers."""
+    """A validation directory in the contract of, with known numbers."""
     d = Path(d)
     d.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -74,9 +64,9 @@ def write_validation(d, setpoints=(1, 5, 25), n_beads=3, frames=200, seed=0):
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
+def runs(demo_run):
     """Result directories of is-adu and gs (the demo's) and mv-adu; the demo's run."""
-    run, _ = demo_run(tmp_path_factory.getbasetemp())
+    run, _ = demo_run
     d = run["outdir"]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -251,21 +241,21 @@ def test_bead_figures_follow_the_validation_contract(tmp_path):
     ds["converged"] = xr.ones_like(ds.intensity, dtype=bool)
     ds["converged"][0, 1, 0, :50] = False
     ds.to_netcdf(d / "intensities.nc", engine="h5netcdf")
-    shown = figures.read_validation(d)[1]
+    shown = validation.read_validation(d)[1]
     assert int(np.isnan(shown[0, 1, 0]).sum()) == 50 and int(np.isnan(shown).sum()) == 50
 
 
 def test_read_validation_errors_name_the_file(tmp_path):
     with pytest.raises(FileNotFoundError, match="validation.json"):
-        figures.read_validation(tmp_path)
+        validation.read_validation(tmp_path)
     (tmp_path / "validation.json").write_text("{not json")
     with pytest.raises(ValueError, match=r"validation\.json: not a bead-validation file"):
-        figures.read_validation(tmp_path)
+        validation.read_validation(tmp_path)
     (tmp_path / "validation.json").write_text('{"calibrations": [{"file": "a"}]}')
     with pytest.raises(ValueError, match="not a bead-validation file"):
-        figures.read_validation(tmp_path)
+        validation.read_validation(tmp_path)
     (tmp_path / "validation.json").write_text('{"calibrations": []}')
-    assert figures.read_validation(tmp_path)[1] is None  # intensities.nc is optional
+    assert validation.read_validation(tmp_path)[1] is None  # intensities.nc is optional
     with pytest.raises(figures.DataUnavailable, match="intensities.nc"):
         figures.bead_intensity_figure(tmp_path)
 
@@ -300,11 +290,12 @@ def full_report(runs):
     return runs[1]["report"].read_text(encoding="utf-8")
 
 
-def test_demo_writes_a_self_contained_report_with_every_section_and_figure(full_report, runs):
+def test_demo_writes_a_self_contained_report_with_every_section_and_figure(full_report, runs,
+                                                                          demo_run):
     text = full_report
     run = runs[1]
     assert run["report"] == run["outdir"] / "report.html"
-    assert demo_run(run["outdir"].parent)[1].rstrip().endswith(f"report: {run['report']}")
+    assert demo_run[1].rstrip().endswith(f"report: {run['report']}")
     p = _Parse()
     p.feed(text)
     for sid in ("summary", "warnings", "gof", "figures", "provenance"):
@@ -330,14 +321,14 @@ def test_report_summary_and_provenance_hold_the_numbers(full_report, loaded, run
     ds = loaded["is-adu"]
     phi = np.median(ds.e_per_adu.values[ds.converged.values])
     assert "e⁻/ADU" in text and "ADU/e⁻" in text
-    assert f"<td>{report._fmt(phi)}</td>" in text
+    assert f"<td>{report_html._fmt(phi)}</td>" in text
     inv = np.median(ds.adu_per_e.values[ds.converged.values])  # median of 1/φ over pixels
-    assert f"<td>1/φ</td><td>ADU/e⁻</td><td>{report._fmt(inv)}</td>" in text
+    assert f"<td>1/φ</td><td>ADU/e⁻</td><td>{report_html._fmt(inv)}</td>" in text
     gs = loaded["gs"]
     conv = gs.converged.values
     for s in (5, 25, 100, 300):
         g = np.median(gs.em_gain.sel(setpoint=s).values[conv])
-        assert f"<td>{s}×</td><td>{report._fmt(g)}</td>" in text
+        assert f"<td>{s}×</td><td>{report_html._fmt(g)}</td>" in text
     for method in ("is-adu", "gs"):
         f = runs[0][method] / "calibration.nc"
         assert hashlib.sha256(f.read_bytes()).hexdigest() in text
@@ -352,9 +343,9 @@ def test_report_leaves_out_raw_data_figures_when_manifest_is_gone(loaded, tmp_pa
     moved = loaded["mv-adu"].copy()
     moved.attrs["manifest_path"] = str(tmp_path / "gone" / "manifest.toml")
     vdir, _ = write_validation(tmp_path / "val")
-    with pytest.warns(report.ReportWarning) as rec:
-        text = report.build_report([moved], validation=[vdir, tmp_path / "no-such-dir"])
-    msgs = [str(w.message) for w in rec if issubclass(w.category, report.ReportWarning)]
+    with pytest.warns(report_html.ReportWarning) as rec:
+        text = report_html.build_report([moved], validation=[vdir, tmp_path / "no-such-dir"])
+    msgs = [str(w.message) for w in rec if issubclass(w.category, report_html.ReportWarning)]
     assert len(msgs) == 3  # one per reason, not one per figure
     assert "no-such-dir/validation.json: no such file" in msgs[0]
     assert msgs[1].startswith("left out 3 figure(s) (result 1 (mv-adu): counts and fitted pmf; ")
@@ -387,7 +378,7 @@ def test_report_cli_quiet_warns_once_and_rejects_bad_inputs(loaded, tmp_path, ca
     result.save(moved, tmp_path / "res")
     out = tmp_path / "r.html"
     assert cli.main(["report", str(tmp_path / "res"), "-o", str(out), "--quiet",
-                     "--figures", str(tmp_path / "figs")]) == 0
+                     "--figures-dir", str(tmp_path / "figs")]) == 0
     o, e = capsys.readouterr()
     assert o == "" and e.count("nowhere.toml") == 1 and e.startswith("warning: ")
     assert 'id="summary"' in out.read_text()
@@ -408,9 +399,8 @@ def test_report_cli_quiet_warns_once_and_rejects_bad_inputs(loaded, tmp_path, ca
         o, e = capsys.readouterr()
         assert e.count("\n") == 1 and name in e and msg in e, e
     assert not (tmp_path / "x.html").exists()
-    with pytest.raises(SystemExit) as exc:
-        cli.main(["report", str(tmp_path / "res"), "-o", str(out), "--pixel", "1"])
-    assert exc.value.code == 2 and "ROW,COL" in capsys.readouterr().err
+    assert cli.main(["report", str(tmp_path / "res"), "-o", str(out), "--pixel", "1"]) == 2
+    assert "ROW,COL" in capsys.readouterr().err
 
 
 def test_calibrate_report_flag_writes_report_beside_result(runs, tmp_path, capsys):
@@ -426,9 +416,9 @@ def test_calibrate_report_flag_writes_report_beside_result(runs, tmp_path, capsy
 
 
 def test_summary_says_what_the_standard_errors_include(tmp_path):
-    from emccdcal.calibrate import calibrate
-    from emccdcal.report import write_report
-    from emccdcal.simulate import simulate_gain_series
+    from emccdcal import calibrate
+    from emccdcal.report.html import write_report
+    from emccdcal.simulate.series import simulate_gain_series
 
     sim = simulate_gain_series(tmp_path / "gs", rows=2, cols=2, frames=300, setpoints=(1, 100),
                                seed=3, progress=False)

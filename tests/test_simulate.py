@@ -18,16 +18,17 @@ try:  # Python >= 3.11
 except ModuleNotFoundError:  # pragma: no cover
     import tomli as tomllib
 
-from emccdcal import cli, simulate
-from emccdcal.cascade import excess_noise_factor
+from emccdcal import cli
+from emccdcal.data.manifest import read_manifest
 from emccdcal.demo import run_demo
-from emccdcal.simulate import (
+from emccdcal.model.cascade import excess_noise_factor
+from emccdcal.simulate.beads import bead_scene, simulate_beads
+from emccdcal.simulate.camera import (
     expected_moments,
     offset_at_setpoint,
     simulate_frames,
-    simulate_gain_series,
-    simulate_intensity_series,
 )
+from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
 
 PHI = 3.859
 SIGMA = 15.5
@@ -82,7 +83,7 @@ def test_gamma_counts_follow_noise_model_pmf(E, g, phi, S0, sigma):
     """
     from scipy import stats
 
-    from emccdcal import noise
+    from emccdcal.model import noise
 
     c = simulate_frames(E, g, phi, S0, sigma, frames=1000, rows=16, cols=16, seed=21).ravel().astype(int)
     ks = np.arange(c.min() - 50, c.max() + 51)
@@ -275,10 +276,7 @@ def test_gain_series_files(gain_series):
 
 @pytest.mark.filterwarnings("ignore::UserWarning")  # io flags the CIC in the darks
 def test_gain_series_readable_by_io(gain_series):
-    emio = pytest.importorskip("emccdcal.io")
-    if not hasattr(emio, "read_manifest"):
-        pytest.skip("emccdcal.io.read_manifest not available")
-    m = emio.read_manifest(gain_series.manifest)
+    m = read_manifest(gain_series.manifest)
     assert m.shape == (6, 5)
     assert tuple(m.setpoints) == (1.0, 5.0, 25.0, 100.0, 300.0)
 
@@ -401,13 +399,13 @@ def test_series_bad_options(tmp_path, call, name):
 @pytest.mark.parametrize(
     "argv",
     [
-        ["simulate", "gain-series", "OUT", "--frames", "-5"],
-        ["simulate", "gain-series", "OUT", "--multiplication", "poisson"],
-        ["simulate", "gain-series", "OUT", "--em-gain", "1,2"],
-        ["simulate", "gain-series", "OUT", "--setpoints", "1,abc"],
-        ["simulate", "gain-series", "OUT", "--drift", "3"],
-        ["simulate", "gain-series", "OUT", "--adc-bits", "17"],
-        ["simulate", "gain-series", "OUT", "--read-noise", "nan"],
+        ["simulate", "gain-series", "-o", "OUT", "--frames", "-5"],
+        ["simulate", "gain-series", "-o", "OUT", "--multiplication", "poisson"],
+        ["simulate", "gain-series", "-o", "OUT", "--em-gain", "1,2"],
+        ["simulate", "gain-series", "-o", "OUT", "--setpoints", "1,abc"],
+        ["simulate", "gain-series", "-o", "OUT", "--drift", "3"],
+        ["simulate", "gain-series", "-o", "OUT", "--adc-bits", "17"],
+        ["simulate", "gain-series", "-o", "OUT", "--read-noise", "nan"],
         ["simulate", "intensity-series", "OUT", "--labels", "a,b"],
         ["simulate", "intensity-series", "OUT", "--setpoint", "0.5"],
         ["simulate", "gain-series"],
@@ -430,7 +428,7 @@ def test_cli_bad_options(tmp_path, capsys, argv):
 
 def test_cli_gain_series(tmp_path, capsys):
     out = tmp_path / "gs"
-    argv = ["simulate", "gain-series", str(out), "--rows", "3", "--cols", "4", "--frames", "20"]
+    argv = ["simulate", "gain-series", "-o", str(out), "--rows", "3", "--cols", "4", "--frames", "20"]
     argv += ["--setpoints", "1,5,25", "--em-gain", "1,4.5,20", "--multiplication", "cascade", "--seed", "7", "--quiet"]
     assert cli.main(argv) == 0
     captured = capsys.readouterr()
@@ -443,7 +441,7 @@ def test_cli_gain_series(tmp_path, capsys):
 
 def test_cli_intensity_series_progress_on_stderr(tmp_path, capsys):
     out = tmp_path / "is"
-    argv = ["simulate", "intensity-series", str(out), "--rows", "2", "--cols", "2", "--frames", "10"]
+    argv = ["simulate", "intensity-series", "-o", str(out), "--rows", "2", "--cols", "2", "--frames", "10"]
     argv += ["--levels", "100,200", "--setpoint", "25", "--seed", "1"]
     assert cli.main(argv) == 0
     captured = capsys.readouterr()
@@ -454,7 +452,7 @@ def test_cli_intensity_series_progress_on_stderr(tmp_path, capsys):
 
 def test_console_entry_point(tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "emccdcal", "simulate", "gain-series", str(tmp_path), "--frames", "0"],
+        [sys.executable, "-m", "emccdcal", "simulate", "gain-series", "-o", str(tmp_path), "--frames", "0"],
         capture_output=True,
         text=True,
     )
@@ -482,34 +480,40 @@ def test_demo_calibrates_and_recovers_truth(tmp_path):
 
 
 def test_demo_cli(tmp_path, capsys):
-    assert cli.main(["demo", str(tmp_path / "d"), "--rows", "2", "--cols", "2", "--frames", "500",
+    assert cli.main(["demo", "-o", str(tmp_path / "d"), "--rows", "2", "--cols", "2", "--frames", "500",
                      "--quiet", "--no-report"]) == 0
     out = capsys.readouterr().out
     assert "em_gain at 300x" in out and "e_per_adu" in out
     assert (tmp_path / "d" / "gain-series" / "manifest.toml").exists()
-    assert cli.main(["demo", str(tmp_path / "e"), "--frames", "0"]) == 2
+    assert cli.main(["demo", "-o", str(tmp_path / "e"), "--frames", "0"]) == 2
 
 
 def test_docstring_examples():
-    result = doctest.testmod(simulate, optionflags=doctest.ELLIPSIS)
-    assert result.attempted > 5 and result.failed == 0
+    from emccdcal.simulate import beads, camera
+
+    attempted = 0
+    for module in (camera, beads):
+        result = doctest.testmod(module, optionflags=doctest.ELLIPSIS)
+        assert result.failed == 0
+        attempted += result.attempted
+    assert attempted > 5
 
 
 # --------------------------------------------------------------------------------------
-# Beads (issue 5)
+# Beads
 # --------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def bead_movies(tmp_path_factory):
     out = tmp_path_factory.mktemp("beads")
-    return simulate.simulate_beads(out, beads=3, photoelectrons=[4000, 5000, 6000], rows=40,
+    return simulate_beads(out, beads=3, photoelectrons=[4000, 5000, 6000], rows=40,
                                    cols=36, frames=150, dark_frames=200, setpoints=[1, 25],
                                    seed=9)
 
 
 def test_bead_scene_is_the_psf_model():
-    from emccdcal import psf
+    from emccdcal.model import psf
 
-    E = simulate.bead_scene([[10.2, 12.7], [25.0, 20.4]], [5000.0, 3000.0], 1.3, 10.0, 36, 30)
+    E = bead_scene([[10.2, 12.7], [25.0, 20.4]], [5000.0, 3000.0], 1.3, 10.0, 36, 30)
     assert E.shape == (36, 30)
     assert E.sum() == pytest.approx(8000.0 + 10.0 * 36 * 30, rel=1e-9)
     one = psf.spot_image([12.7, 10.2, 1.3, 5000.0, 0.0], np.arange(36), np.arange(30))
@@ -517,8 +521,8 @@ def test_bead_scene_is_the_psf_model():
 
 
 def test_bead_files_truth_and_true_calibration(bead_movies):
-    from emccdcal import io as emio
     from emccdcal import result
+    from emccdcal.data.manifest import read_manifest
 
     res = bead_movies
     t = res.truth
@@ -531,14 +535,14 @@ def test_bead_files_truth_and_true_calibration(bead_movies):
     d = np.hypot(*(pos[:, None, :] - pos[None, :, :]).transpose(2, 0, 1))
     assert d[np.triu_indices(3, 1)].min() >= 12
     assert [a["em_gain"] for a in t["acquisitions"]] == [1.0, 22.95]
-    m = emio.read_manifest(res.manifest)
+    m = read_manifest(res.manifest)
     assert m.shape == (40, 36) and m.setpoints == (1.0, 25.0) and m.e_per_adu == 3.859
     cal = result.load(res.outdir / "truth_calibration.nc")
     assert cal.attrs["method"] == "truth"
     assert cal.attrs["manifest_sha256"] == m.content_hash
     np.testing.assert_array_equal(cal["em_gain"].sel(setpoint=25).values, 22.95)
     np.testing.assert_array_equal(cal["e_per_adu"].values, 3.859)
-    scene = simulate.bead_scene(pos, [4000, 5000, 6000], 1.3, 10.0, 40, 36)
+    scene = bead_scene(pos, [4000, 5000, 6000], 1.3, 10.0, 40, 36)
     np.testing.assert_allclose(cal["photoelectrons"].values, scene)
     pattern = tifffile.imread(res.outdir / "truth-offset-pattern.tif")
     np.testing.assert_allclose(cal["offset"].sel(setpoint=1).values, 587.7 + pattern)
@@ -556,25 +560,25 @@ def test_bead_files_truth_and_true_calibration(bead_movies):
 def test_beads_reproducible_and_options(tmp_path):
     kw = dict(beads=2, rows=30, cols=30, frames=5, dark_frames=4, setpoints=[1, 5],
               multiplication="cascade")
-    a = simulate.simulate_beads(tmp_path / "a", seed=3, **kw)
-    b = simulate.simulate_beads(tmp_path / "b", seed=3, **kw)
+    a = simulate_beads(tmp_path / "a", seed=3, **kw)
+    b = simulate_beads(tmp_path / "b", seed=3, **kw)
     for rel in ("beads/5x-beads.tif", "beads/1x-beads_no-signal.tif", "truth.json"):
         assert (a.outdir / rel).read_bytes() == (b.outdir / rel).read_bytes()
     assert a.truth["multiplication"] == "cascade" and a.truth["stages"] == 536
     with pytest.raises(ValueError, match="cannot place 30 beads"):
-        simulate.simulate_beads(tmp_path / "c", beads=30, rows=30, cols=30, frames=2)
+        simulate_beads(tmp_path / "c", beads=30, rows=30, cols=30, frames=2)
     with pytest.raises(ValueError, match="photoelectrons has 2 values but there are 3 beads"):
-        simulate.simulate_beads(tmp_path / "c", beads=3, photoelectrons=[1, 2], frames=2)
+        simulate_beads(tmp_path / "c", beads=3, photoelectrons=[1, 2], frames=2)
     with pytest.raises(ValueError, match="outside the 30×30 sensor"):
-        simulate.simulate_beads(tmp_path / "c", positions=[[5, 31]], rows=30, cols=30, frames=2)
+        simulate_beads(tmp_path / "c", positions=[[5, 31]], rows=30, cols=30, frames=2)
     with pytest.raises(ValueError, match="width must be > 0"):
-        simulate.simulate_beads(tmp_path / "c", width=0, frames=2)
+        simulate_beads(tmp_path / "c", width=0, frames=2)
     assert not (tmp_path / "c").exists()
 
 
 def test_cli_beads(tmp_path, capsys):
     out = tmp_path / "b"
-    argv = ["simulate", "beads", str(out), "--beads", "2", "--rows", "30", "--cols", "30",
+    argv = ["simulate", "beads", "-o", str(out), "--beads", "2", "--rows", "30", "--cols", "30",
             "--frames", "4", "--dark-frames", "3", "--setpoints", "1,100", "--width", "1.5",
             "--background", "5", "--photoelectrons", "3000", "--seed", "2", "--quiet"]
     assert cli.main(argv) == 0
@@ -584,4 +588,4 @@ def test_cli_beads(tmp_path, capsys):
     assert truth["width"] == 1.5 and truth["background"] == 5.0 and len(truth["beads"]) == 2
     assert tifffile.imread(out / "beads/100x-beads.tif").shape == (4, 30, 30)
     assert tifffile.imread(out / "beads/100x-beads_no-signal.tif").shape == (3, 30, 30)
-    assert cli.main(["simulate", "beads", str(tmp_path / "x"), "--beads", "-1"]) == 2
+    assert cli.main(["simulate", "beads", "-o", str(tmp_path / "x"), "--beads", "-1"]) == 2

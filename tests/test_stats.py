@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import tifffile
@@ -11,9 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from emccdcal.stats import PixelHistograms, histograms
+from emccdcal.data.stats import PixelHistograms, histograms
 
-REAL = Path(__file__).parents[1] / "../shared/data/lanl-proem"
 ADC_MAX = 1023
 
 
@@ -170,10 +167,8 @@ def test_property_against_reference(frames, adc_max, chunk_pixels):
     check_against_reference(h, frames, adc_max)
 
 
-def test_real_data_histograms():
-    path = REAL / "gain-GS/300x-gain.tif"
-    if not path.is_file():
-        pytest.skip("shared ProEM data not present")
+def test_real_data_histograms(real_data):
+    path = real_data / "gain-GS/300x-gain.tif"
     f = tifffile.memmap(path, mode="r")
     h = histograms(f, adc_max=65535)
     assert h.shape == (3, 3) and np.all(h.n == 5000) and np.all(h.n_saturated == 0)
@@ -183,7 +178,7 @@ def test_real_data_histograms():
 
 
 def test_default_block_size_bounds_memory(monkeypatch):
-    import emccdcal.stats as stats
+    import emccdcal.data.stats as stats
 
     sizes = []
     real = stats._block_histograms

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from emccdcal import cli, result, validation
-from emccdcal.simulate import simulate_beads
+from emccdcal import cli, result
+from emccdcal.beads import validation
+from emccdcal.simulate.beads import simulate_beads
 
 PHI = 3.859
 SHAPE = (32, 40)
@@ -49,12 +50,12 @@ def beads_data(tmp_path_factory):
         warnings.simplefilter("ignore")
         doc = validation.validate(
             sim.manifest, [str(cal["truth"]), str(cal["wrong"]), f"{cal['adu']},{cal['g25']}"],
-            out=d / "val", figures=False)
+            out=d / "val")
     return sim, cal, doc, d / "val"
 
 
 # --------------------------------------------------------------------------------------
-# The metric (METHODS §10 case 14)
+# The metric (docs/validation.md case 14)
 # --------------------------------------------------------------------------------------
 @pytest.mark.parametrize("scale", [1.0, 5000.0])
 def test_metric_case_14(scale):
@@ -223,7 +224,7 @@ def test_no_beads_and_beads_at_the_edge(tmp_path, capsys):
     truth = tmp_path / "edge" / "truth_calibration.nc"
     with pytest.warns(UserWarning, match=r"skipped 1 bead\(s\) closer than 4 px to the frame's "
                                          r"edge at \(row, col\) \(2, 12\)"):
-        doc = validation.validate(edge.manifest, [truth], figures=False)
+        doc = validation.validate(edge.manifest, [truth])
     assert [(b["row"], b["col"]) for b in doc["calibrations"][0]["beads"]] == [(12, 12)]
     # only a bead at the edge: nothing left to fit
     only = simulate_beads(tmp_path / "only", positions=[[12.0, 1.6]], rows=24, cols=24,
@@ -240,7 +241,7 @@ def test_bead_with_missing_calibration_pixels_is_left_out(beads_data, tmp_path):
     part = _result(tmp_path / "part", method="gs", setpoints=SETPOINTS, gains=GAINS,
                    converged=mask)
     with pytest.warns(UserWarning, match=r"in the box of 1 bead\(s\) at \(row, col\) \(22, 28\)"):
-        doc = validation.validate(sim.manifest, [part], figures=False)
+        doc = validation.validate(sim.manifest, [part])
     c = doc["calibrations"][0]
     left_out = next(b for b in c["beads"] if (b["row"], b["col"]) == (22, 28))
     assert left_out["mean_intensity"]["1"] is None and left_out["sigma_means_incl_1x"] is None

@@ -5,15 +5,23 @@ gain set-point, and the intensities ``photoelectrons`` (e⁻ per pixel per frame
 pixel, with standard errors, by the gain-series maximum-likelihood method of Ryan et
 al., Sci. Rep. 11, 18348 (2021) and the comparison methods of that paper.
 
-Data flow, one module per stage::
+Subpackages, data flowing one way (``docs/architecture.md``)::
 
-    io (manifest, readers) -> dark (offset / read-noise maps) -> stats (histograms)
-    -> fitting (likelihood engine) driven by methods (parameter layouts)
-    -> result (xarray dataset) -> report / validation
+    model (noise, cascade, psf) <- data (manifest, stacks, dark, stats, quality)
+    -> fit (engine, layouts, mv, gof, posterior) -> calibration -> result
+    -> beads (fit, cots, validation) -> report (figures, html, corner); simulate; cli
 
-The noise model everything stands on is :mod:`emccdcal.noise`.
+The public API is below; every name is imported on first use, so ``import emccdcal``
+is fast.
+
+>>> import emccdcal
+>>> emccdcal.calibrate.__module__, emccdcal.noise.__name__
+('emccdcal.calibration', 'emccdcal.model.noise')
 """
 
+from __future__ import annotations
+
+import importlib
 from importlib.metadata import PackageNotFoundError, version
 
 try:
@@ -21,10 +29,39 @@ try:
 except PackageNotFoundError:  # pragma: no cover - running from a source tree
     __version__ = "0+unknown"
 
-from . import noise  # noqa: E402
+#: Public name -> (module, attribute); attribute None means the module itself.
+_API = {
+    "calibrate": ("emccdcal.calibration", "calibrate"),
+    "load_result": ("emccdcal.result", "load"),
+    "read_manifest": ("emccdcal.data.manifest", "read_manifest"),
+    "check": ("emccdcal.data.quality", "check_manifest"),
+    "simulate_frames": ("emccdcal.simulate.camera", "simulate_frames"),
+    "Camera": ("emccdcal.simulate.camera", "Camera"),
+    "simulate_gain_series": ("emccdcal.simulate.series", "simulate_gain_series"),
+    "simulate_intensity_series": ("emccdcal.simulate.series", "simulate_intensity_series"),
+    "simulate_beads": ("emccdcal.simulate.beads", "simulate_beads"),
+    "validate": ("emccdcal.beads.validation", "validate"),
+    "cots": ("emccdcal.beads.cots_calibration", "cots_calibrate"),
+    "sample_posterior": ("emccdcal.fit.posterior", "sample_posterior"),
+    "write_report": ("emccdcal.report.html", "write_report"),
+    "noise": ("emccdcal.model.noise", None),
+    "EmccdcalError": ("emccdcal.errors", "EmccdcalError"),
+}
 
-__all__ = ["__version__", "noise"]
+__all__ = ["__version__", *_API]
 
-from .calibrate import calibrate  # noqa: E402
 
-__all__ += ["calibrate"]
+def __getattr__(name: str):
+    try:
+        module, attribute = _API[name]
+    except KeyError:
+        raise AttributeError(f"module 'emccdcal' has no attribute {name!r}") from None
+    value = importlib.import_module(module)
+    if attribute is not None:
+        value = getattr(value, attribute)
+    globals()[name] = value  # later look-ups skip this function
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

@@ -7,12 +7,11 @@ with ``gs`` using that φ, and prints truth against estimate ± standard error (
 over pixels). Works offline; writes only into DIR (default: a new temporary directory),
 including both results (``calibration.nc``, ``summary.json``) and — the command's default,
 ``report=True`` in Python — the HTML report of both (``report.html``,
-:mod:`emccdcal.report`), whose path it prints last.
+:mod:`emccdcal.report.html`), whose path it prints last.
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
 import tempfile
 import warnings
@@ -20,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .calibrate import calibrate
+from .calibration import calibrate
 from .result import format_setpoint
-from .simulate import simulate_gain_series, simulate_intensity_series
+from .simulate.series import simulate_gain_series, simulate_intensity_series
 
-__all__ = ["run_demo", "add_parser"]
+__all__ = ["run_demo", "DEMO_SEED"]
 
 #: Seed of the demo: the same numbers on every machine.
 DEMO_SEED = 20211
@@ -46,7 +45,7 @@ def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication="gamm
         Size of each stack (default 16 × 16 px, 5000 frames).
     multiplication : {"gamma", "cascade"}, optional
         EM-register model of the simulation (default gamma, the likelihood's own; with
-        the exact cascade the 5× gain is still right for ``gs``, METHODS §3.1).
+        the exact cascade the 5× gain is still right for ``gs``, docs/simulation.md).
     seed : int, optional
         Seed of the simulation.
     progress : bool, optional
@@ -82,7 +81,7 @@ def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication="gamm
                        progress=progress)
         html = None
         if report:
-            from .report import REPORT_FILE, write_report
+            from .report.html import REPORT_FILE, write_report
 
             html = write_report([outdir / "result-is-adu", outdir / "result-gs"],
                                 outdir / REPORT_FILE, progress=progress)
@@ -119,34 +118,3 @@ def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication="gamm
     return {"adu": adu, "gs": gs, "outdir": outdir, "report": html}
 
 
-def _run(args) -> int:
-    for name in ("rows", "cols", "frames"):
-        if getattr(args, name) < 1 or (name == "frames" and args.frames < 2):
-            raise ValueError(f"--{name} must be a positive integer"
-                             + (" of at least 2" if name == "frames" else ""))
-    run_demo(Path(args.dir) if args.dir else None, rows=args.rows, cols=args.cols,
-             frames=args.frames, multiplication=args.multiplication, seed=args.seed,
-             progress=not args.quiet, report=not args.no_report)
-    return 0
-
-
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    """Add ``demo [DIR]`` to the ``emccdcal`` command line."""
-    p = subparsers.add_parser(
-        "demo",
-        help="simulate the paper's data and calibrate it (is-adu, then gs)",
-        description=__doc__.splitlines()[0],
-    )
-    p.add_argument("dir", nargs="?", metavar="DIR",
-                   help="output directory (default: a new temporary directory)")
-    p.add_argument("--rows", type=int, default=16, help="rows, px (default %(default)s)")
-    p.add_argument("--cols", type=int, default=16, help="columns, px (default %(default)s)")
-    p.add_argument("--frames", type=int, default=5000,
-                   help="frames per acquisition (default %(default)s)")
-    p.add_argument("--multiplication", choices=("gamma", "cascade"), default="gamma",
-                   help="EM register model of the simulation (default %(default)s)")
-    p.add_argument("--seed", type=int, default=DEMO_SEED, help="random seed (default %(default)s)")
-    p.add_argument("--no-report", action="store_true", help="skip the HTML report")
-    p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
-    p.set_defaults(func=_run)
-    return p

@@ -39,9 +39,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
-import os
 import re
-import tempfile
 import time
 import warnings
 from numbers import Number
@@ -49,6 +47,9 @@ from pathlib import Path
 
 import numpy as np
 import xarray as xr
+
+from ._util import atomic_write, finite_or_none
+from .errors import InputError, MissingFileError
 
 __all__ = [
     "UNITS",
@@ -151,7 +152,7 @@ def format_setpoint(value) -> str:
     """
     v = float(value)
     if not math.isfinite(v):
-        raise ValueError(f"set-point must be finite, got {value!r}")
+        raise InputError(f"set-point must be finite, got {value!r}")
     if v.is_integer():
         return str(int(v))
     return repr(v)
@@ -176,7 +177,7 @@ def _float_array(name, value, shape, dims):
     if arr.ndim == 0:
         return np.full(shape, float(arr))
     if arr.shape != shape:
-        raise ValueError(
+        raise InputError(
             f"{name} has shape {arr.shape}; expected {shape} for dims {dims}"
         )
     return arr
@@ -192,7 +193,7 @@ def _attr_value(key, value):
         items = list(np.asarray(value).ravel()) if isinstance(value, np.ndarray) else list(value)
         if all(isinstance(v, (str, Number, np.number)) and not isinstance(v, bool) for v in items):
             return value
-    raise ValueError(
+    raise InputError(
         f"dataset attribute {key!r} must be a str, a number, or a list of them; "
         f"got {type(value).__name__}"
     )
@@ -287,9 +288,9 @@ def make_dataset(
     (('level', 'row', 'col'), 'e-/ADU')
     """
     if not isinstance(method, str) or not method:
-        raise ValueError("method must be a non-empty string")
+        raise InputError("method must be a non-empty string")
     if not isinstance(manifest_hash, str) or not _HEX64.match(manifest_hash.lower()):
-        raise ValueError(
+        raise InputError(
             f"manifest_hash must be the SHA-256 hex digest (64 hex digits); got {manifest_hash!r}"
         )
 
@@ -297,30 +298,30 @@ def make_dataset(
     if setpoints is not None:
         sp = np.asarray(setpoints, dtype=float).ravel()
         if sp.size == 0 or not np.all(np.isfinite(sp) & (sp > 0)):
-            raise ValueError("setpoints must be one or more positive finite numbers")
+            raise InputError("setpoints must be one or more positive finite numbers")
         if np.unique(sp).size != sp.size:
-            raise ValueError(f"setpoints must be distinct; got {sp.tolist()}")
+            raise InputError(f"setpoints must be distinct; got {sp.tolist()}")
         coords["setpoint"] = sp
     if levels is not None:
         lv = [str(v) for v in (levels if not isinstance(levels, str) else [levels])]
         if not lv:
-            raise ValueError("levels must hold at least one label")
+            raise InputError("levels must hold at least one label")
         if len(set(lv)) != len(lv):
-            raise ValueError(f"level labels must be distinct; got {lv}")
+            raise InputError(f"level labels must be distinct; got {lv}")
         coords["level"] = np.array(lv, dtype=str)
     sizes = {k: len(v) for k, v in coords.items()}
 
     # Pixel grid and the dims of photoelectrons.
     E = np.asarray(photoelectrons, dtype=float)
     if E.ndim < 2:
-        raise ValueError(f"photoelectrons must be at least 2-D (row, col); got shape {E.shape}")
+        raise InputError(f"photoelectrons must be at least 2-D (row, col); got shape {E.shape}")
     if photoelectrons_dims is None:
         if E.ndim == 2:
             e_dims = _PIXEL_DIMS
         elif E.ndim == 3 and (levels is None) != (setpoints is None):
             e_dims = ("level" if levels is not None else "setpoint",) + _PIXEL_DIMS
         else:
-            raise ValueError(
+            raise InputError(
                 f"cannot tell the dims of photoelectrons with shape {E.shape} "
                 f"(setpoints {'given' if setpoints is not None else 'not given'}, levels "
                 f"{'given' if levels is not None else 'not given'}); pass photoelectrons_dims"
@@ -328,20 +329,20 @@ def make_dataset(
     else:
         e_dims = tuple(photoelectrons_dims)
         if e_dims[-2:] != _PIXEL_DIMS or len(set(e_dims)) != len(e_dims):
-            raise ValueError(f"photoelectrons_dims must end in ('row', 'col'); got {e_dims}")
+            raise InputError(f"photoelectrons_dims must end in ('row', 'col'); got {e_dims}")
         unknown = [d for d in e_dims[:-2] if d not in sizes]
         if unknown:
-            raise ValueError(
+            raise InputError(
                 f"photoelectrons_dims names {unknown}, which need the matching "
                 "setpoints/levels argument"
             )
     if len(e_dims) != E.ndim:
-        raise ValueError(f"photoelectrons has shape {E.shape} but dims {e_dims}")
+        raise InputError(f"photoelectrons has shape {E.shape} but dims {e_dims}")
     R, C = E.shape[-2:]
     sizes.update(row=R, col=C)
     for d, n in zip(e_dims, E.shape):
         if sizes[d] != n:
-            raise ValueError(
+            raise InputError(
                 f"photoelectrons has {n} entries along {d!r} but there are {sizes[d]} {d}s"
             )
     pix = (R, C)
@@ -374,9 +375,9 @@ def make_dataset(
 
     if em_gain is not None or em_gain_se is not None:
         if em_gain is None or em_gain_se is None:
-            raise ValueError("em_gain and em_gain_se must be given together")
+            raise InputError("em_gain and em_gain_se must be given together")
         if setpoints is None:
-            raise ValueError("em_gain needs setpoints (the setpoint coordinate)")
+            raise InputError("em_gain needs setpoints (the setpoint coordinate)")
         g_dims = ("setpoint",) + _PIXEL_DIMS
         g_shape = (sizes["setpoint"],) + pix
         g = _float_array("em_gain", em_gain, g_shape, g_dims)
@@ -385,7 +386,7 @@ def make_dataset(
         if np.any(one):
             g1, s1 = g[one], g_se[one]
             if not np.all(np.isnan(g1) | (g1 == 1.0)) or not np.all(np.isnan(s1) | (s1 == 0.0)):
-                raise ValueError(
+                raise InputError(
                     "em_gain at set-point 1 must be 1 with standard error 0 (no multiplication)"
                 )
         put("em_gain", g_dims, g)
@@ -403,12 +404,12 @@ def make_dataset(
     conv = np.asarray(converged)
     if conv.dtype != bool:
         if conv.dtype.kind not in "iuf" or not np.all(np.isin(conv, (0, 1))):
-            raise ValueError("converged must be boolean (or 0/1)")
+            raise InputError("converged must be boolean (or 0/1)")
         conv = conv.astype(bool)
     if conv.ndim == 0:
         conv = np.full(pix, bool(conv))
     if conv.shape != pix:
-        raise ValueError(
+        raise InputError(
             f"converged has shape {conv.shape}; expected {pix} for dims ('row', 'col')"
         )
     put("converged", _PIXEL_DIMS, conv)
@@ -418,20 +419,20 @@ def make_dataset(
     }
     for name, spec in (extra or {}).items():
         if name in reserved:
-            raise ValueError(
+            raise InputError(
                 f"extra variable {name!r} clashes with a standard variable or coordinate"
             )
         if not isinstance(spec, tuple) or len(spec) not in (3, 4):
-            raise ValueError(f"extra[{name!r}] must be (dims, array, units[, long_name])")
+            raise InputError(f"extra[{name!r}] must be (dims, array, units[, long_name])")
         dims = (spec[0],) if isinstance(spec[0], str) else tuple(spec[0])
         arr, units = np.asarray(spec[1]), spec[2]
         if not isinstance(units, str):
-            raise ValueError(f"extra[{name!r}]: units must be a string")
+            raise InputError(f"extra[{name!r}]: units must be a string")
         if arr.ndim != len(dims):
-            raise ValueError(f"extra[{name!r}] has shape {arr.shape} but dims {dims}")
+            raise InputError(f"extra[{name!r}] has shape {arr.shape} but dims {dims}")
         for d, n in zip(dims, arr.shape):
             if d in sizes and sizes[d] != n:
-                raise ValueError(
+                raise InputError(
                     f"extra[{name!r}] has {n} entries along {d!r}; expected {sizes[d]}"
                 )
         if len(spec) == 4:
@@ -454,7 +455,7 @@ def make_dataset(
     }
     for key, value in (attrs or {}).items():
         if key in _RESERVED_ATTRS:
-            raise ValueError(f"attribute {key!r} is set by emccdcal and cannot be replaced")
+            raise InputError(f"attribute {key!r} is set by emccdcal and cannot be replaced")
         ds_attrs[key] = _attr_value(key, value)
 
     r0, c0 = (int(v) for v in origin)
@@ -469,24 +470,19 @@ def make_dataset(
 # --------------------------------------------------------------------------------------
 # summarize
 # --------------------------------------------------------------------------------------
-def _json_number(v):
-    v = float(v)
-    return v if math.isfinite(v) else None
-
-
 def _stats(values, se=None) -> dict:
     v = np.asarray(values, dtype=float)
     v = v[np.isfinite(v)]
     out = {
         "n": int(v.size),
-        "mean": _json_number(v.mean()) if v.size else None,
-        "sd": _json_number(v.std(ddof=1)) if v.size > 1 else None,
-        "median": _json_number(np.median(v)) if v.size else None,
+        "mean": finite_or_none(v.mean()) if v.size else None,
+        "sd": finite_or_none(v.std(ddof=1)) if v.size > 1 else None,
+        "median": finite_or_none(np.median(v)) if v.size else None,
     }
     if se is not None:
         s = np.asarray(se, dtype=float)
         s = s[np.isfinite(s)]
-        out["se_median"] = _json_number(np.median(s)) if s.size else None
+        out["se_median"] = finite_or_none(np.median(s)) if s.size else None
     return out
 
 
@@ -559,7 +555,7 @@ def summarize(ds: xr.Dataset, seconds: float | None = None) -> dict:
         "manifest_sha256": str(ds.attrs.get("manifest_sha256", "")),
         "manifest_path": str(ds.attrs.get("manifest_path", "")),
         "created": str(ds.attrs.get("created", "")),
-        "seconds": None if seconds is None else _json_number(seconds),
+        "seconds": None if seconds is None else finite_or_none(seconds),
         "pixels": {
             "total": int(conv.size),
             "converged": int(conv.sum()),
@@ -577,22 +573,6 @@ def summarize(ds: xr.Dataset, seconds: float | None = None) -> dict:
 # --------------------------------------------------------------------------------------
 # save / load
 # --------------------------------------------------------------------------------------
-def _atomic_write(path: Path, write) -> None:
-    """Write through ``write(tmp_path)`` to a temp file beside ``path``, then replace it."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    tmp = Path(tmp)
-    try:
-        os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide a shared result from colleagues
-        write(tmp)
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
 def run_recorded(build, out=None) -> xr.Dataset:
     """Build a result, recording its warnings and wall time in it; save it if asked.
 
@@ -647,8 +627,8 @@ def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None) -> dict[str, 
     json_path = out / SUMMARY_FILE
     summary = summarize(ds, seconds=seconds)
     text = json.dumps(summary, indent=2, allow_nan=False) + "\n"
-    _atomic_write(nc_path, lambda p: ds.to_netcdf(p, engine="h5netcdf"))
-    _atomic_write(json_path, lambda p: p.write_text(text, encoding="utf-8"))
+    atomic_write(nc_path, lambda p: ds.to_netcdf(p, engine="h5netcdf"))
+    atomic_write(json_path, lambda p: Path(p).write_text(text, encoding="utf-8"))
     return {"calibration": nc_path, "summary": json_path}
 
 
@@ -678,27 +658,27 @@ def load(path) -> xr.Dataset:
     if p.is_dir():
         p = p / CALIBRATION_FILE
     if not p.is_file():
-        raise FileNotFoundError(f"{p}: no such file")
+        raise MissingFileError(f"{p}: no such file")
     try:
         with xr.open_dataset(p, engine="h5netcdf") as f:
             ds = f.load()
     except (OSError, ValueError, TypeError, KeyError) as exc:
-        raise ValueError(
+        raise InputError(
             f"{p}: not a readable NetCDF file ({exc.__class__.__name__}: {exc})"
         ) from None
     missing_attrs = [a for a in ("method", "emccdcal_version") if a not in ds.attrs]
     if missing_attrs:
-        raise ValueError(
+        raise InputError(
             f"{p}: not an emccdcal calibration result (no {' or '.join(missing_attrs)} attribute)"
         )
     missing = [v for v in REQUIRED_VARIABLES if v not in ds.variables]
     if missing:
-        raise ValueError(
+        raise InputError(
             f"{p}: not a complete emccdcal result (missing variables: {', '.join(missing)})"
         )
     file_major, our_major = _major(ds.attrs["emccdcal_version"]), _major(_package_version())
     if file_major is None or (our_major is not None and file_major != our_major):
-        raise ValueError(
+        raise InputError(
             f"{p}: written by emccdcal {ds.attrs['emccdcal_version']}, which is not compatible "
             f"with this emccdcal {_package_version()} (different major version)"
         )

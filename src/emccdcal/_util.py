@@ -1,0 +1,278 @@
+"""Private helpers shared by the whole package: one of each, never a copy.
+
+- :func:`atomic_write`: every file emccdcal writes goes through it;
+- :func:`progress`: every progress bar;
+- :func:`check_int`, :func:`check_number`, :func:`check_map`, :func:`e_per_adu_map`:
+  argument validators whose errors are one-line :class:`~emccdcal.errors.OptionError`;
+- :func:`parse_pixel`, :func:`finite_or_none`, :func:`one_line`: small conversions.
+
+Nothing here imports more than NumPy (tqdm only when a bar is shown), so any module may
+use it.
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+import os
+import secrets
+import sys
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+import numpy as np
+
+from .errors import OptionError
+
+__all__ = [
+    "atomic_write",
+    "progress",
+    "check_int",
+    "check_number",
+    "check_map",
+    "e_per_adu_map",
+    "parse_pixel",
+    "finite_or_none",
+    "one_line",
+]
+
+
+# --------------------------------------------------------------------------------------
+# Files
+# --------------------------------------------------------------------------------------
+def _umask() -> int:
+    # os.umask can only be read by setting it; this is process-wide but immediate.
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def atomic_write(path, write: Callable[[str], object]) -> Path:
+    """Write ``path`` through ``write(tmp)`` to a temporary file beside it, then replace it.
+
+    The temporary file is in the same directory (so :func:`os.replace` is atomic), gets
+    the mode a new file would get (0o666 less the umask: a shared result stays readable
+    by colleagues), is flushed to disk before the rename and removed if anything fails,
+    so a reader never sees a half-written file and an interrupted write leaves any
+    earlier file of the same name intact. The parent directory is created if missing.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file to write.
+    write : callable
+        Called with the temporary file's path (str); writes the whole content there.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        # The suffix is kept: writers such as matplotlib and tifffile choose the format by it.
+        tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp{path.suffix}"
+        try:
+            os.close(os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
+            break
+        except FileExistsError:  # pragma: no cover - 48 random bits
+            continue
+    try:
+        write(str(tmp))
+        os.chmod(tmp, 0o666 & ~_umask())  # some writers recreate the file
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+# --------------------------------------------------------------------------------------
+# Progress
+# --------------------------------------------------------------------------------------
+def progress(iterable: Iterable | None = None, *, enabled: bool, desc: str, unit: str = "it",
+             total: int | None = None):
+    """A progress bar on stderr (tqdm), or a silent stand-in when ``enabled`` is false.
+
+    Use it as an iterable wrapper or, with ``iterable=None``, as a bar to ``update(n)``
+    and ``close()`` (also a context manager). The bar shows a rate and an ETA and is
+    removed when done.
+    """
+    if not enabled:
+        return _Silent(iterable)
+    from tqdm import tqdm
+
+    return tqdm(iterable, desc=desc, unit=unit, total=total, file=sys.stderr, leave=False)
+
+
+class _Silent:
+    """What :func:`progress` returns when disabled: iterates, and ignores bar calls."""
+
+    def __init__(self, iterable):
+        self._iterable = iterable
+
+    def __iter__(self):
+        return iter(self._iterable)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def update(self, n=1):
+        pass
+
+    def set_postfix_str(self, text):
+        pass
+
+    def close(self):
+        pass
+
+
+# --------------------------------------------------------------------------------------
+# Validators
+# --------------------------------------------------------------------------------------
+def check_int(name: str, value, *, minimum: int | None = 1, maximum: int | None = None) -> int:
+    """``value`` as an int within ``[minimum, maximum]``, or a one-line :class:`OptionError`.
+
+    Integral floats (``3.0``) are accepted; booleans are not.
+
+    Examples
+    --------
+    >>> check_int("frames", 3.0)
+    3
+    """
+    if isinstance(value, (bool, np.bool_)):
+        raise OptionError(f"{name} must be an integer, got {value!r}")
+    try:
+        out = operator.index(value)
+    except TypeError:
+        if isinstance(value, (float, np.floating)) and float(value).is_integer():
+            out = int(value)
+        else:
+            raise OptionError(f"{name} must be an integer, got {value!r}") from None
+    if (minimum is not None and out < minimum) or (maximum is not None and out > maximum):
+        if maximum is None:
+            rng = f">= {minimum}"
+        elif minimum is None:
+            rng = f"<= {maximum}"
+        else:
+            rng = f"from {minimum} to {maximum}"
+        raise OptionError(f"{name} must be an integer {rng}, got {value!r}")
+    return int(out)
+
+
+def check_number(name: str, value, *, positive: bool = False, minimum: float | None = None,
+                 maximum: float | None = None, scalar: bool = True):
+    """``value`` as a finite float (or float array) within its range, or an :class:`OptionError`.
+
+    Parameters
+    ----------
+    name : str
+        What the value is, for the message.
+    value : number or array_like
+        The value.
+    positive : bool
+        Require > 0.
+    minimum, maximum : float, optional
+        Inclusive bounds.
+    scalar : bool
+        Require a single number (returned as ``float``); else an array is returned.
+
+    Examples
+    --------
+    >>> check_number("e_per_adu", "3.5", positive=True)
+    3.5
+    """
+    if isinstance(value, (bool, np.bool_)):
+        raise OptionError(f"{name} must be a number, got {value!r}")
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise OptionError(f"{name} must be a number, got {value!r}") from None
+    if scalar and arr.ndim != 0:
+        raise OptionError(f"{name} must be a single number, got an array of shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise OptionError(f"{name} must be finite, got {value!r}")
+    if positive and np.any(arr <= 0):
+        raise OptionError(f"{name} must be > 0, got {value!r}")
+    if minimum is not None and np.any(arr < minimum):
+        raise OptionError(f"{name} must be >= {minimum:g}, got {value!r}")
+    if maximum is not None and np.any(arr > maximum):
+        raise OptionError(f"{name} must be <= {maximum:g}, got {value!r}")
+    return float(arr) if scalar else arr
+
+
+def check_map(name: str, value, shape, **rules) -> np.ndarray:
+    """A number or a (rows, cols) map as a read-only (rows, cols) float array, checked.
+
+    ``rules`` are those of :func:`check_number` (``positive``, ``minimum``, ``maximum``).
+    """
+    arr = check_number(name, value, scalar=False, **rules)
+    shape = tuple(int(d) for d in shape)
+    if arr.ndim not in (0, 2):
+        raise OptionError(f"{name} must be a number or a (rows, cols) map, got shape {arr.shape}")
+    if arr.ndim == 2 and arr.shape != shape:
+        raise OptionError(f"{name} map has shape {arr.shape}, expected (rows, cols) = {shape}")
+    return np.broadcast_to(arr, shape)
+
+
+def e_per_adu_map(value, shape) -> np.ndarray | None:
+    """φ (e⁻/ADU) as a writable (rows, cols) float map, or None when ``value`` is None.
+
+    ``value`` is a number or a (rows, cols) map; it must be positive and finite.
+    """
+    if value is None:
+        return None
+    try:
+        arr = np.broadcast_to(np.asarray(value, dtype=float), tuple(shape)).astype(float)
+    except (TypeError, ValueError):
+        raise OptionError(f"e_per_adu must be a number or a {tuple(shape)} map (e-/ADU), "
+                          f"got {value!r}") from None
+    if isinstance(value, (bool, np.bool_)) or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+        raise OptionError("e_per_adu must be positive and finite (e-/ADU)")
+    return arr
+
+
+# --------------------------------------------------------------------------------------
+# Conversions
+# --------------------------------------------------------------------------------------
+def parse_pixel(text) -> tuple[int, int]:
+    """``"ROW,COL"`` → ``(row, col)``, or a one-line :class:`OptionError`.
+
+    Examples
+    --------
+    >>> parse_pixel("1, 2")
+    (1, 2)
+    """
+    parts = str(text).split(",")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        row, col = (int(p.strip()) for p in parts)
+    except ValueError:
+        raise OptionError(
+            f"malformed pixel {text!r}: expected ROW,COL (two integers), e.g. 1,1"
+        ) from None
+    return row, col
+
+
+def finite_or_none(value) -> float | None:
+    """A float for JSON, or None where it is not finite (JSON has no NaN).
+
+    Examples
+    --------
+    >>> finite_or_none(2), finite_or_none(float("nan"))
+    (2.0, None)
+    """
+    v = float(value)
+    return v if math.isfinite(v) else None
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception's message on one line (its type's name where it has none)."""
+    return " ".join(str(exc).split()) or type(exc).__name__

@@ -1,0 +1,300 @@
+"""Calibration-on-the-spot on a bead manifest: every bead at every EM set-point, as a result.
+
+:func:`cots_calibrate` finds the beads once, runs :func:`emccdcal.beads.cots.cots_spot` on
+each at every set-point above 1, and writes a result in the calibration contract
+(``docs/results.md``): g = G·φ in the beads' ROI pixels. ``emccdcal cots MANIFEST -o OUT``
+is the command line; ``docs/cots.md`` describes the method.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from .. import result
+from .._util import e_per_adu_map
+from .._util import progress as progress_bar
+from ..data.manifest import Manifest, read_manifest
+from ..errors import InputError, ManifestError, OptionError
+from ..model import psf
+from .cots import DEFAULT_HALF_SIZE, DEFAULT_WIDTH, MIN_FRAMES, cots_spot
+
+__all__ = ["cots_calibrate", "format_summary"]
+
+
+def _phi_map(manifest):
+    if manifest.e_per_adu is None:
+        raise ManifestError(
+            f"{manifest.path}: COTS needs e_per_adu (e-/ADU) to turn its gain in ADU per "
+            "photoelectron into the EM gain g = G·e_per_adu; set e_per_adu in the manifest "
+            "(a number or a map file)"
+        )
+    return e_per_adu_map(manifest.e_per_adu, manifest.shape)
+
+
+def cots_calibrate(manifest, *, half_size=DEFAULT_HALF_SIZE, width=DEFAULT_WIDTH,
+                   progress=False, out=None) -> "xarray.Dataset":
+    """COTS on every bead of a bead manifest, as a calibration result.
+
+    Beads are found once, with :func:`emccdcal.model.psf.find_beads` on the offset-subtracted
+    mean image of the acquisition at the highest set-point, and the same beads are used
+    at every set-point. For every bead and every acquisition with ``em_gain_setpoint > 1``,
+    :func:`cots_spot` runs on a (2Δ + 1)² ROI centred on the bead's brightest pixel (the
+    ROI follows the spot if it moves). Acquisitions at set-point 1 are not analysed: the
+    EM gain there is 1 by contract.
+
+    Parameters
+    ----------
+    manifest : str, Path or :class:`emccdcal.Manifest`
+        The TOML manifest of the bead stacks; it must give ``e_per_adu`` (e⁻/ADU).
+    half_size : int
+        ROI half-width Δ (pixel): the ROI is (2Δ + 1) × (2Δ + 1) pixels and a bead needs
+        Δ pixels on every side and no other bead within 2Δ + 1 pixels.
+    width : float
+        Expected PSF standard deviation (pixel): for bead finding and as the fit's start.
+    progress : bool
+        A progress bar on stderr.
+    out : str or Path, optional
+        Directory to write ``calibration.nc`` and ``summary.json`` into.
+
+    Returns
+    -------
+    xarray.Dataset
+        The calibration result (``docs/results.md``, method ``"cots"``). In each bead's
+        ROI pixels: ``em_gain`` = G·φ per set-point (1 with SE 0 at set-point 1, everywhere)
+        and ``photoelectrons`` = (mean counts − dark offset)/G, the mean photoelectrons
+        per pixel per frame with COTS's gain and the manifest's offset map (NaN at
+        set-point 1); NaN outside the beads, where ``converged`` is False. ``converged``
+        is True in the ROI of a bead with a usable COTS estimate at every set-point > 1. ``e_per_adu`` is the manifest's φ (SE 0). The per-bead table (dims
+        ``bead``, ``setpoint``): ``bead_row``, ``bead_col``, ``cots_gain_adu_per_e``,
+        ``cots_offset``, ``cots_em_gain`` (each with ``_se``), ``cots_spot_photoelectrons``,
+        ``cots_width``, ``cots_frames_used``.
+
+    Raises
+    ------
+    emccdcal.InputError
+        No ``e_per_adu``; no acquisition above set-point 1; an acquisition with fewer than
+        :data:`MIN_FRAMES` frames; no beads found. One line naming the file.
+    """
+    return result.run_recorded(lambda: _cots_calibrate(manifest, half_size, width, progress), out)
+
+
+def _cots_calibrate(manifest, half_size, width, progress):
+    if not isinstance(manifest, Manifest):
+        manifest = read_manifest(manifest)
+    half_size = int(half_size)
+    if half_size < 1:
+        raise OptionError(f"half_size must be a positive integer (pixel), got {half_size}")
+    if not (np.isfinite(width) and width > 0):
+        raise OptionError(f"width must be a positive PSF standard deviation (pixel), got {width}")
+    phi = _phi_map(manifest)
+    em = [a for a in manifest.acquisitions if a.em_gain_setpoint > 1]
+    if not em:
+        raise ManifestError(
+            f"{manifest.path}: COTS needs an acquisition with em_gain_setpoint > 1 (found "
+            "only 1x); it measures the gain of the EM register"
+        )
+    for a in em:
+        if a.n_frames < MIN_FRAMES:
+            raise InputError(
+                f"{a.frames_path}: {a.n_frames} frame(s) to use; COTS needs at least "
+                f"{MIN_FRAMES} frames of the beads"
+            )
+    rows, cols = manifest.shape
+    # Beads: on the highest set-point's mean image.
+    ref = max(em, key=lambda a: a.em_gain_setpoint)
+    mean = np.mean(ref.frames(), axis=0, dtype=float) - ref.offset
+    found = psf.find_beads(mean, width=width, half_size=half_size)
+    beads = found.positions
+    if len(beads) == 0:
+        raise InputError(
+            f"{ref.frames_path}: no beads found on the mean image (threshold "
+            f"{found.threshold:.3g} ADU above the background; {len(found.at_edge)} "
+            f"candidate(s) too near the edge, {len(found.too_close)} too close to another, "
+            f"for --half-size {half_size})"
+        )
+    if len(found.at_edge) or len(found.too_close):
+        warnings.warn(
+            f"{ref.frames_path}: {len(found.at_edge)} bead(s) too near the edge and "
+            f"{len(found.too_close)} too close to another were left out",
+            stacklevel=3,
+        )
+    setpoints = list(manifest.setpoints)
+    S, B = len(setpoints), len(beads)
+    size = 2 * half_size + 1
+    margin = size  # the ROI may follow the spot this far
+    keys = ("gain", "gain_se", "offset", "offset_se", "em_gain", "em_gain_se",
+            "spot_e", "width", "used")
+    table = {k: np.full((B, S), np.nan) for k in keys}
+    bar = progress_bar(enabled=progress, desc="cots", unit="fit", total=B * len(em))
+    per_sp: dict[int, list] = {}
+    for a in em:
+        si = setpoints.index(a.em_gain_setpoint)
+        frames = a.frames()
+        for bi, (r, c) in enumerate(beads):
+            r0, c0 = max(0, r - half_size - margin), max(0, c - half_size - margin)
+            r1 = min(rows, r + half_size + 1 + margin)
+            c1 = min(cols, c + half_size + 1 + margin)
+            box = np.asarray(frames[:, r0:r1, c0:c1])
+            roi = (r - half_size - r0, c - half_size - c0, size, size)
+            try:
+                spot = cots_spot(box, roi=roi, width=width, adc_max=manifest.adc_max)
+            except ValueError as exc:
+                warnings.warn(f"{a.frames_path}: bead at ({r}, {c}): {exc}", stacklevel=3)
+                spot = None
+            if spot is not None and spot.n_saturated:
+                warnings.warn(
+                    f"{a.frames_path}: bead at ({r}, {c}): {spot.n_saturated} frame(s) with "
+                    f"saturated pixels (>= {manifest.adc_max} ADU) left out",
+                    stacklevel=3,
+                )
+            if spot is not None:
+                dark = a.offset[r - half_size:r + half_size + 1, c - half_size:c + half_size + 1]
+                per_sp.setdefault(si, []).append((bi, spot, dark))
+            bar.update(1)
+    bar.close()
+
+    em_gain = np.full((S, rows, cols), np.nan)
+    em_gain_se = np.full((S, rows, cols), np.nan)
+    pe = np.full((S, rows, cols), np.nan)
+    pe_se = np.full((S, rows, cols), np.nan)
+    ok_bead = np.ones(B, bool)
+    for si, sp in enumerate(setpoints):
+        if sp == 1:
+            em_gain[si], em_gain_se[si] = 1.0, 0.0
+            continue
+        spots = per_sp.get(si, [])
+        # Several acquisitions at one set-point: combine them (inverse-variance weights).
+        by_bead: dict[int, list] = {}
+        for bi, spot, dark in spots:
+            by_bead.setdefault(bi, []).append((spot, dark))
+        for bi in range(B):
+            if bi not in by_bead:
+                ok_bead[bi] = False
+                continue
+            g, g_se, s0, s0_se, spot_e, wid, used, pe_b, pe_b_se = _combine(by_bead[bi])
+            r, c = beads[bi]
+            sl = np.s_[r - half_size:r + half_size + 1, c - half_size:c + half_size + 1]
+            table["gain"][bi, si], table["gain_se"][bi, si] = g, g_se
+            table["offset"][bi, si], table["offset_se"][bi, si] = s0, s0_se
+            table["em_gain"][bi, si] = g * phi[r, c]
+            table["em_gain_se"][bi, si] = g_se * phi[r, c]
+            table["spot_e"][bi, si], table["width"][bi, si] = spot_e, wid
+            table["used"][bi, si] = used
+            em_gain[si][sl] = g * phi[sl]
+            em_gain_se[si][sl] = g_se * phi[sl]
+            pe[si][sl], pe_se[si][sl] = pe_b, pe_b_se
+    converged = np.zeros((rows, cols), bool)
+    for bi, (r, c) in enumerate(beads):
+        if ok_bead[bi]:
+            converged[r - half_size:r + half_size + 1, c - half_size:c + half_size + 1] = True
+    if not ok_bead.any():
+        raise InputError(
+            f"{manifest.path}: COTS gave no usable estimate for any of the {B} bead(s) at "
+            "every set-point (see the warnings)"
+        )
+    bead_dims = ("bead", "setpoint")
+    extra = {
+        "bead_row": (("bead",), beads[:, 0].astype(np.int64), "pixel",
+                     "sensor row of the bead's brightest pixel (ROI centre)"),
+        "bead_col": (("bead",), beads[:, 1].astype(np.int64), "pixel",
+                     "sensor column of the bead's brightest pixel (ROI centre)"),
+        "cots_gain_adu_per_e": (bead_dims, table["gain"], "ADU/e-",
+                                "COTS system gain G (counts per photoelectron)"),
+        "cots_gain_adu_per_e_se": (bead_dims, table["gain_se"], "ADU/e-",
+                                   "standard error of the COTS system gain G"),
+        "cots_offset": (bead_dims, table["offset"], "ADU", "COTS offset S0"),
+        "cots_offset_se": (bead_dims, table["offset_se"], "ADU",
+                           "standard error of the COTS offset S0"),
+        "cots_em_gain": (bead_dims, table["em_gain"], "1",
+                         "COTS EM gain g = G * e_per_adu at the bead's pixel"),
+        "cots_em_gain_se": (bead_dims, table["em_gain_se"], "1",
+                            "standard error of the COTS EM gain g"),
+        "cots_spot_photoelectrons": (bead_dims, table["spot_e"], "e-",
+                                     "mean fitted spot total N/G per frame"),
+        "cots_width": (bead_dims, table["width"], "pixel", "mean fitted PSF standard deviation"),
+        "cots_frames_used": (bead_dims, table["used"], "1",
+                             "frames whose fits were usable (NaN: bead not analysed)"),
+    }
+    return result.make_dataset(
+        method="cots",
+        setpoints=[float(s) for s in setpoints],
+        e_per_adu=phi,
+        e_per_adu_se=0.0,
+        em_gain=em_gain,
+        em_gain_se=em_gain_se,
+        photoelectrons=pe,
+        photoelectrons_se=pe_se,
+        photoelectrons_dims=("setpoint", "row", "col"),
+        converged=converged,
+        manifest_hash=manifest.content_hash,
+        manifest_path=str(manifest.path.resolve()),
+        extra=extra,
+        attrs={"half_size": half_size, "width": float(width),
+               "bead_frames": str(ref.frames_path)},
+    )
+
+
+def _combine(pairs):
+    """Combine the COTS estimates of one bead from one or more acquisitions.
+
+    ``pairs`` holds (CotsSpot, dark offset map of the ROI). Photoelectrons per pixel are
+    (mean counts − dark offset)/G: COTS's own S0 absorbs the read noise (it is
+    S0 − σ²/(2G)) and is far less precise than the darks.
+    """
+    spots = [p[0] for p in pairs]
+    excess = [p[0].mean_counts - p[1] for p in pairs]
+    if len(spots) == 1:
+        s = spots[0]
+        g, g_se, s0, s0_se = s.gain, s.gain_se, s.offset, s.offset_se
+        mean_excess, mean_se = excess[0], s.mean_counts_se
+        spot_counts, wid, used = s.spot_counts, s.width, s.n_used
+    else:
+        wg = np.array([1 / s.gain_se**2 for s in spots])
+        ws = np.array([1 / s.offset_se**2 for s in spots])
+        g = float(np.sum(wg * [s.gain for s in spots]) / wg.sum())
+        g_se = float(1 / np.sqrt(wg.sum()))
+        s0 = float(np.sum(ws * [s.offset for s in spots]) / ws.sum())
+        s0_se = float(1 / np.sqrt(ws.sum()))
+        n = np.array([s.n_used for s in spots], float)
+        mean_excess = np.sum([x * k for x, k in zip(excess, n)], axis=0) / n.sum()
+        mean_se = np.sqrt(np.sum([(s.mean_counts_se * k) ** 2 for s, k in zip(spots, n)],
+                                 axis=0)) / n.sum()
+        spot_counts = float(np.sum([s.spot_counts * k for s, k in zip(spots, n)]) / n.sum())
+        wid = float(np.sum([s.width * k for s, k in zip(spots, n)]) / n.sum())
+        used = int(n.sum())
+    pe = mean_excess / g
+    var = (mean_se**2 + pe**2 * g_se**2) / g**2  # δpe = δS̄/G − pe·δG/G
+    return (g, g_se, s0, s0_se, spot_counts / g, wid, used, pe, np.sqrt(np.maximum(var, 0)))
+
+
+def format_summary(ds) -> str:
+    """Per set-point: the bead-mean EM gain g ± its SE, and the bead-mean G and S0."""
+    lines = [(f"method cots: {int(np.isfinite(ds.bead_row.values).sum())} bead(s), "
+              f"{ds.attrs.get('seconds', float('nan')):.1f} s, e_per_adu "
+              f"{float(np.nanmedian(ds.e_per_adu.values)):.4f} e-/ADU")]
+    for si, sp in enumerate(ds.setpoint.values):
+        label = result.format_setpoint(sp)
+        if sp == 1:
+            lines.append(f"  {label}x: em_gain 1 (no multiplication; COTS not run)")
+            continue
+        g = ds.cots_em_gain.values[:, si]
+        g_se = ds.cots_em_gain_se.values[:, si]
+        ok = np.isfinite(g) & np.isfinite(g_se)
+        if not ok.any():
+            lines.append(f"  {label}x: no usable bead")
+            continue
+        k = int(ok.sum())
+        mean_g = g[ok].mean()
+        se_mean = np.sqrt(np.sum(g_se[ok] ** 2)) / k
+        sd = g[ok].std(ddof=1) if k > 1 else float("nan")
+        G = ds.cots_gain_adu_per_e.values[ok, si].mean()
+        s0 = ds.cots_offset.values[ok, si].mean()
+        lines.append(
+            f"  {label}x: em_gain {mean_g:.4g} ± {se_mean:.2g} (mean of {k} bead(s), SD over "
+            f"beads {sd:.2g}); G {G:.4g} ADU/e-, S0 {s0:.5g} ADU"
+        )
+    return "\n".join(lines)
+
+

@@ -1,0 +1,98 @@
+"""The command line: ``emccdcal VERB ...``, a thin layer over the library.
+
+One module per verb (``cli/<verb>.py``) with ``add_parser(subparsers)``, whose parser
+sets ``func`` to the verb's ``run(args)`` (returns the exit code); every verb imports its
+implementation inside ``run``, and only the parser of the verb being run is built, so
+``emccdcal --help`` and ``--version`` import no numerics. Options shared by verbs are
+declared once in :mod:`emccdcal.cli._common`.
+
+Errors: an :class:`emccdcal.errors.EmccdcalError` (bad input) is printed as one line and
+exits 2; any other exception is a bug and shows its traceback. Ctrl-C prints one line
+and exits 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from .. import __version__
+from ..errors import EmccdcalError
+
+__all__ = ["main", "build_parser", "VERBS"]
+
+#: Verbs in the order of ``--help``, with their one-line help.
+VERBS = {
+    "demo": "simulate the paper's data and calibrate it (is-adu, then gs)",
+    "simulate": "write synthetic stacks, darks, a manifest and truth.json",
+    "calibrate": "calibrate from a manifest (the main job)",
+    "posterior": "MCMC posterior of single pixels",
+    "check": "data-quality checks of a manifest's acquisitions (no fitting)",
+    "report": "write a self-contained HTML report of calibration results",
+    "validate": "bead validation: fit beads under each calibration, compare set-points",
+    "cots": "calibration-on-the-spot: EM gain and offset from bead frames",
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line and exit code 2."""
+
+    def error(self, message: str) -> None:  # noqa: D401 - argparse API
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def build_parser(verb: str | None = None) -> argparse.ArgumentParser:
+    """The parser of ``emccdcal``; only ``verb``'s own options are built (all with None
+    only as placeholders that list the verbs)."""
+    parser = _Parser(
+        prog="emccdcal",
+        description="Calibrate EMCCD cameras: the ADU conversion factor (e-/ADU) and the true "
+        "EM gain at every set-point, per pixel, with standard errors.",
+    )
+    parser.add_argument("--version", action="version", version=f"emccdcal {__version__}")
+    subparsers = parser.add_subparsers(dest="verb", metavar="VERB", parser_class=_Parser)
+    for name, text in VERBS.items():
+        if name == verb:
+            importlib.import_module(f"{__name__}.{name}").add_parser(subparsers)
+        else:
+            subparsers.add_parser(name, help=text, add_help=False)
+    return parser
+
+
+def _verb_of(argv: list[str]) -> str | None:
+    """The verb named on the command line: the first word that is not an option."""
+    for word in argv:
+        if not word.startswith("-"):
+            return word if word in VERBS else None
+    return None
+
+
+def _safe_streams() -> None:
+    # Help texts and messages must print under any locale (a cp1252 console, a pipe).
+    for stream in (sys.stdout, sys.stderr):
+        reconfigure = getattr(stream, "reconfigure", None)
+        if reconfigure is not None:
+            reconfigure(errors="backslashreplace")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``emccdcal`` with ``argv`` (default: the process's arguments); the exit code."""
+    _safe_streams()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(_verb_of(argv))
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, or a usage error already printed
+        return exc.code if isinstance(exc.code, int) else 2
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except EmccdcalError as exc:
+        print(f"emccdcal {args.verb}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"emccdcal {args.verb}: interrupted", file=sys.stderr)
+        return 130

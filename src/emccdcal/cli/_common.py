@@ -1,0 +1,99 @@
+"""Options and steps shared by the verbs, declared once so that every verb spells them alike.
+
+- ``-o/--out``: where a verb writes (a directory; ``report`` also takes an ``.html`` file);
+- ``-q/--quiet``: no progress bars, no summary;
+- ``--no-figures``: skip the figures a verb writes by default;
+- ``--e-per-adu``: φ in e-/ADU overriding the manifest's.
+
+Units in help texts are ASCII, as in the result files: e-, e-/ADU, ADU, px.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import sys
+import warnings
+from pathlib import Path
+
+__all__ = ["add_out", "add_quiet", "add_no_figures", "add_e_per_adu", "positive_float",
+           "positive_int", "number_list", "label_list", "pixel", "recording_warnings",
+           "print_warnings"]
+
+
+def add_out(p: argparse.ArgumentParser, what: str = "output directory", required: bool = True):
+    p.add_argument("-o", "--out", type=Path, required=required, metavar="OUT", help=what)
+
+
+def add_quiet(p: argparse.ArgumentParser) -> None:
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars, no summary")
+
+
+def add_no_figures(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--no-figures", action="store_true", help="do not write the figures")
+
+
+def add_e_per_adu(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--e-per-adu", type=positive_float, default=None, metavar="PHI",
+                   help="ADU conversion factor phi, e-/ADU, overriding the manifest's")
+
+
+def positive_float(text: str) -> float:
+    """An argparse type: a number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text!r}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: an integer ≥ 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
+    return value
+
+
+def number_list(text: str) -> list[float]:
+    """An argparse type: comma-separated numbers."""
+    try:
+        return [float(p.strip()) for p in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def label_list(text: str) -> list[str]:
+    """An argparse type: comma-separated labels."""
+    return [p.strip() for p in text.split(",")]
+
+
+def pixel(text: str) -> tuple[int, int]:
+    """An argparse type: ``ROW,COL``."""
+    from .._util import parse_pixel
+    from ..errors import OptionError
+
+    try:
+        return parse_pixel(text)
+    except OptionError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+@contextlib.contextmanager
+def recording_warnings():
+    """Record every warning issued inside the block (each shown by :func:`print_warnings`
+    after the verb's own output, so that progress bars and summaries stay readable)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield caught
+
+
+def print_warnings(caught) -> None:
+    """Print recorded warnings, each once, as ``warning: ...`` on stderr."""
+    for message in dict.fromkeys(str(c.message) for c in caught):
+        print(f"warning: {message}", file=sys.stderr)

@@ -1,0 +1,73 @@
+"""``emccdcal calibrate MANIFEST -m METHOD -o OUT``: the main job."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from . import _common
+
+
+def add_parser(subparsers):
+    from ..calibration import DEFAULT_BLOCK, INTERVALS, METHODS
+
+    p = subparsers.add_parser(
+        "calibrate",
+        help="calibrate from a manifest (the main job)",
+        description="Fit a calibration method to the acquisitions of a manifest and write "
+        "OUT/calibration.nc and OUT/summary.json.",
+    )
+    p.add_argument("manifest", type=Path, help="TOML manifest of the acquisitions")
+    p.add_argument("--method", "-m", default="gs", choices=METHODS,
+                   help="calibration method (default: gs)")
+    _common.add_out(p)
+    _common.add_e_per_adu(p)
+    p.add_argument("--block-size", type=_common.positive_int, default=DEFAULT_BLOCK,
+                   help="pixels fitted together (default %(default)s)")
+    p.add_argument("--no-checks", action="store_true",
+                   help="skip the data-quality checks (see 'emccdcal check')")
+    p.add_argument("--intervals", choices=INTERVALS, default="wald",
+                   help="'profile': also write 95 %% profile-likelihood bounds "
+                   "(<name>_lower/_upper), for skewed likelihoods; slower (default: wald). "
+                   "mv-adu and mv-gain always write Fieller bounds, gs-hierarchical those "
+                   "of its model without the prior")
+    prior = p.add_argument_group("gs-hierarchical hyperprior (docs/methods.md)")
+    prior.add_argument("--mu-sd", type=float, metavar="E",
+                       help="scale of mu's normal prior, e- (default: the authors' 25, for an "
+                       "illumination of ~370 e-; scale it in proportion to yours)")
+    prior.add_argument("--sigma-sd", type=float, metavar="E",
+                       help="scale of sigma_E's half-normal prior, e- (default 25; as --mu-sd)")
+    prior.add_argument("--prior-centre", choices=("gs", "setpoint"),
+                       help="centre of mu's prior: each pixel's shared-E (gs) estimate (default) "
+                       "or the authors' (<S> - S0)*phi/set-point")
+    p.add_argument("--conditional-se", action="store_true",
+                   help="standard errors conditional on the offset/read-noise maps (leave out "
+                   "the error of maps estimated from dark frames)")
+    p.add_argument("--report", action="store_true",
+                   help="also write OUT/report.html (figures, summary, provenance)")
+    _common.add_quiet(p)
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    from .. import result
+    from ..calibration import calibrate, format_summary
+
+    options = {key: value for key, value in (("mu_sd", args.mu_sd), ("sigma_sd", args.sigma_sd),
+                                             ("centre", args.prior_centre)) if value is not None}
+    with _common.recording_warnings() as caught:
+        ds = calibrate(args.manifest, args.method, e_per_adu=args.e_per_adu, out=args.out,
+                       block_size=args.block_size, options=options, progress=not args.quiet,
+                       checks=not args.no_checks, map_errors=not args.conditional_se,
+                       intervals=args.intervals)
+        if args.report:
+            from ..report.html import REPORT_FILE, write_report
+
+            write_report([args.out], args.out / REPORT_FILE, progress=not args.quiet)
+    if not args.quiet:
+        print(format_summary(ds))
+        print(f"wrote {args.out / result.CALIBRATION_FILE} and {args.out / result.SUMMARY_FILE}")
+        if args.report:
+            print(f"wrote {args.out / REPORT_FILE}")
+    _common.print_warnings(caught)
+    return 0

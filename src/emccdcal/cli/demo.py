@@ -1,0 +1,43 @@
+"""``emccdcal demo [-o OUT]``: the whole calibration of the paper on simulated data."""
+
+from __future__ import annotations
+
+from . import _common
+
+
+def add_parser(subparsers):
+    from ..demo import DEMO_SEED
+
+    p = subparsers.add_parser(
+        "demo",
+        help="simulate the paper's data and calibrate it (is-adu, then gs)",
+        description="Simulate the paper's intensity and gain series with a fixed seed, "
+        "calibrate phi with is-adu, then the gains with gs using that phi, and print truth "
+        "against estimate.",
+    )
+    _common.add_out(p, "output directory (default: a new temporary directory)", required=False)
+    p.add_argument("--rows", type=_common.positive_int, default=16,
+                   help="rows, px (default %(default)s)")
+    p.add_argument("--cols", type=_common.positive_int, default=16,
+                   help="columns, px (default %(default)s)")
+    p.add_argument("--frames", type=int, default=5000,
+                   help="frames per acquisition, at least 2 (default %(default)s)")
+    p.add_argument("--multiplication", choices=("gamma", "cascade"), default="gamma",
+                   help="EM register model of the simulation (default %(default)s)")
+    p.add_argument("--seed", type=int, default=DEMO_SEED, help="random seed (default %(default)s)")
+    p.add_argument("--no-report", action="store_true", help="skip the HTML report")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    from ..demo import run_demo
+    from ..errors import OptionError
+
+    if args.frames < 2:
+        raise OptionError("--frames must be an integer of at least 2")
+    run_demo(args.out, rows=args.rows, cols=args.cols, frames=args.frames,
+             multiplication=args.multiplication, seed=args.seed, progress=not args.quiet,
+             report=not args.no_report)
+    return 0

@@ -1,0 +1,70 @@
+"""``emccdcal validate BEAD_MANIFEST -c RESULT ... -o OUT``: the bead validation."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from . import _common
+
+
+def add_parser(subparsers):
+    from ..beads.fit import DEFAULT_HALF_SIZE, DEFAULT_WIDTH
+
+    p = subparsers.add_parser(
+        "validate",
+        help="bead validation: fit beads under each calibration, compare set-points",
+        description="Fit every bead in every frame of a bead manifest under each calibration "
+        "(exact noise model) and measure how consistent the beads' intensities are across "
+        "gain set-points (Ryan et al. 2021, Figs. 4-5). Writes OUT/validation.json, "
+        "OUT/intensities.nc and figures (docs/beads.md).",
+    )
+    p.add_argument("manifest", type=Path, metavar="BEAD_MANIFEST",
+                   help="TOML manifest of the bead stacks (one per set-point, 1x included)")
+    p.add_argument("--calibration", "-c", action="append", nargs="+", required=True,
+                   metavar="FILE[,FILE...]",
+                   help="a calibration result (calibration.nc or its directory), or a "
+                   "comma-joined group merged into one (phi from is-adu/mv-adu, gains from "
+                   "is-gain results); repeatable")
+    _common.add_out(p)
+    p.add_argument("--width", type=_common.positive_float, default=DEFAULT_WIDTH,
+                   help="expected PSF standard deviation, px (default %(default)s)")
+    p.add_argument("--half-size", type=int, default=DEFAULT_HALF_SIZE,
+                   help="fitting box half-width, px: boxes are (2N+1)^2 (default %(default)s)")
+    p.add_argument("--min-separation", type=float, default=None,
+                   help="least distance between beads, px (default 2*half-size+1)")
+    p.add_argument("--snr", type=float, default=8.0,
+                   help="detection threshold, robust noise SDs (default %(default)s)")
+    p.add_argument("--detect-setpoint", type=float, default=None,
+                   help="set-point whose mean image the beads are found on (default: highest)")
+    _common.add_no_figures(p)
+    _common.add_quiet(p)
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    from ..beads.validation import (
+        INTENSITIES_FILE,
+        VALIDATION_FILE,
+        format_table,
+        validate,
+    )
+    from ..errors import OptionError
+
+    if args.half_size < 2:
+        raise OptionError("--half-size must be at least 2 (pixels)")
+    specs = [item for group in args.calibration for item in group]
+    with _common.recording_warnings() as caught:
+        doc = validate(args.manifest, specs, out=args.out, width=args.width,
+                       half_size=args.half_size, min_separation=args.min_separation,
+                       snr=args.snr, detect_setpoint=args.detect_setpoint,
+                       progress=not args.quiet)
+        if not args.no_figures:
+            from ..report.figures import write_validation_figures
+
+            write_validation_figures(args.out)
+    if not args.quiet:
+        print(format_table(doc))
+        print(f"wrote {args.out / VALIDATION_FILE} and {args.out / INTENSITIES_FILE}")
+    _common.print_warnings(caught)
+    return 0

@@ -1,0 +1,4 @@
+"""From files to acquisitions: :mod:`~emccdcal.data.manifest` (the manifest, checked),
+:mod:`~emccdcal.data.stacks` (readers), :mod:`~emccdcal.data.dark` (offset and
+read-noise maps), :mod:`~emccdcal.data.stats` (per-pixel histograms) and
+:mod:`~emccdcal.data.quality` (data-quality checks)."""

@@ -1,0 +1,700 @@
+"""Data-quality checks of calibration acquisitions, without fitting.
+
+A calibration assumes that every acquisition is a steady exposure of a well-behaved
+sensor. :func:`check_manifest` tests what can be tested from the data alone
+(docs/simulation.md, §7):
+
+* **Stationarity of the illumination** (:func:`stationarity`): the per-frame mean of the
+  offset-subtracted counts is tested with ADF (null: unit root; a p-value below ``alpha``
+  supports stationarity) *and* KPSS (null: level-stationary; a p-value below ``alpha``
+  rejects it), and an OLS line through it gives the linear drift over the acquisition in
+  % of the mean level. ADF('c') alone passes a slowly drifting series (docs/validation.md case
+  12), so all three are required.
+* **Saturation** (:func:`saturation`): pixel-frames at or above the ADC maximum.
+* **Hot, dead and stuck pixels** (:func:`pixel_defects`): pixel means far from the
+  median of the pixel means in robust (MAD-based) standard deviations, and pixels whose
+  counts never change.
+* **Read noise growing with the set-point** (clock-induced charge in the darks,
+  :func:`emccdcal.data.dark.check_read_noise_growth`).
+
+Every result is a plain dict of floats, ints, bools, strings, lists and None, ready for
+:func:`json.dumps`. :func:`format_report` prints it as a table; ``emccdcal check
+MANIFEST [--json]`` does both from the command line.
+
+Units: counts, levels and offsets in ADU; drift in % of the mean offset-subtracted level
+over the whole acquisition; set-points dimensionless.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+
+from ..errors import InputError
+from .dark import as_stack, check_read_noise_growth, maps_from_dark
+
+__all__ = [
+    "MIN_FRAMES",
+    "DEFAULT_ALPHA",
+    "DEFAULT_DRIFT_THRESHOLD",
+    "DEFAULT_K",
+    "MAX_LISTED",
+    "stationarity",
+    "linear_drift",
+    "frame_means",
+    "saturation",
+    "pixel_defects",
+    "check_acquisition",
+    "check_manifest",
+    "prefetch",
+    "format_report",
+]
+
+#: Fewest values (frames) the stationarity tests accept. KPSS and ADF with automatic lag
+#: selection need a few dozen points to mean anything.
+MIN_FRAMES = 50
+#: Significance level of the ADF and KPSS tests.
+DEFAULT_ALPHA = 0.05
+#: |drift| over the acquisition, in % of the mean level, that counts as a finding.
+DEFAULT_DRIFT_THRESHOLD = 1.0
+#: Robust standard deviations from the median pixel mean that make a pixel hot or dead.
+DEFAULT_K = 5.0
+#: Most pixel coordinates listed per category in a report (counts are always complete).
+MAX_LISTED = 100
+#: Fewest pixels for the hot/dead test (a robust spread needs a few pixels).
+_MIN_PIXELS_DEFECTS = 5
+#: MAD → standard deviation for normal data.
+_MAD_TO_SD = 1.482602218505602
+#: Elements (frames × pixels) converted to float64 at a time when streaming a stack.
+_CHUNK_ELEMENTS = 2**23
+
+
+# --------------------------------------------------------------------------------------
+# Small helpers
+# --------------------------------------------------------------------------------------
+def _pixels(mask: np.ndarray) -> list[list[int]]:
+    """Coordinates [row, col] of the True pixels, at most :data:`MAX_LISTED`."""
+    rc = np.argwhere(mask)[:MAX_LISTED]
+    return [[int(r), int(c)] for r, c in rc]
+
+
+def _has_result_object(func) -> bool:
+    """Whether a statsmodels test takes ``result_object`` (0.15 warns when it is not given)."""
+    import inspect
+
+    try:
+        return "result_object" in inspect.signature(func).parameters
+    except (TypeError, ValueError):  # pragma: no cover - uninspectable
+        return False
+
+
+# --------------------------------------------------------------------------------------
+# Stationarity of a series
+# --------------------------------------------------------------------------------------
+def linear_drift(series, *, offset: float | None = None) -> dict:
+    """OLS linear drift of a series over its whole length, in % of its mean level.
+
+    Fits ``x_t = a + b·t`` (t = 0 … n−1, frames) by ordinary least squares. The drift is
+    the fitted change from the first to the last frame, ``b·(n−1)``, relative to the mean
+    level ``mean(x) − offset``.
+
+    Parameters
+    ----------
+    series : array_like, shape (n,)
+        The series (e.g. frame means, ADU), n ≥ 3, finite.
+    offset : float, optional
+        Subtracted from the mean before taking the ratio (ADU); default 0.
+
+    Returns
+    -------
+    dict
+        ``level`` (mean − offset, ADU), ``slope`` (ADU per frame), ``slope_se`` (ADU per
+        frame), ``drift_pct`` and ``drift_pct_se`` (% of ``level`` over the series; None
+        when the level is not positive, e.g. a dark acquisition).
+
+    Notes
+    -----
+    The standard error is the textbook OLS one (independent residuals). Autocorrelated
+    residuals make it too small; the stationarity tests cover that case.
+
+    Examples
+    --------
+    >>> d = linear_drift(100 + np.linspace(0, 1, 11))
+    >>> round(d["drift_pct"], 6), round(d["drift_pct_se"], 6)
+    (0.995025, 0.0)
+    """
+    x = np.asarray(series, dtype=np.float64).ravel()
+    n = x.size
+    if n < 3:
+        raise InputError(f"a drift needs at least 3 values, got {n}")
+    if not np.all(np.isfinite(x)):
+        raise InputError("series contains NaN or infinite values")
+    t = np.arange(n, dtype=np.float64)
+    tc = t - t.mean()
+    sxx = float(tc @ tc)
+    mean = float(x.mean())
+    slope = float(tc @ (x - mean)) / sxx
+    resid = x - mean - slope * tc
+    s2 = float(resid @ resid) / (n - 2)
+    slope_se = math.sqrt(s2 / sxx)
+    level = mean - (0.0 if offset is None else float(offset))
+    if level > 0:
+        drift_pct = 100.0 * slope * (n - 1) / level
+        drift_pct_se = 100.0 * slope_se * (n - 1) / level
+    else:
+        drift_pct = drift_pct_se = None
+    return {
+        "level": level,
+        "slope": slope,
+        "slope_se": slope_se,
+        "drift_pct": drift_pct,
+        "drift_pct_se": drift_pct_se,
+    }
+
+
+def stationarity(
+    series,
+    *,
+    regression: str = "c",
+    offset: float | None = None,
+    drift_threshold: float = DEFAULT_DRIFT_THRESHOLD,
+    alpha: float = DEFAULT_ALPHA,
+) -> dict:
+    """ADF and KPSS stationarity tests and the linear drift of a series.
+
+    Runs ``statsmodels.tsa.stattools.adfuller(x, regression=regression, autolag='AIC')``
+    and ``kpss(x, regression=regression, nlags='auto')`` (docs/quality.md) and
+    :func:`linear_drift`. KPSS interpolates its p-value in a table and clips it to
+    [0.01, 0.1]; its warning is silenced and the clip is reported in ``kpss_p_bound``.
+
+    Parameters
+    ----------
+    series : array_like, shape (n,)
+        The series, e.g. the per-frame mean of the offset-subtracted counts (ADU);
+        n ≥ :data:`MIN_FRAMES`, finite, not constant.
+    regression : {"c", "ct"}, optional
+        Deterministic terms of both tests: constant (default; KPSS then tests level
+        stationarity) or constant and trend.
+    offset : float, optional
+        Subtracted from the mean level for the drift in % (ADU); default 0. The tests do
+        not depend on it.
+    drift_threshold : float, optional
+        |drift| in % of the level at or above which the series is not stationary
+        (default 1 %).
+    alpha : float, optional
+        Significance level of both tests (default 0.05).
+
+    Returns
+    -------
+    dict
+        ``n``, ``regression``, ``alpha``, ``drift_threshold_pct``;
+        ``adf_stat``, ``adf_pvalue``, ``adf_usedlag``, ``adf_rejects_unit_root``
+        (p < alpha);
+        ``kpss_stat``, ``kpss_pvalue``, ``kpss_lags``, ``kpss_p_bound`` (``"lower"`` when
+        the true p-value is ≤ 0.01, ``"upper"`` when ≥ 0.1, else None),
+        ``kpss_rejects_stationarity`` (p < alpha);
+        ``level``, ``slope``, ``slope_se``, ``drift_pct``, ``drift_pct_se`` (as in
+        :func:`linear_drift`), ``drift_exceeds`` (|drift| ≥ threshold; False when the
+        drift is undefined);
+        ``stationary``: ADF rejects and KPSS does not and the drift is below threshold.
+
+    Raises
+    ------
+    ValueError
+        If the series has fewer than :data:`MIN_FRAMES` values ("too few frames for the
+        stationarity tests"), is not finite, is constant, or an option is invalid.
+
+    Notes
+    -----
+    KPSS rejects 5 % of truly stationary series at alpha = 0.05, so across many
+    acquisitions an occasional KPSS finding is expected by chance.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> r = stationarity(100 + rng.normal(0, 1, 5000))
+    >>> r["stationary"], round(r["kpss_pvalue"], 3)
+    (True, 0.071)
+    """
+    from statsmodels.tools.sm_exceptions import InterpolationWarning
+    from statsmodels.tsa.stattools import adfuller, kpss
+
+    if regression not in ("c", "ct"):
+        raise InputError(f"regression must be 'c' or 'ct', got {regression!r}")
+    if not (0 < alpha < 1):
+        raise InputError(f"alpha must be between 0 and 1, got {alpha!r}")
+    if not (math.isfinite(drift_threshold) and drift_threshold > 0):
+        raise InputError(f"drift_threshold must be a positive number (%), got {drift_threshold!r}")
+    x = np.asarray(series, dtype=np.float64).ravel()
+    if x.size < MIN_FRAMES:
+        raise InputError(
+            f"too few frames for the stationarity tests: {x.size}, need at least {MIN_FRAMES}"
+        )
+    if not np.all(np.isfinite(x)):
+        raise InputError("series contains NaN or infinite values")
+    if np.ptp(x) == 0:
+        raise InputError("series is constant; the stationarity tests are undefined")
+
+    adf_kw = {"result_object": False} if _has_result_object(adfuller) else {}
+    adf_stat, adf_p, adf_lag, *_ = adfuller(x, regression=regression, autolag="AIC", **adf_kw)
+    kpss_kw = {"result_object": False} if _has_result_object(kpss) else {}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", InterpolationWarning)
+        kpss_stat, kpss_p, kpss_lags, _crit = kpss(
+            x, regression=regression, nlags="auto", **kpss_kw
+        )
+    bound = None
+    if any(issubclass(w.category, InterpolationWarning) for w in caught):
+        bound = "lower" if kpss_p <= 0.01 else "upper"
+    drift = linear_drift(x, offset=offset)
+    adf_rejects = bool(adf_p < alpha)
+    kpss_rejects = bool(kpss_p < alpha)
+    exceeds = drift["drift_pct"] is not None and abs(drift["drift_pct"]) >= drift_threshold
+    return {
+        "n": int(x.size),
+        "regression": regression,
+        "alpha": float(alpha),
+        "drift_threshold_pct": float(drift_threshold),
+        "adf_stat": float(adf_stat),
+        "adf_pvalue": float(adf_p),
+        "adf_usedlag": int(adf_lag),
+        "adf_rejects_unit_root": adf_rejects,
+        "kpss_stat": float(kpss_stat),
+        "kpss_pvalue": float(kpss_p),
+        "kpss_lags": int(kpss_lags),
+        "kpss_p_bound": bound,
+        "kpss_rejects_stationarity": kpss_rejects,
+        **drift,
+        "drift_exceeds": bool(exceeds),
+        "stationary": bool(adf_rejects and not kpss_rejects and not exceeds),
+    }
+
+
+# --------------------------------------------------------------------------------------
+# Per-stack checks
+# --------------------------------------------------------------------------------------
+def _chunks(stack: np.ndarray):
+    n_frames = stack.shape[0]
+    per_frame = max(1, int(np.prod(stack.shape[1:])))
+    step = max(1, _CHUNK_ELEMENTS // per_frame)
+    for f0 in range(0, n_frames, step):
+        yield f0, np.asarray(stack[f0 : f0 + step])
+
+
+def frame_means(stack, offset=None) -> np.ndarray:
+    """Per-frame mean over all pixels of the (offset-subtracted) counts.
+
+    Parameters
+    ----------
+    stack : array_like, shape (frames, rows, cols)
+        Raw counts, ADU (a memory map is read in chunks).
+    offset : float or array_like (rows, cols), optional
+        Offset map S0 (ADU) subtracted from every frame; default 0.
+
+    Returns
+    -------
+    ndarray of float64, shape (frames,)
+        ADU.
+    """
+    stack = as_stack(stack)
+    off = 0.0 if offset is None else float(np.mean(np.asarray(offset, dtype=np.float64)))
+    out = np.empty(stack.shape[0])
+    for f0, chunk in _chunks(stack):
+        out[f0 : f0 + chunk.shape[0]] = chunk.reshape(chunk.shape[0], -1).mean(
+            axis=1, dtype=np.float64
+        )
+    return out - off
+
+
+def saturation(stack, adc_max: int) -> dict:
+    """Count saturated values: counts at or above the ADC maximum.
+
+    Parameters
+    ----------
+    stack : array_like, shape (frames, rows, cols)
+        Raw counts, ADU.
+    adc_max : int
+        ADC maximum, ADU (``2**bits − 1``).
+
+    Returns
+    -------
+    dict
+        ``adc_max``; ``n_values`` (saturated pixel-frames), ``fraction`` (of all
+        pixel-frames); ``n_frames`` (frames with at least one saturated pixel);
+        ``n_pixels`` (pixels saturated in at least one frame) and ``pixels`` (their
+        [row, col], at most :data:`MAX_LISTED`).
+
+    Examples
+    --------
+    >>> s = saturation(np.array([[[1, 7]], [[7, 2]], [[3, 4]]]), adc_max=7)
+    >>> s["n_values"], s["n_frames"], s["n_pixels"]
+    (2, 2, 2)
+    """
+    stack = as_stack(stack)
+    if isinstance(adc_max, bool) or int(adc_max) != adc_max or adc_max < 1:
+        raise InputError(f"adc_max must be a positive integer, got {adc_max!r}")
+    per_pixel = np.zeros(stack.shape[1:], dtype=np.int64)
+    n_frames = 0
+    for _, chunk in _chunks(stack):
+        sat = chunk >= adc_max
+        per_pixel += sat.sum(axis=0)
+        n_frames += int(np.count_nonzero(sat.reshape(sat.shape[0], -1).any(axis=1)))
+    n_values = int(per_pixel.sum())
+    return {
+        "adc_max": int(adc_max),
+        "n_values": n_values,
+        "fraction": n_values / max(1, stack.size),
+        "n_frames": n_frames,
+        "n_pixels": int(np.count_nonzero(per_pixel)),
+        "pixels": _pixels(per_pixel > 0),
+    }
+
+
+def pixel_defects(stack, offset=None, *, k: float = DEFAULT_K) -> dict:
+    """Hot, dead and stuck pixels of a stack, by robust statistics of the pixel means.
+
+    A pixel is *hot* when its mean count exceeds the median of all pixel means by more
+    than ``k`` robust standard deviations, *dead* when it falls short by as much, and
+    *stuck* when its counts never change (variance 0). The robust standard deviation is
+    1.4826 × the median absolute deviation of the pixel means, floored at the median
+    standard error of a pixel mean (so that a perfectly uniform sensor flags nothing by
+    round-off).
+
+    Parameters
+    ----------
+    stack : array_like, shape (frames, rows, cols)
+        Raw counts, ADU (≥ 2 frames; a memory map is read in chunks).
+    offset : float or array_like (rows, cols), optional
+        Offset map S0 (ADU) subtracted from the pixel means, so that a fixed offset
+        pattern does not count as a defect; default 0.
+    k : float, optional
+        Threshold in robust standard deviations (default 5).
+
+    Returns
+    -------
+    dict
+        ``k``; ``median_mean`` (ADU), ``robust_sd`` (ADU, None when there are too few
+        pixels); ``n_hot``/``hot``, ``n_dead``/``dead``, ``n_stuck``/``stuck`` (counts and
+        [row, col] lists, at most :data:`MAX_LISTED`); ``tested`` (False when fewer than 5
+        pixels: only stuck pixels are then looked for).
+    """
+    if not (math.isfinite(k) and k > 0):
+        raise InputError(f"k must be a positive number, got {k!r}")
+    stack = as_stack(stack)
+    n_frames = int(stack.shape[0])
+    if n_frames < 2:
+        raise InputError(f"pixel_defects needs at least 2 frames, got {n_frames}")
+    mean, sd = maps_from_dark(stack)
+    mean = np.asarray(mean, dtype=np.float64)
+    sd = np.asarray(sd, dtype=np.float64)
+    if offset is not None:
+        mean = mean - np.asarray(offset, dtype=np.float64)
+    stuck = sd == 0
+    out = {
+        "k": float(k),
+        "tested": False,
+        "median_mean": float(np.median(mean)),
+        "robust_sd": None,
+        "n_hot": 0,
+        "hot": [],
+        "n_dead": 0,
+        "dead": [],
+        "n_stuck": int(np.count_nonzero(stuck)),
+        "stuck": _pixels(stuck),
+    }
+    if mean.size < _MIN_PIXELS_DEFECTS:
+        return out
+    med = float(np.median(mean))
+    mad_sd = _MAD_TO_SD * float(np.median(np.abs(mean - med)))
+    floor = float(np.median(sd)) / math.sqrt(n_frames)
+    scale = max(mad_sd, floor)
+    out.update(tested=True, robust_sd=scale)
+    if scale > 0:
+        z = (mean - med) / scale
+        hot = z > k
+        dead = z < -k
+        out.update(
+            n_hot=int(np.count_nonzero(hot)),
+            hot=_pixels(hot),
+            n_dead=int(np.count_nonzero(dead)),
+            dead=_pixels(dead),
+        )
+    return out
+
+
+def check_acquisition(
+    acq,
+    adc_max: int,
+    *,
+    k: float = DEFAULT_K,
+    drift_threshold: float = DEFAULT_DRIFT_THRESHOLD,
+    alpha: float = DEFAULT_ALPHA,
+    regression: str = "c",
+) -> dict:
+    """All data-quality checks of one acquisition.
+
+    Parameters
+    ----------
+    acq : emccdcal.data.manifest.Acquisition
+        The acquisition (its frames after ``skip_frames`` and its offset map are used).
+    adc_max : int
+        ADC maximum, ADU (``Manifest.adc_max``).
+    k, drift_threshold, alpha, regression
+        As in :func:`pixel_defects` and :func:`stationarity`.
+
+    Returns
+    -------
+    dict
+        ``name``, ``frames`` (path), ``em_gain_setpoint``, ``level`` (label or None),
+        ``n_frames``, ``shape``; ``stationarity`` (:func:`stationarity` of the per-frame
+        mean of the offset-subtracted counts); ``saturation`` (:func:`saturation`);
+        ``pixels`` (:func:`pixel_defects` on the offset-subtracted pixel means).
+
+    Raises
+    ------
+    ValueError
+        Naming the frames file, when it has fewer than :data:`MIN_FRAMES` frames ("too
+        few frames for the stationarity tests") or its frame means cannot be tested.
+    """
+    path = acq.frames_path
+    n = int(acq.n_frames)
+    if n < MIN_FRAMES:
+        raise InputError(
+            f"'{path}': too few frames for the stationarity tests: {n} after skip_frames, "
+            f"need at least {MIN_FRAMES}"
+        )
+    stack = acq.frames()
+    series = frame_means(stack, acq.offset)
+    try:
+        stat = stationarity(
+            series, regression=regression, drift_threshold=drift_threshold, alpha=alpha
+        )
+    except ValueError as exc:
+        raise InputError(f"'{path}': frame means: {exc}") from None
+    return {
+        "name": acq.name,
+        "frames": str(path),
+        "em_gain_setpoint": float(acq.em_gain_setpoint),
+        "level": acq.level,
+        "n_frames": n,
+        "shape": [int(d) for d in acq.shape],
+        "stationarity": stat,
+        "saturation": saturation(stack, adc_max),
+        "pixels": pixel_defects(stack, acq.offset, k=k),
+    }
+
+
+def prefetch():
+    """Import the stationarity tests' statsmodels modules on a background thread.
+
+    Importing them takes about 2 s, almost all of it Python that a caller can overlap
+    with work that releases the GIL (``calibrate`` reads and sorts its stacks meanwhile);
+    :func:`stationarity` then finds them imported, or waits on the import lock. Nothing
+    else happens on that thread (warnings filters are process-global, so the checks
+    themselves run on the caller's).
+    """
+    import threading
+
+    def load():
+        import statsmodels.tools.sm_exceptions  # noqa: F401
+        import statsmodels.tsa.stattools  # noqa: F401
+
+    threading.Thread(target=load, name="emccdcal-prefetch", daemon=True).start()
+
+
+# --------------------------------------------------------------------------------------
+# Whole manifest
+# --------------------------------------------------------------------------------------
+def _fmt_pixels(pixels: list, n: int) -> str:
+    shown = ", ".join(f"({r},{c})" for r, c in pixels[:5])
+    return shown + (f" and {n - 5} more" if n > 5 else "")
+
+
+def _findings(a: dict) -> list[str]:
+    """Human-readable warnings of one acquisition's checks."""
+    name = f"{a['name']} (set-point {a['em_gain_setpoint']:g})"
+    s = a["stationarity"]
+    out = []
+    if s["drift_exceeds"]:
+        out.append(
+            f"{name}: the frame mean drifts by {s['drift_pct']:+.2f} ± {s['drift_pct_se']:.2f} % "
+            f"over the acquisition (threshold {s['drift_threshold_pct']:g} %): the "
+            "illumination or the EM gain is not steady"
+        )
+    reasons = []
+    if not s["adf_rejects_unit_root"]:
+        reasons.append(f"ADF does not reject a unit root (p = {s['adf_pvalue']:.2g})")
+    if s["kpss_rejects_stationarity"]:
+        p = "≤ 0.01" if s["kpss_p_bound"] == "lower" else f"= {s['kpss_pvalue']:.2g}"
+        reasons.append(f"KPSS rejects level stationarity (p {p})")
+    if reasons:
+        out.append(
+            f"{name}: the frame means are not stationary: {'; '.join(reasons)} "
+            f"(alpha {s['alpha']:g}; KPSS also rejects {100 * s['alpha']:g} % of steady "
+            "acquisitions by chance)"
+        )
+    sat = a["saturation"]
+    if sat["n_values"]:
+        out.append(
+            f"{name}: {sat['n_values']} saturated pixel-frames (counts ≥ {sat['adc_max']}) in "
+            f"{sat['n_frames']} frames, {sat['n_pixels']} pixels: "
+            f"{_fmt_pixels(sat['pixels'], sat['n_pixels'])}; they are excluded from fits"
+        )
+    px = a["pixels"]
+    for kind, what in (("hot", "above"), ("dead", "below")):
+        if px[f"n_{kind}"]:
+            out.append(
+                f"{name}: {px[f'n_{kind}']} {kind} pixel(s), mean more than {px['k']:g} "
+                f"robust SDs ({px['robust_sd']:.3g} ADU) {what} the median: "
+                f"{_fmt_pixels(px[kind], px[f'n_{kind}'])}"
+            )
+    if px["n_stuck"]:
+        out.append(
+            f"{name}: {px['n_stuck']} stuck pixel(s) whose counts never change: "
+            f"{_fmt_pixels(px['stuck'], px['n_stuck'])}"
+        )
+    return out
+
+
+def check_manifest(
+    manifest,
+    *,
+    k: float = DEFAULT_K,
+    drift_threshold: float = DEFAULT_DRIFT_THRESHOLD,
+    alpha: float = DEFAULT_ALPHA,
+    regression: str = "c",
+    read_noise_threshold: float = 0.05,
+) -> dict:
+    """Data-quality checks of every acquisition of a manifest, and of the read noise.
+
+    Parameters
+    ----------
+    manifest : emccdcal.data.manifest.Manifest
+        From :func:`emccdcal.data.manifest.read_manifest`.
+    k, drift_threshold, alpha, regression
+        As in :func:`check_acquisition`.
+    read_noise_threshold : float, optional
+        Relative growth of the median read noise over the lowest set-point that is
+        reported (default 0.05), :func:`emccdcal.data.dark.check_read_noise_growth`.
+
+    Returns
+    -------
+    dict
+        JSON-serialisable: ``manifest`` (path), ``adc_max``, ``acquisitions`` (name →
+        :func:`check_acquisition`; a repeated name gets a ``#2``, ``#3`` … suffix),
+        ``read_noise_growth`` (list of messages) and ``warnings`` (every finding as one
+        human-readable string, in acquisition order, read-noise growth last).
+
+    Raises
+    ------
+    ValueError
+        From :func:`check_acquisition` (naming the file).
+    """
+    acqs: dict[str, dict] = {}
+    warn: list[str] = []
+    for acq in manifest.acquisitions:
+        res = check_acquisition(
+            acq,
+            manifest.adc_max,
+            k=k,
+            drift_threshold=drift_threshold,
+            alpha=alpha,
+            regression=regression,
+        )
+        key, i = acq.name, 1
+        while key in acqs:
+            i += 1
+            key = f"{acq.name}#{i}"
+        acqs[key] = res
+        warn.extend(_findings(res))
+    growth = check_read_noise_growth(
+        [a.em_gain_setpoint for a in manifest.acquisitions],
+        [a.read_noise for a in manifest.acquisitions],
+        threshold=read_noise_threshold,
+    )
+    warn.extend(growth)
+    return {
+        "manifest": str(manifest.path),
+        "adc_max": int(manifest.adc_max),
+        "acquisitions": acqs,
+        "read_noise_growth": list(growth),
+        "warnings": warn,
+    }
+
+
+def _p(p: float, bound: str | None = None) -> str:
+    if bound == "lower":
+        return "≤0.01"
+    if bound == "upper":
+        return "≥0.1"
+    return f"{p:.2g}" if p >= 1e-4 else "<1e-4"
+
+
+def format_report(report: dict) -> str:
+    """A check report as a human-readable table followed by its warnings.
+
+    Parameters
+    ----------
+    report : dict
+        From :func:`check_manifest`.
+
+    Returns
+    -------
+    str
+        Multi-line text (no trailing newline).
+    """
+    header = (
+        "acquisition",
+        "set-pt",
+        "frames",
+        "level ADU",
+        "drift % ± SE",
+        "ADF p",
+        "KPSS p",
+        "steady",
+        "sat. values/frames/px",
+        "hot",
+        "dead",
+        "stuck",
+    )
+    rows = [header]
+    for name, a in report["acquisitions"].items():
+        s, sat, px = a["stationarity"], a["saturation"], a["pixels"]
+        drift = (
+            "n/a"
+            if s["drift_pct"] is None
+            else f"{s['drift_pct']:+.2f} ± {s['drift_pct_se']:.2f}"
+        )
+        rows.append(
+            (
+                name,
+                f"{a['em_gain_setpoint']:g}",
+                str(a["n_frames"]),
+                f"{s['level']:.1f}",
+                drift,
+                _p(s["adf_pvalue"]),
+                _p(s["kpss_pvalue"], s["kpss_p_bound"]),
+                "yes" if s["stationary"] else "NO",
+                f"{sat['n_values']}/{sat['n_frames']}/{sat['n_pixels']}",
+                str(px["n_hot"]) if px["tested"] else "n/a",
+                str(px["n_dead"]) if px["tested"] else "n/a",
+                str(px["n_stuck"]),
+            )
+        )
+    widths = [max(len(r[i]) for r in rows) for i in range(len(header))]
+    lines = [f"Data-quality checks: {report['manifest']} (ADC maximum {report['adc_max']} ADU)"]
+    for j, r in enumerate(rows):
+        cells = [c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths))]
+        lines.append("  ".join(cells).rstrip())
+        if j == 0:
+            lines.append("  ".join("-" * w for w in widths))
+    if report["warnings"]:
+        lines.append("")
+        lines.append(f"{len(report['warnings'])} finding(s):")
+        lines.extend(f"- {w}" for w in report["warnings"])
+    else:
+        lines.append("")
+        lines.append("No findings.")
+    return "\n".join(lines)

@@ -1,0 +1,58 @@
+"""The errors and warnings of emccdcal: one base class for everything a user can cause.
+
+Every problem with the user's input (a manifest, a data file, an option, a method that
+the data cannot support) is an :class:`EmccdcalError` whose message is one line naming
+the file, the acquisition and the problem. The command line prints exactly that line
+and exits with code 2; any other exception is a bug in emccdcal and shows its
+traceback. The classes also derive from the built-in exception they refine
+(``ValueError``, ``FileNotFoundError``, ``RuntimeError``), so code that catches those
+keeps working.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "EmccdcalError",
+    "OptionError",
+    "InputError",
+    "ManifestError",
+    "MissingFileError",
+    "MethodError",
+    "NotConvergedError",
+    "ReadNoiseGrowthWarning",
+]
+
+
+class EmccdcalError(Exception):
+    """Base class of the errors a user can cause; the message is one line."""
+
+
+class OptionError(EmccdcalError, ValueError):
+    """An argument or option out of its range or of the wrong type."""
+
+
+class InputError(EmccdcalError, ValueError):
+    """A data file is missing, unreadable, or holds data that cannot be used.
+
+    The message is one line that names the file and the problem.
+    """
+
+
+class ManifestError(InputError):
+    """A manifest, or a file it names, is invalid. One line naming the file and the problem."""
+
+
+class MissingFileError(InputError, FileNotFoundError):
+    """A file or directory that was named does not exist."""
+
+
+class MethodError(EmccdcalError, ValueError):
+    """A calibration method that does not exist or that the data cannot support."""
+
+
+class NotConvergedError(EmccdcalError, RuntimeError):
+    """A posterior chain did not meet the convergence criteria within its step budget."""
+
+
+class ReadNoiseGrowthWarning(UserWarning):
+    """The darks' read noise grows with the EM gain set-point (clock-induced charge)."""

@@ -1,0 +1,664 @@
+"""The likelihood engine: a series of acquisitions, a block of pixels, one optimiser.
+
+Every likelihood method of the paper (Table 2) is a *parameter layout* over this engine
+(:mod:`emccdcal.fit.layouts`): which of the per-acquisition parameters — photoelectrons E,
+EM gain g, ADU conversion factor φ — are free, shared across acquisitions or fixed. The
+engine only sees a per-pixel vector ``x`` of free parameters and the layout's map from
+``x`` to each acquisition's ``(ln E, ln g, ln φ)``.
+
+For each acquisition the exact log-likelihood of a pixel is ``Σ_k n_k ln p(k)`` over its
+histogram (:mod:`emccdcal.data.stats`), with ``p`` the noise model of :mod:`emccdcal.model.noise`
+evaluated on one FFT window per pixel, batched over the block. One more inverse FFT per
+parameter gives the scores, hence the gradient and the outer-product information; at
+the end, the observed information needs the second derivatives only summed against the
+data, which one forward FFT of the data's weights gives for every pair (Parseval).
+
+Optimisation is BHHH (the information estimated by the outer product of the per-frame
+scores) with Levenberg–Marquardt damping, vectorised over pixels:
+each iteration evaluates only the pixels that have not converged, there is no Python loop
+over pixels. Standard errors come from the inverse observed information at the optimum.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..model import noise
+
+__all__ = ["AcquisitionBlock", "FitResult", "Layout", "fit", "log_likelihood", "profile_bounds"]
+
+# Values whose model probability is below this fraction of the pixel's peak are beyond
+# what the FFT resolves (round-off ~1e-16 of the peak): they count at this floor, with
+# zero gradient, and are reported as ``n_floored`` (cosmic rays, hot events).
+_FLOOR = 1e-14
+
+
+@dataclass
+class AcquisitionBlock:
+    """The data of one acquisition for a block of P pixels.
+
+    Attributes
+    ----------
+    values, counts : ndarray, shape (P, K)
+        Histogram of each pixel's counts (ADU values, and frames at each; padding has
+        count 0), as :class:`emccdcal.data.stats.PixelHistograms`.
+    offset, read_noise : ndarray, shape (P,)
+        S0 and σ maps (ADU).
+    poisson_normal : bool
+        True for the 1× acquisition (no EM multiplication).
+    mean, var : ndarray, shape (P,)
+        Moments of the counts (ADU, ADU²), for starting values.
+    n : ndarray, shape (P,)
+        Frames used.
+    offset_var, read_noise_var : ndarray, shape (P,), optional
+        Variance of the S0 and σ maps themselves (ADU²), from the dark frames they were
+        estimated from; ``None`` for exact maps.
+    map_group : hashable, optional
+        Acquisitions with the same group share one pair of maps (one dark stack), so their
+        map errors are the same draw.
+    """
+
+    values: np.ndarray
+    counts: np.ndarray
+    offset: np.ndarray
+    read_noise: np.ndarray
+    poisson_normal: bool
+    mean: np.ndarray
+    var: np.ndarray
+    n: np.ndarray
+    offset_var: np.ndarray | None = None
+    read_noise_var: np.ndarray | None = None
+    map_group: object = None
+
+    @property
+    def has_map_errors(self) -> bool:
+        """Whether the offset or read-noise map carries a variance of its own."""
+        return self.offset_var is not None or self.read_noise_var is not None
+
+    def take(self, idx):
+        """The block restricted to pixels ``idx``."""
+        sub = lambda a: None if a is None else a[idx]  # noqa: E731
+        return AcquisitionBlock(
+            self.values[idx], self.counts[idx], self.offset[idx], self.read_noise[idx],
+            self.poisson_normal, self.mean[idx], self.var[idx], self.n[idx],
+            sub(self.offset_var), sub(self.read_noise_var), self.map_group,
+        )
+
+
+@dataclass
+class Layout:
+    """A parameter layout: free parameters ``x`` (P, F) → per-acquisition log-parameters.
+
+    ``matrix`` (A, 3, F) and ``constant`` (P, A, 3) map the free parameters linearly:
+    ``(ln E, ln g, ln φ)[a] = constant[:, a] + matrix[a] @ x``. A layout with a prior
+    (the hierarchical gain series) overrides :meth:`log_prior`.
+
+    Attributes
+    ----------
+    names : list of str
+        Names of the free parameters (F).
+    lower, upper : ndarray, shape (F,)
+        Bounds on ``x``.
+    """
+
+    names: list[str]
+    lower: np.ndarray
+    upper: np.ndarray
+    matrix: np.ndarray
+    constant: np.ndarray
+
+    def subset(self, idx):
+        """The layout restricted to pixels ``idx`` (per-pixel constants follow them)."""
+        return replace(self, constant=self.constant[idx])
+
+    @property
+    def n_free(self) -> int:
+        return len(self.names)
+
+    def native(self, x):
+        """Log-parameters (P, A, 3) and their Jacobian (P, A, 3, F)."""
+        logs = self.constant + np.einsum("ajf,pf->paj", self.matrix, x)
+        jac = np.broadcast_to(self.matrix, (x.shape[0],) + self.matrix.shape)
+        return logs, jac
+
+    def log_prior(self, x):
+        """Log prior density (P,), gradient (P, F) and Hessian (P, F, F); flat here."""
+        P, F = x.shape
+        return np.zeros(P), np.zeros((P, F)), np.zeros((P, F, F))
+
+
+@dataclass
+class FitResult:
+    """Per-pixel outcome of :func:`fit`.
+
+    Attributes
+    ----------
+    x : ndarray, shape (P, F)
+        Free parameters at the optimum.
+    cov : ndarray, shape (P, F, F)
+        Covariance of ``x``: the inverse observed information (with a prior: the sandwich
+        H⁻¹ I H⁻¹, or the layout's own ``estimator_covariance`` where it has one), plus
+        what the errors of the offset and read-noise maps add where the blocks give their
+        variances; NaN where the information is not positive definite.
+    loglik : ndarray, shape (P,)
+        Log-likelihood at the optimum, nats (without the prior).
+    converged : ndarray of bool, shape (P,)
+        Optimiser converged and the information is positive definite.
+    iterations : ndarray of int, shape (P,)
+    n_floored : ndarray of int, shape (P,)
+        Frames whose probability was below the resolvable floor (outliers).
+    loglik_per_acquisition : ndarray, shape (P, A)
+    objective : ndarray, shape (P,)
+        Log-likelihood plus log prior at the optimum (the maximised function), nats.
+    """
+
+    x: np.ndarray
+    cov: np.ndarray
+    loglik: np.ndarray
+    converged: np.ndarray
+    iterations: np.ndarray
+    n_floored: np.ndarray
+    loglik_per_acquisition: np.ndarray = field(default=None)
+    objective: np.ndarray = field(default=None)
+
+
+class _ModelAtData:
+    """The pmf of each pixel of a block at its histogram's values, with derivatives.
+
+    Attributes
+    ----------
+    pv : ndarray, shape (P, K)
+        Probabilities at the values, floored at ``_FLOOR`` of the pixel's peak.
+    scores : dict or None
+        name -> (P, K) first derivatives of the probability at the values.
+    second : dict
+        (name, name) -> :class:`noise.Spectrum` of the second derivatives (upper triangle).
+    flat : ndarray of int, shape (P, K)
+        Index of every value in the flattened (P, n) window.
+    n : int
+        Window length.
+    low : ndarray of bool, shape (P, K)
+        Values below the floor (no gradient there).
+    hopeless : ndarray of bool, shape (P,)
+        Pixels whose parameters are hopelessly far from their data.
+    """
+
+    def __init__(self, acq, E, scale, *, derivs=False, second=False,
+                 names=("photoelectrons", "scale")):
+        pn = np.full(E.shape, acq.poisson_normal)
+        # The model's mass lies within [lo, hi] (eight SDs and the tails, outside of
+        # which the pmf is below ~1e-15 of its peak).
+        lo, hi = noise._extent(E, scale, acq.offset, acq.read_noise, pn, width=8.0)
+        lo, hi = np.floor(lo).astype(np.int64), np.ceil(hi).astype(np.int64)
+        first, last = acq.values[:, 0], acq.values.max(axis=1)
+        # The FFT gives the pmf wrapped with period n: at a datum k, p(k) + Σ p(k ± jn).
+        # Those aliases lie beyond [lo, hi] for every datum once n ≥ hi − first and
+        # n ≥ last − lo, wherever the window starts: it starts at the first datum, which
+        # makes n the data's span plus one margin, not plus the model's on both sides.
+        start = first
+        stop = first + np.maximum(last - first, np.maximum(hi - first, last - lo))
+        # A trial step far from the data can ask for an enormous window; such parameters
+        # are hopeless anyway: they get log-likelihood -inf (the step is refused) and a
+        # window of bounded size.
+        span = last - first + 1
+        limit = first - 8 * span - 64 * np.ceil(acq.read_noise).astype(np.int64) - 64
+        hopeless = ((np.minimum(first, lo) < limit)
+                    | (stop - start > 32 * span + 256 * np.ceil(acq.read_noise) + 512))
+        start = np.where(hopeless, limit, start)
+        stop = np.where(hopeless, last + 8 * span + 64, stop)
+        n = noise._fast_len(int((stop - start).max()) + 1)
+        p, d1, d2 = noise._window(
+            E, scale, acq.offset - start, acq.read_noise, pn, n,
+            derivs=derivs, second=second, names=names,
+        )
+        P = E.shape[0]
+        # One flat gather per window (faster than take_along_axis, which rebuilds indices).
+        self.flat = acq.values - start[:, None] + (np.arange(P) * n)[:, None]
+        pv = p.ravel()[self.flat]
+        floor = _FLOOR * p.max(axis=1, keepdims=True)
+        self.low = pv < floor
+        self.pv = np.where(self.low, floor, pv)
+        self.scores = {nm: d1[nm].ravel()[self.flat] for nm in names} if derivs else None
+        self.second, self.n, self.hopeless = d2, n, hopeless
+
+    def second_sums(self, weights):
+        """``Σ_values weights · ∂²p`` (P,) for every pair in ``second``: one forward FFT
+        of the weights placed on the window grid (values are distinct within a pixel;
+        padding carries weight 0), then a dot with each pair's spectrum."""
+        if not self.second:
+            return {}
+        P = self.pv.shape[0]
+        grid = np.bincount(self.flat.ravel(), weights=weights.ravel(),
+                           minlength=P * self.n).reshape(P, self.n)
+        m = next(iter(self.second.values())).spectrum.shape[1]
+        hat = noise.Spectrum.weights_spectrum(grid, m)
+        return {key: spec.dot(hat) for key, spec in self.second.items()}
+
+
+def _acquisition_terms(acq, log_e, log_scale, level, map_cross=False):
+    """Log-likelihood of one acquisition and its derivatives by (ln E, ln scale).
+
+    ``level`` 0: value only; 1: gradient and the outer-product (BHHH) information; 2: the
+    observed information instead. With ``map_cross`` (level ≥ 1) also the outer-product
+    cross information of (ln E, ln scale) with the (offset, read-noise) maps, (P, 2, 2),
+    for :func:`_map_covariance`, from the same windows.
+    Returns ``(loglik (P,), grad (P, 2), info (P, 2, 2), n_floored (P,), cross)``.
+    """
+    E = np.exp(log_e)
+    scale = np.exp(log_scale)
+    names = ("photoelectrons", "scale") + (("offset", "read_noise") if map_cross else ())
+    model = _ModelAtData(acq, E, scale, derivs=level >= 1, second=level >= 2, names=names)
+    pv, low = model.pv, model.low
+    loglik = np.where(model.hopeless, -np.inf, np.sum(acq.counts * np.log(pv), axis=1))
+    n_floored = np.sum(acq.counts * low, axis=1).astype(np.int64)
+    if level == 0:
+        return loglik, None, None, n_floored, None
+    factor = np.stack([E, scale], axis=1)  # d λ / d ln λ
+    w = np.where(low, 0.0, acq.counts / pv)
+    scores = [model.scores[nm] for nm in names]
+    grad = np.stack([np.sum(w * s, axis=1) for s in scores[:2]], axis=1) * factor
+    # Outer products of the per-frame scores (BHHH): a positive semi-definite estimate of
+    # the information from the data points alone, cheap because the histogram is short.
+    ws = [w * s / pv for s in scores]
+    outer = {(i, j): np.sum(ws[i] * scores[j], axis=1)
+             for i in range(2) for j in range(i, len(names))}
+    info = np.empty((acq.values.shape[0], 2, 2))
+    for i in range(2):
+        for j in range(i, 2):
+            info[:, i, j] = info[:, j, i] = outer[i, j] * factor[:, i] * factor[:, j]
+    cross = None
+    if map_cross:
+        cross = np.stack([np.stack([outer[i, j] for j in (2, 3)], axis=1) for i in range(2)],
+                         axis=1) * factor[:, :, None]
+    if level >= 2:
+        sums = model.second_sums(w)
+        obs = np.empty_like(info)
+        for i, a in enumerate(names[:2]):
+            for j, b in enumerate(names[i:2], start=i):
+                h = (sums[(a, b)] - outer[i, j]) * factor[:, i] * factor[:, j]
+                if i == j:  # d²/d(ln λ)² picks up λ · d/dλ
+                    h = h + grad[:, i]
+                obs[:, i, j] = obs[:, j, i] = -h
+        info = obs
+    return loglik, grad, info, n_floored, cross
+
+
+def _native_to_model(logs, poisson_normal):
+    """(ln E, ln g, ln φ) → (ln E, ln scale) and d(ln scale)/d(ln g, ln φ)."""
+    log_e, log_g, log_phi = logs[:, 0], logs[:, 1], logs[:, 2]
+    if poisson_normal:
+        return log_e, -log_phi, np.array([0.0, -1.0])
+    return log_e, log_g - log_phi, np.array([1.0, -1.0])
+
+
+def _evaluate(layout, blocks, x, level, map_cross=False):
+    """Objective (log-likelihood + log prior), gradient and information in ``x``.
+
+    Returns ``(objective, loglik, per_acq, grad, info, n_floored, cross)``; ``cross`` is
+    the list of each acquisition's map cross information (:func:`_acquisition_terms`),
+    or None without ``map_cross`` (only acquisitions whose maps have errors get one).
+    """
+    P, F = x.shape
+    logs, jac = layout.native(x)
+    total = np.zeros(P)
+    per_acq = np.zeros((P, len(blocks)))
+    grad = np.zeros((P, F))
+    info = np.zeros((P, F, F))
+    floored = np.zeros(P, dtype=np.int64)
+    crosses = [] if map_cross else None
+    for a, acq in enumerate(blocks):
+        log_e, log_scale, dscale = _native_to_model(logs[:, a], acq.poisson_normal)
+        ll, g_u, i_u, nf, cross = _acquisition_terms(acq, log_e, log_scale, level,
+                                                     map_cross and acq.has_map_errors)
+        per_acq[:, a] = ll
+        total += ll
+        floored += nf
+        if map_cross:
+            crosses.append(cross)
+        if level == 0:
+            continue
+        # u = (ln E, ln scale) as a function of x through (ln E, ln g, ln φ).
+        j_u = _model_jacobian(jac, a, dscale)
+        grad += np.einsum("pu,puf->pf", g_u, j_u)
+        info += np.einsum("puf,puv,pvg->pfg", j_u, i_u, j_u)
+    lp, lp_grad, lp_hess = layout.log_prior(x)
+    objective = total + lp
+    if level >= 1:
+        grad = grad + lp_grad
+        info = info - lp_hess
+    return objective, total, per_acq, grad, info, floored, crosses
+
+
+def _model_jacobian(jac, a, dscale):
+    """d(ln E, ln scale)/dx (P, 2, F) of acquisition ``a`` from the layout's Jacobian."""
+    return np.stack([jac[:, a, 0], dscale[0] * jac[:, a, 1] + dscale[1] * jac[:, a, 2]], 1)
+
+
+def _map_covariance(layout, blocks, x, cov, crosses):
+    """Covariance of ``x`` (P, F, F) caused by the errors of the offset and read-noise maps.
+
+    The estimate moves with the maps by ``dx/dm = H⁻¹ ∂²ℓ/∂x∂m`` (implicit function theorem,
+    ``H`` the observed information, ``cov = H⁻¹``); the cross term is estimated by the
+    outer product of the per-frame scores, as the information is (``crosses``, from
+    :func:`_evaluate` with ``map_cross``). Acquisitions that share a pair of maps
+    (``map_group``) move together: their sensitivities add before squaring.
+    """
+    P, F = x.shape
+    logs, jac = layout.native(x)
+    groups: dict = {}
+    for a, (acq, cross) in enumerate(zip(blocks, crosses)):
+        if cross is None:
+            continue
+        dscale = _native_to_model(logs[:, a], acq.poisson_normal)[2]
+        j_u = _model_jacobian(jac, a, dscale)
+        sens = np.einsum("pfg,pug,pum->pfm", cov, j_u, cross)  # dx/d(offset, read_noise)
+        var = np.stack([np.zeros(P) if v is None else v
+                        for v in (acq.offset_var, acq.read_noise_var)], axis=1)
+        key = a if acq.map_group is None else acq.map_group
+        total, _ = groups.get(key, (0.0, var))
+        groups[key] = (total + sens, var)
+    out = np.zeros((P, F, F))
+    for sens, var in groups.values():
+        out += np.einsum("pfm,pm,pgm->pfg", sens, var, sens)
+    return out
+
+
+def value_scores(layout, blocks, x):
+    """Per-frame scores of each acquisition by ``x``, at every histogram value.
+
+    Returns
+    -------
+    list of (scores (P, K, F), counts (P, K))
+        One pair per acquisition: the derivative of ln p(value) by ``x`` (zero where the
+        value is below the resolvable floor) and the frames at each value.
+    """
+    logs, jac = layout.native(x)
+    out = []
+    for a, acq in enumerate(blocks):
+        log_e, log_scale, dscale = _native_to_model(logs[:, a], acq.poisson_normal)
+        E, scale = np.exp(log_e), np.exp(log_scale)
+        model = _ModelAtData(acq, E, scale, derivs=True)
+        d1, pv = model.scores, model.pv
+        u = np.stack([d1["photoelectrons"] * E[:, None], d1["scale"] * scale[:, None]], -1)
+        u = np.where(model.low[..., None], 0.0, u / pv[..., None])  # (P, K, 2) by (ln E, ln scale)
+        j_u = _model_jacobian(jac, a, dscale)
+        out.append((np.einsum("pku,puf->pkf", u, j_u), acq.counts))
+    return out
+
+
+def log_likelihood(layout, blocks, x):
+    """Log-likelihood (P,) of free parameters ``x`` (P, F), nats; no prior."""
+    return _evaluate(layout, blocks, x, 0)[1]
+
+
+def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None):
+    """Maximise the likelihood (times the layout's prior) for every pixel of a block.
+
+    Parameters
+    ----------
+    layout : Layout
+        The method's parameter layout.
+    blocks : list of AcquisitionBlock
+        The acquisitions, each over the same P pixels.
+    x0 : ndarray, shape (P, F)
+        Starting values (e.g. from moments).
+    max_iter : int
+        Iteration limit; pixels still moving then are flagged not converged.
+    tol : float
+        Convergence when the predicted gain of the next step (Newton decrement ½ gᵀΔ) is
+        below ``tol`` nats, or the step below 1e-10 in every free parameter.
+    progress : callable, optional
+        Called with the number of pixels that finished at each iteration.
+
+    Returns
+    -------
+    FitResult
+    """
+    x = np.clip(np.array(x0, dtype=float), layout.lower, layout.upper)
+    P, F = x.shape
+    damping = np.full(P, 1e-3)
+    iterations = np.zeros(P, dtype=int)
+    done = np.zeros(P, dtype=bool)
+    obj, _, _, grad, info, _, _ = _evaluate(layout, blocks, x, 1)
+    eye = np.eye(F)
+    for _ in range(max_iter):
+        active = np.flatnonzero(~done)
+        if active.size == 0:
+            break
+        g, I = grad[active], info[active]
+        # A parameter at its bound whose gradient points outwards stays there, and the
+        # step is solved in the others (an active-set step): clipping a full step would
+        # leave them moving as though it had moved too, and stall on the bound.
+        x_a = x[active]
+        held = ((x_a <= layout.lower) & (g < 0)) | ((x_a >= layout.upper) & (g > 0))
+        if held.any():
+            free = ~held
+            g = np.where(held, 0.0, g)
+            I = I * free[:, :, None] * free[:, None, :] + held[:, :, None] * eye
+        scale = np.sqrt(np.maximum(np.abs(np.einsum("pii->pi", I)), 1e-300))
+        A = I + damping[active, None, None] * (scale[:, :, None] * scale[:, None, :]) * eye
+        step = _solve(A, g)
+        step = np.clip(step, -1.0, 1.0)  # at most a factor e per iteration
+        x_new = np.clip(x[active] + step, layout.lower, layout.upper)
+        step = x_new - x[active]
+        # A step that promises less than ``tol`` nats is not worth its evaluation (the
+        # objective's round-off, ~1e-8 nats, could even refuse it): the pixel is done.
+        decrement = 0.5 * np.einsum("pf,pf->p", g, step)
+        small = (np.abs(decrement) < tol) | (np.max(np.abs(step), axis=1, initial=0.0) < 1e-10)
+        done[active[small]] = True
+        move = ~small
+        active, x_new = active[move], x_new[move]
+        if active.size:
+            sub = [b.take(active) for b in blocks]
+            res = _evaluate(layout.subset(active), sub, x_new, 1)
+            better = res[0] >= obj[active] - 1e-12 * np.abs(obj[active])
+            idx = active[better]
+            x[idx] = x_new[better]
+            obj[idx] = res[0][better]
+            grad[idx], info[idx] = res[3][better], res[4][better]
+            damping[idx] = np.maximum(damping[idx] / 10.0, 1e-12)
+            damping[active[~better]] *= 10.0
+            iterations[active] += 1
+        stuck = damping[active] > 1e8
+        done[active[stuck]] = True
+        if progress is not None:
+            progress(int(small.sum() + stuck.sum()))
+    map_errors = any(b.has_map_errors for b in blocks)
+    objective, loglik, per_acq, grad, obs, floored, crosses = _evaluate(
+        layout, blocks, x, 2, map_cross=map_errors)
+    cov, pos_def = _invert(obs)
+    # With a prior (the hierarchical MAP) the frequentist covariance of the estimate is the
+    # sandwich H⁻¹ I H⁻¹ of the penalised Hessian H and the likelihood's information I;
+    # without one it is H⁻¹ itself.
+    prior_hess = layout.log_prior(x)[2]
+    h_inv = cov
+    if hasattr(layout, "estimator_covariance"):  # a data-dependent prior knows its own
+        cov = layout.estimator_covariance(blocks, x, np.nan_to_num(h_inv))
+        cov[~pos_def] = np.nan
+    elif np.any(prior_hess):
+        cov = np.einsum("pfg,pgh,phk->pfk", cov, obs + prior_hess, cov)
+    if map_errors:
+        cov = cov + _map_covariance(layout, blocks, x, np.nan_to_num(h_inv), crosses)
+    gnorm = np.einsum("pf,pfg,pg->p", grad, np.nan_to_num(h_inv), grad)
+    converged = done & pos_def & (gnorm < 1e-4) & (damping <= 1e8)
+    if progress is not None:
+        progress(int((~done).sum()))
+    return FitResult(x, cov, loglik, converged, iterations, floored, per_acq, objective)
+
+
+def _solve(A, b):
+    try:
+        return np.linalg.solve(A, b[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        out = np.zeros_like(b)
+        for i in range(A.shape[0]):  # rare: only when a matrix in the stack is singular
+            out[i] = np.linalg.lstsq(A[i], b[i], rcond=None)[0]
+        return out
+
+
+def _invert(H):
+    """Inverse of a stack of information matrices and whether each is positive definite."""
+    P, F, _ = H.shape
+    cov = np.full((P, F, F), np.nan)
+    ok = np.all(np.isfinite(H), axis=(1, 2))
+    eig = np.full((P, F), -1.0)
+    eig[ok] = np.linalg.eigvalsh(H[ok])
+    pos = ok & np.all(eig > 0, axis=1)
+    for i in np.flatnonzero(pos):  # one by one: a stack with one singular matrix fails whole
+        try:
+            cov[i] = np.linalg.inv(H[i])
+        except np.linalg.LinAlgError:  # positive eigenvalues, yet numerically singular
+            pos[i] = False
+    return cov, pos
+
+
+@dataclass
+class _Pinned:
+    """A layout with its free parameter ``j`` held at per-pixel values (P,)."""
+
+    base: Layout
+    j: int
+    value: np.ndarray
+
+    @property
+    def lower(self):
+        return np.delete(self.base.lower, self.j)
+
+    @property
+    def upper(self):
+        return np.delete(self.base.upper, self.j)
+
+    def subset(self, idx):
+        return _Pinned(self.base.subset(idx), self.j, self.value[idx])
+
+    def _full(self, x):
+        return np.insert(x, self.j, self.value, axis=1)
+
+    def native(self, x):
+        logs, jac = self.base.native(self._full(x))
+        return logs, np.delete(jac, self.j, axis=-1)
+
+    def log_prior(self, x):
+        value, grad, hess = self.base.log_prior(self._full(x))
+        return value, np.delete(grad, self.j, 1), np.delete(np.delete(hess, self.j, 1), self.j, 2)
+
+
+def profile_bounds(layout, blocks, result, j, *, level=0.95, tol=0.005, xtol=1e-4, max_steps=20,
+                   first_step=1.0):
+    """Profile-likelihood interval of the free parameter ``x[:, j]`` for every pixel.
+
+    The bounds are where the profile deviance ``2 (ℓ̂ − max ℓ | x_j)`` (with a prior: of
+    the penalised objective) reaches the χ²₁ quantile of ``level``. They follow the
+    likelihood where it is skewed, unlike the Wald interval ``x̂ ± z·SE``. The likelihood
+    is conditional on the offset and read-noise maps: where ``result.cov`` includes the
+    maps' errors (and there is no prior), the target grows by the ratio of that variance
+    of ``x_j`` to the inverse observed information's, which widens a Gaussian profile to
+    exactly ``± z·SE`` and keeps a skewed one's shape. Each side is
+    searched on the signed root deviance r, which is close to linear in x_j: from the
+    Wald bound, secant steps extend outwards until r passes its target, then regula falsi
+    inside the bracket (bisection where r is lopsided over it). Every step refits the
+    other parameters, warm-started from the farthest point found inside.
+
+    Parameters
+    ----------
+    layout, blocks : as for :func:`fit`.
+    result : FitResult
+        The unconstrained fit (its ``x``, ``cov`` and ``objective``; a pixel whose ``cov``
+        is NaN, such as one stopped at a bound, is searched from ``first_step``).
+    j : int
+        Index of the free parameter.
+    level : float
+        Confidence level of the interval.
+    tol : float
+        Accept a bound when the signed root deviance is within ``tol`` of its target.
+    xtol : float
+        ... or when it is bracketed within ``xtol`` in ``x_j`` (where the deviance rises
+        too steeply for ``tol``: a parameter pushed against another one's bound).
+    max_steps : int
+        Refits per side; pixels whose bound is not found then get NaN.
+    first_step : float
+        Largest first step from the optimum in ``x_j`` (where the SE is large because the
+        information is nearly singular, the Wald bound can be far beyond the model's
+        reach).
+
+    Returns
+    -------
+    lower, upper : ndarray, shape (P,)
+        Bounds on ``x[:, j]`` (the free parameter's own scale, e.g. a logarithm); the
+        layout's bound where the deviance stays below the quantile up to it. NaN where
+        not found.
+    """
+    from scipy import stats
+
+    x_hat, P = result.x, result.x.shape[0]
+    se = np.sqrt(np.abs(result.cov[:, j, j]))
+    target = np.full(P, np.sqrt(stats.chi2.ppf(level, 1)))
+    if not hasattr(layout, "estimator_covariance") and not np.any(layout.log_prior(x_hat)[2]):
+        conditional, pos_def = _invert(_evaluate(layout, blocks, x_hat, 2)[4])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = result.cov[:, j, j] / conditional[:, j, j]
+        target *= np.sqrt(np.where(pos_def & np.isfinite(ratio) & (ratio > 1), ratio, 1.0))
+    out = []
+    for side in (-1.0, 1.0):
+        bound = np.full(P, np.nan)
+        edge = layout.lower[j] if side < 0 else layout.upper[j]
+        room = side * (edge - x_hat[:, j])  # distance to the layout's bound, ≥ 0
+        ok = np.isfinite(result.objective)
+        bound[ok & (room <= 0)] = edge
+        active = np.flatnonzero(ok & (room > 0))
+        z = target[active]
+        # |t| = distance from the optimum; (t_in, r_in): farthest point still inside,
+        # (t_out, r_out): nearest point beyond the target (NaN until found).
+        # The first step: z·SE, at most first_step (also where the SE is NaN).
+        t = np.minimum(np.fmin(z * np.maximum(se[active], 1e-6), first_step), room[active])
+        t_in, r_in = np.zeros(active.size), np.zeros(active.size)    # farthest inside
+        t_pre, r_pre = np.zeros(active.size), np.zeros(active.size)  # the one before
+        t_out, r_out = np.full(active.size, np.nan), np.full(active.size, np.nan)
+        last_inside = np.full(active.size, -1)  # which end the last step replaced
+        start = np.delete(x_hat[active], j, axis=1)
+        for _ in range(max_steps):
+            if active.size == 0:
+                break
+            value = x_hat[active, j] + side * t
+            pinned = _Pinned(layout.subset(active), j, value)
+            fitted = fit(pinned, [b.take(active) for b in blocks], start, max_iter=50)
+            r = np.sqrt(np.maximum(2.0 * (result.objective[active] - fitted.objective), 0.0))
+            done = (np.abs(r - z) < tol) | ((t >= room[active]) & (r < z))
+            bound[active[done]] = value[done]
+            inside = r < z
+            # Illinois: an end kept twice in a row has its offset from the target halved,
+            # which keeps regula falsi from crawling on a curved r.
+            r_in = np.where(~inside & (last_inside == 0), z - 0.5 * (z - r_in), r_in)
+            r_out = np.where(inside & (last_inside == 1), z + 0.5 * (r_out - z), r_out)
+            last_inside = inside.astype(int)
+            t_pre, r_pre = np.where(inside, t_in, t_pre), np.where(inside, r_in, r_pre)
+            t_in, r_in = np.where(inside, t, t_in), np.where(inside, r, r_in)
+            t_out, r_out = np.where(inside, t_out, t), np.where(inside, r_out, r)
+            narrow = ~done & (t_out - t_in < xtol)  # False while t_out is NaN
+            bound[active[narrow]] = x_hat[active[narrow], j] + side * 0.5 * (
+                t_in[narrow] + t_out[narrow])
+            done |= narrow
+            with np.errstate(divide="ignore", invalid="ignore"):
+                # before a bracket: secant through the last two inside points, extending
+                # by a factor 1.2 to 4; inside one: regula falsi, kept off its ends.
+                ext = t_in + (z - r_in) * (t_in - t_pre) / (r_in - r_pre)
+                ext = np.minimum(np.clip(np.nan_to_num(ext, nan=2 * t_in), 1.2 * t_in, 4 * t_in),
+                                 room[active])
+                mid = t_in + (z - r_in) * (t_out - t_in) / (r_out - r_in)
+                mid = np.clip(np.nan_to_num(mid, nan=0.5 * (t_in + t_out)),
+                              t_in + 0.05 * (t_out - t_in), t_out - 0.05 * (t_out - t_in))
+                # ... and bisection where the deviance is so lopsided over the bracket (a
+                # wall, or a refit that failed far out) that regula falsi would creep.
+                mid = np.where(r_out - z > 10.0 * (z - r_in), 0.5 * (t_in + t_out), mid)
+            t_new = np.where(np.isfinite(t_out), mid, ext)
+            # Warm start from the farthest point inside: one beyond the target can be far
+            # off, with nuisance parameters from which the next fit does not recover.
+            start = np.where(inside[:, None], fitted.x, start)
+            keep = ~done
+            active, t, start, z = active[keep], t_new[keep], start[keep], z[keep]
+            t_in, r_in, t_pre, r_pre = t_in[keep], r_in[keep], t_pre[keep], r_pre[keep]
+            t_out, r_out, last_inside = t_out[keep], r_out[keep], last_inside[keep]
+        out.append(bound)
+    return out[0], out[1]

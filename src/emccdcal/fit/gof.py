@@ -1,0 +1,312 @@
+"""Goodness of fit of the noise model, per pixel and acquisition, item 3).
+
+A binned Pearson χ² test of each pixel's histogram against the fitted model pmf of
+:mod:`emccdcal.model.noise`:
+
+1. **Model.** The pmf of the pixel's counts is evaluated on one integer window per pixel
+   with the batched FFT evaluator ``noise._window`` (all pixels of a block at once),
+   normalised over the window, and summed into a CDF.
+2. **Bins.** ``K = min(max_bins, ⌊n / frames_per_bin⌋)`` (50 and 10 by default) bins
+   that are equiprobable under the fitted model: bin edge ``j`` is the first integer
+   count whose model CDF reaches ``j/K`` (one ``searchsorted`` over all pixels). The first and last bins are
+   open (``(−∞, e₁]`` and ``(e_{K−1}, ∞)``), so both tails are pooled, and data outside
+   the model's window (cosmic rays, hot events) land in them. Because counts are
+   integers a bin's probability is only close to ``1/K``; any bin whose expected count is
+   below ``min_expected`` (5) is merged with its right neighbour (a trailing run of small
+   bins with its left neighbour), so every bin used expects at least ``min_expected``
+   frames. Expected counts are ``n`` times the exact bin probabilities, not ``n/K``.
+3. **Statistic.** ``χ² = Σ_bins (O − nπ)² / (nπ)`` with ``dof = K_eff − 1 − s``, ``s``
+   the number of parameters fitted per acquisition (``n_fitted_params``), and
+   ``p = scipy.stats.chi2.sf(χ², dof)``.
+
+The degrees of freedom are an approximation, documented in ``docs/gof.md``: the parameters
+are maximum-likelihood estimates from the *ungrouped* counts (and, in a gain series, from
+other acquisitions too), for which the statistic lies between χ²(K−1−s) and χ²(K−1)
+(Chernoff & Lehmann 1954); with K ≈ 50 and s ≤ 3 the difference is small, and using
+K−1−s errs towards flagging. Bins placed at the fitted model's quantiles (random cells)
+do not change the limiting distribution (Moore & Spruill 1975).
+
+:func:`misfit_warnings` turns p-value maps of several acquisitions into warnings for the
+set-points (or levels) where the fraction of misfitting pixels is far above chance.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import special
+
+from ..errors import OptionError
+from ..model import noise
+
+__all__ = ["gof_pvalues", "misfit_warnings", "DEFAULT_MAX_BINS", "DEFAULT_FRAMES_PER_BIN",
+           "DEFAULT_MIN_EXPECTED"]
+
+#: Largest number of bins per pixel.
+DEFAULT_MAX_BINS = 50
+#: Frames per bin when choosing the number of bins: ``K = min(max_bins, ⌊n / 10⌋)``.
+DEFAULT_FRAMES_PER_BIN = 10.0
+#: Smallest expected count of a bin; bins below it (integer counts make equiprobable bins
+#: only approximately equiprobable) are merged with a neighbour.
+DEFAULT_MIN_EXPECTED = 5.0
+#: Elements (pixels × window length) of the pmf evaluated at a time.
+_BLOCK_ELEMENTS = 2**22
+
+
+def _per_pixel(name, value, P):
+    arr = np.asarray(value, dtype=float)
+    if arr.size == 1:
+        return np.full(P, float(arr.ravel()[0]))
+    arr = arr.ravel()
+    if arr.size != P:
+        raise OptionError(f"{name} must be a scalar or have one value per pixel ({P}), "
+                         f"got {arr.size} values")
+    return arr.copy()
+
+
+def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, read_noise,
+                *, n_fitted_params=2, max_bins=DEFAULT_MAX_BINS,
+                frames_per_bin=DEFAULT_FRAMES_PER_BIN, min_expected=DEFAULT_MIN_EXPECTED):
+    """Binned Pearson χ² goodness-of-fit test of the model for every pixel of one acquisition.
+
+    Parameters
+    ----------
+    histograms_block : emccdcal.data.stats.PixelHistograms or emccdcal.fit.engine.AcquisitionBlock
+        Per-pixel histograms of the acquisition: ``values`` (P, K) counts in ADU,
+        ``counts`` (P, K) frames at each value (0 on padding), and ``n`` (P,) frames.
+    photoelectrons : array_like, scalar or P values
+        Fitted E of this acquisition, e⁻ per pixel per frame.
+    em_gain : array_like, scalar or P values
+        Fitted EM gain g (dimensionless, ≥ 1); exactly 1 selects the Poisson–normal model.
+    e_per_adu : array_like, scalar or P values
+        Fitted φ, e⁻/ADU.
+    offset : array_like, scalar or P values
+        Offset S0, ADU.
+    read_noise : array_like, scalar or P values
+        Read noise σ, ADU (the SD of dark counts, as in :mod:`emccdcal.model.noise`).
+    n_fitted_params : float, optional
+        Parameters fitted per acquisition, subtracted from the degrees of freedom
+        (default 2, e.g. E and g of one acquisition). Use 0 for parameters known a
+        priori (true values); a parameter shared by A acquisitions may be counted as 1/A.
+    max_bins : int, optional
+        Largest number of bins K (default 50).
+    frames_per_bin : float, optional
+        K is at most ``n / frames_per_bin`` (default 10).
+    min_expected : float, optional
+        No bin used expects fewer frames than this (default 5): smaller bins are merged
+        with a neighbour, which lowers the effective number of bins ``K_eff``.
+
+    Returns
+    -------
+    pvalue : ndarray, shape (P,)
+        ``chi2.sf(chi2, dof)``; NaN where the test is impossible: non-finite or
+        out-of-range parameters (e.g. a failed fit), or too few frames for
+        ``dof ≥ 1``.
+    chi2 : ndarray, shape (P,)
+        Pearson statistic (dimensionless); NaN where ``pvalue`` is.
+    dof : ndarray, shape (P,)
+        Degrees of freedom ``K_eff − 1 − n_fitted_params`` (float); NaN where ``pvalue`` is.
+
+    Notes
+    -----
+    Vectorised over pixels: pixels are processed in blocks of bounded memory (P × window
+    length ≤ 4 Mi elements) with array operations only.
+
+    Examples
+    --------
+    >>> from emccdcal.data import stats
+    >>> from emccdcal.simulate.camera import simulate_frames
+    >>> frames = simulate_frames(30.0, 100.0, 3.859, 587.0, 15.0, frames=2000,
+    ...                                   rows=2, cols=2, seed=1)
+    >>> p, chi2, dof = gof_pvalues(stats.histograms(frames), 30.0, 100.0, 3.859, 587.0,
+    ...                            np.hypot(15.0, 12**-0.5), n_fitted_params=0)
+    >>> p.shape, dof.tolist()
+    ((4,), [49.0, 49.0, 49.0, 49.0])
+    """
+    values = np.asarray(histograms_block.values, dtype=np.int64)
+    counts = np.asarray(histograms_block.counts, dtype=float)
+    if values.ndim != 2 or values.shape != counts.shape:
+        raise OptionError("histograms_block must have values and counts of shape (P, K)")
+    P = values.shape[0]
+    n = np.asarray(histograms_block.n, dtype=float).ravel()
+    if n.size != P:
+        raise OptionError("histograms_block.n must have one entry per pixel")
+    if not np.isfinite(n_fitted_params) or n_fitted_params < 0:
+        raise OptionError(f"n_fitted_params must be >= 0, got {n_fitted_params!r}")
+    if int(max_bins) < 2:
+        raise OptionError(f"max_bins must be >= 2, got {max_bins!r}")
+    if not min_expected > 0:
+        raise OptionError(f"min_expected must be positive, got {min_expected!r}")
+    if not frames_per_bin >= min_expected:
+        raise OptionError(f"frames_per_bin must be >= min_expected, got {frames_per_bin!r}")
+    E = _per_pixel("photoelectrons", photoelectrons, P)
+    g = _per_pixel("em_gain", em_gain, P)
+    phi = _per_pixel("e_per_adu", e_per_adu, P)
+    S0 = _per_pixel("offset", offset, P)
+    sigma = _per_pixel("read_noise", read_noise, P)
+
+    K = np.minimum(int(max_bins), np.floor(n / float(frames_per_bin))).astype(np.int64)
+    with np.errstate(invalid="ignore"):
+        ok = (
+            np.isfinite(E) & np.isfinite(g) & np.isfinite(phi) & np.isfinite(S0)
+            & np.isfinite(sigma) & (E >= 0) & (g >= 1) & (phi > 0) & (sigma > 0)
+            & (K >= 2 + np.ceil(n_fitted_params))
+        )
+    chi2 = np.full(P, np.nan)
+    dof = np.full(P, np.nan)
+    idx = np.flatnonzero(ok)
+    if idx.size:
+        pn = g[idx] == 1.0
+        scale = np.where(pn, 1.0, g[idx]) / phi[idx]
+        lo, hi = noise._extent(E[idx], scale, S0[idx], sigma[idx], pn, width=8.0)
+        start = np.floor(lo).astype(np.int64)
+        length = np.ceil(hi).astype(np.int64) - start + 1
+        # Blocks of pixels with similar windows, bounded memory.
+        order = idx[np.argsort(length, kind="stable")]
+        pos = np.empty(P, dtype=np.int64)
+        pos[idx] = np.arange(idx.size)
+        i0 = 0
+        while i0 < order.size:
+            width = int(length[pos[order[min(order.size - 1, i0)]]])
+            # Grow the block while it fits the budget at its longest window.
+            step = max(1, _BLOCK_ELEMENTS // max(1, width))
+            i1 = min(order.size, i0 + step)
+            while i1 > i0 + 1 and int(length[pos[order[i1 - 1]]]) * (i1 - i0) > _BLOCK_ELEMENTS:
+                i1 = i0 + max(1, (i1 - i0) // 2)
+            sel = order[i0:i1]
+            r = pos[sel]
+            c, d = _block_chi2(
+                values[sel], counts[sel], n[sel], K[sel], E[sel], scale[r], S0[sel],
+                sigma[sel], pn[r], start[r], length[r], float(n_fitted_params),
+                float(min_expected),
+            )
+            chi2[sel], dof[sel] = c, d
+            i0 = i1
+    bad = ~(dof >= 1)
+    chi2[bad] = np.nan
+    dof[bad] = np.nan
+    with np.errstate(invalid="ignore"):
+        pvalue = special.chdtrc(dof, chi2)  # chi2.sf, without importing scipy.stats
+    return pvalue, chi2, dof
+
+
+def _block_chi2(values, counts, n, K, E, scale, S0, sigma, pn, start, length, s,
+                min_expected):
+    """χ² and dof of a block of pixels (all arrays restricted to the block)."""
+    P = values.shape[0]
+    L = noise._fast_len(int(length.max()))
+    p = noise._window(E, scale, S0 - start, sigma, pn, L)[0]
+    p = np.maximum(p, 0.0)  # FFT round-off (~1e-16 of the peak) can be slightly negative
+    p /= p.sum(axis=1, keepdims=True)
+    cdf = np.cumsum(p, axis=1)
+    cdf[:, -1] = 1.0
+
+    # Equiprobable edges: edge j (j = 1 … K−1) is the first window index with cdf ≥ j/K;
+    # bin j (0-based) holds indices (edge_j, edge_{j+1}], the first and last bins open.
+    Kmax = int(K.max())
+    j = np.arange(1, Kmax)
+    target = j[None, :] / K[:, None]                      # (P, Kmax−1)
+    real_edge = j[None, :] < K[:, None]
+    target = np.where(real_edge, target, 2.0)             # unused edges: beyond the window
+    rows = np.arange(P)[:, None]
+    # Row-offset trick: one searchsorted over all pixels (cdf ∈ [0, 1], rows 2 apart).
+    flat_cdf = (cdf + 2.0 * rows).ravel()
+    edge = np.searchsorted(flat_cdf, (target + 2.0 * rows).ravel(), side="left")
+    edge = edge.reshape(P, Kmax - 1) - rows * L
+    edge = np.where(real_edge, np.minimum(edge, L - 1), L - 1)
+
+    # Exact probability of every (unmerged) bin.
+    cdf_at = np.take_along_axis(cdf, edge, axis=1)
+    upper = np.concatenate([cdf_at, np.ones((P, 1))], axis=1)
+    lower = np.concatenate([np.zeros((P, 1)), cdf_at], axis=1)
+    prob = upper - lower                                  # (P, Kmax); 0 beyond K
+    exists = np.arange(Kmax)[None, :] < K[:, None]
+
+    # Merge bins expecting fewer than min_expected frames: drop the edge above a small
+    # bin, and the edge below a trailing run of small bins.
+    small = (prob * n[:, None] < min_expected) & exists
+    last = K - 1
+    after_last = np.arange(Kmax)[None, :] > last[:, None]
+    trailing = np.flip(np.cumprod(np.flip(small | after_last, axis=1), axis=1), axis=1)
+    trailing = trailing.astype(bool) & exists
+    keep = ~small[:, :-1] & ~trailing[:, 1:] & real_edge  # edge between bin i and i+1
+    merged_id = np.concatenate([np.zeros((P, 1), np.int64),
+                                np.cumsum(keep, axis=1)], axis=1)  # (P, Kmax)
+    K_eff = keep.sum(axis=1) + 1
+
+    # Observed: the (unmerged) bin of every histogram value, by one searchsorted with
+    # row offsets; values outside the window go to the open end bins.
+    y = np.clip(values - start[:, None], 0, L - 1)
+    span = L + 1
+    flat_edge = (edge + span * rows).ravel()
+    b = np.searchsorted(flat_edge, (y + span * rows).ravel(), side="left")
+    b = b.reshape(values.shape) - rows * (Kmax - 1)
+    b = np.minimum(b, K[:, None] - 1)
+    mb = np.take_along_axis(merged_id, b, axis=1)
+    observed = np.bincount((mb + rows * Kmax).ravel(), weights=counts.ravel(),
+                           minlength=P * Kmax).reshape(P, Kmax)
+    expected = np.bincount((merged_id + rows * Kmax).ravel(),
+                           weights=(np.where(exists, prob, 0.0) * n[:, None]).ravel(),
+                           minlength=P * Kmax).reshape(P, Kmax)
+    used = np.arange(Kmax)[None, :] < K_eff[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        terms = np.where(used, (observed - expected) ** 2 / expected, 0.0)
+    chi2 = terms.sum(axis=1)
+    dof = K_eff - 1.0 - s
+    return chi2, dof
+
+
+def misfit_warnings(pvalues_by_acquisition, alpha=0.01, *, threshold=1e-3, min_ratio=2.0,
+                    kind="set-point"):
+    """Warnings for the acquisitions where the model misfits systematically.
+
+    Under a correct model the per-pixel p-values are uniform, so about a fraction
+    ``alpha`` of the pixels have ``p < alpha``. An acquisition is reported when the
+    number of such pixels is improbably large — a one-sided binomial test against
+    ``alpha`` gives a p-value below ``threshold`` — *and* the fraction is at least
+    ``min_ratio · alpha`` (on a full sensor the binomial test alone would flag excesses
+    too small to matter).
+
+    Parameters
+    ----------
+    pvalues_by_acquisition : dict
+        Label (set-point or level, e.g. ``5`` or ``"5x"``) → p-values of its pixels
+        (any shape; NaN entries, i.e. pixels without a test, are ignored).
+    alpha : float, optional
+        Per-pixel significance level (default 0.01).
+    threshold : float, optional
+        Significance of the binomial test (default 1e-3).
+    min_ratio : float, optional
+        Smallest flagged fraction, in units of ``alpha`` (default 2).
+    kind : str, optional
+        What a label names, used in the messages (default ``"set-point"``).
+
+    Returns
+    -------
+    list of str
+        One message per flagged acquisition, in the dict's order; empty if none.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> misfit_warnings({5: rng.uniform(size=1000) ** 8, 300: rng.uniform(size=1000)})
+    ['set-point 5: 529 of 1000 pixels (52.9 %) misfit the noise model at p < 0.01 (1.0 % expected by chance; binomial p = 0)']
+    """
+    if not 0 < alpha < 1:
+        raise OptionError(f"alpha must be in (0, 1), got {alpha!r}")
+    out = []
+    for label, pv in pvalues_by_acquisition.items():
+        pv = np.asarray(pv, dtype=float).ravel()
+        pv = pv[np.isfinite(pv)]
+        m = int(pv.size)
+        if m == 0:
+            continue
+        k = int(np.sum(pv < alpha))
+        frac = k / m
+        binom_p = float(special.bdtrc(k - 1, m, alpha))  # P(X ≥ k), X ~ Binomial(m, alpha)
+        if binom_p < threshold and frac >= min_ratio * alpha:
+            out.append(
+                f"{kind} {label}: {k} of {m} pixels ({100 * frac:.1f} %) misfit the noise "
+                f"model at p < {alpha:g} ({100 * alpha:.1f} % expected by chance; "
+                f"binomial p = {binom_p:.2g})"
+            )
+    return out

@@ -1,0 +1,560 @@
+"""Posterior sampling of single pixels (``emccdcal posterior``): MCMC with honest diagnostics.
+
+For each requested pixel the method's acquisitions are read for that pixel alone, the
+engine's maximum-likelihood fit (:func:`emccdcal.fit.engine.fit`) gives a start, and an
+affine-invariant ensemble sampler (:class:`emcee.EnsembleSampler`) explores the free
+parameters of the method's layout (:func:`emccdcal.fit.layouts.build_layout`).
+
+Prior
+-----
+By default (``prior="log-uniform"``) the prior is flat in the *log* of every free
+parameter (ln φ, ln E, ln g: the space the engine works in) inside the method's bounds
+(:data:`emccdcal.fit.layouts.BOUNDS`) and zero outside: p(θ) ∝ 1/θ in each physical
+parameter. ``prior="uniform"`` is flat in the physical parameters themselves (the
+authors' choice, docs/posterior.md) inside the same bounds: it adds the Jacobian Σ x to the log
+density. With thousands of frames per acquisition the two give the same posterior to far
+below its width. A layout's own prior (the hierarchical gain series' penalty) is part of
+the engine's objective and is included in both cases.
+
+Convergence
+-----------
+The chain is extended until, after discarding a burn-in of 5 τ_max steps, the kept
+chain is at least 50 τ_max long, the effective sample size ``n_walkers × kept / τ`` is at
+least ``min_ess`` for every parameter, and the mean acceptance fraction lies in
+[0.15, 0.8] (τ: the integrated autocorrelation time of each parameter, in steps,
+:func:`emcee.autocorr.integrated_time`). If ``max_steps`` is reached first the pixel is
+refused with :class:`NotConvergedError`, which says what to change: an unconverged chain
+is never returned as a result.
+
+Outputs (:func:`save`): ``OUT/posterior.nc`` (the samples in physical units),
+``OUT/posterior.json`` (summaries and diagnostics per pixel and parameter, with the
+engine's estimate and standard error for comparison); the command line adds
+``OUT/posterior_<row>_<col>.png``, a corner plot (:mod:`emccdcal.report.corner`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from .._util import atomic_write, e_per_adu_map, finite_or_none, parse_pixel
+from ..data import stats
+from ..data.manifest import Manifest, read_manifest
+from ..errors import MethodError, NotConvergedError, OptionError
+from . import engine, layouts
+
+__all__ = [
+    "NotConvergedError",
+    "PRIORS",
+    "sample_posterior",
+    "summary",
+    "save",
+    "POSTERIOR_FILE",
+    "SUMMARY_FILE",
+]
+
+POSTERIOR_FILE = "posterior.nc"
+SUMMARY_FILE = "posterior.json"
+PRIORS = ("log-uniform", "uniform")
+
+#: Convergence criteria (see the module docstring).
+MIN_LENGTH_TAUS = 50.0
+BURN_TAUS = 5.0
+ACCEPTANCE = (0.15, 0.8)
+DEFAULT_MIN_ESS = 1000
+DEFAULT_MAX_STEPS = 20000
+DEFAULT_FIRST_STEPS = 1500
+#: Walkers start in a Gaussian ball of this fraction of the Laplace (inverse observed
+#: information) covariance's standard deviations around the maximum-likelihood estimate.
+INIT_SCALE = 0.1
+
+SAMPLER = "emcee.EnsembleSampler, moves: 0.8 DEMove + 0.2 DESnookerMove"
+
+_UNITS = {"e_per_adu": "e-/ADU", "photoelectrons": "e-", "em_gain": "1"}
+_QUANTILES = {"q025": 0.025, "q16": 0.16, "median": 0.5, "q84": 0.84, "q975": 0.975}
+
+
+# --------------------------------------------------------------------------------------
+# Input
+# --------------------------------------------------------------------------------------
+def _check_pixels(pixels, shape):
+    out = []
+    if isinstance(pixels, tuple) and len(pixels) == 2 and all(np.ndim(p) == 0 for p in pixels):
+        pixels = [pixels]  # a single (row, col)
+    for p in pixels:
+        if isinstance(p, str):
+            p = parse_pixel(p)
+        if (len(p) != 2 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+                                   for v in p)):
+            raise OptionError(f"malformed pixel {p!r}: expected (row, col) integers")
+        row, col = int(p[0]), int(p[1])
+        if not (0 <= row < shape[0] and 0 <= col < shape[1]):
+            raise OptionError(
+                f"pixel ({row}, {col}) is outside the array of shape {shape[0]}x{shape[1]} "
+                f"(rows x cols; rows 0..{shape[0] - 1}, cols 0..{shape[1] - 1})"
+            )
+        if (row, col) not in out:
+            out.append((row, col))
+    if not out:
+        raise OptionError("no pixel given: pass at least one (row, col)")
+    return out
+
+
+def _pixel_series(manifest, used, method, row, col, phi_map, options):
+    """Blocks, layout and starting values of one pixel (the calibrate pipeline, P = 1)."""
+    hists = []
+    for acq in used:
+        frames = acq.frames()[:, row:row + 1, col:col + 1]
+        h = stats.histograms(frames, adc_max=manifest.adc_max)
+        if int(h.n_saturated.sum()):
+            warnings.warn(
+                f"{acq.frames_path.name}: {int(h.n_saturated.sum())} frame values at the ADC "
+                f"maximum ({manifest.adc_max} ADU) at pixel ({row}, {col}) were excluded",
+                stacklevel=3,
+            )
+        if np.any(h.n < 2):
+            raise OptionError(f"{acq.frames_path}: fewer than 2 usable frames at pixel ({row}, {col})")
+        hists.append(h)
+    offsets = np.stack([[a.offset[row, col]] for a in used])
+    read_noise = np.stack([[a.read_noise[row, col]] for a in used])
+    setpoints = np.array([a.em_gain_setpoint for a in used])
+    idx = np.array([0])
+    blocks = layouts.make_blocks(hists, offsets, read_noise, setpoints, idx)
+    labels = [a.level if a.level is not None else a.name for a in used]
+    phi = None if phi_map is None else np.array([phi_map[row, col]])
+    series = layouts.Series(blocks, setpoints, labels, phi)
+    layout, x0 = layouts.build_layout(method, series, options)
+    return blocks, layout, x0
+
+
+def _physical_names(layout, used, method):
+    """Physical names and units of the free parameters (all are exp(x))."""
+    names, units = [], []
+    for name in layout.names:
+        m = re.fullmatch(r"ln_(\w+?)(?:\[(\d+)\])?", name)
+        if m is None or m.group(1) not in _UNITS:
+            raise OptionError(f"posterior sampling does not know the parameter {name!r}")
+        quantity, a = m.group(1), m.group(2)
+        if a is None:
+            label = quantity
+        else:
+            acq = used[int(a)]
+            if method.startswith("is-"):
+                tag = acq.level if acq.level is not None else acq.name
+            else:
+                tag = f"{acq.em_gain_setpoint:g}x"
+            label = f"{quantity}[{tag}]"
+        names.append(label)
+        units.append(_UNITS[quantity])
+    return names, units
+
+
+# --------------------------------------------------------------------------------------
+# Sampling
+# --------------------------------------------------------------------------------------
+class _LogPosterior:
+    """Vectorised log posterior of one pixel: rows of x (n, F) → (n,), nats."""
+
+    def __init__(self, layout, blocks, prior):
+        self.layout, self.blocks, self.prior = layout, blocks, prior
+        self._cache = {}
+        self.calls = 0
+
+    def _replicated(self, n):
+        if n not in self._cache:
+            rep = np.zeros(n, dtype=int)
+            self._cache[n] = (self.layout.subset(rep), [b.take(rep) for b in self.blocks])
+        return self._cache[n]
+
+    def __call__(self, x):
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        self.calls += 1
+        layout, blocks = self._replicated(x.shape[0])
+        inside = np.all((x >= self.layout.lower) & (x <= self.layout.upper), axis=1)
+        inside &= np.all(np.isfinite(x), axis=1)
+        xc = np.clip(np.nan_to_num(x), self.layout.lower, self.layout.upper)
+        with np.errstate(all="ignore"):
+            obj = engine._evaluate(layout, blocks, xc, 0)[0]
+        if self.prior == "uniform":
+            obj = obj + x.sum(axis=1)  # flat in θ = exp(x): p(x) ∝ Π exp(x_f)
+        return np.where(inside & np.isfinite(obj), obj, -np.inf)
+
+
+def _diagnose(sampler, min_ess):
+    """Burn-in, autocorrelation times, ESS and what is missing (empty list: converged)."""
+    total = sampler.iteration
+    W = sampler.nwalkers
+    chain = sampler.get_chain()
+    tau0 = _integrated_time(chain)
+    burn = int(math.ceil(BURN_TAUS * np.nanmax(tau0))) if np.all(np.isfinite(tau0)) else total // 2
+    burn = min(burn, total // 2)
+    kept = total - burn
+    tau = _integrated_time(chain[burn:])
+    ess = W * kept / tau
+    acc = float(np.mean(sampler.acceptance_fraction))
+    problems = []
+    if not np.all(np.isfinite(tau)):
+        problems.append("the autocorrelation time could not be estimated")
+    else:
+        if kept < MIN_LENGTH_TAUS * tau.max():
+            problems.append(
+                f"kept chain of {kept} steps is shorter than {MIN_LENGTH_TAUS:g} autocorrelation "
+                f"times ({MIN_LENGTH_TAUS * tau.max():.0f} steps)")
+        if np.any(ess < min_ess):
+            problems.append(f"effective sample size {ess.min():.0f} < {min_ess}")
+    if not (ACCEPTANCE[0] <= acc <= ACCEPTANCE[1]):
+        problems.append(f"acceptance fraction {acc:.3f} outside [{ACCEPTANCE[0]}, {ACCEPTANCE[1]}]")
+    return dict(total=total, burn=burn, kept=kept, tau=tau, ess=ess, acceptance=acc,
+                problems=problems)
+
+
+def _integrated_time(chain):
+    """Integrated autocorrelation time (steps) of a chain (steps, walkers, F), no length check."""
+    import emcee
+
+    if chain.shape[0] < 4:
+        return np.full(chain.shape[2], np.nan)
+    return emcee.autocorr.integrated_time(chain, tol=0, quiet=True)
+
+
+def _needed_steps(d, n_walkers, min_ess):
+    """Total steps the current τ estimate asks for (with a 20 % margin)."""
+    tau = d["tau"]
+    if not np.all(np.isfinite(tau)):
+        return 2 * d["total"]
+    kept = max(MIN_LENGTH_TAUS * tau.max(), min_ess * tau.max() / n_walkers)
+    return int(math.ceil(1.2 * (kept + BURN_TAUS * tau.max())))
+
+
+def _moves():
+    """Differential-evolution moves (80 %) with snooker updates (20 %), ter Braak & Vrugt
+    (2008): on the strongly correlated φ–E posterior of ``is-adu`` they halve the
+    autocorrelation time of emcee's default stretch move (25 against 50 steps)."""
+    import emcee
+
+    return [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
+
+
+def _sample_pixel(logp, x_hat, cov, n_walkers, first_steps, max_steps, min_ess, rng, progress,
+                  where):
+    import emcee
+
+    F = x_hat.size
+    sd = np.sqrt(np.diag(cov)) if np.all(np.isfinite(cov)) else None
+    if sd is None or not np.all(sd > 0):
+        warnings.warn(f"{where}: the observed information is not positive definite at the "
+                      "maximum; walkers start in a tiny isotropic ball", stacklevel=3)
+        start = x_hat + 1e-4 * rng.standard_normal((n_walkers, F))
+    else:
+        # A ball shaped like the Laplace approximation, shrunk by INIT_SCALE.
+        L = np.linalg.cholesky(cov + 1e-300 * np.eye(F))
+        start = x_hat + INIT_SCALE * rng.standard_normal((n_walkers, F)) @ L.T
+    start = np.clip(start, logp.layout.lower, logp.layout.upper)
+    sampler = emcee.EnsembleSampler(n_walkers, F, logp, vectorize=True, moves=_moves())
+    sampler.random_state = np.random.RandomState(rng.integers(2**32 - 1)).get_state()
+    steps = min(first_steps, max_steps)
+    sampler.run_mcmc(start, steps, progress=progress)
+    while True:
+        d = _diagnose(sampler, min_ess)
+        if not d["problems"]:
+            return sampler, d
+        if sampler.iteration >= max_steps:
+            break
+        target = min(max_steps, max(_needed_steps(d, n_walkers, min_ess),
+                                    int(1.5 * sampler.iteration)))
+        sampler.run_mcmc(None, target - sampler.iteration, progress=progress)
+    acc_bad = any(p.startswith("acceptance") for p in d["problems"])
+    advice = (
+        "the posterior may be multimodal or pressed against a bound; check the maximum-"
+        "likelihood fit, or try more walkers (n_walkers / --walkers)" if acc_bad else
+        f"raise max_steps (--max-steps, now {max_steps}) to about "
+        f"{_needed_steps(d, n_walkers, min_ess)} or use more walkers (n_walkers / --walkers, "
+        f"now {n_walkers})"
+    )
+    raise NotConvergedError(
+        f"{where}: chain not converged after {sampler.iteration} steps x {n_walkers} walkers "
+        f"({'; '.join(d['problems'])}): {advice}"
+    )
+
+
+def sample_posterior(
+    manifest,
+    method,
+    pixels,
+    *,
+    e_per_adu=None,
+    n_walkers=None,
+    n_steps=None,
+    seed=0,
+    max_steps=DEFAULT_MAX_STEPS,
+    min_ess=DEFAULT_MIN_ESS,
+    prior="log-uniform",
+    options=None,
+    out=None,
+    progress=False,
+) -> "xarray.Dataset":
+    """MCMC posterior of a method's free parameters for single pixels.
+
+    Parameters
+    ----------
+    manifest : str, Path or :class:`emccdcal.Manifest`
+        The TOML manifest (``docs/manifest.md``).
+    method : str
+        A likelihood method (:data:`emccdcal.fit.layouts.LIKELIHOOD_METHODS`): ``is-adu``,
+        ``is-gain``, ``gs``, ``gs-no1x``, ``gs-hierarchical``.
+    pixels : sequence of (int, int) or str
+        Pixels as (row, col), or ``"ROW,COL"`` strings; duplicates are sampled once.
+    e_per_adu : float or ndarray (rows, cols), optional
+        φ (e⁻/ADU) overriding the manifest's, for the methods that hold it fixed.
+    n_walkers : int, optional
+        Walkers of the ensemble; default ``max(32, 4 F)`` for F free parameters
+        (at least ``2 F``).
+    n_steps : int, optional
+        Steps per walker of the first run (default 1500, at most ``max_steps``); the chain
+        is then extended, as the autocorrelation time asks, up to ``max_steps``.
+    seed : int
+        Seed of every random draw (start ball and sampler); pixel (r, c) uses the stream
+        ``SeedSequence([seed, r, c])``, so its chain does not depend on the other pixels.
+    max_steps : int
+        Steps per walker beyond which an unconverged chain is refused.
+    min_ess : int
+        Effective sample size required of every parameter.
+    prior : {"log-uniform", "uniform"}
+        Flat in the log-parameters (default) or in the physical parameters, inside the
+        method's bounds (see the module docstring).
+    options : dict, optional
+        Method options, as :func:`emccdcal.calibrate`'s.
+    out : str or Path, optional
+        Directory to write ``posterior.nc`` and ``posterior.json`` into (corner plots:
+        :func:`emccdcal.report.corner.write_corner_figures`).
+    progress : bool
+        emcee progress bars on stderr.
+
+    Returns
+    -------
+    xarray.Dataset
+        ``samples`` (pixel, draw, parameter) in physical units (the ``units`` coordinate:
+        e⁻/ADU, e⁻ or 1), padded with NaN beyond ``n_draws``; ``log_posterior``
+        (pixel, draw), nats; per (pixel, parameter) ``median``, ``sd``, ``q16``, ``q84``,
+        ``q025``, ``q975``, ``ess``, ``autocorr_time`` (steps), ``mle`` and ``mle_se``
+        (the engine's estimate and delta-method standard error); per pixel
+        ``acceptance``, ``n_steps``, ``burn``, ``thin``, ``n_draws``, ``n_walkers``,
+        ``mle_converged`` and ``seconds`` (wall time: reading, fit and sampling).
+        ``attrs["seconds"]`` is the wall time.
+
+    Raises
+    ------
+    ValueError
+        A pixel outside the array or malformed, bad options, too few frames.
+    emccdcal.MethodError
+        A method the manifest cannot support.
+    NotConvergedError
+        A chain that did not converge within ``max_steps``.
+
+    Examples
+    --------
+    >>> ds = sample_posterior("adu/manifest.toml", "is-adu", [(1, 1)])   # doctest: +SKIP
+    >>> float(ds.median.sel(parameter="e_per_adu")[0])                    # doctest: +SKIP
+    3.94
+    """
+    import xarray as xr
+
+    t0 = time.perf_counter()
+    if prior not in PRIORS:
+        raise OptionError(f"unknown prior {prior!r}; choose one of {', '.join(PRIORS)}")
+    if method not in layouts.LIKELIHOOD_METHODS:
+        raise MethodError(
+            f"posterior sampling needs a likelihood method ({', '.join(layouts.LIKELIHOOD_METHODS)})"
+            f"; {method!r} is not one"
+            + (" (the mean-variance methods have no likelihood)" if str(method).startswith("mv-") else "")
+        )
+    for name, v, lo in (("max_steps", max_steps, 10), ("min_ess", min_ess, 1)):
+        if isinstance(v, bool) or int(v) != v or v < lo:
+            raise OptionError(f"{name} must be an integer >= {lo}, got {v!r}")
+    if n_steps is not None and (isinstance(n_steps, bool) or int(n_steps) != n_steps or n_steps < 10):
+        raise OptionError(f"n_steps must be an integer >= 10, got {n_steps!r}")
+    options = layouts.check_options(method, options)
+    if not isinstance(manifest, Manifest):
+        manifest = read_manifest(manifest)
+    pixels = _check_pixels(pixels, manifest.shape)
+    phi_map = e_per_adu_map(e_per_adu if e_per_adu is not None else manifest.e_per_adu,
+                            manifest.shape)
+    acqs = manifest.acquisitions
+    idx = layouts.select_acquisitions(
+        method, [a.em_gain_setpoint for a in acqs], [a.level for a in acqs], phi_map is not None)
+    used = [acqs[i] for i in idx]
+
+    per_pixel = []
+    names = units = None
+    for row, col in pixels:
+        t_pixel = time.perf_counter()
+        where = f"{method} pixel ({row}, {col})"
+        blocks, layout, x0 = _pixel_series(manifest, used, method, row, col, phi_map, options)
+        if names is None:
+            names, units = _physical_names(layout, used, method)
+        F = layout.n_free
+        W = int(n_walkers) if n_walkers is not None else max(32, 4 * F)
+        if W < 2 * F or W % 2:
+            raise OptionError(f"n_walkers must be even and at least {2 * F} (twice the {F} free "
+                             f"parameters of {method}), got {n_walkers}")
+        fit = engine.fit(layout, blocks, x0)
+        if not fit.converged[0]:
+            warnings.warn(f"{where}: the maximum-likelihood fit did not converge; "
+                          "sampling starts from its last point", stacklevel=2)
+        x_hat, cov = fit.x[0], fit.cov[0]
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), row, col]))
+        logp = _LogPosterior(layout, blocks, prior)
+        first = DEFAULT_FIRST_STEPS if n_steps is None else int(n_steps)
+        sampler, d = _sample_pixel(logp, x_hat, cov, W, first, int(max_steps), int(min_ess),
+                                   rng, progress, where)
+        thin = max(1, int(np.floor(d["tau"].min() / 2)))
+        chain = sampler.get_chain(discard=d["burn"], thin=thin, flat=True)
+        lp = sampler.get_log_prob(discard=d["burn"], thin=thin, flat=True)
+        mle_se = np.exp(x_hat) * np.sqrt(np.where(np.isfinite(np.diag(cov)), np.diag(cov), np.nan))
+        per_pixel.append(dict(row=row, col=col, samples=np.exp(chain), log_posterior=lp,
+                              diag=d, thin=thin, n_walkers=W, mle=np.exp(x_hat), mle_se=mle_se,
+                              mle_converged=bool(fit.converged[0]),
+                              seconds=time.perf_counter() - t_pixel))
+
+    n_draw = max(p["samples"].shape[0] for p in per_pixel)
+    Pn, F = len(per_pixel), len(names)
+    samples = np.full((Pn, n_draw, F), np.nan)
+    logpost = np.full((Pn, n_draw), np.nan)
+    for i, p in enumerate(per_pixel):
+        samples[i, :p["samples"].shape[0]] = p["samples"]
+        logpost[i, :p["log_posterior"].shape[0]] = p["log_posterior"]
+    qs = {k: np.nanquantile(samples, q, axis=1) for k, q in _QUANTILES.items()}
+    pdim, pf = ("pixel",), ("pixel", "parameter")
+    col = lambda key: np.array([p[key] for p in per_pixel])  # noqa: E731
+    dcol = lambda key: np.array([p["diag"][key] for p in per_pixel])  # noqa: E731
+    ds = xr.Dataset(
+        {
+            "samples": (("pixel", "draw", "parameter"), samples,
+                        {"long_name": "posterior draws (burn-in discarded, thinned)",
+                         "units": "per parameter: see the 'units' coordinate "
+                                  "(e_per_adu e-/ADU, photoelectrons e-, em_gain 1)"}),
+            "log_posterior": (("pixel", "draw"), logpost, {"units": "nats"}),
+            **{k: (pf, v, {"long_name": f"posterior {k}"}) for k, v in qs.items()},
+            "sd": (pf, np.nanstd(samples, axis=1, ddof=1), {"long_name": "posterior SD"}),
+            "ess": (pf, dcol("ess"), {"long_name": "effective sample size", "units": "1"}),
+            "autocorr_time": (pf, dcol("tau"), {"long_name": "integrated autocorrelation time",
+                                                "units": "steps"}),
+            "mle": (pf, col("mle"), {"long_name": "engine's maximum-likelihood estimate"}),
+            "mle_se": (pf, col("mle_se"), {"long_name": "engine's standard error "
+                                                        "(inverse observed information)"}),
+            "acceptance": (pdim, dcol("acceptance"), {"long_name": "mean acceptance fraction"}),
+            "n_steps": (pdim, dcol("total"), {"units": "steps per walker"}),
+            "burn": (pdim, dcol("burn"), {"units": "steps per walker"}),
+            "thin": (pdim, col("thin"), {"units": "steps"}),
+            "n_draws": (pdim, np.array([p["samples"].shape[0] for p in per_pixel])),
+            "n_walkers": (pdim, col("n_walkers")),
+            "mle_converged": (pdim, col("mle_converged")),
+            "seconds": (pdim, col("seconds"), {"long_name": "wall time of the pixel",
+                                               "units": "s"}),
+        },
+        coords={
+            "pixel": np.arange(Pn), "row": ("pixel", col("row")), "col": ("pixel", col("col")),
+            "parameter": names, "units": ("parameter", units),
+        },
+        attrs={
+            "method": method, "prior": prior, "seed": int(seed), "min_ess": int(min_ess),
+            "max_steps": int(max_steps), "manifest_hash": manifest.content_hash,
+            "manifest_path": str(manifest.path), "sampler": SAMPLER,
+            "prior_description": _prior_text(prior),
+        },
+    )
+    ds.attrs["seconds"] = time.perf_counter() - t0
+    if out is not None:
+        save(ds, out)
+    return ds
+
+
+def _prior_text(prior):
+    if prior == "uniform":
+        return ("flat in the physical parameters (e_per_adu, photoelectrons, em_gain) inside "
+                "emccdcal.fit.layouts.BOUNDS, zero outside; plus the layout's own prior if any")
+    return ("flat in the log of every free parameter (p(theta) ~ 1/theta) inside "
+            "emccdcal.fit.layouts.BOUNDS, zero outside; plus the layout's own prior if any")
+
+
+# --------------------------------------------------------------------------------------
+# Output
+# --------------------------------------------------------------------------------------
+def summary(ds):
+    """The ``posterior.json`` content of a :func:`sample_posterior` result (a dict)."""
+    stats_keys = ("median", "sd", "q16", "q84", "q025", "q975", "ess", "autocorr_time",
+                  "mle", "mle_se")
+    pixels = []
+    for i in range(ds.sizes["pixel"]):
+        params = {}
+        for j, name in enumerate(ds.parameter.values.tolist()):
+            entry = {"units": str(ds.units.values[j])}
+            for k in stats_keys:
+                entry[k] = finite_or_none(ds[k].values[i, j])
+            entry["acceptance"] = finite_or_none(ds.acceptance.values[i])
+            params[name] = entry
+        pixels.append({
+            "row": int(ds.row.values[i]), "col": int(ds.col.values[i]),
+            "acceptance": finite_or_none(ds.acceptance.values[i]),
+            "n_walkers": int(ds.n_walkers.values[i]), "n_steps": int(ds.n_steps.values[i]),
+            "burn": int(ds.burn.values[i]), "thin": int(ds["thin"].values[i]),
+            "n_draws": int(ds.n_draws.values[i]),
+            "mle_converged": bool(ds.mle_converged.values[i]),
+            "seconds": finite_or_none(ds.seconds.values[i]),
+            "parameters": params,
+        })
+    return {
+        "method": ds.attrs["method"], "prior": ds.attrs["prior"],
+        "prior_description": ds.attrs["prior_description"], "sampler": ds.attrs["sampler"],
+        "seed": ds.attrs["seed"], "min_ess": ds.attrs["min_ess"],
+        "convergence": (f"kept chain >= {MIN_LENGTH_TAUS:g} tau after a burn-in of "
+                        f"{BURN_TAUS:g} tau; ess >= min_ess for every parameter; mean "
+                        f"acceptance in [{ACCEPTANCE[0]}, {ACCEPTANCE[1]}]"),
+        "manifest_hash": ds.attrs["manifest_hash"], "manifest_path": ds.attrs["manifest_path"],
+        "seconds": finite_or_none(ds.attrs.get("seconds", float("nan"))),
+        "pixels": pixels,
+    }
+
+
+def save(ds, out):
+    """Write ``posterior.nc`` and ``posterior.json`` into directory ``out``.
+
+    Returns
+    -------
+    list of Path
+        The files written.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    nc = out / POSTERIOR_FILE
+    atomic_write(nc, lambda tmp: ds.to_netcdf(tmp, engine="h5netcdf"))
+    written.append(nc)
+    js = out / SUMMARY_FILE
+    text = json.dumps(summary(ds), indent=2) + "\n"
+    atomic_write(js, lambda tmp: Path(tmp).write_text(text))
+    written.append(js)
+    return written
+
+
+def format_summary(ds):
+    """Human-readable table: posterior median ± SD against the engine's MLE ± SE."""
+    lines = [f"posterior ({ds.attrs['method']}, prior {ds.attrs['prior']}), "
+             f"{ds.attrs.get('seconds', float('nan')):.1f} s"]
+    for i in range(ds.sizes["pixel"]):
+        lines.append(f"pixel ({int(ds.row.values[i])}, {int(ds.col.values[i])}): "
+                     f"{int(ds.n_walkers.values[i])} walkers x {int(ds.n_steps.values[i])} steps, "
+                     f"acceptance {float(ds.acceptance.values[i]):.2f}")
+        for j, name in enumerate(ds.parameter.values.tolist()):
+            lines.append(
+                f"  {name:<22} {ds['median'].values[i, j]:.5g} ± {ds.sd.values[i, j]:.3g} "
+                f"(MLE {ds.mle.values[i, j]:.5g} ± {ds.mle_se.values[i, j]:.3g}) "
+                f"{ds.units.values[j]}  ess {ds.ess.values[i, j]:.0f}  "
+                f"tau {ds.autocorr_time.values[i, j]:.1f}")
+    return "\n".join(lines)

@@ -1,0 +1,300 @@
+"""Bead movies with known truth, for the bead validation (``emccdcal simulate beads``).
+
+A field of isolated fluorescent beads (Ryan et al. 2021, bead validation): every pixel
+receives Poisson photoelectrons with mean ``E_k = Σ_b N_b·P_k + b`` (:func:`bead_scene`,
+a pixel-integrated Gaussian PSF), then the camera of
+:func:`~emccdcal.simulate.camera.simulate_frames` at each set-point. Besides the stacks,
+darks and maps, :func:`simulate_beads` writes ``truth_calibration.nc``: the true
+calibration in the result contract. ``docs/beads.md`` has examples.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+
+import numpy as np
+
+from .. import __version__, result
+from .._util import atomic_write, check_int, check_number
+from ..errors import OptionError
+from ..model.psf import spot_image
+from .camera import _UNITS, PAPER_SETPOINTS, Camera
+from .series import (
+    SimulatedSeries,
+    _gains,
+    _manifest_lines,
+    _options,
+    _output_dir,
+    _setpoint_acquisitions,
+    _setpoint_list,
+    _truth_entry,
+    _write_stacks,
+    _write_text,
+)
+
+__all__ = ["simulate_beads", "bead_scene", "BEAD_DEFAULTS", "CAMERA_DEFAULTS",
+           "TRUTH_CALIBRATION_FILE"]
+
+#: Defaults of the bead simulation (``docs/beads.md``).
+BEAD_DEFAULTS = {
+    "beads": 10,
+    "photoelectrons": 5000.0,
+    "width": 1.3,
+    "background": 10.0,
+    "min_separation": 12.0,
+    "margin": 6.0,
+}
+#: The default camera of a bead simulation, where it differs from :class:`Camera`'s.
+CAMERA_DEFAULTS = {"rows": 64, "cols": 64, "frames": 500, "dark_frames": 2000}
+#: File written beside the stacks: the true calibration in the result contract.
+TRUTH_CALIBRATION_FILE = "truth_calibration.nc"
+
+
+def _place_beads(n, rows, cols, margin, min_separation, rng) -> np.ndarray:
+    """Random bead centres (row, col), at least ``margin`` px from the edges and
+    ``min_separation`` px apart, by sequential rejection sampling."""
+    lo_r, hi_r = margin, rows - 1 - margin
+    lo_c, hi_c = margin, cols - 1 - margin
+    if hi_r < lo_r or hi_c < lo_c:
+        raise OptionError(
+            f"a {rows}×{cols} sensor has no room for beads {margin:g} px from every edge"
+        )
+    placed: list[tuple[float, float]] = []
+    for _ in range(200 * n + 1000):
+        if len(placed) == n:
+            break
+        r, c = rng.uniform(lo_r, hi_r), rng.uniform(lo_c, hi_c)
+        if all(math.hypot(r - pr, c - pc) >= min_separation for pr, pc in placed):
+            placed.append((r, c))
+    if len(placed) < n:
+        raise OptionError(
+            f"cannot place {n} beads at least {min_separation:g} px apart and {margin:g} px "
+            f"from the edges of a {rows}×{cols} sensor; use fewer beads, a smaller "
+            "min_separation or a larger sensor"
+        )
+    return np.array(placed)
+
+
+def bead_scene(positions, photoelectrons, width, background, rows, cols) -> np.ndarray:
+    """Expected photoelectrons per pixel per frame of a field of beads, e⁻.
+
+    ``E_k = Σ_b N_b·P_k(x_b, y_b, s) + background`` with the pixel-integrated Gaussian
+    :func:`emccdcal.model.psf.spot_image`.
+
+    Parameters
+    ----------
+    positions : array_like, shape (B, 2)
+        Bead centres (row, col), pixel (pixel (r, c) is centred at integer indices).
+    photoelectrons : float or array_like, shape (B,)
+        N_b, each bead's total photoelectrons per frame (e⁻).
+    width : float
+        PSF standard deviation s (pixel).
+    background : float
+        Uniform background b (e⁻ per pixel per frame).
+    rows, cols : int
+        Sensor size (pixel).
+
+    Returns
+    -------
+    ndarray, shape (rows, cols)
+
+    Examples
+    --------
+    >>> E = bead_scene([[10.0, 12.0]], 5000.0, 1.3, 10.0, 24, 24)
+    >>> round(float(E.sum() - 10.0 * 24 * 24))
+    5000
+    """
+    pos = np.asarray(positions, dtype=float).reshape(-1, 2)
+    n = np.broadcast_to(np.asarray(photoelectrons, dtype=float), (len(pos),))
+    params = np.column_stack([pos[:, 1], pos[:, 0], np.full(len(pos), width), n,
+                              np.zeros(len(pos))])
+    image = spot_image(params, np.arange(rows), np.arange(cols)).sum(axis=0) if len(pos) \
+        else np.zeros((rows, cols))
+    return image + background
+
+
+def simulate_beads(
+    outdir,
+    *,
+    beads=BEAD_DEFAULTS["beads"],
+    photoelectrons=BEAD_DEFAULTS["photoelectrons"],
+    width=BEAD_DEFAULTS["width"],
+    background=BEAD_DEFAULTS["background"],
+    positions=None,
+    min_separation=BEAD_DEFAULTS["min_separation"],
+    margin=BEAD_DEFAULTS["margin"],
+    setpoints=PAPER_SETPOINTS,
+    em_gain=None,
+    offsets=None,
+    seed=None,
+    progress=False,
+    camera: Camera | None = None,
+    **camera_options,
+) -> SimulatedSeries:
+    """Simulate bead movies at several EM gain set-points, with darks and the true calibration.
+
+    A field of isolated fluorescent beads (the paper's validation, docs/beads.md): every
+    pixel receives Poisson photoelectrons with mean ``E_k = Σ_b N_b·P_k + b``
+    (:func:`bead_scene`: pixel-integrated Gaussian PSF of SD ``width``, ``N_b``
+    photoelectrons per bead per frame, uniform background b), then the camera of
+    :func:`simulate_frames` (multiplication, read noise, offset pattern, ADC) at each
+    set-point. Writes ``outdir/beads/<s>x-beads.tif`` per set-point, a dark stack
+    ``<s>x-beads_no-signal.tif`` with its offset and read-noise maps ``_S0.tif`` /
+    ``_sigma.tif`` per set-point, ``truth-offset-pattern.tif``, ``truth.json`` (with
+    ``beads``: a list of ``{"row", "col", "photoelectrons"}``), ``truth_calibration.nc``
+    (the true φ and gains in the calibration result contract, method ``"truth"``) and
+    ``manifest.toml`` (last).
+
+    Parameters
+    ----------
+    outdir : path
+        Output directory (created; files of the same names are replaced).
+    beads : int, optional
+        Number of beads (10), placed at random unless ``positions`` is given.
+    photoelectrons : float or sequence of float, optional
+        Photoelectrons per bead per frame, e⁻ (5000), one value or one per bead.
+    width : float, optional
+        PSF standard deviation, pixel (1.3).
+    background : float, optional
+        Uniform background, e⁻ per pixel per frame (10).
+    positions : array_like (beads, 2), optional
+        Bead centres (row, col), pixel; overrides the random placement.
+    min_separation, margin : float, optional
+        Random placement: least distance between beads (12 px) and from the sensor's
+        edges (6 px), so that each bead has a clean fitting box.
+    setpoints, em_gain, offsets, seed, progress
+        As in :func:`~emccdcal.simulate.series.simulate_gain_series` (set-points 1, 5, 25,
+        100, 300 and the paper's true gains by default).
+    camera, **camera_options
+        As in :func:`~emccdcal.simulate.series.simulate_gain_series`; the default camera
+        here is 64 × 64 px with 500 frames per bead movie and 2000 per dark stack
+        (:data:`CAMERA_DEFAULTS`).
+
+    Returns
+    -------
+    SimulatedSeries
+    """
+    camera = Camera.of(camera, CAMERA_DEFAULTS, **camera_options)
+    opts = _options(camera, seed) | {"setpoints": setpoints, "offsets": offsets}
+    sps = _setpoint_list(setpoints)
+    gains = _gains(em_gain, sps)
+    n_beads = check_int("beads", beads, minimum=0) if positions is None else None
+    s = check_number("width", width, positive=True)
+    b = check_number("background", background, minimum=0.0)
+    sep = check_number("min_separation", min_separation, minimum=0.0)
+    edge = check_number("margin", margin, minimum=0.0)
+    shape = (opts["rows"], opts["cols"])
+    children = np.random.SeedSequence(opts["seed"]).spawn(2 + 2 * len(sps))
+    if positions is None:
+        pos = _place_beads(n_beads, shape[0], shape[1], edge, sep,
+                           np.random.default_rng(children[-1]))
+    else:
+        pos = np.asarray(check_number("positions", positions, scalar=False), dtype=float)
+        pos = pos.reshape(-1, 2) if pos.size else np.zeros((0, 2))
+        if pos.ndim != 2 or pos.shape[1] != 2:
+            raise OptionError(f"positions must be (beads, 2) rows and columns, got shape {pos.shape}")
+        outside = (pos < 0).any(axis=1) | (pos[:, 0] > shape[0] - 1) | (pos[:, 1] > shape[1] - 1)
+        if outside.any():
+            raise OptionError(
+                f"bead position {pos[np.argmax(outside)].tolist()} is outside the "
+                f"{shape[0]}×{shape[1]} sensor"
+            )
+        n_beads = len(pos)
+    n_values = [photoelectrons] if np.ndim(photoelectrons) == 0 else list(photoelectrons)
+    if len(n_values) not in (1, n_beads):
+        raise OptionError(
+            f"photoelectrons has {len(n_values)} values but there are {n_beads} beads"
+        )
+    n_values = [check_number("photoelectrons", v, minimum=0.0) for v in n_values]
+    N = np.broadcast_to(np.array(n_values), (n_beads,)).astype(float)
+    scene = bead_scene(pos, N, s, b, *shape)
+    opts.update(setpoints=sps, em_gain=gains, beads=n_beads, photoelectrons=n_values, width=s,
+                background=b, min_separation=sep, margin=edge)
+    acqs = _setpoint_acquisitions("beads/{}-beads", sps, gains, [scene] * len(sps), offsets, opts)
+    darks = [a | {"frames_n": opts["dark_frames"]} for a in acqs]
+
+    outdir = _output_dir(outdir)
+    files, pattern, pattern_file = _write_stacks(outdir, "beads", acqs, darks, camera, opts,
+                                                 progress, children[:-1])
+    dark_sd = math.sqrt(opts["read_noise"] ** 2 + 1.0 / 12.0)
+    truth_acqs = [_truth_entry(a, camera, opts) for a in acqs]
+    lines = _manifest_lines("beads", acqs, opts)
+    lines[0] = f"# Synthetic bead movies written by emccdcal {__version__} (emccdcal simulate beads)."
+    manifest_text = "\n".join(lines) + "\n"
+    manifest = outdir / "manifest.toml"
+
+    # The true calibration, in the result contract (emccdcal.result).
+    ds = result.make_dataset(
+        method="truth",
+        setpoints=sps,
+        e_per_adu=opts["e_per_adu"],
+        e_per_adu_se=0.0,
+        em_gain=np.broadcast_to(np.array(gains)[:, None, None], (len(sps),) + shape),
+        em_gain_se=0.0,
+        photoelectrons=scene,
+        photoelectrons_se=0.0,
+        converged=True,
+        manifest_hash=hashlib.sha256(manifest_text.encode("utf-8")).hexdigest(),
+        manifest_path=str(manifest.resolve()),
+        extra={
+            "offset": (("setpoint", "row", "col"),
+                       np.stack([np.clip(a["offset"] + pattern, 0.0, None) for a in acqs]),
+                       "ADU", "true offset S0 (set-point level plus the pixel pattern)"),
+            "read_noise": (("setpoint", "row", "col"),
+                           np.full((len(sps),) + shape, dark_sd), "ADU",
+                           "true read noise: SD of dark counts, sqrt(sigma^2 + 1/12)"),
+        },
+        attrs={
+            "note": "true values of a bead simulation (emccdcal simulate beads); "
+                    "photoelectrons is the expected bead scene per pixel per frame, "
+                    "background included, CIC excluded",
+            "multiplication": opts["multiplication"],
+        },
+    )
+    nc_path = outdir / TRUTH_CALIBRATION_FILE
+    atomic_write(nc_path, lambda tmp: ds.to_netcdf(tmp, engine="h5netcdf"))
+    files.append(nc_path)
+
+    options = {k: opts[k] for k in sorted(opts)}
+    units = dict(_UNITS) | {"width": "pixel", "background": "e-/px/frame",
+                            "bead photoelectrons": "e-/frame (whole bead)",
+                            "row": "pixel", "col": "pixel"}
+    truth = {
+        "kind": "beads",
+        "emccdcal_version": __version__,
+        "seed": opts["seed"],
+        "units": units,
+        "beads": [{"row": float(r), "col": float(c), "photoelectrons": float(n)}
+                  for (r, c), n in zip(pos, N)],
+        "width": s,
+        "background": b,
+        "e_per_adu": opts["e_per_adu"],
+        "read_noise": opts["read_noise"],
+        "read_noise_dark_sd": dark_sd,
+        "cic": opts["cic"],
+        "drift": opts["drift"],
+        "multiplication": opts["multiplication"],
+        "stages": opts["stages"] if opts["multiplication"] == "cascade" else None,
+        "adc_bits": opts["adc_bits"],
+        "offset_pattern": {
+            "file": pattern_file,
+            "sd": opts["offset_spread"],
+            "note": "per-pixel offset = acquisition offset + this map (same at every set-point)",
+        },
+        "calibration": TRUTH_CALIBRATION_FILE,
+        "acquisitions": truth_acqs,
+        "notes": [
+            "beads: centre (row, col) in pixels, pixel (r, c) centred at integer indices; "
+            "photoelectrons per bead per frame (the whole PSF, also beyond any box)",
+            "every pixel: Poisson photoelectrons with mean sum_b N_b P_k + background (+ cic)",
+            "read_noise is the SD of the Gaussian read-out before rounding; "
+            "dark-map SD ~ sqrt(read_noise^2 + 1/12)",
+        ],
+        "options": options,
+    }
+    truth_path = outdir / "truth.json"
+    files.append(_write_text(truth_path, json.dumps(truth, indent=2) + "\n"))
+    files.append(_write_text(manifest, manifest_text))
+    return SimulatedSeries(outdir, manifest, truth_path, truth, tuple(files))

@@ -1,0 +1,85 @@
+"""Shared fixtures: the real camera data, a real-data manifest builder, the demo run.
+
+The real ProEM data of Ryan et al. (2021) live outside the repository, in
+``../shared/data/lanl-proem`` relative to the project root; they are read from there
+and never copied. Tests that need them carry ``@pytest.mark.real_data`` and are skipped
+cleanly where the data are absent.
+"""
+
+from __future__ import annotations
+
+import io
+import warnings
+from pathlib import Path
+
+import pytest
+
+#: The one place the real data's path is spelled.
+REAL_DATA = (Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "lanl-proem").resolve()
+
+#: Gain set-points of the real gain series; levels of the real 1x intensity series.
+REAL_SETPOINTS = (1, 5, 25, 100, 300)
+REAL_LEVELS = tuple(range(1, 7))
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "real_data: needs ../shared/data/lanl-proem (skipped where absent)")
+
+
+def pytest_collection_modifyitems(config, items):
+    if REAL_DATA.is_dir():
+        return
+    skip = pytest.mark.skip(reason=f"real ProEM data not present ({REAL_DATA})")
+    for item in items:
+        if "real_data" in item.keywords:
+            item.add_marker(skip)
+
+
+def write_real_manifest(directory, kind, *, setpoints=REAL_SETPOINTS):
+    """A manifest of the real data in ``directory``: ``"gs"`` (the gain series with its ADU
+    map) or ``"adu"`` (the 1x intensity series, levels L1-L6). Returns its path."""
+    lines = []
+    if kind == "gs":
+        lines.append(f'e_per_adu = "{REAL_DATA}/gain-GS/ADU_map.tif"')
+        for g in setpoints:
+            lines += ["[[acquisition]]", f'frames = "{REAL_DATA}/gain-GS/{g}x-gain.tif"',
+                      f"em_gain_setpoint = {g}",
+                      f'offset = "{REAL_DATA}/gain-GS/{g}x-gain_no-signal_S0.tif"',
+                      f'read_noise = "{REAL_DATA}/gain-GS/{g}x-gain_no-signal_sigma.tif"']
+    elif kind == "adu":
+        for level in REAL_LEVELS:
+            lines += ["[[acquisition]]", f'frames = "{REAL_DATA}/ADU/1x-gain_level-0{level}.tif"',
+                      "em_gain_setpoint = 1", f'level = "L{level}"',
+                      f'offset = "{REAL_DATA}/ADU/1x-gain_no-signal_S0.tif"',
+                      f'read_noise = "{REAL_DATA}/ADU/1x-gain_no-signal_sigma.tif"']
+    else:
+        raise ValueError(f"unknown kind {kind!r}")
+    path = Path(directory) / f"{kind}.toml"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.fixture(scope="session")
+def real_data():
+    """The real data's folder (the test is skipped where it is absent)."""
+    if not REAL_DATA.is_dir():
+        pytest.skip(f"real ProEM data not present ({REAL_DATA})")
+    return REAL_DATA
+
+
+#: The demo of the session: a tiny sensor, not square (a transposed map would not fit).
+DEMO_ROWS, DEMO_COLS, DEMO_FRAMES = 4, 3, 300
+
+
+@pytest.fixture(scope="session")
+def demo_run(tmp_path_factory):
+    """``run_demo`` of a tiny sensor with its report, once per test session:
+    ``({"adu", "gs", "outdir", "report"}, what it printed)``."""
+    from emccdcal.demo import run_demo
+
+    printed = io.StringIO()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # chance non-stationarity findings of tiny series
+        run = run_demo(tmp_path_factory.mktemp("demo") / "demo", rows=DEMO_ROWS,
+                       cols=DEMO_COLS, frames=DEMO_FRAMES, seed=5, report=True, out=printed)
+    return run, printed.getvalue()

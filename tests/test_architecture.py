@@ -1,0 +1,111 @@
+"""The package's shape: imports run one way, the public API is curated and lazy, every
+file is written through one atomic writer."""
+
+from __future__ import annotations
+
+import ast
+import os
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import emccdcal
+from emccdcal._util import atomic_write
+
+SRC = Path(emccdcal.__file__).parent
+
+#: Which subpackages each one may import (besides errors and _util, which all may).
+ALLOWED = {
+    "model": set(),
+    "data": {"model"},
+    "fit": {"data", "model"},
+    "beads": {"data", "model", "fit", "result"},
+    "simulate": {"model", "fit", "result"},
+    "report": {"data", "model", "fit", "result", "beads"},
+}
+
+
+def _imports(path):
+    """Package modules a file imports (absolute names), at any depth."""
+    tree = ast.parse(path.read_text())
+    package = ".".join(("emccdcal",) + path.relative_to(SRC).with_suffix("").parts[:-1])
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                module = ".".join(base + ([node.module] if node.module else []))
+            else:
+                module = node.module or ""
+            names = [f"{module}.{a.name}" for a in node.names]
+            found.update([module, *names])
+        elif isinstance(node, ast.Import):
+            found.update(a.name for a in node.names)
+    return {m for m in found if m.startswith("emccdcal")}
+
+
+def _top(module):
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else ""
+
+
+@pytest.mark.parametrize("sub", sorted(ALLOWED))
+def test_imports_run_one_way(sub):
+    allowed = ALLOWED[sub] | {sub, "errors", "_util", "", "__version__"}
+    for path in (SRC / sub).rglob("*.py"):
+        bad = {m for m in _imports(path) if _top(m) not in allowed}
+        assert not bad, f"{path.relative_to(SRC)} imports {sorted(bad)}"
+
+
+def test_numerics_import_no_argparse_or_pyplot():
+    for path in SRC.rglob("*.py"):
+        if path.parts[-2] == "cli":
+            continue
+        tree = ast.parse(path.read_text())
+        imported = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+        imported |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
+        assert not imported & {"argparse", "matplotlib.pyplot"}, path
+        assert "matplotlib.use(" not in path.read_text(), path
+
+
+def test_import_is_lazy_and_names_resolve():
+    code = ("import sys, emccdcal; print(sorted(m for m in ('numpy', 'xarray', 'matplotlib') "
+            "if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+    for name in emccdcal.__all__:
+        assert getattr(emccdcal, name) is not None, name
+    assert callable(emccdcal.calibrate) and callable(emccdcal.cots)
+    assert emccdcal.noise.__name__ == "emccdcal.model.noise"
+
+
+def test_no_public_name_hides_a_module():
+    modules = {p.stem for p in SRC.glob("*.py")} | {p.name for p in SRC.iterdir() if p.is_dir()}
+    assert not set(emccdcal.__all__) & modules
+    import emccdcal.calibration as calibration  # the module, not the function
+
+    assert calibration.DEFAULT_BLOCK == 128 and emccdcal.calibrate is calibration.calibrate
+
+
+def test_atomic_write_uses_the_umask_and_leaves_nothing_on_failure(tmp_path):
+    old = os.umask(0o022)
+    try:
+        path = atomic_write(tmp_path / "a.txt", lambda p: Path(p).write_text("x"))
+        assert stat.S_IMODE(path.stat().st_mode) == 0o644
+        os.umask(0o027)
+        path = atomic_write(tmp_path / "b.txt", lambda p: Path(p).write_text("y"))
+        assert stat.S_IMODE(path.stat().st_mode) == 0o640
+    finally:
+        os.umask(old)
+
+    def fail(p):
+        Path(p).write_text("half")
+        raise RuntimeError("disk full")
+
+    with pytest.raises(RuntimeError):
+        atomic_write(tmp_path / "a.txt", fail)
+    assert (tmp_path / "a.txt").read_text() == "x"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt"]

@@ -1,0 +1,111 @@
+"""The command line as a layer: fast help, one-line errors, tracebacks for bugs, Ctrl-C,
+any locale, options spelled alike across verbs."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from emccdcal import cli
+from emccdcal.errors import InputError, OptionError
+
+HEAVY = ("numpy", "scipy", "xarray", "matplotlib", "tifffile", "pandas")
+
+
+def _imported_after(argv):
+    code = ("import sys; from emccdcal.cli import main; main(%r); "
+            "print(sorted({m.split('.')[0] for m in sys.modules} & set(%r)))" % (argv, HEAVY))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    return out.stdout.strip().splitlines()[-1]
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["--version"], []])
+def test_help_and_version_import_no_numerics(argv):
+    assert _imported_after(argv) == "[]"
+
+
+def test_help_lists_every_verb(capsys):
+    assert cli.main(["--help"]) == 0
+    out = capsys.readouterr().out
+    for verb in cli.VERBS:
+        assert verb in out
+
+
+@pytest.mark.parametrize("verb", list(cli.VERBS))
+def test_every_verb_help_prints_under_a_cp1252_console(verb):
+    env = dict(os.environ, PYTHONIOENCODING="cp1252")
+    out = subprocess.run([sys.executable, "-m", "emccdcal", verb, "--help"], env=env,
+                         capture_output=True)
+    assert out.returncode == 0, out.stderr.decode("cp1252", "replace")
+    assert b"usage: emccdcal " + verb.encode() in out.stdout
+
+
+def _verb_raising(monkeypatch, exc):
+    def run(args):
+        raise exc
+
+    import emccdcal.cli.check as check
+
+    real = check.add_parser
+
+    def add_parser(subparsers):
+        p = real(subparsers)
+        p.set_defaults(func=run)
+        return p
+
+    monkeypatch.setattr(check, "add_parser", add_parser)
+
+
+@pytest.mark.parametrize("exc", [InputError("'x.tif': truncated"), OptionError("bad option")])
+def test_user_errors_are_one_line_and_exit_2(monkeypatch, capsys, exc):
+    _verb_raising(monkeypatch, exc)
+    assert cli.main(["check", "m.toml"]) == 2
+    err = capsys.readouterr().err
+    assert err == f"emccdcal check: error: {exc}\n"
+
+
+def test_a_bug_keeps_its_traceback(monkeypatch):
+    _verb_raising(monkeypatch, ValueError("a NumPy bug"))
+    with pytest.raises(ValueError, match="a NumPy bug"):
+        cli.main(["check", "m.toml"])
+
+
+def test_ctrl_c_is_one_line_and_exit_130(monkeypatch, capsys):
+    _verb_raising(monkeypatch, KeyboardInterrupt())
+    assert cli.main(["check", "m.toml"]) == 130
+    assert capsys.readouterr().err == "emccdcal check: interrupted\n"
+
+
+def test_usage_errors_exit_2_in_one_line(capsys):
+    assert cli.main(["calibrate", "m.toml", "-o", "out", "--e-per-adu", "-1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--e-per-adu" in err[0]
+    assert cli.main(["no-such-verb"]) == 2
+
+
+def test_options_are_spelled_alike_across_verbs():
+    parser_of = {}
+    for verb in cli.VERBS:
+        sub = cli.build_parser(verb)._subparsers._group_actions[0].choices[verb]
+        parser_of[verb] = {s for a in sub._actions for s in a.option_strings}
+    writes = {"demo", "simulate", "calibrate", "posterior", "report", "validate", "cots"}
+    for verb in writes - {"simulate"}:
+        assert {"-o", "--out"} <= parser_of[verb], verb
+    for verb in cli.VERBS:
+        assert {"-q", "--quiet"} <= parser_of[verb] or verb == "simulate", verb
+    figures = {verb for verb, opts in parser_of.items() if "--no-figures" in opts}
+    assert figures == {"posterior", "validate"}
+    for verb in ("calibrate", "posterior"):
+        assert "--e-per-adu" in parser_of[verb]
+
+
+def test_simulate_kinds_take_out_and_quiet():
+    parser = cli.build_parser("simulate")
+    sim = parser._subparsers._group_actions[0].choices["simulate"]
+    for kind, sub in sim._subparsers._group_actions[0].choices.items():
+        options = {s for a in sub._actions for s in a.option_strings}
+        assert {"-o", "--out", "-q", "--quiet"} <= options, kind
