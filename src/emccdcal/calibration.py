@@ -11,6 +11,7 @@ import json
 import os
 import warnings
 from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -21,6 +22,9 @@ from .data import quality, stats
 from .data.manifest import Manifest, read_manifest
 from .errors import MethodError, OptionError
 from .fit import engine, gof, layouts, mv
+
+if TYPE_CHECKING:
+    import xarray
 
 __all__ = ["METHODS", "INTERVALS", "DEFAULT_BLOCK", "calibrate", "format_summary"]
 
@@ -81,7 +85,7 @@ def calibrate(
     checks=True,
     map_errors=True,
     intervals="wald",
-) -> "xarray.Dataset":
+) -> xarray.Dataset:
     """Calibrate a camera from the acquisitions of a manifest.
 
     Parameters

@@ -9,6 +9,7 @@ is the command line; ``docs/cots.md`` describes the method.
 from __future__ import annotations
 
 import warnings
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -19,6 +20,9 @@ from ..data.manifest import Manifest, read_manifest
 from ..errors import InputError, ManifestError, OptionError
 from ..model import psf
 from .cots import DEFAULT_HALF_SIZE, DEFAULT_WIDTH, MIN_FRAMES, cots_spot
+
+if TYPE_CHECKING:
+    import xarray
 
 __all__ = ["cots_calibrate", "format_summary"]
 
@@ -34,7 +38,7 @@ def _phi_map(manifest):
 
 
 def cots_calibrate(manifest, *, half_size=DEFAULT_HALF_SIZE, width=DEFAULT_WIDTH,
-                   progress=False, out=None) -> "xarray.Dataset":
+                   progress=False, out=None) -> xarray.Dataset:
     """COTS on every bead of a bead manifest, as a calibration result.
 
     Beads are found once, with :func:`emccdcal.model.psf.find_beads` on the offset-subtracted

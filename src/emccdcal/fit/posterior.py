@@ -40,6 +40,7 @@ import re
 import time
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -48,6 +49,9 @@ from ..data import stats
 from ..data.manifest import Manifest, read_manifest
 from ..errors import MethodError, NotConvergedError, OptionError
 from . import engine, layouts
+
+if TYPE_CHECKING:
+    import xarray
 
 __all__ = [
     "NotConvergedError",
@@ -298,7 +302,7 @@ def sample_posterior(
     options=None,
     out=None,
     progress=False,
-) -> "xarray.Dataset":
+) -> xarray.Dataset:
     """MCMC posterior of a method's free parameters for single pixels.
 
     Parameters
