@@ -31,7 +31,11 @@ import resource, sys, time, warnings
 warnings.simplefilter("ignore")
 t0 = time.perf_counter()
 from emccdcal import calibrate
-calibrate(sys.argv[1], sys.argv[2], out=sys.argv[3], checks=sys.argv[4] == "checks")
+kw = dict(out=sys.argv[3], checks=sys.argv[4] == "checks")
+try:  # versions that refuse to write into an earlier run's directory
+    calibrate(sys.argv[1], sys.argv[2], overwrite=True, **kw)
+except TypeError:
+    calibrate(sys.argv[1], sys.argv[2], **kw)
 wall = time.perf_counter() - t0
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print(f"{wall:.2f} {peak:.0f}")

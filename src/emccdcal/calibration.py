@@ -1,32 +1,46 @@
 """The main job: a manifest in, a labelled calibration out (``emccdcal calibrate``).
 
-files → :mod:`io` (manifest) → :mod:`stats` (per-pixel histograms) → :mod:`fitting`
-driven by a :mod:`methods` layout, tile by tile → :mod:`result` (dataset, files).
+The sensor is processed in tiles of whole blocks of pixels (:func:`plan_tiles`). A tile
+reads only the rows that hold its pixels, of every acquisition, once, into per-pixel histograms
+(:mod:`emccdcal.data.stats`) and the statistics of the data-quality checks
+(:class:`emccdcal.data.quality.StackSummary`); fits its pixels with the likelihood engine
+(:mod:`emccdcal.fit.engine`) driven by the method's layout (:mod:`emccdcal.fit.layouts`),
+in blocks on threads; and is kept (:class:`emccdcal.runstore.RunStore`) before the next
+one is read. Peak memory is set by the tile, not by the sensor, and an interrupted run
+can be resumed. Tiles run here or as tasks on a Dask cluster (:func:`run_tile` is all a
+worker executes). At the end the tiles are assembled into one labelled result
+(:mod:`emccdcal.result`) and the data-quality checks are judged.
 """
 
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import os
 import warnings
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import result
-from ._util import e_per_adu_map
+from . import __version__, result
+from ._util import check_int, e_per_adu_map
 from ._util import progress as progress_bar
 from .data import quality, stats
 from .data.manifest import Manifest, read_manifest
+from .data.stacks import load_stack
 from .errors import MethodError, OptionError
 from .fit import engine, gof, layouts, mv
+from .runstore import RunInterrupted, RunStore
 
 if TYPE_CHECKING:
     import xarray
 
-__all__ = ["METHODS", "INTERVALS", "DEFAULT_BLOCK", "calibrate", "format_summary"]
+__all__ = ["METHODS", "INTERVALS", "DEFAULT_BLOCK", "DEFAULT_TILE_PIXELS", "TileJob",
+           "calibrate", "plan_tiles", "run_tile", "format_summary"]
 
 METHODS = ("mv-adu", "mv-gain") + layouts.LIKELIHOOD_METHODS
 #: Interval kinds of :func:`calibrate`: ``estimate ± 1.96 SE`` only, or profile bounds too.
@@ -37,6 +51,13 @@ INTERVALS = ("wald", "profile")
 #: and that two threads share the blocks evenly (128 fitted a 32 × 32 gain series 11 %
 #: faster than 256 on two cores; docs/benchmarks.md).
 DEFAULT_BLOCK = 128
+#: Pixels per tile. A tile's histograms take up to 16 bytes × frames per pixel and
+#: acquisition at high gain (about 80 kB for 5000 frames), so 1024 pixels of five
+#: acquisitions stay within about 400 MB (docs/benchmarks.md).
+DEFAULT_TILE_PIXELS = 1024
+
+#: Names of the per-acquisition statistics a tile returns for the data-quality checks.
+_QUALITY = "quality"
 
 
 def _load(manifest):
@@ -49,36 +70,259 @@ def _labels(acqs):
     return [a.level if a.level is not None else a.name for a in acqs]
 
 
-def _statistics(manifest, acqs, progress, workers):
-    """Per-pixel histograms of every acquisition (threads: sorting releases the GIL)."""
+# --------------------------------------------------------------------------------------
+# Tiles
+# --------------------------------------------------------------------------------------
+def plan_tiles(n_pixels: int, tile_pixels: int, block_size: int) -> list[tuple[int, int]]:
+    """Ranges of pixels ``(first, stop)`` (C order) of whole blocks, about ``tile_pixels`` each.
 
-    def one(acq):
-        return stats.histograms(acq.frames(), adc_max=manifest.adc_max)
+    A pixel is fitted with the same block of pixels whatever the tiles, so the result
+    does not depend on them: tiles are made of whole blocks of ``block_size``.
 
-    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        hists = list(progress_bar(pool.map(one, acqs), enabled=progress, desc="reading",
-                                  unit="acq", total=len(acqs)))
-    found = []
-    for acq, h in zip(acqs, hists):
-        n_sat = int(h.n_saturated.sum())
-        if n_sat:
-            found.append(
-                f"{acq.frames_path.name}: {n_sat} frame values at the ADC maximum "
-                f"({manifest.adc_max} ADU) in {int((h.n_saturated > 0).sum())} pixel(s) were "
-                "excluded from the fit"
-            )
-        if np.any(h.n < 2):
-            raise OptionError(f"{acq.frames_path}: fewer than 2 usable frames in some pixels")
-    return hists, found
+    Examples
+    --------
+    >>> plan_tiles(20, 8, 4)
+    [(0, 8), (8, 16), (16, 20)]
+    """
+    step = max(1, int(tile_pixels) // int(block_size)) * int(block_size)
+    return [(p, min(n_pixels, p + step)) for p in range(0, n_pixels, step)]
 
 
+@dataclass(frozen=True)
+class TileJob:
+    """One band of rows of a calibration with everything needed to compute it.
+
+    Plain data (picklable): a Dask worker runs :func:`run_tile` on it, reading the rows
+    that hold the tile's pixels from the stacks' paths. Maps are those of the tile's
+    pixels, shape (A, pixels).
+    """
+
+    pixels: tuple[int, int]
+    cols: int
+    method: str
+    frames: tuple[tuple[str, int], ...]  # (path, skip_frames) per acquisition
+    setpoints: tuple[float, ...]
+    labels: tuple[str, ...]
+    offsets: np.ndarray
+    read_noise: np.ndarray
+    e_per_adu: np.ndarray | None
+    dark_frames: tuple
+    map_groups: tuple
+    adc_max: int
+    options: dict | None
+    intervals: str
+    block_size: int
+    threads: int
+    checks: bool
+
+    @property
+    def key(self) -> str:
+        """Name of the tile in a run's store."""
+        return f"pixels-{self.pixels[0]:09d}-{self.pixels[1]:09d}"
+
+    @property
+    def n_pixels(self) -> int:
+        return int(self.offsets.shape[1])
+
+
+def run_tile(job: TileJob) -> dict:
+    """Read, summarise and fit one tile.
+
+    Returns
+    -------
+    dict of ndarray
+        Per pixel of the band (C order), pixels first: ``usable`` (every acquisition has
+        two or more unsaturated frames that are not all equal), ``n_saturated`` (P, A);
+        for the mean–variance methods the moments ``mean``, ``var``, ``n`` (P, A); for the
+        likelihood methods the estimates (``photoelectrons``, ``em_gain``, ``e_per_adu``
+        with ``_se`` and bounds, (P, A)), ``loglik``, ``gof_pvalue`` (P, A),
+        ``converged``, ``n_floored``, ``iterations`` and the hyperparameters of
+        ``gs-hierarchical``. With ``checks``, ``quality<a>_<name>`` are the
+        :func:`emccdcal.data.quality.band_statistics` of acquisition ``a``.
+    """
+    p0, p1 = job.pixels
+    r0, r1 = p0 // job.cols, -(-p1 // job.cols)  # the rows that hold the tile's pixels
+
+    def read(a):
+        path, skip = job.frames[a]
+        band = np.asarray(load_stack(Path(path))[skip:, r0:r1])
+        own = band.reshape(band.shape[0], 1, -1)[:, :, p0 - r0 * job.cols:p1 - r0 * job.cols]
+        hist = stats.histograms(own, adc_max=job.adc_max)
+        return hist, quality.band_statistics(own, job.adc_max) if job.checks else None
+
+    with ThreadPoolExecutor(max_workers=max(1, min(job.threads, len(job.frames)))) as pool:
+        read_back = list(pool.map(read, range(len(job.frames))))
+    hists = [h for h, _ in read_back]
+    out = {"n_saturated": np.stack([h.n_saturated for h in hists], axis=1)}
+    for a, (_, q) in enumerate(read_back):
+        for name, value in (q or {}).items():
+            out[f"{_QUALITY}{a}_{name}"] = value
+    usable = np.all([(h.n >= 2) & (h.max > h.min) for h in hists], axis=0)
+    out["usable"] = usable
+    if job.method.startswith("mv-"):
+        for name in ("mean", "var", "n"):
+            out[name] = np.stack([getattr(h, name) for h in hists], axis=1)
+        return out
+    out.update(_fit_pixels(job, hists, np.flatnonzero(usable)))
+    return out
+
+
+def _bounds_of(method, intervals):
+    """Interval bounds of a likelihood result: (function of a fitted block, kind,
+    description), or None."""
+    if intervals == "profile":
+        return (layouts.acquisition_bounds, "profile-likelihood",
+                "profile likelihood, 95 %, widened by the errors of the offset and "
+                "read-noise maps where the standard errors include them")
+    if method == "gs-hierarchical":
+        return (layouts.unpooled_bounds, "unpooled",
+                "95 %, of the same model without the prior (each set-point its own E): "
+                "Wald on the log scale, profile likelihood where that is unreliable; "
+                "the MAP's own ± 1.96 SE reflect its shrinkage")
+    return None
+
+
+def _fit_pixels(job, hists, usable):
+    """The likelihood fit of the pixels ``usable`` of a tile; NaN (not converged) elsewhere."""
+    P, A = job.n_pixels, len(hists)
+    method = job.method
+    setpoints = np.array(job.setpoints)
+    out = {k: np.full((P, A), np.nan) for k in (
+        "photoelectrons", "photoelectrons_se", "em_gain", "em_gain_se", "e_per_adu",
+        "e_per_adu_se", "gof_pvalue")}
+    out.update(loglik=np.full(P, np.nan), converged=np.zeros(P, dtype=bool),
+               n_floored=np.zeros(P, dtype=np.int64), iterations=np.zeros(P, dtype=np.int64))
+    if method == "gs-hierarchical":
+        out.update(hyper_photoelectrons=np.full(P, np.nan),
+                   hyper_sd_photoelectrons=np.full(P, np.nan))
+    bounds = _bounds_of(method, job.intervals)
+
+    def fit_block(idx):
+        blocks = layouts.make_blocks(hists, job.offsets, job.read_noise, setpoints, idx,
+                                     job.dark_frames, job.map_groups)
+        series = layouts.Series(blocks, setpoints, list(job.labels),
+                                None if job.e_per_adu is None else job.e_per_adu[idx])
+        layout, x0 = layouts.build_layout(method, series, job.options)
+        fit = engine.fit(layout, blocks, x0)
+        e = layouts.acquisition_estimates(layout, fit.x, fit.cov)
+        if bounds is not None:
+            e.update(bounds[0](layout, blocks, fit))
+        # Goodness of fit per acquisition; a free parameter shared by k acquisitions
+        # counts 1/k towards each one's fitted-parameter number.
+        touches = np.any(layout.matrix != 0, axis=1)  # (A, F)
+        n_fitted = (touches / np.maximum(touches.sum(axis=0), 1)).sum(axis=1)
+        e["gof_pvalue"] = np.stack([
+            gof.gof_pvalues(blocks[a], e["photoelectrons"][:, a], e["em_gain"][:, a],
+                            e["e_per_adu"][:, a], blocks[a].offset, blocks[a].read_noise,
+                            n_fitted_params=float(n_fitted[a]))[0]
+            for a in range(len(blocks))
+        ], axis=1)
+        e.update(loglik=fit.loglik, converged=fit.converged, n_floored=fit.n_floored,
+                 iterations=fit.iterations)
+        if method == "gs-hierarchical":
+            e["hyper_photoelectrons"], e["hyper_sd_photoelectrons"] = layout.hyperparameters(fit.x)
+        return idx, e
+
+    chunks = [usable[s:s + job.block_size] for s in range(0, usable.size, job.block_size)]
+    # Blocks are independent: threads overlap them (NumPy and the FFT release the GIL),
+    # and the result does not depend on how many there are.
+    with ThreadPoolExecutor(max_workers=max(1, job.threads)) as pool:
+        for idx, e in pool.map(fit_block, chunks):
+            for k, v in e.items():
+                out.setdefault(k, np.full((P, A), np.nan))[idx] = v
+    return out
+
+
+def _execute(jobs, scheduler):
+    """Run tile jobs here, in order, or on a Dask cluster as they finish: (job, arrays)."""
+    if scheduler is None:
+        for job in jobs:
+            yield job, run_tile(job)
+        return
+    try:
+        from distributed import Client, as_completed
+    except ImportError:
+        raise OptionError("running on a Dask cluster needs the 'dask' extra: "
+                          "pip install 'emccdcal[dask]'") from None
+    client = scheduler if isinstance(scheduler, Client) else Client(scheduler, timeout="30s")
+    try:
+        futures = {client.submit(run_tile, job, pure=False): job for job in jobs}
+        for future in as_completed(futures):
+            yield futures[future], future.result()
+    finally:
+        if client is not scheduler:
+            client.close()
+
+
+def _run_tiles(jobs, store, scheduler, progress, method):
+    """Every tile's arrays, in order: those kept by ``store`` and the computed ones."""
+    done = {}
+    if store is not None:
+        wanted = {job.key for job in jobs}
+        done = {key: store.load_tile(key) for key in store.tiles() if key in wanted}
+    total = sum(job.n_pixels for job in jobs)
+    bar = progress_bar(enabled=progress, desc=f"calibrating ({method})", unit="px", total=total)
+    bar.update(sum(job.n_pixels for job in jobs if job.key in done))
+    try:
+        for job, arrays in _execute([j for j in jobs if j.key not in done], scheduler):
+            if store is not None:
+                store.save_tile(job.key, arrays)
+            done[job.key] = arrays
+            bar.update(job.n_pixels)
+    except KeyboardInterrupt:
+        if store is None:
+            raise
+        raise RunInterrupted(
+            f"interrupted: {len(store.tiles())} of {len(jobs)} tiles kept in {store.out}; "
+            "run the same command with --resume to continue") from None
+    finally:
+        bar.close()
+    return [done[job.key] for job in jobs]
+
+
+def _fingerprint(manifest, used, method, options, intervals, checks, map_errors, phi_map,
+                 tiling):
+    """What a calibration's result depends on, to refuse resuming a different run."""
+    files = {}
+    paths = [manifest.path] + [a.frames_path for a in manifest.acquisitions]
+    for a in manifest.acquisitions:
+        paths += [Path(src.removeprefix("dark ")) for src in (a.offset_source, a.read_noise_source)
+                  if not src.startswith("value ")]
+    if manifest.e_per_adu_source and not manifest.e_per_adu_source.startswith("value "):
+        paths.append(Path(manifest.e_per_adu_source))
+    for p in paths:
+        st = Path(p).stat()
+        files[str(Path(p).resolve())] = [st.st_size, st.st_mtime_ns]
+    phi = None if phi_map is None else hashlib.sha256(np.ascontiguousarray(phi_map)).hexdigest()
+    return {
+        "emccdcal_version": __version__,
+        "manifest_sha256": manifest.content_hash,
+        "files": files,
+        "method": method,
+        "acquisitions": [a.name for a in used],
+        "options": options,
+        "intervals": intervals,
+        "checks": bool(checks),
+        "map_errors": bool(map_errors),
+        "e_per_adu_sha256": phi,
+        "blocks_and_tiles": [int(t) for t in tiling],
+    }
+
+
+# --------------------------------------------------------------------------------------
+# The calibration
+# --------------------------------------------------------------------------------------
 def calibrate(
     manifest,
     method="gs",
     *,
     e_per_adu=None,
     out=None,
+    resume=False,
+    overwrite=False,
     block_size=DEFAULT_BLOCK,
+    tile_pixels=DEFAULT_TILE_PIXELS,
+    scheduler=None,
     options=None,
     progress=False,
     workers=None,
@@ -98,9 +342,23 @@ def calibrate(
     e_per_adu : float or ndarray (rows, cols), optional
         φ (e⁻/ADU) overriding the manifest's, for the methods that hold it fixed.
     out : str or Path, optional
-        Directory to write ``calibration.nc`` and ``summary.json`` into.
+        Directory to write ``calibration.nc`` and ``summary.json`` into; finished tiles
+        are kept there while the run goes on (:mod:`emccdcal.runstore`).
+    resume : bool
+        Continue the interrupted run in ``out`` (refused when its inputs differ).
+    overwrite : bool
+        Replace whatever ``out`` holds of an earlier run. With neither, an ``out`` that
+        holds a finished or interrupted run is an error.
     block_size : int
         Pixels fitted together.
+    tile_pixels : int
+        Pixels per tile, rounded to whole rows (at least one row): what is read, fitted
+        and kept at once. Peak memory grows with it, not with the sensor; the result does
+        not depend on it.
+    scheduler : str or distributed.Client, optional
+        Run the tiles as tasks on a Dask cluster: the address of its scheduler
+        (``"tcp://host:8786"``) or a client. The workers read the files from the paths of
+        the manifest, so these must be shared. Default: here, on ``workers`` threads.
     options : dict, optional
         Method options; only ``gs-hierarchical`` takes any (:func:`emccdcal.fit.layouts.check_options`):
         ``mu_sd`` and ``sigma_sd``, the scales of its hyperpriors in photoelectrons (the
@@ -109,7 +367,8 @@ def calibrate(
     progress : bool
         Show progress bars on stderr.
     workers : int, optional
-        Threads fitting blocks at once (default: the number of CPUs).
+        Threads reading and fitting at once within a tile (default: the number of CPUs;
+        1 on a Dask cluster, whose workers run tiles in parallel).
     checks : bool
         Run the data-quality checks (:mod:`emccdcal.data.quality`: illumination stationarity
         and drift, saturation, hot/dead pixels) and store them in the result
@@ -149,27 +408,31 @@ def calibrate(
         raise OptionError(f"unknown intervals {intervals!r}; choose one of {', '.join(INTERVALS)}")
     if intervals == "profile" and method.startswith("mv-"):
         raise MethodError(f"{method} has no likelihood: profile intervals need a "
-                                  "likelihood method ({method} results always carry Fieller "
-                                  "bounds)")
+                          f"likelihood method ({method} results always carry Fieller bounds)")
+    block_size = check_int("block_size", block_size)
+    tile_pixels = check_int("tile_pixels", tile_pixels)
+    workers = os.cpu_count() if workers is None else check_int("workers", workers)
     # Every warning of the run (manifest, saturation, convergence, misfit) is recorded in
-    # the result and issued again to the caller.
-    return result.run_recorded(
-        lambda: _run_calibration(manifest, method, e_per_adu, block_size, options, progress,
-                                 workers, checks, map_errors, intervals),
-        out,
+    # the result and issued again to the caller; the store publishes the files.
+    store = {}
+    ds = result.run_recorded(
+        lambda: _run_calibration(manifest, method, e_per_adu, out, resume, overwrite,
+                                 block_size, tile_pixels, scheduler, options, progress,
+                                 workers, checks, map_errors, intervals, store),
     )
+    if out is not None:
+        result.save(ds, out, seconds=ds.attrs["seconds"], cleanup=store["run"].run_dir)
+    return ds
 
 
-def _run_calibration(manifest, method, e_per_adu, block_size, options, progress, workers,
-                     checks, map_errors, intervals):
+def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_size,
+                     tile_pixels, scheduler, options, progress, workers, checks, map_errors,
+                     intervals, store):
     manifest = _load(manifest)
     acqs = manifest.acquisitions
     rows, cols = manifest.shape
     phi_map = e_per_adu_map(manifest.e_per_adu if e_per_adu is None else e_per_adu, (rows, cols))
     setpoints_all = [a.em_gain_setpoint for a in acqs]
-
-    if method not in METHODS:
-        raise MethodError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     options = layouts.check_options(method, options)  # before any stack is read
     if method.startswith("mv-"):
         idx = _select_mv(method, setpoints_all, phi_map is not None)
@@ -178,43 +441,88 @@ def _run_calibration(manifest, method, e_per_adu, block_size, options, progress,
             method, setpoints_all, [a.level for a in acqs], phi_map is not None
         )
     used = [acqs[i] for i in idx]
-    workers = os.cpu_count() if workers is None else workers
+    tiles = plan_tiles(rows * cols, tile_pixels, block_size)
+    if out is not None:  # an unwritable or occupied output is found before any computing
+        store["run"] = RunStore(out, _fingerprint(
+            manifest, used, method, options, intervals, checks, map_errors, phi_map,
+            (block_size, tiles[0][1] - tiles[0][0])), resume=resume, overwrite=overwrite)
     if checks:
         quality.prefetch()  # its imports overlap the reading of the stacks
-    hists, found = _statistics(manifest, used, progress, workers)
-    for w in found:
-        warnings.warn(w, stacklevel=2)
-    # The data-quality checks read the stacks once more (warnings are process-global, so
-    # they are not run on a side thread).
-    report, messages = _quality(manifest, used) if checks else (None, [])
+    dark_frames, map_groups, se_note = _map_error_sources(used, map_errors)
+    offsets = np.stack([a.offset.reshape(-1) for a in used])
+    read_noise = np.stack([a.read_noise.reshape(-1) for a in used])
+    phi = None if phi_map is None else phi_map.reshape(-1)
+    jobs = []
+    for p0, p1 in tiles:
+        px = slice(p0, p1)
+        jobs.append(TileJob(
+            pixels=(p0, p1), cols=cols, method=method,
+            frames=tuple((str(a.frames_path), int(a.skip_frames)) for a in used),
+            setpoints=tuple(float(a.em_gain_setpoint) for a in used),
+            labels=tuple(_labels(used)), offsets=offsets[:, px], read_noise=read_noise[:, px],
+            e_per_adu=None if phi is None or method.startswith("mv-") else phi[px],
+            dark_frames=tuple(dark_frames), map_groups=tuple(map_groups),
+            adc_max=int(manifest.adc_max), options=options, intervals=intervals,
+            block_size=block_size, threads=workers if scheduler is None else 1,
+            checks=bool(checks)))
+    parts = _run_tiles(jobs, store.get("run"), scheduler, progress, method)
+    arrays = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]
+              if not k.startswith(_QUALITY)}
+    _warn_saturated_and_unusable(manifest, used, arrays)
+    report, messages = _quality(manifest, used, parts, tiles) if checks else (None, [])
     for w in messages:
         warnings.warn(w, stacklevel=2)
     if method.startswith("mv-"):
-        ds = _calibrate_mv(method, manifest, used, hists, phi_map)
+        ds = _mv_dataset(method, manifest, used, arrays, phi_map)
         ds.attrs["standard_errors"] = "from the photon-transfer fit, conditional on the offset maps"
     else:
-        dark_frames, map_groups, se_note = _map_error_sources(used, map_errors)
-        ds = _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size,
-                                   options, progress, workers, dark_frames, map_groups,
-                                   intervals)
+        ds = _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, options,
+                                 intervals)
         ds.attrs["standard_errors"] = se_note
     if report is not None:
         ds.attrs["quality"] = json.dumps(report)
     return ds
 
 
-def _quality(manifest, used):
-    """Data-quality checks (stationarity, drift, saturation, defects) of the used stacks.
+def _warn_saturated_and_unusable(manifest, used, arrays):
+    rows, cols = manifest.shape
+    for a, acq in enumerate(used):
+        n_sat = arrays["n_saturated"][:, a]
+        if n_sat.sum():
+            warnings.warn(
+                f"{acq.frames_path.name}: {int(n_sat.sum())} frame values at the ADC maximum "
+                f"({manifest.adc_max} ADU) in {int((n_sat > 0).sum())} pixel(s) were "
+                "excluded from the fit", stacklevel=3)
+    bad = np.flatnonzero(~arrays["usable"])
+    if bad.size:
+        where = ", ".join(f"({p // cols}, {p % cols})" for p in bad[:5])
+        warnings.warn(
+            f"{bad.size} of {rows * cols} pixel(s) have fewer than 2 usable frames, or frames "
+            f"that never change, in some acquisition (saturated, dead or stuck): {where}"
+            f"{', ...' if bad.size > 5 else ''}; they are left out (NaN, converged = False)",
+            stacklevel=3)
+
+
+def _quality(manifest, used, parts, tiles):
+    """Data-quality checks (stationarity, drift, saturation, defects) of the used stacks,
+    from the statistics the tiles gathered as they read them.
 
     Returns the report and its findings as messages for the caller to issue.
     """
+    summaries = []
+    for a, acq in enumerate(used):
+        summary = quality.StackSummary(acq.n_frames, manifest.shape, manifest.adc_max)
+        for (p0, _), part in zip(tiles, parts):
+            prefix = f"{_QUALITY}{a}_"
+            summary.add(p0, {k[len(prefix):]: v for k, v in part.items() if k.startswith(prefix)})
+        summaries.append(summary)
     sub = copy.copy(manifest)
     sub.acquisitions = list(used)
     try:
-        report = quality.check_manifest(sub)
+        report = quality.check_manifest(sub, summaries=summaries)
     except ValueError as exc:  # e.g. too few frames for the stationarity tests
         return None, [f"data-quality checks skipped: {exc}"]
-    grown = set(manifest.warnings)  # read-noise growth was already reported by io
+    grown = set(manifest.warnings)  # read-noise growth was already reported by the manifest
     return report, [w for w in report["warnings"] if not any(w in g or g in w for g in grown)]
 
 
@@ -229,13 +537,6 @@ def _select_mv(method, setpoints, has_phi):
             "mv-gain needs e_per_adu (e-/ADU): set it in the manifest or pass --e-per-adu"
         )
     return np.argsort(sp, kind="stable")
-
-
-def _maps(used):
-    """Offset and read-noise maps of the acquisitions, stacked as (A, P), ADU."""
-    offsets = np.stack([a.offset.ravel() for a in used])
-    read_noise = np.stack([a.read_noise.ravel() for a in used])
-    return offsets, read_noise
 
 
 def _map_error_sources(used, map_errors):
@@ -257,81 +558,16 @@ def _map_error_sources(used, map_errors):
     return dark_frames, groups, note
 
 
-def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, options, progress,
-                          workers, dark_frames, map_groups, intervals):
+def _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, options,
+                        intervals):
+    """The result of a likelihood method from the per-pixel arrays of every tile."""
     rows, cols = manifest.shape
-    P = rows * cols
     setpoints = np.array([a.em_gain_setpoint for a in used])
-    offsets, read_noise = _maps(used)
-    phi = None if phi_map is None else phi_map.ravel()
-    A = len(used)
-    est = {k: np.full((P, A), np.nan) for k in (
-        "photoelectrons", "photoelectrons_se", "em_gain", "em_gain_se", "e_per_adu",
-        "e_per_adu_se")}
-    loglik = np.full(P, np.nan)
-    gof_p = np.full((P, A), np.nan)
-    converged = np.zeros(P, dtype=bool)
-    n_floored = np.zeros(P, dtype=np.int64)
-    iterations = np.zeros(P, dtype=np.int64)
-    hyper = {"hyper_photoelectrons": np.full(P, np.nan), "hyper_sd_photoelectrons": np.full(P, np.nan)}
-    # Interval bounds: (function of a fitted block, kind, description), or None.
-    bounds = None
-    if intervals == "profile":
-        bounds = (layouts.acquisition_bounds, "profile-likelihood",
-                  "profile likelihood, 95 %, widened by the errors of the offset and "
-                  "read-noise maps where the standard errors include them")
-    elif method == "gs-hierarchical":
-        bounds = (layouts.unpooled_bounds, "unpooled",
-                  "95 %, of the same model without the prior (each set-point its own E): "
-                  "Wald on the log scale, profile likelihood where that is unreliable; "
-                  "the MAP's own ± 1.96 SE reflect its shrinkage")
-
-    def fit_block(idx):
-        blocks = layouts.make_blocks(hists, offsets, read_noise, setpoints, idx,
-                                     dark_frames, map_groups)
-        series = layouts.Series(blocks, setpoints, _labels(used),
-                                None if phi is None else phi[idx])
-        layout, x0 = layouts.build_layout(method, series, options)
-        fit = engine.fit(layout, blocks, x0)
-        e = layouts.acquisition_estimates(layout, fit.x, fit.cov)
-        if bounds is not None:
-            e.update(bounds[0](layout, blocks, fit))
-        # Goodness of fit per acquisition; a free parameter shared by k acquisitions
-        # counts 1/k towards each one's fitted-parameter number.
-        touches = np.any(layout.matrix != 0, axis=1)  # (A, F)
-        n_fitted = (touches / np.maximum(touches.sum(axis=0), 1)).sum(axis=1)
-        pvals = np.stack([
-            gof.gof_pvalues(blocks[a], e["photoelectrons"][:, a], e["em_gain"][:, a],
-                            e["e_per_adu"][:, a], blocks[a].offset, blocks[a].read_noise,
-                            n_fitted_params=float(n_fitted[a]))[0]
-            for a in range(len(blocks))
-        ], axis=1)
-        return idx, layout, fit, e, pvals
-
-    bar = progress_bar(enabled=progress, desc=f"fitting {method}", unit="px", total=P)
-    tiles = [np.arange(s, min(P, s + block_size)) for s in range(0, P, block_size)]
-    # Blocks are independent: threads overlap them (NumPy and the FFT release the GIL),
-    # and the result does not depend on how many there are.
-    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        for idx, layout, fit, e, pvals in pool.map(fit_block, tiles):
-            gof_p[idx] = pvals
-            for k in e:
-                est.setdefault(k, np.full((P, A), np.nan))[idx] = e[k]
-            loglik[idx] = fit.loglik
-            converged[idx] = fit.converged
-            n_floored[idx] = fit.n_floored
-            iterations[idx] = fit.iterations
-            if method == "gs-hierarchical":
-                mu, sigma_e = layout.hyperparameters(fit.x)
-                hyper["hyper_photoelectrons"][idx] = mu
-                hyper["hyper_sd_photoelectrons"][idx] = sigma_e
-            bar.update(idx.size)
-    bar.close()
-
-    not_conv = int((~converged).sum())
+    est, gof_p, converged = arrays, arrays["gof_pvalue"], arrays["converged"]
+    not_conv = int((~converged & arrays["usable"]).sum())
     if not_conv:
-        warnings.warn(f"{method}: {not_conv} of {P} pixel(s) did not converge (see 'converged')",
-                      stacklevel=3)
+        warnings.warn(f"{method}: {not_conv} of {int(arrays['usable'].sum())} fitted pixel(s) "
+                      "did not converge (see 'converged')", stacklevel=3)
     kind = "level" if method.startswith("is-") else "set-point"
     keys = _labels(used) if kind == "level" else [result.format_setpoint(s) + "x" for s in setpoints]
     for w in gof.misfit_warnings(dict(zip(keys, gof_p.T)), kind=kind):
@@ -339,26 +575,27 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
     grid = lambda a: a.T.reshape((-1, rows, cols)) if a.ndim == 2 else a.reshape(rows, cols)  # noqa: E731
     labels = _labels(used)
     per_acq_dim = "level" if method.startswith("is-") else "setpoint"
+    loglik = arrays["loglik"]
     extra = {
         "offset": ((per_acq_dim, "row", "col"), grid(offsets.T), "ADU"),
         "read_noise": ((per_acq_dim, "row", "col"), grid(read_noise.T), "ADU"),
-        "n_saturated": ((per_acq_dim, "row", "col"),
-                        np.stack([h.n_saturated.reshape(rows, cols) for h in hists]), "1"),
-        "n_floored": (("row", "col"), grid(n_floored), "1"),
-        "iterations": (("row", "col"), grid(iterations), "1"),
+        "n_saturated": ((per_acq_dim, "row", "col"), grid(arrays["n_saturated"]), "1"),
+        "n_floored": (("row", "col"), grid(arrays["n_floored"]), "1"),
+        "iterations": (("row", "col"), grid(arrays["iterations"]), "1"),
         "gof_pvalue": ((per_acq_dim, "row", "col"), grid(gof_p), "1",
                        "p-value of the binned chi-square goodness-of-fit test"),
     }
     fixed_phi_se = np.full((rows, cols), np.nan)
+    common = dict(loglik=grid(loglik), converged=grid(converged),
+                  manifest_hash=manifest.content_hash,
+                  manifest_path=str(manifest.path.resolve()), extra=extra)
     if method == "is-adu":
         ds = result.make_dataset(
             method=method, setpoints=[1.0], levels=labels,
             e_per_adu=grid(est["e_per_adu"][:, 0]), e_per_adu_se=grid(est["e_per_adu_se"][:, 0]),
             em_gain=np.ones((1, rows, cols)), em_gain_se=np.zeros((1, rows, cols)),
             photoelectrons=grid(est["photoelectrons"]), photoelectrons_se=grid(est["photoelectrons_se"]),
-            photoelectrons_dims=("level", "row", "col"),
-            loglik=grid(loglik), converged=grid(converged),
-            manifest_hash=manifest.content_hash, manifest_path=str(manifest.path.resolve()), extra=extra,
+            photoelectrons_dims=("level", "row", "col"), **common,
         )
     elif method == "is-gain":
         ds = result.make_dataset(
@@ -366,15 +603,13 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
             e_per_adu=grid(est["e_per_adu"][:, 0]), e_per_adu_se=fixed_phi_se,
             em_gain=grid(est["em_gain"][:, :1]), em_gain_se=grid(est["em_gain_se"][:, :1]),
             photoelectrons=grid(est["photoelectrons"]), photoelectrons_se=grid(est["photoelectrons_se"]),
-            photoelectrons_dims=("level", "row", "col"),
-            loglik=grid(loglik), converged=grid(converged),
-            manifest_hash=manifest.content_hash, manifest_path=str(manifest.path.resolve()), extra=extra,
+            photoelectrons_dims=("level", "row", "col"), **common,
         )
     else:
         shared = method in ("gs", "gs-no1x")
         if method == "gs-hierarchical":
-            extra["hyper_photoelectrons"] = (("row", "col"), grid(hyper["hyper_photoelectrons"]), "e-")
-            extra["hyper_sd_photoelectrons"] = (("row", "col"), grid(hyper["hyper_sd_photoelectrons"]), "e-")
+            extra["hyper_photoelectrons"] = (("row", "col"), grid(arrays["hyper_photoelectrons"]), "e-")
+            extra["hyper_sd_photoelectrons"] = (("row", "col"), grid(arrays["hyper_sd_photoelectrons"]), "e-")
         ds = result.make_dataset(
             method=method, setpoints=[float(s) for s in setpoints],
             e_per_adu=grid(est["e_per_adu"][:, 0]), e_per_adu_se=fixed_phi_se,
@@ -382,10 +617,9 @@ def _calibrate_likelihood(method, manifest, used, hists, phi_map, block_size, op
             photoelectrons=grid(est["photoelectrons"][:, 0]) if shared else grid(est["photoelectrons"]),
             photoelectrons_se=grid(est["photoelectrons_se"][:, 0]) if shared else grid(est["photoelectrons_se"]),
             photoelectrons_dims=("row", "col") if shared else ("setpoint", "row", "col"),
-            loglik=grid(loglik), converged=grid(converged),
-            manifest_hash=manifest.content_hash, manifest_path=str(manifest.path.resolve()), extra=extra,
-            attrs={"options": json.dumps(options)} if options else None,
+            attrs={"options": json.dumps(options)} if options else None, **common,
         )
+    bounds = _bounds_of(method, intervals)
     if bounds is not None:
         _add_bounds(ds, est, grid, *bounds[1:])
     return ds
@@ -416,12 +650,15 @@ def _add_interval_vars(ds, bounds, kind, description):
     ds.attrs["intervals"] = description
 
 
-def _calibrate_mv(method, manifest, used, hists, phi_map):
+def _mv_dataset(method, manifest, used, arrays, phi_map):
+    """The result of a mean–variance method from the moments of every tile's pixels."""
     rows, cols = manifest.shape
-    offsets, read_noise = _maps(used)
-    mean = np.stack([h.mean for h in hists])
-    var = np.stack([h.var for h in hists])
-    n = np.stack([h.n for h in hists])
+    offsets = np.stack([a.offset.reshape(-1) for a in used])
+    read_noise = np.stack([a.read_noise.reshape(-1) for a in used])
+    usable = arrays["usable"]
+    # Left-out pixels (no usable frames) get no moments: NaN estimates, not converged.
+    mean, var, n = (np.where(usable, arrays[k].T, np.nan if k != "n" else 0)
+                    for k in ("mean", "var", "n"))
     grid = lambda a: np.asarray(a).reshape(np.shape(a)[:-1] + (rows, cols))  # noqa: E731
     labels = _labels(used)
     setpoints = [a.em_gain_setpoint for a in used]
@@ -433,7 +670,7 @@ def _calibrate_mv(method, manifest, used, hists, phi_map):
             em_gain=np.ones((1, rows, cols)), em_gain_se=np.zeros((1, rows, cols)),
             photoelectrons=grid(fit.photoelectrons), photoelectrons_se=grid(fit.photoelectrons_se),
             photoelectrons_dims=("level", "row", "col"),
-            converged=grid(fit.valid), manifest_hash=manifest.content_hash,
+            converged=grid(fit.valid & usable), manifest_hash=manifest.content_hash,
             manifest_path=str(manifest.path.resolve()),
         )
         bounds = {"e_per_adu": (grid(fit.e_per_adu_lower), grid(fit.e_per_adu_upper))}
@@ -448,7 +685,8 @@ def _calibrate_mv(method, manifest, used, hists, phi_map):
             em_gain=grid(fit.em_gain), em_gain_se=grid(fit.em_gain_se),
             photoelectrons=grid(fit.photoelectrons), photoelectrons_se=grid(fit.photoelectrons_se),
             photoelectrons_dims=(("level" if by_level else "setpoint"), "row", "col"),
-            converged=grid(np.all(fit.valid, axis=0) if np.ndim(fit.valid) > 1 else fit.valid),
+            converged=grid((np.all(fit.valid, axis=0) if np.ndim(fit.valid) > 1 else fit.valid)
+                           & usable),
             manifest_hash=manifest.content_hash, manifest_path=str(manifest.path.resolve()),
         )
         bounds = {"em_gain": (grid(fit.em_gain_lower), grid(fit.em_gain_upper))}

@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from ._util import atomic_write, finite_or_none
+from ._util import finite_or_none
 from .errors import InputError, MissingFileError
 
 __all__ = [
@@ -594,13 +594,15 @@ def run_recorded(build, out=None) -> xr.Dataset:
     return ds
 
 
-def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None) -> dict[str, Path]:
-    """Write ``calibration.nc`` and ``summary.json`` into ``out_dir``, each atomically.
+def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None, cleanup=None) -> dict[str, Path]:
+    """Write ``calibration.nc`` and ``summary.json`` into ``out_dir`` as one set.
 
-    Each file is written to a temporary file in ``out_dir`` and moved into place with
-    ``os.replace``, so a reader never sees a half-written file and an interrupted run
-    leaves any earlier file of the same name intact. The NetCDF file (NetCDF4/HDF5
-    through xarray's ``h5netcdf`` engine) is written first, then the summary.
+    Both are written to temporary files in ``out_dir`` first; only then is the earlier
+    set (with any ``report.html``) removed and the new files renamed into place
+    (:func:`emccdcal.runstore.publish`), so a reader never sees a half-written file, an
+    interrupted write leaves the earlier result intact, and a new ``calibration.nc``
+    never stands beside an old ``summary.json``. The NetCDF file is NetCDF4/HDF5 through
+    xarray's ``h5netcdf`` engine.
 
     Parameters
     ----------
@@ -610,6 +612,8 @@ def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None) -> dict[str, 
         Output directory; created (with parents) if missing.
     seconds : float, optional
         Wall time of the calibration (s), for the summary.
+    cleanup : Path, optional
+        A directory removed once the files are in place (a run's kept tiles).
 
     Returns
     -------
@@ -621,15 +625,15 @@ def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None) -> dict[str, 
     ``converged`` is stored as an 8-bit integer with the attribute ``dtype = "bool"``;
     xarray (and :func:`load`) read it back as bool. Other NetCDF readers see 0/1.
     """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    nc_path = out / CALIBRATION_FILE
-    json_path = out / SUMMARY_FILE
+    from .runstore import publish
+
     summary = summarize(ds, seconds=seconds)
     text = json.dumps(summary, indent=2, allow_nan=False) + "\n"
-    atomic_write(nc_path, lambda p: ds.to_netcdf(p, engine="h5netcdf"))
-    atomic_write(json_path, lambda p: Path(p).write_text(text, encoding="utf-8"))
-    return {"calibration": nc_path, "summary": json_path}
+    written = publish(out_dir, {
+        CALIBRATION_FILE: lambda p: ds.to_netcdf(p, engine="h5netcdf"),
+        SUMMARY_FILE: lambda p: Path(p).write_text(text, encoding="utf-8"),
+    }, cleanup=cleanup)
+    return {"calibration": written[CALIBRATION_FILE], "summary": written[SUMMARY_FILE]}
 
 
 def load(path) -> xr.Dataset:

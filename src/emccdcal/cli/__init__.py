@@ -93,6 +93,6 @@ def main(argv: list[str] | None = None) -> int:
     except EmccdcalError as exc:
         print(f"emccdcal {args.verb}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"emccdcal {args.verb}: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as exc:  # a long run says what it kept and how to go on
+        print(f"emccdcal {args.verb}: {str(exc) or 'interrupted'}", file=sys.stderr)
         return 130

@@ -8,7 +8,7 @@ from . import _common
 
 
 def add_parser(subparsers):
-    from ..calibration import DEFAULT_BLOCK, INTERVALS, METHODS
+    from ..calibration import DEFAULT_BLOCK, DEFAULT_TILE_PIXELS, INTERVALS, METHODS
 
     p = subparsers.add_parser(
         "calibrate",
@@ -21,8 +21,22 @@ def add_parser(subparsers):
                    help="calibration method (default: gs)")
     _common.add_out(p)
     _common.add_e_per_adu(p)
-    p.add_argument("--block-size", type=_common.positive_int, default=DEFAULT_BLOCK,
-                   help="pixels fitted together (default %(default)s)")
+    again = p.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true",
+                       help="continue the interrupted run in OUT (refused if its inputs changed)")
+    again.add_argument("--overwrite", action="store_true",
+                       help="replace what OUT holds of an earlier run")
+    execution = p.add_argument_group("execution")
+    execution.add_argument("--tile-pixels", type=_common.positive_int, default=DEFAULT_TILE_PIXELS,
+                     help="pixels read, fitted and kept at once; memory grows with it "
+                     "(default %(default)s)")
+    execution.add_argument("--block-size", type=_common.positive_int, default=DEFAULT_BLOCK,
+                     help="pixels fitted together (default %(default)s)")
+    execution.add_argument("--workers", type=_common.positive_int, default=None,
+                     help="threads (default: the CPUs; 1 per task on a Dask cluster)")
+    execution.add_argument("--scheduler", metavar="ADDRESS",
+                     help="run the tiles on a Dask cluster, e.g. tcp://10.0.0.1:8786 (the "
+                     "workers read the manifest's paths; needs the 'dask' extra)")
     p.add_argument("--no-checks", action="store_true",
                    help="skip the data-quality checks (see 'emccdcal check')")
     p.add_argument("--intervals", choices=INTERVALS, default="wald",
@@ -57,7 +71,10 @@ def run(args) -> int:
                                              ("centre", args.prior_centre)) if value is not None}
     with _common.recording_warnings() as caught:
         ds = calibrate(args.manifest, args.method, e_per_adu=args.e_per_adu, out=args.out,
-                       block_size=args.block_size, options=options, progress=not args.quiet,
+                       resume=args.resume, overwrite=args.overwrite,
+                       tile_pixels=args.tile_pixels, block_size=args.block_size,
+                       workers=args.workers, scheduler=args.scheduler,
+                       options=options, progress=not args.quiet,
                        checks=not args.no_checks, map_errors=not args.conditional_se,
                        intervals=args.intervals)
         if args.report:

@@ -47,6 +47,8 @@ __all__ = [
     "saturation",
     "pixel_defects",
     "check_acquisition",
+    "StackSummary",
+    "band_statistics",
     "check_manifest",
     "prefetch",
     "format_report",
@@ -283,6 +285,174 @@ def _chunks(stack: np.ndarray):
         yield f0, np.asarray(stack[f0 : f0 + step])
 
 
+class StackSummary:
+    """What the data-quality checks need of one stack, accumulated part by part.
+
+    A calibration reads each stack once, tile by tile; it adds every tile's
+    :func:`band_statistics` here (:meth:`add`), and the checks then need no second read.
+    Per frame: the sum of the counts over the pixels seen and whether any was saturated;
+    per pixel: the mean and SD over all frames (:func:`emccdcal.data.dark.maps_from_dark`)
+    and the number of saturated frames (counts at or above ``adc_max``).
+
+    Parameters
+    ----------
+    n_frames : int
+        Frames of the stack.
+    shape : tuple of int
+        (rows, cols).
+    adc_max : int or None
+        ADC maximum, ADU; None: saturation is not counted.
+    """
+
+    def __init__(self, n_frames: int, shape, adc_max: int | None):
+        if adc_max is not None and (isinstance(adc_max, bool) or int(adc_max) != adc_max
+                                    or adc_max < 1):
+            raise InputError(f"adc_max must be a positive integer, got {adc_max!r}")
+        self.adc_max = None if adc_max is None else int(adc_max)
+        self.n_frames = int(n_frames)
+        self.shape = tuple(int(d) for d in shape)
+        n_pixels = self.shape[0] * self.shape[1]
+        self.frame_sums = np.zeros(self.n_frames)
+        self.frame_saturated = np.zeros(self.n_frames, dtype=bool)
+        self.mean = np.full(n_pixels, np.nan)  # per pixel, C order
+        self.sd = np.full(n_pixels, np.nan)
+        self.n_saturated = np.zeros(n_pixels, dtype=np.int64)
+        self.seen = np.zeros(n_pixels, dtype=bool)
+
+    @classmethod
+    def of(cls, stack, adc_max: int | None) -> StackSummary:
+        """The summary of a whole stack, read in bands of rows of bounded size."""
+        stack = as_stack(stack)
+        out = cls(stack.shape[0], stack.shape[1:], adc_max)
+        per_row = max(1, int(stack.shape[0]) * int(stack.shape[2]))
+        step = max(1, _CHUNK_ELEMENTS // per_row)
+        for r0 in range(0, stack.shape[1], step):
+            out.add(r0 * stack.shape[2],
+                    band_statistics(np.asarray(stack[:, r0:r0 + step]), adc_max))
+        return out
+
+    def add(self, first: int, statistics: dict) -> None:
+        """Add the :func:`band_statistics` of the pixels from ``first`` on (C order)."""
+        n = statistics["mean"].size
+        part = slice(first, first + n)
+        if self.seen[part].any():
+            raise ValueError(f"pixels {first}..{first + n - 1} were already added")
+        self.frame_sums += statistics["frame_sums"]
+        self.frame_saturated |= statistics["frame_saturated"]
+        self.mean[part] = statistics["mean"].ravel()
+        self.sd[part] = statistics["sd"].ravel()
+        self.n_saturated[part] = statistics["n_saturated"].ravel()
+        self.seen[part] = True
+
+    def _complete(self):
+        if not self.seen.all():
+            raise ValueError(f"pixels {np.flatnonzero(~self.seen)[:5].tolist()}... "
+                             "were never added")
+
+    def frame_means(self, offset=None) -> np.ndarray:
+        """Per-frame mean of the (offset-subtracted) counts over all pixels, ADU
+        (as :func:`frame_means`)."""
+        self._complete()
+        off = 0.0 if offset is None else float(np.mean(np.asarray(offset, dtype=np.float64)))
+        return self.frame_sums / (self.shape[0] * self.shape[1]) - off
+
+    def saturation(self) -> dict:
+        """As :func:`saturation`."""
+        self._complete()
+        n_values = int(self.n_saturated.sum())
+        return {
+            "adc_max": self.adc_max,
+            "n_values": n_values,
+            "fraction": n_values / max(1, self.n_frames * self.n_saturated.size),
+            "n_frames": int(np.count_nonzero(self.frame_saturated)),
+            "n_pixels": int(np.count_nonzero(self.n_saturated)),
+            "pixels": _pixels(self.n_saturated.reshape(self.shape) > 0),
+        }
+
+    def defects(self, offset=None, *, k: float = DEFAULT_K) -> dict:
+        """As :func:`pixel_defects`."""
+        self._complete()
+        return _defects(self.mean.reshape(self.shape), self.sd.reshape(self.shape),
+                        self.n_frames, offset, k)
+
+
+def band_statistics(band: np.ndarray, adc_max: int | None) -> dict:
+    """What a :class:`StackSummary` needs of a band of rows held in memory.
+
+    Parameters
+    ----------
+    band : ndarray, shape (frames, h, cols)
+        Raw counts, ADU.
+    adc_max : int or None
+        ADC maximum, ADU.
+
+    Returns
+    -------
+    dict of ndarray
+        ``frame_sums`` (frames,), ``frame_saturated`` (frames,), ``mean``, ``sd`` and
+        ``n_saturated`` (h, cols): small enough to keep for every band of a full sensor.
+    """
+    n = band.shape[0]
+    mean, sd = maps_from_dark(band) if n >= 2 else (band[0].astype(float), np.zeros(band.shape[1:]))
+    if adc_max is None:
+        sat_frames = np.zeros(n, dtype=bool)
+        sat_pixels = np.zeros(band.shape[1:], dtype=np.int64)
+    else:
+        sat = band >= adc_max
+        sat_frames = sat.reshape(n, -1).any(axis=1)
+        sat_pixels = sat.sum(axis=0, dtype=np.int64)
+    return {
+        "frame_sums": band.reshape(n, -1).sum(axis=1, dtype=np.float64),
+        "frame_saturated": sat_frames,
+        "mean": mean,
+        "sd": sd,
+        "n_saturated": sat_pixels,
+    }
+
+
+def _defects(mean, sd, n_frames, offset, k) -> dict:
+    """Hot, dead and stuck pixels from per-pixel means and SDs (:func:`pixel_defects`)."""
+    if not (math.isfinite(k) and k > 0):
+        raise InputError(f"k must be a positive number, got {k!r}")
+    mean = np.asarray(mean, dtype=np.float64)
+    sd = np.asarray(sd, dtype=np.float64)
+    if offset is not None:
+        mean = mean - np.asarray(offset, dtype=np.float64)
+    stuck = sd == 0
+    out = {
+        "k": float(k),
+        "tested": False,
+        "median_mean": float(np.median(mean)),
+        "robust_sd": None,
+        "n_hot": 0,
+        "hot": [],
+        "n_dead": 0,
+        "dead": [],
+        "n_stuck": int(np.count_nonzero(stuck)),
+        "stuck": _pixels(stuck),
+    }
+    if mean.size < _MIN_PIXELS_DEFECTS:
+        return out
+    med = float(np.median(mean))
+    mad_sd = _MAD_TO_SD * float(np.median(np.abs(mean - med)))
+    floor = float(np.median(sd)) / math.sqrt(n_frames)
+    scale = max(mad_sd, floor)
+    out.update(tested=True, robust_sd=scale)
+    if scale > 0:
+        z = (mean - med) / scale
+        hot = z > k
+        dead = z < -k
+        out.update(
+            n_hot=int(np.count_nonzero(hot)),
+            hot=_pixels(hot),
+            n_dead=int(np.count_nonzero(dead)),
+            dead=_pixels(dead),
+        )
+    return out
+
+
+
+
 def frame_means(stack, offset=None) -> np.ndarray:
     """Per-frame mean over all pixels of the (offset-subtracted) counts.
 
@@ -333,23 +503,7 @@ def saturation(stack, adc_max: int) -> dict:
     (2, 2, 2)
     """
     stack = as_stack(stack)
-    if isinstance(adc_max, bool) or int(adc_max) != adc_max or adc_max < 1:
-        raise InputError(f"adc_max must be a positive integer, got {adc_max!r}")
-    per_pixel = np.zeros(stack.shape[1:], dtype=np.int64)
-    n_frames = 0
-    for _, chunk in _chunks(stack):
-        sat = chunk >= adc_max
-        per_pixel += sat.sum(axis=0)
-        n_frames += int(np.count_nonzero(sat.reshape(sat.shape[0], -1).any(axis=1)))
-    n_values = int(per_pixel.sum())
-    return {
-        "adc_max": int(adc_max),
-        "n_values": n_values,
-        "fraction": n_values / max(1, stack.size),
-        "n_frames": n_frames,
-        "n_pixels": int(np.count_nonzero(per_pixel)),
-        "pixels": _pixels(per_pixel > 0),
-    }
+    return StackSummary.of(stack, adc_max).saturation()
 
 
 def pixel_defects(stack, offset=None, *, k: float = DEFAULT_K) -> dict:
@@ -380,48 +534,10 @@ def pixel_defects(stack, offset=None, *, k: float = DEFAULT_K) -> dict:
         [row, col] lists, at most :data:`MAX_LISTED`); ``tested`` (False when fewer than 5
         pixels: only stuck pixels are then looked for).
     """
-    if not (math.isfinite(k) and k > 0):
-        raise InputError(f"k must be a positive number, got {k!r}")
     stack = as_stack(stack)
-    n_frames = int(stack.shape[0])
-    if n_frames < 2:
-        raise InputError(f"pixel_defects needs at least 2 frames, got {n_frames}")
-    mean, sd = maps_from_dark(stack)
-    mean = np.asarray(mean, dtype=np.float64)
-    sd = np.asarray(sd, dtype=np.float64)
-    if offset is not None:
-        mean = mean - np.asarray(offset, dtype=np.float64)
-    stuck = sd == 0
-    out = {
-        "k": float(k),
-        "tested": False,
-        "median_mean": float(np.median(mean)),
-        "robust_sd": None,
-        "n_hot": 0,
-        "hot": [],
-        "n_dead": 0,
-        "dead": [],
-        "n_stuck": int(np.count_nonzero(stuck)),
-        "stuck": _pixels(stuck),
-    }
-    if mean.size < _MIN_PIXELS_DEFECTS:
-        return out
-    med = float(np.median(mean))
-    mad_sd = _MAD_TO_SD * float(np.median(np.abs(mean - med)))
-    floor = float(np.median(sd)) / math.sqrt(n_frames)
-    scale = max(mad_sd, floor)
-    out.update(tested=True, robust_sd=scale)
-    if scale > 0:
-        z = (mean - med) / scale
-        hot = z > k
-        dead = z < -k
-        out.update(
-            n_hot=int(np.count_nonzero(hot)),
-            hot=_pixels(hot),
-            n_dead=int(np.count_nonzero(dead)),
-            dead=_pixels(dead),
-        )
-    return out
+    if int(stack.shape[0]) < 2:
+        raise InputError(f"pixel_defects needs at least 2 frames, got {int(stack.shape[0])}")
+    return StackSummary.of(stack, None).defects(offset, k=k)
 
 
 def check_acquisition(
@@ -432,6 +548,7 @@ def check_acquisition(
     drift_threshold: float = DEFAULT_DRIFT_THRESHOLD,
     alpha: float = DEFAULT_ALPHA,
     regression: str = "c",
+    summary: StackSummary | None = None,
 ) -> dict:
     """All data-quality checks of one acquisition.
 
@@ -443,6 +560,9 @@ def check_acquisition(
         ADC maximum, ADU (``Manifest.adc_max``).
     k, drift_threshold, alpha, regression
         As in :func:`pixel_defects` and :func:`stationarity`.
+    summary : StackSummary, optional
+        The acquisition's statistics, accumulated while something else read the stack (a
+        calibration does); default: read the stack now.
 
     Returns
     -------
@@ -465,8 +585,8 @@ def check_acquisition(
             f"'{path}': too few frames for the stationarity tests: {n} after skip_frames, "
             f"need at least {MIN_FRAMES}"
         )
-    stack = acq.frames()
-    series = frame_means(stack, acq.offset)
+    summary = StackSummary.of(acq.frames(), adc_max) if summary is None else summary
+    series = summary.frame_means(acq.offset)
     try:
         stat = stationarity(
             series, regression=regression, drift_threshold=drift_threshold, alpha=alpha
@@ -481,8 +601,8 @@ def check_acquisition(
         "n_frames": n,
         "shape": [int(d) for d in acq.shape],
         "stationarity": stat,
-        "saturation": saturation(stack, adc_max),
-        "pixels": pixel_defects(stack, acq.offset, k=k),
+        "saturation": summary.saturation(),
+        "pixels": summary.defects(acq.offset, k=k),
     }
 
 
@@ -566,6 +686,7 @@ def check_manifest(
     alpha: float = DEFAULT_ALPHA,
     regression: str = "c",
     read_noise_threshold: float = 0.05,
+    summaries: list[StackSummary] | None = None,
 ) -> dict:
     """Data-quality checks of every acquisition of a manifest, and of the read noise.
 
@@ -578,6 +699,9 @@ def check_manifest(
     read_noise_threshold : float, optional
         Relative growth of the median read noise over the lowest set-point that is
         reported (default 0.05), :func:`emccdcal.data.dark.check_read_noise_growth`.
+    summaries : list of StackSummary, optional
+        One per acquisition, in order, when the stacks were already read (a calibration
+        accumulates them in its one pass over the data); default: read every stack.
 
     Returns
     -------
@@ -594,7 +718,7 @@ def check_manifest(
     """
     acqs: dict[str, dict] = {}
     warn: list[str] = []
-    for acq in manifest.acquisitions:
+    for i, acq in enumerate(manifest.acquisitions):
         res = check_acquisition(
             acq,
             manifest.adc_max,
@@ -602,6 +726,7 @@ def check_manifest(
             drift_threshold=drift_threshold,
             alpha=alpha,
             regression=regression,
+            summary=None if summaries is None else summaries[i],
         )
         key, i = acq.name, 1
         while key in acqs:

@@ -551,7 +551,11 @@ def make_blocks(histograms, offsets, read_noises, setpoints, idx, dark_frames=No
     map_groups = [None] * A if map_groups is None else map_groups
     blocks = []
     for h, s0, rn, sp, nd, grp in zip(histograms, offsets, read_noises, setpoints, dark_frames, map_groups):
-        values, counts = h.values[idx], h.counts[idx]
+        counts = h.counts[idx]
+        # Only the bins some pixel of the block uses: the block's data, and so its fit, do
+        # not depend on which other pixels were histogrammed with it.
+        width = counts.shape[1] - int(np.argmax((counts != 0).any(axis=0)[::-1])) if counts.size else 0
+        values, counts = h.values[idx, :width], counts[:, :width]
         sigma2 = rn[idx] ** 2
         blocks.append(
             AcquisitionBlock(

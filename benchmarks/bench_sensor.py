@@ -1,0 +1,106 @@
+"""Benchmark: the whole sensor. Peak memory and time per pixel of ``gs`` against sensor size.
+
+Simulates a gain series — set-points 1/5/25/100/300, ``--frames`` frames each (uint16
+TIFF), dark maps from 50 dark frames — at each size of ``--sizes`` (square sensors),
+then runs ``emccdcal calibrate --method gs`` (data-quality checks included) in a fresh
+process and reports its wall time, time per pixel and peak resident memory. A streaming
+engine keeps the peak flat and the time per pixel constant.
+
+``--dask N[,M...]`` instead times the same calibration of the first size on a local Dask
+cluster of N (then M ...) single-threaded worker processes, alternating, and prints the
+speed-up over the first.
+
+Run: ``.venv/bin/python benchmarks/bench_sensor.py [--sizes 64,128,256] [--frames 5000]``
+(``--keep DIR`` keeps the simulated data there: 512 x 512 x 5000 x 5 is 13 GB).
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from bench_calibrate import machine
+
+CHILD = r"""
+import resource, sys, time, warnings
+warnings.simplefilter("ignore")
+t0 = time.perf_counter()
+from emccdcal import calibrate
+scheduler = None
+if sys.argv[3] != "local":
+    from distributed import Client, LocalCluster
+    cluster = LocalCluster(n_workers=int(sys.argv[3]), threads_per_worker=1, processes=True,
+                           host="127.0.0.1", dashboard_address=None)
+    client = Client(cluster)
+    scheduler = client
+    t0 = time.perf_counter()
+calibrate(sys.argv[1], "gs", out=sys.argv[2], overwrite=True, scheduler=scheduler)
+wall = time.perf_counter() - t0
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+print(f"{wall:.2f} {peak:.0f}")
+"""
+
+
+def _time(manifest, out, where="local"):
+    res = subprocess.run([sys.executable, "-c", CHILD, str(manifest), str(out), where],
+                         capture_output=True, text=True, check=True)
+    wall, peak = res.stdout.split()[-2:]
+    return float(wall), float(peak)
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sizes", default="64,128,256")
+    p.add_argument("--frames", type=int, default=5000)
+    p.add_argument("--dask", default=None, help="worker counts to compare, e.g. 1,2")
+    p.add_argument("--keep", type=Path, default=None, help="keep the simulated data here")
+    args = p.parse_args()
+    from emccdcal.simulate.series import simulate_gain_series
+
+    print(machine())
+    print(time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))
+    base = Path(tempfile.mkdtemp(prefix="emccdcal-sensor-")) if args.keep is None else args.keep
+    try:
+        sizes = [int(s) for s in args.sizes.split(",")]
+        manifests = {}
+        for n in sizes:
+            folder = base / f"gs-{n}"
+            if not (folder / "manifest.toml").is_file():
+                t0 = time.perf_counter()
+                simulate_gain_series(folder, rows=n, cols=n, frames=args.frames,
+                                     dark_frames=50, seed=1)
+                print(f"simulated {n}x{n}: {time.perf_counter() - t0:.0f} s", flush=True)
+            manifests[n] = folder / "manifest.toml"
+        if args.dask:
+            counts = [int(c) for c in args.dask.split(",")]
+            n = sizes[0]
+            times = {c: [] for c in counts}
+            for _ in range(2):
+                for c in counts:
+                    times[c].append(_time(manifests[n], base / f"out-dask-{c}", str(c))[0])
+            ref = statistics.median(times[counts[0]])
+            print(f"gs, {n}x{n} px, {args.frames} frames; Dask LocalCluster, 1 thread per worker,"
+                  " median of 2")
+            for c in counts:
+                t = statistics.median(times[c])
+                print(f"  {c} worker(s): {t:8.1f} s   speed-up {ref / t:5.2f}")
+            return
+        print(f"gs with data-quality checks, {args.frames} frames per set-point")
+        print(f"{'sensor':>10}{'pixels':>9}{'wall s':>9}{'ms/pixel':>10}{'peak MB':>9}")
+        for n, manifest in manifests.items():
+            wall, peak = _time(manifest, base / f"out-{n}")
+            print(f"{n:>6}x{n:<3}{n * n:>9}{wall:>9.1f}{1000 * wall / (n * n):>10.2f}{peak:>9.0f}",
+                  flush=True)
+    finally:
+        if args.keep is None:
+            shutil.rmtree(base, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

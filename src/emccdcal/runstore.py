@@ -1,0 +1,200 @@
+"""The output directory of a long run: finished tiles persist, outputs are published as a set.
+
+A calibration of a full sensor is a sequence of tiles (bands of rows). With an output
+directory, every finished tile is written at once to ``OUT/.emccdcal-run/`` beside a
+*fingerprint* of the run's inputs (the manifest's content, every data file's size and
+modification time, the method, its options, the package version, the tiling), so that a
+run killed at any point loses only the tiles in flight:
+
+* ``resume=True`` continues an interrupted run, and refuses one whose fingerprint
+  differs, saying what changed;
+* ``overwrite=True`` discards whatever the directory holds of an earlier run;
+* with neither, a directory that holds a finished or an unfinished run is refused: a
+  new run is never mixed into an old one.
+
+The final files (``calibration.nc``, ``summary.json`` ...) are published together
+(:meth:`RunStore.publish`): all are written to temporary files first, the old set is
+removed, then the new files are renamed into place, so the directory never holds a new
+result beside an old summary. The run directory goes last. Whether the directory can be
+written is found out when the store is opened, before any computing.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from ._util import atomic_write, one_line
+from .errors import EmccdcalError, OptionError
+
+__all__ = ["RunStore", "RUN_DIR", "RESULT_FILES", "RunInterrupted"]
+
+#: Where an unfinished run keeps its tiles, inside the output directory.
+RUN_DIR = ".emccdcal-run"
+#: The files of a finished result (the report is written beside it when asked for).
+RESULT_FILES = ("calibration.nc", "summary.json", "report.html")
+_FINGERPRINT = "fingerprint.json"
+
+
+class RunInterrupted(KeyboardInterrupt):
+    """Ctrl-C during a run; the message says what was kept and how to go on."""
+
+
+class RunStore:
+    """The output directory of one run (see the module docstring).
+
+    Parameters
+    ----------
+    out : str or Path
+        The output directory (created with its parents if missing).
+    fingerprint : dict
+        JSON-serialisable description of everything the result depends on.
+    resume, overwrite : bool
+        What to do with an earlier run in ``out`` (not both).
+    """
+
+    def __init__(self, out, fingerprint: dict, *, resume: bool = False, overwrite: bool = False):
+        if resume and overwrite:
+            raise OptionError("give resume or overwrite, not both")
+        self.out = Path(out)
+        self.run_dir = self.out / RUN_DIR
+        self.fingerprint = json.loads(json.dumps(fingerprint))  # as it reads back
+        self._check_writable()
+        finished = [n for n in RESULT_FILES if (self.out / n).exists()]
+        unfinished = (self.run_dir / _FINGERPRINT).is_file()
+        if overwrite:
+            for name in finished:
+                (self.out / name).unlink()
+            shutil.rmtree(self.run_dir, ignore_errors=True)
+        elif resume:
+            if not unfinished:
+                what = "a finished result" if finished else "no interrupted run"
+                raise OptionError(f"{self.out}: nothing to resume ({what} there); run without "
+                                  "--resume" + (" and with --overwrite" if finished else ""))
+            self._check_same_run()
+        elif finished or unfinished:
+            what = (f"an interrupted run ({len(self.tiles())} tile(s) kept)" if unfinished
+                    else f"a finished result ({', '.join(finished)})")
+            raise OptionError(f"{self.out} holds {what}: pass --resume to continue an "
+                              "interrupted run or --overwrite to replace it")
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self._remove_temporaries()
+        atomic_write(self.run_dir / _FINGERPRINT,
+                     lambda p: Path(p).write_text(json.dumps(self.fingerprint, indent=1)))
+
+    # ---- opening ---------------------------------------------------------------------
+    def _check_writable(self) -> None:
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+            probe = self.out / f".emccdcal-probe-{os.getpid()}"
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as exc:
+            raise EmccdcalError(f"{self.out}: cannot write the output directory: "
+                                f"{one_line(exc)}") from None
+        if not self.out.is_dir():  # pragma: no cover - mkdir would have failed
+            raise EmccdcalError(f"{self.out}: not a directory")
+
+    def _check_same_run(self) -> None:
+        try:
+            old = json.loads((self.run_dir / _FINGERPRINT).read_text())
+        except (OSError, ValueError) as exc:
+            raise EmccdcalError(f"{self.run_dir / _FINGERPRINT}: unreadable "
+                                f"({one_line(exc)}); pass --overwrite to start again") from None
+        changed = _differences(old, self.fingerprint)
+        if changed:
+            raise OptionError(f"{self.out}: cannot resume, the run differs from the interrupted "
+                              f"one in {'; '.join(changed[:4])}"
+                              + (f" and {len(changed) - 4} more" if len(changed) > 4 else "")
+                              + "; pass --overwrite to start again")
+
+    def _remove_temporaries(self) -> None:
+        """Temporary files of a run that was killed while writing (``atomic_write``'s)."""
+        for p in self.run_dir.glob(".*.tmp*"):
+            p.unlink(missing_ok=True)
+        for name in RESULT_FILES:
+            for p in self.out.glob(f".{name}.*"):
+                p.unlink(missing_ok=True)
+
+    # ---- tiles -------------------------------------------------------------------------
+    @staticmethod
+    def _tile_name(key: str) -> str:
+        return f"tile-{key}.npz"
+
+    def tiles(self) -> list[str]:
+        """Keys of the tiles kept."""
+        return sorted(p.name[5:-4] for p in self.run_dir.glob("tile-*.npz"))
+
+    def save_tile(self, key: str, arrays: dict) -> None:
+        """Keep one finished tile (a dict of arrays), atomically."""
+        def write(path):
+            with open(path, "wb") as fh:
+                np.savez(fh, **arrays)
+
+        atomic_write(self.run_dir / self._tile_name(key), write)
+
+    def load_tile(self, key: str) -> dict:
+        """The arrays of a kept tile."""
+        with np.load(self.run_dir / self._tile_name(key), allow_pickle=False) as f:
+            return {k: f[k] for k in f.files}
+
+    # ---- the end -------------------------------------------------------------------------
+    def publish(self, writers: dict) -> dict:
+        """Write the final files as one set, then forget the run.
+
+        Parameters
+        ----------
+        writers : dict of str to callable
+            File name in the output directory → ``write(tmp_path)``.
+
+        Returns
+        -------
+        dict of str to Path
+            The files written.
+        """
+        return publish(self.out, writers, cleanup=self.run_dir)
+
+
+def publish(out, writers: dict, *, cleanup=None) -> dict:
+    """Write files into ``out`` as one set: every new file is complete before any old one
+    of the set (:data:`RESULT_FILES`) is removed, so the directory never mixes two runs.
+    ``cleanup`` (a directory) is removed last."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    staged = {}
+    try:
+        for name, write in writers.items():
+            staged[name] = atomic_write(out / f".{name}.staged", write)
+        for name in RESULT_FILES:
+            (out / name).unlink(missing_ok=True)
+        written = {}
+        for name, tmp in staged.items():
+            os.replace(tmp, out / name)
+            written[name] = out / name
+    finally:
+        for tmp in staged.values():
+            Path(tmp).unlink(missing_ok=True)
+    if cleanup is not None:
+        shutil.rmtree(cleanup, ignore_errors=True)
+    return written
+
+
+def _differences(old: dict, new: dict, prefix: str = "") -> list[str]:
+    """What differs between two fingerprints, as short phrases."""
+    out = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _differences(a, b, f"{prefix}{key}: ")
+        elif a != b:
+            out.append(f"{prefix}{key} ({_short(a)} then, {_short(b)} now)")
+    return out
+
+
+def _short(value) -> str:
+    text = json.dumps(value)
+    return text if len(text) <= 40 else text[:37] + "..."

@@ -1,0 +1,198 @@
+"""The full-sensor engine: tiles, one pass over the data, resumable runs, Dask, bad pixels."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+
+from emccdcal import calibrate, cli, result
+from emccdcal.errors import OptionError
+from emccdcal.runstore import RUN_DIR
+from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
+
+
+@pytest.fixture(scope="module")
+def series(tmp_path_factory):
+    base = tmp_path_factory.mktemp("streaming")
+    gs = simulate_gain_series(base / "gs", rows=12, cols=10, frames=300, seed=7,
+                              setpoints=(1, 5, 25, 100))
+    adu = simulate_intensity_series(base / "adu", rows=12, cols=10, frames=300, seed=8,
+                                    levels=(2000, 8000, 32000))
+    return gs.manifest, adu.manifest
+
+
+def _quiet(fn, *args, **kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return fn(*args, **kw)
+
+
+def _assert_same(a, b, rtol=1e-12):
+    assert set(a.data_vars) == set(b.data_vars)
+    for name in a.data_vars:
+        x, y = a[name].values, b[name].values
+        if x.dtype.kind == "f":
+            ok = np.isfinite(x)
+            np.testing.assert_array_equal(ok, np.isfinite(y), err_msg=name)
+            np.testing.assert_allclose(x[ok], y[ok], rtol=rtol, atol=0, err_msg=name)
+        else:
+            np.testing.assert_array_equal(x, y, err_msg=name)
+    assert a.attrs.get("quality") == b.attrs.get("quality")
+
+
+@pytest.mark.parametrize("method, which", [("gs", 0), ("is-adu", 1), ("mv-gain", 0),
+                                           pytest.param("gs-hierarchical", 0,
+                                                        marks=pytest.mark.slow)])
+def test_tiles_and_workers_do_not_change_the_result(series, method, which):
+    manifest = series[which]
+    one = _quiet(calibrate, manifest, method, block_size=8, tile_pixels=120, workers=1)
+    many = _quiet(calibrate, manifest, method, block_size=8, tile_pixels=16, workers=2)
+    rows = _quiet(calibrate, manifest, method, block_size=8, tile_pixels=10, workers=3)
+    _assert_same(one, many)
+    _assert_same(one, rows)
+
+
+def test_a_dask_cluster_on_localhost_gives_the_local_result(series):
+    distributed = pytest.importorskip("distributed")
+    local = _quiet(calibrate, series[0], "gs", block_size=16, tile_pixels=32)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  host="127.0.0.1", dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client:
+        remote = _quiet(calibrate, series[0], "gs", block_size=16, tile_pixels=32,
+                        scheduler=client.scheduler.address)
+        assert len(client.scheduler_info()["workers"]) == 2
+    _assert_same(local, remote)
+
+
+def test_an_occupied_output_is_refused_without_resume_or_overwrite(series, tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["calibrate", str(series[0]), "-o", str(out), "-q", "--no-checks"]
+    assert cli.main(argv) == 0
+    (out / "report.html").write_text("an old report")
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "finished result" in err and "--overwrite" in err
+    assert cli.main(argv + ["--overwrite"]) == 0
+    assert not (out / "report.html").exists()  # nothing of the old run is left beside it
+    assert sorted(p.name for p in out.iterdir()) == ["calibration.nc", "summary.json"]
+    assert cli.main(argv + ["--resume"]) == 2
+    assert "nothing to resume" in capsys.readouterr().err
+
+
+def test_an_unwritable_output_is_found_before_any_computing(series, tmp_path, capsys):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    t0 = time.perf_counter()
+    assert cli.main(["calibrate", str(series[0]), "-o", str(blocker / "out"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot write the output directory" in err and err.count("\n") == 1
+    assert time.perf_counter() - t0 < 5
+
+
+def _run(argv, **kw):
+    return subprocess.Popen([sys.executable, "-m", "emccdcal", *argv], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, **kw)
+
+
+def _wait_for_tiles(out, n, proc, timeout=120):
+    t0 = time.perf_counter()
+    while len(list((out / RUN_DIR).glob("tile-*.npz"))) < n:
+        assert proc.poll() is None, proc.communicate()
+        assert time.perf_counter() - t0 < timeout
+        time.sleep(0.05)
+
+
+@pytest.mark.slow
+def test_a_killed_run_resumes_to_the_uninterrupted_result(series, tmp_path):
+    manifest = series[0]
+    argv = ["calibrate", str(manifest), "-q", "--tile-pixels", "16", "--block-size", "8"]
+    whole = tmp_path / "whole"
+    assert _run(argv + ["-o", str(whole)]).wait() == 0
+    out = tmp_path / "killed"
+    proc = _run(argv + ["-o", str(out)])
+    _wait_for_tiles(out, 2, proc)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    kept = len(list((out / RUN_DIR).glob("tile-*.npz")))
+    assert 2 <= kept < 8 and not (out / "calibration.nc").exists()
+    again = _run(argv + ["-o", str(out)])
+    assert again.wait() == 2 and "--resume" in again.stderr.read()
+    changed = _run(argv + ["-o", str(out), "--resume", "--no-checks"])
+    assert changed.wait() == 2 and "checks" in changed.stderr.read()
+    resumed = _run(argv + ["-o", str(out), "--resume"])
+    assert resumed.wait() == 0, resumed.stderr.read()
+    assert sorted(p.name for p in out.iterdir()) == ["calibration.nc", "summary.json"]
+    _assert_same(result.load(whole), result.load(out))
+    a = json.loads((whole / "summary.json").read_text())
+    b = json.loads((out / "summary.json").read_text())
+    assert a["parameters"] == b["parameters"]
+
+
+@pytest.mark.slow
+def test_ctrl_c_says_what_is_kept_and_exits_130(series, tmp_path):
+    out = tmp_path / "out"
+    proc = _run(["calibrate", str(series[0]), "-q", "--tile-pixels", "16", "--block-size", "8",
+                 "-o", str(out)])
+    _wait_for_tiles(out, 1, proc)
+    proc.send_signal(signal.SIGINT)
+    code = proc.wait()
+    err = proc.stderr.read().strip().splitlines()
+    assert code == 130 and len(err) == 1, err
+    assert "tiles kept in" in err[0] and "--resume" in err[0]
+
+
+def test_bad_pixels_are_left_out_named_and_the_run_completes(tmp_path):
+    sim = simulate_gain_series(tmp_path / "gs", rows=16, cols=16, frames=200, seed=3,
+                               setpoints=(1, 5, 25))
+    stacks = {s: sim.outdir / f"gain-GS/{s}x-gain.tif" for s in ("1", "25")}
+    data = tifffile.imread(stacks["25"])
+    data[:, 3, 4] = 65535  # saturated in every frame of one stack
+    tifffile.imwrite(stacks["25"], data)
+    data = tifffile.imread(stacks["1"])
+    data[:, 9, 2] = 0  # dead: never changes
+    tifffile.imwrite(stacks["1"], data)
+    with pytest.warns(UserWarning) as caught:
+        ds = calibrate(sim.manifest, "gs", out=tmp_path / "out", checks=False)
+    text = [str(w.message) for w in caught]
+    left_out = [t for t in text if "left out" in t]
+    assert len(left_out) == 1 and "2 of 256 pixel(s)" in left_out[0]
+    assert "(3, 4)" in left_out[0] and "(9, 2)" in left_out[0]
+    assert not ds.converged.values[3, 4] and not ds.converged.values[9, 2]
+    assert np.isnan(ds.em_gain.values[:, 3, 4]).all() and np.isnan(ds.photoelectrons.values[9, 2])
+    assert ds.converged.values.sum() == 254
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["pixels"]["converged"] == 254
+
+
+def test_resume_and_overwrite_are_exclusive_and_checked(series, tmp_path):
+    with pytest.raises(OptionError, match="not both"):
+        calibrate(series[0], "gs", out=tmp_path / "o", resume=True, overwrite=True)
+    with pytest.raises(OptionError, match="tile_pixels"):
+        calibrate(series[0], "gs", tile_pixels=0)
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+
+
+def test_the_check_verb_reads_in_bands_and_agrees_with_the_calibration(series):
+    from emccdcal import check, read_manifest
+
+    ds = _quiet(calibrate, series[0], "gs", tile_pixels=16, block_size=8)
+    report = _quiet(check, _quiet(read_manifest, series[0]))
+    assert json.loads(ds.attrs["quality"])["acquisitions"] == report["acquisitions"]
+
+
+def test_no_temporary_files_are_left(series, tmp_path):
+    out = tmp_path / "out"
+    _quiet(calibrate, series[0], "gs", out=out, tile_pixels=16, block_size=8)
+    leftovers = [p for p in Path(out).rglob("*") if p.name.startswith(".")]
+    assert leftovers == [] and not (out / RUN_DIR).exists()
+    assert sorted(os.listdir(out)) == ["calibration.nc", "summary.json"]
