@@ -196,3 +196,33 @@ def test_no_temporary_files_are_left(series, tmp_path):
     leftovers = [p for p in Path(out).rglob("*") if p.name.startswith(".")]
     assert leftovers == [] and not (out / RUN_DIR).exists()
     assert sorted(os.listdir(out)) == ["calibration.nc", "summary.json"]
+
+
+@pytest.mark.parametrize("kind", ["tif", "npy-big-endian"])
+def test_read_band_reads_exactly_the_rows_of_the_memory_map(tmp_path, kind):
+    from emccdcal.data.stacks import load_stack, read_band
+
+    data = np.random.default_rng(0).integers(0, 60000, (7, 5, 6)).astype(np.uint16)
+    if kind == "tif":
+        path = tmp_path / "s.tif"
+        tifffile.imwrite(path, data)
+    else:
+        path = tmp_path / "s.npy"
+        np.save(path, data.astype(">u2"))
+    for rows, skip in (((0, 5), 0), ((1, 3), 2), ((4, 5), 6)):
+        band = read_band(path, *rows, skip)
+        np.testing.assert_array_equal(band, np.asarray(load_stack(path))[skip:, rows[0]:rows[1]])
+        assert band.dtype == load_stack(path).dtype
+
+
+def test_read_band_of_a_truncated_stack_is_one_clear_error(tmp_path):
+    from emccdcal.data.stacks import read_band
+    from emccdcal.errors import InputError
+
+    path = tmp_path / "s.tif"
+    tifffile.imwrite(path, np.zeros((50, 8, 8), np.uint16))
+    with open(path, "r+b") as fh:
+        fh.truncate(path.stat().st_size // 4)  # inside the data of the frames
+    with pytest.raises(InputError, match=r"s\.tif") as exc:
+        read_band(path, 0, 8)
+    assert "\n" not in str(exc.value)

@@ -20,7 +20,7 @@ import json
 import os
 import warnings
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -31,9 +31,10 @@ from ._util import check_int, e_per_adu_map
 from ._util import progress as progress_bar
 from .data import quality, stats
 from .data.manifest import Manifest, read_manifest
-from .data.stacks import load_stack
+from .data.stacks import read_band
 from .errors import MethodError, OptionError
 from .fit import engine, gof, layouts, mv
+from .model import noise
 from .runstore import RunInterrupted, RunStore
 
 if TYPE_CHECKING:
@@ -114,6 +115,7 @@ class TileJob:
     block_size: int
     threads: int
     checks: bool
+    fft_threads: int | None = None
 
     @property
     def key(self) -> str:
@@ -125,8 +127,8 @@ class TileJob:
         return int(self.offsets.shape[1])
 
 
-def run_tile(job: TileJob) -> dict:
-    """Read, summarise and fit one tile.
+def run_tile(job: TileJob, progress=None) -> dict:
+    """Read, summarise and fit one tile; ``progress(n)`` is told of every n pixels done.
 
     Returns
     -------
@@ -140,12 +142,18 @@ def run_tile(job: TileJob) -> dict:
         ``gs-hierarchical``. With ``checks``, ``quality<a>_<name>`` are the
         :func:`emccdcal.data.quality.band_statistics` of acquisition ``a``.
     """
+    if job.fft_threads is not None:  # one task per CPU already (a Dask worker)
+        previous, noise.FFT_WORKERS = noise.FFT_WORKERS, job.fft_threads
+        try:
+            return run_tile(replace(job, fft_threads=None), progress)
+        finally:
+            noise.FFT_WORKERS = previous
     p0, p1 = job.pixels
     r0, r1 = p0 // job.cols, -(-p1 // job.cols)  # the rows that hold the tile's pixels
 
     def read(a):
         path, skip = job.frames[a]
-        band = np.asarray(load_stack(Path(path))[skip:, r0:r1])
+        band = read_band(path, r0, r1, skip)
         own = band.reshape(band.shape[0], 1, -1)[:, :, p0 - r0 * job.cols:p1 - r0 * job.cols]
         hist = stats.histograms(own, adc_max=job.adc_max)
         return hist, quality.band_statistics(own, job.adc_max) if job.checks else None
@@ -159,11 +167,14 @@ def run_tile(job: TileJob) -> dict:
             out[f"{_QUALITY}{a}_{name}"] = value
     usable = np.all([(h.n >= 2) & (h.max > h.min) for h in hists], axis=0)
     out["usable"] = usable
+    fitted = np.flatnonzero(usable)
     if job.method.startswith("mv-"):
         for name in ("mean", "var", "n"):
             out[name] = np.stack([getattr(h, name) for h in hists], axis=1)
-        return out
-    out.update(_fit_pixels(job, hists, np.flatnonzero(usable)))
+    else:
+        out.update(_fit_pixels(job, hists, fitted, progress))
+    if progress is not None:  # the pixels not fitted here (all of them for mean-variance)
+        progress(job.n_pixels - (0 if job.method.startswith("mv-") else fitted.size))
     return out
 
 
@@ -182,7 +193,7 @@ def _bounds_of(method, intervals):
     return None
 
 
-def _fit_pixels(job, hists, usable):
+def _fit_pixels(job, hists, usable, progress=None):
     """The likelihood fit of the pixels ``usable`` of a tile; NaN (not converged) elsewhere."""
     P, A = job.n_pixels, len(hists)
     method = job.method
@@ -230,14 +241,17 @@ def _fit_pixels(job, hists, usable):
         for idx, e in pool.map(fit_block, chunks):
             for k, v in e.items():
                 out.setdefault(k, np.full((P, A), np.nan))[idx] = v
+            if progress is not None:
+                progress(idx.size)
     return out
 
 
-def _execute(jobs, scheduler):
-    """Run tile jobs here, in order, or on a Dask cluster as they finish: (job, arrays)."""
+def _execute(jobs, scheduler, progress):
+    """Run tile jobs here, in order, or on a Dask cluster as they finish: (job, arrays).
+    ``progress(n)`` is told of every n pixels done (as they are fitted, here)."""
     if scheduler is None:
         for job in jobs:
-            yield job, run_tile(job)
+            yield job, run_tile(job, progress)
         return
     try:
         from distributed import Client, as_completed
@@ -248,7 +262,10 @@ def _execute(jobs, scheduler):
     try:
         futures = {client.submit(run_tile, job, pure=False): job for job in jobs}
         for future in as_completed(futures):
-            yield futures[future], future.result()
+            job = futures[future]
+            arrays = future.result()
+            progress(job.n_pixels)
+            yield job, arrays
     finally:
         if client is not scheduler:
             client.close()
@@ -264,11 +281,11 @@ def _run_tiles(jobs, store, scheduler, progress, method):
     bar = progress_bar(enabled=progress, desc=f"calibrating ({method})", unit="px", total=total)
     bar.update(sum(job.n_pixels for job in jobs if job.key in done))
     try:
-        for job, arrays in _execute([j for j in jobs if j.key not in done], scheduler):
+        for job, arrays in _execute([j for j in jobs if j.key not in done], scheduler,
+                                    bar.update):
             if store is not None:
                 store.save_tile(job.key, arrays)
             done[job.key] = arrays
-            bar.update(job.n_pixels)
     except KeyboardInterrupt:
         if store is None:
             raise
@@ -464,12 +481,14 @@ def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_
             dark_frames=tuple(dark_frames), map_groups=tuple(map_groups),
             adc_max=int(manifest.adc_max), options=options, intervals=intervals,
             block_size=block_size, threads=workers if scheduler is None else 1,
-            checks=bool(checks)))
+            checks=bool(checks), fft_threads=None if scheduler is None else 1))
     parts = _run_tiles(jobs, store.get("run"), scheduler, progress, method)
-    arrays = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]
-              if not k.startswith(_QUALITY)}
-    _warn_saturated_and_unusable(manifest, used, arrays)
     report, messages = _quality(manifest, used, parts, tiles) if checks else (None, [])
+    arrays = {}
+    for key in [k for k in parts[0] if not k.startswith(_QUALITY)]:
+        arrays[key] = np.concatenate([p.pop(key) for p in parts])  # one copy at a time
+    del parts
+    _warn_saturated_and_unusable(manifest, used, arrays)
     for w in messages:
         warnings.warn(w, stacklevel=2)
     if method.startswith("mv-"):

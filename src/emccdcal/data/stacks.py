@@ -9,6 +9,7 @@ Counts, offsets and read noise are in ADU. Every problem is an
 from __future__ import annotations
 
 import functools
+import os
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +22,7 @@ __all__ = [
     "read_stack",
     "read_map",
     "load_stack",
+    "read_band",
     "stack_header",
     "check_readable",
     "describe_missing",
@@ -36,6 +38,58 @@ STACK_SUFFIXES = (".tif", ".tiff", ".npy")
 
 #: Elements read at a time when scanning a stack's values.
 _SCAN_ELEMENTS = 2**23
+
+
+def read_band(path, first_row: int, stop_row: int, skip_frames: int = 0) -> np.ndarray:
+    """Rows ``first_row:stop_row`` of every frame from ``skip_frames`` on, read into memory.
+
+    Only those bytes are read (one ``preadv`` per frame), so reading a band of a large
+    stack neither loads the file nor maps it: a memory map would count the pages the
+    kernel maps around every touched row (64 kB per frame) in the process's resident
+    memory. Compressed or scattered TIFF data are read through tifffile instead.
+
+    Returns
+    -------
+    ndarray, shape (frames - skip_frames, stop_row - first_row, cols)
+        The file's dtype (possibly non-native byte order), raw counts.
+    """
+    path = check_readable(Path(path))
+    layout = _raw_layout(path)
+    if layout is None:
+        return np.asarray(load_stack(path)[skip_frames:, first_row:stop_row])
+    shape, dtype, offset = layout
+    frames, rows, cols = shape
+    first_row, stop_row = max(0, first_row), min(rows, stop_row)
+    row_bytes = cols * dtype.itemsize
+    frame_bytes = rows * row_bytes
+    out = np.empty((max(0, frames - skip_frames), stop_row - first_row, cols), dtype=dtype)
+    flat = out.reshape(out.shape[0], -1).view(np.uint8)
+    want = flat.shape[1]
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        for i in range(out.shape[0]):
+            at = offset + (skip_frames + i) * frame_bytes + first_row * row_bytes
+            if os.preadv(fd, [flat[i]], at) != want:
+                raise InputError(f"'{path}': file ends inside frame {skip_frames + i}: truncated")
+    finally:
+        os.close(fd)
+    return out
+
+
+def _raw_layout(path: Path):
+    """(shape, dtype, data offset) of a 3-D stack stored as one C-ordered block, else None."""
+    try:
+        if path.suffix.lower() == ".npy":
+            mm = np.load(path, mmap_mode="r", allow_pickle=False)  # reads the header only
+            if mm.ndim != 3 or not mm.flags.c_contiguous:
+                return None
+            return tuple(mm.shape), mm.dtype, int(mm.offset)
+        shape, dtype, offset = _tiff_layout(path)
+        return None if offset is None or len(shape) != 3 else (shape, dtype, offset)
+    except InputError:
+        raise
+    except (OSError, ValueError) as exc:
+        raise InputError(f"'{path}': cannot read: {one_line(exc)}") from exc
 
 
 def describe_missing(path: Path, what: str = "file") -> str:

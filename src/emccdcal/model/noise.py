@@ -62,6 +62,11 @@ __all__ = [
 # --------------------------------------------------------------------------------------
 # Parameter checking
 # --------------------------------------------------------------------------------------
+#: Threads of each FFT (scipy.fft's ``workers``; -1: every CPU). A process that already
+#: runs one task per CPU (a Dask worker of a calibration) sets it to 1.
+FFT_WORKERS = -1
+
+
 def _check_params(photoelectrons, em_gain, e_per_adu, offset, read_noise):
     return (
         check_number("photoelectrons", photoelectrons, minimum=0.0, scalar=False),
@@ -358,7 +363,7 @@ class Spectrum:
         """``rfft`` of a (P, n) weight grid, its first ``m`` bins: shared by every dot."""
         from scipy import fft
 
-        return fft.rfft(weights, axis=-1, workers=-1)[:, :m]
+        return fft.rfft(weights, axis=-1, workers=FFT_WORKERS)[:, :m]
 
     def dot(self, weights_hat):
         """``Σ_y w(y) f(y)`` per row, from ``weights_spectrum(w, m)`` (P, m)."""
@@ -378,7 +383,7 @@ def _irfft(spectrum, n):
     """
     from scipy import fft
 
-    return fft.irfft(np.conj(spectrum), n=n, axis=-1, workers=-1)
+    return fft.irfft(np.conj(spectrum), n=n, axis=-1, workers=FFT_WORKERS)
 
 
 # --------------------------------------------------------------------------------------
