@@ -109,3 +109,19 @@ def test_simulate_kinds_take_out_and_quiet():
     for kind, sub in sim._subparsers._group_actions[0].choices.items():
         options = {s for a in sub._actions for s in a.option_strings}
         assert {"-o", "--out", "-q", "--quiet"} <= options, kind
+
+
+def test_simulate_takes_its_output_as_a_word_or_with_o(tmp_path, capsys):
+    opts = ["--rows", "2", "--cols", "2", "--frames", "10", "--setpoints", "1,5", "--seed",
+            "1", "-q"]
+    assert cli.main(["simulate", "gain-series", str(tmp_path / "a"), *opts]) == 0
+    assert cli.main(["simulate", "gain-series", "-o", str(tmp_path / "b"), *opts]) == 0
+    for name in ("gain-GS/5x-gain.tif", "truth.json"):
+        a, b = (tmp_path / d / name for d in "ab")
+        if name.endswith(".tif"):
+            assert a.read_bytes() == b.read_bytes()
+    capsys.readouterr()
+    assert cli.main(["simulate", "gain-series", *opts]) == 2
+    assert "OUT or -o OUT" in capsys.readouterr().err
+    assert cli.main(["simulate", "gain-series", str(tmp_path / "c"), "-o",
+                     str(tmp_path / "d"), *opts]) == 2

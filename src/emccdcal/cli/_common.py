@@ -16,13 +16,32 @@ import sys
 import warnings
 from pathlib import Path
 
-__all__ = ["add_out", "add_quiet", "add_no_figures", "add_e_per_adu", "positive_float",
-           "positive_int", "number_list", "label_list", "pixel", "recording_warnings",
-           "print_warnings"]
+__all__ = ["add_out", "add_out_or_dir", "output_of", "add_quiet", "add_no_figures",
+           "add_e_per_adu", "positive_float", "positive_int", "number_list", "label_list",
+           "pixel", "recording_warnings", "print_warnings"]
 
 
 def add_out(p: argparse.ArgumentParser, what: str = "output directory", required: bool = True):
     p.add_argument("-o", "--out", type=Path, required=required, metavar="OUT", help=what)
+
+
+def add_out_or_dir(p: argparse.ArgumentParser, what: str, required: bool = True) -> None:
+    """``OUT`` as a positional argument (the verb's original form) or as ``-o OUT``."""
+    p.add_argument("dir", nargs="?", type=Path, metavar="OUT", help=f"{what} (or -o OUT)")
+    p.add_argument("-o", "--out", type=Path, default=None, help=what)
+    p.set_defaults(_out_required=required)
+
+
+def output_of(args) -> Path | None:
+    """The output of a verb declared with :func:`add_out_or_dir` (one of its two forms)."""
+    from ..errors import OptionError
+
+    if args.dir is not None and args.out is not None and args.dir != args.out:
+        raise OptionError(f"two outputs given: {args.dir} and -o {args.out}")
+    out = args.out if args.out is not None else args.dir
+    if out is None and args._out_required:
+        raise OptionError("give the output directory: OUT or -o OUT")
+    return out
 
 
 def add_quiet(p: argparse.ArgumentParser) -> None:
@@ -65,7 +84,8 @@ def number_list(text: str) -> list[float]:
     try:
         return [float(p.strip()) for p in text.split(",")]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated numbers, got {text!r}") from None
 
 
 def label_list(text: str) -> list[str]:

@@ -15,7 +15,8 @@ def add_parser(subparsers):
         "calibrate phi with is-adu, then the gains with gs using that phi, and print truth "
         "against estimate.",
     )
-    _common.add_out(p, "output directory (default: a new temporary directory)", required=False)
+    _common.add_out_or_dir(p, "output directory (default: a new temporary directory)",
+                           required=False)
     p.add_argument("--rows", type=_common.positive_int, default=16,
                    help="rows, px (default %(default)s)")
     p.add_argument("--cols", type=_common.positive_int, default=16,
@@ -37,7 +38,7 @@ def run(args) -> int:
 
     if args.frames < 2:
         raise OptionError("--frames must be an integer of at least 2")
-    run_demo(args.out, rows=args.rows, cols=args.cols, frames=args.frames,
+    run_demo(_common.output_of(args), rows=args.rows, cols=args.cols, frames=args.frames,
              multiplication=args.multiplication, seed=args.seed, progress=not args.quiet,
              report=not args.no_report)
     return 0

@@ -21,8 +21,10 @@ def _camera_options(p: argparse.ArgumentParser, defaults: dict | None = None) ->
 
     d = {f.name: f.default for f in dataclasses.fields(Camera)} | (defaults or {})
     cam = p.add_argument_group("camera")
-    cam.add_argument("--rows", type=int, default=d["rows"], help="frame rows, px (default %(default)s)")
-    cam.add_argument("--cols", type=int, default=d["cols"], help="frame columns, px (default %(default)s)")
+    cam.add_argument("--rows", type=int, default=d["rows"],
+                     help="frame rows, px (default %(default)s)")
+    cam.add_argument("--cols", type=int, default=d["cols"],
+                     help="frame columns, px (default %(default)s)")
     cam.add_argument("--frames", type=int, default=d["frames"],
                      help="frames per stack (default %(default)s)")
     cam.add_argument("--dark-frames", type=int, default=d["dark_frames"],
@@ -33,7 +35,8 @@ def _camera_options(p: argparse.ArgumentParser, defaults: dict | None = None) ->
     cam.add_argument("--offset", type=float, default=d["offset"],
                      help="offset at set-point 1, ADU (default %(default)s)")
     cam.add_argument("--offset-drop", type=float, default=d["offset_drop"],
-                     help="offset drop per decade of set-point, ADU (default %(default)s; 0 for none)")
+                     help="offset drop per decade of set-point, ADU (default %(default)s; "
+                     "0 for none)")
     cam.add_argument("--offset-spread", type=float, default=d["offset_spread"],
                      help="SD of the fixed per-pixel offset pattern, ADU (default %(default)s)")
     cam.add_argument("--read-noise", type=float, default=d["read_noise"],
@@ -93,7 +96,8 @@ def _report(res, what: str) -> None:
 def _run_gain_series(args) -> int:
     from ..simulate.series import simulate_gain_series
 
-    res = simulate_gain_series(args.out, setpoints=args.setpoints, em_gain=args.em_gain,
+    res = simulate_gain_series(_common.output_of(args), setpoints=args.setpoints,
+                               em_gain=args.em_gain,
                                photoelectrons=args.photoelectrons, offsets=args.offsets,
                                **_common_kwargs(args))
     _report(res, "gain series")
@@ -103,7 +107,8 @@ def _run_gain_series(args) -> int:
 def _run_intensity_series(args) -> int:
     from ..simulate.series import simulate_intensity_series
 
-    res = simulate_intensity_series(args.out, levels=args.levels, labels=args.labels,
+    res = simulate_intensity_series(_common.output_of(args), levels=args.levels,
+                                    labels=args.labels,
                                     setpoint=args.setpoint, em_gain=args.em_gain,
                                     **_common_kwargs(args))
     _report(res, "intensity series")
@@ -113,7 +118,8 @@ def _run_intensity_series(args) -> int:
 def _run_beads(args) -> int:
     from ..simulate.beads import TRUTH_CALIBRATION_FILE, simulate_beads
 
-    res = simulate_beads(args.out, beads=args.beads, photoelectrons=args.photoelectrons,
+    res = simulate_beads(_common.output_of(args), beads=args.beads,
+                         photoelectrons=args.photoelectrons,
                          width=args.width, background=args.background,
                          min_separation=args.min_separation, margin=args.margin,
                          setpoints=args.setpoints, em_gain=args.em_gain, offsets=args.offsets,
@@ -147,7 +153,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "gain-series", help="fixed illumination at several EM gain set-points",
         description="Simulate a gain series: one illumination, several EM gain set-points, "
         "with a dark stack and offset/read-noise maps per set-point.")
-    _common.add_out(gs, "output directory (created)")
+    _common.add_out_or_dir(gs, "output directory (created)")
     _setpoint_options(gs)
     gs.add_argument("--photoelectrons", type=float, default=_DEFAULTS["photoelectrons"],
                     help="photoelectrons per pixel per frame, e- (default %(default)s)")
@@ -158,7 +164,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "intensity-series", help="several illumination levels at one EM gain set-point",
         description="Simulate an intensity series: several illumination levels at one EM gain "
         "set-point, with one dark stack and its offset/read-noise maps.")
-    _common.add_out(is_, "output directory (created)")
+    _common.add_out_or_dir(is_, "output directory (created)")
     is_.add_argument("--levels", type=_common.number_list,
                      default=[2000.0, 4000.0, 8000.0, 16000.0, 32000.0, 64000.0],
                      help="photoelectrons per pixel per frame of each level, e-, comma-separated "
@@ -177,7 +183,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "PSF on a uniform background at several EM gain set-points, with a dark stack and "
         "offset/read-noise maps per set-point, truth.json and truth_calibration.nc "
         "(docs/beads.md).")
-    _common.add_out(bd, "output directory (created)")
+    _common.add_out_or_dir(bd, "output directory (created)")
     bd.add_argument("--beads", type=int, default=BEAD_DEFAULTS["beads"],
                     help="number of beads (default %(default)s)")
     bd.add_argument("--photoelectrons", type=_common.number_list,

@@ -23,6 +23,7 @@ from ..model.psf import spot_image
 from .camera import _UNITS, PAPER_SETPOINTS, Camera
 from .series import (
     SimulatedSeries,
+    _camera_truth,
     _gains,
     _manifest_lines,
     _options,
@@ -270,19 +271,7 @@ def simulate_beads(
                   for (r, c), n in zip(pos, N)],
         "width": s,
         "background": b,
-        "e_per_adu": opts["e_per_adu"],
-        "read_noise": opts["read_noise"],
-        "read_noise_dark_sd": dark_sd,
-        "cic": opts["cic"],
-        "drift": opts["drift"],
-        "multiplication": opts["multiplication"],
-        "stages": opts["stages"] if opts["multiplication"] == "cascade" else None,
-        "adc_bits": opts["adc_bits"],
-        "offset_pattern": {
-            "file": pattern_file,
-            "sd": opts["offset_spread"],
-            "note": "per-pixel offset = acquisition offset + this map (same at every set-point)",
-        },
+        **_camera_truth(opts, pattern_file),
         "calibration": TRUTH_CALIBRATION_FILE,
         "acquisitions": truth_acqs,
         "notes": [

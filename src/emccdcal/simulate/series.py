@@ -187,6 +187,25 @@ def _write_stacks(outdir: Path, kind: str, acqs: list[dict], darks: list[dict], 
     return files, pattern, pattern_file
 
 
+def _camera_truth(opts: dict, pattern_file: str) -> dict:
+    """What truth.json records of the camera (in this order)."""
+    return {
+        "e_per_adu": opts["e_per_adu"],
+        "read_noise": opts["read_noise"],
+        "read_noise_dark_sd": math.sqrt(opts["read_noise"] ** 2 + 1.0 / 12.0),
+        "cic": opts["cic"],
+        "drift": opts["drift"],
+        "multiplication": opts["multiplication"],
+        "stages": opts["stages"] if opts["multiplication"] == "cascade" else None,
+        "adc_bits": opts["adc_bits"],
+        "offset_pattern": {
+            "file": pattern_file,
+            "sd": opts["offset_spread"],
+            "note": "per-pixel offset = acquisition offset + this map (same at every set-point)",
+        },
+    }
+
+
 def _truth_entry(a: dict, camera: Camera, opts: dict, **extra) -> dict:
     """What truth.json records of one acquisition; ``extra`` goes before its offset."""
     return {
@@ -243,19 +262,7 @@ def _run_series(outdir, kind: str, acqs: list[dict], darks: list[dict], camera: 
         "emccdcal_version": __version__,
         "seed": opts["seed"],
         "units": dict(_UNITS),
-        "e_per_adu": opts["e_per_adu"],
-        "read_noise": opts["read_noise"],
-        "read_noise_dark_sd": math.sqrt(opts["read_noise"] ** 2 + 1.0 / 12.0),
-        "cic": opts["cic"],
-        "drift": opts["drift"],
-        "multiplication": opts["multiplication"],
-        "stages": opts["stages"] if opts["multiplication"] == "cascade" else None,
-        "adc_bits": opts["adc_bits"],
-        "offset_pattern": {
-            "file": pattern_file,
-            "sd": opts["offset_spread"],
-            "note": "per-pixel offset = acquisition offset + this map (same at every set-point)",
-        },
+        **_camera_truth(opts, pattern_file),
         "acquisitions": truth_acqs,
         "notes": [
             "photoelectrons: illumination only, mean over frames; "
