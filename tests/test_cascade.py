@@ -1,4 +1,4 @@
-"""The EM register as a Bernoulli cascade: algebra, exact pmf, samplers (docs/simulation.md, §10 case 9)."""
+"""The EM register as a Bernoulli cascade: algebra, exact pmf, samplers (docs/simulation.md; numerical test case 9)."""
 
 from __future__ import annotations
 

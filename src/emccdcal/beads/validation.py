@@ -1,7 +1,7 @@
 """Bead validation: does a calibration give every bead the same intensity at every set-point?
 
-The paper's independent test of a calibration (Ryan et al. 2021, Figs. 4–5; METHODS
-§5.4). Beads are imaged at every gain set-point; their photoelectron count per frame does
+The paper's independent test of a calibration (Ryan et al. 2021, Figs. 4–5;
+docs/beads.md). Beads are imaged at every gain set-point; their photoelectron count per frame does
 not depend on the camera's gain, so under a correct calibration (φ and the gain at every
 set-point) the fitted intensities agree across set-points. Under a wrong gain g' at a
 set-point the intensities there are scaled by about g/g'.

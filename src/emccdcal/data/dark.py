@@ -3,7 +3,7 @@
 A dark (shuttered) acquisition recorded at a gain set-point gives, per pixel, the offset
 ``offset`` = S0 (the mean dark count, ADU) and the read noise ``read_noise`` = σ (the
 standard deviation of the dark counts, ADU). The paper records one dark stack right
-after each set-point because the offset drifts with the set-point (Ryan et al. 2021, Methods, §7).
+after each set-point because the offset drifts with the set-point (Ryan et al. 2021, Methods).
 
 At high EM gain the dark frames also contain clock-induced charge (spurious electrons
 that the EM register multiplies), so the dark "σ" grows with the set-point and is then
@@ -114,8 +114,8 @@ def check_read_noise_growth(
 
     Compares the median read noise at every set-point with the median at the lowest
     set-point. Where it is more than ``threshold`` (relative) higher, the dark frames
-    most likely contain clock-induced charge that the EM register multiplies (METHODS
-    §3.3): the dark "σ" is then not pure Gaussian read-out noise. On the shared ProEM data
+    most likely contain clock-induced charge that the EM register multiplies
+    (docs/simulation.md): the dark "σ" is then not pure Gaussian read-out noise. On the shared ProEM data
     the median grows from about 15.5 ADU (1× to 25×) to about 23 ADU at 300×.
 
     Parameters

@@ -2,7 +2,7 @@
 
 A calibration assumes that every acquisition is a steady exposure of a well-behaved
 sensor. :func:`check_manifest` tests what can be tested from the data alone
-(docs/simulation.md, §7):
+(docs/quality.md):
 
 * **Stationarity of the illumination** (:func:`stationarity`): the per-frame mean of the
   offset-subtracted counts is tested with ADF (null: unit root; a p-value below ``alpha``

@@ -46,7 +46,7 @@ Both are exact in law; they differ only by floating-point round-off (the pmf tab
 accurate to about 1e-13 absolute, the binomial sampler uses floating point as well), and
 their outputs for the same seed differ draw by draw. ``tests/test_cascade.py`` checks
 the tables against a direct stage-by-stage recursion of the pmf and both samplers
-against each other and against the moments of §3.1.
+against each other and against the moments above (docs/simulation.md).
 
 Threads do not help on the 2-core machine we measured (``docs/benchmarks.md``): two
 threads with independent generators ran NumPy's binomial sampler only ~1.1× faster than

@@ -30,7 +30,7 @@ Everything follows from the cumulant generating function of the count,
 
 where M is the moment generating function of one photoelectron's output in ADU. The pmf on
 a window of integers is one inverse real FFT of the characteristic function
-``exp(K(iω))`` sampled at the window's DFT frequencies (docs/methods.md B), summed over
+``exp(K(iω))`` sampled at the window's DFT frequencies (docs/methods.md), summed over
 aliases ``ω + 2πj`` so that a read noise below 2 ADU, whose density is not band-limited,
 is still exact. FFT round-off limits the *relative* accuracy of a single window to values
 above about 1e-7 of its peak; further out we evaluate the exponentially tilted
@@ -551,7 +551,7 @@ def _evaluate(E, scale, S0, sigma, pn, row, k, grad=False):
 
 
 def _quadrature_logpdf(k, E, theta, S0, sigma, grad=False):
-    """log f(k) of the PGN by Gauss–Legendre quadrature of its Bessel form (docs/methods.md C).
+    """log f(k) of the PGN by Gauss–Legendre quadrature of its Bessel form (docs/methods.md).
 
     ``f(k) = e^{-E} N(k; S0, σ) + ∫ q_c(u) N(k; S0 + u, σ) du`` with the Poisson–gamma
     density ``q_c`` evaluated through ``i1e`` (never overflows). The integrand is positive,
@@ -723,8 +723,8 @@ PAPER_FLOOR = 1e-16
 def paper_pmf_grid(photoelectrons, em_gain, e_per_adu, offset, read_noise):
     """The authors' noise model on their 2^17-point grid, for cross-checks only.
 
-    Reproduces ``NoiseModel_TFv1.py`` of ryand-LANL/EMCCD-calibration as docs/methods.md A
-    and §1.4 describe it, including what we believe are its flaws: the zero-electron bin
+    Reproduces ``NoiseModel_TFv1.py`` of ryand-LANL/EMCCD-calibration as docs/methods.md
+    describes it, including what we believe are its flaws: the zero-electron bin
     carries ``φ·e^{-E}(1 + E/g)`` (mass φ·e^{-E} instead of e^{-E}), the PGN density is
     sampled at unit spacing without quadrature, the 1× model is the continuous
     interpolation ``φ·E^{Sφ}e^{-E}/Γ(Sφ+1)`` of the Poisson pmf, the Gaussian read-out is

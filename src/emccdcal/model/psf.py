@@ -4,7 +4,7 @@ Coordinates are in pixels. Pixel ``(r, c)`` covers ``[r - 1/2, r + 1/2] × [c - 
 so a spot centred on a pixel has its centre at that pixel's integer indices. ``y`` runs along
 rows, ``x`` along columns.
 
-The spot model (Mortensen & Flyvbjerg 2016, step 1 and §5.2; Mortensen et al. 2010) is
+The spot model (Mortensen & Flyvbjerg 2016, step 1; Mortensen et al. 2010; docs/beads.md) is
 
     E_k = N · P_x(k) · P_y(k) + b,
     P_x(k) = ½ [erf((x_k + ½ − x0) / (√2 s)) − erf((x_k − ½ − x0) / (√2 s))],
