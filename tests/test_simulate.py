@@ -589,3 +589,22 @@ def test_cli_beads(tmp_path, capsys):
     assert tifffile.imread(out / "beads/100x-beads.tif").shape == (4, 30, 30)
     assert tifffile.imread(out / "beads/100x-beads_no-signal.tif").shape == (3, 30, 30)
     assert cli.main(["simulate", "beads", "-o", str(tmp_path / "x"), "--beads", "-1"]) == 2
+
+
+def test_one_camera_object_serves_every_simulator(tmp_path):
+    from emccdcal.errors import OptionError
+    from emccdcal.simulate.camera import Camera
+
+    cam = Camera(rows=3, cols=4, frames=20, e_per_adu=5.2, read_noise=15.4)
+    a = simulate_gain_series(tmp_path / "a", camera=cam, setpoints=(1, 5), seed=1)
+    b = simulate_gain_series(tmp_path / "b", setpoints=(1, 5), seed=1, rows=3, cols=4,
+                             frames=20, e_per_adu=5.2, read_noise=15.4)
+    assert a.truth["options"] == b.truth["options"]
+    assert ((a.outdir / "gain-GS/5x-gain.tif").read_bytes()
+            == (b.outdir / "gain-GS/5x-gain.tif").read_bytes())
+    c = simulate_intensity_series(tmp_path / "c", camera=cam, cic=0.5, levels=(100,), seed=2)
+    assert c.truth["cic"] == 0.5 and c.truth["e_per_adu"] == 5.2  # one field replaced
+    with pytest.raises(OptionError, match="did you mean 'rows'"):
+        simulate_gain_series(tmp_path / "d", rowz=3)
+    with pytest.raises(OptionError, match="read_noise must be > 0"):
+        Camera(read_noise=0)
