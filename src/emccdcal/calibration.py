@@ -36,7 +36,7 @@ from .data.stacks import read_band
 from .errors import MethodError, OptionError
 from .fit import engine, gof, layouts, mv
 from .model import noise
-from .runstore import RunInterrupted, RunStore
+from .runstore import RUN_DIR, RunInterrupted, RunStore
 
 if TYPE_CHECKING:
     import xarray
@@ -92,7 +92,7 @@ def plan_tiles(n_pixels: int, tile_pixels: int, block_size: int) -> list[tuple[i
 
 @dataclass(frozen=True)
 class TileJob:
-    """One band of rows of a calibration with everything needed to compute it.
+    """One tile of a calibration (a range of pixels) with everything needed to compute it.
 
     Plain data (picklable): a Dask worker runs :func:`run_tile` on it, reading the rows
     that hold the tile's pixels from the stacks' paths. Maps are those of the tile's
@@ -125,7 +125,8 @@ class TileJob:
 
     @property
     def n_pixels(self) -> int:
-        return int(self.offsets.shape[1])
+        """Pixels of the tile."""
+        return self.pixels[1] - self.pixels[0]
 
 
 def run_tile(job: TileJob, progress=None) -> dict:
@@ -134,7 +135,7 @@ def run_tile(job: TileJob, progress=None) -> dict:
     Returns
     -------
     dict of ndarray
-        Per pixel of the band (C order), pixels first: ``usable`` (every acquisition has
+        Per pixel of the tile (C order), pixels first: ``usable`` (every acquisition has
         two or more unsaturated frames that are not all equal), ``n_saturated`` (P, A);
         for the mean–variance methods the moments ``mean``, ``var``, ``n`` (P, A); for the
         likelihood methods the estimates (``photoelectrons``, ``em_gain``, ``e_per_adu``
@@ -453,21 +454,20 @@ def calibrate(
     tile_pixels = check_int("tile_pixels", tile_pixels)
     workers = os.cpu_count() if workers is None else check_int("workers", workers)
     # Every warning of the run (manifest, saturation, convergence, misfit) is recorded in
-    # the result and issued again to the caller; the store publishes the files.
-    store = {}
+    # the result and issued again to the caller.
     ds = result.run_recorded(
         lambda: _run_calibration(manifest, method, e_per_adu, out, resume, overwrite,
                                  block_size, tile_pixels, scheduler, options, progress,
-                                 workers, checks, map_errors, intervals, store),
+                                 workers, checks, map_errors, intervals),
     )
-    if out is not None:
-        result.save(ds, out, seconds=ds.attrs["seconds"], cleanup=store["run"].run_dir)
+    if out is not None:  # the result's files as one set; the kept tiles go last
+        result.save(ds, out, seconds=ds.attrs["seconds"], cleanup=Path(out) / RUN_DIR)
     return ds
 
 
 def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_size,
                      tile_pixels, scheduler, options, progress, workers, checks, map_errors,
-                     intervals, store):
+                     intervals):
     manifest = _load(manifest)
     acqs = manifest.acquisitions
     rows, cols = manifest.shape
@@ -482,8 +482,9 @@ def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_
         )
     used = [acqs[i] for i in idx]
     tiles = plan_tiles(rows * cols, tile_pixels, block_size)
+    store = None
     if out is not None:  # an unwritable or occupied output is found before any computing
-        store["run"] = RunStore(out, _fingerprint(
+        store = RunStore(out, _fingerprint(
             manifest, used, method, options, intervals, checks, map_errors, phi_map,
             (block_size, tiles[0][1] - tiles[0][0])), resume=resume, overwrite=overwrite)
     if checks:
@@ -505,7 +506,7 @@ def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_
             adc_max=int(manifest.adc_max), options=options, intervals=intervals,
             block_size=block_size, threads=workers if scheduler is None else 1,
             checks=bool(checks), fft_threads=None if scheduler is None else 1))
-    parts = _run_tiles(jobs, store.get("run"), scheduler, progress, method)
+    parts = _run_tiles(jobs, store, scheduler, progress, method)
     report, messages = _quality(manifest, used, parts, tiles) if checks else (None, [])
     arrays = {}
     for key in [k for k in parts[0] if not k.startswith(_QUALITY)]:
