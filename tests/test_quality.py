@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import warnings
 
 import numpy as np
@@ -14,9 +15,11 @@ from emccdcal import cli, errors
 from emccdcal.cli.check import add_parser
 from emccdcal.data.manifest import read_manifest
 from emccdcal.data.quality import (
+    DEFAULT_DRIFT_THRESHOLD,
     MIN_FRAMES,
     check_acquisition,
     check_manifest,
+    drift_test,
     format_report,
     linear_drift,
     pixel_defects,
@@ -111,6 +114,41 @@ def test_drift_threshold_decides_verdict():
     assert r["drift_pct"] == pytest.approx(3.0, abs=0.02)
     assert r["drift_exceeds"] and not r["stationary"]
     assert not stationarity(x, drift_threshold=5.0)["drift_exceeds"]
+
+
+def test_drift_t_test_is_statsmodels_ols():
+    import statsmodels.api as sm
+
+    rng = np.random.default_rng(5)
+    x = 50 + 0.0002 * np.arange(3000) + rng.normal(0, 2, 3000)
+    d = linear_drift(x)
+    fit = sm.OLS(x, sm.add_constant(np.arange(3000.0))).fit()
+    assert d["slope"] == pytest.approx(fit.params[1], rel=1e-10)
+    assert d["slope_se"] == pytest.approx(fit.bse[1], rel=1e-10)
+    assert d["pvalue"] == pytest.approx(fit.pvalues[1], rel=1e-8)
+
+
+def test_drift_test_needs_significance_and_size():
+    rng = np.random.default_rng(2)
+    t = np.linspace(-0.5, 0.5, N)
+    noise = rng.normal(0, 20, N)
+    noise -= t * (t @ noise) / (t @ t)  # its own trend removed: the estimate is exact
+    noisy = 100 * (1 + 0.005 * t) + noise  # 0.5 %, with a standard error of ~1 %
+    r = drift_test(noisy)
+    assert r["drift_pct"] == pytest.approx(0.5, rel=1e-3)  # of a level of 100 ± 0.3
+    assert r["drift_pct_se"] == pytest.approx(20 * np.sqrt(12 / N), rel=0.05)
+    assert r["pvalue"] > 0.5 and not r["drifts"]
+    tiny = 100 * (1 + 0.0005 * t) + rng.normal(0, 0.01, N)  # 0.05 %: certain but small
+    r = drift_test(tiny)
+    assert r["pvalue"] < 1e-10 and abs(r["drift_pct"]) < DEFAULT_DRIFT_THRESHOLD
+    assert not r["drifts"] and drift_test(tiny, threshold=0.01)["drifts"]
+    clear = 100 * (1 - 0.005 * t) + rng.normal(0, 1, N)
+    r = drift_test(clear)
+    assert r["drifts"] and r["drift_pct"] == pytest.approx(-0.5, abs=4 * r["drift_pct_se"])
+    with pytest.raises(ValueError, match="too few frames for the drift test"):
+        drift_test(clear[:MIN_FRAMES - 1])
+    with pytest.raises(ValueError, match="alpha"):
+        drift_test(clear, alpha=0)
 
 
 def test_linear_drift_exact_and_offset():
@@ -215,20 +253,33 @@ def test_drifting_series_flagged_and_steady_not(tmp_path):
     steady = check_manifest(read(_sim(tmp_path, "steady", drift=0.0)))
     drifting = check_manifest(read(_sim(tmp_path, "drift", drift=0.05)))
     assert set(steady["acquisitions"]) == {"1x", "25x"}
+    assert steady["drift_alpha"] == 0.01
     for a in steady["acquisitions"].values():
-        s = a["stationarity"]
-        assert s["stationary"], a["name"]
-        assert abs(s["drift_pct"]) < 3 * s["drift_pct_se"] + 1e-9
+        d = a["drift"]
+        assert not d["drifts"], a["name"]
+        assert d["alpha"] == pytest.approx(0.01 / 2)  # Bonferroni over the two acquisitions
+        assert a["stationarity"] is None  # the unit-root tests only on request
     assert steady["warnings"] == []
     for a in drifting["acquisitions"].values():
-        s = a["stationarity"]
-        assert not s["stationary"] and s["drift_exceeds"], a["name"]
+        d = a["drift"]
+        assert d["drifts"], a["name"]
         # the photoelectron rate drifts by 5 %: so does the offset-subtracted frame mean
-        assert s["drift_pct"] == pytest.approx(5.0, abs=4 * s["drift_pct_se"])
+        assert d["drift_pct"] == pytest.approx(5.0, abs=4 * d["drift_pct_se"])
     joined = "\n".join(drifting["warnings"])
     assert "1x (set-point 1): the frame mean drifts by +" in joined
     assert "25x (set-point 25): the frame mean drifts by +" in joined
-    assert "not stationary" in joined
+    # what the drift does to the estimate: +E·d²/24, 10 % of g at E = 1000 e⁻ for 5 %
+    # what the drift does to the estimate at E = 1000 e⁻ for 5 %: g +E·d²/24 = +10 %,
+    # φ at 1× −E·d²/12 = −21 %
+    g_bias = re.findall(r"g is biased by about \+E·d²/24, \+([\d.]+) % at E = 1000 e⁻", joined)
+    phi_bias = re.findall(r"φ is biased by about −E·d²/12, -([\d.]+) % at E = 1000 e⁻", joined)
+    assert len(g_bias) == 1 and float(g_bias[0]) == pytest.approx(10.4, rel=0.2)
+    assert len(phi_bias) == 1 and float(phi_bias[0]) == pytest.approx(20.8, rel=0.2)
+    with_tests = check_manifest(read(_sim(tmp_path, "drift", drift=0.05)), unit_root_tests=True)
+    assert all(a["stationarity"]["kpss_rejects_stationarity"]
+               for a in with_tests["acquisitions"].values())
+    assert with_tests["warnings"] == drifting["warnings"]  # reported, never findings
+    assert "KPSS p" in format_report(with_tests) and "KPSS p" not in format_report(drifting)
 
 
 def test_saturated_frames_counted(tmp_path):
@@ -249,15 +300,15 @@ def test_saturated_frames_counted(tmp_path):
     assert len(sat_warnings) == 1 and sat_warnings[0].startswith("300x (set-point 300)")
 
 
-def test_too_few_frames_clear_error(tmp_path):
-    m = read(_sim(tmp_path, "few", frames=40))
-    acq = m.acquisitions[0]
-    with pytest.raises(ValueError, match="too few frames for the stationarity tests") as e:
-        check_acquisition(acq, m.adc_max)
-    msg = str(e.value)
-    assert str(acq.frames_path) in msg and "40" in msg and "\n" not in msg
-    with pytest.raises(ValueError, match="too few frames"):
-        check_manifest(m)
+def test_too_few_frames_skip_only_the_drift_test(tmp_path):
+    m = read(_sim(tmp_path, "few", frames=40, adc_bits=12))
+    rep = check_manifest(m)
+    for a in rep["acquisitions"].values():
+        assert a["drift"] is None and a["saturation"]["adc_max"] == 4095
+        assert a["pixels"]["tested"]
+    few = [w for w in rep["warnings"] if "too few for the drift test" in w]
+    assert len(few) == 2 and few[0].startswith("1x (set-point 1): 40 frames")
+    assert "n/a" in format_report(rep)
 
 
 def test_read_noise_growth_reported(tmp_path):
@@ -275,7 +326,7 @@ def test_report_json_and_table(tmp_path):
     assert back == rep
     text = format_report(rep)
     lines = text.splitlines()
-    assert "drift % ± SE" in lines[1]
+    assert "drift % ± SE" in lines[2]
     rows = [ln for ln in lines if ln.startswith(("1x ", "25x "))]
     assert len(rows) == 2 and all(" NO " in ln for ln in rows)  # the verdict column
     assert f"{len(rep['warnings'])} finding(s):" in text
@@ -306,7 +357,10 @@ def test_cli_human_and_json(tmp_path, capsys):
     args = _parser().parse_args(["check", str(manifest), "--json", "--drift-threshold", "50"])
     args.func(args)
     rep = json.loads(capsys.readouterr().out)
-    assert not any(a["stationarity"]["drift_exceeds"] for a in rep["acquisitions"].values())
+    assert not any(a["drift"]["drifts"] for a in rep["acquisitions"].values())
+    # --strict: a finding exits 1, none exits 0
+    assert cli.main(["check", str(manifest), "-q", "--strict"]) == 1
+    assert cli.main(["check", str(manifest), "-q", "--strict", "--drift-threshold", "50"]) == 0
 
 
 def test_cli_through_main(tmp_path, capsys, monkeypatch):
@@ -333,7 +387,7 @@ def test_cli_bad_manifest_raises_valueerror(tmp_path):
 @pytest.fixture(scope="module")
 def real_report(real_data, tmp_path_factory):
     path = write_real_manifest(tmp_path_factory.mktemp("real"), "gs")
-    return check_manifest(read(path))
+    return check_manifest(read(path), unit_root_tests=True)
 
 
 def test_real_gain_series_findings(real_report):
@@ -356,8 +410,12 @@ def test_real_gain_series_findings(real_report):
                 "300x-gain": -0.68}
     for k, v in expected.items():
         assert st[k]["drift_pct"] == pytest.approx(v, abs=0.01), k
-        assert not st[k]["drift_exceeds"]
+        assert acqs[k]["drift"]["drift_pct"] == pytest.approx(v, abs=0.01), k
     assert [k for k, s in st.items() if s["stationary"]] == ["25x-gain", "100x-gain"]
+    # the drift rule (family-wise 1 %): the two drifts of 0.5 % or more that the frame
+    # means resolve; 1x (0.87 ± 0.30 %, p = 0.004) misses the 0.2 % level
+    flagged = [k for k, a in acqs.items() if a["drift"]["drifts"]]
+    assert flagged == ["5x-gain", "300x-gain"]
     # no saturation, no hot, dead or stuck pixel in the 3x3 crop
     for a in acqs.values():
         assert a["saturation"]["n_values"] == 0
@@ -368,4 +426,4 @@ def test_real_gain_series_findings(real_report):
     assert len(growth) == 2
     assert growth[0].startswith("read noise at EM gain set-point 100 (median 16.6 ADU) is 8 %")
     assert growth[1].startswith("read noise at EM gain set-point 300 (median 22.1 ADU) is 44 %")
-    assert len(rep["warnings"]) == 3 + 2
+    assert len(rep["warnings"]) == 2 + 2

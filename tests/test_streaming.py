@@ -200,9 +200,13 @@ def test_no_temporary_files_are_left(series, tmp_path):
 
 
 @pytest.mark.parametrize("kind", ["tif", "npy-big-endian"])
-def test_read_band_reads_exactly_the_rows_of_the_memory_map(tmp_path, kind):
+@pytest.mark.parametrize("per_call", [1, 3, 100])
+def test_read_band_reads_exactly_the_rows_of_the_memory_map(tmp_path, kind, per_call,
+                                                             monkeypatch):
+    from emccdcal.data import stacks
     from emccdcal.data.stacks import load_stack, read_band
 
+    monkeypatch.setattr(stacks, "_READ_BYTES", per_call * 5 * 6 * 2)  # whole frames per call
     data = np.random.default_rng(0).integers(0, 60000, (7, 5, 6)).astype(np.uint16)
     if kind == "tif":
         path = tmp_path / "s.tif"
@@ -227,3 +231,10 @@ def test_read_band_of_a_truncated_stack_is_one_clear_error(tmp_path):
     with pytest.raises(InputError, match=r"s\.tif") as exc:
         read_band(path, 0, 8)
     assert "\n" not in str(exc.value)
+    # whole frames are read many at a time; the message still names the first incomplete
+    from emccdcal.data.stacks import _raw_layout
+
+    full = tmp_path / "full.tif"
+    tifffile.imwrite(full, np.zeros((50, 8, 8), np.uint16))
+    first_missing = (path.stat().st_size - _raw_layout(full)[2]) // (8 * 8 * 2)
+    assert f"file ends inside frame {first_missing}: truncated" in str(exc.value)

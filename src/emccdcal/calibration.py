@@ -153,30 +153,36 @@ def run_tile(job: TileJob, progress=None) -> dict:
     p0, p1 = job.pixels
     r0, r1 = p0 // job.cols, -(-p1 // job.cols)  # the rows that hold the tile's pixels
 
+    mean_variance = job.method.startswith("mv-")
+
     def read(a):
         path, skip = job.frames[a]
         band = read_band(path, r0, r1, skip)
         own = band.reshape(band.shape[0], 1, -1)[:, :, p0 - r0 * job.cols:p1 - r0 * job.cols]
-        hist = stats.histograms(own, adc_max=job.adc_max)
-        return hist, quality.band_statistics(own, job.adc_max) if job.checks else None
+        q = quality.band_statistics(own, job.adc_max) if job.checks else None
+        # The likelihood methods histogram each block's pixels as they fit it (the
+        # threads then share the work evenly); the mean–variance methods need moments.
+        data = stats.histograms(own, adc_max=job.adc_max) if mean_variance else own
+        return data, stats.frame_usage(own, job.adc_max), q
 
     with ThreadPoolExecutor(max_workers=max(1, min(job.threads, len(job.frames)))) as pool:
         read_back = list(pool.map(read, range(len(job.frames))))
-    hists = [h for h, _ in read_back]
-    out = {"n_saturated": np.stack([h.n_saturated for h in hists], axis=1)}
-    for a, (_, q) in enumerate(read_back):
+    out = {"n_saturated": np.stack([n_sat for _, (_, n_sat), _ in read_back], axis=1)}
+    for a, (_, _, q) in enumerate(read_back):
         for name, value in (q or {}).items():
             out[f"{_QUALITY}{a}_{name}"] = value
-    usable = np.all([(h.n >= 2) & (h.max > h.min) for h in hists], axis=0)
+    usable = np.all([u for _, (u, _), _ in read_back], axis=0)
     out["usable"] = usable
     fitted = np.flatnonzero(usable)
-    if job.method.startswith("mv-"):
+    data = [d for d, _, _ in read_back]
+    del read_back
+    if mean_variance:
         for name in ("mean", "var", "n"):
-            out[name] = np.stack([getattr(h, name) for h in hists], axis=1)
+            out[name] = np.stack([getattr(h, name) for h in data], axis=1)
     else:
-        out.update(_fit_pixels(job, hists, fitted, progress))
+        out.update(_fit_pixels(job, data, fitted, progress))
     if progress is not None:  # the pixels not fitted here (all of them for mean-variance)
-        progress(job.n_pixels - (0 if job.method.startswith("mv-") else fitted.size))
+        progress(job.n_pixels - (0 if mean_variance else fitted.size))
     return out
 
 
@@ -195,9 +201,10 @@ def _bounds_of(method, intervals):
     return None
 
 
-def _fit_pixels(job, hists, usable, progress=None):
-    """The likelihood fit of the pixels ``usable`` of a tile; NaN (not converged) elsewhere."""
-    P, A = job.n_pixels, len(hists)
+def _fit_pixels(job, frames, usable, progress=None):
+    """The likelihood fit of the pixels ``usable`` of a tile, from each acquisition's
+    ``frames`` (F, 1, P); NaN (not converged) elsewhere."""
+    P, A = job.n_pixels, len(frames)
     method = job.method
     setpoints = np.array(job.setpoints)
     out = {k: np.full((P, A), np.nan) for k in (
@@ -211,8 +218,9 @@ def _fit_pixels(job, hists, usable, progress=None):
     bounds = _bounds_of(method, job.intervals)
 
     def fit_block(idx):
-        blocks = layouts.make_blocks(hists, job.offsets, job.read_noise, setpoints, idx,
-                                     job.dark_frames, job.map_groups)
+        hists = [stats.histograms(f[:, :, idx], adc_max=job.adc_max) for f in frames]
+        blocks = layouts.make_blocks(hists, job.offsets[:, idx], job.read_noise[:, idx],
+                                     setpoints, slice(None), job.dark_frames, job.map_groups)
         series = layouts.Series(blocks, setpoints, list(job.labels),
                                 None if job.e_per_adu is None else job.e_per_adu[idx])
         layout, x0 = layouts.build_layout(method, series, job.options)
@@ -411,8 +419,8 @@ def calibrate(
         Threads reading and fitting at once within a tile (default: the number of CPUs;
         1 on a Dask cluster, whose workers run tiles in parallel).
     checks : bool
-        Run the data-quality checks (:mod:`emccdcal.data.quality`: illumination stationarity
-        and drift, saturation, hot/dead pixels) and store them in the result
+        Run the data-quality checks (:mod:`emccdcal.data.quality`: drift of the
+        illumination, saturation, hot/dead pixels) and store them in the result
         (``attrs["quality"]``, JSON) and ``summary.json``; findings are warnings.
     map_errors : bool
         Include in the standard errors of the likelihood methods the error of offset and
@@ -487,8 +495,6 @@ def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_
         store = RunStore(out, _fingerprint(
             manifest, used, method, options, intervals, checks, map_errors, phi_map,
             (block_size, tiles[0][1] - tiles[0][0])), resume=resume, overwrite=overwrite)
-    if checks:
-        quality.prefetch()  # its imports overlap the reading of the stacks
     dark_frames, map_groups, se_note = _map_error_sources(used, map_errors)
     offsets = np.stack([a.offset.reshape(-1) for a in used])
     read_noise = np.stack([a.read_noise.reshape(-1) for a in used])
@@ -547,7 +553,7 @@ def _warn_saturated_and_unusable(manifest, used, arrays):
 
 
 def _quality(manifest, used, parts, tiles):
-    """Data-quality checks (stationarity, drift, saturation, defects) of the used stacks,
+    """Data-quality checks (drift, saturation, defects) of the used stacks,
     from the statistics the tiles gathered as they read them.
 
     Returns the report and its findings as messages for the caller to issue.
@@ -563,7 +569,7 @@ def _quality(manifest, used, parts, tiles):
     sub.acquisitions = list(used)
     try:
         report = quality.check_manifest(sub, summaries=summaries)
-    except ValueError as exc:  # e.g. too few frames for the stationarity tests
+    except ValueError as exc:  # frame means that cannot be tested (not finite)
         return None, [f"data-quality checks skipped: {exc}"]
     grown = set(manifest.warnings)  # read-noise growth was already reported by the manifest
     return report, [w for w in report["warnings"] if not any(w in g or g in w for g in grown)]

@@ -40,10 +40,15 @@ STACK_SUFFIXES = (".tif", ".tiff", ".npy")
 _SCAN_ELEMENTS = 2**23
 
 
+#: Bytes of whole frames :func:`read_band` reads per system call.
+_READ_BYTES = 2**24
+
+
 def read_band(path, first_row: int, stop_row: int, skip_frames: int = 0) -> np.ndarray:
     """Rows ``first_row:stop_row`` of every frame from ``skip_frames`` on, read into memory.
 
-    Only those bytes are read (one ``preadv`` per frame), so reading a band of a large
+    Only those bytes are read (one ``preadv`` per frame, or per 16 MB of whole frames),
+    so reading a band of a large
     stack neither loads the file nor maps it: a memory map would count the pages the
     kernel maps around every touched row (64 kB per frame) in the process's resident
     memory. Compressed or scattered TIFF data are read through tifffile instead.
@@ -65,12 +70,18 @@ def read_band(path, first_row: int, stop_row: int, skip_frames: int = 0) -> np.n
     out = np.empty((max(0, frames - skip_frames), stop_row - first_row, cols), dtype=dtype)
     flat = out.reshape(out.shape[0], -1).view(np.uint8)
     want = flat.shape[1]
+    # Whole frames lie back to back in the file: many per call. A band is scattered,
+    # one call per frame.
+    per_call = max(1, _READ_BYTES // frame_bytes) if want == frame_bytes else 1
     fd = os.open(path, os.O_RDONLY)
     try:
-        for i in range(out.shape[0]):
+        for i in range(0, out.shape[0], per_call):
+            part = flat[i:i + per_call]
             at = offset + (skip_frames + i) * frame_bytes + first_row * row_bytes
-            if os.preadv(fd, [flat[i]], at) != want:
-                raise InputError(f"'{path}': file ends inside frame {skip_frames + i}: truncated")
+            got = os.preadv(fd, [part], at)
+            if got != part.nbytes:
+                raise InputError(f"'{path}': file ends inside frame "
+                                 f"{skip_frames + i + got // want}: truncated")
     finally:
         os.close(fd)
     return out

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["PixelHistograms", "histograms", "DEFAULT_CHUNK_ELEMENTS"]
+__all__ = ["PixelHistograms", "histograms", "frame_usage", "DEFAULT_CHUNK_ELEMENTS"]
 
 #: Elements (pixels × frames) sorted at a time by :func:`histograms`: 2**23 elements,
 #: i.e. at most 64 MiB per int64 work array.
@@ -245,3 +245,45 @@ def histograms(frames, adc_max: int | None = None, *, chunk_pixels: int | None =
         shape=(rows, cols),
         adc_max=adc_max,
     )
+
+
+def frame_usage(frames, adc_max: int | None = None):
+    """Which pixels have frames to fit, without building their histograms.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (F, rows, cols)
+        Raw counts, ADU (checked counts: see :func:`emccdcal.data.stacks.check_counts`).
+    adc_max : int, optional
+        ADC maximum, ADU; counts at or above it are saturated (as in :func:`histograms`).
+
+    Returns
+    -------
+    usable : ndarray of bool, shape (P,)
+        Two or more unsaturated frames that are not all equal: what a fit needs
+        (``n >= 2`` and ``max > min`` of :func:`histograms`).
+    n_saturated : ndarray of int64, shape (P,)
+        Saturated frames per pixel.
+
+    Examples
+    --------
+    >>> frames = np.array([[5, 9], [5, 9], [7, 9]]).reshape(3, 1, 2)
+    >>> usable, n_sat = frame_usage(frames, adc_max=9)
+    >>> usable.tolist(), n_sat.tolist()
+    ([True, False], [0, 3])
+    """
+    flat = np.asarray(frames).reshape(frames.shape[0], -1)
+    if adc_max is None or flat.size == 0:
+        n_sat = np.zeros(flat.shape[1], dtype=np.int64)
+        sat = None
+    else:
+        sat = flat >= adc_max
+        n_sat = sat.sum(axis=0, dtype=np.int64)
+    if flat.shape[0] == 0:
+        return np.zeros(flat.shape[1], dtype=bool), n_sat
+    if sat is None or not n_sat.any():
+        lo, hi = flat.min(axis=0), flat.max(axis=0)
+    else:  # saturated counts are the largest: they change the maximum only
+        lo = flat.min(axis=0)
+        hi = np.where(sat, lo, flat).max(axis=0)
+    return (flat.shape[0] - n_sat >= 2) & (hi > lo), n_sat
