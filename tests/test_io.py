@@ -185,7 +185,12 @@ def test_npy_stacks_and_maps(files):
 
 def test_adc_max_from_dtype_and_from_adc_bits(files):
     imwrite(files / "data/u8.tif", stack(1, low=0, high=200, dtype=np.uint8))
-    assert read_manifest(write(files, ONE_1X.replace("1x.tif", "u8.tif"))).adc_max == 255
+    u8 = ONE_1X.replace("1x.tif", "u8.tif")
+    # an offset map above what 8-bit counts can hold: other units, or a wrong adc_bits
+    msg = error_of(write(files, u8))
+    assert "offset 588.5 at pixel (0, 0)" in msg and "at or above the ADC maximum 255 ADU" in msg
+    assert "set adc_bits in the manifest" in msg
+    assert read_manifest(write(files, u8.replace('"data/1x_S0.tif"', "50"))).adc_max == 255
     # float data default to a 16-bit ADC
     imwrite(files / "data/f.tif", stack(1).astype(np.float32))
     assert read_manifest(write(files, ONE_1X.replace("1x.tif", "f.tif"))).adc_max == 65535
@@ -318,7 +323,7 @@ def test_unreadable_and_unsupported_files(files):
 def test_stack_not_3d(files):
     imwrite(files / "data/flat.tif", stack(1)[0])
     msg = error_of(write(files, ONE_1X.replace("1x.tif", "flat.tif")))
-    assert "flat.tif" in msg and "not a 3-D" in msg and "(3, 4)" in msg
+    assert "flat.tif" in msg and "one image of 3 × 4 pixels, not a stack" in msg
 
 
 def test_stacks_of_different_shapes(files):

@@ -231,10 +231,12 @@ def test_read_band_of_a_truncated_stack_is_one_clear_error(tmp_path):
     with pytest.raises(InputError, match=r"s\.tif") as exc:
         read_band(path, 0, 8)
     assert "\n" not in str(exc.value)
-    # whole frames are read many at a time; the message still names the first incomplete
+    # the header's promise is checked against the file's size before any data are read
     from emccdcal.data.stacks import _raw_layout
 
     full = tmp_path / "full.tif"
     tifffile.imwrite(full, np.zeros((50, 8, 8), np.uint16))
-    first_missing = (path.stat().st_size - _raw_layout(full)[2]) // (8 * 8 * 2)
-    assert f"file ends inside frame {first_missing}: truncated" in str(exc.value)
+    whole = (path.stat().st_size - _raw_layout(full)[2]) // (8 * 8 * 2)
+    assert str(exc.value).endswith(f"truncated: its header describes 50 × 8 × 8 values of 2 "
+                                   f"bytes from byte 256, 6656 bytes, but the file has "
+                                   f"{path.stat().st_size}: {whole} whole frame(s) of 50")

@@ -19,6 +19,7 @@ __all__ = [
     "MissingFileError",
     "MethodError",
     "NotConvergedError",
+    "InputWarning",
     "ReadNoiseGrowthWarning",
 ]
 
@@ -52,6 +53,10 @@ class MethodError(EmccdcalError, ValueError):
 
 class NotConvergedError(EmccdcalError, RuntimeError):
     """A posterior chain did not meet the convergence criteria within its step budget."""
+
+
+class InputWarning(UserWarning):
+    """A file was read in full despite damage around its data (e.g. a TIFF's page index)."""
 
 
 class ReadNoiseGrowthWarning(UserWarning):

@@ -38,18 +38,20 @@ def add_parser(subparsers):
 
 
 def run(args) -> int:
-    import warnings
-
     from ..data.manifest import read_manifest
     from ..data.quality import check_manifest, format_report
     from ..errors import ReadNoiseGrowthWarning
+    from ._common import recording_warnings
 
-    with warnings.catch_warnings():
-        # reported in the table's findings instead
-        warnings.simplefilter("ignore", ReadNoiseGrowthWarning)
+    with recording_warnings() as caught:
         manifest = read_manifest(args.manifest)
-    report = check_manifest(manifest, k=args.k, drift_threshold=args.drift_threshold,
-                            drift_alpha=args.drift_alpha, unit_root_tests=args.unit_root_tests)
+        report = check_manifest(manifest, k=args.k, drift_threshold=args.drift_threshold,
+                                drift_alpha=args.drift_alpha,
+                                unit_root_tests=args.unit_root_tests)
+    # What the readers warned of (a damaged file) is a finding too; read-noise growth
+    # is one already.
+    read = [str(c.message) for c in caught if not issubclass(c.category, ReadNoiseGrowthWarning)]
+    report["warnings"] = list(dict.fromkeys(read)) + report["warnings"]
     if args.json:
         print(json.dumps(report, indent=2, allow_nan=False))
     elif not args.quiet:

@@ -334,6 +334,13 @@ def read_manifest(path) -> Manifest:
                 i,
                 spec["label"],
             )
+        if stack_shape[0] - spec["skip_frames"] < 2:
+            raise r.error(
+                f"'{spec['frames_path']}' has 1 frame{' after skip_frames' * bool(spec['skip_frames'])}: "
+                "a histogram of a pixel's counts needs at least 2 (a calibration, thousands)",
+                i,
+                spec["label"],
+            )
         if isinstance(spec.get("dark"), str):
             dark_shape, _ = _stack_header(r, i, spec, spec["dark_path"], "dark")
             if dark_shape[1:] != shape:
@@ -409,6 +416,16 @@ def read_manifest(path) -> Manifest:
         offset, read_noise = dark_maps[key]
         spec["offset_map"], spec["read_noise_map"] = offset.copy(), read_noise.copy()
         spec["offset_source"] = spec["read_noise_source"] = f"dark {spec['dark_path']}"
+
+    for i, spec in enumerate(specs, start=1):  # maps in other units, or a wrong adc_bits
+        for key, what in (("offset", "offset"), ("read_noise", "read noise")):
+            m = spec[key + "_map"]
+            if np.max(m) >= adc_max:
+                bad = describe_first(m, m >= adc_max, 0)
+                raise r.error(
+                    f"{what} {bad} ({spec[key + '_source']}) is at or above the ADC maximum "
+                    f"{adc_max} ADU{hint}; maps must be in ADU of these frames",
+                    i, spec["label"])
 
     acquisitions = [
         Acquisition(
@@ -593,6 +610,10 @@ def _stack_header(r: _Reader, i: int, spec: dict, p: Path, key: str):
         shape, dtype = stack_header(p)
     except InputError as exc:
         raise r.error(str(exc), i, spec["label"]) from None
+    if len(shape) == 2:
+        raise r.error(
+            f"{key} '{p}' holds one image of {shape[0]} × {shape[1]} pixels, not a stack of "
+            "frames (a stack cut short to its first frame?)", i, spec["label"])
     if len(shape) != 3:
         raise r.error(
             f"{key} '{p}' is not a 3-D (frames, rows, cols) stack: shape {shape}",

@@ -8,15 +8,19 @@ Counts, offsets and read noise are in ADU. Every problem is an
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import logging
 import os
+import re
+import warnings
 from pathlib import Path
 
 import numpy as np
 import tifffile
 
 from .._util import one_line
-from ..errors import InputError, MissingFileError
+from ..errors import InputError, InputWarning, MissingFileError
 
 __all__ = [
     "read_stack",
@@ -89,18 +93,99 @@ def read_band(path, first_row: int, stop_row: int, skip_frames: int = 0) -> np.n
 
 def _raw_layout(path: Path):
     """(shape, dtype, data offset) of a 3-D stack stored as one C-ordered block, else None."""
+    shape, dtype, offset = _layout(path)
+    return None if offset is None or len(shape) != 3 else (shape, dtype, offset)
+
+
+def _layout(path: Path):
+    """Shape, dtype (in the file's byte order) and data offset (None where the data are
+    not one C-ordered block) of a stack or map, from its header; the data must fit in
+    the file."""
     try:
         if path.suffix.lower() == ".npy":
-            mm = np.load(path, mmap_mode="r", allow_pickle=False)  # reads the header only
-            if mm.ndim != 3 or not mm.flags.c_contiguous:
-                return None
-            return tuple(mm.shape), mm.dtype, int(mm.offset)
-        shape, dtype, offset = _tiff_layout(path)
-        return None if offset is None or len(shape) != 3 else (shape, dtype, offset)
+            shape, dtype, offset = _npy_layout(path)
+            log = ()
+        else:
+            shape, dtype, offset, log = _tiff_layout(path)
     except InputError:
         raise
-    except (OSError, ValueError) as exc:
-        raise InputError(f"'{path}': cannot read: {one_line(exc)}") from exc
+    except Exception as exc:  # noqa: BLE001 - a damaged file can break a parser anywhere
+        raise InputError(f"'{path}': cannot read: {_reason(exc)}") from exc
+    if offset is not None:
+        _check_data_fits(path, shape, dtype, offset)
+    if log and _first_time(path):  # e.g. a damaged metadata tag: the frames are sound
+        warnings.warn(f"'{path}': damaged TIFF: {log[0]}"
+                      f"{f' (and {len(log) - 1} more)' if len(log) > 1 else ''}; its frames "
+                      "were read in full", InputWarning, stacklevel=3)
+    return shape, dtype, offset
+
+
+_WARNED: set = set()
+
+
+def _first_time(path: Path) -> bool:
+    """Whether this version of the file has not been warned about yet (in this process)."""
+    st = path.stat()
+    key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    if key in _WARNED:
+        return False
+    _WARNED.add(key)
+    return True
+
+
+def _npy_layout(path: Path):
+    with open(path, "rb") as fh:
+        fmt = np.lib.format
+        version = fmt.read_magic(fh)
+        read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+        shape, fortran, dtype = read(fh)
+        offset = fh.tell()
+    if dtype.hasobject:
+        raise InputError(f"'{path}': holds Python objects, not numbers")
+    # A .npy file is its header and its data, nothing after: a damaged header length
+    # (which moves the data) shows as bytes left over, or missing (_check_data_fits).
+    extra = path.stat().st_size - offset - int(np.prod(shape)) * dtype.itemsize
+    if extra > 0:
+        raise InputError(f"'{path}': damaged .npy file: {extra} bytes after the "
+                         f"{' × '.join(map(str, shape))} values its header describes")
+    return tuple(shape), dtype, (None if fortran and len(shape) > 1 else offset)
+
+
+def _check_data_fits(path: Path, shape, dtype, offset: int) -> None:
+    """A truncated file: one line saying how much of it is there."""
+    size = path.stat().st_size
+    need = offset + int(np.prod(shape)) * dtype.itemsize
+    if need <= size:
+        return
+    what = " × ".join(str(d) for d in shape)
+    whole = ""
+    if len(shape) == 3 and shape[1] * shape[2]:
+        frame = shape[1] * shape[2] * dtype.itemsize
+        whole = f": {max(0, size - offset) // frame} whole frame(s) of {shape[0]}"
+    raise InputError(f"'{path}': truncated: its header describes {what} values of "
+                     f"{dtype.itemsize} bytes from byte {offset}, {need} bytes, but the file "
+                     f"has {size}{whole}")
+
+
+@contextlib.contextmanager
+def _tifffile_log(path):
+    """Capture tifffile's log records while it reads ``path`` (it logs damaged pages
+    instead of raising): yields the list of their messages."""
+    messages: list[str] = []
+
+    class Catch(logging.Handler):
+        def emit(self, record):  # "<tifffile.TiffPages @8> invalid page offset 6656"
+            messages.append(one_line(re.sub(r"^<[^>]*>\s*", "", record.getMessage())))
+
+    logger = logging.getLogger("tifffile")
+    handler, propagate = Catch(logging.WARNING), logger.propagate
+    logger.addHandler(handler)
+    logger.propagate = False  # nothing reaches the root logger's stderr handler
+    try:
+        yield messages
+    finally:
+        logger.removeHandler(handler)
+        logger.propagate = propagate
 
 
 def describe_missing(path: Path, what: str = "file") -> str:
@@ -125,17 +210,8 @@ def check_readable(path: Path) -> Path:
 
 def stack_header(path: Path) -> tuple[tuple[int, ...], np.dtype]:
     """Shape and dtype of a stack or map from its header, without reading the data."""
-    path = check_readable(path)
-    try:
-        if path.suffix.lower() == ".npy":
-            arr = np.load(path, mmap_mode="r", allow_pickle=False)
-            return tuple(arr.shape), arr.dtype
-        shape, dtype, _ = _tiff_layout(path)
-        return shape, dtype
-    except InputError:
-        raise
-    except (OSError, ValueError) as exc:  # tifffile.TiffFileError is a ValueError
-        raise InputError(f"'{path}': cannot read: {one_line(exc)}") from exc
+    shape, dtype, _ = _layout(check_readable(path))
+    return shape, dtype
 
 
 def _tiff_layout(path: Path):
@@ -144,7 +220,8 @@ def _tiff_layout(path: Path):
 
     Finding them walks the file's page index (about 20 ms for 5000 frames), which a
     calibration would otherwise do several times per stack: it is done once per file
-    version (path, size, modification time).
+    version (path, size, modification time). Also returns what tifffile logged about
+    damaged pages (:func:`_layout` issues it as an :class:`~emccdcal.errors.InputWarning`).
     """
     st = path.stat()
     return _tiff_layout_cached(str(path.resolve()), st.st_size, st.st_mtime_ns)
@@ -152,7 +229,7 @@ def _tiff_layout(path: Path):
 
 @functools.lru_cache(maxsize=128)
 def _tiff_layout_cached(path: str, size: int, mtime_ns: int):
-    with tifffile.TiffFile(path) as tif:
+    with _tifffile_log(path) as log, tifffile.TiffFile(path) as tif:
         if not tif.series:
             raise InputError(f"'{path}': TIFF file holds no image")
         if len(tif.series) > 1:  # reading only the first would drop frames silently
@@ -164,23 +241,101 @@ def _tiff_layout_cached(path: str, size: int, mtime_ns: int):
             )
         series = tif.series[0]
         dtype = np.dtype(tif.byteorder + np.dtype(series.dtype).char)
-        return tuple(series.shape), dtype, series.dataoffset
+        shape, offset = tuple(series.shape), series.dataoffset
+        # A broken page index hides frames: whether those pages held frames of the
+        # stack cannot be known, so the stack cannot be trusted to be complete.
+        broken = [m for m in log if "page" in m.lower()]
+        if broken and offset is not None:  # say so when it is a truncation
+            _check_data_fits(Path(path), shape, dtype, offset)
+        if broken:
+            raise InputError(f"'{path}': damaged TIFF: {broken[0]}; its frames cannot all "
+                             "be found")
+        if offset is not None:
+            _check_strips(path, tif, pages=[0])
+            if len(shape) == 3:
+                _check_page_index(path, tif, shape, dtype, offset)
+        return shape, dtype, offset, tuple(log)
+
+
+def _check_strips(path, tif, pages=None) -> None:
+    """Data that overlap other data or the file's own structure (its header, a page's
+    tag list or a tag's value): a damaged page index (a moved offset or a longer byte
+    count), which would otherwise read bytes that are not counts, or another frame's.
+    ``pages``: the indices of the pages to check (default all)."""
+    fmt = tif.tiff
+    spans = [(0, 16 if fmt.offsetsize == 8 else 8, "the file header")]
+    for i in range(len(tif.pages)) if pages is None else pages:
+        page = tif.pages[i]
+        n_tags = len(page.tags)
+        spans.append((page.offset, page.offset + fmt.tagnosize + n_tags * fmt.tagsize
+                      + fmt.offsetsize, f"page {i}'s tag list"))
+        for tag in page.tags.values():
+            if tag.valuebytecount > fmt.tagoffsetthreshold:  # stored outside the list
+                spans.append((tag.valueoffset, tag.valueoffset + tag.valuebytecount,
+                              f"page {i}'s {tag.name}"))
+        spans += [(o, o + c, f"page {i}'s data")
+                  for o, c in zip(page.dataoffsets, page.databytecounts) if c]
+    spans.sort()
+    for (_, end, what), (start, _, other) in zip(spans, spans[1:]):
+        if start < end and "data" in what + other:
+            raise InputError(f"'{path}': damaged TIFF: {what} and {other} overlap "
+                             f"(byte {start})")
+
+
+def _check_page_index(path, tif, shape, dtype, offset) -> None:
+    """The frames of a contiguous stack are read from the first page's data offset on;
+    that offset, the frame size and the number of frames come from its first page (or its
+    description). The page index must agree: one page per frame, the second and the last
+    page's data where the layout puts them. A damaged first page otherwise moves or
+    reshapes every frame without a word."""
+    frame = shape[1] * shape[2] * dtype.itemsize
+    pages = tif.pages
+    pages.useframes = True  # light page objects: only their data offsets are needed
+    n = len(pages)
+    if n == 1:  # one page holding every frame
+        checked = [0]
+    elif n == shape[0]:
+        checked = sorted({0, 1, n - 1})
+    else:
+        raise InputError(f"'{path}': damaged TIFF: its first page describes {shape[0]} "
+                         f"frames but the file has {n} pages")
+    for i in checked:
+        found = pages[i].dataoffsets[0] if pages[i].dataoffsets else None
+        if found != offset + i * frame:
+            raise InputError(f"'{path}': damaged TIFF: frame {i}'s data are at byte "
+                             f"{found}, not at {offset + i * frame} where its first page "
+                             "puts them")
 
 
 def load_stack(path: Path) -> np.ndarray:
     """A stack or map: a read-only memory map where possible, else the data in memory."""
     path = check_readable(path)
+    shape, dtype, offset = _layout(path)  # a TIFF: one image series, or an error
     try:
-        if path.suffix.lower() == ".npy":
+        if offset is not None:
+            return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape)
+        if path.suffix.lower() == ".npy":  # Fortran order
             return np.load(path, mmap_mode="r", allow_pickle=False)
-        shape, dtype, offset = _tiff_layout(path)  # one image series, or an error
-        if offset is None:  # compressed, tiled or scattered pages: not memory-mappable
-            return tifffile.imread(path)
-        return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape)
+        # Compressed, tiled or scattered pages: decoded into memory. tifffile logs a page
+        # it cannot decode and fills it with zeros: that is an error here.
+        with _tifffile_log(path) as log, tifffile.TiffFile(path) as tif:
+            _check_strips(path, tif)
+            data = tif.series[0].asarray()
+        if log:
+            raise InputError(f"'{path}': cannot read: {log[0]}")
+        return data
     except InputError:
         raise
-    except (OSError, ValueError) as exc:
-        raise InputError(f"'{path}': cannot read: {one_line(exc)}") from exc
+    except Exception as exc:  # noqa: BLE001 - a damaged file can break a parser anywhere
+        raise InputError(f"'{path}': cannot read: {_reason(exc)}") from exc
+
+
+def _reason(exc: BaseException) -> str:
+    """One line for an exception a parser raised on a damaged file: its message, or for a
+    bare internal error (a TypeError deep in a parser) its kind."""
+    if isinstance(exc, (OSError, ValueError, EOFError)):
+        return one_line(exc)
+    return f"the file is damaged ({type(exc).__name__}: {one_line(exc)})"
 
 
 def default_adc_max(dtype) -> int:

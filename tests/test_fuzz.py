@@ -1,0 +1,196 @@
+"""Property-based fuzzing of the input layer: manifests and the stack readers.
+
+The invariant: a damaged input gives either the clean result (what the undamaged files
+give) or one clear error, an :class:`emccdcal.EmccdcalError` whose message is one line
+naming the file; never a traceback from inside a library, never a different result
+without a word. "The result" here is what a calibration reads: the manifest's
+acquisitions, maps and every frame of every stack (``read_band``).
+
+Byte flips inside a stack's pixel data change the counts: the file then holds other,
+valid counts, which no reader can tell from the original. For those the expected result
+is the original with that byte flipped; everywhere else (headers, page index, maps) it is
+the original itself.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from emccdcal.data.manifest import read_manifest
+from emccdcal.data.stacks import _layout, read_band
+from emccdcal.errors import EmccdcalError
+
+ROWS, COLS, FRAMES = 3, 4, 12
+FUZZ = settings(max_examples=int(os.environ.get("FUZZ_EXAMPLES", 700)), deadline=None,
+                derandomize=not os.environ.get("FUZZ_EXAMPLES"),
+                suppress_health_check=[HealthCheck.too_slow])
+
+MANIFEST = """\
+e_per_adu = 3.859
+adc_bits = 16
+
+[[acquisition]]
+name = "1x"
+frames = "1x.tif"
+em_gain_setpoint = 1
+offset = "S0.tif"
+read_noise = "sigma.tif"
+
+[[acquisition]]
+name = "25x"
+frames = "25x.npy"
+em_gain_setpoint = 25
+offset = 588.0
+read_noise = 15.5
+skip_frames = 2
+"""
+
+
+def _frames(seed, low, high):
+    return np.random.default_rng(seed).integers(low, high, (FRAMES, ROWS, COLS)).astype(np.uint16)
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory):
+    """A valid manifest folder and what a calibration reads of it."""
+    d = tmp_path_factory.mktemp("clean")
+    tifffile.imwrite(d / "1x.tif", _frames(1, 600, 700), photometric="minisblack")
+    np.save(d / "25x.npy", _frames(2, 600, 4000))
+    tifffile.imwrite(d / "S0.tif", np.full((ROWS, COLS), 588.5, np.float32),
+                     photometric="minisblack")
+    tifffile.imwrite(d / "sigma.tif", np.full((ROWS, COLS), 15.2, np.float32),
+                     photometric="minisblack")
+    (d / "manifest.toml").write_text(MANIFEST)
+    return d, _read(d / "manifest.toml")
+
+
+def _read(path):
+    """What a calibration reads: per acquisition (setpoint, skip, offset, read noise, frames)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a damaged page index read in full warns
+        m = read_manifest(path)
+        return [(a.em_gain_setpoint, a.skip_frames, np.array(a.offset), np.array(a.read_noise),
+                 read_band(a.frames_path, 0, ROWS, a.skip_frames)) for a in m.acquisitions]
+
+
+def _same(a, b) -> bool:
+    return len(a) == len(b) and all(
+        x[0] == y[0] and x[1] == y[1] and all(np.array_equal(u, v) for u, v in zip(x[2:], y[2:]))
+        for x, y in zip(a, b))
+
+
+def _outcome(folder: Path, damaged: str):
+    """The reading's result, or None after a clear error (asserted here)."""
+    try:
+        return _read(folder / "manifest.toml")
+    except EmccdcalError as exc:
+        msg = str(exc)
+        assert "\n" not in msg, msg
+        assert damaged in msg or "manifest.toml" in msg, msg
+        return None
+
+
+#: Where a file's values land in what :func:`_read` returns: (acquisition, field).
+WHERE = {"1x.tif": (0, 4), "25x.npy": (1, 4), "S0.tif": (0, 2)}
+
+
+def _data_span(path: Path):
+    shape, dtype, offset = _layout(path)
+    return offset, offset + int(np.prod(shape)) * dtype.itemsize
+
+
+@pytest.mark.parametrize("name", ["1x.tif", "25x.npy", "S0.tif"])
+@FUZZ
+@given(data=st.data())
+def test_damaged_file_gives_the_clean_result_or_one_clear_error(clean, name, data):
+    folder, expected = clean
+    original = (folder / name).read_bytes()
+    damaged = bytearray(original)
+    flips = data.draw(st.lists(st.tuples(st.integers(0, len(original) - 1),
+                                         st.integers(1, 255)), max_size=3), label="flips")
+    for at, xor in flips:
+        damaged[at] ^= xor
+    cut = data.draw(st.one_of(st.none(), st.integers(0, len(original))), label="truncate at")
+    if cut is not None:
+        damaged = damaged[:cut]
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        shutil.copytree(folder, tmp, dirs_exist_ok=True)
+        (tmp / name).write_bytes(bytes(damaged))
+        got = _outcome(tmp, name)
+    if got is None:
+        return
+    # Read without an error: the clean result, except for values whose bytes were flipped.
+    lo, hi = _data_span(folder / name)
+    in_data = [(at, xor) for at, xor in flips if lo <= at < hi]
+    if in_data:
+        raw = bytearray(original)
+        for at, xor in in_data:
+            raw[at] ^= xor
+        a, field = WHERE[name]
+        old = expected[a][field]
+        shape, dtype, _ = _layout(folder / name)
+        values = np.frombuffer(bytes(raw[lo:hi]), dtype=dtype).reshape(shape)
+        if field == 4:  # the frames from skip_frames on
+            values = values[expected[a][1]:]
+        expected = list(expected)
+        expected[a] = tuple(values.astype(old.dtype) if i == field else v
+                            for i, v in enumerate(expected[a]))
+    assert _same(got, expected), f"silently different result after {flips}, cut {cut}"
+
+
+KEYS = ["e_per_adu", "adc_bits", "name", "frames", "em_gain_setpoint", "offset",
+        "read_noise", "skip_frames", "dark", "dark_frames", "level", "acquisition"]
+VALUES = st.one_of(
+    st.integers(-10**6, 10**6), st.floats(allow_nan=True, allow_infinity=True),
+    st.booleans(), st.text(max_size=12), st.sampled_from(['"1x.tif"', '"S0.tif"', '"nope.tif"']),
+    st.lists(st.integers(-3, 3), max_size=3),
+)
+
+
+def _toml_value(v):
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return {"nan": "nan", "inf": "inf", "-inf": "-inf"}.get(repr(v), repr(v))
+    if isinstance(v, str) and not v.startswith('"'):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, list):
+        return "[" + ", ".join(str(x) for x in v) + "]"
+    return str(v)
+
+
+@FUZZ
+@given(lines=st.lists(st.one_of(
+    st.tuples(st.sampled_from(KEYS), VALUES).map(lambda kv: f"{kv[0]} = {_toml_value(kv[1])}"),
+    st.sampled_from(["[[acquisition]]", "[acquisition]", "[[dark]]", "", "# c", "x =", "= 3",
+                     '"unterminated', "[[acquisition]]\nframes = \"1x.tif\"\nem_gain_setpoint = 1"]),
+    st.text(max_size=20)), max_size=12))
+def test_random_toml_gives_a_manifest_or_one_clear_error(clean, lines):
+    folder, _ = clean
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        shutil.copytree(folder, tmp, dirs_exist_ok=True)
+        (tmp / "manifest.toml").write_text("\n".join(lines), encoding="utf-8", errors="replace")
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                m = read_manifest(tmp / "manifest.toml")
+        except EmccdcalError as exc:
+            assert "\n" not in str(exc) and "manifest.toml" in str(exc), str(exc)
+            return
+        # A manifest that reads is a usable one: every acquisition has its frames and maps.
+        assert m.acquisitions
+        for a in m.acquisitions:
+            assert a.n_frames >= 2 and a.offset.shape == a.shape == m.shape
+            assert np.all(np.isfinite(a.offset)) and np.all(a.read_noise > 0)
