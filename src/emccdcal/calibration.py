@@ -45,6 +45,9 @@ __all__ = ["METHODS", "INTERVALS", "DEFAULT_BLOCK", "DEFAULT_TILE_PIXELS", "Tile
            "calibrate", "plan_tiles", "run_tile", "format_summary"]
 
 METHODS = ("mv-adu", "mv-gain") + layouts.LIKELIHOOD_METHODS
+#: Methods that hold φ (e⁻/ADU) fixed at a given value, and those that estimate it.
+ESTIMATE_E_PER_ADU = ("mv-adu", "is-adu")
+FIXED_E_PER_ADU = tuple(m for m in METHODS if m not in ESTIMATE_E_PER_ADU)
 #: Interval kinds of :func:`calibrate`: ``estimate ± 1.96 SE`` only, or profile bounds too.
 INTERVALS = ("wald", "profile")
 
@@ -117,6 +120,7 @@ class TileJob:
     threads: int
     checks: bool
     fft_threads: int | None = None
+    e_per_adu_se: np.ndarray | None = None
 
     @property
     def key(self) -> str:
@@ -172,6 +176,8 @@ def run_tile(job: TileJob, progress=None) -> dict:
         for name, value in (q or {}).items():
             out[f"{_QUALITY}{a}_{name}"] = value
     usable = np.all([u for _, (u, _), _ in read_back], axis=0)
+    if job.e_per_adu is not None:  # a chained φ is NaN where its own fit failed
+        usable &= np.isfinite(job.e_per_adu)
     out["usable"] = usable
     fitted = np.flatnonzero(usable)
     data = [d for d, _, _ in read_back]
@@ -225,7 +231,15 @@ def _fit_pixels(job, frames, usable, progress=None):
                                 None if job.e_per_adu is None else job.e_per_adu[idx])
         layout, x0 = layouts.build_layout(method, series, job.options)
         fit = engine.fit(layout, blocks, x0)
-        e = layouts.acquisition_estimates(layout, fit.x, fit.cov)
+        cov = fit.cov
+        if job.e_per_adu_se is not None:  # φ's own error moves every E and g together
+            sens = engine.e_per_adu_sensitivity(layout, blocks, fit.x)
+            rel_var = (job.e_per_adu_se[idx] / job.e_per_adu[idx]) ** 2
+            cov = cov + rel_var[:, None, None] * sens[:, :, None] * sens[:, None, :]
+        e = layouts.acquisition_estimates(layout, fit.x, cov)
+        if job.e_per_adu is not None:  # φ given: its error is known only when chained
+            se = np.nan if job.e_per_adu_se is None else job.e_per_adu_se[idx][:, None]
+            e["e_per_adu_se"] = np.broadcast_to(se, e["e_per_adu"].shape).copy()
         if bounds is not None:
             e.update(bounds[0](layout, blocks, fit))
         # Goodness of fit per acquisition; a free parameter shared by k acquisitions
@@ -329,7 +343,7 @@ def _run_tiles(jobs, store, scheduler, progress, method):
     return [done[job.key] for job in jobs]
 
 
-def _fingerprint(manifest, used, method, options, intervals, checks, map_errors, phi_map,
+def _fingerprint(manifest, used, method, options, intervals, checks, map_errors, phi_map, phi_se,
                  tiling):
     """What a calibration's result depends on, to refuse resuming a different run."""
     files = {}
@@ -338,11 +352,13 @@ def _fingerprint(manifest, used, method, options, intervals, checks, map_errors,
         paths += [Path(src.removeprefix("dark ")) for src in (a.offset_source, a.read_noise_source)
                   if not src.startswith("value ")]
     if manifest.e_per_adu_source and not manifest.e_per_adu_source.startswith("value "):
-        paths.append(Path(manifest.e_per_adu_source))
+        paths.append(Path(manifest.e_per_adu_source.removeprefix("result ")))
     for p in paths:
         st = Path(p).stat()
         files[str(Path(p).resolve())] = [st.st_size, st.st_mtime_ns]
     phi = None if phi_map is None else hashlib.sha256(np.ascontiguousarray(phi_map)).hexdigest()
+    if phi_se is not None:
+        phi += hashlib.sha256(np.ascontiguousarray(phi_se)).hexdigest()
     return {
         "emccdcal_version": __version__,
         "manifest_sha256": manifest.content_hash,
@@ -388,8 +404,12 @@ def calibrate(
     method : str
         One of :data:`METHODS`: ``mv-adu``, ``mv-gain``, ``is-adu``, ``is-gain``, ``gs``,
         ``gs-no1x``, ``gs-hierarchical``.
-    e_per_adu : float or ndarray (rows, cols), optional
-        φ (e⁻/ADU) overriding the manifest's, for the methods that hold it fixed.
+    e_per_adu : float, ndarray (rows, cols), str or Path, optional
+        φ (e⁻/ADU) overriding the manifest's, for the methods that hold it fixed (an
+        error for ``is-adu`` and ``mv-adu``, which estimate it): a number, a map, or the
+        path of an ``is-adu`` or ``mv-adu`` result (``calibration.nc`` or its directory),
+        whose φ and standard error per pixel are then used: the standard errors of E and
+        g include φ's (:func:`emccdcal.fit.engine.e_per_adu_sensitivity`).
     out : str or Path, optional
         Directory to write ``calibration.nc`` and ``summary.json`` into; finished tiles
         are kept there while the run goes on (:mod:`emccdcal.runstore`).
@@ -458,6 +478,9 @@ def calibrate(
     if intervals == "profile" and method.startswith("mv-"):
         raise MethodError(f"{method} has no likelihood: profile intervals need a "
                           f"likelihood method ({method} results always carry Fieller bounds)")
+    if e_per_adu is not None and method in ESTIMATE_E_PER_ADU:
+        raise OptionError(f"{method} estimates e_per_adu itself: a given e_per_adu is for "
+                          f"the methods that hold it fixed ({', '.join(FIXED_E_PER_ADU)})")
     block_size = check_int("block_size", block_size)
     tile_pixels = check_int("tile_pixels", tile_pixels)
     workers = os.cpu_count() if workers is None else check_int("workers", workers)
@@ -468,9 +491,21 @@ def calibrate(
                                  block_size, tile_pixels, scheduler, options, progress,
                                  workers, checks, map_errors, intervals),
     )
+    _require_convergence(ds, method)
     if out is not None:  # the result's files as one set; the kept tiles go last
         result.save(ds, out, seconds=ds.attrs["seconds"], cleanup=Path(out) / RUN_DIR)
     return ds
+
+
+def _require_convergence(ds, method) -> None:
+    """A method that fails for most pixels has no result to give: an error, not numbers."""
+    ok = int(ds.converged.values.sum())
+    total = int(ds.converged.size)
+    if ok * 2 < total:
+        raise MethodError(
+            f"method {method}: only {ok} of {total} pixels converged, so there is no "
+            "calibration to report (nothing was written); check the offset and read-noise "
+            "maps against the data, the set-points and whether the method suits the data")
 
 
 def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_size,
@@ -479,7 +514,7 @@ def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_
     manifest = _load(manifest)
     acqs = manifest.acquisitions
     rows, cols = manifest.shape
-    phi_map = e_per_adu_map(manifest.e_per_adu if e_per_adu is None else e_per_adu, (rows, cols))
+    phi_map, phi_se, phi_source = _e_per_adu_inputs(manifest, e_per_adu)
     setpoints_all = [a.em_gain_setpoint for a in acqs]
     options = layouts.check_options(method, options)  # before any stack is read
     if method.startswith("mv-"):
@@ -493,12 +528,13 @@ def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_
     store = None
     if out is not None:  # an unwritable or occupied output is found before any computing
         store = RunStore(out, _fingerprint(
-            manifest, used, method, options, intervals, checks, map_errors, phi_map,
+            manifest, used, method, options, intervals, checks, map_errors, phi_map, phi_se,
             (block_size, tiles[0][1] - tiles[0][0])), resume=resume, overwrite=overwrite)
     dark_frames, map_groups, se_note = _map_error_sources(used, map_errors)
     offsets = np.stack([a.offset.reshape(-1) for a in used])
     read_noise = np.stack([a.read_noise.reshape(-1) for a in used])
     phi = None if phi_map is None else phi_map.reshape(-1)
+    phi_se_flat = None if phi_se is None else phi_se.reshape(-1)
     jobs = []
     for p0, p1 in tiles:
         px = slice(p0, p1)
@@ -508,6 +544,8 @@ def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_
             setpoints=tuple(float(a.em_gain_setpoint) for a in used),
             labels=tuple(_labels(used)), offsets=offsets[:, px], read_noise=read_noise[:, px],
             e_per_adu=None if phi is None or method.startswith("mv-") else phi[px],
+            e_per_adu_se=(None if phi_se_flat is None or method.startswith("mv-")
+                          else phi_se_flat[px]),
             dark_frames=tuple(dark_frames), map_groups=tuple(map_groups),
             adc_max=int(manifest.adc_max), options=options, intervals=intervals,
             block_size=block_size, threads=workers if scheduler is None else 1,
@@ -522,12 +560,18 @@ def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_
     for w in messages:
         warnings.warn(w, stacklevel=2)
     if method.startswith("mv-"):
-        ds = _mv_dataset(method, manifest, used, arrays, phi_map)
+        ds = _mv_dataset(method, manifest, used, arrays, phi_map, phi_se)
         ds.attrs["standard_errors"] = "from the photon-transfer fit, conditional on the offset maps"
     else:
         ds = _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, options,
                                  intervals)
         ds.attrs["standard_errors"] = se_note
+    if phi_source is not None:
+        ds.attrs["e_per_adu_source"] = phi_source
+    if phi_se is not None:
+        ds.attrs["standard_errors"] += (
+            f"; and the error of e_per_adu ({phi_source}): it moves every E and g of a pixel "
+            "together (delta method through the likelihood, or the photon-transfer formulas)")
     if report is not None:
         ds.attrs["quality"] = json.dumps(report)
     return ds
@@ -573,6 +617,43 @@ def _quality(manifest, used, parts, tiles):
         return None, [f"data-quality checks skipped: {exc}"]
     grown = set(manifest.warnings)  # read-noise growth was already reported by the manifest
     return report, [w for w in report["warnings"] if not any(w in g or g in w for g in grown)]
+
+
+def _e_per_adu_inputs(manifest, e_per_adu):
+    """φ (e⁻/ADU) map, its standard-error map (or None) and where they came from (or None).
+
+    ``e_per_adu`` (else the manifest's) is a number, a (rows, cols) map, or the path of an
+    ``is-adu`` or ``mv-adu`` result (its ``calibration.nc`` or directory): that result's
+    φ and standard error per pixel, NaN where it did not converge.
+    """
+    shape = manifest.shape
+    if e_per_adu is None:
+        source = manifest.e_per_adu_source
+        if source is None or not source.startswith("result "):
+            return e_per_adu_map(manifest.e_per_adu, shape), None, source
+        e_per_adu = Path(source.removeprefix("result "))
+    if isinstance(e_per_adu, (str, Path)):
+        from .data.manifest import is_result_path
+
+        path = Path(e_per_adu)
+        if not is_result_path(path):
+            raise OptionError(f"e_per_adu '{path}' is not a calibration result (a .nc file or "
+                              "a result directory); give a number, a map or a result")
+        ds = result.load(path)
+        if ds.attrs.get("method") not in ("is-adu", "mv-adu"):
+            raise OptionError(f"e_per_adu from '{path}': a {ds.attrs.get('method')} result "
+                              "does not estimate e_per_adu; chain an is-adu or mv-adu result")
+        phi = np.asarray(ds.e_per_adu.values, dtype=float)
+        se = np.asarray(ds.e_per_adu_se.values, dtype=float)
+        if phi.shape != tuple(shape):
+            raise OptionError(f"e_per_adu from '{path}': its pixels {phi.shape} are not the "
+                              f"manifest's {tuple(shape)} (calibrate the same region)")
+        ok = np.asarray(ds.converged.values, dtype=bool) & np.isfinite(phi) & (phi > 0)
+        if not ok.any():
+            raise OptionError(f"e_per_adu from '{path}': no pixel of that result converged")
+        phi, se = np.where(ok, phi, np.nan), np.where(ok, se, np.nan)
+        return phi, se, f"result {path}"
+    return e_per_adu_map(e_per_adu, shape), None, "given"
 
 
 def _select_mv(method, setpoints, has_phi):
@@ -634,7 +715,7 @@ def _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, opt
         "gof_pvalue": ((per_acq_dim, "row", "col"), grid(gof_p), "1",
                        "p-value of the binned chi-square goodness-of-fit test"),
     }
-    fixed_phi_se = np.full((rows, cols), np.nan)
+    fixed_phi_se = grid(est["e_per_adu_se"][:, 0])  # NaN unless φ came with its error
     common = dict(loglik=grid(loglik), converged=grid(converged),
                   manifest_hash=manifest.content_hash,
                   manifest_path=str(manifest.path.resolve()), extra=extra)
@@ -699,7 +780,7 @@ def _add_interval_vars(ds, bounds, kind, description):
     ds.attrs["intervals"] = description
 
 
-def _mv_dataset(method, manifest, used, arrays, phi_map):
+def _mv_dataset(method, manifest, used, arrays, phi_map, phi_se=None):
     """The result of a mean–variance method from the moments of every tile's pixels."""
     rows, cols = manifest.shape
     offsets = np.stack([a.offset.reshape(-1) for a in used])
@@ -725,12 +806,14 @@ def _mv_dataset(method, manifest, used, arrays, phi_map):
         bounds = {"e_per_adu": (grid(fit.e_per_adu_lower), grid(fit.e_per_adu_upper))}
     else:
         phi = phi_map.ravel()
-        fit = mv.fit_mv_gain(mean, var, offsets, read_noise, n, phi, np.asarray(setpoints))
+        fit = mv.fit_mv_gain(mean, var, offsets, read_noise, n, phi, np.asarray(setpoints),
+                             e_per_adu_se=None if phi_se is None else phi_se.ravel())
         by_level = len(set(setpoints)) == 1 and len(setpoints) > 1
         ds = result.make_dataset(
             method=method, setpoints=[float(s) for s in fit.setpoints],
             levels=labels if by_level else None,
-            e_per_adu=phi_map, e_per_adu_se=np.full((rows, cols), np.nan),
+            e_per_adu=phi_map,
+            e_per_adu_se=np.full((rows, cols), np.nan) if phi_se is None else phi_se,
             em_gain=grid(fit.em_gain), em_gain_se=grid(fit.em_gain_se),
             photoelectrons=grid(fit.photoelectrons), photoelectrons_se=grid(fit.photoelectrons_se),
             photoelectrons_dims=(("level" if by_level else "setpoint"), "row", "col"),
@@ -752,11 +835,12 @@ def format_summary(ds):
     """A short human-readable table of a calibration (median over converged pixels)."""
     ok = ds.converged.values
     lines = [f"method {ds.attrs['method']}: {int(ok.sum())}/{ok.size} pixels converged, "
-             f"{ds.attrs.get('seconds', float('nan')):.1f} s"]
+             f"{ds.attrs.get('seconds', float('nan')):.1f} s; medians over those"]
+    if not ok.any():
+        return lines[0].replace("; medians over those", "; no estimate to show")
 
     def med(v):
-        vals = np.asarray(v)[..., ok] if ok.any() else np.asarray(v).reshape(v.shape[:-2] + (-1,))
-        return np.nanmedian(vals, axis=-1)
+        return np.nanmedian(np.asarray(v)[..., ok], axis=-1)
 
     lines.append(f"  e_per_adu  {med(ds.e_per_adu.values):.4f} e-/ADU "
                  f"(adu_per_e {1 / med(ds.e_per_adu.values):.4f} ADU/e-)")

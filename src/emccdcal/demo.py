@@ -76,9 +76,9 @@ def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication="gamm
         warnings.simplefilter("always")
         adu = calibrate(adu_sim.manifest, "is-adu", out=outdir / "result-is-adu",
                         progress=progress)
-        phi = adu.e_per_adu.values
-        gs = calibrate(gs_sim.manifest, "gs", e_per_adu=phi, out=outdir / "result-gs",
-                       progress=progress)
+        # φ chained from step 1 with its standard error, which the gains' errors include
+        gs = calibrate(gs_sim.manifest, "gs", e_per_adu=outdir / "result-is-adu",
+                       out=outdir / "result-gs", progress=progress)
         html = None
         if report:
             from .report.html import REPORT_FILE, write_report
@@ -108,8 +108,8 @@ def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication="gamm
     n_ok = int(gs.converged.sum()) + int(adu.converged.sum())
     print(f"\n  {n_ok}/{2 * rows * cols} pixel fits converged; "
           f"{adu.attrs['seconds'] + gs.attrs['seconds']:.1f} s of calibration", file=out)
-    print("  (medians over pixels; the SE of e_per_adu from step 1 is not propagated into "
-          "step 2)", file=out)
+    print("  (medians over pixels; the SEs of step 2 include that of e_per_adu from step 1)",
+          file=out)
     print(f"  results: {outdir / 'result-is-adu'}, {outdir / 'result-gs'}", file=out)
     for w in dict.fromkeys(str(c.message) for c in caught):
         print(f"  warning: {w}", file=out)

@@ -53,8 +53,19 @@ def add_no_figures(p: argparse.ArgumentParser) -> None:
 
 
 def add_e_per_adu(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--e-per-adu", type=positive_float, default=None, metavar="PHI",
-                   help="ADU conversion factor phi, e-/ADU, overriding the manifest's")
+    p.add_argument("--e-per-adu", type=number_or_path, default=None, metavar="PHI",
+                   help="ADU conversion factor phi, e-/ADU, overriding the manifest's: a "
+                   "number, or an is-adu or mv-adu result (its directory or calibration.nc), "
+                   "whose phi and standard error per pixel are then used")
+
+
+def number_or_path(text: str):
+    """An argparse type: a positive number, or else a path (checked by the library)."""
+    try:
+        float(text)
+    except ValueError:
+        return Path(text)
+    return positive_float(text)
 
 
 def positive_float(text: str) -> float:

@@ -145,7 +145,9 @@ class Manifest:
         ADU conversion factor φ, e⁻/ADU, if given: a number stays a number, a map file
         gives a map.
     e_per_adu_source : str or None
-        The map file, ``"value <number>"``, or None when ``e_per_adu`` is absent.
+        The map file, ``"value <number>"``, ``"result <path>"`` (φ and its standard
+        error from an ``is-adu`` or ``mv-adu`` result, read by the calibration; then
+        ``e_per_adu`` is None), or None when ``e_per_adu`` is absent.
     acquisitions : list of Acquisition
         In manifest order.
     shape : tuple of int
@@ -307,7 +309,12 @@ def read_manifest(path) -> Manifest:
         for key in ("frames", "dark", "offset", "read_noise"):
             if isinstance(spec.get(key), str):
                 _require_file(r, i, spec, key)
-    if isinstance(e_value, str):
+    e_result = None  # e_per_adu chained from an is-adu or mv-adu result
+    if isinstance(e_value, str) and is_result_path(r.resolve(e_value)):
+        e_result = r.resolve(e_value)
+        if not e_result.exists():
+            raise r.error(f"e_per_adu: {describe_missing(e_result, 'result')}")
+    elif isinstance(e_value, str):
         _require_file(r, None, {"e_per_adu": e_value, "label": ""}, "e_per_adu")
 
     shape = None
@@ -371,7 +378,9 @@ def read_manifest(path) -> Manifest:
 
     # ---- maps: shape and values --------------------------------------------------------
     e_per_adu, e_source = None, None
-    if e_value is not None:
+    if e_result is not None:  # read by the calibration, with its standard errors
+        e_source = f"result {e_result}"
+    elif e_value is not None:
         e_per_adu, e_source = _map_from_value(r, None, {"label": ""}, "e_per_adu", e_value, shape)
     for i, spec in enumerate(specs, start=1):
         for key in ("offset", "read_noise"):
@@ -469,13 +478,23 @@ def read_manifest(path) -> Manifest:
     )
 
 
+def is_result_path(path: Path) -> bool:
+    """Whether ``path`` names a calibration result: a ``.nc`` file or a directory."""
+    return path.suffix.lower() == ".nc" or path.is_dir()
+
+
 def _check_map_value(r: _Reader, key: str, value, entry: int | None, label: str) -> None:
     """A map-valued key holds a path (string) or a number within its range."""
     positive, nonnegative = _MAP_RULES[key]
     if isinstance(value, str):
         if not value.strip():
             raise r.error(f"'{key}' is an empty path", entry, label)
-        return
+        try:
+            number = float(value)
+        except ValueError:
+            return
+        raise r.error(f"{key} = \"{value}\" is a string, which names a map file; write the "
+                      f"number without quotes: {key} = {number:g}", entry, label)
     if not _is_number(value):
         raise r.error(
             f"'{key}' must be a number or the path of a (rows, cols) map, got {value!r}",

@@ -27,7 +27,8 @@ import numpy as np
 
 from ..model import noise
 
-__all__ = ["AcquisitionBlock", "FitResult", "Layout", "fit", "log_likelihood", "profile_bounds"]
+__all__ = ["AcquisitionBlock", "FitResult", "Layout", "fit", "log_likelihood", "profile_bounds",
+           "e_per_adu_sensitivity"]
 
 # Values whose model probability is below this fraction of the pixel's peak are beyond
 # what the FFT resolves (round-off ~1e-16 of the peak): they count at this floor, with
@@ -512,6 +513,43 @@ def _invert(H):
         except np.linalg.LinAlgError:  # positive eigenvalues, yet numerically singular
             pos[i] = False
     return cov, pos
+
+
+@dataclass
+class _PhiFree:
+    """A layout with one more free parameter (last): a shift of ln φ in every acquisition."""
+
+    base: object
+
+    def subset(self, idx):
+        return _PhiFree(self.base.subset(idx))
+
+    def native(self, x):
+        logs, jac = self.base.native(x[:, :-1])
+        logs = logs.copy()
+        logs[:, :, 2] += x[:, -1:]
+        shift = np.zeros(jac.shape[:-1] + (1,))
+        shift[:, :, 2, 0] = 1.0
+        return logs, np.concatenate([jac, shift], axis=-1)
+
+    def log_prior(self, x):
+        value, grad, hess = self.base.log_prior(x[:, :-1])
+        P, F = x.shape
+        grad_full, hess_full = np.zeros((P, F)), np.zeros((P, F, F))
+        grad_full[:, :-1], hess_full[:, :-1, :-1] = grad, hess
+        return value, grad_full, hess_full
+
+
+def e_per_adu_sensitivity(layout, blocks, x):
+    """How the estimate moves with a fixed φ: d x̂ / d ln φ (P, F), at the estimate ``x``.
+
+    The estimate solves ∂ℓ/∂x = 0 at the given φ, so by the implicit function theorem
+    d x̂/d ln φ = −(∂²ℓ/∂x²)⁻¹ ∂²ℓ/∂x ∂ln φ: both from the observed information of the
+    layout with ln φ freed as one more parameter. An error of ln φ of variance v then adds
+    ``v · J Jᵀ`` to the covariance of x̂: it moves every E and g of a pixel together.
+    """
+    info = _evaluate(_PhiFree(layout), blocks, np.column_stack([x, np.zeros(len(x))]), 2)[4]
+    return -_solve(info[:, :-1, :-1], info[:, :-1, -1])
 
 
 @dataclass
