@@ -194,3 +194,56 @@ def test_random_toml_gives_a_manifest_or_one_clear_error(clean, lines):
         for a in m.acquisitions:
             assert a.n_frames >= 2 and a.offset.shape == a.shape == m.shape
             assert np.all(np.isfinite(a.offset)) and np.all(a.read_noise > 0)
+
+
+# --------------------------------------------------------------------------------------
+# The damaged files of a user's report, each as one case
+# --------------------------------------------------------------------------------------
+def _copy(clean, tmp_path):
+    folder, _ = clean
+    shutil.copytree(folder, tmp_path, dirs_exist_ok=True)
+    return tmp_path
+
+
+def test_truncated_stack_names_manifest_acquisition_and_file(clean, tmp_path, capsys):
+    from emccdcal import cli
+
+    d = _copy(clean, tmp_path)
+    data = (d / "1x.tif").read_bytes()
+    (d / "1x.tif").write_bytes(data[:400])  # inside the pixel data of frame 5
+    assert cli.main(["check", str(d / "manifest.toml")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "tifffile" not in err.lower().replace("tifffile.py", "")
+    assert "manifest.toml: acquisition 1 (1x)" in err or "manifest.toml: acquisition 1" in err
+    assert "1x.tif': truncated: its header describes 12 × 3 × 4 values" in err
+    assert "whole frame(s) of 12" in err
+
+
+def test_stack_cut_to_one_frame_and_one_frame_stacks(clean, tmp_path):
+    d = _copy(clean, tmp_path)
+    tifffile.imwrite(d / "1x.tif", _frames(1, 600, 700)[0], photometric="minisblack")
+    with pytest.raises(EmccdcalError, match=r"acquisition 1 .*holds one image of 3 × 4 "
+                                            r"pixels, not a stack of frames"):
+        read_manifest(d / "manifest.toml")
+    tifffile.imwrite(d / "1x.tif", _frames(1, 600, 700)[:1], photometric="minisblack")
+    with pytest.raises(EmccdcalError, match=r"acquisition 1 .*has 1 frame: a histogram of "
+                                            r"a pixel's counts needs at least 2"):
+        read_manifest(d / "manifest.toml")
+
+
+def test_tifffile_log_lines_do_not_reach_the_terminal(clean, tmp_path, capfd):
+    # a damaged tag outside the frames: read in full, with one warning naming the file
+    d = _copy(clean, tmp_path)
+    raw = bytearray((d / "1x.tif").read_bytes())
+    with tifffile.TiffFile(d / "1x.tif") as tif:
+        software = tif.pages[0].tags["Software"]
+        at = software.offset + 10  # the third byte of the tag's value offset
+    raw[at] ^= 0x01  # now beyond the end of the file
+    (d / "1x.tif").write_bytes(bytes(raw))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        read_manifest(d / "manifest.toml")
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""
+    damaged = [str(w.message) for w in caught if "damaged TIFF" in str(w.message)]
+    assert len(damaged) == 1 and "1x.tif" in damaged[0] and "read in full" in damaged[0]

@@ -163,7 +163,8 @@ def run_tile(job: TileJob, progress=None) -> dict:
         path, skip = job.frames[a]
         band = read_band(path, r0, r1, skip)
         own = band.reshape(band.shape[0], 1, -1)[:, :, p0 - r0 * job.cols:p1 - r0 * job.cols]
-        q = quality.band_statistics(own, job.adc_max) if job.checks else None
+        q = (quality.band_statistics(own, job.adc_max, third=job.setpoints[a] == 1)
+             if job.checks else None)
         # The likelihood methods histogram each block's pixels as they fit it (the
         # threads then share the work evenly); the mean–variance methods need moments.
         data = stats.histograms(own, adc_max=job.adc_max) if mean_variance else own
@@ -491,10 +492,27 @@ def calibrate(
                                  block_size, tile_pixels, scheduler, options, progress,
                                  workers, checks, map_errors, intervals),
     )
-    _require_convergence(ds, method)
     if out is not None:  # the result's files as one set; the kept tiles go last
         result.save(ds, out, seconds=ds.attrs["seconds"], cleanup=Path(out) / RUN_DIR)
     return ds
+
+
+def _warn_gain_order(ds) -> None:
+    """The EM gain rises with the set-point on every camera: a measured gain that falls
+    means set-points swapped (or mislabelled) in the manifest."""
+    sp = ds.setpoint.values
+    if sp.size < 2:
+        return
+    ok = ds.converged.values
+    gains = [float(np.nanmedian(ds.em_gain.values[i][ok])) for i in range(sp.size)]
+    order = np.argsort(sp)
+    for lo, hi in zip(order, order[1:]):
+        if gains[hi] < gains[lo]:
+            warnings.warn(
+                f"{ds.attrs.get('manifest_path', 'the manifest')}: the measured EM gain falls "
+                f"from {gains[lo]:.4g} at set-point {sp[lo]:g} to {gains[hi]:.4g} at set-point "
+                f"{sp[hi]:g}; it rises with the set-point on every camera: are the "
+                "set-points of those acquisitions swapped?", stacklevel=4)
 
 
 def _require_convergence(ds, method) -> None:
@@ -574,6 +592,8 @@ def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_
             "together (delta method through the likelihood, or the photon-transfer formulas)")
     if report is not None:
         ds.attrs["quality"] = json.dumps(report)
+    _require_convergence(ds, method)
+    _warn_gain_order(ds)
     return ds
 
 

@@ -32,6 +32,7 @@ from ..errors import InputError, ManifestError, ReadNoiseGrowthWarning
 from .dark import check_read_noise_growth, maps_from_dark
 from .stacks import (
     check_counts,
+    content_fingerprint,
     check_readable,
     default_adc_max,
     describe_first,
@@ -366,6 +367,8 @@ def read_manifest(path) -> Manifest:
                     spec["label"],
                 )
 
+    _refuse_copies(r, specs)
+
     if adc_bits is not None:
         adc_max = 2**adc_bits - 1
         hint = f" (adc_bits = {adc_bits}); is adc_bits the camera's ADC resolution?"
@@ -476,6 +479,21 @@ def read_manifest(path) -> Manifest:
         levels=tuple(levels),
         warnings=found,
     )
+
+
+def _refuse_copies(r: _Reader, specs: list) -> None:
+    """Two acquisitions whose frames files hold the same data (one stack copied under two
+    set-points or levels) would fit as two measurements of one: an error."""
+    seen: dict[str, int] = {}
+    for i, spec in enumerate(specs, start=1):
+        key = content_fingerprint(spec["frames_path"])
+        if key in seen:
+            j = seen[key]
+            raise r.error(
+                f"frames '{spec['frames_path']}' hold the same data as acquisition {j}'s "
+                f"('{specs[j - 1]['frames_path']}'): the same stack under two "
+                f"{'levels' if spec['level'] is not None else 'set-points'}?", i, spec["label"])
+        seen[key] = i
 
 
 def is_result_path(path: Path) -> bool:

@@ -386,18 +386,20 @@ class StackSummary:
         self.mean = np.full(n_pixels, np.nan)  # per pixel, C order
         self.sd = np.full(n_pixels, np.nan)
         self.n_saturated = np.zeros(n_pixels, dtype=np.int64)
+        self.m3 = np.full(n_pixels, np.nan)  # third central moments, where computed
         self.seen = np.zeros(n_pixels, dtype=bool)
 
     @classmethod
-    def of(cls, stack, adc_max: int | None) -> StackSummary:
-        """The summary of a whole stack, read in bands of rows of bounded size."""
+    def of(cls, stack, adc_max: int | None, *, third: bool = False) -> StackSummary:
+        """The summary of a whole stack, read in bands of rows of bounded size (``third``:
+        with the pixels' third moments)."""
         stack = as_stack(stack)
         out = cls(stack.shape[0], stack.shape[1:], adc_max)
         per_row = max(1, int(stack.shape[0]) * int(stack.shape[2]))
         step = max(1, _CHUNK_ELEMENTS // per_row)
         for r0 in range(0, stack.shape[1], step):
             out.add(r0 * stack.shape[2],
-                    band_statistics(np.asarray(stack[:, r0:r0 + step]), adc_max))
+                    band_statistics(np.asarray(stack[:, r0:r0 + step]), adc_max, third=third))
         return out
 
     def add(self, first: int, statistics: dict) -> None:
@@ -411,6 +413,8 @@ class StackSummary:
         self.mean[part] = statistics["mean"].ravel()
         self.sd[part] = statistics["sd"].ravel()
         self.n_saturated[part] = statistics["n_saturated"].ravel()
+        if "m3" in statistics:
+            self.m3[part] = statistics["m3"].ravel()
         self.seen[part] = True
 
     def _complete(self):
@@ -438,6 +442,37 @@ class StackSummary:
             "pixels": _pixels(self.n_saturated.reshape(self.shape) > 0),
         }
 
+    def offset_position(self, offset) -> dict:
+        """Where the offset map lies against the pixels' mean counts: ``n_pixels``,
+        ``n_below_offset`` (pixels whose mean count is below their offset) and
+        ``above_data`` (more than half of them: the offset cannot be this data's)."""
+        self._complete()
+        below = self.mean < np.broadcast_to(np.asarray(offset, float), self.shape).ravel()
+        return {"n_pixels": int(below.size), "n_below_offset": int(below.sum()),
+                "above_data": bool(2 * below.sum() > below.size)}
+
+    def multiplication_ratio(self, offset, read_noise) -> dict | None:
+        """Whether counts taken as 1× look EM-multiplied, from their first three cumulants.
+
+        With κ₁ = mean − offset, κ₂ = variance − σ² and κ₃ the third central moment
+        (Gaussian read noise adds nothing to it), R = κ₃κ₁/κ₂² is 1 for Poisson
+        photoelectrons times any φ, and 1.5 once an EM register multiplies them
+        (gamma model: κ₃ = 6Eg³, κ₂ = 2Eg², κ₁ = Eg, in electrons), whatever E, g and φ.
+        Returns ``R`` (mean over pixels), ``R_se``, ``n_pixels`` and ``multiplied``
+        (R closer to 1.5 than to 1 and above 1 by more than four standard errors), or
+        None when the third moments were not gathered or fewer than 3 pixels qualify.
+        """
+        self._complete()
+        k1 = self.mean - np.broadcast_to(np.asarray(offset, float), self.shape).ravel()
+        k2 = self.sd**2 - np.broadcast_to(np.asarray(read_noise, float), self.shape).ravel() ** 2
+        good = np.isfinite(self.m3) & (k1 > 0) & (k2 > 0)
+        if good.sum() < 3:
+            return None
+        ratio = self.m3[good] * k1[good] / k2[good] ** 2
+        r, se = float(ratio.mean()), float(ratio.std(ddof=1) / math.sqrt(ratio.size))
+        return {"R": r, "R_se": se, "n_pixels": int(ratio.size),
+                "multiplied": bool(r > 1.25 and r - 1 > 4 * se)}
+
     def defects(self, offset=None, *, k: float = DEFAULT_K) -> dict:
         """As :func:`pixel_defects`."""
         self._complete()
@@ -445,7 +480,7 @@ class StackSummary:
                         self.n_frames, offset, k)
 
 
-def band_statistics(band: np.ndarray, adc_max: int | None) -> dict:
+def band_statistics(band: np.ndarray, adc_max: int | None, *, third: bool = False) -> dict:
     """What a :class:`StackSummary` needs of a band of rows held in memory.
 
     Parameters
@@ -454,6 +489,10 @@ def band_statistics(band: np.ndarray, adc_max: int | None) -> dict:
         Raw counts, ADU.
     adc_max : int or None
         ADC maximum, ADU.
+
+    third : bool, optional
+        Also ``m3`` (h, cols), the third central moment of each pixel's counts (ADU³),
+        for :meth:`StackSummary.multiplication_ratio`.
 
     Returns
     -------
@@ -470,13 +509,20 @@ def band_statistics(band: np.ndarray, adc_max: int | None) -> dict:
         sat = band >= adc_max
         sat_frames = sat.reshape(n, -1).any(axis=1)
         sat_pixels = sat.sum(axis=0, dtype=np.int64)
-    return {
+    out = {
         "frame_sums": band.reshape(n, -1).sum(axis=1, dtype=np.float64),
         "frame_saturated": sat_frames,
         "mean": mean,
         "sd": sd,
         "n_saturated": sat_pixels,
     }
+    if third:  # of 1× data, for multiplication_ratio
+        m3 = np.zeros(band.shape[1:])
+        for f0 in range(0, n, max(1, _CHUNK_ELEMENTS // max(1, mean.size))):
+            dev = np.asarray(band[f0:f0 + _CHUNK_ELEMENTS // max(1, mean.size)], float) - mean
+            m3 += np.einsum("fij,fij,fij->ij", dev, dev, dev)
+        out["m3"] = m3 / n
+    return out
 
 
 def _defects(mean, sd, n_frames, offset, k) -> dict:
@@ -648,7 +694,9 @@ def check_acquisition(
         the offset-subtracted counts, None with fewer than :data:`MIN_FRAMES` frames);
         ``stationarity`` (:func:`stationarity`, or None); ``saturation``
         (:func:`saturation`); ``pixels`` (:func:`pixel_defects` on the
-        offset-subtracted pixel means).
+        offset-subtracted pixel means); ``offset``
+        (:meth:`StackSummary.offset_position`); ``multiplication`` (at set-point 1:
+        :meth:`StackSummary.multiplication_ratio`, else None).
 
     Raises
     ------
@@ -657,7 +705,9 @@ def check_acquisition(
     """
     path = acq.frames_path
     n = int(acq.n_frames)
-    summary = StackSummary.of(acq.frames(), adc_max) if summary is None else summary
+    one_x = float(acq.em_gain_setpoint) == 1
+    if summary is None:
+        summary = StackSummary.of(acq.frames(), adc_max, third=one_x)
     series = summary.frame_means(acq.offset)
     drift = stat = None
     if n >= MIN_FRAMES:
@@ -678,6 +728,8 @@ def check_acquisition(
         "stationarity": stat,
         "saturation": summary.saturation(),
         "pixels": summary.defects(acq.offset, k=k),
+        "offset": summary.offset_position(acq.offset),
+        "multiplication": summary.multiplication_ratio(acq.offset, acq.read_noise) if one_x else None,
     }
 
 
@@ -719,6 +771,19 @@ def _findings(a: dict) -> list[str]:
             f"is not steady. E is then the acquisition's average, and {effect}, "
             f"{_drift_bias_pct(d['drift_pct'], 1000, multiplied):+.2g} % at E = 1000 e⁻"
         )
+    off = a.get("offset")
+    if off and off["above_data"]:
+        out.append(
+            f"{name}: the offset map lies above the mean count of {off['n_below_offset']} of "
+            f"{off['n_pixels']} pixels: it cannot be this data's offset (other units, another "
+            "camera mode or read-out speed?)")
+    mult = a.get("multiplication")
+    if mult and mult["multiplied"]:
+        out.append(
+            f"{name}: the counts look EM-multiplied: their cumulant ratio κ₃κ₁/κ₂² is "
+            f"{mult['R']:.2f} ± {mult['R_se']:.2f} over {mult['n_pixels']} pixels (1 for "
+            "unmultiplied photoelectrons, 1.5 for multiplied ones): was the EM gain on for "
+            "data labelled 1×?")
     sat = a["saturation"]
     if sat["n_values"]:
         out.append(

@@ -392,6 +392,9 @@ def simulate_frames(
     rng = np.random.default_rng(seed)
 
     adc_max = 2**bits - 1
+    if np.max(S0) >= adc_max:
+        raise OptionError(f"offset {float(np.max(S0)):g} ADU is at or above the ADC maximum "
+                          f"{adc_max} ADU of {bits} bits: every count would be clipped to it")
     factors = _drift_factors(n_frames, d)
     out = np.empty((n_frames,) + shape, dtype=np.uint16)
     step = max(1, _CHUNK_ELEMENTS // (shape[0] * shape[1]))
