@@ -109,6 +109,7 @@ def _data_span(path: Path):
     return offset, offset + int(np.prod(shape)) * dtype.itemsize
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["1x.tif", "25x.npy", "S0.tif"])
 @FUZZ
 @given(data=st.data())
@@ -170,6 +171,7 @@ def _toml_value(v):
     return str(v)
 
 
+@pytest.mark.slow
 @FUZZ
 @given(lines=st.lists(st.one_of(
     st.tuples(st.sampled_from(KEYS), VALUES).map(lambda kv: f"{kv[0]} = {_toml_value(kv[1])}"),
