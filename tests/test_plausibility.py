@@ -133,3 +133,19 @@ def test_intensity_series_with_gain_is_not_misread_as_1x(tmp_path):
     adu = simulate_intensity_series(tmp_path / "adu", rows=4, cols=4, frames=1000, seed=2)
     report = _quiet(check_manifest, _quiet(read_manifest, adu.manifest))
     assert not any(a["multiplication"]["multiplied"] for a in report["acquisitions"].values())
+
+
+def test_offset_of_zero_is_found_by_the_photon_transfer(tmp_path):
+    # 1x levels: the excess variance reaches zero where the offset truly is
+    adu = simulate_intensity_series(tmp_path / "adu", rows=8, cols=8, frames=2000, seed=2)
+    honest = _quiet(check_manifest, _quiet(read_manifest, adu.manifest))
+    t = honest["offset_from_transfer"]
+    assert t["n_levels"] == 6 and not t["off"] and abs(t["shift"]) < 5 * t["shift_se"]
+    zero = adu.manifest.with_name("zero.toml")
+    zero.write_text(re.sub(r'offset = "[^"]*"', "offset = 0.0", adu.manifest.read_text()))
+    report = _quiet(check_manifest, _quiet(read_manifest, zero))
+    t = report["offset_from_transfer"]
+    truth = float(np.mean(_quiet(read_manifest, adu.manifest).acquisitions[0].offset))
+    assert t["off"] and t["shift"] == pytest.approx(truth, abs=5 * t["shift_se"])
+    assert any(w.startswith("set-point 1: the photon transfer of its 6 levels") and
+               "offsets are off by about that much" in w for w in report["warnings"])

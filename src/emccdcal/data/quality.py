@@ -54,6 +54,7 @@ __all__ = [
     "saturation",
     "pixel_defects",
     "check_acquisition",
+    "offset_from_transfer",
     "StackSummary",
     "band_statistics",
     "check_manifest",
@@ -736,6 +737,48 @@ def check_acquisition(
 # --------------------------------------------------------------------------------------
 # Whole manifest
 # --------------------------------------------------------------------------------------
+def offset_from_transfer(acquisitions, summaries) -> dict | None:
+    """Where the 1× levels' photon transfer says the offset is, against the offset maps.
+
+    At 1× the excess variance is linear in the signal through the offset: var − σ² =
+    (mean − S₀)/φ. A curve through each pixel's levels, fitted against ``mean − offset
+    map``, therefore crosses zero excess variance where the map is wrong by ``shift`` ADU
+    (positive: the true offset is above the map). The curve is a parabola, not a line: a
+    steady lamp's small drift or an ADC's slight non-linearity bends the transfer at
+    high signal, which would move a straight line's crossing by tens of ADU (93 ADU on
+    the ProEM intensity series).
+
+    Returns
+    -------
+    dict or None
+        ``n_levels``, ``n_pixels``, ``shift`` (median over pixels, ADU), ``shift_se``
+        (1.4826 MAD/√n), ``off`` (|shift| > 5 SE and > 1 ADU); None with fewer than 4
+        set-point-1 acquisitions or 5 pixels.
+    """
+    idx = [i for i, a in enumerate(acquisitions) if float(a.em_gain_setpoint) == 1]
+    if len(idx) < 4 or summaries[idx[0]].mean.size < 5:
+        return None
+    x = np.stack([summaries[i].mean - acquisitions[i].offset.ravel() for i in idx], axis=1)
+    y = np.stack([summaries[i].sd ** 2 - acquisitions[i].read_noise.ravel() ** 2
+                  for i in idx], axis=1)
+    scale = np.maximum(np.abs(x).max(axis=1, keepdims=True), 1.0)  # conditioning
+    design = np.stack([np.ones_like(x), x / scale, (x / scale) ** 2], axis=2)  # (P, A, 3)
+    try:
+        coef = np.linalg.solve(np.einsum("pak,pal->pkl", design, design),
+                               np.einsum("pak,pa->pk", design, y)[..., None])[..., 0]
+    except np.linalg.LinAlgError:  # levels that do not differ
+        return None
+    with np.errstate(invalid="ignore", divide="ignore"):
+        shift = -coef[:, 0] / coef[:, 1] * scale[:, 0]  # first order: where y reaches 0
+    shift = shift[np.isfinite(shift) & (coef[:, 1] > 0)]
+    if shift.size < 5:
+        return None
+    med = float(np.median(shift))
+    se = _MAD_TO_SD * float(np.median(np.abs(shift - med))) / math.sqrt(shift.size)
+    return {"n_levels": len(idx), "n_pixels": int(shift.size), "shift": med, "shift_se": se,
+            "off": bool(abs(med) > 5 * se and abs(med) > 1.0)}
+
+
 def _fmt_pixels(pixels: list, n: int) -> str:
     shown = ", ".join(f"({r},{c})" for r, c in pixels[:5])
     return shown + (f" and {n - 5} more" if n > 5 else "")
@@ -856,7 +899,12 @@ def check_manifest(
     acqs: dict[str, dict] = {}
     warn: list[str] = []
     per_test = drift_alpha / max(1, len(manifest.acquisitions))
+    used = []
     for i, acq in enumerate(manifest.acquisitions):
+        summary = (StackSummary.of(acq.frames(), manifest.adc_max,
+                                   third=float(acq.em_gain_setpoint) == 1)
+                   if summaries is None else summaries[i])
+        used.append(summary)
         res = check_acquisition(
             acq,
             manifest.adc_max,
@@ -866,7 +914,7 @@ def check_manifest(
             unit_root_tests=unit_root_tests,
             alpha=alpha,
             regression=regression,
-            summary=None if summaries is None else summaries[i],
+            summary=summary,
         )
         key, i = acq.name, 1
         while key in acqs:
@@ -874,6 +922,13 @@ def check_manifest(
             key = f"{acq.name}#{i}"
         acqs[key] = res
         warn.extend(_findings(res))
+    transfer = offset_from_transfer(manifest.acquisitions, used)
+    if transfer is not None and transfer["off"]:
+        warn.append(
+            f"set-point 1: the photon transfer of its {transfer['n_levels']} levels (variance "
+            f"against mean) reaches zero excess variance {transfer['shift']:+.1f} ± "
+            f"{transfer['shift_se']:.1f} ADU from the offset maps: the offsets are off by "
+            "about that much (another camera mode's, or none?), which biases φ and E")
     growth = check_read_noise_growth(
         [a.em_gain_setpoint for a in manifest.acquisitions],
         [a.read_noise for a in manifest.acquisitions],
@@ -885,6 +940,7 @@ def check_manifest(
         "adc_max": int(manifest.adc_max),
         "drift_alpha": float(drift_alpha),
         "acquisitions": acqs,
+        "offset_from_transfer": transfer,
         "read_noise_growth": list(growth),
         "warnings": warn,
     }
