@@ -473,9 +473,12 @@ def test_demo_calibrates_and_recovers_truth(tmp_path):
     truth = {5: 4.78, 25: 22.95, 100: 90.06, 300: 261.6}
     for sp, g in truth.items():
         est = gs.em_gain.sel(setpoint=sp).values
-        # φ from step 1 carries its own error into the gains (∝ φ): allow for it
-        se = np.hypot(gs.em_gain_se.sel(setpoint=sp).values, g * adu.e_per_adu_se.values / phi)
+        se = gs.em_gain_se.sel(setpoint=sp).values  # φ's error included (chained)
         assert abs(np.mean(est) - g) < 2 * np.mean(se)  # 8 SE of the 16-pixel mean
+    # step 2 took φ with its standard error from step 1's result, and says so
+    np.testing.assert_allclose(gs.e_per_adu_se.values, adu.e_per_adu_se.values)
+    assert gs.attrs["e_per_adu_source"] == f"result {tmp_path / 'result-is-adu'}"
+    assert "not propagated" not in out and "include that of e_per_adu from step 1" in out
     assert (tmp_path / "result-gs" / "calibration.nc").exists()
 
 
