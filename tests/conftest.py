@@ -35,6 +35,13 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
+def quiet(fn, *args, **kw):
+    """``fn(*args, **kw)`` with its warnings silenced (those are not what a test checks)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return fn(*args, **kw)
+
+
 def write_real_manifest(directory, kind, *, setpoints=REAL_SETPOINTS):
     """A manifest of the real data in ``directory``: ``"gs"`` (the gain series with its ADU
     map) or ``"adu"`` (the 1x intensity series, levels L1-L6). Returns its path."""

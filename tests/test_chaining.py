@@ -4,10 +4,10 @@ and the options and results a method cannot use, refused."""
 from __future__ import annotations
 
 import re
-import warnings
 
 import numpy as np
 import pytest
+from conftest import quiet
 
 from emccdcal import calibrate, cli, load_result
 from emccdcal.errors import ManifestError, MethodError, OptionError
@@ -18,19 +18,13 @@ ROWS = COLS = 4
 FRAMES = 1500
 
 
-def _quiet(f, *a, **k):
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return f(*a, **k)
-
-
 @pytest.fixture(scope="module")
 def series(tmp_path_factory):
     d = tmp_path_factory.mktemp("chain")
     kw = dict(rows=ROWS, cols=COLS, frames=FRAMES)
     adu = simulate_intensity_series(d / "adu", seed=3, **kw)
     gs = simulate_gain_series(d / "gs", seed=4, setpoints=(1, 25, 300), **kw)
-    _quiet(calibrate, adu.manifest, "is-adu", out=d / "out-adu")
+    quiet(calibrate, adu.manifest, "is-adu", out=d / "out-adu")
     return d, adu, gs
 
 
@@ -40,7 +34,7 @@ def test_sensitivity_is_the_derivative_of_the_refit(series):
     from emccdcal.data import stats
     from emccdcal.data.manifest import read_manifest
 
-    m = _quiet(read_manifest, gs.manifest)
+    m = quiet(read_manifest, gs.manifest)
     hists = [stats.histograms(np.asarray(a.frames()), adc_max=m.adc_max) for a in m.acquisitions]
     offsets = np.stack([a.offset.ravel() for a in m.acquisitions])
     noise = np.stack([a.read_noise.ravel() for a in m.acquisitions])
@@ -65,8 +59,8 @@ def test_sensitivity_is_the_derivative_of_the_refit(series):
 def test_chained_result_gives_phi_and_its_error_to_the_gains(series):
     d, _, gs = series
     adu = load_result(d / "out-adu")
-    chained = _quiet(calibrate, gs.manifest, "gs", e_per_adu=d / "out-adu")
-    fixed = _quiet(calibrate, gs.manifest, "gs", e_per_adu=adu.e_per_adu.values)
+    chained = quiet(calibrate, gs.manifest, "gs", e_per_adu=d / "out-adu")
+    fixed = quiet(calibrate, gs.manifest, "gs", e_per_adu=adu.e_per_adu.values)
     np.testing.assert_allclose(chained.e_per_adu, adu.e_per_adu)
     np.testing.assert_allclose(chained.e_per_adu_se, adu.e_per_adu_se)
     assert np.all(np.isnan(fixed.e_per_adu_se))
@@ -89,7 +83,7 @@ def test_manifest_names_a_result_and_the_cli_takes_one(series, tmp_path, capsys)
                                            f'e_per_adu = "{d / "out-adu" / "calibration.nc"}"')
     manifest = gs.manifest.with_name("chained.toml")
     manifest.write_text(text)
-    ds = _quiet(calibrate, manifest, "gs")
+    ds = quiet(calibrate, manifest, "gs")
     assert np.all(np.isfinite(ds.e_per_adu_se))
     assert cli.main(["calibrate", str(gs.manifest), "-m", "gs", "-o", str(tmp_path / "o"),
                      "--e-per-adu", str(d / "out-adu"), "-q"]) == 0
@@ -99,11 +93,11 @@ def test_what_cannot_be_chained_is_refused(series, tmp_path):
     d, adu, gs = series
     with pytest.raises(OptionError, match="is-adu estimates e_per_adu itself"):
         calibrate(adu.manifest, "is-adu", e_per_adu=3.0)
-    _quiet(calibrate, gs.manifest, "gs", out=tmp_path / "gs-result")
+    quiet(calibrate, gs.manifest, "gs", out=tmp_path / "gs-result")
     with pytest.raises(OptionError, match="a gs result does not estimate e_per_adu"):
         calibrate(gs.manifest, "gs", e_per_adu=tmp_path / "gs-result")
     small = simulate_intensity_series(tmp_path / "small", rows=2, cols=2, frames=300, seed=1)
-    _quiet(calibrate, small.manifest, "is-adu", out=tmp_path / "small-out")
+    quiet(calibrate, small.manifest, "is-adu", out=tmp_path / "small-out")
     with pytest.raises(OptionError, match=r"pixels \(2, 2\) are not the manifest's \(4, 4\)"):
         calibrate(gs.manifest, "gs", e_per_adu=tmp_path / "small-out")
     with pytest.raises(OptionError, match="not a calibration result"):
@@ -116,7 +110,7 @@ def test_a_quoted_number_in_the_manifest_is_not_a_path(series):
     bad.write_text(gs.manifest.read_text().replace("e_per_adu = 3.859", 'e_per_adu = "3.859"'))
     with pytest.raises(ManifestError, match=r'e_per_adu = "3.859" is a string, which names a '
                                             r"map file; write the number without quotes"):
-        _quiet(calibrate, bad, "gs")
+        quiet(calibrate, bad, "gs")
 
 
 def test_a_method_that_fails_for_most_pixels_is_an_error(series, tmp_path):
@@ -126,5 +120,5 @@ def test_a_method_that_fails_for_most_pixels_is_an_error(series, tmp_path):
     text = re.sub(r'offset = "[^"]*"', "offset = 20000.0", gs.manifest.read_text())
     bad.write_text(text)
     with pytest.raises(MethodError, match=r"only 0 of 16 pixels converged.*nothing was written"):
-        _quiet(calibrate, bad, "gs", out=tmp_path / "never")
+        quiet(calibrate, bad, "gs", out=tmp_path / "never")
     assert not (tmp_path / "never" / "calibration.nc").exists()

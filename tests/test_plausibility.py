@@ -9,6 +9,7 @@ import warnings
 
 import numpy as np
 import pytest
+from conftest import quiet
 
 from emccdcal import calibrate, cli
 from emccdcal.data.manifest import read_manifest
@@ -16,12 +17,6 @@ from emccdcal.data.quality import check_manifest
 from emccdcal.errors import ManifestError, OptionError
 from emccdcal.simulate.camera import simulate_frames
 from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
-
-
-def _quiet(f, *a, **k):
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return f(*a, **k)
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +64,7 @@ def test_one_stack_under_two_setpoints_is_refused(gain_series):
                        lambda t: t.replace('"gain-GS/5x-gain.tif"', '"gain-GS/copy.tif"'))
     with pytest.raises(ManifestError, match=r"acquisition 3 .*hold the same data as "
                                             r"acquisition 2's .*copy\.tif.*two set-points"):
-        _quiet(read_manifest, manifest)
+        quiet(read_manifest, manifest)
 
 
 def test_em_gain_data_labelled_1x_is_found(gain_series):
@@ -82,13 +77,13 @@ def test_em_gain_data_labelled_1x_is_found(gain_series):
     text = re.sub(r'\[\[acquisition\]\]\nname = "5x".*?(?=\[\[acquisition\]\])', "", text,
                   flags=re.S)
     manifest.write_text(text)
-    report = _quiet(check_manifest, _quiet(read_manifest, manifest))
+    report = quiet(check_manifest, quiet(read_manifest, manifest))
     one_x = report["acquisitions"]["1x"]["multiplication"]
     assert one_x["multiplied"] and one_x["R"] == pytest.approx(1.5, abs=0.1)
     assert any("look EM-multiplied" in w and w.startswith("1x (set-point 1)")
                for w in report["warnings"])
     # true 1x data: R = 1 within its error, no finding
-    honest = _quiet(check_manifest, _quiet(read_manifest, gain_series.manifest))
+    honest = quiet(check_manifest, quiet(read_manifest, gain_series.manifest))
     r = honest["acquisitions"]["1x"]["multiplication"]
     assert not r["multiplied"] and abs(r["R"] - 1) < 4 * r["R_se"] + 0.1
     assert honest["acquisitions"]["5x"]["multiplication"] is None  # only at set-point 1
@@ -110,12 +105,12 @@ def test_cumulant_ratio_is_one_and_one_and_a_half(tmp_path):
 def test_offset_above_the_data_is_a_finding(gain_series):
     manifest = _edited(gain_series, "offset-high.toml",
                        lambda t: re.sub(r'offset = "[^"]*"', "offset = 20000.0", t))
-    report = _quiet(check_manifest, _quiet(read_manifest, manifest))
+    report = quiet(check_manifest, quiet(read_manifest, manifest))
     assert all(a["offset"]["above_data"] for a in report["acquisitions"].values())
     assert any("offset map lies above the mean count of 64 of 64 pixels" in w
                for w in report["warnings"])
     assert not any(a["offset"]["above_data"] for a in
-                   _quiet(check_manifest, _quiet(read_manifest, gain_series.manifest))
+                   quiet(check_manifest, quiet(read_manifest, gain_series.manifest))
                    ["acquisitions"].values())
 
 
@@ -131,21 +126,21 @@ def test_offset_beyond_the_adc_range_is_refused(tmp_path, capsys):
 def test_intensity_series_with_gain_is_not_misread_as_1x(tmp_path):
     # an honest 1x intensity series gets no multiplication finding
     adu = simulate_intensity_series(tmp_path / "adu", rows=4, cols=4, frames=1000, seed=2)
-    report = _quiet(check_manifest, _quiet(read_manifest, adu.manifest))
+    report = quiet(check_manifest, quiet(read_manifest, adu.manifest))
     assert not any(a["multiplication"]["multiplied"] for a in report["acquisitions"].values())
 
 
 def test_offset_of_zero_is_found_by_the_photon_transfer(tmp_path):
     # 1x levels: the excess variance reaches zero where the offset truly is
     adu = simulate_intensity_series(tmp_path / "adu", rows=8, cols=8, frames=2000, seed=2)
-    honest = _quiet(check_manifest, _quiet(read_manifest, adu.manifest))
+    honest = quiet(check_manifest, quiet(read_manifest, adu.manifest))
     t = honest["offset_from_transfer"]
     assert t["n_levels"] == 6 and not t["off"] and abs(t["shift"]) < 5 * t["shift_se"]
     zero = adu.manifest.with_name("zero.toml")
     zero.write_text(re.sub(r'offset = "[^"]*"', "offset = 0.0", adu.manifest.read_text()))
-    report = _quiet(check_manifest, _quiet(read_manifest, zero))
+    report = quiet(check_manifest, quiet(read_manifest, zero))
     t = report["offset_from_transfer"]
-    truth = float(np.mean(_quiet(read_manifest, adu.manifest).acquisitions[0].offset))
+    truth = float(np.mean(quiet(read_manifest, adu.manifest).acquisitions[0].offset))
     assert t["off"] and t["shift"] == pytest.approx(truth, abs=5 * t["shift_se"])
     assert any(w.startswith("set-point 1: the photon transfer of its 6 levels") and
                "offsets are off by about that much" in w for w in report["warnings"])

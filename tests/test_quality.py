@@ -17,7 +17,6 @@ from emccdcal.data.manifest import read_manifest
 from emccdcal.data.quality import (
     DEFAULT_DRIFT_THRESHOLD,
     MIN_FRAMES,
-    check_acquisition,
     check_manifest,
     drift_test,
     format_report,

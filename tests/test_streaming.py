@@ -8,12 +8,12 @@ import signal
 import subprocess
 import sys
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 import tifffile
+from conftest import quiet
 
 from emccdcal import calibrate, cli, result
 from emccdcal.errors import OptionError
@@ -29,12 +29,6 @@ def series(tmp_path_factory):
     adu = simulate_intensity_series(base / "adu", rows=12, cols=10, frames=300, seed=8,
                                     levels=(2000, 8000, 32000))
     return gs.manifest, adu.manifest
-
-
-def _quiet(fn, *args, **kw):
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return fn(*args, **kw)
 
 
 def _assert_same(a, b, rtol=1e-12):
@@ -55,20 +49,20 @@ def _assert_same(a, b, rtol=1e-12):
                                                         marks=pytest.mark.slow)])
 def test_tiles_and_workers_do_not_change_the_result(series, method, which):
     manifest = series[which]
-    one = _quiet(calibrate, manifest, method, block_size=8, tile_pixels=120, workers=1)
-    many = _quiet(calibrate, manifest, method, block_size=8, tile_pixels=16, workers=2)
-    rows = _quiet(calibrate, manifest, method, block_size=8, tile_pixels=10, workers=3)
+    one = quiet(calibrate, manifest, method, block_size=8, tile_pixels=120, workers=1)
+    many = quiet(calibrate, manifest, method, block_size=8, tile_pixels=16, workers=2)
+    rows = quiet(calibrate, manifest, method, block_size=8, tile_pixels=10, workers=3)
     _assert_same(one, many)
     _assert_same(one, rows)
 
 
 def test_a_dask_cluster_on_localhost_gives_the_local_result(series):
     distributed = pytest.importorskip("distributed")
-    local = _quiet(calibrate, series[0], "gs", block_size=16, tile_pixels=32)
+    local = quiet(calibrate, series[0], "gs", block_size=16, tile_pixels=32)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   host="127.0.0.1", dashboard_address=None) as cluster, \
             distributed.Client(cluster) as client:
-        remote = _quiet(calibrate, series[0], "gs", block_size=16, tile_pixels=32,
+        remote = quiet(calibrate, series[0], "gs", block_size=16, tile_pixels=32,
                         scheduler=client.scheduler.address)
         assert len(client.scheduler_info()["workers"]) == 2
     _assert_same(local, remote)
@@ -186,14 +180,14 @@ def test_resume_and_overwrite_are_exclusive_and_checked(series, tmp_path):
 def test_the_check_verb_reads_in_bands_and_agrees_with_the_calibration(series):
     from emccdcal import check, read_manifest
 
-    ds = _quiet(calibrate, series[0], "gs", tile_pixels=16, block_size=8)
-    report = _quiet(check, _quiet(read_manifest, series[0]))
+    ds = quiet(calibrate, series[0], "gs", tile_pixels=16, block_size=8)
+    report = quiet(check, quiet(read_manifest, series[0]))
     assert json.loads(ds.attrs["quality"])["acquisitions"] == report["acquisitions"]
 
 
 def test_no_temporary_files_are_left(series, tmp_path):
     out = tmp_path / "out"
-    _quiet(calibrate, series[0], "gs", out=out, tile_pixels=16, block_size=8)
+    quiet(calibrate, series[0], "gs", out=out, tile_pixels=16, block_size=8)
     leftovers = [p for p in Path(out).rglob("*") if p.name.startswith(".")]
     assert leftovers == [] and not (out / RUN_DIR).exists()
     assert sorted(os.listdir(out)) == ["calibration.nc", "summary.json"]
