@@ -105,7 +105,7 @@ WHERE = {"1x.tif": (0, 4), "25x.npy": (1, 4), "S0.tif": (0, 2)}
 
 
 def _data_span(path: Path):
-    shape, dtype, offset = _layout(path)
+    shape, dtype, offset, _ = _layout(path)
     return offset, offset + int(np.prod(shape)) * dtype.itemsize
 
 
@@ -140,7 +140,7 @@ def test_damaged_file_gives_the_clean_result_or_one_clear_error(clean, name, dat
             raw[at] ^= xor
         a, field = WHERE[name]
         old = expected[a][field]
-        shape, dtype, _ = _layout(folder / name)
+        shape, dtype, *_ = _layout(folder / name)
         values = np.frombuffer(bytes(raw[lo:hi]), dtype=dtype).reshape(shape)
         if field == 4:  # the frames from skip_frames on
             values = values[expected[a][1]:]

@@ -33,6 +33,7 @@ from .dark import check_read_noise_growth, maps_from_dark
 from .stacks import (
     check_counts,
     content_fingerprint,
+    stack_settings,
     check_readable,
     default_adc_max,
     describe_first,
@@ -467,6 +468,13 @@ def read_manifest(path) -> Manifest:
     ]
     for msg in found:
         warnings.warn(msg, ReadNoiseGrowthWarning, stacklevel=2)
+    for i, a in enumerate(acquisitions, start=1):
+        recorded = stack_settings(a.frames_path).em_gain_setpoint
+        if recorded is not None and recorded != a.em_gain_setpoint:
+            msg = (f"{path}: acquisition {i} ({a.name}): the manifest says EM gain set-point "
+                   f"{a.em_gain_setpoint:g}, but '{a.frames_path}' records {recorded:g}")
+            found.append(msg)
+            warnings.warn(msg, stacklevel=2)
     return Manifest(
         path=path,
         content_hash=content_hash,

@@ -21,6 +21,7 @@ import tifffile
 
 from .._util import one_line
 from ..errors import InputError, InputWarning, MissingFileError
+from .settings import CameraSettings
 
 __all__ = [
     "read_stack",
@@ -28,6 +29,7 @@ __all__ = [
     "load_stack",
     "read_band",
     "stack_header",
+    "stack_settings",
     "check_readable",
     "describe_missing",
     "describe_first",
@@ -39,7 +41,8 @@ __all__ = [
 ]
 
 #: File name suffixes of stacks and maps that can be read.
-STACK_SUFFIXES = (".tif", ".tiff", ".npy")
+STACK_SUFFIXES = (".tif", ".tiff", ".npy", ".spe", ".fits", ".fit", ".fts", ".zarr")
+_FITS_SUFFIXES = (".fits", ".fit", ".fts")
 
 #: Elements read at a time when scanning a stack's values.
 _SCAN_ELEMENTS = 2**23
@@ -67,7 +70,7 @@ def read_band(path, first_row: int, stop_row: int, skip_frames: int = 0) -> np.n
     layout = _raw_layout(path)
     if layout is None:
         return np.asarray(load_stack(path)[skip_frames:, first_row:stop_row])
-    shape, dtype, offset = layout
+    shape, dtype, offset, stride = layout
     frames, rows, cols = shape
     first_row, stop_row = max(0, first_row), min(rows, stop_row)
     row_bytes = cols * dtype.itemsize
@@ -75,14 +78,14 @@ def read_band(path, first_row: int, stop_row: int, skip_frames: int = 0) -> np.n
     out = np.empty((max(0, frames - skip_frames), stop_row - first_row, cols), dtype=dtype)
     flat = out.reshape(out.shape[0], -1).view(np.uint8)
     want = flat.shape[1]
-    # Whole frames lie back to back in the file: many per call. A band is scattered,
-    # one call per frame.
-    per_call = max(1, _READ_BYTES // frame_bytes) if want == frame_bytes else 1
+    # Whole frames back to back in the file: many per call. A band, or frames with
+    # metadata between them (SPE), are scattered: one call per frame.
+    per_call = max(1, _READ_BYTES // frame_bytes) if want == frame_bytes == stride else 1
     fd = os.open(path, os.O_RDONLY)
     try:
         for i in range(0, out.shape[0], per_call):
             part = flat[i:i + per_call]
-            at = offset + (skip_frames + i) * frame_bytes + first_row * row_bytes
+            at = offset + (skip_frames + i) * stride + first_row * row_bytes
             got = os.preadv(fd, [part], at)
             if got != part.nbytes:
                 raise InputError(f"'{path}': file ends inside frame "
@@ -93,32 +96,70 @@ def read_band(path, first_row: int, stop_row: int, skip_frames: int = 0) -> np.n
 
 
 def _raw_layout(path: Path):
-    """(shape, dtype, data offset) of a 3-D stack stored as one C-ordered block, else None."""
-    shape, dtype, offset = _layout(path)
-    return None if offset is None or len(shape) != 3 else (shape, dtype, offset)
+    """(shape, dtype, data offset, frame stride in bytes) of a 3-D stack whose frames are
+    C-ordered blocks at regular places in the file, else None."""
+    layout = _layout(path)
+    return None if layout[2] is None or len(layout[0]) != 3 else layout
 
 
 def _layout(path: Path):
-    """Shape, dtype (in the file's byte order) and data offset (None where the data are
-    not one C-ordered block) of a stack or map, from its header; the data must fit in
-    the file."""
+    """Shape, dtype (in the file's byte order), data offset (None where the data are not
+    C-ordered blocks at regular places) and frame stride (bytes from one frame to the
+    next; None for a map) of a stack or map, from its header; the data must fit in the
+    file."""
+    log, stride = (), None
     try:
-        if path.suffix.lower() == ".npy":
+        suffix = path.suffix.lower()
+        if suffix == ".npy":
             shape, dtype, offset = _npy_layout(path)
-            log = ()
+        elif suffix == ".spe":
+            from . import spe
+
+            shape, dtype, offset, stride, _ = spe.read_layout(path)
+        elif suffix == ".zarr":  # read by chunks
+            from .zarrs import open_array
+
+            arr = open_array(path)
+            shape, dtype, offset = tuple(arr.shape), arr.dtype, None
+        elif suffix in _FITS_SUFFIXES:  # read by sections: no memory map (BZERO data)
+            from . import fits
+
+            shape, dtype, _ = fits.read_header(path)
+            offset = None
         else:
             shape, dtype, offset, log = _tiff_layout(path)
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 - a damaged file can break a parser anywhere
         raise InputError(f"'{path}': cannot read: {_reason(exc)}") from exc
+    if offset is not None and len(shape) == 3 and stride is None:
+        stride = shape[1] * shape[2] * dtype.itemsize
     if offset is not None:
-        _check_data_fits(path, shape, dtype, offset)
+        _check_data_fits(path, shape, dtype, offset, stride)
     if log and _first_time(path):  # e.g. a damaged metadata tag: the frames are sound
         warnings.warn(f"'{path}': damaged TIFF: {log[0]}"
                       f"{f' (and {len(log) - 1} more)' if len(log) > 1 else ''}; its frames "
                       "were read in full", InputWarning, stacklevel=3)
-    return shape, dtype, offset
+    return shape, dtype, offset, stride
+
+
+def stack_settings(path) -> CameraSettings:
+    """The camera settings a stack's file records (:class:`CameraSettings`; fields the
+    format or the file does not hold are None)."""
+    path = check_readable(Path(path))
+    if path.suffix.lower() == ".spe":
+        from . import spe
+
+        return spe.read_layout(path)[4]
+    if path.suffix.lower() in _FITS_SUFFIXES:
+        from . import fits
+
+        return fits.read_header(path)[2]
+    if path.suffix.lower() == ".zarr":
+        from . import zarrs
+
+        return zarrs.settings(path)
+    return CameraSettings()
 
 
 _WARNED: set = set()
@@ -152,17 +193,21 @@ def _npy_layout(path: Path):
     return tuple(shape), dtype, (None if fortran and len(shape) > 1 else offset)
 
 
-def _check_data_fits(path: Path, shape, dtype, offset: int) -> None:
+def _check_data_fits(path: Path, shape, dtype, offset: int, stride: int | None = None) -> None:
     """A truncated file: one line saying how much of it is there."""
     size = path.stat().st_size
-    need = offset + int(np.prod(shape)) * dtype.itemsize
+    frame = int(np.prod(shape[1:])) * dtype.itemsize if len(shape) == 3 else 0
+    if stride is not None and shape[0]:
+        need = offset + (shape[0] - 1) * stride + frame
+    else:
+        need = offset + int(np.prod(shape)) * dtype.itemsize
     if need <= size:
         return
     what = " × ".join(str(d) for d in shape)
     whole = ""
-    if len(shape) == 3 and shape[1] * shape[2]:
-        frame = shape[1] * shape[2] * dtype.itemsize
-        whole = f": {max(0, size - offset) // frame} whole frame(s) of {shape[0]}"
+    if frame:
+        step = stride or frame
+        whole = f": {max(0, size - offset + step - frame) // step} whole frame(s) of {shape[0]}"
     raise InputError(f"'{path}': truncated: its header describes {what} values of "
                      f"{dtype.itemsize} bytes from byte {offset}, {need} bytes, but the file "
                      f"has {size}{whole}")
@@ -199,7 +244,7 @@ def check_readable(path: Path) -> Path:
     path = Path(path)
     if not path.exists():
         raise MissingFileError(describe_missing(path))
-    if path.is_dir():
+    if path.is_dir() and path.suffix.lower() != ".zarr":  # a Zarr store is a directory
         raise InputError(f"'{path}' is a directory, not a file")
     if path.suffix.lower() not in STACK_SUFFIXES:
         raise InputError(
@@ -211,7 +256,7 @@ def check_readable(path: Path) -> Path:
 
 def stack_header(path: Path) -> tuple[tuple[int, ...], np.dtype]:
     """Shape and dtype of a stack or map from its header, without reading the data."""
-    shape, dtype, _ = _layout(check_readable(path))
+    shape, dtype, *_ = _layout(check_readable(path))
     return shape, dtype
 
 
@@ -311,12 +356,26 @@ def _check_page_index(path, tif, shape, dtype, offset) -> None:
 def load_stack(path: Path) -> np.ndarray:
     """A stack or map: a read-only memory map where possible, else the data in memory."""
     path = check_readable(path)
-    shape, dtype, offset = _layout(path)  # a TIFF: one image series, or an error
+    shape, dtype, offset, stride = _layout(path)  # a TIFF: one image series, or an error
     try:
-        if offset is not None:
+        if offset is not None and (stride is None or stride == np.prod(shape[1:]) * dtype.itemsize):
             return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape)
+        if offset is not None:  # frames with metadata between them: a strided view
+            frame = int(np.prod(shape[1:])) * dtype.itemsize
+            raw = np.memmap(path, dtype=np.uint8, mode="r", offset=offset,
+                            shape=((shape[0] - 1) * stride + frame,))
+            return np.ndarray(shape, dtype=dtype, buffer=raw,
+                              strides=(stride, shape[2] * dtype.itemsize, dtype.itemsize))
         if path.suffix.lower() == ".npy":  # Fortran order
             return np.load(path, mmap_mode="r", allow_pickle=False)
+        if path.suffix.lower() in _FITS_SUFFIXES:
+            from .fits import FitsStack
+
+            return FitsStack(path)
+        if path.suffix.lower() == ".zarr":
+            from .zarrs import open_array
+
+            return open_array(path)
         # Compressed, tiled or scattered pages: decoded into memory. tifffile logs a page
         # it cannot decode and fills it with zeros: that is an error here.
         with _tifffile_log(path) as log, tifffile.TiffFile(path) as tif:
@@ -347,6 +406,14 @@ def content_fingerprint(path: Path, *, samples: int = 8, size: int = 4096) -> st
     """
     import hashlib
 
+    if path.is_dir():  # a Zarr store: its files' names and sizes, and samples of them
+        files = sorted(p for p in path.rglob("*") if p.is_file())
+        digest = hashlib.blake2b(digest_size=16)
+        for p in files:
+            digest.update(f"{p.relative_to(path)}:{p.stat().st_size};".encode())
+        for p in files[:: max(1, len(files) // samples)]:
+            digest.update(p.read_bytes()[:size])
+        return digest.hexdigest()
     n = path.stat().st_size
     digest = hashlib.blake2b(str(n).encode(), digest_size=16)
     with open(path, "rb") as fh:

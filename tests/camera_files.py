@@ -1,0 +1,100 @@
+"""Camera files written in the tests, from the formats' published layouts."""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import numpy as np
+
+SPE_FORMATS = {np.dtype("uint16"): "MonochromeUnsigned16", np.dtype("uint32"): "MonochromeUnsigned32",
+               np.dtype("float32"): "MonochromeFloating32"}
+
+
+def write_spe(path, frames, *, em_gain=None, analog_gain="High", speed_mhz=10.0, bit_depth=16,
+              exposure_ms=10.0, temperature=-70.0, serial="12345678", model="ProEM+: 512B",
+              roi=(0, 0), binning=(1, 1), frame_metadata=True, footer_offset=None,
+              stride=None, xml_text=None) -> Path:
+    """An SPE 3.0 file as LightField writes it (Princeton Instruments document 4411-0140):
+    a 4100-byte header, the frames, each followed by a 64-bit time stamp and a 64-bit
+    frame counter when ``frame_metadata``, and the XML footer. ``footer_offset``,
+    ``stride`` and ``xml_text`` override what is written, to make damaged files."""
+    frames = np.asarray(frames)
+    n, height, width = frames.shape
+    fmt = SPE_FORMATS[frames.dtype]
+    frame_bytes = height * width * frames.dtype.itemsize
+    meta = 16 if frame_metadata else 0
+    real_stride = frame_bytes + meta
+    body = bytearray()
+    for i, frame in enumerate(frames):
+        body += np.ascontiguousarray(frame, dtype=frames.dtype.newbyteorder("<")).tobytes()
+        if frame_metadata:
+            body += struct.pack("<qq", 1_000_000 * i + 17, i + 1)  # time stamp, counter
+    header = bytearray(4100)
+    struct.pack_into("<H", header, 42, width)
+    struct.pack_into("<h", header, 108, {"MonochromeUnsigned16": 3, "MonochromeUnsigned32": 8,
+                                         "MonochromeFloating32": 0}[fmt])
+    struct.pack_into("<H", header, 656, height)
+    struct.pack_into("<i", header, 1446, n)
+    struct.pack_into("<f", header, 1992, 3.0)
+    struct.pack_into("<H", header, 4098, 0x5555)
+    footer_at = 4100 + len(body)
+    struct.pack_into("<Q", header, 678, footer_at if footer_offset is None else footer_offset)
+    gain = "" if em_gain is None else f"<EMGain>{em_gain:g}</EMGain>"
+    xml = xml_text if xml_text is not None else f"""<?xml version="1.0" encoding="utf-8"?>
+<SpeFormat version="3.0" xmlns="http://www.princetoninstruments.com/spe/2009">
+  <DataFormat>
+    <DataBlock type="Frame" version="3.0" count="{n}" pixelFormat="{fmt}" size="{frame_bytes}" stride="{real_stride if stride is None else stride}">
+      <DataBlock type="Region" version="3.0" count="1" pixelFormat="{fmt}" size="{frame_bytes}" stride="{frame_bytes}" calibrations="1" width="{width}" height="{height}" />
+    </DataBlock>
+    {'<MetaBlock type="TimeStamp" event="ExposureStarted" version="3.0" resolution="1000000" bitDepth="64" /><MetaBlock type="FrameTrackingNumber" version="3.0" bitDepth="64" />' if frame_metadata else ''}
+  </DataFormat>
+  <Calibrations>
+    <SensorMapping id="1" x="{roi[0]}" y="{roi[1]}" width="{width * binning[0]}" height="{height * binning[1]}" xBinning="{binning[0]}" yBinning="{binning[1]}" />
+  </Calibrations>
+  <DataHistories><DataHistory><Origin softwareName="LightField" softwareVersion="6.16">
+    <Experiment xmlns="http://www.princetoninstruments.com/experiment/2009">
+      <Devices><Cameras><Camera>
+        <Adc>{gain}<AnalogGain>{analog_gain}</AnalogGain><Speed>{speed_mhz:g}</Speed><BitDepth>{bit_depth}</BitDepth></Adc>
+        <ShutterTiming><ExposureTime>{exposure_ms:g}</ExposureTime></ShutterTiming>
+        <Sensor><Temperature><SetPoint>{temperature:g}</SetPoint><Reading>{temperature:g}</Reading></Temperature></Sensor>
+      </Camera></Cameras></Devices>
+      <System><Cameras><Camera serialNumber="{serial}" model="{model}" /></Cameras></System>
+    </Experiment>
+  </Origin></DataHistory></DataHistories>
+</SpeFormat>"""
+    path = Path(path)
+    path.write_bytes(bytes(header) + bytes(body) + xml.encode("utf-8"))
+    return path
+
+
+def write_fits(path, frames, *, em_gain=None, exposure_s=0.01, temperature=-70.0,
+               readtime=1e-7, preamp=2.0, serial="X-1234", head="DU897_BV", binning=(1, 1)):
+    """A FITS stack with the cards Andor Solis writes; uint16 counts are stored as int16
+    with BZERO = 32768, as the standard requires (astropy does that by itself)."""
+    from astropy.io import fits
+
+    hdu = fits.PrimaryHDU(np.asarray(frames))
+    cards = {"EXPOSURE": exposure_s, "TEMP": temperature, "READTIME": readtime,
+             "PREAMP": preamp, "SERNO": serial, "HEAD": head, "HBIN": binning[0],
+             "VBIN": binning[1]}
+    if em_gain is not None:
+        cards["GAIN"] = em_gain
+    for key, value in cards.items():
+        hdu.header[key] = value
+    hdu.writeto(path, overwrite=True)
+    return Path(path)
+
+
+def write_zarr(path, frames, *, em_gain=None, **settings):
+    """A Zarr store of the stack, a chunk per frame, its settings in attribute "emccdcal"."""
+    import zarr
+
+    frames = np.asarray(frames)
+    z = zarr.open(str(path), mode="w", shape=frames.shape, dtype=frames.dtype,
+                  chunks=(1,) + frames.shape[1:])
+    z[:] = frames
+    if em_gain is not None:
+        settings["em_gain_setpoint"] = em_gain
+    z.attrs["emccdcal"] = settings
+    return Path(path)
