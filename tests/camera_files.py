@@ -98,3 +98,32 @@ def write_zarr(path, frames, *, em_gain=None, **settings):
         settings["em_gain_setpoint"] = em_gain
     z.attrs["emccdcal"] = settings
     return Path(path)
+
+
+def micromanager_properties(style="andor", *, em_gain=300, readout="17.000 MHz",
+                            temperature=-70, exposure_ms=10.0, preamp="Gain 2"):
+    """One frame's Micro-Manager properties as an Andor or a Photometrics camera writes them."""
+    if style == "andor":
+        return {"Camera": "Andor", "Andor-Gain": str(em_gain), "Andor-EMSwitch": "On",
+                "Andor-Pre-Amp-Gain": preamp, "Andor-ReadoutMode": readout,
+                "Andor-CCDTemperature": str(temperature),
+                "Andor-Camera": "| iXon Ultra 897 | DU897_BV | 9876 |",
+                "Exposure-ms": str(exposure_ms), "BitDepth": "16", "ROI": "0-0-6-5",
+                "Binning": "1"}
+    return {"Camera": "Photometrics", "Photometrics-MultiplierGain": str(em_gain),
+            "Photometrics-Gain": "1", "Photometrics-ReadoutRate": readout,
+            "Photometrics-BitDepth": "16", "Photometrics-CCDTemperature": str(temperature),
+            "Photometrics-SerialNumber": "A17C", "Photometrics-ChipName": "Evolve512",
+            "Exposure-ms": str(exposure_ms), "ROI": "0-0-6-5", "Binning": "1x1"}
+
+
+def write_micromanager_tiff(path, frames, *, em_gain=None, style="andor", ome=True, **kw):
+    """A Micro-Manager OME-TIFF: every frame carries its properties in tag 51123."""
+    import json
+
+    import tifffile
+
+    base = micromanager_properties(style, em_gain=300 if em_gain is None else em_gain, **kw)
+    tifffile.imwrite(path, np.asarray(frames), ome=ome, photometric="minisblack",
+                     extratags=[(51123, "s", 0, json.dumps(base), False)])
+    return Path(path)

@@ -9,7 +9,7 @@ import struct
 import numpy as np
 import pytest
 import tifffile
-from camera_files import write_fits, write_spe, write_zarr
+from camera_files import write_fits, write_micromanager_tiff, write_spe, write_zarr
 from conftest import quiet
 
 from emccdcal import calibrate
@@ -100,7 +100,8 @@ def series(tmp_path_factory):
                                 setpoints=(1, 25, 300))
 
 
-WRITERS = {".spe": write_spe, ".fits": write_fits, ".zarr": write_zarr}
+WRITERS = {".spe": write_spe, ".fits": write_fits, ".zarr": write_zarr,
+           ".ome.tif": write_micromanager_tiff}
 
 
 def _as_spe(series, name, *, gains=None, suffix=".spe"):
@@ -111,14 +112,14 @@ def _as_spe(series, name, *, gains=None, suffix=".spe"):
         src = series.manifest.parent / tif
         sp = float(re.search(r"(\d+)x-gain", tif).group(1))
         gain = sp if gains is None else gains.get(sp, sp)
-        WRITERS[suffix](src.with_suffix(suffix), tifffile.imread(src), em_gain=gain)
+        WRITERS[suffix](src.with_name(src.stem + suffix), tifffile.imread(src), em_gain=gain)
         text = text.replace(f'"{tif}"', f'"{tif[:-4]}{suffix}"')
     path = series.manifest.with_name(name)
     path.write_text(text)
     return path
 
 
-@pytest.mark.parametrize("suffix", [".spe", ".fits", ".zarr"])
+@pytest.mark.parametrize("suffix", [".spe", ".fits", ".zarr", ".ome.tif"])
 def test_same_series_in_another_format_calibrates_identically(series, suffix):
     other = _as_spe(series, f"other{suffix}.toml", suffix=suffix)
     a = quiet(calibrate, series.manifest, "gs", tile_pixels=12)
@@ -167,3 +168,37 @@ def test_zarr_store_with_its_settings(tmp_path):
     bad = write_zarr(tmp_path / "bad.zarr", data, em_gian=3)
     with pytest.raises(InputError, match=r"bad\.zarr': unknown camera setting\(s\) em_gian"):
         stack_settings(bad)
+
+
+@pytest.mark.parametrize("style, model, serial, analog", [
+    ("andor", "DU897_BV", "9876", "Gain 2"), ("photometrics", "Evolve512", "A17C", "1")])
+def test_micromanager_properties_are_the_settings(tmp_path, style, model, serial, analog):
+    data = _frames()
+    path = write_micromanager_tiff(tmp_path / "mm.ome.tif", data, em_gain=200, style=style,
+                                   readout="10 MHz", temperature=-80)
+    np.testing.assert_array_equal(np.asarray(load_stack(path)), data)
+    s = stack_settings(path)
+    assert (s.em_gain_setpoint, s.readout_rate_mhz, s.temperature_c) == (200, 10, -80)
+    assert (s.model, s.serial, s.analog_gain, s.adc_bits) == (model, serial, analog, 16)
+    assert s.exposure_ms == 10 and s.roi == (0, 0, 6, 5) and s.binning == (1, 1)
+
+
+def test_settings_changing_within_a_stack_are_refused():
+    # (tifffile writes one copy of a tag value that all pages share, so the pages of a
+    # stack whose settings change are stood in for here)
+    from types import SimpleNamespace
+
+    from camera_files import micromanager_properties
+
+    from emccdcal.data import micromanager
+
+    def page(readout):
+        md = micromanager_properties("andor", readout=readout)
+        return SimpleNamespace(tags={micromanager.TAG: SimpleNamespace(value=md)})
+
+    tif = SimpleNamespace(pages=[page("17.000 MHz")] * 6 + [page("10.000 MHz")])
+    with pytest.raises(InputError, match=r"'mm\.tif': the camera's readout_rate_mhz changes "
+                                         r"within the stack \(17\.0 in its first frame, 10\.0"):
+        micromanager.stack_settings("mm.tif", tif)
+    tif.pages[-1] = page("17.000 MHz")
+    assert micromanager.stack_settings("mm.tif", tif).readout_rate_mhz == 17.0

@@ -159,6 +159,12 @@ def stack_settings(path) -> CameraSettings:
         from . import zarrs
 
         return zarrs.settings(path)
+    if path.suffix.lower() in (".tif", ".tiff"):
+        from . import micromanager
+
+        _layout(path)  # a readable stack first
+        with _tifffile_log(path), tifffile.TiffFile(path) as tif:
+            return micromanager.stack_settings(path, tif)
     return CameraSettings()
 
 
@@ -213,6 +219,9 @@ def _check_data_fits(path: Path, shape, dtype, offset: int, stride: int | None =
                      f"has {size}{whole}")
 
 
+_MICROMANAGER_HEADER = ("summary", "index map", "display settings", "comments")
+
+
 @contextlib.contextmanager
 def _tifffile_log(path):
     """Capture tifffile's log records while it reads ``path`` (it logs damaged pages
@@ -221,7 +230,11 @@ def _tifffile_log(path):
 
     class Catch(logging.Handler):
         def emit(self, record):  # "<tifffile.TiffPages @8> invalid page offset 6656"
-            messages.append(one_line(re.sub(r"^<[^>]*>\s*", "", record.getMessage())))
+            message = one_line(re.sub(r"^<[^>]*>\s*", "", record.getMessage()))
+            # tifffile's parse of a Micro-Manager file header, which OME-TIFFs carrying
+            # Micro-Manager tags (from other writers) lack: metadata, not the frames
+            if not any(part in message for part in _MICROMANAGER_HEADER):
+                messages.append(message)
 
     logger = logging.getLogger("tifffile")
     handler, propagate = Catch(logging.WARNING), logger.propagate
