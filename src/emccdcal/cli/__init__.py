@@ -28,6 +28,7 @@ VERBS = {
     "simulate": "write synthetic stacks, darks, a manifest and truth.json",
     "calibrate": "calibrate from a manifest (the main job)",
     "posterior": "MCMC posterior of single pixels",
+    "scan": "write the manifest of a folder of camera files",
     "check": "data-quality checks of a manifest's acquisitions (no fitting)",
     "report": "write a self-contained HTML report of calibration results",
     "validate": "bead validation: fit beads under each calibration, compare set-points",

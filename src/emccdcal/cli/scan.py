@@ -1,0 +1,40 @@
+"""``emccdcal scan DIR [-o manifest.toml]``: write the manifest of a folder of camera files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from . import _common
+
+
+def add_parser(subparsers):
+    p = subparsers.add_parser(
+        "scan",
+        help="write the manifest of a folder of camera files",
+        description="Group a folder's stacks into a gain series or an intensity series by "
+        "the settings they record (else by their names: every rule used is said in the "
+        "manifest), pair each with its dark, check that readout rate, analog gain, ADC "
+        "bits, binning and region agree, and write a commented manifest (docs/formats.md).",
+    )
+    p.add_argument("folder", type=Path, metavar="DIR", help="the folder of camera files")
+    _common.add_out(p, "the manifest to write (default DIR/manifest.toml)", required=False)
+    p.add_argument("--overwrite", action="store_true", help="replace an existing manifest")
+    _common.add_quiet(p)
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    from ..data.scan import scan, write_manifest
+
+    session = scan(args.folder)
+    out = write_manifest(session, args.out or args.folder / "manifest.toml",
+                         overwrite=args.overwrite)
+    if not args.quiet:
+        print(f"{session.kind}: {len(session.signal)} stack(s) at set-point(s) "
+              f"{', '.join(f'{f.setpoint:g}' for f in session.signal)}, "
+              f"{len(session.darks)} dark(s)")
+        for rule in session.rules:
+            print(f"  {rule}")
+        print(f"wrote {out}")
+    return 0
