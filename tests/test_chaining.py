@@ -122,3 +122,29 @@ def test_a_method_that_fails_for_most_pixels_is_an_error(series, tmp_path):
     with pytest.raises(MethodError, match=r"only 0 of 16 pixels converged.*nothing was written"):
         quiet(calibrate, bad, "gs", out=tmp_path / "never")
     assert not (tmp_path / "never" / "calibration.nc").exists()
+
+
+def test_a_larger_region_chains_into_a_crop_of_it(tmp_path):
+    # φ of 6 × 8 pixels at the sensor's corner; a gain series of 4 × 4 at (1, 2) inside it
+    adu = simulate_intensity_series(tmp_path / "adu", rows=6, cols=8, frames=400, seed=5)
+    manifest = adu.manifest.read_text()
+    adu.manifest.write_text("origin = [0, 0]\n" + manifest)
+    big = quiet(calibrate, adu.manifest, "is-adu", out=tmp_path / "big")
+    assert list(big.attrs["sensor_origin"]) == [0, 0]
+    gs = simulate_gain_series(tmp_path / "gs", rows=4, cols=4, frames=400, seed=6,
+                              setpoints=(1, 25))
+    text = gs.manifest.read_text()
+    inside = gs.manifest.with_name("inside.toml")
+    inside.write_text("origin = [1, 2]\n" + text)
+    ds = quiet(calibrate, inside, "gs", e_per_adu=tmp_path / "big")
+    np.testing.assert_array_equal(ds.e_per_adu.values, big.e_per_adu.values[1:5, 2:6])
+    np.testing.assert_array_equal(ds.e_per_adu_se.values, big.e_per_adu_se.values[1:5, 2:6])
+    assert list(ds.attrs["sensor_origin"]) == [1, 2]
+    outside = gs.manifest.with_name("outside.toml")
+    outside.write_text("origin = [4, 6]\n" + text)
+    with pytest.raises(OptionError, match=r"covers sensor rows 0–5, cols 0–7; the manifest "
+                                          r"needs sensor rows 4–7, cols 6–9: rows 6–7; cols "
+                                          r"8–9 missing"):
+        quiet(calibrate, outside, "gs", e_per_adu=tmp_path / "big")
+    with pytest.raises(OptionError, match=r"where they lie on the sensor is not known"):
+        quiet(calibrate, gs.manifest, "gs", e_per_adu=tmp_path / "big")

@@ -202,3 +202,14 @@ def test_settings_changing_within_a_stack_are_refused():
         micromanager.stack_settings("mm.tif", tif)
     tif.pages[-1] = page("17.000 MHz")
     assert micromanager.stack_settings("mm.tif", tif).readout_rate_mhz == 17.0
+
+
+def test_recorded_regions_place_the_stacks_on_the_sensor(series):
+    # SPE files record their SensorMapping: the manifest knows where its pixels are
+    spe = _as_spe(series, "region.toml")
+    assert quiet(read_manifest, spe).origin == (0, 0)
+    text = spe.read_text()
+    moved = spe.with_name("moved.toml")
+    moved.write_text("origin = [3, 4]\n" + text)
+    with pytest.warns(UserWarning, match=r"origin = \[3, 4\], but the files record \[0, 0\]"):
+        assert read_manifest(moved).origin == (3, 4)

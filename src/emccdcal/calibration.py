@@ -584,6 +584,8 @@ def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_
         ds = _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, options,
                                  intervals)
         ds.attrs["standard_errors"] = se_note
+    if manifest.origin is not None:  # where these pixels are on the sensor
+        ds.attrs["sensor_origin"] = np.array(manifest.origin, dtype=np.int64)
     if phi_source is not None:
         ds.attrs["e_per_adu_source"] = phi_source
     if phi_se is not None:
@@ -665,15 +667,39 @@ def _e_per_adu_inputs(manifest, e_per_adu):
                               "does not estimate e_per_adu; chain an is-adu or mv-adu result")
         phi = np.asarray(ds.e_per_adu.values, dtype=float)
         se = np.asarray(ds.e_per_adu_se.values, dtype=float)
-        if phi.shape != tuple(shape):
-            raise OptionError(f"e_per_adu from '{path}': its pixels {phi.shape} are not the "
-                              f"manifest's {tuple(shape)} (calibrate the same region)")
-        ok = np.asarray(ds.converged.values, dtype=bool) & np.isfinite(phi) & (phi > 0)
+        ok = np.asarray(ds.converged.values, dtype=bool)
+        crop = _crop_to(manifest, path, phi.shape, ds.attrs.get("sensor_origin"))
+        phi, se, ok = phi[crop], se[crop], ok[crop]
+        ok &= np.isfinite(phi) & (phi > 0)
         if not ok.any():
             raise OptionError(f"e_per_adu from '{path}': no pixel of that result converged")
         phi, se = np.where(ok, phi, np.nan), np.where(ok, se, np.nan)
         return phi, se, f"result {path}"
     return e_per_adu_map(e_per_adu, shape), None, "given"
+
+
+def _crop_to(manifest, path, shape, origin):
+    """The part of a result of ``shape`` at sensor ``origin`` that the manifest's pixels
+    cover (slices), or an error saying which rows or columns are missing."""
+    shape, want = tuple(shape), tuple(manifest.shape)
+    if origin is None or manifest.origin is None:
+        if shape != want:
+            raise OptionError(
+                f"e_per_adu from '{path}': its pixels {shape} are not the manifest's {want}, "
+                "and where they lie on the sensor is not known (give 'origin' in the "
+                "manifests, or files that record their region)")
+        return slice(None), slice(None)
+    (r0, c0), (m0, n0) = (int(v) for v in origin), manifest.origin
+    top, left = m0 - r0, n0 - c0
+    if top < 0 or left < 0 or top + want[0] > shape[0] or left + want[1] > shape[1]:
+        rows = sorted(set(range(m0, m0 + want[0])) - set(range(r0, r0 + shape[0])))
+        cols = sorted(set(range(n0, n0 + want[1])) - set(range(c0, c0 + shape[1])))
+        missing = "; ".join(f"{what} {v[0]}–{v[-1]}" for what, v in (("rows", rows), ("cols", cols)) if v)
+        raise OptionError(
+            f"e_per_adu from '{path}' covers sensor rows {r0}–{r0 + shape[0] - 1}, cols "
+            f"{c0}–{c0 + shape[1] - 1}; the manifest needs {manifest.rows_cols}: {missing} "
+            "missing")
+    return slice(top, top + want[0]), slice(left, left + want[1])
 
 
 def _select_mv(method, setpoints, has_phi):

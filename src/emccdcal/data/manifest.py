@@ -53,7 +53,7 @@ __all__ = [
 ]
 
 #: Keys allowed at the top level of a manifest.
-TOP_LEVEL_KEYS = ("e_per_adu", "adc_bits", "acquisition")
+TOP_LEVEL_KEYS = ("e_per_adu", "adc_bits", "origin", "acquisition")
 #: Keys allowed in an ``[[acquisition]]`` table.
 ACQUISITION_KEYS = (
     "frames",
@@ -176,6 +176,35 @@ class Manifest:
     setpoints: tuple[float, ...]
     levels: tuple[str, ...]
     warnings: list[str] = field(default_factory=list)
+    #: (row, col) of the stacks' first pixel on the sensor: the manifest's ``origin``,
+    #: else what the files record (their ROI), else None (unknown).
+    origin: tuple[int, int] | None = None
+
+    @property
+    def rows_cols(self) -> str:
+        """The sensor rows and columns the stacks cover, for messages."""
+        if self.origin is None:
+            return f"{self.shape[0]} × {self.shape[1]} px at an unknown place on the sensor"
+        return _region_text(self.origin, self.shape)
+
+
+def _origin(r, written, recorded: set, shape):
+    """The stacks' sensor origin: the manifest's, else the one the files record."""
+    if len(recorded) > 1:
+        texts = "; ".join(_region_text(o, shape) for o in sorted(recorded))
+        raise r.error(f"the stacks record different regions of the sensor ({texts}): a "
+                      "calibration needs the same pixels in every acquisition")
+    if written is not None:
+        if recorded and tuple(written) not in recorded:
+            warnings.warn(f"{r.path}: origin = {list(written)}, but the files record "
+                          f"{list(next(iter(recorded)))}; the manifest's is used", stacklevel=3)
+        return tuple(int(v) for v in written)
+    return next(iter(recorded)) if recorded else None
+
+
+def _region_text(origin, shape) -> str:
+    (r0, c0), (h, w) = origin, shape
+    return f"sensor rows {r0}–{r0 + h - 1}, cols {c0}–{c0 + w - 1}"
 
 
 # --------------------------------------------------------------------------------------
@@ -281,6 +310,12 @@ def read_manifest(path) -> Manifest:
     if not entries:
         raise r.error("no [[acquisition]] table; a manifest lists at least one acquisition")
 
+    origin = doc.get("origin")
+    if origin is not None and not (
+            isinstance(origin, list) and len(origin) == 2
+            and all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in origin)):
+        raise r.error(f"origin must be [row, col], the sensor pixel of the stacks' first "
+                      f"pixel (integers >= 0), got {origin!r}")
     adc_bits = doc.get("adc_bits")
     if adc_bits is not None and (
         not isinstance(adc_bits, int) or isinstance(adc_bits, bool) or not 1 <= adc_bits <= 32
@@ -468,8 +503,12 @@ def read_manifest(path) -> Manifest:
     ]
     for msg in found:
         warnings.warn(msg, ReadNoiseGrowthWarning, stacklevel=2)
+    recorded_origins = set()
     for i, a in enumerate(acquisitions, start=1):
-        recorded = stack_settings(a.frames_path).em_gain_setpoint
+        settings = stack_settings(a.frames_path)
+        if settings.roi is not None:
+            recorded_origins.add((settings.roi[1], settings.roi[0]))  # (row, col) = (y, x)
+        recorded = settings.em_gain_setpoint
         if recorded is not None and recorded != a.em_gain_setpoint:
             msg = (f"{path}: acquisition {i} ({a.name}): the manifest says EM gain set-point "
                    f"{a.em_gain_setpoint:g}, but '{a.frames_path}' records {recorded:g}")
@@ -482,6 +521,7 @@ def read_manifest(path) -> Manifest:
         e_per_adu_source=e_source,
         acquisitions=acquisitions,
         shape=tuple(int(d) for d in shape),
+        origin=_origin(r, origin, recorded_origins, shape),
         adc_max=int(adc_max),
         setpoints=tuple(sorted({a.em_gain_setpoint for a in acquisitions})),
         levels=tuple(levels),
