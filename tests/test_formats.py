@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import re
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -152,9 +153,9 @@ def test_setpoint_disagreeing_with_the_file_is_said(series):
 
 
 def test_unsupported_suffix_lists_the_readable_ones(tmp_path):
-    (tmp_path / "x.sif").write_bytes(b"Andor Technology Multi-Channel File")
-    with pytest.raises(EmccdcalError, match=r"unsupported file type '\.sif' \(supported: .*\.spe"):
-        load_stack(tmp_path / "x.sif")
+    (tmp_path / "x.nd2").write_bytes(b"ND2 file")
+    with pytest.raises(EmccdcalError, match=r"unsupported file type '\.nd2' \(supported: .*\.spe"):
+        load_stack(tmp_path / "x.nd2")
 
 
 def test_zarr_store_with_its_settings(tmp_path):
@@ -213,3 +214,36 @@ def test_recorded_regions_place_the_stacks_on_the_sensor(series):
     moved.write_text("origin = [3, 4]\n" + text)
     with pytest.warns(UserWarning, match=r"origin = \[3, 4\], but the files record \[0, 0\]"):
         assert read_manifest(moved).origin == (3, 4)
+
+
+SIF = Path(__file__).parent / "data" / "sif"
+
+
+@pytest.mark.parametrize("name, shape, gain, binning, temperature", [
+    ("image.sif", (1, 512, 512), 1000, (1, 1), -100), ("test.sif", (1, 256, 256), 56, (2, 2), None)])
+def test_real_andor_sif_files(name, shape, gain, binning, temperature):
+    path = SIF / name
+    assert stack_header(path)[0] == shape
+    s = stack_settings(path)
+    assert (s.em_gain_setpoint, s.binning, s.temperature_c, s.model) == (
+        gain, binning, temperature, "DU897_BV")
+    assert s.readout_rate_mhz == pytest.approx(10.0)
+    band = read_band(path, 10, 12)
+    np.testing.assert_array_equal(band, np.asarray(load_stack(path))[:, 10:12])
+    assert band.dtype == np.float32  # (image.sif holds processed, non-integer values)
+
+
+def test_one_frame_sif_in_a_manifest_is_refused_in_one_line(tmp_path):
+    (tmp_path / "m.toml").write_text(
+        f'[[acquisition]]\nframes = "{SIF / "image.sif"}"\nem_gain_setpoint = 1000\n'
+        "offset = 100.0\nread_noise = 10.0\n")
+    with pytest.raises(EmccdcalError, match=r"image\.sif' has 1 frame: a histogram"):
+        quiet(read_manifest, tmp_path / "m.toml")
+
+
+def test_damaged_sif_is_one_line(tmp_path):
+    bad = tmp_path / "bad.sif"
+    bad.write_bytes((SIF / "test.sif").read_bytes()[:3000])
+    with pytest.raises(InputError, match=r"bad\.sif': not a readable SIF file") as exc:
+        load_stack(bad)
+    assert "\n" not in str(exc.value)

@@ -318,9 +318,9 @@ def test_unreadable_and_unsupported_files(files):
     (files / "data/x.fits").write_text("")
     msg = error_of(write(files, ONE_1X.replace("1x.tif", "x.fits")))
     assert "x.fits': not a FITS file: Empty or corrupt FITS file" in msg
-    (files / "data/x.sif").write_text("")
-    msg = error_of(write(files, ONE_1X.replace("1x.tif", "x.sif")))
-    assert "x.sif" in msg and "unsupported file type" in msg
+    (files / "data/x.nd2").write_text("")
+    msg = error_of(write(files, ONE_1X.replace("1x.tif", "x.nd2")))
+    assert "x.nd2" in msg and "unsupported file type" in msg
 
 
 def test_stack_not_3d(files):

@@ -41,7 +41,7 @@ __all__ = [
 ]
 
 #: File name suffixes of stacks and maps that can be read.
-STACK_SUFFIXES = (".tif", ".tiff", ".npy", ".spe", ".fits", ".fit", ".fts", ".zarr")
+STACK_SUFFIXES = (".tif", ".tiff", ".npy", ".spe", ".sif", ".fits", ".fit", ".fts", ".zarr")
 _FITS_SUFFIXES = (".fits", ".fit", ".fts")
 
 #: Elements read at a time when scanning a stack's values.
@@ -116,6 +116,11 @@ def _layout(path: Path):
             from . import spe
 
             shape, dtype, offset, stride, _ = spe.read_layout(path)
+        elif suffix == ".sif":  # memory-mapped by sif-parser
+            from .sif import open_sif
+
+            arr = open_sif(path)[0]
+            shape, dtype, offset = tuple(arr.shape), arr.dtype, None
         elif suffix == ".zarr":  # read by chunks
             from .zarrs import open_array
 
@@ -159,6 +164,10 @@ def stack_settings(path) -> CameraSettings:
         from . import zarrs
 
         return zarrs.settings(path)
+    if path.suffix.lower() == ".sif":
+        from .sif import open_sif
+
+        return open_sif(path)[1]
     if path.suffix.lower() in (".tif", ".tiff"):
         from . import micromanager
 
@@ -389,6 +398,10 @@ def load_stack(path: Path) -> np.ndarray:
             from .zarrs import open_array
 
             return open_array(path)
+        if path.suffix.lower() == ".sif":
+            from .sif import open_sif
+
+            return open_sif(path)[0]
         # Compressed, tiled or scattered pages: decoded into memory. tifffile logs a page
         # it cannot decode and fills it with zeros: that is an error here.
         with _tifffile_log(path) as log, tifffile.TiffFile(path) as tif:

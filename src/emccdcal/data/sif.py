@@ -1,0 +1,54 @@
+"""Andor SIF stacks (iXon cameras, Andor Solis), read through sif-parser (the ``sif`` extra).
+
+sif-parser maps the frames lazily (``np_open(path, lazy="memmap")``): float32 values,
+integer counts. Settings it parses: ``GainDAC`` (the EM gain set-point),
+``PixelReadoutTime`` (s per pixel), ``DetectorTemperature`` (°C; −999 means not
+recorded), ``ExposureTime`` (s), ``DetectorType`` (the model) and ``xbin``/``ybin``;
+Andor's pre-amp gain and serial number are not among them.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from .._util import one_line
+from ..errors import InputError
+from .settings import CameraSettings
+
+__all__ = ["open_sif"]
+
+
+def open_sif(path: Path):
+    """The frames (a read-only memory map, (frames, rows, cols)) and the settings."""
+    try:
+        import sif_parser
+    except ImportError:
+        raise InputError("reading SIF needs the 'sif' extra: pip install 'emccdcal[sif]'") from None
+    try:
+        data, info = sif_parser.np_open(str(path), lazy="memmap")
+    except Exception as exc:  # noqa: BLE001 - a damaged file can break the parser anywhere
+        raise InputError(f"'{path}': not a readable SIF file: {one_line(exc) or type(exc).__name__}") from None
+    return data, _settings(info)
+
+
+def _number(info, key):
+    try:
+        value = float(info[key])
+    except (KeyError, TypeError, ValueError):
+        return None
+    return value if math.isfinite(value) else None
+
+
+def _settings(info) -> CameraSettings:
+    readout, temperature = _number(info, "PixelReadoutTime"), _number(info, "DetectorTemperature")
+    exposure = _number(info, "ExposureTime")
+    xbin, ybin = info.get("xbin"), info.get("ybin")
+    return CameraSettings(
+        em_gain_setpoint=_number(info, "GainDAC"),
+        readout_rate_mhz=1e-6 / readout if readout else None,
+        temperature_c=None if temperature is None or temperature <= -999 else temperature,
+        exposure_ms=None if exposure is None else 1000.0 * exposure,
+        model=None if info.get("DetectorType") is None else str(info["DetectorType"]),
+        binning=None if xbin is None or ybin is None else (int(xbin), int(ybin)),
+    )
