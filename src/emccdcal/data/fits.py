@@ -22,7 +22,7 @@ import numpy as np
 from ..errors import InputError
 from .settings import CameraSettings
 
-__all__ = ["FitsStack", "read_header"]
+__all__ = ["FitsStack", "read_header", "header", "open_stack", "settings"]
 
 # BITPIX (with BZERO for the unsigned types) → the values' dtype once scaled.
 _TYPES = {(8, 0): "u1", (16, 0): "i2", (16, 32768): "u2", (32, 0): "i4",
@@ -123,3 +123,19 @@ class FitsStack:
     def __array__(self, dtype=None, copy=None):
         out = self[(slice(None),) * self.ndim]
         return out if dtype is None else out.astype(dtype)
+
+
+def header(path: Path):
+    """Shape, dtype, and no offset or stride: FITS is read by sections, never mapped."""
+    shape, dtype, _ = read_header(path)
+    return shape, dtype, None, None
+
+
+def open_stack(path: Path) -> FitsStack:
+    """The stack, read lazily by sections."""
+    return FitsStack(path)
+
+
+def settings(path: Path) -> CameraSettings:
+    """The camera settings the header's cards record."""
+    return read_header(path)[2]

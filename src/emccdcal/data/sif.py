@@ -16,7 +16,7 @@ from .._util import one_line
 from ..errors import InputError
 from .settings import CameraSettings
 
-__all__ = ["open_sif"]
+__all__ = ["open_sif", "header", "open_stack", "settings"]
 
 
 def open_sif(path: Path):
@@ -52,3 +52,19 @@ def _settings(info) -> CameraSettings:
         model=None if info.get("DetectorType") is None else str(info["DetectorType"]),
         binning=None if xbin is None or ybin is None else (int(xbin), int(ybin)),
     )
+
+
+def header(path: Path):
+    """Shape, dtype, and no offset or stride: sif-parser maps the frames itself."""
+    arr = open_sif(path)[0]
+    return tuple(arr.shape), arr.dtype, None, None
+
+
+def open_stack(path: Path):
+    """The frames, memory-mapped by sif-parser."""
+    return open_sif(path)[0]
+
+
+def settings(path: Path) -> CameraSettings:
+    """The camera settings sif-parser reads from the file."""
+    return open_sif(path)[1]

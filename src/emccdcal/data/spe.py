@@ -24,7 +24,7 @@ from .._util import one_line
 from ..errors import InputError
 from .settings import CameraSettings
 
-__all__ = ["HEADER_BYTES", "read_layout"]
+__all__ = ["HEADER_BYTES", "read_layout", "header", "settings"]
 
 #: Bytes of the binary header; the first frame follows it.
 HEADER_BYTES = 4100
@@ -173,3 +173,13 @@ def _layout_v2(path, head, size):
     )
     frame_bytes = width * height * dtype.itemsize
     return (count, height, width), dtype, HEADER_BYTES, frame_bytes, settings
+
+
+def header(path: Path):
+    """Shape, dtype, data offset and frame stride (the readers' common interface)."""
+    return read_layout(path)[:4]
+
+
+def settings(path: Path) -> CameraSettings:
+    """The camera settings the file records."""
+    return read_layout(path)[4]

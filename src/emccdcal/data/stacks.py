@@ -1,8 +1,12 @@
-"""Readers of stacks and maps: shape and dtype from the header, data memory-mapped.
+"""Readers of stacks and maps: shape and dtype from the header, data read lazily.
 
-Stacks are TIFF files (read with tifffile; memory-mapped when the file allows it, so a
-large stack is not loaded until its frames are used) or ``.npy`` files (memory-mapped).
-Counts, offsets and read noise are in ADU. Every problem is an
+One interface for every format (docs/formats.md): :func:`stack_header` (shape, dtype),
+:func:`load_stack` (a lazy array: a memory map, or an object that reads what is sliced),
+:func:`read_band` (rows of every frame, read into memory: what a calibration's tiles do)
+and :func:`stack_settings` (:class:`~emccdcal.data.settings.CameraSettings`). TIFF and
+``.npy`` are read here (memory-mapped / ``preadv`` where the frames lie at regular
+places); SPE, SIF, FITS and Zarr by a module each (``header``, ``settings``,
+``open_stack``). Counts, offsets and read noise are in ADU. Every problem is an
 :class:`~emccdcal.errors.InputError` whose one-line message names the file.
 """
 
@@ -10,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import importlib
 import logging
 import os
 import re
@@ -42,7 +47,6 @@ __all__ = [
 
 #: File name suffixes of stacks and maps that can be read.
 STACK_SUFFIXES = (".tif", ".tiff", ".npy", ".spe", ".sif", ".fits", ".fit", ".fts", ".zarr")
-_FITS_SUFFIXES = (".fits", ".fit", ".fts")
 
 #: Elements read at a time when scanning a stack's values.
 _SCAN_ELEMENTS = 2**23
@@ -109,28 +113,11 @@ def _layout(path: Path):
     file."""
     log, stride = (), None
     try:
-        suffix = path.suffix.lower()
-        if suffix == ".npy":
+        fmt = _format(path)
+        if fmt is not None:
+            shape, dtype, offset, stride = fmt.header(path)
+        elif path.suffix.lower() == ".npy":
             shape, dtype, offset = _npy_layout(path)
-        elif suffix == ".spe":
-            from . import spe
-
-            shape, dtype, offset, stride, _ = spe.read_layout(path)
-        elif suffix == ".sif":  # memory-mapped by sif-parser
-            from .sif import open_sif
-
-            arr = open_sif(path)[0]
-            shape, dtype, offset = tuple(arr.shape), arr.dtype, None
-        elif suffix == ".zarr":  # read by chunks
-            from .zarrs import open_array
-
-            arr = open_array(path)
-            shape, dtype, offset = tuple(arr.shape), arr.dtype, None
-        elif suffix in _FITS_SUFFIXES:  # read by sections: no memory map (BZERO data)
-            from . import fits
-
-            shape, dtype, _ = fits.read_header(path)
-            offset = None
         else:
             shape, dtype, offset, log = _tiff_layout(path)
     except InputError:
@@ -152,22 +139,9 @@ def stack_settings(path) -> CameraSettings:
     """The camera settings a stack's file records (:class:`CameraSettings`; fields the
     format or the file does not hold are None)."""
     path = check_readable(Path(path))
-    if path.suffix.lower() == ".spe":
-        from . import spe
-
-        return spe.read_layout(path)[4]
-    if path.suffix.lower() in _FITS_SUFFIXES:
-        from . import fits
-
-        return fits.read_header(path)[2]
-    if path.suffix.lower() == ".zarr":
-        from . import zarrs
-
-        return zarrs.settings(path)
-    if path.suffix.lower() == ".sif":
-        from .sif import open_sif
-
-        return open_sif(path)[1]
+    fmt = _format(path)
+    if fmt is not None:
+        return fmt.settings(path)
     if path.suffix.lower() in (".tif", ".tiff"):
         from . import micromanager
 
@@ -175,6 +149,18 @@ def stack_settings(path) -> CameraSettings:
         with _tifffile_log(path), tifffile.TiffFile(path) as tif:
             return micromanager.stack_settings(path, tif)
     return CameraSettings()
+
+
+#: Formats read by a module of their own, each with ``header(path)`` (shape, dtype, data
+#: offset, frame stride), ``settings(path)`` and, where the offset is None (the data are
+#: not mapped here), ``open_stack(path)``: a lazy array.
+_FORMATS = {".spe": "spe", ".sif": "sif", ".fits": "fits", ".fit": "fits", ".fts": "fits",
+            ".zarr": "zarrs"}
+
+
+def _format(path: Path):
+    name = _FORMATS.get(path.suffix.lower())
+    return None if name is None else importlib.import_module(f".{name}", __package__)
 
 
 _WARNED: set = set()
@@ -390,18 +376,9 @@ def load_stack(path: Path) -> np.ndarray:
                               strides=(stride, shape[2] * dtype.itemsize, dtype.itemsize))
         if path.suffix.lower() == ".npy":  # Fortran order
             return np.load(path, mmap_mode="r", allow_pickle=False)
-        if path.suffix.lower() in _FITS_SUFFIXES:
-            from .fits import FitsStack
-
-            return FitsStack(path)
-        if path.suffix.lower() == ".zarr":
-            from .zarrs import open_array
-
-            return open_array(path)
-        if path.suffix.lower() == ".sif":
-            from .sif import open_sif
-
-            return open_sif(path)[0]
+        fmt = _format(path)
+        if fmt is not None:
+            return fmt.open_stack(path)
         # Compressed, tiled or scattered pages: decoded into memory. tifffile logs a page
         # it cannot decode and fills it with zeros: that is an error here.
         with _tifffile_log(path) as log, tifffile.TiffFile(path) as tif:

@@ -14,7 +14,7 @@ from .._util import one_line
 from ..errors import InputError
 from .settings import CameraSettings
 
-__all__ = ["ATTRIBUTE", "open_array", "settings"]
+__all__ = ["ATTRIBUTE", "open_array", "header", "open_stack", "settings"]
 
 #: The attribute holding a store's camera settings.
 ATTRIBUTE = "emccdcal"
@@ -47,3 +47,12 @@ def settings(path: Path) -> CameraSettings:
         if recorded.get(key) is not None:
             recorded[key] = tuple(int(v) for v in recorded[key])
     return CameraSettings(**recorded)
+
+
+def header(path: Path):
+    """Shape, dtype, and no offset or stride: a store is read by chunks."""
+    arr = open_array(path)
+    return tuple(arr.shape), arr.dtype, None, None
+
+
+open_stack = open_array
