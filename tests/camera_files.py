@@ -127,3 +127,29 @@ def write_micromanager_tiff(path, frames, *, em_gain=None, style="andor", ome=Tr
     tifffile.imwrite(path, np.asarray(frames), ome=ome, photometric="minisblack",
                      extratags=[(51123, "s", 0, json.dumps(base), False)])
     return Path(path)
+
+
+def multi_frame_sif(src, dst, frames):
+    """A multi-frame Andor SIF derived from a real one-frame file: its header with the
+    frame count, total length and one time stamp per frame changed, then ``frames``
+    (float32, the file's frame shape), then the file's trailer. The layout is the one
+    sif-parser reads (an image-structure line ``65541 x0 y1 x1 y0 frames subimages total
+    length``, a sub-image line, a time stamp per frame, a ``0`` flag, the data)."""
+    import re
+
+    import sif_parser
+
+    raw = Path(src).read_bytes()
+    _, info = sif_parser.np_open(str(src), lazy="memmap")
+    offset, image = info["offset"], info["ImageLength"]
+    frames = np.asarray(frames, dtype="<f4")
+    assert info["NumberOfFrames"] == 1 and frames[0].size == image
+    match = list(re.finditer(rb"(6554[13] -?\d+ -?\d+ -?\d+ -?\d+) 1 1 \d+ \d+", raw[:offset]))[-1]
+    n = len(frames)
+    structure = match.group(1) + f" {n} 1 {image * n} {image}".encode()
+    tail = raw[match.end():offset]
+    subimage = tail[: tail.index(b"\n", 1) + 1]
+    stamps = b"".join(f"{1000 * k}\n".encode() for k in range(n))
+    header = raw[:match.start()] + structure + subimage + stamps + b"0\n"
+    Path(dst).write_bytes(header + frames.tobytes() + raw[offset + 4 * image:])
+    return Path(dst)

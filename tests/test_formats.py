@@ -247,3 +247,15 @@ def test_damaged_sif_is_one_line(tmp_path):
     with pytest.raises(InputError, match=r"bad\.sif': not a readable SIF file") as exc:
         load_stack(bad)
     assert "\n" not in str(exc.value)
+
+
+def test_multi_frame_sif_derived_from_a_real_one(tmp_path):
+    from camera_files import multi_frame_sif
+
+    rng = np.random.default_rng(4)
+    frames = rng.integers(500, 4000, (12, 256, 256)).astype(np.float32)
+    path = multi_frame_sif(SIF / "test.sif", tmp_path / "multi.sif", frames)
+    assert stack_header(path) == ((12, 256, 256), np.dtype("float32"))
+    np.testing.assert_array_equal(read_band(path, 100, 103, 2), frames[2:, 100:103])
+    s = stack_settings(path)
+    assert (s.em_gain_setpoint, s.binning, s.model) == (56, (2, 2), "DU897_BV")
