@@ -13,14 +13,13 @@ FITS has no standard camera keywords; those Andor Solis writes are read:
 
 from __future__ import annotations
 
-import math
 import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
-from .settings import CameraSettings
+from .settings import CameraSettings, recorded_number
 
 __all__ = ["FitsStack", "read_header", "header", "open_stack", "settings"]
 
@@ -70,11 +69,7 @@ def read_header(path: Path):
 
 
 def _number(header, key):
-    try:
-        value = float(header[key])
-    except (KeyError, TypeError, ValueError):
-        return None
-    return value if math.isfinite(value) else None
+    return recorded_number(header.get(key))
 
 
 def _settings(header) -> CameraSettings:

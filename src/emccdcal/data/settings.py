@@ -6,9 +6,26 @@ guessed. :func:`emccdcal.data.stacks.stack_settings` returns it for any supporte
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields
 
-__all__ = ["CameraSettings"]
+__all__ = ["CameraSettings", "recorded_number"]
+
+
+def recorded_number(value) -> float | None:
+    """A number a file records (as a number or as text), or None where it is absent, not
+    a number or not finite.
+
+    Examples
+    --------
+    >>> recorded_number("300"), recorded_number(None), recorded_number("n/a")
+    (300.0, None, None)
+    """
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        return None
+    return number if math.isfinite(number) else None
 
 
 @dataclass(frozen=True)

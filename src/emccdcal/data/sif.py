@@ -9,12 +9,11 @@ Andor's pre-amp gain and serial number are not among them.
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 from .._util import one_line
 from ..errors import InputError
-from .settings import CameraSettings
+from .settings import CameraSettings, recorded_number
 
 __all__ = ["open_sif", "header", "open_stack", "settings"]
 
@@ -33,11 +32,7 @@ def open_sif(path: Path):
 
 
 def _number(info, key):
-    try:
-        value = float(info[key])
-    except (KeyError, TypeError, ValueError):
-        return None
-    return value if math.isfinite(value) else None
+    return recorded_number(info.get(key))
 
 
 def _settings(info) -> CameraSettings:

@@ -22,7 +22,7 @@ import numpy as np
 
 from .._util import one_line
 from ..errors import InputError
-from .settings import CameraSettings
+from .settings import CameraSettings, recorded_number
 
 __all__ = ["HEADER_BYTES", "read_layout", "header", "settings"]
 
@@ -115,12 +115,7 @@ def _text(root, path):
 
 
 def _number(root, path):
-    text = _text(root, path)
-    try:
-        value = float(text)
-    except (TypeError, ValueError):
-        return None
-    return value if math.isfinite(value) else None
+    return recorded_number(_text(root, path))
 
 
 def _settings_v3(root) -> CameraSettings:
