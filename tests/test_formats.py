@@ -259,3 +259,35 @@ def test_multi_frame_sif_derived_from_a_real_one(tmp_path):
     np.testing.assert_array_equal(read_band(path, 100, 103, 2), frames[2:, 100:103])
     s = stack_settings(path)
     assert (s.em_gain_setpoint, s.binning, s.model) == (56, (2, 2), "DU897_BV")
+
+
+def test_binning_travels_with_the_result_and_must_match(series, tmp_path):
+    from emccdcal.errors import OptionError
+
+    spe = _as_spe(series, "binned.toml")
+    assert quiet(read_manifest, spe).binning == (1, 1)
+    adu_like = quiet(calibrate, spe, "gs", out=tmp_path / "r")
+    assert list(adu_like.attrs["binning"]) == [1, 1] and list(adu_like.attrs["sensor_origin"]) == [0, 0]
+    # an is-adu result of 2 × 2 binned pixels cannot give φ to unbinned ones
+    from emccdcal.simulate.series import simulate_intensity_series
+
+    adu = simulate_intensity_series(tmp_path / "adu", rows=4, cols=6, frames=300, seed=3,
+                                    levels=(2000, 8000, 32000))
+    text = adu.manifest.read_text()
+    for tif in re.findall(r'frames = "([^"]+\.tif)"', text):
+        src = adu.manifest.parent / tif
+        write_spe(src.with_suffix(".spe"), tifffile.imread(src), em_gain=1, binning=(2, 2))
+        text = text.replace(f'"{tif}"', f'"{tif[:-4]}.spe"')
+    binned = adu.manifest.with_name("binned.toml")
+    binned.write_text(text)
+    quiet(calibrate, binned, "is-adu", out=tmp_path / "phi")
+    with pytest.raises(OptionError, match=r"binned \(2, 2\), but the manifest's stacks \(1, 1\)"):
+        quiet(calibrate, spe, "gs", e_per_adu=tmp_path / "phi")
+
+
+def test_imagej_hyperstack_reads_as_the_plain_tiff(tmp_path):
+    data = _frames()
+    path = tmp_path / "ij.tif"
+    tifffile.imwrite(path, data, imagej=True)
+    assert stack_header(path) == ((7, 5, 6), np.dtype("uint16"))
+    np.testing.assert_array_equal(read_band(path, 1, 3, 2), data[2:, 1:3])

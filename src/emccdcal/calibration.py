@@ -586,6 +586,8 @@ def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_
         ds.attrs["standard_errors"] = se_note
     if manifest.origin is not None:  # where these pixels are on the sensor
         ds.attrs["sensor_origin"] = np.array(manifest.origin, dtype=np.int64)
+    if manifest.binning is not None:
+        ds.attrs["binning"] = np.array(manifest.binning, dtype=np.int64)
     if phi_source is not None:
         ds.attrs["e_per_adu_source"] = phi_source
     if phi_se is not None:
@@ -668,6 +670,11 @@ def _e_per_adu_inputs(manifest, e_per_adu):
         phi = np.asarray(ds.e_per_adu.values, dtype=float)
         se = np.asarray(ds.e_per_adu_se.values, dtype=float)
         ok = np.asarray(ds.converged.values, dtype=bool)
+        binning = ds.attrs.get("binning")
+        if (binning is not None and manifest.binning is not None
+                and tuple(int(b) for b in binning) != tuple(manifest.binning)):
+            raise OptionError(f"e_per_adu from '{path}': binned {tuple(int(b) for b in binning)}, "
+                              f"but the manifest's stacks {manifest.binning}: other pixels")
         crop = _crop_to(manifest, path, phi.shape, ds.attrs.get("sensor_origin"))
         phi, se, ok = phi[crop], se[crop], ok[crop]
         ok &= np.isfinite(phi) & (phi > 0)

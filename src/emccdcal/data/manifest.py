@@ -179,6 +179,8 @@ class Manifest:
     #: (row, col) of the stacks' first pixel on the sensor: the manifest's ``origin``,
     #: else what the files record (their ROI), else None (unknown).
     origin: tuple[int, int] | None = None
+    #: (x, y) binning the files record, or None (not recorded).
+    binning: tuple[int, int] | None = None
 
     @property
     def rows_cols(self) -> str:
@@ -199,6 +201,14 @@ def _origin(r, written, recorded: set, shape):
             warnings.warn(f"{r.path}: origin = {list(written)}, but the files record "
                           f"{list(next(iter(recorded)))}; the manifest's is used", stacklevel=3)
         return tuple(int(v) for v in written)
+    return next(iter(recorded)) if recorded else None
+
+
+def _binning(r, recorded: set):
+    """The stacks' (x, y) binning where the files record one; different ones are an error."""
+    if len(recorded) > 1:
+        raise r.error(f"the stacks record different binnings ({', '.join(map(str, sorted(recorded)))}): "
+                      "a calibration needs the same pixels in every acquisition")
     return next(iter(recorded)) if recorded else None
 
 
@@ -503,11 +513,13 @@ def read_manifest(path) -> Manifest:
     ]
     for msg in found:
         warnings.warn(msg, ReadNoiseGrowthWarning, stacklevel=2)
-    recorded_origins = set()
+    recorded_origins, recorded_binnings = set(), set()
     for i, a in enumerate(acquisitions, start=1):
         settings = stack_settings(a.frames_path)
         if settings.roi is not None:
             recorded_origins.add((settings.roi[1], settings.roi[0]))  # (row, col) = (y, x)
+        if settings.binning is not None:
+            recorded_binnings.add(tuple(settings.binning))
         recorded = settings.em_gain_setpoint
         if recorded is not None and recorded != a.em_gain_setpoint:
             msg = (f"{path}: acquisition {i} ({a.name}): the manifest says EM gain set-point "
@@ -522,6 +534,7 @@ def read_manifest(path) -> Manifest:
         acquisitions=acquisitions,
         shape=tuple(int(d) for d in shape),
         origin=_origin(r, origin, recorded_origins, shape),
+        binning=_binning(r, recorded_binnings),
         adc_max=int(adc_max),
         setpoints=tuple(sorted({a.em_gain_setpoint for a in acquisitions})),
         levels=tuple(levels),
