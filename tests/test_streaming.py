@@ -31,6 +31,15 @@ def series(tmp_path_factory):
     return gs.manifest, adu.manifest
 
 
+@pytest.fixture(scope="module")
+def long_run(tmp_path_factory):
+    """A series whose calibration, one row per tile, takes a few seconds: long enough to
+    be interrupted after its first tiles, whatever the machine's speed."""
+    base = tmp_path_factory.mktemp("long")
+    return simulate_gain_series(base / "gs", rows=24, cols=10, frames=4000, seed=9,
+                                setpoints=(1, 5, 25, 100)).manifest
+
+
 def _assert_same(a, b, rtol=1e-12):
     assert set(a.data_vars) == set(b.data_vars)
     for name in a.data_vars:
@@ -107,18 +116,19 @@ def _wait_for_tiles(out, n, proc, timeout=120):
 
 
 @pytest.mark.slow
-def test_a_killed_run_resumes_to_the_uninterrupted_result(series, tmp_path):
-    manifest = series[0]
-    argv = ["calibrate", str(manifest), "-q", "--tile-pixels", "16", "--block-size", "8"]
+def test_a_killed_run_resumes_to_the_uninterrupted_result(long_run, tmp_path):
+    manifest = long_run
+    argv = ["calibrate", str(manifest), "-q", "--tile-pixels", "10", "--block-size", "8"]
     whole = tmp_path / "whole"
     assert _run(argv + ["-o", str(whole)]).wait() == 0
     out = tmp_path / "killed"
     proc = _run(argv + ["-o", str(out)])
     _wait_for_tiles(out, 2, proc)
+    assert proc.poll() is None, "the run ended before it could be killed"
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     kept = len(list((out / RUN_DIR).glob("tile-*.npz")))
-    assert 2 <= kept < 8 and not (out / "calibration.nc").exists()
+    assert 2 <= kept < 24 and not (out / "calibration.nc").exists()
     again = _run(argv + ["-o", str(out)])
     assert again.wait() == 2 and "--resume" in again.stderr.read()
     changed = _run(argv + ["-o", str(out), "--resume", "--no-checks"])
@@ -133,11 +143,12 @@ def test_a_killed_run_resumes_to_the_uninterrupted_result(series, tmp_path):
 
 
 @pytest.mark.slow
-def test_ctrl_c_says_what_is_kept_and_exits_130(series, tmp_path):
+def test_ctrl_c_says_what_is_kept_and_exits_130(long_run, tmp_path):
     out = tmp_path / "out"
-    proc = _run(["calibrate", str(series[0]), "-q", "--tile-pixels", "16", "--block-size", "8",
+    proc = _run(["calibrate", str(long_run), "-q", "--tile-pixels", "10", "--block-size", "8",
                  "-o", str(out)])
     _wait_for_tiles(out, 1, proc)
+    assert proc.poll() is None, "the run ended before it could be interrupted"
     proc.send_signal(signal.SIGINT)
     code = proc.wait()
     err = proc.stderr.read().strip().splitlines()
