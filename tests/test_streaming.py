@@ -103,8 +103,11 @@ def test_an_unwritable_output_is_found_before_any_computing(series, tmp_path, ca
 
 
 def _run(argv, **kw):
+    # A shell without job control starts background jobs with SIGINT ignored, and Python
+    # then installs no KeyboardInterrupt handler: give the child the default back.
     return subprocess.Popen([sys.executable, "-m", "emccdcal", *argv], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, **kw)
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL), **kw)
 
 
 def _wait_for_tiles(out, n, proc, timeout=120):
