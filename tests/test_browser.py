@@ -29,8 +29,11 @@ from emccdcal.report import html as report_html
 
 CHROMIUM = next((p for p in map(shutil.which, ("chromium", "chromium-browser", "google-chrome"))
                  if p), None)
-pytestmark = pytest.mark.skipif(CHROMIUM is None,
-                                reason="no Chromium on this machine (Debian package 'chromium')")
+# A headless browser is the slowest thing the suite starts: `make test` runs these,
+# `make test-fast` does not.
+pytestmark = [pytest.mark.slow,
+              pytest.mark.skipif(CHROMIUM is None,
+                                 reason="no Chromium on this machine (Debian package 'chromium')")]
 from conftest import write_real_manifest
 
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
