@@ -9,6 +9,7 @@ import warnings
 
 import numpy as np
 import pytest
+import tifffile
 from conftest import write_real_manifest
 
 from emccdcal import cli, errors
@@ -426,3 +427,21 @@ def test_real_gain_series_findings(real_report):
     assert growth[0].startswith("read noise at EM gain set-point 100 (median 16.6 ADU) is 8 %")
     assert growth[1].startswith("read noise at EM gain set-point 300 (median 22.1 ADU) is 44 %")
     assert len(rep["warnings"]) == 2 + 2
+
+
+def test_summary_of_a_file_by_bands_is_the_summary_of_the_stack(tmp_path, monkeypatch):
+    # check reads stacks band by band (bounded memory); the statistics are the same
+    from emccdcal.data import quality
+    from emccdcal.data.quality import StackSummary
+
+    data = np.random.default_rng(1).integers(500, 4095, (60, 7, 5)).astype(np.uint16)
+    data[10, 2, 1] = 4095  # one saturated value (after the skipped frames)
+    path = tmp_path / "s.tif"
+    tifffile.imwrite(path, data)
+    monkeypatch.setattr(quality, "_CHUNK_ELEMENTS", 55 * 5 * 2)  # bands of two rows
+    a = StackSummary.of_file(path, 5, 4095, third=True)
+    b = StackSummary.of(data[5:], 4095, third=True)
+    for name in ("frame_sums", "frame_saturated", "mean", "sd", "n_saturated", "m3"):
+        np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-12,
+                                   err_msg=name)
+    assert a.saturation()["n_values"] == 1

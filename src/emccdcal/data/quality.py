@@ -403,6 +403,22 @@ class StackSummary:
                     band_statistics(np.asarray(stack[:, r0:r0 + step]), adc_max, third=third))
         return out
 
+    @classmethod
+    def of_file(cls, path, skip_frames: int, adc_max: int | None, *,
+                third: bool = False) -> StackSummary:
+        """The summary of a stack file from ``skip_frames`` on, read band by band of rows
+        into memory (:func:`emccdcal.data.stacks.read_band`): bounded memory, and no
+        mapped pages counted against the process, whatever the stack's size."""
+        from .stacks import read_band, stack_header
+
+        (n, rows, cols), _ = stack_header(path)
+        out = cls(n - skip_frames, (rows, cols), adc_max)
+        step = max(1, _CHUNK_ELEMENTS // max(1, (n - skip_frames) * cols))
+        for r0 in range(0, rows, step):
+            band = read_band(path, r0, r0 + step, skip_frames)
+            out.add(r0 * cols, band_statistics(band, adc_max, third=third))
+        return out
+
     def add(self, first: int, statistics: dict) -> None:
         """Add the :func:`band_statistics` of the pixels from ``first`` on (C order)."""
         n = statistics["mean"].size
@@ -708,7 +724,7 @@ def check_acquisition(
     n = int(acq.n_frames)
     one_x = float(acq.em_gain_setpoint) == 1
     if summary is None:
-        summary = StackSummary.of(acq.frames(), adc_max, third=one_x)
+        summary = StackSummary.of_file(acq.frames_path, acq.skip_frames, adc_max, third=one_x)
     series = summary.frame_means(acq.offset)
     drift = stat = None
     if n >= MIN_FRAMES:
@@ -901,8 +917,8 @@ def check_manifest(
     per_test = drift_alpha / max(1, len(manifest.acquisitions))
     used = []
     for i, acq in enumerate(manifest.acquisitions):
-        summary = (StackSummary.of(acq.frames(), manifest.adc_max,
-                                   third=float(acq.em_gain_setpoint) == 1)
+        summary = (StackSummary.of_file(acq.frames_path, acq.skip_frames, manifest.adc_max,
+                                        third=float(acq.em_gain_setpoint) == 1)
                    if summaries is None else summaries[i])
         used.append(summary)
         res = check_acquisition(
