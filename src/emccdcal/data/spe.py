@@ -13,6 +13,7 @@ SPE 2.x has no EM-gain field (give the set-point in the manifest).
 
 from __future__ import annotations
 
+import functools
 import math
 import struct
 import xml.etree.ElementTree as ET
@@ -44,6 +45,9 @@ _V2_TYPES = {0: np.dtype("<f4"), 1: np.dtype("<i4"), 2: np.dtype("<i2"), 3: np.d
 def read_layout(path: Path):
     """Shape (frames, rows, cols), dtype, data offset, frame stride (bytes) and settings.
 
+    Parsed once per file version (path, size, modification time): a calibration asks
+    for it for every tile.
+
     Raises
     ------
     InputError
@@ -51,8 +55,13 @@ def read_layout(path: Path):
         XML that does not describe the frames, a stride smaller than a frame, or frames
         that do not fit before the footer (a truncated file).
     """
-    size = path.stat().st_size
-    with open(path, "rb") as fh:
+    st = path.stat()
+    return _read_layout(path, str(path.resolve()), st.st_size, st.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=128)
+def _read_layout(path: Path, resolved: str, size: int, mtime_ns: int):
+    with open(resolved, "rb") as fh:
         head = fh.read(HEADER_BYTES)
         if len(head) < HEADER_BYTES:
             raise InputError(f"'{path}': {size} bytes, too short for an SPE header "
