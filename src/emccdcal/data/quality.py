@@ -535,8 +535,9 @@ def band_statistics(band: np.ndarray, adc_max: int | None, *, third: bool = Fals
     }
     if third:  # of 1× data, for multiplication_ratio
         m3 = np.zeros(band.shape[1:])
-        for f0 in range(0, n, max(1, _CHUNK_ELEMENTS // max(1, mean.size))):
-            dev = np.asarray(band[f0:f0 + _CHUNK_ELEMENTS // max(1, mean.size)], float) - mean
+        step = max(1, _CHUNK_ELEMENTS // max(1, mean.size))  # frames converted at a time
+        for f0 in range(0, n, step):
+            dev = np.asarray(band[f0:f0 + step], float) - mean
             m3 += np.einsum("fij,fij,fij->ij", dev, dev, dev)
         out["m3"] = m3 / n
     return out
