@@ -8,6 +8,9 @@ data-quality checks, which are on by default, and for ``gs`` also without them).
 
 Run: ``.venv/bin/python benchmarks/bench_calibrate.py [--methods gs,is-adu] [--repeat 3]``
 
+``--cascade`` times every method under the exact cascade register model too, alternating
+with the gamma model, and prints the ratio of the medians (cascade/gamma).
+
 ``--against SRC`` also times another version of the package (the ``src`` folder of a
 checkout, e.g. made by ``git worktree add /tmp/old REV``) on the same data, alternating
 the two in every repetition, and prints the ratio of the medians: on a shared, noisy
@@ -32,6 +35,8 @@ warnings.simplefilter("ignore")
 t0 = time.perf_counter()
 from emccdcal import calibrate
 kw = dict(out=sys.argv[3], checks=sys.argv[4] == "checks")
+if sys.argv[5] != "default":  # the EM register model
+    kw["em_model"] = sys.argv[5]
 try:  # versions that refuse to write into an earlier run's directory
     calibrate(sys.argv[1], sys.argv[2], overwrite=True, **kw)
 except TypeError:
@@ -58,14 +63,14 @@ def machine():
             f"NumPy {numpy.__version__}, SciPy {scipy.__version__}")
 
 
-def _time(manifest, method, out, checks, src=None):
+def _time(manifest, method, out, checks, src=None, em_model="default"):
     """Wall time (s) and peak memory (MB) of one calibration in a fresh process."""
     env = dict(os.environ)
     if src is not None:
         env["PYTHONPATH"] = str(Path(src).resolve())
     res = subprocess.run(
         [sys.executable, "-c", CHILD, str(manifest), method, str(out),
-         "checks" if checks else "no-checks"],
+         "checks" if checks else "no-checks", em_model],
         capture_output=True, text=True, check=True, env=env,
     )
     wall, peak = res.stdout.split()
@@ -82,6 +87,9 @@ def main():
     parser.add_argument("--repeat", type=int, default=1, help="runs per method (median shown)")
     parser.add_argument("--against", type=Path, default=None,
                         help="the src folder of another version to time alternately")
+    parser.add_argument("--cascade", action="store_true",
+                        help="time each method under the gamma and the cascade register "
+                        "model alternately and print the ratio cascade/gamma")
     args = parser.parse_args()
     from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
 
@@ -97,6 +105,8 @@ def main():
         head = f"{'method':<18}{'wall s':>8}{'peak MB':>9}"
         if args.against is not None:
             head += f"{'other s':>9}{'other MB':>10}{'ratio':>7}"
+        if args.cascade:
+            head += f"{'cascade s':>10}{'cascade MB':>11}{'ratio':>7}"
         print(head)
         for entry in args.methods.split(","):
             method, _, flag = entry.partition(":")
@@ -108,6 +118,8 @@ def main():
                 mine.append(_time(manifest, method, out, checks))
                 if args.against is not None:
                     other.append(_time(manifest, method, out, checks, args.against))
+                if args.cascade:
+                    other.append(_time(manifest, method, out, checks, em_model="cascade"))
             wall = statistics.median(w for w, _ in mine)
             line = f"{entry:<18}{wall:>8.2f}{max(p for _, p in mine):>9.0f}"
             if other:

@@ -36,7 +36,7 @@ def main():
         acq = engine.AcquisitionBlock(h.values, h.counts, np.full(P, S0), np.full(P, sigma),
                                        sp == 1, h.mean, h.var, h.n)
         scale = np.full(P, 1 / phi if sp == 1 else g / phi)
-        args = (acq, np.full(P, np.log(E)), np.log(scale), 1)
+        args = (acq, [np.full(P, np.log(E)), np.log(scale)], 1)
         engine._acquisition_terms(*args)  # warm-up
         reps = 5
         t0 = time.perf_counter()

@@ -48,7 +48,7 @@ def _log_params(case, P, shift=(0.01, -0.02)):
 def test_loglik_is_that_of_the_public_noise_model(case):
     acq = _block(case)
     log_e, log_scale = _log_params(case, acq.n.size)
-    loglik = engine._acquisition_terms(acq, log_e, log_scale, 0)[0]
+    loglik = engine._acquisition_terms(acq, [log_e, log_scale], 0)[0]
     E, g, phi, S0, sigma = CASES[case]
     ref_g = 1.0 if g == 1.0 else np.exp(log_scale[0]) * phi
     ref_phi = 1.0 / np.exp(log_scale[0]) if g == 1.0 else phi
@@ -61,15 +61,15 @@ def test_loglik_is_that_of_the_public_noise_model(case):
 def test_gradient_and_observed_information_are_the_derivatives(case):
     acq = _block(case)
     log_e, log_scale = _log_params(case, acq.n.size)
-    _, grad, obs, _, _ = engine._acquisition_terms(acq, log_e, log_scale, 2)
+    _, grad, obs, _, _ = engine._acquisition_terms(acq, [log_e, log_scale], 2)
     h = 1e-4
 
     def terms(de, ds):
-        return engine._acquisition_terms(acq, log_e + de, log_scale + ds, 1)
+        return engine._acquisition_terms(acq, [log_e + de, log_scale + ds], 1)
 
     steps = [(h, 0.0), (0.0, h)]
     for i, (de, ds) in enumerate(steps):
-        ll_plus, ll_minus = (engine._acquisition_terms(acq, log_e + s * de, log_scale + s * ds, 0)[0]
+        ll_plus, ll_minus = (engine._acquisition_terms(acq, [log_e + s * de, log_scale + s * ds], 0)[0]
                              for s in (1, -1))
         np.testing.assert_allclose(grad[:, i], (ll_plus - ll_minus) / (2 * h), rtol=1e-5,
                                    atol=1e-4)
@@ -84,7 +84,7 @@ def test_map_cross_terms_are_outer_products_of_the_scores(case):
     """cross[i, m] = Σ_k n_k (∂p/∂u_i)(∂p/∂m)/p², the ∂p/∂m by finite differences of p."""
     acq = _block(case)
     log_e, log_scale = _log_params(case, acq.n.size)
-    cross = engine._acquisition_terms(acq, log_e, log_scale, 2, map_cross=True)[4]
+    cross = engine._acquisition_terms(acq, [log_e, log_scale], 2, map_cross=True)[4]
     E, scale = np.exp(log_e), np.exp(log_scale)
     model = engine._ModelAtData(acq, E, scale, derivs=True)
     w = np.where(model.low, 0.0, acq.counts / model.pv**2)

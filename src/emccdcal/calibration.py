@@ -121,6 +121,7 @@ class TileJob:
     checks: bool
     fft_threads: int | None = None
     e_per_adu_se: np.ndarray | None = None
+    em_model: noise.EMModel = noise.EMModel()
 
     @property
     def key(self) -> str:
@@ -227,10 +228,16 @@ def _fit_pixels(job, frames, usable, progress=None):
     def fit_block(idx):
         hists = [stats.histograms(f[:, :, idx], adc_max=job.adc_max) for f in frames]
         blocks = layouts.make_blocks(hists, job.offsets[:, idx], job.read_noise[:, idx],
-                                     setpoints, slice(None), job.dark_frames, job.map_groups)
+                                     setpoints, slice(None), job.dark_frames, job.map_groups,
+                                     job.em_model)
         series = layouts.Series(blocks, setpoints, list(job.labels),
                                 None if job.e_per_adu is None else job.e_per_adu[idx])
         layout, x0 = layouts.build_layout(method, series, job.options)
+        if job.em_model.cascade:
+            # The gamma model's optimum is within about 1 % of the cascade's: from it the
+            # costlier exact model needs a few iterations instead of a dozen.
+            gamma = [replace(b, em_model=noise.EMModel()) for b in blocks]
+            x0 = engine.fit(layout, gamma, x0).x
         fit = engine.fit(layout, blocks, x0)
         cov = fit.cov
         if job.e_per_adu_se is not None:  # φ's own error moves every E and g together
@@ -250,7 +257,7 @@ def _fit_pixels(job, frames, usable, progress=None):
         e["gof_pvalue"] = np.stack([
             gof.gof_pvalues(blocks[a], e["photoelectrons"][:, a], e["em_gain"][:, a],
                             e["e_per_adu"][:, a], blocks[a].offset, blocks[a].read_noise,
-                            n_fitted_params=float(n_fitted[a]))[0]
+                            n_fitted_params=float(n_fitted[a]), em_model=job.em_model)[0]
             for a in range(len(blocks))
         ], axis=1)
         e.update(loglik=fit.loglik, converged=fit.converged, n_floored=fit.n_floored,
@@ -345,7 +352,7 @@ def _run_tiles(jobs, store, scheduler, progress, method):
 
 
 def _fingerprint(manifest, used, method, options, intervals, checks, map_errors, phi_map, phi_se,
-                 tiling):
+                 tiling, em_model):
     """What a calibration's result depends on, to refuse resuming a different run."""
     files = {}
     paths = [manifest.path] + [a.frames_path for a in manifest.acquisitions]
@@ -372,6 +379,7 @@ def _fingerprint(manifest, used, method, options, intervals, checks, map_errors,
         "map_errors": bool(map_errors),
         "e_per_adu_sha256": phi,
         "blocks_and_tiles": [int(t) for t in tiling],
+        "em_model": str(em_model),
     }
 
 
@@ -395,6 +403,8 @@ def calibrate(
     checks=True,
     map_errors=True,
     intervals="wald",
+    em_model=None,
+    stages=None,
 ) -> xarray.Dataset:
     """Calibrate a camera from the acquisitions of a manifest.
 
@@ -461,6 +471,16 @@ def calibrate(
         without its prior (:func:`emccdcal.fit.layouts.unpooled_bounds`): its MAP ± 1.96 SE
         over-covers where the true E is shared and under-covers where it is not.
 
+    em_model : {"gamma", "cascade"} or noise.EMModel, optional
+        The EM register's model in the likelihood methods: the paper's gamma
+        approximation or the exact Bernoulli cascade (:class:`emccdcal.noise.EMModel`);
+        default the manifest's ``em_model``, else ``"gamma"``. The gamma model biases
+        the gains of an exact register by about −1 % in ``gs`` and by F²/2 − 1 (−10 %
+        at 5×) where E is free at one set-point (``is-gain``); the cascade costs about
+        twice the time (docs/cascade.md).
+    stages : int, optional
+        Stages of the cascade (default the manifest's ``register_stages``, else 536).
+
     Returns
     -------
     xarray.Dataset
@@ -490,7 +510,7 @@ def calibrate(
     ds = result.run_recorded(
         lambda: _run_calibration(manifest, method, e_per_adu, out, resume, overwrite,
                                  block_size, tile_pixels, scheduler, options, progress,
-                                 workers, checks, map_errors, intervals),
+                                 workers, checks, map_errors, intervals, em_model, stages),
     )
     if out is not None:  # the result's files as one set; the kept tiles go last
         result.save(ds, out, seconds=ds.attrs["seconds"], cleanup=Path(out) / RUN_DIR)
@@ -528,8 +548,9 @@ def _require_convergence(ds, method) -> None:
 
 def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_size,
                      tile_pixels, scheduler, options, progress, workers, checks, map_errors,
-                     intervals):
+                     intervals, em_model=None, stages=None):
     manifest = _load(manifest)
+    model = _em_model_of(manifest, em_model, stages)
     acqs = manifest.acquisitions
     rows, cols = manifest.shape
     phi_map, phi_se, phi_source = _e_per_adu_inputs(manifest, e_per_adu)
@@ -547,7 +568,7 @@ def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_
     if out is not None:  # an unwritable or occupied output is found before any computing
         store = RunStore(out, _fingerprint(
             manifest, used, method, options, intervals, checks, map_errors, phi_map, phi_se,
-            (block_size, tiles[0][1] - tiles[0][0])), resume=resume, overwrite=overwrite)
+            (block_size, tiles[0][1] - tiles[0][0]), model), resume=resume, overwrite=overwrite)
     dark_frames, map_groups, se_note = _map_error_sources(used, map_errors)
     offsets = np.stack([a.offset.reshape(-1) for a in used])
     read_noise = np.stack([a.read_noise.reshape(-1) for a in used])
@@ -567,7 +588,8 @@ def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_
             dark_frames=tuple(dark_frames), map_groups=tuple(map_groups),
             adc_max=int(manifest.adc_max), options=options, intervals=intervals,
             block_size=block_size, threads=workers if scheduler is None else 1,
-            checks=bool(checks), fft_threads=None if scheduler is None else 1))
+            checks=bool(checks), fft_threads=None if scheduler is None else 1,
+            em_model=model))
     parts = _run_tiles(jobs, store, scheduler, progress, method)
     report, messages = _quality(manifest, used, parts, tiles) if checks else (None, [])
     arrays = {}
@@ -582,8 +604,12 @@ def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_
         ds.attrs["standard_errors"] = "from the photon-transfer fit, conditional on the offset maps"
     else:
         ds = _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, options,
-                                 intervals)
+                                 intervals, model)
         ds.attrs["standard_errors"] = se_note
+    if not method.startswith("mv-") or model.cascade:
+        ds.attrs["em_model"] = model.name
+        if model.cascade:
+            ds.attrs["register_stages"] = np.int64(model.stages)
     if manifest.origin is not None:  # where these pixels are on the sensor
         ds.attrs["sensor_origin"] = np.array(manifest.origin, dtype=np.int64)
     if manifest.binning is not None:
@@ -599,6 +625,15 @@ def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_
     _require_convergence(ds, method)
     _warn_gain_order(ds)
     return ds
+
+
+def _em_model_of(manifest, em_model, stages):
+    """The register model of a run: the caller's, else the manifest's, else gamma."""
+    if em_model is None and stages is None:
+        return manifest.em_model or noise.EMModel()
+    if em_model is None:
+        em_model = "cascade" if manifest.em_model is None else manifest.em_model.name
+    return noise.as_em_model(em_model, stages)
 
 
 def _warn_saturated_and_unusable(manifest, used, arrays):
@@ -742,7 +777,7 @@ def _map_error_sources(used, map_errors):
 
 
 def _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, options,
-                        intervals):
+                        intervals, model):
     """The result of a likelihood method from the per-pixel arrays of every tile."""
     rows, cols = manifest.shape
     setpoints = np.array([a.em_gain_setpoint for a in used])
@@ -753,7 +788,13 @@ def _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, opt
                       "did not converge (see 'converged')", stacklevel=3)
     kind = "level" if method.startswith("is-") else "set-point"
     keys = _labels(used) if kind == "level" else [result.format_setpoint(s) + "x" for s in setpoints]
+    multiplied = [k for k, sp in zip(keys, setpoints) if sp != 1]
     for w in gof.misfit_warnings(dict(zip(keys, gof_p.T)), kind=kind):
+        if not model.cascade and any(w.startswith(f"{kind} {k}:") for k in multiplied):
+            # The gamma model's excess noise is 2; an exact register's is below it,
+            # most at low gain: the commonest cause of a misfit there.
+            w += ("; the gamma model of the EM register misfits an exact register's low "
+                  "gains: try the cascade model (--em-model cascade, em_model = \"cascade\")")
         warnings.warn(w, stacklevel=3)
     grid = lambda a: a.T.reshape((-1, rows, cols)) if a.ndim == 2 else a.reshape(rows, cols)  # noqa: E731
     labels = _labels(used)
@@ -887,7 +928,11 @@ def _mv_dataset(method, manifest, used, arrays, phi_map, phi_se=None):
 def format_summary(ds):
     """A short human-readable table of a calibration (median over converged pixels)."""
     ok = ds.converged.values
-    lines = [f"method {ds.attrs['method']}: {int(ok.sum())}/{ok.size} pixels converged, "
+    model = ds.attrs.get("em_model")
+    if model == "cascade":
+        model = f"cascade, {int(ds.attrs['register_stages'])} stages"
+    lines = [f"method {ds.attrs['method']}" + (f" ({model} register)" if model else "")
+             + f": {int(ok.sum())}/{ok.size} pixels converged, "
              f"{ds.attrs.get('seconds', float('nan')):.1f} s; medians over those"]
     if not ok.any():
         return lines[0].replace("; medians over those", "; no estimate to show")

@@ -128,6 +128,17 @@ _PIXEL_DIMS = ("row", "col")
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
 
 
+def em_model_summary(ds) -> dict:
+    """The EM register model a result was fitted with: ``{"em_model": ..., and for the
+    cascade "register_stages": N}``; empty for results without one (mean–variance)."""
+    if "em_model" not in ds.attrs:
+        return {}
+    out = {"em_model": str(ds.attrs["em_model"])}
+    if "register_stages" in ds.attrs:
+        out["register_stages"] = int(ds.attrs["register_stages"])
+    return out
+
+
 def format_setpoint(value) -> str:
     """Canonical text of a set-point: integral values without a decimal point.
 
@@ -551,6 +562,7 @@ def summarize(ds: xr.Dataset, seconds: float | None = None) -> dict:
         params[name] = entry
     return {
         "method": str(ds.attrs.get("method", "")),
+        **em_model_summary(ds),
         "emccdcal_version": str(ds.attrs.get("emccdcal_version", "")),
         "manifest_sha256": str(ds.attrs.get("manifest_sha256", "")),
         "manifest_path": str(ds.attrs.get("manifest_path", "")),

@@ -59,6 +59,16 @@ def add_e_per_adu(p: argparse.ArgumentParser) -> None:
                    "whose phi and standard error per pixel are then used")
 
 
+def add_em_model(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("EM register model (docs/cascade.md)")
+    g.add_argument("--em-model", choices=("gamma", "cascade"), default=None,
+                   help="the register in the likelihood: the paper's gamma approximation or "
+                   "the exact Bernoulli cascade (default: the manifest's em_model, else gamma)")
+    g.add_argument("--stages", type=positive_int, default=None, metavar="N",
+                   help="stages of the cascade register (default: the manifest's "
+                   "register_stages, else 536)")
+
+
 def number_or_path(text: str):
     """An argparse type: a positive number, or else a path (checked by the library)."""
     try:

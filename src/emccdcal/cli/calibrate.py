@@ -58,6 +58,7 @@ def add_parser(subparsers):
                    "the error of maps estimated from dark frames)")
     p.add_argument("--report", action="store_true",
                    help="also write OUT/report.html (figures, summary, provenance)")
+    _common.add_em_model(p)
     _common.add_quiet(p)
     p.set_defaults(func=run)
     return p
@@ -76,7 +77,8 @@ def run(args) -> int:
                        workers=args.workers, scheduler=args.scheduler,
                        options=options, progress=not args.quiet,
                        checks=not args.no_checks, map_errors=not args.conditional_se,
-                       intervals=args.intervals)
+                       intervals=args.intervals, em_model=args.em_model,
+                       stages=args.stages)
         if args.report:
             from ..report.html import REPORT_FILE, write_report
 

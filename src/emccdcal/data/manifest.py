@@ -53,7 +53,8 @@ __all__ = [
 ]
 
 #: Keys allowed at the top level of a manifest.
-TOP_LEVEL_KEYS = ("e_per_adu", "adc_bits", "origin", "acquisition")
+TOP_LEVEL_KEYS = ("e_per_adu", "adc_bits", "origin", "em_model", "register_stages",
+                  "acquisition")
 #: Keys allowed in an ``[[acquisition]]`` table.
 ACQUISITION_KEYS = (
     "frames",
@@ -181,6 +182,9 @@ class Manifest:
     origin: tuple[int, int] | None = None
     #: (x, y) binning the files record, or None (not recorded).
     binning: tuple[int, int] | None = None
+    #: The EM register's model (``em_model`` and ``register_stages``), or None: not
+    #: given (the calibration's own default, the paper's gamma model).
+    em_model: object = None
 
     @property
     def rows_cols(self) -> str:
@@ -335,6 +339,7 @@ def read_manifest(path) -> Manifest:
     e_value = doc.get("e_per_adu")
     if e_value is not None:
         _check_map_value(r, "e_per_adu", e_value, None, "")
+    em_model = _em_model(r, doc.get("em_model"), doc.get("register_stages"))
 
     specs = []
     for i, entry in enumerate(entries, start=1):
@@ -539,7 +544,27 @@ def read_manifest(path) -> Manifest:
         setpoints=tuple(sorted({a.em_gain_setpoint for a in acquisitions})),
         levels=tuple(levels),
         warnings=found,
+        em_model=em_model,
     )
+
+
+def _em_model(r, name, stages):
+    """The manifest's ``em_model`` and ``register_stages`` as a noise.EMModel (or None)."""
+    from ..model.noise import EM_MODELS, EMModel
+
+    if name is None and stages is None:
+        return None
+    if name is not None and name not in EM_MODELS:
+        raise r.error(f"em_model must be one of {', '.join(repr(m) for m in EM_MODELS)}, "
+                      f"got {name!r}")
+    if stages is not None:
+        if not isinstance(stages, int) or isinstance(stages, bool) or not 1 <= stages <= 100000:
+            raise r.error(f"register_stages must be a whole number of stages (e.g. 536 or "
+                          f"604), got {stages!r}")
+        if name != "cascade":
+            raise r.error("register_stages goes with em_model = \"cascade\" (the gamma "
+                          "model has no stages)")
+    return EMModel(name or "gamma", stages) if stages is not None else EMModel(name)
 
 
 def _refuse_copies(r: _Reader, specs: list) -> None:

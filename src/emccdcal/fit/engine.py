@@ -59,6 +59,8 @@ class AcquisitionBlock:
     map_group : hashable, optional
         Acquisitions with the same group share one pair of maps (one dark stack), so their
         map errors are the same draw.
+    em_model : noise.EMModel
+        The register model of a multiplied acquisition (the paper's gamma by default).
     """
 
     values: np.ndarray
@@ -72,6 +74,7 @@ class AcquisitionBlock:
     offset_var: np.ndarray | None = None
     read_noise_var: np.ndarray | None = None
     map_group: object = None
+    em_model: noise.EMModel = noise.EMModel()
 
     @property
     def has_map_errors(self) -> bool:
@@ -84,7 +87,7 @@ class AcquisitionBlock:
         return AcquisitionBlock(
             self.values[idx], self.counts[idx], self.offset[idx], self.read_noise[idx],
             self.poisson_normal, self.mean[idx], self.var[idx], self.n[idx],
-            sub(self.offset_var), sub(self.read_noise_var), self.map_group,
+            sub(self.offset_var), sub(self.read_noise_var), self.map_group, self.em_model,
         )
 
 
@@ -186,12 +189,15 @@ class _ModelAtData:
         Pixels whose parameters are hopelessly far from their data.
     """
 
-    def __init__(self, acq, E, scale, *, derivs=False, second=False,
+    def __init__(self, acq, E, scale, gain=None, *, derivs=False, second=False,
                  names=("photoelectrons", "scale")):
         pn = np.full(E.shape, acq.poisson_normal)
+        # The exact register: ``scale`` is 1/φ and the gain enters through the register.
+        cascade = None if gain is None else noise._Cascade(acq.em_model.stages, gain, 0.0)
         # The model's mass lies within [lo, hi] (eight SDs and the tails, outside of
         # which the pmf is below ~1e-15 of its peak).
-        lo, hi = noise._extent(E, scale, acq.offset, acq.read_noise, pn, width=8.0)
+        lo, hi = noise._extent(E, scale, acq.offset, acq.read_noise, pn, width=8.0,
+                               cascade=cascade)
         lo, hi = np.floor(lo).astype(np.int64), np.ceil(hi).astype(np.int64)
         first, last = acq.values[:, 0], acq.values.max(axis=1)
         # The FFT gives the pmf wrapped with period n: at a datum k, p(k) + Σ p(k ± jn).
@@ -212,7 +218,7 @@ class _ModelAtData:
         n = noise._fast_len(int((stop - start).max()) + 1)
         p, d1, d2 = noise._window(
             E, scale, acq.offset - start, acq.read_noise, pn, n,
-            derivs=derivs, second=second, names=names,
+            derivs=derivs, second=second, names=names, cascade=cascade,
         )
         P = E.shape[0]
         # One flat gather per window (faster than take_along_axis, which rebuilds indices).
@@ -238,46 +244,52 @@ class _ModelAtData:
         return {key: spec.dot(hat) for key, spec in self.second.items()}
 
 
-def _acquisition_terms(acq, log_e, log_scale, level, map_cross=False):
-    """Log-likelihood of one acquisition and its derivatives by (ln E, ln scale).
+def _acquisition_terms(acq, coords, level, map_cross=False):
+    """Log-likelihood of one acquisition and its derivatives by its model coordinates.
 
-    ``level`` 0: value only; 1: gradient and the outer-product (BHHH) information; 2: the
-    observed information instead. With ``map_cross`` (level ≥ 1) also the outer-product
-    cross information of (ln E, ln scale) with the (offset, read-noise) maps, (P, 2, 2),
-    for :func:`_map_covariance`, from the same windows.
-    Returns ``(loglik (P,), grad (P, 2), info (P, 2, 2), n_floored (P,), cross)``.
+    ``coords`` (U, P) are the logarithms of the model's own parameters
+    (:func:`_native_to_model`): (ln E, ln scale) of the gamma and Poisson–normal models,
+    (ln E, ln(1/φ), ln g) of the cascade. ``level`` 0: value only; 1: gradient and the
+    outer-product (BHHH) information; 2: the observed information instead. With
+    ``map_cross`` (level ≥ 1) also the outer-product cross information of the
+    coordinates with the (offset, read-noise) maps, (P, U, 2), for
+    :func:`_map_covariance`, from the same windows.
+    Returns ``(loglik (P,), grad (P, U), info (P, U, U), n_floored (P,), cross)``.
     """
-    E = np.exp(log_e)
-    scale = np.exp(log_scale)
-    names = ("photoelectrons", "scale") + (("offset", "read_noise") if map_cross else ())
-    model = _ModelAtData(acq, E, scale, derivs=level >= 1, second=level >= 2, names=names)
+    values = [np.exp(c) for c in coords]
+    U = len(values)
+    model_names = ("photoelectrons", "scale", "em_gain")[:U]
+    names = model_names + (("offset", "read_noise") if map_cross else ())
+    gain = values[2] if U == 3 else None
+    model = _ModelAtData(acq, values[0], values[1], gain, derivs=level >= 1,
+                         second=level >= 2, names=names)
     pv, low = model.pv, model.low
     loglik = np.where(model.hopeless, -np.inf, np.sum(acq.counts * np.log(pv), axis=1))
     n_floored = np.sum(acq.counts * low, axis=1).astype(np.int64)
     if level == 0:
         return loglik, None, None, n_floored, None
-    factor = np.stack([E, scale], axis=1)  # d λ / d ln λ
+    factor = np.stack(values, axis=1)  # d λ / d ln λ
     w = np.where(low, 0.0, acq.counts / pv)
     scores = [model.scores[nm] for nm in names]
-    grad = np.stack([np.sum(w * s, axis=1) for s in scores[:2]], axis=1) * factor
+    grad = np.stack([np.sum(w * s, axis=1) for s in scores[:U]], axis=1) * factor
     # Outer products of the per-frame scores (BHHH): a positive semi-definite estimate of
     # the information from the data points alone, cheap because the histogram is short.
     ws = [w * s / pv for s in scores]
     outer = {(i, j): np.sum(ws[i] * scores[j], axis=1)
-             for i in range(2) for j in range(i, len(names))}
-    info = np.empty((acq.values.shape[0], 2, 2))
-    for i in range(2):
-        for j in range(i, 2):
+             for i in range(U) for j in range(i, len(names))}
+    info = np.empty((acq.values.shape[0], U, U))
+    for i in range(U):
+        for j in range(i, U):
             info[:, i, j] = info[:, j, i] = outer[i, j] * factor[:, i] * factor[:, j]
     cross = None
     if map_cross:
-        cross = np.stack([np.stack([outer[i, j] for j in (2, 3)], axis=1) for i in range(2)],
-                         axis=1) * factor[:, :, None]
+        cross = np.stack([np.stack([outer[i, j] for j in (U, U + 1)], axis=1)
+                          for i in range(U)], axis=1) * factor[:, :, None]
     if level >= 2:
         sums = model.second_sums(w)
         obs = np.empty_like(info)
-        for i, a in enumerate(names[:2]):
-            for j, b in enumerate(names[i:2], start=i):
+        for i, a in enumerate(model_names):
+            for j, b in enumerate(model_names[i:], start=i):
                 h = (sums[(a, b)] - outer[i, j]) * factor[:, i] * factor[:, j]
                 if i == j:  # d²/d(ln λ)² picks up λ · d/dλ
                     h = h + grad[:, i]
@@ -286,12 +298,22 @@ def _acquisition_terms(acq, log_e, log_scale, level, map_cross=False):
     return loglik, grad, info, n_floored, cross
 
 
-def _native_to_model(logs, poisson_normal):
-    """(ln E, ln g, ln φ) → (ln E, ln scale) and d(ln scale)/d(ln g, ln φ)."""
-    log_e, log_g, log_phi = logs[:, 0], logs[:, 1], logs[:, 2]
-    if poisson_normal:
-        return log_e, -log_phi, np.array([0.0, -1.0])
-    return log_e, log_g - log_phi, np.array([1.0, -1.0])
+#: d(model coordinates)/d(ln E, ln g, ln φ) of each model (rows: the coordinates).
+_GAMMA_COORDS = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -1.0]])      # ln E, ln(g/φ)
+_PN_COORDS = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])         # ln E, ln(1/φ)
+_CASCADE_COORDS = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+
+def _native_to_model(logs, acq):
+    """(ln E, ln g, ln φ) (P, 3) → the model's coordinates (U, P) and their matrix
+    d coords / d(ln E, ln g, ln φ) (U, 3): linear for every model."""
+    if acq.poisson_normal:
+        D = _PN_COORDS
+    elif acq.em_model.cascade:
+        D = _CASCADE_COORDS
+    else:
+        D = _GAMMA_COORDS
+    return D @ logs.T, D
 
 
 def _evaluate(layout, blocks, x, level, map_cross=False):
@@ -310,8 +332,8 @@ def _evaluate(layout, blocks, x, level, map_cross=False):
     floored = np.zeros(P, dtype=np.int64)
     crosses = [] if map_cross else None
     for a, acq in enumerate(blocks):
-        log_e, log_scale, dscale = _native_to_model(logs[:, a], acq.poisson_normal)
-        ll, g_u, i_u, nf, cross = _acquisition_terms(acq, log_e, log_scale, level,
+        coords, D = _native_to_model(logs[:, a], acq)
+        ll, g_u, i_u, nf, cross = _acquisition_terms(acq, coords, level,
                                                      map_cross and acq.has_map_errors)
         per_acq[:, a] = ll
         total += ll
@@ -321,7 +343,7 @@ def _evaluate(layout, blocks, x, level, map_cross=False):
         if level == 0:
             continue
         # u = (ln E, ln scale) as a function of x through (ln E, ln g, ln φ).
-        j_u = _model_jacobian(jac, a, dscale)
+        j_u = _model_jacobian(jac, a, D)
         grad += np.einsum("pu,puf->pf", g_u, j_u)
         info += np.einsum("puf,puv,pvg->pfg", j_u, i_u, j_u)
     lp, lp_grad, lp_hess = layout.log_prior(x)
@@ -332,9 +354,10 @@ def _evaluate(layout, blocks, x, level, map_cross=False):
     return objective, total, per_acq, grad, info, floored, crosses
 
 
-def _model_jacobian(jac, a, dscale):
-    """d(ln E, ln scale)/dx (P, 2, F) of acquisition ``a`` from the layout's Jacobian."""
-    return np.stack([jac[:, a, 0], dscale[0] * jac[:, a, 1] + dscale[1] * jac[:, a, 2]], 1)
+def _model_jacobian(jac, a, D):
+    """d(model coordinates)/dx (P, U, F) of acquisition ``a`` from the layout's Jacobian
+    and the coordinates' matrix ``D`` (:func:`_native_to_model`)."""
+    return np.einsum("uj,pjf->puf", D, jac[:, a])
 
 
 def _map_covariance(layout, blocks, x, cov, crosses):
@@ -352,8 +375,7 @@ def _map_covariance(layout, blocks, x, cov, crosses):
     for a, (acq, cross) in enumerate(zip(blocks, crosses)):
         if cross is None:
             continue
-        dscale = _native_to_model(logs[:, a], acq.poisson_normal)[2]
-        j_u = _model_jacobian(jac, a, dscale)
+        j_u = _model_jacobian(jac, a, _native_to_model(logs[:, a], acq)[1])
         sens = np.einsum("pfg,pug,pum->pfm", cov, j_u, cross)  # dx/d(offset, read_noise)
         var = np.stack([np.zeros(P) if v is None else v
                         for v in (acq.offset_var, acq.read_noise_var)], axis=1)
@@ -378,13 +400,15 @@ def value_scores(layout, blocks, x):
     logs, jac = layout.native(x)
     out = []
     for a, acq in enumerate(blocks):
-        log_e, log_scale, dscale = _native_to_model(logs[:, a], acq.poisson_normal)
-        E, scale = np.exp(log_e), np.exp(log_scale)
-        model = _ModelAtData(acq, E, scale, derivs=True)
+        coords, D = _native_to_model(logs[:, a], acq)
+        values = [np.exp(c) for c in coords]
+        names = ("photoelectrons", "scale", "em_gain")[:len(values)]
+        model = _ModelAtData(acq, values[0], values[1], values[2] if len(values) == 3 else None,
+                             derivs=True, names=names)
         d1, pv = model.scores, model.pv
-        u = np.stack([d1["photoelectrons"] * E[:, None], d1["scale"] * scale[:, None]], -1)
-        u = np.where(model.low[..., None], 0.0, u / pv[..., None])  # (P, K, 2) by (ln E, ln scale)
-        j_u = _model_jacobian(jac, a, dscale)
+        u = np.stack([d1[nm] * v[:, None] for nm, v in zip(names, values)], -1)
+        u = np.where(model.low[..., None], 0.0, u / pv[..., None])  # (P, K, U) by coords
+        j_u = _model_jacobian(jac, a, D)
         out.append((np.einsum("pku,puf->pkf", u, j_u), acq.counts))
     return out
 

@@ -65,7 +65,8 @@ def _per_pixel(name, value, P):
 
 def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, read_noise,
                 *, n_fitted_params=2, max_bins=DEFAULT_MAX_BINS,
-                frames_per_bin=DEFAULT_FRAMES_PER_BIN, min_expected=DEFAULT_MIN_EXPECTED):
+                frames_per_bin=DEFAULT_FRAMES_PER_BIN, min_expected=DEFAULT_MIN_EXPECTED,
+                em_model="gamma", stages=None):
     """Binned Pearson χ² goodness-of-fit test of the model for every pixel of one acquisition.
 
     Parameters
@@ -94,6 +95,8 @@ def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, re
     min_expected : float, optional
         No bin used expects fewer frames than this (default 5): smaller bins are merged
         with a neighbour, which lowers the effective number of bins ``K_eff``.
+    em_model, stages : optional
+        The EM register's model, as in :func:`emccdcal.model.noise.logpmf`.
 
     Returns
     -------
@@ -143,6 +146,7 @@ def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, re
     phi = _per_pixel("e_per_adu", e_per_adu, P)
     S0 = _per_pixel("offset", offset, P)
     sigma = _per_pixel("read_noise", read_noise, P)
+    model = noise.as_em_model(em_model, stages)
 
     K = np.minimum(int(max_bins), np.floor(n / float(frames_per_bin))).astype(np.int64)
     with np.errstate(invalid="ignore"):
@@ -156,8 +160,15 @@ def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, re
     idx = np.flatnonzero(ok)
     if idx.size:
         pn = g[idx] == 1.0
-        scale = np.where(pn, 1.0, g[idx]) / phi[idx]
-        lo, hi = noise._extent(E[idx], scale, S0[idx], sigma[idx], pn, width=8.0)
+        # The cascade's rows: all multiplied (the Poisson-normal rows are the gamma's).
+        exact = model.cascade and not pn.any()
+        cascade = noise._Cascade(model.stages, g[idx], 0.0) if exact else None
+        if model.cascade and pn.any() and not pn.all():
+            raise OptionError("gof_pvalues: give the cascade model's multiplied and 1x "
+                              "pixels in separate calls")
+        scale = np.where(pn | exact, 1.0, g[idx]) / phi[idx]
+        lo, hi = noise._extent(E[idx], scale, S0[idx], sigma[idx], pn, width=8.0,
+                               cascade=cascade)
         start = np.floor(lo).astype(np.int64)
         length = np.ceil(hi).astype(np.int64) - start + 1
         # Blocks of pixels with similar windows, bounded memory.
@@ -177,7 +188,7 @@ def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, re
             c, d = _block_chi2(
                 values[sel], counts[sel], n[sel], K[sel], E[sel], scale[r], S0[sel],
                 sigma[sel], pn[r], start[r], length[r], float(n_fitted_params),
-                float(min_expected),
+                float(min_expected), None if cascade is None else cascade.take(r),
             )
             chi2[sel], dof[sel] = c, d
             i0 = i1
@@ -190,11 +201,11 @@ def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, re
 
 
 def _block_chi2(values, counts, n, K, E, scale, S0, sigma, pn, start, length, s,
-                min_expected):
+                min_expected, cascade=None):
     """χ² and dof of a block of pixels (all arrays restricted to the block)."""
     P = values.shape[0]
     L = noise._fast_len(int(length.max()))
-    p = noise._window(E, scale, S0 - start, sigma, pn, L)[0]
+    p = noise._window(E, scale, S0 - start, sigma, pn, L, cascade=cascade)[0]
     p = np.maximum(p, 0.0)  # FFT round-off (~1e-16 of the peak) can be slightly negative
     p /= p.sum(axis=1, keepdims=True)
     cdf = np.cumsum(p, axis=1)

@@ -25,6 +25,7 @@ import numpy as np
 
 from ..errors import MethodError, OptionError
 from . import engine
+from ..model import noise
 from .engine import AcquisitionBlock, Layout
 
 __all__ = [
@@ -539,9 +540,12 @@ def _bounds_of_x(layout, lower, upper):
     return out
 
 
-def make_blocks(histograms, offsets, read_noises, setpoints, idx, dark_frames=None, map_groups=None):
+def make_blocks(histograms, offsets, read_noises, setpoints, idx, dark_frames=None, map_groups=None,
+                em_model=None):
     """AcquisitionBlocks of pixels ``idx`` from per-acquisition statistics.
 
+    ``em_model`` (:class:`emccdcal.model.noise.EMModel`) is the register model of the
+    multiplied acquisitions (default the paper's gamma model).
     ``dark_frames`` (one int or None per acquisition) gives the maps' own variances:
     σ²/n for the offset (the SE of a mean) and σ²/(2(n−1)) for the read noise (of an SD),
     ADU²; ``map_groups`` says which acquisitions share a pair of maps.
@@ -563,7 +567,7 @@ def make_blocks(histograms, offsets, read_noises, setpoints, idx, dark_frames=No
                 poisson_normal=bool(sp == 1), mean=h.mean[idx], var=h.var[idx], n=h.n[idx],
                 offset_var=None if nd is None else sigma2 / nd,
                 read_noise_var=None if nd is None else sigma2 / (2.0 * (nd - 1)),
-                map_group=grp,
+                map_group=grp, em_model=em_model or noise.EMModel(),
             )
         )
     return blocks

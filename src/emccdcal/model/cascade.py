@@ -74,6 +74,7 @@ __all__ = [
     "output_pmf",
     "sample_cascade",
     "sample_gamma",
+    "register_transform",
     "DEFAULT_STAGES",
 ]
 
@@ -264,6 +265,120 @@ def excess_noise_factor(em_gain, stages=DEFAULT_STAGES):
     n = _check_stages(stages)
     _check_reachable(g, n)
     return (2.0 * (g - 1.0) * g ** (-(n + 1.0) / n) + 1.0 / g)[()]
+
+
+# --------------------------------------------------------------------------------------
+# The register's transform, with derivatives: what the likelihood needs
+# --------------------------------------------------------------------------------------
+def register_transform(u, em_gain, stages=DEFAULT_STAGES, *, order=1, cic=False):
+    """``G_N(e^u) − 1`` of one input electron, and its derivatives by u and ln g.
+
+    ``G_N`` is the register's probability generating function, so ``G_N(e^u)`` is the
+    moment generating function of one electron's output (electrons) at u; with
+    ``u = s/φ`` it is that of the output in ADU at s. It is computed by the recursion
+    ``v_{m+1} = v_m·(1 + p + p·v_m)`` from ``v_0 = e^u − 1``, which iterates G − 1
+    rather than G, so that it keeps full relative accuracy where G is close to 1
+    (low frequencies), and whose derivatives follow the same recursion (forward mode).
+
+    Parameters
+    ----------
+    u : ndarray, complex or real, shape (P, ...) or (P,)
+        The argument, 1/electron: ``s/φ`` for the count's transform at s (1/ADU).
+    em_gain : ndarray, shape (P,)
+        g of each row (mean gain, ≥ 1).
+    stages : int
+        N.
+    order : {0, 1, 2}
+        Highest order of the derivatives returned.
+    cic : bool
+        Also return the same quantities for an electron entering the register at a
+        uniformly random stage (register clock-induced charge): the mean of
+        ``v_m``, m = 0 … N − 1.
+
+    Returns
+    -------
+    dict of ndarray
+        ``"v"`` and, by order, ``"u"``, ``"g"`` (∂/∂u, ∂/∂ln g), ``"uu"``, ``"ug"``,
+        ``"gg"``; with ``cic`` the same names prefixed ``"cic_"`` (``"cic_v"`` …).
+
+    Examples
+    --------
+    The mean output of one electron is g, its second moment ``g²F²`` at u = 0:
+
+    >>> t = register_transform(np.zeros(1), np.array([5.0]), 536, order=2)
+    >>> round(float(t["u"][0]), 9), round(float(t["uu"][0] / 25), 6)
+    (5.0, 1.795203)
+    """
+    g = np.asarray(em_gain, dtype=float)
+    u = np.asarray(u)
+    p_row = np.expm1(np.log(g) / stages).reshape(g.shape + (1,) * (u.ndim - 1))
+    # Coefficients spelled out to the arrays' full shape and type: NumPy's in-place
+    # loops are fastest without broadcasting or casting (the loop runs N times).
+    full = lambda c: np.broadcast_to(c, u.shape).astype(np.result_type(u, float))  # noqa: E731
+    p, a1, two_p = full(p_row), full(1.0 + p_row), full(2.0 * p_row)
+    e_u = np.exp(u)
+    v = np.where(np.abs(u) < 1e-3, np.expm1(u), e_u - 1.0)  # e^u − 1 without cancellation
+    out_names = ("v", "u", "g", "uu", "ug", "gg")[: (1, 3, 6)[order]]
+    d = {"v": v}
+    if order >= 1:
+        d["u"] = e_u.copy()
+        d["g"] = np.zeros_like(v)
+    if order >= 2:
+        d["uu"] = e_u.copy()
+        d["ug"] = np.zeros_like(v)
+        d["gg"] = np.zeros_like(v)
+    sums = {name: np.zeros_like(v) for name in out_names} if cic else None
+    a = np.empty_like(v)
+    t = np.empty_like(v)
+    w = np.empty_like(v)
+    x = np.empty_like(v)
+    for _ in range(stages):
+        if cic:
+            for name in out_names:
+                sums[name] += d[name]
+        # a = ∂v_{m+1}/∂v_m = 1 + p + 2p·v; the p-derivative of the map is v(1 + v).
+        np.multiply(two_p, v, out=a)
+        a += a1
+        if order >= 2:
+            # second derivatives first: they need this stage's first derivatives
+            vu, vg = d["u"], d["g"]
+            d["uu"] *= a                     # + 2p·v_u²
+            np.multiply(vu, vu, out=t)
+            t *= two_p
+            d["uu"] += t
+            np.multiply(p, vg, out=t)        # t = p·v_g
+            np.multiply(v, 2.0, out=w)
+            w += 1.0
+            w += t                           # w = 1 + 2v + p·v_g
+            d["gg"] *= a                     # + 2·v_g·(1 + 2v + p·v_g)
+            np.multiply(vg, w, out=x)
+            x *= 2.0
+            d["gg"] += x
+            w += t                           # w = 1 + 2v + 2p·v_g
+            d["ug"] *= a                     # + v_u·(1 + 2v + 2p·v_g)
+            np.multiply(vu, w, out=x)
+            d["ug"] += x
+        if order >= 1:
+            d["g"] *= a
+            np.add(v, 1.0, out=t)
+            t *= v
+            d["g"] += t
+            d["u"] *= a
+        np.multiply(p, v, out=t)
+        t += a1
+        v *= t
+    p = p_row
+    # Derivatives by p → by ln g: dp/d ln g = (1 + p)/N, d²p/d(ln g)² = (1 + p)/N².
+    dp = (1.0 + p.real) / stages
+    for src in ([d] + ([sums] if cic else [])):
+        if order >= 2:
+            src["gg"] = src["gg"] * dp**2 + src["g"] * (dp / stages)
+            src["ug"] = src["ug"] * dp
+        if order >= 1:
+            src["g"] = src["g"] * dp
+    if cic:
+        d.update({"cic_" + name: value / stages for name, value in sums.items()})
+    return d
 
 
 # --------------------------------------------------------------------------------------

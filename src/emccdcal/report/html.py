@@ -254,6 +254,15 @@ def _gof_html(inputs):
     return "\n".join(out)
 
 
+def _em_model_text(attrs) -> str:
+    """The register model of a result, for the provenance table."""
+    if "em_model" not in attrs:
+        return "– (no likelihood)"
+    if attrs["em_model"] == "cascade":
+        return f"exact Bernoulli cascade, {int(attrs['register_stages'])} stages"
+    return "gamma (the paper's approximation)"
+
+
 def _manifest_status(ds):
     path = str(ds.attrs.get("manifest_path", ""))
     if not path or not Path(path).is_file():
@@ -279,6 +288,7 @@ def _provenance_html(inputs, validations, command):
         rows = [["file", mono(inp.path or "(in memory)")],
                 ["file SHA-256", mono(inp.sha256 or "–")],
                 ["method", _e(str(a.get("method", "")))],
+                ["EM register model", _e(_em_model_text(a))],
                 ["written by emccdcal", _e(str(a.get("emccdcal_version", "")))],
                 ["created", _e(str(a.get("created", "")))],
                 ["calibration time", f"{_fmt(a.get('seconds'), 3)} s"],

@@ -1,0 +1,297 @@
+"""The exact (Bernoulli-cascade) EM register in the noise model and the likelihood methods.
+
+The count pmf under the cascade is computed from the register's transform in the count
+(ADU) domain (:mod:`emccdcal.model.noise`). It is checked here against
+
+* an independent evaluation by the integer-electron route: the single-electron output
+  pmf by exact polynomial composition of the stage PGF, the photoelectrons' compound
+  Poisson pmf by Panjer's recursion (sums of positive terms only, so full relative
+  accuracy far into the tails) and the read-out's Gaussian summed over electrons;
+* Monte Carlo of the stage-by-stage register (χ² tests, with the gamma model as the
+  control that the test has power);
+* the exact gain pmf of NASA Roman CGI's emccd-detect (a test-only dependency);
+* finite differences of its analytic gradients;
+
+and the likelihood methods are checked to recover the gains of exact-cascade data that
+the gamma model gets wrong.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+from emccdcal import calibrate
+from emccdcal.errors import ManifestError, OptionError
+from emccdcal.model import cascade, noise
+from emccdcal.simulate.known_truth import truth_manifest
+from emccdcal.simulate.series import simulate_gain_series
+
+
+# --------------------------------------------------------------------------------------
+# The independent integer-electron route
+# --------------------------------------------------------------------------------------
+def single_electron_pmf(gain, stages, y_max):
+    """P(one electron leaves the register as y electrons), y = 0 … y_max, by composing
+    the stage PGF f(z) = (1 − p)z + pz² exactly: coefficient y of f(G) needs only
+    coefficients < y + 1 of G, so truncation at y_max is exact below it."""
+    p = gain ** (1.0 / stages) - 1.0
+    c = np.zeros(y_max + 1)
+    c[1] = 1.0
+    for _ in range(stages):
+        c = (1.0 - p) * c + p * np.convolve(c, c)[: y_max + 1]
+    return c
+
+
+def compound_poisson_pmf(E, q, x_max):
+    """P(X = x), x = 0 … x_max, of the output of Poisson(E) electrons with per-electron
+    pmf q (q[0] = 0), by Panjer's recursion P(x) = (E/x) Σ_y y q(y) P(x − y), rescaled
+    as it goes (e^{-E} underflows at large E) and normalised at the end."""
+    yq = np.arange(q.size) * q
+    P = np.zeros(x_max + 1)
+    P[0] = 1.0
+    Y = q.size - 1
+    for x in range(1, x_max + 1):
+        m = min(x, Y)
+        P[x] = E / x * np.dot(yq[1:m + 1], P[x - 1::-1][:m])
+        if P[x] > 1e250:
+            P[: x + 1] *= 1e-250
+    return P / P.sum()
+
+
+def integer_electron_logpmf(E, g, phi, S0, sigma, N):
+    """(counts, log p) on the whole support of the model, normalised over the integers."""
+    mean = E * g
+    sd = np.sqrt(E * g * g * cascade.excess_noise_factor(g, N))
+    y_max = int(g * 40 + 40)
+    x_max = int(mean + 14 * sd + 40 * g + 14 * sigma * phi + 50)
+    q = single_electron_pmf(g, N, min(y_max, x_max))
+    P = compound_poisson_pmf(E, q, x_max)
+    k = np.arange(int(np.floor(S0 - 14 * sigma)), int(np.ceil(S0 + x_max / phi)) + 1)
+    x = np.flatnonzero(P > 0)
+    f = np.array([np.sum(P[x] * np.exp(-0.5 * ((kk - S0 - x / phi) / sigma) ** 2))
+                  for kk in k]) / (sigma * np.sqrt(2 * np.pi))
+    return k, np.log(f / f.sum())
+
+
+#: (E, g, φ, σ, N): the paper's 5x, low gain at high signal, few electrons with an
+#: electron lattice finer than the read noise is wide, a dim high-gain pixel, and more.
+ROUTE_CASES = [
+    (370.0, 4.78, 3.859, 15.5, 536),
+    (1e4, 1.5, 30.0, 200.0, 50),
+    (0.05, 25.0, 0.3, 0.7, 2000),
+    (1e-3, 100.0, 10.0, 3.0, 604),
+    (20.0, 100.0, 5.0, 15.0, 536),
+    (3.0, 10.0, 1.0, 1.2, 300),
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("E, g, phi, sigma, N", ROUTE_CASES)
+def test_logpmf_matches_the_integer_electron_route(E, g, phi, sigma, N):
+    S0 = 100.0 + 15 * sigma  # counts are non-negative
+    k, ref = integer_electron_logpmf(E, g, phi, S0, sigma, N)
+    keep = ref > ref.max() + np.log(1e-10)  # wherever the pmf exceeds 1e-10 of its peak
+    k, ref = k[keep], ref[keep]
+    got = noise.logpmf(k, E, g, phi, S0, sigma, em_model="cascade", stages=N)
+    assert np.max(np.abs(got - ref)) < 1e-8
+
+
+def test_single_electron_pmf_agrees_with_emccd_detect():
+    """The reference route's register pmf is emccd-detect's exact gain pmf."""
+    rand_em_gain = pytest.importorskip("emccd_detect.rand_em_gain")
+    for g, N in ((4.78, 536), (25.0, 604)):
+        y = np.arange(1, int(30 * g))
+        theirs = rand_em_gain.exact_gain_PDF(g, N, 1, y)
+        ours = single_electron_pmf(g, N, int(y.max()))[y]
+        assert np.allclose(ours, theirs, rtol=1e-9, atol=0)
+
+
+# --------------------------------------------------------------------------------------
+# Moments, gradients, the model record
+# --------------------------------------------------------------------------------------
+def test_register_transform_moments_and_derivatives():
+    g, N = np.array([5.0, 300.0]), 536
+    t = cascade.register_transform(np.zeros(2), g, N, order=2)
+    assert np.allclose(t["u"], g, rtol=1e-12)                         # mean output
+    assert np.allclose(t["uu"] / g**2, cascade.excess_noise_factor(g, N), rtol=1e-12)
+    u = np.array([[0.01j, 0.05 + 0.02j], [0.001j, 0.002 + 0.0005j]])
+    d = cascade.register_transform(u, g, N, order=2, cic=True)
+    h = 1e-6
+    for prefix in ("", "cic_"):
+        for var, shift in (("u", (h, 0.0)), ("g", (0.0, h))):
+            up = cascade.register_transform(u + shift[0], g * np.exp(shift[1]), N, order=1,
+                                            cic=True)
+            dn = cascade.register_transform(u - shift[0], g * np.exp(-shift[1]), N, order=1,
+                                            cic=True)
+            fd = (up[prefix + "v"] - dn[prefix + "v"]) / (2 * h)
+            assert np.allclose(fd, d[prefix + var], rtol=1e-6, atol=1e-9)
+            for first in ("u", "g"):
+                key = "".join(sorted(first + var, key="ug".index))
+                fd2 = (up[prefix + first] - dn[prefix + first]) / (2 * h)
+                assert np.allclose(fd2, d[prefix + key], rtol=1e-5, atol=1e-8)
+
+
+def test_logpmf_grad_matches_finite_differences():
+    counts = np.array([700, 1100, 1500, 2600])
+    base = dict(photoelectrons=370.0, em_gain=5.0, e_per_adu=3.859, offset=587.0,
+                read_noise=15.5)
+    model = dict(em_model="cascade", stages=536, register_cic=0.1)
+    _, grad = noise.logpmf_grad(counts, **base, **model)
+    for name in list(base) + ["register_cic"]:
+        h = 1e-5 * max(1.0, abs(base.get(name, 0.1)))
+        up, dn = dict(base, **model), dict(base, **model)
+        up[name] = up[name] + h
+        dn[name] = dn[name] - h
+        fd = (noise.logpmf(counts, **up) - noise.logpmf(counts, **dn)) / (2 * h)
+        assert np.allclose(grad[name], fd, rtol=1e-5, atol=1e-7), name
+
+
+def test_cascade_moments_and_the_gamma_limit_at_one():
+    counts = np.arange(300, 4000)
+    p = noise.pmf(counts, 370.0, 5.0, 3.859, 587.0, 15.5, em_model="cascade", stages=536)
+    mean = np.sum(p * counts)
+    var = np.sum(p * counts**2) - mean**2
+    assert abs(mean - (587.0 + 370.0 * 5.0 / 3.859)) < 1e-6
+    F2 = cascade.excess_noise_factor(5.0, 536)
+    assert abs(var - (15.5**2 + 370.0 * 25.0 * F2 / 3.859**2)) < 1e-4
+    # g = 1 is no multiplication under either model
+    assert np.allclose(noise.logpmf(counts[:50], 3.0, 1.0, 0.5, 300.0, 2.0, em_model="cascade"),
+                       noise.logpmf(counts[:50], 3.0, 1.0, 0.5, 300.0, 2.0))
+
+
+def test_em_model_arguments_are_checked():
+    with pytest.raises(OptionError, match="unknown em_model"):
+        noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, em_model="binomial")
+    with pytest.raises(OptionError, match="stages"):
+        noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, em_model="cascade", stages=0)
+    with pytest.raises(OptionError, match="register_cic"):
+        noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, register_cic=0.1)
+
+
+# --------------------------------------------------------------------------------------
+# Monte Carlo of the stage-by-stage register
+# --------------------------------------------------------------------------------------
+def _chi2_pvalue(counts, p_model, support):
+    """Pearson χ² p-value of sampled counts against a pmf on ``support``, bins merged
+    until each expects at least 20."""
+    from scipy import stats
+
+    observed = np.bincount(counts - support[0], minlength=support.size)[: support.size]
+    expected = p_model * counts.size
+    edges, acc = [0], 0.0
+    for i, e in enumerate(expected):
+        acc += e
+        if acc >= 20:
+            edges.append(i + 1)
+            acc = 0.0
+    edges[-1] = support.size
+    o = np.add.reduceat(observed, edges[:-1])
+    e = np.add.reduceat(expected, edges[:-1])
+    chi2 = np.sum((o - e) ** 2 / e)
+    return stats.chi2.sf(chi2, len(o) - 1)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("g, E", [(4.78, 20.0), (25.0, 5.0)])
+def test_stage_by_stage_register_fits_the_cascade_not_the_gamma(g, E):
+    rng = np.random.default_rng(2026)
+    n_draws, N, phi, S0, sigma = 200_000, 536, 3.859, 200.0, 4.0
+    electrons = cascade.sample_cascade(rng.poisson(E, n_draws), g, N, rng, method="stages")
+    counts = np.rint(S0 + electrons / phi + rng.normal(0.0, sigma, n_draws)).astype(np.int64)
+    support = np.arange(counts.min(), counts.max() + 1)
+    sd = np.sqrt(sigma**2 + 1 / 12)  # read noise of the rounded counts
+    exact = noise.pmf(support, E, g, phi, S0, sd, em_model="cascade", stages=N)
+    gamma = noise.pmf(support, E, g, phi, S0, sd)
+    assert _chi2_pvalue(counts, exact, support) > 1e-3
+    assert _chi2_pvalue(counts, gamma, support) < 1e-6
+
+
+# --------------------------------------------------------------------------------------
+# The likelihood methods under the cascade
+# --------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def cascade_series(tmp_path_factory):
+    base = tmp_path_factory.mktemp("cascade-gs")
+    sim = simulate_gain_series(
+        base, setpoints=(1, 5, 25, 100, 300), em_gain=(1, 4.78, 22.95, 90.06, 261.6),
+        photoelectrons=370.0, seed=3, rows=8, cols=16, frames=2000, dark_frames=10,
+        e_per_adu=3.859, read_noise=15.5, offset=587.7, multiplication="cascade", stages=536)
+    return sim, truth_manifest(sim, 15.5)
+
+
+def _fit(manifest, **kw):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ds = calibrate(manifest, "gs", checks=False, **kw)
+    return ds, [str(w.message) for w in caught]
+
+
+def test_gs_with_the_cascade_recovers_the_gains_the_gamma_model_misses(cascade_series):
+    sim, manifest = cascade_series
+    true_g = np.array([1, 4.78, 22.95, 90.06, 261.6])
+    exact, exact_warnings = _fit(manifest, em_model="cascade", stages=536)
+    gamma, gamma_warnings = _fit(manifest)
+    assert exact.attrs["em_model"] == "cascade" and int(exact.attrs["register_stages"]) == 536
+    assert gamma.attrs["em_model"] == "gamma"
+    for a, g in enumerate(true_g[1:], start=1):
+        est = exact.em_gain.values[a].ravel()
+        sem = est.std(ddof=1) / np.sqrt(est.size)
+        assert abs(est.mean() - g) < 3 * sem                                 # unbiased
+        biased = gamma.em_gain.values[a].ravel()
+        assert biased.mean() < g - 3 * sem                                   # the gamma's bias
+    # the goodness of fit: the gamma model misfits 5x and says what to try
+    assert any("5x" in w and "cascade" in w for w in gamma_warnings)
+    assert not any("misfit" in w for w in exact_warnings)
+
+
+def test_manifest_selects_the_model_and_the_caller_overrides_it(cascade_series, tmp_path):
+    sim, manifest = cascade_series
+    text = manifest.read_text()
+    chosen = manifest.with_name("manifest-cascade.toml")
+    chosen.write_text('em_model = "cascade"\nregister_stages = 604\n' + text)
+    ds, _ = _fit(chosen, out=tmp_path / "out")
+    assert ds.attrs["em_model"] == "cascade" and int(ds.attrs["register_stages"]) == 604
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["em_model"] == "cascade" and summary["register_stages"] == 604
+    ds, _ = _fit(chosen, em_model="gamma")
+    assert ds.attrs["em_model"] == "gamma" and "register_stages" not in ds.attrs
+    bad = manifest.with_name("manifest-bad.toml")
+    bad.write_text("register_stages = 604\n" + text)
+    with pytest.raises(ManifestError, match="register_stages goes with"):
+        calibrate(bad, "gs")
+    bad.write_text('em_model = "binomial"\n' + text)
+    with pytest.raises(ManifestError, match="em_model must be one of"):
+        calibrate(bad, "gs")
+
+
+def test_engine_gradient_and_observed_information_under_the_cascade():
+    from emccdcal.data import stats
+    from emccdcal.fit import engine
+    from emccdcal.simulate.camera import simulate_frames
+
+    frames = simulate_frames(370.0, 4.78, 3.859, 587.0, 15.5, frames=1500, rows=2, cols=3,
+                             seed=5, multiplication="cascade", stages=536)
+    h = stats.histograms(frames)
+    P = h.n.size
+    acq = engine.AcquisitionBlock(h.values, h.counts, np.full(P, 587.0), np.full(P, 15.5),
+                                  False, h.mean, h.var, h.n,
+                                  em_model=noise.EMModel("cascade", 536))
+    coords = [np.full(P, np.log(372.0)), np.full(P, -np.log(3.85)), np.full(P, np.log(4.75))]
+    ll, grad, obs, _, _ = engine._acquisition_terms(acq, coords, 2)
+    step = 1e-5
+    for i in range(3):
+        plus = [c + step * (j == i) for j, c in enumerate(coords)]
+        minus = [c - step * (j == i) for j, c in enumerate(coords)]
+        lp = engine._acquisition_terms(acq, plus, 1)
+        lm = engine._acquisition_terms(acq, minus, 1)
+        assert np.allclose((lp[0] - lm[0]) / (2 * step), grad[:, i], rtol=1e-5, atol=1e-4)
+        # the observed information is minus the derivative of the gradient
+        assert np.allclose(-(lp[1] - lm[1]) / (2 * step), obs[:, :, i], rtol=1e-4, atol=1e-2)
+    # and the log-likelihood is that of the public noise model
+    ref = [np.sum(h.counts[p] * noise.logpmf(h.values[p], 372.0, 4.75, 3.85, 587.0, 15.5,
+                                              em_model="cascade", stages=536)) for p in range(P)]
+    assert np.allclose(ll, ref, rtol=1e-10)
