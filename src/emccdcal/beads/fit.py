@@ -329,7 +329,7 @@ def _pixel_map(name, value, shape, boxes, pos, *, positive=False, at_least=None)
 
 def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
               half_size=DEFAULT_HALF_SIZE, width=DEFAULT_WIDTH, adc_max=None,
-              max_iter=60) -> BeadFits:
+              max_iter=60, em_model=None) -> BeadFits:
     """Fit every bead in every frame of one acquisition by maximum likelihood.
 
     Parameters
@@ -353,6 +353,8 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         ADC maximum (ADU); counts at or above it are left out of the likelihood.
     max_iter : int
         Iterations of each Levenberg–Marquardt stage.
+    em_model : emccdcal.model.noise.EMModel, optional
+        The EM register model of the exact likelihood (default the gamma model).
 
     Returns
     -------
@@ -465,6 +467,7 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         counts.reshape(-1), np.repeat(np.arange(B), F * npix) * npix
         + np.tile(np.arange(npix), M),
         lo.ravel(), hi.ravel(), g.ravel(), phi.ravel(), S0.ravel(), sigma.ravel(),
+        em_model=em_model or noise.EMModel(),
     )
     qbase = np.arange(npix)
 

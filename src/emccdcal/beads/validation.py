@@ -50,6 +50,7 @@ from .._util import atomic_write, finite_or_none
 from .._util import progress as progress_bar
 from ..data.manifest import Manifest, read_manifest
 from ..errors import InputError, MissingFileError, OptionError
+from ..model import noise
 from . import fit as bead_fit
 
 __all__ = [
@@ -89,6 +90,9 @@ class Calibration:
     em_gain : dict of float to ndarray (R, C)
         Gain per set-point (dimensionless), set-point 1 excluded (it is 1); NaN where
         missing or not converged.
+    em_model : noise.EMModel
+        The EM register model its gains were fitted with (the beads are fitted with the
+        same one); the gamma model for results that record none.
     """
 
     label: str
@@ -96,6 +100,7 @@ class Calibration:
     method: str
     e_per_adu: np.ndarray
     em_gain: dict
+    em_model: noise.EMModel = noise.EMModel()
 
     @property
     def setpoints(self) -> tuple:
@@ -219,8 +224,16 @@ def load_calibration(spec, shape=None) -> Calibration:
             stacklevel=2,
         )
     method = "+".join(dict.fromkeys(methods))
+    models = {noise.EMModel(str(ds.attrs["em_model"]),
+                            int(ds.attrs.get("register_stages", noise.DEFAULT_STAGES)))
+              for _, ds in loaded if "em_gain" in ds and "em_model" in ds.attrs}
+    if len(models) > 1:
+        raise OptionError(f"{label}: its members were fitted with different EM register "
+                          f"models ({', '.join(sorted(map(str, models)))}); group results "
+                          "of one model")
     return Calibration(label=label, files=tuple(f for f, _ in loaded), method=method,
-                       e_per_adu=phi, em_gain=gains)
+                       e_per_adu=phi, em_gain=gains,
+                       em_model=models.pop() if models else noise.EMModel())
 
 
 def _span(values):
@@ -421,12 +434,13 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
                 bar.set_postfix_str(f"{cal.method} {result.format_setpoint(s)}x")
                 key = (s, positions[ok].tobytes(), _boxes_bytes(cal.e_per_adu, positions[ok],
                                                                half_size),
-                       _boxes_bytes(g, positions[ok], half_size))
+                       _boxes_bytes(g, positions[ok], half_size), cal.em_model)
                 if key not in cache:
                     cache[key] = bead_fit.fit_beads(
                         acq.frames(), positions[ok], offset=acq.offset,
                         read_noise=acq.read_noise, e_per_adu=cal.e_per_adu, em_gain=g,
                         half_size=half_size, width=width, adc_max=manifest.adc_max,
+                        em_model=cal.em_model,
                     )
                 fit = cache[key]
                 F = acq.n_frames

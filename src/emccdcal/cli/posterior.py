@@ -36,6 +36,7 @@ def add_parser(subparsers):
     p.add_argument("--prior", choices=PRIORS, default="log-uniform",
                    help="flat in log-parameters (default) or in physical parameters")
     _common.add_no_figures(p)
+    _common.add_em_model(p)
     _common.add_quiet(p)
     p.set_defaults(func=run)
     return p
@@ -55,6 +56,7 @@ def run(args) -> int:
             args.manifest, args.method, args.pixel, e_per_adu=args.e_per_adu,
             n_walkers=args.walkers, n_steps=args.steps, seed=args.seed,
             max_steps=args.max_steps, prior=args.prior, out=args.out, progress=not args.quiet,
+            em_model=args.em_model, stages=args.stages,
         )
     except NotConvergedError as exc:
         print(f"emccdcal posterior: refused: {exc}", file=sys.stderr)

@@ -418,7 +418,7 @@ def log_likelihood(layout, blocks, x):
     return _evaluate(layout, blocks, x, 0)[1]
 
 
-def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None):
+def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance=True):
     """Maximise the likelihood (times the layout's prior) for every pixel of a block.
 
     Parameters
@@ -436,6 +436,10 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None):
         below ``tol`` nats, or the step below 1e-10 in every free parameter.
     progress : callable, optional
         Called with the number of pixels that finished at each iteration.
+    covariance : bool
+        Compute the covariance, log-likelihoods and convergence at the optimum (the
+        observed information); ``False`` returns the optimum ``x`` only (the other
+        fields None): a starting point for another fit.
 
     Returns
     -------
@@ -490,6 +494,8 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None):
         done[active[stuck]] = True
         if progress is not None:
             progress(int(small.sum() + stuck.sum()))
+    if not covariance:
+        return FitResult(x, None, None, None, iterations, None)
     map_errors = any(b.has_map_errors for b in blocks)
     objective, loglik, per_acq, grad, obs, floored, crosses = _evaluate(
         layout, blocks, x, 2, map_cross=map_errors)

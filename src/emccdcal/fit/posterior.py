@@ -48,6 +48,7 @@ from .._util import atomic_write, e_per_adu_map, finite_or_none, parse_pixel
 from ..data import stats
 from ..data.manifest import Manifest, read_manifest
 from ..errors import MethodError, NotConvergedError, OptionError
+from ..model import noise
 from . import engine, layouts
 
 if TYPE_CHECKING:
@@ -110,7 +111,7 @@ def _check_pixels(pixels, shape):
     return out
 
 
-def _pixel_series(manifest, used, method, row, col, phi_map, options):
+def _pixel_series(manifest, used, method, row, col, phi_map, options, em_model=None):
     """Blocks, layout and starting values of one pixel (the calibrate pipeline, P = 1)."""
     hists = []
     for acq in used:
@@ -129,7 +130,8 @@ def _pixel_series(manifest, used, method, row, col, phi_map, options):
     read_noise = np.stack([[a.read_noise[row, col]] for a in used])
     setpoints = np.array([a.em_gain_setpoint for a in used])
     idx = np.array([0])
-    blocks = layouts.make_blocks(hists, offsets, read_noise, setpoints, idx)
+    blocks = layouts.make_blocks(hists, offsets, read_noise, setpoints, idx,
+                                 em_model=em_model)
     labels = [a.level if a.level is not None else a.name for a in used]
     phi = None if phi_map is None else np.array([phi_map[row, col]])
     series = layouts.Series(blocks, setpoints, labels, phi)
@@ -302,6 +304,8 @@ def sample_posterior(
     options=None,
     out=None,
     progress=False,
+    em_model=None,
+    stages=None,
 ) -> xarray.Dataset:
     """MCMC posterior of a method's free parameters for single pixels.
 
@@ -339,6 +343,9 @@ def sample_posterior(
         :func:`emccdcal.report.corner.write_corner_figures`).
     progress : bool
         emcee progress bars on stderr.
+    em_model, stages : optional
+        The EM register's model (:func:`emccdcal.calibrate`); default the manifest's,
+        else the gamma model.
 
     Returns
     -------
@@ -387,6 +394,7 @@ def sample_posterior(
     if not isinstance(manifest, Manifest):
         manifest = read_manifest(manifest)
     pixels = _check_pixels(pixels, manifest.shape)
+    model = noise.choose_em_model(manifest.em_model, em_model, stages)
     phi_map = e_per_adu_map(e_per_adu if e_per_adu is not None else manifest.e_per_adu,
                             manifest.shape)
     acqs = manifest.acquisitions
@@ -399,7 +407,8 @@ def sample_posterior(
     for row, col in pixels:
         t_pixel = time.perf_counter()
         where = f"{method} pixel ({row}, {col})"
-        blocks, layout, x0 = _pixel_series(manifest, used, method, row, col, phi_map, options)
+        blocks, layout, x0 = _pixel_series(manifest, used, method, row, col, phi_map, options,
+                                           model)
         if names is None:
             names, units = _physical_names(layout, used, method)
         F = layout.n_free
@@ -474,6 +483,9 @@ def sample_posterior(
         },
     )
     ds.attrs["seconds"] = time.perf_counter() - t0
+    ds.attrs["em_model"] = model.name
+    if model.cascade:
+        ds.attrs["register_stages"] = np.int64(model.stages)
     if out is not None:
         save(ds, out)
     return ds

@@ -52,6 +52,7 @@ from .cascade import DEFAULT_STAGES
 __all__ = [
     "EMModel",
     "as_em_model",
+    "choose_em_model",
     "logpmf",
     "pmf",
     "logpmf_grad",
@@ -134,6 +135,17 @@ class EMModel:
 
 #: The register models :class:`EMModel` knows.
 EM_MODELS = ("gamma", "cascade")
+
+
+def choose_em_model(given, em_model=None, stages=None) -> EMModel:
+    """The register model of a run: the caller's ``em_model``/``stages`` where given,
+    else ``given`` (a manifest's, or None), else the gamma model. ``stages`` alone
+    selects the cascade."""
+    if em_model is None and stages is None:
+        return given or EMModel()
+    if em_model is None:
+        em_model = "cascade" if given is None else given.name
+    return as_em_model(em_model, stages)
 
 
 def as_em_model(em_model="gamma", stages=None) -> EMModel:
@@ -308,15 +320,14 @@ def _alias_count(sigma_min):
     return int(np.floor((np.sqrt(92.0) / sigma_min + np.pi) / (2.0 * np.pi)))
 
 
-def _band_limit(E, scale, sigma, pn, n):
-    """Highest rfft bin m beyond which |Φ(2πm/n)| < e^-80 (for J = 0), in closed form.
+def _band_limit(E, scale, sigma, pn, n, level=80.0):
+    """Highest rfft bin m beyond which |Φ(2πm/n)| < e^-level (for J = 0), in closed form.
 
     −ln|Φ(ω)| is at least B(ω) = σ²ω²/2 + E·ω²θ²/(1 + ω²θ²) for the PGN, and at least
     σ²ω²/2 + 2Eψ²ω²/π² for the PN while ωψ ≤ π (1 − cos x ≥ 2x²/π² there; beyond, the
     Gaussian factor alone). B is increasing, so the ω_c solving B(ω_c) = 80 bounds the
     band; for the PGN it is the root of a quadratic in ω².
     """
-    level = 80.0
     s2 = 0.5 * sigma**2
     t2 = scale**2
     # PGN: s2·u + E·t2·u/(1 + t2·u) = level, u = ω²  →  a u² + b u − level = 0
@@ -499,6 +510,14 @@ def _cascade_real(t, E, scale, shift, sigma, casc):
     """K(t), K'(t), K''(t) of the cascade model at real tilts t (P,), and the tilted
     photoelectron mean and single-electron mean output (ADU), per row."""
     cic = casc.has_cic
+    if not cic and not np.any(t):
+        # Untilted: the moments in closed form (mean output g, second moment g²F²).
+        from .cascade import excess_noise_factor
+
+        g = casc.gain
+        F2 = excess_noise_factor(g, casc.stages)
+        return (np.zeros(E.shape), shift + E * g * scale, sigma**2 + E * (g * scale) ** 2 * F2,
+                E, g * scale)
     T = casc.transform(t * scale, 2, cic)
 
     def mix(key):
@@ -508,7 +527,10 @@ def _cascade_real(t, E, scale, shift, sigma, casc):
     dK = shift + sigma**2 * t + scale * mix("u")
     d2K = sigma**2 + scale**2 * mix("uu")
     growth = 1.0 + T["v"]  # G(e^{t/φ}): the tilted photoelectron mean is E·G
-    return K, dK, d2K, E * growth, scale * T["u"] / growth
+    # The tilted single-electron output; far below the mean it is one electron.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        theta = np.where(growth > 0, scale * T["u"] / growth, scale)
+    return K, dK, d2K, E * growth, theta
 
 
 def _cascade_extent(t, E, scale, shift, sigma, casc, width=12.0):
@@ -525,11 +547,13 @@ def _cascade_extent(t, E, scale, shift, sigma, casc, width=12.0):
 
 
 def _cascade_band_limit(E_t, theta_t, scale, sigma, n, band=None):
-    """DFT bins to evaluate for cascade rows: the gamma model's bound with a quarter of
+    """DFT bins to evaluate for cascade rows: the gamma model's bound at e^-40 with half
     the photoelectrons (the cascade's transform decays like the gamma model's with
-    F²/2 ≥ ½ of them at low frequencies), which :func:`_window` widens where the
-    transform has not died out at the edge. Where the read noise does not suppress the
-    electron lattice's revival of the transform at ω = 2πφ, the Gaussian's band."""
+    F²/2 ≥ ½ of them at low frequencies, and like it saturates at high ones), which
+    :func:`_window` widens where the transform has not died out at the edge (e^-40 of
+    its value at 0: the FFT's round-off is larger). Where the read noise does not
+    suppress the electron lattice's revival of the transform at ω = 2πφ, the Gaussian's
+    band."""
     if band is not None:
         return int(band)
     full = n // 2 + 1
@@ -538,7 +562,7 @@ def _cascade_band_limit(E_t, theta_t, scale, sigma, n, band=None):
         m = int(np.ceil(float(w_gauss.max()) * n / (2.0 * np.pi))) + 2
         return min(m, full)
     pn = np.zeros(E_t.shape, dtype=bool)
-    return int(_band_limit(0.25 * E_t, theta_t, sigma, pn, n).max())
+    return int(_band_limit(0.5 * E_t, theta_t, sigma, pn, n, level=40.0).max())
 
 
 class Spectrum:
@@ -628,13 +652,19 @@ def _saddlepoint(k, E, scale, S0, sigma, pn):
 
 def _cascade_saddlepoint(k, E, scale, S0, sigma, casc):
     """Tilt t that puts the cascade model's tilted mean K'(t) within half a tilted SD of
-    count k: Newton's method on K', kept inside a bracket by bisection. (Any tilt gives
-    exact values; the saddlepoint only centres the window on the target.)"""
+    count k: Newton's method on K', kept inside a bracket, bisecting where Newton is
+    slow to shrink it. (Any tilt gives exact values; the saddlepoint only centres the
+    window on the target.)
+
+    The bracket: the electron part of K' is positive and increasing in t, so
+    ``S0 + σ²t ≤ K'(t)`` everywhere and ``K'(t) ≤ K'(0) + σ²t`` for t ≤ 0.
+    """
     mean0 = _cascade_real(np.zeros(E.shape), E, scale, S0, sigma, casc)[1]
     lo = np.minimum(0.0, (k - mean0) / sigma**2)
-    hi = np.maximum(0.0, (k - S0) / sigma**2)
-    t = np.clip(np.zeros(E.shape), lo, hi)
-    for _ in range(60):
+    hi = (k - S0) / sigma**2
+    t = 0.5 * (lo + hi)
+    width = hi - lo
+    for _ in range(100):
         with np.errstate(over="ignore", invalid="ignore"):
             _, dK, d2K, _, _ = _cascade_real(t, E, scale, S0, sigma, casc)
         bad = ~np.isfinite(dK) | ~np.isfinite(d2K)
@@ -646,7 +676,9 @@ def _cascade_saddlepoint(k, E, scale, S0, sigma, casc):
             break
         with np.errstate(divide="ignore", invalid="ignore"):
             newton = t - (dK - k) / d2K
-        inside = ~bad & (newton > lo) & (newton < hi)
+        slow = (hi - lo) > 0.5 * width  # the bracket did not halve: bisect
+        width = hi - lo
+        inside = ~bad & ~slow & (newton > lo) & (newton < hi)
         t = np.where(close, t, np.where(inside, newton, 0.5 * (lo + hi)))
     return t
 
