@@ -136,7 +136,7 @@ def test_register_transform_moments_and_derivatives():
 
 
 def test_logpmf_grad_matches_finite_differences():
-    counts = np.array([700, 1100, 1500, 2600])
+    counts = np.array([700, 1100, 1500])
     base = dict(photoelectrons=370.0, em_gain=5.0, e_per_adu=3.859, offset=587.0,
                 read_noise=15.5)
     model = dict(em_model="cascade", stages=536, register_cic=0.1)
@@ -297,3 +297,35 @@ def test_engine_gradient_and_observed_information_under_the_cascade():
     ref = [np.sum(h.counts[p] * noise.logpmf(h.values[p], 372.0, 4.75, 3.85, 587.0, 15.5,
                                               em_model="cascade", stages=536)) for p in range(P)]
     assert np.allclose(ll, ref, rtol=1e-10)
+
+
+def test_mv_gain_with_the_exact_excess_noise_factor():
+    from emccdcal.fit.mv import cascade_gain, fit_mv_gain
+
+    phi, s0, sigma, E, N = 3.859, 100.0, 15.5, 370.0, 536
+    g = np.array([1.0, 4.78, 22.95, 261.6])
+    F2 = np.where(g == 1, 1.0, cascade.excess_noise_factor(g, N))
+    mean = (s0 + g * E / phi)[:, None]
+    var = (sigma**2 + F2 * E * (g / phi) ** 2)[:, None]
+    exact = fit_mv_gain(mean, var, s0, sigma, 5000, phi, [1, 5, 25, 300],
+                        em_model=noise.EMModel("cascade", N))
+    gamma = fit_mv_gain(mean, var, s0, sigma, 5000, phi, [1, 5, 25, 300])
+    np.testing.assert_allclose(exact.em_gain[:, 0], g, rtol=1e-10)
+    np.testing.assert_allclose(exact.photoelectrons[:, 0], E, rtol=1e-10)
+    # F² = 2 reads the 5x gain F²/2 − 1 low
+    assert gamma.em_gain[1, 0] / g[1] - 1 == pytest.approx(F2[1] / 2 - 1, rel=1e-9)
+    assert np.isnan(cascade_gain(0.5, N)[0])
+
+
+def test_command_line_takes_the_model(cascade_series, tmp_path):
+    from emccdcal.cli import main
+
+    _, manifest = cascade_series
+    out = tmp_path / "out"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        code = main(["calibrate", str(manifest), "--em-model", "cascade", "--stages", "604",
+                     "--no-checks", "-q", "-o", str(out)])
+    assert code == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert (summary["em_model"], summary["register_stages"]) == ("cascade", 604)

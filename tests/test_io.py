@@ -223,13 +223,14 @@ read_noise = "data/hi_sigma.tif"
 
 def test_a_dark_used_twice_is_reduced_once(files, monkeypatch):
     calls = []
-    real = manifest_module.maps_from_dark
+    for name in ("maps_from_dark", "fit_dark"):  # 1x darks, multiplied darks
+        real = getattr(manifest_module, name)
 
-    def counting(stack_):
-        calls.append(1)
-        return real(stack_)
+        def counting(stack_, real=real, **kw):
+            calls.append(1)
+            return real(stack_, **kw)
 
-    monkeypatch.setattr(manifest_module, "maps_from_dark", counting)
+        monkeypatch.setattr(manifest_module, name, counting)
     text = GOOD + """
 [[acquisition]]
 frames = "data/1x.tif"

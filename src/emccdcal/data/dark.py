@@ -5,20 +5,28 @@ A dark (shuttered) acquisition recorded at a gain set-point gives, per pixel, th
 standard deviation of the dark counts, ADU). The paper records one dark stack right
 after each set-point because the offset drifts with the set-point (Ryan et al. 2021, Methods).
 
-At high EM gain the dark frames also contain clock-induced charge (spurious electrons
-that the EM register multiplies), so the dark "σ" grows with the set-point and is then
-not pure Gaussian read-out noise (docs/simulation.md): :func:`check_read_noise_growth` says so.
+At high EM gain the dark frames also contain clock-induced charge and dark current
+(spurious electrons that the EM register multiplies), so the dark's plain SD grows with
+the set-point and is then not the Gaussian read-out noise (docs/simulation.md):
+:func:`check_read_noise_growth` says so. :func:`fit_dark` separates the two: it fits each
+pixel's dark counts with the noise model, read-out plus multiplied events, and gives the
+offset and read noise of the read-out alone, with the events' rate.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 
 from ..errors import InputError
+from ..model import noise
+from . import stats
 
-__all__ = ["as_stack", "maps_from_dark", "check_read_noise_growth", "DEFAULT_CHUNK_ELEMENTS"]
+__all__ = ["as_stack", "maps_from_dark", "fit_dark", "DarkFit", "check_read_noise_growth",
+           "DEFAULT_CHUNK_ELEMENTS"]
 
 #: Elements (frames × pixels) converted to float64 at a time when streaming a dark
 #: stack: 2**23 elements = 64 MiB.
@@ -105,6 +113,210 @@ def maps_from_dark(stack, *, chunk_frames: int | None = None):
     if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(m2))):
         raise InputError("dark stack contains NaN or infinite values")
     return mean, np.sqrt(m2 / (n - 1))
+
+
+@dataclass(frozen=True)
+class DarkFit:
+    """Maps of a dark stack fitted with the noise model (:func:`fit_dark`).
+
+    Attributes
+    ----------
+    offset, read_noise : ndarray, shape (rows, cols)
+        S0 and σ of the read-out alone, ADU (σ in the noise model's convention: the SD of
+        dark counts without events, quantisation included).
+    event_rate : ndarray, shape (rows, cols)
+        Electrons per pixel per frame that the register multiplied (clock-induced charge
+        and dark current), e⁻.
+    event_scale : float
+        Mean output of one such electron, ADU (g/φ of the set-point), shared by the pixels.
+    converged : ndarray of bool, shape (rows, cols)
+        The pixel's fit converged; elsewhere ``offset`` and ``read_noise`` are the plain
+        mean and SD.
+    """
+
+    offset: np.ndarray
+    read_noise: np.ndarray
+    event_rate: np.ndarray
+    event_scale: float
+    converged: np.ndarray
+
+
+def fit_dark(stack, *, adc_max=None, sample_pixels=64) -> DarkFit:
+    """Offset and read-noise maps of a dark stack with multiplication events.
+
+    A dark frame at EM gain g holds, besides the read-out's Gaussian, electrons made by
+    clock-induced charge and dark current that the register multiplies: a long tail above
+    the offset. Its plain mean and SD are then biased upwards (the SD by tens of per cent
+    at a few hundred times gain). Here every pixel's dark counts are fitted by maximum
+    likelihood with the noise model of :mod:`emccdcal.model.noise`: S0 and σ of the
+    read-out, and an event rate c (Poisson electrons per frame) multiplied with a mean
+    output θ (ADU) shared by the pixels, θ found by profiling the likelihood of a sample of
+    ``sample_pixels`` pixels. The events' shape is the gamma model's: at low gain, where
+    it differs from an exact register's, events sit inside the read-out's Gaussian and
+    hardly matter.
+
+    Parameters
+    ----------
+    stack : array_like, shape (frames, rows, cols)
+        Raw dark counts (ADU), at least 2 frames.
+    adc_max : int, optional
+        ADC maximum: counts at or above it are left out.
+    sample_pixels : int
+        Pixels (spread evenly) whose likelihood is profiled for the shared θ.
+
+    Returns
+    -------
+    DarkFit
+
+    Examples
+    --------
+    >>> from emccdcal.simulate.camera import simulate_frames
+    >>> dark = simulate_frames(0.0, 400.0, 5.2, 500.0, 15.4, frames=4000, rows=4, cols=4,
+    ...                        cic=0.05, seed=3)
+    >>> fit = fit_dark(dark)
+    >>> plain = maps_from_dark(dark)[1]
+    >>> bool(abs(fit.read_noise.mean() / 15.4 - 1) < 0.02 < plain.mean() / 15.4 - 1)
+    True
+    """
+    stack = as_stack(stack, "dark stack")
+    F, rows, cols = stack.shape
+    h = stats.histograms(stack, adc_max=adc_max)
+    P = h.n.size
+    S0, sigma = _robust_start(h)
+    # θ: the mean excess of counts far above the Gaussian (an exponential tail's mean).
+    far = h.values > (S0 + 6.0 * sigma)[:, None]
+    excess = (h.values - (S0 + 6.0 * sigma)[:, None]) * h.counts * far
+    n_far = float((h.counts * far).sum())
+    plain_offset, plain_sd = h.mean, np.sqrt(h.var)
+    if n_far < 10:
+        # No events stand out of the read-out's Gaussian (low gain, or none made): what
+        # there is hides in its core, and the plain mean and SD are its fit.
+        return DarkFit(plain_offset.reshape(rows, cols), plain_sd.reshape(rows, cols),
+                       np.full((rows, cols), np.nan), 0.0, np.ones((rows, cols), bool))
+    theta0 = max(float(excess.sum() / n_far), 0.1)
+    rate0 = np.maximum((h.counts * far).sum(axis=1) / h.n, 1e-4)
+    x0 = np.stack([np.log(rate0), S0, np.log(sigma)], axis=1)
+    sample = np.unique(np.linspace(0, P - 1, min(P, sample_pixels)).astype(int))
+    sub = _take(h, sample)
+
+    def profile(log_theta):
+        x, ok = _fit_events(sub, x0[sample], np.full(sample.size, np.exp(log_theta)))
+        return _loglik(sub, x, np.full(sample.size, np.exp(log_theta))).sum()
+
+    grid = np.log(theta0) + np.linspace(-1.2, 1.2, 5)
+    values = [profile(v) for v in grid]
+    best = int(np.argmax(values))
+    lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, grid.size - 1)]
+    from scipy.optimize import minimize_scalar
+
+    log_theta = minimize_scalar(lambda v: -profile(v), bounds=(lo, hi), method="bounded",
+                                options={"xatol": 1e-2}).x
+    theta = float(np.exp(log_theta))
+    x, ok = _fit_events(h, x0, np.full(P, theta))
+    offset, read_noise, rate = _maps(x, ok, plain_offset, plain_sd, rows, cols)
+    return DarkFit(offset, read_noise, rate, theta, ok.reshape(rows, cols))
+
+
+def _take(h, idx):
+    """The histograms of pixels ``idx`` (what the fit reads of them)."""
+    return SimpleNamespace(values=h.values[idx], counts=h.counts[idx], n=h.n[idx])
+
+
+def _robust_start(h):
+    """Median and left half-width (the 15.9 % quantile's distance) of each pixel's counts:
+    events only add counts above the offset, so the left half is the read-out's."""
+    cdf = np.cumsum(h.counts, axis=1) / h.n[:, None]
+    rows = np.arange(h.n.size)
+    med = h.values[rows, np.argmax(cdf >= 0.5, axis=1)].astype(float)
+    q16 = h.values[rows, np.argmax(cdf >= 0.158655, axis=1)].astype(float)
+    return med, np.maximum(med - q16, 0.5)
+
+
+def _model(h, x, theta, derivs):
+    """The noise model at the histogram values: E = event rate, scale θ, S0, σ."""
+    rate, S0, sigma = np.exp(x[:, 0]), x[:, 1], np.exp(x[:, 2])
+    pn = np.zeros(rate.shape, dtype=bool)
+    lo, hi = noise._extent(rate, theta, S0, sigma, pn, width=8.0)
+    first, last = h.values[:, 0], h.values.max(axis=1)
+    start = np.minimum(np.floor(lo).astype(np.int64), first)
+    stop = np.maximum(np.ceil(hi).astype(np.int64), last)
+    n = noise._fast_len(int((stop - start).max()) + 1)
+    names = ("photoelectrons", "offset", "read_noise")
+    p, d1, _ = noise._window(rate, theta, S0 - start, sigma, pn, n, derivs=derivs, names=names)
+    flat = h.values - start[:, None] + (np.arange(rate.size) * n)[:, None]
+    pv = p.ravel()[flat]
+    floor = 1e-14 * p.max(axis=1, keepdims=True)
+    low = pv < floor
+    pv = np.where(low, floor, pv)
+    scores = None
+    if derivs:  # by (ln c, S0, ln σ)
+        d = [d1[nm].ravel()[flat] for nm in names]
+        scores = np.stack([d[0] * rate[:, None], d[1], d[2] * sigma[:, None]], axis=-1)
+        scores = np.where(low[..., None], 0.0, scores / pv[..., None])
+    return pv, scores
+
+
+def _loglik(h, x, theta):
+    return np.sum(h.counts * np.log(_model(h, x, theta, False)[0]), axis=1)
+
+
+def _fit_events(h, x0, theta, max_iter=60):
+    """Per-pixel maximum likelihood of (ln c, S0, ln σ) at a fixed θ: Levenberg–Marquardt
+    damped BHHH steps (the information from the outer product of the scores)."""
+    x = x0.copy()
+    x[:, 0] = np.clip(x[:, 0], _LOG_RATE[0], _LOG_RATE[1])
+    P = x.shape[0]
+    damping = np.full(P, 1e-3)
+    done = np.zeros(P, dtype=bool)
+    pv, s = _model(h, x, theta, True)
+    ll = np.sum(h.counts * np.log(pv), axis=1)
+    for _ in range(max_iter):
+        act = np.flatnonzero(~done)
+        if act.size == 0:
+            break
+        c = h.counts[act][..., None]
+        grad = np.sum(c * s[act], axis=1)
+        info = np.einsum("pk,pki,pkj->pij", h.counts[act], s[act], s[act])
+        # A rate at its bound with its gradient outwards stays there (no events made, or
+        # the most the bound allows): the step is solved in the others.
+        held = np.zeros(grad.shape, dtype=bool)
+        held[:, 0] = (((x[act, 0] <= _LOG_RATE[0]) & (grad[:, 0] < 0))
+                      | ((x[act, 0] >= _LOG_RATE[1]) & (grad[:, 0] > 0)))
+        grad = np.where(held, 0.0, grad)
+        free = ~held
+        info = info * free[:, :, None] * free[:, None, :] + held[:, :, None] * np.eye(3)
+        A = info + damping[act, None, None] * np.eye(3) * np.maximum(
+            np.einsum("pii->pi", info), 1e-12)[:, :, None]
+        step = np.linalg.solve(A + 1e-300 * np.eye(3), grad[..., None])[..., 0]
+        step = np.clip(step, -1.0, 1.0)
+        small = np.abs(0.5 * np.einsum("pi,pi->p", grad, step)) < 1e-8
+        done[act[small]] = True
+        act, step = act[~small], step[~small]
+        if act.size == 0:
+            break
+        trial = x[act] + step
+        trial[:, 0] = np.clip(trial[:, 0], _LOG_RATE[0], _LOG_RATE[1])
+        sub = _take(h, act)
+        pv_t, s_t = _model(sub, trial, theta[act], True)
+        ll_t = np.sum(sub.counts * np.log(pv_t), axis=1)
+        better = ll_t >= ll[act] - 1e-9 * np.abs(ll[act])
+        idx = act[better]
+        x[idx], ll[idx], s[idx] = trial[better], ll_t[better], s_t[better]
+        damping[idx] = np.maximum(damping[idx] / 10.0, 1e-12)
+        damping[act[~better]] *= 10.0
+        done[act[damping[act] > 1e8]] = True
+    return x, done & np.all(np.isfinite(x), axis=1)
+
+
+#: Bounds of ln(event rate): 1e-7 to 2 electrons per pixel per frame.
+_LOG_RATE = (np.log(1e-7), np.log(2.0))
+
+
+def _maps(x, ok, plain_offset, plain_sd, rows, cols):
+    offset = np.where(ok, x[:, 1], plain_offset).reshape(rows, cols)
+    read_noise = np.where(ok, np.exp(x[:, 2]), plain_sd).reshape(rows, cols)
+    rate = np.where(ok, np.exp(x[:, 0]), np.nan).reshape(rows, cols)
+    return offset, read_noise, rate
 
 
 def check_read_noise_growth(

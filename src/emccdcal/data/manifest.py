@@ -29,7 +29,7 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
 
 from .._util import one_line
 from ..errors import InputError, ManifestError, ReadNoiseGrowthWarning
-from .dark import check_read_noise_growth, maps_from_dark
+from .dark import check_read_noise_growth, fit_dark, maps_from_dark
 from .stacks import (
     check_counts,
     content_fingerprint,
@@ -100,6 +100,10 @@ class Acquisition:
     dark_frames : int or None
         Dark frames behind the offset and read-noise maps: the dark stack's length, or the
         manifest's ``dark_frames``. ``None`` means the maps are taken as exact.
+    dark_event_rate : ndarray or None
+        Multiplied electrons per pixel per frame (e⁻) in the dark stack of a multiplied
+        acquisition, fitted with its maps (:func:`emccdcal.data.dark.fit_dark`); None for
+        maps given as files, 1× darks and darks without events.
     """
 
     name: str
@@ -113,6 +117,7 @@ class Acquisition:
     read_noise_source: str
     n_frames_total: int
     dark_frames: int | None = None
+    dark_event_rate: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def n_frames(self) -> int:
@@ -268,7 +273,10 @@ def read_manifest(path) -> Manifest:
     that stacks are 3-D and share (rows, cols), that maps have that shape and valid
     values, that stacks hold raw counts (non-negative integers, at most the ADC maximum),
     and that ``skip_frames`` leaves frames to use. Dark stacks are reduced to offset and
-    read-noise maps here (:func:`emccdcal.data.dark.maps_from_dark`), each file once.
+    read-noise maps here, each file once: at 1× their mean and SD
+    (:func:`emccdcal.data.dark.maps_from_dark`), at a multiplied set-point by a fit of the
+    read-out and its multiplied events (:func:`emccdcal.data.dark.fit_dark`), whose plain
+    SD the events would inflate.
 
     Parameters
     ----------
@@ -466,7 +474,13 @@ def read_manifest(path) -> Manifest:
                 check_counts(dark, spec["dark_path"], adc_max=adc_max, adc_bits_hint=hint)
             except InputError as exc:
                 raise r.error(str(exc), i, spec["label"]) from None
-            offset, read_noise = maps_from_dark(dark)  # data checked: cannot fail here
+            if spec["em_gain_setpoint"] == 1:
+                offset, read_noise = maps_from_dark(dark)  # data checked: cannot fail here
+                events = None
+            else:  # multiplied events in the dark: the read-out's maps by the noise model
+                fitted = fit_dark(dark, adc_max=adc_max)
+                offset, read_noise = fitted.offset, fitted.read_noise
+                events = None if fitted.event_scale == 0 else fitted.event_rate
             if np.any(read_noise <= 0):
                 bad = describe_first(read_noise, read_noise <= 0, 0)
                 raise r.error(
@@ -475,9 +489,10 @@ def read_manifest(path) -> Manifest:
                     i,
                     spec["label"],
                 )
-            dark_maps[key] = (offset, read_noise)
-        offset, read_noise = dark_maps[key]
+            dark_maps[key] = (offset, read_noise, events)
+        offset, read_noise, events = dark_maps[key]
         spec["offset_map"], spec["read_noise_map"] = offset.copy(), read_noise.copy()
+        spec["dark_event_rate"] = events
         spec["offset_source"] = spec["read_noise_source"] = f"dark {spec['dark_path']}"
 
     for i, spec in enumerate(specs, start=1):  # maps in other units, or a wrong adc_bits
@@ -503,6 +518,7 @@ def read_manifest(path) -> Manifest:
             read_noise_source=spec["read_noise_source"],
             n_frames_total=spec["n_frames_total"],
             dark_frames=spec["dark_frames"],
+            dark_event_rate=spec.get("dark_event_rate"),
         )
         for spec in specs
     ]

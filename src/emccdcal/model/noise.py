@@ -4,7 +4,9 @@ Generative model (Ryan et al. 2021, Theory; docs/methods.md):
 
 1. photoelectrons ``n ~ Poisson(E)`` per pixel per frame (``photoelectrons`` = E, e⁻);
 2. EM register: ``X | n ~ Gamma(shape=n, scale=g)`` electrons, ``X = 0`` when ``n = 0``
-   (``em_gain`` = g, dimensionless);
+   (``em_gain`` = g, dimensionless) — the paper's model, the default — or, with
+   ``em_model="cascade"``, the exact Bernoulli cascade of N stages (:class:`EMModel`,
+   docs/cascade.md);
 3. read-out: ``S = S0 + X / φ + ε`` with ``ε ~ N(0, σ²)`` (``e_per_adu`` = φ in e⁻/ADU,
    ``offset`` = S0 and ``read_noise`` = σ in ADU).
 
@@ -188,29 +190,42 @@ def mean(photoelectrons, em_gain, e_per_adu, offset, read_noise=1.0):
     return S0 + g * E / phi
 
 
-def variance(photoelectrons, em_gain, e_per_adu, offset, read_noise):
-    """Variance of the count, ADU²: ``σ² + 2E(g/φ)²`` (PGN) or ``σ² + E/φ²`` (PN).
+def variance(photoelectrons, em_gain, e_per_adu, offset, read_noise, *, em_model="gamma",
+             stages=None):
+    """Variance of the count, ADU²: ``σ² + F²E(g/φ)²`` with the register model's F²
+    (:func:`excess_noise_factor`: 2 for the gamma model), ``σ² + E/φ²`` at g = 1.
 
-    Parameters are those of :func:`mean`.
+    Parameters are those of :func:`mean`, and the register model as in :func:`logpmf`.
+
+    Examples
+    --------
+    >>> round(float(variance(370.0, 5.0, 3.859, 587.0, 15.5, em_model="cascade")), 4)
+    1355.3292
     """
     E, g, phi, _, sigma = _check_params(photoelectrons, em_gain, e_per_adu, offset, read_noise)
-    return sigma**2 + np.where(g == 1, E / phi**2, 2 * E * (g / phi) ** 2)
+    F2 = excess_noise_factor(g, em_model=em_model, stages=stages)
+    return sigma**2 + np.where(g == 1, E / phi**2, F2 * E * (g / phi) ** 2)
 
 
 def third_cumulant(photoelectrons, em_gain, e_per_adu, offset, read_noise):
-    """Third cumulant of the count, ADU³: ``6E(g/φ)³`` (PGN) or ``E/φ³`` (PN)."""
+    """Third cumulant of the count, ADU³: ``6E(g/φ)³`` (the gamma model) or ``E/φ³`` (PN)."""
     E, g, phi, _, _ = _check_params(photoelectrons, em_gain, e_per_adu, offset, read_noise)
     return np.where(g == 1, E / phi**3, 6 * E * (g / phi) ** 3)
 
 
-def excess_noise_factor(em_gain):
+def excess_noise_factor(em_gain, *, em_model="gamma", stages=None):
     """Excess-noise factor F² of the model's multiplication, ``Var(X)/(g²E)``.
 
-    2 for the gamma model (any g > 1), 1 for no multiplication (g = 1). The excess-noise
-    factor of a real, Bernoulli-cascade register is
-    :func:`emccdcal.model.cascade.excess_noise_factor`.
+    2 for the gamma model (any g > 1), 1 for no multiplication (g = 1); for the cascade
+    model that of an N-stage register (:func:`emccdcal.model.cascade.excess_noise_factor`),
+    below 2.
     """
     g = check_number("em_gain", em_gain, minimum=1.0, scalar=False)
+    model = as_em_model(em_model, stages)
+    if model.cascade:
+        from .cascade import excess_noise_factor as exact
+
+        return np.asarray(exact(g, model.stages))
     return np.where(g == 1, 1.0, 2.0)
 
 

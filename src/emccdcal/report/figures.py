@@ -251,12 +251,18 @@ def _pixel_series(ds, pixel, manifest=None):
     return out
 
 
-def _model_pmf(a, k):
+def _em_model(ds) -> dict:
+    """The register model a result was fitted with, as keyword arguments of the noise model."""
+    return {"em_model": str(ds.attrs.get("em_model", "gamma")),
+            "stages": int(ds.attrs.get("register_stages", noise.DEFAULT_STAGES))}
+
+
+def _model_pmf(a, k, model):
     """The fitted pmf of acquisition ``a`` at integer counts ``k``, or None if unusable."""
     p = a.params
     try:
         return noise.pmf(k, p["photoelectrons"], p["em_gain"], p["e_per_adu"], a.offset,
-                         a.read_noise)
+                         a.read_noise, **model)
     except ValueError:  # NaN or out-of-range estimates (a pixel that did not converge)
         return None
 
@@ -269,7 +275,8 @@ def histogram_figure(ds, pixel=None, *, log=False, manifest=None, max_bins=80):
 
     The data are re-read through the result's ``manifest_path`` (or ``manifest``); the
     model is :func:`emccdcal.model.noise.pmf` at the pixel's fitted photoelectrons, EM gain
-    (1 → Poisson–normal) and φ, with the offset and read noise the fit used. Saturated
+    (1 → Poisson–normal) and φ, with the offset and read noise and the EM register model
+    the fit used. Saturated
     frames (at the ADC maximum) are left out, as in the fit.
 
     Parameters
@@ -311,7 +318,7 @@ def histogram_figure(ds, pixel=None, *, log=False, manifest=None, max_bins=80):
                   label=f"data ({a.n} frames)")
         pad = 0.1 * (hi - lo + 1)
         k = np.unique(np.linspace(max(0, lo - pad), hi + pad, 1500).round().astype(np.int64))
-        p = _model_pmf(a, k)
+        p = _model_pmf(a, k, _em_model(ds))
         if p is not None:
             ax.plot(k, p, color="C3", lw=1.3, label="fitted pmf")
         title = f"{a.name}: set-point {format_setpoint(a.setpoint)}×"
@@ -404,7 +411,8 @@ def photon_transfer_figure(ds, pixel=None, *, manifest=None):
         p = series[np.flatnonzero(sel)[0]].params
         args = (p["photoelectrons"], p["em_gain"], p["e_per_adu"], 0.0, 1.0)  # S0 0, σ 1 ADU
         try:
-            model = (float(noise.variance(*args)) - 1.0) / float(noise.mean(*args))
+            model = ((float(noise.variance(*args, **_em_model(ds))) - 1.0)
+                     / float(noise.mean(*args)))
         except (ValueError, ZeroDivisionError):  # NaN or out-of-range estimates
             model = np.nan
         if np.isfinite(model):
