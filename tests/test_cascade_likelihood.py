@@ -100,6 +100,54 @@ def test_logpmf_matches_the_integer_electron_route(E, g, phi, sigma, N):
     assert np.max(np.abs(got - ref)) < 1e-8
 
 
+#: High gains, beyond the route's reach: (E, g, φ, σ, N).
+QUADRATURE_CASES = [
+    (50.0, 300.0, 3.859, 15.5, 536),
+    (1.0, 2000.0, 30.0, 200.0, 1000),
+    (1e4, 1000.0, 30.0, 50.0, 604),
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("E, g, phi, sigma, N", QUADRATURE_CASES)
+def test_logpmf_at_high_gain_matches_high_precision_quadrature(E, g, phi, sigma, N):
+    """Above g = 100 the density at k is ``(1/π)∫ Re exp(K(t + iω) − (t + iω)k) dω`` along
+    the line through the saddle point t, by mpmath at 30 digits with the register's
+    recursion in the same precision (20 digits): no window, band, FFT or tilt bookkeeping."""
+    mp = pytest.importorskip("mpmath")
+    mp.mp.dps = 20
+    S0 = 100.0 + 15 * sigma
+    p = mp.power(mp.mpf(g), mp.mpf(1) / N) - 1
+
+    def K(s):
+        v = mp.expm1(s / phi)
+        for _ in range(N):
+            v = v * (1 + p + p * v)
+        return s * S0 + mp.mpf(sigma) ** 2 * s**2 / 2 + E * v
+
+    casc = noise._Cascade(N, np.array([g]), 0.0)
+    one = lambda x: np.array([float(x)])  # noqa: E731
+    # counts at about 1, 1e-6 and 1e-9 of the peak, above the mean
+    mean = S0 + E * g / phi
+    sd = np.sqrt(float(noise.variance(E, g, phi, S0, sigma, em_model="cascade", stages=N)))
+    grid = np.unique(np.linspace(mean, mean + 40 * sd + 60 * g / phi, 400).astype(np.int64))
+    lp = noise.logpmf(grid, E, g, phi, S0, sigma, em_model="cascade", stages=N)
+    peak = lp.max()
+    chosen = [grid[np.argmin(np.abs(lp - (peak + level)))] for level in (0.0, -13.8, -20.7)]
+    for k in chosen:
+        t = noise._cascade_saddlepoint(one(k), one(E), one(1 / phi), one(S0), one(sigma), casc)
+        d2K = noise._cascade_real(t, one(E), one(1 / phi), one(S0), one(sigma), casc)[2][0]
+        t = mp.mpf(float(t[0]))
+        # the integrand's scales: the tilted distribution's SD and the read noise's, whose
+        # Gaussian alone bounds the integrand where the electrons' part no longer falls
+        scales = sorted({1.0 / np.sqrt(d2K), 1.0 / sigma})
+        points = sorted({0.0, *(w * j for w in scales for j in (1, 3, 6, 12))})
+        f = lambda w: mp.re(mp.exp(K(t + 1j * w) - (t + 1j * w) * k))  # noqa: E731
+        ref = mp.log(mp.quad(f, points) / mp.pi)
+        got = noise.logpmf(k, E, g, phi, S0, sigma, em_model="cascade", stages=N)
+        assert abs(float(got - ref)) < 1e-8, (k, float(got), float(ref))
+
+
 def test_single_electron_pmf_agrees_with_emccd_detect():
     """The reference route's register pmf is emccd-detect's exact gain pmf."""
     rand_em_gain = pytest.importorskip("emccd_detect.rand_em_gain")
