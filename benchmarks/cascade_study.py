@@ -83,8 +83,9 @@ def main(out_json):
                     t0 = time.perf_counter()
                     with warnings.catch_warnings(record=True) as caught:
                         warnings.simplefilter("always")
-                        ds = calibrate(manifest, method, em_model=model, stages=cam["stages"],
-                                       checks=False, **extra)
+                        ds = calibrate(manifest, method, checks=False, **extra,
+                                       **({"em_model": "cascade", "stages": cam["stages"]}
+                                          if model == "cascade" else {}))
                     seconds = time.perf_counter() - t0
                     misfit = [str(w.message).split(";")[0] for w in caught
                               if "misfit" in str(w.message)]

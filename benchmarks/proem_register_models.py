@@ -45,7 +45,8 @@ def main(data: Path) -> None:
         for model in ("gamma", "cascade"):
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                results[model] = calibrate(path, "gs", em_model=model, stages=536)
+                results[model] = calibrate(path, "gs", em_model=model,
+                                           stages=536 if model == "cascade" else None)
             misfits = [str(w.message).split(";")[0] for w in caught if "misfit" in str(w.message)]
             print(f"{model}: E = {np.median(results[model].photoelectrons.values):.3f} e- "
                   f"(median); misfit warnings: {misfits or 'none'}")

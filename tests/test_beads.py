@@ -145,3 +145,20 @@ def test_bad_input():
         bead_fit.fit_beads(frames, [[8, 10]], **(kw | {"offset": np.zeros((3, 3))}))
     empty = bead_fit.fit_beads(frames, np.zeros((0, 2), int), **kw)
     assert empty.params.shape == (0, 5, 5)
+
+
+def test_bead_fits_under_the_exact_register():
+    """Beads at 5x from an exact register, fitted with the cascade model under the true
+    calibration: unbiased intensities with honest errors, as the gamma model is on gamma
+    data."""
+    frames = _stack(4.78, 14, frames=150, multiplication="cascade", stages=536)
+    pos = np.rint(TRUE_POS).astype(int)
+    fit = bead_fit.fit_beads(frames, pos, offset=_offset_map(), read_noise=SIGMA_DARK,
+                             e_per_adu=PHI, em_gain=4.78,
+                             em_model=noise.EMModel("cascade", 536))
+    ok = fit.converged
+    assert ok.mean() > 0.98
+    N = fit.intensity[ok]
+    assert abs(N.mean() - N_TRUE) < 4 * N.std(ddof=1) / math.sqrt(N.size)
+    assert np.sqrt(np.mean(fit.intensity_se[ok] ** 2)) / N.std(ddof=1) == pytest.approx(
+        1.0, abs=0.15)

@@ -218,6 +218,12 @@ def test_em_model_arguments_are_checked():
         noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, em_model="cascade", stages=0)
     with pytest.raises(OptionError, match="register_cic"):
         noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, register_cic=0.1)
+    with pytest.raises(OptionError, match="stages are the cascade model's"):
+        noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, stages=604)
+    # a run: the caller's choice over the manifest's; stages alone mean the cascade
+    assert noise.choose_em_model(None) == noise.EMModel()
+    assert noise.choose_em_model(noise.EMModel(), stages=604) == noise.EMModel("cascade", 604)
+    assert noise.choose_em_model(noise.EMModel("cascade", 604), "gamma") == noise.EMModel()
 
 
 # --------------------------------------------------------------------------------------

@@ -476,10 +476,11 @@ def calibrate(
     em_model : {"gamma", "cascade"} or noise.EMModel, optional
         The EM register's model in the likelihood methods: the paper's gamma
         approximation or the exact Bernoulli cascade (:class:`emccdcal.noise.EMModel`);
-        default the manifest's ``em_model``, else ``"gamma"``. The gamma model biases
-        the gains of an exact register by about −1 % in ``gs`` and by F²/2 − 1 (−10 %
-        at 5×) where E is free at one set-point (``is-gain``); the cascade costs about
-        twice the time (docs/cascade.md).
+        default the manifest's ``em_model``, else ``"gamma"``. On an exact register
+        the gamma model reads every gain 0.2–0.8 % low in ``gs`` and about F²/2 − 1 low
+        (−3 % at 25×, −10 % at 5×) where E and g share one set-point's shape
+        (``is-gain``, ``gs-no1x``); the cascade costs about twice the time in ``gs``
+        (docs/cascade.md).
     stages : int, optional
         Stages of the cascade (default the manifest's ``register_stages``, else 536).
 

@@ -124,7 +124,9 @@ class EMModel:
                               f"{', '.join(EM_MODELS)}")
         from .cascade import _check_stages
 
-        object.__setattr__(self, "stages", _check_stages(self.stages))
+        # The gamma model has no stages: one gamma model, whatever was passed.
+        stages = _check_stages(self.stages) if self.cascade else DEFAULT_STAGES
+        object.__setattr__(self, "stages", stages)
 
     @property
     def cascade(self) -> bool:
@@ -146,18 +148,22 @@ def choose_em_model(given, em_model=None, stages=None) -> EMModel:
     if em_model is None and stages is None:
         return given or EMModel()
     if em_model is None:
-        em_model = "cascade" if given is None else given.name
+        em_model = "cascade" if given is None or stages is not None else given.name
     return as_em_model(em_model, stages)
 
 
 def as_em_model(em_model="gamma", stages=None) -> EMModel:
-    """An :class:`EMModel` from a name (or an :class:`EMModel`) and optional stages."""
+    """An :class:`EMModel` from a name (or an :class:`EMModel`) and optional stages;
+    stages go with the cascade only."""
     if isinstance(em_model, EMModel):
-        if stages is not None and int(stages) != em_model.stages:
-            raise OptionError(f"stages={stages!r} disagrees with {em_model}")
+        if stages is not None and (not em_model.cascade or int(stages) != em_model.stages):
+            raise OptionError(f"stages={stages!r} disagrees with the {em_model} model")
         return em_model
     if not isinstance(em_model, str):
         raise OptionError(f"em_model must be one of {', '.join(EM_MODELS)}, got {em_model!r}")
+    if stages is not None and em_model == "gamma":
+        raise OptionError("stages are the cascade model's: give em_model='cascade' with "
+                          "them (the gamma model has none)")
     return EMModel(em_model, DEFAULT_STAGES if stages is None else stages)
 
 

@@ -253,8 +253,9 @@ def _pixel_series(ds, pixel, manifest=None):
 
 def _em_model(ds) -> dict:
     """The register model a result was fitted with, as keyword arguments of the noise model."""
-    return {"em_model": str(ds.attrs.get("em_model", "gamma")),
-            "stages": int(ds.attrs.get("register_stages", noise.DEFAULT_STAGES))}
+    if ds.attrs.get("em_model") != "cascade":
+        return {}
+    return {"em_model": "cascade", "stages": int(ds.attrs["register_stages"])}
 
 
 def _model_pmf(a, k, model):
