@@ -183,6 +183,7 @@ def test_register_transform_moments_and_derivatives():
                 assert np.allclose(fd2, d[prefix + key], rtol=1e-5, atol=1e-8)
 
 
+@pytest.mark.slow
 def test_logpmf_grad_matches_finite_differences():
     counts = np.array([700, 1100, 1500])
     base = dict(photoelectrons=370.0, em_gain=5.0, e_per_adu=3.859, offset=587.0,
@@ -304,6 +305,7 @@ def test_gs_with_the_cascade_recovers_the_gains_the_gamma_model_misses(cascade_s
     assert not any("misfit" in w for w in exact_warnings)
 
 
+@pytest.mark.slow
 def test_manifest_selects_the_model_and_the_caller_overrides_it(cascade_series, tmp_path):
     sim, manifest = cascade_series
     text = manifest.read_text()
@@ -371,6 +373,7 @@ def test_mv_gain_with_the_exact_excess_noise_factor():
     assert np.isnan(cascade_gain(0.5, N)[0])
 
 
+@pytest.mark.slow
 def test_command_line_takes_the_model(cascade_series, tmp_path):
     from emccdcal.cli import main
 

@@ -673,9 +673,9 @@ def _saddlepoint(k, E, scale, S0, sigma, pn):
 
 def _cascade_saddlepoint(k, E, scale, S0, sigma, casc):
     """Tilt t that puts the cascade model's tilted mean K'(t) within half a tilted SD of
-    count k: Newton's method on K', kept inside a bracket, bisecting where Newton is
-    slow to shrink it. (Any tilt gives exact values; the saddlepoint only centres the
-    window on the target.)
+    count k: Newton's method on K' from the gamma model's saddlepoint, kept inside a
+    bracket, bisecting where it leaves the bracket or stops converging. (Any tilt gives
+    exact values; the saddlepoint only centres the window on the target.)
 
     The bracket: the electron part of K' is positive and increasing in t, so
     ``S0 + σ²t ≤ K'(t)`` everywhere and ``K'(t) ≤ K'(0) + σ²t`` for t ≤ 0.
@@ -683,8 +683,11 @@ def _cascade_saddlepoint(k, E, scale, S0, sigma, casc):
     mean0 = _cascade_real(np.zeros(E.shape), E, scale, S0, sigma, casc)[1]
     lo = np.minimum(0.0, (k - mean0) / sigma**2)
     hi = (k - S0) / sigma**2
-    t = 0.5 * (lo + hi)
-    width = hi - lo
+    # Start from the gamma model's saddlepoint (closed-form cumulants, cheap): its
+    # register differs only in F², so Newton then needs a few steps, not a bisection.
+    t = _saddlepoint(k, E, casc.gain * scale, S0, sigma, np.zeros(E.shape, dtype=bool))
+    t = np.where((t > lo) & (t < hi), t, 0.5 * (lo + hi))
+    previous = np.full(E.shape, np.inf)  # |K'(t) − k| of the step before
     for _ in range(100):
         with np.errstate(over="ignore", invalid="ignore"):
             _, dK, d2K, _, _ = _cascade_real(t, E, scale, S0, sigma, casc)
@@ -692,13 +695,15 @@ def _cascade_saddlepoint(k, E, scale, S0, sigma, casc):
         above = bad | (dK > k)
         hi = np.where(above, t, hi)
         lo = np.where(above, lo, t)
-        close = ~bad & (np.abs(dK - k) < 0.5 * np.sqrt(d2K))
+        miss = np.abs(dK - k)
+        close = ~bad & (miss < 0.5 * np.sqrt(d2K))
         if np.all(close):
             break
         with np.errstate(divide="ignore", invalid="ignore"):
             newton = t - (dK - k) / d2K
-        slow = (hi - lo) > 0.5 * width  # the bracket did not halve: bisect
-        width = hi - lo
+        # Newton where it stays in the bracket and is converging; else bisect.
+        slow = ~(miss < 0.5 * previous)
+        previous = np.where(bad, np.inf, miss)
         inside = ~bad & ~slow & (newton > lo) & (newton < hi)
         t = np.where(close, t, np.where(inside, newton, 0.5 * (lo + hi)))
     return t
