@@ -200,7 +200,7 @@ def fit_dark(stack, *, adc_max=None, sample_pixels=64) -> DarkFit:
     sub = _take(h, sample)
 
     def profile(log_theta):
-        x, ok = _fit_events(sub, x0[sample], np.full(sample.size, np.exp(log_theta)))
+        x, _ = _fit_events(sub, x0[sample], np.full(sample.size, np.exp(log_theta)))
         return _loglik(sub, x, np.full(sample.size, np.exp(log_theta))).sum()
 
     grid = np.log(theta0) + np.linspace(-1.2, 1.2, 5)
@@ -212,9 +212,17 @@ def fit_dark(stack, *, adc_max=None, sample_pixels=64) -> DarkFit:
     log_theta = minimize_scalar(lambda v: -profile(v), bounds=(lo, hi), method="bounded",
                                 options={"xatol": 1e-2}).x
     theta = float(np.exp(log_theta))
-    x, ok = _fit_events(h, x0, np.full(P, theta))
+    x, ok = np.empty_like(x0), np.empty(P, dtype=bool)
+    for b in range(0, P, _BLOCK_PIXELS):  # the windows of a block: bounded memory
+        part = slice(b, b + _BLOCK_PIXELS)
+        n = x0[part].shape[0]
+        x[part], ok[part] = _fit_events(_take(h, part), x0[part], np.full(n, theta))
     offset, read_noise, rate = _maps(x, ok, plain_offset, plain_sd, rows, cols)
     return DarkFit(offset, read_noise, rate, theta, ok.reshape(rows, cols))
+
+
+#: Pixels fitted together (their FFT windows are held at once).
+_BLOCK_PIXELS = 256
 
 
 def _take(h, idx):
