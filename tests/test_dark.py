@@ -186,3 +186,31 @@ def test_fit_dark_without_events_is_the_plain_mean_and_sd():
     np.testing.assert_allclose(fit.offset, offset, rtol=1e-12)
     np.testing.assert_allclose(fit.read_noise, sd, rtol=1e-12)
     assert fit.event_scale == 0.0 and np.isnan(fit.event_rate).all()
+
+
+def test_a_calibration_with_dark_stacks_at_gain_uses_the_fitted_maps(tmp_path):
+    """The manifest's dark stack at 400x (0.02 events per pixel per frame) gives the
+    read-out's read noise, not the inflated SD, and the result records the event rate."""
+    import re
+    import warnings
+
+    from emccdcal import calibrate
+    from emccdcal.simulate.series import simulate_gain_series
+
+    sim = simulate_gain_series(tmp_path, setpoints=(1, 400), em_gain=(1, 380.0), rows=6,
+                               cols=6, frames=300, dark_frames=2000, seed=4, cic=0.02,
+                               e_per_adu=5.2, read_noise=15.4)
+    text = sim.manifest.read_text()
+    text = re.sub(r'offset = ".*"\nread_noise = ".*"\ndark_frames = .*\n# dark = (".*")  .*',
+                  r"dark = \1", text)
+    manifest = sim.manifest.with_name("darks.toml")
+    manifest.write_text(text)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ds = calibrate(manifest, "gs", checks=False)
+    truth = np.sqrt(15.4**2 + 1 / 12)
+    sigma = ds.read_noise.sel(setpoint=400.0).values
+    assert abs(sigma.mean() / truth - 1) < 0.01
+    rate = ds.dark_event_rate.sel(setpoint=400.0).values
+    assert abs(rate.mean() / 0.02 - 1) < 0.3
+    assert np.isnan(ds.dark_event_rate.sel(setpoint=1.0).values).all()

@@ -805,6 +805,12 @@ def _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, opt
         "acquisition_loglik": ((per_acq_dim, "row", "col"), grid(arrays["acquisition_loglik"]),
                                "nats", "each acquisition's part of loglik"),
     }
+    if any(a.dark_event_rate is not None for a in used):  # darks fitted with their events
+        rates = np.stack([np.full((rows, cols), np.nan) if a.dark_event_rate is None
+                          else a.dark_event_rate for a in used])
+        extra["dark_event_rate"] = ((per_acq_dim, "row", "col"), rates, "e-",
+                                    "multiplied electrons per pixel per frame in the dark "
+                                    "stack (clock-induced charge, dark current)")
     fixed_phi_se = grid(est["e_per_adu_se"][:, 0])  # NaN unless φ came with its error
     common = dict(loglik=grid(loglik), converged=grid(converged),
                   manifest_hash=manifest.content_hash,
