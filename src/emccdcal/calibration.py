@@ -610,9 +610,7 @@ def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_
                                  intervals, model)
         ds.attrs["standard_errors"] = se_note
     if method != "mv-adu":  # the register model of the likelihood, or mv-gain's F²
-        ds.attrs["em_model"] = model.name
-        if model.cascade:
-            ds.attrs["register_stages"] = np.int64(model.stages)
+        ds.attrs.update(model.attrs)
     if manifest.origin is not None:  # where these pixels are on the sensor
         ds.attrs["sensor_origin"] = np.array(manifest.origin, dtype=np.int64)
     if manifest.binning is not None:

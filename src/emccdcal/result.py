@@ -131,12 +131,10 @@ _HEX64 = re.compile(r"^[0-9a-f]{64}$")
 def em_model_summary(ds) -> dict:
     """The EM register model a result was fitted with: ``{"em_model": ..., and for the
     cascade "register_stages": N}``; empty for results without one (mean–variance)."""
-    if "em_model" not in ds.attrs:
-        return {}
-    out = {"em_model": str(ds.attrs["em_model"])}
-    if "register_stages" in ds.attrs:
-        out["register_stages"] = int(ds.attrs["register_stages"])
-    return out
+    from .model.noise import EMModel
+
+    model = EMModel.from_attrs(ds.attrs)
+    return {} if model is None else model.attrs
 
 
 def format_setpoint(value) -> str:

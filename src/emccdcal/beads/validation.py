@@ -224,9 +224,7 @@ def load_calibration(spec, shape=None) -> Calibration:
             stacklevel=2,
         )
     method = "+".join(dict.fromkeys(methods))
-    models = {noise.EMModel(str(ds.attrs["em_model"]),
-                            int(ds.attrs.get("register_stages", noise.DEFAULT_STAGES)))
-              for _, ds in loaded if "em_gain" in ds and "em_model" in ds.attrs}
+    models = {noise.EMModel.from_attrs(ds.attrs) for _, ds in loaded if "em_gain" in ds} - {None}
     if len(models) > 1:
         raise OptionError(f"{label}: its members were fitted with different EM register "
                           f"models ({', '.join(sorted(map(str, models)))}); group results "

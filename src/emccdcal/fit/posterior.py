@@ -483,9 +483,7 @@ def sample_posterior(
         },
     )
     ds.attrs["seconds"] = time.perf_counter() - t0
-    ds.attrs["em_model"] = model.name
-    if model.cascade:
-        ds.attrs["register_stages"] = np.int64(model.stages)
+    ds.attrs.update(model.attrs)
     if out is not None:
         save(ds, out)
     return ds

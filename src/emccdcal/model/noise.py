@@ -136,6 +136,21 @@ class EMModel:
     def __str__(self) -> str:
         return f"cascade ({self.stages} stages)" if self.cascade else "gamma"
 
+    @property
+    def attrs(self) -> dict:
+        """The model as a result's attributes: ``em_model``, and ``register_stages`` for
+        the cascade."""
+        return {"em_model": self.name,
+                **({"register_stages": int(self.stages)} if self.cascade else {})}
+
+    @classmethod
+    def from_attrs(cls, attrs) -> EMModel | None:
+        """The model a result's attributes record (:attr:`attrs`), or None where they
+        record none (a result without a likelihood, such as ``mv-adu``)."""
+        if "em_model" not in attrs:
+            return None
+        return cls(str(attrs["em_model"]), int(attrs.get("register_stages", DEFAULT_STAGES)))
+
 
 #: The register models :class:`EMModel` knows.
 EM_MODELS = ("gamma", "cascade")

@@ -253,9 +253,7 @@ def _pixel_series(ds, pixel, manifest=None):
 
 def _em_model(ds) -> dict:
     """The register model a result was fitted with, as keyword arguments of the noise model."""
-    if ds.attrs.get("em_model") != "cascade":
-        return {}
-    return {"em_model": "cascade", "stages": int(ds.attrs["register_stages"])}
+    return {"em_model": noise.EMModel.from_attrs(ds.attrs) or noise.EMModel()}
 
 
 def _model_pmf(a, k, model):

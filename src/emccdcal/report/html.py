@@ -256,10 +256,13 @@ def _gof_html(inputs):
 
 def _em_model_text(attrs) -> str:
     """The register model of a result, for the provenance table."""
-    if "em_model" not in attrs:
+    from ..model.noise import EMModel
+
+    model = EMModel.from_attrs(attrs)
+    if model is None:
         return "– (no likelihood)"
-    if attrs["em_model"] == "cascade":
-        return f"exact Bernoulli cascade, {int(attrs['register_stages'])} stages"
+    if model.cascade:
+        return f"exact Bernoulli cascade, {model.stages} stages"
     return "gamma (the paper's approximation)"
 
 
