@@ -367,9 +367,8 @@ def register_transform(u, em_gain, stages=DEFAULT_STAGES, *, order=1, cic=False)
         np.multiply(p, v, out=t)
         t += a1
         v *= t
-    p = p_row
     # Derivatives by p → by ln g: dp/d ln g = (1 + p)/N, d²p/d(ln g)² = (1 + p)/N².
-    dp = (1.0 + p.real) / stages
+    dp = (1.0 + p_row) / stages
     for src in ([d] + ([sums] if cic else [])):
         if order >= 2:
             src["gg"] = src["gg"] * dp**2 + src["g"] * (dp / stages)
