@@ -121,7 +121,7 @@ def gain_table(files):
     for label, spec in files.items():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            cal = validation.load_calibration(spec)
+            cal = result.load_calibration(spec)
         rows[label] = {"e_per_adu": float(np.nanmedian(cal.e_per_adu)),
                        **{str(s): float(np.nanmedian(cal.em_gain[float(s)]))
                           for s in GAIN_SETPOINTS if float(s) in cal.em_gain}}

@@ -24,7 +24,8 @@ ALLOWED = {
     "fit": {"data", "model"},
     "beads": {"data", "model", "fit", "result"},
     "simulate": {"model", "fit", "result"},
-    "report": {"data", "model", "fit", "result", "beads"},
+    "report": {"data", "model", "fit", "result", "beads", "export"},
+    "export": {"data", "model", "result"},
 }
 
 

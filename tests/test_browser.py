@@ -136,7 +136,7 @@ def test_real_proem_report_renders_in_chromium(browser, tmp_path):
         calibrate(write_real_manifest(tmp_path, "gs"), "gs", out=tmp_path / "gs")
         path = report_html.write_report([tmp_path / "is-adu", tmp_path / "gs"], tmp_path / "r.html")
     found = check_in_browser(path, tmp_path, "proem-report")
-    assert len(found["images"]) == 10  # 4 per result and 2 comparisons: nothing left out
+    assert len(found["images"]) == 11  # 4 per result and 3 comparisons: nothing left out
     text = path.read_text(encoding="utf-8")
     assert "set-point 5x: " in text and "misfit the noise model" in text  # docs/simulation.md
     assert np.isfinite(float(re.search(r"<td>5×</td><td>([0-9.]+)</td>", text).group(1)))

@@ -3,6 +3,7 @@ same series calibrating identically whatever it is stored in."""
 
 from __future__ import annotations
 
+import json
 import re
 import struct
 from pathlib import Path
@@ -13,10 +14,11 @@ import tifffile
 from camera_files import write_fits, write_micromanager_tiff, write_spe, write_zarr
 from conftest import quiet
 
-from emccdcal import calibrate
+from emccdcal import calibrate, result
 from emccdcal.data.manifest import read_manifest
 from emccdcal.data.stacks import load_stack, read_band, stack_header, stack_settings
 from emccdcal.errors import EmccdcalError, InputError
+from emccdcal.export import database
 from emccdcal.simulate.series import simulate_gain_series
 
 
@@ -121,12 +123,21 @@ def _as_spe(series, name, *, gains=None, suffix=".spe"):
 
 
 @pytest.mark.parametrize("suffix", [".spe", ".fits", ".zarr", ".ome.tif"])
-def test_same_series_in_another_format_calibrates_identically(series, suffix):
+def test_same_series_in_another_format_calibrates_identically(series, suffix, tmp_path):
     other = _as_spe(series, f"other{suffix}.toml", suffix=suffix)
     a = quiet(calibrate, series.manifest, "gs", tile_pixels=12)
     b = quiet(calibrate, other, "gs", tile_pixels=12)  # two tiles: bands of rows
     for name in ("em_gain", "em_gain_se", "photoelectrons", "photoelectrons_se", "loglik"):
         np.testing.assert_array_equal(a[name].values, b[name].values, err_msg=name)
+    assert "camera" not in a.attrs  # plain TIFFs record no camera
+    if suffix == ".spe":  # what the files record: the identity the database keys on
+        assert json.loads(b.attrs["camera"]) == {
+            "serial": "12345678", "model": "ProEM+: 512B", "readout_rate_mhz": 10.0,
+            "analog_gain": "High", "adc_bits": 16}
+        result.save(b, tmp_path / "res")
+        e = database.add(tmp_path / "res", db=tmp_path / "db.sqlite")
+        assert (e.camera, e.readout) == ("12345678", "10 MHz, analog gain High, 16-bit")
+        assert sorted(e.gains) == [25.0, 300.0]
 
 
 def test_fits_stack_is_read_by_sections_with_its_settings(tmp_path):

@@ -303,7 +303,7 @@ def test_demo_writes_a_self_contained_report_with_every_section_and_figure(full_
     assert "validation" not in p.ids  # no validation input: no such section
     want = [f"fig-result-{i}-{k}" for i in (1, 2)
             for k in ("histograms", "histograms-log", "photon-transfer", "maps")]
-    want += ["fig-estimates", "fig-gain"]
+    want += ["fig-estimates", "fig-gain", "fig-gain-curve"]
     assert set(want) <= set(p.ids)
     assert len(p.imgs) == len(want)
     for img in p.imgs:

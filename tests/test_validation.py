@@ -149,24 +149,24 @@ def test_load_calibration_groups(tmp_path):
     g5 = _result(tmp_path / "g5", method="is-gain", setpoints=[5.0], gains=[4.78])
     g25 = _result(tmp_path / "g25", method="is-gain", setpoints=[25.0], gains=[22.95])
     with pytest.warns(UserWarning, match="fitted with another e_per_adu"):
-        c = validation.load_calibration(f"{adu},{g5},{g25}", SHAPE)
+        c = result.load_calibration(f"{adu},{g5},{g25}", SHAPE)
     assert c.method == "is-adu+is-gain" and c.setpoints == (1.0, 5.0, 25.0)
     assert np.all(c.e_per_adu == 3.9) and np.all(c.gain(25) == 22.95) and np.all(c.gain(1) == 1)
-    with pytest.raises(ValueError, match=r"set-point 100x of the bead data is missing .*\(it has "
+    with pytest.raises(ValueError, match=r"set-point 100x is missing .*\(it has "
                                          r"1x, 5x, 25x\)"):
         c.gain(100)
     other = _result(tmp_path / "g5b", method="is-gain", setpoints=[5.0], gains=[4.7])
     with pytest.raises(ValueError, match="set-point 5x is in both"):
-        validation.load_calibration([g5, other])
+        result.load_calibration([g5, other])
     adu2 = _result(tmp_path / "adu2", method="mv-adu", setpoints=[1.0], gains=[1.0])
     with pytest.raises(ValueError, match="both measured e_per_adu"):
-        validation.load_calibration([adu, adu2])
+        result.load_calibration([adu, adu2])
     # non-converged pixels are missing values
     mask = np.ones(SHAPE, bool)
     mask[3, 4] = False
     part = _result(tmp_path / "part", method="gs", setpoints=[1.0, 5.0], gains=[1.0, 4.78],
                    converged=mask)
-    c = validation.load_calibration(part)
+    c = result.load_calibration(part)
     assert np.isnan(c.gain(5)[3, 4]) and np.isnan(c.e_per_adu[3, 4])
 
 
@@ -175,17 +175,17 @@ def test_calibration_of_another_sensor_or_region(tmp_path):
                     shape=(16, 16))
     with pytest.raises(ValueError, match=r"small/calibration.nc: calibration covers rows 0–15 "
                                          r"and columns 0–15, but the bead frames are 32×40"):
-        validation.load_calibration(small, SHAPE)
+        result.load_calibration(small, SHAPE, of="the bead frames")
     moved = _result(tmp_path / "moved", method="gs", setpoints=[1.0, 25.0], gains=GAINS,
                     origin=(4, 0))
     with pytest.raises(ValueError, match="rows 4–35"):
-        validation.load_calibration(moved, SHAPE)
+        result.load_calibration(moved, SHAPE)
     with pytest.raises(FileNotFoundError, match="nope.nc"):
-        validation.load_calibration(tmp_path / "nope.nc")
+        result.load_calibration(tmp_path / "nope.nc")
     junk = tmp_path / "junk.nc"
     junk.write_text("not netcdf")
     with pytest.raises(ValueError, match="junk.nc: not a readable NetCDF"):
-        validation.load_calibration(junk)
+        result.load_calibration(junk)
 
 
 def _cli(capsys, *argv):
@@ -197,7 +197,7 @@ def test_cli_bad_input_is_one_line(beads_data, tmp_path, capsys):
     sim, cal, _, _ = beads_data
     missing = _result(tmp_path / "no25", method="gs", setpoints=[1.0, 5.0], gains=[1.0, 4.78])
     cases = [
-        ((missing,), "set-point 25x of the bead data is missing from this calibration"),
+        ((missing,), "set-point 25x is missing from this calibration"),
         ((tmp_path / "absent.nc",), "absent.nc: no such file"),
         ((_result(tmp_path / "small", method="gs", setpoints=SETPOINTS, gains=GAINS,
                   shape=(8, 8)),), "but the bead frames are 32×40"),

@@ -1,6 +1,7 @@
 """Private helpers shared by the whole package: one of each, never a copy.
 
-- :func:`atomic_write`: every file emccdcal writes goes through it;
+- :func:`atomic_write`: every file emccdcal writes goes through it; :func:`file_sha256`
+  the hash that names a result file in provenance;
 - :func:`progress`: every progress bar;
 - :func:`check_int`, :func:`check_number`, :func:`check_map`, :func:`e_per_adu_map`:
   argument validators whose errors are one-line :class:`~emccdcal.errors.OptionError`;
@@ -12,6 +13,7 @@ use it.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import operator
 import os
@@ -26,6 +28,7 @@ from .errors import OptionError
 
 __all__ = [
     "atomic_write",
+    "file_sha256",
     "progress",
     "check_int",
     "check_number",
@@ -45,6 +48,15 @@ def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+def file_sha256(path) -> str:
+    """SHA-256 (hex) of a file's bytes, read in 1 MiB blocks (any size, bounded memory)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def atomic_write(path, write: Callable[[str], object]) -> Path:

@@ -615,6 +615,8 @@ def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_
         ds.attrs["sensor_origin"] = np.array(manifest.origin, dtype=np.int64)
     if manifest.binning is not None:
         ds.attrs["binning"] = np.array(manifest.binning, dtype=np.int64)
+    if manifest.camera:  # the read-out state this calibration holds for
+        ds.attrs["camera"] = json.dumps(manifest.camera)
     if phi_source is not None:
         ds.attrs["e_per_adu_source"] = phi_source
     if phi_se is not None:

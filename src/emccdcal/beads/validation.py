@@ -40,7 +40,6 @@ import json
 import math
 import time
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -50,15 +49,12 @@ from .._util import atomic_write, finite_or_none
 from .._util import progress as progress_bar
 from ..data.manifest import Manifest, read_manifest
 from ..errors import InputError, MissingFileError, OptionError
-from ..model import noise
 from . import fit as bead_fit
 
 __all__ = [
     "VALIDATION_FILE",
     "INTENSITIES_FILE",
     "DDOF",
-    "Calibration",
-    "load_calibration",
     "consistency",
     "validate",
 ]
@@ -67,176 +63,6 @@ VALIDATION_FILE = "validation.json"
 INTENSITIES_FILE = "intensities.nc"
 #: ddof of the headline consistency metric (ddof = 1 is reported beside it).
 DDOF = 0
-_PHI_METHODS = ("is-adu", "mv-adu")
-
-
-# --------------------------------------------------------------------------------------
-# Calibrations
-# --------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Calibration:
-    """A calibration to validate: φ per pixel and the gain per set-point per pixel.
-
-    Attributes
-    ----------
-    label : str
-        How it was named: a file, or files joined by commas.
-    files : tuple of Path
-        The result files it was read from.
-    method : str
-        The method of the result, or the members' methods joined by ``+``.
-    e_per_adu : ndarray, shape (R, C)
-        φ (e⁻/ADU); NaN where missing or not converged.
-    em_gain : dict of float to ndarray (R, C)
-        Gain per set-point (dimensionless), set-point 1 excluded (it is 1); NaN where
-        missing or not converged.
-    em_model : noise.EMModel
-        The EM register model its gains were fitted with (the beads are fitted with the
-        same one); the gamma model for results that record none.
-    """
-
-    label: str
-    files: tuple
-    method: str
-    e_per_adu: np.ndarray
-    em_gain: dict
-    em_model: noise.EMModel = noise.EMModel()
-
-    @property
-    def setpoints(self) -> tuple:
-        """Set-points it has a gain for, 1 included (sorted)."""
-        return tuple(sorted({1.0, *self.em_gain}))
-
-    def gain(self, setpoint) -> np.ndarray:
-        """Gain map at a set-point (1 at set-point 1).
-
-        Raises
-        ------
-        ValueError
-            The set-point is not in the calibration (the message names its files).
-        """
-        s = float(setpoint)
-        if s == 1.0:
-            return np.ones_like(self.e_per_adu)
-        if s not in self.em_gain:
-            have = ", ".join(result.format_setpoint(v) + "x" for v in self.setpoints)
-            raise OptionError(
-                f"{self.label}: set-point {result.format_setpoint(s)}x of the bead data is "
-                f"missing from this calibration (it has {have}); add a result that has it, "
-                "e.g. --calibration adu.nc,gain5x.nc,..."
-            )
-        return self.em_gain[s]
-
-
-def _members(spec):
-    if isinstance(spec, (list, tuple)):
-        parts = [str(p) for p in spec]
-    else:
-        parts = [p.strip() for p in str(spec).split(",")]
-    parts = [p for p in parts if p]
-    if not parts:
-        raise OptionError(f"empty calibration argument {spec!r}")
-    return parts
-
-
-def load_calibration(spec, shape=None) -> Calibration:
-    """Read a calibration result, or merge a comma-joined group of them.
-
-    Parameters
-    ----------
-    spec : str, Path or sequence of them
-        A ``calibration.nc`` file or its directory, or several joined by commas.
-    shape : (int, int), optional
-        The bead frames' (rows, cols): every file must cover exactly that sensor region
-        (``row`` = 0 … rows − 1 and ``col`` = 0 … cols − 1).
-
-    Returns
-    -------
-    Calibration
-
-    Raises
-    ------
-    FileNotFoundError, ValueError
-        A missing or unreadable file, one of another sensor size or region, two members
-        giving the same set-point, or two members that both measured φ. The message names
-        the file.
-    """
-    parts = _members(spec)
-    label = ",".join(parts)
-    loaded = []
-    for part in parts:
-        p = Path(part)
-        ds = result.load(p)
-        f = p / result.CALIBRATION_FILE if p.is_dir() else p
-        rows, cols = ds["row"].values, ds["col"].values
-        if shape is not None:
-            R, C = shape
-            if not (np.array_equal(rows, np.arange(R)) and np.array_equal(cols, np.arange(C))):
-                raise OptionError(
-                    f"{f}: calibration covers rows {_span(rows)} and columns {_span(cols)}, "
-                    f"but the bead frames are {R}×{C} (rows 0–{R - 1}, columns 0–{C - 1}); "
-                    "a calibration of the same sensor region is needed"
-                )
-        loaded.append((f, ds))
-    shapes = {(ds.sizes["row"], ds.sizes["col"]) for _, ds in loaded}
-    if len(shapes) > 1:
-        raise OptionError(f"{label}: the files cover different sensor regions {sorted(shapes)}")
-    methods = [str(ds.attrs.get("method", "?")) for _, ds in loaded]
-
-    def masked(ds, da):
-        ok = ds["converged"].transpose("row", "col").values.astype(bool)
-        return np.where(ok, da.transpose(..., "row", "col").values.astype(float), np.nan)
-
-    phi_from = [i for i, m in enumerate(methods) if m in _PHI_METHODS]
-    if len(phi_from) > 1:
-        raise OptionError(
-            f"{label}: {loaded[phi_from[0]][0]} and {loaded[phi_from[1]][0]} both measured "
-            "e_per_adu; a group takes phi from one of them"
-        )
-    i_phi = phi_from[0] if phi_from else 0
-    phi = masked(loaded[i_phi][1], loaded[i_phi][1]["e_per_adu"])
-    gains: dict = {}
-    source: dict = {}
-    other_phi = []
-    for f, ds in loaded:
-        if "em_gain" not in ds:
-            continue
-        g = masked(ds, ds["em_gain"])
-        for j, s in enumerate(ds["setpoint"].values.astype(float)):
-            if s == 1.0:
-                continue
-            if s in gains:
-                raise OptionError(
-                    f"{label}: set-point {result.format_setpoint(s)}x is in both {source[s]} "
-                    f"and {f}; give each set-point once"
-                )
-            gains[s], source[s] = g[j], f
-        # g/φ is what a gain fit measures: note members fitted with another φ.
-        other = masked(ds, ds["e_per_adu"])
-        both = np.isfinite(other) & np.isfinite(phi)
-        if len(loaded) > 1 and both.any() and not np.allclose(other[both], phi[both], rtol=1e-6):
-            other_phi.append(f"{f.name} ({np.median(other[both]):.4g})")
-    if other_phi:
-        warnings.warn(
-            f"{label}: gains of {', '.join(other_phi)} were fitted with another e_per_adu "
-            f"(median, e-/ADU) than the group's phi from {loaded[i_phi][0].name} "
-            f"({np.nanmedian(phi):.4g}); the bead fits use the group's phi",
-            stacklevel=2,
-        )
-    method = "+".join(dict.fromkeys(methods))
-    models = {noise.EMModel.from_attrs(ds.attrs) for _, ds in loaded if "em_gain" in ds} - {None}
-    if len(models) > 1:
-        raise OptionError(f"{label}: its members were fitted with different EM register "
-                          f"models ({', '.join(sorted(map(str, models)))}); group results "
-                          "of one model")
-    return Calibration(label=label, files=tuple(f for f, _ in loaded), method=method,
-                       e_per_adu=phi, em_gain=gains,
-                       em_model=models.pop() if models else noise.EMModel())
-
-
-def _span(values):
-    values = np.asarray(values)
-    return f"{values.min()}–{values.max()}" if values.size else "(none)"
 
 
 # --------------------------------------------------------------------------------------
@@ -363,7 +189,7 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
         its offset and read-noise maps (or darks).
     calibrations : sequence of (str, Path or sequence)
         Calibration results; each item is a file (or directory) or a comma-joined group
-        merged by :func:`load_calibration`.
+        merged by :func:`emccdcal.result.load_calibration`.
     out : str or Path, optional
         Directory to write ``validation.json`` and ``intensities.nc`` into (the figures:
         :func:`emccdcal.report.figures.write_validation_figures`).
@@ -399,7 +225,8 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
         raise OptionError("give at least one calibration to validate")
     acqs = _acquisitions_by_setpoint(manifest)
     setpoints = list(acqs)
-    cals = [load_calibration(c, manifest.shape) for c in calibrations]
+    cals = [result.load_calibration(c, manifest.shape, of="the bead frames")
+            for c in calibrations]
     for cal in cals:
         for s in setpoints:
             cal.gain(s)  # raises for a missing set-point, before any fitting

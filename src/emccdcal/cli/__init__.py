@@ -33,6 +33,10 @@ VERBS = {
     "report": "write a self-contained HTML report of calibration results",
     "validate": "bead validation: fit beads under each calibration, compare set-points",
     "cots": "calibration-on-the-spot: EM gain and offset from bead frames",
+    "export": "write a calibration in a localization tool's own file",
+    "apply": "convert a movie to photoelectrons per pixel, (S - offset) * phi / g",
+    "gain-curve": "fit the gain against the set-point; predict set-points not measured",
+    "db": "the calibration database: add, list, show, compare (ageing)",
 }
 
 
@@ -55,7 +59,7 @@ def build_parser(verb: str | None = None) -> argparse.ArgumentParser:
     subparsers = parser.add_subparsers(dest="verb", metavar="VERB", parser_class=_Parser)
     for name, text in VERBS.items():
         if name == verb:
-            importlib.import_module(f"{__name__}.{name}").add_parser(subparsers)
+            importlib.import_module(f"{__name__}.{name.replace('-', '_')}").add_parser(subparsers)
         else:
             subparsers.add_parser(name, help=text, add_help=False)
     return parser

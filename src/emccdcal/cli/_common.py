@@ -18,7 +18,8 @@ from pathlib import Path
 
 __all__ = ["add_out", "add_out_or_dir", "output_of", "add_quiet", "add_no_figures",
            "add_e_per_adu", "positive_float", "positive_int", "number_list", "label_list",
-           "pixel", "recording_warnings", "print_warnings"]
+           "pixel", "recording_warnings", "print_warnings", "add_calibration_source",
+           "calibration_of"]
 
 
 def add_out(p: argparse.ArgumentParser, what: str = "output directory", required: bool = True):
@@ -138,3 +139,39 @@ def print_warnings(caught) -> None:
     """Print recorded warnings, each once, as ``warning: ...`` on stderr."""
     for message in dict.fromkeys(str(c.message) for c in caught):
         print(f"warning: {message}", file=sys.stderr)
+
+
+def add_calibration_source(p: argparse.ArgumentParser, *, many: bool = False) -> None:
+    """A calibration from result files (``RESULT``) or from the calibration database
+    (``--db``/``--camera``: its newest calibration with the set-point asked for)."""
+    p.add_argument("results", nargs="*" if many else "?", metavar="RESULT",
+                   help="calibration.nc or its directory; several joined by commas merge "
+                   "(is-adu with is-gain results)" + ("; several RESULTs merge alike" if many
+                                                      else ""))
+    g = p.add_argument_group("from the calibration database instead of RESULT")
+    g.add_argument("--camera", metavar="SERIAL",
+                   help="the camera's serial: use its newest calibration at the set-point")
+    g.add_argument("--readout", metavar="TEXT", help="its read-out state, where it has several")
+    g.add_argument("--db", type=Path, metavar="PATH",
+                   help="database file (default: $EMCCDCAL_DB, else calibrations.sqlite in "
+                   "the user's data directory)")
+
+
+def calibration_of(args, setpoint) -> str:
+    """The result spec named by :func:`add_calibration_source`'s options."""
+    from ..errors import OptionError
+
+    results = args.results if isinstance(args.results, list) else (
+        [] if args.results is None else [args.results])
+    if args.camera is None:
+        if not results:
+            raise OptionError("give a RESULT, or --camera SERIAL (with --setpoint) to use the "
+                              "calibration database")
+        return ",".join(str(r) for r in results)
+    if results:
+        raise OptionError("give a RESULT or --camera, not both")
+    if setpoint is None:
+        raise OptionError("--camera needs --setpoint G: the newest calibration at G is used")
+    from ..export import database
+
+    return database.find(args.camera, setpoint, db=args.db, readout=args.readout).path

@@ -52,6 +52,10 @@ __all__ = [
     "ACQUISITION_KEYS",
 ]
 
+#: The camera settings that identify a camera's read-out state (a calibration holds for
+#: that state only), recorded in results as ``attrs["camera"]``.
+CAMERA_IDENTITY = ("serial", "model", "readout_rate_mhz", "analog_gain", "adc_bits")
+
 #: Keys allowed at the top level of a manifest.
 TOP_LEVEL_KEYS = ("e_per_adu", "adc_bits", "origin", "em_model", "register_stages",
                   "acquisition")
@@ -190,6 +194,10 @@ class Manifest:
     #: The EM register's model (``em_model`` and ``register_stages``), or None: not
     #: given (the calibration's own default, the paper's gamma model).
     em_model: object = None
+    #: What every frames file records alike of the camera (``serial``, ``model``,
+    #: ``readout_rate_mhz``, ``analog_gain``, ``adc_bits``): the identity a calibration
+    #: database keys on. A field the files leave out or disagree on is absent.
+    camera: dict = field(default_factory=dict)
 
     @property
     def rows_cols(self) -> str:
@@ -535,8 +543,10 @@ def read_manifest(path) -> Manifest:
     for msg in found:
         warnings.warn(msg, ReadNoiseGrowthWarning, stacklevel=2)
     recorded_origins, recorded_binnings = set(), set()
+    cameras = []
     for i, a in enumerate(acquisitions, start=1):
         settings = stack_settings(a.frames_path)
+        cameras.append({k: getattr(settings, k) for k in CAMERA_IDENTITY})
         if settings.roi is not None:
             recorded_origins.add((settings.roi[1], settings.roi[0]))  # (row, col) = (y, x)
         if settings.binning is not None:
@@ -561,6 +571,8 @@ def read_manifest(path) -> Manifest:
         levels=tuple(levels),
         warnings=found,
         em_model=em_model,
+        camera={k: cameras[0][k] for k in CAMERA_IDENTITY
+                if cameras[0][k] is not None and all(c[k] == cameras[0][k] for c in cameras)},
     )
 
 

@@ -56,8 +56,10 @@ _SCAN_ELEMENTS = 2**23
 _READ_BYTES = 2**24
 
 
-def read_band(path, first_row: int, stop_row: int, skip_frames: int = 0) -> np.ndarray:
-    """Rows ``first_row:stop_row`` of every frame from ``skip_frames`` on, read into memory.
+def read_band(path, first_row: int, stop_row: int, skip_frames: int = 0,
+              stop_frame: int | None = None) -> np.ndarray:
+    """Rows ``first_row:stop_row`` of every frame from ``skip_frames`` on (up to
+    ``stop_frame``, exclusive, where given), read into memory.
 
     Only those bytes are read (one ``preadv`` per frame, or per 16 MB of whole frames),
     so reading a band of a large
@@ -67,15 +69,17 @@ def read_band(path, first_row: int, stop_row: int, skip_frames: int = 0) -> np.n
 
     Returns
     -------
-    ndarray, shape (frames - skip_frames, stop_row - first_row, cols)
+    ndarray, shape (stop_frame - skip_frames, stop_row - first_row, cols)
         The file's dtype (possibly non-native byte order), raw counts.
     """
     path = check_readable(Path(path))
     layout = _raw_layout(path)
     if layout is None:
-        return np.asarray(load_stack(path)[skip_frames:, first_row:stop_row])
+        return np.asarray(load_stack(path)[skip_frames:stop_frame, first_row:stop_row])
     shape, dtype, offset, stride = layout
     frames, rows, cols = shape
+    if stop_frame is not None:
+        frames = max(0, min(frames, stop_frame))
     first_row, stop_row = max(0, first_row), min(rows, stop_row)
     row_bytes = cols * dtype.itemsize
     frame_bytes = rows * row_bytes

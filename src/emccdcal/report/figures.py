@@ -651,6 +651,101 @@ def gain_figure(results, *, labels=None):
     return fig
 
 
+def results_gain_curve_figure(results):
+    """:func:`gain_curve_figure` of the gains of result datasets (the report's)."""
+    from ..export.gain_curve import fit_gain_curve, measured_gains
+
+    try:
+        curve = fit_gain_curve(measured_gains(results))
+    except OptionError as exc:
+        raise DataUnavailable(f"no gain curve: {exc}") from None
+    return gain_curve_figure(curve)
+
+
+def gain_curve_figure(curve, *, predict=()):
+    """The fitted gain curve (:mod:`emccdcal.export.gain_curve`) with its 95 % band.
+
+    Parameters
+    ----------
+    curve : GainCurve
+    predict : sequence of float
+        Set-points predicted (marked on the curve).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Left: gain against set-point (log–log), the measured points with their SEs, the
+        curve and its band. Right: the measured points' residuals from the curve, in %.
+    """
+    fig, (ax, ax2) = _panels(2, 2, size=(4.3, 3.2))
+    lo, hi = curve.setpoints.min(), curve.setpoints.max()
+    pred = [float(s) for s in predict]
+    grid = np.geomspace(min([lo / 1.5, *pred]), max([hi * 1.5, *pred]), 200)
+    p = curve.predict(grid)
+    ax.fill_between(grid, p["lower"], p["upper"], color="C0", alpha=0.25, lw=0,
+                    label="95 % band")
+    ax.plot(grid, p["gain"], color="C0", lw=1.2,
+            label=f"curve (degree {curve.degree} in ln set-point)")
+    ax.errorbar(curve.setpoints, curve.gains, yerr=curve.gain_se, fmt="o", ms=4, capsize=3,
+                color="k", label="measured (median over pixels)")
+    if pred:
+        q = curve.predict(pred)
+        ax.errorbar(q["setpoint"], q["gain"], yerr=1.96 * q["se"], fmt="s", ms=4, capsize=3,
+                    color="C3", label="predicted (95 %)")
+    at = curve.predict(curve.setpoints)
+    ax2.errorbar(curve.setpoints, 100 * (curve.gains / at["gain"] - 1),
+                 yerr=100 * curve.gain_se / at["gain"], fmt="o", ms=4, capsize=3, color="k")
+    ax2.fill_between(grid, 100 * (p["lower"] / p["gain"] - 1),
+                     100 * (p["upper"] / p["gain"] - 1), color="C0", alpha=0.25, lw=0)
+    ax2.axhline(0, color="C0", lw=1)
+    for a in (ax, ax2):
+        a.set_xscale("log")
+        a.set_xlabel(f"EM gain set-point {DIMLESS}")
+    ax.set_yscale("log")
+    ax.set_ylabel(f"EM gain g {DIMLESS}")
+    ax2.set_ylabel("measured / curve − 1 (%)")
+    ax.legend(fontsize=7, loc="upper left")
+    fig.suptitle(f"Gain curve (chi2 = {curve.chi2:.3g} on {curve.dof} dof)", fontsize=11)
+    return fig
+
+
+def gain_history_figure(found, *, camera=""):
+    """A camera's gain at each set-point against the calibration date (database entries).
+
+    Parameters
+    ----------
+    found : sequence of emccdcal.export.database.Entry
+        Oldest first.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        One panel per set-point: the sensor's gain (median over pixels) with its SE,
+        relative to the first calibration, in %.
+    """
+    import datetime as _dt
+
+    setpoints = sorted({s for e in found for s in e.gains})
+    if not setpoints:
+        raise DataUnavailable("no calibration in the database has a gain above 1x")
+    fig, axes = _panels(len(setpoints), 2, size=(4.0, 2.6))
+    for ax, s in zip(axes, setpoints):
+        have = [e for e in found if s in e.gains]
+        when = [_dt.datetime.fromisoformat(e.date.replace("Z", "+00:00")) for e in have]
+        g = np.array([e.gains[s][0] for e in have])
+        se = np.array([e.gains[s][1] or 0.0 for e in have])
+        ax.errorbar(when, 100 * (g / g[0] - 1), yerr=100 * se / g[0], fmt="o-", ms=4,
+                    capsize=3)
+        ax.axhline(0, color="k", lw=0.8, ls=":")
+        ax.set_title(f"{format_setpoint(s)}x (first: g = {g[0]:.4g})", fontsize=9)
+        ax.set_ylabel("gain change (%)")
+        for label in ax.get_xticklabels():
+            label.set_rotation(30)
+            label.set_fontsize(7)
+    fig.suptitle(f"EM gain over time, camera {camera}", fontsize=11)
+    return fig
+
+
 # --------------------------------------------------------------------------------------
 # (5) Beads (validation directories)
 # --------------------------------------------------------------------------------------

@@ -48,6 +48,7 @@ from .figures import (
     histogram_figure,
     maps_figure,
     photon_transfer_figure,
+    results_gain_curve_figure,
     save_figure,
 )
 
@@ -372,6 +373,15 @@ def _jobs(inputs, validations, pixel):
          ("Median over converged pixels with the median per-pixel SE as error bars; "
           "dotted: gain equal to the set-point."), lambda: gain_figure(datasets, labels=labels)),
     ]
+    multiplied = {float(s) for ds in datasets if "em_gain" in ds
+                  for s in ds["setpoint"].values if s != 1}
+    if len(multiplied) >= 2:  # a curve needs two set-points; without them, no figure
+        jobs.append((
+            "compare", "fig-gain-curve", "Gain curve",
+            ("The measured gains of all results (median over converged pixels, SE of that "
+             "median) fitted as a smooth monotone function of the set-point, with its 95 % "
+             "band (docs/exports.md; emccdcal gain-curve predicts set-points not measured)."),
+            lambda: results_gain_curve_figure(datasets)))
     for k, (d, _doc) in enumerate(validations):
         g = f"validation-{k + 1}"
         jobs += [

@@ -1,0 +1,92 @@
+"""``emccdcal db add|list|show|compare``: the calibration database (SQLite)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from . import _common
+
+
+def add_parser(subparsers):
+    p = subparsers.add_parser(
+        "db",
+        help="the calibration database: add, list, show, compare (ageing)",
+        description="Keep every calibration of a lab's cameras in one SQLite file, keyed by "
+        "camera serial and read-out state, and follow each set-point's gain over time.",
+    )
+    p.add_argument("--db", type=Path, metavar="PATH",
+                   help="database file (default: $EMCCDCAL_DB, else calibrations.sqlite in "
+                   "the user's data directory)")
+    _common.add_quiet(p)
+    sub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
+    a = sub.add_parser("add", help="add a calibration result")
+    a.add_argument("result", metavar="RESULT",
+                   help="calibration.nc or its directory (several joined by commas)")
+    a.add_argument("--camera", metavar="SERIAL", help="serial (default: what the files record)")
+    a.add_argument("--readout", metavar="TEXT",
+                   help="read-out state (default: the recorded rate, analog gain, ADC bits)")
+    a.add_argument("--date", metavar="ISO", help="when the data were taken (default: the "
+                   "result's creation time)")
+    a.add_argument("--note", default="", help="free text kept with the entry")
+    ls = sub.add_parser("list", help="list the entries")
+    ls.add_argument("--camera", metavar="SERIAL", help="only this camera's entries")
+    ls.add_argument("--json", action="store_true", help="print JSON")
+    sh = sub.add_parser("show", help="one entry in full (JSON)")
+    sh.add_argument("id", type=int)
+    c = sub.add_parser("compare", help="gain against date per set-point; flag ageing")
+    c.add_argument("--camera", metavar="SERIAL", required=True, help="the camera's serial")
+    c.add_argument("--readout", metavar="TEXT",
+                   help="its read-out state, where it has calibrations in several")
+    c.add_argument("--max-age", type=_common.positive_float, metavar="DAYS",
+                   help="flag a newest calibration older than DAYS")
+    c.add_argument("--z", type=_common.positive_float, default=3.0,
+                   help="flag a gain change beyond z combined SEs (default %(default)s)")
+    c.add_argument("-o", "--out", type=Path, metavar="DIR", help="write the figure here")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    from ..export import database
+
+    if args.action == "add":
+        e = database.add(args.result, db=args.db, camera=args.camera, readout=args.readout,
+                         date=args.date, note=args.note)
+        if not args.quiet:
+            print(f"added entry {e.id}: camera {e.camera} "
+                  f"({e.readout or 'read-out not recorded'}), {e.date[:10]}, {e.method}, "
+                  "set-points " + ", ".join(f"{s:g}x" for s in sorted(e.gains)))
+        return 0
+    if args.action == "list":
+        found = database.entries(db=args.db, camera=args.camera)
+        if args.json:
+            print(json.dumps([e.as_dict() for e in found], indent=2))
+            return 0
+        print(f"{'id':>4}  {'camera':<14} {'date':<10}  {'method':<14} readout / gains")
+        for e in found:
+            gains = ", ".join(f"{s:g}x {m:.4g}" for s, (m, _, _) in sorted(e.gains.items()))
+            print(f"{e.id:>4}  {e.camera:<14} {e.date[:10]:<10}  {e.method:<14} "
+                  f"{e.readout or '-'} / {gains}")
+        return 0
+    if args.action == "show":
+        e, summary = database.entry(args.id, db=args.db, with_summary=True)
+        print(json.dumps({**e.as_dict(), "summary": summary}, indent=2))
+        return 0
+    found, findings = database.compare(args.camera, db=args.db, readout=args.readout,
+                                       max_age_days=args.max_age, z=args.z)
+    lines = [f"{e.id:>4}  {e.date[:10]}  " + ", ".join(
+        f"{s:g}x {m:.4g} ± {se or 0:.2g}" for s, (m, se, _) in sorted(e.gains.items()))
+        for e in found]
+    if args.out is not None:
+        from ..report.figures import gain_history_figure, save_figure
+
+        lines += [f"wrote {f}" for f in save_figure(
+            gain_history_figure(found, camera=args.camera),
+            args.out / f"gain-history-{args.camera}")]
+    if not args.quiet:
+        print("\n".join(lines))
+    for f in findings:
+        print(f"warning: {f.message}", file=sys.stderr)
+    return 1 if findings else 0

@@ -1,0 +1,47 @@
+"""``emccdcal export RESULT --to TOOL -o OUT``: a calibration in a localization tool's file."""
+
+from __future__ import annotations
+
+from . import _common
+
+
+def add_parser(subparsers):
+    from ..export.tools import TOOLS
+
+    p = subparsers.add_parser(
+        "export",
+        help="write a calibration in a localization tool's own file",
+        description="Write the calibration in the file, names and units of a localization "
+        "tool (docs/exports.md): medians over converged pixels, maps where the tool reads "
+        "them, provenance in every file.",
+    )
+    _common.add_calibration_source(p, many=True)
+    p.add_argument("--to", required=True, choices=TOOLS, help="the tool or format")
+    _common.add_out(p)
+    p.add_argument("--setpoint", type=_common.positive_float, metavar="G",
+                   help="EM-gain set-point of the movies the tool will read (needed where "
+                   "the calibration has several)")
+    p.add_argument("--qe", type=_common.positive_float, metavar="QE",
+                   help="quantum efficiency, photoelectrons per photon (default: tools that "
+                   "need it get 1, so their photons are photoelectrons)")
+    p.add_argument("--pixel-size", type=_common.positive_float, metavar="NM",
+                   help="pixel size in the sample plane, nm (written where a tool takes it)")
+    p.add_argument("--camera-name", metavar="NAME",
+                   help="the camera's name in Picasso's configuration")
+    _common.add_quiet(p)
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    from ..export.tools import export
+
+    with _common.recording_warnings() as caught:
+        files = export(_common.calibration_of(args, args.setpoint), args.to, args.out,
+                       setpoint=args.setpoint, qe=args.qe, pixel_size_nm=args.pixel_size,
+                       camera_name=args.camera_name)
+    if not args.quiet:
+        for f in files:
+            print(f"wrote {f}")
+    _common.print_warnings(caught)
+    return 0

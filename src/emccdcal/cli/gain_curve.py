@@ -1,0 +1,67 @@
+"""``emccdcal gain-curve RESULT... -o DIR``: the gain as a smooth function of the set-point."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from . import _common
+
+
+def add_parser(subparsers):
+    p = subparsers.add_parser(
+        "gain-curve",
+        help="fit the gain against the set-point; predict set-points not measured",
+        description="Fit the measured EM gain (median over converged pixels) as a smooth "
+        "monotone function of the set-point, with a 95%% band, and predict gains at "
+        "set-points not measured. Writes gain-curve.csv, gain-curve.json and the figure.",
+    )
+    p.add_argument("results", nargs="+", type=Path, metavar="RESULT",
+                   help="calibration results (files or directories); their set-points pool")
+    _common.add_out(p)
+    p.add_argument("--predict", type=_common.number_list, default=[], metavar="G,G,...",
+                   help="set-points to predict (besides the measured ones)")
+    _common.add_no_figures(p)
+    _common.add_quiet(p)
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    import json
+
+    import numpy as np
+
+    from .._util import atomic_write
+    from ..export.gain_curve import fit_gain_curve, measured_gains
+    from ..result import format_setpoint
+
+    with _common.recording_warnings() as caught:
+        curve = fit_gain_curve(measured_gains(args.results))
+        table = curve.predict(sorted(set(curve.setpoints) | set(args.predict)))
+        lines = ["setpoint,gain,se,lower95,upper95,measured_gain,measured_se,extrapolated"]
+        for i, s in enumerate(table["setpoint"]):
+            at = np.flatnonzero(curve.setpoints == s)
+            meas = (f"{curve.gains[at[0]]:.6g},{curve.gain_se[at[0]]:.4g}" if at.size else ",")
+            lines.append(f"{format_setpoint(s)},{table['gain'][i]:.6g},{table['se'][i]:.4g},"
+                         f"{table['lower'][i]:.6g},{table['upper'][i]:.6g},{meas},"
+                         f"{str(bool(table['extrapolated'][i])).lower()}")
+        doc = {"model": f"ln g = sum_k b_k (ln setpoint)^k, k <= {curve.degree}",
+               "coefficients": curve.coef.tolist(), "covariance": curve.cov.tolist(),
+               "chi2": curve.chi2, "dof": curve.dof,
+               "results": [str(r) for r in args.results]}
+        out = Path(args.out)
+        written = [atomic_write(out / "gain-curve.csv",
+                                lambda p: Path(p).write_text("\n".join(lines) + "\n")),
+                   atomic_write(out / "gain-curve.json",
+                                lambda p: Path(p).write_text(json.dumps(doc, indent=2) + "\n"))]
+        if not args.no_figures:
+            from ..report.figures import gain_curve_figure, save_figure
+
+            written += save_figure(gain_curve_figure(curve, predict=args.predict),
+                                   out / "gain-curve")
+    if not args.quiet:
+        print("\n".join(lines))
+        for f in written:
+            print(f"wrote {f}")
+    _common.print_warnings(caught)
+    return 0

@@ -1,0 +1,347 @@
+"""The calibration database: every calibration of a lab's cameras in one SQLite file.
+
+Entries are keyed by the camera's serial number and its read-out state (read-out rate,
+analog gain, ADC bits: a calibration holds for one state only), taken from what the
+result's stacks recorded or given when adding. Each entry keeps the result's path, its
+SHA-256, its date, its method and register model, its summary (``summary.json``'s
+content) and, per set-point, the sensor's gain: the median over converged pixels with the
+standard error of that median (1.2533 × robust spread / √n).
+
+:func:`compare` follows a camera's gain at each set-point over time. It flags the newest
+calibration when it is older than a given age, and when its gain differs from the one
+before by more than ``z`` combined standard errors: the EM register ages (its gain at a
+fixed set-point drops over months of use), and a calibration that is not redone goes
+silently wrong.
+
+Several processes may add at once: each addition is one ``BEGIN IMMEDIATE`` transaction
+in write-ahead-log mode, and a writer waits (up to 60 s) for another's lock instead of
+failing. The default file is ``calibrations.sqlite`` in the user's data directory
+(``$EMCCDCAL_DB`` overrides it; ``--db PATH`` to share one).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+import sqlite3
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from .._util import file_sha256
+from ..errors import InputError, OptionError
+from ..result import format_setpoint, load, load_calibration, pixel_statistics, summarize
+
+__all__ = ["default_path", "add", "entries", "entry", "find", "compare", "Entry", "Finding"]
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS calibration (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    camera TEXT NOT NULL,
+    readout TEXT NOT NULL,
+    date TEXT NOT NULL,
+    added TEXT NOT NULL,
+    method TEXT NOT NULL,
+    em_model TEXT NOT NULL,
+    path TEXT NOT NULL,
+    sha256 TEXT NOT NULL UNIQUE,
+    note TEXT NOT NULL DEFAULT '',
+    summary TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS gain (
+    calibration_id INTEGER NOT NULL REFERENCES calibration(id) ON DELETE CASCADE,
+    setpoint REAL NOT NULL,
+    median REAL NOT NULL,
+    se REAL,
+    n INTEGER NOT NULL,
+    PRIMARY KEY (calibration_id, setpoint)
+);
+CREATE INDEX IF NOT EXISTS calibration_camera ON calibration(camera, readout, date);
+"""
+
+
+def default_path() -> Path:
+    """``$EMCCDCAL_DB``, else ``calibrations.sqlite`` in the user's data directory
+    (``$XDG_DATA_HOME/emccdcal``, ``~/.local/share/emccdcal``; ``~/Library/Application
+    Support/emccdcal`` on macOS; ``%LOCALAPPDATA%\\emccdcal`` on Windows)."""
+    if os.environ.get("EMCCDCAL_DB"):
+        return Path(os.environ["EMCCDCAL_DB"])
+    if sys.platform == "win32":
+        base = Path(os.environ.get("LOCALAPPDATA", Path.home() / "AppData" / "Local"))
+    elif sys.platform == "darwin":
+        base = Path.home() / "Library" / "Application Support"
+    else:
+        base = Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share")
+    return base / "emccdcal" / "calibrations.sqlite"
+
+
+def _connect(db) -> sqlite3.Connection:
+    path = Path(db) if db is not None else default_path()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        con = sqlite3.connect(path, timeout=60, isolation_level=None)
+        con.execute("PRAGMA journal_mode=WAL")
+        con.execute("PRAGMA foreign_keys=ON")
+        con.executescript(_SCHEMA)
+    except sqlite3.DatabaseError as exc:
+        raise InputError(f"{path}: not a usable calibration database ({exc})") from None
+    con.row_factory = sqlite3.Row
+    return con
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One calibration in the database (gains: set-point → (median, SE, n))."""
+
+    id: int
+    camera: str
+    readout: str
+    date: str
+    added: str
+    method: str
+    em_model: str
+    path: str
+    sha256: str
+    note: str
+    gains: dict
+
+    def as_dict(self) -> dict:
+        d = dict(self.__dict__)
+        d["gains"] = {format_setpoint(s): {"median": m, "se": se, "n": n}
+                      for s, (m, se, n) in sorted(self.gains.items())}
+        return d
+
+
+def _readout_text(camera: dict) -> str:
+    parts = []
+    if camera.get("readout_rate_mhz") is not None:
+        parts.append(f"{camera['readout_rate_mhz']:g} MHz")
+    if camera.get("analog_gain") is not None:
+        parts.append(f"analog gain {camera['analog_gain']}")
+    if camera.get("adc_bits") is not None:
+        parts.append(f"{camera['adc_bits']}-bit")
+    return ", ".join(parts)
+
+
+def _parse(text: str) -> _dt.datetime:
+    return _dt.datetime.fromisoformat(str(text).replace("Z", "+00:00"))
+
+
+def _iso_date(text) -> str:
+    try:
+        when = _parse(text)
+    except ValueError:
+        raise OptionError(f"date must be ISO 8601 (2026-11-25 or 2026-11-25T12:00:00Z), "
+                          f"got {text!r}") from None
+    if when.tzinfo is None:
+        when = when.replace(tzinfo=_dt.timezone.utc)
+    return when.astimezone(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def add(result, *, db=None, camera=None, readout=None, date=None, note="") -> Entry:
+    """Add a calibration result (or a comma-joined group) to the database.
+
+    Parameters
+    ----------
+    result : str or Path
+        A result for :func:`~emccdcal.result.load_calibration`.
+    db : str or Path, optional
+        The database file (default :func:`default_path`).
+    camera : str, optional
+        The camera's serial number; default: the one its stacks recorded.
+    readout : str, optional
+        Its read-out state (e.g. ``"10 MHz, analog gain 2, 16-bit"``); default: from the
+        recorded read-out rate, analog gain and ADC bits ("" where none is recorded).
+    date : str, optional
+        When the calibration data were taken (ISO 8601); default: the result's creation
+        time.
+    note : str
+        Free text kept with the entry.
+
+    Returns
+    -------
+    Entry
+
+    Raises
+    ------
+    OptionError
+        No serial recorded and none given, a bad date, or a result already in the
+        database (named by its entry).
+    """
+    cal = load_calibration(result)
+    serial = camera or cal.camera.get("serial")
+    if not serial:
+        raise OptionError(f"{cal.label}: its files record no camera serial number; give "
+                          "--camera SERIAL")
+    readout = _readout_text(cal.camera) if readout is None else str(readout)
+    when = _iso_date(date or cal.created or _dt.datetime.now(_dt.timezone.utc).isoformat())
+    digest = ",".join(cal.sha256)
+    gains = {}
+    for s in cal.setpoints:
+        if s == 1.0:
+            continue
+        stats = pixel_statistics(cal.gain(s))
+        if stats["median"] is not None:
+            gains[s] = (stats["median"], stats["se"], stats["n"])
+    summary = {str(f): summarize(load(f)) for f in cal.files}
+    added = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    path = ",".join(str(Path(f).resolve()) for f in cal.files)
+    con = _connect(db)
+    try:
+        con.execute("BEGIN IMMEDIATE")
+        old = con.execute("SELECT id FROM calibration WHERE sha256 = ?", (digest,)).fetchone()
+        if old is not None:
+            con.execute("ROLLBACK")
+            raise OptionError(f"{cal.label}: already in the database as entry {old['id']}")
+        cur = con.execute(
+            "INSERT INTO calibration (camera, readout, date, added, method, em_model, path, "
+            "sha256, note, summary) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            (str(serial), readout, when, added, cal.method, str(cal.em_model), path, digest,
+             note, json.dumps(summary, allow_nan=False)))
+        con.executemany("INSERT INTO gain VALUES (?, ?, ?, ?, ?)",
+                        [(cur.lastrowid, s, m, se, n) for s, (m, se, n) in gains.items()])
+        con.execute("COMMIT")
+        return entry(cur.lastrowid, db=db)
+    except BaseException:
+        if con.in_transaction:
+            con.execute("ROLLBACK")
+        raise
+    finally:
+        con.close()
+
+
+def _entries(con, where="", args=()) -> list[Entry]:
+    rows = con.execute(f"SELECT * FROM calibration {where} ORDER BY date, id", args).fetchall()
+    out = []
+    for r in rows:
+        gains = {g["setpoint"]: (g["median"], g["se"], g["n"]) for g in con.execute(
+            "SELECT * FROM gain WHERE calibration_id = ? ORDER BY setpoint", (r["id"],))}
+        out.append(Entry(**{k: r[k] for k in r.keys() if k != "summary"}, gains=gains))
+    return out
+
+
+def entries(*, db=None, camera=None, readout=None) -> list[Entry]:
+    """Entries, oldest first, of one camera (and read-out state) or of all."""
+    clauses, args = [], []
+    if camera is not None:
+        clauses.append("camera = ?")
+        args.append(str(camera))
+    if readout is not None:
+        clauses.append("readout = ?")
+        args.append(str(readout))
+    con = _connect(db)
+    try:
+        return _entries(con, ("WHERE " + " AND ".join(clauses)) if clauses else "", args)
+    finally:
+        con.close()
+
+
+def entry(entry_id: int, *, db=None, with_summary: bool = False):
+    """One entry by its id (with its stored summary as a second value if asked)."""
+    con = _connect(db)
+    try:
+        found = _entries(con, "WHERE id = ?", (int(entry_id),))
+        if not found:
+            raise OptionError(f"no entry {entry_id} in the calibration database "
+                              f"{db or default_path()}")
+        if with_summary:
+            summary = con.execute("SELECT summary FROM calibration WHERE id = ?",
+                                  (int(entry_id),)).fetchone()[0]
+            return found[0], json.loads(summary)
+        return found[0]
+    finally:
+        con.close()
+
+
+def find(camera, setpoint, *, db=None, readout=None) -> Entry:
+    """The newest entry of a camera that has a gain at ``setpoint``, its file checked.
+
+    Raises
+    ------
+    OptionError
+        No such entry, one of several read-out states without ``readout`` given, or a
+        result file that is missing or changed since it was added.
+    """
+    s = float(setpoint)
+    found = [e for e in entries(db=db, camera=camera, readout=readout)
+             if s == 1.0 or s in e.gains]
+    if not found:
+        raise OptionError(f"the calibration database has no calibration of camera {camera}"
+                          f"{'' if readout is None else f' ({readout})'} at set-point "
+                          f"{format_setpoint(s)}x")
+    states = {e.readout for e in found}
+    if len(states) > 1:
+        raise OptionError(f"camera {camera} has calibrations in several read-out states "
+                          f"({'; '.join(sorted(states))}); give --readout")
+    newest = found[-1]
+    files = newest.path.split(",")
+    digests = [file_sha256(f) if Path(f).is_file() else None for f in files]
+    if ",".join(str(d) for d in digests) != newest.sha256:
+        raise OptionError(f"entry {newest.id}: its result {newest.path} is missing or has "
+                          "changed since it was added to the database")
+    return newest
+
+
+@dataclass(frozen=True)
+class Finding:
+    """What :func:`compare` flags: ``kind`` is ``"age"`` or ``"change"``."""
+
+    kind: str
+    setpoint: float | None
+    message: str
+
+
+def compare(camera, *, db=None, readout=None, max_age_days=None, z=3.0, now=None):
+    """A camera's gains over time, and what is wrong with its newest calibration.
+
+    Parameters
+    ----------
+    camera : str
+        Its serial number.
+    max_age_days : float, optional
+        Flag the newest calibration when older than this.
+    z : float
+        Flag a gain that differs from the previous calibration's by more than ``z``
+        combined standard errors (√(SE₁² + SE₂²)) (default 3).
+    now : str, optional
+        The date to measure age from (ISO 8601; default: now).
+
+    Returns
+    -------
+    (list of Entry, list of Finding)
+        The camera's entries (oldest first) and the findings.
+    """
+    found = entries(db=db, camera=camera, readout=readout)
+    if not found:
+        raise OptionError(f"the calibration database has no calibration of camera {camera}")
+    states = {e.readout for e in found}
+    if len(states) > 1:
+        raise OptionError(f"camera {camera} has calibrations in several read-out states "
+                          f"({'; '.join(sorted(states))}); give --readout")
+    findings = []
+    newest = found[-1]
+    if max_age_days is not None:
+        when = _parse(_iso_date(now or _dt.datetime.now(_dt.timezone.utc).isoformat()))
+        age = (when - _parse(newest.date)).total_seconds() / 86400
+        if age > max_age_days:
+            findings.append(Finding("age", None, (
+                f"camera {camera}: the newest calibration (entry {newest.id}, {newest.date[:10]}) "
+                f"is {age:.0f} days old, more than {max_age_days:g}; recalibrate")))
+    for s, (g_new, se_new, _) in sorted(newest.gains.items()):
+        before = [e for e in found[:-1] if s in e.gains]
+        if not before:
+            continue
+        prev = before[-1]
+        g_old, se_old, _ = prev.gains[s]
+        se = math.hypot(se_new or 0.0, se_old or 0.0)
+        change = g_new / g_old - 1
+        if se > 0 and abs(g_new - g_old) > z * se:
+            findings.append(Finding("change", s, (
+                f"camera {camera} at {format_setpoint(s)}x: gain {g_new:.4g} (entry "
+                f"{newest.id}, {newest.date[:10]}) against {g_old:.4g} (entry {prev.id}, "
+                f"{prev.date[:10]}): {change:+.2%}, {abs(g_new - g_old) / se:.1f} standard "
+                "errors; the register may have aged: use the newest calibration")))
+    return found, findings
+

@@ -1,0 +1,443 @@
+"""``emccdcal export``: a calibration in each localization tool's own file, names and units.
+
+Every tool names the same few numbers differently, and three of the names mislead:
+ThunderSTORM's ``photons2ADU`` is φ in e⁻/ADU; gdsc-smlm's ``count_per_photon`` is the
+total gain QE·g/φ; storm-analysis's ``camera_gain`` is g/φ in ADU per e⁻. Here each is
+written once, from the formulas in the table of ``docs/exports.md``, which gives every
+tool's file, field, our quantity, unit and formula, with where in the tool's source each
+name is read.
+
+A tool that takes one number gets the median over the converged pixels; the files that
+allow it also record the pixels' robust spread (1.4826 × MAD) and how many pixels there
+were. Per-pixel maps go where a tool reads them (PYME's dark, variance and flat-field
+maps; the ``fits`` and ``tiff-maps`` targets). Every file records its provenance: the
+emccdcal version, the method, the result files and their SHA-256.
+
+Examples
+--------
+>>> from emccdcal.export.tools import TOOLS
+>>> TOOLS[:3]
+('picasso', 'pyme', 'decode')
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .._util import atomic_write
+from ..errors import OptionError
+from ..result import Calibration, format_setpoint, load_calibration, pixel_statistics
+
+__all__ = ["TOOLS", "export", "camera_values"]
+
+#: The ``--to`` targets, in the order of ``--help``.
+TOOLS = ("picasso", "pyme", "decode", "thunderstorm", "smap", "gdsc", "storm-analysis",
+         "json", "fits", "tiff-maps")
+#: Targets that take every set-point (the others take one: ``--setpoint``).
+ALL_SETPOINTS = ("json", "fits", "tiff-maps")
+
+
+# --------------------------------------------------------------------------------------
+# The numbers every tool is made of
+# --------------------------------------------------------------------------------------
+def pick_setpoint(cal: Calibration, setpoint=None) -> float:
+    """The set-point an export is for: the one given, or the only multiplied one.
+
+    Raises
+    ------
+    OptionError
+        None given and the calibration has several multiplied set-points, or the one
+        given is not in it.
+    """
+    if setpoint is not None:
+        cal.gain(setpoint)  # raises, naming what the calibration has
+        return float(setpoint)
+    multiplied = [s for s in cal.setpoints if s != 1.0]
+    if len(multiplied) > 1:
+        have = ", ".join(format_setpoint(s) + "x" for s in cal.setpoints)
+        raise OptionError(f"{cal.label}: has set-points {have}; a tool takes the gain of one: "
+                          "give --setpoint G (the set-point the movies were recorded at)")
+    return multiplied[0] if multiplied else 1.0
+
+
+def camera_values(cal: Calibration, setpoint: float) -> dict:
+    """Median over converged pixels (with spread and count) of what the tools take, at one
+    set-point.
+
+    Returns
+    -------
+    dict
+        ``e_per_adu`` (e⁻/ADU), ``em_gain`` (1), ``adu_per_e_total`` = g/φ (ADU per
+        photoelectron, EM gain included), ``offset`` and ``read_noise`` (ADU),
+        ``read_noise_e`` = σ·φ (e⁻): each ``{"median", "spread", "n"}``.
+    """
+    phi, gain = cal.e_per_adu, cal.gain(setpoint)
+    offset, sigma = cal.dark(setpoint)
+    values = {"e_per_adu": phi, "em_gain": gain, "adu_per_e_total": gain / phi,
+              "offset": offset, "read_noise": sigma, "read_noise_e": sigma * phi}
+    out = {k: pixel_statistics(v) for k, v in values.items()}
+    for name, stats in out.items():
+        if stats["median"] is None or not math.isfinite(stats["median"]):
+            raise OptionError(f"{cal.label}: no converged pixel has a finite {name} at "
+                              f"set-point {format_setpoint(setpoint)}x")
+    return out
+
+
+def _provenance(cal: Calibration, setpoint=None, qe=None) -> dict:
+    doc = cal.provenance()
+    if setpoint is not None:
+        doc["setpoint"] = setpoint
+    if qe is not None:
+        doc["quantum_efficiency_given"] = qe
+    return doc
+
+
+def _comment_lines(cal, setpoint, values, qe, prefix) -> str:
+    """Provenance and the pixels' spread, as comment lines of a text format."""
+    p = _provenance(cal, setpoint, qe)
+    lines = [f"written by emccdcal {p['emccdcal_version']} from {p['method']} "
+             f"({p['em_model']} register), calibration of {p['created']}",
+             f"at EM gain set-point {format_setpoint(setpoint)}x; medians over "
+             f"{values['e_per_adu']['n']} converged pixels (robust spread in brackets):"]
+    for name, unit in (("e_per_adu", "e-/ADU"), ("em_gain", ""), ("offset", "ADU"),
+                       ("read_noise", "ADU")):
+        v = values[name]
+        spread = "n/a" if v["spread"] is None else f"{v['spread']:.4g}"
+        lines.append(f"  {name} = {v['median']:.6g} {unit} ({spread})")
+    lines += [f"result {r['file']} sha256 {r['sha256']}" for r in p["results"]]
+    return "".join(f"{prefix}{line}\n" for line in lines)
+
+
+def _number(x) -> float:
+    return float(f"{float(x):.7g}")  # seven digits: far below any calibration's error
+
+
+# --------------------------------------------------------------------------------------
+# Small writers
+# --------------------------------------------------------------------------------------
+def _yaml(doc: dict, indent: int = 0) -> str:
+    """A nested dict of scalars (and lists of them) as block YAML; string keys and values
+    double-quoted, as JSON strings are valid YAML.
+
+    >>> print(_yaml({"Camera": {"baseline": 100.0, "px_size": [100, 100]}}), end="")
+    "Camera":
+      "baseline": 100.0
+      "px_size": [100, 100]
+    """
+    out = []
+    for key, value in doc.items():
+        k = json.dumps(key) if isinstance(key, str) else str(key)
+        if isinstance(value, dict):
+            out.append(f"{' ' * indent}{k}:\n{_yaml(value, indent + 2)}")
+        elif isinstance(value, list):
+            out.append(f"{' ' * indent}{k}: [{', '.join(map(_scalar, value))}]\n")
+        else:
+            out.append(f"{' ' * indent}{k}: {_scalar(value)}\n")
+    return "".join(out)
+
+
+def _scalar(value) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float, np.number)):
+        return repr(_number(value)) if isinstance(value, (float, np.floating)) else str(value)
+    return json.dumps(str(value))
+
+
+def _write_text(path: Path, text: str) -> Path:
+    return atomic_write(path, lambda p: Path(p).write_text(text, encoding="utf-8"))
+
+
+def _write_tiff(path: Path, image, description: dict) -> Path:
+    import tifffile
+
+    data = np.asarray(image, dtype=np.float32)
+    return atomic_write(path, lambda p: tifffile.imwrite(
+        p, data, description=json.dumps(description), metadata=None))
+
+
+def _camera_name(cal: Calibration, name) -> str:
+    if name:
+        return str(name)
+    parts = [cal.camera.get("model"), cal.camera.get("serial")]
+    return " ".join(str(p) for p in parts if p) or "EMCCD (emccdcal)"
+
+
+# --------------------------------------------------------------------------------------
+# One function per tool: (cal, setpoint, values, out, options) -> files written
+# --------------------------------------------------------------------------------------
+def _picasso(cal, s, v, out, qe, pixel_size_nm, name):
+    """Picasso's ``config.yaml`` ``Cameras`` entry: what its Localize window loads when
+    the camera is chosen (``Baseline``, ``Sensitivity`` e⁻/ADU, ``DefaultGain``)."""
+    camera = {"Baseline": v["offset"]["median"], "Sensitivity": v["e_per_adu"]["median"],
+              "DefaultGain": v["em_gain"]["median"]}
+    if pixel_size_nm is not None:
+        camera["Pixelsize"] = pixel_size_nm
+    if qe is not None:
+        camera["Quantum Efficiency"] = {0: qe}  # Picasso keys QE by emission wavelength (nm)
+    text = (_comment_lines(cal, s, v, qe, "# ")
+            + "# Merge the Cameras entry into ~/.picasso/config.yaml. For the API, give\n"
+            + "# camera_info = {Baseline, Sensitivity, Gain: DefaultGain} to localize().\n"
+            + _yaml({"Cameras": {_camera_name(cal, name): camera}}))
+    return [_write_text(out / "picasso-config.yaml", text)]
+
+
+def _pyme(cal, s, v, out, qe, pixel_size_nm, name):
+    """PYME metadata (flat dotted keys) with its dark, variance and flat-field maps."""
+    offset, sigma = cal.dark(s)
+    phi, gain = cal.e_per_adu, cal.gain(s)
+    total = v["adu_per_e_total"]["median"]
+    flat = (phi / gain) * total  # PYME multiplies (counts − dark) by it: ≈ 1, per pixel
+    prov = _provenance(cal, s, qe)
+    maps = {"dark": (offset, "ADU"), "variance": ((sigma * phi) ** 2, "e-^2"),
+            "flatfield": (flat, "1")}
+    files = {}
+    for key, (image, unit) in maps.items():
+        image = np.where(np.isfinite(image), image, np.nanmedian(image))  # PYME needs every pixel
+        files[key] = _write_tiff(out / f"pyme-{key}.tif", image,
+                                 {"quantity": f"PYME {key} map", "units": unit, **prov})
+    md = {"Camera.ADOffset": v["offset"]["median"],
+          "Camera.ElectronsPerCount": v["e_per_adu"]["median"],
+          "Camera.TrueEMGain": v["em_gain"]["median"],
+          "Camera.ReadNoise": v["read_noise_e"]["median"],
+          "Camera.NoiseFactor": 1.41 if v["em_gain"]["median"] > 1 else 1.0,
+          "Camera.DarkMapID": str(files["dark"].resolve()),
+          "Camera.VarianceMapID": str(files["variance"].resolve()),
+          "Camera.FlatfieldMapID": str(files["flatfield"].resolve())}
+    if qe is not None:
+        md["Camera.QuantumEfficiency"] = qe
+    if pixel_size_nm is not None:
+        md["voxelsize.x"] = md["voxelsize.y"] = pixel_size_nm / 1000.0  # µm
+    md = {k: (_number(x) if isinstance(x, float) else x) for k, x in md.items()}
+    md["emccdcal.Provenance"] = json.dumps(prov)
+    text = json.dumps(md, indent=2, sort_keys=True) + "\n"
+    return [_write_text(out / "pyme.json", text), *files.values()]
+
+
+def _decode(cal, s, v, out, qe, pixel_size_nm, name):
+    """DECODE ``param.yaml``'s ``Camera`` block (release 0.10 layout)."""
+    camera = {"baseline": v["offset"]["median"], "convert2photons": True,
+              "e_per_adu": v["e_per_adu"]["median"], "em_gain": v["em_gain"]["median"],
+              "qe": 1.0 if qe is None else qe, "read_sigma": v["read_noise_e"]["median"],
+              "spur_noise": 0.0}
+    if pixel_size_nm is not None:
+        camera["px_size"] = [pixel_size_nm, pixel_size_nm]  # nm, x and y
+    text = _comment_lines(cal, s, v, qe, "# ") + _yaml({"Camera": camera})
+    return [_write_text(out / "decode-camera.yaml", text)]
+
+
+def _thunderstorm(cal, s, v, out, qe, pixel_size_nm, name):
+    """An ImageJ macro line of ThunderSTORM's ``Camera setup`` (``photons2adu`` is φ in
+    e⁻/ADU, despite its name)."""
+    g = v["em_gain"]["median"]
+    options = [f"offset={_number(v['offset']['median'])!r}",
+               f"quantumefficiency={_number(1.0 if qe is None else qe)!r}",
+               f"isemgain={'true' if g > 1 else 'false'}",
+               f"photons2adu={_number(v['e_per_adu']['median'])!r}",
+               f"gainem={_number(g)!r}"]
+    if pixel_size_nm is not None:
+        options.append(f"pixelsize={_number(pixel_size_nm)!r}")
+    text = (_comment_lines(cal, s, v, qe, "// ")
+            + f'run("Camera setup", "{" ".join(options)}");\n')
+    return [_write_text(out / "thunderstorm-camera.ijm", text)]
+
+
+def _smap(cal, s, v, out, qe, pixel_size_nm, name):
+    """SMAP's camera settings (``loc_cameraSettings``: ``EMon``, ``emgain``, ``conversion``
+    e⁻/ADU, ``offset`` ADU) and its camera correction file (``offsetmap`` ADU, ``gainmap``
+    photons per ADU = φ/g, ``varmap`` ADU², indexed [row, col])."""
+    from scipy.io import savemat
+
+    offset, sigma = cal.dark(s)
+    prov = _provenance(cal, s, qe)
+    mat = out / "smap-correction.mat"
+    maps = {"offsetmap": offset, "gainmap": cal.e_per_adu / cal.gain(s), "varmap": sigma ** 2}
+    content = {k: np.asarray(m, dtype=np.float32) for k, m in maps.items()}
+    atomic_write(mat, lambda p: savemat(p, {**content, "emccdcal": json.dumps(prov)}))
+    par = {"EMon": bool(v["em_gain"]["median"] > 1), "emgain": _number(v["em_gain"]["median"]),
+           "conversion": _number(v["e_per_adu"]["median"]),
+           "offset": _number(v["offset"]["median"]),
+           "correctionfile": mat.stem,
+           "comment": f"emccdcal {prov['emccdcal_version']} {prov['method']} "
+                      + " ".join(r["sha256"][:12] for r in prov["results"])}
+    if pixel_size_nm is not None:
+        par["cam_pixelsize_um"] = _number(pixel_size_nm / 1000.0)
+    doc = {"loc_cameraSettings": par, "emccdcal": prov}
+    return [_write_text(out / "smap-camera.json", json.dumps(doc, indent=2) + "\n"), mat]
+
+
+def _gdsc(cal, s, v, out, qe, pixel_size_nm, name):
+    """gdsc-smlm's ``Calibration`` message as protobuf JSON (``count_per_photon`` is the
+    total gain QE·g/φ in counts per photon; ``read_noise`` and ``bias`` in counts)."""
+    q = 1.0 if qe is None else qe
+    prov = _provenance(cal, s, qe)
+    sha = ",".join(r["sha256"][:12] for r in prov["results"])
+    message = {
+        "intensityCalibration": {"intensityUnit": "COUNT",
+                                 "countPerPhoton": _number(q * v["adu_per_e_total"]["median"])},
+        "cameraCalibration": {"cameraType": "EMCCD",
+                              "readNoise": _number(v["read_noise"]["median"]),
+                              "bias": _number(v["offset"]["median"]),
+                              "quantumEfficiency": _number(q),
+                              # the one free-text field: the provenance (EMCCDs use no model)
+                              "cameraModelName": f"emccdcal {prov['emccdcal_version']} "
+                                                 f"{prov['method']} sha256 {sha}"},
+    }
+    if pixel_size_nm is not None:
+        message["distanceCalibration"] = {"distanceUnit": "PIXEL",
+                                          "nmPerPixel": _number(pixel_size_nm)}
+    return [_write_text(out / "gdsc-calibration.json", json.dumps(message, indent=2) + "\n")]
+
+
+def _storm_analysis(cal, s, v, out, qe, pixel_size_nm, name):
+    """storm-analysis parameters (``camera_gain`` is g/φ in ADU per photoelectron, EM gain
+    included; ``camera_offset`` ADU)."""
+    comment = _comment_lines(cal, s, v, qe, "  ").replace("--", "- -")
+    text = ('<?xml version="1.0" encoding="utf-8"?>\n<!--\n' + comment + "-->\n<settings>\n"
+            f'  <camera_gain type="float">{_number(v["adu_per_e_total"]["median"])!r}'
+            "</camera_gain>\n"
+            f'  <camera_offset type="float">{_number(v["offset"]["median"])!r}'
+            "</camera_offset>\n")
+    if pixel_size_nm is not None:
+        text += f'  <pixel_size type="float">{_number(pixel_size_nm)!r}</pixel_size>\n'
+    text += "</settings>\n"
+    return [_write_text(out / "storm-analysis.xml", text)]
+
+
+def _all_values(cal):
+    """:func:`camera_values` at every set-point with an offset; φ and g alone elsewhere."""
+    doc = {}
+    for s in cal.setpoints:
+        if s in cal.offset:
+            doc[format_setpoint(s)] = camera_values(cal, s)
+        else:
+            doc[format_setpoint(s)] = {"e_per_adu": pixel_statistics(cal.e_per_adu),
+                                       "em_gain": pixel_statistics(cal.gain(s))}
+    return doc
+
+
+def _json(cal, s, v, out, qe, pixel_size_nm, name):
+    """Everything, every set-point, in our own names and units."""
+    doc = {"emccdcal": _provenance(cal, None, qe), "camera": cal.camera,
+           "units": {"e_per_adu": "e-/ADU", "em_gain": "1", "adu_per_e_total": "ADU/e-",
+                     "offset": "ADU", "read_noise": "ADU", "read_noise_e": "e-"},
+           "statistics": "median over converged pixels, robust spread 1.4826*MAD, n pixels",
+           "by_setpoint": _all_values(cal)}
+    if pixel_size_nm is not None:
+        doc["pixel_size_nm"] = pixel_size_nm
+    return [_write_text(out / "emccdcal-camera.json", json.dumps(doc, indent=2) + "\n")]
+
+
+def _maps(cal):
+    """Every per-pixel map: (name, image, unit)."""
+    yield "e_per_adu", cal.e_per_adu, "e-/ADU"
+    if cal.e_per_adu_se is not None:
+        yield "e_per_adu_se", cal.e_per_adu_se, "e-/ADU"
+    for s in cal.setpoints:
+        tag = format_setpoint(s) + "x"
+        if s in cal.em_gain:
+            yield f"em_gain_{tag}", cal.gain(s), "1"
+            yield f"em_gain_se_{tag}", cal.gain_se(s), "1"
+        if s in cal.offset:
+            yield f"offset_{tag}", cal.offset[s], "ADU"
+            yield f"read_noise_{tag}", cal.read_noise[s], "ADU"
+
+
+def _fits(cal, s, v, out, qe, pixel_size_nm, name):
+    """One FITS file, an image extension per map (``EXTNAME``, ``BUNIT``)."""
+    try:
+        from astropy.io import fits
+    except ImportError:
+        raise OptionError("--to fits needs astropy: pip install 'emccdcal[fits]'") from None
+    prov = _provenance(cal, None, qe)
+    primary = fits.PrimaryHDU()
+    primary.header["CREATOR"] = f"emccdcal {prov['emccdcal_version']}"
+    primary.header["METHOD"] = prov["method"]
+    primary.header["EMMODEL"] = prov["em_model"]
+    primary.header["CALDATE"] = prov["created"]
+    for i, r in enumerate(prov["results"]):
+        primary.header[f"RESULT{i}"] = Path(r["file"]).name
+        primary.header[f"SHA256{i}"] = r["sha256"][:64]
+    if cal.origin is not None:
+        primary.header["ORIGROW"], primary.header["ORIGCOL"] = cal.origin
+    hdus = [primary]
+    for key, image, unit in _maps(cal):
+        hdu = fits.ImageHDU(np.asarray(image, dtype=np.float32), name=key.upper()[:68])
+        hdu.header["BUNIT"] = unit
+        hdus.append(hdu)
+    path = out / "emccdcal-maps.fits"
+    return [atomic_write(path, lambda p: fits.HDUList(hdus).writeto(p))]
+
+
+def _tiff_maps(cal, s, v, out, qe, pixel_size_nm, name):
+    """One float32 TIFF per map, its units and provenance in the description (JSON)."""
+    prov = _provenance(cal, None, qe)
+    return [_write_tiff(out / f"{key}.tif", image, {"quantity": key, "units": unit, **prov})
+            for key, image, unit in _maps(cal)]
+
+
+_WRITERS = {"picasso": _picasso, "pyme": _pyme, "decode": _decode,
+            "thunderstorm": _thunderstorm, "smap": _smap, "gdsc": _gdsc,
+            "storm-analysis": _storm_analysis, "json": _json, "fits": _fits,
+            "tiff-maps": _tiff_maps}
+assert tuple(_WRITERS) == TOOLS
+
+
+def export(calibration, to: str, out, *, setpoint=None, qe=None, pixel_size_nm=None,
+           camera_name=None) -> list[Path]:
+    """Write a calibration in a localization tool's own file.
+
+    Parameters
+    ----------
+    calibration : Calibration, str or Path
+        A :class:`~emccdcal.result.Calibration`, or a result (file or directory, or
+        several joined by commas) to read with :func:`~emccdcal.result.load_calibration`.
+    to : str
+        One of :data:`TOOLS`.
+    out : str or Path
+        Output directory (created if missing); files are written atomically.
+    setpoint : float, optional
+        The EM-gain set-point of the movies the tool will read (dimensionless); needed
+        where the calibration has several multiplied set-points (not for ``json``,
+        ``fits``, ``tiff-maps``, which take them all).
+    qe : float, optional
+        Quantum efficiency (photoelectrons per photon, 0–1) for tools that take it. Not
+        given: tools that need it get 1, so their "photons" are photoelectrons.
+    pixel_size_nm : float, optional
+        Camera pixel size in the sample plane, nm; written where a tool takes it.
+    camera_name : str, optional
+        The camera's name in Picasso's configuration (default: model and serial as the
+        files recorded them).
+
+    Returns
+    -------
+    list of Path
+        The files written.
+
+    Raises
+    ------
+    OptionError
+        An unknown tool, a set-point missing from the calibration (or needed and not
+        given), a QE outside (0, 1], or no offset recorded at that set-point.
+    """
+    if to not in _WRITERS:
+        raise OptionError(f"unknown export target {to!r}; one of {', '.join(TOOLS)}")
+    if qe is not None and not (0 < qe <= 1):
+        raise OptionError(f"--qe is photoelectrons per photon, in (0, 1]; got {qe}")
+    if pixel_size_nm is not None and not (pixel_size_nm > 0 and math.isfinite(pixel_size_nm)):
+        raise OptionError(f"--pixel-size is in nm and positive; got {pixel_size_nm}")
+    cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    if to in ALL_SETPOINTS:
+        s, values = None, None
+    else:
+        s = pick_setpoint(cal, setpoint)
+        values = camera_values(cal, s)
+    return _WRITERS[to](cal, s, values, out, qe, pixel_size_nm, camera_name)
