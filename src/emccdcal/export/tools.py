@@ -174,14 +174,23 @@ def _camera_name(cal: Calibration, name) -> str:
 # --------------------------------------------------------------------------------------
 def _picasso(cal, s, v, out, qe, pixel_size_nm, name):
     """Picasso's ``config.yaml`` ``Cameras`` entry: what its Localize window loads when
-    the camera is chosen (``Baseline``, ``Sensitivity`` e⁻/ADU, ``DefaultGain``)."""
-    camera = {"Baseline": v["offset"]["median"], "Sensitivity": v["e_per_adu"]["median"],
-              "DefaultGain": v["em_gain"]["median"]}
+    the camera is chosen (``Baseline`` ADU, ``Sensitivity`` e⁻/ADU, ``DefaultGain``).
+
+    Picasso's window takes the gain as an integer (a ``QSpinBox``), the baseline to 0.1 ADU
+    and the sensitivity to 4 decimals. Its photons are (ADU − Baseline)·Sensitivity/Gain,
+    so the gain is written rounded and the sensitivity scaled by round(g)/g: their ratio
+    stays φ/g (to the 4 decimals), and the file holds exactly what the window shows."""
+    g, phi = v["em_gain"]["median"], v["e_per_adu"]["median"]
+    gain = max(1, round(g))
+    camera = {"Baseline": round(v["offset"]["median"], 1),
+              "Sensitivity": round(phi * gain / g, 4), "DefaultGain": gain}
     if pixel_size_nm is not None:
         camera["Pixelsize"] = pixel_size_nm
     if qe is not None:
         camera["Quantum Efficiency"] = {0: qe}  # Picasso keys QE by emission wavelength (nm)
     text = (_comment_lines(cal, s, v, qe, "# ")
+            + f"# Picasso's gain box takes integers: DefaultGain = {gain} for g = {g:.6g}, and\n"
+            + f"# Sensitivity = e_per_adu * {gain} / g, so that Sensitivity / Gain = phi / g.\n"
             + "# Merge the Cameras entry into ~/.picasso/config.yaml. For the API, give\n"
             + "# camera_info = {Baseline, Sensitivity, Gain: DefaultGain} to localize().\n"
             + _yaml({"Cameras": {_camera_name(cal, name): camera}}))
