@@ -731,7 +731,7 @@ def pixel_statistics(values) -> dict:
     Examples
     --------
     >>> pixel_statistics(np.array([[1.0, 2.0], [3.0, np.nan]]))
-    {'median': 2.0, 'spread': 1.4826, 'se': 1.0730..., 'n': 3}
+    {'median': 2.0, 'spread': 1.4826, 'se': 1.0728..., 'n': 3}
     """
     values = np.asarray(values, dtype=float).ravel()
     finite = values[np.isfinite(values)]
@@ -764,7 +764,9 @@ class Calibration:
     em_gain, em_gain_se : dict of float to ndarray (R, C)
         Gain per set-point (dimensionless) and its SE; set-point 1 excluded (it is 1).
     offset, read_noise : dict of float to ndarray (R, C)
-        Offset S0 and read-noise σ (ADU) per set-point where the results record them.
+        Offset S0 and read-noise σ (ADU) per set-point where the results record them:
+        from the first member that has the set-point (the median over an intensity
+        series' levels).
     em_model : noise.EMModel
         The EM register model the gains were fitted with (the gamma model for results
         that record none).
