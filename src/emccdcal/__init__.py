@@ -9,7 +9,8 @@ Subpackages, data flowing one way (``docs/architecture.md``)::
 
     model (noise, cascade, psf) <- data (manifest, stacks, dark, stats, quality)
     -> fit (engine, layouts, mv, gof, posterior) -> calibration -> result
-    -> beads (fit, cots, validation) -> report (figures, html, corner); simulate; cli
+    -> beads (fit, cots, validation) -> report (figures, html, corner);
+    result -> export (tools, movie, gain_curve, database); simulate; cli
 
 The public API is below; every name is imported on first use, so ``import emccdcal``
 is fast.
@@ -44,6 +45,10 @@ _API = {
     "cots": ("emccdcal.beads.cots_calibration", "cots_calibrate"),
     "sample_posterior": ("emccdcal.fit.posterior", "sample_posterior"),
     "write_report": ("emccdcal.report.html", "write_report"),
+    "load_calibration": ("emccdcal.result", "load_calibration"),
+    "export_calibration": ("emccdcal.export.tools", "export"),
+    "apply_calibration": ("emccdcal.export.movie", "apply"),
+    "fit_gain_curve": ("emccdcal.export.gain_curve", "fit_gain_curve"),
     "noise": ("emccdcal.model.noise", None),
     "EmccdcalError": ("emccdcal.errors", "EmccdcalError"),
 }
