@@ -1,4 +1,4 @@
-"""Benchmark: manifest → written result for paper-size series (issue: calibration engine).
+"""Benchmark: manifest → written result for paper-size series (the calibration engine).
 
 Simulates (once, into a temporary directory) a 32 × 32 px gain series — set-points
 1/5/25/100/300, 5000 frames each — and a six-level 1× intensity series, then times

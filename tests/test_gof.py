@@ -141,7 +141,7 @@ def test_untestable_pixels_are_nan():
 
 
 # --------------------------------------------------------------------------------------
-# The issue's demonstration: exact cascade data fitted by the gamma model
+# The demonstration: exact cascade data fitted by the gamma model
 # --------------------------------------------------------------------------------------
 E_TRUE = 370.0  # the authors' sample pixel (docs/simulation.md)
 FRAMES = 20000

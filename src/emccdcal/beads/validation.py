@@ -18,6 +18,12 @@ the set-points' means; the paper does not say which it used) and ``validation.js
 reports ddof = 1 beside it. A calibration's value is the mean over its beads. Because the
 1× intensities depend only on φ, the metric tests each gain against the 1× anchor.
 
+Each calibration's beads are fitted twice: at every set-point with each bead's shape and
+background shared by its frames, then again with each bead's width pooled over the
+set-points (:func:`emccdcal.beads.fit.shared_widths`), so that a width error cannot
+differ between set-points; the second pass gives the intensities. ``converged_fraction``
+says per set-point how many frames converged, and below 99 % a warning says so.
+
 ``emccdcal validate BEAD_MANIFEST --calibration A.nc [--calibration B.nc ...] -o OUT``
 fits the beads under every calibration and writes ``OUT/validation.json``,
 ``OUT/intensities.nc`` and the figures; ``docs/beads.md`` describes them.
@@ -56,6 +62,7 @@ __all__ = [
     "INTENSITIES_FILE",
     "DDOF",
     "consistency",
+    "intensity_trend",
     "validate",
 ]
 
@@ -63,6 +70,12 @@ VALIDATION_FILE = "validation.json"
 INTENSITIES_FILE = "intensities.nc"
 #: ddof of the headline consistency metric (ddof = 1 is reported beside it).
 DDOF = 0
+#: Below this fraction of converged frames at a set-point, validate warns.
+MIN_CONVERGED = 0.99
+#: An intensity trend (bleaching) is detected beyond this many of its standard errors.
+TREND_Z = 4.0
+#: What validate does with a detected trend.
+TREND_ACTIONS = ("correct", "warn")
 
 
 # --------------------------------------------------------------------------------------
@@ -129,6 +142,65 @@ def _acquisitions_by_setpoint(manifest):
     return dict(sorted(by.items()))
 
 
+def _frame_times(manifest, acqs, setpoints, F):
+    """Each frame's place in the recorded series (frames since the first), shape (S, F):
+    the acquisitions in the manifest's order, as they were recorded."""
+    start, t0 = {}, 0
+    for a in manifest.acquisitions:
+        start[float(a.em_gain_setpoint)] = t0
+        t0 += a.n_frames
+    return np.array([start[s] for s in setpoints], float)[:, None] + np.arange(F)[None, :]
+
+
+def intensity_trend(N, se, times, *, z_detect=TREND_Z) -> dict:
+    """The beads' common intensity trend within acquisitions: bleaching (or a drifting
+    illumination), which would otherwise look like a gain error between set-points.
+
+    Every bead's intensity at a set-point is compared with its own mean there, so the
+    levels of the set-points (what the gains set) do not enter; the rate is the weighted
+    least-squares slope, common to all beads, of ``N_f / m − 1`` against the frame's time
+    in the series, ``N_f ≈ m (1 − k (t − t̄))``.
+
+    Parameters
+    ----------
+    N, se : ndarray, shape (B, S, F)
+        Per-frame intensities and their SEs (e⁻), NaN where a frame is not used.
+    times : ndarray, shape (S, F)
+        Each frame's place in the series (frames).
+
+    Returns
+    -------
+    dict
+        ``rate_per_frame`` k (1/frame, > 0 for a fade) and its ``rate_se`` (scaled by the
+        scatter where it exceeds the errors), ``z``, ``fade_over_series`` (1 − e^(−k T)
+        over the T frames recorded) and ``detected`` (|z| > ``z_detect``).
+    """
+    ok = np.isfinite(N) & np.isfinite(se) & (se > 0)
+    with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        m = np.nanmean(np.where(ok, N, np.nan), axis=2, keepdims=True)
+        t = np.broadcast_to(times, N.shape)
+        w = np.where(ok & (m > 0), (m / np.where(ok, se, 1.0)) ** 2, 0.0)
+        y = np.where(w > 0, N / m - 1, 0.0)
+        sw = w.sum(axis=2, keepdims=True)
+        use = sw > 0
+        tbar = np.where(use, (w * t).sum(axis=2, keepdims=True) / np.where(use, sw, 1), 0)
+        ybar = np.where(use, (w * y).sum(axis=2, keepdims=True) / np.where(use, sw, 1), 0)
+        x, yc = t - tbar, y - ybar
+        sxx = float((w * x * x).sum())
+    if sxx <= 0:
+        return {"rate_per_frame": None, "rate_se": None, "z": None, "fade_over_series": None,
+                "detected": False}
+    k = -float((w * x * yc).sum()) / sxx
+    chi2 = float((w * (yc + k * x) ** 2).sum())
+    dof = int((w > 0).sum()) - int(use.sum()) - 1
+    rate_se = math.sqrt(max(1.0, chi2 / dof) / sxx) if dof > 0 else math.sqrt(1 / sxx)
+    span = float(np.nanmax(times) - np.nanmin(times))
+    z = k / rate_se
+    return {"rate_per_frame": k, "rate_se": rate_se, "z": z,
+            "fade_over_series": -math.expm1(-k * span), "detected": bool(abs(z) > z_detect)}
+
+
 def _detect(manifest, acqs, setpoint, width, half_size, min_separation, snr):
     s = max(acqs) if setpoint is None else float(setpoint)
     if s not in acqs:
@@ -179,7 +251,7 @@ def _box_ok(phi, gain, positions, half_size):
 
 def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WIDTH,
              half_size=bead_fit.DEFAULT_HALF_SIZE, min_separation=None, snr=8.0,
-             detect_setpoint=None, progress=False) -> dict:
+             detect_setpoint=None, progress=False, bleaching="correct") -> dict:
     """Fit the beads under each calibration and compare their intensities across set-points.
 
     Parameters
@@ -205,6 +277,12 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
         Set-point whose mean image the beads are found on (default the highest).
     progress : bool
         A progress bar on stderr.
+    bleaching : {"correct", "warn"}
+        What to do where the beads' intensity trends within the acquisitions
+        (:func:`intensity_trend`: bleaching, or a drifting illumination): undo it (each
+        frame's intensity times e^(k t), t its place in the series, the acquisitions in
+        the manifest's order) before the means are compared, or only warn. Either way
+        ``validation.json`` reports it (``intensity_trend``).
 
     Returns
     -------
@@ -219,6 +297,9 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
         and crowding checks). All checked before any fitting.
     """
     t0 = time.perf_counter()
+    if bleaching not in TREND_ACTIONS:
+        raise OptionError(f"bleaching must be one of {', '.join(TREND_ACTIONS)}; got "
+                          f"{bleaching!r}")
     manifest = bead_manifest if isinstance(bead_manifest, Manifest) \
         else read_manifest(bead_manifest)
     if not calibrations:
@@ -242,32 +323,48 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
     loglik = np.full(shape, np.nan)
     conv = np.zeros(shape, bool)
     cache: dict = {}
+
+    def fit_at(cal, s, ok, fixed=None):
+        """The beads ``ok`` at set-point ``s`` under ``cal`` (cached: calibrations that
+        agree there share the fit)."""
+        acq, g = acqs[s], cal.gain(s)
+        key = (s, positions[ok].tobytes(), _boxes_bytes(cal.e_per_adu, positions[ok],
+                                                       half_size),
+               _boxes_bytes(g, positions[ok], half_size), cal.em_model,
+               None if fixed is None else fixed.tobytes())
+        if key not in cache:
+            cache[key] = bead_fit.fit_beads(
+                acq.frames(), positions[ok], offset=acq.offset, read_noise=acq.read_noise,
+                e_per_adu=cal.e_per_adu, em_gain=g, half_size=half_size, width=width,
+                adc_max=manifest.adc_max, em_model=cal.em_model, fixed_width=fixed)
+        return cache[key]
+
     with progress_bar(enabled=progress, desc="fitting beads", unit="stack",
-                      total=len(cals) * S) as bar:
+                      total=2 * len(cals) * S) as bar:
         for ci, cal in enumerate(cals):
-            for si, s in enumerate(setpoints):
-                acq = acqs[s]
-                g = cal.gain(s)
-                ok = _box_ok(cal.e_per_adu, g, positions, half_size)
-                if not ok.all():
+            ok = np.ones(B, bool)
+            for s in setpoints:
+                bad = ~_box_ok(cal.e_per_adu, cal.gain(s), positions, half_size)
+                if bad.any():
                     warnings.warn(
                         f"{cal.label}: no usable e_per_adu (> 0) or gain (>= 1) at "
-                        f"{result.format_setpoint(s)}x in the box of {int((~ok).sum())} bead(s) "
-                        f"at (row, col) {_pairs(positions[~ok])}; left out for this calibration",
+                        f"{result.format_setpoint(s)}x in the box of {int(bad.sum())} bead(s) "
+                        f"at (row, col) {_pairs(positions[bad])}; left out for this calibration",
                         stacklevel=2,
                     )
+                ok &= ~bad
+            # Pass 1: each set-point with the width free (shared by its frames); the
+            # widths pooled over set-points are every bead's one width for pass 2.
+            first = []
+            for s in setpoints:
+                bar.set_postfix_str(f"{cal.method} {result.format_setpoint(s)}x (width)")
+                first.append(fit_at(cal, s, ok))
+                bar.update(1)
+            widths = bead_fit.shared_widths(first)
+            for si, s in enumerate(setpoints):
                 bar.set_postfix_str(f"{cal.method} {result.format_setpoint(s)}x")
-                key = (s, positions[ok].tobytes(), _boxes_bytes(cal.e_per_adu, positions[ok],
-                                                               half_size),
-                       _boxes_bytes(g, positions[ok], half_size), cal.em_model)
-                if key not in cache:
-                    cache[key] = bead_fit.fit_beads(
-                        acq.frames(), positions[ok], offset=acq.offset,
-                        read_noise=acq.read_noise, e_per_adu=cal.e_per_adu, em_gain=g,
-                        half_size=half_size, width=width, adc_max=manifest.adc_max,
-                        em_model=cal.em_model,
-                    )
-                fit = cache[key]
+                acq = acqs[s]
+                fit = fit_at(cal, s, ok, widths) if np.isfinite(widths).all() else first[si]
                 F = acq.n_frames
                 idx = np.flatnonzero(ok)
                 for j, n in enumerate(names):
@@ -275,13 +372,15 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
                     arr_se[n][ci, idx, si, :F] = fit.se[..., j]
                 loglik[ci, idx, si, :F] = fit.loglik
                 conv[ci, idx, si, :F] = fit.converged
-                if fit.n_saturated:
+                if fit.n_saturated and ci == 0:
                     warnings.warn(f"{acq.frames_path}: {fit.n_saturated} count(s) at the ADC "
                                   "maximum in the bead boxes were left out of the fits",
                                   stacklevel=2)
                 bar.update(1)
 
-    doc = _summarise(manifest, cals, setpoints, positions, arr, conv, det_acq, half_size,
+    times = _frame_times(manifest, acqs, setpoints, Fmax)
+    doc = _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, times, bleaching,
+                     det_acq, half_size,
                      time.perf_counter() - t0)
     if out is not None:
         out = Path(out)
@@ -300,11 +399,26 @@ def _boxes_bytes(m, positions, half_size):
         .tobytes() for r, c in positions)
 
 
-def _summarise(manifest, cals, setpoints, positions, arr, conv, det_acq, half_size, seconds):
+def _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, times, bleaching,
+               det_acq, half_size, seconds):
     keys = [result.format_setpoint(s) for s in setpoints]
     I = np.where(conv, arr["intensity"], np.nan)
     entries = []
     for ci, cal in enumerate(cals):
+        trend = intensity_trend(I[ci], np.where(conv[ci], arr_se["intensity"][ci], np.nan),
+                                times)
+        trend["corrected"] = bool(trend["detected"] and bleaching == "correct")
+        if trend["detected"]:
+            warnings.warn(
+                f"{cal.label}: the beads' intensity {'falls' if trend['rate_per_frame'] > 0 else 'rises'} "
+                f"within the acquisitions ({100 * trend['fade_over_series']:+.2f} % over the "
+                f"series, {trend['z']:.1f} standard errors: bleaching or a drifting "
+                "illumination); "
+                + ("corrected before the set-points are compared" if trend["corrected"] else
+                   "not corrected (--bleaching warn): it adds to the differences between "
+                   "set-points"), stacklevel=3)
+        if trend["corrected"]:
+            I[ci] = I[ci] * np.exp(trend["rate_per_frame"] * times)[None]
         bead_entries = []
         per = {d: {"incl": [], "excl": []} for d in (0, 1)}
         for b, (r, c) in enumerate(positions):
@@ -340,9 +454,22 @@ def _summarise(manifest, cals, setpoints, positions, arr, conv, det_acq, half_si
             v = v[np.isfinite(v)]
             return finite_or_none(v.mean()) if v.size else None
 
+        exists = np.isfinite(arr["intensity"][ci]) | conv[ci]  # frames that were fitted
+        fraction = {k: finite_or_none(conv[ci][:, si][exists[:, si]].mean())
+                    if exists[:, si].any() else None for si, k in enumerate(keys)}
+        low = {k: v for k, v in fraction.items() if v is not None and v < MIN_CONVERGED}
+        if low:
+            warnings.warn(
+                f"{cal.label}: bead fits converged in only "
+                + ", ".join(f"{100 * v:.1f} % at {k}x" for k, v in low.items())
+                + " of frames; the means are over the others, which can bias them if the "
+                "failures depend on the frames' brightness", stacklevel=3)
         entries.append({
             "file": cal.label,
             "method": cal.method,
+            "converged_fraction": fraction,
+            "intensity_trend": {k: (finite_or_none(v) if isinstance(v, float) else v)
+                                for k, v in trend.items()},
             "beads": bead_entries,
             "sigma_means_incl_1x": avg(per[0]["incl"]),
             "sigma_means_excl_1x": avg(per[0]["excl"]),

@@ -122,6 +122,7 @@ def _run_beads(args) -> int:
                          photoelectrons=args.photoelectrons,
                          width=args.width, background=args.background,
                          min_separation=args.min_separation, margin=args.margin,
+                         bleaching=args.bleaching,
                          setpoints=args.setpoints, em_gain=args.em_gain, offsets=args.offsets,
                          **_common_kwargs(args))
     _report(res, "bead movies")
@@ -198,6 +199,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                     help="least distance between beads, px (default %(default)s)")
     bd.add_argument("--margin", type=float, default=BEAD_DEFAULTS["margin"],
                     help="least distance of a bead from the sensor edge, px (default %(default)s)")
+    bd.add_argument("--bleaching", type=float, default=BEAD_DEFAULTS["bleaching"],
+                    help="fraction of the beads' light lost from the first frame of the series "
+                    "to the last, set-points recorded in the order given (default %(default)s)")
     _setpoint_options(bd)
     _camera_options(bd, CAMERA_DEFAULTS)
     bd.set_defaults(func=_run_beads)

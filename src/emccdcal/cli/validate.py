@@ -36,6 +36,9 @@ def add_parser(subparsers):
                    help="detection threshold, robust noise SDs (default %(default)s)")
     p.add_argument("--detect-setpoint", type=float, default=None,
                    help="set-point whose mean image the beads are found on (default: highest)")
+    p.add_argument("--bleaching", choices=("correct", "warn"), default="correct",
+                   help="a trend of the beads' intensity within the acquisitions (bleaching): "
+                   "undo it before comparing set-points, or only warn (default %(default)s)")
     _common.add_no_figures(p)
     _common.add_quiet(p)
     p.set_defaults(func=run)
@@ -58,7 +61,7 @@ def run(args) -> int:
         doc = validate(args.manifest, specs, out=args.out, width=args.width,
                        half_size=args.half_size, min_separation=args.min_separation,
                        snr=args.snr, detect_setpoint=args.detect_setpoint,
-                       progress=not args.quiet)
+                       progress=not args.quiet, bleaching=args.bleaching)
         if not args.no_figures:
             from ..report.figures import write_validation_figures
 

@@ -46,6 +46,7 @@ BEAD_DEFAULTS = {
     "background": 10.0,
     "min_separation": 12.0,
     "margin": 6.0,
+    "bleaching": 0.0,
 }
 #: The default camera of a bead simulation, where it differs from :class:`Camera`'s.
 CAMERA_DEFAULTS = {"rows": 64, "cols": 64, "frames": 500, "dark_frames": 2000}
@@ -132,6 +133,7 @@ def simulate_beads(
     seed=None,
     progress=False,
     camera: Camera | None = None,
+    bleaching=BEAD_DEFAULTS["bleaching"],
     **camera_options,
 ) -> SimulatedSeries:
     """Simulate bead movies at several EM gain set-points, with darks and the true calibration.
@@ -168,6 +170,11 @@ def simulate_beads(
     setpoints, em_gain, offsets, seed, progress
         As in :func:`~emccdcal.simulate.series.simulate_gain_series` (set-points 1, 5, 25,
         100, 300 and the paper's true gains by default).
+    bleaching : float, optional
+        Fraction of every bead's light lost to photobleaching from the first frame of the
+        series to its last (0; e.g. 0.02): an exponential decay in the frames recorded,
+        the set-points one after another in the order given. ``photoelectrons`` is the
+        intensity at the first frame; the background does not fade.
     camera, **camera_options
         As in :func:`~emccdcal.simulate.series.simulate_gain_series`; the default camera
         here is 64 × 64 px with 500 frames per bead movie and 2000 per dark stack
@@ -211,9 +218,17 @@ def simulate_beads(
     n_values = [check_number("photoelectrons", v, minimum=0.0) for v in n_values]
     N = np.broadcast_to(np.array(n_values), (n_beads,)).astype(float)
     scene = bead_scene(pos, N, s, b, *shape)
+    fade = check_number("bleaching", bleaching, minimum=0.0, maximum=0.99)
     opts.update(setpoints=sps, em_gain=gains, beads=n_beads, photoelectrons=n_values, width=s,
-                background=b, min_separation=sep, margin=edge)
+                background=b, min_separation=sep, margin=edge, bleaching=fade)
     acqs = _setpoint_acquisitions("beads/{}-beads", sps, gains, [scene] * len(sps), offsets, opts)
+    if fade > 0:  # the beads' light decays over the frames of the whole series
+        total = opts["frames"] * len(sps)
+        rate = -math.log1p(-fade) / max(1, total - 1)  # per frame
+        light = scene - b
+        for i, a in enumerate(acqs):
+            t = i * opts["frames"] + np.arange(opts["frames"])
+            a["varying"] = [(light, np.exp(-rate * t))]
     darks = [a | {"frames_n": opts["dark_frames"]} for a in acqs]
 
     outdir = _output_dir(outdir)
@@ -271,6 +286,7 @@ def simulate_beads(
                   for (r, c), n in zip(pos, N)],
         "width": s,
         "background": b,
+        "bleaching": fade,
         **_camera_truth(opts, pattern_file),
         "calibration": TRUTH_CALIBRATION_FILE,
         "acquisitions": truth_acqs,

@@ -322,6 +322,7 @@ def simulate_frames(
     seed=None,
     cascade_method="pmf",
     callback: Callable[[int], object] | None = None,
+    varying=(),
 ) -> np.ndarray:
     """Simulate one stack of raw EMCCD counts in memory.
 
@@ -362,6 +363,11 @@ def simulate_frames(
         Exact cascade sampler (:func:`emccdcal.model.cascade.sample_cascade`).
     callback : callable, optional
         Called with the number of frames done after each chunk (for progress bars).
+    varying : sequence of (array_like (rows, cols), array_like (frames,)), optional
+        Parts of ``photoelectrons`` whose rate changes from frame to frame: for each
+        ``(part, factors)`` the rate in frame f is ``photoelectrons + part·(factors[f] −
+        1)`` (e.g. one bead's light, fading as it bleaches or off while it blinks). The
+        rate must stay ≥ 0.
 
     Returns
     -------
@@ -396,16 +402,25 @@ def simulate_frames(
         raise OptionError(f"offset {float(np.max(S0)):g} ADU is at or above the ADC maximum "
                           f"{adc_max} ADU of {bits} bits: every count would be clipped to it")
     factors = _drift_factors(n_frames, d)
+    parts = []
+    for part, fs in varying:
+        part = check_map("varying part", part, shape, minimum=0.0)
+        fs = np.asarray(fs, dtype=float)
+        if fs.shape != (n_frames,) or not np.all(np.isfinite(fs) & (fs >= 0)):
+            raise OptionError(f"varying factors must be {n_frames} numbers >= 0, one per frame")
+        parts.append((part, fs))
     out = np.empty((n_frames,) + shape, dtype=np.uint16)
     step = max(1, _CHUNK_ELEMENTS // (shape[0] * shape[1]))
-    dark = not np.any(E) and c == 0
+    dark = not np.any(E) and c == 0 and not parts
     for f0 in range(0, n_frames, step):
         f1 = min(n_frames, f0 + step)
         if dark:
             n = np.zeros((f1 - f0,) + shape, dtype=np.int64)
         else:
             lam = E * factors[f0:f1, None, None] + c
-            n = rng.poisson(lam)
+            for part, fs in parts:
+                lam = lam + part * (fs[f0:f1, None, None] - 1.0)
+            n = rng.poisson(np.maximum(lam, 0.0))
         if g == 1.0:
             x = n.astype(float)
         elif mult == "gamma":
