@@ -73,16 +73,20 @@ def simulate(work, args):
         log(f"simulated {name} in {time.perf_counter() - t0:.0f} s")
 
 
-def calibrate_all(work):
+def calibrate_all(work, em_model="gamma"):
+    """Every method's calibration; the likelihood methods and mv-gain's F² under the
+    register model ``em_model`` (is-adu, mv-adu and cots have none to choose)."""
     from emccdcal import calibrate, result
 
     def run(name, manifest, method, phi=None):
-        out = work / "cal" / name
+        model = None if method in ("is-adu", "mv-adu") else em_model
+        out = work / ("cal" if em_model == "gamma" or model is None else f"cal-{em_model}") / name
         if not (out / result.CALIBRATION_FILE).is_file():
             t0 = time.perf_counter()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                calibrate(manifest, method, e_per_adu=phi, out=out, checks=False)
+                calibrate(manifest, method, e_per_adu=phi, out=out, checks=False,
+                          em_model=model)
             log(f"calibrated {name} in {time.perf_counter() - t0:.0f} s")
         return out / result.CALIBRATION_FILE
 
@@ -115,7 +119,7 @@ def calibrate_all(work):
 
 def gain_table(files):
     """Median over the beads' pixels of each calibration's gain per set-point, and φ."""
-    from emccdcal.beads import validation
+    from emccdcal import result
 
     rows = {}
     for label, spec in files.items():
@@ -137,13 +141,17 @@ def main():
     parser.add_argument("--bead-frames", type=int, default=500)
     parser.add_argument("--beads", type=int, default=10)
     parser.add_argument("--seed", type=int, default=2021)
+    parser.add_argument("--em-model", choices=("gamma", "cascade"), default="gamma",
+                        help="register model of the methods' likelihoods and of the bead "
+                        "fits (the data are always the exact cascade)")
     args = parser.parse_args()
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
     log(f"machine: {machine()}; work directory {work}")
     t_start = time.perf_counter()
     simulate(work, args)
-    files = calibrate_all(work)
+    files = calibrate_all(work, args.em_model)
+    suffix = "" if args.em_model == "gamma" else f"_{args.em_model}"
 
     from emccdcal.beads import validation
 
@@ -159,7 +167,7 @@ def main():
     }
     if "cots" in files:
         specs["cots"] = str(files["cots"])
-    out = work / "validation"
+    out = work / f"validation{suffix}"
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -167,6 +175,9 @@ def main():
                                   out=out, progress=True)
     t_validate = time.perf_counter() - t0
     log(f"validated {len(specs)} calibrations in {t_validate:.0f} s")
+    from emccdcal.report.figures import write_validation_figures
+
+    write_validation_figures(out, beads=1)
     for w in dict.fromkeys(str(c.message) for c in caught):
         log(f"warning: {w}")
     names = {v: k for k, v in specs.items()}
@@ -199,10 +210,11 @@ def main():
     summary["ranking"] = [names[f] for f in doc["ranking"]]
     summary["beads"] = len(doc["calibrations"][0]["beads"])
     FIGURES.mkdir(parents=True, exist_ok=True)
-    (FIGURES / "bead_comparison.json").write_text(json.dumps(summary, indent=2) + "\n")
-    for name in ("bead_consistency.png", "bead_intensities_0.png"):
-        shutil.copy(out / name, FIGURES / name)
-    plot_relative(summary, FIGURES / "bead_comparison_relative.png")
+    summary["em_model"] = args.em_model
+    (FIGURES / f"bead_comparison{suffix}.json").write_text(json.dumps(summary, indent=2) + "\n")
+    for name in ("bead_consistency", "bead_intensities_0"):
+        shutil.copy(out / f"{name}.png", FIGURES / f"{name}{suffix}.png")
+    plot_relative(summary, FIGURES / f"bead_comparison_relative{suffix}.png")
     print("\nmean over beads of (mean intensity at set-point / 1x mean), and median gains:")
     for c in summary["calibrations"]:
         rel = "  ".join(f"{s}x {v['mean']:.4f}" for s, v in c["intensity_relative_to_1x"].items())

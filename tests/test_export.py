@@ -349,6 +349,7 @@ def test_database_concurrent_writers_lose_nothing(tmp_path):
         database.add(files[0], db=db)
 
 
+@pytest.mark.slow
 def test_database_flags_an_ageing_register(tmp_path, capsys):
     db = tmp_path / "cal.sqlite"
     # A register losing 1.5 % of its gain a month at every set-point; spread keeps SEs real.
