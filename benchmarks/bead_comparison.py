@@ -101,19 +101,16 @@ def calibrate_all(work, em_model="gamma"):
         files[f"mv-gain-{sp}x"] = run(f"mv-gain-{sp}x", m, "mv-gain", phi_mv)
     for method in ("gs", "gs-no1x", "gs-hierarchical"):
         files[method] = run(method, work / "gs" / "manifest.toml", method, phi_is)
-    try:
-        from emccdcal.beads.cots_calibration import cots_calibrate
-    except ImportError:
-        cots = None
-    if cots is not None:
-        out = work / "cal" / "cots"
-        if not (out / result.CALIBRATION_FILE).is_file():
-            t0 = time.perf_counter()
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                cots_calibrate(work / "beads" / "manifest.toml", out=out)
-            log(f"calibrated cots in {time.perf_counter() - t0:.0f} s")
-        files["cots"] = out / result.CALIBRATION_FILE
+    from emccdcal.beads.cots_calibration import cots_calibrate
+
+    out = work / "cal" / "cots"  # COTS has no register model to choose: one for both runs
+    if not (out / result.CALIBRATION_FILE).is_file():
+        t0 = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            cots_calibrate(work / "beads" / "manifest.toml", out=out)
+        log(f"calibrated cots in {time.perf_counter() - t0:.0f} s")
+    files["cots"] = out / result.CALIBRATION_FILE
     return files
 
 
@@ -165,8 +162,7 @@ def main():
         "gs-no1x": str(files["gs-no1x"]),
         "gs-hierarchical": str(files["gs-hierarchical"]),
     }
-    if "cots" in files:
-        specs["cots"] = str(files["cots"])
+    specs["cots"] = str(files["cots"])
     out = work / f"validation{suffix}"
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
