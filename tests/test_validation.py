@@ -317,3 +317,24 @@ def test_bleaching_is_detected_and_corrected_so_the_ranking_holds(tmp_path):
     err = math.hypot(rel.std(ddof=1) / math.sqrt(rel.size),
                      600 * t["intensity_trend"]["rate_se"])
     assert abs(rel.mean() - 1) < 3 * err
+
+
+def test_a_group_takes_the_register_model_of_its_gain_members(tmp_path):
+    adu = _result(tmp_path / "adu", method="is-adu", setpoints=[1.0], gains=[1.0], phi=3.9)
+    g5 = _result(tmp_path / "g5", method="is-gain", setpoints=[5.0], gains=[4.78])
+    g25 = _result(tmp_path / "g25", method="is-gain", setpoints=[25.0], gains=[22.95])
+    for f, model in ((adu, "gamma"), (g5, "cascade"), (g25, "cascade")):
+        ds = result.load(f)
+        ds.attrs.update({"em_model": model} | ({"register_stages": 536} if model == "cascade"
+                                               else {}))
+        result.save(ds, f.parent)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cal = result.load_calibration([adu, g5, g25])  # 1x has no register to disagree
+    assert cal.em_model.name == "cascade" and cal.em_model.stages == 536
+    ds = result.load(g25)
+    ds.attrs["em_model"] = "gamma"
+    del ds.attrs["register_stages"]
+    result.save(ds, g25.parent)
+    with pytest.raises(ValueError, match="fitted with different EM register models"):
+        result.load_calibration([adu, g5, g25])

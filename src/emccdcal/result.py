@@ -987,7 +987,9 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
             f"({np.nanmedian(phi):.4g}); the group uses its phi",
             stacklevel=2,
         )
-    models = {EMModel.from_attrs(ds.attrs) for _, ds in loaded if "em_gain" in ds} - {None}
+    # The register model of the members that measured a gain (1x has no register).
+    models = {EMModel.from_attrs(ds.attrs) for _, ds in loaded
+              if "em_gain" in ds and np.any(ds["setpoint"].values != 1)} - {None}
     if len(models) > 1:
         raise OptionError(f"{label}: its members were fitted with different EM register "
                           f"models ({', '.join(sorted(map(str, models)))}); group results "
