@@ -1,6 +1,7 @@
 """Private helpers shared by the whole package: one of each, never a copy.
 
-- :func:`atomic_write`: every file emccdcal writes goes through it; :func:`file_sha256`
+- :func:`atomic_write`: every file emccdcal writes goes through it (text files through
+  :func:`atomic_write_text`); :func:`file_sha256`
   the hash that names a result file in provenance;
 - :func:`progress`: every progress bar;
 - :func:`check_int`, :func:`check_number`, :func:`check_map`, :func:`e_per_adu_map`:
@@ -28,6 +29,7 @@ from .errors import OptionError
 
 __all__ = [
     "atomic_write",
+    "atomic_write_text",
     "file_sha256",
     "progress",
     "check_int",
@@ -48,6 +50,11 @@ def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+def atomic_write_text(path, text: str) -> Path:
+    """:func:`atomic_write` of a text file (UTF-8)."""
+    return atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
 
 
 def file_sha256(path) -> str:

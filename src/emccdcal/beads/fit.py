@@ -269,14 +269,8 @@ def _levenberg_marquardt(objective, p0, lower, upper, *, tol, max_iter):
     M = p.shape[0]
     todo = np.ones(M, bool)
     converged = np.zeros(M, bool)
-    ll = np.full(M, -np.inf)
-    grad = np.zeros((M, _NP))
-    H = np.zeros((M, _NP, _NP))
+    ll, grad, H = _evaluate_rows(objective, p, np.arange(M))
     lam = np.full(M, 1e-3)
-    sel = np.flatnonzero(todo)
-    for a in range(0, sel.size, _BATCH_FRAMES):
-        s = sel[a:a + _BATCH_FRAMES]
-        ll[s], grad[s], H[s] = objective(p[s], s)
     bad = ~np.isfinite(ll)
     todo &= ~bad
     it = 0
@@ -519,6 +513,14 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     F, R, C = frames.shape
     pos, boxes = _box_slices(positions, half_size, (R, C))
     B = len(pos)
+    lower, upper = _lower_upper(half_size)
+    if background not in ("shared", "frame"):
+        raise OptionError(f"background must be 'shared' or 'frame', got {background!r}")
+    if fixed_width is not None:
+        fixed = np.broadcast_to(np.asarray(fixed_width, dtype=float), (B,)).copy()
+        if not np.all((fixed > lower[2]) & (fixed < upper[2])):
+            raise OptionError(f"fixed_width must be between {lower[2]:g} and {upper[2]:g} px "
+                              f"for a box of half-size {half_size}; got {fixed.tolist()}")
     n = 2 * half_size + 1
     npix = n * n
     S0 = _pixel_map("offset", offset, (R, C), boxes, pos)
@@ -540,21 +542,12 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         n_sat = int(sat.sum())
         weight[sat] = 0.0
 
-    if background not in ("shared", "frame"):
-        raise OptionError(f"background must be 'shared' or 'frame', got {background!r}")
-    if fixed_width is not None:
-        fixed = np.broadcast_to(np.asarray(fixed_width, dtype=float), (B,)).copy()
-        lo_w, hi_w = _lower_upper(half_size)[0][2], _lower_upper(half_size)[1][2]
-        if not np.all((fixed > lo_w) & (fixed < hi_w)):
-            raise OptionError(f"fixed_width must be between {lo_w:g} and {hi_w:g} px for "
-                              f"a box of half-size {half_size}; got {fixed.tolist()}")
     pn = g == 1.0
     theta = np.where(pn, 1.0 / phi, g / phi)          # ADU per photoelectron (B, npix)
     f2 = np.where(pn, 1.0, 2.0)
     var_read = (sigma / theta) ** 2                     # e⁻², (B, npix)
     y = (counts - S0[:, None, :]) / theta[:, None, :]   # e⁻, (B, F, npix)
     local = np.arange(-half_size, half_size + 1, dtype=float)
-    lower, upper = _lower_upper(half_size)
 
     def model(p):
         img, jac = psf.spot_image(p, local, local, jacobian=True)

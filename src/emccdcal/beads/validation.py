@@ -51,7 +51,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import result
-from .._util import atomic_write, finite_or_none
+from .._util import atomic_write, atomic_write_text, finite_or_none
 from .._util import progress as progress_bar
 from ..data.manifest import Manifest, read_manifest
 from ..errors import InputError, MissingFileError, OptionError
@@ -142,7 +142,7 @@ def _acquisitions_by_setpoint(manifest):
     return dict(sorted(by.items()))
 
 
-def _frame_times(manifest, acqs, setpoints, F):
+def _frame_times(manifest, setpoints, F):
     """Each frame's place in the recorded series (frames since the first), shape (S, F):
     the acquisitions in the manifest's order, as they were recorded."""
     start, t0 = {}, 0
@@ -378,7 +378,7 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
                                   stacklevel=2)
                 bar.update(1)
 
-    times = _frame_times(manifest, acqs, setpoints, Fmax)
+    times = _frame_times(manifest, setpoints, Fmax)
     doc = _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, times, bleaching,
                      det_acq, half_size,
                      time.perf_counter() - t0)
@@ -389,7 +389,7 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
                                   manifest)
         atomic_write(out / INTENSITIES_FILE, lambda p: ds.to_netcdf(p, engine="h5netcdf"))
         text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
-        atomic_write(out / VALIDATION_FILE, lambda p: Path(p).write_text(text, encoding="utf-8"))
+        atomic_write_text(out / VALIDATION_FILE, text)
     return doc
 
 

@@ -17,7 +17,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .._util import atomic_write
+from .._util import atomic_write_text
 from ..errors import InputError
 from .settings import CameraSettings
 from .stacks import STACK_SUFFIXES, stack_header, stack_settings
@@ -202,5 +202,5 @@ def write_manifest(session: Session, out, *, overwrite: bool = False) -> Path:
     if out.exists() and not overwrite:
         raise InputError(f"'{out}' exists; pass --overwrite to replace it")
     text = manifest_text(session, out)
-    atomic_write(out, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+    atomic_write_text(out, text)
     return out

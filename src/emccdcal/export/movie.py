@@ -40,8 +40,7 @@ DEFAULT_THRESHOLD = 5.0
 _BLOCK_BYTES = 16 << 20
 
 
-def _movie_setpoint(movie: Path, given) -> float:
-    recorded = stack_settings(movie).em_gain_setpoint
+def _movie_setpoint(movie: Path, recorded, given) -> float:
     if given is None and recorded is None:
         raise OptionError(f"{movie}: the file records no EM gain set-point; give --setpoint G")
     if given is not None and recorded is not None and float(given) != recorded:
@@ -50,13 +49,12 @@ def _movie_setpoint(movie: Path, given) -> float:
     return float(recorded if given is None else given)
 
 
-def _region(cal: Calibration, movie: Path, shape) -> tuple[slice, slice]:
+def _region(cal: Calibration, movie: Path, roi, shape) -> tuple[slice, slice]:
     """The calibration's rows and columns that the movie's pixels are: placed by the
     movie's recorded ROI and the calibration's sensor origin where both are known, else
     the two must be the same size."""
     rows, cols = shape
     R, C = cal.shape
-    roi = stack_settings(movie).roi
     if roi is None or cal.origin is None:
         if (rows, cols) != (R, C):
             unknown = ("the movie records no region" if roi is None else
@@ -121,8 +119,9 @@ def apply(calibration, movie, out, *, setpoint=None, photon_counting=False,
     if len(shape) != 3:
         raise InputError(f"{movie}: a movie is a stack of frames; this file holds shape {shape}")
     frames, rows, cols = shape
-    s = _movie_setpoint(movie, setpoint)
-    rr, cc = _region(cal, movie, (rows, cols))
+    settings = stack_settings(movie)
+    s = _movie_setpoint(movie, settings.em_gain_setpoint, setpoint)
+    rr, cc = _region(cal, movie, settings.roi, (rows, cols))
     scale = (cal.e_per_adu / cal.gain(s))[rr, cc]
     offset, sigma = (m[rr, cc] for m in cal.dark(s))
     bad = ~(np.isfinite(offset) & np.isfinite(scale))

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from .._util import atomic_write
+from .._util import atomic_write_text as _write_text
 from ..errors import OptionError
 from ..result import Calibration, format_setpoint, load_calibration, pixel_statistics
 
@@ -148,10 +149,6 @@ def _scalar(value) -> str:
     if isinstance(value, (int, float, np.number)):
         return repr(_number(value)) if isinstance(value, (float, np.floating)) else str(value)
     return json.dumps(str(value))
-
-
-def _write_text(path: Path, text: str) -> Path:
-    return atomic_write(path, lambda p: Path(p).write_text(text, encoding="utf-8"))
 
 
 def _write_tiff(path: Path, image, description: dict) -> Path:

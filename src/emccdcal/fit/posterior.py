@@ -44,7 +44,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .._util import atomic_write, e_per_adu_map, finite_or_none, parse_pixel
+from .._util import atomic_write, atomic_write_text, e_per_adu_map, finite_or_none, parse_pixel
 from ..data import stats
 from ..data.manifest import Manifest, read_manifest
 from ..errors import MethodError, NotConvergedError, OptionError
@@ -552,7 +552,7 @@ def save(ds, out):
     written.append(nc)
     js = out / SUMMARY_FILE
     text = json.dumps(summary(ds), indent=2) + "\n"
-    atomic_write(js, lambda tmp: Path(tmp).write_text(text))
+    atomic_write_text(js, text)
     written.append(js)
     return written
 

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__, result
-from .._util import atomic_write
+from .._util import atomic_write_text
 from .._util import progress as progress_bar
 from ..beads.validation import read_validation
 from ..data import quality
@@ -520,5 +520,5 @@ def write_report(results, out, **kwargs) -> Path:
         out = out / REPORT_FILE
     text = build_report(results, **kwargs)
     out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(out, lambda p: Path(p).write_text(text, encoding="utf-8"))
+    atomic_write_text(out, text)
     return out

@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from .. import __version__, result
-from .._util import atomic_write, check_int, check_number
+from .._util import atomic_write, atomic_write_text, check_int, check_number
 from ..errors import OptionError
 from ..model.psf import spot_image
 from .camera import _UNITS, PAPER_SETPOINTS, Camera
@@ -32,7 +32,6 @@ from .series import (
     _setpoint_list,
     _truth_entry,
     _write_stacks,
-    _write_text,
 )
 
 __all__ = ["simulate_beads", "bead_scene", "BEAD_DEFAULTS", "CAMERA_DEFAULTS",
@@ -300,6 +299,6 @@ def simulate_beads(
         "options": options,
     }
     truth_path = outdir / "truth.json"
-    files.append(_write_text(truth_path, json.dumps(truth, indent=2) + "\n"))
-    files.append(_write_text(manifest, manifest_text))
+    files.append(atomic_write_text(truth_path, json.dumps(truth, indent=2) + "\n"))
+    files.append(atomic_write_text(manifest, manifest_text))
     return SimulatedSeries(outdir, manifest, truth_path, truth, tuple(files))

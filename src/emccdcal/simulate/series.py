@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from .._util import atomic_write, check_int, check_number
+from .._util import atomic_write, atomic_write_text, check_int, check_number
 from .._util import progress as progress_bar
 from ..errors import OptionError
 from .camera import (
@@ -67,10 +67,6 @@ def _write_tiff(path: Path, data: np.ndarray) -> Path:
     import tifffile
 
     return atomic_write(path, lambda tmp: tifffile.imwrite(tmp, data, photometric="minisblack"))
-
-
-def _write_text(path: Path, text: str) -> Path:
-    return atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
 
 
 def _dark_maps(dark: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -276,12 +272,12 @@ def _run_series(outdir, kind: str, acqs: list[dict], darks: list[dict], camera: 
         "options": options,
     }
     truth_path = outdir / "truth.json"
-    files.append(_write_text(truth_path, json.dumps(truth, indent=2) + "\n"))
+    files.append(atomic_write_text(truth_path, json.dumps(truth, indent=2) + "\n"))
 
     # manifest.toml, last: its presence means the series is complete
     lines = _manifest_lines(kind, acqs, opts)
     manifest = outdir / "manifest.toml"
-    files.append(_write_text(manifest, "\n".join(lines) + "\n"))
+    files.append(atomic_write_text(manifest, "\n".join(lines) + "\n"))
     return SimulatedSeries(outdir, manifest, truth_path, truth, tuple(files))
 
 
