@@ -17,6 +17,12 @@ Then ``emccdcal.validation.validate`` fits the beads under every calibration (an
 truth) and ranks them by the spread of the per-set-point mean intensities. Prints the
 table, writes ``docs/figures/beads/`` (figures and ``bead_comparison.json``).
 
+``--halo F`` gives the bead movies a PSF that the Gaussian does not describe (a fraction F
+of each bead's light in a halo of 3× the width); ``--psf gaussian residual`` validates
+with each spot model in turn (the residual image is the paper's second pass), to show
+whether it changes the ranking. Outputs are suffixed ``_cascade``, ``_halo<F>`` and
+``_<psf>`` where those differ from the defaults.
+
 Run: ``.venv/bin/python benchmarks/bead_comparison.py [--work DIR] [--frames 5000]``.
 Long (tens of minutes); every stage is skipped when its output exists in ``--work``.
 """
@@ -62,8 +68,9 @@ def simulate(work, args):
             d, setpoint=sp, levels=levels, frames=args.frames, **(common | {"seed": s}))))
     jobs.append(("gs", lambda d, s: simulate_gain_series(
         d, frames=args.frames, **(common | {"seed": s}))))
-    jobs.append(("beads", lambda d, s: simulate_beads(
-        d, frames=args.bead_frames, beads=args.beads, **(common | {"seed": s}))))
+    jobs.append((_beads_dir(args), lambda d, s: simulate_beads(
+        d, frames=args.bead_frames, beads=args.beads, halo=args.halo,
+        **(common | {"seed": s}))))
     for i, (name, run) in enumerate(jobs):
         d = work / name
         if (d / "manifest.toml").is_file():
@@ -73,7 +80,11 @@ def simulate(work, args):
         log(f"simulated {name} in {time.perf_counter() - t0:.0f} s")
 
 
-def calibrate_all(work, em_model="gamma"):
+def _beads_dir(args):
+    return "beads" if args.halo == 0 else f"beads-halo{args.halo:g}"
+
+
+def calibrate_all(work, em_model="gamma", beads="beads"):
     """Every method's calibration; the likelihood methods and mv-gain's F² under the
     register model ``em_model`` (is-adu, mv-adu and cots have none to choose)."""
     from emccdcal import calibrate, result
@@ -103,12 +114,14 @@ def calibrate_all(work, em_model="gamma"):
         files[method] = run(method, work / "gs" / "manifest.toml", method, phi_is)
     from emccdcal.beads.cots_calibration import cots_calibrate
 
-    out = work / "cal" / "cots"  # COTS has no register model to choose: one for both runs
+    # COTS has no register model to choose: one for both runs (per bead movie: it
+    # calibrates on the beads themselves)
+    out = work / "cal" / ("cots" if beads == "beads" else f"cots-{beads}")
     if not (out / result.CALIBRATION_FILE).is_file():
         t0 = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            cots_calibrate(work / "beads" / "manifest.toml", out=out)
+            cots_calibrate(work / beads / "manifest.toml", out=out)
         log(f"calibrated cots in {time.perf_counter() - t0:.0f} s")
     files["cots"] = out / result.CALIBRATION_FILE
     return files
@@ -141,19 +154,31 @@ def main():
     parser.add_argument("--em-model", choices=("gamma", "cascade"), default="gamma",
                         help="register model of the methods' likelihoods and of the bead "
                         "fits (the data are always the exact cascade)")
+    parser.add_argument("--halo", type=float, default=0.0,
+                        help="fraction of the beads' light in a halo (3x the PSF width)")
+    parser.add_argument("--psf", nargs="+", choices=("gaussian", "residual", "residual-pooled"),
+                        default=["gaussian"], help="spot models to validate with, in turn")
     args = parser.parse_args()
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
     log(f"machine: {machine()}; work directory {work}")
     t_start = time.perf_counter()
     simulate(work, args)
-    files = calibrate_all(work, args.em_model)
-    suffix = "" if args.em_model == "gamma" else f"_{args.em_model}"
+    beads = _beads_dir(args)
+    files = calibrate_all(work, args.em_model, beads)
+    for psf in args.psf:
+        suffix = ("" if args.em_model == "gamma" else f"_{args.em_model}") \
+            + ("" if args.halo == 0 else f"_halo{args.halo:g}") \
+            + ("" if psf == "gaussian" else f"_{psf}")
+        compare(work, args, files, beads, psf, suffix, t_start)
 
+
+def compare(work, args, files, beads, psf, suffix, t_start):
+    """Validate every calibration with the spot model ``psf``; table, figures, summary."""
     from emccdcal.beads import validation
 
     specs = {
-        "truth": str(work / "beads" / "truth_calibration.nc"),
+        "truth": str(work / beads / "truth_calibration.nc"),
         "mv-adu + mv-gain": ",".join(str(files[k]) for k in
                                      ["mv-adu"] + [f"mv-gain-{s}x" for s in GAIN_SETPOINTS]),
         "is-adu + is-gain": ",".join(str(files[k]) for k in
@@ -167,8 +192,8 @@ def main():
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        doc = validation.validate(work / "beads" / "manifest.toml", list(specs.values()),
-                                  out=out, progress=True)
+        doc = validation.validate(work / beads / "manifest.toml", list(specs.values()),
+                                  out=out, progress=True, psf=psf)
     t_validate = time.perf_counter() - t0
     log(f"validated {len(specs)} calibrations in {t_validate:.0f} s")
     from emccdcal.report.figures import write_validation_figures
@@ -207,6 +232,8 @@ def main():
     summary["beads"] = len(doc["calibrations"][0]["beads"])
     FIGURES.mkdir(parents=True, exist_ok=True)
     summary["em_model"] = args.em_model
+    summary["psf"] = psf
+    summary["psf_mismatch"] = doc["calibrations"][0]["psf_mismatch"]
     (FIGURES / f"bead_comparison{suffix}.json").write_text(json.dumps(summary, indent=2) + "\n")
     for name in ("bead_consistency", "bead_intensities_0"):
         shutil.copy(out / f"{name}.png", FIGURES / f"{name}{suffix}.png")

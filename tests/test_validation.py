@@ -338,3 +338,124 @@ def test_a_group_takes_the_register_model_of_its_gain_members(tmp_path):
     result.save(ds, g25.parent)
     with pytest.raises(ValueError, match="fitted with different EM register models"):
         result.load_calibration([adu, g5, g25])
+
+
+def test_blinking_level_finds_off_frames_and_nothing_else():
+    rng = np.random.default_rng(11)
+    # 200 bead-set-points without blinking: none detected, the mean untouched
+    se = np.full((200, 300), 100.0)
+    N = 3000.0 + se * rng.standard_normal(se.shape)
+    b = validation.blinking_level(N, se)
+    assert not b["detected"].any() and not b["off"].any()
+    # 20 % off, in runs: the on level within its error, the off frames found
+    on = np.ones((4, 300), bool)
+    for k in range(4):
+        for start in rng.choice(290, 12, replace=False):
+            on[k, start:start + 5] = False
+    N = np.where(on, 3000.0, 0.0) + se[:4] * rng.standard_normal((4, 300))
+    b = validation.blinking_level(N, se[:4])
+    assert b["detected"].all()
+    np.testing.assert_array_equal(b["off"], ~on)
+    assert np.all(np.abs(b["on_level"] - 3000.0) < 4 * 100.0 / np.sqrt(on.sum(axis=1)))
+    np.testing.assert_allclose(b["off_fraction"], (~on).mean(axis=1), atol=0.01)
+
+
+@pytest.mark.slow
+def test_blinking_beads_are_taken_at_their_on_level(tmp_path):
+    """Beads off in 10 % of frames, in runs of 5: a different fraction at each set-point,
+    which the plain means take for a gain error; the mixture's on level does not."""
+    sim = simulate_beads(tmp_path / "sim", beads=6, frames=200, dark_frames=300,
+                         setpoints=(1, 25), blinking=0.1, seed=8)
+    truth = tmp_path / "sim" / "truth_calibration.nc"
+    wrong = _result(tmp_path / "wrong", method="gs", setpoints=[1.0, 25.0],
+                    gains=[1.0, 0.98 * 22.95], shape=(64, 64))
+    docs = {}
+    for action in ("ignore", "model"):
+        with pytest.warns(UserWarning, match=r"switch off in some frames"):
+            docs[action] = validation.validate(sim.manifest, [str(truth), str(wrong)],
+                                               blinking=action)
+    off_true = sum(b["frames_off"] for b in sim.truth["beads"])
+    for doc in docs.values():
+        found = sum(doc["calibrations"][0]["blinking"]["frames_off"].values())
+        assert abs(found - off_true) <= 0.02 * off_true
+    ignored = {c["file"]: c for c in docs["ignore"]["calibrations"]}
+    modelled = {c["file"]: c for c in docs["model"]["calibrations"]}
+    assert ignored[str(truth)]["sigma_means_incl_1x"] > 0.01   # blinking dominates
+    assert modelled[str(truth)]["sigma_means_incl_1x"] < 0.005
+    assert docs["model"]["ranking"][0] == str(truth)
+    # the 2 % gain error, seen through the blinking: 25x/1x = 1/0.98 for every bead
+    rel = [b["mean_intensity"]["25"] / b["mean_intensity"]["1"]
+           for b in modelled[str(wrong)]["beads"]]
+    assert np.mean(rel) == pytest.approx(1 / 0.98, abs=0.006)
+    with pytest.raises(ValueError, match="blinking must be"):
+        validation.validate(sim.manifest, [str(truth)], blinking="drop")
+
+
+@pytest.mark.slow
+def test_residual_psf_pass_on_beads_with_a_halo(tmp_path):
+    """Beads whose PSF has a halo: validate says the Gaussian does not describe them, and
+    with --psf residual fits a third pass whose model does; the truth stays first."""
+    sim = simulate_beads(tmp_path / "sim", beads=6, frames=200, dark_frames=300,
+                         setpoints=(1, 25), halo=0.2, seed=9)
+    truth = tmp_path / "sim" / "truth_calibration.nc"
+    wrong = _result(tmp_path / "wrong", method="gs", setpoints=[1.0, 25.0],
+                    gains=[1.0, 0.98 * 22.95], shape=(64, 64))
+    with pytest.warns(UserWarning, match=r"does not describe .* residual image was added"):
+        doc = validation.validate(sim.manifest, [str(truth), str(wrong)], psf="residual",
+                                  out=tmp_path / "val")
+    c = doc["calibrations"][0]
+    assert c["psf"] == "residual"
+    assert c["psf_mismatch"]["gaussian"]["25"]["chi2_per_pixel"] > 2.0
+    assert c["psf_mismatch"]["residual"]["25"]["chi2_per_pixel"] < 1.3
+    assert doc["ranking"][0] == str(truth)
+    assert json.loads((tmp_path / "val" / "validation.json").read_text())["calibrations"][0][
+        "psf"] == "residual"
+    with pytest.raises(ValueError, match="psf must be"):
+        validation.validate(sim.manifest, [str(truth)], psf="airy")
+
+
+@pytest.mark.slow
+def test_a_repeated_set_point_joins_the_trend_and_is_checked(tmp_path):
+    """1x recorded again at the end of a bleaching series: its frames pool with the
+    first 1x acquisition's, the fade is measured across the whole series, and after the
+    correction the two 1x acquisitions agree."""
+    sim = simulate_beads(tmp_path / "sim", beads=6, frames=200, dark_frames=300,
+                         setpoints=(1, 25), repeat=1, bleaching=0.03, seed=12)
+    names = [a["name"] for a in sim.truth["acquisitions"]]
+    assert names == ["1x", "25x", "1x-repeat"]
+    truth = tmp_path / "sim" / "truth_calibration.nc"
+    with pytest.warns(UserWarning, match="intensity falls"):
+        doc = validation.validate(sim.manifest, [str(truth)], out=tmp_path / "val")
+    c = doc["calibrations"][0]
+    assert c["intensity_trend"]["fade_over_series"] == pytest.approx(0.03, abs=0.006)
+    assert c["beads"][0]["frames_used"] == {"1": 400, "25": 200}
+    (rep,) = c["repeats"]
+    assert rep["setpoint"] == "1" and rep["first"] == "1x"
+    (later,) = rep["later"]
+    assert later["acquisition"] == "1x-repeat" and abs(later["z"]) < 4
+    assert set(c["psf_mismatch"]["gaussian"]) == {"1", "25", "1#2"}
+    assert c["sigma_means_incl_1x"] < 0.005
+    ds = xr.open_dataset(tmp_path / "val" / "intensities.nc", engine="h5netcdf")
+    acq = ds["acquisition"].sel(setpoint=1.0).values
+    assert list(acq[:200]) == ["1x"] * 200 and list(acq[200:]) == ["1x-repeat"] * 200
+    ds.close()
+
+
+def test_repeats_warn_when_the_beads_changed_between_acquisitions():
+    class Acq:
+        def __init__(self, name, n):
+            self.name, self.n_frames = name, n
+
+    a1, a25, a1b = Acq("1x", 100), Acq("25x", 100), Acq("1x-again", 100)
+    layout = [(0, 1.0, a1, 0, "1", 0), (1, 25.0, a25, 0, "25", 100),
+              (0, 1.0, a1b, 100, "1#2", 200)]
+    rng = np.random.default_rng(2)
+    I = 5000.0 * (1 + 0.01 * rng.standard_normal((8, 2, 200)))
+    off = np.zeros(I.shape, bool)
+    rep = validation._repeats(type("Cal", (), {"label": "c"}), layout, ["1", "25"], I, off)
+    assert abs(rep[0]["later"][0]["z"]) < 4
+    I[:, 0, 100:] *= 0.97  # 3 % of the light lost between the acquisitions
+    with pytest.warns(UserWarning, match=r"changed by -3\.\d\d % between acquisitions '1x' "
+                                         r"and '1x-again'"):
+        rep = validation._repeats(type("Cal", (), {"label": "c"}), layout, ["1", "25"], I, off)
+    assert rep[0]["later"][0]["ratio"] == pytest.approx(0.97, abs=0.002)

@@ -86,6 +86,8 @@ __all__ = [
     "detect_beads",
     "fit_beads",
     "shared_widths",
+    "residual_image",
+    "psf_mismatch",
 ]
 
 #: Half-width Δ of the fitting box (pixel): boxes are (2Δ + 1) × (2Δ + 1).
@@ -127,6 +129,12 @@ class BeadFits:
         Pixels whose table range had to be widened after the first exact fit.
     n_saturated : int
         Counts at the ADC maximum, left out of the likelihood.
+    residual : ndarray, shape (B, 2Δ + 1, 2Δ + 1)
+        Each bead's box: data minus fitted model, mean over its converged frames (e⁻ per
+        pixel per frame; NaN for a bead without any). What the spot model misses: the
+        input of :func:`residual_image`.
+    residual_se : ndarray, shape (B, 2Δ + 1, 2Δ + 1)
+        Standard error of ``residual`` (SD over frames / √frames), e⁻.
     """
 
     positions: np.ndarray
@@ -137,6 +145,8 @@ class BeadFits:
     iterations: int
     retabulated: int
     n_saturated: int
+    residual: np.ndarray
+    residual_se: np.ndarray
 
     @property
     def intensity(self) -> np.ndarray:
@@ -458,7 +468,7 @@ def _pixel_map(name, value, shape, boxes, pos, *, positive=False, at_least=None)
 def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
               half_size=DEFAULT_HALF_SIZE, width=DEFAULT_WIDTH, adc_max=None,
               max_iter=60, em_model=None, fixed_width=None,
-              background="shared") -> BeadFits:
+              background="shared", residual=None) -> BeadFits:
     """Fit every bead in every frame of one acquisition by maximum likelihood: the bead's
     position, width and background shared by its frames, each frame's intensity.
 
@@ -494,6 +504,10 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         it below, which biases it up and the intensity down (−0.5 % at 1× with 10 e⁻/px
         of background; docs/beads.md); one shared by the frames is not clipped, and the
         mean intensity over frames stays unbiased even if the background fluctuates.
+    residual : emccdcal.model.psf.ResidualImage, optional
+        Added to the Gaussian spot (the paper's second pass): ``E = N·(P + R) + b`` with R
+        at each pixel's offset from the fitted centre; one image for all beads or one per
+        bead, in the order of ``positions`` (:func:`residual_image`).
 
     Returns
     -------
@@ -516,21 +530,25 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     lower, upper = _lower_upper(half_size)
     if background not in ("shared", "frame"):
         raise OptionError(f"background must be 'shared' or 'frame', got {background!r}")
+    if residual is not None and len(residual) not in (1, B):
+        raise OptionError(f"the residual image has {len(residual)} images; expected 1 or one "
+                          f"per bead ({B})")
     if fixed_width is not None:
         fixed = np.broadcast_to(np.asarray(fixed_width, dtype=float), (B,)).copy()
         if not np.all((fixed > lower[2]) & (fixed < upper[2])):
             raise OptionError(f"fixed_width must be between {lower[2]:g} and {upper[2]:g} px "
                               f"for a box of half-size {half_size}; got {fixed.tolist()}")
-    n = 2 * half_size + 1
-    npix = n * n
+    npix = (2 * half_size + 1) ** 2
     S0 = _pixel_map("offset", offset, (R, C), boxes, pos)
     sigma = _pixel_map("read_noise", read_noise, (R, C), boxes, pos, positive=True)
     phi = _pixel_map("e_per_adu", e_per_adu, (R, C), boxes, pos, positive=True)
     g = _pixel_map("em_gain", em_gain, (R, C), boxes, pos, at_least=1.0)
+    n = 2 * half_size + 1
     if B == 0 or F == 0:
         empty = np.zeros((B, F, _NP))
+        none = np.full((B, n, n), np.nan)
         return BeadFits(pos, empty, empty.copy(), np.zeros((B, F)), np.zeros((B, F), bool),
-                        0, 0, 0)
+                        0, 0, 0, none, none.copy())
     counts = np.stack([np.asarray(frames[:, rs, cs]).reshape(F, npix) for rs, cs in boxes])
     counts = counts.astype(np.int64)  # (B, F, npix)
     if counts.min() < 0:
@@ -548,10 +566,22 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     var_read = (sigma / theta) ** 2                     # e⁻², (B, npix)
     y = (counts - S0[:, None, :]) / theta[:, None, :]   # e⁻, (B, F, npix)
     local = np.arange(-half_size, half_size + 1, dtype=float)
+    yy, xx = np.meshgrid(local, local, indexing="ij")
+    image_of = np.zeros(B, int) if residual is None or len(residual) == 1 else np.arange(B)
 
-    def model(p):
+    def model(p, beads):
+        """Expected e⁻ and its Jacobian for rows ``p`` (box coordinates) of ``beads``."""
         img, jac = psf.spot_image(p, local, local, jacobian=True)
-        return img.reshape(len(p), npix), jac.reshape(len(p), npix, _NP)
+        E, J = img.reshape(len(p), npix), jac.reshape(len(p), npix, _NP)
+        if residual is not None:
+            Rv, R_dy, R_dx = residual.evaluate(image_of[beads], yy.ravel() - p[:, 1:2],
+                                               xx.ravel() - p[:, 0:1])
+            N = p[:, 3:4]
+            E = E + N * Rv
+            J[..., 3] += Rv
+            J[..., 0] -= N * R_dx  # the offsets move against the centre
+            J[..., 1] -= N * R_dy
+        return E, J
 
     def curvature(w, J):
         return np.einsum("mk,mki,mkj->mij", w, J, J)
@@ -563,13 +593,12 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     b0 = np.median(ybar[:, border.ravel()], axis=1)
     excess = np.clip(ybar - b0[:, None], 0.0, None)
     N0 = np.maximum(excess.sum(axis=1), 1.0)
-    yy, xx = np.meshgrid(local, local, indexing="ij")
     cx = np.clip((excess * xx.ravel()).sum(axis=1) / N0, -1.0, 1.0)
     cy = np.clip((excess * yy.ravel()).sum(axis=1) / N0, -1.0, 1.0)
     p_bead = np.stack([cx, cy, np.full(B, float(width)), N0, np.maximum(b0, 0.0)], axis=1)
 
     def objective_mean(p, s):
-        E, J = model(p)
+        E, J = model(p, s)
         ll, d1, info = _gaussian_terms(E, ybar[s], var_read[s], f2[s], 1.0 / F)
         return ll.sum(axis=1), np.einsum("mk,mki->mi", d1, J), curvature(info, J)
 
@@ -590,7 +619,8 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     y_m = y.reshape(M, npix)
     w_m = weight.reshape(M, npix)
     p1 = np.repeat(p_bead, F, axis=0)
-    unit, _ = model(np.concatenate([p_bead[:, :3], np.ones((B, 1)), np.zeros((B, 1))], axis=1))
+    unit, _ = model(np.concatenate([p_bead[:, :3], np.ones((B, 1)), np.zeros((B, 1))], axis=1),
+                    np.arange(B))
     # Starting intensity and background per frame: least squares on the bead's shape.
     for b in range(B):
         X = np.stack([unit[b], np.ones(npix)], axis=1)
@@ -602,8 +632,8 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         p1[:, 4] = np.repeat(p1[:, 4].reshape(B, F).mean(axis=1), F)
 
     def objective_gauss(p, s):
-        E, J = model(p)
         b = bead_of[s]
+        E, J = model(p, b)
         ll, d1, info = _gaussian_terms(E, y_m[s], var_read[b], f2[b])
         w = w_m[s]
         return (w * ll).sum(axis=1), np.einsum("mk,mki->mi", w * d1, J), curvature(w * info, J)
@@ -612,7 +642,7 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
                              max_iter=max_iter)
 
     # ---- 2: exact likelihood through per-pixel tables of ln p(S | E) -------------------
-    E1, _ = model(p1)
+    E1, _ = model(p1, bead_of)
     E1 = E1.reshape(B, F, npix)
     lo, hi = _pad_range(E1.min(axis=1), E1.max(axis=1))
     table = noise.LogpmfTable(
@@ -624,7 +654,7 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     qbase = np.arange(npix)
 
     def exact_terms(p, s):
-        E, J = model(p)
+        E, J = model(p, bead_of[s])
         idx = (s[:, None] * npix + qbase).ravel()
         lp, d1, d2, out = table.evaluate(E.ravel(), idx)
         shape = E.shape
@@ -695,6 +725,22 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
                     axis=2)
     converged = (conv_b[:, None] & frame_ok & inside & ~outside.reshape(B, F)
                  & np.isfinite(ll2.reshape(B, F)))
+    # What the model misses: the mean of data − model over a bead's converged frames,
+    # but for frames whose intensity is held at its bound (a bead that was off): their
+    # residual is not centred on zero.
+    resid = np.empty((M, npix))
+    for a in range(0, M, _BATCH_FRAMES):
+        s = np.arange(a, min(M, a + _BATCH_FRAMES))
+        resid[s] = y_m[s] - model(p2[s], bead_of[s])[0]
+    free_n = (p2[:, 3] > 2 * lower[3]).reshape(B, F)
+    use = (converged & free_n)[..., None] & (weight > 0)      # (B, F, npix)
+    count = use.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        resid = np.where(use, resid.reshape(B, F, npix), 0.0)
+        r_mean = resid.sum(axis=1) / count
+        r_var = (np.where(use, (resid - r_mean[:, None]) ** 2, 0.0).sum(axis=1)
+                 / (count - 1) / count)
+    n = 2 * half_size + 1
     params = p2.copy()
     params[:, 0] += np.repeat(pos[:, 1], F)
     params[:, 1] += np.repeat(pos[:, 0], F)
@@ -707,6 +753,8 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         iterations=int(iters),
         retabulated=int(retab),
         n_saturated=n_sat,
+        residual=np.where(count > 1, r_mean, np.nan).reshape(B, n, n),
+        residual_se=np.sqrt(np.where(count > 1, r_var, np.nan)).reshape(B, n, n),
     )
 
 
@@ -728,6 +776,108 @@ def shared_widths(fits) -> np.ndarray:
     total = weight.sum(axis=0)
     return np.where(total > 0, (weight * np.where(ok, w, 0.0)).sum(axis=0)
                     / np.where(total > 0, total, 1.0), np.nan)
+
+
+def residual_image(fits, *, oversample=4, per_bead=True) -> psf.ResidualImage:
+    """The oversampled residual image of a bead series: what the Gaussian spot misses,
+    per unit intensity, from the fits of several acquisitions of the same beads.
+
+    The paper's second pass (Ryan et al. 2021, Methods): the fitted spots are subtracted
+    from the data and the differences kept on a grid finer than the pixels, to be added
+    to the PSF model (:class:`emccdcal.model.psf.ResidualImage`, ``fit_beads(...,
+    residual=)``). Each bead's mean residual (:attr:`BeadFits.residual`) divided by its
+    mean intensity is placed at its pixels' offsets from the bead's fitted centre; the
+    beads' different sub-pixel centres (and the stage's moves between set-points) fill
+    the fine grid. Values are averaged with inverse-variance weights, spread to the four
+    nearest nodes (bilinear weights) and smoothed by normalized convolution with a
+    Gaussian of SD ¼ pixel, which also fills the gaps between samples.
+
+    Parameters
+    ----------
+    fits : sequence of BeadFits
+        Fits of the same beads (same ``positions``), e.g. at every set-point, with the
+        Gaussian spot alone.
+    oversample : int
+        Grid nodes per pixel (4).
+    per_bead : bool
+        One image per bead (default: the PSF changes over the field of view, and a bead's
+        own residual is taken at its own centre), or one pooled over all beads.
+
+    Returns
+    -------
+    emccdcal.model.psf.ResidualImage
+    """
+    from scipy import ndimage
+
+    q = int(oversample)
+    if q < 1:
+        raise OptionError(f"oversample must be at least 1, got {oversample}")
+    fits = list(fits)
+    B, n = fits[0].residual.shape[:2]
+    h = n // 2
+    c = int(np.ceil((h + 1.5) * q))                 # nodes from the centre to the edge
+    G = 2 * c + 1
+    num = np.zeros((B if per_bead else 1, G, G))
+    den = np.zeros_like(num)
+    local = np.arange(-h, h + 1)
+    for fit in fits:
+        if fit.residual.shape[:2] != (B, n) or not np.array_equal(fit.positions,
+                                                                  fits[0].positions):
+            raise OptionError("residual_image needs fits of the same beads and box size")
+        for b in range(B):
+            ok = fit.converged[b]
+            if not ok.any():
+                continue
+            N = fit.intensity[b, ok].mean()
+            r, se = fit.residual[b] / N, fit.residual_se[b] / N
+            good = np.isfinite(r) & np.isfinite(se) & (se > 0)
+            x0, y0 = fit.params[b, np.argmax(ok), :2]
+            dy = (fit.positions[b, 0] + local - y0)[:, None] * np.ones(n)
+            dx = np.ones(n)[:, None] * (fit.positions[b, 1] + local - x0)
+            gy, gx = dy[good] * q + c, dx[good] * q + c      # fractional node indices
+            w = 1.0 / se[good] ** 2
+            iy, ix = np.floor(gy).astype(int), np.floor(gx).astype(int)
+            fy, fx = gy - iy, gx - ix
+            k = b if per_bead else 0
+            for oy, ox, wb in ((0, 0, (1 - fy) * (1 - fx)), (1, 0, fy * (1 - fx)),
+                               (0, 1, (1 - fy) * fx), (1, 1, fy * fx)):
+                jy, jx = iy + oy, ix + ox
+                inside = (jy >= 0) & (jy < G) & (jx >= 0) & (jx < G)
+                np.add.at(num[k], (jy[inside], jx[inside]), (wb * w * r[good])[inside])
+                np.add.at(den[k], (jy[inside], jx[inside]), (wb * w)[inside])
+    sd = (0.0, q / 4.0, q / 4.0)
+    num_s = ndimage.gaussian_filter(num, sd, mode="constant")
+    den_s = ndimage.gaussian_filter(den, sd, mode="constant")
+    floor = 1e-3 * den_s.max(axis=(1, 2), keepdims=True)
+    values = np.where(den_s > floor, num_s / np.where(den_s > floor, den_s, 1.0), 0.0)
+    return psf.ResidualImage(values, q)
+
+
+def psf_mismatch(fit) -> dict:
+    """How far the spot model is from the data of one acquisition, pooled over its beads.
+
+    Returns
+    -------
+    dict
+        ``chi2_per_pixel``: mean over beads of Σ_k (residual_k / SE_k)² / pixels, ≈ 1 when
+        the spot model describes the mean image to within its noise; ``missed_fraction``:
+        mean over beads of Σ_k residual_k / N, the fraction of the bead's intensity the
+        model misses inside its box (signed); ``abs_fraction``: the same of |residual_k|.
+    """
+    chi2, missed, absolute = [], [], []
+    for b in range(len(fit.positions)):
+        ok = fit.converged[b]
+        r, se = fit.residual[b], fit.residual_se[b]
+        good = np.isfinite(r) & np.isfinite(se) & (se > 0)
+        if not ok.any() or not good.any():
+            continue
+        N = fit.intensity[b, ok].mean()
+        chi2.append(float(np.sum((r[good] / se[good]) ** 2) / good.sum()))
+        missed.append(float(r[good].sum() / N))
+        absolute.append(float(np.abs(r[good]).sum() / N))
+    mean = (lambda v: float(np.mean(v)) if v else float("nan"))
+    return {"chi2_per_pixel": mean(chi2), "missed_fraction": mean(missed),
+            "abs_fraction": mean(absolute)}
 
 
 def _pad_range(lo, hi):

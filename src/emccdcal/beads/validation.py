@@ -47,6 +47,7 @@ import math
 import time
 import warnings
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -63,6 +64,7 @@ __all__ = [
     "DDOF",
     "consistency",
     "intensity_trend",
+    "blinking_level",
     "validate",
 ]
 
@@ -76,6 +78,18 @@ MIN_CONVERGED = 0.99
 TREND_Z = 4.0
 #: What validate does with a detected trend.
 TREND_ACTIONS = ("correct", "warn")
+#: Spot models of validate: the Gaussian alone, or with the residual image of each bead
+#: or of all beads pooled (the paper's second pass).
+PSF_MODELS = ("gaussian", "residual", "residual-pooled")
+#: Above this χ² per pixel of a set-point's mean residual (the spot model against the
+#: beads' mean images), validate says the PSF is not the Gaussian. Under a right model
+#: it is about 1; for 81 pixels, 2 has a chance of about 1e-7.
+PSF_CHI2 = 2.0
+#: What validate does with blinking beads.
+BLINK_ACTIONS = ("model", "ignore")
+#: Blinking is detected at a bead's set-point where the two-level mixture beats one level
+#: by this much (2 Δ ln L): a chance of 1e-4 without blinking (half χ²₁ at the boundary).
+BLINK_LR = 13.83
 
 
 # --------------------------------------------------------------------------------------
@@ -125,15 +139,11 @@ def consistency(means, *, ddof=DDOF):
 # validate
 # --------------------------------------------------------------------------------------
 def _acquisitions_by_setpoint(manifest):
+    """The acquisitions at each set-point, in the manifest's (recording) order: a set-point
+    recorded again (1× at the start and at the end of a series) has several."""
     by = {}
     for a in manifest.acquisitions:
-        s = float(a.em_gain_setpoint)
-        if s in by:
-            raise InputError(
-                f"{manifest.path}: acquisitions '{by[s].name}' and '{a.name}' are both at "
-                f"set-point {result.format_setpoint(s)}x; a bead manifest has one per set-point"
-            )
-        by[s] = a
+        by.setdefault(float(a.em_gain_setpoint), []).append(a)
     if 1.0 not in by:
         raise InputError(
             f"{manifest.path}: no acquisition at set-point 1; the consistency metric is "
@@ -142,14 +152,40 @@ def _acquisitions_by_setpoint(manifest):
     return dict(sorted(by.items()))
 
 
-def _frame_times(manifest, setpoints, F):
-    """Each frame's place in the recorded series (frames since the first), shape (S, F):
-    the acquisitions in the manifest's order, as they were recorded."""
-    start, t0 = {}, 0
+class _Slot(NamedTuple):
+    """Where one acquisition's frames go in the (set-point, frame) arrays."""
+
+    row: int        # the row of its set-point
+    setpoint: float
+    acq: object     # the manifest's Acquisition
+    first: int      # its first column: a repeated set-point's frames follow the earlier ones
+    key: str        # label: the set-point, "#2" for its second acquisition …
+    start: int      # frames recorded before it in the series
+
+
+def _frame_layout(manifest, acqs):
+    """One :class:`_Slot` per acquisition, in the manifest's (recording) order."""
+    rows = {s: i for i, s in enumerate(acqs)}
+    used = dict.fromkeys(acqs, 0)
+    count = dict.fromkeys(acqs, 0)
+    layout, t0 = [], 0
     for a in manifest.acquisitions:
-        start[float(a.em_gain_setpoint)] = t0
+        s = float(a.em_gain_setpoint)
+        count[s] += 1
+        key = result.format_setpoint(s) + ("" if count[s] == 1 else f"#{count[s]}")
+        layout.append(_Slot(rows[s], s, a, used[s], key, t0))
+        used[s] += a.n_frames
         t0 += a.n_frames
-    return np.array([start[s] for s in setpoints], float)[:, None] + np.arange(F)[None, :]
+    return layout
+
+
+def _frame_times(layout, S, F):
+    """Each frame's place in the recorded series (frames since the first), shape (S, F)."""
+    times = np.zeros((S, F))
+    for slot in layout:
+        n = slot.acq.n_frames
+        times[slot.row, slot.first:slot.first + n] = slot.start + np.arange(n)
+    return times
 
 
 def intensity_trend(N, se, times, *, z_detect=TREND_Z) -> dict:
@@ -201,12 +237,76 @@ def intensity_trend(N, se, times, *, z_detect=TREND_Z) -> dict:
             "fade_over_series": -math.expm1(-k * span), "detected": bool(abs(z) > z_detect)}
 
 
+def blinking_level(N, se, *, lr_detect=BLINK_LR, iterations=200) -> dict:
+    """Beads that switch off: each bead's intensities at a set-point as a mixture of an
+    "on" level and zero.
+
+    A blinking bead emits nothing in some frames, which lowers its mean at that set-point
+    by the fraction of frames it was off: a different fraction at every set-point, which
+    the metric would take for gain errors. Each frame's intensity is modelled as
+    ``N_f ~ (1 − f)·Normal(m, se_f) + f·Normal(0, se_f)`` with its own standard error, and
+    m and the off fraction f are fitted by expectation–maximisation. Where the mixture
+    beats one level (``f = 0``) by ``2 Δ ln L > lr_detect``, blinking is detected and the
+    on level ``Σ (1 − r_f) N_f / Σ (1 − r_f)`` (``r_f`` the frame's probability of being
+    off) replaces the mean. A frame is counted as off where ``r_f > ½``. A bead dimmed
+    rather than off in some frames (a partial blink within an exposure) is not what the
+    model describes.
+
+    Parameters
+    ----------
+    N, se : ndarray, shape (..., F)
+        Per-frame intensities and standard errors (e⁻), NaN where a frame is not used.
+
+    Returns
+    -------
+    dict
+        ``on_level`` (...) e⁻, ``off_fraction`` (...), ``lr`` (...) the statistic,
+        ``detected`` (...) bool, ``off_probability`` (..., F) and ``off`` (..., F) bool
+        (False where not detected).
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(3)
+    >>> on = rng.random((1, 400)) > 0.1
+    >>> N = np.where(on, 5000.0, 0.0) + 50.0 * rng.standard_normal((1, 400))
+    >>> b = blinking_level(N, np.full((1, 400), 50.0))
+    >>> bool(b["detected"][0]), int(b["off"].sum()) == int((~on).sum())
+    (True, True)
+    >>> bool(abs(b["on_level"][0] - 5000) < 10)
+    True
+    """
+    ok = np.isfinite(N) & np.isfinite(se) & (se > 0)
+    x = np.where(ok, N, 0.0)
+    w = np.where(ok, 1.0 / np.where(ok, se, 1.0) ** 2, 0.0)
+    n = ok.sum(axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        m1 = (w * x).sum(axis=-1) / w.sum(axis=-1)       # one level: weighted ML mean
+        ll_one = np.where(ok, -0.5 * w * (x - m1[..., None]) ** 2, 0.0).sum(axis=-1)
+        m, f = m1.copy(), np.full(m1.shape, 0.1)
+        for _ in range(iterations):
+            l_on = np.log1p(-f)[..., None] - 0.5 * w * (x - m[..., None]) ** 2
+            l_off = np.log(f)[..., None] - 0.5 * w * x**2
+            r = np.where(ok, np.exp(l_off - np.logaddexp(l_on, l_off)), 0.0)
+            f = np.clip(r.sum(axis=-1) / n, 1e-9, 1 - 1e-9)
+            m = ((1 - r) * w * x).sum(axis=-1) / ((1 - r) * w).sum(axis=-1)
+        l_on = np.log1p(-f)[..., None] - 0.5 * w * (x - m[..., None]) ** 2
+        l_off = np.log(f)[..., None] - 0.5 * w * x**2
+        ll_mix = np.where(ok, np.logaddexp(l_on, l_off), 0.0).sum(axis=-1)
+        r = np.where(ok, np.exp(l_off - np.logaddexp(l_on, l_off)), 0.0)
+        lr = 2.0 * (ll_mix - ll_one)
+        detected = np.isfinite(lr) & (lr > lr_detect) & (n > 1)
+        on_level = ((1 - r) * x).sum(axis=-1) / ((1 - r) * ok).sum(axis=-1)
+    return {"on_level": on_level, "off_fraction": np.where(detected, f, 0.0), "lr": lr,
+            "detected": detected, "off_probability": np.where(detected[..., None], r, 0.0),
+            "off": detected[..., None] & (r > 0.5)}
+
+
 def _detect(manifest, acqs, setpoint, width, half_size, min_separation, snr):
     s = max(acqs) if setpoint is None else float(setpoint)
     if s not in acqs:
         raise OptionError(f"{manifest.path}: no acquisition at set-point "
                          f"{result.format_setpoint(s)}x to detect the beads on")
-    acq = acqs[s]
+    acq = acqs[s][0]
     found = bead_fit.detect_beads(acq.frames(), acq.offset, width=width, half_size=half_size,
                                 min_separation=min_separation, snr=snr)
     where = f"{acq.frames_path} (mean image, threshold {found.threshold:.4g} ADU above background)"
@@ -251,7 +351,8 @@ def _box_ok(phi, gain, positions, half_size):
 
 def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WIDTH,
              half_size=bead_fit.DEFAULT_HALF_SIZE, min_separation=None, snr=8.0,
-             detect_setpoint=None, progress=False, bleaching="correct") -> dict:
+             detect_setpoint=None, progress=False, bleaching="correct", psf="gaussian",
+             blinking="model") -> dict:
     """Fit the beads under each calibration and compare their intensities across set-points.
 
     Parameters
@@ -283,6 +384,17 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
         frame's intensity times e^(k t), t its place in the series, the acquisitions in
         the manifest's order) before the means are compared, or only warn. Either way
         ``validation.json`` reports it (``intensity_trend``).
+    psf : {"gaussian", "residual", "residual-pooled"}
+        The spot model: the pixel-integrated Gaussian (default), or the paper's second
+        pass: a third fit with each bead's oversampled residual image added to it
+        (:func:`emccdcal.beads.fit.residual_image`; "residual-pooled": one image for all
+        beads). Either way ``psf_mismatch`` in ``validation.json`` says how well the
+        Gaussian describes the beads' mean images, with a warning where it does not.
+    blinking : {"model", "ignore"}
+        Beads that switch off for some frames (:func:`blinking_level`): at a set-point
+        where a bead's intensities are a mixture of an "on" level and zero, take the on
+        level rather than the mean (default), or ignore blinking (the plain mean). Either
+        way ``validation.json`` reports the frames found off (``blinking``).
 
     Returns
     -------
@@ -300,6 +412,11 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
     if bleaching not in TREND_ACTIONS:
         raise OptionError(f"bleaching must be one of {', '.join(TREND_ACTIONS)}; got "
                           f"{bleaching!r}")
+    if psf not in PSF_MODELS:
+        raise OptionError(f"psf must be one of {', '.join(PSF_MODELS)}; got {psf!r}")
+    if blinking not in BLINK_ACTIONS:
+        raise OptionError(f"blinking must be one of {', '.join(BLINK_ACTIONS)}; got "
+                          f"{blinking!r}")
     manifest = bead_manifest if isinstance(bead_manifest, Manifest) \
         else read_manifest(bead_manifest)
     if not calibrations:
@@ -314,8 +431,9 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
     found, det_acq = _detect(manifest, acqs, detect_setpoint, width, half_size,
                              min_separation, snr)
     positions = found.positions
-    B, S = len(positions), len(setpoints)
-    Fmax = max(a.n_frames for a in acqs.values())
+    layout = _frame_layout(manifest, acqs)
+    B, S, A = len(positions), len(setpoints), len(layout)
+    Fmax = max(sum(a.n_frames for a in group) for group in acqs.values())
     names = ("x", "y", "width", "intensity", "background")
     shape = (len(cals), B, S, Fmax)
     arr = {n: np.full(shape, np.nan) for n in names}
@@ -324,23 +442,27 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
     conv = np.zeros(shape, bool)
     cache: dict = {}
 
-    def fit_at(cal, s, ok, fixed=None):
-        """The beads ``ok`` at set-point ``s`` under ``cal`` (cached: calibrations that
-        agree there share the fit)."""
-        acq, g = acqs[s], cal.gain(s)
-        key = (s, positions[ok].tobytes(), _boxes_bytes(cal.e_per_adu, positions[ok],
+    def fit_at(cal, j, ok, fixed=None, residual=None):
+        """The beads ``ok`` in acquisition ``j`` of the layout under ``cal`` (cached:
+        calibrations that agree there share the fit)."""
+        acq, g = layout[j].acq, cal.gain(layout[j].setpoint)
+        key = (j, positions[ok].tobytes(), _boxes_bytes(cal.e_per_adu, positions[ok],
                                                        half_size),
                _boxes_bytes(g, positions[ok], half_size), cal.em_model,
-               None if fixed is None else fixed.tobytes())
+               None if fixed is None else fixed.tobytes(),
+               None if residual is None else residual.values.tobytes())
         if key not in cache:
             cache[key] = bead_fit.fit_beads(
                 acq.frames(), positions[ok], offset=acq.offset, read_noise=acq.read_noise,
                 e_per_adu=cal.e_per_adu, em_gain=g, half_size=half_size, width=width,
-                adc_max=manifest.adc_max, em_model=cal.em_model, fixed_width=fixed)
+                adc_max=manifest.adc_max, em_model=cal.em_model, fixed_width=fixed,
+                residual=residual)
         return cache[key]
 
+    passes = 2 if psf == "gaussian" else 3
+    mismatch = []
     with progress_bar(enabled=progress, desc="fitting beads", unit="stack",
-                      total=2 * len(cals) * S) as bar:
+                      total=passes * len(cals) * A) as bar:
         for ci, cal in enumerate(cals):
             ok = np.ones(B, bool)
             for s in setpoints:
@@ -353,40 +475,52 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
                         stacklevel=2,
                     )
                 ok &= ~bad
-            # Pass 1: each set-point with the width free (shared by its frames); the
+            # Pass 1: each acquisition with the width free (shared by its frames); the
             # widths pooled over set-points are every bead's one width for pass 2.
             first = []
-            for s in setpoints:
-                bar.set_postfix_str(f"{cal.method} {result.format_setpoint(s)}x (width)")
-                first.append(fit_at(cal, s, ok))
+            for j, slot in enumerate(layout):
+                bar.set_postfix_str(f"{cal.method} {slot.key}x (width)")
+                first.append(fit_at(cal, j, ok))
                 bar.update(1)
             widths = bead_fit.shared_widths(first)
-            for si, s in enumerate(setpoints):
-                bar.set_postfix_str(f"{cal.method} {result.format_setpoint(s)}x")
-                acq = acqs[s]
-                fit = fit_at(cal, s, ok, widths) if np.isfinite(widths).all() else first[si]
-                F = acq.n_frames
-                idx = np.flatnonzero(ok)
+            if not np.isfinite(widths).all():
+                widths = None
+            fits = []
+            for j, slot in enumerate(layout):
+                bar.set_postfix_str(f"{cal.method} {slot.key}x")
+                fits.append(fit_at(cal, j, ok, widths) if widths is not None else first[j])
+                bar.update(1)
+            gaussian = [bead_fit.psf_mismatch(f) for f in fits]
+            if psf != "gaussian":  # the paper's second pass: the residual image added
+                image = bead_fit.residual_image(fits, per_bead=psf == "residual")
+                fits = []
+                for j, slot in enumerate(layout):
+                    bar.set_postfix_str(f"{cal.method} {slot.key}x (residual)")
+                    fits.append(fit_at(cal, j, ok, widths, image))
+                    bar.update(1)
+            mismatch.append({"gaussian": gaussian} | (
+                {} if psf == "gaussian" else {psf: [bead_fit.psf_mismatch(f) for f in fits]}))
+            idx = np.flatnonzero(ok)
+            for slot, fit in zip(layout, fits):
+                at = (ci, idx, slot.row, slice(slot.first, slot.first + slot.acq.n_frames))
                 for j, n in enumerate(names):
-                    arr[n][ci, idx, si, :F] = fit.params[..., j]
-                    arr_se[n][ci, idx, si, :F] = fit.se[..., j]
-                loglik[ci, idx, si, :F] = fit.loglik
-                conv[ci, idx, si, :F] = fit.converged
+                    arr[n][at] = fit.params[..., j]
+                    arr_se[n][at] = fit.se[..., j]
+                loglik[at] = fit.loglik
+                conv[at] = fit.converged
                 if fit.n_saturated and ci == 0:
-                    warnings.warn(f"{acq.frames_path}: {fit.n_saturated} count(s) at the ADC "
+                    warnings.warn(f"{slot.acq.frames_path}: {fit.n_saturated} count(s) at the ADC "
                                   "maximum in the bead boxes were left out of the fits",
                                   stacklevel=2)
-                bar.update(1)
 
-    times = _frame_times(manifest, setpoints, Fmax)
-    doc = _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, times, bleaching,
-                     det_acq, half_size,
-                     time.perf_counter() - t0)
+    doc = _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, layout, det_acq,
+                     half_size, time.perf_counter() - t0, bleaching=bleaching,
+                     blinking=blinking, psf=psf, mismatch=mismatch)
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
         ds = _intensities_dataset(cals, setpoints, positions, arr, arr_se, loglik, conv,
-                                  manifest)
+                                  manifest, layout)
         atomic_write(out / INTENSITIES_FILE, lambda p: ds.to_netcdf(p, engine="h5netcdf"))
         text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
         atomic_write_text(out / VALIDATION_FILE, text)
@@ -399,13 +533,28 @@ def _boxes_bytes(m, positions, half_size):
         .tobytes() for r, c in positions)
 
 
-def _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, times, bleaching,
-               det_acq, half_size, seconds):
+def _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, layout, det_acq,
+               half_size, seconds, *, bleaching, blinking, psf, mismatch):
     keys = [result.format_setpoint(s) for s in setpoints]
+    times = _frame_times(layout, len(setpoints), conv.shape[-1])
     I = np.where(conv, arr["intensity"], np.nan)
+    I_se = np.where(conv, arr_se["intensity"], np.nan)
     entries = []
     for ci, cal in enumerate(cals):
-        trend = intensity_trend(I[ci], np.where(conv[ci], arr_se["intensity"][ci], np.nan),
+        blink = blinking_level(I[ci], I_se[ci])
+        off = blink["off"]
+        n_off = off.sum(axis=2)  # (B, S)
+        if n_off.any():
+            beads_off = int(blink["detected"].any(axis=1).sum())
+            warnings.warn(
+                f"{cal.label}: {beads_off} bead(s) switch off in some frames (blinking: "
+                + ", ".join(f"{int(n)} frame(s) at {k}x" for k, n in zip(keys, n_off.sum(axis=0))
+                            if n) + "); "
+                + ("their mean intensities are the 'on' level of a two-level mixture"
+                   if blinking == "model" else
+                   "ignored (--blinking ignore): the off frames lower their means"),
+                stacklevel=3)
+        trend = intensity_trend(np.where(off, np.nan, I[ci]), np.where(off, np.nan, I_se[ci]),
                                 times)
         trend["corrected"] = bool(trend["detected"] and bleaching == "correct")
         if trend["detected"]:
@@ -419,15 +568,20 @@ def _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, times, b
                    "set-points"), stacklevel=3)
         if trend["corrected"]:
             I[ci] = I[ci] * np.exp(trend["rate_per_frame"] * times)[None]
+        on = np.where(np.isfinite(I[ci]), 1.0 - blink["off_probability"], 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            on_level = np.nansum(on * I[ci], axis=2) / on.sum(axis=2)
+        use_on = blink["detected"] & (blinking == "model")
         bead_entries = []
         per = {d: {"incl": [], "excl": []} for d in (0, 1)}
         for b, (r, c) in enumerate(positions):
             vals = I[ci, b]  # (S, F)
-            n = np.sum(np.isfinite(vals), axis=1)
             with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
-                mean = np.nanmean(vals, axis=1)
-                se = np.nanstd(vals, axis=1, ddof=1) / np.sqrt(n)
+                mean = np.where(use_on[b], on_level[b], np.nanmean(vals, axis=1))
+                kept = np.where(use_on[b][:, None] & off[b], np.nan, vals)
+                n = np.sum(np.isfinite(kept), axis=1)
+                se = np.nanstd(kept, axis=1, ddof=1) / np.sqrt(n)
                 y = np.nanmedian(np.where(conv[ci, b], arr["y"][ci, b], np.nan))
                 x = np.nanmedian(np.where(conv[ci, b], arr["x"][ci, b], np.nan))
             means = dict(zip(setpoints, mean))
@@ -445,6 +599,7 @@ def _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, times, b
                 "sigma_means_incl_1x_ddof1": finite_or_none(metric[1][0]),
                 "sigma_means_excl_1x_ddof1": finite_or_none(metric[1][1]),
                 "frames_used": {k: int(v) for k, v in zip(keys, n)},
+                "frames_off": {k: int(v) for k, v in zip(keys, n_off[b])},
                 "fitted_row": finite_or_none(y),
                 "fitted_col": finite_or_none(x),
             })
@@ -464,10 +619,32 @@ def _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, times, b
                 + ", ".join(f"{100 * v:.1f} % at {k}x" for k, v in low.items())
                 + " of frames; the means are over the others, which can bias them if the "
                 "failures depend on the frames' brightness", stacklevel=3)
+        psf_doc = {model: {slot.key: {q: finite_or_none(v) for q, v in m.items()}
+                           for slot, m in zip(layout, per_acquisition)}
+                   for model, per_acquisition in mismatch[ci].items()}
+        repeats = _repeats(cal, layout, keys, I[ci], blink["off"])
+        poor = {k: m["chi2_per_pixel"] for k, m in psf_doc["gaussian"].items()
+                if m["chi2_per_pixel"] is not None and m["chi2_per_pixel"] > PSF_CHI2}
+        if poor:
+            warnings.warn(
+                f"{cal.label}: the Gaussian spot does not describe the beads' mean images "
+                "(chi2 per pixel " + ", ".join(f"{v:.1f} at {k}x" for k, v in poor.items())
+                + "); " + ("the residual image was added (--psf " + psf + ")"
+                           if psf != "gaussian" else
+                           "a PSF mismatch can weigh differently at different set-points: "
+                           "try --psf residual"), stacklevel=3)
         entries.append({
             "file": cal.label,
             "method": cal.method,
             "converged_fraction": fraction,
+            "psf": psf,
+            "psf_mismatch": psf_doc,
+            "blinking": {
+                "frames_off": {k: int(v) for k, v in zip(keys, n_off.sum(axis=0))},
+                "beads": int(blink["detected"].any(axis=1).sum()),
+                "modelled": blinking == "model",
+            },
+            "repeats": repeats,
             "intensity_trend": {k: (finite_or_none(v) if isinstance(v, float) else v)
                                 for k, v in trend.items()},
             "beads": bead_entries,
@@ -506,7 +683,47 @@ def _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, times, b
     }
 
 
-def _intensities_dataset(cals, setpoints, positions, arr, arr_se, loglik, conv, manifest):
+def _repeats(cal, layout, keys, I, off):
+    """A set-point recorded more than once: each later acquisition's beads against the
+    first's, after the trend correction (``I`` (B, S, F) as corrected, off frames left
+    out). Mean over beads of the ratio of their means, its SE (SD over beads / √B) and z;
+    warned beyond :data:`TREND_Z`: something changed over the series that the frames'
+    own time course does not show (light lost between acquisitions, focus)."""
+    out = []
+    I = np.where(off, np.nan, I)
+    for si, key in enumerate(keys):
+        slots = [slot for slot in layout if slot.row == si]
+        if len(slots) < 2:
+            continue
+        with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            means = [np.nanmean(I[:, si, slot.first:slot.first + slot.acq.n_frames], axis=1)
+                     for slot in slots]
+            later = []
+            for slot, m in zip(slots[1:], means[1:]):
+                a = slot.acq
+                r = m / means[0]
+                r = r[np.isfinite(r)]
+                se = float(np.std(r, ddof=1) / np.sqrt(r.size)) if r.size > 1 else math.nan
+                ratio = float(np.mean(r)) if r.size else math.nan
+                z = (ratio - 1) / se if se > 0 else math.nan
+                later.append({"acquisition": a.name, "key": slot.key,
+                              "ratio": finite_or_none(ratio),
+                              "ratio_se": finite_or_none(se), "z": finite_or_none(z),
+                              "beads": int(r.size)})
+                if abs(z) > TREND_Z:
+                    warnings.warn(
+                        f"{cal.label}: the beads' mean intensity at {key}x changed by "
+                        f"{100 * (ratio - 1):+.2f} % between acquisitions "
+                        f"'{slots[0].acq.name}' and '{a.name}' ({z:.1f} standard errors), "
+                        "beyond the trend within the acquisitions: light lost between "
+                        "them, or a change of focus or illumination", stacklevel=4)
+        out.append({"setpoint": key, "first": slots[0].acq.name, "later": later})
+    return out
+
+
+def _intensities_dataset(cals, setpoints, positions, arr, arr_se, loglik, conv, manifest,
+                         layout):
     import xarray as xr
 
     from .. import __version__
@@ -541,7 +758,10 @@ def _intensities_dataset(cals, setpoints, positions, arr, arr_se, loglik, conv, 
         "setpoint": ("setpoint", np.array(setpoints, dtype=float),
                      {"units": "1", "long_name": "EM gain set-point of the camera"}),
         "frame": ("frame", np.arange(arr["intensity"].shape[-1]),
-                  {"long_name": "frame index within the acquisition"}),
+                  {"long_name": "frame index within the set-point (a repeated set-point's "
+                                "acquisitions one after another)"}),
+        "acquisition": (("setpoint", "frame"), _acquisition_names(layout, arr),
+                        {"long_name": "the acquisition (manifest name) of each frame"}),
     }
     return xr.Dataset(data, coords=coords, attrs={
         "emccdcal_version": __version__,
@@ -550,6 +770,13 @@ def _intensities_dataset(cals, setpoints, positions, arr, arr_se, loglik, conv, 
         "note": "NaN and converged = 0 where a frame does not exist at a set-point or a bead "
                 "was left out for a calibration",
     })
+
+
+def _acquisition_names(layout, arr):
+    names = np.full(arr["intensity"].shape[-2:], "", dtype=object)
+    for slot in layout:
+        names[slot.row, slot.first:slot.first + slot.acq.n_frames] = slot.acq.name
+    return names.astype(str)
 
 
 def read_validation(directory):

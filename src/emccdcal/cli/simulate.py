@@ -122,7 +122,9 @@ def _run_beads(args) -> int:
                          photoelectrons=args.photoelectrons,
                          width=args.width, background=args.background,
                          min_separation=args.min_separation, margin=args.margin,
-                         bleaching=args.bleaching,
+                         bleaching=args.bleaching, halo=args.halo, halo_width=args.halo_width,
+                         blinking=args.blinking, blink_frames=args.blink_frames,
+                         repeat=args.repeat,
                          setpoints=args.setpoints, em_gain=args.em_gain, offsets=args.offsets,
                          **_common_kwargs(args))
     _report(res, "bead movies")
@@ -202,6 +204,17 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     bd.add_argument("--bleaching", type=float, default=BEAD_DEFAULTS["bleaching"],
                     help="fraction of the beads' light lost from the first frame of the series "
                     "to the last, set-points recorded in the order given (default %(default)s)")
+    bd.add_argument("--halo", type=float, default=BEAD_DEFAULTS["halo"],
+                    help="fraction of each bead's light in a wider Gaussian halo: a PSF the "
+                    "bead fits' Gaussian does not describe (default %(default)s)")
+    bd.add_argument("--halo-width", type=float, default=None,
+                    help="the halo's standard deviation, px (default 3 x --width)")
+    bd.add_argument("--blinking", type=float, default=BEAD_DEFAULTS["blinking"],
+                    help="fraction of frames in which each bead is off (default %(default)s)")
+    bd.add_argument("--blink-frames", type=float, default=BEAD_DEFAULTS["blink_frames"],
+                    help="mean length of a bead's off runs, frames (default %(default)s)")
+    bd.add_argument("--repeat", type=float, default=None, metavar="SETPOINT",
+                    help="record this set-point again at the end of the series (e.g. 1)")
     _setpoint_options(bd)
     _camera_options(bd, CAMERA_DEFAULTS)
     bd.set_defaults(func=_run_beads)

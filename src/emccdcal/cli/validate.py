@@ -19,7 +19,7 @@ def add_parser(subparsers):
         "OUT/intensities.nc and figures (docs/beads.md).",
     )
     p.add_argument("manifest", type=Path, metavar="BEAD_MANIFEST",
-                   help="TOML manifest of the bead stacks (one per set-point, 1x included)")
+                   help="TOML manifest of the bead stacks (one or more per set-point, 1x included)")
     p.add_argument("--calibration", "-c", action="append", nargs="+", required=True,
                    metavar="FILE[,FILE...]",
                    help="a calibration result (calibration.nc or its directory), or a "
@@ -39,6 +39,14 @@ def add_parser(subparsers):
     p.add_argument("--bleaching", choices=("correct", "warn"), default="correct",
                    help="a trend of the beads' intensity within the acquisitions (bleaching): "
                    "undo it before comparing set-points, or only warn (default %(default)s)")
+    p.add_argument("--psf", choices=("gaussian", "residual", "residual-pooled"),
+                   default="gaussian",
+                   help="spot model: the Gaussian, or the paper's second pass with each bead's "
+                   "oversampled residual image added (or one pooled over the beads) "
+                   "(default %(default)s)")
+    p.add_argument("--blinking", choices=("model", "ignore"), default="model",
+                   help="beads off in some frames: take the 'on' level of a two-level "
+                   "mixture where found, or ignore it (default %(default)s)")
     _common.add_no_figures(p)
     _common.add_quiet(p)
     p.set_defaults(func=run)
@@ -61,7 +69,8 @@ def run(args) -> int:
         doc = validate(args.manifest, specs, out=args.out, width=args.width,
                        half_size=args.half_size, min_separation=args.min_separation,
                        snr=args.snr, detect_setpoint=args.detect_setpoint,
-                       progress=not args.quiet, bleaching=args.bleaching)
+                       progress=not args.quiet, bleaching=args.bleaching, psf=args.psf,
+                       blinking=args.blinking)
         if not args.no_figures:
             from ..report.figures import write_validation_figures
 

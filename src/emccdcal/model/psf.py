@@ -12,6 +12,11 @@ The spot model (Mortensen & Flyvbjerg 2016, step 1; Mortensen et al. 2010; docs/
 the expected signal of pixel k (photoelectrons, or any unit that N and b share), with the
 spot's centre (x0, y0) in pixels, its standard deviation s in pixels, its total N and the
 background b per pixel. The parameter vector is always ordered as :data:`PARAMETERS`.
+
+A PSF that is not Gaussian is described by adding an oversampled residual image
+(:class:`ResidualImage`, the paper's second pass): ``E_k = N·(P_k + R(y_k − y0, x_k − x0)) + b``,
+R the part of a unit spot's pixel values the Gaussian misses, as a function of the pixel
+centre's offset from the spot's centre.
 """
 
 from __future__ import annotations
@@ -23,7 +28,8 @@ from scipy import ndimage, special
 
 from ..errors import OptionError
 
-__all__ = ["PARAMETERS", "pixel_fractions", "spot_image", "BeadSearch", "find_beads"]
+__all__ = ["PARAMETERS", "pixel_fractions", "spot_image", "ResidualImage", "BeadSearch",
+           "find_beads"]
 
 #: Order of the spot parameters: centre column x0 and row y0 (pixel), width s (pixel),
 #: total signal N and background b per pixel (photoelectrons).
@@ -114,6 +120,83 @@ def spot_image(params, rows, cols, *, jacobian=False):
         axis=-1,
     )
     return image, jac
+
+
+class ResidualImage:
+    """What the pixel-integrated Gaussian misses of a spot, per unit intensity, as a smooth
+    function of a pixel centre's offset from the spot's centre.
+
+    The paper's second pass (Ryan et al. 2021, Methods): the fits' residuals, stored on a
+    grid finer than the pixels and added to the spot model. Values are pixel-integrated
+    already (each is what a whole pixel at that offset receives, as a fraction of the
+    spot's intensity N), so evaluating at a pixel's offset needs no further binning; a
+    bicubic spline interpolates between the grid's nodes and gives the derivatives by the
+    centre.
+
+    Parameters
+    ----------
+    values : array_like, shape (K, G, G)
+        One image per spot (K beads) or one for all (K = 1): the fraction of N, at offsets
+        ``(i − (G − 1)/2) / oversample`` pixels (i = 0 … G − 1) along rows then columns.
+    oversample : int
+        Grid nodes per pixel.
+
+    Examples
+    --------
+    >>> r = ResidualImage(np.zeros((1, 9, 9)), oversample=2)
+    >>> r.extent
+    2.0
+    >>> [float(v.sum()) for v in r.evaluate(np.zeros(1, int), np.zeros((1, 3)), np.zeros((1, 3)))]
+    [0.0, 0.0, 0.0]
+    """
+
+    def __init__(self, values, oversample):
+        from scipy.interpolate import RectBivariateSpline
+
+        self.values = np.asarray(values, float)
+        if self.values.ndim != 3 or self.values.shape[1] != self.values.shape[2] \
+                or self.values.shape[1] < 4:
+            raise OptionError(f"a residual image is (K, G, G) with G >= 4, got shape "
+                              f"{self.values.shape}")
+        self.oversample = int(oversample)
+        G = self.values.shape[1]
+        self.extent = (G - 1) / 2 / self.oversample  # pixel
+        nodes = np.linspace(-self.extent, self.extent, G)
+        self._splines = [RectBivariateSpline(nodes, nodes, v, kx=3, ky=3, s=0)
+                         for v in self.values]
+
+    def __len__(self):
+        return len(self.values)
+
+    def evaluate(self, which, dy, dx):
+        """The residual at offsets ``(dy, dx)`` (pixel) and its derivatives by them.
+
+        Parameters
+        ----------
+        which : array_like of int, shape (m,)
+            The image of each row (0 when there is one for all).
+        dy, dx : ndarray, shape (m, n)
+            Offsets of pixel centres from the spot's centre, along rows and columns
+            (pixel). Beyond the grid the residual is 0.
+
+        Returns
+        -------
+        R, dR_ddy, dR_ddx : ndarray, shape (m, n)
+            Fraction of the spot's intensity, and its derivatives (per pixel).
+        """
+        which = np.asarray(which, int)
+        out = [np.zeros(dy.shape) for _ in range(3)]
+        inside = (np.abs(dy) <= self.extent) & (np.abs(dx) <= self.extent)
+        for k in np.unique(which):
+            rows = which == k
+            sel = inside[rows]
+            yy, xx = dy[rows][sel], dx[rows][sel]
+            spline = self._splines[k if len(self._splines) > 1 else 0]
+            for o, (ny, nx) in zip(out, ((0, 0), (1, 0), (0, 1))):
+                part = np.zeros(sel.shape)
+                part[sel] = spline.ev(yy, xx, dx=ny, dy=nx)
+                o[rows] = part
+        return tuple(out)
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 A field of isolated fluorescent beads (Ryan et al. 2021, bead validation): every pixel
 receives Poisson photoelectrons with mean ``E_k = Σ_b N_b·P_k + b`` (:func:`bead_scene`,
-a pixel-integrated Gaussian PSF), then the camera of
+a pixel-integrated Gaussian PSF, optionally with a wider halo), then the camera of
 :func:`~emccdcal.simulate.camera.simulate_frames` at each set-point. Besides the stacks,
 darks and maps, :func:`simulate_beads` writes ``truth_calibration.nc``: the true
 calibration in the result contract. ``docs/beads.md`` has examples.
@@ -46,6 +46,10 @@ BEAD_DEFAULTS = {
     "min_separation": 12.0,
     "margin": 6.0,
     "bleaching": 0.0,
+    "halo": 0.0,
+    "halo_width": None,
+    "blinking": 0.0,
+    "blink_frames": 5.0,
 }
 #: The default camera of a bead simulation, where it differs from :class:`Camera`'s.
 CAMERA_DEFAULTS = {"rows": 64, "cols": 64, "frames": 500, "dark_frames": 2000}
@@ -78,11 +82,39 @@ def _place_beads(n, rows, cols, margin, min_separation, rng) -> np.ndarray:
     return np.array(placed)
 
 
-def bead_scene(positions, photoelectrons, width, background, rows, cols) -> np.ndarray:
+def bead_images(positions, photoelectrons, width, rows, cols, *, halo=0.0,
+                halo_width=None) -> np.ndarray:
+    """Each bead's expected photoelectrons per pixel per frame, e⁻, shape (B, rows, cols).
+
+    The PSF is the pixel-integrated Gaussian :func:`emccdcal.model.psf.spot_image` of SD
+    ``width``, or with ``halo`` > 0 the mixture ``(1 − h)·G(width) + h·G(halo_width)``: a
+    core and a wider halo, the simplest PSF that a single Gaussian does not describe
+    (real objectives' wings, out-of-focus light). Every bead's light sums to its
+    ``photoelectrons`` over an unbounded sensor.
+    """
+    pos = np.asarray(positions, dtype=float).reshape(-1, 2)
+    n = np.broadcast_to(np.asarray(photoelectrons, dtype=float), (len(pos),))
+    if not len(pos):
+        return np.zeros((0, rows, cols))
+    r, c = np.arange(rows), np.arange(cols)
+
+    def gaussian(sd, total):
+        params = np.column_stack([pos[:, 1], pos[:, 0], np.full(len(pos), sd), total,
+                                  np.zeros(len(pos))])
+        return spot_image(params, r, c)
+
+    if halo == 0:
+        return gaussian(width, n)
+    return gaussian(width, (1.0 - halo) * n) + gaussian(halo_width, halo * n)
+
+
+def bead_scene(positions, photoelectrons, width, background, rows, cols, *, halo=0.0,
+               halo_width=None) -> np.ndarray:
     """Expected photoelectrons per pixel per frame of a field of beads, e⁻.
 
-    ``E_k = Σ_b N_b·P_k(x_b, y_b, s) + background`` with the pixel-integrated Gaussian
-    :func:`emccdcal.model.psf.spot_image`.
+    ``E_k = Σ_b N_b·P_k(x_b, y_b) + background`` with the PSF of :func:`bead_images`
+    (the pixel-integrated Gaussian :func:`emccdcal.model.psf.spot_image`, or a core and
+    a halo).
 
     Parameters
     ----------
@@ -91,11 +123,15 @@ def bead_scene(positions, photoelectrons, width, background, rows, cols) -> np.n
     photoelectrons : float or array_like, shape (B,)
         N_b, each bead's total photoelectrons per frame (e⁻).
     width : float
-        PSF standard deviation s (pixel).
+        PSF standard deviation s (pixel); the core's with a halo.
     background : float
         Uniform background b (e⁻ per pixel per frame).
     rows, cols : int
         Sensor size (pixel).
+    halo : float, optional
+        Fraction of each bead's light in the halo (0: a Gaussian PSF).
+    halo_width : float, optional
+        The halo's standard deviation (pixel).
 
     Returns
     -------
@@ -106,14 +142,28 @@ def bead_scene(positions, photoelectrons, width, background, rows, cols) -> np.n
     >>> E = bead_scene([[10.0, 12.0]], 5000.0, 1.3, 10.0, 24, 24)
     >>> round(float(E.sum() - 10.0 * 24 * 24))
     5000
+    >>> E = bead_scene([[20.0, 20.0]], 5000.0, 1.3, 0.0, 41, 41, halo=0.2, halo_width=3.0)
+    >>> round(float(E.sum())), round(float(E[20, 20] / 5000), 4)
+    (5000, 0.0753)
     """
-    pos = np.asarray(positions, dtype=float).reshape(-1, 2)
-    n = np.broadcast_to(np.asarray(photoelectrons, dtype=float), (len(pos),))
-    params = np.column_stack([pos[:, 1], pos[:, 0], np.full(len(pos), width), n,
-                              np.zeros(len(pos))])
-    image = spot_image(params, np.arange(rows), np.arange(cols)).sum(axis=0) if len(pos) \
-        else np.zeros((rows, cols))
-    return image + background
+    return bead_images(positions, photoelectrons, width, rows, cols, halo=halo,
+                       halo_width=halo_width).sum(axis=0) + background
+
+
+def _blinking(beads, frames, off_fraction, mean_off, rng) -> np.ndarray:
+    """Each bead's on (1) / off (0) state in every frame of the series, shape (B, T): a
+    two-state Markov chain per bead, off a fraction ``off_fraction`` of the frames in
+    runs of ``mean_off`` frames on average, started in its stationary state."""
+    if off_fraction == 0:
+        return np.ones((beads, frames))
+    to_on = 1.0 / mean_off
+    to_off = to_on * off_fraction / (1.0 - off_fraction)
+    u = rng.random((beads, frames))
+    on = np.empty((beads, frames), bool)
+    on[:, 0] = u[:, 0] >= off_fraction
+    for t in range(1, frames):
+        on[:, t] = np.where(on[:, t - 1], u[:, t] >= to_off, u[:, t] < to_on)
+    return on.astype(float)
 
 
 def simulate_beads(
@@ -133,6 +183,11 @@ def simulate_beads(
     progress=False,
     camera: Camera | None = None,
     bleaching=BEAD_DEFAULTS["bleaching"],
+    halo=BEAD_DEFAULTS["halo"],
+    halo_width=BEAD_DEFAULTS["halo_width"],
+    blinking=BEAD_DEFAULTS["blinking"],
+    blink_frames=BEAD_DEFAULTS["blink_frames"],
+    repeat=None,
     **camera_options,
 ) -> SimulatedSeries:
     """Simulate bead movies at several EM gain set-points, with darks and the true calibration.
@@ -174,6 +229,22 @@ def simulate_beads(
         series to its last (0; e.g. 0.02): an exponential decay in the frames recorded,
         the set-points one after another in the order given. ``photoelectrons`` is the
         intensity at the first frame; the background does not fade.
+    halo : float, optional
+        Fraction of every bead's light in a wider Gaussian halo (0: the Gaussian PSF the
+        bead fits assume; e.g. 0.2 for a PSF the fits do not describe, to test the
+        residual-image pass of :func:`emccdcal.beads.validation.validate`).
+    halo_width : float, optional
+        The halo's standard deviation, pixel (default 3 × ``width``).
+    blinking : float, optional
+        Fraction of the frames in which a bead is off (0): every bead switches on and off
+        independently, as a two-state Markov chain in the frames of the series, started
+        in its stationary state; an off bead emits nothing in that frame.
+    blink_frames : float, optional
+        Mean length of an off run, frames (5).
+    repeat : float, optional
+        A set-point recorded again at the end of the series (e.g. 1): files
+        ``beads/<s>x-repeat-beads.tif`` and an acquisition ``<s>x-repeat`` last in the
+        manifest, which lets the validation see what changed over the series.
     camera, **camera_options
         As in :func:`~emccdcal.simulate.series.simulate_gain_series`; the default camera
         here is 64 × 64 px with 500 frames per bead movie and 2000 per dark stack
@@ -193,10 +264,17 @@ def simulate_beads(
     sep = check_number("min_separation", min_separation, minimum=0.0)
     edge = check_number("margin", margin, minimum=0.0)
     shape = (opts["rows"], opts["cols"])
-    children = np.random.SeedSequence(opts["seed"]).spawn(2 + 2 * len(sps))
+    if repeat is not None:
+        repeat = check_number("repeat", repeat, minimum=1.0)
+        if repeat not in sps:
+            raise OptionError(f"repeat = {repeat:g} is not one of the set-points {sps}")
+    n_acqs = len(sps) + (repeat is not None)
+    # Children 0 … 2A: the stacks; 2A + 1: the placement; 2A + 2: blinking.
+    children = np.random.SeedSequence(opts["seed"]).spawn(3 + 2 * n_acqs)
+    stack_seeds, place_seed, blink_seed = children[:-2], children[-2], children[-1]
     if positions is None:
         pos = _place_beads(n_beads, shape[0], shape[1], edge, sep,
-                           np.random.default_rng(children[-1]))
+                           np.random.default_rng(place_seed))
     else:
         pos = np.asarray(check_number("positions", positions, scalar=False), dtype=float)
         pos = pos.reshape(-1, 2) if pos.size else np.zeros((0, 2))
@@ -216,23 +294,43 @@ def simulate_beads(
         )
     n_values = [check_number("photoelectrons", v, minimum=0.0) for v in n_values]
     N = np.broadcast_to(np.array(n_values), (n_beads,)).astype(float)
-    scene = bead_scene(pos, N, s, b, *shape)
+    h = check_number("halo", halo, minimum=0.0, maximum=1.0)
+    h_sd = 3.0 * s if halo_width is None else check_number("halo_width", halo_width,
+                                                           positive=True)
+    images = bead_images(pos, N, s, *shape, halo=h, halo_width=h_sd)
+    scene = images.sum(axis=0) + b
     fade = check_number("bleaching", bleaching, minimum=0.0, maximum=0.99)
+    off = check_number("blinking", blinking, minimum=0.0, maximum=0.9)
+    off_run = check_number("blink_frames", blink_frames, minimum=1.0)
     opts.update(setpoints=sps, em_gain=gains, beads=n_beads, photoelectrons=n_values, width=s,
-                background=b, min_separation=sep, margin=edge, bleaching=fade)
+                background=b, min_separation=sep, margin=edge, bleaching=fade, halo=h,
+                halo_width=h_sd if h else None, blinking=off, blink_frames=off_run)
     acqs = _setpoint_acquisitions("beads/{}-beads", sps, gains, [scene] * len(sps), offsets, opts)
-    if fade > 0:  # the beads' light decays over the frames of the whole series
-        total = opts["frames"] * len(sps)
-        rate = -math.log1p(-fade) / max(1, total - 1)  # per frame
-        light = scene - b
-        for i, a in enumerate(acqs):
-            t = i * opts["frames"] + np.arange(opts["frames"])
-            a["varying"] = [(light, np.exp(-rate * t))]
+    if repeat is not None:
+        again = dict(acqs[sps.index(repeat)])
+        again["label"] += "-repeat"
+        for key in ("frames", "dark", "offset_map", "read_noise_map"):
+            again[key] = again[key].replace("-beads", "-repeat-beads")
+        acqs.append(again)
+        opts["repeat"] = repeat
+    total = opts["frames"] * len(acqs)
+    # The beads' light over the frames of the whole series: bleaching decays it, blinking
+    # switches each bead off for runs of frames.
+    rate = -math.log1p(-fade) / max(1, total - 1)  # per frame
+    decay = np.exp(-rate * np.arange(total))
+    states = _blinking(n_beads, total, off, off_run, np.random.default_rng(blink_seed))
+    frames_off = [int(v) for v in (1 - states).sum(axis=1)]
+    for i, a in enumerate(acqs):
+        t = slice(i * opts["frames"], (i + 1) * opts["frames"])
+        if off > 0:
+            a["varying"] = [(image, decay[t] * on[t]) for image, on in zip(images, states)]
+        elif fade > 0:
+            a["varying"] = [(scene - b, decay[t])]
     darks = [a | {"frames_n": opts["dark_frames"]} for a in acqs]
 
     outdir = _output_dir(outdir)
     files, pattern, pattern_file = _write_stacks(outdir, "beads", acqs, darks, camera, opts,
-                                                 progress, children[:-1])
+                                                 progress, stack_seeds)
     dark_sd = math.sqrt(opts["read_noise"] ** 2 + 1.0 / 12.0)
     truth_acqs = [_truth_entry(a, camera, opts) for a in acqs]
     lines = _manifest_lines("beads", acqs, opts)
@@ -255,7 +353,8 @@ def simulate_beads(
         manifest_path=str(manifest.resolve()),
         extra={
             "offset": (("setpoint", "row", "col"),
-                       np.stack([np.clip(a["offset"] + pattern, 0.0, None) for a in acqs]),
+                       np.stack([np.clip(a["offset"] + pattern, 0.0, None)
+                                 for a in acqs[:len(sps)]]),
                        "ADU", "true offset S0 (set-point level plus the pixel pattern)"),
             "read_noise": (("setpoint", "row", "col"),
                            np.full((len(sps),) + shape, dark_sd), "ADU",
@@ -282,10 +381,14 @@ def simulate_beads(
         "seed": opts["seed"],
         "units": units,
         "beads": [{"row": float(r), "col": float(c), "photoelectrons": float(n)}
-                  for (r, c), n in zip(pos, N)],
+                  | ({"frames_off": k} if off > 0 else {})
+                  for (r, c), n, k in zip(pos, N, frames_off)],
         "width": s,
         "background": b,
         "bleaching": fade,
+        "halo": h,
+        "halo_width": h_sd if h else None,
+        "blinking": off,
         **_camera_truth(opts, pattern_file),
         "calibration": TRUTH_CALIBRATION_FILE,
         "acquisitions": truth_acqs,
