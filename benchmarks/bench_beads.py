@@ -10,7 +10,8 @@ set-points, ``shared_widths``; the dark maps of the manifest) and reports for bo
 
 * wall time per set-point and in all (target: ≤ 60 s), and the peak resident memory;
 * the done-when figures of: per set-point, the mean over frames of each bead's
-  intensity against the truth (pooled over beads and the worst bead), and the RMS
+  intensity against the truth (pooled over beads and the worst bead; a bead's error is
+  the frames' scatter and its offset map's error, ``--dark-frames``), and the RMS
   standard error against the scatter over frames.
 
 ``--photoelectrons``, ``--width`` and ``--background`` change the beads (the low-signal
@@ -47,6 +48,8 @@ def main():
     parser.add_argument("--multiplication", choices=("gamma", "cascade"), default="gamma")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--frames", type=int, default=500)
+    parser.add_argument("--dark-frames", type=int, default=2000,
+                        help="frames of each dark stack the offset and read-noise maps come from")
     parser.add_argument("--photoelectrons", type=float, default=5000.0, help="e- per bead")
     parser.add_argument("--width", type=float, default=1.3, help="PSF SD, px")
     parser.add_argument("--background", type=float, default=10.0, help="e-/px/frame")
@@ -66,7 +69,7 @@ def main():
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         sim = simulate_beads(Path(tmp) / "beads", multiplication=args.multiplication,
-                             frames=args.frames, seed=args.seed,
+                             frames=args.frames, dark_frames=args.dark_frames, seed=args.seed,
                              photoelectrons=args.photoelectrons, width=args.width,
                              background=args.background, halo=args.halo,
                              halo_width=args.halo_width)
@@ -97,7 +100,8 @@ def main():
                 fits.append(bead_fit.fit_beads(
                     acq.frames(), found.positions, offset=acq.offset,
                     read_noise=acq.read_noise, e_per_adu=phi, em_gain=g,
-                    adc_max=manifest.adc_max, fixed_width=widths, residual=residual))
+                    adc_max=manifest.adc_max, fixed_width=widths, residual=residual,
+                    offset_se=acq.read_noise / np.sqrt(acq.dark_frames)))
                 times.append(time.perf_counter() - t0)
             return fits, times
 
@@ -131,6 +135,8 @@ def main():
                 mean = np.nanmean(N, axis=1)
                 sem = np.nanstd(N, axis=1, ddof=1) / np.sqrt(n)
                 rel = mean / true_n[match] - 1
+                # the bead's error: the frames' scatter and the offset map's error
+                sem = np.hypot(sem, fit.intensity_offset_se)
                 ratio = np.sqrt(np.nanmean(se**2, axis=1)) / np.nanstd(N, axis=1, ddof=1)
                 pooled = np.nansum(N) / np.nansum(np.where(ok, true_n[match][:, None], np.nan)) - 1
                 rows.append({

@@ -309,3 +309,27 @@ def test_residual_image_describes_a_psf_with_a_halo():
     err = math.hypot(*(f.intensity.std(ddof=1) / math.sqrt(f.intensity.size)
                        / f.intensity.mean() for f in second))
     assert abs(ratio - 1) < 4 * err
+
+
+def test_offset_map_error_of_the_mean_intensity(fitted):
+    """``intensity_offset_se`` is the linear response of a bead's mean intensity to its
+    offset map: with an error in one pixel only, shifting that pixel's offset by its SE
+    moves the mean intensity by the SE (1x: every pixel's read noise, 60 e-)."""
+    frames, fit = fitted[1.0]
+    r, c = fit.positions[0]
+    one = np.zeros(SHAPE)
+    one[r, c] = 1.0  # ADU
+    base = bead_fit.fit_beads(frames, fit.positions, offset=_offset_map(),
+                              read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0,
+                              offset_se=one)
+    shifted = bead_fit.fit_beads(frames, fit.positions, offset=_offset_map() + one,
+                                 read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0)
+    moved = shifted.intensity.mean(axis=1) - base.intensity.mean(axis=1)
+    assert abs(moved[0]) == pytest.approx(base.intensity_offset_se[0], rel=0.05)
+    assert base.intensity_offset_se[1:] == pytest.approx(0.0)
+    # 2000 dark frames: every pixel's offset known to 15.5/sqrt(2000) ADU
+    full = bead_fit.fit_beads(frames, fit.positions, offset=_offset_map(),
+                              read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0,
+                              offset_se=SIGMA / math.sqrt(2000))
+    rel = full.intensity_offset_se / N_TRUE
+    assert np.all((rel > 0.0005) & (rel < 0.01))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import warnings
 
 import numpy as np
@@ -99,6 +100,11 @@ def test_validation_json_schema_and_ranking(beads_data):
                     "sigma_means_excl_1x"} <= set(b)
             assert list(b["mean_intensity"]) == ["1", "25"] == list(b["mean_intensity_se"])
             assert isinstance(b["row"], int) and isinstance(b["col"], int)
+            # the offset maps (300 dark frames) add an error that frames do not average;
+            # an ADU of offset is φ e- at 1x, φ/g at 25x (about 0.4 % of the bead at 1x)
+            off = b["mean_intensity_se_offset"]
+            assert 0 < off["25"] < off["1"] < b["mean_intensity_se"]["1"]
+            assert off["1"] / b["mean_intensity"]["1"] == pytest.approx(0.005, rel=0.5)
     # beads at the truth's positions
     found = sorted((b["row"], b["col"]) for b in doc["calibrations"][0]["beads"])
     assert found == sorted(tuple(round(v) for v in p) for p in POSITIONS)
@@ -387,6 +393,8 @@ def test_blinking_beads_are_taken_at_their_on_level(tmp_path):
     rel = [b["mean_intensity"]["25"] / b["mean_intensity"]["1"]
            for b in modelled[str(wrong)]["beads"]]
     assert np.mean(rel) == pytest.approx(1 / 0.98, abs=0.006)
+    table = validation.format_table(docs["model"])
+    assert re.search(r"6 bead\(s\) blinking, \d+ frame\(s\) off \(on level taken\)", table)
     with pytest.raises(ValueError, match="blinking must be"):
         validation.validate(sim.manifest, [str(truth)], blinking="drop")
 
@@ -435,6 +443,9 @@ def test_a_repeated_set_point_joins_the_trend_and_is_checked(tmp_path):
     assert later["acquisition"] == "1x-repeat" and abs(later["z"]) < 4
     assert set(c["psf_mismatch"]["gaussian"]) == {"1", "25", "1#2"}
     assert c["sigma_means_incl_1x"] < 0.005
+    assert re.search(r"intensity trend -\d\.\d\d % over the series \(z \d+\.\d, corrected\)\n"
+                     r" +1x recorded again: \d\.\d{4} ± \d\.\d{4} of the first",
+                     validation.format_table(doc))
     ds = xr.open_dataset(tmp_path / "val" / "intensities.nc", engine="h5netcdf")
     acq = ds["acquisition"].sel(setpoint=1.0).values
     assert list(acq[:200]) == ["1x"] * 200 and list(acq[200:]) == ["1x-repeat"] * 200
@@ -447,8 +458,9 @@ def test_repeats_warn_when_the_beads_changed_between_acquisitions():
             self.name, self.n_frames = name, n
 
     a1, a25, a1b = Acq("1x", 100), Acq("25x", 100), Acq("1x-again", 100)
-    layout = [(0, 1.0, a1, 0, "1", 0), (1, 25.0, a25, 0, "25", 100),
-              (0, 1.0, a1b, 100, "1#2", 200)]
+    slot = validation._Slot
+    layout = [slot(0, 1.0, a1, 0, "1", 0), slot(1, 25.0, a25, 0, "25", 100),
+              slot(0, 1.0, a1b, 100, "1#2", 200)]
     rng = np.random.default_rng(2)
     I = 5000.0 * (1 + 0.01 * rng.standard_normal((8, 2, 200)))
     off = np.zeros(I.shape, bool)

@@ -35,6 +35,14 @@ where the real background fluctuates from frame to frame (docs/beads.md).
 widths of all set-points (:func:`shared_widths`) and fits again with them, so that a
 width error does not differ from set-point to set-point.
 
+A PSF that is not Gaussian
+--------------------------
+Each fit keeps every bead's mean residual (data − model over its frames,
+:attr:`BeadFits.residual`). :func:`residual_image` places them, per unit intensity, on a
+grid finer than the pixels at each pixel's offset from the bead's centre; ``fit_beads(...,
+residual=)`` adds that image to the Gaussian spot, ``E = N·(P + R) + b``: the paper's
+second pass. :func:`psf_mismatch` says how well a fit's model describes the mean images.
+
 How it is computed
 ------------------
 All beads and frames of an acquisition are fitted together, as arrays of shape
@@ -135,6 +143,11 @@ class BeadFits:
         input of :func:`residual_image`.
     residual_se : ndarray, shape (B, 2Δ + 1, 2Δ + 1)
         Standard error of ``residual`` (SD over frames / √frames), e⁻.
+    intensity_offset_se : ndarray, shape (B,)
+        Standard error of each bead's mean intensity over its frames from the offset
+        map's own error (``offset_se``), e⁻; 0 where the map is taken as exact. It is the
+        same in every frame, so it does not average away over frames, and is not in
+        ``se``.
     """
 
     positions: np.ndarray
@@ -147,6 +160,7 @@ class BeadFits:
     n_saturated: int
     residual: np.ndarray
     residual_se: np.ndarray
+    intensity_offset_se: np.ndarray
 
     @property
     def intensity(self) -> np.ndarray:
@@ -468,7 +482,7 @@ def _pixel_map(name, value, shape, boxes, pos, *, positive=False, at_least=None)
 def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
               half_size=DEFAULT_HALF_SIZE, width=DEFAULT_WIDTH, adc_max=None,
               max_iter=60, em_model=None, fixed_width=None,
-              background="shared", residual=None) -> BeadFits:
+              background="shared", residual=None, offset_se=None) -> BeadFits:
     """Fit every bead in every frame of one acquisition by maximum likelihood: the bead's
     position, width and background shared by its frames, each frame's intensity.
 
@@ -508,6 +522,9 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         Added to the Gaussian spot (the paper's second pass): ``E = N·(P + R) + b`` with R
         at each pixel's offset from the fitted centre; one image for all beads or one per
         bead, in the order of ``positions`` (:func:`residual_image`).
+    offset_se : array_like, shape (R, C) or scalar, optional
+        Standard error of the offset map (ADU), e.g. read noise / √(dark frames); gives
+        ``intensity_offset_se``. By default the map is taken as exact.
 
     Returns
     -------
@@ -538,17 +555,19 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         if not np.all((fixed > lower[2]) & (fixed < upper[2])):
             raise OptionError(f"fixed_width must be between {lower[2]:g} and {upper[2]:g} px "
                               f"for a box of half-size {half_size}; got {fixed.tolist()}")
-    npix = (2 * half_size + 1) ** 2
+    n = 2 * half_size + 1
+    npix = n * n
     S0 = _pixel_map("offset", offset, (R, C), boxes, pos)
     sigma = _pixel_map("read_noise", read_noise, (R, C), boxes, pos, positive=True)
     phi = _pixel_map("e_per_adu", e_per_adu, (R, C), boxes, pos, positive=True)
     g = _pixel_map("em_gain", em_gain, (R, C), boxes, pos, at_least=1.0)
-    n = 2 * half_size + 1
+    s0_se = _pixel_map("offset_se", 0.0 if offset_se is None else offset_se, (R, C), boxes,
+                       pos, at_least=0.0)
     if B == 0 or F == 0:
         empty = np.zeros((B, F, _NP))
         none = np.full((B, n, n), np.nan)
         return BeadFits(pos, empty, empty.copy(), np.zeros((B, F)), np.zeros((B, F), bool),
-                        0, 0, 0, none, none.copy())
+                        0, 0, 0, none, none.copy(), np.full(B, np.nan))
     counts = np.stack([np.asarray(frames[:, rs, cs]).reshape(F, npix) for rs, cs in boxes])
     counts = counts.astype(np.int64)  # (B, F, npix)
     if counts.min() < 0:
@@ -728,10 +747,11 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     # What the model misses: the mean of data − model over a bead's converged frames,
     # but for frames whose intensity is held at its bound (a bead that was off): their
     # residual is not centred on zero.
-    resid = np.empty((M, npix))
+    resid, info = np.empty((M, npix)), np.empty((M, npix))
     for a in range(0, M, _BATCH_FRAMES):
         s = np.arange(a, min(M, a + _BATCH_FRAMES))
-        resid[s] = y_m[s] - model(p2[s], bead_of[s])[0]
+        E, _, _, _, d2, _ = exact_terms(p2[s], s)
+        resid[s], info[s] = y_m[s] - E, np.maximum(-d2, 0.0)
     free_n = (p2[:, 3] > 2 * lower[3]).reshape(B, F)
     use = (converged & free_n)[..., None] & (weight > 0)      # (B, F, npix)
     count = use.sum(axis=1)
@@ -740,7 +760,18 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         r_mean = resid.sum(axis=1) / count
         r_var = (np.where(use, (resid - r_mean[:, None]) ** 2, 0.0).sum(axis=1)
                  / (count - 1) / count)
-    n = 2 * half_size + 1
+        # The offset map's error is the same in every frame. Its effect on the bead's
+        # mean intensity, linearised on the bead's mean frame: δN̄ = a·δy, with a the
+        # intensity row of (JᵀWJ)⁻¹JᵀW over the fitted parameters.
+        W = np.where(use, info.reshape(B, F, npix), 0.0).sum(axis=1) / count
+        p_mean = pb[:, 0].copy()
+        p_mean[:, 3:] = np.nanmean(np.where(converged[..., None], pb[..., 3:], np.nan), axis=1)
+        fitted = sorted(shared + frame)
+        J = model(p_mean, np.arange(B))[1][..., fitted]       # (B, npix, k)
+        JW = np.swapaxes(J, 1, 2) * W[:, None, :]
+        A = np.nan_to_num(JW @ J) + 1e-12 * np.eye(len(fitted))
+        coef = np.linalg.solve(A, np.nan_to_num(JW))[:, fitted.index(3)]
+        n_offset_se = np.sqrt(np.sum((coef * s0_se / theta) ** 2, axis=1))
     params = p2.copy()
     params[:, 0] += np.repeat(pos[:, 1], F)
     params[:, 1] += np.repeat(pos[:, 0], F)
@@ -755,6 +786,7 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         n_saturated=n_sat,
         residual=np.where(count > 1, r_mean, np.nan).reshape(B, n, n),
         residual_se=np.sqrt(np.where(count > 1, r_var, np.nan)).reshape(B, n, n),
+        intensity_offset_se=np.where(converged.any(axis=1), n_offset_se, np.nan),
     )
 
 

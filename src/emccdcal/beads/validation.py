@@ -21,8 +21,16 @@ reports ddof = 1 beside it. A calibration's value is the mean over its beads. Be
 Each calibration's beads are fitted twice: at every set-point with each bead's shape and
 background shared by its frames, then again with each bead's width pooled over the
 set-points (:func:`emccdcal.beads.fit.shared_widths`), so that a width error cannot
-differ between set-points; the second pass gives the intensities. ``converged_fraction``
-says per set-point how many frames converged, and below 99 % a warning says so.
+differ between set-points; the second pass gives the intensities (or, with ``psf=
+"residual"``, a third pass with each bead's oversampled residual image added to the
+spot: the paper's second pass). ``converged_fraction`` says per set-point how many frames
+converged, and below 99 % a warning says so.
+
+What real beads do besides is measured, reported and, by default, undone before the
+set-points are compared: bleaching (:func:`intensity_trend`, from the frames' own time
+course and from a set-point recorded more than once), blinking (:func:`blinking_level`:
+the "on" level of a two-level mixture), and a PSF that the Gaussian does not describe
+(``psf_mismatch``, with a warning).
 
 ``emccdcal validate BEAD_MANIFEST --calibration A.nc [--calibration B.nc ...] -o OUT``
 fits the beads under every calibration and writes ``OUT/validation.json``,
@@ -66,6 +74,9 @@ __all__ = [
     "intensity_trend",
     "blinking_level",
     "validate",
+    "read_validation",
+    "format_table",
+    "data_checks",
 ]
 
 VALIDATION_FILE = "validation.json"
@@ -440,6 +451,8 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
     arr_se = {n: np.full(shape, np.nan) for n in names}
     loglik = np.full(shape, np.nan)
     conv = np.zeros(shape, bool)
+    # Σ over a set-point's acquisitions of (frames × offset-map SE of the bead's mean)²
+    offset_var = np.zeros(shape[:3])
     cache: dict = {}
 
     def fit_at(cal, j, ok, fixed=None, residual=None):
@@ -452,11 +465,14 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
                None if fixed is None else fixed.tobytes(),
                None if residual is None else residual.values.tobytes())
         if key not in cache:
+            # the offset map's own error: the dark frames' SD over their square root
+            offset_se = None if not acq.dark_frames else \
+                np.asarray(acq.read_noise) / math.sqrt(acq.dark_frames)
             cache[key] = bead_fit.fit_beads(
                 acq.frames(), positions[ok], offset=acq.offset, read_noise=acq.read_noise,
                 e_per_adu=cal.e_per_adu, em_gain=g, half_size=half_size, width=width,
                 adc_max=manifest.adc_max, em_model=cal.em_model, fixed_width=fixed,
-                residual=residual)
+                residual=residual, offset_se=offset_se)
         return cache[key]
 
     passes = 2 if psf == "gaussian" else 3
@@ -508,13 +524,17 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
                     arr_se[n][at] = fit.se[..., j]
                 loglik[at] = fit.loglik
                 conv[at] = fit.converged
+                offset_var[ci, idx, slot.row] += (fit.converged.sum(axis=1)
+                                                  * np.nan_to_num(fit.intensity_offset_se)) ** 2
                 if fit.n_saturated and ci == 0:
                     warnings.warn(f"{slot.acq.frames_path}: {fit.n_saturated} count(s) at the ADC "
                                   "maximum in the bead boxes were left out of the fits",
                                   stacklevel=2)
 
+    with np.errstate(invalid="ignore", divide="ignore"):
+        offset_se = np.sqrt(offset_var) / conv.sum(axis=3)
     doc = _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, layout, det_acq,
-                     half_size, time.perf_counter() - t0, bleaching=bleaching,
+                     half_size, time.perf_counter() - t0, offset_se, bleaching=bleaching,
                      blinking=blinking, psf=psf, mismatch=mismatch)
     if out is not None:
         out = Path(out)
@@ -534,7 +554,7 @@ def _boxes_bytes(m, positions, half_size):
 
 
 def _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, layout, det_acq,
-               half_size, seconds, *, bleaching, blinking, psf, mismatch):
+               half_size, seconds, offset_se, *, bleaching, blinking, psf, mismatch):
     keys = [result.format_setpoint(s) for s in setpoints]
     times = _frame_times(layout, len(setpoints), conv.shape[-1])
     I = np.where(conv, arr["intensity"], np.nan)
@@ -581,7 +601,8 @@ def _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, layout, 
                 mean = np.where(use_on[b], on_level[b], np.nanmean(vals, axis=1))
                 kept = np.where(use_on[b][:, None] & off[b], np.nan, vals)
                 n = np.sum(np.isfinite(kept), axis=1)
-                se = np.nanstd(kept, axis=1, ddof=1) / np.sqrt(n)
+                se_frames = np.nanstd(kept, axis=1, ddof=1) / np.sqrt(n)
+                se = np.hypot(se_frames, offset_se[ci, b])
                 y = np.nanmedian(np.where(conv[ci, b], arr["y"][ci, b], np.nan))
                 x = np.nanmedian(np.where(conv[ci, b], arr["x"][ci, b], np.nan))
             means = dict(zip(setpoints, mean))
@@ -594,6 +615,8 @@ def _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, layout, 
                 "col": int(c),
                 "mean_intensity": {k: finite_or_none(v) for k, v in zip(keys, mean)},
                 "mean_intensity_se": {k: finite_or_none(v) for k, v in zip(keys, se)},
+                "mean_intensity_se_offset": {k: finite_or_none(v)
+                                             for k, v in zip(keys, offset_se[ci, b])},
                 "sigma_means_incl_1x": finite_or_none(metric[0][0]),
                 "sigma_means_excl_1x": finite_or_none(metric[0][1]),
                 "sigma_means_incl_1x_ddof1": finite_or_none(metric[1][0]),
@@ -835,6 +858,39 @@ def read_validation(directory):
 
 
 
+def data_checks(entry) -> list[str]:
+    """What a calibration's validation found about the bead data, as short phrases:
+    bleaching, blinking, a repeated set-point, a PSF the Gaussian does not describe.
+
+    Parameters
+    ----------
+    entry : dict
+        One item of ``validation.json``'s ``calibrations``.
+    """
+    out = []
+    trend = entry.get("intensity_trend") or {}
+    if trend.get("detected"):
+        out.append(f"intensity trend {-100 * trend['fade_over_series']:+.2f} % over the series "
+                   f"(z {trend['z']:.1f}, {'corrected' if trend.get('corrected') else 'not corrected'})")
+    blink = entry.get("blinking") or {}
+    off = sum((blink.get("frames_off") or {}).values())
+    if off:
+        out.append(f"{blink['beads']} bead(s) blinking, {off} frame(s) off "
+                   f"({'on level taken' if blink.get('modelled') else 'ignored'})")
+    for rep in entry.get("repeats") or []:
+        for later in rep["later"]:
+            if later["ratio"] is not None:
+                out.append(f"{rep['setpoint']}x recorded again: {later['ratio']:.4f} ± "
+                           f"{later['ratio_se'] or float('nan'):.4f} of the first")
+    gauss = (entry.get("psf_mismatch") or {}).get("gaussian") or {}
+    chi2 = [m["chi2_per_pixel"] for m in gauss.values() if m.get("chi2_per_pixel") is not None]
+    if chi2 and max(chi2) > PSF_CHI2:
+        out.append(f"PSF not Gaussian (chi2/pixel up to {max(chi2):.1f}; "
+                   + ("residual image added)" if entry.get("psf", "gaussian") != "gaussian"
+                      else "Gaussian kept)"))
+    return out
+
+
 def format_table(doc) -> str:
     """The ranking as a short text table (σ of means in % of the 1× mean, ddof = 0)."""
     by_file = {c["file"]: c for c in doc["calibrations"]}
@@ -850,4 +906,5 @@ def format_table(doc) -> str:
         c = by_file[f]
         lines.append(f"  {i:>4}  {c['method']:<22} {pct(c['sigma_means_incl_1x'])} "
                      f"{pct(c['sigma_means_excl_1x'])}  {f}")
+        lines += [f"{'':8}{check}" for check in data_checks(c)]
     return "\n".join(lines)

@@ -32,7 +32,7 @@ import numpy as np
 from .. import __version__, result
 from .._util import atomic_write_text
 from .._util import progress as progress_bar
-from ..beads.validation import read_validation
+from ..beads.validation import data_checks, read_validation
 from ..data import quality
 from ..errors import InputError, OptionError
 from ..result import format_setpoint
@@ -315,13 +315,14 @@ def _validation_html(validations):
         rank = {f: i + 1 for i, f in enumerate(doc.get("ranking", []))}
         rows = [[rank.get(c.get("file"), "–"), _e(str(c.get("method", ""))),
                  f"<span class=mono>{_e(str(c.get('file', '')))}</span>", len(c["beads"]),
-                 _fmt(c.get("sigma_means_incl_1x")), _fmt(c.get("sigma_means_excl_1x"))]
+                 _fmt(c.get("sigma_means_incl_1x")), _fmt(c.get("sigma_means_excl_1x")),
+                 "<br>".join(_e(x) for x in data_checks(c)) or "–"]
                 for c in doc["calibrations"]]
         rows.sort(key=lambda r: (r[0] == "–", r[0] if r[0] != "–" else 0))
         out.append(f"<h3>{_e(str(d))}</h3>")
         out.append(_table(["rank", "method", "calibration", "beads",
                            "σ of means incl. 1× (dimensionless)",
-                           "σ of means excl. 1× (dimensionless)"], rows))
+                           "σ of means excl. 1× (dimensionless)", "the bead data"], rows))
     out.append("<p class=note>Beads imaged at every set-point must have the same intensity "
                "when the calibration is right: σ of means is the spread of a bead's "
                "per-set-point mean intensities, scaled to its 1× mean (lower is better; "
