@@ -122,6 +122,7 @@ def test_shared_widths_weigh_each_set_point_by_its_precision(fitted):
     np.testing.assert_allclose(w, WIDTH, rtol=0.02)
 
 
+@pytest.mark.slow
 def test_fit_is_the_maximum_of_the_exact_likelihood(fitted):
     """Each frame's intensity maximises that frame's exact likelihood; the bead's
     position, width and background, shared by its frames, maximise the sum over them."""
@@ -262,6 +263,7 @@ def test_residual_image_values_and_derivatives():
         psf.ResidualImage(np.zeros((9, 9)), q)
 
 
+@pytest.mark.slow
 def test_residual_pass_on_gaussian_beads_changes_nothing(fitted):
     """The Gaussian is the PSF here: the mean images are described to within their noise,
     and the residual image's pass gives the same intensities."""
@@ -284,6 +286,7 @@ def test_residual_pass_on_gaussian_beads_changes_nothing(fitted):
         assert np.all(np.abs(diff) < 2 * sem)  # far below the beads' own noise
 
 
+@pytest.mark.slow
 def test_residual_image_describes_a_psf_with_a_halo():
     """A PSF with 20 % of its light in a halo of SD 3 px: the Gaussian misses it (the
     mean images' chi2 per pixel far above 1 at 300x); with each bead's residual image

@@ -156,7 +156,7 @@ def test_indexed_search_equals_binary_search(g, m):
 # --------------------------------------------------------------------------------------
 # Samplers: Monte Carlo of docs/validation.md case 9
 # --------------------------------------------------------------------------------------
-@pytest.mark.parametrize("method", ["stages", "pmf"])
+@pytest.mark.parametrize("method", [pytest.param("stages", marks=pytest.mark.slow), "pmf"])
 def test_cascade_monte_carlo_case9(method):
     rng = np.random.default_rng(9)
     E, g = 20.0, 5.0
@@ -223,7 +223,7 @@ def test_large_inputs_use_whole_blocks(monkeypatch):
         cascade._max_block_exponent.cache_clear()
 
 
-@pytest.mark.parametrize("method", ["stages", "pmf"])
+@pytest.mark.parametrize("method", [pytest.param("stages", marks=pytest.mark.slow), "pmf"])
 def test_gain_one_is_identity_and_pn_limit(method):
     n = np.random.default_rng(0).poisson(30.0, size=(3, 7, 11))
     out = sample_cascade(n, 1.0, 536, 0, method=method)

@@ -113,6 +113,7 @@ def test_a_quoted_number_in_the_manifest_is_not_a_path(series):
         quiet(calibrate, bad, "gs")
 
 
+@pytest.mark.slow
 def test_a_method_that_fails_for_most_pixels_is_an_error(series, tmp_path):
     # offsets far above the data: no pixel can be fitted, and no number is printed
     _, _, gs = series

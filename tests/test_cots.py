@@ -248,6 +248,7 @@ def test_cli_prints_a_summary(bead_run, capsys):
     assert result.load(out / "again").sizes["bead"] == 3
 
 
+@pytest.mark.slow
 def test_on_simulated_beads(tmp_path):
     """End to end on the project's own bead simulator (gamma EM), at the highest gains."""
     fn = simulate_beads

@@ -122,7 +122,8 @@ def _as_spe(series, name, *, gains=None, suffix=".spe"):
     return path
 
 
-@pytest.mark.parametrize("suffix", [".spe", ".fits", ".zarr", ".ome.tif"])
+@pytest.mark.parametrize("suffix", [".spe", ".fits", pytest.param(".zarr", marks=pytest.mark.slow),
+                                    ".ome.tif"])
 def test_same_series_in_another_format_calibrates_identically(series, suffix, tmp_path):
     other = _as_spe(series, f"other{suffix}.toml", suffix=suffix)
     a = quiet(calibrate, series.manifest, "gs", tile_pixels=12)

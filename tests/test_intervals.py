@@ -51,6 +51,7 @@ def test_bounds_are_where_the_deviance_reaches_the_quantile(gain_series):
         np.testing.assert_allclose((upper - lower) / (2 * 1.959964 * se), 1.0, atol=0.03)
 
 
+@pytest.mark.slow
 def test_bounds_include_the_errors_of_the_maps(gain_series):
     """Maps from few dark frames: the profile interval of a well-determined parameter is
     the Wald interval of the SE that includes the maps' errors, not the conditional one."""
@@ -65,6 +66,7 @@ def test_bounds_include_the_errors_of_the_maps(gain_series):
                                1.0, atol=0.03)
 
 
+@pytest.mark.slow
 def test_calibrate_writes_bounds_on_the_estimate_dims(gain_series):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

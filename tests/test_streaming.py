@@ -65,6 +65,7 @@ def test_tiles_and_workers_do_not_change_the_result(series, method, which):
     _assert_same(one, rows)
 
 
+@pytest.mark.slow
 def test_a_dask_cluster_on_localhost_gives_the_local_result(series):
     distributed = pytest.importorskip("distributed")
     local = quiet(calibrate, series[0], "gs", block_size=16, tile_pixels=32)
@@ -159,6 +160,7 @@ def test_ctrl_c_says_what_is_kept_and_exits_130(long_run, tmp_path):
     assert "tiles kept in" in err[0] and "--resume" in err[0]
 
 
+@pytest.mark.slow
 def test_bad_pixels_are_left_out_named_and_the_run_completes(tmp_path):
     sim = simulate_gain_series(tmp_path / "gs", rows=64, cols=64, frames=100, seed=3,
                                setpoints=(1, 5, 25))

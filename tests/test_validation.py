@@ -257,6 +257,7 @@ def test_bead_with_missing_calibration_pixels_is_left_out(beads_data, tmp_path):
     assert c["beads_used"] == 2 and c["sigma_means_incl_1x"] is not None
 
 
+@pytest.mark.slow
 def test_cli_writes_files_and_figures(beads_data, tmp_path, capsys):
     sim, cal, _, _ = beads_data
     out = tmp_path / "v"
