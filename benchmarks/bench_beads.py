@@ -48,6 +48,8 @@ def main():
     parser.add_argument("--multiplication", choices=("gamma", "cascade"), default="gamma")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--frames", type=int, default=500)
+    parser.add_argument("--setpoints", default="1,5,25,100,300",
+                        help="comma-separated set-points (the paper's true gains)")
     parser.add_argument("--dark-frames", type=int, default=2000,
                         help="frames of each dark stack the offset and read-noise maps come from")
     parser.add_argument("--photoelectrons", type=float, default=5000.0, help="e- per bead")
@@ -70,6 +72,7 @@ def main():
         t0 = time.perf_counter()
         sim = simulate_beads(Path(tmp) / "beads", multiplication=args.multiplication,
                              frames=args.frames, dark_frames=args.dark_frames, seed=args.seed,
+                             setpoints=[float(v) for v in args.setpoints.split(",")],
                              photoelectrons=args.photoelectrons, width=args.width,
                              background=args.background, halo=args.halo,
                              halo_width=args.halo_width)
