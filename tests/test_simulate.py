@@ -594,6 +594,30 @@ def test_cli_beads(tmp_path, capsys):
     assert cli.main(["simulate", "beads", "-o", str(tmp_path / "x"), "--beads", "-1"]) == 2
 
 
+def test_cli_beads_that_blink_have_a_halo_and_a_repeated_setpoint(tmp_path):
+    out = tmp_path / "b"
+    argv = ["simulate", "beads", "-o", str(out), "--beads", "2", "--rows", "30", "--cols", "30",
+            "--frames", "200", "--dark-frames", "3", "--setpoints", "1,100", "--seed", "2",
+            "--blinking", "0.3", "--blink-frames", "4", "--halo", "0.2", "--repeat", "1",
+            "--quiet"]
+    assert cli.main(argv) == 0
+    truth = json.loads((out / "truth.json").read_text())
+    assert truth["halo"] == 0.2 and truth["halo_width"] == pytest.approx(3 * 1.3)
+    assert [a["name"] for a in truth["acquisitions"]] == ["1x", "100x", "1x-repeat"]
+    assert "1x-repeat" in (out / "manifest.toml").read_text()
+    # each bead off about 30 % of the 600 frames of the series, in runs
+    off = [b["frames_off"] for b in truth["beads"]]
+    assert all(100 < k < 260 for k in off)
+    # an off bead's pixels receive the background only: its brightest pixel's counts at
+    # 100x fall into two groups
+    stack = tifffile.imread(out / "beads/100x-beads.tif").astype(float)
+    r, c = (round(v) for v in (truth["beads"][0]["row"], truth["beads"][0]["col"]))
+    peak = stack[:, r, c] - np.median(stack[:, 0, 0])
+    assert 0.1 < np.mean(peak < 0.3 * np.median(peak[peak > np.median(peak)])) < 0.6
+    with pytest.raises(ValueError, match="repeat = 5 is not one of the set-points"):
+        simulate_beads(tmp_path / "c", setpoints=[1, 100], repeat=5, frames=2)
+
+
 def test_one_camera_object_serves_every_simulator(tmp_path):
     from emccdcal.errors import OptionError
     from emccdcal.simulate.camera import Camera
