@@ -261,7 +261,7 @@ def test_hierarchical_shrinks_a_differing_illumination(tmp_path):
     assert abs(E_1x.mean() - shared) < 3 * E_1x.std(ddof=1) / np.sqrt(E_1x.size)
 
 
-@pytest.mark.parametrize("method", ["gs", "gs-hierarchical"])
+@pytest.mark.parametrize("method", ["gs", pytest.param("gs-hierarchical", marks=pytest.mark.slow)])
 def test_result_does_not_depend_on_blocks_or_threads(tmp_path, method):
     """Pixels are fitted independently: tiles of 7 pixels on one thread give the result
     of the default tiles on two (only each tile's FFT length differs: round-off)."""

@@ -84,6 +84,7 @@ def test_bad_method_options(series, method, options, message):
         calibrate(gs.manifest, method, options=options)
 
 
+@pytest.mark.slow
 def test_cli_hyperprior_options_are_used_and_recorded(series, tmp_path):
     import json
 

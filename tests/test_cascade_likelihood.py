@@ -287,6 +287,7 @@ def _fit(manifest, **kw):
     return ds, [str(w.message) for w in caught]
 
 
+@pytest.mark.slow
 def test_gs_with_the_cascade_recovers_the_gains_the_gamma_model_misses(cascade_series):
     sim, manifest = cascade_series
     true_g = np.array([1, 4.78, 22.95, 90.06, 261.6])

@@ -61,6 +61,7 @@ def test_case13_recovers_offset(case13):
     assert r.spot_counts / r.gain == pytest.approx(SPOT[3], rel=0.05)  # photoelectrons
 
 
+@pytest.mark.slow
 def test_standard_errors_match_the_scatter_over_seeds():
     gains, ses, offsets, off_ses = [], [], [], []
     for seed in range(24):

@@ -296,6 +296,7 @@ def test_apply_photon_counting_and_errors(tmp_path):
 # --------------------------------------------------------------------------------------
 # The gain curve
 # --------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_gain_curve_predicts_a_setpoint_not_measured(tmp_path):
     # True curve: ln g = a + b ln s + c (ln s)^2; measure four set-points, predict a fifth.
     def truth(s):

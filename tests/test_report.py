@@ -403,6 +403,7 @@ def test_report_cli_quiet_warns_once_and_rejects_bad_inputs(loaded, tmp_path, ca
     assert "ROW,COL" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_calibrate_report_flag_writes_report_beside_result(runs, tmp_path, capsys):
     manifest = runs[1]["outdir"] / "adu-series" / "manifest.toml"
     code = cli.main(["calibrate", str(manifest), "--method", "mv-adu", "-o", str(tmp_path / "o"),
@@ -415,6 +416,7 @@ def test_calibrate_report_flag_writes_report_beside_result(runs, tmp_path, capsy
     assert err.count("EM gain above 1×") == 1
 
 
+@pytest.mark.slow
 def test_summary_says_what_the_standard_errors_include(tmp_path):
     from emccdcal import calibrate
     from emccdcal.report.html import write_report
