@@ -54,6 +54,8 @@ def write_validation(d, setpoints=(1, 5, 25), n_beads=3, frames=200, seed=0):
                      "beads": beads,
                      "sigma_means_incl_1x": float(np.mean([b["sigma_means_incl_1x"] for b in beads])),
                      "sigma_means_excl_1x": float(np.mean([b["sigma_means_excl_1x"] for b in beads]))})
+    # what validate found about the bead data (validation.data_checks)
+    cals[1]["blinking"] = {"frames_off": {"1": 3, "5": 0, "25": 0}, "beads": 1, "modelled": True}
     (d / "validation.json").write_text(json.dumps({"calibrations": cals,
                                                    "ranking": ["A.nc", "B.nc"]}))
     xr.Dataset({"intensity": (("calibration", "bead", "setpoint", "frame"), np.stack(cubes),
@@ -358,8 +360,9 @@ def test_report_leaves_out_raw_data_figures_when_manifest_is_gone(loaded, tmp_pa
     assert {"fig-result-1-maps", "fig-estimates", "validation", "fig-validation-1-intensities",
             "fig-validation-1-consistency"} <= set(p.ids)
     assert "not found (moved or deleted?)" in text and "Left out of this report" in text
-    # validation: ranking table (A.nc first) and the hashes of its files
+    # validation: ranking table (A.nc first), what it found of the data, the files' hashes
     assert text.index("A.nc") < text.index("B.nc")
+    assert "1 bead(s) blinking, 3 frame(s) off (on level taken)" in text
     assert hashlib.sha256((vdir / "intensities.nc").read_bytes()).hexdigest() in text
 
 
