@@ -79,6 +79,7 @@ Coordinates are those of :mod:`emccdcal.model.psf`: pixel (r, c) is centred at i
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -104,6 +105,8 @@ DEFAULT_HALF_SIZE = 4
 DEFAULT_WIDTH = 1.3
 
 _NP = len(psf.PARAMETERS)
+#: Lower bound of a frame's intensity N (e⁻): a frame held there had no light to fit.
+_MIN_INTENSITY = 1e-3
 #: Frames fitted per batch: bounds the memory of the Jacobians (~1 kB per frame and pixel).
 _BATCH_FRAMES = 4096
 #: A fit that no step improves any more counts as converged if its Newton decrement (the
@@ -248,7 +251,7 @@ def _gaussian_terms(E, y, var_read, f2, var_scale=1.0):
 # --------------------------------------------------------------------------------------
 def _lower_upper(half_size):
     h = half_size + 0.5
-    lower = np.array([-h, -h, 0.3, 1e-3, 0.0])
+    lower = np.array([-h, -h, 0.3, _MIN_INTENSITY, 0.0])
     upper = np.array([h, h, 3.0 * half_size, np.inf, np.inf])
     return lower, upper
 
@@ -685,23 +688,24 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         return ((w * lp).sum(axis=1), np.einsum("mk,mki->mi", w * d1, J),
                 curvature(w * np.maximum(-d2, 0.0), J))
 
-    def outside_rows(p):
-        """Rows (frames) with a weighted pixel outside its table's range, and those E."""
-        E_all = np.empty((M, npix))
+    def all_terms(p):
+        """Every row's E, its information −∂² ln p/∂E² and the weighted pixels outside
+        their table's range, shape (M, npix) each."""
+        E_all, info_all = np.empty((M, npix)), np.empty((M, npix))
         out_px = np.zeros((M, npix), bool)
         for a in range(0, M, _BATCH_FRAMES):
             s = np.arange(a, min(M, a + _BATCH_FRAMES))
-            E, _, _, _, _, out = exact_terms(p[s], s)
-            E_all[s], out_px[s] = E, out & (w_m[s] > 0)
-        return E_all, out_px
+            E, _, _, _, d2, out = exact_terms(p[s], s)
+            E_all[s], info_all[s], out_px[s] = E, np.maximum(-d2, 0.0), out & (w_m[s] > 0)
+        return E_all, info_all, out_px
 
     p2, ll2, conv_b, iters = _joint_fit(objective_exact, p1, B, F, shared, frame, lower, upper,
                                         tol=1e-7, max_iter=max_iter)
     retab = 0
-    for _ in range(4):
-        E_all, out_px = outside_rows(p2)
+    for round_ in range(5):  # at most four refits; the last round only evaluates
+        E_all, info_all, out_px = all_terms(p2)
         outside = out_px.any(axis=1)
-        if not outside.any():
+        if not outside.any() or round_ == 4:
             break
         # Widen the ranges of the pixels concerned to cover what the fits need.
         pix = (bead_of[:, None] * npix + qbase)[out_px]
@@ -721,8 +725,6 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
                                            tol=1e-7, max_iter=max_iter, active=redo)
         conv_b = np.where(redo, conv_r, conv_b)
         iters = max(iters, it_r)
-    else:
-        outside = outside_rows(p2)[1].any(axis=1)
 
     # ---- standard errors from the joint information -----------------------------------
     # A frame's own parameters: conditional on the shared ones (what scatters from frame
@@ -747,23 +749,17 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     # What the model misses: the mean of data − model over a bead's converged frames,
     # but for frames whose intensity is held at its bound (a bead that was off): their
     # residual is not centred on zero.
-    resid, info = np.empty((M, npix)), np.empty((M, npix))
-    for a in range(0, M, _BATCH_FRAMES):
-        s = np.arange(a, min(M, a + _BATCH_FRAMES))
-        E, _, _, _, d2, _ = exact_terms(p2[s], s)
-        resid[s], info[s] = y_m[s] - E, np.maximum(-d2, 0.0)
-    free_n = (p2[:, 3] > 2 * lower[3]).reshape(B, F)
-    use = (converged & free_n)[..., None] & (weight > 0)      # (B, F, npix)
+    use = _residual_frames(converged, p2[:, 3].reshape(B, F))[..., None] & (weight > 0)
     count = use.sum(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        resid = np.where(use, resid.reshape(B, F, npix), 0.0)
+        resid = np.where(use, (y_m - E_all).reshape(B, F, npix), 0.0)
         r_mean = resid.sum(axis=1) / count
         r_var = (np.where(use, (resid - r_mean[:, None]) ** 2, 0.0).sum(axis=1)
                  / (count - 1) / count)
         # The offset map's error is the same in every frame. Its effect on the bead's
         # mean intensity, linearised on the bead's mean frame: δN̄ = a·δy, with a the
         # intensity row of (JᵀWJ)⁻¹JᵀW over the fitted parameters.
-        W = np.where(use, info.reshape(B, F, npix), 0.0).sum(axis=1) / count
+        W = np.where(use, info_all.reshape(B, F, npix), 0.0).sum(axis=1) / count
         p_mean = pb[:, 0].copy()
         p_mean[:, 3:] = np.nanmean(np.where(converged[..., None], pb[..., 3:], np.nan), axis=1)
         fitted = sorted(shared + frame)
@@ -808,6 +804,18 @@ def shared_widths(fits) -> np.ndarray:
     total = weight.sum(axis=0)
     return np.where(total > 0, (weight * np.where(ok, w, 0.0)).sum(axis=0)
                     / np.where(total > 0, total, 1.0), np.nan)
+
+
+def _residual_frames(converged, intensity):
+    """The frames a bead's mean residual is taken over: converged, and with the intensity
+    off its bound (a frame held at N = 0 is not at a stationary point), shape (B, F)."""
+    return converged & (intensity > 2 * _MIN_INTENSITY)
+
+
+def _mean_intensity(fit, b):
+    """Bead ``b``'s mean intensity over the frames of its residual (e⁻), or NaN."""
+    use = _residual_frames(fit.converged[b], fit.intensity[b])
+    return float(fit.intensity[b, use].mean()) if use.any() else math.nan
 
 
 def residual_image(fits, *, oversample=4, per_bead=True) -> psf.ResidualImage:
@@ -858,9 +866,9 @@ def residual_image(fits, *, oversample=4, per_bead=True) -> psf.ResidualImage:
             raise OptionError("residual_image needs fits of the same beads and box size")
         for b in range(B):
             ok = fit.converged[b]
-            if not ok.any():
+            N = _mean_intensity(fit, b)
+            if not N > 0:
                 continue
-            N = fit.intensity[b, ok].mean()
             r, se = fit.residual[b] / N, fit.residual_se[b] / N
             good = np.isfinite(r) & np.isfinite(se) & (se > 0)
             x0, y0 = fit.params[b, np.argmax(ok), :2]
@@ -898,12 +906,11 @@ def psf_mismatch(fit) -> dict:
     """
     chi2, missed, absolute = [], [], []
     for b in range(len(fit.positions)):
-        ok = fit.converged[b]
+        N = _mean_intensity(fit, b)
         r, se = fit.residual[b], fit.residual_se[b]
         good = np.isfinite(r) & np.isfinite(se) & (se > 0)
-        if not ok.any() or not good.any():
+        if not N > 0 or not good.any():
             continue
-        N = fit.intensity[b, ok].mean()
         chi2.append(float(np.sum((r[good] / se[good]) ** 2) / good.sum()))
         missed.append(float(r[good].sum() / N))
         absolute.append(float(np.abs(r[good]).sum() / N))

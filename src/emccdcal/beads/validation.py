@@ -290,26 +290,36 @@ def blinking_level(N, se, *, lr_detect=BLINK_LR, iterations=200) -> dict:
     x = np.where(ok, N, 0.0)
     w = np.where(ok, 1.0 / np.where(ok, se, 1.0) ** 2, 0.0)
     n = ok.sum(axis=-1)
+
+    def e_step(m, f):
+        """Each frame's log-likelihood under the mixture, and its probability of being off."""
+        l_on = np.log1p(-f)[..., None] - 0.5 * w * (x - m[..., None]) ** 2
+        l_off = np.log(f)[..., None] - 0.5 * w * x**2
+        l_mix = np.logaddexp(l_on, l_off)
+        return l_mix, np.where(ok, np.exp(l_off - l_mix), 0.0)
+
     with np.errstate(invalid="ignore", divide="ignore"):
         m1 = (w * x).sum(axis=-1) / w.sum(axis=-1)       # one level: weighted ML mean
         ll_one = np.where(ok, -0.5 * w * (x - m1[..., None]) ** 2, 0.0).sum(axis=-1)
         m, f = m1.copy(), np.full(m1.shape, 0.1)
         for _ in range(iterations):
-            l_on = np.log1p(-f)[..., None] - 0.5 * w * (x - m[..., None]) ** 2
-            l_off = np.log(f)[..., None] - 0.5 * w * x**2
-            r = np.where(ok, np.exp(l_off - np.logaddexp(l_on, l_off)), 0.0)
+            _, r = e_step(m, f)
             f = np.clip(r.sum(axis=-1) / n, 1e-9, 1 - 1e-9)
             m = ((1 - r) * w * x).sum(axis=-1) / ((1 - r) * w).sum(axis=-1)
-        l_on = np.log1p(-f)[..., None] - 0.5 * w * (x - m[..., None]) ** 2
-        l_off = np.log(f)[..., None] - 0.5 * w * x**2
-        ll_mix = np.where(ok, np.logaddexp(l_on, l_off), 0.0).sum(axis=-1)
-        r = np.where(ok, np.exp(l_off - np.logaddexp(l_on, l_off)), 0.0)
-        lr = 2.0 * (ll_mix - ll_one)
+        l_mix, r = e_step(m, f)
+        lr = 2.0 * (np.where(ok, l_mix, 0.0).sum(axis=-1) - ll_one)
         detected = np.isfinite(lr) & (lr > lr_detect) & (n > 1)
-        on_level = ((1 - r) * x).sum(axis=-1) / ((1 - r) * ok).sum(axis=-1)
+    on_level = _on_level(np.where(ok, N, np.nan), r)
     return {"on_level": on_level, "off_fraction": np.where(detected, f, 0.0), "lr": lr,
             "detected": detected, "off_probability": np.where(detected[..., None], r, 0.0),
             "off": detected[..., None] & (r > 0.5)}
+
+
+def _on_level(N, off_probability):
+    """``Σ (1 − r_f) N_f / Σ (1 − r_f)`` over the frames where N is finite, shape (...)."""
+    on = np.where(np.isfinite(N), 1.0 - off_probability, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.nansum(on * N, axis=-1) / on.sum(axis=-1)
 
 
 def _detect(manifest, acqs, setpoint, width, half_size, min_separation, snr):
@@ -588,9 +598,7 @@ def _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, layout, 
                    "set-points"), stacklevel=3)
         if trend["corrected"]:
             I[ci] = I[ci] * np.exp(trend["rate_per_frame"] * times)[None]
-        on = np.where(np.isfinite(I[ci]), 1.0 - blink["off_probability"], 0.0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            on_level = np.nansum(on * I[ci], axis=2) / on.sum(axis=2)
+        on_level = _on_level(I[ci], blink["off_probability"])  # as corrected
         use_on = blink["detected"] & (blinking == "model")
         bead_entries = []
         per = {d: {"incl": [], "excl": []} for d in (0, 1)}
