@@ -336,3 +336,22 @@ def test_offset_map_error_of_the_mean_intensity(fitted):
                               offset_se=SIGMA / math.sqrt(2000))
     rel = full.intensity_offset_se / N_TRUE
     assert np.all((rel > 0.0005) & (rel < 0.01))
+
+
+def test_residual_is_per_unit_intensity_of_the_frames_it_averages():
+    """A bead off (held at N = 0) in half its frames: its residual is averaged over the
+    frames with light, and so is the intensity it is divided by."""
+    B, F, n = 1, 10, 9
+    params = np.zeros((B, F, 5))
+    params[..., :3] = [10.0, 10.0, 1.3]
+    params[0, :, 3] = [1000.0] * 5 + [1e-3] * 5
+    fit = bead_fit.BeadFits(positions=np.array([[10, 10]]), params=params,
+                            se=np.ones((B, F, 5)), loglik=np.zeros((B, F)),
+                            converged=np.ones((B, F), bool), iterations=1, retabulated=0,
+                            n_saturated=0, residual=np.full((B, n, n), 10.0),
+                            residual_se=np.full((B, n, n), 1.0),
+                            intensity_offset_se=np.zeros(B))
+    assert bead_fit.psf_mismatch(fit)["missed_fraction"] == pytest.approx(81 * 10 / 1000)
+    image = bead_fit.residual_image([fit], per_bead=True)
+    R = image.evaluate(np.zeros(1, int), np.zeros((1, 1)), np.zeros((1, 1)))[0]
+    assert R[0, 0] == pytest.approx(10 / 1000, rel=0.01)
