@@ -19,6 +19,7 @@ import xarray as xr
 from conftest import DEMO_COLS as COLS
 from conftest import DEMO_ROWS as ROWS
 
+from emccdcal._output import read_netcdf, write_netcdf
 from emccdcal import calibrate, cli, result
 from emccdcal.beads import validation
 from emccdcal.data.manifest import read_manifest
@@ -58,10 +59,11 @@ def write_validation(d, setpoints=(1, 5, 25), n_beads=3, frames=200, seed=0):
     cals[1]["blinking"] = {"frames_off": {"1": 3, "5": 0, "25": 0}, "beads": 1, "modelled": True}
     (d / "validation.json").write_text(json.dumps({"calibrations": cals,
                                                    "ranking": ["A.nc", "B.nc"]}))
-    xr.Dataset({"intensity": (("calibration", "bead", "setpoint", "frame"), np.stack(cubes),
-                              {"units": "e-"})},
-               coords={"calibration": list(scale), "setpoint": np.array(setpoints, float)}
-               ).to_netcdf(d / "intensities.nc", engine="h5netcdf")
+    write_netcdf(xr.Dataset(
+        {"intensity": (("calibration", "bead", "setpoint", "frame"), np.stack(cubes),
+                       {"units": "e-"})},
+        coords={"calibration": list(scale), "setpoint": np.array(setpoints, float)}),
+        d / "intensities.nc")
     return d, np.stack(cubes)
 
 
@@ -238,11 +240,10 @@ def test_bead_figures_follow_the_validation_contract(tmp_path):
     assert line.get_ydata()[2] == pytest.approx(
         np.mean([b["mean_intensity"]["25"] / b["mean_intensity"]["1"] for b in beads]))
     # frames whose fit did not converge are not shown
-    with xr.open_dataset(d / "intensities.nc", engine="h5netcdf") as f:
-        ds = f.load()
+    ds = read_netcdf(d / "intensities.nc")
     ds["converged"] = xr.ones_like(ds.intensity, dtype=bool)
     ds["converged"][0, 1, 0, :50] = False
-    ds.to_netcdf(d / "intensities.nc", engine="h5netcdf")
+    write_netcdf(ds, d / "intensities.nc")
     shown = validation.read_validation(d)[1]
     assert int(np.isnan(shown[0, 1, 0]).sum()) == 50 and int(np.isnan(shown).sum()) == 50
 

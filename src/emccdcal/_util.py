@@ -1,8 +1,6 @@
 """Private helpers shared by the whole package: one of each, never a copy.
 
-- :func:`atomic_write`: every file emccdcal writes goes through it (text files through
-  :func:`atomic_write_text`); :func:`file_sha256`
-  the hash that names a result file in provenance;
+- (writing files has a module of its own: :mod:`emccdcal._output`);
 - :func:`progress`: every progress bar;
 - :func:`check_int`, :func:`check_number`, :func:`check_map`, :func:`e_per_adu_map`:
   argument validators whose errors are one-line :class:`~emccdcal.errors.OptionError`;
@@ -14,23 +12,16 @@ use it.
 
 from __future__ import annotations
 
-import hashlib
 import math
 import operator
-import os
-import secrets
 import sys
-from collections.abc import Callable, Iterable
-from pathlib import Path
+from collections.abc import Iterable
 
 import numpy as np
 
 from .errors import OptionError
 
 __all__ = [
-    "atomic_write",
-    "atomic_write_text",
-    "file_sha256",
     "progress",
     "check_int",
     "check_number",
@@ -40,73 +31,6 @@ __all__ = [
     "finite_or_none",
     "one_line",
 ]
-
-
-# --------------------------------------------------------------------------------------
-# Files
-# --------------------------------------------------------------------------------------
-def _umask() -> int:
-    # os.umask can only be read by setting it; this is process-wide but immediate.
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def atomic_write_text(path, text: str) -> Path:
-    """:func:`atomic_write` of a text file (UTF-8)."""
-    return atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
-
-
-def file_sha256(path) -> str:
-    """SHA-256 (hex) of a file's bytes, read in 1 MiB blocks (any size, bounded memory)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
-def atomic_write(path, write: Callable[[str], object]) -> Path:
-    """Write ``path`` through ``write(tmp)`` to a temporary file beside it, then replace it.
-
-    The temporary file is in the same directory (so :func:`os.replace` is atomic), gets
-    the mode a new file would get (0o666 less the umask: a shared result stays readable
-    by colleagues), is flushed to disk before the rename and removed if anything fails,
-    so a reader never sees a half-written file and an interrupted write leaves any
-    earlier file of the same name intact. The parent directory is created if missing.
-
-    Parameters
-    ----------
-    path : str or Path
-        The file to write.
-    write : callable
-        Called with the temporary file's path (str); writes the whole content there.
-
-    Returns
-    -------
-    Path
-        ``path``.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    while True:
-        # The suffix is kept: writers such as matplotlib and tifffile choose the format by it.
-        tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp{path.suffix}"
-        try:
-            os.close(os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
-            break
-        except FileExistsError:  # pragma: no cover - 48 random bits
-            continue
-    try:
-        write(str(tmp))
-        os.chmod(tmp, 0o666 & ~_umask())  # some writers recreate the file
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
 
 
 # --------------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ worker executes). At the end the tiles are assembled into one labelled result
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import functools
 import hashlib
@@ -28,6 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from . import __version__, result
+from ._output import Output
 from ._util import check_int, e_per_adu_map
 from ._util import progress as progress_bar
 from .data import quality, stats
@@ -36,7 +38,7 @@ from .data.stacks import read_band
 from .errors import MethodError, OptionError
 from .fit import engine, gof, layouts, mv
 from .model import noise
-from .runstore import RUN_DIR, RunInterrupted, RunStore
+from .runstore import RESULT_FILES, RunInterrupted, RunStore, remove_run
 
 if TYPE_CHECKING:
     import xarray
@@ -510,13 +512,18 @@ def calibrate(
     workers = os.cpu_count() if workers is None else check_int("workers", workers)
     # Every warning of the run (manifest, saturation, convergence, misfit) is recorded in
     # the result and issued again to the caller.
-    ds = result.run_recorded(
-        lambda: _run_calibration(manifest, method, e_per_adu, out, resume, overwrite,
-                                 block_size, tile_pixels, scheduler, options, progress,
-                                 workers, checks, map_errors, intervals, em_model, stages),
-    )
-    if out is not None:  # the result's files as one set; the kept tiles go last
-        result.save(ds, out, seconds=ds.attrs["seconds"], cleanup=Path(out) / RUN_DIR)
+    # The output is locked, and checked, for the whole run (the tiles are kept as they
+    # finish, so nothing is staged); the result's files go as one set, the tiles last.
+    target = None if out is None else Output(out, kind="folder", stage=False)
+    with target or contextlib.nullcontext():
+        ds = result.run_recorded(
+            lambda: _run_calibration(manifest, method, e_per_adu, target, resume, overwrite,
+                                     block_size, tile_pixels, scheduler, options, progress,
+                                     workers, checks, map_errors, intervals, em_model, stages),
+        )
+        if out is not None:
+            result.save(ds, out, seconds=ds.attrs["seconds"])
+            remove_run(out)
     return ds
 
 
@@ -549,7 +556,16 @@ def _require_convergence(ds, method) -> None:
             "maps against the data, the set-points and whether the method suits the data")
 
 
-def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_size,
+def _input_files(manifest, used, phi_source) -> list[Path]:
+    """The files a calibration reads, which its output may not replace."""
+    files = [manifest.path, *(a.frames_path for a in used)]
+    if phi_source is not None and Path(str(phi_source)).exists():
+        phi = Path(str(phi_source))
+        files.append(phi / result.CALIBRATION_FILE if phi.is_dir() else phi)
+    return files
+
+
+def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, block_size,
                      tile_pixels, scheduler, options, progress, workers, checks, map_errors,
                      intervals, em_model=None, stages=None):
     manifest = _load(manifest)
@@ -568,8 +584,9 @@ def _run_calibration(manifest, method, e_per_adu, out, resume, overwrite, block_
     used = [acqs[i] for i in idx]
     tiles = plan_tiles(rows * cols, tile_pixels, block_size)
     store = None
-    if out is not None:  # an unwritable or occupied output is found before any computing
-        store = RunStore(out, _fingerprint(
+    if target is not None:  # an input, or an occupied output, is found before computing
+        target.refuse_inputs(_input_files(manifest, used, phi_source), names=RESULT_FILES)
+        store = RunStore(target.path, _fingerprint(
             manifest, used, method, options, intervals, checks, map_errors, phi_map, phi_se,
             (block_size, tiles[0][1] - tiles[0][0]), model), resume=resume, overwrite=overwrite)
     dark_frames, map_groups, se_note = _map_error_sources(used, map_errors)

@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
+from ._output import read_netcdf, verify_digest, write_netcdf
 from ._util import finite_or_none
 from .errors import InputError, MissingFileError, OptionError
 
@@ -67,6 +68,10 @@ __all__ = [
     "Calibration",
     "load_calibration",
     "pixel_statistics",
+    "IDENTITY_FIELDS",
+    "camera_of",
+    "result_files",
+    "identity_mismatches",
 ]
 
 CALIBRATION_FILE = "calibration.nc"
@@ -608,7 +613,7 @@ def run_recorded(build, out=None) -> xr.Dataset:
     return ds
 
 
-def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None, cleanup=None) -> dict[str, Path]:
+def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None) -> dict[str, Path]:
     """Write ``calibration.nc`` and ``summary.json`` into ``out_dir`` as one set.
 
     Both are written to temporary files in ``out_dir`` first; only then is the earlier
@@ -626,8 +631,6 @@ def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None, cleanup=None)
         Output directory; created (with parents) if missing.
     seconds : float, optional
         Wall time of the calibration (s), for the summary.
-    cleanup : Path, optional
-        A directory removed once the files are in place (a run's kept tiles).
 
     Returns
     -------
@@ -644,10 +647,57 @@ def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None, cleanup=None)
     summary = summarize(ds, seconds=seconds)
     text = json.dumps(summary, indent=2, allow_nan=False) + "\n"
     written = publish(out_dir, {
-        CALIBRATION_FILE: lambda p: ds.to_netcdf(p, engine="h5netcdf"),
+        CALIBRATION_FILE: lambda p: write_netcdf(ds, p),
         SUMMARY_FILE: lambda p: Path(p).write_text(text, encoding="utf-8"),
-    }, cleanup=cleanup)
+    })
     return {"calibration": written[CALIBRATION_FILE], "summary": written[SUMMARY_FILE]}
+
+
+def _check_domain(ds: xr.Dataset, p: Path) -> None:
+    """The rules every result obeys, checked once for every reader: coordinates, and the
+    estimates of converged pixels (φ, gains and read noise positive and finite, offsets
+    finite, standard errors not negative)."""
+    def bad(text):
+        return InputError(f"{p}: not a valid result: {text}")
+
+    for dim in ("row", "col"):
+        c = np.asarray(ds[dim].values)
+        if c.dtype.kind not in "iu" or (c.size > 1 and np.any(np.diff(c) != 1)):
+            raise bad(f"its {dim} coordinate is not consecutive pixel indices")
+    if "setpoint" in ds.coords:
+        sp = np.asarray(ds["setpoint"].values, dtype=float)
+        if not np.all(np.isfinite(sp) & (sp > 0)) or np.unique(sp).size != sp.size:
+            raise bad("its set-points are not distinct positive numbers")
+    ok = np.asarray(ds["converged"].values).astype(bool)
+    if ok.shape != (ds.sizes["row"], ds.sizes["col"]):
+        raise bad("converged is not a (row, col) map")
+
+    def where_bad(name, rule):
+        if name not in ds:
+            return
+        da = ds[name]
+        if not {"row", "col"} <= set(da.dims):
+            return
+        values = da.transpose(..., "row", "col").values.astype(float)
+        if name == "em_gain":  # 1x has no multiplication: its gain may be left NaN
+            one = np.asarray(ds["setpoint"].values, dtype=float) == 1.0
+            values = values.copy()
+            values[one] = np.where(np.isnan(values[one]), 1.0, values[one])
+        wrong = ~rule(values) & ok
+        if wrong.any():
+            at = np.argwhere(wrong)[0]
+            raise bad(f"{name} is {values[tuple(at)]!r} at index {tuple(int(i) for i in at)} "
+                      "of a converged pixel")
+
+    def positive(v):
+        return np.isfinite(v) & (v > 0)
+
+    for name in ("e_per_adu", "em_gain", "read_noise"):
+        where_bad(name, positive)
+    where_bad("offset", np.isfinite)
+    for name in ds.data_vars:
+        if str(name).endswith("_se"):
+            where_bad(str(name), lambda v: np.isnan(v) | (v >= 0))
 
 
 def load(path) -> xr.Dataset:
@@ -677,13 +727,7 @@ def load(path) -> xr.Dataset:
         p = p / CALIBRATION_FILE
     if not p.is_file():
         raise MissingFileError(f"{p}: no such file")
-    try:
-        with xr.open_dataset(p, engine="h5netcdf") as f:
-            ds = f.load()
-    except (OSError, ValueError, TypeError, KeyError) as exc:
-        raise InputError(
-            f"{p}: not a readable NetCDF file ({exc.__class__.__name__}: {exc})"
-        ) from None
+    ds = read_netcdf(p, verify=False)
     missing_attrs = [a for a in ("method", "emccdcal_version") if a not in ds.attrs]
     if missing_attrs:
         raise InputError(
@@ -700,8 +744,10 @@ def load(path) -> xr.Dataset:
             f"{p}: written by emccdcal {ds.attrs['emccdcal_version']}, which is not compatible "
             f"with this emccdcal {_package_version()} (different major version)"
         )
+    verify_digest(ds, p)
     if ds["converged"].dtype != bool:
         ds["converged"] = ds["converged"].astype(bool)
+    _check_domain(ds, p)
     return ds
 
 
@@ -775,6 +821,8 @@ class Calibration:
         ``readout_rate_mhz``, ``analog_gain``, ``adc_bits``), merged over members.
     origin : tuple of int or None
         ``(row, col)`` of the first pixel on the sensor, where known.
+    binning : tuple of int or None
+        ``(x, y)`` binning the frames were read out with, where recorded.
     created : str
         Creation time of the newest member (ISO 8601 UTC).
     """
@@ -791,6 +839,7 @@ class Calibration:
     em_model: object = None
     camera: dict = field(default_factory=dict)
     origin: tuple | None = None
+    binning: tuple | None = None
     created: str = ""
     sha256: tuple = ()
 
@@ -850,6 +899,10 @@ class Calibration:
                 f"(offsets at: {have}); give the offset of the camera at that set-point")
         return self.offset[s], self.read_noise.get(s, np.full_like(self.offset[s], np.nan))
 
+    def identity(self) -> dict:
+        """What identifies the camera and its read-out state: ``camera`` with ``binning``."""
+        return {**self.camera, **({} if self.binning is None else {"binning": self.binning})}
+
     def provenance(self) -> dict:
         """What a file made from this calibration records of where it came from."""
         from . import __version__
@@ -857,6 +910,70 @@ class Calibration:
         return {"emccdcal_version": __version__, "method": self.method,
                 "created": self.created, "em_model": str(self.em_model),
                 "results": [{"file": str(f), "sha256": h} for f, h in zip(self.files, self.sha256)]}
+
+
+#: What must agree between a calibration and the frames it is used on (where both
+#: record it), with how to name it.
+IDENTITY_FIELDS = {"serial": "camera serial", "model": "camera model",
+                   "readout_rate_mhz": "read-out rate (MHz)",
+                   "analog_gain": "analog (pre-amplifier) gain", "adc_bits": "ADC bits",
+                   "binning": "binning"}
+
+
+def _identity_value(key, value):
+    if value is None:
+        return None
+    if key == "binning":
+        return tuple(int(v) for v in value)
+    if key in ("readout_rate_mhz", "adc_bits"):
+        return float(value)
+    return str(value).strip()
+
+
+def identity_mismatches(expected: dict, found: dict, *, accept=()) -> dict[str, str]:
+    """The identity fields (:data:`IDENTITY_FIELDS`) that both record and that differ,
+    each with a phrase ``"camera serial 'B' (calibration: 'A')"``; ``accept`` names
+    fields let through.
+
+    Examples
+    --------
+    >>> identity_mismatches({"serial": "A", "adc_bits": 16}, {"serial": "B"})
+    {'serial': "camera serial 'B' (calibration: 'A')"}
+    """
+    unknown = set(accept) - set(IDENTITY_FIELDS)
+    if unknown:
+        raise OptionError(f"--accept-mismatch takes {', '.join(IDENTITY_FIELDS)}; got "
+                          f"{', '.join(sorted(unknown))}")
+    out = {}
+    for key, what in IDENTITY_FIELDS.items():
+        a, b = _identity_value(key, expected.get(key)), _identity_value(key, found.get(key))
+        if key not in accept and a is not None and b is not None and a != b:
+            shown = {tuple: lambda v: "x".join(map(str, v)), float: lambda v: f"{v:g}"}
+            fmt = shown.get(type(a), repr)
+            out[key] = f"{what} {fmt(b)} (calibration: {fmt(a)})"
+    return out
+
+
+def result_files(specs) -> list[Path]:
+    """The result files named by ``specs`` (files, directories, comma-joined groups)."""
+    files = []
+    for spec in specs:
+        for part in str(spec).split(","):
+            p = Path(part.strip())
+            files.append(p / CALIBRATION_FILE if p.is_dir() else p)
+    return files
+
+
+def camera_of(ds, path) -> dict:
+    """What a result records of its camera (``attrs["camera"]``, JSON), checked."""
+    text = ds.attrs.get("camera", "{}")
+    try:
+        camera = json.loads(str(text))
+        if not isinstance(camera, dict):
+            raise ValueError("not an object")
+    except ValueError as exc:
+        raise InputError(f"{path}: its camera attribute is not a JSON object ({exc})") from None
+    return camera
 
 
 def _members(spec):
@@ -908,7 +1025,7 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
         giving the same set-point, two members that both measured φ, or members fitted
         with different register models. The message names the file.
     """
-    from ._util import file_sha256
+    from ._output import file_sha256
     from .model.noise import EMModel
 
     parts = _members(spec)
@@ -918,6 +1035,9 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
         p = Path(part)
         ds = load(p)
         f = p / CALIBRATION_FILE if p.is_dir() else p
+        twice = [g for g, _ in loaded if g.resolve() == f.resolve()]
+        if twice:
+            raise OptionError(f"{label}: {f} is given twice; give each result once")
         rows, cols = ds["row"].values, ds["col"].values
         if shape is not None:
             R, C = shape
@@ -961,8 +1081,12 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
             for s in dict.fromkeys(at):  # first member first; levels at one set-point merged
                 if np.isfinite(s) and s not in store:
                     store[s] = np.nanmedian(maps[np.asarray(at) == s], axis=0)
-        camera.update({k: v for k, v in json.loads(ds.attrs.get("camera", "{}")).items()
-                       if k not in camera})
+        recorded = camera_of(ds, f)
+        differ = identity_mismatches(camera, recorded)
+        if differ:
+            raise OptionError(f"{label}: {f} is of another camera or read-out state than "
+                              f"the members before it: {'; '.join(differ.values())}")
+        camera.update({k: v for k, v in recorded.items() if k not in camera})
         if "em_gain" not in ds:
             continue
         g, g_se = masked(ds, "em_gain"), masked(ds, "em_gain_se")
@@ -996,11 +1120,17 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
                           "of one model")
     origins = {tuple(int(v) for v in ds.attrs["sensor_origin"]) for _, ds in loaded
                if "sensor_origin" in ds.attrs}
+    binnings = {tuple(int(v) for v in np.atleast_1d(ds.attrs["binning"])) for _, ds in loaded
+                if "binning" in ds.attrs}
+    if len(binnings) > 1:
+        raise OptionError(f"{label}: its members were read out with different binnings "
+                          f"({', '.join('x'.join(map(str, b)) for b in sorted(binnings))})")
     return Calibration(
         label=label, files=tuple(f for f, _ in loaded), method="+".join(dict.fromkeys(methods)),
         e_per_adu=phi, e_per_adu_se=masked(loaded[i_phi][1], "e_per_adu_se"),
         em_gain=gains, em_gain_se=gains_se, offset=offsets, read_noise=read_noise,
         em_model=models.pop() if models else EMModel(), camera=camera,
         origin=origins.pop() if len(origins) == 1 else None,
+        binning=binnings.pop() if binnings else None,
         created=max(str(ds.attrs.get("created", "")) for _, ds in loaded),
         sha256=tuple(file_sha256(f) for f, _ in loaded))

@@ -8,30 +8,34 @@ run killed at any point loses only the tiles in flight:
 
 * ``resume=True`` continues an interrupted run, and refuses one whose fingerprint
   differs, saying what changed;
-* ``overwrite=True`` discards whatever the directory holds of an earlier run;
+* ``overwrite=True`` discards the kept tiles of an earlier run, and its result files
+  once the new ones are complete;
 * with neither, a directory that holds a finished or an unfinished run is refused: a
   new run is never mixed into an old one.
 
 The final files (``calibration.nc``, ``summary.json`` ...) are published together
-(:meth:`RunStore.publish`): all are written to temporary files first, the old set is
-removed, then the new files are renamed into place, so the directory never holds a new
-result beside an old summary. The run directory goes last. Whether the directory can be
-written is found out when the store is opened, before any computing.
+(:meth:`RunStore.publish`): all are written to temporary files first, then each is
+renamed over its old version, and an old file the new set does not have is removed, so
+at no moment is a result missing and a killed run leaves the old set. The run directory
+goes last. Whether the directory can be written, and that no other run is writing it,
+is found out by the caller's :class:`emccdcal._output.Output` before any computing.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
-import shutil
+import re
 from pathlib import Path
 
 import numpy as np
 
-from ._util import atomic_write, one_line
+from ._output import remove_leftovers, atomic_write, staged
+from ._util import one_line
 from .errors import EmccdcalError, OptionError
 
-__all__ = ["RunStore", "RUN_DIR", "RESULT_FILES", "RunInterrupted"]
+__all__ = ["RunStore", "RUN_DIR", "RESULT_FILES", "RunInterrupted", "publish", "remove_run"]
 
 #: Where an unfinished run keeps its tiles, inside the output directory.
 RUN_DIR = ".emccdcal-run"
@@ -66,10 +70,8 @@ class RunStore:
         self._check_writable()
         finished = [n for n in RESULT_FILES if (self.out / n).exists()]
         unfinished = (self.run_dir / _FINGERPRINT).is_file()
-        if overwrite:
-            for name in finished:
-                (self.out / name).unlink()
-            shutil.rmtree(self.run_dir, ignore_errors=True)
+        if overwrite:  # the old result stays until the new one is published
+            remove_run(self.out)
         elif resume:
             if not unfinished:
                 what = "a finished result" if finished else "no interrupted run"
@@ -114,11 +116,11 @@ class RunStore:
 
     def _remove_temporaries(self) -> None:
         """Temporary files of a run that was killed while writing (``atomic_write``'s)."""
-        for p in self.run_dir.glob(".*.tmp*"):
-            p.unlink(missing_ok=True)
+        for p in self.run_dir.glob("tile-*.npz"):
+            remove_leftovers(p)
+        remove_leftovers(self.run_dir / _FINGERPRINT)
         for name in RESULT_FILES:
-            for p in self.out.glob(f".{name}.*"):
-                p.unlink(missing_ok=True)
+            remove_leftovers(self.out / name)
 
     # ---- tiles -------------------------------------------------------------------------
     @staticmethod
@@ -156,31 +158,37 @@ class RunStore:
         dict of str to Path
             The files written.
         """
-        return publish(self.out, writers, cleanup=self.run_dir)
+        written = publish(self.out, writers)
+        remove_run(self.out)
+        return written
 
 
-def publish(out, writers: dict, *, cleanup=None) -> dict:
-    """Write files into ``out`` as one set: every new file is complete before any old one
-    of the set (:data:`RESULT_FILES`) is removed, so the directory never mixes two runs.
-    ``cleanup`` (a directory) is removed last."""
+def publish(out, writers: dict) -> dict:
+    """Write files into ``out`` as one set: every new file is complete before any is
+    renamed over its old version; then the old files of the set (:data:`RESULT_FILES`)
+    that the new set lacks are removed, so the directory never mixes two runs."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    staged = {}
-    try:
+    with staged(out):
         for name, write in writers.items():
-            staged[name] = atomic_write(out / f".{name}.staged", write)
-        for name in RESULT_FILES:
+            atomic_write(out / name, write)
+    for name in RESULT_FILES:
+        if name not in writers:
             (out / name).unlink(missing_ok=True)
-        written = {}
-        for name, tmp in staged.items():
-            os.replace(tmp, out / name)
-            written[name] = out / name
-    finally:
-        for tmp in staged.values():
-            Path(tmp).unlink(missing_ok=True)
-    if cleanup is not None:
-        shutil.rmtree(cleanup, ignore_errors=True)
-    return written
+    return {name: out / name for name in writers}
+
+
+def remove_run(out) -> None:
+    """Remove the kept tiles of a run in ``out``: only what a run stores there, never
+    anything else (a run directory holding other files is left, less the tiles)."""
+    run_dir = Path(out) / RUN_DIR
+    if not run_dir.is_dir() or run_dir.is_symlink():
+        return
+    ours = re.compile(r"^(tile-.+\.npz|fingerprint\.json|\..+\.[0-9a-f]{12}\.tmp.*)$")
+    for p in run_dir.iterdir():
+        if p.is_file() and ours.match(p.name):
+            p.unlink()
+    with contextlib.suppress(OSError):  # not empty: something else is there, kept
+        run_dir.rmdir()
 
 
 def _differences(old: dict, new: dict, prefix: str = "") -> list[str]:

@@ -60,7 +60,8 @@ from typing import NamedTuple
 import numpy as np
 
 from .. import result
-from .._util import atomic_write, atomic_write_text, finite_or_none
+from .._output import atomic_write, atomic_write_text, read_netcdf, write_netcdf
+from .._util import finite_or_none
 from .._util import progress as progress_bar
 from ..data.manifest import Manifest, read_manifest
 from ..errors import InputError, MissingFileError, OptionError
@@ -551,7 +552,7 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
         out.mkdir(parents=True, exist_ok=True)
         ds = _intensities_dataset(cals, setpoints, positions, arr, arr_se, loglik, conv,
                                   manifest, layout)
-        atomic_write(out / INTENSITIES_FILE, lambda p: ds.to_netcdf(p, engine="h5netcdf"))
+        atomic_write(out / INTENSITIES_FILE, lambda p: write_netcdf(ds, p))
         text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
         atomic_write_text(out / VALIDATION_FILE, text)
     return doc
@@ -834,7 +835,6 @@ def read_validation(directory):
     ValueError
         A file that is not a validation file of this contract (names the file).
     """
-    import xarray as xr
 
     d = Path(directory)
     path = d / VALIDATION_FILE
@@ -851,12 +851,12 @@ def read_validation(directory):
     ipath = d / INTENSITIES_FILE
     if not ipath.is_file():
         return doc, None
+    f = read_netcdf(ipath, what="validation")
     try:
-        with xr.open_dataset(ipath, engine="h5netcdf") as f:
-            da = f["intensity"].load()
-            if "converged" in f:  # frames whose fit did not converge are not shown
-                da = da.where(f["converged"].load().astype(bool))
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+        da = f["intensity"]
+        if "converged" in f:  # frames whose fit did not converge are not shown
+            da = da.where(f["converged"].astype(bool))
+    except (ValueError, KeyError, TypeError) as exc:
         raise OptionError(f"{ipath}: not a readable intensities file ({exc.__class__.__name__}: "
                          f"{exc})") from None
     want = ("calibration", "bead", "setpoint", "frame")

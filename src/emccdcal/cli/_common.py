@@ -16,20 +16,52 @@ import sys
 import warnings
 from pathlib import Path
 
-__all__ = ["add_out", "add_out_or_dir", "output_of", "add_quiet", "add_no_figures",
+__all__ = ["add_out", "add_overwrite", "add_accept_mismatch", "output", "add_out_or_dir", "output_of", "add_quiet", "add_no_figures",
            "add_e_per_adu", "positive_float", "positive_int", "number_list", "label_list",
            "pixel", "recording_warnings", "print_warnings", "add_calibration_source",
            "calibration_of"]
 
 
-def add_out(p: argparse.ArgumentParser, what: str = "output directory", required: bool = True):
+def add_out(p: argparse.ArgumentParser, what: str = "output directory", required: bool = True,
+            overwrite: bool = True):
     p.add_argument("-o", "--out", type=Path, required=required, metavar="OUT", help=what)
+    if overwrite:
+        add_overwrite(p)
 
 
-def add_out_or_dir(p: argparse.ArgumentParser, what: str, required: bool = True) -> None:
+def add_overwrite(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier output of the same names (only once the new one "
+                   "is complete)")
+
+
+def add_accept_mismatch(p: argparse.ArgumentParser) -> None:
+    from ..result import IDENTITY_FIELDS
+
+    p.add_argument("--accept-mismatch", action="append", default=[], metavar="FIELD",
+                   choices=tuple(IDENTITY_FIELDS),
+                   help="let the files differ from the calibration in FIELD (repeatable; "
+                   f"one of {', '.join(IDENTITY_FIELDS)}): by default a calibration is "
+                   "used only on frames of the camera and read-out state it calibrated")
+
+
+def output(args, path, *, kind: str = "folder", inputs=(), names=()):
+    """The verb's output under the one output policy (:class:`emccdcal._output.Output`):
+    checked before any computing, locked while the verb runs, its files published
+    together when complete; ``--overwrite`` from ``args``."""
+    from .._output import Output
+
+    return Output(path, kind=kind, inputs=inputs, names=names,
+                  overwrite=bool(getattr(args, "overwrite", False)))
+
+
+def add_out_or_dir(p: argparse.ArgumentParser, what: str, required: bool = True,
+                   overwrite: bool = True) -> None:
     """``OUT`` as a positional argument (the verb's original form) or as ``-o OUT``."""
     p.add_argument("dir", nargs="?", type=Path, metavar="OUT", help=f"{what} (or -o OUT)")
     p.add_argument("-o", "--out", type=Path, default=None, help=what)
+    if overwrite:
+        add_overwrite(p)
     p.set_defaults(_out_required=required)
 
 

@@ -28,6 +28,8 @@ def add_parser(subparsers):
     p.add_argument("--threshold", type=_common.positive_float, default=DEFAULT_THRESHOLD,
                    metavar="K", help="photon-counting threshold in read-noise SDs "
                    "(default %(default)s)")
+    _common.add_overwrite(p)
+    _common.add_accept_mismatch(p)
     _common.add_quiet(p)
     p.set_defaults(func=run)
     return p
@@ -43,7 +45,8 @@ def run(args) -> int:
     with _common.recording_warnings() as caught:
         out = apply(_common.calibration_of(args, setpoint), args.movie, args.out,
                     setpoint=args.setpoint, photon_counting=args.photon_counting,
-                    threshold=args.threshold, progress_bar=not args.quiet)
+                    threshold=args.threshold, progress_bar=not args.quiet,
+                    overwrite=args.overwrite, accept_mismatch=args.accept_mismatch)
     if not args.quiet:
         print(f"wrote {out}")
     _common.print_warnings(caught)

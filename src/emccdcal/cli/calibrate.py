@@ -19,7 +19,7 @@ def add_parser(subparsers):
     p.add_argument("manifest", type=Path, help="TOML manifest of the acquisitions")
     p.add_argument("--method", "-m", default="gs", choices=METHODS,
                    help="calibration method (default: gs)")
-    _common.add_out(p)
+    _common.add_out(p, overwrite=False)
     _common.add_e_per_adu(p)
     again = p.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",

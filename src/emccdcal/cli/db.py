@@ -44,6 +44,7 @@ def add_parser(subparsers):
     c.add_argument("--z", type=_common.positive_float, default=3.0,
                    help="flag a gain change beyond z combined SEs (default %(default)s)")
     c.add_argument("-o", "--out", type=Path, metavar="DIR", help="write the figure here")
+    _common.add_overwrite(c)
     p.set_defaults(func=run)
     return p
 
@@ -80,11 +81,13 @@ def run(args) -> int:
         f"{s:g}x {m:.4g} ± {se or 0:.2g}" for s, (m, se, _) in sorted(e.gains.items()))
         for e in found]
     if args.out is not None:
+        from .._output import slug
         from ..report.figures import gain_history_figure, save_figure
 
-        lines += [f"wrote {f}" for f in save_figure(
-            gain_history_figure(found, camera=args.camera),
-            args.out / f"gain-history-{args.camera}")]
+        with _common.output(args, args.out):  # the serial is data: never a path
+            lines += [f"wrote {f}" for f in save_figure(
+                gain_history_figure(found, camera=args.camera),
+                args.out / f"gain-history-{slug(args.camera)}")]
     if not args.quiet:
         print("\n".join(lines))
     for f in findings:

@@ -16,7 +16,7 @@ def add_parser(subparsers):
         "against estimate.",
     )
     _common.add_out_or_dir(p, "output directory (default: a new temporary directory)",
-                           required=False)
+                           required=False, overwrite=False)
     p.add_argument("--rows", type=_common.positive_int, default=16,
                    help="rows, px (default %(default)s)")
     p.add_argument("--cols", type=_common.positive_int, default=16,

@@ -35,11 +35,13 @@ def add_parser(subparsers):
 
 def run(args) -> int:
     from ..export.tools import export
+    from ..result import load_calibration
 
     with _common.recording_warnings() as caught:
-        files = export(_common.calibration_of(args, args.setpoint), args.to, args.out,
-                       setpoint=args.setpoint, qe=args.qe, pixel_size_nm=args.pixel_size,
-                       camera_name=args.camera_name)
+        cal = load_calibration(_common.calibration_of(args, args.setpoint))
+        with _common.output(args, args.out, inputs=cal.files):
+            files = export(cal, args.to, args.out, setpoint=args.setpoint, qe=args.qe,
+                           pixel_size_nm=args.pixel_size, camera_name=args.camera_name)
     if not args.quiet:
         for f in files:
             print(f"wrote {f}")

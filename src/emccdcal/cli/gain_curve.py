@@ -20,6 +20,7 @@ def add_parser(subparsers):
     _common.add_out(p)
     p.add_argument("--predict", type=_common.number_list, default=[], metavar="G,G,...",
                    help="set-points to predict (besides the measured ones)")
+    _common.add_accept_mismatch(p)
     _common.add_no_figures(p)
     _common.add_quiet(p)
     p.set_defaults(func=run)
@@ -31,12 +32,16 @@ def run(args) -> int:
 
     import numpy as np
 
-    from .._util import atomic_write
+    from .._output import atomic_write_text
     from ..export.gain_curve import fit_gain_curve, measured_gains
-    from ..result import format_setpoint
+    from ..result import format_setpoint, result_files
 
-    with _common.recording_warnings() as caught:
-        curve = fit_gain_curve(measured_gains(args.results))
+    out = Path(args.out)
+    names = ("gain-curve.csv", "gain-curve.json")
+    with _common.recording_warnings() as caught, \
+            _common.output(args, out, inputs=result_files(args.results), names=names):
+        curve = fit_gain_curve(measured_gains(args.results,
+                                              accept_mismatch=args.accept_mismatch))
         table = curve.predict(sorted(set(curve.setpoints) | set(args.predict)))
         lines = ["setpoint,gain,se,lower95,upper95,measured_gain,measured_se,extrapolated"]
         for i, s in enumerate(table["setpoint"]):
@@ -49,11 +54,8 @@ def run(args) -> int:
                "coefficients": curve.coef.tolist(), "covariance": curve.cov.tolist(),
                "chi2": curve.chi2, "dof": curve.dof,
                "results": [str(r) for r in args.results]}
-        out = Path(args.out)
-        written = [atomic_write(out / "gain-curve.csv",
-                                lambda p: Path(p).write_text("\n".join(lines) + "\n")),
-                   atomic_write(out / "gain-curve.json",
-                                lambda p: Path(p).write_text(json.dumps(doc, indent=2) + "\n"))]
+        written = [atomic_write_text(out / names[0], "\n".join(lines) + "\n"),
+                   atomic_write_text(out / names[1], json.dumps(doc, indent=2) + "\n")]
         if not args.no_figures:
             from ..report.figures import gain_curve_figure, save_figure
 

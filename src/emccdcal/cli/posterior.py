@@ -52,19 +52,21 @@ def run(args) -> int:
     )
 
     try:
-        ds = sample_posterior(
-            args.manifest, args.method, args.pixel, e_per_adu=args.e_per_adu,
-            n_walkers=args.walkers, n_steps=args.steps, seed=args.seed,
-            max_steps=args.max_steps, prior=args.prior, out=args.out, progress=not args.quiet,
-            em_model=args.em_model, stages=args.stages,
-        )
+        with _common.output(args, args.out, inputs=[args.manifest],
+                            names=(POSTERIOR_FILE, SUMMARY_FILE)):
+            ds = sample_posterior(
+                args.manifest, args.method, args.pixel, e_per_adu=args.e_per_adu,
+                n_walkers=args.walkers, n_steps=args.steps, seed=args.seed,
+                max_steps=args.max_steps, prior=args.prior, out=args.out,
+                progress=not args.quiet, em_model=args.em_model, stages=args.stages,
+            )
+            if not args.no_figures:
+                from ..report.corner import write_corner_figures
+
+                write_corner_figures(ds, args.out)
     except NotConvergedError as exc:
         print(f"emccdcal posterior: refused: {exc}", file=sys.stderr)
         return 1
-    if not args.no_figures:
-        from ..report.corner import write_corner_figures
-
-        write_corner_figures(ds, args.out)
     if not args.quiet:
         print(format_summary(ds))
         print(f"wrote {args.out / POSTERIOR_FILE} and {args.out / SUMMARY_FILE}")

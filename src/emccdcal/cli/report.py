@@ -45,7 +45,11 @@ def run(args) -> int:
     from ..report.html import REPORT_FILE, write_report
 
     out = args.out if args.out.suffix.lower() in (".html", ".htm") else args.out / REPORT_FILE
-    with _common.recording_warnings() as caught:
+    from ..result import result_files
+
+    inputs = result_files(args.results)
+    with _common.recording_warnings() as caught, \
+            _common.output(args, out, kind="file", inputs=inputs):
         path = write_report(args.results, out, validation=args.validation, pixel=args.pixel,
                             figures_dir=args.figures_dir, progress=not args.quiet,
                             command=_command(args))

@@ -17,7 +17,8 @@ def add_parser(subparsers):
         "bits, binning and region agree, and write a commented manifest (docs/formats.md).",
     )
     p.add_argument("folder", type=Path, metavar="DIR", help="the folder of camera files")
-    _common.add_out(p, "the manifest to write (default DIR/manifest.toml)", required=False)
+    _common.add_out(p, "the manifest to write (default DIR/manifest.toml)", required=False,
+                    overwrite=False)
     p.add_argument("--overwrite", action="store_true", help="replace an existing manifest")
     _common.add_quiet(p)
     p.set_defaults(func=run)

@@ -93,13 +93,18 @@ def _report(res, what: str) -> None:
     print(f"  stacks:   {res.outdir / Path(a0['frames']).parent}{os.sep}")
 
 
+#: Files every simulation writes: an earlier simulation's are refused without --overwrite.
+_SIMULATED = ("manifest.toml", "truth.json")
+
+
 def _run_gain_series(args) -> int:
     from ..simulate.series import simulate_gain_series
 
-    res = simulate_gain_series(_common.output_of(args), setpoints=args.setpoints,
-                               em_gain=args.em_gain,
-                               photoelectrons=args.photoelectrons, offsets=args.offsets,
-                               **_common_kwargs(args))
+    out = _common.output_of(args)
+    with _common.output(args, out, names=_SIMULATED):
+        res = simulate_gain_series(out, setpoints=args.setpoints, em_gain=args.em_gain,
+                                   photoelectrons=args.photoelectrons, offsets=args.offsets,
+                                   **_common_kwargs(args))
     _report(res, "gain series")
     return 0
 
@@ -107,10 +112,11 @@ def _run_gain_series(args) -> int:
 def _run_intensity_series(args) -> int:
     from ..simulate.series import simulate_intensity_series
 
-    res = simulate_intensity_series(_common.output_of(args), levels=args.levels,
-                                    labels=args.labels,
-                                    setpoint=args.setpoint, em_gain=args.em_gain,
-                                    **_common_kwargs(args))
+    out = _common.output_of(args)
+    with _common.output(args, out, names=_SIMULATED):
+        res = simulate_intensity_series(out, levels=args.levels, labels=args.labels,
+                                        setpoint=args.setpoint, em_gain=args.em_gain,
+                                        **_common_kwargs(args))
     _report(res, "intensity series")
     return 0
 
@@ -118,15 +124,16 @@ def _run_intensity_series(args) -> int:
 def _run_beads(args) -> int:
     from ..simulate.beads import TRUTH_CALIBRATION_FILE, simulate_beads
 
-    res = simulate_beads(_common.output_of(args), beads=args.beads,
-                         photoelectrons=args.photoelectrons,
-                         width=args.width, background=args.background,
-                         min_separation=args.min_separation, margin=args.margin,
-                         bleaching=args.bleaching, halo=args.halo, halo_width=args.halo_width,
-                         blinking=args.blinking, blink_frames=args.blink_frames,
-                         repeat=args.repeat,
-                         setpoints=args.setpoints, em_gain=args.em_gain, offsets=args.offsets,
-                         **_common_kwargs(args))
+    out = _common.output_of(args)
+    with _common.output(args, out, names=_SIMULATED):
+        res = simulate_beads(out, beads=args.beads, photoelectrons=args.photoelectrons,
+                             width=args.width, background=args.background,
+                             min_separation=args.min_separation, margin=args.margin,
+                             bleaching=args.bleaching, halo=args.halo,
+                             halo_width=args.halo_width, blinking=args.blinking,
+                             blink_frames=args.blink_frames, repeat=args.repeat,
+                             setpoints=args.setpoints, em_gain=args.em_gain,
+                             offsets=args.offsets, **_common_kwargs(args))
     _report(res, "bead movies")
     print(f"  true calibration: {res.outdir / TRUTH_CALIBRATION_FILE}")
     return 0

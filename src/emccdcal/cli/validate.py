@@ -61,20 +61,25 @@ def run(args) -> int:
         validate,
     )
     from ..errors import OptionError
+    from ..result import result_files
 
     if args.half_size < 2:
         raise OptionError("--half-size must be at least 2 (pixels)")
     specs = [item for group in args.calibration for item in group]
+    inputs = [args.manifest, *result_files(specs)]
     with _common.recording_warnings() as caught:
-        doc = validate(args.manifest, specs, out=args.out, width=args.width,
-                       half_size=args.half_size, min_separation=args.min_separation,
-                       snr=args.snr, detect_setpoint=args.detect_setpoint,
-                       progress=not args.quiet, bleaching=args.bleaching, psf=args.psf,
-                       blinking=args.blinking)
-        if not args.no_figures:
+        with _common.output(args, args.out, inputs=inputs,
+                            names=(VALIDATION_FILE, INTENSITIES_FILE)):
+            doc = validate(args.manifest, specs, out=args.out, width=args.width,
+                           half_size=args.half_size, min_separation=args.min_separation,
+                           snr=args.snr, detect_setpoint=args.detect_setpoint,
+                           progress=not args.quiet, bleaching=args.bleaching, psf=args.psf,
+                           blinking=args.blinking)
+        if not args.no_figures:  # drawn from the files just published
             from ..report.figures import write_validation_figures
 
-            write_validation_figures(args.out)
+            with _common.output(args, args.out, inputs=inputs):
+                write_validation_figures(args.out)
     if not args.quiet:
         print(format_table(doc))
         print(f"wrote {args.out / VALIDATION_FILE} and {args.out / INTENSITIES_FILE}")

@@ -17,7 +17,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .._util import atomic_write_text
+from .._output import Output, atomic_write_text, comment, toml_line
 from ..errors import InputError
 from .settings import CameraSettings
 from .stacks import STACK_SUFFIXES, stack_header, stack_settings
@@ -150,10 +150,6 @@ def _check_agreement(stacks) -> None:
                                  f"'{known[0][0].path}': a series is taken with one {what}")
 
 
-def _toml(value) -> str:
-    return '"' + str(value).replace("\\", "\\\\").replace('"', '\\"') + '"'
-
-
 def manifest_text(session: Session, where: Path) -> str:
     """The manifest of ``session`` as TOML with comments, paths relative to ``where``."""
     where = Path(where).resolve().parent
@@ -165,14 +161,14 @@ def manifest_text(session: Session, where: Path) -> str:
             return str(path.resolve())
 
     kind = session.kind
-    lines = [f"# {kind} scanned from {session.folder} by emccdcal scan, "
-             f"{time.strftime('%Y-%m-%d %H:%M', time.localtime())}.",
-             "# Rules used:"] + [f"#   {r}" for r in session.rules]
+    lines = [comment(f"# {kind} scanned from {session.folder} by emccdcal scan, "
+                     f"{time.strftime('%Y-%m-%d %H:%M', time.localtime())}."),
+             "# Rules used:"] + [comment(f"#   {r}") for r in session.rules]
     lines.append("# Check it, then: emccdcal calibrate THIS.toml --method "
                  + ("gs" if kind == "gain-series" else "is-adu") + " -o OUT")
     bits = {f.settings.adc_bits for f in session.signal + session.darks} - {None}
     if len(bits) == 1:
-        lines.append(f"adc_bits = {bits.pop()}")
+        lines.append(toml_line("adc_bits", int(bits.pop())))
     else:
         lines.append("# adc_bits = 16   # not recorded: the camera's ADC resolution, if known")
     if kind == "gain-series":
@@ -183,24 +179,23 @@ def manifest_text(session: Session, where: Path) -> str:
     for i, f in enumerate(session.signal, start=1):
         lines += ["", "[[acquisition]]"]
         known = f.settings.known()
-        if known:
-            lines.append("# recorded: " + ", ".join(f"{k} {v}" for k, v in known.items()))
-        lines.append(f"name = {_toml(f.path.stem)}")
-        lines.append(f"frames = {_toml(rel(f.path))}")
-        lines.append(f"em_gain_setpoint = {f.setpoint:g}"
+        if known:  # text from the file: one comment line, whatever it holds
+            lines.append(comment("# recorded: " + ", ".join(f"{k} {v}" for k, v in known.items())))
+        lines.append(toml_line("name", f.path.stem))
+        lines.append(toml_line("frames", rel(f.path)))
+        lines.append(toml_line("em_gain_setpoint", f.setpoint)
                      + ("" if f.setpoint_rule == "recorded" else "  # from the file name"))
         if kind == "intensity-series":
-            lines.append(f"level = {_toml(f'L{i}')}")
-        lines.append(f"dark = {_toml(rel(darks[f.setpoint].path))}")
+            lines.append(toml_line("level", f"L{i}"))
+        lines.append(toml_line("dark", rel(darks[f.setpoint].path)))
     return "\n".join(lines) + "\n"
 
 
 def write_manifest(session: Session, out, *, overwrite: bool = False) -> Path:
     """Write :func:`manifest_text` to ``out`` (atomically); an existing file only with
-    ``overwrite``."""
+    ``overwrite``, and never one of the session's stacks."""
     out = Path(out)
-    if out.exists() and not overwrite:
-        raise InputError(f"'{out}' exists; pass --overwrite to replace it")
-    text = manifest_text(session, out)
-    atomic_write_text(out, text)
+    inputs = [f.path for f in session.signal + session.darks]
+    with Output(out, kind="file", inputs=inputs, overwrite=overwrite):
+        atomic_write_text(out, manifest_text(session, out))
     return out

@@ -26,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import OptionError
-from ..result import Calibration, format_setpoint, load_calibration, pixel_statistics
+from ..result import (Calibration, format_setpoint, identity_mismatches, load_calibration,
+                      pixel_statistics)
 
 __all__ = ["GainCurve", "fit_gain_curve", "measured_gains"]
 
@@ -38,11 +39,18 @@ def _point(setpoint, gain_map, label):
     return None if st["se"] is None else (float(setpoint), st["median"], st["se"], label)
 
 
-def measured_gains(calibrations) -> list[tuple[float, float, float, str]]:
+def measured_gains(calibrations, *, accept_mismatch=()) -> list[tuple[float, float, float, str]]:
     """``(set-point, gain, SE, label)`` of every multiplied set-point of the calibrations
     (results, or result datasets in memory): the median over converged pixels and the
-    standard error of that median."""
-    points = []
+    standard error of that median.
+
+    Raises
+    ------
+    OptionError
+        A result given twice, or results of different cameras or read-out states (unless
+        the fields that differ are in ``accept_mismatch``).
+    """
+    points, seen, identity = [], {}, None
     for i, cal in enumerate(calibrations):
         if hasattr(cal, "data_vars"):  # an xarray result dataset
             if "em_gain" not in cal:
@@ -53,6 +61,19 @@ def measured_gains(calibrations) -> list[tuple[float, float, float, str]]:
             label = str(cal.attrs.get("method", f"result {i + 1}"))
         else:
             cal = cal if isinstance(cal, Calibration) else load_calibration(cal)
+            for f, digest in zip(cal.files, cal.sha256):
+                if digest in seen:
+                    raise OptionError(f"{f} is given twice (also as {seen[digest]}): each "
+                                      "result would be counted twice; give it once")
+                seen[digest] = f
+            if identity is None:
+                identity = (cal.label, cal.identity())
+            differ = identity_mismatches(identity[1], cal.identity(), accept=accept_mismatch)
+            if differ:
+                raise OptionError(f"{cal.label} is of another camera or read-out state than "
+                                  f"{identity[0]}: {'; '.join(differ.values())}; a gain curve "
+                                  "is of one camera (--accept-mismatch "
+                                  f"{' '.join(differ)} if you know better)")
             maps, label = {s: cal.gain(s) for s in cal.setpoints}, cal.label
         points += [p for s, m in maps.items() if s != 1.0
                    for p in [_point(s, m, label)] if p is not None]

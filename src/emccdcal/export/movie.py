@@ -21,16 +21,17 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 import warnings
 from pathlib import Path
 
 import numpy as np
 
-from .._util import atomic_write, progress
+from .._output import Output, atomic_write
+from .._util import progress
 from ..data.stacks import read_band, stack_header, stack_settings
 from ..errors import InputError, OptionError
-from ..result import Calibration, format_setpoint, load_calibration
+from ..result import (IDENTITY_FIELDS, Calibration, format_setpoint, identity_mismatches,
+                      load_calibration)
 
 __all__ = ["apply", "OUTPUT_FORMATS", "DEFAULT_THRESHOLD"]
 
@@ -71,8 +72,21 @@ def _region(cal: Calibration, movie: Path, roi, shape) -> tuple[slice, slice]:
     return slice(r0, r0 + rows), slice(c0, c0 + cols)
 
 
+def _check_identity(cal: Calibration, movie: Path, settings, accept) -> None:
+    """The movie must come from the calibrated camera in the calibrated read-out state,
+    as far as both record it."""
+    found = {k: v for k, v in settings.known().items() if k in IDENTITY_FIELDS}
+    differ = identity_mismatches(cal.identity(), found, accept=accept)
+    if differ:
+        raise InputError(f"{movie}: not what {cal.label} calibrated: "
+                         f"{'; '.join(differ.values())}; a calibration holds for one camera "
+                         "and read-out state (if you know better: "
+                         f"{' '.join(f'--accept-mismatch {k}' for k in differ)})")
+
+
 def apply(calibration, movie, out, *, setpoint=None, photon_counting=False,
-          threshold=DEFAULT_THRESHOLD, output_format=None, progress_bar=True) -> Path:
+          threshold=DEFAULT_THRESHOLD, output_format=None, progress_bar=True,
+          overwrite=False, accept_mismatch=()) -> Path:
     """Convert a movie to photoelectrons (or photon counts) per pixel per frame.
 
     Parameters
@@ -93,6 +107,12 @@ def apply(calibration, movie, out, *, setpoint=None, photon_counting=False,
         The photon-counting threshold in read-noise SDs (default 5).
     output_format : {"tiff", "zarr"}, optional
         Default: from the suffix of ``out``.
+    overwrite : bool
+        Replace an existing ``out`` (only once the new one is complete; a ``.zarr`` only
+        where emccdcal wrote it). Never allowed: ``out`` being the movie or a result.
+    accept_mismatch : iterable of str
+        Identity fields (:data:`~emccdcal.result.IDENTITY_FIELDS`) in which the movie
+        may differ from the calibration.
 
     Returns
     -------
@@ -103,8 +123,9 @@ def apply(calibration, movie, out, *, setpoint=None, photon_counting=False,
     ------
     OptionError, InputError
         No set-point known, one missing from the calibration, a movie that is not inside
-        the calibration's pixels, an output format not known, pixels without a usable
-        calibration (named).
+        the calibration's pixels or of another camera or read-out state, an output that
+        exists (without ``overwrite``) or is an input, an output format not known, no
+        pixel with a usable calibration.
     """
     movie, out = Path(movie), Path(out)
     fmt = output_format or ("zarr" if out.suffix.lower() == ".zarr" else
@@ -115,16 +136,33 @@ def apply(calibration, movie, out, *, setpoint=None, photon_counting=False,
     if photon_counting and not (threshold > 0 and math.isfinite(threshold)):
         raise OptionError(f"--threshold is in read-noise SDs and positive; got {threshold}")
     cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
+    target = Output(out, kind="store" if fmt == "zarr" else "file",
+                    inputs=[movie, *cal.files], overwrite=overwrite)
+    with target:
+        _apply(cal, movie, target, setpoint, photon_counting, threshold, fmt, progress_bar,
+               accept_mismatch)
+    return out
+
+
+def _apply(cal, movie, target, setpoint, photon_counting, threshold, fmt, progress_bar,
+           accept_mismatch):
     shape, dtype = stack_header(movie)
     if len(shape) != 3:
         raise InputError(f"{movie}: a movie is a stack of frames; this file holds shape {shape}")
     frames, rows, cols = shape
+    if frames == 0 or rows == 0 or cols == 0:
+        raise InputError(f"{movie}: holds no frames (shape {shape})")
     settings = stack_settings(movie)
+    _check_identity(cal, movie, settings, accept_mismatch)
     s = _movie_setpoint(movie, settings.em_gain_setpoint, setpoint)
     rr, cc = _region(cal, movie, settings.roi, (rows, cols))
     scale = (cal.e_per_adu / cal.gain(s))[rr, cc]
     offset, sigma = (m[rr, cc] for m in cal.dark(s))
     bad = ~(np.isfinite(offset) & np.isfinite(scale))
+    if bad.all():
+        raise InputError(f"{movie}: none of its {rows}×{cols} pixels has a converged "
+                         f"calibration at {format_setpoint(s)}x in {cal.label}; nothing to "
+                         "convert")
     meta = {"units": "photoelectrons per pixel per frame (e-)" if not photon_counting else
             "photon counts per pixel per frame (0 or 1)",
             "source": str(movie), "setpoint": s, "formula": "(S - offset) * e_per_adu / em_gain",
@@ -152,6 +190,10 @@ def apply(calibration, movie, out, *, setpoint=None, photon_counting=False,
     def blocks(bar):
         for a in range(0, frames, per_block):
             raw = read_band(movie, 0, rows, skip_frames=a, stop_frame=min(frames, a + per_block))
+            if raw.dtype.kind == "f" and not (np.isfinite(raw).all() and (raw >= 0).all()):
+                i = a + int(np.flatnonzero(~(np.isfinite(raw) & (raw >= 0)).any(axis=(1, 2)))[0])
+                raise InputError(f"{movie}: frame {i} holds counts that are negative or not "
+                                 "finite; raw camera counts are neither")
             signal = raw.astype(np.float32)  # one working copy, changed in place
             signal -= offset
             if photon_counting:
@@ -164,10 +206,10 @@ def apply(calibration, movie, out, *, setpoint=None, photon_counting=False,
     with progress(total=frames, enabled=progress_bar, desc=f"apply {movie.name}",
                   unit="frame") as bar:
         if fmt == "tiff":
-            _write_tiff(out, blocks(bar), (frames, rows, cols), out_dtype, meta)
+            _write_tiff(target.path, blocks(bar), (frames, rows, cols), out_dtype, meta)
         else:
-            _write_zarr(out, blocks(bar), (frames, rows, cols), out_dtype, meta, per_block)
-    return out
+            _write_zarr(target.store(), blocks(bar), (frames, rows, cols), out_dtype, meta,
+                        per_block)
 
 
 def _write_tiff(out: Path, blocks, shape, dtype, meta) -> None:
@@ -184,24 +226,16 @@ def _write_tiff(out: Path, blocks, shape, dtype, meta) -> None:
     atomic_write(out, write)
 
 
-def _write_zarr(out: Path, blocks, shape, dtype, meta, per_block) -> None:
+def _write_zarr(store: Path, blocks, shape, dtype, meta, per_block) -> None:
+    """Fill a new Zarr store (the Output puts it in place when complete)."""
     try:
         import zarr
     except ImportError:
         raise OptionError("writing .zarr needs zarr: pip install 'emccdcal[zarr]'") from None
-    tmp = out.parent / f".{out.name}.partial"
-    shutil.rmtree(tmp, ignore_errors=True)
-    try:
-        z = zarr.open_array(str(tmp), mode="w", shape=shape, dtype=dtype,
-                            chunks=(per_block, shape[1], shape[2]))
-        z.attrs.update(json.loads(json.dumps(meta)))
-        at = 0
-        for block in blocks:
-            z[at:at + block.shape[0]] = block.astype(dtype, copy=False)
-            at += block.shape[0]
-        if out.exists():
-            shutil.rmtree(out) if out.is_dir() else out.unlink()
-        tmp.rename(out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    z = zarr.open_array(str(store), mode="w", shape=shape, dtype=dtype,
+                        chunks=(per_block, shape[1], shape[2]))
+    z.attrs.update(json.loads(json.dumps(meta)))
+    at = 0
+    for block in blocks:
+        z[at:at + block.shape[0]] = block.astype(dtype, copy=False)
+        at += block.shape[0]

@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .._util import atomic_write
-from .._util import atomic_write_text as _write_text
+from .._output import atomic_write, comment
+from .._output import atomic_write_text as _write_text
 from ..errors import OptionError
 from ..result import Calibration, format_setpoint, load_calibration, pixel_statistics
 
@@ -110,7 +110,7 @@ def _comment_lines(cal, setpoint, values, qe, prefix) -> str:
         spread = "n/a" if v["spread"] is None else f"{v['spread']:.4g}"
         lines.append(f"  {name} = {v['median']:.6g} {unit} ({spread})")
     lines += [f"result {r['file']} sha256 {r['sha256']}" for r in p["results"]]
-    return "".join(f"{prefix}{line}\n" for line in lines)
+    return "".join(f"{prefix}{comment(line)}\n" for line in lines)  # paths are data
 
 
 def _number(x) -> float:

@@ -44,7 +44,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .._util import atomic_write, atomic_write_text, e_per_adu_map, finite_or_none, parse_pixel
+from .._output import atomic_write, atomic_write_text, write_netcdf
+from .._util import e_per_adu_map, finite_or_none, parse_pixel
 from ..data import stats
 from ..data.manifest import Manifest, read_manifest
 from ..errors import MethodError, NotConvergedError, OptionError
@@ -548,7 +549,7 @@ def save(ds, out):
     out.mkdir(parents=True, exist_ok=True)
     written = []
     nc = out / POSTERIOR_FILE
-    atomic_write(nc, lambda tmp: ds.to_netcdf(tmp, engine="h5netcdf"))
+    atomic_write(nc, lambda tmp: write_netcdf(ds, tmp))
     written.append(nc)
     js = out / SUMMARY_FILE
     text = json.dumps(summary(ds), indent=2) + "\n"

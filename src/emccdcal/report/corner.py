@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from .._util import atomic_write
+from .._output import atomic_write
 
 __all__ = ["corner_figure", "write_corner_figures"]
 

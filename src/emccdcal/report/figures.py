@@ -40,7 +40,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from .._util import atomic_write
+from .._output import atomic_write
 from ..beads.validation import INTENSITIES_FILE, read_validation
 from ..data import stats
 from ..data.manifest import read_manifest

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__, result
-from .._util import atomic_write_text
+from .._output import atomic_write_text
 from .._util import progress as progress_bar
 from ..beads.validation import data_checks, read_validation
 from ..data import quality

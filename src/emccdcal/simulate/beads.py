@@ -17,7 +17,8 @@ import math
 import numpy as np
 
 from .. import __version__, result
-from .._util import atomic_write, atomic_write_text, check_int, check_number
+from .._output import atomic_write, atomic_write_text, write_netcdf
+from .._util import check_int, check_number
 from ..errors import OptionError
 from ..model.psf import spot_image
 from .camera import _UNITS, PAPER_SETPOINTS, Camera
@@ -368,7 +369,7 @@ def simulate_beads(
         },
     )
     nc_path = outdir / TRUTH_CALIBRATION_FILE
-    atomic_write(nc_path, lambda tmp: ds.to_netcdf(tmp, engine="h5netcdf"))
+    atomic_write(nc_path, lambda tmp: write_netcdf(ds, tmp))
     files.append(nc_path)
 
     options = {k: opts[k] for k in sorted(opts)}

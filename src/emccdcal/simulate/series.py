@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from .._util import atomic_write, atomic_write_text, check_int, check_number
+from .._output import atomic_write, atomic_write_text, comment, toml_line
+from .._util import check_int, check_number
 from .._util import progress as progress_bar
 from ..errors import OptionError
 from .camera import (
@@ -84,17 +85,6 @@ def _dark_maps(dark: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     for f0 in range(0, n, step):
         ss += np.sum((dark[f0 : f0 + step] - mean) ** 2, axis=0)
     return mean.astype(np.float32), np.sqrt(ss / (n - 1)).astype(np.float32)
-
-
-def _toml_value(value) -> str:
-    if isinstance(value, str):
-        return json.dumps(value)  # a TOML basic string
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (int, np.integer)):
-        return str(int(value))
-    v = float(value)
-    return str(int(v)) if v.is_integer() and abs(v) < 2**53 else repr(v)
 
 
 def _label(setpoint: float) -> str:
@@ -288,23 +278,25 @@ def _manifest_lines(kind: str, acqs: list[dict], opts: dict) -> list[str]:
         "# Known truth: truth.json. Paths are relative to this file.",
     ]
     if opts.get("manifest_e_per_adu", True):
-        lines.append(f"e_per_adu = {_toml_value(opts['e_per_adu'])}")
-    lines.append(f"adc_bits = {opts['adc_bits']}")
+        lines.append(toml_line("e_per_adu", opts["e_per_adu"]))
+    lines.append(toml_line("adc_bits", int(opts["adc_bits"])))
     for a in acqs:
         lines += [
             "",
             "[[acquisition]]",
-            f"name = {_toml_value(a['label'])}",
-            f"frames = {_toml_value(a['frames'])}",
-            f"em_gain_setpoint = {_toml_value(a['setpoint'])}",
+            toml_line("name", str(a["label"])),
+            toml_line("frames", str(a["frames"])),
+            toml_line("em_gain_setpoint", float(a["setpoint"])),
         ]
         if "level" in a:
-            lines.append(f"level = {_toml_value(a['level'])}")
+            lines.append(toml_line("level", str(a["level"])))
         lines += [
-            f"offset = {_toml_value(a['offset_map'])}",
-            f"read_noise = {_toml_value(a['read_noise_map'])}",
-            f"dark_frames = {opts['dark_frames']}  # the maps' own errors enter the SEs",
-            f"# dark = {_toml_value(a['dark'])}  (the stack the maps were computed from)",
+            toml_line("offset", str(a["offset_map"])),
+            toml_line("read_noise", str(a["read_noise_map"])),
+            toml_line("dark_frames", int(opts["dark_frames"]))
+            + "  # the maps' own errors enter the SEs",
+            comment("# " + toml_line("dark", str(a["dark"]))
+                    + "  (the stack the maps were computed from)"),
         ]
     return lines
 
