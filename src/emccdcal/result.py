@@ -958,8 +958,8 @@ def result_files(specs) -> list[Path]:
     """The result files named by ``specs`` (files, directories, comma-joined groups)."""
     files = []
     for spec in specs:
-        for part in str(spec).split(","):
-            p = Path(part.strip())
+        for part in _members(spec):
+            p = Path(part)
             files.append(p / CALIBRATION_FILE if p.is_dir() else p)
     return files
 
@@ -977,6 +977,8 @@ def camera_of(ds, path) -> dict:
 
 
 def _members(spec):
+    if isinstance(spec, (str, Path)) and "," in str(spec) and Path(spec).exists():
+        return [str(spec)]  # a path with a comma in its name
     if isinstance(spec, (list, tuple)):
         parts = [str(p) for p in spec]
     else:

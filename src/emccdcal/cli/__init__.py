@@ -36,7 +36,7 @@ VERBS = {
     "export": "write a calibration in a localization tool's own file",
     "apply": "convert a movie to photoelectrons per pixel, (S - offset) * phi / g",
     "gain-curve": "fit the gain against the set-point; predict set-points not measured",
-    "db": "the calibration database: add, list, show, compare (ageing)",
+    "db": "the calibration database: add, list, show, compare (ageing), remove, relocate",
 }
 
 
@@ -101,3 +101,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt as exc:  # a long run says what it kept and how to go on
         print(f"emccdcal {args.verb}: {str(exc) or 'interrupted'}", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader went away (| head): end quietly
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0

@@ -16,10 +16,7 @@ def add_parser(subparsers):
         description="Keep every calibration of a lab's cameras in one SQLite file, keyed by "
         "camera serial and read-out state, and follow each set-point's gain over time.",
     )
-    p.add_argument("--db", type=Path, metavar="PATH",
-                   help="database file (default: $EMCCDCAL_DB, else calibrations.sqlite in "
-                   "the user's data directory)")
-    _common.add_quiet(p)
+    _db_options(p)
     sub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
     a = sub.add_parser("add", help="add a calibration result")
     a.add_argument("result", metavar="RESULT",
@@ -34,7 +31,7 @@ def add_parser(subparsers):
     ls.add_argument("--camera", metavar="SERIAL", help="only this camera's entries")
     ls.add_argument("--json", action="store_true", help="print JSON")
     sh = sub.add_parser("show", help="one entry in full (JSON)")
-    sh.add_argument("id", type=int)
+    sh.add_argument("id", type=int, help="the entry's id (emccdcal db list)")
     c = sub.add_parser("compare", help="gain against date per set-point; flag ageing")
     c.add_argument("--camera", metavar="SERIAL", required=True, help="the camera's serial")
     c.add_argument("--readout", metavar="TEXT",
@@ -45,16 +42,36 @@ def add_parser(subparsers):
                    help="flag a gain change beyond z combined SEs (default %(default)s)")
     c.add_argument("-o", "--out", type=Path, metavar="DIR", help="write the figure here")
     _common.add_overwrite(c)
+    rm = sub.add_parser("remove", help="remove an entry (its result files stay)")
+    rm.add_argument("id", type=int, help="the entry's id (emccdcal db list)")
+    mv = sub.add_parser("relocate", help="point an entry at its moved result")
+    mv.add_argument("id", type=int, help="the entry's id (emccdcal db list)")
+    mv.add_argument("result", metavar="RESULT", help="the result at its new place")
+    for s in (a, ls, sh, c, rm, mv):  # the options are taken after the action too
+        _db_options(s, suppress=True)
     p.set_defaults(func=run)
     return p
+
+
+def _db_options(p, *, suppress: bool = False) -> None:
+    import argparse
+
+    default = {"default": argparse.SUPPRESS} if suppress else {}
+    p.add_argument("--db", type=Path, metavar="PATH", **default,
+                   help="database file (default: $EMCCDCAL_DB, else calibrations.sqlite in "
+                   "the user's data directory)")
+    p.add_argument("-q", "--quiet", action="store_true", **default,
+                   help="no progress bars, no summary")
 
 
 def run(args) -> int:
     from ..export import database
 
     if args.action == "add":
-        e = database.add(args.result, db=args.db, camera=args.camera, readout=args.readout,
-                         date=args.date, note=args.note)
+        with _common.recording_warnings() as caught:
+            e = database.add(args.result, db=args.db, camera=args.camera,
+                             readout=args.readout, date=args.date, note=args.note)
+        _common.print_warnings(caught)
         if not args.quiet:
             print(f"added entry {e.id}: camera {e.camera} "
                   f"({e.readout or 'read-out not recorded'}), {e.date[:10]}, {e.method}, "
@@ -70,6 +87,13 @@ def run(args) -> int:
             gains = ", ".join(f"{s:g}x {m:.4g}" for s, (m, _, _) in sorted(e.gains.items()))
             print(f"{e.id:>4}  {e.camera:<14} {e.date[:10]:<10}  {e.method:<14} "
                   f"{e.readout or '-'} / {gains}")
+        return 0
+    if args.action in ("remove", "relocate"):
+        e = (database.remove(args.id, db=args.db) if args.action == "remove"
+             else database.relocate(args.id, args.result, db=args.db))
+        if not args.quiet:
+            print(f"{'removed' if args.action == 'remove' else 'relocated'} entry {e.id}: "
+                  f"camera {e.camera}, {e.date[:10]}, {e.path}")
         return 0
     if args.action == "show":
         e, summary = database.entry(args.id, db=args.db, with_summary=True)

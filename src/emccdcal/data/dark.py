@@ -100,7 +100,8 @@ def maps_from_dark(stack, *, chunk_frames: int | None = None):
     mean = np.zeros((rows, cols))
     m2 = np.zeros((rows, cols))  # sum of squared deviations from the mean
     for start in range(0, n_frames, chunk_frames):
-        chunk = np.asarray(stack[start : start + chunk_frames], dtype=np.float64)
+        # a copy always: the deviations are formed in place, never in the caller's array
+        chunk = np.array(stack[start : start + chunk_frames], dtype=np.float64)
         nb = chunk.shape[0]
         mean_b = chunk.mean(axis=0)
         chunk -= mean_b

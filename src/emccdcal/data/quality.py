@@ -383,6 +383,9 @@ class StackSummary:
         self.shape = tuple(int(d) for d in shape)
         n_pixels = self.shape[0] * self.shape[1]
         self.frame_sums = np.zeros(self.n_frames)
+        self.frame_min = np.full(self.n_frames, np.inf)
+        self.frame_max = np.full(self.n_frames, -np.inf)
+        self.frame_keys = np.zeros(self.n_frames, dtype=np.uint64)
         self.frame_saturated = np.zeros(self.n_frames, dtype=bool)
         self.mean = np.full(n_pixels, np.nan)  # per pixel, C order
         self.sd = np.full(n_pixels, np.nan)
@@ -426,6 +429,13 @@ class StackSummary:
         if self.seen[part].any():
             raise ValueError(f"pixels {first}..{first + n - 1} were already added")
         self.frame_sums += statistics["frame_sums"]
+        if "frame_min" in statistics:
+            np.minimum(self.frame_min, statistics["frame_min"], out=self.frame_min)
+            np.maximum(self.frame_max, statistics["frame_max"], out=self.frame_max)
+            # the part's place makes a frame's key depend on where its values are
+            mix = np.uint64(2 * first + 1)
+            with np.errstate(over="ignore"):
+                self.frame_keys += statistics["frame_keys"].astype(np.uint64) * mix
         self.frame_saturated |= statistics["frame_saturated"]
         self.mean[part] = statistics["mean"].ravel()
         self.sd[part] = statistics["sd"].ravel()
@@ -458,6 +468,18 @@ class StackSummary:
             "n_pixels": int(np.count_nonzero(self.n_saturated)),
             "pixels": _pixels(self.n_saturated.reshape(self.shape) > 0),
         }
+
+    def frame_defects(self) -> dict:
+        """Frames a camera or its software got wrong: ``constant`` (every pixel the same
+        value, e.g. all zero: a dropped frame) and ``repeated`` (a frame identical to an
+        earlier one: a frame written twice), each with their indices (first 10) and count."""
+        self._complete()
+        constant = np.flatnonzero(self.frame_min == self.frame_max)
+        _, first = np.unique(self.frame_keys, return_index=True)
+        repeated = np.setdiff1d(np.arange(self.n_frames), first)
+        repeated = repeated[~np.isin(repeated, constant)]  # said once, as constant
+        return {"n_constant": int(constant.size), "constant": constant[:10].tolist(),
+                "n_repeated": int(repeated.size), "repeated": repeated[:10].tolist()}
 
     def offset_position(self, offset) -> dict:
         """Where the offset map lies against the pixels' mean counts: ``n_pixels``,
@@ -497,6 +519,18 @@ class StackSummary:
                         self.n_frames, offset, k)
 
 
+def _frame_keys(flat: np.ndarray) -> np.ndarray:
+    """A 64-bit fingerprint of each frame's part (frames, pixels): equal frames give
+    equal keys, different ones almost surely not. A stack's key per frame is the sum of
+    its parts' keys (:meth:`StackSummary.add`), whatever the order they come in."""
+    import zlib
+
+    rows = np.ascontiguousarray(flat)
+    crc = [zlib.crc32(rows[i].tobytes()) ^ (zlib.adler32(rows[i].tobytes()) << 32)
+           for i in range(rows.shape[0])]
+    return np.array(crc, dtype=np.uint64)
+
+
 def band_statistics(band: np.ndarray, adc_max: int | None, *, third: bool = False) -> dict:
     """What a :class:`StackSummary` needs of a band of rows held in memory.
 
@@ -526,8 +560,12 @@ def band_statistics(band: np.ndarray, adc_max: int | None, *, third: bool = Fals
         sat = band >= adc_max
         sat_frames = sat.reshape(n, -1).any(axis=1)
         sat_pixels = sat.sum(axis=0, dtype=np.int64)
+    flat = band.reshape(n, -1)
     out = {
-        "frame_sums": band.reshape(n, -1).sum(axis=1, dtype=np.float64),
+        "frame_sums": flat.sum(axis=1, dtype=np.float64),
+        "frame_min": flat.min(axis=1).astype(np.float64),
+        "frame_max": flat.max(axis=1).astype(np.float64),
+        "frame_keys": _frame_keys(flat),
         "frame_saturated": sat_frames,
         "mean": mean,
         "sd": sd,
@@ -745,6 +783,7 @@ def check_acquisition(
         "drift": drift,
         "stationarity": stat,
         "saturation": summary.saturation(),
+        "frames_defective": summary.frame_defects(),
         "pixels": summary.defects(acq.offset, k=k),
         "offset": summary.offset_position(acq.offset),
         "multiplication": summary.multiplication_ratio(acq.offset, acq.read_noise) if one_x else None,
@@ -844,6 +883,15 @@ def _findings(a: dict) -> list[str]:
             f"{mult['R']:.2f} ± {mult['R_se']:.2f} over {mult['n_pixels']} pixels (1 for "
             "unmultiplied photoelectrons, 1.5 for multiplied ones): was the EM gain on for "
             "data labelled 1×?")
+    bad = a.get("frames_defective") or {}
+    for kind, what in (("constant", "have every pixel at one value (e.g. all zero): "
+                        "frames the camera or its software dropped"),
+                       ("repeated", "repeat an earlier frame exactly: frames written twice")):
+        if bad.get(f"n_{kind}"):
+            shown = ", ".join(map(str, bad[kind])) + (", ..." if bad[f"n_{kind}"] > 10 else "")
+            out.append(f"{name}: {bad[f'n_{kind}']} of {a['n_frames']} frames {what} "
+                       f"(frames {shown}); they bias every estimate: remove them (or start "
+                       "after them with skip_frames) or record again")
     sat = a["saturation"]
     if sat["n_values"]:
         out.append(

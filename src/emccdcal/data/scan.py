@@ -75,7 +75,9 @@ def _setpoint_of(path: Path, settings: CameraSettings):
 def _files(folder: Path):
     for path in sorted(folder.iterdir()):
         if path.suffix.lower() in STACK_SUFFIXES and not path.name.startswith("."):
-            yield path
+            # pipes, devices and dangling links are no camera files (and could block)
+            if path.is_file() or (path.is_dir() and path.suffix.lower() == ".zarr"):
+                yield path
 
 
 def scan(folder) -> Session:

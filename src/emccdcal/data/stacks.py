@@ -254,8 +254,12 @@ def describe_missing(path: Path, what: str = "file") -> str:
 def check_readable(path: Path) -> Path:
     """``path`` if it is an existing file of a supported type, else an InputError."""
     path = Path(path)
+    if path.is_symlink() and not path.exists():
+        raise InputError(f"'{path}': a symbolic link to nothing (or to itself)")
     if not path.exists():
         raise MissingFileError(describe_missing(path))
+    if not path.is_file() and not path.is_dir():  # a pipe or a device: reading could block
+        raise InputError(f"'{path}' is not a regular file (a pipe, socket or device)")
     if path.is_dir() and path.suffix.lower() != ".zarr":  # a Zarr store is a directory
         raise InputError(f"'{path}' is a directory, not a file")
     if path.suffix.lower() not in STACK_SUFFIXES:

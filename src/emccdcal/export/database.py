@@ -34,7 +34,8 @@ from .._output import file_sha256
 from ..errors import InputError, OptionError
 from ..result import format_setpoint, load, load_calibration, pixel_statistics, summarize
 
-__all__ = ["default_path", "add", "entries", "entry", "find", "compare", "Entry", "Finding"]
+__all__ = ["default_path", "add", "remove", "relocate", "entries", "entry", "find", "compare",
+           "Entry", "Finding"]
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS calibration (
@@ -77,9 +78,28 @@ def default_path() -> Path:
     return base / "emccdcal" / "calibrations.sqlite"
 
 
-def _connect(db) -> sqlite3.Connection:
+def _connect(db, *, write: bool = False) -> sqlite3.Connection:
+    """The database; to read only, a database on read-only storage is opened as it is
+    (immutable), and a missing one is not created."""
     path = Path(db) if db is not None else default_path()
-    path.parent.mkdir(parents=True, exist_ok=True)
+    writable = os.access(path.parent, os.W_OK) and (not path.exists() or os.access(path, os.W_OK))
+    if not write and path.is_file() and not writable:
+        try:
+            con = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro&immutable=1", uri=True,
+                                  isolation_level=None)
+            con.execute("SELECT 1 FROM calibration LIMIT 1")
+        except sqlite3.DatabaseError as exc:
+            raise InputError(f"{path}: not a usable calibration database ({exc})") from None
+        con.row_factory = sqlite3.Row
+        return con
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"{path.parent}: cannot create the calibration database's folder "
+                         f"({exc.strerror or exc}); give --db PATH or set EMCCDCAL_DB") from None
+    if not os.access(path.parent, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise InputError(f"{path}: the calibration database cannot be written here (read-only "
+                         "file or folder); give --db PATH or set EMCCDCAL_DB")
     try:
         con = sqlite3.connect(path, timeout=60, isolation_level=None)
         con.execute("PRAGMA journal_mode=WAL")
@@ -140,6 +160,14 @@ def _iso_date(text) -> str:
     return when.astimezone(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
+def _past_date(text) -> str:
+    """:func:`_iso_date` of a date that has been (a calibration cannot be of tomorrow)."""
+    when = _iso_date(text)
+    if _parse(when) > _dt.datetime.now(_dt.timezone.utc) + _dt.timedelta(days=1):
+        raise OptionError(f"date {text!r} is in the future; give when the data were taken")
+    return when
+
+
 def add(result, *, db=None, camera=None, readout=None, date=None, note="") -> Entry:
     """Add a calibration result (or a comma-joined group) to the database.
 
@@ -176,7 +204,7 @@ def add(result, *, db=None, camera=None, readout=None, date=None, note="") -> En
         raise OptionError(f"{cal.label}: its files record no camera serial number; give "
                           "--camera SERIAL")
     readout = _readout_text(cal.camera) if readout is None else str(readout)
-    when = _iso_date(date or cal.created or _dt.datetime.now(_dt.timezone.utc).isoformat())
+    when = _past_date(date or cal.created or _dt.datetime.now(_dt.timezone.utc).isoformat())
     digest = ",".join(cal.sha256)
     gains = {}
     for s in cal.setpoints:
@@ -188,7 +216,7 @@ def add(result, *, db=None, camera=None, readout=None, date=None, note="") -> En
     summary = {str(f): summarize(load(f)) for f in cal.files}
     added = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
     path = ",".join(str(Path(f).resolve()) for f in cal.files)
-    con = _connect(db)
+    con = _connect(db, write=True)
     try:
         con.execute("BEGIN IMMEDIATE")
         old = con.execute("SELECT id FROM calibration WHERE sha256 = ?", (digest,)).fetchone()
@@ -210,6 +238,41 @@ def add(result, *, db=None, camera=None, readout=None, date=None, note="") -> En
         raise
     finally:
         con.close()
+
+
+def remove(entry_id: int, *, db=None) -> Entry:
+    """Remove one entry (the database's record only: the result files stay)."""
+    con = _connect(db, write=True)
+    try:
+        found = _entries(con, "WHERE id = ?", (int(entry_id),))
+        if not found:
+            raise OptionError(f"no entry {entry_id} in the calibration database "
+                              f"{db or default_path()}")
+        con.execute("DELETE FROM calibration WHERE id = ?", (int(entry_id),))
+        return found[0]
+    finally:
+        con.close()
+
+
+def relocate(entry_id: int, result, *, db=None) -> Entry:
+    """Point an entry at its result's new place (a moved project); the file must be the
+    one added (same SHA-256)."""
+    cal = load_calibration(result)
+    digest = ",".join(cal.sha256)
+    con = _connect(db, write=True)
+    try:
+        found = _entries(con, "WHERE id = ?", (int(entry_id),))
+        if not found:
+            raise OptionError(f"no entry {entry_id} in the calibration database "
+                              f"{db or default_path()}")
+        if found[0].sha256 != digest:
+            raise OptionError(f"{cal.label}: not the result of entry {entry_id} (its content "
+                              "differs from the one added)")
+        path = ",".join(str(Path(f).resolve()) for f in cal.files)
+        con.execute("UPDATE calibration SET path = ? WHERE id = ?", (path, int(entry_id)))
+    finally:
+        con.close()
+    return entry(entry_id, db=db)
 
 
 def _entries(con, where="", args=()) -> list[Entry]:

@@ -123,9 +123,15 @@ class GainCurve:
         X = np.vander(np.log(s), self.degree + 1, increasing=True)
         y = X @ self.coef
         sd = np.sqrt(np.einsum("ij,jk,ik->i", X, self.cov, X))
-        gain = np.exp(y)
+        with np.errstate(over="ignore", invalid="ignore"):
+            gain, upper = np.exp(y), np.exp(y + _Z95 * sd)
+        far = ~(np.isfinite(gain) & np.isfinite(upper) & np.isfinite(s))
+        if far.any():
+            raise OptionError(f"set-point {s[far][0]:g} is too far from the measured ones "
+                              f"({self.setpoints.min():g}-{self.setpoints.max():g}) to "
+                              "predict: the curve's band there is not finite")
         return {"setpoint": s, "gain": gain, "se": gain * sd,
-                "lower": np.exp(y - _Z95 * sd), "upper": np.exp(y + _Z95 * sd),
+                "lower": np.exp(y - _Z95 * sd), "upper": upper,
                 "extrapolated": (s < self.setpoints.min()) | (s > self.setpoints.max())}
 
 

@@ -190,8 +190,11 @@ def _apply(cal, movie, target, setpoint, photon_counting, threshold, fmt, progre
     def blocks(bar):
         for a in range(0, frames, per_block):
             raw = read_band(movie, 0, rows, skip_frames=a, stop_frame=min(frames, a + per_block))
-            if raw.dtype.kind == "f" and not (np.isfinite(raw).all() and (raw >= 0).all()):
-                i = a + int(np.flatnonzero(~(np.isfinite(raw) & (raw >= 0)).any(axis=(1, 2)))[0])
+            if raw.dtype.kind == "f":
+                with np.errstate(invalid="ignore"):
+                    wrong = ~(np.isfinite(raw) & (raw >= 0))
+            if raw.dtype.kind == "f" and wrong.any():
+                i = a + int(np.flatnonzero(wrong.any(axis=(1, 2)))[0])
                 raise InputError(f"{movie}: frame {i} holds counts that are negative or not "
                                  "finite; raw camera counts are neither")
             signal = raw.astype(np.float32)  # one working copy, changed in place
