@@ -1,0 +1,244 @@
+"""Fault injection: damaged results, killed runs, runs at once, hostile metadata.
+
+The quick part runs in ``make test-fast``; the ones marked slow (more flips, real
+SIGKILLs of calibrate, apply and export) in ``make test``. Each prints its counts (run
+with ``-s``); docs/reliability.md has them.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+import tomllib
+
+import numpy as np
+import pytest
+import tifffile
+from camera_files import write_spe
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from test_export import OFFSET, PHI, SHAPE, SIGMA, true_result
+
+from emccdcal import result
+from emccdcal._output import comment, file_sha256, slug, toml_line
+from emccdcal.data.manifest import read_manifest
+from emccdcal.errors import InputError
+from emccdcal.simulate.camera import simulate_frames
+
+
+def _numbers(ds):
+    return {k: np.asarray(v.values) for k, v in ds.variables.items()} | {"attrs": ds.attrs}
+
+
+def _same(a, b) -> bool:
+    if a.keys() != b.keys():
+        return False
+    for k in a:
+        if k == "attrs":
+            if {x: str(y) for x, y in a[k].items()} != {x: str(y) for x, y in b[k].items()}:
+                return False
+        elif a[k].shape != b[k].shape or not (
+                np.array_equal(a[k], b[k]) if a[k].dtype.kind in "OUSb"
+                else np.array_equal(a[k], b[k], equal_nan=True)):
+            return False
+    return True
+
+
+def flip_bytes(res, n, seed):
+    """Flip one random byte of ``res`` ``n`` times (each from the original); counts of
+    flips detected (load refuses the file), unchanged (loads, same numbers) and silently
+    changed (loads, different numbers: must be 0)."""
+    original = res.read_bytes()
+    reference = _numbers(result.load(res))
+    rng = np.random.default_rng(seed)
+    counts = {"tried": 0, "detected": 0, "unchanged": 0, "silently_changed": 0}
+    for _ in range(n):
+        data = bytearray(original)
+        at = int(rng.integers(len(data)))
+        data[at] ^= int(rng.integers(1, 256))
+        res.write_bytes(bytes(data))
+        counts["tried"] += 1
+        try:
+            loaded = _numbers(result.load(res))
+        except InputError:
+            counts["detected"] += 1
+            continue
+        counts["unchanged" if _same(loaded, reference) else "silently_changed"] += 1
+    res.write_bytes(original)
+    return counts
+
+
+def test_byte_flips_are_detected_or_harmless(tmp_path):
+    counts = flip_bytes(true_result(tmp_path / "r"), 40, seed=1)
+    print("byte flips (quick):", counts)
+    assert counts["silently_changed"] == 0 and counts["detected"] > 0
+
+
+@pytest.mark.slow
+def test_many_byte_flips_are_detected_or_harmless(tmp_path):
+    counts = flip_bytes(true_result(tmp_path / "r", spread=0.01), 400, seed=2)
+    print("byte flips:", counts)
+    assert counts["silently_changed"] == 0
+
+
+# --------------------------------------------------------------------------------------
+# Hostile metadata
+# --------------------------------------------------------------------------------------
+_HOSTILE = st.text(alphabet=st.characters(blacklist_categories=("Cs",)), max_size=40) | \
+    st.sampled_from(["../../../ESC", "a\nb = 1", 'x"\n[[acquisition]]', "\x00\x1b[2J", "/",
+                     "..", ".", "", "\r\n# ok", "C:\\Windows", "a/../../b"])
+
+
+@settings(max_examples=300, deadline=None)
+@given(_HOSTILE)
+def test_text_from_files_never_escapes(text):
+    name = slug(text)
+    assert name and "/" not in name and "\\" not in name and not name.startswith(".")
+    assert name not in ("..", ".") and len(name) <= 73
+    assert tomllib.loads(toml_line("serial", text)) == {"serial": text}
+    line = "# recorded: " + comment(text)
+    assert tomllib.loads(line + "\nk = 1") == {"k": 1}
+
+
+@pytest.mark.parametrize("field", ["serial", "analog_gain", "model"])
+def test_hostile_metadata_through_scan_and_export(tmp_path, capsys, field):
+    """A camera file with a hostile recorded field: scan writes a manifest with no key
+    but its own, every frame is used, and the field is kept whole, as data."""
+    from emccdcal import cli
+
+    folder = tmp_path / "s"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    hostile = "../..\n skip_frames = 25\n[x]\n&quot;\t#"  # as the XML holds it
+    kw = {"serial": "S", "analog_gain": "High", "model": "M", field: hostile}
+    for name, g in (("1x-gain", 1), ("1x-gain_dark", 1)):
+        frames = simulate_frames(np.full((4, 4), 0.0 if "dark" in name else 400.0),
+                                 em_gain=1.0, e_per_adu=PHI, offset=OFFSET,
+                                 read_noise=SIGMA, frames=60, seed=int(rng.integers(99)))
+        write_spe(folder / f"{name}.spe", frames, em_gain=g, **kw)
+    assert cli.main(["scan", str(folder), "-q"]) == 0
+    doc = tomllib.loads((folder / "manifest.toml").read_text())
+    assert "x" not in doc and all("skip_frames" not in a for a in doc["acquisition"])
+    manifest = read_manifest(folder / "manifest.toml")
+    assert [a.skip_frames for a in manifest.acquisitions] == [0]  # every frame is used
+    recorded = hostile.replace("&quot;", '"')
+    # kept as data, whole (XML folds white space in attributes, where SPE keeps serial
+    # and model)
+    assert " ".join(manifest.camera.get(field).split()) == " ".join(recorded.split())
+    capsys.readouterr()
+
+
+# --------------------------------------------------------------------------------------
+# Killed runs: the previous output survives, nothing half-written loads
+# --------------------------------------------------------------------------------------
+def _kill_at_random(argv, n, check, rng):
+    """Time one whole run of ``emccdcal argv``, then start it ``n`` times more and SIGKILL
+    each at a random moment of that time; after each, ``check()`` must hold. Returns
+    (runs killed, runs that finished before their moment)."""
+    command = [sys.executable, "-m", "emccdcal", *map(str, argv)]
+    t0 = time.perf_counter()
+    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
+    whole = time.perf_counter() - t0
+    check()
+    kills = finished = 0
+    for delay in rng.uniform(0.3, 0.97, n) * whole:
+        proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(delay)
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGKILL)
+            kills += 1
+        else:
+            finished += 1
+        proc.wait()
+        check()
+    return kills, finished
+
+
+@pytest.mark.slow
+def test_sigkill_of_calibrate_apply_and_export_loses_nothing(tmp_path):
+    from emccdcal import calibrate
+    from emccdcal.simulate.series import simulate_gain_series
+
+    rng = np.random.default_rng(7)
+    sim = simulate_gain_series(tmp_path / "gs", setpoints=(1, 5, 100), rows=12, cols=12,
+                               frames=1500, dark_frames=500, seed=5)
+    out = tmp_path / "out"
+    calibrate(sim.manifest, "gs", out=out, progress=False)
+    nc = out / result.CALIBRATION_FILE
+    old = file_sha256(nc)
+    reference = result.load(out)
+
+    def calibrate_ok():
+        ds = result.load(out)  # never half-written; old, or a complete new one
+        assert file_sha256(nc) == old or np.allclose(ds.em_gain, reference.em_gain,
+                                                      equal_nan=True)
+        assert (out / result.SUMMARY_FILE).is_file()
+
+    totals = {}
+    totals["calibrate"] = _kill_at_random(
+        ["calibrate", sim.manifest, "--method", "gs", "-o", out, "--overwrite", "-q"],
+        8, calibrate_ok, rng)
+
+    res = true_result(tmp_path / "r")
+    movie = tmp_path / "m.tif"
+    tifffile.imwrite(movie, simulate_frames(np.full(SHAPE, 30.0), em_gain=90.06,
+                                            e_per_adu=PHI, offset=OFFSET, read_noise=SIGMA,
+                                            frames=3000, seed=1))
+    before_movie = file_sha256(movie)
+    converted = tmp_path / "e.tif"
+    subprocess.run([sys.executable, "-m", "emccdcal", "apply", res, movie, "--setpoint", "100",
+                    "-o", converted, "-q"], check=True)
+    first = tifffile.imread(converted)
+
+    def apply_ok():
+        assert file_sha256(movie) == before_movie
+        np.testing.assert_array_equal(tifffile.imread(converted), first)
+
+    totals["apply"] = _kill_at_random(
+        ["apply", res, movie, "--setpoint", "100", "-o", converted, "--overwrite", "-q"],
+        8, apply_ok, rng)
+    exported = tmp_path / "exp"
+    subprocess.run([sys.executable, "-m", "emccdcal", "export", res, "--to", "pyme",
+                    "--setpoint", "100", "-o", exported, "-q"], check=True)
+    files = {p.name: file_sha256(p) for p in exported.iterdir()}
+
+    def export_ok():
+        now = {p.name: file_sha256(p) for p in exported.iterdir() if not p.name.startswith(".")}
+        assert now == files  # the same content: all old, or all (identical) new
+
+    totals["export"] = _kill_at_random(
+        ["export", res, "--to", "pyme", "--setpoint", "100", "-o", exported, "--overwrite",
+         "-q"], 8, export_ok, rng)
+    print("kills (killed, finished first):", totals)
+    assert sum(k for k, _ in totals.values()) >= 12  # most runs were really killed
+    # the next run cleans what the killed ones left
+    subprocess.run([sys.executable, "-m", "emccdcal", "apply", res, movie, "--setpoint", "100",
+                    "-o", converted, "-q", "--overwrite"], check=True)
+    assert not [p.name for p in tmp_path.iterdir() if ".tmp" in p.name or "partial" in p.name]
+
+
+@pytest.mark.slow
+def test_runs_at_once_into_one_output(tmp_path):
+    from emccdcal.simulate.series import simulate_gain_series
+
+    sim = simulate_gain_series(tmp_path / "gs", setpoints=(1, 5), rows=8, cols=8,
+                               frames=600, dark_frames=300, seed=5)
+    outcomes = []
+    for trial in range(3):
+        out = tmp_path / f"out{trial}"
+        procs = [subprocess.Popen([sys.executable, "-m", "emccdcal", "calibrate",
+                                   str(sim.manifest), "--method", "gs", "-o", str(out), "-q"],
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                 for _ in range(2)]
+        codes = [(p.wait(), p.stderr.read()) for p in procs]
+        outcomes.append(sorted(c for c, _ in codes))
+        assert sorted(c for c, _ in codes) == [0, 2], codes
+        loser = next(e for c, e in codes if c == 2)
+        assert ("another emccdcal run is writing it" in loser or "holds" in loser), loser
+        assert loser.count("\n") == 1
+        result.load(out)
+        assert not (out / ".emccdcal-lock").exists()
+    print("runs at once (exit codes per trial):", outcomes)
