@@ -328,7 +328,7 @@ def test_gain_curve_predicts_a_setpoint_not_measured(tmp_path):
 # --------------------------------------------------------------------------------------
 def _add_many(db, files):
     for f in files:
-        database.add(f, db=db, date=f"2026-{1 + int(Path(f).parent.name[1:]) % 12:02d}-01")
+        database.add(f, db=db, date=f"2025-{1 + int(Path(f).parent.name[1:]) % 12:02d}-01")
 
 
 @pytest.mark.slow
