@@ -103,31 +103,49 @@ def test_text_from_files_never_escapes(text):
     assert tomllib.loads(line + "\nk = 1") == {"k": 1}
 
 
-@pytest.mark.parametrize("field", ["serial", "analog_gain", "model"])
-def test_hostile_metadata_through_scan_and_export(tmp_path, capsys, field):
+_FIELDS = [("spe", "serial"), ("spe", "analog_gain"), ("spe", "model"),
+           ("zarr", "serial"), ("zarr", "analog_gain"), ("zarr", "model"),
+           ("micromanager", "analog_gain")]
+
+
+def _hostile_file(folder, name, fmt, field, hostile, frames, em_gain):
+    from camera_files import write_micromanager_tiff, write_zarr
+
+    if fmt == "spe":  # as the XML holds it: the reader gets the quote back
+        kw = {"serial": "S", "analog_gain": "High", "model": "M",
+              field: hostile.replace('"', "&quot;")}
+        write_spe(folder / f"{name}.spe", frames, em_gain=em_gain, **kw)
+    elif fmt == "zarr":
+        pytest.importorskip("zarr")
+        write_zarr(folder / f"{name}.zarr", frames, em_gain=em_gain, **{field: hostile})
+    else:
+        write_micromanager_tiff(folder / f"{name}.ome.tif", frames, em_gain=em_gain,
+                                preamp=hostile)
+
+
+@pytest.mark.parametrize("fmt,field", _FIELDS)
+def test_hostile_metadata_through_scan(tmp_path, capsys, fmt, field):
     """A camera file with a hostile recorded field: scan writes a manifest with no key
     but its own, every frame is used, and the field is kept whole, as data."""
     from emccdcal import cli
 
     folder = tmp_path / "s"
     folder.mkdir()
-    rng = np.random.default_rng(0)
-    hostile = "../..\n skip_frames = 25\n[x]\n&quot;\t#"  # as the XML holds it
-    kw = {"serial": "S", "analog_gain": "High", "model": "M", field: hostile}
-    for name, g in (("1x-gain", 1), ("1x-gain_dark", 1)):
+    hostile = '../..\n skip_frames = 25\n[x]\n"\t#'
+    for i, name in enumerate(("1x-gain", "1x-gain_dark")):
         frames = simulate_frames(np.full((4, 4), 0.0 if "dark" in name else 400.0),
                                  em_gain=1.0, e_per_adu=PHI, offset=OFFSET,
-                                 read_noise=SIGMA, frames=60, seed=int(rng.integers(99)))
-        write_spe(folder / f"{name}.spe", frames, em_gain=g, **kw)
+                                 read_noise=SIGMA, frames=60, seed=i)
+        _hostile_file(folder, name, fmt, field, hostile, frames, 1)
     assert cli.main(["scan", str(folder), "-q"]) == 0
     doc = tomllib.loads((folder / "manifest.toml").read_text())
-    assert "x" not in doc and all("skip_frames" not in a for a in doc["acquisition"])
+    assert set(doc) <= {"adc_bits", "acquisition"}
+    assert all("skip_frames" not in a for a in doc["acquisition"])
     manifest = read_manifest(folder / "manifest.toml")
     assert [a.skip_frames for a in manifest.acquisitions] == [0]  # every frame is used
-    recorded = hostile.replace("&quot;", '"')
-    # kept as data, whole (XML folds white space in attributes, where SPE keeps serial
-    # and model)
-    assert " ".join(manifest.camera.get(field).split()) == " ".join(recorded.split())
+    recorded = manifest.camera.get(field)
+    # kept as data, whole (XML folds white space in attributes: SPE's serial and model)
+    assert recorded is not None and " ".join(recorded.split()) == " ".join(hostile.split())
     capsys.readouterr()
 
 

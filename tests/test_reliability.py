@@ -426,3 +426,35 @@ def test_output_refusals_are_found_before_computing(tmp_path):
         with Output(tmp_path / "x.txt", kind="file", inputs=[tmp_path / "x.txt"]):
             pass
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f"]
+
+
+def test_a_result_given_twice_is_refused_everywhere(tmp_path, capsys):
+    res = true_result(tmp_path / "r")
+    for argv in (("report", res, res.parent, "-o", tmp_path / "rep.html"),
+                 ("export", f"{res},{res.parent}", "--to", "json", "-o", tmp_path / "x"),
+                 ("gain-curve", res, res, "-o", tmp_path / "c")):
+        code, _, err = _run(capsys, *argv)
+        _one_line_error(code, err)
+        assert "twice" in err
+    with pytest.raises(ValueError, match="twice"):
+        from emccdcal.beads.validation import validate
+        from emccdcal.simulate.beads import TRUTH_CALIBRATION_FILE, simulate_beads
+
+        sim = simulate_beads(tmp_path / "beads", beads=2, rows=40, cols=40, frames=20,
+                             dark_frames=50, seed=1, setpoints=(1, 5))
+        truth = sim.outdir / TRUTH_CALIBRATION_FILE
+        validate(sim.manifest, [truth, truth], progress=False)
+
+
+def test_a_database_on_read_only_storage_can_be_listed(tmp_path, capsys, monkeypatch):
+    db = tmp_path / "d.sqlite"
+    database.add(true_result(tmp_path / "r"), db=db, camera="S1", date="2025-01-02")
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode: False if mode == os.W_OK
+                        else real(p, mode))  # as on read-only storage (root writes anyway)
+    code, out, err = _run(capsys, "db", "list", "--db", db)
+    assert code == 0 and "S1" in out, err
+    code, _, err = _run(capsys, "db", "add", true_result(tmp_path / "r2", seed=3), "--db", db,
+                        "--camera", "S1")
+    _one_line_error(code, err)
+    assert "cannot be written" in err and "read-only" in err

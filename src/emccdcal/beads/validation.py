@@ -447,6 +447,12 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
     setpoints = list(acqs)
     cals = [result.load_calibration(c, manifest.shape, of="the bead frames")
             for c in calibrations]
+    seen = {}
+    for cal in cals:  # a calibration given twice would be ranked against itself
+        if cal.sha256 in seen:
+            raise OptionError(f"calibration {cal.label} is given twice (also as "
+                              f"{seen[cal.sha256]}); give each once")
+        seen[cal.sha256] = cal.label
     for cal in cals:
         for s in setpoints:
             cal.gain(s)  # raises for a missing set-point, before any fitting

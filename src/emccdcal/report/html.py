@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import base64
 import datetime as _dt
-import hashlib
 import html
 import json
 import math
@@ -30,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__, result
-from .._output import atomic_write_text
+from .._output import atomic_write_text, file_sha256
 from .._util import progress as progress_bar
 from ..beads.validation import data_checks, read_validation
 from ..data import quality
@@ -72,12 +71,14 @@ class _Input:
     label: str
 
 
-def _sha256(path):
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+def _refuse_twice(files) -> None:
+    """A result given twice would be compared with itself: refused, naming both."""
+    seen = {}
+    for path, digest in files:
+        if digest in seen:
+            raise OptionError(f"{path} is given twice (also as {seen[digest]}); give each "
+                              "result once")
+        seen[digest] = path
 
 
 def _load_input(item, i):
@@ -86,7 +87,7 @@ def _load_input(item, i):
     ds = result.load(item)
     p = Path(item)
     p = p / result.CALIBRATION_FILE if p.is_dir() else p
-    return _Input(ds, p.resolve(), _sha256(p), f"result {i + 1} ({ds.attrs['method']})")
+    return _Input(ds, p.resolve(), file_sha256(p), f"result {i + 1} ({ds.attrs['method']})")
 
 
 def _warnings_of(ds):
@@ -271,7 +272,7 @@ def _manifest_status(ds):
     path = str(ds.attrs.get("manifest_path", ""))
     if not path or not Path(path).is_file():
         return "not found"
-    same = _sha256(path) == str(ds.attrs.get("manifest_sha256", ""))
+    same = file_sha256(path) == str(ds.attrs.get("manifest_sha256", ""))
     return "found, unchanged" if same else "found, CHANGED since the calibration"
 
 
@@ -303,7 +304,7 @@ def _provenance_html(inputs, validations, command):
             rows.append(["options", mono(a["options"])])
         out.append(_table([_e(inp.label), ""], rows, "kv"))
     for d, _doc in validations:
-        rows = [[name, mono(_sha256(d / name))]
+        rows = [[name, mono(file_sha256(d / name))]
                 for name in ("validation.json", "intensities.nc") if (d / name).is_file()]
         out.append(_table([f"validation {_e(str(d))}", "SHA-256"], rows, "kv"))
     return "\n".join(out)
@@ -439,6 +440,7 @@ def build_report(results, *, validation=(), pixel=None, figures_dir=None, progre
     if not results:
         raise OptionError("no calibration result given")
     inputs = [_load_input(r, i) for i, r in enumerate(results)]
+    _refuse_twice([(inp.path, inp.sha256) for inp in inputs if inp.path is not None])
     notes = {}  # reason -> figure titles left out
     validations = []
     for d in map(Path, validation):
