@@ -244,12 +244,9 @@ def remove(entry_id: int, *, db=None) -> Entry:
     """Remove one entry (the database's record only: the result files stay)."""
     con = _connect(db, write=True)
     try:
-        found = _entries(con, "WHERE id = ?", (int(entry_id),))
-        if not found:
-            raise OptionError(f"no entry {entry_id} in the calibration database "
-                              f"{db or default_path()}")
+        found = _one(con, entry_id, db)
         con.execute("DELETE FROM calibration WHERE id = ?", (int(entry_id),))
-        return found[0]
+        return found
     finally:
         con.close()
 
@@ -261,11 +258,7 @@ def relocate(entry_id: int, result, *, db=None) -> Entry:
     digest = ",".join(cal.sha256)
     con = _connect(db, write=True)
     try:
-        found = _entries(con, "WHERE id = ?", (int(entry_id),))
-        if not found:
-            raise OptionError(f"no entry {entry_id} in the calibration database "
-                              f"{db or default_path()}")
-        if found[0].sha256 != digest:
+        if _one(con, entry_id, db).sha256 != digest:
             raise OptionError(f"{cal.label}: not the result of entry {entry_id} (its content "
                               "differs from the one added)")
         path = ",".join(str(Path(f).resolve()) for f in cal.files)
@@ -273,6 +266,14 @@ def relocate(entry_id: int, result, *, db=None) -> Entry:
     finally:
         con.close()
     return entry(entry_id, db=db)
+
+
+def _one(con, entry_id, db) -> Entry:
+    found = _entries(con, "WHERE id = ?", (int(entry_id),))
+    if not found:
+        raise OptionError(f"no entry {entry_id} in the calibration database "
+                          f"{db or default_path()}")
+    return found[0]
 
 
 def _entries(con, where="", args=()) -> list[Entry]:
@@ -305,15 +306,12 @@ def entry(entry_id: int, *, db=None, with_summary: bool = False):
     """One entry by its id (with its stored summary as a second value if asked)."""
     con = _connect(db)
     try:
-        found = _entries(con, "WHERE id = ?", (int(entry_id),))
-        if not found:
-            raise OptionError(f"no entry {entry_id} in the calibration database "
-                              f"{db or default_path()}")
+        found = _one(con, entry_id, db)
         if with_summary:
             summary = con.execute("SELECT summary FROM calibration WHERE id = ?",
                                   (int(entry_id),)).fetchone()[0]
-            return found[0], json.loads(summary)
-        return found[0]
+            return found, json.loads(summary)
+        return found
     finally:
         con.close()
 
