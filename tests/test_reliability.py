@@ -458,3 +458,13 @@ def test_a_database_on_read_only_storage_can_be_listed(tmp_path, capsys, monkeyp
                         "--camera", "S1")
     _one_line_error(code, err)
     assert "cannot be written" in err and "read-only" in err
+
+
+def test_demo_refuses_an_earlier_demo_unless_overwrite(tmp_path, capsys):
+    argv = ("demo", "-o", tmp_path / "d", "--rows", 4, "--cols", 4, "--frames", 300, "-q",
+            "--no-report")
+    assert _run(capsys, *argv)[0] == 0
+    code, _, err = _run(capsys, *argv)
+    _one_line_error(code, err)
+    assert _run(capsys, *argv, "--overwrite")[0] == 0
+    result.load(tmp_path / "d" / "result-gs")

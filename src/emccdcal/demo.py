@@ -34,7 +34,7 @@ def _median(da):
 
 
 def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication="gamma",
-             seed=DEMO_SEED, progress=False, report=False, out=None):
+             seed=DEMO_SEED, progress=False, report=False, out=None, overwrite=False):
     """Simulate, calibrate φ then the gains, and print truth against estimate.
 
     Parameters
@@ -55,6 +55,9 @@ def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication="gamm
         ``emccdcal demo`` command writes it unless ``--no-report``).
     out : file, optional
         Where to print (default stdout).
+    overwrite : bool, optional
+        Replace the results of an earlier demo in ``outdir`` (once the new ones are
+        complete).
 
     Returns
     -------
@@ -75,10 +78,10 @@ def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication="gamm
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         adu = calibrate(adu_sim.manifest, "is-adu", out=outdir / "result-is-adu",
-                        progress=progress)
+                        progress=progress, overwrite=overwrite)
         # φ chained from step 1 with its standard error, which the gains' errors include
         gs = calibrate(gs_sim.manifest, "gs", e_per_adu=outdir / "result-is-adu",
-                       out=outdir / "result-gs", progress=progress)
+                       out=outdir / "result-gs", progress=progress, overwrite=overwrite)
         html = None
         if report:
             from .report.html import REPORT_FILE, write_report

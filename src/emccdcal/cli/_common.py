@@ -45,13 +45,13 @@ def add_accept_mismatch(p: argparse.ArgumentParser) -> None:
                    "used only on frames of the camera and read-out state it calibrated")
 
 
-def output(args, path, *, kind: str = "folder", inputs=(), names=()):
+def output(args, path, *, kind: str = "folder", inputs=(), names=(), stage: bool = True):
     """The verb's output under the one output policy (:class:`emccdcal._output.Output`):
     checked before any computing, locked while the verb runs, its files published
-    together when complete; ``--overwrite`` from ``args``."""
+    together when complete (``stage``); ``--overwrite`` from ``args``."""
     from .._output import Output
 
-    return Output(path, kind=kind, inputs=inputs, names=names,
+    return Output(path, kind=kind, inputs=inputs, names=names, stage=stage,
                   overwrite=bool(getattr(args, "overwrite", False)))
 
 

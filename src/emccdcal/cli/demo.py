@@ -16,7 +16,7 @@ def add_parser(subparsers):
         "against estimate.",
     )
     _common.add_out_or_dir(p, "output directory (default: a new temporary directory)",
-                           required=False, overwrite=False)
+                           required=False)
     p.add_argument("--rows", type=_common.positive_int, default=16,
                    help="rows, px (default %(default)s)")
     p.add_argument("--cols", type=_common.positive_int, default=16,
@@ -38,7 +38,17 @@ def run(args) -> int:
 
     if args.frames < 2:
         raise OptionError("--frames must be an integer of at least 2")
-    run_demo(_common.output_of(args), rows=args.rows, cols=args.cols, frames=args.frames,
-             multiplication=args.multiplication, seed=args.seed, progress=not args.quiet,
-             report=not args.no_report)
+    import contextlib
+
+    out = _common.output_of(args)
+    # an earlier demo's folder is refused, not mixed into (each step reads the one before:
+    # nothing is staged; the results are published by calibrate as ever)
+    target = (contextlib.nullcontext() if out is None else _common.output(
+        args, out, names=("adu-series/manifest.toml", "gain-series/manifest.toml",
+                          "result-is-adu", "result-gs"), stage=False))
+    with target:
+        run_demo(out, rows=args.rows, cols=args.cols, frames=args.frames,
+                 multiplication=args.multiplication, seed=args.seed,
+                 progress=not args.quiet, report=not args.no_report,
+                 overwrite=args.overwrite)
     return 0
