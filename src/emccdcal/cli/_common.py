@@ -3,7 +3,11 @@
 - ``-o/--out``: where a verb writes (a directory; ``report`` also takes an ``.html`` file);
 - ``-q/--quiet``: no progress bars, no summary;
 - ``--no-figures``: skip the figures a verb writes by default;
-- ``--e-per-adu``: φ in e-/ADU overriding the manifest's.
+- ``--e-per-adu``: φ in e-/ADU overriding the manifest's;
+- ``--overwrite``: replace an earlier output, once the new one is complete
+  (:func:`output` opens every verb's output under the one policy of
+  :mod:`emccdcal._output`);
+- ``--accept-mismatch``: let frames differ from the calibration in an identity field.
 
 Units in help texts are ASCII, as in the result files: e-, e-/ADU, ADU, px.
 """
@@ -16,7 +20,8 @@ import sys
 import warnings
 from pathlib import Path
 
-__all__ = ["add_out", "add_overwrite", "add_accept_mismatch", "output", "add_out_or_dir", "output_of", "add_quiet", "add_no_figures",
+__all__ = ["add_out", "add_overwrite", "add_accept_mismatch", "output", "add_out_or_dir",
+           "output_of", "add_quiet", "add_no_figures",
            "add_e_per_adu", "positive_float", "positive_int", "number_list", "label_list",
            "pixel", "recording_warnings", "print_warnings", "add_calibration_source",
            "calibration_of"]

@@ -34,8 +34,9 @@ def run(args) -> int:
     from .. import result
     from ..beads.cots_calibration import cots_calibrate, format_summary
 
+    names = (result.CALIBRATION_FILE, result.SUMMARY_FILE)
     with _common.recording_warnings() as caught, _common.output(
-            args, args.out, inputs=[args.manifest], names=(result.CALIBRATION_FILE, result.SUMMARY_FILE)):
+            args, args.out, inputs=[args.manifest], names=names):
         ds = cots_calibrate(args.manifest, half_size=args.half_size, width=args.width,
                             progress=not args.quiet, out=args.out)
     if not args.quiet:

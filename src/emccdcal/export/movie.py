@@ -190,13 +190,8 @@ def _apply(cal, movie, target, setpoint, photon_counting, threshold, fmt, progre
     def blocks(bar):
         for a in range(0, frames, per_block):
             raw = read_band(movie, 0, rows, skip_frames=a, stop_frame=min(frames, a + per_block))
-            if raw.dtype.kind == "f":
-                with np.errstate(invalid="ignore"):
-                    wrong = ~(np.isfinite(raw) & (raw >= 0))
-            if raw.dtype.kind == "f" and wrong.any():
-                i = a + int(np.flatnonzero(wrong.any(axis=(1, 2)))[0])
-                raise InputError(f"{movie}: frame {i} holds counts that are negative or not "
-                                 "finite; raw camera counts are neither")
+            if raw.dtype.kind == "f":  # integer counts are valid by their type
+                _check_counts(movie, raw, a)
             signal = raw.astype(np.float32)  # one working copy, changed in place
             signal -= offset
             if photon_counting:
@@ -213,6 +208,16 @@ def _apply(cal, movie, target, setpoint, photon_counting, threshold, fmt, progre
         else:
             _write_zarr(target.store(), blocks(bar), (frames, rows, cols), out_dtype, meta,
                         per_block)
+
+
+def _check_counts(movie: Path, raw: np.ndarray, first: int) -> None:
+    """Counts stored as floats must still be counts: finite and not negative."""
+    with np.errstate(invalid="ignore"):
+        wrong = ~(np.isfinite(raw) & (raw >= 0))
+    if wrong.any():
+        i = first + int(np.flatnonzero(wrong.any(axis=(1, 2)))[0])
+        raise InputError(f"{movie}: frame {i} holds counts that are negative or not finite; "
+                         "raw camera counts are neither")
 
 
 def _write_tiff(out: Path, blocks, shape, dtype, meta) -> None:
