@@ -468,3 +468,21 @@ def test_demo_refuses_an_earlier_demo_unless_overwrite(tmp_path, capsys):
     _one_line_error(code, err)
     assert _run(capsys, *argv, "--overwrite")[0] == 0
     result.load(tmp_path / "d" / "result-gs")
+
+
+def test_float_frames_of_integer_counts_calibrate_and_bad_ones_are_named(tmp_path, capsys):
+    from emccdcal.simulate.series import simulate_gain_series
+
+    sim = simulate_gain_series(tmp_path / "gs", setpoints=(1, 5), rows=4, cols=4,
+                               frames=200, dark_frames=200, seed=3)
+    frames_file = sim.outdir / sim.truth["acquisitions"][1]["frames"]
+    stack = tifffile.imread(frames_file).astype(np.float64)
+    tifffile.imwrite(frames_file, stack)
+    assert _run(capsys, "calibrate", sim.manifest, "--method", "gs", "-o", tmp_path / "o",
+                "-q")[0] == 0  # checks on: float64 integer counts are counts
+    stack[7, 1, 1] += 0.5
+    tifffile.imwrite(frames_file, stack)
+    code, _, err = _run(capsys, "calibrate", sim.manifest, "--method", "gs", "-o",
+                        tmp_path / "o2", "--no-checks")
+    _one_line_error(code, err)
+    assert frames_file.name in err and "not integer" in err

@@ -35,7 +35,7 @@ from ._util import progress as progress_bar
 from .data import quality, stats
 from .data.manifest import Manifest, read_manifest
 from .data.stacks import read_band
-from .errors import MethodError, OptionError
+from .errors import InputError, MethodError, OptionError
 from .fit import engine, gof, layouts, mv
 from .model import noise
 from .runstore import RESULT_FILES, RunInterrupted, RunStore, remove_run
@@ -170,7 +170,7 @@ def run_tile(job: TileJob, progress=None) -> dict:
              if job.checks else None)
         # The likelihood methods histogram each block's pixels as they fit it (the
         # threads then share the work evenly); the mean–variance methods need moments.
-        data = stats.histograms(own, adc_max=job.adc_max) if mean_variance else own
+        data = _histograms(job, a, own) if mean_variance else own
         return data, stats.frame_usage(own, job.adc_max), q
 
     with ThreadPoolExecutor(max_workers=max(1, min(job.threads, len(job.frames)))) as pool:
@@ -194,6 +194,15 @@ def run_tile(job: TileJob, progress=None) -> dict:
     if progress is not None:  # the pixels not fitted here (all of them for mean-variance)
         progress(job.n_pixels - (0 if mean_variance else fitted.size))
     return out
+
+
+def _histograms(job, a, frames):
+    """:func:`emccdcal.data.stats.histograms` of acquisition ``a``'s frames; bad counts
+    are one line naming the file and the acquisition."""
+    try:
+        return stats.histograms(frames, adc_max=job.adc_max)
+    except InputError as exc:
+        raise InputError(f"'{job.frames[a][0]}' ({job.labels[a]}): {exc}") from None
 
 
 def _bounds_of(method, intervals):
@@ -228,7 +237,7 @@ def _fit_pixels(job, frames, usable, progress=None):
     bounds = _bounds_of(method, job.intervals)
 
     def fit_block(idx):
-        hists = [stats.histograms(f[:, :, idx], adc_max=job.adc_max) for f in frames]
+        hists = [_histograms(job, a, f[:, :, idx]) for a, f in enumerate(frames)]
         blocks = layouts.make_blocks(hists, job.offsets[:, idx], job.read_noise[:, idx],
                                      setpoints, slice(None), job.dark_frames, job.map_groups,
                                      job.em_model)
