@@ -110,3 +110,21 @@ def test_atomic_write_uses_the_umask_and_leaves_nothing_on_failure(tmp_path):
         atomic_write(tmp_path / "a.txt", fail)
     assert (tmp_path / "a.txt").read_text() == "x"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt"]
+
+
+def test_dir_shows_the_api_only_and_the_stub_names_it():
+    assert dir(emccdcal) == sorted(emccdcal.__all__)
+    stub = ast.parse((SRC / "__init__.pyi").read_text())
+    named = {}
+    for node in stub.body:
+        if isinstance(node, ast.ImportFrom):
+            for alias in node.names:
+                module = "emccdcal" + ("." + node.module if node.module else "")
+                named[alias.asname or alias.name] = (module, alias.name)
+    assert set(named) == set(emccdcal._API)
+    for name, (module, attribute) in emccdcal._API.items():
+        if attribute is None:  # a module: the stub imports it from its parent
+            parent, _, leaf = module.rpartition(".")
+            assert named[name] == (parent, leaf), name
+        else:
+            assert named[name] == (module, attribute), name

@@ -20,14 +20,12 @@ is fast.
 ('emccdcal.calibration', 'emccdcal.model.noise')
 """
 
-from __future__ import annotations
-
-import importlib
-from importlib.metadata import PackageNotFoundError, version
+import importlib as _importlib
+from importlib import metadata as _metadata
 
 try:
-    __version__ = version("emccdcal")
-except PackageNotFoundError:  # pragma: no cover - running from a source tree
+    __version__ = _metadata.version("emccdcal")
+except _metadata.PackageNotFoundError:  # pragma: no cover - running from a source tree
     __version__ = "0+unknown"
 
 #: Public name -> (module, attribute); attribute None means the module itself.
@@ -61,7 +59,7 @@ def __getattr__(name: str):
         module, attribute = _API[name]
     except KeyError:
         raise AttributeError(f"module 'emccdcal' has no attribute {name!r}") from None
-    value = importlib.import_module(module)
+    value = _importlib.import_module(module)
     if attribute is not None:
         value = getattr(value, attribute)
     globals()[name] = value  # later look-ups skip this function
@@ -69,4 +67,5 @@ def __getattr__(name: str):
 
 
 def __dir__():
-    return sorted(set(globals()) | set(__all__))
+    # the API only: the helpers above are not for users (type checkers read __init__.pyi)
+    return sorted(__all__)

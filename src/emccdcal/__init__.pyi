@@ -1,0 +1,24 @@
+# The lazy public API of emccdcal (__init__.py imports each name on first use), spelled
+# out for type checkers and IDEs. Keep it in step with emccdcal._API (a test checks).
+from .beads.cots_calibration import cots_calibrate as cots
+from .beads.validation import validate as validate
+from .calibration import calibrate as calibrate
+from .data.manifest import read_manifest as read_manifest
+from .data.quality import check_manifest as check
+from .errors import EmccdcalError as EmccdcalError
+from .export.gain_curve import fit_gain_curve as fit_gain_curve
+from .export.movie import apply as apply_calibration
+from .export.tools import export as export_calibration
+from .fit.posterior import sample_posterior as sample_posterior
+from .model import noise as noise
+from .report.html import write_report as write_report
+from .result import load as load_result
+from .result import load_calibration as load_calibration
+from .simulate.beads import simulate_beads as simulate_beads
+from .simulate.camera import Camera as Camera
+from .simulate.camera import simulate_frames as simulate_frames
+from .simulate.series import simulate_gain_series as simulate_gain_series
+from .simulate.series import simulate_intensity_series as simulate_intensity_series
+
+__version__: str
+__all__: list[str]
