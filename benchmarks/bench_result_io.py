@@ -1,10 +1,10 @@
 """Benchmark: what a result file's checksum costs to write and to check.
 
 A full-sensor result (512 × 512 px, 5 set-points: φ, gains, offsets, read noise, E, their
-SEs) is saved with :func:`emccdcal.result.save` (the NetCDF file, then read back for its
-digest) and, in the same run, with a plain ``to_netcdf``; then read with
-:func:`emccdcal.result.load` (digest and domain rules checked) and with a plain
-``xarray.open_dataset(...).load()``. Each is timed as the best of ``--repeat`` runs and
+SEs) is saved with :func:`emccdcal.result.save` (the NetCDF file copied behind its
+checksum block, and ``summary.json``) and, in the same run, with a plain ``to_netcdf``;
+then read with :func:`emccdcal.result.load` (checksum and domain rules checked) and with a
+plain ``xarray.open_dataset(...).load()``. Each is timed as the best of ``--repeat`` runs and
 the ratios printed (docs/benchmarks.md).
 
 Run: ``.venv/bin/python benchmarks/bench_result_io.py [--size 512] [--repeat 5]``
@@ -72,9 +72,9 @@ def main(argv=None) -> int:
         t_load = _best(lambda: result.load(d / "res"), args.repeat)
     print(f"machine: {machine()}")
     print(f"result: {args.size} x {args.size} px, 5 set-points, {size_mb:.0f} MB")
-    print(f"write: plain to_netcdf {t_plain:.2f} s, result.save (with digest and summary) "
+    print(f"write: plain to_netcdf {t_plain:.2f} s, result.save (checksum block, summary) "
           f"{t_save:.2f} s, ratio {t_save / t_plain:.2f}")
-    print(f"read: plain open_dataset {t_read:.2f} s, result.load (digest and domain checked) "
+    print(f"read: plain open_dataset {t_read:.2f} s, result.load (checksum, domain checked) "
           f"{t_load:.2f} s, ratio {t_load / t_read:.2f}")
     return 0
 

@@ -7,7 +7,6 @@ with ``-s``); docs/reliability.md has them.
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys

@@ -391,11 +391,11 @@ def test_report_cli_quiet_warns_once_and_rejects_bad_inputs(loaded, tmp_path, ca
     assert oct(out.stat().st_mode & 0o777) == "0o644"
     # not ours / not NetCDF / incompatible version / missing: one line, exit code 2
     (tmp_path / "text.nc").write_text("hello")
-    xr.Dataset({"x": ("a", [1.0])}).to_netcdf(tmp_path / "other.nc", engine="h5netcdf")
+    write_netcdf(xr.Dataset({"x": ("a", [1.0])}), tmp_path / "other.nc")
     future = loaded["gs"].copy()
     future.attrs["emccdcal_version"] = "9.0.0"
-    future.to_netcdf(tmp_path / "future.nc", engine="h5netcdf")
-    for name, msg in (("text.nc", "not a readable NetCDF file"),
+    write_netcdf(future, tmp_path / "future.nc")
+    for name, msg in (("text.nc", "not an emccdcal result file"),
                       ("other.nc", "not an emccdcal calibration result"),
                       ("future.nc", "written by emccdcal 9.0.0, which is not compatible"),
                       ("missing.nc", "no such file")):

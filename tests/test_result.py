@@ -10,6 +10,7 @@ import pytest
 import xarray as xr
 
 import emccdcal
+from emccdcal._output import write_netcdf
 from emccdcal import result
 from emccdcal.result import format_setpoint, load, make_dataset, save, summarize
 
@@ -313,6 +314,9 @@ def test_interrupted_summary_write_keeps_the_old_summary(tmp_path, monkeypatch):
 def test_load_rejects_netcdf_that_is_not_ours(tmp_path):
     path = tmp_path / "other.nc"
     xr.Dataset({"t": ("x", np.arange(3.0))}).to_netcdf(path, engine="h5netcdf")
+    with pytest.raises(ValueError, match=r"other\.nc.*not an emccdcal result file"):
+        load(path)
+    write_netcdf(xr.Dataset({"t": ("x", np.arange(3.0))}), path)  # checksummed, not a result
     with pytest.raises(ValueError, match=r"other\.nc.*not an emccdcal calibration result"):
         load(path)
 
@@ -320,7 +324,7 @@ def test_load_rejects_netcdf_that_is_not_ours(tmp_path):
 def test_load_rejects_missing_variables(tmp_path):
     ds = gs_dataset().drop_vars("loglik")
     path = tmp_path / "calibration.nc"
-    ds.to_netcdf(path, engine="h5netcdf")
+    write_netcdf(ds, path)
     with pytest.raises(ValueError, match=r"calibration\.nc.*missing variables: loglik"):
         load(path)
 
@@ -329,7 +333,7 @@ def test_load_rejects_other_major_version(tmp_path):
     ds = gs_dataset()
     ds.attrs["emccdcal_version"] = "99.0.0"
     path = tmp_path / "calibration.nc"
-    ds.to_netcdf(path, engine="h5netcdf")
+    write_netcdf(ds, path)
     with pytest.raises(ValueError, match=r"calibration\.nc.*99\.0\.0.*not compatible"):
         load(path)
 
@@ -337,7 +341,7 @@ def test_load_rejects_other_major_version(tmp_path):
 def test_load_rejects_non_netcdf_and_missing_files(tmp_path):
     path = tmp_path / "calibration.nc"
     path.write_text("not a netcdf file\n")
-    with pytest.raises(ValueError, match=r"calibration\.nc.*not a readable NetCDF"):
+    with pytest.raises(ValueError, match=r"calibration\.nc.*not an emccdcal result file"):
         load(path)
     with pytest.raises(FileNotFoundError, match="nothing.nc"):
         load(tmp_path / "nothing.nc")

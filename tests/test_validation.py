@@ -193,7 +193,7 @@ def test_calibration_of_another_sensor_or_region(tmp_path):
         result.load_calibration(tmp_path / "nope.nc")
     junk = tmp_path / "junk.nc"
     junk.write_text("not netcdf")
-    with pytest.raises(ValueError, match="junk.nc: not a readable NetCDF"):
+    with pytest.raises(ValueError, match="junk.nc: not an emccdcal result file"):
         result.load_calibration(junk)
 
 

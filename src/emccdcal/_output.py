@@ -28,7 +28,6 @@ import contextlib
 import contextvars
 import hashlib
 import json
-import math
 import os
 import re
 import secrets
@@ -50,7 +49,7 @@ except ImportError:  # pragma: no cover - Windows
 
 __all__ = ["atomic_write", "atomic_write_text", "file_sha256", "Output", "OutputError",
            "staged", "remove_leftovers", "slug", "comment", "toml_line", "STORE_MARKER",
-           "write_netcdf", "read_netcdf", "verify_digest", "content_digest", "DIGEST_ATTR"]
+           "write_netcdf", "read_netcdf", "verify_checksum", "CHECKSUM_BLOCK"]
 
 #: The file inside a store (a directory written as one output, e.g. ``.zarr``) that says
 #: emccdcal wrote it and lists its files.
@@ -522,64 +521,54 @@ def _reason(exc: OSError) -> str:
 # --------------------------------------------------------------------------------------
 # Result files that know themselves
 # --------------------------------------------------------------------------------------
-#: The dataset attribute holding :func:`content_digest` of a result file's content.
-DIGEST_ATTR = "content_sha256"
-
-
-def _plain(value):
-    """An attribute value as plain JSON data, the same whether it was written or read
-    back (NetCDF gives one-element lists back as scalars, and numbers as NumPy's)."""
-    if hasattr(value, "tolist"):  # NumPy arrays and scalars
-        value = value.tolist()
-    if isinstance(value, (list, tuple)):
-        items = [_plain(v) for v in value]
-        return items[0] if len(items) == 1 else items
-    if isinstance(value, bytes):
-        return value.decode("utf-8", "replace")
-    if isinstance(value, bool):
-        return int(value)
-    if isinstance(value, float) and not math.isfinite(value):
-        return repr(value)
-    return value
-
-
-def content_digest(ds: xarray.Dataset) -> str:
-    """SHA-256 of everything a reader of a result sees: every variable's and coordinate's
-    name, dims, attributes and values (as float64, NaN in one form), and the dataset's
-    attributes but :data:`DIGEST_ATTR`. A result file records it (:func:`write_netcdf`)
-    and :func:`load` checks it, so a damaged file is found, never used."""
-    import numpy as np
-
-    h = hashlib.sha256()
-    attrs = {k: _plain(v) for k, v in ds.attrs.items() if k != DIGEST_ATTR}
-    h.update(json.dumps(attrs, sort_keys=True, default=str).encode())
-    for name in sorted(map(str, ds.variables)):
-        var = ds.variables[name]
-        head = [name, list(var.dims), list(var.shape),
-                {k: _plain(v) for k, v in var.attrs.items()}]
-        h.update(json.dumps(head, sort_keys=True, default=str).encode())
-        values = np.asarray(var.values)
-        if values.dtype.kind in "OSU":
-            h.update(json.dumps([str(v) for v in values.ravel()]).encode())
-        else:
-            x = np.array(values, dtype="<f8")
-            x[np.isnan(x)] = np.nan
-            h.update(x.tobytes())
-    return h.hexdigest()
+#: A result file begins with this block (an HDF5 user block, which HDF5 and every NetCDF
+#: reader skip): the magic, then the SHA-256 of every byte after the block.
+CHECKSUM_BLOCK = 512
+_MAGIC = b"emccdcal result file; SHA-256 of the bytes after this 512-byte block: "
 
 
 def write_netcdf(ds: xarray.Dataset, path) -> None:
-    """Write a result dataset as NetCDF-4 (h5netcdf) with its :func:`content_digest`,
-    computed from the file as written so that any reader's view of it is covered. Every
-    result file emccdcal writes goes through this (inside an atomic write)."""
-    import h5py
-    import xarray as xr
+    """Write a result dataset as NetCDF-4 (h5netcdf) behind a block holding the SHA-256
+    of the file's bytes. Every result file emccdcal writes goes through this (inside an
+    atomic write), and :func:`read_netcdf` checks the bytes before parsing any of them,
+    so a damaged file is refused, never used, and never parsed (a damaged HDF5 header
+    can send a reader into an endless loop)."""
+    path = Path(path)
+    body = path.with_name(path.name + ".body")  # a temporary name of the same family
+    try:
+        ds.to_netcdf(body, engine="h5netcdf")
+        digest = hashlib.sha256()
+        with open(body, "rb") as src, open(path, "wb") as out:
+            out.write(b" " * CHECKSUM_BLOCK)
+            for block in iter(lambda: src.read(1 << 20), b""):
+                digest.update(block)
+                out.write(block)
+            out.seek(0)
+            out.write((_MAGIC + digest.hexdigest().encode() + b"\n").ljust(CHECKSUM_BLOCK))
+    finally:
+        body.unlink(missing_ok=True)
 
-    ds.to_netcdf(path, engine="h5netcdf")
-    with xr.open_dataset(path, engine="h5netcdf") as f:
-        digest = content_digest(f.load())
-    with h5py.File(path, "r+") as f:
-        f.attrs[DIGEST_ATTR] = digest
+
+def verify_checksum(path, what: str = "result") -> None:
+    """Raise :class:`~emccdcal.errors.InputError` unless ``path`` begins with the block
+    of :func:`write_netcdf` and its bytes match the SHA-256 written there."""
+    p = Path(path)
+    try:
+        with open(p, "rb") as f:
+            head = f.read(CHECKSUM_BLOCK)
+            digest = hashlib.sha256()
+            for block in iter(lambda: f.read(1 << 20), b""):
+                digest.update(block)
+    except OSError as exc:
+        raise InputError(f"{p}: cannot be read ({_reason(exc)})") from None
+    recorded = head[len(_MAGIC):len(_MAGIC) + 64]
+    if len(head) < CHECKSUM_BLOCK or not head.startswith(_MAGIC):
+        raise InputError(f"{p}: not an emccdcal {what} file, or damaged (it does not begin "
+                         "with emccdcal's checksum block; files of earlier emccdcal "
+                         f"versions have none): make the {what} again")
+    if recorded != digest.hexdigest().encode():
+        raise InputError(f"{p}: damaged: its bytes do not match the checksum it was written "
+                         f"with; make the {what} again or restore it from a copy")
 
 
 @contextlib.contextmanager
@@ -597,35 +586,25 @@ def _quiet_unraisable():
         sys.unraisablehook = hook
 
 
-def read_netcdf(path, *, what: str = "result", verify: bool = True) -> xarray.Dataset:
-    """A NetCDF file written by :func:`write_netcdf`, loaded and (unless ``verify`` is
-    false: then see :func:`verify_digest`) checked against its digest; damage is one
+def read_netcdf(path, *, what: str = "result") -> xarray.Dataset:
+    """A NetCDF file written by :func:`write_netcdf`: its checksum verified
+    (:func:`verify_checksum`), then loaded; damage is one
     :class:`~emccdcal.errors.InputError` naming the file."""
     import xarray as xr
 
     p = Path(path)
-    try:
-        with _quiet_unraisable(), xr.open_dataset(p, engine="h5netcdf") as f:
-            ds = f.load()
-    except (OSError, ValueError, TypeError, KeyError, RuntimeError, AttributeError,
-            IndexError) as exc:
-        raise InputError(f"{p}: not a readable NetCDF file ({exc.__class__.__name__}: "
-                         f"{' '.join(str(exc).split())})") from None
-    if verify:
-        verify_digest(ds, p, what)
+    verify_checksum(p, what)
+    error = None
+    with _quiet_unraisable():  # until the failed reader is collected (after the except)
+        try:
+            with xr.open_dataset(p, engine="h5netcdf") as f:
+                ds = f.load()
+        except (OSError, ValueError, TypeError, KeyError, RuntimeError, AttributeError,
+                IndexError) as exc:
+            error = f"{exc.__class__.__name__}: {' '.join(str(exc).split())}"
+    if error is not None:
+        raise InputError(f"{p}: not a readable NetCDF file ({error})")
     return ds
-
-
-def verify_digest(ds: xarray.Dataset, path, what: str = "result") -> None:
-    """Check (and remove) the digest :func:`read_netcdf` found in a file's attributes."""
-    p = Path(path)
-    recorded = ds.attrs.pop(DIGEST_ATTR, None)
-    if recorded is None:
-        raise InputError(f"{p}: records no checksum ({DIGEST_ATTR}): damaged, or written "
-                         f"by another program or an earlier emccdcal; make the {what} again")
-    if str(recorded) != content_digest(ds):
-        raise InputError(f"{p}: damaged: its content does not match the checksum it was "
-                         f"written with; make the {what} again or restore it from a copy")
 
 
 # --------------------------------------------------------------------------------------

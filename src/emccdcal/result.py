@@ -49,7 +49,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from ._output import read_netcdf, verify_digest, write_netcdf
+from ._output import read_netcdf, write_netcdf
 from ._util import finite_or_none
 from .errors import InputError, MissingFileError, OptionError
 
@@ -727,7 +727,7 @@ def load(path) -> xr.Dataset:
         p = p / CALIBRATION_FILE
     if not p.is_file():
         raise MissingFileError(f"{p}: no such file")
-    ds = read_netcdf(p, verify=False)
+    ds = read_netcdf(p)
     missing_attrs = [a for a in ("method", "emccdcal_version") if a not in ds.attrs]
     if missing_attrs:
         raise InputError(
@@ -744,7 +744,6 @@ def load(path) -> xr.Dataset:
             f"{p}: written by emccdcal {ds.attrs['emccdcal_version']}, which is not compatible "
             f"with this emccdcal {_package_version()} (different major version)"
         )
-    verify_digest(ds, p)
     if ds["converged"].dtype != bool:
         ds["converged"] = ds["converged"].astype(bool)
     _check_domain(ds, p)
