@@ -17,6 +17,9 @@ renamed over it, so a reader never sees half a file. Every verb's output is open
   temporary files (named by this module, with 48 random bits) are removed by the next run
   into the same output, and those of a failed run at once.
 
+Result files know themselves: :func:`write_netcdf` puts the SHA-256 of a NetCDF file's
+bytes in a block before them, and :func:`read_netcdf` checks it before parsing anything.
+
 Text taken from a file (a serial, a model, a label) is data: :func:`slug` makes a file
 name of it, :func:`toml_line` writes it as a TOML value, :func:`comment` puts it on one
 comment line.
