@@ -4,6 +4,7 @@ file is written through one atomic writer."""
 from __future__ import annotations
 
 import ast
+import importlib
 import os
 import stat
 import subprocess
@@ -128,3 +129,21 @@ def test_dir_shows_the_api_only_and_the_stub_names_it():
             assert named[name] == (parent, leaf), name
         else:
             assert named[name] == (module, attribute), name
+
+
+def test_every_reader_registers_itself_once():
+    from emccdcal.data import stacks
+
+    modules = {p.stem for p in (SRC / "data").glob("*.py")
+               if "\nSUFFIXES = " in p.read_text()}
+    assert modules == set(stacks._READER_MODULES)
+    suffixes = [s for m in stacks._READER_MODULES
+                for s in importlib.import_module(f"emccdcal.data.{m}").SUFFIXES]
+    assert tuple(suffixes) == stacks.STACK_SUFFIXES and len(set(suffixes)) == len(suffixes)
+    for name in stacks._READER_MODULES:
+        module = importlib.import_module(f"emccdcal.data.{name}")
+        assert callable(module.header) and callable(module.settings), name
+    # nothing else lists formats by hand
+    for path in SRC.rglob("*.py"):
+        if path.name not in {"stacks.py", *(f"{m}.py" for m in stacks._READER_MODULES)}:
+            assert '".spe"' not in path.read_text(), path

@@ -21,7 +21,10 @@ import numpy as np
 from ..errors import InputError
 from .settings import CameraSettings, recorded_number
 
-__all__ = ["FitsStack", "read_header", "header", "open_stack", "settings"]
+__all__ = ["SUFFIXES", "FitsStack", "read_header", "header", "open_stack", "settings"]
+
+#: File name suffixes of this format.
+SUFFIXES = (".fits", ".fit", ".fts")
 
 # BITPIX (with BZERO for the unsigned types) → the values' dtype once scaled.
 _TYPES = {(8, 0): "u1", (16, 0): "i2", (16, 32768): "u2", (32, 0): "i4",

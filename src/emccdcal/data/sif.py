@@ -15,7 +15,10 @@ from .._util import one_line
 from ..errors import InputError
 from .settings import CameraSettings, recorded_number
 
-__all__ = ["open_sif", "header", "open_stack", "settings"]
+__all__ = ["SUFFIXES", "open_sif", "header", "open_stack", "settings"]
+
+#: File name suffixes of this format.
+SUFFIXES = (".sif",)
 
 
 def open_sif(path: Path):

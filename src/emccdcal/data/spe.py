@@ -25,7 +25,10 @@ from .._util import one_line
 from ..errors import InputError
 from .settings import CameraSettings, recorded_number
 
-__all__ = ["HEADER_BYTES", "read_layout", "header", "settings"]
+__all__ = ["SUFFIXES", "HEADER_BYTES", "read_layout", "header", "settings"]
+
+#: File name suffixes of this format.
+SUFFIXES = (".spe",)
 
 #: Bytes of the binary header; the first frame follows it.
 HEADER_BYTES = 4100

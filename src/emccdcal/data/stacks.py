@@ -3,29 +3,25 @@
 One interface for every format (docs/formats.md): :func:`stack_header` (shape, dtype),
 :func:`load_stack` (a lazy array: a memory map, or an object that reads what is sliced),
 :func:`read_band` (rows of every frame, read into memory: what a calibration's tiles do)
-and :func:`stack_settings` (:class:`~emccdcal.data.settings.CameraSettings`). TIFF and
-``.npy`` are read here (memory-mapped / ``preadv`` where the frames lie at regular
-places); SPE, SIF, FITS and Zarr by a module each (``header``, ``settings``,
-``open_stack``). Counts, offsets and read noise are in ADU. Every problem is an
+and :func:`stack_settings` (:class:`~emccdcal.data.settings.CameraSettings`). Every format
+is a reader module (TIFF, ``.npy``, SPE, SIF, FITS, Zarr), registered by the suffixes it
+declares (``_READER_MODULES``); where its frames lie at regular places in the file they
+are memory-mapped or read with ``preadv`` here, else the module's ``open_stack`` reads
+them. Counts, offsets and read noise are in ADU. Every problem is an
 :class:`~emccdcal.errors.InputError` whose one-line message names the file.
 """
 
 from __future__ import annotations
 
-import contextlib
-import functools
 import importlib
-import logging
 import os
-import re
-import warnings
 from pathlib import Path
 
 import numpy as np
-import tifffile
 
 from .._util import one_line
-from ..errors import InputError, InputWarning, MissingFileError
+from ..errors import InputError, MissingFileError
+from .extent import check_data_fits
 from .settings import CameraSettings
 
 __all__ = [
@@ -44,9 +40,6 @@ __all__ = [
     "default_adc_max",
     "STACK_SUFFIXES",
 ]
-
-#: File name suffixes of stacks and maps that can be read.
-STACK_SUFFIXES = (".tif", ".tiff", ".npy", ".spe", ".sif", ".fits", ".fit", ".fts", ".zarr")
 
 #: Elements read at a time when scanning a stack's values.
 _SCAN_ELEMENTS = 2**23
@@ -115,15 +108,8 @@ def _layout(path: Path):
     C-ordered blocks at regular places) and frame stride (bytes from one frame to the
     next; None for a map) of a stack or map, from its header; the data must fit in the
     file."""
-    log, stride = (), None
     try:
-        fmt = _format(path)
-        if fmt is not None:
-            shape, dtype, offset, stride = fmt.header(path)
-        elif path.suffix.lower() == ".npy":
-            shape, dtype, offset = _npy_layout(path)
-        else:
-            shape, dtype, offset, log = _tiff_layout(path)
+        shape, dtype, offset, stride = _reader(path).header(path)
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 - a damaged file can break a parser anywhere
@@ -131,11 +117,7 @@ def _layout(path: Path):
     if offset is not None and len(shape) == 3 and stride is None:
         stride = shape[1] * shape[2] * dtype.itemsize
     if offset is not None:
-        _check_data_fits(path, shape, dtype, offset, stride)
-    if log and _first_time(path):  # e.g. a damaged metadata tag: the frames are sound
-        warnings.warn(f"'{path}': damaged TIFF: {log[0]}"
-                      f"{f' (and {len(log) - 1} more)' if len(log) > 1 else ''}; its frames "
-                      "were read in full", InputWarning, stacklevel=3)
+        check_data_fits(path, shape, dtype, offset, stride)
     return shape, dtype, offset, stride
 
 
@@ -143,107 +125,32 @@ def stack_settings(path) -> CameraSettings:
     """The camera settings a stack's file records (:class:`CameraSettings`; fields the
     format or the file does not hold are None)."""
     path = check_readable(Path(path))
-    fmt = _format(path)
-    if fmt is not None:
-        return fmt.settings(path)
-    if path.suffix.lower() in (".tif", ".tiff"):
-        from . import micromanager
-
-        _layout(path)  # a readable stack first
-        with _tifffile_log(path), tifffile.TiffFile(path) as tif:
-            return micromanager.stack_settings(path, tif)
-    return CameraSettings()
+    _layout(path)  # a readable stack first
+    return _reader(path).settings(path)
 
 
-#: Formats read by a module of their own, each with ``header(path)`` (shape, dtype, data
-#: offset, frame stride), ``settings(path)`` and, where the offset is None (the data are
-#: not mapped here), ``open_stack(path)``: a lazy array.
-_FORMATS = {".spe": "spe", ".sif": "sif", ".fits": "fits", ".fit": "fits", ".fts": "fits",
-            ".zarr": "zarrs"}
+#: The readers, one module each, in the order of ``STACK_SUFFIXES``. Each declares its
+#: ``SUFFIXES`` and ``header(path)`` (shape, dtype, data offset, frame stride: the offset
+#: None where the frames are not blocks at regular places, the stride None where they lie
+#: back to back) and ``settings(path)`` (:class:`CameraSettings`); where ``header`` can
+#: give no offset, also ``open_stack(path)`` (a lazy array). A new format is a module
+#: here, its name added below, and its tests: nothing else lists formats.
+_READER_MODULES = ("tiff", "npy", "spe", "sif", "fits", "zarrs")
+_READERS = {suffix: module
+            for module in (importlib.import_module(f".{name}", __package__)
+                           for name in _READER_MODULES)
+            for suffix in module.SUFFIXES}
+#: File name suffixes of stacks and maps that can be read.
+STACK_SUFFIXES = tuple(_READERS)
 
 
-def _format(path: Path):
-    name = _FORMATS.get(path.suffix.lower())
-    return None if name is None else importlib.import_module(f".{name}", __package__)
-
-
-_WARNED: set = set()
-
-
-def _first_time(path: Path) -> bool:
-    """Whether this version of the file has not been warned about yet (in this process)."""
-    st = path.stat()
-    key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
-    if key in _WARNED:
-        return False
-    _WARNED.add(key)
-    return True
-
-
-def _npy_layout(path: Path):
-    with open(path, "rb") as fh:
-        fmt = np.lib.format
-        version = fmt.read_magic(fh)
-        read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
-        shape, fortran, dtype = read(fh)
-        offset = fh.tell()
-    if dtype.hasobject:
-        raise InputError(f"'{path}': holds Python objects, not numbers")
-    # A .npy file is its header and its data, nothing after: a damaged header length
-    # (which moves the data) shows as bytes left over, or missing (_check_data_fits).
-    extra = path.stat().st_size - offset - int(np.prod(shape)) * dtype.itemsize
-    if extra > 0:
-        raise InputError(f"'{path}': damaged .npy file: {extra} bytes after the "
-                         f"{' × '.join(map(str, shape))} values its header describes")
-    return tuple(shape), dtype, (None if fortran and len(shape) > 1 else offset)
-
-
-def _check_data_fits(path: Path, shape, dtype, offset: int, stride: int | None = None) -> None:
-    """A truncated file: one line saying how much of it is there."""
-    size = path.stat().st_size
-    frame = int(np.prod(shape[1:])) * dtype.itemsize if len(shape) == 3 else 0
-    if stride is not None and shape[0]:
-        need = offset + (shape[0] - 1) * stride + frame
-    else:
-        need = offset + int(np.prod(shape)) * dtype.itemsize
-    if need <= size:
-        return
-    what = " × ".join(str(d) for d in shape)
-    whole = ""
-    if frame:
-        step = stride or frame
-        whole = f": {max(0, size - offset + step - frame) // step} whole frame(s) of {shape[0]}"
-    raise InputError(f"'{path}': truncated: its header describes {what} values of "
-                     f"{dtype.itemsize} bytes from byte {offset}, {need} bytes, but the file "
-                     f"has {size}{whole}")
-
-
-_MICROMANAGER_HEADER = ("summary", "index map", "display settings", "comments")
-
-
-@contextlib.contextmanager
-def _tifffile_log(path):
-    """Capture tifffile's log records while it reads ``path`` (it logs damaged pages
-    instead of raising): yields the list of their messages."""
-    messages: list[str] = []
-
-    class Catch(logging.Handler):
-        def emit(self, record):  # "<tifffile.TiffPages @8> invalid page offset 6656"
-            message = one_line(re.sub(r"^<[^>]*>\s*", "", record.getMessage()))
-            # tifffile's parse of a Micro-Manager file header, which OME-TIFFs carrying
-            # Micro-Manager tags (from other writers) lack: metadata, not the frames
-            if not any(part in message for part in _MICROMANAGER_HEADER):
-                messages.append(message)
-
-    logger = logging.getLogger("tifffile")
-    handler, propagate = Catch(logging.WARNING), logger.propagate
-    logger.addHandler(handler)
-    logger.propagate = False  # nothing reaches the root logger's stderr handler
+def _reader(path: Path):
+    """The reader module of ``path``'s format (by its suffix)."""
     try:
-        yield messages
-    finally:
-        logger.removeHandler(handler)
-        logger.propagate = propagate
+        return _READERS[path.suffix.lower()]
+    except KeyError:
+        raise InputError(f"'{path}': unsupported file type '{path.suffix}' "
+                         f"(supported: {', '.join(STACK_SUFFIXES)})") from None
 
 
 def describe_missing(path: Path, what: str = "file") -> str:
@@ -262,11 +169,7 @@ def check_readable(path: Path) -> Path:
         raise InputError(f"'{path}' is not a regular file (a pipe, socket or device)")
     if path.is_dir() and path.suffix.lower() != ".zarr":  # a Zarr store is a directory
         raise InputError(f"'{path}' is a directory, not a file")
-    if path.suffix.lower() not in STACK_SUFFIXES:
-        raise InputError(
-            f"'{path}': unsupported file type '{path.suffix}' "
-            f"(supported: {', '.join(STACK_SUFFIXES)})"
-        )
+    _reader(path)  # a supported format
     return path
 
 
@@ -274,99 +177,6 @@ def stack_header(path: Path) -> tuple[tuple[int, ...], np.dtype]:
     """Shape and dtype of a stack or map from its header, without reading the data."""
     shape, dtype, *_ = _layout(check_readable(path))
     return shape, dtype
-
-
-def _tiff_layout(path: Path):
-    """Shape, dtype (in the file's byte order) and offset of the data of a TIFF's one
-    image series; the offset is None where the data are not one contiguous block.
-
-    Finding them walks the file's page index (about 20 ms for 5000 frames), which a
-    calibration would otherwise do several times per stack: it is done once per file
-    version (path, size, modification time). Also returns what tifffile logged about
-    damaged pages (:func:`_layout` issues it as an :class:`~emccdcal.errors.InputWarning`).
-    """
-    st = path.stat()
-    return _tiff_layout_cached(str(path.resolve()), st.st_size, st.st_mtime_ns)
-
-
-@functools.lru_cache(maxsize=128)
-def _tiff_layout_cached(path: str, size: int, mtime_ns: int):
-    with _tifffile_log(path) as log, tifffile.TiffFile(path) as tif:
-        if not tif.series:
-            raise InputError(f"'{path}': TIFF file holds no image")
-        if len(tif.series) > 1:  # reading only the first would drop frames silently
-            shapes = [tuple(s.shape) for s in tif.series]
-            raise InputError(
-                f"'{path}': TIFF file holds {len(shapes)} image series (shapes "
-                f"{', '.join(map(str, shapes[:4]))}{', ...' if len(shapes) > 4 else ''}); "
-                "expected one (frames, rows, cols) stack"
-            )
-        series = tif.series[0]
-        dtype = np.dtype(tif.byteorder + np.dtype(series.dtype).char)
-        shape, offset = tuple(series.shape), series.dataoffset
-        # A broken page index hides frames: whether those pages held frames of the
-        # stack cannot be known, so the stack cannot be trusted to be complete.
-        broken = [m for m in log if "page" in m.lower()]
-        if broken and offset is not None:  # say so when it is a truncation
-            _check_data_fits(Path(path), shape, dtype, offset)
-        if broken:
-            raise InputError(f"'{path}': damaged TIFF: {broken[0]}; its frames cannot all "
-                             "be found")
-        if offset is not None:
-            _check_strips(path, tif, pages=[0])
-            if len(shape) == 3:
-                _check_page_index(path, tif, shape, dtype, offset)
-        return shape, dtype, offset, tuple(log)
-
-
-def _check_strips(path, tif, pages=None) -> None:
-    """Data that overlap other data or the file's own structure (its header, a page's
-    tag list or a tag's value): a damaged page index (a moved offset or a longer byte
-    count), which would otherwise read bytes that are not counts, or another frame's.
-    ``pages``: the indices of the pages to check (default all)."""
-    fmt = tif.tiff
-    spans = [(0, 16 if fmt.offsetsize == 8 else 8, "the file header")]
-    for i in range(len(tif.pages)) if pages is None else pages:
-        page = tif.pages[i]
-        n_tags = len(page.tags)
-        spans.append((page.offset, page.offset + fmt.tagnosize + n_tags * fmt.tagsize
-                      + fmt.offsetsize, f"page {i}'s tag list"))
-        for tag in page.tags.values():
-            if tag.valuebytecount > fmt.tagoffsetthreshold:  # stored outside the list
-                spans.append((tag.valueoffset, tag.valueoffset + tag.valuebytecount,
-                              f"page {i}'s {tag.name}"))
-        spans += [(o, o + c, f"page {i}'s data")
-                  for o, c in zip(page.dataoffsets, page.databytecounts) if c]
-    spans.sort()
-    for (_, end, what), (start, _, other) in zip(spans, spans[1:]):
-        if start < end and "data" in what + other:
-            raise InputError(f"'{path}': damaged TIFF: {what} and {other} overlap "
-                             f"(byte {start})")
-
-
-def _check_page_index(path, tif, shape, dtype, offset) -> None:
-    """The frames of a contiguous stack are read from the first page's data offset on;
-    that offset, the frame size and the number of frames come from its first page (or its
-    description). The page index must agree: one page per frame, the second and the last
-    page's data where the layout puts them. A damaged first page otherwise moves or
-    reshapes every frame without a word."""
-    frame = shape[1] * shape[2] * dtype.itemsize
-    pages = tif.pages
-    pages.useframes = True  # light page objects: only their data offsets are needed
-    n = len(pages)
-    if n == 1:  # one page holding every frame
-        checked = [0]
-    elif n == shape[0]:
-        checked = sorted({0, 1, n - 1})
-    else:
-        raise InputError(f"'{path}': damaged TIFF: its first page describes {shape[0]} "
-                         f"frames but the file has {n} pages")
-    for i in checked:
-        found = pages[i].dataoffsets[0] if pages[i].dataoffsets else None
-        if found != offset + i * frame:
-            raise InputError(f"'{path}': damaged TIFF: frame {i}'s data are at byte "
-                             f"{found}, not at {offset + i * frame} where its first page "
-                             "puts them")
 
 
 def load_stack(path: Path) -> np.ndarray:
@@ -382,19 +192,7 @@ def load_stack(path: Path) -> np.ndarray:
                             shape=((shape[0] - 1) * stride + frame,))
             return np.ndarray(shape, dtype=dtype, buffer=raw,
                               strides=(stride, shape[2] * dtype.itemsize, dtype.itemsize))
-        if path.suffix.lower() == ".npy":  # Fortran order
-            return np.load(path, mmap_mode="r", allow_pickle=False)
-        fmt = _format(path)
-        if fmt is not None:
-            return fmt.open_stack(path)
-        # Compressed, tiled or scattered pages: decoded into memory. tifffile logs a page
-        # it cannot decode and fills it with zeros: that is an error here.
-        with _tifffile_log(path) as log, tifffile.TiffFile(path) as tif:
-            _check_strips(path, tif)
-            data = tif.series[0].asarray()
-        if log:
-            raise InputError(f"'{path}': cannot read: {log[0]}")
-        return data
+        return _reader(path).open_stack(path)
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 - a damaged file can break a parser anywhere

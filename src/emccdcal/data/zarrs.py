@@ -14,7 +14,10 @@ from .._util import one_line
 from ..errors import InputError
 from .settings import CameraSettings
 
-__all__ = ["ATTRIBUTE", "open_array", "header", "open_stack", "settings"]
+__all__ = ["SUFFIXES", "ATTRIBUTE", "open_array", "header", "open_stack", "settings"]
+
+#: File name suffixes of this format.
+SUFFIXES = (".zarr",)
 
 #: The attribute holding a store's camera settings.
 ATTRIBUTE = "emccdcal"
