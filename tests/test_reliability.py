@@ -483,3 +483,19 @@ def test_float_frames_of_integer_counts_calibrate_and_bad_ones_are_named(tmp_pat
                         tmp_path / "o2", "--no-checks")
     _one_line_error(code, err)
     assert frames_file.name in err and "not integer" in err
+
+
+def test_a_result_emccdcal_makes_always_loads(tmp_path):
+    ds = result.load(true_result(tmp_path / "r"))
+    g = ds.em_gain.values.copy()
+    g[2, 1, 1] = -5.0  # a fit gone wrong at one converged pixel
+    with pytest.warns(UserWarning, match="1 pixel.*marked not converged"):
+        made = result.make_dataset(
+            method="gs", setpoints=ds.setpoint.values, e_per_adu=ds.e_per_adu.values,
+            e_per_adu_se=ds.e_per_adu_se.values, em_gain=g, em_gain_se=ds.em_gain_se.values,
+            photoelectrons=ds.photoelectrons.values,
+            photoelectrons_se=ds.photoelectrons_se.values, converged=True,
+            manifest_hash="0" * 64)
+    assert not made.converged.values[1, 1] and int(made.converged.values.sum()) == made.converged.size - 1
+    result.save(made, tmp_path / "made")
+    assert not result.load(tmp_path / "made").converged.values[1, 1]

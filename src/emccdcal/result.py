@@ -482,7 +482,13 @@ def make_dataset(
         name: (name, values, {"units": UNITS[name], "long_name": LONG_NAMES[name]})
         for name, values in coords.items()
     }
-    return xr.Dataset(data, coords=all_coords, attrs=ds_attrs)
+    ds = xr.Dataset(data, coords=all_coords, attrs=ds_attrs)
+    impossible, first = _impossible(ds)
+    if impossible.any():  # never a result that its own readers would refuse
+        ds["converged"].values[impossible] = False
+        warnings.warn(f"{int(impossible.sum())} pixel(s) fitted to values no calibration can "
+                      f"have ({first}) are marked not converged", stacklevel=2)
+    return ds
 
 
 # --------------------------------------------------------------------------------------
@@ -653,10 +659,50 @@ def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None) -> dict[str, 
     return {"calibration": written[CALIBRATION_FILE], "summary": written[SUMMARY_FILE]}
 
 
+def _impossible(ds: xr.Dataset):
+    """Converged pixels whose estimates no calibration can have (φ, gains or read noise
+    not positive and finite, an offset not finite, a negative standard error): a (row,
+    col) mask, and the first such value described (None where there is none)."""
+    ok = np.asarray(ds["converged"].values).astype(bool)
+    mask, first = np.zeros_like(ok), None
+
+    def where_bad(name, rule):
+        nonlocal mask, first
+        da = ds[name]
+        if not {"row", "col"} <= set(da.dims):
+            return
+        values = da.transpose(..., "row", "col").values.astype(float)
+        if name == "em_gain":  # 1x has no multiplication: its gain may be left NaN
+            one = np.asarray(ds["setpoint"].values, dtype=float) == 1.0
+            values = values.copy()
+            values[one] = np.where(np.isnan(values[one]), 1.0, values[one])
+        with np.errstate(invalid="ignore"):
+            wrong = ~rule(values) & ok
+        if wrong.any():
+            mask |= wrong.reshape(-1, *ok.shape).any(axis=0)
+            if first is None:
+                at = np.argwhere(wrong)[0]
+                first = (f"{name} is {values[tuple(at)]!r} at index "
+                         f"{tuple(int(i) for i in at)} of a converged pixel")
+
+    def positive(v):
+        return np.isfinite(v) & (v > 0)
+
+    rules = {"e_per_adu": positive, "em_gain": positive, "read_noise": positive,
+             "offset": np.isfinite}
+    for name in ds.data_vars:
+        name = str(name)
+        rule = rules.get(name) or (
+            (lambda v: np.isnan(v) | (v >= 0)) if name.endswith("_se") else None)
+        if rule is not None:
+            where_bad(name, rule)
+    return mask, first
+
+
 def _check_domain(ds: xr.Dataset, p: Path) -> None:
     """The rules every result obeys, checked once for every reader: coordinates, and the
-    estimates of converged pixels (φ, gains and read noise positive and finite, offsets
-    finite, standard errors not negative)."""
+    estimates of converged pixels (:func:`_impossible`). :func:`make_dataset` keeps them
+    too, so a result emccdcal wrote always loads."""
     def bad(text):
         return InputError(f"{p}: not a valid result: {text}")
 
@@ -668,36 +714,11 @@ def _check_domain(ds: xr.Dataset, p: Path) -> None:
         sp = np.asarray(ds["setpoint"].values, dtype=float)
         if not np.all(np.isfinite(sp) & (sp > 0)) or np.unique(sp).size != sp.size:
             raise bad("its set-points are not distinct positive numbers")
-    ok = np.asarray(ds["converged"].values).astype(bool)
-    if ok.shape != (ds.sizes["row"], ds.sizes["col"]):
+    if ds["converged"].shape != (ds.sizes["row"], ds.sizes["col"]):
         raise bad("converged is not a (row, col) map")
-
-    def where_bad(name, rule):
-        if name not in ds:
-            return
-        da = ds[name]
-        if not {"row", "col"} <= set(da.dims):
-            return
-        values = da.transpose(..., "row", "col").values.astype(float)
-        if name == "em_gain":  # 1x has no multiplication: its gain may be left NaN
-            one = np.asarray(ds["setpoint"].values, dtype=float) == 1.0
-            values = values.copy()
-            values[one] = np.where(np.isnan(values[one]), 1.0, values[one])
-        wrong = ~rule(values) & ok
-        if wrong.any():
-            at = np.argwhere(wrong)[0]
-            raise bad(f"{name} is {values[tuple(at)]!r} at index {tuple(int(i) for i in at)} "
-                      "of a converged pixel")
-
-    def positive(v):
-        return np.isfinite(v) & (v > 0)
-
-    for name in ("e_per_adu", "em_gain", "read_noise"):
-        where_bad(name, positive)
-    where_bad("offset", np.isfinite)
-    for name in ds.data_vars:
-        if str(name).endswith("_se"):
-            where_bad(str(name), lambda v: np.isnan(v) | (v >= 0))
+    _, first = _impossible(ds)
+    if first is not None:
+        raise bad(first)
 
 
 def load(path) -> xr.Dataset:
