@@ -496,6 +496,7 @@ def test_a_result_emccdcal_makes_always_loads(tmp_path):
             photoelectrons=ds.photoelectrons.values,
             photoelectrons_se=ds.photoelectrons_se.values, converged=True,
             manifest_hash="0" * 64)
-    assert not made.converged.values[1, 1] and int(made.converged.values.sum()) == made.converged.size - 1
+    assert not made.converged.values[1, 1]
+    assert int(made.converged.values.sum()) == made.converged.size - 1
     result.save(made, tmp_path / "made")
     assert not result.load(tmp_path / "made").converged.values[1, 1]

@@ -195,7 +195,7 @@ def _float_array(name, value, shape, dims):
     if arr.ndim == 0:
         return np.full(shape, float(arr))
     if arr.shape != shape:
-        raise InputError(
+        raise ValueError(
             f"{name} has shape {arr.shape}; expected {shape} for dims {dims}"
         )
     return arr
@@ -211,7 +211,7 @@ def _attr_value(key, value):
         items = list(np.asarray(value).ravel()) if isinstance(value, np.ndarray) else list(value)
         if all(isinstance(v, (str, Number, np.number)) and not isinstance(v, bool) for v in items):
             return value
-    raise InputError(
+    raise ValueError(
         f"dataset attribute {key!r} must be a str, a number, or a list of them; "
         f"got {type(value).__name__}"
     )
@@ -306,9 +306,9 @@ def make_dataset(
     (('level', 'row', 'col'), 'e-/ADU')
     """
     if not isinstance(method, str) or not method:
-        raise InputError("method must be a non-empty string")
+        raise ValueError("method must be a non-empty string")
     if not isinstance(manifest_hash, str) or not _HEX64.match(manifest_hash.lower()):
-        raise InputError(
+        raise ValueError(
             f"manifest_hash must be the SHA-256 hex digest (64 hex digits); got {manifest_hash!r}"
         )
 
@@ -316,30 +316,30 @@ def make_dataset(
     if setpoints is not None:
         sp = np.asarray(setpoints, dtype=float).ravel()
         if sp.size == 0 or not np.all(np.isfinite(sp) & (sp > 0)):
-            raise InputError("setpoints must be one or more positive finite numbers")
+            raise ValueError("setpoints must be one or more positive finite numbers")
         if np.unique(sp).size != sp.size:
-            raise InputError(f"setpoints must be distinct; got {sp.tolist()}")
+            raise ValueError(f"setpoints must be distinct; got {sp.tolist()}")
         coords["setpoint"] = sp
     if levels is not None:
         lv = [str(v) for v in (levels if not isinstance(levels, str) else [levels])]
         if not lv:
-            raise InputError("levels must hold at least one label")
+            raise ValueError("levels must hold at least one label")
         if len(set(lv)) != len(lv):
-            raise InputError(f"level labels must be distinct; got {lv}")
+            raise ValueError(f"level labels must be distinct; got {lv}")
         coords["level"] = np.array(lv, dtype=str)
     sizes = {k: len(v) for k, v in coords.items()}
 
     # Pixel grid and the dims of photoelectrons.
     E = np.asarray(photoelectrons, dtype=float)
     if E.ndim < 2:
-        raise InputError(f"photoelectrons must be at least 2-D (row, col); got shape {E.shape}")
+        raise ValueError(f"photoelectrons must be at least 2-D (row, col); got shape {E.shape}")
     if photoelectrons_dims is None:
         if E.ndim == 2:
             e_dims = _PIXEL_DIMS
         elif E.ndim == 3 and (levels is None) != (setpoints is None):
             e_dims = ("level" if levels is not None else "setpoint",) + _PIXEL_DIMS
         else:
-            raise InputError(
+            raise ValueError(
                 f"cannot tell the dims of photoelectrons with shape {E.shape} "
                 f"(setpoints {'given' if setpoints is not None else 'not given'}, levels "
                 f"{'given' if levels is not None else 'not given'}); pass photoelectrons_dims"
@@ -347,20 +347,20 @@ def make_dataset(
     else:
         e_dims = tuple(photoelectrons_dims)
         if e_dims[-2:] != _PIXEL_DIMS or len(set(e_dims)) != len(e_dims):
-            raise InputError(f"photoelectrons_dims must end in ('row', 'col'); got {e_dims}")
+            raise ValueError(f"photoelectrons_dims must end in ('row', 'col'); got {e_dims}")
         unknown = [d for d in e_dims[:-2] if d not in sizes]
         if unknown:
-            raise InputError(
+            raise ValueError(
                 f"photoelectrons_dims names {unknown}, which need the matching "
                 "setpoints/levels argument"
             )
     if len(e_dims) != E.ndim:
-        raise InputError(f"photoelectrons has shape {E.shape} but dims {e_dims}")
+        raise ValueError(f"photoelectrons has shape {E.shape} but dims {e_dims}")
     R, C = E.shape[-2:]
     sizes.update(row=R, col=C)
     for d, n in zip(e_dims, E.shape):
         if sizes[d] != n:
-            raise InputError(
+            raise ValueError(
                 f"photoelectrons has {n} entries along {d!r} but there are {sizes[d]} {d}s"
             )
     pix = (R, C)
@@ -393,9 +393,9 @@ def make_dataset(
 
     if em_gain is not None or em_gain_se is not None:
         if em_gain is None or em_gain_se is None:
-            raise InputError("em_gain and em_gain_se must be given together")
+            raise ValueError("em_gain and em_gain_se must be given together")
         if setpoints is None:
-            raise InputError("em_gain needs setpoints (the setpoint coordinate)")
+            raise ValueError("em_gain needs setpoints (the setpoint coordinate)")
         g_dims = ("setpoint",) + _PIXEL_DIMS
         g_shape = (sizes["setpoint"],) + pix
         g = _float_array("em_gain", em_gain, g_shape, g_dims)
@@ -404,7 +404,7 @@ def make_dataset(
         if np.any(one):
             g1, s1 = g[one], g_se[one]
             if not np.all(np.isnan(g1) | (g1 == 1.0)) or not np.all(np.isnan(s1) | (s1 == 0.0)):
-                raise InputError(
+                raise ValueError(
                     "em_gain at set-point 1 must be 1 with standard error 0 (no multiplication)"
                 )
         put("em_gain", g_dims, g)
@@ -422,12 +422,12 @@ def make_dataset(
     conv = np.asarray(converged)
     if conv.dtype != bool:
         if conv.dtype.kind not in "iuf" or not np.all(np.isin(conv, (0, 1))):
-            raise InputError("converged must be boolean (or 0/1)")
+            raise ValueError("converged must be boolean (or 0/1)")
         conv = conv.astype(bool)
     if conv.ndim == 0:
         conv = np.full(pix, bool(conv))
     if conv.shape != pix:
-        raise InputError(
+        raise ValueError(
             f"converged has shape {conv.shape}; expected {pix} for dims ('row', 'col')"
         )
     put("converged", _PIXEL_DIMS, conv)
@@ -437,20 +437,20 @@ def make_dataset(
     }
     for name, spec in (extra or {}).items():
         if name in reserved:
-            raise InputError(
+            raise ValueError(
                 f"extra variable {name!r} clashes with a standard variable or coordinate"
             )
         if not isinstance(spec, tuple) or len(spec) not in (3, 4):
-            raise InputError(f"extra[{name!r}] must be (dims, array, units[, long_name])")
+            raise ValueError(f"extra[{name!r}] must be (dims, array, units[, long_name])")
         dims = (spec[0],) if isinstance(spec[0], str) else tuple(spec[0])
         arr, units = np.asarray(spec[1]), spec[2]
         if not isinstance(units, str):
-            raise InputError(f"extra[{name!r}]: units must be a string")
+            raise ValueError(f"extra[{name!r}]: units must be a string")
         if arr.ndim != len(dims):
-            raise InputError(f"extra[{name!r}] has shape {arr.shape} but dims {dims}")
+            raise ValueError(f"extra[{name!r}] has shape {arr.shape} but dims {dims}")
         for d, n in zip(dims, arr.shape):
             if d in sizes and sizes[d] != n:
-                raise InputError(
+                raise ValueError(
                     f"extra[{name!r}] has {n} entries along {d!r}; expected {sizes[d]}"
                 )
         if len(spec) == 4:
@@ -473,7 +473,7 @@ def make_dataset(
     }
     for key, value in (attrs or {}).items():
         if key in _RESERVED_ATTRS:
-            raise InputError(f"attribute {key!r} is set by emccdcal and cannot be replaced")
+            raise ValueError(f"attribute {key!r} is set by emccdcal and cannot be replaced")
         ds_attrs[key] = _attr_value(key, value)
 
     r0, c0 = (int(v) for v in origin)
