@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tifffile
-import xarray as xr
 from camera_files import write_spe
 from test_export import OFFSET, PHI, SHAPE, SIGMA, true_result
 
@@ -223,14 +222,13 @@ def test_gain_curve_refuses_two_cameras_and_a_result_given_twice(tmp_path, capsy
 def test_a_flipped_exponent_bit_is_found(tmp_path):
     res = true_result(tmp_path / "r")
     data = bytearray(res.read_bytes())
-    needle = np.float64(GAIN100 := 90.06).tobytes()
+    needle = np.float64(90.06).tobytes()  # the gain at 100x
     at = data.find(needle)
     assert at > 0
     data[at + 7] ^= 0x04  # an exponent bit of the gain of one pixel at 100x
     res.write_bytes(bytes(data))
     with pytest.raises(InputError, match="damaged"):
         result.load(res)
-    assert GAIN100
 
 
 @pytest.mark.parametrize("name,value", [("em_gain", -5.0), ("em_gain", np.inf),
@@ -500,3 +498,22 @@ def test_a_result_emccdcal_makes_always_loads(tmp_path):
     assert int(made.converged.values.sum()) == made.converged.size - 1
     result.save(made, tmp_path / "made")
     assert not result.load(tmp_path / "made").converged.values[1, 1]
+
+
+def test_saving_a_result_leaves_other_files_of_its_folder(tmp_path):
+    res = true_result(tmp_path / "r")
+    (tmp_path / "r" / "report.html").write_text("a report made by hand")
+    result.save(result.load(res), tmp_path / "r")  # what cots and posterior do
+    assert (tmp_path / "r" / "report.html").read_text() == "a report made by hand"
+
+
+def test_a_store_that_gains_a_foreign_file_during_the_run_is_kept(tmp_path):
+    store = tmp_path / "s.zarr"
+    with Output(store, kind="store") as out:
+        (out.store() / "a").write_text("1")
+    with pytest.raises(OutputError, match="did not write"):
+        with Output(store, kind="store", overwrite=True) as out:
+            (out.store() / "a").write_text("2")
+            (store / "mine.txt").write_text("keep")  # put there while the run goes on
+    assert (store / "mine.txt").read_text() == "keep" and (store / "a").read_text() == "1"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.zarr"]

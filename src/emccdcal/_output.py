@@ -189,9 +189,11 @@ def _is_our_store(folder: Path) -> bool:
 
 
 def _remove_ours(path: Path) -> None:
-    """Remove a temporary file or store of this module (never anything else)."""
+    """Remove a temporary file, or a temporary store (``.partial``, ``.old``) of this
+    module; a directory of any other name is left alone."""
     if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path, ignore_errors=True)
+        if re.search(r"\.[0-9a-f]{12}\.(partial|old)$", path.name):
+            shutil.rmtree(path, ignore_errors=True)
     else:
         path.unlink(missing_ok=True)
 
@@ -509,6 +511,9 @@ class Output:
             files = sorted(_files_below(self._new_store) | {STORE_MARKER})
             (self._new_store / STORE_MARKER).write_text(json.dumps({"files": files}))
             if self.path.is_dir() and not self.path.is_symlink():
+                if not _is_our_store(self.path):  # something was put there meanwhile
+                    raise OutputError(f"{self._what}: files that emccdcal did not write "
+                                      "appeared in it during the run; it is left as it is")
                 self._old_store = _temporary(self.path, "old")
                 os.replace(self.path, self._old_store)
             elif self.path.exists() or self.path.is_symlink():
@@ -552,16 +557,18 @@ def write_netcdf(ds: xarray.Dataset, path) -> None:
         body.unlink(missing_ok=True)
 
 
-def verify_checksum(path, what: str = "result") -> None:
+def verify_checksum(path, what: str = "result") -> str:
     """Raise :class:`~emccdcal.errors.InputError` unless ``path`` begins with the block
-    of :func:`write_netcdf` and its bytes match the SHA-256 written there."""
+    of :func:`write_netcdf` and its bytes match the SHA-256 written there. Returns the
+    SHA-256 of the whole file (as :func:`file_sha256`, from the same one read)."""
     p = Path(path)
     try:
         with open(p, "rb") as f:
             head = f.read(CHECKSUM_BLOCK)
-            digest = hashlib.sha256()
+            whole, digest = hashlib.sha256(head), hashlib.sha256()
             for block in iter(lambda: f.read(1 << 20), b""):
                 digest.update(block)
+                whole.update(block)
     except OSError as exc:
         raise InputError(f"{p}: cannot be read ({_reason(exc)})") from None
     recorded = head[len(_MAGIC):len(_MAGIC) + 64]
@@ -572,6 +579,7 @@ def verify_checksum(path, what: str = "result") -> None:
     if recorded != digest.hexdigest().encode():
         raise InputError(f"{p}: damaged: its bytes do not match the checksum it was written "
                          f"with; make the {what} again or restore it from a copy")
+    return whole.hexdigest()
 
 
 @contextlib.contextmanager
@@ -591,12 +599,13 @@ def _quiet_unraisable():
 
 def read_netcdf(path, *, what: str = "result") -> xarray.Dataset:
     """A NetCDF file written by :func:`write_netcdf`: its checksum verified
-    (:func:`verify_checksum`), then loaded; damage is one
-    :class:`~emccdcal.errors.InputError` naming the file."""
+    (:func:`verify_checksum`), then loaded, the whole file's SHA-256 in
+    ``ds.encoding["sha256"]``; damage is one :class:`~emccdcal.errors.InputError` naming
+    the file."""
     import xarray as xr
 
     p = Path(path)
-    verify_checksum(p, what)
+    sha256 = verify_checksum(p, what)
     error = None
     with _quiet_unraisable():  # until the failed reader is collected (after the except)
         try:
@@ -607,6 +616,7 @@ def read_netcdf(path, *, what: str = "result") -> xarray.Dataset:
             error = f"{exc.__class__.__name__}: {' '.join(str(exc).split())}"
     if error is not None:
         raise InputError(f"{p}: not a readable NetCDF file ({error})")
+    ds.encoding["sha256"] = sha256
     return ds
 
 

@@ -531,7 +531,7 @@ def calibrate(
                                      workers, checks, map_errors, intervals, em_model, stages),
         )
         if out is not None:
-            result.save(ds, out, seconds=ds.attrs["seconds"])
+            result.save(ds, out, seconds=ds.attrs["seconds"], stale=RESULT_FILES)
             remove_run(out)
     return ds
 

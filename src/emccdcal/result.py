@@ -619,14 +619,13 @@ def run_recorded(build, out=None) -> xr.Dataset:
     return ds
 
 
-def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None) -> dict[str, Path]:
+def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None,
+         stale=()) -> dict[str, Path]:
     """Write ``calibration.nc`` and ``summary.json`` into ``out_dir`` as one set.
 
-    Both are written to temporary files in ``out_dir`` first; only then is the earlier
-    set (with any ``report.html``) removed and the new files renamed into place
-    (:func:`emccdcal.runstore.publish`), so a reader never sees a half-written file, an
-    interrupted write leaves the earlier result intact, and a new ``calibration.nc``
-    never stands beside an old ``summary.json``. The NetCDF file is NetCDF4/HDF5 through
+    Both are written to temporary files in ``out_dir`` first; only then is each renamed
+    over its earlier version (:func:`emccdcal.runstore.publish`), so a reader never sees
+    a half-written file and an interrupted write leaves the earlier result intact. The NetCDF file is NetCDF4/HDF5 through
     xarray's ``h5netcdf`` engine.
 
     Parameters
@@ -637,6 +636,9 @@ def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None) -> dict[str, 
         Output directory; created (with parents) if missing.
     seconds : float, optional
         Wall time of the calibration (s), for the summary.
+    stale : sequence of str
+        Files of an earlier result in ``out_dir`` to remove once the new one is in place
+        (``calibrate`` names its ``report.html``).
 
     Returns
     -------
@@ -655,7 +657,7 @@ def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None) -> dict[str, 
     written = publish(out_dir, {
         CALIBRATION_FILE: lambda p: write_netcdf(ds, p),
         SUMMARY_FILE: lambda p: Path(p).write_text(text, encoding="utf-8"),
-    })
+    }, stale=stale)
     return {"calibration": written[CALIBRATION_FILE], "summary": written[SUMMARY_FILE]}
 
 
@@ -1047,7 +1049,6 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
         giving the same set-point, two members that both measured φ, or members fitted
         with different register models. The message names the file.
     """
-    from ._output import file_sha256
     from .model.noise import EMModel
 
     parts = _members(spec)
@@ -1155,4 +1156,4 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
         origin=origins.pop() if len(origins) == 1 else None,
         binning=binnings.pop() if binnings else None,
         created=max(str(ds.attrs.get("created", "")) for _, ds in loaded),
-        sha256=tuple(file_sha256(f) for f, _ in loaded))
+        sha256=tuple(ds.encoding["sha256"] for _, ds in loaded))

@@ -14,7 +14,7 @@ run killed at any point loses only the tiles in flight:
   new run is never mixed into an old one.
 
 The final files (``calibration.nc``, ``summary.json`` ...) are published together
-(:meth:`RunStore.publish`): all are written to temporary files first, then each is
+(:func:`publish`, then :func:`remove_run`): all are written to temporary files first, then each is
 renamed over its old version, and an old file the new set does not have is removed, so
 at no moment is a result missing and a killed run leaves the old set. The run directory
 goes last. Whether the directory can be written, and that no other run is writing it,
@@ -144,34 +144,17 @@ class RunStore:
         with np.load(self.run_dir / self._tile_name(key), allow_pickle=False) as f:
             return {k: f[k] for k in f.files}
 
-    # ---- the end -------------------------------------------------------------------------
-    def publish(self, writers: dict) -> dict:
-        """Write the final files as one set, then forget the run.
 
-        Parameters
-        ----------
-        writers : dict of str to callable
-            File name in the output directory → ``write(tmp_path)``.
-
-        Returns
-        -------
-        dict of str to Path
-            The files written.
-        """
-        written = publish(self.out, writers)
-        remove_run(self.out)
-        return written
-
-
-def publish(out, writers: dict) -> dict:
+def publish(out, writers: dict, *, stale=()) -> dict:
     """Write files into ``out`` as one set: every new file is complete before any is
-    renamed over its old version; then the old files of the set (:data:`RESULT_FILES`)
-    that the new set lacks are removed, so the directory never mixes two runs."""
+    renamed over its old version; then the files named in ``stale`` that the new set
+    lacks (an earlier run's of the same set, which the caller's output policy let it
+    replace) are removed, so the directory never mixes two runs."""
     out = Path(out)
     with staged(out):
         for name, write in writers.items():
             atomic_write(out / name, write)
-    for name in RESULT_FILES:
+    for name in stale:
         if name not in writers:
             (out / name).unlink(missing_ok=True)
     return {name: out / name for name in writers}

@@ -87,7 +87,8 @@ def _load_input(item, i):
     ds = result.load(item)
     p = Path(item)
     p = p / result.CALIBRATION_FILE if p.is_dir() else p
-    return _Input(ds, p.resolve(), file_sha256(p), f"result {i + 1} ({ds.attrs['method']})")
+    return _Input(ds, p.resolve(), ds.encoding["sha256"],
+                  f"result {i + 1} ({ds.attrs['method']})")
 
 
 def _warnings_of(ds):
