@@ -147,3 +147,22 @@ def test_every_reader_registers_itself_once():
     for path in SRC.rglob("*.py"):
         if path.name not in {"stacks.py", *(f"{m}.py" for m in stacks._READER_MODULES)}:
             assert '".spe"' not in path.read_text(), path
+
+
+def test_nothing_outside_model_asks_which_register_it_has():
+    """No comparison with a register model's name and no ``.cascade`` outside model/:
+    code asks the model's ``register`` for what it needs (docs/architecture.md)."""
+    from emccdcal.model.noise import EM_MODELS
+
+    found = []
+    for path in SRC.rglob("*.py"):
+        if path.relative_to(SRC).parts[0] == "model":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Compare):
+                consts = [c for c in [node.left, *node.comparators] if isinstance(c, ast.Constant)]
+                if any(c.value in EM_MODELS for c in consts):
+                    found.append(f"{path.relative_to(SRC)}:{node.lineno}")
+            if isinstance(node, ast.Attribute) and node.attr == "cascade":
+                found.append(f"{path.relative_to(SRC)}:{node.lineno}")
+    assert not found, f"branches on the register model: {found}"

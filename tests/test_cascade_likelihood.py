@@ -125,7 +125,10 @@ def test_logpmf_at_high_gain_matches_high_precision_quadrature(E, g, phi, sigma,
             v = v * (1 + p + p * v)
         return s * S0 + mp.mpf(sigma) ** 2 * s**2 / 2 + E * v
 
-    casc = noise._Cascade(N, np.array([g]), 0.0)
+    from emccdcal.model import _engine
+
+    rows = noise.EMModel("cascade", N).register.rows(np.array([E]), np.array([g]),
+                                                     np.array([phi]))
     one = lambda x: np.array([float(x)])  # noqa: E731
     # counts at about 1, 1e-6 and 1e-9 of the peak, above the mean
     mean = S0 + E * g / phi
@@ -135,8 +138,8 @@ def test_logpmf_at_high_gain_matches_high_precision_quadrature(E, g, phi, sigma,
     peak = lp.max()
     chosen = [grid[np.argmin(np.abs(lp - (peak + level)))] for level in (0.0, -13.8, -20.7)]
     for k in chosen:
-        t = noise._cascade_saddlepoint(one(k), one(E), one(1 / phi), one(S0), one(sigma), casc)
-        d2K = noise._cascade_real(t, one(E), one(1 / phi), one(S0), one(sigma), casc)[2][0]
+        t = rows.saddlepoint(one(k), one(S0), one(sigma))
+        d2K = _engine.real_cgf(rows, t, one(S0), one(sigma))[2][0]
         t = mp.mpf(float(t[0]))
         # the integrand's scales: the tilted distribution's SD and the read noise's, whose
         # Gaussian alone bounds the integrand where the electrons' part no longer falls
@@ -320,7 +323,7 @@ def test_manifest_selects_the_model_and_the_caller_overrides_it(cascade_series, 
     assert ds.attrs["em_model"] == "gamma" and "register_stages" not in ds.attrs
     bad = manifest.with_name("manifest-bad.toml")
     bad.write_text("register_stages = 604\n" + text)
-    with pytest.raises(ManifestError, match="register_stages goes with"):
+    with pytest.raises(ManifestError, match="register_stages: stages are the cascade model"):
         calibrate(bad, "gs")
     bad.write_text('em_model = "binomial"\n' + text)
     with pytest.raises(ManifestError, match="em_model must be one of"):
@@ -357,7 +360,7 @@ def test_engine_gradient_and_observed_information_under_the_cascade():
 
 
 def test_mv_gain_with_the_exact_excess_noise_factor():
-    from emccdcal.fit.mv import cascade_gain, fit_mv_gain
+    from emccdcal.fit.mv import fit_mv_gain
 
     phi, s0, sigma, E, N = 3.859, 100.0, 15.5, 370.0, 536
     g = np.array([1.0, 4.78, 22.95, 261.6])
@@ -371,7 +374,7 @@ def test_mv_gain_with_the_exact_excess_noise_factor():
     np.testing.assert_allclose(exact.photoelectrons[:, 0], E, rtol=1e-10)
     # F² = 2 reads the 5x gain F²/2 − 1 low
     assert gamma.em_gain[1, 0] / g[1] - 1 == pytest.approx(F2[1] / 2 - 1, rel=1e-9)
-    assert np.isnan(cascade_gain(0.5, N)[0])
+    assert np.isnan(cascade.gain_from_gain_f2(0.5, N)[0])
 
 
 @pytest.mark.slow

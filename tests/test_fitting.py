@@ -86,7 +86,8 @@ def test_map_cross_terms_are_outer_products_of_the_scores(case):
     log_e, log_scale = _log_params(case, acq.n.size)
     cross = engine._acquisition_terms(acq, [log_e, log_scale], 2, map_cross=True)[4]
     E, scale = np.exp(log_e), np.exp(log_scale)
-    model = engine._ModelAtData(acq, E, scale, derivs=True)
+    rows = engine._register(acq).rows_at((E, scale), acq.poisson_normal)
+    model = engine._ModelAtData(acq, rows, derivs=True)
     w = np.where(model.low, 0.0, acq.counts / model.pv**2)
     factor = np.stack([E, scale], axis=1)
     for m, field in enumerate(("offset", "read_noise")):
@@ -95,7 +96,7 @@ def test_map_cross_terms_are_outer_products_of_the_scores(case):
         for sign in (1, -1):
             shifted = engine.AcquisitionBlock(**{**acq.__dict__,
                                                   field: getattr(acq, field) + sign * h})
-            pv.append(engine._ModelAtData(shifted, E, scale).pv)
+            pv.append(engine._ModelAtData(shifted, rows).pv)
         dp = (pv[0] - pv[1]) / (2 * h)
         for i, name in enumerate(("photoelectrons", "scale")):
             ref = np.sum(w * model.scores[name] * dp, axis=1) * factor[:, i]

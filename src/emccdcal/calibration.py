@@ -152,11 +152,8 @@ def run_tile(job: TileJob, progress=None) -> dict:
         :func:`emccdcal.data.quality.band_statistics` of acquisition ``a``.
     """
     if job.fft_threads is not None:  # one task per CPU already (a Dask worker)
-        previous, noise.FFT_WORKERS = noise.FFT_WORKERS, job.fft_threads
-        try:
+        with noise.fft_threads(job.fft_threads):
             return run_tile(replace(job, fft_threads=None), progress)
-        finally:
-            noise.FFT_WORKERS = previous
     p0, p1 = job.pixels
     r0, r1 = p0 // job.cols, -(-p1 // job.cols)  # the rows that hold the tile's pixels
 
@@ -244,12 +241,13 @@ def _fit_pixels(job, frames, usable, progress=None):
         series = layouts.Series(blocks, setpoints, list(job.labels),
                                 None if job.e_per_adu is None else job.e_per_adu[idx])
         layout, x0 = layouts.build_layout(method, series, job.options)
-        if job.em_model.cascade:
-            # The gamma model's optimum is within a few per cent of the cascade's: from
-            # it the costlier exact model needs fewer iterations. It is only a start:
-            # found roughly (0.01 nats), without its covariance.
-            gamma = [replace(b, em_model=noise.EMModel()) for b in blocks]
-            x0 = engine.fit(layout, gamma, x0, tol=1e-2, covariance=False).x
+        cheaper = job.em_model.register.approximation
+        if cheaper is not None:
+            # A costly register starts from a cheaper model's optimum (the cascade from
+            # the gamma model's, within a few per cent): fewer costly iterations. It is
+            # only a start: found roughly (0.01 nats), without its covariance.
+            rough = [replace(b, em_model=cheaper) for b in blocks]
+            x0 = engine.fit(layout, rough, x0, tol=1e-2, covariance=False).x
         fit = engine.fit(layout, blocks, x0)
         cov = fit.cov
         if job.e_per_adu_se is not None:  # φ's own error moves every E and g together
@@ -810,11 +808,11 @@ def _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, opt
     keys = _labels(used) if kind == "level" else [result.format_setpoint(s) + "x" for s in setpoints]
     multiplied = [k for k, sp in zip(keys, setpoints) if sp != 1]
     for w in gof.misfit_warnings(dict(zip(keys, gof_p.T)), kind=kind):
-        if not model.cascade and any(w.startswith(f"{kind} {k}:") for k in multiplied):
-            # The gamma model's excess noise is 2; an exact register's is below it,
-            # most at low gain: the commonest cause of a misfit there.
-            w += ("; the gamma model of the EM register misfits an exact register's low "
-                  "gains: try the cascade model (--em-model cascade, em_model = \"cascade\")")
+        hint = model.register.misfit_hint
+        if hint and any(w.startswith(f"{kind} {k}:") for k in multiplied):
+            # An approximate register's commonest misfit (the gamma model's excess noise
+            # is 2, an exact register's below it, most at low gain).
+            w += "; " + hint
         warnings.warn(w, stacklevel=3)
     grid = lambda a: a.T.reshape((-1, rows, cols)) if a.ndim == 2 else a.reshape(rows, cols)  # noqa: E731
     labels = _labels(used)
@@ -957,10 +955,8 @@ def _mv_dataset(method, manifest, used, arrays, phi_map, phi_se=None, model=None
 def format_summary(ds):
     """A short human-readable table of a calibration (median over converged pixels)."""
     ok = ds.converged.values
-    model = ds.attrs.get("em_model")
-    if model == "cascade":
-        model = f"cascade, {int(ds.attrs['register_stages'])} stages"
-    lines = [f"method {ds.attrs['method']}" + (f" ({model} register)" if model else "")
+    model = noise.EMModel.from_attrs(ds.attrs)
+    lines = [f"method {ds.attrs['method']}" + (f" ({model.label} register)" if model else "")
              + f": {int(ok.sum())}/{ok.size} pixels converged, "
              f"{ds.attrs.get('seconds', float('nan')):.1f} s; medians over those"]
     if not ok.any():

@@ -17,7 +17,8 @@ _PAPER_GAINS = "1,4.78,22.95,90.06,261.6"
 
 def _camera_options(p: argparse.ArgumentParser, defaults: dict | None = None) -> None:
     """The fields of :class:`emccdcal.simulate.camera.Camera`, the seed and ``-q``."""
-    from ..simulate.camera import _MULTIPLICATIONS, Camera
+    from ..model.noise import EM_MODELS
+    from ..simulate.camera import Camera
 
     d = {f.name: f.default for f in dataclasses.fields(Camera)} | (defaults or {})
     cam = p.add_argument_group("camera")
@@ -42,7 +43,7 @@ def _camera_options(p: argparse.ArgumentParser, defaults: dict | None = None) ->
     cam.add_argument("--read-noise", type=float, default=d["read_noise"],
                      help="sigma of the Gaussian read-out noise before rounding, ADU "
                      "(default %(default)s)")
-    cam.add_argument("--multiplication", choices=_MULTIPLICATIONS, default=d["multiplication"],
+    cam.add_argument("--multiplication", choices=EM_MODELS, default=d["multiplication"],
                      help="EM register model: gamma (the paper's) or the exact Bernoulli cascade "
                      "(default %(default)s)")
     cam.add_argument("--stages", type=int, default=d["stages"],

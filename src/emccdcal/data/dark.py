@@ -244,14 +244,15 @@ def _robust_start(h):
 def _model(h, x, theta, derivs):
     """The noise model at the histogram values: E = event rate, scale θ, S0, σ."""
     rate, S0, sigma = np.exp(x[:, 0]), x[:, 1], np.exp(x[:, 2])
-    pn = np.zeros(rate.shape, dtype=bool)
-    lo, hi = noise._extent(rate, theta, S0, sigma, pn, width=8.0)
+    # Events are the gamma register's multiplied electrons (E the rate, θ their scale).
+    rows = noise.EMModel().register.rows_at((rate, theta), False)
+    lo, hi = noise.window_extent(rows, S0, sigma, width=8.0)
     first, last = h.values[:, 0], h.values.max(axis=1)
     start = np.minimum(np.floor(lo).astype(np.int64), first)
     stop = np.maximum(np.ceil(hi).astype(np.int64), last)
-    n = noise._fast_len(int((stop - start).max()) + 1)
+    n = noise.fast_len(int((stop - start).max()) + 1)
     names = ("photoelectrons", "offset", "read_noise")
-    p, d1, _ = noise._window(rate, theta, S0 - start, sigma, pn, n, derivs=derivs, names=names)
+    p, d1, _ = noise.window(rows, S0 - start, sigma, n, derivs=derivs, names=names)
     flat = h.values - start[:, None] + (np.arange(rate.size) * n)[:, None]
     pv = p.ravel()[flat]
     floor = 1e-14 * p.max(axis=1, keepdims=True)

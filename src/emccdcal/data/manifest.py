@@ -28,7 +28,7 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 from .._util import one_line
-from ..errors import InputError, ManifestError, ReadNoiseGrowthWarning
+from ..errors import InputError, ManifestError, OptionError, ReadNoiseGrowthWarning
 from .dark import check_read_noise_growth, fit_dark, maps_from_dark
 from .stacks import (
     check_counts,
@@ -578,7 +578,7 @@ def read_manifest(path) -> Manifest:
 
 def _em_model(r, name, stages):
     """The manifest's ``em_model`` and ``register_stages`` as a noise.EMModel (or None)."""
-    from ..model.noise import EM_MODELS, EMModel
+    from ..model.noise import EM_MODELS, as_em_model
 
     if name is None and stages is None:
         return None
@@ -589,10 +589,10 @@ def _em_model(r, name, stages):
         if not isinstance(stages, int) or isinstance(stages, bool) or not 1 <= stages <= 100000:
             raise r.error(f"register_stages must be a whole number of stages (e.g. 536 or "
                           f"604), got {stages!r}")
-        if name != "cascade":
-            raise r.error("register_stages goes with em_model = \"cascade\" (the gamma "
-                          "model has no stages)")
-    return EMModel(name or "gamma", stages) if stages is not None else EMModel(name)
+    try:
+        return as_em_model(name or "gamma", stages)
+    except OptionError as exc:  # stages given to a model without them
+        raise r.error(f"register_stages: {exc}") from None
 
 
 def _refuse_copies(r: _Reader, specs: list) -> None:

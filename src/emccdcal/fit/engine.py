@@ -189,15 +189,10 @@ class _ModelAtData:
         Pixels whose parameters are hopelessly far from their data.
     """
 
-    def __init__(self, acq, E, scale, gain=None, *, derivs=False, second=False,
-                 names=("photoelectrons", "scale")):
-        pn = np.full(E.shape, acq.poisson_normal)
-        # The exact register: ``scale`` is 1/φ and the gain enters through the register.
-        cascade = None if gain is None else noise._Cascade(acq.em_model.stages, gain, 0.0)
+    def __init__(self, acq, rows, *, derivs=False, second=False, names=None):
         # The model's mass lies within [lo, hi] (eight SDs and the tails, outside of
         # which the pmf is below ~1e-15 of its peak).
-        lo, hi = noise._extent(E, scale, acq.offset, acq.read_noise, pn, width=8.0,
-                               cascade=cascade)
+        lo, hi = noise.window_extent(rows, acq.offset, acq.read_noise, width=8.0)
         lo, hi = np.floor(lo).astype(np.int64), np.ceil(hi).astype(np.int64)
         first, last = acq.values[:, 0], acq.values.max(axis=1)
         # The FFT gives the pmf wrapped with period n: at a datum k, p(k) + Σ p(k ± jn).
@@ -215,12 +210,11 @@ class _ModelAtData:
                     | (stop - start > 32 * span + 256 * np.ceil(acq.read_noise) + 512))
         start = np.where(hopeless, limit, start)
         stop = np.where(hopeless, last + 8 * span + 64, stop)
-        n = noise._fast_len(int((stop - start).max()) + 1)
-        p, d1, d2 = noise._window(
-            E, scale, acq.offset - start, acq.read_noise, pn, n,
-            derivs=derivs, second=second, names=names, cascade=cascade,
-        )
-        P = E.shape[0]
+        n = noise.fast_len(int((stop - start).max()) + 1)
+        names = rows.names if names is None else names
+        p, d1, d2 = noise.window(rows, acq.offset - start, acq.read_noise, n,
+                                 derivs=derivs, second=second, names=names)
+        P = acq.values.shape[0]
         # One flat gather per window (faster than take_along_axis, which rebuilds indices).
         self.flat = acq.values - start[:, None] + (np.arange(P) * n)[:, None]
         pv = p.ravel()[self.flat]
@@ -258,11 +252,10 @@ def _acquisition_terms(acq, coords, level, map_cross=False):
     """
     values = [np.exp(c) for c in coords]
     U = len(values)
-    model_names = ("photoelectrons", "scale", "em_gain")[:U]
+    rows = _register(acq).rows_at(values, acq.poisson_normal)
+    model_names = rows.names
     names = model_names + (("offset", "read_noise") if map_cross else ())
-    gain = values[2] if U == 3 else None
-    model = _ModelAtData(acq, values[0], values[1], gain, derivs=level >= 1,
-                         second=level >= 2, names=names)
+    model = _ModelAtData(acq, rows, derivs=level >= 1, second=level >= 2, names=names)
     pv, low = model.pv, model.low
     loglik = np.where(model.hopeless, -np.inf, np.sum(acq.counts * np.log(pv), axis=1))
     n_floored = np.sum(acq.counts * low, axis=1).astype(np.int64)
@@ -298,21 +291,16 @@ def _acquisition_terms(acq, coords, level, map_cross=False):
     return loglik, grad, info, n_floored, cross
 
 
-#: d(model coordinates)/d(ln E, ln g, ln φ) of each model (rows: the coordinates).
-_GAMMA_COORDS = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -1.0]])      # ln E, ln(g/φ)
-_PN_COORDS = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])         # ln E, ln(1/φ)
-_CASCADE_COORDS = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+def _register(acq):
+    """The register model of an acquisition's rows (no multiplication at 1×)."""
+    return acq.em_model.register.register_for(acq.poisson_normal)
 
 
 def _native_to_model(logs, acq):
     """(ln E, ln g, ln φ) (P, 3) → the model's coordinates (U, P) and their matrix
-    d coords / d(ln E, ln g, ln φ) (U, 3): linear for every model."""
-    if acq.poisson_normal:
-        D = _PN_COORDS
-    elif acq.em_model.cascade:
-        D = _CASCADE_COORDS
-    else:
-        D = _GAMMA_COORDS
+    d coords / d(ln E, ln g, ln φ) (U, 3): linear for every model (the register's
+    ``coordinates``)."""
+    D = _register(acq).coordinates(acq.poisson_normal)
     return D @ logs.T, D
 
 
@@ -402,9 +390,9 @@ def value_scores(layout, blocks, x):
     for a, acq in enumerate(blocks):
         coords, D = _native_to_model(logs[:, a], acq)
         values = [np.exp(c) for c in coords]
-        names = ("photoelectrons", "scale", "em_gain")[:len(values)]
-        model = _ModelAtData(acq, values[0], values[1], values[2] if len(values) == 3 else None,
-                             derivs=True, names=names)
+        rows = _register(acq).rows_at(values, acq.poisson_normal)
+        names = rows.names
+        model = _ModelAtData(acq, rows, derivs=True, names=names)
         d1, pv = model.scores, model.pv
         u = np.stack([d1[nm] * v[:, None] for nm, v in zip(names, values)], -1)
         u = np.where(model.low[..., None], 0.0, u / pv[..., None])  # (P, K, U) by coords

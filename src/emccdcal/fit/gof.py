@@ -4,7 +4,7 @@ A binned Pearson χ² test of each pixel's histogram against the fitted model pm
 :mod:`emccdcal.model.noise`:
 
 1. **Model.** The pmf of the pixel's counts is evaluated on one integer window per pixel
-   with the batched FFT evaluator ``noise._window`` (all pixels of a block at once),
+   with the batched FFT evaluator ``noise.window`` (all pixels of a block at once),
    normalised over the window, and summed into a CDF.
 2. **Bins.** ``K = min(max_bins, ⌊n / frames_per_bin⌋)`` (50 and 10 by default) bins
    that are equiprobable under the fitted model: bin edge ``j`` is the first integer
@@ -158,23 +158,19 @@ def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, re
     chi2 = np.full(P, np.nan)
     dof = np.full(P, np.nan)
     idx = np.flatnonzero(ok)
-    if idx.size:
-        pn = g[idx] == 1.0
-        # The cascade's rows: all multiplied (the Poisson-normal rows are the gamma's).
-        exact = model.cascade and not pn.any()
-        cascade = noise._Cascade(model.stages, g[idx], 0.0) if exact else None
-        if model.cascade and pn.any() and not pn.all():
-            raise OptionError("gof_pvalues: give the cascade model's multiplied and 1x "
-                              "pixels in separate calls")
-        scale = np.where(pn | exact, 1.0, g[idx]) / phi[idx]
-        lo, hi = noise._extent(E[idx], scale, S0[idx], sigma[idx], pn, width=8.0,
-                               cascade=cascade)
+    # One pass per register of the model (the cascade's 1x rows are Poisson–normal).
+    for register, part in noise.register_groups(g[idx], model):
+        sub = idx[part]
+        if sub.size == 0:
+            continue
+        rows = register.rows(E[sub], g[sub], phi[sub], np.zeros(sub.size))
+        lo, hi = noise.window_extent(rows, S0[sub], sigma[sub], width=8.0)
         start = np.floor(lo).astype(np.int64)
         length = np.ceil(hi).astype(np.int64) - start + 1
         # Blocks of pixels with similar windows, bounded memory.
-        order = idx[np.argsort(length, kind="stable")]
+        order = sub[np.argsort(length, kind="stable")]
         pos = np.empty(P, dtype=np.int64)
-        pos[idx] = np.arange(idx.size)
+        pos[sub] = np.arange(sub.size)
         i0 = 0
         while i0 < order.size:
             width = int(length[pos[order[min(order.size - 1, i0)]]])
@@ -186,9 +182,8 @@ def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, re
             sel = order[i0:i1]
             r = pos[sel]
             c, d = _block_chi2(
-                values[sel], counts[sel], n[sel], K[sel], E[sel], scale[r], S0[sel],
-                sigma[sel], pn[r], start[r], length[r], float(n_fitted_params),
-                float(min_expected), None if cascade is None else cascade.take(r),
+                values[sel], counts[sel], n[sel], K[sel], rows.take(r), S0[sel], sigma[sel],
+                start[r], length[r], float(n_fitted_params), float(min_expected),
             )
             chi2[sel], dof[sel] = c, d
             i0 = i1
@@ -200,12 +195,12 @@ def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, re
     return pvalue, chi2, dof
 
 
-def _block_chi2(values, counts, n, K, E, scale, S0, sigma, pn, start, length, s,
-                min_expected, cascade=None):
-    """χ² and dof of a block of pixels (all arrays restricted to the block)."""
+def _block_chi2(values, counts, n, K, rows, S0, sigma, start, length, s, min_expected):
+    """χ² and dof of a block of pixels (all arrays and the register's rows restricted
+    to the block)."""
     P = values.shape[0]
-    L = noise._fast_len(int(length.max()))
-    p = noise._window(E, scale, S0 - start, sigma, pn, L, cascade=cascade)[0]
+    L = noise.fast_len(int(length.max()))
+    p = noise.window(rows, S0 - start, sigma, L)[0]
     p = np.maximum(p, 0.0)  # FFT round-off (~1e-16 of the peak) can be slightly negative
     p /= p.sum(axis=1, keepdims=True)
     cdf = np.cumsum(p, axis=1)

@@ -90,7 +90,6 @@ __all__ = [
     "fit_mv_adu",
     "fieller_interval",
     "fit_mv_gain",
-    "cascade_gain",
     "mean_ratio_gains",
 ]
 
@@ -529,8 +528,9 @@ def fit_mv_gain(
         The register's excess-noise factor F²: 2 for the paper's gamma model (default),
         the exact ``F²(g, N)`` of a Bernoulli cascade of N stages for
         ``EMModel("cascade", N)``. The variance then grows as ``g·F²(g)/φ`` times the
-        mean, and g solves ``g·F²(g, N) = φβ`` (:func:`cascade_gain`); the F² = 2
-        estimate is low by F²/2 − 1 (−10 % at 5×).
+        mean, and g solves ``g·F²(g, N) = φβ``
+        (:func:`emccdcal.model.cascade.gain_from_gain_f2`); the F² = 2 estimate is low
+        by F²/2 − 1 (−10 % at 5×).
 
     Returns
     -------
@@ -613,14 +613,19 @@ def fit_mv_gain(
         E[rows], E_se[rows] = E_k, np.sqrt(var_E)
         chi2[k] = line.chi2
         dof[k] = rows.size - (2 if intercept else 1)
-        if em_model is not None and em_model.cascade:
+        if em_model is not None:
+            # g solves g·F²(g) = φβ under the register's excess-noise factor (the
+            # gamma model's F² = 2 above); E = ⟨S − S0⟩·φ/g moves with it.
             g_gamma = g[k].copy()
-            g[k], slope = cascade_gain(2.0 * g_gamma, em_model.stages)
+            solve = em_model.register.gain_from_gain_f2
+            g[k], slope = solve(2.0 * g_gamma)
             g_se[k] = g_se[k] * 2.0 / slope  # dg/d(φβ) = 1/(d(g F²)/dg)
-            g_lower[k] = cascade_gain(2.0 * g_lower[k], em_model.stages)[0]
-            g_upper[k] = cascade_gain(2.0 * g_upper[k], em_model.stages)[0]
-            # E = ⟨S − S0⟩·φ/g: the same mean over the exact gain
-            ratio = g_gamma / g[k]
+            g_lower[k] = solve(2.0 * g_lower[k])[0]
+            g_upper[k] = solve(2.0 * g_upper[k])[0]
+            # (where the gain is not estimable E keeps its photon-transfer interval)
+            same = (g[k] == g_gamma) | (np.isnan(g[k]) & np.isnan(g_gamma))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ratio = np.where(same, 1.0, g_gamma / g[k])
             E[rows], E_se[rows] = E[rows] * ratio, E_se[rows] * ratio
             E_lower[rows], E_upper[rows] = E_lower[rows] * ratio, E_upper[rows] * ratio
     valid = (
@@ -629,37 +634,6 @@ def fit_mv_gain(
     )
     return MVGainFit(setpoints, g, g_se, E, E_se, chi2, dof, valid,
                      g_lower, g_upper, E_lower, E_upper)
-
-
-def cascade_gain(gain_times_f2, stages):
-    """The gain g of a Bernoulli-cascade register of N stages with ``g·F²(g, N)`` given.
-
-    ``g·F² = 1 + 2(g − 1)·g^{−1/N}`` (:func:`emccdcal.model.cascade.excess_noise_factor`)
-    rises monotonically with g; it is solved by Newton's method from the gamma model's
-    ``g = y/2``. Returns g and the slope ``d(g F²)/dg`` there (for standard errors).
-    NaN in, NaN out; values below 1 (no multiplication) give NaN.
-
-    Examples
-    --------
-    >>> from emccdcal.model.cascade import excess_noise_factor
-    >>> g, _ = cascade_gain(5.0 * excess_noise_factor(5.0, 536), 536)
-    >>> round(float(g), 9)
-    5.0
-    """
-    y = np.asarray(gain_times_f2, dtype=float)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        g = np.where(y >= 1.0, np.maximum(y / 2.0, 1.0), np.nan)
-        for _ in range(50):
-            root = g ** (-1.0 / stages)
-            h = 1.0 + 2.0 * (g - 1.0) * root
-            slope = 2.0 * root * (1.0 - (g - 1.0) / (stages * g))
-            step = (h - y) / slope
-            g = np.maximum(g - step, 1.0)
-            if np.all(~np.isfinite(step) | (np.abs(step) <= 1e-13 * g)):
-                break
-        root = g ** (-1.0 / stages)
-        slope = 2.0 * root * (1.0 - (g - 1.0) / (stages * g))
-    return g, slope
 
 
 def mean_ratio_gains(mean, var, offset, n, setpoint) -> MeanRatioGains:

@@ -68,6 +68,7 @@ from ..errors import OptionError
 
 __all__ = [
     "excess_noise_factor",
+    "gain_from_gain_f2",
     "stage_probability",
     "mean_gain",
     "single_electron_variance",
@@ -270,6 +271,36 @@ def excess_noise_factor(em_gain, stages=DEFAULT_STAGES):
 # --------------------------------------------------------------------------------------
 # The register's transform, with derivatives: what the likelihood needs
 # --------------------------------------------------------------------------------------
+def gain_from_gain_f2(gain_times_f2, stages=DEFAULT_STAGES):
+    """The gain g of a Bernoulli-cascade register of N stages with ``g·F²(g, N)`` given.
+
+    ``g·F² = 1 + 2(g − 1)·g^{−1/N}`` (:func:`excess_noise_factor`)
+    rises monotonically with g; it is solved by Newton's method from the gamma model's
+    ``g = y/2``. Returns g and the slope ``d(g F²)/dg`` there (for standard errors).
+    NaN in, NaN out; values below 1 (no multiplication) give NaN.
+
+    Examples
+    --------
+    >>> g, _ = gain_from_gain_f2(5.0 * excess_noise_factor(5.0, 536), 536)
+    >>> round(float(g), 9)
+    5.0
+    """
+    y = np.asarray(gain_times_f2, dtype=float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        g = np.where(y >= 1.0, np.maximum(y / 2.0, 1.0), np.nan)
+        for _ in range(50):
+            root = g ** (-1.0 / stages)
+            h = 1.0 + 2.0 * (g - 1.0) * root
+            slope = 2.0 * root * (1.0 - (g - 1.0) / (stages * g))
+            step = (h - y) / slope
+            g = np.maximum(g - step, 1.0)
+            if np.all(~np.isfinite(step) | (np.abs(step) <= 1e-13 * g)):
+                break
+        root = g ** (-1.0 / stages)
+        slope = 2.0 * root * (1.0 - (g - 1.0) / (stages * g))
+    return g, slope
+
+
 def register_transform(u, em_gain, stages=DEFAULT_STAGES, *, order=1, cic=False):
     """``G_N(e^u) − 1`` of one input electron, and its derivatives by u and ln g.
 

@@ -39,16 +39,25 @@ above about 1e-7 of its peak; further out we evaluate the exponentially tilted
 distribution ``f(k)·e^{tk−K(t)}`` (characteristic function ``exp(K(t+iω) − K(t))``), whose
 peak sits where we need it, and undo the tilt in log space. Derivatives with respect to
 any parameter λ are one more inverse FFT each, of ``∂λK · exp(K)``.
+
+The window engine (:mod:`._engine`) does this for any register; each register model is
+one module supplying its part of K (:mod:`._gamma`: the gamma register and no
+multiplication; :mod:`._exact`: the exact cascade), reached through
+``EMModel(name).register`` (docs/architecture.md lists what a model supplies).
 """
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
 import numpy as np
 
 from .._util import check_number
 from ..errors import OptionError
+from . import _engine
+from ._engine import Spectrum, fast_len, window
+from ._engine import extent as window_extent
 from .cascade import DEFAULT_STAGES
 
 __all__ = [
@@ -65,16 +74,26 @@ __all__ = [
     "logpmf_rows",
     "LogpmfTable",
 ]
+# Also here, for the fits of fit/ and data/ (not the public API): the window engine's
+# ``window``, ``window_extent``, ``fast_len`` and ``Spectrum``, each model's
+# ``EMModel.register`` with its rows, and ``register_groups``.
+
+
+@contextlib.contextmanager
+def fft_threads(n):
+    """Run the window engine's FFTs on ``n`` threads inside the block (scipy.fft's
+    ``workers``; the default, -1, is every CPU). A process that already runs one task
+    per CPU (a Dask worker of a calibration) asks for 1."""
+    previous, _engine.FFT_WORKERS = _engine.FFT_WORKERS, n
+    try:
+        yield
+    finally:
+        _engine.FFT_WORKERS = previous
 
 
 # --------------------------------------------------------------------------------------
 # Parameter checking
 # --------------------------------------------------------------------------------------
-#: Threads of each FFT (scipy.fft's ``workers``; -1: every CPU). A process that already
-#: runs one task per CPU (a Dask worker of a calibration) sets it to 1.
-FFT_WORKERS = -1
-
-
 def _check_params(photoelectrons, em_gain, e_per_adu, offset, read_noise):
     return (
         check_number("photoelectrons", photoelectrons, minimum=0.0, scalar=False),
@@ -101,7 +120,7 @@ def _check_counts(counts):
 
 @dataclass(frozen=True)
 class EMModel:
-    """The model of the EM register.
+    """The model of the EM register, by name: one of :data:`EM_MODELS`.
 
     ``"gamma"`` is the paper's: the output of n electrons is Gamma(n, g), excess-noise
     factor 2 at every gain. ``"cascade"`` is the exact register of ``stages`` stages, in
@@ -109,39 +128,50 @@ class EMModel:
     (:mod:`emccdcal.model.cascade`); its excess-noise factor is below 2 (1.795 at
     g = 5, N = 536). Both reduce to no multiplication (Poisson–normal) at g = 1.
 
+    What a model does lives in its :attr:`register` (one module per model under
+    ``emccdcal/model/``); nothing outside ``model/`` asks which model it has.
+
     Examples
     --------
     >>> str(EMModel("cascade", 604)), str(EMModel())
     ('cascade (604 stages)', 'gamma')
+    >>> float(EMModel("cascade").register.excess_noise_factor(5.0))
+    1.79...
     """
 
     name: str = "gamma"
     stages: int = DEFAULT_STAGES
 
     def __post_init__(self):
-        if self.name not in EM_MODELS:
+        if self.name not in _REGISTERS:
             raise OptionError(f"unknown em_model {self.name!r}; choose one of "
                               f"{', '.join(EM_MODELS)}")
         from .cascade import _check_stages
 
-        # The gamma model has no stages: one gamma model, whatever was passed.
-        stages = _check_stages(self.stages) if self.cascade else DEFAULT_STAGES
-        object.__setattr__(self, "stages", stages)
+        # A model without stages has one value of them, whatever was passed.
+        uses = _REGISTERS[self.name].uses_stages
+        object.__setattr__(self, "stages", _check_stages(self.stages) if uses else DEFAULT_STAGES)
 
     @property
-    def cascade(self) -> bool:
-        """Whether this is the exact register."""
-        return self.name == "cascade"
+    def register(self):
+        """The register model's pieces: its rows for the window engine, fit coordinates,
+        excess-noise factor, description (:mod:`._gamma`, :mod:`._exact`)."""
+        return _REGISTERS[self.name](self.stages)
 
     def __str__(self) -> str:
-        return f"cascade ({self.stages} stages)" if self.cascade else "gamma"
+        return f"{self.name} ({self.stages} stages)" if self.register.uses_stages else self.name
+
+    @property
+    def label(self) -> str:
+        """A short text: ``"gamma"``, ``"cascade, 536 stages"``."""
+        return self.name + (f", {self.stages} stages" if self.register.uses_stages else "")
 
     @property
     def attrs(self) -> dict:
         """The model as a result's attributes: ``em_model``, and ``register_stages`` for
-        the cascade."""
+        a model with stages."""
         return {"em_model": self.name,
-                **({"register_stages": int(self.stages)} if self.cascade else {})}
+                **({"register_stages": int(self.stages)} if self.register.uses_stages else {})}
 
     @classmethod
     def from_attrs(cls, attrs) -> EMModel | None:
@@ -152,8 +182,19 @@ class EMModel:
         return cls(str(attrs["em_model"]), int(attrs.get("register_stages", DEFAULT_STAGES)))
 
 
+def _registers():
+    from ._exact import Cascade
+    from ._gamma import Gamma
+
+    return {"gamma": Gamma, "cascade": Cascade}
+
+
+#: The register models by name: each a class of :mod:`._gamma` / :mod:`._exact`.
+_REGISTERS = _registers()
 #: The register models :class:`EMModel` knows.
-EM_MODELS = ("gamma", "cascade")
+EM_MODELS = tuple(_REGISTERS)
+#: The model that stages alone select.
+_WITH_STAGES = "cascade"
 
 
 def choose_em_model(given, em_model=None, stages=None) -> EMModel:
@@ -163,7 +204,7 @@ def choose_em_model(given, em_model=None, stages=None) -> EMModel:
     if em_model is None and stages is None:
         return given or EMModel()
     if em_model is None:
-        em_model = "cascade" if given is None or stages is not None else given.name
+        em_model = _WITH_STAGES if given is None or stages is not None else given.name
     return as_em_model(em_model, stages)
 
 
@@ -171,14 +212,15 @@ def as_em_model(em_model="gamma", stages=None) -> EMModel:
     """An :class:`EMModel` from a name (or an :class:`EMModel`) and optional stages;
     stages go with the cascade only."""
     if isinstance(em_model, EMModel):
-        if stages is not None and (not em_model.cascade or int(stages) != em_model.stages):
+        if stages is not None and (not em_model.register.uses_stages
+                                   or int(stages) != em_model.stages):
             raise OptionError(f"stages={stages!r} disagrees with the {em_model} model")
         return em_model
     if not isinstance(em_model, str):
         raise OptionError(f"em_model must be one of {', '.join(EM_MODELS)}, got {em_model!r}")
-    if stages is not None and em_model == "gamma":
-        raise OptionError("stages are the cascade model's: give em_model='cascade' with "
-                          "them (the gamma model has none)")
+    if stages is not None and em_model in _REGISTERS and not _REGISTERS[em_model].uses_stages:
+        raise OptionError(f"stages are the {_WITH_STAGES} model's: give "
+                          f"em_model='{_WITH_STAGES}' with them (the {em_model} model has none)")
     return EMModel(em_model, DEFAULT_STAGES if stages is None else stages)
 
 
@@ -242,739 +284,7 @@ def excess_noise_factor(em_gain, *, em_model="gamma", stages=None):
     below 2.
     """
     g = check_number("em_gain", em_gain, minimum=1.0, scalar=False)
-    model = as_em_model(em_model, stages)
-    if model.cascade:
-        from .cascade import excess_noise_factor as exact
-
-        return np.asarray(exact(g, model.stages))
-    return np.where(g == 1, 1.0, 2.0)
-
-
-# --------------------------------------------------------------------------------------
-# The cumulant generating function and its parameter derivatives
-# --------------------------------------------------------------------------------------
-# Rows are parameter sets ("pixels"); every function takes 1-D arrays of length P and
-# a complex array ``s`` of shape (P, M). ``scale`` is θ = g/φ (ADU per electron, PGN)
-# or 1/φ (ADU per photoelectron, PN); ``shift`` is the offset relative to the window's
-# first count, ADU.
-
-#: Names of the native parameters the window evaluator differentiates by.
-NATIVE = ("photoelectrons", "scale", "offset", "read_noise")
-
-
-def _electron_mgf(s, scale, pn):
-    """M(s) − 1 of one photoelectron's output (ADU), without cancellation at small s."""
-    sa = s * scale[:, None]
-    return np.where(pn[:, None], np.expm1(sa), sa / (1.0 - sa))
-
-
-def _cgf(s, E, scale, shift, sigma, pn):
-    return (
-        s * shift[:, None]
-        + 0.5 * (sigma[:, None] * s) ** 2
-        + E[:, None] * _electron_mgf(s, scale, pn)
-    )
-
-
-def _cgf_derivatives(s, E, scale, shift, sigma, pn, second=False):
-    """First (and optionally second) derivatives of K(s) by the native parameters.
-
-    Returns ``first`` (dict name -> (P, M)) and ``second`` (dict (name, name) -> (P, M),
-    upper triangle only, zero entries omitted).
-    """
-    sa = s * scale[:, None]
-    pn_ = pn[:, None]
-    # d M(s) / d scale, and its second derivative
-    m = np.where(pn_, np.exp(sa), 1.0 / (1.0 - sa))
-    dm = np.where(pn_, s * m, s * m * m)
-    first = {
-        "photoelectrons": np.where(pn_, np.expm1(sa), sa / (1.0 - sa)),
-        "scale": E[:, None] * dm,
-        "offset": s,
-        "read_noise": sigma[:, None] * s * s,
-    }
-    if not second:
-        return first, {}
-    d2m = np.where(pn_, s * s * m, 2.0 * s * s * m * m * m)
-    sec = {
-        ("photoelectrons", "scale"): dm,
-        ("scale", "scale"): E[:, None] * d2m,
-        ("read_noise", "read_noise"): s * s,
-    }
-    return first, sec
-
-
-def _cumulants(E, scale, shift, sigma, pn):
-    """Mean and variance (ADU, ADU²) of the count relative to the window start."""
-    mu = shift + E * scale
-    var = sigma**2 + np.where(pn, E * scale**2, 2.0 * E * scale**2)
-    return mu, var
-
-
-def _tilted_family(t, E, scale, shift, sigma, pn):
-    """Parameters of the exponentially tilted distribution ``f(y) e^{ty - K(t)}``.
-
-    Tilting keeps the family: the photoelectron mean becomes E·M(t), the PGN scale
-    θ/(1 − tθ) (PN: unchanged), and the Gaussian centre moves by σ²t.
-    """
-    ta = t * scale
-    E_t = np.where(pn, E * np.exp(ta), E / (1.0 - ta))
-    scale_t = np.where(pn, scale, scale / (1.0 - ta))
-    return E_t, scale_t, shift + sigma**2 * t, sigma
-
-
-def _real_cgf(t, E, scale, shift, sigma, pn):
-    """K(t) for real t (PGN requires t·θ < 1), per row."""
-    ta = t * scale
-    return t * shift + 0.5 * (sigma * t) ** 2 + E * np.where(pn, np.expm1(ta), ta / (1.0 - ta))
-
-
-def _extent(E, scale, shift, sigma, pn, width=12.0, cascade=None):
-    """Window [lo, hi] (ADU, relative) outside which the distribution's mass is negligible.
-
-    ``width`` standard deviations either side of the mean; below 80 photoelectrons also
-    ``width`` read-noise widths around the zero-electron peak (which carries e^-E) and,
-    for the PGN, forty single-electron scales more on the right for the exponential tail.
-    """
-    if cascade is not None:
-        return _cascade_extent(np.zeros(E.shape), E, scale, shift, sigma, cascade, width)
-    mu, var = _cumulants(E, scale, shift, sigma, pn)
-    sd = np.sqrt(var)
-    few = E < 80.0
-    lo = np.where(few, np.minimum(mu - width * sd, shift - width * sigma), mu - width * sd)
-    tail = np.where(pn, width * scale, np.where(few, 40.0 * scale, width * scale))
-    hi = mu + width * sd + tail + 1.0
-    return lo, hi
-
-
-def _alias_count(sigma_min):
-    """Aliases ±J of the characteristic function needed for read noise ``sigma_min`` (ADU).
-
-    The density at the integers has the DTFT Σ_j Φ(ω + 2πj) (Poisson summation); alias j
-    is bounded by exp(−σ²(2π|j| − π)²/2) and dropped once that is below e^-46.
-    """
-    return int(np.floor((np.sqrt(92.0) / sigma_min + np.pi) / (2.0 * np.pi)))
-
-
-def _band_limit(E, scale, sigma, pn, n, level=80.0):
-    """Highest rfft bin m beyond which |Φ(2πm/n)| < e^-level (for J = 0), in closed form.
-
-    −ln|Φ(ω)| is at least B(ω) = σ²ω²/2 + E·ω²θ²/(1 + ω²θ²) for the PGN, and at least
-    σ²ω²/2 + 2Eψ²ω²/π² for the PN while ωψ ≤ π (1 − cos x ≥ 2x²/π² there; beyond, the
-    Gaussian factor alone). B is increasing, so the ω_c solving B(ω_c) = 80 bounds the
-    band; for the PGN it is the root of a quadratic in ω².
-    """
-    s2 = 0.5 * sigma**2
-    t2 = scale**2
-    # PGN: s2·u + E·t2·u/(1 + t2·u) = level, u = ω²  →  a u² + b u − level = 0
-    a = s2 * t2
-    b = s2 + E * t2 - level * t2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u_pgn = np.where(a > 0, (-b + np.sqrt(b * b + 4.0 * a * level)) / (2.0 * a), level / s2)
-        u_pn = level / (s2 + 2.0 * E * t2 / np.pi**2)
-    w_pn = np.sqrt(u_pn)
-    w_pn = np.where(w_pn * scale <= np.pi, w_pn, np.sqrt(level / s2))  # Gaussian bound only
-    w = np.where(pn, w_pn, np.sqrt(u_pgn))
-    m = np.ceil(w * n / (2.0 * np.pi)).astype(np.int64) + 2
-    return np.where(w >= np.pi, n // 2 + 1, np.minimum(m, n // 2 + 1))
-
-
-def _window(E, scale, shift, sigma, pn, n, *, tilt=None, derivs=False, second=False,
-            names=NATIVE, cascade=None, band=None):
-    """Tilted pmf of the counts 0 … n−1 relative to the window start, and derivatives.
-
-    Parameters
-    ----------
-    E, scale, shift, sigma : ndarray, shape (P,)
-        Photoelectrons (e⁻), ADU per electron (θ = g/φ, or 1/φ for PN), offset relative
-        to the window start (ADU) and read noise (ADU).
-    pn : ndarray of bool, shape (P,)
-        Poisson–normal rows (em_gain == 1).
-    n : int
-        Window length; the distribution's mass outside the window must be negligible
-        (it wraps around).
-    tilt : ndarray, shape (P,), optional
-        Exponential tilt t per row (1/ADU); ``None`` means 0.
-    derivs, second : bool
-        Also return first (and second) derivatives of the tilted density by the native
-        parameters ``names``, on the same tilted scale.
-    names : tuple of str
-        Which of :data:`NATIVE` (with ``cascade``: :data:`NATIVE_CASCADE`) to
-        differentiate by (each costs one inverse FFT).
-    cascade : _Cascade, optional
-        The exact register of every row (``scale`` is then 1/φ, ADU per electron, and
-        ``pn`` is ignored); ``None``: the gamma model (or Poisson–normal rows).
-    band : int, optional
-        DFT bins to evaluate (cascade only; default: from a bound, widened until the
-        transform has died out at the edge).
-
-    Returns
-    -------
-    p : ndarray, shape (P, n)
-        ``f(y)·exp(t·y − K(t))``: the density at the integers y, tilted. Round-off is
-        about 1e-16 of ``p.max(axis=1)``.
-    d1 : dict
-        name -> (P, n) first derivatives (same tilted scale; divide by ``p`` for the
-        derivative of log f).
-    d2 : dict
-        (name, name) -> second derivatives of f, upper triangle, as :class:`Spectrum`:
-        not transformed, because they are only ever summed against weights at the data
-        (:meth:`Spectrum.dot`), which costs one forward FFT for all pairs instead of an
-        inverse FFT for each.
-    """
-    P = E.shape[0]
-    t = np.zeros(P) if tilt is None else tilt
-    J = _alias_count(float(sigma.min()))
-    if cascade is not None:
-        K_t, _, _, E_t, theta_t = _cascade_real(t, E, scale, shift, sigma, cascade)
-        m_hi = n // 2 + 1 if J else _cascade_band_limit(E_t, theta_t, scale, sigma, n, band)
-    elif J == 0:
-        E_t, scale_t, _, _ = _tilted_family(t, E, scale, shift, sigma, pn)
-        m_hi = int(_band_limit(E_t, scale_t, sigma, pn, n).max())
-        K_t = _real_cgf(t, E, scale, shift, sigma, pn)
-    else:
-        m_hi = n // 2 + 1
-        K_t = _real_cgf(t, E, scale, shift, sigma, pn)
-    omega = 2.0 * np.pi * np.arange(m_hi) / n
-    phi = 0.0
-    d1 = {name: 0.0 for name in names} if derivs else {}
-    d2 = {}
-    for j in range(-J, J + 1):
-        s = t[:, None] + 1j * (omega[None, :] + 2.0 * np.pi * j)
-        if cascade is None:
-            cf = np.exp(_cgf(s, E, scale, shift, sigma, pn) - K_t[:, None])
-            if derivs:
-                first, sec = _cgf_derivatives(s, E, scale, shift, sigma, pn, second)
-        else:
-            order = 2 if second else 1 if derivs else 0
-            K, first, sec = _cascade_cgf(s, E, scale, shift, sigma, cascade, order, names)
-            cf = np.exp(K - K_t[:, None])
-        phi = phi + cf
-        if derivs:
-            for name in names:
-                d1[name] = d1[name] + first[name] * cf
-            if second:
-                for a_i, a in enumerate(names):
-                    for b in names[a_i:]:
-                        term = first[a] * first[b] + sec.get((a, b), 0.0)
-                        d2[(a, b)] = d2.get((a, b), 0.0) + term * cf
-    if cascade is not None and m_hi < n // 2 + 1:
-        # The band was a bound's guess: where the transform has not died out at its
-        # edge (a tilted window's wide electron distribution), widen it and start again.
-        edge = np.abs(phi[:, -1])
-        if np.any(edge > _CASCADE_EDGE):
-            return _window(E, scale, shift, sigma, pn, n, tilt=tilt, derivs=derivs,
-                           second=second, names=names, cascade=cascade,
-                           band=min(n // 2 + 1, 2 * m_hi))
-    p = _irfft(phi, n)
-    d1 = {name: _irfft(v, n) for name, v in d1.items()}
-    d2 = {key: Spectrum(v, n) for key, v in d2.items()}
-    return p, d1, d2
-
-
-# --------------------------------------------------------------------------------------
-# The exact (Bernoulli-cascade) register
-# --------------------------------------------------------------------------------------
-#: Native parameters of the cascade model: ``scale`` is 1/φ (ADU per electron), the gain
-#: and the register's clock-induced charge enter through the register's transform.
-NATIVE_CASCADE = ("photoelectrons", "scale", "em_gain", "register_cic", "offset",
-                  "read_noise")
-#: A cascade window's band ends where the tilted transform is below this (its values
-#: beyond are below the FFT's round-off of ~1e-16 of the peak).
-_CASCADE_EDGE = np.exp(-40.0)
-
-
-class _Cascade:
-    """The exact register of a set of parameter rows: N stages, and each row's mean gain
-    g and register clock-induced-charge rate (e⁻ per pixel per frame entering the
-    register at a uniformly random stage)."""
-
-    def __init__(self, stages, gain, cic):
-        self.stages = int(stages)
-        self.gain = np.asarray(gain, dtype=float)
-        self.cic = np.broadcast_to(np.asarray(cic, dtype=float), self.gain.shape)
-
-    def take(self, idx):
-        return _Cascade(self.stages, self.gain[idx], self.cic[idx])
-
-    @property
-    def has_cic(self) -> bool:
-        return bool(np.any(self.cic > 0))
-
-    def transform(self, u, order, cic):
-        from .cascade import register_transform
-
-        return register_transform(u, self.gain, self.stages, order=order, cic=cic)
-
-
-def _cascade_cgf(s, E, scale, shift, sigma, casc, order=0, names=()):
-    """K(s) of the cascade model and its derivatives by the native parameters.
-
-    ``K(s) = s·shift + σ²s²/2 + E·v(s/φ) + c·v̄(s/φ)`` with ``v = G_N(e^u) − 1`` of one
-    electron and ``v̄`` its mean over the stages a register-CIC electron enters at.
-    Returns ``(K, first, second)``; ``second`` holds both orders of every pair.
-    """
-    cic = casc.has_cic or "register_cic" in names
-    T = casc.transform(s * scale[:, None], order, cic)
-    Ec, c, g = E[:, None], casc.cic[:, None], casc.gain[:, None]
-
-    def mix(key):  # E·v + c·v̄, and likewise for a derivative of v
-        return Ec * T[key] + c * T["cic_" + key] if cic else Ec * T[key]
-
-    K = s * shift[:, None] + 0.5 * (sigma[:, None] * s) ** 2 + mix("v")
-    first, sec = {}, {}
-    if order >= 1:
-        first = {"photoelectrons": T["v"], "scale": s * mix("u"), "em_gain": mix("g") / g,
-                 "offset": s, "read_noise": sigma[:, None] * s * s}
-        if cic:
-            first["register_cic"] = T["cic_v"]
-    if order >= 2:
-        sec = {("photoelectrons", "scale"): s * T["u"],
-               ("photoelectrons", "em_gain"): T["g"] / g,
-               ("scale", "scale"): s * s * mix("uu"),
-               ("scale", "em_gain"): s * mix("ug") / g,
-               ("em_gain", "em_gain"): (mix("gg") - mix("g")) / g**2,
-               ("read_noise", "read_noise"): s * s}
-        if cic:
-            sec[("scale", "register_cic")] = s * T["cic_u"]
-            sec[("em_gain", "register_cic")] = T["cic_g"] / g
-        sec.update({(b, a): v for (a, b), v in list(sec.items())})
-    return K, first, sec
-
-
-def _cascade_real(t, E, scale, shift, sigma, casc):
-    """K(t), K'(t), K''(t) of the cascade model at real tilts t (P,), and the tilted
-    photoelectron mean and single-electron mean output (ADU), per row."""
-    cic = casc.has_cic
-    if not cic and not np.any(t):
-        # Untilted: the moments in closed form (mean output g, second moment g²F²).
-        from .cascade import excess_noise_factor
-
-        g = casc.gain
-        F2 = excess_noise_factor(g, casc.stages)
-        return (np.zeros(E.shape), shift + E * g * scale, sigma**2 + E * (g * scale) ** 2 * F2,
-                E, g * scale)
-    T = casc.transform(t * scale, 2, cic)
-
-    def mix(key):
-        return E * T[key] + casc.cic * T["cic_" + key] if cic else E * T[key]
-
-    K = t * shift + 0.5 * (sigma * t) ** 2 + mix("v")
-    dK = shift + sigma**2 * t + scale * mix("u")
-    d2K = sigma**2 + scale**2 * mix("uu")
-    growth = 1.0 + T["v"]  # G(e^{t/φ}): the tilted photoelectron mean is E·G
-    # The tilted single-electron output; far below the mean it is one electron.
-    with np.errstate(divide="ignore", invalid="ignore"):
-        theta = np.where(growth > 0, scale * T["u"] / growth, scale)
-    return K, dK, d2K, E * growth, theta
-
-
-def _cascade_extent(t, E, scale, shift, sigma, casc, width=12.0):
-    """Window [lo, hi] (ADU, relative) of the cascade model tilted by t, as :func:`_extent`
-    (mean ± ``width`` SDs, the zero-electron peak and a tail of forty single-electron
-    outputs when photoelectrons are few)."""
-    _, mu, var, E_t, theta_t = _cascade_real(t, E, scale, shift, sigma, casc)
-    sd = np.sqrt(var)
-    few = E_t < 80.0
-    lo = np.where(few, np.minimum(mu - width * sd, shift + sigma**2 * t - width * sigma),
-                  mu - width * sd)
-    hi = mu + width * sd + np.where(few, 40.0, width) * theta_t + 1.0
-    return lo, hi
-
-
-def _cascade_band_limit(E_t, theta_t, scale, sigma, n, band=None):
-    """DFT bins to evaluate for cascade rows: the gamma model's bound at e^-40 with half
-    the photoelectrons (the cascade's transform decays like the gamma model's with
-    F²/2 ≥ ½ of them at low frequencies, and like it saturates at high ones), which
-    :func:`_window` widens where the transform has not died out at the edge (e^-40 of
-    its value at 0: the FFT's round-off is larger). Where the read noise does not
-    suppress the electron lattice's revival of the transform at ω = 2πφ, the Gaussian's
-    band."""
-    if band is not None:
-        return int(band)
-    full = n // 2 + 1
-    w_gauss = np.sqrt(160.0) / sigma
-    if np.any(2.0 * np.pi / scale < w_gauss):
-        m = int(np.ceil(float(w_gauss.max()) * n / (2.0 * np.pi))) + 2
-        return min(m, full)
-    pn = np.zeros(E_t.shape, dtype=bool)
-    return int(_band_limit(0.5 * E_t, theta_t, sigma, pn, n, level=40.0).max())
-
-
-class Spectrum:
-    """The first ``m`` DFT bins (P, m) of a real window of length ``n``, as :func:`_window`
-    builds them (the characteristic function at ω = 2πk/n; the window is its inverse).
-
-    Summing a window against weights needs no inverse FFT: by Parseval,
-    ``Σ_y w(y) f(y) = (1/n) Σ_k c_k Re(F_k Ŵ_k)`` with ``Ŵ = rfft(w)``, ``c_0 = 1``,
-    ``c_k = 2`` for the bins that stand for a conjugate pair, and 1 at Nyquist.
-    """
-
-    def __init__(self, spectrum, n):
-        self.spectrum, self.n = spectrum, n
-
-    def window(self):
-        """The window itself (P, n)."""
-        return _irfft(self.spectrum, self.n)
-
-    @staticmethod
-    def weights_spectrum(weights, m):
-        """``rfft`` of a (P, n) weight grid, its first ``m`` bins: shared by every dot."""
-        from scipy import fft
-
-        return fft.rfft(weights, axis=-1, workers=FFT_WORKERS)[:, :m]
-
-    def dot(self, weights_hat):
-        """``Σ_y w(y) f(y)`` per row, from ``weights_spectrum(w, m)`` (P, m)."""
-        m, n = self.spectrum.shape[1], self.n
-        c = np.full(m, 2.0)
-        c[0] = 1.0
-        if n % 2 == 0 and m == n // 2 + 1:
-            c[-1] = 1.0
-        return np.einsum("k,pk->p", c, (self.spectrum * weights_hat).real) / n
-
-
-def _irfft(spectrum, n):
-    """The window (P, n) of the first DFT bins (P, m) of the density (m ≤ n//2 + 1).
-
-    The density's DFT is the characteristic function at −ω, the conjugate of the one
-    evaluated at +ω; the bins beyond ``m`` are zero (irfft pads them).
-    """
-    from scipy import fft
-
-    return fft.irfft(np.conj(spectrum), n=n, axis=-1, workers=FFT_WORKERS)
-
-
-# --------------------------------------------------------------------------------------
-# Exact log-pmf at arbitrary counts: windows, tilted where the counts lie in a tail
-# --------------------------------------------------------------------------------------
-#: A window value is trusted where it is at least this fraction of the window's peak:
-#: FFT round-off is ~1e-16 of the peak, so the relative error there is below ~1e-9.
-_TRUSTED = 1e-7
-#: The cascade's transform comes from N stages of a recursion whose relative round-off
-#: grows to ~N·1e-16 (1e-13 at 536 stages): its windows are trusted only closer to their
-#: peak, and tilted windows centred on the rest.
-_TRUSTED_CASCADE = 1e-4
-#: Longest tilted window (counts) before the few-electron PGN tail goes to quadrature.
-_MAX_WINDOW = 2**20
-
-
-def _window_start(E, scale, S0, sigma, pn, cascade=None):
-    """Integer start and length of the window covering the distribution (absolute ADU)."""
-    lo, hi = _extent(E, scale, S0, sigma, pn, cascade=cascade)
-    start = np.floor(lo).astype(np.int64)
-    return start, (np.ceil(hi).astype(np.int64) - start + 1)
-
-
-def _saddlepoint(k, E, scale, S0, sigma, pn):
-    """Tilt t with K'(t) = k (the tilted mean at count k), by bisection."""
-
-    def dcgf(t):
-        ta = t * scale
-        with np.errstate(over="ignore", invalid="ignore"):
-            growth = np.where(pn, np.exp(ta), 1.0 / (1.0 - ta) ** 2)
-            return S0 + sigma**2 * t + E * scale * growth
-
-    t_lo = np.minimum(0.0, (k - S0 - E * scale) / sigma**2)
-    t_hi = np.maximum(0.0, (k - S0) / sigma**2)
-    t_hi = np.where(pn, t_hi, np.minimum(t_hi, (1.0 - 1e-12) / scale))
-    for _ in range(100):
-        mid = 0.5 * (t_lo + t_hi)
-        above = dcgf(mid) > k
-        t_hi = np.where(above, mid, t_hi)
-        t_lo = np.where(above, t_lo, mid)
-    return 0.5 * (t_lo + t_hi)
-
-
-def _cascade_saddlepoint(k, E, scale, S0, sigma, casc):
-    """Tilt t that puts the cascade model's tilted mean K'(t) within half a tilted SD of
-    count k: Newton's method on K' from the gamma model's saddlepoint, kept inside a
-    bracket, bisecting where it leaves the bracket or stops converging. (Any tilt gives
-    exact values; the saddlepoint only centres the window on the target.)
-
-    The bracket: the electron part of K' is positive and increasing in t, so
-    ``S0 + σ²t ≤ K'(t)`` everywhere and ``K'(t) ≤ K'(0) + σ²t`` for t ≤ 0.
-    """
-    mean0 = _cascade_real(np.zeros(E.shape), E, scale, S0, sigma, casc)[1]
-    lo = np.minimum(0.0, (k - mean0) / sigma**2)
-    hi = (k - S0) / sigma**2
-    # Start from the gamma model's saddlepoint (closed-form cumulants, cheap): its
-    # register differs only in F², so Newton then needs a few steps, not a bisection.
-    t = _saddlepoint(k, E, casc.gain * scale, S0, sigma, np.zeros(E.shape, dtype=bool))
-    t = np.where((t > lo) & (t < hi), t, 0.5 * (lo + hi))
-    previous = np.full(E.shape, np.inf)  # |K'(t) − k| of the step before
-    for _ in range(100):
-        with np.errstate(over="ignore", invalid="ignore"):
-            _, dK, d2K, _, _ = _cascade_real(t, E, scale, S0, sigma, casc)
-        bad = ~np.isfinite(dK) | ~np.isfinite(d2K)
-        above = bad | (dK > k)
-        hi = np.where(above, t, hi)
-        lo = np.where(above, lo, t)
-        miss = np.abs(dK - k)
-        close = ~bad & (miss < 0.5 * np.sqrt(d2K))
-        if np.all(close):
-            break
-        with np.errstate(divide="ignore", invalid="ignore"):
-            newton = t - (dK - k) / d2K
-        # Newton where it stays in the bracket and is converging; else bisect.
-        slow = ~(miss < 0.5 * previous)
-        previous = np.where(bad, np.inf, miss)
-        inside = ~bad & ~slow & (newton > lo) & (newton < hi)
-        t = np.where(close, t, np.where(inside, newton, 0.5 * (lo + hi)))
-    return t
-
-
-def _cascade_spa(k, t, E, scale, S0, sigma, casc, grad):
-    """Saddlepoint approximation of log f(k) at tilts t with K'(t) ≈ k, for the far tail
-    beyond the longest window (relative error of order 1/(number of electrons) there,
-    far below 1e-10 of the peak): ``K(t) − tk − ½ ln(2πK''(t))``; gradients by the
-    envelope theorem, ``∂K/∂λ`` at the fixed t."""
-    K, _, d2K, _, _ = _cascade_real(t, E, scale, S0, sigma, casc)
-    logf = K - t * k - 0.5 * np.log(2.0 * np.pi * d2K)
-    if not grad:
-        return logf, {}
-    names = _cascade_names(casc)
-    _, first, _ = _cascade_cgf(t[:, None].astype(complex), E, scale, S0, sigma, casc, 1, names)
-    grads = {name: first[name][:, 0].real for name in names}
-    grads["offset"] = grads["offset"] - t
-    return logf, grads
-
-
-def _cascade_names(casc):
-    """Native parameters of cascade rows (``register_cic`` only where it is used)."""
-    return tuple(n for n in NATIVE_CASCADE if n != "register_cic" or casc.has_cic)
-
-
-def _log_normaliser(E, scale, S0, sigma, pn, derivs=False, cascade=None):
-    """log Σ_k f(k) per row (and its native derivatives): 0 unless read noise < ~3 ADU.
-
-    By Poisson summation Σ_k f(k) = Σ_j Φ(2πj) = 1 + 2 Σ_{j≥1} Re Φ(2πj).
-    """
-    U = E.shape[0]
-    J = _alias_count(float(sigma.min())) + 1
-    names = NATIVE if cascade is None else _cascade_names(cascade)
-    grads = {name: np.zeros(U) for name in names}
-    if J <= 1 and float(sigma.min()) > 3.1:
-        return np.zeros(U), grads
-    s = 2j * np.pi * np.arange(1, J + 1)[None, :] * np.ones((U, 1))
-    # Only the fractional part of the offset matters at the frequencies 2πj.
-    frac = S0 - np.floor(S0)
-    if cascade is None:
-        cf = np.exp(_cgf(s, E, scale, frac, sigma, pn))
-        first = _cgf_derivatives(s, E, scale, frac, sigma, pn)[0] if derivs else {}
-    else:
-        K, first, _ = _cascade_cgf(s, E, scale, frac, sigma, cascade, int(derivs), names)
-        cf = np.exp(K)
-    Z = 1.0 + 2.0 * cf.real.sum(axis=1)
-    if derivs:
-        grads = {name: 2.0 * (first[name] * cf).real.sum(axis=1) / Z for name in names}
-    return np.log(Z), grads
-
-
-def _evaluate(E, scale, S0, sigma, pn, row, k, grad=False, cascade=None):
-    """log p(k) (and native gradients) for queries ``k`` of parameter rows ``row``.
-
-    Parameters
-    ----------
-    E, scale, S0, sigma, pn : ndarray, shape (U,)
-        Distinct parameter rows (see :func:`_window`; S0 absolute, ADU).
-    cascade : _Cascade, optional
-        The exact register of every row (``scale`` = 1/φ); ``None``: the gamma model.
-    row : ndarray of int, shape (Q,)
-        Row of each query.
-    k : ndarray of int64, shape (Q,)
-        Counts (ADU).
-    """
-    Q = k.shape[0]
-    logp = np.full(Q, np.nan)
-    names = NATIVE if cascade is None else _cascade_names(cascade)
-    grads = {name: np.full(Q, np.nan) for name in names} if grad else {}
-    todo = np.ones(Q, dtype=bool)
-    tilt_u = np.zeros(E.shape[0])
-    if cascade is None:
-        mean_u = S0 + E * scale
-        quad_rows = ~pn & (scale > sigma)
-    else:
-        mean_u = _cascade_real(tilt_u, E, scale, S0, sigma, cascade)[1]
-        quad_rows = np.zeros(E.shape[0], dtype=bool)
-    first_round = True
-    rounds = 0
-    while todo.any():
-        rounds += 1
-        if rounds > 20000:  # pragma: no cover - a safeguard, never a silent NaN
-            raise RuntimeError("noise model: tail evaluation did not finish")
-        if first_round:
-            rows = np.unique(row)
-            targets = None
-        elif quad_rows.any():
-            # The exponential tail of a PGN whose single-electron scale exceeds the read
-            # noise: tilted windows would have to be enormous, quadrature is exact there.
-            q = np.flatnonzero(todo & quad_rows[row])
-            for chunk in np.array_split(q, max(1, q.size // 4096)):
-                r = row[chunk]
-                lf, dq = _quadrature_logpdf(k[chunk].astype(float), E[r], scale[r], S0[r],
-                                            sigma[r], grad=grad)
-                logp[chunk] = lf
-                for name in grads:
-                    grads[name][chunk] = dq[name]
-            todo[q] = False
-            quad_rows[:] = False
-            continue
-        else:
-            # Next target of each row: its unfinished query nearest to the mean.
-            q = np.flatnonzero(todo)
-            order = np.lexsort((np.abs(k[q] - mean_u[row[q]]), row[q]))
-            rows, first = np.unique(row[q[order]], return_index=True)
-            targets = q[order[first]]
-            if cascade is None:
-                tilt_u[rows] = _saddlepoint(k[targets].astype(float), E[rows], scale[rows],
-                                            S0[rows], sigma[rows], pn[rows])
-            else:
-                tilt_u[rows] = _cascade_saddlepoint(k[targets].astype(float), E[rows],
-                                                    scale[rows], S0[rows], sigma[rows],
-                                                    cascade.take(rows))
-        t = tilt_u[rows]
-        if cascade is None:
-            fam = _tilted_family(t, E[rows], scale[rows], S0[rows], sigma[rows], pn[rows])
-            start, length = _window_start(*fam, pn[rows])
-        else:
-            lo, hi = _cascade_extent(t, E[rows], scale[rows], S0[rows], sigma[rows],
-                                     cascade.take(rows))
-            start = np.floor(lo).astype(np.int64)
-            length = np.ceil(hi).astype(np.int64) - start + 1
-        if targets is not None:
-            # Far in a few-electron PGN tail the tilted window grows without bound: hand
-            # those rows to the quadrature, which is exact there.
-            huge = ~pn[rows] & (length > _MAX_WINDOW)
-            if huge.any() and cascade is not None:
-                # The cascade's far tail beyond the longest window: the saddlepoint
-                # approximation (values there are far below 1e-10 of the peak).
-                q = targets[huge]
-                r = rows[huge]
-                lf, dq = _cascade_spa(k[q].astype(float), t[huge], E[r], scale[r], S0[r],
-                                      sigma[r], cascade.take(r), grad)
-                logp[q] = lf
-                for name in grads:
-                    grads[name][q] = dq[name]
-                todo[q] = False
-                keep = ~huge
-                rows, t, start, length = rows[keep], t[keep], start[keep], length[keep]
-                targets = targets[keep]
-                if rows.size == 0:
-                    continue
-            elif huge.any():
-                quad_rows[rows[huge]] = True
-                keep = ~huge
-                rows, t, start, length = rows[keep], t[keep], start[keep], length[keep]
-                targets = targets[keep]
-                if rows.size == 0:
-                    continue
-        # Rows of similar window length share one batched FFT.
-        group = np.ceil(np.log2(np.maximum(length, 2))).astype(int)
-        for gval in np.unique(group):
-            sel = group == gval
-            r = rows[sel]
-            n = _fast_len(int(length[sel].max()))
-            shift = S0[r] - start[sel]
-            casc = None if cascade is None else cascade.take(r)
-            p, d1, _ = _window(
-                E[r], scale[r], shift, sigma[r], pn[r], n, tilt=t[sel], derivs=grad,
-                names=names, cascade=casc,
-            )
-            if cascade is None:
-                K_t = _real_cgf(t[sel], E[r], scale[r], shift, sigma[r], pn[r])
-            else:
-                K_t = _cascade_real(t[sel], E[r], scale[r], shift, sigma[r], casc)[0]
-            # Queries of these rows that fall in the window.
-            local = np.full(E.shape[0], -1)
-            local[r] = np.arange(r.size)
-            qi = np.flatnonzero(todo & (local[row] >= 0))
-            li = local[row[qi]]
-            y = k[qi] - start[sel][li]
-            inside = (y >= 0) & (y < n)
-            qi, li, y = qi[inside], li[inside], y[inside]
-            pv = p[li, y]
-            trusted = _TRUSTED if cascade is None else _TRUSTED_CASCADE
-            ok = pv >= trusted * p.max(axis=1)[li]
-            if targets is not None:
-                ok |= np.isin(qi, targets)
-            qi, li, y, pv = qi[ok], li[ok], y[ok], pv[ok]
-            # A forced target can still sit in an unresolvable valley (a Poisson–normal
-            # comb with read noise below the electron spacing, far out): its value is
-            # below round-off, reported as probability 0 rather than a wrong number.
-            pv = np.where(pv > 0, pv, 0.0)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                logp[qi] = np.log(pv) + K_t[li] - t[sel][li] * y
-                for name in grads:
-                    grads[name][qi] = np.where(pv > 0, d1[name][li, y] / pv, 0.0)
-            todo[qi] = False
-        first_round = False
-    logZ, dlogZ = _log_normaliser(E, scale, S0, sigma, pn, derivs=grad, cascade=cascade)
-    logp -= logZ[row]
-    for name in grads:
-        grads[name] -= dlogZ[name][row]
-    return logp, grads
-
-
-def _quadrature_logpdf(k, E, theta, S0, sigma, grad=False):
-    """log f(k) of the PGN by Gauss–Legendre quadrature of its Bessel form (docs/methods.md).
-
-    ``f(k) = e^{-E} N(k; S0, σ) + ∫ q_c(u) N(k; S0 + u, σ) du`` with the Poisson–gamma
-    density ``q_c`` evaluated through ``i1e`` (never overflows). The integrand is positive,
-    so the result has full *relative* precision far into the tails, where an FFT window
-    cannot reach: used for the exponential tail of few-electron PGN (θ > σ). Arrays of
-    shape (Q,), one parameter set per query. With ``grad``, also ∂ log f/∂E and ∂/∂θ.
-    """
-    from scipy import special
-
-    nodes, weights = np.polynomial.legendre.leggauss(16)
-    x = (k - S0)[:, None]
-    width = 2.0 * np.minimum(sigma, theta)
-    lo = np.maximum(0.0, k - S0 - 12.0 * sigma)
-    hi = np.maximum(lo, k - S0 + 12.0 * sigma)
-    n_panel = np.clip(np.ceil((hi - lo) / width), 1, 256).astype(int)
-    M = int(n_panel.max())
-    panel = np.arange(M)[None, :]
-    h = ((hi - lo) / n_panel)[:, None]
-    a = lo[:, None] + panel * h
-    u = (a[:, :, None] + 0.5 * h[:, :, None] * (nodes + 1.0)).reshape(k.size, -1)
-    w = (0.5 * h[:, :, None] * weights * (panel < n_panel[:, None])[:, :, None]).reshape(k.size, -1)
-    Ec, tc, sc = E[:, None], theta[:, None], sigma[:, None]
-    u = np.maximum(u, 1e-300)
-    z = 2.0 * np.sqrt(Ec * u / tc)
-    log_q = 0.5 * np.log(Ec / (tc * u)) - (np.sqrt(u / tc) - np.sqrt(Ec)) ** 2 + np.log(special.i1e(z))
-    log_n = -0.5 * ((x - u) / sc) ** 2 - np.log(np.sqrt(2.0 * np.pi) * sc)
-    with np.errstate(divide="ignore"):
-        log_terms = log_q + log_n + np.log(w)
-    atom = -E - 0.5 * ((k - S0) / sigma) ** 2 - np.log(np.sqrt(2.0 * np.pi) * sigma)
-    stacked = np.concatenate([log_terms, atom[:, None]], axis=1)
-    top = stacked.max(axis=1, keepdims=True)
-    weight = np.exp(stacked - top)
-    total = weight.sum(axis=1)
-    logf = top[:, 0] + np.log(total)
-    if not grad:
-        return logf, {}
-    # ∂ ln q_c/∂E = −1 + √(u/(θE))·R(z), ∂ ln q_c/∂θ = (u/θ − (z/2)R(z))/θ, R = I0/I1.
-    R = special.i0e(z) / special.i1e(z)
-    dE = -1.0 + np.sqrt(u / (tc * Ec)) * R
-    dT = (u / tc - 0.5 * z * R) / tc
-    share = weight[:, :-1] / total[:, None]
-    atom_share = weight[:, -1] / total
-    # Offset and read noise act through the Gaussian factor, atom (u = 0) included.
-    resid = np.concatenate([x - u, x], axis=1)
-    all_share = weight / total[:, None]
-    return logf, {
-        "photoelectrons": np.sum(share * dE, axis=1) - atom_share,
-        "scale": np.sum(share * dT, axis=1),
-        "offset": np.sum(all_share * resid, axis=1) / sigma**2,
-        "read_noise": (np.sum(all_share * resid**2, axis=1) / sigma**2 - 1.0) / sigma,
-    }
-
-
-def _fast_len(n):
-    from scipy import fft
-
-    return fft.next_fast_len(int(n), real=True)
+    return as_em_model(em_model, stages).register.excess_noise_factor(g)
 
 
 def _prepare(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, register_cic):
@@ -991,31 +301,38 @@ def _prepare(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, reg
 
 
 def _model_of(em_model, stages, register_cic=0.0):
-    """The checked :class:`EMModel`; register CIC only goes with the cascade."""
+    """The checked :class:`EMModel`; register CIC only goes with a model that has it."""
     model = as_em_model(em_model, stages)
-    if not model.cascade and np.any(np.asarray(register_cic) != 0):
-        raise OptionError("register_cic is a parameter of the cascade model: give "
-                          "em_model='cascade' with it")
+    if "register_cic" not in model.register.parameters and np.any(np.asarray(register_cic) != 0):
+        raise OptionError(f"register_cic is a parameter of the cascade model, not of the "
+                          f"{model.name} model: give em_model='cascade' with it")
     return model
+
+
+def register_groups(g, model):
+    """The rows of each register of ``model`` (no multiplication at g = 1, which a
+    register may hand to another): pairs (register, boolean mask)."""
+    regs = [model.register.register_for(True), model.register.register_for(False)]
+    if regs[0] == regs[1]:
+        return [(regs[0], np.ones(g.shape, dtype=bool))]
+    pn = g == 1.0
+    return [(regs[0], pn), (regs[1], ~pn)]
 
 
 def _evaluate_public(E, g, phi, S0, sigma, cic, row, k, model, grad=False):
     """log p(k) and gradients by the public parameters for rows of public parameters.
 
-    Rows with g = 1 use the Poisson–normal model under either register model (no
+    Rows with g = 1 use the Poisson–normal model under every register model (no
     multiplication: the register's clock-induced charge is not counted there); the
     others the model's register. Gradients: ``photoelectrons``, ``em_gain`` (NaN at
-    g = 1), ``e_per_adu``, ``offset``, ``read_noise`` and, for the cascade,
-    ``register_cic``.
+    g = 1), ``e_per_adu``, ``offset``, ``read_noise`` and the register's own
+    parameters (the cascade's ``register_cic``).
     """
-    pn = g == 1.0
     logp = np.full(k.shape, np.nan)
     names = ("photoelectrons", "em_gain", "e_per_adu", "offset", "read_noise")
-    if model.cascade:
-        names += ("register_cic",)
+    names += model.register.parameters
     grads = {name: np.full(k.shape, np.nan) for name in names} if grad else {}
-    gamma_rows = np.ones(g.shape, bool) if not model.cascade else pn
-    for part in (gamma_rows, ~gamma_rows):
+    for register, part in register_groups(g, model):
         rows = np.flatnonzero(part)
         q = np.flatnonzero(part[row])
         if q.size == 0:
@@ -1023,34 +340,17 @@ def _evaluate_public(E, g, phi, S0, sigma, cic, row, k, model, grad=False):
         local = np.full(g.shape, -1)
         local[rows] = np.arange(rows.size)
         lr = local[row[q]]
-        Er, gr, phr, S0r, sr = E[rows], g[rows], phi[rows], S0[rows], sigma[rows]
-        if part is gamma_rows:
-            pnr = pn[rows]
-            scale = np.where(pnr, 1.0 / phr, gr / phr)
-            lp, d = _evaluate(Er, scale, S0r, sr, pnr, lr, k[q], grad=grad)
-        else:
-            casc = _Cascade(model.stages, gr, cic[rows])
-            lp, d = _evaluate(Er, 1.0 / phr, S0r, sr, np.zeros(rows.size, bool), lr, k[q],
-                              grad=grad, cascade=casc)
+        reg_rows = register.rows(E[rows], g[rows], phi[rows], cic[rows])
+        lp, d = _engine.evaluate(reg_rows, S0[rows], sigma[rows], lr, k[q], grad=grad)
         logp[q] = lp
         if not grad:
             continue
-        gq, phq = gr[lr], phr[lr]
-        grads["photoelectrons"][q] = d["photoelectrons"]
-        grads["offset"][q] = d["offset"]
-        grads["read_noise"][q] = d["read_noise"]
-        if part is gamma_rows:
-            # scale = g/φ (PGN) or 1/φ (PN): chain rule to the public parameters.
-            pnq = pn[rows][lr]
-            grads["em_gain"][q] = np.where(pnq, np.nan, d["scale"] / phq)
-            grads["e_per_adu"][q] = np.where(pnq, -d["scale"] / phq**2,
-                                             -d["scale"] * gq / phq**2)
-            if model.cascade:
-                grads["register_cic"][q] = 0.0
-        else:  # scale = 1/φ
-            grads["em_gain"][q] = d["em_gain"]
-            grads["e_per_adu"][q] = -d["scale"] / phq**2
-            grads["register_cic"][q] = d.get("register_cic", 0.0)
+        public = register.public_gradients(d, g[rows][lr], phi[rows][lr])
+        for name in names:
+            if name in ("photoelectrons", "offset", "read_noise"):
+                grads[name][q] = d[name]
+            else:  # a parameter this register does not have (CIC without multiplication)
+                grads[name][q] = public.get(name, 0.0)
     return logp, grads
 
 
@@ -1306,15 +606,11 @@ def logpmf_rows(counts, row, photoelectrons, em_gain, e_per_adu, offset, read_no
 
 def _window_lengths(E, g, phi, S0, sigma, model):
     """Length (counts) of the window that covers each row's distribution."""
-    pn = g == 1.0
-    if not model.cascade:
-        return _window_start(E, np.where(pn, 1.0 / phi, g / phi), S0, sigma, pn)[1]
-    length = _window_start(E, 1.0 / phi, S0, sigma, pn)[1]  # PN rows
-    multiplied = ~pn
-    if multiplied.any():
-        m = multiplied
-        casc = _Cascade(model.stages, g[m], 0.0)
-        length[m] = _window_start(E[m], 1.0 / phi[m], S0[m], sigma[m], pn[m], cascade=casc)[1]
+    length = np.zeros(g.shape, dtype=np.int64)
+    for register, part in register_groups(g, model):
+        if part.any():
+            rows = register.rows(E[part], g[part], phi[part], np.zeros(int(part.sum())))
+            length[part] = _engine.window_start(rows, S0[part], sigma[part])[1]
     return length
 
 

@@ -264,9 +264,7 @@ def _em_model_text(attrs) -> str:
     model = EMModel.from_attrs(attrs)
     if model is None:
         return "– (no likelihood)"
-    if model.cascade:
-        return f"exact Bernoulli cascade, {model.stages} stages"
-    return "gamma (the paper's approximation)"
+    return model.register.description
 
 
 def _manifest_status(ds):

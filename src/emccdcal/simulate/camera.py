@@ -43,12 +43,8 @@ import numpy as np
 
 from .._util import check_int, check_map, check_number
 from ..errors import OptionError
-from ..model.cascade import (
-    DEFAULT_STAGES,
-    excess_noise_factor,
-    sample_cascade,
-    sample_gamma,
-)
+from ..model.cascade import DEFAULT_STAGES
+from ..model.noise import EM_MODELS, EMModel
 
 __all__ = [
     "Camera",
@@ -94,7 +90,6 @@ _DEFAULTS = {
     "drift": 0.0,
     "adc_bits": 16,
 }
-_MULTIPLICATIONS = ("gamma", "cascade")
 #: Elements (frames × pixels) simulated at a time; fixes the random stream, so it is a
 #: constant, not a tuning knob.
 _CHUNK_ELEMENTS = 2**20
@@ -232,16 +227,14 @@ class Camera:
     def excess_noise_factor(self, em_gain: float) -> float:
         """F² of the register at a true gain: 1 without multiplication, 2 for the gamma
         model, the exact value for the cascade."""
-        if em_gain == 1.0:
-            return 1.0
-        if self.multiplication == "gamma":
-            return 2.0
-        return float(excess_noise_factor(em_gain, self.stages))
+        return float(EMModel(self.multiplication, self.stages).register.excess_noise_factor(
+            np.asarray(float(em_gain))))
 
 
 def _multiplication(value) -> str:
-    if value not in _MULTIPLICATIONS:
-        raise OptionError(f"multiplication must be 'gamma' or 'cascade', got {value!r}")
+    if value not in EM_MODELS:
+        raise OptionError(f"multiplication must be one of {', '.join(map(repr, EM_MODELS))}, "
+                          f"got {value!r}")
     return value
 
 
@@ -395,6 +388,7 @@ def simulate_frames(
     d = check_number("drift", drift, minimum=-2.0, maximum=2.0)
     bits = check_int("adc_bits", adc_bits, minimum=1, maximum=16)
     _cascade_method(cascade_method)
+    register = EMModel(mult, n_stages).register
     rng = np.random.default_rng(seed)
 
     adc_max = 2**bits - 1
@@ -423,10 +417,8 @@ def simulate_frames(
             n = rng.poisson(np.maximum(lam, 0.0))
         if g == 1.0:
             x = n.astype(float)
-        elif mult == "gamma":
-            x = sample_gamma(n, g, rng)
         else:
-            x = sample_cascade(n, g, n_stages, rng, method=cascade_method).astype(float)
+            x = register.sample(n, g, rng, method=cascade_method)
         x /= phi
         x += S0
         x += sigma * rng.standard_normal(n.shape)

@@ -23,6 +23,7 @@ from .._output import atomic_write, atomic_write_text, comment, toml_line
 from .._util import check_int, check_number
 from .._util import progress as progress_bar
 from ..errors import OptionError
+from ..model.noise import EMModel
 from .camera import (
     _CHUNK_ELEMENTS,
     _DEFAULTS,
@@ -183,7 +184,7 @@ def _camera_truth(opts: dict, pattern_file: str) -> dict:
         "cic": opts["cic"],
         "drift": opts["drift"],
         "multiplication": opts["multiplication"],
-        "stages": opts["stages"] if opts["multiplication"] == "cascade" else None,
+        "stages": EMModel(opts["multiplication"], opts["stages"]).attrs.get("register_stages"),
         "adc_bits": opts["adc_bits"],
         "offset_pattern": {
             "file": pattern_file,
