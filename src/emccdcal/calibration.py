@@ -241,13 +241,6 @@ def _fit_pixels(job, frames, usable, progress=None):
         series = layouts.Series(blocks, setpoints, list(job.labels),
                                 None if job.e_per_adu is None else job.e_per_adu[idx])
         layout, x0 = layouts.build_layout(method, series, job.options)
-        cheaper = job.em_model.register.approximation
-        if cheaper is not None:
-            # A costly register starts from a cheaper model's optimum (the cascade from
-            # the gamma model's, within a few per cent): fewer costly iterations. It is
-            # only a start: found roughly (0.01 nats), without its covariance.
-            rough = [replace(b, em_model=cheaper) for b in blocks]
-            x0 = engine.fit(layout, rough, x0, tol=1e-2, covariance=False).x
         fit = engine.fit(layout, blocks, x0)
         cov = fit.cov
         if job.e_per_adu_se is not None:  # φ's own error moves every E and g together
@@ -488,7 +481,7 @@ def calibrate(
         default the manifest's ``em_model``, else ``"gamma"``. On an exact register
         the gamma model reads every gain 0.2–0.8 % low in ``gs`` and about F²/2 − 1 low
         (−3 % at 25×, −10 % at 5×) where E and g share one set-point's shape
-        (``is-gain``, ``gs-no1x``); the cascade costs about twice the time in ``gs``
+        (``is-gain``, ``gs-no1x``); the cascade costs about 1.2–1.4 times the time in ``gs``
         (docs/cascade.md).
     stages : int, optional
         Stages of the cascade (default the manifest's ``register_stages``, else 536).

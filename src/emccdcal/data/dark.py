@@ -21,6 +21,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from .._optimize import maximize
 from ..errors import InputError
 from ..model import noise
 from . import stats
@@ -271,51 +272,24 @@ def _loglik(h, x, theta):
 
 
 def _fit_events(h, x0, theta, max_iter=60):
-    """Per-pixel maximum likelihood of (ln c, S0, ln σ) at a fixed θ: Levenberg–Marquardt
-    damped BHHH steps (the information from the outer product of the scores)."""
-    x = x0.copy()
-    x[:, 0] = np.clip(x[:, 0], _LOG_RATE[0], _LOG_RATE[1])
-    P = x.shape[0]
-    damping = np.full(P, 1e-3)
-    done = np.zeros(P, dtype=bool)
-    pv, s = _model(h, x, theta, True)
-    ll = np.sum(h.counts * np.log(pv), axis=1)
-    for _ in range(max_iter):
-        act = np.flatnonzero(~done)
-        if act.size == 0:
-            break
-        c = h.counts[act][..., None]
-        grad = np.sum(c * s[act], axis=1)
-        info = np.einsum("pk,pki,pkj->pij", h.counts[act], s[act], s[act])
-        # A rate at its bound with its gradient outwards stays there (no events made, or
-        # the most the bound allows): the step is solved in the others.
-        held = np.zeros(grad.shape, dtype=bool)
-        held[:, 0] = (((x[act, 0] <= _LOG_RATE[0]) & (grad[:, 0] < 0))
-                      | ((x[act, 0] >= _LOG_RATE[1]) & (grad[:, 0] > 0)))
-        grad = np.where(held, 0.0, grad)
-        free = ~held
-        info = info * free[:, :, None] * free[:, None, :] + held[:, :, None] * np.eye(3)
-        A = info + damping[act, None, None] * np.eye(3) * np.maximum(
-            np.einsum("pii->pi", info), 1e-12)[:, :, None]
-        step = np.linalg.solve(A + 1e-300 * np.eye(3), grad[..., None])[..., 0]
-        step = np.clip(step, -1.0, 1.0)
-        small = np.abs(0.5 * np.einsum("pi,pi->p", grad, step)) < 1e-8
-        done[act[small]] = True
-        act, step = act[~small], step[~small]
-        if act.size == 0:
-            break
-        trial = x[act] + step
-        trial[:, 0] = np.clip(trial[:, 0], _LOG_RATE[0], _LOG_RATE[1])
-        sub = _take(h, act)
-        pv_t, s_t = _model(sub, trial, theta[act], True)
-        ll_t = np.sum(sub.counts * np.log(pv_t), axis=1)
-        better = ll_t >= ll[act] - 1e-9 * np.abs(ll[act])
-        idx = act[better]
-        x[idx], ll[idx], s[idx] = trial[better], ll_t[better], s_t[better]
-        damping[idx] = np.maximum(damping[idx] / 10.0, 1e-12)
-        damping[act[~better]] *= 10.0
-        done[act[damping[act] > 1e8]] = True
-    return x, done & np.all(np.isfinite(x), axis=1)
+    """Per-pixel maximum likelihood of (ln c, S0, ln σ) at a fixed θ: damped BHHH steps
+    (the information from the outer product of the scores) by the package's optimizer.
+    Returns the parameters and whether each pixel's fit ended at a maximum (or where
+    no step could improve it)."""
+
+    def evaluate(rows, x):
+        sub = _take(h, rows)
+        pv, s = _model(sub, x, theta[rows], True)
+        ll = np.sum(sub.counts * np.log(pv), axis=1)
+        grad = np.sum(sub.counts[..., None] * s, axis=1)
+        info = np.einsum("pk,pki,pkj->pij", sub.counts, s, s)
+        return ll, grad, info
+
+    lower = np.array([_LOG_RATE[0], -np.inf, -np.inf])
+    upper = np.array([_LOG_RATE[1], np.inf, np.inf])
+    opt = maximize(evaluate, x0, lower=lower, upper=upper, tol=1e-8, max_iter=max_iter,
+                   accept_rtol=1e-9)
+    return opt.x, (opt.done | opt.stuck) & np.all(np.isfinite(opt.x), axis=1)
 
 
 #: Bounds of ln(event rate): 1e-7 to 2 electrons per pixel per frame.

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .._optimize import maximize, solve
 from ..model import noise
 
 __all__ = ["AcquisitionBlock", "FitResult", "Layout", "fit", "log_likelihood", "profile_bounds",
@@ -238,7 +239,7 @@ class _ModelAtData:
         return {key: spec.dot(hat) for key, spec in self.second.items()}
 
 
-def _acquisition_terms(acq, coords, level, map_cross=False):
+def _acquisition_terms(acq, coords, level, map_cross=False, live=None):
     """Log-likelihood of one acquisition and its derivatives by its model coordinates.
 
     ``coords`` (U, P) are the logarithms of the model's own parameters
@@ -247,13 +248,17 @@ def _acquisition_terms(acq, coords, level, map_cross=False):
     outer-product (BHHH) information; 2: the observed information instead. With
     ``map_cross`` (level ≥ 1) also the outer-product cross information of the
     coordinates with the (offset, read-noise) maps, (P, U, 2), for
-    :func:`_map_covariance`, from the same windows.
+    :func:`_map_covariance`, from the same windows. ``live`` (U,) says which
+    coordinates the fit moves (default all): the others' derivatives, which the layout
+    multiplies by zero (φ given in a gain series), are returned as zeros uncomputed,
+    each one inverse FFT saved.
     Returns ``(loglik (P,), grad (P, U), info (P, U, U), n_floored (P,), cross)``.
     """
     values = [np.exp(c) for c in coords]
     U = len(values)
     rows = _register(acq).rows_at(values, acq.poisson_normal)
-    model_names = rows.names
+    kept = np.flatnonzero(np.ones(U, dtype=bool) if live is None else live)
+    model_names = tuple(rows.names[i] for i in kept)
     names = model_names + (("offset", "read_noise") if map_cross else ())
     model = _ModelAtData(acq, rows, derivs=level >= 1, second=level >= 2, names=names)
     pv, low = model.pv, model.low
@@ -261,33 +266,38 @@ def _acquisition_terms(acq, coords, level, map_cross=False):
     n_floored = np.sum(acq.counts * low, axis=1).astype(np.int64)
     if level == 0:
         return loglik, None, None, n_floored, None
-    factor = np.stack(values, axis=1)  # d λ / d ln λ
+    P, L = acq.values.shape[0], kept.size
+    factor = np.stack([values[i] for i in kept] + [np.zeros(P)], axis=1)[:, :L]  # dλ/d ln λ
     w = np.where(low, 0.0, acq.counts / pv)
     scores = [model.scores[nm] for nm in names]
-    grad = np.stack([np.sum(w * s, axis=1) for s in scores[:U]], axis=1) * factor
+    grad_k = np.stack([np.sum(w * s, axis=1) for s in scores[:L]] + [np.zeros(P)],
+                      axis=1)[:, :L] * factor
     # Outer products of the per-frame scores (BHHH): a positive semi-definite estimate of
     # the information from the data points alone, cheap because the histogram is short.
     ws = [w * s / pv for s in scores]
     outer = {(i, j): np.sum(ws[i] * scores[j], axis=1)
-             for i in range(U) for j in range(i, len(names))}
-    info = np.empty((acq.values.shape[0], U, U))
-    for i in range(U):
-        for j in range(i, U):
-            info[:, i, j] = info[:, j, i] = outer[i, j] * factor[:, i] * factor[:, j]
+             for i in range(L) for j in range(i, len(names))}
+    info_k = np.empty((P, L, L))
+    for i in range(L):
+        for j in range(i, L):
+            info_k[:, i, j] = info_k[:, j, i] = outer[i, j] * factor[:, i] * factor[:, j]
     cross = None
     if map_cross:
-        cross = np.stack([np.stack([outer[i, j] for j in (U, U + 1)], axis=1)
-                          for i in range(U)], axis=1) * factor[:, :, None]
+        cross = np.zeros((P, U, 2))
+        for i, u in enumerate(kept):
+            cross[:, u] = np.stack([outer[i, L], outer[i, L + 1]], axis=1) * factor[:, i, None]
     if level >= 2:
         sums = model.second_sums(w)
-        obs = np.empty_like(info)
         for i, a in enumerate(model_names):
             for j, b in enumerate(model_names[i:], start=i):
                 h = (sums[(a, b)] - outer[i, j]) * factor[:, i] * factor[:, j]
                 if i == j:  # d²/d(ln λ)² picks up λ · d/dλ
-                    h = h + grad[:, i]
-                obs[:, i, j] = obs[:, j, i] = -h
-        info = obs
+                    h = h + grad_k[:, i]
+                info_k[:, i, j] = info_k[:, j, i] = -h
+    grad = np.zeros((P, U))
+    grad[:, kept] = grad_k
+    info = np.zeros((P, U, U))
+    info[:, kept[:, None], kept[None, :]] = info_k
     return loglik, grad, info, n_floored, cross
 
 
@@ -321,8 +331,12 @@ def _evaluate(layout, blocks, x, level, map_cross=False):
     crosses = [] if map_cross else None
     for a, acq in enumerate(blocks):
         coords, D = _native_to_model(logs[:, a], acq)
+        # u = the model's coordinates as a function of x through (ln E, ln g, ln φ);
+        # those the layout holds fixed need no derivatives.
+        j_u = _model_jacobian(jac, a, D)
+        live = np.any(j_u != 0, axis=(0, 2))
         ll, g_u, i_u, nf, cross = _acquisition_terms(acq, coords, level,
-                                                     map_cross and acq.has_map_errors)
+                                                     map_cross and acq.has_map_errors, live)
         per_acq[:, a] = ll
         total += ll
         floored += nf
@@ -330,8 +344,6 @@ def _evaluate(layout, blocks, x, level, map_cross=False):
             crosses.append(cross)
         if level == 0:
             continue
-        # u = (ln E, ln scale) as a function of x through (ln E, ln g, ln φ).
-        j_u = _model_jacobian(jac, a, D)
         grad += np.einsum("pu,puf->pf", g_u, j_u)
         info += np.einsum("puf,puv,pvg->pfg", j_u, i_u, j_u)
     lp, lp_grad, lp_hess = layout.log_prior(x)
@@ -433,55 +445,18 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
     -------
     FitResult
     """
-    x = np.clip(np.array(x0, dtype=float), layout.lower, layout.upper)
-    P, F = x.shape
-    damping = np.full(P, 1e-3)
-    iterations = np.zeros(P, dtype=int)
-    done = np.zeros(P, dtype=bool)
-    obj, _, _, grad, info, _, _ = _evaluate(layout, blocks, x, 1)
-    eye = np.eye(F)
-    for _ in range(max_iter):
-        active = np.flatnonzero(~done)
-        if active.size == 0:
-            break
-        g, I = grad[active], info[active]
-        # A parameter at its bound whose gradient points outwards stays there, and the
-        # step is solved in the others (an active-set step): clipping a full step would
-        # leave them moving as though it had moved too, and stall on the bound.
-        x_a = x[active]
-        held = ((x_a <= layout.lower) & (g < 0)) | ((x_a >= layout.upper) & (g > 0))
-        if held.any():
-            free = ~held
-            g = np.where(held, 0.0, g)
-            I = I * free[:, :, None] * free[:, None, :] + held[:, :, None] * eye
-        scale = np.sqrt(np.maximum(np.abs(np.einsum("pii->pi", I)), 1e-300))
-        A = I + damping[active, None, None] * (scale[:, :, None] * scale[:, None, :]) * eye
-        step = _solve(A, g)
-        step = np.clip(step, -1.0, 1.0)  # at most a factor e per iteration
-        x_new = np.clip(x[active] + step, layout.lower, layout.upper)
-        step = x_new - x[active]
-        # A step that promises less than ``tol`` nats is not worth its evaluation (the
-        # objective's round-off, ~1e-8 nats, could even refuse it): the pixel is done.
-        decrement = 0.5 * np.einsum("pf,pf->p", g, step)
-        small = (np.abs(decrement) < tol) | (np.max(np.abs(step), axis=1, initial=0.0) < 1e-10)
-        done[active[small]] = True
-        move = ~small
-        active, x_new = active[move], x_new[move]
-        if active.size:
-            sub = [b.take(active) for b in blocks]
-            res = _evaluate(layout.subset(active), sub, x_new, 1)
-            better = res[0] >= obj[active] - 1e-12 * np.abs(obj[active])
-            idx = active[better]
-            x[idx] = x_new[better]
-            obj[idx] = res[0][better]
-            grad[idx], info[idx] = res[3][better], res[4][better]
-            damping[idx] = np.maximum(damping[idx] / 10.0, 1e-12)
-            damping[active[~better]] *= 10.0
-            iterations[active] += 1
-        stuck = damping[active] > 1e8
-        done[active[stuck]] = True
-        if progress is not None:
-            progress(int(small.sum() + stuck.sum()))
+    P = np.shape(x0)[0]
+
+    def evaluate(rows, x):
+        if rows.size == P:
+            res = _evaluate(layout, blocks, x, 1)
+        else:
+            res = _evaluate(layout.subset(rows), [b.take(rows) for b in blocks], x, 1)
+        return res[0], res[3], res[4]
+
+    opt = maximize(evaluate, x0, lower=layout.lower, upper=layout.upper, tol=tol,
+                   max_iter=max_iter, progress=progress)
+    x, iterations = opt.x, opt.iterations
     if not covariance:
         return FitResult(x, None, None, None, iterations, None)
     map_errors = any(b.has_map_errors for b in blocks)
@@ -501,20 +476,10 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
     if map_errors:
         cov = cov + _map_covariance(layout, blocks, x, np.nan_to_num(h_inv), crosses)
     gnorm = np.einsum("pf,pfg,pg->p", grad, np.nan_to_num(h_inv), grad)
-    converged = done & pos_def & (gnorm < 1e-4) & (damping <= 1e8)
+    converged = opt.done & pos_def & (gnorm < 1e-4)
     if progress is not None:
-        progress(int((~done).sum()))
+        progress(int((~(opt.done | opt.stuck)).sum()))
     return FitResult(x, cov, loglik, converged, iterations, floored, per_acq, objective)
-
-
-def _solve(A, b):
-    try:
-        return np.linalg.solve(A, b[..., None])[..., 0]
-    except np.linalg.LinAlgError:
-        out = np.zeros_like(b)
-        for i in range(A.shape[0]):  # rare: only when a matrix in the stack is singular
-            out[i] = np.linalg.lstsq(A[i], b[i], rcond=None)[0]
-        return out
 
 
 def _invert(H):
@@ -567,7 +532,7 @@ def e_per_adu_sensitivity(layout, blocks, x):
     ``v · J Jᵀ`` to the covariance of x̂: it moves every E and g of a pixel together.
     """
     info = _evaluate(_PhiFree(layout), blocks, np.column_stack([x, np.zeros(len(x))]), 2)[4]
-    return -_solve(info[:, :-1, :-1], info[:, :-1, -1])
+    return -solve(info[:, :-1, :-1], info[:, :-1, -1])
 
 
 @dataclass

@@ -56,13 +56,17 @@ class CascadeRows:
         return ("photoelectrons", "scale", "em_gain") + (
             ("register_cic",) if self.has_cic else ())
 
-    def _transform(self, u, order, cic):
-        return register_transform(u, self.gain, self.stages, order=order, cic=cic)
+    def _transform(self, u, order, cic, by_u=True):
+        return register_transform(u, self.gain, self.stages, order=order, cic=cic,
+                                  by_u=by_u)
 
     def cgf(self, s, order=0, names=()):
-        """``K_X(s)`` (P, M) and its derivatives; ``second`` holds both orders of a pair."""
+        """``K_X(s)`` (P, M) and its derivatives by ``names`` (without ``scale``, the
+        register's transform skips its u-derivatives); ``second`` holds both orders of a
+        pair."""
         cic = self.has_cic or "register_cic" in names
-        T = self._transform(s * self.scale[:, None], order, cic)
+        by_u = "scale" in names
+        T = self._transform(s * self.scale[:, None], order, cic, by_u)
         Ec, c, g = self.E[:, None], self.cic[:, None], self.gain[:, None]
 
         def mix(key):  # E·v + c·v̄, and likewise for a derivative of v
@@ -70,18 +74,22 @@ class CascadeRows:
 
         first, sec = {}, {}
         if order >= 1:
-            first = {"photoelectrons": T["v"], "scale": s * mix("u"), "em_gain": mix("g") / g}
+            first = {"photoelectrons": T["v"], "em_gain": mix("g") / g}
+            if by_u:
+                first["scale"] = s * mix("u")
             if cic:
                 first["register_cic"] = T["cic_v"]
         if order >= 2:
-            sec = {("photoelectrons", "scale"): s * T["u"],
-                   ("photoelectrons", "em_gain"): T["g"] / g,
-                   ("scale", "scale"): s * s * mix("uu"),
-                   ("scale", "em_gain"): s * mix("ug") / g,
+            sec = {("photoelectrons", "em_gain"): T["g"] / g,
                    ("em_gain", "em_gain"): (mix("gg") - mix("g")) / g**2}
+            if by_u:
+                sec.update({("photoelectrons", "scale"): s * T["u"],
+                            ("scale", "scale"): s * s * mix("uu"),
+                            ("scale", "em_gain"): s * mix("ug") / g})
             if cic:
-                sec[("scale", "register_cic")] = s * T["cic_u"]
                 sec[("em_gain", "register_cic")] = T["cic_g"] / g
+                if by_u:
+                    sec[("scale", "register_cic")] = s * T["cic_u"]
             sec.update({(b, a): v for (a, b), v in list(sec.items())})
         return mix("v"), first, sec
 
@@ -207,14 +215,6 @@ class Cascade:
     @property
     def description(self):
         return f"exact Bernoulli cascade, {self.stages} stages"
-
-    @property
-    def approximation(self):
-        """The gamma model: its optimum is within a few per cent of the cascade's, and
-        from it the costlier exact model needs fewer iterations."""
-        from .noise import EMModel
-
-        return EMModel()
 
     def register_for(self, poisson_normal):
         """The register of rows with (True) or without multiplication."""

@@ -200,8 +200,6 @@ class Gamma:
     #: Extra public parameters of the likelihood (none).
     parameters = ()
     description = "gamma (the paper's approximation)"
-    #: A cheaper model to start a fit from (none: this is the cheap one).
-    approximation = None
     misfit_hint = ("the gamma model of the EM register misfits an exact register's low "
                    "gains: try the cascade model (--em-model cascade, "
                    "em_model = \"cascade\")")

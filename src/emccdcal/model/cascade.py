@@ -301,7 +301,7 @@ def gain_from_gain_f2(gain_times_f2, stages=DEFAULT_STAGES):
     return g, slope
 
 
-def register_transform(u, em_gain, stages=DEFAULT_STAGES, *, order=1, cic=False):
+def register_transform(u, em_gain, stages=DEFAULT_STAGES, *, order=1, cic=False, by_u=True):
     """``G_N(e^u) − 1`` of one input electron, and its derivatives by u and ln g.
 
     ``G_N`` is the register's probability generating function, so ``G_N(e^u)`` is the
@@ -325,6 +325,9 @@ def register_transform(u, em_gain, stages=DEFAULT_STAGES, *, order=1, cic=False)
         Also return the same quantities for an electron entering the register at a
         uniformly random stage (register clock-induced charge): the mean of
         ``v_m``, m = 0 … N − 1.
+    by_u : bool
+        Also the derivatives by u (default); without them (a fit that holds φ fixed)
+        each stage costs fewer operations.
 
     Returns
     -------
@@ -350,14 +353,18 @@ def register_transform(u, em_gain, stages=DEFAULT_STAGES, *, order=1, cic=False)
     e_u = np.exp(u)
     v = np.where(np.abs(u) < 1e-3, np.expm1(u), e_u - 1.0)  # e^u − 1 without cancellation
     out_names = ("v", "u", "g", "uu", "ug", "gg")[: (1, 3, 6)[order]]
+    if not by_u:
+        out_names = tuple(n for n in out_names if "u" not in n)
     d = {"v": v}
     if order >= 1:
-        d["u"] = e_u.copy()
         d["g"] = np.zeros_like(v)
+        if by_u:
+            d["u"] = e_u.copy()
     if order >= 2:
-        d["uu"] = e_u.copy()
-        d["ug"] = np.zeros_like(v)
         d["gg"] = np.zeros_like(v)
+        if by_u:
+            d["uu"] = e_u.copy()
+            d["ug"] = np.zeros_like(v)
     sums = {name: np.zeros_like(v) for name in out_names} if cic else None
     a = np.empty_like(v)
     t = np.empty_like(v)
@@ -372,11 +379,13 @@ def register_transform(u, em_gain, stages=DEFAULT_STAGES, *, order=1, cic=False)
         a += a1
         if order >= 2:
             # second derivatives first: they need this stage's first derivatives
-            vu, vg = d["u"], d["g"]
-            d["uu"] *= a                     # + 2p·v_u²
-            np.multiply(vu, vu, out=t)
-            t *= two_p
-            d["uu"] += t
+            vg = d["g"]
+            if by_u:
+                vu = d["u"]
+                d["uu"] *= a                 # + 2p·v_u²
+                np.multiply(vu, vu, out=t)
+                t *= two_p
+                d["uu"] += t
             np.multiply(p, vg, out=t)        # t = p·v_g
             np.multiply(v, 2.0, out=w)
             w += 1.0
@@ -385,16 +394,18 @@ def register_transform(u, em_gain, stages=DEFAULT_STAGES, *, order=1, cic=False)
             np.multiply(vg, w, out=x)
             x *= 2.0
             d["gg"] += x
-            w += t                           # w = 1 + 2v + 2p·v_g
-            d["ug"] *= a                     # + v_u·(1 + 2v + 2p·v_g)
-            np.multiply(vu, w, out=x)
-            d["ug"] += x
+            if by_u:
+                w += t                       # w = 1 + 2v + 2p·v_g
+                d["ug"] *= a                 # + v_u·(1 + 2v + 2p·v_g)
+                np.multiply(vu, w, out=x)
+                d["ug"] += x
         if order >= 1:
             d["g"] *= a
             np.add(v, 1.0, out=t)
             t *= v
             d["g"] += t
-            d["u"] *= a
+            if by_u:
+                d["u"] *= a
         np.multiply(p, v, out=t)
         t += a1
         v *= t
@@ -403,7 +414,8 @@ def register_transform(u, em_gain, stages=DEFAULT_STAGES, *, order=1, cic=False)
     for src in ([d] + ([sums] if cic else [])):
         if order >= 2:
             src["gg"] = src["gg"] * dp**2 + src["g"] * (dp / stages)
-            src["ug"] = src["ug"] * dp
+            if by_u:
+                src["ug"] = src["ug"] * dp
         if order >= 1:
             src["g"] = src["g"] * dp
     if cic:
