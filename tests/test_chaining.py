@@ -84,7 +84,12 @@ def test_manifest_names_a_result_and_the_cli_takes_one(series, tmp_path, capsys)
     manifest = gs.manifest.with_name("chained.toml")
     manifest.write_text(text)
     ds = quiet(calibrate, manifest, "gs")
-    assert np.all(np.isfinite(ds.e_per_adu_se))
+    # the manifest's result is the same chain as the argument's: φ, its error, and the
+    # errors it adds to every estimate
+    direct = quiet(calibrate, gs.manifest, "gs", e_per_adu=d / "out-adu")
+    np.testing.assert_allclose(ds.e_per_adu_se, load_result(d / "out-adu").e_per_adu_se)
+    for name in ("em_gain_se", "photoelectrons_se", "e_per_adu"):
+        np.testing.assert_allclose(ds[name], direct[name], rtol=1e-12)
     assert cli.main(["calibrate", str(gs.manifest), "-m", "gs", "-o", str(tmp_path / "o"),
                      "--e-per-adu", str(d / "out-adu"), "-q"]) == 0
 

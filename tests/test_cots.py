@@ -1,8 +1,9 @@
 """Calibration-on-the-spot (COTS): the core on one spot, the manifest verb, bad input.
 
 docs/validation.md case 13: a 10 × 10 ROI Gaussian spot (N = 5000 e⁻, b = 20 e⁻/px), gamma EM
-register, G = 5 ADU/e⁻, negligible read noise, 200 frames. Tolerances were set on a first
-run and checked against the scatter over seeds (docs/cots.md has the figures).
+register, G = 5 ADU/e⁻, negligible read noise, 200 frames. Estimates are checked at 3 of
+their own standard errors; the SEs themselves against the scatter over seeds (docs/cots.md
+has the figures).
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ def test_case13_recovers_gain_within_its_standard_errors(case13):
     assert r.n_used == r.n_frames == 200
     # SE ≈ 2.3 % of G with 200 frames; measured |z| < 1 on this seed, < 3 over 40 seeds.
     assert 0.015 * G_TRUE < r.gain_se < 0.035 * G_TRUE
-    assert abs(r.gain - G_TRUE) < 2.5 * r.gain_se
+    assert abs(r.gain - G_TRUE) < 3 * r.gain_se
     # the analytic SE agrees with the scatter of the per-frame estimates
     assert r.gain_se == pytest.approx(r.gain_scatter_se, rel=0.2)
 
@@ -55,10 +56,12 @@ def test_case13_recovers_gain_within_its_standard_errors(case13):
 def test_case13_recovers_offset(case13):
     r = case13
     assert 1.0 < r.offset_se < 6.0  # ADU; extrapolated from ≥ 100 ADU above the offset
-    assert abs(r.offset - S0_TRUE) < 2.5 * r.offset_se
+    assert abs(r.offset - S0_TRUE) < 3 * r.offset_se
     assert r.offset_se == pytest.approx(r.offset_scatter_se, rel=0.2)
+    # the width's own SE over 200 frames is ~0.002 px: this is a loose bound on a bias
     assert r.width == pytest.approx(SPOT[2], abs=0.03)
-    assert r.spot_counts / r.gain == pytest.approx(SPOT[3], rel=0.05)  # photoelectrons
+    # photoelectrons N = counts / G: its error is the gain's (the counts' is 0.1 %)
+    assert r.spot_counts / r.gain == pytest.approx(SPOT[3], rel=3 * r.gain_se / r.gain)
 
 
 @pytest.mark.slow

@@ -147,4 +147,5 @@ def test_docstring_examples():
         runner = doctest.DocTestRunner()
         for test in finder.find(obj, globs={"np": np, **vars(noise)}):
             runner.run(test)
+        assert runner.tries >= 2, f"{obj.__name__}: its examples did not run"
         assert runner.failures == 0
