@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import _engine
-
 
 class GammaRows:
     """Parameter rows of the gamma register or of no multiplication.

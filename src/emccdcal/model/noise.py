@@ -56,8 +56,10 @@ import numpy as np
 from .._util import check_number
 from ..errors import OptionError
 from . import _engine
-from ._engine import Spectrum, fast_len, window
-from ._engine import extent as window_extent
+from ._engine import Spectrum, fast_len, window  # noqa: F401  (for fit/ and data/)
+from ._engine import extent as window_extent  # noqa: F401
+from ._exact import Cascade
+from ._gamma import Gamma
 from .cascade import DEFAULT_STAGES
 
 __all__ = [
@@ -182,15 +184,8 @@ class EMModel:
         return cls(str(attrs["em_model"]), int(attrs.get("register_stages", DEFAULT_STAGES)))
 
 
-def _registers():
-    from ._exact import Cascade
-    from ._gamma import Gamma
-
-    return {"gamma": Gamma, "cascade": Cascade}
-
-
 #: The register models by name: each a class of :mod:`._gamma` / :mod:`._exact`.
-_REGISTERS = _registers()
+_REGISTERS = {"gamma": Gamma, "cascade": Cascade}
 #: The register models :class:`EMModel` knows.
 EM_MODELS = tuple(_REGISTERS)
 #: The model that stages alone select.
