@@ -517,3 +517,49 @@ def test_a_store_that_gains_a_foreign_file_during_the_run_is_kept(tmp_path):
             (store / "mine.txt").write_text("keep")  # put there while the run goes on
     assert (store / "mine.txt").read_text() == "keep" and (store / "a").read_text() == "1"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.zarr"]
+
+
+# --------------------------------------------------------------------------------------
+# Every deletion removes only what a run itself made
+# --------------------------------------------------------------------------------------
+def test_leftover_cleaning_keeps_an_old_store_that_holds_a_users_file(tmp_path):
+    """A killed run's ``.old`` store is removed only while it holds nothing but what
+    emccdcal wrote; a ``.tmp`` leftover of the same output is removed."""
+    from emccdcal._output import STORE_MARKER, remove_leftovers
+
+    target = tmp_path / "movie.zarr"
+    old = tmp_path / ".movie.zarr.0123456789ab.old"
+    old.mkdir()
+    (old / STORE_MARKER).write_text(json.dumps({"files": [STORE_MARKER]}))
+    (old / "notes.txt").write_text("mine")  # not in the marker's list
+    tmp = tmp_path / ".movie.zarr.0123456789ab.tmp"
+    tmp.write_text("half")
+    remove_leftovers(target)
+    assert (old / "notes.txt").read_text() == "mine"
+    assert not tmp.exists()
+    (old / "notes.txt").unlink()
+    remove_leftovers(target)
+    assert not old.exists()  # only emccdcal's files: its own leftover
+
+
+def test_writing_a_result_never_touches_a_file_beside_it(tmp_path):
+    from emccdcal._output import write_netcdf
+
+    import xarray as xr
+
+    ds = xr.Dataset({"x": ("a", np.arange(3.0))})
+    path = tmp_path / "calibration.nc"
+    beside = tmp_path / "calibration.nc.body"
+    beside.write_text("a user's file")
+    write_netcdf(ds, path)
+    assert beside.read_text() == "a user's file"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.nc", "calibration.nc.body"]
+
+
+def test_the_writable_check_of_a_run_leaves_every_existing_file(tmp_path):
+    from emccdcal.runstore import RunStore
+
+    mine = tmp_path / f".emccdcal-probe-{os.getpid()}"
+    mine.write_text("a user's file")
+    RunStore(tmp_path, {"run": 1})
+    assert mine.read_text() == "a user's file"

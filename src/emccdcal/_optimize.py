@@ -29,28 +29,20 @@ class Optimum:
     x : ndarray, shape (P, F)
         The parameters at the optimum.
     objective : ndarray, shape (P,)
-    grad : ndarray, shape (P, F)
-    info : ndarray, shape (P, F, F)
-        The gradient and information there, as the last accepted evaluation gave them.
+        The objective there.
     done : ndarray of bool, shape (P,)
         Stopped by the decrement or the step size (not by ``max_iter``).
     stuck : ndarray of bool, shape (P,)
         Stopped because no damped step improved the objective.
     iterations : ndarray of int, shape (P,)
         Trial evaluations made for the row.
-    extra : list
-        The rows' extra values of the evaluation (whatever ``evaluate`` returned after
-        the information), updated with the accepted trials.
     """
 
     x: np.ndarray
     objective: np.ndarray
-    grad: np.ndarray
-    info: np.ndarray
     done: np.ndarray
     stuck: np.ndarray
     iterations: np.ndarray
-    extra: list
 
 
 def solve(A, b):
@@ -72,9 +64,8 @@ def maximize(evaluate, x0, *, lower, upper, tol, max_iter=100, max_step=1.0,
     ----------
     evaluate : callable
         ``evaluate(rows, x)`` for row indices ``rows`` (n,) at parameters ``x`` (n, F):
-        ``(objective (n,), grad (n, F), info (n, F, F), *extra)``, ``info`` positive
-        semi-definite (observed, or the outer product of the scores); ``extra`` arrays
-        of n rows (e.g. the scores a caller keeps) follow the accepted trials.
+        ``(objective (n,), grad (n, F), info (n, F, F))``, ``info`` positive
+        semi-definite (observed, or the outer product of the scores).
     x0 : ndarray, shape (P, F)
         Start; clipped to the bounds.
     lower, upper : array_like, shape (F,) or (P, F)
@@ -107,8 +98,7 @@ def maximize(evaluate, x0, *, lower, upper, tol, max_iter=100, max_step=1.0,
     iterations = np.zeros(P, dtype=int)
     done = np.zeros(P, dtype=bool)
     stuck = np.zeros(P, dtype=bool)
-    obj, grad, info, *extra = evaluate(np.arange(P), x)
-    extra = [np.array(e, copy=True) for e in extra]
+    obj, grad, info = evaluate(np.arange(P), x)
     eye = np.eye(F)
     for _ in range(max_iter):
         active = np.flatnonzero(~done)
@@ -143,8 +133,6 @@ def maximize(evaluate, x0, *, lower, upper, tol, max_iter=100, max_step=1.0,
             x[idx] = x_new[better]
             obj[idx] = res[0][better]
             grad[idx], info[idx] = res[1][better], res[2][better]
-            for e, new in zip(extra, res[3:]):
-                e[idx] = new[better]
             damping[idx] = np.maximum(damping[idx] / 10.0, 1e-12)
             damping[active[~better]] *= 10.0
             iterations[active] += 1
@@ -153,4 +141,4 @@ def maximize(evaluate, x0, *, lower, upper, tol, max_iter=100, max_step=1.0,
         stuck[hopeless] = True
         if progress is not None:
             progress(int(small.sum() + hopeless.size))
-    return Optimum(x, obj, grad, info, done & ~stuck, stuck, iterations, extra)
+    return Optimum(x, obj, done & ~stuck, stuck, iterations)

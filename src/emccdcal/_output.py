@@ -189,10 +189,12 @@ def _is_our_store(folder: Path) -> bool:
 
 
 def _remove_ours(path: Path) -> None:
-    """Remove a temporary file, or a temporary store (``.partial``, ``.old``) of this
-    module; a directory of any other name is left alone."""
+    """Remove a temporary file, or a temporary store of this module: a ``.partial`` (the
+    content a run was writing) or an ``.old`` that still holds only what emccdcal wrote
+    (the store it replaced); a directory of any other name or content is left alone."""
     if path.is_dir() and not path.is_symlink():
-        if re.search(r"\.[0-9a-f]{12}\.(partial|old)$", path.name):
+        kind = re.search(r"\.[0-9a-f]{12}\.(partial|old)$", path.name)
+        if kind and (kind.group(1) == "partial" or _is_our_store(path)):
             shutil.rmtree(path, ignore_errors=True)
     else:
         path.unlink(missing_ok=True)
@@ -542,7 +544,9 @@ def write_netcdf(ds: xarray.Dataset, path) -> None:
     so a damaged file is refused, never used, and never parsed (a damaged HDF5 header
     can send a reader into an endless loop)."""
     path = Path(path)
-    body = path.with_name(path.name + ".body")  # a temporary name of the same family
+    # A new name of the temporary family of ``path`` (a killed run's is cleaned up by
+    # remove_leftovers): never a file someone else has.
+    body = _temporary(path, "tmp")
     try:
         ds.to_netcdf(body, engine="h5netcdf")
         digest = hashlib.sha256()

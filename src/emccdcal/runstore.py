@@ -25,13 +25,13 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 import re
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from ._output import remove_leftovers, atomic_write, staged
+from ._output import atomic_write, remove_leftovers, staged
 from ._util import one_line
 from .errors import EmccdcalError, OptionError
 
@@ -92,9 +92,9 @@ class RunStore:
     def _check_writable(self) -> None:
         try:
             self.out.mkdir(parents=True, exist_ok=True)
-            probe = self.out / f".emccdcal-probe-{os.getpid()}"
-            probe.write_bytes(b"")
-            probe.unlink()
+            # A new file of a name nobody has (created exclusively, removed on closing).
+            with tempfile.TemporaryFile(dir=self.out):
+                pass
         except OSError as exc:
             raise EmccdcalError(f"{self.out}: cannot write the output directory: "
                                 f"{one_line(exc)}") from None

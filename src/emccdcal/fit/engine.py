@@ -267,11 +267,12 @@ def _acquisition_terms(acq, coords, level, map_cross=False, live=None):
     if level == 0:
         return loglik, None, None, n_floored, None
     P, L = acq.values.shape[0], kept.size
-    factor = np.stack([values[i] for i in kept] + [np.zeros(P)], axis=1)[:, :L]  # dλ/d ln λ
+    # (P, L) columns, also for L = 0 (a layout that moves none of this acquisition's)
+    columns = lambda arrays: np.asarray(arrays, dtype=float).reshape(L, P).T  # noqa: E731
+    factor = columns([values[i] for i in kept])  # d λ / d ln λ
     w = np.where(low, 0.0, acq.counts / pv)
     scores = [model.scores[nm] for nm in names]
-    grad_k = np.stack([np.sum(w * s, axis=1) for s in scores[:L]] + [np.zeros(P)],
-                      axis=1)[:, :L] * factor
+    grad_k = columns([np.sum(w * s, axis=1) for s in scores[:L]]) * factor
     # Outer products of the per-frame scores (BHHH): a positive semi-definite estimate of
     # the information from the data points alone, cheap because the histogram is short.
     ws = [w * s / pv for s in scores]

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import _engine
-from ._gamma import GammaRows
+from ._gamma import GammaRows, band_limit
 from .cascade import (
     excess_noise_factor,
     gain_from_gain_f2,
@@ -127,8 +127,6 @@ class CascadeRows:
             m = int(np.ceil(float(w_gauss.max()) * n / (2.0 * np.pi))) + 2
             return min(m, full)
         pn = np.zeros(E_t.shape, dtype=bool)
-        from ._gamma import band_limit
-
         return int(band_limit(0.5 * E_t, theta_t, sigma, pn, n, level=40.0).max())
 
     def saddlepoint(self, k, S0, sigma):

@@ -110,8 +110,7 @@ class GammaRows:
 
     def tail(self, k, S0, sigma, grad=False):
         """log f(k) by quadrature (:func:`quadrature_logpdf`), one row per query."""
-        lf, d = quadrature_logpdf(k, self.E, self.scale, S0, sigma, grad)
-        return lf, d
+        return quadrature_logpdf(k, self.E, self.scale, S0, sigma, grad)
 
 
 def band_limit(E, scale, sigma, pn, n, level=80.0):
