@@ -347,7 +347,7 @@ def test_residual_is_per_unit_intensity_of_the_frames_it_averages():
     params[0, :, 3] = [1000.0] * 5 + [1e-3] * 5
     fit = bead_fit.BeadFits(positions=np.array([[10, 10]]), params=params,
                             se=np.ones((B, F, 5)), loglik=np.zeros((B, F)),
-                            converged=np.ones((B, F), bool), iterations=1, retabulated=0,
+                            converged=np.ones((B, F), bool), iterations=np.ones((B, 3), int), retabulated=0,
                             n_saturated=0, residual=np.full((B, n, n), 10.0),
                             residual_se=np.full((B, n, n), 1.0),
                             intensity_offset_se=np.zeros(B))

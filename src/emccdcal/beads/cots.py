@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._optimize import maximize
 from ..errors import OptionError
 from ..model import psf
 
@@ -125,7 +126,7 @@ def _to_params(q: np.ndarray) -> np.ndarray:
     return p
 
 
-def gaussian_mask_fit(roi, *, width=DEFAULT_WIDTH, init=None, max_iter=200, tol=1e-10):
+def gaussian_mask_fit(roi, *, width=DEFAULT_WIDTH, init=None, max_iter=200, tol=1e-12):
     """Unweighted least-squares fit of a pixel-integrated Gaussian spot to every frame.
 
     The Gaussian-mask estimator of COTS (Mortensen & Flyvbjerg 2016, step 1): minimises
@@ -144,7 +145,8 @@ def gaussian_mask_fit(roi, *, width=DEFAULT_WIDTH, init=None, max_iter=200, tol=
     max_iter : int
         Most Levenberg–Marquardt iterations.
     tol : float
-        Stop when the relative decrease of the residual sum of squares is below this.
+        Stop when the next step promises to lower the residual sum of squares by less
+        than this fraction of it.
 
     Returns
     -------
@@ -173,41 +175,16 @@ def gaussian_mask_fit(roi, *, width=DEFAULT_WIDTH, init=None, max_iter=200, tol=
         j[:, :, 2:] *= 2.0 * qq[:, None, 2:]  # dθ/dq = 2q for the square-rooted ones
         return e.reshape(len(qq), -1), j
 
-    e, j = model(q, True)
-    ssr = np.sum((flat - e) ** 2, axis=1)
-    lam = np.full(F, 1e-3)
-    active = np.isfinite(ssr)
-    done = np.zeros(F, bool)
-    eye = np.eye(5)
-    for _ in range(max_iter):
-        idx = np.flatnonzero(active & ~done)
-        if idx.size == 0:
-            break
-        ja, ra = j[idx], flat[idx] - e[idx]
-        jtj = np.einsum("fni,fnk->fik", ja, ja)
-        grad = np.einsum("fni,fn->fi", ja, ra)
-        diag = np.einsum("fii->fi", jtj)
-        damp = jtj + lam[idx, None, None] * (diag[:, :, None] * eye + 1e-12 * eye)
-        try:
-            step = np.linalg.solve(damp, grad[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            step = np.stack([np.linalg.lstsq(d, g, rcond=None)[0] for d, g in zip(damp, grad)])
-        trial = q[idx] + step
-        et = model(trial, False)
-        st = np.sum((flat[idx] - et) ** 2, axis=1)
-        better = np.isfinite(st) & (st <= ssr[idx])
-        rel = (ssr[idx] - st) / np.maximum(ssr[idx], 1e-300)
-        acc = idx[better]
-        if acc.size:
-            q[acc] = trial[better]
-            e_acc, j_acc = model(q[acc], True)
-            e[acc], j[acc] = e_acc, j_acc
-            ssr[acc] = st[better]
-            lam[acc] = np.maximum(lam[acc] / 10.0, 1e-12)
-            done[acc[rel[better] < tol]] = True
-        rej = idx[~better]
-        lam[rej] *= 10.0
-        done[rej[lam[rej] > 1e12]] = True  # no step lowers the SSR: at a minimum
+    def evaluate(idx, qq):  # −½ SSR, its gradient Jᵀr and Gauss–Newton's JᵀJ
+        e, j = model(qq, True)
+        r = flat[idx] - e
+        return (-0.5 * np.sum(r * r, axis=1), np.einsum("fni,fn->fi", j, r),
+                np.einsum("fni,fnk->fik", j, j))
+
+    unbounded = np.full(5, np.inf)
+    opt = maximize(evaluate, q, lower=-unbounded, upper=unbounded, tol=0.0, rtol=tol,
+                   max_iter=max_iter, max_step=np.inf, accept_rtol=0.0)
+    q, ssr, done = opt.x, -2.0 * opt.objective, opt.done
     params = _to_params(q)
     e, jac = psf.spot_image(params, rows, cols, jacobian=True)
     converged = (done & np.all(np.isfinite(params), axis=1) & (params[:, 2] > 0)
@@ -281,9 +258,10 @@ def fit_variance_model(counts, expected, *, leverage=None, gain0=None, offset0=N
     """Fit COTS's variance model to every frame: ``v_i = 2·G·(E_i − S0)``.
 
     Minimises ``L(G, H) = Σ_i [ln v_i + (S_i − E_i)²/v_i]`` with ``v_i = 2 (G·E_i − H)``
-    (H = G·S0; the Gaussian approximation of the pixel likelihood, docs/cots.md; Mortensen & Flyvbjerg 2016 step 4) by
-    Fisher scoring with step halving, vectorised over frames. L is the objective of the
-    Nelder–Mead search of the COTS software; any optimiser finds the same minimum.
+    (H = G·S0; the Gaussian approximation of the pixel likelihood, docs/cots.md;
+    Mortensen & Flyvbjerg 2016 step 4) by damped Fisher scoring, vectorised over frames.
+    L is the objective of the Nelder–Mead search of the COTS software; any optimiser
+    finds the same minimum.
 
     Parameters
     ----------
@@ -298,7 +276,8 @@ def fit_variance_model(counts, expected, *, leverage=None, gain0=None, offset0=N
     max_iter : int
         Most Fisher-scoring iterations.
     tol : float
-        Stop when the Newton decrement is below this.
+        Stop when the Newton decrement ``∇ᵀI⁻¹∇`` (the fall of L still to come, ×2) is
+        below this.
 
     Returns
     -------
@@ -311,41 +290,24 @@ def fit_variance_model(counts, expected, *, leverage=None, gain0=None, offset0=N
     r2 = (s - e) ** 2
     lev = np.zeros_like(e) if leverage is None else np.asarray(leverage, float)
     alpha = _start(r2, e, lev, gain0, offset0)
-    obj, v = _objective(alpha, r2, e)
-    done = ~np.isfinite(obj)
-    conv = np.zeros(len(e), bool)
-    for _ in range(max_iter):
-        idx = np.flatnonzero(~done)
-        if idx.size == 0:
-            break
-        vi, ei, ri = v[idx], e[idx], r2[idx]
-        h0 = 1.0 / vi - ri / vi**2
-        grad = np.stack([np.sum(h0 * 2 * ei, axis=1), np.sum(h0 * -2.0, axis=1)], axis=1)
-        w = 1.0 / vi**2
-        fish = np.empty((idx.size, 2, 2))  # expected Hessian: always positive definite
+
+    def evaluate(idx, a):  # −L, its gradient and the expected information (Fisher scoring)
+        obj, v = _objective(a, r2[idx], e[idx])
+        ei = e[idx]
+        h0 = 1.0 / v - r2[idx] / v**2
+        grad = -np.stack([np.sum(h0 * 2 * ei, axis=1), np.sum(h0 * -2.0, axis=1)], axis=1)
+        w = 1.0 / v**2
+        fish = np.empty((len(idx), 2, 2))  # always positive definite
         fish[:, 0, 0] = np.sum(w * 4 * ei**2, axis=1)
         fish[:, 0, 1] = fish[:, 1, 0] = np.sum(w * -4 * ei, axis=1)
         fish[:, 1, 1] = np.sum(w * 4.0, axis=1)
-        step = -np.einsum("fij,fj->fi", _inv2(fish), grad)
-        decrement = -np.sum(step * grad, axis=1)
-        t = np.ones(idx.size)
-        accepted = np.zeros(idx.size, bool)
-        for _half in range(50):
-            pend = np.flatnonzero(~accepted)
-            if pend.size == 0:
-                break
-            trial = alpha[idx[pend]] + t[pend, None] * step[pend]
-            ot, vt = _objective(trial, ri[pend], ei[pend])
-            good = ot <= obj[idx[pend]] + 1e-12 * np.abs(obj[idx[pend]])
-            g_idx = pend[good]
-            alpha[idx[g_idx]] = trial[good]
-            obj[idx[g_idx]] = ot[good]
-            v[idx[g_idx]] = vt[good]
-            accepted[g_idx] = True
-            t[pend[~good]] *= 0.5
-        finished = np.isfinite(decrement) & (decrement < tol)
-        conv[idx[finished]] = True
-        done[idx[finished | ~accepted | ~np.isfinite(decrement)]] = True
+        return -obj, grad, fish
+
+    unbounded = np.full(2, np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):  # trials outside v > 0
+        opt = maximize(evaluate, alpha, lower=-unbounded, upper=unbounded, tol=0.5 * tol,
+                       max_iter=max_iter, max_step=np.inf)
+    alpha, obj, conv = opt.x, -opt.objective, opt.done
     conv &= np.all(np.isfinite(alpha), axis=1) & (alpha[:, 0] > 0) & np.isfinite(obj)
     return alpha, conv
 

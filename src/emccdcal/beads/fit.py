@@ -61,8 +61,8 @@ All beads and frames of an acquisition are fitted together, as arrays of shape
    interpolation error is below 1e-7 nats (tested against :func:`emccdcal.model.noise.logpmf`).
    The joint fit then maximises the exact likelihood: Newton steps on each whole bead,
    its Hessian an arrow (shared parameters against every frame's own block) solved by
-   eliminating the frames' blocks (the Schur complement), Levenberg–Marquardt damping on
-   the shared part. If a frame ends with a pixel outside its tabulated range, the range
+   eliminating the frames' blocks (the Schur complement), with the damping of the
+   package's one optimizer (:func:`emccdcal._optimize.maximize`). If a frame ends with a pixel outside its tabulated range, the range
    is widened, that pixel re-tabulated and the bead refitted.
 3. **Standard errors** from the Gauss–Newton information
    ``Σ_k (−∂² ln p/∂E²)_k ∇E_k ∇E_kᵀ`` at the optimum (its expectation is the Fisher
@@ -84,6 +84,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._optimize import maximize
 from ..errors import OptionError
 from ..model import noise, psf
 
@@ -109,8 +110,8 @@ _NP = len(psf.PARAMETERS)
 _MIN_INTENSITY = 1e-3
 #: Frames fitted per batch: bounds the memory of the Jacobians (~1 kB per frame and pixel).
 _BATCH_FRAMES = 4096
-#: A fit that no step improves any more counts as converged if its Newton decrement (the
-#: log-likelihood still to gain, ×2) is below this (nats): far below statistical noise.
+#: A fit that no step improves any more counts as converged if an undamped step would gain
+#: less than this (nats): far below statistical noise, at the exact table's round-off.
 _STUCK_DECREMENT = 1e-3
 
 
@@ -134,8 +135,9 @@ class BeadFits:
         Maximised log-likelihood of each bead's box in each frame (nats).
     converged : ndarray of bool, shape (B, F)
         The fit converged inside the box with a usable information matrix.
-    iterations : int
-        Newton iterations of the exact joint fit (largest over beads).
+    iterations : ndarray of int, shape (B, 3)
+        Each bead's optimizer iterations in the three stages: its mean image, the joint
+        fit of the Gaussian approximation, the exact joint fit (refits included).
     retabulated : int
         Pixels whose table range had to be widened after the first exact fit.
     n_saturated : int
@@ -158,7 +160,7 @@ class BeadFits:
     se: np.ndarray
     loglik: np.ndarray
     converged: np.ndarray
-    iterations: int
+    iterations: np.ndarray
     retabulated: int
     n_saturated: int
     residual: np.ndarray
@@ -247,89 +249,13 @@ def _gaussian_terms(E, y, var_read, f2, var_scale=1.0):
 
 
 # --------------------------------------------------------------------------------------
-# Levenberg–Marquardt over many small problems at once
+# The optimizer over many small problems at once
 # --------------------------------------------------------------------------------------
 def _lower_upper(half_size):
     h = half_size + 0.5
     lower = np.array([-h, -h, 0.3, _MIN_INTENSITY, 0.0])
     upper = np.array([h, h, 3.0 * half_size, np.inf, np.inf])
     return lower, upper
-
-
-def _solve(H, g, lam, free=None):
-    """Marquardt step ``(H + λ·diag(H) + ε·I)⁻¹ g`` for a batch of 5×5 systems.
-
-    ``free`` (m, 5) bool: parameters held at a bound are left out (their step is 0).
-    """
-    if free is not None:
-        fixed = ~free
-        H = np.where(fixed[:, :, None] | fixed[:, None, :], 0.0, H)
-        H = H + fixed[:, :, None] * np.eye(_NP)
-        g = np.where(free, g, 0.0)
-    diag = np.einsum("mii->mi", H)
-    ridge = lam[:, None] * diag + 1e-12 * (1.0 + diag.max(axis=1, keepdims=True))
-    A = H + ridge[:, :, None] * np.eye(_NP)
-    try:
-        return np.linalg.solve(A, g[..., None])[..., 0]
-    except np.linalg.LinAlgError:
-        return np.einsum("mij,mj->mi", np.linalg.pinv(A), g)
-
-
-def _free(p, grad, lower, upper):
-    """Parameters not held at a bound by a gradient pointing out of the feasible box."""
-    at_lo = (p <= lower + 1e-12 * (1.0 + np.abs(lower))) & (grad < 0)
-    finite = np.isfinite(upper)
-    at_hi = finite & (p >= np.where(finite, upper, 0.0) * (1 - 1e-12) - 1e-12) & (grad > 0)
-    return ~(at_lo | at_hi)
-
-
-def _levenberg_marquardt(objective, p0, lower, upper, *, tol, max_iter):
-    """Maximise ``objective`` for every row of ``p0`` (M, 5) at once.
-
-    ``objective(p, sel)`` returns ``ll (m,)``, ``grad (m, 5)`` and a positive
-    semi-definite curvature ``H (m, 5, 5)`` for the rows ``sel`` at parameters ``p``.
-    A row is done when an accepted step leaves a Newton decrement ``gᵀH⁻¹g`` below
-    ``tol`` (nats). Returns the parameters, the log-likelihoods, convergence flags and
-    the number of iterations.
-    """
-    p = p0.copy()
-    M = p.shape[0]
-    todo = np.ones(M, bool)
-    converged = np.zeros(M, bool)
-    ll, grad, H = _evaluate_rows(objective, p, np.arange(M))
-    lam = np.full(M, 1e-3)
-    bad = ~np.isfinite(ll)
-    todo &= ~bad
-    it = 0
-    while todo.any() and it < max_iter:
-        it += 1
-        sel = np.flatnonzero(todo)
-        for a in range(0, sel.size, _BATCH_FRAMES):
-            s = sel[a:a + _BATCH_FRAMES]
-            step = _solve(H[s], grad[s], lam[s], _free(p[s], grad[s], lower, upper))
-            trial = np.clip(p[s] + step, lower, upper)
-            ll_t, g_t, H_t = objective(trial, s)
-            ok = np.isfinite(ll_t) & (ll_t >= ll[s] - 1e-10 * np.abs(ll[s]))
-            acc = s[ok]
-            p[acc], ll[acc], grad[acc], H[acc] = trial[ok], ll_t[ok], g_t[ok], H_t[ok]
-            lam[acc] = np.maximum(lam[acc] / 4.0, 1e-9)
-            lam[s[~ok]] *= 8.0
-            if acc.size:
-                free = _free(p[acc], grad[acc], lower, upper)
-                dec = np.einsum("mi,mi->m", np.where(free, grad[acc], 0.0),
-                                _solve(H[acc], grad[acc], 0.0 * lam[acc], free))
-                done = np.abs(dec) < tol
-                converged[acc[done]] = True
-                todo[acc[done]] = False
-            # No step improves any more: the optimum up to round-off if little is left.
-            stuck = s[~ok][lam[s[~ok]] > 1e12]
-            if stuck.size:
-                free = _free(p[stuck], grad[stuck], lower, upper)
-                dec = np.einsum("mi,mi->m", np.where(free, grad[stuck], 0.0),
-                                _solve(H[stuck], grad[stuck], 0.0 * lam[stuck], free))
-                converged[stuck] = np.abs(dec) < _STUCK_DECREMENT
-                todo[stuck] = False
-    return p, ll, converged, it
 
 
 def _evaluate_rows(objective, p_rows, rows):
@@ -344,103 +270,140 @@ def _evaluate_rows(objective, p_rows, rows):
     return ll, grad, H
 
 
-def _schur(g, H, free_f, shared, frame, free_s=None):
-    """The joint Newton system of a bead, reduced to its shared parameters.
+def _fit_rows(objective, p0, lower, upper, *, tol, max_iter):
+    """Maximise ``objective`` for every row of ``p0`` (M, 5) on its own.
+
+    ``objective(p, rows)`` returns ``ll (m,)``, ``grad (m, 5)`` and a positive
+    semi-definite curvature ``H (m, 5, 5)``. Returns the parameters and the per-row
+    iterations.
+    """
+    opt = maximize(lambda rows, p: _evaluate_rows(objective, p, rows), p0, lower=lower,
+                   upper=upper, tol=tol, max_iter=max_iter, max_step=np.inf,
+                   accept_rtol=1e-10, stuck_tol=_STUCK_DECREMENT)
+    return opt.x, opt.iterations
+
+
+def _diagonal_damped(H, damping):
+    """``H + λ·diag H`` for a stack of square matrices and one λ per leading index."""
+    d = np.einsum("...ii->...i", H)
+    return H + (damping.reshape(damping.shape + (1,) * (d.ndim - damping.ndim)) * d)[..., None] \
+        * np.eye(H.shape[-1])
+
+
+def _schur(H, shared, frame, damping=None, free_s=None, free_f=None):
+    """The joint information of a bead, reduced to its shared parameters.
 
     A bead's log-likelihood is a sum over its F frames; each frame has its own parameters
     (``frame``: intensity, and background unless it is shared) and all share ``shared``
-    (position, width). The Hessian is an arrow: eliminating the frames' blocks leaves the
-    Schur complement
-    ``S = H_ss − Σ_f H_sf H_ff⁻¹ H_fs`` and the reduced gradient ``r = g_s − Σ_f H_sf
-    H_ff⁻¹ g_f``. Returns ``S``, ``r``, ``H_ff⁻¹``, ``H_sf``, ``g_f`` and the Newton
-    decrement ``gᵀH⁻¹g = Σ_f g_fᵀH_ff⁻¹g_f + rᵀS⁻¹r`` (nats, ×2).
+    (position, width). The information is an arrow: eliminating the frames' blocks leaves
+    the Schur complement ``S = H_ss − Σ_f H_sf H_ff⁻¹ H_fs``.
+
+    Parameters
+    ----------
+    H : ndarray, shape (b, F, 5, 5)
+        Each frame's information in all five parameters.
+    damping : ndarray, shape (b,), optional
+        Levenberg–Marquardt λ of each bead: ``λ·diag`` added to both blocks.
+    free_s, free_f : ndarray of bool, shapes (b, k) and (b, F, f), optional
+        Parameters not held at a bound (a held one leaves the system).
+
+    Returns
+    -------
+    S : (b, k, k), H_ff⁻¹ : (b, F, f, f), H_sf : (b, F, k, f)
     """
-    fr, eye = list(frame), np.eye(len(frame))
-    gf = np.where(free_f, g[..., fr], 0.0)                       # (b, F, f)
-    Hff = H[..., fr, :][..., fr]                                  # (b, F, f, f)
-    fixed = ~free_f
-    Hff = np.where(fixed[..., :, None] | fixed[..., None, :], 0.0, Hff) \
-        + fixed[..., :, None] * eye
-    Hff = Hff + 1e-12 * (1.0 + np.abs(Hff).max(axis=(-1, -2), keepdims=True)) * eye
+    fr, k = list(frame), len(shared)
+    eye_f, eye_k = np.eye(len(fr)), np.eye(k)
+    Hff = H[..., fr, :][..., fr]
+    Hss = H[..., shared, :][..., shared].sum(axis=1)
+    Hsf = H[..., shared, :][..., fr]
+    if damping is not None:
+        Hff, Hss = _diagonal_damped(Hff, damping), _diagonal_damped(Hss, damping)
+    if free_f is not None:
+        fixed = ~free_f
+        Hff = np.where(fixed[..., :, None] | fixed[..., None, :], 0.0, Hff) \
+            + fixed[..., :, None] * eye_f
+        Hsf = np.where(free_f[..., None, :], Hsf, 0.0)
+    Hff = Hff + 1e-12 * (1.0 + np.abs(Hff).max(axis=(-1, -2), keepdims=True)) * eye_f
     Hff_inv = np.linalg.inv(Hff)
-    Hsf = np.where(free_f[..., None, :], H[..., shared, :][..., fr], 0.0)  # (b, F, k, f)
-    A = Hsf @ Hff_inv
-    S = H[..., shared, :][..., shared].sum(axis=1) - np.einsum("bfkj,bflj->bkl", A, Hsf)
-    r = g[..., shared].sum(axis=1) - np.einsum("bfkj,bfj->bk", A, gf)
-    k = len(shared)
-    if free_s is not None:  # shared parameters held at a bound leave the step
+    S = Hss - np.einsum("bfkj,bflj->bkl", Hsf @ Hff_inv, Hsf)
+    if free_s is not None:
         fixed_s = ~free_s
         S = np.where(fixed_s[:, :, None] | fixed_s[:, None, :], 0.0, S) \
-            + fixed_s[:, :, None] * np.eye(k)
-        r = np.where(free_s, r, 0.0)
-    S = S + 1e-12 * (1.0 + np.abs(S).max(axis=(-1, -2), keepdims=True)) * np.eye(k)
-    dec = np.einsum("bfi,bfij,bfj->b", gf, Hff_inv, gf) \
-        + np.einsum("bi,bi->b", r, np.linalg.solve(S, r[..., None])[..., 0])
-    return S, r, Hff_inv, Hsf, gf, dec
+            + fixed_s[:, :, None] * eye_k
+    S = S + 1e-12 * (1.0 + np.abs(S).max(axis=(-1, -2), keepdims=True)) * eye_k
+    return S, Hff_inv, Hsf
 
 
-def _joint_fit(objective, p, B, F, shared, frame, lower, upper, *, tol, max_iter,
-               active=None):
-    """Maximise every bead's summed log-likelihood over its shared parameters (``shared``:
-    columns of ``p`` equal in all its frames) and each frame's own (``frame``).
+class _BeadLayout:
+    """A bead's parameters as one row of the optimizer: its ``shared`` columns once, then
+    each of its F frames' own ``frame`` columns; the other columns stay as they are."""
 
-    Newton steps on the whole bead at once through the Schur complement
-    (:func:`_schur`), Levenberg–Marquardt damping of the shared part, a step accepted
-    where the bead's log-likelihood does not fall. ``p`` is (B·F, 5), bead-major.
-    Returns the parameters, per-row log-likelihoods, per-bead convergence and iterations.
-    """
-    p = p.copy()
-    fr, nf = list(frame), len(frame)
-    rows_of = np.arange(B * F).reshape(B, F)
-    ll, grad, H = _evaluate_rows(objective, p, rows_of.ravel())
-    todo = np.isfinite(ll.reshape(B, F)).all(axis=1)
-    if active is not None:
-        todo &= active
-    converged = np.zeros(B, bool)
-    lam = np.full(B, 1e-3)
-    it = 0
-    while todo.any() and it < max_iter:
-        it += 1
-        beads = np.flatnonzero(todo)
-        rows = rows_of[beads].ravel()
-        nb = beads.size
-        pb, gb, Hb = p[rows].reshape(nb, F, _NP), grad[rows].reshape(nb, F, _NP), \
-            H[rows].reshape(nb, F, _NP, _NP)
-        free_f = _free(pb[..., fr].reshape(-1, nf), gb[..., fr].reshape(-1, nf),
-                       lower[fr], upper[fr]).reshape(nb, F, nf)
-        free_s = _free(pb[:, 0, shared], gb[..., shared].sum(axis=1), lower[shared],
-                       upper[shared])
-        S, r, Hff_inv, Hsf, gf, dec = _schur(gb, Hb, free_f, shared, fr, free_s)
-        done = dec < tol
-        converged[beads[done]] = True
-        todo[beads[done]] = False
-        go = ~done
-        if not go.any():
-            break
-        beads, rows = beads[go], rows_of[beads[go]].ravel()
-        S, r, Hff_inv, Hsf, gf = S[go], r[go], Hff_inv[go], Hsf[go], gf[go]
-        diag = np.einsum("bii->bi", S)
-        ds = np.linalg.solve(S + (lam[beads, None] * diag)[..., None] * np.eye(len(shared)),
-                             r[..., None])[..., 0]
+    def __init__(self, F, shared, frame, lower, upper):
+        self.F, self.shared, self.frame = F, list(shared), list(frame)
+        self.lower = np.concatenate([lower[self.shared], np.tile(lower[self.frame], F)])
+        self.upper = np.concatenate([upper[self.shared], np.tile(upper[self.frame], F)])
+
+    def pack(self, p):
+        """(b·F, 5) frame rows → (b, k + F·f) bead rows (shared columns from frame 0)."""
+        pb = p.reshape(-1, self.F, _NP)
+        return np.concatenate([pb[:, 0, self.shared],
+                               pb[..., self.frame].reshape(len(pb), -1)], axis=1)
+
+    def unpack(self, x, template):
+        """(b, k + F·f) bead rows into a copy of the (b·F, 5) frame rows ``template``."""
+        k, p = len(self.shared), template.copy()
+        p[:, self.shared] = np.repeat(x[:, :k], self.F, axis=0)
+        p[:, self.frame] = x[:, k:].reshape(len(p), len(self.frame))
+        return p
+
+    def gradient(self, grad):
+        """(b·F, 5) frame gradients → (b, k + F·f)."""
+        gb = grad.reshape(-1, self.F, _NP)
+        return np.concatenate([gb[..., self.shared].sum(axis=1),
+                               gb[..., self.frame].reshape(len(gb), -1)], axis=1)
+
+    def step(self, info, grad, damping, held):
+        """The damped Newton step of whole beads (the optimizer's ``step``): the arrow
+        system solved through its Schur complement, ``info`` each frame's (b, F, 5, 5)."""
+        k, n, f = len(self.shared), len(grad), len(self.frame)
+        held_f = held[:, k:].reshape(n, self.F, f)
+        gs = np.where(held[:, :k], 0.0, grad[:, :k])
+        gf = np.where(held_f, 0.0, grad[:, k:].reshape(n, self.F, f))
+        S, Hff_inv, Hsf = _schur(info, self.shared, self.frame, damping, ~held[:, :k], ~held_f)
+        r = gs - np.einsum("bfkj,bfj->bk", Hsf @ Hff_inv, gf)
+        ds = np.linalg.solve(S, r[..., None])[..., 0]
         df = np.einsum("bfij,bfj->bfi", Hff_inv, gf - np.einsum("bfkj,bk->bfj", Hsf, ds))
-        step = np.zeros((beads.size, F, _NP))
-        step[..., shared] = ds[:, None, :]
-        step[..., fr] = df
-        trial = np.clip(p[rows] + step.reshape(-1, _NP), lower, upper)
-        ll_t, g_t, H_t = _evaluate_rows(objective, trial, rows)
-        old = ll[rows].reshape(-1, F).sum(axis=1)
-        new = ll_t.reshape(-1, F).sum(axis=1)
-        ok = np.isfinite(new) & (new >= old - 1e-10 * np.abs(old))
-        acc = np.isin(rows, rows_of[beads[ok]].ravel())
-        p[rows[acc]], ll[rows[acc]] = trial[acc], ll_t[acc]
-        grad[rows[acc]], H[rows[acc]] = g_t[acc], H_t[acc]
-        lam[beads[ok]] = np.maximum(lam[beads[ok]] / 4.0, 1e-9)
-        lam[beads[~ok]] *= 8.0
-        stuck = beads[~ok][lam[beads[~ok]] > 1e12]
-        if stuck.size:  # no step improves: the optimum up to round-off if little is left
-            converged[stuck] = dec[go][~ok][lam[beads[~ok]] > 1e12] < _STUCK_DECREMENT
-            todo[stuck] = False
-    return p, ll, converged, it
+        return np.concatenate([ds, df.reshape(n, -1)], axis=1)
+
+
+def _joint_fit(objective, p, layout, *, tol, max_iter, beads=None):
+    """Maximise every bead's summed log-likelihood over its shared parameters and each
+    frame's own (``layout``), Newton steps on each whole bead at once.
+
+    ``p`` is (B·F, 5), bead-major; ``beads`` the beads to fit (default all). Returns the
+    parameters, per-bead convergence and per-bead iterations.
+    """
+    F = layout.F
+    B = len(p) // F
+    beads = np.arange(B) if beads is None else np.flatnonzero(beads)
+    rows_of = np.arange(B * F).reshape(B, F)
+    template = p.copy()
+
+    def evaluate(local, x):
+        rows = rows_of[beads[local]].ravel()
+        ll, grad, H = _evaluate_rows(objective, layout.unpack(x, template[rows]), rows)
+        return (ll.reshape(-1, F).sum(axis=1), layout.gradient(grad),
+                H.reshape(-1, F, _NP, _NP))
+
+    opt = maximize(evaluate, layout.pack(p[rows_of[beads].ravel()]), lower=layout.lower,
+                   upper=layout.upper, tol=tol, max_iter=max_iter, max_step=np.inf,
+                   accept_rtol=1e-10, stuck_tol=_STUCK_DECREMENT, step=layout.step)
+    rows = rows_of[beads].ravel()
+    p = p.copy()
+    p[rows] = layout.unpack(opt.x, template[rows])
+    converged, iterations = np.zeros(B, bool), np.zeros(B, int)
+    converged[beads], iterations[beads] = opt.done, opt.iterations
+    return p, converged, iterations
 
 
 # --------------------------------------------------------------------------------------
@@ -570,7 +533,7 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         empty = np.zeros((B, F, _NP))
         none = np.full((B, n, n), np.nan)
         return BeadFits(pos, empty, empty.copy(), np.zeros((B, F)), np.zeros((B, F), bool),
-                        0, 0, 0, none, none.copy(), np.full(B, np.nan))
+                        np.zeros((B, 3), int), 0, 0, none, none.copy(), np.full(B, np.nan))
     counts = np.stack([np.asarray(frames[:, rs, cs]).reshape(F, npix) for rs, cs in boxes])
     counts = counts.astype(np.int64)  # (B, F, npix)
     if counts.min() < 0:
@@ -624,8 +587,8 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         ll, d1, info = _gaussian_terms(E, ybar[s], var_read[s], f2[s], 1.0 / F)
         return ll.sum(axis=1), np.einsum("mk,mki->mi", d1, J), curvature(info, J)
 
-    p_bead, _, _, _ = _levenberg_marquardt(objective_mean, p_bead, lower, upper,
-                                           tol=1e-6, max_iter=max_iter)
+    p_bead, it_mean = _fit_rows(objective_mean, p_bead, lower, upper, tol=5e-7,
+                                max_iter=max_iter)
 
     # ---- 1: every frame, Gaussian approximation, the bead's shape shared ---------------
     # Position, width (and background) are the bead's own, the same in every frame; the
@@ -660,8 +623,8 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         w = w_m[s]
         return (w * ll).sum(axis=1), np.einsum("mk,mki->mi", w * d1, J), curvature(w * info, J)
 
-    p1, _, _, _ = _joint_fit(objective_gauss, p1, B, F, shared, frame, lower, upper, tol=1e-4,
-                             max_iter=max_iter)
+    layout = _BeadLayout(F, shared, frame, lower, upper)
+    p1, _, it_gauss = _joint_fit(objective_gauss, p1, layout, tol=5e-5, max_iter=max_iter)
 
     # ---- 2: exact likelihood through per-pixel tables of ln p(S | E) -------------------
     E1, _ = model(p1, bead_of)
@@ -699,8 +662,7 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
             E_all[s], info_all[s], out_px[s] = E, np.maximum(-d2, 0.0), out & (w_m[s] > 0)
         return E_all, info_all, out_px
 
-    p2, ll2, conv_b, iters = _joint_fit(objective_exact, p1, B, F, shared, frame, lower, upper,
-                                        tol=1e-7, max_iter=max_iter)
+    p2, conv_b, it_exact = _joint_fit(objective_exact, p1, layout, tol=5e-8, max_iter=max_iter)
     retab = 0
     for round_ in range(5):  # at most four refits; the last round only evaluates
         E_all, info_all, out_px = all_terms(p2)
@@ -720,11 +682,10 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         table.set_range(px, new_lo, new_hi)
         retab += px.size
         redo = outside.reshape(B, F).any(axis=1)
-        p2, ll2, conv_r, it_r = _joint_fit(objective_exact, p2, B, F, shared, frame,
-                                           lower, upper,
-                                           tol=1e-7, max_iter=max_iter, active=redo)
+        p2, conv_r, it_r = _joint_fit(objective_exact, p2, layout, tol=5e-8,
+                                      max_iter=max_iter, beads=redo)
         conv_b = np.where(redo, conv_r, conv_b)
-        iters = max(iters, it_r)
+        it_exact = it_exact + it_r
 
     # ---- standard errors from the joint information -----------------------------------
     # A frame's own parameters: conditional on the shared ones (what scatters from frame
@@ -735,7 +696,7 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     fr = frame
     pb, gb, Hb = p2.reshape(B, F, _NP), grad.reshape(B, F, _NP), H.reshape(B, F, _NP, _NP)
     with np.errstate(invalid="ignore", divide="ignore"):
-        S, _, Hff_inv, _, _, _ = _schur(gb, Hb, np.ones((B, F, len(fr)), bool), shared, fr)
+        S, Hff_inv, _ = _schur(Hb, shared, fr)
         se = np.full((B, F, _NP), np.nan)
         var_f = np.einsum("bfii->bfi", Hff_inv)
         se[..., fr] = np.sqrt(np.where(var_f > 0, var_f, np.nan))
@@ -777,7 +738,7 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         se=se,
         loglik=ll2.reshape(B, F),
         converged=converged,
-        iterations=int(iters),
+        iterations=np.stack([it_mean, it_gauss, it_exact], axis=1),
         retabulated=int(retab),
         n_saturated=n_sat,
         residual=np.where(count > 1, r_mean, np.nan).reshape(B, n, n),

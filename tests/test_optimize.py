@@ -1,0 +1,128 @@
+"""The one optimizer: batched damped Newton over independent rows."""
+
+import ast
+import pathlib
+
+import numpy as np
+import pytest
+
+from emccdcal._optimize import dense_step, maximize
+
+SRC = pathlib.Path(__file__).parents[1] / "src" / "emccdcal"
+
+
+def _quadratic(centre, curvature):
+    """Rows ``−½ (x − c)ᵀ A (x − c)``: objective, gradient and information."""
+
+    def evaluate(rows, x):
+        d = x - centre[rows]
+        A = curvature[rows]
+        return (-0.5 * np.einsum("pi,pij,pj->p", d, A, d), -np.einsum("pij,pj->pi", A, d), A)
+
+    return evaluate
+
+
+def test_rows_reach_their_own_maxima_and_stop_on_bounds():
+    rng = np.random.default_rng(0)
+    P = 50
+    centre = rng.normal(0, 3, (P, 3))
+    M = rng.normal(size=(P, 3, 3))
+    curvature = M @ np.swapaxes(M, 1, 2) + 0.5 * np.eye(3)
+    upper = np.array([np.inf, 1.0, np.inf])
+    opt = maximize(_quadratic(centre, curvature), np.zeros((P, 3)), lower=-np.inf,
+                   upper=upper, tol=1e-12, max_step=np.inf)
+    assert opt.done.all() and not opt.stuck.any()
+    # The reference: the same problem by a dense solver with the bound as a constraint.
+    from scipy.optimize import minimize
+
+    for p in range(P):
+        ref = minimize(lambda x: 0.5 * (x - centre[p]) @ curvature[p] @ (x - centre[p]),
+                       np.zeros(3), jac=lambda x: curvature[p] @ (x - centre[p]),
+                       bounds=[(None, None), (None, 1.0), (None, None)], method="L-BFGS-B",
+                       options={"ftol": 1e-15, "gtol": 1e-12})
+        np.testing.assert_allclose(opt.x[p], ref.x, atol=1e-5)
+    held = centre[:, 1] > 1.0
+    assert held.any() and np.all(opt.x[held, 1] == 1.0)
+    # a quadratic is one Newton step away: few iterations, never the limit
+    assert opt.iterations.max() <= 8
+
+
+def test_a_row_without_a_finite_start_is_not_moved_and_stuck():
+    centre, curvature = np.zeros((2, 1)), np.ones((2, 1, 1))
+    good = _quadratic(centre, curvature)
+
+    def evaluate(rows, x):
+        obj, g, info = good(rows, x)
+        obj = np.where(rows == 1, np.nan, obj)
+        return obj, g, info
+
+    opt = maximize(evaluate, np.ones((2, 1)), lower=-np.inf, upper=np.inf, tol=1e-12)
+    assert opt.done.tolist() == [True, False] and opt.stuck.tolist() == [False, True]
+    assert opt.x[1, 0] == 1.0 and opt.iterations[1] == 0
+
+
+def test_stuck_rows_count_as_done_only_below_stuck_tol():
+    # A peak the trials can never beat: every step away from 0 is refused.
+    def evaluate(rows, x):
+        n = len(rows)
+        return -1e-9 * (x[:, 0] != 0), np.ones((n, 1)), np.ones((n, 1, 1))
+
+    # the undamped step there promises ½·1·1 = 0.5
+    for stuck_tol, stuck in ((0.0, True), (1.0, False), (0.1, True)):
+        res = maximize(evaluate, np.zeros((1, 1)), lower=-np.inf, upper=np.inf, tol=1e-12,
+                       accept_rtol=0.0, stuck_tol=stuck_tol, max_step=np.inf)
+        assert res.stuck[0] == stuck and res.done[0] == (not stuck)
+        assert res.x[0, 0] == 0.0
+
+
+def test_rtol_stops_on_a_fraction_of_the_objective():
+    centre, curvature = np.full((1, 1), 1.0), np.ones((1, 1, 1))
+    quad = _quadratic(centre, curvature)
+
+    def offset(rows, x):  # the same quadratic, its objective shifted far from zero
+        obj, g, info = quad(rows, x)
+        return obj - 1e6, g, info
+
+    # the first step promises ½ (of 1e6): stop at once with rtol 1e-3, not with 1e-15
+    assert maximize(offset, np.zeros((1, 1)), lower=-np.inf, upper=np.inf, tol=0.0,
+                    rtol=1e-3).iterations[0] == 0
+    assert maximize(offset, np.zeros((1, 1)), lower=-np.inf, upper=np.inf, tol=0.0,
+                    rtol=1e-15).x[0, 0] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_a_structured_step_gives_the_dense_step():
+    rng = np.random.default_rng(1)
+    M = rng.normal(size=(4, 3, 3))
+    info = M @ np.swapaxes(M, 1, 2) + np.eye(3)
+    grad, damping = rng.normal(size=(4, 3)), np.full(4, 0.1)
+    held = np.zeros((4, 3), bool)
+    held[0, 1] = True
+    calls = []
+
+    def step(i, g, d, h):
+        calls.append(1)
+        return dense_step(i, g, d, h)
+
+    d = dense_step(info, grad, damping, held)
+    assert d[0, 1] == 0.0
+    A = info[1] + 0.1 * np.diag(np.diag(info[1]))
+    np.testing.assert_allclose(d[1], np.linalg.solve(A, grad[1]), rtol=1e-12)
+    centre = rng.normal(size=(4, 3))
+    a = maximize(_quadratic(centre, info), np.zeros((4, 3)), lower=-np.inf, upper=np.inf,
+                 tol=1e-12, step=step, max_step=np.inf)
+    np.testing.assert_allclose(a.x, centre, atol=1e-6)
+    assert calls
+
+
+def test_one_newton_loop_in_the_package():
+    """Only the optimizer raises and lowers a damping: no module keeps its own loop."""
+    loops = []
+    for path in SRC.rglob("*.py"):
+        if path.name == "_optimize.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.AugAssign) and isinstance(node.op, (ast.Mult, ast.Div)):
+                target = ast.unparse(node.target)
+                if any(w in target for w in ("lam", "damp", "mu[")):
+                    loops.append(f"{path.relative_to(SRC)}:{node.lineno} {target}")
+    assert not loops, loops
