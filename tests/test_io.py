@@ -290,6 +290,43 @@ def test_no_acquisition_and_wrong_table_kind(files):
     assert "[[acquisition]]" in error_of(write(files, text))
 
 
+def test_parsing_opens_no_data_file_and_gives_frozen_entries(files, monkeypatch):
+    """The manifest in two steps: parse (keys, types, ranges) touches only the TOML file;
+    resolve opens the stacks and maps."""
+    import dataclasses
+
+    path = write(files, GOOD.replace("data/", "elsewhere/"))
+    opened = []
+    real_open = Path.open
+
+    def spy(self, *args, **kwargs):
+        opened.append(self.name)
+        return real_open(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "open", spy)
+    entries = manifest_module.parse_manifest(path)
+    assert set(opened) <= {"manifest.toml"}
+    monkeypatch.undo()
+    assert [a.em_gain_setpoint for a in entries.acquisitions] == [1.0, 5.0]
+    assert entries.acquisitions[1].skip_frames == 4 and entries.acquisitions[0].skip_frames == 0
+    assert entries.acquisitions[1].dark_path == files / "elsewhere/dark5x.tif"
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        entries.acquisitions[0].skip_frames = 3
+    # the files are looked for only when the entries are resolved
+    with pytest.raises(ManifestError, match="frames file not found: 'elsewhere/1x.tif'"):
+        manifest_module.resolve_manifest(entries)
+    ok = manifest_module.resolve_manifest(manifest_module.parse_manifest(write(files, GOOD)))
+    assert ok.shape == SHAPE and ok.acquisitions[1].n_frames == N_FRAMES - 4
+
+
+def test_the_key_table_gives_the_allowed_keys_and_defaults():
+    keys = {k.name: k for k in manifest_module._ACQUISITION_KEYS}
+    assert tuple(keys) == manifest_module.ACQUISITION_KEYS
+    assert keys["skip_frames"].default == 0 and keys["offset"].unit == "ADU"
+    assert keys["frames"].missing and keys["em_gain_setpoint"].missing
+    assert keys["dark_frames"].problem(1) and keys["dark_frames"].problem(2) is None
+
+
 def test_missing_frames_file_names_written_and_resolved_path(files):
     path = write(files, ONE_1X.replace("data/1x.tif", "data/missing.tif"))
     msg = error_of(path)

@@ -17,7 +17,9 @@ import difflib
 import hashlib
 import math
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -46,8 +48,12 @@ from .stacks import (
 
 __all__ = [
     "Acquisition",
+    "AcquisitionEntry",
     "Manifest",
+    "ManifestEntries",
+    "parse_manifest",
     "read_manifest",
+    "resolve_manifest",
     "TOP_LEVEL_KEYS",
     "ACQUISITION_KEYS",
 ]
@@ -55,23 +61,6 @@ __all__ = [
 #: The camera settings that identify a camera's read-out state (a calibration holds for
 #: that state only), recorded in results as ``attrs["camera"]``.
 CAMERA_IDENTITY = ("serial", "model", "readout_rate_mhz", "analog_gain", "adc_bits")
-
-#: Keys allowed at the top level of a manifest.
-TOP_LEVEL_KEYS = ("e_per_adu", "adc_bits", "origin", "em_model", "register_stages",
-                  "acquisition")
-#: Keys allowed in an ``[[acquisition]]`` table.
-ACQUISITION_KEYS = (
-    "frames",
-    "em_gain_setpoint",
-    "offset",
-    "read_noise",
-    "dark",
-    "level",
-    "skip_frames",
-    "name",
-    "dark_frames",
-)
-
 
 # --------------------------------------------------------------------------------------
 # Data classes
@@ -216,7 +205,7 @@ def _origin(r, written, recorded: set, shape):
     if written is not None:
         if recorded and tuple(written) not in recorded:
             warnings.warn(f"{r.path}: origin = {list(written)}, but the files record "
-                          f"{list(next(iter(recorded)))}; the manifest's is used", stacklevel=3)
+                          f"{list(next(iter(recorded)))}; the manifest's is used", stacklevel=5)
         return tuple(int(v) for v in written)
     return next(iter(recorded)) if recorded else None
 
@@ -235,8 +224,21 @@ def _region_text(origin, shape) -> str:
 
 
 # --------------------------------------------------------------------------------------
-# The manifest
+# Step 1: parse (the TOML file to frozen entries; no other file is opened)
 # --------------------------------------------------------------------------------------
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _is_int(value, low=None, high=None) -> bool:
+    return (isinstance(value, int) and not isinstance(value, bool)
+            and (low is None or value >= low) and (high is None or value <= high))
+
+
+def _is_path(value) -> bool:
+    return isinstance(value, str) and bool(value.strip())
+
+
 #: Requirements on map-valued keys: (positive, nonnegative).
 _MAP_RULES = {
     "offset": (False, True),
@@ -245,8 +247,103 @@ _MAP_RULES = {
 }
 
 
-def _is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
+def _map_problem(key: str, value) -> str | None:
+    """A map-valued key holds a path (string) or a number within its range."""
+    positive, nonnegative = _MAP_RULES[key]
+    if isinstance(value, str):
+        if not value.strip():
+            return f"'{key}' is an empty path"
+        try:
+            number = float(value)
+        except ValueError:
+            return None
+        return (f"{key} = \"{value}\" is a string, which names a map file; write the "
+                f"number without quotes: {key} = {number:g}")
+    if not _is_number(value):
+        return f"'{key}' must be a number or the path of a (rows, cols) map, got {value!r}"
+    if not math.isfinite(value):
+        return f"'{key}' must be finite, got {value!r}"
+    if positive and value <= 0:
+        return f"'{key}' must be > 0, got {value!r}"
+    if nonnegative and value < 0:
+        return f"'{key}' must be >= 0, got {value!r}"
+    return None
+
+
+def _setpoint_problem(g) -> str | None:
+    if not _is_number(g) or not math.isfinite(g):
+        return f"'em_gain_setpoint' must be a number >= 1, got {g!r}"
+    if g < 1:
+        return f"'em_gain_setpoint' must be >= 1 (1 means no EM multiplication), got {g!r}"
+    return None
+
+
+@dataclass(frozen=True)
+class _Key:
+    """One key of the manifest: its unit, its default and what is wrong with a value.
+
+    ``problem(value)`` returns the message for a bad value, or None; ``missing`` is the
+    message when a required key is absent (None: optional, ``default`` then).
+    """
+
+    name: str
+    unit: str
+    default: object = None
+    problem: Callable[[object], str | None] = field(default=lambda value: None, repr=False)
+    missing: str | None = None
+
+
+#: The keys of a manifest's top level (docs/manifest.md).
+_TOP_KEYS = (
+    _Key("e_per_adu", "e-/ADU", problem=partial(_map_problem, "e_per_adu")),
+    _Key("adc_bits", "bit", problem=lambda v: None if _is_int(v, 1, 32) else
+         f"adc_bits must be an integer from 1 to 32, got {v!r}"),
+    _Key("origin", "pixel", problem=lambda v: None if (
+        isinstance(v, list) and len(v) == 2 and all(_is_int(x, 0) for x in v)) else
+        f"origin must be [row, col], the sensor pixel of the stacks' first pixel "
+        f"(integers >= 0), got {v!r}"),
+    _Key("em_model", "", problem=lambda v: None if v in _em_models() else
+         f"em_model must be one of {', '.join(repr(m) for m in _em_models())}, got {v!r}"),
+    _Key("register_stages", "stages", problem=lambda v: None if _is_int(v, 1, 100000) else
+         f"register_stages must be a whole number of stages (e.g. 536 or 604), got {v!r}"),
+    _Key("acquisition", "", missing="no [[acquisition]] table; a manifest lists at least "
+         "one acquisition", problem=lambda v: None if (
+             isinstance(v, list) and all(isinstance(e, dict) for e in v)) else
+         "'acquisition' must be an array of tables: write each one as [[acquisition]]"),
+)
+
+#: The keys of an ``[[acquisition]]`` table (docs/manifest.md).
+_ACQUISITION_KEYS = (
+    _Key("frames", "", missing="missing 'frames' (the path of the stack of raw counts)",
+         problem=lambda v: None if _is_path(v) else f"'frames' must be a path, got {v!r}"),
+    _Key("em_gain_setpoint", "", problem=_setpoint_problem,
+         missing="missing 'em_gain_setpoint' (the camera's EM gain setting, >= 1)"),
+    _Key("offset", "ADU", problem=partial(_map_problem, "offset")),
+    _Key("read_noise", "ADU", problem=partial(_map_problem, "read_noise")),
+    _Key("dark", "", problem=lambda v: None if _is_path(v) else
+         f"'dark' must be the path of a dark stack, got {v!r}"),
+    _Key("level", "", problem=lambda v: None if isinstance(v, (str, int))
+         and not isinstance(v, bool) else
+         f"'level' must be a string label (e.g. \"L3\"), got {v!r}"),
+    _Key("skip_frames", "frames", default=0, problem=lambda v: None if _is_int(v, 0) else
+         f"'skip_frames' must be an integer >= 0, got {v!r}"),
+    _Key("name", "", problem=lambda v: None if _is_path(v) else
+         f"'name' must be a non-empty string, got {v!r}"),
+    _Key("dark_frames", "frames", problem=lambda v: None if _is_int(v, 2) else
+         f"'dark_frames' (the number of dark frames the maps were computed from) must "
+         f"be an integer >= 2, got {v!r}"),
+)
+
+#: Keys allowed at the top level of a manifest.
+TOP_LEVEL_KEYS = tuple(k.name for k in _TOP_KEYS)
+#: Keys allowed in an ``[[acquisition]]`` table.
+ACQUISITION_KEYS = tuple(k.name for k in _ACQUISITION_KEYS)
+
+
+def _em_models():
+    from ..model.noise import EM_MODELS
+
+    return EM_MODELS
 
 
 def _unknown_key_message(key: str, allowed) -> str:
@@ -256,7 +353,7 @@ def _unknown_key_message(key: str, allowed) -> str:
 
 
 class _Reader:
-    """The state of one :func:`read_manifest` call: messages name the manifest."""
+    """Messages naming one manifest, and its relative paths resolved."""
 
     def __init__(self, path: Path):
         self.path = path
@@ -272,15 +369,173 @@ class _Reader:
         p = Path(written).expanduser()
         return p if p.is_absolute() else self.base / p
 
+    def table(self, table: dict, keys, entry: int | None = None, label: str = "") -> dict:
+        """Every key of ``keys`` in ``table``: unknown keys, missing required ones and bad
+        values refused; absent optional ones given their default."""
+        allowed = tuple(k.name for k in keys)
+        for name in table:
+            if name not in allowed:
+                raise self.error(_unknown_key_message(name, allowed), entry, label)
+        values = {}
+        for key in keys:
+            if key.name not in table:
+                if key.missing is not None:
+                    raise self.error(key.missing, entry, label)
+                values[key.name] = key.default
+                continue
+            problem = key.problem(table[key.name])
+            if problem is not None:
+                raise self.error(problem, entry, label)
+            values[key.name] = table[key.name]
+        return values
 
+
+@dataclass(frozen=True)
+class AcquisitionEntry:
+    """One ``[[acquisition]]`` table as written, checked; nothing read.
+
+    ``offset`` and ``read_noise`` are a number (ADU) or a map file as written (None with
+    a ``dark``); paths are resolved against the manifest's folder.
+    """
+
+    index: int
+    label: str
+    frames: str
+    frames_path: Path
+    name: str
+    em_gain_setpoint: float
+    skip_frames: int
+    level: str | None
+    dark_frames: int | None
+    offset: float | str | None
+    read_noise: float | str | None
+    dark: str | None
+    dark_path: Path | None
+
+
+@dataclass(frozen=True)
+class ManifestEntries:
+    """A manifest as written, checked for keys, types and ranges (:func:`parse_manifest`).
+
+    ``e_per_adu`` is a number (e⁻/ADU), a map file or a result as written, or None.
+    """
+
+    path: Path
+    content_hash: str
+    e_per_adu: float | str | None
+    adc_bits: int | None
+    origin: tuple[int, int] | None
+    em_model: object
+    acquisitions: tuple[AcquisitionEntry, ...]
+
+
+def parse_manifest(path) -> ManifestEntries:
+    """Read a manifest's TOML and check its keys, types and ranges; no data file is opened.
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    ManifestEntries
+
+    Raises
+    ------
+    ManifestError
+        One line naming the manifest, the acquisition and the problem.
+    """
+    path = Path(path)
+    r = _Reader(path)
+    if not path.exists():
+        raise ManifestError(describe_missing(path, "manifest file"))
+    if path.is_dir():
+        raise ManifestError(f"{path}: is a directory, not a manifest file")
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise r.error(f"not UTF-8 text (byte {exc.start}); a manifest is a TOML file") from None
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise r.error(f"invalid TOML: {one_line(exc)}") from None
+    top = r.table(doc, _TOP_KEYS)
+    if not top["acquisition"]:
+        raise r.error(_TOP_KEYS[-1].missing)
+    entries = tuple(_entry(r, i, table) for i, table in enumerate(top["acquisition"], 1))
+    seen: dict[Path, int] = {}
+    for e in entries:
+        key = e.frames_path.expanduser().resolve()
+        if key in seen:
+            raise r.error(f"frames file '{e.frames}' is also acquisition {seen[key]}; each "
+                          "stack may be listed once", e.index, e.label)
+        seen[key] = e.index
+    origin = top["origin"]
+    return ManifestEntries(
+        path=path,
+        content_hash=hashlib.sha256(raw).hexdigest(),
+        e_per_adu=top["e_per_adu"],
+        adc_bits=top["adc_bits"],
+        origin=None if origin is None else (int(origin[0]), int(origin[1])),
+        em_model=_em_model(r, top["em_model"], top["register_stages"]),
+        acquisitions=entries,
+    )
+
+
+def _entry(r: _Reader, i: int, table: dict) -> AcquisitionEntry:
+    """One [[acquisition]] table: the key table's checks, then the rules between keys."""
+    frames = table.get("frames")
+    label = f"frames = '{frames}'" if isinstance(frames, str) else ""
+    v = r.table(table, _ACQUISITION_KEYS, i, label)
+    has_maps = [k for k in ("offset", "read_noise") if v[k] is not None]
+    if v["dark"] is not None and has_maps:
+        raise r.error(f"give either 'dark' or 'offset' and 'read_noise', not both (found "
+                      f"'dark' and {', '.join(repr(k) for k in has_maps)})", i, label)
+    if v["dark"] is None and len(has_maps) == 1:
+        missing = ({"offset", "read_noise"} - set(has_maps)).pop()
+        raise r.error(f"'{has_maps[0]}' is given but '{missing}' is missing; give both "
+                      "maps, or a 'dark' stack", i, label)
+    if v["dark"] is None and not has_maps:
+        raise r.error("no offset and read noise: give 'offset' and 'read_noise' (maps or "
+                      "numbers, ADU) or a 'dark' stack", i, label)
+    if v["dark_frames"] is not None and v["dark"] is not None:
+        raise r.error("'dark_frames' is for offset/read_noise maps; with a 'dark' stack the "
+                      "number of dark frames is the stack's", i, label)
+    return AcquisitionEntry(
+        index=i, label=label, frames=frames, frames_path=r.resolve(frames),
+        name=v["name"] if v["name"] is not None else Path(frames).stem,
+        em_gain_setpoint=float(v["em_gain_setpoint"]), skip_frames=v["skip_frames"],
+        level=None if v["level"] is None else str(v["level"]),
+        dark_frames=v["dark_frames"], offset=v["offset"], read_noise=v["read_noise"],
+        dark=v["dark"], dark_path=None if v["dark"] is None else r.resolve(v["dark"]),
+    )
+
+
+def _em_model(r, name, stages):
+    """The manifest's ``em_model`` and ``register_stages`` as a noise.EMModel (or None)."""
+    from ..model.noise import as_em_model
+
+    if name is None and stages is None:
+        return None
+    try:
+        return as_em_model(name or "gamma", stages)
+    except OptionError as exc:  # stages given to a model without them
+        raise r.error(f"register_stages: {exc}") from None
+
+
+# --------------------------------------------------------------------------------------
+# Step 2: resolve (headers, maps, dark fits: everything a fit needs, checked)
+# --------------------------------------------------------------------------------------
 def read_manifest(path) -> Manifest:
     """Read and validate a calibration manifest.
 
     Everything is checked before any fitting: TOML syntax, keys (with a suggestion for a
-    misspelt one), types and ranges of values, that every file exists and is readable,
-    that stacks are 3-D and share (rows, cols), that maps have that shape and valid
-    values, that stacks hold raw counts (non-negative integers, at most the ADC maximum),
-    and that ``skip_frames`` leaves frames to use. Dark stacks are reduced to offset and
+    misspelt one), types and ranges of values (:func:`parse_manifest`), then
+    (:func:`resolve_manifest`) that every file exists and is readable, that stacks are
+    3-D and share (rows, cols), that maps have that shape and valid values, that stacks
+    hold raw counts (non-negative integers, at most the ADC maximum), and that
+    ``skip_frames`` leaves frames to use. Dark stacks are reduced to offset and
     read-noise maps here, each file once: at 1× their mean and SD
     (:func:`emccdcal.data.dark.maps_from_dark`), at a multiplied set-point by a fit of the
     read-out and its multiplied events (:func:`emccdcal.data.dark.fit_dark`), whose plain
@@ -311,303 +566,201 @@ def read_manifest(path) -> Manifest:
     -----
     The format, with examples and every error message, is in ``docs/manifest.md``.
     """
-    path = Path(path)
-    r = _Reader(path)
-    if not path.exists():
-        raise ManifestError(describe_missing(path, "manifest file"))
-    if path.is_dir():
-        raise ManifestError(f"{path}: is a directory, not a manifest file")
-    raw = path.read_bytes()
-    content_hash = hashlib.sha256(raw).hexdigest()
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise r.error(f"not UTF-8 text (byte {exc.start}); a manifest is a TOML file") from None
-    try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise r.error(f"invalid TOML: {one_line(exc)}") from None
+    return resolve_manifest(parse_manifest(path))
 
-    # ---- structure, keys and types (cheap; nothing read yet) -------------------------
-    for key in doc:
-        if key not in TOP_LEVEL_KEYS:
-            raise r.error(_unknown_key_message(key, TOP_LEVEL_KEYS))
-    entries = doc.get("acquisition")
-    if entries is None:
-        raise r.error("no [[acquisition]] table; a manifest lists at least one acquisition")
-    if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
-        raise r.error("'acquisition' must be an array of tables: write each one as [[acquisition]]")
-    if not entries:
-        raise r.error("no [[acquisition]] table; a manifest lists at least one acquisition")
 
-    origin = doc.get("origin")
-    if origin is not None and not (
-            isinstance(origin, list) and len(origin) == 2
-            and all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in origin)):
-        raise r.error(f"origin must be [row, col], the sensor pixel of the stacks' first "
-                      f"pixel (integers >= 0), got {origin!r}")
-    adc_bits = doc.get("adc_bits")
-    if adc_bits is not None and (
-        not isinstance(adc_bits, int) or isinstance(adc_bits, bool) or not 1 <= adc_bits <= 32
-    ):
-        raise r.error(f"adc_bits must be an integer from 1 to 32, got {adc_bits!r}")
+def resolve_manifest(entries: ManifestEntries) -> Manifest:
+    """Open what a parsed manifest names and check it: see :func:`read_manifest`."""
+    r = _Reader(entries.path)
+    acqs = entries.acquisitions
+    e_result = _require_files(r, entries)
+    shape, headers = _stack_headers(r, acqs)
+    _refuse_copies(r, acqs)
+    dtypes = [dtype for _, dtype, _ in headers]
+    if entries.adc_bits is not None:
+        adc_max = 2**entries.adc_bits - 1
+        hint = f" (adc_bits = {entries.adc_bits}); is adc_bits the camera's ADC resolution?"
+    else:
+        adc_max = max(default_adc_max(d) for d in dtypes)
+        hint = (f" (default for {', '.join(sorted({str(d) for d in dtypes}))} data); set "
+                "adc_bits in the manifest to the camera's ADC resolution")
+    e_per_adu, e_source = None, None
+    if e_result is not None:  # read by the calibration, with its standard errors
+        e_source = f"result {e_result}"
+    elif entries.e_per_adu is not None:
+        e_per_adu, e_source = _map_from_value(r, None, "", "e_per_adu", entries.e_per_adu,
+                                              shape)
+    for a, (_, dtype, _) in zip(acqs, headers):
+        if needs_scan(dtype, adc_max):
+            try:
+                check_counts(load_stack(a.frames_path), a.frames_path, adc_max=adc_max,
+                             adc_bits_hint=hint)
+            except InputError as exc:
+                raise r.error(str(exc), a.index, a.label) from None
+    maps = _read_out_maps(r, acqs, shape, adc_max, hint)
+    acquisitions = [
+        Acquisition(name=a.name, frames_path=a.frames_path,
+                    em_gain_setpoint=a.em_gain_setpoint, level=a.level,
+                    skip_frames=a.skip_frames, offset=m["offset"],
+                    read_noise=m["read_noise"], offset_source=m["offset_source"],
+                    read_noise_source=m["read_noise_source"], n_frames_total=n_total,
+                    dark_frames=dark_frames, dark_event_rate=m["events"])
+        for a, m, (n_total, _, dark_frames) in zip(acqs, maps, headers)
+    ]
+    found = [f"{entries.path}: {msg}" for msg in check_read_noise_growth(
+        [a.em_gain_setpoint for a in acquisitions], [a.read_noise for a in acquisitions])]
+    for msg in found:
+        warnings.warn(msg, ReadNoiseGrowthWarning, stacklevel=3)
+    origin, binning, camera = _recorded(r, entries, acquisitions, shape, found)
+    levels = tuple(dict.fromkeys(a.level for a in acquisitions if a.level is not None))
+    return Manifest(
+        path=entries.path, content_hash=entries.content_hash, e_per_adu=e_per_adu,
+        e_per_adu_source=e_source, acquisitions=acquisitions,
+        shape=tuple(int(d) for d in shape), origin=origin, binning=binning,
+        adc_max=int(adc_max), setpoints=tuple(sorted({a.em_gain_setpoint for a in acqs})),
+        levels=levels, warnings=found, em_model=entries.em_model, camera=camera,
+    )
 
-    e_value = doc.get("e_per_adu")
-    if e_value is not None:
-        _check_map_value(r, "e_per_adu", e_value, None, "")
-    em_model = _em_model(r, doc.get("em_model"), doc.get("register_stages"))
 
-    specs = []
-    for i, entry in enumerate(entries, start=1):
-        specs.append(_check_entry(r, i, entry))
-    seen: dict[Path, int] = {}
-    for i, spec in enumerate(specs, start=1):
-        key = spec["frames_path"].expanduser().resolve()
-        if key in seen:
-            raise r.error(
-                f"frames file '{spec['frames']}' is also acquisition {seen[key]}; "
-                "each stack may be listed once",
-                i,
-                spec["label"],
-            )
-        seen[key] = i
-
-    # ---- files exist; stack headers: 3-D, same (rows, cols), skip_frames --------------
-    for i, spec in enumerate(specs, start=1):
+def _require_files(r: _Reader, entries: ManifestEntries) -> Path | None:
+    """Every file named exists and is readable; returns the result φ is chained from."""
+    for a in entries.acquisitions:
         for key in ("frames", "dark", "offset", "read_noise"):
-            if isinstance(spec.get(key), str):
-                _require_file(r, i, spec, key)
-    e_result = None  # e_per_adu chained from an is-adu or mv-adu result
+            if isinstance(getattr(a, key), str):
+                _require_file(r, a.index, a.label, key, getattr(a, key))
+    e_value = entries.e_per_adu
     if isinstance(e_value, str) and is_result_path(r.resolve(e_value)):
         e_result = r.resolve(e_value)
         if not e_result.exists():
             raise r.error(f"e_per_adu: {describe_missing(e_result, 'result')}")
-    elif isinstance(e_value, str):
-        _require_file(r, None, {"e_per_adu": e_value, "label": ""}, "e_per_adu")
+        return e_result
+    if isinstance(e_value, str):
+        _require_file(r, None, "", "e_per_adu", e_value)
+    return None
 
-    shape = None
-    first_label = ""
-    dtypes = []
-    for i, spec in enumerate(specs, start=1):
-        stack_shape, dtype = _stack_header(r, i, spec, spec["frames_path"], "frames")
+
+def _stack_headers(r: _Reader, acqs):
+    """The stacks' shared (rows, cols) and, per acquisition, (frames in the file, dtype,
+    dark frames behind its maps), from the headers only."""
+    shape, first_label, headers = None, "", []
+    for a in acqs:
+        i, label = a.index, a.label
+        stack_shape, dtype = _stack_header(r, i, label, a.frames_path, "frames")
         if shape is None:
-            shape, first_label = stack_shape[1:], spec["label"]
+            shape, first_label = stack_shape[1:], label
         elif stack_shape[1:] != shape:
-            raise r.error(
-                f"frames '{spec['frames_path']}' have (rows, cols) = {stack_shape[1:]}, but "
-                f"acquisition 1 ({first_label}) has {shape}; all stacks must cover the same pixels",
-                i,
-                spec["label"],
-            )
-        spec["n_frames_total"] = stack_shape[0]
-        spec["dtype"] = dtype
-        dtypes.append(dtype)
-        if spec["skip_frames"] >= stack_shape[0]:
-            raise r.error(
-                f"skip_frames = {spec['skip_frames']} leaves no frames: "
-                f"'{spec['frames_path']}' has {stack_shape[0]} frames",
-                i,
-                spec["label"],
-            )
-        if stack_shape[0] - spec["skip_frames"] < 2:
-            raise r.error(
-                f"'{spec['frames_path']}' has 1 frame{' after skip_frames' * bool(spec['skip_frames'])}: "
-                "a histogram of a pixel's counts needs at least 2 (a calibration, thousands)",
-                i,
-                spec["label"],
-            )
-        if isinstance(spec.get("dark"), str):
-            dark_shape, _ = _stack_header(r, i, spec, spec["dark_path"], "dark")
+            raise r.error(f"frames '{a.frames_path}' have (rows, cols) = {stack_shape[1:]}, "
+                          f"but acquisition 1 ({first_label}) has {shape}; all stacks must "
+                          "cover the same pixels", i, label)
+        n = stack_shape[0]
+        if a.skip_frames >= n:
+            raise r.error(f"skip_frames = {a.skip_frames} leaves no frames: "
+                          f"'{a.frames_path}' has {n} frames", i, label)
+        if n - a.skip_frames < 2:
+            raise r.error(f"'{a.frames_path}' has 1 frame"
+                          f"{' after skip_frames' * bool(a.skip_frames)}: a histogram of a "
+                          "pixel's counts needs at least 2 (a calibration, thousands)",
+                          i, label)
+        dark_frames = a.dark_frames
+        if a.dark is not None:
+            dark_shape, _ = _stack_header(r, i, label, a.dark_path, "dark")
             if dark_shape[1:] != shape:
-                raise r.error(
-                    f"dark stack '{spec['dark_path']}' has (rows, cols) = {dark_shape[1:]}, "
-                    f"but the frames are {shape}",
-                    i,
-                    spec["label"],
-                )
-            spec["dark_frames"] = dark_shape[0]
+                raise r.error(f"dark stack '{a.dark_path}' has (rows, cols) = "
+                              f"{dark_shape[1:]}, but the frames are {shape}", i, label)
             if dark_shape[0] < 2:
-                raise r.error(
-                    f"dark stack '{spec['dark_path']}' has {dark_shape[0]} frame(s); at least "
-                    "2 are needed for a read noise",
-                    i,
-                    spec["label"],
-                )
+                raise r.error(f"dark stack '{a.dark_path}' has {dark_shape[0]} frame(s); at "
+                              "least 2 are needed for a read noise", i, label)
+            dark_frames = dark_shape[0]
+        headers.append((n, dtype, dark_frames))
+    return shape, headers
 
-    _refuse_copies(r, specs)
 
-    if adc_bits is not None:
-        adc_max = 2**adc_bits - 1
-        hint = f" (adc_bits = {adc_bits}); is adc_bits the camera's ADC resolution?"
-    else:
-        adc_max = max(default_adc_max(d) for d in dtypes)
-        hint = (
-            f" (default for {', '.join(sorted({str(d) for d in dtypes}))} data); set "
-            "adc_bits in the manifest to the camera's ADC resolution"
-        )
-
-    # ---- maps: shape and values --------------------------------------------------------
-    e_per_adu, e_source = None, None
-    if e_result is not None:  # read by the calibration, with its standard errors
-        e_source = f"result {e_result}"
-    elif e_value is not None:
-        e_per_adu, e_source = _map_from_value(r, None, {"label": ""}, "e_per_adu", e_value, shape)
-    for i, spec in enumerate(specs, start=1):
-        for key in ("offset", "read_noise"):
-            if key in spec:
-                spec[key + "_map"], spec[key + "_source"] = _map_from_value(
-                    r, i, spec, key, spec[key], shape
-                )
-
-    # ---- data: raw counts, then darks reduced to maps --------------------------------
-    for i, spec in enumerate(specs, start=1):
-        if needs_scan(spec["dtype"], adc_max):
-            try:
-                check_counts(
-                    load_stack(spec["frames_path"]),
-                    spec["frames_path"],
-                    adc_max=adc_max,
-                    adc_bits_hint=hint,
-                )
-            except InputError as exc:
-                raise r.error(str(exc), i, spec["label"]) from None
-    dark_maps: dict[Path, tuple[np.ndarray, np.ndarray]] = {}
-    for i, spec in enumerate(specs, start=1):
-        if "dark" not in spec:
-            continue
-        key = spec["dark_path"].expanduser().resolve()
-        if key not in dark_maps:
-            try:
-                dark = load_stack(spec["dark_path"])
-                check_counts(dark, spec["dark_path"], adc_max=adc_max, adc_bits_hint=hint)
-            except InputError as exc:
-                raise r.error(str(exc), i, spec["label"]) from None
-            if spec["em_gain_setpoint"] == 1:
-                offset, read_noise = maps_from_dark(dark)  # data checked: cannot fail here
-                events = None
-            else:  # multiplied events in the dark: the read-out's maps by the noise model
-                fitted = fit_dark(dark, adc_max=adc_max)
-                offset, read_noise = fitted.offset, fitted.read_noise
-                events = None if fitted.event_scale == 0 else fitted.event_rate
-            if np.any(read_noise <= 0):
-                bad = describe_first(read_noise, read_noise <= 0, 0)
-                raise r.error(
-                    f"'{spec['dark_path']}': dark stack gives read noise {bad} (constant "
-                    "dark counts); read noise must be > 0",
-                    i,
-                    spec["label"],
-                )
-            dark_maps[key] = (offset, read_noise, events)
-        offset, read_noise, events = dark_maps[key]
-        spec["offset_map"], spec["read_noise_map"] = offset.copy(), read_noise.copy()
-        spec["dark_event_rate"] = events
-        spec["offset_source"] = spec["read_noise_source"] = f"dark {spec['dark_path']}"
-
-    for i, spec in enumerate(specs, start=1):  # maps in other units, or a wrong adc_bits
+def _read_out_maps(r: _Reader, acqs, shape, adc_max, hint) -> list[dict]:
+    """Each acquisition's offset and read-noise maps (ADU) with their sources, and the
+    multiplied events of its dark: from the maps given, or each dark stack reduced once."""
+    darks: dict[Path, tuple] = {}
+    out = []
+    for a in acqs:
+        if a.dark is None:
+            m = {"events": None}
+            for key in ("offset", "read_noise"):
+                m[key], m[key + "_source"] = _map_from_value(r, a.index, a.label, key,
+                                                            getattr(a, key), shape)
+        else:
+            key = a.dark_path.expanduser().resolve()
+            if key not in darks:
+                darks[key] = _reduce_dark(r, a, adc_max, hint)
+            offset, read_noise, events = darks[key]
+            source = f"dark {a.dark_path}"
+            m = {"offset": offset.copy(), "read_noise": read_noise.copy(), "events": events,
+                 "offset_source": source, "read_noise_source": source}
         for key, what in (("offset", "offset"), ("read_noise", "read noise")):
-            m = spec[key + "_map"]
-            if np.max(m) >= adc_max:
-                bad = describe_first(m, m >= adc_max, 0)
-                raise r.error(
-                    f"{what} {bad} ({spec[key + '_source']}) is at or above the ADC maximum "
-                    f"{adc_max} ADU{hint}; maps must be in ADU of these frames",
-                    i, spec["label"])
+            if np.max(m[key]) >= adc_max:  # maps in other units, or a wrong adc_bits
+                bad = describe_first(m[key], m[key] >= adc_max, 0)
+                raise r.error(f"{what} {bad} ({m[key + '_source']}) is at or above the ADC "
+                              f"maximum {adc_max} ADU{hint}; maps must be in ADU of these "
+                              "frames", a.index, a.label)
+        out.append(m)
+    return out
 
-    acquisitions = [
-        Acquisition(
-            name=spec["name"],
-            frames_path=spec["frames_path"],
-            em_gain_setpoint=spec["em_gain_setpoint"],
-            level=spec["level"],
-            skip_frames=spec["skip_frames"],
-            offset=spec["offset_map"],
-            read_noise=spec["read_noise_map"],
-            offset_source=spec["offset_source"],
-            read_noise_source=spec["read_noise_source"],
-            n_frames_total=spec["n_frames_total"],
-            dark_frames=spec["dark_frames"],
-            dark_event_rate=spec.get("dark_event_rate"),
-        )
-        for spec in specs
-    ]
-    levels: list[str] = []
-    for a in acquisitions:
-        if a.level is not None and a.level not in levels:
-            levels.append(a.level)
-    found = [
-        f"{path}: {msg}"
-        for msg in check_read_noise_growth(
-            [a.em_gain_setpoint for a in acquisitions], [a.read_noise for a in acquisitions]
-        )
-    ]
-    for msg in found:
-        warnings.warn(msg, ReadNoiseGrowthWarning, stacklevel=2)
-    recorded_origins, recorded_binnings = set(), set()
-    cameras = []
+
+def _reduce_dark(r: _Reader, a: AcquisitionEntry, adc_max, hint):
+    """(offset, read noise, multiplied events or None) of an acquisition's dark stack."""
+    try:
+        dark = load_stack(a.dark_path)
+        check_counts(dark, a.dark_path, adc_max=adc_max, adc_bits_hint=hint)
+    except InputError as exc:
+        raise r.error(str(exc), a.index, a.label) from None
+    if a.em_gain_setpoint == 1:
+        offset, read_noise = maps_from_dark(dark)  # data checked: cannot fail here
+        events = None
+    else:  # multiplied events in the dark: the read-out's maps by the noise model
+        fitted = fit_dark(dark, adc_max=adc_max)
+        offset, read_noise = fitted.offset, fitted.read_noise
+        events = None if fitted.event_scale == 0 else fitted.event_rate
+    if np.any(read_noise <= 0):
+        bad = describe_first(read_noise, read_noise <= 0, 0)
+        raise r.error(f"'{a.dark_path}': dark stack gives read noise {bad} (constant dark "
+                      "counts); read noise must be > 0", a.index, a.label)
+    return offset, read_noise, events
+
+
+def _recorded(r: _Reader, entries, acquisitions, shape, found: list):
+    """What the frames files record: the region's origin, the binning and the camera
+    identity shared by all; a set-point differing from the manifest's is a warning."""
+    origins, binnings, cameras = set(), set(), []
     for i, a in enumerate(acquisitions, start=1):
         settings = stack_settings(a.frames_path)
         cameras.append({k: getattr(settings, k) for k in CAMERA_IDENTITY})
         if settings.roi is not None:
-            recorded_origins.add((settings.roi[1], settings.roi[0]))  # (row, col) = (y, x)
+            origins.add((settings.roi[1], settings.roi[0]))  # (row, col) = (y, x)
         if settings.binning is not None:
-            recorded_binnings.add(tuple(settings.binning))
+            binnings.add(tuple(settings.binning))
         recorded = settings.em_gain_setpoint
         if recorded is not None and recorded != a.em_gain_setpoint:
-            msg = (f"{path}: acquisition {i} ({a.name}): the manifest says EM gain set-point "
-                   f"{a.em_gain_setpoint:g}, but '{a.frames_path}' records {recorded:g}")
+            msg = (f"{entries.path}: acquisition {i} ({a.name}): the manifest says EM gain "
+                   f"set-point {a.em_gain_setpoint:g}, but '{a.frames_path}' records "
+                   f"{recorded:g}")
             found.append(msg)
-            warnings.warn(msg, stacklevel=2)
-    return Manifest(
-        path=path,
-        content_hash=content_hash,
-        e_per_adu=e_per_adu,
-        e_per_adu_source=e_source,
-        acquisitions=acquisitions,
-        shape=tuple(int(d) for d in shape),
-        origin=_origin(r, origin, recorded_origins, shape),
-        binning=_binning(r, recorded_binnings),
-        adc_max=int(adc_max),
-        setpoints=tuple(sorted({a.em_gain_setpoint for a in acquisitions})),
-        levels=tuple(levels),
-        warnings=found,
-        em_model=em_model,
-        camera={k: cameras[0][k] for k in CAMERA_IDENTITY
-                if cameras[0][k] is not None and all(c[k] == cameras[0][k] for c in cameras)},
-    )
+            warnings.warn(msg, stacklevel=4)
+    camera = {k: cameras[0][k] for k in CAMERA_IDENTITY
+              if cameras[0][k] is not None and all(c[k] == cameras[0][k] for c in cameras)}
+    return (_origin(r, entries.origin, origins, shape), _binning(r, binnings), camera)
 
 
-def _em_model(r, name, stages):
-    """The manifest's ``em_model`` and ``register_stages`` as a noise.EMModel (or None)."""
-    from ..model.noise import EM_MODELS, as_em_model
-
-    if name is None and stages is None:
-        return None
-    if name is not None and name not in EM_MODELS:
-        raise r.error(f"em_model must be one of {', '.join(repr(m) for m in EM_MODELS)}, "
-                      f"got {name!r}")
-    if stages is not None:
-        if not isinstance(stages, int) or isinstance(stages, bool) or not 1 <= stages <= 100000:
-            raise r.error(f"register_stages must be a whole number of stages (e.g. 536 or "
-                          f"604), got {stages!r}")
-    try:
-        return as_em_model(name or "gamma", stages)
-    except OptionError as exc:  # stages given to a model without them
-        raise r.error(f"register_stages: {exc}") from None
-
-
-def _refuse_copies(r: _Reader, specs: list) -> None:
+def _refuse_copies(r: _Reader, acqs) -> None:
     """Two acquisitions whose frames files hold the same data (one stack copied under two
     set-points or levels) would fit as two measurements of one: an error."""
-    seen: dict[str, int] = {}
-    for i, spec in enumerate(specs, start=1):
-        key = content_fingerprint(spec["frames_path"])
+    seen: dict[str, AcquisitionEntry] = {}
+    for a in acqs:
+        key = content_fingerprint(a.frames_path)
         if key in seen:
-            j = seen[key]
+            b = seen[key]
             raise r.error(
-                f"frames '{spec['frames_path']}' hold the same data as acquisition {j}'s "
-                f"('{specs[j - 1]['frames_path']}'): the same stack under two "
-                f"{'levels' if spec['level'] is not None else 'set-points'}?", i, spec["label"])
-        seen[key] = i
+                f"frames '{a.frames_path}' hold the same data as acquisition {b.index}'s "
+                f"('{b.frames_path}'): the same stack under two "
+                f"{'levels' if a.level is not None else 'set-points'}?", a.index, a.label)
+        seen[key] = a
 
 
 def is_result_path(path: Path) -> bool:
@@ -615,172 +768,35 @@ def is_result_path(path: Path) -> bool:
     return path.suffix.lower() == ".nc" or path.is_dir()
 
 
-def _check_map_value(r: _Reader, key: str, value, entry: int | None, label: str) -> None:
-    """A map-valued key holds a path (string) or a number within its range."""
-    positive, nonnegative = _MAP_RULES[key]
-    if isinstance(value, str):
-        if not value.strip():
-            raise r.error(f"'{key}' is an empty path", entry, label)
-        try:
-            number = float(value)
-        except ValueError:
-            return
-        raise r.error(f"{key} = \"{value}\" is a string, which names a map file; write the "
-                      f"number without quotes: {key} = {number:g}", entry, label)
-    if not _is_number(value):
-        raise r.error(
-            f"'{key}' must be a number or the path of a (rows, cols) map, got {value!r}",
-            entry,
-            label,
-        )
-    if not math.isfinite(value):
-        raise r.error(f"'{key}' must be finite, got {value!r}", entry, label)
-    if positive and value <= 0:
-        raise r.error(f"'{key}' must be > 0, got {value!r}", entry, label)
-    if nonnegative and value < 0:
-        raise r.error(f"'{key}' must be >= 0, got {value!r}", entry, label)
-
-
-def _check_entry(r: _Reader, i: int, entry: dict) -> dict:
-    """Keys, types and ranges of one [[acquisition]] table; nothing is read."""
-    frames = entry.get("frames")
-    label = f"frames = '{frames}'" if isinstance(frames, str) else ""
-    for key in entry:
-        if key not in ACQUISITION_KEYS:
-            raise r.error(_unknown_key_message(key, ACQUISITION_KEYS), i, label)
-    if frames is None:
-        raise r.error("missing 'frames' (the path of the stack of raw counts)", i)
-    if not isinstance(frames, str) or not frames.strip():
-        raise r.error(f"'frames' must be a path, got {frames!r}", i)
-
-    g = entry.get("em_gain_setpoint")
-    if g is None:
-        raise r.error("missing 'em_gain_setpoint' (the camera's EM gain setting, >= 1)", i, label)
-    if not _is_number(g) or not math.isfinite(g):
-        raise r.error(f"'em_gain_setpoint' must be a number >= 1, got {g!r}", i, label)
-    if g < 1:
-        raise r.error(
-            f"'em_gain_setpoint' must be >= 1 (1 means no EM multiplication), got {g!r}", i, label
-        )
-
-    has_maps = [k for k in ("offset", "read_noise") if k in entry]
-    if "dark" in entry and has_maps:
-        raise r.error(
-            f"give either 'dark' or 'offset' and 'read_noise', not both "
-            f"(found 'dark' and {', '.join(repr(k) for k in has_maps)})",
-            i,
-            label,
-        )
-    if "dark" not in entry and len(has_maps) < 2:
-        if has_maps:
-            missing = ({"offset", "read_noise"} - set(has_maps)).pop()
-            raise r.error(
-                f"'{has_maps[0]}' is given but '{missing}' is missing; give both maps, or a "
-                "'dark' stack",
-                i,
-                label,
-            )
-        raise r.error(
-            "no offset and read noise: give 'offset' and 'read_noise' (maps or numbers, "
-            "ADU) or a 'dark' stack",
-            i,
-            label,
-        )
-    for key in has_maps:
-        _check_map_value(r, key, entry[key], i, label)
-    dark = entry.get("dark")
-    if "dark" in entry and (not isinstance(dark, str) or not dark.strip()):
-        raise r.error(f"'dark' must be the path of a dark stack, got {dark!r}", i, label)
-    dark_frames = entry.get("dark_frames")
-    if dark_frames is not None:
-        if "dark" in entry:
-            raise r.error(
-                "'dark_frames' is for offset/read_noise maps; with a 'dark' stack the number "
-                "of dark frames is the stack's",
-                i,
-                label,
-            )
-        if not isinstance(dark_frames, int) or isinstance(dark_frames, bool) or dark_frames < 2:
-            raise r.error(
-                f"'dark_frames' (the number of dark frames the maps were computed from) must "
-                f"be an integer >= 2, got {dark_frames!r}",
-                i,
-                label,
-            )
-
-    skip = entry.get("skip_frames", 0)
-    if not isinstance(skip, int) or isinstance(skip, bool) or skip < 0:
-        raise r.error(f"'skip_frames' must be an integer >= 0, got {skip!r}", i, label)
-
-    level = entry.get("level")
-    if level is not None:
-        if isinstance(level, bool) or not isinstance(level, (str, int)):
-            raise r.error(f"'level' must be a string label (e.g. \"L3\"), got {level!r}", i, label)
-        level = str(level)
-
-    name = entry.get("name")
-    if name is not None and (not isinstance(name, str) or not name.strip()):
-        raise r.error(f"'name' must be a non-empty string, got {name!r}", i, label)
-
-    frames_path = r.resolve(frames)
-    spec = {
-        "label": label,
-        "frames": frames,
-        "frames_path": frames_path,
-        "name": name if name is not None else Path(frames).stem,
-        "em_gain_setpoint": float(g),
-        "skip_frames": skip,
-        "level": level,
-        "dark_frames": dark_frames,
-    }
-    for key in has_maps:
-        spec[key] = entry[key]
-    if dark is not None:
-        spec["dark"] = dark
-        spec["dark_path"] = r.resolve(dark)
-    return spec
-
-
-def _require_file(r: _Reader, i: int | None, spec: dict, key: str) -> None:
-    written = spec[key]
+def _require_file(r: _Reader, i: int | None, label: str, key: str, written: str) -> None:
     p = r.resolve(written)
     if not p.exists():
-        raise r.error(
-            f"{key} file not found: '{written}' (resolved to '{p.expanduser().resolve()}')",
-            i,
-            spec["label"],
-        )
+        raise r.error(f"{key} file not found: '{written}' (resolved to "
+                      f"'{p.expanduser().resolve()}')", i, label)
     try:
         check_readable(p)
     except InputError as exc:
-        raise r.error(f"{key}: {exc}", i, spec["label"]) from None
+        raise r.error(f"{key}: {exc}", i, label) from None
 
 
-def _stack_header(r: _Reader, i: int, spec: dict, p: Path, key: str):
+def _stack_header(r: _Reader, i: int, label: str, p: Path, key: str):
     try:
         shape, dtype = stack_header(p)
     except InputError as exc:
-        raise r.error(str(exc), i, spec["label"]) from None
+        raise r.error(str(exc), i, label) from None
     if len(shape) == 2:
-        raise r.error(
-            f"{key} '{p}' holds one image of {shape[0]} × {shape[1]} pixels, not a stack of "
-            "frames (a stack cut short to its first frame?)", i, spec["label"])
+        raise r.error(f"{key} '{p}' holds one image of {shape[0]} × {shape[1]} pixels, not a "
+                      "stack of frames (a stack cut short to its first frame?)", i, label)
     if len(shape) != 3:
-        raise r.error(
-            f"{key} '{p}' is not a 3-D (frames, rows, cols) stack: shape {shape}",
-            i,
-            spec["label"],
-        )
+        raise r.error(f"{key} '{p}' is not a 3-D (frames, rows, cols) stack: shape {shape}",
+                      i, label)
     if dtype.kind not in "uif":
-        raise r.error(
-            f"{key} '{p}' has unsupported data type {dtype}; expected integer counts",
-            i,
-            spec["label"],
-        )
+        raise r.error(f"{key} '{p}' has unsupported data type {dtype}; expected integer "
+                      "counts", i, label)
     return shape, dtype
 
 
-def _map_from_value(r: _Reader, i: int | None, spec: dict, key: str, value, shape):
+def _map_from_value(r: _Reader, i: int | None, label: str, key: str, value, shape):
     """A number expands to a (rows, cols) map (e_per_adu stays a number); a path is read."""
     positive, nonnegative = _MAP_RULES[key]
     if isinstance(value, str):
@@ -788,10 +804,9 @@ def _map_from_value(r: _Reader, i: int | None, spec: dict, key: str, value, shap
         try:
             m = read_map(p, shape, name=key, positive=positive, nonnegative=nonnegative)
         except InputError as exc:
-            raise r.error(str(exc), i, spec["label"]) from None
+            raise r.error(str(exc), i, label) from None
         return m, str(p)
     source = f"value {value!r}"
     if key == "e_per_adu":
         return float(value), source
     return np.full(shape, float(value)), source
-
