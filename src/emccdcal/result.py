@@ -50,7 +50,7 @@ import numpy as np
 import xarray as xr
 
 from ._output import read_netcdf, write_netcdf
-from ._util import finite_or_none
+from ._util import finite_or_none, one_line
 from .errors import InputError, MissingFileError, OptionError
 
 __all__ = [
@@ -190,17 +190,6 @@ def _major(version: str) -> int | None:
 # --------------------------------------------------------------------------------------
 # make_dataset
 # --------------------------------------------------------------------------------------
-def _float_array(name, value, shape, dims):
-    arr = np.asarray(value, dtype=float)
-    if arr.ndim == 0:
-        return np.full(shape, float(arr))
-    if arr.shape != shape:
-        raise ValueError(
-            f"{name} has shape {arr.shape}; expected {shape} for dims {dims}"
-        )
-    return arr
-
-
 def _attr_value(key, value):
     """NetCDF-storable version of an attribute value (bool -> int), or ValueError."""
     if isinstance(value, (bool, np.bool_)):
@@ -311,7 +300,66 @@ def make_dataset(
         raise ValueError(
             f"manifest_hash must be the SHA-256 hex digest (64 hex digits); got {manifest_hash!r}"
         )
+    coords = _labels(setpoints, levels)
+    E = np.asarray(photoelectrons, dtype=float)
+    e_dims = _photoelectron_dims(E, photoelectrons_dims, coords)
+    R, C = E.shape[-2:]
+    sizes = {**{k: len(v) for k, v in coords.items()}, "row": R, "col": C}
 
+    def full(value, dims):  # a number fills its dims; an array is xarray's to check
+        arr = np.asarray(value, dtype=float)
+        return np.full([sizes[d] for d in dims], float(arr)) if arr.ndim == 0 else arr
+
+    pix = _PIXEL_DIMS
+    phi, phi_se = full(e_per_adu, pix), full(e_per_adu_se, pix)
+    variables = {"e_per_adu": (pix, phi), "e_per_adu_se": (pix, phi_se)}
+    if em_gain is not None or em_gain_se is not None:
+        if em_gain is None or em_gain_se is None:
+            raise ValueError("em_gain and em_gain_se must be given together")
+        if setpoints is None:
+            raise ValueError("em_gain needs setpoints (the setpoint coordinate)")
+        g_dims = ("setpoint",) + pix
+        variables["em_gain"] = (g_dims, full(em_gain, g_dims))
+        variables["em_gain_se"] = (g_dims, full(em_gain_se, g_dims))
+    variables["photoelectrons"] = (e_dims, E)
+    variables["photoelectrons_se"] = (e_dims, full(photoelectrons_se, e_dims))
+    variables["loglik"] = (pix, full(np.nan if loglik is None else loglik, pix))
+    conv = np.asarray(converged)
+    if conv.dtype != bool:
+        if conv.dtype.kind not in "iuf" or not np.all(np.isin(conv, (0, 1))):
+            raise ValueError("converged must be boolean (or 0/1)")
+        conv = conv.astype(bool)
+    variables["converged"] = (pix, np.full((R, C), bool(conv)) if conv.ndim == 0 else conv)
+    labelled = {name: (dims, arr, _variable_attrs(name)) for name, (dims, arr) in
+                variables.items()}
+    labelled.update(_extra_variables(extra, set(variables)))
+    r0, c0 = (int(v) for v in origin)
+    coords = {"row": np.arange(r0, r0 + R), "col": np.arange(c0, c0 + C), **coords}
+    try:  # xarray checks that every variable's shape fits its dims and the others
+        ds = xr.Dataset(labelled, coords={
+            name: (name, values, {"units": UNITS[name], "long_name": LONG_NAMES[name]})
+            for name, values in coords.items()},
+            attrs=_dataset_attrs(method, manifest_hash, manifest_path, attrs))
+    except ValueError as exc:
+        raise ValueError(f"make_dataset: {one_line(exc)}") from exc
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ds = ds.assign(adu_per_e=(pix, 1.0 / phi, _variable_attrs("adu_per_e")),
+                       adu_per_e_se=(pix, phi_se / phi**2, _variable_attrs("adu_per_e_se")))
+    if "em_gain" in ds and 1.0 in ds["setpoint"].values:  # 1x: no multiplication
+        g1, s1 = ds["em_gain"].sel(setpoint=1.0), ds["em_gain_se"].sel(setpoint=1.0)
+        if not (np.all(np.isnan(g1) | (g1 == 1.0)) and np.all(np.isnan(s1) | (s1 == 0.0))):
+            raise ValueError(
+                "em_gain at set-point 1 must be 1 with standard error 0 (no multiplication)")
+    impossible, first = _impossible(ds)
+    if impossible.any():  # never a result that its own readers would refuse
+        ds["converged"].values[impossible] = False
+        warnings.warn(f"{int(impossible.sum())} pixel(s) fitted to values no calibration can "
+                      f"have ({first}) are marked not converged", stacklevel=2)
+    return ds
+
+
+def _labels(setpoints, levels) -> dict:
+    """The ``setpoint`` and ``level`` coordinates that are given, checked."""
     coords: dict = {}
     if setpoints is not None:
         sp = np.asarray(setpoints, dtype=float).ravel()
@@ -327,143 +375,69 @@ def make_dataset(
         if len(set(lv)) != len(lv):
             raise ValueError(f"level labels must be distinct; got {lv}")
         coords["level"] = np.array(lv, dtype=str)
-    sizes = {k: len(v) for k, v in coords.items()}
+    return coords
 
-    # Pixel grid and the dims of photoelectrons.
-    E = np.asarray(photoelectrons, dtype=float)
+
+def _photoelectron_dims(E, given, coords) -> tuple[str, ...]:
+    """The dims of ``photoelectrons``: given, or (row, col) with the one label given."""
     if E.ndim < 2:
         raise ValueError(f"photoelectrons must be at least 2-D (row, col); got shape {E.shape}")
-    if photoelectrons_dims is None:
-        if E.ndim == 2:
-            e_dims = _PIXEL_DIMS
-        elif E.ndim == 3 and (levels is None) != (setpoints is None):
-            e_dims = ("level" if levels is not None else "setpoint",) + _PIXEL_DIMS
-        else:
-            raise ValueError(
-                f"cannot tell the dims of photoelectrons with shape {E.shape} "
-                f"(setpoints {'given' if setpoints is not None else 'not given'}, levels "
-                f"{'given' if levels is not None else 'not given'}); pass photoelectrons_dims"
-            )
-    else:
-        e_dims = tuple(photoelectrons_dims)
-        if e_dims[-2:] != _PIXEL_DIMS or len(set(e_dims)) != len(e_dims):
-            raise ValueError(f"photoelectrons_dims must end in ('row', 'col'); got {e_dims}")
-        unknown = [d for d in e_dims[:-2] if d not in sizes]
+    if given is not None:
+        dims = tuple(given)
+        if dims[-2:] != _PIXEL_DIMS or len(set(dims)) != len(dims):
+            raise ValueError(f"photoelectrons_dims must end in ('row', 'col'); got {dims}")
+        unknown = [d for d in dims[:-2] if d not in coords]
         if unknown:
-            raise ValueError(
-                f"photoelectrons_dims names {unknown}, which need the matching "
-                "setpoints/levels argument"
-            )
-    if len(e_dims) != E.ndim:
-        raise ValueError(f"photoelectrons has shape {E.shape} but dims {e_dims}")
-    R, C = E.shape[-2:]
-    sizes.update(row=R, col=C)
-    for d, n in zip(e_dims, E.shape):
-        if sizes[d] != n:
-            raise ValueError(
-                f"photoelectrons has {n} entries along {d!r} but there are {sizes[d]} {d}s"
-            )
-    pix = (R, C)
+            raise ValueError(f"photoelectrons_dims names {unknown}, which need the matching "
+                             "setpoints/levels argument")
+        return dims
+    if E.ndim == 2:
+        return _PIXEL_DIMS
+    if E.ndim == 3 and len(coords) == 1:
+        return tuple(coords) + _PIXEL_DIMS
+    given_text = {k: "given" if k in coords else "not given" for k in ("setpoint", "level")}
+    raise ValueError(f"cannot tell the dims of photoelectrons with shape {E.shape} (setpoints "
+                     f"{given_text['setpoint']}, levels {given_text['level']}); pass "
+                     "photoelectrons_dims")
 
-    data = {}
 
-    def put(name, dims, arr, units=None, long_name=None):
-        data[name] = xr.Variable(
-            dims,
-            arr,
-            attrs={
-                "units": units if units is not None else UNITS[name.removesuffix("_se")],
-                "long_name": long_name
-                if long_name is not None
-                else (
-                    "standard error of " + LONG_NAMES[name[:-3]]
-                    if name.endswith("_se")
-                    else LONG_NAMES[name]
-                ),
-            },
-        )
+def _variable_attrs(name, units=None, long_name=None) -> dict:
+    """``units`` and ``long_name`` of a variable: the names table's unless given."""
+    base = name.removesuffix("_se")
+    if long_name is None:
+        long_name = (("standard error of " + LONG_NAMES[base]) if name.endswith("_se")
+                     else LONG_NAMES[name])
+    return {"units": UNITS[base] if units is None else units, "long_name": long_name}
 
-    phi = _float_array("e_per_adu", e_per_adu, pix, _PIXEL_DIMS)
-    phi_se = _float_array("e_per_adu_se", e_per_adu_se, pix, _PIXEL_DIMS)
-    put("e_per_adu", _PIXEL_DIMS, phi)
-    put("e_per_adu_se", _PIXEL_DIMS, phi_se)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        put("adu_per_e", _PIXEL_DIMS, 1.0 / phi)
-        put("adu_per_e_se", _PIXEL_DIMS, phi_se / phi**2)
 
-    if em_gain is not None or em_gain_se is not None:
-        if em_gain is None or em_gain_se is None:
-            raise ValueError("em_gain and em_gain_se must be given together")
-        if setpoints is None:
-            raise ValueError("em_gain needs setpoints (the setpoint coordinate)")
-        g_dims = ("setpoint",) + _PIXEL_DIMS
-        g_shape = (sizes["setpoint"],) + pix
-        g = _float_array("em_gain", em_gain, g_shape, g_dims)
-        g_se = _float_array("em_gain_se", em_gain_se, g_shape, g_dims)
-        one = coords["setpoint"] == 1.0
-        if np.any(one):
-            g1, s1 = g[one], g_se[one]
-            if not np.all(np.isnan(g1) | (g1 == 1.0)) or not np.all(np.isnan(s1) | (s1 == 0.0)):
-                raise ValueError(
-                    "em_gain at set-point 1 must be 1 with standard error 0 (no multiplication)"
-                )
-        put("em_gain", g_dims, g)
-        put("em_gain_se", g_dims, g_se)
-
-    e_shape = tuple(sizes[d] for d in e_dims)
-    put("photoelectrons", e_dims, E)
-    put("photoelectrons_se", e_dims,
-        _float_array("photoelectrons_se", photoelectrons_se, e_shape, e_dims))
-    if loglik is None:
-        put("loglik", _PIXEL_DIMS, np.full(pix, np.nan))
-    else:
-        put("loglik", _PIXEL_DIMS, _float_array("loglik", loglik, pix, _PIXEL_DIMS))
-
-    conv = np.asarray(converged)
-    if conv.dtype != bool:
-        if conv.dtype.kind not in "iuf" or not np.all(np.isin(conv, (0, 1))):
-            raise ValueError("converged must be boolean (or 0/1)")
-        conv = conv.astype(bool)
-    if conv.ndim == 0:
-        conv = np.full(pix, bool(conv))
-    if conv.shape != pix:
-        raise ValueError(
-            f"converged has shape {conv.shape}; expected {pix} for dims ('row', 'col')"
-        )
-    put("converged", _PIXEL_DIMS, conv)
-
-    reserved = (set(UNITS) - {"offset", "read_noise"}) | set(data) | {
-        f"{v}_se" for v in ("e_per_adu", "adu_per_e", "em_gain", "photoelectrons")
-    }
+def _extra_variables(extra, standard) -> dict:
+    """A method's own variables, ``name -> (dims, array, units[, long_name])``."""
+    reserved = (set(UNITS) - {"offset", "read_noise"}) | standard | {
+        f"{v}_se" for v in ("e_per_adu", "adu_per_e", "em_gain", "photoelectrons")}
+    out = {}
     for name, spec in (extra or {}).items():
         if name in reserved:
-            raise ValueError(
-                f"extra variable {name!r} clashes with a standard variable or coordinate"
-            )
+            raise ValueError(f"extra variable {name!r} clashes with a standard variable or "
+                             "coordinate")
         if not isinstance(spec, tuple) or len(spec) not in (3, 4):
             raise ValueError(f"extra[{name!r}] must be (dims, array, units[, long_name])")
-        dims = (spec[0],) if isinstance(spec[0], str) else tuple(spec[0])
-        arr, units = np.asarray(spec[1]), spec[2]
-        if not isinstance(units, str):
+        if not isinstance(spec[2], str):
             raise ValueError(f"extra[{name!r}]: units must be a string")
-        if arr.ndim != len(dims):
-            raise ValueError(f"extra[{name!r}] has shape {arr.shape} but dims {dims}")
-        for d, n in zip(dims, arr.shape):
-            if d in sizes and sizes[d] != n:
-                raise ValueError(
-                    f"extra[{name!r}] has {n} entries along {d!r}; expected {sizes[d]}"
-                )
+        dims = (spec[0],) if isinstance(spec[0], str) else tuple(spec[0])
         if len(spec) == 4:
             long_name = str(spec[3])
-        elif name in LONG_NAMES:
-            long_name = LONG_NAMES[name]
-        elif name.endswith("_se") and name[:-3] in LONG_NAMES:
-            long_name = "standard error of " + LONG_NAMES[name[:-3]]
+        elif name in LONG_NAMES or (name.endswith("_se") and name[:-3] in LONG_NAMES):
+            long_name = None
         else:
             long_name = name.replace("_", " ")
-        put(name, dims, arr, units=units, long_name=long_name)
+        out[name] = (dims, np.asarray(spec[1]), _variable_attrs(name, spec[2], long_name))
+    return out
 
-    ds_attrs = {
+
+def _dataset_attrs(method, manifest_hash, manifest_path, attrs) -> dict:
+    """The standard attributes of a result, then the caller's (which may not replace
+    them)."""
+    out = {
         "method": method,
         "emccdcal_version": _package_version(),
         "manifest_sha256": manifest_hash.lower(),
@@ -474,21 +448,8 @@ def make_dataset(
     for key, value in (attrs or {}).items():
         if key in _RESERVED_ATTRS:
             raise ValueError(f"attribute {key!r} is set by emccdcal and cannot be replaced")
-        ds_attrs[key] = _attr_value(key, value)
-
-    r0, c0 = (int(v) for v in origin)
-    coords = {"row": np.arange(r0, r0 + R), "col": np.arange(c0, c0 + C), **coords}
-    all_coords = {
-        name: (name, values, {"units": UNITS[name], "long_name": LONG_NAMES[name]})
-        for name, values in coords.items()
-    }
-    ds = xr.Dataset(data, coords=all_coords, attrs=ds_attrs)
-    impossible, first = _impossible(ds)
-    if impossible.any():  # never a result that its own readers would refuse
-        ds["converged"].values[impossible] = False
-        warnings.warn(f"{int(impossible.sum())} pixel(s) fitted to values no calibration can "
-                      f"have ({first}) are marked not converged", stacklevel=2)
-    return ds
+        out[key] = _attr_value(key, value)
+    return out
 
 
 # --------------------------------------------------------------------------------------
