@@ -522,7 +522,6 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
             raise OptionError(f"fixed_width must be between {lower[2]:g} and {upper[2]:g} px "
                               f"for a box of half-size {half_size}; got {fixed.tolist()}")
     n = 2 * half_size + 1
-    npix = n * n
     S0 = _pixel_map("offset", offset, (R, C), boxes, pos)
     sigma = _pixel_map("read_noise", read_noise, (R, C), boxes, pos, positive=True)
     phi = _pixel_map("e_per_adu", e_per_adu, (R, C), boxes, pos, positive=True)
@@ -534,7 +533,7 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         none = np.full((B, n, n), np.nan)
         return BeadFits(pos, empty, empty.copy(), np.zeros((B, F)), np.zeros((B, F), bool),
                         np.zeros((B, 3), int), 0, 0, none, none.copy(), np.full(B, np.nan))
-    counts = np.stack([np.asarray(frames[:, rs, cs]).reshape(F, npix) for rs, cs in boxes])
+    counts = np.stack([np.asarray(frames[:, rs, cs]).reshape(F, n * n) for rs, cs in boxes])
     counts = counts.astype(np.int64)  # (B, F, npix)
     if counts.min() < 0:
         raise OptionError("frames hold negative counts; raw ADU are non-negative")
@@ -545,190 +544,37 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         n_sat = int(sat.sum())
         weight[sat] = 0.0
 
-    pn = g == 1.0
-    theta = np.where(pn, 1.0 / phi, g / phi)          # ADU per photoelectron (B, npix)
-    f2 = np.where(pn, 1.0, 2.0)
-    var_read = (sigma / theta) ** 2                     # e⁻², (B, npix)
-    y = (counts - S0[:, None, :]) / theta[:, None, :]   # e⁻, (B, F, npix)
-    local = np.arange(-half_size, half_size + 1, dtype=float)
-    yy, xx = np.meshgrid(local, local, indexing="ij")
-    image_of = np.zeros(B, int) if residual is None or len(residual) == 1 else np.arange(B)
-
-    def model(p, beads):
-        """Expected e⁻ and its Jacobian for rows ``p`` (box coordinates) of ``beads``."""
-        img, jac = psf.spot_image(p, local, local, jacobian=True)
-        E, J = img.reshape(len(p), npix), jac.reshape(len(p), npix, _NP)
-        if residual is not None:
-            Rv, R_dy, R_dx = residual.evaluate(image_of[beads], yy.ravel() - p[:, 1:2],
-                                               xx.ravel() - p[:, 0:1])
-            N = p[:, 3:4]
-            E = E + N * Rv
-            J[..., 3] += Rv
-            J[..., 0] -= N * R_dx  # the offsets move against the centre
-            J[..., 1] -= N * R_dy
-        return E, J
-
-    def curvature(w, J):
-        return np.einsum("mk,mki,mkj->mij", w, J, J)
-
-    # ---- 0: each bead's mean image (Gaussian approximation) ---------------------------
-    ybar = y.mean(axis=1)  # (B, npix)
-    border = np.ones((n, n), bool)
-    border[1:-1, 1:-1] = False
-    b0 = np.median(ybar[:, border.ravel()], axis=1)
-    excess = np.clip(ybar - b0[:, None], 0.0, None)
-    N0 = np.maximum(excess.sum(axis=1), 1.0)
-    cx = np.clip((excess * xx.ravel()).sum(axis=1) / N0, -1.0, 1.0)
-    cy = np.clip((excess * yy.ravel()).sum(axis=1) / N0, -1.0, 1.0)
-    p_bead = np.stack([cx, cy, np.full(B, float(width)), N0, np.maximum(b0, 0.0)], axis=1)
-
-    def objective_mean(p, s):
-        E, J = model(p, s)
-        ll, d1, info = _gaussian_terms(E, ybar[s], var_read[s], f2[s], 1.0 / F)
-        return ll.sum(axis=1), np.einsum("mk,mki->mi", d1, J), curvature(info, J)
-
-    p_bead, it_mean = _fit_rows(objective_mean, p_bead, lower, upper, tol=5e-7,
-                                max_iter=max_iter)
-
-    # ---- 1: every frame, Gaussian approximation, the bead's shape shared ---------------
-    # Position, width (and background) are the bead's own, the same in every frame; the
-    # intensity changes from frame to frame (the module's notes say why).
+    box = _Boxes(counts, weight, S0, sigma, phi, g, half_size, residual)
+    # 0: each bead's mean image (Gaussian approximation): its shape
+    p_bead, it_mean = _fit_rows(box.objective_mean, box.start(width), lower, upper,
+                                tol=5e-7, max_iter=max_iter)
+    # 1: every frame, Gaussian approximation, the bead's shape shared. Position, width (and
+    # background) are the bead's own, the same in every frame; the intensity changes from
+    # frame to frame (the module's notes say why).
     if fixed_width is not None:
         p_bead[:, 2] = fixed
     shared = [0, 1] if fixed_width is not None else [0, 1, 2]
     frame = [3, 4] if background == "frame" else [3]
     if background == "shared":
         shared = shared + [4]
-    M = B * F
-    bead_of = np.repeat(np.arange(B), F)
-    y_m = y.reshape(M, npix)
-    w_m = weight.reshape(M, npix)
-    p1 = np.repeat(p_bead, F, axis=0)
-    unit, _ = model(np.concatenate([p_bead[:, :3], np.ones((B, 1)), np.zeros((B, 1))], axis=1),
-                    np.arange(B))
-    # Starting intensity and background per frame: least squares on the bead's shape.
-    for b in range(B):
-        X = np.stack([unit[b], np.ones(npix)], axis=1)
-        coef = np.linalg.lstsq(X, y[b].T, rcond=None)[0]  # (2, F)
-        p1[bead_of == b, 3] = np.maximum(coef[0], 0.1 * p_bead[b, 3])
-        p1[bead_of == b, 4] = np.maximum(coef[1], 0.0)
-
-    if background == "shared":  # shared columns start equal in all the bead's frames
-        p1[:, 4] = np.repeat(p1[:, 4].reshape(B, F).mean(axis=1), F)
-
-    def objective_gauss(p, s):
-        b = bead_of[s]
-        E, J = model(p, b)
-        ll, d1, info = _gaussian_terms(E, y_m[s], var_read[b], f2[b])
-        w = w_m[s]
-        return (w * ll).sum(axis=1), np.einsum("mk,mki->mi", w * d1, J), curvature(w * info, J)
-
     layout = _BeadLayout(F, shared, frame, lower, upper)
-    p1, _, it_gauss = _joint_fit(objective_gauss, p1, layout, tol=5e-5, max_iter=max_iter)
-
-    # ---- 2: exact likelihood through per-pixel tables of ln p(S | E) -------------------
-    E1, _ = model(p1, bead_of)
-    E1 = E1.reshape(B, F, npix)
-    lo, hi = _pad_range(E1.min(axis=1), E1.max(axis=1))
-    table = noise.LogpmfTable(
-        counts.reshape(-1), np.repeat(np.arange(B), F * npix) * npix
-        + np.tile(np.arange(npix), M),
-        lo.ravel(), hi.ravel(), g.ravel(), phi.ravel(), S0.ravel(), sigma.ravel(),
-        em_model=em_model or noise.EMModel(),
-    )
-    qbase = np.arange(npix)
-
-    def exact_terms(p, s):
-        E, J = model(p, bead_of[s])
-        idx = (s[:, None] * npix + qbase).ravel()
-        lp, d1, d2, out = table.evaluate(E.ravel(), idx)
-        shape = E.shape
-        return E, J, lp.reshape(shape), d1.reshape(shape), d2.reshape(shape), out.reshape(shape)
-
-    def objective_exact(p, s):
-        _, J, lp, d1, d2, _ = exact_terms(p, s)
-        w = w_m[s]
-        return ((w * lp).sum(axis=1), np.einsum("mk,mki->mi", w * d1, J),
-                curvature(w * np.maximum(-d2, 0.0), J))
-
-    def all_terms(p):
-        """Every row's E, its information −∂² ln p/∂E² and the weighted pixels outside
-        their table's range, shape (M, npix) each."""
-        E_all, info_all = np.empty((M, npix)), np.empty((M, npix))
-        out_px = np.zeros((M, npix), bool)
-        for a in range(0, M, _BATCH_FRAMES):
-            s = np.arange(a, min(M, a + _BATCH_FRAMES))
-            E, _, _, _, d2, out = exact_terms(p[s], s)
-            E_all[s], info_all[s], out_px[s] = E, np.maximum(-d2, 0.0), out & (w_m[s] > 0)
-        return E_all, info_all, out_px
-
-    p2, conv_b, it_exact = _joint_fit(objective_exact, p1, layout, tol=5e-8, max_iter=max_iter)
-    retab = 0
-    for round_ in range(5):  # at most four refits; the last round only evaluates
-        E_all, info_all, out_px = all_terms(p2)
-        outside = out_px.any(axis=1)
-        if not outside.any() or round_ == 4:
-            break
-        # Widen the ranges of the pixels concerned to cover what the fits need.
-        pix = (bead_of[:, None] * npix + qbase)[out_px]
-        e_lo, e_hi = table.e_range
-        need_lo = np.full(e_lo.size, np.inf)
-        need_hi = np.full(e_lo.size, -np.inf)
-        np.minimum.at(need_lo, pix, E_all[out_px])
-        np.maximum.at(need_hi, pix, E_all[out_px])
-        px = np.unique(pix)
-        new_lo, new_hi = _pad_range(np.minimum(e_lo[px], need_lo[px]),
-                                    np.maximum(e_hi[px], need_hi[px]))
-        table.set_range(px, new_lo, new_hi)
-        retab += px.size
-        redo = outside.reshape(B, F).any(axis=1)
-        p2, conv_r, it_r = _joint_fit(objective_exact, p2, layout, tol=5e-8,
-                                      max_iter=max_iter, beads=redo)
-        conv_b = np.where(redo, conv_r, conv_b)
-        it_exact = it_exact + it_r
-
-    # ---- standard errors from the joint information -----------------------------------
-    # A frame's own parameters: conditional on the shared ones (what scatters from frame
-    # to frame); the shared ones' error is common to the bead's frames. A frame at a
-    # bound keeps the error its curvature gives: the information is there, only the
-    # estimate is clipped.
-    ll2, grad, H = _evaluate_rows(objective_exact, p2, np.arange(M))
-    fr = frame
-    pb, gb, Hb = p2.reshape(B, F, _NP), grad.reshape(B, F, _NP), H.reshape(B, F, _NP, _NP)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        S, Hff_inv, _ = _schur(Hb, shared, fr)
-        se = np.full((B, F, _NP), np.nan)
-        var_f = np.einsum("bfii->bfi", Hff_inv)
-        se[..., fr] = np.sqrt(np.where(var_f > 0, var_f, np.nan))
-        var_s = np.einsum("bii->bi", np.linalg.inv(S))
-        se[..., shared] = np.sqrt(np.where(var_s > 0, var_s, np.nan))[:, None, :]
+    p1, _, it_gauss = _joint_fit(box.objective_gauss, box.frame_start(p_bead, background),
+                                 layout, tol=5e-5, max_iter=max_iter)
+    # 2: the exact likelihood through per-pixel tables of ln p(S | E)
+    box.tabulate(p1, em_model or noise.EMModel())
+    p2, conv_b, it_exact, E_all, info_all, outside, retab = _fit_exact(box, p1, layout,
+                                                                       max_iter)
+    # the standard errors from the joint information, and what the model misses
+    ll2, grad, H = _evaluate_rows(box.objective_exact, p2, np.arange(B * F))
+    pb, Hb = p2.reshape(B, F, _NP), H.reshape(B, F, _NP, _NP)
+    se = _joint_errors(Hb, shared, frame)
     frame_ok = np.all(np.isfinite(Hb), axis=(2, 3)) & (Hb[..., 3, 3] > 0)
     inside = np.all((pb[..., :3] > lower[:3] + 1e-9) & (pb[..., :3] < upper[:3] - 1e-9),
                     axis=2)
     converged = (conv_b[:, None] & frame_ok & inside & ~outside.reshape(B, F)
                  & np.isfinite(ll2.reshape(B, F)))
-    # What the model misses: the mean of data − model over a bead's converged frames,
-    # but for frames whose intensity is held at its bound (a bead that was off): their
-    # residual is not centred on zero.
-    use = _residual_frames(converged, p2[:, 3].reshape(B, F))[..., None] & (weight > 0)
-    count = use.sum(axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        resid = np.where(use, (y_m - E_all).reshape(B, F, npix), 0.0)
-        r_mean = resid.sum(axis=1) / count
-        r_var = (np.where(use, (resid - r_mean[:, None]) ** 2, 0.0).sum(axis=1)
-                 / (count - 1) / count)
-        # The offset map's error is the same in every frame. Its effect on the bead's
-        # mean intensity, linearised on the bead's mean frame: δN̄ = a·δy, with a the
-        # intensity row of (JᵀWJ)⁻¹JᵀW over the fitted parameters.
-        W = np.where(use, info_all.reshape(B, F, npix), 0.0).sum(axis=1) / count
-        p_mean = pb[:, 0].copy()
-        p_mean[:, 3:] = np.nanmean(np.where(converged[..., None], pb[..., 3:], np.nan), axis=1)
-        fitted = sorted(shared + frame)
-        J = model(p_mean, np.arange(B))[1][..., fitted]       # (B, npix, k)
-        JW = np.swapaxes(J, 1, 2) * W[:, None, :]
-        A = np.nan_to_num(JW @ J) + 1e-12 * np.eye(len(fitted))
-        coef = np.linalg.solve(A, np.nan_to_num(JW))[:, fitted.index(3)]
-        n_offset_se = np.sqrt(np.sum((coef * s0_se / theta) ** 2, axis=1))
+    r_mean, r_var, count, W = _mean_residual(box, p2, E_all, info_all, converged)
+    n_offset_se = _offset_error(box, pb, converged, sorted(shared + frame), W, s0_se)
     params = p2.copy()
     params[:, 0] += np.repeat(pos[:, 1], F)
     params[:, 1] += np.repeat(pos[:, 0], F)
@@ -745,6 +591,229 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         residual_se=np.sqrt(np.where(count > 1, r_var, np.nan)).reshape(B, n, n),
         intensity_offset_se=np.where(converged.any(axis=1), n_offset_se, np.nan),
     )
+
+
+class _Boxes:
+    """The data of every bead's box in every frame, in photoelectrons, and the spot model
+    and log-likelihoods the fit stages maximise.
+
+    Counts become ``y = (S − S0)/θ`` (e⁻), θ the ADU per photoelectron (1/φ at 1×, g/φ
+    otherwise), with read-out variance ``(σ/θ)²`` and excess-noise factor F² (1 at 1×, 2
+    otherwise) for the Gaussian approximation. Rows are (bead, frame) pairs, bead-major.
+    """
+
+    def __init__(self, counts, weight, S0, sigma, phi, g, half_size, residual):
+        B, F, npix = counts.shape
+        self.B, self.F, self.npix, self.M = B, F, npix, B * F
+        self.counts, self.S0, self.sigma, self.phi, self.g = counts, S0, sigma, phi, g
+        pn = g == 1.0
+        self.theta = np.where(pn, 1.0 / phi, g / phi)          # ADU per e⁻, (B, npix)
+        self.f2 = np.where(pn, 1.0, 2.0)
+        self.var_read = (sigma / self.theta) ** 2               # e⁻², (B, npix)
+        self.y = (counts - S0[:, None, :]) / self.theta[:, None, :]   # e⁻, (B, F, npix)
+        self.weight = weight
+        self.y_m, self.w_m = self.y.reshape(self.M, npix), weight.reshape(self.M, npix)
+        self.ybar = self.y.mean(axis=1)                          # (B, npix)
+        self.bead_of = np.repeat(np.arange(B), F)
+        self.local = np.arange(-half_size, half_size + 1, dtype=float)
+        yy, xx = np.meshgrid(self.local, self.local, indexing="ij")
+        self.yy, self.xx = yy.ravel(), xx.ravel()
+        self.residual = residual
+        self.image_of = (np.zeros(B, int) if residual is None or len(residual) == 1
+                         else np.arange(B))
+        self.table = None
+
+    def model(self, p, beads):
+        """Expected e⁻ and its Jacobian for rows ``p`` (box coordinates) of ``beads``."""
+        img, jac = psf.spot_image(p, self.local, self.local, jacobian=True)
+        E, J = img.reshape(len(p), self.npix), jac.reshape(len(p), self.npix, _NP)
+        if self.residual is not None:
+            Rv, R_dy, R_dx = self.residual.evaluate(self.image_of[beads],
+                                                    self.yy - p[:, 1:2], self.xx - p[:, 0:1])
+            N = p[:, 3:4]
+            E = E + N * Rv
+            J[..., 3] += Rv
+            J[..., 0] -= N * R_dx  # the offsets move against the centre
+            J[..., 1] -= N * R_dy
+        return E, J
+
+    @staticmethod
+    def _curvature(w, J):
+        return np.einsum("mk,mki,mkj->mij", w, J, J)
+
+    def start(self, width):
+        """Each bead's (x, y, s, N, b) from the moments of its mean image."""
+        n = self.local.size
+        border = np.ones((n, n), bool)
+        border[1:-1, 1:-1] = False
+        b0 = np.median(self.ybar[:, border.ravel()], axis=1)
+        excess = np.clip(self.ybar - b0[:, None], 0.0, None)
+        N0 = np.maximum(excess.sum(axis=1), 1.0)
+        cx = np.clip((excess * self.xx).sum(axis=1) / N0, -1.0, 1.0)
+        cy = np.clip((excess * self.yy).sum(axis=1) / N0, -1.0, 1.0)
+        return np.stack([cx, cy, np.full(self.B, float(width)), N0, np.maximum(b0, 0.0)],
+                        axis=1)
+
+    def frame_start(self, p_bead, background):
+        """Every frame's row: the bead's shape, with the intensity and background from
+        least squares on that shape (a shared background the mean over frames)."""
+        B, F = self.B, self.F
+        p1 = np.repeat(p_bead, F, axis=0)
+        unit, _ = self.model(np.concatenate([p_bead[:, :3], np.ones((B, 1)),
+                                             np.zeros((B, 1))], axis=1), np.arange(B))
+        for b in range(B):
+            X = np.stack([unit[b], np.ones(self.npix)], axis=1)
+            coef = np.linalg.lstsq(X, self.y[b].T, rcond=None)[0]  # (2, F)
+            p1[self.bead_of == b, 3] = np.maximum(coef[0], 0.1 * p_bead[b, 3])
+            p1[self.bead_of == b, 4] = np.maximum(coef[1], 0.0)
+        if background == "shared":  # shared columns start equal in all the bead's frames
+            p1[:, 4] = np.repeat(p1[:, 4].reshape(B, F).mean(axis=1), F)
+        return p1
+
+    def objective_mean(self, p, s):
+        """Each bead's mean image under the Gaussian approximation (rows: beads)."""
+        E, J = self.model(p, s)
+        ll, d1, info = _gaussian_terms(E, self.ybar[s], self.var_read[s], self.f2[s],
+                                       1.0 / self.F)
+        return ll.sum(axis=1), np.einsum("mk,mki->mi", d1, J), self._curvature(info, J)
+
+    def objective_gauss(self, p, s):
+        """Every frame under the Gaussian approximation (rows: bead-frames)."""
+        b = self.bead_of[s]
+        E, J = self.model(p, b)
+        ll, d1, info = _gaussian_terms(E, self.y_m[s], self.var_read[b], self.f2[b])
+        w = self.w_m[s]
+        return ((w * ll).sum(axis=1), np.einsum("mk,mki->mi", w * d1, J),
+                self._curvature(w * info, J))
+
+    def tabulate(self, p, em_model):
+        """Tables of the exact ln p(S | E) of every pixel over the range of E that the
+        rows ``p`` need, widened."""
+        B, F, npix = self.B, self.F, self.npix
+        E1 = self.model(p, self.bead_of)[0].reshape(B, F, npix)
+        lo, hi = _pad_range(E1.min(axis=1), E1.max(axis=1))
+        self.table = noise.LogpmfTable(
+            self.counts.reshape(-1), np.repeat(np.arange(B), F * npix) * npix
+            + np.tile(np.arange(npix), self.M),
+            lo.ravel(), hi.ravel(), self.g.ravel(), self.phi.ravel(), self.S0.ravel(),
+            self.sigma.ravel(), em_model=em_model)
+
+    def exact_terms(self, p, s):
+        """E, J, ln p and its first two E-derivatives, and the pixels outside their
+        table's range, for rows ``s``."""
+        E, J = self.model(p, self.bead_of[s])
+        idx = (s[:, None] * self.npix + np.arange(self.npix)).ravel()
+        lp, d1, d2, out = self.table.evaluate(E.ravel(), idx)
+        shape = E.shape
+        return E, J, lp.reshape(shape), d1.reshape(shape), d2.reshape(shape), out.reshape(shape)
+
+    def objective_exact(self, p, s):
+        """Every frame under the exact likelihood (rows: bead-frames)."""
+        _, J, lp, d1, d2, _ = self.exact_terms(p, s)
+        w = self.w_m[s]
+        return ((w * lp).sum(axis=1), np.einsum("mk,mki->mi", w * d1, J),
+                self._curvature(w * np.maximum(-d2, 0.0), J))
+
+    def all_terms(self, p):
+        """Every row's E, its information −∂² ln p/∂E² and the weighted pixels outside
+        their table's range, shape (M, npix) each."""
+        M, npix = self.M, self.npix
+        E_all, info_all = np.empty((M, npix)), np.empty((M, npix))
+        out_px = np.zeros((M, npix), bool)
+        for a in range(0, M, _BATCH_FRAMES):
+            s = np.arange(a, min(M, a + _BATCH_FRAMES))
+            E, _, _, _, d2, out = self.exact_terms(p[s], s)
+            E_all[s], info_all[s] = E, np.maximum(-d2, 0.0)
+            out_px[s] = out & (self.w_m[s] > 0)
+        return E_all, info_all, out_px
+
+
+def _fit_exact(box, p, layout, max_iter, rounds=5):
+    """The exact joint fit; where a frame ends with a pixel outside its table's range, the
+    range is widened, that pixel re-tabulated and the bead refitted (at most
+    ``rounds − 1`` refits). Returns the parameters, per-bead convergence and iterations,
+    every row's E and information at the end, the rows with a pixel still outside, and
+    the pixels re-tabulated."""
+    B, F, npix = box.B, box.F, box.npix
+    p, converged, iterations = _joint_fit(box.objective_exact, p, layout, tol=5e-8,
+                                          max_iter=max_iter)
+    retab = 0
+    for round_ in range(rounds):  # the last round only evaluates
+        E_all, info_all, out_px = box.all_terms(p)
+        outside = out_px.any(axis=1)
+        if not outside.any() or round_ == rounds - 1:
+            break
+        # Widen the ranges of the pixels concerned to cover what the fits need.
+        pix = (box.bead_of[:, None] * npix + np.arange(npix))[out_px]
+        e_lo, e_hi = box.table.e_range
+        need_lo = np.full(e_lo.size, np.inf)
+        need_hi = np.full(e_lo.size, -np.inf)
+        np.minimum.at(need_lo, pix, E_all[out_px])
+        np.maximum.at(need_hi, pix, E_all[out_px])
+        px = np.unique(pix)
+        new_lo, new_hi = _pad_range(np.minimum(e_lo[px], need_lo[px]),
+                                    np.maximum(e_hi[px], need_hi[px]))
+        box.table.set_range(px, new_lo, new_hi)
+        retab += px.size
+        redo = outside.reshape(B, F).any(axis=1)
+        p, conv_r, it_r = _joint_fit(box.objective_exact, p, layout, tol=5e-8,
+                                     max_iter=max_iter, beads=redo)
+        converged = np.where(redo, conv_r, converged)
+        iterations = iterations + it_r
+    return p, converged, iterations, E_all, info_all, outside, retab
+
+
+def _joint_errors(Hb, shared, frame):
+    """Standard errors (B, F, 5) from each bead's joint information ``Hb`` (B, F, 5, 5).
+
+    A frame's own parameters: conditional on the shared ones (what scatters from frame to
+    frame); the shared ones' error is common to the bead's frames. A frame at a bound
+    keeps the error its curvature gives: the information is there, only the estimate is
+    clipped. NaN where the information is not positive.
+    """
+    B, F = Hb.shape[:2]
+    se = np.full((B, F, _NP), np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        S, Hff_inv, _ = _schur(Hb, shared, frame)
+        var_f = np.einsum("bfii->bfi", Hff_inv)
+        se[..., frame] = np.sqrt(np.where(var_f > 0, var_f, np.nan))
+        var_s = np.einsum("bii->bi", np.linalg.inv(S))
+        se[..., shared] = np.sqrt(np.where(var_s > 0, var_s, np.nan))[:, None, :]
+    return se
+
+
+def _mean_residual(box, p, E_all, info_all, converged):
+    """What the model misses: the mean of data − model over a bead's converged frames
+    (but for frames whose intensity is held at its bound, a bead that was off: their
+    residual is not centred on zero), its variance, the frames used per pixel and the
+    mean information per pixel over them."""
+    B, F, npix = box.B, box.F, box.npix
+    use = _residual_frames(converged, p[:, 3].reshape(B, F))[..., None] & (box.weight > 0)
+    count = use.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        resid = np.where(use, (box.y_m - E_all).reshape(B, F, npix), 0.0)
+        r_mean = resid.sum(axis=1) / count
+        r_var = (np.where(use, (resid - r_mean[:, None]) ** 2, 0.0).sum(axis=1)
+                 / (count - 1) / count)
+        W = np.where(use, info_all.reshape(B, F, npix), 0.0).sum(axis=1) / count
+    return r_mean, r_var, count, W
+
+
+def _offset_error(box, pb, converged, fitted, W, s0_se):
+    """Standard error of each bead's mean intensity from the offset map's error (e⁻).
+
+    That error is the same in every frame. Its effect on the bead's mean intensity,
+    linearised on the bead's mean frame: δN̄ = a·δy, with a the intensity row of
+    (JᵀWJ)⁻¹JᵀW over the fitted parameters.
+    """
+    with np.errstate(invalid="ignore", divide="ignore"):
+        p_mean = pb[:, 0].copy()
+        p_mean[:, 3:] = np.nanmean(np.where(converged[..., None], pb[..., 3:], np.nan), axis=1)
+        J = box.model(p_mean, np.arange(box.B))[1][..., fitted]       # (B, npix, k)
+        JW = np.swapaxes(J, 1, 2) * W[:, None, :]
+        A = np.nan_to_num(JW @ J) + 1e-12 * np.eye(len(fitted))
+        coef = np.linalg.solve(A, np.nan_to_num(JW))[:, fitted.index(3)]
+        return np.sqrt(np.sum((coef * s0_se / box.theta) ** 2, axis=1))
 
 
 def shared_widths(fits) -> np.ndarray:
