@@ -54,6 +54,7 @@ import json
 import math
 import time
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
@@ -460,6 +461,45 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
                              min_separation, snr)
     positions = found.positions
     layout = _frame_layout(manifest, acqs)
+    fitted = _fit_all(manifest, cals, setpoints, positions, layout, acqs, width=width,
+                      half_size=half_size, psf=psf, progress=progress)
+    doc = _summarise(manifest, cals, setpoints, positions, fitted, layout, det_acq,
+                     half_size, time.perf_counter() - t0, bleaching=bleaching,
+                     blinking=blinking, psf=psf)
+    if out is not None:
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        ds = _intensities_dataset(cals, setpoints, positions, fitted, manifest, layout)
+        atomic_write(out / INTENSITIES_FILE, lambda p: write_netcdf(ds, p))
+        text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
+        atomic_write_text(out / VALIDATION_FILE, text)
+    return doc
+
+
+@dataclass
+class _Fitted:
+    """Every bead fit of a validation, arrays (calibration, bead, set-point, frame).
+
+    ``arr`` and ``arr_se`` map each parameter of :data:`emccdcal.model.psf.PARAMETERS`
+    to its values and standard errors (NaN where a frame does not exist or a bead was left out);
+    ``offset_se`` (calibration, bead, set-point) is the error of each bead's mean
+    intensity from the offset maps (e⁻); ``mismatch`` per calibration the PSF checks of
+    each spot model (:func:`emccdcal.beads.fit.psf_mismatch`) per acquisition.
+    """
+
+    arr: dict
+    arr_se: dict
+    loglik: np.ndarray
+    conv: np.ndarray
+    offset_se: np.ndarray
+    mismatch: list
+
+
+def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_size, psf,
+             progress) -> _Fitted:
+    """Fit the beads of every acquisition under every calibration: with the width free,
+    again with each bead's width pooled over set-points, and (``psf`` other than
+    "gaussian") a third time with the residual image added."""
     B, S, A = len(positions), len(setpoints), len(layout)
     Fmax = max(sum(a.n_frames for a in group) for group in acqs.values())
     names = ("x", "y", "width", "intensity", "background")
@@ -550,18 +590,7 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
 
     with np.errstate(invalid="ignore", divide="ignore"):
         offset_se = np.sqrt(offset_var) / conv.sum(axis=3)
-    doc = _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, layout, det_acq,
-                     half_size, time.perf_counter() - t0, offset_se, bleaching=bleaching,
-                     blinking=blinking, psf=psf, mismatch=mismatch)
-    if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        ds = _intensities_dataset(cals, setpoints, positions, arr, arr_se, loglik, conv,
-                                  manifest, layout)
-        atomic_write(out / INTENSITIES_FILE, lambda p: write_netcdf(ds, p))
-        text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
-        atomic_write_text(out / VALIDATION_FILE, text)
-    return doc
+    return _Fitted(arr, arr_se, loglik, conv, offset_se, mismatch)
 
 
 def _boxes_bytes(m, positions, half_size):
@@ -570,128 +599,17 @@ def _boxes_bytes(m, positions, half_size):
         .tobytes() for r, c in positions)
 
 
-def _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, layout, det_acq,
-               half_size, seconds, offset_se, *, bleaching, blinking, psf, mismatch):
+def _summarise(manifest, cals, setpoints, positions, fitted, layout, det_acq, half_size,
+               seconds, *, bleaching, blinking, psf) -> dict:
+    """The content of ``validation.json``: per calibration its beads' mean intensities at
+    every set-point and the consistency metric, ranked (most consistent first)."""
     keys = [result.format_setpoint(s) for s in setpoints]
-    times = _frame_times(layout, len(setpoints), conv.shape[-1])
-    I = np.where(conv, arr["intensity"], np.nan)
-    I_se = np.where(conv, arr_se["intensity"], np.nan)
+    times = _frame_times(layout, len(setpoints), fitted.conv.shape[-1])
     entries = []
-    for ci, cal in enumerate(cals):
-        blink = blinking_level(I[ci], I_se[ci])
-        off = blink["off"]
-        n_off = off.sum(axis=2)  # (B, S)
-        if n_off.any():
-            beads_off = int(blink["detected"].any(axis=1).sum())
-            warnings.warn(
-                f"{cal.label}: {beads_off} bead(s) switch off in some frames (blinking: "
-                + ", ".join(f"{int(n)} frame(s) at {k}x" for k, n in zip(keys, n_off.sum(axis=0))
-                            if n) + "); "
-                + ("their mean intensities are the 'on' level of a two-level mixture"
-                   if blinking == "model" else
-                   "ignored (--blinking ignore): the off frames lower their means"),
-                stacklevel=3)
-        trend = intensity_trend(np.where(off, np.nan, I[ci]), np.where(off, np.nan, I_se[ci]),
-                                times)
-        trend["corrected"] = bool(trend["detected"] and bleaching == "correct")
-        if trend["detected"]:
-            warnings.warn(
-                f"{cal.label}: the beads' intensity {'falls' if trend['rate_per_frame'] > 0 else 'rises'} "
-                f"within the acquisitions ({100 * trend['fade_over_series']:+.2f} % over the "
-                f"series, {trend['z']:.1f} standard errors: bleaching or a drifting "
-                "illumination); "
-                + ("corrected before the set-points are compared" if trend["corrected"] else
-                   "not corrected (--bleaching warn): it adds to the differences between "
-                   "set-points"), stacklevel=3)
-        if trend["corrected"]:
-            I[ci] = I[ci] * np.exp(trend["rate_per_frame"] * times)[None]
-        on_level = _on_level(I[ci], blink["off_probability"])  # as corrected
-        use_on = blink["detected"] & (blinking == "model")
-        bead_entries = []
-        per = {d: {"incl": [], "excl": []} for d in (0, 1)}
-        for b, (r, c) in enumerate(positions):
-            vals = I[ci, b]  # (S, F)
-            with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                mean = np.where(use_on[b], on_level[b], np.nanmean(vals, axis=1))
-                kept = np.where(use_on[b][:, None] & off[b], np.nan, vals)
-                n = np.sum(np.isfinite(kept), axis=1)
-                se_frames = np.nanstd(kept, axis=1, ddof=1) / np.sqrt(n)
-                se = np.hypot(se_frames, offset_se[ci, b])
-                y = np.nanmedian(np.where(conv[ci, b], arr["y"][ci, b], np.nan))
-                x = np.nanmedian(np.where(conv[ci, b], arr["x"][ci, b], np.nan))
-            means = dict(zip(setpoints, mean))
-            metric = {d: consistency(means, ddof=d) for d in (0, 1)}
-            for d in (0, 1):
-                per[d]["incl"].append(metric[d][0])
-                per[d]["excl"].append(metric[d][1])
-            bead_entries.append({
-                "row": int(r),
-                "col": int(c),
-                "mean_intensity": {k: finite_or_none(v) for k, v in zip(keys, mean)},
-                "mean_intensity_se": {k: finite_or_none(v) for k, v in zip(keys, se)},
-                "mean_intensity_se_offset": {k: finite_or_none(v)
-                                             for k, v in zip(keys, offset_se[ci, b])},
-                "sigma_means_incl_1x": finite_or_none(metric[0][0]),
-                "sigma_means_excl_1x": finite_or_none(metric[0][1]),
-                "sigma_means_incl_1x_ddof1": finite_or_none(metric[1][0]),
-                "sigma_means_excl_1x_ddof1": finite_or_none(metric[1][1]),
-                "frames_used": {k: int(v) for k, v in zip(keys, n)},
-                "frames_off": {k: int(v) for k, v in zip(keys, n_off[b])},
-                "fitted_row": finite_or_none(y),
-                "fitted_col": finite_or_none(x),
-            })
-
-        def avg(values):
-            v = np.array(values, dtype=float)
-            v = v[np.isfinite(v)]
-            return finite_or_none(v.mean()) if v.size else None
-
-        exists = np.isfinite(arr["intensity"][ci]) | conv[ci]  # frames that were fitted
-        fraction = {k: finite_or_none(conv[ci][:, si][exists[:, si]].mean())
-                    if exists[:, si].any() else None for si, k in enumerate(keys)}
-        low = {k: v for k, v in fraction.items() if v is not None and v < MIN_CONVERGED}
-        if low:
-            warnings.warn(
-                f"{cal.label}: bead fits converged in only "
-                + ", ".join(f"{100 * v:.1f} % at {k}x" for k, v in low.items())
-                + " of frames; the means are over the others, which can bias them if the "
-                "failures depend on the frames' brightness", stacklevel=3)
-        psf_doc = {model: {slot.key: {q: finite_or_none(v) for q, v in m.items()}
-                           for slot, m in zip(layout, per_acquisition)}
-                   for model, per_acquisition in mismatch[ci].items()}
-        repeats = _repeats(cal, layout, keys, I[ci], blink["off"])
-        poor = {k: m["chi2_per_pixel"] for k, m in psf_doc["gaussian"].items()
-                if m["chi2_per_pixel"] is not None and m["chi2_per_pixel"] > PSF_CHI2}
-        if poor:
-            warnings.warn(
-                f"{cal.label}: the Gaussian spot does not describe the beads' mean images "
-                "(chi2 per pixel " + ", ".join(f"{v:.1f} at {k}x" for k, v in poor.items())
-                + "); " + ("the residual image was added (--psf " + psf + ")"
-                           if psf != "gaussian" else
-                           "a PSF mismatch can weigh differently at different set-points: "
-                           "try --psf residual"), stacklevel=3)
-        entries.append({
-            "file": cal.label,
-            "method": cal.method,
-            "converged_fraction": fraction,
-            "psf": psf,
-            "psf_mismatch": psf_doc,
-            "blinking": {
-                "frames_off": {k: int(v) for k, v in zip(keys, n_off.sum(axis=0))},
-                "beads": int(blink["detected"].any(axis=1).sum()),
-                "modelled": blinking == "model",
-            },
-            "repeats": repeats,
-            "intensity_trend": {k: (finite_or_none(v) if isinstance(v, float) else v)
-                                for k, v in trend.items()},
-            "beads": bead_entries,
-            "sigma_means_incl_1x": avg(per[0]["incl"]),
-            "sigma_means_excl_1x": avg(per[0]["excl"]),
-            "sigma_means_incl_1x_ddof1": avg(per[1]["incl"]),
-            "sigma_means_excl_1x_ddof1": avg(per[1]["excl"]),
-            "beads_used": int(np.sum(np.isfinite(per[0]["incl"]))),
-        })
+    for ci, cal in enumerate(cals):  # a loop, not a comprehension: warnings' stack levels
+        entries.append(_calibration_entry(cal, ci, keys, setpoints, positions, fitted,
+                                          layout, times, bleaching=bleaching,
+                                          blinking=blinking, psf=psf))
     order = sorted(range(len(entries)), key=lambda i: (
         entries[i]["sigma_means_incl_1x"] is None,
         entries[i]["sigma_means_incl_1x"] if entries[i]["sigma_means_incl_1x"] is not None else 0.0))
@@ -719,6 +637,144 @@ def _summarise(manifest, cals, setpoints, positions, arr, arr_se, conv, layout, 
         "created": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "seconds": finite_or_none(seconds),
     }
+
+
+def _calibration_entry(cal, ci, keys, setpoints, positions, fitted, layout, times, *,
+                       bleaching, blinking, psf) -> dict:
+    """One calibration's part of ``validation.json``, with its warnings: blinking, the
+    trend within acquisitions (corrected or not), the beads' means, the frames whose fits
+    converged, the PSF checks and repeated set-points."""
+    conv = fitted.conv[ci]
+    I = np.where(conv, fitted.arr["intensity"][ci], np.nan)           # (B, S, F)
+    I_se = np.where(conv, fitted.arr_se["intensity"][ci], np.nan)
+    blink = blinking_level(I, I_se)
+    off = blink["off"]
+    n_off = off.sum(axis=2)  # (B, S)
+    if n_off.any():
+        warnings.warn(
+            f"{cal.label}: {int(blink['detected'].any(axis=1).sum())} bead(s) switch off in "
+            "some frames (blinking: " + ", ".join(
+                f"{int(n)} frame(s) at {k}x" for k, n in zip(keys, n_off.sum(axis=0)) if n)
+            + "); " + ("their mean intensities are the 'on' level of a two-level mixture"
+                       if blinking == "model" else
+                       "ignored (--blinking ignore): the off frames lower their means"),
+            stacklevel=4)
+    trend = intensity_trend(np.where(off, np.nan, I), np.where(off, np.nan, I_se), times)
+    trend["corrected"] = bool(trend["detected"] and bleaching == "correct")
+    if trend["detected"]:
+        warnings.warn(
+            f"{cal.label}: the beads' intensity "
+            f"{'falls' if trend['rate_per_frame'] > 0 else 'rises'} within the acquisitions "
+            f"({100 * trend['fade_over_series']:+.2f} % over the series, {trend['z']:.1f} "
+            "standard errors: bleaching or a drifting illumination); "
+            + ("corrected before the set-points are compared" if trend["corrected"] else
+               "not corrected (--bleaching warn): it adds to the differences between "
+               "set-points"), stacklevel=4)
+    if trend["corrected"]:
+        I = I * np.exp(trend["rate_per_frame"] * times)[None]
+    beads = _bead_entries(I, blink, blinking, keys, setpoints, positions, fitted, ci)
+    psf_doc = _psf_document(cal, fitted.mismatch[ci], layout, psf)
+
+    def avg(name):
+        v = np.array([b[name] for b in beads], dtype=float)
+        v = v[np.isfinite(v)]
+        return finite_or_none(v.mean()) if v.size else None
+
+    return {
+        "file": cal.label,
+        "method": cal.method,
+        "converged_fraction": _converged_fraction(cal, fitted, ci, keys),
+        "psf": psf,
+        "psf_mismatch": psf_doc,
+        "blinking": {
+            "frames_off": {k: int(v) for k, v in zip(keys, n_off.sum(axis=0))},
+            "beads": int(blink["detected"].any(axis=1).sum()),
+            "modelled": blinking == "model",
+        },
+        "repeats": _repeats(cal, layout, keys, I, off),
+        "intensity_trend": {k: (finite_or_none(v) if isinstance(v, float) else v)
+                            for k, v in trend.items()},
+        "beads": beads,
+        **{name: avg(name) for name in ("sigma_means_incl_1x", "sigma_means_excl_1x",
+                                        "sigma_means_incl_1x_ddof1",
+                                        "sigma_means_excl_1x_ddof1")},
+        "beads_used": int(np.sum(np.isfinite(np.array(
+            [b["sigma_means_incl_1x"] for b in beads], dtype=float)))),
+    }
+
+
+def _bead_entries(I, blink, blinking, keys, setpoints, positions, fitted, ci) -> list:
+    """Each bead's mean intensity at every set-point (the 'on' level where it blinks and
+    that is modelled), its SE (frames and offset map) and the consistency metric."""
+    off, n_off = blink["off"], blink["off"].sum(axis=2)
+    on_level = _on_level(I, blink["off_probability"])
+    use_on = blink["detected"] & (blinking == "model")
+    conv, arr, offset_se = fitted.conv[ci], fitted.arr, fitted.offset_se[ci]
+    entries = []
+    for b, (r, c) in enumerate(positions):
+        vals = I[b]  # (S, F)
+        with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean = np.where(use_on[b], on_level[b], np.nanmean(vals, axis=1))
+            kept = np.where(use_on[b][:, None] & off[b], np.nan, vals)
+            n = np.sum(np.isfinite(kept), axis=1)
+            se = np.hypot(np.nanstd(kept, axis=1, ddof=1) / np.sqrt(n), offset_se[b])
+            y = np.nanmedian(np.where(conv[b], arr["y"][ci, b], np.nan))
+            x = np.nanmedian(np.where(conv[b], arr["x"][ci, b], np.nan))
+        metric = {d: consistency(dict(zip(setpoints, mean)), ddof=d) for d in (0, 1)}
+        entries.append({
+            "row": int(r),
+            "col": int(c),
+            "mean_intensity": {k: finite_or_none(v) for k, v in zip(keys, mean)},
+            "mean_intensity_se": {k: finite_or_none(v) for k, v in zip(keys, se)},
+            "mean_intensity_se_offset": {k: finite_or_none(v)
+                                         for k, v in zip(keys, offset_se[b])},
+            "sigma_means_incl_1x": finite_or_none(metric[0][0]),
+            "sigma_means_excl_1x": finite_or_none(metric[0][1]),
+            "sigma_means_incl_1x_ddof1": finite_or_none(metric[1][0]),
+            "sigma_means_excl_1x_ddof1": finite_or_none(metric[1][1]),
+            "frames_used": {k: int(v) for k, v in zip(keys, n)},
+            "frames_off": {k: int(v) for k, v in zip(keys, n_off[b])},
+            "fitted_row": finite_or_none(y),
+            "fitted_col": finite_or_none(x),
+        })
+    return entries
+
+
+def _converged_fraction(cal, fitted, ci, keys) -> dict:
+    """Per set-point, the fraction of fitted frames whose fits converged; warned below
+    :data:`MIN_CONVERGED`."""
+    conv = fitted.conv[ci]
+    exists = np.isfinite(fitted.arr["intensity"][ci]) | conv  # frames that were fitted
+    fraction = {k: finite_or_none(conv[:, si][exists[:, si]].mean())
+                if exists[:, si].any() else None for si, k in enumerate(keys)}
+    low = {k: v for k, v in fraction.items() if v is not None and v < MIN_CONVERGED}
+    if low:
+        warnings.warn(
+            f"{cal.label}: bead fits converged in only "
+            + ", ".join(f"{100 * v:.1f} % at {k}x" for k, v in low.items())
+            + " of frames; the means are over the others, which can bias them if the "
+            "failures depend on the frames' brightness", stacklevel=5)
+    return fraction
+
+
+def _psf_document(cal, mismatch, layout, psf) -> dict:
+    """The PSF checks of each spot model per acquisition; a warning where the Gaussian
+    does not describe the beads' mean images."""
+    doc = {model: {slot.key: {q: finite_or_none(v) for q, v in m.items()}
+                   for slot, m in zip(layout, per_acquisition)}
+           for model, per_acquisition in mismatch.items()}
+    poor = {k: m["chi2_per_pixel"] for k, m in doc["gaussian"].items()
+            if m["chi2_per_pixel"] is not None and m["chi2_per_pixel"] > PSF_CHI2}
+    if poor:
+        warnings.warn(
+            f"{cal.label}: the Gaussian spot does not describe the beads' mean images "
+            "(chi2 per pixel " + ", ".join(f"{v:.1f} at {k}x" for k, v in poor.items())
+            + "); " + ("the residual image was added (--psf " + psf + ")"
+                       if psf != "gaussian" else
+                       "a PSF mismatch can weigh differently at different set-points: "
+                       "try --psf residual"), stacklevel=5)
+    return doc
 
 
 def _repeats(cal, layout, keys, I, off):
@@ -755,14 +811,15 @@ def _repeats(cal, layout, keys, I, off):
                         f"{100 * (ratio - 1):+.2f} % between acquisitions "
                         f"'{slots[0].acq.name}' and '{a.name}' ({z:.1f} standard errors), "
                         "beyond the trend within the acquisitions: light lost between "
-                        "them, or a change of focus or illumination", stacklevel=4)
+                        "them, or a change of focus or illumination", stacklevel=5)
         out.append({"setpoint": key, "first": slots[0].acq.name, "later": later})
     return out
 
 
-def _intensities_dataset(cals, setpoints, positions, arr, arr_se, loglik, conv, manifest,
-                         layout):
+def _intensities_dataset(cals, setpoints, positions, fitted, manifest, layout):
     import xarray as xr
+
+    arr, arr_se, loglik, conv = fitted.arr, fitted.arr_se, fitted.loglik, fitted.conv
 
     from .. import __version__
 
