@@ -273,21 +273,9 @@ def simulate_beads(
     # Children 0 … 2A: the stacks; 2A + 1: the placement; 2A + 2: blinking.
     children = np.random.SeedSequence(opts["seed"]).spawn(3 + 2 * n_acqs)
     stack_seeds, place_seed, blink_seed = children[:-2], children[-2], children[-1]
-    if positions is None:
-        pos = _place_beads(n_beads, shape[0], shape[1], edge, sep,
-                           np.random.default_rng(place_seed))
-    else:
-        pos = np.asarray(check_number("positions", positions, scalar=False), dtype=float)
-        pos = pos.reshape(-1, 2) if pos.size else np.zeros((0, 2))
-        if pos.ndim != 2 or pos.shape[1] != 2:
-            raise OptionError(f"positions must be (beads, 2) rows and columns, got shape {pos.shape}")
-        outside = (pos < 0).any(axis=1) | (pos[:, 0] > shape[0] - 1) | (pos[:, 1] > shape[1] - 1)
-        if outside.any():
-            raise OptionError(
-                f"bead position {pos[np.argmax(outside)].tolist()} is outside the "
-                f"{shape[0]}×{shape[1]} sensor"
-            )
-        n_beads = len(pos)
+    pos = _bead_positions(positions, n_beads, shape, edge, sep,
+                          np.random.default_rng(place_seed))
+    n_beads = len(pos)
     n_values = [photoelectrons] if np.ndim(photoelectrons) == 0 else list(photoelectrons)
     if len(n_values) not in (1, n_beads):
         raise OptionError(
@@ -314,64 +302,21 @@ def simulate_beads(
             again[key] = again[key].replace("-beads", "-repeat-beads")
         acqs.append(again)
         opts["repeat"] = repeat
-    total = opts["frames"] * len(acqs)
-    # The beads' light over the frames of the whole series: bleaching decays it, blinking
-    # switches each bead off for runs of frames.
-    rate = -math.log1p(-fade) / max(1, total - 1)  # per frame
-    decay = np.exp(-rate * np.arange(total))
-    states = _blinking(n_beads, total, off, off_run, np.random.default_rng(blink_seed))
-    frames_off = [int(v) for v in (1 - states).sum(axis=1)]
-    for i, a in enumerate(acqs):
-        t = slice(i * opts["frames"], (i + 1) * opts["frames"])
-        if off > 0:
-            a["varying"] = [(image, decay[t] * on[t]) for image, on in zip(images, states)]
-        elif fade > 0:
-            a["varying"] = [(scene - b, decay[t])]
+    frames_off = _light_over_series(acqs, images, scene - b, fade, off, off_run,
+                                    opts["frames"], np.random.default_rng(blink_seed))
     darks = [a | {"frames_n": opts["dark_frames"]} for a in acqs]
 
     outdir = _output_dir(outdir)
     files, pattern, pattern_file = _write_stacks(outdir, "beads", acqs, darks, camera, opts,
                                                  progress, stack_seeds)
-    dark_sd = math.sqrt(opts["read_noise"] ** 2 + 1.0 / 12.0)
     truth_acqs = [_truth_entry(a, camera, opts) for a in acqs]
     lines = _manifest_lines("beads", acqs, opts)
     lines[0] = f"# Synthetic bead movies written by emccdcal {__version__} (emccdcal simulate beads)."
     manifest_text = "\n".join(lines) + "\n"
     manifest = outdir / "manifest.toml"
 
-    # The true calibration, in the result contract (emccdcal.result).
-    ds = result.make_dataset(
-        method="truth",
-        setpoints=sps,
-        e_per_adu=opts["e_per_adu"],
-        e_per_adu_se=0.0,
-        em_gain=np.broadcast_to(np.array(gains)[:, None, None], (len(sps),) + shape),
-        em_gain_se=0.0,
-        photoelectrons=scene,
-        photoelectrons_se=0.0,
-        converged=True,
-        manifest_hash=hashlib.sha256(manifest_text.encode("utf-8")).hexdigest(),
-        manifest_path=str(manifest.resolve()),
-        extra={
-            "offset": (("setpoint", "row", "col"),
-                       np.stack([np.clip(a["offset"] + pattern, 0.0, None)
-                                 for a in acqs[:len(sps)]]),
-                       "ADU", "true offset S0 (set-point level plus the pixel pattern)"),
-            "read_noise": (("setpoint", "row", "col"),
-                           np.full((len(sps),) + shape, dark_sd), "ADU",
-                           "true read noise: SD of dark counts, sqrt(sigma^2 + 1/12)"),
-        },
-        attrs={
-            "note": "true values of a bead simulation (emccdcal simulate beads); "
-                    "photoelectrons is the expected bead scene per pixel per frame, "
-                    "background included, CIC excluded",
-            "multiplication": opts["multiplication"],
-        },
-    )
-    nc_path = outdir / TRUTH_CALIBRATION_FILE
-    atomic_write(nc_path, lambda tmp: write_netcdf(ds, tmp))
-    files.append(nc_path)
-
+    files.append(_write_truth_calibration(outdir, opts, sps, gains, scene, acqs, pattern,
+                                          manifest, manifest_text))
     options = {k: opts[k] for k in sorted(opts)}
     units = dict(_UNITS) | {"width": "pixel", "background": "e-/px/frame",
                             "bead photoelectrons": "e-/frame (whole bead)",
@@ -406,3 +351,73 @@ def simulate_beads(
     files.append(atomic_write_text(truth_path, json.dumps(truth, indent=2) + "\n"))
     files.append(atomic_write_text(manifest, manifest_text))
     return SimulatedSeries(outdir, manifest, truth_path, truth, tuple(files))
+
+
+def _bead_positions(positions, n_beads, shape, margin, min_separation, rng) -> np.ndarray:
+    """The beads' (row, col) centres: placed at random, or the ones given, checked."""
+    if positions is None:
+        return _place_beads(n_beads, shape[0], shape[1], margin, min_separation, rng)
+    pos = np.asarray(check_number("positions", positions, scalar=False), dtype=float)
+    pos = pos.reshape(-1, 2) if pos.size else np.zeros((0, 2))
+    if pos.ndim != 2 or pos.shape[1] != 2:
+        raise OptionError(f"positions must be (beads, 2) rows and columns, got shape {pos.shape}")
+    outside = (pos < 0).any(axis=1) | (pos[:, 0] > shape[0] - 1) | (pos[:, 1] > shape[1] - 1)
+    if outside.any():
+        raise OptionError(f"bead position {pos[np.argmax(outside)].tolist()} is outside the "
+                          f"{shape[0]}×{shape[1]} sensor")
+    return pos
+
+
+def _light_over_series(acqs, images, beads_light, fade, off, off_run, frames, rng) -> list:
+    """The beads' light over the frames of the whole series, set on each acquisition as
+    its ``varying`` part: bleaching decays it, blinking switches each bead off for runs of
+    frames. Returns each bead's frames off."""
+    total = frames * len(acqs)
+    rate = -math.log1p(-fade) / max(1, total - 1)  # per frame
+    decay = np.exp(-rate * np.arange(total))
+    states = _blinking(len(images), total, off, off_run, rng)
+    for i, a in enumerate(acqs):
+        t = slice(i * frames, (i + 1) * frames)
+        if off > 0:
+            a["varying"] = [(image, decay[t] * on[t]) for image, on in zip(images, states)]
+        elif fade > 0:
+            a["varying"] = [(beads_light, decay[t])]
+    return [int(v) for v in (1 - states).sum(axis=1)]
+
+
+def _write_truth_calibration(outdir, opts, sps, gains, scene, acqs, pattern, manifest,
+                             manifest_text):
+    """The true calibration in the result contract (:mod:`emccdcal.result`), written."""
+    shape = scene.shape
+    ds = result.make_dataset(
+        method="truth",
+        setpoints=sps,
+        e_per_adu=opts["e_per_adu"],
+        e_per_adu_se=0.0,
+        em_gain=np.broadcast_to(np.array(gains)[:, None, None], (len(sps),) + shape),
+        em_gain_se=0.0,
+        photoelectrons=scene,
+        photoelectrons_se=0.0,
+        converged=True,
+        manifest_hash=hashlib.sha256(manifest_text.encode("utf-8")).hexdigest(),
+        manifest_path=str(manifest.resolve()),
+        extra={
+            "offset": (("setpoint", "row", "col"),
+                       np.stack([np.clip(a["offset"] + pattern, 0.0, None)
+                                 for a in acqs[:len(sps)]]),
+                       "ADU", "true offset S0 (set-point level plus the pixel pattern)"),
+            "read_noise": (("setpoint", "row", "col"),
+                           np.full((len(sps),) + shape,
+                                   math.sqrt(opts["read_noise"] ** 2 + 1.0 / 12.0)), "ADU",
+                           "true read noise: SD of dark counts, sqrt(sigma^2 + 1/12)"),
+        },
+        attrs={
+            "note": "true values of a bead simulation (emccdcal simulate beads); "
+                    "photoelectrons is the expected bead scene per pixel per frame, "
+                    "background included, CIC excluded",
+            "multiplication": opts["multiplication"],
+        },
+    )
+    nc_path = outdir / TRUTH_CALIBRATION_FILE
+    atomic_write(nc_path, lambda tmp: write_netcdf(ds, tmp))
+    return nc_path
