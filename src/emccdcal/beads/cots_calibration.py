@@ -105,13 +105,43 @@ def _cots_calibrate(manifest, half_size, width, progress):
                 f"{a.frames_path}: {a.n_frames} frame(s) to use; COTS needs at least "
                 f"{MIN_FRAMES} frames of the beads"
             )
-    rows, cols = manifest.shape
-    # Beads: on the highest set-point's mean image.
     ref = max(em, key=lambda a: a.em_gain_setpoint)
+    beads = _find_beads(ref, width, half_size)
+    setpoints = list(manifest.setpoints)
+    spots = _fit_spots(manifest, em, beads, setpoints, half_size, width, progress)
+    maps, table, ok_bead = _estimates(spots, beads, setpoints, phi, manifest.shape, half_size)
+    if not ok_bead.any():
+        raise InputError(
+            f"{manifest.path}: COTS gave no usable estimate for any of the {len(beads)} "
+            "bead(s) at every set-point (see the warnings)"
+        )
+    converged = np.zeros(manifest.shape, bool)
+    for r, c in beads[ok_bead]:
+        converged[r - half_size:r + half_size + 1, c - half_size:c + half_size + 1] = True
+    return result.make_dataset(
+        method="cots",
+        setpoints=[float(s) for s in setpoints],
+        e_per_adu=phi,
+        e_per_adu_se=0.0,
+        em_gain=maps["em_gain"],
+        em_gain_se=maps["em_gain_se"],
+        photoelectrons=maps["photoelectrons"],
+        photoelectrons_se=maps["photoelectrons_se"],
+        photoelectrons_dims=("setpoint", "row", "col"),
+        converged=converged,
+        manifest_hash=manifest.content_hash,
+        manifest_path=str(manifest.path.resolve()),
+        extra=_bead_variables(beads, table),
+        attrs={"half_size": half_size, "width": float(width),
+               "bead_frames": str(ref.frames_path)},
+    )
+
+
+def _find_beads(ref, width, half_size) -> np.ndarray:
+    """The beads (row, col) on the offset-subtracted mean image of ``ref``."""
     mean = np.mean(ref.frames(), axis=0, dtype=float) - ref.offset
     found = psf.find_beads(mean, width=width, half_size=half_size)
-    beads = found.positions
-    if len(beads) == 0:
+    if len(found.positions) == 0:
         raise InputError(
             f"{ref.frames_path}: no beads found on the mean image (threshold "
             f"{found.threshold:.3g} ADU above the background; {len(found.at_edge)} "
@@ -122,56 +152,69 @@ def _cots_calibrate(manifest, half_size, width, progress):
         warnings.warn(
             f"{ref.frames_path}: {len(found.at_edge)} bead(s) too near the edge and "
             f"{len(found.too_close)} too close to another were left out",
-            stacklevel=3,
+            stacklevel=4,
         )
-    setpoints = list(manifest.setpoints)
-    S, B = len(setpoints), len(beads)
+    return found.positions
+
+
+def _fit_spots(manifest, em, beads, setpoints, half_size, width, progress) -> dict:
+    """COTS on every bead of every multiplied acquisition: per set-point index, a list of
+    (bead index, :class:`~emccdcal.beads.cots.CotsSpot`, the offset map in the bead's box)."""
+    rows, cols = manifest.shape
     size = 2 * half_size + 1
     margin = size  # the ROI may follow the spot this far
-    keys = ("gain", "gain_se", "offset", "offset_se", "em_gain", "em_gain_se",
-            "spot_e", "width", "used")
-    table = {k: np.full((B, S), np.nan) for k in keys}
-    bar = progress_bar(enabled=progress, desc="cots", unit="fit", total=B * len(em))
     per_sp: dict[int, list] = {}
-    for a in em:
-        si = setpoints.index(a.em_gain_setpoint)
-        frames = a.frames()
-        for bi, (r, c) in enumerate(beads):
-            r0, c0 = max(0, r - half_size - margin), max(0, c - half_size - margin)
-            r1 = min(rows, r + half_size + 1 + margin)
-            c1 = min(cols, c + half_size + 1 + margin)
-            box = np.asarray(frames[:, r0:r1, c0:c1])
-            roi = (r - half_size - r0, c - half_size - c0, size, size)
-            try:
-                spot = cots_spot(box, roi=roi, width=width, adc_max=manifest.adc_max)
-            except ValueError as exc:
-                warnings.warn(f"{a.frames_path}: bead at ({r}, {c}): {exc}", stacklevel=3)
-                spot = None
-            if spot is not None and spot.n_saturated:
-                warnings.warn(
-                    f"{a.frames_path}: bead at ({r}, {c}): {spot.n_saturated} frame(s) with "
-                    f"saturated pixels (>= {manifest.adc_max} ADU) left out",
-                    stacklevel=3,
-                )
-            if spot is not None:
-                dark = a.offset[r - half_size:r + half_size + 1, c - half_size:c + half_size + 1]
-                per_sp.setdefault(si, []).append((bi, spot, dark))
-            bar.update(1)
-    bar.close()
+    with progress_bar(enabled=progress, desc="cots", unit="fit", total=len(beads) * len(em)) \
+            as bar:
+        for a in em:
+            si = setpoints.index(a.em_gain_setpoint)
+            frames = a.frames()
+            for bi, (r, c) in enumerate(beads):
+                r0, c0 = max(0, r - half_size - margin), max(0, c - half_size - margin)
+                r1 = min(rows, r + half_size + 1 + margin)
+                c1 = min(cols, c + half_size + 1 + margin)
+                box = np.asarray(frames[:, r0:r1, c0:c1])
+                roi = (r - half_size - r0, c - half_size - c0, size, size)
+                try:
+                    spot = cots_spot(box, roi=roi, width=width, adc_max=manifest.adc_max)
+                except ValueError as exc:
+                    warnings.warn(f"{a.frames_path}: bead at ({r}, {c}): {exc}", stacklevel=4)
+                    spot = None
+                if spot is not None and spot.n_saturated:
+                    warnings.warn(
+                        f"{a.frames_path}: bead at ({r}, {c}): {spot.n_saturated} frame(s) "
+                        f"with saturated pixels (>= {manifest.adc_max} ADU) left out",
+                        stacklevel=4,
+                    )
+                if spot is not None:
+                    dark = a.offset[r - half_size:r + half_size + 1,
+                                    c - half_size:c + half_size + 1]
+                    per_sp.setdefault(si, []).append((bi, spot, dark))
+                bar.update(1)
+    return per_sp
 
-    em_gain = np.full((S, rows, cols), np.nan)
-    em_gain_se = np.full((S, rows, cols), np.nan)
-    pe = np.full((S, rows, cols), np.nan)
-    pe_se = np.full((S, rows, cols), np.nan)
+
+#: Per-bead estimates in the table of :func:`_estimates`.
+_TABLE_KEYS = ("gain", "gain_se", "offset", "offset_se", "em_gain", "em_gain_se", "spot_e",
+               "width", "used")
+
+
+def _estimates(per_sp, beads, setpoints, phi, shape, half_size):
+    """Each bead's estimates per set-point (several acquisitions at one set-point combined
+    by inverse-variance weights) as a table (bead, set-point), the maps of em_gain and
+    photoelectrons over the beads' boxes, and the beads with an estimate at every
+    multiplied set-point."""
+    S, B = len(setpoints), len(beads)
+    table = {k: np.full((B, S), np.nan) for k in _TABLE_KEYS}
+    maps = {k: np.full((S,) + tuple(shape), np.nan)
+            for k in ("em_gain", "em_gain_se", "photoelectrons", "photoelectrons_se")}
     ok_bead = np.ones(B, bool)
     for si, sp in enumerate(setpoints):
         if sp == 1:
-            em_gain[si], em_gain_se[si] = 1.0, 0.0
+            maps["em_gain"][si], maps["em_gain_se"][si] = 1.0, 0.0
             continue
-        spots = per_sp.get(si, [])
-        # Several acquisitions at one set-point: combine them (inverse-variance weights).
         by_bead: dict[int, list] = {}
-        for bi, spot, dark in spots:
+        for bi, spot, dark in per_sp.get(si, []):
             by_bead.setdefault(bi, []).append((spot, dark))
         for bi in range(B):
             if bi not in by_bead:
@@ -180,26 +223,20 @@ def _cots_calibrate(manifest, half_size, width, progress):
             g, g_se, s0, s0_se, spot_e, wid, used, pe_b, pe_b_se = _combine(by_bead[bi])
             r, c = beads[bi]
             sl = np.s_[r - half_size:r + half_size + 1, c - half_size:c + half_size + 1]
-            table["gain"][bi, si], table["gain_se"][bi, si] = g, g_se
-            table["offset"][bi, si], table["offset_se"][bi, si] = s0, s0_se
-            table["em_gain"][bi, si] = g * phi[r, c]
-            table["em_gain_se"][bi, si] = g_se * phi[r, c]
-            table["spot_e"][bi, si], table["width"][bi, si] = spot_e, wid
-            table["used"][bi, si] = used
-            em_gain[si][sl] = g * phi[sl]
-            em_gain_se[si][sl] = g_se * phi[sl]
-            pe[si][sl], pe_se[si][sl] = pe_b, pe_b_se
-    converged = np.zeros((rows, cols), bool)
-    for bi, (r, c) in enumerate(beads):
-        if ok_bead[bi]:
-            converged[r - half_size:r + half_size + 1, c - half_size:c + half_size + 1] = True
-    if not ok_bead.any():
-        raise InputError(
-            f"{manifest.path}: COTS gave no usable estimate for any of the {B} bead(s) at "
-            "every set-point (see the warnings)"
-        )
+            for key, value in zip(_TABLE_KEYS, (g, g_se, s0, s0_se, g * phi[r, c],
+                                                g_se * phi[r, c], spot_e, wid, used)):
+                table[key][bi, si] = value
+            maps["em_gain"][si][sl] = g * phi[sl]
+            maps["em_gain_se"][si][sl] = g_se * phi[sl]
+            maps["photoelectrons"][si][sl] = pe_b
+            maps["photoelectrons_se"][si][sl] = pe_b_se
+    return maps, table, ok_bead
+
+
+def _bead_variables(beads, table) -> dict:
+    """The per-bead variables of a COTS result (``make_dataset``'s ``extra``)."""
     bead_dims = ("bead", "setpoint")
-    extra = {
+    return {
         "bead_row": (("bead",), beads[:, 0].astype(np.int64), "pixel",
                      "sensor row of the bead's brightest pixel (ROI centre)"),
         "bead_col": (("bead",), beads[:, 1].astype(np.int64), "pixel",
@@ -221,23 +258,6 @@ def _cots_calibrate(manifest, half_size, width, progress):
         "cots_frames_used": (bead_dims, table["used"], "1",
                              "frames whose fits were usable (NaN: bead not analysed)"),
     }
-    return result.make_dataset(
-        method="cots",
-        setpoints=[float(s) for s in setpoints],
-        e_per_adu=phi,
-        e_per_adu_se=0.0,
-        em_gain=em_gain,
-        em_gain_se=em_gain_se,
-        photoelectrons=pe,
-        photoelectrons_se=pe_se,
-        photoelectrons_dims=("setpoint", "row", "col"),
-        converged=converged,
-        manifest_hash=manifest.content_hash,
-        manifest_path=str(manifest.path.resolve()),
-        extra=extra,
-        attrs={"half_size": half_size, "width": float(width),
-               "bead_frames": str(ref.frames_path)},
-    )
 
 
 def _combine(pairs):
