@@ -719,79 +719,22 @@ def cots_spot(stack, *, roi=None, width=DEFAULT_WIDTH, init=None, gain0=None, of
 
     idx = np.flatnonzero(usable)
     need(idx, "fit of the spot")
-    # Hat-matrix moments, a chunk of frames at a time (n × n per frame).
-    names = [a + b for a in ("mm", "ff", "mf", "mmf") for b in ("_e", "_1")]
-    mom = {k: np.full((F, n), np.nan) for k in names}
-    leverage = np.full((F, n), np.nan)
-    for lo in range(0, idx.size, _CHUNK):
-        ch = idx[lo:lo + _CHUNK]
-        qh = _thin_q(jac[ch])
-        hat = qh @ np.swapaxes(qh, 1, 2)
-        leverage[ch] = np.einsum("fii->fi", hat)
-        for k, val in _hat_moments(expected[ch], hat).items():
-            mom[k][ch] = val
+    mom, leverage = _frame_hat_moments(expected, jac, idx)
     alpha = np.full((F, 2), np.nan)
     a, ok = fit_variance_model(counts[idx], expected[idx], leverage=leverage[idx],
                                gain0=gain0, offset0=offset0)
     alpha[idx] = a
     usable[idx[~ok]] = False
-
-    # The truth a_c that the frames' fits estimate: solve  mean_f α*_f(a_c) = mean_f α̂_f,
-    # with α*_f where frame f's fit lands on average (:func:`_pseudo_true`). (The per-frame
-    # α̂_f scatter by ~30 %: too much to evaluate a nonlinear bias at each one.)
-    for _attempt in range(5):
-        idx = np.flatnonzero(usable)
-        need(idx, "variance fit")
-        sub = {k: val[idx] for k, val in mom.items()}
-        e_u = expected[idx]
-
-        warm = {}
-
-        def predicted(point, sub=sub, e_u=e_u, warm=warm):
-            out, root, _ = _pseudo_true(sub, e_u, np.tile(point, (len(e_u), 1)),
-                                        start=warm.get("root"))
-            warm["root"] = root  # the root at a nearby point: a warm start
-            return out.mean(axis=0)
-
-        def jacobian_of_predicted(point, e_u=e_u):
-            jb = np.empty((2, 2))
-            for j in range(2):
-                hstep = np.zeros(2)
-                hstep[j] = 1e-5 * (abs(point[j]) + (abs(point[0]) * np.ptp(e_u) if j else 0))
-                jb[:, j] = (predicted(point + hstep) - predicted(point - hstep)) / (2 * hstep[j])
-            return jb
-
-        a_raw = alpha[idx].mean(axis=0)
-        a_c = a_raw.copy()
-        jb = jacobian_of_predicted(a_c)
-        for _it in range(50):
-            step = np.linalg.solve(jb, a_raw - predicted(a_c))
-            if not np.all(np.isfinite(step)):
-                a_c = np.full(2, np.nan)
-                break
-            a_c = a_c + step
-            if np.all(np.abs(step) <= 1e-10 * (np.abs(a_c) + abs(a_c[0]))):
-                break
-        # Frames whose fitted signal falls below the corrected offset have v ≤ 0 there.
-        bad = ~np.all(a_c[0] * e_u - a_c[1] > 0, axis=1)
-        if np.all(np.isfinite(a_c)) and a_c[0] > 0 and not bad.any():
-            break
-        if not bad.any() or bad.all():
-            break
-        usable[idx[bad]] = False
-    if not (np.all(np.isfinite(a_c)) and a_c[0] > 0) or bad.any():
-        raise OptionError("COTS: the bias correction of the variance fit did not converge "
-                         f"(corrected G = {a_c[0]:.4g} ADU/e-); too few pixels with signal?")
-    # d(a_c)/d(mean α̂) = (∂ mean α*/∂α)^-1 carries the frame scatter to a_c.
-    d_inv = np.linalg.inv(jacobian_of_predicted(a_c))
+    a_c, d_inv, fit_point = _corrected_truth(alpha, usable, mom, expected, need)
+    idx = np.flatnonzero(usable)
     truth = np.tile(a_c, (idx.size, 1))
-    fit_point = _pseudo_true(sub, e_u, truth, start=warm.get("root"))[0]
     bias = np.full((F, 2), np.nan)
     bias[idx] = fit_point - truth
     cov = np.full((F, 2, 2), np.nan)
     for lo in range(0, idx.size, _CHUNK):
         ch = slice(lo, lo + _CHUNK)
-        raw_cov = _covariance(e_u[ch], _thin_q(jac[idx[ch]]), truth[ch], fit_point[ch])
+        raw_cov = _covariance(expected[idx][ch], _thin_q(jac[idx[ch]]), truth[ch],
+                              fit_point[ch])
         cov[idx[ch]] = d_inv @ raw_cov @ d_inv.T
     if not (np.all(np.isfinite(cov[idx])) and np.all(cov[idx, 0, 0] > 0)):
         raise OptionError("COTS: the covariance of the variance fit is not finite")
@@ -833,3 +776,76 @@ def cots_spot(stack, *, roi=None, width=DEFAULT_WIDTH, init=None, gain0=None, of
         frame_shift=shift,
         usable=usable,
     )
+
+
+def _frame_hat_moments(expected, jac, idx):
+    """Hat-matrix moments (:func:`_hat_moments`) and leverages of the frames ``idx``, a
+    chunk of frames at a time (n × n per frame); NaN for the other frames."""
+    F, n = expected.shape
+    names = [a + b for a in ("mm", "ff", "mf", "mmf") for b in ("_e", "_1")]
+    mom = {k: np.full((F, n), np.nan) for k in names}
+    leverage = np.full((F, n), np.nan)
+    for lo in range(0, idx.size, _CHUNK):
+        ch = idx[lo:lo + _CHUNK]
+        qh = _thin_q(jac[ch])
+        hat = qh @ np.swapaxes(qh, 1, 2)
+        leverage[ch] = np.einsum("fii->fi", hat)
+        for k, val in _hat_moments(expected[ch], hat).items():
+            mom[k][ch] = val
+    return mom, leverage
+
+
+def _corrected_truth(alpha, usable, mom, expected, need):
+    """The truth a_c = (G, H) that the frames' variance fits estimate.
+
+    Solves ``mean_f α*_f(a_c) = mean_f α̂_f``, with α*_f where frame f's fit lands on
+    average (:func:`_pseudo_true`); the per-frame α̂_f scatter by ~30 %: too much to
+    evaluate a nonlinear bias at each one. Frames whose fitted signal falls below the
+    corrected offset (v ≤ 0 there) are left out of ``usable`` (in place) and the solve
+    repeated. Returns a_c, ``d(a_c)/d(mean α̂)`` (which carries the frames' scatter to
+    a_c) and α*_f(a_c) of the usable frames.
+    """
+    for _attempt in range(5):
+        idx = np.flatnonzero(usable)
+        need(idx, "variance fit")
+        sub = {k: val[idx] for k, val in mom.items()}
+        e_u = expected[idx]
+        warm = {}
+
+        def predicted(point, sub=sub, e_u=e_u, warm=warm):
+            out, root, _ = _pseudo_true(sub, e_u, np.tile(point, (len(e_u), 1)),
+                                        start=warm.get("root"))
+            warm["root"] = root  # the root at a nearby point: a warm start
+            return out.mean(axis=0)
+
+        def jacobian_of_predicted(point, e_u=e_u):
+            jb = np.empty((2, 2))
+            for j in range(2):
+                hstep = np.zeros(2)
+                hstep[j] = 1e-5 * (abs(point[j]) + (abs(point[0]) * np.ptp(e_u) if j else 0))
+                jb[:, j] = (predicted(point + hstep) - predicted(point - hstep)) / (2 * hstep[j])
+            return jb
+
+        a_raw = alpha[idx].mean(axis=0)
+        a_c = a_raw.copy()
+        jb = jacobian_of_predicted(a_c)
+        for _it in range(50):  # a root (no objective): Newton's chord method
+            step = np.linalg.solve(jb, a_raw - predicted(a_c))
+            if not np.all(np.isfinite(step)):
+                a_c = np.full(2, np.nan)
+                break
+            a_c = a_c + step
+            if np.all(np.abs(step) <= 1e-10 * (np.abs(a_c) + abs(a_c[0]))):
+                break
+        bad = ~np.all(a_c[0] * e_u - a_c[1] > 0, axis=1)
+        if np.all(np.isfinite(a_c)) and a_c[0] > 0 and not bad.any():
+            break
+        if not bad.any() or bad.all():
+            break
+        usable[idx[bad]] = False
+    if not (np.all(np.isfinite(a_c)) and a_c[0] > 0) or bad.any():
+        raise OptionError("COTS: the bias correction of the variance fit did not converge "
+                          f"(corrected G = {a_c[0]:.4g} ADU/e-); too few pixels with signal?")
+    d_inv = np.linalg.inv(jacobian_of_predicted(a_c))
+    fit_point = _pseudo_true(sub, e_u, np.tile(a_c, (idx.size, 1)), start=warm.get("root"))[0]
+    return a_c, d_inv, fit_point
