@@ -166,3 +166,17 @@ def test_nothing_outside_model_asks_which_register_it_has():
             if isinstance(node, ast.Attribute) and node.attr == "cascade":
                 found.append(f"{path.relative_to(SRC)}:{node.lineno}")
     assert not found, f"branches on the register model: {found}"
+
+
+def test_no_function_is_longer_than_a_reader_can_hold():
+    """No function in src/ over 120 lines of code (docstrings and comments not counted):
+    benchmarks/function_lengths.py counts them."""
+    import importlib.util
+
+    path = Path(__file__).parents[1] / "benchmarks" / "function_lengths.py"
+    spec = importlib.util.spec_from_file_location("function_lengths", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    lengths = module.function_lengths()
+    assert len(lengths) > 500  # it found the package's functions
+    assert not [where for n, where in lengths if n > 120]

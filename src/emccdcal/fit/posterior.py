@@ -375,8 +375,6 @@ def sample_posterior(
     >>> float(ds.median.sel(parameter="e_per_adu")[0])                    # doctest: +SKIP
     3.94
     """
-    import xarray as xr
-
     t0 = time.perf_counter()
     if prior not in PRIORS:
         raise OptionError(f"unknown prior {prior!r}; choose one of {', '.join(PRIORS)}")
@@ -436,6 +434,24 @@ def sample_posterior(
                               mle_converged=bool(fit.converged[0]),
                               seconds=time.perf_counter() - t_pixel))
 
+    ds = _posterior_dataset(per_pixel, names, units, {
+        "method": method, "prior": prior, "seed": int(seed), "min_ess": int(min_ess),
+        "max_steps": int(max_steps), "manifest_hash": manifest.content_hash,
+        "manifest_path": str(manifest.path), "sampler": SAMPLER,
+        "prior_description": _prior_text(prior),
+    })
+    ds.attrs["seconds"] = time.perf_counter() - t0
+    ds.attrs.update(model.attrs)
+    if out is not None:
+        save(ds, out)
+    return ds
+
+
+def _posterior_dataset(per_pixel, names, units, attrs) -> xarray.Dataset:
+    """The labelled result of :func:`sample_posterior` from each pixel's draws and
+    diagnostics (the pixels' chains padded with NaN to the longest)."""
+    import xarray as xr
+
     n_draw = max(p["samples"].shape[0] for p in per_pixel)
     Pn, F = len(per_pixel), len(names)
     samples = np.full((Pn, n_draw, F), np.nan)
@@ -447,7 +463,7 @@ def sample_posterior(
     pdim, pf = ("pixel",), ("pixel", "parameter")
     col = lambda key: np.array([p[key] for p in per_pixel])  # noqa: E731
     dcol = lambda key: np.array([p["diag"][key] for p in per_pixel])  # noqa: E731
-    ds = xr.Dataset(
+    return xr.Dataset(
         {
             "samples": (("pixel", "draw", "parameter"), samples,
                         {"long_name": "posterior draws (burn-in discarded, thinned)",
@@ -476,18 +492,8 @@ def sample_posterior(
             "pixel": np.arange(Pn), "row": ("pixel", col("row")), "col": ("pixel", col("col")),
             "parameter": names, "units": ("parameter", units),
         },
-        attrs={
-            "method": method, "prior": prior, "seed": int(seed), "min_ess": int(min_ess),
-            "max_steps": int(max_steps), "manifest_hash": manifest.content_hash,
-            "manifest_path": str(manifest.path), "sampler": SAMPLER,
-            "prior_description": _prior_text(prior),
-        },
+        attrs=attrs,
     )
-    ds.attrs["seconds"] = time.perf_counter() - t0
-    ds.attrs.update(model.attrs)
-    if out is not None:
-        save(ds, out)
-    return ds
 
 
 def _prior_text(prior):
