@@ -126,3 +126,31 @@ def test_simulate_takes_its_output_as_a_word_or_with_o(tmp_path, capsys):
     assert "OUT or -o OUT" in capsys.readouterr().err
     assert cli.main(["simulate", "gain-series", str(tmp_path / "c"), "-o",
                      str(tmp_path / "d"), *opts]) == 2
+
+
+def _all_parsers(parser):
+    """A parser and every sub-parser under it (verbs, then actions such as db's)."""
+    import argparse
+
+    yield parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in dict.fromkeys(action.choices.values()):
+                yield from _all_parsers(sub)
+
+
+@pytest.mark.parametrize("verb", list(cli.VERBS))
+def test_help_texts_read_as_written(verb):
+    """No literal '%%' (argparse formats help strings, not descriptions), no list shown
+    as a Python list, no positional argument without a help text."""
+    root = cli.build_parser(verb)
+    for parser in _all_parsers(root):
+        if parser is root:
+            continue
+        text = parser.format_help()
+        assert "%%" not in text, parser.prog
+        assert "(default [" not in text, parser.prog
+        for action in parser._actions:
+            if not action.option_strings and action.dest not in ("help",) and \
+                    not action.choices:
+                assert action.help, f"{parser.prog}: {action.dest} has no help"

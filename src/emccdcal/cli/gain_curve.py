@@ -12,7 +12,7 @@ def add_parser(subparsers):
         "gain-curve",
         help="fit the gain against the set-point; predict set-points not measured",
         description="Fit the measured EM gain (median over converged pixels) as a smooth "
-        "monotone function of the set-point, with a 95%% band, and predict gains at "
+        "monotone function of the set-point, with a 95 % band, and predict gains at "
         "set-points not measured. Writes gain-curve.csv, gain-curve.json and the figure.",
     )
     p.add_argument("results", nargs="+", type=Path, metavar="RESULT",

@@ -200,7 +200,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     bd.add_argument("--photoelectrons", type=_common.number_list,
                     default=[BEAD_DEFAULTS["photoelectrons"]],
                     help="photoelectrons per bead per frame, e-: one value or one per bead, "
-                    "comma-separated (default %(default)s)")
+                    f"comma-separated (default {BEAD_DEFAULTS['photoelectrons']:g})")
     bd.add_argument("--width", type=float, default=BEAD_DEFAULTS["width"],
                     help="PSF standard deviation, px (default %(default)s)")
     bd.add_argument("--background", type=float, default=BEAD_DEFAULTS["background"],
