@@ -389,3 +389,38 @@ def test_database_flags_an_ageing_register(tmp_path, capsys):
     true_result(tmp_path / "same", gains={1.0: 1.0, 100.0: 80.0}, camera={"serial": "AGE-1"})
     with pytest.raises(ValueError, match="has changed since it was added"):
         database.find("AGE-1", 100, db=db)
+
+
+def test_apply_writes_an_image_series_even_three_pixels_wide_and_photons_with_qe(tmp_path):
+    """A (frames, 3, 3) stack is not one RGB image; --qe gives photons."""
+    res = true_result(tmp_path / "r", shape=(3, 3))
+    narrow = tmp_path / "narrow.tif"
+    stack = simulate_frames(np.full((3, 3), 80.0), em_gain=GAINS[100.0], e_per_adu=PHI,
+                            offset=OFFSET, read_noise=SIGMA, frames=50, seed=4)
+    tifffile.imwrite(narrow, stack, photometric="minisblack")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # tifffile's own warnings never reach the user
+        out = apply(res, narrow, tmp_path / "e.tif", setpoint=100, progress_bar=False)
+        photons = apply(res, narrow, tmp_path / "p.tif", setpoint=100, progress_bar=False,
+                        qe=0.8)
+    with tifffile.TiffFile(out) as tif:
+        series = tif.series[0]
+        assert series.shape == (50, 3, 3) and series.axes[-2:] == "YX"
+        assert len(tif.pages) == 50 and tif.pages[0].photometric == 1  # MINISBLACK
+        e = tif.asarray()
+    with tifffile.TiffFile(photons) as tif:
+        p = tif.asarray()
+        meta = json.loads(tif.pages[0].description)
+    assert meta["units"].startswith("photons") and meta["qe"] == 0.8
+    np.testing.assert_allclose(p, e / 0.8, rtol=1e-6)
+    from emccdcal import cli
+
+    assert cli.main(["apply", str(res), str(narrow), "-o", str(tmp_path / "c.tif"),
+                     "--setpoint", "100", "--qe", "0.8", "-q"]) == 0
+    np.testing.assert_array_equal(tifffile.imread(tmp_path / "c.tif"), p)
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="quantum efficiency"):
+            apply(res, narrow, tmp_path / "x.tif", setpoint=100, progress_bar=False, qe=bad)
+    with pytest.raises(ValueError, match="photon counting"):
+        apply(res, narrow, tmp_path / "x.tif", setpoint=100, progress_bar=False, qe=0.8,
+              photon_counting=True)

@@ -28,6 +28,9 @@ def add_parser(subparsers):
     p.add_argument("--threshold", type=_common.positive_float, default=DEFAULT_THRESHOLD,
                    metavar="K", help="photon-counting threshold in read-noise SDs "
                    "(default %(default)s)")
+    p.add_argument("--qe", type=_common.positive_float, metavar="Q",
+                   help="quantum efficiency at the emission wavelength (0 < Q <= 1): "
+                   "write photons, photoelectrons / Q")
     _common.add_overwrite(p)
     _common.add_accept_mismatch(p)
     _common.add_quiet(p)
@@ -46,7 +49,8 @@ def run(args) -> int:
         out = apply(_common.calibration_of(args, setpoint), args.movie, args.out,
                     setpoint=args.setpoint, photon_counting=args.photon_counting,
                     threshold=args.threshold, progress_bar=not args.quiet,
-                    overwrite=args.overwrite, accept_mismatch=args.accept_mismatch)
+                    overwrite=args.overwrite, accept_mismatch=args.accept_mismatch,
+                    qe=args.qe)
     if not args.quiet:
         print(f"wrote {out}")
     _common.print_warnings(caught)

@@ -86,8 +86,9 @@ def _check_identity(cal: Calibration, movie: Path, settings, accept) -> None:
 
 def apply(calibration, movie, out, *, setpoint=None, photon_counting=False,
           threshold=DEFAULT_THRESHOLD, output_format=None, progress_bar=True,
-          overwrite=False, accept_mismatch=()) -> Path:
-    """Convert a movie to photoelectrons (or photon counts) per pixel per frame.
+          overwrite=False, accept_mismatch=(), qe=None) -> Path:
+    """Convert a movie to photoelectrons (or photons, or photon counts) per pixel per
+    frame.
 
     Parameters
     ----------
@@ -113,6 +114,10 @@ def apply(calibration, movie, out, *, setpoint=None, photon_counting=False,
     accept_mismatch : iterable of str
         Identity fields (:data:`~emccdcal.result.IDENTITY_FIELDS`) in which the movie
         may differ from the calibration.
+    qe : float, optional
+        The camera's quantum efficiency at the emission wavelength (photoelectrons per
+        photon, 0 < QE ≤ 1): the output is then photons, photoelectrons / QE. Not with
+        ``photon_counting``.
 
     Returns
     -------
@@ -135,17 +140,24 @@ def apply(calibration, movie, out, *, setpoint=None, photon_counting=False,
                           f"{', '.join(OUTPUT_FORMATS)})")
     if photon_counting and not (threshold > 0 and math.isfinite(threshold)):
         raise OptionError(f"--threshold is in read-noise SDs and positive; got {threshold}")
+    if qe is not None:
+        if not (isinstance(qe, (int, float)) and 0 < qe <= 1):
+            raise OptionError(f"--qe is the quantum efficiency, photoelectrons per photon "
+                              f"(0 < QE <= 1, e.g. 0.9 for 90 %); got {qe!r}")
+        if photon_counting:
+            raise OptionError("--qe gives photons from photoelectrons; photon counting gives "
+                              "0/1 events, which a QE does not scale: give one of them")
     cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
     target = Output(out, kind="store" if fmt == "zarr" else "file",
                     inputs=[movie, *cal.files], overwrite=overwrite)
     with target:
         _apply(cal, movie, target, setpoint, photon_counting, threshold, fmt, progress_bar,
-               accept_mismatch)
+               accept_mismatch, qe)
     return out
 
 
 def _apply(cal, movie, target, setpoint, photon_counting, threshold, fmt, progress_bar,
-           accept_mismatch):
+           accept_mismatch, qe):
     shape, dtype = stack_header(movie)
     if len(shape) != 3:
         raise InputError(f"{movie}: a movie is a stack of frames; this file holds shape {shape}")
@@ -166,7 +178,12 @@ def _apply(cal, movie, target, setpoint, photon_counting, threshold, fmt, progre
     meta = {"units": "photoelectrons per pixel per frame (e-)" if not photon_counting else
             "photon counts per pixel per frame (0 or 1)",
             "source": str(movie), "setpoint": s, "formula": "(S - offset) * e_per_adu / em_gain",
-            "emccdcal": cal.provenance(), "uncalibrated_pixels": int(bad.sum())}
+            "emccdcal": cal.provenance(), "uncalibrated_pixels": int(bad.sum()),
+            "axes": "TYX"}
+    if qe is not None:  # photons: photoelectrons / QE
+        scale = scale / qe
+        meta.update(units="photons per pixel per frame",
+                    formula="(S - offset) * e_per_adu / em_gain / qe", qe=float(qe))
     if bad.any():
         warnings.warn(f"{movie}: {int(bad.sum())} pixel(s) have no converged calibration at "
                       f"{format_setpoint(s)}x; they are NaN (0 when photon counting)",
@@ -228,8 +245,11 @@ def _write_tiff(out: Path, blocks, shape, dtype, meta) -> None:
             yield from block.astype(dtype, copy=False)
 
     def write(tmp):
+        # One grey-scale image per frame (never RGB, whatever the last axis), the axes
+        # named, so that Fiji and napari open a time series.
         with tifffile.TiffWriter(tmp, bigtiff=True) as tw:
-            tw.write(frames(), shape=shape, dtype=dtype, metadata=meta)
+            tw.write(frames(), shape=shape, dtype=dtype, metadata=meta,
+                     photometric="minisblack")
 
     atomic_write(out, write)
 
