@@ -20,7 +20,15 @@ from camera_files import write_spe
 from test_export import OFFSET, PHI, SHAPE, SIGMA, true_result
 
 from emccdcal import cli, result
-from emccdcal._output import Output, OutputError, comment, file_sha256, slug, toml_line
+from emccdcal._output import (
+    STORE_MARKER,
+    Output,
+    OutputError,
+    comment,
+    file_sha256,
+    slug,
+    toml_line,
+)
 from emccdcal.data.dark import maps_from_dark
 from emccdcal.errors import InputError
 from emccdcal.export import database
@@ -522,10 +530,49 @@ def test_a_store_that_gains_a_foreign_file_during_the_run_is_kept(tmp_path):
 # --------------------------------------------------------------------------------------
 # Every deletion removes only what a run itself made
 # --------------------------------------------------------------------------------------
+def test_leftover_cleaning_removes_only_a_partial_store_that_a_run_made(tmp_path):
+    """A killed run's ``.partial`` store is known by its marker; a directory of the same
+    form without it (or holding more) is someone else's and stays."""
+    from emccdcal._output import remove_leftovers
+
+    target = tmp_path / "movie.zarr"
+    with pytest.raises(KeyboardInterrupt):  # a run that dies while writing its store
+        with Output(target, kind="store") as out:
+            content = out.store()
+            (content / "zarr.json").write_text("{}")
+            partial = content.parent
+            raise KeyboardInterrupt
+    assert not partial.exists() and not target.exists()
+    # as a kill -9 leaves it: the marked .partial with its content
+    killed = tmp_path / ".movie.zarr.0123456789ab.partial"
+    (killed / "store").mkdir(parents=True)
+    (killed / STORE_MARKER).write_text('{"partial": true}')
+    (killed / "store" / "zarr.json").write_text("{}")
+    foreign = tmp_path / ".movie.zarr.aaaaaaaaaaaa.partial"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    grown = tmp_path / ".movie.zarr.bbbbbbbbbbbb.partial"
+    (grown / "store").mkdir(parents=True)
+    (grown / STORE_MARKER).write_text('{"partial": true}')
+    (grown / "notes.txt").write_text("mine")
+    remove_leftovers(target)
+    assert not killed.exists()
+    assert (foreign / "notes.txt").read_text() == "mine"
+    assert (grown / "notes.txt").read_text() == "mine"
+
+
+def test_a_store_is_published_whole_and_its_partial_removed(tmp_path):
+    target = tmp_path / "movie.zarr"
+    with Output(target, kind="store") as out:
+        (out.store() / "a").write_text("1")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["movie.zarr"]
+    assert sorted(p.name for p in target.iterdir()) == [STORE_MARKER, "a"]
+
+
 def test_leftover_cleaning_keeps_an_old_store_that_holds_a_users_file(tmp_path):
     """A killed run's ``.old`` store is removed only while it holds nothing but what
     emccdcal wrote; a ``.tmp`` leftover of the same output is removed."""
-    from emccdcal._output import STORE_MARKER, remove_leftovers
+    from emccdcal._output import remove_leftovers
 
     target = tmp_path / "movie.zarr"
     old = tmp_path / ".movie.zarr.0123456789ab.old"

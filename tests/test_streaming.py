@@ -82,13 +82,20 @@ def test_an_occupied_output_is_refused_without_resume_or_overwrite(series, tmp_p
     out = tmp_path / "out"
     argv = ["calibrate", str(series[0]), "-o", str(out), "-q", "--no-checks"]
     assert cli.main(argv) == 0
-    (out / "report.html").write_text("an old report")
+    from emccdcal.report.html import write_report
+
+    write_report([out], out / "report.html")  # the old run's report
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "finished result" in err and "--overwrite" in err
     assert cli.main(argv + ["--overwrite"]) == 0
     assert not (out / "report.html").exists()  # nothing of the old run is left beside it
     assert sorted(p.name for p in out.iterdir()) == ["calibration.nc", "summary.json"]
+    # a report.html made by hand is the user's: never removed
+    (out / "report.html").write_text("<html>my own notes</html>")
+    assert cli.main(argv + ["--overwrite"]) == 0
+    assert (out / "report.html").read_text() == "<html>my own notes</html>"
+    (out / "report.html").unlink()
     assert cli.main(argv + ["--resume"]) == 2
     assert "nothing to resume" in capsys.readouterr().err
 

@@ -188,16 +188,58 @@ def _is_our_store(folder: Path) -> bool:
     return _files_below(folder) <= listed | {STORE_MARKER}
 
 
+#: The folder inside a ``.partial`` directory that the store's writer fills.
+_PARTIAL_CONTENT = "store"
+
+
+def _is_our_partial(folder: Path) -> bool:
+    """A ``.partial`` directory :meth:`Output.store` made: its marker says so, and it
+    holds nothing but the marker and the content folder the writer was given."""
+    try:
+        marked = json.loads((folder / STORE_MARKER).read_text()).get("partial") is True
+    except (OSError, ValueError, AttributeError):
+        return False
+    return marked and {p.name for p in folder.iterdir()} <= {STORE_MARKER, _PARTIAL_CONTENT}
+
+
 def _remove_ours(path: Path) -> None:
-    """Remove a temporary file, or a temporary store of this module: a ``.partial`` (the
-    content a run was writing) or an ``.old`` that still holds only what emccdcal wrote
-    (the store it replaced); a directory of any other name or content is left alone."""
+    """Remove a temporary file, or a temporary store of this module: a ``.partial`` that
+    :meth:`Output.store` made (the content a run was writing) or an ``.old`` that still
+    holds only what emccdcal wrote (the store it replaced); a directory of any other name
+    or content is left alone."""
     if path.is_dir() and not path.is_symlink():
         kind = re.search(r"\.[0-9a-f]{12}\.(partial|old)$", path.name)
-        if kind and (kind.group(1) == "partial" or _is_our_store(path)):
+        if kind and (_is_our_partial(path) if kind.group(1) == "partial"
+                     else _is_our_store(path)):
             shutil.rmtree(path, ignore_errors=True)
     else:
         path.unlink(missing_ok=True)
+
+
+#: What a file emccdcal wrote holds besides a result's checksum block (:data:`_MAGIC`):
+#: a summary's version key, a report's generator tag (in reports before it, a
+#: provenance row).
+_SIGNATURES = (b'"emccdcal_version"', b'<meta name="generator" content="emccdcal',
+               b"<td>written by emccdcal</td>")
+
+
+def written_by_emccdcal(path) -> bool:
+    """Whether ``path`` is a file emccdcal wrote (a result, a summary, a report): the
+    test before an earlier run's file is removed, so that a user's file of the same name
+    is never deleted."""
+    path = Path(path)
+    if not path.is_file() or path.is_symlink():
+        return False
+    signatures = (_MAGIC, *_SIGNATURES)
+    longest = max(map(len, signatures))
+    tail = b""
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            text = tail + block
+            if any(sig in text for sig in signatures):
+                return True
+            tail = text[-longest:]
+    return False
 
 
 class _Staging:
@@ -462,12 +504,17 @@ class Output:
     # ---- while running -----------------------------------------------------------------
     def store(self) -> Path:
         """A new, empty temporary directory for a store's content; it takes the output's
-        place when the run completes."""
+        place when the run completes. It lies inside a marked ``.partial`` directory, so
+        that a killed run's is known for ours (a writer may empty the folder it is given:
+        zarr's ``mode="w"`` does)."""
         if self.kind != "store":
             raise ValueError("store() is for an Output of kind 'store'")
         self._new_store = _temporary(self.path, "partial")
         self._new_store.mkdir()
-        return self._new_store
+        (self._new_store / STORE_MARKER).write_text(json.dumps({"partial": True}))
+        content = self._new_store / _PARTIAL_CONTENT
+        content.mkdir()
+        return content
 
     # ---- the end -----------------------------------------------------------------------
     def __exit__(self, exc_type, exc, tb) -> bool:
@@ -510,8 +557,9 @@ class Output:
                     raise OutputError(f"{final}: exists; pass --overwrite to replace it")
             self._staging.commit()
         if self._new_store is not None:
-            files = sorted(_files_below(self._new_store) | {STORE_MARKER})
-            (self._new_store / STORE_MARKER).write_text(json.dumps({"files": files}))
+            content = self._new_store / _PARTIAL_CONTENT
+            files = sorted(_files_below(content) | {STORE_MARKER})
+            (content / STORE_MARKER).write_text(json.dumps({"files": files}))
             if self.path.is_dir() and not self.path.is_symlink():
                 if not _is_our_store(self.path):  # something was put there meanwhile
                     raise OutputError(f"{self._what}: files that emccdcal did not write "
@@ -520,8 +568,7 @@ class Output:
                 os.replace(self.path, self._old_store)
             elif self.path.exists() or self.path.is_symlink():
                 self.path.unlink()
-            os.replace(self._new_store, self.path)
-            self._new_store = None
+            os.replace(content, self.path)  # the empty .partial is removed on exit
 
 
 def _reason(exc: OSError) -> str:

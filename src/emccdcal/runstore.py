@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._output import atomic_write, remove_leftovers, staged
+from ._output import atomic_write, remove_leftovers, staged, written_by_emccdcal
 from ._util import one_line
 from .errors import EmccdcalError, OptionError
 
@@ -149,14 +149,15 @@ def publish(out, writers: dict, *, stale=()) -> dict:
     """Write files into ``out`` as one set: every new file is complete before any is
     renamed over its old version; then the files named in ``stale`` that the new set
     lacks (an earlier run's of the same set, which the caller's output policy let it
-    replace) are removed, so the directory never mixes two runs."""
+    replace) are removed where emccdcal wrote them, so the directory never mixes two
+    runs; a user's file of such a name is left."""
     out = Path(out)
     with staged(out):
         for name, write in writers.items():
             atomic_write(out / name, write)
     for name in stale:
-        if name not in writers:
-            (out / name).unlink(missing_ok=True)
+        if name not in writers and written_by_emccdcal(out / name):
+            (out / name).unlink()
     return {name: out / name for name in writers}
 
 

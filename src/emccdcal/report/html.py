@@ -492,6 +492,7 @@ def build_report(results, *, validation=(), pixel=None, figures_dir=None, progre
     inputs_line = "; ".join(f"{_e(inp.label)}: <span class=mono>{_e(str(inp.path or '(in memory)'))}"
                             "</span>" for inp in inputs)
     return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+            f'<meta name="generator" content="emccdcal {_e(__version__)}">'
             f'<meta name="viewport" content="width=device-width, initial-scale=1">'
             f"<title>{_e(title)}</title><style>{_CSS}</style></head><body>\n"
             f"<header><h1>{_e(title)}</h1><p>{inputs_line}</p><nav>{toc}</nav></header>\n"
