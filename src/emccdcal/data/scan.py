@@ -2,12 +2,20 @@
 
 Files are grouped by what they record (:func:`emccdcal.data.stacks.stack_settings`) and,
 where they record nothing, by their names; every rule used is said in the manifest's
-header. Darks are the files whose names say so (``dark``, ``no-signal``, ``bias``,
-``background``); a stack's EM gain set-point is its recorded one, else the number before
-an ``x`` in its name (``25x-gain.tif``) or after ``gain`` (``gain_300.spe``). The
-settings that make two acquisitions comparable — readout rate, analog gain, ADC bits,
-binning, region and frame size — must agree across the session: a mismatch is an error
-naming both files.
+header, and every file of the folder is either used or skipped with its reason.
+
+- A **stack** (frames × rows × cols) is a dark where its name says so (``dark``,
+  ``no-signal``, ``bias``, ``background``), else illuminated. Its EM gain set-point is
+  the recorded one, else the number before an ``x`` in its name (``25x-gain.tif``) or
+  after ``gain`` (``gain_300.spe``).
+- A **map** (rows × cols) is an offset map where its name says ``S0``, ``offset``,
+  ``bias`` or ``mean``, a read-noise map where it says ``sigma``, ``std``, ``rn`` or
+  ``read-noise``; an offset map and a read-noise map at one set-point (from the name)
+  are one dark, as the published ProEM folders of Ryan et al. (2021) hold them. A dark
+  stack at the same set-point is preferred (it also gives the maps' frame count).
+- The settings that make two acquisitions comparable — readout rate, analog gain, ADC
+  bits, binning, region and frame size — must agree across the session: a mismatch is an
+  error naming both files.
 """
 
 from __future__ import annotations
@@ -22,17 +30,32 @@ from ..errors import InputError
 from .settings import CameraSettings
 from .stacks import STACK_SUFFIXES, stack_header, stack_settings
 
-__all__ = ["ScannedFile", "Session", "scan", "manifest_text", "write_manifest"]
+__all__ = ["ScannedFile", "MapPair", "Session", "scan", "manifest_text", "write_manifest"]
 
 _DARK = re.compile(r"dark|no[-_ ]?signal|bias|background", re.IGNORECASE)
 _SETPOINT = (re.compile(r"(?<![\d.])(\d+(?:\.\d+)?)\s*x(?![a-z])", re.IGNORECASE),
              re.compile(r"gain[-_ ]?(\d+(?:\.\d+)?)", re.IGNORECASE))
+
+
+def _word(alternatives: str) -> re.Pattern:
+    """A whole word of a file name (between separators), case-insensitive."""
+    return re.compile(rf"(?<![a-z0-9])(?:{alternatives})(?![a-z0-9])", re.IGNORECASE)
+
+
+#: What a map's name says it holds.
+_MAP_KINDS = {"offset": _word(r"s0|offset|bias|mean"),
+              "read_noise": _word(r"sigma|std|rn|read[-_ ]?noise|noise"),
+              "e_per_adu": _word(r"adu|e[-_]?per[-_]?adu|conversion")}
 #: Settings that must agree across a session, and how to name them.
 _MUST_AGREE = {"readout_rate_mhz": "readout rate (MHz)", "analog_gain": "analog gain",
                "adc_bits": "ADC bits", "binning": "binning", "roi": "region (x, y, w, h)"}
+_DARK_HELP = ("name a dark stack with its set-point and 'dark' (e.g. '{sp}x-dark.tif'), or "
+              "an offset and a read-noise map ('{sp}x_S0.tif' and '{sp}x_sigma.tif'); or "
+              "write the manifest by hand, each acquisition with dark = \"FILE\" or offset = "
+              "\"FILE\" and read_noise = \"FILE\" (docs/manifest.md)")
 
 
-@dataclass
+@dataclass(frozen=True)
 class ScannedFile:
     """One stack of the session: its path, shape, settings and what it was taken as."""
 
@@ -44,14 +67,26 @@ class ScannedFile:
     setpoint_rule: str  # "recorded" or "name"
 
 
+@dataclass(frozen=True)
+class MapPair:
+    """The offset and read-noise maps (ADU) of one dark, at one set-point (by name)."""
+
+    offset: Path
+    read_noise: Path
+    setpoint: float
+
+
 @dataclass
 class Session:
-    """The stacks of a folder, sorted: ``signal`` by set-point then name, ``darks``."""
+    """The folder's stacks, sorted (``signal`` by set-point then name), the dark of each
+    set-point (a stack or a map pair), and what was skipped and why."""
 
     folder: Path
     signal: list[ScannedFile]
-    darks: list[ScannedFile]
+    darks: dict[float, ScannedFile | MapPair]
     rules: list[str] = field(default_factory=list)
+    skipped: list[tuple[str, str]] = field(default_factory=list)
+    e_per_adu_map: Path | None = None
 
     @property
     def kind(self) -> str:
@@ -59,25 +94,70 @@ class Session:
         setpoints = [f.setpoint for f in self.signal]
         return "gain-series" if len(set(setpoints)) == len(setpoints) else "intensity-series"
 
+    def summary(self) -> list[str]:
+        """What was found, used and skipped, one line each (the console's report)."""
+        setpoints = sorted({f.setpoint for f in self.signal})
+        n_maps = sum(isinstance(d, MapPair) for d in self.darks.values())
+        dark_words = [f"{len(self.darks) - n_maps} dark stack(s)"] if n_maps < len(self.darks) else []
+        if n_maps:
+            dark_words.append(f"{n_maps} offset/read-noise map pair(s)")
+        if self.kind == "gain-series":
+            head = (f"gain-series: {len(setpoints)} set-points "
+                    f"({', '.join(f'{s:g}' for s in setpoints)})")
+        else:
+            head = (f"intensity-series: {len(self.signal)} levels at set-point "
+                    f"{', '.join(f'{s:g}' for s in setpoints)}")
+        lines = [f"{head}; darks: {' and '.join(dark_words)}", "used:"]
+        for f in self.signal:
+            dark = self.darks[f.setpoint]
+            what = (f"dark {dark.path.name}" if isinstance(dark, ScannedFile) else
+                    f"offset {dark.offset.name}, read noise {dark.read_noise.name}")
+            lines.append(f"  {f.path.name} (set-point {f.setpoint:g}, {f.setpoint_rule}); {what}")
+        if self.skipped:
+            lines.append("skipped:")
+            lines += [f"  {name}: {why}" for name, why in self.skipped]
+        lines += [f"rule: {r}" for r in self.rules]
+        return lines
+
+
+def _setpoint_in_name(path: Path) -> float | None:
+    for pattern in _SETPOINT:
+        match = pattern.search(path.stem)
+        if match:
+            return float(match.group(1))
+    return None
+
 
 def _setpoint_of(path: Path, settings: CameraSettings):
     if settings.em_gain_setpoint is not None:
         return float(settings.em_gain_setpoint), "recorded"
-    for pattern in _SETPOINT:
-        match = pattern.search(path.stem)
-        if match:
-            return float(match.group(1)), "name"
+    setpoint = _setpoint_in_name(path)
+    if setpoint is not None:
+        return setpoint, "name"
     raise InputError(f"'{path}': no EM gain set-point: the file records none and its name "
                      "does not say (e.g. '25x-gain' or 'gain_25'); name it so, or write the "
                      "manifest by hand")
 
 
 def _files(folder: Path):
+    """(camera files, other files) of ``folder``, not hidden, not in subfolders."""
+    camera, other = [], []
     for path in sorted(folder.iterdir()):
-        if path.suffix.lower() in STACK_SUFFIXES and not path.name.startswith("."):
-            # pipes, devices and dangling links are no camera files (and could block)
-            if path.is_file() or (path.is_dir() and path.suffix.lower() == ".zarr"):
-                yield path
+        if path.name.startswith("."):
+            continue
+        # pipes, devices and dangling links are no camera files (and could block)
+        if path.suffix.lower() in STACK_SUFFIXES and (
+                path.is_file() or (path.is_dir() and path.suffix.lower() == ".zarr")):
+            camera.append(path)
+        elif path.is_file():
+            other.append(path)
+    return camera, other
+
+
+def _subfolders_with_stacks(folder: Path) -> list[str]:
+    return [d.name for d in sorted(folder.iterdir())
+            if d.is_dir() and not d.name.startswith(".") and d.suffix.lower() != ".zarr"
+            and _files(d)[0]]
 
 
 def scan(folder) -> Session:
@@ -86,31 +166,72 @@ def scan(folder) -> Session:
     Raises
     ------
     InputError
-        No stack in the folder; a file without a set-point; settings that disagree
-        between two files (both named); several stacks at one set-point alongside
-        others (a gain series and an intensity series mixed); a set-point without a
-        dark.
+        No stack in the folder (naming subfolders that hold some); a stack without a
+        set-point; settings that disagree between two files (both named); several stacks
+        at one set-point alongside others (a gain series and an intensity series mixed);
+        a set-point with neither a dark stack nor an offset and read-noise map pair (the
+        message says what to rename, or which manifest lines to write).
     """
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(f"'{folder}' is not a folder")
-    stacks = []
-    for path in _files(folder):
+    camera, other = _files(folder)
+    stacks, maps, skipped = [], [], []
+    for path in camera:
         shape, _ = stack_header(path)
-        if len(shape) != 3:  # maps (offset, read noise) are not scanned
-            continue
-        settings = stack_settings(path)
-        setpoint, rule = _setpoint_of(path, settings)
-        stacks.append(ScannedFile(path, tuple(shape), settings, bool(_DARK.search(path.stem)),
-                                  setpoint, rule))
+        if len(shape) == 3:
+            settings = stack_settings(path)
+            setpoint, rule = _setpoint_of(path, settings)
+            stacks.append(ScannedFile(path, tuple(shape), settings,
+                                      bool(_DARK.search(path.stem)), setpoint, rule))
+        elif len(shape) == 2:
+            maps.append((path, tuple(shape)))
+        else:
+            skipped.append((path.name, f"{len(shape)}-dimensional: neither a stack of frames nor a map"))
     if not stacks:
-        raise InputError(f"'{folder}': no stack of frames ({', '.join(STACK_SUFFIXES)})")
+        inner = _subfolders_with_stacks(folder)
+        where = f"; its subfolders {', '.join(inner)} hold some: scan each" if inner else ""
+        raise InputError(f"'{folder}': no stack of frames ({', '.join(STACK_SUFFIXES)}){where}")
     _check_agreement(stacks)
     signal = sorted((f for f in stacks if not f.dark), key=lambda f: (f.setpoint, f.path.name))
-    darks = [f for f in stacks if f.dark]
     if not signal:
         raise InputError(f"'{folder}': only darks (names with dark, no-signal, bias or "
                          "background); no illuminated stack")
+    _check_one_kind(folder, signal)
+    frame = signal[0].shape[1:]
+    wanted = {f.setpoint for f in signal}
+    pairs, e_per_adu_map = _map_pairs(maps, frame, wanted, skipped)
+    darks: dict[float, ScannedFile | MapPair] = {}
+    for d in sorted((f for f in stacks if f.dark), key=lambda f: f.path.name):
+        if d.setpoint not in wanted:
+            skipped.append((d.path.name, f"a dark at set-point {d.setpoint:g}, where no "
+                                    "illuminated stack is"))
+        elif d.setpoint in darks:
+            skipped.append((d.path.name, f"a second dark at set-point {d.setpoint:g}: "
+                                    f"{darks[d.setpoint].path.name} is used"))
+        else:
+            darks[d.setpoint] = d
+    for sp, pair in pairs.items():
+        if sp in darks:
+            for p in (pair.offset, pair.read_noise):
+                skipped.append((p.name, f"the dark stack {darks[sp].path.name} at set-point "
+                                   f"{sp:g} is used instead"))
+        else:
+            darks[sp] = pair
+    missing = sorted(wanted - set(darks))
+    if missing:
+        seen = "; seen and not used: " + ", ".join(f"{name} ({why})" for name, why in skipped) \
+            if skipped else ""
+        raise InputError(f"'{folder}': no dark at set-point "
+                         f"{', '.join(f'{s:g}' for s in missing)}: "
+                         + _DARK_HELP.format(sp=f"{missing[0]:g}") + seen)
+    if other:
+        names = ", ".join(p.name for p in other[:5]) + (", …" if len(other) > 5 else "")
+        skipped.append((f"{len(other)} other file(s)", f"not camera files ({names})"))
+    return Session(folder, signal, darks, _rules(stacks, pairs, darks), skipped, e_per_adu_map)
+
+
+def _check_one_kind(folder: Path, signal) -> None:
     by_setpoint: dict[float, list] = {}
     for f in signal:
         by_setpoint.setdefault(f.setpoint, []).append(f)
@@ -119,21 +240,63 @@ def scan(folder) -> Session:
         raise InputError(f"'{folder}': several stacks at set-point {', '.join(many)} beside "
                          "other set-points: a gain series and an intensity series mixed; scan "
                          "each from its own folder")
-    dark_at = {}
-    for d in darks:
-        dark_at.setdefault(d.setpoint, d)
-    missing = sorted({f.setpoint for f in signal} - set(dark_at))
-    if missing:
-        raise InputError(f"'{folder}': no dark stack at set-point "
-                         f"{', '.join(f'{s:g}' for s in missing)} (a dark's name says dark, "
-                         "no-signal, bias or background, and its set-point)")
-    rules = ["darks: by name (dark, no-signal, bias or background)"]
-    by_rule = {r: [f.path.name for f in stacks if f.setpoint_rule == r] for r in ("recorded", "name")}
+
+
+def _map_pairs(maps, frame, wanted, skipped):
+    """The offset/read-noise map pairs by set-point, and a map named for e⁻/ADU; every
+    other map goes to ``skipped`` with its reason."""
+    found: dict[float, dict[str, list[Path]]] = {}
+    e_per_adu_map = None
+    for path, shape in maps:
+        kinds = [k for k, pattern in _MAP_KINDS.items() if pattern.search(path.stem)]
+        setpoint = _setpoint_in_name(path)
+        if kinds == ["e_per_adu"]:
+            e_per_adu_map = e_per_adu_map or path
+            skipped.append((path.name, "a map named for e⁻/ADU, not a dark: see the manifest's "
+                                  "commented e_per_adu line"))
+        elif len(kinds) != 1:
+            skipped.append((path.name, "a map whose name says neither offset (S0, offset, bias, "
+                                  "mean) nor read noise (sigma, std, rn, read-noise)"
+                                  if not kinds else "a map whose name says both "
+                                  + " and ".join(kinds)))
+        elif shape != frame:
+            skipped.append((path.name, f"a {shape[0]} × {shape[1]} px map; the frames are "
+                                  f"{frame[0]} × {frame[1]} px"))
+        elif setpoint is None:
+            skipped.append((path.name, "a map whose name gives no set-point (e.g. '25x_S0')"))
+        elif setpoint not in wanted:
+            skipped.append((path.name, f"a map at set-point {setpoint:g}, where no illuminated "
+                                  "stack is"))
+        else:
+            found.setdefault(setpoint, {"offset": [], "read_noise": []})[kinds[0]].append(path)
+    pairs = {}
+    for sp, by_kind in sorted(found.items()):
+        offsets, noises = by_kind["offset"], by_kind["read_noise"]
+        if offsets and noises:
+            pairs[sp] = MapPair(offsets[0], noises[0], sp)
+        for p in offsets[1:] + noises[1:]:
+            skipped.append((p.name, f"a second map of its kind at set-point {sp:g}"))
+        for p in (offsets or noises)[:1] if not (offsets and noises) else ():
+            other = "read-noise" if offsets else "offset"
+            skipped.append((p.name, f"no {other} map at set-point {sp:g} to pair it with"))
+    return pairs, e_per_adu_map
+
+
+def _rules(stacks, pairs, darks) -> list[str]:
+    rules = []
+    if any(isinstance(d, ScannedFile) for d in darks.values()):
+        rules.append("dark stacks: by name (dark, no-signal, bias or background)")
+    if any(isinstance(d, MapPair) for d in darks.values()):
+        rules.append("dark maps: by name (offset: S0, offset, bias or mean; read noise: "
+                     "sigma, std, rn or read-noise), set-points from the names")
+    by_rule = {r: [f.path.name for f in sorted(stacks, key=lambda f: (f.setpoint, f.path.name))
+                   if f.setpoint_rule == r]
+               for r in ("recorded", "name")}
     if by_rule["recorded"]:
         rules.append("set-points recorded in the files: " + ", ".join(by_rule["recorded"]))
     if by_rule["name"]:
         rules.append("set-points from the file names: " + ", ".join(by_rule["name"]))
-    return Session(folder, signal, darks, rules)
+    return rules
 
 
 def _check_agreement(stacks) -> None:
@@ -166,18 +329,25 @@ def manifest_text(session: Session, where: Path) -> str:
     lines = [comment(f"# {kind} scanned from {session.folder} by emccdcal scan, "
                      f"{time.strftime('%Y-%m-%d %H:%M', time.localtime())}."),
              "# Rules used:"] + [comment(f"#   {r}") for r in session.rules]
+    lines += [comment(f"# Skipped: {name}: {why}") for name, why in session.skipped]
+    if any(isinstance(d, MapPair) for d in session.darks.values()):
+        lines.append("# Offset and read-noise maps are taken as exact; add dark_frames = N "
+                     "to an acquisition whose maps came from N dark frames.")
     lines.append("# Check it, then: emccdcal calibrate THIS.toml --method "
                  + ("gs" if kind == "gain-series" else "is-adu") + " -o OUT")
-    bits = {f.settings.adc_bits for f in session.signal + session.darks} - {None}
+    bits = {f.settings.adc_bits for f in session.signal} - {None}
+    bits |= {d.settings.adc_bits for d in session.darks.values()
+             if isinstance(d, ScannedFile)} - {None}
     if len(bits) == 1:
         lines.append(toml_line("adc_bits", int(bits.pop())))
     else:
         lines.append("# adc_bits = 16   # not recorded: the camera's ADC resolution, if known")
     if kind == "gain-series":
+        if session.e_per_adu_map is not None:
+            lines.append(comment("# " + toml_line("e_per_adu", rel(session.e_per_adu_map))
+                                 + "   # a map named for e-/ADU in the folder: use it only "
+                                 "if it holds e-/ADU of this camera"))
         lines.append("# e_per_adu = \"../out-adu\"   # phi from an is-adu result, for the gain methods")
-    darks = {}
-    for d in session.darks:
-        darks.setdefault(d.setpoint, d)
     for i, f in enumerate(session.signal, start=1):
         lines += ["", "[[acquisition]]"]
         known = f.settings.known()
@@ -189,15 +359,32 @@ def manifest_text(session: Session, where: Path) -> str:
                      + ("" if f.setpoint_rule == "recorded" else "  # from the file name"))
         if kind == "intensity-series":
             lines.append(toml_line("level", f"L{i}"))
-        lines.append(toml_line("dark", rel(darks[f.setpoint].path)))
+        dark = session.darks[f.setpoint]
+        if isinstance(dark, MapPair):
+            lines.append(toml_line("offset", rel(dark.offset)))
+            lines.append(toml_line("read_noise", rel(dark.read_noise)))
+        else:
+            lines.append(toml_line("dark", rel(dark.path)))
     return "\n".join(lines) + "\n"
+
+
+def manifest_path(out, folder) -> Path:
+    """Where ``scan`` writes: ``OUT`` itself when it names a ``.toml`` file, else
+    ``OUT/manifest.toml`` (``OUT`` a folder, as every other verb's ``-o``); without
+    ``OUT``, ``FOLDER/manifest.toml``."""
+    if out is None:
+        return Path(folder) / "manifest.toml"
+    out = Path(out)
+    return out if out.suffix.lower() == ".toml" else out / "manifest.toml"
 
 
 def write_manifest(session: Session, out, *, overwrite: bool = False) -> Path:
     """Write :func:`manifest_text` to ``out`` (atomically); an existing file only with
-    ``overwrite``, and never one of the session's stacks."""
+    ``overwrite``, and never one of the session's files."""
     out = Path(out)
-    inputs = [f.path for f in session.signal + session.darks]
+    inputs = [f.path for f in session.signal]
+    for dark in session.darks.values():
+        inputs += [dark.offset, dark.read_noise] if isinstance(dark, MapPair) else [dark.path]
     with Output(out, kind="file", inputs=inputs, overwrite=overwrite):
         atomic_write_text(out, manifest_text(session, out))
     return out
