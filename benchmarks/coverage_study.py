@@ -30,6 +30,7 @@ from emccdcal.simulate.known_truth import (
     COLS,
     FRAMES,
     ROWS,
+    STUDY_REGISTER,
     coverage,
     hierarchical_options,
     median_band,
@@ -135,10 +136,10 @@ def main(figure=None):
                 Path(tmp) / f"{name}-varying", setpoints=cam["setpoints"], em_gain=cam["em_gain"],
                 photoelectrons=E, rows=ROWS, cols=COLS, frames=FRAMES, dark_frames=10,
                 e_per_adu=cam["e_per_adu"], read_noise=cam["read_noise"], offset=cam["offset"],
-                seed=31)
+                seed=31, multiplication=STUDY_REGISTER)
             header(f"camera '{name}', illumination × {ILLUMINATION_FACTORS.tolist()} at "
                    f"set-points {cam['setpoints']}", f"camera '{name}', E differs")
-            ds = calibrate(truth_manifest(sim, cam["read_noise"]), "gs-hierarchical",
+            ds = calibrate(truth_manifest(sim, cam["read_noise"], STUDY_REGISTER), "gs-hierarchical",
                            options=hierarchical_options(cam))
             gain_series_rows(ds, "gs-hierarchical", cam, E)
     if figure is not None:

@@ -133,7 +133,8 @@ def test_real_proem_report_renders_in_chromium(browser, tmp_path):
         warnings.simplefilter("ignore")  # the camera's read noise grows with set-point
         calibrate(write_real_manifest(tmp_path, "adu"), "is-adu", out=tmp_path / "is-adu",
                   checks=False)  # the slow part; gs keeps its data-quality checks
-        calibrate(write_real_manifest(tmp_path, "gs"), "gs", out=tmp_path / "gs")
+        # the paper's gamma model, whose 5x misfit the report must show
+        calibrate(write_real_manifest(tmp_path, "gs"), "gs", out=tmp_path / "gs", em_model="gamma")
         path = report_html.write_report([tmp_path / "is-adu", tmp_path / "gs"], tmp_path / "r.html")
     found = check_in_browser(path, tmp_path, "proem-report")
     assert len(found["images"]) == 11  # 4 per result and 3 comparisons: nothing left out

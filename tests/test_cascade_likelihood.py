@@ -224,10 +224,24 @@ def test_em_model_arguments_are_checked():
         noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, register_cic=0.1)
     with pytest.raises(OptionError, match="stages are the cascade model's"):
         noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, stages=604)
-    # a run: the caller's choice over the manifest's; stages alone mean the cascade
-    assert noise.choose_em_model(None) == noise.EMModel()
-    assert noise.choose_em_model(noise.EMModel(), stages=604) == noise.EMModel("cascade", 604)
-    assert noise.choose_em_model(noise.EMModel("cascade", 604), "gamma") == noise.EMModel()
+    # a run: the exact cascade unless told; the caller's choice over the manifest's,
+    # the manifest's over what is known of the camera, that over the stated default;
+    # stages alone mean the cascade
+    choose, cascade = noise.choose_em_model, noise.EMModel("cascade", 536)
+    assert choose() == (cascade, "default")
+    assert choose(stages=604) == (noise.EMModel("cascade", 604), "given")
+    assert choose(stages=604, manifest_model="gamma")[0] == noise.EMModel("cascade", 604)
+    assert choose("gamma", manifest_model="cascade", manifest_stages=604) == (noise.EMModel(), "")
+    assert choose(manifest_model="gamma") == (noise.EMModel(), "")
+    assert choose("cascade", manifest_stages=604) == (noise.EMModel("cascade", 604), "manifest")
+    assert choose(manifest_stages=591, camera_model="iXon Ultra 888")[1] == "manifest"
+    assert choose(camera_model="iXon Ultra 888") == (
+        noise.EMModel("cascade", 604),
+        "camera model 'iXon Ultra 888': Andor iXon Ultra 888, a CCD201-20 sensor")
+    assert choose(camera_model="ProEM+: 512B eXcelon") == (cascade, "default")
+    assert choose(noise.EMModel("cascade", 604)) == (noise.EMModel("cascade", 604), "given")
+    with pytest.raises(OptionError, match="disagrees"):
+        choose(noise.EMModel("cascade", 604), stages=536)
 
 
 # --------------------------------------------------------------------------------------
@@ -294,9 +308,10 @@ def _fit(manifest, **kw):
 def test_gs_with_the_cascade_recovers_the_gains_the_gamma_model_misses(cascade_series):
     sim, manifest = cascade_series
     true_g = np.array([1, 4.78, 22.95, 90.06, 261.6])
-    exact, exact_warnings = _fit(manifest, em_model="cascade", stages=536)
-    gamma, gamma_warnings = _fit(manifest)
+    exact, exact_warnings = _fit(manifest)  # the default: the cascade, 536 stages
+    gamma, gamma_warnings = _fit(manifest, em_model="gamma")
     assert exact.attrs["em_model"] == "cascade" and int(exact.attrs["register_stages"]) == 536
+    assert exact.attrs["register_stages_source"] == "default"
     assert gamma.attrs["em_model"] == "gamma"
     for a, g in enumerate(true_g[1:], start=1):
         est = exact.em_gain.values[a].ravel()
@@ -321,8 +336,14 @@ def test_manifest_selects_the_model_and_the_caller_overrides_it(cascade_series, 
     assert summary["em_model"] == "cascade" and summary["register_stages"] == 604
     ds, _ = _fit(chosen, em_model="gamma")
     assert ds.attrs["em_model"] == "gamma" and "register_stages" not in ds.attrs
+    # a length alone: the default model, the cascade, of that length
+    alone = manifest.with_name("manifest-stages.toml")
+    alone.write_text("register_stages = 604\n" + text)
+    ds, _ = _fit(alone)
+    assert ds.attrs["em_model"] == "cascade" and int(ds.attrs["register_stages"]) == 604
+    assert ds.attrs["register_stages_source"] == "manifest"
     bad = manifest.with_name("manifest-bad.toml")
-    bad.write_text("register_stages = 604\n" + text)
+    bad.write_text('em_model = "gamma"\nregister_stages = 604\n' + text)
     with pytest.raises(ManifestError, match="register_stages: stages are the cascade model"):
         calibrate(bad, "gs")
     bad.write_text('em_model = "binomial"\n' + text)

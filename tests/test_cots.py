@@ -28,11 +28,14 @@ SPOT = (0.2, -0.3, 1.3, 5000.0, 20.0)  # x, y (pixel from the ROI centre), s, N,
 
 
 def _spot_stack(seed, frames=200, gain=G_TRUE, size=10, spot=SPOT):
-    """Raw counts of one spot: φ = 1 so that the EM gain g equals G (ADU/e⁻)."""
+    """Raw counts of one spot: φ = 1 so that the EM gain g equals G (ADU/e⁻). COTS assumes
+    F² = 2, the gamma register, which these tests simulate (on the exact register it reads
+    low: docs/cots.md)."""
     c = np.arange(size) - (size - 1) / 2
     photo = psf.spot_image(list(spot), c, c)
     return simulate_frames(photo, em_gain=gain, e_per_adu=1.0, offset=S0_TRUE,
-                                    read_noise=0.01, frames=frames, seed=seed)
+                                    read_noise=0.01, frames=frames, seed=seed,
+                           multiplication="gamma")
 
 
 @pytest.fixture(scope="module")
@@ -141,7 +144,8 @@ def test_roi_follows_a_moving_spot():
     c = np.arange(16) - 7.5
     photo = psf.spot_image([2.4, -1.6, 1.3, 5000.0, 20.0], c, c)
     stack = simulate_frames(photo, em_gain=G_TRUE, e_per_adu=1.0, offset=S0_TRUE,
-                                     read_noise=0.01, frames=60, seed=5)
+                                     read_noise=0.01, frames=60, seed=5,
+                           multiplication="gamma")
     r = cots.cots_spot(stack, roi=(3, 3, 10, 10))
     assert np.all(r.frame_shift[r.usable] == [-2, 2])
     assert np.all(np.abs(r.frame_params[r.usable, :2]) <= 1.0)
@@ -186,7 +190,8 @@ def _write_beads(d, *, setpoints=(1, 100, 300), frames=60, e_per_adu=True, beads
     lines = [f"e_per_adu = {PHI}"] if e_per_adu else []
     for i, sp in enumerate(setpoints):
         stack = simulate_frames(photo, em_gain=sp, e_per_adu=PHI, offset=S0_TRUE,
-                                         read_noise=0.01, frames=frames, seed=seed * 10 + i)
+                                         read_noise=0.01, frames=frames, seed=seed * 10 + i,
+                                multiplication="gamma")
         tifffile.imwrite(d / f"beads_{sp}x.tif", stack)
         lines += ["[[acquisition]]", f'frames = "beads_{sp}x.tif"', f"em_gain_setpoint = {sp}",
                   f"offset = {S0_TRUE}", "read_noise = 0.01"]

@@ -78,6 +78,10 @@ def test_every_export_names_and_units(exported):
     assert cam["Sensitivity"] / cam["DefaultGain"] == pytest.approx(PHI / g, rel=2e-5)
     assert cam["Baseline"] == pytest.approx(OFFSET) and cam["Pixelsize"] == 107.0
     assert sha in files["picasso"][0].read_text()
+    # Picasso does not use a QE (and would key it by wavelength): not written, and said so
+    assert "Quantum Efficiency" not in cam
+    assert "photons = photoelectrons / 0.9 (the QE given) are not written" in \
+        files["picasso"][0].read_text()
 
     md = json.loads(files["pyme"][0].read_text())
     assert md["Camera.ElectronsPerCount"] == pytest.approx(PHI)
@@ -86,10 +90,13 @@ def test_every_export_names_and_units(exported):
     assert md["Camera.ReadNoise"] == pytest.approx(SIGMA * PHI)  # e-
     assert md["Camera.NoiseFactor"] == 1.41
     assert sha in md["emccdcal.Provenance"]
-    var = tifffile.imread(md["Camera.VarianceMapID"])
+    # the maps by their names beside pyme.json: no absolute path of this machine
+    here = files["pyme"][0].parent
+    assert all(md[k] == Path(md[k]).name for k in md if k.endswith("MapID"))
+    var = tifffile.imread(here / md["Camera.VarianceMapID"])
     assert var.shape == SHAPE and np.allclose(var, (SIGMA * PHI) ** 2)  # e-^2
-    assert np.allclose(tifffile.imread(md["Camera.DarkMapID"]), OFFSET)
-    assert np.allclose(tifffile.imread(md["Camera.FlatfieldMapID"]), 1.0)
+    assert np.allclose(tifffile.imread(here / md["Camera.DarkMapID"]), OFFSET)
+    assert np.allclose(tifffile.imread(here / md["Camera.FlatfieldMapID"]), 1.0)
 
     dec = _yaml(files["decode"][0])["Camera"]
     assert dec["e_per_adu"] == pytest.approx(PHI) and dec["em_gain"] == pytest.approx(g)

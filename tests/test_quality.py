@@ -283,7 +283,9 @@ def test_drifting_series_flagged_and_steady_not(tmp_path):
 
 
 def test_saturated_frames_counted(tmp_path):
-    m = read(_sim(tmp_path, "sat", setpoints=(1, 300), adc_bits=15, frames=200))
+    # 450 e⁻ at 300x: a mean of 31 000 ADU, a fifth of the values above 15 bits
+    m = read(_sim(tmp_path, "sat", setpoints=(1, 300), adc_bits=15, frames=200,
+                  photoelectrons=450.0))
     assert m.adc_max == 2**15 - 1
     rep = check_manifest(m)
     by_sp = {a.em_gain_setpoint: a for a in m.acquisitions}

@@ -115,13 +115,16 @@ def test_histogram_figure_shows_the_pixels_counts_and_its_fitted_pmf(loaded, run
         counts = tifffile.imread(stack)[:, r, c]
         expect = np.histogram(counts, bins=edges)[0] / (counts.size * np.diff(edges))
         np.testing.assert_allclose(heights, expect)
-        # the model: the noise model at this pixel's fitted parameters
+        # the model: the noise model at this pixel's fitted parameters, under the
+        # calibration's register (the default, the exact cascade)
         (line,) = ax.lines
         k = line.get_xdata()
+        assert ds.attrs["em_model"] == "cascade"
         p = noise.pmf(k, float(ds.photoelectrons[r, c]),
                       float(ds.em_gain.sel(setpoint=sp)[r, c]), float(ds.e_per_adu[r, c]),
                       float(ds.offset.sel(setpoint=sp)[r, c]),
-                      float(ds.read_noise.sel(setpoint=sp)[r, c]))
+                      float(ds.read_noise.sel(setpoint=sp)[r, c]), em_model="cascade",
+                      stages=int(ds.attrs["register_stages"]))
         np.testing.assert_allclose(line.get_ydata(), p, rtol=1e-9)
         # ... and it describes the data: its mean within 4 SE of the counts' mean
         w = p / p.sum()
@@ -150,12 +153,15 @@ def test_photon_transfer_points_and_lines(loaded, runs):
     slope = lambda ln: np.diff(ln.get_ydata())[0] / np.diff(ln.get_xdata())[0]
     assert slope(solid) == pytest.approx(1 / 3.859, rel=0.2)  # mean-variance, truth 3.859
     assert slope(dashed) == pytest.approx(1 / float(ds.e_per_adu[r, c]))  # this fit's φ
-    # a gain series: one point per set-point; dashed slope 2g/φ of the fit
+    # a gain series: one point per set-point; dashed slope F²(g)·g/φ of the fit, F² of
+    # the calibration's register (below 2 for the exact cascade, the default)
     gs = loaded["gs"]
     (ax,) = _visible_axes(figures.photon_transfer_figure(gs, PIXEL))
     dashed = [ln for ln in ax.lines if ln.get_linestyle() == "--" and len(ln.get_xdata())]
     g = gs.em_gain.values[1:, r, c]
-    np.testing.assert_allclose([slope(ln) for ln in dashed[1:]], 2 * g / float(gs.e_per_adu[r, c]))
+    f2 = noise.excess_noise_factor(g, em_model="cascade", stages=int(gs.attrs["register_stages"]))
+    assert np.all(f2 < 2)
+    np.testing.assert_allclose([slope(ln) for ln in dashed[1:]], f2 * g / float(gs.e_per_adu[r, c]))
 
 
 def test_estimates_figure_compares_methods(loaded):

@@ -85,7 +85,8 @@ def test_gamma_counts_follow_noise_model_pmf(E, g, phi, S0, sigma):
 
     from emccdcal.model import noise
 
-    c = simulate_frames(E, g, phi, S0, sigma, frames=1000, rows=16, cols=16, seed=21).ravel().astype(int)
+    c = simulate_frames(E, g, phi, S0, sigma, frames=1000, rows=16, cols=16, seed=21,
+                        multiplication="gamma").ravel().astype(int)
     ks = np.arange(c.min() - 50, c.max() + 51)
     cdf = np.cumsum(noise.pmf(ks, E, g, phi, S0, math.sqrt(sigma**2 + 1 / 12)))
     # bin i holds ks[edges[i-1]] < k <= ks[edges[i]] (narrow pmfs give fewer than 60 bins)

@@ -355,6 +355,70 @@ def _run_tiles(jobs, store, scheduler, progress, method):
     return [done[job.key] for job in jobs]
 
 
+#: Register lengths ``stages="auto"`` tries: steps of √2 from 128 to 4096 stages.
+STAGE_GRID = (128, 181, 256, 362, 512, 724, 1024, 1448, 2048, 2896, 4096)
+#: Pixels, the sensor's middle ones, on which the register's length is profiled.
+PROFILE_PIXELS = 64
+
+
+@dataclass(frozen=True)
+class StageProfile:
+    """The log-likelihood of the profiled pixels at each register length of
+    :data:`STAGE_GRID` (``stages="auto"``), each pixel's other parameters fitted anew."""
+
+    stages: tuple[int, ...]
+    loglik: np.ndarray  # nats, summed over the pixels converged at every length
+    pixels: int
+
+    @property
+    def best(self) -> int:
+        """The register length of the largest likelihood."""
+        return int(self.stages[int(np.argmax(self.loglik))])
+
+    def attrs(self) -> dict:
+        """The profile as a result's attributes: the grid, Δ log-likelihood (nats) and a
+        sentence saying what was chosen, the lengths within 95 % (Δ > −1.92) and whether
+        the data bound the length at all."""
+        delta = self.loglik - self.loglik.max()
+        within = [n for n, d in zip(self.stages, delta) if d > -1.92]
+        source = (f"profile likelihood over {self.stages[0]}-{self.stages[-1]} stages on "
+                  f"{self.pixels} pixels: maximum at {self.best}, {min(within)}-{max(within)} "
+                  "within 95 %")
+        if max(within) == self.stages[-1]:
+            source += " (no upper bound in the data: longer registers fit as well)"
+        return {"register_stages_source": source,
+                "register_stages_grid": np.array(self.stages, dtype=np.int64),
+                "register_stages_profile": delta}
+
+
+def _profile_stages(tile_job, n_pixels, model, method, used, progress):
+    """``(EMModel at the best length, StageProfile)``: the method fitted to the middle
+    :data:`PROFILE_PIXELS` pixels at every length of :data:`STAGE_GRID`."""
+    if not model.register.uses_stages:
+        raise OptionError(f"stages='auto' profiles the cascade register's length; the {model} "
+                          "model has none")
+    if method.startswith("mv-"):
+        raise MethodError(f"stages='auto' needs a likelihood: {method} has none")
+    if all(a.em_gain_setpoint == 1 for a in used):
+        raise OptionError("stages='auto': every acquisition is at EM gain set-point 1, "
+                          "where the register's length does not enter the likelihood")
+    n = min(PROFILE_PIXELS, n_pixels)
+    p0 = (n_pixels - n) // 2
+    logliks = []
+    for stages in progress_bar(STAGE_GRID, enabled=progress, desc="profiling register length",
+                               unit="length"):
+        job = replace(tile_job(p0, p0 + n, noise.EMModel(model.name, stages)), checks=False,
+                      intervals="wald")
+        logliks.append(run_tile(job)["loglik"])
+    logliks = np.array(logliks)
+    ok = np.all(np.isfinite(logliks), axis=0)
+    if not ok.any():
+        raise InputError(f"stages='auto': none of the {n} profiled pixels converged at every "
+                         f"register length ({STAGE_GRID[0]}-{STAGE_GRID[-1]}); give --stages N")
+    profile = StageProfile(STAGE_GRID, logliks[:, ok].sum(axis=1), int(ok.sum()))
+    return noise.EMModel(model.name, profile.best), profile
+
+
 def _fingerprint(manifest, used, method, options, intervals, checks, map_errors, phi_map, phi_se,
                  tiling, em_model):
     """What a calibration's result depends on, to refuse resuming a different run."""
@@ -476,15 +540,22 @@ def calibrate(
         over-covers where the true E is shared and under-covers where it is not.
 
     em_model : {"gamma", "cascade"} or noise.EMModel, optional
-        The EM register's model in the likelihood methods: the paper's gamma
-        approximation or the exact Bernoulli cascade (:class:`emccdcal.noise.EMModel`);
-        default the manifest's ``em_model``, else ``"gamma"``. On an exact register
-        the gamma model reads every gain 0.2–0.8 % low in ``gs`` and about F²/2 − 1 low
-        (−3 % at 25×, −10 % at 5×) where E and g share one set-point's shape
-        (``is-gain``, ``gs-no1x``); the cascade costs about 1.2–1.4 times the time in ``gs``
-        (docs/cascade.md).
-    stages : int, optional
-        Stages of the cascade (default the manifest's ``register_stages``, else 536).
+        The EM register's model in the likelihood methods (and mv-gain's F²): the exact
+        Bernoulli cascade (:class:`emccdcal.noise.EMModel`) or the paper's gamma
+        approximation; default the manifest's ``em_model``, else the cascade. Pass
+        ``"gamma"`` to reproduce the paper's numbers. On an exact register the gamma
+        model reads every gain 0.2–0.8 % low in ``gs`` and about F²/2 − 1 low (−3 % at
+        25×, −10 % at 5×) where E and g share one set-point's shape (``is-gain``,
+        ``gs-no1x``), and misfits the low gains; the cascade costs about 1.0–1.4 times
+        the time in ``gs`` (docs/cascade.md).
+    stages : int or "auto", optional
+        Stages of the cascade: default the manifest's ``register_stages``, else the
+        length a public source states for the files' camera model
+        (:data:`emccdcal.model.cascade.KNOWN_REGISTERS`), else 536; where it came from is
+        ``attrs["register_stages_source"]``. ``"auto"`` takes the length of largest
+        likelihood on the sensor's middle pixels over :data:`STAGE_GRID` (128–4096) and
+        records the profile (``attrs["register_stages_grid"]``,
+        ``attrs["register_stages_profile"]``, Δ log-likelihood in nats).
 
     Returns
     -------
@@ -569,7 +640,10 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
                      tile_pixels, scheduler, options, progress, workers, checks, map_errors,
                      intervals, em_model=None, stages=None):
     manifest = _load(manifest)
-    model = noise.choose_em_model(manifest.em_model, em_model, stages)
+    auto = isinstance(stages, str) and stages == "auto"
+    model, stages_source = noise.choose_em_model(
+        em_model, None if auto else stages, manifest_model=manifest.em_model,
+        manifest_stages=manifest.register_stages, camera_model=manifest.camera.get("model"))
     acqs = manifest.acquisitions
     rows, cols = manifest.shape
     phi_map, phi_se, phi_source = _e_per_adu_inputs(manifest, e_per_adu)
@@ -583,21 +657,15 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
         )
     used = [acqs[i] for i in idx]
     tiles = plan_tiles(rows * cols, tile_pixels, block_size)
-    store = None
-    if target is not None:  # an input, or an occupied output, is found before computing
-        target.refuse_inputs(_input_files(manifest, used, phi_source), names=RESULT_FILES)
-        store = RunStore(target.path, _fingerprint(
-            manifest, used, method, options, intervals, checks, map_errors, phi_map, phi_se,
-            (block_size, tiles[0][1] - tiles[0][0]), model), resume=resume, overwrite=overwrite)
     dark_frames, map_groups, se_note = _map_error_sources(used, map_errors)
     offsets = np.stack([a.offset.reshape(-1) for a in used])
     read_noise = np.stack([a.read_noise.reshape(-1) for a in used])
     phi = None if phi_map is None else phi_map.reshape(-1)
     phi_se_flat = None if phi_se is None else phi_se.reshape(-1)
-    jobs = []
-    for p0, p1 in tiles:
+
+    def tile_job(p0, p1, model):
         px = slice(p0, p1)
-        jobs.append(TileJob(
+        return TileJob(
             pixels=(p0, p1), cols=cols, method=method,
             frames=tuple((str(a.frames_path), int(a.skip_frames)) for a in used),
             setpoints=tuple(float(a.em_gain_setpoint) for a in used),
@@ -609,7 +677,19 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
             adc_max=int(manifest.adc_max), options=options, intervals=intervals,
             block_size=block_size, threads=workers if scheduler is None else 1,
             checks=bool(checks), fft_threads=None if scheduler is None else 1,
-            em_model=model))
+            em_model=model)
+
+    profile = None
+    if auto:
+        model, profile = _profile_stages(tile_job, rows * cols, model, method, used, progress)
+        stages_source = profile.attrs()["register_stages_source"]
+    store = None
+    if target is not None:  # an input, or an occupied output, is found before computing
+        target.refuse_inputs(_input_files(manifest, used, phi_source), names=RESULT_FILES)
+        store = RunStore(target.path, _fingerprint(
+            manifest, used, method, options, intervals, checks, map_errors, phi_map, phi_se,
+            (block_size, tiles[0][1] - tiles[0][0]), model), resume=resume, overwrite=overwrite)
+    jobs = [tile_job(p0, p1, model) for p0, p1 in tiles]
     parts = _run_tiles(jobs, store, scheduler, progress, method)
     report, messages = _quality(manifest, used, parts, tiles) if checks else (None, [])
     arrays = {}
@@ -628,6 +708,10 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
         ds.attrs["standard_errors"] = se_note
     if method != "mv-adu":  # the register model of the likelihood, or mv-gain's F²
         ds.attrs.update(model.attrs)
+        if stages_source:
+            ds.attrs["register_stages_source"] = stages_source
+        if profile is not None:
+            ds.attrs.update(profile.attrs())
     if manifest.origin is not None:  # where these pixels are on the sensor
         ds.attrs["sensor_origin"] = np.array(manifest.origin, dtype=np.int64)
     if manifest.binning is not None:
@@ -949,11 +1033,16 @@ def format_summary(ds):
     """A short human-readable table of a calibration (median over converged pixels)."""
     ok = ds.converged.values
     model = noise.EMModel.from_attrs(ds.attrs)
-    lines = [f"method {ds.attrs['method']}" + (f" ({model.label} register)" if model else "")
+    lines = [f"method {ds.attrs['method']}" + (f" ({model.name} register)" if model else "")
              + f": {int(ok.sum())}/{ok.size} pixels converged, "
              f"{ds.attrs.get('seconds', float('nan')):.1f} s; medians over those"]
     if not ok.any():
         return lines[0].replace("; medians over those", "; no estimate to show")
+    multiplied = any(float(sp) != 1.0 for sp in ds.setpoint.values)
+    if model is not None and model.register.uses_stages and multiplied:
+        source = ds.attrs.get("register_stages_source")
+        lines.append(f"  register length: {model.stages} stages"
+                     + (f" ({source})" if source else ""))
 
     def med(v):
         return np.nanmedian(np.asarray(v)[..., ok], axis=-1)

@@ -34,6 +34,7 @@ VERBS = {
     "validate": "bead validation: fit beads under each calibration, compare set-points",
     "cots": "calibration-on-the-spot: EM gain and offset from bead frames",
     "export": "write a calibration in a localization tool's own file",
+    "audit": "check a localization tool's camera settings against a calibration",
     "apply": "convert a movie to photoelectrons per pixel, (S - offset) * phi / g",
     "gain-curve": "fit the gain against the set-point; predict set-points not measured",
     "db": "the calibration database: add, list, show, compare (ageing), remove, relocate",

@@ -97,14 +97,23 @@ def add_e_per_adu(p: argparse.ArgumentParser) -> None:
                    "whose phi and standard error per pixel are then used")
 
 
-def add_em_model(p: argparse.ArgumentParser) -> None:
+def add_em_model(p: argparse.ArgumentParser, *, auto: bool = True) -> None:
     g = p.add_argument_group("EM register model (docs/cascade.md)")
-    g.add_argument("--em-model", choices=("gamma", "cascade"), default=None,
-                   help="the register in the likelihood: the paper's gamma approximation or "
-                   "the exact Bernoulli cascade (default: the manifest's em_model, else gamma)")
-    g.add_argument("--stages", type=positive_int, default=None, metavar="N",
+    g.add_argument("--em-model", choices=("cascade", "gamma"), default=None,
+                   help="the register in the likelihood: the exact Bernoulli cascade or the "
+                   "paper's gamma approximation, which reproduces the paper's numbers "
+                   "(default: the manifest's em_model, else cascade)")
+    g.add_argument("--stages", type=stages_or_auto if auto else positive_int, default=None,
+                   metavar="N|auto" if auto else "N",
                    help="stages of the cascade register (default: the manifest's "
-                   "register_stages, else 536)")
+                   "register_stages, else the length known for the files' camera model, "
+                   "else 536; the gains hardly depend on it)"
+                   + ("; 'auto': the length of largest likelihood, 128 to 4096" if auto else ""))
+
+
+def stages_or_auto(text: str):
+    """An argparse type: a positive whole number of stages, or ``auto``."""
+    return "auto" if text == "auto" else positive_int(text)
 
 
 def number_or_path(text: str):
@@ -178,13 +187,17 @@ def print_warnings(caught) -> None:
         print(f"warning: {message}", file=sys.stderr)
 
 
-def add_calibration_source(p: argparse.ArgumentParser, *, many: bool = False) -> None:
-    """A calibration from result files (``RESULT``) or from the calibration database
-    (``--db``/``--camera``: its newest calibration with the set-point asked for)."""
-    p.add_argument("results", nargs="*" if many else "?", metavar="RESULT",
-                   help="calibration.nc or its directory; several joined by commas merge "
-                   "(is-adu with is-gain results)" + ("; several RESULTs merge alike" if many
-                                                      else ""))
+def add_calibration_source(p: argparse.ArgumentParser, *, many: bool = False,
+                           option: bool = False) -> None:
+    """A calibration from result files (``RESULT``, or ``--calibration RESULT`` with
+    ``option``) or from the calibration database (``--db``/``--camera``: its newest
+    calibration with the set-point asked for)."""
+    what = ("calibration.nc or its directory; several joined by commas merge (is-adu with "
+            "is-gain results)" + ("; several RESULTs merge alike" if many else ""))
+    if option:
+        p.add_argument("--calibration", dest="results", metavar="RESULT", help=what)
+    else:
+        p.add_argument("results", nargs="*" if many else "?", metavar="RESULT", help=what)
     g = p.add_argument_group("from the calibration database instead of RESULT")
     g.add_argument("--camera", metavar="SERIAL",
                    help="the camera's serial: use its newest calibration at the set-point")

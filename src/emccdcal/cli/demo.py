@@ -12,8 +12,9 @@ def add_parser(subparsers):
         "demo",
         help="simulate the paper's data and calibrate it (is-adu, then gs)",
         description="Simulate the paper's intensity and gain series with a fixed seed, "
-        "calibrate phi with is-adu, then the gains with gs using that phi, and print truth "
-        "against estimate.",
+        "calibrate phi with is-adu, then the gains with gs using that phi (the exact "
+        "cascade register, the default), print truth against estimate, and the gains the "
+        "paper's gamma model reads from the same data.",
     )
     _common.add_out_or_dir(p, "output directory (default: a new temporary directory)",
                            required=False)
@@ -23,8 +24,9 @@ def add_parser(subparsers):
                    help="columns, px (default %(default)s)")
     p.add_argument("--frames", type=int, default=5000,
                    help="frames per acquisition, at least 2 (default %(default)s)")
-    p.add_argument("--multiplication", choices=("gamma", "cascade"), default="gamma",
-                   help="EM register model of the simulation (default %(default)s)")
+    p.add_argument("--multiplication", choices=("cascade", "gamma"), default="cascade",
+                   help="EM register of the simulated camera: the exact cascade of a real "
+                   "camera, or the paper's gamma approximation (default %(default)s)")
     p.add_argument("--seed", type=int, default=DEMO_SEED, help="random seed (default %(default)s)")
     p.add_argument("--no-report", action="store_true", help="skip the HTML report")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")

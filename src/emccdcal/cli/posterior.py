@@ -36,7 +36,7 @@ def add_parser(subparsers):
     p.add_argument("--prior", choices=PRIORS, default="log-uniform",
                    help="flat in log-parameters (default) or in physical parameters")
     _common.add_no_figures(p)
-    _common.add_em_model(p)
+    _common.add_em_model(p, auto=False)
     _common.add_quiet(p)
     p.set_defaults(func=run)
     return p

@@ -44,8 +44,8 @@ def _camera_options(p: argparse.ArgumentParser, defaults: dict | None = None) ->
                      help="sigma of the Gaussian read-out noise before rounding, ADU "
                      "(default %(default)s)")
     cam.add_argument("--multiplication", choices=EM_MODELS, default=d["multiplication"],
-                     help="EM register model: gamma (the paper's) or the exact Bernoulli cascade "
-                     "(default %(default)s)")
+                     help="EM register model: the exact Bernoulli cascade of a real camera, or "
+                     "the paper's gamma approximation (default %(default)s)")
     cam.add_argument("--stages", type=int, default=d["stages"],
                      help="cascade stages (default %(default)s)")
     cam.add_argument("--cascade-method", choices=("pmf", "stages"), default=d["cascade_method"],

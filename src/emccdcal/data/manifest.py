@@ -180,9 +180,11 @@ class Manifest:
     origin: tuple[int, int] | None = None
     #: (x, y) binning the files record, or None (not recorded).
     binning: tuple[int, int] | None = None
-    #: The EM register's model (``em_model`` and ``register_stages``), or None: not
-    #: given (the calibration's own default, the paper's gamma model).
-    em_model: object = None
+    #: The EM register's model (``em_model``) and the cascade's ``register_stages`` as
+    #: the manifest gives them, or None: not given (the calibration's own default, the
+    #: exact cascade with stages from the camera's model or a stated default).
+    em_model: str | None = None
+    register_stages: int | None = None
     #: What every frames file records alike of the camera (``serial``, ``model``,
     #: ``readout_rate_mhz``, ``analog_gain``, ``adc_bits``): the identity a calibration
     #: database keys on. A field the files leave out or disagree on is absent.
@@ -425,7 +427,8 @@ class ManifestEntries:
     e_per_adu: float | str | None
     adc_bits: int | None
     origin: tuple[int, int] | None
-    em_model: object
+    em_model: str | None
+    register_stages: int | None
     acquisitions: tuple[AcquisitionEntry, ...]
 
 
@@ -478,7 +481,8 @@ def parse_manifest(path) -> ManifestEntries:
         e_per_adu=top["e_per_adu"],
         adc_bits=top["adc_bits"],
         origin=None if origin is None else (int(origin[0]), int(origin[1])),
-        em_model=_em_model(r, top["em_model"], top["register_stages"]),
+        em_model=top["em_model"],
+        register_stages=_register_stages(r, top["em_model"], top["register_stages"]),
         acquisitions=entries,
     )
 
@@ -512,16 +516,17 @@ def _entry(r: _Reader, i: int, table: dict) -> AcquisitionEntry:
     )
 
 
-def _em_model(r, name, stages):
-    """The manifest's ``em_model`` and ``register_stages`` as a noise.EMModel (or None)."""
+def _register_stages(r, name, stages):
+    """The manifest's ``register_stages`` (or None), refused beside a model without them."""
     from ..model.noise import as_em_model
 
-    if name is None and stages is None:
-        return None
+    if stages is None or name is None:
+        return None if stages is None else int(stages)
     try:
-        return as_em_model(name or "gamma", stages)
+        as_em_model(name, stages)
     except OptionError as exc:  # stages given to a model without them
         raise r.error(f"register_stages: {exc}") from None
+    return int(stages)
 
 
 # --------------------------------------------------------------------------------------
@@ -618,7 +623,8 @@ def resolve_manifest(entries: ManifestEntries) -> Manifest:
         e_per_adu_source=e_source, acquisitions=acquisitions,
         shape=tuple(int(d) for d in shape), origin=origin, binning=binning,
         adc_max=int(adc_max), setpoints=tuple(sorted({a.em_gain_setpoint for a in acqs})),
-        levels=levels, warnings=found, em_model=entries.em_model, camera=camera,
+        levels=levels, warnings=found, em_model=entries.em_model,
+        register_stages=entries.register_stages, camera=camera,
     )
 
 

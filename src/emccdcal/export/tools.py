@@ -183,9 +183,12 @@ def _picasso(cal, s, v, out, qe, pixel_size_nm, name):
               "Sensitivity": round(phi * gain / g, 4), "DefaultGain": gain}
     if pixel_size_nm is not None:
         camera["Pixelsize"] = pixel_size_nm
-    if qe is not None:
-        camera["Quantum Efficiency"] = {0: qe}  # Picasso keys QE by emission wavelength (nm)
-    text = (_comment_lines(cal, s, v, qe, "# ")
+    # No "Quantum Efficiency": Picasso keys it by emission wavelength and, since 0.6, does
+    # not use it; its photons are photoelectrons (`emccdcal apply --qe` gives photons).
+    note = ("# Picasso does not use a quantum efficiency: its photons are photoelectrons;\n"
+            f"# photons = photoelectrons / {qe:g} (the QE given) are not written here.\n"
+            if qe is not None else "")
+    text = (_comment_lines(cal, s, v, qe, "# ") + note
             + f"# Picasso's gain box takes integers: DefaultGain = {gain} for g = {g:.6g}, and\n"
             + f"# Sensitivity = e_per_adu * {gain} / g, so that Sensitivity / Gain = phi / g.\n"
             + "# Merge the Cameras entry into ~/.picasso/config.yaml. For the API, give\n"
@@ -213,9 +216,10 @@ def _pyme(cal, s, v, out, qe, pixel_size_nm, name):
           "Camera.TrueEMGain": v["em_gain"]["median"],
           "Camera.ReadNoise": v["read_noise_e"]["median"],
           "Camera.NoiseFactor": 1.41 if v["em_gain"]["median"] > 1 else 1.0,
-          "Camera.DarkMapID": str(files["dark"].resolve()),
-          "Camera.VarianceMapID": str(files["variance"].resolve()),
-          "Camera.FlatfieldMapID": str(files["flatfield"].resolve())}
+          # names beside pyme.json, never this machine's absolute paths: the folder moves
+          "Camera.DarkMapID": files["dark"].name,
+          "Camera.VarianceMapID": files["variance"].name,
+          "Camera.FlatfieldMapID": files["flatfield"].name}
     if qe is not None:
         md["Camera.QuantumEfficiency"] = qe
     if pixel_size_nm is not None:

@@ -346,7 +346,8 @@ def sample_posterior(
         emcee progress bars on stderr.
     em_model, stages : optional
         The EM register's model (:func:`emccdcal.calibrate`); default the manifest's,
-        else the gamma model.
+        else the exact cascade (stages from the manifest, the camera's model or 536;
+        ``"auto"`` is :func:`emccdcal.calibrate`'s only).
 
     Returns
     -------
@@ -393,7 +394,9 @@ def sample_posterior(
     if not isinstance(manifest, Manifest):
         manifest = read_manifest(manifest)
     pixels = _check_pixels(pixels, manifest.shape)
-    model = noise.choose_em_model(manifest.em_model, em_model, stages)
+    model, stages_source = noise.choose_em_model(
+        em_model, stages, manifest_model=manifest.em_model,
+        manifest_stages=manifest.register_stages, camera_model=manifest.camera.get("model"))
     phi_map = e_per_adu_map(e_per_adu if e_per_adu is not None else manifest.e_per_adu,
                             manifest.shape)
     acqs = manifest.acquisitions
@@ -442,6 +445,8 @@ def sample_posterior(
     })
     ds.attrs["seconds"] = time.perf_counter() - t0
     ds.attrs.update(model.attrs)
+    if stages_source:
+        ds.attrs["register_stages_source"] = stages_source
     if out is not None:
         save(ds, out)
     return ds
@@ -538,6 +543,8 @@ def summary(ds):
                         f"{BURN_TAUS:g} tau; ess >= min_ess for every parameter; mean "
                         f"acceptance in [{ACCEPTANCE[0]}, {ACCEPTANCE[1]}]"),
         "manifest_hash": ds.attrs["manifest_hash"], "manifest_path": ds.attrs["manifest_path"],
+        **{k: (int(ds.attrs[k]) if k == "register_stages" else str(ds.attrs[k]))
+           for k in ("em_model", "register_stages", "register_stages_source") if k in ds.attrs},
         "seconds": finite_or_none(ds.attrs.get("seconds", float("nan"))),
         "pixels": pixels,
     }

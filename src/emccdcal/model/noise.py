@@ -66,6 +66,7 @@ __all__ = [
     "EMModel",
     "as_em_model",
     "choose_em_model",
+    "DEFAULT_EM_MODEL",
     "logpmf",
     "pmf",
     "logpmf_grad",
@@ -192,15 +193,53 @@ EM_MODELS = tuple(_REGISTERS)
 _WITH_STAGES = "cascade"
 
 
-def choose_em_model(given, em_model=None, stages=None) -> EMModel:
-    """The register model of a run: the caller's ``em_model``/``stages`` where given,
-    else ``given`` (a manifest's, or None), else the gamma model. ``stages`` alone
-    selects the cascade."""
-    if em_model is None and stages is None:
-        return given or EMModel()
-    if em_model is None:
-        em_model = _WITH_STAGES if given is None or stages is not None else given.name
-    return as_em_model(em_model, stages)
+#: The register model of a run that neither its caller nor its manifest names: the exact
+#: register, a real camera's (``em_model="gamma"`` reproduces the paper's numbers).
+DEFAULT_EM_MODEL = "cascade"
+
+
+def choose_em_model(em_model=None, stages=None, *, manifest_model=None, manifest_stages=None,
+                    camera_model=None) -> tuple[EMModel, str]:
+    """The register model of a run, and where its stages come from.
+
+    The model: the caller's ``em_model`` (a name or an :class:`EMModel`), else the
+    cascade where the caller gives ``stages``, else the manifest's ``em_model``, else
+    :data:`DEFAULT_EM_MODEL`. The cascade's stages: the caller's, else the manifest's
+    ``register_stages``, else those :data:`emccdcal.model.cascade.KNOWN_REGISTERS` states
+    for the files' ``camera_model``, else :data:`DEFAULT_STAGES`.
+
+    Returns
+    -------
+    model : EMModel
+    stages_source : str
+        ``"given"``, ``"manifest"``, ``"camera model 'M': SOURCE"`` or ``"default"``;
+        ``""`` for a model without stages.
+
+    Examples
+    --------
+    >>> model, source = choose_em_model(camera_model="DU888_BV")
+    >>> str(model), source
+    ('cascade (604 stages)', "camera model 'DU888_BV': Andor DU-888 (iXon 888), a CCD201-20 sensor")
+    >>> str(choose_em_model("gamma")[0]), str(choose_em_model()[0])
+    ('gamma', 'cascade (536 stages)')
+    """
+    from .cascade import known_stages
+
+    if isinstance(em_model, EMModel):
+        return as_em_model(em_model, stages), "given" if em_model.register.uses_stages else ""
+    name = em_model or (_WITH_STAGES if stages is not None else None) or manifest_model \
+        or DEFAULT_EM_MODEL
+    model = as_em_model(name, stages)
+    if not model.register.uses_stages:
+        return model, ""
+    if stages is not None:
+        return model, "given"
+    if manifest_stages is not None:
+        return as_em_model(name, manifest_stages), "manifest"
+    known = known_stages(camera_model)
+    if known is not None:
+        return as_em_model(name, known[0]), f"camera model {camera_model!r}: {known[1]}"
+    return model, "default"
 
 
 def as_em_model(em_model="gamma", stages=None) -> EMModel:

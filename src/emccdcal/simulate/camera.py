@@ -7,11 +7,11 @@ For each pixel and frame t:
    (e⁻ per pixel per frame, optionally drifting linearly over the acquisition, see
    ``drift``) plus clock-induced charge ``cic`` c (e⁻ per pixel per frame, also present
    in dark frames and multiplied like photoelectrons);
-2. EM multiplication with true mean gain g (``em_gain``): ``multiplication="gamma"``,
-   ``X ~ Gamma(shape n, scale g)`` (the paper's model, excess-noise factor F² = 2), or
-   ``"cascade"``, the exact Bernoulli cascade of ``stages`` stages
-   (:func:`emccdcal.model.cascade.sample_cascade`, F² < 2); at ``em_gain == 1`` no
-   multiplication at all, X = n (the 1× set-point);
+2. EM multiplication with true mean gain g (``em_gain``): ``multiplication="cascade"``
+   (the default, a real register), the exact Bernoulli cascade of ``stages`` stages
+   (:func:`emccdcal.model.cascade.sample_cascade`, F² < 2), or ``"gamma"``,
+   ``X ~ Gamma(shape n, scale g)`` (the paper's model and simulations, excess-noise
+   factor F² = 2); at ``em_gain == 1`` no multiplication at all, X = n (the 1× set-point);
 3. read-out: ``counts = round(S0 + X/φ + N(0, σ²))`` clipped to ``[0, 2**adc_bits − 1]``
    (``offset`` S0 and ``read_noise`` σ in ADU, ``e_per_adu`` φ in e⁻/ADU).
 
@@ -84,7 +84,7 @@ _DEFAULTS = {
     "offset_drop": DEFAULT_OFFSET_DROP,
     "offset_spread": 0.5,
     "read_noise": 15.5,
-    "multiplication": "gamma",
+    "multiplication": "cascade",
     "stages": DEFAULT_STAGES,
     "cic": 0.0,
     "drift": 0.0,
@@ -143,8 +143,8 @@ class Camera:
         none); written to ``truth-offset-pattern.tif``.
     read_noise : float
         σ of the Gaussian read-out noise before rounding, ADU (15.5).
-    multiplication : {"gamma", "cascade"}
-        EM register model (module docstring).
+    multiplication : {"cascade", "gamma"}
+        EM register model (module docstring; default the exact cascade).
     stages : int
         Stages of the cascade register (536).
     cic : float
@@ -167,7 +167,7 @@ class Camera:
     offset_drop: float = DEFAULT_OFFSET_DROP
     offset_spread: float = _DEFAULTS["offset_spread"]
     read_noise: float = _DEFAULTS["read_noise"]
-    multiplication: str = "gamma"
+    multiplication: str = "cascade"
     stages: int = DEFAULT_STAGES
     cic: float = 0.0
     drift: float = 0.0
@@ -307,7 +307,7 @@ def simulate_frames(
     frames=_DEFAULTS["frames"],
     rows=None,
     cols=None,
-    multiplication="gamma",
+    multiplication="cascade",
     stages=DEFAULT_STAGES,
     cic=0.0,
     drift=0.0,
@@ -336,8 +336,9 @@ def simulate_frames(
         Number of frames (default 5000).
     rows, cols : int, optional
         Frame size, px; default: the shape of a map argument, else 32 × 32.
-    multiplication : {"gamma", "cascade"}, optional
-        EM register model (module docstring). Ignored at ``em_gain == 1``.
+    multiplication : {"cascade", "gamma"}, optional
+        EM register model (module docstring; default the exact cascade). Ignored at
+        ``em_gain == 1``.
     stages : int, optional
         Stages of the cascade register (default 536).
     cic : float, optional
@@ -438,7 +439,7 @@ def expected_moments(
     read_noise=_DEFAULTS["read_noise"],
     *,
     frames=_DEFAULTS["frames"],
-    multiplication="gamma",
+    multiplication="cascade",
     stages=DEFAULT_STAGES,
     cic=0.0,
     drift=0.0,
@@ -464,7 +465,9 @@ def expected_moments(
     --------
     >>> m, v = expected_moments(370.0, 4.78, 3.859, 583.9, 15.5)
     >>> round(float(m), 3), round(float(v), 1)
-    (1042.205, 1375.7)
+    (1042.205, 1254.3)
+    >>> round(float(expected_moments(370.0, 4.78, 3.859, 583.9, 15.5, multiplication="gamma")[1]), 1)
+    1375.7
     """
     E = check_number("photoelectrons", photoelectrons, minimum=0.0, scalar=False)
     g = check_number("em_gain", em_gain, minimum=1.0)

@@ -5,7 +5,10 @@ Used by the test suite (every method must recover the truth) and by the studies 
 ``benchmarks/`` (coverage, profile intervals), so that both judge alike.
 :data:`CAMERAS` are the paper's ProEM and a camera with a large φ and read noise;
 :func:`simulate_camera` writes a gain series, a 1× and an EM intensity series of one,
-with manifests that carry the true offset and read-noise maps.
+with manifests that carry the true offset and read-noise maps. As in the paper's own
+simulation study, the register is the gamma model, simulated and fitted (the manifests
+say ``em_model = "gamma"``); the exact register's recovery is studied on its own
+(``tests/test_cascade_likelihood.py``, ``benchmarks/cascade_study.py``).
 """
 
 from __future__ import annotations
@@ -17,7 +20,8 @@ import numpy as np
 from ..fit import layouts
 from .series import simulate_gain_series, simulate_intensity_series
 
-__all__ = ["CAMERAS", "ROWS", "COLS", "FRAMES", "simulate_camera", "truth_manifest",
+__all__ = ["CAMERAS", "ROWS", "COLS", "FRAMES", "STUDY_REGISTER", "simulate_camera",
+           "truth_manifest",
            "median_band", "coverage", "result_bounds", "hierarchical_options"]
 
 #: The two cameras: the paper's and an "other" one (φ 12 e-/ADU, σ 40 ADU, E 60 e-).
@@ -35,8 +39,9 @@ ROWS = COLS = 32  # 1024 pixels
 FRAMES = 2000
 
 
-def truth_manifest(sim, read_noise):
-    """Rewrite a simulated manifest with the true offset and read-noise maps.
+def truth_manifest(sim, read_noise, em_model=None):
+    """Rewrite a simulated manifest with the true offset and read-noise maps (and the
+    register model ``em_model``, where given).
 
     The true maps are exact: their ``dark_frames`` lines go (the maps' own errors are
     tested in ``test_map_errors.py``).
@@ -53,23 +58,31 @@ def truth_manifest(sim, read_noise):
         text = text.replace(f'offset = "{acq["offset_map"]}"', f'offset = "{true_map.name}"')
         text = text.replace(f'read_noise = "{acq["read_noise_map"]}"', f"read_noise = {sigma!r}")
     text = re.sub(r"\ndark_frames = .*", "", text)
+    if em_model is not None:
+        text = f'em_model = "{em_model}"\n' + text
     path = sim.outdir / "manifest-truth.toml"
     path.write_text(text)
     return path
 
 
+#: The register of the study: the paper's gamma model, simulated and fitted.
+STUDY_REGISTER = "gamma"
+
+
 def simulate_camera(base, cam):
     """The three series of a camera (gain series, 1× and EM intensity series), with
-    manifests that carry the true maps; also used by ``benchmarks/coverage_study.py``."""
+    manifests that carry the true maps and the study's register model
+    (:data:`STUDY_REGISTER`); also used by ``benchmarks/coverage_study.py``."""
     common = dict(rows=ROWS, cols=COLS, frames=FRAMES, dark_frames=10, e_per_adu=cam["e_per_adu"],
-                  read_noise=cam["read_noise"], offset=cam["offset"])
+                  read_noise=cam["read_noise"], offset=cam["offset"],
+                  multiplication=STUDY_REGISTER)
     gs = simulate_gain_series(base / "gs", setpoints=cam["setpoints"], em_gain=cam["em_gain"],
                               photoelectrons=cam["photoelectrons"], seed=31, **common)
     adu = simulate_intensity_series(base / "adu", levels=cam["levels"], seed=14, **common)
     isg = simulate_intensity_series(base / "isg", levels=cam["is_gain_levels"],
                                     setpoint=cam["is_gain_setpoint"], em_gain=cam["is_gain"],
                                     seed=13, **common)
-    return {k: truth_manifest(s, cam["read_noise"]) for k, s in
+    return {k: truth_manifest(s, cam["read_noise"], STUDY_REGISTER) for k, s in
             (("gs", gs), ("adu", adu), ("isg", isg))}
 
 

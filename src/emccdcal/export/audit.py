@@ -1,0 +1,576 @@
+"""``emccdcal audit``: are a localization tool's camera numbers right?
+
+Reads the camera settings a user already has — Picasso's ``config.yaml``, a ThunderSTORM
+``Camera setup`` macro, a DECODE ``param.yaml``, a gdsc-smlm ``Calibration``, SMAP's
+camera settings (JSON or ``cameras.mat``), PYME metadata (JSON or ``.md``),
+storm-analysis XML — and compares every number with a calibration, in the tool's own
+words: each field against the calibrated quantity it stands for, and the photoelectrons
+per ADU the tool's fields give together against the calibrated φ/g, which is by how much
+the tool's photon counts are biased. What each field means, and its unit, is the table
+of ``docs/exports.md`` (the same as ``emccdcal export`` writes).
+
+The verdict: a photon bias beyond ``tolerance`` (2 % by default), or a baseline further
+from the calibrated offset than the offset's own spread over the pixels plus 1 ADU, is
+"off" (exit status 1 on the command line). A QE is not measured by a calibration: it is
+checked only against one given (``qe``); a tool's photons are its photoelectrons / QE.
+
+Examples
+--------
+>>> from emccdcal.export.audit import TOOL_NAMES
+>>> TOOL_NAMES["thunderstorm"]
+'ThunderSTORM'
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..errors import InputError, OptionError
+from ..result import Calibration, format_setpoint, load_calibration
+from .tools import camera_values, pick_setpoint
+
+__all__ = ["TOOL_NAMES", "Field", "Reading", "Audit", "read_tool_file", "audit",
+           "DEFAULT_TOLERANCE"]
+
+#: The photon bias beyond which an audit says "off", as a fraction.
+DEFAULT_TOLERANCE = 0.02
+#: The tools an audit reads, by the name ``--tool`` takes.
+TOOL_NAMES = {"picasso": "Picasso", "thunderstorm": "ThunderSTORM", "decode": "DECODE",
+              "gdsc": "gdsc-smlm", "smap": "SMAP", "pyme": "PYME",
+              "storm-analysis": "storm-analysis"}
+
+#: What a field can stand for: the calibrated quantity, its unit, how to say it.
+_QUANTITIES = {
+    "offset": ("ADU", "offset"),
+    "e_per_adu": ("e-/ADU", "phi"),
+    "em_gain": ("", "EM gain"),
+    "adu_per_e_total": ("ADU/e-", "g/phi"),
+    "read_noise": ("ADU", "read noise"),
+    "read_noise_e": ("e-", "read noise x phi"),
+}
+
+
+@dataclass(frozen=True)
+class Field:
+    """One number of a tool's file: its name there, value, and the calibrated quantity
+    it stands for (a key of ``_QUANTITIES``, or ``"qe"``, or None: not comparable)."""
+
+    name: str
+    value: float
+    quantity: str | None
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class Reading:
+    """One camera entry of a tool's file (one read-out mode of a nested table).
+
+    ``pe_per_adu`` is the photoelectrons per ADU (after the baseline) the tool's fields
+    give together, QE aside; ``baseline`` the ADU it subtracts (None: not in the file).
+    """
+
+    tool: str
+    where: str
+    fields: tuple[Field, ...]
+    pe_per_adu: float
+    formula: str
+    baseline: float | None = None
+    qe: float | None = None
+
+
+@dataclass
+class Audit:
+    """The comparison of one :class:`Reading` with a calibration at one set-point."""
+
+    reading: Reading
+    setpoint: float
+    rows: list[dict]  # {"field", "text"}
+    calibrated_pe_per_adu: float  # φ/g, medians over the converged pixels
+    photon_bias: float
+    offset_error: float | None
+    offset_tolerance: float
+    tolerance: float
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def lines(self) -> list[str]:
+        """The audit as the console shows it."""
+        r = self.reading
+        out = [f"{TOOL_NAMES[r.tool]}: {r.where} (set-point {format_setpoint(self.setpoint)}x)"]
+        width = max(len(row["field"]) for row in self.rows)
+        for row in self.rows:
+            out.append(f"  {row['field']:<{width}}  {row['text']}")
+        out.append(f"  photons: {r.formula} = {r.pe_per_adu:.6g} e-/ADU against the "
+                   f"calibrated phi/g = {self.calibrated_pe_per_adu:.6g}: "
+                   f"{100 * self.photon_bias:+.2f} %")
+        verdict = "OK" if self.ok else "OFF"
+        out.append(f"  {verdict}: " + ("; ".join(self.problems) if self.problems else
+                   f"photons within {100 * self.tolerance:g} %, baseline within "
+                   f"{self.offset_tolerance:.3g} ADU"))
+        return out
+
+
+# --------------------------------------------------------------------------------------
+# Reading the tools' files
+# --------------------------------------------------------------------------------------
+def _number(value, what, path):
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"'{path}': {what} is {value!r}, not a number") from None
+    if not math.isfinite(x):
+        raise InputError(f"'{path}': {what} is {value!r}, not a finite number")
+    return x
+
+
+def _positive(value, what, path):
+    x = _number(value, what, path)
+    if x <= 0:
+        raise InputError(f"'{path}': {what} is {value!r}; it must be > 0")
+    return x
+
+
+def _leaves(tree, path=()):
+    """(keys, value) of every non-mapping leaf of nested mappings."""
+    if isinstance(tree, dict):
+        for key, value in tree.items():
+            yield from _leaves(value, (*path, str(key)))
+    else:
+        yield path, tree
+
+
+def _picasso(doc, path, setpoint, tool_gain):
+    cameras = doc.get("Cameras") if isinstance(doc, dict) else None
+    if not isinstance(cameras, dict) or not cameras:
+        raise InputError(f"'{path}': no 'Cameras' table: not a Picasso config.yaml")
+    readings = []
+    for name, cam in cameras.items():
+        if not isinstance(cam, dict) or "Sensitivity" not in cam:
+            continue
+        gain_key = next((k for k in ("Gain", "DefaultGain") if k in cam), None)
+        if tool_gain is not None:
+            gain, gain_note = float(tool_gain), "as given (--tool-gain)"
+        elif gain_key is not None:
+            gain, gain_note = _positive(cam[gain_key], f"{name}: {gain_key}", path), ""
+        else:
+            gain, gain_note = float(setpoint), ("not in the file: the set-point, as typed "
+                                                "into Picasso's EM gain box")
+        baseline = (_number(cam["Baseline"], f"{name}: Baseline", path)
+                    if "Baseline" in cam else None)
+        qe = cam.get("Quantum Efficiency")
+        for keys, value in _leaves(cam["Sensitivity"]):
+            where = " > ".join(("Cameras", str(name), "Sensitivity", *keys))
+            sens = _positive(value, where, path)
+            fields = [Field("Sensitivity", sens, "e_per_adu"),
+                      Field(gain_key or "EM gain", gain, "em_gain", gain_note)]
+            if baseline is not None:
+                fields.insert(0, Field("Baseline", baseline, "offset"))
+            readings.append(Reading("picasso", where, tuple(fields), sens / gain,
+                                    "Sensitivity / Gain", baseline,
+                                    None if not isinstance(qe, (int, float)) else float(qe)))
+    if not readings:
+        raise InputError(f"'{path}': no camera of 'Cameras' has a Sensitivity")
+    return readings
+
+
+def _find_tables(tree, keys, path=()):
+    """(path, table) of every mapping in ``tree`` holding all of ``keys``."""
+    if isinstance(tree, dict):
+        if all(k in tree for k in keys):
+            yield path, tree
+        for key, value in tree.items():
+            yield from _find_tables(value, keys, (*path, str(key)))
+    elif isinstance(tree, list):
+        for i, value in enumerate(tree):
+            yield from _find_tables(value, keys, (*path, f"[{i}]"))
+
+
+def _decode(doc, path):
+    readings = []
+    for where, cam in _find_tables(doc, ("e_per_adu", "em_gain")):
+        name = " > ".join(where) or "Camera"
+        phi = _positive(cam["e_per_adu"], f"{name}: e_per_adu", path)
+        if cam["em_gain"] is None:
+            gain, note = 1.0, "null: DECODE's sCMOS model, no EM gain"
+        else:
+            gain, note = _positive(cam["em_gain"], f"{name}: em_gain", path), ""
+        fields = [Field("e_per_adu", phi, "e_per_adu"), Field("em_gain", gain, "em_gain", note)]
+        baseline = None
+        if "baseline" in cam:
+            baseline = _number(cam["baseline"], f"{name}: baseline", path)
+            fields.insert(0, Field("baseline", baseline, "offset"))
+        if "read_sigma" in cam:
+            fields.append(Field("read_sigma", _number(cam["read_sigma"], "read_sigma", path),
+                                "read_noise_e"))
+        qe = _positive(cam["qe"], f"{name}: qe", path) if "qe" in cam else None
+        readings.append(Reading("decode", name, tuple(fields), phi / gain,
+                                "e_per_adu / em_gain", baseline, qe))
+    if not readings:
+        raise InputError(f"'{path}': no table with e_per_adu and em_gain: not a DECODE "
+                         "camera block")
+    return readings
+
+
+def _thunderstorm(text, path):
+    match = re.search(r'run\(\s*"Camera setup"\s*,\s*"([^"]*)"', text)
+    if match is None:
+        raise InputError(f"'{path}': no run(\"Camera setup\", \"...\") line: not a "
+                         "ThunderSTORM camera macro")
+    options = dict(re.findall(r"(\w+)=(\S+)", match.group(1)))
+    options = {k.lower(): v for k, v in options.items()}
+    missing = [k for k in ("offset", "photons2adu") if k not in options]
+    if missing:
+        raise InputError(f"'{path}': Camera setup without {', '.join(missing)}")
+    phi = _positive(options["photons2adu"], "photons2adu", path)
+    em = options.get("isemgain", "false").lower() == "true"
+    gain = _positive(options.get("gainem", 1), "gainem", path) if em else 1.0
+    baseline = _number(options["offset"], "offset", path)
+    fields = (Field("offset", baseline, "offset"),
+              Field("photons2adu", phi, "e_per_adu", "e-/ADU, despite its name"),
+              Field("gainem", gain, "em_gain", "" if em else "isemgain=false: taken as 1"))
+    qe = (_positive(options["quantumefficiency"], "quantumefficiency", path)
+          if "quantumefficiency" in options else None)
+    return [Reading("thunderstorm", "Camera setup", fields, phi / gain,
+                    "photons2adu / gainem", baseline, qe)]
+
+
+def _gdsc(doc, path):
+    def get(table, *names):
+        for n in names:
+            if isinstance(table, dict) and n in table:
+                return table[n]
+        return None
+
+    intensity = get(doc, "intensityCalibration", "intensity_calibration")
+    camera = get(doc, "cameraCalibration", "camera_calibration") or {}
+    cpp = get(intensity, "countPerPhoton", "count_per_photon")
+    if cpp is None:
+        raise InputError(f"'{path}': no countPerPhoton: not a gdsc-smlm Calibration")
+    cpp = _positive(cpp, "countPerPhoton", path)
+    qe = get(camera, "quantumEfficiency", "quantum_efficiency")
+    qe = 1.0 if qe is None else _positive(qe, "quantumEfficiency", path)
+    fields = [Field("countPerPhoton", cpp / qe, "adu_per_e_total",
+                    f"QE x g/phi; divided by its QE {qe:g}")]
+    baseline = get(camera, "bias")
+    if baseline is not None:
+        baseline = _number(baseline, "bias", path)
+        fields.insert(0, Field("bias", baseline, "offset"))
+    noise = get(camera, "readNoise", "read_noise")
+    if noise is not None:
+        fields.append(Field("readNoise", _number(noise, "readNoise", path), "read_noise"))
+    return [Reading("gdsc", "Calibration", tuple(fields), qe / cpp,
+                    "QE / countPerPhoton", baseline, qe)]
+
+
+def _smap(doc, path):
+    readings = []
+    for where, cam in _find_tables(doc, ("conversion", "emgain")):
+        name = " > ".join(where) or "camera"
+        phi = _positive(_scalar(cam["conversion"]), f"{name}: conversion", path)
+        em = bool(_scalar(cam.get("EMon", True)))
+        gain = _positive(_scalar(cam["emgain"]), f"{name}: emgain", path) if em else 1.0
+        fields = [Field("conversion", phi, "e_per_adu"),
+                  Field("emgain", gain, "em_gain", "" if em else "EMon false: taken as 1")]
+        baseline = None
+        if "offset" in cam:
+            baseline = _number(_scalar(cam["offset"]), f"{name}: offset", path)
+            fields.insert(0, Field("offset", baseline, "offset"))
+        readings.append(Reading("smap", name, tuple(fields), phi / gain,
+                                "conversion / emgain", baseline))
+    if not readings:
+        raise InputError(f"'{path}': no camera settings with conversion and emgain: not "
+                         "SMAP's")
+    return readings
+
+
+def _scalar(value):
+    """A MATLAB value read by SciPy (an array of one element) as a Python scalar."""
+    import numpy as np
+
+    arr = np.asarray(value)
+    if arr.size != 1:
+        return value
+    item = arr.reshape(-1)[0]
+    return item.item() if hasattr(item, "item") else item
+
+
+def _mat_tree(path):
+    """A MATLAB file as nested dicts (structs become dicts)."""
+    from scipy.io import loadmat
+
+    try:
+        raw = loadmat(path, squeeze_me=True, struct_as_record=False)
+    except Exception as exc:  # noqa: BLE001 - a damaged file is one line
+        raise InputError(f"'{path}': not a readable MATLAB file ({exc})") from None
+
+    def convert(value, depth=0):
+        if depth > 20:
+            return None
+        if hasattr(value, "_fieldnames"):
+            return {n: convert(getattr(value, n), depth + 1) for n in value._fieldnames}
+        import numpy as np
+
+        if isinstance(value, np.ndarray) and value.dtype == object:
+            return [convert(v, depth + 1) for v in value.reshape(-1)]
+        return value
+
+    return {k: convert(v) for k, v in raw.items() if not k.startswith("__")}
+
+
+def _pyme(doc, path):
+    flat = {}
+    for keys, value in _leaves(doc):
+        flat[".".join(keys)] = value
+    if "Camera.ElectronsPerCount" not in flat:
+        raise InputError(f"'{path}': no Camera.ElectronsPerCount: not PYME metadata")
+    phi = _positive(flat["Camera.ElectronsPerCount"], "Camera.ElectronsPerCount", path)
+    gain = _positive(flat.get("Camera.TrueEMGain", 1.0), "Camera.TrueEMGain", path)
+    fields = [Field("Camera.ElectronsPerCount", phi, "e_per_adu"),
+              Field("Camera.TrueEMGain", gain, "em_gain")]
+    baseline = None
+    if "Camera.ADOffset" in flat:
+        baseline = _number(flat["Camera.ADOffset"], "Camera.ADOffset", path)
+        fields.insert(0, Field("Camera.ADOffset", baseline, "offset"))
+    if "Camera.ReadNoise" in flat:
+        fields.append(Field("Camera.ReadNoise", _number(flat["Camera.ReadNoise"],
+                                                        "Camera.ReadNoise", path), "read_noise_e"))
+    return [Reading("pyme", "metadata", tuple(fields), phi / gain,
+                    "ElectronsPerCount / TrueEMGain", baseline)]
+
+
+def _pyme_md(text):
+    """PYME's ``.md`` metadata (Python assignments) as a dict: numbers only, never run."""
+    found = {}
+    for key, value in re.findall(r"""md\[\s*['"]([\w.]+)['"]\s*\]\s*=\s*([-+0-9.eE]+)""", text):
+        found[key] = value
+    return found
+
+
+def _storm_analysis(path):
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        raise InputError(f"'{path}': not readable XML ({exc})") from None
+    values = {el.tag: el.text for el in root.iter() if el.tag in ("camera_gain", "camera_offset")}
+    if "camera_gain" not in values:
+        raise InputError(f"'{path}': no camera_gain: not storm-analysis parameters")
+    gain = _positive(values["camera_gain"], "camera_gain", path)
+    fields = [Field("camera_gain", gain, "adu_per_e_total", "g/phi, ADU per photoelectron")]
+    baseline = None
+    if "camera_offset" in values:
+        baseline = _number(values["camera_offset"], "camera_offset", path)
+        fields.insert(0, Field("camera_offset", baseline, "offset"))
+    return [Reading("storm-analysis", "settings", tuple(fields), 1 / gain, "1 / camera_gain",
+                    baseline)]
+
+
+def _guess_tool(path: Path, text: str | None, doc) -> str:
+    suffix = path.suffix.lower()
+    if suffix == ".mat":
+        return "smap"
+    if suffix == ".xml":
+        return "storm-analysis"
+    if suffix == ".md":
+        return "pyme"
+    if text is not None and "Camera setup" in text and "run(" in text:
+        return "thunderstorm"
+    if isinstance(doc, dict):
+        if "Cameras" in doc:
+            return "picasso"
+        if any(k in doc for k in ("intensityCalibration", "intensity_calibration")):
+            return "gdsc"
+        if "Camera.ElectronsPerCount" in {".".join(k) for k, _ in _leaves(doc)}:
+            return "pyme"  # flat dotted keys, or nested
+        if next(_find_tables(doc, ("conversion", "emgain")), None) is not None:
+            return "smap"
+        if next(_find_tables(doc, ("e_per_adu", "em_gain")), None) is not None:
+            return "decode"
+    raise InputError(f"'{path}': not a camera file of a tool emccdcal knows "
+                     f"({', '.join(TOOL_NAMES.values())}); give --tool NAME if it is one")
+
+
+def read_tool_file(path, *, tool=None, setpoint=1.0, tool_gain=None) -> list[Reading]:
+    """The camera entries of a localization tool's file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file: Picasso ``config.yaml``, ThunderSTORM macro (``.ijm``/``.txt``),
+        DECODE ``.yaml``, gdsc-smlm ``.json``, SMAP ``.json`` or ``cameras.mat``, PYME
+        ``.json`` or ``.md``, storm-analysis ``.xml``.
+    tool : str, optional
+        One of :data:`TOOL_NAMES`; default: recognised from the file.
+    setpoint : float
+        The set-point the tool's movies are taken at: Picasso's EM gain where its file
+        holds none (users type the set-point into its gain box).
+    tool_gain : float, optional
+        The EM gain typed into the tool, where its file has none (Picasso).
+
+    Raises
+    ------
+    InputError
+        An unreadable file, one of no known tool, or a field that is not a number.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"'{path}': no such file")
+    if tool is not None and tool not in TOOL_NAMES:
+        raise OptionError(f"unknown tool {tool!r}; one of {', '.join(TOOL_NAMES)}")
+    text, doc = None, None
+    if path.suffix.lower() == ".mat":
+        doc = _mat_tree(path)
+    elif path.suffix.lower() != ".xml":
+        try:
+            text = path.read_text(encoding="utf-8")
+        except (UnicodeDecodeError, OSError) as exc:
+            raise InputError(f"'{path}': not a text file ({exc})") from None
+        doc = _parse_text(path, text)
+    tool = tool or _guess_tool(path, text, doc)
+    if tool == "picasso":
+        return _picasso(doc, path, setpoint, tool_gain)
+    if tool == "decode":
+        return _decode(doc, path)
+    if tool == "thunderstorm":
+        return _thunderstorm(text or "", path)
+    if tool == "gdsc":
+        return _gdsc(doc, path)
+    if tool == "smap":
+        return _smap(doc, path)
+    if tool == "pyme":
+        return _pyme(doc if isinstance(doc, dict) and doc else _pyme_md(text or ""), path)
+    return _storm_analysis(path)
+
+
+def _parse_text(path: Path, text: str):
+    """JSON, else YAML, else None (a macro or PYME's ``.md``)."""
+    if path.suffix.lower() in (".ijm", ".txt", ".md"):
+        return None
+    try:
+        return json.loads(text)
+    except ValueError:
+        pass
+    import yaml
+
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise InputError(f"'{path}': neither JSON nor YAML ({str(exc).splitlines()[0]})") from None
+
+
+# --------------------------------------------------------------------------------------
+# Comparing
+# --------------------------------------------------------------------------------------
+def _compare(reading: Reading, values: dict, setpoint, tolerance, offset_tolerance, qe):
+    phi, g = values["e_per_adu"]["median"], values["em_gain"]["median"]
+    truth = {k: values[k]["median"] for k in _QUANTITIES}
+    rows = []
+    for f in reading.fields:
+        row = {"field": f.name}
+        note = f" ({f.note})" if f.note else ""
+        if f.quantity == "offset":
+            diff = f.value - truth["offset"]
+            row["text"] = (f"{f.value:.6g} ADU; calibrated offset {truth['offset']:.6g} ADU: "
+                           f"{diff:+.3g} ADU ({-diff * phi / g:+.3g} e- per pixel and frame)"
+                           + note)
+        elif f.quantity in _QUANTITIES:
+            unit, what = _QUANTITIES[f.quantity]
+            rel = f.value / truth[f.quantity] - 1
+            row["text"] = (f"{f.value:.6g} {unit}".rstrip() + f"; calibrated {what} "
+                           f"{truth[f.quantity]:.6g}: {100 * rel:+.2f} %{note}")
+        rows.append(row)
+    if reading.qe is not None:
+        text = f"{reading.qe:g}: photons = photoelectrons / {reading.qe:g}"
+        if qe is not None:
+            text += f"; given QE {qe:g}: {100 * (reading.qe / qe - 1):+.2f} %"
+        rows.append({"field": "QE", "text": text})
+    bias = reading.pe_per_adu / (phi / g) - 1
+    spread = values["offset"]["spread"] or 0.0
+    tol_offset = spread + 1.0 if offset_tolerance is None else offset_tolerance
+    offset_error = None if reading.baseline is None else reading.baseline - truth["offset"]
+    problems = []
+    if abs(bias) > tolerance:
+        worst = max((f for f in reading.fields if f.quantity in ("e_per_adu", "em_gain",
+                                                                  "adu_per_e_total")),
+                    key=lambda f: abs(math.log(f.value / truth[f.quantity])), default=None)
+        name = f" (most of it {worst.name})" if worst is not None else ""
+        problems.append(f"photons {100 * bias:+.1f} %{name}, beyond {100 * tolerance:g} %: "
+                        f"{reading.formula} should be {phi / g:.6g} e-/ADU")
+    if offset_error is not None and abs(offset_error) > tol_offset:
+        base = next(f.name for f in reading.fields if f.quantity == "offset")
+        problems.append(f"{base} {offset_error:+.3g} ADU from the calibrated offset "
+                        f"{truth['offset']:.6g} ADU, beyond {tol_offset:.3g} ADU")
+    if qe is not None and reading.qe is not None and abs(reading.qe / qe - 1) > tolerance:
+        problems.append(f"QE {reading.qe:g} but {qe:g} given: photons "
+                        f"{100 * (qe / reading.qe - 1):+.1f} %")
+    return Audit(reading, setpoint, rows, phi / g, bias, offset_error, tol_offset, tolerance,
+                 problems)
+
+
+def audit(toolfile, calibration, *, setpoint=None, tool=None, tool_gain=None, qe=None,
+          tolerance=DEFAULT_TOLERANCE, offset_tolerance=None) -> list[Audit]:
+    """Compare a localization tool's camera numbers with a calibration.
+
+    Parameters
+    ----------
+    toolfile : str or Path
+        The tool's file (:func:`read_tool_file`).
+    calibration : Calibration, str or Path
+        A calibration, or its result file or directory (several joined by commas).
+    setpoint : float, optional
+        The EM-gain set-point of the tool's movies (needed where the calibration has
+        several multiplied set-points).
+    tool, tool_gain : optional
+        As :func:`read_tool_file`.
+    qe : float, optional
+        The quantum efficiency at the emission wavelength, to check the tool's against.
+    tolerance : float
+        The photon bias (a fraction) beyond which the tool is "off".
+    offset_tolerance : float, optional
+        ADU; default the calibrated offset's spread over pixels plus 1 ADU.
+
+    Returns
+    -------
+    list of Audit
+        One per camera entry of the file (read-out modes of a nested table that the
+        calibration's recorded read-out state singles out are kept alone).
+    """
+    if not (0 < tolerance < 1):
+        raise OptionError(f"tolerance is a fraction in (0, 1); got {tolerance}")
+    if qe is not None and not (0 < qe <= 1):
+        raise OptionError(f"--qe is photoelectrons per photon, in (0, 1]; got {qe}")
+    cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
+    s = pick_setpoint(cal, setpoint)
+    values = camera_values(cal, s)
+    readings = _matching(read_tool_file(toolfile, tool=tool, setpoint=s, tool_gain=tool_gain),
+                         cal.camera)
+    return [_compare(r, values, s, tolerance, offset_tolerance, qe) for r in readings]
+
+
+def _matching(readings, camera: dict):
+    """The entries of a nested read-out table that the calibration's recorded read-out
+    rate (MHz) and analog gain name, where exactly one does; else all."""
+    if len(readings) < 2:
+        return readings
+    wanted = []
+    rate = camera.get("readout_rate_mhz")
+    if rate is not None:
+        wanted.append(lambda where, r=float(rate): any(
+            abs(float(m) - r) < 1e-6 for m in re.findall(r"([0-9.]+)\s*MHz", where)))
+    analog = camera.get("analog_gain")
+    if analog is not None:
+        number = re.findall(r"[0-9.]+", str(analog))
+        wanted.append(lambda where, n=number: bool(n) and any(
+            n[0] == m for m in re.findall(r"[Gg]ain\s*([0-9.]+)", where)))
+    if not wanted:
+        return readings
+    chosen = [r for r in readings if all(w(r.where) for w in wanted)]
+    return chosen if len(chosen) == 1 else readings
