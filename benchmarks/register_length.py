@@ -35,7 +35,8 @@ def quiet(*args, **kw):
 
 
 def profile(path, truth=None, **kw):
-    runs = {n: quiet(path, "gs", em_model="cascade", stages=n, **kw) for n in STAGE_GRID}
+    lengths = sorted({*STAGE_GRID, 536})  # the grid of --stages auto and the default
+    runs = {n: quiet(path, "gs", em_model="cascade", stages=n, **kw) for n in lengths}
     ll = {n: float(r.loglik.values.sum()) for n, r in runs.items()}
     best = max(ll.values())
     ref = runs[536]

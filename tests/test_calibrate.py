@@ -10,6 +10,7 @@ import pytest
 from conftest import write_real_manifest
 
 from emccdcal import calibrate, cli, result
+from emccdcal.errors import MethodError, OptionError
 from emccdcal.fit import layouts
 from emccdcal.simulate.known_truth import (
     CAMERAS,
@@ -324,3 +325,34 @@ def test_result_does_not_depend_on_blocks_or_threads(tmp_path, method):
         if np.issubdtype(default[name].dtype, np.floating):
             np.testing.assert_allclose(small[name].values, default[name].values, rtol=1e-7,
                                        atol=1e-12, equal_nan=True, err_msg=name)
+
+
+@needs_real
+def test_the_register_length_profiled_on_the_real_camera(tmp_path, capsys):
+    """--stages auto: the profile likelihood over the grid, its maximum taken and recorded
+    with the lengths within 95 %; the gains hardly depend on it (docs/cascade.md)."""
+    from emccdcal.calibration import STAGE_GRID
+
+    manifest = _real_manifest(tmp_path, "gs")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        auto = calibrate(manifest, "gs", stages="auto", checks=False)
+        default = calibrate(manifest, "gs", checks=False)
+    grid, delta = auto.attrs["register_stages_grid"], auto.attrs["register_stages_profile"]
+    assert tuple(grid) == STAGE_GRID and delta.max() == 0
+    best = int(grid[np.argmax(delta)])
+    assert int(auto.attrs["register_stages"]) == best
+    assert auto.attrs["register_stages_source"].startswith(
+        f"profile likelihood over 128-4096 stages on 9 pixels: maximum at {best}, ")
+    assert delta[list(grid).index(128)] < -1.92  # a 128-stage register is excluded
+    np.testing.assert_allclose(auto.em_gain.values, default.em_gain.values, rtol=2e-3)
+    # only where a length enters, and only for the cascade
+    with pytest.raises(OptionError, match="the gamma model has none"):
+        calibrate(manifest, "gs", em_model="gamma", stages="auto")
+    with pytest.raises(MethodError, match="needs a likelihood: mv-gain has none"):
+        calibrate(manifest, "mv-gain", stages="auto")
+    with pytest.raises(OptionError, match="every acquisition is at EM gain set-point 1"):
+        calibrate(_real_manifest(tmp_path, "adu"), "is-adu", stages="auto")
+    assert cli.main(["calibrate", str(manifest), "--stages", "sixty", "-o",
+                     str(tmp_path / "x")]) == 2
+    assert "--stages: expected an integer, got 'sixty'" in capsys.readouterr().err
