@@ -154,3 +154,13 @@ def test_help_texts_read_as_written(verb):
             if not action.option_strings and action.dest not in ("help",) and \
                     not action.choices:
                 assert action.help, f"{parser.prog}: {action.dest} has no help"
+
+
+def test_validate_and_cots_expect_the_same_spot_width():
+    """One default for the PSF's expected width (px), whichever verb fits the beads."""
+    from emccdcal.model.psf import DEFAULT_WIDTH
+
+    argv = {"validate": ["validate", "m.toml", "--calibration", "c.nc", "-o", "o"],
+            "cots": ["cots", "m.toml", "-o", "o"]}
+    widths = {verb: cli.build_parser(verb).parse_args(args).width for verb, args in argv.items()}
+    assert widths == {"validate": DEFAULT_WIDTH, "cots": DEFAULT_WIDTH}

@@ -157,10 +157,12 @@ def test_export_needs_a_setpoint_and_says_which(tmp_path):
     res = true_result(tmp_path / "r")
     with pytest.raises(ValueError, match=r"has set-points 1x, 5x, 25x, 100x, 300x.*--setpoint"):
         export(res, "picasso", tmp_path / "o")
+    assert not (tmp_path / "o").exists()  # refused before anything is made
     with pytest.raises(ValueError, match=r"set-point 50x is missing .*gain-curve"):
         export(res, "picasso", tmp_path / "o", setpoint=50)
     code = cli.main(["export", str(res), "--to", "pyme", "-o", str(tmp_path / "o"), "-q"])
     assert code == 2
+    assert not (tmp_path / "o").exists()  # no empty folder left behind
 
 
 # --------------------------------------------------------------------------------------

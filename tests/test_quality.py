@@ -268,13 +268,19 @@ def test_drifting_series_flagged_and_steady_not(tmp_path):
     joined = "\n".join(drifting["warnings"])
     assert "1x (set-point 1): the frame mean drifts by +" in joined
     assert "25x (set-point 25): the frame mean drifts by +" in joined
-    # what the drift does to the estimate: +E·d²/24, 10 % of g at E = 1000 e⁻ for 5 %
-    # what the drift does to the estimate at E = 1000 e⁻ for 5 %: g +E·d²/24 = +10 %,
-    # φ at 1× −E·d²/12 = −21 %
-    g_bias = re.findall(r"g is biased by about \+E·d²/24, \+([\d.]+) % at E = 1000 e⁻", joined)
-    phi_bias = re.findall(r"φ is biased by about −E·d²/12, -([\d.]+) % at E = 1000 e⁻", joined)
-    assert len(g_bias) == 1 and float(g_bias[0]) == pytest.approx(10.4, rel=0.2)
-    assert len(phi_bias) == 1 and float(phi_bias[0]) == pytest.approx(20.8, rel=0.2)
+    # what the drift does to the estimate, at the acquisition's own level: the true E is
+    # 370 e⁻, read roughly from the counts' moments (at 1× the excess variance is a tenth
+    # of the read noise's): g +E·d²/24 ≈ +3.9 %, φ at 1× −E·d²/12 ≈ −7.7 %
+    found = re.findall(r"(EM gain g|φ \(e⁻/ADU\)) is biased by about ([-+][\d.]+) % at this "
+                       r"acquisition's ([\d.]+) e⁻ per pixel and frame", joined)
+    assert sorted(w for w, _, _ in found) == ["EM gain g", "φ (e⁻/ADU)"]
+    for what, bias, level in found:
+        assert float(level) == pytest.approx(370, rel=0.3)
+        d = drifting["acquisitions"]["25x" if what == "EM gain g" else "1x"]["drift"]
+        expect = 100 * float(level) * (d["drift_pct"] / 100) ** 2 / (24 if what == "EM gain g"
+                                                                     else -12)
+        assert float(bias) == pytest.approx(expect, rel=0.03)
+    assert "1000 e⁻" not in joined and "d²" not in joined  # no one else's numbers
     with_tests = check_manifest(read(_sim(tmp_path, "drift", drift=0.05)), unit_root_tests=True)
     assert all(a["stationarity"]["kpss_rejects_stationarity"]
                for a in with_tests["acquisitions"].values())
@@ -447,3 +453,18 @@ def test_summary_of_a_file_by_bands_is_the_summary_of_the_stack(tmp_path, monkey
         np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-12,
                                    err_msg=name)
     assert a.saturation()["n_values"] == 1
+
+
+def test_the_steady_column_gives_its_reason(real_report):
+    """+0.87 % at 1x is steady and +0.51 % at 5x is not: each verdict says which side of
+    the rule it is on (the family-wise p threshold, or the size threshold)."""
+    text = format_report(real_report)
+    assert "(each p must be below 0.002: a large drift with a large SE can be steady" in text
+    rows = {line.split()[0]: line for line in text.splitlines() if "x-gain " in line}
+    assert "+0.87 ± 0.30" in rows["1x-gain"] and "yes: p ≥ 0.002" in rows["1x-gain"]
+    assert "+0.51 ± 0.13" in rows["5x-gain"] and " NO " in rows["5x-gain"]
+    small = {**real_report["acquisitions"]["5x-gain"]["drift"], "drift_pct": 0.05,
+             "drifts": False}
+    from emccdcal.data.quality import _steady_cell
+
+    assert _steady_cell(small) == "yes: < 0.1 %"  # significant, but below the size threshold

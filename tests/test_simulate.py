@@ -636,3 +636,19 @@ def test_one_camera_object_serves_every_simulator(tmp_path):
         simulate_gain_series(tmp_path / "d", rowz=3)
     with pytest.raises(OptionError, match="read_noise must be > 0"):
         Camera(read_noise=0)
+
+
+def test_a_tight_sensor_still_takes_the_beads_that_fit():
+    """4 beads 12 px apart and 6 px from the edges fit a 32 × 32 sensor (at its corners'
+    grid), whatever the random draws; 5 do not, and that is said."""
+    import itertools
+
+    from emccdcal.errors import OptionError
+    from emccdcal.simulate.beads import _place_beads
+
+    for seed in range(20):
+        at = _place_beads(4, 32, 32, 6.0, 12.0, np.random.default_rng(seed))
+        assert at.shape == (4, 2) and at.min() >= 6 and at.max() <= 25
+        assert min(np.hypot(*(a - b)) for a, b in itertools.combinations(at, 2)) >= 12
+    with pytest.raises(OptionError, match="cannot place 5 beads at least 12 px apart"):
+        _place_beads(5, 32, 32, 6.0, 12.0, np.random.default_rng(0))

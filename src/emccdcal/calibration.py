@@ -1047,11 +1047,23 @@ def format_summary(ds):
     def med(v):
         return np.nanmedian(np.asarray(v)[..., ok], axis=-1)
 
-    lines.append(f"  e_per_adu  {med(ds.e_per_adu.values):.4f} e-/ADU "
-                 f"(adu_per_e {1 / med(ds.e_per_adu.values):.4f} ADU/e-)")
+    phi, phi_se = med(ds.e_per_adu.values), med(ds.e_per_adu_se.values)
+    source = ds.attrs.get("e_per_adu_source", "")
+    if np.isfinite(phi_se) and phi_se > 0:
+        how = ("" if ds.attrs["method"] in ESTIMATE_E_PER_ADU else
+               f"; from {source.removeprefix('result ')}" if source.startswith("result ")
+               else "; given with its SE")
+        lines.append(f"  e_per_adu  {phi:.4f} ± {phi_se:.4f} e-/ADU (adu_per_e "
+                     f"{1 / phi:.4f} ADU/e-{how})")
+    else:
+        lines.append(f"  e_per_adu  {phi:.4f} e-/ADU, fixed (given without an error; "
+                     f"adu_per_e {1 / phi:.4f} ADU/e-)")
     for i, sp in enumerate(ds.setpoint.values):
         g, se = med(ds.em_gain.values[i]), med(ds.em_gain_se.values[i])
-        lines.append(f"  em_gain at {result.format_setpoint(sp)}x: {g:.4f} ± {se:.4f}")
+        if float(sp) == 1.0:  # no multiplication: g = 1 by the model, not estimated
+            lines.append("  em_gain at 1x: 1, fixed (no multiplication)")
+        else:
+            lines.append(f"  em_gain at {result.format_setpoint(sp)}x: {g:.4f} ± {se:.4f}")
     pe = ds.photoelectrons
     if pe.ndim == 2:
         lines.append(f"  photoelectrons {med(pe.values):.2f} ± {med(ds.photoelectrons_se.values):.2f} e-")
@@ -1060,4 +1072,5 @@ def format_summary(ds):
         for i, lab in enumerate(pe[dim].values):
             lines.append(f"  photoelectrons [{dim} {lab}] {med(pe.values[i]):.2f} ± "
                          f"{med(ds.photoelectrons_se.values[i]):.2f} e-")
+    lines.append("  (± the per-pixel standard error, median over pixels; docs/results.md)")
     return "\n".join(lines)

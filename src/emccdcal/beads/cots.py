@@ -58,8 +58,8 @@ MIN_FRAMES = 10
 MAX_RECENTRE = 20
 #: Default ROI half-width Δ (pixel) of :func:`~emccdcal.beads.cots_calibration.cots_calibrate`: (2Δ + 1)² pixels per bead.
 DEFAULT_HALF_SIZE = 4
-#: Default initial PSF standard deviation (pixel).
-DEFAULT_WIDTH = 1.0
+#: Default initial PSF standard deviation (pixel): the bead fits' (``validate``) too.
+DEFAULT_WIDTH = psf.DEFAULT_WIDTH
 #: Fraction of a spot's frames that must give a usable estimate.
 _MIN_USABLE = 0.5
 

@@ -103,7 +103,7 @@ __all__ = [
 #: Half-width Δ of the fitting box (pixel): boxes are (2Δ + 1) × (2Δ + 1).
 DEFAULT_HALF_SIZE = 4
 #: Expected spot standard deviation (pixel), used for detection and as a starting value.
-DEFAULT_WIDTH = 1.3
+DEFAULT_WIDTH = psf.DEFAULT_WIDTH
 
 _NP = len(psf.PARAMETERS)
 #: Lower bound of a frame's intensity N (e⁻): a frame held there had no light to fit.

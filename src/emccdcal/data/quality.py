@@ -781,6 +781,7 @@ def check_acquisition(
         "n_frames": n,
         "shape": [int(d) for d in acq.shape],
         "drift": drift,
+        "photoelectrons_estimate": _moment_photoelectrons(summary, acq, one_x),
         "stationarity": stat,
         "saturation": summary.saturation(),
         "frames_defective": summary.frame_defects(),
@@ -840,6 +841,28 @@ def _fmt_pixels(pixels: list, n: int) -> str:
     return shown + (f" and {n - 5} more" if n > 5 else "")
 
 
+def _steady_cell(d: dict) -> str:
+    """The table's verdict with its reason: the rule is p below α and the size above the
+    threshold, so a large drift with a large SE is steady and a smaller precise one not."""
+    if d["drifts"]:
+        return "NO"
+    if d["pvalue"] < d["alpha"]:
+        return f"yes: < {d['threshold_pct']:g} %"
+    return f"yes: p ≥ {d['alpha']:.2g}"
+
+
+def _moment_photoelectrons(summary, acq, one_x: bool) -> float | None:
+    """E (e⁻ per pixel per frame) from the counts' moments alone, median over pixels:
+    F²·(mean − S0)²/(var − σ²), F² = 1 at 1× and 2 multiplied (no φ or g needed); for
+    saying what a finding does at this acquisition's own level. None where undefined."""
+    signal = summary.mean - np.ravel(acq.offset)
+    excess = summary.sd ** 2 - np.ravel(acq.read_noise) ** 2
+    ok = (signal > 0) & (excess > 0)
+    if not ok.any():
+        return None
+    return float(np.median((1.0 if one_x else 2.0) * signal[ok] ** 2 / excess[ok]))
+
+
 def _drift_bias_pct(drift_pct: float, photoelectrons: float, multiplied: bool) -> float:
     """Bias (%) of the EM gain (``multiplied``) or of φ (at 1×) from a linear drift of E.
 
@@ -862,13 +885,17 @@ def _findings(a: dict) -> list[str]:
                    f"(at least {MIN_FRAMES}); the illumination's steadiness is unchecked")
     elif d["drifts"]:
         multiplied = a["em_gain_setpoint"] != 1
-        effect = ("the spread reads as EM gain: g is biased by about +E·d²/24" if multiplied
-                  else "the spread reads as read-out variance: φ is biased by about −E·d²/12")
+        E = a.get("photoelectrons_estimate")
+        what = "EM gain g" if multiplied else "φ (e⁻/ADU)"
+        at = (f"by about {_drift_bias_pct(d['drift_pct'], E, multiplied):+.2g} % at this "
+              f"acquisition's {E:.3g} e⁻ per pixel and frame" if E else "by an amount that "
+              "grows with the illumination")
         out.append(
             f"{name}: the frame mean drifts by {d['drift_pct']:+.2f} ± {d['drift_pct_se']:.2f} % "
             f"over the acquisition (p = {d['pvalue']:.1g}): the illumination or the EM gain "
-            f"is not steady. E is then the acquisition's average, and {effect}, "
-            f"{_drift_bias_pct(d['drift_pct'], 1000, multiplied):+.2g} % at E = 1000 e⁻"
+            f"is not steady. The estimate is the acquisition's average, and the drift's "
+            f"spread reads as noise: {what} is biased {at}. If that matters, steady the "
+            "source (warm it up, stabilise its power) and record again."
         )
     off = a.get("offset")
     if off and off["above_data"]:
@@ -1057,7 +1084,7 @@ def format_report(report: dict) -> str:
             level = f"{d['level']:.1f}"
             drift = ("n/a" if d["drift_pct"] is None
                      else f"{d['drift_pct']:+.2f} ± {d['drift_pct_se']:.2f}")
-            p, steady = _p(d["pvalue"]), "NO" if d["drifts"] else "yes"
+            p, steady = _p(d["pvalue"]), _steady_cell(d)
         row = (name, f"{a['em_gain_setpoint']:g}", str(a["n_frames"]), level, drift, p, steady)
         if unit_root:
             row += (("n/a", "n/a") if s is None else
@@ -1071,8 +1098,13 @@ def format_report(report: dict) -> str:
     widths = [max(len(r[i]) for r in rows) for i in range(len(header))]
     lines = [f"Data-quality checks: {report['manifest']} (ADC maximum {report['adc_max']} ADU)"]
     if "drift_alpha" in report:
+        each = next((a["drift"]["alpha"] for a in report["acquisitions"].values()
+                     if a.get("drift")), None)
         lines.append(f"steady: no drift of at least {_threshold(report)} % significant at a "
-                     f"family-wise {100 * report['drift_alpha']:g} % over the acquisitions")
+                     f"family-wise {100 * report['drift_alpha']:g} % over the acquisitions"
+                     + ("" if each is None else f" (each p must be below {each:.2g}: "
+                        "a large drift with a large SE can be steady, a smaller precise one "
+                        "not)"))
     for j, r in enumerate(rows):
         cells = [c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths))]
         lines.append("  ".join(cells).rstrip())

@@ -443,11 +443,11 @@ def export(calibration, to: str, out, *, setpoint=None, qe=None, pixel_size_nm=N
     if pixel_size_nm is not None and not (pixel_size_nm > 0 and math.isfinite(pixel_size_nm)):
         raise OptionError(f"--pixel-size is in nm and positive; got {pixel_size_nm}")
     cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     if to in ALL_SETPOINTS:
         s, values = None, None
-    else:
+    else:  # refused before anything is made: no empty folder left behind
         s = pick_setpoint(cal, setpoint)
         values = camera_values(cal, s)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
     return _WRITERS[to](cal, s, values, out, qe, pixel_size_nm, camera_name)

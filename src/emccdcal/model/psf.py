@@ -28,11 +28,14 @@ from scipy import ndimage, special
 
 from ..errors import OptionError
 
-__all__ = ["PARAMETERS", "pixel_fractions", "spot_image", "ResidualImage", "BeadSearch",
+__all__ = ["DEFAULT_WIDTH", "PARAMETERS", "pixel_fractions", "spot_image", "ResidualImage", "BeadSearch",
            "find_beads"]
 
 #: Order of the spot parameters: centre column x0 and row y0 (pixel), width s (pixel),
 #: total signal N and background b per pixel (photoelectrons).
+#: Expected spot standard deviation (pixel) of a bead, for detection and as a fit's
+#: starting value: one default for ``validate`` and ``cots`` (``--width``).
+DEFAULT_WIDTH = 1.3
 PARAMETERS = ("x", "y", "width", "intensity", "background")
 
 _SQRT2 = np.sqrt(2.0)

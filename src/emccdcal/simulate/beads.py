@@ -60,7 +60,8 @@ TRUTH_CALIBRATION_FILE = "truth_calibration.nc"
 
 def _place_beads(n, rows, cols, margin, min_separation, rng) -> np.ndarray:
     """Random bead centres (row, col), at least ``margin`` px from the edges and
-    ``min_separation`` px apart, by sequential rejection sampling."""
+    ``min_separation`` px apart: by sequential rejection sampling, else (a tight fit,
+    where early beads block the rest) on a jittered grid of such points."""
     lo_r, hi_r = margin, rows - 1 - margin
     lo_c, hi_c = margin, cols - 1 - margin
     if hi_r < lo_r or hi_c < lo_c:
@@ -75,12 +76,36 @@ def _place_beads(n, rows, cols, margin, min_separation, rng) -> np.ndarray:
         if all(math.hypot(r - pr, c - pc) >= min_separation for pr, pc in placed):
             placed.append((r, c))
     if len(placed) < n:
+        placed = _grid_places(n, (lo_r, hi_r), (lo_c, hi_c), min_separation, rng)
+    if placed is None:
         raise OptionError(
             f"cannot place {n} beads at least {min_separation:g} px apart and {margin:g} px "
             f"from the edges of a {rows}×{cols} sensor; use fewer beads, a smaller "
             "min_separation or a larger sensor"
         )
     return np.array(placed)
+
+
+def _grid_places(n, rows, cols, min_separation, rng):
+    """``n`` of the points of the widest grid spaced at least ``min_separation`` over the
+    ranges ``rows`` and ``cols`` (px), chosen at random and each moved at random by at most
+    half the spare spacing, within the ranges (so they stay ``min_separation`` apart);
+    None if the grid holds fewer than ``n``."""
+    axes = []
+    for lo, hi in (rows, cols):
+        k = int((hi - lo) // min_separation) + 1 if min_separation > 0 else n
+        step = (hi - lo) / (k - 1) if k > 1 else 0.0
+        spare = (step - min_separation) / 2 if k > 1 else (hi - lo) / 2
+        axes.append((lo + step * np.arange(k) if k > 1 else np.array([(lo + hi) / 2]), spare))
+    (r_at, r_spare), (c_at, c_spare) = axes
+    points = [(r, c) for r in r_at for c in c_at]
+    if len(points) < n:
+        return None
+    chosen = rng.choice(len(points), size=n, replace=False)
+    # kept in the ranges: clipping only undoes an outward move, so the spacing holds
+    return [(float(np.clip(points[i][0] + rng.uniform(-r_spare, r_spare), *rows)),
+             float(np.clip(points[i][1] + rng.uniform(-c_spare, c_spare), *cols)))
+            for i in chosen]
 
 
 def bead_images(positions, photoelectrons, width, rows, cols, *, halo=0.0,
