@@ -546,7 +546,7 @@ def calibrate(
         ``"gamma"`` to reproduce the paper's numbers. On an exact register the gamma
         model reads every gain 0.2–0.8 % low in ``gs`` and about F²/2 − 1 low (−3 % at
         25×, −10 % at 5×) where E and g share one set-point's shape (``is-gain``,
-        ``gs-no1x``), and misfits the low gains; the cascade costs about 1.0–1.4 times
+        ``gs-no1x``), and misfits the low gains; the cascade costs about 1.3–1.5 times
         the time in ``gs`` (docs/cascade.md).
     stages : int or "auto", optional
         Stages of the cascade: default the manifest's ``register_stages``, else the
