@@ -272,3 +272,24 @@ def test_read_band_of_a_truncated_stack_is_one_clear_error(tmp_path):
     assert str(exc.value).endswith(f"truncated: its header describes 50 × 8 × 8 values of 2 "
                                    f"bytes from byte 256, 6656 bytes, but the file has "
                                    f"{path.stat().st_size}: {whole} whole frame(s) of 50")
+
+
+def test_removing_a_run_removes_only_what_a_run_wrote(tmp_path):
+    """remove_run acts on a run directory only where emccdcal's fingerprint marks it, and
+    there on the tiles and temporaries a run writes, never on a user's file."""
+    from emccdcal.runstore import RunStore, remove_run
+
+    users = tmp_path / "users" / RUN_DIR
+    users.mkdir(parents=True)
+    (users / "tile-pixels-000000000-000000010.npz").write_bytes(b"mine")
+    (users / "fingerprint.json").write_text("{}")  # not emccdcal's
+    remove_run(users.parent)
+    assert sorted(p.name for p in users.iterdir()) == [
+        "fingerprint.json", "tile-pixels-000000000-000000010.npz"]
+    out = tmp_path / "out"
+    store = RunStore(out, {"emccdcal_version": "test", "method": "gs"})
+    store.save_tile("pixels-000000000-000000010", {"x": np.zeros(3)})
+    (out / RUN_DIR / "notes.txt").write_text("a user's")
+    (out / RUN_DIR / "tile-mine.npz").write_bytes(b"a user's, named like a tile")
+    remove_run(out)
+    assert sorted(p.name for p in (out / RUN_DIR).iterdir()) == ["notes.txt", "tile-mine.npz"]

@@ -679,10 +679,11 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
             checks=bool(checks), fft_threads=None if scheduler is None else 1,
             em_model=model)
 
-    profile = None
+    # where the register's length came from, as the result records it
+    register_attrs = {"register_stages_source": stages_source} if stages_source else {}
     if auto:
         model, profile = _profile_stages(tile_job, rows * cols, model, method, used, progress)
-        stages_source = profile.attrs()["register_stages_source"]
+        register_attrs = profile.attrs()
     store = None
     if target is not None:  # an input, or an occupied output, is found before computing
         target.refuse_inputs(_input_files(manifest, used, phi_source), names=RESULT_FILES)
@@ -707,11 +708,7 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
                                  intervals, model)
         ds.attrs["standard_errors"] = se_note
     if method != "mv-adu":  # the register model of the likelihood, or mv-gain's F²
-        ds.attrs.update(model.attrs)
-        if stages_source:
-            ds.attrs["register_stages_source"] = stages_source
-        if profile is not None:
-            ds.attrs.update(profile.attrs())
+        ds.attrs.update(model.attrs, **register_attrs)
     if manifest.origin is not None:  # where these pixels are on the sensor
         ds.attrs["sensor_origin"] = np.array(manifest.origin, dtype=np.int64)
     if manifest.binning is not None:

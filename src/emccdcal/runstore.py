@@ -162,15 +162,20 @@ def publish(out, writers: dict, *, stale=()) -> dict:
 
 
 def remove_run(out) -> None:
-    """Remove the kept tiles of a run in ``out``: only what a run stores there, never
-    anything else (a run directory holding other files is left, less the tiles)."""
+    """Remove the kept tiles of a run in ``out``: only a run directory that a run's
+    fingerprint marks as emccdcal's, and in it only the files a run writes there (its
+    tiles, its temporary files, then the fingerprint, last, so that a kill half-way
+    leaves the directory still known for ours); a run directory holding other files is
+    left, less those."""
     run_dir = Path(out) / RUN_DIR
-    if not run_dir.is_dir() or run_dir.is_symlink():
+    fingerprint = run_dir / _FINGERPRINT
+    if not run_dir.is_dir() or run_dir.is_symlink() or not written_by_emccdcal(fingerprint):
         return
-    ours = re.compile(r"^(tile-.+\.npz|fingerprint\.json|\..+\.[0-9a-f]{12}\.tmp.*)$")
+    ours = re.compile(r"^(tile-pixels-\d{9}-\d{9}\.npz|\..+\.[0-9a-f]{12}\.tmp.*)$")
     for p in run_dir.iterdir():
-        if p.is_file() and ours.match(p.name):
+        if p.is_file() and not p.is_symlink() and ours.match(p.name):
             p.unlink()
+    fingerprint.unlink()
     with contextlib.suppress(OSError):  # not empty: something else is there, kept
         run_dir.rmdir()
 

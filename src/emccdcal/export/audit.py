@@ -29,6 +29,8 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import InputError, OptionError
 from ..result import Calibration, format_setpoint, load_calibration
 from .tools import camera_values, pick_setpoint
@@ -292,8 +294,6 @@ def _smap(doc, path):
 
 def _scalar(value):
     """A MATLAB value read by SciPy (an array of one element) as a Python scalar."""
-    import numpy as np
-
     arr = np.asarray(value)
     if arr.size != 1:
         return value
@@ -315,8 +315,6 @@ def _mat_tree(path):
             return None
         if hasattr(value, "_fieldnames"):
             return {n: convert(getattr(value, n), depth + 1) for n in value._fieldnames}
-        import numpy as np
-
         if isinstance(value, np.ndarray) and value.dtype == object:
             return [convert(v, depth + 1) for v in value.reshape(-1)]
         return value
