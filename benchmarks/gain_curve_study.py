@@ -39,8 +39,8 @@ def leave_one_out(points, held):
     curve = fit_gain_curve([p for p in points if p[0] != held])
     p = curve.predict([held])
     (meas,) = [q for q in points if q[0] == held]
-    z = (p["gain"][0] - meas[1]) / np.hypot(p["se"][0], meas[2])
-    return p["gain"][0], p["se"][0], meas[1], meas[2], z, curve.degree
+    z = (p["gain"][0] - meas[1]) / np.hypot(p["se_of_median"][0], meas[2])
+    return p["gain"][0], p["se_of_median"][0], meas[1], meas[2], z, curve.degree
 
 
 def main(data: Path) -> None:
@@ -71,7 +71,7 @@ def main(data: Path) -> None:
     pred = curve.predict([50.0, 200.0])
     for i, s in enumerate((50.0, 200.0)):
         (meas,) = [p for p in points if p[0] == s]
-        g, se = pred["gain"][i], pred["se"][i]
+        g, se = pred["gain"][i], pred["se_of_median"][i]
         print(f"  {s:g}x: predicted {g:.3f} ± {se:.3f} (95 % {pred['lower'][i]:.3f}–"
               f"{pred['upper'][i]:.3f}); truth {truth[s]:.3f} ({100 * (g / truth[s] - 1):+.2f} %,"
               f" {(g - truth[s]) / se:+.2f} SE); gs measured {meas[1]:.3f} ± {meas[2]:.3f}")

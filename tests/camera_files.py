@@ -11,7 +11,8 @@ SPE_FORMATS = {np.dtype("uint16"): "MonochromeUnsigned16", np.dtype("uint32"): "
                np.dtype("float32"): "MonochromeFloating32"}
 
 
-def write_spe(path, frames, *, em_gain=None, analog_gain="High", speed_mhz=10.0, bit_depth=16,
+def write_spe(path, frames, *, em_gain=None, analog_gain="High", quality="ElectronMultiplied",
+              speed_mhz=10.0, bit_depth=16,
               exposure_ms=10.0, temperature=-70.0, serial="12345678", model="ProEM+: 512B",
               roi=(0, 0), binning=(1, 1), frame_metadata=True, footer_offset=None,
               stride=None, xml_text=None) -> Path:
@@ -55,7 +56,7 @@ def write_spe(path, frames, *, em_gain=None, analog_gain="High", speed_mhz=10.0,
   <DataHistories><DataHistory><Origin softwareName="LightField" softwareVersion="6.16">
     <Experiment xmlns="http://www.princetoninstruments.com/experiment/2009">
       <Devices><Cameras><Camera>
-        <Adc>{gain}<AnalogGain>{analog_gain}</AnalogGain><Speed>{speed_mhz:g}</Speed><BitDepth>{bit_depth}</BitDepth></Adc>
+        <Adc>{gain}<Quality>{quality}</Quality><AnalogGain>{analog_gain}</AnalogGain><Speed>{speed_mhz:g}</Speed><BitDepth>{bit_depth}</BitDepth></Adc>
         <ShutterTiming><ExposureTime>{exposure_ms:g}</ExposureTime></ShutterTiming>
         <Sensor><Temperature><SetPoint>{temperature:g}</SetPoint><Reading>{temperature:g}</Reading></Temperature></Sensor>
       </Camera></Cameras></Devices>
@@ -69,14 +70,15 @@ def write_spe(path, frames, *, em_gain=None, analog_gain="High", speed_mhz=10.0,
 
 
 def write_fits(path, frames, *, em_gain=None, exposure_s=0.01, temperature=-70.0,
-               readtime=1e-7, preamp=2.0, serial="X-1234", head="DU897_BV", binning=(1, 1)):
+               readtime=1e-7, preamp=2.0, serial="X-1234", head="DU897_BV", binning=(1, 1),
+               amplifier="Electron Multiplying"):
     """A FITS stack with the cards Andor Solis writes; uint16 counts are stored as int16
     with BZERO = 32768, as the standard requires (astropy does that by itself)."""
     from astropy.io import fits
 
     hdu = fits.PrimaryHDU(np.asarray(frames))
     cards = {"EXPOSURE": exposure_s, "TEMP": temperature, "READTIME": readtime,
-             "PREAMP": preamp, "SERNO": serial, "HEAD": head, "HBIN": binning[0],
+             "PREAMP": preamp, "OUTPTAMP": amplifier, "SERNO": serial, "HEAD": head, "HBIN": binning[0],
              "VBIN": binning[1]}
     if em_gain is not None:
         cards["GAIN"] = em_gain
@@ -106,12 +108,14 @@ def micromanager_properties(style="andor", *, em_gain=300, readout="17.000 MHz",
     if style == "andor":
         return {"Camera": "Andor", "Andor-Gain": str(em_gain), "Andor-EMSwitch": "On",
                 "Andor-Pre-Amp-Gain": preamp, "Andor-ReadoutMode": readout,
+                "Andor-Output_Amplifier": "Electron Multiplying",
                 "Andor-CCDTemperature": str(temperature),
                 "Andor-Camera": "| iXon Ultra 897 | DU897_BV | 9876 |",
                 "Exposure-ms": str(exposure_ms), "BitDepth": "16", "ROI": "0-0-6-5",
                 "Binning": "1"}
     return {"Camera": "Photometrics", "Photometrics-MultiplierGain": str(em_gain),
             "Photometrics-Gain": "1", "Photometrics-ReadoutRate": readout,
+            "Photometrics-Port": "Multiplication gain",
             "Photometrics-BitDepth": "16", "Photometrics-CCDTemperature": str(temperature),
             "Photometrics-SerialNumber": "A17C", "Photometrics-ChipName": "Evolve512",
             "Exposure-ms": str(exposure_ms), "ROI": "0-0-6-5", "Binning": "1x1"}

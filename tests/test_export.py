@@ -319,14 +319,14 @@ def test_gain_curve_predicts_a_setpoint_not_measured(tmp_path):
     assert curve.degree == 2 and curve.dof == 1
     p = curve.predict([50.0, 1000.0])
     for i, s in enumerate((50.0, 1000.0)):
-        assert abs(p["gain"][i] - truth(s)) < 3 * p["se"][i]
+        assert abs(p["gain"][i] - truth(s)) < 3 * p["se_of_median"][i]
     assert list(p["extrapolated"]) == [False, True]
     assert p["lower"][0] < p["gain"][0] < p["upper"][0]
     code = cli.main(["gain-curve", *map(str, files), "-o", str(tmp_path / "gc"),
                      "--predict", "50", "-q"])
     assert code == 0
     table = (tmp_path / "gc" / "gain-curve.csv").read_text().splitlines()
-    assert table[0].startswith("setpoint,gain,se") and any(r.startswith("50,") for r in table)
+    assert table[0].startswith("setpoint,gain,se_of_median") and any(r.startswith("50,") for r in table)
     assert (tmp_path / "gc" / "gain-curve.png").is_file()
     with pytest.raises(ValueError, match="two or more multiplied set-points"):
         fit_gain_curve(measured_gains(files[:1]))
@@ -433,3 +433,101 @@ def test_apply_writes_an_image_series_even_three_pixels_wide_and_photons_with_qe
     with pytest.raises(ValueError, match="photon counting"):
         apply(res, narrow, tmp_path / "x.tif", setpoint=100, progress_bar=False, qe=0.8,
               photon_counting=True)
+
+
+def test_export_and_apply_at_a_setpoint_only_the_gain_curve_knows(tmp_path, capsys):
+    """--gain-curve (or the database's curve) gives the gain where the calibration has
+    none, says so, and records the prediction with its se_of_median and `extrapolated`."""
+    camera = {"serial": "GC-1", "readout_rate_mhz": 10.0}
+    res = true_result(tmp_path / "r", spread=0.01, shape=(12, 12), camera=camera)
+    assert cli.main(["gain-curve", str(res), "-o", str(tmp_path / "gc"), "-q",
+                     "--no-figures"]) == 0
+    curve_file = tmp_path / "gc" / "gain-curve.json"
+    code = cli.main(["export", str(res), "--to", "picasso", "--setpoint", "50",
+                     "--gain-curve", str(curve_file), "-o", str(tmp_path / "p"), "-q"])
+    err = capsys.readouterr().err
+    assert code == 0 and "set-point 50x was not calibrated" in err and "within the" in err
+    text = (tmp_path / "p" / "picasso-config.yaml").read_text()
+    assert "gain at 50x was not measured" in text and "extrapolated = false" in text
+    predicted = __import__("emccdcal.export.gain_curve", fromlist=["x"]).read_gain_curve(
+        curve_file).predict([50.0])["gain"][0]
+    cam = next(iter(_yaml(tmp_path / "p" / "picasso-config.yaml")["Cameras"].values()))
+    assert cam["Sensitivity"] / cam["DefaultGain"] == pytest.approx(PHI / predicted, rel=1e-3)
+    # Beyond the measured set-points: marked extrapolated, in the file and the warning.
+    code = cli.main(["export", str(res), "--to", "pyme", "--setpoint", "1000",
+                     "--gain-curve", str(curve_file), "-o", str(tmp_path / "y"), "-q"])
+    assert code == 0 and "extrapolated beyond the measured 5x-300x" in capsys.readouterr().err
+    prov = json.loads(json.loads((tmp_path / "y" / "pyme.json").read_text())[
+        "emccdcal.Provenance"])
+    (pred,) = prov["predicted_gains"]
+    assert pred["setpoint"] == 1000 and pred["extrapolated"] is True and pred["se_of_median"] > 0
+    # apply: a movie recorded at 50x, converted with the predicted gain.
+    E = np.full((12, 12), 120.0)
+    _movie(tmp_path / "m.tif", E, predicted, 300, seed=5)
+    code = cli.main(["apply", str(res), str(tmp_path / "m.tif"), "-o", str(tmp_path / "e.tif"),
+                     "--setpoint", "50", "--gain-curve", str(curve_file), "-q"])
+    assert code == 0
+    with tifffile.TiffFile(tmp_path / "e.tif") as tif:
+        e = tif.asarray()
+        meta = json.loads(tif.pages[0].description)
+    assert meta["emccdcal"]["predicted_gains"][0]["extrapolated"] is False
+    assert abs(e.mean() - 120.0) < 3 * e.mean(axis=(1, 2)).std(ddof=1) / math.sqrt(300) + 1.0
+    # Another camera's curve is refused, naming the field.
+    other = true_result(tmp_path / "o", camera={"serial": "GC-2", "readout_rate_mhz": 10.0})
+    code = cli.main(["export", str(other), "--to", "picasso", "--setpoint", "50",
+                     "--gain-curve", str(curve_file), "-o", str(tmp_path / "q")])
+    assert code == 2 and "camera serial 'GC-2'" in capsys.readouterr().err
+    # The database: no entry at 50x, so the newest entry's curve predicts it.
+    db = tmp_path / "db" / "cal.sqlite"
+    database.add(res, db=db, date="2026-03-02")
+    code = cli.main(["export", "--camera", "GC-1", "--db", str(db), "--setpoint", "50",
+                     "--to", "json", "-o", str(tmp_path / "j"), "-q"])
+    err = capsys.readouterr().err
+    assert code == 0 and "database entry 1 (2026-03-02)" in err
+    doc = json.loads((tmp_path / "j" / "emccdcal-camera.json").read_text())
+    assert doc["by_setpoint"]["50"]["em_gain"]["median"] == pytest.approx(predicted, rel=1e-3)
+    assert doc["emccdcal"]["predicted_gains"][0]["curve"].startswith("of database entry 1")
+
+
+def test_database_keys_by_readout_mode_stores_portable_paths_and_compares_like_models(
+        tmp_path, capsys):
+    db = tmp_path / "cal.sqlite"
+    em = {"serial": "RM-1", "amplifier": "Electron Multiplying", "readout_rate_mhz": 17.0,
+          "analog_gain": "3"}
+    a = true_result(tmp_path / "a", spread=0.0005, camera=em)
+    b = true_result(tmp_path / "b", spread=0.01, seed=1, phi=14.0,
+                    camera={**em, "amplifier": "Conventional", "readout_rate_mhz": 3.0})
+    database.add(a, db=db, date="2026-01-01")
+    database.add(b, db=db, date="2026-01-02")
+    states = {e.readout for e in database.entries(db=db, camera="RM-1")}
+    assert states == {"Electron Multiplying, 17 MHz, analog gain 3",
+                      "Conventional, 3 MHz, analog gain 3"}
+    with pytest.raises(ValueError, match="several read-out states"):
+        database.find("RM-1", 100, db=db)
+    # Stored relative to the database's folder: the folder moves with its results.
+    import sqlite3
+
+    with sqlite3.connect(db) as con:
+        stored = [r[0] for r in con.execute("SELECT path FROM calibration")]
+    assert stored == ["a/calibration.nc", "b/calibration.nc"]
+    moved = tmp_path.parent / (tmp_path.name + "-moved")
+    os.rename(tmp_path, moved)
+    try:
+        e = database.find("RM-1", 100, db=moved / "cal.sqlite",
+                          readout="Electron Multiplying, 17 MHz, analog gain 3")
+        assert Path(e.path) == moved / "a" / "calibration.nc"
+    finally:
+        os.rename(moved, tmp_path)
+    # The same data under the gamma model and the cascade is not a change of the register.
+    g = {s: v * (1.002 if s != 1 else 1) for s, v in GAINS.items()}
+    c = true_result(tmp_path / "c", gains=g, spread=0.0005, seed=3, camera=em)
+    ds = result.load(c)
+    ds.attrs.update(em_model="cascade", register_stages=604)
+    result.save(ds, tmp_path / "c2")
+    database.add(tmp_path / "c2" / result.CALIBRATION_FILE, db=db, date="2026-01-03")
+    rm = "Electron Multiplying, 17 MHz, analog gain 3"
+    _, findings = database.compare("RM-1", db=db, readout=rm, z=3)
+    assert not findings
+    code = cli.main(["db", "compare", "--camera", "RM-1", "--readout", rm, "--db", str(db)])
+    out = capsys.readouterr().out
+    assert code == 0 and "se_of_median" in out and "cascade" in out and "gamma" in out

@@ -42,6 +42,7 @@ def test_spe3_settings(tmp_path):
                      serial="0512", model="ProEM-HS: 512BX3", roi=(100, 200), binning=(1, 1))
     s = stack_settings(path)
     assert (s.em_gain_setpoint, s.analog_gain, s.readout_rate_mhz, s.adc_bits) == (25, "Low", 10, 16)
+    assert s.amplifier == "ElectronMultiplied"  # LightField's Adc/Quality: the output port
     assert (s.exposure_ms, s.temperature_c, s.serial, s.model) == (30, -65.5, "0512", "ProEM-HS: 512BX3")
     assert s.roi == (100, 200, 6, 5) and s.binning == (1, 1)
     assert stack_settings(tmp_path / "s.spe").known()["em_gain_setpoint"] == 25
@@ -133,11 +134,12 @@ def test_same_series_in_another_format_calibrates_identically(series, suffix, tm
     assert "camera" not in a.attrs  # plain TIFFs record no camera
     if suffix == ".spe":  # what the files record: the identity the database keys on
         assert json.loads(b.attrs["camera"]) == {
-            "serial": "12345678", "model": "ProEM+: 512B", "readout_rate_mhz": 10.0,
-            "analog_gain": "High", "adc_bits": 16}
+            "serial": "12345678", "model": "ProEM+: 512B", "amplifier": "ElectronMultiplied",
+            "readout_rate_mhz": 10.0, "analog_gain": "High", "adc_bits": 16}
         result.save(b, tmp_path / "res")
         e = database.add(tmp_path / "res", db=tmp_path / "db.sqlite")
-        assert (e.camera, e.readout) == ("12345678", "10 MHz, analog gain High, 16-bit")
+        assert (e.camera, e.readout) == ("12345678",
+                                      "ElectronMultiplied, 10 MHz, analog gain High, 16-bit")
         assert sorted(e.gains) == [25.0, 300.0]
 
 
@@ -152,6 +154,7 @@ def test_fits_stack_is_read_by_sections_with_its_settings(tmp_path):
     assert (s.em_gain_setpoint, s.exposure_ms, s.temperature_c) == (200, 30, -80)
     assert s.readout_rate_mhz == pytest.approx(10.0) and s.binning == (2, 2)
     assert (s.serial, s.model, s.analog_gain) == ("X-1234", "DU897_BV", "2.0")
+    assert s.amplifier == "Electron Multiplying"
     path.write_bytes(path.read_bytes()[:3000])  # header 2880 bytes, data 420
     with pytest.raises(InputError, match=r"s\.fits': truncated: its header describes 7 × 5 × 6"):
         load_stack(path)
@@ -183,9 +186,11 @@ def test_zarr_store_with_its_settings(tmp_path):
         stack_settings(bad)
 
 
-@pytest.mark.parametrize("style, model, serial, analog", [
-    ("andor", "DU897_BV", "9876", "Gain 2"), ("photometrics", "Evolve512", "A17C", "1")])
-def test_micromanager_properties_are_the_settings(tmp_path, style, model, serial, analog):
+@pytest.mark.parametrize("style, model, serial, analog, amplifier", [
+    ("andor", "DU897_BV", "9876", "Gain 2", "Electron Multiplying"),
+    ("photometrics", "Evolve512", "A17C", "1", "Multiplication gain")])
+def test_micromanager_properties_are_the_settings(tmp_path, style, model, serial, analog,
+                                                  amplifier):
     data = _frames()
     path = write_micromanager_tiff(tmp_path / "mm.ome.tif", data, em_gain=200, style=style,
                                    readout="10 MHz", temperature=-80)
@@ -193,6 +198,7 @@ def test_micromanager_properties_are_the_settings(tmp_path, style, model, serial
     s = stack_settings(path)
     assert (s.em_gain_setpoint, s.readout_rate_mhz, s.temperature_c) == (200, 10, -80)
     assert (s.model, s.serial, s.analog_gain, s.adc_bits) == (model, serial, analog, 16)
+    assert s.amplifier == amplifier
     assert s.exposure_ms == 10 and s.roi == (0, 0, 6, 5) and s.binning == (1, 1)
 
 

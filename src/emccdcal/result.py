@@ -751,7 +751,7 @@ def _robust_sd(values) -> float | None:
 
 
 def pixel_statistics(values) -> dict:
-    """``{"median", "spread", "se", "n"}`` of a map's finite values: the median over
+    """``{"median", "spread", "se_of_median", "n"}`` of a map's finite values: the median over
     pixels, its robust spread (1.4826 × MAD, in the map's units), the standard error of
     that median (√(π/2) × spread / √n, as for normal values; it includes the pixels' real
     spread, so it is conservative for the sensor's value) and how many pixels there were.
@@ -760,13 +760,13 @@ def pixel_statistics(values) -> dict:
     Examples
     --------
     >>> pixel_statistics(np.array([[1.0, 2.0], [3.0, np.nan]]))
-    {'median': 2.0, 'spread': 1.4826, 'se': 1.0728..., 'n': 3}
+    {'median': 2.0, 'spread': 1.4826, 'se_of_median': 1.0728..., 'n': 3}
     """
     values = np.asarray(values, dtype=float).ravel()
     finite = values[np.isfinite(values)]
     spread = _robust_sd(finite)
     return {"median": float(np.median(finite)) if finite.size else None, "spread": spread,
-            "se": None if spread is None else math.sqrt(math.pi / 2) * spread
+            "se_of_median": None if spread is None else math.sqrt(math.pi / 2) * spread
             / math.sqrt(finite.size), "n": int(finite.size)}
 
 
@@ -800,7 +800,7 @@ class Calibration:
         The EM register model the gains were fitted with (the gamma model for results
         that record none).
     camera : dict
-        What the stacks recorded of the camera (``serial``, ``model``,
+        What the stacks recorded of the camera (``serial``, ``model``, ``amplifier``,
         ``readout_rate_mhz``, ``analog_gain``, ``adc_bits``), merged over members.
     origin : tuple of int or None
         ``(row, col)`` of the first pixel on the sensor, where known.
@@ -808,6 +808,12 @@ class Calibration:
         ``(x, y)`` binning the frames were read out with, where recorded.
     created : str
         Creation time of the newest member (ISO 8601 UTC).
+    predicted : dict of float to dict
+        Set-points not measured whose gain a gain curve predicts
+        (:func:`emccdcal.export.gain_curve.calibration_at`): ``gain`` and ``se_of_median``
+        of the sensor, ``extrapolated``, the ``curve`` it came from and the
+        ``dark_setpoint`` whose offset and read noise stand in. Empty for a calibration
+        read from results; recorded in :meth:`provenance`.
     """
 
     label: str
@@ -825,6 +831,7 @@ class Calibration:
     binning: tuple | None = None
     created: str = ""
     sha256: tuple = ()
+    predicted: dict = field(default_factory=dict)
 
     @property
     def setpoints(self) -> tuple:
@@ -890,15 +897,18 @@ class Calibration:
         """What a file made from this calibration records of where it came from."""
         from . import __version__
 
-        return {"emccdcal_version": __version__, "method": self.method,
-                "created": self.created, "em_model": str(self.em_model),
-                "results": [{"file": str(f), "sha256": h} for f, h in zip(self.files, self.sha256)]}
+        doc = {"emccdcal_version": __version__, "method": self.method,
+               "created": self.created, "em_model": str(self.em_model),
+               "results": [{"file": str(f), "sha256": h} for f, h in zip(self.files, self.sha256)]}
+        if self.predicted:
+            doc["predicted_gains"] = [{"setpoint": s, **p} for s, p in sorted(self.predicted.items())]
+        return doc
 
 
 #: What must agree between a calibration and the frames it is used on (where both
 #: record it), with how to name it.
 IDENTITY_FIELDS = {"serial": "camera serial", "model": "camera model",
-                   "readout_rate_mhz": "read-out rate (MHz)",
+                   "amplifier": "output amplifier", "readout_rate_mhz": "read-out rate (MHz)",
                    "analog_gain": "analog (pre-amplifier) gain", "adc_bits": "ADC bits",
                    "binning": "binning"}
 

@@ -198,18 +198,24 @@ def add_calibration_source(p: argparse.ArgumentParser, *, many: bool = False,
         p.add_argument("--calibration", dest="results", metavar="RESULT", help=what)
     else:
         p.add_argument("results", nargs="*" if many else "?", metavar="RESULT", help=what)
+    p.add_argument("--gain-curve", type=Path, metavar="FILE",
+                   help="gain-curve.json (emccdcal gain-curve) of the same camera: the gain "
+                   "at a set-point the calibration did not measure")
     g = p.add_argument_group("from the calibration database instead of RESULT")
     g.add_argument("--camera", metavar="SERIAL",
-                   help="the camera's serial: use its newest calibration at the set-point")
+                   help="the camera's serial: use its newest calibration at the set-point "
+                   "(or, where none has it, the gain curve of its newest calibration)")
     g.add_argument("--readout", metavar="TEXT", help="its read-out state, where it has several")
     g.add_argument("--db", type=Path, metavar="PATH",
                    help="database file (default: $EMCCDCAL_DB, else calibrations.sqlite in "
                    "the user's data directory)")
 
 
-def calibration_of(args, setpoint) -> str:
-    """The result spec named by :func:`add_calibration_source`'s options."""
+def calibration_of(args, setpoint):
+    """The :class:`~emccdcal.result.Calibration` named by :func:`add_calibration_source`'s
+    options, with the gain at ``setpoint`` from a gain curve where it was not measured."""
     from ..errors import OptionError
+    from ..result import load_calibration
 
     results = args.results if isinstance(args.results, list) else (
         [] if args.results is None else [args.results])
@@ -217,11 +223,18 @@ def calibration_of(args, setpoint) -> str:
         if not results:
             raise OptionError("give a RESULT, or --camera SERIAL (with --setpoint) to use the "
                               "calibration database")
-        return ",".join(str(r) for r in results)
-    if results:
-        raise OptionError("give a RESULT or --camera, not both")
+        cal = load_calibration(",".join(str(r) for r in results))
+        if args.gain_curve is None or setpoint is None:
+            return cal
+        from ..export.gain_curve import calibration_at, read_gain_curve
+
+        return calibration_at(cal, setpoint, read_gain_curve(args.gain_curve),
+                              source=str(args.gain_curve),
+                              accept_mismatch=getattr(args, "accept_mismatch", ()))
+    if results or args.gain_curve is not None:
+        raise OptionError("give a RESULT (with --gain-curve) or --camera, not both")
     if setpoint is None:
         raise OptionError("--camera needs --setpoint G: the newest calibration at G is used")
     from ..export import database
 
-    return database.find(args.camera, setpoint, db=args.db, readout=args.readout).path
+    return database.calibration(args.camera, setpoint, db=args.db, readout=args.readout)

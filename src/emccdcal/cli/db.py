@@ -101,7 +101,9 @@ def run(args) -> int:
         return 0
     found, findings = database.compare(args.camera, db=args.db, readout=args.readout,
                                        max_age_days=args.max_age, z=args.z)
-    lines = [f"{e.id:>4}  {e.date[:10]}  " + ", ".join(
+    lines = [f"{'id':>4}  {'date':<10}  {'register':<8}  set-point: gain ± the standard error "
+             "of the sensor's gain (se_of_median)"]
+    lines += [f"{e.id:>4}  {e.date[:10]}  {e.register:<8}  " + ", ".join(
         f"{s:g}x {m:.4g} ± {se or 0:.2g}" for s, (m, se, _) in sorted(e.gains.items()))
         for e in found]
     if args.out is not None:

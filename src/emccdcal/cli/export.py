@@ -35,10 +35,9 @@ def add_parser(subparsers):
 
 def run(args) -> int:
     from ..export.tools import export
-    from ..result import load_calibration
 
     with _common.recording_warnings() as caught:
-        cal = load_calibration(_common.calibration_of(args, args.setpoint))
+        cal = _common.calibration_of(args, args.setpoint)
         with _common.output(args, args.out, inputs=cal.files):
             files = export(cal, args.to, args.out, setpoint=args.setpoint, qe=args.qe,
                            pixel_size_nm=args.pixel_size, camera_name=args.camera_name)

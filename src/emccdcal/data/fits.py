@@ -80,10 +80,11 @@ def _settings(header) -> CameraSettings:
     gain = _number(header, "EMREALGN")
     gain = _number(header, "GAIN") if gain is None else gain
     hbin, vbin = _number(header, "HBIN"), _number(header, "VBIN")
-    preamp = header.get("PREAMP")
+    preamp, amplifier = header.get("PREAMP"), header.get("OUTPTAMP")
     return CameraSettings(
         em_gain_setpoint=gain,
         analog_gain=None if preamp is None else str(preamp),
+        amplifier=None if amplifier is None else str(amplifier).strip(),
         readout_rate_mhz=1e-6 / readtime if readtime else None,
         temperature_c=_number(header, "TEMP"),
         exposure_ms=None if exposure is None else 1000.0 * exposure,

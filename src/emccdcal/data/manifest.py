@@ -60,7 +60,8 @@ __all__ = [
 
 #: The camera settings that identify a camera's read-out state (a calibration holds for
 #: that state only), recorded in results as ``attrs["camera"]``.
-CAMERA_IDENTITY = ("serial", "model", "readout_rate_mhz", "analog_gain", "adc_bits")
+CAMERA_IDENTITY = ("serial", "model", "amplifier", "readout_rate_mhz", "analog_gain",
+                   "adc_bits")
 
 # --------------------------------------------------------------------------------------
 # Data classes
@@ -186,7 +187,7 @@ class Manifest:
     em_model: str | None = None
     register_stages: int | None = None
     #: What every frames file records alike of the camera (``serial``, ``model``,
-    #: ``readout_rate_mhz``, ``analog_gain``, ``adc_bits``): the identity a calibration
+    #: ``amplifier``, ``readout_rate_mhz``, ``analog_gain``, ``adc_bits``): the identity a calibration
     #: database keys on. A field the files leave out or disagree on is absent.
     camera: dict = field(default_factory=dict)
 

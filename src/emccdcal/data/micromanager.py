@@ -46,13 +46,14 @@ def settings_of(md: dict) -> CameraSettings:
     prop = lambda name: md.get(f"{cam}-{name}")  # noqa: E731
     photometrics = prop("MultiplierGain") is not None
     if photometrics:
-        em_gain, analog = _number(prop("MultiplierGain")), prop("Gain")
+        em_gain, analog, amplifier = _number(prop("MultiplierGain")), prop("Gain"), prop("Port")
         rate, serial, model = _rate_mhz(prop("ReadoutRate")), prop("SerialNumber"), prop("ChipName")
     else:  # Andor
         em_gain = _number(prop("Gain"))
         if em_gain is not None and str(prop("EMSwitch") or "On").lower() == "off":
             em_gain = 1.0
         analog, rate = prop("Pre-Amp-Gain"), _rate_mhz(prop("ReadoutMode"))
+        amplifier = prop("Output_Amplifier")
         parts = [p.strip() for p in str(prop("Camera") or "").strip("|").split("|")]
         model = parts[1] if len(parts) >= 3 else None
         serial = parts[2] if len(parts) >= 3 else None
@@ -67,6 +68,7 @@ def settings_of(md: dict) -> CameraSettings:
     return CameraSettings(
         em_gain_setpoint=em_gain,
         analog_gain=None if analog is None else str(analog),
+        amplifier=None if amplifier is None else str(amplifier),
         readout_rate_mhz=rate,
         adc_bits=None if bits is None else int(bits),
         temperature_c=_number(prop("CCDTemperature")),

@@ -47,7 +47,8 @@ _MAP_KINDS = {"offset": _word(r"s0|offset|bias|mean"),
               "read_noise": _word(r"sigma|std|rn|read[-_ ]?noise|noise"),
               "e_per_adu": _word(r"adu|e[-_]?per[-_]?adu|conversion")}
 #: Settings that must agree across a session, and how to name them.
-_MUST_AGREE = {"readout_rate_mhz": "readout rate (MHz)", "analog_gain": "analog gain",
+_MUST_AGREE = {"amplifier": "output amplifier", "readout_rate_mhz": "readout rate (MHz)",
+               "analog_gain": "analog gain",
                "adc_bits": "ADC bits", "binning": "binning", "roi": "region (x, y, w, h)"}
 _DARK_HELP = ("name a dark stack with its set-point and 'dark' (e.g. '{sp}x-dark.tif'), or "
               "an offset and a read-noise map ('{sp}x_S0.tif' and '{sp}x_sigma.tif'); or "

@@ -39,6 +39,10 @@ class CameraSettings:
         the true gain, which the calibration measures.
     analog_gain : str
         Pre-amplifier / analog gain setting, as the file names it (e.g. ``"High"``, ``"2"``).
+    amplifier : str
+        The output amplifier (read-out port) the frames went through, as the file names
+        it (e.g. ``"Electron Multiplying"``, ``"Conventional"``, ``"ElectronMultiplied"``):
+        each has its own φ and read noise.
     readout_rate_mhz : float
         Pixel readout rate, MHz.
     adc_bits : int
@@ -58,6 +62,7 @@ class CameraSettings:
 
     em_gain_setpoint: float | None = None
     analog_gain: str | None = None
+    amplifier: str | None = None
     readout_rate_mhz: float | None = None
     adc_bits: int | None = None
     temperature_c: float | None = None

@@ -147,6 +147,7 @@ def _settings_v3(root) -> CameraSettings:
     return CameraSettings(
         em_gain_setpoint=_number(root, cam + "/{*}Adc/{*}EMGain"),
         analog_gain=_text(root, cam + "/{*}Adc/{*}AnalogGain"),
+        amplifier=_text(root, cam + "/{*}Adc/{*}Quality"),
         readout_rate_mhz=_number(root, cam + "/{*}Adc/{*}Speed"),
         adc_bits=None if bits is None else int(bits),
         temperature_c=(reading if reading is not None

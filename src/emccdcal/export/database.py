@@ -1,17 +1,22 @@
 """The calibration database: every calibration of a lab's cameras in one SQLite file.
 
-Entries are keyed by the camera's serial number and its read-out state (read-out rate,
-analog gain, ADC bits: a calibration holds for one state only), taken from what the
-result's stacks recorded or given when adding. Each entry keeps the result's path, its
-SHA-256, its date, its method and register model, its summary (``summary.json``'s
-content) and, per set-point, the sensor's gain: the median over converged pixels with the
-standard error of that median (1.2533 × robust spread / √n).
+Entries are keyed by the camera's serial number and its read-out mode (output amplifier,
+read-out rate, pre-amplifier gain, ADC bits: a calibration holds for one mode only), taken
+from what the result's stacks recorded or given when adding. Each entry keeps the
+result's path (relative to the database's folder where the result lies inside it, so
+that a project folder holding both can move), its SHA-256, its date, its method and
+register model, its summary (``summary.json``'s content) and, per set-point, the
+sensor's gain: the median over converged pixels with the standard error of that median
+(``se_of_median``, 1.2533 × robust spread / √n).
 
 :func:`compare` follows a camera's gain at each set-point over time. It flags the newest
 calibration when it is older than a given age, and when its gain differs from the one
 before by more than ``z`` combined standard errors: the EM register ages (its gain at a
 fixed set-point drops over months of use), and a calibration that is not redone goes
-silently wrong.
+silently wrong. Only calibrations under the same register model are compared: the
+gamma model and the exact cascade read the same data ~0.2 % apart, which is not ageing.
+:func:`calibration` gives the newest calibration at a set-point, or where none measured
+it, the newest one with its gain curve's prediction there.
 
 Several processes may add at once: each addition is one ``BEGIN IMMEDIATE`` transaction
 in write-ahead-log mode, and a writer waits (up to 60 s) for another's lock instead of
@@ -34,8 +39,8 @@ from .._output import file_sha256
 from ..errors import InputError, OptionError
 from ..result import format_setpoint, load, load_calibration, pixel_statistics, summarize
 
-__all__ = ["default_path", "add", "remove", "relocate", "entries", "entry", "find", "compare",
-           "Entry", "Finding"]
+__all__ = ["default_path", "add", "remove", "relocate", "entries", "entry", "find",
+           "calibration", "compare", "Entry", "Finding"]
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS calibration (
@@ -113,7 +118,8 @@ def _connect(db, *, write: bool = False) -> sqlite3.Connection:
 
 @dataclass(frozen=True)
 class Entry:
-    """One calibration in the database (gains: set-point → (median, SE, n))."""
+    """One calibration in the database (gains: set-point → (median, se_of_median, n));
+    ``path``: the result file(s), comma-joined, as found from here."""
 
     id: int
     camera: str
@@ -127,15 +133,21 @@ class Entry:
     note: str
     gains: dict
 
+    @property
+    def register(self) -> str:
+        """The register model's name (``"gamma"``, ``"cascade"``), without its stages:
+        a register's length moves its gains by far less than their errors."""
+        return self.em_model.split(" (")[0]
+
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
-        d["gains"] = {format_setpoint(s): {"median": m, "se": se, "n": n}
+        d["gains"] = {format_setpoint(s): {"median": m, "se_of_median": se, "n": n}
                       for s, (m, se, n) in sorted(self.gains.items())}
         return d
 
 
 def _readout_text(camera: dict) -> str:
-    parts = []
+    parts = [str(camera["amplifier"])] if camera.get("amplifier") is not None else []
     if camera.get("readout_rate_mhz") is not None:
         parts.append(f"{camera['readout_rate_mhz']:g} MHz")
     if camera.get("analog_gain") is not None:
@@ -212,10 +224,10 @@ def add(result, *, db=None, camera=None, readout=None, date=None, note="") -> En
             continue
         stats = pixel_statistics(cal.gain(s))
         if stats["median"] is not None:
-            gains[s] = (stats["median"], stats["se"], stats["n"])
+            gains[s] = (stats["median"], stats["se_of_median"], stats["n"])
     summary = {str(f): summarize(load(f)) for f in cal.files}
     added = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
-    path = ",".join(str(Path(f).resolve()) for f in cal.files)
+    path = _stored_paths(cal.files, db)
     con = _connect(db, write=True)
     try:
         con.execute("BEGIN IMMEDIATE")
@@ -261,28 +273,48 @@ def relocate(entry_id: int, result, *, db=None) -> Entry:
         if _one(con, entry_id, db).sha256 != digest:
             raise OptionError(f"{cal.label}: not the result of entry {entry_id} (its content "
                               "differs from the one added)")
-        path = ",".join(str(Path(f).resolve()) for f in cal.files)
+        path = _stored_paths(cal.files, db)
         con.execute("UPDATE calibration SET path = ? WHERE id = ?", (path, int(entry_id)))
     finally:
         con.close()
     return entry(entry_id, db=db)
 
 
+def _home(db) -> Path:
+    return (Path(db) if db is not None else default_path()).resolve().parent
+
+
+def _stored_paths(files, db) -> str:
+    """The result paths to store: relative to the database's folder where inside it."""
+    home, out = _home(db), []
+    for f in files:
+        f = Path(f).resolve()
+        out.append(f.relative_to(home).as_posix() if f.is_relative_to(home) else str(f))
+    return ",".join(out)
+
+
+def _found_paths(stored: str, db) -> str:
+    home = _home(db)
+    return ",".join(str(home / p) if not Path(p).is_absolute() else p
+                    for p in stored.split(","))
+
+
 def _one(con, entry_id, db) -> Entry:
-    found = _entries(con, "WHERE id = ?", (int(entry_id),))
+    found = _entries(con, db, "WHERE id = ?", (int(entry_id),))
     if not found:
         raise OptionError(f"no entry {entry_id} in the calibration database "
                           f"{db or default_path()}")
     return found[0]
 
 
-def _entries(con, where="", args=()) -> list[Entry]:
+def _entries(con, db, where="", args=()) -> list[Entry]:
     rows = con.execute(f"SELECT * FROM calibration {where} ORDER BY date, id", args).fetchall()
     out = []
     for r in rows:
         gains = {g["setpoint"]: (g["median"], g["se"], g["n"]) for g in con.execute(
             "SELECT * FROM gain WHERE calibration_id = ? ORDER BY setpoint", (r["id"],))}
-        out.append(Entry(**{k: r[k] for k in r.keys() if k != "summary"}, gains=gains))
+        fields = {k: r[k] for k in r.keys() if k != "summary"}
+        out.append(Entry(**{**fields, "path": _found_paths(r["path"], db)}, gains=gains))
     return out
 
 
@@ -297,7 +329,7 @@ def entries(*, db=None, camera=None, readout=None) -> list[Entry]:
         args.append(str(readout))
     con = _connect(db)
     try:
-        return _entries(con, ("WHERE " + " AND ".join(clauses)) if clauses else "", args)
+        return _entries(con, db, ("WHERE " + " AND ".join(clauses)) if clauses else "", args)
     finally:
         con.close()
 
@@ -332,11 +364,51 @@ def find(camera, setpoint, *, db=None, readout=None) -> Entry:
         raise OptionError(f"the calibration database has no calibration of camera {camera}"
                           f"{'' if readout is None else f' ({readout})'} at set-point "
                           f"{format_setpoint(s)}x")
+    return _checked(_one_state(found, camera)[-1])
+
+
+def calibration(camera, setpoint, *, db=None, readout=None):
+    """The calibration of a camera to use at a set-point: its newest calibration there,
+    or, where none measured it, its newest calibration with two or more multiplied
+    set-points, with the gain there predicted by their gain curve
+    (:func:`~emccdcal.export.gain_curve.calibration_at`, which warns and records it).
+
+    Returns
+    -------
+    emccdcal.result.Calibration
+
+    Raises
+    ------
+    OptionError
+        As :func:`find`, or no calibration to predict the set-point from.
+    """
+    from .gain_curve import calibration_at, gain_curve_of
+
+    s = float(setpoint)
+    every = entries(db=db, camera=camera, readout=readout)
+    if not every or any(s in e.gains for e in every) or s == 1.0:
+        return load_calibration(find(camera, s, db=db, readout=readout).path)
+    curved = [e for e in every if len(e.gains) >= 2]
+    if not curved:
+        raise OptionError(f"the calibration database has no calibration of camera {camera} "
+                          f"at set-point {format_setpoint(s)}x, and none with two or more "
+                          "multiplied set-points whose gain curve could predict it")
+    newest = _checked(_one_state(curved, camera)[-1])
+    curve = gain_curve_of([newest.path])
+    return calibration_at(load_calibration(newest.path), s, curve,
+                          source=f"of database entry {newest.id} ({newest.date[:10]})")
+
+
+def _one_state(found: list, camera) -> list:
     states = {e.readout for e in found}
     if len(states) > 1:
         raise OptionError(f"camera {camera} has calibrations in several read-out states "
                           f"({'; '.join(sorted(states))}); give --readout")
-    newest = found[-1]
+    return found
+
+
+def _checked(newest: Entry) -> Entry:
+    """The entry, its result files present and unchanged since added."""
     files = newest.path.split(",")
     digests = [file_sha256(f) if Path(f).is_file() else None for f in files]
     if ",".join(str(d) for d in digests) != newest.sha256:
@@ -364,8 +436,8 @@ def compare(camera, *, db=None, readout=None, max_age_days=None, z=3.0, now=None
     max_age_days : float, optional
         Flag the newest calibration when older than this.
     z : float
-        Flag a gain that differs from the previous calibration's by more than ``z``
-        combined standard errors (√(SE₁² + SE₂²)) (default 3).
+        Flag a gain that differs from the previous calibration's under the same register
+        model by more than ``z`` combined standard errors (√(SE₁² + SE₂²)) (default 3).
     now : str, optional
         The date to measure age from (ISO 8601; default: now).
 
@@ -377,10 +449,7 @@ def compare(camera, *, db=None, readout=None, max_age_days=None, z=3.0, now=None
     found = entries(db=db, camera=camera, readout=readout)
     if not found:
         raise OptionError(f"the calibration database has no calibration of camera {camera}")
-    states = {e.readout for e in found}
-    if len(states) > 1:
-        raise OptionError(f"camera {camera} has calibrations in several read-out states "
-                          f"({'; '.join(sorted(states))}); give --readout")
+    _one_state(found, camera)
     findings = []
     newest = found[-1]
     if max_age_days is not None:
@@ -391,7 +460,7 @@ def compare(camera, *, db=None, readout=None, max_age_days=None, z=3.0, now=None
                 f"camera {camera}: the newest calibration (entry {newest.id}, {newest.date[:10]}) "
                 f"is {age:.0f} days old, more than {max_age_days:g}; recalibrate")))
     for s, (g_new, se_new, _) in sorted(newest.gains.items()):
-        before = [e for e in found[:-1] if s in e.gains]
+        before = [e for e in found[:-1] if s in e.gains and e.register == newest.register]
         if not before:
             continue
         prev = before[-1]

@@ -110,6 +110,12 @@ def _comment_lines(cal, setpoint, values, qe, prefix) -> str:
         spread = "n/a" if v["spread"] is None else f"{v['spread']:.4g}"
         lines.append(f"  {name} = {v['median']:.6g} {unit} ({spread})")
     lines += [f"result {r['file']} sha256 {r['sha256']}" for r in p["results"]]
+    if setpoint in cal.predicted:
+        g = cal.predicted[setpoint]
+        lines.append(f"the gain at {format_setpoint(setpoint)}x was not measured: "
+                     f"{g['gain']:.6g} +/- {g['se_of_median']:.2g} (se_of_median) predicted by "
+                     f"the gain curve {g['curve']}; extrapolated = "
+                     f"{str(g['extrapolated']).lower()}")
     return "".join(f"{prefix}{comment(line)}\n" for line in lines)  # paths are data
 
 

@@ -690,7 +690,7 @@ def gain_curve_figure(curve, *, predict=()):
                 color="k", label="measured (median over pixels)")
     if pred:
         q = curve.predict(pred)
-        ax.errorbar(q["setpoint"], q["gain"], yerr=1.96 * q["se"], fmt="s", ms=4, capsize=3,
+        ax.errorbar(q["setpoint"], q["gain"], yerr=1.96 * q["se_of_median"], fmt="s", ms=4, capsize=3,
                     color="C3", label="predicted (95 %)")
     at = curve.predict(curve.setpoints)
     ax2.errorbar(curve.setpoints, 100 * (curve.gains / at["gain"] - 1),
@@ -720,8 +720,9 @@ def gain_history_figure(found, *, camera=""):
     Returns
     -------
     matplotlib.figure.Figure
-        One panel per set-point: the sensor's gain (median over pixels) with its SE,
-        relative to the first calibration, in %.
+        One panel per set-point: the sensor's gain (median over pixels) with the SE of
+        that median, relative to the first calibration, in %; one line per register
+        model (calibrations under different models are not a change of the register).
     """
     import datetime as _dt
 
@@ -731,13 +732,21 @@ def gain_history_figure(found, *, camera=""):
     fig, axes = _panels(len(setpoints), 2, size=(4.0, 2.6))
     for ax, s in zip(axes, setpoints):
         have = [e for e in found if s in e.gains]
-        when = [_dt.datetime.fromisoformat(e.date.replace("Z", "+00:00")) for e in have]
-        g = np.array([e.gains[s][0] for e in have])
-        se = np.array([e.gains[s][1] or 0.0 for e in have])
-        ax.errorbar(when, 100 * (g / g[0] - 1), yerr=100 * se / g[0], fmt="o-", ms=4,
-                    capsize=3)
+        first = have[0].gains[s][0]
+        models = sorted({e.register for e in have})
+        for k, model in enumerate(models):
+            mine = [e for e in have if e.register == model]
+            when = [_dt.datetime.fromisoformat(e.date.replace("Z", "+00:00")) for e in mine]
+            g = np.array([e.gains[s][0] for e in mine])
+            se = np.array([e.gains[s][1] or 0.0 for e in mine])
+            ax.errorbar(when, 100 * (g / first - 1), yerr=100 * se / first,
+                        fmt="os^v"[k % 4] + "-", ms=4, capsize=3,
+                        label=f"{model} register" if len(models) > 1
+                        else None)
+        if len(models) > 1:
+            ax.legend(fontsize=7)
         ax.axhline(0, color="k", lw=0.8, ls=":")
-        ax.set_title(f"{format_setpoint(s)}x (first: g = {g[0]:.4g})", fontsize=9)
+        ax.set_title(f"{format_setpoint(s)}x (first: g = {first:.4g})", fontsize=9)
         ax.set_ylabel("gain change (%)")
         for label in ax.get_xticklabels():
             label.set_rotation(30)

@@ -139,16 +139,16 @@ def _stats(values, se, conv):
     m = conv & np.isfinite(values)
     v = values[m]
     out = {"n": int(v.size), "median": np.median(v) if v.size else np.nan,
-           "sd": np.std(v, ddof=1) if v.size > 1 else np.nan, "se": np.nan}
+           "sd": np.std(v, ddof=1) if v.size > 1 else np.nan, "se_median": np.nan}
     if se is not None:
         s = np.asarray(se, dtype=float)[m]
         s = s[np.isfinite(s)]
-        out["se"] = np.median(s) if s.size else np.nan
+        out["se_median"] = np.median(s) if s.size else np.nan
     return out
 
 
 def _row(name, unit, st):
-    return [name, unit, _fmt(st["median"]), _fmt(st["se"], 2), _fmt(st["sd"], 2), st["n"]]
+    return [name, unit, _fmt(st["median"]), _fmt(st["se_median"], 2), _fmt(st["sd"], 2), st["n"]]
 
 
 def _summary_html(inp):
@@ -179,7 +179,8 @@ def _summary_html(inp):
            *([f"<p class=note>Per-pixel intervals: {_e(ds.attrs['intervals'])} "
               "(variables <code>&lt;name&gt;_lower</code>, <code>&lt;name&gt;_upper</code> in "
               "the result file).</p>"] if ds.attrs.get("intervals") else []),
-           _table(["quantity", "unit", "median", "SE", "SD over pixels", "pixels"],
+           _table(["quantity", "unit", "median", "per-pixel SE (median)", "SD over pixels",
+                   "pixels"],
                   [[_e(str(c)) for c in r] for r in rows])]
     if "em_gain" in ds and np.any(ds["setpoint"].values != 1):
         phi_se0 = np.where(np.isfinite(phi_se), phi_se, 0.0)
@@ -190,12 +191,13 @@ def _summary_html(inp):
             with np.errstate(divide="ignore", invalid="ignore"):
                 tot = _stats(g / phi, np.hypot(g_se / phi, g * phi_se0 / phi**2), conv)
                 inv = _stats(phi / g, np.hypot(phi_se0 / g, phi * g_se / g**2), conv)
-            g_rows.append([f"{format_setpoint(s)}×", _fmt(st["median"]), _fmt(st["se"], 2),
+            g_rows.append([f"{format_setpoint(s)}×", _fmt(st["median"]), _fmt(st["se_median"], 2),
                            _fmt(st["sd"], 2), _fmt(st["median"] / float(s)),
-                           f"{_fmt(tot['median'])} ± {_fmt(tot['se'], 2)}",
-                           f"{_fmt(inv['median'])} ± {_fmt(inv['se'], 2)}", st["n"]])
-        out.append(_table(["set-point", "measured gain g", "SE", "SD over pixels",
-                           "g / set-point", "g/φ (ADU/e⁻)", "φ/g (e⁻/ADU)", "pixels"], g_rows))
+                           f"{_fmt(tot['median'])} ± {_fmt(tot['se_median'], 2)}",
+                           f"{_fmt(inv['median'])} ± {_fmt(inv['se_median'], 2)}", st["n"]])
+        out.append(_table(["set-point", "measured gain g", "per-pixel SE (median)",
+                           "SD over pixels", "g / set-point", "g/φ (ADU/e⁻)", "φ/g (e⁻/ADU)",
+                           "pixels"], g_rows))
         out.append("<p class=note>g is dimensionless. g/φ is the overall conversion at that "
                    "set-point in counts per photoelectron (ADU/e⁻), φ/g its inverse in "
                    "photoelectrons per count (e⁻/ADU)"
