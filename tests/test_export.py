@@ -531,3 +531,42 @@ def test_database_keys_by_readout_mode_stores_portable_paths_and_compares_like_m
     code = cli.main(["db", "compare", "--camera", "RM-1", "--readout", rm, "--db", str(db)])
     out = capsys.readouterr().out
     assert code == 0 and "se_of_median" in out and "cascade" in out and "gamma" in out
+
+
+def test_picasso_takes_a_table_of_readout_modes_and_audit_reads_it_back(tmp_path, capsys):
+    """Calibrations of several read-out modes make Picasso's nested Sensitivity, keyed by
+    the Micro-Manager values of the properties that differ; each mode keeps φ/g."""
+    base = {"serial": "MODES-1", "model": "iXon Ultra 897"}
+    modes = {("Electron Multiplying", 17.0, "Gain 3"): (4.0, {1.0: 1.0, 100.0: 90.0}),
+             ("Electron Multiplying", 10.0, "Gain 3"): (3.6, {1.0: 1.0, 100.0: 88.0}),
+             ("Conventional", 3.0, "Gain 3"): (1.5, {1.0: 1.0})}
+    files = []
+    for i, ((amp, rate, pre), (phi, gains)) in enumerate(modes.items()):
+        files.append(true_result(tmp_path / f"m{i}", phi=phi, gains=gains, camera={
+            **base, "amplifier": amp, "readout_rate_mhz": rate, "analog_gain": pre}))
+    code = cli.main(["export", *map(str, files), "--to", "picasso", "--setpoint", "100",
+                     "-o", str(tmp_path / "p"), "-q"])
+    assert code == 0
+    cam = _yaml(tmp_path / "p" / "picasso-config.yaml")["Cameras"]["iXon Ultra 897 MODES-1"]
+    assert cam["Sensitivity Categories"] == ["Output_Amplifier", "ReadoutMode"]
+    d = cam["DefaultGain"]
+    sens = cam["Sensitivity"]
+    assert sens["Electron Multiplying"]["17.000 MHz"] / d == pytest.approx(4.0 / 90.0, rel=1e-3)
+    assert sens["Electron Multiplying"]["10.000 MHz"] / d == pytest.approx(3.6 / 88.0, rel=1e-3)
+    assert sens["Conventional"]["3.000 MHz"] / d == pytest.approx(1.5, rel=1e-3)  # g = 1
+    # audit picks the mode its calibration recorded, and agrees.
+    assert cli.main(["audit", str(tmp_path / "p" / "picasso-config.yaml"),
+                     "--calibration", str(files[1]), "--setpoint", "100"]) == 0
+    out = capsys.readouterr().out
+    assert "10.000 MHz" in out and "17.000 MHz" not in out
+    # Only Picasso holds a table of modes; two of one mode are refused.
+    code = cli.main(["export", *map(str, files), "--to", "decode", "--setpoint", "100",
+                     "-o", str(tmp_path / "d")])
+    assert code == 2 and "one read-out mode per file" in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()
+    twin = true_result(tmp_path / "twin", phi=4.1, gains={1.0: 1.0, 100.0: 91.0}, seed=7,
+                       camera={**base, "amplifier": "Electron Multiplying",
+                               "readout_rate_mhz": 17.0, "analog_gain": "Gain 3"})
+    code = cli.main(["export", *map(str, files), str(twin), "--to", "picasso",
+                     "--setpoint", "100", "-o", str(tmp_path / "t")])
+    assert code == 2 and "a second calibration of read-out mode" in capsys.readouterr().err

@@ -13,7 +13,9 @@ def add_parser(subparsers):
         help="write a calibration in a localization tool's own file",
         description="Write the calibration in the file, names and units of a localization "
         "tool (docs/exports.md): medians over converged pixels, maps where the tool reads "
-        "them, provenance in every file.",
+        "them, provenance in every file. RESULTs of one read-out mode merge; RESULTs of "
+        "several modes of one camera (output amplifier, read-out rate, pre-amp gain) make "
+        "Picasso's table of modes (its nested Sensitivity).",
     )
     _common.add_calibration_source(p, many=True)
     p.add_argument("--to", required=True, choices=TOOLS, help="the tool or format")
@@ -34,13 +36,21 @@ def add_parser(subparsers):
 
 
 def run(args) -> int:
-    from ..export.tools import export
+    from ..export.tools import export, export_modes, readout_mode
+    from ..result import load_calibration
 
+    options = dict(setpoint=args.setpoint, qe=args.qe, pixel_size_nm=args.pixel_size,
+                   camera_name=args.camera_name)
     with _common.recording_warnings() as caught:
-        cal = _common.calibration_of(args, args.setpoint)
-        with _common.output(args, args.out, inputs=cal.files):
-            files = export(cal, args.to, args.out, setpoint=args.setpoint, qe=args.qe,
-                           pixel_size_nm=args.pixel_size, camera_name=args.camera_name)
+        each = ([load_calibration(r) for r in args.results]
+                if args.camera is None and len(args.results) > 1 else [])
+        if len({readout_mode(c) for c in each}) > 1:  # one calibration per read-out mode
+            with _common.output(args, args.out, inputs=[f for c in each for f in c.files]):
+                files = export_modes(each, args.to, args.out, **options)
+        else:
+            cal = _common.calibration_of(args, args.setpoint)
+            with _common.output(args, args.out, inputs=cal.files):
+                files = export(cal, args.to, args.out, **options)
     if not args.quiet:
         for f in files:
             print(f"wrote {f}")

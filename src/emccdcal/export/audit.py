@@ -554,11 +554,15 @@ def audit(toolfile, calibration, *, setpoint=None, tool=None, tool_gain=None, qe
 
 
 def _matching(readings, camera: dict):
-    """The entries of a nested read-out table that the calibration's recorded read-out
-    rate (MHz) and analog gain name, where exactly one does; else all."""
+    """The entries of a nested read-out table that the calibration's recorded output
+    amplifier, read-out rate (MHz) and analog gain name, where exactly one does; else
+    all. A setting the table is not keyed by (no entry names it) does not narrow."""
     if len(readings) < 2:
         return readings
     wanted = []
+    amplifier = camera.get("amplifier")
+    if amplifier is not None:
+        wanted.append(lambda where, a=str(amplifier): a in where.split(" > "))
     rate = camera.get("readout_rate_mhz")
     if rate is not None:
         wanted.append(lambda where, r=float(rate): any(
@@ -568,7 +572,9 @@ def _matching(readings, camera: dict):
         number = re.findall(r"[0-9.]+", str(analog))
         wanted.append(lambda where, n=number: bool(n) and any(
             n[0] == m for m in re.findall(r"[Gg]ain\s*([0-9.]+)", where)))
-    if not wanted:
-        return readings
-    chosen = [r for r in readings if all(w(r.where) for w in wanted)]
+    chosen = readings
+    for w in wanted:
+        narrowed = [r for r in chosen if w(r.where)]
+        if narrowed:  # a setting no entry names is not a key of the table
+            chosen = narrowed
     return chosen if len(chosen) == 1 else readings

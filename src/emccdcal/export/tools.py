@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +34,7 @@ from .._output import atomic_write_text as _write_text
 from ..errors import OptionError
 from ..result import Calibration, format_setpoint, load_calibration, pixel_statistics
 
-__all__ = ["TOOLS", "export", "camera_values"]
+__all__ = ["TOOLS", "export", "export_modes", "camera_values", "readout_mode", "MODE_FIELDS"]
 
 #: The ``--to`` targets, in the order of ``--help``.
 TOOLS = ("picasso", "pyme", "decode", "thunderstorm", "smap", "gdsc", "storm-analysis",
@@ -86,6 +87,23 @@ def camera_values(cal: Calibration, setpoint: float) -> dict:
             raise OptionError(f"{cal.label}: no converged pixel has a finite {name} at "
                               f"set-point {format_setpoint(setpoint)}x")
     return out
+
+
+#: The camera settings that make a read-out mode, with the Micro-Manager property names
+#: of Andor's adapter, which Picasso matches its ``Sensitivity Categories`` against.
+MODE_FIELDS = {"amplifier": "Output_Amplifier", "readout_rate_mhz": "ReadoutMode",
+               "analog_gain": "Pre-Amp-Gain"}
+
+
+def readout_mode(cal: Calibration) -> tuple:
+    """The calibration's read-out mode as its files recorded it: ``(amplifier, read-out
+    rate in MHz, analog gain)``, ``None`` where not recorded."""
+    return tuple(cal.camera.get(k) for k in MODE_FIELDS)
+
+
+def _mode_key(field_name, value) -> str:
+    """A mode's value as Micro-Manager's Andor adapter writes it ("17.000 MHz")."""
+    return f"{float(value):.3f} MHz" if field_name == "readout_rate_mhz" else str(value)
 
 
 def _provenance(cal: Calibration, setpoint=None, qe=None) -> dict:
@@ -200,6 +218,66 @@ def _picasso(cal, s, v, out, qe, pixel_size_nm, name):
             + "# Merge the Cameras entry into ~/.picasso/config.yaml. For the API, give\n"
             + "# camera_info = {Baseline, Sensitivity, Gain: DefaultGain} to localize().\n"
             + _yaml({"Cameras": {_camera_name(cal, name): camera}}))
+    return [_write_text(out / "picasso-config.yaml", text)]
+
+
+def _picasso_modes(cals, s, out, qe, pixel_size_nm, name):
+    """One Picasso camera whose ``Sensitivity`` is nested by read-out mode (its
+    ``Sensitivity Categories``: the Micro-Manager properties that differ between the
+    calibrations), so that Picasso picks the mode a movie's metadata names. One
+    ``DefaultGain`` serves every mode: each Sensitivity folds in its own mode's true
+    gain at the set-point (1 for a mode without multiplication, e.g. the conventional
+    amplifier), so Sensitivity / DefaultGain = φ / g in every mode."""
+    differ = [k for k in MODE_FIELDS if len({c.camera.get(k) for c in cals}) > 1]
+    for c in cals:
+        missing = [k for k in differ if c.camera.get(k) is None]
+        if missing:
+            raise OptionError(f"{c.label}: its files do not record its {', '.join(missing)}; "
+                              "Picasso's table of read-out modes needs it for every "
+                              "calibration")
+    rows = []
+    for c in cals:
+        at = s if s in c.setpoints else 1.0  # a mode without EM multiplication: 1x
+        rows.append((c, at, camera_values(c, at)))
+    em_gains = [v["em_gain"]["median"] for _, at, v in rows if at != 1.0]
+    gain = max(1, round(em_gains[0])) if em_gains else 1
+    sensitivity, lines = {}, []
+    for c, at, v in rows:
+        g, phi = v["em_gain"]["median"], v["e_per_adu"]["median"]
+        node = sensitivity
+        keys = [_mode_key(k, c.camera[k]) for k in differ]
+        for key in keys[:-1]:
+            node = node.setdefault(key, {})
+        if keys[-1] in node:
+            raise OptionError(f"{c.label}: a second calibration of read-out mode "
+                              f"{' / '.join(keys)}; give one per mode")
+        node[keys[-1]] = round(phi * gain / g, 4)
+        lines.append(f"{' / '.join(keys)}: e_per_adu {phi:.6g}, em_gain {g:.6g} at "
+                     f"{format_setpoint(at)}x, baseline {v['offset']['median']:.1f} ADU, "
+                     f"from {c.label}")
+    baselines = [v["offset"]["median"] for _, _, v in rows]
+    camera = {"Baseline": round(baselines[0], 1), "Sensitivity Categories":
+              [MODE_FIELDS[k] for k in differ], "Sensitivity": sensitivity,
+              "DefaultGain": gain}
+    if pixel_size_nm is not None:
+        camera["Pixelsize"] = pixel_size_nm
+    text = "".join(f"# {comment(line)}\n" for line in [
+        f"written by emccdcal from {len(cals)} calibrations, one per read-out mode, at EM "
+        f"gain set-point {format_setpoint(s)}x (medians over converged pixels):", *lines,
+        *[f"result {r['file']} sha256 {r['sha256']}" for c in cals
+          for r in c.provenance()["results"]]])
+    text += (f"# Keep Picasso's gain at DefaultGain = {gain} in every mode: each Sensitivity\n"
+             "# is e_per_adu * DefaultGain / em_gain of its mode, so Sensitivity / Gain =\n"
+             "# phi / g. The categories are the Micro-Manager properties of Andor's adapter;\n"
+             "# rename them to your camera adapter's (Photometrics: Port, ReadoutRate, Gain).\n")
+    if max(baselines) - min(baselines) > 1.0:
+        text += ("# Picasso takes one Baseline per camera; the modes' offsets differ (see\n"
+                 "# above): set the Baseline of the mode you use.\n")
+        warnings.warn(f"the read-out modes' offsets differ ({min(baselines):.1f}-"
+                      f"{max(baselines):.1f} ADU) and Picasso takes one Baseline per camera: "
+                      f"{baselines[0]:.1f} ADU is written; set the one of the mode you use",
+                      stacklevel=3)
+    text += _yaml({"Cameras": {_camera_name(cals[0], name): camera}})
     return [_write_text(out / "picasso-config.yaml", text)]
 
 
@@ -343,7 +421,9 @@ def _json(cal, s, v, out, qe, pixel_size_nm, name):
     doc = {"emccdcal": _provenance(cal, None, qe), "camera": cal.camera,
            "units": {"e_per_adu": "e-/ADU", "em_gain": "1", "adu_per_e_total": "ADU/e-",
                      "offset": "ADU", "read_noise": "ADU", "read_noise_e": "e-"},
-           "statistics": "median over converged pixels, robust spread 1.4826*MAD, n pixels",
+           "statistics": "median over converged pixels; spread: robust spread 1.4826*MAD; "
+                         "se_of_median: standard error of that median, "
+                         "sqrt(pi/2)*spread/sqrt(n); n pixels (docs/results.md)",
            "by_setpoint": _all_values(cal)}
     if pixel_size_nm is not None:
         doc["pixel_size_nm"] = pixel_size_nm
@@ -457,3 +537,51 @@ def export(calibration, to: str, out, *, setpoint=None, qe=None, pixel_size_nm=N
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     return _WRITERS[to](cal, s, values, out, qe, pixel_size_nm, camera_name)
+
+
+def export_modes(calibrations, to: str, out, *, setpoint=None, qe=None, pixel_size_nm=None,
+                 camera_name=None) -> list[Path]:
+    """Write several calibrations of one camera, one per read-out mode (output amplifier,
+    read-out rate, pre-amplifier gain), as one tool file keyed by mode.
+
+    Only Picasso's ``config.yaml`` holds such a table (its nested ``Sensitivity`` with
+    ``Sensitivity Categories``); the other tools take one mode per file.
+
+    Parameters
+    ----------
+    calibrations : sequence of Calibration, str or Path
+        One per read-out mode, of one camera.
+    to, out, setpoint, qe, pixel_size_nm, camera_name
+        As :func:`export`; ``setpoint`` is needed where a mode has several multiplied
+        set-points. A mode without multiplication enters at 1×.
+
+    Raises
+    ------
+    OptionError
+        A tool other than Picasso, calibrations of different cameras, two of one mode,
+        or a mode its files do not record.
+    """
+    if to != "picasso":
+        raise OptionError(f"{to} takes one read-out mode per file, and the calibrations "
+                          "given are of several: export each mode on its own (Picasso's "
+                          "config.yaml holds a table of modes)")
+    cals = [c if isinstance(c, Calibration) else load_calibration(c) for c in calibrations]
+    serials = {c.camera.get("serial") for c in cals}
+    if len(serials) > 1:
+        raise OptionError("the calibrations are of different cameras (serials "
+                          f"{', '.join(sorted(map(str, serials)))}); a table of read-out "
+                          "modes is of one camera")
+    multiplied = sorted({x for c in cals for x in c.setpoints if x != 1.0})
+    if setpoint is None and len(multiplied) > 1:
+        raise OptionError("the calibrations have set-points "
+                          + ", ".join(format_setpoint(x) + "x" for x in multiplied)
+                          + "; give --setpoint G (the set-point the movies were recorded at)")
+    s = float(setpoint) if setpoint is not None else (multiplied[0] if multiplied else 1.0)
+    for c in cals:  # refused before anything is made
+        if s in c.setpoints or len(c.setpoints) == 1:
+            camera_values(c, s if s in c.setpoints else 1.0)
+        else:
+            c.gain(s)  # raises, naming what it has
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    return _picasso_modes(cals, s, out, qe, pixel_size_nm, camera_name)
