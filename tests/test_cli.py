@@ -28,6 +28,18 @@ def test_help_and_version_import_no_numerics(argv):
     assert _imported_after(argv) == "[]"
 
 
+def test_every_verbs_help_imports_no_numerics():
+    """Choices and defaults come from emccdcal.defaults: `VERB --help` answers at once
+    (calibrate --help took 3 s when it imported the engine and xarray)."""
+    code = ("import sys; from emccdcal.cli import main, VERBS\n"
+            "for verb in VERBS:\n"
+            "    try:\n        main([verb, '--help'])\n    except SystemExit:\n        pass\n"
+            "print(sorted({m.split('.')[0] for m in sys.modules} & set(%r)))" % (HEAVY,))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.strip().splitlines()[-1] == "[]"
+
+
 def test_help_lists_every_verb(capsys):
     assert cli.main(["--help"]) == 0
     out = capsys.readouterr().out

@@ -37,6 +37,7 @@ from .data.manifest import Manifest, read_manifest
 from .data.stacks import read_band
 from .errors import InputError, MethodError, OptionError
 from .fit import engine, gof, layouts, mv
+from .defaults import DEFAULT_BLOCK, DEFAULT_TILE_PIXELS, INTERVALS, METHODS
 from .model import noise
 from .runstore import RESULT_FILES, RunInterrupted, RunStore, remove_run
 
@@ -46,22 +47,9 @@ if TYPE_CHECKING:
 __all__ = ["METHODS", "INTERVALS", "DEFAULT_BLOCK", "DEFAULT_TILE_PIXELS", "TileJob",
            "calibrate", "plan_tiles", "run_tile", "format_summary"]
 
-METHODS = ("mv-adu", "mv-gain") + layouts.LIKELIHOOD_METHODS
 #: Methods that hold φ (e⁻/ADU) fixed at a given value, and those that estimate it.
 ESTIMATE_E_PER_ADU = ("mv-adu", "is-adu")
 FIXED_E_PER_ADU = tuple(m for m in METHODS if m not in ESTIMATE_E_PER_ADU)
-#: Interval kinds of :func:`calibrate`: ``estimate ± 1.96 SE`` only, or profile bounds too.
-INTERVALS = ("wald", "profile")
-
-#: Pixels fitted together: large enough to amortise Python overhead, small enough that
-#: the FFT windows of a block (pixels × window × derivatives) stay within a few hundred MB
-#: and that two threads share the blocks evenly (128 fitted a 32 × 32 gain series 11 %
-#: faster than 256 on two cores; docs/benchmarks.md).
-DEFAULT_BLOCK = 128
-#: Pixels per tile. A tile's histograms take up to 16 bytes × frames per pixel and
-#: acquisition at high gain (about 80 kB for 5000 frames), so 1024 pixels of five
-#: acquisitions stay within about 400 MB (docs/benchmarks.md).
-DEFAULT_TILE_PIXELS = 1024
 
 #: Names of the per-acquisition statistics a tile returns for the data-quality checks.
 _QUALITY = "quality"

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import defaults
 from .calibration import calibrate
 from .result import format_setpoint
 from .simulate.series import simulate_gain_series, simulate_intensity_series
@@ -26,7 +27,7 @@ from .simulate.series import simulate_gain_series, simulate_intensity_series
 __all__ = ["run_demo", "DEMO_SEED"]
 
 #: Seed of the demo: the same numbers on every machine.
-DEMO_SEED = 20211
+DEMO_SEED = defaults.DEMO_SEED
 
 
 def _median(da):

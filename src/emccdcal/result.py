@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
+from . import defaults
 from ._output import read_netcdf, write_netcdf
 from ._util import finite_or_none, one_line
 from .errors import InputError, MissingFileError, OptionError
@@ -907,10 +908,7 @@ class Calibration:
 
 #: What must agree between a calibration and the frames it is used on (where both
 #: record it), with how to name it.
-IDENTITY_FIELDS = {"serial": "camera serial", "model": "camera model",
-                   "amplifier": "output amplifier", "readout_rate_mhz": "read-out rate (MHz)",
-                   "analog_gain": "analog (pre-amplifier) gain", "adc_bits": "ADC bits",
-                   "binning": "binning"}
+IDENTITY_FIELDS = defaults.IDENTITY_FIELDS
 
 
 def _identity_value(key, value):

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import defaults
 from .._optimize import maximize
 from ..errors import OptionError
 from ..model import psf
@@ -57,7 +58,7 @@ MIN_FRAMES = 10
 #: Most times one frame's ROI is moved to follow its spot.
 MAX_RECENTRE = 20
 #: Default ROI half-width Δ (pixel) of :func:`~emccdcal.beads.cots_calibration.cots_calibrate`: (2Δ + 1)² pixels per bead.
-DEFAULT_HALF_SIZE = 4
+DEFAULT_HALF_SIZE = defaults.BEAD_HALF_SIZE
 #: Default initial PSF standard deviation (pixel): the bead fits' (``validate``) too.
 DEFAULT_WIDTH = psf.DEFAULT_WIDTH
 #: Fraction of a spot's frames that must give a usable estimate.

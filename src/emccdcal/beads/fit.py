@@ -84,6 +84,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import defaults
 from .._optimize import maximize
 from ..errors import OptionError
 from ..model import noise, psf
@@ -101,7 +102,7 @@ __all__ = [
 ]
 
 #: Half-width Δ of the fitting box (pixel): boxes are (2Δ + 1) × (2Δ + 1).
-DEFAULT_HALF_SIZE = 4
+DEFAULT_HALF_SIZE = defaults.BEAD_HALF_SIZE
 #: Expected spot standard deviation (pixel), used for detection and as a starting value.
 DEFAULT_WIDTH = psf.DEFAULT_WIDTH
 

@@ -41,7 +41,7 @@ def add_overwrite(p: argparse.ArgumentParser) -> None:
 
 
 def add_accept_mismatch(p: argparse.ArgumentParser) -> None:
-    from ..result import IDENTITY_FIELDS
+    from ..defaults import IDENTITY_FIELDS
 
     p.add_argument("--accept-mismatch", action="append", default=[], metavar="FIELD",
                    choices=tuple(IDENTITY_FIELDS),

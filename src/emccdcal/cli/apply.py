@@ -8,7 +8,7 @@ from . import _common
 
 
 def add_parser(subparsers):
-    from ..export.movie import DEFAULT_THRESHOLD
+    from ..defaults import PHOTON_THRESHOLD as DEFAULT_THRESHOLD
 
     p = subparsers.add_parser(
         "apply",

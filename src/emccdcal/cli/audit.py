@@ -8,7 +8,7 @@ from . import _common
 
 
 def add_parser(subparsers):
-    from ..export.audit import DEFAULT_TOLERANCE, TOOL_NAMES
+    from ..defaults import AUDIT_TOLERANCE as DEFAULT_TOLERANCE, TOOL_NAMES
 
     p = subparsers.add_parser(
         "audit",

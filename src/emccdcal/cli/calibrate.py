@@ -8,7 +8,7 @@ from . import _common
 
 
 def add_parser(subparsers):
-    from ..calibration import DEFAULT_BLOCK, DEFAULT_TILE_PIXELS, INTERVALS, METHODS
+    from ..defaults import DEFAULT_BLOCK, DEFAULT_TILE_PIXELS, INTERVALS, METHODS
 
     p = subparsers.add_parser(
         "calibrate",

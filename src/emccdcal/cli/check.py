@@ -7,7 +7,7 @@ from pathlib import Path
 
 
 def add_parser(subparsers):
-    from ..data.quality import DEFAULT_DRIFT_THRESHOLD, DEFAULT_K, DRIFT_ALPHA
+    from ..defaults import DEFAULT_DRIFT_THRESHOLD, DEFAULT_K, DRIFT_ALPHA
 
     p = subparsers.add_parser(
         "check",

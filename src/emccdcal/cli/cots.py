@@ -8,7 +8,7 @@ from . import _common
 
 
 def add_parser(subparsers):
-    from ..beads.cots import DEFAULT_HALF_SIZE, DEFAULT_WIDTH
+    from ..defaults import BEAD_HALF_SIZE as DEFAULT_HALF_SIZE, PSF_WIDTH as DEFAULT_WIDTH
 
     p = subparsers.add_parser(
         "cots",

@@ -6,7 +6,7 @@ from . import _common
 
 
 def add_parser(subparsers):
-    from ..demo import DEMO_SEED
+    from ..defaults import DEMO_SEED
 
     p = subparsers.add_parser(
         "demo",

@@ -6,7 +6,7 @@ from . import _common
 
 
 def add_parser(subparsers):
-    from ..export.tools import TOOLS
+    from ..defaults import TOOLS
 
     p = subparsers.add_parser(
         "export",

@@ -9,8 +9,7 @@ from . import _common
 
 
 def add_parser(subparsers):
-    from ..fit.layouts import LIKELIHOOD_METHODS
-    from ..fit.posterior import DEFAULT_FIRST_STEPS, DEFAULT_MAX_STEPS, PRIORS
+    from ..defaults import DEFAULT_FIRST_STEPS, DEFAULT_MAX_STEPS, LIKELIHOOD_METHODS, PRIORS
 
     p = subparsers.add_parser(
         "posterior",

@@ -17,10 +17,9 @@ _PAPER_GAINS = "1,4.78,22.95,90.06,261.6"
 
 def _camera_options(p: argparse.ArgumentParser, defaults: dict | None = None) -> None:
     """The fields of :class:`emccdcal.simulate.camera.Camera`, the seed and ``-q``."""
-    from ..model.noise import EM_MODELS
-    from ..simulate.camera import Camera
+    from ..defaults import CAMERA_SIMULATION, EM_MODELS
 
-    d = {f.name: f.default for f in dataclasses.fields(Camera)} | (defaults or {})
+    d = CAMERA_SIMULATION | (defaults or {})
     cam = p.add_argument_group("camera")
     cam.add_argument("--rows", type=int, default=d["rows"],
                      help="frame rows, px (default %(default)s)")
@@ -142,8 +141,9 @@ def _run_beads(args) -> int:
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     """Add ``simulate {gain-series,intensity-series,beads}`` to the ``emccdcal`` command line."""
-    from ..simulate.beads import BEAD_DEFAULTS, CAMERA_DEFAULTS
-    from ..simulate.camera import _DEFAULTS
+    from ..defaults import BEAD_CAMERA as CAMERA_DEFAULTS
+    from ..defaults import BEAD_SIMULATION as BEAD_DEFAULTS
+    from ..defaults import CAMERA_SIMULATION as _DEFAULTS
 
     p = subparsers.add_parser(
         "simulate",

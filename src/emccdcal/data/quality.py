@@ -37,6 +37,7 @@ import warnings
 
 import numpy as np
 
+from .. import defaults
 from ..errors import InputError
 from .dark import as_stack, check_read_noise_growth, maps_from_dark
 
@@ -67,14 +68,14 @@ MIN_FRAMES = 50
 #: Significance level of the ADF and KPSS tests (per acquisition).
 DEFAULT_ALPHA = 0.05
 #: Family-wise significance level of the drift test over the acquisitions of a manifest.
-DRIFT_ALPHA = 0.01
+DRIFT_ALPHA = defaults.DRIFT_ALPHA
 #: Smallest |drift| over an acquisition, in % of the mean level, that is a finding. A
 #: tenth of a percent is below the statistical error of a pixel's E at the paper's
 #: scale (≈ 0.2 % for 100 e⁻ in 5000 frames) and changes the EM gain by ~E·10⁻⁷
 #: (docs/quality.md): a smaller drift, however significant, changes no estimate.
-DEFAULT_DRIFT_THRESHOLD = 0.1
+DEFAULT_DRIFT_THRESHOLD = defaults.DEFAULT_DRIFT_THRESHOLD
 #: Robust standard deviations from the median pixel mean that make a pixel hot or dead.
-DEFAULT_K = 5.0
+DEFAULT_K = defaults.DEFAULT_K
 #: Most pixel coordinates listed per category in a report (counts are always complete).
 MAX_LISTED = 100
 #: Fewest pixels for the hot/dead test (a robust spread needs a few pixels).

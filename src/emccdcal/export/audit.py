@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import defaults
 from ..errors import InputError, OptionError
 from ..result import Calibration, format_setpoint, load_calibration
 from .tools import camera_values, pick_setpoint
@@ -39,11 +40,9 @@ __all__ = ["TOOL_NAMES", "Field", "Reading", "Audit", "read_tool_file", "audit",
            "DEFAULT_TOLERANCE"]
 
 #: The photon bias beyond which an audit says "off", as a fraction.
-DEFAULT_TOLERANCE = 0.02
+DEFAULT_TOLERANCE = defaults.AUDIT_TOLERANCE
 #: The tools an audit reads, by the name ``--tool`` takes.
-TOOL_NAMES = {"picasso": "Picasso", "thunderstorm": "ThunderSTORM", "decode": "DECODE",
-              "gdsc": "gdsc-smlm", "smap": "SMAP", "pyme": "PYME",
-              "storm-analysis": "storm-analysis"}
+TOOL_NAMES = defaults.TOOL_NAMES
 
 #: What a field can stand for: the calibrated quantity, its unit, how to say it.
 _QUANTITIES = {

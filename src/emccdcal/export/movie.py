@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import defaults
 from .._output import Output, atomic_write
 from .._util import progress
 from ..data.stacks import read_band, stack_header, stack_settings
@@ -37,7 +38,7 @@ __all__ = ["apply", "OUTPUT_FORMATS", "DEFAULT_THRESHOLD"]
 
 OUTPUT_FORMATS = ("tiff", "zarr")
 #: Photon-counting threshold in read-noise SDs.
-DEFAULT_THRESHOLD = 5.0
+DEFAULT_THRESHOLD = defaults.PHOTON_THRESHOLD
 _BLOCK_BYTES = 16 << 20
 
 

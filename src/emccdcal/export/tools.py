@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import defaults
 from .._output import atomic_write, comment
 from .._output import atomic_write_text as _write_text
 from ..errors import OptionError
@@ -37,8 +38,7 @@ from ..result import Calibration, format_setpoint, load_calibration, pixel_stati
 __all__ = ["TOOLS", "export", "export_modes", "camera_values", "readout_mode", "MODE_FIELDS"]
 
 #: The ``--to`` targets, in the order of ``--help``.
-TOOLS = ("picasso", "pyme", "decode", "thunderstorm", "smap", "gdsc", "storm-analysis",
-         "json", "fits", "tiff-maps")
+TOOLS = defaults.TOOLS
 #: Targets that take every set-point (the others take one: ``--setpoint``).
 ALL_SETPOINTS = ("json", "fits", "tiff-maps")
 

@@ -23,6 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .. import defaults
 from ..errors import MethodError, OptionError
 from . import engine
 from ..model import noise
@@ -41,7 +42,7 @@ __all__ = [
     "unpooled_bounds",
 ]
 
-LIKELIHOOD_METHODS = ("is-adu", "is-gain", "gs", "gs-no1x", "gs-hierarchical")
+LIKELIHOOD_METHODS = defaults.LIKELIHOOD_METHODS
 
 #: Bounds of the free parameters (photoelectrons e⁻, EM gain, e⁻/ADU).
 BOUNDS = {

@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .. import defaults
 from .._output import atomic_write, atomic_write_text, write_netcdf
 from .._util import e_per_adu_map, finite_or_none, parse_pixel
 from ..data import stats
@@ -67,15 +68,15 @@ __all__ = [
 
 POSTERIOR_FILE = "posterior.nc"
 SUMMARY_FILE = "posterior.json"
-PRIORS = ("log-uniform", "uniform")
+PRIORS = defaults.PRIORS
 
 #: Convergence criteria (see the module docstring).
 MIN_LENGTH_TAUS = 50.0
 BURN_TAUS = 5.0
 ACCEPTANCE = (0.15, 0.8)
 DEFAULT_MIN_ESS = 1000
-DEFAULT_MAX_STEPS = 20000
-DEFAULT_FIRST_STEPS = 1500
+DEFAULT_MAX_STEPS = defaults.DEFAULT_MAX_STEPS
+DEFAULT_FIRST_STEPS = defaults.DEFAULT_FIRST_STEPS
 #: Walkers start in a Gaussian ball of this fraction of the Laplace (inverse observed
 #: information) covariance's standard deviations around the maximum-likelihood estimate.
 INIT_SCALE = 0.1

@@ -64,6 +64,7 @@ from collections import OrderedDict
 
 import numpy as np
 
+from .. import defaults
 from ..errors import OptionError
 
 __all__ = [
@@ -81,10 +82,8 @@ __all__ = [
     "known_stages",
 ]
 
-#: Stages of the register used by default: Hirsch et al.'s simulations (docs/simulation.md).
-#: The length matters little: on the published ProEM data the gains move 0.04 % between
-#: 512 and 4096 stages (docs/cascade.md).
-DEFAULT_STAGES = 536
+#: Stages of the register used by default (declared in :mod:`emccdcal.defaults`).
+DEFAULT_STAGES = defaults.DEFAULT_STAGES
 
 #: Register lengths that a public source states, by what a camera's files record as its
 #: model: ``(key, stages, source)``, the key matched in the model's name without case,

@@ -53,6 +53,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import defaults
 from .._util import check_number
 from ..errors import OptionError
 from . import _engine
@@ -193,9 +194,10 @@ EM_MODELS = tuple(_REGISTERS)
 _WITH_STAGES = "cascade"
 
 
-#: The register model of a run that neither its caller nor its manifest names: the exact
-#: register, a real camera's (``em_model="gamma"`` reproduces the paper's numbers).
-DEFAULT_EM_MODEL = "cascade"
+#: The register model of a run that neither its caller nor its manifest names (declared
+#: in :mod:`emccdcal.defaults`).
+DEFAULT_EM_MODEL = defaults.DEFAULT_EM_MODEL
+assert set(EM_MODELS) == set(defaults.EM_MODELS)
 
 
 def choose_em_model(em_model=None, stages=None, *, manifest_model=None, manifest_stages=None,

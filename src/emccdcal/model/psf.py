@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage, special
 
+from .. import defaults
 from ..errors import OptionError
 
 __all__ = ["DEFAULT_WIDTH", "PARAMETERS", "pixel_fractions", "spot_image", "ResidualImage", "BeadSearch",
@@ -35,7 +36,7 @@ __all__ = ["DEFAULT_WIDTH", "PARAMETERS", "pixel_fractions", "spot_image", "Resi
 #: total signal N and background b per pixel (photoelectrons).
 #: Expected spot standard deviation (pixel) of a bead, for detection and as a fit's
 #: starting value: one default for ``validate`` and ``cots`` (``--width``).
-DEFAULT_WIDTH = 1.3
+DEFAULT_WIDTH = defaults.PSF_WIDTH
 PARAMETERS = ("x", "y", "width", "intensity", "background")
 
 _SQRT2 = np.sqrt(2.0)

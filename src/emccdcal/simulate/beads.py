@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from .. import __version__, result
+from .. import __version__, defaults, result
 from .._output import atomic_write, atomic_write_text, write_netcdf
 from .._util import check_int, check_number
 from ..errors import OptionError
@@ -38,22 +38,10 @@ from .series import (
 __all__ = ["simulate_beads", "bead_scene", "BEAD_DEFAULTS", "CAMERA_DEFAULTS",
            "TRUTH_CALIBRATION_FILE"]
 
-#: Defaults of the bead simulation (``docs/beads.md``).
-BEAD_DEFAULTS = {
-    "beads": 10,
-    "photoelectrons": 5000.0,
-    "width": 1.3,
-    "background": 10.0,
-    "min_separation": 12.0,
-    "margin": 6.0,
-    "bleaching": 0.0,
-    "halo": 0.0,
-    "halo_width": None,
-    "blinking": 0.0,
-    "blink_frames": 5.0,
-}
-#: The default camera of a bead simulation, where it differs from :class:`Camera`'s.
-CAMERA_DEFAULTS = {"rows": 64, "cols": 64, "frames": 500, "dark_frames": 2000}
+#: Defaults of the bead simulation (``docs/beads.md``) and its camera, where it differs
+#: from the camera simulator's (declared in :mod:`emccdcal.defaults`).
+BEAD_DEFAULTS = defaults.BEAD_SIMULATION
+CAMERA_DEFAULTS = defaults.BEAD_CAMERA
 #: File written beside the stacks: the true calibration in the result contract.
 TRUTH_CALIBRATION_FILE = "truth_calibration.nc"
 

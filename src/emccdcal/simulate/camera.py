@@ -41,6 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import defaults
 from .._util import check_int, check_map, check_number
 from ..errors import OptionError
 from ..model.cascade import DEFAULT_STAGES
@@ -68,28 +69,9 @@ PAPER_EM_GAIN = {1: 1.0, 5: 4.78, 25: 22.95, 100: 90.06, 300: 261.6}
 #: log-spaced levels, labelled L1 … L6.
 PAPER_LEVELS = (2000.0, 4000.0, 8000.0, 16000.0, 32000.0, 64000.0)
 
-#: Default offset at set-point 1, ADU, and its drop per decade of set-point, ADU: a line
-#: in log10(set-point) through the sample data's dark means at 1× (587.7) and 300×
-#: (566.2); it gives 581.6, 575.6, 570.3 at 5×, 25×, 100× (data: 583.9, 575.9, 570.9).
-DEFAULT_OFFSET = 587.7
-DEFAULT_OFFSET_DROP = 8.68
-
-_DEFAULTS = {
-    "rows": 32,
-    "cols": 32,
-    "frames": 5000,
-    "photoelectrons": 370.0,
-    "e_per_adu": 3.859,
-    "offset": DEFAULT_OFFSET,
-    "offset_drop": DEFAULT_OFFSET_DROP,
-    "offset_spread": 0.5,
-    "read_noise": 15.5,
-    "multiplication": "cascade",
-    "stages": DEFAULT_STAGES,
-    "cic": 0.0,
-    "drift": 0.0,
-    "adc_bits": 16,
-}
+DEFAULT_OFFSET = defaults.DEFAULT_OFFSET
+DEFAULT_OFFSET_DROP = defaults.DEFAULT_OFFSET_DROP
+_DEFAULTS = defaults.CAMERA_SIMULATION
 #: Elements (frames × pixels) simulated at a time; fixes the random stream, so it is a
 #: constant, not a tuning knob.
 _CHUNK_ELEMENTS = 2**20
@@ -161,18 +143,18 @@ class Camera:
     rows: int = _DEFAULTS["rows"]
     cols: int = _DEFAULTS["cols"]
     frames: int = _DEFAULTS["frames"]
-    dark_frames: int | None = None
+    dark_frames: int | None = _DEFAULTS["dark_frames"]
     e_per_adu: float = _DEFAULTS["e_per_adu"]
-    offset: float = DEFAULT_OFFSET
-    offset_drop: float = DEFAULT_OFFSET_DROP
+    offset: float = _DEFAULTS["offset"]
+    offset_drop: float = _DEFAULTS["offset_drop"]
     offset_spread: float = _DEFAULTS["offset_spread"]
     read_noise: float = _DEFAULTS["read_noise"]
-    multiplication: str = "cascade"
-    stages: int = DEFAULT_STAGES
-    cic: float = 0.0
-    drift: float = 0.0
-    adc_bits: int = 16
-    cascade_method: str = "pmf"
+    multiplication: str = _DEFAULTS["multiplication"]
+    stages: int = _DEFAULTS["stages"]
+    cic: float = _DEFAULTS["cic"]
+    drift: float = _DEFAULTS["drift"]
+    adc_bits: int = _DEFAULTS["adc_bits"]
+    cascade_method: str = _DEFAULTS["cascade_method"]
 
     def __post_init__(self):
         frames = check_int("frames", self.frames)

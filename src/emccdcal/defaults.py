@@ -1,0 +1,119 @@
+"""Names and default values the command line shows, declared once and light to import.
+
+Every verb's ``--help`` names its choices and defaults; declaring them here, with no
+import beyond the standard library, lets ``emccdcal VERB --help`` answer without loading
+NumPy, SciPy or xarray. The modules that use them import them from here (and re-export
+them where they always have), so each value has one home.
+"""
+
+from __future__ import annotations
+
+# -- methods and the engine (emccdcal.calibration, emccdcal.fit) ------------------------
+#: The maximum-likelihood methods (:mod:`emccdcal.fit.layouts`).
+LIKELIHOOD_METHODS = ("is-adu", "is-gain", "gs", "gs-no1x", "gs-hierarchical")
+#: Every calibration method, mean-variance ones first.
+METHODS = ("mv-adu", "mv-gain") + LIKELIHOOD_METHODS
+#: Interval kinds: ``estimate ± 1.96 SE`` only, or profile-likelihood bounds too.
+INTERVALS = ("wald", "profile")
+#: Pixels fitted together: large enough to amortise Python overhead, small enough that
+#: the FFT windows of a block (pixels × window × derivatives) stay within a few hundred MB
+#: and that two threads share the blocks evenly (128 fitted a 32 × 32 gain series 11 %
+#: faster than 256 on two cores; docs/benchmarks.md).
+DEFAULT_BLOCK = 128
+#: Pixels per tile. A tile's histograms take up to 16 bytes × frames per pixel and
+#: acquisition at high gain (about 80 kB for 5000 frames), so 1024 pixels of five
+#: acquisitions stay within about 400 MB (docs/benchmarks.md).
+DEFAULT_TILE_PIXELS = 1024
+
+# -- the EM register (emccdcal.model) ---------------------------------------------------
+#: The register models by name.
+EM_MODELS = ("gamma", "cascade")
+#: The register model of a run that neither its caller nor its manifest names: the exact
+#: register, a real camera's (``em_model="gamma"`` reproduces the paper's numbers).
+DEFAULT_EM_MODEL = "cascade"
+#: Stages of the register used by default: Hirsch et al.'s simulations (docs/simulation.md).
+#: The length matters little: on the published ProEM data the gains move 0.04 % between
+#: 512 and 4096 stages (docs/cascade.md).
+DEFAULT_STAGES = 536
+
+# -- using a calibration (emccdcal.result, emccdcal.export) -----------------------------
+#: What must agree between a calibration and the frames it is used on (where both
+#: record it), with how to name it.
+IDENTITY_FIELDS = {"serial": "camera serial", "model": "camera model",
+                   "amplifier": "output amplifier", "readout_rate_mhz": "read-out rate (MHz)",
+                   "analog_gain": "analog (pre-amplifier) gain", "adc_bits": "ADC bits",
+                   "binning": "binning"}
+#: The ``export --to`` targets, in the order of ``--help``.
+TOOLS = ("picasso", "pyme", "decode", "thunderstorm", "smap", "gdsc", "storm-analysis",
+         "json", "fits", "tiff-maps")
+#: The tools an audit reads, by the name ``--tool`` takes.
+TOOL_NAMES = {"picasso": "Picasso", "thunderstorm": "ThunderSTORM", "decode": "DECODE",
+              "gdsc": "gdsc-smlm", "smap": "SMAP", "pyme": "PYME",
+              "storm-analysis": "storm-analysis"}
+#: Relative photon bias beyond which an audit says a tool's numbers are off.
+AUDIT_TOLERANCE = 0.02
+#: Photon-counting threshold of ``apply``, in read-noise standard deviations.
+PHOTON_THRESHOLD = 5.0
+
+# -- data-quality checks (emccdcal.data.quality) ----------------------------------------
+#: Family-wise significance of the drift test over a run's acquisitions.
+DRIFT_ALPHA = 0.01
+#: Smallest |drift| over an acquisition, in % of the mean level, that is a finding.
+DEFAULT_DRIFT_THRESHOLD = 0.1
+#: Robust standard deviations from the median pixel mean that make a pixel hot or dead.
+DEFAULT_K = 5.0
+
+# -- beads (emccdcal.beads, emccdcal.model.psf) -----------------------------------------
+#: Expected spot standard deviation (pixel): detection, starting value, validate and cots.
+PSF_WIDTH = 1.3
+#: Half-size of a bead's fitting window (pixel): a (2h + 1)² box.
+BEAD_HALF_SIZE = 4
+
+# -- the posterior sampler (emccdcal.fit.posterior) -------------------------------------
+PRIORS = ("log-uniform", "uniform")
+DEFAULT_MAX_STEPS = 20000
+DEFAULT_FIRST_STEPS = 1500
+
+# -- simulation and the demo (emccdcal.simulate, emccdcal.demo) -------------------------
+#: The demo's seed.
+DEMO_SEED = 20211
+#: Default offset at set-point 1, ADU, and its drop per decade of set-point, ADU: a line
+#: in log10(set-point) through the sample data's dark means at 1× (587.7) and 300×
+#: (566.2); it gives 581.6, 575.6, 570.3 at 5×, 25×, 100× (data: 583.9, 575.9, 570.9).
+DEFAULT_OFFSET = 587.7
+DEFAULT_OFFSET_DROP = 8.68
+#: Defaults of the camera simulator (:class:`emccdcal.simulate.camera.Camera`).
+CAMERA_SIMULATION = {
+    "rows": 32,
+    "cols": 32,
+    "frames": 5000,
+    "dark_frames": None,  # as many as frames
+    "photoelectrons": 370.0,
+    "e_per_adu": 3.859,
+    "offset": DEFAULT_OFFSET,
+    "offset_drop": DEFAULT_OFFSET_DROP,
+    "offset_spread": 0.5,
+    "read_noise": 15.5,
+    "multiplication": "cascade",
+    "stages": DEFAULT_STAGES,
+    "cic": 0.0,
+    "drift": 0.0,
+    "adc_bits": 16,
+    "cascade_method": "pmf",
+}
+#: Defaults of the bead simulation (``docs/beads.md``).
+BEAD_SIMULATION = {
+    "beads": 10,
+    "photoelectrons": 5000.0,
+    "width": PSF_WIDTH,
+    "background": 10.0,
+    "min_separation": 12.0,
+    "margin": 6.0,
+    "bleaching": 0.0,
+    "halo": 0.0,
+    "halo_width": None,
+    "blinking": 0.0,
+    "blink_frames": 5.0,
+}
+#: The default camera of a bead simulation, where it differs from the camera simulator's.
+BEAD_CAMERA = {"rows": 64, "cols": 64, "frames": 500, "dark_frames": 2000}
