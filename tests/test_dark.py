@@ -95,6 +95,8 @@ def test_growth_warning_on_paper_numbers():
     assert "set-point 100" in msgs[0] and "7 %" in msgs[0]
     assert "set-point 300" in msgs[1] and "23.3 ADU" in msgs[1] and "50 %" in msgs[1]
     assert all("clock-induced charge" in m and "15.5 ADU" in m for m in msgs)
+    # what it does and what to do, at the user's numbers
+    assert "take the amplifier's read noise from set-point 1, 15.5 ADU" in msgs[-1]
     assert all("\n" not in m for m in msgs)
 
 

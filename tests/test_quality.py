@@ -306,6 +306,9 @@ def test_saturated_frames_counted(tmp_path):
     assert rep["acquisitions"]["300x"]["saturation"]["n_values"] > 0
     sat_warnings = [w for w in rep["warnings"] if "saturated pixel-frames" in w]
     assert len(sat_warnings) == 1 and sat_warnings[0].startswith("300x (set-point 300)")
+    frac = rep["acquisitions"]["300x"]["saturation"]["fraction"]
+    assert f"{frac:.2%} of its pixel-frames" in sat_warnings[0]
+    assert "read low" in sat_warnings[0] and "Lower the light" in sat_warnings[0]
 
 
 def test_too_few_frames_skip_only_the_drift_test(tmp_path):

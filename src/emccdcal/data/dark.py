@@ -364,7 +364,9 @@ def check_read_noise_growth(
                 f"read noise at EM gain set-point {g:g} (median {medians[g]:.1f} ADU) is "
                 f"{100 * growth:.0f} % above that at set-point {g0:g} ({ref:.1f} ADU): the "
                 "dark frames probably contain clock-induced charge, which the EM register "
-                "multiplies, so this read noise is not pure Gaussian read-out noise; it "
-                "matters for faint pixels, hardly for bright calibration data"
+                "multiplies, so this read noise is not pure Gaussian read-out noise. It "
+                "hardly moves a calibration from light of hundreds of e- per pixel; for "
+                f"faint signals at {g:g}x (a few e- per pixel, photon counting) take the "
+                f"amplifier's read noise from set-point {g0:g}, {ref:.1f} ADU"
             )
     return messages

@@ -923,9 +923,13 @@ def _findings(a: dict) -> list[str]:
     sat = a["saturation"]
     if sat["n_values"]:
         out.append(
-            f"{name}: {sat['n_values']} saturated pixel-frames (counts ≥ {sat['adc_max']}) in "
-            f"{sat['n_frames']} frames, {sat['n_pixels']} pixels: "
-            f"{_fmt_pixels(sat['pixels'], sat['n_pixels'])}; they are excluded from fits"
+            f"{name}: {sat['n_values']} saturated pixel-frames (counts ≥ {sat['adc_max']}, "
+            f"{sat['fraction']:.2%} of its pixel-frames) in {sat['n_frames']} frames, "
+            f"{sat['n_pixels']} pixels: {_fmt_pixels(sat['pixels'], sat['n_pixels'])}; "
+            "they are excluded from fits, which cuts the top off those pixels' counts, so "
+            "their photoelectrons and gain read low, the more the more of their frames hit "
+            "the ceiling. Lower the light (or the EM gain) until no frame saturates and "
+            "record again, or leave those pixels out"
         )
     px = a["pixels"]
     for kind, what in (("hot", "above"), ("dead", "below")):
