@@ -176,3 +176,13 @@ def test_validate_and_cots_expect_the_same_spot_width():
             "cots": ["cots", "m.toml", "-o", "o"]}
     widths = {verb: cli.build_parser(verb).parse_args(args).width for verb, args in argv.items()}
     assert widths == {"validate": DEFAULT_WIDTH, "cots": DEFAULT_WIDTH}
+
+
+def test_a_closed_pipe_ends_quietly(tmp_path):
+    """`emccdcal db list --json | head` once printed a BrokenPipeError traceback."""
+    proc = subprocess.Popen([sys.executable, "-m", "emccdcal", "db", "list", "--json",
+                             "--db", str(tmp_path / "cal.sqlite")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # the reader goes away before the first line
+    err = proc.stderr.read().decode()
+    assert proc.wait(60) == 0 and "Traceback" not in err and "BrokenPipe" not in err, err
