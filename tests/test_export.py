@@ -476,7 +476,10 @@ def test_export_and_apply_at_a_setpoint_only_the_gain_curve_knows(tmp_path, caps
     other = true_result(tmp_path / "o", camera={"serial": "GC-2", "readout_rate_mhz": 10.0})
     code = cli.main(["export", str(other), "--to", "picasso", "--setpoint", "50",
                      "--gain-curve", str(curve_file), "-o", str(tmp_path / "q")])
-    assert code == 2 and "camera serial 'GC-2'" in capsys.readouterr().err
+    assert code == 2 and "camera serial 'GC-1' (calibration: 'GC-2')" in capsys.readouterr().err
+    assert cli.main(["export", str(other), "--to", "picasso", "--setpoint", "50", "-q",
+                     "--gain-curve", str(curve_file), "-o", str(tmp_path / "q"),
+                     "--accept-mismatch", "serial"]) == 0
     # The database: no entry at 50x, so the newest entry's curve predicts it.
     db = tmp_path / "db" / "cal.sqlite"
     database.add(res, db=db, date="2026-03-02")

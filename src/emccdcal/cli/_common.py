@@ -229,8 +229,7 @@ def calibration_of(args, setpoint):
         from ..export.gain_curve import calibration_at, read_gain_curve
 
         return calibration_at(cal, setpoint, read_gain_curve(args.gain_curve),
-                              source=str(args.gain_curve),
-                              accept_mismatch=getattr(args, "accept_mismatch", ()))
+                              source=str(args.gain_curve), accept_mismatch=args.accept_mismatch)
     if results or args.gain_curve is not None:
         raise OptionError("give a RESULT (with --gain-curve) or --camera, not both")
     if setpoint is None:

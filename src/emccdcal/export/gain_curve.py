@@ -295,10 +295,11 @@ def calibration_at(cal: Calibration, setpoint, curve: GainCurve, *, source: str,
     s = float(setpoint)
     if s == 1.0 or s in cal.em_gain:
         return cal
-    differ = identity_mismatches(curve.camera, cal.identity(), accept=accept_mismatch)
+    differ = identity_mismatches(cal.identity(), curve.camera, accept=accept_mismatch)
     if differ:
         raise OptionError(f"{source}: the gain curve is of another camera or read-out state "
-                          f"than {cal.label}: {'; '.join(differ.values())}")
+                          f"than {cal.label}: {'; '.join(differ.values())} (--accept-mismatch "
+                          f"{' '.join(differ)} if you know better)")
     p = curve.predict([s])
     gain, se = float(p["gain"][0]), float(p["se_of_median"][0])
     extrapolated = bool(p["extrapolated"][0])
