@@ -480,11 +480,11 @@ def test_float_frames_of_integer_counts_calibrate_and_bad_ones_are_named(tmp_pat
                                frames=200, dark_frames=200, seed=3)
     frames_file = sim.outdir / sim.truth["acquisitions"][1]["frames"]
     stack = tifffile.imread(frames_file).astype(np.float64)
-    tifffile.imwrite(frames_file, stack)
+    tifffile.imwrite(frames_file, stack, photometric="minisblack")
     assert _run(capsys, "calibrate", sim.manifest, "--method", "gs", "-o", tmp_path / "o",
                 "-q")[0] == 0  # checks on: float64 integer counts are counts
     stack[7, 1, 1] += 0.5
-    tifffile.imwrite(frames_file, stack)
+    tifffile.imwrite(frames_file, stack, photometric="minisblack")
     code, _, err = _run(capsys, "calibrate", sim.manifest, "--method", "gs", "-o",
                         tmp_path / "o2", "--no-checks")
     _one_line_error(code, err)
