@@ -24,6 +24,7 @@ from emccdcal._output import (
     STORE_MARKER,
     Output,
     OutputError,
+    atomic_write_text,
     comment,
     file_sha256,
     slug,
@@ -610,3 +611,31 @@ def test_the_writable_check_of_a_run_leaves_every_existing_file(tmp_path):
     mine.write_text("a user's file")
     RunStore(tmp_path, {"run": 1})
     assert mine.read_text() == "a user's file"
+
+
+def test_a_users_files_where_a_lock_or_a_temporary_goes_are_never_touched(tmp_path):
+    """Only what emccdcal wrote is truncated or removed: a user's file named like the
+    lock, a link in the lock's place, and a file named like a temporary store stay."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / ".emccdcal-lock").write_text("my notes\n")
+    with pytest.raises(OutputError, match="a file emccdcal did not write stands where its lock"):
+        with Output(out, names=("a.txt",)):
+            pass
+    assert (out / ".emccdcal-lock").read_text() == "my notes\n"
+    (out / ".emccdcal-lock").unlink()
+    target = tmp_path / "precious.txt"
+    target.write_text("keep me")
+    (out / ".emccdcal-lock").symlink_to(target)
+    with pytest.raises(OutputError):
+        with Output(out, names=("a.txt",)):
+            pass
+    assert target.read_text() == "keep me" and (out / ".emccdcal-lock").is_symlink()
+    # A file (not a folder) named like a temporary store is no temporary of ours.
+    (out / ".emccdcal-lock").unlink()
+    odd = out / ".a.txt.0123456789ab.partial"
+    odd.write_text("not ours")
+    with Output(out, names=("a.txt",)):
+        atomic_write_text(out / "a.txt", "new")
+    assert odd.read_text() == "not ours" and (out / "a.txt").read_text() == "new"
+    assert not (out / ".emccdcal-lock").exists()  # the run's own lock is gone

@@ -212,7 +212,7 @@ def _remove_ours(path: Path) -> None:
         if kind and (_is_our_partial(path) if kind.group(1) == "partial"
                      else _is_our_store(path)):
             shutil.rmtree(path, ignore_errors=True)
-    else:
+    elif re.search(r"\.[0-9a-f]{12}\.tmp", path.name):  # only files are written as .tmp
         path.unlink(missing_ok=True)
 
 
@@ -329,7 +329,9 @@ class _Lock:
                 if fcntl is None:  # pragma: no cover - Windows
                     self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o666)
                     break
-                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+                # never through a link: the lock is truncated, and removed at the end
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0),
+                             0o666)
                 try:
                     fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 except BlockingIOError:
@@ -348,6 +350,13 @@ class _Lock:
                 except FileNotFoundError:
                     pass
                 os.close(fd)
+            held_by = os.pread(self.fd, 64, 0).strip() if fcntl is not None else b""
+            if held_by and not held_by.isdigit():  # a lock holds a process id, or nothing
+                os.close(self.fd)
+                self.fd = None
+                raise OutputError(f"{self.path}: a file emccdcal did not write stands where "
+                                  "its lock goes; it is left as it is: move it, or choose "
+                                  "another output")
             os.ftruncate(self.fd, 0)
             os.write(self.fd, str(os.getpid()).encode())
             _HELD[key] = [self.fd, 1]
