@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import re
 
+import numpy as np
 import pytest
 from scipy.io import savemat
 from test_export import GAINS, OFFSET, PHI, true_result
@@ -111,12 +112,43 @@ def test_picasso_as_users_write_it_nested_modes_and_the_typed_gain(calibration, 
                               "1 ADU"]
 
 
+def _cells(rows):
+    out = np.empty((len(rows), len(rows[0])), dtype=object)
+    for i, row in enumerate(rows):
+        for j, value in enumerate(row):
+            out[i, j] = value
+    return out
+
+
+def _smap_camera(name, par, states=()):
+    """One camera of SMAP's Camera Manager database as its CameraManager.m saves it: a
+    parameter table (name, mode, fixed value, metadata field, -, conversion, -) and
+    states, each with its own (name, value) table."""
+    table = _cells([[k, mode, value, "select", "", "str2double(X)", ""]
+                    for k, (mode, value) in par.items()])
+    state = np.zeros((1, max(1, len(states))), dtype=[("statelist", "O"), ("defpar", "O"),
+                                                      ("par", "O")])
+    for j, values in enumerate(states or [{}]):
+        state[0, j] = (np.array(["default"], dtype=object), _cells([["select", ""]]),
+                       _cells([[k, values.get(k, "")] for k in par]))
+    return {"ID": {"name": name, "tag": "select", "value": ""}, "par": table, "state": state}
+
+
 def test_smap_cameras_mat_and_pyme_md(calibration, tmp_path):
     mat = tmp_path / "cameras.mat"
-    settings = {"conversion": PHI, "emgain": GAINS[SETPOINT], "offset": OFFSET, "EMon": 1.0}
-    savemat(mat, {"cameras": {"ID": {"name": "iXon"}, "par": settings}})
+    fixed = {"EMon": ("fix", "1"), "conversion": ("fix", f"{PHI}"),
+             "emgain": ("fix", f"{GAINS[SETPOINT]}"), "offset": ("fix", f"{OFFSET}")}
+    savemat(mat, {"cameras": _smap_camera("iXon", fixed)})
     (found,) = audit(mat, calibration, setpoint=SETPOINT)
     assert found.ok and found.reading.tool == "smap"
+    # state-dependent conversion (one state per pre-amp gain), EM gain from the files
+    modes = {**fixed, "conversion": ("state dependent", ""), "emgain": ("metadata", "")}
+    savemat(mat, {"cameras": _smap_camera("iXon", modes, [{"conversion": f"{PHI}"},
+                                                          {"conversion": f"{PHI * 1.1}"}])})
+    right, wrong = audit(mat, calibration, setpoint=SETPOINT, tolerance=0.5)
+    assert right.reading.where == "cameras > iXon > state 1"
+    assert right.reading.fields[2].value == SETPOINT  # the set-point the files record
+    assert wrong.photon_bias == pytest.approx(1.1 * (1 + right.photon_bias) - 1)
     md = tmp_path / "movie.md"
     md.write_text("from PYME.IO.MetaDataHandler import NestedClassMDHandler\n"
                   f"md['Camera.ADOffset'] = {OFFSET}\nmd['Camera.ElectronsPerCount'] = "

@@ -271,23 +271,73 @@ def _gdsc(doc, path):
 
 
 def _smap(doc, path):
-    readings = []
-    for where, cam in _find_tables(doc, ("conversion", "emgain")):
-        name = " > ".join(where) or "camera"
-        phi = _positive(_scalar(cam["conversion"]), f"{name}: conversion", path)
-        em = bool(_scalar(cam.get("EMon", True)))
-        gain = _positive(_scalar(cam["emgain"]), f"{name}: emgain", path) if em else 1.0
-        fields = [Field("conversion", phi, "e_per_adu"),
-                  Field("emgain", gain, "em_gain", "" if em else "EMon false: taken as 1")]
-        baseline = None
-        if "offset" in cam:
-            baseline = _number(_scalar(cam["offset"]), f"{name}: offset", path)
-            fields.insert(0, Field("offset", baseline, "offset"))
-        readings.append(Reading("smap", name, tuple(fields), phi / gain,
-                                "conversion / emgain", baseline))
+    readings = [_smap_reading(" > ".join(where) or "camera", cam, path)
+                for where, cam in _find_tables(doc, ("conversion", "emgain"))]
     if not readings:
         raise InputError(f"'{path}': no camera settings with conversion and emgain: not "
                          "SMAP's")
+    return readings
+
+
+def _smap_reading(name, cam: dict, path, gain_note="") -> Reading:
+    """One SMAP camera (state): ``conversion`` e⁻/ADU, ``emgain``, ``offset`` ADU and
+    ``EMon``, as SMAP's CameraConverter uses them."""
+    phi = _positive(_scalar(cam["conversion"]), f"{name}: conversion", path)
+    em = str(_scalar(cam.get("EMon", True))).strip().lower() not in ("0", "false", "0.0")
+    gain = _positive(_scalar(cam["emgain"]), f"{name}: emgain", path) if em else 1.0
+    fields = [Field("conversion", phi, "e_per_adu"),
+              Field("emgain", gain, "em_gain", gain_note if em else "EMon false: taken as 1")]
+    baseline = None
+    if cam.get("offset") is not None:
+        baseline = _number(_scalar(cam["offset"]), f"{name}: offset", path)
+        fields.insert(0, Field("offset", baseline, "offset"))
+    return Reading("smap", name, tuple(fields), phi / gain, "conversion / emgain", baseline)
+
+
+def _cell_text(value) -> str:
+    """A MATLAB cell's text (a char array read by SciPy), "" where empty."""
+    arr = np.asarray(value)
+    return "" if arr.size == 0 else str(arr.reshape(-1)[0]).strip()
+
+
+def _smap_cameras(raw, path, setpoint) -> list[Reading] | None:
+    """SMAP's Camera Manager database (``settings/cameras.mat``) as SMAP's
+    ``getCameraCalibration`` reads it, or None where ``raw`` is not one. Each camera
+    (``cameras(k)``, named by ``ID.name``) has a parameter table ``par``, one row per
+    parameter: name, mode, fixed value, metadata field, –, conversion. A ``fix``
+    parameter's value is in the table; a ``state dependent`` one in each state's
+    ``par`` (one reading per state); a ``metadata`` one comes from the image files:
+    the EM gain then is the set-point the files record."""
+    cameras = raw.get("cameras")
+    if cameras is None or not all(hasattr(c, "par") for c in np.asarray(cameras).reshape(-1)):
+        return None
+    readings = []
+    for cam in np.asarray(cameras).reshape(-1):
+        name = _cell_text(getattr(np.asarray(cam.ID).reshape(-1)[0], "name", "camera"))
+        table = np.asarray(cam.par, dtype=object)
+        if table.ndim != 2 or table.shape[1] < 3:
+            raise InputError(f"'{path}': camera {name!r}: its par is not SMAP's table")
+        rows = {_cell_text(table[i, 0]): i for i in range(table.shape[0])}
+        states = list(np.asarray(getattr(cam, "state", [])).reshape(-1))
+        wanted = [k for k in ("conversion", "emgain", "offset", "EMon") if k in rows]
+        if not {"conversion", "emgain"} <= set(wanted):
+            raise InputError(f"'{path}': camera {name!r} has no conversion or emgain row")
+        modes = {k: _cell_text(table[rows[k], 1]) for k in wanted}
+        if modes["conversion"] == "metadata":
+            raise InputError(f"'{path}': camera {name!r} takes its conversion from the "
+                             "image files' metadata; audit the number those files hold")
+        dependent = any(m == "state dependent" for m in modes.values())
+        for j, state in enumerate(states if dependent else [None]):
+            values, note = {}, ""
+            for k in wanted:
+                if modes[k] == "fix":
+                    values[k] = _cell_text(table[rows[k], 2])
+                elif modes[k] == "state dependent":
+                    values[k] = _cell_text(np.asarray(state.par, dtype=object)[rows[k], 1])
+                elif k == "emgain":  # from the files' metadata: the set-point they record
+                    values[k], note = setpoint, "from the files' metadata: the set-point"
+            where = f"cameras > {name}" + ("" if state is None else f" > state {j + 1}")
+            readings.append(_smap_reading(where, values, path, note))
     return readings
 
 
@@ -300,14 +350,19 @@ def _scalar(value):
     return item.item() if hasattr(item, "item") else item
 
 
-def _mat_tree(path):
-    """A MATLAB file as nested dicts (structs become dicts)."""
+def _mat_raw(path, squeeze=False):
+    """A MATLAB file's variables as SciPy reads them (structs as objects)."""
     from scipy.io import loadmat
 
     try:
-        raw = loadmat(path, squeeze_me=True, struct_as_record=False)
+        return loadmat(path, squeeze_me=squeeze, struct_as_record=False)
     except Exception as exc:  # noqa: BLE001 - a damaged file is one line
         raise InputError(f"'{path}': not a readable MATLAB file ({exc})") from None
+
+
+def _mat_tree(path):
+    """A MATLAB file as nested dicts (structs become dicts)."""
+    raw = _mat_raw(path, squeeze=True)
 
     def convert(value, depth=0):
         if depth > 20:
@@ -424,6 +479,10 @@ def read_tool_file(path, *, tool=None, setpoint=1.0, tool_gain=None) -> list[Rea
         raise OptionError(f"unknown tool {tool!r}; one of {', '.join(TOOL_NAMES)}")
     text, doc = None, None
     if path.suffix.lower() == ".mat":
+        if tool in (None, "smap"):
+            found = _smap_cameras(_mat_raw(path), path, setpoint)
+            if found is not None:
+                return found
         doc = _mat_tree(path)
     elif path.suffix.lower() != ".xml":
         try:
