@@ -394,8 +394,8 @@ def calibration(camera, setpoint, *, db=None, readout=None):
                           f"at set-point {format_setpoint(s)}x, and none with two or more "
                           "multiplied set-points whose gain curve could predict it")
     newest = _checked(_one_state(curved, camera)[-1])
-    curve = gain_curve_of([newest.path])
-    return calibration_at(load_calibration(newest.path), s, curve,
+    cal = load_calibration(newest.path)
+    return calibration_at(cal, s, gain_curve_of([cal]),
                           source=f"of database entry {newest.id} ({newest.date[:10]})")
 
 

@@ -211,9 +211,9 @@ def fit_gain_curve(points) -> GainCurve:
 
 
 def gain_curve_of(results, *, accept_mismatch=()) -> GainCurve:
-    """The gain curve of calibration results (files or directories), with the camera's
-    identity and the results' SHA-256 recorded (see :func:`measured_gains`)."""
-    cals = [load_calibration(r) for r in results]
+    """The gain curve of calibrations (loaded, or result files or directories), with the
+    camera's identity and the results' SHA-256 recorded (see :func:`measured_gains`)."""
+    cals = [r if isinstance(r, Calibration) else load_calibration(r) for r in results]
     curve = fit_gain_curve(measured_gains(cals, accept_mismatch=accept_mismatch))
     return dataclasses.replace(
         curve, camera=cals[0].identity(),

@@ -221,13 +221,15 @@ def _picasso(cal, s, v, out, qe, pixel_size_nm, name):
     return [_write_text(out / "picasso-config.yaml", text)]
 
 
-def _picasso_modes(cals, s, out, qe, pixel_size_nm, name):
+def _picasso_modes(rows, s, out, pixel_size_nm, name):
     """One Picasso camera whose ``Sensitivity`` is nested by read-out mode (its
     ``Sensitivity Categories``: the Micro-Manager properties that differ between the
     calibrations), so that Picasso picks the mode a movie's metadata names. One
     ``DefaultGain`` serves every mode: each Sensitivity folds in its own mode's true
     gain at the set-point (1 for a mode without multiplication, e.g. the conventional
-    amplifier), so Sensitivity / DefaultGain = φ / g in every mode."""
+    amplifier), so Sensitivity / DefaultGain = φ / g in every mode. ``rows``: (calibration,
+    set-point used, :func:`camera_values`) per mode."""
+    cals = [c for c, _, _ in rows]
     differ = [k for k in MODE_FIELDS if len({c.camera.get(k) for c in cals}) > 1]
     for c in cals:
         missing = [k for k in differ if c.camera.get(k) is None]
@@ -235,10 +237,6 @@ def _picasso_modes(cals, s, out, qe, pixel_size_nm, name):
             raise OptionError(f"{c.label}: its files do not record its {', '.join(missing)}; "
                               "Picasso's table of read-out modes needs it for every "
                               "calibration")
-    rows = []
-    for c in cals:
-        at = s if s in c.setpoints else 1.0  # a mode without EM multiplication: 1x
-        rows.append((c, at, camera_values(c, at)))
     em_gains = [v["em_gain"]["median"] for _, at, v in rows if at != 1.0]
     gain = max(1, round(em_gains[0])) if em_gains else 1
     sensitivity, lines = {}, []
@@ -553,7 +551,8 @@ def export_modes(calibrations, to: str, out, *, setpoint=None, qe=None, pixel_si
         One per read-out mode, of one camera.
     to, out, setpoint, qe, pixel_size_nm, camera_name
         As :func:`export`; ``setpoint`` is needed where a mode has several multiplied
-        set-points. A mode without multiplication enters at 1×.
+        set-points. A mode without multiplication enters at 1×. ``qe`` is accepted for
+        the same call as :func:`export` and not written: Picasso uses no QE.
 
     Raises
     ------
@@ -577,11 +576,12 @@ def export_modes(calibrations, to: str, out, *, setpoint=None, qe=None, pixel_si
                           + ", ".join(format_setpoint(x) + "x" for x in multiplied)
                           + "; give --setpoint G (the set-point the movies were recorded at)")
     s = float(setpoint) if setpoint is not None else (multiplied[0] if multiplied else 1.0)
-    for c in cals:  # refused before anything is made
-        if s in c.setpoints or len(c.setpoints) == 1:
-            camera_values(c, s if s in c.setpoints else 1.0)
-        else:
+    rows = []  # refused before anything is made
+    for c in cals:
+        if s not in c.setpoints and len(c.setpoints) > 1:
             c.gain(s)  # raises, naming what it has
+        at = s if s in c.setpoints else 1.0  # a mode without EM multiplication: 1x
+        rows.append((c, at, camera_values(c, at)))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    return _picasso_modes(cals, s, out, qe, pixel_size_nm, camera_name)
+    return _picasso_modes(rows, s, out, pixel_size_nm, camera_name)
