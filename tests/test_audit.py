@@ -46,7 +46,8 @@ def calibration(tmp_path_factory):
 def test_an_export_agrees_and_ten_percent_off_is_named(calibration, tool, tmp_path, capsys):
     assert set(EXPORTED) == set(TOOL_NAMES)
     name, pattern = EXPORTED[tool]
-    (path,) = [f for f in export(calibration, tool, tmp_path / "exp", setpoint=SETPOINT)
+    (path,) = [f for f in export(calibration, tool, tmp_path / "exp", setpoint=SETPOINT,
+                                 pixel_size_nm=107)
                if f.name == name]
     (found,) = audit(path, calibration, setpoint=SETPOINT)
     assert found.ok and found.reading.tool == tool
@@ -156,6 +157,48 @@ def test_smap_cameras_mat_and_pyme_md(calibration, tmp_path):
                   "md['Camera.Name'] = __import__('os').system('echo never run')\n")
     (found,) = audit(md, calibration, setpoint=SETPOINT)
     assert found.reading.tool == "pyme" and found.photon_bias == pytest.approx(0.2)
+
+
+def test_smap_camera_manager_file_export_is_what_smap_reads(calibration, tmp_path, capsys):
+    """The exported ``smap-cameras.mat`` is a Camera Manager database SMAP's
+    getCameraCalibration can use: one camera named Default (SMAP's fallback for files it
+    does not recognise), its 15-row parameter table in SMAP's order, one state; audit reads
+    it back as agreeing, and with its conversion 10 % off names the field."""
+    from scipy.io import loadmat
+
+    with pytest.warns(UserWarning, match="SMAP's default 0.1 µm is written; give --pixel-size"):
+        files = export(calibration, "smap", tmp_path / "exp", setpoint=SETPOINT)
+    (mat,) = [f for f in files if f.name == "smap-cameras.mat"]
+    raw = loadmat(mat, struct_as_record=False, squeeze_me=True)
+    camera = raw["cameras"]
+    assert camera.ID.name == "Default" and [str(x) for x in raw["camtab"]] == ["Default", "select", "[]"]
+    table = np.asarray(camera.par, dtype=object)
+    assert table.shape == (15, 7)
+    assert list(table[:, 0]) == ["EMon", "cam_pixelsize_um", "conversion", "emgain", "offset",
+                                 "roi", "exposure", "timediff", "comment", "numberOfFrames",
+                                 "Width", "Height", "roimode", "correctionfile",
+                                 "imagemetadata"]
+    rows = {row[0]: row for row in table}
+    assert float(rows["conversion"][2]) == pytest.approx(PHI)
+    assert float(rows["emgain"][2]) == pytest.approx(GAINS[SETPOINT])
+    assert rows["EMon"][2] == "1" and rows["correctionfile"][2] == "smap-correction"
+    assert np.asarray(camera.state.par, dtype=object).shape == (15, 2)
+    (found,) = audit(mat, calibration, setpoint=SETPOINT)
+    assert found.ok and found.reading.where == "cameras > Default"
+    # the same database with its conversion 10 % off
+    raw = loadmat(mat, struct_as_record=False)
+    cam = raw["cameras"][0, 0]
+    cam.par[2, 2] = np.array([f"{PHI * 1.1!r}"])
+    off = tmp_path / "cameras.mat"
+    savemat(off, {"cameras": {"ID": {"name": "Default", "tag": "select", "value": ""},
+                              "par": cam.par, "state": cam.state[0, 0]}})
+    assert cli.main(["audit", str(off), "--calibration", str(calibration),
+                     "--setpoint", "100"]) == 1
+    assert "OFF: photons +10.0 % (most of it conversion)" in capsys.readouterr().out
+    # given the pixel size, no warning and SMAP's micrometres
+    files = export(calibration, "smap", tmp_path / "px", setpoint=SETPOINT, pixel_size_nm=107)
+    raw = loadmat(files[-1], struct_as_record=False, squeeze_me=True)
+    assert float(np.asarray(raw["cameras"].par, dtype=object)[1, 2]) == pytest.approx(0.107)
 
 
 def test_files_that_are_no_tools_camera_are_one_line(calibration, tmp_path, capsys):

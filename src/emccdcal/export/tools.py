@@ -342,8 +342,9 @@ def _thunderstorm(cal, s, v, out, qe, pixel_size_nm, name):
 
 def _smap(cal, s, v, out, qe, pixel_size_nm, name):
     """SMAP's camera settings (``loc_cameraSettings``: ``EMon``, ``emgain``, ``conversion``
-    e⁻/ADU, ``offset`` ADU) and its camera correction file (``offsetmap`` ADU, ``gainmap``
-    photons per ADU = φ/g, ``varmap`` ADU², indexed [row, col])."""
+    e⁻/ADU, ``offset`` ADU), as JSON and as a Camera Manager file (``smap-cameras.mat``),
+    and its camera correction file (``offsetmap`` ADU, ``gainmap`` photons per ADU = φ/g,
+    ``varmap`` ADU², indexed [row, col])."""
     from scipy.io import savemat
 
     offset, sigma = cal.dark(s)
@@ -360,8 +361,58 @@ def _smap(cal, s, v, out, qe, pixel_size_nm, name):
                       + " ".join(r["sha256"][:12] for r in prov["results"])}
     if pixel_size_nm is not None:
         par["cam_pixelsize_um"] = _number(pixel_size_nm / 1000.0)
+    else:
+        warnings.warn("SMAP's Camera Manager file holds a pixel size: SMAP's default "
+                      "0.1 µm is written; give --pixel-size NM, or set it in the Camera "
+                      "Manager", stacklevel=3)
     doc = {"loc_cameraSettings": par, "emccdcal": prov}
-    return [_write_text(out / "smap-camera.json", json.dumps(doc, indent=2) + "\n"), mat]
+    cameras = out / "smap-cameras.mat"
+    atomic_write(cameras, lambda p: savemat(p, _smap_camera_manager(par)))
+    return [_write_text(out / "smap-camera.json", json.dumps(doc, indent=2) + "\n"), mat,
+            cameras]
+
+
+#: SMAP's Camera Manager parameter table (``CameraManager.m``, ``intpartable``): name,
+#: mode, value of a new camera, conversion SMAP applies to the text. Rows SMAP reads from
+#: the image files ("metadata") are left to them; the others are fixed to our numbers.
+_SMAP_TABLE = (("EMon", "fix", "1", "str2double(X)"),
+               ("cam_pixelsize_um", "fix", "0.1", "str2double(X)"),
+               ("conversion", "fix", "1", "str2double(X)"),
+               ("emgain", "fix", "100", "str2double(X)"),
+               ("offset", "fix", "100", "str2double(X)"),
+               ("roi", "fix", "", "str2num(X)"),
+               ("exposure", "fix", "1", "str2double(X)"),
+               ("timediff", "fix", "1", "str2double(X)"),
+               ("comment", "fix", "settings not initialized", ""),
+               ("numberOfFrames", "metadata", "0", "str2double(X)"),
+               ("Width", "metadata", "0", "str2double(X)"),
+               ("Height", "metadata", "0", "str2double(X)"),
+               ("roimode", "fix", "none", ""),
+               ("correctionfile", "fix", "", ""),
+               ("imagemetadata", "fix", "", ""))
+
+
+def _smap_camera_manager(par: dict) -> dict:
+    """SMAP's camera database (the variables ``cameras`` and ``camtab`` its Camera Manager
+    saves and ``getCameraCalibration`` reads) holding one camera named ``Default``: the
+    one SMAP uses for files whose camera it does not recognise (a camera of another name
+    would need an identifying metadata tag, which differs by adapter). Every number is
+    fixed (mode ``fix``); the one state matches any file."""
+    def text(key, value):
+        if key == "EMon":
+            return "1" if value else "0"
+        return value if isinstance(value, str) else repr(float(value))
+
+    values = {key: text(key, par[key]) if key in par else default
+              for key, _, default, _ in _SMAP_TABLE}
+    cells = lambda rows: np.array(rows, dtype=object)  # noqa: E731 - MATLAB cell arrays
+    table = cells([[key, mode, values[key], "select", "", conversion, ""]
+                   for key, mode, _, conversion in _SMAP_TABLE])
+    state = {"statelist": cells([["State 1"]]), "defpar": cells([["select", ""]]),
+             "par": cells([[key, values[key]] for key, *_ in _SMAP_TABLE])}
+    entry = {"ID": {"name": "Default", "tag": "select", "value": ""}, "par": table,
+             "state": state}
+    return {"cameras": entry, "camtab": cells([["Default", "select", ""]])}
 
 
 def _gdsc(cal, s, v, out, qe, pixel_size_nm, name):
