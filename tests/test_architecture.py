@@ -27,6 +27,7 @@ ALLOWED = {
     "simulate": {"model", "fit", "result"},
     "report": {"data", "model", "fit", "result", "beads", "export"},
     "export": {"data", "model", "result"},
+    "acquire": {"data", "model", "fit", "simulate", "result"},
 }
 
 

@@ -25,6 +25,7 @@ __all__ = ["main", "build_parser", "VERBS"]
 #: Verbs in the order of ``--help``, with their one-line help.
 VERBS = {
     "demo": "simulate the paper's data and calibrate it (is-adu, then gs)",
+    "plan": "what to record to reach a target precision (light, frames, darks)",
     "simulate": "write synthetic stacks, darks, a manifest and truth.json",
     "calibrate": "calibrate from a manifest (the main job)",
     "posterior": "MCMC posterior of single pixels",

@@ -29,7 +29,7 @@ from .._optimize import maximize, solve
 from ..model import noise
 
 __all__ = ["AcquisitionBlock", "FitResult", "Layout", "fit", "log_likelihood", "profile_bounds",
-           "e_per_adu_sensitivity"]
+           "e_per_adu_sensitivity", "expected_information"]
 
 # Values whose model probability is below this fraction of the pixel's peak are beyond
 # what the FFT resolves (round-off ~1e-16 of the peak): they count at this floor, with
@@ -412,6 +412,47 @@ def value_scores(layout, blocks, x):
         j_u = _model_jacobian(jac, a, D)
         out.append((np.einsum("pku,puf->pkf", u, j_u), acq.counts))
     return out
+
+
+def expected_information(layout, blocks, x):
+    """The Fisher information of one frame of each acquisition at ``x``, and its cross
+    information with the offset and read-noise maps: what :func:`fit` reports at data
+    that follow the model exactly.
+
+    Each is the expectation under the model of the outer product of the per-frame scores,
+    Σ_k p(k) s(k) s(k)ᵀ over every count k the model reaches (the window of the fit),
+    from the same scores the fit uses; N frames carry N times as much. The blocks give
+    the maps and the register; their histograms are not used.
+
+    Returns
+    -------
+    info : ndarray, shape (P, A, F, F)
+        Per frame, of the free parameters ``x``.
+    cross : ndarray, shape (P, A, F, 2)
+        Per frame, of ``x`` with (offset, read noise) in ADU: with ``N`` frames, the
+        estimate moves by ``cov · N · cross`` per ADU of map error.
+    """
+    logs, jac = layout.native(x)
+    P, F = x.shape
+    info = np.zeros((P, len(blocks), F, F))
+    cross = np.zeros((P, len(blocks), F, 2))
+    for a, acq in enumerate(blocks):
+        coords, D = _native_to_model(logs[:, a], acq)
+        values = [np.exp(c) for c in coords]
+        rows = _register(acq).rows_at(values, acq.poisson_normal)
+        lo, hi = noise.window_extent(rows, acq.offset, acq.read_noise, width=8.0)
+        start = np.floor(lo).astype(np.int64)
+        support = start[:, None] + np.arange(int((np.ceil(hi) - start).max()) + 1)
+        names = rows.names + ("offset", "read_noise")
+        model = _ModelAtData(replace(acq, values=support), rows, derivs=True, names=names)
+        p = np.where(model.low, 0.0, model.pv)
+        scale = np.where(model.low, 0.0, 1.0 / model.pv)
+        u = np.stack([model.scores[nm] * v[:, None] for nm, v in zip(rows.names, values)], -1)
+        s = np.einsum("pku,puf->pkf", u * scale[..., None], _model_jacobian(jac, a, D))
+        m = np.stack([model.scores["offset"], model.scores["read_noise"]], -1) * scale[..., None]
+        info[:, a] = np.einsum("pk,pkf,pkg->pfg", p, s, s)
+        cross[:, a] = np.einsum("pk,pkf,pkm->pfm", p, s, m)
+    return info, cross
 
 
 def log_likelihood(layout, blocks, x):

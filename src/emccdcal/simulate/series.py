@@ -363,6 +363,7 @@ def simulate_gain_series(
     em_gain=None,
     photoelectrons=_DEFAULTS["photoelectrons"],
     offsets=None,
+    frames=None,
     seed=None,
     progress=False,
     camera: Camera | None = None,
@@ -391,6 +392,9 @@ def simulate_gain_series(
         between acquisitions (what ``gs-hierarchical`` models, docs/methods.md).
     offsets : sequence of float, optional
         Offset per set-point (ADU); overrides the camera's ``offset``/``offset_drop``.
+    frames : int or sequence of int, optional
+        Signal frames at every set-point, or one number per set-point (what a plan asks
+        for, ``emccdcal plan``); default the camera's ``frames``.
     seed : int, optional
         Seed (≥ 0); None draws one, recorded in truth.json. The same seed and options
         give identical files.
@@ -407,6 +411,8 @@ def simulate_gain_series(
     -------
     SimulatedSeries
     """
+    if frames is not None and np.ndim(frames) == 0:  # the camera's own field
+        camera_options, frames = camera_options | {"frames": frames}, None
     camera = Camera.of(camera, **camera_options)
     opts = _options(camera, seed) | {"setpoints": setpoints, "offsets": offsets}
     sps = _setpoint_list(setpoints)
@@ -420,6 +426,15 @@ def simulate_gain_series(
     opts.update(setpoints=sps, em_gain=gains,
                 photoelectrons=Es[0] if len(set(Es)) == 1 else Es)
     acqs = _setpoint_acquisitions("gain-GS/{}-gain", sps, gains, Es, offsets, opts)
+    if frames is not None:
+        counts = list(frames)
+        if len(counts) != len(sps):
+            raise OptionError(f"frames has {len(counts)} value(s) but there are {len(sps)} "
+                              "set-points")
+        for a, n in zip(acqs, counts):
+            a["frames_n"] = check_int("frames", n, minimum=2)
+        each = [a["frames_n"] for a in acqs]
+        opts["frames"] = each[0] if len(set(each)) == 1 else each
     darks = [a | {"frames_n": opts["dark_frames"]} for a in acqs]
     return _run_series(outdir, "gain-series", acqs, darks, camera, opts, progress)
 

@@ -1,0 +1,606 @@
+"""``emccdcal plan``: what to record to reach a target precision, from the Fisher
+information of the exact likelihood.
+
+Every frame of an acquisition carries a known amount of information about the
+parameters the calibration estimates: the expected outer product of its scores
+(:func:`emccdcal.fit.engine.expected_information`), the same scores the fit uses. N
+frames carry N times as much, so the standard error a calibration will report is known
+before a frame is recorded, for any number of frames at each set-point or level:
+
+    cov = H⁻¹ + Σ_stacks S V Sᵀ,   H = Σ_a N_a I_a,   S = H⁻¹ Σ_a N_a C_a,
+
+``I_a`` the information of one frame of acquisition ``a``, ``C_a`` its cross information
+with the offset and read-noise maps, and ``V = diag(σ²/N_dark, σ²/(2(N_dark − 1)))`` the
+variances of maps made from ``N_dark`` dark frames (what the fit adds for them). No
+number of light frames averages the offset map's error away, so the planner chooses the
+dark frames too.
+
+The plan is the least total of frames (light and dark) that brings every targeted
+relative standard error to the target: frames are added where they buy the most
+precision per frame (a greedy allocation over the acquisitions and the darks, then
+trimmed), for each light level of a grid, and the cheapest level wins. The light is kept
+clear of the ADC's range: the brightest acquisition's mean plus :data:`ADC_MARGIN_SD`
+standard deviations stays below :data:`ADC_FILL` of the range (and below the register's
+full well where one is given).
+
+Examples
+--------
+>>> from emccdcal.acquire.plan import plan
+>>> p = plan(method="gs", e_per_adu=3.859, read_noise=15.5, offset=587.7, adc_bits=16,
+...          setpoints=[1, 5, 25, 100, 300], target_se=0.5)
+>>> p.reached and p.total_frames < 5 * 5000
+True
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .. import defaults
+from .._util import check_int, check_number
+from ..errors import OptionError
+from ..fit import engine, layouts
+from ..model import noise
+
+__all__ = ["Plan", "Acquisition", "plan", "predict", "plan_text", "read_plan", "PLAN_METHODS",
+           "ADC_FILL", "ADC_MARGIN_SD"]
+
+#: The methods a plan is made for.
+PLAN_METHODS = ("gs", "is-adu", "is-gain")
+#: The brightest acquisition's mean plus this many SDs ...
+ADC_MARGIN_SD = 6.0
+#: ... stays below this fraction of the ADC's range (and of the register's full well).
+ADC_FILL = 0.9
+#: Light levels tried for a gain series, as fractions of the brightest the ADC allows.
+_GS_FRACTIONS = np.geomspace(0.05, 1.0, 10)
+#: Levels of an intensity series, as fractions of the brightest (the paper's doubling).
+_IS_FRACTIONS = 2.0 ** -np.arange(6)[::-1]
+#: Frames a stack starts with, and the least a plan asks for.
+_FIRST_FRAMES = 50
+
+
+@dataclass(frozen=True)
+class Acquisition:
+    """One stack of a plan.
+
+    Attributes
+    ----------
+    setpoint : float
+        EM gain set-point (1: no multiplication).
+    photoelectrons : float
+        Light, e⁻ per pixel per frame (at the sensor, before multiplication).
+    frames : int
+        Frames to record.
+    em_gain : float
+        The true gain the plan assumed (the set-point unless told), dimensionless.
+    predicted_se : dict
+        Predicted relative standard error per pixel, percent, of each estimate of this
+        stack: ``em_gain`` (gain series, is-gain) and ``photoelectrons``.
+    """
+
+    setpoint: float
+    photoelectrons: float
+    frames: int
+    em_gain: float
+    predicted_se: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A planned calibration: the stacks to record and the precision they will give.
+
+    Attributes
+    ----------
+    method : str
+        ``gs``, ``is-adu`` or ``is-gain``.
+    acquisitions : tuple of Acquisition
+        Light stacks (a gain series: one per set-point; an intensity series: one per
+        level).
+    dark_frames : int
+        Dark frames per dark stack: one per set-point (gain series) or one for the
+        series (intensity series).
+    target_se : float
+        The target, percent (relative SE per pixel of each em_gain; of e_per_adu for
+        is-adu).
+    predicted_se : float
+        The worst predicted relative SE of a targeted estimate, percent.
+    reached : bool
+        Whether ``predicted_se`` meets the target within ``max_frames``.
+    camera : dict
+        What the plan assumed: e_per_adu (e⁻/ADU), read_noise (ADU), offset (ADU),
+        adc_bits, em_model, stages, full_well (e⁻ or None).
+    frame_rate_hz : float or None
+        Frames per second, for the time.
+    max_frames : int or None
+        Most frames of one stack.
+    """
+
+    method: str
+    acquisitions: tuple
+    dark_frames: int
+    target_se: float
+    predicted_se: float
+    reached: bool
+    camera: dict
+    frame_rate_hz: float | None = None
+    max_frames: int | None = None
+
+    @property
+    def dark_stacks(self) -> int:
+        return len(self.acquisitions) if self.method == "gs" else 1
+
+    @property
+    def total_frames(self) -> int:
+        """Light and dark frames together."""
+        return sum(a.frames for a in self.acquisitions) + self.dark_stacks * self.dark_frames
+
+    @property
+    def seconds(self) -> float | None:
+        """Recording time at the frame rate, s (None without one)."""
+        return None if not self.frame_rate_hz else self.total_frames / self.frame_rate_hz
+
+    @property
+    def photoelectrons(self) -> float:
+        """The light of a gain series (shared by its set-points), e⁻ per pixel per frame."""
+        return self.acquisitions[0].photoelectrons
+
+
+def _nice(n: float) -> int:
+    """``n`` rounded up to two significant figures (3721 → 3800), at least the least
+    a plan asks for."""
+    n = max(float(n), _FIRST_FRAMES)
+    step = 10 ** max(0, int(math.floor(math.log10(n))) - 1)
+    return int(math.ceil(n / step - 1e-9) * step)
+
+
+class _Design:
+    """The per-frame information of a set of acquisitions, for P candidate light
+    levels at once (the engine's pixels), and the covariance of any allocation."""
+
+    def __init__(self, method, setpoints, gains, photoelectrons, camera, model):
+        # photoelectrons: (P, A) light of each acquisition per candidate
+        self.method = method
+        P, A = photoelectrons.shape
+        phi, sigma, s0 = camera["e_per_adu"], camera["read_noise"], camera["offset"]
+        blocks = []
+        for a in range(A):
+            E, g = photoelectrons[:, a], gains[a]
+            mean = s0 + E * g / phi
+            var = noise.variance(E, g, phi, s0, sigma, em_model=model)
+            blocks.append(engine.AcquisitionBlock(
+                values=np.zeros((P, 1), dtype=np.int64), counts=np.zeros((P, 1)),
+                offset=np.full(P, s0), read_noise=np.full(P, sigma),
+                poisson_normal=bool(setpoints[a] == 1), mean=np.asarray(mean, float),
+                var=np.asarray(var, float), n=np.ones(P), em_model=model))
+        series = layouts.Series(blocks, np.asarray(setpoints, float), None,
+                                np.full(P, phi))
+        layout, _ = layouts.build_layout(method, series)
+        self.names = layout.names
+        x = np.zeros((P, len(self.names)))
+        for j, name in enumerate(self.names):
+            base, _, index = name.partition("[")
+            a = int(index[:-1]) if index else None
+            x[:, j] = np.log({"ln_photoelectrons": photoelectrons[:, a or 0],
+                              "ln_em_gain": np.full(P, gains[a if a is not None else 0]),
+                              "ln_e_per_adu": np.full(P, phi)}[base])
+        self.info, self.cross = engine.expected_information(layout, blocks, x)
+        self.sigma2 = sigma ** 2
+        # parameters each acquisition informs (an empty level's E is not estimated)
+        self.informs = np.abs(layout.matrix).sum(axis=1) > 0  # (A, F)
+
+    def covariance(self, frames, dark, level=None):
+        """Covariance of the free parameters (C, P, F, F) for allocations ``frames``
+        (C, A) and dark frames ``dark`` (C,); NaN rows for parameters no frame informs.
+        With ``level``, of that candidate light only (P = 1)."""
+        info, crosses = self.info, self.cross
+        if level is not None:
+            info, crosses = info[level:level + 1], crosses[level:level + 1]
+        H = np.einsum("ca,paij->cpij", frames, info)
+        F = H.shape[-1]
+        active = (frames[:, :, None] > 0) & self.informs[None]  # (C, A, F)
+        live = active.any(axis=1)  # (C, F)
+        eye = np.eye(F)
+        # an uninformed parameter gets unit information and is reported as NaN
+        H = H + (~live)[:, None, :, None] * eye
+        cov0 = np.linalg.inv(H)
+        v = np.stack([self.sigma2 / dark, self.sigma2 / (2.0 * np.maximum(dark - 1, 1))], -1)
+        weighted = np.einsum("ca,pafm->cpafm", frames, crosses)
+        if self.method == "gs":  # one dark stack per set-point
+            sens = np.einsum("cpfg,cpagm->cpafm", cov0, weighted)
+            maps = np.einsum("cpafm,cm,cpagm->cpfg", sens, v, sens)
+        else:  # one dark stack for the series: its errors move every level together
+            sens = np.einsum("cpfg,cpgm->cpfm", cov0, weighted.sum(axis=2))
+            maps = np.einsum("cpfm,cm,cpgm->cpfg", sens, v, sens)
+        cov = cov0 + maps
+        cov = np.where((live[:, None, :, None] & live[:, None, None, :]), cov, np.nan)
+        return cov
+
+
+def _targets(method, names):
+    """Indices of the parameters a plan's target is on."""
+    key = "ln_e_per_adu" if method == "is-adu" else "ln_em_gain"
+    return [j for j, n in enumerate(names) if n.partition("[")[0] == key]
+
+
+def _relative_se(cov, idx):
+    """Relative SEs (percent) of log-parameters ``idx``: 100·SD of ln θ."""
+    return 100.0 * np.sqrt(np.stack([cov[..., j, j] for j in idx], -1))
+
+
+def _allocate(design, p, targets, target, max_frames, dark_cost):
+    """Greedy allocation for candidate light ``p``: frames (A,), dark (int), worst SE."""
+    A = design.info.shape[1]
+    state = np.r_[np.where(np.arange(A) < A, _FIRST_FRAMES, 0), _FIRST_FRAMES].astype(float)
+    if design.method != "gs":  # an intensity series starts at its brightest level only
+        state[:A] = 0.0
+        state[A - 1] = _FIRST_FRAMES
+    cost = np.r_[np.ones(A), dark_cost]
+    cap = np.inf if max_frames is None else float(max_frames)
+
+    def worst(states):
+        cov = design.covariance(states[:, :A], states[:, A], level=p)[:, 0]
+        se = _relative_se(cov, targets)
+        return np.nanmax(np.where(np.isnan(se), np.inf, se), axis=1), se
+
+    def excess(se):
+        return np.sum(np.maximum((se / target) ** 2 - 1.0, 0.0), axis=-1)
+
+    now, se = worst(state[None])
+    for _ in range(2000):
+        if now[0] <= target:
+            break
+        steps = np.maximum(_FIRST_FRAMES, np.ceil(0.2 * state))
+        trial = state[None] + np.diag(np.minimum(steps, cap - state))
+        moved = trial.sum(axis=1) > state.sum()
+        if not moved.any():
+            break
+        w, s = worst(trial)
+        e0 = excess(np.nan_to_num(se, nan=1e9))[0]
+        gain_per_frame = (e0 - excess(np.nan_to_num(s, nan=1e9))) / (
+            np.maximum((trial - state[None]) @ cost, 1e-9))
+        gain_per_frame[~moved] = -np.inf
+        pick = int(np.argmax(gain_per_frame))
+        state, now, se = trial[pick], w[pick:pick + 1], s[pick:pick + 1]
+    # Trim: take back frames the greedy steps overshot, largest saving first.
+    for _ in range(200):
+        if now[0] > target:
+            break
+        cut = np.floor(0.05 * state)
+        trial = state[None] - np.diag(cut)
+        floor = np.r_[np.full(A, 0.0 if design.method != "gs" else _FIRST_FRAMES),
+                      _FIRST_FRAMES]
+        ok_cut = (cut > 0) & (np.diag(trial) >= floor)
+        w, s = worst(trial)
+        ok = ok_cut & (w <= target)
+        if not ok.any():
+            break
+        pick = int(np.argmax(np.where(ok, cut * cost, -1)))
+        state, now, se = trial[pick], w[pick:pick + 1], s[pick:pick + 1]
+    return state[:A], state[A], float(now[0])
+
+
+def _brightest(setpoint_gain, camera, model) -> float:
+    """The most light (e⁻ per pixel per frame) whose mean plus ADC_MARGIN_SD SDs, at
+    gain ``setpoint_gain``, stays below ADC_FILL of the ADC range and of the full well."""
+    phi, sigma, s0 = camera["e_per_adu"], camera["read_noise"], camera["offset"]
+    top = ADC_FILL * (2 ** camera["adc_bits"] - 1)
+    f2 = float(noise.excess_noise_factor(setpoint_gain, em_model=model))
+    well = camera.get("full_well")
+
+    def fits(E):
+        sd_adu = math.sqrt(f2 * E * setpoint_gain ** 2 / phi ** 2 + sigma ** 2)
+        ok = s0 + E * setpoint_gain / phi + ADC_MARGIN_SD * sd_adu <= top
+        if well:
+            sd_e = math.sqrt(f2 * E) * setpoint_gain
+            ok = ok and E * setpoint_gain + ADC_MARGIN_SD * sd_e <= ADC_FILL * well
+        return ok
+
+    if not fits(1.0):
+        raise OptionError(
+            f"even 1 e- per pixel per frame at gain {setpoint_gain:g} leaves the ADC's "
+            f"range ({camera['adc_bits']} bits, offset {s0:g} ADU, {phi:g} e-/ADU): "
+            "leave out the highest set-point")
+    lo, hi = 1.0, 2.0
+    while fits(hi):
+        lo, hi = hi, hi * 2.0
+    for _ in range(60):
+        mid = math.sqrt(lo * hi)
+        lo, hi = (mid, hi) if fits(mid) else (lo, mid)
+    return lo
+
+
+def plan(*, method="gs", e_per_adu, read_noise, offset, adc_bits=16, setpoints=(1, 5, 25, 100, 300),
+         em_gain=None, setpoint=None, target_se=0.5, em_model=defaults.DEFAULT_EM_MODEL,
+         stages=None, full_well=None, max_frames=None, frame_rate_hz=None) -> Plan:
+    """The acquisition that reaches ``target_se`` with the fewest frames.
+
+    Parameters
+    ----------
+    method : {"gs", "is-adu", "is-gain"}
+        A gain series (one light, a stack per set-point, φ known), or an intensity series
+        (several lights at one set-point: 1× for ``is-adu``, ``setpoint`` for
+        ``is-gain``).
+    e_per_adu : float
+        Roughly the camera's ADU conversion factor, e⁻/ADU (the data sheet's, or a
+        previous result's).
+    read_noise, offset : float
+        Read noise and offset, ADU.
+    adc_bits : int
+        ADC bit depth, bits.
+    setpoints : sequence of float
+        The set-points of a gain series (1× included: it anchors the light).
+    em_gain : sequence of float or float, optional
+        The true gains assumed at the set-points (default: the set-points), or at
+        ``setpoint`` for is-gain.
+    setpoint : float, optional
+        The set-point of an is-gain series (default: the highest of ``setpoints``).
+    target_se : float
+        Relative standard error per pixel, percent: of every em_gain (gs, is-gain) or of
+        e_per_adu (is-adu).
+    em_model, stages : optional
+        The register model (default the exact cascade of 536 stages).
+    full_well : float, optional
+        The register's full well, e⁻: the light is kept below it too.
+    max_frames : int, optional
+        Most frames of one stack (light or dark).
+    frame_rate_hz : float, optional
+        For the recording time.
+
+    Returns
+    -------
+    Plan
+
+    Raises
+    ------
+    OptionError
+        A parameter out of range, or a camera whose ADC cannot hold one photoelectron at
+        the highest set-point.
+    """
+    if method not in PLAN_METHODS:
+        raise OptionError(f"a plan is for one of {', '.join(PLAN_METHODS)}; got {method!r}")
+    camera = {"e_per_adu": check_number("e_per_adu", e_per_adu, positive=True),
+              "read_noise": check_number("read_noise", read_noise, positive=True),
+              "offset": check_number("offset", offset, minimum=0.0),
+              "adc_bits": check_int("adc_bits", adc_bits, minimum=2, maximum=32),
+              "full_well": None if full_well is None
+              else check_number("full_well", full_well, positive=True)}
+    target = check_number("target_se", target_se, positive=True)
+    if max_frames is not None:
+        max_frames = check_int("max_frames", max_frames, minimum=_FIRST_FRAMES)
+    if frame_rate_hz is not None:
+        frame_rate_hz = check_number("frame_rate", frame_rate_hz, positive=True)
+    model = noise.as_em_model(em_model, stages)
+    camera |= {"em_model": model.name,
+               "stages": model.stages if model.register.uses_stages else None}
+    sps = sorted({check_number("setpoints", s, minimum=1.0) for s in np.atleast_1d(setpoints)})
+
+    if method == "gs":
+        if 1.0 not in sps or len(sps) < 2:
+            raise OptionError("a gain series needs 1x (it anchors the light) and at least "
+                              f"one set-point above it; got {', '.join(f'{s:g}' for s in sps)}")
+        gains = _assumed(em_gain, sps)
+        top = _brightest(max(gains), camera, model)
+        light = top * _GS_FRACTIONS[:, None] * np.ones(len(sps))
+        lab_setpoints = sps
+    else:
+        s = 1.0 if method == "is-adu" else check_number(
+            "setpoint", setpoint if setpoint is not None else max(sps), minimum=1.0)
+        if method == "is-gain" and s == 1:
+            raise OptionError("is-gain is an intensity series at a set-point above 1x: "
+                              "give --setpoint G")
+        (g,) = _assumed(em_gain, [s])
+        gains = [g] * len(_IS_FRACTIONS)
+        top = _brightest(g, camera, model)
+        light = (top * _IS_FRACTIONS)[None, :]
+        lab_setpoints = [s] * len(_IS_FRACTIONS)
+    design = _Design(method, lab_setpoints, gains, light, camera, model)
+    targets = _targets(method, design.names)
+    dark_cost = len(sps) if method == "gs" else 1
+    best = None
+    for p in range(light.shape[0]):
+        frames, dark, worst = _allocate(design, p, targets, target, max_frames, dark_cost)
+        total = frames.sum() + dark_cost * dark
+        key = (worst > target, total if worst <= target else worst)
+        if best is None or key < best[0]:
+            best = (key, p, frames, dark)
+    _, p, frames, dark = best
+    frames = np.array([_nice(n) if n > 0 else 0 for n in frames])
+    dark = _nice(dark)
+    if max_frames is not None:
+        frames, dark = np.minimum(frames, max_frames), min(dark, max_frames)
+    keep = np.flatnonzero(frames > 0)
+    return predict(method, [lab_setpoints[a] for a in keep], [gains[a] for a in keep],
+                   light[p, keep], frames[keep], dark, camera, target,
+                   frame_rate_hz=frame_rate_hz, max_frames=max_frames)
+
+
+def _assumed(em_gain, setpoints):
+    if em_gain is None:
+        return [float(s) for s in setpoints]
+    values = list(np.atleast_1d(em_gain))
+    if len(values) != len(setpoints):
+        raise OptionError(f"--em-gain has {len(values)} value(s) for {len(setpoints)} "
+                          "set-point(s)")
+    return [1.0 if s == 1 else check_number("em_gain", g, minimum=1.0)
+            for s, g in zip(setpoints, values)]
+
+
+def predict(method, setpoints, gains, photoelectrons, frames, dark_frames, camera,
+            target_se=float("nan"), *, frame_rate_hz=None, max_frames=None) -> Plan:
+    """The precision a given acquisition will reach: the :class:`Plan` of exactly these
+    stacks (what :func:`plan` returns for its choice, and what a hand-edited plan is
+    checked with).
+
+    Parameters
+    ----------
+    method : str
+    setpoints, gains, photoelectrons, frames : sequence
+        Per light stack: set-point, assumed true gain, light (e⁻/px/frame), frames.
+    dark_frames : int
+        Per dark stack.
+    camera : dict
+        e_per_adu, read_noise, offset, adc_bits, em_model, stages (as :attr:`Plan.camera`).
+    """
+    model = noise.as_em_model(camera["em_model"], camera["stages"])
+    light = np.asarray(photoelectrons, float)[None, :]
+    design = _Design(method, list(setpoints), list(gains), light, camera, model)
+    cov = design.covariance(np.asarray(frames, float)[None], np.array([float(dark_frames)]))[0, 0]
+    se = {name: float(100.0 * math.sqrt(cov[j, j])) for j, name in enumerate(design.names)}
+    acqs = []
+    for a, (s, g, E, n) in enumerate(zip(setpoints, gains, light[0], frames)):
+        mine = {"em_gain": se.get(f"ln_em_gain[{a}]", se.get("ln_em_gain")),
+                "photoelectrons": se.get(f"ln_photoelectrons[{a}]",
+                                         se.get("ln_photoelectrons") if s == 1 else None),
+                "e_per_adu": se.get("ln_e_per_adu")}
+        if s == 1 and method == "gs":
+            mine["em_gain"] = None
+        acqs.append(Acquisition(float(s), float(E), int(n), float(g),
+                                {k: v for k, v in mine.items() if v is not None}))
+    worst = float(np.max(_relative_se(cov, _targets(method, design.names))))
+    return Plan(method, tuple(acqs), int(dark_frames), float(target_se), worst,
+                bool(worst <= target_se * (1 + 1e-9)), dict(camera), frame_rate_hz,
+                max_frames)
+
+
+# --------------------------------------------------------------------------------------
+# plan.toml: what `acquire` executes and a person reads and edits
+# --------------------------------------------------------------------------------------
+def plan_text(p: Plan) -> str:
+    """The plan as TOML: the stacks to record, with the precision predicted for each.
+
+    A gain series has one ``photoelectrons`` (the light, at 1×) and an
+    ``[[acquisition]]`` per set-point; an intensity series an ``[[level]]`` per light
+    level at its one ``em_gain_setpoint``. ``dark_frames`` is per dark stack: one per
+    set-point of a gain series, one for an intensity series.
+    """
+    from .. import __version__
+    from .._output import toml_line
+
+    def line(key, value, note=""):
+        text = toml_line(key, round(value, 6) if isinstance(value, float) else value)
+        return text + (f"  # {note}" if note else "")
+
+    cam = p.camera
+    worst = {"gs": "em_gain", "is-gain": "em_gain", "is-adu": "e_per_adu"}[p.method]
+    out = [f"# Written by emccdcal {__version__} (emccdcal plan): the acquisition that reaches "
+           f"the target at least cost,",
+           "# predicted from the Fisher information of the likelihood the calibration uses.",
+           "# Edit the frames or the light and run `emccdcal plan --check` on the file to see "
+           "what they give.",
+           line("method", p.method)]
+    if p.method == "gs":
+        out.append(line("photoelectrons", p.photoelectrons,
+                        "e- per pixel per frame to set the light to (at 1x)"))
+        out.append(line("dark_frames", p.dark_frames, "per set-point, shutter closed"))
+    else:
+        out.append(line("em_gain_setpoint", p.acquisitions[0].setpoint))
+        out.append(line("dark_frames", p.dark_frames, "one dark stack, shutter closed"))
+    out.append(line("target_se", p.target_se,
+                    f"percent: relative SE per pixel of every {worst}"))
+    out.append(line(f"predicted_{worst}_se", p.predicted_se, "percent, per pixel (worst)"))
+    out.append(line("reached", p.reached))
+    out.append(line("total_frames", p.total_frames, "light and dark"))
+    if p.seconds is not None:
+        out.append(line("seconds", p.seconds, f"at {p.frame_rate_hz:g} frames per second"))
+    if p.max_frames is not None:
+        out.append(line("max_frames", p.max_frames, "per stack"))
+    out += ["", "[camera]  # what the plan assumed",
+            line("e_per_adu", cam["e_per_adu"], "e-/ADU"),
+            line("read_noise", cam["read_noise"], "ADU"),
+            line("offset", cam["offset"], "ADU"),
+            line("adc_bits", cam["adc_bits"]),
+            line("em_model", cam["em_model"])]
+    if cam.get("stages") is not None:
+        out.append(line("stages", cam["stages"]))
+    if cam.get("full_well") is not None:
+        out.append(line("full_well", cam["full_well"], "e-"))
+    table = "acquisition" if p.method == "gs" else "level"
+    for a in p.acquisitions:
+        out += ["", f"[[{table}]]"]
+        if p.method == "gs":
+            out.append(line("em_gain_setpoint", a.setpoint))
+        else:
+            out.append(line("photoelectrons", a.photoelectrons, "e- per pixel per frame"))
+        out.append(line("frames", a.frames))
+        if a.setpoint != 1:
+            out.append(line("assumed_em_gain", a.em_gain, "the true gain the plan assumed"))
+        for name, se in a.predicted_se.items():
+            if name == worst and p.method != "gs":
+                continue
+            out.append(line(f"predicted_{name}_se", se, "percent, per pixel"))
+    return "\n".join(out) + "\n"
+
+
+def read_plan(path) -> Plan:
+    """A plan file (:func:`plan_text`), edited or not, with its precision predicted again
+    for what it now says.
+
+    Raises
+    ------
+    InputError
+        Not a plan, or a value out of range, naming the file and the key.
+    """
+    import tomllib
+    from pathlib import Path
+
+    from ..errors import InputError
+
+    path = Path(path)
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise InputError(f"'{path}': not a readable plan ({exc})") from None
+
+    def need(table, key, where):
+        if key not in table:
+            raise InputError(f"'{path}': {where} has no {key}")
+        return table[key]
+
+    try:
+        method = need(doc, "method", "the plan")
+        if method not in PLAN_METHODS:
+            raise OptionError(f"method {method!r} is not one of {', '.join(PLAN_METHODS)}")
+        cam = dict(need(doc, "camera", "the plan"))
+        camera = {"e_per_adu": check_number("e_per_adu", need(cam, "e_per_adu", "[camera]"),
+                                            positive=True),
+                  "read_noise": check_number("read_noise",
+                                             need(cam, "read_noise", "[camera]"), positive=True),
+                  "offset": check_number("offset", need(cam, "offset", "[camera]"), minimum=0),
+                  "adc_bits": check_int("adc_bits", need(cam, "adc_bits", "[camera]"),
+                                        minimum=2, maximum=32),
+                  "em_model": str(cam.get("em_model", defaults.DEFAULT_EM_MODEL)),
+                  "stages": cam.get("stages"),
+                  "full_well": cam.get("full_well")}
+        model = noise.as_em_model(camera["em_model"], camera["stages"])
+        camera["stages"] = model.stages if model.register.uses_stages else None
+        table = "acquisition" if method == "gs" else "level"
+        rows = doc.get(table) or []
+        if not rows:
+            raise OptionError(f"no [[{table}]] tables")
+        frames = [check_int("frames", need(r, "frames", f"[[{table}]]"), minimum=2)
+                  for r in rows]
+        if method == "gs":
+            light = [check_number("photoelectrons", need(doc, "photoelectrons", "the plan"),
+                                  positive=True)] * len(rows)
+            sps = [check_number("em_gain_setpoint",
+                                need(r, "em_gain_setpoint", "[[acquisition]]"), minimum=1.0)
+                   for r in rows]
+        else:
+            s = check_number("em_gain_setpoint", doc.get("em_gain_setpoint", 1.0), minimum=1.0)
+            light = [check_number("photoelectrons", need(r, "photoelectrons", "[[level]]"),
+                                  positive=True) for r in rows]
+            sps = [s] * len(rows)
+        gains = [1.0 if s == 1 else check_number("assumed_em_gain",
+                                                 r.get("assumed_em_gain", s), minimum=1.0)
+                 for s, r in zip(sps, rows)]
+        dark = check_int("dark_frames", need(doc, "dark_frames", "the plan"), minimum=2)
+        target = (float("nan") if doc.get("target_se") is None
+                  else check_number("target_se", doc["target_se"], positive=True))
+        rate = doc.get("seconds") and doc["total_frames"] / doc["seconds"]
+        return predict(method, sps, gains, light, frames, dark, camera, target,
+                       frame_rate_hz=rate or None, max_frames=doc.get("max_frames"))
+    except OptionError as exc:
+        raise InputError(f"'{path}': {exc}") from None
