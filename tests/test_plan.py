@@ -74,6 +74,11 @@ def test_the_light_stays_clear_of_the_adc_and_darks_matter():
     small = plan(method="gs", setpoints=SETPOINTS, target_se=0.5, **(PROEM | {"adc_bits": 14,
                                                                               "offset": 100}))
     assert small.photoelectrons < E / 3
+    # a register well of 80 000 e- (data sheet) caps the multiplied charge at 300x
+    capped = plan(method="gs", setpoints=SETPOINTS, target_se=0.5, register_well=8e4, **PROEM)
+    assert capped.photoelectrons * 300 <= 0.9 * 8e4
+    adu = plan(method="is-adu", target_se=1.0, pixel_well=1e5, **PROEM)
+    assert max(a.photoelectrons for a in adu.acquisitions) <= 0.9 * 1e5
     few_darks = predict("gs", SETPOINTS, [a.em_gain for a in p.acquisitions],
                         [E] * 5, [a.frames for a in p.acquisitions], 50, p.camera, 0.5)
     assert few_darks.predicted_se > 1.2 * p.predicted_se

@@ -18,10 +18,10 @@ dark frames too.
 The plan is the least total of frames (light and dark) that brings every targeted
 relative standard error to the target: frames are added where they buy the most
 precision per frame (a greedy allocation over the acquisitions and the darks, then
-trimmed), for each light level of a grid, and the cheapest level wins. The light is kept
+trimmed), for the light levels of a grid from the brightest down, and the cheapest level wins. The light is kept
 clear of the ADC's range: the brightest acquisition's mean plus :data:`ADC_MARGIN_SD`
 standard deviations stays below :data:`ADC_FILL` of the range (and below the register's
-full well where one is given).
+pixel's and the register's full wells where they are given).
 
 Examples
 --------
@@ -52,7 +52,7 @@ __all__ = ["Plan", "Acquisition", "plan", "predict", "plan_text", "read_plan", "
 PLAN_METHODS = ("gs", "is-adu", "is-gain")
 #: The brightest acquisition's mean plus this many SDs ...
 ADC_MARGIN_SD = 6.0
-#: ... stays below this fraction of the ADC's range (and of the register's full well).
+#: ... stays below this fraction of the ADC's range (and of the full wells given).
 ADC_FILL = 0.9
 #: Light levels tried for a gain series, as fractions of the brightest the ADC allows.
 _GS_FRACTIONS = np.geomspace(0.05, 1.0, 10)
@@ -111,7 +111,7 @@ class Plan:
         Whether ``predicted_se`` meets the target within ``max_frames``.
     camera : dict
         What the plan assumed: e_per_adu (e⁻/ADU), read_noise (ADU), offset (ADU),
-        adc_bits, em_model, stages, full_well (e⁻ or None).
+        adc_bits, em_model, stages, pixel_well and register_well (e⁻ or None).
     frame_rate_hz : float or None
         Frames per second, for the time.
     max_frames : int or None
@@ -233,10 +233,10 @@ def _relative_se(cov, idx):
 def _allocate(design, p, targets, target, max_frames, dark_cost):
     """Greedy allocation for candidate light ``p``: frames (A,), dark (int), worst SE."""
     A = design.info.shape[1]
-    state = np.r_[np.where(np.arange(A) < A, _FIRST_FRAMES, 0), _FIRST_FRAMES].astype(float)
+    state = np.full(A + 1, float(_FIRST_FRAMES))  # light frames of each stack, then darks
+    floor = state.copy()
     if design.method != "gs":  # an intensity series starts at its brightest level only
-        state[:A] = 0.0
-        state[A - 1] = _FIRST_FRAMES
+        state[:A - 1] = floor[:A] = 0.0
     cost = np.r_[np.ones(A), dark_cost]
     cap = np.inf if max_frames is None else float(max_frames)
 
@@ -270,8 +270,6 @@ def _allocate(design, p, targets, target, max_frames, dark_cost):
             break
         cut = np.floor(0.05 * state)
         trial = state[None] - np.diag(cut)
-        floor = np.r_[np.full(A, 0.0 if design.method != "gs" else _FIRST_FRAMES),
-                      _FIRST_FRAMES]
         ok_cut = (cut > 0) & (np.diag(trial) >= floor)
         w, s = worst(trial)
         ok = ok_cut & (w <= target)
@@ -284,25 +282,28 @@ def _allocate(design, p, targets, target, max_frames, dark_cost):
 
 def _brightest(setpoint_gain, camera, model) -> float:
     """The most light (e⁻ per pixel per frame) whose mean plus ADC_MARGIN_SD SDs, at
-    gain ``setpoint_gain``, stays below ADC_FILL of the ADC range and of the full well."""
+    gain ``setpoint_gain``, stays below ADC_FILL of the ADC range and of the full wells:
+    the pixel's holds the light E, the register's the multiplied charge E·g."""
     phi, sigma, s0 = camera["e_per_adu"], camera["read_noise"], camera["offset"]
     top = ADC_FILL * (2 ** camera["adc_bits"] - 1)
     f2 = float(noise.excess_noise_factor(setpoint_gain, em_model=model))
-    well = camera.get("full_well")
+    pixel_well, register_well = camera.get("pixel_well"), camera.get("register_well")
 
     def fits(E):
         sd_adu = math.sqrt(f2 * E * setpoint_gain ** 2 / phi ** 2 + sigma ** 2)
         ok = s0 + E * setpoint_gain / phi + ADC_MARGIN_SD * sd_adu <= top
-        if well:
+        if pixel_well:
+            ok = ok and E + ADC_MARGIN_SD * math.sqrt(E) <= ADC_FILL * pixel_well
+        if register_well:
             sd_e = math.sqrt(f2 * E) * setpoint_gain
-            ok = ok and E * setpoint_gain + ADC_MARGIN_SD * sd_e <= ADC_FILL * well
+            ok = ok and E * setpoint_gain + ADC_MARGIN_SD * sd_e <= ADC_FILL * register_well
         return ok
 
     if not fits(1.0):
         raise OptionError(
             f"even 1 e- per pixel per frame at gain {setpoint_gain:g} leaves the ADC's "
-            f"range ({camera['adc_bits']} bits, offset {s0:g} ADU, {phi:g} e-/ADU): "
-            "leave out the highest set-point")
+            f"range ({camera['adc_bits']} bits, offset {s0:g} ADU, {phi:g} e-/ADU) or a "
+            "full well given: leave out the highest set-point")
     lo, hi = 1.0, 2.0
     while fits(hi):
         lo, hi = hi, hi * 2.0
@@ -314,7 +315,7 @@ def _brightest(setpoint_gain, camera, model) -> float:
 
 def plan(*, method="gs", e_per_adu, read_noise, offset, adc_bits=16, setpoints=(1, 5, 25, 100, 300),
          em_gain=None, setpoint=None, target_se=0.5, em_model=defaults.DEFAULT_EM_MODEL,
-         stages=None, full_well=None, max_frames=None, frame_rate_hz=None) -> Plan:
+         stages=None, pixel_well=None, register_well=None, max_frames=None, frame_rate_hz=None) -> Plan:
     """The acquisition that reaches ``target_se`` with the fewest frames.
 
     Parameters
@@ -342,8 +343,9 @@ def plan(*, method="gs", e_per_adu, read_noise, offset, adc_bits=16, setpoints=(
         e_per_adu (is-adu).
     em_model, stages : optional
         The register model (default the exact cascade of 536 stages).
-    full_well : float, optional
-        The register's full well, e⁻: the light is kept below it too.
+    pixel_well, register_well : float, optional
+        Full wells, e⁻ (a data sheet's): the light E is kept below the pixel's, the
+        multiplied charge E·g below the register's.
     max_frames : int, optional
         Most frames of one stack (light or dark).
     frame_rate_hz : float, optional
@@ -365,8 +367,10 @@ def plan(*, method="gs", e_per_adu, read_noise, offset, adc_bits=16, setpoints=(
               "read_noise": check_number("read_noise", read_noise, positive=True),
               "offset": check_number("offset", offset, minimum=0.0),
               "adc_bits": check_int("adc_bits", adc_bits, minimum=2, maximum=32),
-              "full_well": None if full_well is None
-              else check_number("full_well", full_well, positive=True)}
+              "pixel_well": None if pixel_well is None
+              else check_number("pixel_well", pixel_well, positive=True),
+              "register_well": None if register_well is None
+              else check_number("register_well", register_well, positive=True)}
     target = check_number("target_se", target_se, positive=True)
     if max_frames is not None:
         max_frames = check_int("max_frames", max_frames, minimum=_FIRST_FRAMES)
@@ -399,13 +403,19 @@ def plan(*, method="gs", e_per_adu, read_noise, offset, adc_bits=16, setpoints=(
     design = _Design(method, lab_setpoints, gains, light, camera, model)
     targets = _targets(method, design.names)
     dark_cost = len(sps) if method == "gs" else 1
-    best = None
-    for p in range(light.shape[0]):
+    # From the brightest light down, until the cost has risen twice in a row (it falls
+    # with the light per frame wherever the ADC is not in the way).
+    best, rises = None, 0
+    for p in range(light.shape[0] - 1, -1, -1):
         frames, dark, worst = _allocate(design, p, targets, target, max_frames, dark_cost)
         total = frames.sum() + dark_cost * dark
         key = (worst > target, total if worst <= target else worst)
         if best is None or key < best[0]:
-            best = (key, p, frames, dark)
+            best, rises = (key, p, frames, dark), 0
+        else:
+            rises += 1
+            if rises == 2:
+                break
     _, p, frames, dark = best
     frames = np.array([_nice(n) if n > 0 else 0 for n in frames])
     dark = _nice(dark)
@@ -515,8 +525,9 @@ def plan_text(p: Plan) -> str:
             line("em_model", cam["em_model"])]
     if cam.get("stages") is not None:
         out.append(line("stages", cam["stages"]))
-    if cam.get("full_well") is not None:
-        out.append(line("full_well", cam["full_well"], "e-"))
+    for well in ("pixel_well", "register_well"):
+        if cam.get(well) is not None:
+            out.append(line(well, cam[well], "e-"))
     table = "acquisition" if p.method == "gs" else "level"
     for a in p.acquisitions:
         out += ["", f"[[{table}]]"]
@@ -573,7 +584,8 @@ def read_plan(path) -> Plan:
                                         minimum=2, maximum=32),
                   "em_model": str(cam.get("em_model", defaults.DEFAULT_EM_MODEL)),
                   "stages": cam.get("stages"),
-                  "full_well": cam.get("full_well")}
+                  "pixel_well": cam.get("pixel_well"),
+                  "register_well": cam.get("register_well")}
         model = noise.as_em_model(camera["em_model"], camera["stages"])
         camera["stages"] = model.stages if model.register.uses_stages else None
         table = "acquisition" if method == "gs" else "level"

@@ -36,8 +36,11 @@ def add_parser(subparsers):
                      help="offset (bias) level, ADU")
     cam.add_argument("--adc-bits", type=_common.positive_int, default=16, metavar="B",
                      help="ADC bit depth (default 16)")
-    cam.add_argument("--full-well", type=_common.positive_float, default=None, metavar="E",
-                     help="the EM register's full well, e-: the light stays below it too")
+    cam.add_argument("--pixel-well", type=_common.positive_float, default=None, metavar="E",
+                     help="the pixel's full well, e- (data sheet): the light stays below it")
+    cam.add_argument("--register-well", type=_common.positive_float, default=None,
+                     metavar="E", help="the EM register's full well, e- (data sheet): the "
+                     "multiplied charge stays below it")
     cam.add_argument("--setpoints", type=_common.number_list, default=[1, 5, 25, 100, 300],
                      metavar="G,G,...", help="the set-points to calibrate, 1 included "
                      "(default 1,5,25,100,300)")
@@ -100,7 +103,8 @@ def run(args) -> int:
                       adc_bits=args.adc_bits, setpoints=args.setpoints, em_gain=args.em_gain,
                       setpoint=args.setpoint, target_se=args.target_se,
                       em_model=args.em_model or defaults.DEFAULT_EM_MODEL,
-                      stages=args.stages, full_well=args.full_well,
+                      stages=args.stages, pixel_well=args.pixel_well,
+                      register_well=args.register_well,
                       max_frames=args.max_frames, frame_rate_hz=args.frame_rate)
     if not args.quiet:
         print(table(result))
@@ -116,7 +120,8 @@ def run(args) -> int:
 
 def table(p) -> str:
     """The plan as the console prints it."""
-    from ..result import format_setpoint
+    def format_setpoint(s):  # as result.format_setpoint, without importing xarray
+        return f"{s:g}"
 
     worst = "e_per_adu" if p.method == "is-adu" else "em_gain"
     lines = []
