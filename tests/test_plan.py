@@ -127,3 +127,16 @@ def test_an_unreachable_target_says_so_and_exits_1(capsys):
     assert cli.main(["plan", "--read-noise", "15.5", "--offset", "587.7"]) == 2
     err = capsys.readouterr().err
     assert "plan needs --e-per-adu" in err and len(err.strip().splitlines()) == 1
+
+
+def test_an_earlier_result_describes_the_camera(tmp_path, capsys):
+    from test_export import OFFSET, PHI, SIGMA, true_result
+
+    from emccdcal.acquire.plan import camera_of
+
+    result = true_result(tmp_path / "res")
+    assert camera_of(result) == pytest.approx({"e_per_adu": PHI, "offset": OFFSET,
+                                               "read_noise": SIGMA})
+    assert cli.main(["plan", "--e-per-adu", str(result), "--target-se", "1", "-q",
+                     "-o", str(tmp_path / "p.toml")]) == 0
+    assert read_plan(tmp_path / "p.toml").camera["e_per_adu"] == pytest.approx(PHI)

@@ -19,7 +19,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from .errors import OptionError
+from .errors import InputError, OptionError
 
 __all__ = [
     "progress",
@@ -30,6 +30,7 @@ __all__ = [
     "parse_pixel",
     "finite_or_none",
     "one_line",
+    "format_setpoint",
 ]
 
 
@@ -219,3 +220,33 @@ def finite_or_none(value) -> float | None:
 def one_line(exc: BaseException) -> str:
     """An exception's message on one line (its type's name where it has none)."""
     return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def format_setpoint(value) -> str:
+    """Canonical text of a set-point: integral values without a decimal point.
+
+    Used for the keys of ``summary.json`` and in messages, so that ``5`` and ``5.0`` are
+    the same key.
+
+    Parameters
+    ----------
+    value : float
+        A gain set-point (dimensionless), finite.
+
+    Returns
+    -------
+    str
+        ``"5"`` for 5.0, ``"1.5"`` for 1.5 (the shortest text that reads back as the
+        same float).
+
+    Examples
+    --------
+    >>> format_setpoint(5.0), format_setpoint(1.5), format_setpoint(300)
+    ('5', '1.5', '300')
+    """
+    v = float(value)
+    if not math.isfinite(v):
+        raise InputError(f"set-point must be finite, got {value!r}")
+    if v.is_integer():
+        return str(int(v))
+    return repr(v)

@@ -13,6 +13,8 @@ from __future__ import annotations
 LIKELIHOOD_METHODS = ("is-adu", "is-gain", "gs", "gs-no1x", "gs-hierarchical")
 #: Every calibration method, mean-variance ones first.
 METHODS = ("mv-adu", "mv-gain") + LIKELIHOOD_METHODS
+#: The methods ``emccdcal plan`` plans an acquisition for (:mod:`emccdcal.acquire.plan`).
+PLAN_METHODS = ("gs", "is-adu", "is-gain")
 #: Interval kinds: ``estimate ± 1.96 SE`` only, or profile-likelihood bounds too.
 INTERVALS = ("wald", "profile")
 #: Pixels fitted together: large enough to amortise Python overhead, small enough that

@@ -51,7 +51,7 @@ import xarray as xr
 
 from . import defaults
 from ._output import read_netcdf, write_netcdf
-from ._util import finite_or_none, one_line
+from ._util import finite_or_none, format_setpoint, one_line  # noqa: F401 - re-exported
 from .errors import InputError, MissingFileError, OptionError
 
 __all__ = [
@@ -145,36 +145,6 @@ def em_model_summary(ds) -> dict:
 
     model = EMModel.from_attrs(ds.attrs)
     return {} if model is None else model.attrs
-
-
-def format_setpoint(value) -> str:
-    """Canonical text of a set-point: integral values without a decimal point.
-
-    Used for the keys of ``summary.json`` and in messages, so that ``5`` and ``5.0`` are
-    the same key.
-
-    Parameters
-    ----------
-    value : float
-        A gain set-point (dimensionless), finite.
-
-    Returns
-    -------
-    str
-        ``"5"`` for 5.0, ``"1.5"`` for 1.5 (the shortest text that reads back as the
-        same float).
-
-    Examples
-    --------
-    >>> format_setpoint(5.0), format_setpoint(1.5), format_setpoint(300)
-    ('5', '1.5', '300')
-    """
-    v = float(value)
-    if not math.isfinite(v):
-        raise InputError(f"set-point must be finite, got {value!r}")
-    if v.is_integer():
-        return str(int(v))
-    return repr(v)
 
 
 def _package_version() -> str:

@@ -45,11 +45,12 @@ from ..errors import OptionError
 from ..fit import engine, layouts
 from ..model import noise
 
-__all__ = ["Plan", "Acquisition", "plan", "predict", "plan_text", "read_plan", "PLAN_METHODS",
+__all__ = ["Plan", "Acquisition", "plan", "predict", "plan_text", "read_plan", "camera_of",
+           "PLAN_METHODS",
            "ADC_FILL", "ADC_MARGIN_SD"]
 
 #: The methods a plan is made for.
-PLAN_METHODS = ("gs", "is-adu", "is-gain")
+PLAN_METHODS = defaults.PLAN_METHODS
 #: The brightest acquisition's mean plus this many SDs ...
 ADC_MARGIN_SD = 6.0
 #: ... stays below this fraction of the ADC's range (and of the full wells given).
@@ -162,7 +163,8 @@ class _Design:
 
     def __init__(self, method, setpoints, gains, photoelectrons, camera, model):
         # photoelectrons: (P, A) light of each acquisition per candidate
-        self.method = method
+        self.method, self.camera = method, camera
+        self.setpoints, self.gains, self.light = list(setpoints), list(gains), photoelectrons
         P, A = photoelectrons.shape
         phi, sigma, s0 = camera["e_per_adu"], camera["read_noise"], camera["offset"]
         blocks = []
@@ -421,10 +423,31 @@ def plan(*, method="gs", e_per_adu, read_noise, offset, adc_bits=16, setpoints=(
     dark = _nice(dark)
     if max_frames is not None:
         frames, dark = np.minimum(frames, max_frames), min(dark, max_frames)
-    keep = np.flatnonzero(frames > 0)
-    return predict(method, [lab_setpoints[a] for a in keep], [gains[a] for a in keep],
-                   light[p, keep], frames[keep], dark, camera, target,
-                   frame_rate_hz=frame_rate_hz, max_frames=max_frames)
+    return _plan_of(design, p, frames, dark, target, frame_rate_hz, max_frames)
+
+
+def camera_of(result) -> dict:
+    """What a plan needs to know of a camera, from an earlier calibration of it: the
+    medians over pixels of φ (e⁻/ADU) and, at 1× where it has darks (else at its lowest
+    set-point with darks), of the offset and read noise (ADU).
+
+    Parameters
+    ----------
+    result : str, Path or Calibration
+        A result (or a group, as :func:`~emccdcal.result.load_calibration` reads).
+
+    Returns
+    -------
+    dict
+        ``e_per_adu``, ``offset``, ``read_noise``.
+    """
+    from ..result import Calibration, load_calibration, pixel_statistics
+
+    cal = result if isinstance(result, Calibration) else load_calibration(result)
+    offset, sigma = cal.dark(1.0 if 1.0 in cal.offset or not cal.offset else min(cal.offset))
+    return {name: pixel_statistics(values)["median"]
+            for name, values in (("e_per_adu", cal.e_per_adu), ("offset", offset),
+                                 ("read_noise", sigma))}
 
 
 def _assumed(em_gain, setpoints):
@@ -456,22 +479,31 @@ def predict(method, setpoints, gains, photoelectrons, frames, dark_frames, camer
     """
     model = noise.as_em_model(camera["em_model"], camera["stages"])
     light = np.asarray(photoelectrons, float)[None, :]
-    design = _Design(method, list(setpoints), list(gains), light, camera, model)
-    cov = design.covariance(np.asarray(frames, float)[None], np.array([float(dark_frames)]))[0, 0]
+    design = _Design(method, setpoints, gains, light, camera, model)
+    return _plan_of(design, 0, np.asarray(frames, float), dark_frames, target_se,
+                    frame_rate_hz, max_frames)
+
+
+def _plan_of(design, level, frames, dark_frames, target_se, frame_rate_hz, max_frames):
+    """The :class:`Plan` of ``frames`` (A,) at the design's candidate light ``level``;
+    stacks of no frames are left out."""
+    cov = design.covariance(np.asarray(frames, float)[None], np.array([float(dark_frames)]),
+                            level=level)[0, 0]
     se = {name: float(100.0 * math.sqrt(cov[j, j])) for j, name in enumerate(design.names)}
     acqs = []
-    for a, (s, g, E, n) in enumerate(zip(setpoints, gains, light[0], frames)):
-        mine = {"em_gain": se.get(f"ln_em_gain[{a}]", se.get("ln_em_gain")),
+    for a, (s, g, E, n) in enumerate(zip(design.setpoints, design.gains,
+                                         design.light[level], frames)):
+        if n <= 0:
+            continue
+        mine = {"em_gain": None if s == 1 else se.get(f"ln_em_gain[{a}]", se.get("ln_em_gain")),
                 "photoelectrons": se.get(f"ln_photoelectrons[{a}]",
                                          se.get("ln_photoelectrons") if s == 1 else None),
                 "e_per_adu": se.get("ln_e_per_adu")}
-        if s == 1 and method == "gs":
-            mine["em_gain"] = None
         acqs.append(Acquisition(float(s), float(E), int(n), float(g),
                                 {k: v for k, v in mine.items() if v is not None}))
-    worst = float(np.max(_relative_se(cov, _targets(method, design.names))))
-    return Plan(method, tuple(acqs), int(dark_frames), float(target_se), worst,
-                bool(worst <= target_se * (1 + 1e-9)), dict(camera), frame_rate_hz,
+    worst = float(np.max(_relative_se(cov, _targets(design.method, design.names))))
+    return Plan(design.method, tuple(acqs), int(dark_frames), float(target_se), worst,
+                bool(worst <= target_se * (1 + 1e-9)), dict(design.camera), frame_rate_hz,
                 max_frames)
 
 
@@ -513,8 +545,9 @@ def plan_text(p: Plan) -> str:
     out.append(line(f"predicted_{worst}_se", p.predicted_se, "percent, per pixel (worst)"))
     out.append(line("reached", p.reached))
     out.append(line("total_frames", p.total_frames, "light and dark"))
-    if p.seconds is not None:
-        out.append(line("seconds", p.seconds, f"at {p.frame_rate_hz:g} frames per second"))
+    if p.frame_rate_hz is not None:
+        out.append(line("frame_rate_hz", p.frame_rate_hz, "frames per second"))
+        out.append(line("seconds", p.seconds, "to record it all at that rate"))
     if p.max_frames is not None:
         out.append(line("max_frames", p.max_frames, "per stack"))
     out += ["", "[camera]  # what the plan assumed",
@@ -611,8 +644,11 @@ def read_plan(path) -> Plan:
         dark = check_int("dark_frames", need(doc, "dark_frames", "the plan"), minimum=2)
         target = (float("nan") if doc.get("target_se") is None
                   else check_number("target_se", doc["target_se"], positive=True))
-        rate = doc.get("seconds") and doc["total_frames"] / doc["seconds"]
+        rate = doc.get("frame_rate_hz")
+        rate = None if rate is None else check_number("frame_rate_hz", rate, positive=True)
+        most = doc.get("max_frames")
+        most = None if most is None else check_int("max_frames", most, minimum=_FIRST_FRAMES)
         return predict(method, sps, gains, light, frames, dark, camera, target,
-                       frame_rate_hz=rate or None, max_frames=doc.get("max_frames"))
+                       frame_rate_hz=rate, max_frames=most)
     except OptionError as exc:
         raise InputError(f"'{path}': {exc}") from None

@@ -9,9 +9,6 @@ from pathlib import Path
 from .. import defaults
 from . import _common
 
-#: The methods a plan is made for (as emccdcal.acquire.plan.PLAN_METHODS).
-PLAN_METHODS = ("gs", "is-adu", "is-gain")
-
 
 def add_parser(subparsers):
     p = subparsers.add_parser(
@@ -49,7 +46,7 @@ def add_parser(subparsers):
                      "set-points themselves)")
     _common.add_em_model(p, auto=False)
     what = p.add_argument_group("the calibration")
-    what.add_argument("--method", choices=PLAN_METHODS, default="gs",
+    what.add_argument("--method", choices=defaults.PLAN_METHODS, default="gs",
                       help="gs: a gain series (phi known); is-adu: an intensity series at "
                       "1x (measures phi); is-gain: one at --setpoint (default gs)")
     what.add_argument("--setpoint", type=_common.positive_float, default=None, metavar="G",
@@ -69,20 +66,17 @@ def add_parser(subparsers):
 
 
 def _camera_from(args):
-    """φ, offset and read noise: as given, else a result's medians."""
+    """φ, offset and read noise: as given, else an earlier result's medians."""
     from ..errors import OptionError
 
     phi, offset, noise = args.e_per_adu, args.offset, args.read_noise
     if isinstance(phi, Path):
-        import numpy as np
+        from ..acquire.plan import camera_of
 
-        from ..result import load_calibration
-
-        cal = load_calibration(phi)
-        phi = float(np.nanmedian(cal.e_per_adu))
-        s0, sigma = cal.dark(1.0 if 1.0 in cal.setpoints else cal.setpoints[0])
-        offset = float(np.nanmedian(s0)) if offset is None else offset
-        noise = float(np.nanmedian(sigma)) if noise is None else noise
+        known = camera_of(phi)
+        phi = known["e_per_adu"]
+        offset = known["offset"] if offset is None else offset
+        noise = known["read_noise"] if noise is None else noise
     missing = [name for name, v in (("--e-per-adu", phi), ("--read-noise", noise),
                                     ("--offset", offset)) if v is None]
     if missing:
@@ -120,8 +114,7 @@ def run(args) -> int:
 
 def table(p) -> str:
     """The plan as the console prints it."""
-    def format_setpoint(s):  # as result.format_setpoint, without importing xarray
-        return f"{s:g}"
+    from .._util import format_setpoint  # not result's import: it loads xarray
 
     worst = "e_per_adu" if p.method == "is-adu" else "em_gain"
     lines = []
