@@ -26,6 +26,7 @@ __all__ = ["main", "build_parser", "VERBS"]
 VERBS = {
     "demo": "simulate the paper's data and calibrate it (is-adu, then gs)",
     "plan": "what to record to reach a target precision (light, frames, darks)",
+    "acquire": "record a plan through Micro-Manager (or the simulated EMCCD)",
     "simulate": "write synthetic stacks, darks, a manifest and truth.json",
     "calibrate": "calibrate from a manifest (the main job)",
     "posterior": "MCMC posterior of single pixels",

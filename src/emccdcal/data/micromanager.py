@@ -6,8 +6,9 @@ the label being the value of ``Camera``. Andor cameras: ``Gain`` (EM gain), ``EM
 ``Pre-Amp-Gain``, ``ReadoutMode`` (``"17.000 MHz"``), ``CCDTemperature``, ``Camera``
 (``"| type | model | serial |"``). Photometrics: ``MultiplierGain`` (EM gain), ``Gain``
 (analog), ``ReadoutRate``, ``BitDepth``, ``CCDTemperature``, ``SerialNumber``,
-``ChipName``. Core: ``Exposure-ms``, ``BitDepth``, ``ROI`` (``"x-y-width-height"``),
-``Binning``.
+``ChipName``. Other cameras: the standard properties ``EMGain``, ``ReadoutMode``,
+``CameraName`` (model) and ``CameraID``. Core: ``Exposure-ms``, ``BitDepth``, ``ROI``
+(``"x-y-width-height"``), ``Binning``.
 """
 
 from __future__ import annotations
@@ -49,14 +50,15 @@ def settings_of(md: dict) -> CameraSettings:
         em_gain, analog, amplifier = _number(prop("MultiplierGain")), prop("Gain"), prop("Port")
         rate, serial, model = _rate_mhz(prop("ReadoutRate")), prop("SerialNumber"), prop("ChipName")
     else:  # Andor
-        em_gain = _number(prop("Gain"))
+        em_gain = _number(prop("Gain") if prop("Gain") is not None else prop("EMGain"))
         if em_gain is not None and str(prop("EMSwitch") or "On").lower() == "off":
             em_gain = 1.0
         analog, rate = prop("Pre-Amp-Gain"), _rate_mhz(prop("ReadoutMode"))
         amplifier = prop("Output_Amplifier")
         parts = [p.strip() for p in str(prop("Camera") or "").strip("|").split("|")]
         model = parts[1] if len(parts) >= 3 else None
-        serial = parts[2] if len(parts) >= 3 else None
+        serial = parts[2] if len(parts) >= 3 else prop("CameraID")
+        model = model or prop("CameraName")
     bits = _number(md.get("BitDepth") or prop("BitDepth"))
     roi = binning = None
     if md.get("ROI"):

@@ -316,6 +316,12 @@ def _check_agreement(stacks) -> None:
                                  f"'{known[0][0].path}': a series is taken with one {what}")
 
 
+def _name_of(path: Path) -> str:
+    """An acquisition's name: its file's, without the suffixes (``.ome.zarr``)."""
+    stem = path.stem
+    return stem[:-4] if stem.lower().endswith(".ome") and len(stem) > 4 else stem
+
+
 def manifest_text(session: Session, where: Path) -> str:
     """The manifest of ``session`` as TOML with comments, paths relative to ``where``."""
     where = Path(where).resolve().parent
@@ -354,7 +360,7 @@ def manifest_text(session: Session, where: Path) -> str:
         known = f.settings.known()
         if known:  # text from the file: one comment line, whatever it holds
             lines.append(comment("# recorded: " + ", ".join(f"{k} {v}" for k, v in known.items())))
-        lines.append(toml_line("name", f.path.stem))
+        lines.append(toml_line("name", _name_of(f.path)))
         lines.append(toml_line("frames", rel(f.path)))
         lines.append(toml_line("em_gain_setpoint", f.setpoint)
                      + ("" if f.setpoint_rule == "recorded" else "  # from the file name"))

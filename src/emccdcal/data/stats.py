@@ -174,6 +174,8 @@ def histograms(frames, adc_max: int | None = None, *, chunk_pixels: int | None =
     """
     if not hasattr(frames, "shape") or not hasattr(frames, "dtype"):
         frames = np.asarray(frames)
+    elif not isinstance(frames, np.ndarray):  # a lazy store (Zarr) has no flat view: read it
+        frames = np.asarray(frames[...])
     if frames.ndim != 3:
         raise InputError(
             f"frames must be 3-D (frames, rows, cols), got shape {tuple(frames.shape)}"

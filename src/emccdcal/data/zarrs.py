@@ -1,9 +1,14 @@
 """Zarr stacks: a (frames, rows, cols) array, read by chunks (the ``zarr`` extra).
 
-Zarr has no camera conventions; a store's settings are read from its attribute
-``"emccdcal"``, a mapping with the field names of
-:class:`~emccdcal.data.settings.CameraSettings` (e.g. ``{"em_gain_setpoint": 300,
-"readout_rate_mhz": 10}``), which :func:`emccdcal.data.stacks.stack_settings` returns.
+A store is an array, or an OME-Zarr image (OME-NGFF: a group whose ``multiscales``
+attribute names its arrays; the first, full-resolution one is read, with axes
+``t, y, x``). Zarr has no camera conventions; a store's settings are read from the
+attribute ``"emccdcal"`` (of the array, else of the image's group), a mapping with the
+field names of :class:`~emccdcal.data.settings.CameraSettings` (e.g.
+``{"em_gain_setpoint": 300, "readout_rate_mhz": 10}``), else from the Micro-Manager
+properties the group records under ``"micromanager"`` (``<camera>-<property>`` names, as
+``emccdcal acquire`` writes them), which :func:`emccdcal.data.stacks.stack_settings`
+returns.
 """
 
 from __future__ import annotations
@@ -34,14 +39,47 @@ def open_array(path: Path):
     except Exception as exc:  # noqa: BLE001 - a damaged store can fail anywhere
         raise InputError(f"'{path}': not a Zarr array: {one_line(exc)}") from None
     if not hasattr(arr, "shape") or not hasattr(arr, "dtype"):
-        raise InputError(f"'{path}': a Zarr group, not an array; point at the stack's array")
+        image = _image_path(arr)
+        if image is None:
+            raise InputError(f"'{path}': a Zarr group that is not an OME-Zarr image; point "
+                             "at the stack's array")
+        try:
+            arr = arr[image]
+        except Exception as exc:  # noqa: BLE001 - a damaged store can fail anywhere
+            raise InputError(f"'{path}': its OME-Zarr image '{image}' cannot be read: "
+                             f"{one_line(exc)}") from None
     return arr
+
+
+def _image_path(group) -> str | None:
+    """The full-resolution array of an OME-Zarr image group (NGFF 0.4, or 0.5's ``ome``)."""
+    attrs = dict(group.attrs)
+    scales = attrs.get("multiscales") or dict(attrs.get("ome") or {}).get("multiscales")
+    try:
+        return str(scales[0]["datasets"][0]["path"])
+    except (TypeError, KeyError, IndexError):
+        return None
+
+
+def _group_attrs(path: Path) -> dict:
+    import zarr
+
+    try:
+        node = zarr.open(str(path), mode="r")
+    except Exception:  # noqa: BLE001 - open_array has said what is wrong
+        return {}
+    return {} if hasattr(node, "shape") else dict(node.attrs)
 
 
 def settings(path: Path) -> CameraSettings:
     """The settings recorded in the store's ``"emccdcal"`` attribute (unknown names are
     an error, so that a misspelt one is not silently dropped)."""
-    recorded = dict(open_array(path).attrs.get(ATTRIBUTE, {}))
+    group = _group_attrs(path)
+    recorded = dict(open_array(path).attrs.get(ATTRIBUTE) or group.get(ATTRIBUTE) or {})
+    if not recorded and isinstance(group.get("micromanager"), dict):
+        from .micromanager import settings_of
+
+        return settings_of(group["micromanager"])
     unknown = sorted(set(recorded) - set(CameraSettings.names()))
     if unknown:
         raise InputError(f"'{path}': unknown camera setting(s) {', '.join(unknown)} in its "

@@ -37,7 +37,8 @@ from .camera import (
     simulate_frames,
 )
 
-__all__ = ["SimulatedSeries", "simulate_gain_series", "simulate_intensity_series"]
+__all__ = ["SimulatedSeries", "simulate_gain_series", "simulate_intensity_series",
+           "truth_document"]
 
 
 @dataclass(frozen=True)
@@ -196,14 +197,14 @@ def _camera_truth(opts: dict, pattern_file: str) -> dict:
 
 def _truth_entry(a: dict, camera: Camera, opts: dict, **extra) -> dict:
     """What truth.json records of one acquisition; ``extra`` goes before its offset."""
+    maps = {k: a[k] for k in ("offset_map", "read_noise_map") if k in a}
     return {
         "name": a["label"],
         "frames": a["frames"],
         "dark": a["dark"],
-        "offset_map": a["offset_map"],
-        "read_noise_map": a["read_noise_map"],
+        **maps,
         "n_frames": a["frames_n"],
-        "n_dark_frames": opts["dark_frames"],
+        "n_dark_frames": a.get("dark_frames_n", opts["dark_frames"]),
         "em_gain_setpoint": a["setpoint"],
         "em_gain": a["em_gain"],
         **extra,
@@ -212,16 +213,17 @@ def _truth_entry(a: dict, camera: Camera, opts: dict, **extra) -> dict:
     }
 
 
-def _run_series(outdir, kind: str, acqs: list[dict], darks: list[dict], camera: Camera,
-                opts: dict, progress: bool):
-    """Simulate and write the stacks of ``acqs`` (signal) and ``darks``; return the result."""
-    outdir = _output_dir(outdir)
-    seeds = np.random.SeedSequence(opts["seed"]).spawn(1 + len(acqs) + len(darks))
-    files, _, pattern_file = _write_stacks(outdir, kind, acqs, darks, camera, opts, progress,
-                                           seeds)
-    common = camera.register()
+def truth_document(kind: str, camera: Camera, opts: dict, acqs: list[dict],
+                   pattern_file: str) -> dict:
+    """The content of ``truth.json``: the camera, and each acquisition of ``acqs`` (dicts
+    with label, frames, dark, frames_n, setpoint, em_gain, photoelectrons, offset and,
+    where they differ from the camera's, dark_frames_n, offset_map, read_noise_map,
+    level), with the moments its counts are expected to have.
 
-    # truth.json
+    ``opts`` are the camera's fields and the seed (as :func:`_options` makes them);
+    ``pattern_file`` names the file of the per-pixel offset pattern.
+    """
+    common = camera.register()
     truth_acqs = []
     for a in acqs:
         mean, var = expected_moments(
@@ -245,7 +247,7 @@ def _run_series(outdir, kind: str, acqs: list[dict], darks: list[dict], camera: 
             entry = {"level": a["level"], **entry}
         truth_acqs.append(entry)
     options = {k: opts[k] for k in sorted(opts) if k != "manifest_e_per_adu"}
-    truth = {
+    return {
         "kind": kind,
         "emccdcal_version": __version__,
         "seed": opts["seed"],
@@ -262,6 +264,16 @@ def _run_series(outdir, kind: str, acqs: list[dict], darks: list[dict], camera: 
         ],
         "options": options,
     }
+
+
+def _run_series(outdir, kind: str, acqs: list[dict], darks: list[dict], camera: Camera,
+                opts: dict, progress: bool):
+    """Simulate and write the stacks of ``acqs`` (signal) and ``darks``; return the result."""
+    outdir = _output_dir(outdir)
+    seeds = np.random.SeedSequence(opts["seed"]).spawn(1 + len(acqs) + len(darks))
+    files, _, pattern_file = _write_stacks(outdir, kind, acqs, darks, camera, opts, progress,
+                                           seeds)
+    truth = truth_document(kind, camera, opts, acqs, pattern_file)
     truth_path = outdir / "truth.json"
     files.append(atomic_write_text(truth_path, json.dumps(truth, indent=2) + "\n"))
 

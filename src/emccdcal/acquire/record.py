@@ -1,0 +1,752 @@
+"""``emccdcal acquire``: record a plan (:mod:`.plan`) through Micro-Manager.
+
+A session folder receives one OME-Zarr stack per dark and per light acquisition, named
+so that ``emccdcal scan`` needs nothing more (``25x-dark.ome.zarr``, ``25x-gain.ome.zarr``;
+an intensity series ``dark.ome.zarr``, ``level-1.ome.zarr`` …), each recording the camera
+settings the core reports; the plan it ran (``plan.toml``); and ``session.json``, what
+has been recorded so far, which ``--resume`` continues from.
+
+For each set-point (a gain series), in the plan's order:
+
+1. the EM gain is set through the camera's property (:func:`gain_property`), the
+   shutter closed (auto-shutter off) and the dark frames recorded;
+2. the shutter is opened and the first :data:`CHECK_FRAMES` frames checked against the
+   plan: none saturated, and the light they show, ``(mean − dark mean)·φ/g``, within
+   ``light_tolerance`` of the plan's (a clear error and a stop otherwise, with the files
+   so far kept);
+3. the light frames are recorded; with ``stop_at_target``, a running fit of a fixed
+   sample of pixels (:data:`SAMPLE_PIXELS`, with the 1× stack and the darks: the
+   calibration's own likelihood) ends the stack as soon as the median per-pixel relative
+   SE of its em_gain reaches the plan's target.
+
+Frames are popped from the core's sequence buffer and appended to the stack in batches
+of one chunk; an interruption (Ctrl-C, a camera error) ends the stack at the last batch
+written, which is a valid, shorter stack, and ``session.json`` says where to resume.
+
+Needs the ``acquire`` extra (pymmcore-plus, zarr ≥ 3).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import signal
+import threading
+import time
+from contextlib import closing, contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .._output import Output, OutputError, atomic_write, atomic_write_text
+from .._util import check_number, format_setpoint, one_line, progress
+from ..errors import EmccdcalError, InputError, OptionError
+from .plan import Plan, plan_text, read_plan
+
+__all__ = ["acquire", "AcquireError", "Interrupted", "Session", "gain_property",
+           "camera_properties", "simulated_core", "config_core", "GAIN_PROPERTIES",
+           "CHECK_FRAMES", "LIGHT_TOLERANCE", "SAMPLE_PIXELS", "SESSION_FILE"]
+
+#: The EM-gain property of each Micro-Manager device adapter (by its library name);
+#: others: the standard property ``EMGain`` where the camera has it.
+GAIN_PROPERTIES = {"Andor": "Gain", "AndorSDK3": "Gain", "PVCAM": "MultiplierGain",
+                   "PICAM": "MultiplierGain", "PrincetonInstruments": "MultiplierGain"}
+#: Frames at the start of each light stack checked against the plan before any is kept.
+CHECK_FRAMES = 20
+#: Largest relative difference between the light measured and the plan's. Wide: at a
+#: multiplied set-point the measured light leans on the gain the plan assumed, and true
+#: gains differ from their set-points by 10-20 % (the 1x stack measures it exactly).
+LIGHT_TOLERANCE = 0.25
+#: Pixels of the running fit of ``stop_at_target`` (evenly spread over the frame).
+SAMPLE_PIXELS = 256
+#: Frames between two running fits of ``stop_at_target`` (a quarter of the planned
+#: frames, within these bounds).
+CHECK_EVERY = 200
+_FIRST_CHECK = 25
+#: The session's record of what was recorded.
+SESSION_FILE = "session.json"
+#: Bytes of one chunk of a stack (a batch of frames written at once).
+_CHUNK_BYTES = 4 << 20
+#: Rows of one chunk of a stack.
+_CHUNK_ROWS = 64
+#: Seconds between two updates of session.json while a stack records.
+_STATE_EVERY_S = 1.0
+
+
+class AcquireError(EmccdcalError, RuntimeError):
+    """The recording stopped: the camera, the light, or the session (one line)."""
+
+
+class Interrupted(AcquireError):
+    """Ctrl-C: what was recorded is kept; ``--resume`` continues."""
+
+
+# --------------------------------------------------------------------------------------
+# The camera through the core
+# --------------------------------------------------------------------------------------
+def _name(key) -> str:
+    """A property name as text (pymmcore-plus hands standard ones as str enums)."""
+    return str(getattr(key, "value", key))
+
+
+def gain_property(core, camera: str, override: str | None = None) -> str:
+    """The camera's EM-gain property: ``override``, else its adapter's
+    (:data:`GAIN_PROPERTIES`), else ``EMGain``.
+
+    Raises
+    ------
+    OptionError
+        The camera has no such property (naming its adapter and ``--gain-property``).
+    """
+    names = {_name(p) for p in core.getDevicePropertyNames(camera)}
+    library = _name(core.getDeviceLibrary(camera))
+    prop = override or GAIN_PROPERTIES.get(library, "EMGain")
+    if prop not in names:
+        raise OptionError(f"camera '{camera}' (adapter {library}) has no property '{prop}' "
+                          "for its EM gain: name it with --gain-property (its properties: "
+                          f"{', '.join(sorted(names))})")
+    return prop
+
+
+def _set_gain(core, camera: str, prop: str, setpoint: float) -> None:
+    names = {_name(p) for p in core.getDevicePropertyNames(camera)}
+    if "EMSwitch" in names:  # Andor: multiplication on, except at 1x
+        core.setProperty(camera, "EMSwitch", "Off" if setpoint == 1 else "On")
+        if setpoint == 1:
+            return
+    value = int(setpoint) if float(setpoint).is_integer() else float(setpoint)
+    try:
+        core.setProperty(camera, prop, value)
+    except Exception as exc:  # noqa: BLE001 - the adapter's own error, in one line
+        raise AcquireError(f"camera '{camera}' refused {prop} = {value}: {one_line(exc)}") from None
+
+
+def camera_properties(core, camera: str) -> dict:
+    """Every property of the camera as Micro-Manager names them in its files
+    (``<label>-<property>``), with the core's ``Camera``, ``Exposure-ms``, ``ROI``,
+    ``Binning`` and ``BitDepth``: what :func:`emccdcal.data.micromanager.settings_of`
+    reads."""
+    props = {"Camera": camera}
+    for p in core.getDevicePropertyNames(camera):
+        try:
+            props[f"{camera}-{_name(p)}"] = str(core.getProperty(camera, p))
+        except Exception:  # noqa: BLE001 - a property that cannot be read is not recorded
+            continue
+    x, y, w, h = core.getROI()
+    props.update({"Exposure-ms": float(core.getExposure()), "ROI": f"{x}-{y}-{w}-{h}",
+                  "BitDepth": int(core.getImageBitDepth())})
+    binning = props.get(f"{camera}-Binning")
+    if binning is not None:
+        props["Binning"] = binning
+    return props
+
+
+def simulated_core(camera, *, seed: int, run: int = 0):
+    """A core with the simulated EMCCD (:mod:`.devices`) as ``Camera`` and its shutter
+    as ``Shutter``: (core, the camera device)."""
+    from pymmcore_plus.experimental.unicore import UniMMCore
+
+    from .devices import SimulatedEMCCD, SimulatedShutter
+
+    core = UniMMCore()
+    shutter = SimulatedShutter()
+    device = SimulatedEMCCD(camera, shutter, seed=seed, run=run)
+    core.loadPyDevice("Camera", device)
+    core.loadPyDevice("Shutter", shutter)
+    core.initializeAllDevices()
+    core.setCameraDevice("Camera")
+    core.setShutterDevice("Shutter")
+    return core, device
+
+
+def config_core(config: Path, adapter_paths=()):
+    """A core with a Micro-Manager configuration file loaded."""
+    from pymmcore_plus import CMMCorePlus
+
+    core = CMMCorePlus()
+    if adapter_paths:
+        core.setDeviceAdapterSearchPaths([str(p) for p in adapter_paths])
+    try:
+        core.loadSystemConfiguration(str(config))
+    except Exception as exc:  # noqa: BLE001 - Micro-Manager's error, in one line
+        raise InputError(f"'{config}': Micro-Manager could not load it: {one_line(exc)}") from None
+    return core
+
+
+# --------------------------------------------------------------------------------------
+# What a plan records
+# --------------------------------------------------------------------------------------
+@dataclass
+class Stack:
+    """One stack of a session, as ``session.json`` records it."""
+
+    name: str
+    file: str
+    dark: bool
+    setpoint: float
+    photoelectrons: float
+    planned_frames: int
+    frames: int = 0
+    done: bool = False
+    reached_se: float | None = None
+
+
+def stacks_of(plan: Plan) -> list[Stack]:
+    """The plan's stacks in recording order: a gain series' dark then light at each
+    set-point; an intensity series' one dark, then its levels."""
+    out = []
+    if plan.method == "gs":
+        for a in plan.acquisitions:
+            sp = format_setpoint(a.setpoint)
+            out.append(Stack(f"{sp}x-dark", f"{sp}x-dark.ome.zarr", True, a.setpoint, 0.0,
+                             plan.dark_frames))
+            out.append(Stack(f"{sp}x-gain", f"{sp}x-gain.ome.zarr", False, a.setpoint,
+                             a.photoelectrons, a.frames))
+    else:
+        sp = plan.acquisitions[0].setpoint
+        out.append(Stack("dark", "dark.ome.zarr", True, sp, 0.0, plan.dark_frames))
+        for i, a in enumerate(plan.acquisitions, start=1):
+            out.append(Stack(f"level-{i}", f"level-{i}.ome.zarr", False, sp,
+                             a.photoelectrons, a.frames))
+    return out
+
+
+class Session:
+    """A session folder's record (``session.json``), written atomically."""
+
+    def __init__(self, folder: Path, state: dict):
+        self.folder, self.state = folder, state
+        self.stacks = [Stack(**s) for s in state["stacks"]]
+        self._saved = 0.0
+
+    @classmethod
+    def load(cls, folder: Path) -> Session:
+        path = folder / SESSION_FILE
+        try:
+            return cls(folder, json.loads(path.read_text(encoding="utf-8")))
+        except (OSError, ValueError, TypeError, KeyError) as exc:
+            raise InputError(f"'{path}': not a readable session ({one_line(exc)})") from None
+
+    def save(self, *, every: float = 0.0) -> None:
+        """Write session.json (at most once per ``every`` seconds)."""
+        now = time.monotonic()
+        if every and now - self._saved < every:
+            return
+        self.state["stacks"] = [dataclasses.asdict(s) for s in self.stacks]
+        atomic_write_text(self.folder / SESSION_FILE, json.dumps(self.state, indent=2) + "\n")
+        self._saved = now
+
+
+# --------------------------------------------------------------------------------------
+# One stack on disk: OME-Zarr (NGFF 0.4), frames appended in chunks
+# --------------------------------------------------------------------------------------
+class StackWriter:
+    """An OME-Zarr image of (t, y, x) frames, appended a chunk at a time.
+
+    The group's attributes hold the NGFF ``multiscales``, the camera settings
+    (``emccdcal``: :class:`~emccdcal.data.settings.CameraSettings` fields) and every
+    property the core reported (``micromanager``), which the project's Zarr reader reads.
+    ``frames`` continues an earlier stack of that many frames (a resume): frames beyond
+    them (a batch written when the run was killed) are dropped first.
+    """
+
+    def __init__(self, path: Path, shape, dtype, attrs: dict, *, frames: int | None = None):
+        import zarr
+
+        self.path = path
+        h, w = shape
+        self.chunk_frames = self.chunk_frames_of(shape, dtype)
+        if frames is None:
+            group = zarr.open_group(str(path), mode="w-", zarr_format=2)
+            group.attrs.update({"multiscales": [{
+                "version": "0.4", "name": path.name,
+                "axes": [{"name": "t", "type": "time"}, {"name": "y", "type": "space"},
+                         {"name": "x", "type": "space"}],
+                "datasets": [{"path": "0", "coordinateTransformations": [
+                    {"type": "scale", "scale": [1.0, 1.0, 1.0]}]}]}], **attrs})
+            # chunks of a band of rows: calibrate reads a stack by bands of rows
+            self.array = group.create_array("0", shape=(0, h, w), dtype=dtype,
+                                            chunks=(self.chunk_frames, min(h, _CHUNK_ROWS), w),
+                                            compressors=None, fill_value=0,
+                                            dimension_names=None)
+            self.array.attrs["_ARRAY_DIMENSIONS"] = ["t", "y", "x"]
+        else:
+            self.array = zarr.open_group(str(path), mode="r+")["0"]
+            if tuple(self.array.shape[1:]) != (h, w):
+                raise AcquireError(f"'{path}': frames of {self.array.shape[1]} × "
+                                   f"{self.array.shape[2]} px, but the camera gives {h} × {w}")
+            if self.array.shape[0] != frames:
+                self.array.resize((frames, h, w))
+
+    @staticmethod
+    def chunk_frames_of(shape, dtype) -> int:
+        """Frames of one chunk (about 4 MiB)."""
+        return max(1, _CHUNK_BYTES // (int(np.prod(shape)) * np.dtype(dtype).itemsize))
+
+    @property
+    def frames(self) -> int:
+        return int(self.array.shape[0])
+
+    def append(self, batch: np.ndarray) -> None:
+        self.array.append(batch, axis=0)
+
+
+def _read_frames(path: Path, pixels: np.ndarray | None = None):
+    """A written stack's frames in chunks, (k, rows, cols), or of ``pixels`` only
+    (flat indices), (k, 1, S)."""
+    import zarr
+
+    arr = zarr.open_group(str(path), mode="r")["0"]
+    step = arr.chunks[0]
+    for start in range(0, arr.shape[0], step):
+        block = arr[start:start + step]
+        yield block if pixels is None else block.reshape(block.shape[0], 1, -1)[:, :, pixels]
+
+
+# --------------------------------------------------------------------------------------
+# Recording
+# --------------------------------------------------------------------------------------
+@contextmanager
+def _sigint_flag():
+    """Ctrl-C sets a flag (checked between frames) instead of raising mid-write."""
+    flag = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield flag
+        return
+    previous = signal.signal(signal.SIGINT, lambda *_: flag.set())
+    try:
+        yield flag
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _frames(core, n: int, stop: threading.Event, what: str):
+    """Frames of a sequence of ``n`` from the core's buffer, one at a time, until ``n``,
+    Ctrl-C, or the consumer stops asking (the sequence is then stopped)."""
+    core.startSequenceAcquisition(n, 0.0, True)
+    got = 0
+    try:
+        while got < n and not stop.is_set():
+            if core.getRemainingImageCount() > 0:
+                got += 1
+                yield core.popNextImage()
+            elif not core.isSequenceRunning():
+                if core.getRemainingImageCount() > 0:
+                    continue
+                raise AcquireError(f"{what}: the camera stopped after {got} of {n} frames")
+            else:
+                time.sleep(0.0002)
+    finally:
+        core.stopSequenceAcquisition()
+
+
+@dataclass
+class _Context:
+    """What every stack of one recording shares."""
+
+    core: object
+    camera: str
+    gain_prop: str
+    plan: Plan
+    session: Session
+    stop: threading.Event
+    light_tolerance: float | None
+    stop_at_target: bool
+    set_light: object
+    progress: bool
+    sample: np.ndarray | None = None
+    light: float | None = None  # the light last set (set_light is called when it changes)
+    darks: dict | None = None  # set-point -> (mean image, sample frames)
+    unit_frames: np.ndarray | None = None  # the 1x stack's sample frames
+
+
+def _attrs(ctx: _Context, stack: Stack) -> dict:
+    from ..data.micromanager import settings_of
+
+    props = camera_properties(ctx.core, ctx.camera)
+    settings = dataclasses.replace(settings_of(props), em_gain_setpoint=float(stack.setpoint))
+    return {"emccdcal": settings.known(), "micromanager": props,
+            "emccdcal_acquisition": {"dark": stack.dark, "planned_frames": stack.planned_frames,
+                                     "photoelectrons": stack.photoelectrons}}
+
+
+def _record_stack(ctx: _Context, stack: Stack, bar) -> None:
+    core, folder = ctx.core, ctx.session.folder
+    _set_gain(core, ctx.camera, ctx.gain_prop, stack.setpoint)
+    if not stack.dark and ctx.set_light is not None and stack.photoelectrons != ctx.light:
+        ctx.set_light(core, stack)
+        ctx.light = stack.photoelectrons
+    core.setShutterOpen(not stack.dark)
+    shape = (core.getImageHeight(), core.getImageWidth())
+    dtype = np.uint16 if core.getBytesPerPixel() == 2 else np.uint8
+    path = folder / stack.file
+    attrs = _attrs(ctx, stack)
+    writer = (StackWriter(path, shape, dtype, attrs, frames=stack.frames)
+              if path.exists() else None)  # else made with the first frames kept
+    if ctx.sample is None:
+        n_px = shape[0] * shape[1]
+        ctx.sample = np.unique(np.linspace(0, n_px - 1, min(SAMPLE_PIXELS, n_px)).astype(int))
+    target = ctx.stop_at_target and not stack.dark and stack.setpoint != 1
+    most = (ctx.plan.max_frames or 2 * stack.planned_frames) if target else stack.planned_frames
+    wanted = most - stack.frames
+    batch, sample_frames = [], []
+    checked = stack.dark or stack.frames > 0  # a resumed stack was checked when it began
+    every = int(min(CHECK_EVERY, max(_FIRST_CHECK, stack.planned_frames // 4)))
+    next_fit = stack.frames + every
+    chunk = StackWriter.chunk_frames_of(shape, dtype)
+    with closing(_frames(core, wanted, ctx.stop, stack.name)) as frames:
+        for frame in frames:
+            batch.append(frame)
+            bar.update(1)
+            if target:
+                sample_frames.append(frame.reshape(-1)[ctx.sample])
+            if not checked and len(batch) == min(CHECK_FRAMES, wanted):
+                _check_light(ctx, stack, np.stack(batch))
+                checked = True
+            if checked and len(batch) >= chunk:
+                writer = writer or StackWriter(path, shape, dtype, attrs)
+                _write(ctx, stack, writer, batch)
+                batch = []
+            recorded = stack.frames + len(batch)
+            if target and recorded >= next_fit:
+                next_fit += every
+                stack.reached_se = _running_se(ctx, stack, sample_frames)
+                bar.set_postfix_str(f"{stack.name}: SE {stack.reached_se:.2f} % "
+                                    f"(target {ctx.plan.target_se:g} %)")
+                if stack.reached_se <= ctx.plan.target_se:
+                    break
+    if batch and checked:
+        writer = writer or StackWriter(path, shape, dtype, attrs)
+        _write(ctx, stack, writer, batch)
+    if ctx.stop.is_set():
+        ctx.session.save()
+        raise Interrupted(f"interrupted: {stack.name} holds {stack.frames} of "
+                          f"{stack.planned_frames} frames, kept in '{path}'; continue with "
+                          "--resume")
+    if target and (stack.reached_se is None or stack.reached_se > ctx.plan.target_se):
+        stack.reached_se = _running_se(ctx, stack, sample_frames)
+    stack.done = True
+    ctx.session.save()
+
+
+def _write(ctx, stack, writer, batch) -> None:
+    writer.append(np.stack(batch))
+    stack.frames = writer.frames
+    ctx.session.save(every=_STATE_EVERY_S)
+
+
+def _dark_of(ctx: _Context, setpoint: float):
+    """The dark at a set-point (the series' one for an intensity series): its mean image
+    and its sample pixels' frames, read back from its file."""
+    if ctx.darks is None:
+        ctx.darks = {}
+    stack = next(s for s in ctx.session.stacks if s.dark and
+                 (s.setpoint == setpoint or ctx.plan.method != "gs"))
+    if stack.name not in ctx.darks:
+        total, n, sample = None, 0, []
+        for block in _read_frames(ctx.session.folder / stack.file):
+            total = block.sum(axis=0, dtype=np.float64) if total is None else \
+                total + block.sum(axis=0, dtype=np.float64)
+            n += block.shape[0]
+            sample.append(block.reshape(block.shape[0], 1, -1)[:, :, ctx.sample])
+        ctx.darks[stack.name] = (total / n, np.concatenate(sample))
+    return ctx.darks[stack.name]
+
+
+def _check_light(ctx: _Context, stack: Stack, frames: np.ndarray) -> None:
+    """Stop when the first frames of a light stack saturate or their light is off the
+    plan's by more than the tolerance."""
+    cam = ctx.plan.camera
+    adc_max = 2 ** int(cam["adc_bits"]) - 1
+    saturated = float(np.mean(frames >= adc_max))
+    where = f"{stack.name} (set-point {stack.setpoint:g})"
+    if saturated > 0:
+        raise AcquireError(f"{where}: {100 * saturated:.2g} % of the first {len(frames)} "
+                           f"frames' pixels are at the ADC's limit ({adc_max} ADU): dim the "
+                           "light, then --resume")
+    if ctx.light_tolerance is None:
+        return
+    dark_mean, _ = _dark_of(ctx, stack.setpoint)
+    gain = next((a.em_gain for a in ctx.plan.acquisitions if a.setpoint == stack.setpoint), 1.0)
+    measured = float(np.mean(frames.mean(axis=0) - dark_mean)) * cam["e_per_adu"] / gain
+    off = measured / stack.photoelectrons - 1.0
+    if abs(off) > ctx.light_tolerance:
+        raise AcquireError(
+            f"{where}: the light is {measured:.4g} e- per pixel per frame (first "
+            f"{len(frames)} frames, at the assumed gain {gain:g} and {cam['e_per_adu']:g} "
+            f"e-/ADU), the plan's {stack.photoelectrons:.4g} ({100 * off:+.0f} %, more than "
+            f"the {100 * ctx.light_tolerance:g} % allowed): set the light, then --resume")
+
+
+def _running_se(ctx: _Context, stack: Stack, sample_frames: list) -> float:
+    """The median relative SE (percent) of the stack's em_gain over the sample pixels,
+    from the calibration's own likelihood (gs: with the 1× stack and both darks)."""
+    from ..data import stats
+    from ..data.dark import maps_from_dark
+    from ..fit import engine, layouts
+    from ..model import noise
+
+    cam = ctx.plan.camera
+    if ctx.unit_frames is None:
+        unit = next(s for s in ctx.session.stacks if not s.dark and s.setpoint == 1)
+        ctx.unit_frames = np.concatenate(list(_read_frames(ctx.session.folder / unit.file,
+                                                           ctx.sample)))
+    frames = [ctx.unit_frames, np.stack(sample_frames)[:, None, :]]
+    maps, dark_frames = [], []
+    for sp in (1.0, stack.setpoint):
+        dark = _dark_of(ctx, sp)[1]
+        maps.append(maps_from_dark(dark))
+        dark_frames.append(dark.shape[0])
+    adc_max = 2 ** int(cam["adc_bits"]) - 1
+    hists = [stats.histograms(f, adc_max=adc_max) for f in frames]
+    model = noise.as_em_model(cam["em_model"], cam["stages"])
+    setpoints = np.array([1.0, stack.setpoint])
+    blocks = layouts.make_blocks(hists, np.stack([m[0].ravel() for m in maps]),
+                                 np.stack([m[1].ravel() for m in maps]), setpoints,
+                                 slice(None), dark_frames, None, model)
+    series = layouts.Series(blocks, setpoints, ["1x", stack.name],
+                            np.full(len(ctx.sample), float(cam["e_per_adu"])))
+    layout, x0 = layouts.build_layout("gs", series)
+    fit = engine.fit(layout, blocks, x0)
+    est = layouts.acquisition_estimates(layout, fit.x, fit.cov)
+    rel = est["em_gain_se"][:, 1] / est["em_gain"][:, 1]
+    rel = rel[np.isfinite(rel) & fit.converged]
+    return float(100.0 * np.median(rel)) if rel.size else math.inf
+
+
+# --------------------------------------------------------------------------------------
+# The verb
+# --------------------------------------------------------------------------------------
+def _plan_sha(text: str) -> str:
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _new_state(plan: Plan, text: str, camera: str, roi, simulated: dict | None) -> dict:
+    from .. import __version__
+
+    return {"emccdcal_version": __version__, "plan_sha256": _plan_sha(text),
+            "camera": camera, "roi": None if roi is None else list(roi),
+            "simulated": simulated, "runs": 1, "status": "recording",
+            "stacks": [dataclasses.asdict(s) for s in stacks_of(plan)]}
+
+
+def acquire(plan, out, *, core=None, camera: str | None = None, simulated_seed=None,
+            roi=None, gain_prop: str | None = None,
+            light_tolerance: float | None = LIGHT_TOLERANCE, stop_at_target: bool = False,
+            resume: bool = False, set_light=None, progress_bars: bool = True) -> Session:
+    """Record ``plan`` into the session folder ``out``.
+
+    Parameters
+    ----------
+    plan : path or Plan
+        The plan (``plan.toml``, as :func:`emccdcal.acquire.plan.plan_text` writes it).
+    out : path
+        The session folder (new, or one to ``resume``).
+    core : CMMCorePlus, optional
+        A core with the camera loaded (and a shutter as its shutter device). Without it,
+        ``simulated_seed`` must be given: the simulated EMCCD (:mod:`.devices`) is used,
+        with the plan's camera, and its truth written as ``truth.json``.
+    camera : str, optional
+        The camera's device label (default: the core's camera).
+    simulated_seed : int, optional
+        Seed of the simulated camera.
+    roi : (x, y, width, height), optional
+        A region of the sensor, px, set through the core and recorded in the files.
+    gain_prop : str, optional
+        The EM-gain property (default: by adapter, :func:`gain_property`).
+    light_tolerance : float or None
+        Largest relative difference of the light from the plan's (None: not checked;
+        saturation always is).
+    stop_at_target : bool
+        End each multiplied stack of a gain series when the running fit reaches the
+        plan's target (up to the plan's ``max_frames``, else twice the planned frames).
+    resume : bool
+        Continue the session in ``out`` (the same plan) where it stopped.
+    set_light : callable, optional
+        ``set_light(core, stack)`` sets the light (:class:`Stack`'s ``photoelectrons``)
+        before a light stack whose light differs from the last one set: needed for an
+        intensity series' levels (a gain series' one light is set by hand before the
+        recording, and checked). The simulated camera's lamp follows the plan by default.
+    progress_bars : bool
+        Show a progress bar.
+
+    Returns
+    -------
+    Session
+
+    Raises
+    ------
+    AcquireError
+        The light is off the plan's or saturates, or the camera stops (what was recorded
+        is kept; ``resume`` continues). :class:`Interrupted` on Ctrl-C.
+    """
+    if isinstance(plan, (str, Path)):
+        plan_path = Path(plan)
+        plan = read_plan(plan_path)
+    text = plan_text(plan)
+    if stop_at_target and plan.method != "gs":
+        raise OptionError("stop-at-target is for a gain-series plan (its target is per "
+                          "set-point); an intensity series records its planned frames")
+    if light_tolerance is not None:
+        light_tolerance = check_number("light tolerance", light_tolerance, positive=True)
+    out = Path(out)
+    if core is None and simulated_seed is None:
+        raise OptionError("give a core with a camera, or a seed for the simulated camera")
+    with Output(out, kind="folder", stage=False,
+                names=() if resume else [SESSION_FILE, "plan.toml"]):
+        session = _open_session(out, plan, text, resume, core, camera, roi, simulated_seed)
+        run = session.state["runs"] - 1
+        device = None
+        if core is None:
+            from ..simulate.camera import Camera
+
+            core, device = simulated_core(_simulated_camera(plan), seed=simulated_seed, run=run)
+        camera = camera or core.getCameraDevice()
+        if not camera:
+            raise OptionError("the core has no camera: name it with --camera")
+        try:
+            _prepare(core, camera, roi)
+            prop = gain_property(core, camera, gain_prop)
+            if device is not None:
+                set_light = set_light or _simulated_light(camera)
+                _write_truth(out, plan, device, session)
+            elif plan.method != "gs" and set_light is None:
+                raise OptionError("an intensity-series plan changes the light between "
+                                  "levels: give set_light (the command line asks at each)")
+            with _sigint_flag() as stop:
+                ctx = _Context(core, camera, prop, plan, session, stop, light_tolerance,
+                               stop_at_target, set_light, progress_bars)
+                _run(ctx)
+        finally:
+            _release(core, unload=device is not None)
+    return session
+
+
+def _open_session(out, plan, text, resume, core, camera, roi, seed) -> Session:
+    if resume:
+        if not (out / SESSION_FILE).exists():
+            raise OutputError(f"{out}: no session to resume ({SESSION_FILE} is missing)")
+        session = Session.load(out)
+        if session.state.get("plan_sha256") != _plan_sha(text):
+            raise OutputError(f"{out}: its session recorded another plan; resume it with "
+                              "its own plan.toml")
+        sim = session.state.get("simulated")
+        if (sim is None) != (seed is None) or (sim and sim.get("seed") != seed):
+            raise OutputError(f"{out}: recorded with "
+                              + ("the simulated camera (seed "
+                                 f"{sim['seed']})" if sim else "a real camera")
+                              + ": resume it with the same camera")
+        recorded_roi = session.state.get("roi")
+        if (None if roi is None else list(roi)) != recorded_roi:
+            raise OutputError(f"{out}: recorded with region {recorded_roi}: resume it with "
+                              "the same --roi")
+        session.state["runs"] += 1
+        session.state["status"] = "recording"
+        session.save()
+        return session
+    taken = [p.name for p in out.iterdir() if not p.name.startswith(".")]
+    if taken:
+        raise OutputError(f"{out}: not empty ({', '.join(sorted(taken)[:3])}"
+                          f"{', …' if len(taken) > 3 else ''}): a session is recorded into a "
+                          "new folder (or --resume one)")
+    atomic_write_text(out / "plan.toml", text)
+    state = _new_state(plan, text, camera or (core.getCameraDevice() if core else "Camera"),
+                       roi, None if seed is None else {"seed": int(seed)})
+    session = Session(out, state)
+    session.save()
+    return session
+
+
+def _prepare(core, camera, roi) -> None:
+    core.setCameraDevice(camera)
+    core.setAutoShutter(False)
+    if roi is not None:
+        try:
+            core.setROI(*[int(v) for v in roi])
+        except Exception as exc:  # noqa: BLE001 - the adapter's own error, in one line
+            raise OptionError(f"camera '{camera}' refused the region {tuple(roi)}: "
+                              f"{one_line(exc)}") from None
+
+
+def _release(core, *, unload: bool) -> None:
+    """The sequence stopped, the shutter closed and, for a core made here, the devices
+    unloaded (Micro-Manager aborts at exit when a camera thread outlives its core)."""
+    steps = [core.stopSequenceAcquisition, lambda: core.setShutterOpen(False)]
+    for step in steps + ([core.unloadAllDevices] if unload else []):
+        try:
+            step()
+        except Exception:  # noqa: BLE001 - closing down: the first error is the one told
+            pass
+
+
+def _run(ctx: _Context) -> None:
+    todo = [s for s in ctx.session.stacks if not s.done]
+    total = sum(s.planned_frames - s.frames for s in todo)
+    bar = progress(enabled=ctx.progress, desc="acquire", unit="frame", total=total)
+    try:
+        for stack in todo:
+            bar.set_postfix_str(stack.name)
+            try:
+                _record_stack(ctx, stack, bar)
+            except AcquireError as exc:
+                ctx.session.state["status"] = one_line(exc)
+                ctx.session.save()
+                raise
+        ctx.session.state["status"] = "complete"
+        ctx.session.save()
+    finally:
+        bar.close()
+
+
+# --------------------------------------------------------------------------------------
+# The simulated camera's session
+# --------------------------------------------------------------------------------------
+def _simulated_camera(plan: Plan):
+    from ..model import noise
+    from ..simulate.camera import Camera
+    from .devices import SENSOR_SHAPE
+
+    cam = plan.camera
+    model = noise.as_em_model(cam["em_model"], cam["stages"])
+    multiplication = "cascade" if model.register.uses_stages else "gamma"
+    return Camera(rows=SENSOR_SHAPE[0], cols=SENSOR_SHAPE[1], frames=2,
+                  e_per_adu=cam["e_per_adu"], read_noise=cam["read_noise"],
+                  offset=cam["offset"], adc_bits=min(16, int(cam["adc_bits"])),
+                  multiplication=multiplication,
+                  stages=model.stages if model.register.uses_stages else Camera.stages)
+
+
+def _simulated_light(camera):
+    def set_light(core, stack):
+        core.setProperty(camera, "Light", float(stack.photoelectrons))
+    return set_light
+
+
+def _write_truth(out: Path, plan: Plan, device, session: Session) -> None:
+    """``truth.json`` of the simulated camera, in the form of ``emccdcal simulate``'s
+    (with its sensor-wide offset pattern, ``truth-offset-pattern.tif``)."""
+    import tifffile
+
+    from ..simulate.series import truth_document
+
+    dark = {s.setpoint: s for s in session.stacks if s.dark}
+    acqs = []
+    for s in session.stacks:
+        if s.dark:
+            continue
+        d = dark.get(s.setpoint) or next(iter(dark.values()))
+        acqs.append({"label": s.name, "frames": s.file, "dark": d.file,
+                     "frames_n": s.planned_frames, "dark_frames_n": d.planned_frames,
+                     "setpoint": s.setpoint, "em_gain": device.true_em_gain(s.setpoint),
+                     "photoelectrons": s.photoelectrons, "offset": device.offset_of(s.setpoint)})
+    kind = "gain-series" if plan.method == "gs" else "intensity-series"
+    opts = dataclasses.asdict(device.camera) | {"seed": device.seed}
+    pattern_file = "truth-offset-pattern.tif"
+    atomic_write(out / pattern_file, lambda tmp: tifffile.imwrite(
+        tmp, device.offset_pattern.astype(np.float32)))
+    truth = truth_document(kind, device.camera, opts, acqs, pattern_file)
+    truth["roi"] = session.state.get("roi")
+    atomic_write_text(out / "truth.json", json.dumps(truth, indent=2) + "\n")

@@ -1,0 +1,212 @@
+"""``emccdcal acquire``: a plan recorded through Micro-Manager (pymmcore-plus), with the
+simulated EMCCD and with Micro-Manager's own DemoCamera, then scanned and calibrated."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pymmcore_plus", reason="the 'acquire' extra is not installed")
+
+from emccdcal import cli  # noqa: E402
+from emccdcal.acquire.plan import plan, plan_text  # noqa: E402
+from emccdcal.acquire.record import AcquireError, Session, acquire  # noqa: E402
+from emccdcal.data.scan import scan  # noqa: E402
+from emccdcal.data.stacks import load_stack, stack_settings  # noqa: E402
+from emccdcal.errors import OptionError  # noqa: E402
+
+PROEM = dict(e_per_adu=3.859, read_noise=15.5, offset=587.7, adc_bits=16)
+#: Micro-Manager's DemoCamera (from the mm-test-adapters package) with a shutter.
+DEMO_CONFIG = """\
+Device,Camera,DemoCamera,DCam
+Device,Shutter,DemoCamera,DShutter
+Property,Core,Initialize,1
+Property,Camera,PixelType,16bit
+Property,Camera,Mode,Noise
+Property,Camera,Exposure,1
+Property,Core,Camera,Camera
+Property,Core,Shutter,Shutter
+"""
+
+
+def _plan_file(tmp_path, *, setpoints=(1, 5, 25), target=2.0, edit=None, name="plan.toml"):
+    p = plan(method="gs", setpoints=list(setpoints), target_se=target, **PROEM)
+    text = plan_text(p)
+    for old, new in (edit or {}).items():
+        assert old in text
+        text = text.replace(old, new)
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def _calibrated_gains(tmp_path, session_dir):
+    """scan → calibrate on the session (the command line, as a user would)."""
+    manifest = tmp_path / "manifest.toml"
+    assert cli.main(["scan", str(session_dir), "-o", str(manifest), "-q"]) == 0
+    out = tmp_path / "cal"
+    assert cli.main(["calibrate", str(manifest), "--method", "gs", "--e-per-adu",
+                     str(PROEM["e_per_adu"]), "-o", str(out), "-q", "--no-checks"]) == 0
+    from emccdcal.result import load
+
+    return load(out)
+
+
+@pytest.mark.slow
+def test_plan_acquire_scan_calibrate_recovers_the_simulated_truth(tmp_path, capsys):
+    """The whole loop on the simulated EMCCD: the gains the calibration finds agree with
+    the camera's truth (truth.json) within their standard errors, pixel by pixel."""
+    plan_path = _plan_file(tmp_path)
+    session_dir = tmp_path / "session"
+    assert cli.main(["acquire", str(plan_path), "-o", str(session_dir), "--simulated",
+                     "--seed", "4", "--roi", "8,8,32,24", "-q"]) == 0
+    truth = json.loads((session_dir / "truth.json").read_text())
+    assert truth["kind"] == "gain-series" and truth["roi"] == [8, 8, 32, 24]
+    ds = _calibrated_gains(tmp_path, session_dir)
+    assert ds.em_gain.shape[1:] == (24, 32)
+    for t in truth["acquisitions"][1:]:
+        g = ds.em_gain.sel(setpoint=t["em_gain_setpoint"]).values.ravel()
+        se = ds.em_gain_se.sel(setpoint=t["em_gain_setpoint"]).values.ravel()
+        z = (g - t["em_gain"]) / se
+        z = z[np.isfinite(z)]
+        assert z.size > 700
+        assert abs(np.mean(z)) < 4 / np.sqrt(z.size) + 0.1  # unbiased
+        assert 0.85 < np.std(z) < 1.15  # honest SEs
+        assert np.mean(np.abs(z) < 1.96) > 0.92
+
+
+def test_democamera_records_settings_and_frames_scan_reads_back(tmp_path):
+    """Micro-Manager's DemoCamera, through a configuration file: the gain property named,
+    a region set through the core; the files record the settings the core reports and
+    hold the frames asked for, which scan reads with no hand editing."""
+    config = tmp_path / "demo.cfg"
+    config.write_text(DEMO_CONFIG)
+    plan_path = tmp_path / "plan.toml"
+    plan_path.write_text(plan_text(plan(method="gs", setpoints=[1, 2], target_se=5,
+                                        e_per_adu=1.0, read_noise=2.5, offset=600,
+                                        adc_bits=16)))
+    session_dir = tmp_path / "session"
+    code = cli.main(["acquire", str(plan_path), "-o", str(session_dir), "--mm-config",
+                     str(config), "--gain-property", "Gain", "--no-light-check",
+                     "--roi", "16,32,128,64", "-q"])
+    assert code == 0
+    found = scan(session_dir)
+    assert [f.setpoint for f in found.signal] == [1.0, 2.0]
+    for f in found.signal:
+        s = f.settings
+        assert (s.em_gain_setpoint, s.model, s.exposure_ms, s.roi, s.adc_bits) == (
+            f.setpoint, "DemoCamera-MultiMode", 1.0, (16, 32, 128, 64), 16)
+        frames = np.asarray(load_stack(f.path)[...])
+        assert frames.shape == (50, 64, 128) and frames.dtype == np.uint16
+        assert frames.std(axis=0).min() > 0 and 50 < frames.mean() < 1000  # Noise mode
+    group = json.loads((session_dir / "2x-gain.ome.zarr" / ".zattrs").read_text())
+    assert group["micromanager"]["Camera-Gain"] == "2"
+    assert group["multiscales"][0]["axes"][0]["name"] == "t"
+    state = Session.load(session_dir).state
+    assert state["status"] == "complete" and all(s["done"] for s in state["stacks"])
+
+
+def test_a_light_off_the_plan_stops_and_resume_completes(tmp_path):
+    """A lamp 60 % brighter than the plan stops the first light stack before any of its
+    frames is kept, with the measured light in the message; the dark before it is kept,
+    and --resume (the lamp set right) records the rest."""
+    plan_path = _plan_file(tmp_path, setpoints=(1, 5))
+    out = tmp_path / "session"
+    bright = lambda core, stack: core.setProperty("Camera", "Light", 1.6 * stack.photoelectrons)  # noqa: E731
+    with pytest.raises(AcquireError, match=r"1x-gain .*the light is .*\(\+6\d %"):
+        acquire(plan_path, out, simulated_seed=3, roi=(0, 0, 16, 16), set_light=bright,
+                progress_bars=False)
+    state = Session.load(out).state
+    assert "the light is" in state["status"]
+    assert [(s["name"], s["frames"], s["done"]) for s in state["stacks"][:2]] == [
+        ("1x-dark", 50, True), ("1x-gain", 0, False)]
+    assert not (out / "1x-gain.ome.zarr").exists()
+    assert load_stack(out / "1x-dark.ome.zarr").shape == (50, 16, 16)
+    with pytest.raises(Exception, match="region"):  # the same camera and region only
+        acquire(plan_path, out, simulated_seed=3, resume=True, progress_bars=False)
+    session = acquire(plan_path, out, simulated_seed=3, roi=(0, 0, 16, 16), resume=True,
+                      progress_bars=False)
+    assert session.state["status"] == "complete" and session.state["runs"] == 2
+    assert [s.frames for s in session.stacks] == [s.planned_frames for s in session.stacks]
+
+
+def test_an_occupied_folder_and_another_plan_are_refused(tmp_path):
+    plan_path = _plan_file(tmp_path, setpoints=(1, 5))
+    (tmp_path / "used").mkdir()
+    (tmp_path / "used" / "mine.txt").write_text("a user's file")
+    with pytest.raises(Exception, match="not empty"):
+        acquire(plan_path, tmp_path / "used", simulated_seed=1, progress_bars=False)
+    assert (tmp_path / "used" / "mine.txt").read_text() == "a user's file"
+    out = tmp_path / "session"
+    acquire(plan_path, out, simulated_seed=1, roi=(0, 0, 8, 8), progress_bars=False)
+    other = _plan_file(tmp_path, setpoints=(1, 25), name="other.toml")
+    with pytest.raises(Exception, match="another plan"):
+        acquire(other, out, simulated_seed=1, roi=(0, 0, 8, 8), resume=True,
+                progress_bars=False)
+    with pytest.raises(OptionError, match="gain-series plan"):
+        acquire(_plan_is(tmp_path), tmp_path / "is", simulated_seed=1, stop_at_target=True)
+
+
+def _plan_is(tmp_path):
+    path = tmp_path / "is-plan.toml"
+    path.write_text(plan_text(plan(method="is-adu", target_se=2.0, **PROEM)))
+    return path
+
+
+@pytest.mark.slow
+def test_ctrl_c_keeps_what_was_recorded_and_resume_goes_on(tmp_path):
+    """Ctrl-C in the middle of a stack: exit 130 with what was kept; the stack is a valid,
+    shorter one that scan and the readers take; --resume records the rest."""
+    plan_path = _plan_file(tmp_path, setpoints=(1, 5),
+                           edit={"dark_frames = 50 ": "dark_frames = 6000 "})
+    out = tmp_path / "session"
+    cmd = [sys.executable, "-m", "emccdcal", "acquire", str(plan_path), "-o", str(out),
+           "--simulated", "--seed", "8", "-q"]
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:  # until the first chunk of the first dark is kept
+        try:
+            if Session.load(out).stacks[0].frames > 0:
+                break
+        except Exception:  # noqa: BLE001 - not written yet
+            pass
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "interrupted: 1x-dark holds" in err and "--resume" in err
+    kept = Session.load(out).stacks[0]
+    assert 0 < kept.frames < 6000 and not kept.done
+    assert load_stack(out / "1x-dark.ome.zarr").shape[0] == kept.frames
+    done = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    stacks = Session.load(out).stacks
+    assert [s.frames for s in stacks] == [s.planned_frames for s in stacks]
+    assert load_stack(out / "1x-dark.ome.zarr").shape[0] == 6000
+
+
+@pytest.mark.slow
+def test_stop_at_target_ends_a_set_point_when_its_running_fit_is_precise(tmp_path):
+    """A plan asking far more frames than its target needs: with --stop-at-target each
+    multiplied set-point ends at the first running fit that reaches the target, and the
+    calibration of what was recorded reports about the precision the running fit saw."""
+    plan_path = _plan_file(tmp_path, setpoints=(1, 25), target=1.0,
+                           edit={"frames = 50\nassumed_em_gain = 25.0":
+                                 "frames = 1000\nassumed_em_gain = 25.0"})
+    out = tmp_path / "session"
+    session = acquire(plan_path, out, simulated_seed=6, roi=(0, 0, 16, 16),
+                      stop_at_target=True, progress_bars=False)
+    light = session.stacks[-1]
+    assert light.name == "25x-gain" and light.frames < 1000
+    assert light.reached_se <= 1.0
+    ds = _calibrated_gains(tmp_path, out)
+    rel = (ds.em_gain_se / ds.em_gain).sel(setpoint=25.0).values
+    assert np.nanmedian(rel) * 100 == pytest.approx(light.reached_se, rel=0.25)
+    assert stack_settings(out / "25x-gain.ome.zarr").em_gain_setpoint == 25.0
