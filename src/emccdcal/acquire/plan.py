@@ -540,10 +540,12 @@ def plan_text(p: Plan) -> str:
     else:
         out.append(line("em_gain_setpoint", p.acquisitions[0].setpoint))
         out.append(line("dark_frames", p.dark_frames, "one dark stack, shutter closed"))
-    out.append(line("target_se", p.target_se,
-                    f"percent: relative SE per pixel of every {worst}"))
+    if p.target_se == p.target_se:  # a target was set (TOML has no NaN a reader takes)
+        out.append(line("target_se", p.target_se,
+                        f"percent: relative SE per pixel of every {worst}"))
     out.append(line(f"predicted_{worst}_se", p.predicted_se, "percent, per pixel (worst)"))
-    out.append(line("reached", p.reached))
+    if p.target_se == p.target_se:
+        out.append(line("reached", p.reached))
     out.append(line("total_frames", p.total_frames, "light and dark"))
     if p.frame_rate_hz is not None:
         out.append(line("frame_rate_hz", p.frame_rate_hz, "frames per second"))

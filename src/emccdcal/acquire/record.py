@@ -32,6 +32,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import queue
 import signal
 import threading
 import time
@@ -72,6 +73,11 @@ SESSION_FILE = "session.json"
 _CHUNK_BYTES = 4 << 20
 #: Rows of one chunk of a stack.
 _CHUNK_ROWS = 64
+#: Every chunk written as it is: zarr's test of a chunk for all-fill values (to skip it)
+#: would cost a third of the writing, and a frame of zeros is data here.
+_WRITE_CONFIG = {"write_empty_chunks": True}
+#: Batches waiting for the disk, at most (then the recording waits: memory stays bounded).
+_QUEUED_BATCHES = 4
 #: Seconds between two updates of session.json while a stack records.
 _STATE_EVERY_S = 1.0
 
@@ -271,10 +277,10 @@ class StackWriter:
             self.array = group.create_array("0", shape=(0, h, w), dtype=dtype,
                                             chunks=(self.chunk_frames, min(h, _CHUNK_ROWS), w),
                                             compressors=None, fill_value=0,
-                                            dimension_names=None)
+                                            config=_WRITE_CONFIG)
             self.array.attrs["_ARRAY_DIMENSIONS"] = ["t", "y", "x"]
         else:
-            self.array = zarr.open_group(str(path), mode="r+")["0"]
+            self.array = zarr.open_group(str(path), mode="r+")["0"].with_config(_WRITE_CONFIG)
             if tuple(self.array.shape[1:]) != (h, w):
                 raise AcquireError(f"'{path}': frames of {self.array.shape[1]} × "
                                    f"{self.array.shape[2]} px, but the camera gives {h} × {w}")
@@ -283,8 +289,9 @@ class StackWriter:
 
     @staticmethod
     def chunk_frames_of(shape, dtype) -> int:
-        """Frames of one chunk (about 4 MiB)."""
-        return max(1, _CHUNK_BYTES // (int(np.prod(shape)) * np.dtype(dtype).itemsize))
+        """Frames of one chunk (about 4 MiB of a band of rows), at most 1024."""
+        band = min(shape[0], _CHUNK_ROWS) * shape[1] * np.dtype(dtype).itemsize
+        return int(min(1024, max(1, _CHUNK_BYTES // band)))
 
     @property
     def frames(self) -> int:
@@ -336,7 +343,12 @@ def _frames(core, n: int, stop: threading.Event, what: str):
             elif not core.isSequenceRunning():
                 if core.getRemainingImageCount() > 0:
                     continue
-                raise AcquireError(f"{what}: the camera stopped after {got} of {n} frames")
+                overflow = getattr(core, "isBufferOverflowed", lambda: False)()
+                raise AcquireError(
+                    f"{what}: the camera stopped after {got} of {n} frames"
+                    + (": Micro-Manager's buffer overflowed (frames came faster than they "
+                       "were written; a smaller --roi, a slower frame rate or a faster disk)"
+                       if overflow else ""))
             else:
                 time.sleep(0.0002)
     finally:
@@ -373,54 +385,106 @@ def _attrs(ctx: _Context, stack: Stack) -> dict:
                                      "photoelectrons": stack.photoelectrons}}
 
 
-def _record_stack(ctx: _Context, stack: Stack, bar) -> None:
-    core, folder = ctx.core, ctx.session.folder
+class _Writing:
+    """A stack's batches appended by a thread of its own, so that popping frames from the
+    core never waits for the disk; the queue is bounded (and so is memory). An error of
+    the writing is raised in the recording thread at the next batch or at the end."""
+
+    def __init__(self, session: Session, stack: Stack, path: Path, shape, dtype, attrs):
+        self.session, self.stack = session, stack
+        self._args = (path, shape, dtype, attrs)
+        self.writer = (StackWriter(*self._args, frames=stack.frames)
+                       if path.exists() else None)  # else made with the first frames kept
+        self._queue: queue.Queue = queue.Queue(maxsize=_QUEUED_BATCHES)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name=f"write {stack.name}",
+                                        daemon=True)
+        self._thread.start()
+
+    def put(self, batch: np.ndarray) -> None:
+        """Queue frames (k, rows, cols) for writing; the array is not touched meanwhile."""
+        if self._error is not None:
+            raise self._error
+        self._queue.put(batch)
+
+    def _run(self) -> None:
+        while (batch := self._queue.get()) is not None:
+            if self._error is not None:
+                continue
+            try:
+                self.writer = self.writer or StackWriter(*self._args)
+                self.writer.append(batch)
+                self.stack.frames = self.writer.frames
+                self.session.save(every=_STATE_EVERY_S)
+            except BaseException as exc:  # noqa: BLE001 - handed to the recording thread
+                self._error = exc
+
+    def close(self) -> None:
+        """Wait for every batch to be written."""
+        self._queue.put(None)
+        self._thread.join()
+        if self._error is not None:
+            raise AcquireError(f"'{self._args[0]}': writing failed: "
+                               f"{one_line(self._error)}") from None
+
+
+def _start_stack(ctx: _Context, stack: Stack):
+    """Gain, light and shutter set for ``stack``; its frames' shape and dtype."""
+    core = ctx.core
     _set_gain(core, ctx.camera, ctx.gain_prop, stack.setpoint)
     if not stack.dark and ctx.set_light is not None and stack.photoelectrons != ctx.light:
         ctx.set_light(core, stack)
         ctx.light = stack.photoelectrons
     core.setShutterOpen(not stack.dark)
     shape = (core.getImageHeight(), core.getImageWidth())
-    dtype = np.uint16 if core.getBytesPerPixel() == 2 else np.uint8
-    path = folder / stack.file
-    attrs = _attrs(ctx, stack)
-    writer = (StackWriter(path, shape, dtype, attrs, frames=stack.frames)
-              if path.exists() else None)  # else made with the first frames kept
     if ctx.sample is None:
         n_px = shape[0] * shape[1]
         ctx.sample = np.unique(np.linspace(0, n_px - 1, min(SAMPLE_PIXELS, n_px)).astype(int))
+    return shape, (np.uint16 if core.getBytesPerPixel() == 2 else np.uint8)
+
+
+def _record_stack(ctx: _Context, stack: Stack, bar) -> None:
+    shape, dtype = _start_stack(ctx, stack)
+    path = ctx.session.folder / stack.file
     target = ctx.stop_at_target and not stack.dark and stack.setpoint != 1
     most = (ctx.plan.max_frames or 2 * stack.planned_frames) if target else stack.planned_frames
     wanted = most - stack.frames
-    batch, sample_frames = [], []
+    sample_frames, kept, n = [], stack.frames, 0
     checked = stack.dark or stack.frames > 0  # a resumed stack was checked when it began
     every = int(min(CHECK_EVERY, max(_FIRST_CHECK, stack.planned_frames // 4)))
     next_fit = stack.frames + every
     chunk = StackWriter.chunk_frames_of(shape, dtype)
-    with closing(_frames(core, wanted, ctx.stop, stack.name)) as frames:
-        for frame in frames:
-            batch.append(frame)
-            bar.update(1)
-            if target:
-                sample_frames.append(frame.reshape(-1)[ctx.sample])
-            if not checked and len(batch) == min(CHECK_FRAMES, wanted):
-                _check_light(ctx, stack, np.stack(batch))
-                checked = True
-            if checked and len(batch) >= chunk:
-                writer = writer or StackWriter(path, shape, dtype, attrs)
-                _write(ctx, stack, writer, batch)
-                batch = []
-            recorded = stack.frames + len(batch)
-            if target and recorded >= next_fit:
-                next_fit += every
-                stack.reached_se = _running_se(ctx, stack, sample_frames)
-                bar.set_postfix_str(f"{stack.name}: SE {stack.reached_se:.2f} % "
-                                    f"(target {ctx.plan.target_se:g} %)")
-                if stack.reached_se <= ctx.plan.target_se:
-                    break
-    if batch and checked:
-        writer = writer or StackWriter(path, shape, dtype, attrs)
-        _write(ctx, stack, writer, batch)
+    # Frames are popped straight into batch buffers, which the writer takes in turn: one
+    # filling, the queued ones and one being written; no other copy of a frame is made.
+    buffers = [np.empty((chunk, *shape), dtype) for _ in range(_QUEUED_BATCHES + 2)]
+    writing = _Writing(ctx.session, stack, path, shape, dtype, _attrs(ctx, stack))
+    try:
+        with closing(_frames(ctx.core, wanted, ctx.stop, stack.name)) as frames:
+            for frame in frames:
+                batch = buffers[0]
+                batch[n] = frame
+                n += 1
+                bar.update(1)
+                if target:
+                    sample_frames.append(frame.reshape(-1)[ctx.sample])
+                if not checked and n == min(CHECK_FRAMES, chunk, wanted):
+                    _check_light(ctx, stack, batch[:n])
+                    checked = True
+                if checked and n == chunk:
+                    writing.put(batch)
+                    buffers.append(buffers.pop(0))
+                    kept, n = kept + chunk, 0
+                if target and kept + n >= next_fit:
+                    next_fit += every
+                    stack.reached_se = _running_se(ctx, stack, sample_frames)
+                    bar.set_postfix_str(f"{stack.name}: SE {stack.reached_se:.2f} % "
+                                        f"(target {ctx.plan.target_se:g} %)")
+                    if stack.reached_se <= ctx.plan.target_se:
+                        break
+        if n and checked:
+            writing.put(buffers[0][:n])
+    finally:
+        writing.close()
     if ctx.stop.is_set():
         ctx.session.save()
         raise Interrupted(f"interrupted: {stack.name} holds {stack.frames} of "
@@ -430,12 +494,6 @@ def _record_stack(ctx: _Context, stack: Stack, bar) -> None:
         stack.reached_se = _running_se(ctx, stack, sample_frames)
     stack.done = True
     ctx.session.save()
-
-
-def _write(ctx, stack, writer, batch) -> None:
-    writer.append(np.stack(batch))
-    stack.frames = writer.frames
-    ctx.session.save(every=_STATE_EVERY_S)
 
 
 def _dark_of(ctx: _Context, setpoint: float):
