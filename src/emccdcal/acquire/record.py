@@ -659,8 +659,6 @@ def acquire(plan, out, *, core=None, camera: str | None = None, simulated_seed=N
         run = session.state["runs"] - 1
         device = None
         if core is None:
-            from ..simulate.camera import Camera
-
             core, device = simulated_core(_simulated_camera(plan), seed=simulated_seed, run=run)
         camera = camera or core.getCameraDevice()
         if not camera:
