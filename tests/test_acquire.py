@@ -131,9 +131,23 @@ def test_a_light_off_the_plan_stops_and_resume_completes(tmp_path):
     assert load_stack(out / "1x-dark.ome.zarr").shape == (50, 16, 16)
     with pytest.raises(Exception, match="region"):  # the same camera and region only
         acquire(plan_path, out, simulated_seed=3, resume=True, progress_bars=False)
+    # an OME-Zarr someone put where the session's next stack goes is neither cut nor added to
+    import zarr
+
+    theirs = np.arange(3 * 16 * 16, dtype=np.uint16).reshape(3, 16, 16)
+    group = zarr.open_group(str(out / "1x-gain.ome.zarr"), mode="w-")
+    group.attrs["multiscales"] = [{"version": "0.4", "datasets": [{"path": "0"}]}]
+    group.create_array("0", data=theirs)
+    with pytest.raises(AcquireError, match="not the stack this session recorded"):
+        acquire(plan_path, out, simulated_seed=3, roi=(0, 0, 16, 16), resume=True,
+                progress_bars=False)
+    assert np.array_equal(np.asarray(load_stack(out / "1x-gain.ome.zarr")[...]), theirs)
+    import shutil
+
+    shutil.rmtree(out / "1x-gain.ome.zarr")
     session = acquire(plan_path, out, simulated_seed=3, roi=(0, 0, 16, 16), resume=True,
                       progress_bars=False)
-    assert session.state["status"] == "complete" and session.state["runs"] == 2
+    assert session.state["status"] == "complete" and session.state["runs"] == 3
     assert [s.frames for s in session.stacks] == [s.planned_frames for s in session.stacks]
 
 

@@ -73,6 +73,8 @@ SESSION_FILE = "session.json"
 _CHUNK_BYTES = 4 << 20
 #: Rows of one chunk of a stack.
 _CHUNK_ROWS = 64
+#: The attribute that marks a stack as written by acquire (with what it was planned as).
+_MARKER = "emccdcal_acquisition"
 #: Every chunk written as it is: zarr's test of a chunk for all-fill values (to skip it)
 #: would cost a third of the writing, and a frame of zeros is data here.
 _WRITE_CONFIG = {"write_empty_chunks": True}
@@ -279,12 +281,20 @@ class StackWriter:
                                             compressors=None, fill_value=0,
                                             config=_WRITE_CONFIG)
             self.array.attrs["_ARRAY_DIMENSIONS"] = ["t", "y", "x"]
-        else:
-            self.array = zarr.open_group(str(path), mode="r+")["0"].with_config(_WRITE_CONFIG)
+        else:  # a resume: only a stack this session wrote, only frames beyond its record
+            try:
+                group = zarr.open_group(str(path), mode="r+")
+                ours = _MARKER in group.attrs
+                self.array = group["0"].with_config(_WRITE_CONFIG)
+            except Exception:  # noqa: BLE001 - whatever is there, it is not our stack
+                ours = False
+            if not ours or self.array.shape[0] < frames:
+                raise AcquireError(f"'{path}': not the stack this session recorded (or "
+                                   f"fewer than its {frames} frames); it is left as it is")
             if tuple(self.array.shape[1:]) != (h, w):
                 raise AcquireError(f"'{path}': frames of {self.array.shape[1]} × "
                                    f"{self.array.shape[2]} px, but the camera gives {h} × {w}")
-            if self.array.shape[0] != frames:
+            if self.array.shape[0] > frames:  # a batch written when the run was killed
                 self.array.resize((frames, h, w))
 
     @staticmethod
@@ -381,7 +391,7 @@ def _attrs(ctx: _Context, stack: Stack) -> dict:
     props = camera_properties(ctx.core, ctx.camera)
     settings = dataclasses.replace(settings_of(props), em_gain_setpoint=float(stack.setpoint))
     return {"emccdcal": settings.known(), "micromanager": props,
-            "emccdcal_acquisition": {"dark": stack.dark, "planned_frames": stack.planned_frames,
+            _MARKER: {"dark": stack.dark, "planned_frames": stack.planned_frames,
                                      "photoelectrons": stack.photoelectrons}}
 
 
@@ -543,7 +553,7 @@ def _running_se(ctx: _Context, stack: Stack, sample_frames: list) -> float:
     """The median relative SE (percent) of the stack's em_gain over the sample pixels,
     from the calibration's own likelihood (gs: with the 1× stack and both darks)."""
     from ..data import stats
-    from ..data.dark import maps_from_dark
+    from ..data.dark import fit_dark, maps_from_dark
     from ..fit import engine, layouts
     from ..model import noise
 
@@ -554,11 +564,17 @@ def _running_se(ctx: _Context, stack: Stack, sample_frames: list) -> float:
                                                            ctx.sample)))
     frames = [ctx.unit_frames, np.stack(sample_frames)[:, None, :]]
     maps, dark_frames = [], []
+    adc_max = 2 ** int(cam["adc_bits"]) - 1
     for sp in (1.0, stack.setpoint):
         dark = _dark_of(ctx, sp)[1]
-        maps.append(maps_from_dark(dark))
+        # the calibration's rule: plain maps at 1x, the read-out fitted apart from the
+        # multiplied events of a multiplied dark
+        if sp == 1:
+            maps.append(maps_from_dark(dark))
+        else:
+            fitted = fit_dark(dark, adc_max=adc_max)
+            maps.append((fitted.offset, fitted.read_noise))
         dark_frames.append(dark.shape[0])
-    adc_max = 2 ** int(cam["adc_bits"]) - 1
     hists = [stats.histograms(f, adc_max=adc_max) for f in frames]
     model = noise.as_em_model(cam["em_model"], cam["stages"])
     setpoints = np.array([1.0, stack.setpoint])
@@ -653,8 +669,8 @@ def acquire(plan, out, *, core=None, camera: str | None = None, simulated_seed=N
     out = Path(out)
     if core is None and simulated_seed is None:
         raise OptionError("give a core with a camera, or a seed for the simulated camera")
-    with Output(out, kind="folder", stage=False,
-                names=() if resume else [SESSION_FILE, "plan.toml"]):
+    # a session goes into a new (empty) folder or resumes its own: _open_session decides
+    with Output(out, kind="folder", stage=False):
         session = _open_session(out, plan, text, resume, core, camera, roi, simulated_seed)
         run = session.state["runs"] - 1
         device = None

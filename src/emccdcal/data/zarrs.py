@@ -30,25 +30,30 @@ ATTRIBUTE = "emccdcal"
 
 def open_array(path: Path):
     """The store's array, read-only and lazy (slicing reads only the chunks it touches)."""
+    return _open(path)[0]
+
+
+def _open(path: Path):
+    """(the store's array, the attributes of the OME-Zarr group holding it, or {})."""
     try:
         import zarr
     except ImportError:
         raise InputError("reading Zarr needs the 'zarr' extra: pip install 'emccdcal[zarr]'") from None
     try:
-        arr = zarr.open(str(path), mode="r")
+        node = zarr.open(str(path), mode="r")
     except Exception as exc:  # noqa: BLE001 - a damaged store can fail anywhere
         raise InputError(f"'{path}': not a Zarr array: {one_line(exc)}") from None
-    if not hasattr(arr, "shape") or not hasattr(arr, "dtype"):
-        image = _image_path(arr)
-        if image is None:
-            raise InputError(f"'{path}': a Zarr group that is not an OME-Zarr image; point "
-                             "at the stack's array")
-        try:
-            arr = arr[image]
-        except Exception as exc:  # noqa: BLE001 - a damaged store can fail anywhere
-            raise InputError(f"'{path}': its OME-Zarr image '{image}' cannot be read: "
-                             f"{one_line(exc)}") from None
-    return arr
+    if hasattr(node, "shape") and hasattr(node, "dtype"):
+        return node, {}
+    image = _image_path(node)
+    if image is None:
+        raise InputError(f"'{path}': a Zarr group that is not an OME-Zarr image; point "
+                         "at the stack's array")
+    try:
+        return node[image], dict(node.attrs)
+    except Exception as exc:  # noqa: BLE001 - a damaged store can fail anywhere
+        raise InputError(f"'{path}': its OME-Zarr image '{image}' cannot be read: "
+                         f"{one_line(exc)}") from None
 
 
 def _image_path(group) -> str | None:
@@ -61,21 +66,11 @@ def _image_path(group) -> str | None:
         return None
 
 
-def _group_attrs(path: Path) -> dict:
-    import zarr
-
-    try:
-        node = zarr.open(str(path), mode="r")
-    except Exception:  # noqa: BLE001 - open_array has said what is wrong
-        return {}
-    return {} if hasattr(node, "shape") else dict(node.attrs)
-
-
 def settings(path: Path) -> CameraSettings:
     """The settings recorded in the store's ``"emccdcal"`` attribute (unknown names are
     an error, so that a misspelt one is not silently dropped)."""
-    group = _group_attrs(path)
-    recorded = dict(open_array(path).attrs.get(ATTRIBUTE) or group.get(ATTRIBUTE) or {})
+    arr, group = _open(path)
+    recorded = dict(arr.attrs.get(ATTRIBUTE) or group.get(ATTRIBUTE) or {})
     if not recorded and isinstance(group.get("micromanager"), dict):
         from .micromanager import settings_of
 
