@@ -3,9 +3,10 @@ delivers them, with Micro-Manager's DemoCamera at its fastest; and its memory ov
 long acquisition.
 
 The core's rate: a sequence of the same frames popped from the core's buffer and
-dropped. acquire's: the same frames recorded by ``acquire`` (a two-set-point plan of
-darks and lights, light check off), timed from the first frame to the last stack
-written. Runs alternate (this machine is shared); medians are compared as a ratio.
+dropped, timed from the sequence's start to the last frame. acquire's: the same frames
+recorded by ``acquire`` (a two-set-point plan of darks and lights, light check off), timed
+from the call to its return (the session made, each stack's settings read and its file
+written to the last frame). Runs alternate (this machine is shared); medians are compared as a ratio.
 Memory: the peak resident memory of a fresh process recording a short and a four times
 longer plan at 128 x 128 px (the session's frames are on disk, never all in memory).
 
@@ -54,8 +55,8 @@ def core_rate(config: Path, frames: int, roi=None) -> float:
     if roi is not None:
         core.setROI(*roi)
     try:
+        start, got = time.perf_counter(), 0  # the camera's start counted, as in acquire's
         core.startSequenceAcquisition(frames, 0.0, True)
-        start, got = time.perf_counter(), 0
         while got < frames:
             if core.getRemainingImageCount() > 0:
                 core.popNextImage()

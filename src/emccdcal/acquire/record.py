@@ -11,7 +11,7 @@ For each set-point (a gain series), in the plan's order:
 1. the EM gain is set through the camera's property (:func:`gain_property`), the
    shutter closed (auto-shutter off) and the dark frames recorded;
 2. the shutter is opened and the first :data:`CHECK_FRAMES` frames checked against the
-   plan: none saturated, and the light they show, ``(mean − dark mean)·φ/g``, within
+   plan: at most :data:`SATURATED_LIMIT` of their values saturated, and the light they show, ``(mean − dark mean)·φ/g``, within
    ``light_tolerance`` of the plan's (a clear error and a stop otherwise, with the files
    so far kept);
 3. the light frames are recorded; with ``stop_at_target``, a running fit of a fixed
@@ -57,6 +57,11 @@ GAIN_PROPERTIES = {"Andor": "Gain", "AndorSDK3": "Gain", "PVCAM": "MultiplierGai
                    "PICAM": "MultiplierGain", "PrincetonInstruments": "MultiplierGain"}
 #: Frames at the start of each light stack checked against the plan before any is kept.
 CHECK_FRAMES = 20
+#: Largest fraction of the first frames' values at the ADC's limit. A light set too
+#: bright saturates many; a hot pixel or an event in the tail of the multiplication
+#: saturates a few, which calibrate drops (and counts) pixel by pixel, so they do not stop
+#: the recording.
+SATURATED_LIMIT = 1e-3
 #: Largest relative difference between the light measured and the plan's. Wide: at a
 #: multiplied set-point the measured light leans on the gain the plan assumed, and true
 #: gains differ from their set-points by 10-20 % (the 1x stack measures it exactly).
@@ -239,17 +244,19 @@ class Session:
             raise InputError(f"'{path}': not a readable session ({one_line(exc)})") from None
 
     def save(self, *, every: float = 0.0) -> None:
-        """Write session.json (at most once per ``every`` seconds)."""
+        """Write session.json (with ``every``, at most once per ``every`` seconds and not
+        flushed to disk: a progress record, while the stacks' writing fills the disk)."""
         now = time.monotonic()
         if every and now - self._saved < every:
             return
         self.state["stacks"] = [dataclasses.asdict(s) for s in self.stacks]
-        atomic_write_text(self.folder / SESSION_FILE, json.dumps(self.state, indent=2) + "\n")
+        atomic_write_text(self.folder / SESSION_FILE, json.dumps(self.state, indent=2) + "\n",
+                          durable=not every)
         self._saved = now
 
 
 # --------------------------------------------------------------------------------------
-# One stack on disk: OME-Zarr (NGFF 0.4), frames appended in chunks
+# One stack on disk: OME-Zarr (NGFF 0.5, Zarr v3), frames appended in chunks
 # --------------------------------------------------------------------------------------
 class StackWriter:
     """An OME-Zarr image of (t, y, x) frames, appended a chunk at a time.
@@ -268,19 +275,19 @@ class StackWriter:
         h, w = shape
         self.chunk_frames = self.chunk_frames_of(shape, dtype)
         if frames is None:
-            group = zarr.open_group(str(path), mode="w-", zarr_format=2)
-            group.attrs.update({"multiscales": [{
-                "version": "0.4", "name": path.name,
+            group = zarr.open_group(str(path), mode="w-", zarr_format=3)
+            group.attrs.update({"ome": {"version": "0.5", "multiscales": [{
+                "name": path.name,
                 "axes": [{"name": "t", "type": "time"}, {"name": "y", "type": "space"},
                          {"name": "x", "type": "space"}],
                 "datasets": [{"path": "0", "coordinateTransformations": [
-                    {"type": "scale", "scale": [1.0, 1.0, 1.0]}]}]}], **attrs})
+                    {"type": "scale", "scale": [1.0, 1.0, 1.0]}]}]}]}, **attrs})
             # chunks of a band of rows: calibrate reads a stack by bands of rows
             self.array = group.create_array("0", shape=(0, h, w), dtype=dtype,
                                             chunks=(self.chunk_frames, min(h, _CHUNK_ROWS), w),
                                             compressors=None, fill_value=0,
+                                            dimension_names=("t", "y", "x"),
                                             config=_WRITE_CONFIG)
-            self.array.attrs["_ARRAY_DIMENSIONS"] = ["t", "y", "x"]
         else:  # a resume: only a stack this session wrote, only frames beyond its record
             try:
                 group = zarr.open_group(str(path), mode="r+")
@@ -307,8 +314,67 @@ class StackWriter:
     def frames(self) -> int:
         return int(self.array.shape[0])
 
-    def append(self, batch: np.ndarray) -> None:
-        self.array.append(batch, axis=0)
+    def append(self, batch: Batch, count: int) -> None:
+        """Append the first ``count`` frames of ``batch``.
+
+        A batch of whole chunks is written as the chunks' files, then the array grown
+        over them: a run killed in between leaves a stack of the frames before (never
+        frames of fill values), and by Zarr v3 an uncompressed chunk is its C-order
+        little-endian bytes. zarr's own asynchronous writing costs about a tenth of the
+        camera's rate at 400 MB/s on two cores (benchmarks/bench_acquire.py); any other
+        batch (a resume's first, the last) is written through zarr.
+        """
+        start, rest = self.frames, self.array.shape[1:]
+        folder = self._chunk_folder()
+        if folder is not None and count == self.chunk_frames and start % count == 0:
+            for row, band in enumerate(batch.bands):
+                path = folder / self.array.metadata.encode_chunk_key((start // count, row, 0))
+                path.parent.mkdir(parents=True, exist_ok=True)
+                with open(path, "wb") as fh:
+                    fh.write(band)
+            self.array.resize((start + count, *rest))
+            return
+        self.array.resize((start + count, *rest))
+        for (top, bottom), band in zip(batch.rows, batch.bands):
+            self.array[start:start + count, top:bottom] = band[:count, :bottom - top]
+
+    def _chunk_folder(self) -> Path | None:
+        """Where the array's chunk files are, if its chunks are plain little-endian bytes
+        in a local store (else None: zarr writes them)."""
+        import zarr
+
+        array = self.array
+        plain = (array.metadata.zarr_format == 3 and array.dtype.str[0] in "<|"
+                 and array.metadata.codecs == (zarr.codecs.BytesCodec(endian="little"),))
+        store = array.store_path.store
+        if not plain or not isinstance(store, zarr.storage.LocalStore):
+            return None
+        return Path(store.root) / array.path
+
+
+class Batch:
+    """Frames of one chunk's length kept as the stack's bands of rows: each band is then
+    one whole chunk, which zarr writes as it is (a (frames, rows, cols) batch would be
+    cut, filled and copied chunk by chunk: a third of the writing at 512 × 512 px). The
+    last band is a whole chunk too, its rows below the frame zero (Zarr stores an edge
+    chunk whole)."""
+
+    def __init__(self, frames: int, shape, dtype):
+        rows, cols = shape
+        height = min(rows, _CHUNK_ROWS)
+        self.rows = [(top, min(rows, top + height)) for top in range(0, rows, height)]
+        self.bands = [np.zeros((frames, height, cols), dtype) for _ in self.rows]
+        self.count = 0
+
+    def add(self, frame: np.ndarray) -> None:
+        for (top, bottom), band in zip(self.rows, self.bands):
+            band[self.count, :bottom - top] = frame[top:bottom]
+        self.count += 1
+
+    def frames(self) -> np.ndarray:
+        """The frames added, (count, rows, cols)."""
+        return np.concatenate([band[:self.count, :bottom - top]
+                               for (top, bottom), band in zip(self.rows, self.bands)], axis=1)
 
 
 def _read_frames(path: Path, pixels: np.ndarray | None = None):
@@ -383,6 +449,8 @@ class _Context:
     light: float | None = None  # the light last set (set_light is called when it changes)
     darks: dict | None = None  # set-point -> (mean image, sample frames)
     unit_frames: np.ndarray | None = None  # the 1x stack's sample frames
+    # Stacks whose last batches are still being written while the next one records.
+    finishing: list = dataclasses.field(default_factory=list)
 
 
 def _attrs(ctx: _Context, stack: Stack) -> dict:
@@ -411,19 +479,19 @@ class _Writing:
                                         daemon=True)
         self._thread.start()
 
-    def put(self, batch: np.ndarray) -> None:
-        """Queue frames (k, rows, cols) for writing; the array is not touched meanwhile."""
+    def put(self, batch: Batch) -> None:
+        """Queue the batch's frames for writing; it is not touched meanwhile."""
         if self._error is not None:
             raise self._error
-        self._queue.put(batch)
+        self._queue.put((batch, batch.count))
 
     def _run(self) -> None:
-        while (batch := self._queue.get()) is not None:
+        while (item := self._queue.get()) is not None:
             if self._error is not None:
                 continue
             try:
                 self.writer = self.writer or StackWriter(*self._args)
-                self.writer.append(batch)
+                self.writer.append(*item)
                 self.stack.frames = self.writer.frames
                 self.session.save(every=_STATE_EVERY_S)
             except BaseException as exc:  # noqa: BLE001 - handed to the recording thread
@@ -459,31 +527,33 @@ def _record_stack(ctx: _Context, stack: Stack, bar) -> None:
     target = ctx.stop_at_target and not stack.dark and stack.setpoint != 1
     most = (ctx.plan.max_frames or 2 * stack.planned_frames) if target else stack.planned_frames
     wanted = most - stack.frames
-    sample_frames, kept, n = [], stack.frames, 0
+    sample_frames, kept = [], stack.frames
     checked = stack.dark or stack.frames > 0  # a resumed stack was checked when it began
     every = int(min(CHECK_EVERY, max(_FIRST_CHECK, stack.planned_frames // 4)))
     next_fit = stack.frames + every
     chunk = StackWriter.chunk_frames_of(shape, dtype)
-    # Frames are popped straight into batch buffers, which the writer takes in turn: one
+    # Frames are copied straight into batches, which the writer takes in turn: one
     # filling, the queued ones and one being written; no other copy of a frame is made.
-    buffers = [np.empty((chunk, *shape), dtype) for _ in range(_QUEUED_BATCHES + 2)]
+    batches = [Batch(chunk, shape, dtype) for _ in range(_QUEUED_BATCHES + 2)]
     writing = _Writing(ctx.session, stack, path, shape, dtype, _attrs(ctx, stack))
+    finished = False
     try:
         with closing(_frames(ctx.core, wanted, ctx.stop, stack.name)) as frames:
             for frame in frames:
-                batch = buffers[0]
-                batch[n] = frame
-                n += 1
+                batch = batches[0]
+                batch.add(frame)
+                n = batch.count
                 bar.update(1)
                 if target:
                     sample_frames.append(frame.reshape(-1)[ctx.sample])
                 if not checked and n == min(CHECK_FRAMES, chunk, wanted):
-                    _check_light(ctx, stack, batch[:n])
+                    _check_light(ctx, stack, batch.frames())
                     checked = True
-                if checked and n == chunk:
+                if checked and (kept + n) % chunk == 0:  # (a resume's first: to a chunk's end)
+                    _finish(ctx)  # the stack before, written meanwhile
                     writing.put(batch)
-                    buffers.append(buffers.pop(0))
-                    kept, n = kept + chunk, 0
+                    batches.append(batches.pop(0))
+                    batches[0].count, kept, n = 0, kept + n, 0
                 if target and kept + n >= next_fit:
                     next_fit += every
                     stack.reached_se = _running_se(ctx, stack, sample_frames)
@@ -491,10 +561,16 @@ def _record_stack(ctx: _Context, stack: Stack, bar) -> None:
                                         f"(target {ctx.plan.target_se:g} %)")
                     if stack.reached_se <= ctx.plan.target_se:
                         break
-        if n and checked:
-            writing.put(buffers[0][:n])
+        if batches[0].count and checked:
+            writing.put(batches[0])
+        # The last batches are written while the next stack records (_finish marks it
+        # done); an interrupted or failed stack is written to the end here.
+        finished = not ctx.stop.is_set()
     finally:
-        writing.close()
+        if finished:
+            ctx.finishing.append((stack, writing))
+        else:
+            writing.close()
     if ctx.stop.is_set():
         ctx.session.save()
         raise Interrupted(f"interrupted: {stack.name} holds {stack.frames} of "
@@ -502,13 +578,29 @@ def _record_stack(ctx: _Context, stack: Stack, bar) -> None:
                           "--resume")
     if target and (stack.reached_se is None or stack.reached_se > ctx.plan.target_se):
         stack.reached_se = _running_se(ctx, stack, sample_frames)
-    stack.done = True
-    ctx.session.save()
+
+
+def _finish(ctx: _Context) -> None:
+    """Wait for the stacks still being written and mark them done; the first error of
+    their writing is raised once every one is seen to."""
+    error = None
+    while ctx.finishing:
+        stack, writing = ctx.finishing.pop(0)
+        try:
+            writing.close()
+        except AcquireError as exc:
+            error = error or exc
+            continue
+        stack.done = True
+        ctx.session.save()
+    if error is not None:
+        raise error
 
 
 def _dark_of(ctx: _Context, setpoint: float):
     """The dark at a set-point (the series' one for an intensity series): its mean image
     and its sample pixels' frames, read back from its file."""
+    _finish(ctx)  # the dark may be the stack just recorded
     if ctx.darks is None:
         ctx.darks = {}
     stack = next(s for s in ctx.session.stacks if s.dark and
@@ -531,7 +623,7 @@ def _check_light(ctx: _Context, stack: Stack, frames: np.ndarray) -> None:
     adc_max = 2 ** int(cam["adc_bits"]) - 1
     saturated = float(np.mean(frames >= adc_max))
     where = f"{stack.name} (set-point {stack.setpoint:g})"
-    if saturated > 0:
+    if saturated > SATURATED_LIMIT:
         raise AcquireError(f"{where}: {100 * saturated:.2g} % of the first {len(frames)} "
                            f"frames' pixels are at the ADC's limit ({adc_max} ADU): dim the "
                            "light, then --resume")
@@ -558,6 +650,7 @@ def _running_se(ctx: _Context, stack: Stack, sample_frames: list) -> float:
     from ..model import noise
 
     cam = ctx.plan.camera
+    _finish(ctx)
     if ctx.unit_frames is None:
         unit = next(s for s in ctx.session.stacks if not s.dark and s.setpoint == 1)
         ctx.unit_frames = np.concatenate(list(_read_frames(ctx.session.folder / unit.file,
@@ -758,19 +851,23 @@ def _run(ctx: _Context) -> None:
     todo = [s for s in ctx.session.stacks if not s.done]
     total = sum(s.planned_frames - s.frames for s in todo)
     bar = progress(enabled=ctx.progress, desc="acquire", unit="frame", total=total)
+    error = None
     try:
         for stack in todo:
             bar.set_postfix_str(stack.name)
-            try:
-                _record_stack(ctx, stack, bar)
-            except AcquireError as exc:
-                ctx.session.state["status"] = one_line(exc)
-                ctx.session.save()
-                raise
-        ctx.session.state["status"] = "complete"
-        ctx.session.save()
+            _record_stack(ctx, stack, bar)
+    except AcquireError as exc:
+        error = exc
     finally:
         bar.close()
+        try:
+            _finish(ctx)  # whatever stopped the recording, the stacks recorded are kept
+        except AcquireError as exc:
+            error = error or exc
+    ctx.session.state["status"] = "complete" if error is None else one_line(error)
+    ctx.session.save()
+    if error is not None:
+        raise error
 
 
 # --------------------------------------------------------------------------------------
