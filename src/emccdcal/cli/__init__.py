@@ -39,6 +39,7 @@ VERBS = {
     "audit": "check a localization tool's camera settings against a calibration",
     "apply": "convert a movie to photoelectrons per pixel, (S - offset) * phi / g",
     "gain-curve": "fit the gain against the set-point; predict set-points not measured",
+    "gain-check": "the EM gain from dark frames alone, against its calibration",
     "db": "the calibration database: add, list, show, compare (ageing), remove, relocate",
 }
 

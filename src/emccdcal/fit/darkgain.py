@@ -1,0 +1,503 @@
+"""The true EM gain from dark frames alone (``emccdcal gain-check``).
+
+A shutter-closed frame at EM gain holds, besides the read-out's Gaussian, electrons
+made by clock-induced charge and dark current before the register, which it multiplies
+like photoelectrons: their counts stand out of the read noise with a scale of g/φ ADU.
+With φ (e⁻/ADU) known from a calibration of the same camera and read-out mode, the
+shape of those events gives the gain g. Here every pixel's dark counts are fitted by
+maximum likelihood under the register model (the exact cascade, or the gamma model of
+Ryan et al. 2021), with the pixel's own offset S0, read noise σ and event rate E
+(e⁻/px/frame), and the gain shared by the pixels; the exact register may also hold
+clock-induced charge made inside it (``register_cic``, electrons per pixel per frame
+entering at a uniformly random stage, so partly multiplied), shared too.
+
+The fit profiles the shared parameters: each pass over the pixels refits every pixel's
+(ln E, S0, ln σ) at the current shared values, and sums the pixels' scores of the shared
+ones (the profile's gradient, by the envelope theorem) and their expected (Fisher)
+information with the pixel's own parameters eliminated (the Schur complement: what the
+pixel tells of the shared ones once its nuisances are estimated); a Fisher-scoring step
+follows. The standard error is that information's inverse at the maximum. Pixels are
+read a band of rows at a time on every pass, so memory holds only the per-pixel
+parameters, never the frames.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from types import SimpleNamespace
+
+import numpy as np
+
+from .._optimize import maximize
+from .._util import progress
+from ..data import stats
+from ..errors import InputError, NotConvergedError
+from ..model import noise
+
+__all__ = ["GainCheck", "check_gain", "compare", "MIN_EVENTS"]
+
+#: Fewest multiplied events (counts beyond 6 σ of the read-out) to attempt a fit.
+MIN_EVENTS = 20
+#: Elements of frames read at once (frames × pixels of a band of rows).
+_BAND_ELEMENTS = 2**23
+#: Window points (pixels × counts) evaluated together.
+_WINDOW_POINTS = 2**21
+#: Bounds of ln(event rate): 1e-7 to 2 electrons per pixel per frame.
+_LOG_RATE = (math.log(1e-7), math.log(2.0))
+
+
+@dataclass(frozen=True)
+class GainCheck:
+    """The EM gain found in dark frames, with what it rests on.
+
+    Attributes
+    ----------
+    em_gain, em_gain_se : float
+        The true mean EM gain g (dimensionless) and its standard error.
+    setpoint : float or None
+        The camera's EM gain set-point of the frames (as recorded or given).
+    e_per_adu : float
+        φ used, e⁻/ADU (taken as exact: its own error scales g alike).
+    em_model : str
+        The register model's label (``gamma`` or ``cascade:N``).
+    events : float
+        Multiplied events the fit attributes to the data (Σ over pixels of rate × frames).
+    event_rate : float
+        Median event rate, e⁻ per pixel per frame.
+    register_cic, register_cic_se : float or None
+        Clock-induced charge made inside the register, e⁻/px/frame (fitted with
+        ``fit_register_cic``; else the value assumed, SE None).
+    pixels, frames : int
+        Pixels fitted (converged) and frames per pixel.
+    passes : int
+        Passes over the pixels (profile steps).
+    """
+
+    em_gain: float
+    em_gain_se: float
+    setpoint: float | None
+    e_per_adu: float
+    em_model: str
+    events: float
+    event_rate: float
+    register_cic: float
+    register_cic_se: float | None
+    pixels: int
+    frames: int
+    passes: int
+
+    @property
+    def relative_se(self) -> float:
+        """em_gain_se / em_gain."""
+        return self.em_gain_se / self.em_gain
+
+    def frames_for(self, target_se: float) -> int:
+        """Frames per pixel for a relative SE of ``target_se`` (a fraction), from this
+        check's information (it grows in proportion to the frames)."""
+        return int(math.ceil(self.frames * (self.relative_se / target_se) ** 2))
+
+    def as_dict(self) -> dict:
+        """The JSON record (``gain-check --json``): plain numbers and text."""
+        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                for k, v in asdict(self).items()}
+
+
+def check_gain(darks, e_per_adu: float, *, setpoint: float | None = None,
+               em_model="cascade", stages: int | None = None, register_cic: float = 0.0,
+               fit_register_cic: bool = False, pooled_rate: bool = True,
+               adc_max: int | None = None,
+               region=None, tol: float = 1e-5, max_passes: int = 25,
+               progress_bars: bool = False) -> GainCheck:
+    """The EM gain of dark frames by maximum likelihood (module docstring).
+
+    Parameters
+    ----------
+    darks : sequence of array_like, each (frames, rows, cols)
+        Shutter-closed stacks (ADU) of one set-point and read-out mode, the same pixels;
+        lazy arrays are read a band of rows at a time.
+    e_per_adu : float
+        φ of the camera's read-out mode, e⁻/ADU (a calibration's).
+    setpoint : float, optional
+        The set-point, recorded in the result.
+    em_model, stages : optional
+        The register model (``"cascade"``, the exact register, or ``"gamma"``).
+    register_cic : float
+        Clock-induced charge made inside the register, e⁻/px/frame (cascade only):
+        the value assumed, or the start with ``fit_register_cic``.
+    fit_register_cic : bool
+        Fit ``register_cic`` as a second shared parameter (cascade only).
+    pooled_rate : bool
+        One event rate shared by the pixels (default), else each pixel's own. Per-pixel
+        rates are incidental parameters: a pixel's few events estimate its rate and
+        inform the gain at once, and the gain comes out low by about one standard error
+        where a pixel holds tens of events (measured at 50× and 2000 frames of 0.01
+        e⁻/px/frame); pooled, it is unbiased.
+    adc_max : int, optional
+        ADC maximum: counts at or above it are left out.
+    region : (slice, slice), optional
+        Rows and columns to use (pixels known to be dark: masked rows, overscan).
+    tol : float
+        The profile's step in ln g (and in register_cic, e⁻) that ends the fit (a step
+        that promises less than 1e-3 nats ends it too).
+    max_passes : int
+        Passes over the pixels before giving up.
+    progress_bars : bool
+        A progress bar over the passes.
+
+    Returns
+    -------
+    GainCheck
+
+    Raises
+    ------
+    InputError
+        Too few events stand out of the read noise to fit a gain (the gain too low or
+        the frames too few), or the stacks differ in their pixels.
+    NotConvergedError
+        The profile did not settle within ``max_passes``.
+    """
+    model = noise.as_em_model(em_model, stages)
+    if fit_register_cic and not model.register.uses_stages:
+        raise InputError("register_cic is a parameter of the exact register only: use "
+                         "em_model='cascade'")
+    phi = float(e_per_adu)
+    if not (math.isfinite(phi) and phi > 0):
+        raise InputError(f"e_per_adu must be a positive number, got {e_per_adu!r}")
+    stacks = _select(darks, region)
+    frames = sum(int(s.shape[0]) for s in stacks)
+    rows, cols = (int(v) for v in stacks[0].shape[1:])
+    fit = _Fit(model, phi, fit_register_cic, pooled_rate)
+
+    # Start: each pixel's read-out from the left half of its counts (events only add
+    # counts above the offset); the events' scale θ = g/φ from the pooled excess
+    # cumulants (single multiplied electrons, nearly exponential: an excess variance
+    # 2Eθ² and third cumulant 6Eθ³ over the read-out's, so θ = κ3 / (3 κ2)), and the
+    # rate E from them.
+    x = np.empty((rows * cols, 3))
+    k2 = k3 = far_n = 0.0
+    for pix, h in _bands(stacks, adc_max, rows, cols):
+        S0, sigma = _robust_start(h)
+        dev = h.values - h.mean[:, None]
+        k2 += float(np.sum(h.var - sigma**2))
+        k3 += float(np.sum((h.counts * dev**3).sum(axis=1) / h.n))
+        far = h.values > (S0 + 4.0 * sigma)[:, None]
+        far_n += float((h.counts * far).sum())
+        x[pix, 1], x[pix, 2] = S0, np.log(sigma)
+    if far_n < MIN_EVENTS or not (k2 > 0 and k3 > 0):
+        raise InputError(
+            f"only {far_n:.0f} dark counts stand out of the read noise (beyond 4 σ; at "
+            f"least {MIN_EVENTS} are needed): the EM gain is too low for a check from "
+            "dark frames, or the frames too few")
+    theta = max(k3 / (3.0 * k2), 1.5 / phi)
+    x[:, 0] = np.clip(math.log(k2 / x.shape[0] / (2.0 * theta**2)), *_LOG_RATE)
+    shared = np.array([math.log(theta * phi)]
+                      + ([max(register_cic, 1e-3)] if fit_register_cic else [])
+                      + ([float(x[0, 0])] if pooled_rate else []))
+    fixed_cic = float(register_cic)
+
+    best, previous, info, passes = -np.inf, None, None, 0
+    bar = progress(range(max_passes), enabled=progress_bars, desc="gain-check", unit="pass")
+    for passes in bar:
+        total, grad, info, ok, events = fit.pass_over(x, shared, fixed_cic,
+                                                      _bands(stacks, adc_max, rows, cols))
+        if previous is not None and total < best - 1e-6 * abs(best):
+            shared = 0.5 * (shared + previous)  # the step overshot: halve it
+            continue
+        best, previous = total, shared.copy()
+        step = _solve(info, grad)
+        # done when the step promises less than 1e-3 nats (it moves the estimates by less
+        # than 5 % of their standard errors: the pixels' own fits are only that exact)
+        # or is below ``tol``
+        if 0.5 * float(grad @ step) < 1e-3 or np.all(np.abs(step) < tol):
+            break
+        step[0] = np.clip(step[0], -0.5, 0.5)
+        if fit_register_cic:
+            step[1] = max(step[1], -shared[1])  # register_cic ≥ 0
+        if pooled_rate:
+            step[-1] = np.clip(step[-1], -1.0, 1.0)
+        shared = shared + step
+        if pooled_rate:
+            shared[-1] = np.clip(shared[-1], *_LOG_RATE)
+    else:
+        raise NotConvergedError(f"the gain did not settle in {max_passes} passes over "
+                                "the pixels")
+    bar.close()
+    cov = np.linalg.inv(info)
+    g = float(math.exp(shared[0]))
+    rate = np.exp(x[ok, 0])  # (the pooled rate where it is pooled)
+    return GainCheck(
+        em_gain=g, em_gain_se=float(g * math.sqrt(cov[0, 0])),
+        setpoint=None if setpoint is None else float(setpoint), e_per_adu=phi,
+        em_model=model.label, events=float(events), event_rate=float(np.median(rate)),
+        register_cic=float(shared[1]) if fit_register_cic else fixed_cic,
+        register_cic_se=float(math.sqrt(cov[1, 1])) if fit_register_cic else None,
+        pixels=int(ok.sum()), frames=frames, passes=passes + 1)
+
+
+# --------------------------------------------------------------------------------------
+# Reading
+# --------------------------------------------------------------------------------------
+def _select(darks, region):
+    from ..data.dark import as_stack
+
+    stacks = [as_stack(d, "dark stack") for d in darks]
+    if not stacks:
+        raise InputError("no dark stacks given")
+    if region is not None:
+        stacks = [_Region(s, region) for s in stacks]
+    shapes = {tuple(int(v) for v in s.shape[1:]) for s in stacks}
+    if len(shapes) > 1:
+        raise InputError(f"the dark stacks differ in their frames' shape: {sorted(shapes)}")
+    return stacks
+
+
+class _Region:
+    """A stack seen through (rows, cols) slices, read lazily."""
+
+    def __init__(self, stack, region):
+        self.stack, self.region = stack, tuple(region)
+        rows = range(*region[0].indices(int(stack.shape[1])))
+        cols = range(*region[1].indices(int(stack.shape[2])))
+        if not rows or not cols:
+            raise InputError(f"the region holds no pixels of a {stack.shape[1]} × "
+                             f"{stack.shape[2]} px frame")
+        self.shape = (int(stack.shape[0]), len(rows), len(cols))
+        self.dtype = stack.dtype
+
+    def __getitem__(self, key):
+        frames, rows, cols = key
+        r0 = self.region[0].indices(int(self.stack.shape[1]))[0]
+        c0 = self.region[1].indices(int(self.stack.shape[2]))[0]
+        return self.stack[frames, r0 + rows.start:r0 + rows.stop,
+                          c0:c0 + self.shape[2]][..., cols]
+
+
+def _bands(stacks, adc_max, rows, cols):
+    """(pixel indices, histograms) of each band of rows of all the stacks' frames."""
+    frames = sum(int(s.shape[0]) for s in stacks)
+    band = max(1, _BAND_ELEMENTS // max(1, frames * cols))
+    for r0 in range(0, rows, band):
+        r1 = min(rows, r0 + band)
+        block = np.concatenate([np.asarray(s[:, r0:r1, :]) for s in stacks], axis=0)
+        yield slice(r0 * cols, r1 * cols), stats.histograms(block, adc_max=adc_max)
+
+
+def _robust_start(h):
+    """Median and left half-width (the 15.9 % quantile's distance) of each pixel's counts:
+    events only add counts above the offset, so the left half is the read-out's."""
+    cdf = np.cumsum(h.counts, axis=1) / h.n[:, None]
+    rows = np.arange(h.n.size)
+    med = h.values[rows, np.argmax(cdf >= 0.5, axis=1)].astype(float)
+    q16 = h.values[rows, np.argmax(cdf >= 0.158655, axis=1)].astype(float)
+    return med, np.maximum(med - q16, 0.5)
+
+
+def _take(h, idx):
+    return SimpleNamespace(values=h.values[idx], counts=h.counts[idx], n=h.n[idx])
+
+
+def _solve(info, grad):
+    try:
+        return np.linalg.solve(info, grad)
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(info, grad, rcond=None)[0]
+
+
+# --------------------------------------------------------------------------------------
+# The likelihood of a pixel's dark counts
+# --------------------------------------------------------------------------------------
+class _SharedRegister:
+    """Rows of pixels that share the register (gain, φ, register CIC) and differ in their
+    event rate E only: the register's part of K, ``E·v(s) + c·v̄(s)``, is computed for a
+    unit rate and for the CIC alone (two rows) and scaled, instead of once per pixel
+    (the exact register's transform is most of the cost). Everything else is the rows'.
+    """
+
+    def __init__(self, rows, base):
+        self._rows, self._base = rows, base  # base: rows (E=1, c=0) and (E=0, c)
+
+    def __getattr__(self, name):
+        return getattr(self._rows, name)
+
+    def take(self, idx):
+        return _SharedRegister(self._rows.take(idx), self._base)
+
+    def cgf(self, s, order=0, names=()):
+        if order > 1 or not np.all(s == s[:1]):  # tilted rows differ in s: row by row
+            return self._rows.cgf(s, order, names)
+        K, first, _ = self._base.cgf(np.repeat(s[:1], 2, axis=0), order, names)
+        E = self._rows.E[:, None]
+        out = {}
+        for name, d in first.items():
+            if name == "photoelectrons":  # ∂(E·v)/∂E = v, the same for every row
+                out[name] = np.broadcast_to(d[0], s.shape)
+            elif name == "register_cic":  # ∂(c·v̄)/∂c = v̄, likewise
+                out[name] = np.broadcast_to(d[1], s.shape)
+            else:
+                out[name] = E * d[0] + d[1]
+        return E * K[0] + K[1], out, {}
+
+class _Fit:
+    """Per-pixel (ln E, S0, ln σ) and the shared (ln g[, register_cic]) of one model."""
+
+    def __init__(self, model, phi, fit_cic, pooled):
+        self.model, self.phi, self.fit_cic, self.pooled = model, phi, fit_cic, pooled
+        self.cascade = model.register.uses_stages
+        # the register's native parameter the gain moves: θ = g/φ (gamma), g (cascade)
+        self.gain_name = "em_gain" if self.cascade else "scale"
+        self.names = (("photoelectrons", "offset", "read_noise", self.gain_name)
+                      + (("register_cic",) if fit_cic else ()))
+        # positions in the names of each pixel's own parameters and of the shared ones,
+        # in the order of the shared vector (ln g[, register_cic][, ln E])
+        self.own = [1, 2] if pooled else [0, 1, 2]
+        self.common = [3] + ([4] if fit_cic else []) + ([0] if pooled else [])
+
+    def _rows(self, E, g, cic):
+        g, phi = np.full(E.shape, g), np.full(E.shape, self.phi)
+        return self.model.register.rows(E, g, phi, cic) if self.cascade else \
+            self.model.register.rows(E, g, phi)
+
+    def _rows_at(self, x, shared, cic):
+        E, S0, sigma = np.exp(x[:, 0]), x[:, 1], np.exp(x[:, 2])
+        g, cic = math.exp(shared[0]), (shared[1] if self.fit_cic else cic)
+        rows = _SharedRegister(self._rows(E, g, cic), self._rows(np.array([1.0, 0.0]), g,
+                                                                np.array([0.0, cic])))
+        return rows, S0, sigma
+
+    def windows(self, h, x, shared, cic):
+        """Windows covering the model at (x, shared), with room for the fit to move, and
+        the data: (start per pixel, length). Fixed while the pixels are refitted, so
+        that their likelihood is smooth."""
+        rows, S0, sigma = self._rows_at(x, shared, cic)
+        lo, hi = noise.window_extent(rows, S0, sigma, width=10.0)
+        lo, hi = lo - 2.0 * sigma, hi + 0.5 * (hi - S0)
+        start = np.minimum(np.floor(lo).astype(np.int64), h.values[:, 0])
+        stop = np.maximum(np.ceil(hi).astype(np.int64), h.values.max(axis=1))
+        # a count far beyond the model (a cosmic ray) does not stretch every window: it
+        # is left past the window's end and floored like any value below round-off
+        length = np.minimum(stop - start, 4 * (np.ceil(hi).astype(np.int64) - start) + 64)
+        return start, noise.fast_len(int(length.max()) + 1)
+
+    def evaluate(self, h, x, shared, cic, window, *, shared_too=True):
+        """Log-likelihood (P,), scores at the data (P, K) and the expected (Fisher)
+        information (P, K, K) in the coordinates (ln E, S0, ln σ[, ln g[,
+        register_cic]]): K = 3 without ``shared_too``, the pixel's own only."""
+        names = self.names if shared_too else self.names[:3]
+        rows, S0, sigma = self._rows_at(x, shared, cic)
+        start, n = window
+        p, d1, _ = noise.window(rows, S0 - start, sigma, n, derivs=True, names=names)
+        # to the fit's coordinates: d/d ln E = E d/dE, d/d ln σ = σ d/dσ, and d/d ln g =
+        # θ d/dθ (gamma, θ = g/φ) or g d/dg (cascade)
+        ones = np.ones(sigma.shape)
+        factors = [rows.E, ones, sigma, rows.gain if self.cascade else rows.scale, ones]
+        d = np.stack([d1[name] * f[:, None] for name, f in zip(names, factors)],
+                     axis=-1)  # (P, n, K)
+        # values below FFT round-off of the peak are floored (an outlier's weight capped)
+        floor = 1e-14 * p.max(axis=1, keepdims=True)
+        flat = h.values - start[:, None]
+        beyond = flat >= n
+        pv = np.take_along_axis(p, np.where(beyond, 0, flat), axis=1)
+        low = (pv < floor) | beyond
+        pv = np.where(low, floor, pv)
+        ll = np.sum(h.counts * np.log(pv), axis=1)
+        dv = np.take_along_axis(d, np.where(beyond, 0, flat)[..., None], axis=1)
+        scores = np.where(low[..., None], 0.0, dv / pv[..., None])
+        grad = np.sum(h.counts[..., None] * scores, axis=1)
+        # Σ over the window of p·s·sᵀ = d·dᵀ/p (where p is above round-off), times frames
+        good = p > floor
+        w = np.where(good, h.n[:, None] / np.where(good, p, 1.0), 0.0)
+        info = np.swapaxes(d * w[..., None], 1, 2) @ d
+        return ll, grad, info
+
+    def pass_over(self, x, shared, cic, bands):
+        """Refit every pixel at ``shared``; the total log-likelihood, the shared
+        parameters' profile gradient and information, the pixels that converged and
+        the events attributed to the data."""
+        S, own, common = shared.size, self.own, self.common
+        total, grad, info, events = 0.0, np.zeros(S), np.zeros((S, S)), 0.0
+        ok_all = np.zeros(x.shape[0], bool)
+        lower = np.array([_LOG_RATE[0], -np.inf, -np.inf])[own]
+        upper = np.array([_LOG_RATE[1], np.inf, np.inf])[own]
+        if self.pooled:
+            x[:, 0] = shared[-1]
+        for pix, h in bands:
+            index = np.arange(pix.start, pix.stop)
+            n = self.windows(h, x[index], shared, cic)[1]
+            block = max(1, _WINDOW_POINTS // (n * len(self.names)))
+            for b in range(0, index.size, block):
+                part = slice(b, b + block)
+                sub = _take(h, part)
+                start, n = self.windows(sub, x[index[part]], shared, cic)
+
+                def evaluate(rows, xo, sub=sub, start=start, n=n, xb=x[index[part]]):
+                    xf = xb[rows].copy()
+                    xf[:, own] = xo
+                    ll, gr, inf = self.evaluate(_take(sub, rows), xf, shared, cic,
+                                                (start[rows], n), shared_too=False)
+                    return ll, gr[:, own], inf[:, own][:, :, own]
+
+                opt = maximize(evaluate, x[index[part]][:, own], lower=lower, upper=upper,
+                               tol=1e-5, max_iter=60, accept_rtol=1e-10)
+                ok = (opt.done | opt.stuck) & np.all(np.isfinite(opt.x), axis=1)
+                xb = x[index[part]]
+                xb[:, own] = np.where(ok[:, None], opt.x, xb[:, own])
+                x[index[part]] = xb
+                ll, gr, inf = self.evaluate(sub, x[index[part]], shared, cic, (start, n))
+                total += float(ll[np.isfinite(ll)].sum())  # every pixel: the same set each pass
+                ok &= np.isfinite(ll)
+                # the shared parameters' information with the pixel's own eliminated
+                inf = inf[ok]
+                a = inf[:, common][:, :, common]
+                b_ = inf[:, common][:, :, own]
+                schur = a - b_ @ np.linalg.solve(inf[:, own][:, :, own], np.swapaxes(b_, 1, 2))
+                grad += gr[ok][:, common].sum(axis=0)
+                info += schur.sum(axis=0)
+                events += float((np.exp(x[index[part]][ok, 0]) * sub.n[ok]).sum())
+                ok_all[index[part]] = ok
+        return total, grad, info, ok_all, events
+
+
+# --------------------------------------------------------------------------------------
+# Against a calibration
+# --------------------------------------------------------------------------------------
+def compare(check: GainCheck, calibration, *, z: float = 3.0) -> dict:
+    """The check against a calibration's gain at its set-point.
+
+    The calibration's sensor value is the median of its per-pixel gains at the
+    set-point, with that median's standard error (:func:`emccdcal.result.pixel_statistics`);
+    the difference is in per cent of it, with the two SEs combined.
+
+    Parameters
+    ----------
+    check : GainCheck
+        With its ``setpoint``.
+    calibration : str, Path or Calibration
+        A result (or group) holding that set-point.
+    z : float
+        Flag a difference beyond ``z`` combined standard errors.
+
+    Returns
+    -------
+    dict
+        ``calibrated_em_gain``, ``calibrated_em_gain_se``, ``calibrated`` (the result's
+        date), ``difference_percent``, ``difference_se_percent``, ``z`` and ``changed``
+        (the flag).
+    """
+    from ..result import Calibration, load_calibration, pixel_statistics
+
+    cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
+    if check.setpoint is None:
+        raise InputError("the set-point of the dark frames is not known: give it")
+    if check.setpoint not in cal.em_gain:
+        have = ", ".join(f"{s:g}" for s in sorted(cal.em_gain))
+        raise InputError(f"the calibration has no gain at set-point {check.setpoint:g} "
+                         f"(it has {have})")
+    stats_ = pixel_statistics(cal.em_gain[check.setpoint])
+    g_cal, se_cal = stats_["median"], stats_["se_of_median"] or 0.0
+    combined = math.hypot(check.em_gain_se, se_cal)
+    diff = check.em_gain - g_cal
+    return {"calibrated_em_gain": g_cal, "calibrated_em_gain_se": se_cal,
+            "calibrated": cal.created[:10], "difference_percent": 100.0 * diff / g_cal,
+            "difference_se_percent": 100.0 * combined / g_cal, "z": diff / combined,
+            "changed": bool(abs(diff) > z * combined)}
