@@ -64,7 +64,8 @@ def run(args) -> int:
 
     from ..data.stacks import load_stack, stack_settings
     from ..errors import OptionError
-    from ..fit.darkgain import check_gain, compare
+    from ..export.gain_check import compare
+    from ..fit.darkgain import check_gain
 
     phi = args.e_per_adu if args.e_per_adu is not None else args.calibration
     if phi is None:

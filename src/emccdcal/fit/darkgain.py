@@ -35,7 +35,7 @@ from ..data import stats
 from ..errors import InputError, NotConvergedError
 from ..model import noise
 
-__all__ = ["GainCheck", "check_gain", "compare", "MIN_EVENTS"]
+__all__ = ["GainCheck", "check_gain", "MIN_EVENTS"]
 
 #: Fewest multiplied events (counts beyond 6 σ of the read-out) to attempt a fit.
 MIN_EVENTS = 20
@@ -257,6 +257,8 @@ class _Region:
 
     def __init__(self, stack, region):
         self.stack, self.region = stack, tuple(region)
+        if any(part.step not in (None, 1) for part in self.region):
+            raise InputError("a region's rows and columns are ranges without a step")
         rows = range(*region[0].indices(int(stack.shape[1])))
         cols = range(*region[1].indices(int(stack.shape[2])))
         if not rows or not cols:
@@ -343,20 +345,15 @@ class _Fit:
 
     def __init__(self, model, phi, fit_cic, pooled):
         self.model, self.phi, self.fit_cic, self.pooled = model, phi, fit_cic, pooled
-        self.cascade = model.register.uses_stages
-        # the register's native parameter the gain moves: θ = g/φ (gamma), g (cascade)
-        self.gain_name = "em_gain" if self.cascade else "scale"
-        self.names = (("photoelectrons", "offset", "read_noise", self.gain_name)
-                      + (("register_cic",) if fit_cic else ()))
-        # positions in the names of each pixel's own parameters and of the shared ones,
-        # in the order of the shared vector (ln g[, register_cic][, ln E])
+        # positions in (ln E, S0, ln σ, ln g[, register_cic]) of each pixel's own
+        # parameters and of the shared ones, in the order of the shared vector
+        # (ln g[, register_cic][, ln E])
         self.own = [1, 2] if pooled else [0, 1, 2]
         self.common = [3] + ([4] if fit_cic else []) + ([0] if pooled else [])
 
     def _rows(self, E, g, cic):
-        g, phi = np.full(E.shape, g), np.full(E.shape, self.phi)
-        return self.model.register.rows(E, g, phi, cic) if self.cascade else \
-            self.model.register.rows(E, g, phi)
+        return self.model.register.rows(E, np.full(E.shape, g), np.full(E.shape, self.phi),
+                                        cic)
 
     def _rows_at(self, x, shared, cic):
         E, S0, sigma = np.exp(x[:, 0]), x[:, 1], np.exp(x[:, 2])
@@ -383,16 +380,25 @@ class _Fit:
         """Log-likelihood (P,), scores at the data (P, K) and the expected (Fisher)
         information (P, K, K) in the coordinates (ln E, S0, ln σ[, ln g[,
         register_cic]]): K = 3 without ``shared_too``, the pixel's own only."""
-        names = self.names if shared_too else self.names[:3]
         rows, S0, sigma = self._rows_at(x, shared, cic)
+        # with the shared parameters, the register's own (the gain is θ = g/φ of the
+        # gamma model, g of the exact one): its public_gradients make them the gain's
+        names = ("photoelectrons", "offset", "read_noise") + (
+            rows.names + ("register_cic",) * self.fit_cic if shared_too else ())
         start, n = window
-        p, d1, _ = noise.window(rows, S0 - start, sigma, n, derivs=True, names=names)
-        # to the fit's coordinates: d/d ln E = E d/dE, d/d ln σ = σ d/dσ, and d/d ln g =
-        # θ d/dθ (gamma, θ = g/φ) or g d/dg (cascade)
-        ones = np.ones(sigma.shape)
-        factors = [rows.E, ones, sigma, rows.gain if self.cascade else rows.scale, ones]
-        d = np.stack([d1[name] * f[:, None] for name, f in zip(names, factors)],
-                     axis=-1)  # (P, n, K)
+        p, d1, _ = noise.window(rows, S0 - start, sigma, n, derivs=True,
+                                names=tuple(dict.fromkeys(names)))
+        # to the fit's coordinates: d/d ln E = E d/dE, d/d ln σ = σ d/dσ, d/d ln g = g d/dg
+        columns = [d1["photoelectrons"] * rows.E[:, None], d1["offset"],
+                   d1["read_noise"] * sigma[:, None]]
+        if shared_too:
+            g = math.exp(shared[0])
+            public = self.model.register.public_gradients(
+                d1, np.full((sigma.size, 1), g), np.full((sigma.size, 1), self.phi))
+            columns.append(public["em_gain"] * g)
+            if self.fit_cic:
+                columns.append(public["register_cic"])
+        d = np.stack(columns, axis=-1)  # (P, n, K)
         # values below FFT round-off of the peak are floored (an outlier's weight capped)
         floor = 1e-14 * p.max(axis=1, keepdims=True)
         flat = h.values - start[:, None]
@@ -424,7 +430,7 @@ class _Fit:
         for pix, h in bands:
             index = np.arange(pix.start, pix.stop)
             n = self.windows(h, x[index], shared, cic)[1]
-            block = max(1, _WINDOW_POINTS // (n * len(self.names)))
+            block = max(1, _WINDOW_POINTS // (n * (4 + self.fit_cic)))
             for b in range(0, index.size, block):
                 part = slice(b, b + block)
                 sub = _take(h, part)
@@ -457,47 +463,3 @@ class _Fit:
                 ok_all[index[part]] = ok
         return total, grad, info, ok_all, events
 
-
-# --------------------------------------------------------------------------------------
-# Against a calibration
-# --------------------------------------------------------------------------------------
-def compare(check: GainCheck, calibration, *, z: float = 3.0) -> dict:
-    """The check against a calibration's gain at its set-point.
-
-    The calibration's sensor value is the median of its per-pixel gains at the
-    set-point, with that median's standard error (:func:`emccdcal.result.pixel_statistics`);
-    the difference is in per cent of it, with the two SEs combined.
-
-    Parameters
-    ----------
-    check : GainCheck
-        With its ``setpoint``.
-    calibration : str, Path or Calibration
-        A result (or group) holding that set-point.
-    z : float
-        Flag a difference beyond ``z`` combined standard errors.
-
-    Returns
-    -------
-    dict
-        ``calibrated_em_gain``, ``calibrated_em_gain_se``, ``calibrated`` (the result's
-        date), ``difference_percent``, ``difference_se_percent``, ``z`` and ``changed``
-        (the flag).
-    """
-    from ..result import Calibration, load_calibration, pixel_statistics
-
-    cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
-    if check.setpoint is None:
-        raise InputError("the set-point of the dark frames is not known: give it")
-    if check.setpoint not in cal.em_gain:
-        have = ", ".join(f"{s:g}" for s in sorted(cal.em_gain))
-        raise InputError(f"the calibration has no gain at set-point {check.setpoint:g} "
-                         f"(it has {have})")
-    stats_ = pixel_statistics(cal.em_gain[check.setpoint])
-    g_cal, se_cal = stats_["median"], stats_["se_of_median"] or 0.0
-    combined = math.hypot(check.em_gain_se, se_cal)
-    diff = check.em_gain - g_cal
-    return {"calibrated_em_gain": g_cal, "calibrated_em_gain_se": se_cal,
-            "calibrated": cal.created[:10], "difference_percent": 100.0 * diff / g_cal,
-            "difference_se_percent": 100.0 * combined / g_cal, "z": diff / combined,
-            "changed": bool(abs(diff) > z * combined)}
