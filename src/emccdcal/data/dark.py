@@ -184,7 +184,7 @@ def fit_dark(stack, *, adc_max=None, sample_pixels=64) -> DarkFit:
     F, rows, cols = stack.shape
     h = stats.histograms(stack, adc_max=adc_max)
     P = h.n.size
-    S0, sigma = _robust_start(h)
+    S0, sigma = robust_start(h)
     # θ: the mean excess of counts far above the Gaussian (an exponential tail's mean).
     far = h.values > (S0 + 6.0 * sigma)[:, None]
     excess = (h.values - (S0 + 6.0 * sigma)[:, None]) * h.counts * far
@@ -199,7 +199,7 @@ def fit_dark(stack, *, adc_max=None, sample_pixels=64) -> DarkFit:
     rate0 = np.maximum((h.counts * far).sum(axis=1) / h.n, 1e-4)
     x0 = np.stack([np.log(rate0), S0, np.log(sigma)], axis=1)
     sample = np.unique(np.linspace(0, P - 1, min(P, sample_pixels)).astype(int))
-    sub = _take(h, sample)
+    sub = take_pixels(h, sample)
 
     def profile(log_theta):
         x, _ = _fit_events(sub, x0[sample], np.full(sample.size, np.exp(log_theta)))
@@ -218,7 +218,7 @@ def fit_dark(stack, *, adc_max=None, sample_pixels=64) -> DarkFit:
     for b in range(0, P, _BLOCK_PIXELS):  # the windows of a block: bounded memory
         part = slice(b, b + _BLOCK_PIXELS)
         n = x0[part].shape[0]
-        x[part], ok[part] = _fit_events(_take(h, part), x0[part], np.full(n, theta))
+        x[part], ok[part] = _fit_events(take_pixels(h, part), x0[part], np.full(n, theta))
     offset, read_noise, rate = _maps(x, ok, plain_offset, plain_sd, rows, cols)
     return DarkFit(offset, read_noise, rate, theta, ok.reshape(rows, cols))
 
@@ -227,12 +227,12 @@ def fit_dark(stack, *, adc_max=None, sample_pixels=64) -> DarkFit:
 _BLOCK_PIXELS = 256
 
 
-def _take(h, idx):
+def take_pixels(h, idx):
     """The histograms of pixels ``idx`` (what the fit reads of them)."""
     return SimpleNamespace(values=h.values[idx], counts=h.counts[idx], n=h.n[idx])
 
 
-def _robust_start(h):
+def robust_start(h):
     """Median and left half-width (the 15.9 % quantile's distance) of each pixel's counts:
     events only add counts above the offset, so the left half is the read-out's."""
     cdf = np.cumsum(h.counts, axis=1) / h.n[:, None]
@@ -278,7 +278,7 @@ def _fit_events(h, x0, theta, max_iter=60):
     no step could improve it)."""
 
     def evaluate(rows, x):
-        sub = _take(h, rows)
+        sub = take_pixels(h, rows)
         pv, s = _model(sub, x, theta[rows], True)
         ll = np.sum(sub.counts * np.log(pv), axis=1)
         grad = np.sum(sub.counts[..., None] * s, axis=1)

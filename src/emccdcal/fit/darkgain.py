@@ -25,13 +25,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from types import SimpleNamespace
 
 import numpy as np
 
 from .._optimize import maximize
 from .._util import progress
 from ..data import stats
+from ..data.dark import robust_start, take_pixels
 from ..errors import InputError, NotConvergedError
 from ..model import noise
 
@@ -177,7 +177,7 @@ def check_gain(darks, e_per_adu: float, *, setpoint: float | None = None,
     x = np.empty((rows * cols, 3))
     k2 = k3 = far_n = 0.0
     for pix, h in _bands(stacks, adc_max, rows, cols):
-        S0, sigma = _robust_start(h)
+        S0, sigma = robust_start(h)
         dev = h.values - h.mean[:, None]
         k2 += float(np.sum(h.var - sigma**2))
         k3 += float(np.sum((h.counts * dev**3).sum(axis=1) / h.n))
@@ -283,20 +283,6 @@ def _bands(stacks, adc_max, rows, cols):
         r1 = min(rows, r0 + band)
         block = np.concatenate([np.asarray(s[:, r0:r1, :]) for s in stacks], axis=0)
         yield slice(r0 * cols, r1 * cols), stats.histograms(block, adc_max=adc_max)
-
-
-def _robust_start(h):
-    """Median and left half-width (the 15.9 % quantile's distance) of each pixel's counts:
-    events only add counts above the offset, so the left half is the read-out's."""
-    cdf = np.cumsum(h.counts, axis=1) / h.n[:, None]
-    rows = np.arange(h.n.size)
-    med = h.values[rows, np.argmax(cdf >= 0.5, axis=1)].astype(float)
-    q16 = h.values[rows, np.argmax(cdf >= 0.158655, axis=1)].astype(float)
-    return med, np.maximum(med - q16, 0.5)
-
-
-def _take(h, idx):
-    return SimpleNamespace(values=h.values[idx], counts=h.counts[idx], n=h.n[idx])
 
 
 def _solve(info, grad):
@@ -433,13 +419,13 @@ class _Fit:
             block = max(1, _WINDOW_POINTS // (n * (4 + self.fit_cic)))
             for b in range(0, index.size, block):
                 part = slice(b, b + block)
-                sub = _take(h, part)
+                sub = take_pixels(h, part)
                 start, n = self.windows(sub, x[index[part]], shared, cic)
 
                 def evaluate(rows, xo, sub=sub, start=start, n=n, xb=x[index[part]]):
                     xf = xb[rows].copy()
                     xf[:, own] = xo
-                    ll, gr, inf = self.evaluate(_take(sub, rows), xf, shared, cic,
+                    ll, gr, inf = self.evaluate(take_pixels(sub, rows), xf, shared, cic,
                                                 (start[rows], n), shared_too=False)
                     return ll, gr[:, own], inf[:, own][:, :, own]
 
