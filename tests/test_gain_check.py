@@ -49,6 +49,8 @@ def test_a_region_and_several_stacks_and_too_few_events():
     assert both.frames == 2000 and abs(both.em_gain - 300) < 3 * both.em_gain_se
     part = check_gain([a, b], PHI, region=(slice(0, 8), slice(4, 12)))
     assert part.pixels == 64 and part.em_gain_se > 1.5 * both.em_gain_se
+    cut = check_gain([a[:, 0:8, 4:12], b[:, 0:8, 4:12]], PHI)
+    assert (cut.em_gain, cut.em_gain_se) == (part.em_gain, part.em_gain_se)
     with pytest.raises(InputError, match="too low for a check from dark frames"):
         check_gain([_darks(300.0, seed=3, frames=200, cic=0.0)], PHI)
 

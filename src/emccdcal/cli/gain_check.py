@@ -51,10 +51,12 @@ def _region(text: str):
     import argparse
 
     try:
-        rows, cols = (tuple(int(v) if v else None for v in part.split(":"))
-                      for part in text.split(","))
+        parts = text.split(",")
+        if len(parts) != 2 or any(part.count(":") != 1 for part in parts):
+            raise ValueError(text)
+        rows, cols = (tuple(int(v) if v else None for v in part.split(":")) for part in parts)
         return slice(*rows), slice(*cols)
-    except (ValueError, TypeError):
+    except ValueError:
         raise argparse.ArgumentTypeError(
             f"expected rows and columns as R0:R1,C0:C1, got {text!r}") from None
 

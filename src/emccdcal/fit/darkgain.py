@@ -28,7 +28,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .._optimize import maximize
+from .._optimize import maximize, solve
 from .._util import progress
 from ..data import stats
 from ..data.dark import robust_start, take_pixels
@@ -37,8 +37,11 @@ from ..model import noise
 
 __all__ = ["GainCheck", "check_gain", "MIN_EVENTS"]
 
-#: Fewest multiplied events (counts beyond 6 σ of the read-out) to attempt a fit.
+#: Fewest counts beyond 4 σ of the read-out, over what its Gaussian puts there, to
+#: attempt a fit.
 MIN_EVENTS = 20
+#: The Gaussian's share beyond 4 σ (one side).
+_BEYOND_4_SIGMA = 3.167e-5
 #: Elements of frames read at once (frames × pixels of a band of rows).
 _BAND_ELEMENTS = 2**23
 #: Window points (pixels × counts) evaluated together.
@@ -176,6 +179,7 @@ def check_gain(darks, e_per_adu: float, *, setpoint: float | None = None,
     # rate E from them.
     x = np.empty((rows * cols, 3))
     k2 = k3 = far_n = 0.0
+    values = 0
     for pix, h in _bands(stacks, adc_max, rows, cols):
         S0, sigma = robust_start(h)
         dev = h.values - h.mean[:, None]
@@ -183,12 +187,14 @@ def check_gain(darks, e_per_adu: float, *, setpoint: float | None = None,
         k3 += float(np.sum((h.counts * dev**3).sum(axis=1) / h.n))
         far = h.values > (S0 + 4.0 * sigma)[:, None]
         far_n += float((h.counts * far).sum())
+        values += int(h.n.sum())
         x[pix, 1], x[pix, 2] = S0, np.log(sigma)
-    if far_n < MIN_EVENTS or not (k2 > 0 and k3 > 0):
+    events = far_n - _BEYOND_4_SIGMA * values  # less what the read-out alone puts there
+    if events < MIN_EVENTS or not (k2 > 0 and k3 > 0):
         raise InputError(
-            f"only {far_n:.0f} dark counts stand out of the read noise (beyond 4 σ; at "
-            f"least {MIN_EVENTS} are needed): the EM gain is too low for a check from "
-            "dark frames, or the frames too few")
+            f"only {max(events, 0):.0f} dark counts stand out of the read noise (beyond "
+            f"4 σ, more than its Gaussian puts there; at least {MIN_EVENTS} are needed): "
+            "the EM gain is too low for a check from dark frames, or the frames too few")
     theta = max(k3 / (3.0 * k2), 1.5 / phi)
     x[:, 0] = np.clip(math.log(k2 / x.shape[0] / (2.0 * theta**2)), *_LOG_RATE)
     shared = np.array([math.log(theta * phi)]
@@ -205,7 +211,7 @@ def check_gain(darks, e_per_adu: float, *, setpoint: float | None = None,
             shared = 0.5 * (shared + previous)  # the step overshot: halve it
             continue
         best, previous = total, shared.copy()
-        step = _solve(info, grad)
+        step = solve(info[None], grad[None])[0]
         # done when the step promises less than 1e-3 nats (it moves the estimates by less
         # than 5 % of their standard errors: the pixels' own fits are only that exact)
         # or is below ``tol``
@@ -256,23 +262,20 @@ class _Region:
     """A stack seen through (rows, cols) slices, read lazily."""
 
     def __init__(self, stack, region):
-        self.stack, self.region = stack, tuple(region)
-        if any(part.step not in (None, 1) for part in self.region):
+        if any(part.step not in (None, 1) for part in region):
             raise InputError("a region's rows and columns are ranges without a step")
-        rows = range(*region[0].indices(int(stack.shape[1])))
-        cols = range(*region[1].indices(int(stack.shape[2])))
+        rows, cols = (range(*part.indices(int(n))) for part, n in zip(region, stack.shape[1:]))
         if not rows or not cols:
             raise InputError(f"the region holds no pixels of a {stack.shape[1]} × "
                              f"{stack.shape[2]} px frame")
+        self.stack, self.top, self.cols = stack, rows.start, slice(cols.start, cols.stop)
         self.shape = (int(stack.shape[0]), len(rows), len(cols))
         self.dtype = stack.dtype
 
     def __getitem__(self, key):
-        frames, rows, cols = key
-        r0 = self.region[0].indices(int(self.stack.shape[1]))[0]
-        c0 = self.region[1].indices(int(self.stack.shape[2]))[0]
-        return self.stack[frames, r0 + rows.start:r0 + rows.stop,
-                          c0:c0 + self.shape[2]][..., cols]
+        """``[:, r0:r1, :]`` of the region (what the bands read)."""
+        frames, rows, _ = key
+        return self.stack[frames, self.top + rows.start:self.top + rows.stop, self.cols]
 
 
 def _bands(stacks, adc_max, rows, cols):
@@ -283,13 +286,6 @@ def _bands(stacks, adc_max, rows, cols):
         r1 = min(rows, r0 + band)
         block = np.concatenate([np.asarray(s[:, r0:r1, :]) for s in stacks], axis=0)
         yield slice(r0 * cols, r1 * cols), stats.histograms(block, adc_max=adc_max)
-
-
-def _solve(info, grad):
-    try:
-        return np.linalg.solve(info, grad)
-    except np.linalg.LinAlgError:
-        return np.linalg.lstsq(info, grad, rcond=None)[0]
 
 
 # --------------------------------------------------------------------------------------
