@@ -191,6 +191,7 @@ def test_logpmf_against_independent_high_precision(case):
 
     E, g, phi, s0, sigma = case
     k = support(*case, width=12)
+    k = k[:: max(1, k.size // 20000)]  # enough to find the region (up to 4e5 counts wide)
     logp = noise.logpmf(k, *case)
     peak = logp.max()
     inside = k[logp > peak + np.log(1e-10)]

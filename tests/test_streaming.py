@@ -36,7 +36,7 @@ def long_run(tmp_path_factory):
     """A series whose calibration, one row per tile, takes a few seconds: long enough to
     be interrupted after its first tiles, whatever the machine's speed."""
     base = tmp_path_factory.mktemp("long")
-    return simulate_gain_series(base / "gs", rows=24, cols=10, frames=4000, seed=9,
+    return simulate_gain_series(base / "gs", rows=12, cols=10, frames=1000, seed=9,
                                 setpoints=(1, 5, 25, 100)).manifest
 
 
@@ -53,14 +53,19 @@ def _assert_same(a, b, rtol=1e-12):
     assert a.attrs.get("quality") == b.attrs.get("quality")
 
 
-@pytest.mark.parametrize("method, which", [("gs", 0), ("is-adu", 1), ("mv-gain", 0),
-                                           pytest.param("gs-hierarchical", 0,
-                                                        marks=pytest.mark.slow)])
-def test_tiles_and_workers_do_not_change_the_result(series, method, which):
+# gs-hierarchical under the gamma model, 4x cheaper: the tiling is the same for both
+# models, and gs shows the default (the exact register) does not depend on it either
+@pytest.mark.parametrize("method, which, model", [
+    ("gs", 0, None), ("is-adu", 1, None), ("mv-gain", 0, None),
+    pytest.param("gs-hierarchical", 0, "gamma", marks=pytest.mark.slow)])
+def test_tiles_and_workers_do_not_change_the_result(series, method, which, model):
     manifest = series[which]
-    one = quiet(calibrate, manifest, method, block_size=8, tile_pixels=120, workers=1)
-    many = quiet(calibrate, manifest, method, block_size=8, tile_pixels=16, workers=2)
-    rows = quiet(calibrate, manifest, method, block_size=8, tile_pixels=10, workers=3)
+    one = quiet(calibrate, manifest, method, block_size=8, tile_pixels=120, workers=1,
+                em_model=model)
+    many = quiet(calibrate, manifest, method, block_size=8, tile_pixels=16, workers=2,
+                 em_model=model)
+    rows = quiet(calibrate, manifest, method, block_size=8, tile_pixels=10, workers=3,
+                 em_model=model)
     _assert_same(one, many)
     _assert_same(one, rows)
 
@@ -139,7 +144,7 @@ def test_a_killed_run_resumes_to_the_uninterrupted_result(long_run, tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     kept = len(list((out / RUN_DIR).glob("tile-*.npz")))
-    assert 2 <= kept < 24 and not (out / "calibration.nc").exists()
+    assert 2 <= kept < 12 and not (out / "calibration.nc").exists()
     again = _run(argv + ["-o", str(out)])
     assert again.wait() == 2 and "--resume" in again.stderr.read()
     changed = _run(argv + ["-o", str(out), "--resume", "--no-checks"])
@@ -184,7 +189,7 @@ def test_ctrl_c_says_what_is_kept_and_exits_130(long_run, tmp_path):
 
 @pytest.mark.slow
 def test_bad_pixels_are_left_out_named_and_the_run_completes(tmp_path):
-    sim = simulate_gain_series(tmp_path / "gs", rows=64, cols=64, frames=100, seed=3,
+    sim = simulate_gain_series(tmp_path / "gs", rows=32, cols=32, frames=100, seed=3,
                                setpoints=(1, 5, 25))
     stacks = {s: sim.outdir / f"gain-GS/{s}x-gain.tif" for s in ("1", "25")}
     data = tifffile.imread(stacks["25"])
@@ -194,15 +199,16 @@ def test_bad_pixels_are_left_out_named_and_the_run_completes(tmp_path):
     data[:, 9, 2] = 0  # dead: never changes
     tifffile.imwrite(stacks["1"], data)
     with pytest.warns(UserWarning) as caught:
-        ds = calibrate(sim.manifest, "gs", out=tmp_path / "out", checks=False)
+        ds = calibrate(sim.manifest, "gs", out=tmp_path / "out", checks=False,
+                       tile_pixels=256)  # four tiles
     text = [str(w.message) for w in caught]
     left_out = [t for t in text if "left out" in t]
-    assert len(left_out) == 1 and "2 of 4096 pixel(s)" in left_out[0]
+    assert len(left_out) == 1 and "2 of 1024 pixel(s)" in left_out[0]
     assert "(3, 4)" in left_out[0] and "(9, 2)" in left_out[0]
     assert not ds.converged.values[3, 4] and not ds.converged.values[9, 2]
     assert np.isnan(ds.em_gain.values[:, 3, 4]).all() and np.isnan(ds.photoelectrons.values[9, 2])
     n_converged = int(ds.converged.values.sum())
-    assert 4094 - 41 <= n_converged <= 4094  # every other pixel is fitted (≥ 99 % converge)
+    assert 1022 - 10 <= n_converged <= 1022  # every other pixel is fitted (≥ 99 % converge)
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["pixels"]["converged"] == n_converged
 

@@ -304,11 +304,11 @@ def test_bleaching_is_detected_and_corrected_so_the_ranking_holds(tmp_path):
     gains = [1.0, 4.78, 0.98 * 22.95]  # 25x gain 2 % low: its beads 2 % bright
     wrong = _result(tmp_path / "wrong", method="gs", setpoints=[1.0, 5.0, 25.0], gains=gains,
                     shape=(64, 64))
+    fits = validation.fit_validation(sim.manifest, [str(truth), str(wrong)])
     docs = {}
-    for action in ("warn", "correct"):
+    for action in ("warn", "correct"):  # one fit, compared both ways
         with pytest.warns(UserWarning, match=r"intensity falls within the acquisitions"):
-            docs[action] = validation.validate(sim.manifest, [str(truth), str(wrong)],
-                                               bleaching=action)
+            docs[action] = validation.validation_document(fits, bleaching=action)
     for action, doc in docs.items():
         trend = doc["calibrations"][0]["intensity_trend"]
         assert trend["detected"] and trend["z"] > 4
@@ -376,11 +376,13 @@ def test_blinking_beads_are_taken_at_their_on_level(tmp_path):
     truth = tmp_path / "sim" / "truth_calibration.nc"
     wrong = _result(tmp_path / "wrong", method="gs", setpoints=[1.0, 25.0],
                     gains=[1.0, 0.98 * 22.95], shape=(64, 64))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # each document below warns of the blinking
+        fits = validation.fit_validation(sim.manifest, [str(truth), str(wrong)])
     docs = {}
-    for action in ("ignore", "model"):
+    for action in ("ignore", "model"):  # one fit, compared both ways
         with pytest.warns(UserWarning, match=r"switch off in some frames"):
-            docs[action] = validation.validate(sim.manifest, [str(truth), str(wrong)],
-                                               blinking=action)
+            docs[action] = validation.validation_document(fits, blinking=action)
     off_true = sum(b["frames_off"] for b in sim.truth["beads"])
     for doc in docs.values():
         found = sum(doc["calibrations"][0]["blinking"]["frames_off"].values())
@@ -398,6 +400,8 @@ def test_blinking_beads_are_taken_at_their_on_level(tmp_path):
     assert re.search(r"6 bead\(s\) blinking, \d+ frame\(s\) off \(on level taken\)", table)
     with pytest.raises(ValueError, match="blinking must be"):
         validation.validate(sim.manifest, [str(truth)], blinking="drop")
+    with pytest.raises(ValueError, match="blinking must be"):
+        validation.validation_document(fits, blinking="drop")
 
 
 @pytest.mark.slow

@@ -13,9 +13,12 @@ less than ``tol + rtol·|objective|`` (the Newton decrement ½∇ᵀΔ), when it
 (stuck, unless an undamped step would gain less than ``stuck_tol``).
 
 Users: the likelihood engine (:mod:`emccdcal.fit.engine`), the dark fit
-(:mod:`emccdcal.data.dark`), the bead fits (:mod:`emccdcal.beads.fit`, whose rows are
-whole beads with an arrow-shaped information solved by their own ``step``) and COTS
-(:mod:`emccdcal.beads.cots`).
+(:mod:`emccdcal.data.dark`), the bead fits (:mod:`emccdcal.beads.fit`), COTS
+(:mod:`emccdcal.beads.cots`) and the gain from dark frames
+(:mod:`emccdcal.fit.darkgain`). A row made of many parts that share a few parameters (a
+bead's frames sharing its position and width; a sensor's pixels sharing the register's
+gain) has an arrow-shaped information: :class:`ArrowLayout` packs it and solves its step
+through the Schur complement (:func:`schur`).
 """
 
 from __future__ import annotations
@@ -91,7 +94,7 @@ def dense_step(info, grad, damping, held):
 
 def maximize(evaluate, x0, *, lower, upper, tol, rtol=0.0, max_iter=100, max_step=1.0,
              accept_rtol=1e-12, max_damping=1e8, stuck_tol=0.0, step=dense_step,
-             progress=None):
+             decrement=None, progress=None):
     """Maximise independent per-row objectives by damped Newton steps.
 
     Parameters
@@ -127,7 +130,10 @@ def maximize(evaluate, x0, *, lower, upper, tol, rtol=0.0, max_iter=100, max_ste
         ``step(info, grad, damping, held)`` → the damped step (n, F) of the rows:
         :func:`dense_step` by default; a fit whose information has a structure (a bead's
         shared and per-frame parameters) solves it its own way, with the same damping.
-    progress : callable, optional
+    decrement : callable, optional
+        ``decrement(grad, step)`` → what the step promises per row (n,), compared with
+        the tolerance: by default the Newton decrement ½∇ᵀΔ. A row of many parts (an
+        :class:`ArrowLayout`'s) may weigh its parts: :meth:`ArrowLayout.decrement`.
         Called with the number of rows that finished at each iteration.
 
     Returns
@@ -164,8 +170,9 @@ def maximize(evaluate, x0, *, lower, upper, tol, rtol=0.0, max_iter=100, max_ste
         d = x_new - x_a
         # A step that promises less than the tolerance is not worth its evaluation (the
         # objective's round-off could even refuse it): the row is done.
-        decrement = 0.5 * np.einsum("pf,pf->p", g, d)
-        small = ((np.abs(decrement) < tol + rtol * np.abs(obj[active]))
+        promise = (0.5 * np.einsum("pf,pf->p", g, d) if decrement is None
+                   else decrement(g, d))
+        small = ((np.abs(promise) < tol + rtol * np.abs(obj[active]))
                  | (np.max(np.abs(d), axis=1, initial=0.0) < 1e-10))
         done[active[small]] = True
         move = ~small
@@ -190,3 +197,116 @@ def maximize(evaluate, x0, *, lower, upper, tol, rtol=0.0, max_iter=100, max_ste
         if progress is not None:
             progress(int(small.sum() + hopeless.size))
     return Optimum(x, obj, done & ~stuck, stuck, iterations)
+
+
+# --------------------------------------------------------------------------------------
+# Arrow-shaped information: many parts sharing a few parameters
+# --------------------------------------------------------------------------------------
+def diagonal_damped(H, damping):
+    """``H + λ·diag H`` for a stack of square matrices and one λ per leading index."""
+    d = np.einsum("...ii->...i", H)
+    return H + (damping.reshape(damping.shape + (1,) * (d.ndim - damping.ndim)) * d)[..., None] \
+        * np.eye(H.shape[-1])
+
+
+def schur(H, shared, own, damping=None, free_s=None, free_o=None):
+    """An arrow-shaped information reduced to its shared parameters.
+
+    A row's objective is a sum over its F parts (a bead's frames, a sensor's pixels);
+    each part has parameters of its own (the columns ``own``) and all share ``shared``.
+    The information is an arrow: eliminating the parts' blocks leaves the Schur
+    complement ``S = H_ss − Σ_f H_sf H_ff⁻¹ H_fs``.
+
+    Parameters
+    ----------
+    H : ndarray, shape (b, F, D, D)
+        Each part's information in all of its D columns.
+    shared, own : sequence of int
+        The columns shared by the parts, and each part's own.
+    damping : ndarray, shape (b,), optional
+        Levenberg–Marquardt λ of each row: ``λ·diag`` added to both blocks.
+    free_s, free_o : ndarray of bool, shapes (b, k) and (b, F, f), optional
+        Parameters not held at a bound (a held one leaves the system).
+
+    Returns
+    -------
+    S : (b, k, k), H_ff⁻¹ : (b, F, f, f), H_sf : (b, F, k, f)
+    """
+    fr, k = list(own), len(shared)
+    eye_f, eye_k = np.eye(len(fr)), np.eye(k)
+    Hff = H[..., fr, :][..., fr]
+    Hss = H[..., shared, :][..., shared].sum(axis=1)
+    Hsf = H[..., shared, :][..., fr]
+    if damping is not None:
+        Hff, Hss = diagonal_damped(Hff, damping), diagonal_damped(Hss, damping)
+    if free_o is not None:
+        fixed = ~free_o
+        Hff = np.where(fixed[..., :, None] | fixed[..., None, :], 0.0, Hff) \
+            + fixed[..., :, None] * eye_f
+        Hsf = np.where(free_o[..., None, :], Hsf, 0.0)
+    Hff = Hff + 1e-12 * (1.0 + np.abs(Hff).max(axis=(-1, -2), keepdims=True)) * eye_f
+    Hff_inv = np.linalg.inv(Hff)
+    S = Hss - np.einsum("bfkj,bflj->bkl", Hsf @ Hff_inv, Hsf)
+    if free_s is not None:
+        fixed_s = ~free_s
+        S = np.where(fixed_s[:, :, None] | fixed_s[:, None, :], 0.0, S) \
+            + fixed_s[:, :, None] * eye_k
+    S = S + 1e-12 * (1.0 + np.abs(S).max(axis=(-1, -2), keepdims=True)) * eye_k
+    return S, Hff_inv, Hsf
+
+
+class ArrowLayout:
+    """Rows of :func:`maximize` made of F parts with D columns each: the ``shared``
+    columns once per row, then each part's ``own`` columns; any other column stays as
+    the template has it. Its :meth:`step` solves the arrow through :func:`schur`."""
+
+    def __init__(self, F, D, shared, own, lower, upper):
+        self.F, self.D, self.shared, self.own = F, D, list(shared), list(own)
+        lower, upper = np.broadcast_to(lower, (D,)), np.broadcast_to(upper, (D,))
+        self.lower = np.concatenate([lower[self.shared], np.tile(lower[self.own], F)])
+        self.upper = np.concatenate([upper[self.shared], np.tile(upper[self.own], F)])
+
+    def pack(self, p):
+        """(b·F, D) part rows → (b, k + F·f) rows (shared columns from part 0)."""
+        pb = p.reshape(-1, self.F, self.D)
+        return np.concatenate([pb[:, 0, self.shared],
+                               pb[..., self.own].reshape(len(pb), -1)], axis=1)
+
+    def unpack(self, x, template):
+        """(b, k + F·f) rows into a copy of the (b·F, D) part rows ``template``."""
+        k, p = len(self.shared), template.copy()
+        p[:, self.shared] = np.repeat(x[:, :k], self.F, axis=0)
+        p[:, self.own] = x[:, k:].reshape(len(p), len(self.own))
+        return p
+
+    def gradient(self, grad):
+        """(b·F, D) part gradients → (b, k + F·f)."""
+        gb = grad.reshape(-1, self.F, self.D)
+        return np.concatenate([gb[..., self.shared].sum(axis=1),
+                               gb[..., self.own].reshape(len(gb), -1)], axis=1)
+
+    def decrement(self, grad, step):
+        """What a step promises (:func:`maximize`'s ``decrement``): the shared
+        parameters' part of the Newton decrement plus the parts' own, averaged over the
+        parts, so that a row of many parts stops when the shared parameters and a typical
+        part are each within the tolerance (their sum over thousands of parts would ask
+        every part for far more)."""
+        k = len(self.shared)
+        shared = 0.5 * np.einsum("pf,pf->p", grad[:, :k], step[:, :k])
+        own = 0.5 * np.einsum("pf,pf->p", grad[:, k:], step[:, k:])
+        return shared + own / self.F
+
+    def step(self, info, grad, damping, held):
+        """The damped Newton step of whole rows (:func:`maximize`'s ``step``): the arrow
+        system solved through its Schur complement, ``info`` each part's (b, F, D, D)."""
+        k, n, f = len(self.shared), len(grad), len(self.own)
+        held_f = held[:, k:].reshape(n, self.F, f)
+        gs = np.where(held[:, :k], 0.0, grad[:, :k])
+        gf = np.where(held_f, 0.0, grad[:, k:].reshape(n, self.F, f))
+        S, Hff_inv, Hsf = schur(info, self.shared, self.own, damping, ~held[:, :k], ~held_f)
+        # a held shared parameter does not move: the parts' steps see none of it
+        Hsf = np.where(held[:, None, :k, None], 0.0, Hsf)
+        r = gs - np.einsum("bfkj,bfj->bk", Hsf @ Hff_inv, gf)
+        ds = np.linalg.solve(S, r[..., None])[..., 0]
+        df = np.einsum("bfij,bfj->bfi", Hff_inv, gf - np.einsum("bfkj,bk->bfj", Hsf, ds))
+        return np.concatenate([ds, df.reshape(n, -1)], axis=1)

@@ -80,6 +80,27 @@ class _Silent:
 # --------------------------------------------------------------------------------------
 # Validators
 # --------------------------------------------------------------------------------------
+def ordered_map(function, items, workers: int):
+    """``map(function, items)`` on ``workers`` threads, in order, with at most
+    ``workers + 1`` items taken from ``items`` and not yet returned: a generator of
+    large items (bands of a stack read from disk) is consumed only as fast as its
+    results are, so memory stays bounded."""
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
+    if workers <= 1:
+        yield from map(function, items)
+        return
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        pending = deque()
+        for item in items:
+            pending.append(pool.submit(function, item))
+            if len(pending) > workers:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+
+
 def check_int(name: str, value, *, minimum: int | None = 1, maximum: int | None = None) -> int:
     """``value`` as an int within ``[minimum, maximum]``, or a one-line :class:`OptionError`.
 

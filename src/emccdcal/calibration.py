@@ -245,8 +245,10 @@ def _fit_pixels(job, frames, usable, progress=None):
         # counts 1/k towards each one's fitted-parameter number.
         touches = np.any(layout.matrix != 0, axis=1)  # (A, F)
         n_fitted = (touches / np.maximum(touches.sum(axis=0), 1)).sum(axis=1)
+        # no test where the fit found no finite likelihood (its parameters fit nothing)
+        tested = np.where(np.isfinite(fit.loglik), 1.0, np.nan)
         e["gof_pvalue"] = np.stack([
-            gof.gof_pvalues(blocks[a], e["photoelectrons"][:, a], e["em_gain"][:, a],
+            gof.gof_pvalues(blocks[a], e["photoelectrons"][:, a] * tested, e["em_gain"][:, a],
                             e["e_per_adu"][:, a], blocks[a].offset, blocks[a].read_noise,
                             n_fitted_params=float(n_fitted[a]), em_model=job.em_model)[0]
             for a in range(len(blocks))

@@ -85,7 +85,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import defaults
-from .._optimize import maximize
+from .._optimize import ArrowLayout, maximize, schur
 from ..errors import OptionError
 from ..model import noise, psf
 
@@ -284,99 +284,6 @@ def _fit_rows(objective, p0, lower, upper, *, tol, max_iter):
     return opt.x, opt.iterations
 
 
-def _diagonal_damped(H, damping):
-    """``H + λ·diag H`` for a stack of square matrices and one λ per leading index."""
-    d = np.einsum("...ii->...i", H)
-    return H + (damping.reshape(damping.shape + (1,) * (d.ndim - damping.ndim)) * d)[..., None] \
-        * np.eye(H.shape[-1])
-
-
-def _schur(H, shared, frame, damping=None, free_s=None, free_f=None):
-    """The joint information of a bead, reduced to its shared parameters.
-
-    A bead's log-likelihood is a sum over its F frames; each frame has its own parameters
-    (``frame``: intensity, and background unless it is shared) and all share ``shared``
-    (position, width). The information is an arrow: eliminating the frames' blocks leaves
-    the Schur complement ``S = H_ss − Σ_f H_sf H_ff⁻¹ H_fs``.
-
-    Parameters
-    ----------
-    H : ndarray, shape (b, F, 5, 5)
-        Each frame's information in all five parameters.
-    damping : ndarray, shape (b,), optional
-        Levenberg–Marquardt λ of each bead: ``λ·diag`` added to both blocks.
-    free_s, free_f : ndarray of bool, shapes (b, k) and (b, F, f), optional
-        Parameters not held at a bound (a held one leaves the system).
-
-    Returns
-    -------
-    S : (b, k, k), H_ff⁻¹ : (b, F, f, f), H_sf : (b, F, k, f)
-    """
-    fr, k = list(frame), len(shared)
-    eye_f, eye_k = np.eye(len(fr)), np.eye(k)
-    Hff = H[..., fr, :][..., fr]
-    Hss = H[..., shared, :][..., shared].sum(axis=1)
-    Hsf = H[..., shared, :][..., fr]
-    if damping is not None:
-        Hff, Hss = _diagonal_damped(Hff, damping), _diagonal_damped(Hss, damping)
-    if free_f is not None:
-        fixed = ~free_f
-        Hff = np.where(fixed[..., :, None] | fixed[..., None, :], 0.0, Hff) \
-            + fixed[..., :, None] * eye_f
-        Hsf = np.where(free_f[..., None, :], Hsf, 0.0)
-    Hff = Hff + 1e-12 * (1.0 + np.abs(Hff).max(axis=(-1, -2), keepdims=True)) * eye_f
-    Hff_inv = np.linalg.inv(Hff)
-    S = Hss - np.einsum("bfkj,bflj->bkl", Hsf @ Hff_inv, Hsf)
-    if free_s is not None:
-        fixed_s = ~free_s
-        S = np.where(fixed_s[:, :, None] | fixed_s[:, None, :], 0.0, S) \
-            + fixed_s[:, :, None] * eye_k
-    S = S + 1e-12 * (1.0 + np.abs(S).max(axis=(-1, -2), keepdims=True)) * eye_k
-    return S, Hff_inv, Hsf
-
-
-class _BeadLayout:
-    """A bead's parameters as one row of the optimizer: its ``shared`` columns once, then
-    each of its F frames' own ``frame`` columns; the other columns stay as they are."""
-
-    def __init__(self, F, shared, frame, lower, upper):
-        self.F, self.shared, self.frame = F, list(shared), list(frame)
-        self.lower = np.concatenate([lower[self.shared], np.tile(lower[self.frame], F)])
-        self.upper = np.concatenate([upper[self.shared], np.tile(upper[self.frame], F)])
-
-    def pack(self, p):
-        """(b·F, 5) frame rows → (b, k + F·f) bead rows (shared columns from frame 0)."""
-        pb = p.reshape(-1, self.F, _NP)
-        return np.concatenate([pb[:, 0, self.shared],
-                               pb[..., self.frame].reshape(len(pb), -1)], axis=1)
-
-    def unpack(self, x, template):
-        """(b, k + F·f) bead rows into a copy of the (b·F, 5) frame rows ``template``."""
-        k, p = len(self.shared), template.copy()
-        p[:, self.shared] = np.repeat(x[:, :k], self.F, axis=0)
-        p[:, self.frame] = x[:, k:].reshape(len(p), len(self.frame))
-        return p
-
-    def gradient(self, grad):
-        """(b·F, 5) frame gradients → (b, k + F·f)."""
-        gb = grad.reshape(-1, self.F, _NP)
-        return np.concatenate([gb[..., self.shared].sum(axis=1),
-                               gb[..., self.frame].reshape(len(gb), -1)], axis=1)
-
-    def step(self, info, grad, damping, held):
-        """The damped Newton step of whole beads (the optimizer's ``step``): the arrow
-        system solved through its Schur complement, ``info`` each frame's (b, F, 5, 5)."""
-        k, n, f = len(self.shared), len(grad), len(self.frame)
-        held_f = held[:, k:].reshape(n, self.F, f)
-        gs = np.where(held[:, :k], 0.0, grad[:, :k])
-        gf = np.where(held_f, 0.0, grad[:, k:].reshape(n, self.F, f))
-        S, Hff_inv, Hsf = _schur(info, self.shared, self.frame, damping, ~held[:, :k], ~held_f)
-        r = gs - np.einsum("bfkj,bfj->bk", Hsf @ Hff_inv, gf)
-        ds = np.linalg.solve(S, r[..., None])[..., 0]
-        df = np.einsum("bfij,bfj->bfi", Hff_inv, gf - np.einsum("bfkj,bk->bfj", Hsf, ds))
-        return np.concatenate([ds, df.reshape(n, -1)], axis=1)
-
-
 def _joint_fit(objective, p, layout, *, tol, max_iter, beads=None):
     """Maximise every bead's summed log-likelihood over its shared parameters and each
     frame's own (``layout``), Newton steps on each whole bead at once.
@@ -558,7 +465,7 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     frame = [3, 4] if background == "frame" else [3]
     if background == "shared":
         shared = shared + [4]
-    layout = _BeadLayout(F, shared, frame, lower, upper)
+    layout = ArrowLayout(F, _NP, shared, frame, lower, upper)
     p1, _, it_gauss = _joint_fit(box.objective_gauss, box.frame_start(p_bead, background),
                                  layout, tol=5e-5, max_iter=max_iter)
     # 2: the exact likelihood through per-pixel tables of ln p(S | E)
@@ -775,7 +682,7 @@ def _joint_errors(Hb, shared, frame):
     B, F = Hb.shape[:2]
     se = np.full((B, F, _NP), np.nan)
     with np.errstate(invalid="ignore", divide="ignore"):
-        S, Hff_inv, _ = _schur(Hb, shared, frame)
+        S, Hff_inv, _ = schur(Hb, shared, frame)
         var_f = np.einsum("bfii->bfi", Hff_inv)
         se[..., frame] = np.sqrt(np.where(var_f > 0, var_f, np.nan))
         var_s = np.einsum("bii->bi", np.linalg.inv(S))

@@ -76,6 +76,9 @@ __all__ = [
     "intensity_trend",
     "blinking_level",
     "validate",
+    "fit_validation",
+    "validation_document",
+    "BeadFits",
     "read_validation",
     "format_table",
     "data_checks",
@@ -372,6 +375,25 @@ def _box_ok(phi, gain, positions, half_size):
     return ok
 
 
+@dataclass
+class _Fitted:
+    """Every bead fit of a validation, arrays (calibration, bead, set-point, frame).
+
+    ``arr`` and ``arr_se`` map each parameter of :data:`emccdcal.model.psf.PARAMETERS`
+    to its values and standard errors (NaN where a frame does not exist or a bead was left out);
+    ``offset_se`` (calibration, bead, set-point) is the error of each bead's mean
+    intensity from the offset maps (e⁻); ``mismatch`` per calibration the PSF checks of
+    each spot model (:func:`emccdcal.beads.fit.psf_mismatch`) per acquisition.
+    """
+
+    arr: dict
+    arr_se: dict
+    loglik: np.ndarray
+    conv: np.ndarray
+    offset_se: np.ndarray
+    mismatch: list
+
+
 def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WIDTH,
              half_size=bead_fit.DEFAULT_HALF_SIZE, min_separation=None, snr=8.0,
              detect_setpoint=None, progress=False, bleaching="correct", psf="gaussian",
@@ -431,15 +453,58 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
         bead data missing from a calibration, no beads found (or none left after the edge
         and crowding checks). All checked before any fitting.
     """
-    t0 = time.perf_counter()
+    _check_actions(bleaching, blinking)
+    fits = fit_validation(bead_manifest, calibrations, width=width, half_size=half_size,
+                          min_separation=min_separation, snr=snr,
+                          detect_setpoint=detect_setpoint, progress=progress, psf=psf)
+    doc = validation_document(fits, bleaching=bleaching, blinking=blinking)
+    if out is not None:
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        ds = _intensities_dataset(fits.cals, fits.setpoints, fits.positions, fits.fitted,
+                                  fits.manifest, fits.layout)
+        atomic_write(out / INTENSITIES_FILE, lambda p: write_netcdf(ds, p))
+        text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
+        atomic_write_text(out / VALIDATION_FILE, text)
+    return doc
+
+
+def _check_actions(bleaching, blinking) -> None:
     if bleaching not in TREND_ACTIONS:
         raise OptionError(f"bleaching must be one of {', '.join(TREND_ACTIONS)}; got "
                           f"{bleaching!r}")
-    if psf not in PSF_MODELS:
-        raise OptionError(f"psf must be one of {', '.join(PSF_MODELS)}; got {psf!r}")
     if blinking not in BLINK_ACTIONS:
         raise OptionError(f"blinking must be one of {', '.join(BLINK_ACTIONS)}; got "
                           f"{blinking!r}")
+
+
+@dataclass
+class BeadFits:
+    """What :func:`fit_validation` fitted: everything :func:`validation_document` needs to
+    compare the calibrations, whatever it is told to do with bleaching and blinking."""
+
+    manifest: Manifest
+    cals: list
+    setpoints: list
+    positions: np.ndarray
+    fitted: _Fitted
+    layout: list
+    detected_on: object
+    half_size: int
+    psf: str
+    seconds: float
+
+
+def fit_validation(bead_manifest, calibrations, *, width=bead_fit.DEFAULT_WIDTH,
+                   half_size=bead_fit.DEFAULT_HALF_SIZE, min_separation=None, snr=8.0,
+                   detect_setpoint=None, progress=False, psf="gaussian") -> BeadFits:
+    """The fitting half of :func:`validate` (same parameters): find the beads and fit
+    them under every calibration. :func:`validation_document` then compares them, as
+    often as asked (bleaching corrected or not, blinking modelled or not), without
+    fitting again."""
+    t0 = time.perf_counter()
+    if psf not in PSF_MODELS:
+        raise OptionError(f"psf must be one of {', '.join(PSF_MODELS)}; got {psf!r}")
     manifest = bead_manifest if isinstance(bead_manifest, Manifest) \
         else read_manifest(bead_manifest)
     if not calibrations:
@@ -463,36 +528,18 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
     layout = _frame_layout(manifest, acqs)
     fitted = _fit_all(manifest, cals, setpoints, positions, layout, acqs, width=width,
                       half_size=half_size, psf=psf, progress=progress)
-    doc = _summarise(manifest, cals, setpoints, positions, fitted, layout, det_acq,
-                     half_size, time.perf_counter() - t0, bleaching=bleaching,
-                     blinking=blinking, psf=psf)
-    if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        ds = _intensities_dataset(cals, setpoints, positions, fitted, manifest, layout)
-        atomic_write(out / INTENSITIES_FILE, lambda p: write_netcdf(ds, p))
-        text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
-        atomic_write_text(out / VALIDATION_FILE, text)
-    return doc
+    return BeadFits(manifest, cals, setpoints, positions, fitted, layout, det_acq,
+                    half_size, psf, time.perf_counter() - t0)
 
 
-@dataclass
-class _Fitted:
-    """Every bead fit of a validation, arrays (calibration, bead, set-point, frame).
-
-    ``arr`` and ``arr_se`` map each parameter of :data:`emccdcal.model.psf.PARAMETERS`
-    to its values and standard errors (NaN where a frame does not exist or a bead was left out);
-    ``offset_se`` (calibration, bead, set-point) is the error of each bead's mean
-    intensity from the offset maps (e⁻); ``mismatch`` per calibration the PSF checks of
-    each spot model (:func:`emccdcal.beads.fit.psf_mismatch`) per acquisition.
-    """
-
-    arr: dict
-    arr_se: dict
-    loglik: np.ndarray
-    conv: np.ndarray
-    offset_se: np.ndarray
-    mismatch: list
+def validation_document(fits: BeadFits, *, bleaching="correct", blinking="model") -> dict:
+    """The content of ``validation.json`` from :func:`fit_validation`'s fits (the
+    comparing half of :func:`validate`; ``bleaching`` and ``blinking`` as there), with
+    its warnings."""
+    _check_actions(bleaching, blinking)
+    return _summarise(fits.manifest, fits.cals, fits.setpoints, fits.positions, fits.fitted,
+                      fits.layout, fits.detected_on, fits.half_size, fits.seconds,
+                      bleaching=bleaching, blinking=blinking, psf=fits.psf)
 
 
 def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_size, psf,

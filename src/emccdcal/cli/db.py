@@ -32,7 +32,8 @@ def add_parser(subparsers):
     ls.add_argument("--json", action="store_true", help="print JSON")
     sh = sub.add_parser("show", help="one entry in full (JSON)")
     sh.add_argument("id", type=int, help="the entry's id (emccdcal db list)")
-    c = sub.add_parser("compare", help="gain against date per set-point; flag ageing")
+    c = sub.add_parser("compare", help="gain against date per set-point, calibrations and "
+                       "gain checks; flag ageing, changes and trends")
     c.add_argument("--camera", metavar="SERIAL", required=True, help="the camera's serial")
     c.add_argument("--readout", metavar="TEXT",
                    help="its read-out state, where it has calibrations in several")
@@ -101,18 +102,23 @@ def run(args) -> int:
         return 0
     found, findings = database.compare(args.camera, db=args.db, readout=args.readout,
                                        max_age_days=args.max_age, z=args.z)
+    checked = database.checks(db=args.db, camera=args.camera, readout=found[-1].readout)
     lines = [f"{'id':>4}  {'date':<10}  {'register':<8}  set-point: gain ± the standard error "
              "of the sensor's gain (se_of_median)"]
     lines += [f"{e.id:>4}  {e.date[:10]}  {e.register:<8}  " + ", ".join(
         f"{s:g}x {m:.4g} ± {se or 0:.2g}" for s, (m, se, _) in sorted(e.gains.items()))
         for e in found]
+    if checked:
+        lines.append("gain checks from dark frames (emccdcal gain-check --record):")
+        lines += [f"{'c' + str(c.id):>4}  {c.date[:10]}  {c.register:<8}  {c.setpoint:g}x "
+                  f"{c.em_gain:.4g} ± {c.se:.2g}" for c in checked]
     if args.out is not None:
         from .._output import slug
         from ..report.figures import gain_history_figure, save_figure
 
         with _common.output(args, args.out):  # the serial is data: never a path
             lines += [f"wrote {f}" for f in save_figure(
-                gain_history_figure(found, camera=args.camera),
+                gain_history_figure(found, camera=args.camera, checks=checked),
                 args.out / f"gain-history-{slug(args.camera)}")]
     if not args.quiet:
         print("\n".join(lines))

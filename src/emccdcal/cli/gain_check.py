@@ -1,11 +1,16 @@
 """``emccdcal gain-check DARKS... --e-per-adu PHI|RESULT``: the true EM gain from dark
-frames alone, and whether it still agrees with its calibration."""
+frames alone, whether it still agrees with its calibration, and its record in the
+calibration database."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 from . import _common
+
+#: The files ``-o OUT`` receives.
+RECORD_FILE = "gain-check.json"
+FIGURE_STEM = "gain-check"
 
 
 def add_parser(subparsers):
@@ -16,20 +21,27 @@ def add_parser(subparsers):
         "clock-induced-charge and dark-current electrons pass the whole register and "
         "their multiplied events, with phi known, show the gain. Maximum likelihood under "
         "the register model, each pixel's offset and read noise its own, the gain (and "
-        "the event rate) shared by the pixels; with its standard error. Exit 1 when the "
-        "gain differs from --calibration's beyond --z combined SEs.",
+        "the event rate) shared by the pixels, the bias of the pixels' own parameters "
+        "removed; with its standard error. Exit 1 when the gain differs from its "
+        "calibration (--calibration RESULT, or --camera SERIAL from the database) beyond "
+        "--z combined SEs.",
     )
     p.add_argument("darks", nargs="+", type=Path, metavar="DARKS",
                    help="dark stacks of one set-point and read-out mode (any format)")
     p.add_argument("--e-per-adu", type=_common.number_or_path, default=None, metavar="PHI",
                    help="ADU conversion factor of the read-out mode, e-/ADU, or a result "
-                   "whose median phi is used (default: --calibration's)")
+                   "whose median phi is used (default: the calibration's)")
     p.add_argument("--setpoint", type=_common.positive_float, default=None, metavar="G",
                    help="the frames' EM-gain set-point (default: what their file records)")
-    p.add_argument("--calibration", type=Path, default=None, metavar="RESULT",
-                   help="compare with this calibration's gain at the set-point")
+    _common.add_calibration_source(p, option=True)
+    p.set_defaults(accept_mismatch=[])
     p.add_argument("--z", type=_common.positive_float, default=3.0,
                    help="flag a difference beyond z combined SEs (default %(default)s)")
+    p.add_argument("--record", action="store_true",
+                   help="add the check to the calibration database (--db), under --camera or "
+                   "the serial the frames record, for 'emccdcal db compare'")
+    p.add_argument("--date", metavar="ISO", help="when the darks were taken, for --record "
+                   "(default: now)")
     p.add_argument("--target-se", type=_common.positive_float, default=None,
                    metavar="PERCENT", help="the precision wanted: say how many frames "
                    "would reach it when the data fall short")
@@ -41,6 +53,14 @@ def add_parser(subparsers):
                    help="fit the clock-induced charge made inside the register (cascade)")
     p.add_argument("--per-pixel-rate", action="store_true",
                    help="each pixel its own event rate (default: one shared rate)")
+    p.add_argument("--no-bias-correction", action="store_true",
+                   help="the maximum-likelihood gain itself, without removing the bias that "
+                   "each pixel's own offset and read noise put into it (docs/gain-check.md)")
+    p.add_argument("-o", "--out", type=Path, default=None, metavar="OUT",
+                   help=f"write {RECORD_FILE} and the figure (the pooled histogram of the "
+                   "darks with the fitted model) into this folder")
+    _common.add_overwrite(p)
+    _common.add_no_figures(p)
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     _common.add_quiet(p)
     p.set_defaults(func=run)
@@ -62,44 +82,110 @@ def _region(text: str):
 
 
 def run(args) -> int:
+    import contextlib
     import json
 
     from ..data.stacks import load_stack, stack_settings
-    from ..errors import OptionError
     from ..export.gain_check import compare
     from ..fit.darkgain import check_gain
 
-    phi = args.e_per_adu if args.e_per_adu is not None else args.calibration
-    if phi is None:
-        raise OptionError("give --e-per-adu PHI (or a result), or --calibration RESULT")
-    if isinstance(phi, Path):
-        from ..acquire.plan import camera_of
-
-        phi = camera_of(phi)["e_per_adu"]
     settings = [stack_settings(path) for path in args.darks]
-    setpoint = args.setpoint
-    if setpoint is None:
-        recorded = {s.em_gain_setpoint for s in settings}
-        if len(recorded) != 1 or None in recorded:
-            raise OptionError(f"the dark stacks record set-point(s) {sorted(map(str, recorded))}: "
-                              "give --setpoint")
-        setpoint = recorded.pop()
+    setpoint = _setpoint(args, settings)
+    calibration = (_common.calibration_of(args, setpoint)
+                   if args.results or args.camera else None)
+    phi = _phi(args, calibration)
     bits = {s.adc_bits for s in settings} - {None}
-    check = check_gain([load_stack(path) for path in args.darks], phi, setpoint=setpoint,
-                       em_model=args.em_model or "cascade", stages=args.stages,
-                       fit_register_cic=args.fit_register_cic,
-                       pooled_rate=not args.per_pixel_rate,
-                       adc_max=2 ** max(bits) - 1 if bits else None, region=args.region,
-                       progress_bars=not (args.quiet or args.json))
-    against = compare(check, args.calibration, z=args.z) if args.calibration else None
+    outputs = (RECORD_FILE,) + (() if args.no_figures else
+                                (f"{FIGURE_STEM}.png", f"{FIGURE_STEM}.svg"))
+    with _common.output(args, args.out, inputs=args.darks, names=outputs) \
+            if args.out is not None else contextlib.nullcontext():
+        check = check_gain([load_stack(path) for path in args.darks], phi, setpoint=setpoint,
+                           em_model=args.em_model or "cascade", stages=args.stages,
+                           fit_register_cic=args.fit_register_cic,
+                           pooled_rate=not args.per_pixel_rate,
+                           bias_correction=not args.no_bias_correction,
+                           adc_max=2 ** max(bits) - 1 if bits else None, region=args.region,
+                           histogram=args.out is not None and not args.no_figures,
+                           progress_bars=not (args.quiet or args.json))
+        against = compare(check, calibration, z=args.z) if calibration is not None else None
+        record = {**check.as_dict(), **({"calibration": against} if against else {})}
+        written = _write(args, check, record) if args.out is not None else []
+    recorded = _record(args, check, settings) if args.record else None
     if args.json:
-        print(json.dumps({**check.as_dict(), **({"calibration": against} if against else {})},
+        print(json.dumps({**record, **({"database_check": recorded.id} if recorded else {})},
                          indent=2))
-    else:
+    elif not args.quiet or (against is not None and against["changed"]):
         print(_line(check, args.target_se))
         if against is not None:
             print(_verdict(against))
+        if not args.quiet:
+            for path in written:
+                print(f"wrote {path}")
+            if recorded is not None:
+                print(f"recorded as check {recorded.id} of camera {recorded.camera} in the "
+                      "calibration database")
     return 1 if against is not None and against["changed"] else 0
+
+
+def _setpoint(args, settings):
+    from ..errors import OptionError
+
+    if args.setpoint is not None:
+        return args.setpoint
+    recorded = {s.em_gain_setpoint for s in settings}
+    if len(recorded) != 1 or None in recorded:
+        raise OptionError(f"the dark stacks record set-point(s) {sorted(map(str, recorded))}: "
+                          "give --setpoint")
+    return recorded.pop()
+
+
+def _phi(args, calibration) -> float:
+    """φ: ``--e-per-adu`` (a number, or a result's median), else the calibration's."""
+    from ..errors import OptionError
+
+    if isinstance(args.e_per_adu, float):
+        return args.e_per_adu
+    if isinstance(args.e_per_adu, Path):
+        from ..acquire.plan import camera_of
+
+        return camera_of(args.e_per_adu)["e_per_adu"]
+    if calibration is None:
+        raise OptionError("give --e-per-adu PHI (or a result), or the calibration: "
+                          "--calibration RESULT or --camera SERIAL")
+    from ..result import pixel_statistics
+
+    return float(pixel_statistics(calibration.e_per_adu)["median"])
+
+
+def _write(args, check, record) -> list[Path]:
+    """``gain-check.json`` and, unless ``--no-figures``, the figure, into ``-o OUT``."""
+    import json
+
+    from .._output import atomic_write_text
+
+    written = [args.out / RECORD_FILE]
+    atomic_write_text(written[0], json.dumps(record, indent=2, allow_nan=False) + "\n")
+    if not args.no_figures:
+        from ..report.figures import gain_check_figure, save_figure
+
+        written.append(save_figure(gain_check_figure(check), args.out / FIGURE_STEM)[0])
+    return written
+
+
+def _record(args, check, settings):
+    """The check in the calibration database, under the camera's serial and the read-out
+    state its calibrations are keyed by."""
+    from ..export import database
+
+    serials = {s.serial for s in settings} - {None}
+    camera = args.camera or (serials.pop() if len(serials) == 1 else None)
+    readout = args.readout
+    if readout is None:
+        found = database.entries(db=args.db, camera=camera) if camera else []
+        states = {e.readout for e in found}
+        readout = states.pop() if len(states) == 1 else ""
+    return database.add_check(check, camera=camera, readout=readout, date=args.date,
+                              db=args.db)
 
 
 def _line(check, target_se) -> str:

@@ -7,13 +7,18 @@ result's path (relative to the database's folder where the result lies inside it
 that a project folder holding both can move), its SHA-256, its date, its method and
 register model, its summary (``summary.json``'s content) and, per set-point, the
 sensor's gain: the median over converged pixels with the standard error of that median
-(``se_of_median``, 1.2533 × robust spread / √n).
+(``se_of_median``, 1.2533 × robust spread / √n). Beside them, gain checks from dark frames
+(``emccdcal gain-check --record``: :func:`add_check`): the camera, read-out state,
+set-point, date, register model, the gain and its standard error.
 
-:func:`compare` follows a camera's gain at each set-point over time. It flags the newest
-calibration when it is older than a given age, and when its gain differs from the one
-before by more than ``z`` combined standard errors: the EM register ages (its gain at a
-fixed set-point drops over months of use), and a calibration that is not redone goes
-silently wrong. Only calibrations under the same register model are compared: the
+:func:`compare` follows a camera's gain at each set-point over time, calibrations and
+gain checks alike. It flags the newest calibration when it is older than a given age,
+when its gain differs from the one before by more than ``z`` combined standard errors,
+when a gain check made after it differs from it so, and when the gains of a set-point
+trend (a weighted straight line through three or more of them, in time, with a slope
+beyond ``z`` of its standard errors): the EM register ages (its gain at a fixed
+set-point drops over months of use), and a calibration that is not redone goes silently
+wrong. Only calibrations under the same register model are compared: the
 gamma model and the exact cascade read the same data ~0.2 % apart, which is not ageing.
 :func:`calibration` gives the newest calibration at a set-point, or where none measured
 it, the newest one with its gain curve's prediction there.
@@ -35,12 +40,14 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from .._output import file_sha256
 from ..errors import InputError, OptionError
 from ..result import format_setpoint, load, load_calibration, pixel_statistics, summarize
 
-__all__ = ["default_path", "add", "remove", "relocate", "entries", "entry", "find",
-           "calibration", "compare", "Entry", "Finding"]
+__all__ = ["default_path", "add", "add_check", "remove", "relocate", "entries", "entry",
+           "checks", "find", "calibration", "compare", "Entry", "CheckEntry", "Finding"]
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS calibration (
@@ -65,6 +72,21 @@ CREATE TABLE IF NOT EXISTS gain (
     PRIMARY KEY (calibration_id, setpoint)
 );
 CREATE INDEX IF NOT EXISTS calibration_camera ON calibration(camera, readout, date);
+CREATE TABLE IF NOT EXISTS gain_check (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    camera TEXT NOT NULL,
+    readout TEXT NOT NULL,
+    date TEXT NOT NULL,
+    added TEXT NOT NULL,
+    setpoint REAL NOT NULL,
+    em_gain REAL NOT NULL,
+    se REAL NOT NULL,
+    em_model TEXT NOT NULL,
+    events REAL NOT NULL,
+    note TEXT NOT NULL DEFAULT '',
+    record TEXT NOT NULL
+);
+CREATE INDEX IF NOT EXISTS gain_check_camera ON gain_check(camera, readout, date);
 """
 
 
@@ -144,6 +166,35 @@ class Entry:
         d["gains"] = {format_setpoint(s): {"median": m, "se_of_median": se, "n": n}
                       for s, (m, se, n) in sorted(self.gains.items())}
         return d
+
+
+@dataclass(frozen=True)
+class CheckEntry:
+    """One gain check from dark frames (``emccdcal gain-check --record``): the gain
+    ``em_gain`` with its standard error ``se`` at ``setpoint``, and the check's JSON
+    record (:meth:`emccdcal.fit.darkgain.GainCheck.as_dict`)."""
+
+    id: int
+    camera: str
+    readout: str
+    date: str
+    added: str
+    setpoint: float
+    em_gain: float
+    se: float
+    em_model: str
+    events: float
+    note: str
+    record: dict
+
+    @property
+    def register(self) -> str:
+        """The register model's name, as :attr:`Entry.register` (the check records the
+        model's label, ``"cascade, 536 stages"``)."""
+        return self.em_model.split(",")[0].split(" (")[0]
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
 
 
 def _readout_text(camera: dict) -> str:
@@ -250,6 +301,70 @@ def add(result, *, db=None, camera=None, readout=None, date=None, note="") -> En
         raise
     finally:
         con.close()
+
+
+def add_check(check, *, camera, readout="", date=None, note="", db=None) -> CheckEntry:
+    """Add a gain check from dark frames to the database.
+
+    Parameters
+    ----------
+    check : emccdcal.fit.darkgain.GainCheck
+        With its set-point.
+    camera : str
+        The camera's serial number (as its calibrations are keyed).
+    readout : str
+        Its read-out state, as :func:`add` writes it for the calibrations to compare with.
+    date : str, optional
+        When the dark frames were taken (ISO 8601; default now).
+    note : str
+        Free text kept with the check.
+    db : str or Path, optional
+        The database file.
+
+    Returns
+    -------
+    CheckEntry
+    """
+    if not camera:
+        raise OptionError("a gain check is recorded under its camera's serial: give --camera "
+                          "SERIAL (the dark frames record none)")
+    if check.setpoint is None:
+        raise OptionError("the gain check has no set-point: give it")
+    now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    when = _past_date(date or now)
+    record = check.as_dict()
+    con = _connect(db, write=True)
+    try:
+        cur = con.execute(
+            "INSERT INTO gain_check (camera, readout, date, added, setpoint, em_gain, se, "
+            "em_model, events, note, record) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            (str(camera), str(readout), when, now, float(check.setpoint), float(check.em_gain),
+             float(check.em_gain_se), str(check.em_model), float(check.events), str(note),
+             json.dumps(record, allow_nan=False)))
+        row = cur.lastrowid
+    finally:
+        con.close()
+    return checks(db=db, camera=camera, where_id=row)[0]
+
+
+def checks(*, db=None, camera=None, readout=None, where_id=None) -> list[CheckEntry]:
+    """The gain checks, oldest first, of one camera (and read-out state) or of all."""
+    clauses, args = [], []
+    for column, value in (("camera", camera), ("readout", readout), ("id", where_id)):
+        if value is not None:
+            clauses.append(f"{column} = ?")
+            args.append(value)
+    con = _connect(db)
+    try:
+        rows = con.execute("SELECT * FROM gain_check " + (
+            "WHERE " + " AND ".join(clauses) if clauses else "") + " ORDER BY date, id",
+            args).fetchall()
+    except sqlite3.OperationalError:  # a read-only database of a version without checks
+        rows = []
+    finally:
+        con.close()
+    return [CheckEntry(**{k: r[k] for k in r.keys() if k != "record"},
+                       record=json.loads(r["record"])) for r in rows]
 
 
 def remove(entry_id: int, *, db=None) -> Entry:
@@ -419,7 +534,9 @@ def _checked(newest: Entry) -> Entry:
 
 @dataclass(frozen=True)
 class Finding:
-    """What :func:`compare` flags: ``kind`` is ``"age"`` or ``"change"``."""
+    """What :func:`compare` flags: ``kind`` is ``"age"``, ``"change"`` (the newest
+    calibration against the one before), ``"check"`` (a gain check against the
+    calibration before it) or ``"trend"``."""
 
     kind: str
     setpoint: float | None
@@ -437,21 +554,31 @@ def compare(camera, *, db=None, readout=None, max_age_days=None, z=3.0, now=None
         Flag the newest calibration when older than this.
     z : float
         Flag a gain that differs from the previous calibration's under the same register
-        model by more than ``z`` combined standard errors (√(SE₁² + SE₂²)) (default 3).
+        model by more than ``z`` combined standard errors (√(SE₁² + SE₂²)), a gain check
+        that differs so from the calibration before it, and a trend whose slope is beyond
+        ``z`` of its standard error (default 3).
     now : str, optional
         The date to measure age from (ISO 8601; default: now).
 
     Returns
     -------
     (list of Entry, list of Finding)
-        The camera's entries (oldest first) and the findings.
+        The camera's entries (oldest first) and the findings; its gain checks are
+        :func:`checks`'.
     """
     found = entries(db=db, camera=camera, readout=readout)
     if not found:
         raise OptionError(f"the calibration database has no calibration of camera {camera}")
     _one_state(found, camera)
-    findings = []
     newest = found[-1]
+    findings = _age(found, camera, max_age_days, now) + _changes(found, camera, z)
+    checked = checks(db=db, camera=camera, readout=newest.readout)
+    findings += _checks_against(found, checked, camera, z) + _trends(found, checked, camera, z)
+    return found, findings
+
+
+def _age(found, camera, max_age_days, now) -> list[Finding]:
+    newest, findings = found[-1], []
     if max_age_days is not None:
         when = _parse(_iso_date(now or _dt.datetime.now(_dt.timezone.utc).isoformat()))
         age = (when - _parse(newest.date)).total_seconds() / 86400
@@ -459,6 +586,12 @@ def compare(camera, *, db=None, readout=None, max_age_days=None, z=3.0, now=None
             findings.append(Finding("age", None, (
                 f"camera {camera}: the newest calibration (entry {newest.id}, {newest.date[:10]}) "
                 f"is {age:.0f} days old, more than {max_age_days:g}; recalibrate")))
+    return findings
+
+
+def _changes(found, camera, z) -> list[Finding]:
+    """The newest calibration against the one before it, set-point by set-point."""
+    newest, findings = found[-1], []
     for s, (g_new, se_new, _) in sorted(newest.gains.items()):
         before = [e for e in found[:-1] if s in e.gains and e.register == newest.register]
         if not before:
@@ -473,5 +606,63 @@ def compare(camera, *, db=None, readout=None, max_age_days=None, z=3.0, now=None
                 f"{newest.id}, {newest.date[:10]}) against {g_old:.4g} (entry {prev.id}, "
                 f"{prev.date[:10]}): {change:+.2%}, {abs(g_new - g_old) / se:.1f} standard "
                 "errors; the register may have aged: use the newest calibration")))
-    return found, findings
+    return findings
+
+
+def _checks_against(found, checked, camera, z) -> list[Finding]:
+    """The newest gain check of each set-point against the newest calibration before it
+    under the same register model (its sensor gain's SE and the check's combined)."""
+    findings = []
+    for s in sorted({c.setpoint for c in checked}):
+        check = [c for c in checked if c.setpoint == s][-1]
+        before = [e for e in found if s in e.gains and e.register == check.register
+                  and e.date <= check.date]
+        if not before:
+            continue
+        cal = before[-1]
+        g_cal, se_cal, _ = cal.gains[s]
+        se = math.hypot(check.se, se_cal or 0.0)
+        if se > 0 and abs(check.em_gain - g_cal) > z * se:
+            side = "below" if check.em_gain < g_cal else "above"
+            findings.append(Finding("check", s, (
+                f"camera {camera} at {format_setpoint(s)}x: the gain check of "
+                f"{check.date[:10]} (check {check.id}) finds the gain "
+                f"{abs(check.em_gain / g_cal - 1):.1%} {side} its calibration of "
+                f"{cal.date[:10]} (entry {cal.id}), {abs(check.em_gain - g_cal) / se:.1f} "
+                "standard errors: recalibrate")))
+    return findings
+
+
+def _trends(found, checked, camera, z, min_points=3) -> list[Finding]:
+    """A straight line in time through each set-point's gains (calibrations and checks
+    under the newest's register model), weighted by their standard errors: its slope
+    beyond ``z`` of its standard error is a drift, even where no two neighbours differ
+    by that much."""
+    findings = []
+    register = found[-1].register
+    for s in sorted({s for e in found for s in e.gains} | {c.setpoint for c in checked}):
+        points = [(e.date, e.gains[s][0], e.gains[s][1]) for e in found
+                  if s in e.gains and e.register == register]
+        points += [(c.date, c.em_gain, c.se) for c in checked
+                   if c.setpoint == s and c.register == register]
+        points = [(when, g, se) for when, g, se in points if se and se > 0]
+        if len(points) < min_points:
+            continue
+        years = np.array([(_parse(when) - _parse(points[0][0])).total_seconds()
+                          / (365.25 * 86400) for when, _, _ in sorted(points)])
+        if np.ptp(years) <= 0:
+            continue
+        y = np.log([g for _, g, _ in sorted(points)])
+        w = np.array([(g / se) ** 2 for _, g, se in sorted(points)])  # 1/var(ln g)
+        X = np.column_stack([np.ones_like(years), years])
+        cov = np.linalg.inv(X.T @ (w[:, None] * X))
+        slope = float((cov @ (X.T @ (w * y)))[1])
+        slope_se = math.sqrt(cov[1, 1])
+        if abs(slope) > z * slope_se:
+            findings.append(Finding("trend", s, (
+                f"camera {camera} at {format_setpoint(s)}x: the gain drifts by "
+                f"{math.expm1(slope):+.1%} a year over {len(points)} calibrations and checks "
+                f"since {sorted(points)[0][0][:10]} ({abs(slope) / slope_se:.1f} standard "
+                "errors of the slope): recalibrate, and check more often")))
+    return findings
 

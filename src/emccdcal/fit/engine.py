@@ -502,8 +502,16 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
     if not covariance:
         return FitResult(x, None, None, None, iterations, None)
     map_errors = any(b.has_map_errors for b in blocks)
-    objective, loglik, per_acq, grad, obs, floored, crosses = _evaluate(
-        layout, blocks, x, 2, map_cross=map_errors)
+    # A pixel whose objective is not finite at its end (its data far from any model the
+    # bounds allow, e.g. offsets above every count) has no information to compute: its
+    # windows would be the largest of all, for a pixel that is not converged anyway.
+    live = np.isfinite(opt.objective)
+    if live.all():
+        objective, loglik, per_acq, grad, obs, floored, crosses = _evaluate(
+            layout, blocks, x, 2, map_cross=map_errors)
+    else:
+        objective, loglik, per_acq, grad, obs, floored, crosses = _evaluate_rows(
+            layout, blocks, x, live, map_errors)
     cov, pos_def = _invert(obs)
     # With a prior (the hierarchical MAP) the frequentist covariance of the estimate is the
     # sandwich H⁻¹ I H⁻¹ of the penalised Hessian H and the likelihood's information I;
@@ -515,13 +523,41 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
         cov[~pos_def] = np.nan
     elif np.any(prior_hess):
         cov = np.einsum("pfg,pgh,phk->pfk", cov, obs + prior_hess, cov)
-    if map_errors:
+    if map_errors and crosses is not None:
         cov = cov + _map_covariance(layout, blocks, x, np.nan_to_num(h_inv), crosses)
     gnorm = np.einsum("pf,pfg,pg->p", grad, np.nan_to_num(h_inv), grad)
     converged = opt.done & pos_def & (gnorm < 1e-4)
     if progress is not None:
         progress(int((~(opt.done | opt.stuck)).sum()))
     return FitResult(x, cov, loglik, converged, iterations, floored, per_acq, objective)
+
+
+def _evaluate_rows(layout, blocks, x, live, map_errors):
+    """:func:`_evaluate` at level 2 of the rows ``live`` only; the others' values -inf,
+    derivatives and information NaN, floored counts 0 (and no map cross information
+    where no row is live)."""
+    P, F = x.shape
+    rows = np.flatnonzero(live)
+    objective, loglik = np.full(P, -np.inf), np.full(P, -np.inf)
+    per_acq = np.full((P, len(blocks)), -np.inf)
+    grad, obs = np.full((P, F), np.nan), np.full((P, F, F), np.nan)
+    floored = np.zeros(P, dtype=np.int64)
+    crosses = None
+    if rows.size:
+        part = _evaluate(layout.subset(rows), [b.take(rows) for b in blocks], x[rows], 2,
+                         map_cross=map_errors)
+        for whole, value in zip((objective, loglik, per_acq, grad, obs, floored), part):
+            whole[rows] = value
+        if part[6] is not None:
+            crosses = []
+            for c in part[6]:
+                if c is None:
+                    crosses.append(None)
+                    continue
+                full = np.full((P,) + c.shape[1:], np.nan)
+                full[rows] = c
+                crosses.append(full)
+    return objective, loglik, per_acq, grad, obs, floored, crosses
 
 
 def _invert(H):

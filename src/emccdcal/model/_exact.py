@@ -22,6 +22,7 @@ from .cascade import (
     gain_from_gain_f2,
     register_transform,
     sample_cascade,
+    sample_register_cic,
 )
 
 
@@ -227,6 +228,11 @@ class Cascade:
         """Output electrons (float) of ``electrons`` entering the register at gain g
         (:func:`emccdcal.model.cascade.sample_cascade`'s ``method``)."""
         return sample_cascade(electrons, g, self.stages, rng, method=method).astype(float)
+
+    def sample_register_cic(self, count, g, rng):
+        """Output electrons (float) of ``count`` electrons made inside the register at
+        gain g (:func:`emccdcal.model.cascade.sample_register_cic`)."""
+        return sample_register_cic(count, g, self.stages, rng).astype(float)
 
     def gain_from_gain_f2(self, y):
         """g with ``g·F²(g, N) = y`` and the slope ``d(g F²)/dg`` there."""

@@ -63,6 +63,8 @@ __all__ = [
     "save_figure",
     "figure_png",
     "write_validation_figures",
+    "gain_history_figure",
+    "gain_check_figure",
 ]
 
 E_UNIT = "e$^-$"
@@ -709,41 +711,96 @@ def gain_curve_figure(curve, *, predict=()):
     return fig
 
 
-def gain_history_figure(found, *, camera=""):
-    """A camera's gain at each set-point against the calibration date (database entries).
+def gain_check_figure(check):
+    """The dark frames of a gain check: their counts about each pixel's offset, pooled
+    over the pixels, with the fitted model's, on a log scale.
+
+    Parameters
+    ----------
+    check : emccdcal.fit.darkgain.GainCheck
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    h = check.histogram
+    if not h:
+        raise DataUnavailable("the gain check holds no histogram")
+    offsets = np.asarray(h["offset_adu"], dtype=float)
+    observed, expected = np.asarray(h["observed"]), np.asarray(h["expected"])
+    fig, (ax,) = _panels(1, 1, size=(6.0, 3.4))
+    shown = observed > 0
+    ax.step(offsets[shown], observed[shown], where="mid", color="0.4", lw=0.8,
+            label="dark counts, all pixels")
+    keep = expected > 0.1
+    ax.plot(offsets[keep], expected[keep], color="C3", lw=1.2,
+            label=f"fit: g = {check.em_gain:.4g} ± {check.em_gain_se:.2g}")
+    # the read-out alone (no event): what stands above it is the multiplied electrons
+    sigma = check.read_noise
+    gauss = np.exp(-0.5 * (offsets / sigma) ** 2) / (np.sqrt(2 * np.pi) * sigma)
+    ax.plot(offsets[keep], (observed.sum() * gauss)[keep], color="C0", lw=0.8, ls="--",
+            label="read-out alone")
+    ax.set_yscale("log")
+    ax.set_ylim(0.5, None)
+    ax.set_xlabel("count − pixel's offset (ADU)")
+    ax.set_ylabel("frames × pixels (1)")
+    ax.legend(fontsize=7)
+    setpoint = "" if check.setpoint is None else f" at set-point {format_setpoint(check.setpoint)}x"
+    ax.set_title(f"EM gain from dark frames{setpoint}: {check.events:.0f} events, "
+                 f"{check.pixels} px × {check.frames} frames ({check.em_model})", fontsize=9)
+    return fig
+
+
+def gain_history_figure(found, *, camera="", checks=()):
+    """A camera's gain at each set-point against the date (database entries and checks).
 
     Parameters
     ----------
     found : sequence of emccdcal.export.database.Entry
-        Oldest first.
+        Calibrations, oldest first.
+    checks : sequence of emccdcal.export.database.CheckEntry
+        Gain checks from dark frames, drawn with open markers.
 
     Returns
     -------
     matplotlib.figure.Figure
         One panel per set-point: the sensor's gain (median over pixels) with the SE of
-        that median, relative to the first calibration, in %; one line per register
-        model (calibrations under different models are not a change of the register).
+        that median, and each check's gain with its SE, relative to the first calibration,
+        in %; one line per register model (calibrations under different models are not a
+        change of the register).
     """
     import datetime as _dt
 
-    setpoints = sorted({s for e in found for s in e.gains})
+    def when(text):
+        return _dt.datetime.fromisoformat(text.replace("Z", "+00:00"))
+
+    setpoints = sorted({s for e in found for s in e.gains} | {c.setpoint for c in checks})
     if not setpoints:
         raise DataUnavailable("no calibration in the database has a gain above 1x")
     fig, axes = _panels(len(setpoints), 2, size=(4.0, 2.6))
     for ax, s in zip(axes, setpoints):
         have = [e for e in found if s in e.gains]
-        first = have[0].gains[s][0]
-        models = sorted({e.register for e in have})
+        checked = [c for c in checks if c.setpoint == s]
+        first = have[0].gains[s][0] if have else checked[0].em_gain
+        models = sorted({e.register for e in have} | {c.register for c in checked})
         for k, model in enumerate(models):
             mine = [e for e in have if e.register == model]
-            when = [_dt.datetime.fromisoformat(e.date.replace("Z", "+00:00")) for e in mine]
-            g = np.array([e.gains[s][0] for e in mine])
-            se = np.array([e.gains[s][1] or 0.0 for e in mine])
-            ax.errorbar(when, 100 * (g / first - 1), yerr=100 * se / first,
-                        fmt="os^v"[k % 4] + "-", ms=4, capsize=3,
-                        label=f"{model} register" if len(models) > 1
-                        else None)
-        if len(models) > 1:
+            label = f"{model} register" if len(models) > 1 else "calibration"
+            if mine:
+                g = np.array([e.gains[s][0] for e in mine])
+                se = np.array([e.gains[s][1] or 0.0 for e in mine])
+                ax.errorbar([when(e.date) for e in mine], 100 * (g / first - 1),
+                            yerr=100 * se / first, fmt="os^v"[k % 4] + "-", ms=4, capsize=3,
+                            label=label)
+            theirs = [c for c in checked if c.register == model]
+            if theirs:
+                g = np.array([c.em_gain for c in theirs])
+                se = np.array([c.se for c in theirs])
+                ax.errorbar([when(c.date) for c in theirs], 100 * (g / first - 1),
+                            yerr=100 * se / first, fmt="Ds^v"[k % 4], ms=5, mfc="none",
+                            capsize=3, label=f"gain check ({model})" if len(models) > 1
+                            else "gain check (dark frames)")
+        if checked or len(models) > 1:
             ax.legend(fontsize=7)
         ax.axhline(0, color="k", lw=0.8, ls=":")
         ax.set_title(f"{format_setpoint(s)}x (first: g = {first:.4g})", fontsize=9)

@@ -298,6 +298,7 @@ def simulate_frames(
     cascade_method="pmf",
     callback: Callable[[int], object] | None = None,
     varying=(),
+    register_cic=0.0,
 ) -> np.ndarray:
     """Simulate one stack of raw EMCCD counts in memory.
 
@@ -344,6 +345,11 @@ def simulate_frames(
         ``(part, factors)`` the rate in frame f is ``photoelectrons + part·(factors[f] −
         1)`` (e.g. one bead's light, fading as it bleaches or off while it blinks). The
         rate must stay ≥ 0.
+    register_cic : float, optional
+        Clock-induced charge made inside the register, e⁻ per pixel per frame (≥ 0;
+        default 0; the cascade only): each electron enters at a uniformly random stage
+        and is multiplied by the stages after it
+        (:func:`emccdcal.model.cascade.sample_register_cic`).
 
     Returns
     -------
@@ -368,10 +374,14 @@ def simulate_frames(
     mult = _multiplication(multiplication)
     n_stages = check_int("stages", stages)
     c = check_number("cic", cic, minimum=0.0)
+    c_reg = check_number("register_cic", register_cic, minimum=0.0)
+    register = EMModel(mult, n_stages).register
+    if c_reg and ("register_cic" not in register.parameters or g == 1.0):
+        raise OptionError("register_cic is charge made inside an exact (cascade) register "
+                          "at EM gain: give multiplication='cascade' and em_gain > 1")
     d = check_number("drift", drift, minimum=-2.0, maximum=2.0)
     bits = check_int("adc_bits", adc_bits, minimum=1, maximum=16)
     _cascade_method(cascade_method)
-    register = EMModel(mult, n_stages).register
     rng = np.random.default_rng(seed)
 
     adc_max = 2**bits - 1
@@ -388,7 +398,7 @@ def simulate_frames(
         parts.append((part, fs))
     out = np.empty((n_frames,) + shape, dtype=np.uint16)
     step = max(1, _CHUNK_ELEMENTS // (shape[0] * shape[1]))
-    dark = not np.any(E) and c == 0 and not parts
+    dark = not np.any(E) and c == 0 and not parts  # (register charge is added apart)
     for f0 in range(0, n_frames, step):
         f1 = min(n_frames, f0 + step)
         if dark:
@@ -402,6 +412,10 @@ def simulate_frames(
             x = n.astype(float)
         else:
             x = register.sample(n, g, rng, method=cascade_method)
+        if c_reg:
+            made = rng.poisson(c_reg, n.shape)
+            where = np.repeat(np.arange(made.size), made.ravel())
+            np.add.at(x.reshape(-1), where, register.sample_register_cic(where.size, g, rng))
         x /= phi
         x += S0
         x += sigma * rng.standard_normal(n.shape)
