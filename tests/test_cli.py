@@ -105,13 +105,13 @@ def test_options_are_spelled_alike_across_verbs():
         sub = cli.build_parser(verb)._subparsers._group_actions[0].choices[verb]
         parser_of[verb] = {s for a in sub._actions for s in a.option_strings}
     writes = {"demo", "simulate", "calibrate", "posterior", "report", "validate", "cots",
-              "export", "apply", "gain-curve"}
+              "export", "apply", "gain-curve", "gain-check"}
     for verb in writes - {"simulate"}:
         assert {"-o", "--out"} <= parser_of[verb], verb
     for verb in cli.VERBS:
         assert {"-q", "--quiet"} <= parser_of[verb] or verb == "simulate", verb
     figures = {verb for verb, opts in parser_of.items() if "--no-figures" in opts}
-    assert figures == {"posterior", "validate", "gain-curve"}
+    assert figures == {"posterior", "validate", "gain-curve", "gain-check"}
     for verb in ("calibrate", "posterior"):
         assert "--e-per-adu" in parser_of[verb]
 

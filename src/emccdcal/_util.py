@@ -37,14 +37,18 @@ __all__ = [
 # --------------------------------------------------------------------------------------
 # Progress
 # --------------------------------------------------------------------------------------
-def progress(iterable: Iterable | None = None, *, enabled: bool, desc: str, unit: str = "it",
+def progress(iterable: Iterable | None = None, *, enabled, desc: str, unit: str = "it",
              total: int | None = None):
     """A progress bar on stderr (tqdm), or a silent stand-in when ``enabled`` is false.
 
     Use it as an iterable wrapper or, with ``iterable=None``, as a bar to ``update(n)``
     and ``close()`` (also a context manager). The bar shows a rate and an ETA and is
-    removed when done.
+    removed when done. ``enabled`` may also be a callable ``enabled(done, total)``, told
+    of every update instead of a bar (a graphical front's progress bar; it may raise
+    :class:`emccdcal.errors.Cancelled` to stop the run).
     """
+    if callable(enabled):
+        return _Callback(iterable, enabled, total)
     if not enabled:
         return _Silent(iterable)
     from tqdm import tqdm
@@ -75,6 +79,23 @@ class _Silent:
 
     def close(self):
         pass
+
+
+class _Callback(_Silent):
+    """What :func:`progress` returns for a callable: tells it of every update."""
+
+    def __init__(self, iterable, callback, total):
+        super().__init__(iterable)
+        self._callback, self._total, self._done = callback, total, 0
+
+    def __iter__(self):
+        for item in self._iterable:
+            yield item
+            self.update(1)
+
+    def update(self, n=1):
+        self._done += n
+        self._callback(self._done, self._total)
 
 
 # --------------------------------------------------------------------------------------

@@ -502,8 +502,10 @@ def calibrate(
         ``mu_sd`` and ``sigma_sd``, the scales of its hyperpriors in photoelectrons (the
         authors' 25 e⁻ by default, for an illumination of about 370 e⁻: scale them in
         proportion to yours), and ``centre`` (``"gs"`` or the authors' ``"setpoint"``).
-    progress : bool
-        Show progress bars on stderr.
+    progress : bool or callable
+        Show progress bars on stderr; or a callable ``progress(done, total)`` told of the
+        pixels done instead (a graphical front's bar), which may raise
+        :class:`emccdcal.errors.Cancelled` to stop the run between blocks of pixels.
     workers : int, optional
         Threads reading and fitting at once within a tile (default: the number of CPUs;
         1 on a Dask cluster, whose workers run tiles in parallel).

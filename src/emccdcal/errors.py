@@ -19,6 +19,7 @@ __all__ = [
     "MissingFileError",
     "MethodError",
     "NotConvergedError",
+    "Cancelled",
     "InputWarning",
     "ReadNoiseGrowthWarning",
 ]
@@ -53,6 +54,11 @@ class MethodError(EmccdcalError, ValueError):
 
 class NotConvergedError(EmccdcalError, RuntimeError):
     """A posterior chain did not meet the convergence criteria within its step budget."""
+
+
+class Cancelled(EmccdcalError):
+    """A run stopped because its caller asked it to (a progress callback raised it:
+    a graphical front's Cancel button)."""
 
 
 class InputWarning(UserWarning):

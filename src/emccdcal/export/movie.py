@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import math
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +35,7 @@ from ..errors import InputError, OptionError
 from ..result import (IDENTITY_FIELDS, Calibration, format_setpoint, identity_mismatches,
                       load_calibration)
 
-__all__ = ["apply", "OUTPUT_FORMATS", "DEFAULT_THRESHOLD"]
+__all__ = ["apply", "conversion", "Conversion", "OUTPUT_FORMATS", "DEFAULT_THRESHOLD"]
 
 OUTPUT_FORMATS = ("tiff", "zarr")
 #: Photon-counting threshold in read-noise SDs.
@@ -157,28 +158,49 @@ def apply(calibration, movie, out, *, setpoint=None, photon_counting=False,
     return out
 
 
-def _apply(cal, movie, target, setpoint, photon_counting, threshold, fmt, progress_bar,
-           accept_mismatch, qe):
-    shape, dtype = stack_header(movie)
-    if len(shape) != 3:
-        raise InputError(f"{movie}: a movie is a stack of frames; this file holds shape {shape}")
+@dataclass
+class Conversion:
+    """What turns a movie's raw counts into photoelectrons (or photons, or photon
+    counts), per pixel: ``(S − offset) · scale``, or ``S − offset > tau`` when photon
+    counting; with the metadata recorded beside the output (:func:`conversion`)."""
+
+    offset: np.ndarray  # ADU, float32, the movie's (rows, cols)
+    scale: np.ndarray   # e- (or photons) per ADU, float32
+    tau: np.ndarray | None  # ADU, float32: the photon-counting threshold
+    meta: dict
+
+    def __call__(self, raw):
+        """The converted frames of ``raw`` (frames, rows, cols): float32 e⁻ (photons),
+        or uint8 counts. Works on a NumPy array and, lazily, on a Dask array."""
+        signal = raw.astype(np.float32) - self.offset
+        if self.tau is not None:
+            return (signal > self.tau).astype(np.uint8)
+        return signal * self.scale
+
+
+def conversion(cal, source, settings, shape, *, setpoint=None, photon_counting=False,
+               threshold=DEFAULT_THRESHOLD, accept_mismatch=(), qe=None) -> Conversion:
+    """The :class:`Conversion` of frames of ``shape`` (frames, rows, cols) from
+    ``source`` (a file, or a name for the messages) whose file recorded ``settings``
+    (:class:`~emccdcal.data.settings.CameraSettings`), by the calibration ``cal``; the
+    checks and warnings of :func:`apply` (its parameters)."""
     frames, rows, cols = shape
     if frames == 0 or rows == 0 or cols == 0:
-        raise InputError(f"{movie}: holds no frames (shape {shape})")
-    settings = stack_settings(movie)
-    _check_identity(cal, movie, settings, accept_mismatch)
-    s = _movie_setpoint(movie, settings.em_gain_setpoint, setpoint)
-    rr, cc = _region(cal, movie, settings.roi, (rows, cols))
+        raise InputError(f"{source}: holds no frames (shape {shape})")
+    _check_identity(cal, source, settings, accept_mismatch)
+    s = _movie_setpoint(source, settings.em_gain_setpoint, setpoint)
+    rr, cc = _region(cal, source, settings.roi, (rows, cols))
     scale = (cal.e_per_adu / cal.gain(s))[rr, cc]
     offset, sigma = (m[rr, cc] for m in cal.dark(s))
     bad = ~(np.isfinite(offset) & np.isfinite(scale))
     if bad.all():
-        raise InputError(f"{movie}: none of its {rows}×{cols} pixels has a converged "
+        raise InputError(f"{source}: none of its {rows}×{cols} pixels has a converged "
                          f"calibration at {format_setpoint(s)}x in {cal.label}; nothing to "
                          "convert")
     meta = {"units": "photoelectrons per pixel per frame (e-)" if not photon_counting else
             "photon counts per pixel per frame (0 or 1)",
-            "source": str(movie), "setpoint": s, "formula": "(S - offset) * e_per_adu / em_gain",
+            "source": str(source), "setpoint": s,
+            "formula": "(S - offset) * e_per_adu / em_gain",
             "emccdcal": cal.provenance(), "uncalibrated_pixels": int(bad.sum()),
             "axes": "TYX"}
     if qe is not None:  # photons: photoelectrons / QE
@@ -186,23 +208,35 @@ def _apply(cal, movie, target, setpoint, photon_counting, threshold, fmt, progre
         meta.update(units="photons per pixel per frame",
                     formula="(S - offset) * e_per_adu / em_gain / qe", qe=float(qe))
     if bad.any():
-        warnings.warn(f"{movie}: {int(bad.sum())} pixel(s) have no converged calibration at "
+        warnings.warn(f"{source}: {int(bad.sum())} pixel(s) have no converged calibration at "
                       f"{format_setpoint(s)}x; they are NaN (0 when photon counting)",
-                      stacklevel=2)
+                      stacklevel=3)
+    tau = None
     if photon_counting:
-        tau = threshold * sigma
-        efficiency = float(np.nanmedian(np.exp(-tau * scale)))
+        tau = (threshold * sigma).astype(np.float32)
+        efficiency = float(np.nanmedian(np.exp(-threshold * sigma * scale)))
         meta.update(formula=f"1 if S - offset > {threshold:g} * read_noise else 0",
                     threshold_read_noise_sd=threshold,
                     single_electron_efficiency=efficiency)
         if efficiency < 0.9:
-            warnings.warn(f"{movie}: at {format_setpoint(s)}x one photoelectron clears the "
+            warnings.warn(f"{source}: at {format_setpoint(s)}x one photoelectron clears the "
                           f"{threshold:g}-sigma threshold in only {efficiency:.0%} of cases "
                           "(g/phi is too small against the read noise for photon counting)",
-                          stacklevel=2)
+                          stacklevel=3)
+    return Conversion(offset.astype(np.float32), scale.astype(np.float32), tau, meta)
+
+
+def _apply(cal, movie, target, setpoint, photon_counting, threshold, fmt, progress_bar,
+           accept_mismatch, qe):
+    shape, dtype = stack_header(movie)
+    if len(shape) != 3:
+        raise InputError(f"{movie}: a movie is a stack of frames; this file holds shape {shape}")
+    frames, rows, cols = shape
+    convert = conversion(cal, movie, stack_settings(movie), shape, setpoint=setpoint,
+                         photon_counting=photon_counting, threshold=threshold,
+                         accept_mismatch=accept_mismatch, qe=qe)
     out_dtype = np.uint8 if photon_counting else np.float32
-    offset, scale = offset.astype(np.float32), scale.astype(np.float32)
-    tau_adu = tau.astype(np.float32) if photon_counting else None
+    meta = convert.meta
     per_block = max(1, _BLOCK_BYTES // (rows * cols * max(dtype.itemsize, 4)))
 
     def blocks(bar):
@@ -210,13 +244,7 @@ def _apply(cal, movie, target, setpoint, photon_counting, threshold, fmt, progre
             raw = read_band(movie, 0, rows, skip_frames=a, stop_frame=min(frames, a + per_block))
             if raw.dtype.kind == "f":  # integer counts are valid by their type
                 _check_counts(movie, raw, a)
-            signal = raw.astype(np.float32)  # one working copy, changed in place
-            signal -= offset
-            if photon_counting:
-                yield signal > tau_adu
-            else:
-                signal *= scale
-                yield signal
+            yield convert(raw)
             bar.update(raw.shape[0])
 
     with progress(total=frames, enabled=progress_bar, desc=f"apply {movie.name}",

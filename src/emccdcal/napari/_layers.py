@@ -1,0 +1,61 @@
+"""A calibration's maps as napari layers, labelled with their units (no Qt needed)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["result_layers"]
+
+
+def result_layers(ds, *, prefix: str = "") -> list[tuple]:
+    """The maps of a calibration result as layer data ``(array, kwargs, "image")``.
+
+    φ (e-/ADU), the true gain at each multiplied set-point, the intensity (e-), and the
+    offset and read noise (ADU) and goodness-of-fit p-value of the acquisitions (one
+    layer each, the acquisitions along its first axis, named in its metadata); each
+    named with its unit, NaN where a pixel did not converge, contrast from the 1st to
+    the 99th percentile, placed at the calibration's sensor origin, hidden but the last.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A result (:func:`emccdcal.load_result`).
+    prefix : str
+        Put before every name (e.g. the method).
+    """
+    origin = tuple(float(v) for v in ds.attrs.get("sensor_origin", (0, 0)))
+    ok = ds.converged.values.astype(bool)
+    layers = []
+
+    def add(values, name, unit, colormap="viridis", axis=None):
+        data = np.where(ok, np.asarray(values, dtype=float), np.nan)
+        finite = data[np.isfinite(data)]
+        limits = (np.percentile(finite, [1, 99]) if finite.size else [0.0, 1.0]).tolist()
+        if limits[0] == limits[1]:
+            limits = [limits[0] - 0.5, limits[1] + 0.5]
+        metadata = {"units": unit, "variable": name}
+        if axis is not None:
+            metadata[axis[0]] = axis[1]
+        layers.append((data, {"name": f"{prefix}{name} ({unit})", "colormap": colormap,
+                              "contrast_limits": limits, "visible": False,
+                              "translate": ((0.0,) if data.ndim == 3 else ()) + origin,
+                              "metadata": metadata}, "image"))
+
+    if "e_per_adu" in ds:
+        add(ds.e_per_adu.values, "phi", "e-/ADU")
+    if "setpoint" in ds.dims and "em_gain" in ds:
+        for s in ds.setpoint.values:
+            if float(s) != 1.0:
+                add(ds.em_gain.sel(setpoint=s).values, f"gain at {float(s):g}x", "1", "magma")
+    if "photoelectrons" in ds and ds.photoelectrons.ndim == 2:
+        add(ds.photoelectrons.values, "intensity", "e-", "inferno")
+    axis = "setpoint" if "setpoint" in ds.dims else "level" if "level" in ds.dims else None
+    for var, unit, colormap in (("offset", "ADU", "gray"), ("read_noise", "ADU", "gray"),
+                                ("gof_pvalue", "1", "cividis")):
+        if var in ds:
+            keys = None if axis not in ds[var].dims else (
+                axis, [float(k) if axis == "setpoint" else str(k) for k in ds[axis].values])
+            add(ds[var].values, var, unit, colormap, keys)
+    if layers:
+        layers[1 if len(layers) > 1 else 0][1]["visible"] = True  # φ, or the first gain
+    return layers
