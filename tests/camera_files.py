@@ -103,7 +103,7 @@ def write_zarr(path, frames, *, em_gain=None, **settings):
 
 
 def micromanager_properties(style="andor", *, em_gain=300, readout="17.000 MHz",
-                            temperature=-70, exposure_ms=10.0, preamp="Gain 2"):
+                            temperature=-70, exposure_ms=10.0, preamp="Gain 2", roi="0-0-6-5"):
     """One frame's Micro-Manager properties as an Andor or a Photometrics camera writes them."""
     if style == "andor":
         return {"Camera": "Andor", "Andor-Gain": str(em_gain), "Andor-EMSwitch": "On",
@@ -111,14 +111,14 @@ def micromanager_properties(style="andor", *, em_gain=300, readout="17.000 MHz",
                 "Andor-Output_Amplifier": "Electron Multiplying",
                 "Andor-CCDTemperature": str(temperature),
                 "Andor-Camera": "| iXon Ultra 897 | DU897_BV | 9876 |",
-                "Exposure-ms": str(exposure_ms), "BitDepth": "16", "ROI": "0-0-6-5",
+                "Exposure-ms": str(exposure_ms), "BitDepth": "16", "ROI": roi,
                 "Binning": "1"}
     return {"Camera": "Photometrics", "Photometrics-MultiplierGain": str(em_gain),
             "Photometrics-Gain": "1", "Photometrics-ReadoutRate": readout,
             "Photometrics-Port": "Multiplication gain",
             "Photometrics-BitDepth": "16", "Photometrics-CCDTemperature": str(temperature),
             "Photometrics-SerialNumber": "A17C", "Photometrics-ChipName": "Evolve512",
-            "Exposure-ms": str(exposure_ms), "ROI": "0-0-6-5", "Binning": "1x1"}
+            "Exposure-ms": str(exposure_ms), "ROI": roi, "Binning": "1x1"}
 
 
 def write_micromanager_tiff(path, frames, *, em_gain=None, style="andor", ome=True, **kw):

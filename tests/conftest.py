@@ -22,6 +22,18 @@ REAL_SETPOINTS = (1, 5, 25, 100, 300)
 REAL_LEVELS = tuple(range(1, 7))
 
 
+# Hypothesis draws its examples from a fixed seed (derandomize): every run of the suite
+# tests the same cases, in the same time; a failure is reproduced by running it again.
+try:
+    from hypothesis import settings as _hypothesis_settings
+
+    _hypothesis_settings.register_profile("emccdcal", derandomize=True, deadline=None,
+                                          print_blob=True)
+    _hypothesis_settings.load_profile("emccdcal")
+except ImportError:  # hypothesis is a test dependency; without it those tests fail to import
+    pass
+
+
 def pytest_configure(config):
     config.addinivalue_line("markers", "real_data: needs ../shared/data/lanl-proem (skipped where absent)")
 

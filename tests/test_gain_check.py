@@ -56,6 +56,24 @@ def test_a_region_and_several_stacks_and_too_few_events():
         check_gain([_darks(300.0, seed=3, frames=200, cic=0.0)], PHI)
 
 
+def test_a_gain_the_darks_do_not_determine_is_refused_with_what_would(monkeypatch):
+    """Events of 13 ADU under a read noise of 26 ADU (50x, 100 e- rms): a gain of ± 19 %
+    here; with the refusal threshold below that, one line saying so and what would
+    determine it, never a number whose ± reads as "agrees" with any calibration."""
+    from emccdcal.fit import darkgain
+
+    darks = simulate_frames(0.0, 50.0, PHI, OFFSET, 25.9, frames=1000, rows=32, cols=32,
+                            cic=0.01, seed=1)
+    check = check_gain([darks], PHI)
+    assert 0.1 < check.relative_se < darkgain.MAX_RELATIVE_SE
+    monkeypatch.setattr(darkgain, "MAX_RELATIVE_SE", 0.1)
+    with pytest.raises(InputError, match="do not determine the EM gain") as info:
+        check_gain([darks], PHI)
+    message = str(info.value)
+    assert "\n" not in message and "1024 px × 1000 frames" in message
+    assert f"needs about {check.frames_for(0.02)} frames" in message
+
+
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory):
     """A simulated gain series (charge in its darks) calibrated by gs: (folder, result)."""
@@ -112,6 +130,15 @@ def test_darks_of_a_calibrated_series_agree_and_a_fallen_gain_is_flagged(calibra
     captured = capsys.readouterr()
     assert "gain check of 2026-03-01" in captured.err and "below its calibration" in captured.err
     assert "2026-02-01" in captured.out and (tmp_path / "history" / "gain-history-SIM-1.png").is_file()
+
+    # The HTML report of the calibration shows the camera's history from the database.
+    from emccdcal.report.html import build_report
+
+    page = build_report([result], db=db, camera="SIM-1")
+    history = page[page.index('<section id="history">'):page.index('<section id="provenance">')]
+    assert "calibration (this result)" in history and history.count("gain check") >= 2
+    assert "gain check of 2026-03-01" in history and 'id="figures-history-1"' in history
+    assert "data:image/png;base64," in history
 
 
 # --------------------------------------------------------------------------------------

@@ -133,7 +133,8 @@ def test_the_reader_opens_each_format_lazily_with_its_settings(kind, tmp_path):
     elif kind == "sif":
         path = Path(__file__).with_name("data") / "sif" / "test.sif"
     elif kind == "ome.tif":
-        path = write_micromanager_tiff(tmp_path / "s.ome.tif", data, em_gain=300)
+        path = write_micromanager_tiff(tmp_path / "s.ome.tif", data, em_gain=300,
+                                       roi="64-32-10-8")
     elif kind == "fits":
         pytest.importorskip("astropy")
         path = write_fits(tmp_path / "s.fits", data, em_gain=300)
@@ -149,6 +150,8 @@ def test_the_reader_opens_each_format_lazily_with_its_settings(kind, tmp_path):
     camera = kwargs["metadata"]["camera"]
     if kind != "sif":
         assert camera["em_gain_setpoint"] == 300
+    if kind == "ome.tif":  # the region it records of the sensor: where the layer lies
+        assert kwargs["translate"] == (0, 32, 64) and kwargs["scale"] == (1, 1, 1)
     assert get_reader(str(tmp_path / "notes.txt")) is None
 
 
@@ -238,6 +241,36 @@ def test_a_run_cancelled_midway_ends_quietly(sample, make_napari_viewer, qtbot, 
     _wait(qtbot, widget)
     assert widget.status.value == "cancelled: nothing was written"
     assert widget.result is None and not (tmp_path / "w" / "result" / "calibration.nc").exists()
+
+
+def test_the_calibrate_widget_writes_over_nothing_it_did_not_write(sample, qapp, tmp_path):
+    """A folder scanned into an output folder that holds the user's manifest.toml (or
+    report.html, or an export): refused with one line, the files untouched; a widget
+    without an output folder takes a new temporary one for each run."""
+    from emccdcal.napari._widgets import CalibrateWidget
+
+    _, manifest, result = sample
+    widget = CalibrateWidget()
+    widget.source.value = manifest.parent / "gain-GS"  # a folder: scanned into the output
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "manifest.toml").write_text("# the user's own\n")
+    widget.out.value = mine
+    widget._guarded(widget.run)()
+    assert widget.status.value.startswith("error:") and "manifest.toml" in widget.status.value
+    assert (mine / "manifest.toml").read_text() == "# the user's own\n"
+    widget.result = result  # as if a run had written it there
+    (result.parent / "report.html").write_text("theirs")
+    widget._guarded(widget.write_report)()
+    assert widget.status.value.startswith("error:") and "report.html" in widget.status.value
+    assert (result.parent / "report.html").read_text() == "theirs"
+    (result.parent / "report.html").unlink()
+    widget.write_report()  # once written by the widget, it may replace it
+    widget.write_report()
+    assert "wrote" in widget.status.value
+    fresh = CalibrateWidget()  # no output folder chosen
+    first = fresh._out()
+    assert first != fresh._out() and first.name.startswith("emccdcal-calibration-")
 
 
 def test_the_apply_widget_gives_what_apply_gives(sample, make_napari_viewer, tmp_path):

@@ -50,11 +50,14 @@ def test_posterior_agrees_with_the_engine(series, method, source):
     manifest = series[source]
     # an effective sample of 400 puts the median within 0.06 posterior SD and the SD
     # within 4 % (Monte Carlo errors), far inside what is asserted
+    # (the hierarchical MAP is asserted within half an SD: 200 effective samples put the
+    # median within 0.09 SD, and its chains, of seven parameters, mix slowest)
+    min_ess = 200 if method == "gs-hierarchical" else MIN_ESS
     ds = posterior.sample_posterior(manifest, method, [PIXEL], seed=1, em_model=MODEL,
-                                    n_steps=500, min_ess=MIN_ESS)
+                                    n_steps=500, min_ess=min_ess)
     engine = _engine(manifest, method)
     assert ds.attrs["em_model"] == engine.attrs["em_model"] == MODEL
-    assert np.all(ds.ess.values >= MIN_ESS)
+    assert np.all(ds.ess.values >= min_ess)
     names = [str(p) for p in ds.parameter.values]
     gains = [n for n in names if n.startswith("em_gain")]
     assert gains

@@ -247,6 +247,27 @@ def parse_pixel(text) -> tuple[int, int]:
     return row, col
 
 
+def parse_region(text) -> tuple[slice, slice]:
+    """``"R0:R1,C0:C1"`` (either bound may be left out) → ``(rows, cols)`` slices, or a
+    one-line :class:`OptionError`.
+
+    Examples
+    --------
+    >>> parse_region("0:8,:")
+    (slice(0, 8, None), slice(None, None, None))
+    """
+    parts = str(text).split(",")
+    try:
+        if len(parts) != 2 or any(part.count(":") != 1 for part in parts):
+            raise ValueError
+        rows, cols = (tuple(int(v) if v.strip() else None for v in part.split(":"))
+                      for part in parts)
+    except ValueError:
+        raise OptionError(f"malformed region {text!r}: expected rows and columns as "
+                          "R0:R1,C0:C1, e.g. 0:8,: for the first 8 rows") from None
+    return slice(*rows), slice(*cols)
+
+
 def finite_or_none(value) -> float | None:
     """A float for JSON, or None where it is not finite (JSON has no NaN).
 

@@ -161,6 +161,17 @@ def label_list(text: str) -> list[str]:
     return [p.strip() for p in text.split(",")]
 
 
+def region(text: str) -> tuple[slice, slice]:
+    """An argparse type: ``R0:R1,C0:C1``."""
+    from .._util import parse_region
+    from ..errors import OptionError
+
+    try:
+        return parse_region(text)
+    except OptionError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def pixel(text: str) -> tuple[int, int]:
     """An argparse type: ``ROW,COL``."""
     from .._util import parse_pixel

@@ -45,7 +45,7 @@ def add_parser(subparsers):
     p.add_argument("--target-se", type=_common.positive_float, default=None,
                    metavar="PERCENT", help="the precision wanted: say how many frames "
                    "would reach it when the data fall short")
-    p.add_argument("--region", type=_region, default=None, metavar="R0:R1,C0:C1",
+    p.add_argument("--region", type=_common.region, default=None, metavar="R0:R1,C0:C1",
                    help="use only these rows and columns (pixels known to be dark: "
                    "masked rows, overscan or prescan columns), Python slices")
     _common.add_em_model(p, auto=False)
@@ -67,26 +67,12 @@ def add_parser(subparsers):
     return p
 
 
-def _region(text: str):
-    import argparse
-
-    try:
-        parts = text.split(",")
-        if len(parts) != 2 or any(part.count(":") != 1 for part in parts):
-            raise ValueError(text)
-        rows, cols = (tuple(int(v) if v else None for v in part.split(":")) for part in parts)
-        return slice(*rows), slice(*cols)
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected rows and columns as R0:R1,C0:C1, got {text!r}") from None
-
-
 def run(args) -> int:
     import contextlib
     import json
 
     from ..data.stacks import load_stack, stack_settings
-    from ..export.gain_check import compare
+    from ..export.gain_check import compare, verdict
     from ..fit.darkgain import check_gain
 
     settings = [stack_settings(path) for path in args.darks]
@@ -115,9 +101,9 @@ def run(args) -> int:
         print(json.dumps({**record, **({"database_check": recorded.id} if recorded else {})},
                          indent=2))
     elif not args.quiet or (against is not None and against["changed"]):
-        print(_line(check, args.target_se))
+        print(check.summary(None if args.target_se is None else args.target_se / 100))
         if against is not None:
-            print(_verdict(against))
+            print(verdict(against))
         if not args.quiet:
             for path in written:
                 print(f"wrote {path}")
@@ -186,27 +172,3 @@ def _record(args, check, settings):
         readout = states.pop() if len(states) == 1 else ""
     return database.add_check(check, camera=camera, readout=readout, date=args.date,
                               db=args.db)
-
-
-def _line(check, target_se) -> str:
-    text = (f"em_gain {check.em_gain:.4g} ± {check.em_gain_se:.2g} "
-            f"({100 * check.relative_se:.2g} %) at set-point {check.setpoint:g}, from "
-            f"{check.events:.0f} events ({check.pixels} px × {check.frames} frames, "
-            f"{check.event_rate:.3g} e-/px/frame; {check.em_model}, phi {check.e_per_adu:.4g} "
-            "e-/ADU)")
-    if target_se is not None and 100 * check.relative_se > target_se:
-        text += (f"; {target_se:g} % needs about {check.frames_for(target_se / 100)} frames "
-                 "of these pixels")
-    return text
-
-
-def _verdict(c: dict) -> str:
-    diff = f"{c['difference_percent']:+.2g} ± {c['difference_se_percent']:.2g} %"
-    if not c["changed"]:
-        return (f"agrees with its calibration of {c['calibrated']} "
-                f"({c['calibrated_em_gain']:.4g}): {diff}")
-    side = "above" if c["difference_percent"] > 0 else "below"
-    return (f"the gain is {abs(c['difference_percent']):.2g} ± "
-            f"{c['difference_se_percent']:.2g} % {side} its calibration of "
-            f"{c['calibrated']} ({c['calibrated_em_gain']:.4g}, z = {c['z']:+.1f}): "
-            "recalibrate")

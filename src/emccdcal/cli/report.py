@@ -26,6 +26,11 @@ def add_parser(subparsers):
                    help="pixel of the histogram and photon-transfer figures (default: centre)")
     p.add_argument("--figures-dir", type=Path, metavar="DIR",
                    help="also write every figure as PNG and SVG into DIR")
+    p.add_argument("--db", type=Path, metavar="PATH",
+                   help="a calibration database: show each result's camera history (its "
+                   "calibrations and gain checks, and what db compare flags)")
+    p.add_argument("--camera", metavar="SERIAL",
+                   help="with --db: the camera's serial where the result records none")
     _common.add_quiet(p)
     p.set_defaults(func=run)
     return p
@@ -38,6 +43,10 @@ def _command(args) -> str:
         words += ["--pixel", f"{args.pixel[0]},{args.pixel[1]}"]
     if args.figures_dir is not None:
         words += ["--figures-dir", str(args.figures_dir)]
+    if args.db is not None:
+        words += ["--db", str(args.db)]
+    if args.camera is not None:
+        words += ["--camera", args.camera]
     return " ".join(words)
 
 
@@ -52,7 +61,8 @@ def run(args) -> int:
             _common.output(args, out, kind="file", inputs=inputs):
         path = write_report(args.results, out, validation=args.validation, pixel=args.pixel,
                             figures_dir=args.figures_dir, progress=not args.quiet,
-                            command=_command(args))
+                            command=_command(args), db=args.db,
+                            camera=args.camera)
     if not args.quiet:
         print(f"wrote {path}")
     _common.print_warnings(caught)

@@ -47,7 +47,8 @@ from ..errors import InputError, OptionError
 from ..result import format_setpoint, load, load_calibration, pixel_statistics, summarize
 
 __all__ = ["default_path", "add", "add_check", "remove", "relocate", "entries", "entry",
-           "checks", "find", "calibration", "compare", "Entry", "CheckEntry", "Finding"]
+           "checks", "find", "calibration", "compare", "readout_text", "Entry", "CheckEntry",
+           "Finding"]
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS calibration (
@@ -197,7 +198,9 @@ class CheckEntry:
         return dict(self.__dict__)
 
 
-def _readout_text(camera: dict) -> str:
+def readout_text(camera: dict) -> str:
+    """The read-out state a camera record names (amplifier, rate, analog gain, ADC bits),
+    as the database keeps it: ``"EM, 10 MHz, analog gain 2, 16-bit"``."""
     parts = [str(camera["amplifier"])] if camera.get("amplifier") is not None else []
     if camera.get("readout_rate_mhz") is not None:
         parts.append(f"{camera['readout_rate_mhz']:g} MHz")
@@ -266,7 +269,7 @@ def add(result, *, db=None, camera=None, readout=None, date=None, note="") -> En
     if not serial:
         raise OptionError(f"{cal.label}: its files record no camera serial number; give "
                           "--camera SERIAL")
-    readout = _readout_text(cal.camera) if readout is None else str(readout)
+    readout = readout_text(cal.camera) if readout is None else str(readout)
     when = _past_date(date or cal.created or _dt.datetime.now(_dt.timezone.utc).isoformat())
     digest = ",".join(cal.sha256)
     gains = {}

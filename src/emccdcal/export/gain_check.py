@@ -7,7 +7,7 @@ import math
 
 from ..errors import InputError
 
-__all__ = ["compare"]
+__all__ = ["compare", "verdict"]
 
 
 def compare(check, calibration, *, z: float = 3.0) -> dict:
@@ -50,3 +50,18 @@ def compare(check, calibration, *, z: float = 3.0) -> dict:
             "calibrated": cal.created[:10], "difference_percent": 100.0 * diff / g_cal,
             "difference_se_percent": 100.0 * combined / g_cal, "z": diff / combined,
             "changed": bool(abs(diff) > z * combined)}
+
+
+def verdict(comparison: dict) -> str:
+    """One line of :func:`compare`'s result: "agrees with its calibration of …" or "the
+    gain is … % below its calibration of …: recalibrate"."""
+    c = comparison
+    diff = f"{c['difference_percent']:+.2g} ± {c['difference_se_percent']:.2g} %"
+    if not c["changed"]:
+        return (f"agrees with its calibration of {c['calibrated']} "
+                f"({c['calibrated_em_gain']:.4g}): {diff}")
+    side = "above" if c["difference_percent"] > 0 else "below"
+    return (f"the gain is {abs(c['difference_percent']):.2g} ± "
+            f"{c['difference_se_percent']:.2g} % {side} its calibration of "
+            f"{c['calibrated']} ({c['calibrated_em_gain']:.4g}, z = {c['z']:+.1f}): "
+            "recalibrate")

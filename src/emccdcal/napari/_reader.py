@@ -37,4 +37,10 @@ def stack_layer(path: Path) -> tuple:
     settings = stack_settings(path)
     metadata = {"emccdcal_path": str(path), "units": "ADU (raw counts)",
                 "camera": settings.known()}
-    return frames, {"name": path.name, "metadata": metadata}, "image"
+    kwargs = {"name": path.name, "metadata": metadata}
+    # where the file records its region of the sensor, the layer lies there (in sensor
+    # pixels: a binned pixel spans its bins)
+    if settings.roi is not None:
+        bin_x, bin_y = settings.binning or (1, 1)
+        kwargs.update(translate=(0, settings.roi[1], settings.roi[0]), scale=(1, bin_y, bin_x))
+    return frames, kwargs, "image"

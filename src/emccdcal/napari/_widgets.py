@@ -20,6 +20,7 @@ from magicgui.widgets import (CheckBox, ComboBox, Container, FileEdit, Label, Li
                               ProgressBar, PushButton, TextEdit, create_widget)
 from qtpy.QtCore import QObject, QTimer, Signal
 
+from .._output import atomic_write_text
 from ..errors import Cancelled, EmccdcalError, OptionError
 
 __all__ = ["CalibrateWidget", "ApplyWidget", "GainCheckWidget"]
@@ -139,6 +140,8 @@ class CalibrateWidget(Container):
         self._likelihood = set(LIKELIHOOD_METHODS)
         self.job = _Job(self, self.bar, self.status, self.cancel_button)
         self.result = None  # the result's folder, once a run completed
+        self._temporary = None  # the output folder we chose, where none was given
+        self._written = set()  # files this widget wrote (it may replace only those)
         self.scan_button.changed.connect(self._guarded(self.scan))
         self.run_button.changed.connect(self._guarded(self.run))
         self.report_button.changed.connect(self._guarded(self.write_report))
@@ -165,18 +168,28 @@ class CalibrateWidget(Container):
         if source.is_file():
             return source
         session = scan(source)
-        out = self._out()
-        out.mkdir(parents=True, exist_ok=True)
-        path = out / "manifest.toml"
-        path.write_text(manifest_text(session, path))
+        path = self._out() / "manifest.toml"
+        self._write(path, [source], lambda: atomic_write_text(path, manifest_text(session,
+                                                                                  path)))
         return path
 
     def _out(self) -> Path:
-        out = Path(self.out.value)
-        if str(self.out.value) in ("", "."):
-            out = Path(tempfile.mkdtemp(prefix="emccdcal-calibration-"))
-            self.out.value = out
-        return out
+        """The output folder: the one given, else a new temporary one for each run."""
+        given = str(self.out.value)
+        if given in ("", ".") or Path(given) == self._temporary:
+            self._temporary = Path(tempfile.mkdtemp(prefix="emccdcal-calibration-"))
+            self.out.value = self._temporary
+        return Path(self.out.value)
+
+    def _write(self, path: Path, inputs, write, kind: str = "file"):
+        """``write()`` under the package's output policy: never over an input, nor over
+        a file this widget did not write; published only when complete."""
+        from .._output import Output
+
+        with Output(path, kind=kind, inputs=inputs, overwrite=path in self._written):
+            value = write()
+        self._written.add(path)
+        return value
 
     def scan(self):
         """Show what the folder (or manifest) holds."""
@@ -249,7 +262,9 @@ class CalibrateWidget(Container):
         """``report.html`` of the result, beside it."""
         from ..report.html import write_report
 
-        path = write_report([self._need_result()], self._need_result().parent / "report.html")
+        result = self._need_result()
+        path = result.parent / "report.html"
+        self._write(path, [result], lambda: write_report([result], path))
         self.status.value = f"wrote {path}"
 
     def export(self):
@@ -257,9 +272,10 @@ class CalibrateWidget(Container):
         from ..export.tools import export
 
         setpoint = _optional_float(self.setpoint.value, "set-point")
-        files = export(self._need_result(), self.tool.value,
-                       self._need_result().parent / f"export-{self.tool.value}",
-                       setpoint=setpoint)
+        result = self._need_result()
+        out = result.parent / f"export-{self.tool.value}"
+        files = self._write(out, [result], lambda: export(result, self.tool.value, out,
+                                                          setpoint=setpoint), kind="folder")
         self.status.value = "wrote " + ", ".join(str(f) for f in files)
 
 
@@ -384,8 +400,8 @@ class GainCheckWidget(Container):
             self.status.value = f"error: {exc}"
 
     def run(self):
-        from ..cli.gain_check import _line, _region, _verdict
-        from ..export.gain_check import compare
+        from .._util import parse_region
+        from ..export.gain_check import compare, verdict
         from ..fit.darkgain import check_gain
         from ..result import load_calibration, pixel_statistics
 
@@ -401,10 +417,7 @@ class GainCheckWidget(Container):
             if cal is None:
                 raise OptionError("give e-/ADU or a calibration of the camera")
             phi = float(pixel_statistics(cal.e_per_adu)["median"])
-        try:
-            region = _region(self.region.value) if self.region.value.strip() else None
-        except Exception:  # argparse's error type: one line
-            raise OptionError(f"region: expected R0:R1,C0:C1, got {self.region.value!r}") from None
+        region = parse_region(self.region.value) if self.region.value.strip() else None
         data = layer.data
         bits = settings.adc_bits
 
@@ -417,7 +430,7 @@ class GainCheckWidget(Container):
 
         def done(out, caught):
             check, against = out
-            lines = [_line(check, None)] + ([_verdict(against)] if against else []) + caught
+            lines = [check.summary()] + ([verdict(against)] if against else []) + caught
             self.answer.value = "\n".join(lines)
             self.status.value = "done"
 

@@ -4,7 +4,9 @@ One HTML file with everything embedded (figures as base64 PNG data URIs, inline 
 script, no network): a summary table per result in both unit conventions (e⁻/ADU and
 ADU/e⁻, the measured gain at every set-point with standard errors), the data-quality
 warnings, a goodness-of-fit summary, the figures of :mod:`emccdcal.report.figures`, the bead
-validation where a validation directory is given, and provenance (versions, every input
+validation where a validation directory is given, the camera's history where a calibration
+database is given (its calibrations and gain checks on one time axis, and what
+``emccdcal db compare`` flags), and provenance (versions, every input
 with its SHA-256, method, manifest hash, dates). ``docs/report.md`` describes it.
 
 Sections carry stable ``id`` attributes (:data:`SECTION_IDS`) so that tools and tests can
@@ -53,8 +55,10 @@ from .figures import (
 
 __all__ = ["SECTION_IDS", "REPORT_FILE", "ReportWarning", "build_report", "write_report"]
 
-#: ``id`` of the report's top-level sections (``validation`` only with validation input).
-SECTION_IDS = ("summary", "warnings", "gof", "figures", "validation", "provenance")
+#: ``id`` of the report's top-level sections (``validation`` only with validation input,
+#: ``history`` only with a calibration database).
+SECTION_IDS = ("summary", "warnings", "gof", "figures", "validation", "history",
+               "provenance")
 #: File name of the report that ``calibrate --report`` and ``demo`` write.
 REPORT_FILE = "report.html"
 
@@ -340,6 +344,68 @@ def _figure_html(fig_id, title, caption, png):
 
 
 # --------------------------------------------------------------------------------------
+# The camera's history (a calibration database)
+# --------------------------------------------------------------------------------------
+def _history(inputs, db, serial=None):
+    """The history of each camera the results are of: (blocks, figure jobs).
+
+    Each block is (HTML, the figure group that follows it or None). A camera is its
+    serial (``serial``, else the one its files record) and read-out state; a result
+    without a serial, or a camera the database does not hold, gets a note instead.
+    """
+    from ..export import database
+    from .figures import gain_history_figure
+
+    cameras, parts, jobs = {}, [], []
+    for inp in inputs:
+        camera = result.camera_of(inp.ds, inp.path or inp.label)
+        if serial is not None:
+            camera["serial"] = serial
+        if not camera.get("serial"):
+            parts.append((f"<p class=note>{_e(inp.label)}: its files record no camera "
+                          "serial number, so its history cannot be looked up (give it)."
+                          "</p>", None))
+            continue
+        key = (str(camera["serial"]), database.readout_text(camera))
+        cameras.setdefault(key, []).append(inp)
+    for k, ((who, readout), mine) in enumerate(cameras.items()):
+        state = f"camera {who}" + (f" ({readout})" if readout else "")
+        try:
+            found, findings = database.compare(who, db=db, readout=readout)
+        except OptionError as exc:
+            parts.append((f"<p class=note>{_e(state)}: {_e(str(exc))}.</p>", None))
+            continue
+        checked = database.checks(db=db, camera=who, readout=found[-1].readout)
+        digests = {inp.sha256 for inp in mine if inp.sha256}
+        rows = [[_e(e.date[:10]), "calibration" + (" (this result)" if digests &
+                                                   set(e.sha256.split(",")) else ""),
+                 _e(e.register), _e(", ".join(f"{format_setpoint(s)}×: {_fmt(m)} ± "
+                                              f"{_fmt(se or 0, 2)}"
+                                              for s, (m, se, _) in sorted(e.gains.items())))]
+                for e in found]
+        rows += [[_e(c.date[:10]), "gain check (dark frames)", _e(c.register),
+                  _e(f"{format_setpoint(c.setpoint)}×: {_fmt(c.em_gain)} ± {_fmt(c.se, 2)}")]
+                 for c in checked]
+        rows.sort(key=lambda r: r[0])
+        flagged = ("<ul>" + "".join(f"<li class=warn>{_e(f.message)}</li>" for f in findings)
+                   + "</ul>" if findings else
+                   "<p>Nothing flagged: no change between calibrations, no check or trend "
+                   "beyond 3 standard errors.</p>")
+        parts.append((f"<h3>{_e(state)}</h3>\n"
+                      + _table(["date", "kind", "register", "gain ± SE per set-point"], rows)
+                      + "\n" + flagged, f"history-{k + 1}"))
+        jobs.append((f"history-{k + 1}", f"fig-history-{k + 1}", f"Gain history of {state}",
+                     ("The sensor's gain at each set-point against the date, relative to the "
+                      "first calibration (filled: calibrations, median over pixels with its "
+                      "SE; open: gain checks from dark frames with their SE)."),
+                     lambda found=found, checked=checked, who=who: gain_history_figure(
+                         found, camera=who, checks=checked)))
+    parts.append((f"<p class=note>From the calibration database <span class=mono>"
+                  f"{_e(str(db))}</span> (emccdcal db compare; docs/gain-check.md).</p>", None))
+    return parts, jobs
+
+
+# --------------------------------------------------------------------------------------
 # The report
 # --------------------------------------------------------------------------------------
 def _jobs(inputs, validations, pixel):
@@ -400,7 +466,7 @@ def _jobs(inputs, validations, pixel):
 
 
 def build_report(results, *, validation=(), pixel=None, figures_dir=None, progress=False,
-                 command=None):
+                 command=None, db=None, camera=None):
     """The HTML text of a report of one or more calibration results.
 
     Parameters
@@ -419,6 +485,12 @@ def build_report(results, *, validation=(), pixel=None, figures_dir=None, progre
         A progress bar over the figures on stderr.
     command : str, optional
         The command line, recorded in the provenance.
+    db : str or Path, optional
+        A calibration database (:mod:`emccdcal.export.database`): the report then shows
+        the history of each result's camera (its calibrations and gain checks, and the
+        findings of :func:`~emccdcal.export.database.compare`).
+    camera : str, optional
+        The cameras' serial number where their files record none (with ``db``).
 
     Returns
     -------
@@ -450,7 +522,8 @@ def build_report(results, *, validation=(), pixel=None, figures_dir=None, progre
         except FileNotFoundError as exc:
             notes.setdefault(f"bead validation left out: {exc}", [])
     jobs = _jobs(inputs, validations, pixel)
-    jobs = progress_bar(jobs, enabled=progress, desc="report", unit="figure")
+    history, history_jobs = _history(inputs, db, camera) if db is not None else ([], [])
+    jobs = progress_bar(jobs + history_jobs, enabled=progress, desc="report", unit="figure")
     figures = {}
     for group, fig_id, title, caption, make in jobs:
         try:
@@ -486,6 +559,10 @@ def build_report(results, *, validation=(), pixel=None, figures_dir=None, progre
             fig_section(f"validation-{k + 1}", f"Figures: {d}") for k, (d, _) in
             enumerate(validations)]
         sections.append(("validation", "Bead validation", "\n".join(vparts)))
+    if db is not None:
+        sections.append(("history", "Camera history", "\n".join(
+            text + ("" if group is None else "\n" + fig_section(group, "Gain history"))
+            for text, group in history)))
     sections.append(("provenance", "Provenance",
                      _provenance_html(inputs, validations, command)))
     toc = " · ".join(f'<a href="#{sid}">{_e(h)}</a>' for sid, h, _ in sections)
@@ -512,7 +589,8 @@ def write_report(results, out, **kwargs) -> Path:
         The HTML file (its directory is created); an existing directory gets
         ``report.html`` inside it.
     **kwargs
-        ``validation``, ``pixel``, ``figures_dir``, ``progress``, ``command`` of
+        ``validation``, ``pixel``, ``figures_dir``, ``progress``, ``command``, ``db``,
+        ``camera`` of
         :func:`build_report`.
 
     Returns
