@@ -86,7 +86,7 @@ def _beads_dir(args):
 
 def calibrate_all(work, em_model="gamma", beads="beads"):
     """Every method's calibration; the likelihood methods and mv-gain's F² under the
-    register model ``em_model`` (is-adu, mv-adu and cots have none to choose)."""
+    register model ``em_model`` (is-adu and mv-adu have none to choose)."""
     from emccdcal import calibrate, result
 
     def run(name, manifest, method, phi=None):
@@ -114,14 +114,15 @@ def calibrate_all(work, em_model="gamma", beads="beads"):
         files[method] = run(method, work / "gs" / "manifest.toml", method, phi_is)
     from emccdcal.beads.cots_calibration import cots_calibrate
 
-    # COTS has no register model to choose: one for both runs (per bead movie: it
+    # COTS reads the gain through the register's F² like the others (per bead movie: it
     # calibrates on the beads themselves)
-    out = work / "cal" / ("cots" if beads == "beads" else f"cots-{beads}")
+    name = "cots" if beads == "beads" else f"cots-{beads}"
+    out = work / ("cal" if em_model == "gamma" else f"cal-{em_model}") / name
     if not (out / result.CALIBRATION_FILE).is_file():
         t0 = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            cots_calibrate(work / beads / "manifest.toml", out=out)
+            cots_calibrate(work / beads / "manifest.toml", out=out, em_model=em_model)
         log(f"calibrated cots in {time.perf_counter() - t0:.0f} s")
     files["cots"] = out / result.CALIBRATION_FILE
     return files

@@ -178,8 +178,9 @@ PHI = 3.859
 
 
 def _write_beads(d, *, setpoints=(1, 100, 300), frames=60, e_per_adu=True, beads=BEADS,
-                 seed=0, shape=(44, 44)):
-    """Bead stacks (gamma EM, negligible read noise) and their manifest; returns its path."""
+                 seed=0, shape=(44, 44), multiplication="gamma"):
+    """Bead stacks (gamma EM unless said, negligible read noise) and their manifest, which
+    names the register simulated; returns its path."""
     d.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     r, c = np.arange(shape[0]), np.arange(shape[1])
@@ -187,11 +188,12 @@ def _write_beads(d, *, setpoints=(1, 100, 300), frames=60, e_per_adu=True, beads
     for y, x in beads:
         photo = photo + psf.spot_image(
             [x + rng.uniform(-0.3, 0.3), y + rng.uniform(-0.3, 0.3), 1.3, 3000.0, 0.0], r, c)
-    lines = [f"e_per_adu = {PHI}"] if e_per_adu else []
+    lines = [f'em_model = "{multiplication}"']  # the register these frames were simulated with
+    lines += [f"e_per_adu = {PHI}"] if e_per_adu else []
     for i, sp in enumerate(setpoints):
         stack = simulate_frames(photo, em_gain=sp, e_per_adu=PHI, offset=S0_TRUE,
                                          read_noise=0.01, frames=frames, seed=seed * 10 + i,
-                                multiplication="gamma")
+                                multiplication=multiplication)
         tifffile.imwrite(d / f"beads_{sp}x.tif", stack)
         lines += ["[[acquisition]]", f'frames = "beads_{sp}x.tif"', f"em_gain_setpoint = {sp}",
                   f"offset = {S0_TRUE}", "read_noise = 0.01"]
@@ -257,6 +259,31 @@ def test_cli_prints_a_summary(bead_run, capsys):
     assert result.load(out / "again").sizes["bead"] == 3
 
 
+def test_an_exact_register_is_read_through_its_own_excess_noise(tmp_path):
+    """Beads of the exact 536-stage cascade at 5x (F^2 = 1.795) and 25x: COTS under the
+    cascade finds the true gain (bead mean within 3 SE), under the gamma model (F^2 = 2,
+    COTS as published) about 10 % low at 5x; both from the same spots, related by
+    g_gamma * 2 = g * F^2(g) per bead. The result records its register."""
+    from emccdcal.model.cascade import excess_noise_factor
+
+    manifest = _write_beads(tmp_path / "beads", setpoints=(5, 25), frames=120,
+                            multiplication="cascade", seed=3)
+    exact = cots_calibrate(manifest)  # the manifest's register: the cascade
+    paper = cots_calibrate(manifest, em_model="gamma")
+    assert exact.attrs["em_model"] == "cascade" and exact.attrs["register_stages"] == 536
+    assert paper.attrs["em_model"] == "gamma" and "register_stages" not in paper.attrs
+    for sp in (5.0, 25.0):
+        g = exact.cots_em_gain.sel(setpoint=sp).values
+        se = exact.cots_em_gain_se.sel(setpoint=sp).values
+        assert abs(g.mean() - sp) < 3 * np.sqrt(np.sum(se**2)) / se.size, (sp, g)
+        g_gamma = paper.cots_em_gain.sel(setpoint=sp).values
+        np.testing.assert_allclose(2 * g_gamma, g * excess_noise_factor(g, 536), rtol=1e-9)
+        np.testing.assert_allclose(exact.cots_offset.sel(setpoint=sp),
+                                   paper.cots_offset.sel(setpoint=sp))
+    low = paper.cots_em_gain.sel(setpoint=5.0).values.mean() / 5.0 - 1
+    assert -0.14 < low < -0.06
+
+
 @pytest.mark.slow
 def test_on_simulated_beads(tmp_path):
     """End to end on the project's own bead simulator (gamma EM), at the highest gains."""
@@ -265,7 +292,8 @@ def test_on_simulated_beads(tmp_path):
               "setpoints": (1, 100, 300)}
     kwargs = {k: v for k, v in wanted.items() if k in inspect.signature(fn).parameters}
     fn(tmp_path / "beads", **kwargs)
-    ds = cots_calibrate(tmp_path / "beads" / "manifest.toml")
+    ds = cots_calibrate(tmp_path / "beads" / "manifest.toml", em_model="gamma")
+    assert ds.attrs["em_model"] == "gamma"
     truth = result.load(tmp_path / "beads" / "truth_calibration.nc")
     top = float(ds.setpoint.values.max())
     g_true = float(np.nanmedian(truth.em_gain.sel(setpoint=top).values))

@@ -24,8 +24,7 @@ def _darks(g, *, seed, frames=2000, size=16, cic=0.01, multiplication="cascade")
 
 
 @pytest.mark.parametrize("g, model", [(300.0, "cascade"), (100.0, "cascade"), (300.0, "gamma")])
-# (at 50x, with events of 13 ADU under a read noise of 15.5 ADU, one seed of eight gave
-# 38.9 ± 3.3: the check's validity at low gain is still to be mapped)
+# (where the check is valid, against gain, charge and read noise: docs/gain-check.md)
 def test_the_gain_of_simulated_darks_within_its_standard_error(g, model):
     """Known truth: the exact register's darks (and gamma darks under the gamma model),
     the gain within 3 SE; the SE what the events allow (about 1/√events at high gain)."""

@@ -247,7 +247,7 @@ def test_the_calibrate_widget_writes_over_nothing_it_did_not_write(sample, qapp,
     """A folder scanned into an output folder that holds the user's manifest.toml (or
     report.html, or an export): refused with one line, the files untouched; a widget
     without an output folder takes a new temporary one for each run."""
-    from emccdcal.napari._widgets import CalibrateWidget
+    from emccdcal.napari._widgets import CalibrateWidget, _reporting
 
     _, manifest, result = sample
     widget = CalibrateWidget()
@@ -256,12 +256,12 @@ def test_the_calibrate_widget_writes_over_nothing_it_did_not_write(sample, qapp,
     mine.mkdir()
     (mine / "manifest.toml").write_text("# the user's own\n")
     widget.out.value = mine
-    widget._guarded(widget.run)()
+    _reporting(widget, widget.run)()
     assert widget.status.value.startswith("error:") and "manifest.toml" in widget.status.value
     assert (mine / "manifest.toml").read_text() == "# the user's own\n"
     widget.result = result  # as if a run had written it there
     (result.parent / "report.html").write_text("theirs")
-    widget._guarded(widget.write_report)()
+    _reporting(widget, widget.write_report)()
     assert widget.status.value.startswith("error:") and "report.html" in widget.status.value
     assert (result.parent / "report.html").read_text() == "theirs"
     (result.parent / "report.html").unlink()

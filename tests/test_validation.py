@@ -104,6 +104,9 @@ def test_validation_json_schema_and_ranking(beads_data):
             # an ADU of offset is φ e- at 1x, φ/g at 25x (about 0.4 % of the bead at 1x)
             off = b["mean_intensity_se_offset"]
             assert 0 < off["25"] < off["1"] < b["mean_intensity_se"]["1"]
+            # so does the error of the bead's shared position, width and background
+            shared = b["mean_intensity_se_shared"]
+            assert all(0 < shared[k] < b["mean_intensity_se"][k] for k in ("1", "25"))
             assert off["1"] / b["mean_intensity"]["1"] == pytest.approx(0.005, rel=0.5)
     # beads at the truth's positions
     found = sorted((b["row"], b["col"]) for b in doc["calibrations"][0]["beads"])

@@ -18,13 +18,13 @@ from .._util import e_per_adu_map
 from .._util import progress as progress_bar
 from ..data.manifest import Manifest, read_manifest
 from ..errors import InputError, ManifestError, OptionError
-from ..model import psf
+from ..model import noise, psf
 from .cots import DEFAULT_HALF_SIZE, DEFAULT_WIDTH, MIN_FRAMES, cots_spot
 
 if TYPE_CHECKING:
     import xarray
 
-__all__ = ["cots_calibrate", "format_summary"]
+__all__ = ["cots_calibrate", "register_gain", "format_summary"]
 
 
 def _phi_map(manifest):
@@ -38,7 +38,7 @@ def _phi_map(manifest):
 
 
 def cots_calibrate(manifest, *, half_size=DEFAULT_HALF_SIZE, width=DEFAULT_WIDTH,
-                   progress=False, out=None) -> xarray.Dataset:
+                   em_model=None, stages=None, progress=False, out=None) -> xarray.Dataset:
     """COTS on every bead of a bead manifest, as a calibration result.
 
     Beads are found once, with :func:`emccdcal.model.psf.find_beads` on the offset-subtracted
@@ -57,6 +57,14 @@ def cots_calibrate(manifest, *, half_size=DEFAULT_HALF_SIZE, width=DEFAULT_WIDTH
         Δ pixels on every side and no other bead within 2Δ + 1 pixels.
     width : float
         Expected PSF standard deviation (pixel): for bead finding and as the fit's start.
+    em_model : {"cascade", "gamma"} or EMModel, optional
+        The EM register whose excess-noise factor F² turns the slope of variance against
+        mean into the gain: the exact Bernoulli cascade (F² below 2 at low gain: 1.795 at
+        5× for 536 stages) or the gamma model (F² = 2, COTS as published). Default as for
+        :func:`emccdcal.calibrate`: the manifest's, else the cascade.
+    stages : int, optional
+        The cascade's stages: default the manifest's ``register_stages``, else the camera
+        model's where known, else 536.
     progress : bool
         A progress bar on stderr.
     out : str or Path, optional
@@ -81,12 +89,16 @@ def cots_calibrate(manifest, *, half_size=DEFAULT_HALF_SIZE, width=DEFAULT_WIDTH
         No ``e_per_adu``; no acquisition above set-point 1; an acquisition with fewer than
         :data:`MIN_FRAMES` frames; no beads found. One line naming the file.
     """
-    return result.run_recorded(lambda: _cots_calibrate(manifest, half_size, width, progress), out)
+    return result.run_recorded(
+        lambda: _cots_calibrate(manifest, half_size, width, em_model, stages, progress), out)
 
 
-def _cots_calibrate(manifest, half_size, width, progress):
+def _cots_calibrate(manifest, half_size, width, em_model, stages, progress):
     if not isinstance(manifest, Manifest):
         manifest = read_manifest(manifest)
+    model, stages_source = noise.choose_em_model(
+        em_model, stages, manifest_model=manifest.em_model,
+        manifest_stages=manifest.register_stages, camera_model=manifest.camera.get("model"))
     half_size = int(half_size)
     if half_size < 1:
         raise OptionError(f"half_size must be a positive integer (pixel), got {half_size}")
@@ -109,7 +121,8 @@ def _cots_calibrate(manifest, half_size, width, progress):
     beads = _find_beads(ref, width, half_size)
     setpoints = list(manifest.setpoints)
     spots = _fit_spots(manifest, em, beads, setpoints, half_size, width, progress)
-    maps, table, ok_bead = _estimates(spots, beads, setpoints, phi, manifest.shape, half_size)
+    maps, table, ok_bead = _estimates(spots, beads, setpoints, phi, manifest.shape, half_size,
+                                      model.register)
     if not ok_bead.any():
         raise InputError(
             f"{manifest.path}: COTS gave no usable estimate for any of the {len(beads)} "
@@ -133,7 +146,8 @@ def _cots_calibrate(manifest, half_size, width, progress):
         manifest_path=str(manifest.path.resolve()),
         extra=_bead_variables(beads, table),
         attrs={"half_size": half_size, "width": float(width),
-               "bead_frames": str(ref.frames_path)},
+               "bead_frames": str(ref.frames_path), **model.attrs,
+               **({"register_stages_source": stages_source} if stages_source else {})},
     )
 
 
@@ -199,11 +213,11 @@ _TABLE_KEYS = ("gain", "gain_se", "offset", "offset_se", "em_gain", "em_gain_se"
                "width", "used")
 
 
-def _estimates(per_sp, beads, setpoints, phi, shape, half_size):
+def _estimates(per_sp, beads, setpoints, phi, shape, half_size, register):
     """Each bead's estimates per set-point (several acquisitions at one set-point combined
     by inverse-variance weights) as a table (bead, set-point), the maps of em_gain and
     photoelectrons over the beads' boxes, and the beads with an estimate at every
-    multiplied set-point."""
+    multiplied set-point. The gain is the ``register``'s (:func:`register_gain`)."""
     S, B = len(setpoints), len(beads)
     table = {k: np.full((B, S), np.nan) for k in _TABLE_KEYS}
     maps = {k: np.full((S,) + tuple(shape), np.nan)
@@ -220,8 +234,10 @@ def _estimates(per_sp, beads, setpoints, phi, shape, half_size):
             if bi not in by_bead:
                 ok_bead[bi] = False
                 continue
-            g, g_se, s0, s0_se, spot_e, wid, used, pe_b, pe_b_se = _combine(by_bead[bi])
             r, c = beads[bi]
+            g, g_se, s0, s0_se, spot_e, wid, used, pe_b, pe_b_se = _combine(
+                by_bead[bi], lambda G, se, phi_rc=phi[r, c]: register_gain(register, G, se,
+                                                                            phi_rc))
             sl = np.s_[r - half_size:r + half_size + 1, c - half_size:c + half_size + 1]
             for key, value in zip(_TABLE_KEYS, (g, g_se, s0, s0_se, g * phi[r, c],
                                                 g_se * phi[r, c], spot_e, wid, used)):
@@ -260,12 +276,48 @@ def _bead_variables(beads, table) -> dict:
     }
 
 
-def _combine(pairs):
+def register_gain(register, gain, gain_se, e_per_adu):
+    """The system gain G (ADU/e⁻) of a register from COTS's F² = 2 estimate of it.
+
+    COTS measures the slope of a pixel's variance against its mean, F²·G; read with
+    F² = 2 it gives ``gain`` = F²·G/2. The register's own F² depends on its gain g = G·φ:
+    g solves g·F²(g) = 2·gain·φ (``register.gain_from_gain_f2``; for the gamma register
+    F² = 2 and G = ``gain``), and the SE follows by the slope d(g F²)/dg.
+
+    Parameters
+    ----------
+    register : a register of :mod:`emccdcal.model.noise` (``EMModel(...).register``)
+    gain, gain_se : float
+        COTS's G and its SE under F² = 2, ADU/e⁻.
+    e_per_adu : float
+        φ at the bead, e⁻/ADU.
+
+    Returns
+    -------
+    (float, float)
+        G and its SE, ADU/e⁻.
+
+    Examples
+    --------
+    >>> from emccdcal.model.noise import EMModel
+    >>> cascade = EMModel("cascade", 536).register
+    >>> G, se = register_gain(cascade, 1.795203 * 5.0 / 3.859 / 2, 0.01, 3.859)
+    >>> round(G * 3.859, 4), round(se, 5)  # g = 5, its F^2 = 1.795
+    (5.0, 0.01005)
+    """
+    g, slope = register.gain_from_gain_f2(2.0 * gain * e_per_adu)
+    g, slope = float(g), float(slope)
+    return g / e_per_adu, 2.0 * gain_se / slope
+
+
+def _combine(pairs, gain_of):
     """Combine the COTS estimates of one bead from one or more acquisitions.
 
-    ``pairs`` holds (CotsSpot, dark offset map of the ROI). Photoelectrons per pixel are
-    (mean counts − dark offset)/G: COTS's own S0 absorbs the read noise (it is
-    S0 − σ²/(2G)) and is far less precise than the darks.
+    ``pairs`` holds (CotsSpot, dark offset map of the ROI); ``gain_of(G, se)`` turns
+    COTS's F² = 2 system gain into the register's (:func:`register_gain`), before the
+    photoelectrons are computed with it. Photoelectrons per pixel are (mean counts − dark
+    offset)/G: COTS's own S0 absorbs the read noise (it is S0 − σ²/(F²G)) and is far
+    less precise than the darks.
     """
     spots = [p[0] for p in pairs]
     excess = [p[0].mean_counts - p[1] for p in pairs]
@@ -288,6 +340,7 @@ def _combine(pairs):
         spot_counts = float(np.sum([s.spot_counts * k for s, k in zip(spots, n)]) / n.sum())
         wid = float(np.sum([s.width * k for s, k in zip(spots, n)]) / n.sum())
         used = int(n.sum())
+    g, g_se = gain_of(g, g_se)
     pe = mean_excess / g
     var = (mean_se**2 + pe**2 * g_se**2) / g**2  # δpe = δS̄/G − pe·δG/G
     return (g, g_se, s0, s0_se, spot_counts / g, wid, used, pe, np.sqrt(np.maximum(var, 0)))
@@ -295,9 +348,11 @@ def _combine(pairs):
 
 def format_summary(ds) -> str:
     """Per set-point: the bead-mean EM gain g ± its SE, and the bead-mean G and S0."""
+    model = noise.EMModel.from_attrs(ds.attrs)
     lines = [(f"method cots: {int(np.isfinite(ds.bead_row.values).sum())} bead(s), "
               f"{ds.attrs.get('seconds', float('nan')):.1f} s, e_per_adu "
-              f"{float(np.nanmedian(ds.e_per_adu.values)):.4f} e-/ADU")]
+              f"{float(np.nanmedian(ds.e_per_adu.values)):.4f} e-/ADU"
+              + ("" if model is None else f", register {model}"))]
     for si, sp in enumerate(ds.setpoint.values):
         label = result.format_setpoint(sp)
         if sp == 1:

@@ -154,6 +154,12 @@ class BeadFits:
         map's own error (``offset_se``), e⁻; 0 where the map is taken as exact. It is the
         same in every frame, so it does not average away over frames, and is not in
         ``se``.
+    intensity_shared_se : ndarray, shape (B,)
+        Standard error of each bead's mean intensity over its converged frames from the
+        error of its shared parameters (position, width, background: one estimate for
+        all its frames), e⁻. ``se`` of a frame's intensity is conditional on them (what
+        scatters from frame to frame); this part is common to the frames, so it does not
+        average away either. NaN for a bead without converged frames.
     """
 
     positions: np.ndarray
@@ -167,6 +173,7 @@ class BeadFits:
     residual: np.ndarray
     residual_se: np.ndarray
     intensity_offset_se: np.ndarray
+    intensity_shared_se: np.ndarray = None
 
     @property
     def intensity(self) -> np.ndarray:
@@ -440,7 +447,8 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         empty = np.zeros((B, F, _NP))
         none = np.full((B, n, n), np.nan)
         return BeadFits(pos, empty, empty.copy(), np.zeros((B, F)), np.zeros((B, F), bool),
-                        np.zeros((B, 3), int), 0, 0, none, none.copy(), np.full(B, np.nan))
+                        np.zeros((B, 3), int), 0, 0, none, none.copy(), np.full(B, np.nan),
+                        np.full(B, np.nan))
     counts = np.stack([np.asarray(frames[:, rs, cs]).reshape(F, n * n) for rs, cs in boxes])
     counts = counts.astype(np.int64)  # (B, F, npix)
     if counts.min() < 0:
@@ -475,7 +483,7 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     # the standard errors from the joint information, and what the model misses
     ll2, grad, H = _evaluate_rows(box.objective_exact, p2, np.arange(B * F))
     pb, Hb = p2.reshape(B, F, _NP), H.reshape(B, F, _NP, _NP)
-    se = _joint_errors(Hb, shared, frame)
+    se, sensitivity, shared_cov = _joint_errors(Hb, shared, frame)
     frame_ok = np.all(np.isfinite(Hb), axis=(2, 3)) & (Hb[..., 3, 3] > 0)
     inside = np.all((pb[..., :3] > lower[:3] + 1e-9) & (pb[..., :3] < upper[:3] - 1e-9),
                     axis=2)
@@ -498,6 +506,7 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         residual=np.where(count > 1, r_mean, np.nan).reshape(B, n, n),
         residual_se=np.sqrt(np.where(count > 1, r_var, np.nan)).reshape(B, n, n),
         intensity_offset_se=np.where(converged.any(axis=1), n_offset_se, np.nan),
+        intensity_shared_se=_shared_error_of_mean(sensitivity, shared_cov, converged),
     )
 
 
@@ -672,22 +681,56 @@ def _fit_exact(box, p, layout, max_iter, rounds=5):
 
 
 def _joint_errors(Hb, shared, frame):
-    """Standard errors (B, F, 5) from each bead's joint information ``Hb`` (B, F, 5, 5).
+    """Standard errors (B, F, 5) from each bead's joint information ``Hb`` (B, F, 5, 5),
+    with what the error of the shared parameters does to each frame's intensity.
 
     A frame's own parameters: conditional on the shared ones (what scatters from frame to
     frame); the shared ones' error is common to the bead's frames. A frame at a bound
     keeps the error its curvature gives: the information is there, only the estimate is
     clipped. NaN where the information is not positive.
+
+    Returns
+    -------
+    se : (B, F, 5)
+    sensitivity : (B, F, k)
+        ∂N̂_f/∂(shared) = −(H_ff⁻¹ H_fs)[intensity]: how a frame's intensity moves with
+        the shared parameters' estimates (the joint covariance of two frames' N̂ is
+        δ_ff' var_f + d_f S⁻¹ d_f'ᵀ).
+    shared_cov : (B, k, k)
+        S⁻¹, the shared parameters' covariance with every frame's own estimated.
     """
     B, F = Hb.shape[:2]
     se = np.full((B, F, _NP), np.nan)
     with np.errstate(invalid="ignore", divide="ignore"):
-        S, Hff_inv, _ = schur(Hb, shared, frame)
+        S, Hff_inv, Hsf = schur(Hb, shared, frame)
         var_f = np.einsum("bfii->bfi", Hff_inv)
         se[..., frame] = np.sqrt(np.where(var_f > 0, var_f, np.nan))
-        var_s = np.einsum("bii->bi", np.linalg.inv(S))
+        try:
+            shared_cov = np.linalg.inv(S)
+        except np.linalg.LinAlgError:  # one singular bead: each alone
+            shared_cov = np.stack([_inverse_or_nan(m) for m in S])
+        var_s = np.einsum("bii->bi", shared_cov)
         se[..., shared] = np.sqrt(np.where(var_s > 0, var_s, np.nan))[:, None, :]
-    return se
+        intensity = frame.index(3)
+        sensitivity = -np.einsum("bfj,bfkj->bfk", Hff_inv[:, :, intensity, :], Hsf)
+    return se, sensitivity, shared_cov
+
+
+def _inverse_or_nan(m):
+    try:
+        return np.linalg.inv(m)
+    except np.linalg.LinAlgError:
+        return np.full(m.shape, np.nan)
+
+
+def _shared_error_of_mean(sensitivity, shared_cov, converged):
+    """Each bead's SE of its mean intensity over its converged frames from its shared
+    parameters' error: √(d̄ S⁻¹ d̄ᵀ), d̄ the frames' mean sensitivity (e⁻)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n = converged.sum(axis=1)
+        mean_d = np.einsum("bfk,bf->bk", np.nan_to_num(sensitivity), converged) / n[:, None]
+        var = np.einsum("bk,bkl,bl->b", mean_d, shared_cov, mean_d)
+    return np.where((n > 0) & (var >= 0), np.sqrt(np.maximum(var, 0.0)), np.nan)
 
 
 def _mean_residual(box, p, E_all, info_all, converged):

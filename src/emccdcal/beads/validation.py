@@ -382,7 +382,9 @@ class _Fitted:
     ``arr`` and ``arr_se`` map each parameter of :data:`emccdcal.model.psf.PARAMETERS`
     to its values and standard errors (NaN where a frame does not exist or a bead was left out);
     ``offset_se`` (calibration, bead, set-point) is the error of each bead's mean
-    intensity from the offset maps (e⁻); ``mismatch`` per calibration the PSF checks of
+    intensity from the offset maps (e⁻), ``shared_se`` that from its shared parameters'
+    error (position, width, background; :attr:`BeadFits.intensity_shared_se`), both
+    common to its frames; ``mismatch`` per calibration the PSF checks of
     each spot model (:func:`emccdcal.beads.fit.psf_mismatch`) per acquisition.
     """
 
@@ -391,6 +393,7 @@ class _Fitted:
     loglik: np.ndarray
     conv: np.ndarray
     offset_se: np.ndarray
+    shared_se: np.ndarray
     mismatch: list
 
 
@@ -557,6 +560,7 @@ def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_
     conv = np.zeros(shape, bool)
     # Σ over a set-point's acquisitions of (frames × offset-map SE of the bead's mean)²
     offset_var = np.zeros(shape[:3])
+    shared_var = np.zeros(shape[:3])  # the same for the shared parameters' error
     cache: dict = {}
 
     def fit_at(cal, j, ok, fixed=None, residual=None):
@@ -628,8 +632,11 @@ def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_
                     arr_se[n][at] = fit.se[..., j]
                 loglik[at] = fit.loglik
                 conv[at] = fit.converged
-                offset_var[ci, idx, slot.row] += (fit.converged.sum(axis=1)
-                                                  * np.nan_to_num(fit.intensity_offset_se)) ** 2
+                frames_used = fit.converged.sum(axis=1)
+                offset_var[ci, idx, slot.row] += (
+                    frames_used * np.nan_to_num(fit.intensity_offset_se)) ** 2
+                shared_var[ci, idx, slot.row] += (
+                    frames_used * np.nan_to_num(fit.intensity_shared_se)) ** 2
                 if fit.n_saturated and ci == 0:
                     warnings.warn(f"{slot.acq.frames_path}: {fit.n_saturated} count(s) at the ADC "
                                   "maximum in the bead boxes were left out of the fits",
@@ -637,7 +644,8 @@ def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_
 
     with np.errstate(invalid="ignore", divide="ignore"):
         offset_se = np.sqrt(offset_var) / conv.sum(axis=3)
-    return _Fitted(arr, arr_se, loglik, conv, offset_se, mismatch)
+        shared_se = np.sqrt(shared_var) / conv.sum(axis=3)
+    return _Fitted(arr, arr_se, loglik, conv, offset_se, shared_se, mismatch)
 
 
 def _boxes_bytes(m, positions, half_size):
@@ -752,11 +760,14 @@ def _calibration_entry(cal, ci, keys, setpoints, positions, fitted, layout, time
 
 def _bead_entries(I, blink, blinking, keys, setpoints, positions, fitted, ci) -> list:
     """Each bead's mean intensity at every set-point (the 'on' level where it blinks and
-    that is modelled), its SE (frames and offset map) and the consistency metric."""
+    that is modelled), its SE (the frames' scatter, and the two errors common to the
+    frames: the offset map's and the bead's shared parameters') and the consistency
+    metric."""
     off, n_off = blink["off"], blink["off"].sum(axis=2)
     on_level = _on_level(I, blink["off_probability"])
     use_on = blink["detected"] & (blinking == "model")
     conv, arr, offset_se = fitted.conv[ci], fitted.arr, fitted.offset_se[ci]
+    shared_se = fitted.shared_se[ci]
     entries = []
     for b, (r, c) in enumerate(positions):
         vals = I[b]  # (S, F)
@@ -765,7 +776,8 @@ def _bead_entries(I, blink, blinking, keys, setpoints, positions, fitted, ci) ->
             mean = np.where(use_on[b], on_level[b], np.nanmean(vals, axis=1))
             kept = np.where(use_on[b][:, None] & off[b], np.nan, vals)
             n = np.sum(np.isfinite(kept), axis=1)
-            se = np.hypot(np.nanstd(kept, axis=1, ddof=1) / np.sqrt(n), offset_se[b])
+            scatter = np.nanstd(kept, axis=1, ddof=1) / np.sqrt(n)
+            se = np.sqrt(scatter**2 + offset_se[b] ** 2 + shared_se[b] ** 2)
             y = np.nanmedian(np.where(conv[b], arr["y"][ci, b], np.nan))
             x = np.nanmedian(np.where(conv[b], arr["x"][ci, b], np.nan))
         metric = {d: consistency(dict(zip(setpoints, mean)), ddof=d) for d in (0, 1)}
@@ -776,6 +788,8 @@ def _bead_entries(I, blink, blinking, keys, setpoints, positions, fitted, ci) ->
             "mean_intensity_se": {k: finite_or_none(v) for k, v in zip(keys, se)},
             "mean_intensity_se_offset": {k: finite_or_none(v)
                                          for k, v in zip(keys, offset_se[b])},
+            "mean_intensity_se_shared": {k: finite_or_none(v)
+                                         for k, v in zip(keys, shared_se[b])},
             "sigma_means_incl_1x": finite_or_none(metric[0][0]),
             "sigma_means_excl_1x": finite_or_none(metric[0][1]),
             "sigma_means_incl_1x_ddof1": finite_or_none(metric[1][0]),

@@ -15,8 +15,9 @@ def add_parser(subparsers):
         help="calibration-on-the-spot: EM gain and offset from bead frames",
         description="Calibration-on-the-spot (Mortensen & Flyvbjerg 2016): the gain in ADU "
         "per photoelectron and the offset of every bead at every EM set-point, from the "
-        "frame-to-frame variance of its pixels; the EM gain is G * e_per_adu (the manifest "
-        "must give e_per_adu). Writes OUT/calibration.nc and OUT/summary.json.",
+        "frame-to-frame variance of its pixels, read through the register's excess-noise "
+        "factor (the exact cascade's by default; --em-model gamma: F^2 = 2, COTS as "
+        "published); the EM gain is G * e_per_adu (the manifest must give e_per_adu). Writes OUT/calibration.nc and OUT/summary.json.",
     )
     p.add_argument("manifest", type=Path, metavar="BEAD_MANIFEST",
                    help="TOML manifest of the bead stacks")
@@ -25,6 +26,7 @@ def add_parser(subparsers):
                    help="ROI half-width, px: (2N+1)^2 pixels per bead (default %(default)s)")
     p.add_argument("--width", type=_common.positive_float, default=DEFAULT_WIDTH,
                    help="expected PSF standard deviation, px (default %(default)s)")
+    _common.add_em_model(p, auto=False)
     _common.add_quiet(p)
     p.set_defaults(func=run)
     return p
@@ -38,6 +40,7 @@ def run(args) -> int:
     with _common.recording_warnings() as caught, _common.output(
             args, args.out, inputs=[args.manifest], names=names):
         ds = cots_calibrate(args.manifest, half_size=args.half_size, width=args.width,
+                            em_model=args.em_model, stages=args.stages,
                             progress=not args.quiet, out=args.out)
     if not args.quiet:
         print(format_summary(ds))

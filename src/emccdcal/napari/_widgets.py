@@ -90,6 +90,17 @@ def _status_line(**kw):
     return Label(value="", **kw)
 
 
+def _reporting(widget, action):
+    """A button's handler: ``action()``, an error a user can cause shown on the widget's
+    status line (one line, as the command line prints it)."""
+    def run(*_):
+        try:
+            action()
+        except EmccdcalError as exc:
+            widget.status.value = f"error: {exc}"
+    return run
+
+
 def _optional_float(text: str, what: str):
     text = text.strip()
     if not text:
@@ -142,22 +153,14 @@ class CalibrateWidget(Container):
         self.result = None  # the result's folder, once a run completed
         self._temporary = None  # the output folder we chose, where none was given
         self._written = set()  # files this widget wrote (it may replace only those)
-        self.scan_button.changed.connect(self._guarded(self.scan))
-        self.run_button.changed.connect(self._guarded(self.run))
-        self.report_button.changed.connect(self._guarded(self.write_report))
-        self.export_button.changed.connect(self._guarded(self.export))
+        self.scan_button.changed.connect(_reporting(self, self.scan))
+        self.run_button.changed.connect(_reporting(self, self.run))
+        self.report_button.changed.connect(_reporting(self, self.write_report))
+        self.export_button.changed.connect(_reporting(self, self.export))
         if napari_viewer is not None:  # the sample data name their manifest
             for layer in napari_viewer.layers:
                 if "emccdcal_manifest" in layer.metadata:
                     self.source.value = layer.metadata["emccdcal_manifest"]
-
-    def _guarded(self, action):
-        def run(*_):
-            try:
-                action()
-            except EmccdcalError as exc:
-                self.status.value = f"error: {exc}"
-        return run
 
     def _manifest(self) -> Path:
         """The manifest to calibrate: the one chosen, or one ``scan`` writes for a
@@ -329,13 +332,7 @@ class ApplyWidget(Container):
         self.status = _status_line()
         super().__init__(widgets=[self.layer, self.result, self.camera, self.db,
                                   self.setpoint, self.qe, self.button, self.status])
-        self.button.changed.connect(self._convert)
-
-    def _convert(self, *_):
-        try:
-            self.convert()
-        except EmccdcalError as exc:
-            self.status.value = f"error: {exc}"
+        self.button.changed.connect(_reporting(self, self.convert))
 
     def convert(self):
         """Add the converted layer (lazy where the image is: a Dask array stays one)."""
@@ -391,13 +388,7 @@ class GainCheckWidget(Container):
                                   self.region, self.fit_cic, self.button,
                                   self.cancel_button, self.bar, self.status, self.answer])
         self.job = _Job(self, self.bar, self.status, self.cancel_button)
-        self.button.changed.connect(self._run)
-
-    def _run(self, *_):
-        try:
-            self.run()
-        except EmccdcalError as exc:
-            self.status.value = f"error: {exc}"
+        self.button.changed.connect(_reporting(self, self.run))
 
     def run(self):
         from .._util import parse_region
