@@ -361,6 +361,24 @@ def test_the_error_of_a_beads_shared_parameters_is_in_its_mean():
     assert abs(np.mean(z_full)) < 3 / math.sqrt(len(z_full))
 
 
+def test_a_held_widths_error_enters_the_mean_as_its_linear_response():
+    """A width held at a value with an SE (pooled over set-points): the mean intensity's
+    shared SE gains |d mean(N)/dw|·SE, and that slope is the refit's (finite difference)."""
+    frames = _stack(1.0, 7, frames=100)
+    pos = np.rint(TRUE_POS).astype(int)
+    kw = dict(offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0)
+    width, step = np.full(3, WIDTH), 0.002
+    held = bead_fit.fit_beads(frames, pos, fixed_width=width, **kw)
+    known = bead_fit.fit_beads(frames, pos, fixed_width=width,
+                               fixed_width_se=np.array([0.01, 0.0, 0.0]), **kw)
+    moved = bead_fit.fit_beads(frames, pos, fixed_width=width + step, **kw)
+    mean = (lambda f: np.array([f.intensity[b][f.converged[b]].mean() for b in range(3)]))
+    slope = (mean(moved) - mean(held)) / step  # e- per pixel of width, about N/w
+    added = np.sqrt(known.intensity_shared_se**2 - held.intensity_shared_se**2)
+    assert added[0] == pytest.approx(abs(slope[0]) * 0.01, rel=0.02)
+    np.testing.assert_allclose(added[1:], 0.0, atol=1e-6)
+
+
 def test_residual_is_per_unit_intensity_of_the_frames_it_averages():
     """A bead off (held at N = 0) in half its frames: its residual is averaged over the
     frames with light, and so is the intensity it is divided by."""

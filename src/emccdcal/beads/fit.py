@@ -362,7 +362,7 @@ def _pixel_map(name, value, shape, boxes, pos, *, positive=False, at_least=None)
 
 def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
               half_size=DEFAULT_HALF_SIZE, width=DEFAULT_WIDTH, adc_max=None,
-              max_iter=60, em_model=None, fixed_width=None,
+              max_iter=60, em_model=None, fixed_width=None, fixed_width_se=None,
               background="shared", residual=None, offset_se=None) -> BeadFits:
     """Fit every bead in every frame of one acquisition by maximum likelihood: the bead's
     position, width and background shared by its frames, each frame's intensity.
@@ -393,6 +393,9 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     fixed_width : float or array_like (B,), optional
         Each bead's spot SD (pixel), held fixed (e.g. measured at all set-points at once);
         by default it is fitted, shared by the bead's frames.
+    fixed_width_se : float or array_like (B,), optional
+        The standard error of ``fixed_width`` (pixel): its effect on each bead's mean
+        intensity enters ``intensity_shared_se``. By default the width is taken as exact.
     background : {"shared", "frame"}
         One background per bead for all its frames (default), or one per frame. A
         per-frame background is held at its bound 0 in the frames where noise would take
@@ -489,6 +492,10 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
                     axis=2)
     converged = (conv_b[:, None] & frame_ok & inside & ~outside.reshape(B, F)
                  & np.isfinite(ll2.reshape(B, F)))
+    width_var = np.zeros(B)  # the held width's own error, where given
+    if fixed_width is not None and fixed_width_se is not None:
+        width_se = np.broadcast_to(np.asarray(fixed_width_se, dtype=float), (B,))
+        width_var = (_width_effect(Hb, shared, frame, converged) * width_se) ** 2
     r_mean, r_var, count, W = _mean_residual(box, p2, E_all, info_all, converged)
     n_offset_se = _offset_error(box, pb, converged, sorted(shared + frame), W, s0_se)
     params = p2.copy()
@@ -506,7 +513,8 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         residual=np.where(count > 1, r_mean, np.nan).reshape(B, n, n),
         residual_se=np.sqrt(np.where(count > 1, r_var, np.nan)).reshape(B, n, n),
         intensity_offset_se=np.where(converged.any(axis=1), n_offset_se, np.nan),
-        intensity_shared_se=_shared_error_of_mean(sensitivity, shared_cov, converged),
+        intensity_shared_se=_shared_error_of_mean(sensitivity, shared_cov, converged,
+                                                  width_var),
     )
 
 
@@ -723,14 +731,34 @@ def _inverse_or_nan(m):
         return np.full(m.shape, np.nan)
 
 
-def _shared_error_of_mean(sensitivity, shared_cov, converged):
+def _shared_error_of_mean(sensitivity, shared_cov, converged, width_var=0.0):
     """Each bead's SE of its mean intensity over its converged frames from its shared
-    parameters' error: √(d̄ S⁻¹ d̄ᵀ), d̄ the frames' mean sensitivity (e⁻)."""
+    parameters' error: √(d̄ S⁻¹ d̄ᵀ + width_var), d̄ the frames' mean sensitivity (e⁻);
+    ``width_var`` that of a held width's error (:func:`_width_effect`), e⁻²."""
     with np.errstate(invalid="ignore", divide="ignore"):
         n = converged.sum(axis=1)
         mean_d = np.einsum("bfk,bf->bk", np.nan_to_num(sensitivity), converged) / n[:, None]
-        var = np.einsum("bk,bkl,bl->b", mean_d, shared_cov, mean_d)
+        var = np.einsum("bk,bkl,bl->b", mean_d, shared_cov, mean_d) + width_var
     return np.where((n > 0) & (var >= 0), np.sqrt(np.maximum(var, 0.0)), np.nan)
+
+
+def _width_effect(Hb, shared, frame, converged, width=2):
+    """How a bead's mean intensity over its converged frames moves with a held width:
+    d mean(N̂)/dw (e⁻ per pixel of width), from the joint information ``Hb`` (B, F, 5, 5)
+    of all five parameters. The fitted ones follow w by dθ̂/dw = −H_θθ⁻¹ H_θw, solved on
+    the arrow (shared ``S`` first, then each frame's own)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        S, Hff_inv, Hsf = schur(Hb, shared, frame)
+        r_s = -Hb[..., shared, width].sum(axis=1)          # (B, k)
+        r_f = -Hb[..., frame, width]                        # (B, F, f)
+        x_s = np.linalg.solve(S, (r_s - np.einsum("bfkj,bfj->bk", Hsf @ Hff_inv, r_f))
+                              [..., None])[..., 0]
+        x_f = np.einsum("bfij,bfj->bfi", Hff_inv,
+                        r_f - np.einsum("bfkj,bk->bfj", Hsf, x_s))
+        d = x_f[..., frame.index(3)]                        # dN̂_f/dw
+        n = converged.sum(axis=1)
+        return np.where(n > 0, np.sum(np.where(converged, d, 0.0), axis=1)
+                        / np.maximum(n, 1), np.nan)
 
 
 def _mean_residual(box, p, E_all, info_all, converged):
@@ -767,24 +795,29 @@ def _offset_error(box, pb, converged, fitted, W, s0_se):
         return np.sqrt(np.sum((coef * s0_se / box.theta) ** 2, axis=1))
 
 
-def shared_widths(fits) -> np.ndarray:
+def shared_widths(fits, *, with_se: bool = False):
     """Each bead's spot width over several acquisitions of it (the set-points of a bead
     series): the inverse-variance weighted mean of the widths each acquisition's fit
-    found, pixel, shape (B,).
+    found, pixel, shape (B,); with ``with_se`` also its standard error (pixel).
 
     The PSF is the optics', the same at every set-point; fitted per acquisition, its
     error moves that acquisition's intensities together (a wider spot, a brighter bead),
     which compares set-points through their width errors. One width for all set-points
     takes that error out of the comparison and, at 1×, where the signal-to-noise ratio is
-    lowest, replaces a noisy width by one the multiplied set-points measure well.
+    lowest, replaces a noisy width by one the multiplied set-points measure well. Its
+    own error still moves every set-point's intensity against the truth: pass its SE to
+    :func:`fit_beads` (``fixed_width_se``) to count it.
     """
     w = np.stack([f.params[:, 0, 2] for f in fits])         # (A, B)
     se = np.stack([f.se[:, 0, 2] for f in fits])
     ok = np.stack([f.converged.any(axis=1) for f in fits]) & np.isfinite(se) & (se > 0)
     weight = np.where(ok, 1.0 / np.where(ok, se, 1.0) ** 2, 0.0)
     total = weight.sum(axis=0)
-    return np.where(total > 0, (weight * np.where(ok, w, 0.0)).sum(axis=0)
-                    / np.where(total > 0, total, 1.0), np.nan)
+    width = np.where(total > 0, (weight * np.where(ok, w, 0.0)).sum(axis=0)
+                     / np.where(total > 0, total, 1.0), np.nan)
+    if not with_se:
+        return width
+    return width, np.where(total > 0, 1.0 / np.sqrt(np.where(total > 0, total, 1.0)), np.nan)
 
 
 def _residual_frames(converged, intensity):

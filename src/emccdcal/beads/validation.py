@@ -563,14 +563,15 @@ def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_
     shared_var = np.zeros(shape[:3])  # the same for the shared parameters' error
     cache: dict = {}
 
-    def fit_at(cal, j, ok, fixed=None, residual=None):
+    def fit_at(cal, j, ok, fixed=None, residual=None, fixed_se=None):
         """The beads ``ok`` in acquisition ``j`` of the layout under ``cal`` (cached:
-        calibrations that agree there share the fit)."""
+        calibrations that agree there share the fit); ``fixed`` widths with their SE."""
         acq, g = layout[j].acq, cal.gain(layout[j].setpoint)
         key = (j, positions[ok].tobytes(), _boxes_bytes(cal.e_per_adu, positions[ok],
                                                        half_size),
                _boxes_bytes(g, positions[ok], half_size), cal.em_model,
                None if fixed is None else fixed.tobytes(),
+               None if fixed_se is None else fixed_se.tobytes(),
                None if residual is None else residual.values.tobytes())
         if key not in cache:
             # the offset map's own error: the dark frames' SD over their square root
@@ -580,7 +581,7 @@ def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_
                 acq.frames(), positions[ok], offset=acq.offset, read_noise=acq.read_noise,
                 e_per_adu=cal.e_per_adu, em_gain=g, half_size=half_size, width=width,
                 adc_max=manifest.adc_max, em_model=cal.em_model, fixed_width=fixed,
-                residual=residual, offset_se=offset_se)
+                fixed_width_se=fixed_se, residual=residual, offset_se=offset_se)
         return cache[key]
 
     passes = 2 if psf == "gaussian" else 3
@@ -606,13 +607,14 @@ def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_
                 bar.set_postfix_str(f"{cal.method} {slot.key}x (width)")
                 first.append(fit_at(cal, j, ok))
                 bar.update(1)
-            widths = bead_fit.shared_widths(first)
+            widths, widths_se = bead_fit.shared_widths(first, with_se=True)
             if not np.isfinite(widths).all():
                 widths = None
             fits = []
             for j, slot in enumerate(layout):
                 bar.set_postfix_str(f"{cal.method} {slot.key}x")
-                fits.append(fit_at(cal, j, ok, widths) if widths is not None else first[j])
+                fits.append(fit_at(cal, j, ok, widths, fixed_se=widths_se)
+                            if widths is not None else first[j])
                 bar.update(1)
             gaussian = [bead_fit.psf_mismatch(f) for f in fits]
             if psf != "gaussian":  # the paper's second pass: the residual image added
@@ -620,7 +622,7 @@ def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_
                 fits = []
                 for j, slot in enumerate(layout):
                     bar.set_postfix_str(f"{cal.method} {slot.key}x (residual)")
-                    fits.append(fit_at(cal, j, ok, widths, image))
+                    fits.append(fit_at(cal, j, ok, widths, image, fixed_se=widths_se))
                     bar.update(1)
             mismatch.append({"gaussian": gaussian} | (
                 {} if psf == "gaussian" else {psf: [bead_fit.psf_mismatch(f) for f in fits]}))
