@@ -26,8 +26,10 @@ MIN_ESS = 400
 @pytest.fixture(scope="module")
 def series(tmp_path_factory):
     base = tmp_path_factory.mktemp("series")
+    # 60 e- (not the paper's 370): the likelihood's cost is the FFT windows that cover the
+    # counts, and what is tested, the sampler against the engine, does not depend on it
     gs = simulate_gain_series(base / "gs", rows=2, cols=2, frames=1000, setpoints=(1, 25, 300),
-                              seed=21, progress=False)
+                              photoelectrons=60.0, seed=21, progress=False)
     isg = simulate_intensity_series(base / "isg", rows=2, cols=2, frames=1000, setpoint=25,
                                     em_gain=22.95, levels=(50, 200, 800), seed=22,
                                     progress=False)
@@ -50,14 +52,11 @@ def test_posterior_agrees_with_the_engine(series, method, source):
     manifest = series[source]
     # an effective sample of 400 puts the median within 0.06 posterior SD and the SD
     # within 4 % (Monte Carlo errors), far inside what is asserted
-    # (the hierarchical MAP is asserted within half an SD: 200 effective samples put the
-    # median within 0.09 SD, and its chains, of seven parameters, mix slowest)
-    min_ess = 200 if method == "gs-hierarchical" else MIN_ESS
     ds = posterior.sample_posterior(manifest, method, [PIXEL], seed=1, em_model=MODEL,
-                                    n_steps=500, min_ess=min_ess)
+                                    n_steps=500, min_ess=MIN_ESS)
     engine = _engine(manifest, method)
     assert ds.attrs["em_model"] == engine.attrs["em_model"] == MODEL
-    assert np.all(ds.ess.values >= min_ess)
+    assert np.all(ds.ess.values >= MIN_ESS)
     names = [str(p) for p in ds.parameter.values]
     gains = [n for n in names if n.startswith("em_gain")]
     assert gains
