@@ -247,6 +247,7 @@ def test_a_run_cancelled_midway_ends_quietly(sample, make_napari_viewer, qtbot, 
     assert widget.result is None and not (tmp_path / "w" / "result" / "calibration.nc").exists()
 
 
+@pytest.mark.slow  # the sample data's calibration, built once for the widget tests
 def test_the_calibrate_widget_writes_over_nothing_it_did_not_write(sample, qapp, tmp_path):
     """A folder scanned into an output folder that holds the user's manifest.toml (or
     report.html, or an export): refused with one line, the files untouched; a widget
@@ -277,6 +278,7 @@ def test_the_calibrate_widget_writes_over_nothing_it_did_not_write(sample, qapp,
     assert first != fresh._out() and first.name.startswith("emccdcal-calibration-")
 
 
+@pytest.mark.slow
 def test_the_apply_widget_gives_what_apply_gives(sample, make_napari_viewer, tmp_path):
     """A movie opened through the reader, converted by the widget: the photoelectrons
     (and, with a QE, the photons) of ``emccdcal apply``."""

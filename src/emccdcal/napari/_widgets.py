@@ -307,6 +307,17 @@ def _calibration(result: str, camera: str, db: str, setpoint):
     return load_calibration(result.strip())
 
 
+def _chosen(widget, what: str):
+    """The widget's image layer (or a one-line error asking for ``what``), the camera
+    settings its file recorded, the set-point typed (or None) and the one to use."""
+    layer = widget.layer.value
+    if layer is None:
+        raise OptionError(f"choose {what}")
+    settings = _settings_of(layer)
+    given = _optional_float(widget.setpoint.value, "set-point")
+    return layer, settings, given, given if given is not None else settings.em_gain_setpoint
+
+
 def _settings_of(layer):
     """The camera settings an image layer's file recorded (none for another layer)."""
     from ..data.settings import CameraSettings
@@ -338,12 +349,7 @@ class ApplyWidget(Container):
         """Add the converted layer (lazy where the image is: a Dask array stays one)."""
         from ..export.movie import conversion
 
-        layer = self.layer.value
-        if layer is None:
-            raise OptionError("choose an image layer of raw counts")
-        settings = _settings_of(layer)
-        given = _optional_float(self.setpoint.value, "set-point")
-        setpoint = given if given is not None else settings.em_gain_setpoint
+        layer, settings, given, setpoint = _chosen(self, "an image layer of raw counts")
         cal = _calibration(str(self.result.value), self.camera.value, self.db.value, setpoint)
         data = layer.data
         shape = tuple(int(v) for v in data.shape)
@@ -396,11 +402,7 @@ class GainCheckWidget(Container):
         from ..fit.darkgain import check_gain
         from ..result import load_calibration, pixel_statistics
 
-        layer = self.layer.value
-        if layer is None:
-            raise OptionError("choose a layer of dark frames")
-        settings = _settings_of(layer)
-        setpoint = _optional_float(self.setpoint.value, "set-point") or settings.em_gain_setpoint
+        layer, settings, _, setpoint = _chosen(self, "a layer of dark frames")
         result = str(self.result.value).strip()
         cal = load_calibration(result) if result not in ("", ".") else None
         phi = _optional_float(self.e_per_adu.value, "e-/ADU")
