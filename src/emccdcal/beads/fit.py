@@ -486,7 +486,8 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     # the standard errors from the joint information, and what the model misses
     ll2, grad, H = _evaluate_rows(box.objective_exact, p2, np.arange(B * F))
     pb, Hb = p2.reshape(B, F, _NP), H.reshape(B, F, _NP, _NP)
-    se, sensitivity, shared_cov = _joint_errors(Hb, shared, frame)
+    arrow = schur(Hb, shared, frame)  # S, H_ff⁻¹, H_sf: the errors and responses below
+    se, sensitivity, shared_cov = _joint_errors(arrow, shared, frame)
     frame_ok = np.all(np.isfinite(Hb), axis=(2, 3)) & (Hb[..., 3, 3] > 0)
     inside = np.all((pb[..., :3] > lower[:3] + 1e-9) & (pb[..., :3] < upper[:3] - 1e-9),
                     axis=2)
@@ -495,7 +496,8 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     width_var = np.zeros(B)  # the held width's own error, where given
     if fixed_width is not None and fixed_width_se is not None:
         width_se = np.broadcast_to(np.asarray(fixed_width_se, dtype=float), (B,))
-        width_var = (_width_effect(Hb, shared, frame, converged) * width_se) ** 2
+        width_var = (_width_effect(Hb, arrow, shared_cov, shared, frame, converged)
+                     * width_se) ** 2
     r_mean, r_var, count, W = _mean_residual(box, p2, E_all, info_all, converged)
     n_offset_se = _offset_error(box, pb, converged, sorted(shared + frame), W, s0_se)
     params = p2.copy()
@@ -688,9 +690,10 @@ def _fit_exact(box, p, layout, max_iter, rounds=5):
     return p, converged, iterations, E_all, info_all, outside, retab
 
 
-def _joint_errors(Hb, shared, frame):
-    """Standard errors (B, F, 5) from each bead's joint information ``Hb`` (B, F, 5, 5),
-    with what the error of the shared parameters does to each frame's intensity.
+def _joint_errors(arrow, shared, frame):
+    """Standard errors (B, F, 5) from each bead's joint information, reduced to its
+    ``arrow`` (:func:`emccdcal._optimize.schur` of the (B, F, 5, 5) information), with
+    what the error of the shared parameters does to each frame's intensity.
 
     A frame's own parameters: conditional on the shared ones (what scatters from frame to
     frame); the shared ones' error is common to the bead's frames. A frame at a bound
@@ -707,10 +710,10 @@ def _joint_errors(Hb, shared, frame):
     shared_cov : (B, k, k)
         S⁻¹, the shared parameters' covariance with every frame's own estimated.
     """
-    B, F = Hb.shape[:2]
+    S, Hff_inv, Hsf = arrow
+    B, F = Hff_inv.shape[:2]
     se = np.full((B, F, _NP), np.nan)
     with np.errstate(invalid="ignore", divide="ignore"):
-        S, Hff_inv, Hsf = schur(Hb, shared, frame)
         var_f = np.einsum("bfii->bfi", Hff_inv)
         se[..., frame] = np.sqrt(np.where(var_f > 0, var_f, np.nan))
         try:
@@ -742,17 +745,18 @@ def _shared_error_of_mean(sensitivity, shared_cov, converged, width_var=0.0):
     return np.where((n > 0) & (var >= 0), np.sqrt(np.maximum(var, 0.0)), np.nan)
 
 
-def _width_effect(Hb, shared, frame, converged, width=2):
+def _width_effect(Hb, arrow, shared_cov, shared, frame, converged, width=2):
     """How a bead's mean intensity over its converged frames moves with a held width:
     d mean(N̂)/dw (e⁻ per pixel of width), from the joint information ``Hb`` (B, F, 5, 5)
     of all five parameters. The fitted ones follow w by dθ̂/dw = −H_θθ⁻¹ H_θw, solved on
-    the arrow (shared ``S`` first, then each frame's own)."""
+    the ``arrow`` (:func:`emccdcal._optimize.schur`; the shared parameters by
+    ``shared_cov`` = S⁻¹ first, then each frame's own)."""
+    _, Hff_inv, Hsf = arrow
     with np.errstate(invalid="ignore", divide="ignore"):
-        S, Hff_inv, Hsf = schur(Hb, shared, frame)
         r_s = -Hb[..., shared, width].sum(axis=1)          # (B, k)
         r_f = -Hb[..., frame, width]                        # (B, F, f)
-        x_s = np.linalg.solve(S, (r_s - np.einsum("bfkj,bfj->bk", Hsf @ Hff_inv, r_f))
-                              [..., None])[..., 0]
+        x_s = np.einsum("bkl,bl->bk", shared_cov,
+                        r_s - np.einsum("bfkj,bfj->bk", Hsf @ Hff_inv, r_f))
         x_f = np.einsum("bfij,bfj->bfi", Hff_inv,
                         r_f - np.einsum("bfkj,bk->bfj", Hsf, x_s))
         d = x_f[..., frame.index(3)]                        # dN̂_f/dw

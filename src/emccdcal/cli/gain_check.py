@@ -138,9 +138,9 @@ def _phi(args, calibration) -> float:
     if calibration is None:
         raise OptionError("give --e-per-adu PHI (or a result), or the calibration: "
                           "--calibration RESULT or --camera SERIAL")
-    from ..result import pixel_statistics
+    from ..export.gain_check import e_per_adu_of
 
-    return float(pixel_statistics(calibration.e_per_adu)["median"])
+    return e_per_adu_of(calibration)
 
 
 def _write(args, check, record) -> list[Path]:

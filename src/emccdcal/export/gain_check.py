@@ -7,7 +7,15 @@ import math
 
 from ..errors import InputError
 
-__all__ = ["compare", "verdict"]
+__all__ = ["compare", "verdict", "e_per_adu_of"]
+
+
+def e_per_adu_of(calibration) -> float:
+    """The φ (e⁻/ADU) a gain check of the camera takes from its calibration: the median
+    of the calibration's per-pixel φ (the check's gain is the sensor's)."""
+    from ..result import pixel_statistics
+
+    return float(pixel_statistics(calibration.e_per_adu)["median"])
 
 
 def compare(check, calibration, *, z: float = 3.0) -> dict:

@@ -398,9 +398,9 @@ class GainCheckWidget(Container):
 
     def run(self):
         from .._util import parse_region
-        from ..export.gain_check import compare, verdict
+        from ..export.gain_check import compare, e_per_adu_of, verdict
         from ..fit.darkgain import check_gain
-        from ..result import load_calibration, pixel_statistics
+        from ..result import load_calibration
 
         layer, settings, _, setpoint = _chosen(self, "a layer of dark frames")
         result = str(self.result.value).strip()
@@ -409,7 +409,7 @@ class GainCheckWidget(Container):
         if phi is None:
             if cal is None:
                 raise OptionError("give e-/ADU or a calibration of the camera")
-            phi = float(pixel_statistics(cal.e_per_adu)["median"])
+            phi = e_per_adu_of(cal)
         region = parse_region(self.region.value) if self.region.value.strip() else None
         data = layer.data
         bits = settings.adc_bits
