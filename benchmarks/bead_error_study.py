@@ -44,6 +44,7 @@ def main() -> None:
     keys = [f"{s:g}" for s in setpoints]
     per = {k: {"old": [], "new": []} for k in keys}
     pooled = {"old": [], "new": []}
+    by_bead = []  # each bead's z at every set-point (now): the z's of one bead share errors
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
@@ -57,6 +58,12 @@ def main() -> None:
             truth = {(round(b["row"]), round(b["col"])): b["photoelectrons"]
                      for b in sim.truth["beads"]}
             beads = doc["calibrations"][0]["beads"]
+            for b in beads:
+                true = min(truth.items(), key=lambda t: (t[0][0] - b["row"]) ** 2
+                           + (t[0][1] - b["col"]) ** 2)[1]
+                by_bead.append([np.nan if b["mean_intensity"][k] is None else
+                                (b["mean_intensity"][k] - true) / b["mean_intensity_se"][k]
+                                for k in keys])
             for k in keys:
                 rows = []
                 for b in beads:
@@ -95,6 +102,14 @@ def main() -> None:
         print(f"pooled means' z ({'before' if n == 'old' else 'now'}): RMS "
               f"{np.sqrt(np.mean(z**2)):.2f} over {z.size} (set-points x seeds), mean "
               f"{z.mean():+.2f}")
+    zb = np.array(by_bead)
+    bead_mean = np.nanmean(zb, axis=1)
+    corr = np.corrcoef(zb[np.all(np.isfinite(zb), axis=1)].T)
+    off_diag = corr[~np.eye(len(keys), dtype=bool)]
+    print(f"mean z over beads and set-points (now) {np.nanmean(zb):+.3f} ± "
+          f"{bead_mean.std(ddof=1) / np.sqrt(bead_mean.size):.3f} (SE with each bead's "
+          f"set-points as one cluster: they share its width's error; {bead_mean.size} beads); "
+          f"mean correlation of a bead's z between set-points {off_diag.mean():+.2f}")
     print(json.dumps({"per_setpoint": summary}, default=float))
 
 

@@ -396,3 +396,76 @@ def test_residual_is_per_unit_intensity_of_the_frames_it_averages():
     image = bead_fit.residual_image([fit], per_bead=True)
     R = image.evaluate(np.zeros(1, int), np.zeros((1, 1)), np.zeros((1, 1)))[0]
     assert R[0, 0] == pytest.approx(10 / 1000, rel=0.01)
+
+
+def test_a_residual_images_variance_is_its_sampling_variance():
+    """The image is linear in the residuals it is built from: over many draws of them,
+    the variance of its nodes is the variance it reports (and at pixels what
+    ``variance_at`` interpolates, to within the spline's ~10 %)."""
+    B, F, n = 2, 10, 9
+    rng = np.random.default_rng(3)
+    params = np.zeros((B, F, 5))
+    params[..., 2:4] = [1.3, 1000.0]
+    params[0, :, :2], params[1, :, :2] = [10.3, 10.2], [20.7, 30.4]  # x, y
+    pos = np.array([[10, 10], [30, 21]])
+    se = rng.uniform(0.5, 2.0, (B, n, n))
+
+    def fit_with_noise():
+        r = rng.normal(0.0, 1.0, (2, B, n, n)) * se
+        return bead_fit.BeadFits(
+            positions=pos, params=params, se=np.ones((B, F, 5)), loglik=np.zeros((B, F)),
+            converged=np.ones((B, F), bool), iterations=np.ones((B, 3), int), retabulated=0,
+            n_saturated=0, residual=r[0], residual_se=se, intensity_offset_se=np.zeros(B),
+            residual_halves=r, residual_halves_se=np.stack([se, se]))
+
+    images = [bead_fit.residual_image([fit_with_noise(), fit_with_noise()], half=0)
+              for _ in range(400)]
+    variance = images[0].variance
+    used = variance > 0
+    ratio = np.var([im.values for im in images], axis=0)[used] / variance[used]
+    assert ratio.mean() == pytest.approx(1.0, abs=0.03)  # 400 draws: ±0.07 per node
+    local = np.arange(n) - n // 2
+    dy = (pos[0, 0] + local - 10.2)[:, None] * np.ones(n)
+    dx = np.ones(n)[:, None] * (pos[0, 1] + local - 10.3)
+    at_pixels = np.var([im.evaluate(np.zeros(n, int), dy, dx)[0] for im in images], axis=0)
+    assert np.median(at_pixels / images[0].variance_at(np.zeros(n, int), dy, dx)) \
+        == pytest.approx(1.0, abs=0.1)
+    # two fits pooled: the image's variance is half a single residual's, per unit N
+    assert np.median(images[0].variance_at(np.zeros(n, int), dy, dx)
+                     / (se[0] / 1000.0) ** 2) == pytest.approx(0.5, abs=0.1)
+    with pytest.raises(ValueError, match="half must be"):
+        bead_fit.residual_image([fit_with_noise()], half=2)
+
+
+@pytest.mark.slow
+def test_a_residual_image_is_scored_on_frames_it_was_not_built_on(fitted):
+    """Held out: on Gaussian beads, the residual model's χ² per pixel on the half of the
+    frames its image was not built on is 1 within its sampling error (the image's own
+    variance counted). A halo that appears halfway through an acquisition, which the
+    first half's image never saw, is flagged when the frames are split in time; split
+    into even and odd frames, both halves see it and the image learns it."""
+    fits = [fitted[g][1] for g in (1.0, 4.78, 261.6)]
+    image = bead_fit.residual_image(fits, half=0)
+    frames, before = fitted[261.6]
+    kw = dict(offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=261.6)
+    after = bead_fit.fit_beads(frames, before.positions, fixed_width=before.params[:, 0, 2],
+                               residual=image, **kw)
+    held_out = bead_fit.psf_mismatch(after, half=1, image=image)
+    assert abs(held_out["chi2_per_pixel"] - 1.0) < 3 * held_out["chi2_per_pixel_se"]
+
+    halo = bead_scene(TRUE_POS, N_TRUE, WIDTH, BACKGROUND, *SHAPE, halo=0.2, halo_width=3.0)
+    later = simulate_frames(halo, em_gain=261.6, e_per_adu=PHI, offset=_offset_map(),
+                            read_noise=SIGMA, frames=FRAMES // 2, seed=33)
+    stack = np.concatenate([frames[: FRAMES // 2], later])
+    chi2 = {}
+    for split in ("time", "alternate"):
+        gauss = bead_fit.fit_beads(stack, before.positions, residual_split=split, **kw)
+        image = bead_fit.residual_image([gauss], half=0)
+        third = bead_fit.fit_beads(stack, before.positions, residual=image,
+                                   fixed_width=gauss.params[:, 0, 2], residual_split=split,
+                                   **kw)
+        chi2[split] = bead_fit.psf_mismatch(third, half=1, image=image)["chi2_per_pixel"]
+    assert chi2["time"] > 2.0          # validate's PSF_CHI2: flagged
+    assert chi2["alternate"] < 1.5
+    with pytest.raises(ValueError, match="split must be"):
+        bead_fit.fit_beads(frames, before.positions, residual_split="random", **kw)

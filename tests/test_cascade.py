@@ -10,13 +10,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import stats
 
-from emccdcal.model import cascade
+from emccdcal.model import cascade, noise
 from emccdcal.model.cascade import (
     excess_noise_factor,
     mean_gain,
     output_pmf,
     sample_cascade,
     sample_gamma,
+    single_electron_moments,
     single_electron_variance,
     stage_probability,
 )
@@ -135,6 +136,18 @@ def test_output_pmf_moments(g, m):
     var = np.sum((x - mu) ** 2 * p)
     assert mu == pytest.approx(m * g, rel=1e-11)
     assert var == pytest.approx(m * single_electron_variance(g, 536), rel=1e-9)
+
+
+@pytest.mark.parametrize("g", [1.5, 5.0, 300.0])
+def test_single_electron_moments_are_the_exact_pmfs(g):
+    """The cumulant recursion's raw moments against the exact pmf's (k ≤ 4), and the
+    gamma register's: an exponential's k!·g^k."""
+    x, p = output_pmf(1, g, 536)
+    x = x.astype(float)
+    exact = [np.sum(x**k * p) for k in (1, 2, 3, 4)]
+    np.testing.assert_allclose(single_electron_moments(g, 536), exact, rtol=1e-8)
+    gamma = noise.EMModel("gamma").register.single_electron_moments(g)
+    np.testing.assert_allclose(gamma, [g, 2 * g**2, 6 * g**3, 24 * g**4])
 
 
 @pytest.mark.parametrize("g, m", [(5.0, 1), (261.6, 256), (1.01, 3)])

@@ -48,6 +48,8 @@ __all__ = [
     "hat_matrix",
     "fit_variance_model",
     "variance_bias_covariance",
+    "register_cumulants",
+    "GAMMA_CUMULANTS",
     "cots_spot",
     "DEFAULT_HALF_SIZE",
     "DEFAULT_WIDTH",
@@ -63,6 +65,8 @@ DEFAULT_HALF_SIZE = defaults.BEAD_HALF_SIZE
 DEFAULT_WIDTH = psf.DEFAULT_WIDTH
 #: Fraction of a spot's frames that must give a usable estimate.
 _MIN_USABLE = 0.5
+#: (c3, c4) of the gamma register (:func:`register_cumulants`), COTS as published.
+GAMMA_CUMULANTS = (3.0, 12.0)
 
 
 # --------------------------------------------------------------------------------------
@@ -309,7 +313,9 @@ def fit_variance_model(counts, expected, *, leverage=None, gain0=None, offset0=N
         opt = maximize(evaluate, alpha, lower=-unbounded, upper=unbounded, tol=0.5 * tol,
                        max_iter=max_iter, max_step=np.inf)
     alpha, obj, conv = opt.x, -opt.objective, opt.done
-    conv &= np.all(np.isfinite(alpha), axis=1) & (alpha[:, 0] > 0) & np.isfinite(obj)
+    # G ≤ 0 is a frame's noisy estimate, not a failure: leaving such frames out biases the
+    # average up (+4 % at 5× with read noise dominating; docs/cots.md)
+    conv &= np.all(np.isfinite(alpha), axis=1) & np.isfinite(obj)
     return alpha, conv
 
 
@@ -326,26 +332,29 @@ def _thin_q(jacobian):
     return np.linalg.qr(j.reshape(j.shape[0], -1, j.shape[-1]))[0]
 
 
-def _hat_moments(expected, hat):
+def _hat_moments(expected, hat, read_var):
     """The parts of the noise moments that depend on the hat matrix only, per frame.
 
     With M = I − f, the moments of the residuals r = M ε and of the fitted values' error
     δ = f ε are linear in the pixel variances v, and v = 2 (G E − H) is linear in (G, H):
     ``X @ v = 2 G (X @ E) − 2 H (X @ 1)`` for X = M∘M, f∘f, M∘f, M∘M∘f. Those eight
-    (F, n) arrays are all the bias needs, at any (G, H).
+    (F, n) arrays, the read-noise variance σ² (ADU², ``read_var``) and ``(M∘M∘f) @ σ²``
+    (the third cumulant is the register's alone: read noise has none) are all the bias
+    needs, at any (G, H).
     """
     e = np.asarray(expected, float)
     n = e.shape[1]
     m_mat = np.eye(n)[None] - hat
-    out = {}
+    out = {"read_var": np.broadcast_to(read_var, e.shape).astype(float)}
     for name, x in (("mm", m_mat**2), ("ff", hat**2), ("mf", m_mat * hat),
                     ("mmf", m_mat**2 * hat)):
         out[name + "_e"] = np.einsum("fij,fj->fi", x, e)
         out[name + "_1"] = x.sum(axis=2)
+    out["mmf_s"] = np.einsum("fij,fj->fi", m_mat**2 * hat, out["read_var"])
     return out
 
 
-def _noise_moments(mom, e, alpha):
+def _noise_moments(mom, e, alpha, ratios):
     """Per pixel: v, E r², E δ², E r δ, E r² δ, E r² δ² at true (G, H) = alpha."""
     g, hh = alpha[:, :1], alpha[:, 1:]
 
@@ -354,7 +363,7 @@ def _noise_moments(mom, e, alpha):
 
     v = 2.0 * (g * e - hh)
     m, d, c = lin("mm"), lin("ff"), lin("mf")
-    t = 3.0 * g * lin("mmf")  # third cumulant κ3 = 3 G v
+    t = ratios[0] * g * (lin("mmf") - mom["mmf_s"])  # κ3 = c3 G (v − σ²)
     return v, m, d, t, m * d + 2.0 * c**2
 
 
@@ -402,15 +411,20 @@ def _expected_score(ast, e, moments):
     return score, jac
 
 
-def _small_sample_bias(e, alpha):
+def _fourth_cumulant(g, v, read_var, ratios):
+    """κ4 = c4 G² (v − σ²) per pixel: the register's; read noise (Gaussian) has none."""
+    return ratios[1] * g**2 * np.maximum(v - read_var, 0.0)
+
+
+def _small_sample_bias(e, alpha, read_var, ratios):
     """O(1/n) bias of the variance fit with E_i known (second-order M-estimator expansion).
 
-    Zero for Gaussian noise; not zero for the model's heavy-tailed noise (κ4 = 12 G² v).
+    Zero for Gaussian noise; not zero for the register's heavy-tailed noise (κ4).
     """
     g = alpha[:, :1]
     v = 2.0 * (g * e - alpha[:, 1:])
     iv2 = 1.0 / v**2
-    wv = 2 * v**2 + 12.0 * g**2 * v  # Var ε_i² (κ4 = 12 G² v)
+    wv = 2 * v**2 + _fourth_cumulant(g, v, read_var, ratios)  # Var ε_i²
     a_inv = _inv2(_uu(iv2, e))
     c0 = a_inv @ _uu(wv * iv2 * iv2, e) @ a_inv
     coef = (2 * _quad(c0, e) - 2 * wv * iv2 * _quad(a_inv, e)) * iv2 / v
@@ -418,14 +432,14 @@ def _small_sample_bias(e, alpha):
     return np.einsum("fjk,fk->fj", a_inv, inner)
 
 
-def _pseudo_true(mom, e, alpha, start=None, max_iter=50):
+def _pseudo_true(mom, e, alpha, ratios, start=None, max_iter=50):
     """Where each frame's variance fit lands on average when the truth is ``alpha``.
 
     Solves E ψ_f(α*) = 0 (Newton from ``start``, default ``alpha``, kept inside v* > 0)
     and adds the small-sample bias. Returns that (F, 2), the root α* itself (a warm start
     for a nearby ``alpha``) and whether every frame's solve converged.
     """
-    moments = _noise_moments(mom, e, alpha)
+    moments = _noise_moments(mom, e, alpha, ratios)
     ast = (alpha if start is None else start).copy()
     ok = np.zeros(len(e), bool)
     for _ in range(max_iter):
@@ -444,10 +458,10 @@ def _pseudo_true(mom, e, alpha, start=None, max_iter=50):
                     axis=1)
         if ok.all():
             break
-    return ast + _small_sample_bias(e, alpha), ast, ok
+    return ast + _small_sample_bias(e, alpha, mom["read_var"], ratios), ast, ok
 
 
-def _covariance(expected, qh, alpha, alpha_fit):
+def _covariance(expected, qh, alpha, alpha_fit, read_var, ratios):
     """Sandwich covariance of the per-frame (Ĝ, Ĥ), not bias-corrected.
 
     ``alpha`` sets the true noise (v, κ4), ``alpha_fit`` is where the fit lands on
@@ -459,7 +473,7 @@ def _covariance(expected, qh, alpha, alpha_fit):
     g = alpha[:, :1]
     v = 2.0 * (g * e - alpha[:, 1:])
     vs = 2.0 * (alpha_fit[:, :1] * e - alpha_fit[:, 1:])
-    k4 = 12.0 * g**2 * v
+    k4 = _fourth_cumulant(g, v, read_var, ratios)
     qt = np.swapaxes(qh, 1, 2)
     hat = qh @ qt
     m2 = (np.eye(e.shape[1])[None] - hat) ** 2
@@ -481,7 +495,45 @@ def _covariance(expected, qh, alpha, alpha_fit):
     return a_inv @ b @ a_inv
 
 
-def variance_bias_covariance(expected, jacobian, alpha):
+def register_cumulants(register, gain, e_per_adu):
+    """The register's third and fourth pixel cumulants per unit of register variance.
+
+    For compound-Poisson input through a register whose one-electron output X has raw
+    moments μ_k, a pixel's register variance is ``v_reg = λ μ_2/φ²`` (ADU²) and its higher
+    cumulants ``κ_k = λ μ_k/φ^k``. In COTS's gain G (F² = 2: ``G = g F²/(2φ)``) they are
+    ``κ3 = c3·G·v_reg`` and ``κ4 = c4·G²·v_reg`` with ``c3 = 2 g μ3/μ2²`` and
+    ``c4 = 4 g² μ4/μ2³``: 3 and 12 for the gamma register (an exponential X), 2.98 and
+    11.84 at 5× for a 536-stage cascade.
+
+    Parameters
+    ----------
+    register : a register of :mod:`emccdcal.model.noise` (``EMModel(...).register``)
+    gain : float
+        COTS's G under F² = 2, ADU/e⁻ (where the gain g is read: the ratios vary slowly).
+    e_per_adu : float
+        φ, e⁻/ADU.
+
+    Returns
+    -------
+    (float, float)
+        c3 and c4 (dimensionless).
+
+    Examples
+    --------
+    >>> from emccdcal.model.noise import EMModel
+    >>> register_cumulants(EMModel("gamma").register, 1.3, 3.859)
+    (3.0, 12.0)
+    >>> c3, c4 = register_cumulants(EMModel("cascade", 536).register, 1.163, 3.859)
+    >>> round(c3, 3), round(c4, 2)
+    (2.982, 11.84)
+    """
+    g = float(register.gain_from_gain_f2(2.0 * gain * e_per_adu)[0])
+    mu = register.single_electron_moments(max(g, 1.0))
+    return (float(2.0 * g * mu[2] / mu[1] ** 2), float(4.0 * g**2 * mu[3] / mu[1] ** 3))
+
+
+def variance_bias_covariance(expected, jacobian, alpha, *, read_noise=0.0,
+                             cumulants=GAMMA_CUMULANTS):
     """Bias and sandwich covariance of the per-frame variance fit (G, H).
 
     The fitted E_i come from the same counts as the residuals, so the residuals are
@@ -492,9 +544,11 @@ def variance_bias_covariance(expected, jacobian, alpha):
     residual and fitted-value moments to second order in f ε (a first-order theory in
     1/n, solved rather than linearised, since the shift is ~10 %), plus the O(1/n)
     small-sample bias of the variance fit itself (zero for Gaussian noise, not for the
-    model's skewed, heavy-tailed noise). The noise cumulants are the model's own: with
-    ``v = 2 E_e G²``, ``κ3 = 3 G v`` and ``κ4 = 12 G² v`` (gamma EM register, F² = 2).
-    The covariance is the sandwich at α*. Derivation: ``docs/cots.md``.
+    register's skewed, heavy-tailed noise). The third and fourth cumulants are the
+    register's alone, ``κ3 = c3 G (v − σ²)`` and ``κ4 = c4 G² (v − σ²)``
+    (:func:`register_cumulants`; c3 = 3, c4 = 12 for the gamma register): the Gaussian
+    read noise σ adds to the variance only. The covariance is the sandwich at α*.
+    Derivation: ``docs/cots.md``.
 
     Parameters
     ----------
@@ -504,6 +558,10 @@ def variance_bias_covariance(expected, jacobian, alpha):
         ∂E_i/∂(spot parameters) at the fits (:attr:`SpotFit.jacobian`).
     alpha : array_like, shape (F, 2) or (2,)
         True (G, H) = (G, G·S0) (ADU/e⁻, ADU²/e⁻): where the bias is evaluated.
+    read_noise : float or array_like of shape (F, n) or (F, h, w)
+        Read-noise SD σ of the pixels (ADU); 0 as in COTS as published.
+    cumulants : (float, float)
+        (c3, c4) of :func:`register_cumulants`; the gamma register's by default.
 
     Returns
     -------
@@ -514,10 +572,13 @@ def variance_bias_covariance(expected, jacobian, alpha):
     """
     e = np.asarray(expected, float).reshape(len(expected), -1)
     alpha = np.broadcast_to(np.asarray(alpha, float), (len(e), 2)).copy()
+    read_var = np.square(np.asarray(read_noise, float))
+    read_var = np.broadcast_to(read_var.reshape(len(e), -1) if read_var.ndim else read_var,
+                               e.shape)
     qh = _thin_q(jacobian)
-    mom = _hat_moments(e, qh @ np.swapaxes(qh, 1, 2))
-    fit_point = _pseudo_true(mom, e, alpha)[0]
-    return fit_point - alpha, _covariance(e, qh, alpha, fit_point)
+    mom = _hat_moments(e, qh @ np.swapaxes(qh, 1, 2), read_var)
+    fit_point = _pseudo_true(mom, e, alpha, cumulants)[0]
+    return fit_point - alpha, _covariance(e, qh, alpha, fit_point, read_var, cumulants)
 
 
 # --------------------------------------------------------------------------------------
@@ -641,7 +702,7 @@ def _recentred_fit(stack, roi, width, init):
 
 
 def cots_spot(stack, *, roi=None, width=DEFAULT_WIDTH, init=None, gain0=None, offset0=None,
-              exclude=None, adc_max=None):
+              exclude=None, adc_max=None, read_noise=0.0, register=None, e_per_adu=None):
     """Calibration-on-the-spot on the frames of one isolated spot.
 
     Parameters
@@ -664,6 +725,16 @@ def cots_spot(stack, *, roi=None, width=DEFAULT_WIDTH, init=None, gain0=None, of
     adc_max : int, optional
         ADC maximum (ADU): frames with a pixel of their ROI at or above it are left out
         (COTS assumes no saturation). Default: no check.
+    read_noise : float or array_like of shape (R, C)
+        Read-noise SD σ (ADU) of the pixels of ``stack``, e.g. from the darks: the bias
+        correction's third and fourth cumulants are the register's alone, which read
+        noise dilutes. 0 (COTS as published) overstates them where read noise dominates
+        the variance, and reads low gains high (+4 % at 5× with σ = 15.5 ADU).
+    register : a register of :mod:`emccdcal.model.noise`, optional
+        The EM register whose cumulants the bias correction uses
+        (:func:`register_cumulants`, at the uncorrected G); default the gamma register's.
+    e_per_adu : float, optional
+        φ (e⁻/ADU), needed with ``register`` to know its gain.
 
     Returns
     -------
@@ -697,6 +768,11 @@ def cots_spot(stack, *, roi=None, width=DEFAULT_WIDTH, init=None, gain0=None, of
     if top < 0 or left < 0 or top + h > R or left + w > C or min(h, w) < 3:
         raise OptionError(f"ROI (top {top}, left {left}, {h}×{w}) does not fit in the "
                          f"{R}×{C} frames (or is smaller than 3×3)")
+    if register is not None and not (e_per_adu is not None and e_per_adu > 0):
+        raise OptionError("COTS: a register model needs e_per_adu (e-/ADU) to know its gain")
+    noise_map = np.broadcast_to(np.asarray(read_noise, float), (R, C))
+    if not np.all(np.isfinite(noise_map) & (noise_map >= 0)):
+        raise OptionError("COTS: read_noise must be finite and >= 0 (ADU)")
     stack = stack.astype(float, copy=False)
     data, fit, shift = _recentred_fit(stack, (top, left, h, w), width, init)
     usable = fit.converged.copy()
@@ -720,13 +796,17 @@ def cots_spot(stack, *, roi=None, width=DEFAULT_WIDTH, init=None, gain0=None, of
 
     idx = np.flatnonzero(usable)
     need(idx, "fit of the spot")
-    mom, leverage = _frame_hat_moments(expected, jac, idx)
+    read_var = _extract(np.broadcast_to(noise_map**2, (F, R, C)), top + shift[:, 0],
+                        left + shift[:, 1], h, w).reshape(F, n)  # follows the ROI
+    mom, leverage = _frame_hat_moments(expected, jac, idx, read_var)
     alpha = np.full((F, 2), np.nan)
     a, ok = fit_variance_model(counts[idx], expected[idx], leverage=leverage[idx],
                                gain0=gain0, offset0=offset0)
     alpha[idx] = a
     usable[idx[~ok]] = False
-    a_c, d_inv, fit_point = _corrected_truth(alpha, usable, mom, expected, need)
+    cumulants = GAMMA_CUMULANTS if register is None or not ok.any() else register_cumulants(
+        register, np.mean(a[ok, 0]), e_per_adu)
+    a_c, d_inv, fit_point = _corrected_truth(alpha, usable, mom, expected, need, cumulants)
     idx = np.flatnonzero(usable)
     truth = np.tile(a_c, (idx.size, 1))
     bias = np.full((F, 2), np.nan)
@@ -735,7 +815,7 @@ def cots_spot(stack, *, roi=None, width=DEFAULT_WIDTH, init=None, gain0=None, of
     for lo in range(0, idx.size, _CHUNK):
         ch = slice(lo, lo + _CHUNK)
         raw_cov = _covariance(expected[idx][ch], _thin_q(jac[idx[ch]]), truth[ch],
-                              fit_point[ch])
+                              fit_point[ch], read_var[idx[ch]], cumulants)
         cov[idx[ch]] = d_inv @ raw_cov @ d_inv.T
     if not (np.all(np.isfinite(cov[idx])) and np.all(cov[idx, 0, 0] > 0)):
         raise OptionError("COTS: the covariance of the variance fit is not finite")
@@ -779,11 +859,12 @@ def cots_spot(stack, *, roi=None, width=DEFAULT_WIDTH, init=None, gain0=None, of
     )
 
 
-def _frame_hat_moments(expected, jac, idx):
+def _frame_hat_moments(expected, jac, idx, read_var):
     """Hat-matrix moments (:func:`_hat_moments`) and leverages of the frames ``idx``, a
     chunk of frames at a time (n × n per frame); NaN for the other frames."""
     F, n = expected.shape
-    names = [a + b for a in ("mm", "ff", "mf", "mmf") for b in ("_e", "_1")]
+    names = [a + b for a in ("mm", "ff", "mf", "mmf") for b in ("_e", "_1")] + [
+        "read_var", "mmf_s"]
     mom = {k: np.full((F, n), np.nan) for k in names}
     leverage = np.full((F, n), np.nan)
     for lo in range(0, idx.size, _CHUNK):
@@ -791,12 +872,12 @@ def _frame_hat_moments(expected, jac, idx):
         qh = _thin_q(jac[ch])
         hat = qh @ np.swapaxes(qh, 1, 2)
         leverage[ch] = np.einsum("fii->fi", hat)
-        for k, val in _hat_moments(expected[ch], hat).items():
+        for k, val in _hat_moments(expected[ch], hat, read_var[ch]).items():
             mom[k][ch] = val
     return mom, leverage
 
 
-def _corrected_truth(alpha, usable, mom, expected, need):
+def _corrected_truth(alpha, usable, mom, expected, need, cumulants):
     """The truth a_c = (G, H) that the frames' variance fits estimate.
 
     Solves ``mean_f α*_f(a_c) = mean_f α̂_f``, with α*_f where frame f's fit lands on
@@ -814,7 +895,7 @@ def _corrected_truth(alpha, usable, mom, expected, need):
         warm = {}
 
         def predicted(point, sub=sub, e_u=e_u, warm=warm):
-            out, root, _ = _pseudo_true(sub, e_u, np.tile(point, (len(e_u), 1)),
+            out, root, _ = _pseudo_true(sub, e_u, np.tile(point, (len(e_u), 1)), cumulants,
                                         start=warm.get("root"))
             warm["root"] = root  # the root at a nearby point: a warm start
             return out.mean(axis=0)
@@ -848,5 +929,6 @@ def _corrected_truth(alpha, usable, mom, expected, need):
         raise OptionError("COTS: the bias correction of the variance fit did not converge "
                           f"(corrected G = {a_c[0]:.4g} ADU/e-); too few pixels with signal?")
     d_inv = np.linalg.inv(jacobian_of_predicted(a_c))
-    fit_point = _pseudo_true(sub, e_u, np.tile(a_c, (idx.size, 1)), start=warm.get("root"))[0]
+    fit_point = _pseudo_true(sub, e_u, np.tile(a_c, (idx.size, 1)), cumulants,
+                             start=warm.get("root"))[0]
     return a_c, d_inv, fit_point

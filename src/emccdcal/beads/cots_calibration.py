@@ -120,7 +120,8 @@ def _cots_calibrate(manifest, half_size, width, em_model, stages, progress):
     ref = max(em, key=lambda a: a.em_gain_setpoint)
     beads = _find_beads(ref, width, half_size)
     setpoints = list(manifest.setpoints)
-    spots = _fit_spots(manifest, em, beads, setpoints, half_size, width, progress)
+    spots = _fit_spots(manifest, em, beads, setpoints, half_size, width, phi, model.register,
+                       progress)
     maps, table, ok_bead = _estimates(spots, beads, setpoints, phi, manifest.shape, half_size,
                                       model.register)
     if not ok_bead.any():
@@ -171,9 +172,11 @@ def _find_beads(ref, width, half_size) -> np.ndarray:
     return found.positions
 
 
-def _fit_spots(manifest, em, beads, setpoints, half_size, width, progress) -> dict:
+def _fit_spots(manifest, em, beads, setpoints, half_size, width, phi, register,
+               progress) -> dict:
     """COTS on every bead of every multiplied acquisition: per set-point index, a list of
-    (bead index, :class:`~emccdcal.beads.cots.CotsSpot`, the offset map in the bead's box)."""
+    (bead index, :class:`~emccdcal.beads.cots.CotsSpot`, the offset map in the bead's box).
+    The bias correction takes the darks' read noise and the ``register``'s cumulants."""
     rows, cols = manifest.shape
     size = 2 * half_size + 1
     margin = size  # the ROI may follow the spot this far
@@ -190,7 +193,9 @@ def _fit_spots(manifest, em, beads, setpoints, half_size, width, progress) -> di
                 box = np.asarray(frames[:, r0:r1, c0:c1])
                 roi = (r - half_size - r0, c - half_size - c0, size, size)
                 try:
-                    spot = cots_spot(box, roi=roi, width=width, adc_max=manifest.adc_max)
+                    spot = cots_spot(box, roi=roi, width=width, adc_max=manifest.adc_max,
+                                     read_noise=a.read_noise[r0:r1, c0:c1],
+                                     register=register, e_per_adu=phi[r, c])
                 except ValueError as exc:
                     warnings.warn(f"{a.frames_path}: bead at ({r}, {c}): {exc}", stacklevel=4)
                     spot = None

@@ -99,12 +99,16 @@ __all__ = [
     "shared_widths",
     "residual_image",
     "psf_mismatch",
+    "frame_halves",
+    "RESIDUAL_SPLITS",
 ]
 
 #: Half-width Δ of the fitting box (pixel): boxes are (2Δ + 1) × (2Δ + 1).
 DEFAULT_HALF_SIZE = defaults.BEAD_HALF_SIZE
 #: Expected spot standard deviation (pixel), used for detection and as a starting value.
 DEFAULT_WIDTH = psf.DEFAULT_WIDTH
+#: How a residual image's frames and those that score it are told apart (:func:`frame_halves`).
+RESIDUAL_SPLITS = ("alternate", "time")
 
 _NP = len(psf.PARAMETERS)
 #: Lower bound of a frame's intensity N (e⁻): a frame held there had no light to fit.
@@ -149,6 +153,11 @@ class BeadFits:
         input of :func:`residual_image`.
     residual_se : ndarray, shape (B, 2Δ + 1, 2Δ + 1)
         Standard error of ``residual`` (SD over frames / √frames), e⁻.
+    residual_halves, residual_halves_se : ndarray, shape (2, B, 2Δ + 1, 2Δ + 1)
+        The same over each half of the frames (:func:`frame_halves`): a residual image
+        built on one half is scored on the other (:func:`psf_mismatch`).
+    residual_split : str
+        How the frames were halved: ``"alternate"`` or ``"time"``.
     intensity_offset_se : ndarray, shape (B,)
         Standard error of each bead's mean intensity over its frames from the offset
         map's own error (``offset_se``), e⁻; 0 where the map is taken as exact. It is the
@@ -174,6 +183,9 @@ class BeadFits:
     residual_se: np.ndarray
     intensity_offset_se: np.ndarray
     intensity_shared_se: np.ndarray = None
+    residual_halves: np.ndarray = None
+    residual_halves_se: np.ndarray = None
+    residual_split: str = "alternate"
 
     @property
     def intensity(self) -> np.ndarray:
@@ -363,7 +375,8 @@ def _pixel_map(name, value, shape, boxes, pos, *, positive=False, at_least=None)
 def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
               half_size=DEFAULT_HALF_SIZE, width=DEFAULT_WIDTH, adc_max=None,
               max_iter=60, em_model=None, fixed_width=None, fixed_width_se=None,
-              background="shared", residual=None, offset_se=None) -> BeadFits:
+              background="shared", residual=None, offset_se=None,
+              residual_split="alternate") -> BeadFits:
     """Fit every bead in every frame of one acquisition by maximum likelihood: the bead's
     position, width and background shared by its frames, each frame's intensity.
 
@@ -409,6 +422,8 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     offset_se : array_like, shape (R, C) or scalar, optional
         Standard error of the offset map (ADU), e.g. read noise / √(dark frames); gives
         ``intensity_offset_se``. By default the map is taken as exact.
+    residual_split : {"alternate", "time"}
+        How the frames are halved for ``residual_halves`` (:func:`frame_halves`).
 
     Returns
     -------
@@ -431,6 +446,7 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     lower, upper = _lower_upper(half_size)
     if background not in ("shared", "frame"):
         raise OptionError(f"background must be 'shared' or 'frame', got {background!r}")
+    frame_halves(0, residual_split)  # checks the name
     if residual is not None and len(residual) not in (1, B):
         raise OptionError(f"the residual image has {len(residual)} images; expected 1 or one "
                           f"per bead ({B})")
@@ -451,7 +467,8 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         none = np.full((B, n, n), np.nan)
         return BeadFits(pos, empty, empty.copy(), np.zeros((B, F)), np.zeros((B, F), bool),
                         np.zeros((B, 3), int), 0, 0, none, none.copy(), np.full(B, np.nan),
-                        np.full(B, np.nan))
+                        np.full(B, np.nan), np.stack([none, none]), np.stack([none, none]),
+                        residual_split)
     counts = np.stack([np.asarray(frames[:, rs, cs]).reshape(F, n * n) for rs, cs in boxes])
     counts = counts.astype(np.int64)  # (B, F, npix)
     if counts.min() < 0:
@@ -498,7 +515,8 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         width_se = np.broadcast_to(np.asarray(fixed_width_se, dtype=float), (B,))
         width_var = (_width_effect(Hb, arrow, shared_cov, shared, frame, converged)
                      * width_se) ** 2
-    r_mean, r_var, count, W = _mean_residual(box, p2, E_all, info_all, converged)
+    r_mean, r_var, half_mean, half_var, W = _mean_residual(box, p2, E_all, info_all,
+                                                           converged, residual_split)
     n_offset_se = _offset_error(box, pb, converged, sorted(shared + frame), W, s0_se)
     params = p2.copy()
     params[:, 0] += np.repeat(pos[:, 1], F)
@@ -512,8 +530,11 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         iterations=np.stack([it_mean, it_gauss, it_exact], axis=1),
         retabulated=int(retab),
         n_saturated=n_sat,
-        residual=np.where(count > 1, r_mean, np.nan).reshape(B, n, n),
-        residual_se=np.sqrt(np.where(count > 1, r_var, np.nan)).reshape(B, n, n),
+        residual=r_mean.reshape(B, n, n),
+        residual_se=np.sqrt(r_var).reshape(B, n, n),
+        residual_halves=half_mean.reshape(2, B, n, n),
+        residual_halves_se=np.sqrt(half_var).reshape(2, B, n, n),
+        residual_split=residual_split,
         intensity_offset_se=np.where(converged.any(axis=1), n_offset_se, np.nan),
         intensity_shared_se=_shared_error_of_mean(sensitivity, shared_cov, converged,
                                                   width_var),
@@ -765,21 +786,43 @@ def _width_effect(Hb, arrow, shared_cov, shared, frame, converged, width=2):
                         / np.maximum(n, 1), np.nan)
 
 
-def _mean_residual(box, p, E_all, info_all, converged):
+def _mean_residual(box, p, E_all, info_all, converged, split):
     """What the model misses: the mean of data − model over a bead's converged frames
     (but for frames whose intensity is held at its bound, a bead that was off: their
-    residual is not centred on zero), its variance, the frames used per pixel and the
-    mean information per pixel over them."""
+    residual is not centred on zero) and its variance, (B, npix) each; the same for
+    each half of the frames (:func:`frame_halves`), (2, B, npix) each; and the mean
+    information per pixel over the frames used."""
     B, F, npix = box.B, box.F, box.npix
     use = _residual_frames(converged, p[:, 3].reshape(B, F))[..., None] & (box.weight > 0)
-    count = use.sum(axis=1)
+    resid = (box.y_m - E_all).reshape(B, F, npix)
+
+    def mean_var(sel):
+        count = sel.sum(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r = np.where(sel, resid, 0.0)
+            mean = r.sum(axis=1) / count
+            var = (np.where(sel, (r - mean[:, None]) ** 2, 0.0).sum(axis=1)
+                   / (count - 1) / count)
+        return np.where(count > 1, mean, np.nan), np.where(count > 1, var, np.nan)
+
+    r_mean, r_var = mean_var(use)
+    halves = [mean_var(use & (frame_halves(F, split) == k)[None, :, None]) for k in (0, 1)]
     with np.errstate(invalid="ignore", divide="ignore"):
-        resid = np.where(use, (box.y_m - E_all).reshape(B, F, npix), 0.0)
-        r_mean = resid.sum(axis=1) / count
-        r_var = (np.where(use, (resid - r_mean[:, None]) ** 2, 0.0).sum(axis=1)
-                 / (count - 1) / count)
-        W = np.where(use, info_all.reshape(B, F, npix), 0.0).sum(axis=1) / count
-    return r_mean, r_var, count, W
+        W = np.where(use, info_all.reshape(B, F, npix), 0.0).sum(axis=1) / use.sum(axis=1)
+    return r_mean, r_var, np.stack([m for m, _ in halves]), np.stack([v for _, v in halves]), W
+
+
+def frame_halves(n_frames, split="alternate"):
+    """Which half (0 or 1) each frame of an acquisition belongs to, shape (n_frames,).
+
+    ``"alternate"``: even and odd frames (both halves see the same bleaching and drift);
+    ``"time"``: the first and the second half of the acquisition (the second also tests
+    that the spot did not change its shape over time).
+    """
+    if split not in RESIDUAL_SPLITS:
+        raise OptionError(f"split must be one of {', '.join(RESIDUAL_SPLITS)}, got {split!r}")
+    idx = np.arange(n_frames)
+    return idx % 2 if split == "alternate" else (idx >= (n_frames + 1) // 2).astype(int)
 
 
 def _offset_error(box, pb, converged, fitted, W, s0_se):
@@ -836,7 +879,7 @@ def _mean_intensity(fit, b):
     return float(fit.intensity[b, use].mean()) if use.any() else math.nan
 
 
-def residual_image(fits, *, oversample=4, per_bead=True) -> psf.ResidualImage:
+def residual_image(fits, *, oversample=4, per_bead=True, half=None) -> psf.ResidualImage:
     """The oversampled residual image of a bead series: what the Gaussian spot misses,
     per unit intensity, from the fits of several acquisitions of the same beads.
 
@@ -848,7 +891,9 @@ def residual_image(fits, *, oversample=4, per_bead=True) -> psf.ResidualImage:
     beads' different sub-pixel centres (and the stage's moves between set-points) fill
     the fine grid. Values are averaged with inverse-variance weights, spread to the four
     nearest nodes (bilinear weights) and smoothed by normalized convolution with a
-    Gaussian of SD ¼ pixel, which also fills the gaps between samples.
+    Gaussian of SD ¼ pixel, which also fills the gaps between samples. The image is
+    linear in the residuals, so its sampling variance follows exactly from theirs
+    (:attr:`ResidualImage.variance`).
 
     Parameters
     ----------
@@ -860,81 +905,144 @@ def residual_image(fits, *, oversample=4, per_bead=True) -> psf.ResidualImage:
     per_bead : bool
         One image per bead (default: the PSF changes over the field of view, and a bead's
         own residual is taken at its own centre), or one pooled over all beads.
+    half : {None, 0, 1}
+        Build the image from the residuals of all frames (None) or of one half of them
+        (:attr:`BeadFits.residual_halves`), so that the other half can score it
+        (:func:`psf_mismatch`).
 
     Returns
     -------
     emccdcal.model.psf.ResidualImage
     """
-    from scipy import ndimage
-
     q = int(oversample)
     if q < 1:
         raise OptionError(f"oversample must be at least 1, got {oversample}")
+    if half not in (None, 0, 1):
+        raise OptionError(f"half must be None, 0 or 1, got {half!r}")
     fits = list(fits)
     B, n = fits[0].residual.shape[:2]
     h = n // 2
     c = int(np.ceil((h + 1.5) * q))                 # nodes from the centre to the edge
     G = 2 * c + 1
-    num = np.zeros((B if per_bead else 1, G, G))
-    den = np.zeros_like(num)
+    K = B if per_bead else 1
+    samples = [[] for _ in range(K)]                # (node row, node col, weight, value)
     local = np.arange(-h, h + 1)
     for fit in fits:
         if fit.residual.shape[:2] != (B, n) or not np.array_equal(fit.positions,
                                                                   fits[0].positions):
             raise OptionError("residual_image needs fits of the same beads and box size")
+        resid, resid_se = _residual_of(fit, half)
         for b in range(B):
-            ok = fit.converged[b]
             N = _mean_intensity(fit, b)
             if not N > 0:
                 continue
-            r, se = fit.residual[b] / N, fit.residual_se[b] / N
+            r, se = resid[b] / N, resid_se[b] / N
             good = np.isfinite(r) & np.isfinite(se) & (se > 0)
-            x0, y0 = fit.params[b, np.argmax(ok), :2]
+            y0, x0 = _bead_centre(fit, b)
             dy = (fit.positions[b, 0] + local - y0)[:, None] * np.ones(n)
             dx = np.ones(n)[:, None] * (fit.positions[b, 1] + local - x0)
-            gy, gx = dy[good] * q + c, dx[good] * q + c      # fractional node indices
-            w = 1.0 / se[good] ** 2
-            iy, ix = np.floor(gy).astype(int), np.floor(gx).astype(int)
-            fy, fx = gy - iy, gx - ix
-            k = b if per_bead else 0
-            for oy, ox, wb in ((0, 0, (1 - fy) * (1 - fx)), (1, 0, fy * (1 - fx)),
-                               (0, 1, (1 - fy) * fx), (1, 1, fy * fx)):
-                jy, jx = iy + oy, ix + ox
-                inside = (jy >= 0) & (jy < G) & (jx >= 0) & (jx < G)
-                np.add.at(num[k], (jy[inside], jx[inside]), (wb * w * r[good])[inside])
-                np.add.at(den[k], (jy[inside], jx[inside]), (wb * w)[inside])
-    sd = (0.0, q / 4.0, q / 4.0)
-    num_s = ndimage.gaussian_filter(num, sd, mode="constant")
-    den_s = ndimage.gaussian_filter(den, sd, mode="constant")
-    floor = 1e-3 * den_s.max(axis=(1, 2), keepdims=True)
-    values = np.where(den_s > floor, num_s / np.where(den_s > floor, den_s, 1.0), 0.0)
-    return psf.ResidualImage(values, q)
+            samples[b if per_bead else 0].append(
+                (dy[good] * q + c, dx[good] * q + c, 1.0 / se[good] ** 2, r[good]))
+    values, variance = np.zeros((2, K, G, G))
+    for k, parts in enumerate(samples):
+        if not parts:
+            continue
+        gy, gx, w, r = (np.concatenate(p) for p in zip(*parts))
+        a, bb = _spread(gy, G, q / 4.0), _spread(gx, G, q / 4.0)   # (samples, G) each
+        num = a.T @ ((w * r)[:, None] * bb)
+        den = a.T @ (w[:, None] * bb)
+        var_num = (a**2).T @ (w[:, None] * bb**2)   # Var(w r) = w, for w = 1/SE²
+        keep = den > 1e-3 * den.max()
+        safe = np.where(keep, den, 1.0)
+        values[k] = np.where(keep, num / safe, 0.0)
+        variance[k] = np.where(keep, var_num / safe**2, 0.0)
+    return psf.ResidualImage(values, q, variance)
 
 
-def psf_mismatch(fit) -> dict:
+def _spread(g, size, sd):
+    """Each sample's weights on a line of ``size`` nodes: bilinear to its two nearest
+    nodes, then a Gaussian of SD ``sd`` nodes (truncated at 4 SD and normalised, as
+    :func:`scipy.ndimage.gaussian_filter`), shape (samples, size). The image's smoothing
+    is separable, so a sample's weight at node (i, j) is the product of its two lines'."""
+    radius = int(4.0 * sd + 0.5)
+    kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sd) ** 2)
+    kernel /= kernel.sum()
+    low = np.floor(g).astype(int)
+    frac = g - low
+    out = np.zeros((len(g), size))
+    nodes = np.arange(size)
+    for shift, weight in ((0, 1.0 - frac), (1, frac)):
+        d = nodes[None, :] - (low + shift)[:, None]
+        inside = np.abs(d) <= radius
+        out += weight[:, None] * np.where(inside, kernel[np.clip(d + radius, 0, 2 * radius)],
+                                          0.0)
+    return out
+
+
+def _bead_centre(fit, b):
+    """Bead ``b``'s fitted centre (row, col) in sensor pixels: its shared position."""
+    x0, y0 = fit.params[b, np.argmax(fit.converged[b]), :2]
+    return y0, x0
+
+
+def _residual_of(fit, half):
+    """The mean residual and its SE of all frames (``half`` None) or of one half."""
+    if half is None:
+        return fit.residual, fit.residual_se
+    return fit.residual_halves[half], fit.residual_halves_se[half]
+
+
+def psf_mismatch(fit, *, half=None, image=None) -> dict:
     """How far the spot model is from the data of one acquisition, pooled over its beads.
+
+    Parameters
+    ----------
+    fit : BeadFits
+    half : {None, 0, 1}
+        Score the mean residual of all frames (None) or of one half of them
+        (:attr:`BeadFits.residual_halves`): the half a residual image was *not* built on
+        gives a goodness of fit on data the image has not seen.
+    image : emccdcal.model.psf.ResidualImage, optional
+        The residual image in the fitted model, built on other frames: its own sampling
+        variance (:meth:`~emccdcal.model.psf.ResidualImage.variance_at`, times N²) is
+        added to each pixel's, since the image's noise is a difference the held-out
+        frames see. Without it χ² reads about 1 + 1/(frames pooled into the image).
 
     Returns
     -------
     dict
         ``chi2_per_pixel``: mean over beads of Σ_k (residual_k / SE_k)² / pixels, ≈ 1 when
-        the spot model describes the mean image to within its noise; ``missed_fraction``:
-        mean over beads of Σ_k residual_k / N, the fraction of the bead's intensity the
-        model misses inside its box (signed); ``abs_fraction``: the same of |residual_k|.
+        the spot model describes the mean image to within its noise; ``chi2_per_pixel_se``:
+        its sampling SD under a right model, √(2/pixels)/beads summed in quadrature;
+        ``missed_fraction``: mean over beads of Σ_k residual_k / N, the fraction of the
+        bead's intensity the model misses inside its box (signed); ``abs_fraction``: the
+        same of |residual_k|.
     """
-    chi2, missed, absolute = [], [], []
+    resid, resid_se = _residual_of(fit, half)
+    n = resid.shape[1]
+    local = np.arange(n) - n // 2
+    chi2, pixels, missed, absolute = [], [], [], []
     for b in range(len(fit.positions)):
         N = _mean_intensity(fit, b)
-        r, se = fit.residual[b], fit.residual_se[b]
-        good = np.isfinite(r) & np.isfinite(se) & (se > 0)
+        r, var = resid[b], resid_se[b] ** 2
+        if image is not None and N > 0:
+            y0, x0 = _bead_centre(fit, b)
+            dy = (fit.positions[b, 0] + local - y0)[:, None] * np.ones(n)
+            dx = np.ones(n)[:, None] * (fit.positions[b, 1] + local - x0)
+            var = var + N**2 * image.variance_at(
+                np.full(n, b if len(image) > 1 else 0), dy, dx)
+        good = np.isfinite(r) & np.isfinite(var) & (var > 0)
         if not N > 0 or not good.any():
             continue
-        chi2.append(float(np.sum((r[good] / se[good]) ** 2) / good.sum()))
+        chi2.append(float(np.sum(r[good] ** 2 / var[good]) / good.sum()))
+        pixels.append(int(good.sum()))
         missed.append(float(r[good].sum() / N))
         absolute.append(float(np.abs(r[good]).sum() / N))
     mean = (lambda v: float(np.mean(v)) if v else float("nan"))
-    return {"chi2_per_pixel": mean(chi2), "missed_fraction": mean(missed),
-            "abs_fraction": mean(absolute)}
+    return {"chi2_per_pixel": mean(chi2),
+            "chi2_per_pixel_se": (float(np.sqrt(np.sum(2.0 / np.array(pixels)))
+                                        / len(pixels)) if pixels else float("nan")),
+            "missed_fraction": mean(missed), "abs_fraction": mean(absolute)}
 
 
 def _pad_range(lo, hi):

@@ -400,7 +400,7 @@ class _Fitted:
 def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WIDTH,
              half_size=bead_fit.DEFAULT_HALF_SIZE, min_separation=None, snr=8.0,
              detect_setpoint=None, progress=False, bleaching="correct", psf="gaussian",
-             blinking="model") -> dict:
+             blinking="model", psf_split="alternate") -> dict:
     """Fit the beads under each calibration and compare their intensities across set-points.
 
     Parameters
@@ -438,6 +438,12 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
         (:func:`emccdcal.beads.fit.residual_image`; "residual-pooled": one image for all
         beads). Either way ``psf_mismatch`` in ``validation.json`` says how well the
         Gaussian describes the beads' mean images, with a warning where it does not.
+    psf_split : {"alternate", "time"}
+        With a residual image: it is built from one half of every acquisition's frames
+        and its goodness of fit scored on the other (:func:`emccdcal.beads.fit.frame_halves`:
+        even and odd frames, or the first and second half in time), so that the score
+        is on data the image has not seen; ``validation.json`` says which
+        (``psf_held_out``).
     blinking : {"model", "ignore"}
         Beads that switch off for some frames (:func:`blinking_level`): at a set-point
         where a bead's intensities are a mixture of an "on" level and zero, take the on
@@ -459,7 +465,8 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
     _check_actions(bleaching, blinking)
     fits = fit_validation(bead_manifest, calibrations, width=width, half_size=half_size,
                           min_separation=min_separation, snr=snr,
-                          detect_setpoint=detect_setpoint, progress=progress, psf=psf)
+                          detect_setpoint=detect_setpoint, progress=progress, psf=psf,
+                          psf_split=psf_split)
     doc = validation_document(fits, bleaching=bleaching, blinking=blinking)
     if out is not None:
         out = Path(out)
@@ -496,11 +503,13 @@ class BeadFits:
     half_size: int
     psf: str
     seconds: float
+    psf_split: str = "alternate"
 
 
 def fit_validation(bead_manifest, calibrations, *, width=bead_fit.DEFAULT_WIDTH,
                    half_size=bead_fit.DEFAULT_HALF_SIZE, min_separation=None, snr=8.0,
-                   detect_setpoint=None, progress=False, psf="gaussian") -> BeadFits:
+                   detect_setpoint=None, progress=False, psf="gaussian",
+                   psf_split="alternate") -> BeadFits:
     """The fitting half of :func:`validate` (same parameters): find the beads and fit
     them under every calibration. :func:`validation_document` then compares them, as
     often as asked (bleaching corrected or not, blinking modelled or not), without
@@ -508,6 +517,9 @@ def fit_validation(bead_manifest, calibrations, *, width=bead_fit.DEFAULT_WIDTH,
     t0 = time.perf_counter()
     if psf not in PSF_MODELS:
         raise OptionError(f"psf must be one of {', '.join(PSF_MODELS)}; got {psf!r}")
+    if psf_split not in bead_fit.RESIDUAL_SPLITS:
+        raise OptionError(f"psf_split must be one of {', '.join(bead_fit.RESIDUAL_SPLITS)}; "
+                          f"got {psf_split!r}")
     manifest = bead_manifest if isinstance(bead_manifest, Manifest) \
         else read_manifest(bead_manifest)
     if not calibrations:
@@ -530,9 +542,9 @@ def fit_validation(bead_manifest, calibrations, *, width=bead_fit.DEFAULT_WIDTH,
     positions = found.positions
     layout = _frame_layout(manifest, acqs)
     fitted = _fit_all(manifest, cals, setpoints, positions, layout, acqs, width=width,
-                      half_size=half_size, psf=psf, progress=progress)
+                      half_size=half_size, psf=psf, psf_split=psf_split, progress=progress)
     return BeadFits(manifest, cals, setpoints, positions, fitted, layout, det_acq,
-                    half_size, psf, time.perf_counter() - t0)
+                    half_size, psf, time.perf_counter() - t0, psf_split)
 
 
 def validation_document(fits: BeadFits, *, bleaching="correct", blinking="model") -> dict:
@@ -542,14 +554,16 @@ def validation_document(fits: BeadFits, *, bleaching="correct", blinking="model"
     _check_actions(bleaching, blinking)
     return _summarise(fits.manifest, fits.cals, fits.setpoints, fits.positions, fits.fitted,
                       fits.layout, fits.detected_on, fits.half_size, fits.seconds,
-                      bleaching=bleaching, blinking=blinking, psf=fits.psf)
+                      bleaching=bleaching, blinking=blinking, psf=fits.psf,
+                      psf_split=fits.psf_split)
 
 
 def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_size, psf,
-             progress) -> _Fitted:
+             psf_split, progress) -> _Fitted:
     """Fit the beads of every acquisition under every calibration: with the width free,
     again with each bead's width pooled over set-points, and (``psf`` other than
-    "gaussian") a third time with the residual image added."""
+    "gaussian") a third time with the residual image added, the image built on one half
+    of the frames (``psf_split``) and scored on the other."""
     B, S, A = len(positions), len(setpoints), len(layout)
     Fmax = max(sum(a.n_frames for a in group) for group in acqs.values())
     names = ("x", "y", "width", "intensity", "background")
@@ -572,7 +586,7 @@ def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_
                _boxes_bytes(g, positions[ok], half_size), cal.em_model,
                None if fixed is None else fixed.tobytes(),
                None if fixed_se is None else fixed_se.tobytes(),
-               None if residual is None else residual.values.tobytes())
+               None if residual is None else residual.values.tobytes(), psf_split)
         if key not in cache:
             # the offset map's own error: the dark frames' SD over their square root
             offset_se = None if not acq.dark_frames else \
@@ -581,7 +595,8 @@ def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_
                 acq.frames(), positions[ok], offset=acq.offset, read_noise=acq.read_noise,
                 e_per_adu=cal.e_per_adu, em_gain=g, half_size=half_size, width=width,
                 adc_max=manifest.adc_max, em_model=cal.em_model, fixed_width=fixed,
-                fixed_width_se=fixed_se, residual=residual, offset_se=offset_se)
+                fixed_width_se=fixed_se, residual=residual, offset_se=offset_se,
+                residual_split=psf_split)
         return cache[key]
 
     passes = 2 if psf == "gaussian" else 3
@@ -617,15 +632,17 @@ def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_
                             if widths is not None else first[j])
                 bar.update(1)
             gaussian = [bead_fit.psf_mismatch(f) for f in fits]
-            if psf != "gaussian":  # the paper's second pass: the residual image added
-                image = bead_fit.residual_image(fits, per_bead=psf == "residual")
+            if psf != "gaussian":  # the paper's second pass: the residual image added,
+                # built on half 0 of the frames; half 1 scores it (psf_mismatch below)
+                image = bead_fit.residual_image(fits, per_bead=psf == "residual", half=0)
                 fits = []
                 for j, slot in enumerate(layout):
                     bar.set_postfix_str(f"{cal.method} {slot.key}x (residual)")
                     fits.append(fit_at(cal, j, ok, widths, image, fixed_se=widths_se))
                     bar.update(1)
             mismatch.append({"gaussian": gaussian} | (
-                {} if psf == "gaussian" else {psf: [bead_fit.psf_mismatch(f) for f in fits]}))
+                {} if psf == "gaussian" else
+                {psf: [bead_fit.psf_mismatch(f, half=1, image=image) for f in fits]}))
             idx = np.flatnonzero(ok)
             for slot, fit in zip(layout, fits):
                 at = (ci, idx, slot.row, slice(slot.first, slot.first + slot.acq.n_frames))
@@ -657,7 +674,7 @@ def _boxes_bytes(m, positions, half_size):
 
 
 def _summarise(manifest, cals, setpoints, positions, fitted, layout, det_acq, half_size,
-               seconds, *, bleaching, blinking, psf) -> dict:
+               seconds, *, bleaching, blinking, psf, psf_split="alternate") -> dict:
     """The content of ``validation.json``: per calibration its beads' mean intensities at
     every set-point and the consistency metric, ranked (most consistent first)."""
     keys = [result.format_setpoint(s) for s in setpoints]
@@ -690,10 +707,22 @@ def _summarise(manifest, cals, setpoints, positions, fitted, layout, det_acq, ha
         "bead_manifest_sha256": manifest.content_hash,
         "detected_on": str(det_acq.frames_path),
         "half_size": int(half_size),
+        **({} if psf == "gaussian" else {"psf_held_out": held_out_description(psf_split)}),
         "emccdcal_version": __version__,
         "created": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "seconds": finite_or_none(seconds),
     }
+
+
+def held_out_description(split) -> dict:
+    """What a residual image was built on and what scored it (``validation.json``'s
+    ``psf_held_out``)."""
+    built, scored = {"alternate": ("even frames", "odd frames"),
+                     "time": ("first half of the frames", "second half of the frames")}[split]
+    return {"split": split, "image_built_on": built, "scored_on": scored,
+            "note": "the residual model's chi2_per_pixel is on frames the image has not "
+                    "seen, its own sampling variance included: about 1 (± chi2_per_pixel_se) "
+                    "where it describes the spot"}
 
 
 def _calibration_entry(cal, ci, keys, setpoints, positions, fitted, layout, times, *,
@@ -821,14 +850,29 @@ def _converged_fraction(cal, fitted, ci, keys) -> dict:
     return fraction
 
 
+def _poor_fits(per_acquisition) -> dict:
+    """χ² per pixel above :data:`PSF_CHI2`, by set-point key."""
+    return {k: m["chi2_per_pixel"] for k, m in per_acquisition.items()
+            if m.get("chi2_per_pixel") is not None and m["chi2_per_pixel"] > PSF_CHI2}
+
+
 def _psf_document(cal, mismatch, layout, psf) -> dict:
     """The PSF checks of each spot model per acquisition; a warning where the Gaussian
-    does not describe the beads' mean images."""
+    does not describe the beads' mean images, and where the residual image does not
+    describe the frames it was not built on."""
     doc = {model: {slot.key: {q: finite_or_none(v) for q, v in m.items()}
                    for slot, m in zip(layout, per_acquisition)}
            for model, per_acquisition in mismatch.items()}
-    poor = {k: m["chi2_per_pixel"] for k, m in doc["gaussian"].items()
-            if m["chi2_per_pixel"] is not None and m["chi2_per_pixel"] > PSF_CHI2}
+    poor = _poor_fits(doc["gaussian"])
+    held_out = _poor_fits(doc.get(psf, {})) if psf != "gaussian" else {}
+    if held_out:
+        warnings.warn(
+            f"{cal.label}: the residual image does not describe the frames it was not "
+            "built on (held-out chi2 per pixel " + ", ".join(
+                f"{v:.1f} at {k}x" for k, v in held_out.items())
+            + "): the spot's shape differs between the halves of the frames, or from "
+            "what the image could learn (--psf-split time tests a change over time)",
+            stacklevel=5)
     if poor:
         warnings.warn(
             f"{cal.label}: the Gaussian spot does not describe the beads' mean images "
@@ -1022,6 +1066,12 @@ def data_checks(entry) -> list[str]:
         out.append(f"PSF not Gaussian (chi2/pixel up to {max(chi2):.1f}; "
                    + ("residual image added)" if entry.get("psf", "gaussian") != "gaussian"
                       else "Gaussian kept)"))
+    model = entry.get("psf", "gaussian")
+    held_out = _poor_fits((entry.get("psf_mismatch") or {}).get(model) or {}) \
+        if model != "gaussian" else {}
+    if held_out:
+        out.append(f"residual image misfits held-out frames (chi2/pixel up to "
+                   f"{max(held_out.values()):.1f})")
     return out
 
 

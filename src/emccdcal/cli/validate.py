@@ -44,6 +44,10 @@ def add_parser(subparsers):
                    help="spot model: the Gaussian, or the paper's second pass with each bead's "
                    "oversampled residual image added (or one pooled over the beads) "
                    "(default %(default)s)")
+    p.add_argument("--psf-split", choices=("alternate", "time"), default="alternate",
+                   help="with a residual image: build it on one half of the frames and score "
+                   "it on the other, even/odd frames or first/second half in time "
+                   "(default %(default)s)")
     p.add_argument("--blinking", choices=("model", "ignore"), default="model",
                    help="beads off in some frames: take the 'on' level of a two-level "
                    "mixture where found, or ignore it (default %(default)s)")
@@ -74,7 +78,7 @@ def run(args) -> int:
                            half_size=args.half_size, min_separation=args.min_separation,
                            snr=args.snr, detect_setpoint=args.detect_setpoint,
                            progress=not args.quiet, bleaching=args.bleaching, psf=args.psf,
-                           blinking=args.blinking)
+                           blinking=args.blinking, psf_split=args.psf_split)
         if not args.no_figures:  # drawn from the files just published
             from ..report.figures import write_validation_figures
 

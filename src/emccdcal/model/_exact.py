@@ -23,6 +23,7 @@ from .cascade import (
     register_transform,
     sample_cascade,
     sample_register_cic,
+    single_electron_moments,
 )
 
 
@@ -233,6 +234,11 @@ class Cascade:
         """Output electrons (float) of ``count`` electrons made inside the register at
         gain g (:func:`emccdcal.model.cascade.sample_register_cic`)."""
         return sample_register_cic(count, g, self.stages, rng).astype(float)
+
+    def single_electron_moments(self, g):
+        """E[X^k], k = 1…4, of the output X of one electron
+        (:func:`emccdcal.model.cascade.single_electron_moments`)."""
+        return single_electron_moments(g, self.stages)
 
     def gain_from_gain_f2(self, y):
         """g with ``g·F²(g, N) = y`` and the slope ``d(g F²)/dg`` there."""

@@ -226,6 +226,12 @@ class Gamma:
         return sample_gamma(electrons, g, rng)
 
     @staticmethod
+    def single_electron_moments(g):
+        """E[X^k], k = 1…4, of the output X of one electron: ``k!·g^k`` (exponential)."""
+        g = float(g)
+        return np.array([g, 2.0 * g**2, 6.0 * g**3, 24.0 * g**4])
+
+    @staticmethod
     def gain_from_gain_f2(y):
         """g with ``g·F² = y`` (F² = 2), and the slope ``d(g F²)/dg`` = 2."""
         y = np.asarray(y, dtype=float)

@@ -73,6 +73,7 @@ __all__ = [
     "stage_probability",
     "mean_gain",
     "single_electron_variance",
+    "single_electron_moments",
     "output_pmf",
     "sample_cascade",
     "sample_register_cic",
@@ -269,6 +270,50 @@ def single_electron_variance(em_gain, stages=DEFAULT_STAGES):
     g = _check_gain(em_gain)
     p = np.asarray(stage_probability(g, stages))
     return (g * (g - 1.0) * (1.0 - p) / (1.0 + p))[()]
+
+
+def single_electron_moments(em_gain, stages=DEFAULT_STAGES):
+    """Raw moments E[X^k], k = 1…4, of the register's output X for one input electron.
+
+    The cumulants of the output after n + 1 stages follow from those after n by the
+    composition of cumulant generating functions ``K_{n+1}(t) = K_n(K_ξ(t))``, ξ the
+    output of one stage for one electron (1 or 2, with P(2) = p; Faà di Bruno to fourth
+    order); N steps from one electron, then cumulants to raw moments. Compound-Poisson
+    input of mean λ has the k-th cumulant ``λ·E[X^k]``: what the third and fourth
+    cumulants of a pixel need (COTS's bias correction).
+
+    Parameters
+    ----------
+    em_gain : float
+        g, mean EM gain (dimensionless, ≥ 1).
+    stages : int, optional
+        N, number of stages (default 536).
+
+    Returns
+    -------
+    ndarray, shape (4,)
+        E[X], E[X²], E[X³], E[X⁴] in electrons^k (E[X] = g).
+
+    Examples
+    --------
+    >>> m = single_electron_moments(5.0, 536)
+    >>> round(float(m[0]), 9), round(float(m[1] - m[0]**2), 6)  # g and Var₁
+    (5.0, 19.880073)
+    """
+    p = float(stage_probability(float(_check_gain(em_gain, scalar=True)), stages))
+    q = 1.0 - p
+    a1, a2, a3, a4 = 1.0 + p, p * q, p * q * (q - p), p * q * (1.0 - 6.0 * p * q)
+    k1, k2, k3, k4 = 1.0, 0.0, 0.0, 0.0  # one electron in
+    for _ in range(int(_check_stages(stages))):
+        k1, k2, k3, k4 = (
+            k1 * a1,
+            k2 * a1**2 + k1 * a2,
+            k3 * a1**3 + 3.0 * k2 * a1 * a2 + k1 * a3,
+            k4 * a1**4 + 6.0 * k3 * a1**2 * a2 + k2 * (3.0 * a2**2 + 4.0 * a1 * a3)
+            + k1 * a4,
+        )
+    return np.array([k1, k2 + k1**2, k3 + 3 * k2 * k1 + k1**3,
+                     k4 + 4 * k3 * k1 + 3 * k2**2 + 6 * k2 * k1**2 + k1**4])
 
 
 def excess_noise_factor(em_gain, stages=DEFAULT_STAGES):
