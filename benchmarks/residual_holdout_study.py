@@ -4,8 +4,9 @@ For ``--seeds`` seeds, beads are simulated (``emccdcal simulate beads``: 64 × 6
 10 beads of 5000 e⁻, ``--frames`` frames at 1 / 5 / 25 / 100 / 300×, the paper's gamma
 register, fitted with it) and fitted as ``emccdcal validate --psf residual`` does under
 the true calibration: each set-point with the width free, again with each bead's width
-pooled, then with each bead's residual image added. Per set-point, the residual model's
-χ² per pixel is scored four ways:
+pooled, then with each bead's residual image added (the offset maps' own error, from
+the darks, in the SEs as validate has it). Per set-point, the residual model's χ² per
+pixel is scored four ways:
 
 - ``in-sample``: the image built on all frames and scored on them (what validate did
   before: it flatters the image, whose own noise it fits);
@@ -53,7 +54,8 @@ def fit_series(stacks, manifest, positions, split, image_half):
         a = acqs[sp]
         return bead_fit.fit_beads(stacks[sp], positions, offset=a.offset,
                                   read_noise=a.read_noise, e_per_adu=PHI, em_gain=GAINS[sp],
-                                  em_model=model, residual_split=split, **kw)
+                                  em_model=model, residual_split=split,
+                                  offset_se=a.read_noise / np.sqrt(a.dark_frames), **kw)
 
     first = {sp: fit(sp) for sp in stacks}
     widths, widths_se = bead_fit.shared_widths(list(first.values()), with_se=True)

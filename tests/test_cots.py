@@ -94,9 +94,9 @@ def test_a_read_noise_dominated_spot_is_unbiased():
     c = np.arange(9) - 4.0
     photo = psf.spot_image([0.2, -0.1, 1.3, 5000.0, 10.0], c, c)
     gains, ses = [], []
-    for seed in range(6):
+    for seed in range(4):  # the mean's SE ~0.6 %: dropping G <= 0 frames would be 8 SE
         stack = simulate_frames(photo, em_gain=1.3, e_per_adu=1.0, offset=580.0,
-                                read_noise=15.5, frames=1000, seed=200 + seed,
+                                read_noise=15.5, frames=800, seed=200 + seed,
                                 multiplication="gamma")
         r = cots.cots_spot(stack, read_noise=15.5)
         raw = r.frame_gain + r.frame_bias[:, 0]

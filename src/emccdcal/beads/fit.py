@@ -41,7 +41,10 @@ Each fit keeps every bead's mean residual (data − model over its frames,
 :attr:`BeadFits.residual`). :func:`residual_image` places them, per unit intensity, on a
 grid finer than the pixels at each pixel's offset from the bead's centre; ``fit_beads(...,
 residual=)`` adds that image to the Gaussian spot, ``E = N·(P + R) + b``: the paper's
-second pass. :func:`psf_mismatch` says how well a fit's model describes the mean images.
+second pass. :func:`psf_mismatch` says how well a fit's model describes the mean images;
+every fit also keeps the mean residual of each half of its frames
+(:func:`frame_halves`), so that an image built on one half is scored on the other, its
+own sampling variance (:attr:`~emccdcal.model.psf.ResidualImage.variance`) counted.
 
 How it is computed
 ------------------
@@ -152,7 +155,8 @@ class BeadFits:
         pixel per frame; NaN for a bead without any). What the spot model misses: the
         input of :func:`residual_image`.
     residual_se : ndarray, shape (B, 2Δ + 1, 2Δ + 1)
-        Standard error of ``residual`` (SD over frames / √frames), e⁻.
+        Standard error of ``residual``, e⁻: the SD over frames / √frames and the offset
+        map's own error (``offset_se``, the same in every frame) in quadrature.
     residual_halves, residual_halves_se : ndarray, shape (2, B, 2Δ + 1, 2Δ + 1)
         The same over each half of the frames (:func:`frame_halves`): a residual image
         built on one half is scored on the other (:func:`psf_mismatch`).
@@ -515,8 +519,8 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         width_se = np.broadcast_to(np.asarray(fixed_width_se, dtype=float), (B,))
         width_var = (_width_effect(Hb, arrow, shared_cov, shared, frame, converged)
                      * width_se) ** 2
-    r_mean, r_var, half_mean, half_var, W = _mean_residual(box, p2, E_all, info_all,
-                                                           converged, residual_split)
+    r_mean, r_var, half_mean, half_var, W = _mean_residual(
+        box, p2, E_all, info_all, converged, residual_split, (s0_se / box.theta) ** 2)
     n_offset_se = _offset_error(box, pb, converged, sorted(shared + frame), W, s0_se)
     params = p2.copy()
     params[:, 0] += np.repeat(pos[:, 1], F)
@@ -786,12 +790,14 @@ def _width_effect(Hb, arrow, shared_cov, shared, frame, converged, width=2):
                         / np.maximum(n, 1), np.nan)
 
 
-def _mean_residual(box, p, E_all, info_all, converged, split):
+def _mean_residual(box, p, E_all, info_all, converged, split, offset_var):
     """What the model misses: the mean of data − model over a bead's converged frames
     (but for frames whose intensity is held at its bound, a bead that was off: their
     residual is not centred on zero) and its variance, (B, npix) each; the same for
     each half of the frames (:func:`frame_halves`), (2, B, npix) each; and the mean
-    information per pixel over the frames used."""
+    information per pixel over the frames used. The variances are the frames' scatter
+    over their number plus ``offset_var``, the offset map's own error (e⁻², (B, npix)):
+    the same in every frame, it is in the mean residual whatever the frames."""
     B, F, npix = box.B, box.F, box.npix
     use = _residual_frames(converged, p[:, 3].reshape(B, F))[..., None] & (box.weight > 0)
     resid = (box.y_m - E_all).reshape(B, F, npix)
@@ -802,7 +808,7 @@ def _mean_residual(box, p, E_all, info_all, converged, split):
             r = np.where(sel, resid, 0.0)
             mean = r.sum(axis=1) / count
             var = (np.where(sel, (r - mean[:, None]) ** 2, 0.0).sum(axis=1)
-                   / (count - 1) / count)
+                   / (count - 1) / count) + offset_var
         return np.where(count > 1, mean, np.nan), np.where(count > 1, var, np.nan)
 
     r_mean, r_var = mean_var(use)

@@ -23,7 +23,8 @@ background shared by its frames, then again with each bead's width pooled over t
 set-points (:func:`emccdcal.beads.fit.shared_widths`), so that a width error cannot
 differ between set-points; the second pass gives the intensities (or, with ``psf=
 "residual"``, a third pass with each bead's oversampled residual image added to the
-spot: the paper's second pass). ``converged_fraction`` says per set-point how many frames
+spot: the paper's second pass, the image built on one half of the frames and its fit
+scored on the other). ``converged_fraction`` says per set-point how many frames
 converged, and below 99 % a warning says so.
 
 What real beads do besides is measured, reported and, by default, undone before the
@@ -877,7 +878,10 @@ def _psf_document(cal, mismatch, layout, psf) -> dict:
         warnings.warn(
             f"{cal.label}: the Gaussian spot does not describe the beads' mean images "
             "(chi2 per pixel " + ", ".join(f"{v:.1f} at {k}x" for k, v in poor.items())
-            + "); " + ("the residual image was added (--psf " + psf + ")"
+            + "): the PSF is not Gaussian, or this calibration's pixel-to-pixel error in "
+            "e_per_adu or gain puts the same pattern in every frame (then other "
+            "calibrations of the same beads score lower); "
+            + ("the residual image was added (--psf " + psf + ")"
                        if psf != "gaussian" else
                        "a PSF mismatch can weigh differently at different set-points: "
                        "try --psf residual"), stacklevel=5)
@@ -1063,7 +1067,8 @@ def data_checks(entry) -> list[str]:
     gauss = (entry.get("psf_mismatch") or {}).get("gaussian") or {}
     chi2 = [m["chi2_per_pixel"] for m in gauss.values() if m.get("chi2_per_pixel") is not None]
     if chi2 and max(chi2) > PSF_CHI2:
-        out.append(f"PSF not Gaussian (chi2/pixel up to {max(chi2):.1f}; "
+        out.append(f"Gaussian misfits the mean images (chi2/pixel up to {max(chi2):.1f}: "
+                   "PSF, or the calibration's pixel-to-pixel error; "
                    + ("residual image added)" if entry.get("psf", "gaussian") != "gaussian"
                       else "Gaussian kept)"))
     model = entry.get("psf", "gaussian")
