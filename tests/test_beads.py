@@ -455,8 +455,8 @@ def test_a_residual_image_is_scored_on_frames_it_was_not_built_on(fitted):
 
     halo = bead_scene(TRUE_POS, N_TRUE, WIDTH, BACKGROUND, *SHAPE, halo=0.2, halo_width=3.0)
     later = simulate_frames(halo, em_gain=261.6, e_per_adu=PHI, offset=_offset_map(),
-                            read_noise=SIGMA, frames=FRAMES // 2, seed=33)
-    stack = np.concatenate([frames[: FRAMES // 2], later])
+                            read_noise=SIGMA, frames=FRAMES // 4, seed=33)
+    stack = np.concatenate([frames[: FRAMES // 4], later])  # 150 frames: the halo at 5+ SE
     chi2 = {}
     for split in ("time", "alternate"):
         gauss = bead_fit.fit_beads(stack, before.positions, residual_split=split, **kw)

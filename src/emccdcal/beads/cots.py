@@ -17,15 +17,15 @@ every frame of one isolated spot:
    (:func:`fit_variance_model`, Fisher scoring vectorised over frames).
 4. **Bias and covariance.** The bias of (G, H) from E_i having been fitted to the same
    counts (first order in 1/pixels, from f), plus the small-sample bias of the variance
-   fit itself, and the sandwich covariance, from f and the model's own cumulants
-   (:func:`variance_bias_covariance`; derivation in ``docs/cots.md``). Evaluated at the
-   bias-corrected frame average, not at each frame's own (±30 %) estimate.
+   fit itself, and the sandwich covariance, from f and the register's own cumulants with
+   the read noise taken out of them (:func:`variance_bias_covariance`; derivation in
+   ``docs/cots.md``). Evaluated at the bias-corrected frame average, not at each frame's
+   own (±30 %) estimate; frames whose G fits at or below zero are part of that average.
 5. **Average over frames.** ``G = mean_f(G_f − ΔG_f)`` with ``Var = mean_f(var G_f)/n``,
    ``S0 = mean_f(H_f − ΔH_f)/G`` with its delta-method variance (:func:`cots_spot`).
 
 This module holds the numerics of one spot; :mod:`emccdcal.beads.cots_calibration` runs
-them on every bead of a manifest. ``docs/cots.md`` has the assumptions (F² = 2 and no read
-noise: biased at low gain) and measured figures.
+them on every bead of a manifest. ``docs/cots.md`` has the assumptions and measured figures.
 """
 
 from __future__ import annotations
@@ -354,7 +354,7 @@ def _hat_moments(expected, hat, read_var):
     return out
 
 
-def _noise_moments(mom, e, alpha, ratios):
+def _noise_moments(mom, e, alpha, cumulants):
     """Per pixel: v, E r², E δ², E r δ, E r² δ, E r² δ² at true (G, H) = alpha."""
     g, hh = alpha[:, :1], alpha[:, 1:]
 
@@ -363,7 +363,7 @@ def _noise_moments(mom, e, alpha, ratios):
 
     v = 2.0 * (g * e - hh)
     m, d, c = lin("mm"), lin("ff"), lin("mf")
-    t = ratios[0] * g * (lin("mmf") - mom["mmf_s"])  # κ3 = c3 G (v − σ²)
+    t = cumulants[0] * g * (lin("mmf") - mom["mmf_s"])  # κ3 = c3 G (v − σ²)
     return v, m, d, t, m * d + 2.0 * c**2
 
 
@@ -411,12 +411,12 @@ def _expected_score(ast, e, moments):
     return score, jac
 
 
-def _fourth_cumulant(g, v, read_var, ratios):
+def _fourth_cumulant(g, v, read_var, cumulants):
     """κ4 = c4 G² (v − σ²) per pixel: the register's; read noise (Gaussian) has none."""
-    return ratios[1] * g**2 * np.maximum(v - read_var, 0.0)
+    return cumulants[1] * g**2 * np.maximum(v - read_var, 0.0)
 
 
-def _small_sample_bias(e, alpha, read_var, ratios):
+def _small_sample_bias(e, alpha, read_var, cumulants):
     """O(1/n) bias of the variance fit with E_i known (second-order M-estimator expansion).
 
     Zero for Gaussian noise; not zero for the register's heavy-tailed noise (κ4).
@@ -424,7 +424,7 @@ def _small_sample_bias(e, alpha, read_var, ratios):
     g = alpha[:, :1]
     v = 2.0 * (g * e - alpha[:, 1:])
     iv2 = 1.0 / v**2
-    wv = 2 * v**2 + _fourth_cumulant(g, v, read_var, ratios)  # Var ε_i²
+    wv = 2 * v**2 + _fourth_cumulant(g, v, read_var, cumulants)  # Var ε_i²
     a_inv = _inv2(_uu(iv2, e))
     c0 = a_inv @ _uu(wv * iv2 * iv2, e) @ a_inv
     coef = (2 * _quad(c0, e) - 2 * wv * iv2 * _quad(a_inv, e)) * iv2 / v
@@ -432,14 +432,14 @@ def _small_sample_bias(e, alpha, read_var, ratios):
     return np.einsum("fjk,fk->fj", a_inv, inner)
 
 
-def _pseudo_true(mom, e, alpha, ratios, start=None, max_iter=50):
+def _pseudo_true(mom, e, alpha, cumulants, start=None, max_iter=50):
     """Where each frame's variance fit lands on average when the truth is ``alpha``.
 
     Solves E ψ_f(α*) = 0 (Newton from ``start``, default ``alpha``, kept inside v* > 0)
     and adds the small-sample bias. Returns that (F, 2), the root α* itself (a warm start
     for a nearby ``alpha``) and whether every frame's solve converged.
     """
-    moments = _noise_moments(mom, e, alpha, ratios)
+    moments = _noise_moments(mom, e, alpha, cumulants)
     ast = (alpha if start is None else start).copy()
     ok = np.zeros(len(e), bool)
     for _ in range(max_iter):
@@ -458,10 +458,10 @@ def _pseudo_true(mom, e, alpha, ratios, start=None, max_iter=50):
                     axis=1)
         if ok.all():
             break
-    return ast + _small_sample_bias(e, alpha, mom["read_var"], ratios), ast, ok
+    return ast + _small_sample_bias(e, alpha, mom["read_var"], cumulants), ast, ok
 
 
-def _covariance(expected, qh, alpha, alpha_fit, read_var, ratios):
+def _covariance(expected, qh, alpha, alpha_fit, read_var, cumulants):
     """Sandwich covariance of the per-frame (Ĝ, Ĥ), not bias-corrected.
 
     ``alpha`` sets the true noise (v, κ4), ``alpha_fit`` is where the fit lands on
@@ -473,7 +473,7 @@ def _covariance(expected, qh, alpha, alpha_fit, read_var, ratios):
     g = alpha[:, :1]
     v = 2.0 * (g * e - alpha[:, 1:])
     vs = 2.0 * (alpha_fit[:, :1] * e - alpha_fit[:, 1:])
-    k4 = _fourth_cumulant(g, v, read_var, ratios)
+    k4 = _fourth_cumulant(g, v, read_var, cumulants)
     qt = np.swapaxes(qh, 1, 2)
     hat = qh @ qt
     m2 = (np.eye(e.shape[1])[None] - hat) ** 2
@@ -509,7 +509,7 @@ def register_cumulants(register, gain, e_per_adu):
     ----------
     register : a register of :mod:`emccdcal.model.noise` (``EMModel(...).register``)
     gain : float
-        COTS's G under F² = 2, ADU/e⁻ (where the gain g is read: the ratios vary slowly).
+        COTS's G under F² = 2, ADU/e⁻ (where the gain g is read: the cumulants vary slowly).
     e_per_adu : float
         φ, e⁻/ADU.
 
@@ -729,7 +729,7 @@ def cots_spot(stack, *, roi=None, width=DEFAULT_WIDTH, init=None, gain0=None, of
         Read-noise SD σ (ADU) of the pixels of ``stack``, e.g. from the darks: the bias
         correction's third and fourth cumulants are the register's alone, which read
         noise dilutes. 0 (COTS as published) overstates them where read noise dominates
-        the variance, and reads low gains high (+4 % at 5× with σ = 15.5 ADU).
+        the variance (about −0.4 % of G at 5× with σ = 15.5 ADU; docs/cots.md).
     register : a register of :mod:`emccdcal.model.noise`, optional
         The EM register whose cumulants the bias correction uses
         (:func:`register_cumulants`, at the uncorrected G); default the gamma register's.
