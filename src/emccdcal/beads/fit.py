@@ -932,7 +932,6 @@ def residual_image(fits, *, oversample=4, per_bead=True, half=None) -> psf.Resid
     G = 2 * c + 1
     K = B if per_bead else 1
     samples = [[] for _ in range(K)]                # (node row, node col, weight, value)
-    local = np.arange(-h, h + 1)
     for fit in fits:
         if fit.residual.shape[:2] != (B, n) or not np.array_equal(fit.positions,
                                                                   fits[0].positions):
@@ -944,9 +943,7 @@ def residual_image(fits, *, oversample=4, per_bead=True, half=None) -> psf.Resid
                 continue
             r, se = resid[b] / N, resid_se[b] / N
             good = np.isfinite(r) & np.isfinite(se) & (se > 0)
-            y0, x0 = _bead_centre(fit, b)
-            dy = (fit.positions[b, 0] + local - y0)[:, None] * np.ones(n)
-            dx = np.ones(n)[:, None] * (fit.positions[b, 1] + local - x0)
+            dy, dx = _box_offsets(fit, b, n)
             samples[b if per_bead else 0].append(
                 (dy[good] * q + c, dx[good] * q + c, 1.0 / se[good] ** 2, r[good]))
     values, variance = np.zeros((2, K, G, G))
@@ -985,10 +982,13 @@ def _spread(g, size, sd):
     return out
 
 
-def _bead_centre(fit, b):
-    """Bead ``b``'s fitted centre (row, col) in sensor pixels: its shared position."""
+def _box_offsets(fit, b, n):
+    """Offsets (dy, dx) of bead ``b``'s n × n box pixels from its fitted centre (its
+    shared position), pixel, shape (n, n) each: where its residual image is read."""
     x0, y0 = fit.params[b, np.argmax(fit.converged[b]), :2]
-    return y0, x0
+    local = np.arange(n) - n // 2
+    return ((fit.positions[b, 0] + local - y0)[:, None] * np.ones(n),
+            np.ones(n)[:, None] * (fit.positions[b, 1] + local - x0))
 
 
 def _residual_of(fit, half):
@@ -1026,15 +1026,12 @@ def psf_mismatch(fit, *, half=None, image=None) -> dict:
     """
     resid, resid_se = _residual_of(fit, half)
     n = resid.shape[1]
-    local = np.arange(n) - n // 2
     chi2, pixels, missed, absolute = [], [], [], []
     for b in range(len(fit.positions)):
         N = _mean_intensity(fit, b)
         r, var = resid[b], resid_se[b] ** 2
         if image is not None and N > 0:
-            y0, x0 = _bead_centre(fit, b)
-            dy = (fit.positions[b, 0] + local - y0)[:, None] * np.ones(n)
-            dx = np.ones(n)[:, None] * (fit.positions[b, 1] + local - x0)
+            dy, dx = _box_offsets(fit, b, n)
             var = var + N**2 * image.variance_at(
                 np.full(n, b if len(image) > 1 else 0), dy, dx)
         good = np.isfinite(r) & np.isfinite(var) & (var > 0)
