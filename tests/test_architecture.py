@@ -182,3 +182,35 @@ def test_no_function_is_longer_than_a_reader_can_hold():
     lengths = module.function_lengths()
     assert len(lengths) > 500  # it found the package's functions
     assert not [where for n, where in lengths if n > 120]
+
+
+def test_modules_needing_an_extra_are_left_out_of_collection_without_it():
+    """A fresh clone's ``make test`` installs ``.[test]`` only: every package module that
+    imports a package of another extra at module level must be in the root conftest's
+    table, which leaves it out of the doctest collection where that extra is missing."""
+    import importlib.metadata
+    import importlib.util
+    import re
+
+    spec = importlib.util.spec_from_file_location("root_conftest",
+                                                  SRC.parents[1] / "conftest.py")
+    root_conftest = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(root_conftest)
+    requires = importlib.metadata.requires("emccdcal") or []
+    core = {re.split(r"[<>=;\[ ]", r, maxsplit=1)[0].lower().replace("-", "_")
+            for r in requires if "extra ==" not in r}
+    core |= {"yaml", "tomllib", "tomli", "tomli_w"}  # import names of core distributions
+    stdlib = set(sys.stdlib_module_names)
+    for path in SRC.rglob("*.py"):
+        tree = ast.parse(path.read_text())
+        top = {a.name.split(".")[0] for n in tree.body if isinstance(n, ast.Import)
+               for a in n.names}
+        top |= {n.module.split(".")[0] for n in tree.body
+                if isinstance(n, ast.ImportFrom) and n.module and not n.level}
+        optional = top - stdlib - core - {"emccdcal", "__future__"}
+        key = path.relative_to(SRC.parents[1]).as_posix()
+        if optional:
+            assert key in root_conftest._OPTIONAL, (
+                f"{key} imports {sorted(optional)} at module level: add it to the root "
+                "conftest's _OPTIONAL (or import them inside the functions that need them)")
+            assert set(root_conftest._OPTIONAL[key]) >= optional, key
