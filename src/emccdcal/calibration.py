@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import __version__, result
+from . import __version__, identity, result
 from ._output import Output
 from ._util import check_int, e_per_adu_map
 from ._util import progress as progress_bar
@@ -463,6 +463,7 @@ def calibrate(
     intervals="wald",
     em_model=None,
     stages=None,
+    accept_mismatch=(),
 ) -> xarray.Dataset:
     """Calibrate a camera from the acquisitions of a manifest.
 
@@ -548,6 +549,10 @@ def calibrate(
         likelihood on the sensor's middle pixels over :data:`STAGE_GRID` (128–4096) and
         records the profile (``attrs["register_stages_grid"]``,
         ``attrs["register_stages_profile"]``, Δ log-likelihood in nats).
+    accept_mismatch : iterable of str
+        Identity fields (:data:`emccdcal.identity.ACCEPTABLE`) in which the frames may
+        differ from the result φ is taken from: by default φ of another camera or read-out
+        state is refused.
 
     Returns
     -------
@@ -582,7 +587,8 @@ def calibrate(
         ds = result.run_recorded(
             lambda: _run_calibration(manifest, method, e_per_adu, target, resume, overwrite,
                                      block_size, tile_pixels, scheduler, options, progress,
-                                     workers, checks, map_errors, intervals, em_model, stages),
+                                     workers, checks, map_errors, intervals, em_model, stages,
+                                     accept_mismatch=accept_mismatch),
         )
         if out is not None:
             result.save(ds, out, seconds=ds.attrs["seconds"], stale=RESULT_FILES)
@@ -630,7 +636,7 @@ def _input_files(manifest, used, phi_source) -> list[Path]:
 
 def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, block_size,
                      tile_pixels, scheduler, options, progress, workers, checks, map_errors,
-                     intervals, em_model=None, stages=None):
+                     intervals, em_model=None, stages=None, *, accept_mismatch=()):
     manifest = _load(manifest)
     auto = isinstance(stages, str) and stages == "auto"
     model, stages_source = noise.choose_em_model(
@@ -638,7 +644,7 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
         manifest_stages=manifest.register_stages, camera_model=manifest.camera.get("model"))
     acqs = manifest.acquisitions
     rows, cols = manifest.shape
-    phi_map, phi_se, phi_source = _e_per_adu_inputs(manifest, e_per_adu)
+    phi_map, phi_se, phi_source = _e_per_adu_inputs(manifest, e_per_adu, accept_mismatch)
     setpoints_all = [a.em_gain_setpoint for a in acqs]
     options = layouts.check_options(method, options)  # before any stack is read
     if method.startswith("mv-"):
@@ -701,12 +707,7 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
         ds.attrs["standard_errors"] = se_note
     if method != "mv-adu":  # the register model of the likelihood, or mv-gain's F²
         ds.attrs.update(model.attrs, **register_attrs)
-    if manifest.origin is not None:  # where these pixels are on the sensor
-        ds.attrs["sensor_origin"] = np.array(manifest.origin, dtype=np.int64)
-    if manifest.binning is not None:
-        ds.attrs["binning"] = np.array(manifest.binning, dtype=np.int64)
-    if manifest.camera:  # the read-out state this calibration holds for
-        ds.attrs["camera"] = json.dumps(manifest.camera)
+    ds.attrs.update(result.identity_attrs(manifest))  # the camera and pixels it holds for
     if phi_source is not None:
         ds.attrs["e_per_adu_source"] = phi_source
     if phi_se is not None:
@@ -762,7 +763,7 @@ def _quality(manifest, used, parts, tiles):
     return report, [w for w in report["warnings"] if not any(w in g or g in w for g in grown)]
 
 
-def _e_per_adu_inputs(manifest, e_per_adu):
+def _e_per_adu_inputs(manifest, e_per_adu, accept_mismatch=()):
     """φ (e⁻/ADU) map, its standard-error map (or None) and where they came from (or None).
 
     ``e_per_adu`` (else the manifest's) is a number, a (rows, cols) map, or the path of an
@@ -790,10 +791,10 @@ def _e_per_adu_inputs(manifest, e_per_adu):
         se = np.asarray(ds.e_per_adu_se.values, dtype=float)
         ok = np.asarray(ds.converged.values, dtype=bool)
         binning = ds.attrs.get("binning")
-        if (binning is not None and manifest.binning is not None
-                and tuple(int(b) for b in binning) != tuple(manifest.binning)):
-            raise OptionError(f"e_per_adu from '{path}': binned {tuple(int(b) for b in binning)}, "
-                              f"but the manifest's stacks {manifest.binning}: other pixels")
+        identity.check({**result.camera_of(ds, path),
+                        **({} if binning is None else {"binning": binning})},
+                       {manifest.path: manifest.identity()}, label=f"e_per_adu from '{path}'",
+                       accept=accept_mismatch, what="frames of the manifest")
         crop = _crop_to(manifest, path, phi.shape, ds.attrs.get("sensor_origin"))
         phi, se, ok = phi[crop], se[crop], ok[crop]
         ok &= np.isfinite(phi) & (phi > 0)

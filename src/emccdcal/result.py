@@ -49,7 +49,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from . import defaults
+from . import defaults, identity
 from ._output import read_netcdf, write_netcdf
 from ._util import finite_or_none, format_setpoint, one_line  # noqa: F401 - re-exported
 from .errors import InputError, MissingFileError, OptionError
@@ -72,7 +72,6 @@ __all__ = [
     "IDENTITY_FIELDS",
     "camera_of",
     "result_files",
-    "identity_mismatches",
 ]
 
 CALIBRATION_FILE = "calibration.nc"
@@ -881,38 +880,16 @@ class Calibration:
 IDENTITY_FIELDS = defaults.IDENTITY_FIELDS
 
 
-def _identity_value(key, value):
-    if value is None:
-        return None
-    if key == "binning":
-        return tuple(int(v) for v in value)
-    if key in ("readout_rate_mhz", "adc_bits"):
-        return float(value)
-    return str(value).strip()
-
-
-def identity_mismatches(expected: dict, found: dict, *, accept=()) -> dict[str, str]:
-    """The identity fields (:data:`IDENTITY_FIELDS`) that both record and that differ,
-    each with a phrase ``"camera serial 'B' (calibration: 'A')"``; ``accept`` names
-    fields let through.
-
-    Examples
-    --------
-    >>> identity_mismatches({"serial": "A", "adc_bits": 16}, {"serial": "B"})
-    {'serial': "camera serial 'B' (calibration: 'A')"}
-    """
-    unknown = set(accept) - set(IDENTITY_FIELDS)
-    if unknown:
-        raise OptionError(f"--accept-mismatch takes {', '.join(IDENTITY_FIELDS)}; got "
-                          f"{', '.join(sorted(unknown))}")
-    out = {}
-    for key, what in IDENTITY_FIELDS.items():
-        a, b = _identity_value(key, expected.get(key)), _identity_value(key, found.get(key))
-        if key not in accept and a is not None and b is not None and a != b:
-            shown = {tuple: lambda v: "x".join(map(str, v)), float: lambda v: f"{v:g}"}
-            fmt = shown.get(type(a), repr)
-            out[key] = f"{what} {fmt(b)} (calibration: {fmt(a)})"
-    return out
+def identity_attrs(manifest) -> dict:
+    """The attributes by which every result knows the camera, read-out state and pixels it
+    holds for: ``camera`` (JSON), ``binning`` and ``sensor_origin``, as far as the
+    manifest's frames record them."""
+    attrs = {"camera": json.dumps(manifest.camera)}
+    if manifest.origin is not None:
+        attrs["sensor_origin"] = np.array(manifest.origin, dtype=np.int64)
+    if manifest.binning is not None:
+        attrs["binning"] = np.array(manifest.binning, dtype=np.int64)
+    return attrs
 
 
 def result_files(specs) -> list[Path]:
@@ -1044,7 +1021,7 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
                 if np.isfinite(s) and s not in store:
                     store[s] = np.nanmedian(maps[np.asarray(at) == s], axis=0)
         recorded = camera_of(ds, f)
-        differ = identity_mismatches(camera, recorded)
+        differ = identity.mismatches(camera, recorded)
         if differ:
             raise OptionError(f"{label}: {f} is of another camera or read-out state than "
                               f"the members before it: {'; '.join(differ.values())}")

@@ -146,7 +146,7 @@ def _cots_calibrate(manifest, half_size, width, em_model, stages, progress):
         manifest_hash=manifest.content_hash,
         manifest_path=str(manifest.path.resolve()),
         extra=_bead_variables(beads, table),
-        attrs={"half_size": half_size, "width": float(width),
+        attrs={**result.identity_attrs(manifest), "half_size": half_size, "width": float(width),
                "bead_frames": str(ref.frames_path), **model.attrs,
                **({"register_stages_source": stages_source} if stages_source else {})},
     )

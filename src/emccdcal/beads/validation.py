@@ -61,7 +61,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .. import result
+from .. import identity, result
 from .._output import atomic_write, atomic_write_text, read_netcdf, write_netcdf
 from .._util import finite_or_none
 from .._util import progress as progress_bar
@@ -401,7 +401,7 @@ class _Fitted:
 def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WIDTH,
              half_size=bead_fit.DEFAULT_HALF_SIZE, min_separation=None, snr=8.0,
              detect_setpoint=None, progress=False, bleaching="correct", psf="gaussian",
-             blinking="model", psf_split="alternate") -> dict:
+             blinking="model", psf_split="alternate", accept_mismatch=()) -> dict:
     """Fit the beads under each calibration and compare their intensities across set-points.
 
     Parameters
@@ -450,6 +450,10 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
         where a bead's intensities are a mixture of an "on" level and zero, take the on
         level rather than the mean (default), or ignore blinking (the plain mean). Either
         way ``validation.json`` reports the frames found off (``blinking``).
+    accept_mismatch : iterable of str
+        Identity fields (:data:`emccdcal.identity.ACCEPTABLE`) in which the bead frames
+        may differ from a calibration: by default a calibration of another camera or
+        read-out state is refused.
 
     Returns
     -------
@@ -467,7 +471,7 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
     fits = fit_validation(bead_manifest, calibrations, width=width, half_size=half_size,
                           min_separation=min_separation, snr=snr,
                           detect_setpoint=detect_setpoint, progress=progress, psf=psf,
-                          psf_split=psf_split)
+                          psf_split=psf_split, accept_mismatch=accept_mismatch)
     doc = validation_document(fits, bleaching=bleaching, blinking=blinking)
     if out is not None:
         out = Path(out)
@@ -510,7 +514,7 @@ class BeadFits:
 def fit_validation(bead_manifest, calibrations, *, width=bead_fit.DEFAULT_WIDTH,
                    half_size=bead_fit.DEFAULT_HALF_SIZE, min_separation=None, snr=8.0,
                    detect_setpoint=None, progress=False, psf="gaussian",
-                   psf_split="alternate") -> BeadFits:
+                   psf_split="alternate", accept_mismatch=()) -> BeadFits:
     """The fitting half of :func:`validate` (same parameters): find the beads and fit
     them under every calibration. :func:`validation_document` then compares them, as
     often as asked (bleaching corrected or not, blinking modelled or not), without
@@ -536,6 +540,8 @@ def fit_validation(bead_manifest, calibrations, *, width=bead_fit.DEFAULT_WIDTH,
                               f"{seen[cal.sha256]}); give each once")
         seen[cal.sha256] = cal.label
     for cal in cals:
+        identity.check(cal.identity(), {manifest.path: manifest.identity()}, label=cal.label,
+                       accept=accept_mismatch, what="bead frames")
         for s in setpoints:
             cal.gain(s)  # raises for a missing set-point, before any fitting
     found, det_acq = _detect(manifest, acqs, detect_setpoint, width, half_size,

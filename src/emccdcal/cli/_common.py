@@ -41,13 +41,14 @@ def add_overwrite(p: argparse.ArgumentParser) -> None:
 
 
 def add_accept_mismatch(p: argparse.ArgumentParser) -> None:
-    from ..defaults import IDENTITY_FIELDS
+    from ..identity import ACCEPTABLE
 
     p.add_argument("--accept-mismatch", action="append", default=[], metavar="FIELD",
-                   choices=tuple(IDENTITY_FIELDS),
+                   choices=ACCEPTABLE,
                    help="let the files differ from the calibration in FIELD (repeatable; "
-                   f"one of {', '.join(IDENTITY_FIELDS)}): by default a calibration is "
-                   "used only on frames of the camera and read-out state it calibrated")
+                   f"one of {', '.join(ACCEPTABLE)}): by default a calibration is "
+                   "used only on frames of the camera, read-out state and set-point it "
+                   "calibrated")
 
 
 def output(args, path, *, kind: str = "folder", inputs=(), names=(), stage: bool = True):
@@ -90,11 +91,18 @@ def add_no_figures(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-figures", action="store_true", help="do not write the figures")
 
 
-def add_e_per_adu(p: argparse.ArgumentParser) -> None:
+def add_e_per_adu(p: argparse.ArgumentParser, *, results: bool = True) -> None:
+    """``--e-per-adu``: a number, or (``results``) an is-adu or mv-adu result, which comes
+    with ``--accept-mismatch`` (a result is of one camera and read-out state)."""
+    if not results:
+        p.add_argument("--e-per-adu", type=positive_float, default=None, metavar="PHI",
+                       help="ADU conversion factor phi, e-/ADU, overriding the manifest's")
+        return
     p.add_argument("--e-per-adu", type=number_or_path, default=None, metavar="PHI",
                    help="ADU conversion factor phi, e-/ADU, overriding the manifest's: a "
                    "number, or an is-adu or mv-adu result (its directory or calibration.nc), "
                    "whose phi and standard error per pixel are then used")
+    add_accept_mismatch(p)
 
 
 def add_em_model(p: argparse.ArgumentParser, *, auto: bool = True) -> None:
@@ -220,6 +228,7 @@ def add_calibration_source(p: argparse.ArgumentParser, *, many: bool = False,
     g.add_argument("--db", type=Path, metavar="PATH",
                    help="database file (default: $EMCCDCAL_DB, else calibrations.sqlite in "
                    "the user's data directory)")
+    add_accept_mismatch(p)
 
 
 def calibration_of(args, setpoint):

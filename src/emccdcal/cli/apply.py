@@ -32,7 +32,6 @@ def add_parser(subparsers):
                    help="quantum efficiency at the emission wavelength (0 < Q <= 1): "
                    "write photons, photoelectrons / Q")
     _common.add_overwrite(p)
-    _common.add_accept_mismatch(p)
     _common.add_quiet(p)
     p.set_defaults(func=run)
     return p

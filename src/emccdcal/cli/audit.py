@@ -40,7 +40,6 @@ def add_parser(subparsers):
     p.add_argument("--offset-tolerance", type=_common.positive_float, metavar="ADU",
                    help="baseline error beyond which the tool is off (default: the "
                    "calibrated offset's spread over pixels plus 1 ADU)")
-    _common.add_accept_mismatch(p)
     _common.add_quiet(p)
     p.set_defaults(func=run)
     return p

@@ -78,7 +78,7 @@ def run(args) -> int:
                        options=options, progress=not args.quiet,
                        checks=not args.no_checks, map_errors=not args.conditional_se,
                        intervals=args.intervals, em_model=args.em_model,
-                       stages=args.stages)
+                       stages=args.stages, accept_mismatch=args.accept_mismatch)
         if args.report:
             from ..report.html import REPORT_FILE, write_report
 

@@ -30,7 +30,6 @@ def add_parser(subparsers):
                    help="pixel size in the sample plane, nm (written where a tool takes it)")
     p.add_argument("--camera-name", metavar="NAME",
                    help="the camera's name in Picasso's configuration")
-    _common.add_accept_mismatch(p)
     _common.add_quiet(p)
     p.set_defaults(func=run)
     return p

@@ -34,7 +34,6 @@ def add_parser(subparsers):
     p.add_argument("--setpoint", type=_common.positive_float, default=None, metavar="G",
                    help="the frames' EM-gain set-point (default: what their file records)")
     _common.add_calibration_source(p, option=True)
-    p.set_defaults(accept_mismatch=[])
     p.add_argument("--z", type=_common.positive_float, default=3.0,
                    help="flag a difference beyond z combined SEs (default %(default)s)")
     p.add_argument("--record", action="store_true",
@@ -75,10 +74,17 @@ def run(args) -> int:
     from ..export.gain_check import compare, verdict
     from ..fit.darkgain import check_gain
 
-    settings = [stack_settings(path) for path in args.darks]
+    from .. import identity
+
+    recorded = {path: stack_settings(path) for path in args.darks}
+    settings = list(recorded.values())
     setpoint = _setpoint(args, settings)
     calibration = (_common.calibration_of(args, setpoint)
                    if args.results or args.camera else None)
+    # one camera, read-out state and set-point, and the calibration's
+    identity.check(None if calibration is None else calibration.identity(), recorded,
+                   label="" if calibration is None else calibration.label, setpoint=setpoint,
+                   accept=args.accept_mismatch, what="dark stacks")
     phi = _phi(args, calibration)
     bits = {s.adc_bits for s in settings} - {None}
     outputs = (RECORD_FILE,) + (() if args.no_figures else

@@ -24,7 +24,7 @@ def add_parser(subparsers):
     p.add_argument("--pixel", "-p", action="append", required=True, metavar="ROW,COL",
                    type=_common.pixel, help="pixel to sample (repeatable)")
     _common.add_out(p)
-    _common.add_e_per_adu(p)
+    _common.add_e_per_adu(p, results=False)
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--steps", type=int, default=None,
                    help=f"steps per walker of the first run (default {DEFAULT_FIRST_STEPS})")

@@ -25,6 +25,7 @@ def add_parser(subparsers):
                    help="a calibration result (calibration.nc or its directory), or a "
                    "comma-joined group merged into one (phi from is-adu/mv-adu, gains from "
                    "is-gain results); repeatable")
+    _common.add_accept_mismatch(p)
     _common.add_out(p)
     p.add_argument("--width", type=_common.positive_float, default=DEFAULT_WIDTH,
                    help="expected PSF standard deviation, px (default %(default)s)")
@@ -78,7 +79,8 @@ def run(args) -> int:
                            half_size=args.half_size, min_separation=args.min_separation,
                            snr=args.snr, detect_setpoint=args.detect_setpoint,
                            progress=not args.quiet, bleaching=args.bleaching, psf=args.psf,
-                           blinking=args.blinking, psf_split=args.psf_split)
+                           blinking=args.blinking, psf_split=args.psf_split,
+                           accept_mismatch=args.accept_mismatch)
         if not args.no_figures:  # drawn from the files just published
             from ..report.figures import write_validation_figures
 

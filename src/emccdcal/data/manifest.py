@@ -29,6 +29,7 @@ try:  # Python >= 3.11
 except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
+from .. import identity
 from .._util import one_line
 from ..errors import InputError, ManifestError, OptionError, ReadNoiseGrowthWarning
 from .dark import check_read_noise_growth, fit_dark, maps_from_dark
@@ -190,6 +191,11 @@ class Manifest:
     #: ``amplifier``, ``readout_rate_mhz``, ``analog_gain``, ``adc_bits``): the identity a calibration
     #: database keys on. A field the files leave out or disagree on is absent.
     camera: dict = field(default_factory=dict)
+
+    def identity(self) -> dict:
+        """What the frames record of the camera and read-out state (``camera`` with
+        ``binning``), for :func:`emccdcal.identity.check`."""
+        return {**self.camera, **({} if self.binning is None else {"binning": self.binning})}
 
     @property
     def rows_cols(self) -> str:
@@ -735,10 +741,10 @@ def _reduce_dark(r: _Reader, a: AcquisitionEntry, adc_max, hint):
 def _recorded(r: _Reader, entries, acquisitions, shape, found: list):
     """What the frames files record: the region's origin, the binning and the camera
     identity shared by all; a set-point differing from the manifest's is a warning."""
-    origins, binnings, cameras = set(), set(), []
+    origins, binnings, recorded_by = set(), set(), {}
     for i, a in enumerate(acquisitions, start=1):
         settings = stack_settings(a.frames_path)
-        cameras.append({k: getattr(settings, k) for k in CAMERA_IDENTITY})
+        recorded_by[a.frames_path] = settings
         if settings.roi is not None:
             origins.add((settings.roi[1], settings.roi[0]))  # (row, col) = (y, x)
         if settings.binning is not None:
@@ -750,8 +756,12 @@ def _recorded(r: _Reader, entries, acquisitions, shape, found: list):
                    f"{recorded:g}")
             found.append(msg)
             warnings.warn(msg, stacklevel=4)
-    camera = {k: cameras[0][k] for k in CAMERA_IDENTITY
-              if cameras[0][k] is not None and all(c[k] == cameras[0][k] for c in cameras)}
+    try:  # the stacks of one calibration are of one camera and read-out state
+        joint = identity.of_frames(recorded_by, what="frames of a manifest", setpoints=False)
+    except InputError as exc:
+        raise r.error(str(exc)) from None
+    camera = {k: getattr(next(iter(recorded_by.values())), k) for k in CAMERA_IDENTITY
+              if k in joint and all(getattr(s, k) is not None for s in recorded_by.values())}
     return (_origin(r, entries.origin, origins, shape), _binning(r, binnings), camera)
 
 

@@ -36,7 +36,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, OptionError
-from ..result import (Calibration, format_setpoint, identity_mismatches, load_calibration,
+from ..identity import mismatches as identity_mismatches
+from ..result import (Calibration, format_setpoint, load_calibration,
                       pixel_statistics)
 
 __all__ = ["GainCurve", "fit_gain_curve", "measured_gains", "gain_curve_of",

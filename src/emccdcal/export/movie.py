@@ -27,13 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import defaults
+from .. import defaults, identity
 from .._output import Output, atomic_write
 from .._util import progress
 from ..data.stacks import read_band, stack_header, stack_settings
 from ..errors import InputError, OptionError
-from ..result import (IDENTITY_FIELDS, Calibration, format_setpoint, identity_mismatches,
-                      load_calibration)
+from ..result import Calibration, format_setpoint, load_calibration
 
 __all__ = ["apply", "conversion", "Conversion", "OUTPUT_FORMATS", "DEFAULT_THRESHOLD"]
 
@@ -72,18 +71,6 @@ def _region(cal: Calibration, movie: Path, roi, shape) -> tuple[slice, slice]:
                          f"{roi[0]} are not inside the calibration's {R}×{C} pixels at row "
                          f"{cal.origin[0]}, column {cal.origin[1]} ({cal.label})")
     return slice(r0, r0 + rows), slice(c0, c0 + cols)
-
-
-def _check_identity(cal: Calibration, movie: Path, settings, accept) -> None:
-    """The movie must come from the calibrated camera in the calibrated read-out state,
-    as far as both record it."""
-    found = {k: v for k, v in settings.known().items() if k in IDENTITY_FIELDS}
-    differ = identity_mismatches(cal.identity(), found, accept=accept)
-    if differ:
-        raise InputError(f"{movie}: not what {cal.label} calibrated: "
-                         f"{'; '.join(differ.values())}; a calibration holds for one camera "
-                         "and read-out state (if you know better: "
-                         f"{' '.join(f'--accept-mismatch {k}' for k in differ)})")
 
 
 def apply(calibration, movie, out, *, setpoint=None, photon_counting=False,
@@ -187,7 +174,8 @@ def conversion(cal, source, settings, shape, *, setpoint=None, photon_counting=F
     frames, rows, cols = shape
     if frames == 0 or rows == 0 or cols == 0:
         raise InputError(f"{source}: holds no frames (shape {shape})")
-    _check_identity(cal, source, settings, accept_mismatch)
+    identity.check(cal.identity(), {source: settings}, label=cal.label, accept=accept_mismatch,
+                   what="frames")
     s = _movie_setpoint(source, settings.em_gain_setpoint, setpoint)
     rr, cc = _region(cal, source, settings.roi, (rows, cols))
     scale = (cal.e_per_adu / cal.gain(s))[rr, cc]
