@@ -180,6 +180,9 @@ def test_validate_and_cots_expect_the_same_spot_width():
 
 def test_a_closed_pipe_ends_quietly(tmp_path):
     """`emccdcal db list --json | head` once printed a BrokenPipeError traceback."""
+    from emccdcal.export import database
+
+    database._connect(tmp_path / "cal.sqlite", write=True).close()  # an empty database
     proc = subprocess.Popen([sys.executable, "-m", "emccdcal", "db", "list", "--json",
                              "--db", str(tmp_path / "cal.sqlite")],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)

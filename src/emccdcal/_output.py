@@ -51,7 +51,8 @@ except ImportError:  # pragma: no cover - Windows
     fcntl = None
 
 __all__ = ["atomic_write", "atomic_write_text", "file_sha256", "Output", "OutputError",
-           "staged", "remove_leftovers", "slug", "comment", "toml_line", "STORE_MARKER",
+           "staged", "remove_leftovers", "slug", "comment", "toml_line", "plain_text",
+           "escape_controls", "STORE_MARKER",
            "write_netcdf", "read_netcdf", "verify_checksum", "CHECKSUM_BLOCK"]
 
 #: The file inside a store (a directory written as one output, e.g. ``.zarr``) that says
@@ -709,9 +710,40 @@ def slug(text, *, fallback: str = "unnamed") -> str:
     return f"{kept}-{hashlib.sha256(text.encode('utf-8', 'surrogatepass')).hexdigest()[:8]}"
 
 
+#: Characters a terminal acts on (all but tab and line feed) and those that reorder text.
+_CONTROLS = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u2028\u2029\u202a-\u202e"
+                       "\u2066-\u2069]")
+
+
+def escape_controls(text: str) -> str:
+    r"""``text`` with every character a terminal would act on written as an escape, line
+    breaks kept: what every verb prints passes through it (:func:`emccdcal.cli.main`),
+    so that no text from a file can colour, erase or rewrite the terminal.
+
+    Examples
+    --------
+    >>> escape_controls("OK\x1b[2K\rforged\n")
+    'OK\\x1b[2K\\rforged\n'
+    """
+    return _CONTROLS.sub(lambda m: json.dumps(m.group())[1:-1].replace("\\u00", "\\x"), text)
+
+
+def plain_text(text) -> str:
+    r"""Text from a file as matplotlib draws it literally (a serial ``SN$x$42`` is not
+    mathematics), on one line.
+
+    Examples
+    --------
+    >>> plain_text("SN$\\x$42")
+    'SN\\$\\x\\$42'
+    """
+    return comment(text).replace("$", "\\$")
+
+
 def comment(text) -> str:
-    """Text on one line for a comment (TOML, YAML, a macro): line breaks and every other
-    control character written as escapes, so nothing after it can start a new line.
+    """Text on one line for a comment (TOML, YAML, a macro) or a terminal's line: line
+    breaks and every other control character written as escapes, so nothing after it can
+    start a new line or drive the terminal.
 
     Examples
     --------

@@ -85,9 +85,38 @@ def _safe_streams() -> None:
             reconfigure(errors="backslashreplace")
 
 
+class _Escaping:
+    """A stream as the verbs see it: every character a terminal acts on is escaped
+    (:func:`emccdcal._output.escape_controls`), line breaks kept, so that text a file
+    recorded (a serial, a camera's name) cannot drive the terminal, whatever verb prints
+    it. Standard error is left to the progress bars, which redraw their line on purpose;
+    the errors and warnings printed there are each one escaped line
+    (:func:`emccdcal._output.comment`)."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, text):
+        from .._output import escape_controls
+
+        return self._stream.write(escape_controls(text))
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run ``emccdcal`` with ``argv`` (default: the process's arguments); the exit code."""
     _safe_streams()
+    out = sys.stdout
+    sys.stdout = _Escaping(out)
+    try:
+        return _main(argv)
+    finally:
+        sys.stdout = out
+
+
+def _main(argv):
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(_verb_of(argv))
     try:
@@ -99,8 +128,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
-    except EmccdcalError as exc:
-        print(f"emccdcal {args.verb}: error: {exc}", file=sys.stderr)
+    except EmccdcalError as exc:  # one line, whatever text of a file it quotes
+        from .._output import comment
+
+        print(f"emccdcal {args.verb}: error: {comment(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:  # a long run says what it kept and how to go on
         print(f"emccdcal {args.verb}: {str(exc) or 'interrupted'}", file=sys.stderr)

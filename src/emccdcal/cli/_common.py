@@ -202,8 +202,10 @@ def recording_warnings():
 
 def print_warnings(caught) -> None:
     """Print recorded warnings, each once, as ``warning: ...`` on stderr."""
+    from .._output import comment
+
     for message in dict.fromkeys(str(c.message) for c in caught):
-        print(f"warning: {message}", file=sys.stderr)
+        print(f"warning: {comment(message)}", file=sys.stderr)
 
 
 def add_calibration_source(p: argparse.ArgumentParser, *, many: bool = False,

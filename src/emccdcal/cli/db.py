@@ -66,6 +66,7 @@ def _db_options(p, *, suppress: bool = False) -> None:
 
 
 def run(args) -> int:
+    from .._output import comment
     from ..export import database
 
     if args.action == "add":
@@ -74,8 +75,8 @@ def run(args) -> int:
                              readout=args.readout, date=args.date, note=args.note)
         _common.print_warnings(caught)
         if not args.quiet:
-            print(f"added entry {e.id}: camera {e.camera} "
-                  f"({e.readout or 'read-out not recorded'}), {e.date[:10]}, {e.method}, "
+            print(f"added entry {e.id}: camera {comment(e.camera)} "
+                  f"({comment(e.readout or 'read-out not recorded')}), {e.date[:10]}, {e.method}, "
                   "set-points " + ", ".join(f"{s:g}x" for s in sorted(e.gains)))
         return 0
     if args.action == "list":
@@ -86,15 +87,15 @@ def run(args) -> int:
         print(f"{'id':>4}  {'camera':<14} {'date':<10}  {'method':<14} readout / gains")
         for e in found:
             gains = ", ".join(f"{s:g}x {m:.4g}" for s, (m, _, _) in sorted(e.gains.items()))
-            print(f"{e.id:>4}  {e.camera:<14} {e.date[:10]:<10}  {e.method:<14} "
-                  f"{e.readout or '-'} / {gains}")
+            print(f"{e.id:>4}  {comment(e.camera):<14} {comment(e.date[:10]):<10}  "
+                  f"{e.method:<14} {comment(e.readout or '-')} / {gains}")
         return 0
     if args.action in ("remove", "relocate"):
         e = (database.remove(args.id, db=args.db) if args.action == "remove"
              else database.relocate(args.id, args.result, db=args.db))
         if not args.quiet:
             print(f"{'removed' if args.action == 'remove' else 'relocated'} entry {e.id}: "
-                  f"camera {e.camera}, {e.date[:10]}, {e.path}")
+                  f"camera {comment(e.camera)}, {e.date[:10]}, {comment(e.path)}")
         return 0
     if args.action == "show":
         e, summary = database.entry(args.id, db=args.db, with_summary=True)
@@ -123,5 +124,5 @@ def run(args) -> int:
     if not args.quiet:
         print("\n".join(lines))
     for f in findings:
-        print(f"warning: {f.message}", file=sys.stderr)
+        print(f"warning: {comment(f.message)}", file=sys.stderr)
     return 1 if findings else 0

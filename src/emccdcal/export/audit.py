@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import defaults
+from .._output import comment
 from ..errors import InputError, OptionError
 from ..result import Calibration, format_setpoint, load_calibration
 from .tools import camera_values, pick_setpoint
@@ -104,10 +105,12 @@ class Audit:
     def lines(self) -> list[str]:
         """The audit as the console shows it."""
         r = self.reading
-        out = [f"{TOOL_NAMES[r.tool]}: {r.where} (set-point {format_setpoint(self.setpoint)}x)"]
+        # where and the rows quote the tool's file: data, each on its one line
+        out = [f"{TOOL_NAMES[r.tool]}: {comment(r.where)} "
+               f"(set-point {format_setpoint(self.setpoint)}x)"]
         width = max(len(row["field"]) for row in self.rows)
         for row in self.rows:
-            out.append(f"  {row['field']:<{width}}  {row['text']}")
+            out.append(f"  {comment(row['field']):<{width}}  {comment(row['text'])}")
         out.append(f"  photons: {r.formula} = {r.pe_per_adu:.6g} e-/ADU against the "
                    f"calibrated phi/g = {self.calibrated_pe_per_adu:.6g}: "
                    f"{100 * self.photon_bias:+.2f} %")

@@ -40,7 +40,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from .._output import atomic_write
+from .._output import atomic_write, plain_text
 from ..beads.validation import INTENSITIES_FILE, read_validation
 from ..data import stats
 from ..data.manifest import read_manifest
@@ -808,7 +808,7 @@ def gain_history_figure(found, *, camera="", checks=()):
         for label in ax.get_xticklabels():
             label.set_rotation(30)
             label.set_fontsize(7)
-    fig.suptitle(f"EM gain over time, camera {camera}", fontsize=11)
+    fig.suptitle(f"EM gain over time, camera {plain_text(camera)}", fontsize=11)
     return fig
 
 
@@ -820,7 +820,7 @@ def _sorted_keys(mapping):
 
 
 def _cal_label(cal, i):
-    return f"{cal.get('method', '?')} ({Path(str(cal.get('file', f'#{i + 1}'))).name})"
+    return plain_text(f"{cal.get('method', '?')} ({Path(str(cal.get('file', f'#{i + 1}'))).name})")
 
 
 def bead_intensity_figure(directory, *, bead=0, bins=40):
