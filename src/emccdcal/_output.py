@@ -51,7 +51,7 @@ except ImportError:  # pragma: no cover - Windows
     fcntl = None
 
 __all__ = ["atomic_write", "atomic_write_text", "file_sha256", "Output", "OutputError",
-           "staged", "remove_leftovers", "slug", "comment", "toml_line", "plain_text",
+           "staged", "remove_leftovers", "given_inputs", "slug", "comment", "toml_line", "plain_text",
            "escape_controls", "STORE_MARKER",
            "write_netcdf", "read_netcdf", "verify_checksum", "CHECKSUM_BLOCK"]
 
@@ -88,6 +88,20 @@ def _umask() -> int:
 # One file
 # --------------------------------------------------------------------------------------
 _STAGING: contextvars.ContextVar = contextvars.ContextVar("emccdcal_staging", default=None)
+_GIVEN_INPUTS: contextvars.ContextVar = contextvars.ContextVar("emccdcal_inputs", default=())
+
+
+@contextlib.contextmanager
+def given_inputs(paths: Iterable):
+    """Every :class:`Output` opened inside the block also refuses to write over (or inside
+    a store among) ``paths``: the command line registers every path a verb was given,
+    except its output, so that no verb can write over something it read, whether or not
+    it names it."""
+    token = _GIVEN_INPUTS.set(tuple(Path(p) for p in paths))
+    try:
+        yield
+    finally:
+        _GIVEN_INPUTS.reset(token)
 
 
 def atomic_write(path, write: Callable[[str], object], *, durable: bool = True) -> Path:
@@ -434,7 +448,7 @@ class Output:
             raise ValueError(f"unknown output kind {kind!r}")
         self.path, self.kind, self.overwrite = Path(path), kind, overwrite
         self.names = tuple(names)
-        self._inputs = [Path(p) for p in inputs]
+        self._inputs = [Path(p) for p in (*inputs, *_GIVEN_INPUTS.get())]
         self._what = what or str(self.path)
         self._noun = {"folder": "directory", "file": "file", "store": "store"}[kind]
         self._staging = (_Staging(self.path, single_file=kind == "file")
@@ -496,6 +510,9 @@ class Output:
                 hit = any(_same(self.path / n, p) for n in names)
             else:
                 hit = _same(self.path, p) or (self.kind == "store" and _is_inside(p, self.path))
+            # nothing is written inside an input store (a folder read as one file: .zarr)
+            hit = hit or (p.is_dir() and bool(p.suffix) and (
+                _same(self.path, p) or _is_inside(self.path, p)))
             if hit:
                 raise OutputError(f"{self._what}: would write over {p}, an input of this "
                                   "run; choose another output")

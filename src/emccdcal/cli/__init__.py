@@ -18,9 +18,13 @@ import importlib
 import sys
 
 from .. import __version__
+from .._output import given_inputs
 from ..errors import EmccdcalError
 
-__all__ = ["main", "build_parser", "VERBS"]
+__all__ = ["main", "build_parser", "VERBS", "paths_given", "OUTPUT_DESTS"]
+
+#: The arguments that name where a verb writes; every other path it is given is an input.
+OUTPUT_DESTS = ("out", "dir")
 
 #: Verbs in the order of ``--help``, with their one-line help.
 VERBS = {
@@ -67,6 +71,28 @@ def build_parser(verb: str | None = None) -> argparse.ArgumentParser:
         else:
             subparsers.add_parser(name, help=text, add_help=False)
     return parser
+
+
+def paths_given(args) -> list:
+    """Every path on the command line but the output (:data:`OUTPUT_DESTS`): the verb's
+    inputs, which no output of the run may write over."""
+    from pathlib import Path
+
+    found = []
+
+    def walk(value, results):
+        if isinstance(value, Path) or (results and isinstance(value, str)):
+            # calibrations may be comma-joined groups (a path with a comma is kept whole)
+            parts = [value] if Path(value).exists() or not results else str(value).split(",")
+            found.extend(Path(p) for p in parts if str(p).strip())
+        elif isinstance(value, (list, tuple)):
+            for item in value:
+                walk(item, results)
+
+    for dest, value in vars(args).items():
+        if dest not in OUTPUT_DESTS:
+            walk(value, dest in ("results", "calibration"))
+    return found
 
 
 def _verb_of(argv: list[str]) -> str | None:
@@ -127,7 +153,8 @@ def _main(argv):
         parser.print_help()
         return 2
     try:
-        return int(args.func(args) or 0)
+        with given_inputs(paths_given(args)):
+            return int(args.func(args) or 0)
     except EmccdcalError as exc:  # one line, whatever text of a file it quotes
         from .._output import comment
 
