@@ -299,7 +299,7 @@ def test_binning_travels_with_the_result_and_must_match(series, tmp_path):
     binned = adu.manifest.with_name("binned.toml")
     binned.write_text(text)
     quiet(calibrate, binned, "is-adu", out=tmp_path / "phi")
-    with pytest.raises(OptionError, match=r"binned \(2, 2\), but the manifest's stacks \(1, 1\)"):
+    with pytest.raises(InputError, match=r"binning 1x1 \(calibration: 2x2\)"):
         quiet(calibrate, spe, "gs", e_per_adu=tmp_path / "phi")
 
 

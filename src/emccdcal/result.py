@@ -884,7 +884,7 @@ def identity_attrs(manifest) -> dict:
     """The attributes by which every result knows the camera, read-out state and pixels it
     holds for: ``camera`` (JSON), ``binning`` and ``sensor_origin``, as far as the
     manifest's frames record them."""
-    attrs = {"camera": json.dumps(manifest.camera)}
+    attrs = {"camera": json.dumps(manifest.camera)} if manifest.camera else {}
     if manifest.origin is not None:
         attrs["sensor_origin"] = np.array(manifest.origin, dtype=np.int64)
     if manifest.binning is not None:

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import defaults
+from .. import _files, defaults
 from .._util import check_int, check_number
 from ..errors import OptionError
 from ..fit import engine, layouts
@@ -589,16 +589,12 @@ def read_plan(path) -> Plan:
     InputError
         Not a plan, or a value out of range, naming the file and the key.
     """
-    import tomllib
     from pathlib import Path
 
     from ..errors import InputError
 
     path = Path(path)
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise InputError(f"'{path}': not a readable plan ({exc})") from None
+    doc = _files.load_toml(path, what="plan")
 
     def need(table, key, where):
         if key not in table:

@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import _files
 from .._output import Output, OutputError, atomic_write, atomic_write_text
 from .._util import check_number, format_setpoint, one_line, progress
 from ..errors import EmccdcalError, InputError, OptionError
@@ -239,7 +240,7 @@ class Session:
     def load(cls, folder: Path) -> Session:
         path = folder / SESSION_FILE
         try:
-            return cls(folder, json.loads(path.read_text(encoding="utf-8")))
+            return cls(folder, _files.load_json(path, what="session record"))
         except (OSError, ValueError, TypeError, KeyError) as exc:
             raise InputError(f"'{path}': not a readable session ({one_line(exc)})") from None
 

@@ -61,7 +61,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .. import identity, result
+from .. import _files, identity, result
 from .._output import atomic_write, atomic_write_text, read_netcdf, write_netcdf
 from .._util import finite_or_none
 from .._util import progress as progress_bar
@@ -1021,7 +1021,7 @@ def read_validation(directory):
     if not path.is_file():
         raise MissingFileError(f"{path}: no such file (not a validation directory?)")
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
+        doc = _files.load_json(path, what="bead-validation file")
         cals = doc["calibrations"]
         if not isinstance(cals, list) or not all("beads" in c for c in cals):
             raise TypeError("'calibrations' must be a list of objects with 'beads'")

@@ -24,13 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-try:  # Python >= 3.11
-    import tomllib
-except ModuleNotFoundError:  # pragma: no cover - Python 3.10
-    import tomli as tomllib
-
-from .. import identity
-from .._util import one_line
+from .. import _files, identity
 from ..errors import InputError, ManifestError, OptionError, ReadNoiseGrowthWarning
 from .dark import check_read_noise_growth, fit_dark, maps_from_dark
 from .stacks import (
@@ -461,15 +455,17 @@ def parse_manifest(path) -> ManifestEntries:
         raise ManifestError(describe_missing(path, "manifest file"))
     if path.is_dir():
         raise ManifestError(f"{path}: is a directory, not a manifest file")
-    raw = path.read_bytes()
     try:
+        raw = _files.read_bytes(path, what="manifest")
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise r.error(f"not UTF-8 text (byte {exc.start}); a manifest is a TOML file") from None
+    except InputError as exc:
+        raise ManifestError(str(exc)) from None
     try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise r.error(f"invalid TOML: {one_line(exc)}") from None
+        doc = _files.load_toml(path, text=text, what="manifest")
+    except InputError as exc:
+        raise r.error(f"invalid TOML: {str(exc).split(': ', 1)[-1]}") from None
     top = r.table(doc, _TOP_KEYS)
     if not top["acquisition"]:
         raise r.error(_TOP_KEYS[-1].missing)

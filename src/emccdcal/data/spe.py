@@ -16,12 +16,11 @@ from __future__ import annotations
 import functools
 import math
 import struct
-import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
 
-from .._util import one_line
+from .. import _files
 from ..errors import InputError
 from .settings import CameraSettings, recorded_number
 
@@ -84,9 +83,10 @@ def _read_layout(path: Path, resolved: str, size: int, mtime_ns: int):
 
 def _layout_v3(path, xml_bytes, footer_at):
     try:
-        root = ET.fromstring(xml_bytes)
-    except ET.ParseError as exc:
-        raise InputError(f"'{path}': SPE 3.0 XML footer is not valid XML: {one_line(exc)}") from None
+        root = _files.load_xml(path, text=xml_bytes, what="SPE 3.0 XML footer")
+    except InputError as exc:
+        raise InputError(f"'{path}': SPE 3.0 XML footer is not valid XML: "
+                         f"{str(exc).split(': ', 1)[-1]}") from None
     frame = root.find("{*}DataFormat/{*}DataBlock[@type='Frame']")
     if frame is None:
         raise InputError(f"'{path}': SPE 3.0 XML footer has no DataFormat/DataBlock of "

@@ -23,7 +23,6 @@ Examples
 
 from __future__ import annotations
 
-import json
 import math
 import re
 from dataclasses import dataclass, field
@@ -31,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import defaults
+from .. import _files, defaults
 from .._output import comment
 from ..errors import InputError, OptionError
 from ..result import Calibration, format_setpoint, load_calibration
@@ -357,6 +356,7 @@ def _mat_raw(path, squeeze=False):
     """A MATLAB file's variables as SciPy reads them (structs as objects)."""
     from scipy.io import loadmat
 
+    _files.check_mat(path)
     try:
         return loadmat(path, squeeze_me=squeeze, struct_as_record=False)
     except Exception as exc:  # noqa: BLE001 - a damaged file is one line
@@ -409,12 +409,7 @@ def _pyme_md(text):
 
 
 def _storm_analysis(path):
-    import xml.etree.ElementTree as ET
-
-    try:
-        root = ET.parse(path).getroot()
-    except ET.ParseError as exc:
-        raise InputError(f"'{path}': not readable XML ({exc})") from None
+    root = _files.load_xml(path, what="storm-analysis parameters file")
     values = {el.tag: el.text for el in root.iter() if el.tag in ("camera_gain", "camera_offset")}
     if "camera_gain" not in values:
         raise InputError(f"'{path}': no camera_gain: not storm-analysis parameters")
@@ -476,8 +471,7 @@ def read_tool_file(path, *, tool=None, setpoint=1.0, tool_gain=None) -> list[Rea
         An unreadable file, one of no known tool, or a field that is not a number.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"'{path}': no such file")
+    _files.read_bytes(path, what="tool's settings file", max_bytes=_files.MAX_MAT_BYTES)
     if tool is not None and tool not in TOOL_NAMES:
         raise OptionError(f"unknown tool {tool!r}; one of {', '.join(TOOL_NAMES)}")
     text, doc = None, None
@@ -488,10 +482,7 @@ def read_tool_file(path, *, tool=None, setpoint=1.0, tool_gain=None) -> list[Rea
                 return found
         doc = _mat_tree(path)
     elif path.suffix.lower() != ".xml":
-        try:
-            text = path.read_text(encoding="utf-8")
-        except (UnicodeDecodeError, OSError) as exc:
-            raise InputError(f"'{path}': not a text file ({exc})") from None
+        text = _files.read_text(path, what="tool's settings file")
         doc = _parse_text(path, text)
     tool = tool or _guess_tool(path, text, doc)
     if tool == "picasso":
@@ -513,16 +504,12 @@ def _parse_text(path: Path, text: str):
     """JSON, else YAML, else None (a macro or PYME's ``.md``)."""
     if path.suffix.lower() in (".ijm", ".txt", ".md"):
         return None
+    if text.lstrip().startswith(("{", "[")):
+        return _files.load_json(path, text=text, what="tool's settings file")
     try:
-        return json.loads(text)
-    except ValueError:
-        pass
-    import yaml
-
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise InputError(f"'{path}': neither JSON nor YAML ({str(exc).splitlines()[0]})") from None
+        return _files.load_yaml(path, text=text, what="tool's settings file")
+    except InputError as exc:
+        raise InputError(f"{exc} (neither JSON nor YAML)") from None
 
 
 # --------------------------------------------------------------------------------------

@@ -27,7 +27,6 @@ sensor gain, its offset and read noise, and a record of where the gain came from
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -35,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import _files
 from ..errors import InputError, OptionError
 from ..identity import mismatches as identity_mismatches
 from ..result import (Calibration, format_setpoint, load_calibration,
@@ -233,7 +233,7 @@ def read_gain_curve(path) -> GainCurve:
     """
     path = Path(path)
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
+        doc = _files.load_json(path, what="gain curve")
         measured = doc["measured"]
         coef = np.asarray(doc["coefficients"], dtype=float)
         cov = np.asarray(doc["covariance"], dtype=float)
