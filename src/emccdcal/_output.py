@@ -40,6 +40,7 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from . import _files
 from .errors import InputError, OptionError
 
 if TYPE_CHECKING:
@@ -204,8 +205,8 @@ def _files_below(folder: Path) -> set[str]:
 def _is_our_store(folder: Path) -> bool:
     """A directory emccdcal wrote as one output, holding nothing it did not write."""
     try:
-        listed = set(json.loads((folder / STORE_MARKER).read_text())["files"])
-    except (OSError, ValueError, KeyError, TypeError):
+        listed = set(_files.load_json(folder / STORE_MARKER, what="store marker")["files"])
+    except (InputError, KeyError, TypeError):
         return False
     return _files_below(folder) <= listed | {STORE_MARKER}
 
@@ -218,8 +219,9 @@ def _is_our_partial(folder: Path) -> bool:
     """A ``.partial`` directory :meth:`Output.store` made: its marker says so, and it
     holds nothing but the marker and the content folder the writer was given."""
     try:
-        marked = json.loads((folder / STORE_MARKER).read_text()).get("partial") is True
-    except (OSError, ValueError, AttributeError):
+        marked = _files.load_json(folder / STORE_MARKER, what="store marker").get(
+            "partial") is True
+    except (InputError, AttributeError):
         return False
     return marked and {p.name for p in folder.iterdir()} <= {STORE_MARKER, _PARTIAL_CONTENT}
 
@@ -503,9 +505,9 @@ class Output:
         and checked again against every file the run publishes."""
         names = self.names if names is None else tuple(names)
         for given in inputs:
-            p = Path(given)
-            if p not in self._inputs:
-                self._inputs.append(p)
+            if Path(given) not in self._inputs:
+                self._inputs.append(Path(given))
+        for p in self._inputs:  # every input known, against the names now given
             if self.kind == "folder":
                 hit = any(_same(self.path / n, p) for n in names)
             else:

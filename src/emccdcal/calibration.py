@@ -628,8 +628,8 @@ def _require_convergence(ds, method) -> None:
 def _input_files(manifest, used, phi_source) -> list[Path]:
     """The files a calibration reads, which its output may not replace."""
     files = [manifest.path, *(a.frames_path for a in used)]
-    if phi_source is not None and Path(str(phi_source)).exists():
-        phi = Path(str(phi_source))
+    phi = None if phi_source is None else Path(str(phi_source).removeprefix("result "))
+    if phi is not None and phi.exists():
         files.append(phi / result.CALIBRATION_FILE if phi.is_dir() else phi)
     return files
 

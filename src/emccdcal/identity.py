@@ -104,6 +104,10 @@ def _same_file(a: Path, b: Path) -> bool:
         return Path(a).absolute() == Path(b).absolute()
 
 
+def _items(frames) -> list:
+    return list(frames.items()) if isinstance(frames, Mapping) else list(frames)
+
+
 def of_frames(frames: Mapping, *, what: str = "frames", setpoints: bool = True) -> dict:
     """The identity that every file of ``frames`` records alike, refusing files that
     differ (two cameras, two read-out states or two set-points pooled) or the same file
@@ -111,8 +115,9 @@ def of_frames(frames: Mapping, *, what: str = "frames", setpoints: bool = True) 
 
     Parameters
     ----------
-    frames : mapping of path to settings
-        Each file with what it records (:func:`recorded`'s input).
+    frames : mapping of path to settings, or sequence of (path, settings)
+        Each file with what it records (:func:`recorded`'s input); a sequence may name a
+        file twice, which is refused.
     what : str
         What the files are, for the messages ("dark stacks", "bead frames").
     setpoints : bool
@@ -124,14 +129,15 @@ def of_frames(frames: Mapping, *, what: str = "frames", setpoints: bool = True) 
     dict
         Each field recorded by at least one file, with its one value.
     """
-    paths = list(frames)
+    items = _items(frames)
+    paths = [path for path, _ in items]
     for i, a in enumerate(paths):
         for b in paths[:i]:
             if _same_file(Path(a), Path(b)):
                 raise InputError(f"{a}: given twice among the {what} (it would count double)")
     joint: dict = {}
     first: dict = {}
-    for path, settings in frames.items():
+    for path, settings in items:
         for key, value in recorded(settings).items():
             if key == "setpoint" and not setpoints:
                 continue
@@ -156,7 +162,7 @@ def check(calibration: Mapping | None, frames: Mapping, *, label: str = "the cal
     calibration : mapping or None
         What the calibration records of its camera (``Calibration.identity()``), or None
         where only the frames are checked among themselves (a gain check without one).
-    frames : mapping of path to settings
+    frames : mapping of path to settings, or sequence of (path, settings)
         The files the calibration is used on, each with what it records.
     label : str
         The calibration's name in messages.
@@ -189,10 +195,10 @@ def check(calibration: Mapping | None, frames: Mapping, *, label: str = "the cal
     """
     accept = _accepted(accept)
     joint = of_frames(frames, what=what)
-    first = next(iter(frames), "the frames")
+    first = next((path for path, _ in _items(frames)), "the frames")
     if setpoint is not None and "setpoint" not in accept:
         given = _value("setpoint", setpoint)
-        for path, settings in frames.items():
+        for path, settings in _items(frames):
             found = recorded(settings).get("setpoint")
             if found is not None and given is not None and found != given:
                 raise InputError(f"{path}: records EM-gain set-point {found:g}, used at "

@@ -31,9 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
+from . import _files
 from ._output import atomic_write, remove_leftovers, staged, written_by_emccdcal
 from ._util import one_line
-from .errors import EmccdcalError, OptionError
+from .errors import EmccdcalError, InputError, OptionError
 
 __all__ = ["RunStore", "RUN_DIR", "RESULT_FILES", "RunInterrupted", "publish", "remove_run"]
 
@@ -103,8 +104,8 @@ class RunStore:
 
     def _check_same_run(self) -> None:
         try:
-            old = json.loads((self.run_dir / _FINGERPRINT).read_text())
-        except (OSError, ValueError) as exc:
+            old = _files.load_json(self.run_dir / _FINGERPRINT, what="run fingerprint")
+        except InputError as exc:
             raise EmccdcalError(f"{self.run_dir / _FINGERPRINT}: unreadable "
                                 f"({one_line(exc)}); pass --overwrite to start again") from None
         changed = _differences(old, self.fingerprint)

@@ -76,8 +76,8 @@ def run(args) -> int:
 
     from .. import identity
 
-    recorded = {path: stack_settings(path) for path in args.darks}
-    settings = list(recorded.values())
+    recorded = [(path, stack_settings(path)) for path in args.darks]
+    settings = [s for _, s in recorded]
     setpoint = _setpoint(args, settings)
     calibration = (_common.calibration_of(args, setpoint)
                    if args.results or args.camera else None)
