@@ -427,3 +427,66 @@ def test_reading_never_creates_or_changes_a_database(camera_a, tmp_path, capsys)
                                                   "-o", tmp_path / "r2.html"]):
         _refused(*_run(capsys, *argv)[::2], "no calibration database here")
     assert not (tmp_path / "no").exists()
+
+
+# --------------------------------------------------------------------------------------
+# Audit reads a tool's file as the tool does
+# --------------------------------------------------------------------------------------
+def _audit(capsys, camera_a, path):
+    return _run(capsys, "audit", path, "--calibration", camera_a["cal"], "--setpoint", 100)
+
+
+def test_audit_skips_commented_macro_lines(camera_a, tmp_path, capsys):
+    macro = tmp_path / "camera.ijm"
+    good = f'run("Camera setup", "offset={OFFSET} photons2adu={PHI} isemgain=true gainem=90.06");'
+    macro.write_text('// run("Camera setup", "offset=1 photons2adu=9 isemgain=false");\n'
+                     f"{good}\n/* {good.replace('90.06', '5')} */\n")
+    code, out, err = _audit(capsys, camera_a, macro)
+    assert code == 0 and "photons2adu  4" in out.replace("4.0", "4"), out + err
+    macro.write_text(good + "\n" + good.replace("90.06", "300") + "\n")
+    _refused(*_audit(capsys, camera_a, macro)[::2], "2 different Camera setup lines")
+
+
+def test_audit_never_takes_an_expression_for_a_number(camera_a, tmp_path, capsys):
+    md = tmp_path / "meta.md"
+    md.write_text(f"md['Camera.ElectronsPerCount'] = {PHI}*10\nmd['Camera.TrueEMGain'] = 90\n")
+    _refused(*_audit(capsys, camera_a, md)[::2], "an expression, never evaluated")
+
+
+@pytest.mark.parametrize("qe", ["NaN", "-0.9", "90", "true"])
+def test_audit_refuses_a_quantum_efficiency_outside_0_1(qe, camera_a, tmp_path, capsys):
+    f = tmp_path / "config.yaml"
+    f.write_text(f"Cameras:\n  cam:\n    Baseline: {OFFSET}\n    Sensitivity: {PHI}\n"
+                 f"    Gain: 90.06\n    Quantum Efficiency: {qe}\n")
+    _refused(*_audit(capsys, camera_a, f)[::2], "Quantum Efficiency")
+
+
+# --------------------------------------------------------------------------------------
+# Numbers are checked for range before any work
+# --------------------------------------------------------------------------------------
+PLAN = ["plan", "--e-per-adu", "3.9", "--read-noise", "15", "--offset", "600", "-q"]
+
+
+@pytest.mark.parametrize("change, words", [
+    (("--e-per-adu", "1e-300"), "e_per_adu 1e-300 is outside"),
+    (("--read-noise", "1e-300"), "read_noise 1e-300 is outside"),
+    (("--stages", "100000000"), "stages must be at most"),
+    (("--target-se", "1e-9"), "target_se 1e-09 is outside"),
+])
+def test_a_number_out_of_range_is_refused_before_any_work(change, words, capsys):
+    argv = list(PLAN)
+    if change[0] in argv:
+        argv[argv.index(change[0]) + 1] = change[1]
+    else:
+        argv += list(change)
+    t0 = time.perf_counter()
+    _refused(*_run(capsys, *argv)[::2], words)
+    assert time.perf_counter() - t0 < 20  # it ran past 120 s
+
+
+def test_a_bead_width_out_of_range_is_refused(tmp_path, capsys):
+    from test_cots import _write_beads
+
+    manifest = _write_beads(tmp_path / "beads", setpoints=(1, 300), frames=40)
+    _refused(*_run(capsys, "cots", manifest, "-o", tmp_path / "o", "--width", "1e300")[::2],
+             "width 1e+300 is outside")

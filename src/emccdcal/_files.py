@@ -98,9 +98,11 @@ def read_text(path, *, what: str = "file", max_bytes: int = MAX_TEXT_BYTES) -> s
                          "text") from None
 
 
-def check_tree(doc, path, *, max_depth: int = MAX_DEPTH):
+def check_tree(doc, path, *, max_depth: int = MAX_DEPTH, finite: bool = True):
     """``doc`` (parsed lists, tables and scalars) checked: nested at most ``max_depth``
-    deep, whole numbers within 64 bits, floats finite. Returns ``doc``."""
+    deep, whole numbers within 64 bits, floats finite (unless not ``finite``: TOML
+    writes nan and inf on purpose, and the reader of each key refuses them by name).
+    Returns ``doc``."""
     stack = [(doc, 0)]
     while stack:
         node, depth = stack.pop()
@@ -116,7 +118,7 @@ def check_tree(doc, path, *, max_depth: int = MAX_DEPTH):
         elif isinstance(node, int) and abs(node) > MAX_INTEGER:
             raise InputError(f"'{path}': a whole number of {len(str(abs(node)))} digits, "
                              "beyond 64 bits")
-        elif isinstance(node, float) and not math.isfinite(node):
+        elif finite and isinstance(node, float) and not math.isfinite(node):
             raise InputError(f"'{path}': a number that is not finite ({node!r})")
     return doc
 
@@ -163,9 +165,11 @@ def load_toml(path, *, what: str = "TOML file", text: str | None = None):
     try:
         doc = tomllib.loads(text)
     except (tomllib.TOMLDecodeError, RecursionError, ValueError) as exc:
-        raise InputError(f"'{path}': not a readable {what} "
-                         f"({' '.join(str(exc).split()) or type(exc).__name__})") from None
-    return check_tree(doc, path)
+        reason = " ".join(str(exc).split()) or type(exc).__name__
+        err = InputError(f"'{path}': not a readable {what} ({reason})")
+        err.reason = reason  # the parser's words, for a caller with its own prefix
+        raise err from None
+    return check_tree(doc, path, finite=False)
 
 
 def load_yaml(path, *, what: str = "YAML file", text: str | None = None):

@@ -38,6 +38,35 @@ DEFAULT_EM_MODEL = "cascade"
 #: 512 and 4096 stages (docs/cascade.md).
 DEFAULT_STAGES = 536
 
+#: Most stages a register model takes (real registers have 400-1100; the cascade's cost
+#: grows with the length).
+MAX_STAGES = 16384
+
+# -- the ranges a named quantity is taken as meant in ---------------------------------
+#: Inclusive (lowest, highest, unit) of each quantity a user or a file gives, checked by
+#: ``_util.check_number`` / ``check_int`` wherever the name is checked: a value outside
+#: is refused before any work, as a number in another unit or one that would make a
+#: computation run for hours (a read noise of 1e-300 ADU, 10^8 stages, a target SE of
+#: 1e-9 %).
+BOUNDS = {
+    "e_per_adu": (1e-3, 1e3, "e-/ADU"),
+    "read_noise": (1e-3, 1e5, "ADU"),
+    "photoelectrons": (0.0, 1e8, "e-"),
+    "em_gain": (0.5, 1e5, ""),
+    "assumed_em_gain": (1.0, 1e5, ""),
+    "em_gain_setpoint": (1.0, 1e5, ""),
+    "setpoint": (1.0, 1e5, ""),
+    "setpoints": (1.0, 1e5, ""),
+    "stages": (1, MAX_STAGES, "stages"),
+    "frames": (1, 10**9, "frames"),
+    "dark_frames": (1, 10**9, "frames"),
+    "max_frames": (1, 10**9, "frames"),
+    "width": (0.05, 100.0, "px"),
+    "target_se": (1e-2, 100.0, "%"),
+    "rows": (1, 65536, "px"),
+    "cols": (1, 65536, "px"),
+}
+
 # -- using a calibration (emccdcal.result, emccdcal.export) -----------------------------
 #: What must agree between a calibration and the frames it is used on (where both
 #: record it), with how to name it.

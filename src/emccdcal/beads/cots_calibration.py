@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .. import result
-from .._util import e_per_adu_map
+from .._util import check_number, e_per_adu_map
 from .._util import progress as progress_bar
 from ..data.manifest import Manifest, read_manifest
 from ..errors import InputError, ManifestError, OptionError
@@ -102,8 +102,7 @@ def _cots_calibrate(manifest, half_size, width, em_model, stages, progress):
     half_size = int(half_size)
     if half_size < 1:
         raise OptionError(f"half_size must be a positive integer (pixel), got {half_size}")
-    if not (np.isfinite(width) and width > 0):
-        raise OptionError(f"width must be a positive PSF standard deviation (pixel), got {width}")
+    width = check_number("width", width, positive=True)  # the PSF's SD, px
     phi = _phi_map(manifest)
     em = [a for a in manifest.acquisitions if a.em_gain_setpoint > 1]
     if not em:

@@ -465,7 +465,7 @@ def parse_manifest(path) -> ManifestEntries:
     try:
         doc = _files.load_toml(path, text=text, what="manifest")
     except InputError as exc:
-        raise r.error(f"invalid TOML: {str(exc).split(': ', 1)[-1]}") from None
+        raise r.error(f"invalid TOML: {getattr(exc, 'reason', exc)}") from None
     top = r.table(doc, _TOP_KEYS)
     if not top["acquisition"]:
         raise r.error(_TOP_KEYS[-1].missing)

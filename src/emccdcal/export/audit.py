@@ -124,6 +124,8 @@ class Audit:
 # Reading the tools' files
 # --------------------------------------------------------------------------------------
 def _number(value, what, path):
+    if isinstance(value, bool):  # YAML's true is not 1
+        raise InputError(f"'{path}': {what} is {value!r}, not a number")
     try:
         x = float(value)
     except (TypeError, ValueError):
@@ -137,6 +139,15 @@ def _positive(value, what, path):
     x = _number(value, what, path)
     if x <= 0:
         raise InputError(f"'{path}': {what} is {value!r}; it must be > 0")
+    return x
+
+
+def _qe(value, what, path):
+    """A quantum efficiency: a number in (0, 1] (a percentage or a sign error refused)."""
+    x = _number(value, what, path)
+    if not 0 < x <= 1:
+        raise InputError(f"'{path}': {what} is {value!r}; a quantum efficiency lies in "
+                         "(0, 1]")
     return x
 
 
@@ -167,7 +178,8 @@ def _picasso(doc, path, setpoint, tool_gain):
                                                 "into Picasso's EM gain box")
         baseline = (_number(cam["Baseline"], f"{name}: Baseline", path)
                     if "Baseline" in cam else None)
-        qe = cam.get("Quantum Efficiency")
+        qe = (_qe(cam["Quantum Efficiency"], f"{name}: Quantum Efficiency", path)
+              if cam.get("Quantum Efficiency") is not None else None)
         for keys, value in _leaves(cam["Sensitivity"]):
             where = " > ".join(("Cameras", str(name), "Sensitivity", *keys))
             sens = _positive(value, where, path)
@@ -176,8 +188,7 @@ def _picasso(doc, path, setpoint, tool_gain):
             if baseline is not None:
                 fields.insert(0, Field("Baseline", baseline, "offset"))
             readings.append(Reading("picasso", where, tuple(fields), sens / gain,
-                                    "Sensitivity / Gain", baseline,
-                                    None if not isinstance(qe, (int, float)) else float(qe)))
+                                    "Sensitivity / Gain", baseline, qe))
     if not readings:
         raise InputError(f"'{path}': no camera of 'Cameras' has a Sensitivity")
     return readings
@@ -212,7 +223,7 @@ def _decode(doc, path):
         if "read_sigma" in cam:
             fields.append(Field("read_sigma", _number(cam["read_sigma"], "read_sigma", path),
                                 "read_noise_e"))
-        qe = _positive(cam["qe"], f"{name}: qe", path) if "qe" in cam else None
+        qe = _qe(cam["qe"], f"{name}: qe", path) if cam.get("qe") is not None else None
         readings.append(Reading("decode", name, tuple(fields), phi / gain,
                                 "e_per_adu / em_gain", baseline, qe))
     if not readings:
@@ -222,11 +233,18 @@ def _decode(doc, path):
 
 
 def _thunderstorm(text, path):
-    match = re.search(r'run\(\s*"Camera setup"\s*,\s*"([^"]*)"', text)
-    if match is None:
+    # comments never run: /* ... */ blocks and // to the end of a line (outside strings)
+    code = re.sub(r"/\*.*?\*/", " ", text, flags=re.S)
+    code = "\n".join(re.sub(r'^((?:[^"/]|"[^"]*"|/(?!/))*)//.*$', r"\1", line)
+                     for line in code.splitlines())
+    found = re.findall(r'run\(\s*"Camera setup"\s*,\s*"([^"]*)"', code)
+    if not found:
         raise InputError(f"'{path}': no run(\"Camera setup\", \"...\") line: not a "
                          "ThunderSTORM camera macro")
-    options = dict(re.findall(r"(\w+)=(\S+)", match.group(1)))
+    if len(set(found)) > 1:  # each line sets the camera in turn: the last one holds
+        raise InputError(f"'{path}': {len(found)} different Camera setup lines; the macro's "
+                         "camera is ambiguous: audit a macro with one")
+    options = dict(re.findall(r"(\w+)=(\S+)", found[-1]))
     options = {k.lower(): v for k, v in options.items()}
     missing = [k for k in ("offset", "photons2adu") if k not in options]
     if missing:
@@ -238,7 +256,7 @@ def _thunderstorm(text, path):
     fields = (Field("offset", baseline, "offset"),
               Field("photons2adu", phi, "e_per_adu", "e-/ADU, despite its name"),
               Field("gainem", gain, "em_gain", "" if em else "isemgain=false: taken as 1"))
-    qe = (_positive(options["quantumefficiency"], "quantumefficiency", path)
+    qe = (_qe(options["quantumefficiency"], "quantumefficiency", path)
           if "quantumefficiency" in options else None)
     return [Reading("thunderstorm", "Camera setup", fields, phi / gain,
                     "photons2adu / gainem", baseline, qe)]
@@ -258,7 +276,7 @@ def _gdsc(doc, path):
         raise InputError(f"'{path}': no countPerPhoton: not a gdsc-smlm Calibration")
     cpp = _positive(cpp, "countPerPhoton", path)
     qe = get(camera, "quantumEfficiency", "quantum_efficiency")
-    qe = 1.0 if qe is None else _positive(qe, "quantumEfficiency", path)
+    qe = 1.0 if qe is None else _qe(qe, "quantumEfficiency", path)
     fields = [Field("countPerPhoton", cpp / qe, "adu_per_e_total",
                     f"QE x g/phi; divided by its QE {qe:g}")]
     baseline = get(camera, "bias")
@@ -403,7 +421,10 @@ def _pyme(doc, path):
 def _pyme_md(text):
     """PYME's ``.md`` metadata (Python assignments) as a dict: numbers only, never run."""
     found = {}
-    for key, value in re.findall(r"""md\[\s*['"]([\w.]+)['"]\s*\]\s*=\s*([-+0-9.eE]+)""", text):
+    for key, value in re.findall(r"""^\s*md\[\s*['"]([\w.]+)['"]\s*\]\s*=\s*(.*?)\s*(?:#.*)?$""",
+                                 text, flags=re.M):
+        if not re.fullmatch(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?", value):
+            value = f"{value} (an expression, never evaluated)"  # refused as not a number
         found[key] = value
     return found
 

@@ -155,6 +155,9 @@ class EMModel:
         # A model without stages has one value of them, whatever was passed.
         uses = _REGISTERS[self.name].uses_stages
         object.__setattr__(self, "stages", _check_stages(self.stages) if uses else DEFAULT_STAGES)
+        if self.stages > defaults.MAX_STAGES:  # the likelihood's cost grows with them
+            raise OptionError(f"stages must be at most {defaults.MAX_STAGES} (real registers "
+                              f"have 400 to 1100), got {self.stages}")
 
     @property
     def register(self):
