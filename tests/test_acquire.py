@@ -276,3 +276,78 @@ def test_stacks_are_written_band_by_band_and_continued_at_any_frame(tmp_path):
     assert resumed.frames == chunk + 5
     record(resumed, frames[chunk + 5:])
     assert np.array_equal(np.asarray(load_stack(path)[...]), frames)
+
+
+# --------------------------------------------------------------------------------------
+# Hostile sessions, refused options, stores begun when killed
+# --------------------------------------------------------------------------------------
+def test_a_session_record_never_supplies_a_path(tmp_path):
+    """A stack's "file" in session.json once became a path outside the session; now the
+    stacks are the plan's own and the record only says how far each got."""
+    plan_path = _plan_file(tmp_path, setpoints=(1, 5))
+    out = tmp_path / "session"
+    bright = lambda core, stack: core.setProperty("Camera", "Light", 1.6 * stack.photoelectrons)  # noqa: E731
+    with pytest.raises(AcquireError):
+        acquire(plan_path, out, simulated_seed=3, roi=(0, 0, 8, 8), set_light=bright,
+                progress_bars=False)
+    record = out / "session.json"
+    good = record.read_text()
+    for change, words in (
+            (lambda s: s["stacks"][1].update(file="../escaped.ome.zarr"), "not a session"),
+            (lambda s: s["stacks"][1].update(file=str(tmp_path / "abs.ome.zarr")),
+             "not a session"),
+            (lambda s: s.pop("stacks"), "not a session"),
+            (lambda s: s["stacks"][0].update(frames="50"), "frames is '50'"),
+            (lambda s: s["stacks"][0].update(done="yes"), "done is 'yes'")):
+        state = json.loads(good)
+        change(state)
+        record.write_text(json.dumps(state))
+        with pytest.raises(Exception, match=words):
+            acquire(plan_path, out, simulated_seed=3, roi=(0, 0, 8, 8), resume=True,
+                    progress_bars=False)
+    assert not (tmp_path / "escaped.ome.zarr").exists()
+    assert not (tmp_path / "abs.ome.zarr").exists()
+
+
+def test_a_refused_option_leaves_nothing_and_a_killed_store_is_redone(tmp_path, capsys):
+    plan_path = _plan_file(tmp_path, setpoints=(1, 5))
+    out = tmp_path / "session"
+    code = cli.main(["acquire", str(plan_path), "-o", str(out), "--simulated", "--seed", "2",
+                     "--camera", "Nope", "-q"])
+    assert code == 2 and "no camera 'Nope'" in capsys.readouterr().err
+    assert not out.exists() or not any(out.iterdir())  # the corrected command may start
+    assert cli.main(["acquire", str(plan_path), "-o", str(out), "--simulated", "--seed",
+                     "-5", "-q"]) == 2
+    capsys.readouterr()
+    # a run killed while creating its first light stack's store: metadata, no frame
+    bright = lambda core, stack: core.setProperty("Camera", "Light", 1.6 * stack.photoelectrons)  # noqa: E731
+    with pytest.raises(AcquireError):
+        acquire(plan_path, out, simulated_seed=2, roi=(0, 0, 8, 8), set_light=bright,
+                progress_bars=False)
+    begun = out / "1x-gain.ome.zarr"
+    begun.mkdir()
+    (begun / "zarr.json").write_text('{"zarr_format": 3, "node_type": "group"}')
+    # resumed without saying which camera: the session says it was the simulated one
+    assert cli.main(["acquire", str(plan_path), "-o", str(out), "--resume", "--roi",
+                     "0,0,8,8", "-q"]) == 0, capsys.readouterr().err
+    assert Session.load(out).state["status"] == "complete"
+    assert load_stack(begun).shape[0] == Session.load(out).stacks[1].planned_frames
+
+
+def test_saturation_is_judged_by_the_cameras_own_bit_depth(tmp_path):
+    """A plan that says 20 bits once recorded a stack all at 65535 (the files: 16)."""
+    plan_path = _plan_file(tmp_path, setpoints=(1, 5), edit={"adc_bits = 16": "adc_bits = 20"})
+    bright = lambda core, stack: core.setProperty("Camera", "Light", 1e6)  # noqa: E731
+    with pytest.raises(AcquireError, match="ADC's limit \\(65535 ADU\\)"):
+        acquire(plan_path, tmp_path / "s", simulated_seed=4, roi=(0, 0, 8, 8),
+                set_light=bright, light_tolerance=None, progress_bars=False)
+
+
+def test_plan_check_refuses_light_past_the_adc(tmp_path, capsys):
+    plan_path = _plan_file(tmp_path)
+    text = plan_path.read_text()
+    import re
+
+    plan_path.write_text(re.sub(r"(?m)^photoelectrons = .*$", "photoelectrons = 1000000", text))
+    code = cli.main(["plan", "--check", str(plan_path), "-q"])
+    assert code == 2 and "past the ADC's 65535" in capsys.readouterr().err

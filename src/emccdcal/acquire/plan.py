@@ -282,6 +282,19 @@ def _allocate(design, p, targets, target, max_frames, dark_cost):
     return state[:A], state[A], float(now[0])
 
 
+def _within_adc(setpoints, gains, light, camera) -> None:
+    """Refuse light whose mean count is past the ADC's last count: such frames saturate,
+    and no prediction of their precision means anything."""
+    top = 2 ** camera["adc_bits"] - 1
+    for s, g, E in zip(setpoints, gains, light):
+        mean = camera["offset"] + E * g / camera["e_per_adu"]
+        if mean > top:
+            raise OptionError(
+                f"{E:g} e- per pixel per frame at set-point {s:g} (gain {g:g}) is a mean "
+                f"count of {mean:.4g} ADU, past the ADC's {top} ({camera['adc_bits']} bits): "
+                "those frames saturate; less light")
+
+
 def _brightest(setpoint_gain, camera, model) -> float:
     """The most light (e⁻ per pixel per frame) whose mean plus ADC_MARGIN_SD SDs, at
     gain ``setpoint_gain``, stays below ADC_FILL of the ADC range and of the full wells:
@@ -646,6 +659,9 @@ def read_plan(path) -> Plan:
         rate = None if rate is None else check_number("frame_rate_hz", rate, positive=True)
         most = doc.get("max_frames")
         most = None if most is None else check_int("max_frames", most, minimum=_FIRST_FRAMES)
+        if len(set(sps)) < len(sps) and method == "gs":
+            raise OptionError("a set-point is listed twice among the [[acquisition]] tables")
+        _within_adc(sps, gains, light, camera)
         return predict(method, sps, gains, light, frames, dark, camera, target,
                        frame_rate_hz=rate, max_frames=most)
     except OptionError as exc:

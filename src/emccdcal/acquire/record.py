@@ -33,6 +33,7 @@ import hashlib
 import json
 import math
 import queue
+import shutil
 import signal
 import threading
 import time
@@ -228,6 +229,22 @@ def stacks_of(plan: Plan) -> list[Stack]:
     return out
 
 
+def _progress_of(stack: Stack, rec) -> None:
+    """Set ``stack``'s progress (frames, done, reached SE) from its record, checked; the
+    record must name the same stack."""
+    if not isinstance(rec, dict) or rec.get("name") != stack.name or rec.get("file") != stack.file:
+        raise ValueError(f"stack {stack.name!r} is recorded as "
+                         f"{rec.get('name') if isinstance(rec, dict) else rec!r}")
+    frames, done, se = rec.get("frames", 0), rec.get("done", False), rec.get("reached_se")
+    if isinstance(frames, bool) or not isinstance(frames, int) or not 0 <= frames <= 10**9:
+        raise ValueError(f"{stack.name}: frames is {frames!r}")
+    if not isinstance(done, bool):
+        raise ValueError(f"{stack.name}: done is {done!r}")
+    if se is not None and (isinstance(se, bool) or not isinstance(se, (int, float))):
+        raise ValueError(f"{stack.name}: reached_se is {se!r}")
+    stack.frames, stack.done, stack.reached_se = frames, done, se
+
+
 class Session:
     """A session folder's record (``session.json``), written atomically."""
 
@@ -237,12 +254,31 @@ class Session:
         self._saved = 0.0
 
     @classmethod
-    def load(cls, folder: Path) -> Session:
+    def load(cls, folder: Path, plan: Plan | None = None) -> Session:
+        """The session recorded in ``folder`` for ``plan`` (default: the session's own
+        ``plan.toml``). The stacks, their files' names included, are the plan's own
+        (:func:`stacks_of`): the record supplies only how far each got, checked, so that
+        no text in it is ever a path."""
+        folder = Path(folder)
+        plan = read_plan(folder / "plan.toml") if plan is None else plan
         path = folder / SESSION_FILE
+        state = _files.load_json(path, what="session record")
         try:
-            return cls(folder, _files.load_json(path, what="session record"))
-        except (OSError, ValueError, TypeError, KeyError) as exc:
-            raise InputError(f"'{path}': not a readable session ({one_line(exc)})") from None
+            if not isinstance(state, dict) or not isinstance(state.get("stacks"), list):
+                raise ValueError("no list of stacks")
+            expected = stacks_of(plan)
+            if len(state["stacks"]) != len(expected):
+                raise ValueError(f"{len(state['stacks'])} stacks, the plan has {len(expected)}")
+            for stack, rec in zip(expected, state["stacks"]):
+                _progress_of(stack, rec)
+            runs = state.get("runs", 1)
+            if isinstance(runs, bool) or not isinstance(runs, int) or not 0 <= runs < 10**6:
+                raise ValueError(f"runs is {runs!r}")
+        except (ValueError, TypeError, AttributeError) as exc:
+            raise InputError(f"'{path}': not a session of this plan ({one_line(exc)})") from None
+        session = cls.__new__(cls)
+        session.folder, session.state, session.stacks, session._saved = folder, state, expected, 0.0
+        return session
 
     def save(self, *, every: float = 0.0) -> None:
         """Write session.json (with ``every``, at most once per ``every`` seconds and not
@@ -464,6 +500,22 @@ def _attrs(ctx: _Context, stack: Stack) -> dict:
                                      "photoelectrons": stack.photoelectrons}}
 
 
+def _begun_but_empty(path: Path) -> bool:
+    """Whether ``path`` is a store begun and never given a frame: a folder holding Zarr
+    metadata only (a run killed while creating it). Its name is the plan's (the session
+    supplies no path), and nothing of a frame is lost by making it again."""
+    if not path.is_dir() or path.is_symlink():
+        return False
+    for item in path.rglob("*"):
+        if item.is_symlink() or (item.is_file() and item.name not in _METADATA_FILES):
+            return False
+    return True
+
+
+#: What a Zarr store holds before its first chunk (formats 3 and 2).
+_METADATA_FILES = {"zarr.json", ".zgroup", ".zarray", ".zattrs"}
+
+
 class _Writing:
     """A stack's batches appended by a thread of its own, so that popping frames from the
     core never waits for the disk; the queue is bounded (and so is memory). An error of
@@ -472,6 +524,8 @@ class _Writing:
     def __init__(self, session: Session, stack: Stack, path: Path, shape, dtype, attrs):
         self.session, self.stack = session, stack
         self._args = (path, shape, dtype, attrs)
+        if stack.frames == 0 and _begun_but_empty(path):
+            shutil.rmtree(path)  # a store this stack began when the run was killed: redone
         self.writer = (StackWriter(*self._args, frames=stack.frames)
                        if path.exists() else None)  # else made with the first frames kept
         self._queue: queue.Queue = queue.Queue(maxsize=_QUEUED_BATCHES)
@@ -617,11 +671,22 @@ def _dark_of(ctx: _Context, setpoint: float):
     return ctx.darks[stack.name]
 
 
+def _adc_max(ctx: _Context, dtype) -> int:
+    """The largest count the frames can hold: the camera's bit depth as the core reports
+    it, the plan's, and the frames' type, whichever is least (a plan may overstate it)."""
+    bits = [int(ctx.plan.camera["adc_bits"])]
+    try:
+        bits.append(int(ctx.core.getImageBitDepth()))
+    except Exception:  # noqa: BLE001 - a camera that does not say: the plan and the type
+        pass
+    return min(2 ** min(b for b in bits if b > 0) - 1, int(np.iinfo(dtype).max))
+
+
 def _check_light(ctx: _Context, stack: Stack, frames: np.ndarray) -> None:
     """Stop when the first frames of a light stack saturate or their light is off the
     plan's by more than the tolerance."""
     cam = ctx.plan.camera
-    adc_max = 2 ** int(cam["adc_bits"]) - 1
+    adc_max = _adc_max(ctx, frames.dtype)
     saturated = float(np.mean(frames >= adc_max))
     where = f"{stack.name} (set-point {stack.setpoint:g})"
     if saturated > SATURATED_LIMIT:
@@ -658,7 +723,7 @@ def _running_se(ctx: _Context, stack: Stack, sample_frames: list) -> float:
                                                            ctx.sample)))
     frames = [ctx.unit_frames, np.stack(sample_frames)[:, None, :]]
     maps, dark_frames = [], []
-    adc_max = 2 ** int(cam["adc_bits"]) - 1
+    adc_max = _adc_max(ctx, ctx.unit_frames.dtype)
     for sp in (1.0, stack.setpoint):
         dark = _dark_of(ctx, sp)[1]
         # the calibration's rule: plain maps at 1x, the read-out fitted apart from the
@@ -766,39 +831,60 @@ def acquire(plan, out, *, core=None, camera: str | None = None, simulated_seed=N
     # a session goes into a new (empty) folder or resumes its own: _open_session decides
     with Output(out, kind="folder", stage=False):
         session = _open_session(out, plan, text, resume, core, camera, roi, simulated_seed)
-        run = session.state["runs"] - 1
-        device = None
-        if core is None:
-            core, device = simulated_core(_simulated_camera(plan), seed=simulated_seed, run=run)
-        camera = camera or core.getCameraDevice()
-        if not camera:
-            raise OptionError("the core has no camera: name it with --camera")
         try:
-            _prepare(core, camera, roi)
-            prop = gain_property(core, camera, gain_prop)
-            if device is not None:
-                set_light = set_light or _simulated_light(camera)
-                _write_truth(out, plan, device, session)
-            elif plan.method != "gs" and set_light is None:
-                raise OptionError("an intensity-series plan changes the light between "
-                                  "levels: give set_light (the command line asks at each)")
-            with _sigint_flag() as stop:
-                ctx = _Context(core, camera, prop, plan, session, stop, light_tolerance,
-                               stop_at_target, set_light, progress_bars)
-                _run(ctx)
-        finally:
-            _release(core, unload=device is not None)
+            _record(session, out, plan, core, camera, roi, simulated_seed, gain_prop,
+                    set_light, light_tolerance, stop_at_target, progress_bars)
+        except BaseException:
+            if not resume and not any(s.frames or (out / s.file).exists()
+                                      for s in session.stacks):
+                _discard(out)  # refused before recording: what it wrote goes
+            raise
     return session
+
+
+def _discard(out: Path) -> None:
+    """Remove the files a new session wrote before its first stack (its record, plan
+    and the simulated camera's truth), so that the corrected command can start again."""
+    for name in (SESSION_FILE, "plan.toml", "truth.json"):
+        (out / name).unlink(missing_ok=True)
+
+
+def _record(session, out, plan, core, camera, roi, simulated_seed, gain_prop, set_light,
+            light_tolerance, stop_at_target, progress_bars) -> None:
+    """Record a session's stacks (:func:`acquire`, its parameters)."""
+    run = session.state["runs"] - 1
+    device = None
+    if core is None:
+        core, device = simulated_core(_simulated_camera(plan), seed=simulated_seed, run=run)
+    camera = camera or core.getCameraDevice()
+    if not camera:
+        raise OptionError("the core has no camera: name it with --camera")
+    try:
+        _prepare(core, camera, roi)
+        prop = gain_property(core, camera, gain_prop)
+        if device is not None:
+            set_light = set_light or _simulated_light(camera)
+            _write_truth(out, plan, device, session)
+        elif plan.method != "gs" and set_light is None:
+            raise OptionError("an intensity-series plan changes the light between "
+                              "levels: give set_light (the command line asks at each)")
+        with _sigint_flag() as stop:
+            ctx = _Context(core, camera, prop, plan, session, stop, light_tolerance,
+                           stop_at_target, set_light, progress_bars)
+            _run(ctx)
+    finally:
+        _release(core, unload=device is not None)
 
 
 def _open_session(out, plan, text, resume, core, camera, roi, seed) -> Session:
     if resume:
         if not (out / SESSION_FILE).exists():
             raise OutputError(f"{out}: no session to resume ({SESSION_FILE} is missing)")
-        session = Session.load(out)
-        if session.state.get("plan_sha256") != _plan_sha(text):
+        recorded = _files.load_json(out / SESSION_FILE, what="session record")
+        if not isinstance(recorded, dict) or recorded.get("plan_sha256") != _plan_sha(text):
             raise OutputError(f"{out}: its session recorded another plan; resume it with "
                               "its own plan.toml")
+        session = Session.load(out, plan)
         sim = session.state.get("simulated")
         if (sim is None) != (seed is None) or (sim and sim.get("seed") != seed):
             raise OutputError(f"{out}: recorded with "
@@ -809,7 +895,7 @@ def _open_session(out, plan, text, resume, core, camera, roi, seed) -> Session:
         if (None if roi is None else list(roi)) != recorded_roi:
             raise OutputError(f"{out}: recorded with region {recorded_roi}: resume it with "
                               "the same --roi")
-        session.state["runs"] += 1
+        session.state["runs"] = session.state.get("runs", 1) + 1
         session.state["status"] = "recording"
         session.save()
         return session
@@ -827,7 +913,12 @@ def _open_session(out, plan, text, resume, core, camera, roi, seed) -> Session:
 
 
 def _prepare(core, camera, roi) -> None:
-    core.setCameraDevice(camera)
+    try:
+        core.setCameraDevice(camera)
+    except Exception as exc:  # noqa: BLE001 - the core's own error, in one line
+        loaded = ", ".join(str(d) for d in core.getLoadedDevices())
+        raise OptionError(f"no camera '{camera}' in the configuration (its devices: "
+                          f"{loaded or 'none'}): {one_line(exc)}") from None
     core.setAutoShutter(False)
     if roi is not None:
         try:

@@ -30,7 +30,7 @@ def add_parser(subparsers):
     src.add_argument("--simulated", action="store_true",
                      help="the built-in simulated EMCCD (the plan's camera; truth.json "
                      "written beside the stacks)")
-    src.add_argument("--seed", type=int, default=None, metavar="S",
+    src.add_argument("--seed", type=_common.nonnegative_int, default=None, metavar="S",
                      help="seed of the simulated camera (default: one drawn and recorded)")
     how = p.add_argument_group("the recording")
     how.add_argument("--roi", type=_roi, default=None, metavar="X,Y,W,H",
@@ -82,6 +82,14 @@ def run(args) -> int:
     from ..acquire.plan import read_plan
     from ..errors import OptionError
 
+    if args.resume and not args.simulated and args.mm_config is None:
+        # the session says which camera it was recorded with
+        from ..acquire.record import Session
+
+        args.simulated = Session.load(Path(args.out)).state.get("simulated") is not None
+        if not args.simulated:
+            raise OptionError(f"{args.out} was recorded with a real camera: give its "
+                              "--mm-config FILE to resume")
     if args.simulated == (args.mm_config is not None):
         raise OptionError("give --simulated or --mm-config FILE (a real camera)")
     if args.no_light_check and args.light_tolerance is not None:

@@ -70,7 +70,10 @@ def settings(path: Path) -> CameraSettings:
     """The settings recorded in the store's ``"emccdcal"`` attribute (unknown names are
     an error, so that a misspelt one is not silently dropped)."""
     arr, group = _open(path)
-    recorded = dict(arr.attrs.get(ATTRIBUTE) or group.get(ATTRIBUTE) or {})
+    recorded = arr.attrs.get(ATTRIBUTE) or group.get(ATTRIBUTE) or {}
+    if not isinstance(recorded, dict):
+        raise InputError(f"'{path}': its '{ATTRIBUTE}' attribute is not a table of settings")
+    recorded = dict(recorded)
     if not recorded and isinstance(group.get("micromanager"), dict):
         from .micromanager import settings_of
 
@@ -79,10 +82,7 @@ def settings(path: Path) -> CameraSettings:
     if unknown:
         raise InputError(f"'{path}': unknown camera setting(s) {', '.join(unknown)} in its "
                          f"'{ATTRIBUTE}' attribute (known: {', '.join(CameraSettings.names())})")
-    for key in ("roi", "binning"):
-        if recorded.get(key) is not None:
-            recorded[key] = tuple(int(v) for v in recorded[key])
-    return CameraSettings(**recorded)
+    return CameraSettings.from_record(recorded, path)
 
 
 def header(path: Path):
