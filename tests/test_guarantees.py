@@ -490,3 +490,44 @@ def test_a_bead_width_out_of_range_is_refused(tmp_path, capsys):
     manifest = _write_beads(tmp_path / "beads", setpoints=(1, 300), frames=40)
     _refused(*_run(capsys, "cots", manifest, "-o", tmp_path / "o", "--width", "1e300")[::2],
              "width 1e+300 is outside")
+
+
+# --------------------------------------------------------------------------------------
+# A full disk is one line, and loses nothing already written
+# --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("verb", ["report", "gain-check"])
+def test_a_full_disk_is_one_line_and_loses_nothing(verb, camera_a, tmp_path, capsys,
+                                                   monkeypatch):
+    import errno
+
+    import emccdcal._output as output
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("earlier")
+    monkeypatch.setattr(output.os, "fsync", full)  # the disk fills as the file is flushed
+    darks = tmp_path / "darks.tif"
+    if verb == "gain-check":  # clock-induced charge only, at 100x
+        tifffile.imwrite(darks, simulate_frames(np.full(SHAPE, 0.05), em_gain=GAINS[100.0],
+                                                e_per_adu=PHI, offset=OFFSET, read_noise=SIGMA,
+                                                frames=1500, seed=2))
+    argv = (["report", camera_a["cal"], "-o", out / "r.html"] if verb == "report" else
+            ["gain-check", darks, "--e-per-adu", PHI, "--setpoint", 100, "-o", out, "-q"])
+    code, _, err = _run(capsys, *argv)
+    _refused(code, err, "No space left on device")
+    assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]
+
+
+def test_zarr_settings_of_the_wrong_type_are_one_line(tmp_path):
+    from emccdcal.data.stacks import stack_settings
+    from emccdcal.errors import InputError
+
+    for key, value in (("adc_bits", "16"), ("em_gain_setpoint", "abc"), ("roi", "abcd"),
+                       ("binning", [2]), ("binning", [0, 0]), ("binning", [-1, 2])):
+        store = write_zarr(tmp_path / f"{key}{len(str(value))}.zarr", _frames(100.0),
+                           **{key: value})
+        with pytest.raises(InputError, match=f"camera setting {key}"):
+            stack_settings(store)

@@ -153,6 +153,10 @@ def atomic_write(path, write: Callable[[str], object], *, durable: bool = True) 
             staging.add(path, tmp)
         else:
             os.replace(tmp, path)
+    except OSError as exc:  # a full disk, a quota, storage gone read-only: one line
+        tmp.unlink(missing_ok=True)
+        raise OutputError(f"{path}: cannot be written ({_reason(exc)}); any earlier file of "
+                          "that name is as it was") from None
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
