@@ -249,3 +249,138 @@ def test_tifffile_log_lines_do_not_reach_the_terminal(clean, tmp_path, capfd):
     assert out == "" and err == ""
     damaged = [str(w.message) for w in caught if "damaged TIFF" in str(w.message)]
     assert len(damaged) == 1 and "1x.tif" in damaged[0] and "read in full" in damaged[0]
+
+
+# --------------------------------------------------------------------------------------
+# The newer inputs: plan files, session records, Zarr settings, tools' settings files
+# --------------------------------------------------------------------------------------
+NEWER = settings(max_examples=int(os.environ.get("FUZZ_EXAMPLES", 150)), deadline=None,
+                 derandomize=not os.environ.get("FUZZ_EXAMPLES"),
+                 suppress_health_check=[HealthCheck.too_slow,
+                                        HealthCheck.function_scoped_fixture])
+#: JSON-like values of every kind, nested a little.
+JSONISH = st.recursive(
+    st.one_of(st.none(), st.booleans(), st.integers(-10**30, 10**30),
+              st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=12)),
+    lambda inner: st.one_of(st.lists(inner, max_size=4),
+                            st.dictionaries(st.text(max_size=8), inner, max_size=4)),
+    max_leaves=12)
+
+
+def _one_clear_error(exc, name):
+    assert isinstance(exc, EmccdcalError), repr(exc)
+    assert "\n" not in str(exc) and name in str(exc), str(exc)
+
+
+@pytest.fixture(scope="module")
+def a_plan(tmp_path_factory):
+    from emccdcal.acquire.plan import plan, plan_text
+
+    d = tmp_path_factory.mktemp("plan")
+    text = plan_text(plan(method="gs", e_per_adu=3.9, read_noise=15.0, offset=600.0,
+                          setpoints=[1, 5, 25], target_se=2.0))
+    (d / "plan.toml").write_text(text)
+    return d, text
+
+
+@NEWER
+@given(edits=st.lists(st.tuples(st.integers(0, 200), st.sampled_from(
+    ["", "x", "= 3", "[[acquisition]]", "frames = -1", "frames = 99999999999999999999",
+     "em_gain_setpoint = 1", "photoelectrons = 1e300", "camera = \"abc\"", "acquisition = [1,2]",
+     "adc_bits = \"16\"", "e_per_adu = nan", "[camera]", "stages = 100000000"])), max_size=4))
+def test_edited_plans_predict_or_give_one_clear_error(a_plan, edits):
+    from emccdcal.acquire.plan import read_plan
+
+    folder, text = a_plan
+    lines = text.splitlines()
+    for at, line in edits:
+        lines.insert(at % (len(lines) + 1), line)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "edited.toml"
+        path.write_text("\n".join(lines) + "\n")
+        try:
+            p = read_plan(path)
+        except Exception as exc:  # noqa: BLE001 - the property under test
+            _one_clear_error(exc, "edited.toml")
+            return
+        assert all(a.frames >= 2 for a in p.acquisitions)
+
+
+@NEWER
+@given(state=st.dictionaries(st.sampled_from(["stacks", "runs", "plan_sha256", "status",
+                                              "simulated", "roi"]), JSONISH, max_size=6),
+       stack=st.dictionaries(st.sampled_from(["name", "file", "frames", "done", "reached_se"]),
+                             JSONISH, max_size=5))
+def test_session_records_load_or_give_one_clear_error(a_plan, state, stack):
+    import json
+
+    from emccdcal.acquire.plan import read_plan
+    from emccdcal.acquire.record import SESSION_FILE, Session, stacks_of
+
+    folder, _ = a_plan
+    plan = read_plan(folder / "plan.toml")
+    good = [{"name": s.name, "file": s.file, "frames": 0, "done": False, "reached_se": None}
+            for s in stacks_of(plan)]
+    good[0].update(stack)
+    state.setdefault("stacks", good)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        try:
+            (tmp / SESSION_FILE).write_text(json.dumps(state))
+        except ValueError:
+            return
+        try:
+            session = Session.load(tmp, plan)
+        except Exception as exc:  # noqa: BLE001 - the property under test
+            _one_clear_error(exc, SESSION_FILE)
+            return
+        assert [s.file for s in session.stacks] == [s.file for s in stacks_of(plan)]
+
+
+@NEWER
+@given(record=st.dictionaries(st.sampled_from(
+    ["em_gain_setpoint", "adc_bits", "roi", "binning", "serial", "readout_rate_mhz",
+     "temperature_c", "exposure_ms"]), JSONISH, max_size=5))
+def test_zarr_settings_are_typed_or_one_clear_error(record):
+    from emccdcal.data.settings import CameraSettings
+
+    try:
+        s = CameraSettings.from_record(record, "store.zarr")
+    except Exception as exc:  # noqa: BLE001 - the property under test
+        _one_clear_error(exc, "store.zarr")
+        return
+    if s.binning is not None:
+        assert len(s.binning) == 2 and min(s.binning) >= 1
+    if s.adc_bits is not None:
+        assert isinstance(s.adc_bits, int) and 1 <= s.adc_bits <= 32
+
+
+@pytest.fixture(scope="module")
+def a_calibration(tmp_path_factory):
+    from test_export import true_result
+
+    from emccdcal.result import load_calibration
+
+    return load_calibration(true_result(tmp_path_factory.mktemp("cal") / "r"))
+
+
+@NEWER
+@given(doc=JSONISH, yaml_text=st.booleans())
+def test_tool_files_audit_or_give_one_clear_error(a_calibration, doc, yaml_text):
+    import json
+
+    import yaml
+
+    from emccdcal.export.audit import audit
+
+    doc = {"Cameras": {"cam": doc}} if isinstance(doc, dict) else doc
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / ("config.yaml" if yaml_text else "settings.json")
+        try:
+            path.write_text(yaml.safe_dump(doc) if yaml_text else json.dumps(doc))
+        except (ValueError, yaml.YAMLError):
+            return
+        try:
+            audit(path, a_calibration, setpoint=100)
+        except Exception as exc:  # noqa: BLE001 - the property under test
+            _one_clear_error(exc, path.name)
