@@ -86,6 +86,8 @@ def run(args) -> int:
                    label="" if calibration is None else calibration.label, setpoint=setpoint,
                    accept=args.accept_mismatch, what="dark stacks")
     phi = _phi(args, calibration)
+    if args.record or args.date is not None:  # refused now, not after the fit
+        _check_record(args, settings)
     bits = {s.adc_bits for s in settings} - {None}
     outputs = (RECORD_FILE,) + (() if args.no_figures else
                                 (f"{FIGURE_STEM}.png", f"{FIGURE_STEM}.svg"))
@@ -137,10 +139,11 @@ def _phi(args, calibration) -> float:
 
     if isinstance(args.e_per_adu, float):
         return args.e_per_adu
-    if isinstance(args.e_per_adu, Path):
-        from ..acquire.plan import camera_of
+    if isinstance(args.e_per_adu, Path):  # a result's φ: its median over pixels
+        from ..export.gain_check import e_per_adu_of
+        from ..result import load_calibration
 
-        return camera_of(args.e_per_adu)["e_per_adu"]
+        return e_per_adu_of(load_calibration(args.e_per_adu))
     if calibration is None:
         raise OptionError("give --e-per-adu PHI (or a result), or the calibration: "
                           "--calibration RESULT or --camera SERIAL")
@@ -162,6 +165,22 @@ def _write(args, check, record) -> list[Path]:
 
         written.append(save_figure(gain_check_figure(check), args.out / FIGURE_STEM)[0])
     return written
+
+
+def _check_record(args, settings) -> None:
+    """What ``--record`` and ``--date`` need, checked before any fitting."""
+    from ..errors import OptionError
+    from ..export import database
+
+    if args.date is not None:
+        if not args.record:
+            raise OptionError("--date is when the darks were taken, for --record")
+        database.past_date(args.date)
+    serials = {s.serial for s in settings} - {None}
+    if args.camera is None and len(serials) != 1:
+        raise OptionError("--record needs the camera: the dark stacks record "
+                          f"{'no serial' if not serials else 'several serials'}; give "
+                          "--camera SERIAL")
 
 
 def _record(args, check, settings):

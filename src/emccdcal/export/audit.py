@@ -160,6 +160,17 @@ def _leaves(tree, path=()):
         yield path, tree
 
 
+def _picasso_qe(value, name, path):
+    """Picasso's QE: a number, or a table by wavelength (each value checked; one value
+    is the QE, several leave it to the wavelength the user picks: None)."""
+    if value is None:
+        return None
+    if isinstance(value, dict):
+        values = [_qe(v, f"{name}: Quantum Efficiency at {k}", path) for k, v in value.items()]
+        return values[0] if len(values) == 1 else None
+    return _qe(value, f"{name}: Quantum Efficiency", path)
+
+
 def _picasso(doc, path, setpoint, tool_gain):
     cameras = doc.get("Cameras") if isinstance(doc, dict) else None
     if not isinstance(cameras, dict) or not cameras:
@@ -178,8 +189,7 @@ def _picasso(doc, path, setpoint, tool_gain):
                                                 "into Picasso's EM gain box")
         baseline = (_number(cam["Baseline"], f"{name}: Baseline", path)
                     if "Baseline" in cam else None)
-        qe = (_qe(cam["Quantum Efficiency"], f"{name}: Quantum Efficiency", path)
-              if cam.get("Quantum Efficiency") is not None else None)
+        qe = _picasso_qe(cam.get("Quantum Efficiency"), name, path)
         for keys, value in _leaves(cam["Sensitivity"]):
             where = " > ".join(("Cameras", str(name), "Sensitivity", *keys))
             sens = _positive(value, where, path)
@@ -333,7 +343,8 @@ def _smap_cameras(raw, path, setpoint) -> list[Reading] | None:
         return None
     readings = []
     for cam in np.asarray(cameras).reshape(-1):
-        name = _cell_text(getattr(np.asarray(cam.ID).reshape(-1)[0], "name", "camera"))
+        ids = np.asarray(getattr(cam, "ID", None)).reshape(-1)
+        name = _cell_text(getattr(ids[0], "name", "camera") if ids.size else "camera")
         table = np.asarray(cam.par, dtype=object)
         if table.ndim != 2 or table.shape[1] < 3:
             raise InputError(f"'{path}': camera {name!r}: its par is not SMAP's table")

@@ -48,8 +48,8 @@ from ..errors import InputError, OptionError
 from ..result import format_setpoint, load, load_calibration, pixel_statistics, summarize
 
 __all__ = ["default_path", "add", "add_check", "remove", "relocate", "entries", "entry",
-           "checks", "find", "calibration", "compare", "readout_text", "Entry", "CheckEntry",
-           "Finding"]
+           "checks", "find", "calibration", "compare", "readout_text", "past_date", "Entry",
+           "CheckEntry", "Finding"]
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS calibration (
@@ -293,7 +293,7 @@ def _iso_date(text) -> str:
     return when.astimezone(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
-def _past_date(text) -> str:
+def past_date(text) -> str:
     """:func:`_iso_date` of a date that has been (a calibration cannot be of tomorrow)."""
     when = _iso_date(text)
     if _parse(when) > _dt.datetime.now(_dt.timezone.utc) + _dt.timedelta(days=1):
@@ -337,7 +337,7 @@ def add(result, *, db=None, camera=None, readout=None, date=None, note="") -> En
         raise OptionError(f"{cal.label}: its files record no camera serial number; give "
                           "--camera SERIAL")
     readout = readout_text(cal.camera) if readout is None else str(readout)
-    when = _past_date(date or cal.created or _dt.datetime.now(_dt.timezone.utc).isoformat())
+    when = past_date(date or cal.created or _dt.datetime.now(_dt.timezone.utc).isoformat())
     digest = ",".join(cal.sha256)
     gains = {}
     for s in cal.setpoints:
@@ -401,7 +401,7 @@ def add_check(check, *, camera, readout="", date=None, note="", db=None) -> Chec
     if check.setpoint is None:
         raise OptionError("the gain check has no set-point: give it")
     now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
-    when = _past_date(date or now)
+    when = past_date(date or now)
     record = check.as_dict()
     con = _connect(db, write=True)
     try:
