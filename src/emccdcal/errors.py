@@ -11,7 +11,12 @@ keeps working.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+
 __all__ = [
+    "spelled",
+    "spelling",
     "EmccdcalError",
     "OptionError",
     "InputError",
@@ -67,3 +72,33 @@ class InputWarning(UserWarning):
 
 class ReadNoiseGrowthWarning(UserWarning):
     """The darks' read noise grows with the EM gain set-point (clock-induced charge)."""
+
+
+# The words of the interface that shows a message: the command line's options by default,
+# a widget's fields where the napari plugin runs the library.
+_SPELLING: contextvars.ContextVar = contextvars.ContextVar("emccdcal_spelling", default={})
+
+
+def spelled(option: str) -> str:
+    """How the interface in use names a command-line option (``"--setpoint G"``): as
+    it is on the command line, or as :func:`spelling` says (a widget's field).
+
+    Examples
+    --------
+    >>> spelled("--setpoint G")
+    '--setpoint G'
+    >>> with spelling({"--setpoint G": "the 'set-point' field"}):
+    ...     spelled("--setpoint G")
+    "the 'set-point' field"
+    """
+    return _SPELLING.get().get(option, option)
+
+
+@contextlib.contextmanager
+def spelling(words: dict):
+    """Messages raised inside the block name options as ``words`` says."""
+    token = _SPELLING.set({**_SPELLING.get(), **words})
+    try:
+        yield
+    finally:
+        _SPELLING.reset(token)

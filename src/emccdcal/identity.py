@@ -26,7 +26,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from .defaults import IDENTITY_FIELDS
-from .errors import InputError, OptionError
+from .errors import InputError, OptionError, spelled
 
 __all__ = ["IDENTITY_FIELDS", "ACCEPTABLE", "IdentityWarning", "mismatches", "of_frames",
            "check", "recorded"]
@@ -153,8 +153,7 @@ def of_frames(frames: Mapping, *, what: str = "frames", setpoints: bool = True) 
 
 
 def check(calibration: Mapping | None, frames: Mapping, *, label: str = "the calibration",
-          setpoint=None, accept=(), what: str = "frames",
-          option: str = "--accept-mismatch") -> dict:
+          setpoint=None, accept=(), what: str = "frames") -> dict:
     """Refuse ``frames`` that a calibration does not hold for; warn where it cannot tell.
 
     Parameters
@@ -172,10 +171,8 @@ def check(calibration: Mapping | None, frames: Mapping, *, label: str = "the cal
     accept : iterable of str
         Fields let through (:data:`ACCEPTABLE`).
     what : str
-        What the frames are, for the messages.
-    option : str
-        How the interface showing the message spells "let FIELD through": the command
-        line's ``--accept-mismatch`` (default), a widget's field name.
+        What the frames are, for the messages (which name ``--accept-mismatch`` as the
+        interface in use spells it: :func:`emccdcal.errors.spelled`).
 
     Returns
     -------
@@ -194,6 +191,7 @@ def check(calibration: Mapping | None, frames: Mapping, *, label: str = "the cal
         other way round: the identity could not be checked there.
     """
     accept = _accepted(accept)
+    option = spelled("--accept-mismatch")
     joint = of_frames(frames, what=what)
     first = next((path for path, _ in _items(frames)), "the frames")
     if setpoint is not None and "setpoint" not in accept:

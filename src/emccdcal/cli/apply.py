@@ -43,7 +43,7 @@ def run(args) -> int:
 
     setpoint = args.setpoint
     if setpoint is None and (args.camera is not None or args.gain_curve is not None):
-        setpoint = stack_settings(args.movie).em_gain_setpoint
+        setpoint = stack_settings(args.movie, setpoint_from_name=True).em_gain_setpoint
     with _common.recording_warnings() as caught:
         out = apply(_common.calibration_of(args, setpoint), args.movie, args.out,
                     setpoint=args.setpoint, photon_counting=args.photon_counting,

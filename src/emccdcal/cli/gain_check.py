@@ -76,7 +76,7 @@ def run(args) -> int:
 
     from .. import identity
 
-    recorded = [(path, stack_settings(path)) for path in args.darks]
+    recorded = [(path, stack_settings(path, setpoint_from_name=True)) for path in args.darks]
     settings = [s for _, s in recorded]
     setpoint = _setpoint(args, settings)
     calibration = (_common.calibration_of(args, setpoint)

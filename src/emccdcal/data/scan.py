@@ -28,13 +28,11 @@ from pathlib import Path
 from .._output import Output, atomic_write_text, comment, toml_line
 from ..errors import InputError
 from .settings import CameraSettings
-from .stacks import STACK_SUFFIXES, stack_header, stack_settings
+from .stacks import STACK_SUFFIXES, setpoint_in_name, stack_header, stack_settings
 
 __all__ = ["ScannedFile", "MapPair", "Session", "scan", "manifest_text", "write_manifest"]
 
 _DARK = re.compile(r"dark|no[-_ ]?signal|bias|background", re.IGNORECASE)
-_SETPOINT = (re.compile(r"(?<![\d.])(\d+(?:\.\d+)?)\s*x(?![a-z])", re.IGNORECASE),
-             re.compile(r"gain[-_ ]?(\d+(?:\.\d+)?)", re.IGNORECASE))
 
 
 def _word(alternatives: str) -> re.Pattern:
@@ -121,18 +119,10 @@ class Session:
         return lines
 
 
-def _setpoint_in_name(path: Path) -> float | None:
-    for pattern in _SETPOINT:
-        match = pattern.search(path.stem)
-        if match:
-            return float(match.group(1))
-    return None
-
-
 def _setpoint_of(path: Path, settings: CameraSettings):
     if settings.em_gain_setpoint is not None:
         return float(settings.em_gain_setpoint), "recorded"
-    setpoint = _setpoint_in_name(path)
+    setpoint = setpoint_in_name(path)
     if setpoint is not None:
         return setpoint, "name"
     raise InputError(f"'{path}': no EM gain set-point: the file records none and its name "
@@ -250,7 +240,7 @@ def _map_pairs(maps, frame, wanted, skipped):
     e_per_adu_map = None
     for path, shape in maps:
         kinds = [k for k, pattern in _MAP_KINDS.items() if pattern.search(path.stem)]
-        setpoint = _setpoint_in_name(path)
+        setpoint = setpoint_in_name(path)
         if kinds == ["e_per_adu"]:
             e_per_adu_map = e_per_adu_map or path
             skipped.append((path.name, "a map named for e⁻/ADU, not a dark: see the manifest's "

@@ -97,6 +97,8 @@ class CameraSettings:
 
         out = {}
         for key, value in recorded.items():
+            if key not in _FIELD_CHECKS:
+                raise InputError(f"'{source}': unknown camera setting {key!r}")
             if value is None:
                 continue
             checked = _FIELD_CHECKS[key](value)

@@ -13,8 +13,10 @@ them. Counts, offsets and read noise are in ADU. Every problem is an
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -121,12 +123,41 @@ def _layout(path: Path):
     return shape, dtype, offset, stride
 
 
-def stack_settings(path) -> CameraSettings:
+#: How a file's name states its EM-gain set-point where the file records none
+#: (``25x-gain.tif``, ``gain_25.tif``): the one rule of ``scan``, ``apply``, ``gain-check``
+#: and the napari reader.
+SETPOINT_IN_NAME = (re.compile(r"(?<![\d.])(\d+(?:\.\d+)?)\s*x(?![a-z])", re.IGNORECASE),
+                    re.compile(r"gain[-_ ]?(\d+(?:\.\d+)?)", re.IGNORECASE))
+
+
+def setpoint_in_name(path) -> float | None:
+    """The EM-gain set-point a file's name states (:data:`SETPOINT_IN_NAME`), or None.
+
+    Examples
+    --------
+    >>> setpoint_in_name("darks-300x.tif"), setpoint_in_name("gain_25.tif"), setpoint_in_name("a.tif")
+    (300.0, 25.0, None)
+    """
+    stem = Path(path).stem
+    for pattern in SETPOINT_IN_NAME:
+        match = pattern.search(stem)
+        if match:
+            return float(match.group(1))
+    return None
+
+
+def stack_settings(path, *, setpoint_from_name: bool = False) -> CameraSettings:
     """The camera settings a stack's file records (:class:`CameraSettings`; fields the
-    format or the file does not hold are None)."""
+    format or the file does not hold are None); with ``setpoint_from_name``, the
+    set-point its name states where the file records none (:func:`setpoint_in_name`)."""
     path = check_readable(Path(path))
     _layout(path)  # a readable stack first
-    return _reader(path).settings(path)
+    settings = _reader(path).settings(path)
+    if setpoint_from_name and settings.em_gain_setpoint is None:
+        named = setpoint_in_name(path)
+        if named is not None and named >= 1:
+            settings = dataclasses.replace(settings, em_gain_setpoint=named)
+    return settings
 
 
 #: The readers, one module each, in the order of ``STACK_SUFFIXES``. Each declares its

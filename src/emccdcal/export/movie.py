@@ -31,7 +31,7 @@ from .. import defaults, identity
 from .._output import Output, atomic_write
 from .._util import progress
 from ..data.stacks import read_band, stack_header, stack_settings
-from ..errors import InputError, OptionError
+from ..errors import InputError, OptionError, spelled
 from ..result import Calibration, format_setpoint, load_calibration
 
 __all__ = ["apply", "conversion", "Conversion", "OUTPUT_FORMATS", "DEFAULT_THRESHOLD"]
@@ -44,10 +44,11 @@ _BLOCK_BYTES = 16 << 20
 
 def _movie_setpoint(movie: Path, recorded, given) -> float:
     if given is None and recorded is None:
-        raise OptionError(f"{movie}: the file records no EM gain set-point; give --setpoint G")
+        raise OptionError(f"{movie}: the file records no EM gain set-point and its name states "
+                          f"none (such as '300x'); give {spelled('--setpoint G')}")
     if given is not None and recorded is not None and float(given) != recorded:
-        raise OptionError(f"{movie}: --setpoint {format_setpoint(given)} but the file records "
-                          f"set-point {format_setpoint(recorded)}")
+        raise OptionError(f"{movie}: set-point {format_setpoint(given)} given, but the file "
+                          f"records {format_setpoint(recorded)}")
     return float(recorded if given is None else given)
 
 
@@ -220,8 +221,8 @@ def _apply(cal, movie, target, setpoint, photon_counting, threshold, fmt, progre
     if len(shape) != 3:
         raise InputError(f"{movie}: a movie is a stack of frames; this file holds shape {shape}")
     frames, rows, cols = shape
-    convert = conversion(cal, movie, stack_settings(movie), shape, setpoint=setpoint,
-                         photon_counting=photon_counting, threshold=threshold,
+    convert = conversion(cal, movie, stack_settings(movie, setpoint_from_name=True), shape,
+                         setpoint=setpoint, photon_counting=photon_counting, threshold=threshold,
                          accept_mismatch=accept_mismatch, qe=qe)
     out_dtype = np.uint8 if photon_counting else np.float32
     meta = convert.meta

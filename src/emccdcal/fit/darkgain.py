@@ -146,7 +146,8 @@ class GainCheck:
         """One readable line (``gain-check`` without ``--json``); with ``target_se`` (a
         fraction) the frames it needs where this check falls short of it."""
         text = (f"em_gain {self.em_gain:.4g} ± {self.em_gain_se:.2g} "
-                f"({100 * self.relative_se:.2g} %) at set-point {self.setpoint:g}, from "
+                f"({100 * self.relative_se:.2g} %) at "
+                f"{'an unknown set-point' if self.setpoint is None else f'set-point {self.setpoint:g}'}, from "
                 f"{self.events:.0f} events ({self.pixels} px × {self.frames} frames, "
                 f"{self.event_rate:.3g} e-/px/frame; {self.em_model}, phi "
                 f"{self.e_per_adu:.4g} e-/ADU)")

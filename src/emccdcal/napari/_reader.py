@@ -34,7 +34,7 @@ def stack_layer(path: Path) -> tuple:
     stack = load_stack(path)
     frames = da.from_array(stack, chunks=(1,) + tuple(stack.shape[1:]), asarray=True,
                            name=f"emccdcal-{path}")
-    settings = stack_settings(path)
+    settings = stack_settings(path, setpoint_from_name=True)
     metadata = {"emccdcal_path": str(path), "units": "ADU (raw counts)",
                 "camera": settings.known()}
     kwargs = {"name": path.name, "metadata": metadata}

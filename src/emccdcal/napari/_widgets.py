@@ -21,7 +21,7 @@ from magicgui.widgets import (CheckBox, ComboBox, Container, FileEdit, Label, Li
 from qtpy.QtCore import QObject, QTimer, Signal
 
 from .._output import atomic_write_text
-from ..errors import Cancelled, EmccdcalError, OptionError
+from ..errors import Cancelled, EmccdcalError, OptionError, spelling
 
 __all__ = ["CalibrateWidget", "ApplyWidget", "GainCheckWidget"]
 
@@ -60,10 +60,17 @@ class _Job:
         from napari.qt.threading import create_worker
 
         def run():
-            with warnings.catch_warnings(record=True) as caught:
+            with warnings.catch_warnings(record=True) as caught, spelling(FIELD_NAMES):
                 warnings.simplefilter("always")
                 value = function()
             return value, list(dict.fromkeys(str(w.message) for w in caught))
+
+        def returned(out):  # an error here would reach Qt, which may abort the viewer
+            try:
+                with spelling(FIELD_NAMES):
+                    on_result(*out)
+            except Exception as exc:  # noqa: BLE001 - shown on the widget, never raised
+                self._failed(exc, reraise=False)
 
         self.cancelled.clear()
         self.bar.value, self.status.value = 0, f"{what}…"
@@ -71,19 +78,20 @@ class _Job:
         # (an errored handler of our own: napari's default re-raises in the viewer)
         self.worker = create_worker(run, _start_thread=False,
                                     _connect={"errored": self._failed})
-        self.worker.returned.connect(lambda out: on_result(*out))
+        self.worker.returned.connect(returned)
         self.worker.finished.connect(lambda: setattr(self.cancel_button, "enabled", False))
         self.worker.start()
         return self.worker
 
-    def _failed(self, exc):
+    def _failed(self, exc, reraise=True):
         if isinstance(exc, Cancelled):
             self.status.value = "cancelled: nothing was written"
         elif isinstance(exc, EmccdcalError):
             self.status.value = f"error: {exc}"
         else:  # a bug: show it, and let napari's handler keep its traceback
             self.status.value = f"error (a bug of emccdcal): {type(exc).__name__}: {exc}"
-            raise exc
+            if reraise:
+                raise exc
 
 
 def _status_line(**kw):
@@ -95,10 +103,18 @@ def _reporting(widget, action):
     status line (one line, as the command line prints it)."""
     def run(*_):
         try:
-            action()
+            with spelling(FIELD_NAMES):
+                action()
         except EmccdcalError as exc:
             widget.status.value = f"error: {exc}"
     return run
+
+
+#: The command line's options as the widgets name them, for the library's messages.
+FIELD_NAMES = {"--setpoint G": "the set-point in the 'set-point' field",
+               "--setpoint": "the 'set-point' field",
+               "--accept-mismatch": "(on the command line) --accept-mismatch",
+               "--e-per-adu": "the 'e-/ADU' field"}
 
 
 def _optional_float(text: str, what: str):
@@ -323,8 +339,10 @@ def _settings_of(layer):
     from ..data.settings import CameraSettings
 
     recorded = layer.metadata.get("camera", {}) if layer is not None else {}
-    known = {k: tuple(v) if isinstance(v, list) else v for k, v in recorded.items()}
-    return CameraSettings(**known)
+    if not isinstance(recorded, dict):
+        return CameraSettings()
+    known = {k: v for k, v in recorded.items() if k in CameraSettings.names()}
+    return CameraSettings.from_record(known, layer.name)
 
 
 class ApplyWidget(Container):
@@ -402,9 +420,17 @@ class GainCheckWidget(Container):
         from ..fit.darkgain import check_gain
         from ..result import load_calibration
 
+        from .. import identity
+
         layer, settings, _, setpoint = _chosen(self, "a layer of dark frames")
         result = str(self.result.value).strip()
         cal = load_calibration(result) if result not in ("", ".") else None
+        if cal is not None and setpoint is None:
+            raise OptionError(f"{layer.name}: the layer records no set-point: type it in "
+                              "the 'set-point' field to compare with the calibration")
+        identity.check(None if cal is None else cal.identity(), [(layer.name, settings)],
+                       label="" if cal is None else cal.label, setpoint=setpoint,
+                       what="dark frames")
         phi = _optional_float(self.e_per_adu.value, "e-/ADU")
         if phi is None:
             if cal is None:
