@@ -218,11 +218,11 @@ def test_the_calibrate_widget_matches_the_command_line_and_keeps_the_viewer_draw
     assert len(ticks) > 0.5 * elapsed / 0.02 and gaps.max() < 1.0
     ours, theirs = load_result(widget.result), load_result(cli_result)
     for s in (5, 25, 100, 300):
-        layer = viewer.layers[f"gs: gain at {s}x (1)"]
+        layer = viewer.layers[f"gs: gain at {s}x"]
         want = np.where(theirs.converged, theirs.em_gain.sel(setpoint=s), np.nan)
         np.testing.assert_array_equal(layer.data, want)
         np.testing.assert_array_equal(ours.em_gain.sel(setpoint=s), theirs.em_gain.sel(setpoint=s))
-    assert viewer.layers["gs: gain at 300x (1)"].colorbar.visible
+    assert viewer.layers["gs: gain at 300x"].colorbar.visible
     widget.write_report()
     assert (tmp_path / "widget" / "report.html").is_file()
     widget.setpoint.value = "300"
@@ -327,3 +327,36 @@ def test_the_gain_check_widget_on_a_dark_layer(sample, make_napari_viewer, qtbot
     assert widget.status.value == "done", widget.status.value
     assert "em_gain" in widget.answer.value and "calibration of" in widget.answer.value
     _screenshot(viewer, "gain-check", tmp_path)
+
+
+def test_every_widget_error_path_is_one_line_on_the_widget(sample, make_napari_viewer, qtbot):
+    """A layer with no file and no set-point, a missing calibration, another camera's
+    darks: each one line on the widget's status in the widget's words (its fields, not
+    the command line's flags), the status never left at "…", nothing reaching Qt."""
+    from emccdcal.napari._widgets import ApplyWidget, GainCheckWidget
+
+    _, _, result = sample
+    viewer = make_napari_viewer()
+    plain = viewer.add_image(np.full((30, 32, 32), 600, np.uint16), name="plain")
+    check = GainCheckWidget(viewer)
+    check.reset_choices()
+    check.layer.value, check.result.value = plain, result
+    check.button.native.click()
+    assert check.status.value.startswith("error:"), check.status.value
+    assert "'set-point' field" in check.status.value and "--setpoint" not in check.status.value
+    check.result.line_edit.value, check.setpoint.value = "", "300"
+    check.button.native.click()
+    assert check.status.value == "error: give e-/ADU or a calibration of the camera"
+    camera = viewer.add_image(np.full((30, 32, 32), 600, np.uint16), name="cam-b",
+                              metadata={"camera": {"serial": "CAM-B"}})
+    check.reset_choices()
+    check.layer.value, check.result.value = camera, result
+    check.button.native.click()  # the sample's calibration records no camera: said
+    _wait(qtbot, check)
+    assert not check.status.value.endswith("…")
+    convert = ApplyWidget(viewer)
+    convert.reset_choices()
+    convert.layer.value, convert.result.value = plain, result
+    convert.button.native.click()
+    assert convert.status.value.startswith("error:") and "'set-point' field" in \
+        convert.status.value, convert.status.value

@@ -20,6 +20,7 @@ import functools
 import hashlib
 import json
 import os
+import math
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -464,6 +465,7 @@ def calibrate(
     em_model=None,
     stages=None,
     accept_mismatch=(),
+    accept_phi=False,
 ) -> xarray.Dataset:
     """Calibrate a camera from the acquisitions of a manifest.
 
@@ -553,6 +555,10 @@ def calibrate(
         Identity fields (:data:`emccdcal.identity.ACCEPTABLE`) in which the frames may
         differ from the result φ is taken from: by default φ of another camera or read-out
         state is refused.
+    accept_phi : bool
+        Use a given φ even where the 1× acquisition's photon transfer says otherwise
+        (:func:`check_e_per_adu`); by default such a φ (in ADU/e⁻, say, or of another
+        read-out mode) is refused before any fitting.
 
     Returns
     -------
@@ -588,7 +594,7 @@ def calibrate(
             lambda: _run_calibration(manifest, method, e_per_adu, target, resume, overwrite,
                                      block_size, tile_pixels, scheduler, options, progress,
                                      workers, checks, map_errors, intervals, em_model, stages,
-                                     accept_mismatch=accept_mismatch),
+                                     accept_mismatch=accept_mismatch, accept_phi=accept_phi),
         )
         if out is not None:
             result.save(ds, out, seconds=ds.attrs["seconds"], stale=RESULT_FILES)
@@ -636,7 +642,8 @@ def _input_files(manifest, used, phi_source) -> list[Path]:
 
 def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, block_size,
                      tile_pixels, scheduler, options, progress, workers, checks, map_errors,
-                     intervals, em_model=None, stages=None, *, accept_mismatch=()):
+                     intervals, em_model=None, stages=None, *, accept_mismatch=(),
+                     accept_phi=False):
     manifest = _load(manifest)
     auto = isinstance(stages, str) and stages == "auto"
     model, stages_source = noise.choose_em_model(
@@ -654,6 +661,8 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
             method, setpoints_all, [a.level for a in acqs], phi_map is not None
         )
     used = [acqs[i] for i in idx]
+    if phi_map is not None and method not in ("is-adu", "mv-adu") and not accept_phi:
+        check_e_per_adu(phi_map, phi_se, phi_source, used, method)
     tiles = plan_tiles(rows * cols, tile_pixels, block_size)
     dark_frames, map_groups, se_note = _map_error_sources(used, map_errors)
     offsets = np.stack([a.offset.reshape(-1) for a in used])
@@ -761,6 +770,59 @@ def _quality(manifest, used, parts, tiles):
         return None, [f"data-quality checks skipped: {exc}"]
     grown = set(manifest.warnings)  # read-noise growth was already reported by the manifest
     return report, [w for w in report["warnings"] if not any(w in g or g in w for g in grown)]
+
+
+def check_e_per_adu(phi_map, phi_se, source, used, method) -> None:
+    """Refuse a given φ that the data contradict, before any fitting.
+
+    The 1× acquisition's photon transfer (:func:`emccdcal.fit.mv.photon_transfer_e_per_adu`,
+    on at most :data:`~emccdcal.defaults.PHI_CHECK_PIXELS` pixels of the sensor's middle
+    rows) gives φ̂ with its SE; the given φ (its median there) is refused where
+    ``|ln(φ / φ̂)|`` exceeds :data:`~emccdcal.defaults.PHI_Z` relative SEs (the SE at
+    least :data:`~emccdcal.defaults.PHI_SYSTEMATIC`, φ's own SE included), naming the
+    inverse where φ·φ̂ is nearer 1. Without a 1× acquisition it is said, once, that φ
+    went unchecked.
+
+    Raises
+    ------
+    InputError
+        One line: both values, the acquisition, and what to do.
+    """
+    from .defaults import PHI_CHECK_FRAMES, PHI_CHECK_PIXELS, PHI_SYSTEMATIC, PHI_Z
+
+    unit = next((a for a in used if a.em_gain_setpoint == 1), None)
+    if unit is None:
+        warnings.warn(f"{method}: e_per_adu ({source or 'given'}) could not be checked against "
+                      "the data (no 1x acquisition): make sure it is in e-/ADU and of this "
+                      "read-out mode", stacklevel=3)
+        return
+    rows, cols = unit.offset.shape
+    k = max(1, min(rows, PHI_CHECK_PIXELS // cols))
+    r0 = (rows - k) // 2
+    stop = min(unit.n_frames_total, unit.skip_frames + PHI_CHECK_FRAMES)
+    frames = read_band(unit.frames_path, r0, r0 + k, unit.skip_frames, stop)
+    band = slice(r0, r0 + k)
+    found, rel = mv.photon_transfer_e_per_adu(frames, unit.offset[band], unit.read_noise[band],
+                                              dark_frames=unit.dark_frames)
+    given = float(np.nanmedian(phi_map[band]))
+    if not math.isfinite(found) or rel > 0.5:
+        warnings.warn(f"{unit.frames_path}: too little light above the read noise to check "
+                      f"e_per_adu {given:.4g} ({source or 'given'}) against it", stacklevel=3)
+        return
+    if phi_se is not None:
+        rel = math.hypot(rel, float(np.nanmedian((phi_se / phi_map)[band])))
+    rel = max(rel, PHI_SYSTEMATIC)
+    z = math.log(given / found) / rel
+    if abs(z) <= PHI_Z:
+        return
+    inverse = abs(math.log(given * found)) < abs(math.log(given / found))
+    hint = (f"it looks like ADU/e- (1/{given:.4g} = {1 / given:.4g} e-/ADU): give e-/ADU"
+            if inverse else "is it in e-/ADU, and of this camera's read-out mode?")
+    raise InputError(
+        f"{unit.frames_path}: e_per_adu {given:.4g} e-/ADU ({source or 'given'}) is "
+        f"{given / found:.3g} times what this 1x acquisition's photon transfer says "
+        f"({found:.4g} ± {100 * rel:.2g} %, {abs(z):.0f} SE off); {hint} (--accept-phi "
+        "to use it all the same)")
 
 
 def _e_per_adu_inputs(manifest, e_per_adu, accept_mismatch=()):

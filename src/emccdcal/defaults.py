@@ -86,6 +86,17 @@ AUDIT_TOLERANCE = 0.02
 #: Photon-counting threshold of ``apply``, in read-noise standard deviations.
 PHOTON_THRESHOLD = 5.0
 
+# -- a phi given from elsewhere, against the data (emccdcal.calibration) ----------------
+#: A given φ is refused where it differs from what a 1x acquisition's photon transfer
+#: says by more than this many standard errors (on a log scale: φ and its inverse alike)...
+PHI_Z = 5.0
+#: ... the SE counted at least this (relative): what the photon-transfer estimate may
+#: be off by beyond its sampling error (a nonlinear ADC, a light that flickers frame to
+#: frame), so that a sensor of many pixels does not refuse a φ for a 1 % difference.
+PHI_SYSTEMATIC = 0.02
+#: Most pixels and frames of the 1x acquisition read for the check.
+PHI_CHECK_PIXELS, PHI_CHECK_FRAMES = 4096, 4000
+
 # -- data-quality checks (emccdcal.data.quality) ----------------------------------------
 #: Family-wise significance of the drift test over a run's acquisitions.
 DRIFT_ALPHA = 0.01

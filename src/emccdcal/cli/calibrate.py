@@ -21,6 +21,9 @@ def add_parser(subparsers):
                    help="calibration method (default: gs)")
     _common.add_out(p, overwrite=False)
     _common.add_e_per_adu(p)
+    p.add_argument("--accept-phi", action="store_true",
+                   help="use the given phi even where the 1x acquisition's photon transfer "
+                   "contradicts it (by default such a phi, in ADU/e- say, is refused)")
     again = p.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
                        help="continue the interrupted run in OUT (refused if its inputs changed)")
@@ -78,7 +81,8 @@ def run(args) -> int:
                        options=options, progress=not args.quiet,
                        checks=not args.no_checks, map_errors=not args.conditional_se,
                        intervals=args.intervals, em_model=args.em_model,
-                       stages=args.stages, accept_mismatch=args.accept_mismatch)
+                       stages=args.stages, accept_mismatch=args.accept_mismatch,
+                       accept_phi=args.accept_phi)
         if args.report:
             from ..report.html import REPORT_FILE, write_report
 

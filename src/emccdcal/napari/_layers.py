@@ -36,7 +36,9 @@ def result_layers(ds, *, prefix: str = "") -> list[tuple]:
         metadata = {"units": unit, "variable": name}
         if axis is not None:
             metadata[axis[0]] = axis[1]
-        layers.append((data, {"name": f"{prefix}{name} ({unit})", "colormap": colormap,
+        # a dimensionless map has no unit in its name: "(1)" reads as napari's numbering
+        label = f"{prefix}{name}" + ("" if unit == "1" else f" ({unit})")
+        layers.append((data, {"name": label, "colormap": colormap,
                               "contrast_limits": limits, "visible": False,
                               "translate": ((0.0,) if data.ndim == 3 else ()) + origin,
                               "metadata": metadata}, "image"))

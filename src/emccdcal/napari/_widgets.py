@@ -117,6 +117,15 @@ FIELD_NAMES = {"--setpoint G": "the set-point in the 'set-point' field",
                "--e-per-adu": "the 'e-/ADU' field"}
 
 
+def _field_path(field, what: str) -> Path:
+    """The path typed or chosen in a file field, or one line asking for ``what`` (an
+    empty field is not the folder napari was started in)."""
+    text = field.line_edit.value.strip()
+    if text in ("", "."):
+        raise OptionError(f"choose {what}")
+    return Path(text)
+
+
 def _optional_float(text: str, what: str):
     text = text.strip()
     if not text:
@@ -139,7 +148,8 @@ class CalibrateWidget(Container):
         from ..defaults import LIKELIHOOD_METHODS, METHODS, TOOLS
 
         self.viewer = napari_viewer
-        self.source = FileEdit(label="folder or manifest", mode="r", filter="*.toml")
+        # any file: a folder is typed or pasted (a dialog picks files or folders, not both)
+        self.source = FileEdit(label="folder or manifest", mode="r")
         self.scan_button = PushButton(text="Scan")
         self.found = TextEdit(label="found", value="")
         self.found.native.setReadOnly(True)
@@ -183,7 +193,7 @@ class CalibrateWidget(Container):
         folder (into the output folder)."""
         from ..data.scan import manifest_text, scan
 
-        source = Path(self.source.value)
+        source = _field_path(self.source, "a folder of camera files or a manifest")
         if source.is_file():
             return source
         session = scan(source)
@@ -215,7 +225,7 @@ class CalibrateWidget(Container):
         from ..data.manifest import read_manifest
         from ..data.scan import scan
 
-        source = Path(self.source.value)
+        source = _field_path(self.source, "a folder of camera files or a manifest")
         if source.is_file():
             m = read_manifest(source)
             lines = [f"manifest: {len(m.acquisitions)} acquisition(s), {m.shape[0]} × "
@@ -368,7 +378,8 @@ class ApplyWidget(Container):
         from ..export.movie import conversion
 
         layer, settings, given, setpoint = _chosen(self, "an image layer of raw counts")
-        cal = _calibration(str(self.result.value), self.camera.value, self.db.value, setpoint)
+        cal = _calibration(self.result.line_edit.value, self.camera.value, self.db.value,
+                           setpoint)
         data = layer.data
         shape = tuple(int(v) for v in data.shape)
         if len(shape) == 2:
@@ -423,7 +434,7 @@ class GainCheckWidget(Container):
         from .. import identity
 
         layer, settings, _, setpoint = _chosen(self, "a layer of dark frames")
-        result = str(self.result.value).strip()
+        result = self.result.line_edit.value.strip()
         cal = load_calibration(result) if result not in ("", ".") else None
         if cal is not None and setpoint is None:
             raise OptionError(f"{layer.name}: the layer records no set-point: type it in "
