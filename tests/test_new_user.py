@@ -1,0 +1,120 @@
+"""What a new user hit in the newest verbs: each case replayed (nothing silently wrong).
+
+φ in the wrong units refused before fitting; set-points read from file names wherever a
+stack is read; results that open where NetCDF opens; messages that point to the fix.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import tifffile
+from conftest import write_real_manifest
+
+from emccdcal import cli, result
+from emccdcal.calibration import _load, check_e_per_adu
+from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
+
+
+def _run(capsys, *argv):
+    code = cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture(scope="module")
+def series(tmp_path_factory):
+    """A simulated gain series and the φ (with its SE) is-adu measures on the same camera."""
+    d = tmp_path_factory.mktemp("phi")
+    gs = simulate_gain_series(d / "gs", rows=8, cols=8, frames=1500, seed=4, progress=False)
+    adu = simulate_intensity_series(d / "adu", rows=8, cols=8, frames=1500, seed=5,
+                                    progress=False)
+    assert cli.main(["calibrate", str(adu.manifest), "--method", "is-adu", "-o",
+                     str(d / "phi"), "-q"]) == 0
+    ds = result.load(d / "phi")
+    return gs, float(ds.e_per_adu.median()), float(ds.e_per_adu_se.median())
+
+
+@pytest.mark.parametrize("factor, words", [("inverse", "it looks like ADU/e-"),
+                                           (2.0, "times what this 1x"), (0.5, "times what this 1x")])
+def test_a_phi_the_data_contradict_is_refused_before_fitting(series, factor, words, tmp_path,
+                                                             capsys):
+    gs, phi, _ = series
+    given = 1 / phi if factor == "inverse" else phi * factor
+    t0 = time.perf_counter()
+    code, _, err = _run(capsys, "calibrate", gs.manifest, "--method", "gs", "--e-per-adu",
+                        f"{given:.5g}", "-o", tmp_path / "out", "-q")
+    assert code == 2 and words in err and "--accept-phi" in err, err
+    assert err.count("\n") == 1
+    assert not (tmp_path / "out" / result.CALIBRATION_FILE).exists()
+    assert time.perf_counter() - t0 < 20  # refused before the fit (45 s for the inverse)
+
+
+def test_the_true_phi_and_three_standard_errors_either_side_are_accepted(series):
+    gs, phi, se = series
+    manifest = _load(gs.manifest)
+    for given in (gs.truth["e_per_adu"], phi, phi - 3 * se, phi + 3 * se):
+        check_e_per_adu(np.full(manifest.shape, given), None, "given", manifest.acquisitions,
+                        "gs")
+
+
+def test_accept_phi_lets_it_through_and_gs_no1x_says_it_is_unchecked(series, tmp_path, capsys):
+    gs, phi, _ = series
+    code, _, err = _run(capsys, "calibrate", gs.manifest, "--method", "gs", "--e-per-adu",
+                        f"{2 * phi:.5g}", "--accept-phi", "-o", tmp_path / "a", "-q",
+                        "--no-checks")
+    assert code == 0, err
+    code, _, err = _run(capsys, "calibrate", gs.manifest, "--method", "gs-no1x", "--e-per-adu",
+                        f"{phi:.5g}", "-o", tmp_path / "b", "-q", "--no-checks")
+    assert code == 0 and err.count("could not be checked against the data") == 1, err
+
+
+@pytest.mark.real_data
+def test_the_real_gain_series_refuses_a_phi_in_other_units(real_data, tmp_path, capsys):
+    manifest = write_real_manifest(tmp_path, "gs")
+    for given, words in ((0.2586, "ADU/e-"), (2 * 3.859, "2 times"), (3.859 / 2, "0.501 times")):
+        code, _, err = _run(capsys, "calibrate", manifest, "--method", "gs", "--e-per-adu",
+                            given, "-o", tmp_path / "out", "-q")
+        assert code == 2 and words in err, err
+    m = _load(manifest)
+    for given in (3.8669, 3.8669 * 0.97, 3.8669 * 1.03):  # is-adu's phi, 3 % either side
+        check_e_per_adu(np.full(m.shape, given), None, "given", m.acquisitions, "gs")
+
+
+# --------------------------------------------------------------------------------------
+# Set-points from file names, wherever a stack is read
+# --------------------------------------------------------------------------------------
+def test_apply_and_gain_check_read_the_set_point_from_the_file_name(series, tmp_path, capsys):
+    from emccdcal.simulate.camera import simulate_frames
+
+    gs, _, _ = series
+    out = tmp_path / "cal"
+    assert cli.main(["calibrate", str(gs.manifest), "--method", "gs", "-o", str(out), "-q",
+                     "--no-checks"]) == 0
+    g300 = gs.truth["acquisitions"][-1]["em_gain"]
+    movie = tmp_path / "movie-300x.tif"
+    tifffile.imwrite(movie, simulate_frames(np.full((8, 8), 50.0), em_gain=g300,
+                                            e_per_adu=gs.truth["e_per_adu"], offset=590.0,
+                                            read_noise=15.5, frames=10, seed=1))
+    code, _, err = _run(capsys, "apply", out, movie, "-o", tmp_path / "e.tif", "-q")
+    assert code == 0, err
+    darks = tmp_path / "darks-300x.tif"
+    tifffile.imwrite(darks, simulate_frames(np.full((8, 8), 0.05), em_gain=g300,
+                                            e_per_adu=gs.truth["e_per_adu"], offset=590.0,
+                                            read_noise=15.5, frames=2000, seed=2))
+    code, out_text, err = _run(capsys, "gain-check", darks, "--calibration", out)
+    assert "set-point 300" in out_text and "give --setpoint" not in err, err
+    # a name stating one set-point and --setpoint another: refused
+    code, _, err = _run(capsys, "gain-check", darks, "--calibration", out, "--setpoint", 100)
+    assert code == 2 and "records EM-gain set-point 300, used at 100" in err
+
+
+def test_a_name_states_a_set_point_only_where_the_file_records_none():
+    from emccdcal.data.stacks import setpoint_in_name
+
+    assert setpoint_in_name("300x-gain.tif") == 300
+    assert setpoint_in_name("gain_2.5.tif") == 2.5
+    assert setpoint_in_name("5x-dark.ome.zarr") == 5
+    assert setpoint_in_name("movie.tif") is None
