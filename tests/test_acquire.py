@@ -351,3 +351,17 @@ def test_plan_check_refuses_light_past_the_adc(tmp_path, capsys):
     plan_path.write_text(re.sub(r"(?m)^photoelectrons = .*$", "photoelectrons = 1000000", text))
     code = cli.main(["plan", "--check", str(plan_path), "-q"])
     assert code == 2 and "past the ADC's 65535" in capsys.readouterr().err
+
+
+def test_scan_refuses_an_unfinished_session(tmp_path, capsys):
+    """An interrupted session once gave a one-set-point 'gain series' manifest, exit 0."""
+    plan_path = _plan_file(tmp_path, setpoints=(1, 5))
+    out = tmp_path / "session"
+    bright = lambda core, stack: core.setProperty("Camera", "Light", 1.6 * stack.photoelectrons)  # noqa: E731
+    with pytest.raises(AcquireError):
+        acquire(plan_path, out, simulated_seed=3, roi=(0, 0, 8, 8), set_light=bright,
+                progress_bars=False)
+    code = cli.main(["scan", str(out), "-o", str(tmp_path / "m.toml")])
+    err = capsys.readouterr().err
+    assert code == 2 and "has not finished" in err and "--resume" in err, err
+    assert not (tmp_path / "m.toml").exists()

@@ -118,3 +118,49 @@ def test_a_name_states_a_set_point_only_where_the_file_records_none():
     assert setpoint_in_name("gain_2.5.tif") == 2.5
     assert setpoint_in_name("5x-dark.ome.zarr") == 5
     assert setpoint_in_name("movie.tif") is None
+
+
+# --------------------------------------------------------------------------------------
+# Result files open where NetCDF opens
+# --------------------------------------------------------------------------------------
+def test_xarray_opens_a_result_with_no_engine_named_and_refuses_a_damaged_one(tmp_path):
+    import xarray as xr
+    from test_export import true_result
+
+    path = true_result(tmp_path / "r")
+    with xr.open_dataset(path) as ds:
+        assert ds.e_per_adu.attrs["units"] == "e-/ADU"
+        assert ds.attrs["method"] == "gs"
+    damaged = bytearray(path.read_bytes())
+    damaged[len(damaged) // 2] ^= 0x10
+    path.write_bytes(bytes(damaged))
+    with pytest.raises(ValueError, match="checksum"):
+        xr.open_dataset(path)
+    with pytest.raises(ValueError, match="checksum"):
+        result.load(path)
+
+
+# --------------------------------------------------------------------------------------
+# Errors that point to the fix; docs that work as written
+# --------------------------------------------------------------------------------------
+def test_errors_name_the_command_that_fixes_them(series, tmp_path, capsys):
+    adu = simulate_intensity_series(tmp_path / "adu", rows=4, cols=4, frames=200, seed=1,
+                                    progress=False)
+    code, _, err = _run(capsys, "calibrate", adu.manifest, "-o", tmp_path / "o")
+    assert code == 2 and "--method is-adu" in err, err
+    code, _, err = _run(capsys, "calibrate", adu.manifest.parent, "-o", tmp_path / "o")
+    assert code == 2 and "emccdcal scan" in err, err
+    _, out, _ = _run(capsys, "calibrate", "--help")
+    assert "{is-adu,is-gain" not in out and "which data it suits" in out  # listed once
+
+
+def test_the_database_commands_of_the_first_calibration_work_as_written(tmp_path, capsys):
+    from test_export import true_result
+
+    res = true_result(tmp_path / "out-gs")  # its files recorded no serial, as the TIFFs
+    db = tmp_path / "lab.sqlite"
+    code, _, err = _run(capsys, "db", "add", res.parent, "--db", db)
+    assert code == 2 and "--camera" in err
+    assert _run(capsys, "db", "add", res.parent, "--camera", "PROEM-1", "--db", db)[0] == 0
+    code, out, err = _run(capsys, "db", "compare", "--camera", "PROEM-1", "--db", db)
+    assert code == 0 and "PROEM-1" not in err, err

@@ -67,6 +67,9 @@ BOUNDS = {
     "cols": (1, 65536, "px"),
 }
 
+#: The record of an acquisition session in its folder (``acquire`` writes, ``scan`` reads).
+SESSION_FILE = "session.json"
+
 # -- using a calibration (emccdcal.result, emccdcal.export) -----------------------------
 #: What must agree between a calibration and the frames it is used on (where both
 #: record it), with how to name it.

@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import _files
+from .. import _files, defaults
 from .._output import Output, OutputError, atomic_write, atomic_write_text
 from .._util import check_number, format_setpoint, one_line, progress
 from ..errors import EmccdcalError, InputError, OptionError
@@ -75,7 +75,7 @@ SAMPLE_PIXELS = 256
 CHECK_EVERY = 200
 _FIRST_CHECK = 25
 #: The session's record of what was recorded.
-SESSION_FILE = "session.json"
+SESSION_FILE = defaults.SESSION_FILE
 #: Bytes of one chunk of a stack (a batch of frames written at once).
 _CHUNK_BYTES = 4 << 20
 #: Rows of one chunk of a stack.

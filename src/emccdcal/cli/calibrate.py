@@ -17,8 +17,13 @@ def add_parser(subparsers):
         "OUT/calibration.nc and OUT/summary.json.",
     )
     p.add_argument("manifest", type=Path, help="TOML manifest of the acquisitions")
-    p.add_argument("--method", "-m", default="gs", choices=METHODS,
-                   help="calibration method (default: gs)")
+    p.add_argument("--method", "-m", default="gs", choices=METHODS, metavar="METHOD",
+                   help="which data it suits: gs (default), a gain series with its 1x "
+                   "acquisition and phi known -> the gains; gs-no1x, the same without 1x; "
+                   "gs-hierarchical, gs with per-set-point light; is-adu, a 1x intensity "
+                   "series -> phi; is-gain, an intensity series at one set-point, phi known "
+                   "-> its gain; mv-adu, mv-gain, the photon-transfer (mean-variance) "
+                   "versions of is-adu and gs")
     _common.add_out(p, overwrite=False)
     _common.add_e_per_adu(p)
     p.add_argument("--accept-phi", action="store_true",

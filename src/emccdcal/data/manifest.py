@@ -454,7 +454,8 @@ def parse_manifest(path) -> ManifestEntries:
     if not path.exists():
         raise ManifestError(describe_missing(path, "manifest file"))
     if path.is_dir():
-        raise ManifestError(f"{path}: is a directory, not a manifest file")
+        raise ManifestError(f"{path}: is a directory, not a manifest file; 'emccdcal scan "
+                            f"{path}' writes the manifest of a folder of camera files")
     try:
         raw = _files.read_bytes(path, what="manifest")
         text = raw.decode("utf-8")

@@ -151,6 +151,27 @@ def _subfolders_with_stacks(folder: Path) -> list[str]:
             and _files(d)[0]]
 
 
+def _refuse_unfinished(folder: Path) -> None:
+    """An acquisition session that did not finish holds stacks short of their plan (or
+    a store begun with no frame): refused, with the command that finishes it."""
+    from .. import _files as files
+    from ..defaults import SESSION_FILE
+
+    record = folder / SESSION_FILE
+    if not record.is_file():
+        return
+    try:
+        state = files.load_json(record, what="session record")
+    except InputError:
+        return  # not a session acquire wrote: the files are scanned as they are
+    status = state.get("status") if isinstance(state, dict) else None
+    if status not in (None, "complete"):
+        raise InputError(f"{folder}: an acquisition session that has not finished "
+                         f"({comment(str(status))}): its stacks are short of the plan; "
+                         f"finish it with 'emccdcal acquire {folder / 'plan.toml'} -o {folder} "
+                         "--resume'")
+
+
 def scan(folder) -> Session:
     """The session of camera files in ``folder`` (not its subfolders).
 
@@ -166,6 +187,7 @@ def scan(folder) -> Session:
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(f"'{folder}' is not a folder")
+    _refuse_unfinished(folder)
     camera, other = _files(folder)
     stacks, maps, skipped = [], [], []
     for path in camera:
