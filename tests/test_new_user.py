@@ -164,3 +164,21 @@ def test_the_database_commands_of_the_first_calibration_work_as_written(tmp_path
     assert _run(capsys, "db", "add", res.parent, "--camera", "PROEM-1", "--db", db)[0] == 0
     code, out, err = _run(capsys, "db", "compare", "--camera", "PROEM-1", "--db", db)
     assert code == 0 and "PROEM-1" not in err, err
+
+
+def test_the_demo_counts_pixels_and_leaves_only_its_results_in_a_temporary_folder():
+    import io
+    import shutil
+
+    from emccdcal.demo import run_demo
+
+    text = io.StringIO()
+    run = run_demo(None, rows=3, cols=2, frames=100, out=text, report=False)
+    try:
+        printed = text.getvalue()
+        assert "/6 in is-adu" in printed and "/6 in gs" in printed, printed
+        assert "512" not in printed
+        left = sorted(p.name for p in run["outdir"].iterdir())
+        assert left == ["result-gs", "result-is-adu"], left
+    finally:
+        shutil.rmtree(run["outdir"])

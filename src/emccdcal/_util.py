@@ -208,6 +208,22 @@ def _within_bounds(name: str, arr, value) -> None:
                           "(a value in another unit?)")
 
 
+def nanmedian(values, axis=None):
+    """``np.nanmedian``, NaN where a slice holds no number, without NumPy's warning (a
+    summary of pixels none of which converged is NaN, not a message about slices).
+
+    Examples
+    --------
+    >>> float(nanmedian([np.nan, np.nan]))
+    nan
+    """
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmedian(values, axis=axis)
+
+
 def check_map(name: str, value, shape, **rules) -> np.ndarray:
     """A number or a (rows, cols) map as a read-only (rows, cols) float array, checked.
 

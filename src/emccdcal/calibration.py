@@ -31,7 +31,7 @@ import numpy as np
 
 from . import __version__, identity, result
 from ._output import Output
-from ._util import check_int, e_per_adu_map
+from ._util import check_int, e_per_adu_map, nanmedian
 from ._util import progress as progress_bar
 from .data import quality, stats
 from .data.manifest import Manifest, read_manifest
@@ -609,7 +609,7 @@ def _warn_gain_order(ds) -> None:
     if sp.size < 2:
         return
     ok = ds.converged.values
-    gains = [float(np.nanmedian(ds.em_gain.values[i][ok])) for i in range(sp.size)]
+    gains = [float(nanmedian(ds.em_gain.values[i][ok])) for i in range(sp.size)]
     order = np.argsort(sp)
     for lo, hi in zip(order, order[1:]):
         if gains[hi] < gains[lo]:
@@ -804,13 +804,13 @@ def check_e_per_adu(phi_map, phi_se, source, used, method) -> None:
     band = slice(r0, r0 + k)
     found, rel = mv.photon_transfer_e_per_adu(frames, unit.offset[band], unit.read_noise[band],
                                               dark_frames=unit.dark_frames)
-    given = float(np.nanmedian(phi_map[band]))
+    given = float(nanmedian(phi_map[band]))
     if not math.isfinite(found) or rel > 0.5:
         warnings.warn(f"{unit.frames_path}: too little light above the read noise to check "
                       f"e_per_adu {given:.4g} ({source or 'given'}) against it", stacklevel=3)
         return
     if phi_se is not None:
-        rel = math.hypot(rel, float(np.nanmedian((phi_se / phi_map)[band])))
+        rel = math.hypot(rel, float(nanmedian((phi_se / phi_map)[band])))
     rel = max(rel, PHI_SYSTEMATIC)
     z = math.log(given / found) / rel
     if abs(z) <= PHI_Z:
@@ -1097,7 +1097,7 @@ def format_summary(ds):
                      + (f" ({source})" if source else ""))
 
     def med(v):
-        return np.nanmedian(np.asarray(v)[..., ok], axis=-1)
+        return nanmedian(np.asarray(v)[..., ok], axis=-1)
 
     phi, phi_se = med(ds.e_per_adu.values), med(ds.e_per_adu_se.values)
     source = ds.attrs.get("e_per_adu_source", "")

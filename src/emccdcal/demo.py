@@ -12,6 +12,7 @@ including both results (``calibration.nc``, ``summary.json``) and — the comman
 
 from __future__ import annotations
 
+import shutil
 import sys
 import tempfile
 import warnings
@@ -41,7 +42,9 @@ def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication="casc
     Parameters
     ----------
     outdir : path, optional
-        Where to write the series and the results (default: a new temporary directory).
+        Where to write the series and the results (default: a new temporary directory,
+        from which the simulated frames are removed at the end: the results and the
+        report stay).
     rows, cols, frames : int, optional
         Size of each stack (default 16 × 16 px, 5000 frames).
     multiplication : {"cascade", "gamma"}, optional
@@ -69,7 +72,8 @@ def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication="casc
         ``report``: the HTML report (None without ``report``).
     """
     out = sys.stdout if out is None else out
-    outdir = Path(tempfile.mkdtemp(prefix="emccdcal-demo-") if outdir is None else outdir)
+    temporary = outdir is None
+    outdir = Path(tempfile.mkdtemp(prefix="emccdcal-demo-") if temporary else outdir)
     common = dict(rows=rows, cols=cols, frames=frames, multiplication=multiplication,
                   progress=progress)
     adu_sim = simulate_intensity_series(outdir / "adu-series", seed=seed, **common)
@@ -120,8 +124,8 @@ def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication="casc
         print(f"  {'em_gain at ' + format_setpoint(sp) + 'x':<28}{acq['em_gain']:>12.3f}"
               f"{_median(sel.em_gain):>12.3f}{_median(sel.em_gain_se):>10.3f}"
               f"{_median(gs_paper.em_gain.sel(setpoint=sp)):>13.3f}", file=out)
-    n_ok = int(gs.converged.sum()) + int(adu.converged.sum())
-    print(f"\n  {n_ok}/{2 * rows * cols} pixel fits converged; "
+    print(f"\n  pixels converged: {int(adu.converged.sum())}/{rows * cols} in is-adu, "
+          f"{int(gs.converged.sum())}/{rows * cols} in gs; "
           f"{adu.attrs['seconds'] + gs.attrs['seconds']:.1f} s of calibration", file=out)
     print("  (medians over pixels; the SEs of step 2 include that of e_per_adu from step 1;",
           file=out)
@@ -134,6 +138,11 @@ def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication="casc
         print(f"  warning: {w}", file=out)
     if html is not None:
         print(f"\nreport: {html}", file=out)
+    if temporary:  # the simulated frames (tens of MB) go; the results and report stay
+        for series in ("adu-series", "gain-series"):
+            shutil.rmtree(outdir / series, ignore_errors=True)
+        print(f"(the simulated frames were removed from {outdir}; 'emccdcal demo -o DIR' "
+              "keeps them)", file=out)
     return {"adu": adu, "gs": gs, "outdir": outdir, "report": html}
 
 
