@@ -182,3 +182,25 @@ def test_the_demo_counts_pixels_and_leaves_only_its_results_in_a_temporary_folde
         assert left == ["result-gs", "result-is-adu"], left
     finally:
         shutil.rmtree(run["outdir"])
+
+
+def test_a_drift_warning_quotes_the_light_the_fit_found_and_what_to_do(tmp_path):
+    """The drift warning once quoted 417 e- at 5x where the fit said 370.85."""
+    import re
+    import warnings
+
+    from emccdcal import calibrate
+
+    sim = simulate_gain_series(tmp_path / "gs", setpoints=(1, 5), rows=6, cols=6, frames=1500,
+                               seed=6, drift=0.08, progress=False)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ds = calibrate(sim.manifest, "gs", e_per_adu=sim.truth["e_per_adu"], progress=False)
+    drifts = [str(w.message) for w in caught if "drifts by" in str(w.message)]
+    assert drifts, [str(w.message) for w in caught]
+    fitted = float(ds.photoelectrons.where(ds.converged).median())
+    for text in drifts:
+        quoted = float(re.search(r"acquisition's ([\d.e+]+) e⁻ per pixel and frame \(as fitted\)",
+                                 text).group(1))
+        assert quoted == pytest.approx(fitted, rel=1e-3), text
+        assert "the result stands" in text and "record again" in text

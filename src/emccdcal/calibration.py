@@ -699,14 +699,11 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
             (block_size, tiles[0][1] - tiles[0][0]), model), resume=resume, overwrite=overwrite)
     jobs = [tile_job(p0, p1, model) for p0, p1 in tiles]
     parts = _run_tiles(jobs, store, scheduler, progress, method)
-    report, messages = _quality(manifest, used, parts, tiles) if checks else (None, [])
     arrays = {}
     for key in [k for k in parts[0] if not k.startswith(_QUALITY)]:
         arrays[key] = np.concatenate([p.pop(key) for p in parts])  # one copy at a time
-    del parts
+    # (parts now hold the data-quality statistics only, checked once the fit is known)
     _warn_saturated_and_unusable(manifest, used, arrays)
-    for w in messages:
-        warnings.warn(w, stacklevel=2)
     if method.startswith("mv-"):
         ds = _mv_dataset(method, manifest, used, arrays, phi_map, phi_se, model)
         ds.attrs["standard_errors"] = "from the photon-transfer fit, conditional on the offset maps"
@@ -723,6 +720,12 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
         ds.attrs["standard_errors"] += (
             f"; and the error of e_per_adu ({phi_source}): it moves every E and g of a pixel "
             "together (delta method through the likelihood, or the photon-transfer formulas)")
+    # the checks' findings quote the light this fit found, not a rough guess of it
+    report, messages = (_quality(manifest, used, parts, tiles, _fitted_light(ds, used))
+                        if checks else (None, []))
+    del parts
+    for w in messages:
+        warnings.warn(w, stacklevel=2)
     if report is not None:
         ds.attrs["quality"] = json.dumps(report)
     _require_convergence(ds, method)
@@ -749,9 +752,33 @@ def _warn_saturated_and_unusable(manifest, used, arrays):
             stacklevel=3)
 
 
-def _quality(manifest, used, parts, tiles):
+def _fitted_light(ds, used) -> list:
+    """The fitted photoelectrons per pixel and frame of each used acquisition, median
+    over converged pixels (None where the method estimates none for it)."""
+    if "photoelectrons" not in ds:
+        return [None] * len(used)
+    light, ok = ds.photoelectrons, ds.converged.values.astype(bool)
+    out = []
+    for a in used:
+        try:
+            sel = light
+            if "setpoint" in sel.dims:
+                sel = sel.sel(setpoint=a.em_gain_setpoint)
+            if "level" in sel.dims:
+                sel = sel.sel(level=a.level)
+            values = np.asarray(sel.values, dtype=float)
+        except (KeyError, ValueError):
+            out.append(None)
+            continue
+        fitted = float(nanmedian(values[ok])) if values.shape == ok.shape else math.nan
+        out.append(fitted if math.isfinite(fitted) and fitted > 0 else None)
+    return out
+
+
+def _quality(manifest, used, parts, tiles, fitted=None):
     """Data-quality checks (drift, saturation, defects) of the used stacks,
-    from the statistics the tiles gathered as they read them.
+    from the statistics the tiles gathered as they read them; ``fitted``: each stack's
+    fitted photoelectrons (or None), which the findings quote.
 
     Returns the report and its findings as messages for the caller to issue.
     """
@@ -765,7 +792,7 @@ def _quality(manifest, used, parts, tiles):
     sub = copy.copy(manifest)
     sub.acquisitions = list(used)
     try:
-        report = quality.check_manifest(sub, summaries=summaries)
+        report = quality.check_manifest(sub, summaries=summaries, photoelectrons=fitted)
     except ValueError as exc:  # frame means that cannot be tested (not finite)
         return None, [f"data-quality checks skipped: {exc}"]
     grown = set(manifest.warnings)  # read-noise growth was already reported by the manifest

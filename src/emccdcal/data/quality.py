@@ -888,15 +888,20 @@ def _findings(a: dict) -> list[str]:
         multiplied = a["em_gain_setpoint"] != 1
         E = a.get("photoelectrons_estimate")
         what = "EM gain g" if multiplied else "φ (e⁻/ADU)"
+        fitted = " (as fitted)" if a.get("photoelectrons_source") == "fit" else ""
         at = (f"by about {_drift_bias_pct(d['drift_pct'], E, multiplied):+.2g} % at this "
-              f"acquisition's {E:.3g} e⁻ per pixel and frame" if E else "by an amount that "
-              "grows with the illumination")
+              f"acquisition's {E:.4g} e⁻ per pixel and frame{fitted}" if E else "by an amount "
+              "that grows with the illumination")
+        fix = ("steady the source (warm it up, stabilise its power) and record again"
+               + ("; or leave this level out: delete its [[acquisition]] table (level = "
+                  f"\"{a['level']}\") from the manifest and calibrate again" if a.get("level")
+                  else ""))
         out.append(
             f"{name}: the frame mean drifts by {d['drift_pct']:+.2f} ± {d['drift_pct_se']:.2f} % "
             f"over the acquisition (p = {d['pvalue']:.1g}): the illumination or the EM gain "
             f"is not steady. The estimate is the acquisition's average, and the drift's "
-            f"spread reads as noise: {what} is biased {at}. If that matters, steady the "
-            "source (warm it up, stabilise its power) and record again."
+            f"spread reads as noise: {what} is biased {at}. Where that bias is below the "
+            f"estimate's standard error (the summary's ±) the result stands; where not, {fix}."
         )
     off = a.get("offset")
     if off and off["above_data"]:
@@ -958,6 +963,7 @@ def check_manifest(
     regression: str = "c",
     read_noise_threshold: float = 0.05,
     summaries: list[StackSummary] | None = None,
+    photoelectrons=None,
 ) -> dict:
     """Data-quality checks of every acquisition of a manifest, and of the read noise.
 
@@ -1013,6 +1019,10 @@ def check_manifest(
             regression=regression,
             summary=summary,
         )
+        if photoelectrons is not None and photoelectrons[i] is not None:
+            # the calibration's own estimate, where it is known
+            res["photoelectrons_estimate"] = float(photoelectrons[i])
+            res["photoelectrons_source"] = "fit"
         key, i = acq.name, 1
         while key in acqs:
             i += 1
