@@ -282,7 +282,7 @@ def test_apply_photon_counting_and_errors(tmp_path):
     expect = (1 - math.exp(-0.05)) * eff
     assert abs(rate - expect) < 4 * math.sqrt(expect / c.size)
     assert c.dtype == np.uint8 and set(np.unique(c)) <= {0, 1}
-    with pytest.raises(ValueError, match="records no EM gain set-point; give --setpoint"):
+    with pytest.raises(ValueError, match="records no EM gain set-point and its name states none"):
         apply(res, tmp_path / "m.tif", tmp_path / "x.tif")
     with pytest.raises(ValueError, match=r"set-point 50x is missing"):
         apply(res, tmp_path / "m.tif", tmp_path / "x.tif", setpoint=50)
@@ -300,7 +300,7 @@ def test_apply_photon_counting_and_errors(tmp_path):
     e = tifffile.imread(apply(tmp_path / "placed", tmp_path / "m.spe", tmp_path / "p.tif",
                               progress_bar=False))
     assert np.allclose(e, (part - OFFSET) * PHI / GAINS[300.0], rtol=1e-6)
-    with pytest.raises(ValueError, match=r"--setpoint 100 but the file records set-point 300"):
+    with pytest.raises(ValueError, match=r"set-point 100 given, but the file records 300"):
         apply(tmp_path / "placed", tmp_path / "m.spe", tmp_path / "q.tif", setpoint=100)
     write_spe(tmp_path / "off.spe", part, em_gain=300, roi=(28, 12))
     with pytest.raises(ValueError, match=r"frames at sensor row 12, column 28 are not inside"):

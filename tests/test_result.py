@@ -10,6 +10,7 @@ import pytest
 import xarray as xr
 
 import emccdcal
+from emccdcal.errors import EmccdcalError
 from emccdcal._output import write_netcdf
 from emccdcal import result
 from emccdcal.result import format_setpoint, load, make_dataset, save, summarize
@@ -289,7 +290,7 @@ def test_interrupted_write_leaves_no_partial_file(tmp_path, monkeypatch):
         raise OSError("disk full")
 
     monkeypatch.setattr(xr.Dataset, "to_netcdf", fail)
-    with pytest.raises(OSError, match="disk full"):
+    with pytest.raises(EmccdcalError, match="disk full"):  # one line, the file named
         save(gs_dataset(), tmp_path / "out")
     assert list((tmp_path / "out").iterdir()) == []
 
@@ -304,7 +305,7 @@ def test_interrupted_summary_write_keeps_the_old_summary(tmp_path, monkeypatch):
         raise OSError("interrupted")
 
     monkeypatch.setattr(type(tmp_path), "write_text", fail)
-    with pytest.raises(OSError, match="interrupted"):
+    with pytest.raises(EmccdcalError, match="interrupted"):
         save(gs_dataset(), tmp_path)
     assert paths["summary"].read_bytes() == before_json
     assert json.loads(before_json)["method"] == "gs-no1x"

@@ -107,7 +107,7 @@ def select_acquisitions(method, setpoints, levels, has_e_per_adu):
             )
         return idx
     if not has_e_per_adu:
-        levels = sp.size > 1 and np.all(sp == 1)
+        levels = method.startswith("gs") and sp.size > 1 and np.all(sp == 1)
         raise MethodError(
             (f"{method} is for a gain series, and this manifest is an intensity series at "
              "1x: calibrate phi from it with --method is-adu" if levels else
