@@ -281,15 +281,20 @@ def test_stacks_are_written_band_by_band_and_continued_at_any_frame(tmp_path):
 # --------------------------------------------------------------------------------------
 # Hostile sessions, refused options, stores begun when killed
 # --------------------------------------------------------------------------------------
+def _stopped_at_the_first_light(plan_path, out, *, seed):
+    """A session stopped by a lamp 60 % too bright: its first dark recorded, no light."""
+    bright = lambda core, stack: core.setProperty("Camera", "Light", 1.6 * stack.photoelectrons)  # noqa: E731
+    with pytest.raises(AcquireError):
+        acquire(plan_path, out, simulated_seed=seed, roi=(0, 0, 8, 8), set_light=bright,
+                progress_bars=False)
+
+
 def test_a_session_record_never_supplies_a_path(tmp_path):
     """A stack's "file" in session.json once became a path outside the session; now the
     stacks are the plan's own and the record only says how far each got."""
     plan_path = _plan_file(tmp_path, setpoints=(1, 5))
     out = tmp_path / "session"
-    bright = lambda core, stack: core.setProperty("Camera", "Light", 1.6 * stack.photoelectrons)  # noqa: E731
-    with pytest.raises(AcquireError):
-        acquire(plan_path, out, simulated_seed=3, roi=(0, 0, 8, 8), set_light=bright,
-                progress_bars=False)
+    _stopped_at_the_first_light(plan_path, out, seed=3)
     record = out / "session.json"
     good = record.read_text()
     for change, words in (
@@ -320,10 +325,7 @@ def test_a_refused_option_leaves_nothing_and_a_killed_store_is_redone(tmp_path, 
                      "-5", "-q"]) == 2
     capsys.readouterr()
     # a run killed while creating its first light stack's store: metadata, no frame
-    bright = lambda core, stack: core.setProperty("Camera", "Light", 1.6 * stack.photoelectrons)  # noqa: E731
-    with pytest.raises(AcquireError):
-        acquire(plan_path, out, simulated_seed=2, roi=(0, 0, 8, 8), set_light=bright,
-                progress_bars=False)
+    _stopped_at_the_first_light(plan_path, out, seed=2)
     begun = out / "1x-gain.ome.zarr"
     begun.mkdir()
     (begun / "zarr.json").write_text('{"zarr_format": 3, "node_type": "group"}')
@@ -357,10 +359,7 @@ def test_scan_refuses_an_unfinished_session(tmp_path, capsys):
     """An interrupted session once gave a one-set-point 'gain series' manifest, exit 0."""
     plan_path = _plan_file(tmp_path, setpoints=(1, 5))
     out = tmp_path / "session"
-    bright = lambda core, stack: core.setProperty("Camera", "Light", 1.6 * stack.photoelectrons)  # noqa: E731
-    with pytest.raises(AcquireError):
-        acquire(plan_path, out, simulated_seed=3, roi=(0, 0, 8, 8), set_light=bright,
-                progress_bars=False)
+    _stopped_at_the_first_light(plan_path, out, seed=3)
     code = cli.main(["scan", str(out), "-o", str(tmp_path / "m.toml")])
     err = capsys.readouterr().err
     assert code == 2 and "has not finished" in err and "--resume" in err, err
