@@ -204,3 +204,20 @@ def test_a_drift_warning_quotes_the_light_the_fit_found_and_what_to_do(tmp_path)
                                  text).group(1))
         assert quoted == pytest.approx(fitted, rel=1e-3), text
         assert "the result stands" in text and "record again" in text
+
+
+def test_the_gain_check_figure_shows_the_datas_range_and_its_whole_title(tmp_path):
+    """Its y-axis once ran to 1e16 for data peaking at 3e4, its title cut off."""
+    from emccdcal.fit.darkgain import check_gain
+    from emccdcal.report.figures import gain_check_figure, save_figure
+    from emccdcal.simulate.camera import simulate_frames
+
+    darks = simulate_frames(np.full((12, 12), 0.05), em_gain=261.6, e_per_adu=3.859,
+                            offset=590.0, read_noise=15.5, frames=1000, seed=3)
+    check = check_gain([darks], 3.859, setpoint=300, histogram=True, progress_bars=False)
+    fig = gain_check_figure(check)
+    ax = fig.axes[0]
+    peak = max(line.get_ydata().max() for line in ax.get_lines()[:1])
+    assert ax.get_ylim()[1] <= 3.0 * peak * 1.001
+    assert "\n" in ax.get_title() and "stages)" in ax.get_title()
+    save_figure(fig, tmp_path / "g")

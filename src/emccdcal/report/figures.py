@@ -737,16 +737,18 @@ def gain_check_figure(check):
             label=f"fit: g = {check.em_gain:.4g} ± {check.em_gain_se:.2g}")
     # the read-out alone (no event): what stands above it is the multiplied electrons
     sigma = check.read_noise
-    gauss = np.exp(-0.5 * (offsets / sigma) ** 2) / (np.sqrt(2 * np.pi) * sigma)
-    ax.plot(offsets[keep], (observed.sum() * gauss)[keep], color="C0", lw=0.8, ls="--",
-            label="read-out alone")
+    width = float(np.median(np.diff(offsets))) if offsets.size > 1 else 1.0  # ADU a bin
+    gauss = width * np.exp(-0.5 * (offsets / sigma) ** 2) / (np.sqrt(2 * np.pi) * sigma)
+    readout = observed.sum() * gauss
+    near = keep & (readout >= 0.5)
+    ax.plot(offsets[near], readout[near], color="C0", lw=0.8, ls="--", label="read-out alone")
     ax.set_yscale("log")
-    ax.set_ylim(0.5, None)
+    ax.set_ylim(0.5, 3.0 * max(float(observed.max()), 1.0))  # the data's range, not a model's
     ax.set_xlabel("count − pixel's offset (ADU)")
     ax.set_ylabel("frames × pixels (1)")
     ax.legend(fontsize=7)
     setpoint = "" if check.setpoint is None else f" at set-point {format_setpoint(check.setpoint)}x"
-    ax.set_title(f"EM gain from dark frames{setpoint}: {check.events:.0f} events, "
+    ax.set_title(f"EM gain from dark frames{setpoint}: {check.events:.0f} events\n"
                  f"{check.pixels} px × {check.frames} frames ({check.em_model})", fontsize=9)
     return fig
 
