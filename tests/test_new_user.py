@@ -221,3 +221,21 @@ def test_the_gain_check_figure_shows_the_datas_range_and_its_whole_title(tmp_pat
     assert ax.get_ylim()[1] <= 3.0 * peak * 1.001
     assert "\n" in ax.get_title() and "stages)" in ax.get_title()
     save_figure(fig, tmp_path / "g")
+
+
+def test_an_audit_of_its_own_gdsc_export_reads_no_bias(tmp_path):
+    """The gdsc audit once compared countPerPhoton with the median of g/phi (-0.00 %) but
+    the photons with the ratio of the medians (-0.13 %) in the same report."""
+    from test_export import true_result
+
+    from emccdcal.export.audit import audit
+    from emccdcal.export.tools import export
+
+    from test_export import PHI, SHAPE
+
+    phi = PHI * (1 + 0.05 * np.random.default_rng(7).standard_normal(SHAPE))  # a phi map
+    res = true_result(tmp_path / "r", phi=phi, spread=0.03, seed=2)
+    written = export(res, "gdsc", tmp_path / "g", setpoint=100)
+    path = written if not isinstance(written, (list, tuple)) else written[0]
+    (found,) = audit(path, res, setpoint=100)
+    assert abs(found.photon_bias) < 1e-5, found.lines()  # the file keeps 7 digits

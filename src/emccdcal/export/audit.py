@@ -548,8 +548,10 @@ def _parse_text(path: Path, text: str):
 # Comparing
 # --------------------------------------------------------------------------------------
 def _compare(reading: Reading, values: dict, setpoint, tolerance, offset_tolerance, qe):
-    phi, g = values["e_per_adu"]["median"], values["em_gain"]["median"]
     truth = {k: values[k]["median"] for k in _QUANTITIES}
+    # photoelectrons per ADU: the median over pixels of each pixel's φ/g, the same
+    # reference every row that compares g/φ uses (not the ratio of two medians)
+    pe_per_adu = 1.0 / truth["adu_per_e_total"]
     rows = []
     for f in reading.fields:
         row = {"field": f.name}
@@ -557,7 +559,7 @@ def _compare(reading: Reading, values: dict, setpoint, tolerance, offset_toleran
         if f.quantity == "offset":
             diff = f.value - truth["offset"]
             row["text"] = (f"{f.value:.6g} ADU; calibrated offset {truth['offset']:.6g} ADU: "
-                           f"{diff:+.3g} ADU ({-diff * phi / g:+.3g} e- per pixel and frame)"
+                           f"{diff:+.3g} ADU ({-diff * pe_per_adu:+.3g} e- per pixel and frame)"
                            + note)
         elif f.quantity in _QUANTITIES:
             unit, what = _QUANTITIES[f.quantity]
@@ -570,7 +572,7 @@ def _compare(reading: Reading, values: dict, setpoint, tolerance, offset_toleran
         if qe is not None:
             text += f"; given QE {qe:g}: {100 * (reading.qe / qe - 1):+.2f} %"
         rows.append({"field": "QE", "text": text})
-    bias = reading.pe_per_adu / (phi / g) - 1
+    bias = reading.pe_per_adu / pe_per_adu - 1
     spread = values["offset"]["spread"] or 0.0
     tol_offset = spread + 1.0 if offset_tolerance is None else offset_tolerance
     offset_error = None if reading.baseline is None else reading.baseline - truth["offset"]
@@ -581,7 +583,7 @@ def _compare(reading: Reading, values: dict, setpoint, tolerance, offset_toleran
                     key=lambda f: abs(math.log(f.value / truth[f.quantity])), default=None)
         name = f" (most of it {worst.name})" if worst is not None else ""
         problems.append(f"photons {100 * bias:+.1f} %{name}, beyond {100 * tolerance:g} %: "
-                        f"{reading.formula} should be {phi / g:.6g} e-/ADU")
+                        f"{reading.formula} should be {pe_per_adu:.6g} e-/ADU")
     if offset_error is not None and abs(offset_error) > tol_offset:
         base = next(f.name for f in reading.fields if f.quantity == "offset")
         problems.append(f"{base} {offset_error:+.3g} ADU from the calibrated offset "
@@ -589,7 +591,7 @@ def _compare(reading: Reading, values: dict, setpoint, tolerance, offset_toleran
     if qe is not None and reading.qe is not None and abs(reading.qe / qe - 1) > tolerance:
         problems.append(f"QE {reading.qe:g} but {qe:g} given: photons "
                         f"{100 * (qe / reading.qe - 1):+.1f} %")
-    return Audit(reading, setpoint, rows, phi / g, bias, offset_error, tol_offset, tolerance,
+    return Audit(reading, setpoint, rows, pe_per_adu, bias, offset_error, tol_offset, tolerance,
                  problems)
 
 
