@@ -276,6 +276,17 @@ def test_the_calibrate_widget_writes_over_nothing_it_did_not_write(sample, qapp,
     fresh = CalibrateWidget()  # no output folder chosen
     first = fresh._out()
     assert first != fresh._out() and first.name.startswith("emccdcal-calibration-")
+    # a folder calibrated without an output folder: its manifest and result side by side
+    import tempfile
+
+    made = lambda: set(Path(tempfile.gettempdir()).glob("emccdcal-calibration-*"))  # noqa: E731
+    before = made()
+    run = CalibrateWidget()
+    run.source.value = manifest.parent / "gain-GS"
+    run.job.start = lambda work, done, what: None  # the setting-up only, not the fit
+    run.run()
+    (folder,) = made() - before
+    assert (folder / "manifest.toml").is_file() and Path(run.out.value) == folder
 
 
 @pytest.mark.slow

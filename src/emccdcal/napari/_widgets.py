@@ -188,16 +188,16 @@ class CalibrateWidget(Container):
                 if "emccdcal_manifest" in layer.metadata:
                     self.source.value = layer.metadata["emccdcal_manifest"]
 
-    def _manifest(self) -> Path:
+    def _manifest(self, out: Path) -> Path:
         """The manifest to calibrate: the one chosen, or one ``scan`` writes for a
-        folder (into the output folder)."""
+        folder (into the run's output folder ``out``, beside its result)."""
         from ..data.scan import manifest_text, scan
 
         source = _field_path(self.source, "a folder of camera files or a manifest")
         if source.is_file():
             return source
         session = scan(source)
-        path = self._out() / "manifest.toml"
+        path = out / "manifest.toml"
         self._write(path, [source], lambda: atomic_write_text(path, manifest_text(session,
                                                                                   path)))
         return path
@@ -240,8 +240,9 @@ class CalibrateWidget(Container):
         """Calibrate in a worker thread; the result opens as layers."""
         from ..calibration import calibrate
 
-        manifest = self._manifest()
-        out = self._out() / "result"
+        folder = self._out()  # once a run: the manifest and the result side by side
+        manifest = self._manifest(folder)
+        out = folder / "result"
         method = self.method.value
         options = {}
         if method in self._likelihood:
