@@ -239,3 +239,14 @@ def test_an_audit_of_its_own_gdsc_export_reads_no_bias(tmp_path):
     path = written if not isinstance(written, (list, tuple)) else written[0]
     (found,) = audit(path, res, setpoint=100)
     assert abs(found.photon_bias) < 1e-5, found.lines()  # the file keeps 7 digits
+
+
+def test_a_1x_result_is_listed_with_the_register_it_was_fitted_with(tmp_path):
+    """db compare once listed an is-adu result fitted with the cascade as 'gamma'."""
+    from emccdcal.result import load_calibration
+
+    adu = simulate_intensity_series(tmp_path / "adu", rows=3, cols=3, frames=200, seed=2,
+                                    progress=False)
+    assert cli.main(["calibrate", str(adu.manifest), "--method", "is-adu", "-o",
+                     str(tmp_path / "phi"), "-q", "--no-checks"]) == 0
+    assert load_calibration(tmp_path / "phi").em_model.name == "cascade"

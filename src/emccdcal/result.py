@@ -1057,6 +1057,9 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
         raise OptionError(f"{label}: its members were fitted with different EM register "
                           f"models ({', '.join(sorted(map(str, models)))}); group results "
                           "of one model")
+    if not models:  # 1x only (is-adu): the model it was fitted with, else the default's
+        models = {next((m for m in (EMModel.from_attrs(ds.attrs) for _, ds in loaded) if m),
+                       EMModel(defaults.DEFAULT_EM_MODEL))}
     origins = {tuple(int(v) for v in ds.attrs["sensor_origin"]) for _, ds in loaded
                if "sensor_origin" in ds.attrs}
     binnings = {tuple(int(v) for v in np.atleast_1d(ds.attrs["binning"])) for _, ds in loaded
@@ -1068,7 +1071,7 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
         label=label, files=tuple(f for f, _ in loaded), method="+".join(dict.fromkeys(methods)),
         e_per_adu=phi, e_per_adu_se=masked(loaded[i_phi][1], "e_per_adu_se"),
         em_gain=gains, em_gain_se=gains_se, offset=offsets, read_noise=read_noise,
-        em_model=models.pop() if models else EMModel(), camera=camera,
+        em_model=models.pop(), camera=camera,
         origin=origins.pop() if len(origins) == 1 else None,
         binning=binnings.pop() if binnings else None,
         created=max(str(ds.attrs.get("created", "")) for _, ds in loaded),
