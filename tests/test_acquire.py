@@ -364,3 +364,15 @@ def test_scan_refuses_an_unfinished_session(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "has not finished" in err and "--resume" in err, err
     assert not (tmp_path / "m.toml").exists()
+
+
+def test_plan_check_says_when_the_darks_limit_the_precision(tmp_path, capsys):
+    """With 50 darks, plan --check once advised more light frames."""
+    import re
+
+    plan_path = _plan_file(tmp_path, target=0.5)
+    text = re.sub(r"(?m)^dark_frames = .*$", "dark_frames = 50", plan_path.read_text())
+    plan_path.write_text(text)
+    assert cli.main(["plan", "--check", str(plan_path)]) == 0
+    out = capsys.readouterr().out
+    assert "the 50 dark frames limit it" in out and "more dark frames" in out, out

@@ -497,6 +497,16 @@ def predict(method, setpoints, gains, photoelectrons, frames, dark_frames, camer
                     frame_rate_hz, max_frames)
 
 
+def se_without_dark_limit(p: Plan) -> float:
+    """The worst predicted SE (percent) of ``p``'s light stacks were its offset and read-
+    noise maps exact (dark frames without end): where it is far below ``p``'s, the darks
+    are what limits the plan, and more light frames would not help."""
+    a = p.acquisitions
+    return predict(p.method, [x.setpoint for x in a], [x.em_gain for x in a],
+                   [x.photoelectrons for x in a], [x.frames for x in a], 10**9,
+                   p.camera).predicted_se
+
+
 def _plan_of(design, level, frames, dark_frames, target_se, frame_rate_hz, max_frames):
     """The :class:`Plan` of ``frames`` (A,) at the design's candidate light ``level``;
     stacks of no frames are left out."""
