@@ -370,7 +370,7 @@ def test_plan_check_says_when_the_darks_limit_the_precision(tmp_path, capsys):
     """With 50 darks, plan --check once advised more light frames."""
     import re
 
-    plan_path = _plan_file(tmp_path, target=0.5)
+    plan_path = _plan_file(tmp_path, target=0.1)
     text = re.sub(r"(?m)^dark_frames = .*$", "dark_frames = 50", plan_path.read_text())
     plan_path.write_text(text)
     assert cli.main(["plan", "--check", str(plan_path)]) == 0
