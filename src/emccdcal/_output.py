@@ -516,8 +516,9 @@ class Output:
                 hit = any(_same(self.path / n, p) for n in names)
             else:
                 hit = _same(self.path, p) or (self.kind == "store" and _is_inside(p, self.path))
-            # nothing is written inside an input store (a folder read as one file: .zarr)
-            hit = hit or (p.is_dir() and bool(p.suffix) and (
+            # nothing is written inside an input store (a folder read as one file: .zarr);
+            # a plain folder given as input (scan's) may hold the output
+            hit = hit or (p.is_dir() and p.suffix.lower() == ".zarr" and (
                 _same(self.path, p) or _is_inside(self.path, p)))
             if hit:
                 raise OutputError(f"{self._what}: would write over {p}, an input of this "

@@ -3,8 +3,8 @@
 A calibration holds for one camera in one read-out state: its serial, model, output
 amplifier, read-out rate, analog gain, ADC bits and binning (:data:`IDENTITY_FIELDS`).
 Every verb that uses a calibration on frames (``apply``, ``gain-check``, ``validate``,
-``cots``, ``calibrate`` with φ from a result, the napari widgets) goes through
-:func:`check`, which
+``calibrate`` with φ from a result, the napari widgets) goes through :func:`check`,
+which
 
 * refuses frames that differ among themselves (darks of two cameras or two set-points
   pooled into one check, or the same file given twice),
