@@ -250,3 +250,17 @@ def test_a_1x_result_is_listed_with_the_register_it_was_fitted_with(tmp_path):
     assert cli.main(["calibrate", str(adu.manifest), "--method", "is-adu", "-o",
                      str(tmp_path / "phi"), "-q", "--no-checks"]) == 0
     assert load_calibration(tmp_path / "phi").em_model.name == "cascade"
+
+
+def test_an_audit_of_its_own_picasso_export_reads_no_bias_either(tmp_path):
+    from test_export import PHI, SHAPE, true_result
+
+    from emccdcal.export.audit import audit
+    from emccdcal.export.tools import export
+
+    phi = PHI * (1 + 0.05 * np.random.default_rng(7).standard_normal(SHAPE))
+    res = true_result(tmp_path / "r", phi=phi, spread=0.03, seed=2)
+    written = export(res, "picasso", tmp_path / "p", setpoint=100)
+    path = written if not isinstance(written, (list, tuple)) else written[0]
+    for found in audit(path, res, setpoint=100):
+        assert abs(found.photon_bias) < 1e-4, found.lines()  # the file keeps 6 digits

@@ -497,14 +497,21 @@ def predict(method, setpoints, gains, photoelectrons, frames, dark_frames, camer
                     frame_rate_hz, max_frames)
 
 
-def se_without_dark_limit(p: Plan) -> float:
-    """The worst predicted SE (percent) of ``p``'s light stacks were its offset and read-
-    noise maps exact (dark frames without end): where it is far below ``p``'s, the darks
-    are what limits the plan, and more light frames would not help."""
+def dark_limited(p: Plan) -> float | None:
+    """Whether the dark frames, not the light frames, keep ``p`` from its target: the
+    worst SE (percent) it would reach with exact offset and read-noise maps where that
+    reaches the target and ten times the light frames would not; else None."""
     a = p.acquisitions
-    return predict(p.method, [x.setpoint for x in a], [x.em_gain for x in a],
-                   [x.photoelectrons for x in a], [x.frames for x in a], 10**9,
-                   p.camera).predicted_se
+
+    def worst(light_factor, darks):
+        return predict(p.method, [x.setpoint for x in a], [x.em_gain for x in a],
+                       [x.photoelectrons for x in a],
+                       [light_factor * x.frames for x in a], darks, p.camera).predicted_se
+
+    exact = worst(1, 10**9)
+    if exact <= p.target_se and worst(10, p.dark_frames) > p.target_se:
+        return exact
+    return None
 
 
 def _plan_of(design, level, frames, dark_frames, target_se, frame_rate_hz, max_frames):

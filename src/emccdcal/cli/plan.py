@@ -148,10 +148,10 @@ def table(p) -> str:
             verdict += (f"; target {p.target_se:g} % NOT reached within {p.max_frames} "
                         "frames per stack: allow more frames (--max-frames) or a larger target")
         else:
-            from ..acquire.plan import se_without_dark_limit
+            from ..acquire.plan import dark_limited
 
-            exact = se_without_dark_limit(p)
-            if exact <= p.target_se or exact < 0.5 * p.predicted_se:
+            exact = dark_limited(p)
+            if exact is not None:
                 verdict += (f"; target {p.target_se:g} % NOT reached: the {p.dark_frames} dark "
                             f"frames limit it ({exact:.3f} % with exact maps): record more "
                             "dark frames (dark_frames), not more light")

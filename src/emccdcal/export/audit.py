@@ -549,9 +549,13 @@ def _parse_text(path: Path, text: str):
 # --------------------------------------------------------------------------------------
 def _compare(reading: Reading, values: dict, setpoint, tolerance, offset_tolerance, qe):
     truth = {k: values[k]["median"] for k in _QUANTITIES}
-    # photoelectrons per ADU: the median over pixels of each pixel's φ/g, the same
-    # reference every row that compares g/φ uses (not the ratio of two medians)
-    pe_per_adu = 1.0 / truth["adu_per_e_total"]
+    # photoelectrons per ADU, from the same references as the tool's own rows: a tool
+    # holding g/φ as one number (gdsc-smlm, storm-analysis) against the median over
+    # pixels of g/φ, one holding φ and g against their medians, so that a file whose
+    # every row agrees reads no photon bias
+    combined = any(f.quantity == "adu_per_e_total" for f in reading.fields)
+    pe_per_adu = (1.0 / truth["adu_per_e_total"] if combined
+                  else truth["e_per_adu"] / truth["em_gain"])
     rows = []
     for f in reading.fields:
         row = {"field": f.name}
