@@ -202,19 +202,23 @@ def test_the_calibrate_widget_matches_the_command_line_and_keeps_the_viewer_draw
     timer.timeout.connect(lambda: ticks.append(time.perf_counter()))
     timer.start(20)
     t0 = time.perf_counter()
-    widget.run()
-    # the worker's run: until the result's layers begin (each then takes napari a moment
-    # to draw, under software OpenGL up to a second: drawing, not the widget's work)
+    ended = []
+    widget.run().returned.connect(lambda *_: ended.append(time.perf_counter()))
+    # the worker's run: until its result reaches the viewer (the result's layers then
+    # take napari a moment each to draw, under software OpenGL up to a second: drawing,
+    # not the widget's work)
     qtbot.waitUntil(lambda: widget.status.value.startswith(("adding", "done", "error")),
                     timeout=180_000)
-    elapsed = time.perf_counter() - t0
     timer.stop()
+    elapsed = ended[0] - t0
+    ticks = [t for t in ticks if t <= ended[0]]
     _wait(qtbot, widget)
     assert widget.status.value.startswith("done"), widget.status.value
     # the viewer's event loop ran throughout: ticks every 20 ms, no gap of a second
     gaps = np.diff(ticks)
     print(f"event loop during the run: {len(ticks)} ticks in {elapsed:.1f} s, longest gap "
-          f"{1000 * gaps.max():.0f} ms, median {1000 * np.median(gaps):.0f} ms")
+          f"{1000 * gaps.max():.0f} ms (at {ticks[int(np.argmax(gaps))] - t0:.1f} s), median "
+          f"{1000 * np.median(gaps):.0f} ms")
     assert len(ticks) > 0.5 * elapsed / 0.02 and gaps.max() < 1.0
     ours, theirs = load_result(widget.result), load_result(cli_result)
     for s in (5, 25, 100, 300):
