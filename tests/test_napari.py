@@ -369,6 +369,11 @@ def test_every_widget_error_path_is_one_line_on_the_widget(sample, make_napari_v
     check.button.native.click()  # the sample's calibration records no camera: said
     _wait(qtbot, check)
     assert not check.status.value.endswith("…")
+    from emccdcal.napari._widgets import CalibrateWidget
+
+    docked = CalibrateWidget(viewer)  # docked before any sample or folder was chosen
+    docked.run_button.native.click()
+    assert docked.status.value == "error: choose a folder of camera files or a manifest"
     convert = ApplyWidget(viewer)
     convert.reset_choices()
     convert.layer.value, convert.result.value = plain, result

@@ -264,3 +264,19 @@ def test_an_audit_of_its_own_picasso_export_reads_no_bias_either(tmp_path):
     path = written if not isinstance(written, (list, tuple)) else written[0]
     for found in audit(path, res, setpoint=100):
         assert abs(found.photon_bias) < 1e-4, found.lines()  # the file keeps 6 digits
+
+
+def test_a_summary_of_a_set_point_with_no_gain_prints_no_raw_numpy_warning(tmp_path):
+    """'RuntimeWarning: All-NaN slice encountered' once reached the terminal."""
+    import warnings
+
+    from test_export import true_result
+
+    from emccdcal.calibration import format_summary
+
+    ds = result.load(true_result(tmp_path / "r"))
+    ds["em_gain"].loc[{"setpoint": 300.0}] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        text = format_summary(ds)
+    assert "300" in text
