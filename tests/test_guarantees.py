@@ -531,3 +531,9 @@ def test_zarr_settings_of_the_wrong_type_are_one_line(tmp_path):
                            **{key: value})
         with pytest.raises(InputError, match=f"camera setting {key}"):
             stack_settings(store)
+
+
+def test_an_offset_past_the_adc_is_named(capsys):
+    """An offset of 1e302 ADU once read as 'leave out the highest set-point'."""
+    argv = [a if a != "600" else "1e302" for a in PLAN]
+    _refused(*_run(capsys, *argv)[::2], "offset 1e+302 ADU is at or past the ADC's last count")

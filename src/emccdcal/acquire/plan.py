@@ -282,6 +282,15 @@ def _allocate(design, p, targets, target, max_frames, dark_cost):
     return state[:A], state[A], float(now[0])
 
 
+def _offset_within_adc(camera) -> None:
+    """An offset at or past the ADC's last count leaves no room for any light."""
+    top = 2 ** camera["adc_bits"] - 1
+    if camera["offset"] >= top:
+        raise OptionError(f"offset {camera['offset']:g} ADU is at or past the ADC's last count "
+                          f"{top} ({camera['adc_bits']} bits): is it in ADU, and the bits "
+                          "the camera's?")
+
+
 def _within_adc(setpoints, gains, light, camera) -> None:
     """Refuse light whose mean count is past the ADC's last count: such frames saturate,
     and no prediction of their precision means anything."""
@@ -386,6 +395,7 @@ def plan(*, method="gs", e_per_adu, read_noise, offset, adc_bits=16, setpoints=(
               else check_number("pixel_well", pixel_well, positive=True),
               "register_well": None if register_well is None
               else check_number("register_well", register_well, positive=True)}
+    _offset_within_adc(camera)
     target = check_number("target_se", target_se, positive=True)
     if max_frames is not None:
         max_frames = check_int("max_frames", max_frames, minimum=_FIRST_FRAMES)
@@ -647,6 +657,7 @@ def read_plan(path) -> Plan:
                   "stages": cam.get("stages"),
                   "pixel_well": cam.get("pixel_well"),
                   "register_well": cam.get("register_well")}
+        _offset_within_adc(camera)
         model = noise.as_em_model(camera["em_model"], camera["stages"])
         camera["stages"] = model.stages if model.register.uses_stages else None
         table = "acquisition" if method == "gs" else "level"
