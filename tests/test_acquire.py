@@ -376,3 +376,20 @@ def test_plan_check_says_when_the_darks_limit_the_precision(tmp_path, capsys):
     assert cli.main(["plan", "--check", str(plan_path)]) == 0
     out = capsys.readouterr().out
     assert "the 50 dark frames limit it" in out and "more dark frames" in out, out
+
+
+def test_an_empty_store_someone_else_made_is_never_removed(tmp_path):
+    """Only a store this session began (metadata of its own, or none) is made again."""
+    import json as _json
+
+    plan_path = _plan_file(tmp_path, setpoints=(1, 5))
+    out = tmp_path / "session"
+    _stopped_at_the_first_light(plan_path, out, seed=2)
+    theirs = out / "1x-gain.ome.zarr"
+    theirs.mkdir()
+    meta = {"zarr_format": 3, "node_type": "group", "attributes": {"owner": "a user"}}
+    (theirs / "zarr.json").write_text(_json.dumps(meta))
+    with pytest.raises(AcquireError, match="not the stack this session recorded"):
+        acquire(plan_path, out, simulated_seed=2, roi=(0, 0, 8, 8), resume=True,
+                progress_bars=False)
+    assert _json.loads((theirs / "zarr.json").read_text()) == meta

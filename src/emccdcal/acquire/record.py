@@ -509,6 +509,14 @@ def _begun_but_empty(path: Path) -> bool:
     for item in path.rglob("*"):
         if item.is_symlink() or (item.is_file() and item.name not in _METADATA_FILES):
             return False
+    root = path / "zarr.json"
+    if root.is_file():  # attributes written by another hand: not this session's store
+        try:
+            attrs = _files.load_json(root, what="Zarr metadata").get("attributes") or {}
+        except (InputError, AttributeError):
+            return False
+        if attrs and _MARKER not in attrs:
+            return False
     return True
 
 
