@@ -108,7 +108,8 @@ def test_real_gain_series_goodness_of_fit_flags_5x(tmp_path):
     assert p.dims == ("setpoint", "row", "col") and p.attrs["units"] == "1"
     assert float((p.sel(setpoint=5) < 0.05).mean()) >= 0.7  # 7 of 9 (5 % expected)
     assert float((p.sel(setpoint=[25, 100, 300]) < 0.01).mean()) < 0.2
-    assert any("set-point 5x" in w and "misfit" in w for w in ds.attrs["warnings"])
+    assert any("set-point 5x" in w and "misfit" in w and "doubtful" in w
+               and "--em-model cascade" in w for w in ds.attrs["warnings"])
     assert not any("set-point 300x" in w for w in ds.attrs["warnings"])
 
 

@@ -185,25 +185,44 @@ def test_the_demo_counts_pixels_and_leaves_only_its_results_in_a_temporary_folde
 
 
 def test_a_drift_warning_quotes_the_light_the_fit_found_and_what_to_do(tmp_path):
-    """The drift warning once quoted 417 e- at 5x where the fit said 370.85."""
+    """The drift warning once quoted 417 e- at 5x where the fit said 370.85, and never said
+    whether the result stands; now it quotes the fit and weighs the bias against the
+    fit's own standard error, or says why the method is immune (gs takes g from the mean)."""
     import re
     import warnings
 
     from emccdcal import calibrate
 
-    sim = simulate_gain_series(tmp_path / "gs", setpoints=(1, 5), rows=6, cols=6, frames=1500,
-                               seed=6, drift=0.08, progress=False)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        ds = calibrate(sim.manifest, "gs", e_per_adu=sim.truth["e_per_adu"], progress=False)
-    drifts = [str(w.message) for w in caught if "drifts by" in str(w.message)]
-    assert drifts, [str(w.message) for w in caught]
-    fitted = float(ds.photoelectrons.where(ds.converged).median())
-    for text in drifts:
-        quoted = float(re.search(r"acquisition's ([\d.e+]+) e⁻ per pixel and frame \(as fitted\)",
-                                 text).group(1))
-        assert quoted == pytest.approx(fitted, rel=1e-3), text
-        assert "the result stands" in text and "record again" in text
+    sim = simulate_gain_series(tmp_path / "gs", setpoints=(1, 5, 25), rows=6, cols=6,
+                               frames=1500, seed=6, drift=0.08, progress=False)
+    truth = {a["em_gain_setpoint"]: a["em_gain"] for a in sim.truth["acquisitions"]}
+    for method in ("gs", "gs-no1x"):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            ds = calibrate(sim.manifest, method, e_per_adu=sim.truth["e_per_adu"],
+                           progress=False)
+        drifts = [str(w.message) for w in caught if "drifts by" in str(w.message)]
+        assert len(drifts) == ds.setpoint.size, [str(w.message) for w in caught]
+        fitted = float(ds.photoelectrons.where(ds.converged).median())
+        for text in drifts:
+            sp = float(re.match(r"\S+ \(set-point ([\d.]+)\)", text).group(1))
+            at = ds.sel(setpoint=sp)
+            bias_seen = float((at.em_gain / truth[sp] - 1).where(ds.converged).median())
+            rse = float((at.em_gain_se / at.em_gain).where(ds.converged).median())
+            if method == "gs":  # g from the mean against the 1x light: unbiased
+                assert "a drift does not move: the result stands" in text, text
+                assert abs(bias_seen) <= rse, (sp, bias_seen, rse)
+                continue
+            quoted = float(re.search(r"acquisition's ([\d.e+]+) e⁻ per pixel and frame "
+                                     r"\(as fitted\)", text).group(1))
+            assert quoted == pytest.approx(fitted, rel=1e-3), text
+            bias = float(re.search(r"biased by about ([-+][\d.e]+) %", text).group(1))
+            times = float(re.search(r"that is ([\d.e+]+) times its standard error",
+                                    text).group(1))
+            assert times == pytest.approx(abs(bias) / (100 * rse), rel=0.1), text
+            assert bias / 100 == pytest.approx(bias_seen, abs=2 * rse)  # the bias is real
+            assert ("the result stands" in text) == (times < 1), text
+            assert "delete its [[acquisition]] table" in text and "record again" in text
 
 
 def test_the_gain_check_figure_shows_the_datas_range_and_its_whole_title(tmp_path):
@@ -280,3 +299,25 @@ def test_a_summary_of_a_set_point_with_no_gain_prints_no_raw_numpy_warning(tmp_p
         warnings.simplefilter("error")
         text = format_summary(ds)
     assert "300" in text
+
+
+def test_a_misfit_says_the_estimates_are_doubtful_and_where_to_look(tmp_path, monkeypatch):
+    """Under the exact register a misfit has no model to blame: the warning says the
+    estimates are doubtful and names the causes to check and how."""
+    import warnings
+
+    from emccdcal import calibrate
+    from emccdcal.fit import gof
+
+    sim = simulate_gain_series(tmp_path / "gs", setpoints=(1, 5), rows=3, cols=3,
+                               frames=300, seed=2, progress=False)
+    monkeypatch.setattr(gof, "misfit_warnings",
+                        lambda p, kind: [f"{kind} 5x: 9 of 9 pixels (100.0 %) misfit the noise "
+                                         "model at p < 0.01"])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        calibrate(sim.manifest, "gs", e_per_adu=sim.truth["e_per_adu"], progress=False)
+    misfit = [str(w.message) for w in caught if "misfit the noise" in str(w.message)]
+    assert len(misfit) == 1, misfit
+    assert "doubtful" in misfit[0] and "emccdcal check" in misfit[0]
+    assert "leave that acquisition out" in misfit[0]

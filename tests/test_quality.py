@@ -308,7 +308,8 @@ def test_saturated_frames_counted(tmp_path):
     assert len(sat_warnings) == 1 and sat_warnings[0].startswith("300x (set-point 300)")
     frac = rep["acquisitions"]["300x"]["saturation"]["fraction"]
     assert f"{frac:.2%} of its pixel-frames" in sat_warnings[0]
-    assert "read low" in sat_warnings[0] and "Lower the light" in sat_warnings[0]
+    assert "read low" in sat_warnings[0] and "lower the light" in sat_warnings[0]
+    assert "Every other pixel's result stands" in sat_warnings[0]
 
 
 def test_too_few_frames_skip_only_the_drift_test(tmp_path):
@@ -471,3 +472,43 @@ def test_the_steady_column_gives_its_reason(real_report):
     from emccdcal.data.quality import _steady_cell
 
     assert _steady_cell(small) == "yes: < 0.1 %"  # significant, but below the size threshold
+
+
+def test_every_finding_says_whether_the_result_stands_and_what_fixes_it():
+    """A finding that makes a result doubtful says whether to trust it and how to fix it
+    (a new user once read a drift warning that said neither)."""
+    from emccdcal.data.quality import _findings
+
+    a = {"name": "L6", "em_gain_setpoint": 1.0, "level": "L6", "frames": "a.tif",
+         "skip_frames": 2, "n_frames": 500,
+         "drift": {"drifts": True, "drift_pct": 0.26, "drift_pct_se": 0.01, "pvalue": 1e-9},
+         "photoelectrons_estimate": 6.7e4, "photoelectrons_source": "fit",
+         "estimate_relative_se": 0.011,
+         "offset": {"above_data": True, "n_below_offset": 9, "n_pixels": 9},
+         "multiplication": {"multiplied": True, "R": 1.5, "R_se": 0.02, "n_pixels": 9},
+         "frames_defective": {"n_constant": 2, "constant": [0, 1], "n_repeated": 1,
+                              "repeated": [200]},
+         "saturation": {"n_values": 5, "adc_max": 65535, "fraction": 0.01, "n_frames": 5,
+                        "n_pixels": 1, "pixels": [[0, 0]]},
+         "pixels": {"n_hot": 1, "hot": [[1, 1]], "n_dead": 0, "dead": [], "k": 6.0,
+                    "robust_sd": 2.0, "n_stuck": 1, "stuck": [[2, 2]]}}
+    found = _findings(a)
+    assert len(found) == 8, found
+    for text in found:
+        assert "stand" in text, text  # "the result stands", "does not stand" ...
+        assert any(fix in text for fix in ("calibrate again", "record again", "do not use",
+                                           "no result")), text
+    drift, offset, multiplied, constant, repeated, saturated, hot, stuck = found
+    assert "φ pools every level" in drift and "3.4 times its standard error" in drift
+    assert "may not stand" in drift and 'level = "L6"' in drift
+    assert "nothing fitted from it stands" in offset
+    # leading dropped frames are skipped by the manifest, frames in the middle are not
+    assert "set skip_frames = 4" in constant
+    assert "skip_frames" not in repeated.split("they bias")[1]
+    a["estimate_relative_se"] = 0.05  # the same drift within the SE: the result stands
+    assert "the result stands" in _findings(a)[0]
+    a["em_gain_setpoint"], a["level"] = 300.0, None  # a gain: its own estimate, no pooling
+    a["estimate_relative_se"] = 0.001
+    assert "the result does not stand as it is" in _findings(a)[0]
+    a["drift_absorbed"] = False  # gs: g from the mean against the 1x light
+    assert "a drift does not move: the result stands" in _findings(a)[0]

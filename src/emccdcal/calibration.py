@@ -617,7 +617,9 @@ def _warn_gain_order(ds) -> None:
                 f"{ds.attrs.get('manifest_path', 'the manifest')}: the measured EM gain falls "
                 f"from {gains[lo]:.4g} at set-point {sp[lo]:g} to {gains[hi]:.4g} at set-point "
                 f"{sp[hi]:g}; it rises with the set-point on every camera: are the "
-                "set-points of those acquisitions swapped?", stacklevel=4)
+                "set-points of those acquisitions swapped? If so, their gains are each "
+                "other's: correct their em_gain_setpoint in the manifest and calibrate "
+                "again", stacklevel=4)
 
 
 def _require_convergence(ds, method) -> None:
@@ -741,44 +743,67 @@ def _warn_saturated_and_unusable(manifest, used, arrays):
             warnings.warn(
                 f"{acq.frames_path.name}: {int(n_sat.sum())} frame values at the ADC maximum "
                 f"({manifest.adc_max} ADU) in {int((n_sat > 0).sum())} pixel(s) were "
-                "excluded from the fit", stacklevel=3)
+                "excluded from the fit, so those pixels' gain and light read low; the other "
+                "pixels' results stand; lower the light (or the EM gain) and record again "
+                "for these", stacklevel=3)
     bad = np.flatnonzero(~arrays["usable"])
     if bad.size:
         where = ", ".join(f"({p // cols}, {p % cols})" for p in bad[:5])
         warnings.warn(
             f"{bad.size} of {rows * cols} pixel(s) have fewer than 2 usable frames, or frames "
             f"that never change, in some acquisition (saturated, dead or stuck): {where}"
-            f"{', ...' if bad.size > 5 else ''}; they are left out (NaN, converged = False)",
+            f"{', ...' if bad.size > 5 else ''}; they are left out (NaN, converged = False), "
+            "and the other pixels' results stand",
             stacklevel=3)
 
 
 def _fitted_light(ds, used) -> list:
-    """The fitted photoelectrons per pixel and frame of each used acquisition, median
-    over converged pixels (None where the method estimates none for it)."""
+    """What the fit found for each used acquisition, for the checks' findings to quote:
+    None where the method estimates no E for it, else a dict: ``photoelectrons`` (E, e⁻
+    per pixel and frame), ``absorbed`` (whether the spread of a drifting light biases an
+    estimate there: not where the estimates come from the acquisition's mean, as at 1×
+    with φ given, or in ``gs``, whose E is shared with the 1× light) and
+    ``relative_se`` (that estimate's, the EM gain or φ at 1×, or None); medians over
+    converged pixels."""
     if "photoelectrons" not in ds:
         return [None] * len(used)
-    light, ok = ds.photoelectrons, ds.converged.values.astype(bool)
+    ok = ds.converged.values.astype(bool)
+    phi_given = "e_per_adu_source" in ds.attrs
+    pinned = phi_given and ds.attrs.get("method") == "gs"
+
+    def median_at(name, a):
+        sel = ds[name]
+        if "setpoint" in sel.dims:
+            sel = sel.sel(setpoint=a.em_gain_setpoint)
+        if "level" in sel.dims:
+            sel = sel.sel(level=a.level)
+        values = np.asarray(sel.values, dtype=float)
+        return float(nanmedian(values[ok])) if values.shape == ok.shape else math.nan
+
     out = []
     for a in used:
         try:
-            sel = light
-            if "setpoint" in sel.dims:
-                sel = sel.sel(setpoint=a.em_gain_setpoint)
-            if "level" in sel.dims:
-                sel = sel.sel(level=a.level)
-            values = np.asarray(sel.values, dtype=float)
+            light = median_at("photoelectrons", a)
         except (KeyError, ValueError):
+            light = math.nan
+        if not (math.isfinite(light) and light > 0):
             out.append(None)
             continue
-        fitted = float(nanmedian(values[ok])) if values.shape == ok.shape else math.nan
-        out.append(fitted if math.isfinite(fitted) and fitted > 0 else None)
+        what = "em_gain" if a.em_gain_setpoint != 1 and "em_gain" in ds else "e_per_adu"
+        try:
+            rse = median_at(f"{what}_se", a) / median_at(what, a)
+        except (KeyError, ValueError):
+            rse = math.nan
+        out.append({"photoelectrons": light,
+                    "absorbed": not (pinned or (phi_given and a.em_gain_setpoint == 1)),
+                    "relative_se": rse if math.isfinite(rse) and rse > 0 else None})
     return out
 
 
 def _quality(manifest, used, parts, tiles, fitted=None):
     """Data-quality checks (drift, saturation, defects) of the used stacks,
-    from the statistics the tiles gathered as they read them; ``fitted``: each stack's
-    fitted photoelectrons (or None), which the findings quote.
+    from the statistics the tiles gathered as they read them; ``fitted``: for each
+    stack, what :func:`_fitted_light` found (or None), which the findings quote.
 
     Returns the report and its findings as messages for the caller to issue.
     """
@@ -792,7 +817,7 @@ def _quality(manifest, used, parts, tiles, fitted=None):
     sub = copy.copy(manifest)
     sub.acquisitions = list(used)
     try:
-        report = quality.check_manifest(sub, summaries=summaries, photoelectrons=fitted)
+        report = quality.check_manifest(sub, summaries=summaries, fitted=fitted)
     except ValueError as exc:  # frame means that cannot be tested (not finite)
         return None, [f"data-quality checks skipped: {exc}"]
     grown = set(manifest.warnings)  # read-noise growth was already reported by the manifest
@@ -959,7 +984,8 @@ def _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, opt
     not_conv = int((~converged & arrays["usable"]).sum())
     if not_conv:
         warnings.warn(f"{method}: {not_conv} of {int(arrays['usable'].sum())} fitted pixel(s) "
-                      "did not converge (see 'converged')", stacklevel=3)
+                      "did not converge (converged = False): their numbers are not estimates "
+                      "and must not be used; the converged pixels' results stand", stacklevel=3)
     kind = "level" if method.startswith("is-") else "set-point"
     keys = _labels(used) if kind == "level" else [result.format_setpoint(s) + "x" for s in setpoints]
     multiplied = [k for k, sp in zip(keys, setpoints) if sp != 1]
@@ -969,6 +995,11 @@ def _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, opt
             # An approximate register's commonest misfit (the gamma model's excess noise
             # is 2, an exact register's below it, most at low gain).
             w += "; " + hint
+        else:
+            w += (": the estimates there are doubtful; the checks' findings (or 'emccdcal "
+                  "check MANIFEST') name a cause to fix (drift, saturation, offset or "
+                  "read-noise maps of another mode, a mislabelled set-point); where they name "
+                  "none, leave that acquisition out of the manifest and compare")
         warnings.warn(w, stacklevel=3)
     grid = lambda a: a.T.reshape((-1, rows, cols)) if a.ndim == 2 else a.reshape(rows, cols)  # noqa: E731
     labels = _labels(used)

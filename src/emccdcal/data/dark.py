@@ -365,7 +365,8 @@ def check_read_noise_growth(
                 f"{100 * growth:.0f} % above that at set-point {g0:g} ({ref:.1f} ADU): the "
                 "dark frames probably contain clock-induced charge, which the EM register "
                 "multiplies, so this read noise is not pure Gaussian read-out noise. It "
-                "hardly moves a calibration from light of hundreds of e- per pixel; for "
+                "hardly moves a calibration from light of hundreds of e- per pixel (such a "
+                "result stands); for "
                 f"faint signals at {g:g}x (a few e- per pixel, photon counting) take the "
                 f"amplifier's read noise from set-point {g0:g}, {ref:.1f} ADU"
             )

@@ -779,6 +779,7 @@ def check_acquisition(
         "frames": str(path),
         "em_gain_setpoint": float(acq.em_gain_setpoint),
         "level": acq.level,
+        "skip_frames": int(acq.skip_frames),
         "n_frames": n,
         "shape": [int(d) for d in acq.shape],
         "drift": drift,
@@ -876,55 +877,107 @@ def _drift_bias_pct(drift_pct: float, photoelectrons: float, multiplied: bool) -
     return 100.0 * (excess / 2.0 if multiplied else -excess)
 
 
+def _leave_out(a: dict) -> str:
+    """How to leave one acquisition out of a calibration (its manifest table)."""
+    which = f"level = \"{a['level']}\"" if a.get("level") else f"frames = \"{a['frames']}\""
+    return (f"delete its [[acquisition]] table ({which}) from the manifest and calibrate "
+            "again")
+
+
+def _drift_effect(a: dict) -> str:
+    """What a drift of one acquisition does to the result, whether it stands, and the fix."""
+    d = a["drift"]
+    multiplied = a["em_gain_setpoint"] != 1
+    E = a.get("photoelectrons_estimate")
+    light = (f"this acquisition's {E:.4g} e⁻ per pixel and frame"
+             + (" (as fitted)" if a.get("photoelectrons_source") == "fit" else "")) if E else ""
+    if a.get("drift_absorbed") is False:
+        return ("This method takes the estimates here from the acquisition's mean (φ given, "
+                + ("the gain at 1× is 1)" if not multiplied else
+                   "E shared with the 1× light)")
+                + ", which a drift does not move: the result stands, and the drift's spread "
+                "only lowers this acquisition's goodness of fit"
+                + ("" if not multiplied else
+                   ", provided the light's average was the same at every set-point (a source "
+                   "that drifts over the session breaks that: 'calibrate --method "
+                   "gs-hierarchical' fits the light of each set-point)"))
+    what = "EM gain g" if multiplied else "φ (e⁻/ADU)"
+    head = "The estimate is the acquisition's average, and the drift's spread reads as noise: "
+    if not E:
+        return (head + f"{what} is biased by an amount that grows with the illumination; "
+                "where that is below the estimate's standard error (the summary's ±) the "
+                "result stands")
+    bias = _drift_bias_pct(d["drift_pct"], E, multiplied)
+    head += f"{what} is biased by about {bias:+.2g} % at {light}"
+    fix = ("steady the source (warm it up, stabilise its power) and record again, or leave "
+           "this acquisition out: " + _leave_out(a))
+    rse = a.get("estimate_relative_se")
+    if not rse:
+        return (head + "; where that bias is below the estimate's standard error (the "
+                f"summary's ±) the result stands; where not, {fix}")
+    times = abs(bias) / (100 * rse)
+    se = f"{times:.2g} times its standard error ({100 * rse:.2g} % per pixel)"
+    if a.get("level") is not None and not multiplied:
+        # φ pools every level of an intensity series: this level biases it by its share
+        return (head + f"; φ pools every level, so its bias is at most that, {se}: "
+                + ("the result stands" if times < 1 else
+                   "the result may not stand: leave this acquisition out to see how far φ "
+                   f"moves ({_leave_out(a)}); if it moves beyond its standard error, steady "
+                   "the source and record again"))
+    return (head + f"; that is {se}, so "
+            + ("the result stands" if times < 1 else f"the result does not stand as it is: {fix}"))
+
+
 def _findings(a: dict) -> list[str]:
-    """Human-readable warnings of one acquisition's checks."""
+    """Human-readable warnings of one acquisition's checks: what was found, whether the
+    result stands, and what fixes it."""
     name = f"{a['name']} (set-point {a['em_gain_setpoint']:g})"
     d = a["drift"]
     out = []
     if d is None:
         out.append(f"{name}: {a['n_frames']} frames are too few for the drift test "
-                   f"(at least {MIN_FRAMES}); the illumination's steadiness is unchecked")
+                   f"(at least {MIN_FRAMES}); the illumination's steadiness is unchecked: the "
+                   f"result stands if the source was steady; record {MIN_FRAMES} frames or "
+                   "more to check it")
     elif d["drifts"]:
-        multiplied = a["em_gain_setpoint"] != 1
-        E = a.get("photoelectrons_estimate")
-        what = "EM gain g" if multiplied else "φ (e⁻/ADU)"
-        fitted = " (as fitted)" if a.get("photoelectrons_source") == "fit" else ""
-        at = (f"by about {_drift_bias_pct(d['drift_pct'], E, multiplied):+.2g} % at this "
-              f"acquisition's {E:.4g} e⁻ per pixel and frame{fitted}" if E else "by an amount "
-              "that grows with the illumination")
-        fix = ("steady the source (warm it up, stabilise its power) and record again"
-               + ("; or leave this level out: delete its [[acquisition]] table (level = "
-                  f"\"{a['level']}\") from the manifest and calibrate again" if a.get("level")
-                  else ""))
-        out.append(
-            f"{name}: the frame mean drifts by {d['drift_pct']:+.2f} ± {d['drift_pct_se']:.2f} % "
-            f"over the acquisition (p = {d['pvalue']:.1g}): the illumination or the EM gain "
-            f"is not steady. The estimate is the acquisition's average, and the drift's "
-            f"spread reads as noise: {what} is biased {at}. Where that bias is below the "
-            f"estimate's standard error (the summary's ±) the result stands; where not, {fix}."
-        )
+        out.append(f"{name}: the frame mean drifts by {d['drift_pct']:+.2f} ± "
+                   f"{d['drift_pct_se']:.2f} % over the acquisition (p = {d['pvalue']:.1g}): "
+                   f"the illumination or the EM gain is not steady. {_drift_effect(a)}.")
     off = a.get("offset")
     if off and off["above_data"]:
         out.append(
             f"{name}: the offset map lies above the mean count of {off['n_below_offset']} of "
             f"{off['n_pixels']} pixels: it cannot be this data's offset (other units, another "
-            "camera mode or read-out speed?)")
+            "camera mode or read-out speed?), and nothing fitted from it stands: record darks "
+            "in the read-out mode of these frames, give them as the acquisition's dark (or "
+            "'emccdcal scan' a folder holding both) and calibrate again")
     mult = a.get("multiplication")
     if mult and mult["multiplied"]:
         out.append(
             f"{name}: the counts look EM-multiplied: their cumulant ratio κ₃κ₁/κ₂² is "
             f"{mult['R']:.2f} ± {mult['R_se']:.2f} over {mult['n_pixels']} pixels (1 for "
             "unmultiplied photoelectrons, 1.5 for multiplied ones): was the EM gain on for "
-            "data labelled 1×?")
+            "data labelled 1×? If so, the result does not stand (φ and every gain scaled by "
+            "it are wrong): record the 1× "
+            "acquisition with the EM gain off (or give this one its real em_gain_setpoint) "
+            "and calibrate again")
     bad = a.get("frames_defective") or {}
     for kind, what in (("constant", "have every pixel at one value (e.g. all zero): "
                         "frames the camera or its software dropped"),
                        ("repeated", "repeat an earlier frame exactly: frames written twice")):
         if bad.get(f"n_{kind}"):
             shown = ", ".join(map(str, bad[kind])) + (", ..." if bad[f"n_{kind}"] > 10 else "")
+            frames = bad[kind]
+            # defects only at the start are skipped by the manifest; elsewhere the file
+            # must be cut (or recorded again)
+            leading = (len(frames) == bad[f"n_{kind}"] and frames[0] <= 1
+                       and frames == list(range(frames[0], frames[0] + len(frames))))
+            fix = (f"set skip_frames = {a.get('skip_frames', 0) + frames[-1] + 1} in its "
+                   "[[acquisition]] table and calibrate again" if leading else
+                   "remove them from the file (or record again) and calibrate again")
             out.append(f"{name}: {bad[f'n_{kind}']} of {a['n_frames']} frames {what} "
-                       f"(frames {shown}); they bias every estimate: remove them (or start "
-                       "after them with skip_frames) or record again")
+                       f"(frames {shown}); they bias every estimate, so the result does not "
+                       f"stand as it is: {fix}")
     sat = a["saturation"]
     if sat["n_values"]:
         out.append(
@@ -933,8 +986,8 @@ def _findings(a: dict) -> list[str]:
             f"{sat['n_pixels']} pixels: {_fmt_pixels(sat['pixels'], sat['n_pixels'])}; "
             "they are excluded from fits, which cuts the top off those pixels' counts, so "
             "their photoelectrons and gain read low, the more the more of their frames hit "
-            "the ceiling. Lower the light (or the EM gain) until no frame saturates and "
-            "record again, or leave those pixels out"
+            "the ceiling. Every other pixel's result stands; for these, lower the light (or "
+            "the EM gain) until no frame saturates and record again"
         )
     px = a["pixels"]
     for kind, what in (("hot", "above"), ("dead", "below")):
@@ -942,12 +995,16 @@ def _findings(a: dict) -> list[str]:
             out.append(
                 f"{name}: {px[f'n_{kind}']} {kind} pixel(s), mean more than {px['k']:g} "
                 f"robust SDs ({px['robust_sd']:.3g} ADU) {what} the median: "
-                f"{_fmt_pixels(px[kind], px[f'n_{kind}'])}"
+                f"{_fmt_pixels(px[kind], px[f'n_{kind}'])}; each pixel is fitted on its "
+                "own, so every other pixel's result stands; these pixels' own results are "
+                "doubtful: do not use them unless they converged with standard errors like "
+                "their neighbours'"
             )
     if px["n_stuck"]:
         out.append(
             f"{name}: {px['n_stuck']} stuck pixel(s) whose counts never change: "
-            f"{_fmt_pixels(px['stuck'], px['n_stuck'])}"
+            f"{_fmt_pixels(px['stuck'], px['n_stuck'])}; they have no result (NaN, "
+            "converged = False); the others' results stand"
         )
     return out
 
@@ -963,7 +1020,7 @@ def check_manifest(
     regression: str = "c",
     read_noise_threshold: float = 0.05,
     summaries: list[StackSummary] | None = None,
-    photoelectrons=None,
+    fitted=None,
 ) -> dict:
     """Data-quality checks of every acquisition of a manifest, and of the read noise.
 
@@ -983,6 +1040,12 @@ def check_manifest(
     summaries : list of StackSummary, optional
         One per acquisition, in order, when the stacks were already read (a calibration
         accumulates them in its one pass over the data); default: read every stack.
+    fitted : list, optional
+        One per acquisition, in order: None, or what a calibration fitted there, a dict
+        of ``photoelectrons`` (E, e⁻ per pixel and frame), ``absorbed`` (whether a
+        drift's spread biases an estimate there) and ``relative_se`` (that estimate's,
+        or None), which the findings then quote instead of the moments' rough E, and
+        against which they weigh a drift's bias.
 
     Returns
     -------
@@ -1019,10 +1082,12 @@ def check_manifest(
             regression=regression,
             summary=summary,
         )
-        if photoelectrons is not None and photoelectrons[i] is not None:
-            # the calibration's own estimate, where it is known
-            res["photoelectrons_estimate"] = float(photoelectrons[i])
+        if fitted is not None and fitted[i] is not None:
+            # the calibration's own estimates, where they are known
+            res["photoelectrons_estimate"] = float(fitted[i]["photoelectrons"])
             res["photoelectrons_source"] = "fit"
+            res["drift_absorbed"] = bool(fitted[i]["absorbed"])
+            res["estimate_relative_se"] = fitted[i]["relative_se"]
         key, i = acq.name, 1
         while key in acqs:
             i += 1
@@ -1035,7 +1100,10 @@ def check_manifest(
             f"set-point 1: the photon transfer of its {transfer['n_levels']} levels (variance "
             f"against mean) reaches zero excess variance {transfer['shift']:+.1f} ± "
             f"{transfer['shift_se']:.1f} ADU from the offset maps: the offsets are off by "
-            "about that much (another camera mode's, or none?), which biases φ and E")
+            "about that much (another camera mode's, or none?), which biases φ and E, so the "
+            "result does not stand as it is: record darks in the read-out mode of the light "
+            "frames, give them as the acquisitions' dark (or 'emccdcal scan' a folder holding "
+            "both) and calibrate again")
     growth = check_read_noise_growth(
         [a.em_gain_setpoint for a in manifest.acquisitions],
         [a.read_noise for a in manifest.acquisitions],

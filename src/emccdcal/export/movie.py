@@ -210,7 +210,9 @@ def conversion(cal, source, settings, shape, *, setpoint=None, photon_counting=F
         if efficiency < 0.9:
             warnings.warn(f"{source}: at {format_setpoint(s)}x one photoelectron clears the "
                           f"{threshold:g}-sigma threshold in only {efficiency:.0%} of cases "
-                          "(g/phi is too small against the read noise for photon counting)",
+                          "(g/phi is too small against the read noise for photon counting), "
+                          "so the counts miss that many photons: record at a higher EM gain, "
+                          "or convert without --photon-counting",
                           stacklevel=3)
     return Conversion(offset.astype(np.float32), scale.astype(np.float32), tau, meta)
 

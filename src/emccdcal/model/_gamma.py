@@ -198,8 +198,8 @@ class Gamma:
     parameters = ()
     description = "gamma (the paper's approximation)"
     misfit_hint = ("the gamma model of the EM register misfits an exact register's low "
-                   "gains: try the cascade model (--em-model cascade, "
-                   "em_model = \"cascade\")")
+                   "gains, whose estimates are then doubtful: calibrate again with the "
+                   "cascade model (--em-model cascade, em_model = \"cascade\")")
 
     def __init__(self, stages=None):
         pass
