@@ -16,7 +16,7 @@ import pytest
 pytest.importorskip("pymmcore_plus", reason="the 'acquire' extra is not installed")
 
 from emccdcal import cli  # noqa: E402
-from emccdcal.acquire.plan import plan, plan_text  # noqa: E402
+from emccdcal.acquire.plan import plan, plan_text, read_plan  # noqa: E402
 from emccdcal.acquire.record import AcquireError, Session, acquire  # noqa: E402
 from emccdcal.data.scan import scan  # noqa: E402
 from emccdcal.data.stacks import load_stack, stack_settings  # noqa: E402
@@ -393,3 +393,47 @@ def test_an_empty_store_someone_else_made_is_never_removed(tmp_path):
         acquire(plan_path, out, simulated_seed=2, roi=(0, 0, 8, 8), resume=True,
                 progress_bars=False)
     assert _json.loads((theirs / "zarr.json").read_text()) == meta
+
+
+def _flips(path, n, seed, load):
+    """Flip one random byte of ``path`` ``n`` times (each from the original) and load it:
+    counts of flips refused with emccdcal's one-line error and of flips loaded; any other
+    exception (a traceback from deep inside a library) fails the test."""
+    from emccdcal.errors import EmccdcalError
+
+    original = path.read_bytes()
+    rng = np.random.default_rng(seed)
+    counts = {"refused": 0, "loaded": 0}
+    for _ in range(n):
+        data = bytearray(original)
+        data[int(rng.integers(len(data)))] ^= int(rng.integers(1, 256))
+        path.write_bytes(bytes(data))
+        try:
+            load()
+        except EmccdcalError as exc:
+            assert "\n" not in str(exc).strip(), exc
+            counts["refused"] += 1
+        else:
+            counts["loaded"] += 1
+    path.write_bytes(original)
+    return counts
+
+
+def test_byte_flips_of_a_session_and_its_plan_are_refused_or_harmless(tmp_path):
+    """A damaged session.json or plan.toml gives a session or one clear line, never a
+    traceback, and never a path outside the session (the stacks are the plan's)."""
+    plan_path = _plan_file(tmp_path, setpoints=(1, 5))
+    out = tmp_path / "session"
+    _stopped_at_the_first_light(plan_path, out, seed=3)
+    own = out / "plan.toml"
+    inside = {p.name for p in out.iterdir()}
+
+    def load_session():
+        session = Session.load(out, read_plan(own))
+        assert all((out / s.file).resolve().parent == out.resolve() for s in session.stacks)
+
+    totals = {"session.json": _flips(out / "session.json", 150, 1, load_session),
+              "plan.toml": _flips(own, 150, 2, lambda: read_plan(own))}
+    print("byte flips (refused, loaded):", totals)
+    assert all(sum(c.values()) == 150 for c in totals.values())
+    assert {p.name for p in out.iterdir()} == inside and not list(tmp_path.glob("*.zarr"))

@@ -263,3 +263,89 @@ def test_runs_at_once_into_one_output(tmp_path):
         result.load(out)
         assert not (out / ".emccdcal-lock").exists()
     print("runs at once (exit codes per trial):", outcomes)
+
+
+def test_byte_flips_of_a_database_are_refused_or_harmless(tmp_path):
+    """A damaged calibration database gives its entries or one clear line (never SQLite's
+    traceback), and reading it never changes it."""
+    from emccdcal.errors import EmccdcalError
+    from emccdcal.export import database
+
+    db = tmp_path / "c.sqlite"
+    res = true_result(tmp_path / "r")
+    database.add(res, db=db, camera="SIM-1", date="2026-01-02")
+    original = db.read_bytes()
+    rng = np.random.default_rng(4)
+    counts = {"refused": 0, "read": 0}
+    for _ in range(150):
+        data = bytearray(original)
+        data[int(rng.integers(len(data)))] ^= int(rng.integers(1, 256))
+        db.write_bytes(bytes(data))
+        try:
+            database.entries(db=db)
+            database.compare("SIM-1", db=db)
+        except EmccdcalError as exc:
+            assert "\n" not in str(exc).strip(), exc
+            counts["refused"] += 1
+        else:
+            counts["read"] += 1
+        assert db.read_bytes() == bytes(data)  # reading never writes
+    print("database byte flips (refused, read):", counts)
+    assert counts["refused"] + counts["read"] == 150
+
+
+@pytest.mark.slow
+def test_sigkill_of_gain_check_plan_and_db_add_loses_nothing(tmp_path):
+    """The newer verbs' outputs (gain-check's files, plan's plan, a database entry) are
+    all old or all new after a SIGKILL at a random moment, never half-written."""
+    from test_export import GAINS
+
+    rng = np.random.default_rng(11)
+    totals = {}
+    darks = tmp_path / "darks.tif"
+    tifffile.imwrite(darks, simulate_frames(np.full(SHAPE, 0.05), em_gain=GAINS[100.0],
+                                            e_per_adu=PHI, offset=OFFSET, read_noise=SIGMA,
+                                            frames=1500, seed=2))
+    checked = tmp_path / "check"
+    argv = ["gain-check", darks, "--e-per-adu", PHI, "--setpoint", 100, "-q"]
+    subprocess.run([sys.executable, "-m", "emccdcal", *map(str, argv), "-o", checked],
+                   check=True, stdout=subprocess.DEVNULL)
+    def fingerprint():  # the figure's bytes vary from run to run (SVG ids): whole, though
+        return {p.name: (p.read_bytes().rstrip().endswith(b"</svg>") if p.suffix == ".svg"
+                         else file_sha256(p))
+                for p in checked.iterdir() if not p.name.startswith(".")}
+
+    files = fingerprint()
+
+    def check_ok():
+        assert fingerprint() == files  # old and new are alike; a torn file differs
+
+    totals["gain-check"] = _kill_at_random([*argv, "-o", checked, "--overwrite"], 3, check_ok,
+                                           rng)
+    planned = tmp_path / "plan.toml"
+    argv = ["plan", "--e-per-adu", "3.859", "--read-noise", "15.5", "--offset", "588", "-q",
+            "-o", planned]
+    subprocess.run([sys.executable, "-m", "emccdcal", *argv], check=True)
+    plan_bytes = planned.read_bytes()
+    totals["plan"] = _kill_at_random([*argv, "--overwrite"], 3,
+                                     lambda: planned.read_bytes() == plan_bytes or 1 / 0, rng)
+    db = tmp_path / "c.sqlite"
+    res = true_result(tmp_path / "r")
+    from emccdcal.export import database
+
+    def db_ok():
+        found = database.entries(db=db) if db.exists() else []
+        assert len(found) <= 1 and all(e.gains for e in found)  # the entry whole, or none
+        if found:
+            database.remove(found[0].id, db=db)
+
+    totals["db add"] = _kill_at_random(["db", "add", res, "--camera", "SIM-1", "--db", db, "-q"],
+                                       3, db_ok, rng)
+    print("kills (killed, finished first):", totals)
+    assert sum(k for k, _ in totals.values()) >= 4
+    # the next runs clean what the killed ones left
+    for again in (["gain-check", darks, "--e-per-adu", PHI, "--setpoint", 100, "-q", "-o",
+                   checked, "--overwrite"], [*argv, "--overwrite"]):
+        subprocess.run([sys.executable, "-m", "emccdcal", *map(str, again)], check=True,
+                       stdout=subprocess.DEVNULL)
+    assert not [p.name for p in tmp_path.rglob("*") if ".tmp" in p.name]

@@ -28,6 +28,7 @@ from camera_files import write_spe, write_zarr
 from test_export import GAINS, OFFSET, PHI, SHAPE, SIGMA, true_result
 
 from emccdcal import cli, result
+from emccdcal.cli import _common
 from emccdcal._output import file_sha256
 from emccdcal.simulate.camera import simulate_frames
 
@@ -468,10 +469,11 @@ PLAN = ["plan", "--e-per-adu", "3.9", "--read-noise", "15", "--offset", "600", "
 
 
 @pytest.mark.parametrize("change, words", [
-    (("--e-per-adu", "1e-300"), "e_per_adu 1e-300 is outside"),
-    (("--read-noise", "1e-300"), "read_noise 1e-300 is outside"),
-    (("--stages", "100000000"), "stages must be at most"),
-    (("--target-se", "1e-9"), "target_se 1e-09 is outside"),
+    (("--e-per-adu", "1e-300"), "--e-per-adu 1e-300 is outside"),
+    (("--read-noise", "1e-300"), "--read-noise 1e-300 is outside"),
+    (("--stages", "100000000"), "--stages 1e+08 is outside"),
+    (("--target-se", "1e-9"), "--target-se 1e-09 is outside"),
+    (("--offset", "1e302"), "--offset 1e+302 is outside"),  # was "negative"
 ])
 def test_a_number_out_of_range_is_refused_before_any_work(change, words, capsys):
     argv = list(PLAN)
@@ -484,12 +486,62 @@ def test_a_number_out_of_range_is_refused_before_any_work(change, words, capsys)
     assert time.perf_counter() - t0 < 20  # it ran past 120 s
 
 
+_NUMERIC_TYPES = {float, int, _common.positive_float, _common.positive_int,
+                  _common.nonnegative_int, _common.number_list,
+                  _common.number_or_path, _common.stages_or_auto}
+
+
+def _numeric_options():
+    """(verb, option, dest) of every numeric option of every verb (sub-verbs included)."""
+    found = []
+
+    def walk(parser, verb):
+        for action in parser._actions:
+            if isinstance(action.choices, dict):
+                for name, sub in action.choices.items():
+                    walk(sub, f"{verb} {name}")
+            elif action.type in _NUMERIC_TYPES and action.option_strings:
+                found.append((verb, action.option_strings[-1], action.dest))
+
+    for verb, parser in _parsers().items():
+        walk(parser, verb)
+    return found
+
+
+def test_every_numeric_option_has_a_range():
+    """A new numeric option without a range fails here: name its quantity in
+    defaults.BOUNDS or defaults.OPTION_QUANTITY."""
+    from emccdcal.defaults import BOUNDS, OPTION_QUANTITY
+
+    options = _numeric_options()
+    assert len(options) > 100
+    unbounded = [o for o in options if OPTION_QUANTITY.get(o[2], o[2]) not in BOUNDS]
+    assert not unbounded, unbounded
+    assert set(OPTION_QUANTITY.values()) <= set(BOUNDS)
+
+
+@pytest.mark.parametrize("huge", [1e302, -1e302, float("nan")])
+def test_every_numeric_option_refuses_a_number_out_of_its_range(huge):
+    """The one check every verb goes through (cli.check_numbers), on each numeric option."""
+    import argparse
+
+    from emccdcal.defaults import BOUNDS, OPTION_QUANTITY
+    from emccdcal.errors import OptionError
+
+    for verb, option, dest in _numeric_options():
+        low = BOUNDS[OPTION_QUANTITY.get(dest, dest)][0]
+        cli.check_numbers(argparse.Namespace(**{dest: low}))  # its lowest is taken
+        for value in (huge, [low, huge]):
+            with pytest.raises(OptionError, match=rf"^{option} (nan|-?1e\+302) is outside"):
+                cli.check_numbers(argparse.Namespace(**{dest: value}))
+
+
 def test_a_bead_width_out_of_range_is_refused(tmp_path, capsys):
     from test_cots import _write_beads
 
     manifest = _write_beads(tmp_path / "beads", setpoints=(1, 300), frames=40)
     _refused(*_run(capsys, "cots", manifest, "-o", tmp_path / "o", "--width", "1e300")[::2],
-             "width 1e+300 is outside")
+             "--width 1e+300 is outside")
 
 
 # --------------------------------------------------------------------------------------
@@ -534,6 +586,15 @@ def test_zarr_settings_of_the_wrong_type_are_one_line(tmp_path):
 
 
 def test_an_offset_past_the_adc_is_named(capsys):
-    """An offset of 1e302 ADU once read as 'leave out the highest set-point'."""
-    argv = [a if a != "600" else "1e302" for a in PLAN]
-    _refused(*_run(capsys, *argv)[::2], "offset 1e+302 ADU is at or past the ADC's last count")
+    """An offset of 1e302 ADU once read as 'leave out the highest set-point' (the option's
+    range refuses that one now; an offset within it but past a 16-bit ADC is named)."""
+    argv = [a if a != "600" else "70000" for a in PLAN]
+    _refused(*_run(capsys, *argv)[::2], "offset 70000 ADU is at or past the ADC's last count")
+
+
+def test_gain_check_given_a_map_names_the_file(tmp_path, capsys):
+    """An offset map given as darks once said 'dark stack must be 3-D' without the file."""
+    path = tmp_path / "300x-gain_no-signal_S0.tif"
+    tifffile.imwrite(path, np.full((3, 3), 600.0, dtype=np.float32))
+    _refused(*_run(capsys, "gain-check", path, "--e-per-adu", "3.8", "--setpoint", "300")[::2],
+             str(path), "not a 3-D")

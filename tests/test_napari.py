@@ -380,3 +380,39 @@ def test_every_widget_error_path_is_one_line_on_the_widget(sample, make_napari_v
     convert.button.native.click()
     assert convert.status.value.startswith("error:") and "'set-point' field" in \
         convert.status.value, convert.status.value
+
+
+def test_every_widget_taking_a_calibration_checks_the_camera(make_napari_viewer, qtbot,
+                                                            tmp_path):
+    """The identity guarantee holds in the plugin as on the command line: each widget with
+    a calibration field refuses CAM-A's calibration on a layer of CAM-B's frames (a new
+    widget with a calibration field and no probe here fails)."""
+    import inspect
+
+    from magicgui.widgets import Container
+    from test_export import true_result
+
+    from emccdcal.napari import _widgets
+
+    cal = true_result(tmp_path / "cal", camera={"serial": "CAM-A"})
+    takes = {name for name, cls in inspect.getmembers(_widgets, inspect.isclass)
+             if issubclass(cls, Container) and cls.__module__ == _widgets.__name__
+             and "result" in inspect.getsource(cls.__init__)}
+    probes = {"ApplyWidget": "button", "GainCheckWidget": "button"}
+    # the Calibrate widget's calibration is φ for a series, checked by calibrate itself
+    # (tests/test_guarantees.py probes calibrate)
+    assert takes - {"CalibrateWidget"} == set(probes), takes
+    viewer = make_napari_viewer()
+    frames = viewer.add_image(np.full((30, 8, 8), 600, np.uint16), name="cam-b",
+                              metadata={"camera": {"serial": "CAM-B"},
+                                        "emccdcal": {"em_gain_setpoint": 100.0}})
+    for name, button in probes.items():
+        widget = getattr(_widgets, name)(viewer)
+        widget.reset_choices()
+        widget.layer.value, widget.result.value = frames, cal
+        widget.setpoint.value = "100"
+        getattr(widget, button).native.click()
+        _wait(qtbot, widget)
+        assert widget.status.value.startswith("error:"), (name, widget.status.value)
+        assert "CAM-B" in widget.status.value and "CAM-A" in widget.status.value, \
+            (name, widget.status.value)

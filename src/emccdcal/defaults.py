@@ -65,6 +65,46 @@ BOUNDS = {
     "target_se": (1e-2, 100.0, "%"),
     "rows": (1, 65536, "px"),
     "cols": (1, 65536, "px"),
+    # the command line's other numbers (every numeric option is one of these quantities)
+    "offset": (-1e6, 1e7, "ADU"),
+    "offset_drop": (-1e4, 1e4, "ADU per decade"),
+    "offset_spread": (0.0, 1e4, "ADU"),
+    "adc_bits": (1, 32, "bit"),
+    "well": (1.0, 1e9, "e-"),
+    "frame_rate": (1e-6, 1e6, "Hz"),
+    "percent": (0.0, 1e4, "%"),
+    "fraction": (0.0, 1.0, ""),
+    "probability": (1e-12, 1.0, ""),
+    "seed": (0, 2**63 - 1, ""),
+    "id": (1, 2**63 - 1, ""),
+    "pixels": (1, 2**31, "px"),
+    "workers": (1, 4096, ""),
+    "prior_sd": (1e-6, 1e8, "e-"),
+    "steps": (1, 10**8, "steps"),
+    "walkers": (2, 10**5, ""),
+    "sds": (0.1, 1e3, "SD"),
+    "half_size": (1, 1000, "px"),
+    "distance": (0.0, 1e5, "px"),
+    "beads": (1, 10**6, ""),
+    "background": (0.0, 1e8, "e-"),
+    "cic": (0.0, 100.0, "e-"),
+    "qe": (1e-3, 1.0, ""),
+    "pixel_size": (1e-3, 1e7, "nm"),
+    "tool_gain": (1e-6, 1e6, ""),
+    "days": (0.0, 1e6, "days"),
+}
+#: The quantity (a key of :data:`BOUNDS`) of each command-line option whose name is not
+#: one; the command line checks every numeric option against its range before any work.
+OPTION_QUANTITY = {
+    "pixel_well": "well", "register_well": "well", "light_tolerance": "percent",
+    "drift_threshold": "percent", "tolerance": "percent", "drift_alpha": "probability",
+    "tile_pixels": "pixels", "block_size": "pixels", "mu_sd": "prior_sd",
+    "sigma_sd": "prior_sd", "max_steps": "steps", "k": "sds", "snr": "sds", "z": "sds",
+    "threshold": "sds", "min_separation": "distance", "margin": "distance",
+    "halo_width": "width", "blink_frames": "frames", "detect_setpoint": "setpoint",
+    "repeat": "setpoint", "predict": "setpoint", "levels": "photoelectrons",
+    "offsets": "offset", "offset_tolerance": "offset_spread", "bleaching": "fraction",
+    "halo": "fraction", "blinking": "fraction", "drift": "fraction", "max_age": "days",
 }
 
 #: The record of an acquisition session in its folder (``acquire`` writes, ``scan`` reads).

@@ -21,7 +21,7 @@ from .. import __version__
 from .._output import given_inputs
 from ..errors import EmccdcalError
 
-__all__ = ["main", "build_parser", "VERBS", "paths_given", "OUTPUT_DESTS"]
+__all__ = ["main", "build_parser", "VERBS", "paths_given", "check_numbers", "OUTPUT_DESTS"]
 
 #: The arguments that name where a verb writes; every other path it is given is an input.
 OUTPUT_DESTS = ("out", "dir")
@@ -95,6 +95,32 @@ def paths_given(args) -> list:
     return found
 
 
+def check_numbers(args) -> None:
+    """Refuse, before any work, a numeric option outside the range of its quantity
+    (:data:`emccdcal.defaults.BOUNDS`, named by the option or by
+    :data:`~emccdcal.defaults.OPTION_QUANTITY`): a number in another unit, or one that
+    would make a computation run for hours."""
+    import math
+    from numbers import Real
+
+    from ..defaults import BOUNDS, OPTION_QUANTITY
+    from ..errors import OptionError
+
+    for dest, value in vars(args).items():
+        quantity = OPTION_QUANTITY.get(dest, dest)
+        values = value if isinstance(value, (list, tuple)) else [value]
+        numbers = [v for v in values if isinstance(v, Real) and not isinstance(v, bool)]
+        if quantity not in BOUNDS or not numbers:
+            continue
+        low, high, unit = BOUNDS[quantity]
+        for v in numbers:
+            if not (math.isfinite(v) and low <= v <= high):
+                raise OptionError(
+                    f"--{dest.replace('_', '-')} {v:g} is outside {low:g} to {high:g}"
+                    + (f" {unit}, the range it is taken as meant in (a value in another "
+                       "unit?)" if unit else ""))
+
+
 def _verb_of(argv: list[str]) -> str | None:
     """The verb named on the command line: the first word that is not an option."""
     for word in argv:
@@ -153,6 +179,7 @@ def _main(argv):
         parser.print_help()
         return 2
     try:
+        check_numbers(args)
         with given_inputs(paths_given(args)):
             return int(args.func(args) or 0)
     except EmccdcalError as exc:  # one line, whatever text of a file it quotes

@@ -70,7 +70,7 @@ def run(args) -> int:
     import contextlib
     import json
 
-    from ..data.stacks import load_stack, stack_settings
+    from ..data.stacks import read_stack, stack_settings
     from ..export.gain_check import compare, verdict
     from ..fit.darkgain import check_gain
 
@@ -93,7 +93,7 @@ def run(args) -> int:
                                 (f"{FIGURE_STEM}.png", f"{FIGURE_STEM}.svg"))
     with _common.output(args, args.out, inputs=args.darks, names=outputs) \
             if args.out is not None else contextlib.nullcontext():
-        check = check_gain([load_stack(path) for path in args.darks], phi, setpoint=setpoint,
+        check = check_gain([read_stack(path) for path in args.darks], phi, setpoint=setpoint,
                            em_model=args.em_model or "cascade", stages=args.stages,
                            fit_register_cic=args.fit_register_cic,
                            pooled_rate=not args.per_pixel_rate,

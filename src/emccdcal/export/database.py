@@ -31,6 +31,7 @@ failing. The default file is ``calibrations.sqlite`` in the user's data director
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import json
 import math
@@ -44,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from .._output import file_sha256
-from ..errors import InputError, OptionError
+from ..errors import EmccdcalError, InputError, OptionError
 from ..result import format_setpoint, load, load_calibration, pixel_statistics, summarize
 
 __all__ = ["default_path", "add", "add_check", "remove", "relocate", "entries", "entry",
@@ -148,6 +149,23 @@ def _connect(db, *, write: bool = False) -> sqlite3.Connection:
     return con
 
 
+@contextlib.contextmanager
+def _opened(db, *, write: bool = False):
+    """The database (:func:`_connect`) for one job, closed after it; SQLite's errors and
+    undecodable rows of a damaged file become one line naming the file."""
+    con = _connect(db, write=write)
+    try:
+        yield con
+    except EmccdcalError:
+        raise
+    except (sqlite3.DatabaseError, ValueError) as exc:  # ValueError: text, JSON, numbers
+        path = Path(db) if db is not None else default_path()
+        raise InputError(f"{path}: the calibration database cannot be read ({exc}): damaged? "
+                         "restore it from a copy, or give --db a new path") from None
+    finally:
+        con.close()
+
+
 def _create(path: Path) -> None:
     """A new database with its tables, made beside ``path`` and linked into place, so
     that nobody ever sees a database without them (a concurrent writer's is kept)."""
@@ -185,7 +203,7 @@ def _require_ours(path: Path) -> None:
                 "SELECT name FROM sqlite_master WHERE type = 'table'")}
         finally:
             con.close()
-    except sqlite3.DatabaseError as exc:
+    except (sqlite3.DatabaseError, ValueError) as exc:  # ValueError: undecodable text
         raise InputError(f"{path}: not a usable calibration database ({exc})") from None
     if not _TABLES <= tables:
         raise InputError(f"{path}: an SQLite file of another program (no emccdcal "
@@ -349,28 +367,26 @@ def add(result, *, db=None, camera=None, readout=None, date=None, note="") -> En
     summary = {str(f): summarize(load(f)) for f in cal.files}
     added = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
     path = _stored_paths(cal.files, db)
-    con = _connect(db, write=True)
-    try:
-        con.execute("BEGIN IMMEDIATE")
-        old = con.execute("SELECT id FROM calibration WHERE sha256 = ?", (digest,)).fetchone()
-        if old is not None:
-            con.execute("ROLLBACK")
-            raise OptionError(f"{cal.label}: already in the database as entry {old['id']}")
-        cur = con.execute(
-            "INSERT INTO calibration (camera, readout, date, added, method, em_model, path, "
-            "sha256, note, summary) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-            (str(serial), readout, when, added, cal.method, str(cal.em_model), path, digest,
-             note, json.dumps(summary, allow_nan=False)))
-        con.executemany("INSERT INTO gain VALUES (?, ?, ?, ?, ?)",
-                        [(cur.lastrowid, s, m, se, n) for s, (m, se, n) in gains.items()])
-        con.execute("COMMIT")
-        return entry(cur.lastrowid, db=db)
-    except BaseException:
-        if con.in_transaction:
-            con.execute("ROLLBACK")
-        raise
-    finally:
-        con.close()
+    with _opened(db, write=True) as con:
+        try:
+            con.execute("BEGIN IMMEDIATE")
+            old = con.execute("SELECT id FROM calibration WHERE sha256 = ?", (digest,)).fetchone()
+            if old is not None:
+                con.execute("ROLLBACK")
+                raise OptionError(f"{cal.label}: already in the database as entry {old['id']}")
+            cur = con.execute(
+                "INSERT INTO calibration (camera, readout, date, added, method, em_model, path, "
+                "sha256, note, summary) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (str(serial), readout, when, added, cal.method, str(cal.em_model), path, digest,
+                 note, json.dumps(summary, allow_nan=False)))
+            con.executemany("INSERT INTO gain VALUES (?, ?, ?, ?, ?)",
+                            [(cur.lastrowid, s, m, se, n) for s, (m, se, n) in gains.items()])
+            con.execute("COMMIT")
+            return entry(cur.lastrowid, db=db)
+        except BaseException:
+            if con.in_transaction:
+                con.execute("ROLLBACK")
+            raise
 
 
 def add_check(check, *, camera, readout="", date=None, note="", db=None) -> CheckEntry:
@@ -403,8 +419,7 @@ def add_check(check, *, camera, readout="", date=None, note="", db=None) -> Chec
     now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
     when = past_date(date or now)
     record = check.as_dict()
-    con = _connect(db, write=True)
-    try:
+    with _opened(db, write=True) as con:
         cur = con.execute(
             "INSERT INTO gain_check (camera, readout, date, added, setpoint, em_gain, se, "
             "em_model, events, note, record) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
@@ -412,8 +427,6 @@ def add_check(check, *, camera, readout="", date=None, note="", db=None) -> Chec
              float(check.em_gain_se), str(check.em_model), float(check.events), str(note),
              json.dumps(record, allow_nan=False)))
         row = cur.lastrowid
-    finally:
-        con.close()
     return checks(db=db, camera=camera, where_id=row)[0]
 
 
@@ -424,28 +437,23 @@ def checks(*, db=None, camera=None, readout=None, where_id=None) -> list[CheckEn
         if value is not None:
             clauses.append(f"{column} = ?")
             args.append(value)
-    con = _connect(db)
-    try:
-        rows = con.execute("SELECT * FROM gain_check " + (
-            "WHERE " + " AND ".join(clauses) if clauses else "") + " ORDER BY date, id",
-            args).fetchall()
-    except sqlite3.OperationalError:  # a read-only database of a version without checks
-        rows = []
-    finally:
-        con.close()
-    return [CheckEntry(**{k: r[k] for k in r.keys() if k != "record"},
-                       record=json.loads(r["record"])) for r in rows]
+    with _opened(db) as con:
+        try:
+            rows = con.execute("SELECT * FROM gain_check " + (
+                "WHERE " + " AND ".join(clauses) if clauses else "") + " ORDER BY date, id",
+                args).fetchall()
+        except sqlite3.OperationalError:  # a read-only database of a version without checks
+            rows = []
+        return [CheckEntry(**{k: r[k] for k in r.keys() if k != "record"},
+                           record=json.loads(r["record"])) for r in rows]
 
 
 def remove(entry_id: int, *, db=None) -> Entry:
     """Remove one entry (the database's record only: the result files stay)."""
-    con = _connect(db, write=True)
-    try:
+    with _opened(db, write=True) as con:
         found = _one(con, entry_id, db)
         con.execute("DELETE FROM calibration WHERE id = ?", (int(entry_id),))
         return found
-    finally:
-        con.close()
 
 
 def relocate(entry_id: int, result, *, db=None) -> Entry:
@@ -453,15 +461,12 @@ def relocate(entry_id: int, result, *, db=None) -> Entry:
     one added (same SHA-256)."""
     cal = load_calibration(result)
     digest = ",".join(cal.sha256)
-    con = _connect(db, write=True)
-    try:
+    with _opened(db, write=True) as con:
         if _one(con, entry_id, db).sha256 != digest:
             raise OptionError(f"{cal.label}: not the result of entry {entry_id} (its content "
                               "differs from the one added)")
         path = _stored_paths(cal.files, db)
         con.execute("UPDATE calibration SET path = ? WHERE id = ?", (path, int(entry_id)))
-    finally:
-        con.close()
     return entry(entry_id, db=db)
 
 
@@ -512,25 +517,19 @@ def entries(*, db=None, camera=None, readout=None) -> list[Entry]:
     if readout is not None:
         clauses.append("readout = ?")
         args.append(str(readout))
-    con = _connect(db)
-    try:
+    with _opened(db) as con:
         return _entries(con, db, ("WHERE " + " AND ".join(clauses)) if clauses else "", args)
-    finally:
-        con.close()
 
 
 def entry(entry_id: int, *, db=None, with_summary: bool = False):
     """One entry by its id (with its stored summary as a second value if asked)."""
-    con = _connect(db)
-    try:
+    with _opened(db) as con:
         found = _one(con, entry_id, db)
         if with_summary:
             summary = con.execute("SELECT summary FROM calibration WHERE id = ?",
                                   (int(entry_id),)).fetchone()[0]
             return found, json.loads(summary)
         return found
-    finally:
-        con.close()
 
 
 def find(camera, setpoint, *, db=None, readout=None) -> Entry:
