@@ -204,8 +204,8 @@ def _within_bounds(name: str, arr, value) -> None:
     if np.any(arr < low) or np.any(arr > high):
         shown = value if np.ndim(value) == 0 else f"a map spanning {np.min(arr):g} to {np.max(arr):g}"
         raise OptionError(f"{name} {shown} is outside {low:g} to {high:g}"
-                          f"{' ' + unit if unit else ''}, the range it is taken as meant in "
-                          "(a value in another unit?)")
+                          + (f" {unit}, the range it is taken as meant in (a value in "
+                             "another unit?)" if unit else ""))
 
 
 def nanmedian(values, axis=None):

@@ -75,7 +75,7 @@ BOUNDS = {
     "percent": (0.0, 1e4, "%"),
     "fraction": (0.0, 1.0, ""),
     "probability": (1e-12, 1.0, ""),
-    "seed": (0, 2**63 - 1, ""),
+    "seed": (0, 2**128 - 1, ""),  # NumPy's SeedSequence draws 128-bit ones
     "id": (1, 2**63 - 1, ""),
     "pixels": (1, 2**31, "px"),
     "workers": (1, 4096, ""),
@@ -85,7 +85,7 @@ BOUNDS = {
     "sds": (0.1, 1e3, "SD"),
     "half_size": (1, 1000, "px"),
     "distance": (0.0, 1e5, "px"),
-    "beads": (1, 10**6, ""),
+    "beads": (0, 10**6, ""),
     "background": (0.0, 1e8, "e-"),
     "cic": (0.0, 100.0, "e-"),
     "qe": (1e-3, 1.0, ""),
