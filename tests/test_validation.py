@@ -20,16 +20,24 @@ SHAPE = (32, 40)
 SETPOINTS = [1.0, 25.0]
 GAINS = [1.0, 22.95]
 POSITIONS = [[9.3, 10.6], [21.7, 28.2], [10.4, 30.8]]
+#: A short cascade register for the tests of bead effects (blinking, bleaching, halos,
+#: repeats): they check the validation, not the register, and the register's cost grows
+#: with its stages (the truth calibration records them, so the fits use the same).
+SHORT = 64
 
 
 def _result(path, *, method, setpoints, gains, phi=PHI, shape=SHAPE, origin=(0, 0),
-            converged=True):
+            converged=True, stages=None):
+    """A result of these numbers (with a cascade of ``stages``, else no register named)."""
+    from emccdcal.model.noise import EMModel
+
     R, C = shape
     ds = result.make_dataset(
         method=method, setpoints=setpoints, e_per_adu=phi, e_per_adu_se=0.0,
         em_gain=np.broadcast_to(np.array(gains, float)[:, None, None], (len(setpoints), R, C)),
         em_gain_se=0.0, photoelectrons=np.zeros(shape), photoelectrons_se=0.0,
         converged=converged, manifest_hash="0" * 64, origin=origin,
+        attrs=EMModel("cascade", stages).attrs if stages else None,
     )
     result.save(ds, path)
     return path / result.CALIBRATION_FILE
@@ -39,13 +47,15 @@ def _result(path, *, method, setpoints, gains, phi=PHI, shape=SHAPE, origin=(0, 
 def beads_data(tmp_path_factory):
     d = tmp_path_factory.mktemp("beads")
     sim = simulate_beads(d / "sim", positions=POSITIONS, rows=SHAPE[0], cols=SHAPE[1],
-                         frames=80, dark_frames=300, setpoints=SETPOINTS, seed=42)
+                         frames=80, dark_frames=300, setpoints=SETPOINTS, seed=42,
+                         stages=SHORT)
     cal = {
         "truth": d / "sim" / "truth_calibration.nc",
         "wrong": _result(d / "wrong", method="gs", setpoints=SETPOINTS,
-                         gains=[1.0, 1.1 * GAINS[1]]),
+                         gains=[1.0, 1.1 * GAINS[1]], stages=SHORT),
         "adu": _result(d / "adu", method="is-adu", setpoints=[1.0], gains=[1.0]),
-        "g25": _result(d / "g25", method="is-gain", setpoints=[25.0], gains=[GAINS[1]]),
+        "g25": _result(d / "g25", method="is-gain", setpoints=[25.0], gains=[GAINS[1]],
+                       stages=SHORT),
     }
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -302,11 +312,11 @@ def test_intensity_trend_finds_a_fade_and_nothing_else():
 @pytest.mark.slow
 def test_bleaching_is_detected_and_corrected_so_the_ranking_holds(tmp_path):
     sim = simulate_beads(tmp_path / "sim", beads=8, frames=300, dark_frames=300,
-                         setpoints=(1, 5, 25), bleaching=0.02, seed=8)
+                         setpoints=(1, 5, 25), bleaching=0.02, seed=8, stages=SHORT)
     truth = tmp_path / "sim" / "truth_calibration.nc"
     gains = [1.0, 4.78, 0.98 * 22.95]  # 25x gain 2 % low: its beads 2 % bright
     wrong = _result(tmp_path / "wrong", method="gs", setpoints=[1.0, 5.0, 25.0], gains=gains,
-                    shape=(64, 64))
+                    shape=(64, 64), stages=SHORT)
     fits = validation.fit_validation(sim.manifest, [str(truth), str(wrong)])
     docs = {}
     for action in ("warn", "correct"):  # one fit, compared both ways
@@ -375,10 +385,10 @@ def test_blinking_beads_are_taken_at_their_on_level(tmp_path):
     """Beads off in 10 % of frames, in runs of 5: a different fraction at each set-point,
     which the plain means take for a gain error; the mixture's on level does not."""
     sim = simulate_beads(tmp_path / "sim", beads=6, frames=200, dark_frames=300,
-                         setpoints=(1, 25), blinking=0.1, seed=8)
+                         setpoints=(1, 25), blinking=0.1, seed=8, stages=SHORT)
     truth = tmp_path / "sim" / "truth_calibration.nc"
     wrong = _result(tmp_path / "wrong", method="gs", setpoints=[1.0, 25.0],
-                    gains=[1.0, 0.98 * 22.95], shape=(64, 64))
+                    gains=[1.0, 0.98 * 22.95], shape=(64, 64), stages=SHORT)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # each document below warns of the blinking
         fits = validation.fit_validation(sim.manifest, [str(truth), str(wrong)])
@@ -412,10 +422,10 @@ def test_residual_psf_pass_on_beads_with_a_halo(tmp_path):
     """Beads whose PSF has a halo: validate says the Gaussian does not describe them, and
     with --psf residual fits a third pass whose model does; the truth stays first."""
     sim = simulate_beads(tmp_path / "sim", beads=6, frames=200, dark_frames=300,
-                         setpoints=(1, 25), halo=0.2, seed=9)
+                         setpoints=(1, 25), halo=0.2, seed=9, stages=SHORT)
     truth = tmp_path / "sim" / "truth_calibration.nc"
     wrong = _result(tmp_path / "wrong", method="gs", setpoints=[1.0, 25.0],
-                    gains=[1.0, 0.98 * 22.95], shape=(64, 64))
+                    gains=[1.0, 0.98 * 22.95], shape=(64, 64), stages=SHORT)
     with pytest.warns(UserWarning, match=r"does not describe .* residual image was added"):
         doc = validation.validate(sim.manifest, [str(truth), str(wrong)], psf="residual",
                                   out=tmp_path / "val")
@@ -441,7 +451,8 @@ def test_a_repeated_set_point_joins_the_trend_and_is_checked(tmp_path):
     first 1x acquisition's, the fade is measured across the whole series, and after the
     correction the two 1x acquisitions agree."""
     sim = simulate_beads(tmp_path / "sim", beads=6, frames=200, dark_frames=300,
-                         setpoints=(1, 25), repeat=1, bleaching=0.03, seed=12)
+                         setpoints=(1, 25), repeat=1, bleaching=0.03, seed=12,
+                         stages=SHORT)
     names = [a["name"] for a in sim.truth["acquisitions"]]
     assert names == ["1x", "25x", "1x-repeat"]
     truth = tmp_path / "sim" / "truth_calibration.nc"

@@ -20,6 +20,7 @@ from .. import __version__, defaults, result
 from .._output import atomic_write, atomic_write_text, write_netcdf
 from .._util import check_int, check_number
 from ..errors import OptionError
+from ..model.noise import EMModel
 from ..model.psf import spot_image
 from .camera import _UNITS, PAPER_SETPOINTS, Camera
 from .series import (
@@ -429,6 +430,8 @@ def _write_truth_calibration(outdir, opts, sps, gains, scene, acqs, pattern, man
                     "photoelectrons is the expected bead scene per pixel per frame, "
                     "background included, CIC excluded",
             "multiplication": opts["multiplication"],
+            # the register that made the frames: what a fit under this calibration uses
+            **EMModel(opts["multiplication"], opts["stages"]).attrs,
         },
     )
     nc_path = outdir / TRUTH_CALIBRATION_FILE
