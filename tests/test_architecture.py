@@ -214,3 +214,29 @@ def test_modules_needing_an_extra_are_left_out_of_collection_without_it():
                 f"{key} imports {sorted(optional)} at module level: add it to the root "
                 "conftest's _OPTIONAL (or import them inside the functions that need them)")
             assert set(root_conftest._OPTIONAL[key]) >= optional, key
+
+
+def test_no_register_model_is_named_outside_model_and_defaults():
+    """Every list of register models (CLI choices, the napari dropdown) and every default
+    comes from the registry (``defaults.EM_MODELS``, ``DEFAULT_EM_MODEL``,
+    ``PAPER_EM_MODEL``): a name typed by hand elsewhere is the next model's bug."""
+    import ast
+
+    from emccdcal.defaults import EM_MODELS
+
+    src = Path(__file__).resolve().parents[1] / "src" / "emccdcal"
+    found = []
+    for path in src.rglob("*.py"):
+        rel = path.relative_to(src).as_posix()
+        if rel.startswith("model/") or rel == "defaults.py":
+            continue
+        tree = ast.parse(path.read_text())
+        docstrings = {id(n.body[0].value) for n in ast.walk(tree)
+                      if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef,
+                                        ast.AsyncFunctionDef))
+                      and n.body and isinstance(n.body[0], ast.Expr)
+                      and isinstance(n.body[0].value, ast.Constant)}
+        found += [f"{rel}:{n.lineno}" for n in ast.walk(tree)
+                  if isinstance(n, ast.Constant) and n.value in EM_MODELS
+                  and id(n) not in docstrings]
+    assert not found, found

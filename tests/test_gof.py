@@ -1,5 +1,7 @@
 """Tests of emccdcal.gof: the per-pixel binned χ² goodness-of-fit test."""
 
+from functools import partial
+
 import numpy as np
 import pytest
 from scipy import stats as st
@@ -12,6 +14,8 @@ from emccdcal.simulate.camera import simulate_frames
 PHI, S0, SIG = 3.859, 587.0, 15.5
 #: The model's read noise is the SD of the rounded counts (simulate's docstring).
 RN = float(np.hypot(SIG, 12**-0.5))
+#: The data here are the gamma register's (``_sim``), tested under it.
+pvalues = partial(gof.gof_pvalues, em_model="gamma")
 
 
 def _sim(E, g, *, frames, rows, cols, seed, mult="gamma"):
@@ -27,7 +31,7 @@ def _sim(E, g, *, frames, rows, cols, seed, mult="gamma"):
                                         (0.3, 300.0, 6)])
 def test_true_model_gives_uniform_pvalues(E, g, seed):
     h = _sim(E, g, frames=2000, rows=20, cols=20, seed=seed)
-    p, chi2, dof = gof.gof_pvalues(h, E, g, PHI, S0, RN, n_fitted_params=0)
+    p, chi2, dof = pvalues(h, E, g, PHI, S0, RN, n_fitted_params=0)
     assert p.shape == chi2.shape == dof.shape == (400,)
     assert np.all(np.isfinite(p))
     assert np.all(dof >= 40) and np.all(dof <= 49)
@@ -40,8 +44,8 @@ def test_true_model_gives_uniform_pvalues(E, g, seed):
 
 def test_wrong_parameters_are_flagged():
     h = _sim(30.0, 100.0, frames=2000, rows=4, cols=4, seed=7)
-    p_off = gof.gof_pvalues(h, 30.0, 100.0, PHI, S0 + 60.0, RN)[0]  # offset 0.3 SD off
-    p_gain = gof.gof_pvalues(h, 30.0, 80.0, PHI, S0, RN)[0]         # gain 20 % low
+    p_off = pvalues(h, 30.0, 100.0, PHI, S0 + 60.0, RN)[0]  # offset 0.3 SD off
+    p_gain = pvalues(h, 30.0, 80.0, PHI, S0, RN)[0]         # gain 20 % low
     assert np.all(p_off < 1e-3)
     assert np.all(p_gain < 1e-3)
 
@@ -65,7 +69,7 @@ def _reference_chi2(values, counts, E, g, phi, s0, sigma, K):
 def test_chi2_matches_direct_computation():
     h = _sim(200.0, 50.0, frames=3000, rows=2, cols=2, seed=8)
     E = np.array([200.0, 210.0, 190.0, 200.0])
-    p, chi2, dof = gof.gof_pvalues(h, E, 50.0, PHI, S0, RN, n_fitted_params=2)
+    p, chi2, dof = pvalues(h, E, 50.0, PHI, S0, RN, n_fitted_params=2)
     assert np.all(dof == 47.0)  # wide distribution: 50 bins, none merged
     for i in range(4):
         ref = _reference_chi2(h.values[i], h.counts[i], E[i], 50.0, PHI, S0, RN, 50)
@@ -75,11 +79,11 @@ def test_chi2_matches_direct_computation():
 
 def test_bins_and_dof_follow_frames_and_fitted_params():
     h = _sim(30.0, 100.0, frames=200, rows=1, cols=3, seed=9)
-    p, chi2, dof = gof.gof_pvalues(h, 30.0, 100.0, PHI, S0, RN, n_fitted_params=0)
+    p, chi2, dof = pvalues(h, 30.0, 100.0, PHI, S0, RN, n_fitted_params=0)
     assert np.all(dof == 19.0)  # K = 200 / 10
-    dof3 = gof.gof_pvalues(h, 30.0, 100.0, PHI, S0, RN, n_fitted_params=3)[2]
+    dof3 = pvalues(h, 30.0, 100.0, PHI, S0, RN, n_fitted_params=3)[2]
     np.testing.assert_array_equal(dof3, dof - 3)
-    dofk = gof.gof_pvalues(h, 30.0, 100.0, PHI, S0, RN, n_fitted_params=0, max_bins=8)[2]
+    dofk = pvalues(h, 30.0, 100.0, PHI, S0, RN, n_fitted_params=0, max_bins=8)[2]
     assert np.all(dofk == 7.0)
 
 
@@ -102,24 +106,24 @@ def test_vectorised_mixed_pixels_and_blocks_match_separate_calls(monkeypatch):
         mean=np.r_[ha.mean, hb.mean], var=np.r_[ha.var, hb.var], n=np.r_[ha.n, hb.n])
     E = np.r_[np.full(3, 50.0), np.full(3, 5.0)]
     g = np.r_[np.ones(3), np.full(3, 300.0)]
-    sep = np.r_[gof.gof_pvalues(ha, 50.0, 1.0, PHI, S0, RN)[1],
-                gof.gof_pvalues(hb, 5.0, 300.0, PHI, S0, RN)[1]]
-    together = gof.gof_pvalues(mixed, E, g, PHI, S0, RN)[1]
+    sep = np.r_[pvalues(ha, 50.0, 1.0, PHI, S0, RN)[1],
+                pvalues(hb, 5.0, 300.0, PHI, S0, RN)[1]]
+    together = pvalues(mixed, E, g, PHI, S0, RN)[1]
     np.testing.assert_allclose(together, sep, rtol=1e-9)
     monkeypatch.setattr(gof, "_BLOCK_ELEMENTS", 1)  # one pixel per block
-    one_by_one = gof.gof_pvalues(mixed, E, g, PHI, S0, RN)[1]
+    one_by_one = pvalues(mixed, E, g, PHI, S0, RN)[1]
     np.testing.assert_allclose(one_by_one, sep, rtol=1e-9)
 
 
 def test_outliers_land_in_the_tail_bins():
     h = _sim(30.0, 100.0, frames=2000, rows=1, cols=2, seed=12)
-    base = gof.gof_pvalues(h, 30.0, 100.0, PHI, S0, RN)[1]
+    base = pvalues(h, 30.0, 100.0, PHI, S0, RN)[1]
     # Add a far outlier (a cosmic ray, 60000 ADU) and a frame at count 0 to pixel 0.
     v = np.concatenate([[[0], [0]], h.values, [[60000], [60000]]], axis=1)
     c = np.concatenate([[[1.0], [0.0]], h.counts, [[1.0], [0.0]]], axis=1)
     blk = engine.AcquisitionBlock(v, c, np.full(2, S0), np.full(2, RN), False,
                                    h.mean, h.var, h.n + np.array([2, 0]))
-    p, chi2, _ = gof.gof_pvalues(blk, 30.0, 100.0, PHI, S0, RN)
+    p, chi2, _ = pvalues(blk, 30.0, 100.0, PHI, S0, RN)
     assert np.isfinite(chi2).all()
     assert chi2[1] == base[1]
     assert chi2[0] != base[0]
@@ -129,15 +133,15 @@ def test_untestable_pixels_are_nan():
     h = _sim(30.0, 100.0, frames=2000, rows=1, cols=4, seed=13)
     E = np.array([30.0, np.nan, 30.0, 30.0])
     g = np.array([100.0, 100.0, 0.5, 100.0])
-    p, chi2, dof = gof.gof_pvalues(h, E, g, PHI, S0, RN)
+    p, chi2, dof = pvalues(h, E, g, PHI, S0, RN)
     assert np.isnan(p[1:3]).all() and np.isnan(chi2[1:3]).all() and np.isnan(dof[1:3]).all()
     assert np.isfinite(p[[0, 3]]).all()
     few = _sim(30.0, 100.0, frames=25, rows=1, cols=2, seed=14)  # K = 2: no dof left
-    assert np.isnan(gof.gof_pvalues(few, 30.0, 100.0, PHI, S0, RN, n_fitted_params=1)[0]).all()
+    assert np.isnan(pvalues(few, 30.0, 100.0, PHI, S0, RN, n_fitted_params=1)[0]).all()
     with pytest.raises(ValueError, match="one value per pixel"):
-        gof.gof_pvalues(h, np.ones(3), 100.0, PHI, S0, RN)
+        pvalues(h, np.ones(3), 100.0, PHI, S0, RN)
     with pytest.raises(ValueError, match="n_fitted_params"):
-        gof.gof_pvalues(h, 30.0, 100.0, PHI, S0, RN, n_fitted_params=-1)
+        pvalues(h, 30.0, 100.0, PHI, S0, RN, n_fitted_params=-1)
 
 
 # --------------------------------------------------------------------------------------
@@ -186,7 +190,7 @@ def cascade_pvalues(one_x):
     for g, seed in ((5.0, 22), (300.0, 23)):
         h = _sim(E_TRUE, g, frames=FRAMES, rows=4, cols=4, seed=seed, mult="cascade")
         E, g_fit = _gain_series_fit(one_x, h)
-        out[g] = gof.gof_pvalues(h, E, g_fit, PHI, S0, RN, n_fitted_params=1)[0]
+        out[g] = pvalues(h, E, g_fit, PHI, S0, RN, n_fitted_params=1)[0]
     return out
 
 
@@ -199,7 +203,7 @@ def test_cascade_at_5x_is_flagged_at_300x_not(cascade_pvalues):
 def test_gamma_data_at_5x_is_not_flagged(one_x):
     h = _sim(E_TRUE, 5.0, frames=FRAMES, rows=4, cols=4, seed=24)
     E, g = _gain_series_fit(one_x, h)
-    p = gof.gof_pvalues(h, E, g, PHI, S0, RN, n_fitted_params=1)[0]
+    p = pvalues(h, E, g, PHI, S0, RN, n_fitted_params=1)[0]
     assert np.mean(p < 0.01) <= 2 / 16, p
 
 

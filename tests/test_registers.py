@@ -17,12 +17,18 @@ from emccdcal.model import noise
 from emccdcal.model._gamma import Gamma, GammaRows
 
 
-class Noiseless(Gamma):
-    """No excess noise: the Poisson–normal rows' lattice, spaced g/φ."""
+class Noiseless:
+    """No excess noise: the Poisson–normal rows' lattice, spaced g/φ. Written from the
+    interface alone (``emccdcal.model.RegisterModel``), subclassing no model."""
 
     name = "noiseless"
+    uses_stages = False
+    parameters = ()
     description = "multiplication without excess noise (a test model)"
     misfit_hint = None
+
+    def __init__(self, stages=None):
+        pass
 
     def __eq__(self, other):
         return type(other) is Noiseless
@@ -36,6 +42,19 @@ class Noiseless(Gamma):
     @staticmethod
     def excess_noise_factor(g):
         return np.ones(np.shape(g))
+
+    @staticmethod
+    def gain_from_gain_f2(y):
+        y = np.asarray(y, dtype=float)
+        return y, np.ones(y.shape)
+
+    @staticmethod
+    def single_electron_moments(g):
+        return float(g) ** np.arange(1, 5)
+
+    @staticmethod
+    def sample(electrons, g, rng, **options):
+        return np.asarray(electrons, dtype=float) * g
 
     @staticmethod
     def rows(E, g, phi, cic=None):
@@ -112,3 +131,40 @@ def test_goodness_of_fit_and_the_fit_engine_use_it(noiseless):
     ref = [np.sum(h.counts[i] * noise.logpmf(h.values[i], E, G, PHI, S0, SIGMA,
                                              em_model=noiseless)) for i in range(P)]
     np.testing.assert_allclose(loglik, ref, rtol=1e-11)
+
+
+# --------------------------------------------------------------------------------------
+# Every registered model, and the test's own, through the same checks (as scipy.stats
+# runs every distribution through test_continuous_basic)
+# --------------------------------------------------------------------------------------
+@pytest.fixture(params=[*noise.EM_MODELS, "noiseless"])
+def any_model(request, monkeypatch):
+    monkeypatch.setitem(noise._REGISTERS, "noiseless", Noiseless)
+    return noise.EMModel(request.param, 64)
+
+
+def test_every_register_model_supplies_the_interface(any_model):
+    from emccdcal.model import RegisterModel, RegisterRows
+
+    register = any_model.register
+    assert isinstance(register, RegisterModel), any_model
+    rows = register.rows(np.array([E]), np.array([G]), np.array([PHI]))
+    assert isinstance(rows, RegisterRows), any_model
+    assert str(any_model).startswith(any_model.name)
+    assert noise.EMModel.from_attrs(any_model.attrs) == any_model
+
+
+def test_every_register_models_pmf_is_a_distribution_with_its_moments(any_model):
+    """Sums to 1, and its mean and variance are those its excess-noise factor says:
+    S0 + E·g/φ and σ² + E·F²·(g/φ)²."""
+    k = np.arange(300, 2400)
+    p = noise.pmf(k, E, G, PHI, S0, SIGMA, em_model=any_model)
+    assert p.sum() == pytest.approx(1.0, abs=1e-6)
+    mean = float(np.sum(k * p))
+    var = float(np.sum((k - mean) ** 2 * p))
+    F2 = float(any_model.register.excess_noise_factor(np.array(G)))
+    assert mean == pytest.approx(S0 + E * G / PHI, rel=1e-6)
+    # the pmf is the density at the integers (not a rounded count): no 1/12 is added
+    assert var == pytest.approx(SIGMA**2 + E * F2 * (G / PHI) ** 2, rel=1e-6)
+    g, slope = any_model.register.gain_from_gain_f2(np.array([G * F2]))
+    assert float(g[0]) == pytest.approx(G, rel=1e-9)

@@ -35,7 +35,7 @@ def _median(da):
     return float(np.nanmedian(np.asarray(da)))
 
 
-def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication="cascade",
+def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication=defaults.DEFAULT_EM_MODEL,
              seed=DEMO_SEED, progress=False, report=False, out=None, overwrite=False):
     """Simulate, calibrate φ then the gains, and print truth against estimate.
 
@@ -99,7 +99,7 @@ def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication="casc
         warnings.simplefilter("ignore")
         # the paper's numbers are those of its gamma model: the same fit under it
         gs_paper = calibrate(gs_sim.manifest, "gs", e_per_adu=outdir / "result-is-adu",
-                             em_model="gamma", checks=False)
+                             em_model=defaults.PAPER_EM_MODEL, checks=False)
 
     print("\nstep 1: ADU conversion factor from the 1x intensity series (is-adu)", file=out)
     header = f"  {'quantity':<28}{'truth':>12}{'estimate':>12}{'± SE':>10}"

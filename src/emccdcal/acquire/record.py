@@ -980,11 +980,10 @@ def _simulated_camera(plan: Plan):
 
     cam = plan.camera
     model = noise.as_em_model(cam["em_model"], cam["stages"])
-    multiplication = "cascade" if model.register.uses_stages else "gamma"
     return Camera(rows=SENSOR_SHAPE[0], cols=SENSOR_SHAPE[1], frames=2,
                   e_per_adu=cam["e_per_adu"], read_noise=cam["read_noise"],
                   offset=cam["offset"], adc_bits=min(16, int(cam["adc_bits"])),
-                  multiplication=multiplication,
+                  multiplication=model.name,  # the simulator samples the named register
                   stages=model.stages if model.register.uses_stages else Camera.stages)
 
 

@@ -20,6 +20,8 @@ import sys
 import warnings
 from pathlib import Path
 
+from ..defaults import DEFAULT_EM_MODEL, EM_MODELS
+
 __all__ = ["add_out", "add_overwrite", "add_accept_mismatch", "output", "add_out_or_dir",
            "output_of", "add_quiet", "add_no_figures",
            "add_e_per_adu", "positive_float", "positive_int", "number_list", "label_list",
@@ -107,10 +109,10 @@ def add_e_per_adu(p: argparse.ArgumentParser, *, results: bool = True) -> None:
 
 def add_em_model(p: argparse.ArgumentParser, *, auto: bool = True) -> None:
     g = p.add_argument_group("EM register model (docs/cascade.md)")
-    g.add_argument("--em-model", choices=("cascade", "gamma"), default=None,
+    g.add_argument("--em-model", choices=EM_MODELS, default=None,
                    help="the register in the likelihood: the exact Bernoulli cascade or the "
                    "paper's gamma approximation, which reproduces the paper's numbers "
-                   "(default: the manifest's em_model, else cascade)")
+                   f"(default: the manifest's em_model, else {DEFAULT_EM_MODEL})")
     g.add_argument("--stages", type=stages_or_auto if auto else positive_int, default=None,
                    metavar="N|auto" if auto else "N",
                    help="stages of the cascade register (default: the manifest's "

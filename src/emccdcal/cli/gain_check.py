@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..defaults import DEFAULT_EM_MODEL
 from . import _common
 
 #: The files ``-o OUT`` receives.
@@ -94,7 +95,7 @@ def run(args) -> int:
     with _common.output(args, args.out, inputs=args.darks, names=outputs) \
             if args.out is not None else contextlib.nullcontext():
         check = check_gain([read_stack(path) for path in args.darks], phi, setpoint=setpoint,
-                           em_model=args.em_model or "cascade", stages=args.stages,
+                           em_model=args.em_model or DEFAULT_EM_MODEL, stages=args.stages,
                            fit_register_cic=args.fit_register_cic,
                            pooled_rate=not args.per_pixel_rate,
                            bias_correction=not args.no_bias_correction,

@@ -45,6 +45,7 @@ import numpy as np
 
 from .._optimize import ArrowLayout, maximize, schur
 from .._util import ordered_map, progress
+from ..defaults import DEFAULT_EM_MODEL
 from ..data import stats
 from ..data.dark import robust_start
 from ..errors import InputError, NotConvergedError
@@ -163,7 +164,8 @@ class GainCheck:
 
 
 def check_gain(darks, e_per_adu: float, *, setpoint: float | None = None,
-               em_model="cascade", stages: int | None = None, register_cic: float = 0.0,
+               em_model=DEFAULT_EM_MODEL, stages: int | None = None,
+               register_cic: float = 0.0,
                fit_register_cic: bool = False, pooled_rate: bool = True,
                adc_max: int | None = None, region=None, bias_correction: bool = True,
                histogram: bool = False, tol: float = 1e-3, max_passes: int = 60,
@@ -229,8 +231,10 @@ def check_gain(darks, e_per_adu: float, *, setpoint: float | None = None,
     """
     model = noise.as_em_model(em_model, stages)
     if fit_register_cic and "register_cic" not in model.register.parameters:
-        raise InputError("register_cic is a parameter of the exact register only: use "
-                         "em_model='cascade'")
+        raise InputError(f"register_cic is not a parameter of the {model.name} register "
+                         "model: use one that has it (" + ", ".join(
+                             n for n in noise.EM_MODELS
+                             if "register_cic" in noise.EMModel(n).register.parameters) + ")")
     phi = float(e_per_adu)
     if not (math.isfinite(phi) and phi > 0):
         raise InputError(f"e_per_adu must be a positive number, got {e_per_adu!r}")

@@ -35,6 +35,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import special
 
+from ..defaults import DEFAULT_EM_MODEL
 from ..errors import OptionError
 from ..model import noise
 
@@ -66,7 +67,7 @@ def _per_pixel(name, value, P):
 def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, read_noise,
                 *, n_fitted_params=2, max_bins=DEFAULT_MAX_BINS,
                 frames_per_bin=DEFAULT_FRAMES_PER_BIN, min_expected=DEFAULT_MIN_EXPECTED,
-                em_model="gamma", stages=None):
+                em_model=DEFAULT_EM_MODEL, stages=None):
     """Binned Pearson χ² goodness-of-fit test of the model for every pixel of one acquisition.
 
     Parameters
@@ -96,7 +97,8 @@ def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, re
         No bin used expects fewer frames than this (default 5): smaller bins are merged
         with a neighbour, which lowers the effective number of bins ``K_eff``.
     em_model, stages : optional
-        The EM register's model, as in :func:`emccdcal.model.noise.logpmf`.
+        The EM register's model, as in :func:`emccdcal.model.noise.logpmf` (default
+        :data:`emccdcal.defaults.DEFAULT_EM_MODEL`).
 
     Returns
     -------

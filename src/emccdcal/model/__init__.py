@@ -1,3 +1,11 @@
 """The camera's noise model: :mod:`~emccdcal.model.noise` (the exact pmf of the counts,
 gamma EM register), :mod:`~emccdcal.model.cascade` (the exact Bernoulli-cascade
-register) and :mod:`~emccdcal.model.psf` (the pixel-integrated Gaussian spot)."""
+register) and :mod:`~emccdcal.model.psf` (the pixel-integrated Gaussian spot).
+
+A register model states what it supplies through :class:`RegisterModel` and its rows
+through :class:`RegisterRows` (:mod:`._protocol`); the models known by name are
+:data:`emccdcal.model.noise.EM_MODELS`."""
+
+from ._protocol import RegisterModel, RegisterRows
+
+__all__ = ["RegisterModel", "RegisterRows"]

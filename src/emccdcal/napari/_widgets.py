@@ -21,6 +21,7 @@ from magicgui.widgets import (CheckBox, ComboBox, Container, FileEdit, Label, Li
 from qtpy.QtCore import QObject, QTimer, Signal
 
 from .._output import atomic_write_text
+from ..defaults import DEFAULT_EM_MODEL, EM_MODELS
 from ..errors import Cancelled, EmccdcalError, OptionError, spelling
 
 __all__ = ["CalibrateWidget", "ApplyWidget", "GainCheckWidget"]
@@ -154,8 +155,8 @@ class CalibrateWidget(Container):
         self.found = TextEdit(label="found", value="")
         self.found.native.setReadOnly(True)
         self.method = ComboBox(label="method", choices=list(METHODS), value="gs")
-        self.em_model = ComboBox(label="register", choices=["cascade", "gamma"],
-                                 value="cascade")
+        self.em_model = ComboBox(label="register", choices=list(EM_MODELS),
+                                 value=DEFAULT_EM_MODEL)
         self.stages = LineEdit(label="stages", value="")
         self.e_per_adu = LineEdit(label="e-/ADU (or a result)", value="")
         self.out = FileEdit(label="output folder", mode="d")

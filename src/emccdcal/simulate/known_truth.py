@@ -17,6 +17,7 @@ import re
 
 import numpy as np
 
+from .. import defaults
 from ..fit import layouts
 from .series import simulate_gain_series, simulate_intensity_series
 
@@ -66,7 +67,7 @@ def truth_manifest(sim, read_noise, em_model=None):
 
 
 #: The register of the study: the paper's gamma model, simulated and fitted.
-STUDY_REGISTER = "gamma"
+STUDY_REGISTER = defaults.PAPER_EM_MODEL
 
 
 def simulate_camera(base, cam):
