@@ -437,3 +437,41 @@ def test_byte_flips_of_a_session_and_its_plan_are_refused_or_harmless(tmp_path):
     print("byte flips (refused, loaded):", totals)
     assert all(sum(c.values()) == 150 for c in totals.values())
     assert {p.name for p in out.iterdir()} == inside and not list(tmp_path.glob("*.zarr"))
+
+
+@pytest.mark.slow
+def test_sigkill_of_acquire_at_random_moments_resumes_to_a_complete_session(tmp_path):
+    """A real SIGKILL of `acquire` at random moments (while a store is created, a chunk
+    written, the record saved): the next run (`--resume` where a session was recorded)
+    always goes on, and the session ends complete with every stack its planned length."""
+    plan_path = _plan_file(tmp_path, setpoints=(1, 5))
+    base = [sys.executable, "-m", "emccdcal", "acquire", str(plan_path), "--simulated",
+            "--seed", "4", "--roi", "0,0,8,8", "-q", "-o"]
+    t0 = time.perf_counter()
+    subprocess.run(base + [str(tmp_path / "whole")], check=True, capture_output=True)
+    whole = time.perf_counter() - t0
+    out = tmp_path / "session"
+
+    def command():
+        resume = (out / "session.json").exists()
+        return base + [str(out)] + (["--resume"] if resume else [])
+
+    rng = np.random.default_rng(5)
+    kills = 0
+    for delay in rng.uniform(0.25 * whole, 0.7 * whole, 6):
+        proc = subprocess.Popen(command(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        time.sleep(delay)
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGKILL)
+            kills += 1
+        proc.wait()
+    done = subprocess.run(command(), capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    print(f"acquire: {kills} of 6 runs killed, then resumed to the end")
+    assert kills >= 3
+    stacks = Session.load(out).stacks
+    assert all(s.done for s in stacks)
+    for s in stacks:
+        assert load_stack(out / s.file).shape[0] == s.planned_frames == s.frames
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        p.name for p in (tmp_path / "whole").iterdir())

@@ -200,7 +200,8 @@ def test_register_cic_is_simulated_and_fitted():
     assert check.as_dict()["register_cic_se"] == check.register_cic_se
     ignored = check_gain([darks], PHI)
     assert 300 - ignored.em_gain > 3 * ignored.em_gain_se
-    with pytest.raises(InputError, match="exact register only"):
+    with pytest.raises(InputError, match=r"not a parameter of the gamma register model: "
+                       r"use one that has it \(cascade\)"):
         check_gain([darks], PHI, em_model="gamma", fit_register_cic=True)
 
 

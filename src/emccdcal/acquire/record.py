@@ -44,7 +44,8 @@ from pathlib import Path
 import numpy as np
 
 from .. import _files, defaults
-from .._output import Output, OutputError, atomic_write, atomic_write_text
+from .._output import (Output, OutputError, atomic_write, atomic_write_text,
+                       remove_leftovers)
 from .._util import check_number, format_setpoint, one_line, progress
 from ..errors import EmccdcalError, InputError, OptionError
 from .plan import Plan, plan_text, read_plan
@@ -312,13 +313,16 @@ class StackWriter:
         h, w = shape
         self.chunk_frames = self.chunk_frames_of(shape, dtype)
         if frames is None:
-            group = zarr.open_group(str(path), mode="w-", zarr_format=3)
-            group.attrs.update({"ome": {"version": "0.5", "multiscales": [{
-                "name": path.name,
-                "axes": [{"name": "t", "type": "time"}, {"name": "y", "type": "space"},
-                         {"name": "x", "type": "space"}],
-                "datasets": [{"path": "0", "coordinateTransformations": [
-                    {"type": "scale", "scale": [1.0, 1.0, 1.0]}]}]}]}, **attrs})
+            # the attributes (the session's marker among them) in the group's first and
+            # only metadata write: zarr's attrs.update writes one key at a time, and a
+            # run killed between two keys left a store that was no longer known as ours
+            group = zarr.open_group(str(path), mode="w-", zarr_format=3, attributes={
+                "ome": {"version": "0.5", "multiscales": [{
+                    "name": path.name,
+                    "axes": [{"name": "t", "type": "time"}, {"name": "y", "type": "space"},
+                             {"name": "x", "type": "space"}],
+                    "datasets": [{"path": "0", "coordinateTransformations": [
+                        {"type": "scale", "scale": [1.0, 1.0, 1.0]}]}]}]}, **attrs})
             # chunks of a band of rows: calibrate reads a stack by bands of rows
             self.array = group.create_array("0", shape=(0, h, w), dtype=dtype,
                                             chunks=(self.chunk_frames, min(h, _CHUNK_ROWS), w),
@@ -839,6 +843,8 @@ def acquire(plan, out, *, core=None, camera: str | None = None, simulated_seed=N
     # a session goes into a new (empty) folder or resumes its own: _open_session decides
     with Output(out, kind="folder", stage=False):
         session = _open_session(out, plan, text, resume, core, camera, roi, simulated_seed)
+        for name in _SESSION_FILES:  # the temporary files of a killed run, ours to remove
+            remove_leftovers(out / name)
         try:
             _record(session, out, plan, core, camera, roi, simulated_seed, gain_prop,
                     set_light, light_tolerance, stop_at_target, progress_bars)
@@ -850,10 +856,16 @@ def acquire(plan, out, *, core=None, camera: str | None = None, simulated_seed=N
     return session
 
 
+#: The files of a session folder besides its stacks: its record, its plan and the
+#: simulated camera's truth.
+_TRUTH_PATTERN = "truth-offset-pattern.tif"
+_SESSION_FILES = (SESSION_FILE, "plan.toml", "truth.json", _TRUTH_PATTERN)
+
+
 def _discard(out: Path) -> None:
     """Remove the files a new session wrote before its first stack (its record, plan
     and the simulated camera's truth), so that the corrected command can start again."""
-    for name in (SESSION_FILE, "plan.toml", "truth.json"):
+    for name in _SESSION_FILES:
         (out / name).unlink(missing_ok=True)
 
 
@@ -1012,7 +1024,7 @@ def _write_truth(out: Path, plan: Plan, device, session: Session) -> None:
                      "photoelectrons": s.photoelectrons, "offset": device.offset_of(s.setpoint)})
     kind = "gain-series" if plan.method == "gs" else "intensity-series"
     opts = dataclasses.asdict(device.camera) | {"seed": device.seed}
-    pattern_file = "truth-offset-pattern.tif"
+    pattern_file = _TRUTH_PATTERN
     atomic_write(out / pattern_file, lambda tmp: tifffile.imwrite(
         tmp, device.offset_pattern.astype(np.float32)))
     truth = truth_document(kind, device.camera, opts, acqs, pattern_file)
