@@ -327,8 +327,10 @@ def test_a_refused_option_leaves_nothing_and_a_killed_store_is_redone(tmp_path, 
     # a run killed while creating its first light stack's store: metadata, no frame
     _stopped_at_the_first_light(plan_path, out, seed=2)
     begun = out / "1x-gain.ome.zarr"
-    begun.mkdir()
-    (begun / "zarr.json").write_text('{"zarr_format": 3, "node_type": "group"}')
+    begun.mkdir()  # the group's one metadata write, the session's marker in it
+    (begun / "zarr.json").write_text(json.dumps({
+        "zarr_format": 3, "node_type": "group",
+        "attributes": {"emccdcal_acquisition": {"dark": False, "planned_frames": 50}}}))
     # resumed without saying which camera: the session says it was the simulated one
     assert cli.main(["acquire", str(plan_path), "-o", str(out), "--resume", "--roi",
                      "0,0,8,8", "-q"]) == 0, capsys.readouterr().err
@@ -379,7 +381,8 @@ def test_plan_check_says_when_the_darks_limit_the_precision(tmp_path, capsys):
 
 
 def test_an_empty_store_someone_else_made_is_never_removed(tmp_path):
-    """Only a store this session began (metadata of its own, or none) is made again."""
+    """Only a store this session began (metadata with its marker, or none) is made again:
+    a group with another's attributes, or with none, is left as it is."""
     import json as _json
 
     plan_path = _plan_file(tmp_path, setpoints=(1, 5))
@@ -387,12 +390,13 @@ def test_an_empty_store_someone_else_made_is_never_removed(tmp_path):
     _stopped_at_the_first_light(plan_path, out, seed=2)
     theirs = out / "1x-gain.ome.zarr"
     theirs.mkdir()
-    meta = {"zarr_format": 3, "node_type": "group", "attributes": {"owner": "a user"}}
-    (theirs / "zarr.json").write_text(_json.dumps(meta))
-    with pytest.raises(AcquireError, match="not the stack this session recorded"):
-        acquire(plan_path, out, simulated_seed=2, roi=(0, 0, 8, 8), resume=True,
-                progress_bars=False)
-    assert _json.loads((theirs / "zarr.json").read_text()) == meta
+    for attributes in ({"owner": "a user"}, {}):
+        meta = {"zarr_format": 3, "node_type": "group", "attributes": attributes}
+        (theirs / "zarr.json").write_text(_json.dumps(meta))
+        with pytest.raises(AcquireError, match="not the stack this session recorded"):
+            acquire(plan_path, out, simulated_seed=2, roi=(0, 0, 8, 8), resume=True,
+                    progress_bars=False)
+        assert _json.loads((theirs / "zarr.json").read_text()) == meta
 
 
 def _flips(path, n, seed, load):

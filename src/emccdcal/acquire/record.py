@@ -514,12 +514,12 @@ def _begun_but_empty(path: Path) -> bool:
         if item.is_symlink() or (item.is_file() and item.name not in _METADATA_FILES):
             return False
     root = path / "zarr.json"
-    if root.is_file():  # attributes written by another hand: not this session's store
+    if root.is_file():  # the group's one metadata write carries the session's marker
         try:
             attrs = _files.load_json(root, what="Zarr metadata").get("attributes") or {}
         except (InputError, AttributeError):
             return False
-        if attrs and _MARKER not in attrs:
+        if _MARKER not in attrs:  # another hand's group (its attributes none or others)
             return False
     return True
 
