@@ -150,7 +150,7 @@ def check_int(name: str, value, *, minimum: int | None = 1, maximum: int | None 
         else:
             rng = f"from {minimum} to {maximum}"
         raise OptionError(f"{name} must be an integer {rng}, got {value!r}")
-    _within_bounds(name, np.asarray(out), value)
+    within_bounds(name, np.asarray(out), value)
     return int(out)
 
 
@@ -192,18 +192,19 @@ def check_number(name: str, value, *, positive: bool = False, minimum: float | N
         raise OptionError(f"{name} must be >= {minimum:g}, got {value!r}")
     if maximum is not None and np.any(arr > maximum):
         raise OptionError(f"{name} must be <= {maximum:g}, got {value!r}")
-    _within_bounds(name, arr, value)
+    within_bounds(name, arr, value)
     return float(arr) if scalar else arr
 
 
-def _within_bounds(name: str, arr, value) -> None:
-    """Refuse a value outside the range its quantity is taken as meant in (BOUNDS)."""
+def within_bounds(name: str, arr, value, *, label: str | None = None) -> None:
+    """Refuse a value (NaN included) outside the range its quantity ``name`` is taken as
+    meant in (BOUNDS); the message names it ``label`` (default ``name``)."""
     if name not in BOUNDS:
         return
     low, high, unit = BOUNDS[name]
-    if np.any(arr < low) or np.any(arr > high):
+    if not np.all((arr >= low) & (arr <= high)):
         shown = value if np.ndim(value) == 0 else f"a map spanning {np.min(arr):g} to {np.max(arr):g}"
-        raise OptionError(f"{name} {shown} is outside {low:g} to {high:g}"
+        raise OptionError(f"{label or name} {shown} is outside {low:g} to {high:g}"
                           + (f" {unit}, the range it is taken as meant in (a value in "
                              "another unit?)" if unit else ""))
 

@@ -100,25 +100,19 @@ def check_numbers(args) -> None:
     (:data:`emccdcal.defaults.BOUNDS`, named by the option or by
     :data:`~emccdcal.defaults.OPTION_QUANTITY`): a number in another unit, or one that
     would make a computation run for hours."""
-    import math
     from numbers import Real
 
-    from ..defaults import BOUNDS, OPTION_QUANTITY
-    from ..errors import OptionError
+    import numpy as np
+
+    from .._util import within_bounds
+    from ..defaults import OPTION_QUANTITY
 
     for dest, value in vars(args).items():
-        quantity = OPTION_QUANTITY.get(dest, dest)
         values = value if isinstance(value, (list, tuple)) else [value]
-        numbers = [v for v in values if isinstance(v, Real) and not isinstance(v, bool)]
-        if quantity not in BOUNDS or not numbers:
-            continue
-        low, high, unit = BOUNDS[quantity]
-        for v in numbers:
-            if not (math.isfinite(v) and low <= v <= high):
-                raise OptionError(
-                    f"--{dest.replace('_', '-')} {v:g} is outside {low:g} to {high:g}"
-                    + (f" {unit}, the range it is taken as meant in (a value in another "
-                       "unit?)" if unit else ""))
+        for v in values:
+            if isinstance(v, Real) and not isinstance(v, bool):
+                within_bounds(OPTION_QUANTITY.get(dest, dest), np.asarray(float(v)), f"{v:g}",
+                              label=f"--{dest.replace('_', '-')}")
 
 
 def _verb_of(argv: list[str]) -> str | None:
