@@ -10,6 +10,10 @@ engine keeps the peak flat and the time per pixel constant.
 cluster of N (then M ...) single-threaded worker processes, alternating, and prints the
 speed-up over the first.
 
+``--em-models gamma,cascade`` instead times the calibration of every size under each
+register model, alternating in one run, and prints each time's ratio to the first
+model's (the default register's cost against the paper's gamma model).
+
 Run: ``.venv/bin/python benchmarks/bench_sensor.py [--sizes 64,128,256] [--frames 5000]``
 (``--keep DIR`` keeps the simulated data there: 512 x 512 x 5000 x 5 is 13 GB).
 """
@@ -40,15 +44,16 @@ if sys.argv[3] != "local":
     client = Client(cluster)
     scheduler = client
     t0 = time.perf_counter()
-calibrate(sys.argv[1], "gs", out=sys.argv[2], overwrite=True, scheduler=scheduler)
+calibrate(sys.argv[1], "gs", out=sys.argv[2], overwrite=True, scheduler=scheduler,
+          em_model=sys.argv[4] if sys.argv[4] != "-" else None)
 wall = time.perf_counter() - t0
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print(f"{wall:.2f} {peak:.0f}")
 """
 
 
-def _time(manifest, out, where="local"):
-    res = subprocess.run([sys.executable, "-c", CHILD, str(manifest), str(out), where],
+def _time(manifest, out, where="local", em_model="-"):
+    res = subprocess.run([sys.executable, "-c", CHILD, str(manifest), str(out), where, em_model],
                          capture_output=True, text=True, check=True)
     wall, peak = res.stdout.split()[-2:]
     return float(wall), float(peak)
@@ -59,6 +64,8 @@ def main():
     p.add_argument("--sizes", default="64,128,256")
     p.add_argument("--frames", type=int, default=5000)
     p.add_argument("--dask", default=None, help="worker counts to compare, e.g. 1,2")
+    p.add_argument("--em-models", default=None,
+                   help="register models to compare, e.g. gamma,cascade")
     p.add_argument("--keep", type=Path, default=None, help="keep the simulated data here")
     args = p.parse_args()
     from emccdcal.simulate.series import simulate_gain_series
@@ -90,6 +97,20 @@ def main():
             for c in counts:
                 t = statistics.median(times[c])
                 print(f"  {c} worker(s): {t:8.1f} s   speed-up {ref / t:5.2f}")
+            return
+        if args.em_models:
+            models = args.em_models.split(",")
+            print(f"gs with data-quality checks, {args.frames} frames per set-point; "
+                  "register models alternating, median of 2")
+            for n, manifest in manifests.items():
+                times = {m: [] for m in models}
+                for _ in range(2):
+                    for m in models:
+                        times[m].append(_time(manifest, base / f"out-{n}-{m}", em_model=m)[0])
+                ref = statistics.median(times[models[0]])
+                for m in models:
+                    t = statistics.median(times[m])
+                    print(f"  {n}x{n} {m:>8}: {t:8.1f} s   ratio {t / ref:5.2f}", flush=True)
             return
         print(f"gs with data-quality checks, {args.frames} frames per set-point")
         print(f"{'sensor':>10}{'pixels':>9}{'wall s':>9}{'ms/pixel':>10}{'peak MB':>9}")

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from emccdcal import calibrate
-from emccdcal.simulate.known_truth import COLS, FRAMES, ROWS, coverage, truth_manifest
+from known_truth import COLS, FRAMES, ROWS, coverage, truth_manifest
 from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
 
 CAMERAS = {

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from emccdcal import calibrate
-from emccdcal.simulate.known_truth import (
+from known_truth import (
     CAMERAS,
     COLS,
     FRAMES,

@@ -23,7 +23,7 @@ import warnings
 from pathlib import Path
 
 from emccdcal import calibrate
-from emccdcal.simulate.known_truth import (
+from known_truth import (
     CAMERAS,
     coverage,
     result_bounds,

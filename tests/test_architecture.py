@@ -24,7 +24,7 @@ ALLOWED = {
     "data": {"model"},
     "fit": {"data", "model"},
     "beads": {"data", "model", "fit", "result"},
-    "simulate": {"model", "fit", "result"},
+    "simulate": {"model", "result"},
     "report": {"data", "model", "fit", "result", "beads", "export"},
     "export": {"data", "model", "result"},
     "acquire": {"data", "model", "fit", "simulate", "result"},
@@ -239,4 +239,34 @@ def test_no_register_model_is_named_outside_model_and_defaults():
         found += [f"{rel}:{n.lineno}" for n in ast.walk(tree)
                   if isinstance(n, ast.Constant) and n.value in EM_MODELS
                   and id(n) not in docstrings]
+    assert not found, found
+
+
+def test_the_engine_has_one_door():
+    """Outside fit/, nothing imports the engine, builds its layouts or blocks, calls its
+    fit or splits a parameter's name at ``[``: every fit and every expected information
+    goes through :class:`emccdcal.fit.series.SeriesLikelihood` (the layouts module's
+    method rules, ``check_options`` and ``select_acquisitions``, stay public)."""
+    private = {"build_layout", "layout_of", "AcquisitionBlock", "Layout", "Series",
+               "acquisition_estimates", "expected_information", "e_per_adu_sensitivity"}
+    found = []
+    for path in SRC.rglob("*.py"):
+        rel = path.relative_to(SRC).as_posix()
+        inside = rel.startswith("fit/")
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call):
+                f = node.func
+                name = f.attr if isinstance(f, ast.Attribute) else getattr(f, "id", None)
+                # a bare name (imported) has no owner; a method of an object is not flagged
+                owner = getattr(f.value, "id", "") if isinstance(f, ast.Attribute) else None
+                if not inside and owner in (None, "engine", "layouts") and (
+                        name in private or (owner == "engine" and name == "fit")):
+                    found.append(f"{rel}:{node.lineno} calls {name}")
+                if (name in ("partition", "split") and node.args
+                        and isinstance(node.args[0], ast.Constant) and node.args[0].value == "["):
+                    found.append(f"{rel}:{node.lineno} splits a name at '['")
+            if not inside and isinstance(node, ast.ImportFrom) and node.module and (
+                    node.module.endswith("fit.engine")
+                    or (node.module.endswith("fit") and "engine" in {a.name for a in node.names})):
+                found.append(f"{rel}:{node.lineno} imports the engine")
     assert not found, found

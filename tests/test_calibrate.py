@@ -12,7 +12,7 @@ from conftest import write_real_manifest
 from emccdcal import calibrate, cli, result
 from emccdcal.errors import MethodError, OptionError
 from emccdcal.fit import layouts
-from emccdcal.simulate.known_truth import (
+from known_truth import (
     CAMERAS,
     COLS,
     FRAMES,

@@ -27,7 +27,7 @@ import pytest
 from emccdcal import calibrate
 from emccdcal.errors import ManifestError, OptionError
 from emccdcal.model import cascade, noise
-from emccdcal.simulate.known_truth import truth_manifest
+from known_truth import truth_manifest
 from emccdcal.simulate.series import simulate_gain_series
 
 

@@ -11,7 +11,9 @@ from conftest import quiet
 
 from emccdcal import calibrate, cli, load_result
 from emccdcal.errors import ManifestError, MethodError, OptionError
-from emccdcal.fit import engine, layouts
+from emccdcal.fit import engine
+from emccdcal.fit.series import AcquisitionModel, SeriesLikelihood
+from emccdcal.model.noise import EMModel
 from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
 
 ROWS = COLS = 4
@@ -36,18 +38,15 @@ def test_sensitivity_is_the_derivative_of_the_refit(series):
 
     m = quiet(read_manifest, gs.manifest)
     hists = [stats.histograms(np.asarray(a.frames()), adc_max=m.adc_max) for a in m.acquisitions]
-    offsets = np.stack([a.offset.ravel() for a in m.acquisitions])
-    noise = np.stack([a.read_noise.ravel() for a in m.acquisitions])
-    sp = np.array([a.em_gain_setpoint for a in m.acquisitions])
-    blocks = layouts.make_blocks(hists, offsets, noise, sp, slice(None))
+    models = [AcquisitionModel(a.em_gain_setpoint, a.offset.ravel(), a.read_noise.ravel(),
+                               EMModel("gamma")) for a in m.acquisitions]
 
     def fit(phi):
-        series_ = layouts.Series(blocks, sp, ["1x", "25x", "300x"], np.full(ROWS * COLS, phi))
-        layout, x0 = layouts.build_layout("gs", series_)
-        return layout, engine.fit(layout, blocks, x0, tol=1e-12)
+        lik = SeriesLikelihood("gs", models, hists, e_per_adu=phi)
+        return lik, lik.fit(tol=1e-12)
 
-    layout, base = fit(3.859)
-    sens = engine.e_per_adu_sensitivity(layout, blocks, base.x)
+    lik, base = fit(3.859)
+    sens = engine.e_per_adu_sensitivity(lik.layout, lik.blocks, base.x)
     h = 1e-3
     up, down = fit(3.859 * np.exp(h))[1], fit(3.859 * np.exp(-h))[1]
     numeric = (up.x - down.x) / (2 * h)

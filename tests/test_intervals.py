@@ -9,7 +9,9 @@ from scipy import stats
 from emccdcal import calibrate
 from emccdcal.data import stats as pixel_stats
 from emccdcal.data.manifest import read_manifest
-from emccdcal.fit import engine, layouts
+from emccdcal.fit import engine
+from emccdcal.fit.series import AcquisitionModel, SeriesLikelihood
+from emccdcal.model.noise import EMModel
 from emccdcal.simulate.series import simulate_gain_series
 
 
@@ -25,14 +27,11 @@ def _layout_and_fit(manifest, method, phi):
 
 def _layout_and_fit_acquisitions(acqs, method, phi, dark_frames=None):
     hists = [pixel_stats.histograms(a.frames()) for a in acqs]
-    P = hists[0].n.size
-    offsets = np.stack([a.offset.ravel() for a in acqs])
-    read_noise = np.stack([a.read_noise.ravel() for a in acqs])
-    setpoints = np.array([a.em_gain_setpoint for a in acqs])
-    blocks = layouts.make_blocks(hists, offsets, read_noise, setpoints, np.arange(P), dark_frames)
-    series = layouts.Series(blocks, setpoints, [a.name for a in acqs], np.full(P, phi))
-    layout, x0 = layouts.build_layout(method, series, {})
-    return layout, blocks, engine.fit(layout, blocks, x0)
+    dark_frames = [None] * len(acqs) if dark_frames is None else dark_frames
+    models = [AcquisitionModel(a.em_gain_setpoint, a.offset.ravel(), a.read_noise.ravel(),
+                               EMModel("gamma"), n) for a, n in zip(acqs, dark_frames)]
+    lik = SeriesLikelihood(method, models, hists, e_per_adu=phi, options={})
+    return lik.layout, lik.blocks, lik.fit()
 
 
 def test_bounds_are_where_the_deviance_reaches_the_quantile(gain_series):
@@ -131,7 +130,7 @@ def test_hierarchical_intervals_are_those_of_each_set_point_alone(tmp_path):
     sim = simulate_gain_series(tmp_path, rows=3, cols=3, frames=250, seed=4, progress=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        # the gamma register, as the blocks made below (make_blocks' default)
+        # the gamma register, as the likelihoods made below
         ds = calibrate(sim.manifest, "gs-hierarchical", checks=False, map_errors=False,
                        em_model="gamma")
     assert ds.attrs["intervals"].startswith("95 %, of the same model without the prior")

@@ -37,7 +37,8 @@ from .data import quality, stats
 from .data.manifest import Manifest, read_manifest
 from .data.stacks import read_band
 from .errors import InputError, MethodError, OptionError
-from .fit import engine, gof, layouts, mv
+from .fit import gof, layouts, mv
+from .fit.series import AcquisitionModel, fit_series
 from .defaults import DEFAULT_BLOCK, DEFAULT_TILE_PIXELS, INTERVALS, METHODS
 from .model import noise
 from .runstore import RESULT_FILES, RunInterrupted, RunStore, remove_run
@@ -192,14 +193,13 @@ def _histograms(job, a, frames):
 
 
 def _bounds_of(method, intervals):
-    """Interval bounds of a likelihood result: (function of a fitted block, kind,
-    description), or None."""
+    """Interval bounds of a likelihood result: (kind, description), or None."""
     if intervals == "profile":
-        return (layouts.acquisition_bounds, "profile-likelihood",
+        return ("profile-likelihood",
                 "profile likelihood, 95 %, widened by the errors of the offset and "
                 "read-noise maps where the standard errors include them")
     if method == "gs-hierarchical":
-        return (layouts.unpooled_bounds, "unpooled",
+        return ("unpooled",
                 "95 %, of the same model without the prior (each set-point its own E): "
                 "Wald on the log scale, profile likelihood where that is unreliable; "
                 "the MAP's own ± 1.96 SE reflect its shrinkage")
@@ -210,56 +210,24 @@ def _fit_pixels(job, frames, usable, progress=None):
     """The likelihood fit of the pixels ``usable`` of a tile, from each acquisition's
     ``frames`` (F, 1, P); NaN (not converged) elsewhere."""
     P, A = job.n_pixels, len(frames)
-    method = job.method
-    setpoints = np.array(job.setpoints)
     out = {k: np.full((P, A), np.nan) for k in (
         "photoelectrons", "photoelectrons_se", "em_gain", "em_gain_se", "e_per_adu",
         "e_per_adu_se", "gof_pvalue", "acquisition_loglik")}
     out.update(loglik=np.full(P, np.nan), converged=np.zeros(P, dtype=bool),
                n_floored=np.zeros(P, dtype=np.int64), iterations=np.zeros(P, dtype=np.int64))
-    if method == "gs-hierarchical":
+    if job.method == "gs-hierarchical":
         out.update(hyper_photoelectrons=np.full(P, np.nan),
                    hyper_sd_photoelectrons=np.full(P, np.nan))
-    bounds = _bounds_of(method, job.intervals)
 
     def fit_block(idx):
         hists = [_histograms(job, a, f[:, :, idx]) for a, f in enumerate(frames)]
-        blocks = layouts.make_blocks(hists, job.offsets[:, idx], job.read_noise[:, idx],
-                                     setpoints, slice(None), job.dark_frames, job.map_groups,
-                                     job.em_model)
-        series = layouts.Series(blocks, setpoints, list(job.labels),
-                                None if job.e_per_adu is None else job.e_per_adu[idx])
-        layout, x0 = layouts.build_layout(method, series, job.options)
-        fit = engine.fit(layout, blocks, x0)
-        cov = fit.cov
-        if job.e_per_adu_se is not None:  # φ's own error moves every E and g together
-            sens = engine.e_per_adu_sensitivity(layout, blocks, fit.x)
-            rel_var = (job.e_per_adu_se[idx] / job.e_per_adu[idx]) ** 2
-            cov = cov + rel_var[:, None, None] * sens[:, :, None] * sens[:, None, :]
-        e = layouts.acquisition_estimates(layout, fit.x, cov)
-        if job.e_per_adu is not None:  # φ given: its error is known only when chained
-            se = np.nan if job.e_per_adu_se is None else job.e_per_adu_se[idx][:, None]
-            e["e_per_adu_se"] = np.broadcast_to(se, e["e_per_adu"].shape).copy()
-        if bounds is not None:
-            e.update(bounds[0](layout, blocks, fit))
-        # Goodness of fit per acquisition; a free parameter shared by k acquisitions
-        # counts 1/k towards each one's fitted-parameter number.
-        touches = np.any(layout.matrix != 0, axis=1)  # (A, F)
-        n_fitted = (touches / np.maximum(touches.sum(axis=0), 1)).sum(axis=1)
-        # no test where the fit found no finite likelihood (its parameters fit nothing)
-        tested = np.where(np.isfinite(fit.loglik), 1.0, np.nan)
-        e["gof_pvalue"] = np.stack([
-            gof.gof_pvalues(blocks[a], e["photoelectrons"][:, a] * tested, e["em_gain"][:, a],
-                            e["e_per_adu"][:, a], blocks[a].offset, blocks[a].read_noise,
-                            n_fitted_params=float(n_fitted[a]), em_model=job.em_model)[0]
-            for a in range(len(blocks))
-        ], axis=1)
-        e.update(loglik=fit.loglik, acquisition_loglik=fit.loglik_per_acquisition,
-                 converged=fit.converged, n_floored=fit.n_floored,
-                 iterations=fit.iterations)
-        if method == "gs-hierarchical":
-            e["hyper_photoelectrons"], e["hyper_sd_photoelectrons"] = layout.hyperparameters(fit.x)
-        return idx, e
+        models = [AcquisitionModel(sp, job.offsets[a, idx], job.read_noise[a, idx],
+                                   job.em_model, job.dark_frames[a], job.map_groups[a])
+                  for a, sp in enumerate(job.setpoints)]
+        sub = lambda v: None if v is None else v[idx]  # noqa: E731
+        return idx, fit_series(job.method, models, hists, e_per_adu=sub(job.e_per_adu),
+                               e_per_adu_se=sub(job.e_per_adu_se), options=job.options,
+                               intervals=job.intervals)
 
     chunks = [usable[s:s + job.block_size] for s in range(0, usable.size, job.block_size)]
     # Blocks are independent: threads overlap them (NumPy and the FFT release the GIL),
@@ -1058,7 +1026,7 @@ def _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, opt
         )
     bounds = _bounds_of(method, intervals)
     if bounds is not None:
-        _add_bounds(ds, est, grid, *bounds[1:])
+        _add_bounds(ds, est, grid, *bounds)
     return ds
 
 

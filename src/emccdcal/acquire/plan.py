@@ -3,7 +3,7 @@ information of the exact likelihood.
 
 Every frame of an acquisition carries a known amount of information about the
 parameters the calibration estimates: the expected outer product of its scores
-(:func:`emccdcal.fit.engine.expected_information`), the same scores the fit uses. N
+(:meth:`emccdcal.fit.series.SeriesLikelihood.expected_information`), the same scores the fit uses. N
 frames carry N times as much, so the standard error a calibration will report is known
 before a frame is recorded, for any number of frames at each set-point or level:
 
@@ -42,7 +42,7 @@ import numpy as np
 from .. import _files, defaults
 from .._util import check_int, check_number
 from ..errors import OptionError
-from ..fit import engine, layouts
+from ..fit.series import AcquisitionModel, SeriesLikelihood
 from ..model import noise
 
 __all__ = ["Plan", "Acquisition", "plan", "predict", "plan_text", "read_plan", "camera_of",
@@ -167,31 +167,15 @@ class _Design:
         self.setpoints, self.gains, self.light = list(setpoints), list(gains), photoelectrons
         P, A = photoelectrons.shape
         phi, sigma, s0 = camera["e_per_adu"], camera["read_noise"], camera["offset"]
-        blocks = []
-        for a in range(A):
-            E, g = photoelectrons[:, a], gains[a]
-            mean = s0 + E * g / phi
-            var = noise.variance(E, g, phi, s0, sigma, em_model=model)
-            blocks.append(engine.AcquisitionBlock(
-                values=np.zeros((P, 1), dtype=np.int64), counts=np.zeros((P, 1)),
-                offset=np.full(P, s0), read_noise=np.full(P, sigma),
-                poisson_normal=bool(setpoints[a] == 1), mean=np.asarray(mean, float),
-                var=np.asarray(var, float), n=np.ones(P), em_model=model))
-        series = layouts.Series(blocks, np.asarray(setpoints, float), None,
-                                np.full(P, phi))
-        layout, _ = layouts.build_layout(method, series)
-        self.names = layout.names
-        x = np.zeros((P, len(self.names)))
-        for j, name in enumerate(self.names):
-            base, _, index = name.partition("[")
-            a = int(index[:-1]) if index else None
-            x[:, j] = np.log({"ln_photoelectrons": photoelectrons[:, a or 0],
-                              "ln_em_gain": np.full(P, gains[a if a is not None else 0]),
-                              "ln_e_per_adu": np.full(P, phi)}[base])
-        self.info, self.cross = engine.expected_information(layout, blocks, x)
+        models = [AcquisitionModel(s, np.full(P, s0), np.full(P, sigma), model)
+                  for s in setpoints]
+        self.likelihood = SeriesLikelihood(method, models, e_per_adu=phi)
+        x = self.likelihood.point({"photoelectrons": photoelectrons,
+                                   "em_gain": np.asarray(gains, float), "e_per_adu": phi})
+        self.info, self.cross = self.likelihood.expected_information(x)
         self.sigma2 = sigma ** 2
         # parameters each acquisition informs (an empty level's E is not estimated)
-        self.informs = np.abs(layout.matrix).sum(axis=1) > 0  # (A, F)
+        self.informs = self.likelihood.informs  # (A, F)
 
     def covariance(self, frames, dark, level=None):
         """Covariance of the free parameters (C, P, F, F) for allocations ``frames``
@@ -221,10 +205,10 @@ class _Design:
         return cov
 
 
-def _targets(method, names):
+def _targets(design):
     """Indices of the parameters a plan's target is on."""
-    key = "ln_e_per_adu" if method == "is-adu" else "ln_em_gain"
-    return [j for j, n in enumerate(names) if n.partition("[")[0] == key]
+    key = "e_per_adu" if design.method == "is-adu" else "em_gain"
+    return [j for j, p in enumerate(design.likelihood.parameters) if p.quantity == key]
 
 
 def _relative_se(cov, idx):
@@ -426,7 +410,7 @@ def plan(*, method="gs", e_per_adu, read_noise, offset, adc_bits=16, setpoints=(
         light = (top * _IS_FRACTIONS)[None, :]
         lab_setpoints = [s] * len(_IS_FRACTIONS)
     design = _Design(method, lab_setpoints, gains, light, camera, model)
-    targets = _targets(method, design.names)
+    targets = _targets(design)
     dark_cost = len(sps) if method == "gs" else 1
     # From the brightest light down, until the cost has risen twice in a row (it falls
     # with the light per frame wherever the ADC is not in the way).
@@ -529,19 +513,23 @@ def _plan_of(design, level, frames, dark_frames, target_se, frame_rate_hz, max_f
     stacks of no frames are left out."""
     cov = design.covariance(np.asarray(frames, float)[None], np.array([float(dark_frames)]),
                             level=level)[0, 0]
-    se = {name: float(100.0 * math.sqrt(cov[j, j])) for j, name in enumerate(design.names)}
+    lik = design.likelihood
     acqs = []
     for a, (s, g, E, n) in enumerate(zip(design.setpoints, design.gains,
                                          design.light[level], frames)):
         if n <= 0:
             continue
-        mine = {"em_gain": None if s == 1 else se.get(f"ln_em_gain[{a}]", se.get("ln_em_gain")),
-                "photoelectrons": se.get(f"ln_photoelectrons[{a}]",
-                                         se.get("ln_photoelectrons") if s == 1 else None),
-                "e_per_adu": se.get("ln_e_per_adu")}
-        acqs.append(Acquisition(float(s), float(E), int(n), float(g),
-                                {k: v for k, v in mine.items() if v is not None}))
-    worst = float(np.max(_relative_se(cov, _targets(design.method, design.names))))
+        mine = {}
+        for quantity in ("em_gain", "photoelectrons", "e_per_adu"):
+            j = lik.index(quantity, a)
+            # a gain is a multiplied stack's; a shared E is reported with the 1× stack
+            if j is None or (quantity == "em_gain" and s == 1) or (
+                    quantity == "photoelectrons" and lik.parameters[j].acquisition is None
+                    and s != 1):
+                continue
+            mine[quantity] = float(100.0 * math.sqrt(cov[j, j]))
+        acqs.append(Acquisition(float(s), float(E), int(n), float(g), mine))
+    worst = float(np.max(_relative_se(cov, _targets(design))))
     return Plan(design.method, tuple(acqs), int(dark_frames), float(target_se), worst,
                 bool(worst <= target_se * (1 + 1e-9)), dict(design.camera), frame_rate_hz,
                 max_frames)

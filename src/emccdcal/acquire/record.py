@@ -723,8 +723,8 @@ def _running_se(ctx: _Context, stack: Stack, sample_frames: list) -> float:
     """The median relative SE (percent) of the stack's em_gain over the sample pixels,
     from the calibration's own likelihood (gs: with the 1× stack and both darks)."""
     from ..data import stats
-    from ..data.dark import fit_dark, maps_from_dark
-    from ..fit import engine, layouts
+    from ..data.dark import read_out_maps
+    from ..fit.series import AcquisitionModel, fit_series
     from ..model import noise
 
     cam = ctx.plan.camera
@@ -734,31 +734,18 @@ def _running_se(ctx: _Context, stack: Stack, sample_frames: list) -> float:
         ctx.unit_frames = np.concatenate(list(_read_frames(ctx.session.folder / unit.file,
                                                            ctx.sample)))
     frames = [ctx.unit_frames, np.stack(sample_frames)[:, None, :]]
-    maps, dark_frames = [], []
     adc_max = _adc_max(ctx, ctx.unit_frames.dtype)
+    model = noise.as_em_model(cam["em_model"], cam["stages"])
+    models = []
     for sp in (1.0, stack.setpoint):
         dark = _dark_of(ctx, sp)[1]
-        # the calibration's rule: plain maps at 1x, the read-out fitted apart from the
-        # multiplied events of a multiplied dark
-        if sp == 1:
-            maps.append(maps_from_dark(dark))
-        else:
-            fitted = fit_dark(dark, adc_max=adc_max)
-            maps.append((fitted.offset, fitted.read_noise))
-        dark_frames.append(dark.shape[0])
+        offset, read_noise, _ = read_out_maps(dark, sp, adc_max=adc_max)  # as calibrate's
+        models.append(AcquisitionModel(sp, offset.ravel(), read_noise.ravel(), model,
+                                       dark_frames=dark.shape[0]))
     hists = [stats.histograms(f, adc_max=adc_max) for f in frames]
-    model = noise.as_em_model(cam["em_model"], cam["stages"])
-    setpoints = np.array([1.0, stack.setpoint])
-    blocks = layouts.make_blocks(hists, np.stack([m[0].ravel() for m in maps]),
-                                 np.stack([m[1].ravel() for m in maps]), setpoints,
-                                 slice(None), dark_frames, None, model)
-    series = layouts.Series(blocks, setpoints, ["1x", stack.name],
-                            np.full(len(ctx.sample), float(cam["e_per_adu"])))
-    layout, x0 = layouts.build_layout("gs", series)
-    fit = engine.fit(layout, blocks, x0)
-    est = layouts.acquisition_estimates(layout, fit.x, fit.cov)
+    est = fit_series("gs", models, hists, e_per_adu=float(cam["e_per_adu"]), gof_test=False)
     rel = est["em_gain_se"][:, 1] / est["em_gain"][:, 1]
-    rel = rel[np.isfinite(rel) & fit.converged]
+    rel = rel[np.isfinite(rel) & est["converged"]]
     return float(100.0 * np.median(rel)) if rel.size else math.inf
 
 

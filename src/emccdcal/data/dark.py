@@ -26,7 +26,8 @@ from ..errors import InputError
 from ..model import noise
 from . import stats
 
-__all__ = ["as_stack", "maps_from_dark", "fit_dark", "DarkFit", "check_read_noise_growth",
+__all__ = ["as_stack", "maps_from_dark", "fit_dark", "read_out_maps", "DarkFit",
+           "check_read_noise_growth",
            "DEFAULT_CHUNK_ELEMENTS"]
 
 #: Elements (frames × pixels) converted to float64 at a time when streaming a dark
@@ -225,6 +226,23 @@ def fit_dark(stack, *, adc_max=None, sample_pixels=64) -> DarkFit:
 
 #: Pixels fitted together (their FFT windows are held at once).
 _BLOCK_PIXELS = 256
+
+
+def read_out_maps(stack, setpoint, *, adc_max=None):
+    """The offset and read-noise maps (ADU) a calibration uses from a dark stack taken at
+    ``setpoint``, and the rate of multiplied events in it (per pixel per frame, None
+    where there are none).
+
+    At 1× the dark is read-out noise alone: its mean and SD (:func:`maps_from_dark`). A
+    multiplied dark also holds amplified events (spurious charge, dark current), which
+    would inflate an SD: there the read-out is fitted apart from them (:func:`fit_dark`).
+    """
+    if setpoint == 1:
+        offset, read_noise = maps_from_dark(stack)
+        return offset, read_noise, None
+    fitted = fit_dark(stack, adc_max=adc_max)
+    events = None if fitted.event_scale == 0 else fitted.event_rate
+    return fitted.offset, fitted.read_noise, events
 
 
 def take_pixels(h, idx):

@@ -26,7 +26,7 @@ import numpy as np
 
 from .. import _files, identity
 from ..errors import InputError, ManifestError, OptionError, ReadNoiseGrowthWarning
-from .dark import check_read_noise_growth, fit_dark, maps_from_dark
+from .dark import check_read_noise_growth, read_out_maps
 from .stacks import (
     check_counts,
     content_fingerprint,
@@ -721,13 +721,7 @@ def _reduce_dark(r: _Reader, a: AcquisitionEntry, adc_max, hint):
         check_counts(dark, a.dark_path, adc_max=adc_max, adc_bits_hint=hint)
     except InputError as exc:
         raise r.error(str(exc), a.index, a.label) from None
-    if a.em_gain_setpoint == 1:
-        offset, read_noise = maps_from_dark(dark)  # data checked: cannot fail here
-        events = None
-    else:  # multiplied events in the dark: the read-out's maps by the noise model
-        fitted = fit_dark(dark, adc_max=adc_max)
-        offset, read_noise = fitted.offset, fitted.read_noise
-        events = None if fitted.event_scale == 0 else fitted.event_rate
+    offset, read_noise, events = read_out_maps(dark, a.em_gain_setpoint, adc_max=adc_max)
     if np.any(read_noise <= 0):
         bad = describe_first(read_noise, read_noise <= 0, 0)
         raise r.error(f"'{a.dark_path}': dark stack gives read noise {bad} (constant dark "

@@ -28,8 +28,9 @@ import numpy as np
 from .._optimize import maximize, solve
 from ..model import noise
 
-__all__ = ["AcquisitionBlock", "FitResult", "Layout", "fit", "log_likelihood", "profile_bounds",
-           "e_per_adu_sensitivity", "expected_information"]
+__all__ = ["AcquisitionBlock", "FitResult", "Layout", "Parameter", "QUANTITIES", "fit",
+           "log_likelihood", "objective", "profile_bounds", "e_per_adu_sensitivity",
+           "expected_information"]
 
 # Values whose model probability is below this fraction of the pixel's peak are beyond
 # what the FFT resolves (round-off ~1e-16 of the peak): they count at this floor, with
@@ -43,16 +44,17 @@ class AcquisitionBlock:
 
     Attributes
     ----------
-    values, counts : ndarray, shape (P, K)
+    values, counts : ndarray, shape (P, K), or None
         Histogram of each pixel's counts (ADU values, and frames at each; padding has
-        count 0), as :class:`emccdcal.data.stats.PixelHistograms`.
+        count 0), as :class:`emccdcal.data.stats.PixelHistograms`; None in a block of
+        the model alone (:func:`expected_information` needs no data).
     offset, read_noise : ndarray, shape (P,)
         S0 and σ maps (ADU).
     poisson_normal : bool
         True for the 1× acquisition (no EM multiplication).
-    mean, var : ndarray, shape (P,)
+    mean, var : ndarray, shape (P,), or None
         Moments of the counts (ADU, ADU²), for starting values.
-    n : ndarray, shape (P,)
+    n : ndarray, shape (P,), or None
         Frames used.
     offset_var, read_noise_var : ndarray, shape (P,), optional
         Variance of the S0 and σ maps themselves (ADU²), from the dark frames they were
@@ -86,10 +88,30 @@ class AcquisitionBlock:
         """The block restricted to pixels ``idx``."""
         sub = lambda a: None if a is None else a[idx]  # noqa: E731
         return AcquisitionBlock(
-            self.values[idx], self.counts[idx], self.offset[idx], self.read_noise[idx],
-            self.poisson_normal, self.mean[idx], self.var[idx], self.n[idx],
+            sub(self.values), sub(self.counts), self.offset[idx], self.read_noise[idx],
+            self.poisson_normal, sub(self.mean), sub(self.var), sub(self.n),
             sub(self.offset_var), sub(self.read_noise_var), self.map_group, self.em_model,
         )
+
+
+#: The per-acquisition quantities, in the order of the layouts' log-parameters.
+QUANTITIES = ("photoelectrons", "em_gain", "e_per_adu")
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One free parameter of a layout: the logarithm of ``quantity`` (one of
+    :data:`QUANTITIES`) of acquisition ``acquisition``, or shared by the acquisitions
+    that use it (``acquisition`` None)."""
+
+    quantity: str
+    acquisition: int | None = None
+
+    @property
+    def name(self) -> str:
+        """``ln_<quantity>`` or ``ln_<quantity>[a]``: for messages and tables only."""
+        tail = "" if self.acquisition is None else f"[{self.acquisition}]"
+        return f"ln_{self.quantity}{tail}"
 
 
 @dataclass
@@ -102,13 +124,13 @@ class Layout:
 
     Attributes
     ----------
-    names : list of str
-        Names of the free parameters (F).
+    parameters : list of Parameter
+        The free parameters (F).
     lower, upper : ndarray, shape (F,)
         Bounds on ``x``.
     """
 
-    names: list[str]
+    parameters: list[Parameter]
     lower: np.ndarray
     upper: np.ndarray
     matrix: np.ndarray
@@ -120,7 +142,21 @@ class Layout:
 
     @property
     def n_free(self) -> int:
-        return len(self.names)
+        return len(self.parameters)
+
+    @property
+    def names(self) -> list[str]:
+        """The parameters' names (``ln_em_gain[1]`` …), for messages and tables."""
+        return [p.name for p in self.parameters]
+
+    def index(self, quantity: str, acquisition: int | None = None) -> int | None:
+        """The free parameter that sets ``quantity`` of ``acquisition`` (own or shared),
+        or, without an acquisition, the shared one; None where the layout fixes it."""
+        if acquisition is None:
+            return next((j for j, p in enumerate(self.parameters)
+                         if p == Parameter(quantity)), None)
+        moves = np.flatnonzero(self.matrix[acquisition, QUANTITIES.index(quantity)])
+        return int(moves[0]) if moves.size == 1 else None
 
     def native(self, x):
         """Log-parameters (P, A, 3) and their Jacobian (P, A, 3, F)."""
@@ -458,6 +494,12 @@ def expected_information(layout, blocks, x):
 def log_likelihood(layout, blocks, x):
     """Log-likelihood (P,) of free parameters ``x`` (P, F), nats; no prior."""
     return _evaluate(layout, blocks, x, 0)[1]
+
+
+def objective(layout, blocks, x):
+    """Log-likelihood plus the layout's log prior (P,) at ``x`` (P, F), nats: what
+    :func:`fit` maximises."""
+    return _evaluate(layout, blocks, x, 0)[0]
 
 
 def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance=True):

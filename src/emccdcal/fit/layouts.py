@@ -26,8 +26,7 @@ import numpy as np
 from .. import defaults
 from ..errors import MethodError, OptionError
 from . import engine
-from ..model import noise
-from .engine import AcquisitionBlock, Layout
+from .engine import Layout, Parameter
 
 __all__ = [
     "LIKELIHOOD_METHODS",
@@ -203,25 +202,49 @@ def _clip_log(value, name):
 # --------------------------------------------------------------------------------------
 # Layouts
 # --------------------------------------------------------------------------------------
-def _intensity_series(shared, start, photoelectrons, const):
+def _intensity_layout(shared, A, const):
     """Layout of an intensity series: one ``shared`` parameter (``e_per_adu`` or
-    ``em_gain``) and one E per level; ``x = [ln shared, ln E_1 … ln E_A]``.
-
-    ``start`` (P,) and ``photoelectrons`` (A, P) are the starting values, ``const``
-    (P, A, 3) the fixed log-parameters.
-    """
-    A = photoelectrons.shape[0]
+    ``em_gain``) and one E per level; ``x = [ln shared, ln E_1 … ln E_A]``; ``const``
+    (P, A, 3) the fixed log-parameters."""
     col = {"em_gain": 1, "e_per_adu": 2}[shared]
     M = np.zeros((A, 3, 1 + A))
     M[:, col, 0] = 1.0
     M[np.arange(A), 0, 1 + np.arange(A)] = 1.0
-    x0 = np.column_stack([_clip_log(start, shared)]
-                         + [_clip_log(e, "photoelectrons") for e in photoelectrons])
-    names = [f"ln_{shared}"] + [f"ln_photoelectrons[{a}]" for a in range(A)]
+    params = [Parameter(shared)] + [Parameter("photoelectrons", a) for a in range(A)]
     lo_e, hi_e = np.log(BOUNDS["photoelectrons"])
     lower = np.r_[np.log(BOUNDS[shared][0]), np.full(A, lo_e)]
     upper = np.r_[np.log(BOUNDS[shared][1]), np.full(A, hi_e)]
-    return Layout(names, lower, upper, M, const), x0
+    return Layout(params, lower, upper, M, const)
+
+
+def _gain_series_layout(setpoints, const):
+    """Layout of a gain series with one E: ``x = [ln E, ln g_a of the EM acquisitions]``."""
+    em = np.flatnonzero(setpoints != 1)
+    A, F = setpoints.size, 1 + em.size
+    M = np.zeros((A, 3, F))
+    M[:, 0, 0] = 1.0
+    M[em, 1, 1 + np.arange(em.size)] = 1.0
+    params = [Parameter("photoelectrons")] + [Parameter("em_gain", a) for a in em]
+    log_b = {k: np.log(v) for k, v in BOUNDS.items()}
+    lower = np.r_[log_b["photoelectrons"][0], np.full(em.size, log_b["em_gain"][0])]
+    upper = np.r_[log_b["photoelectrons"][1], np.full(em.size, log_b["em_gain"][1])]
+    return Layout(params, lower, upper, M, const)
+
+
+def layout_of(method, setpoints, e_per_adu, n_pixels):
+    """The parameter layout of a method for ``n_pixels`` pixels, without data (φ (P,) in
+    e⁻/ADU where the method holds it fixed). The hierarchical gain series, whose prior
+    is centred on its data, has none without them (:func:`build_layout`)."""
+    sp = np.asarray(setpoints, dtype=float)
+    const = np.zeros((n_pixels, sp.size, 3))
+    if method != "is-adu":
+        const[:, :, 2] = np.log(e_per_adu)[:, None]
+    if method in ("is-adu", "is-gain"):
+        return _intensity_layout("e_per_adu" if method == "is-adu" else "em_gain", sp.size,
+                                 const)
+    if method in ("gs", "gs-no1x"):
+        return _gain_series_layout(sp, const)
+    raise MethodError(f"method {method!r} has no layout without its data")
 
 
 def build_layout(method, series, options=None):
@@ -233,27 +256,29 @@ def build_layout(method, series, options=None):
     x0 : ndarray, shape (P, F)
     """
     options = check_options(method, options)
-    blocks, sp = series.blocks, series.setpoints
+    blocks, sp = series.blocks, np.asarray(series.setpoints, dtype=float)
     A = len(blocks)
     P = blocks[0].values.shape[0]
     log_b = {k: np.log(v) for k, v in BOUNDS.items()}
+    phi = series.e_per_adu
 
     if method == "is-adu":
         signal = np.stack([_signal(b) for b in blocks])
         excess = np.stack([np.maximum(b.var - b.read_noise**2, 1e-6) for b in blocks])
         phi0 = signal.sum(axis=0) / excess.sum(axis=0)  # photon transfer through origin
-        return _intensity_series("e_per_adu", phi0, signal * phi0, np.zeros((P, A, 3)))
+        x0 = np.column_stack([_clip_log(phi0, "e_per_adu")]
+                             + [_clip_log(e, "photoelectrons") for e in signal * phi0])
+        return layout_of(method, sp, phi, P), x0
 
-    phi = series.e_per_adu
     if method == "is-gain":
         theta = np.stack([
             np.maximum(b.var - b.read_noise**2, 1e-6) / (2.0 * _signal(b)) for b in blocks
         ])
         g0 = np.exp(np.median(np.log(theta), axis=0)) * phi
-        const = np.zeros((P, A, 3))
-        const[:, :, 2] = np.log(phi)[:, None]
         E0 = np.stack([_signal(b) * phi / g0 for b in blocks])
-        return _intensity_series("em_gain", g0, E0, const)
+        x0 = np.column_stack([_clip_log(g0, "em_gain")]
+                             + [_clip_log(e, "photoelectrons") for e in E0])
+        return layout_of(method, sp, phi, P), x0
 
     # Gain series: E from the 1× acquisition where there is one, else from the shapes.
     em = np.flatnonzero(sp != 1)
@@ -264,20 +289,10 @@ def build_layout(method, series, options=None):
     g0 = [_signal(blocks[a]) * phi / E0 for a in em]
 
     if method in ("gs", "gs-no1x"):
-        # x = [ln E, ln g_a for the EM acquisitions]
-        F = 1 + em.size
-        M = np.zeros((A, 3, F))
-        M[:, 0, 0] = 1.0
-        M[em, 1, 1 + np.arange(em.size)] = 1.0
-        const = np.zeros((P, A, 3))
-        const[:, :, 2] = np.log(phi)[:, None]
         x0 = np.column_stack(
             [_clip_log(E0, "photoelectrons")] + [_clip_log(g, "em_gain") for g in g0]
         )
-        names = ["ln_photoelectrons"] + [f"ln_em_gain[{a}]" for a in em]
-        lower = np.r_[log_b["photoelectrons"][0], np.full(em.size, log_b["em_gain"][0])]
-        upper = np.r_[log_b["photoelectrons"][1], np.full(em.size, log_b["em_gain"][1])]
-        return Layout(names, lower, upper, M, const), x0
+        return layout_of(method, sp, phi, P), x0
 
     if method == "gs-hierarchical":
         mu_sd, sigma_sd = options["mu_sd"], options["sigma_sd"]
@@ -305,8 +320,8 @@ def build_layout(method, series, options=None):
         const = np.zeros((P, A, 3))
         const[:, :, 2] = np.log(phi)[:, None]
         layout = HierarchicalLayout(
-            names=[f"ln_photoelectrons[{a}]" for a in range(A)]
-            + [f"ln_em_gain[{a}]" for a in em],
+            parameters=[Parameter("photoelectrons", a) for a in range(A)]
+            + [Parameter("em_gain", a) for a in em],
             lower=np.r_[np.full(A, log_b["photoelectrons"][0]), np.full(em.size, log_b["em_gain"][0])],
             upper=np.r_[np.full(A, log_b["photoelectrons"][1]), np.full(em.size, log_b["em_gain"][1])],
             matrix=M,
@@ -510,7 +525,7 @@ def unpooled_bounds(layout, blocks, fit, level=0.95, weak_se=0.1):
         own = np.flatnonzero(np.any(layout.matrix[a] != 0, axis=0))
         if np.any(np.delete(layout.matrix, a, axis=0)[:, :, own]):
             raise OptionError("unpooled bounds need parameters of one acquisition each")
-        alone = Layout([layout.names[f] for f in own], layout.lower[own], layout.upper[own],
+        alone = Layout([layout.parameters[f] for f in own], layout.lower[own], layout.upper[own],
                        layout.matrix[a : a + 1][:, :, own], layout.constant[:, a : a + 1])
         free = engine.fit(alone, [block], fit.x[:, own])
         se = np.sqrt(np.einsum("pff->pf", free.cov))
@@ -542,36 +557,3 @@ def _bounds_of_x(layout, lower, upper):
             out[f"{name}_lower"][:, a] = np.exp(layout.constant[:, a, k] + lower[:, j])
             out[f"{name}_upper"][:, a] = np.exp(layout.constant[:, a, k] + upper[:, j])
     return out
-
-
-def make_blocks(histograms, offsets, read_noises, setpoints, idx, dark_frames=None, map_groups=None,
-                em_model=None):
-    """AcquisitionBlocks of pixels ``idx`` from per-acquisition statistics.
-
-    ``em_model`` (:class:`emccdcal.model.noise.EMModel`) is the register model of the
-    multiplied acquisitions (default the paper's gamma model).
-    ``dark_frames`` (one int or None per acquisition) gives the maps' own variances:
-    σ²/n for the offset (the SE of a mean) and σ²/(2(n−1)) for the read noise (of an SD),
-    ADU²; ``map_groups`` says which acquisitions share a pair of maps.
-    """
-    A = len(histograms)
-    dark_frames = [None] * A if dark_frames is None else dark_frames
-    map_groups = [None] * A if map_groups is None else map_groups
-    blocks = []
-    for h, s0, rn, sp, nd, grp in zip(histograms, offsets, read_noises, setpoints, dark_frames, map_groups):
-        counts = h.counts[idx]
-        # Only the bins some pixel of the block uses: the block's data, and so its fit, do
-        # not depend on which other pixels were histogrammed with it.
-        width = counts.shape[1] - int(np.argmax((counts != 0).any(axis=0)[::-1])) if counts.size else 0
-        values, counts = h.values[idx, :width], counts[:, :width]
-        sigma2 = rn[idx] ** 2
-        blocks.append(
-            AcquisitionBlock(
-                values=values, counts=counts, offset=s0[idx], read_noise=rn[idx],
-                poisson_normal=bool(sp == 1), mean=h.mean[idx], var=h.var[idx], n=h.n[idx],
-                offset_var=None if nd is None else sigma2 / nd,
-                read_noise_var=None if nd is None else sigma2 / (2.0 * (nd - 1)),
-                map_group=grp, em_model=em_model or noise.EMModel(),
-            )
-        )
-    return blocks

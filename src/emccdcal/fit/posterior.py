@@ -1,9 +1,9 @@
 """Posterior sampling of single pixels (``emccdcal posterior``): MCMC with honest diagnostics.
 
 For each requested pixel the method's acquisitions are read for that pixel alone, the
-engine's maximum-likelihood fit (:func:`emccdcal.fit.engine.fit`) gives a start, and an
-affine-invariant ensemble sampler (:class:`emcee.EnsembleSampler`) explores the free
-parameters of the method's layout (:func:`emccdcal.fit.layouts.build_layout`).
+maximum-likelihood fit of the method's likelihood
+(:class:`emccdcal.fit.series.SeriesLikelihood`) gives a start, and an affine-invariant
+ensemble sampler (:class:`emcee.EnsembleSampler`) explores its free parameters.
 
 Prior
 -----
@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import json
 import math
-import re
 import time
 import warnings
 from pathlib import Path
@@ -51,7 +50,8 @@ from ..data import stats
 from ..data.manifest import Manifest, read_manifest
 from ..errors import MethodError, NotConvergedError, OptionError
 from ..model import noise
-from . import engine, layouts
+from . import layouts
+from .series import AcquisitionModel, SeriesLikelihood
 
 if TYPE_CHECKING:
     import xarray
@@ -113,9 +113,9 @@ def _check_pixels(pixels, shape):
     return out
 
 
-def _pixel_series(manifest, used, method, row, col, phi_map, options, em_model=None):
-    """Blocks, layout and starting values of one pixel (the calibrate pipeline, P = 1)."""
-    hists = []
+def _pixel_series(manifest, used, method, row, col, phi_map, options, em_model):
+    """The method's likelihood of one pixel (the calibrate pipeline, P = 1)."""
+    hists, models = [], []
     for acq in used:
         frames = acq.frames()[:, row:row + 1, col:col + 1]
         h = stats.histograms(frames, adc_max=manifest.adc_max)
@@ -128,38 +128,27 @@ def _pixel_series(manifest, used, method, row, col, phi_map, options, em_model=N
         if np.any(h.n < 2):
             raise OptionError(f"{acq.frames_path}: fewer than 2 usable frames at pixel ({row}, {col})")
         hists.append(h)
-    offsets = np.stack([[a.offset[row, col]] for a in used])
-    read_noise = np.stack([[a.read_noise[row, col]] for a in used])
-    setpoints = np.array([a.em_gain_setpoint for a in used])
-    idx = np.array([0])
-    blocks = layouts.make_blocks(hists, offsets, read_noise, setpoints, idx,
-                                 em_model=em_model)
-    labels = [a.level if a.level is not None else a.name for a in used]
+        models.append(AcquisitionModel(acq.em_gain_setpoint, acq.offset[row, col:col + 1],
+                                       acq.read_noise[row, col:col + 1], em_model))
     phi = None if phi_map is None else np.array([phi_map[row, col]])
-    series = layouts.Series(blocks, setpoints, labels, phi)
-    layout, x0 = layouts.build_layout(method, series, options)
-    return blocks, layout, x0
+    return SeriesLikelihood(method, models, hists, e_per_adu=phi, options=options)
 
 
-def _physical_names(layout, used, method):
+def _physical_names(lik, used, method):
     """Physical names and units of the free parameters (all are exp(x))."""
     names, units = [], []
-    for name in layout.names:
-        m = re.fullmatch(r"ln_(\w+?)(?:\[(\d+)\])?", name)
-        if m is None or m.group(1) not in _UNITS:
-            raise OptionError(f"posterior sampling does not know the parameter {name!r}")
-        quantity, a = m.group(1), m.group(2)
-        if a is None:
-            label = quantity
+    for p in lik.parameters:
+        if p.acquisition is None:
+            label = p.quantity
         else:
-            acq = used[int(a)]
+            acq = used[p.acquisition]
             if method.startswith("is-"):
                 tag = acq.level if acq.level is not None else acq.name
             else:
                 tag = f"{acq.em_gain_setpoint:g}x"
-            label = f"{quantity}[{tag}]"
+            label = f"{p.quantity}[{tag}]"
         names.append(label)
-        units.append(_UNITS[quantity])
+        units.append(_UNITS[p.quantity])
     return names, units
 
 
@@ -169,26 +158,25 @@ def _physical_names(layout, used, method):
 class _LogPosterior:
     """Vectorised log posterior of one pixel: rows of x (n, F) → (n,), nats."""
 
-    def __init__(self, layout, blocks, prior):
-        self.layout, self.blocks, self.prior = layout, blocks, prior
+    def __init__(self, likelihood, prior):
+        self.likelihood, self.prior = likelihood, prior
+        self.lower, self.upper = likelihood.bounds
         self._cache = {}
         self.calls = 0
 
     def _replicated(self, n):
         if n not in self._cache:
-            rep = np.zeros(n, dtype=int)
-            self._cache[n] = (self.layout.subset(rep), [b.take(rep) for b in self.blocks])
+            self._cache[n] = self.likelihood.take(np.zeros(n, dtype=int))
         return self._cache[n]
 
     def __call__(self, x):
         x = np.atleast_2d(np.asarray(x, dtype=float))
         self.calls += 1
-        layout, blocks = self._replicated(x.shape[0])
-        inside = np.all((x >= self.layout.lower) & (x <= self.layout.upper), axis=1)
+        inside = np.all((x >= self.lower) & (x <= self.upper), axis=1)
         inside &= np.all(np.isfinite(x), axis=1)
-        xc = np.clip(np.nan_to_num(x), self.layout.lower, self.layout.upper)
+        xc = np.clip(np.nan_to_num(x), self.lower, self.upper)
         with np.errstate(all="ignore"):
-            obj = engine._evaluate(layout, blocks, xc, 0)[0]
+            obj = self._replicated(x.shape[0]).objective(xc)
         if self.prior == "uniform":
             obj = obj + x.sum(axis=1)  # flat in θ = exp(x): p(x) ∝ Π exp(x_f)
         return np.where(inside & np.isfinite(obj), obj, -np.inf)
@@ -263,7 +251,7 @@ def _sample_pixel(logp, x_hat, cov, n_walkers, first_steps, max_steps, min_ess, 
         # A ball shaped like the Laplace approximation, shrunk by INIT_SCALE.
         L = np.linalg.cholesky(cov + 1e-300 * np.eye(F))
         start = x_hat + INIT_SCALE * rng.standard_normal((n_walkers, F)) @ L.T
-    start = np.clip(start, logp.layout.lower, logp.layout.upper)
+    start = np.clip(start, logp.lower, logp.upper)
     sampler = emcee.EnsembleSampler(n_walkers, F, logp, vectorize=True, moves=_moves())
     sampler.random_state = np.random.RandomState(rng.integers(2**32 - 1)).get_state()
     steps = min(first_steps, max_steps)
@@ -410,22 +398,21 @@ def sample_posterior(
     for row, col in pixels:
         t_pixel = time.perf_counter()
         where = f"{method} pixel ({row}, {col})"
-        blocks, layout, x0 = _pixel_series(manifest, used, method, row, col, phi_map, options,
-                                           model)
+        lik = _pixel_series(manifest, used, method, row, col, phi_map, options, model)
         if names is None:
-            names, units = _physical_names(layout, used, method)
-        F = layout.n_free
+            names, units = _physical_names(lik, used, method)
+        F = len(lik.parameters)
         W = int(n_walkers) if n_walkers is not None else max(32, 4 * F)
         if W < 2 * F or W % 2:
             raise OptionError(f"n_walkers must be even and at least {2 * F} (twice the {F} free "
                              f"parameters of {method}), got {n_walkers}")
-        fit = engine.fit(layout, blocks, x0)
+        fit = lik.fit()
         if not fit.converged[0]:
             warnings.warn(f"{where}: the maximum-likelihood fit did not converge; "
                           "sampling starts from its last point", stacklevel=2)
         x_hat, cov = fit.x[0], fit.cov[0]
         rng = np.random.default_rng(np.random.SeedSequence([int(seed), row, col]))
-        logp = _LogPosterior(layout, blocks, prior)
+        logp = _LogPosterior(lik, prior)
         first = DEFAULT_FIRST_STEPS if n_steps is None else int(n_steps)
         sampler, d = _sample_pixel(logp, x_hat, cov, W, first, int(max_steps), int(min_ess),
                                    rng, progress, where)

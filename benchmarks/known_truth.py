@@ -2,7 +2,8 @@
 the statistics that judge estimates against the truth.
 
 Used by the test suite (every method must recover the truth) and by the studies in
-``benchmarks/`` (coverage, profile intervals), so that both judge alike.
+``benchmarks/`` (coverage, profile intervals), so that both judge alike; not part of
+the package (the tests find it through pytest's ``pythonpath``).
 :data:`CAMERAS` are the paper's ProEM and a camera with a large φ and read noise;
 :func:`simulate_camera` writes a gain series, a 1× and an EM intensity series of one,
 with manifests that carry the true offset and read-noise maps. As in the paper's own
@@ -17,9 +18,9 @@ import re
 
 import numpy as np
 
-from .. import defaults
-from ..fit import layouts
-from .series import simulate_gain_series, simulate_intensity_series
+from emccdcal import defaults
+from emccdcal.fit import layouts
+from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
 
 __all__ = ["CAMERAS", "ROWS", "COLS", "FRAMES", "STUDY_REGISTER", "simulate_camera",
            "truth_manifest",

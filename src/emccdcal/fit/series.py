@@ -1,0 +1,262 @@
+"""The one door to the likelihood engine: a method's likelihood over a block of pixels.
+
+Every caller that fits a series or asks what a series would tell (``calibrate``, the
+posterior sampler, ``acquire``'s running fit, ``plan``) describes it the same way and goes
+through :class:`SeriesLikelihood`:
+
+- each acquisition's **model half**, :class:`AcquisitionModel`: its set-point, the
+  register model (one :class:`emccdcal.model.noise.EMModel` value), the offset and
+  read-noise maps of the block's pixels and how well they are known;
+- its **data half**, the pixels' histograms (:class:`emccdcal.data.stats.PixelHistograms`),
+  or none at all where only the model's expected information is wanted (a plan);
+- the method, and φ where the method holds it fixed.
+
+The parameters are named records (:class:`emccdcal.fit.engine.Parameter`), looked up by
+quantity and acquisition (:meth:`SeriesLikelihood.index`), never by parsing a name.
+How the engine's blocks and layouts are built is private to :mod:`emccdcal.fit`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..model import noise
+from . import engine, gof, layouts
+from .engine import QUANTITIES, Parameter
+
+__all__ = ["AcquisitionModel", "Parameter", "SeriesLikelihood", "fit_series"]
+
+
+@dataclass(frozen=True)
+class AcquisitionModel:
+    """The model half of one acquisition for a block of P pixels.
+
+    Attributes
+    ----------
+    setpoint : float
+        The EM-gain set-point; 1 means no multiplication (the Poisson–normal model).
+    offset, read_noise : ndarray, shape (P,)
+        S0 and σ of the pixels (ADU).
+    em_model : noise.EMModel
+        The register model of a multiplied acquisition.
+    dark_frames : int, optional
+        Frames of the dark stack the maps come from: their own variances are σ²/n for
+        the offset (the SE of a mean) and σ²/(2(n−1)) for the read noise (of an SD),
+        ADU²; None for maps taken as exact.
+    map_group : hashable, optional
+        Acquisitions of one group share one pair of maps (one dark stack), so their map
+        errors are one draw.
+    """
+
+    setpoint: float
+    offset: np.ndarray
+    read_noise: np.ndarray
+    em_model: noise.EMModel
+    dark_frames: int | None = None
+    map_group: object = None
+
+    def _block(self, histograms=None) -> engine.AcquisitionBlock:
+        """The engine's block of this acquisition, with its data where given."""
+        sigma2 = self.read_noise**2
+        n_dark = self.dark_frames
+        maps = dict(offset=self.offset, read_noise=self.read_noise,
+                    poisson_normal=bool(self.setpoint == 1), map_group=self.map_group,
+                    em_model=self.em_model,
+                    offset_var=None if n_dark is None else sigma2 / n_dark,
+                    read_noise_var=None if n_dark is None else sigma2 / (2.0 * (n_dark - 1)))
+        if histograms is None:
+            return engine.AcquisitionBlock(values=None, counts=None, mean=None, var=None,
+                                           n=None, **maps)
+        h = histograms
+        # Only the bins some pixel uses: the block's data, and so its fit, do not depend
+        # on which other pixels were histogrammed with it.
+        used = (h.counts != 0).any(axis=0)
+        width = h.counts.shape[1] - int(np.argmax(used[::-1])) if h.counts.size else 0
+        return engine.AcquisitionBlock(values=h.values[:, :width], counts=h.counts[:, :width],
+                                       mean=h.mean, var=h.var, n=h.n, **maps)
+
+
+class SeriesLikelihood:
+    """A method's likelihood of a series over a block of P pixels.
+
+    Parameters
+    ----------
+    method : str
+        A likelihood method (:data:`emccdcal.fit.layouts.LIKELIHOOD_METHODS`).
+    models : sequence of AcquisitionModel
+        The acquisitions the method uses, in order.
+    histograms : sequence of emccdcal.data.stats.PixelHistograms, optional
+        Each acquisition's data, P pixels each. Without them only what needs no data is
+        available (:meth:`expected_information`, :meth:`point`); the hierarchical gain
+        series, whose prior is centred on its data, needs them.
+    e_per_adu : array_like, shape (P,) or scalar, optional
+        φ (e⁻/ADU) where the method holds it fixed.
+    options : dict, optional
+        The method's options (:func:`emccdcal.fit.layouts.check_options`).
+
+    Examples
+    --------
+    What one frame of a 1× and a 10× acquisition tells about the gain (no data needed):
+
+    >>> from emccdcal.model.noise import EMModel
+    >>> m = [AcquisitionModel(s, np.array([100.0]), np.array([5.0]), EMModel("gamma"))
+    ...      for s in (1, 10)]
+    >>> lik = SeriesLikelihood("gs", m, e_per_adu=2.0)
+    >>> [p.name for p in lik.parameters]
+    ['ln_photoelectrons', 'ln_em_gain[1]']
+    >>> lik.index("em_gain", 1), lik.index("em_gain", 0)
+    (1, None)
+    """
+
+    def __init__(self, method, models, histograms=None, *, e_per_adu=None, options=None):
+        self.method = method
+        self.models = list(models)
+        P = np.shape(self.models[0].offset)[0]
+        data = [None] * len(self.models) if histograms is None else list(histograms)
+        self.blocks = [m._block(h) for m, h in zip(self.models, data)]
+        setpoints = np.array([float(m.setpoint) for m in self.models])
+        phi = None if e_per_adu is None else np.broadcast_to(
+            np.asarray(e_per_adu, dtype=float), (P,))
+        self.e_per_adu = phi
+        if histograms is None:
+            self.layout, self.start = layouts.layout_of(method, setpoints, phi, P), None
+        else:
+            series = layouts.Series(self.blocks, setpoints, None, phi)
+            self.layout, self.start = layouts.build_layout(method, series, options)
+
+    @classmethod
+    def _of(cls, method, models, blocks, layout, start, e_per_adu):
+        lik = cls.__new__(cls)
+        lik.method, lik.models, lik.blocks = method, models, blocks
+        lik.layout, lik.start, lik.e_per_adu = layout, start, e_per_adu
+        return lik
+
+    # ---- the parameters --------------------------------------------------------------
+    @property
+    def parameters(self) -> list[Parameter]:
+        """The free parameters, in the order of ``x``'s columns."""
+        return list(self.layout.parameters)
+
+    def index(self, quantity: str, acquisition: int | None = None) -> int | None:
+        """Column of the free parameter that sets ``quantity`` of ``acquisition`` (own or
+        shared); without an acquisition, the shared one; None where the method fixes it."""
+        return self.layout.index(quantity, acquisition)
+
+    @property
+    def informs(self) -> np.ndarray:
+        """Which free parameters each acquisition's data inform (A, F)."""
+        return np.abs(self.layout.matrix).sum(axis=1) > 0
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper bounds of ``x`` (F,), logs of the quantities."""
+        return self.layout.lower, self.layout.upper
+
+    def point(self, values) -> np.ndarray:
+        """``x`` (P, F) of given quantities: ``values`` maps a quantity to its value for
+        every pixel and acquisition (broadcast to (P, A)); a shared parameter takes the
+        value of the first acquisition it moves."""
+        P, A = self.layout.constant.shape[:2]
+        x = np.zeros((P, self.layout.n_free))
+        for j, p in enumerate(self.parameters):
+            a = p.acquisition
+            if a is None:
+                a = int(np.flatnonzero(self.layout.matrix[:, QUANTITIES.index(p.quantity), j])[0])
+            x[:, j] = np.log(np.broadcast_to(np.asarray(values[p.quantity], float), (P, A))[:, a])
+        return x
+
+    def take(self, idx) -> SeriesLikelihood:
+        """The same likelihood for pixels ``idx`` (repeats allowed)."""
+        sub = lambda a: None if a is None else a[idx]  # noqa: E731
+        return self._of(self.method, self.models, [b.take(idx) for b in self.blocks],
+                        self.layout.subset(idx), sub(self.start), sub(self.e_per_adu))
+
+    # ---- evaluation ----------------------------------------------------------------------
+    def objective(self, x) -> np.ndarray:
+        """Log-likelihood plus the layout's own log prior (P,), nats: what :meth:`fit`
+        maximises."""
+        return engine.objective(self.layout, self.blocks, x)
+
+    def fit(self, **options) -> engine.FitResult:
+        """The maximum-likelihood (or, with a prior, MAP) fit of every pixel from the
+        method's starting values (:func:`emccdcal.fit.engine.fit`'s options)."""
+        return engine.fit(self.layout, self.blocks, self.start, **options)
+
+    def expected_information(self, x):
+        """Per-frame Fisher information of ``x`` (P, A, F, F) and its cross information
+        with the (offset, read noise) maps (P, A, F, 2): from the models alone."""
+        return engine.expected_information(self.layout, self.blocks, x)
+
+    # ---- what a calibration reports ------------------------------------------------------
+    def estimates(self, fit, *, e_per_adu_se=None, intervals=None, gof_test=True) -> dict:
+        """E, g and φ of every acquisition with their standard errors, and with them
+        each acquisition's goodness of fit, the log-likelihoods and convergence.
+
+        Parameters
+        ----------
+        fit : emccdcal.fit.engine.FitResult
+            This likelihood's :meth:`fit`.
+        e_per_adu_se : ndarray, shape (P,), optional
+            The SE of a given φ (e⁻/ADU): its error moves every E and g of a pixel
+            together, and is added to their covariance.
+        intervals : str, optional
+            ``"profile"``: profile-likelihood bounds ``<name>_lower``/``_upper``; the
+            hierarchical gain series always gets those of its unpooled model.
+        gof_test : bool
+            Each acquisition's goodness-of-fit p-value (``gof_pvalue``).
+
+        Returns
+        -------
+        dict of ndarray
+            ``photoelectrons``, ``em_gain``, ``e_per_adu`` and ``<name>_se`` (P, A);
+            ``gof_pvalue``, ``acquisition_loglik`` (P, A); ``loglik``, ``converged``,
+            ``n_floored``, ``iterations`` (P,); the hierarchical model's
+            ``hyper_photoelectrons`` and ``hyper_sd_photoelectrons`` (P,).
+        """
+        layout, blocks = self.layout, self.blocks
+        cov = fit.cov
+        if e_per_adu_se is not None:  # φ's own error moves every E and g together
+            sens = engine.e_per_adu_sensitivity(layout, blocks, fit.x)
+            rel_var = (np.asarray(e_per_adu_se, float) / self.e_per_adu) ** 2
+            cov = cov + rel_var[:, None, None] * sens[:, :, None] * sens[:, None, :]
+        e = layouts.acquisition_estimates(layout, fit.x, cov)
+        if self.e_per_adu is not None:  # φ given: its error is known only when chained
+            se = np.nan if e_per_adu_se is None else np.asarray(e_per_adu_se, float)[:, None]
+            e["e_per_adu_se"] = np.broadcast_to(se, e["e_per_adu"].shape).copy()
+        if intervals == "profile":
+            e.update(layouts.acquisition_bounds(layout, blocks, fit))
+        elif self.method == "gs-hierarchical":
+            e.update(layouts.unpooled_bounds(layout, blocks, fit))
+        if gof_test:
+            e["gof_pvalue"] = self._gof(fit, e)
+        e.update(loglik=fit.loglik, acquisition_loglik=fit.loglik_per_acquisition,
+                 converged=fit.converged, n_floored=fit.n_floored, iterations=fit.iterations)
+        if self.method == "gs-hierarchical":
+            e["hyper_photoelectrons"], e["hyper_sd_photoelectrons"] = \
+                layout.hyperparameters(fit.x)
+        return e
+
+    def _gof(self, fit, e):
+        """Each acquisition's goodness-of-fit p-value (P, A); a free parameter shared by
+        k acquisitions counts 1/k towards each one's fitted-parameter number."""
+        touches = np.any(self.layout.matrix != 0, axis=1)  # (A, F)
+        n_fitted = (touches / np.maximum(touches.sum(axis=0), 1)).sum(axis=1)
+        # no test where the fit found no finite likelihood (its parameters fit nothing)
+        tested = np.where(np.isfinite(fit.loglik), 1.0, np.nan)
+        return np.stack([
+            gof.gof_pvalues(b, e["photoelectrons"][:, a] * tested, e["em_gain"][:, a],
+                            e["e_per_adu"][:, a], b.offset, b.read_noise,
+                            n_fitted_params=float(n_fitted[a]), em_model=b.em_model)[0]
+            for a, b in enumerate(self.blocks)
+        ], axis=1)
+
+
+def fit_series(method, models, histograms, *, e_per_adu=None, e_per_adu_se=None,
+               options=None, intervals=None, gof_test=True) -> dict:
+    """Fit a series and report it: :meth:`SeriesLikelihood.fit`, then
+    :meth:`SeriesLikelihood.estimates` (see those for the arguments and the result)."""
+    lik = SeriesLikelihood(method, models, histograms, e_per_adu=e_per_adu, options=options)
+    return lik.estimates(lik.fit(), e_per_adu_se=e_per_adu_se, intervals=intervals,
+                         gof_test=gof_test)
