@@ -4,7 +4,6 @@ file is written through one atomic writer."""
 from __future__ import annotations
 
 import ast
-import importlib
 import os
 import stat
 import subprocess
@@ -57,7 +56,7 @@ def _top(module):
 
 @pytest.mark.parametrize("sub", sorted(ALLOWED))
 def test_imports_run_one_way(sub):
-    allowed = ALLOWED[sub] | {sub, "errors", "defaults", "identity", "_files", "_util", "_output", "_optimize", "",
+    allowed = ALLOWED[sub] | {sub, "errors", "defaults", "identity", "_files", "_util", "_output", "_optimize", "plugins", "",
                               "__version__"}
     for path in (SRC / sub).rglob("*.py"):
         bad = {m for m in _imports(path) if _top(m) not in allowed}
@@ -134,20 +133,25 @@ def test_dir_shows_the_api_only_and_the_stub_names_it():
 
 
 def test_every_reader_registers_itself_once():
+    """The package's readers are its entry points of ``emccdcal.readers`` (as another
+    package's would be): every reader module is one, no suffix is claimed twice, and no
+    other module lists a format."""
+    from emccdcal import plugins
     from emccdcal.data import stacks
 
     modules = {p.stem for p in (SRC / "data").glob("*.py")
                if "\nSUFFIXES = " in p.read_text()}
-    assert modules == set(stacks._READER_MODULES)
-    suffixes = [s for m in stacks._READER_MODULES
-                for s in importlib.import_module(f"emccdcal.data.{m}").SUFFIXES]
+    readers = plugins.load(plugins.READERS)
+    own = {r.__name__.rsplit(".", 1)[-1] for r in readers.values()
+           if r.__name__.startswith("emccdcal.")}
+    assert modules == own
+    suffixes = [s for r in readers.values() for s in r.SUFFIXES]
     assert tuple(suffixes) == stacks.STACK_SUFFIXES and len(set(suffixes)) == len(suffixes)
-    for name in stacks._READER_MODULES:
-        module = importlib.import_module(f"emccdcal.data.{name}")
-        assert callable(module.header) and callable(module.settings), name
+    for reader in readers.values():
+        assert callable(reader.header) and callable(reader.settings), reader
     # nothing else lists formats by hand
     for path in SRC.rglob("*.py"):
-        if path.name not in {"stacks.py", *(f"{m}.py" for m in stacks._READER_MODULES)}:
+        if path.name not in {"stacks.py", *(f"{m}.py" for m in own)}:
             assert '".spe"' not in path.read_text(), path
 
 

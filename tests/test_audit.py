@@ -205,7 +205,7 @@ def test_files_that_are_no_tools_camera_are_one_line(calibration, tmp_path, caps
     junk = tmp_path / "notes.yaml"
     junk.write_text("hello: world\n")
     with pytest.raises(InputError, match=r"notes\.yaml': not a camera file of a tool "
-                                         r"emccdcal knows \(Picasso, ThunderSTORM"):
+                                         r"emccdcal knows \(DECODE, gdsc-smlm, Picasso"):
         audit(junk, calibration, setpoint=SETPOINT)
     bad = tmp_path / "config.yaml"
     bad.write_text('Cameras:\n  cam:\n    Sensitivity: "four"\n')

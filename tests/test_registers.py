@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
+from emccdcal import plugins
 from emccdcal.data import stats
 from emccdcal.fit import engine, gof
 from emccdcal.model import noise
@@ -76,7 +77,7 @@ class Noiseless:
 
 @pytest.fixture
 def noiseless(monkeypatch):
-    monkeypatch.setitem(noise._REGISTERS, "noiseless", Noiseless)
+    monkeypatch.setitem(plugins.load(plugins.REGISTERS), "noiseless", Noiseless)
     return noise.EMModel("noiseless")
 
 
@@ -139,7 +140,7 @@ def test_goodness_of_fit_and_the_fit_engine_use_it(noiseless):
 # --------------------------------------------------------------------------------------
 @pytest.fixture(params=[*noise.EM_MODELS, "noiseless"])
 def any_model(request, monkeypatch):
-    monkeypatch.setitem(noise._REGISTERS, "noiseless", Noiseless)
+    monkeypatch.setitem(plugins.load(plugins.REGISTERS), "noiseless", Noiseless)
     return noise.EMModel(request.param, 64)
 
 
@@ -168,3 +169,16 @@ def test_every_register_models_pmf_is_a_distribution_with_its_moments(any_model)
     assert var == pytest.approx(SIGMA**2 + E * F2 * (G / PHI) ** 2, rel=1e-6)
     g, slope = any_model.register.gain_from_gain_f2(np.array([G * F2]))
     assert float(g[0]) == pytest.approx(G, rel=1e-9)
+
+
+def test_the_packages_own_registers_are_its_entry_points():
+    """The package registers its own models through the group another package uses, and
+    they are exactly those ``defaults.EM_MODELS`` declares."""
+    import importlib.metadata
+
+    from emccdcal import defaults
+
+    own = {ep.name for ep in importlib.metadata.entry_points(group=plugins.REGISTERS)
+           if ep.dist.name == "emccdcal"}
+    assert own == set(defaults.EM_MODELS) <= set(noise.EM_MODELS)
+    assert defaults.DEFAULT_EM_MODEL in own and defaults.PAPER_EM_MODEL in own

@@ -119,13 +119,6 @@ IDENTITY_FIELDS = {"serial": "camera serial", "model": "camera model",
                    "amplifier": "output amplifier", "readout_rate_mhz": "read-out rate (MHz)",
                    "analog_gain": "analog (pre-amplifier) gain", "adc_bits": "ADC bits",
                    "binning": "binning"}
-#: The ``export --to`` targets, in the order of ``--help``.
-TOOLS = ("picasso", "pyme", "decode", "thunderstorm", "smap", "gdsc", "storm-analysis",
-         "json", "fits", "tiff-maps")
-#: The tools an audit reads, by the name ``--tool`` takes.
-TOOL_NAMES = {"picasso": "Picasso", "thunderstorm": "ThunderSTORM", "decode": "DECODE",
-              "gdsc": "gdsc-smlm", "smap": "SMAP", "pyme": "PYME",
-              "storm-analysis": "storm-analysis"}
 #: Relative photon bias beyond which an audit says a tool's numbers are off.
 AUDIT_TOLERANCE = 0.02
 #: Photon-counting threshold of ``apply``, in read-noise standard deviations.

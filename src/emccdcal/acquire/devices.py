@@ -14,6 +14,8 @@ Needs the ``acquire`` extra (pymmcore-plus).
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 from pymmcore_plus.experimental.unicore import CameraDevice, ShutterDevice, pymm_property
 
@@ -71,6 +73,7 @@ class SimulatedEMCCD(CameraDevice):
                                                    spawn_key=(*frame_seed.spawn_key, run))
         self._exposure_ms, self._setpoint, self._light = 10.0, 1.0, 0.0
         self._roi: tuple[int, int, int, int] | None = None
+        self.sequence_thread: threading.Thread | None = None
 
     # ---- the truth -------------------------------------------------------------------
     @staticmethod
@@ -100,6 +103,13 @@ class SimulatedEMCCD(CameraDevice):
 
     def get_ccd_temperature(self) -> float:
         return -70.0
+
+    def wait_until_stopped(self, timeout: float = 120.0) -> None:
+        """Wait for the acquisition thread of the last sequence to end (after it was told
+        to stop): a thread still drawing frames when the process exits aborts it."""
+        thread = self.sequence_thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout)
 
     def get_camera_name(self) -> str:
         return "emccdcal simulated EMCCD"
@@ -144,6 +154,9 @@ class SimulatedEMCCD(CameraDevice):
         self._roi = None
 
     def start_sequence(self, n, get_buffer):
+        # The generator runs in pymmcore-plus's acquisition thread, which stopping a
+        # sequence waits for only two seconds: record it, so that it can be waited for.
+        self.sequence_thread = threading.current_thread()
         x, y, w, h = self.get_roi()
         offset = np.clip(self.offset_of(self._setpoint)
                          + self.offset_pattern[y:y + h, x:x + w], 0.0, None)

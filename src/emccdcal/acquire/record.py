@@ -881,6 +881,8 @@ def _record(session, out, plan, core, camera, roi, simulated_seed, gain_prop, se
             _run(ctx)
     finally:
         _release(core, unload=device is not None)
+        if device is not None:
+            device.wait_until_stopped()
 
 
 def _open_session(out, plan, text, resume, core, camera, roi, seed) -> Session:

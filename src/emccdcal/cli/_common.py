@@ -20,7 +20,8 @@ import sys
 import warnings
 from pathlib import Path
 
-from ..defaults import DEFAULT_EM_MODEL, EM_MODELS
+from .. import plugins
+from ..defaults import DEFAULT_EM_MODEL
 
 __all__ = ["add_out", "add_overwrite", "add_accept_mismatch", "output", "add_out_or_dir",
            "output_of", "add_quiet", "add_no_figures",
@@ -109,7 +110,7 @@ def add_e_per_adu(p: argparse.ArgumentParser, *, results: bool = True) -> None:
 
 def add_em_model(p: argparse.ArgumentParser, *, auto: bool = True) -> None:
     g = p.add_argument_group("EM register model (docs/cascade.md)")
-    g.add_argument("--em-model", choices=EM_MODELS, default=None,
+    g.add_argument("--em-model", choices=plugins.names(plugins.REGISTERS), default=None,
                    help="the register in the likelihood: the exact Bernoulli cascade or the "
                    "paper's gamma approximation, which reproduces the paper's numbers "
                    f"(default: the manifest's em_model, else {DEFAULT_EM_MODEL})")

@@ -8,7 +8,8 @@ from . import _common
 
 
 def add_parser(subparsers):
-    from ..defaults import AUDIT_TOLERANCE as DEFAULT_TOLERANCE, TOOL_NAMES
+    from .. import plugins
+    from ..defaults import AUDIT_TOLERANCE as DEFAULT_TOLERANCE
 
     p = subparsers.add_parser(
         "audit",
@@ -26,7 +27,7 @@ def add_parser(subparsers):
     p.add_argument("--setpoint", type=_common.positive_float, metavar="G",
                    help="EM-gain set-point of the tool's movies (needed where the "
                    "calibration has several)")
-    p.add_argument("--tool", choices=tuple(TOOL_NAMES),
+    p.add_argument("--tool", choices=plugins.names(plugins.TOOLS),
                    help="the tool (default: recognised from the file)")
     p.add_argument("--tool-gain", type=_common.positive_float, metavar="G",
                    help="the EM gain typed into the tool where its file holds none "

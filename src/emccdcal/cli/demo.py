@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from ..defaults import DEFAULT_EM_MODEL, EM_MODELS
+from .. import plugins
+from ..defaults import DEFAULT_EM_MODEL
 from . import _common
 
 
@@ -25,7 +26,7 @@ def add_parser(subparsers):
                    help="columns, px (default %(default)s)")
     p.add_argument("--frames", type=int, default=5000,
                    help="frames per acquisition, at least 2 (default %(default)s)")
-    p.add_argument("--multiplication", choices=EM_MODELS, default=DEFAULT_EM_MODEL,
+    p.add_argument("--multiplication", choices=plugins.names(plugins.REGISTERS), default=DEFAULT_EM_MODEL,
                    help="EM register of the simulated camera: the exact cascade of a real "
                    "camera, or the paper's gamma approximation (default %(default)s)")
     p.add_argument("--seed", type=int, default=DEMO_SEED, help="random seed (default %(default)s)")

@@ -6,7 +6,7 @@ from . import _common
 
 
 def add_parser(subparsers):
-    from ..defaults import TOOLS
+    from .. import plugins
 
     p = subparsers.add_parser(
         "export",
@@ -18,7 +18,8 @@ def add_parser(subparsers):
         "Picasso's table of modes (its nested Sensitivity).",
     )
     _common.add_calibration_source(p, many=True)
-    p.add_argument("--to", required=True, choices=TOOLS, help="the tool or format")
+    p.add_argument("--to", required=True, choices=plugins.names(plugins.TOOLS),
+                   help="the tool or format (another package's too, emccdcal.plugins)")
     _common.add_out(p)
     p.add_argument("--setpoint", type=_common.positive_float, metavar="G",
                    help="EM-gain set-point of the movies the tool will read (needed where "

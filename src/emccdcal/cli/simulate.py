@@ -17,7 +17,8 @@ _PAPER_GAINS = "1,4.78,22.95,90.06,261.6"
 
 def _camera_options(p: argparse.ArgumentParser, defaults: dict | None = None) -> None:
     """The fields of :class:`emccdcal.simulate.camera.Camera`, the seed and ``-q``."""
-    from ..defaults import CAMERA_SIMULATION, EM_MODELS
+    from .. import plugins
+    from ..defaults import CAMERA_SIMULATION
 
     d = CAMERA_SIMULATION | (defaults or {})
     cam = p.add_argument_group("camera")
@@ -42,7 +43,7 @@ def _camera_options(p: argparse.ArgumentParser, defaults: dict | None = None) ->
     cam.add_argument("--read-noise", type=float, default=d["read_noise"],
                      help="sigma of the Gaussian read-out noise before rounding, ADU "
                      "(default %(default)s)")
-    cam.add_argument("--multiplication", choices=EM_MODELS, default=d["multiplication"],
+    cam.add_argument("--multiplication", choices=plugins.names(plugins.REGISTERS), default=d["multiplication"],
                      help="EM register model: the exact Bernoulli cascade of a real camera, or "
                      "the paper's gamma approximation (default %(default)s)")
     cam.add_argument("--stages", type=int, default=d["stages"],

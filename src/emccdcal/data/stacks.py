@@ -14,13 +14,13 @@ them. Counts, offsets and read noise are in ADU. Every problem is an
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import os
 import re
 from pathlib import Path
 
 import numpy as np
 
+from .. import plugins
 from .._util import one_line
 from ..errors import InputError, MissingFileError
 from .extent import check_data_fits
@@ -160,17 +160,15 @@ def stack_settings(path, *, setpoint_from_name: bool = False) -> CameraSettings:
     return settings
 
 
-#: The readers, one module each, in the order of ``STACK_SUFFIXES``. Each declares its
+#: The readers, by entry point of the group ``emccdcal.readers`` (:mod:`emccdcal.plugins`):
+#: the package's own (a module each here) and any other package's. Each declares its
 #: ``SUFFIXES`` and ``header(path)`` (shape, dtype, data offset, frame stride: the offset
 #: None where the frames are not blocks at regular places, the stride None where they lie
 #: back to back) and ``settings(path)`` (:class:`CameraSettings`); where ``header`` can
 #: give no offset, also ``open_stack(path)`` (a lazy array). A new format is a module
-#: here, its name added below, and its tests: nothing else lists formats.
-_READER_MODULES = ("tiff", "npy", "spe", "sif", "fits", "zarrs")
-_READERS = {suffix: module
-            for module in (importlib.import_module(f".{name}", __package__)
-                           for name in _READER_MODULES)
-            for suffix in module.SUFFIXES}
+#: and its entry point: nothing else lists formats.
+_READERS = {suffix: reader for reader in plugins.load(plugins.READERS).values()
+            for suffix in reader.SUFFIXES}
 #: File name suffixes of stacks and maps that can be read.
 STACK_SUFFIXES = tuple(_READERS)
 

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import _files, defaults
+from .. import _files, defaults, plugins
 from .._output import comment
 from ..errors import InputError, OptionError
 from ..result import Calibration, format_setpoint, load_calibration
@@ -41,8 +41,17 @@ __all__ = ["TOOL_NAMES", "Field", "Reading", "Audit", "read_tool_file", "audit",
 
 #: The photon bias beyond which an audit says "off", as a fraction.
 DEFAULT_TOLERANCE = defaults.AUDIT_TOLERANCE
-#: The tools an audit reads, by the name ``--tool`` takes.
-TOOL_NAMES = defaults.TOOL_NAMES
+
+
+def _readable() -> dict:
+    """The registered tools whose files an audit reads (:mod:`emccdcal.plugins`)."""
+    return {n: t for n, t in plugins.load(plugins.TOOLS).items() if t.read is not None}
+
+
+def __getattr__(name):
+    if name == "TOOL_NAMES":  # the tools an audit reads: --tool's name → the tool's own
+        return {n: t.title for n, t in _readable().items()}
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 #: What a field can stand for: the calibrated quantity, its unit, how to say it.
 _QUANTITIES = {
@@ -105,7 +114,7 @@ class Audit:
         """The audit as the console shows it."""
         r = self.reading
         # where and the rows quote the tool's file: data, each on its one line
-        out = [f"{TOOL_NAMES[r.tool]}: {comment(r.where)} "
+        out = [f"{_readable()[r.tool].title}: {comment(r.where)} "
                f"(set-point {format_setpoint(self.setpoint)}x)"]
         width = max(len(row["field"]) for row in self.rows)
         for row in self.rows:
@@ -456,28 +465,14 @@ def _storm_analysis(path):
 
 
 def _guess_tool(path: Path, text: str | None, doc) -> str:
-    suffix = path.suffix.lower()
-    if suffix == ".mat":
-        return "smap"
-    if suffix == ".xml":
-        return "storm-analysis"
-    if suffix == ".md":
-        return "pyme"
-    if text is not None and "Camera setup" in text and "run(" in text:
-        return "thunderstorm"
-    if isinstance(doc, dict):
-        if "Cameras" in doc:
-            return "picasso"
-        if any(k in doc for k in ("intensityCalibration", "intensity_calibration")):
-            return "gdsc"
-        if "Camera.ElectronsPerCount" in {".".join(k) for k, _ in _leaves(doc)}:
-            return "pyme"  # flat dotted keys, or nested
-        if next(_find_tables(doc, ("conversion", "emgain")), None) is not None:
-            return "smap"
-        if next(_find_tables(doc, ("e_per_adu", "em_gain")), None) is not None:
-            return "decode"
+    """The first registered tool that recognises the file as its own."""
+    readable = _readable()
+    for name, tool in readable.items():
+        if tool.recognizes is not None and tool.recognizes(path, text, doc):
+            return name
     raise InputError(f"'{path}': not a camera file of a tool emccdcal knows "
-                     f"({', '.join(TOOL_NAMES.values())}); give --tool NAME if it is one")
+                     f"({', '.join(t.title for t in readable.values())}); give --tool NAME "
+                     "if it is one")
 
 
 def read_tool_file(path, *, tool=None, setpoint=1.0, tool_gain=None) -> list[Reading]:
@@ -490,7 +485,8 @@ def read_tool_file(path, *, tool=None, setpoint=1.0, tool_gain=None) -> list[Rea
         DECODE ``.yaml``, gdsc-smlm ``.json``, SMAP ``.json`` or ``cameras.mat``, PYME
         ``.json`` or ``.md``, storm-analysis ``.xml``.
     tool : str, optional
-        One of :data:`TOOL_NAMES`; default: recognised from the file.
+        One of :data:`TOOL_NAMES` (a registered tool that reads its files back,
+        :mod:`emccdcal.plugins`); default: the first that recognises the file.
     setpoint : float
         The set-point the tool's movies are taken at: Picasso's EM gain where its file
         holds none (users type the set-point into its gain box).
@@ -504,8 +500,9 @@ def read_tool_file(path, *, tool=None, setpoint=1.0, tool_gain=None) -> list[Rea
     """
     path = Path(path)
     _files.read_bytes(path, what="tool's settings file", max_bytes=_files.MAX_MAT_BYTES)
-    if tool is not None and tool not in TOOL_NAMES:
-        raise OptionError(f"unknown tool {tool!r}; one of {', '.join(TOOL_NAMES)}")
+    readable = _readable()
+    if tool is not None and tool not in readable:
+        raise OptionError(f"unknown tool {tool!r}; one of {', '.join(readable)}")
     text, doc = None, None
     if path.suffix.lower() == ".mat":
         if tool in (None, "smap"):
@@ -517,19 +514,7 @@ def read_tool_file(path, *, tool=None, setpoint=1.0, tool_gain=None) -> list[Rea
         text = _files.read_text(path, what="tool's settings file")
         doc = _parse_text(path, text)
     tool = tool or _guess_tool(path, text, doc)
-    if tool == "picasso":
-        return _picasso(doc, path, setpoint, tool_gain)
-    if tool == "decode":
-        return _decode(doc, path)
-    if tool == "thunderstorm":
-        return _thunderstorm(text or "", path)
-    if tool == "gdsc":
-        return _gdsc(doc, path)
-    if tool == "smap":
-        return _smap(doc, path)
-    if tool == "pyme":
-        return _pyme(doc if isinstance(doc, dict) and doc else _pyme_md(text or ""), path)
-    return _storm_analysis(path)
+    return readable[tool].read(path, text, doc, setpoint, tool_gain)
 
 
 def _parse_text(path: Path, text: str):
@@ -570,6 +555,8 @@ def _compare(reading: Reading, values: dict, setpoint, tolerance, offset_toleran
             rel = f.value / truth[f.quantity] - 1
             row["text"] = (f"{f.value:.6g} {unit}".rstrip() + f"; calibrated {what} "
                            f"{truth[f.quantity]:.6g}: {100 * rel:+.2f} %{note}")
+        else:  # a number of the tool's that no calibrated quantity stands for alone
+            row["text"] = f"{f.value:.6g} (compared only in the photons){note}"
         rows.append(row)
     if reading.qe is not None:
         text = f"{reading.qe:g}: photons = photoelectrons / {reading.qe:g}"

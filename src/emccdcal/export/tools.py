@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import defaults
+from .. import plugins
 from .._output import atomic_write, comment
 from .._output import atomic_write_text as _write_text
 from ..errors import OptionError
@@ -37,10 +37,11 @@ from ..result import Calibration, format_setpoint, load_calibration, pixel_stati
 
 __all__ = ["TOOLS", "export", "export_modes", "camera_values", "readout_mode", "MODE_FIELDS"]
 
-#: The ``--to`` targets, in the order of ``--help``.
-TOOLS = defaults.TOOLS
-#: Targets that take every set-point (the others take one: ``--setpoint``).
-ALL_SETPOINTS = ("json", "fits", "tiff-maps")
+
+def __getattr__(name):
+    if name == "TOOLS":  # the ``--to`` targets: every tool registered (emccdcal.plugins)
+        return tuple(plugins.load(plugins.TOOLS))
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 # --------------------------------------------------------------------------------------
@@ -527,13 +528,6 @@ def _tiff_maps(cal, s, v, out, qe, pixel_size_nm, name):
             for key, image, unit in _maps(cal)]
 
 
-_WRITERS = {"picasso": _picasso, "pyme": _pyme, "decode": _decode,
-            "thunderstorm": _thunderstorm, "smap": _smap, "gdsc": _gdsc,
-            "storm-analysis": _storm_analysis, "json": _json, "fits": _fits,
-            "tiff-maps": _tiff_maps}
-assert tuple(_WRITERS) == TOOLS
-
-
 def export(calibration, to: str, out, *, setpoint=None, qe=None, pixel_size_nm=None,
            camera_name=None) -> list[Path]:
     """Write a calibration in a localization tool's own file.
@@ -544,7 +538,8 @@ def export(calibration, to: str, out, *, setpoint=None, qe=None, pixel_size_nm=N
         A :class:`~emccdcal.result.Calibration`, or a result (file or directory, or
         several joined by commas) to read with :func:`~emccdcal.result.load_calibration`.
     to : str
-        One of :data:`TOOLS`.
+        One of :data:`TOOLS`: a tool registered under the entry-point group
+        ``emccdcal.tools`` (:mod:`emccdcal.plugins`), emccdcal's own or another package's.
     out : str or Path
         Output directory (created if missing); files are written atomically.
     setpoint : float, optional
@@ -571,21 +566,23 @@ def export(calibration, to: str, out, *, setpoint=None, qe=None, pixel_size_nm=N
         An unknown tool, a set-point missing from the calibration (or needed and not
         given), a QE outside (0, 1], or no offset recorded at that set-point.
     """
-    if to not in _WRITERS:
-        raise OptionError(f"unknown export target {to!r}; one of {', '.join(TOOLS)}")
+    registered = plugins.load(plugins.TOOLS)
+    if to not in registered:
+        raise OptionError(f"unknown export target {to!r}; one of {', '.join(registered)}")
+    tool = registered[to]
     if qe is not None and not (0 < qe <= 1):
         raise OptionError(f"--qe is photoelectrons per photon, in (0, 1]; got {qe}")
     if pixel_size_nm is not None and not (pixel_size_nm > 0 and math.isfinite(pixel_size_nm)):
         raise OptionError(f"--pixel-size is in nm and positive; got {pixel_size_nm}")
     cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
-    if to in ALL_SETPOINTS:
+    if tool.all_setpoints:
         s, values = None, None
     else:  # refused before anything is made: no empty folder left behind
         s = pick_setpoint(cal, setpoint)
         values = camera_values(cal, s)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    return _WRITERS[to](cal, s, values, out, qe, pixel_size_nm, camera_name)
+    return tool.write(cal, s, values, out, qe, pixel_size_nm, camera_name)
 
 
 def export_modes(calibrations, to: str, out, *, setpoint=None, qe=None, pixel_size_nm=None,

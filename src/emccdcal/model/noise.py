@@ -53,14 +53,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import defaults
+from .. import defaults, plugins
 from .._util import check_number
 from ..errors import OptionError
 from . import _engine
 from ._engine import Spectrum, fast_len, window  # noqa: F401  (for fit/ and data/)
 from ._engine import extent as window_extent  # noqa: F401
-from ._exact import Cascade
-from ._gamma import Gamma
 from .cascade import DEFAULT_STAGES
 
 __all__ = [
@@ -147,13 +145,13 @@ class EMModel:
     stages: int = DEFAULT_STAGES
 
     def __post_init__(self):
-        if self.name not in _REGISTERS:
+        if self.name not in _registers():
             raise OptionError(f"unknown em_model {self.name!r}; choose one of "
-                              f"{', '.join(EM_MODELS)}")
+                              f"{', '.join(_registers())}")
         from .cascade import _check_stages
 
         # A model without stages has one value of them, whatever was passed.
-        uses = _REGISTERS[self.name].uses_stages
+        uses = _registers()[self.name].uses_stages
         object.__setattr__(self, "stages", _check_stages(self.stages) if uses else DEFAULT_STAGES)
         if self.stages > defaults.MAX_STAGES:  # the likelihood's cost grows with them
             raise OptionError(f"stages must be at most {defaults.MAX_STAGES} (real registers "
@@ -163,7 +161,7 @@ class EMModel:
     def register(self):
         """The register model's pieces: its rows for the window engine, fit coordinates,
         excess-noise factor, description (:mod:`._gamma`, :mod:`._exact`)."""
-        return _REGISTERS[self.name](self.stages)
+        return _registers()[self.name](self.stages)
 
     def __str__(self) -> str:
         return f"{self.name} ({self.stages} stages)" if self.register.uses_stages else self.name
@@ -189,10 +187,19 @@ class EMModel:
         return cls(str(attrs["em_model"]), int(attrs.get("register_stages", DEFAULT_STAGES)))
 
 
-#: The register models by name: each a class of :mod:`._gamma` / :mod:`._exact`.
-_REGISTERS = {"gamma": Gamma, "cascade": Cascade}
-#: The register models :class:`EMModel` knows.
-EM_MODELS = tuple(_REGISTERS)
+def _registers() -> dict:
+    """The register models by name: the entry points of ``emccdcal.registers``
+    (:mod:`emccdcal.plugins`), the package's own (:mod:`._gamma`, :mod:`._exact`) and any
+    other package's."""
+    return plugins.load(plugins.REGISTERS)
+
+
+def __getattr__(name):
+    if name == "EM_MODELS":  # the register models EMModel knows, plug-ins included
+        return tuple(_registers())
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 #: The model that stages alone select.
 _WITH_STAGES = "cascade"
 
@@ -200,7 +207,6 @@ _WITH_STAGES = "cascade"
 #: The register model of a run that neither its caller nor its manifest names (declared
 #: in :mod:`emccdcal.defaults`).
 DEFAULT_EM_MODEL = defaults.DEFAULT_EM_MODEL
-assert set(EM_MODELS) == set(defaults.EM_MODELS)
 
 
 def choose_em_model(em_model=None, stages=None, *, manifest_model=None, manifest_stages=None,
@@ -256,8 +262,10 @@ def as_em_model(em_model="gamma", stages=None) -> EMModel:
             raise OptionError(f"stages={stages!r} disagrees with the {em_model} model")
         return em_model
     if not isinstance(em_model, str):
-        raise OptionError(f"em_model must be one of {', '.join(EM_MODELS)}, got {em_model!r}")
-    if stages is not None and em_model in _REGISTERS and not _REGISTERS[em_model].uses_stages:
+        raise OptionError(f"em_model must be one of {', '.join(_registers())}, "
+                          f"got {em_model!r}")
+    known = _registers()
+    if stages is not None and em_model in known and not known[em_model].uses_stages:
         raise OptionError(f"stages are the {_WITH_STAGES} model's: give "
                           f"em_model='{_WITH_STAGES}' with them (the {em_model} model has none)")
     return EMModel(em_model, DEFAULT_STAGES if stages is None else stages)

@@ -21,7 +21,8 @@ from magicgui.widgets import (CheckBox, ComboBox, Container, FileEdit, Label, Li
 from qtpy.QtCore import QObject, QTimer, Signal
 
 from .._output import atomic_write_text
-from ..defaults import DEFAULT_EM_MODEL, EM_MODELS
+from .. import plugins
+from ..defaults import DEFAULT_EM_MODEL
 from ..errors import Cancelled, EmccdcalError, OptionError, spelling
 
 __all__ = ["CalibrateWidget", "ApplyWidget", "GainCheckWidget"]
@@ -146,7 +147,7 @@ class CalibrateWidget(Container):
     and its export to a localization tool."""
 
     def __init__(self, napari_viewer=None):
-        from ..defaults import LIKELIHOOD_METHODS, METHODS, TOOLS
+        from ..defaults import LIKELIHOOD_METHODS, METHODS
 
         self.viewer = napari_viewer
         # any file: a folder is typed or pasted (a dialog picks files or folders, not both)
@@ -155,7 +156,7 @@ class CalibrateWidget(Container):
         self.found = TextEdit(label="found", value="")
         self.found.native.setReadOnly(True)
         self.method = ComboBox(label="method", choices=list(METHODS), value="gs")
-        self.em_model = ComboBox(label="register", choices=list(EM_MODELS),
+        self.em_model = ComboBox(label="register", choices=list(plugins.names(plugins.REGISTERS)),
                                  value=DEFAULT_EM_MODEL)
         self.stages = LineEdit(label="stages", value="")
         self.e_per_adu = LineEdit(label="e-/ADU (or a result)", value="")
@@ -167,7 +168,8 @@ class CalibrateWidget(Container):
         self.warnings = TextEdit(label="warnings", value="")
         self.warnings.native.setReadOnly(True)
         self.report_button = PushButton(text="Write the report")
-        self.tool = ComboBox(label="export to", choices=list(TOOLS), value="picasso")
+        self.tool = ComboBox(label="export to", choices=list(plugins.names(plugins.TOOLS)),
+                             value="picasso")
         self.setpoint = LineEdit(label="set-point", value="")
         self.export_button = PushButton(text="Export")
         super().__init__(widgets=[

@@ -1,0 +1,194 @@
+"""Plug-ins by entry points: another package adds a reader and a localization tool with
+nothing changed in emccdcal, and ``scan``, ``calibrate``, ``export`` and ``audit`` use
+them; a broken plug-in is left out with a warning and stops nothing.
+
+The plug-in package is made here: its modules and its distribution metadata (the
+``entry_points.txt`` that pip writes on installing it) in a folder put on ``PYTHONPATH``
+of the commands, which is how Python finds an installed package's entry points.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+import tifffile
+
+from emccdcal.simulate.series import simulate_gain_series
+
+READER = '''
+"""A toy camera format: b"RAWX", then frames, rows, cols (uint32) and the EM-gain
+set-point (float32), then the frames as little-endian uint16."""
+import struct
+import numpy as np
+from emccdcal.data.settings import CameraSettings
+
+SUFFIXES = (".rawx",)
+_HEAD = struct.Struct("<4sIIIf")
+
+
+def write(path, frames, em_gain):
+    with open(path, "wb") as f:
+        f.write(_HEAD.pack(b"RAWX", *frames.shape, em_gain))
+        f.write(frames.astype("<u2").tobytes())
+
+
+def _head(path):
+    with open(path, "rb") as f:
+        magic, n, rows, cols, gain = _HEAD.unpack(f.read(_HEAD.size))
+    if magic != b"RAWX":
+        raise ValueError("not a RAWX file")
+    return (n, rows, cols), gain
+
+
+def header(path):
+    shape, _ = _head(path)
+    return shape, np.dtype("<u2"), _HEAD.size, None
+
+
+def settings(path):
+    return CameraSettings(em_gain_setpoint=float(_head(path)[1]))
+'''
+
+TOOL = '''
+"""ToyLoc, a localization tool that reads photoelectrons per ADU and a baseline."""
+import json
+from emccdcal.export.audit import Field, Reading
+from emccdcal.plugins import Tool
+
+
+def write(cal, setpoint, values, out, qe, pixel_size_nm, camera_name):
+    path = out / "toyloc.json"
+    pe = values["e_per_adu"]["median"] / values["em_gain"]["median"]
+    path.write_text(json.dumps({"toyloc": {"photoelectrons_per_adu": pe,
+                                           "baseline_adu": values["offset"]["median"]}}))
+    return [path]
+
+
+def read(path, text, doc, setpoint, tool_gain):
+    cam = doc["toyloc"]
+    pe, baseline = float(cam["photoelectrons_per_adu"]), float(cam["baseline_adu"])
+    return [Reading("toyloc", "toyloc", (Field("baseline_adu", baseline, "offset"),
+                                         Field("photoelectrons_per_adu", pe, None)),
+                    pe, "photoelectrons_per_adu", baseline)]
+
+
+TOOL = Tool("toyloc", "ToyLoc", write, read,
+            lambda path, text, doc: isinstance(doc, dict) and "toyloc" in doc)
+'''
+
+ENTRY_POINTS = '''
+[emccdcal.readers]
+rawx = emccdcal_toy.rawx
+
+[emccdcal.tools]
+toyloc = emccdcal_toy.toyloc:TOOL
+broken = emccdcal_toy.missing:TOOL
+'''
+
+
+@pytest.fixture(scope="module")
+def plugin(tmp_path_factory):
+    """The folder holding the installed toy plug-in package."""
+    site = tmp_path_factory.mktemp("site")
+    package = site / "emccdcal_toy"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "rawx.py").write_text(READER)
+    (package / "toyloc.py").write_text(TOOL)
+    info = site / "emccdcal_toy-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: emccdcal-toy\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text(textwrap.dedent(ENTRY_POINTS))
+    return site
+
+
+def _run(plugin, *args):
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(plugin), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    return subprocess.run([sys.executable, "-m", "emccdcal", *map(str, args)],
+                          capture_output=True, text=True, env=env, timeout=300)
+
+
+def test_a_plugin_reader_and_tool_are_used_by_scan_calibrate_export_and_audit(plugin,
+                                                                             tmp_path):
+    sim = simulate_gain_series(tmp_path / "gs", rows=3, cols=4, frames=400, seed=21,
+                               setpoints=(1, 25), progress=False)
+    sys.path.insert(0, str(plugin))
+    try:
+        from emccdcal_toy import rawx
+    finally:
+        sys.path.remove(str(plugin))
+    session = tmp_path / "session"
+    session.mkdir()
+    for tif in sorted((sim.manifest.parent / "gain-GS").glob("*x-gain*.tif")):
+        frames = tifffile.imread(tif)
+        if frames.ndim == 3:  # not a map
+            sp = float(re.match(r"(\d+)x", tif.name).group(1))
+            kind = "dark" if "no-signal" in tif.name else "signal"
+            rawx.write(session / f"{kind}-{int(sp * 7)}.rawx", frames, sp)
+
+    done = _run(plugin, "scan", session)
+    assert done.returncode == 0, done.stderr
+    manifest = (session / "manifest.toml").read_text()
+    assert len(re.findall(r'^(?:frames|dark) = "[\w-]+\.rawx"$', manifest, re.M)) == 4
+    assert "set-points recorded in the files" in manifest
+
+    result = tmp_path / "result"
+    done = _run(plugin, "calibrate", session / "manifest.toml", "-m", "gs", "--e-per-adu",
+                sim.truth["e_per_adu"], "--em-model", "gamma", "-o", result, "-q")
+    assert done.returncode == 0, done.stderr
+    reference = tmp_path / "reference"
+    done = _run(plugin, "calibrate", sim.manifest, "-m", "gs", "--em-model", "gamma", "-o",
+                reference, "-q")
+    assert done.returncode == 0, done.stderr
+    from emccdcal import load_result
+
+    got, want = load_result(result), load_result(reference)
+    np.testing.assert_allclose(got.em_gain.values, want.em_gain.values, rtol=1e-6)
+
+    out = tmp_path / "toyloc"
+    done = _run(plugin, "export", result, "--to", "toyloc", "-o", out, "--setpoint", 25)
+    assert done.returncode == 0, done.stderr
+    assert (out / "toyloc.json").is_file()
+    # the broken plug-in is named, left out, and stops nothing
+    assert ("plug-in 'broken' (emccdcal_toy.missing:TOOL, package 'emccdcal-toy') of "
+            "emccdcal.tools could not be loaded: ModuleNotFoundError") in done.stderr
+    assert done.stderr.count("left out") == 1
+
+    done = _run(plugin, "audit", out / "toyloc.json", "--calibration", result)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert done.stdout.startswith("ToyLoc: toyloc (set-point 25x)")
+    assert "baseline_adu" in done.stdout
+
+
+def test_without_the_plugin_its_files_and_tool_are_unknown(plugin, tmp_path):
+    """The same commands without the package on the path: emccdcal knows neither."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    done = subprocess.run([sys.executable, "-m", "emccdcal", "export", tmp_path, "--to",
+                           "toyloc", "-o", tmp_path / "x"], capture_output=True, text=True,
+                          env=env, timeout=120)
+    assert done.returncode == 2 and "invalid choice: 'toyloc'" in done.stderr
+
+
+def test_napari_reads_what_the_packages_own_readers_read():
+    """napari's manifest cannot ask the registry: its patterns are the package's own
+    readers' suffixes (every one, in either case where it lists a case)."""
+    from pathlib import Path
+
+    import yaml
+
+    import emccdcal
+    from emccdcal import plugins
+
+    manifest = yaml.safe_load((Path(emccdcal.__file__).parent / "napari" / "napari.yaml")
+                              .read_text())
+    patterns = manifest["contributions"]["readers"][0]["filename_patterns"]
+    own = {s for r in plugins.load(plugins.READERS).values()
+           if r.__name__.startswith("emccdcal.") for s in r.SUFFIXES}
+    assert {p.removeprefix("*").lower() for p in patterns} == own
