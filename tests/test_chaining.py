@@ -74,6 +74,8 @@ def test_chained_result_gives_phi_and_its_error_to_the_gains(series):
     assert np.all(chained.em_gain_se >= fixed.em_gain_se - 1e-12)
     assert "e_per_adu" in chained.attrs["standard_errors"]
     assert chained.attrs["e_per_adu_source"].startswith("result ")
+    assert chained.attrs["e_per_adu_source"] == f"result {chained.attrs['e_per_adu_result']}"
+    assert "e_per_adu_result" not in fixed.attrs
 
 
 def test_manifest_names_a_result_and_the_cli_takes_one(series, tmp_path, capsys):

@@ -14,7 +14,7 @@ from emccdcal import errors
 from emccdcal.data import manifest as manifest_module
 from emccdcal.data import stacks
 from emccdcal.data.dark import maps_from_dark
-from emccdcal.data.manifest import read_manifest
+from emccdcal.data.manifest import Source, read_manifest
 from emccdcal.data.stacks import read_map, read_stack
 from emccdcal.errors import InputError, ManifestError
 
@@ -105,7 +105,8 @@ def test_round_trip(files):
     assert m.levels == ("L1",)
     assert isinstance(m.e_per_adu, np.ndarray) and m.e_per_adu.dtype == np.float64
     np.testing.assert_allclose(m.e_per_adu, np.float32(3.859))
-    assert m.e_per_adu_source == str(files / "data/phi.tif")
+    assert m.e_per_adu_source == Source("map", files / "data/phi.tif")
+    assert str(m.e_per_adu_source) == str(files / "data/phi.tif")
 
     a1, a5 = m.acquisitions
     assert (a1.name, a1.em_gain_setpoint, a1.level, a1.skip_frames) == ("1x", 1.0, "L1", 0)
@@ -114,7 +115,7 @@ def test_round_trip(files):
     np.testing.assert_array_equal(a1.offset, 588.5)
     sigma = np.linspace(15, 16, 12, dtype=np.float32).reshape(SHAPE)
     np.testing.assert_allclose(a1.read_noise, sigma)
-    assert a1.offset_source == str(files / "data/1x_S0.tif")
+    assert a1.offset_source == Source("map", files / "data/1x_S0.tif")
     assert a1.n_frames == N_FRAMES and a1.shape == SHAPE
     np.testing.assert_array_equal(a1.frames(), stack(1))
 
@@ -123,7 +124,8 @@ def test_round_trip(files):
     offset, read_noise = maps_from_dark(stack(3, n=50, low=570, high=600))
     np.testing.assert_allclose(a5.offset, offset, rtol=1e-15)
     np.testing.assert_allclose(a5.read_noise, read_noise, rtol=1e-13)
-    assert a5.offset_source == a5.read_noise_source == f"dark {files / 'data/dark5x.tif'}"
+    assert a5.offset_source == a5.read_noise_source == Source("dark", files / "data/dark5x.tif")
+    assert str(a5.offset_source) == f"dark {files / 'data/dark5x.tif'}"
     assert a5.n_frames_total == N_FRAMES and a5.n_frames == N_FRAMES - 4
     np.testing.assert_array_equal(a5.frames(), stack(2)[4:])
     assert a5.frames().shape == (N_FRAMES - 4, *SHAPE)
@@ -151,12 +153,13 @@ read_noise = 15.5
 """
     m = read_manifest(write(files, text))
     assert m.e_per_adu == 3.859 and isinstance(m.e_per_adu, float)
-    assert m.e_per_adu_source == "value 3.859"
+    assert m.e_per_adu_source == Source("value", value=3.859)
+    assert str(m.e_per_adu_source) == "value 3.859"
     a = m.acquisitions[0]
     assert a.offset.shape == SHAPE and a.offset.dtype == np.float64
     np.testing.assert_array_equal(a.offset, 100.0)
     np.testing.assert_array_equal(a.read_noise, 15.5)
-    assert a.read_noise_source == "value 15.5"
+    assert str(a.read_noise_source) == "value 15.5"
 
 
 def test_no_e_per_adu_and_paths_relative_to_the_manifest(files, monkeypatch, tmp_path):

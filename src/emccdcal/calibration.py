@@ -34,7 +34,7 @@ from ._output import Output
 from ._util import check_int, e_per_adu_map, nanmedian
 from ._util import progress as progress_bar
 from .data import quality, stats
-from .data.manifest import Manifest, read_manifest
+from .data.manifest import Manifest, Source, read_manifest
 from .data.stacks import read_band
 from .errors import InputError, MethodError, OptionError
 from .fit import gof, layouts, mv
@@ -383,11 +383,9 @@ def _fingerprint(manifest, used, method, options, intervals, checks, map_errors,
     """What a calibration's result depends on, to refuse resuming a different run."""
     files = {}
     paths = [manifest.path] + [a.frames_path for a in manifest.acquisitions]
-    for a in manifest.acquisitions:
-        paths += [Path(src.removeprefix("dark ")) for src in (a.offset_source, a.read_noise_source)
-                  if not src.startswith("value ")]
-    if manifest.e_per_adu_source and not manifest.e_per_adu_source.startswith("value "):
-        paths.append(Path(manifest.e_per_adu_source.removeprefix("result ")))
+    sources = [manifest.e_per_adu_source] + [s for a in manifest.acquisitions
+                                              for s in (a.offset_source, a.read_noise_source)]
+    paths += [s.path for s in sources if s is not None and s.path is not None]
     for p in paths:
         st = Path(p).stat()
         files[str(Path(p).resolve())] = [st.st_size, st.st_mtime_ns]
@@ -604,7 +602,7 @@ def _require_convergence(ds, method) -> None:
 def _input_files(manifest, used, phi_source) -> list[Path]:
     """The files a calibration reads, which its output may not replace."""
     files = [manifest.path, *(a.frames_path for a in used)]
-    phi = None if phi_source is None else Path(str(phi_source).removeprefix("result "))
+    phi = None if phi_source is None else phi_source.path
     if phi is not None and phi.exists():
         files.append(phi / result.CALIBRATION_FILE if phi.is_dir() else phi)
     return files
@@ -685,7 +683,9 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
         ds.attrs.update(model.attrs, **register_attrs)
     ds.attrs.update(result.identity_attrs(manifest))  # the camera and pixels it holds for
     if phi_source is not None:
-        ds.attrs["e_per_adu_source"] = phi_source
+        ds.attrs["e_per_adu_source"] = str(phi_source)
+        if phi_source.kind == "result":  # chained: the result φ and its error came from
+            ds.attrs["e_per_adu_result"] = str(phi_source.path)
     if phi_se is not None:
         ds.attrs["standard_errors"] += (
             f"; and the error of e_per_adu ({phi_source}): it moves every E and g of a pixel "
@@ -855,9 +855,9 @@ def _e_per_adu_inputs(manifest, e_per_adu, accept_mismatch=()):
     shape = manifest.shape
     if e_per_adu is None:
         source = manifest.e_per_adu_source
-        if source is None or not source.startswith("result "):
+        if source is None or source.kind != "result":
             return e_per_adu_map(manifest.e_per_adu, shape), None, source
-        e_per_adu = Path(source.removeprefix("result "))
+        e_per_adu = source.path
     if isinstance(e_per_adu, (str, Path)):
         from .data.manifest import is_result_path
 
@@ -883,8 +883,8 @@ def _e_per_adu_inputs(manifest, e_per_adu, accept_mismatch=()):
         if not ok.any():
             raise OptionError(f"e_per_adu from '{path}': no pixel of that result converged")
         phi, se = np.where(ok, phi, np.nan), np.where(ok, se, np.nan)
-        return phi, se, f"result {path}"
-    return e_per_adu_map(e_per_adu, shape), None, "given"
+        return phi, se, Source("result", path)
+    return e_per_adu_map(e_per_adu, shape), None, Source("given")
 
 
 def _crop_to(manifest, path, shape, origin):
@@ -928,7 +928,7 @@ def _map_error_sources(used, map_errors):
     """Dark-frame counts and sharing groups of the maps, and a note for the result."""
     dark_frames = [a.dark_frames if map_errors else None for a in used]
     # Acquisitions whose maps come from one file (or one dark stack) share their errors.
-    groups = [a.offset_source if not a.offset_source.startswith("value") else i
+    groups = [a.offset_source if a.offset_source.kind != "value" else i
               for i, a in enumerate(used)]
     known = [f"{a.name}: {n} dark frames" for a, n in zip(used, dark_frames) if n is not None]
     exact = [a.name for a, n in zip(used, dark_frames) if n is None]
@@ -1126,11 +1126,10 @@ def format_summary(ds):
         return nanmedian(np.asarray(v)[..., ok], axis=-1)
 
     phi, phi_se = med(ds.e_per_adu.values), med(ds.e_per_adu_se.values)
-    source = ds.attrs.get("e_per_adu_source", "")
+    chained = ds.attrs.get("e_per_adu_result")
     if np.isfinite(phi_se) and phi_se > 0:
         how = ("" if ds.attrs["method"] in ESTIMATE_E_PER_ADU else
-               f"; from {source.removeprefix('result ')}" if source.startswith("result ")
-               else "; given with its SE")
+               f"; from {chained}" if chained else "; given with its SE")
         lines.append(f"  e_per_adu  {phi:.4f} ± {phi_se:.4f} e-/ADU (adu_per_e "
                      f"{1 / phi:.4f} ADU/e-{how})")
     else:

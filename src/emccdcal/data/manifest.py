@@ -42,6 +42,7 @@ from .stacks import (
 )
 
 __all__ = [
+    "Source",
     "Acquisition",
     "AcquisitionEntry",
     "Manifest",
@@ -61,6 +62,36 @@ CAMERA_IDENTITY = ("serial", "model", "amplifier", "readout_rate_mhz", "analog_g
 # --------------------------------------------------------------------------------------
 # Data classes
 # --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Source:
+    """Where a map or a number came from: a typed record, never text to decode.
+
+    Attributes
+    ----------
+    kind : {"value", "map", "dark", "result", "given"}
+        A number in the manifest, a map file, a dark stack the maps were reduced from, a
+        calibration result (φ and its standard error) or a value given by the caller.
+    path : Path, optional
+        The file of a map, a dark stack or a result.
+    value : float, optional
+        The number of a ``"value"``.
+
+    Its text (``str``) is what results and messages show: ``"value 3.859"``, the map's
+    path, ``"dark <path>"``, ``"result <path>"`` or ``"given"``.
+    """
+
+    kind: str
+    path: Path | None = None
+    value: float | None = None
+
+    def __str__(self) -> str:
+        if self.kind == "value":
+            return f"value {self.value!r}"
+        if self.kind == "map":
+            return str(self.path)
+        return self.kind if self.path is None else f"{self.kind} {self.path}"
+
+
 @dataclass(eq=False)
 class Acquisition:
     """One stack of raw counts at one EM gain set-point, with its offset and read noise.
@@ -81,9 +112,8 @@ class Acquisition:
         Per-pixel offset S0, ADU.
     read_noise : ndarray of float64, shape (rows, cols)
         Per-pixel read noise σ, ADU (> 0).
-    offset_source, read_noise_source : str
-        Where the maps came from: the map file, the dark stack (``"dark <path>"``), or
-        ``"value <number>"`` for a number in the manifest.
+    offset_source, read_noise_source : Source
+        Where the maps came from: a map file, a dark stack or a number in the manifest.
     n_frames_total : int
         Frames in the file, before ``skip_frames``.
     dark_frames : int or None
@@ -102,8 +132,8 @@ class Acquisition:
     skip_frames: int
     offset: np.ndarray = field(repr=False)
     read_noise: np.ndarray = field(repr=False)
-    offset_source: str
-    read_noise_source: str
+    offset_source: Source
+    read_noise_source: Source
     n_frames_total: int
     dark_frames: int | None = None
     dark_event_rate: np.ndarray | None = field(default=None, repr=False)
@@ -141,10 +171,10 @@ class Manifest:
     e_per_adu : None, float or ndarray of float64 (rows, cols)
         ADU conversion factor φ, e⁻/ADU, if given: a number stays a number, a map file
         gives a map.
-    e_per_adu_source : str or None
-        The map file, ``"value <number>"``, ``"result <path>"`` (φ and its standard
-        error from an ``is-adu`` or ``mv-adu`` result, read by the calibration; then
-        ``e_per_adu`` is None), or None when ``e_per_adu`` is absent.
+    e_per_adu_source : Source or None
+        A map file, a number, or a result (φ and its standard error from an ``is-adu`` or
+        ``mv-adu`` result, read by the calibration; then ``e_per_adu`` is None), or None
+        when ``e_per_adu`` is absent.
     acquisitions : list of Acquisition
         In manifest order.
     shape : tuple of int
@@ -164,7 +194,7 @@ class Manifest:
     path: Path
     content_hash: str
     e_per_adu: None | float | np.ndarray = field(repr=False)
-    e_per_adu_source: str | None
+    e_per_adu_source: Source | None
     acquisitions: list[Acquisition]
     shape: tuple[int, int]
     adc_max: int
@@ -595,7 +625,7 @@ def resolve_manifest(entries: ManifestEntries) -> Manifest:
                 "adc_bits in the manifest to the camera's ADC resolution")
     e_per_adu, e_source = None, None
     if e_result is not None:  # read by the calibration, with its standard errors
-        e_source = f"result {e_result}"
+        e_source = Source("result", Path(e_result))
     elif entries.e_per_adu is not None:
         e_per_adu, e_source = _map_from_value(r, None, "", "e_per_adu", entries.e_per_adu,
                                               shape)
@@ -701,7 +731,7 @@ def _read_out_maps(r: _Reader, acqs, shape, adc_max, hint) -> list[dict]:
             if key not in darks:
                 darks[key] = _reduce_dark(r, a, adc_max, hint)
             offset, read_noise, events = darks[key]
-            source = f"dark {a.dark_path}"
+            source = Source("dark", a.dark_path)
             m = {"offset": offset.copy(), "read_noise": read_noise.copy(), "events": events,
                  "offset_source": source, "read_noise_source": source}
         for key, what in (("offset", "offset"), ("read_noise", "read noise")):
@@ -813,8 +843,8 @@ def _map_from_value(r: _Reader, i: int | None, label: str, key: str, value, shap
             m = read_map(p, shape, name=key, positive=positive, nonnegative=nonnegative)
         except InputError as exc:
             raise r.error(str(exc), i, label) from None
-        return m, str(p)
-    source = f"value {value!r}"
+        return m, Source("map", Path(p))
+    source = Source("value", value=value)
     if key == "e_per_adu":
         return float(value), source
     return np.full(shape, float(value)), source

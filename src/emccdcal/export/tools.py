@@ -16,8 +16,8 @@ emccdcal version, the method, the result files and their SHA-256.
 Examples
 --------
 >>> from emccdcal.export.tools import TOOLS
->>> TOOLS[:3]
-('picasso', 'pyme', 'decode')
+>>> [t for t in ("picasso", "thunderstorm", "json") if t in TOOLS]
+['picasso', 'thunderstorm', 'json']
 """
 
 from __future__ import annotations
