@@ -130,6 +130,11 @@ class Plan:
     max_frames: int | None = None
 
     @property
+    def em_model(self) -> noise.EMModel:
+        """The register model the plan assumed (its camera's ``em_model`` and ``stages``)."""
+        return _camera_model(self.camera)
+
+    @property
     def dark_stacks(self) -> int:
         return len(self.acquisitions) if self.method == "gs" else 1
 
@@ -147,6 +152,12 @@ class Plan:
     def photoelectrons(self) -> float:
         """The light of a gain series (shared by its set-points), e⁻ per pixel per frame."""
         return self.acquisitions[0].photoelectrons
+
+
+def _camera_model(camera: dict) -> noise.EMModel:
+    """The register model of a plan's camera (its ``em_model`` name and ``stages``): the
+    one place a plan's text becomes a model."""
+    return noise.as_em_model(camera["em_model"], camera["stages"])
 
 
 def _nice(n: float) -> int:
@@ -484,7 +495,7 @@ def predict(method, setpoints, gains, photoelectrons, frames, dark_frames, camer
     camera : dict
         e_per_adu, read_noise, offset, adc_bits, em_model, stages (as :attr:`Plan.camera`).
     """
-    model = noise.as_em_model(camera["em_model"], camera["stages"])
+    model = _camera_model(camera)
     light = np.asarray(photoelectrons, float)[None, :]
     design = _Design(method, setpoints, gains, light, camera, model)
     return _plan_of(design, 0, np.asarray(frames, float), dark_frames, target_se,
@@ -646,7 +657,7 @@ def read_plan(path) -> Plan:
                   "pixel_well": cam.get("pixel_well"),
                   "register_well": cam.get("register_well")}
         _offset_within_adc(camera)
-        model = noise.as_em_model(camera["em_model"], camera["stages"])
+        model = _camera_model(camera)
         camera["stages"] = model.stages if model.register.uses_stages else None
         table = "acquisition" if method == "gs" else "level"
         rows = doc.get(table) or []

@@ -725,7 +725,6 @@ def _running_se(ctx: _Context, stack: Stack, sample_frames: list) -> float:
     from ..data import stats
     from ..data.dark import read_out_maps
     from ..fit.series import AcquisitionModel, fit_series
-    from ..model import noise
 
     cam = ctx.plan.camera
     _finish(ctx)
@@ -735,7 +734,7 @@ def _running_se(ctx: _Context, stack: Stack, sample_frames: list) -> float:
                                                            ctx.sample)))
     frames = [ctx.unit_frames, np.stack(sample_frames)[:, None, :]]
     adc_max = _adc_max(ctx, ctx.unit_frames.dtype)
-    model = noise.as_em_model(cam["em_model"], cam["stages"])
+    model = ctx.plan.em_model
     models = []
     for sp in (1.0, stack.setpoint):
         dark = _dark_of(ctx, sp)[1]
@@ -975,12 +974,10 @@ def _run(ctx: _Context) -> None:
 # The simulated camera's session
 # --------------------------------------------------------------------------------------
 def _simulated_camera(plan: Plan):
-    from ..model import noise
     from ..simulate.camera import Camera
     from .devices import SENSOR_SHAPE
 
-    cam = plan.camera
-    model = noise.as_em_model(cam["em_model"], cam["stages"])
+    cam, model = plan.camera, plan.em_model
     return Camera(rows=SENSOR_SHAPE[0], cols=SENSOR_SHAPE[1], frames=2,
                   e_per_adu=cam["e_per_adu"], read_noise=cam["read_noise"],
                   offset=cam["offset"], adc_bits=min(16, int(cam["adc_bits"])),
