@@ -22,6 +22,8 @@ N_TRUE = 5000.0
 WIDTH = 1.3
 BACKGROUND = 10.0
 FRAMES = 300
+#: The register the fits here assume: the one the scenes are simulated with.
+GAMMA = noise.EMModel("gamma")
 
 
 def _offset_map():
@@ -43,7 +45,7 @@ def fitted():
         frames = _stack(g, seed)
         pos = np.rint(TRUE_POS).astype(int)
         out[g] = (frames, bead_fit.fit_beads(frames, pos, offset=_offset_map(),
-                                          read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=g))
+                                          read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=g, em_model=GAMMA))
     return out
 
 
@@ -78,7 +80,7 @@ def test_faint_beads_at_1x_converge_and_stay_unbiased():
     frames = simulate_frames(scene, em_gain=1.0, e_per_adu=PHI, offset=_offset_map(),
                              read_noise=SIGMA, frames=FRAMES, seed=21)
     fit = bead_fit.fit_beads(frames, np.rint(TRUE_POS).astype(int), offset=_offset_map(),
-                             read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0)
+                             read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0, em_model=GAMMA)
     ok = fit.converged
     assert ok.mean() >= 0.99
     N, se = fit.intensity[ok], fit.intensity_se[ok]
@@ -91,7 +93,7 @@ def test_faint_beads_at_1x_converge_and_stay_unbiased():
     # held fixed where given (e.g. pooled over set-points): the intensities follow it
     wider = bead_fit.fit_beads(frames, fit.positions, offset=_offset_map(),
                                read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0,
-                               fixed_width=fit.params[:, 0, 2] * 1.05)
+                               fixed_width=fit.params[:, 0, 2] * 1.05, em_model=GAMMA)
     np.testing.assert_allclose(wider.params[:, 0, 2], fit.params[:, 0, 2] * 1.05)
     assert wider.intensity[ok].mean() > N.mean()
 
@@ -100,7 +102,7 @@ def test_a_background_per_frame_where_asked(fitted):
     frames, shared = fitted[261.6]
     fit = bead_fit.fit_beads(frames[:60], shared.positions, offset=_offset_map(),
                              read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=261.6,
-                             background="frame")
+                             background="frame", em_model=GAMMA)
     assert fit.converged.all()
     assert np.ptp(fit.params[..., 4], axis=1).min() > 0  # one per frame
     assert np.ptp(fit.params[..., 2], axis=1).max() == pytest.approx(0.0, abs=1e-12)
@@ -109,7 +111,7 @@ def test_a_background_per_frame_where_asked(fitted):
     with pytest.raises(ValueError, match="background must be 'shared' or 'frame'"):
         bead_fit.fit_beads(frames[:5], shared.positions, offset=_offset_map(),
                            read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=261.6,
-                           background="pixel")
+                           background="pixel", em_model=GAMMA)
 
 
 def test_shared_widths_weigh_each_set_point_by_its_precision(fitted):
@@ -137,7 +139,7 @@ def test_fit_is_the_maximum_of_the_exact_likelihood(fitted):
 
     def loglik(p, f):
         E = psf.spot_image(p, rows, cols)
-        return noise.logpmf(box[f], E, 4.78, PHI, off, SIGMA_DARK).sum()
+        return noise.logpmf(box[f], E, 4.78, PHI, off, SIGMA_DARK, em_model="gamma").sum()
 
     f = 7
     p = fit.params[b, f]
@@ -151,7 +153,7 @@ def test_fit_is_the_maximum_of_the_exact_likelihood(fitted):
 
     def total(shift):
         E = psf.spot_image(fit.params[b] + shift, rows, cols)  # every frame at once
-        return noise.logpmf(box, E, 4.78, PHI, off, SIGMA_DARK).sum()
+        return noise.logpmf(box, E, 4.78, PHI, off, SIGMA_DARK, em_model="gamma").sum()
 
     best = total(0.0)
     assert best == pytest.approx(fit.loglik[b].sum(), abs=1e-5)
@@ -165,7 +167,7 @@ def test_fit_is_the_maximum_of_the_exact_likelihood(fitted):
 def test_wrong_gain_scales_the_intensities(fitted):
     frames, right = fitted[4.78]
     wrong = bead_fit.fit_beads(frames, right.positions, offset=_offset_map(),
-                            read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.1 * 4.78)
+                            read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.1 * 4.78, em_model=GAMMA)
     ok = right.converged & wrong.converged
     ratio = wrong.intensity[ok].mean() / right.intensity[ok].mean()
     assert ratio == pytest.approx(1 / 1.1, rel=0.01)
@@ -187,7 +189,7 @@ def test_saturated_counts_are_left_out():
     adc_max = int(np.percentile(frames, 99.9))
     clipped = np.minimum(frames, adc_max)
     fit = bead_fit.fit_beads(clipped, pos, offset=_offset_map(), read_noise=SIGMA_DARK,
-                          e_per_adu=PHI, em_gain=22.95, adc_max=adc_max)
+                          e_per_adu=PHI, em_gain=22.95, adc_max=adc_max, em_model=GAMMA)
     h = bead_fit.DEFAULT_HALF_SIZE
     in_boxes = sum(int((clipped[:, r - h:r + h + 1, c - h:c + h + 1] >= adc_max).sum())
                    for r, c in pos)
@@ -279,7 +281,7 @@ def test_residual_pass_on_gaussian_beads_changes_nothing(fitted):
         frames, before = fitted[261.6]
         after = bead_fit.fit_beads(frames, before.positions, offset=_offset_map(),
                                    read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=261.6,
-                                   fixed_width=before.params[:, 0, 2], residual=image)
+                                   fixed_width=before.params[:, 0, 2], residual=image, em_model=GAMMA)
         assert after.converged.all()
         diff = after.intensity.mean(axis=1) / before.intensity.mean(axis=1) - 1
         sem = before.intensity.std(axis=1, ddof=1) / math.sqrt(FRAMES) / N_TRUE
@@ -299,12 +301,12 @@ def test_residual_image_describes_a_psf_with_a_halo():
         stacks[g] = simulate_frames(scene, em_gain=g, e_per_adu=PHI, offset=_offset_map(),
                                     read_noise=SIGMA, frames=FRAMES, seed=seed)
         fits.append(bead_fit.fit_beads(stacks[g], pos, offset=_offset_map(),
-                                       read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=g))
+                                       read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=g, em_model=GAMMA))
     assert bead_fit.psf_mismatch(fits[1])["chi2_per_pixel"] > 2.0
     widths = bead_fit.shared_widths(fits)
     image = bead_fit.residual_image(fits)
     second = [bead_fit.fit_beads(stacks[g], pos, offset=_offset_map(), read_noise=SIGMA_DARK,
-                                 e_per_adu=PHI, em_gain=g, fixed_width=widths, residual=image)
+                                 e_per_adu=PHI, em_gain=g, fixed_width=widths, residual=image, em_model=GAMMA)
               for g in (1.0, 261.6)]
     assert all(f.converged.all() for f in second)
     assert bead_fit.psf_mismatch(second[1])["chi2_per_pixel"] < 1.3
@@ -324,16 +326,16 @@ def test_offset_map_error_of_the_mean_intensity(fitted):
     one[r, c] = 1.0  # ADU
     base = bead_fit.fit_beads(frames, fit.positions, offset=_offset_map(),
                               read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0,
-                              offset_se=one)
+                              offset_se=one, em_model=GAMMA)
     shifted = bead_fit.fit_beads(frames, fit.positions, offset=_offset_map() + one,
-                                 read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0)
+                                 read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0, em_model=GAMMA)
     moved = shifted.intensity.mean(axis=1) - base.intensity.mean(axis=1)
     assert abs(moved[0]) == pytest.approx(base.intensity_offset_se[0], rel=0.05)
     assert base.intensity_offset_se[1:] == pytest.approx(0.0)
     # 2000 dark frames: every pixel's offset known to 15.5/sqrt(2000) ADU
     full = bead_fit.fit_beads(frames, fit.positions, offset=_offset_map(),
                               read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0,
-                              offset_se=SIGMA / math.sqrt(2000))
+                              offset_se=SIGMA / math.sqrt(2000), em_model=GAMMA)
     rel = full.intensity_offset_se / N_TRUE
     assert np.all((rel > 0.0005) & (rel < 0.01))
 
@@ -350,7 +352,7 @@ def test_the_error_of_a_beads_shared_parameters_is_in_its_mean():
     for seed in range(30):
         fit = bead_fit.fit_beads(_stack(1.0, 500 + seed, frames=60), pos,
                                  offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI,
-                                 em_gain=1.0)
+                                 em_gain=1.0, em_model=GAMMA)
         for b in range(3):
             N = fit.intensity[b][fit.converged[b]]
             scatter = N.std(ddof=1) / math.sqrt(N.size)

@@ -218,7 +218,7 @@ def test_cascade_moments_and_the_gamma_limit_at_one():
     assert abs(var - (15.5**2 + 370.0 * 25.0 * F2 / 3.859**2)) < 1e-4
     # g = 1 is no multiplication under either model
     assert np.allclose(noise.logpmf(counts[:50], 3.0, 1.0, 0.5, 300.0, 2.0, em_model="cascade"),
-                       noise.logpmf(counts[:50], 3.0, 1.0, 0.5, 300.0, 2.0))
+                       noise.logpmf(counts[:50], 3.0, 1.0, 0.5, 300.0, 2.0, em_model="gamma"))
 
 
 def test_em_model_arguments_are_checked():
@@ -227,9 +227,9 @@ def test_em_model_arguments_are_checked():
     with pytest.raises(OptionError, match="stages"):
         noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, em_model="cascade", stages=0)
     with pytest.raises(OptionError, match="register_cic"):
-        noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, register_cic=0.1)
+        noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, register_cic=0.1, em_model="gamma")
     with pytest.raises(OptionError, match="stages are the cascade model's"):
-        noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, stages=604)
+        noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, stages=604, em_model="gamma")
     # a run: the exact cascade unless told; the caller's choice over the manifest's,
     # the manifest's over what is known of the camera, that over the stated default;
     # stages alone mean the cascade
@@ -237,8 +237,8 @@ def test_em_model_arguments_are_checked():
     assert choose() == (cascade, "default")
     assert choose(stages=604) == (noise.EMModel("cascade", 604), "given")
     assert choose(stages=604, manifest_model="gamma")[0] == noise.EMModel("cascade", 604)
-    assert choose("gamma", manifest_model="cascade", manifest_stages=604) == (noise.EMModel(), "")
-    assert choose(manifest_model="gamma") == (noise.EMModel(), "")
+    assert choose("gamma", manifest_model="cascade", manifest_stages=604) == (noise.EMModel("gamma"), "")
+    assert choose(manifest_model="gamma") == (noise.EMModel("gamma"), "")
     assert choose("cascade", manifest_stages=604) == (noise.EMModel("cascade", 604), "manifest")
     assert choose(manifest_stages=591, camera_model="iXon Ultra 888")[1] == "manifest"
     assert choose(camera_model="iXon Ultra 888") == (
@@ -288,7 +288,7 @@ def test_stage_by_stage_register_fits_the_cascade_not_the_gamma(g, E, N, n_draws
     support = np.arange(counts.min(), counts.max() + 1)
     sd = np.sqrt(sigma**2 + 1 / 12)  # read noise of the rounded counts
     exact = noise.pmf(support, E, g, phi, S0, sd, em_model="cascade", stages=N)
-    gamma = noise.pmf(support, E, g, phi, S0, sd)
+    gamma = noise.pmf(support, E, g, phi, S0, sd, em_model="gamma")
     assert _chi2_pvalue(counts, exact, support) > 1e-3
     assert _chi2_pvalue(counts, gamma, support) < 1e-6
 

@@ -34,7 +34,8 @@ def _block(case, frames=3000, pixels=3, seed=7):
     return engine.AcquisitionBlock(
         values=h.values, counts=h.counts, offset=np.full(P, S0), read_noise=np.full(P, sigma),
         poisson_normal=g == 1.0, mean=h.mean, var=h.var, n=h.n,
-        offset_var=np.full(P, 1.0), read_noise_var=np.full(P, 0.5))
+        offset_var=np.full(P, 1.0), read_noise_var=np.full(P, 0.5),
+        em_model=noise.EMModel("gamma"))
 
 
 def _log_params(case, P, shift=(0.01, -0.02)):
@@ -53,7 +54,8 @@ def test_loglik_is_that_of_the_public_noise_model(case):
     ref_g = 1.0 if g == 1.0 else np.exp(log_scale[0]) * phi
     ref_phi = 1.0 / np.exp(log_scale[0]) if g == 1.0 else phi
     ref = [np.sum(acq.counts[p] * noise.logpmf(acq.values[p], np.exp(log_e[p]), ref_g, ref_phi,
-                                                S0, sigma)) for p in range(acq.n.size)]
+                                                S0, sigma, em_model="gamma"))
+           for p in range(acq.n.size)]
     np.testing.assert_allclose(loglik, ref, rtol=1e-11)
 
 

@@ -56,7 +56,7 @@ def test_wrong_parameters_are_flagged():
 def _reference_chi2(values, counts, E, g, phi, s0, sigma, K):
     """Direct χ² with K equiprobable bins for one pixel (no merging needed)."""
     grid = np.arange(int(s0) - 400, int(s0) + 9000)
-    pm = noise.pmf(grid, E, g, phi, s0, sigma)
+    pm = noise.pmf(grid, E, g, phi, s0, sigma, em_model="gamma")
     cdf = np.cumsum(pm) / pm.sum()
     edges = grid[np.searchsorted(cdf, np.arange(1, K) / K)]
     probs = np.diff(np.r_[0.0, cdf[edges - grid[0]], 1.0])

@@ -17,7 +17,7 @@ PHI, S0, SIGMA = 3.859, 587.0, 15.0
 
 def support(E, g, phi, S0, sigma, width=40.0):
     mu = float(noise.mean(E, g, phi, S0))
-    sd = float(np.sqrt(noise.variance(E, g, phi, S0, sigma)))
+    sd = float(np.sqrt(noise.variance(E, g, phi, S0, sigma, em_model="gamma")))
     lo = max(0, int(min(S0, mu) - width * max(sd, sigma)) - 10)
     hi = int(mu + width * sd + (60 * g / phi if g > 1 else 0)) + 10
     return np.arange(lo, hi)
@@ -28,7 +28,7 @@ def support(E, g, phi, S0, sigma, width=40.0):
 @pytest.mark.parametrize("g", [5.0, 25.0, 300.0])
 def test_normalisation_and_moments(E, g):
     k = support(E, g, PHI, S0, SIGMA)
-    p = noise.pmf(k, E, g, PHI, S0, SIGMA)
+    p = noise.pmf(k, E, g, PHI, S0, SIGMA, em_model="gamma")
     assert abs(p.sum() - 1) < 1e-12
     mean = np.sum(k * p)
     var = np.sum((k - mean) ** 2 * p)
@@ -43,7 +43,7 @@ def test_normalisation_and_moments(E, g):
 @pytest.mark.parametrize("E", [0.5, 5.0, 370.0, 1000.0])
 def test_poisson_normal_moments(E):
     k = support(E, 1.0, PHI, S0, SIGMA)
-    p = noise.pmf(k, E, 1.0, PHI, S0, SIGMA)
+    p = noise.pmf(k, E, 1.0, PHI, S0, SIGMA, em_model="gamma")
     mean = np.sum(k * p)
     assert abs(p.sum() - 1) < 1e-12
     assert abs(mean - (S0 + E / PHI)) < 1e-8
@@ -57,7 +57,7 @@ def test_paper_mode_atom_is_flagged_and_documented():
     assert "not normalised" in noise.paper_pmf_grid.__doc__
     # In the calibration regime the paper's model equals the exact one.
     k = np.arange(20000, 38000)
-    exact = noise.logpmf(k, 370, 300, PHI, S0, SIGMA)
+    exact = noise.logpmf(k, 370, 300, PHI, S0, SIGMA, em_model="gamma")
     paper = noise.paper_logpmf(k, 370, 300, PHI, S0, SIGMA)
     keep = exact > np.log(1e-10)
     assert np.max(np.abs(exact - paper)[keep]) < 1e-8
@@ -66,29 +66,29 @@ def test_paper_mode_atom_is_flagged_and_documented():
 # ---------------------------------------------------------------------- case 3, 4
 def test_zero_signal_limit_is_the_read_noise_gaussian():
     k = support(1e-12, 25.0, PHI, S0, SIGMA)
-    p = noise.pmf(k, 1e-12, 25.0, PHI, S0, SIGMA)
+    p = noise.pmf(k, 1e-12, 25.0, PHI, S0, SIGMA, em_model="gamma")
     assert np.max(np.abs(p - stats.norm.pdf(k, S0, SIGMA))) < 1e-13
 
 
 def test_gain_one_is_not_the_gamma_model():
     E = 50.0
     k = support(E, 1.0, PHI, S0, SIGMA)
-    pn = noise.pmf(k, E, 1.0, PHI, S0, SIGMA)
+    pn = noise.pmf(k, E, 1.0, PHI, S0, SIGMA, em_model="gamma")
     var_pn = np.sum((k - np.sum(k * pn)) ** 2 * pn)
     assert var_pn == pytest.approx(SIGMA**2 + E / PHI**2, rel=1e-6)
     # the PGN at a gain just above 1 has twice the signal variance
-    pgn = noise.pmf(k, E, 1.0 + 1e-9, PHI, S0, SIGMA)
+    pgn = noise.pmf(k, E, 1.0 + 1e-9, PHI, S0, SIGMA, em_model="gamma")
     var_pgn = np.sum((k - np.sum(k * pgn)) ** 2 * pgn)
     assert var_pgn == pytest.approx(SIGMA**2 + 2 * E / PHI**2, rel=1e-6)
-    assert float(noise.excess_noise_factor(1.0)) == 1.0
-    assert float(noise.excess_noise_factor(5.0)) == 2.0
+    assert float(noise.excess_noise_factor(1.0, em_model="gamma")) == 1.0
+    assert float(noise.excess_noise_factor(5.0, em_model="gamma")) == 2.0
 
 
 # ---------------------------------------------------------------------- case 5, 6
 def test_exact_poisson_normal_reference_values():
     k = [90, 100, 103, 110, 130]
     ref = [1.7503385211e-2, 3.8157156576e-2, 3.9728330371e-2, 3.0847696938e-2, 1.0291887305e-3]
-    np.testing.assert_allclose(noise.pmf(k, 10.0, 1.0, 3.5, 100.0, 10.0), ref, rtol=1e-9)
+    np.testing.assert_allclose(noise.pmf(k, 10.0, 1.0, 3.5, 100.0, 10.0, em_model="gamma"), ref, rtol=1e-9)
 
 
 @pytest.mark.parametrize(
@@ -101,7 +101,7 @@ def test_exact_poisson_normal_reference_values():
     ],
 )
 def test_pgn_reference_values(g, k, ref):
-    np.testing.assert_allclose(noise.pmf(k, 10.0, g, 3.5, 100.0, 10.0), ref, rtol=1e-9)
+    np.testing.assert_allclose(noise.pmf(k, 10.0, g, 3.5, 100.0, 10.0, em_model="gamma"), ref, rtol=1e-9)
 
 
 # ---------------------------------------------------------------------- case 7
@@ -121,8 +121,8 @@ def test_poisson_gamma_identities():
     assert total == pytest.approx(0.39346934029, abs=1e-10)
     # only g/φ matters for the EM data
     k = support(E, g, phi, S0, SIGMA)
-    np.testing.assert_allclose(noise.logpmf(k, E, g, phi, S0, SIGMA),
-                               noise.logpmf(k, E, 2 * g, 2 * phi, S0, SIGMA), atol=1e-12)
+    np.testing.assert_allclose(noise.logpmf(k, E, g, phi, S0, SIGMA, em_model="gamma"),
+                               noise.logpmf(k, E, 2 * g, 2 * phi, S0, SIGMA, em_model="gamma"), atol=1e-12)
 
 
 # ---------------------------------------------------------------------- case 8
@@ -133,7 +133,7 @@ PARAMS = ("photoelectrons", "em_gain", "e_per_adu", "offset", "read_noise")
                                    (0.3, 2.0, 0.5, 20.0, 0.8), (4000.0, 1.0, 20.0, 50.0, 3.0)])
 def test_gradients_match_finite_differences(point):
     k = support(*point, width=4)[:: max(1, support(*point, width=4).size // 25)]
-    _, grad = noise.logpmf_grad(k, *point)
+    _, grad = noise.logpmf_grad(k, *point, em_model="gamma")
     for i, name in enumerate(PARAMS):
         if point[1] == 1.0 and name == "em_gain":
             assert np.all(np.isnan(grad[name]))
@@ -145,7 +145,7 @@ def test_gradients_match_finite_differences(point):
             up, down = list(point), list(point)
             up[i] += step
             down[i] -= step
-            return (noise.logpmf(k, *up) - noise.logpmf(k, *down)) / (2 * step)
+            return (noise.logpmf(k, *up, em_model="gamma") - noise.logpmf(k, *down, em_model="gamma")) / (2 * step)
 
         estimate = (4 * fd(h / 2) - fd(h)) / 3
         scale = np.max(np.abs(estimate)) + 1e-12
@@ -157,8 +157,8 @@ def test_derivative_identity_in_photoelectrons():
     E, g, phi, s0, sigma = 12.0, 37.0, 3.6, 500.0, 12.0
     theta = g / phi
     k = np.arange(0, 4000)
-    p = noise.pmf(k, E, g, phi, s0, sigma)
-    _, grad = noise.logpmf_grad(k, E, g, phi, s0, sigma)
+    p = noise.pmf(k, E, g, phi, s0, sigma, em_model="gamma")
+    _, grad = noise.logpmf_grad(k, E, g, phi, s0, sigma, em_model="gamma")
     # h on the integer grid, exact bin masses of the exponential, convolved with p
     edges = np.arange(0, 4001) - 0.5
     h = np.diff(-np.exp(-np.clip(edges, 0, None) / theta))
@@ -192,15 +192,15 @@ def test_logpmf_against_independent_high_precision(case):
     E, g, phi, s0, sigma = case
     k = support(*case, width=12)
     k = k[:: max(1, k.size // 20000)]  # enough to find the region (up to 4e5 counts wide)
-    logp = noise.logpmf(k, *case)
+    logp = noise.logpmf(k, *case, em_model="gamma")
     peak = logp.max()
     inside = k[logp > peak + np.log(1e-10)]
     # spread the checked points over the whole region, tails included
     pick = np.unique(np.r_[inside[:: max(1, inside.size // 8)], inside[:2], inside[-2:]])
-    ours = noise.logpmf(pick, *case)
+    ours = noise.logpmf(pick, *case, em_model="gamma")
     from emccdcal.model import _engine
 
-    rows = noise.EMModel().register.rows(np.array([E]), np.array([float(g)]), np.array([phi]))
+    rows = noise.EMModel("gamma").register.rows(np.array([E]), np.array([float(g)]), np.array([phi]))
     lz = _engine.log_normaliser(rows, np.array([s0]), np.array([sigma]))[0][0]
     ref = np.array([float(mp.log(density(int(v), E, g, phi, s0, sigma))) for v in pick]) - lz
     assert np.max(np.abs(ours - ref)) < 1e-8
@@ -214,7 +214,7 @@ def test_small_read_noise_normaliser_by_direct_sum(sigma):
     E, g, phi, s0 = 2.0, 1.0, 0.3, 10.3
     k = np.arange(0, 80)
     Z = sum(density(int(v), E, g, phi, s0, sigma) for v in k)
-    p = noise.pmf(k, E, g, phi, s0, sigma)
+    p = noise.pmf(k, E, g, phi, s0, sigma, em_model="gamma")
     assert abs(p.sum() - 1) < 1e-10
     ref = np.array([float(density(int(v), E, g, phi, s0, sigma) / Z) for v in k])
     keep = ref > 1e-10 * ref.max()
@@ -237,11 +237,11 @@ def test_normalisation_and_moments_property(E, g, phi, s0, sigma):
     assume(s0 > 14 * sigma + 14)
     k = support(E, g, phi, s0, sigma, width=14)
     assume(k.size < 100_000)  # what a test can sum quickly; extremes: the cases above
-    p = noise.pmf(k, E, g, phi, s0, sigma)
+    p = noise.pmf(k, E, g, phi, s0, sigma, em_model="gamma")
     assert abs(p.sum() - 1) < 1e-10
     mean = np.sum(k * p)
     mu = float(noise.mean(E, g, phi, s0))
-    var = float(noise.variance(E, g, phi, s0, sigma))
+    var = float(noise.variance(E, g, phi, s0, sigma, em_model="gamma"))
     # The density sampled at the integers has the continuous model's moments up to
     # aliasing terms ∝ e^-2π²σ²: negligible from σ ≈ 1.5 ADU, a few 0.01 ADU below
     # (checked against the independent quadrature, e.g. E=1, g=106, φ=0.5, σ=0.70).
@@ -276,14 +276,14 @@ def test_bad_parameters_name_the_parameter(kwargs, name):
 @pytest.mark.parametrize("counts", [[1.5, 2.0], [-1, 5], [np.nan]])
 def test_bad_counts(counts):
     with pytest.raises(ValueError, match="counts"):
-        noise.logpmf(counts, 10.0, 5.0, 3.0, 100.0, 10.0)
+        noise.logpmf(counts, 10.0, 5.0, 3.0, 100.0, 10.0, em_model="gamma")
 
 
 def test_broadcasting():
     k = np.array([[100], [130]])
     E = np.array([5.0, 10.0, 20.0])
-    out = noise.logpmf(k, E, 25.0, 3.5, 100.0, 10.0)
+    out = noise.logpmf(k, E, 25.0, 3.5, 100.0, 10.0, em_model="gamma")
     assert out.shape == (2, 3)
     for i in range(2):
         for j in range(3):
-            assert out[i, j] == pytest.approx(noise.logpmf(k[i, 0], E[j], 25.0, 3.5, 100.0, 10.0))
+            assert out[i, j] == pytest.approx(noise.logpmf(k[i, 0], E[j], 25.0, 3.5, 100.0, 10.0, em_model="gamma"))

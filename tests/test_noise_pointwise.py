@@ -23,7 +23,7 @@ def _cases(rng, K, gains):
 def _counts(rng, E, g, phi, S0, sigma, spread=1.0):
     """Counts around the model's mean, up to ``spread``·4 SDs away (tails included)."""
     mean = noise.mean(E, g, phi, S0)
-    sd = np.sqrt(noise.variance(E, g, phi, S0, sigma))
+    sd = np.sqrt(noise.variance(E, g, phi, S0, sigma, em_model="gamma"))
     return np.maximum(0, np.rint(mean + spread * sd * rng.uniform(-4, 4, np.shape(E)))).astype(int)
 
 
@@ -34,8 +34,8 @@ def test_logpmf_rows_matches_logpmf_and_gradient():
     g, phi, S0, sigma = _cases(rng, U, [1.0, 4.78, 22.95, 261.6])
     row = rng.integers(0, U, 400)
     k = _counts(rng, E[row], g[row], phi[row], S0[row], sigma[row], spread=1.5)
-    lp, dE = noise.logpmf_rows(k, row, E, g, phi, S0, sigma, grad=True)
-    ref, rgrad = noise.logpmf_grad(k, E[row], g[row], phi[row], S0[row], sigma[row])
+    lp, dE = noise.logpmf_rows(k, row, E, g, phi, S0, sigma, grad=True, em_model="gamma")
+    ref, rgrad = noise.logpmf_grad(k, E[row], g[row], phi[row], S0[row], sigma[row], em_model="gamma")
     np.testing.assert_allclose(lp, ref, rtol=0, atol=1e-9)
     np.testing.assert_allclose(dE, rgrad["photoelectrons"], rtol=1e-7, atol=1e-10)
 
@@ -47,23 +47,23 @@ def test_logpmf_rows_chunks_give_the_same_values(monkeypatch):
     g, phi, S0, sigma = _cases(rng, U, [1.0, 25.0, 300.0])
     row = np.repeat(np.arange(U), 7)
     k = _counts(rng, E[row], g[row], phi[row], S0[row], sigma[row])
-    whole = noise.logpmf_rows(k, row, E, g, phi, S0, sigma)
+    whole = noise.logpmf_rows(k, row, E, g, phi, S0, sigma, em_model="gamma")
     monkeypatch.setattr(noise, "_ROWS_POINTS", 1)  # one row per batch
     # the same numbers up to FFT round-off (batch shapes differ)
-    np.testing.assert_allclose(noise.logpmf_rows(k, row, E, g, phi, S0, sigma), whole,
+    np.testing.assert_allclose(noise.logpmf_rows(k, row, E, g, phi, S0, sigma, em_model="gamma"), whole,
                                rtol=0, atol=1e-11)
 
 
 def test_logpmf_rows_bad_input():
     with pytest.raises(ValueError, match="row must hold integer indices"):
-        noise.logpmf_rows([600], [2], [10.0, 20.0], 1.0, PHI, 587.0, 15.0)
+        noise.logpmf_rows([600], [2], [10.0, 20.0], 1.0, PHI, 587.0, 15.0, em_model="gamma")
     with pytest.raises(ValueError, match="one value per row"):
-        noise.logpmf_rows([600], [0], [10.0, 20.0], [1.0, 1.0, 1.0], PHI, 587.0, 15.0)
+        noise.logpmf_rows([600], [0], [10.0, 20.0], [1.0, 1.0, 1.0], PHI, 587.0, 15.0, em_model="gamma")
     with pytest.raises(ValueError, match="row has 2 entries"):
-        noise.logpmf_rows([600], [0, 0], [10.0], 1.0, PHI, 587.0, 15.0)
+        noise.logpmf_rows([600], [0, 0], [10.0], 1.0, PHI, 587.0, 15.0, em_model="gamma")
     with pytest.raises(ValueError, match="em_gain"):
-        noise.logpmf_rows([600], [0], [10.0], 0.5, PHI, 587.0, 15.0)
-    assert noise.logpmf_rows([], [], [10.0], 1.0, PHI, 587.0, 15.0).shape == (0,)
+        noise.logpmf_rows([600], [0], [10.0], 0.5, PHI, 587.0, 15.0, em_model="gamma")
+    assert noise.logpmf_rows([], [], [10.0], 1.0, PHI, 587.0, 15.0, em_model="gamma").shape == (0,)
 
 
 @pytest.mark.parametrize(
@@ -87,18 +87,18 @@ def test_table_matches_exact_model(gains, e_lo, ratio):
     # data drawn anywhere in the range, queried anywhere in the range
     E_data = rng.uniform(lo[pix], hi[pix])
     k = _counts(rng, E_data, g[pix], phi[pix], S0[pix], sigma[pix], spread=0.6)
-    table = noise.LogpmfTable(k, pix, lo, hi, g, phi, S0, sigma)
+    table = noise.LogpmfTable(k, pix, lo, hi, g, phi, S0, sigma, em_model="gamma")
     E = np.maximum(rng.uniform(lo[pix], hi[pix]), noise.TABLE_MIN_PHOTOELECTRONS)
     lp, d1, d2, outside = table.evaluate(E)
     assert not outside.any()
-    ref, rgrad = noise.logpmf_grad(k, E, g[pix], phi[pix], S0[pix], sigma[pix])
+    ref, rgrad = noise.logpmf_grad(k, E, g[pix], phi[pix], S0[pix], sigma[pix], em_model="gamma")
     assert np.max(np.abs(lp - ref)) < 1e-7
     scale = np.abs(rgrad["photoelectrons"]) + 1.0 / np.maximum(E, 1.0)
     assert np.max(np.abs(d1 - rgrad["photoelectrons"]) / scale) < 1e-5
     # second derivative against central differences of the exact first derivative
     h = 1e-4 * np.maximum(E, 1.0)
-    up = noise.logpmf_grad(k, E + h, g[pix], phi[pix], S0[pix], sigma[pix])[1]["photoelectrons"]
-    dn = noise.logpmf_grad(k, E - h, g[pix], phi[pix], S0[pix], sigma[pix])[1]["photoelectrons"]
+    up = noise.logpmf_grad(k, E + h, g[pix], phi[pix], S0[pix], sigma[pix], em_model="gamma")[1]["photoelectrons"]
+    dn = noise.logpmf_grad(k, E - h, g[pix], phi[pix], S0[pix], sigma[pix], em_model="gamma")[1]["photoelectrons"]
     num = (up - dn) / (2 * h)
     assert np.median(np.abs(d2 - num) / (np.abs(num) + 1e-12)) < 1e-4
     assert np.max(np.abs(d2 - num) / (np.abs(num) + scale / np.maximum(E, 1.0))) < 1e-2
@@ -108,37 +108,37 @@ def test_table_subsets_clamping_and_new_ranges():
     counts = np.array([700, 720, 3000, 3100])
     pixel = np.array([0, 0, 1, 1])
     g = np.array([1.0, 25.0])
-    table = noise.LogpmfTable(counts, pixel, [100.0, 50.0], [200.0, 150.0], g, PHI, 587.0, 15.5)
+    table = noise.LogpmfTable(counts, pixel, [100.0, 50.0], [200.0, 150.0], g, PHI, 587.0, 15.5, em_model="gamma")
     assert table.degree.tolist() == [16, 16] and not table.log.any()
     lo, hi = table.e_range
     np.testing.assert_allclose(lo, [100.0, 50.0])
     np.testing.assert_allclose(hi, [200.0, 150.0])
     # a subset of the counts, by index
     lp, _, _, out = table.evaluate(np.array([120.0, 140.0]), index=np.array([1, 3]))
-    ref = noise.logpmf([720, 3100], [120.0, 140.0], [1.0, 25.0], PHI, 587.0, 15.5)
+    ref = noise.logpmf([720, 3100], [120.0, 140.0], [1.0, 25.0], PHI, 587.0, 15.5, em_model="gamma")
     np.testing.assert_allclose(lp, ref, atol=1e-8)
     assert not out.any()
     # outside the range: clamped to its end and flagged
     lp, _, _, out = table.evaluate(np.array([90.0, 300.0]), index=np.array([0, 2]))
     assert out.tolist() == [True, True]
     np.testing.assert_allclose(
-        lp, noise.logpmf([700, 3000], [100.0, 150.0], [1.0, 25.0], PHI, 587.0, 15.5), atol=1e-8)
+        lp, noise.logpmf([700, 3000], [100.0, 150.0], [1.0, 25.0], PHI, 587.0, 15.5, em_model="gamma"), atol=1e-8)
     # widen pixel 1 and evaluate there exactly
     table.set_range([1], 100.0, 400.0)
     lp, _, _, out = table.evaluate(np.array([300.0]), index=np.array([2]))
     assert not out.any()
-    np.testing.assert_allclose(lp, noise.logpmf(3000, 300.0, 25.0, PHI, 587.0, 15.5), atol=1e-8)
+    np.testing.assert_allclose(lp, noise.logpmf(3000, 300.0, 25.0, PHI, 587.0, 15.5, em_model="gamma"), atol=1e-8)
     # pixel 0 untouched
     np.testing.assert_allclose(table.e_range[0], [100.0, 100.0])
 
 
 def test_table_bad_input():
     with pytest.raises(ValueError, match="0 <= e_lo < e_hi"):
-        noise.LogpmfTable([700], [0], [100.0], [50.0], 1.0, PHI, 587.0, 15.5)
+        noise.LogpmfTable([700], [0], [100.0], [50.0], 1.0, PHI, 587.0, 15.5, em_model="gamma")
     with pytest.raises(ValueError, match="pixel must hold integer indices"):
-        noise.LogpmfTable([700], [3], [10.0], [50.0], 1.0, PHI, 587.0, 15.5)
+        noise.LogpmfTable([700], [3], [10.0], [50.0], 1.0, PHI, 587.0, 15.5, em_model="gamma")
     with pytest.raises(ValueError, match="pixel has 2 entries"):
-        noise.LogpmfTable([700], [0, 0], [10.0], [50.0], 1.0, PHI, 587.0, 15.5)
+        noise.LogpmfTable([700], [0, 0], [10.0], [50.0], 1.0, PHI, 587.0, 15.5, em_model="gamma")
 
 
 def test_docstring_examples():

@@ -406,7 +406,8 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     max_iter : int
         Iterations of each Levenberg–Marquardt stage.
     em_model : emccdcal.model.noise.EMModel, optional
-        The EM register model of the exact likelihood (default the gamma model).
+        The EM register model of the exact likelihood (default
+        :data:`emccdcal.defaults.DEFAULT_EM_MODEL`, as everywhere).
     fixed_width : float or array_like (B,), optional
         Each bead's spot SD (pixel), held fixed (e.g. measured at all set-points at once);
         by default it is fitted, shared by the bead's frames.

@@ -14,6 +14,7 @@ and exits 130.
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib
 import sys
 
@@ -160,6 +161,11 @@ def main(argv: list[str] | None = None) -> int:
         return _main(argv)
     finally:
         sys.stdout = out
+        # What the verb left for the garbage collector goes now, in this thread: a
+        # library's C++ object (Micro-Manager's core, after acquire) collected later by
+        # a daemon thread while the interpreter shuts down aborts the process
+        # ("FATAL: exception not rethrown").
+        gc.collect()
 
 
 def _main(argv):

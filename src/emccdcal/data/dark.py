@@ -21,6 +21,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from .. import defaults
 from .._optimize import maximize
 from ..errors import InputError
 from ..model import noise
@@ -263,8 +264,9 @@ def robust_start(h):
 def _model(h, x, theta, derivs):
     """The noise model at the histogram values: E = event rate, scale θ, S0, σ."""
     rate, S0, sigma = np.exp(x[:, 0]), x[:, 1], np.exp(x[:, 2])
-    # Events are the gamma register's multiplied electrons (E the rate, θ their scale).
-    rows = noise.EMModel().register.rows_at((rate, theta), False)
+    # Events are the gamma register's multiplied electrons (E the rate, θ their scale):
+    # the paper's model, named, whatever the default register.
+    rows = noise.EMModel(defaults.PAPER_EM_MODEL).register.rows_at((rate, theta), False)
     lo, hi = noise.window_extent(rows, S0, sigma, width=8.0)
     first, last = h.values[:, 0], h.values.max(axis=1)
     start = np.minimum(np.floor(lo).astype(np.int64), first)

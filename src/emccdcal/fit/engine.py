@@ -63,7 +63,8 @@ class AcquisitionBlock:
         Acquisitions with the same group share one pair of maps (one dark stack), so their
         map errors are the same draw.
     em_model : noise.EMModel
-        The register model of a multiplied acquisition (the paper's gamma by default).
+        The register model of a multiplied acquisition (by default the package's,
+        :data:`emccdcal.defaults.DEFAULT_EM_MODEL`).
     """
 
     values: np.ndarray

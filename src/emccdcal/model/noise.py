@@ -125,7 +125,9 @@ class EMModel:
     """The model of the EM register, by name: one of :data:`EM_MODELS`.
 
     ``"gamma"`` is the paper's: the output of n electrons is Gamma(n, g), excess-noise
-    factor 2 at every gain. ``"cascade"`` is the exact register of ``stages`` stages, in
+    factor 2 at every gain. ``"cascade"``, the default (:data:`DEFAULT_EM_MODEL`, as
+    everywhere: a run, a plan, a function of this module), is the exact register of
+    ``stages`` stages, in
     each of which every electron makes one more with probability p = g^{1/N} − 1
     (:mod:`emccdcal.model.cascade`); its excess-noise factor is below 2 (1.795 at
     g = 5, N = 536). Both reduce to no multiplication (Poisson–normal) at g = 1.
@@ -135,13 +137,13 @@ class EMModel:
 
     Examples
     --------
-    >>> str(EMModel("cascade", 604)), str(EMModel())
-    ('cascade (604 stages)', 'gamma')
+    >>> str(EMModel("cascade", 604)), str(EMModel()), str(EMModel("gamma"))
+    ('cascade (604 stages)', 'cascade (536 stages)', 'gamma')
     >>> float(EMModel("cascade").register.excess_noise_factor(5.0))
     1.79...
     """
 
-    name: str = "gamma"
+    name: str = defaults.DEFAULT_EM_MODEL
     stages: int = DEFAULT_STAGES
 
     def __post_init__(self):
@@ -253,7 +255,7 @@ def choose_em_model(em_model=None, stages=None, *, manifest_model=None, manifest
     return model, "default"
 
 
-def as_em_model(em_model="gamma", stages=None) -> EMModel:
+def as_em_model(em_model=defaults.DEFAULT_EM_MODEL, stages=None) -> EMModel:
     """An :class:`EMModel` from a name (or an :class:`EMModel`) and optional stages;
     stages go with the cascade only."""
     if isinstance(em_model, EMModel):
@@ -300,7 +302,7 @@ def mean(photoelectrons, em_gain, e_per_adu, offset, read_noise=1.0):
     return S0 + g * E / phi
 
 
-def variance(photoelectrons, em_gain, e_per_adu, offset, read_noise, *, em_model="gamma",
+def variance(photoelectrons, em_gain, e_per_adu, offset, read_noise, *, em_model=defaults.DEFAULT_EM_MODEL,
              stages=None):
     """Variance of the count, ADU²: ``σ² + F²E(g/φ)²`` with the register model's F²
     (:func:`excess_noise_factor`: 2 for the gamma model), ``σ² + E/φ²`` at g = 1.
@@ -323,7 +325,7 @@ def third_cumulant(photoelectrons, em_gain, e_per_adu, offset, read_noise):
     return np.where(g == 1, E / phi**3, 6 * E * (g / phi) ** 3)
 
 
-def excess_noise_factor(em_gain, *, em_model="gamma", stages=None):
+def excess_noise_factor(em_gain, *, em_model=defaults.DEFAULT_EM_MODEL, stages=None):
     """Excess-noise factor F² of the model's multiplication, ``Var(X)/(g²E)``.
 
     2 for the gamma model (any g > 1), 1 for no multiplication (g = 1); for the cascade
@@ -402,7 +404,7 @@ def _evaluate_public(E, g, phi, S0, sigma, cic, row, k, model, grad=False):
 
 
 def logpmf(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, *,
-           em_model="gamma", stages=None, register_cic=0.0):
+           em_model=defaults.DEFAULT_EM_MODEL, stages=None, register_cic=0.0):
     """Natural log of the probability of integer counts under the EMCCD noise model.
 
     Broadcasts like NumPy. ``em_gain == 1`` selects the Poisson–normal model, any other
@@ -424,8 +426,8 @@ def logpmf(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, *,
     read_noise : array_like
         σ, read noise (ADU), > 0: the SD of dark counts.
     em_model : {"gamma", "cascade"} or EMModel, optional
-        The register: the paper's gamma approximation (default) or the exact
-        Bernoulli cascade of ``stages`` stages (:class:`EMModel`).
+        The register: the exact Bernoulli cascade of ``stages`` stages (the default,
+        :data:`DEFAULT_EM_MODEL`) or the paper's gamma approximation (:class:`EMModel`).
     stages : int, optional
         N, stages of the cascade (default 536).
     register_cic : array_like, optional
@@ -458,8 +460,8 @@ def logpmf(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, *,
 
     >>> counts = np.arange(500, 3000)
     >>> sd = lambda p: np.sqrt(np.sum(p * counts**2) - np.sum(p * counts)**2)
-    >>> gamma = pmf(counts, 370.0, 5.0, 3.859, 587.0, 15.5)
-    >>> exact = pmf(counts, 370.0, 5.0, 3.859, 587.0, 15.5, em_model="cascade", stages=536)
+    >>> gamma = pmf(counts, 370.0, 5.0, 3.859, 587.0, 15.5, em_model="gamma")
+    >>> exact = pmf(counts, 370.0, 5.0, 3.859, 587.0, 15.5)  # the default: 536 stages
     >>> round(float(sd(exact) / sd(gamma)), 4)
     0.9561
     """
@@ -477,7 +479,7 @@ def pmf(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, **model)
 
 
 def logpmf_grad(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, *,
-                em_model="gamma", stages=None, register_cic=0.0):
+                em_model=defaults.DEFAULT_EM_MODEL, stages=None, register_cic=0.0):
     """Log-pmf and its analytic gradient by every parameter.
 
     Parameters are those of :func:`logpmf`.
@@ -572,7 +574,7 @@ _ROWS_POINTS = 2**22
 
 
 def logpmf_rows(counts, row, photoelectrons, em_gain, e_per_adu, offset, read_noise, *,
-                grad=False, em_model="gamma", stages=None):
+                grad=False, em_model=defaults.DEFAULT_EM_MODEL, stages=None):
     """Log-pmf of counts, each under a parameter set picked by index (no broadcasting).
 
     :func:`logpmf` broadcasts its arguments and looks for repeated parameter sets among
@@ -719,7 +721,7 @@ class LogpmfTable:
     """
 
     def __init__(self, counts, pixel, e_lo, e_hi, em_gain, e_per_adu, offset, read_noise, *,
-                 em_model="gamma", stages=None):
+                 em_model=defaults.DEFAULT_EM_MODEL, stages=None):
         self.em_model = as_em_model(em_model, stages)
         self.counts = _check_counts(counts).ravel()
         self.pixel = np.asarray(pixel).ravel()
