@@ -66,15 +66,12 @@ class Series:
     blocks : list of AcquisitionBlock
     setpoints : ndarray, shape (A,)
         EM-gain set-point of each acquisition.
-    levels : list of str or None
-        Illumination label of each acquisition.
     e_per_adu : ndarray, shape (P,) or None
         Fixed ADU conversion factor (e⁻/ADU) where the method needs it.
     """
 
     blocks: list
     setpoints: np.ndarray
-    levels: list
     e_per_adu: np.ndarray | None = None
 
 

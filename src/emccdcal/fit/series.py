@@ -123,7 +123,7 @@ class SeriesLikelihood:
         if histograms is None:
             self.layout, self.start = layouts.layout_of(method, setpoints, phi, P), None
         else:
-            series = layouts.Series(self.blocks, setpoints, None, phi)
+            series = layouts.Series(self.blocks, setpoints, phi)
             self.layout, self.start = layouts.build_layout(method, series, options)
 
     @classmethod
