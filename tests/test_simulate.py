@@ -88,7 +88,8 @@ def test_gamma_counts_follow_noise_model_pmf(E, g, phi, S0, sigma):
     c = simulate_frames(E, g, phi, S0, sigma, frames=1000, rows=16, cols=16, seed=21,
                         multiplication="gamma").ravel().astype(int)
     ks = np.arange(c.min() - 50, c.max() + 51)
-    cdf = np.cumsum(noise.pmf(ks, E, g, phi, S0, math.sqrt(sigma**2 + 1 / 12)))
+    cdf = np.cumsum(noise.pmf(ks, E, g, phi, S0, math.sqrt(sigma**2 + 1 / 12),
+                            em_model="gamma"))
     # bin i holds ks[edges[i-1]] < k <= ks[edges[i]] (narrow pmfs give fewer than 60 bins)
     edges = np.unique(np.searchsorted(cdf, np.linspace(0, 1, 61)[1:-1]))
     observed = np.bincount(np.searchsorted(ks[edges], c, side="left"), minlength=edges.size + 1)
