@@ -47,17 +47,15 @@ from .. import _files, defaults
 from .._output import (Output, OutputError, atomic_write, atomic_write_text,
                        remove_leftovers)
 from .._util import check_number, format_setpoint, one_line, progress
-from ..errors import EmccdcalError, InputError, OptionError
+from ..errors import InputError, OptionError
+from .mm import (GAIN_PROPERTIES, AcquireError, Interrupted, camera_properties, config_core,
+                 gain_property, prepare, release, sequence, set_gain, simulated_core)
 from .plan import Plan, plan_text, read_plan
 
 __all__ = ["acquire", "AcquireError", "Interrupted", "Session", "gain_property",
            "camera_properties", "simulated_core", "config_core", "GAIN_PROPERTIES",
            "CHECK_FRAMES", "LIGHT_TOLERANCE", "SAMPLE_PIXELS", "SESSION_FILE"]
 
-#: The EM-gain property of each Micro-Manager device adapter (by its library name);
-#: others: the standard property ``EMGain`` where the camera has it.
-GAIN_PROPERTIES = {"Andor": "Gain", "AndorSDK3": "Gain", "PVCAM": "MultiplierGain",
-                   "PICAM": "MultiplierGain", "PrincetonInstruments": "MultiplierGain"}
 #: Frames at the start of each light stack checked against the plan before any is kept.
 CHECK_FRAMES = 20
 #: Largest fraction of the first frames' values at the ADC's limit. A light set too
@@ -90,106 +88,6 @@ _WRITE_CONFIG = {"write_empty_chunks": True}
 _QUEUED_BATCHES = 4
 #: Seconds between two updates of session.json while a stack records.
 _STATE_EVERY_S = 1.0
-
-
-class AcquireError(EmccdcalError, RuntimeError):
-    """The recording stopped: the camera, the light, or the session (one line)."""
-
-
-class Interrupted(AcquireError):
-    """Ctrl-C: what was recorded is kept; ``--resume`` continues."""
-
-
-# --------------------------------------------------------------------------------------
-# The camera through the core
-# --------------------------------------------------------------------------------------
-def _name(key) -> str:
-    """A property name as text (pymmcore-plus hands standard ones as str enums)."""
-    return str(getattr(key, "value", key))
-
-
-def gain_property(core, camera: str, override: str | None = None) -> str:
-    """The camera's EM-gain property: ``override``, else its adapter's
-    (:data:`GAIN_PROPERTIES`), else ``EMGain``.
-
-    Raises
-    ------
-    OptionError
-        The camera has no such property (naming its adapter and ``--gain-property``).
-    """
-    names = {_name(p) for p in core.getDevicePropertyNames(camera)}
-    library = _name(core.getDeviceLibrary(camera))
-    prop = override or GAIN_PROPERTIES.get(library, "EMGain")
-    if prop not in names:
-        raise OptionError(f"camera '{camera}' (adapter {library}) has no property '{prop}' "
-                          "for its EM gain: name it with --gain-property (its properties: "
-                          f"{', '.join(sorted(names))})")
-    return prop
-
-
-def _set_gain(core, camera: str, prop: str, setpoint: float) -> None:
-    names = {_name(p) for p in core.getDevicePropertyNames(camera)}
-    if "EMSwitch" in names:  # Andor: multiplication on, except at 1x
-        core.setProperty(camera, "EMSwitch", "Off" if setpoint == 1 else "On")
-        if setpoint == 1:
-            return
-    value = int(setpoint) if float(setpoint).is_integer() else float(setpoint)
-    try:
-        core.setProperty(camera, prop, value)
-    except Exception as exc:  # noqa: BLE001 - the adapter's own error, in one line
-        raise AcquireError(f"camera '{camera}' refused {prop} = {value}: {one_line(exc)}") from None
-
-
-def camera_properties(core, camera: str) -> dict:
-    """Every property of the camera as Micro-Manager names them in its files
-    (``<label>-<property>``), with the core's ``Camera``, ``Exposure-ms``, ``ROI``,
-    ``Binning`` and ``BitDepth``: what :func:`emccdcal.data.micromanager.settings_of`
-    reads."""
-    props = {"Camera": camera}
-    for p in core.getDevicePropertyNames(camera):
-        try:
-            props[f"{camera}-{_name(p)}"] = str(core.getProperty(camera, p))
-        except Exception:  # noqa: BLE001 - a property that cannot be read is not recorded
-            continue
-    x, y, w, h = core.getROI()
-    props.update({"Exposure-ms": float(core.getExposure()), "ROI": f"{x}-{y}-{w}-{h}",
-                  "BitDepth": int(core.getImageBitDepth())})
-    binning = props.get(f"{camera}-Binning")
-    if binning is not None:
-        props["Binning"] = binning
-    return props
-
-
-def simulated_core(camera, *, seed: int, run: int = 0):
-    """A core with the simulated EMCCD (:mod:`.devices`) as ``Camera`` and its shutter
-    as ``Shutter``: (core, the camera device)."""
-    from pymmcore_plus.experimental.unicore import UniMMCore
-
-    from .devices import SimulatedEMCCD, SimulatedShutter
-
-    core = UniMMCore()
-    shutter = SimulatedShutter()
-    device = SimulatedEMCCD(camera, shutter, seed=seed, run=run)
-    core.loadPyDevice("Camera", device)
-    core.loadPyDevice("Shutter", shutter)
-    core.initializeAllDevices()
-    core.setCameraDevice("Camera")
-    core.setShutterDevice("Shutter")
-    return core, device
-
-
-def config_core(config: Path, adapter_paths=()):
-    """A core with a Micro-Manager configuration file loaded."""
-    from pymmcore_plus import CMMCorePlus
-
-    core = CMMCorePlus()
-    if adapter_paths:
-        core.setDeviceAdapterSearchPaths([str(p) for p in adapter_paths])
-    try:
-        core.loadSystemConfiguration(str(config))
-    except Exception as exc:  # noqa: BLE001 - Micro-Manager's error, in one line
-        raise InputError(f"'{config}': Micro-Manager could not load it: {one_line(exc)}") from None
-    return core
 
 
 # --------------------------------------------------------------------------------------
@@ -447,31 +345,6 @@ def _sigint_flag():
         signal.signal(signal.SIGINT, previous)
 
 
-def _frames(core, n: int, stop: threading.Event, what: str):
-    """Frames of a sequence of ``n`` from the core's buffer, one at a time, until ``n``,
-    Ctrl-C, or the consumer stops asking (the sequence is then stopped)."""
-    core.startSequenceAcquisition(n, 0.0, True)
-    got = 0
-    try:
-        while got < n and not stop.is_set():
-            if core.getRemainingImageCount() > 0:
-                got += 1
-                yield core.popNextImage()
-            elif not core.isSequenceRunning():
-                if core.getRemainingImageCount() > 0:
-                    continue
-                overflow = getattr(core, "isBufferOverflowed", lambda: False)()
-                raise AcquireError(
-                    f"{what}: the camera stopped after {got} of {n} frames"
-                    + (": Micro-Manager's buffer overflowed (frames came faster than they "
-                       "were written; a smaller --roi, a slower frame rate or a faster disk)"
-                       if overflow else ""))
-            else:
-                time.sleep(0.0002)
-    finally:
-        core.stopSequenceAcquisition()
-
-
 @dataclass
 class _Context:
     """What every stack of one recording shares."""
@@ -576,7 +449,7 @@ class _Writing:
 def _start_stack(ctx: _Context, stack: Stack):
     """Gain, light and shutter set for ``stack``; its frames' shape and dtype."""
     core = ctx.core
-    _set_gain(core, ctx.camera, ctx.gain_prop, stack.setpoint)
+    set_gain(core, ctx.camera, ctx.gain_prop, stack.setpoint)
     if not stack.dark and ctx.set_light is not None and stack.photoelectrons != ctx.light:
         ctx.set_light(core, stack)
         ctx.light = stack.photoelectrons
@@ -605,7 +478,7 @@ def _record_stack(ctx: _Context, stack: Stack, bar) -> None:
     writing = _Writing(ctx.session, stack, path, shape, dtype, _attrs(ctx, stack))
     finished = False
     try:
-        with closing(_frames(ctx.core, wanted, ctx.stop, stack.name)) as frames:
+        with closing(sequence(ctx.core, wanted, ctx.stop, stack.name)) as frames:
             for frame in frames:
                 batch = batches[0]
                 batch.add(frame)
@@ -866,7 +739,7 @@ def _record(session, out, plan, core, camera, roi, simulated_seed, gain_prop, se
     if not camera:
         raise OptionError("the core has no camera: name it with --camera")
     try:
-        _prepare(core, camera, roi)
+        prepare(core, camera, roi)
         prop = gain_property(core, camera, gain_prop)
         if device is not None:
             set_light = set_light or _simulated_light(camera)
@@ -879,7 +752,7 @@ def _record(session, out, plan, core, camera, roi, simulated_seed, gain_prop, se
                            stop_at_target, set_light, progress_bars)
             _run(ctx)
     finally:
-        _release(core, unload=device is not None)
+        release(core, unload=device is not None)
         if device is not None:
             device.wait_until_stopped()
 
@@ -918,33 +791,6 @@ def _open_session(out, plan, text, resume, core, camera, roi, seed) -> Session:
     session = Session(out, state)
     session.save()
     return session
-
-
-def _prepare(core, camera, roi) -> None:
-    try:
-        core.setCameraDevice(camera)
-    except Exception as exc:  # noqa: BLE001 - the core's own error, in one line
-        loaded = ", ".join(str(d) for d in core.getLoadedDevices())
-        raise OptionError(f"no camera '{camera}' in the configuration (its devices: "
-                          f"{loaded or 'none'}): {one_line(exc)}") from None
-    core.setAutoShutter(False)
-    if roi is not None:
-        try:
-            core.setROI(*[int(v) for v in roi])
-        except Exception as exc:  # noqa: BLE001 - the adapter's own error, in one line
-            raise OptionError(f"camera '{camera}' refused the region {tuple(roi)}: "
-                              f"{one_line(exc)}") from None
-
-
-def _release(core, *, unload: bool) -> None:
-    """The sequence stopped, the shutter closed and, for a core made here, the devices
-    unloaded (Micro-Manager aborts at exit when a camera thread outlives its core)."""
-    steps = [core.stopSequenceAcquisition, lambda: core.setShutterOpen(False)]
-    for step in steps + ([core.unloadAllDevices] if unload else []):
-        try:
-            step()
-        except Exception:  # noqa: BLE001 - closing down: the first error is the one told
-            pass
 
 
 def _run(ctx: _Context) -> None:
