@@ -192,3 +192,15 @@ def test_napari_reads_what_the_packages_own_readers_read():
     own = {s for r in plugins.load(plugins.READERS).values()
            if r.__name__.startswith("emccdcal.") for s in r.SUFFIXES}
     assert {p.removeprefix("*").lower() for p in patterns} == own
+
+
+def test_without_registered_readers_a_file_says_why(monkeypatch, tmp_path):
+    """A source tree used without installing it has no entry points: one clear line."""
+    from emccdcal.data import stacks
+    from emccdcal.errors import InputError
+
+    monkeypatch.setattr(stacks, "_READERS", {})
+    path = tmp_path / "a.tif"
+    path.write_bytes(b"")
+    with pytest.raises(InputError, match="no reader is registered.*pip install -e"):
+        stacks._reader(path)

@@ -178,6 +178,9 @@ def _reader(path: Path):
     try:
         return _READERS[path.suffix.lower()]
     except KeyError:
+        if not _READERS:  # the entry points are in the installed package's metadata
+            raise InputError(f"'{path}': no reader is registered: emccdcal's entry points "
+                             "are missing (install it: pip install -e .)") from None
         raise InputError(f"'{path}': unsupported file type '{path.suffix}' "
                          f"(supported: {', '.join(STACK_SUFFIXES)})") from None
 
