@@ -381,8 +381,9 @@ def test_plan_check_says_when_the_darks_limit_the_precision(tmp_path, capsys):
 
 
 def test_an_empty_store_someone_else_made_is_never_removed(tmp_path):
-    """Only a store this session began (metadata with its marker, or none) is made again:
-    a group with another's attributes, or with none, is left as it is."""
+    """Only a store this session began (metadata with its marker, or no file yet) is
+    made again: a group with another's attributes, or with none, or of Zarr v2, is left
+    as it is."""
     import json as _json
 
     plan_path = _plan_file(tmp_path, setpoints=(1, 5))
@@ -397,6 +398,13 @@ def test_an_empty_store_someone_else_made_is_never_removed(tmp_path):
             acquire(plan_path, out, simulated_seed=2, roi=(0, 0, 8, 8), resume=True,
                     progress_bars=False)
         assert _json.loads((theirs / "zarr.json").read_text()) == meta
+    # a Zarr v2 group (acquire writes v3 only): never this session's
+    (theirs / "zarr.json").unlink()
+    (theirs / ".zgroup").write_text('{"zarr_format": 2}')
+    with pytest.raises(AcquireError, match="not the stack this session recorded"):
+        acquire(plan_path, out, simulated_seed=2, roi=(0, 0, 8, 8), resume=True,
+                progress_bars=False)
+    assert (theirs / ".zgroup").read_text() == '{"zarr_format": 2}'
 
 
 def _flips(path, n, seed, load):

@@ -29,6 +29,7 @@ Needs the ``acquire`` extra (pymmcore-plus, zarr ≥ 3).
 from __future__ import annotations
 
 import dataclasses
+import gc
 import hashlib
 import json
 import math
@@ -387,14 +388,13 @@ def _begun_but_empty(path: Path) -> bool:
         if item.is_symlink() or (item.is_file() and item.name not in _METADATA_FILES):
             return False
     root = path / "zarr.json"
-    if root.is_file():  # the group's one metadata write carries the session's marker
-        try:
-            attrs = _files.load_json(root, what="Zarr metadata").get("attributes") or {}
-        except (InputError, AttributeError):
-            return False
-        if _MARKER not in attrs:  # another hand's group (its attributes none or others)
-            return False
-    return True
+    if not root.is_file():  # folders only (killed before the first write), or Zarr v2
+        return not any(item.is_file() for item in path.rglob("*"))  # (never ours: v3)
+    try:  # the group's one metadata write carries the session's marker
+        attrs = _files.load_json(root, what="Zarr metadata").get("attributes") or {}
+    except (InputError, AttributeError):
+        return False
+    return _MARKER in attrs  # else another hand's group (its attributes none or others)
 
 
 #: What a Zarr store holds before its first chunk (formats 3 and 2).
@@ -712,6 +712,10 @@ def acquire(plan, out, *, core=None, camera: str | None = None, simulated_seed=N
                                       for s in session.stacks):
                 _discard(out)  # refused before recording: what it wrote goes
             raise
+    # The core made here is garbage now: collected in this thread, not by a daemon
+    # thread at the interpreter's exit, where destroying Micro-Manager's C++ core aborts
+    # the process (the command line collects after an error too: cli.main).
+    gc.collect()
     return session
 
 

@@ -29,7 +29,7 @@ from .._optimize import maximize, solve
 from ..model import noise
 
 __all__ = ["AcquisitionBlock", "FitResult", "Layout", "Parameter", "QUANTITIES", "fit",
-           "log_likelihood", "objective", "profile_bounds", "e_per_adu_sensitivity",
+           "objective", "profile_bounds", "e_per_adu_sensitivity",
            "expected_information"]
 
 # Values whose model probability is below this fraction of the pixel's peak are beyond
@@ -490,11 +490,6 @@ def expected_information(layout, blocks, x):
         info[:, a] = np.einsum("pk,pkf,pkg->pfg", p, s, s)
         cross[:, a] = np.einsum("pk,pkf,pkm->pfm", p, s, m)
     return info, cross
-
-
-def log_likelihood(layout, blocks, x):
-    """Log-likelihood (P,) of free parameters ``x`` (P, F), nats; no prior."""
-    return _evaluate(layout, blocks, x, 0)[1]
 
 
 def objective(layout, blocks, x):
