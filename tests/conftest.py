@@ -38,7 +38,24 @@ def pytest_configure(config):
     config.addinivalue_line("markers", "real_data: needs ../shared/data/lanl-proem (skipped where absent)")
 
 
+#: Test files that run the verbs end to end (simulated or real stacks through files,
+#: subprocesses, kills, a viewer, a browser): the whole of each is marked ``slow``, so
+#: ``make test-fast`` runs the library's own tests (models, fits, readers, the command
+#: line's parsing) and ``make test`` everything. A test elsewhere that takes more than
+#: about 2 s carries ``@pytest.mark.slow`` itself.
+END_TO_END = frozenset({
+    "test_acquire.py", "test_audit.py", "test_browser.py", "test_chaining.py",
+    "test_export.py", "test_faults.py", "test_first_calibration.py", "test_formats.py",
+    "test_fuzz.py", "test_gain_check.py", "test_guarantees.py", "test_napari.py",
+    "test_new_user.py", "test_plan.py", "test_plugins.py", "test_reliability.py",
+    "test_report.py", "test_streaming.py", "test_validation.py",
+})
+
+
 def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.path.name in END_TO_END:
+            item.add_marker(pytest.mark.slow)
     if REAL_DATA.is_dir():
         return
     skip = pytest.mark.skip(reason=f"real ProEM data not present ({REAL_DATA})")

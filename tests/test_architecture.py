@@ -4,6 +4,7 @@ file is written through one atomic writer."""
 from __future__ import annotations
 
 import ast
+import functools
 import os
 import stat
 import subprocess
@@ -30,9 +31,15 @@ ALLOWED = {
 }
 
 
+@functools.lru_cache(maxsize=None)
+def _tree(path):
+    """A source file's syntax tree, parsed once for all the checks here (never mutated)."""
+    return ast.parse(path.read_text())
+
+
 def _imports(path):
     """Package modules a file imports (absolute names), at any depth."""
-    tree = ast.parse(path.read_text())
+    tree = _tree(path)
     package = ".".join(("emccdcal",) + path.relative_to(SRC).with_suffix("").parts[:-1])
     found = set()
     for node in ast.walk(tree):
@@ -67,7 +74,7 @@ def test_numerics_import_no_argparse_or_pyplot():
     for path in SRC.rglob("*.py"):
         if path.parts[-2] == "cli":
             continue
-        tree = ast.parse(path.read_text())
+        tree = _tree(path)
         imported = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
         imported |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
         assert not imported & {"argparse", "matplotlib.pyplot"}, path
@@ -164,7 +171,7 @@ def test_nothing_outside_model_asks_which_register_it_has():
     for path in SRC.rglob("*.py"):
         if path.relative_to(SRC).parts[0] == "model":
             continue
-        for node in ast.walk(ast.parse(path.read_text())):
+        for node in ast.walk(_tree(path)):
             if isinstance(node, ast.Compare):
                 consts = [c for c in [node.left, *node.comparators] if isinstance(c, ast.Constant)]
                 if any(c.value in EM_MODELS for c in consts):
@@ -206,7 +213,7 @@ def test_modules_needing_an_extra_are_left_out_of_collection_without_it():
     core |= {"yaml", "tomllib", "tomli", "tomli_w"}  # import names of core distributions
     stdlib = set(sys.stdlib_module_names)
     for path in SRC.rglob("*.py"):
-        tree = ast.parse(path.read_text())
+        tree = _tree(path)
         top = {a.name.split(".")[0] for n in tree.body if isinstance(n, ast.Import)
                for a in n.names}
         top |= {n.module.split(".")[0] for n in tree.body
@@ -234,7 +241,7 @@ def test_no_register_model_is_named_outside_model_and_defaults():
         rel = path.relative_to(src).as_posix()
         if rel.startswith("model/") or rel == "defaults.py":
             continue
-        tree = ast.parse(path.read_text())
+        tree = _tree(path)
         docstrings = {id(n.body[0].value) for n in ast.walk(tree)
                       if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef,
                                         ast.AsyncFunctionDef))
@@ -257,7 +264,7 @@ def test_the_engine_has_one_door():
     for path in SRC.rglob("*.py"):
         rel = path.relative_to(SRC).as_posix()
         inside = rel.startswith("fit/")
-        for node in ast.walk(ast.parse(path.read_text())):
+        for node in ast.walk(_tree(path)):
             if isinstance(node, ast.Call):
                 f = node.func
                 name = f.attr if isinstance(f, ast.Attribute) else getattr(f, "id", None)
@@ -274,3 +281,12 @@ def test_the_engine_has_one_door():
                     or (node.module.endswith("fit") and "engine" in {a.name for a in node.names})):
                 found.append(f"{rel}:{node.lineno} imports the engine")
     assert not found, found
+
+
+def test_the_end_to_end_files_named_for_the_fast_loop_exist():
+    """conftest.END_TO_END leaves whole files out of ``make test-fast``: a renamed file
+    would silently join the fast loop."""
+    from conftest import END_TO_END
+
+    here = {p.name for p in Path(__file__).parent.glob("test_*.py")}
+    assert END_TO_END <= here, sorted(END_TO_END - here)

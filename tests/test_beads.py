@@ -49,6 +49,7 @@ def fitted():
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("g", [1.0, 4.78, 261.6])
 def test_true_calibration_gives_unbiased_intensities_and_honest_errors(fitted, g):
     _, fit = fitted[g]
@@ -71,6 +72,7 @@ def test_true_calibration_gives_unbiased_intensities_and_honest_errors(fitted, g
     assert np.mean(fit.params[..., 4][ok]) == pytest.approx(BACKGROUND, abs=1.0)
 
 
+@pytest.mark.slow
 def test_faint_beads_at_1x_converge_and_stay_unbiased():
     """1000 e- beads at 1x (read noise 60 e- per pixel): a per-frame fit of the shape
     converged in 69 % of frames and came out 27 % high; with the shape shared by the
@@ -98,6 +100,7 @@ def test_faint_beads_at_1x_converge_and_stay_unbiased():
     assert wider.intensity[ok].mean() > N.mean()
 
 
+@pytest.mark.slow
 def test_a_background_per_frame_where_asked(fitted):
     frames, shared = fitted[261.6]
     fit = bead_fit.fit_beads(frames[:60], shared.positions, offset=_offset_map(),
@@ -114,6 +117,7 @@ def test_a_background_per_frame_where_asked(fitted):
                            background="pixel", em_model=GAMMA)
 
 
+@pytest.mark.slow
 def test_shared_widths_weigh_each_set_point_by_its_precision(fitted):
     fits = [fitted[g][1] for g in (1.0, 4.78, 261.6)]
     w = bead_fit.shared_widths(fits)
@@ -164,6 +168,7 @@ def test_fit_is_the_maximum_of_the_exact_likelihood(fitted):
             assert total(shift) < best
 
 
+@pytest.mark.slow
 def test_wrong_gain_scales_the_intensities(fitted):
     frames, right = fitted[4.78]
     wrong = bead_fit.fit_beads(frames, right.positions, offset=_offset_map(),
@@ -200,7 +205,8 @@ def test_saturated_counts_are_left_out():
 
 def test_bad_input():
     frames = _stack(1.0, 6, frames=5)
-    kw = dict(offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0)
+    kw = dict(offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0,
+              em_model=GAMMA)
     with pytest.raises(ValueError, match=r"bead at \(row 2, col 20\) is closer than half_size"):
         bead_fit.fit_beads(frames, [[2, 20]], **kw)
     phi = np.full(SHAPE, PHI)
@@ -316,6 +322,7 @@ def test_residual_image_describes_a_psf_with_a_halo():
     assert abs(ratio - 1) < 4 * err
 
 
+@pytest.mark.slow
 def test_offset_map_error_of_the_mean_intensity(fitted):
     """``intensity_offset_se`` is the linear response of a bead's mean intensity to its
     offset map: with an error in one pixel only, shifting that pixel's offset by its SE
@@ -368,7 +375,8 @@ def test_a_held_widths_error_enters_the_mean_as_its_linear_response():
     shared SE gains |d mean(N)/dw|·SE, and that slope is the refit's (finite difference)."""
     frames = _stack(1.0, 7, frames=100)
     pos = np.rint(TRUE_POS).astype(int)
-    kw = dict(offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0)
+    kw = dict(offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0,
+              em_model=GAMMA)
     width, step = np.full(3, WIDTH), 0.002
     held = bead_fit.fit_beads(frames, pos, fixed_width=width, **kw)
     known = bead_fit.fit_beads(frames, pos, fixed_width=width,
@@ -449,7 +457,8 @@ def test_a_residual_image_is_scored_on_frames_it_was_not_built_on(fitted):
     fits = [fitted[g][1] for g in (1.0, 4.78, 261.6)]
     image = bead_fit.residual_image(fits, half=0)
     frames, before = fitted[261.6]
-    kw = dict(offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=261.6)
+    kw = dict(offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=261.6,
+              em_model=GAMMA)
     after = bead_fit.fit_beads(frames, before.positions, fixed_width=before.params[:, 0, 2],
                                residual=image, **kw)
     held_out = bead_fit.psf_mismatch(after, half=1, image=image)

@@ -123,6 +123,7 @@ def test_real_adu_series_reproduces_reference(tmp_path):
     assert float(ds.e_per_adu.std(ddof=1)) == pytest.approx(0.0794, abs=5e-4)
 
 
+@pytest.mark.slow
 @needs_real
 def test_real_data_cli_writes_result(tmp_path, capsys):
     out = tmp_path / "out"
@@ -246,6 +247,7 @@ def test_gain_series_recovers_truth(camera, method):
                    result_bounds(ds, "photoelectrons", setpoint=sp), undefined=np.inf)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["is-adu", "mv-adu"])
 def test_adu_series_recovers_truth(camera, method):
     name, cam, manifests = camera
@@ -328,6 +330,7 @@ def test_result_does_not_depend_on_blocks_or_threads(tmp_path, method):
                                        atol=1e-12, equal_nan=True, err_msg=name)
 
 
+@pytest.mark.slow
 @needs_real
 def test_the_register_length_profiled_on_the_real_camera(tmp_path, capsys):
     """--stages auto: the profile likelihood over the grid, its maximum taken and recorded

@@ -208,6 +208,7 @@ def test_logpmf_grad_matches_finite_differences():
         assert np.allclose(grad[name], fd, rtol=1e-5, atol=1e-7), name
 
 
+@pytest.mark.slow
 def test_cascade_moments_and_the_gamma_limit_at_one():
     counts = np.arange(300, 4000)
     p = noise.pmf(counts, 370.0, 5.0, 3.859, 587.0, 15.5, em_model="cascade", stages=536)

@@ -124,6 +124,7 @@ def test_simulate_kinds_take_out_and_quiet():
         assert {"-o", "--out", "-q", "--quiet"} <= options, kind
 
 
+@pytest.mark.slow
 def test_simulate_takes_its_output_as_a_word_or_with_o(tmp_path, capsys):
     opts = ["--rows", "2", "--cols", "2", "--frames", "10", "--setpoints", "1,5", "--seed",
             "1", "-q"]

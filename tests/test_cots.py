@@ -238,6 +238,7 @@ def bead_run(tmp_path_factory):
     return manifest, out, result.load(out)
 
 
+@pytest.mark.slow
 def test_manifest_result_contract(bead_run):
     _, out, ds = bead_run
     assert ds.attrs["method"] == "cots"
@@ -277,6 +278,7 @@ def test_manifest_recovers_the_em_gain(bead_run):
         np.testing.assert_allclose(G * PHI, g)
 
 
+@pytest.mark.slow
 def test_cli_prints_a_summary(bead_run, capsys):
     manifest, out, _ = bead_run
     assert cli.main(["cots", str(manifest), "-o", str(out / "again"), "--half-size", "3"]) == 0
@@ -285,6 +287,7 @@ def test_cli_prints_a_summary(bead_run, capsys):
     assert result.load(out / "again").sizes["bead"] == 3
 
 
+@pytest.mark.slow
 def test_an_exact_register_is_read_through_its_own_excess_noise(tmp_path):
     """Beads of the exact 536-stage cascade at 5x (F^2 = 1.795) and 25x: COTS under the
     cascade finds the true gain (bead mean within 3 SE), under the gamma model (F^2 = 2,

@@ -158,6 +158,7 @@ def test_default_streams_in_bounded_chunks(monkeypatch):
     np.testing.assert_allclose(read_noise, d.std(axis=0, ddof=1), rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_fit_dark_removes_the_multiplied_events_from_the_read_noise():
     """Darks at 400x with 0.02 clock-induced electrons per pixel per frame, an exact
     604-stage register: the plain SD is inflated by about 40 %, the fitted read noise is
@@ -190,6 +191,7 @@ def test_fit_dark_without_events_is_the_plain_mean_and_sd():
     assert fit.event_scale == 0.0 and np.isnan(fit.event_rate).all()
 
 
+@pytest.mark.slow
 def test_a_calibration_with_dark_stacks_at_gain_uses_the_fitted_maps(tmp_path):
     """The manifest's dark stack at 400x (0.02 events per pixel per frame) gives the
     read-out's read noise, not the inflated SD, and the result records the event rate."""

@@ -206,6 +206,7 @@ def test_logpmf_against_independent_high_precision(case):
     assert np.max(np.abs(ours - ref)) < 1e-8
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sigma", [0.7, 1.0, 1.5])
 def test_small_read_noise_normaliser_by_direct_sum(sigma):
     """Σ_k f(k) computed by summing the independent density, against the normaliser."""

@@ -110,6 +110,7 @@ def test_unconverged_chain_is_refused(adu_manifest):
     assert "max_steps" in msg and "walkers" in msg
 
 
+@pytest.mark.slow
 @needs_real
 def test_refusal_is_reproducible_with_the_seed(adu_manifest):
     def message(seed):

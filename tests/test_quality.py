@@ -402,6 +402,7 @@ def real_report(real_data, tmp_path_factory):
     return check_manifest(read(path), unit_root_tests=True)
 
 
+@pytest.mark.slow
 def test_real_gain_series_findings(real_report):
     rep = real_report
     acqs = rep["acquisitions"]

@@ -41,6 +41,7 @@ def _session(series, folder, suffix, *, readout=lambda sp: 10.0):
     return folder
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("suffix", [".spe", ".ome.tif"])
 def test_scanned_session_calibrates_as_the_written_manifest(series, tmp_path, suffix, capsys):
     folder = _session(series, tmp_path / "session", suffix)
@@ -150,6 +151,7 @@ def test_dark_stacks_are_preferred_to_maps_and_the_maps_are_listed(series, tmp_p
     assert (tmp_path / "gs.toml").read_text().count("[[acquisition]]") == 3
 
 
+@pytest.mark.slow
 @pytest.mark.real_data
 def test_the_papers_folders_scan_as_they_are(real_data, tmp_path, capsys):
     # copied as published: no manifest written by hand

@@ -462,6 +462,7 @@ def test_console_entry_point(tmp_path):
     assert proc.stderr.count("\n") == 1 and "frames" in proc.stderr
 
 
+@pytest.mark.slow
 def test_demo_calibrates_and_recovers_truth(tmp_path):
     text = io.StringIO()
     res = run_demo(tmp_path, rows=4, cols=4, frames=3000, out=text)
@@ -484,6 +485,7 @@ def test_demo_calibrates_and_recovers_truth(tmp_path):
     assert (tmp_path / "result-gs" / "calibration.nc").exists()
 
 
+@pytest.mark.slow
 def test_demo_cli(tmp_path, capsys):
     assert cli.main(["demo", "-o", str(tmp_path / "d"), "--rows", "2", "--cols", "2", "--frames", "500",
                      "--quiet", "--no-report"]) == 0
