@@ -4,7 +4,6 @@ simulated EMCCD and with Micro-Manager's own DemoCamera, then scanned and calibr
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -233,7 +232,8 @@ def test_the_light_check_stops_a_saturating_light_not_a_few_hot_values():
     not: calibrate drops them pixel by pixel."""
     from types import SimpleNamespace
 
-    from emccdcal.acquire.record import Stack, _check_light
+    from emccdcal.acquire.record import _check_light
+    from emccdcal.acquire.session import Stack
 
     ctx = SimpleNamespace(plan=SimpleNamespace(camera=dict(PROEM)), light_tolerance=None)
     stack = Stack("5x-gain", "5x-gain.ome.zarr", False, 5.0, 370.0, 100)
@@ -250,9 +250,10 @@ def test_stacks_are_written_band_by_band_and_continued_at_any_frame(tmp_path):
     """Batches (frames kept as the chunks' bands of rows, the last band short) append
     exactly the frames added, whole chunks as their files; a resume continues a stack
     cut between two chunks."""
-    from emccdcal.acquire.record import _MARKER, Batch, StackWriter
+    from emccdcal.data.zarrs import Batch, StackWriter
 
-    ours = {_MARKER: {}}  # the mark of a stack this session wrote (a resume needs it)
+    owner = "emccdcal_test"
+    ours = {owner: {}}  # the mark of the stack's writer (a resume needs it)
     shape = (100, 1200)  # bands of 64 and 36 rows; chunks of 27 frames
     frames = np.random.default_rng(0).integers(0, 4000, (90, *shape)).astype(np.uint16)
     path = tmp_path / "s.ome.zarr"
@@ -267,12 +268,12 @@ def test_stacks_are_written_band_by_band_and_continued_at_any_frame(tmp_path):
         if batch.count:
             writer.append(batch, batch.count)
 
-    writer = StackWriter(path, shape, np.uint16, ours)
+    writer = StackWriter(path, shape, np.uint16, ours, owner=owner)
     chunk = writer.chunk_frames
     assert len(frames) > 3 * chunk > chunk > 1
     record(writer, frames[:chunk + 7])
     assert (path / "0" / "c" / "0" / "1" / "0").stat().st_size == chunk * 64 * 1200 * 2
-    resumed = StackWriter(path, shape, np.uint16, ours, frames=chunk + 5)
+    resumed = StackWriter(path, shape, np.uint16, ours, owner=owner, frames=chunk + 5)
     assert resumed.frames == chunk + 5
     record(resumed, frames[chunk + 5:])
     assert np.array_equal(np.asarray(load_stack(path)[...]), frames)

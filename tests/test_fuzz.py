@@ -315,7 +315,7 @@ def test_session_records_load_or_give_one_clear_error(a_plan, state, stack):
     import json
 
     from emccdcal.acquire.plan import read_plan
-    from emccdcal.acquire.record import SESSION_FILE, Session, stacks_of
+    from emccdcal.acquire.session import SESSION_FILE, Session, stacks_of
 
     folder, _ = a_plan
     plan = read_plan(folder / "plan.toml")

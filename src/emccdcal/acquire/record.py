@@ -30,28 +30,28 @@ from __future__ import annotations
 
 import dataclasses
 import gc
-import hashlib
 import json
 import math
 import queue
 import shutil
 import signal
 import threading
-import time
 from contextlib import closing, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .. import _files, defaults
+from .. import _files
 from .._output import (Output, OutputError, atomic_write, atomic_write_text,
                        remove_leftovers)
-from .._util import check_number, format_setpoint, one_line, progress
+from .._util import check_number, one_line, progress
+from ..data import zarrs
 from ..errors import InputError, OptionError
 from .mm import (GAIN_PROPERTIES, AcquireError, Interrupted, camera_properties, config_core,
                  gain_property, prepare, release, sequence, set_gain, simulated_core)
 from .plan import Plan, plan_text, read_plan
+from .session import SESSION_FILE, Session, Stack, new_state, plan_sha
 
 __all__ = ["acquire", "AcquireError", "Interrupted", "Session", "gain_property",
            "camera_properties", "simulated_core", "config_core", "GAIN_PROPERTIES",
@@ -74,259 +74,12 @@ SAMPLE_PIXELS = 256
 #: frames, within these bounds).
 CHECK_EVERY = 200
 _FIRST_CHECK = 25
-#: The session's record of what was recorded.
-SESSION_FILE = defaults.SESSION_FILE
-#: Bytes of one chunk of a stack (a batch of frames written at once).
-_CHUNK_BYTES = 4 << 20
-#: Rows of one chunk of a stack.
-_CHUNK_ROWS = 64
 #: The attribute that marks a stack as written by acquire (with what it was planned as).
 _MARKER = "emccdcal_acquisition"
-#: Every chunk written as it is: zarr's test of a chunk for all-fill values (to skip it)
-#: would cost a third of the writing, and a frame of zeros is data here.
-_WRITE_CONFIG = {"write_empty_chunks": True}
 #: Batches waiting for the disk, at most (then the recording waits: memory stays bounded).
 _QUEUED_BATCHES = 4
 #: Seconds between two updates of session.json while a stack records.
 _STATE_EVERY_S = 1.0
-
-
-# --------------------------------------------------------------------------------------
-# What a plan records
-# --------------------------------------------------------------------------------------
-@dataclass
-class Stack:
-    """One stack of a session, as ``session.json`` records it."""
-
-    name: str
-    file: str
-    dark: bool
-    setpoint: float
-    photoelectrons: float
-    planned_frames: int
-    frames: int = 0
-    done: bool = False
-    reached_se: float | None = None
-
-
-def stacks_of(plan: Plan) -> list[Stack]:
-    """The plan's stacks in recording order: a gain series' dark then light at each
-    set-point; an intensity series' one dark, then its levels."""
-    out = []
-    if plan.method == "gs":
-        for a in plan.acquisitions:
-            sp = format_setpoint(a.setpoint)
-            out.append(Stack(f"{sp}x-dark", f"{sp}x-dark.ome.zarr", True, a.setpoint, 0.0,
-                             plan.dark_frames))
-            out.append(Stack(f"{sp}x-gain", f"{sp}x-gain.ome.zarr", False, a.setpoint,
-                             a.photoelectrons, a.frames))
-    else:
-        sp = plan.acquisitions[0].setpoint
-        out.append(Stack("dark", "dark.ome.zarr", True, sp, 0.0, plan.dark_frames))
-        for i, a in enumerate(plan.acquisitions, start=1):
-            out.append(Stack(f"level-{i}", f"level-{i}.ome.zarr", False, sp,
-                             a.photoelectrons, a.frames))
-    return out
-
-
-def _progress_of(stack: Stack, rec) -> None:
-    """Set ``stack``'s progress (frames, done, reached SE) from its record, checked; the
-    record must name the same stack."""
-    if not isinstance(rec, dict) or rec.get("name") != stack.name or rec.get("file") != stack.file:
-        raise ValueError(f"stack {stack.name!r} is recorded as "
-                         f"{rec.get('name') if isinstance(rec, dict) else rec!r}")
-    frames, done, se = rec.get("frames", 0), rec.get("done", False), rec.get("reached_se")
-    if isinstance(frames, bool) or not isinstance(frames, int) or not 0 <= frames <= 10**9:
-        raise ValueError(f"{stack.name}: frames is {frames!r}")
-    if not isinstance(done, bool):
-        raise ValueError(f"{stack.name}: done is {done!r}")
-    if se is not None and (isinstance(se, bool) or not isinstance(se, (int, float))):
-        raise ValueError(f"{stack.name}: reached_se is {se!r}")
-    stack.frames, stack.done, stack.reached_se = frames, done, se
-
-
-class Session:
-    """A session folder's record (``session.json``), written atomically."""
-
-    def __init__(self, folder: Path, state: dict):
-        self.folder, self.state = folder, state
-        self.stacks = [Stack(**s) for s in state["stacks"]]
-        self._saved = 0.0
-
-    @classmethod
-    def load(cls, folder: Path, plan: Plan | None = None) -> Session:
-        """The session recorded in ``folder`` for ``plan`` (default: the session's own
-        ``plan.toml``). The stacks, their files' names included, are the plan's own
-        (:func:`stacks_of`): the record supplies only how far each got, checked, so that
-        no text in it is ever a path."""
-        folder = Path(folder)
-        plan = read_plan(folder / "plan.toml") if plan is None else plan
-        path = folder / SESSION_FILE
-        state = _files.load_json(path, what="session record")
-        try:
-            if not isinstance(state, dict) or not isinstance(state.get("stacks"), list):
-                raise ValueError("no list of stacks")
-            expected = stacks_of(plan)
-            if len(state["stacks"]) != len(expected):
-                raise ValueError(f"{len(state['stacks'])} stacks, the plan has {len(expected)}")
-            for stack, rec in zip(expected, state["stacks"]):
-                _progress_of(stack, rec)
-            runs = state.get("runs", 1)
-            if isinstance(runs, bool) or not isinstance(runs, int) or not 0 <= runs < 10**6:
-                raise ValueError(f"runs is {runs!r}")
-        except (ValueError, TypeError, AttributeError) as exc:
-            raise InputError(f"'{path}': not a session of this plan ({one_line(exc)})") from None
-        session = cls.__new__(cls)
-        session.folder, session.state, session.stacks, session._saved = folder, state, expected, 0.0
-        return session
-
-    def save(self, *, every: float = 0.0) -> None:
-        """Write session.json (with ``every``, at most once per ``every`` seconds and not
-        flushed to disk: a progress record, while the stacks' writing fills the disk)."""
-        now = time.monotonic()
-        if every and now - self._saved < every:
-            return
-        self.state["stacks"] = [dataclasses.asdict(s) for s in self.stacks]
-        atomic_write_text(self.folder / SESSION_FILE, json.dumps(self.state, indent=2) + "\n",
-                          durable=not every)
-        self._saved = now
-
-
-# --------------------------------------------------------------------------------------
-# One stack on disk: OME-Zarr (NGFF 0.5, Zarr v3), frames appended in chunks
-# --------------------------------------------------------------------------------------
-class StackWriter:
-    """An OME-Zarr image of (t, y, x) frames, appended a chunk at a time.
-
-    The group's attributes hold the NGFF ``multiscales``, the camera settings
-    (``emccdcal``: :class:`~emccdcal.data.settings.CameraSettings` fields) and every
-    property the core reported (``micromanager``), which the project's Zarr reader reads.
-    ``frames`` continues an earlier stack of that many frames (a resume): frames beyond
-    them (a batch written when the run was killed) are dropped first.
-    """
-
-    def __init__(self, path: Path, shape, dtype, attrs: dict, *, frames: int | None = None):
-        import zarr
-
-        self.path = path
-        h, w = shape
-        self.chunk_frames = self.chunk_frames_of(shape, dtype)
-        if frames is None:
-            # the attributes (the session's marker among them) in the group's first and
-            # only metadata write: zarr's attrs.update writes one key at a time, and a
-            # run killed between two keys left a store that was no longer known as ours
-            group = zarr.open_group(str(path), mode="w-", zarr_format=3, attributes={
-                "ome": {"version": "0.5", "multiscales": [{
-                    "name": path.name,
-                    "axes": [{"name": "t", "type": "time"}, {"name": "y", "type": "space"},
-                             {"name": "x", "type": "space"}],
-                    "datasets": [{"path": "0", "coordinateTransformations": [
-                        {"type": "scale", "scale": [1.0, 1.0, 1.0]}]}]}]}, **attrs})
-            # chunks of a band of rows: calibrate reads a stack by bands of rows
-            self.array = group.create_array("0", shape=(0, h, w), dtype=dtype,
-                                            chunks=(self.chunk_frames, min(h, _CHUNK_ROWS), w),
-                                            compressors=None, fill_value=0,
-                                            dimension_names=("t", "y", "x"),
-                                            config=_WRITE_CONFIG)
-        else:  # a resume: only a stack this session wrote, only frames beyond its record
-            try:
-                group = zarr.open_group(str(path), mode="r+")
-                ours = _MARKER in group.attrs
-                self.array = group["0"].with_config(_WRITE_CONFIG)
-            except Exception:  # noqa: BLE001 - whatever is there, it is not our stack
-                ours = False
-            if not ours or self.array.shape[0] < frames:
-                raise AcquireError(f"'{path}': not the stack this session recorded (or "
-                                   f"fewer than its {frames} frames); it is left as it is")
-            if tuple(self.array.shape[1:]) != (h, w):
-                raise AcquireError(f"'{path}': frames of {self.array.shape[1]} × "
-                                   f"{self.array.shape[2]} px, but the camera gives {h} × {w}")
-            if self.array.shape[0] > frames:  # a batch written when the run was killed
-                self.array.resize((frames, h, w))
-
-    @staticmethod
-    def chunk_frames_of(shape, dtype) -> int:
-        """Frames of one chunk (about 4 MiB of a band of rows), at most 1024."""
-        band = min(shape[0], _CHUNK_ROWS) * shape[1] * np.dtype(dtype).itemsize
-        return int(min(1024, max(1, _CHUNK_BYTES // band)))
-
-    @property
-    def frames(self) -> int:
-        return int(self.array.shape[0])
-
-    def append(self, batch: Batch, count: int) -> None:
-        """Append the first ``count`` frames of ``batch``.
-
-        A batch of whole chunks is written as the chunks' files, then the array grown
-        over them: a run killed in between leaves a stack of the frames before (never
-        frames of fill values), and by Zarr v3 an uncompressed chunk is its C-order
-        little-endian bytes. zarr's own asynchronous writing costs about a tenth of the
-        camera's rate at 400 MB/s on two cores (benchmarks/bench_acquire.py); any other
-        batch (a resume's first, the last) is written through zarr.
-        """
-        start, rest = self.frames, self.array.shape[1:]
-        folder = self._chunk_folder()
-        if folder is not None and count == self.chunk_frames and start % count == 0:
-            for row, band in enumerate(batch.bands):
-                path = folder / self.array.metadata.encode_chunk_key((start // count, row, 0))
-                path.parent.mkdir(parents=True, exist_ok=True)
-                with open(path, "wb") as fh:
-                    fh.write(band)
-            self.array.resize((start + count, *rest))
-            return
-        self.array.resize((start + count, *rest))
-        for (top, bottom), band in zip(batch.rows, batch.bands):
-            self.array[start:start + count, top:bottom] = band[:count, :bottom - top]
-
-    def _chunk_folder(self) -> Path | None:
-        """Where the array's chunk files are, if its chunks are plain little-endian bytes
-        in a local store (else None: zarr writes them)."""
-        import zarr
-
-        array = self.array
-        plain = (array.metadata.zarr_format == 3 and array.dtype.str[0] in "<|"
-                 and array.metadata.codecs == (zarr.codecs.BytesCodec(endian="little"),))
-        store = array.store_path.store
-        if not plain or not isinstance(store, zarr.storage.LocalStore):
-            return None
-        return Path(store.root) / array.path
-
-
-class Batch:
-    """Frames of one chunk's length kept as the stack's bands of rows: each band is then
-    one whole chunk, which zarr writes as it is (a (frames, rows, cols) batch would be
-    cut, filled and copied chunk by chunk: a third of the writing at 512 × 512 px). The
-    last band is a whole chunk too, its rows below the frame zero (Zarr stores an edge
-    chunk whole)."""
-
-    def __init__(self, frames: int, shape, dtype):
-        rows, cols = shape
-        height = min(rows, _CHUNK_ROWS)
-        self.rows = [(top, min(rows, top + height)) for top in range(0, rows, height)]
-        self.bands = [np.zeros((frames, height, cols), dtype) for _ in self.rows]
-        self.count = 0
-
-    def add(self, frame: np.ndarray) -> None:
-        for (top, bottom), band in zip(self.rows, self.bands):
-            band[self.count, :bottom - top] = frame[top:bottom]
-        self.count += 1
-
-    def frames(self) -> np.ndarray:
-        """The frames added, (count, rows, cols)."""
-        return np.concatenate([band[:self.count, :bottom - top]
-                               for (top, bottom), band in zip(self.rows, self.bands)], axis=1)
-
-
-def _read_frames(path: Path, pixels: np.ndarray | None = None):
-    """A written stack's frames in chunks, (k, rows, cols), or of ``pixels`` only
-    (flat indices), (k, 1, S)."""
-    import zarr
-
-    arr = zarr.open_group(str(path), mode="r")["0"]
-    step = arr.chunks[0]
-    for start in range(0, arr.shape[0], step):
-        block = arr[start:start + step]
-        yield block if pixels is None else block.reshape(block.shape[0], 1, -1)[:, :, pixels]
 
 
 # --------------------------------------------------------------------------------------
@@ -378,29 +131,6 @@ def _attrs(ctx: _Context, stack: Stack) -> dict:
                                      "photoelectrons": stack.photoelectrons}}
 
 
-def _begun_but_empty(path: Path) -> bool:
-    """Whether ``path`` is a store begun and never given a frame: a folder holding Zarr
-    metadata only (a run killed while creating it). Its name is the plan's (the session
-    supplies no path), and nothing of a frame is lost by making it again."""
-    if not path.is_dir() or path.is_symlink():
-        return False
-    for item in path.rglob("*"):
-        if item.is_symlink() or (item.is_file() and item.name not in _METADATA_FILES):
-            return False
-    root = path / "zarr.json"
-    if not root.is_file():  # folders only (killed before the first write), or Zarr v2
-        return not any(item.is_file() for item in path.rglob("*"))  # (never ours: v3)
-    try:  # the group's one metadata write carries the session's marker
-        attrs = _files.load_json(root, what="Zarr metadata").get("attributes") or {}
-    except (InputError, AttributeError):
-        return False
-    return _MARKER in attrs  # else another hand's group (its attributes none or others)
-
-
-#: What a Zarr store holds before its first chunk (formats 3 and 2).
-_METADATA_FILES = {"zarr.json", ".zgroup", ".zarray", ".zattrs"}
-
-
 class _Writing:
     """A stack's batches appended by a thread of its own, so that popping frames from the
     core never waits for the disk; the queue is bounded (and so is memory). An error of
@@ -409,17 +139,20 @@ class _Writing:
     def __init__(self, session: Session, stack: Stack, path: Path, shape, dtype, attrs):
         self.session, self.stack = session, stack
         self._args = (path, shape, dtype, attrs)
-        if stack.frames == 0 and _begun_but_empty(path):
+        if stack.frames == 0 and zarrs.begun_but_empty(path, _MARKER):
             shutil.rmtree(path)  # a store this stack began when the run was killed: redone
-        self.writer = (StackWriter(*self._args, frames=stack.frames)
-                       if path.exists() else None)  # else made with the first frames kept
+        try:  # a resume continues only a stack this session wrote
+            self.writer = (zarrs.StackWriter(*self._args, owner=_MARKER, frames=stack.frames)
+                           if path.exists() else None)  # else made with the first frames kept
+        except InputError as exc:
+            raise AcquireError(str(exc)) from None
         self._queue: queue.Queue = queue.Queue(maxsize=_QUEUED_BATCHES)
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name=f"write {stack.name}",
                                         daemon=True)
         self._thread.start()
 
-    def put(self, batch: Batch) -> None:
+    def put(self, batch: zarrs.Batch) -> None:
         """Queue the batch's frames for writing; it is not touched meanwhile."""
         if self._error is not None:
             raise self._error
@@ -430,7 +163,7 @@ class _Writing:
             if self._error is not None:
                 continue
             try:
-                self.writer = self.writer or StackWriter(*self._args)
+                self.writer = self.writer or zarrs.StackWriter(*self._args, owner=_MARKER)
                 self.writer.append(*item)
                 self.stack.frames = self.writer.frames
                 self.session.save(every=_STATE_EVERY_S)
@@ -471,10 +204,10 @@ def _record_stack(ctx: _Context, stack: Stack, bar) -> None:
     checked = stack.dark or stack.frames > 0  # a resumed stack was checked when it began
     every = int(min(CHECK_EVERY, max(_FIRST_CHECK, stack.planned_frames // 4)))
     next_fit = stack.frames + every
-    chunk = StackWriter.chunk_frames_of(shape, dtype)
+    chunk = zarrs.StackWriter.chunk_frames_of(shape, dtype)
     # Frames are copied straight into batches, which the writer takes in turn: one
     # filling, the queued ones and one being written; no other copy of a frame is made.
-    batches = [Batch(chunk, shape, dtype) for _ in range(_QUEUED_BATCHES + 2)]
+    batches = [zarrs.Batch(chunk, shape, dtype) for _ in range(_QUEUED_BATCHES + 2)]
     writing = _Writing(ctx.session, stack, path, shape, dtype, _attrs(ctx, stack))
     finished = False
     try:
@@ -547,7 +280,7 @@ def _dark_of(ctx: _Context, setpoint: float):
                  (s.setpoint == setpoint or ctx.plan.method != "gs"))
     if stack.name not in ctx.darks:
         total, n, sample = None, 0, []
-        for block in _read_frames(ctx.session.folder / stack.file):
+        for block in zarrs.read_chunks(ctx.session.folder / stack.file):
             total = block.sum(axis=0, dtype=np.float64) if total is None else \
                 total + block.sum(axis=0, dtype=np.float64)
             n += block.shape[0]
@@ -603,7 +336,7 @@ def _running_se(ctx: _Context, stack: Stack, sample_frames: list) -> float:
     _finish(ctx)
     if ctx.unit_frames is None:
         unit = next(s for s in ctx.session.stacks if not s.dark and s.setpoint == 1)
-        ctx.unit_frames = np.concatenate(list(_read_frames(ctx.session.folder / unit.file,
+        ctx.unit_frames = np.concatenate(list(zarrs.read_chunks(ctx.session.folder / unit.file,
                                                            ctx.sample)))
     frames = [ctx.unit_frames, np.stack(sample_frames)[:, None, :]]
     adc_max = _adc_max(ctx, ctx.unit_frames.dtype)
@@ -624,19 +357,6 @@ def _running_se(ctx: _Context, stack: Stack, sample_frames: list) -> float:
 # --------------------------------------------------------------------------------------
 # The verb
 # --------------------------------------------------------------------------------------
-def _plan_sha(text: str) -> str:
-    return hashlib.sha256(text.encode("utf-8")).hexdigest()
-
-
-def _new_state(plan: Plan, text: str, camera: str, roi, simulated: dict | None) -> dict:
-    from .. import __version__
-
-    return {"emccdcal_version": __version__, "plan_sha256": _plan_sha(text),
-            "camera": camera, "roi": None if roi is None else list(roi),
-            "simulated": simulated, "runs": 1, "status": "recording",
-            "stacks": [dataclasses.asdict(s) for s in stacks_of(plan)]}
-
-
 def acquire(plan, out, *, core=None, camera: str | None = None, simulated_seed=None,
             roi=None, gain_prop: str | None = None,
             light_tolerance: float | None = LIGHT_TOLERANCE, stop_at_target: bool = False,
@@ -766,7 +486,7 @@ def _open_session(out, plan, text, resume, core, camera, roi, seed) -> Session:
         if not (out / SESSION_FILE).exists():
             raise OutputError(f"{out}: no session to resume ({SESSION_FILE} is missing)")
         recorded = _files.load_json(out / SESSION_FILE, what="session record")
-        if not isinstance(recorded, dict) or recorded.get("plan_sha256") != _plan_sha(text):
+        if not isinstance(recorded, dict) or recorded.get("plan_sha256") != plan_sha(text):
             raise OutputError(f"{out}: its session recorded another plan; resume it with "
                               "its own plan.toml")
         session = Session.load(out, plan)
@@ -790,7 +510,7 @@ def _open_session(out, plan, text, resume, core, camera, roi, seed) -> Session:
                           f"{', …' if len(taken) > 3 else ''}): a session is recorded into a "
                           "new folder (or --resume one)")
     atomic_write_text(out / "plan.toml", text)
-    state = _new_state(plan, text, camera or (core.getCameraDevice() if core else "Camera"),
+    state = new_state(plan, text, camera or (core.getCameraDevice() if core else "Camera"),
                        roi, None if seed is None else {"seed": int(seed)})
     session = Session(out, state)
     session.save()

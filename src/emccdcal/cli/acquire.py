@@ -84,7 +84,7 @@ def run(args) -> int:
 
     if args.resume and not args.simulated and args.mm_config is None:
         # the session says which camera it was recorded with
-        from ..acquire.record import Session
+        from ..acquire.session import Session
 
         args.simulated = Session.load(Path(args.out)).state.get("simulated") is not None
         if not args.simulated:
@@ -126,7 +126,7 @@ def run(args) -> int:
 def _recorded_seed(args) -> int:
     """The simulated camera's seed: a resumed session's own, else one drawn."""
     if args.resume:
-        from ..acquire.record import Session
+        from ..acquire.session import Session
 
         sim = Session.load(Path(args.out)).state.get("simulated") or {}
         if "seed" in sim:
