@@ -114,6 +114,77 @@ def test_a_structured_step_gives_the_dense_step():
     assert calls
 
 
+#: Every loop that repeats a step until something holds (``for _ in range(n)``, ``while``)
+#: outside the optimizer and the root finders (``_optimize.py``, ``_roots.py``), and why
+#: it is neither. Found by the loop's shape, not by its variables' names: a new loop
+#: fails :func:`test_every_iteration_loop_is_the_optimizers_the_root_finders_or_named`
+#: until it goes through them or is named here with its reason.
+ITERATIONS = {
+    ("model/cascade.py", "single_electron_moments"): "the register's recursion, stage by stage",
+    ("model/cascade.py", "_register_transform"): "the register's recursion, stage by stage",
+    ("model/cascade.py", "_pgf_minus_one"): "the register's recursion, stage by stage",
+    ("model/cascade.py", "_sample_stages"): "one binomial draw per stage",
+    ("model/cascade.py", "sample_register_cic"): "electrons leaving the register by stage",
+    ("model/cascade.py", "_invert"): "a guide table's forward steps (sampling)",
+    ("model/cascade.py", "_max_block_exponent"): "counting the table sizes that fit",
+    ("model/cascade.py", "_TableCache.get"): "evicting a cache",
+    ("model/_engine.py", "evaluate"): "rounds of windows until every count has its value",
+    ("model/noise.py", "logpmf_rows"): "runs of rows within a memory budget",
+    ("model/shared_register.py", "SharedRegister._build"): "the terms of a power series",
+    ("fit/gof.py", "gof_pvalues"): "blocks of rows within a memory budget",
+    ("fit/mv.py", "_fit_line"): "a fixed number of re-weightings (weighted least squares)",
+    ("fit/darkgain.py", "_core_start"): "two trimmed-moment passes: a start",
+    ("fit/engine.py", "profile_bounds"): "the profile deviance's level: every evaluation is a "
+                                          "constrained refit, whose own warm starts the steps keep",
+    ("fit/posterior.py", "_sample_pixel"): "Markov chains run on until they converge",
+    ("beads/validation.py", "blinking_level"): "EM iterations of a two-level mixture",
+    ("beads/cots.py", "_pseudo_true"): "a 2-D system per frame, halved steps keeping v* > 0",
+    ("beads/cots.py", "_corrected_truth"): "a 2-D chord-Newton system, frames left out between tries",
+    ("beads/cots.py", "_recentred_fit"): "moving each frame's box onto its spot",
+    ("acquire/plan.py", "_allocate"): "greedy allocation of frames, then its trim",
+    ("acquire/plan.py", "_brightest"): "doubling to a bracket that _roots.bisect then narrows",
+    ("simulate/beads.py", "_place_beads"): "rejection sampling of positions",
+}
+#: Where such loops are plumbing, not numerics (files, locks, queues, devices, parsing).
+_PLUMBING = ("_files.py", "_output.py", "_util.py", "acquire/devices.py", "acquire/mm.py",
+             "acquire/record.py", "data/quality.py", "data/stacks.py")
+
+
+def _iteration_loops():
+    """(file, enclosing function, line) of every ``while`` and ``for _ in range(...)``."""
+    found = []
+
+    def visit(node, path, where):
+        for child in ast.iter_child_nodes(node):
+            name = where
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                name = f"{where}.{child.name}" if where else child.name
+            repeats = isinstance(child, ast.While) or (
+                isinstance(child, ast.For) and isinstance(child.target, ast.Name)
+                and child.target.id.startswith("_") and isinstance(child.iter, ast.Call)
+                and getattr(child.iter.func, "id", None) == "range")
+            if repeats:
+                found.append((path, name, child.lineno))
+            visit(child, path, name)
+
+    for path in sorted(SRC.rglob("*.py")):
+        visit(ast.parse(path.read_text()), path.relative_to(SRC).as_posix(), "")
+    return found
+
+
+def test_every_iteration_loop_is_the_optimizers_the_root_finders_or_named():
+    """Roots are found by _roots (bisection, safeguarded and plain Newton), maxima by
+    _optimize; any other repeating loop in the numerics is named in ITERATIONS with why."""
+    loops = _iteration_loops()
+    assert {("_roots.py", "bisect"), ("_optimize.py", "maximize")} <= {f[:2] for f in loops}
+    unnamed = [f"{path}:{line} in {where}" for path, where, line in loops
+               if path not in ("_roots.py", "_optimize.py", *_PLUMBING)
+               and (path, where) not in ITERATIONS]
+    assert not unnamed, unnamed
+    stale = set(ITERATIONS) - {f[:2] for f in loops}
+    assert not stale, stale
+
+
 def test_one_newton_loop_in_the_package():
     """Only the optimizer raises and lowers a damping: no module keeps its own loop."""
     loops = []

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import _files, defaults
+from .. import _files, _roots, defaults
 from .._util import check_int, check_number
 from ..errors import OptionError
 from ..fit.series import AcquisitionModel, SeriesLikelihood
@@ -326,10 +326,7 @@ def _brightest(setpoint_gain, camera, model) -> float:
     lo, hi = 1.0, 2.0
     while fits(hi):
         lo, hi = hi, hi * 2.0
-    for _ in range(60):
-        mid = math.sqrt(lo * hi)
-        lo, hi = (mid, hi) if fits(mid) else (lo, mid)
-    return lo
+    return _roots.bisect(lambda x: not fits(x), lo, hi, 60, geometric=True)[0]
 
 
 def plan(*, method="gs", e_per_adu, read_noise, offset, adc_bits=16, setpoints=(1, 5, 25, 100, 300),

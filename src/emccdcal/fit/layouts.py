@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .. import defaults
+from .. import _roots, defaults
 from ..errors import MethodError, OptionError
 from . import engine
 from .engine import Layout, Parameter
@@ -415,13 +415,13 @@ class HierarchicalLayout(Layout):
         # (Newton overshoots where the norm is nearly linear).
         lo = np.minimum(self.centre, E.min(axis=1)) - 10.0 * self.mu_sd
         hi = np.maximum(self.centre, E.max(axis=1)) + 10.0 * self.mu_sd
-        for _ in range(100):
-            mu = 0.5 * (lo + hi)
+
+        def root_below(mu):
             d = E - mu[:, None]
             r = np.sqrt(np.sum(d * d, axis=1) + self.smoothing**2)
-            slope = -(mu - self.centre) / a2 + np.sum(d, axis=1) / (b * r)
-            lo = np.where(slope > 0, mu, lo)
-            hi = np.where(slope > 0, hi, mu)
+            return ~(-(mu - self.centre) / a2 + np.sum(d, axis=1) / (b * r) > 0)
+
+        lo, hi = _roots.bisect(root_below, lo, hi, 100)
         mu = 0.5 * (lo + hi)
         d = E - mu[:, None]
         r = np.sqrt(np.sum(d * d, axis=1) + self.smoothing**2)

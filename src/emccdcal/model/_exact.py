@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import _roots
 from . import _engine
 from ._gamma import GammaRows, band_limit
 from .cascade import (
@@ -149,26 +150,13 @@ class CascadeRows:
         gamma = GammaRows(E, self.gain * self.scale, np.zeros(E.shape, dtype=bool))
         t = gamma.saddlepoint(k, S0, sigma)
         t = np.where((t > lo) & (t < hi), t, 0.5 * (lo + hi))
-        previous = np.full(E.shape, np.inf)  # |K'(t) − k| of the step before
-        for _ in range(100):
-            with np.errstate(over="ignore", invalid="ignore"):
-                _, dK, d2K, _, _ = _engine.real_cgf(self, t, S0, sigma)
-            bad = ~np.isfinite(dK) | ~np.isfinite(d2K)
-            above = bad | (dK > k)
-            hi = np.where(above, t, hi)
-            lo = np.where(above, lo, t)
-            miss = np.abs(dK - k)
-            close = ~bad & (miss < 0.5 * np.sqrt(d2K))
-            if np.all(close):
-                break
-            with np.errstate(divide="ignore", invalid="ignore"):
-                newton = t - (dK - k) / d2K
-            # Newton where it stays in the bracket and is converging; else bisect.
-            slow = ~(miss < 0.5 * previous)
-            previous = np.where(bad, np.inf, miss)
-            inside = ~bad & ~slow & (newton > lo) & (newton < hi)
-            t = np.where(close, t, np.where(inside, newton, 0.5 * (lo + hi)))
-        return t
+        def residual(t):
+            _, dK, d2K, _, _ = _engine.real_cgf(self, t, S0, sigma)
+            return dK - k, d2K
+
+        # solved once the miss is below half the tilted distribution's SD
+        return _roots.newton_in_bracket(residual, lo, hi, t, max_iter=100,
+                                        close=lambda miss, d2K: miss < 0.5 * np.sqrt(d2K))
 
     def direct_tail(self, sigma):
         """None: every count first gets a (tilted) window."""

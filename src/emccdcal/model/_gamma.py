@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import _roots
+
 
 class GammaRows:
     """Parameter rows of the gamma register or of no multiplication.
@@ -96,11 +98,7 @@ class GammaRows:
         t_lo = np.minimum(0.0, (k - S0 - E * scale) / sigma**2)
         t_hi = np.maximum(0.0, (k - S0) / sigma**2)
         t_hi = np.where(pn, t_hi, np.minimum(t_hi, (1.0 - 1e-12) / scale))
-        for _ in range(100):
-            mid = 0.5 * (t_lo + t_hi)
-            above = dcgf(mid) > k
-            t_hi = np.where(above, mid, t_hi)
-            t_lo = np.where(above, t_lo, mid)
+        t_lo, t_hi = _roots.bisect(lambda t: dcgf(t) > k, t_lo, t_hi, 100)
         return 0.5 * (t_lo + t_hi)
 
     def direct_tail(self, sigma):

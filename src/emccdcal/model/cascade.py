@@ -64,7 +64,7 @@ from collections import OrderedDict
 
 import numpy as np
 
-from .. import defaults
+from .. import _roots, defaults
 from ..errors import OptionError
 
 __all__ = [
@@ -368,14 +368,13 @@ def gain_from_gain_f2(gain_times_f2, stages=DEFAULT_STAGES):
     y = np.asarray(gain_times_f2, dtype=float)
     with np.errstate(invalid="ignore", divide="ignore"):
         g = np.where(y >= 1.0, np.maximum(y / 2.0, 1.0), np.nan)
-        for _ in range(50):
+
+        def residual(g):
             root = g ** (-1.0 / stages)
-            h = 1.0 + 2.0 * (g - 1.0) * root
-            slope = 2.0 * root * (1.0 - (g - 1.0) / (stages * g))
-            step = (h - y) / slope
-            g = np.maximum(g - step, 1.0)
-            if np.all(~np.isfinite(step) | (np.abs(step) <= 1e-13 * g)):
-                break
+            return (1.0 + 2.0 * (g - 1.0) * root - y,
+                    2.0 * root * (1.0 - (g - 1.0) / (stages * g)))
+
+        g = _roots.newton(residual, g, floor=1.0, rtol=1e-13, max_iter=50)
         root = g ** (-1.0 / stages)
         slope = 2.0 * root * (1.0 - (g - 1.0) / (stages * g))
     return g, slope
