@@ -96,7 +96,7 @@ def test_logpmf_matches_the_integer_electron_route(E, g, phi, sigma, N):
     k, ref = integer_electron_logpmf(E, g, phi, S0, sigma, N)
     keep = ref > ref.max() + np.log(1e-10)  # wherever the pmf exceeds 1e-10 of its peak
     k, ref = k[keep], ref[keep]
-    got = noise.logpmf(k, E, g, phi, S0, sigma, em_model="cascade", stages=N)
+    got = noise.logpmf(k, E, g, phi, S0, sigma, em_model=noise.EMModel("cascade", N))
     assert np.max(np.abs(got - ref)) < 1e-8
 
 
@@ -136,9 +136,9 @@ def _compare_with_quadrature(mp, E, g, phi, sigma, N):
     one = lambda x: np.array([float(x)])  # noqa: E731
     # counts at about 1, 1e-6 and 1e-9 of the peak, above the mean
     mean = S0 + E * g / phi
-    sd = np.sqrt(float(noise.variance(E, g, phi, S0, sigma, em_model="cascade", stages=N)))
+    sd = np.sqrt(float(noise.variance(E, g, phi, S0, sigma, em_model=noise.EMModel("cascade", N))))
     grid = np.unique(np.linspace(mean, mean + 40 * sd + 60 * g / phi, 400).astype(np.int64))
-    lp = noise.logpmf(grid, E, g, phi, S0, sigma, em_model="cascade", stages=N)
+    lp = noise.logpmf(grid, E, g, phi, S0, sigma, em_model=noise.EMModel("cascade", N))
     peak = lp.max()
     chosen = [grid[np.argmin(np.abs(lp - (peak + level)))] for level in (0.0, -13.8, -20.7)]
     for k in chosen:
@@ -153,7 +153,7 @@ def _compare_with_quadrature(mp, E, g, phi, sigma, N):
         # Gauss-Legendre on these smooth pieces: the digits of tanh-sinh at 40 % of
         # the evaluations (each costs the register's N stages in mpmath)
         ref = mp.log(mp.quad(f, points, method="gauss-legendre") / mp.pi)
-        got = noise.logpmf(k, E, g, phi, S0, sigma, em_model="cascade", stages=N)
+        got = noise.logpmf(k, E, g, phi, S0, sigma, em_model=noise.EMModel("cascade", N))
         assert abs(float(got - ref)) < 1e-8, (k, float(got), float(ref))
 
 
@@ -197,7 +197,7 @@ def test_logpmf_grad_matches_finite_differences():
     counts = np.array([700, 1100, 1500])
     base = dict(photoelectrons=370.0, em_gain=5.0, e_per_adu=3.859, offset=587.0,
                 read_noise=15.5)
-    model = dict(em_model="cascade", stages=536, register_cic=0.1)
+    model = dict(em_model=noise.EMModel("cascade", 536), register_cic=0.1)
     _, grad = noise.logpmf_grad(counts, **base, **model)
     for name in list(base) + ["register_cic"]:
         h = 1e-5 * max(1.0, abs(base.get(name, 0.1)))
@@ -211,7 +211,7 @@ def test_logpmf_grad_matches_finite_differences():
 @pytest.mark.slow
 def test_cascade_moments_and_the_gamma_limit_at_one():
     counts = np.arange(300, 4000)
-    p = noise.pmf(counts, 370.0, 5.0, 3.859, 587.0, 15.5, em_model="cascade", stages=536)
+    p = noise.pmf(counts, 370.0, 5.0, 3.859, 587.0, 15.5, em_model=noise.EMModel("cascade", 536))
     mean = np.sum(p * counts)
     var = np.sum(p * counts**2) - mean**2
     assert abs(mean - (587.0 + 370.0 * 5.0 / 3.859)) < 1e-6
@@ -226,11 +226,13 @@ def test_em_model_arguments_are_checked():
     with pytest.raises(OptionError, match="unknown em_model"):
         noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, em_model="binomial")
     with pytest.raises(OptionError, match="stages"):
-        noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, em_model="cascade", stages=0)
+        noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, em_model=noise.EMModel("cascade", 0))
+    with pytest.raises(OptionError, match="em_model must be one of"):
+        noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, em_model=536)
     with pytest.raises(OptionError, match="register_cic"):
         noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, register_cic=0.1, em_model="gamma")
     with pytest.raises(OptionError, match="stages are the cascade model's"):
-        noise.logpmf(10, 1.0, 2.0, 1.0, 0.0, 1.0, stages=604, em_model="gamma")
+        noise.choose_em_model("gamma", 604)
     # a run: the exact cascade unless told; the caller's choice over the manifest's,
     # the manifest's over what is known of the camera, that over the stated default;
     # stages alone mean the cascade
@@ -288,7 +290,7 @@ def test_stage_by_stage_register_fits_the_cascade_not_the_gamma(g, E, N, n_draws
     counts = np.rint(S0 + electrons / phi + rng.normal(0.0, sigma, n_draws)).astype(np.int64)
     support = np.arange(counts.min(), counts.max() + 1)
     sd = np.sqrt(sigma**2 + 1 / 12)  # read noise of the rounded counts
-    exact = noise.pmf(support, E, g, phi, S0, sd, em_model="cascade", stages=N)
+    exact = noise.pmf(support, E, g, phi, S0, sd, em_model=noise.EMModel("cascade", N))
     gamma = noise.pmf(support, E, g, phi, S0, sd, em_model="gamma")
     assert _chi2_pvalue(counts, exact, support) > 1e-3
     assert _chi2_pvalue(counts, gamma, support) < 1e-6
@@ -386,7 +388,7 @@ def test_engine_gradient_and_observed_information_under_the_cascade():
         assert np.allclose(-(lp[1] - lm[1]) / (2 * step), obs[:, :, i], rtol=1e-4, atol=1e-2)
     # and the log-likelihood is that of the public noise model
     ref = [np.sum(h.counts[p] * noise.logpmf(h.values[p], 372.0, 4.75, 3.85, 587.0, 15.5,
-                                              em_model="cascade", stages=536)) for p in range(P)]
+                                              em_model=noise.EMModel("cascade", 536))) for p in range(P)]
     assert np.allclose(ll, ref, rtol=1e-10)
 
 

@@ -158,7 +158,7 @@ def test_shared_register_tables_match_the_exact_model(model, g, rate, cic, per_p
     P = 6
     sigma, S0 = rng.uniform(14, 17, P), rng.uniform(400, 600, P)
     E = rng.uniform(0.5 * rate, 1.5 * rate, P) if per_pixel else None
-    register = noise.as_em_model(model, 536 if model == "cascade" else None).register
+    register = noise.as_em_model(model).register
     shared = ("ln_gain",) + (("register_cic",) if cic else ()) + (() if per_pixel else ("ln_rate",))
     table = SharedRegister(register, g, PHI, sigma, rate=E.max() if per_pixel else rate,
                            register_cic=cic, per_pixel_rate=per_pixel, shared=shared)

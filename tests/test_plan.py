@@ -10,7 +10,7 @@ from emccdcal import cli
 from emccdcal.acquire.plan import plan, plan_text, predict, read_plan
 from emccdcal.calibration import calibrate
 from emccdcal.errors import InputError
-from emccdcal.model.noise import excess_noise_factor
+from emccdcal.model.noise import EMModel, excess_noise_factor
 from emccdcal.simulate.series import simulate_gain_series
 
 #: The paper's ProEM-like camera (docs/protocol.md).
@@ -68,7 +68,7 @@ def test_the_light_stays_clear_of_the_adc_and_darks_matter():
     (the offset map's error enters every estimate)."""
     p = plan(method="gs", setpoints=SETPOINTS, target_se=0.5, **PROEM)
     g, phi, E = 300.0, PROEM["e_per_adu"], p.photoelectrons
-    f2 = excess_noise_factor(g, em_model="cascade", stages=536)
+    f2 = excess_noise_factor(g, em_model=EMModel("cascade", 536))
     sd = np.sqrt(f2 * E * (g / phi) ** 2 + PROEM["read_noise"] ** 2)
     assert PROEM["offset"] + E * g / phi + 6 * sd <= 0.9 * 65535
     small = plan(method="gs", setpoints=SETPOINTS, target_se=0.5, **(PROEM | {"adc_bits": 14,

@@ -123,8 +123,8 @@ def test_histogram_figure_shows_the_pixels_counts_and_its_fitted_pmf(loaded, run
         p = noise.pmf(k, float(ds.photoelectrons[r, c]),
                       float(ds.em_gain.sel(setpoint=sp)[r, c]), float(ds.e_per_adu[r, c]),
                       float(ds.offset.sel(setpoint=sp)[r, c]),
-                      float(ds.read_noise.sel(setpoint=sp)[r, c]), em_model="cascade",
-                      stages=int(ds.attrs["register_stages"]))
+                      float(ds.read_noise.sel(setpoint=sp)[r, c]),
+                      em_model=noise.EMModel.from_attrs(ds.attrs))
         np.testing.assert_allclose(line.get_ydata(), p, rtol=1e-9)
         # ... and it describes the data: its mean within 4 SE of the counts' mean
         w = p / p.sum()
@@ -159,7 +159,7 @@ def test_photon_transfer_points_and_lines(loaded, runs):
     (ax,) = _visible_axes(figures.photon_transfer_figure(gs, PIXEL))
     dashed = [ln for ln in ax.lines if ln.get_linestyle() == "--" and len(ln.get_xdata())]
     g = gs.em_gain.values[1:, r, c]
-    f2 = noise.excess_noise_factor(g, em_model="cascade", stages=int(gs.attrs["register_stages"]))
+    f2 = noise.excess_noise_factor(g, em_model=noise.EMModel.from_attrs(gs.attrs))
     assert np.all(f2 < 2)
     np.testing.assert_allclose([slope(ln) for ln in dashed[1:]], f2 * g / float(gs.e_per_adu[r, c]))
 

@@ -157,7 +157,7 @@ class Plan:
 def _camera_model(camera: dict) -> noise.EMModel:
     """The register model of a plan's camera (its ``em_model`` name and ``stages``): the
     one place a plan's text becomes a model."""
-    return noise.as_em_model(camera["em_model"], camera["stages"])
+    return noise.choose_em_model(camera["em_model"], camera["stages"])[0]
 
 
 def _nice(n: float) -> int:
@@ -393,7 +393,7 @@ def plan(*, method="gs", e_per_adu, read_noise, offset, adc_bits=16, setpoints=(
         max_frames = check_int("max_frames", max_frames, minimum=_FIRST_FRAMES)
     if frame_rate_hz is not None:
         frame_rate_hz = check_number("frame_rate", frame_rate_hz, positive=True)
-    model = noise.as_em_model(em_model, stages)
+    model = noise.choose_em_model(em_model, stages)[0]
     camera |= {"em_model": model.name,
                "stages": model.stages if model.register.uses_stages else None}
     sps = sorted({check_number("setpoints", s, minimum=1.0) for s in np.atleast_1d(setpoints)})

@@ -552,12 +552,12 @@ def _entry(r: _Reader, i: int, table: dict) -> AcquisitionEntry:
 
 def _register_stages(r, name, stages):
     """The manifest's ``register_stages`` (or None), refused beside a model without them."""
-    from ..model.noise import as_em_model
+    from ..model.noise import choose_em_model
 
     if stages is None or name is None:
         return None if stages is None else int(stages)
     try:
-        as_em_model(name, stages)
+        choose_em_model(name, stages)
     except OptionError as exc:  # stages given to a model without them
         raise r.error(f"register_stages: {exc}") from None
     return int(stages)

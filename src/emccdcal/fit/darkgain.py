@@ -229,7 +229,7 @@ def check_gain(darks, e_per_adu: float, *, setpoint: float | None = None,
     NotConvergedError
         The fit did not settle within ``max_passes``.
     """
-    model = noise.as_em_model(em_model, stages)
+    model = noise.choose_em_model(em_model, stages)[0]
     if fit_register_cic and "register_cic" not in model.register.parameters:
         raise InputError(f"register_cic is not a parameter of the {model.name} register "
                          "model: use one that has it (" + ", ".join(

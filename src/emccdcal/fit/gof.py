@@ -67,7 +67,7 @@ def _per_pixel(name, value, P):
 def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, read_noise,
                 *, n_fitted_params=2, max_bins=DEFAULT_MAX_BINS,
                 frames_per_bin=DEFAULT_FRAMES_PER_BIN, min_expected=DEFAULT_MIN_EXPECTED,
-                em_model=DEFAULT_EM_MODEL, stages=None):
+                em_model=DEFAULT_EM_MODEL):
     """Binned Pearson χ² goodness-of-fit test of the model for every pixel of one acquisition.
 
     Parameters
@@ -96,7 +96,7 @@ def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, re
     min_expected : float, optional
         No bin used expects fewer frames than this (default 5): smaller bins are merged
         with a neighbour, which lowers the effective number of bins ``K_eff``.
-    em_model, stages : optional
+    em_model : str or EMModel, optional
         The EM register's model, as in :func:`emccdcal.model.noise.logpmf` (default
         :data:`emccdcal.defaults.DEFAULT_EM_MODEL`).
 
@@ -148,7 +148,6 @@ def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, re
     phi = _per_pixel("e_per_adu", e_per_adu, P)
     S0 = _per_pixel("offset", offset, P)
     sigma = _per_pixel("read_noise", read_noise, P)
-    model = noise.as_em_model(em_model, stages)
 
     K = np.minimum(int(max_bins), np.floor(n / float(frames_per_bin))).astype(np.int64)
     with np.errstate(invalid="ignore"):
@@ -161,7 +160,7 @@ def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, re
     dof = np.full(P, np.nan)
     idx = np.flatnonzero(ok)
     # One pass per register of the model (the cascade's 1x rows are Poisson–normal).
-    for register, part in noise.register_groups(g[idx], model):
+    for register, part in noise.register_groups(g[idx], em_model):
         sub = idx[part]
         if sub.size == 0:
             continue

@@ -239,38 +239,38 @@ def choose_em_model(em_model=None, stages=None, *, manifest_model=None, manifest
     from .cascade import known_stages
 
     if isinstance(em_model, EMModel):
-        return as_em_model(em_model, stages), "given" if em_model.register.uses_stages else ""
-    name = em_model or (_WITH_STAGES if stages is not None else None) or manifest_model \
-        or DEFAULT_EM_MODEL
-    model = as_em_model(name, stages)
-    if not model.register.uses_stages:
-        return model, ""
-    if stages is not None:
-        return model, "given"
-    if manifest_stages is not None:
-        return as_em_model(name, manifest_stages), "manifest"
-    known = known_stages(camera_model)
-    if known is not None:
-        return as_em_model(name, known[0]), f"camera model {camera_model!r}: {known[1]}"
-    return model, "default"
-
-
-def as_em_model(em_model=defaults.DEFAULT_EM_MODEL, stages=None) -> EMModel:
-    """An :class:`EMModel` from a name (or an :class:`EMModel`) and optional stages;
-    stages go with the cascade only."""
-    if isinstance(em_model, EMModel):
         if stages is not None and (not em_model.register.uses_stages
                                    or int(stages) != em_model.stages):
             raise OptionError(f"stages={stages!r} disagrees with the {em_model} model")
+        return em_model, "given" if em_model.register.uses_stages else ""
+    name = as_em_model(em_model or (_WITH_STAGES if stages is not None else None)
+                       or manifest_model or DEFAULT_EM_MODEL).name
+    if not EMModel(name).register.uses_stages:
+        if stages is not None:
+            raise OptionError(f"stages are the {_WITH_STAGES} model's: give em_model="
+                              f"'{_WITH_STAGES}' with them (the {name} model has none)")
+        return EMModel(name), ""
+    if stages is not None:
+        return EMModel(name, stages), "given"
+    if manifest_stages is not None:
+        return EMModel(name, manifest_stages), "manifest"
+    known = known_stages(camera_model)
+    if known is not None:
+        return EMModel(name, known[0]), f"camera model {camera_model!r}: {known[1]}"
+    return EMModel(name), "default"
+
+
+def as_em_model(em_model=defaults.DEFAULT_EM_MODEL) -> EMModel:
+    """The :class:`EMModel` that every function here takes as ``em_model``: the model
+    itself, or a name (its default stages; a register of other length is
+    ``EMModel("cascade", N)``). A run's model, with the stages its caller, manifest or
+    camera give, is :func:`choose_em_model`'s."""
+    if isinstance(em_model, EMModel):
         return em_model
     if not isinstance(em_model, str):
-        raise OptionError(f"em_model must be one of {', '.join(_registers())}, "
-                          f"got {em_model!r}")
-    known = _registers()
-    if stages is not None and em_model in known and not known[em_model].uses_stages:
-        raise OptionError(f"stages are the {_WITH_STAGES} model's: give "
-                          f"em_model='{_WITH_STAGES}' with them (the {em_model} model has none)")
-    return EMModel(em_model, DEFAULT_STAGES if stages is None else stages)
+        raise OptionError(f"em_model must be one of {', '.join(_registers())} or an "
+                          f"EMModel, got {em_model!r}")
+    return EMModel(em_model)
 
 
 # --------------------------------------------------------------------------------------
@@ -302,8 +302,8 @@ def mean(photoelectrons, em_gain, e_per_adu, offset, read_noise=1.0):
     return S0 + g * E / phi
 
 
-def variance(photoelectrons, em_gain, e_per_adu, offset, read_noise, *, em_model=defaults.DEFAULT_EM_MODEL,
-             stages=None):
+def variance(photoelectrons, em_gain, e_per_adu, offset, read_noise, *,
+             em_model=defaults.DEFAULT_EM_MODEL):
     """Variance of the count, ADU²: ``σ² + F²E(g/φ)²`` with the register model's F²
     (:func:`excess_noise_factor`: 2 for the gamma model), ``σ² + E/φ²`` at g = 1.
 
@@ -315,7 +315,7 @@ def variance(photoelectrons, em_gain, e_per_adu, offset, read_noise, *, em_model
     1355.3292
     """
     E, g, phi, _, sigma = _check_params(photoelectrons, em_gain, e_per_adu, offset, read_noise)
-    F2 = excess_noise_factor(g, em_model=em_model, stages=stages)
+    F2 = excess_noise_factor(g, em_model=em_model)
     return sigma**2 + np.where(g == 1, E / phi**2, F2 * E * (g / phi) ** 2)
 
 
@@ -325,7 +325,7 @@ def third_cumulant(photoelectrons, em_gain, e_per_adu, offset, read_noise):
     return np.where(g == 1, E / phi**3, 6 * E * (g / phi) ** 3)
 
 
-def excess_noise_factor(em_gain, *, em_model=defaults.DEFAULT_EM_MODEL, stages=None):
+def excess_noise_factor(em_gain, *, em_model=defaults.DEFAULT_EM_MODEL):
     """Excess-noise factor F² of the model's multiplication, ``Var(X)/(g²E)``.
 
     2 for the gamma model (any g > 1), 1 for no multiplication (g = 1); for the cascade
@@ -333,7 +333,7 @@ def excess_noise_factor(em_gain, *, em_model=defaults.DEFAULT_EM_MODEL, stages=N
     below 2.
     """
     g = check_number("em_gain", em_gain, minimum=1.0, scalar=False)
-    return as_em_model(em_model, stages).register.excess_noise_factor(g)
+    return as_em_model(em_model).register.excess_noise_factor(g)
 
 
 def _prepare(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, register_cic):
@@ -349,9 +349,9 @@ def _prepare(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, reg
     return shape, flat[0], row.ravel(), uniq.T
 
 
-def _model_of(em_model, stages, register_cic=0.0):
+def _model_of(em_model, register_cic=0.0):
     """The checked :class:`EMModel`; register CIC only goes with a model that has it."""
-    model = as_em_model(em_model, stages)
+    model = as_em_model(em_model)
     if "register_cic" not in model.register.parameters and np.any(np.asarray(register_cic) != 0):
         raise OptionError(f"register_cic is a parameter of the cascade model, not of the "
                           f"{model.name} model: give em_model='cascade' with it")
@@ -361,7 +361,8 @@ def _model_of(em_model, stages, register_cic=0.0):
 def register_groups(g, model):
     """The rows of each register of ``model`` (no multiplication at g = 1, which a
     register may hand to another): pairs (register, boolean mask)."""
-    regs = [model.register.register_for(True), model.register.register_for(False)]
+    register = as_em_model(model).register
+    regs = [register.register_for(True), register.register_for(False)]
     if regs[0] == regs[1]:
         return [(regs[0], np.ones(g.shape, dtype=bool))]
     pn = g == 1.0
@@ -404,7 +405,7 @@ def _evaluate_public(E, g, phi, S0, sigma, cic, row, k, model, grad=False):
 
 
 def logpmf(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, *,
-           em_model=defaults.DEFAULT_EM_MODEL, stages=None, register_cic=0.0):
+           em_model=defaults.DEFAULT_EM_MODEL, register_cic=0.0):
     """Natural log of the probability of integer counts under the EMCCD noise model.
 
     Broadcasts like NumPy. ``em_gain == 1`` selects the Poisson–normal model, any other
@@ -426,10 +427,9 @@ def logpmf(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, *,
     read_noise : array_like
         σ, read noise (ADU), > 0: the SD of dark counts.
     em_model : {"gamma", "cascade"} or EMModel, optional
-        The register: the exact Bernoulli cascade of ``stages`` stages (the default,
-        :data:`DEFAULT_EM_MODEL`) or the paper's gamma approximation (:class:`EMModel`).
-    stages : int, optional
-        N, stages of the cascade (default 536).
+        The register: the exact Bernoulli cascade (the default, :data:`DEFAULT_EM_MODEL`,
+        of 536 stages; ``EMModel("cascade", N)`` for N) or the paper's gamma
+        approximation.
     register_cic : array_like, optional
         c, clock-induced charge made inside the register (cascade only), e⁻ per pixel
         per frame, entering at a uniformly random stage and multiplied by the stages
@@ -465,7 +465,7 @@ def logpmf(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, *,
     >>> round(float(sd(exact) / sd(gamma)), 4)
     0.9561
     """
-    model = _model_of(em_model, stages, register_cic)
+    model = _model_of(em_model, register_cic)
     shape, k, row, rows = _prepare(counts, photoelectrons, em_gain, e_per_adu, offset,
                                    read_noise, register_cic)
     logp, _ = _evaluate_public(*rows, row, k, model)
@@ -479,7 +479,7 @@ def pmf(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, **model)
 
 
 def logpmf_grad(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, *,
-                em_model=defaults.DEFAULT_EM_MODEL, stages=None, register_cic=0.0):
+                em_model=defaults.DEFAULT_EM_MODEL, register_cic=0.0):
     """Log-pmf and its analytic gradient by every parameter.
 
     Parameters are those of :func:`logpmf`.
@@ -494,7 +494,7 @@ def logpmf_grad(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, 
         cascade model also ``register_cic`` (1/e⁻). The Poisson–normal model
         (em_gain == 1) has no gain parameter: its ``em_gain`` entry is NaN.
     """
-    model = _model_of(em_model, stages, register_cic)
+    model = _model_of(em_model, register_cic)
     shape, k, row, rows = _prepare(counts, photoelectrons, em_gain, e_per_adu, offset,
                                    read_noise, register_cic)
     logp, grad = _evaluate_public(*rows, row, k, model, grad=True)
@@ -574,7 +574,7 @@ _ROWS_POINTS = 2**22
 
 
 def logpmf_rows(counts, row, photoelectrons, em_gain, e_per_adu, offset, read_noise, *,
-                grad=False, em_model=defaults.DEFAULT_EM_MODEL, stages=None):
+                grad=False, em_model=defaults.DEFAULT_EM_MODEL):
     """Log-pmf of counts, each under a parameter set picked by index (no broadcasting).
 
     :func:`logpmf` broadcasts its arguments and looks for repeated parameter sets among
@@ -594,7 +594,7 @@ def logpmf_rows(counts, row, photoelectrons, em_gain, e_per_adu, offset, read_no
         the Poisson–normal model), φ (e⁻/ADU), S0 (ADU), σ (ADU).
     grad : bool, optional
         Also return ∂ ln p / ∂E (1/e⁻).
-    em_model, stages : optional
+    em_model : str or EMModel, optional
         The register model, as in :func:`logpmf`.
 
     Returns
@@ -624,7 +624,7 @@ def logpmf_rows(counts, row, photoelectrons, em_gain, e_per_adu, offset, read_no
         raise OptionError(f"row has {idx.size} entries but counts has {k.size}")
     if idx.size and (idx.dtype.kind not in "iu" or idx.min() < 0 or idx.max() >= U):
         raise OptionError(f"row must hold integer indices from 0 to {U - 1}")
-    model = as_em_model(em_model, stages)
+    model = as_em_model(em_model)
     logp = np.empty(k.size)
     dE = np.empty(k.size) if grad else None
     if k.size == 0:
@@ -707,7 +707,7 @@ class LogpmfTable:
         Range of E per pixel (e⁻), ``0 <= e_lo < e_hi``.
     em_gain, e_per_adu, offset, read_noise : array_like, shape (K,)
         Each pixel's noise parameters, as in :func:`logpmf` (``em_gain == 1``: PN).
-    em_model, stages : optional
+    em_model : str or EMModel, optional
         The register model, as in :func:`logpmf`.
 
     Examples
@@ -721,8 +721,8 @@ class LogpmfTable:
     """
 
     def __init__(self, counts, pixel, e_lo, e_hi, em_gain, e_per_adu, offset, read_noise, *,
-                 em_model=defaults.DEFAULT_EM_MODEL, stages=None):
-        self.em_model = as_em_model(em_model, stages)
+                 em_model=defaults.DEFAULT_EM_MODEL):
+        self.em_model = as_em_model(em_model)
         self.counts = _check_counts(counts).ravel()
         self.pixel = np.asarray(pixel).ravel()
         if self.pixel.shape != self.counts.shape:
