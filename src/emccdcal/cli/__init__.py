@@ -157,19 +157,24 @@ def main(argv: list[str] | None = None) -> int:
     _safe_streams()
     out = sys.stdout
     sys.stdout = _Escaping(out)
+    argv = sys.argv[1:] if argv is None else list(argv)
     try:
         return _main(argv)
     finally:
         sys.stdout = out
-        # What the verb left for the garbage collector goes now, in this thread: a
-        # library's C++ object (Micro-Manager's core, after acquire) collected later by
-        # a daemon thread while the interpreter shuts down aborts the process
-        # ("FATAL: exception not rethrown").
-        gc.collect()
+        if _verb_of(argv) in _COLLECT_AFTER:
+            # What the verb left for the garbage collector goes now, in this thread:
+            # Micro-Manager's C++ core, collected later by a daemon thread while the
+            # interpreter shuts down, aborts the process ("FATAL: exception not
+            # rethrown"). Only there: a collection of a large process costs ~0.3 s.
+            gc.collect()
+
+
+#: Verbs after which the command line collects garbage at once (they hold a C++ core).
+_COLLECT_AFTER = frozenset({"acquire"})
 
 
 def _main(argv):
-    argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(_verb_of(argv))
     try:
         args = parser.parse_args(argv)
