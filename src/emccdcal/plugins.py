@@ -73,6 +73,10 @@ class Tool:
         ``recognizes(path, text, doc)`` → whether a file is this tool's.
     all_setpoints : bool
         The format holds every set-point (no ``setpoint`` is asked for).
+    read_file : callable or None
+        ``read_file(path, setpoint)`` → list of readings, or None where the file is not
+        one it reads: for a tool whose binary files (a MATLAB ``.mat``) need more than
+        their tree of values; asked before the others read such a file.
     """
 
     name: str
@@ -81,6 +85,7 @@ class Tool:
     read: Callable | None = None
     recognizes: Callable | None = None
     all_setpoints: bool = False
+    read_file: Callable | None = None
 
 
 def names(group: str) -> tuple[str, ...]:

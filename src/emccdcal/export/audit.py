@@ -169,50 +169,6 @@ def _leaves(tree, path=()):
         yield path, tree
 
 
-def _picasso_qe(value, name, path):
-    """Picasso's QE: a number, or a table by wavelength (each value checked; one value
-    is the QE, several leave it to the wavelength the user picks: None)."""
-    if value is None:
-        return None
-    if isinstance(value, dict):
-        values = [_qe(v, f"{name}: Quantum Efficiency at {k}", path) for k, v in value.items()]
-        return values[0] if len(values) == 1 else None
-    return _qe(value, f"{name}: Quantum Efficiency", path)
-
-
-def _picasso(doc, path, setpoint, tool_gain):
-    cameras = doc.get("Cameras") if isinstance(doc, dict) else None
-    if not isinstance(cameras, dict) or not cameras:
-        raise InputError(f"'{path}': no 'Cameras' table: not a Picasso config.yaml")
-    readings = []
-    for name, cam in cameras.items():
-        if not isinstance(cam, dict) or "Sensitivity" not in cam:
-            continue
-        gain_key = next((k for k in ("Gain", "DefaultGain") if k in cam), None)
-        if tool_gain is not None:
-            gain, gain_note = float(tool_gain), "as given (--tool-gain)"
-        elif gain_key is not None:
-            gain, gain_note = _positive(cam[gain_key], f"{name}: {gain_key}", path), ""
-        else:
-            gain, gain_note = float(setpoint), ("not in the file: the set-point, as typed "
-                                                "into Picasso's EM gain box")
-        baseline = (_number(cam["Baseline"], f"{name}: Baseline", path)
-                    if "Baseline" in cam else None)
-        qe = _picasso_qe(cam.get("Quantum Efficiency"), name, path)
-        for keys, value in _leaves(cam["Sensitivity"]):
-            where = " > ".join(("Cameras", str(name), "Sensitivity", *keys))
-            sens = _positive(value, where, path)
-            fields = [Field("Sensitivity", sens, "e_per_adu"),
-                      Field(gain_key or "EM gain", gain, "em_gain", gain_note)]
-            if baseline is not None:
-                fields.insert(0, Field("Baseline", baseline, "offset"))
-            readings.append(Reading("picasso", where, tuple(fields), sens / gain,
-                                    "Sensitivity / Gain", baseline, qe))
-    if not readings:
-        raise InputError(f"'{path}': no camera of 'Cameras' has a Sensitivity")
-    return readings
-
-
 def _find_tables(tree, keys, path=()):
     """(path, table) of every mapping in ``tree`` holding all of ``keys``."""
     if isinstance(tree, dict):
@@ -223,162 +179,6 @@ def _find_tables(tree, keys, path=()):
     elif isinstance(tree, list):
         for i, value in enumerate(tree):
             yield from _find_tables(value, keys, (*path, f"[{i}]"))
-
-
-def _decode(doc, path):
-    readings = []
-    for where, cam in _find_tables(doc, ("e_per_adu", "em_gain")):
-        name = " > ".join(where) or "Camera"
-        phi = _positive(cam["e_per_adu"], f"{name}: e_per_adu", path)
-        if cam["em_gain"] is None:
-            gain, note = 1.0, "null: DECODE's sCMOS model, no EM gain"
-        else:
-            gain, note = _positive(cam["em_gain"], f"{name}: em_gain", path), ""
-        fields = [Field("e_per_adu", phi, "e_per_adu"), Field("em_gain", gain, "em_gain", note)]
-        baseline = None
-        if "baseline" in cam:
-            baseline = _number(cam["baseline"], f"{name}: baseline", path)
-            fields.insert(0, Field("baseline", baseline, "offset"))
-        if "read_sigma" in cam:
-            fields.append(Field("read_sigma", _number(cam["read_sigma"], "read_sigma", path),
-                                "read_noise_e"))
-        qe = _qe(cam["qe"], f"{name}: qe", path) if cam.get("qe") is not None else None
-        readings.append(Reading("decode", name, tuple(fields), phi / gain,
-                                "e_per_adu / em_gain", baseline, qe))
-    if not readings:
-        raise InputError(f"'{path}': no table with e_per_adu and em_gain: not a DECODE "
-                         "camera block")
-    return readings
-
-
-def _thunderstorm(text, path):
-    # comments never run: /* ... */ blocks and // to the end of a line (outside strings)
-    code = re.sub(r"/\*.*?\*/", " ", text, flags=re.S)
-    code = "\n".join(re.sub(r'^((?:[^"/]|"[^"]*"|/(?!/))*)//.*$', r"\1", line)
-                     for line in code.splitlines())
-    found = re.findall(r'run\(\s*"Camera setup"\s*,\s*"([^"]*)"', code)
-    if not found:
-        raise InputError(f"'{path}': no run(\"Camera setup\", \"...\") line: not a "
-                         "ThunderSTORM camera macro")
-    if len(set(found)) > 1:  # each line sets the camera in turn: the last one holds
-        raise InputError(f"'{path}': {len(found)} different Camera setup lines; the macro's "
-                         "camera is ambiguous: audit a macro with one")
-    options = dict(re.findall(r"(\w+)=(\S+)", found[-1]))
-    options = {k.lower(): v for k, v in options.items()}
-    missing = [k for k in ("offset", "photons2adu") if k not in options]
-    if missing:
-        raise InputError(f"'{path}': Camera setup without {', '.join(missing)}")
-    phi = _positive(options["photons2adu"], "photons2adu", path)
-    em = options.get("isemgain", "false").lower() == "true"
-    gain = _positive(options.get("gainem", 1), "gainem", path) if em else 1.0
-    baseline = _number(options["offset"], "offset", path)
-    fields = (Field("offset", baseline, "offset"),
-              Field("photons2adu", phi, "e_per_adu", "e-/ADU, despite its name"),
-              Field("gainem", gain, "em_gain", "" if em else "isemgain=false: taken as 1"))
-    qe = (_qe(options["quantumefficiency"], "quantumefficiency", path)
-          if "quantumefficiency" in options else None)
-    return [Reading("thunderstorm", "Camera setup", fields, phi / gain,
-                    "photons2adu / gainem", baseline, qe)]
-
-
-def _gdsc(doc, path):
-    def get(table, *names):
-        for n in names:
-            if isinstance(table, dict) and n in table:
-                return table[n]
-        return None
-
-    intensity = get(doc, "intensityCalibration", "intensity_calibration")
-    camera = get(doc, "cameraCalibration", "camera_calibration") or {}
-    cpp = get(intensity, "countPerPhoton", "count_per_photon")
-    if cpp is None:
-        raise InputError(f"'{path}': no countPerPhoton: not a gdsc-smlm Calibration")
-    cpp = _positive(cpp, "countPerPhoton", path)
-    qe = get(camera, "quantumEfficiency", "quantum_efficiency")
-    qe = 1.0 if qe is None else _qe(qe, "quantumEfficiency", path)
-    fields = [Field("countPerPhoton", cpp / qe, "adu_per_e_total",
-                    f"QE x g/phi; divided by its QE {qe:g}")]
-    baseline = get(camera, "bias")
-    if baseline is not None:
-        baseline = _number(baseline, "bias", path)
-        fields.insert(0, Field("bias", baseline, "offset"))
-    noise = get(camera, "readNoise", "read_noise")
-    if noise is not None:
-        fields.append(Field("readNoise", _number(noise, "readNoise", path), "read_noise"))
-    return [Reading("gdsc", "Calibration", tuple(fields), qe / cpp,
-                    "QE / countPerPhoton", baseline, qe)]
-
-
-def _smap(doc, path):
-    readings = [_smap_reading(" > ".join(where) or "camera", cam, path)
-                for where, cam in _find_tables(doc, ("conversion", "emgain"))]
-    if not readings:
-        raise InputError(f"'{path}': no camera settings with conversion and emgain: not "
-                         "SMAP's")
-    return readings
-
-
-def _smap_reading(name, cam: dict, path, gain_note="") -> Reading:
-    """One SMAP camera (state): ``conversion`` e⁻/ADU, ``emgain``, ``offset`` ADU and
-    ``EMon``, as SMAP's CameraConverter uses them."""
-    phi = _positive(_scalar(cam["conversion"]), f"{name}: conversion", path)
-    em = str(_scalar(cam.get("EMon", True))).strip().lower() not in ("0", "false", "0.0")
-    gain = _positive(_scalar(cam["emgain"]), f"{name}: emgain", path) if em else 1.0
-    fields = [Field("conversion", phi, "e_per_adu"),
-              Field("emgain", gain, "em_gain", gain_note if em else "EMon false: taken as 1")]
-    baseline = None
-    if cam.get("offset") is not None:
-        baseline = _number(_scalar(cam["offset"]), f"{name}: offset", path)
-        fields.insert(0, Field("offset", baseline, "offset"))
-    return Reading("smap", name, tuple(fields), phi / gain, "conversion / emgain", baseline)
-
-
-def _cell_text(value) -> str:
-    """A MATLAB cell's text (a char array read by SciPy), "" where empty."""
-    arr = np.asarray(value)
-    return "" if arr.size == 0 else str(arr.reshape(-1)[0]).strip()
-
-
-def _smap_cameras(raw, path, setpoint) -> list[Reading] | None:
-    """SMAP's Camera Manager database (``settings/cameras.mat``) as SMAP's
-    ``getCameraCalibration`` reads it, or None where ``raw`` is not one. Each camera
-    (``cameras(k)``, named by ``ID.name``) has a parameter table ``par``, one row per
-    parameter: name, mode, fixed value, metadata field, –, conversion. A ``fix``
-    parameter's value is in the table; a ``state dependent`` one in each state's
-    ``par`` (one reading per state); a ``metadata`` one comes from the image files:
-    the EM gain then is the set-point the files record."""
-    cameras = raw.get("cameras")
-    if cameras is None or not all(hasattr(c, "par") for c in np.asarray(cameras).reshape(-1)):
-        return None
-    readings = []
-    for cam in np.asarray(cameras).reshape(-1):
-        ids = np.asarray(getattr(cam, "ID", None)).reshape(-1)
-        name = _cell_text(getattr(ids[0], "name", "camera") if ids.size else "camera")
-        table = np.asarray(cam.par, dtype=object)
-        if table.ndim != 2 or table.shape[1] < 3:
-            raise InputError(f"'{path}': camera {name!r}: its par is not SMAP's table")
-        rows = {_cell_text(table[i, 0]): i for i in range(table.shape[0])}
-        states = list(np.asarray(getattr(cam, "state", [])).reshape(-1))
-        wanted = [k for k in ("conversion", "emgain", "offset", "EMon") if k in rows]
-        if not {"conversion", "emgain"} <= set(wanted):
-            raise InputError(f"'{path}': camera {name!r} has no conversion or emgain row")
-        modes = {k: _cell_text(table[rows[k], 1]) for k in wanted}
-        if modes["conversion"] == "metadata":
-            raise InputError(f"'{path}': camera {name!r} takes its conversion from the "
-                             "image files' metadata; audit the number those files hold")
-        dependent = any(m == "state dependent" for m in modes.values())
-        for j, state in enumerate(states if dependent else [None]):
-            values, note = {}, ""
-            for k in wanted:
-                if modes[k] == "fix":
-                    values[k] = _cell_text(table[rows[k], 2])
-                elif modes[k] == "state dependent":
-                    values[k] = _cell_text(np.asarray(state.par, dtype=object)[rows[k], 1])
-                elif k == "emgain":  # from the files' metadata: the set-point they record
-                    values[k], note = setpoint, "from the files' metadata: the set-point"
-            where = f"cameras > {name}" + ("" if state is None else f" > state {j + 1}")
-            readings.append(_smap_reading(where, values, path, note))
-    return readings
 
 
 def _scalar(value):
@@ -415,53 +215,6 @@ def _mat_tree(path):
         return value
 
     return {k: convert(v) for k, v in raw.items() if not k.startswith("__")}
-
-
-def _pyme(doc, path):
-    flat = {}
-    for keys, value in _leaves(doc):
-        flat[".".join(keys)] = value
-    if "Camera.ElectronsPerCount" not in flat:
-        raise InputError(f"'{path}': no Camera.ElectronsPerCount: not PYME metadata")
-    phi = _positive(flat["Camera.ElectronsPerCount"], "Camera.ElectronsPerCount", path)
-    gain = _positive(flat.get("Camera.TrueEMGain", 1.0), "Camera.TrueEMGain", path)
-    fields = [Field("Camera.ElectronsPerCount", phi, "e_per_adu"),
-              Field("Camera.TrueEMGain", gain, "em_gain")]
-    baseline = None
-    if "Camera.ADOffset" in flat:
-        baseline = _number(flat["Camera.ADOffset"], "Camera.ADOffset", path)
-        fields.insert(0, Field("Camera.ADOffset", baseline, "offset"))
-    if "Camera.ReadNoise" in flat:
-        fields.append(Field("Camera.ReadNoise", _number(flat["Camera.ReadNoise"],
-                                                        "Camera.ReadNoise", path), "read_noise_e"))
-    return [Reading("pyme", "metadata", tuple(fields), phi / gain,
-                    "ElectronsPerCount / TrueEMGain", baseline)]
-
-
-def _pyme_md(text):
-    """PYME's ``.md`` metadata (Python assignments) as a dict: numbers only, never run."""
-    found = {}
-    for key, value in re.findall(r"""^\s*md\[\s*['"]([\w.]+)['"]\s*\]\s*=\s*(.*?)\s*(?:#.*)?$""",
-                                 text, flags=re.M):
-        if not re.fullmatch(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?", value):
-            value = f"{value} (an expression, never evaluated)"  # refused as not a number
-        found[key] = value
-    return found
-
-
-def _storm_analysis(path):
-    root = _files.load_xml(path, what="storm-analysis parameters file")
-    values = {el.tag: el.text for el in root.iter() if el.tag in ("camera_gain", "camera_offset")}
-    if "camera_gain" not in values:
-        raise InputError(f"'{path}': no camera_gain: not storm-analysis parameters")
-    gain = _positive(values["camera_gain"], "camera_gain", path)
-    fields = [Field("camera_gain", gain, "adu_per_e_total", "g/phi, ADU per photoelectron")]
-    baseline = None
-    if "camera_offset" in values:
-        baseline = _number(values["camera_offset"], "camera_offset", path)
-        fields.insert(0, Field("camera_offset", baseline, "offset"))
-    return [Reading("storm-analysis", "settings", tuple(fields), 1 / gain, "1 / camera_gain",
-                    baseline)]
 
 
 def _guess_tool(path: Path, text: str | None, doc) -> str:
@@ -505,10 +258,12 @@ def read_tool_file(path, *, tool=None, setpoint=1.0, tool_gain=None) -> list[Rea
         raise OptionError(f"unknown tool {tool!r}; one of {', '.join(readable)}")
     text, doc = None, None
     if path.suffix.lower() == ".mat":
-        if tool in (None, "smap"):
-            found = _smap_cameras(_mat_raw(path), path, setpoint)
-            if found is not None:
-                return found
+        # a tool that reads its own binary files (SMAP's camera manager) is asked first
+        for name, t in readable.items():
+            if t.read_file is not None and tool in (None, name):
+                found = t.read_file(path, setpoint)
+                if found is not None:
+                    return found
         doc = _mat_tree(path)
     elif path.suffix.lower() != ".xml":
         text = _files.read_text(path, what="tool's settings file")

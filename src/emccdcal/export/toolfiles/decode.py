@@ -1,0 +1,55 @@
+"""DECODE (the ``Camera`` table of its parameter ``.yaml``): writer and the audit's
+reader, one plug-in.
+"""
+
+from __future__ import annotations
+
+from ..._output import atomic_write_text as _write_text
+from ...errors import InputError
+from ...plugins import Tool
+from .. import audit, tools
+
+
+def write(cal, s, v, out, qe, pixel_size_nm, name):
+    """DECODE ``param.yaml``'s ``Camera`` block (release 0.10 layout)."""
+    camera = {"baseline": v["offset"]["median"], "convert2photons": True,
+              "e_per_adu": v["e_per_adu"]["median"], "em_gain": v["em_gain"]["median"],
+              "qe": 1.0 if qe is None else qe, "read_sigma": v["read_noise_e"]["median"],
+              "spur_noise": 0.0}
+    if pixel_size_nm is not None:
+        camera["px_size"] = [pixel_size_nm, pixel_size_nm]  # nm, x and y
+    text = tools._comment_lines(cal, s, v, qe, "# ") + tools._yaml({"Camera": camera})
+    return [_write_text(out / "decode-camera.yaml", text)]
+
+
+def _read_doc(doc, path):
+    readings = []
+    for where, cam in audit._find_tables(doc, ("e_per_adu", "em_gain")):
+        name = " > ".join(where) or "Camera"
+        phi = audit._positive(cam["e_per_adu"], f"{name}: e_per_adu", path)
+        if cam["em_gain"] is None:
+            gain, note = 1.0, "null: DECODE's sCMOS model, no EM gain"
+        else:
+            gain, note = audit._positive(cam["em_gain"], f"{name}: em_gain", path), ""
+        fields = [audit.Field("e_per_adu", phi, "e_per_adu"), audit.Field("em_gain", gain, "em_gain", note)]
+        baseline = None
+        if "baseline" in cam:
+            baseline = audit._number(cam["baseline"], f"{name}: baseline", path)
+            fields.insert(0, audit.Field("baseline", baseline, "offset"))
+        if "read_sigma" in cam:
+            fields.append(audit.Field("read_sigma", audit._number(cam["read_sigma"], "read_sigma", path),
+                                "read_noise_e"))
+        qe = audit._qe(cam["qe"], f"{name}: qe", path) if cam.get("qe") is not None else None
+        readings.append(audit.Reading("decode", name, tuple(fields), phi / gain,
+                                "e_per_adu / em_gain", baseline, qe))
+    if not readings:
+        raise InputError(f"'{path}': no table with e_per_adu and em_gain: not a DECODE "
+                         "camera block")
+    return readings
+
+
+TOOL = Tool(
+    "decode", "DECODE", write,
+    lambda path, text, doc, setpoint, tool_gain: _read_doc(doc, path),
+    lambda path, text, doc: isinstance(doc, dict) and next(
+        audit._find_tables(doc, ("e_per_adu", "em_gain")), None) is not None)
