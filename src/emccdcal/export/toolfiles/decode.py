@@ -8,6 +8,7 @@ from ..._output import atomic_write_text as _write_text
 from ...errors import InputError
 from ...plugins import Tool
 from .. import audit, tools
+from ..audit import Field, Reading
 
 
 def write(cal, s, v, out, qe, pixel_size_nm, name):
@@ -31,16 +32,16 @@ def _read_doc(doc, path):
             gain, note = 1.0, "null: DECODE's sCMOS model, no EM gain"
         else:
             gain, note = audit._positive(cam["em_gain"], f"{name}: em_gain", path), ""
-        fields = [audit.Field("e_per_adu", phi, "e_per_adu"), audit.Field("em_gain", gain, "em_gain", note)]
+        fields = [Field("e_per_adu", phi, "e_per_adu"), Field("em_gain", gain, "em_gain", note)]
         baseline = None
         if "baseline" in cam:
             baseline = audit._number(cam["baseline"], f"{name}: baseline", path)
-            fields.insert(0, audit.Field("baseline", baseline, "offset"))
+            fields.insert(0, Field("baseline", baseline, "offset"))
         if "read_sigma" in cam:
-            fields.append(audit.Field("read_sigma", audit._number(cam["read_sigma"], "read_sigma", path),
+            fields.append(Field("read_sigma", audit._number(cam["read_sigma"], "read_sigma", path),
                                 "read_noise_e"))
         qe = audit._qe(cam["qe"], f"{name}: qe", path) if cam.get("qe") is not None else None
-        readings.append(audit.Reading("decode", name, tuple(fields), phi / gain,
+        readings.append(Reading("decode", name, tuple(fields), phi / gain,
                                 "e_per_adu / em_gain", baseline, qe))
     if not readings:
         raise InputError(f"'{path}': no table with e_per_adu and em_gain: not a DECODE "

@@ -10,6 +10,7 @@ from ..._output import atomic_write_text as _write_text
 from ...errors import InputError
 from ...plugins import Tool
 from .. import audit, tools
+from ..audit import Field, Reading
 
 
 def write(cal, s, v, out, qe, pixel_size_nm, name):
@@ -19,8 +20,9 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
     prov = tools._provenance(cal, s, qe)
     sha = ",".join(r["sha256"][:12] for r in prov["results"])
     message = {
-        "intensityCalibration": {"intensityUnit": "COUNT",
-                                 "countPerPhoton": tools._number(q * v["adu_per_e_total"]["median"])},
+        "intensityCalibration": {
+            "intensityUnit": "COUNT",
+            "countPerPhoton": tools._number(q * v["adu_per_e_total"]["median"])},
         "cameraCalibration": {"cameraType": "EMCCD",
                               "readNoise": tools._number(v["read_noise"]["median"]),
                               "bias": tools._number(v["offset"]["median"]),
@@ -50,16 +52,16 @@ def _read_doc(doc, path):
     cpp = audit._positive(cpp, "countPerPhoton", path)
     qe = get(camera, "quantumEfficiency", "quantum_efficiency")
     qe = 1.0 if qe is None else audit._qe(qe, "quantumEfficiency", path)
-    fields = [audit.Field("countPerPhoton", cpp / qe, "adu_per_e_total",
+    fields = [Field("countPerPhoton", cpp / qe, "adu_per_e_total",
                     f"QE x g/phi; divided by its QE {qe:g}")]
     baseline = get(camera, "bias")
     if baseline is not None:
         baseline = audit._number(baseline, "bias", path)
-        fields.insert(0, audit.Field("bias", baseline, "offset"))
+        fields.insert(0, Field("bias", baseline, "offset"))
     noise = get(camera, "readNoise", "read_noise")
     if noise is not None:
-        fields.append(audit.Field("readNoise", audit._number(noise, "readNoise", path), "read_noise"))
-    return [audit.Reading("gdsc", "Calibration", tuple(fields), qe / cpp,
+        fields.append(Field("readNoise", audit._number(noise, "readNoise", path), "read_noise"))
+    return [Reading("gdsc", "Calibration", tuple(fields), qe / cpp,
                     "QE / countPerPhoton", baseline, qe)]
 
 

@@ -8,14 +8,12 @@ import warnings
 
 from ..._output import atomic_write_text as _write_text, comment
 from ...errors import InputError, OptionError
-from ...result import format_setpoint
 from ...plugins import Tool
+from ...result import format_setpoint
 from .. import audit, tools
+from ..audit import Field, Reading
 
 
-# --------------------------------------------------------------------------------------
-# One function per tool: (cal, setpoint, values, out, options) -> files written
-# --------------------------------------------------------------------------------------
 def write(cal, s, v, out, qe, pixel_size_nm, name):
     """Picasso's ``config.yaml`` ``Cameras`` entry: what its Localize window loads when
     the camera is chosen (``Baseline`` ADU, ``Sensitivity`` e⁻/ADU, ``DefaultGain``).
@@ -108,7 +106,8 @@ def _picasso_qe(value, name, path):
     if value is None:
         return None
     if isinstance(value, dict):
-        values = [audit._qe(v, f"{name}: Quantum Efficiency at {k}", path) for k, v in value.items()]
+        values = [audit._qe(v, f"{name}: Quantum Efficiency at {k}", path)
+                  for k, v in value.items()]
         return values[0] if len(values) == 1 else None
     return audit._qe(value, f"{name}: Quantum Efficiency", path)
 
@@ -135,11 +134,11 @@ def read(doc, path, setpoint, tool_gain):
         for keys, value in audit._leaves(cam["Sensitivity"]):
             where = " > ".join(("Cameras", str(name), "Sensitivity", *keys))
             sens = audit._positive(value, where, path)
-            fields = [audit.Field("Sensitivity", sens, "e_per_adu"),
-                      audit.Field(gain_key or "EM gain", gain, "em_gain", gain_note)]
+            fields = [Field("Sensitivity", sens, "e_per_adu"),
+                      Field(gain_key or "EM gain", gain, "em_gain", gain_note)]
             if baseline is not None:
-                fields.insert(0, audit.Field("Baseline", baseline, "offset"))
-            readings.append(audit.Reading("picasso", where, tuple(fields), sens / gain,
+                fields.insert(0, Field("Baseline", baseline, "offset"))
+            readings.append(Reading("picasso", where, tuple(fields), sens / gain,
                                     "Sensitivity / Gain", baseline, qe))
     if not readings:
         raise InputError(f"'{path}': no camera of 'Cameras' has a Sensitivity")

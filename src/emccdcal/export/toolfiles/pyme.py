@@ -13,6 +13,7 @@ from ..._output import atomic_write_text as _write_text
 from ...errors import InputError
 from ...plugins import Tool
 from .. import audit, tools
+from ..audit import Field, Reading
 
 
 def write(cal, s, v, out, qe, pixel_size_nm, name):
@@ -56,16 +57,16 @@ def _read_doc(doc, path):
         raise InputError(f"'{path}': no Camera.ElectronsPerCount: not PYME metadata")
     phi = audit._positive(flat["Camera.ElectronsPerCount"], "Camera.ElectronsPerCount", path)
     gain = audit._positive(flat.get("Camera.TrueEMGain", 1.0), "Camera.TrueEMGain", path)
-    fields = [audit.Field("Camera.ElectronsPerCount", phi, "e_per_adu"),
-              audit.Field("Camera.TrueEMGain", gain, "em_gain")]
+    fields = [Field("Camera.ElectronsPerCount", phi, "e_per_adu"),
+              Field("Camera.TrueEMGain", gain, "em_gain")]
     baseline = None
     if "Camera.ADOffset" in flat:
         baseline = audit._number(flat["Camera.ADOffset"], "Camera.ADOffset", path)
-        fields.insert(0, audit.Field("Camera.ADOffset", baseline, "offset"))
+        fields.insert(0, Field("Camera.ADOffset", baseline, "offset"))
     if "Camera.ReadNoise" in flat:
-        fields.append(audit.Field("Camera.ReadNoise", audit._number(flat["Camera.ReadNoise"],
+        fields.append(Field("Camera.ReadNoise", audit._number(flat["Camera.ReadNoise"],
                                                         "Camera.ReadNoise", path), "read_noise_e"))
-    return [audit.Reading("pyme", "metadata", tuple(fields), phi / gain,
+    return [Reading("pyme", "metadata", tuple(fields), phi / gain,
                     "ElectronsPerCount / TrueEMGain", baseline)]
 
 

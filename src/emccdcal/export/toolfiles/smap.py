@@ -13,6 +13,7 @@ from ..._output import atomic_write, atomic_write_text as _write_text
 from ...errors import InputError
 from ...plugins import Tool
 from .. import audit, tools
+from ..audit import Field, Reading
 
 
 def write(cal, s, v, out, qe, pixel_size_nm, name):
@@ -28,7 +29,8 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
     maps = {"offsetmap": offset, "gainmap": cal.e_per_adu / cal.gain(s), "varmap": sigma ** 2}
     content = {k: np.asarray(m, dtype=np.float32) for k, m in maps.items()}
     atomic_write(mat, lambda p: savemat(p, {**content, "emccdcal": json.dumps(prov)}))
-    par = {"EMon": bool(v["em_gain"]["median"] > 1), "emgain": tools._number(v["em_gain"]["median"]),
+    par = {"EMon": bool(v["em_gain"]["median"] > 1),
+           "emgain": tools._number(v["em_gain"]["median"]),
            "conversion": tools._number(v["e_per_adu"]["median"]),
            "offset": tools._number(v["offset"]["median"]),
            "correctionfile": mat.stem,
@@ -99,19 +101,19 @@ def _read_doc(doc, path):
     return readings
 
 
-def _smap_reading(name, cam: dict, path, gain_note="") -> audit.Reading:
+def _smap_reading(name, cam: dict, path, gain_note="") -> Reading:
     """One SMAP camera (state): ``conversion`` e⁻/ADU, ``emgain``, ``offset`` ADU and
     ``EMon``, as SMAP's CameraConverter uses them."""
     phi = audit._positive(audit._scalar(cam["conversion"]), f"{name}: conversion", path)
     em = str(audit._scalar(cam.get("EMon", True))).strip().lower() not in ("0", "false", "0.0")
     gain = audit._positive(audit._scalar(cam["emgain"]), f"{name}: emgain", path) if em else 1.0
-    fields = [audit.Field("conversion", phi, "e_per_adu"),
-              audit.Field("emgain", gain, "em_gain", gain_note if em else "EMon false: taken as 1")]
+    fields = [Field("conversion", phi, "e_per_adu"),
+              Field("emgain", gain, "em_gain", gain_note if em else "EMon false: taken as 1")]
     baseline = None
     if cam.get("offset") is not None:
         baseline = audit._number(audit._scalar(cam["offset"]), f"{name}: offset", path)
-        fields.insert(0, audit.Field("offset", baseline, "offset"))
-    return audit.Reading("smap", name, tuple(fields), phi / gain, "conversion / emgain", baseline)
+        fields.insert(0, Field("offset", baseline, "offset"))
+    return Reading("smap", name, tuple(fields), phi / gain, "conversion / emgain", baseline)
 
 
 def _cell_text(value) -> str:
@@ -120,7 +122,7 @@ def _cell_text(value) -> str:
     return "" if arr.size == 0 else str(arr.reshape(-1)[0]).strip()
 
 
-def _smap_cameras(raw, path, setpoint) -> list[audit.Reading] | None:
+def _smap_cameras(raw, path, setpoint) -> list[Reading] | None:
     """SMAP's Camera Manager database (``settings/cameras.mat``) as SMAP's
     ``getCameraCalibration`` reads it, or None where ``raw`` is not one. Each camera
     (``cameras(k)``, named by ``ID.name``) has a parameter table ``par``, one row per

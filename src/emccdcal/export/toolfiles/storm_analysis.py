@@ -8,6 +8,7 @@ from ..._output import atomic_write_text as _write_text
 from ...errors import InputError
 from ...plugins import Tool
 from .. import audit, tools
+from ..audit import Field, Reading
 
 
 def write(cal, s, v, out, qe, pixel_size_nm, name):
@@ -31,12 +32,12 @@ def _read_xml(path):
     if "camera_gain" not in values:
         raise InputError(f"'{path}': no camera_gain: not storm-analysis parameters")
     gain = audit._positive(values["camera_gain"], "camera_gain", path)
-    fields = [audit.Field("camera_gain", gain, "adu_per_e_total", "g/phi, ADU per photoelectron")]
+    fields = [Field("camera_gain", gain, "adu_per_e_total", "g/phi, ADU per photoelectron")]
     baseline = None
     if "camera_offset" in values:
         baseline = audit._number(values["camera_offset"], "camera_offset", path)
-        fields.insert(0, audit.Field("camera_offset", baseline, "offset"))
-    return [audit.Reading("storm-analysis", "settings", tuple(fields), 1 / gain, "1 / camera_gain",
+        fields.insert(0, Field("camera_offset", baseline, "offset"))
+    return [Reading("storm-analysis", "settings", tuple(fields), 1 / gain, "1 / camera_gain",
                     baseline)]
 
 

@@ -10,6 +10,7 @@ from ..._output import atomic_write_text as _write_text
 from ...errors import InputError
 from ...plugins import Tool
 from .. import audit, tools
+from ..audit import Field, Reading
 
 
 def write(cal, s, v, out, qe, pixel_size_nm, name):
@@ -49,12 +50,12 @@ def _read_macro(text, path):
     em = options.get("isemgain", "false").lower() == "true"
     gain = audit._positive(options.get("gainem", 1), "gainem", path) if em else 1.0
     baseline = audit._number(options["offset"], "offset", path)
-    fields = (audit.Field("offset", baseline, "offset"),
-              audit.Field("photons2adu", phi, "e_per_adu", "e-/ADU, despite its name"),
-              audit.Field("gainem", gain, "em_gain", "" if em else "isemgain=false: taken as 1"))
+    fields = (Field("offset", baseline, "offset"),
+              Field("photons2adu", phi, "e_per_adu", "e-/ADU, despite its name"),
+              Field("gainem", gain, "em_gain", "" if em else "isemgain=false: taken as 1"))
     qe = (audit._qe(options["quantumefficiency"], "quantumefficiency", path)
           if "quantumefficiency" in options else None)
-    return [audit.Reading("thunderstorm", "Camera setup", fields, phi / gain,
+    return [Reading("thunderstorm", "Camera setup", fields, phi / gain,
                     "photons2adu / gainem", baseline, qe)]
 
 
