@@ -150,6 +150,7 @@ class CascadeRows:
         gamma = GammaRows(E, self.gain * self.scale, np.zeros(E.shape, dtype=bool))
         t = gamma.saddlepoint(k, S0, sigma)
         t = np.where((t > lo) & (t < hi), t, 0.5 * (lo + hi))
+
         def residual(t):
             _, dK, d2K, _, _ = _engine.real_cgf(self, t, S0, sigma)
             return dK - k, d2K
