@@ -28,8 +28,9 @@ PARALLEL := -n auto --dist loadfile
 test: $(STAMP)
 	$(BIN)/python -m pytest -q $(PARALLEL)
 
-# The quick loop while developing: everything but the tests marked slow (the target is
-# 90 s on 2 cores; docs/benchmarks.md has what it takes now).
+# The quick loop while developing: everything but the tests marked slow and the files
+# that run verbs end to end (tests/conftest.py's END_TO_END); the target is 90 s on 2
+# cores, docs/benchmarks.md has what it takes now.
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow" $(PARALLEL)
 
