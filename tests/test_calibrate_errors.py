@@ -9,7 +9,7 @@ import pytest
 import tifffile
 
 from emccdcal import calibrate, cli
-from emccdcal.errors import MethodError
+from emccdcal.errors import MethodError, OptionError
 from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
 
 
@@ -147,3 +147,13 @@ def test_a_pixel_that_cannot_converge_is_flagged(series, tmp_path):
     others = np.ones(ds.converged.shape, bool)
     others[2, 3] = False
     assert bool(ds.converged.values[others].all())
+
+
+def test_a_scheduler_that_is_no_address_is_one_line(series):
+    """A word where a Dask scheduler's address belongs is one clear error, not a
+    traceback from inside the client."""
+    pytest.importorskip("distributed")
+    gs, _ = series
+    with pytest.raises(OptionError, match=r"scheduler 'synchronous': no Dask scheduler "
+                                          r"reached .*tcp://HOST:PORT"):
+        calibrate(gs.manifest, "gs", scheduler="synchronous")

@@ -31,7 +31,7 @@ import numpy as np
 
 from . import __version__, identity, result
 from ._output import Output
-from ._util import check_int, e_per_adu_map, nanmedian
+from ._util import check_int, e_per_adu_map, nanmedian, one_line
 from ._util import progress as progress_bar
 from .data import quality, stats
 from .data.manifest import Manifest, Source, read_manifest
@@ -275,7 +275,14 @@ def _execute(jobs, scheduler, progress):
     except ImportError:
         raise OptionError("running on a Dask cluster needs the 'dask' extra: "
                           "pip install 'emccdcal[dask]'") from None
-    client = scheduler if isinstance(scheduler, Client) else Client(scheduler, timeout="30s")
+    if isinstance(scheduler, Client):
+        client = scheduler
+    else:
+        try:
+            client = Client(scheduler, timeout="30s")
+        except (ValueError, TypeError, OSError) as exc:  # not an address, or no one there
+            raise OptionError(f"scheduler {scheduler!r}: no Dask scheduler reached "
+                              f"({one_line(exc)}); give its address, tcp://HOST:PORT") from None
     try:
         futures = {client.submit(run_tile, job, pure=False): job for job in jobs}
         for future in as_completed(futures):
