@@ -19,7 +19,7 @@ from emccdcal.acquire.plan import plan, plan_text, read_plan  # noqa: E402
 from emccdcal.acquire.record import AcquireError, Session, acquire  # noqa: E402
 from emccdcal.data.scan import scan  # noqa: E402
 from emccdcal.data.stacks import load_stack, stack_settings  # noqa: E402
-from emccdcal.errors import OptionError  # noqa: E402
+from emccdcal.errors import InputError, OptionError  # noqa: E402
 
 PROEM = dict(e_per_adu=3.859, read_noise=15.5, offset=587.7, adc_bits=16)
 #: Micro-Manager's DemoCamera (from the mm-test-adapters package) with a shutter.
@@ -252,8 +252,8 @@ def test_stacks_are_written_band_by_band_and_continued_at_any_frame(tmp_path):
     cut between two chunks."""
     from emccdcal.data.zarrs import Batch, StackWriter
 
-    owner = "emccdcal_test"
-    ours = {owner: {}}  # the mark of the stack's writer (a resume needs it)
+    owner = "emccdcal_test"  # the writer's mark, which a resume needs
+    ours = {}  # the writer marks its store itself
     shape = (100, 1200)  # bands of 64 and 36 rows; chunks of 27 frames
     frames = np.random.default_rng(0).integers(0, 4000, (90, *shape)).astype(np.uint16)
     path = tmp_path / "s.ome.zarr"
@@ -277,6 +277,8 @@ def test_stacks_are_written_band_by_band_and_continued_at_any_frame(tmp_path):
     assert resumed.frames == chunk + 5
     record(resumed, frames[chunk + 5:])
     assert np.array_equal(np.asarray(load_stack(path)[...]), frames)
+    with pytest.raises(InputError, match="not the stack this session recorded"):
+        StackWriter(path, shape, np.uint16, ours, owner="another writer", frames=chunk)
 
 
 # --------------------------------------------------------------------------------------

@@ -105,6 +105,8 @@ _CHUNK_ROWS = 64
 #: Every chunk written as it is: zarr's test of a chunk for all-fill values (to skip it)
 #: would cost a third of the writing, and a frame of zeros is data here.
 _WRITE_CONFIG = {"write_empty_chunks": True}
+#: What a Zarr store holds before its first chunk (formats 3 and 2).
+_METADATA_FILES = {"zarr.json", ".zgroup", ".zarray", ".zattrs"}
 
 
 # --------------------------------------------------------------------------------------
@@ -116,8 +118,10 @@ class StackWriter:
     The group's attributes hold the NGFF ``multiscales``, the camera settings
     (``emccdcal``: :class:`~emccdcal.data.settings.CameraSettings` fields) and every
     property the core reported (``micromanager``), which the project's Zarr reader reads.
-    ``frames`` continues an earlier stack of that many frames (a resume): frames beyond
-    them (a batch written when the run was killed) are dropped first.
+    ``owner`` names the writer: the attribute that marks the stores it made (written with
+    the group's first metadata), without which it resumes none. ``frames`` continues an
+    earlier stack of that many frames (a resume): frames beyond them (a batch written
+    when the run was killed) are dropped first.
     """
 
     def __init__(self, path: Path, shape, dtype, attrs: dict, *, owner: str,
@@ -137,7 +141,8 @@ class StackWriter:
                     "axes": [{"name": "t", "type": "time"}, {"name": "y", "type": "space"},
                              {"name": "x", "type": "space"}],
                     "datasets": [{"path": "0", "coordinateTransformations": [
-                        {"type": "scale", "scale": [1.0, 1.0, 1.0]}]}]}]}, **attrs})
+                        {"type": "scale", "scale": [1.0, 1.0, 1.0]}]}]}]},
+                owner: {}, **attrs})
             # chunks of a band of rows: calibrate reads a stack by bands of rows
             self.array = group.create_array("0", shape=(0, h, w), dtype=dtype,
                                             chunks=(self.chunk_frames, min(h, _CHUNK_ROWS), w),
@@ -247,8 +252,8 @@ def read_chunks(path: Path, pixels=None):
 
 def begun_but_empty(path: Path, owner: str) -> bool:
     """Whether ``path`` is a store begun and never given a frame: a folder holding Zarr
-    metadata only (a run killed while creating it). Its name is the plan's (the session
-    supplies no path), and nothing of a frame is lost by making it again."""
+    metadata only (a run killed while creating it) and marked as ``owner``'s, so that
+    nothing of a frame, and nothing of another's, is lost by making it again."""
     if not path.is_dir() or path.is_symlink():
         return False
     for item in path.rglob("*"):
@@ -263,6 +268,3 @@ def begun_but_empty(path: Path, owner: str) -> bool:
         return False
     return owner in attrs  # else another hand's group (its attributes none or others)
 
-
-#: What a Zarr store holds before its first chunk (formats 3 and 2).
-_METADATA_FILES = {"zarr.json", ".zgroup", ".zarray", ".zattrs"}
