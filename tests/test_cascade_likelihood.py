@@ -192,6 +192,82 @@ def test_register_transform_moments_and_derivatives():
                 assert np.allclose(fd2, d[prefix + key], rtol=1e-5, atol=1e-8)
 
 
+def _rows(gain, spread, reach, rows=128, freqs=33, seed=0):
+    """u = iθ of a block of pixels at one set-point: gains around ``gain`` (relative
+    spread), frequencies up to g·θ = ``reach``, each row's own frequency scale."""
+    rng = np.random.default_rng(seed)
+    g = gain * np.exp(rng.normal(0.0, spread, rows))
+    scale = rng.uniform(0.9, 1.1, rows)[:, None]
+    theta = np.linspace(0.0, reach, freqs)[None, :] / g[:, None] * scale
+    return 1j * theta, g
+
+
+@pytest.mark.parametrize("gain, spread, reach, rows", [
+    (1.05, 0.01, 0.5, 128), (5.0, 0.03, 0.5, 128), (300.0, 0.03, 0.6, 128),
+    (25.0, 0.0, 1.0, 128), (90.0, 0.3, 3.0, 512), (3000.0, 0.03, 20.0, 512)])
+def test_tabulated_transform_is_the_recursion(gain, spread, reach, rows):
+    """A block's transform from its Chebyshev table equals the stage recursion to about
+    the recursion's own round-off (N·ε of the largest value), every derivative and the
+    clock-induced-charge sums included, and the zero frequency exactly. (A wide spread
+    of gains or of frequencies needs more nodes, worth it for a larger block.)"""
+    u, g = _rows(gain, spread, reach, rows)
+    N = 536
+    for order, cic, by_u in ((0, False, True), (1, False, False), (2, True, True)):
+        table = cascade._tabulated(np, u.imag, g, N, order, cic, by_u)
+        assert table is not None  # a block this size is tabulated
+        direct = cascade._register_transform(np, u, g, N, order, cic, by_u)
+        assert table.keys() == direct.keys()
+        for key, want in direct.items():
+            err = np.max(np.abs(table[key] - want)) / np.max(np.abs(want))
+            assert err < 4 * N * np.finfo(float).eps, (key, err)
+            if "u" not in key.removeprefix("cic_"):
+                assert np.all(table[key][:, 0] == 0.0)  # at u = 0, exactly
+    assert cascade.register_transform(u, g, N)["v"] is not None
+
+
+def test_tables_are_kept_within_a_scope_and_only_there(monkeypatch):
+    """Within ``transform_tables`` a table serves later calls whose gains it covers
+    (a fit's iterations); outside it each call tabulates its own; a call too small for
+    a table is the recursion itself."""
+    builds = []
+    build = cascade._build_table
+    monkeypatch.setattr(cascade, "_build_table", lambda *a: builds.append(1) or build(*a))
+    u, g = _rows(300.0, 0.03, 0.6)
+    first = cascade.register_transform(u, g, 536)
+    again = cascade.register_transform(u[:100], g[:100] * 1.01, 536)
+    assert len(builds) == 2
+    with cascade.transform_tables():
+        with cascade.transform_tables():  # nested: the same tables
+            inside = cascade.register_transform(u, g, 536)
+        cascade.register_transform(u[:100], g[:100] * 1.01, 536)
+    assert len(builds) == 3
+    np.testing.assert_allclose(inside["v"], first["v"], rtol=0, atol=1e-13)
+    np.testing.assert_allclose(again["g"], cascade._register_transform(
+        np, u[:100], g[:100] * 1.01, 536, 1, False, True)["g"], rtol=0, atol=1e-13)
+    small = cascade.register_transform(u[:2, :5], g[:2], 536)
+    direct = cascade._register_transform(np, u[:2, :5], g[:2], 536, 1, False, True)
+    assert all(np.array_equal(small[k], direct[k]) for k in direct)
+
+
+def test_register_transform_runs_on_the_array_api_standard():
+    """The transform, its table and its recursion use the array API standard only: on
+    array-api-strict arrays (which refuse anything outside it) they return that
+    namespace's arrays, the same numbers as NumPy's."""
+    xs = pytest.importorskip("array_api_strict")
+    u, g = _rows(300.0, 0.03, 0.6)
+    cases = [(u, g), (u[:2, :5], g[:2]), (np.full((3, 4), 1e-4), g[:3]),
+             (np.zeros(2), np.array([5.0, 300.0]))]  # a table, the recursion, a tilt, 1-D
+    for uu, gg in cases:
+        for order, cic, by_u in ((0, False, True), (1, False, False), (2, True, True)):
+            want = cascade.register_transform(uu, gg, 536, order=order, cic=cic, by_u=by_u)
+            got = cascade.register_transform(xs.asarray(uu), xs.asarray(gg), 536,
+                                             order=order, cic=cic, by_u=by_u)
+            assert got.keys() == want.keys()
+            for key, value in got.items():
+                assert isinstance(value, type(xs.asarray(0.0)))
+                np.testing.assert_allclose(np.asarray(value), want[key], rtol=1e-15, atol=0)
+
+
 @pytest.mark.slow
 def test_logpmf_grad_matches_finite_differences():
     counts = np.array([700, 1100, 1500])

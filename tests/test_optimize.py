@@ -123,6 +123,8 @@ ITERATIONS = {
     ("model/cascade.py", "single_electron_moments"): "the register's recursion, stage by stage",
     ("model/cascade.py", "_register_transform"): "the register's recursion, stage by stage",
     ("model/cascade.py", "_pgf_minus_one"): "the register's recursion, stage by stage",
+    ("model/cascade.py", "_build_table"): "a table's axes refined until its coefficients "
+                                          "converge (Chebyshev interpolation)",
     ("model/cascade.py", "_sample_stages"): "one binomial draw per stage",
     ("model/cascade.py", "sample_register_cic"): "electrons leaving the register by stage",
     ("model/cascade.py", "_invert"): "a guide table's forward steps (sampling)",
@@ -197,3 +199,25 @@ def test_one_newton_loop_in_the_package():
                 if any(w in target for w in ("lam", "damp", "mu[")):
                     loops.append(f"{path.relative_to(SRC)}:{node.lineno} {target}")
     assert not loops, loops
+
+
+def test_chebyshev_tables_interpolate_to_round_off_and_say_when_they_do():
+    """The interpolant of an analytic function on a rectangle's Lobatto grid matches it
+    to round-off between the nodes once its last coefficients are small, and says it is
+    unresolved while they are not."""
+    from emccdcal import _chebyshev
+
+    f = lambda x, y: np.exp(1j * x * y) / (2.0 + np.cos(y))  # noqa: E731
+    xr, yr = (0.5, 1.5), (-1.0, 3.0)
+    rng = np.random.default_rng(3)
+    x = rng.uniform(*xr, 40)
+    y = rng.uniform(*yr, (40, 7))
+    for n_x, n_y, resolved in ((5, 9, (False, False)), (17, 33, (True, False)),
+                               (17, 65, (True, True))):
+        nodes = np.meshgrid(_chebyshev.lobatto(n_x, *xr), _chebyshev.lobatto(n_y, *yr),
+                            indexing="ij")
+        coef = _chebyshev.coefficients(f(*nodes))
+        assert _chebyshev.resolved(coef, 1e-13) == resolved
+        got = _chebyshev.evaluate_rows(coef, xr, yr, x, y)
+        err = np.max(np.abs(got - f(x[:, None], y)))
+        assert (err < 1e-13) == all(resolved), err

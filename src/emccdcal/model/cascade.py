@@ -57,6 +57,8 @@ the seed, never on the machine.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
 import operator
 import threading
@@ -64,7 +66,7 @@ from collections import OrderedDict
 
 import numpy as np
 
-from .. import _roots, defaults
+from .. import _chebyshev, _roots, _xp, defaults
 from ..errors import OptionError
 
 __all__ = [
@@ -422,26 +424,32 @@ def register_transform(u, em_gain, stages=DEFAULT_STAGES, *, order=1, cic=False,
     >>> round(float(t["u"][0]), 9), round(float(t["uu"][0] / 25), 6)
     (5.0, 1.795203)
     """
-    g = np.asarray(em_gain, dtype=float)
-    u = np.asarray(u)
+    xp, (u, g) = _xp.asarrays(u, em_gain)
+    g = xp.astype(g, xp.float64)
+    if (u.ndim == 2 and _xp.is_complex(xp, u) and g.shape == u.shape[:1]
+            and not bool(xp.any(xp.real(u) != 0.0))):
+        table = _tabulated(xp, xp.imag(u), g, stages, order, cic, by_u)
+        if table is not None:
+            return table
     if u.ndim == 0 or u.size <= _CHUNK or g.shape != u.shape[:1]:
-        return _register_transform(u, g, stages, order, cic, by_u)
+        return _register_transform(xp, u, g, stages, order, cic, by_u)
     # The recursion runs N times over every element: in pieces that stay in the CPU's
     # cache it runs about three times faster than over the whole array at once (it is
     # elementwise, so the values are the same to the bit).
-    rows = u.reshape(u.shape[0], -1)
+    rows = xp.reshape(u, (u.shape[0], -1))
     step_rows = max(1, _CHUNK // rows.shape[1])
     step_cols = min(rows.shape[1], _CHUNK)
     out = None
     for r in range(0, rows.shape[0], step_rows):
         for c in range(0, rows.shape[1], step_cols):
-            piece = _register_transform(rows[r:r + step_rows, c:c + step_cols],
+            piece = _register_transform(xp, rows[r:r + step_rows, c:c + step_cols],
                                         g[r:r + step_rows], stages, order, cic, by_u)
             if out is None:
-                out = {k: np.empty(rows.shape, v.dtype) for k, v in piece.items()}
+                out = {k: xp.empty(rows.shape, dtype=v.dtype, device=_xp.device(u))
+                       for k, v in piece.items()}
             for k, v in piece.items():
                 out[k][r:r + step_rows, c:c + step_cols] = v
-    return {k: v.reshape(u.shape) for k, v in out.items()}
+    return {k: xp.reshape(v, u.shape) for k, v in out.items()}
 
 
 #: Elements of the register's recursion computed at a time (about 256 KiB of complex
@@ -449,39 +457,201 @@ def register_transform(u, em_gain, stages=DEFAULT_STAGES, *, order=1, cic=False,
 _CHUNK = 16384
 
 
-def _register_transform(u, g, stages, order, cic, by_u):
-    """:func:`register_transform` of one piece of the arrays."""
-    p_row = np.expm1(np.log(g) / stages).reshape(g.shape + (1,) * (u.ndim - 1))
-    # Coefficients spelled out to the arrays' full shape and type: NumPy's in-place
-    # loops are fastest without broadcasting or casting (the loop runs N times).
-    full = lambda c: np.broadcast_to(c, u.shape).astype(np.result_type(u, float))  # noqa: E731
+#: A table's interpolant is resolved once its last coefficients are this many times the
+#: recursion's own round-off (about ``N·ε`` of the largest value) or less.
+_TABLE_TOLERANCE = 1.0
+
+#: Lobatto points of a table along (ln g, g·θ) at the first try; each refinement of an
+#: axis doubles its intervals (the points nest, so only the new ones are computed).
+_TABLE_START = (9, 33)
+
+#: A table kept for reuse (:func:`transform_tables`) spans the rectangle asked for
+#: widened by this fraction of its sides (the gains move as a fit goes on), and at least
+#: this much in ln g.
+_TABLE_MARGIN = (0.25, 0.02)
+
+#: Tables kept at once in a :func:`transform_tables` scope (oldest dropped first).
+_TABLES_KEPT = 16
+
+_SCOPE: contextvars.ContextVar = contextvars.ContextVar("transform_tables", default=None)
+
+
+@contextlib.contextmanager
+def transform_tables():
+    """Within this block (on this thread), :func:`register_transform` keeps the tables it
+    builds and reuses them for later calls whose gains and frequencies they cover.
+
+    A fit evaluates the transform of the same pixels over and over with gains that move a
+    little: one table serves most of its iterations. The scope is what makes that
+    deterministic: a fit's values depend on its own calls only, never on what another
+    fit (another thread, another block) tabulated before.
+    """
+    if _SCOPE.get() is not None:  # within an enclosing scope: its tables
+        yield
+        return
+    token = _SCOPE.set([])
+    try:
+        yield
+    finally:
+        _SCOPE.reset(token)
+
+
+class _Table:
+    """The transform's Chebyshev coefficients over a rectangle of (ln g, g·θ)."""
+
+    def __init__(self, stages, x_range, z_range, coef):
+        self.stages, self.x_range, self.z_range, self.coef = stages, x_range, z_range, coef
+
+    def covers(self, stages, x_range, z_range, keys) -> bool:
+        return (stages == self.stages and keys <= self.coef.keys()
+                and self.x_range[0] <= x_range[0] and x_range[1] <= self.x_range[1]
+                and self.z_range[0] <= z_range[0] and z_range[1] <= self.z_range[1])
+
+    def evaluate(self, keys, x, z):
+        return {k: _chebyshev.evaluate_rows(self.coef[k], self.x_range, self.z_range, x, z)
+                for k in keys}
+
+
+def _transform_keys(order, cic, by_u) -> frozenset:
+    """The names :func:`_register_transform` returns for these options."""
+    names = ("v", "u", "g", "uu", "ug", "gg")[: (1, 3, 6)[order]]
+    if not by_u:
+        names = tuple(n for n in names if "u" not in n)
+    return frozenset(names + (tuple("cic_" + n for n in names) if cic else ()))
+
+
+def _tabulated(xp, theta, g, stages, order, cic, by_u):
+    """:func:`register_transform` at ``u = iθ`` (P, M) for rows of gains g (P,), from a
+    Chebyshev table (:mod:`emccdcal._chebyshev`) over a rectangle in ``(ln g, g·θ)``
+    holding the rows; None where a table would cost about as much as the rows.
+
+    The recursion costs N stages per element; a table costs N stages per node (a few
+    hundred for a block of pixels at one set-point) and a short polynomial per element,
+    and agrees with the recursion to about the recursion's own round-off (its last
+    coefficients are below ``N·ε`` of its largest). In ``g·θ`` (the argument of the
+    gamma approximation's transform) the gain changes the function's shape only, so few
+    points span the gains of a block. Within :func:`transform_tables` tables are kept
+    and reused; elsewhere each call builds its own, where it costs a quarter of the rows
+    or less.
+    """
+    x = xp.log(g)
+    z = theta * g[:, None]
+    x_range = (float(xp.min(x)), float(xp.max(x)))
+    z_range = (float(xp.min(z)), float(xp.max(z)))
+    keys = _transform_keys(order, cic, by_u)
+    kept = _SCOPE.get()
+    if kept is None:
+        table = _build_table(xp, theta, stages, x_range, z_range, order, cic, by_u,
+                             theta.size // 4)
+    else:
+        table = next((t for t in kept if t.covers(stages, x_range, z_range, keys)), None)
+        if table is None:
+            table = _build_table(xp, theta, stages, _widen(x_range, _TABLE_MARGIN[1]),
+                                 _widen(z_range, 0.0), order, cic, by_u, theta.size)
+            if table is not None:
+                kept.append(table)
+                del kept[:-_TABLES_KEPT]
+    if table is None:
+        return None
+    out = table.evaluate(keys, x, z)
+    # At u = 0 the transform and its derivatives by ln g vanish exactly (one electron's
+    # output is certain to be something): keep them exact there, where every window's
+    # normalisation is.
+    zero = theta == 0.0
+    if bool(xp.any(zero)):
+        for k, v in out.items():
+            if "u" not in k.removeprefix("cic_"):
+                v[zero] = 0.0
+    return out
+
+
+def _widen(bounds, at_least):
+    """``bounds`` widened on each side by ``_TABLE_MARGIN[0]`` of its width (and at least
+    ``at_least``); a lower bound of 0 stays (the zero frequency)."""
+    lo, hi = bounds
+    pad = max(_TABLE_MARGIN[0] * (hi - lo), at_least)
+    return (lo - pad if lo != 0.0 else 0.0, hi + pad)
+
+
+def _build_table(xp, like, stages, x_range, z_range, order, cic, by_u, budget):
+    """The :class:`_Table` of the rectangle, refined until resolved, in namespace ``xp``
+    on the device of ``like``; None once it would take more than ``budget`` nodes."""
+    tol = _TABLE_TOLERANCE * stages * np.finfo(float).eps
+
+    def at(xs, zs):  # the recursion on the grid xs × zs
+        gs = np.exp(xs)
+        u = _xp.from_numpy(xp, 1j * zs[None, :] / gs[:, None], like=like)
+        return _register_transform(xp, u, _xp.from_numpy(xp, gs, like=like), stages, order,
+                                   cic, by_u)
+
+    n = [1 if x_range[0] == x_range[1] else _TABLE_START[0],
+         1 if z_range[0] == z_range[1] else _TABLE_START[1]]
+    spent = n[0] * n[1]
+    if spent > budget:
+        return None
+    values = at(_chebyshev.lobatto(n[0], *x_range), _chebyshev.lobatto(n[1], *z_range))
+    while True:
+        coef = {k: _chebyshev.coefficients(v) for k, v in values.items()}
+        done = [_chebyshev.resolved(c, tol) for c in coef.values()]
+        refine = [axis for axis in (0, 1) if not all(d[axis] for d in done)]
+        if not refine:
+            return _Table(stages, x_range, z_range, coef)
+        for axis in refine:
+            n[axis] = 2 * n[axis] - 1
+            nodes = [_chebyshev.lobatto(n[0], *x_range), _chebyshev.lobatto(n[1], *z_range)]
+            nodes[axis] = nodes[axis][1::2]
+            spent += nodes[0].size * nodes[1].size
+            if spent > budget:
+                return None
+            new = at(*nodes)
+            values = {k: _interleave(xp, v, new[k], axis) for k, v in values.items()}
+
+
+def _interleave(xp, old, new, axis):
+    """Values on a refined Lobatto grid: the old points at the even places of ``axis``,
+    the new ones at the odd."""
+    shape = list(old.shape)
+    shape[axis] = old.shape[axis] + new.shape[axis]
+    out = xp.empty(tuple(shape), dtype=old.dtype, device=_xp.device(old))
+    even = [slice(None)] * old.ndim
+    odd = list(even)
+    even[axis], odd[axis] = slice(0, None, 2), slice(1, None, 2)
+    out[tuple(even)] = old
+    out[tuple(odd)] = new
+    return out
+
+
+def _register_transform(xp, u, g, stages, order, cic, by_u):
+    """:func:`register_transform` of one piece of the arrays (namespace ``xp``)."""
+    p_row = xp.reshape(xp.expm1(xp.log(g) / stages), g.shape + (1,) * (u.ndim - 1))
+    # Coefficients spelled out to the arrays' full shape and type: in-place arithmetic is
+    # fastest without broadcasting or casting (the loop runs N times).
+    dtype = xp.result_type(u.dtype, xp.float64)
+    full = lambda c: xp.astype(xp.broadcast_to(c, u.shape), dtype)  # noqa: E731
     p, a1, two_p = full(p_row), full(1.0 + p_row), full(2.0 * p_row)
-    e_u = np.exp(u)
-    v = np.where(np.abs(u) < 1e-3, np.expm1(u), e_u - 1.0)  # e^u − 1 without cancellation
+    u = xp.astype(u, dtype)
+    e_u = xp.exp(u)
+    v = xp.where(abs(u) < 1e-3, xp.expm1(u), e_u - 1.0)  # e^u − 1 without cancellation
     out_names = ("v", "u", "g", "uu", "ug", "gg")[: (1, 3, 6)[order]]
     if not by_u:
         out_names = tuple(n for n in out_names if "u" not in n)
     d = {"v": v}
     if order >= 1:
-        d["g"] = np.zeros_like(v)
+        d["g"] = xp.zeros_like(v)
         if by_u:
-            d["u"] = e_u.copy()
+            d["u"] = xp.asarray(e_u, copy=True)
     if order >= 2:
-        d["gg"] = np.zeros_like(v)
+        d["gg"] = xp.zeros_like(v)
         if by_u:
-            d["uu"] = e_u.copy()
-            d["ug"] = np.zeros_like(v)
-    sums = {name: np.zeros_like(v) for name in out_names} if cic else None
-    a = np.empty_like(v)
-    t = np.empty_like(v)
-    w = np.empty_like(v)
-    x = np.empty_like(v)
+            d["uu"] = xp.asarray(e_u, copy=True)
+            d["ug"] = xp.zeros_like(v)
+    sums = {name: xp.zeros_like(v) for name in out_names} if cic else None
     for _ in range(stages):
         if cic:
             for name in out_names:
                 sums[name] += d[name]
         # a = ∂v_{m+1}/∂v_m = 1 + p + 2p·v; the p-derivative of the map is v(1 + v).
-        np.multiply(two_p, v, out=a)
+        a = two_p * v
         a += a1
         if order >= 2:
             # second derivatives first: they need this stage's first derivatives
@@ -489,30 +659,23 @@ def _register_transform(u, g, stages, order, cic, by_u):
             if by_u:
                 vu = d["u"]
                 d["uu"] *= a                 # + 2p·v_u²
-                np.multiply(vu, vu, out=t)
-                t *= two_p
-                d["uu"] += t
-            np.multiply(p, vg, out=t)        # t = p·v_g
-            np.multiply(v, 2.0, out=w)
+                d["uu"] += (vu * vu) * two_p
+            t = p * vg                       # t = p·v_g
+            w = v * 2.0
             w += 1.0
             w += t                           # w = 1 + 2v + p·v_g
             d["gg"] *= a                     # + 2·v_g·(1 + 2v + p·v_g)
-            np.multiply(vg, w, out=x)
-            x *= 2.0
-            d["gg"] += x
+            d["gg"] += (vg * w) * 2.0
             if by_u:
                 w += t                       # w = 1 + 2v + 2p·v_g
                 d["ug"] *= a                 # + v_u·(1 + 2v + 2p·v_g)
-                np.multiply(vu, w, out=x)
-                d["ug"] += x
+                d["ug"] += vu * w
         if order >= 1:
             d["g"] *= a
-            np.add(v, 1.0, out=t)
-            t *= v
-            d["g"] += t
+            d["g"] += (v + 1.0) * v
             if by_u:
                 d["u"] *= a
-        np.multiply(p, v, out=t)
+        t = p * v
         t += a1
         v *= t
     # Derivatives by p → by ln g: dp/d ln g = (1 + p)/N, d²p/d(ln g)² = (1 + p)/N².
