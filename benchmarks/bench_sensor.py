@@ -10,6 +10,10 @@ engine keeps the peak flat and the time per pixel constant.
 cluster of N (then M ...) single-threaded worker processes, alternating, and prints the
 speed-up over the first.
 
+``--workers 1,2[,...]`` instead times the calibration of the first size with each number
+of threads (here, no cluster), alternating, median of 2, and prints each one's speed-up
+over the first and its parallel efficiency (speed-up over the ratio of threads).
+
 ``--em-models gamma,cascade`` instead times the calibration of every size under each
 register model, alternating in one run, and prints each time's ratio to the first
 model's (the default register's cost against the paper's gamma model).
@@ -45,16 +49,17 @@ if sys.argv[3] != "local":
     scheduler = client
     t0 = time.perf_counter()
 calibrate(sys.argv[1], "gs", out=sys.argv[2], overwrite=True, scheduler=scheduler,
-          em_model=sys.argv[4] if sys.argv[4] != "-" else None)
+          em_model=sys.argv[4] if sys.argv[4] != "-" else None,
+          workers=int(sys.argv[5]) if sys.argv[5] != "-" else None)
 wall = time.perf_counter() - t0
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print(f"{wall:.2f} {peak:.0f}")
 """
 
 
-def _time(manifest, out, where="local", em_model="-"):
-    res = subprocess.run([sys.executable, "-c", CHILD, str(manifest), str(out), where, em_model],
-                         capture_output=True, text=True, check=True)
+def _time(manifest, out, where="local", em_model="-", workers="-"):
+    res = subprocess.run([sys.executable, "-c", CHILD, str(manifest), str(out), where, em_model,
+                          str(workers)], capture_output=True, text=True, check=True)
     wall, peak = res.stdout.split()[-2:]
     return float(wall), float(peak)
 
@@ -64,6 +69,7 @@ def main():
     p.add_argument("--sizes", default="64,128,256")
     p.add_argument("--frames", type=int, default=5000)
     p.add_argument("--dask", default=None, help="worker counts to compare, e.g. 1,2")
+    p.add_argument("--workers", default=None, help="thread counts to compare, e.g. 1,2")
     p.add_argument("--em-models", default=None,
                    help="register models to compare, e.g. gamma,cascade")
     p.add_argument("--keep", type=Path, default=None, help="keep the simulated data here")
@@ -97,6 +103,22 @@ def main():
             for c in counts:
                 t = statistics.median(times[c])
                 print(f"  {c} worker(s): {t:8.1f} s   speed-up {ref / t:5.2f}")
+            return
+        if args.workers:
+            counts = [int(c) for c in args.workers.split(",")]
+            n = sizes[0]
+            times = {c: [] for c in counts}
+            for _ in range(2):
+                for c in counts:
+                    times[c].append(_time(manifests[n], base / f"out-threads-{c}",
+                                          workers=c)[0])
+            ref = statistics.median(times[counts[0]])
+            print(f"gs, {n}x{n} px, {args.frames} frames; threads, median of 2")
+            for c in counts:
+                t = statistics.median(times[c])
+                speedup = ref / t
+                print(f"  {c:>2} thread(s): {t:8.1f} s   speed-up {speedup:5.2f}   "
+                      f"efficiency {speedup * counts[0] / c:5.2f}")
             return
         if args.em_models:
             models = args.em_models.split(",")

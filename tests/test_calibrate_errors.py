@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from emccdcal import calibrate, cli
+from emccdcal import _xp, calibrate, cli
 from emccdcal.errors import MethodError, OptionError
 from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
 
@@ -157,3 +157,17 @@ def test_a_scheduler_that_is_no_address_is_one_line(series):
     with pytest.raises(OptionError, match=r"scheduler 'synchronous': no Dask scheduler "
                                           r"reached .*tcp://HOST:PORT"):
         calibrate(gs.manifest, "gs", scheduler="synchronous")
+
+
+def test_a_device_that_is_not_there_is_one_line(series):
+    """An unknown device, or a GPU that neither CuPy nor PyTorch finds, is one clear error
+    before anything is read."""
+    gs, _ = series
+    with pytest.raises(OptionError, match="device 'tpu': expected one of cpu, cuda"):
+        calibrate(gs.manifest, "gs", device="tpu")
+    try:
+        _xp.resolve("cuda")
+    except OptionError as exc:
+        with pytest.raises(OptionError, match="device 'cuda': no GPU found"):
+            calibrate(gs.manifest, "gs", device="cuda")
+        assert "\n" not in str(exc)

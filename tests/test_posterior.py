@@ -124,6 +124,22 @@ def test_refusal_is_reproducible_with_the_seed(adu_manifest):
 
 
 @needs_real
+def test_the_posterior_through_the_array_api_standard_is_numpys(adu_manifest):
+    """Walkers whose likelihood is computed on array-api-strict arrays (a pretend device
+    that refuses anything outside the standard) walk NumPy's chain: the same refusal,
+    number for number."""
+    pytest.importorskip("array_api_strict")
+
+    def message(device):
+        with pytest.raises(NotConvergedError) as err:
+            posterior.sample_posterior(adu_manifest, "is-adu", [(2, 2)], n_steps=30,
+                                       max_steps=30, seed=3, device=device)
+        return str(err.value)
+
+    assert message("array-api-strict") == message("cpu")
+
+
+@needs_real
 def test_cli_refusal_exit_code(adu_manifest, tmp_path, capsys):
     args = _parse(["posterior", str(adu_manifest), "--method", "is-adu", "--pixel", "0,2",
                    "-o", str(tmp_path / "o"), "--steps", "20", "--max-steps", "20", "--quiet"])

@@ -12,10 +12,17 @@ What the standard lacks goes through here, once.
 
 from __future__ import annotations
 
-import numpy as np
-from array_api_compat import array_namespace, device, is_array_api_obj
+import contextlib
+import contextvars
 
-__all__ = ["namespace", "asarrays", "device", "from_numpy", "is_complex"]
+import numpy as np
+from array_api_compat import array_namespace, device, is_array_api_obj, is_numpy_namespace
+
+from . import defaults
+
+__all__ = ["namespace", "asarrays", "device", "from_numpy", "is_complex", "DEVICES",
+           "resolve", "computing_on", "engine", "on", "like", "to_numpy", "bincount",
+           "rfft", "irfft"]
 
 
 def namespace(*arrays):
@@ -44,3 +51,141 @@ def from_numpy(xp, array, like=None):
 def is_complex(xp, array) -> bool:
     """Whether ``array`` holds complex numbers."""
     return xp.isdtype(array.dtype, "complex floating")
+
+
+# --------------------------------------------------------------------------------------
+# Where a fit computes: the namespace of the likelihood's hot path
+# --------------------------------------------------------------------------------------
+#: What a user may ask for (``calibrate --device``; declared in :mod:`emccdcal.defaults`).
+DEVICES = defaults.DEVICES
+
+_ENGINE: contextvars.ContextVar = contextvars.ContextVar("engine_namespace", default=None)
+
+
+def resolve(device: str | None):
+    """``(xp, device)`` of a device name (:data:`DEVICES`), or one clear
+    :class:`~emccdcal.errors.OptionError` saying what is missing."""
+    from .errors import OptionError
+
+    if device in (None, "cpu"):
+        return array_namespace(np.empty(0)), "cpu"
+    if device == "array-api-strict":
+        try:
+            import array_api_strict
+        except ImportError:
+            raise OptionError("device 'array-api-strict' needs the package array-api-strict "
+                              "(pip install array-api-strict)") from None
+        # A device of its own that is not the CPU: its arrays refuse to become NumPy's,
+        # as a GPU's do, so nothing outside the standard passes unnoticed.
+        return array_api_strict, array_api_strict.Device("device1")
+    if device == "cuda":
+        return _cuda()
+    raise OptionError(f"device {device!r}: expected one of {', '.join(DEVICES)}")
+
+
+def _cuda():
+    """CuPy's namespace on the current GPU, else PyTorch's; a clear line otherwise."""
+    from .errors import OptionError
+
+    try:
+        import cupy
+
+        if cupy.cuda.runtime.getDeviceCount() > 0:
+            import array_api_compat.cupy as xp
+
+            return xp, cupy.cuda.Device()
+    except Exception:  # noqa: BLE001 - no CuPy, or CuPy without a GPU: try PyTorch
+        pass
+    try:
+        import torch
+
+        if torch.cuda.is_available():
+            import array_api_compat.torch as xp
+
+            return xp, torch.device("cuda")
+    except ImportError:
+        pass
+    raise OptionError("device 'cuda': no GPU found through CuPy or PyTorch (install the "
+                      "extra 'gpu' and check that the NVIDIA driver sees the card)")
+
+
+@contextlib.contextmanager
+def computing_on(device: str | None):
+    """Within this block (this thread), the likelihood's hot path computes on ``device``
+    (:data:`DEVICES`); arrays go there and their per-pixel sums come back to NumPy."""
+    token = _ENGINE.set(resolve(device))
+    try:
+        yield
+    finally:
+        _ENGINE.reset(token)
+
+
+def engine():
+    """``(xp, device)`` where the hot path computes now (NumPy on the CPU by default)."""
+    chosen = _ENGINE.get()
+    return chosen if chosen is not None else (array_namespace(np.empty(0)), "cpu")
+
+
+def on(xp, dev, *arrays):
+    """``arrays`` (NumPy or of ``xp``) as arrays of ``xp`` on ``dev`` (no copy for NumPy
+    into NumPy)."""
+    if is_numpy_namespace(xp):
+        return arrays[0] if len(arrays) == 1 else arrays
+    out = tuple(xp.asarray(a, device=dev) for a in arrays)
+    return out[0] if len(out) == 1 else out
+
+
+def like(ref, *arrays):
+    """``arrays`` as arrays of ``ref``'s namespace and device."""
+    return on(namespace(ref), device(ref), *arrays)
+
+
+def to_numpy(array) -> np.ndarray:
+    """A NumPy array of ``array`` (on the host), whatever its namespace."""
+    if isinstance(array, np.ndarray) or np.isscalar(array):
+        return np.asarray(array)
+    if hasattr(array, "get") and type(array).__module__.startswith("cupy"):
+        return array.get()
+    if type(array).__module__.startswith("torch"):
+        return array.detach().cpu().numpy()
+    if type(array).__module__.startswith("array_api_strict"):
+        import array_api_strict
+
+        array = array.to_device(array_api_strict.Device("CPU_DEVICE"))
+    return np.from_dlpack(array)
+
+
+def bincount(xp, index, weights, minlength: int):
+    """Sums of ``weights`` at each integer of ``index`` (1-D), length ``minlength``: not
+    in the standard; CuPy's and PyTorch's own, NumPy's for the others."""
+    if is_numpy_namespace(xp):
+        return np.bincount(index, weights=weights, minlength=minlength)
+    name = xp.__name__
+    if "cupy" in name:
+        import cupy
+
+        return cupy.bincount(index, weights=weights, minlength=minlength)
+    if "torch" in name:
+        import torch
+
+        return torch.bincount(index, weights=weights, minlength=minlength)
+    out = np.bincount(to_numpy(index), weights=to_numpy(weights), minlength=minlength)
+    return xp.asarray(out, device=device(weights))
+
+
+def rfft(xp, a, workers):
+    """The real FFT along the last axis (SciPy's, on ``workers`` threads, for NumPy)."""
+    if is_numpy_namespace(xp):
+        from scipy import fft
+
+        return fft.rfft(a, axis=-1, workers=workers)
+    return xp.fft.rfft(a, axis=-1)
+
+
+def irfft(xp, a, n: int, workers):
+    """The inverse real FFT of length n along the last axis (SciPy's for NumPy)."""
+    if is_numpy_namespace(xp):
+        from scipy import fft
+
+        return fft.irfft(a, n=n, axis=-1, workers=workers)
+    return xp.fft.irfft(a, n=n, axis=-1)

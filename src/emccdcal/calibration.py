@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import __version__, identity, result
+from . import __version__, _xp, identity, result
 from ._output import Output
 from ._util import check_int, e_per_adu_map, nanmedian, one_line
 from ._util import progress as progress_bar
@@ -114,6 +114,7 @@ class TileJob:
     fft_threads: int | None = None
     e_per_adu_se: np.ndarray | None = None
     em_model: noise.EMModel = noise.EMModel()
+    device: str | None = None
 
     @property
     def key(self) -> str:
@@ -141,7 +142,7 @@ def run_tile(job: TileJob, progress=None) -> dict:
         ``gs-hierarchical``. With ``checks``, ``quality<a>_<name>`` are the
         :func:`emccdcal.data.quality.band_statistics` of acquisition ``a``.
     """
-    if job.fft_threads is not None:  # one task per CPU already (a Dask worker)
+    if job.fft_threads is not None:  # the CPUs this tile's threads leave each FFT
         with noise.fft_threads(job.fft_threads):
             return run_tile(replace(job, fft_threads=None), progress)
     p0, p1 = job.pixels
@@ -225,9 +226,10 @@ def _fit_pixels(job, frames, usable, progress=None):
                                    job.em_model, job.dark_frames[a], job.map_groups[a])
                   for a, sp in enumerate(job.setpoints)]
         sub = lambda v: None if v is None else v[idx]  # noqa: E731
-        return idx, fit_series(job.method, models, hists, e_per_adu=sub(job.e_per_adu),
-                               e_per_adu_se=sub(job.e_per_adu_se), options=job.options,
-                               intervals=job.intervals)
+        with _xp.computing_on(job.device):
+            return idx, fit_series(job.method, models, hists, e_per_adu=sub(job.e_per_adu),
+                                   e_per_adu_se=sub(job.e_per_adu_se), options=job.options,
+                                   intervals=job.intervals)
 
     chunks = [usable[s:s + job.block_size] for s in range(0, usable.size, job.block_size)]
     # Blocks are independent: threads overlap them (NumPy and the FFT release the GIL),
@@ -439,6 +441,7 @@ def calibrate(
     stages=None,
     accept_mismatch=(),
     accept_phi=False,
+    device=None,
 ) -> xarray.Dataset:
     """Calibrate a camera from the acquisitions of a manifest.
 
@@ -532,6 +535,11 @@ def calibrate(
         Use a given φ even where the 1× acquisition's photon transfer says otherwise
         (:func:`check_e_per_adu`); by default such a φ (in ADU/e⁻, say, or of another
         read-out mode) is refused before any fitting.
+    device : {"cpu", "cuda", "array-api-strict"}, optional
+        Where the likelihood's windows and sums are computed (docs/running.md): the CPU
+        (NumPy, the default); an NVIDIA GPU through CuPy or PyTorch (the extra ``gpu``);
+        or array-api-strict, the CPU through the array API standard alone (a check, not a
+        speed-up). The numbers agree within 1e-9; the result records the device.
 
     Returns
     -------
@@ -557,6 +565,7 @@ def calibrate(
     block_size = check_int("block_size", block_size)
     tile_pixels = check_int("tile_pixels", tile_pixels)
     workers = os.cpu_count() if workers is None else check_int("workers", workers)
+    _xp.resolve(device)  # an unknown device, or one whose library is missing: one line now
     # Every warning of the run (manifest, saturation, convergence, misfit) is recorded in
     # the result and issued again to the caller.
     # The output is locked, and checked, for the whole run (the tiles are kept as they
@@ -567,12 +576,23 @@ def calibrate(
             lambda: _run_calibration(manifest, method, e_per_adu, target, resume, overwrite,
                                      block_size, tile_pixels, scheduler, options, progress,
                                      workers, checks, map_errors, intervals, em_model, stages,
-                                     accept_mismatch=accept_mismatch, accept_phi=accept_phi),
+                                     accept_mismatch=accept_mismatch, accept_phi=accept_phi,
+                                     device=device),
         )
         if out is not None:
             result.save(ds, out, seconds=ds.attrs["seconds"], stale=RESULT_FILES)
             remove_run(out)
     return ds
+
+
+def _fft_threads(scheduler, workers) -> int:
+    """Threads of each FFT: the CPUs left to each of the ``workers`` threads that fit
+    blocks at once (every CPU for one thread; one on a Dask worker, which runs one task
+    per CPU already). Threads that each asked for every CPU would share them out
+    ``workers`` times over, and a 16-core machine ran no faster than a 2-core one."""
+    if scheduler is not None:
+        return 1
+    return max(1, (os.cpu_count() or 1) // workers)
 
 
 def _warn_gain_order(ds) -> None:
@@ -618,7 +638,7 @@ def _input_files(manifest, used, phi_source) -> list[Path]:
 def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, block_size,
                      tile_pixels, scheduler, options, progress, workers, checks, map_errors,
                      intervals, em_model=None, stages=None, *, accept_mismatch=(),
-                     accept_phi=False):
+                     accept_phi=False, device=None):
     manifest = _load(manifest)
     auto = isinstance(stages, str) and stages == "auto"
     model, stages_source = noise.choose_em_model(
@@ -658,8 +678,8 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
             dark_frames=tuple(dark_frames), map_groups=tuple(map_groups),
             adc_max=int(manifest.adc_max), options=options, intervals=intervals,
             block_size=block_size, threads=workers if scheduler is None else 1,
-            checks=bool(checks), fft_threads=None if scheduler is None else 1,
-            em_model=model)
+            checks=bool(checks), fft_threads=_fft_threads(scheduler, workers),
+            em_model=model, device=device)
 
     # where the register's length came from, as the result records it
     register_attrs = {"register_stages_source": stages_source} if stages_source else {}
@@ -688,6 +708,8 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
         ds.attrs["standard_errors"] = se_note
     if method != "mv-adu":  # the register model of the likelihood, or mv-gain's F²
         ds.attrs.update(model.attrs, **register_attrs)
+    if not method.startswith("mv-"):  # where the likelihood was computed
+        ds.attrs["device"] = device or "cpu"
     ds.attrs.update(result.identity_attrs(manifest))  # the camera and pixels it holds for
     if phi_source is not None:
         ds.attrs["e_per_adu_source"] = str(phi_source)

@@ -122,6 +122,16 @@ def add_em_model(p: argparse.ArgumentParser, *, auto: bool = True) -> None:
                    + ("; 'auto': the length of largest likelihood, 128 to 4096" if auto else ""))
 
 
+def add_device(p) -> None:
+    """``--device``: where the likelihood is computed (docs/running.md, "On a GPU")."""
+    from ..defaults import DEVICES
+
+    p.add_argument("--device", choices=DEVICES, default="cpu",
+                   help="where the likelihood is computed: the CPU, an NVIDIA GPU (needs the "
+                   "'gpu' extra: CuPy or PyTorch), or array-api-strict (a check of the array "
+                   "API path, slower); default: %(default)s")
+
+
 def stages_or_auto(text: str):
     """An argparse type: a positive whole number of stages, or ``auto``."""
     return "auto" if text == "auto" else positive_int(text)

@@ -45,6 +45,7 @@ def add_parser(subparsers):
     execution.add_argument("--scheduler", metavar="ADDRESS",
                      help="run the tiles on a Dask cluster, e.g. tcp://10.0.0.1:8786 (the "
                      "workers read the manifest's paths; needs the 'dask' extra)")
+    _common.add_device(execution)
     p.add_argument("--no-checks", action="store_true",
                    help="skip the data-quality checks (see 'emccdcal check')")
     p.add_argument("--intervals", choices=INTERVALS, default="wald",
@@ -87,7 +88,7 @@ def run(args) -> int:
                        checks=not args.no_checks, map_errors=not args.conditional_se,
                        intervals=args.intervals, em_model=args.em_model,
                        stages=args.stages, accept_mismatch=args.accept_mismatch,
-                       accept_phi=args.accept_phi)
+                       accept_phi=args.accept_phi, device=args.device)
         if args.report:
             from ..report.html import REPORT_FILE, write_report
 

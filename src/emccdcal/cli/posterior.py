@@ -36,6 +36,7 @@ def add_parser(subparsers):
                    help="flat in log-parameters (default) or in physical parameters")
     _common.add_no_figures(p)
     _common.add_em_model(p, auto=False)
+    _common.add_device(p)
     _common.add_quiet(p)
     p.set_defaults(func=run)
     return p
@@ -58,6 +59,7 @@ def run(args) -> int:
                 n_walkers=args.walkers, n_steps=args.steps, seed=args.seed,
                 max_steps=args.max_steps, prior=args.prior, out=args.out,
                 progress=not args.quiet, em_model=args.em_model, stages=args.stages,
+                device=args.device,
             )
             if not args.no_figures:
                 from ..report.corner import write_corner_figures

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .. import _xp
 from .._optimize import maximize, solve
 from ..model import noise
 
@@ -217,8 +218,10 @@ class _ModelAtData:
         name -> (P, K) first derivatives of the probability at the values.
     second : dict
         (name, name) -> :class:`noise.Spectrum` of the second derivatives (upper triangle).
-    flat : ndarray of int, shape (P, K)
+    flat : array of int, shape (P·K,)
         Index of every value in the flattened (P, n) window.
+    xp : namespace
+        Where the windows were computed (``pv``, ``scores``, ``low`` are its arrays).
     n : int
         Window length.
     low : ndarray of bool, shape (P, K)
@@ -227,7 +230,7 @@ class _ModelAtData:
         Pixels whose parameters are hopelessly far from their data.
     """
 
-    def __init__(self, acq, rows, *, derivs=False, second=False, names=None):
+    def __init__(self, acq, rows, *, derivs=False, second=False, names=None, xp=None):
         # The model's mass lies within [lo, hi] (eight SDs and the tails, outside of
         # which the pmf is below ~1e-15 of its peak).
         lo, hi = noise.window_extent(rows, acq.offset, acq.read_noise, width=8.0)
@@ -250,17 +253,23 @@ class _ModelAtData:
         stop = np.where(hopeless, last + 8 * span + 64, stop)
         n = noise.fast_len(int((stop - start).max()) + 1)
         names = rows.names if names is None else names
+        xp, dev = (_xp.resolve("cpu") if xp is None else xp)
         p, d1, d2 = noise.window(rows, acq.offset - start, acq.read_noise, n,
-                                 derivs=derivs, second=second, names=names)
-        P = acq.values.shape[0]
+                                 derivs=derivs, second=second, names=names, xp=(xp, dev))
+        P, K = acq.values.shape
         # One flat gather per window (faster than take_along_axis, which rebuilds indices).
-        self.flat = acq.values - start[:, None] + (np.arange(P) * n)[:, None]
-        pv = p.ravel()[self.flat]
-        floor = _FLOOR * p.max(axis=1, keepdims=True)
+        flat = acq.values - start[:, None] + (np.arange(P) * n)[:, None]
+        self.flat = _xp.on(xp, dev, np.reshape(flat, (-1,)))
+
+        def at_values(window):
+            return xp.reshape(xp.take(xp.reshape(window, (-1,)), self.flat), (P, K))
+
+        pv = at_values(p)
+        floor = _FLOOR * xp.max(p, axis=1, keepdims=True)
         self.low = pv < floor
-        self.pv = np.where(self.low, floor, pv)
-        self.scores = {nm: d1[nm].ravel()[self.flat] for nm in names} if derivs else None
-        self.second, self.n, self.hopeless = d2, n, hopeless
+        self.pv = xp.where(self.low, floor, pv)
+        self.scores = {nm: at_values(d1[nm]) for nm in names} if derivs else None
+        self.second, self.n, self.hopeless, self.xp = d2, n, hopeless, xp
 
     def second_sums(self, weights):
         """``Σ_values weights · ∂²p`` (P,) for every pair in ``second``: one forward FFT
@@ -268,9 +277,10 @@ class _ModelAtData:
         padding carries weight 0), then a dot with each pair's spectrum."""
         if not self.second:
             return {}
+        xp = self.xp
         P = self.pv.shape[0]
-        grid = np.bincount(self.flat.ravel(), weights=weights.ravel(),
-                           minlength=P * self.n).reshape(P, self.n)
+        grid = _xp.bincount(xp, self.flat, xp.reshape(weights, (-1,)), P * self.n)
+        grid = xp.reshape(grid, (P, self.n))
         m = next(iter(self.second.values())).spectrum.shape[1]
         hat = noise.Spectrum.weights_spectrum(grid, m)
         return {key: spec.dot(hat) for key, spec in self.second.items()}
@@ -297,23 +307,29 @@ def _acquisition_terms(acq, coords, level, map_cross=False, live=None):
     kept = np.flatnonzero(np.ones(U, dtype=bool) if live is None else live)
     model_names = tuple(rows.names[i] for i in kept)
     names = model_names + (("offset", "read_noise") if map_cross else ())
-    model = _ModelAtData(acq, rows, derivs=level >= 1, second=level >= 2, names=names)
+    # The windows and their sums over the data run where the fit computes
+    # (_xp.computing_on); what comes back is one number per pixel and sum.
+    xp, dev = _xp.engine()
+    model = _ModelAtData(acq, rows, derivs=level >= 1, second=level >= 2, names=names,
+                         xp=(xp, dev))
     pv, low = model.pv, model.low
-    loglik = np.where(model.hopeless, -np.inf, np.sum(acq.counts * np.log(pv), axis=1))
-    n_floored = np.sum(acq.counts * low, axis=1).astype(np.int64)
+    counts = _xp.on(xp, dev, acq.counts.astype(float))
+    row_sum = lambda a: _xp.to_numpy(xp.sum(a, axis=1))  # noqa: E731
+    loglik = np.where(model.hopeless, -np.inf, row_sum(counts * xp.log(pv)))
+    n_floored = row_sum(xp.where(low, counts, 0.0)).astype(np.int64)
     if level == 0:
         return loglik, None, None, n_floored, None
     P, L = acq.values.shape[0], kept.size
     # (P, L) columns, also for L = 0 (a layout that moves none of this acquisition's)
     columns = lambda arrays: np.asarray(arrays, dtype=float).reshape(L, P).T  # noqa: E731
     factor = columns([values[i] for i in kept])  # d λ / d ln λ
-    w = np.where(low, 0.0, acq.counts / pv)
+    w = xp.where(low, 0.0, counts / pv)
     scores = [model.scores[nm] for nm in names]
-    grad_k = columns([np.sum(w * s, axis=1) for s in scores[:L]]) * factor
+    grad_k = columns([row_sum(w * s) for s in scores[:L]]) * factor
     # Outer products of the per-frame scores (BHHH): a positive semi-definite estimate of
     # the information from the data points alone, cheap because the histogram is short.
     ws = [w * s / pv for s in scores]
-    outer = {(i, j): np.sum(ws[i] * scores[j], axis=1)
+    outer = {(i, j): row_sum(ws[i] * scores[j])
              for i in range(L) for j in range(i, len(names))}
     info_k = np.empty((P, L, L))
     for i in range(L):
@@ -325,7 +341,7 @@ def _acquisition_terms(acq, coords, level, map_cross=False, live=None):
         for i, u in enumerate(kept):
             cross[:, u] = np.stack([outer[i, L], outer[i, L + 1]], axis=1) * factor[:, i, None]
     if level >= 2:
-        sums = model.second_sums(w)
+        sums = {key: _xp.to_numpy(v) for key, v in model.second_sums(w).items()}
         for i, a in enumerate(model_names):
             for j, b in enumerate(model_names[i:], start=i):
                 h = (sums[(a, b)] - outer[i, j]) * factor[:, i] * factor[:, j]

@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .. import defaults
+from .. import _xp, defaults
 from .._output import atomic_write, atomic_write_text, write_netcdf
 from .._util import e_per_adu_map, finite_or_none, parse_pixel
 from ..data import stats
@@ -296,6 +296,7 @@ def sample_posterior(
     progress=False,
     em_model=None,
     stages=None,
+    device=None,
 ) -> xarray.Dataset:
     """MCMC posterior of a method's free parameters for single pixels.
 
@@ -337,6 +338,9 @@ def sample_posterior(
         The EM register's model (:func:`emccdcal.calibrate`); default the manifest's,
         else the exact cascade (stages from the manifest, the camera's model or 536;
         ``"auto"`` is :func:`emccdcal.calibrate`'s only).
+    device : {"cpu", "cuda", "array-api-strict"}, optional
+        Where the likelihood is computed, as :func:`emccdcal.calibrate`'s (the walkers'
+        evaluations are one batch each step).
 
     Returns
     -------
@@ -380,6 +384,7 @@ def sample_posterior(
     if n_steps is not None and (isinstance(n_steps, bool) or int(n_steps) != n_steps or n_steps < 10):
         raise OptionError(f"n_steps must be an integer >= 10, got {n_steps!r}")
     options = layouts.check_options(method, options)
+    _xp.resolve(device)  # an unknown or missing device: one line before any work
     if not isinstance(manifest, Manifest):
         manifest = read_manifest(manifest)
     pixels = _check_pixels(pixels, manifest.shape)
@@ -406,7 +411,8 @@ def sample_posterior(
         if W < 2 * F or W % 2:
             raise OptionError(f"n_walkers must be even and at least {2 * F} (twice the {F} free "
                              f"parameters of {method}), got {n_walkers}")
-        fit = lik.fit()
+        with _xp.computing_on(device):
+            fit = lik.fit()
         if not fit.converged[0]:
             warnings.warn(f"{where}: the maximum-likelihood fit did not converge; "
                           "sampling starts from its last point", stacklevel=2)
@@ -414,8 +420,9 @@ def sample_posterior(
         rng = np.random.default_rng(np.random.SeedSequence([int(seed), row, col]))
         logp = _LogPosterior(lik, prior)
         first = DEFAULT_FIRST_STEPS if n_steps is None else int(n_steps)
-        sampler, d = _sample_pixel(logp, x_hat, cov, W, first, int(max_steps), int(min_ess),
-                                   rng, progress, where)
+        with _xp.computing_on(device):
+            sampler, d = _sample_pixel(logp, x_hat, cov, W, first, int(max_steps),
+                                       int(min_ess), rng, progress, where)
         thin = max(1, int(np.floor(d["tau"].min() / 2)))
         chain = sampler.get_chain(discard=d["burn"], thin=thin, flat=True)
         lp = sampler.get_log_prob(discard=d["burn"], thin=thin, flat=True)
@@ -432,7 +439,7 @@ def sample_posterior(
         "prior_description": _prior_text(prior),
     })
     ds.attrs["seconds"] = time.perf_counter() - t0
-    ds.attrs.update(model.attrs)
+    ds.attrs.update(model.attrs, device=device or "cpu")
     if stages_source:
         ds.attrs["register_stages_source"] = stages_source
     if out is not None:

@@ -44,6 +44,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import _xp
+
 #: Threads of each FFT (scipy.fft's ``workers``; -1: every CPU). A process that already
 #: runs one task per CPU (a Dask worker of a calibration) sets it to 1.
 FFT_WORKERS = -1
@@ -54,7 +56,7 @@ READOUT = ("offset", "read_noise")
 #: A window's band ends where the tilted transform is below this (its values beyond are
 #: below the FFT's round-off of ~1e-16 of the peak); a register's band that leaves more
 #: at its edge is widened.
-_EDGE = np.exp(-40.0)
+_EDGE = float(np.exp(-40.0))
 #: Longest tilted window (counts) before the register's own tail evaluation takes over.
 _MAX_WINDOW = 2**20
 
@@ -63,6 +65,7 @@ def cgf(rows, s, shift, sigma, order=0, names=()):
     """K(s) of the count (P, M) relative to the window start, and its derivatives by
     ``names`` (the register's and :data:`READOUT`): ``(K, first, second)``."""
     Ke, first, second = rows.cgf(s, order, tuple(n for n in names if n not in READOUT))
+    shift, sigma = _xp.like(s, shift, sigma)
     K = s * shift[:, None] + 0.5 * (sigma[:, None] * s) ** 2 + Ke
     if order >= 1:
         first = {**first, "offset": s, "read_noise": sigma[:, None] * s * s}
@@ -115,7 +118,7 @@ def alias_count(sigma_min):
 
 
 def window(rows, shift, sigma, n, *, tilt=None, derivs=False, second=False, names=None,
-           band=None):
+           band=None, xp=None):
     """Tilted pmf of the counts 0 … n−1 relative to the window start, and derivatives.
 
     Parameters
@@ -138,6 +141,9 @@ def window(rows, shift, sigma, n, *, tilt=None, derivs=False, second=False, name
     band : int, optional
         DFT bins to evaluate (default: the register's, widened until the transform has
         died out at the edge).
+    xp : (namespace, device), optional
+        Where the transforms and FFTs run (:func:`emccdcal._xp.engine`); the windows
+        are that namespace's arrays. Default: NumPy.
 
     Returns
     -------
@@ -154,6 +160,7 @@ def window(rows, shift, sigma, n, *, tilt=None, derivs=False, second=False, name
         inverse FFT for each.
     """
     names = rows.names + READOUT if names is None else tuple(names)
+    xp, dev = _xp.resolve("cpu") if xp is None else xp
     P = shift.shape[0]
     t = np.zeros(P) if tilt is None else tilt
     J = alias_count(float(sigma.min()))
@@ -168,10 +175,11 @@ def window(rows, shift, sigma, n, *, tilt=None, derivs=False, second=False, name
     phi = 0.0
     d1 = {name: 0.0 for name in names} if derivs else {}
     d2 = {}
+    K_t_dev = _xp.on(xp, dev, K_t)[:, None]
     for j in range(-J, J + 1):
-        s = t[:, None] + 1j * (omega[None, :] + 2.0 * np.pi * j)
+        s = _xp.on(xp, dev, t[:, None] + 1j * (omega[None, :] + 2.0 * np.pi * j))
         K, first, sec = cgf(rows, s, shift, sigma, order, names)
-        cf = np.exp(K - K_t[:, None])
+        cf = xp.exp(K - K_t_dev)
         phi = phi + cf
         if derivs:
             for name in names:
@@ -181,11 +189,11 @@ def window(rows, shift, sigma, n, *, tilt=None, derivs=False, second=False, name
                     for b in names[a_i:]:
                         term = first[a] * first[b] + sec.get((a, b), 0.0)
                         d2[(a, b)] = d2.get((a, b), 0.0) + term * cf
-    if m_hi < full and np.any(np.abs(phi[:, -1]) > _EDGE):
+    if m_hi < full and bool(xp.any(abs(phi[:, -1]) > _EDGE)):
         # The band was a bound's guess: where the transform has not died out at its edge
         # (a tilted window's wide electron distribution), widen it and start again.
         return window(rows, shift, sigma, n, tilt=tilt, derivs=derivs, second=second,
-                      names=names, band=min(full, 2 * m_hi))
+                      names=names, band=min(full, 2 * m_hi), xp=(xp, dev))
     p = irfft(phi, n)
     d1 = {name: irfft(v, n) for name, v in d1.items()}
     d2 = {key: Spectrum(v, n) for key, v in d2.items()}
@@ -211,18 +219,17 @@ class Spectrum:
     @staticmethod
     def weights_spectrum(weights, m):
         """``rfft`` of a (P, n) weight grid, its first ``m`` bins: shared by every dot."""
-        from scipy import fft
-
-        return fft.rfft(weights, axis=-1, workers=FFT_WORKERS)[:, :m]
+        return _xp.rfft(_xp.namespace(weights), weights, FFT_WORKERS)[:, :m]
 
     def dot(self, weights_hat):
         """``Σ_y w(y) f(y)`` per row, from ``weights_spectrum(w, m)`` (P, m)."""
+        xp = _xp.namespace(self.spectrum)
         m, n = self.spectrum.shape[1], self.n
         c = np.full(m, 2.0)
         c[0] = 1.0
         if n % 2 == 0 and m == n // 2 + 1:
             c[-1] = 1.0
-        return np.einsum("k,pk->p", c, (self.spectrum * weights_hat).real) / n
+        return (xp.real(self.spectrum * weights_hat) @ _xp.like(self.spectrum, c)) / n
 
 
 def irfft(spectrum, n):
@@ -231,9 +238,8 @@ def irfft(spectrum, n):
     The density's DFT is the characteristic function at −ω, the conjugate of the one
     evaluated at +ω; the bins beyond ``m`` are zero (irfft pads them).
     """
-    from scipy import fft
-
-    return fft.irfft(np.conj(spectrum), n=n, axis=-1, workers=FFT_WORKERS)
+    xp = _xp.namespace(spectrum)
+    return _xp.irfft(xp, xp.conj(spectrum), n, FFT_WORKERS)
 
 
 def fast_len(n):

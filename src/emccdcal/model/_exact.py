@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import _roots
+from .. import _roots, _xp
 from . import _engine
 from ._gamma import GammaRows, band_limit
 from .cascade import (
@@ -69,8 +69,10 @@ class CascadeRows:
         pair."""
         cic = self.has_cic or "register_cic" in names
         by_u = "scale" in names
-        T = self._transform(s * self.scale[:, None], order, cic, by_u)
-        Ec, c, g = self.E[:, None], self.cic[:, None], self.gain[:, None]
+        E, scale, gain, cic_rate = _xp.like(s, self.E, self.scale, self.gain, self.cic)
+        T = register_transform(s * scale[:, None], gain, self.stages, order=order, cic=cic,
+                               by_u=by_u)
+        Ec, c, g = E[:, None], cic_rate[:, None], gain[:, None]
 
         def mix(key):  # E·v + c·v̄, and likewise for a derivative of v
             return Ec * T[key] + c * T["cic_" + key] if cic else Ec * T[key]

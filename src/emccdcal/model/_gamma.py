@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import _roots
+from .. import _roots, _xp
 
 
 class GammaRows:
@@ -42,19 +42,21 @@ class GammaRows:
 
     def cgf(self, s, order=0, names=()):
         """``E·(M(s) − 1)`` (P, M) and its derivatives by E and the scale."""
-        sa = s * self.scale[:, None]
-        pn_ = self.pn[:, None]
-        Ec = self.E[:, None]
+        xp = _xp.namespace(s)
+        E, scale, pn = _xp.like(s, self.E, self.scale, self.pn)
+        sa = s * scale[:, None]
+        pn_ = pn[:, None]
+        Ec = E[:, None]
         # M(s) − 1 without cancellation at small s
-        v = np.where(pn_, np.expm1(sa), sa / (1.0 - sa))
+        v = xp.where(pn_, xp.expm1(sa), sa / (1.0 - sa))
         if order == 0:
             return Ec * v, {}, {}
-        m = np.where(pn_, np.exp(sa), 1.0 / (1.0 - sa))
-        dm = np.where(pn_, s * m, s * m * m)  # dM/dscale
+        m = xp.where(pn_, xp.exp(sa), 1.0 / (1.0 - sa))
+        dm = xp.where(pn_, s * m, s * m * m)  # dM/dscale
         first = {"photoelectrons": v, "scale": Ec * dm}
         if order == 1:
             return Ec * v, first, {}
-        d2m = np.where(pn_, s * s * m, 2.0 * s * s * m * m * m)
+        d2m = xp.where(pn_, s * s * m, 2.0 * s * s * m * m * m)
         second = {("photoelectrons", "scale"): dm, ("scale", "scale"): Ec * d2m}
         return Ec * v, first, second
 

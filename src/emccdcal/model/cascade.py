@@ -497,10 +497,13 @@ def transform_tables():
 
 
 class _Table:
-    """The transform's Chebyshev coefficients over a rectangle of (ln g, g·θ)."""
+    """The transform's Chebyshev coefficients over a rectangle of (ln g, g·θ), kept as
+    NumPy arrays (a few hundred numbers) and given to each caller in its own namespace:
+    the same table serves a fit on a device and its checks on the host."""
 
     def __init__(self, stages, x_range, z_range, coef):
-        self.stages, self.x_range, self.z_range, self.coef = stages, x_range, z_range, coef
+        self.stages, self.x_range, self.z_range = stages, x_range, z_range
+        self.coef = {k: _xp.to_numpy(c) for k, c in coef.items()}
 
     def covers(self, stages, x_range, z_range, keys) -> bool:
         return (stages == self.stages and keys <= self.coef.keys()
@@ -508,8 +511,8 @@ class _Table:
                 and self.z_range[0] <= z_range[0] and z_range[1] <= self.z_range[1])
 
     def evaluate(self, keys, x, z):
-        return {k: _chebyshev.evaluate_rows(self.coef[k], self.x_range, self.z_range, x, z)
-                for k in keys}
+        return {k: _chebyshev.evaluate_rows(_xp.like(x, self.coef[k]), self.x_range,
+                                            self.z_range, x, z) for k in keys}
 
 
 def _transform_keys(order, cic, by_u) -> frozenset:
