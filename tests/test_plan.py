@@ -44,6 +44,16 @@ def test_a_gain_series_recorded_as_planned_reaches_the_predicted_precision(tmp_p
     assert 0.93 <= np.mean(covered) <= 0.97
 
 
+def test_a_plan_through_the_array_api_standard_is_numpys():
+    """The plan's expected information from windows computed on array-api-strict arrays
+    (a pretend device: nothing outside the standard passes) is NumPy's: the same plan."""
+    pytest.importorskip("array_api_strict")
+    here = plan(method="gs", setpoints=SETPOINTS, target_se=1.0, **PROEM)
+    there = plan(method="gs", setpoints=SETPOINTS, target_se=1.0, device="array-api-strict",
+                 **PROEM)
+    assert plan_text(there) == plan_text(here)
+
+
 def test_the_plan_is_least_cost_and_within_the_papers_frames():
     """A 0.5 % plan for the paper's camera asks for no stack beyond the paper's 5000
     frames; every targeted SE meets the target; a tighter target costs more frames, about

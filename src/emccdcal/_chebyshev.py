@@ -17,6 +17,8 @@ of hundreds of stages per element, tabulated over (ln g, frequency) once per cal
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from . import _xp
@@ -36,8 +38,10 @@ def lobatto(n: int, lo: float, hi: float) -> np.ndarray:
     return 0.5 * (lo + hi) + 0.5 * (hi - lo) * np.cos(np.pi * np.arange(n) / (n - 1))
 
 
+@functools.lru_cache(maxsize=32)
 def _transform_matrix(n: int) -> np.ndarray:
-    """(n, n) matrix taking values at the n Lobatto points to Chebyshev coefficients."""
+    """(n, n) matrix taking values at the n Lobatto points to Chebyshev coefficients
+    (read-only: shared by every table of n points)."""
     if n == 1:
         return np.ones((1, 1))
     j = np.arange(n)
@@ -46,6 +50,7 @@ def _transform_matrix(n: int) -> np.ndarray:
     m[:, -1] *= 0.5
     m[0] *= 0.5     # and so do the first and last coefficients
     m[-1] *= 0.5
+    m.flags.writeable = False
     return m
 
 

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import _files, _roots, defaults
+from .. import _files, _roots, _xp, defaults
 from .._util import check_int, check_number
 from ..errors import OptionError
 from ..fit.series import AcquisitionModel, SeriesLikelihood
@@ -331,7 +331,8 @@ def _brightest(setpoint_gain, camera, model) -> float:
 
 def plan(*, method="gs", e_per_adu, read_noise, offset, adc_bits=16, setpoints=(1, 5, 25, 100, 300),
          em_gain=None, setpoint=None, target_se=0.5, em_model=defaults.DEFAULT_EM_MODEL,
-         stages=None, pixel_well=None, register_well=None, max_frames=None, frame_rate_hz=None) -> Plan:
+         stages=None, pixel_well=None, register_well=None, max_frames=None, frame_rate_hz=None,
+         device=None) -> Plan:
     """The acquisition that reaches ``target_se`` with the fewest frames.
 
     Parameters
@@ -366,6 +367,9 @@ def plan(*, method="gs", e_per_adu, read_noise, offset, adc_bits=16, setpoints=(
         Most frames of one stack (light or dark).
     frame_rate_hz : float, optional
         For the recording time.
+    device : {"cpu", "cuda", "array-api-strict"}, optional
+        Where the expected information's windows are computed, as
+        :func:`emccdcal.calibrate`'s.
 
     Returns
     -------
@@ -394,6 +398,7 @@ def plan(*, method="gs", e_per_adu, read_noise, offset, adc_bits=16, setpoints=(
     if frame_rate_hz is not None:
         frame_rate_hz = check_number("frame_rate", frame_rate_hz, positive=True)
     model = noise.choose_em_model(em_model, stages)[0]
+    _xp.resolve(device)  # an unknown or missing device: one line before any work
     camera |= {"em_model": model.name,
                "stages": model.stages if model.register.uses_stages else None}
     sps = sorted({check_number("setpoints", s, minimum=1.0) for s in np.atleast_1d(setpoints)})
@@ -417,7 +422,8 @@ def plan(*, method="gs", e_per_adu, read_noise, offset, adc_bits=16, setpoints=(
         top = _brightest(g, camera, model)
         light = (top * _IS_FRACTIONS)[None, :]
         lab_setpoints = [s] * len(_IS_FRACTIONS)
-    design = _Design(method, lab_setpoints, gains, light, camera, model)
+    with _xp.computing_on(device):
+        design = _Design(method, lab_setpoints, gains, light, camera, model)
     targets = _targets(design)
     dark_cost = len(sps) if method == "gs" else 1
     # From the brightest light down, until the cost has risen twice in a row (it falls

@@ -45,6 +45,7 @@ def add_parser(subparsers):
                      help="the true gains to assume at the set-points (default: the "
                      "set-points themselves)")
     _common.add_em_model(p, auto=False)
+    _common.add_device(p)
     what = p.add_argument_group("the calibration")
     what.add_argument("--method", choices=defaults.PLAN_METHODS, default="gs",
                       help="gs: a gain series (phi known); is-adu: an intensity series at "
@@ -99,7 +100,8 @@ def run(args) -> int:
                       em_model=args.em_model or defaults.DEFAULT_EM_MODEL,
                       stages=args.stages, pixel_well=args.pixel_well,
                       register_well=args.register_well,
-                      max_frames=args.max_frames, frame_rate_hz=args.frame_rate)
+                      max_frames=args.max_frames, frame_rate_hz=args.frame_rate,
+                      device=args.device)
     if not args.quiet:
         print(table(result))
     if args.out is not None:

@@ -497,12 +497,16 @@ def expected_information(layout, blocks, x):
         start = np.floor(lo).astype(np.int64)
         support = start[:, None] + np.arange(int((np.ceil(hi) - start).max()) + 1)
         names = rows.names + ("offset", "read_noise")
-        model = _ModelAtData(replace(acq, values=support), rows, derivs=True, names=names)
-        p = np.where(model.low, 0.0, model.pv)
-        scale = np.where(model.low, 0.0, 1.0 / model.pv)
-        u = np.stack([model.scores[nm] * v[:, None] for nm, v in zip(rows.names, values)], -1)
+        # The windows where the fit computes (_xp.computing_on); the sums here, on the host.
+        model = _ModelAtData(replace(acq, values=support), rows, derivs=True, names=names,
+                             xp=_xp.engine())
+        pv, low = _xp.to_numpy(model.pv), _xp.to_numpy(model.low)
+        scores = {nm: _xp.to_numpy(v) for nm, v in model.scores.items()}
+        p = np.where(low, 0.0, pv)
+        scale = np.where(low, 0.0, 1.0 / pv)
+        u = np.stack([scores[nm] * v[:, None] for nm, v in zip(rows.names, values)], -1)
         s = np.einsum("pku,puf->pkf", u * scale[..., None], _model_jacobian(jac, a, D))
-        m = np.stack([model.scores["offset"], model.scores["read_noise"]], -1) * scale[..., None]
+        m = np.stack([scores["offset"], scores["read_noise"]], -1) * scale[..., None]
         info[:, a] = np.einsum("pk,pkf,pkg->pfg", p, s, s)
         cross[:, a] = np.einsum("pk,pkf,pkm->pfm", p, s, m)
     return info, cross

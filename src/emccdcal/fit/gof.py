@@ -35,6 +35,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import special
 
+from .. import _xp
 from ..defaults import DEFAULT_EM_MODEL
 from ..errors import OptionError
 from ..model import noise
@@ -198,68 +199,71 @@ def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, re
 
 def _block_chi2(values, counts, n, K, rows, S0, sigma, start, length, s, min_expected):
     """χ² and dof of a block of pixels (all arrays and the register's rows restricted
-    to the block)."""
+    to the block), computed where the fit computes (:func:`emccdcal._xp.engine`)."""
+    xp, dev = _xp.engine()
     P = values.shape[0]
     L = noise.fast_len(int(length.max()))
-    p = noise.window(rows, S0 - start, sigma, L)[0]
-    p = np.maximum(p, 0.0)  # FFT round-off (~1e-16 of the peak) can be slightly negative
-    p /= p.sum(axis=1, keepdims=True)
-    cdf = np.cumsum(p, axis=1)
+    p = noise.window(rows, S0 - start, sigma, L, xp=(xp, dev))[0]
+    p = xp.clip(p, min=0.0)  # FFT round-off (~1e-16 of the peak) can be slightly negative
+    p = p / xp.sum(p, axis=1, keepdims=True)
+    cdf = xp.cumulative_sum(p, axis=1)
     cdf[:, -1] = 1.0
 
     # Equiprobable edges: edge j (j = 1 … K−1) is the first window index with cdf ≥ j/K;
     # bin j (0-based) holds indices (edge_j, edge_{j+1}], the first and last bins open.
     Kmax = int(K.max())
     j = np.arange(1, Kmax)
-    target = j[None, :] / K[:, None]                      # (P, Kmax−1)
     real_edge = j[None, :] < K[:, None]
-    target = np.where(real_edge, target, 2.0)             # unused edges: beyond the window
-    rows = np.arange(P)[:, None]
+    target = np.where(real_edge, j[None, :] / K[:, None], 2.0)  # unused edges: beyond
+    rows_ = np.arange(P)[:, None]
+    exists = np.arange(Kmax)[None, :] < K[:, None]
+    after_last = np.arange(Kmax)[None, :] > (K - 1)[:, None]
+    real_edge, target, exists, after_last, rows_i, n_, K_, counts, values, start = _xp.on(
+        xp, dev, real_edge, target, exists, after_last, rows_, n, K, counts, values, start)
     # Row-offset trick: one searchsorted over all pixels (cdf ∈ [0, 1], rows 2 apart).
-    flat_cdf = (cdf + 2.0 * rows).ravel()
-    edge = np.searchsorted(flat_cdf, (target + 2.0 * rows).ravel(), side="left")
-    edge = edge.reshape(P, Kmax - 1) - rows * L
-    edge = np.where(real_edge, np.minimum(edge, L - 1), L - 1)
+    rows_f = xp.astype(rows_i, xp.float64)
+    flat_cdf = xp.reshape(cdf + 2.0 * rows_f, (-1,))
+    edge = xp.searchsorted(flat_cdf, xp.reshape(target + 2.0 * rows_f, (-1,)), side="left")
+    edge = xp.reshape(edge, (P, Kmax - 1)) - rows_i * L
+    edge = xp.where(real_edge, xp.clip(edge, max=L - 1), L - 1)
 
     # Exact probability of every (unmerged) bin.
-    cdf_at = np.take_along_axis(cdf, edge, axis=1)
-    upper = np.concatenate([cdf_at, np.ones((P, 1))], axis=1)
-    lower = np.concatenate([np.zeros((P, 1)), cdf_at], axis=1)
-    prob = upper - lower                                  # (P, Kmax); 0 beyond K
-    exists = np.arange(Kmax)[None, :] < K[:, None]
+    cdf_at = xp.take_along_axis(cdf, edge, axis=1)
+    ones = xp.ones((P, 1), dtype=cdf.dtype, device=dev)
+    prob = xp.concat([cdf_at, ones], axis=1) - xp.concat([0.0 * ones, cdf_at], axis=1)
 
     # Merge bins expecting fewer than min_expected frames: drop the edge above a small
     # bin, and the edge below a trailing run of small bins.
-    small = (prob * n[:, None] < min_expected) & exists
-    last = K - 1
-    after_last = np.arange(Kmax)[None, :] > last[:, None]
-    trailing = np.flip(np.cumprod(np.flip(small | after_last, axis=1), axis=1), axis=1)
-    trailing = trailing.astype(bool) & exists
+    small = (prob * n_[:, None] < min_expected) & exists
+    run = xp.astype(xp.flip(small | after_last, axis=1), xp.int64)
+    trailing = (xp.flip(xp.cumulative_prod(run, axis=1), axis=1) != 0) & exists
     keep = ~small[:, :-1] & ~trailing[:, 1:] & real_edge  # edge between bin i and i+1
-    merged_id = np.concatenate([np.zeros((P, 1), np.int64),
-                                np.cumsum(keep, axis=1)], axis=1)  # (P, Kmax)
-    K_eff = keep.sum(axis=1) + 1
+    keep_i = xp.astype(keep, xp.int64)
+    merged_id = xp.concat([xp.zeros((P, 1), dtype=xp.int64, device=dev),
+                           xp.cumulative_sum(keep_i, axis=1)], axis=1)  # (P, Kmax)
+    K_eff = xp.sum(keep_i, axis=1) + 1
 
     # Observed: the (unmerged) bin of every histogram value, by one searchsorted with
     # row offsets; values outside the window go to the open end bins.
-    y = np.clip(values - start[:, None], 0, L - 1)
+    y = xp.clip(values - start[:, None], min=0, max=L - 1)
     span = L + 1
-    flat_edge = (edge + span * rows).ravel()
-    b = np.searchsorted(flat_edge, (y + span * rows).ravel(), side="left")
-    b = b.reshape(values.shape) - rows * (Kmax - 1)
-    b = np.minimum(b, K[:, None] - 1)
-    mb = np.take_along_axis(merged_id, b, axis=1)
-    observed = np.bincount((mb + rows * Kmax).ravel(), weights=counts.ravel(),
-                           minlength=P * Kmax).reshape(P, Kmax)
-    expected = np.bincount((merged_id + rows * Kmax).ravel(),
-                           weights=(np.where(exists, prob, 0.0) * n[:, None]).ravel(),
-                           minlength=P * Kmax).reshape(P, Kmax)
-    used = np.arange(Kmax)[None, :] < K_eff[:, None]
+    flat_edge = xp.reshape(edge + span * rows_i, (-1,))
+    b = xp.searchsorted(flat_edge, xp.reshape(y + span * rows_i, (-1,)), side="left")
+    b = xp.reshape(b, tuple(values.shape)) - rows_i * (Kmax - 1)
+    b = xp.minimum(b, K_[:, None] - 1)
+    mb = xp.take_along_axis(merged_id, b, axis=1)
+    observed = _xp.bincount(xp, xp.reshape(mb + rows_i * Kmax, (-1,)),
+                            xp.reshape(counts, (-1,)), P * Kmax)
+    expected = _xp.bincount(xp, xp.reshape(merged_id + rows_i * Kmax, (-1,)),
+                            xp.reshape(xp.where(exists, prob, 0.0) * n_[:, None], (-1,)),
+                            P * Kmax)
+    observed, expected = xp.reshape(observed, (P, Kmax)), xp.reshape(expected, (P, Kmax))
+    used = xp.arange(Kmax, device=dev)[None, :] < K_eff[:, None]
     with np.errstate(divide="ignore", invalid="ignore"):
-        terms = np.where(used, (observed - expected) ** 2 / expected, 0.0)
-    chi2 = terms.sum(axis=1)
-    dof = K_eff - 1.0 - s
-    return chi2, dof
+        terms = xp.where(used, (observed - expected) ** 2 / expected, 0.0)
+    chi2 = xp.sum(terms, axis=1)
+    dof = xp.astype(K_eff, xp.float64) - 1.0 - s
+    return _xp.to_numpy(chi2), _xp.to_numpy(dof)
 
 
 def misfit_warnings(pvalues_by_acquisition, alpha=0.01, *, threshold=1e-3, min_ratio=2.0,

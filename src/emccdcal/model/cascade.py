@@ -465,6 +465,12 @@ _TABLE_TOLERANCE = 1.0
 #: axis doubles its intervals (the points nest, so only the new ones are computed).
 _TABLE_START = (9, 33)
 
+#: A table's polynomial costs a few operations per point of each axis at every element,
+#: the recursion about ten per stage: a table whose axes hold more than a quarter of N
+#: points in all saves nothing (nor one of many stretched frequencies, e.g. of a
+#: hopeless trial step's enormous window), and the recursion runs instead.
+_TABLE_POINTS_PER_STAGE = 0.25
+
 #: A table kept for reuse (:func:`transform_tables`) spans the rectangle asked for
 #: widened by this fraction of its sides (the gains move as a fit goes on), and at least
 #: this much in ln g.
@@ -589,8 +595,9 @@ def _build_table(xp, like, stages, x_range, z_range, order, cic, by_u, budget):
 
     n = [1 if x_range[0] == x_range[1] else _TABLE_START[0],
          1 if z_range[0] == z_range[1] else _TABLE_START[1]]
+    most_points = _TABLE_POINTS_PER_STAGE * stages
     spent = n[0] * n[1]
-    if spent > budget:
+    if spent > budget or sum(n) > most_points:
         return None
     values = at(_chebyshev.lobatto(n[0], *x_range), _chebyshev.lobatto(n[1], *z_range))
     while True:
@@ -604,7 +611,7 @@ def _build_table(xp, like, stages, x_range, z_range, order, cic, by_u, budget):
             nodes = [_chebyshev.lobatto(n[0], *x_range), _chebyshev.lobatto(n[1], *z_range)]
             nodes[axis] = nodes[axis][1::2]
             spent += nodes[0].size * nodes[1].size
-            if spent > budget:
+            if spent > budget or sum(n) > most_points:
                 return None
             new = at(*nodes)
             values = {k: _interleave(xp, v, new[k], axis) for k, v in values.items()}
