@@ -14,6 +14,9 @@ default register model), alternating, and prints the ratio of the medians (casca
 the gamma model's, as the paper's simulations): each model needs one Newton iteration
 more on the other's data.
 
+``--em-model gamma`` fits every method with the gamma model (default: the package's
+default register), on both sides of ``--against``.
+
 ``--against SRC`` also times another version of the package (the ``src`` folder of a
 checkout, e.g. made by ``git worktree add /tmp/old REV``) on the same data, alternating
 the two in every repetition, and prints the ratio of the medians: on a shared, noisy
@@ -95,6 +98,8 @@ def main():
                         "model alternately and print the ratio cascade/gamma")
     parser.add_argument("--multiplication", choices=("gamma", "cascade"), default="gamma",
                         help="the register of the simulated gain series")
+    parser.add_argument("--em-model", choices=("default", "gamma", "cascade"), default="default",
+                        help="the register model of the fits (with --against: of both sides)")
     args = parser.parse_args()
     from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
 
@@ -121,11 +126,12 @@ def main():
             mine, other = [], []
             # with --cascade the first column is the paper's gamma model, named (the
             # default register model is the cascade)
-            base = "gamma" if args.cascade else "default"
+            base = "gamma" if args.cascade else args.em_model
             for _ in range(args.repeat):
                 mine.append(_time(manifest, method, out, checks, em_model=base))
                 if args.against is not None:
-                    other.append(_time(manifest, method, out, checks, args.against))
+                    other.append(_time(manifest, method, out, checks, args.against,
+                                       em_model=base))
                 if args.cascade:
                     other.append(_time(manifest, method, out, checks, em_model="cascade"))
             wall = statistics.median(w for w, _ in mine)

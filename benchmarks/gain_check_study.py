@@ -105,7 +105,7 @@ def emccd_detect(args) -> None:
     print("emccd-detect darks: 32 x 32 px x 4000 frames, CIC 0.005, read noise 80 e-, 4 e-/ADU")
     print(f"{'gain':>6} | {'found':>16} {'z':>6} {'rel SE':>7} {'rate':>8}")
     for g in (100.0, 400.0, 1000.0):
-        np.random.seed(args.seed)  # emccd-detect draws from NumPy's global generator
+        np.random.seed(args.seed)  # noqa: NPY002  (emccd-detect draws from NumPy's global generator)
         camera = EMCCDDetectBase(
             em_gain=g, full_well_image=1e5, full_well_serial=9e4, dark_current=0.0,
             cic=0.005, read_noise=80.0, bias=2000.0, qe=0.9, cr_rate=0.0,

@@ -31,7 +31,7 @@ ALLOWED = {
 }
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _tree(path):
     """A source file's syntax tree, parsed once for all the checks here (never mutated)."""
     return ast.parse(path.read_text())
@@ -290,3 +290,18 @@ def test_the_end_to_end_files_named_for_the_fast_loop_exist():
 
     here = {p.name for p in Path(__file__).parent.glob("test_*.py")}
     assert END_TO_END <= here, sorted(END_TO_END - here)
+
+
+def test_the_code_is_clean_under_the_linter():
+    """``ruff check`` (configured in pyproject.toml) finds nothing in the package, the
+    tests or the benchmarks: CI runs the suite, so the suite runs the linter."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("ruff")
+    root = SRC.parents[1]
+    if not (root / "pyproject.toml").is_file():
+        pytest.skip("the package is installed, not in its source tree")
+    res = subprocess.run([sys.executable, "-m", "ruff", "check", "--no-cache", "src", "tests",
+                          "benchmarks"], cwd=root, capture_output=True, text=True)
+    assert res.returncode == 0, res.stdout[-3000:]

@@ -34,7 +34,7 @@ CHROMIUM = next((p for p in map(shutil.which, ("chromium", "chromium-browser", "
 pytestmark = [pytest.mark.slow,
               pytest.mark.skipif(CHROMIUM is None,
                                  reason="no Chromium on this machine (Debian package 'chromium')")]
-from conftest import write_real_manifest
+from conftest import write_real_manifest  # noqa: E402  (after the marks it shares)
 
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
          "--disable-background-networking", "--disable-component-update", "--disable-sync",

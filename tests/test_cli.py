@@ -16,8 +16,8 @@ HEAVY = ("numpy", "scipy", "xarray", "matplotlib", "tifffile", "pandas")
 
 
 def _imported_after(argv):
-    code = ("import sys; from emccdcal.cli import main; main(%r); "
-            "print(sorted({m.split('.')[0] for m in sys.modules} & set(%r)))" % (argv, HEAVY))
+    code = (f"import sys; from emccdcal.cli import main; main({argv!r}); "
+            f"print(sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY!r})))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)
     return out.stdout.strip().splitlines()[-1]
@@ -34,7 +34,7 @@ def test_every_verbs_help_imports_no_numerics():
     code = ("import sys; from emccdcal.cli import main, VERBS\n"
             "for verb in VERBS:\n"
             "    try:\n        main([verb, '--help'])\n    except SystemExit:\n        pass\n"
-            "print(sorted({m.split('.')[0] for m in sys.modules} & set(%r)))" % (HEAVY,))
+            f"print(sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY!r})))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)
     assert out.stdout.strip().splitlines()[-1] == "[]"

@@ -280,8 +280,6 @@ def test_multi_frame_sif_derived_from_a_real_one(tmp_path):
 
 
 def test_binning_travels_with_the_result_and_must_match(series, tmp_path):
-    from emccdcal.errors import OptionError
-
     spe = _as_spe(series, "binned.toml")
     assert quiet(read_manifest, spe).binning == (1, 1)
     adu_like = quiet(calibrate, spe, "gs", out=tmp_path / "r")

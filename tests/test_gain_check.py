@@ -226,7 +226,7 @@ def test_emccd_detect_darks_give_its_gain():
     400x: the gain within 3 SE (the full 32 x 32 x 4000 at several gains:
     benchmarks/gain_check_study.py)."""
     detect = pytest.importorskip("emccd_detect.emccd_detect")
-    np.random.seed(7)  # emccd-detect draws from NumPy's global generator
+    np.random.seed(7)  # noqa: NPY002  (emccd-detect draws from NumPy's global generator)
     camera = detect.EMCCDDetectBase(
         em_gain=400.0, full_well_image=1e5, full_well_serial=9e4, dark_current=0.0,
         cic=0.005, read_noise=80.0, bias=2000.0, qe=0.9, cr_rate=0.0, pixel_pitch=13e-6,

@@ -16,11 +16,12 @@ from emccdcal.data import stacks
 from emccdcal.data.dark import maps_from_dark
 from emccdcal.data.manifest import Source, read_manifest
 from emccdcal.data.stacks import read_map, read_stack
+from conftest import write_real_manifest
+
 from emccdcal.errors import InputError, ManifestError
 
 SHAPE = (3, 4)  # rows != cols, so that a transposition cannot pass
 N_FRAMES = 20
-from conftest import write_real_manifest
 
 
 # --------------------------------------------------------------------------------------

@@ -36,7 +36,7 @@ import functools
 import importlib.metadata
 import warnings
 from dataclasses import dataclass
-from typing import Callable
+from collections.abc import Callable
 
 __all__ = ["READERS", "TOOLS", "REGISTERS", "Tool", "load", "names"]
 

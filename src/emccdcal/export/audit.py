@@ -36,8 +36,8 @@ from ..errors import InputError, OptionError
 from ..result import Calibration, format_setpoint, load_calibration
 from .tools import camera_values, pick_setpoint
 
-__all__ = ["TOOL_NAMES", "Field", "Reading", "Audit", "read_tool_file", "audit",
-           "DEFAULT_TOLERANCE"]
+__all__ = ["TOOL_NAMES", "Field", "Reading", "Audit", "read_tool_file", "audit",  # noqa: F822
+           "DEFAULT_TOLERANCE"]  # (TOOL_NAMES from the plug-ins, by the module's __getattr__)
 
 #: The photon bias beyond which an audit says "off", as a fraction.
 DEFAULT_TOLERANCE = defaults.AUDIT_TOLERANCE

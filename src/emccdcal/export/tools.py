@@ -33,7 +33,9 @@ from .._output import atomic_write, comment
 from ..errors import OptionError
 from ..result import Calibration, format_setpoint, load_calibration, pixel_statistics
 
-__all__ = ["TOOLS", "export", "export_modes", "camera_values", "readout_mode", "MODE_FIELDS"]
+# TOOLS comes from the plug-ins, by the module's __getattr__
+__all__ = ["TOOLS", "export", "export_modes", "camera_values", "readout_mode",  # noqa: F822
+           "MODE_FIELDS"]
 
 
 def __getattr__(name):

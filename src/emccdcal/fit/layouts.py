@@ -105,10 +105,10 @@ def select_acquisitions(method, setpoints, levels, has_e_per_adu):
     if not has_e_per_adu:
         levels = method.startswith("gs") and sp.size > 1 and np.all(sp == 1)
         raise MethodError(
-            (f"{method} is for a gain series, and this manifest is an intensity series at "
+            f"{method} is for a gain series, and this manifest is an intensity series at "
              "1x: calibrate phi from it with --method is-adu" if levels else
              f"{method} needs e_per_adu (e-/ADU): set it in the manifest or pass "
-             "--e-per-adu (calibrate it first with is-adu)")
+             "--e-per-adu (calibrate it first with is-adu)"
         )
     if method == "is-gain":
         gains = np.unique(sp)
