@@ -204,7 +204,7 @@ def test_modules_needing_an_extra_are_left_out_of_collection_without_it():
     import re
 
     spec = importlib.util.spec_from_file_location("root_conftest",
-                                                  SRC.parents[1] / "conftest.py")
+                                                  _source_tree() / "conftest.py")
     root_conftest = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(root_conftest)
     requires = importlib.metadata.requires("emccdcal") or []
@@ -299,9 +299,16 @@ def test_the_code_is_clean_under_the_linter():
     import sys
 
     pytest.importorskip("ruff")
-    root = SRC.parents[1]
-    if not (root / "pyproject.toml").is_file():
-        pytest.skip("the package is installed, not in its source tree")
+    root = _source_tree()
     res = subprocess.run([sys.executable, "-m", "ruff", "check", "--no-cache", "src", "tests",
                           "benchmarks"], cwd=root, capture_output=True, text=True)
     assert res.returncode == 0, res.stdout[-3000:]
+
+
+def _source_tree() -> Path:
+    """The repository that holds the package's sources, or a skip where the package is
+    installed (a wheel: ``.ci/wheel`` runs the suite against it)."""
+    root = SRC.parents[1]
+    if not (root / "pyproject.toml").is_file():
+        pytest.skip("the package is installed, not in its source tree")
+    return root
