@@ -281,7 +281,7 @@ def _execute(jobs, scheduler, progress):
         client = scheduler
     else:
         try:
-            client = Client(scheduler, timeout="30s")
+            client = Client(scheduler, timeout="30s", set_as_default=False)
         except (ValueError, TypeError, OSError) as exc:  # not an address, or no one there
             raise OptionError(f"scheduler {scheduler!r}: no Dask scheduler reached "
                               f"({one_line(exc)}); give its address, tcp://HOST:PORT") from None
