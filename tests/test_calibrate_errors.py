@@ -157,6 +157,16 @@ def test_a_scheduler_that_is_no_address_is_one_line(series):
     with pytest.raises(OptionError, match=r"scheduler 'synchronous': no Dask scheduler "
                                           r"reached .*tcp://HOST:PORT"):
         calibrate(gs.manifest, "gs", scheduler="synchronous")
+    with pytest.raises(OptionError, match=r"scheduler 'tcp://127.0.0.1:9': no Dask"):
+        calibrate(gs.manifest, "gs", scheduler="tcp://127.0.0.1:9")  # nobody listens
+    # and nothing is left behind: no half-made client as the process's default, which
+    # later Dask-aware writes (xarray's NetCDF locks) would try to reach
+    import dask
+    from distributed import default_client
+
+    with pytest.raises(ValueError, match="No clients found"):
+        default_client()
+    assert dask.config.get("scheduler", None) is None
 
 
 def test_a_device_that_is_not_there_is_one_line(series):

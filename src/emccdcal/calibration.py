@@ -280,7 +280,10 @@ def _execute(jobs, scheduler, progress):
     if isinstance(scheduler, Client):
         client = scheduler
     else:
+        # Reached before a client is made: a client that fails half-made lingers, and
+        # closing it at exit waits a minute. Ours is never the process's default either.
         try:
+            _reach(scheduler)
             client = Client(scheduler, timeout="30s", set_as_default=False)
         except (ValueError, TypeError, OSError) as exc:  # not an address, or no one there
             raise OptionError(f"scheduler {scheduler!r}: no Dask scheduler reached "
@@ -295,6 +298,19 @@ def _execute(jobs, scheduler, progress):
     finally:
         if client is not scheduler:
             client.close()
+
+
+def _reach(address) -> None:
+    """Raise ValueError or OSError unless ``address`` parses as a Dask address and, over
+    TCP, something listens there (10 s at most)."""
+    import socket
+
+    from distributed.comm import parse_address, parse_host_port
+
+    scheme, location = parse_address(str(address))
+    if scheme in ("tcp", "tls"):
+        host, port = parse_host_port(location)
+        socket.create_connection((host, port), timeout=10).close()
 
 
 def _run_tiles(jobs, store, scheduler, progress, method):
