@@ -12,7 +12,8 @@ speed-up over the first.
 
 ``--workers 1,2[,...]`` instead times the calibration of the first size with each number
 of threads (here, no cluster), alternating, median of 2, and prints each one's speed-up
-over the first and its parallel efficiency (speed-up over the ratio of threads).
+over the first and its parallel efficiency (speed-up over the ratio of threads); with
+``--processes``, of local processes (``scheduler="processes"``) instead.
 
 ``--em-models gamma,cascade`` instead times the calibration of every size under each
 register model, alternating in one run, and prints each time's ratio to the first
@@ -41,7 +42,9 @@ warnings.simplefilter("ignore")
 t0 = time.perf_counter()
 from emccdcal import calibrate
 scheduler = None
-if sys.argv[3] != "local":
+if sys.argv[3] == "processes":
+    scheduler = "processes"
+elif sys.argv[3] != "local":
     from distributed import Client, LocalCluster
     cluster = LocalCluster(n_workers=int(sys.argv[3]), threads_per_worker=1, processes=True,
                            host="127.0.0.1", dashboard_address=None)
@@ -70,6 +73,8 @@ def main():
     p.add_argument("--frames", type=int, default=5000)
     p.add_argument("--dask", default=None, help="worker counts to compare, e.g. 1,2")
     p.add_argument("--workers", default=None, help="thread counts to compare, e.g. 1,2")
+    p.add_argument("--processes", action="store_true",
+                   help="with --workers: local processes (scheduler='processes'), not threads")
     p.add_argument("--em-models", default=None,
                    help="register models to compare, e.g. gamma,cascade")
     p.add_argument("--keep", type=Path, default=None, help="keep the simulated data here")
@@ -111,13 +116,15 @@ def main():
             for _ in range(2):
                 for c in counts:
                     times[c].append(_time(manifests[n], base / f"out-threads-{c}",
+                                          "processes" if args.processes else "local",
                                           workers=c)[0])
             ref = statistics.median(times[counts[0]])
-            print(f"gs, {n}x{n} px, {args.frames} frames; threads, median of 2")
+            kind = "local processes" if args.processes else "threads"
+            print(f"gs, {n}x{n} px, {args.frames} frames; {kind}, median of 2")
             for c in counts:
                 t = statistics.median(times[c])
                 speedup = ref / t
-                print(f"  {c:>2} thread(s): {t:8.1f} s   speed-up {speedup:5.2f}   "
+                print(f"  {c:>2} {kind}: {t:8.1f} s   speed-up {speedup:5.2f}   "
                       f"efficiency {speedup * counts[0] / c:5.2f}")
             return
         if args.em_models:

@@ -85,6 +85,17 @@ def test_a_dask_cluster_on_localhost_gives_the_local_result(series):
     _assert_same(local, remote)
 
 
+@pytest.mark.slow
+def test_local_processes_give_the_local_result(series, tmp_path):
+    """``scheduler="processes"``: the tiles in two spawned processes, one thread each,
+    written and resumable as any run; the numbers those of the threads here."""
+    local = quiet(calibrate, series[0], "gs", block_size=16, tile_pixels=32)
+    apart = quiet(calibrate, series[0], "gs", block_size=16, tile_pixels=32,
+                  scheduler="processes", workers=2, out=tmp_path / "out")
+    _assert_same(local, apart)
+    assert (tmp_path / "out" / "calibration.nc").is_file()
+
+
 def test_an_occupied_output_is_refused_without_resume_or_overwrite(series, tmp_path, capsys):
     out = tmp_path / "out"
     argv = ["calibrate", str(series[0]), "-o", str(out), "-q", "--no-checks"]

@@ -263,14 +263,18 @@ def _libc():
     return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
 
 
-def _execute(jobs, scheduler, progress):
-    """Run tile jobs here, in order, or on a Dask cluster as they finish: (job, arrays).
-    ``progress(n)`` is told of every n pixels done (as they are fitted, here)."""
+def _execute(jobs, scheduler, progress, workers=1):
+    """Run tile jobs here, in order, in ``workers`` local processes or on a Dask cluster as
+    they finish: (job, arrays). ``progress(n)`` is told of every n pixels done (as they
+    are fitted, here)."""
     if scheduler is None:
         for job in jobs:
             arrays = run_tile(job, progress)
             _return_freed_memory()
             yield job, arrays
+        return
+    if isinstance(scheduler, str) and scheduler == LOCAL_PROCESSES:
+        yield from _in_processes(jobs, progress, workers)
         return
     try:
         from distributed import Client, as_completed
@@ -300,6 +304,31 @@ def _execute(jobs, scheduler, progress):
             client.close()
 
 
+#: ``scheduler`` that runs the tiles in local processes (one tile each, one thread each).
+LOCAL_PROCESSES = "processes"
+
+
+def _in_processes(jobs, progress, workers):
+    """The tiles in ``workers`` fresh processes (spawned: nothing inherited but the jobs),
+    as they finish. Threads share one interpreter, whose lock the fit's Python steps
+    hold; processes do not, so a sensor's tiles use every core."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+        futures = {pool.submit(run_tile, job): job for job in jobs}
+        try:
+            for future in as_completed(futures):
+                job = futures[future]
+                arrays = future.result()
+                progress(job.n_pixels)
+                yield job, arrays
+        finally:
+            for future in futures:
+                future.cancel()
+
+
 def _reach(address) -> None:
     """Raise ValueError or OSError unless ``address`` parses as a Dask address and, over
     TCP, something listens there (10 s at most)."""
@@ -313,7 +342,7 @@ def _reach(address) -> None:
         socket.create_connection((host, port), timeout=10).close()
 
 
-def _run_tiles(jobs, store, scheduler, progress, method):
+def _run_tiles(jobs, store, scheduler, progress, method, workers=1):
     """Every tile's arrays, in order: those kept by ``store`` and the computed ones."""
     done = {}
     if store is not None:
@@ -324,7 +353,7 @@ def _run_tiles(jobs, store, scheduler, progress, method):
     bar.update(sum(job.n_pixels for job in jobs if job.key in done))
     try:
         for job, arrays in _execute([j for j in jobs if j.key not in done], scheduler,
-                                    bar.update):
+                                    bar.update, workers):
             if store is not None:
                 store.save_tile(job.key, arrays)
             done[job.key] = arrays
@@ -491,7 +520,9 @@ def calibrate(
     scheduler : str or distributed.Client, optional
         Run the tiles as tasks on a Dask cluster: the address of its scheduler
         (``"tcp://host:8786"``) or a client. The workers read the files from the paths of
-        the manifest, so these must be shared. Default: here, on ``workers`` threads.
+        the manifest, so these must be shared. ``"processes"``: the tiles in ``workers``
+        local processes, one thread each (the cores of a large machine, which threads
+        share less well). Default: here, on ``workers`` threads.
     options : dict, optional
         Method options; only ``gs-hierarchical`` takes any (:func:`emccdcal.fit.layouts.check_options`):
         ``mu_sd`` and ``sigma_sd``, the scales of its hyperpriors in photoelectrons (the
@@ -709,7 +740,7 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
             manifest, used, method, options, intervals, checks, map_errors, phi_map, phi_se,
             (block_size, tiles[0][1] - tiles[0][0]), model), resume=resume, overwrite=overwrite)
     jobs = [tile_job(p0, p1, model) for p0, p1 in tiles]
-    parts = _run_tiles(jobs, store, scheduler, progress, method)
+    parts = _run_tiles(jobs, store, scheduler, progress, method, workers)
     arrays = {}
     for key in [k for k in parts[0] if not k.startswith(_QUALITY)]:
         arrays[key] = np.concatenate([p.pop(key) for p in parts])  # one copy at a time

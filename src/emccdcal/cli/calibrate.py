@@ -44,7 +44,8 @@ def add_parser(subparsers):
                      help="threads (default: the CPUs; 1 per task on a Dask cluster)")
     execution.add_argument("--scheduler", metavar="ADDRESS",
                      help="run the tiles on a Dask cluster, e.g. tcp://10.0.0.1:8786 (the "
-                     "workers read the manifest's paths; needs the 'dask' extra)")
+                     "workers read the manifest's paths; needs the 'dask' extra), or "
+                     "'processes': in --workers local processes, one thread each")
     _common.add_device(execution)
     p.add_argument("--no-checks", action="store_true",
                    help="skip the data-quality checks (see 'emccdcal check')")
