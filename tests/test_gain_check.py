@@ -41,6 +41,18 @@ def test_the_gain_of_simulated_darks_within_its_standard_error(g, model):
     assert check.frames_for(check.relative_se / 2) == pytest.approx(4 * 2000, rel=0.01)
 
 
+def test_the_gain_check_through_the_array_api_standard_is_numpys():
+    """The shared register's tables evaluated on array-api-strict arrays (a pretend
+    device: nothing outside the standard passes, the blocks' threads included) give the
+    gain NumPy's evaluation gives."""
+    pytest.importorskip("array_api_strict")
+    darks = _darks(300.0, seed=5, frames=500, size=8)
+    here = check_gain([darks], PHI, bias_correction=False)
+    there = check_gain([darks], PHI, bias_correction=False, device="array-api-strict")
+    assert there.em_gain == pytest.approx(here.em_gain, rel=1e-10)
+    assert there.em_gain_se == pytest.approx(here.em_gain_se, rel=1e-10)
+
+
 def test_a_region_and_several_stacks_and_too_few_events():
     """Two stacks of one set-point pool their frames; a region uses only its pixels; darks
     without multiplied events (1×, no charge) are refused with the reason."""

@@ -49,6 +49,7 @@ def add_parser(subparsers):
                    help="use only these rows and columns (pixels known to be dark: "
                    "masked rows, overscan or prescan columns), Python slices")
     _common.add_em_model(p, auto=False)
+    _common.add_device(p)
     p.add_argument("--fit-register-cic", action="store_true",
                    help="fit the clock-induced charge made inside the register (cascade)")
     p.add_argument("--per-pixel-rate", action="store_true",
@@ -101,7 +102,7 @@ def run(args) -> int:
                            bias_correction=not args.no_bias_correction,
                            adc_max=2 ** max(bits) - 1 if bits else None, region=args.region,
                            histogram=args.out is not None and not args.no_figures,
-                           progress_bars=not (args.quiet or args.json))
+                           progress_bars=not (args.quiet or args.json), device=args.device)
         against = compare(check, calibration, z=args.z) if calibration is not None else None
         record = {**check.as_dict(), **({"calibration": against} if against else {})}
         written = _write(args, check, record) if args.out is not None else []

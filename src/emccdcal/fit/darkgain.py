@@ -44,6 +44,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from .._optimize import ArrowLayout, maximize, schur
+from .. import _xp
 from .._util import ordered_map, progress
 from ..defaults import DEFAULT_EM_MODEL
 from ..data import stats
@@ -169,7 +170,7 @@ def check_gain(darks, e_per_adu: float, *, setpoint: float | None = None,
                fit_register_cic: bool = False, pooled_rate: bool = True,
                adc_max: int | None = None, region=None, bias_correction: bool = True,
                histogram: bool = False, tol: float = 1e-3, max_passes: int = 60,
-               progress_bars: bool = False) -> GainCheck:
+               progress_bars: bool = False, device: str | None = None) -> GainCheck:
     """The EM gain of dark frames by maximum likelihood (module docstring).
 
     Parameters
@@ -215,6 +216,10 @@ def check_gain(darks, e_per_adu: float, *, setpoint: float | None = None,
     progress_bars : bool
         A progress bar over the passes.
 
+    device : {"cpu", "cuda", "array-api-strict"}, optional
+        Where the tables are evaluated, as :func:`emccdcal.calibrate`'s (the tables are
+        built on the host and copied there once).
+
     Returns
     -------
     GainCheck
@@ -238,23 +243,25 @@ def check_gain(darks, e_per_adu: float, *, setpoint: float | None = None,
     phi = float(e_per_adu)
     if not (math.isfinite(phi) and phi > 0):
         raise InputError(f"e_per_adu must be a positive number, got {e_per_adu!r}")
+    _xp.resolve(device)  # an unknown or missing device: one line before any work
     data = _Data(_select(darks, region), adc_max, halves=bias_correction)
     bar = progress(None, enabled=progress_bars, desc="gain-check", unit="pass")
     try:
-        sample = _Fit(model, phi, data.whole_sample(), fit_register_cic, pooled_rate,
-                      on_pass=bar.update)
-        x0 = data.start(phi, register_cic, fit_register_cic)
-        xs = sample.solve(x0[data.sample], tol, max_passes)
-        fit = _Fit(model, phi, data, fit_register_cic, pooled_rate, on_pass=bar.update)
-        if data.sample.size == data.n.size:  # the sample is every pixel
-            x, fit = xs, sample
-        else:  # the sample's shared values: a start a few of their SEs from the whole's
-            x0[:, sample.shared] = xs[0, sample.shared]
-            x = fit.solve(x0, tol, max_passes, own_first=1)
-        shared, cov = fit.shared_estimates(x)
-        mle = shared.copy()
-        if bias_correction:
-            shared = shared - _half_sample_bias(sample, xs, data, tol, max_passes)
+        with _xp.computing_on(device):
+            sample = _Fit(model, phi, data.whole_sample(), fit_register_cic, pooled_rate,
+                          on_pass=bar.update)
+            x0 = data.start(phi, register_cic, fit_register_cic)
+            xs = sample.solve(x0[data.sample], tol, max_passes)
+            fit = _Fit(model, phi, data, fit_register_cic, pooled_rate, on_pass=bar.update)
+            if data.sample.size == data.n.size:  # the sample is every pixel
+                x, fit = xs, sample
+            else:  # the sample's shared values: a start a few of their SEs from the whole's
+                x0[:, sample.shared] = xs[0, sample.shared]
+                x = fit.solve(x0, tol, max_passes, own_first=1)
+            shared, cov = fit.shared_estimates(x)
+            mle = shared.copy()
+            if bias_correction:
+                shared = shared - _half_sample_bias(sample, xs, data, tol, max_passes)
     finally:
         bar.close()
     passes = sample.passes + (fit.passes if fit is not sample else 0)
@@ -612,12 +619,13 @@ class _Fit:
         # its frames times one frame's at its reference read noise; with rates of their
         # own, the outer products of the scores
         expected = table.information() if self.pooled else None
+        where = _xp.engine()  # (the blocks' threads do not inherit this thread's choice)
 
         def block(item):  # blocks are independent: threads overlap them (NumPy frees the GIL)
             sl, h = item
             rates = None if self.pooled else np.exp(x[sl, self.column("ln_rate")])
             ll, g_, outer, _ = table.evaluate(h.values, h.counts, x[sl, 0], sigma[sl], rates,
-                                              outer=not self.pooled)
+                                              outer=not self.pooled, xp=where)
             if self.pooled:
                 outer = h.n[:, None, None] * expected[table.classes(sigma[sl])]
             grad[sl, to] = g_ * scale

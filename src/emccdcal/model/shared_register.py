@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 import numpy as np
 
+from .. import _xp
 from ..errors import OptionError
 from ._engine import fast_len
 
@@ -113,7 +114,7 @@ class SharedRegister:
         self.class_sigma = self._lo * np.exp(_CLASS + 2 * _CLASS * self._grid)
         self.h = self._lo / _POINTS_PER_SIGMA
         theta = self.g / self.phi  # one electron's mean output, ADU
-        self.u0 = -_LEFT_SIGMAS * self.class_sigma[-1] * math.exp(_CLASS)
+        self.u0 = float(-_LEFT_SIGMAS * self.class_sigma[-1] * math.exp(_CLASS))
         u_end = _RIGHT_SIGMAS * self.class_sigma[-1] * math.exp(_CLASS) + _RIGHT_OUTPUTS * theta
         self.n = fast_len(int(math.ceil((u_end - self.u0) / self.h)) + 2)
         self._build()
@@ -191,6 +192,14 @@ class SharedRegister:
         # single precision: its 1e-7 relative round-off moves an estimate from 5e7
         # counts by 0.001 of its standard error (module docstring), at half the memory
         self.table = table.reshape(2 * self.Q, -1).astype(np.float32)  # (2Q, classes·N)
+        self._on_device = {}  # the table where evaluations compute, copied once
+
+    def _table_in(self, xp, dev):
+        """The table as an array of ``xp`` on ``dev`` (copied there once)."""
+        key = (xp.__name__, str(dev))
+        if key not in self._on_device:
+            self._on_device[key] = _xp.on(xp, dev, self.table)
+        return self._on_device[key]
 
     def _tabulate(self, spectrum, omega, terms):
         """The tables of the density whose transform is ``spectrum`` (ω ≥ 0): for every
@@ -213,7 +222,8 @@ class SharedRegister:
         return ("offset", "ln_read_noise") + (("ln_rate",) if self.per_pixel else ()) \
             + self.shared
 
-    def evaluate(self, values, counts, offset, read_noise, rate=None, *, outer=False):
+    def evaluate(self, values, counts, offset, read_noise, rate=None, *, outer=False,
+                 xp=None):
         """Log-likelihood and scores of a block of pixels.
 
         Parameters
@@ -226,6 +236,9 @@ class SharedRegister:
             E_i with ``per_pixel_rate`` (e⁻ per pixel per frame).
         outer : bool
             Also the outer products of the per-count scores.
+        xp : (namespace, device), optional
+            Where the interpolation and the sums compute (default: where this thread's
+            fit computes, :func:`emccdcal._xp.engine`); the results are NumPy arrays.
 
         Returns
         -------
@@ -238,15 +251,19 @@ class SharedRegister:
         floored : ndarray, shape (P,)
             Counts whose probability was floored (beyond the tables: outliers).
         """
-        p, columns, low = self._derivatives(self._points(values, offset, read_noise, rate))
-        scores = columns / p[..., None]
-        scores[low] = 0.0
-        loglik = np.sum(counts * np.log(p), axis=1)
-        grad = np.einsum("pk,pkd->pd", counts, scores)
+        xp, dev = _xp.engine() if xp is None else xp
+        p, columns, low = self._derivatives(
+            self._points(values, offset, read_noise, rate, (xp, dev)), xp)
+        counts = _xp.on(xp, dev, np.asarray(counts, dtype=float))
+        scores = xp.where(low[..., None], 0.0, columns / p[..., None])
+        weighted = scores * counts[..., None]
+        loglik = xp.sum(counts * xp.log(p), axis=1)
+        grad = xp.sum(weighted, axis=1)
         products = None
         if outer:
-            products = np.matmul(np.swapaxes(scores * counts[..., None], 1, 2), scores)
-        return loglik, grad, products, np.sum(counts * low, axis=1)
+            products = _xp.to_numpy(xp.matmul(xp.permute_dims(weighted, (0, 2, 1)), scores))
+        floored = xp.sum(xp.where(low, counts, 0.0), axis=1)
+        return _xp.to_numpy(loglik), _xp.to_numpy(grad), products, _xp.to_numpy(floored)
 
     def information(self):
         """The expected (Fisher) information of one frame, in :meth:`coordinates`, of a
@@ -265,9 +282,10 @@ class SharedRegister:
         u = self.u0 + self.h * np.arange(0, self.n - 1, _INFO_STRIDE)
         C = self.class_sigma.size
         at = np.unique(np.r_[np.arange(0, C, _INFO_STRIDE), C - 1])
+        host = _xp.resolve("cpu")
         p, columns, low = self._derivatives(self._points(
             np.broadcast_to(u, (at.size, u.size)), np.zeros(at.size), self.class_sigma[at],
-            None))
+            None, host), host[0])
         w = np.where(low, 0.0, _INFO_STRIDE * self.h / p)
         info = np.matmul(np.swapaxes(columns * w[..., None], 1, 2), columns)
         out = np.empty((C,) + info.shape[1:])
@@ -286,40 +304,46 @@ class SharedRegister:
         """p_i(k) at ``values`` (P, K) of pixels with these offsets and read noises (and
         rates, with ``per_pixel_rate``); below the tables' round-off (about 1e-17 of the
         events' peak) a value may be 0."""
-        at = self._points(values, offset, read_noise, rate)
+        at = self._points(values, offset, read_noise, rate, _xp.resolve("cpu"))
         p = at.A + sum(at.weights[..., k] * at.series(first, terms)[0]
                        for k, (first, terms) in enumerate(self.parts["value"]))
         return np.maximum(p, 0.0)
 
-    def _points(self, values, offset, read_noise, rate):
-        """The interpolation at ``values`` (:class:`_Points`)."""
-        S0 = np.asarray(offset, dtype=float)[:, None]
+    def _points(self, values, offset, read_noise, rate, where):
+        """The interpolation at ``values`` (:class:`_Points`), computed by the namespace
+        and device ``where``; each pixel's own numbers are made on the host."""
+        xp, dev = where
         sigma = np.asarray(read_noise, dtype=float)
         if not self.covers(sigma):
             raise OptionError("read noise outside the tables' reach: build them again")
-        E = self.E if rate is None else np.asarray(rate, dtype=float)[:, None]
-        sig = sigma[:, None]
-        u = values - S0
-        z = u / sig
-        A = np.exp(-E - self.c) * np.exp(-0.5 * z * z) / (math.sqrt(2.0 * math.pi) * sig)
         # the reference read noise of each pixel and its Δ
         cls = self.classes(sigma)
         delta = 0.5 * (sigma**2 - self.class_sigma[cls] ** 2)[:, None]
+        S0, sig, delta, first_row = _xp.on(
+            xp, dev, np.asarray(offset, dtype=float)[:, None], sigma[:, None], delta,
+            (cls * self.n)[:, None].astype(np.int64))
+        E = self.E if rate is None else _xp.on(xp, dev, np.asarray(rate, dtype=float)[:, None])
+        u = _xp.on(xp, dev, np.asarray(values, dtype=float)) - S0
+        z = u / sig
+        P0 = math.exp(-E - self.c) if rate is None else xp.exp(-E - self.c)
+        A = P0 * xp.exp(-0.5 * z * z) / (math.sqrt(2.0 * math.pi) * sig)
         t = (u - self.u0) / self.h
         inside = (t >= 0) & (t < self.n - 1)
-        left = np.where(inside, np.floor(t), 0).astype(np.intp)
-        row = left + (cls * self.n)[:, None]
+        left = xp.where(inside, xp.floor(t), 0.0)
+        row = xp.astype(left, xp.int64) + first_row
         if self.per_pixel:
             m = np.arange(len(self.parts["value"]))
-            weights = E[..., None] ** m / np.array([math.factorial(k) for k in m])
+            factorials = _xp.on(xp, dev, np.array([float(math.factorial(k)) for k in m]))
+            weights = E[..., None] ** _xp.on(xp, dev, m.astype(float)) / factorials
         else:
-            weights = np.ones(u.shape[:1] + (1, 1))
-        s = np.where(inside, t - left, 0.0).astype(np.float32)
-        return _Points(self.table, self.Q, row, s, inside, delta, A, z, sig, E, weights)
+            weights = xp.ones(tuple(u.shape[:1]) + (1, 1), dtype=xp.float64, device=dev)
+        s = xp.astype(xp.where(inside, t - left, 0.0), xp.float32)
+        return _Points(self._table_in(xp, dev), self.Q, row, s, inside, delta, A, z, sig, E,
+                       weights)
 
-    def _derivatives(self, at):
+    def _derivatives(self, at, xp):
         """p at the points (floored), the derivatives of p by :meth:`coordinates`
-        (..., D), and where p was floored."""
+        (..., D), and where p was floored (arrays of ``xp``, the points')."""
         B = dB_u = dB_delta = dB_rate = 0.0
         for k, (first, terms) in enumerate(self.parts["value"]):
             val, der, dd = at.series(first, terms, derivatives=True)
@@ -329,9 +353,10 @@ class SharedRegister:
                 dB_rate = dB_rate + k * w * val  # ∂/∂ ln E_i of E_i^k/k!
         A, z, sig, E = at.A, at.z, at.sig, at.E
         p = A + B
-        floor = _FLOOR * np.exp(-E - self.c) / (math.sqrt(2.0 * math.pi) * sig)
-        low = (p < floor) | ~np.isfinite(p)
-        p = np.where(low, floor, p)
+        P0 = math.exp(-E - self.c) if isinstance(E, float) else xp.exp(-E - self.c)
+        floor = _FLOOR * P0 / (math.sqrt(2.0 * math.pi) * sig)
+        low = (p < floor) | ~xp.isfinite(p)
+        p = xp.where(low, floor, p)
         columns = [A * z / sig - dB_u / self.h,                   # offset
                    A * (z * z - 1.0) + sig**2 * dB_delta]          # ln σ
         if self.per_pixel:
@@ -344,8 +369,9 @@ class SharedRegister:
                 part = part - self.E * A
             elif name == "register_cic":
                 part = part - A
-            columns.append(np.broadcast_to(part, p.shape))
-        return p, np.stack(columns, axis=-1), low
+            columns.append(xp.broadcast_to(part, p.shape) if hasattr(part, "shape")
+                           else xp.full(p.shape, part, dtype=p.dtype, device=_xp.device(p)))
+        return p, xp.stack([xp.broadcast_to(c, p.shape) for c in columns], axis=-1), low
 
 
 class _Points:
@@ -354,6 +380,7 @@ class _Points:
     in Δ summed from its columns."""
 
     def __init__(self, table, Q, row, s, inside, delta, A, z, sig, E, weights):
+        self.xp = _xp.namespace(table)
         s2, s3 = s * s, s * s * s
         self.h = (2 * s3 - 3 * s2 + 1, s3 - 2 * s2 + s, -2 * s3 + 3 * s2, s3 - s2)
         self.dh = (6 * s2 - 6 * s, 3 * s2 - 4 * s + 1, -6 * s2 + 6 * s, 3 * s2 - 2 * s)
@@ -366,10 +393,12 @@ class _Points:
         ``derivatives`` also its u-derivative (times h) and its Δ-derivative."""
         val = der = dd = 0.0
         power, previous = 1.0, None  # Δ^r / r!, Δ^(r−1) / (r−1)!
-        row, h = self.row, self.h
+        xp, row, h = self.xp, self.row, self.h
+        flat, shape = xp.reshape(row, (-1,)), tuple(row.shape)
+        at = lambda column, shift: xp.reshape(xp.take(column, flat + shift), shape)  # noqa: E731
         for r in range(terms):
-            f, d = self.table[first + r], self.table[self.Q + first + r]
-            f0, f1, d0, d1 = f[row], f[row + 1], d[row], d[row + 1]
+            f, d = self.table[first + r, :], self.table[self.Q + first + r, :]
+            f0, f1, d0, d1 = at(f, 0), at(f, 1), at(d, 0), at(d, 1)
             term = h[0] * f0 + h[1] * d0 + h[2] * f1 + h[3] * d1
             val = val + power * term
             if derivatives:
@@ -380,6 +409,6 @@ class _Points:
             previous, power = power, power * self.delta / (r + 1)
         out = ~self.inside
         if derivatives:
-            return (np.where(out, 0.0, val), np.where(out, 0.0, der),
-                    np.where(out, 0.0, dd))
-        return np.where(out, 0.0, val), None, None
+            return (xp.where(out, 0.0, val), xp.where(out, 0.0, der),
+                    xp.where(out, 0.0, dd))
+        return xp.where(out, 0.0, val), None, None
