@@ -58,8 +58,8 @@ def coefficients(values):
     """Chebyshev coefficients (n_x, n_y) of values on the Lobatto grid (n_x, n_y) (axis 0
     along x, axis 1 along y, each from its upper end down); any array namespace."""
     xp = _xp.namespace(values)
-    cx = _xp.from_numpy(xp, _transform_matrix(values.shape[0]), like=values)
-    cy = _xp.from_numpy(xp, _transform_matrix(values.shape[1]).T, like=values)
+    cx, cy = _xp.like(values, _transform_matrix(values.shape[0]),
+                      _transform_matrix(values.shape[1]).T)
     dtype = values.dtype
     return xp.astype(cx, dtype) @ values @ xp.astype(cy, dtype)
 

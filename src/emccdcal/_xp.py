@@ -19,8 +19,9 @@ import numpy as np
 from array_api_compat import array_namespace, device, is_array_api_obj, is_numpy_namespace
 
 from . import defaults
+from .errors import OptionError
 
-__all__ = ["namespace", "asarrays", "device", "from_numpy", "is_complex", "DEVICES",
+__all__ = ["namespace", "asarrays", "device", "is_complex", "DEVICES",
            "resolve", "computing_on", "engine", "on", "like", "to_numpy", "bincount",
            "rfft", "irfft"]
 
@@ -40,14 +41,6 @@ def asarrays(*values):
     return xp, tuple(xp.asarray(v) for v in values)
 
 
-def from_numpy(xp, array, like=None):
-    """A small NumPy array (a table, a transform matrix) in namespace ``xp``, on the
-    device of ``like``."""
-    if like is None:
-        return xp.asarray(array)
-    return xp.asarray(array, device=device(like))
-
-
 def is_complex(xp, array) -> bool:
     """Whether ``array`` holds complex numbers."""
     return xp.isdtype(array.dtype, "complex floating")
@@ -65,8 +58,6 @@ _ENGINE: contextvars.ContextVar = contextvars.ContextVar("engine_namespace", def
 def resolve(device: str | None):
     """``(xp, device)`` of a device name (:data:`DEVICES`), or one clear
     :class:`~emccdcal.errors.OptionError` saying what is missing."""
-    from .errors import OptionError
-
     if device in (None, "cpu"):
         return array_namespace(np.empty(0)), "cpu"
     if device == "array-api-strict":
@@ -85,8 +76,6 @@ def resolve(device: str | None):
 
 def _cuda():
     """CuPy's namespace on the current GPU, else PyTorch's; a clear line otherwise."""
-    from .errors import OptionError
-
     try:
         import cupy
 

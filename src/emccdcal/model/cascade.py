@@ -589,9 +589,8 @@ def _build_table(xp, like, stages, x_range, z_range, order, cic, by_u, budget):
 
     def at(xs, zs):  # the recursion on the grid xs × zs
         gs = np.exp(xs)
-        u = _xp.from_numpy(xp, 1j * zs[None, :] / gs[:, None], like=like)
-        return _register_transform(xp, u, _xp.from_numpy(xp, gs, like=like), stages, order,
-                                   cic, by_u)
+        u, g = _xp.like(like, 1j * zs[None, :] / gs[:, None], gs)
+        return _register_transform(xp, u, g, stages, order, cic, by_u)
 
     n = [1 if x_range[0] == x_range[1] else _TABLE_START[0],
          1 if z_range[0] == z_range[1] else _TABLE_START[1]]
