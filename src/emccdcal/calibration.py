@@ -294,14 +294,20 @@ def _execute(jobs, scheduler, progress, workers=1):
                               f"({one_line(exc)}); give its address, tcp://HOST:PORT") from None
     try:
         futures = {client.submit(run_tile, job, pure=False): job for job in jobs}
-        for future in as_completed(futures):
-            job = futures[future]
-            arrays = future.result()
-            progress(job.n_pixels)
-            yield job, arrays
+        yield from _as_finished(futures, as_completed, progress)
     finally:
         if client is not scheduler:
             client.close()
+
+
+def _as_finished(futures, as_completed, progress):
+    """(job, arrays) of ``futures`` ({future: job}) as each finishes (``as_completed``
+    of Dask or of concurrent.futures); ``progress`` told of each one's pixels."""
+    for future in as_completed(futures):
+        job = futures[future]
+        arrays = future.result()
+        progress(job.n_pixels)
+        yield job, arrays
 
 
 #: ``scheduler`` that runs the tiles in local processes (one tile each, one thread each).
@@ -319,11 +325,7 @@ def _in_processes(jobs, progress, workers):
     with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
         futures = {pool.submit(run_tile, job): job for job in jobs}
         try:
-            for future in as_completed(futures):
-                job = futures[future]
-                arrays = future.result()
-                progress(job.n_pixels)
-                yield job, arrays
+            yield from _as_finished(futures, as_completed, progress)
         finally:
             for future in futures:
                 future.cancel()
