@@ -51,6 +51,7 @@ def test_the_gain_check_through_the_array_api_standard_is_numpys():
     there = check_gain([darks], PHI, bias_correction=False, device="array-api-strict")
     assert there.em_gain == pytest.approx(here.em_gain, rel=1e-10)
     assert there.em_gain_se == pytest.approx(here.em_gain_se, rel=1e-10)
+    assert (here.device, there.as_dict()["device"]) == ("cpu", "array-api-strict")
 
 
 def test_a_region_and_several_stacks_and_too_few_events():

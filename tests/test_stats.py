@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from emccdcal.data.stats import PixelHistograms, histograms
+from emccdcal.errors import InputError
 
 ADC_MAX = 1023
 
@@ -193,3 +194,25 @@ def test_default_block_size_bounds_memory(monkeypatch):
     h = stats.histograms(f, adc_max=ADC_MAX)
     assert max(sizes) == 4 * 300 and sum(sizes) == f.size
     check_against_reference(h, f, ADC_MAX)
+
+
+def test_histograms_through_the_array_api_standard_are_numpys():
+    """The sort and the runs computed on array-api-strict arrays (a pretend device that
+    refuses NumPy) give NumPy's histograms: saturated counts, float-valued counts, a
+    pixel with no usable frame; negative counts refused the same way."""
+    pytest.importorskip("array_api_strict")
+    from emccdcal import _xp
+
+    rng = np.random.default_rng(4)
+    frames = rng.poisson(30, size=(200, 3, 5)).astype(np.uint16)
+    frames[::3, 0, 0] = 255
+    frames[:, 2, 4] = 255  # every frame saturated
+    floats = rng.poisson(5, size=(40, 2, 2)).astype(np.float64)
+    for data, adc_max in ((frames, 255), (frames, None), (floats, None)):
+        want = histograms(data, adc_max=adc_max)
+        with _xp.computing_on("array-api-strict"):
+            got = histograms(data, adc_max=adc_max)
+        for name in ("values", "counts", "n", "n_saturated", "mean", "var", "min", "max"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name), name)
+    with _xp.computing_on("array-api-strict"), pytest.raises(InputError, match="negative"):
+        histograms(-np.ones((3, 1, 1), dtype=np.int16))

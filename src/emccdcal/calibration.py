@@ -221,12 +221,12 @@ def _fit_pixels(job, frames, usable, progress=None):
                    hyper_sd_photoelectrons=np.full(P, np.nan))
 
     def fit_block(idx):
-        hists = [_histograms(job, a, f[:, :, idx]) for a, f in enumerate(frames)]
         models = [AcquisitionModel(sp, job.offsets[a, idx], job.read_noise[a, idx],
                                    job.em_model, job.dark_frames[a], job.map_groups[a])
                   for a, sp in enumerate(job.setpoints)]
         sub = lambda v: None if v is None else v[idx]  # noqa: E731
-        with _xp.computing_on(job.device):
+        with _xp.computing_on(job.device):  # the histograms, the fit and its checks
+            hists = [_histograms(job, a, f[:, :, idx]) for a, f in enumerate(frames)]
             return idx, fit_series(job.method, models, hists, e_per_adu=sub(job.e_per_adu),
                                    e_per_adu_se=sub(job.e_per_adu_se), options=job.options,
                                    intervals=job.intervals)

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import _xp
 from ..errors import InputError
 
 __all__ = ["PixelHistograms", "histograms", "frame_usage", "DEFAULT_CHUNK_ELEMENTS"]
@@ -106,37 +107,42 @@ def _as_count_block(block: np.ndarray) -> np.ndarray:
 
 
 def _block_histograms(block: np.ndarray, adc_max: int | None):
-    """Histograms of a (Pc, F) block of counts, in compact (run-list) form.
+    """Histograms of a (Pc, F) block of counts, in compact (run-list) form, NumPy arrays.
 
-    Runs are addressed by flat positions in the sorted block (row-major, so the runs of
-    a row are consecutive): one 1-D gather, no 2-D fancy indexing.
+    The sort and the runs are computed where the fit computes (:func:`emccdcal._xp.engine`:
+    the block goes there, its run lists come back). Runs are addressed by flat positions
+    in the sorted block (row-major, so the runs of a row are consecutive): one 1-D
+    gather, no 2-D fancy indexing.
     """
+    xp, dev = _xp.engine()
     n_pix, n_frames = block.shape
-    kind = "stable" if block.dtype.itemsize <= 2 else "quicksort"  # radix for 8/16 bit
-    s = np.sort(block, axis=1, kind=kind)
-    if n_frames and s.dtype.kind == "i" and np.any(s[:, 0] < 0):
+    signed = block.dtype.kind == "i"
+    # a stable sort of 8- and 16-bit counts is NumPy's radix sort
+    s = xp.sort(_xp.on(xp, dev, block), axis=1, stable=block.dtype.itemsize <= 2)
+    if n_frames and signed and bool(xp.any(s[:, 0] < 0)):
         raise InputError(
             "frames contain negative values; counts must be raw ADU (never offset-subtracted)"
         )
     if adc_max is None:
-        n_used = np.full(n_pix, n_frames, dtype=np.int64)
-        starts = np.ones(s.shape, dtype=bool)
+        n_used = xp.full(n_pix, n_frames, dtype=xp.int64, device=dev)
+        starts = xp.ones(tuple(s.shape), dtype=xp.bool, device=dev)
     else:  # saturated values sort to the end of each row
         starts = s < adc_max
-        n_used = starts.sum(axis=1)
-    starts[:, 1:] &= s[:, 1:] != s[:, :-1]
-    run_pos = np.flatnonzero(starts)
+        n_used = xp.sum(xp.astype(starts, xp.int64), axis=1)
+    starts[:, 1:] = starts[:, 1:] & (s[:, 1:] != s[:, :-1])
+    run_pos = xp.nonzero(xp.reshape(starts, (-1,)))[0]
     run_row = run_pos // max(n_frames, 1)
-    run_value = s.ravel()[run_pos].astype(np.int64)
+    run_value = xp.astype(xp.take(xp.reshape(s, (-1,)), run_pos), xp.int64)
     # A run ends where the next one starts, or at the end of its row's usable values.
-    run_end = np.empty_like(run_pos)
-    run_end[:-1] = run_pos[1:]
-    last_of_row = np.ones(run_row.shape, dtype=bool)
-    last_of_row[:-1] = run_row[1:] != run_row[:-1]
-    run_end[last_of_row] = run_row[last_of_row] * n_frames + n_used[run_row[last_of_row]]
-    run_len = (run_end - run_pos).astype(np.float64)
-    n_runs = np.bincount(run_row, minlength=n_pix)
-    return run_row, run_value, run_len, n_runs, n_used, n_frames - n_used
+    last = xp.ones(1, dtype=xp.bool, device=dev)
+    last_of_row = xp.concat([run_row[1:] != run_row[:-1], last])[:run_row.shape[0]]
+    row_end = run_row * n_frames + xp.take(n_used, run_row)
+    run_end = xp.where(last_of_row, row_end, xp.concat([run_pos[1:], run_pos[-1:]]))
+    run_len = xp.astype(run_end - run_pos, xp.float64)
+    ones = xp.ones(tuple(run_row.shape), dtype=xp.float64, device=dev)
+    n_runs = xp.astype(_xp.bincount(xp, run_row, ones, n_pix), xp.int64)
+    out = (run_row, run_value, run_len, n_runs, n_used, n_frames - n_used)
+    return tuple(_xp.to_numpy(a) for a in out)
 
 
 def histograms(frames, adc_max: int | None = None, *, chunk_pixels: int | None = None):

@@ -111,6 +111,8 @@ class GainCheck:
     bias_correction : str
         How the bias from the pixels' own parameters was removed (``"half-sample
         jackknife"``, or ``"none"``).
+    device : str
+        Where the tables were evaluated (:data:`emccdcal.defaults.DEVICES`).
     histogram : dict
         With ``histogram``: the pooled counts about each pixel's offset (``offset_adu``:
         counts minus the pixel's rounded S0), ``observed`` and ``expected`` under the fit
@@ -132,6 +134,7 @@ class GainCheck:
     read_noise: float
     em_gain_mle: float
     bias_correction: str
+    device: str = "cpu"
     histogram: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
@@ -282,7 +285,7 @@ def check_gain(darks, e_per_adu: float, *, setpoint: float | None = None,
         read_noise=float(np.median(np.exp(x[:, 1]))),
         em_gain_mle=float(math.exp(mle[k])),
         bias_correction="half-sample jackknife" if bias_correction else "none",
-        histogram=fit.histogram(x) if histogram else {})
+        device=device or "cpu", histogram=fit.histogram(x) if histogram else {})
     if not check.relative_se <= MAX_RELATIVE_SE:
         raise InputError(_undetermined(check))
     return check
