@@ -181,3 +181,17 @@ def test_a_device_that_is_not_there_is_one_line(series):
         with pytest.raises(OptionError, match="device 'cuda': no GPU found"):
             calibrate(gs.manifest, "gs", device="cuda")
         assert "\n" not in str(exc)
+
+
+def test_blocks_on_a_gpu_fill_a_share_of_its_free_memory():
+    """On a GPU the default block grows with the card's free memory (a quarter of it,
+    at most 8192 pixels, tiles holding whole blocks); the CPU's defaults and a caller's
+    own block size stand."""
+    from emccdcal.calibration import DEFAULT_BLOCK, _blocks_for
+
+    assert DEFAULT_BLOCK == 128
+    assert _blocks_for(None, 128, 1024) == (128, 1024)           # the CPU
+    assert _blocks_for(80 * 2**30, 128, 1024) == (1280, 1280)    # 20 GiB / 16 MiB
+    assert _blocks_for(2**40, 128, 1024) == (8192, 8192)         # capped
+    assert _blocks_for(2**30, 128, 1024) == (128, 1024)          # a small card
+    assert _blocks_for(80 * 2**30, 64, 1024) == (64, 1024)       # the caller's choice

@@ -22,7 +22,8 @@ from . import defaults
 from .errors import OptionError
 
 __all__ = ["namespace", "asarrays", "device", "is_complex", "DEVICES",
-           "resolve", "computing_on", "engine", "on", "like", "to_numpy", "bincount",
+           "resolve", "computing_on", "engine", "free_bytes", "on", "like", "to_numpy",
+           "bincount",
            "rfft", "irfft"]
 
 
@@ -113,6 +114,20 @@ def engine():
     """``(xp, device)`` where the hot path computes now (NumPy on the CPU by default)."""
     chosen = _ENGINE.get()
     return chosen if chosen is not None else (array_namespace(np.empty(0)), "cpu")
+
+
+def free_bytes(xp, dev) -> int | None:
+    """Free memory of a GPU (bytes), as its library reports it; None elsewhere."""
+    name = xp.__name__
+    if "cupy" in name:
+        import cupy
+
+        return int(cupy.cuda.runtime.memGetInfo()[0])
+    if "torch" in name:
+        import torch
+
+        return int(torch.cuda.mem_get_info(dev)[0])
+    return None
 
 
 def on(xp, dev, *arrays):

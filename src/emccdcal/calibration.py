@@ -614,7 +614,9 @@ def calibrate(
     block_size = check_int("block_size", block_size)
     tile_pixels = check_int("tile_pixels", tile_pixels)
     workers = os.cpu_count() if workers is None else check_int("workers", workers)
-    _xp.resolve(device)  # an unknown device, or one whose library is missing: one line now
+    # an unknown device, or one whose library is missing: one line now
+    block_size, tile_pixels = _blocks_for(_xp.free_bytes(*_xp.resolve(device)), block_size,
+                                          tile_pixels)
     # Every warning of the run (manifest, saturation, convergence, misfit) is recorded in
     # the result and issued again to the caller.
     # The output is locked, and checked, for the whole run (the tiles are kept as they
@@ -632,6 +634,27 @@ def calibrate(
             result.save(ds, out, seconds=ds.attrs["seconds"], stale=RESULT_FILES)
             remove_run(out)
     return ds
+
+
+#: On a GPU: the device memory a block's pixel may take (its windows, their derivatives
+#: and FFTs, five acquisitions of up to 16 384 counts: an estimate, not yet measured), the
+#: share of the free memory blocks may fill, and the largest block (a tile's histograms
+#: are held on the host, about 16 bytes per frame, pixel and acquisition at high gain).
+_DEVICE_BYTES_PER_PIXEL = 16 * 2**20
+_DEVICE_SHARE = 0.25
+_DEVICE_MAX_BLOCK = 8192
+
+
+def _blocks_for(free_bytes, block_size, tile_pixels) -> tuple[int, int]:
+    """(block_size, tile_pixels) for a device with ``free_bytes`` of free memory (None:
+    the CPU, whose defaults stand): blocks as large as a quarter of the free memory holds
+    (up to :data:`_DEVICE_MAX_BLOCK`), where the caller kept the default; a GPU runs a
+    few large batches fast and many small ones slowly. Tiles hold whole blocks."""
+    if free_bytes is None or block_size != DEFAULT_BLOCK:
+        return block_size, tile_pixels
+    fits = int(free_bytes * _DEVICE_SHARE) // _DEVICE_BYTES_PER_PIXEL
+    block_size = max(DEFAULT_BLOCK, min(_DEVICE_MAX_BLOCK, fits))
+    return block_size, max(tile_pixels, block_size)
 
 
 def _fft_threads(scheduler, workers) -> int:
