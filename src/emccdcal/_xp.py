@@ -160,8 +160,9 @@ def to_numpy(array) -> np.ndarray:
 
 
 def bincount(xp, index, weights, minlength: int):
-    """Sums of ``weights`` at each integer of ``index`` (1-D), length ``minlength``: not
-    in the standard; CuPy's and PyTorch's own, NumPy's for the others."""
+    """Sums of ``weights`` (None: counts) at each integer of ``index`` (1-D), length
+    ``minlength``: not in the standard; CuPy's and PyTorch's own, NumPy's for the
+    others."""
     if is_numpy_namespace(xp):
         return np.bincount(index, weights=weights, minlength=minlength)
     name = xp.__name__
@@ -173,8 +174,9 @@ def bincount(xp, index, weights, minlength: int):
         import torch
 
         return torch.bincount(index, weights=weights, minlength=minlength)
-    out = np.bincount(to_numpy(index), weights=to_numpy(weights), minlength=minlength)
-    return xp.asarray(out, device=device(weights))
+    out = np.bincount(to_numpy(index), weights=None if weights is None else to_numpy(weights),
+                      minlength=minlength)
+    return xp.asarray(out, device=device(index))
 
 
 def rfft(xp, a, workers):

@@ -139,8 +139,7 @@ def _block_histograms(block: np.ndarray, adc_max: int | None):
     row_end = run_row * n_frames + xp.take(n_used, run_row)
     run_end = xp.where(last_of_row, row_end, xp.concat([run_pos[1:], run_pos[-1:]]))
     run_len = xp.astype(run_end - run_pos, xp.float64)
-    ones = xp.ones(tuple(run_row.shape), dtype=xp.float64, device=dev)
-    n_runs = xp.astype(_xp.bincount(xp, run_row, ones, n_pix), xp.int64)
+    n_runs = xp.astype(_xp.bincount(xp, run_row, None, n_pix), xp.int64)
     out = (run_row, run_value, run_len, n_runs, n_used, n_frames - n_used)
     return tuple(_xp.to_numpy(a) for a in out)
 
