@@ -208,11 +208,12 @@ class FitResult:
 
 
 class _ModelAtData:
-    """The pmf of each pixel of a block at its histogram's values, with derivatives.
+    """The pmf of each pixel of a block at its histogram's values, with derivatives,
+    computed in the namespace ``xp`` (its arrays; ``hopeless`` is NumPy's).
 
     Attributes
     ----------
-    pv : ndarray, shape (P, K)
+    pv : array, shape (P, K)
         Probabilities at the values, floored at ``_FLOOR`` of the pixel's peak.
     scores : dict or None
         name -> (P, K) first derivatives of the probability at the values.
@@ -224,7 +225,7 @@ class _ModelAtData:
         Where the windows were computed (``pv``, ``scores``, ``low`` are its arrays).
     n : int
         Window length.
-    low : ndarray of bool, shape (P, K)
+    low : array of bool, shape (P, K)
         Values below the floor (no gradient there).
     hopeless : ndarray of bool, shape (P,)
         Pixels whose parameters are hopelessly far from their data.
