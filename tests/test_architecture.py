@@ -305,6 +305,16 @@ def test_the_code_is_clean_under_the_linter():
     assert res.returncode == 0, res.stdout[-3000:]
 
 
+@pytest.mark.slow
+def test_the_public_api_type_checks(tmp_path):
+    """``mypy`` (configured in pyproject.toml: the stub of emccdcal's names and the modules
+    they come from) finds nothing."""
+    pytest.importorskip("mypy")
+    res = subprocess.run([sys.executable, "-m", "mypy", "--cache-dir", str(tmp_path)],
+                         cwd=_source_tree(), capture_output=True, text=True)
+    assert res.returncode == 0, res.stdout[-3000:]
+
+
 def _source_tree() -> Path:
     """The repository that holds the package's sources, or a skip where the package is
     installed (a wheel: ``.ci/wheel`` runs the suite against it)."""

@@ -849,7 +849,7 @@ def _fitted_light(ds, used) -> list:
         values = np.asarray(sel.values, dtype=float)
         return float(nanmedian(values[ok])) if values.shape == ok.shape else math.nan
 
-    out = []
+    out: list[dict | None] = []
     for a in used:
         try:
             light = median_at("photoelectrons", a)

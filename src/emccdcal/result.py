@@ -282,7 +282,8 @@ def make_dataset(
 
     pix = _PIXEL_DIMS
     phi, phi_se = full(e_per_adu, pix), full(e_per_adu_se, pix)
-    variables = {"e_per_adu": (pix, phi), "e_per_adu_se": (pix, phi_se)}
+    variables: dict[str, tuple[tuple[str, ...], np.ndarray]] = {
+        "e_per_adu": (pix, phi), "e_per_adu_se": (pix, phi_se)}
     if em_gain is not None or em_gain_se is not None:
         if em_gain is None or em_gain_se is None:
             raise ValueError("em_gain and em_gain_se must be given together")
@@ -490,7 +491,8 @@ def summarize(ds: xr.Dataset, seconds: float | None = None) -> dict:
     """
     conv = ds["converged"].transpose("row", "col").values.astype(bool)
     params = {}
-    for name, da in ds.data_vars.items():
+    for key, da in ds.data_vars.items():
+        name = str(key)
         # Standard errors and interval bounds belong to a parameter, not beside it (an
         # average of bounds that may be infinite says nothing).
         if (name == "converged" or name.endswith(("_se", "_lower", "_upper"))
@@ -884,7 +886,8 @@ def identity_attrs(manifest) -> dict:
     """The attributes by which every result knows the camera, read-out state and pixels it
     holds for: ``camera`` (JSON), ``binning`` and ``sensor_origin``, as far as the
     manifest's frames record them."""
-    attrs = {"camera": json.dumps(manifest.camera)} if manifest.camera else {}
+    attrs: dict[str, object] = (
+        {"camera": json.dumps(manifest.camera)} if manifest.camera else {})
     if manifest.origin is not None:
         attrs["sensor_origin"] = np.array(manifest.origin, dtype=np.int64)
     if manifest.binning is not None:
@@ -969,7 +972,7 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
 
     parts = _members(spec)
     label = ",".join(parts)
-    loaded = []
+    loaded: list = []
     for part in parts:
         p = Path(part)
         ds = load(p)
@@ -1006,8 +1009,12 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
         )
     i_phi = phi_from[0] if phi_from else 0
     phi = masked(loaded[i_phi][1], "e_per_adu")
-    gains, gains_se, source = {}, {}, {}
-    offsets, read_noise, camera = {}, {}, {}
+    gains: dict = {}
+    gains_se: dict = {}
+    source: dict = {}
+    offsets: dict = {}
+    read_noise: dict = {}
+    camera: dict = {}
     other_phi = []
     for f, ds in loaded:
         for name, store in (("offset", offsets), ("read_noise", read_noise)):

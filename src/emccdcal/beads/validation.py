@@ -533,7 +533,7 @@ def fit_validation(bead_manifest, calibrations, *, width=bead_fit.DEFAULT_WIDTH,
     setpoints = list(acqs)
     cals = [result.load_calibration(c, manifest.shape, of="the bead frames")
             for c in calibrations]
-    seen = {}
+    seen: dict = {}
     for cal in cals:  # a calibration given twice would be ranked against itself
         if cal.sha256 in seen:
             raise OptionError(f"calibration {cal.label} is given twice (also as "

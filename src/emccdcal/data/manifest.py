@@ -146,7 +146,8 @@ class Acquisition:
     @property
     def shape(self) -> tuple[int, int]:
         """(rows, cols) of the frames."""
-        return tuple(int(d) for d in self.offset.shape)
+        rows, cols = self.offset.shape
+        return int(rows), int(cols)
 
     def frames(self) -> np.ndarray:
         """The (n_frames, rows, cols) stack of raw counts (ADU), after ``skip_frames``.
@@ -499,7 +500,7 @@ def parse_manifest(path) -> ManifestEntries:
         raise r.error(f"invalid TOML: {getattr(exc, 'reason', exc)}") from None
     top = r.table(doc, _TOP_KEYS)
     if not top["acquisition"]:
-        raise r.error(_TOP_KEYS[-1].missing)
+        raise r.error(str(_TOP_KEYS[-1].missing))
     entries = tuple(_entry(r, i, table) for i, table in enumerate(top["acquisition"], 1))
     seen: dict[Path, int] = {}
     for e in entries:
@@ -523,9 +524,9 @@ def parse_manifest(path) -> ManifestEntries:
 
 def _entry(r: _Reader, i: int, table: dict) -> AcquisitionEntry:
     """One [[acquisition]] table: the key table's checks, then the rules between keys."""
-    frames = table.get("frames")
-    label = f"frames = '{frames}'" if isinstance(frames, str) else ""
+    label = f"frames = '{table['frames']}'" if isinstance(table.get("frames"), str) else ""
     v = r.table(table, _ACQUISITION_KEYS, i, label)
+    frames: str = v["frames"]  # required: the key table has refused a table without it
     has_maps = [k for k in ("offset", "read_noise") if v[k] is not None]
     if v["dark"] is not None and has_maps:
         raise r.error(f"give either 'dark' or 'offset' and 'read_noise', not both (found "
@@ -655,7 +656,7 @@ def resolve_manifest(entries: ManifestEntries) -> Manifest:
     return Manifest(
         path=entries.path, content_hash=entries.content_hash, e_per_adu=e_per_adu,
         e_per_adu_source=e_source, acquisitions=acquisitions,
-        shape=tuple(int(d) for d in shape), origin=origin, binning=binning,
+        shape=(int(shape[0]), int(shape[1])), origin=origin, binning=binning,
         adc_max=int(adc_max), setpoints=tuple(sorted({a.em_gain_setpoint for a in acqs})),
         levels=levels, warnings=found, em_model=entries.em_model,
         register_stages=entries.register_stages, camera=camera,
@@ -722,7 +723,7 @@ def _read_out_maps(r: _Reader, acqs, shape, adc_max, hint) -> list[dict]:
     out = []
     for a in acqs:
         if a.dark is None:
-            m = {"events": None}
+            m: dict = {"events": None}
             for key in ("offset", "read_noise"):
                 m[key], m[key + "_source"] = _map_from_value(r, a.index, a.label, key,
                                                             getattr(a, key), shape)
@@ -746,6 +747,7 @@ def _read_out_maps(r: _Reader, acqs, shape, adc_max, hint) -> list[dict]:
 
 def _reduce_dark(r: _Reader, a: AcquisitionEntry, adc_max, hint):
     """(offset, read noise, multiplied events or None) of an acquisition's dark stack."""
+    assert a.dark_path is not None  # only an acquisition with a dark stack comes here
     try:
         dark = load_stack(a.dark_path)
         check_counts(dark, a.dark_path, adc_max=adc_max, adc_bits_hint=hint)

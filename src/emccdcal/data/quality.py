@@ -162,11 +162,11 @@ def linear_drift(series, *, offset: float | None = None) -> dict:
     else:  # an exact line (or a constant)
         pvalue = 1.0 if slope == 0 else 0.0
     level = mean - (0.0 if offset is None else float(offset))
+    drift_pct: float | None = None
+    drift_pct_se: float | None = None
     if level > 0:
         drift_pct = 100.0 * slope * (n - 1) / level
         drift_pct_se = 100.0 * slope_se * (n - 1) / level
-    else:
-        drift_pct = drift_pct_se = None
     return {
         "level": level,
         "slope": slope,
@@ -555,11 +555,11 @@ def band_statistics(band: np.ndarray, adc_max: int | None, *, third: bool = Fals
     n = band.shape[0]
     mean, sd = maps_from_dark(band) if n >= 2 else (band[0].astype(float), np.zeros(band.shape[1:]))
     if adc_max is None:
-        sat_frames = np.zeros(n, dtype=bool)
+        sat_frames: np.ndarray = np.zeros(n, dtype=bool)
         sat_pixels = np.zeros(band.shape[1:], dtype=np.int64)
     else:
         sat = band >= adc_max
-        sat_frames = sat.reshape(n, -1).any(axis=1)
+        sat_frames = np.asarray(sat.reshape(n, -1).any(axis=1))
         sat_pixels = sat.sum(axis=0, dtype=np.int64)
     flat = band.reshape(n, -1)
     out = {
@@ -1152,11 +1152,12 @@ def format_report(report: dict) -> str:
         Multi-line text (no trailing newline).
     """
     unit_root = any(a["stationarity"] for a in report["acquisitions"].values())
-    header = ("acquisition", "set-pt", "frames", "level ADU", "drift % ± SE", "p", "steady")
+    header: tuple[str, ...] = (
+        "acquisition", "set-pt", "frames", "level ADU", "drift % ± SE", "p", "steady")
     if unit_root:
         header += ("ADF p", "KPSS p")
     header += ("sat. values/frames/px", "hot", "dead", "stuck")
-    rows = [header]
+    rows: list[tuple[str, ...]] = [header]
     for name, a in report["acquisitions"].items():
         d, s, sat, px = a.get("drift"), a["stationarity"], a["saturation"], a["pixels"]
         if d is None and s is not None:  # a report of an earlier version: ADF/KPSS decided
@@ -1168,7 +1169,8 @@ def format_report(report: dict) -> str:
             drift = ("n/a" if d["drift_pct"] is None
                      else f"{d['drift_pct']:+.2f} ± {d['drift_pct_se']:.2f}")
             p, steady = _p(d["pvalue"]), _steady_cell(d)
-        row = (name, f"{a['em_gain_setpoint']:g}", str(a["n_frames"]), level, drift, p, steady)
+        row: tuple[str, ...] = (name, f"{a['em_gain_setpoint']:g}", str(a["n_frames"]), level,
+                                drift, p, steady)
         if unit_root:
             row += (("n/a", "n/a") if s is None else
                     (_p(s["adf_pvalue"]), _p(s["kpss_pvalue"], s["kpss_p_bound"])))

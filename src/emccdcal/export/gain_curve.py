@@ -64,7 +64,9 @@ def measured_gains(calibrations, *, accept_mismatch=()) -> list[tuple[float, flo
         A result given twice, or results of different cameras or read-out states (unless
         the fields that differ are in ``accept_mismatch``).
     """
-    points, seen, identity = [], {}, None
+    points: list = []
+    seen: dict = {}
+    identity = None
     for i, cal in enumerate(calibrations):
         if hasattr(cal, "data_vars"):  # an xarray result dataset
             if "em_gain" not in cal:

@@ -77,7 +77,7 @@ class _Input:
 
 def _refuse_twice(files) -> None:
     """A result given twice would be compared with itself: refused, naming both."""
-    seen = {}
+    seen: dict = {}
     for path, digest in files:
         if digest in seen:
             raise OptionError(f"{path} is given twice (also as {seen[digest]}); give each "

@@ -36,6 +36,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+from typing import Any
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -71,7 +72,7 @@ PAPER_LEVELS = (2000.0, 4000.0, 8000.0, 16000.0, 32000.0, 64000.0)
 
 DEFAULT_OFFSET = defaults.DEFAULT_OFFSET
 DEFAULT_OFFSET_DROP = defaults.DEFAULT_OFFSET_DROP
-_DEFAULTS = defaults.CAMERA_SIMULATION
+_DEFAULTS: dict[str, Any] = defaults.CAMERA_SIMULATION
 #: Elements (frames × pixels) simulated at a time; fixes the random stream, so it is a
 #: constant, not a tuning knob.
 _CHUNK_ELEMENTS = 2**20

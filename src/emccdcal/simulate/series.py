@@ -95,11 +95,16 @@ def _label(setpoint: float) -> str:
 
 def _options(camera: Camera, seed) -> dict:
     """The camera's fields and the seed (one drawn if None), as recorded in truth.json."""
-    seed = int(np.random.SeedSequence().entropy) if seed is None else check_int("seed", seed, minimum=0)
+    if seed is None:
+        entropy = np.random.SeedSequence().entropy
+        assert isinstance(entropy, int)  # a fresh SeedSequence draws one integer
+        seed = entropy
+    else:
+        seed = check_int("seed", seed, minimum=0)
     return dataclasses.asdict(camera) | {"seed": seed}
 
 
-def _setpoint_offset(name: str, value: float, setpoint: float, opts: dict) -> float:
+def _setpoint_offset(name: str, value: float | None, setpoint: float, opts: dict) -> float:
     if value is None:
         off = offset_at_setpoint(setpoint, opts["offset"], opts["offset_drop"])
     else:
