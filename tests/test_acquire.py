@@ -490,3 +490,32 @@ def test_sigkill_of_acquire_at_random_moments_resumes_to_a_complete_session(tmp_
         assert load_stack(out / s.file).shape[0] == s.planned_frames == s.frames
     assert sorted(p.name for p in out.iterdir()) == sorted(
         p.name for p in (tmp_path / "whole").iterdir())
+
+
+def test_a_store_killed_in_a_metadata_write_is_begun_but_empty(tmp_path):
+    """zarr writes each metadata file as ``zarr.<id>.partial`` and renames it: a run killed
+    in between leaves such files. A store holding metadata and those only, marked as the
+    session's, is redone; one holding a chunk, or not marked, or whose only metadata is
+    an unreadable fragment, is left as it is (the case a SIGKILL test met)."""
+    from emccdcal.data.zarrs import begun_but_empty
+
+    def store(name, files):
+        path = tmp_path / name
+        for rel, text in files.items():
+            (path / rel).parent.mkdir(parents=True, exist_ok=True)
+            (path / rel).write_text(text)
+        return path
+
+    ours = json.dumps({"zarr_format": 3, "node_type": "group", "attributes": {"mine": {}}})
+    theirs = json.dumps({"zarr_format": 3, "node_type": "group", "attributes": {}})
+    killed = store("killed.zarr", {"zarr.json": ours, "zarr.ab12.partial": ours[:40],
+                                   "0/zarr.cd34.partial": ""})
+    assert begun_but_empty(killed, "mine")
+    assert begun_but_empty(store("first.zarr", {"zarr.ef56.partial": ours}), "mine")
+    assert not begun_but_empty(store("cut.zarr", {"zarr.ef56.partial": ours[:30]}), "mine")
+    assert not begun_but_empty(store("other.zarr", {"zarr.json": theirs,
+                                                    "0/zarr.x.partial": ""}), "mine")
+    assert not begun_but_empty(store("frames.zarr", {"zarr.json": ours, "0/zarr.json": "{}",
+                                                     "0/c/0/0/0": "data"}), "mine")
+    assert not begun_but_empty(store("chunk.zarr", {"zarr.json": ours,
+                                                    "0/c/0/0/0.a1.partial": "d"}), "mine")

@@ -252,18 +252,38 @@ def read_chunks(path: Path, pixels=None):
 
 def begun_but_empty(path: Path, owner: str) -> bool:
     """Whether ``path`` is a store begun and never given a frame: a folder holding Zarr
-    metadata only (a run killed while creating it) and marked as ``owner``'s, so that
-    nothing of a frame, and nothing of another's, is lost by making it again."""
+    metadata only (a run killed while creating it, perhaps in the middle of a metadata
+    write: zarr writes ``NAME.<id>.partial`` and renames it) and marked as ``owner``'s,
+    so that nothing of a frame, and nothing of another's, is lost by making it again."""
     if not path.is_dir() or path.is_symlink():
         return False
+    files = []
     for item in path.rglob("*"):
-        if item.is_symlink() or (item.is_file() and item.name not in _METADATA_FILES):
+        if item.is_symlink():
             return False
+        if item.is_file():
+            files.append(item)
+    if any(f.name not in _METADATA_FILES and not _metadata_in_writing(f) for f in files):
+        return False
     root = path / "zarr.json"
-    if not root.is_file():  # folders only (killed before the first write), or Zarr v2
-        return not any(item.is_file() for item in path.rglob("*"))  # (never ours: v3)
-    try:  # the group's one metadata write carries its owner's marker
-        attrs = _files.load_json(root, what="Zarr metadata").get("attributes") or {}
+    if root.is_file():  # the group's one metadata write carries its owner's marker
+        return _marked(root, owner)
+    # killed before the group's metadata was in place: folders only, or its write
+    # interrupted (never Zarr v2's files: ours are v3)
+    written = [f for f in files if f.parent == path and _metadata_in_writing(f)]
+    return len(written) == len(files) and (not files or any(_marked(f, owner)
+                                                            for f in written))
+
+
+def _metadata_in_writing(item: Path) -> bool:
+    """A metadata file zarr was writing when the run was killed (``zarr.<id>.partial``)."""
+    return item.name.startswith("zarr.") and item.name.endswith(".partial")
+
+
+def _marked(item: Path, owner: str) -> bool:
+    """Whether the Zarr metadata in ``item`` parses and carries ``owner``'s marker."""
+    try:
+        attrs = _files.load_json(item, what="Zarr metadata").get("attributes") or {}
     except (InputError, AttributeError):
         return False
     return owner in attrs  # else another hand's group (its attributes none or others)
