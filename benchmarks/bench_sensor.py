@@ -95,32 +95,22 @@ def main():
                                      dark_frames=50, seed=1)
                 print(f"simulated {n}x{n}: {time.perf_counter() - t0:.0f} s", flush=True)
             manifests[n] = folder / "manifest.toml"
-        if args.dask:
-            counts = [int(c) for c in args.dask.split(",")]
+        if args.dask or args.workers:
+            # workers of a local Dask cluster, or this machine's threads or processes
+            dask = bool(args.dask)
+            counts = [int(c) for c in (args.dask if dask else args.workers).split(",")]
+            kind = ("Dask workers (1 thread each)" if dask else
+                    "local processes" if args.processes else "threads")
+            where = "processes" if args.processes else "local"
             n = sizes[0]
             times = {c: [] for c in counts}
             for _ in range(2):
                 for c in counts:
-                    times[c].append(_time(manifests[n], base / f"out-dask-{c}", str(c))[0])
+                    out = base / f"out-{c}"
+                    times[c].append((_time(manifests[n], out, str(c)) if dask else
+                                     _time(manifests[n], out, where, workers=c))[0])
             ref = statistics.median(times[counts[0]])
-            print(f"gs, {n}x{n} px, {args.frames} frames; Dask LocalCluster, 1 thread per worker,"
-                  " median of 2")
-            for c in counts:
-                t = statistics.median(times[c])
-                print(f"  {c} worker(s): {t:8.1f} s   speed-up {ref / t:5.2f}")
-            return
-        if args.workers:
-            counts = [int(c) for c in args.workers.split(",")]
-            n = sizes[0]
-            times = {c: [] for c in counts}
-            for _ in range(2):
-                for c in counts:
-                    times[c].append(_time(manifests[n], base / f"out-threads-{c}",
-                                          "processes" if args.processes else "local",
-                                          workers=c)[0])
-            ref = statistics.median(times[counts[0]])
-            kind = "local processes" if args.processes else "threads"
-            print(f"gs, {n}x{n} px, {args.frames} frames; {kind}, median of 2")
+            print(f"gs, {n}x{n} px, {args.frames} frames; {kind}, alternating, median of 2")
             for c in counts:
                 t = statistics.median(times[c])
                 speedup = ref / t
