@@ -661,7 +661,7 @@ def _fft_threads(scheduler, workers) -> int:
     """Threads of each FFT: the CPUs left to each of the ``workers`` threads that fit
     blocks at once (every CPU for one thread; one on a Dask worker, which runs one task
     per CPU already). Threads that each asked for every CPU would share them out
-    ``workers`` times over, and a 16-core machine ran no faster than a 2-core one."""
+    ``workers`` times over: a 16-core machine ran only twice as fast as a 2-core one."""
     if scheduler is not None:
         return 1
     return max(1, (os.cpu_count() or 1) // workers)

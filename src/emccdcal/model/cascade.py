@@ -521,11 +521,15 @@ class _Table:
                                             self.z_range, x, z) for k in keys}
 
 
+def _derivative_names(order, by_u) -> tuple[str, ...]:
+    """The transform and the derivatives :func:`_register_transform` computes."""
+    names = ("v", "u", "g", "uu", "ug", "gg")[: (1, 3, 6)[order]]
+    return names if by_u else tuple(n for n in names if "u" not in n)
+
+
 def _transform_keys(order, cic, by_u) -> frozenset:
     """The names :func:`_register_transform` returns for these options."""
-    names = ("v", "u", "g", "uu", "ug", "gg")[: (1, 3, 6)[order]]
-    if not by_u:
-        names = tuple(n for n in names if "u" not in n)
+    names = _derivative_names(order, by_u)
     return frozenset(names + (tuple("cic_" + n for n in names) if cic else ()))
 
 
@@ -641,9 +645,7 @@ def _register_transform(xp, u, g, stages, order, cic, by_u):
     u = xp.astype(u, dtype)
     e_u = xp.exp(u)
     v = xp.where(abs(u) < 1e-3, xp.expm1(u), e_u - 1.0)  # e^u − 1 without cancellation
-    out_names = ("v", "u", "g", "uu", "ug", "gg")[: (1, 3, 6)[order]]
-    if not by_u:
-        out_names = tuple(n for n in out_names if "u" not in n)
+    out_names = _derivative_names(order, by_u)
     d = {"v": v}
     if order >= 1:
         d["g"] = xp.zeros_like(v)

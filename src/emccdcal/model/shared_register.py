@@ -369,8 +369,7 @@ class SharedRegister:
                 part = part - self.E * A
             elif name == "register_cic":
                 part = part - A
-            columns.append(xp.broadcast_to(part, p.shape) if hasattr(part, "shape")
-                           else xp.full(p.shape, part, dtype=p.dtype, device=_xp.device(p)))
+            columns.append(part)  # (every shared part has at least one table)
         return p, xp.stack([xp.broadcast_to(c, p.shape) for c in columns], axis=-1), low
 
 
