@@ -195,3 +195,39 @@ def test_blocks_on_a_gpu_fill_a_share_of_its_free_memory():
     assert _blocks_for(2**40, 128, 1024) == (8192, 8192)         # capped
     assert _blocks_for(2**30, 128, 1024) == (128, 1024)          # a small card
     assert _blocks_for(80 * 2**30, 64, 1024) == (64, 1024)       # the caller's choice
+
+
+def test_every_verb_with_a_device_refuses_one_that_is_not_there(series):
+    """Every verb that offers ``--device`` (found from the parsers) refuses an unknown
+    device with one line before any work, through the same check; and a GPU neither CuPy
+    nor PyTorch finds the same way."""
+    from emccdcal.acquire.plan import plan
+    from emccdcal.fit.darkgain import check_gain
+    from emccdcal.fit.posterior import sample_posterior
+
+    gs, _ = series
+    calls = {
+        "calibrate": lambda device: calibrate(gs.manifest, "gs", device=device),
+        "posterior": lambda device: sample_posterior(gs.manifest, "gs", [(0, 0)],
+                                                     device=device),
+        "plan": lambda device: plan(e_per_adu=3.859, read_noise=15.5, offset=500.0,
+                                    device=device),
+        "gain-check": lambda device: check_gain([np.zeros((10, 2, 2))], 3.859,
+                                                device=device),
+    }
+    offering = set()
+    for verb in cli.VERBS:
+        sub = cli.build_parser(verb)._subparsers._group_actions[0].choices[verb]
+        if any("--device" in a.option_strings for a in sub._actions):
+            offering.add(verb)
+    assert offering == set(calls)
+    try:
+        _xp.resolve("cuda")
+        absent = ["tpu"]
+    except OptionError:
+        absent = ["tpu", "cuda"]
+    for verb, call in calls.items():
+        for device in absent:
+            with pytest.raises(OptionError, match=f"device '{device}'") as err:
+                call(device)
+            assert "\n" not in str(err.value), verb
