@@ -719,15 +719,8 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
     acqs = manifest.acquisitions
     rows, cols = manifest.shape
     phi_map, phi_se, phi_source = _e_per_adu_inputs(manifest, e_per_adu, accept_mismatch)
-    setpoints_all = [a.em_gain_setpoint for a in acqs]
     options = layouts.check_options(method, options)  # before any stack is read
-    if method.startswith("mv-"):
-        idx = _select_mv(method, setpoints_all, phi_map is not None)
-    else:
-        idx = layouts.select_acquisitions(
-            method, setpoints_all, [a.level for a in acqs], phi_map is not None
-        )
-    used = [acqs[i] for i in idx]
+    used = _used_acquisitions(method, acqs, phi_map is not None)
     if phi_map is not None and method not in ("is-adu", "mv-adu") and not accept_phi:
         check_e_per_adu(phi_map, phi_se, phi_source, used, method)
     tiles = plan_tiles(rows * cols, tile_pixels, block_size)
@@ -766,18 +759,48 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
             (block_size, tiles[0][1] - tiles[0][0]), model), resume=resume, overwrite=overwrite)
     jobs = [tile_job(p0, p1, model) for p0, p1 in tiles]
     parts = _run_tiles(jobs, store, scheduler, progress, method, workers)
-    arrays = {}
-    for key in [k for k in parts[0] if not k.startswith(_QUALITY)]:
-        arrays[key] = np.concatenate([p.pop(key) for p in parts])  # one copy at a time
-    # (parts now hold the data-quality statistics only, checked once the fit is known)
+    arrays = _joined(parts)  # parts keep the data-quality statistics, checked once fitted
     _warn_saturated_and_unusable(manifest, used, arrays)
     if method.startswith("mv-"):
         ds = _mv_dataset(method, manifest, used, arrays, phi_map, phi_se, model)
-        ds.attrs["standard_errors"] = "from the photon-transfer fit, conditional on the offset maps"
     else:
         ds = _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, options,
-                                 intervals, model)
-        ds.attrs["standard_errors"] = se_note
+                                 intervals, model, se_note)
+    _record_provenance(ds, method, manifest, model, register_attrs, device, phi_source,
+                       phi_se is not None)
+    if checks:  # the findings quote the light this fit found, not a rough guess of it
+        report, messages = _quality(manifest, used, parts, tiles, _fitted_light(ds, used))
+        for w in messages:
+            warnings.warn(w, stacklevel=2)
+        if report is not None:
+            ds.attrs["quality"] = json.dumps(report)
+    del parts
+    _require_convergence(ds, method)
+    _warn_gain_order(ds)
+    return ds
+
+
+def _joined(parts) -> dict:
+    """The tiles' per-pixel arrays joined, each moved out of ``parts`` (one copy at a
+    time); the data-quality statistics stay in ``parts``."""
+    return {key: np.concatenate([p.pop(key) for p in parts])
+            for key in [k for k in parts[0] if not k.startswith(_QUALITY)]}
+
+
+def _used_acquisitions(method, acqs, phi_given: bool) -> list:
+    """The manifest's acquisitions that ``method`` fits, in its order."""
+    setpoints = [a.em_gain_setpoint for a in acqs]
+    if method.startswith("mv-"):
+        idx = _select_mv(method, setpoints, phi_given)
+    else:
+        idx = layouts.select_acquisitions(method, setpoints, [a.level for a in acqs], phi_given)
+    return [acqs[i] for i in idx]
+
+
+def _record_provenance(ds, method, manifest, model, register_attrs, device, phi_source,
+                       phi_has_se: bool) -> None:
+    """Write into ``ds.attrs`` what the numbers came from: the register model, the device,
+    the camera's identity, where φ came from."""
     if method != "mv-adu":  # the register model of the likelihood, or mv-gain's F²
         ds.attrs.update(model.attrs, **register_attrs)
     if not method.startswith("mv-"):  # where the likelihood was computed
@@ -787,21 +810,10 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
         ds.attrs["e_per_adu_source"] = str(phi_source)
         if phi_source.kind == "result":  # chained: the result φ and its error came from
             ds.attrs["e_per_adu_result"] = str(phi_source.path)
-    if phi_se is not None:
+    if phi_has_se:
         ds.attrs["standard_errors"] += (
             f"; and the error of e_per_adu ({phi_source}): it moves every E and g of a pixel "
             "together (delta method through the likelihood, or the photon-transfer formulas)")
-    # the checks' findings quote the light this fit found, not a rough guess of it
-    report, messages = (_quality(manifest, used, parts, tiles, _fitted_light(ds, used))
-                        if checks else (None, []))
-    del parts
-    for w in messages:
-        warnings.warn(w, stacklevel=2)
-    if report is not None:
-        ds.attrs["quality"] = json.dumps(report)
-    _require_convergence(ds, method)
-    _warn_gain_order(ds)
-    return ds
 
 
 def _warn_saturated_and_unusable(manifest, used, arrays):
@@ -1044,17 +1056,15 @@ def _map_error_sources(used, map_errors):
     return dark_frames, groups, note
 
 
-def _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, options,
-                        intervals, model):
-    """The result of a likelihood method from the per-pixel arrays of every tile."""
-    rows, cols = manifest.shape
-    setpoints = np.array([a.em_gain_setpoint for a in used])
-    est, gof_p, converged = arrays, arrays["gof_pvalue"], arrays["converged"]
+def _warn_fit_problems(method, used, arrays, model) -> None:
+    """Warn of pixels that did not converge and of acquisitions the model misfits."""
+    setpoints = [a.em_gain_setpoint for a in used]
+    converged, gof_p = arrays["converged"], arrays["gof_pvalue"]
     not_conv = int((~converged & arrays["usable"]).sum())
     if not_conv:
         warnings.warn(f"{method}: {not_conv} of {int(arrays['usable'].sum())} fitted pixel(s) "
                       "did not converge (converged = False): their numbers are not estimates "
-                      "and must not be used; the converged pixels' results stand", stacklevel=3)
+                      "and must not be used; the converged pixels' results stand", stacklevel=4)
     kind = "level" if method.startswith("is-") else "set-point"
     keys = _labels(used) if kind == "level" else [result.format_setpoint(s) + "x" for s in setpoints]
     multiplied = [k for k, sp in zip(keys, setpoints) if sp != 1]
@@ -1069,7 +1079,16 @@ def _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, opt
                   "check MANIFEST') name a cause to fix (drift, saturation, offset or "
                   "read-noise maps of another mode, a mislabelled set-point); where they name "
                   "none, leave that acquisition out of the manifest and compare")
-        warnings.warn(w, stacklevel=3)
+        warnings.warn(w, stacklevel=4)
+
+
+def _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, options,
+                        intervals, model, se_note):
+    """The result of a likelihood method from the per-pixel arrays of every tile."""
+    rows, cols = manifest.shape
+    setpoints = np.array([a.em_gain_setpoint for a in used])
+    est, gof_p, converged = arrays, arrays["gof_pvalue"], arrays["converged"]
+    _warn_fit_problems(method, used, arrays, model)
     grid = lambda a: a.T.reshape((-1, rows, cols)) if a.ndim == 2 else a.reshape(rows, cols)  # noqa: E731
     labels = _labels(used)
     per_acq_dim = "level" if method.startswith("is-") else "setpoint"
@@ -1128,6 +1147,7 @@ def _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, opt
     bounds = _bounds_of(method, intervals)
     if bounds is not None:
         _add_bounds(ds, est, grid, *bounds)
+    ds.attrs["standard_errors"] = se_note
     return ds
 
 
@@ -1205,6 +1225,7 @@ def _mv_dataset(method, manifest, used, arrays, phi_map, phi_se=None, model=None
     _add_interval_vars(ds, bounds, "Fieller",
                        "Fieller, 95 %, from the photon-transfer fit, conditional on the "
                        "offset/read-noise maps")
+    ds.attrs["standard_errors"] = "from the photon-transfer fit, conditional on the offset maps"
     return ds
 
 

@@ -101,12 +101,29 @@ def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication=defau
         gs_paper = calibrate(gs_sim.manifest, "gs", e_per_adu=outdir / "result-is-adu",
                              em_model=defaults.PAPER_EM_MODEL, checks=False)
 
+    _print_table(adu_sim.truth, truth, adu, gs, gs_paper, multiplication, out)
+    print(f"  results: {outdir / 'result-is-adu'}, {outdir / 'result-gs'}", file=out)
+    for w in dict.fromkeys(str(c.message) for c in caught):
+        print(f"  warning: {w}", file=out)
+    if html is not None:
+        print(f"\nreport: {html}", file=out)
+    if temporary:  # the simulated frames (tens of MB) go; the results and report stay
+        for series in ("adu-series", "gain-series"):
+            shutil.rmtree(outdir / series, ignore_errors=True)
+        print(f"(the simulated frames were removed from {outdir}; 'emccdcal demo -o DIR' "
+              "keeps them)", file=out)
+    return {"adu": adu, "gs": gs, "outdir": outdir, "report": html}
+
+
+def _print_table(adu_truth, truth, adu, gs, gs_paper, multiplication, out) -> None:
+    """The demo's table: truth against the estimates of both steps."""
+    rows, cols = adu.sizes["row"], adu.sizes["col"]
     print("\nstep 1: ADU conversion factor from the 1x intensity series (is-adu)", file=out)
     header = f"  {'quantity':<28}{'truth':>12}{'estimate':>12}{'± SE':>10}"
     print(header, file=out)
-    print(f"  {'e_per_adu (e-/ADU)':<28}{adu_sim.truth['e_per_adu']:>12.4f}"
+    print(f"  {'e_per_adu (e-/ADU)':<28}{adu_truth['e_per_adu']:>12.4f}"
           f"{_median(adu.e_per_adu):>12.4f}{_median(adu.e_per_adu_se):>10.4f}", file=out)
-    for i, acq in enumerate(adu_sim.truth["acquisitions"]):
+    for i, acq in enumerate(adu_truth["acquisitions"]):
         print(f"  {'photoelectrons ' + str(adu.level.values[i]) + ' (e-)':<28}"
               f"{acq['photoelectrons']:>12.1f}{_median(adu.photoelectrons[i]):>12.1f}"
               f"{_median(adu.photoelectrons_se[i]):>10.1f}", file=out)
@@ -133,16 +150,3 @@ def run_demo(outdir=None, *, rows=16, cols=16, frames=5000, multiplication=defau
           f"which reproduces the paper's numbers; this camera's register is "
           f"the {multiplication} model)",
           file=out)
-    print(f"  results: {outdir / 'result-is-adu'}, {outdir / 'result-gs'}", file=out)
-    for w in dict.fromkeys(str(c.message) for c in caught):
-        print(f"  warning: {w}", file=out)
-    if html is not None:
-        print(f"\nreport: {html}", file=out)
-    if temporary:  # the simulated frames (tens of MB) go; the results and report stay
-        for series in ("adu-series", "gain-series"):
-            shutil.rmtree(outdir / series, ignore_errors=True)
-        print(f"(the simulated frames were removed from {outdir}; 'emccdcal demo -o DIR' "
-              "keeps them)", file=out)
-    return {"adu": adu, "gs": gs, "outdir": outdir, "report": html}
-
-

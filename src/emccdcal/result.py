@@ -944,6 +944,48 @@ def _acquisition_setpoints(ds, dim):
     return np.full(ds.sizes[dim], float(setpoints[0]) if len(setpoints) == 1 else np.nan)
 
 
+def _load_members(parts, label, shape, of) -> list:
+    """``[(file, dataset)]`` of a group's members, each given once and, where ``shape``
+    is given, covering exactly that sensor region."""
+    loaded: list = []
+    for part in parts:
+        p = Path(part)
+        ds = load(p)
+        f = p / CALIBRATION_FILE if p.is_dir() else p
+        twice = [g for g, _ in loaded if g.resolve() == f.resolve()]
+        if twice:
+            raise OptionError(f"{label}: {f} is given twice; give each result once")
+        rows, cols = ds["row"].values, ds["col"].values
+        if shape is not None:
+            R, C = shape
+            if not (np.array_equal(rows, np.arange(R)) and np.array_equal(cols, np.arange(C))):
+                raise OptionError(
+                    f"{f}: calibration covers rows {_span(rows)} and columns {_span(cols)}, "
+                    f"but {of} are {R}×{C} (rows 0–{R - 1}, columns 0–{C - 1}); "
+                    "a calibration of the same sensor region is needed"
+                )
+        loaded.append((f, ds))
+    return loaded
+
+
+def _members_em_model(label, loaded):
+    """The one register model of a group's members: that of those that measured a gain
+    (1x has no register); of a 1x-only group, the model it was fitted with, else the
+    default."""
+    from .model.noise import EMModel
+
+    models = {EMModel.from_attrs(ds.attrs) for _, ds in loaded
+              if "em_gain" in ds and np.any(ds["setpoint"].values != 1)} - {None}
+    if len(models) > 1:
+        raise OptionError(f"{label}: its members were fitted with different EM register "
+                          f"models ({', '.join(sorted(map(str, models)))}); group results "
+                          "of one model")
+    if not models:  # 1x only (is-adu): the model it was fitted with, else the default's
+        models = {next((m for m in (EMModel.from_attrs(ds.attrs) for _, ds in loaded) if m),
+                       EMModel(defaults.DEFAULT_EM_MODEL))}
+    return models.pop()
+
+
 def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
     """Read a calibration result, or merge a comma-joined group of them.
 
@@ -968,28 +1010,10 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
         giving the same set-point, two members that both measured φ, or members fitted
         with different register models. The message names the file.
     """
-    from .model.noise import EMModel
 
     parts = _members(spec)
     label = ",".join(parts)
-    loaded: list = []
-    for part in parts:
-        p = Path(part)
-        ds = load(p)
-        f = p / CALIBRATION_FILE if p.is_dir() else p
-        twice = [g for g, _ in loaded if g.resolve() == f.resolve()]
-        if twice:
-            raise OptionError(f"{label}: {f} is given twice; give each result once")
-        rows, cols = ds["row"].values, ds["col"].values
-        if shape is not None:
-            R, C = shape
-            if not (np.array_equal(rows, np.arange(R)) and np.array_equal(cols, np.arange(C))):
-                raise OptionError(
-                    f"{f}: calibration covers rows {_span(rows)} and columns {_span(cols)}, "
-                    f"but {of} are {R}×{C} (rows 0–{R - 1}, columns 0–{C - 1}); "
-                    "a calibration of the same sensor region is needed"
-                )
-        loaded.append((f, ds))
+    loaded = _load_members(parts, label, shape, of)
     shapes = {(ds.sizes["row"], ds.sizes["col"]) for _, ds in loaded}
     if len(shapes) > 1:
         raise OptionError(f"{label}: the files cover different sensor regions {sorted(shapes)}")
@@ -1057,16 +1081,7 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
             f"({np.nanmedian(phi):.4g}); the group uses its phi",
             stacklevel=2,
         )
-    # The register model of the members that measured a gain (1x has no register).
-    models = {EMModel.from_attrs(ds.attrs) for _, ds in loaded
-              if "em_gain" in ds and np.any(ds["setpoint"].values != 1)} - {None}
-    if len(models) > 1:
-        raise OptionError(f"{label}: its members were fitted with different EM register "
-                          f"models ({', '.join(sorted(map(str, models)))}); group results "
-                          "of one model")
-    if not models:  # 1x only (is-adu): the model it was fitted with, else the default's
-        models = {next((m for m in (EMModel.from_attrs(ds.attrs) for _, ds in loaded) if m),
-                       EMModel(defaults.DEFAULT_EM_MODEL))}
+    model = _members_em_model(label, loaded)
     origins = {tuple(int(v) for v in ds.attrs["sensor_origin"]) for _, ds in loaded
                if "sensor_origin" in ds.attrs}
     binnings = {tuple(int(v) for v in np.atleast_1d(ds.attrs["binning"])) for _, ds in loaded
@@ -1078,7 +1093,7 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
         label=label, files=tuple(f for f, _ in loaded), method="+".join(dict.fromkeys(methods)),
         e_per_adu=phi, e_per_adu_se=masked(loaded[i_phi][1], "e_per_adu_se"),
         em_gain=gains, em_gain_se=gains_se, offset=offsets, read_noise=read_noise,
-        em_model=models.pop(), camera=camera,
+        em_model=model, camera=camera,
         origin=origins.pop() if len(origins) == 1 else None,
         binning=binnings.pop() if binnings else None,
         created=max(str(ds.attrs.get("created", "")) for _, ds in loaded),

@@ -701,6 +701,27 @@ def _recentred_fit(stack, roi, width, init):
     return data, SpotFit(params, expected, jac, conv & ~off), shift
 
 
+def _spot_inputs(stack, roi, register, e_per_adu, read_noise):
+    """:func:`cots_spot`'s inputs checked: the stack as float, the ROI as (top, left,
+    rows, cols) and the read-noise map (ADU) of the frames' shape."""
+    stack = np.asarray(stack)
+    if stack.ndim != 3:
+        raise OptionError(f"COTS needs a (frames, rows, cols) stack, got shape {stack.shape}")
+    F, R, C = stack.shape
+    if F < MIN_FRAMES:
+        raise OptionError(f"COTS needs at least {MIN_FRAMES} frames of the spot, got {F}")
+    top, left, h, w = (0, 0, R, C) if roi is None else (int(v) for v in roi)
+    if top < 0 or left < 0 or top + h > R or left + w > C or min(h, w) < 3:
+        raise OptionError(f"ROI (top {top}, left {left}, {h}×{w}) does not fit in the "
+                         f"{R}×{C} frames (or is smaller than 3×3)")
+    if register is not None and not (e_per_adu is not None and e_per_adu > 0):
+        raise OptionError("COTS: a register model needs e_per_adu (e-/ADU) to know its gain")
+    noise_map = np.broadcast_to(np.asarray(read_noise, float), (R, C))
+    if not np.all(np.isfinite(noise_map) & (noise_map >= 0)):
+        raise OptionError("COTS: read_noise must be finite and >= 0 (ADU)")
+    return stack.astype(float, copy=False), (top, left, h, w), noise_map
+
+
 def cots_spot(stack, *, roi=None, width=DEFAULT_WIDTH, init=None, gain0=None, offset0=None,
               exclude=None, adc_max=None, read_noise=0.0, register=None, e_per_adu=None):
     """Calibration-on-the-spot on the frames of one isolated spot.
@@ -758,22 +779,9 @@ def cots_spot(stack, *, roi=None, width=DEFAULT_WIDTH, init=None, gain0=None, of
     >>> bool(abs(r.gain - 5.0) < 4 * r.gain_se), bool(abs(r.offset - 100.0) < 4 * r.offset_se)
     (True, True)
     """
-    stack = np.asarray(stack)
-    if stack.ndim != 3:
-        raise OptionError(f"COTS needs a (frames, rows, cols) stack, got shape {stack.shape}")
+    stack, (top, left, h, w), noise_map = _spot_inputs(stack, roi, register, e_per_adu,
+                                                        read_noise)
     F, R, C = stack.shape
-    if F < MIN_FRAMES:
-        raise OptionError(f"COTS needs at least {MIN_FRAMES} frames of the spot, got {F}")
-    top, left, h, w = (0, 0, R, C) if roi is None else (int(v) for v in roi)
-    if top < 0 or left < 0 or top + h > R or left + w > C or min(h, w) < 3:
-        raise OptionError(f"ROI (top {top}, left {left}, {h}×{w}) does not fit in the "
-                         f"{R}×{C} frames (or is smaller than 3×3)")
-    if register is not None and not (e_per_adu is not None and e_per_adu > 0):
-        raise OptionError("COTS: a register model needs e_per_adu (e-/ADU) to know its gain")
-    noise_map = np.broadcast_to(np.asarray(read_noise, float), (R, C))
-    if not np.all(np.isfinite(noise_map) & (noise_map >= 0)):
-        raise OptionError("COTS: read_noise must be finite and >= 0 (ADU)")
-    stack = stack.astype(float, copy=False)
     data, fit, shift = _recentred_fit(stack, (top, left, h, w), width, init)
     usable = fit.converged.copy()
     if exclude is not None:

@@ -468,22 +468,8 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     s0_se = _pixel_map("offset_se", 0.0 if offset_se is None else offset_se, (R, C), boxes,
                        pos, at_least=0.0)
     if B == 0 or F == 0:
-        empty = np.zeros((B, F, _NP))
-        none = np.full((B, n, n), np.nan)
-        return BeadFits(pos, empty, empty.copy(), np.zeros((B, F)), np.zeros((B, F), bool),
-                        np.zeros((B, 3), int), 0, 0, none, none.copy(), np.full(B, np.nan),
-                        np.full(B, np.nan), np.stack([none, none]), np.stack([none, none]),
-                        residual_split)
-    counts = np.stack([np.asarray(frames[:, rs, cs]).reshape(F, n * n) for rs, cs in boxes])
-    counts = counts.astype(np.int64)  # (B, F, npix)
-    if counts.min() < 0:
-        raise OptionError("frames hold negative counts; raw ADU are non-negative")
-    weight = np.ones(counts.shape)
-    n_sat = 0
-    if adc_max is not None:
-        sat = counts >= adc_max
-        n_sat = int(sat.sum())
-        weight[sat] = 0.0
+        return _no_fits(pos, F, n, residual_split)
+    counts, weight, n_sat = _box_counts(frames, boxes, adc_max)
 
     box = _Boxes(counts, weight, S0, sigma, phi, g, half_size, residual)
     # 0: each bead's mean image (Gaussian approximation): its shape
@@ -494,10 +480,7 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
     # frame to frame (the module's notes say why).
     if fixed_width is not None:
         p_bead[:, 2] = fixed
-    shared = [0, 1] if fixed_width is not None else [0, 1, 2]
-    frame = [3, 4] if background == "frame" else [3]
-    if background == "shared":
-        shared = shared + [4]
+    shared, frame = _shared_and_frame(fixed_width is not None, background)
     layout = ArrowLayout(F, _NP, shared, frame, lower, upper)
     p1, _, it_gauss = _joint_fit(box.objective_gauss, box.frame_start(p_bead, background),
                                  layout, tol=5e-5, max_iter=max_iter)
@@ -544,6 +527,44 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         intensity_shared_se=_shared_error_of_mean(sensitivity, shared_cov, converged,
                                                   width_var),
     )
+
+
+def _no_fits(pos, F, n, residual_split) -> BeadFits:
+    """The fits of no bead or no frame: empty arrays of the right shapes."""
+    B = len(pos)
+    empty = np.zeros((B, F, _NP))
+    none = np.full((B, n, n), np.nan)
+    return BeadFits(pos, empty, empty.copy(), np.zeros((B, F)), np.zeros((B, F), bool),
+                    np.zeros((B, 3), int), 0, 0, none, none.copy(), np.full(B, np.nan),
+                    np.full(B, np.nan), np.stack([none, none]), np.stack([none, none]),
+                    residual_split)
+
+
+def _box_counts(frames, boxes, adc_max):
+    """Every bead's box in every frame, ``(B, F, npix)`` int64, with the pixels' weights
+    (0 where saturated at ``adc_max``) and the number of saturated pixels."""
+    F = frames.shape[0]
+    counts = np.stack([np.asarray(frames[:, rs, cs]).reshape(F, -1) for rs, cs in boxes])
+    counts = counts.astype(np.int64)
+    if counts.min() < 0:
+        raise OptionError("frames hold negative counts; raw ADU are non-negative")
+    weight = np.ones(counts.shape)
+    n_sat = 0
+    if adc_max is not None:
+        sat = counts >= adc_max
+        n_sat = int(sat.sum())
+        weight[sat] = 0.0
+    return counts, weight, n_sat
+
+
+def _shared_and_frame(width_fixed: bool, background: str):
+    """The parameters a bead shares over its frames and those each frame has its own
+    (indices into x, y, width, intensity, background)."""
+    shared = [0, 1] if width_fixed else [0, 1, 2]
+    frame = [3, 4] if background == "frame" else [3]
+    if background == "shared":
+        shared = shared + [4]
+    return shared, frame
 
 
 class _Boxes:

@@ -51,6 +51,7 @@ missing; a bead whose box has a missing value is left out for that calibration.
 from __future__ import annotations
 
 import datetime as _dt
+import functools
 import json
 import math
 import time
@@ -588,11 +589,9 @@ def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_
         """The beads ``ok`` in acquisition ``j`` of the layout under ``cal`` (cached:
         calibrations that agree there share the fit); ``fixed`` widths with their SE."""
         acq, g = layout[j].acq, cal.gain(layout[j].setpoint)
-        key = (j, positions[ok].tobytes(), _boxes_bytes(cal.e_per_adu, positions[ok],
-                                                       half_size),
-               _boxes_bytes(g, positions[ok], half_size), cal.em_model,
-               None if fixed is None else fixed.tobytes(),
-               None if fixed_se is None else fixed_se.tobytes(),
+        boxes = [_boxes_bytes(m, positions[ok], half_size) for m in (cal.e_per_adu, g)]
+        extras = [None if x is None else x.tobytes() for x in (fixed, fixed_se)]
+        key = (j, positions[ok].tobytes(), *boxes, cal.em_model, *extras,
                None if residual is None else residual.values.tobytes(), psf_split)
         if key not in cache:
             # the offset map's own error: the dark frames' SD over their square root
@@ -611,45 +610,10 @@ def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_
     with progress_bar(enabled=progress, desc="fitting beads", unit="stack",
                       total=passes * len(cals) * A) as bar:
         for ci, cal in enumerate(cals):
-            ok = np.ones(B, bool)
-            for s in setpoints:
-                bad = ~_box_ok(cal.e_per_adu, cal.gain(s), positions, half_size)
-                if bad.any():
-                    warnings.warn(
-                        f"{cal.label}: no usable e_per_adu (> 0) or gain (>= 1) at "
-                        f"{result.format_setpoint(s)}x in the box of {int(bad.sum())} bead(s) "
-                        f"at (row, col) {_pairs(positions[bad])}; left out for this calibration",
-                        stacklevel=2,
-                    )
-                ok &= ~bad
-            # Pass 1: each acquisition with the width free (shared by its frames); the
-            # widths pooled over set-points are every bead's one width for pass 2.
-            first = []
-            for j, slot in enumerate(layout):
-                bar.set_postfix_str(f"{cal.method} {slot.key}x (width)")
-                first.append(fit_at(cal, j, ok))
-                bar.update(1)
-            widths, widths_se = bead_fit.shared_widths(first, with_se=True)
-            if not np.isfinite(widths).all():
-                widths = None
-            fits = []
-            for j, slot in enumerate(layout):
-                bar.set_postfix_str(f"{cal.method} {slot.key}x")
-                fits.append(fit_at(cal, j, ok, widths, fixed_se=widths_se)
-                            if widths is not None else first[j])
-                bar.update(1)
-            gaussian = [bead_fit.psf_mismatch(f) for f in fits]
-            if psf != "gaussian":  # the paper's second pass: the residual image added,
-                # built on half 0 of the frames; half 1 scores it (psf_mismatch below)
-                image = bead_fit.residual_image(fits, per_bead=psf == "residual", half=0)
-                fits = []
-                for j, slot in enumerate(layout):
-                    bar.set_postfix_str(f"{cal.method} {slot.key}x (residual)")
-                    fits.append(fit_at(cal, j, ok, widths, image, fixed_se=widths_se))
-                    bar.update(1)
-            mismatch.append({"gaussian": gaussian} | (
-                {} if psf == "gaussian" else
-                {psf: [bead_fit.psf_mismatch(f, half=1, image=image) for f in fits]}))
+            ok = _usable_beads(cal, setpoints, positions, half_size)
+            fits, found = _passes(functools.partial(fit_at, cal), cal.method, ok, layout,
+                                  psf, bar)
+            mismatch.append(found)
             idx = np.flatnonzero(ok)
             for slot, fit in zip(layout, fits):
                 at = (ci, idx, slot.row, slice(slot.first, slot.first + slot.acq.n_frames))
@@ -672,6 +636,57 @@ def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_
         offset_se = np.sqrt(offset_var) / conv.sum(axis=3)
         shared_se = np.sqrt(shared_var) / conv.sum(axis=3)
     return _Fitted(arr, arr_se, loglik, conv, offset_se, shared_se, mismatch)
+
+
+def _passes(fit_at, method, ok, layout, psf, bar):
+    """The fits of one calibration's beads ``ok`` in every acquisition of the layout
+    (``fit_at(j, ok, widths, image, fixed_se=)``), in two passes or three, and how well
+    the PSF model fits them: ``(fits, mismatch)``."""
+    # Pass 1: each acquisition with the width free (shared by its frames); the
+    # widths pooled over set-points are every bead's one width for pass 2.
+    first = []
+    for j, slot in enumerate(layout):
+        bar.set_postfix_str(f"{method} {slot.key}x (width)")
+        first.append(fit_at(j, ok))
+        bar.update(1)
+    widths, widths_se = bead_fit.shared_widths(first, with_se=True)
+    if not np.isfinite(widths).all():
+        widths = None
+    fits = []
+    for j, slot in enumerate(layout):
+        bar.set_postfix_str(f"{method} {slot.key}x")
+        fits.append(fit_at(j, ok, widths, fixed_se=widths_se)
+                    if widths is not None else first[j])
+        bar.update(1)
+    gaussian = [bead_fit.psf_mismatch(f) for f in fits]
+    if psf != "gaussian":  # the paper's second pass: the residual image added,
+        # built on half 0 of the frames; half 1 scores it (psf_mismatch below)
+        image = bead_fit.residual_image(fits, per_bead=psf == "residual", half=0)
+        fits = []
+        for j, slot in enumerate(layout):
+            bar.set_postfix_str(f"{method} {slot.key}x (residual)")
+            fits.append(fit_at(j, ok, widths, image, fixed_se=widths_se))
+            bar.update(1)
+    return fits, {"gaussian": gaussian} | (
+        {} if psf == "gaussian" else
+        {psf: [bead_fit.psf_mismatch(f, half=1, image=image) for f in fits]})
+
+
+def _usable_beads(cal, setpoints, positions, half_size) -> np.ndarray:
+    """Which beads have a usable φ (> 0) and gain (≥ 1) in their box at every set-point
+    under ``cal``; a warning names the others, left out for this calibration."""
+    ok = np.ones(len(positions), bool)
+    for s in setpoints:
+        bad = ~_box_ok(cal.e_per_adu, cal.gain(s), positions, half_size)
+        if bad.any():
+            warnings.warn(
+                f"{cal.label}: no usable e_per_adu (> 0) or gain (>= 1) at "
+                f"{result.format_setpoint(s)}x in the box of {int(bad.sum())} bead(s) "
+                f"at (row, col) {_pairs(positions[bad])}; left out for this calibration",
+                stacklevel=3,
+            )
+        ok &= ~bad
+    return ok
 
 
 def _boxes_bytes(m, positions, half_size):

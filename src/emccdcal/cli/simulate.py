@@ -142,10 +142,6 @@ def _run_beads(args) -> int:
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     """Add ``simulate {gain-series,intensity-series,beads}`` to the ``emccdcal`` command line."""
-    from ..defaults import BEAD_CAMERA as CAMERA_DEFAULTS
-    from ..defaults import BEAD_SIMULATION as BEAD_DEFAULTS
-    from ..defaults import CAMERA_SIMULATION as _DEFAULTS
-
     p = subparsers.add_parser(
         "simulate",
         help="write synthetic stacks, darks, a manifest and truth.json",
@@ -160,6 +156,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
     p.set_defaults(func=no_kind)
     kinds = p.add_subparsers(dest="kind", metavar="KIND")
+    _add_gain_series(kinds)
+    _add_intensity_series(kinds)
+    _add_beads(kinds)
+    return p
+
+
+def _add_gain_series(kinds) -> None:
+    from ..defaults import CAMERA_SIMULATION as _DEFAULTS
 
     gs = kinds.add_parser(
         "gain-series", help="fixed illumination at several EM gain set-points",
@@ -172,6 +176,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     _camera_options(gs)
     gs.set_defaults(func=_run_gain_series)
 
+
+def _add_intensity_series(kinds) -> None:
     is_ = kinds.add_parser(
         "intensity-series", help="several illumination levels at one EM gain set-point",
         description="Simulate an intensity series: several illumination levels at one EM gain "
@@ -188,6 +194,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                      help="true mean EM gain (default: from the set-point)")
     _camera_options(is_)
     is_.set_defaults(func=_run_intensity_series)
+
+
+def _add_beads(kinds) -> None:
+    from ..defaults import BEAD_CAMERA as CAMERA_DEFAULTS
+    from ..defaults import BEAD_SIMULATION as BEAD_DEFAULTS
 
     bd = kinds.add_parser(
         "beads", help="isolated beads at several EM gain set-points (bead validation)",
@@ -227,4 +238,3 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     _setpoint_options(bd)
     _camera_options(bd, CAMERA_DEFAULTS)
     bd.set_defaults(func=_run_beads)
-    return p

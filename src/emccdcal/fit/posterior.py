@@ -370,19 +370,7 @@ def sample_posterior(
     3.94
     """
     t0 = time.perf_counter()
-    if prior not in PRIORS:
-        raise OptionError(f"unknown prior {prior!r}; choose one of {', '.join(PRIORS)}")
-    if method not in layouts.LIKELIHOOD_METHODS:
-        raise MethodError(
-            f"posterior sampling needs a likelihood method ({', '.join(layouts.LIKELIHOOD_METHODS)})"
-            f"; {method!r} is not one"
-            + (" (the mean-variance methods have no likelihood)" if str(method).startswith("mv-") else "")
-        )
-    for name, v, lo in (("max_steps", max_steps, 10), ("min_ess", min_ess, 1)):
-        if isinstance(v, bool) or int(v) != v or v < lo:
-            raise OptionError(f"{name} must be an integer >= {lo}, got {v!r}")
-    if n_steps is not None and (isinstance(n_steps, bool) or int(n_steps) != n_steps or n_steps < 10):
-        raise OptionError(f"n_steps must be an integer >= 10, got {n_steps!r}")
+    _check_sampling(prior, method, max_steps, min_ess, n_steps)
     options = layouts.check_options(method, options)
     _xp.resolve(device)  # an unknown or missing device: one line before any work
     if not isinstance(manifest, Manifest):
@@ -445,6 +433,23 @@ def sample_posterior(
     if out is not None:
         save(ds, out)
     return ds
+
+
+def _check_sampling(prior, method, max_steps, min_ess, n_steps) -> None:
+    """One line for a sampling option :func:`sample_posterior` cannot take."""
+    if prior not in PRIORS:
+        raise OptionError(f"unknown prior {prior!r}; choose one of {', '.join(PRIORS)}")
+    if method not in layouts.LIKELIHOOD_METHODS:
+        raise MethodError(
+            f"posterior sampling needs a likelihood method ({', '.join(layouts.LIKELIHOOD_METHODS)})"
+            f"; {method!r} is not one"
+            + (" (the mean-variance methods have no likelihood)" if str(method).startswith("mv-") else "")
+        )
+    for name, v, lo in (("max_steps", max_steps, 10), ("min_ess", min_ess, 1)):
+        if isinstance(v, bool) or int(v) != v or v < lo:
+            raise OptionError(f"{name} must be an integer >= {lo}, got {v!r}")
+    if n_steps is not None and (isinstance(n_steps, bool) or int(n_steps) != n_steps or n_steps < 10):
+        raise OptionError(f"n_steps must be an integer >= 10, got {n_steps!r}")
 
 
 def _posterior_dataset(per_pixel, names, units, attrs) -> xarray.Dataset:

@@ -331,7 +331,15 @@ def simulate_beads(
 
     files.append(_write_truth_calibration(outdir, opts, sps, gains, scene, acqs, pattern,
                                           manifest, manifest_text))
-    options = {k: opts[k] for k in sorted(opts)}
+    truth = _bead_truth(opts, pos, N, frames_off, pattern_file, truth_acqs)
+    truth_path = outdir / "truth.json"
+    files.append(atomic_write_text(truth_path, json.dumps(truth, indent=2) + "\n"))
+    files.append(atomic_write_text(manifest, manifest_text))
+    return SimulatedSeries(outdir, manifest, truth_path, truth, tuple(files))
+
+
+def _bead_truth(opts, pos, N, frames_off, pattern_file, truth_acqs) -> dict:
+    """truth.json's content for :func:`simulate_beads` (the options already checked)."""
     units = dict(_UNITS) | {"width": "pixel", "background": "e-/px/frame",
                             "bead photoelectrons": "e-/frame (whole bead)",
                             "row": "pixel", "col": "pixel"}
@@ -341,14 +349,14 @@ def simulate_beads(
         "seed": opts["seed"],
         "units": units,
         "beads": [{"row": float(r), "col": float(c), "photoelectrons": float(n)}
-                  | ({"frames_off": k} if off > 0 else {})
+                  | ({"frames_off": k} if opts["blinking"] > 0 else {})
                   for (r, c), n, k in zip(pos, N, frames_off)],
-        "width": s,
-        "background": b,
-        "bleaching": fade,
-        "halo": h,
-        "halo_width": h_sd if h else None,
-        "blinking": off,
+        "width": opts["width"],
+        "background": opts["background"],
+        "bleaching": opts["bleaching"],
+        "halo": opts["halo"],
+        "halo_width": opts["halo_width"],
+        "blinking": opts["blinking"],
         **_camera_truth(opts, pattern_file),
         "calibration": TRUTH_CALIBRATION_FILE,
         "acquisitions": truth_acqs,
@@ -359,12 +367,9 @@ def simulate_beads(
             "read_noise is the SD of the Gaussian read-out before rounding; "
             "dark-map SD ~ sqrt(read_noise^2 + 1/12)",
         ],
-        "options": options,
+        "options": {k: opts[k] for k in sorted(opts)},
     }
-    truth_path = outdir / "truth.json"
-    files.append(atomic_write_text(truth_path, json.dumps(truth, indent=2) + "\n"))
-    files.append(atomic_write_text(manifest, manifest_text))
-    return SimulatedSeries(outdir, manifest, truth_path, truth, tuple(files))
+    return truth
 
 
 def _bead_positions(positions, n_beads, shape, margin, min_separation, rng) -> np.ndarray:
