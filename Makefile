@@ -6,7 +6,9 @@ BIN := $(VENV)/bin
 CORE := $(VENV)/.installed-core
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-fast bench clean
+DOCS := $(VENV)/.installed-docs
+
+.PHONY: demo test test-fast bench docs clean
 
 $(CORE): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -34,8 +36,18 @@ test: $(STAMP)
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow" $(PARALLEL)
 
+$(DOCS): $(CORE)
+	$(BIN)/python -m pip install --quiet -e '.[docs]'
+	touch $(DOCS)
+
+# The site, from the pages in docs/, the docstrings, the parsers and the gallery's scripts
+# (executed); any warning fails the build. Open docs/_build/html/index.html.
+docs: $(DOCS)
+	$(BIN)/python -m sphinx -W --keep-going -q -b html docs docs/_build/html
+
 bench: $(STAMP)
 	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done
 
 clean:
-	rm -rf $(VENV) build src/*.egg-info .pytest_cache
+	rm -rf $(VENV) build src/*.egg-info .pytest_cache docs/_build docs/generated \
+		docs/auto_examples docs/sg_execution_times.rst

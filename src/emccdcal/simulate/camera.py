@@ -134,7 +134,7 @@ class Camera:
         Clock-induced charge, e⁻ per pixel per frame (0), multiplied like photoelectrons.
     drift : float
         Linear drift of the illumination over each acquisition, as a fraction of E from
-        the first frame to the last (|drift| ≤ 2; 0).
+        the first frame to the last (abs(drift) ≤ 2; 0).
     adc_bits : int
         ADC resolution, bits (1–16; 16): counts are clipped to ``[0, 2**adc_bits − 1]``.
     cascade_method : {"pmf", "stages"}
@@ -331,7 +331,7 @@ def simulate_frames(
     drift : float, optional
         Linear drift of the illumination: the photoelectron rate goes from
         ``E·(1 − drift/2)`` at the first frame to ``E·(1 + drift/2)`` at the last, so
-        that its mean over the frames is E (|drift| ≤ 2; default 0).
+        that its mean over the frames is E (abs(drift) ≤ 2; default 0).
     adc_bits : int, optional
         ADC resolution, bits (1–16; default 16): counts are clipped to
         ``[0, 2**adc_bits − 1]``.
