@@ -14,9 +14,7 @@ import html
 import json
 import os
 import re
-import resource
 import shutil
-import subprocess
 import warnings
 from pathlib import Path
 
@@ -27,18 +25,13 @@ import pytest
 from emccdcal import calibrate
 from emccdcal.report import html as report_html
 
-CHROMIUM = next((p for p in map(shutil.which, ("chromium", "chromium-browser", "google-chrome"))
-                 if p), None)
+import chromium
+from chromium import CHROMIUM, NOT_HERE
+
 # A headless browser is the slowest thing the suite starts: `make test` runs these,
 # `make test-fast` does not.
-pytestmark = [pytest.mark.slow,
-              pytest.mark.skipif(CHROMIUM is None,
-                                 reason="no Chromium on this machine (Debian package 'chromium')")]
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(CHROMIUM is None, reason=NOT_HERE)]
 from conftest import write_real_manifest  # noqa: E402  (after the marks it shares)
-
-FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-         "--disable-background-networking", "--disable-component-update", "--disable-sync",
-         "--hide-scrollbars", "--mute-audio"]
 
 PROBE = """<script>
 window.addEventListener("load", () => {
@@ -67,23 +60,8 @@ window.addEventListener("load", () => {
 </script>"""
 
 
-def _raise_address_space_limit():
-    """Chromium reserves tens of GB of address space: lift a soft ``ulimit -v``."""
-    hard = resource.getrlimit(resource.RLIMIT_AS)[1]
-    resource.setrlimit(resource.RLIMIT_AS, (hard, hard))
-
-
 def _chromium(tmp_path, *args):
-    profile = tmp_path / "chromium-profile"
-    proc = subprocess.run([CHROMIUM, *FLAGS, f"--user-data-dir={profile}", *args],
-                          capture_output=True, text=True, timeout=120, check=False,
-                          preexec_fn=_raise_address_space_limit)
-    hard = resource.getrlimit(resource.RLIMIT_AS)[1]
-    if proc.returncode != 0 and hard != resource.RLIM_INFINITY:
-        pytest.skip(f"Chromium failed under a hard address-space limit (ulimit -v {hard // 1024} "
-                    "KiB); it needs an unlimited one (set the limit with ulimit -S -v)")
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    return proc.stdout
+    return chromium.run(tmp_path, *args)
 
 
 @pytest.fixture(scope="module")
