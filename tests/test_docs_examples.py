@@ -1,0 +1,264 @@
+"""Every command and Python example of README.md and docs/*.md, run as written.
+
+The examples are read from the pages' fenced blocks: in ``sh``/``console``/plain blocks
+each line that starts with ``emccdcal`` (or ``$ emccdcal``), joined ``&&`` commands
+split; every ``python`` block. A page's examples run in order, in a copy of one small
+world of simulated data named as the docs name it (``gs/``, ``out-adu``, ``out-gs``,
+``darks-300x.tif``, ``movie.tif`` …), through ``emccdcal.cli.main`` in-process: a command
+passes when it exits 0, or 1 (this command line's "a finding": a strict check, an audit
+that is off, a flagged comparison), never 2 (a refused input or option) or with a
+traceback. ``simulate`` commands get a small ``--frames``/``--rows``/``--cols`` where
+they name none: the docs show the verbs and options, not the data's size.
+
+What cannot run here is listed in ``NOT_RUN`` with the reason (installs, real hardware,
+a cluster, a GPU, placeholders such as ``RESULT``); the list is checked against the
+pages, so that it cannot outlive the commands it excuses. The pages on the published
+ProEM data run where ``../shared/data/lanl-proem`` is present.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import shutil
+import time
+from pathlib import Path
+
+import pytest
+import tifffile
+
+from emccdcal import cli
+
+import camera_files
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+pytestmark = [pytest.mark.slow,
+              pytest.mark.skipif(not (ROOT / "docs").is_dir(), reason="not a source tree")]
+
+# Commands that cannot run in a test, each with the reason; a key is the start of the
+# command as the page writes it (after any "$ ").
+NOT_RUN = {
+    "make ": "the Makefile's own targets: CI runs `make test` and `make docs`, "
+             "test_cli the demo",
+    "pip install": "an install from the package index",
+    "emccdcal calibrate gs/manifest.toml -m gs -o out --scheduler tcp://": "a Dask "
+        "cluster at a named host (tests/test_streaming.py starts a local one)",
+    "emccdcal calibrate gs/manifest.toml -m gs -o out --device cuda": "an NVIDIA GPU",
+    "emccdcal validate BEAD_MANIFEST": "the command's synopsis, with placeholders",
+    "emccdcal calibrate session/manifest.toml --method gs --e-per-adu RESULT": "a "
+        "placeholder (RESULT) for the user's own φ",
+    "emccdcal db list [--camera": "the command's synopsis ([optional] options)",
+    "emccdcal db relocate 7 /new/place/out-gs": "a path that stands for the user's",
+    "emccdcal posterior: refused": "a message the command prints, not a command",
+    "emccdcal export out-em17 out-em10 out-conv3": "three read-out modes' calibrations "
+        "(tests/test_export.py merges them)",
+    "emccdcal report out-*/ --validation beads-out/": "a shell glob over the user's results",
+    "echo $?": "the shell's, after the command above it",
+    "emccdcal validate beads/manifest.toml": "calibrations of the beads' 64 × 64 sensor, "
+        "minutes here; the gallery's bead example and tests/test_validation.py run it",
+    "emccdcal db add out-gs                          # serial and read-out from the stacks'":
+        "stacks that record a camera serial (tests/test_export.py reads them from camera "
+        "files); the world's simulated stacks record none",
+}
+
+# Python blocks that cannot run, by their first line, each with the reason.
+NOT_RUN_PYTHON = {
+    "from dask_jobqueue import SLURMCluster": "a SLURM cluster's batch system",
+    "from emccdcal.data import stats": "a call's signature, each argument explained in "
+        "its comment (tests/test_gof.py calls it)",
+}
+
+# Commands run in another form here: a real camera's recording by the simulated camera.
+STAND_IN = {
+    "emccdcal acquire plan/plan.toml -o session/ --mm-config MMConfig.cfg --camera Andor":
+        "emccdcal acquire plan/plan.toml -o session/ --simulated --seed 1 --roi 0,0,16,16",
+}
+
+
+def _commands(block: str) -> list[tuple[int, str]]:
+    """``(line offset, command)`` of every emccdcal/make/pip line of a shell block."""
+    out = []
+    for i, line in enumerate(block.splitlines()):
+        text = line.strip()
+        if text.startswith("$ "):
+            text = text[2:]
+        if not text.startswith(("emccdcal", "make ", "pip install", "echo $?")):
+            continue
+        for part in text.split(" && "):
+            out.append((i, part.strip()))
+    return out
+
+
+def examples(page: Path) -> list[tuple[int, str, str]]:
+    """``(line, kind, text)`` of the page's examples, in order: kind "shell" (one command)
+    or "python" (a whole block)."""
+    text = page.read_text(encoding="utf-8")
+    found = []
+    for m in re.finditer(r"^```([^\n]*)\n(.*?)^```", text, re.M | re.S):
+        line = text.count("\n", 0, m.start()) + 2
+        lang = m.group(1).strip()
+        if lang == "python":
+            found.append((line, "python", m.group(2)))
+        elif lang in ("sh", "bash", "console", "shell", ""):
+            found += [(line + i, "shell", c) for i, c in _commands(m.group(2))]
+    return found
+
+
+def _stand_in(command: str) -> str:
+    """The command as it runs here: itself, or its stand-in (a simulated camera for a
+    real one)."""
+    return next((other for key, other in STAND_IN.items() if command.startswith(key)),
+                command)
+
+
+def _not_run(command: str) -> str | None:
+    return next((why for key, why in NOT_RUN.items() if command.startswith(key)), None)
+
+
+def test_every_excuse_still_names_a_command_of_the_docs():
+    commands = [c for p in PAGES for _, kind, c in examples(p) if kind == "shell"]
+    blocks = [c.splitlines()[0] for p in PAGES for _, kind, c in examples(p) if kind == "python"]
+    stale = [key for key in [*NOT_RUN, *STAND_IN] if not any(c.startswith(key) for c in commands)]
+    stale += [key for key in NOT_RUN_PYTHON if key not in blocks]
+    assert not stale, f"NOT_RUN excuses commands no page shows any more: {stale}"
+    assert sum(1 for p in PAGES for _ in examples(p)) > 100  # the reader finds the blocks
+
+
+# --- the world the docs' commands run in -------------------------------------------------
+
+ROWS = COLS = 16  # the size the README simulates
+FRAMES = 300
+
+
+def _run(*argv) -> None:
+    code = cli.main([str(a) for a in argv])
+    assert code == 0, f"making the docs' world: emccdcal {' '.join(map(str, argv))} -> {code}"
+
+
+def _manifest_at(src: Path, dst: Path) -> None:
+    """A copy of the manifest ``src`` written at ``dst``, its paths made relative to it."""
+    rel = os.path.relpath(src.parent, dst.parent)
+    text = re.sub(r'^(\s*(?:frames|offset|read_noise|dark) = ")', rf'\g<1>{rel}/',
+                  src.read_text(encoding="utf-8"), flags=re.M)
+    dst.write_text(text, encoding="utf-8")
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """The files and results the docs' examples name, on a small simulated camera."""
+    w = tmp_path_factory.mktemp("docs-world")
+    small = ["--rows", ROWS, "--cols", COLS, "--frames", FRAMES]
+    _run("simulate", "intensity-series", "-o", w / "adu", "--seed", 1, *small)
+    _run("simulate", "gain-series", "-o", w / "gs", "--seed", 2, *small,
+         "--setpoints", "1,5,25,50,100,300", "--cic", "0.05")  # events in the darks
+    _run("calibrate", w / "adu/manifest.toml", "--method", "is-adu", "-o", w / "out-adu", "-q")
+    _run("calibrate", w / "gs/manifest.toml", "--method", "gs", "--e-per-adu", w / "out-adu",
+         "-o", w / "out-gs", "-q")
+    for s in (5, 25, 100, 300):  # is-gain results, one set-point each
+        _run("simulate", "intensity-series", "-o", w / f"is-{s}", "--seed", 10 + s,
+             "--setpoint", s, "--levels", "20,40,80", *small)
+        _run("calibrate", w / f"is-{s}/manifest.toml", "--method", "is-gain", "--e-per-adu",
+             w / "out-adu", "-o", w / f"out-g{s}", "-q")
+    for name, src in (("manifest.toml", "gs"), ("gain.toml", "gs"), ("adu.toml", "adu")):
+        _manifest_at(w / src / "manifest.toml", w / name)
+    shutil.copytree(w / "out-gs", w / "OUT")
+    darks = tifffile.imread(w / "gs/gain-GS/300x-gain_no-signal.tif")
+    tifffile.imwrite(w / "darks-300x.tif", darks)  # the set-point in its name
+    camera_files.write_micromanager_tiff(w / "darks.tif", darks, em_gain=300)  # in its tags
+    light = tifffile.imread(w / "gs/gain-GS/300x-gain.tif")
+    movie = light.copy()
+    movie[:, :8] = darks[: len(movie), :8]  # masked rows, as on a frame-transfer sensor
+    camera_files.write_micromanager_tiff(w / "movie.tif", movie, em_gain=300)
+    tifffile.imwrite(w / "movie-50x.tif", tifffile.imread(w / "gs/gain-GS/50x-gain.tif"))
+    for name, g in (("movie.spe", 300), ("movie-50x.spe", 50)):
+        camera_files.write_spe(w / name, light, em_gain=g)
+    (w / "session").mkdir()  # a folder of camera files for scan
+    for f in (w / "gs/gain-GS").glob("*.tif"):
+        shutil.copy(f, w / "session" / f.name)
+    _run("simulate", "beads", "-o", w / "beads", "--seed", 5, "--beads", 4, "--rows", 48,
+         "--cols", 48, "--frames", 30, "--dark-frames", 100)
+    home = w / "home"
+    (home / ".picasso").mkdir(parents=True)
+    _run("export", w / "out-gs", "--to", "picasso", "--setpoint", 300, "-o", w / "picasso")
+    shutil.copy(w / "picasso/picasso-config.yaml", home / ".picasso/config.yaml")
+    db = ["--db", home / "calibrations.sqlite"]  # the camera's calibrations, 12345
+    _run("calibrate", w / "gs/manifest.toml", "--method", "gs", "--e-per-adu", w / "out-adu",
+         "--em-model", "gamma", "-o", w / "out-gamma", "-q")  # an earlier calibration
+    for name in ("out-adu", "out-g5", "out-g25", "out-g100", "out-g300", "out-gamma"):
+        _run("db", "add", w / name, "--camera", "12345", *db)
+    return w
+
+
+def _small(argv: list[str]) -> list[str]:
+    """A ``simulate`` command made small where it names no size."""
+    if argv[:1] != ["simulate"]:
+        return argv
+    size = (("--frames", 30), ("--dark-frames", 100)) if argv[1:2] == ["beads"] else \
+        (("--frames", FRAMES), ("--rows", ROWS), ("--cols", COLS))
+    return argv + [str(v) for flag, value in size if flag not in argv for v in (flag, value)]
+
+
+def _output(argv: list[str]) -> Path | None:
+    """Where a command writes (``-o``), if it says."""
+    for flag in ("-o", "--out"):
+        if flag in argv[:-1]:
+            return Path(argv[argv.index(flag) + 1])
+    return None
+
+
+def _shell(command: str) -> list[str]:
+    argv = shlex.split(command, comments=True)
+    assert argv[0] == "emccdcal", command
+    return _small([os.path.expanduser(a) for a in argv[1:]])
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
+def test_the_examples_of_a_page_run_as_written(page, world, tmp_path, monkeypatch, capsys,
+                                                request):
+    items = examples(page)
+    if not items:
+        pytest.skip(f"{page.name} has no example")
+    if page.name == "first-calibration.md" or "gain-GS/" in page.read_text(encoding="utf-8"):
+        real = request.getfixturevalue("real_data")
+    else:
+        real = None
+    work = tmp_path / "w"
+    shutil.copytree(world, work)
+    if real is not None:  # the published camera's folders, and a movie of it
+        for name in ("ADU", "gain-GS"):
+            shutil.copytree(real / name, work / name)
+        shutil.copy(real / "gain-GS/300x-gain.tif", work / "movie.tif")
+    monkeypatch.chdir(work)
+    monkeypatch.setenv("HOME", str(work / "home"))
+    monkeypatch.setenv("EMCCDCAL_DB", str(work / "home" / "calibrations.sqlite"))
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    namespace: dict = {}
+    failures, made, seconds = [], set(), []
+    for line, kind, text in items:
+        where = f"{page.name}:{line}"
+        if kind == "python":
+            if text.splitlines()[0] in NOT_RUN_PYTHON:
+                continue
+            try:
+                exec(compile(text, where, "exec"), namespace)
+            except Exception as exc:  # noqa: BLE001 - reported with its line
+                failures.append(f"{where}: python block: {type(exc).__name__}: {exc}")
+            continue
+        if _not_run(text):
+            continue
+        argv = _shell(_stand_in(text))
+        out = _output(argv)
+        if out is not None and out not in made:  # the page makes it: not the world's copy
+            shutil.rmtree(out, ignore_errors=True) if out.is_dir() else out.unlink(
+                missing_ok=True)
+            made.add(out)
+        t0 = time.perf_counter()
+        code = cli.main(argv)
+        seconds.append((time.perf_counter() - t0, text))
+        err = capsys.readouterr().err
+        if code not in (0, 1):
+            failures.append(f"{where}: `{text}` exited {code}: {err.strip()[-400:]}")
+    print("slowest:", *(f"{t:.1f} s {c}" for t, c in sorted(seconds)[::-1][:5]), sep="\n  ")
+    assert not failures, "\n".join(failures)
