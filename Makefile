@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 
 DOCS := $(VENV)/.installed-docs
 
-.PHONY: demo test test-fast bench docs clean
+.PHONY: demo test test-fast test-docs bench docs clean
 
 $(CORE): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -28,13 +28,18 @@ demo: $(CORE)
 PARALLEL := -n auto --dist loadfile
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q $(PARALLEL)
+	$(BIN)/python -m pytest -q $(PARALLEL) -m "not docs_examples"
 
 # The quick loop while developing: everything but the tests marked slow and the files
 # that run verbs end to end (tests/conftest.py's END_TO_END); the target is 90 s on 2
 # cores, docs/benchmarks.md has what it takes now.
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not slow" $(PARALLEL)
+	$(BIN)/python -m pytest -q -m "not slow and not docs_examples" $(PARALLEL)
+
+# Every command and Python example of README.md and docs/ run as written, each page in
+# a copy of a small simulated world (tests/test_docs_examples.py; a few minutes).
+test-docs: $(STAMP)
+	$(BIN)/python -m pytest -q -n auto --dist load -m docs_examples tests/test_docs_examples.py
 
 $(DOCS): $(CORE)
 	$(BIN)/python -m pip install --quiet -e '.[docs]'

@@ -14,6 +14,9 @@ What cannot run here is listed in ``NOT_RUN`` with the reason (installs, real ha
 a cluster, a GPU, placeholders such as ``RESULT``); the list is checked against the
 pages, so that it cannot outlive the commands it excuses. The pages on the published
 ProEM data run where ``../shared/data/lanl-proem`` is present.
+
+The pages' runs (marker ``docs_examples``, a few minutes: three MCMC samplings, two
+demos, several reports) are ``make test-docs``, which CI runs beside ``make test``.
 """
 
 from __future__ import annotations
@@ -34,8 +37,7 @@ import camera_files
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
-pytestmark = [pytest.mark.slow,
-              pytest.mark.skipif(not (ROOT / "docs").is_dir(), reason="not a source tree")]
+pytestmark = pytest.mark.skipif(not (ROOT / "docs").is_dir(), reason="not a source tree")
 
 # Commands that cannot run in a test, each with the reason; a key is the start of the
 # command as the page writes it (after any "$ ").
@@ -126,6 +128,10 @@ def test_every_excuse_still_names_a_command_of_the_docs():
     assert sum(1 for p in PAGES for _ in examples(p)) > 100  # the reader finds the blocks
 
 
+# The pages whose commands read the published ProEM folders (ADU/, gain-GS/).
+ON_REAL_DATA = {"first-calibration.md", "formats.md"}
+
+
 # --- the world the docs' commands run in -------------------------------------------------
 
 ROWS = COLS = 16  # the size the README simulates
@@ -150,7 +156,8 @@ def world(tmp_path_factory):
     """The files and results the docs' examples name, on a small simulated camera."""
     w = tmp_path_factory.mktemp("docs-world")
     small = ["--rows", ROWS, "--cols", COLS, "--frames", FRAMES]
-    _run("simulate", "intensity-series", "-o", w / "adu", "--seed", 1, *small)
+    _run("simulate", "intensity-series", "-o", w / "adu", "--seed", 1, *small,
+         "--levels", "2000,8000,32000")
     _run("simulate", "gain-series", "-o", w / "gs", "--seed", 2, *small,
          "--setpoints", "1,5,25,50,100,300", "--cic", "0.05")  # events in the darks
     _run("calibrate", w / "adu/manifest.toml", "--method", "is-adu", "-o", w / "out-adu", "-q")
@@ -161,7 +168,9 @@ def world(tmp_path_factory):
              "--setpoint", s, "--levels", "20,40,80", *small)
         _run("calibrate", w / f"is-{s}/manifest.toml", "--method", "is-gain", "--e-per-adu",
              w / "out-adu", "-o", w / f"out-g{s}", "-q")
-    for name, src in (("manifest.toml", "gs"), ("gain.toml", "gs"), ("adu.toml", "adu")):
+    _run("simulate", "gain-series", "-o", w / "gs3", "--seed", 3, *small,
+         "--setpoints", "1,25,300")  # three set-points: the posterior's example, quicker
+    for name, src in (("manifest.toml", "gs"), ("gain.toml", "gs3"), ("adu.toml", "adu")):
         _manifest_at(w / src / "manifest.toml", w / name)
     shutil.copytree(w / "out-gs", w / "OUT")
     darks = tifffile.imread(w / "gs/gain-GS/300x-gain_no-signal.tif")
@@ -186,8 +195,9 @@ def world(tmp_path_factory):
     db = ["--db", home / "calibrations.sqlite"]  # the camera's calibrations, 12345
     _run("calibrate", w / "gs/manifest.toml", "--method", "gs", "--e-per-adu", w / "out-adu",
          "--em-model", "gamma", "-o", w / "out-gamma", "-q")  # an earlier calibration
+    readout = ["--readout", "Electron Multiplying, 10 MHz, analog gain 2"]  # as the docs'
     for name in ("out-adu", "out-g5", "out-g25", "out-g100", "out-g300", "out-gamma"):
-        _run("db", "add", w / name, "--camera", "12345", *db)
+        _run("db", "add", w / name, "--camera", "12345", *readout, *db)
     return w
 
 
@@ -214,28 +224,27 @@ def _shell(command: str) -> list[str]:
     return _small([os.path.expanduser(a) for a in argv[1:]])
 
 
+@pytest.mark.docs_examples
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
 def test_the_examples_of_a_page_run_as_written(page, world, tmp_path, monkeypatch, capsys,
                                                 request):
     items = examples(page)
     if not items:
         pytest.skip(f"{page.name} has no example")
-    if page.name == "first-calibration.md" or "gain-GS/" in page.read_text(encoding="utf-8"):
-        real = request.getfixturevalue("real_data")
-    else:
-        real = None
+    real = request.getfixturevalue("real_data") if page.name in ON_REAL_DATA else None
     work = tmp_path / "w"
     shutil.copytree(world, work)
     if real is not None:  # the published camera's folders, and a movie of it
         for name in ("ADU", "gain-GS"):
             shutil.copytree(real / name, work / name)
-        shutil.copy(real / "gain-GS/300x-gain.tif", work / "movie.tif")
+        if page.name == "first-calibration.md":  # its movie is of that camera, at 300x
+            shutil.copy(real / "gain-GS/300x-gain.tif", work / "movie.tif")
     monkeypatch.chdir(work)
     monkeypatch.setenv("HOME", str(work / "home"))
     monkeypatch.setenv("EMCCDCAL_DB", str(work / "home" / "calibrations.sqlite"))
     monkeypatch.setenv("MPLBACKEND", "Agg")
     namespace: dict = {}
-    failures, made, seconds = [], set(), []
+    failures, made, seconds, db_used = [], set(), [], False
     for line, kind, text in items:
         where = f"{page.name}:{line}"
         if kind == "python":
@@ -249,6 +258,9 @@ def test_the_examples_of_a_page_run_as_written(page, world, tmp_path, monkeypatc
         if _not_run(text):
             continue
         argv = _shell(_stand_in(text))
+        if argv[:2] == ["db", "add"] and not db_used:  # the page starts its own database
+            (work / "home" / "calibrations.sqlite").unlink(missing_ok=True)
+        db_used |= argv[0] == "db" or "--camera" in argv
         out = _output(argv)
         if out is not None and out not in made:  # the page makes it: not the world's copy
             shutil.rmtree(out, ignore_errors=True) if out.is_dir() else out.unlink(
@@ -259,6 +271,6 @@ def test_the_examples_of_a_page_run_as_written(page, world, tmp_path, monkeypatc
         seconds.append((time.perf_counter() - t0, text))
         err = capsys.readouterr().err
         if code not in (0, 1):
-            failures.append(f"{where}: `{text}` exited {code}: {err.strip()[-400:]}")
+            failures.append(f"{where}: `{text}` exited {code}: {err.strip()[-600:]}")
     print("slowest:", *(f"{t:.1f} s {c}" for t, c in sorted(seconds)[::-1][:5]), sep="\n  ")
     assert not failures, "\n".join(failures)
