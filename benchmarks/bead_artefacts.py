@@ -66,13 +66,19 @@ def main():
 
     print(machine())
     print(time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))
-    out = {"machine": machine(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-           "seed": args.seed, "frames": args.frames, "scenarios": {}}
+    out = {
+        "machine": machine(),
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "seed": args.seed,
+        "frames": args.frames,
+        "scenarios": {},
+    }
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.only:
             sim_options, runs = SCENARIOS[name]
-            sim = simulate_beads(Path(tmp) / name, frames=args.frames, seed=args.seed,
-                                 **sim_options)
+            sim = simulate_beads(
+                Path(tmp) / name, frames=args.frames, seed=args.seed, **sim_options
+            )
             truth = sim.outdir / "truth_calibration.nc"
             wrong = wrong_calibration(truth, Path(tmp) / f"{name}-wrong")
             rows = []
@@ -80,14 +86,20 @@ def main():
                 t0 = time.perf_counter()
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always")
-                    doc = validation.validate(sim.manifest, [str(truth), str(wrong)],
-                                              **options)
+                    doc = validation.validate(sim.manifest, [str(truth), str(wrong)], **options)
                 seconds = time.perf_counter() - t0
                 t, w = doc["calibrations"]
-                rel = {k: float(np.mean([b["mean_intensity"][k] / b["mean_intensity"]["1"]
-                                         for b in t["beads"]])) for k in doc["setpoints"]}
+                rel = {
+                    k: float(
+                        np.mean(
+                            [b["mean_intensity"][k] / b["mean_intensity"]["1"] for b in t["beads"]]
+                        )
+                    )
+                    for k in doc["setpoints"]
+                }
                 row = {
-                    "options": options, "seconds": seconds,
+                    "options": options,
+                    "seconds": seconds,
                     "truth_sigma_incl_1x": t["sigma_means_incl_1x"],
                     "wrong_sigma_incl_1x": w["sigma_means_incl_1x"],
                     "truth_first": doc["ranking"][0] == str(truth),
@@ -100,27 +112,37 @@ def main():
                 }
                 rows.append(row)
                 print(f"\n{name} {options or '(defaults)'}: {seconds:.0f} s")
-                print(f"  sigma incl 1x: truth {100 * row['truth_sigma_incl_1x']:.3f} %, "
-                      f"25x 2 % low {100 * row['wrong_sigma_incl_1x']:.3f} %; "
-                      f"truth ranks first: {row['truth_first']}")
-                print("  truth, mean bead intensity / 1x mean: "
-                      + ", ".join(f"{k}x {v:.4f}" for k, v in rel.items()))
+                print(
+                    f"  sigma incl 1x: truth {100 * row['truth_sigma_incl_1x']:.3f} %, "
+                    f"25x 2 % low {100 * row['wrong_sigma_incl_1x']:.3f} %; "
+                    f"truth ranks first: {row['truth_first']}"
+                )
+                print(
+                    "  truth, mean bead intensity / 1x mean: "
+                    + ", ".join(f"{k}x {v:.4f}" for k, v in rel.items())
+                )
                 if name == "blinking":
                     true_off = sum(b["frames_off"] for b in sim.truth["beads"])
                     print(f"  frames off: found {row['frames_off_found']}, true {true_off}")
                     row["frames_off_true"] = true_off
                 for model, per in t["psf_mismatch"].items():
-                    print(f"  chi2/pixel ({model}): "
-                          + ", ".join(f"{k} {v['chi2_per_pixel']:.2f}" for k, v in per.items()))
+                    print(
+                        f"  chi2/pixel ({model}): "
+                        + ", ".join(f"{k} {v['chi2_per_pixel']:.2f}" for k, v in per.items())
+                    )
                 if t["intensity_trend"]["detected"]:
                     tr = t["intensity_trend"]
-                    print(f"  trend: fade {100 * tr['fade_over_series']:.2f} % "
-                          f"(z {tr['z']:.1f}), corrected {tr['corrected']}")
+                    print(
+                        f"  trend: fade {100 * tr['fade_over_series']:.2f} % "
+                        f"(z {tr['z']:.1f}), corrected {tr['corrected']}"
+                    )
                 for r in t["repeats"]:
                     for later in r["later"]:
-                        print(f"  repeat {r['setpoint']}x: {later['acquisition']} / {r['first']}"
-                              f" = {later['ratio']:.4f} ± {later['ratio_se']:.4f} "
-                              f"(z {later['z']:.1f})")
+                        print(
+                            f"  repeat {r['setpoint']}x: {later['acquisition']} / {r['first']}"
+                            f" = {later['ratio']:.4f} ± {later['ratio_se']:.4f} "
+                            f"(z {later['z']:.1f})"
+                        )
             out["scenarios"][name] = {"simulation": sim_options, "runs": rows}
     if args.json is not None:
         args.json.write_text(json.dumps(out, indent=2) + "\n")

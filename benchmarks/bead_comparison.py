@@ -58,19 +58,41 @@ def simulate(work, args):
     from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
 
     common = dict(rows=args.rows, cols=args.cols, multiplication="cascade", seed=None)
-    jobs = [("adu", lambda d, s: simulate_intensity_series(
-        d, setpoint=1, frames=args.frames, **(common | {"seed": s})))]
+    jobs = [
+        (
+            "adu",
+            lambda d, s: simulate_intensity_series(
+                d, setpoint=1, frames=args.frames, **(common | {"seed": s})
+            ),
+        )
+    ]
     for sp in GAIN_SETPOINTS:
         # brightest level near 30 000 ADU above offset, six levels a factor 2 apart
         top = 30000.0 * PHI / TRUE_GAIN[sp]
         levels = [top / 2**k for k in range(5, -1, -1)]
-        jobs.append((f"is-{sp}x", lambda d, s, sp=sp, levels=levels: simulate_intensity_series(
-            d, setpoint=sp, levels=levels, frames=args.frames, **(common | {"seed": s}))))
-    jobs.append(("gs", lambda d, s: simulate_gain_series(
-        d, frames=args.frames, **(common | {"seed": s}))))
-    jobs.append((_beads_dir(args), lambda d, s: simulate_beads(
-        d, frames=args.bead_frames, beads=args.beads, halo=args.halo,
-        **(common | {"seed": s}))))
+        jobs.append(
+            (
+                f"is-{sp}x",
+                lambda d, s, sp=sp, levels=levels: simulate_intensity_series(
+                    d, setpoint=sp, levels=levels, frames=args.frames, **(common | {"seed": s})
+                ),
+            )
+        )
+    jobs.append(
+        ("gs", lambda d, s: simulate_gain_series(d, frames=args.frames, **(common | {"seed": s})))
+    )
+    jobs.append(
+        (
+            _beads_dir(args),
+            lambda d, s: simulate_beads(
+                d,
+                frames=args.bead_frames,
+                beads=args.beads,
+                halo=args.halo,
+                **(common | {"seed": s}),
+            ),
+        )
+    )
     for i, (name, run) in enumerate(jobs):
         d = work / name
         if (d / "manifest.toml").is_file():
@@ -96,8 +118,7 @@ def calibrate_all(work, em_model="gamma", beads="beads"):
             t0 = time.perf_counter()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                calibrate(manifest, method, e_per_adu=phi, out=out, checks=False,
-                          em_model=model)
+                calibrate(manifest, method, e_per_adu=phi, out=out, checks=False, em_model=model)
             log(f"calibrated {name} in {time.perf_counter() - t0:.0f} s")
         return out / result.CALIBRATION_FILE
 
@@ -137,9 +158,14 @@ def gain_table(files):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             cal = result.load_calibration(spec)
-        rows[label] = {"e_per_adu": float(np.nanmedian(cal.e_per_adu)),
-                       **{str(s): float(np.nanmedian(cal.em_gain[float(s)]))
-                          for s in GAIN_SETPOINTS if float(s) in cal.em_gain}}
+        rows[label] = {
+            "e_per_adu": float(np.nanmedian(cal.e_per_adu)),
+            **{
+                str(s): float(np.nanmedian(cal.em_gain[float(s)]))
+                for s in GAIN_SETPOINTS
+                if float(s) in cal.em_gain
+            },
+        }
     return rows
 
 
@@ -152,13 +178,26 @@ def main():
     parser.add_argument("--bead-frames", type=int, default=500)
     parser.add_argument("--beads", type=int, default=10)
     parser.add_argument("--seed", type=int, default=2021)
-    parser.add_argument("--em-model", choices=("gamma", "cascade"), default="gamma",
-                        help="register model of the methods' likelihoods and of the bead "
-                        "fits (the data are always the exact cascade)")
-    parser.add_argument("--halo", type=float, default=0.0,
-                        help="fraction of the beads' light in a halo (3x the PSF width)")
-    parser.add_argument("--psf", nargs="+", choices=("gaussian", "residual", "residual-pooled"),
-                        default=["gaussian"], help="spot models to validate with, in turn")
+    parser.add_argument(
+        "--em-model",
+        choices=("gamma", "cascade"),
+        default="gamma",
+        help="register model of the methods' likelihoods and of the bead "
+        "fits (the data are always the exact cascade)",
+    )
+    parser.add_argument(
+        "--halo",
+        type=float,
+        default=0.0,
+        help="fraction of the beads' light in a halo (3x the PSF width)",
+    )
+    parser.add_argument(
+        "--psf",
+        nargs="+",
+        choices=("gaussian", "residual", "residual-pooled"),
+        default=["gaussian"],
+        help="spot models to validate with, in turn",
+    )
     args = parser.parse_args()
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
@@ -168,9 +207,11 @@ def main():
     beads = _beads_dir(args)
     files = calibrate_all(work, args.em_model, beads)
     for psf in args.psf:
-        suffix = ("" if args.em_model == "gamma" else f"_{args.em_model}") \
-            + ("" if args.halo == 0 else f"_halo{args.halo:g}") \
+        suffix = (
+            ("" if args.em_model == "gamma" else f"_{args.em_model}")
+            + ("" if args.halo == 0 else f"_halo{args.halo:g}")
             + ("" if psf == "gaussian" else f"_{psf}")
+        )
         compare(work, args, files, beads, psf, suffix, t_start)
 
 
@@ -180,10 +221,12 @@ def compare(work, args, files, beads, psf, suffix, t_start):
 
     specs = {
         "truth": str(work / beads / "truth_calibration.nc"),
-        "mv-adu + mv-gain": ",".join(str(files[k]) for k in
-                                     ["mv-adu"] + [f"mv-gain-{s}x" for s in GAIN_SETPOINTS]),
-        "is-adu + is-gain": ",".join(str(files[k]) for k in
-                                     ["is-adu"] + [f"is-gain-{s}x" for s in GAIN_SETPOINTS]),
+        "mv-adu + mv-gain": ",".join(
+            str(files[k]) for k in ["mv-adu"] + [f"mv-gain-{s}x" for s in GAIN_SETPOINTS]
+        ),
+        "is-adu + is-gain": ",".join(
+            str(files[k]) for k in ["is-adu"] + [f"is-gain-{s}x" for s in GAIN_SETPOINTS]
+        ),
         "gs": str(files["gs"]),
         "gs-no1x": str(files["gs-no1x"]),
         "gs-hierarchical": str(files["gs-hierarchical"]),
@@ -193,8 +236,9 @@ def compare(work, args, files, beads, psf, suffix, t_start):
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        doc = validation.validate(work / beads / "manifest.toml", list(specs.values()),
-                                  out=out, progress=True, psf=psf)
+        doc = validation.validate(
+            work / beads / "manifest.toml", list(specs.values()), out=out, progress=True, psf=psf
+        )
     t_validate = time.perf_counter() - t0
     log(f"validated {len(specs)} calibrations in {t_validate:.0f} s")
     from emccdcal.report.figures import write_validation_figures
@@ -207,28 +251,39 @@ def compare(work, args, files, beads, psf, suffix, t_start):
     gains = gain_table(specs)
 
     # Per set-point: mean over beads of (mean intensity / 1× mean) for each calibration.
-    summary = {"machine": machine(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-               "seconds_validate": t_validate,
-               "seconds_total": time.perf_counter() - t_start, "options": vars(args) | {
-                   "work": str(work)}, "calibrations": []}
+    summary = {
+        "machine": machine(),
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "seconds_validate": t_validate,
+        "seconds_total": time.perf_counter() - t_start,
+        "options": vars(args) | {"work": str(work)},
+        "calibrations": [],
+    }
     for c in doc["calibrations"]:
         rel = {}
         for s in doc["setpoints"]:
-            r = [b["mean_intensity"][s] / b["mean_intensity"]["1"] for b in c["beads"]
-                 if b["mean_intensity"][s] is not None and b["mean_intensity"]["1"]]
+            r = [
+                b["mean_intensity"][s] / b["mean_intensity"]["1"]
+                for b in c["beads"]
+                if b["mean_intensity"][s] is not None and b["mean_intensity"]["1"]
+            ]
             rel[s] = {"mean": float(np.mean(r)), "sd": float(np.std(r, ddof=1))}
-        summary["calibrations"].append({
-            "name": names[c["file"]], "method": c["method"],
-            "sigma_means_incl_1x": c["sigma_means_incl_1x"],
-            "sigma_means_excl_1x": c["sigma_means_excl_1x"],
-            "sigma_means_incl_1x_ddof1": c["sigma_means_incl_1x_ddof1"],
-            "sigma_means_excl_1x_ddof1": c["sigma_means_excl_1x_ddof1"],
-            "intensity_relative_to_1x": rel,
-            "median_gain": gains[names[c["file"]]],
-            "mean_intensity_over_beads": {
-                s: float(np.mean([b["mean_intensity"][s] for b in c["beads"]]))
-                for s in doc["setpoints"]},
-        })
+        summary["calibrations"].append(
+            {
+                "name": names[c["file"]],
+                "method": c["method"],
+                "sigma_means_incl_1x": c["sigma_means_incl_1x"],
+                "sigma_means_excl_1x": c["sigma_means_excl_1x"],
+                "sigma_means_incl_1x_ddof1": c["sigma_means_incl_1x_ddof1"],
+                "sigma_means_excl_1x_ddof1": c["sigma_means_excl_1x_ddof1"],
+                "intensity_relative_to_1x": rel,
+                "median_gain": gains[names[c["file"]]],
+                "mean_intensity_over_beads": {
+                    s: float(np.mean([b["mean_intensity"][s] for b in c["beads"]]))
+                    for s in doc["setpoints"]
+                },
+            }
+        )
     summary["ranking"] = [names[f] for f in doc["ranking"]]
     summary["beads"] = len(doc["calibrations"][0]["beads"])
     FIGURES.mkdir(parents=True, exist_ok=True)
@@ -260,8 +315,9 @@ def plot_relative(summary, path):
         m = [v["mean"] for v in c["intensity_relative_to_1x"].values()]
         sd = [v["sd"] for v in c["intensity_relative_to_1x"].values()]
         dodge = 1 + 0.04 * (i - (n - 1) / 2)
-        ax.errorbar(np.array(sps) * dodge, m, yerr=sd, fmt="o-", ms=4, capsize=3,
-                    label=f"{c['name']}")
+        ax.errorbar(
+            np.array(sps) * dodge, m, yerr=sd, fmt="o-", ms=4, capsize=3, label=f"{c['name']}"
+        )
     ax.axhline(1.0, color="k", ls=":", lw=1)
     ax.set_xscale("log")
     ax.set_xlabel("EM gain set-point (dimensionless)")
@@ -273,8 +329,9 @@ def plot_relative(summary, path):
     excl = [100 * c["sigma_means_excl_1x"] for c in summary["calibrations"]]
     ax2.bar(pos - 0.2, incl, width=0.4, label="with 1×")
     ax2.bar(pos + 0.2, excl, width=0.4, label="without 1×")
-    ax2.set_xticks(pos, [c["name"] for c in summary["calibrations"]], rotation=30, ha="right",
-                   fontsize=8)
+    ax2.set_xticks(
+        pos, [c["name"] for c in summary["calibrations"]], rotation=30, ha="right", fontsize=8
+    )
     ax2.set_ylabel("σ of per-set-point means / 1× mean (%, ddof 0)")
     ax2.set_yscale("log")
     ax2.set_title("consistency metric, mean over beads (lower is better)", fontsize=9)

@@ -48,27 +48,45 @@ def main() -> None:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
-            sim = simulate_beads(Path(tmp) / f"b{seed}", seed=seed, beads=args.beads,
-                                 photoelectrons=args.photoelectrons, frames=args.frames,
-                                 setpoints=setpoints)
+            sim = simulate_beads(
+                Path(tmp) / f"b{seed}",
+                seed=seed,
+                beads=args.beads,
+                photoelectrons=args.photoelectrons,
+                frames=args.frames,
+                setpoints=setpoints,
+            )
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                doc = validate(sim.manifest, [str(sim.outdir / TRUTH_CALIBRATION_FILE)],
-                               out=Path(tmp) / f"v{seed}")
-            truth = {(round(b["row"]), round(b["col"])): b["photoelectrons"]
-                     for b in sim.truth["beads"]}
+                doc = validate(
+                    sim.manifest,
+                    [str(sim.outdir / TRUTH_CALIBRATION_FILE)],
+                    out=Path(tmp) / f"v{seed}",
+                )
+            truth = {
+                (round(b["row"]), round(b["col"])): b["photoelectrons"] for b in sim.truth["beads"]
+            }
             beads = doc["calibrations"][0]["beads"]
             for b in beads:
-                true = min(truth.items(), key=lambda t: (t[0][0] - b["row"]) ** 2
-                           + (t[0][1] - b["col"]) ** 2)[1]
-                by_bead.append([np.nan if b["mean_intensity"][k] is None else
-                                (b["mean_intensity"][k] - true) / b["mean_intensity_se"][k]
-                                for k in keys])
+                true = min(
+                    truth.items(),
+                    key=lambda t: (t[0][0] - b["row"]) ** 2 + (t[0][1] - b["col"]) ** 2,
+                )[1]
+                by_bead.append(
+                    [
+                        np.nan
+                        if b["mean_intensity"][k] is None
+                        else (b["mean_intensity"][k] - true) / b["mean_intensity_se"][k]
+                        for k in keys
+                    ]
+                )
             for k in keys:
                 rows = []
                 for b in beads:
-                    true = min(truth.items(), key=lambda t: (t[0][0] - b["row"]) ** 2
-                               + (t[0][1] - b["col"]) ** 2)[1]
+                    true = min(
+                        truth.items(),
+                        key=lambda t: (t[0][0] - b["row"]) ** 2 + (t[0][1] - b["col"]) ** 2,
+                    )[1]
                     mean, se = b["mean_intensity"][k], b["mean_intensity_se"][k]
                     shared = b["mean_intensity_se_shared"][k]
                     if mean is None or se is None:
@@ -81,35 +99,49 @@ def main() -> None:
                 for name, e in (("old", old), ("new", new)):
                     pooled[name].append((m.mean() - t.mean()) / (np.sqrt(np.sum(e**2)) / e.size))
             print(f"seed {seed} done ({time.perf_counter() - t0:.0f} s)", flush=True)
-    print(f"\n{args.seeds} seeds x {args.beads} beads of {args.photoelectrons:g} e-, "
-          f"{args.frames} frames; z = (mean - truth)/SE; 'before': the frames' scatter and "
-          "the offset map only")
-    print(f"{'set-point':>9} | {'before: z mean':>14} {'SD':>5} {'KS p':>7} | "
-          f"{'now: z mean':>11} {'SD':>5} {'KS p':>7}")
+    print(
+        f"\n{args.seeds} seeds x {args.beads} beads of {args.photoelectrons:g} e-, "
+        f"{args.frames} frames; z = (mean - truth)/SE; 'before': the frames' scatter and "
+        "the offset map only"
+    )
+    print(
+        f"{'set-point':>9} | {'before: z mean':>14} {'SD':>5} {'KS p':>7} | "
+        f"{'now: z mean':>11} {'SD':>5} {'KS p':>7}"
+    )
     summary = {}
     for k in keys + ["all"]:
-        z = {n: np.array(sum((per[kk][n] for kk in keys), []) if k == "all" else per[k][n])
-             for n in ("old", "new")}
+        z = {
+            n: np.array(sum((per[kk][n] for kk in keys), []) if k == "all" else per[k][n])
+            for n in ("old", "new")
+        }
         line = f"{k:>9} |"
         for n in ("old", "new"):
             p = stats.kstest(z[n], "norm").pvalue
             line += f" {z[n].mean():>+14.2f} {z[n].std(ddof=1):>5.2f} {p:>7.2g} |"
-            summary.setdefault(k, {})[n] = {"mean": z[n].mean(), "sd": z[n].std(ddof=1),
-                                            "ks_p": p, "n": int(z[n].size)}
+            summary.setdefault(k, {})[n] = {
+                "mean": z[n].mean(),
+                "sd": z[n].std(ddof=1),
+                "ks_p": p,
+                "n": int(z[n].size),
+            }
         print(line.rstrip(" |"))
     for n in ("old", "new"):
         z = np.array(pooled[n])
-        print(f"pooled means' z ({'before' if n == 'old' else 'now'}): RMS "
-              f"{np.sqrt(np.mean(z**2)):.2f} over {z.size} (set-points x seeds), mean "
-              f"{z.mean():+.2f}")
+        print(
+            f"pooled means' z ({'before' if n == 'old' else 'now'}): RMS "
+            f"{np.sqrt(np.mean(z**2)):.2f} over {z.size} (set-points x seeds), mean "
+            f"{z.mean():+.2f}"
+        )
     zb = np.array(by_bead)
     bead_mean = np.nanmean(zb, axis=1)
     corr = np.corrcoef(zb[np.all(np.isfinite(zb), axis=1)].T)
     off_diag = corr[~np.eye(len(keys), dtype=bool)]
-    print(f"mean z over beads and set-points (now) {np.nanmean(zb):+.3f} ± "
-          f"{bead_mean.std(ddof=1) / np.sqrt(bead_mean.size):.3f} (SE with each bead's "
-          f"set-points as one cluster: they share its width's error; {bead_mean.size} beads); "
-          f"mean correlation of a bead's z between set-points {off_diag.mean():+.2f}")
+    print(
+        f"mean z over beads and set-points (now) {np.nanmean(zb):+.3f} ± "
+        f"{bead_mean.std(ddof=1) / np.sqrt(bead_mean.size):.3f} (SE with each bead's "
+        f"set-points as one cluster: they share its width's error; {bead_mean.size} beads); "
+        f"mean correlation of a bead's z between set-points {off_diag.mean():+.2f}"
+    )
     print(json.dumps({"per_setpoint": summary}, default=float))
 
 

@@ -40,9 +40,18 @@ Property,Core,Shutter,Shutter
 def _plan(folder: Path, frames: int) -> Path:
     from emccdcal.acquire.plan import plan_text, predict
 
-    p = predict("gs", [1, 2], [1, 2], [100.0, 100.0], [frames, frames], frames,
-                dict(e_per_adu=1.0, read_noise=2.5, offset=100.0, adc_bits=16,
-                     em_model="gamma", stages=None), float("nan"))
+    p = predict(
+        "gs",
+        [1, 2],
+        [1, 2],
+        [100.0, 100.0],
+        [frames, frames],
+        frames,
+        dict(
+            e_per_adu=1.0, read_noise=2.5, offset=100.0, adc_bits=16, em_model="gamma", stages=None
+        ),
+        float("nan"),
+    )
     path = folder / f"plan-{frames}.toml"
     path.write_text(plan_text(p))
     return path
@@ -77,22 +86,30 @@ def acquire_rate(config: Path, plan: Path, out: Path, frames: int, roi=None) -> 
     core = record.config_core(config)
     try:
         start = time.perf_counter()
-        record.acquire(plan, out, core=core, gain_prop="Gain", light_tolerance=None,
-                       roi=roi, progress_bars=False)
+        record.acquire(
+            plan,
+            out,
+            core=core,
+            gain_prop="Gain",
+            light_tolerance=None,
+            roi=roi,
+            progress_bars=False,
+        )
         return 4 * frames / (time.perf_counter() - start)
     finally:
         core.unloadAllDevices()
 
 
 def _peak_rss(plan: Path, out: Path, config: Path) -> float:
-    code = ("import resource, sys; from emccdcal.acquire import record; "
-            f"core = record.config_core({str(config)!r}); "
-            f"record.acquire({str(plan)!r}, {str(out)!r}, core=core, gain_prop='Gain', "
-            "light_tolerance=None, roi=(192, 192, 128, 128), progress_bars=False); "
-            "core.unloadAllDevices(); "
-            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          check=True)
+    code = (
+        "import resource, sys; from emccdcal.acquire import record; "
+        f"core = record.config_core({str(config)!r}); "
+        f"record.acquire({str(plan)!r}, {str(out)!r}, core=core, gain_prop='Gain', "
+        "light_tolerance=None, roi=(192, 192, 128, 128), progress_bars=False); "
+        "core.unloadAllDevices(); "
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return float(done.stdout.strip().splitlines()[-1])
 
 
@@ -114,19 +131,32 @@ def main() -> None:
                 out = tmp / f"session-{r}"
                 ours.append(acquire_rate(config, plan, out, args.frames, roi))
                 shutil.rmtree(out)
-            rows.append({"frame": "512 x 512" if roi is None else "128 x 128 (--roi)",
-                         "core_fps": [round(c) for c in cores],
-                         "acquire_fps": [round(c) for c in ours],
-                         "ratio_of_medians": round(statistics.median(ours)
-                                                   / statistics.median(cores), 3)})
+            rows.append(
+                {
+                    "frame": "512 x 512" if roi is None else "128 x 128 (--roi)",
+                    "core_fps": [round(c) for c in cores],
+                    "acquire_fps": [round(c) for c in ours],
+                    "ratio_of_medians": round(
+                        statistics.median(ours) / statistics.median(cores), 3
+                    ),
+                }
+            )
         long_plan = _plan(tmp, 4 * args.frames)
-        rss = {n: _peak_rss(p, tmp / f"rss-{n}", config)
-               for n, p in ((args.frames, plan), (4 * args.frames, long_plan))}
-    print(json.dumps({"camera": "DemoCamera, uint16, FastImage, exposure 0 ms",
-                      "frames_per_run": 4 * args.frames, "rates": rows,
-                      "peak_rss_mib_by_frames_per_stack": {str(k): round(v, 1)
-                                                           for k, v in rss.items()}},
-                     indent=2))
+        rss = {
+            n: _peak_rss(p, tmp / f"rss-{n}", config)
+            for n, p in ((args.frames, plan), (4 * args.frames, long_plan))
+        }
+    print(
+        json.dumps(
+            {
+                "camera": "DemoCamera, uint16, FastImage, exposure 0 ms",
+                "frames_per_run": 4 * args.frames,
+                "rates": rows,
+                "peak_rss_mib_by_frames_per_stack": {str(k): round(v, 1) for k, v in rss.items()},
+            },
+            indent=2,
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -57,8 +57,9 @@ print(f"{time.perf_counter() - t0:.1f} {int(hwm) / 1024:.0f}")
 
 
 def _run(code, *args):
-    out = subprocess.run([sys.executable, "-c", code, *map(str, args)], check=True,
-                         capture_output=True, text=True).stdout.split()
+    out = subprocess.run(
+        [sys.executable, "-c", code, *map(str, args)], check=True, capture_output=True, text=True
+    ).stdout.split()
     return float(out[0]), float(out[1])
 
 
@@ -83,8 +84,9 @@ def main():
 
         def blocks():
             for a in range(0, args.frames, 100):
-                yield from rng.integers(90, 4000, (min(100, args.frames - a), *shape[1:]),
-                                        dtype=np.uint16)
+                yield from rng.integers(
+                    90, 4000, (min(100, args.frames - a), *shape[1:]), dtype=np.uint16
+                )
 
         tifffile.imwrite(movie, blocks(), shape=shape, dtype=np.uint16, bigtiff=True)
         cal = true_result(folder / "cal", shape=shape[1:])
@@ -96,8 +98,10 @@ def main():
         print(f"imports + calibration loaded:  peak RSS {m_cal:5.0f} MB")
         for suffix in (".tif", ".zarr"):
             t, m = _run(APPLY, cal, movie, folder / f"electrons{suffix}")
-            print(f"apply -> {suffix:<6}     {t:6.1f} s, peak RSS {m:5.0f} MB "
-                  f"({m - m_cal:+.0f} MB over the calibration loaded)")
+            print(
+                f"apply -> {suffix:<6}     {t:6.1f} s, peak RSS {m:5.0f} MB "
+                f"({m - m_cal:+.0f} MB over the calibration loaded)"
+            )
 
 
 if __name__ == "__main__":

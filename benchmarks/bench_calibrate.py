@@ -65,8 +65,10 @@ def machine():
     import numpy
     import scipy
 
-    return (f"{platform.node()}: {os.cpu_count()} cores, {cpu}, Python {platform.python_version()}, "
-            f"NumPy {numpy.__version__}, SciPy {scipy.__version__}")
+    return (
+        f"{platform.node()}: {os.cpu_count()} cores, {cpu}, Python {platform.python_version()}, "
+        f"NumPy {numpy.__version__}, SciPy {scipy.__version__}"
+    )
 
 
 def _time(manifest, method, out, checks, src=None, em_model="default"):
@@ -75,9 +77,20 @@ def _time(manifest, method, out, checks, src=None, em_model="default"):
     if src is not None:
         env["PYTHONPATH"] = str(Path(src).resolve())
     res = subprocess.run(
-        [sys.executable, "-c", CHILD, str(manifest), method, str(out),
-         "checks" if checks else "no-checks", em_model],
-        capture_output=True, text=True, check=True, env=env,
+        [
+            sys.executable,
+            "-c",
+            CHILD,
+            str(manifest),
+            method,
+            str(out),
+            "checks" if checks else "no-checks",
+            em_model,
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+        env=env,
     )
     wall, peak = res.stdout.split()
     return float(wall), float(peak)
@@ -85,21 +98,38 @@ def _time(manifest, method, out, checks, src=None, em_model="default"):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--methods",
-                        default="gs,gs:no-checks,gs-no1x,gs-hierarchical,mv-gain,is-adu,mv-adu",
-                        help="comma-separated; ':no-checks' skips the data-quality checks")
+    parser.add_argument(
+        "--methods",
+        default="gs,gs:no-checks,gs-no1x,gs-hierarchical,mv-gain,is-adu,mv-adu",
+        help="comma-separated; ':no-checks' skips the data-quality checks",
+    )
     parser.add_argument("--rows", type=int, default=32)
     parser.add_argument("--frames", type=int, default=5000)
     parser.add_argument("--repeat", type=int, default=1, help="runs per method (median shown)")
-    parser.add_argument("--against", type=Path, default=None,
-                        help="the src folder of another version to time alternately")
-    parser.add_argument("--cascade", action="store_true",
-                        help="time each method under the gamma and the cascade register "
-                        "model alternately and print the ratio cascade/gamma")
-    parser.add_argument("--multiplication", choices=("gamma", "cascade"), default="gamma",
-                        help="the register of the simulated gain series")
-    parser.add_argument("--em-model", choices=("default", "gamma", "cascade"), default="default",
-                        help="the register model of the fits (with --against: of both sides)")
+    parser.add_argument(
+        "--against",
+        type=Path,
+        default=None,
+        help="the src folder of another version to time alternately",
+    )
+    parser.add_argument(
+        "--cascade",
+        action="store_true",
+        help="time each method under the gamma and the cascade register "
+        "model alternately and print the ratio cascade/gamma",
+    )
+    parser.add_argument(
+        "--multiplication",
+        choices=("gamma", "cascade"),
+        default="gamma",
+        help="the register of the simulated gain series",
+    )
+    parser.add_argument(
+        "--em-model",
+        choices=("default", "gamma", "cascade"),
+        default="default",
+        help="the register model of the fits (with --against: of both sides)",
+    )
     args = parser.parse_args()
     from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
 
@@ -110,8 +140,10 @@ def main():
         kw = dict(rows=args.rows, cols=args.rows, frames=args.frames, seed=1)
         gs = simulate_gain_series(tmp / "gs", multiplication=args.multiplication, **kw)
         adu = simulate_intensity_series(tmp / "adu", **kw)
-        print(f"{args.rows}x{args.rows} px, {args.frames} frames per acquisition, "
-              f"{args.multiplication} register in the gain series, median of {args.repeat}")
+        print(
+            f"{args.rows}x{args.rows} px, {args.frames} frames per acquisition, "
+            f"{args.multiplication} register in the gain series, median of {args.repeat}"
+        )
         head = f"{'method':<18}{'wall s':>8}{'peak MB':>9}"
         if args.against is not None:
             head += f"{'other s':>9}{'other MB':>10}{'ratio':>7}"
@@ -130,8 +162,7 @@ def main():
             for _ in range(args.repeat):
                 mine.append(_time(manifest, method, out, checks, em_model=base))
                 if args.against is not None:
-                    other.append(_time(manifest, method, out, checks, args.against,
-                                       em_model=base))
+                    other.append(_time(manifest, method, out, checks, args.against, em_model=base))
                 if args.cascade:
                     other.append(_time(manifest, method, out, checks, em_model="cascade"))
             wall = statistics.median(w for w, _ in mine)

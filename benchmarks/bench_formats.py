@@ -59,12 +59,18 @@ def main():
         write_spe(spe, frames, em_gain=300)
         tifffile.imwrite(tif, frames, ome=True, photometric="minisblack")
         del frames
-        print(f"wrote {spe.stat().st_size / 1e9:.2f} GB SPE and {tif.stat().st_size / 1e9:.2f} GB "
-              f"OME-TIFF in {time.perf_counter() - t0:.0f} s")
+        print(
+            f"wrote {spe.stat().st_size / 1e9:.2f} GB SPE and {tif.stat().st_size / 1e9:.2f} GB "
+            f"OME-TIFF in {time.perf_counter() - t0:.0f} s"
+        )
         print(f"{'file':<12}{'rows/band':>10}{'wall s':>8}{'peak MB':>9}")
         for path in (spe, tif):
-            res = subprocess.run([sys.executable, "-c", CHILD, str(path), str(args.rows)],
-                                 capture_output=True, text=True, check=True)
+            res = subprocess.run(
+                [sys.executable, "-c", CHILD, str(path), str(args.rows)],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
             wall, peak = res.stdout.split()
             print(f"{path.suffix:<12}{args.rows:>10}{wall:>8}{peak:>9}")
 

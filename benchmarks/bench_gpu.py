@@ -55,8 +55,11 @@ COMPARED = ("photoelectrons", "photoelectrons_se", "em_gain", "em_gain_se", "gof
 
 
 def _run(manifest, out, em_model, device):
-    res = subprocess.run([sys.executable, "-c", CHILD, str(manifest), str(out), em_model, device],
-                         capture_output=True, text=True)
+    res = subprocess.run(
+        [sys.executable, "-c", CHILD, str(manifest), str(out), em_model, device],
+        capture_output=True,
+        text=True,
+    )
     if res.returncode != 0:
         raise SystemExit(f"calibrate on {device} failed:\n{res.stderr[-2000:]}")
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -95,15 +98,18 @@ def main():
     base = Path(tempfile.mkdtemp(prefix="emccdcal-gpu-")) if args.keep is None else args.keep
     try:
         print(f"gs, data-quality checks on, {args.frames} frames per set-point, fresh processes")
-        print(f"{'sensor':>9} {'model':>8} {'cpu s':>8} {'(fit)':>7} "
-              f"{args.device + ' s':>12} {'(fit)':>7} {'ratio':>7} {'max rel diff':>13} "
-              f"{'same pixels':>12}")
+        print(
+            f"{'sensor':>9} {'model':>8} {'cpu s':>8} {'(fit)':>7} "
+            f"{args.device + ' s':>12} {'(fit)':>7} {'ratio':>7} {'max rel diff':>13} "
+            f"{'same pixels':>12}"
+        )
         for n in (int(s) for s in args.sizes.split(",")):
             folder = base / f"gs-{n}"
             if not (folder / "manifest.toml").is_file():
                 t0 = time.perf_counter()
-                simulate_gain_series(folder, rows=n, cols=n, frames=args.frames, dark_frames=50,
-                                     seed=1)
+                simulate_gain_series(
+                    folder, rows=n, cols=n, frames=args.frames, dark_frames=50, seed=1
+                )
                 print(f"  (simulated {n}x{n}: {time.perf_counter() - t0:.0f} s)", flush=True)
             manifest = folder / "manifest.toml"
             for model in args.em_models.split(","):
@@ -111,9 +117,12 @@ def main():
                 cpu = _run(manifest, cpu_out, model, "cpu")
                 dev = _run(manifest, dev_out, model, args.device)
                 worst, same = _largest_difference(cpu_out, dev_out)
-                print(f"{n:>5}x{n:<3} {model:>8} {cpu['wall']:8.1f} {cpu['fit']:7.1f} "
-                      f"{dev['wall']:12.1f} {dev['fit']:7.1f} {cpu['wall'] / dev['wall']:7.2f} "
-                      f"{worst:13.2e} {str(same):>12}", flush=True)
+                print(
+                    f"{n:>5}x{n:<3} {model:>8} {cpu['wall']:8.1f} {cpu['fit']:7.1f} "
+                    f"{dev['wall']:12.1f} {dev['fit']:7.1f} {cpu['wall'] / dev['wall']:7.2f} "
+                    f"{worst:13.2e} {str(same):>12}",
+                    flush=True,
+                )
     finally:
         if args.keep is None:
             shutil.rmtree(base, ignore_errors=True)

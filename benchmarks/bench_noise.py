@@ -33,8 +33,9 @@ def main():
     for sp, g in gains.items():
         counts = simulate_frames(E, g, phi, S0, sigma, frames=frames, rows=16, cols=16, seed=sp)
         h = stats.histograms(counts)
-        acq = engine.AcquisitionBlock(h.values, h.counts, np.full(P, S0), np.full(P, sigma),
-                                       sp == 1, h.mean, h.var, h.n)
+        acq = engine.AcquisitionBlock(
+            h.values, h.counts, np.full(P, S0), np.full(P, sigma), sp == 1, h.mean, h.var, h.n
+        )
         scale = np.full(P, 1 / phi if sp == 1 else g / phi)
         args = (acq, [np.full(P, np.log(E)), np.log(scale)], 1)
         engine._acquisition_terms(*args)  # warm-up

@@ -38,16 +38,23 @@ def _manifest(out, kind):
     if kind == "gs":
         lines.append(f'e_per_adu = "{REAL}/gain-GS/ADU_map.tif"')
         for g in (1, 5, 25, 100, 300):
-            lines += ["[[acquisition]]", f'frames = "{REAL}/gain-GS/{g}x-gain.tif"',
-                      f"em_gain_setpoint = {g}",
-                      f'offset = "{REAL}/gain-GS/{g}x-gain_no-signal_S0.tif"',
-                      f'read_noise = "{REAL}/gain-GS/{g}x-gain_no-signal_sigma.tif"']
+            lines += [
+                "[[acquisition]]",
+                f'frames = "{REAL}/gain-GS/{g}x-gain.tif"',
+                f"em_gain_setpoint = {g}",
+                f'offset = "{REAL}/gain-GS/{g}x-gain_no-signal_S0.tif"',
+                f'read_noise = "{REAL}/gain-GS/{g}x-gain_no-signal_sigma.tif"',
+            ]
     else:
         for level in range(1, 7):
-            lines += ["[[acquisition]]", f'frames = "{REAL}/ADU/1x-gain_level-0{level}.tif"',
-                      "em_gain_setpoint = 1", f'level = "L{level}"',
-                      f'offset = "{REAL}/ADU/1x-gain_no-signal_S0.tif"',
-                      f'read_noise = "{REAL}/ADU/1x-gain_no-signal_sigma.tif"']
+            lines += [
+                "[[acquisition]]",
+                f'frames = "{REAL}/ADU/1x-gain_level-0{level}.tif"',
+                "em_gain_setpoint = 1",
+                f'level = "L{level}"',
+                f'offset = "{REAL}/ADU/1x-gain_no-signal_S0.tif"',
+                f'read_noise = "{REAL}/ADU/1x-gain_no-signal_sigma.tif"',
+            ]
     path = out / f"{kind}.toml"
     path.write_text("\n".join(lines) + "\n")
     return path
@@ -89,8 +96,11 @@ def main(argv=None):
     adu = _manifest(args.out, "adu")
     engine = calibrate(adu, "is-adu")
     rows, cols = engine.e_per_adu.shape
-    pixels = ([(i, i) for i in range(min(rows, cols))] if args.pixels == "diagonal"
-              else [(r, c) for r in range(rows) for c in range(cols)])
+    pixels = (
+        [(i, i) for i in range(min(rows, cols))]
+        if args.pixels == "diagonal"
+        else [(r, c) for r in range(rows) for c in range(cols)]
+    )
     t = time.perf_counter()
     ds = posterior.sample_posterior(adu, "is-adu", pixels, seed=args.seed)
     report["is_adu_seconds"] = time.perf_counter() - t
@@ -99,27 +109,43 @@ def main(argv=None):
     for i, (r, c) in enumerate(pixels):
         phi = ds.sel(parameter="e_per_adu").isel(pixel=i)
         est, se = float(engine.e_per_adu[r, c]), float(engine.e_per_adu_se[r, c])
-        table.append({
-            "row": r, "col": c, "engine": est, "engine_se": se,
-            "median": float(phi["median"]), "sd": float(phi.sd),
-            "q025": float(phi.q025), "q975": float(phi.q975),
-            "median_rel": float(phi["median"]) / est - 1, "sd_over_se": float(phi.sd) / se,
-            "ess": float(phi.ess), "tau": float(phi.autocorr_time),
-            "acceptance": float(ds.acceptance[i]), "seconds": float(ds.seconds[i]),
-            "steps": int(ds.n_steps[i]),
-        })
+        table.append(
+            {
+                "row": r,
+                "col": c,
+                "engine": est,
+                "engine_se": se,
+                "median": float(phi["median"]),
+                "sd": float(phi.sd),
+                "q025": float(phi.q025),
+                "q975": float(phi.q975),
+                "median_rel": float(phi["median"]) / est - 1,
+                "sd_over_se": float(phi.sd) / se,
+                "ess": float(phi.ess),
+                "tau": float(phi.autocorr_time),
+                "acceptance": float(ds.acceptance[i]),
+                "seconds": float(ds.seconds[i]),
+                "steps": int(ds.n_steps[i]),
+            }
+        )
     report["is_adu"] = table
-    print("| pixel | engine φ ± SE (e⁻/ADU) | posterior median ± SD | 95 % interval | "
-          "median/engine − 1 | SD/SE | ESS | τ (steps) | acceptance | steps | time (s) |")
+    print(
+        "| pixel | engine φ ± SE (e⁻/ADU) | posterior median ± SD | 95 % interval | "
+        "median/engine − 1 | SD/SE | ESS | τ (steps) | acceptance | steps | time (s) |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for t_ in table:
-        print(f"| ({t_['row']}, {t_['col']}) | {t_['engine']:.4f} ± {t_['engine_se']:.4f} | "
-              f"{t_['median']:.4f} ± {t_['sd']:.4f} | [{t_['q025']:.4f}, {t_['q975']:.4f}] | "
-              f"{100 * t_['median_rel']:+.3f} % | {t_['sd_over_se']:.3f} | {t_['ess']:.0f} | "
-              f"{t_['tau']:.1f} | {t_['acceptance']:.2f} | {t_['steps']} | {t_['seconds']:.1f} |")
+        print(
+            f"| ({t_['row']}, {t_['col']}) | {t_['engine']:.4f} ± {t_['engine_se']:.4f} | "
+            f"{t_['median']:.4f} ± {t_['sd']:.4f} | [{t_['q025']:.4f}, {t_['q975']:.4f}] | "
+            f"{100 * t_['median_rel']:+.3f} % | {t_['sd_over_se']:.3f} | {t_['ess']:.0f} | "
+            f"{t_['tau']:.1f} | {t_['acceptance']:.2f} | {t_['steps']} | {t_['seconds']:.1f} |"
+        )
     ratios = np.array([t_["sd_over_se"] for t_ in table])
-    print(f"\nSD/SE: mean {ratios.mean():.3f}, range {ratios.min():.3f}–{ratios.max():.3f}; "
-          f"is-adu total {report['is_adu_seconds']:.1f} s for {len(pixels)} pixels")
+    print(
+        f"\nSD/SE: mean {ratios.mean():.3f}, range {ratios.min():.3f}–{ratios.max():.3f}; "
+        f"is-adu total {report['is_adu_seconds']:.1f} s for {len(pixels)} pixels"
+    )
     _figure(table, args.out / "posterior_vs_se.png")
     (args.out / "bench_posterior.json").write_text(json.dumps(report, indent=2) + "\n")
     print(f"wrote {args.out}")
@@ -134,11 +160,22 @@ def _figure(table, path):
     fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.6))
     x = np.arange(len(table))
     labels = [f"({t['row']},{t['col']})" for t in table]
-    a.errorbar(x - 0.1, [t["engine"] for t in table], [1.96 * t["engine_se"] for t in table],
-               fmt="o", color="C3", label="engine MLE ± 1.96 SE")
-    a.errorbar(x + 0.1, [t["median"] for t in table],
-               [[t["median"] - t["q025"] for t in table], [t["q975"] - t["median"] for t in table]],
-               fmt="s", color="C0", label="posterior median, 95 % interval")
+    a.errorbar(
+        x - 0.1,
+        [t["engine"] for t in table],
+        [1.96 * t["engine_se"] for t in table],
+        fmt="o",
+        color="C3",
+        label="engine MLE ± 1.96 SE",
+    )
+    a.errorbar(
+        x + 0.1,
+        [t["median"] for t in table],
+        [[t["median"] - t["q025"] for t in table], [t["q975"] - t["median"] for t in table]],
+        fmt="s",
+        color="C0",
+        label="posterior median, 95 % interval",
+    )
     a.set_xticks(x, labels, fontsize=7)
     a.set_ylabel("e_per_adu φ (e⁻/ADU)")
     a.legend(fontsize=7)
@@ -148,8 +185,9 @@ def _figure(table, path):
     b.set_xticks(x, labels, fontsize=7)
     b.set_ylabel("posterior SD / engine SE")
     b.legend(fontsize=7)
-    fig.suptitle("is-adu, real ProEM ADU series: MCMC against observed-information errors",
-                 fontsize=9)
+    fig.suptitle(
+        "is-adu, real ProEM ADU series: MCMC against observed-information errors", fontsize=9
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -31,15 +31,25 @@ def _result(size: int):
     rng = np.random.default_rng(0)
     sps = [1.0, 5.0, 25.0, 100.0, 300.0]
     shape = (size, size)
-    g = np.stack([np.ones(shape) if s == 1 else s * (0.9 + 0.01 * rng.standard_normal(shape))
-                  for s in sps])
+    g = np.stack(
+        [np.ones(shape) if s == 1 else s * (0.9 + 0.01 * rng.standard_normal(shape)) for s in sps]
+    )
     return result.make_dataset(
-        method="gs", setpoints=sps, e_per_adu=3.8 + 0.01 * rng.standard_normal(shape),
-        e_per_adu_se=0.01, em_gain=g, em_gain_se=np.where(g == 1, 0.0, 0.002 * g),
-        photoelectrons=np.full(shape, 370.0), photoelectrons_se=1.0, converged=True,
+        method="gs",
+        setpoints=sps,
+        e_per_adu=3.8 + 0.01 * rng.standard_normal(shape),
+        e_per_adu_se=0.01,
+        em_gain=g,
+        em_gain_se=np.where(g == 1, 0.0, 0.002 * g),
+        photoelectrons=np.full(shape, 370.0),
+        photoelectrons_se=1.0,
+        converged=True,
         manifest_hash="0" * 64,
-        extra={"offset": (("setpoint", "row", "col"), np.full((5, *shape), 600.0), "ADU"),
-               "read_noise": (("setpoint", "row", "col"), np.full((5, *shape), 15.0), "ADU")})
+        extra={
+            "offset": (("setpoint", "row", "col"), np.full((5, *shape), 600.0), "ADU"),
+            "read_noise": (("setpoint", "row", "col"), np.full((5, *shape), 15.0), "ADU"),
+        },
+    )
 
 
 def _best(fn, repeat):
@@ -72,10 +82,14 @@ def main(argv=None) -> int:
         t_load = _best(lambda: result.load(d / "res"), args.repeat)
     print(f"machine: {machine()}")
     print(f"result: {args.size} x {args.size} px, 5 set-points, {size_mb:.0f} MB")
-    print(f"write: plain to_netcdf {t_plain:.2f} s, result.save (checksum block, summary) "
-          f"{t_save:.2f} s, ratio {t_save / t_plain:.2f}")
-    print(f"read: plain open_dataset {t_read:.2f} s, result.load (checksum, domain checked) "
-          f"{t_load:.2f} s, ratio {t_load / t_read:.2f}")
+    print(
+        f"write: plain to_netcdf {t_plain:.2f} s, result.save (checksum block, summary) "
+        f"{t_save:.2f} s, ratio {t_save / t_plain:.2f}"
+    )
+    print(
+        f"read: plain open_dataset {t_read:.2f} s, result.load (checksum, domain checked) "
+        f"{t_load:.2f} s, ratio {t_load / t_read:.2f}"
+    )
     return 0
 
 

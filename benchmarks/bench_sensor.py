@@ -61,8 +61,12 @@ print(f"{wall:.2f} {peak:.0f}")
 
 
 def _time(manifest, out, where="local", em_model="-", workers="-"):
-    res = subprocess.run([sys.executable, "-c", CHILD, str(manifest), str(out), where, em_model,
-                          str(workers)], capture_output=True, text=True, check=True)
+    res = subprocess.run(
+        [sys.executable, "-c", CHILD, str(manifest), str(out), where, em_model, str(workers)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     wall, peak = res.stdout.split()[-2:]
     return float(wall), float(peak)
 
@@ -73,10 +77,14 @@ def main():
     p.add_argument("--frames", type=int, default=5000)
     p.add_argument("--dask", default=None, help="worker counts to compare, e.g. 1,2")
     p.add_argument("--workers", default=None, help="thread counts to compare, e.g. 1,2")
-    p.add_argument("--processes", action="store_true",
-                   help="with --workers: local processes (scheduler='processes'), not threads")
-    p.add_argument("--em-models", default=None,
-                   help="register models to compare, e.g. gamma,cascade")
+    p.add_argument(
+        "--processes",
+        action="store_true",
+        help="with --workers: local processes (scheduler='processes'), not threads",
+    )
+    p.add_argument(
+        "--em-models", default=None, help="register models to compare, e.g. gamma,cascade"
+    )
     p.add_argument("--keep", type=Path, default=None, help="keep the simulated data here")
     args = p.parse_args()
     from emccdcal.simulate.series import simulate_gain_series
@@ -91,36 +99,51 @@ def main():
             folder = base / f"gs-{n}"
             if not (folder / "manifest.toml").is_file():
                 t0 = time.perf_counter()
-                simulate_gain_series(folder, rows=n, cols=n, frames=args.frames,
-                                     dark_frames=50, seed=1)
+                simulate_gain_series(
+                    folder, rows=n, cols=n, frames=args.frames, dark_frames=50, seed=1
+                )
                 print(f"simulated {n}x{n}: {time.perf_counter() - t0:.0f} s", flush=True)
             manifests[n] = folder / "manifest.toml"
         if args.dask or args.workers:
             # workers of a local Dask cluster, or this machine's threads or processes
             dask = bool(args.dask)
             counts = [int(c) for c in (args.dask if dask else args.workers).split(",")]
-            kind = ("Dask workers (1 thread each)" if dask else
-                    "local processes" if args.processes else "threads")
+            kind = (
+                "Dask workers (1 thread each)"
+                if dask
+                else "local processes"
+                if args.processes
+                else "threads"
+            )
             where = "processes" if args.processes else "local"
             n = sizes[0]
             times = {c: [] for c in counts}
             for _ in range(2):
                 for c in counts:
                     out = base / f"out-{c}"
-                    times[c].append((_time(manifests[n], out, str(c)) if dask else
-                                     _time(manifests[n], out, where, workers=c))[0])
+                    times[c].append(
+                        (
+                            _time(manifests[n], out, str(c))
+                            if dask
+                            else _time(manifests[n], out, where, workers=c)
+                        )[0]
+                    )
             ref = statistics.median(times[counts[0]])
             print(f"gs, {n}x{n} px, {args.frames} frames; {kind}, alternating, median of 2")
             for c in counts:
                 t = statistics.median(times[c])
                 speedup = ref / t
-                print(f"  {c:>2} {kind}: {t:8.1f} s   speed-up {speedup:5.2f}   "
-                      f"efficiency {speedup * counts[0] / c:5.2f}")
+                print(
+                    f"  {c:>2} {kind}: {t:8.1f} s   speed-up {speedup:5.2f}   "
+                    f"efficiency {speedup * counts[0] / c:5.2f}"
+                )
             return
         if args.em_models:
             models = args.em_models.split(",")
-            print(f"gs with data-quality checks, {args.frames} frames per set-point; "
-                  "register models alternating, median of 2")
+            print(
+                f"gs with data-quality checks, {args.frames} frames per set-point; "
+                "register models alternating, median of 2"
+            )
             for n, manifest in manifests.items():
                 times = {m: [] for m in models}
                 for _ in range(2):
@@ -135,8 +158,10 @@ def main():
         print(f"{'sensor':>10}{'pixels':>9}{'wall s':>9}{'ms/pixel':>10}{'peak MB':>9}")
         for n, manifest in manifests.items():
             wall, peak = _time(manifest, base / f"out-{n}")
-            print(f"{n:>6}x{n:<3}{n * n:>9}{wall:>9.1f}{1000 * wall / (n * n):>10.2f}{peak:>9.0f}",
-                  flush=True)
+            print(
+                f"{n:>6}x{n:<3}{n * n:>9}{wall:>9.1f}{1000 * wall / (n * n):>10.2f}{peak:>9.0f}",
+                flush=True,
+            )
     finally:
         if args.keep is None:
             shutil.rmtree(base, ignore_errors=True)

@@ -69,7 +69,9 @@ def machine() -> dict:
     }
 
 
-def in_memory(multiplication: str, method: str = "pmf", frames: int = FRAMES, gains_only=False) -> float:
+def in_memory(
+    multiplication: str, method: str = "pmf", frames: int = FRAMES, gains_only=False
+) -> float:
     cascade._TABLES.clear()  # include building the pmf tables
     t0 = time.perf_counter()
     for i, s in enumerate(PAPER_SETPOINTS):
@@ -129,7 +131,10 @@ def threads_binomial(size: int = 1_000_000, stages: int = 40) -> tuple[float, fl
     one = time.perf_counter() - t0
     gens = np.random.SeedSequence(2).spawn(2)
     parts = [n0[: size // 2].copy(), n0[size // 2 :].copy()]
-    threads = [threading.Thread(target=work, args=(np.random.default_rng(s), x)) for s, x in zip(gens, parts)]
+    threads = [
+        threading.Thread(target=work, args=(np.random.default_rng(s), x))
+        for s, x in zip(gens, parts)
+    ]
     t0 = time.perf_counter()
     for t in threads:
         t.start()
@@ -140,18 +145,26 @@ def threads_binomial(size: int = 1_000_000, stages: int = 40) -> tuple[float, fl
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--full-stages", action="store_true", help="run the stage-by-stage sampler at full size")
-    ap.add_argument("--stage-frames", type=int, default=100, help="frames of the stage-by-stage slice")
+    ap.add_argument(
+        "--full-stages", action="store_true", help="run the stage-by-stage sampler at full size"
+    )
+    ap.add_argument(
+        "--stage-frames", type=int, default=100, help="frames of the stage-by-stage slice"
+    )
     args = ap.parse_args(argv)
 
     info = machine()
     print("# emccdcal simulation benchmark")
     for k, v in info.items():
         print(f"{k:>9}: {v}")
-    print(f"paper size: set-points {PAPER_SETPOINTS}, {ROWS}x{COLS} px, {FRAMES} frames, E = {E:g} e-")
+    print(
+        f"paper size: set-points {PAPER_SETPOINTS}, {ROWS}x{COLS} px, {FRAMES} frames, E = {E:g} e-"
+    )
     print()
 
-    simulate_frames(E, 4.78, frames=10, rows=ROWS, cols=COLS, multiplication="cascade", seed=0)  # warm up
+    simulate_frames(
+        E, 4.78, frames=10, rows=ROWS, cols=COLS, multiplication="cascade", seed=0
+    )  # warm up
 
     rows = []
     g_mem = min(in_memory("gamma") for _ in range(2))
@@ -174,7 +187,13 @@ def main(argv=None) -> int:
             f"stage-by-stage binomial sampler, cascade only, {f} frames x 4 gains: {s_part:.2f} s "
             f"(pmf sampler on the same: {p_part:.2f} s)"
         )
-        rows.append((f"cascade, stage-by-stage binomial, in memory (extrapolated from {f} frames)", s_est, 60.0))
+        rows.append(
+            (
+                f"cascade, stage-by-stage binomial, in memory (extrapolated from {f} frames)",
+                s_est,
+                60.0,
+            )
+        )
 
     print(f"{'task':<75} {'seconds':>8} {'target':>7}")
     for name, sec, target in rows:

@@ -31,8 +31,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=8)
     ap.add_argument("--first-seed", type=int, default=1)
-    ap.add_argument("--photoelectrons", type=float, default=None,
-                    help="e- per bead per frame (default: the simulator's)")
+    ap.add_argument(
+        "--photoelectrons",
+        type=float,
+        default=None,
+        help="e- per bead per frame (default: the simulator's)",
+    )
     ap.add_argument("--work", type=Path, default=None)
     args = ap.parse_args()
     rows = {m: {} for m in MODELS}  # model -> set-point -> [(g, se, truth)]
@@ -40,10 +44,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         for seed in range(args.first_seed, args.first_seed + args.seeds):
-            options = {} if args.photoelectrons is None else {
-                "photoelectrons": args.photoelectrons}
-            sim = simulate_beads(work / f"beads-{seed}", seed=seed, multiplication="cascade",
-                                 **options)
+            options = {} if args.photoelectrons is None else {"photoelectrons": args.photoelectrons}
+            sim = simulate_beads(
+                work / f"beads-{seed}", seed=seed, multiplication="cascade", **options
+            )
             truth = result.load(sim.outdir / TRUTH_CALIBRATION_FILE)
             for model in MODELS:
                 with warnings.catch_warnings():
@@ -57,21 +61,26 @@ def main() -> None:
                     se = ds.cots_em_gain_se.sel(setpoint=sp).values
                     true = truth.em_gain.sel(setpoint=sp).values[rr, cc]
                     ok = np.isfinite(g) & np.isfinite(se)
-                    rows[model].setdefault(float(sp), []).extend(
-                        zip(g[ok], se[ok], true[ok]))
+                    rows[model].setdefault(float(sp), []).extend(zip(g[ok], se[ok], true[ok]))
             print(f"seed {seed} done ({time.perf_counter() - t_start:.0f} s)", flush=True)
-    print(f"\n{args.seeds} seeds, exact 536-stage cascade data"
-          + ("" if args.photoelectrons is None else f", {args.photoelectrons:g} e- beads"))
-    print(f"{'model':>8} {'set-point':>9} {'beads':>5} | {'mean g/g-1':>10} {'±':>6} | "
-          f"{'z mean':>6} {'z SD':>5} {'cover':>5}")
+    print(
+        f"\n{args.seeds} seeds, exact 536-stage cascade data"
+        + ("" if args.photoelectrons is None else f", {args.photoelectrons:g} e- beads")
+    )
+    print(
+        f"{'model':>8} {'set-point':>9} {'beads':>5} | {'mean g/g-1':>10} {'±':>6} | "
+        f"{'z mean':>6} {'z SD':>5} {'cover':>5}"
+    )
     for model in MODELS:
         for sp, vals in sorted(rows[model].items()):
             g, se, true = (np.array(v) for v in zip(*vals))
             rel = g / true - 1
             z = (g - true) / se
-            print(f"{model:>8} {sp:>9g} {g.size:>5} | {100 * rel.mean():>+9.2f}% "
-                  f"{100 * rel.std(ddof=1) / np.sqrt(g.size):>5.2f}% | {z.mean():>+6.2f} "
-                  f"{z.std(ddof=1):>5.2f} {np.mean(np.abs(z) < 1.96):>5.2f}")
+            print(
+                f"{model:>8} {sp:>9g} {g.size:>5} | {100 * rel.mean():>+9.2f}% "
+                f"{100 * rel.std(ddof=1) / np.sqrt(g.size):>5.2f}% | {z.mean():>+6.2f} "
+                f"{z.std(ddof=1):>5.2f} {np.mean(np.abs(z) < 1.96):>5.2f}"
+            )
 
 
 if __name__ == "__main__":

@@ -23,8 +23,15 @@ def _code_lines(source: str) -> set[int]:
     """Line numbers that hold code (not blank, not only a comment)."""
     lines = set()
     for tok in tokenize.generate_tokens(io.StringIO(source).readline):
-        if tok.type not in (tokenize.COMMENT, tokenize.NL, tokenize.NEWLINE, tokenize.INDENT,
-                            tokenize.DEDENT, tokenize.ENCODING, tokenize.ENDMARKER):
+        if tok.type not in (
+            tokenize.COMMENT,
+            tokenize.NL,
+            tokenize.NEWLINE,
+            tokenize.INDENT,
+            tokenize.DEDENT,
+            tokenize.ENCODING,
+            tokenize.ENDMARKER,
+        ):
             lines.update(range(tok.start[0], tok.end[0] + 1))
     return lines
 
@@ -40,8 +47,12 @@ def function_lengths(root: Path = SRC):
                 continue
             span = set(range(node.lineno, node.end_lineno + 1)) & code
             body = node.body
-            if (body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant)
-                    and isinstance(body[0].value.value, str)):  # the docstring
+            if (
+                body
+                and isinstance(body[0], ast.Expr)
+                and isinstance(body[0].value, ast.Constant)
+                and isinstance(body[0].value.value, str)
+            ):  # the docstring
                 span -= set(range(body[0].lineno, body[0].end_lineno + 1))
             out.append((len(span), f"{path.relative_to(root.parent)}:{node.lineno} {node.name}"))
     return sorted(out, reverse=True)

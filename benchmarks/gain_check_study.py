@@ -50,35 +50,53 @@ def _z_stats(rows):
 
 
 def grid(args) -> None:
-    print(f"{args.pixels} x {args.pixels} px x {args.frames} frames, {args.seeds} seeds a "
-          f"cell{', register CIC 0.005 fitted' if args.register_cic else ''}")
-    print(f"{'gain':>6} {'CIC':>6} {'σ e-':>5} {'σ ADU':>6} | {'z mean':>7} {'z SD':>5} "
-          f"{'cover':>5} | {'rel SE':>7} | {'MLE z':>6} | {'s/check':>7}")
+    print(
+        f"{args.pixels} x {args.pixels} px x {args.frames} frames, {args.seeds} seeds a "
+        f"cell{', register CIC 0.005 fitted' if args.register_cic else ''}"
+    )
+    print(
+        f"{'gain':>6} {'CIC':>6} {'σ e-':>5} {'σ ADU':>6} | {'z mean':>7} {'z SD':>5} "
+        f"{'cover':>5} | {'rel SE':>7} | {'MLE z':>6} | {'s/check':>7}"
+    )
     for g in (50.0, 100.0, 300.0, 1000.0):
         for cic in (0.001, 0.005, 0.02):
             for sigma_e in (20.0, 100.0):
                 rows, t0, failed = [], time.perf_counter(), 0
                 for seed in range(args.seeds):
                     darks = simulate_frames(
-                        0.0, g, PHI, OFFSET, sigma_e / PHI, frames=args.frames,
-                        rows=args.pixels, cols=args.pixels, cic=cic,
-                        register_cic=0.005 if args.register_cic else 0.0, seed=seed)
+                        0.0,
+                        g,
+                        PHI,
+                        OFFSET,
+                        sigma_e / PHI,
+                        frames=args.frames,
+                        rows=args.pixels,
+                        cols=args.pixels,
+                        cic=cic,
+                        register_cic=0.005 if args.register_cic else 0.0,
+                        seed=seed,
+                    )
                     try:
-                        rows.append((check_gain([darks], PHI,
-                                                fit_register_cic=args.register_cic), g))
+                        rows.append(
+                            (check_gain([darks], PHI, fit_register_cic=args.register_cic), g)
+                        )
                     except Exception as exc:  # too few events: the check refuses
                         failed += 1
                         note = type(exc).__name__
                 if not rows:
-                    print(f"{g:>6g} {cic:>6g} {sigma_e:>5g} {sigma_e / PHI:>6.2f} | refused "
-                          f"({note})")
+                    print(
+                        f"{g:>6g} {cic:>6g} {sigma_e:>5g} {sigma_e / PHI:>6.2f} | refused ({note})"
+                    )
                     continue
                 z, zm, se = _z_stats(rows)
-                print(f"{g:>6g} {cic:>6g} {sigma_e:>5g} {sigma_e / PHI:>6.2f} | "
-                      f"{z.mean():>+7.2f} {z.std(ddof=1):>5.2f} {np.mean(np.abs(z) < 1.96):>5.2f} "
-                      f"| {100 * se:>6.2f}% | {zm.mean():>+6.2f} | "
-                      f"{(time.perf_counter() - t0) / args.seeds:>7.1f}"
-                      + (f"  ({failed} refused)" if failed else ""), flush=True)
+                print(
+                    f"{g:>6g} {cic:>6g} {sigma_e:>5g} {sigma_e / PHI:>6.2f} | "
+                    f"{z.mean():>+7.2f} {z.std(ddof=1):>5.2f} {np.mean(np.abs(z) < 1.96):>5.2f} "
+                    f"| {100 * se:>6.2f}% | {zm.mean():>+6.2f} | "
+                    f"{(time.perf_counter() - t0) / args.seeds:>7.1f}"
+                    + (f"  ({failed} refused)" if failed else ""),
+                    flush=True,
+                )
 
 
 def frames(args) -> None:
@@ -89,14 +107,27 @@ def frames(args) -> None:
         side = int(round(np.sqrt(total / n)))
         mle, jk = [], []
         for seed in range(args.seeds):
-            darks = simulate_frames(0.0, 300.0, PHI, OFFSET, 15.5, frames=n, rows=side,
-                                    cols=side, cic=0.005, seed=1000 + seed)
+            darks = simulate_frames(
+                0.0,
+                300.0,
+                PHI,
+                OFFSET,
+                15.5,
+                frames=n,
+                rows=side,
+                cols=side,
+                cic=0.005,
+                seed=1000 + seed,
+            )
             c = check_gain([darks], PHI)
             mle.append(c.em_gain_mle / 300 - 1)
             jk.append(c.em_gain / 300 - 1)
         sem = np.std(jk, ddof=1) / np.sqrt(len(jk))
-        print(f"{n:>6} {side * side:>7} | {100 * np.mean(mle):>+8.2f}% {100 * np.mean(jk):>+9.2f}% "
-              f"{100 * sem:>14.2f}%", flush=True)
+        print(
+            f"{n:>6} {side * side:>7} | {100 * np.mean(mle):>+8.2f}% {100 * np.mean(jk):>+9.2f}% "
+            f"{100 * sem:>14.2f}%",
+            flush=True,
+        )
 
 
 def emccd_detect(args) -> None:
@@ -107,14 +138,28 @@ def emccd_detect(args) -> None:
     for g in (100.0, 400.0, 1000.0):
         np.random.seed(args.seed)  # noqa: NPY002  (emccd-detect draws from NumPy's global generator)
         camera = EMCCDDetectBase(
-            em_gain=g, full_well_image=1e5, full_well_serial=9e4, dark_current=0.0,
-            cic=0.005, read_noise=80.0, bias=2000.0, qe=0.9, cr_rate=0.0,
-            pixel_pitch=13e-6, eperdn=4.0, nbits=16, numel_gain_register=604)
+            em_gain=g,
+            full_well_image=1e5,
+            full_well_serial=9e4,
+            dark_current=0.0,
+            cic=0.005,
+            read_noise=80.0,
+            bias=2000.0,
+            qe=0.9,
+            cr_rate=0.0,
+            pixel_pitch=13e-6,
+            eperdn=4.0,
+            nbits=16,
+            numel_gain_register=604,
+        )
         darks = camera.sim_sub_frame(np.zeros((4000 * 32, 32)), 0.0).reshape(4000, 32, 32)
         c = check_gain([darks.astype(np.uint16)], 4.0, stages=604)
-        print(f"{g:>6g} | {c.em_gain:>8.1f} ± {c.em_gain_se:>5.1f} "
-              f"{(c.em_gain - g) / c.em_gain_se:>+6.2f} {100 * c.relative_se:>6.2f}% "
-              f"{c.event_rate:>8.5f}", flush=True)
+        print(
+            f"{g:>6g} | {c.em_gain:>8.1f} ± {c.em_gain_se:>5.1f} "
+            f"{(c.em_gain - g) / c.em_gain_se:>+6.2f} {100 * c.relative_se:>6.2f}% "
+            f"{c.event_rate:>8.5f}",
+            flush=True,
+        )
 
 
 def flags(args) -> None:
@@ -124,34 +169,59 @@ def flags(args) -> None:
     from emccdcal.simulate.series import simulate_gain_series
 
     with tempfile.TemporaryDirectory() as tmp:
-        sim = simulate_gain_series(Path(tmp) / "gs", rows=16, cols=16, frames=400,
-                                   dark_frames=3000, cic=0.02, setpoints=(1, 100, 300),
-                                   em_gain=(1, 95, 310), seed=4, progress=False)
+        sim = simulate_gain_series(
+            Path(tmp) / "gs",
+            rows=16,
+            cols=16,
+            frames=400,
+            dark_frames=3000,
+            cic=0.02,
+            setpoints=(1, 100, 300),
+            em_gain=(1, 95, 310),
+            seed=4,
+            progress=False,
+        )
         calibrate(sim.manifest, "gs", out=Path(tmp) / "cal", checks=False)
         cal = load_calibration(Path(tmp) / "cal")
         for label, g in (("unchanged", 310.0), ("fallen 5 %", 0.95 * 310.0)):
             flagged = 0
             for seed in range(args.seeds):
-                darks = simulate_frames(0.0, g, PHI, 587.7, 15.5, frames=3000, rows=16,
-                                        cols=16, cic=0.02, seed=10_000 + seed)
+                darks = simulate_frames(
+                    0.0,
+                    g,
+                    PHI,
+                    587.7,
+                    15.5,
+                    frames=3000,
+                    rows=16,
+                    cols=16,
+                    cic=0.02,
+                    seed=10_000 + seed,
+                )
                 check = check_gain([darks], PHI, setpoint=300)
                 flagged += compare(check, cal, z=3.0)["changed"]
-            print(f"{label:>10}: flagged {flagged} of {args.seeds} "
-                  f"({100 * flagged / args.seeds:.1f} %)", flush=True)
+            print(
+                f"{label:>10}: flagged {flagged} of {args.seeds} "
+                f"({100 * flagged / args.seeds:.1f} %)",
+                flush=True,
+            )
 
 
 def speed(args) -> None:
-    darks = simulate_frames(0.0, 300.0, PHI, OFFSET, 15.5, frames=200, rows=512, cols=512,
-                            cic=0.005, seed=args.seed)
+    darks = simulate_frames(
+        0.0, 300.0, PHI, OFFSET, 15.5, frames=200, rows=512, cols=512, cic=0.005, seed=args.seed
+    )
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     t0 = time.perf_counter()
     c = check_gain([darks], PHI)
     seconds = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(f"512 x 512 x 200 frames: {seconds:.1f} s, {c.passes} passes; g = {c.em_gain:.2f} "
-          f"± {c.em_gain_se:.2f} (truth 300; MLE {c.em_gain_mle:.2f}); peak memory "
-          f"{peak:.0f} MiB ({before:.0f} MiB with the stack of {darks.nbytes / 2**20:.0f} MiB "
-          "before the check)")
+    print(
+        f"512 x 512 x 200 frames: {seconds:.1f} s, {c.passes} passes; g = {c.em_gain:.2f} "
+        f"± {c.em_gain_se:.2f} (truth 300; MLE {c.em_gain_mle:.2f}); peak memory "
+        f"{peak:.0f} MiB ({before:.0f} MiB with the stack of {darks.nbytes / 2**20:.0f} MiB "
+        "before the check)"
+    )
 
 
 def main() -> None:
@@ -163,8 +233,9 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=1000)
     ap.add_argument("--register-cic", action="store_true")
     args = ap.parse_args()
-    {"grid": grid, "frames": frames, "emccd-detect": emccd_detect, "flags": flags,
-     "speed": speed}[args.part](args)
+    {"grid": grid, "frames": frames, "emccd-detect": emccd_detect, "flags": flags, "speed": speed}[
+        args.part
+    ](args)
 
 
 if __name__ == "__main__":

@@ -50,31 +50,46 @@ def main(data: Path) -> None:
             ds = _quiet(calibrate, manifest(data.resolve(), Path(tmp)), "gs")
         points = measured_gains([ds])
         full = fit_gain_curve(points)
-        print(f"real ProEM, gs: all four set-points, degree {full.degree}, "
-              f"chi2 {full.chi2:.2f} on {full.dof} dof")
+        print(
+            f"real ProEM, gs: all four set-points, degree {full.degree}, "
+            f"chi2 {full.chi2:.2f} on {full.dof} dof"
+        )
         for held in (25.0, 100.0):
             g, se, m, mse, z, deg = leave_one_out(points, held)
-            print(f"  {held:g}x left out: predicted {g:.3f} ± {se:.3f} (degree {deg}), measured "
-                  f"{m:.3f} ± {mse:.3f}: {100 * (g / m - 1):+.2f} %, z = {z:+.2f}")
+            print(
+                f"  {held:g}x left out: predicted {g:.3f} ± {se:.3f} (degree {deg}), measured "
+                f"{m:.3f} ± {mse:.3f}: {100 * (g / m - 1):+.2f} %, z = {z:+.2f}"
+            )
     x = np.log(np.array(sorted(PAPER)))
     coef = np.polyfit(x, np.log([PAPER[s] for s in sorted(PAPER)]), 2)
     setpoints = (1, 5, 25, 50, 100, 200, 300)
     truth = {s: 1.0 if s == 1 else float(np.exp(np.polyval(coef, np.log(s)))) for s in setpoints}
     with tempfile.TemporaryDirectory() as tmp:
-        sim = simulate_gain_series(Path(tmp) / "gs", rows=32, cols=32, frames=2000, seed=17,
-                                   setpoints=setpoints, em_gain=[truth[s] for s in setpoints])
+        sim = simulate_gain_series(
+            Path(tmp) / "gs",
+            rows=32,
+            cols=32,
+            frames=2000,
+            seed=17,
+            setpoints=setpoints,
+            em_gain=[truth[s] for s in setpoints],
+        )
         ds = _quiet(calibrate, sim.manifest, "gs")
     points = measured_gains([ds])
     curve = fit_gain_curve([p for p in points if p[0] in PAPER])
-    print(f"known truth: fitted to 5/25/100/300, degree {curve.degree}, chi2 {curve.chi2:.2f} "
-          f"on {curve.dof} dof")
+    print(
+        f"known truth: fitted to 5/25/100/300, degree {curve.degree}, chi2 {curve.chi2:.2f} "
+        f"on {curve.dof} dof"
+    )
     pred = curve.predict([50.0, 200.0])
     for i, s in enumerate((50.0, 200.0)):
         (meas,) = [p for p in points if p[0] == s]
         g, se = pred["gain"][i], pred["se_of_median"][i]
-        print(f"  {s:g}x: predicted {g:.3f} ± {se:.3f} (95 % {pred['lower'][i]:.3f}–"
-              f"{pred['upper'][i]:.3f}); truth {truth[s]:.3f} ({100 * (g / truth[s] - 1):+.2f} %,"
-              f" {(g - truth[s]) / se:+.2f} SE); gs measured {meas[1]:.3f} ± {meas[2]:.3f}")
+        print(
+            f"  {s:g}x: predicted {g:.3f} ± {se:.3f} (95 % {pred['lower'][i]:.3f}–"
+            f"{pred['upper'][i]:.3f}); truth {truth[s]:.3f} ({100 * (g / truth[s] - 1):+.2f} %,"
+            f" {(g - truth[s]) / se:+.2f} SE); gs measured {meas[1]:.3f} ± {meas[2]:.3f}"
+        )
 
 
 if __name__ == "__main__":

@@ -22,20 +22,46 @@ from emccdcal import defaults
 from emccdcal.fit import layouts
 from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
 
-__all__ = ["CAMERAS", "ROWS", "COLS", "FRAMES", "STUDY_REGISTER", "simulate_camera",
-           "truth_manifest",
-           "median_band", "coverage", "result_bounds", "hierarchical_options"]
+__all__ = [
+    "CAMERAS",
+    "ROWS",
+    "COLS",
+    "FRAMES",
+    "STUDY_REGISTER",
+    "simulate_camera",
+    "truth_manifest",
+    "median_band",
+    "coverage",
+    "result_bounds",
+    "hierarchical_options",
+]
 
 #: The two cameras: the paper's and an "other" one (φ 12 e-/ADU, σ 40 ADU, E 60 e-).
 CAMERAS = {
-    "paper": dict(e_per_adu=3.859, read_noise=15.5, offset=587.7, photoelectrons=370.0,
-                  setpoints=(1, 5, 25, 100, 300), em_gain=(1, 4.78, 22.95, 90.06, 261.6),
-                  levels=(2000, 4000, 8000, 16000, 32000, 64000), is_gain_setpoint=25,
-                  is_gain=22.95, is_gain_levels=(50, 100, 200, 400, 800, 1600)),
-    "other": dict(e_per_adu=12.0, read_noise=40.0, offset=1000.0, photoelectrons=60.0,
-                  setpoints=(1, 10, 50, 200, 1000), em_gain=(1, 9.1, 44.0, 180.0, 870.0),
-                  levels=(20000, 40000, 80000, 160000, 320000, 600000), is_gain_setpoint=200,
-                  is_gain=180.0, is_gain_levels=(5, 10, 20, 40, 80, 160)),
+    "paper": dict(
+        e_per_adu=3.859,
+        read_noise=15.5,
+        offset=587.7,
+        photoelectrons=370.0,
+        setpoints=(1, 5, 25, 100, 300),
+        em_gain=(1, 4.78, 22.95, 90.06, 261.6),
+        levels=(2000, 4000, 8000, 16000, 32000, 64000),
+        is_gain_setpoint=25,
+        is_gain=22.95,
+        is_gain_levels=(50, 100, 200, 400, 800, 1600),
+    ),
+    "other": dict(
+        e_per_adu=12.0,
+        read_noise=40.0,
+        offset=1000.0,
+        photoelectrons=60.0,
+        setpoints=(1, 10, 50, 200, 1000),
+        em_gain=(1, 9.1, 44.0, 180.0, 870.0),
+        levels=(20000, 40000, 80000, 160000, 320000, 600000),
+        is_gain_setpoint=200,
+        is_gain=180.0,
+        is_gain_levels=(5, 10, 20, 40, 80, 160),
+    ),
 }
 ROWS = COLS = 32  # 1024 pixels
 FRAMES = 2000
@@ -75,17 +101,37 @@ def simulate_camera(base, cam):
     """The three series of a camera (gain series, 1× and EM intensity series), with
     manifests that carry the true maps and the study's register model
     (:data:`STUDY_REGISTER`); also used by ``benchmarks/coverage_study.py``."""
-    common = dict(rows=ROWS, cols=COLS, frames=FRAMES, dark_frames=10, e_per_adu=cam["e_per_adu"],
-                  read_noise=cam["read_noise"], offset=cam["offset"],
-                  multiplication=STUDY_REGISTER)
-    gs = simulate_gain_series(base / "gs", setpoints=cam["setpoints"], em_gain=cam["em_gain"],
-                              photoelectrons=cam["photoelectrons"], seed=31, **common)
+    common = dict(
+        rows=ROWS,
+        cols=COLS,
+        frames=FRAMES,
+        dark_frames=10,
+        e_per_adu=cam["e_per_adu"],
+        read_noise=cam["read_noise"],
+        offset=cam["offset"],
+        multiplication=STUDY_REGISTER,
+    )
+    gs = simulate_gain_series(
+        base / "gs",
+        setpoints=cam["setpoints"],
+        em_gain=cam["em_gain"],
+        photoelectrons=cam["photoelectrons"],
+        seed=31,
+        **common,
+    )
     adu = simulate_intensity_series(base / "adu", levels=cam["levels"], seed=14, **common)
-    isg = simulate_intensity_series(base / "isg", levels=cam["is_gain_levels"],
-                                    setpoint=cam["is_gain_setpoint"], em_gain=cam["is_gain"],
-                                    seed=13, **common)
-    return {k: truth_manifest(s, cam["read_noise"], STUDY_REGISTER) for k, s in
-            (("gs", gs), ("adu", adu), ("isg", isg))}
+    isg = simulate_intensity_series(
+        base / "isg",
+        levels=cam["is_gain_levels"],
+        setpoint=cam["is_gain_setpoint"],
+        em_gain=cam["is_gain"],
+        seed=13,
+        **common,
+    )
+    return {
+        k: truth_manifest(s, cam["read_noise"], STUDY_REGISTER)
+        for k, s in (("gs", gs), ("adu", adu), ("isg", isg))
+    }
 
 
 def median_band(estimate, undefined=None):
@@ -97,11 +143,15 @@ def median_band(estimate, undefined=None):
     any), so the median is that of every pixel, not of the defined ones only.
     """
     estimate = np.ravel(estimate)
-    ranked = np.sort(np.where(np.isnan(estimate), np.nan if undefined is None else undefined,
-                              estimate))
+    ranked = np.sort(
+        np.where(np.isnan(estimate), np.nan if undefined is None else undefined, estimate)
+    )
     n, half = ranked.size, 1.5 * np.sqrt(ranked.size)  # 3 SDs of a Binomial(n, ½) rank
-    return (np.median(ranked), ranked[int(np.floor(n / 2 - half))],
-            ranked[int(np.ceil(n / 2 + half))])
+    return (
+        np.median(ranked),
+        ranked[int(np.floor(n / 2 - half))],
+        ranked[int(np.ceil(n / 2 + half))],
+    )
 
 
 def coverage(estimate, se, truth, bounds=None):
@@ -114,8 +164,7 @@ def coverage(estimate, se, truth, bounds=None):
 
 
 def result_bounds(ds, name, **sel):
-    """``(<name>_lower, <name>_upper)`` at ``sel`` when the result carries them, else None.
-   """
+    """``(<name>_lower, <name>_upper)`` at ``sel`` when the result carries them, else None."""
     if f"{name}_lower" not in ds:
         return None
     return tuple(ds[f"{name}_{side}"].sel(**sel).values for side in ("lower", "upper"))

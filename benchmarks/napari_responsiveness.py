@@ -31,8 +31,10 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=64)
     args = ap.parse_args()
     if not os.environ.get("DISPLAY"):
-        sys.exit("napari_responsiveness: no X display; run it under xvfb-run "
-                 "(see the module's docstring)")
+        sys.exit(
+            "napari_responsiveness: no X display; run it under xvfb-run "
+            "(see the module's docstring)"
+        )
     os.environ["QT_QPA_PLATFORM"] = "xcb"
     import napari
     from qtpy.QtCore import QTimer
@@ -42,9 +44,15 @@ def main() -> None:
     from emccdcal.simulate.series import simulate_gain_series
 
     with tempfile.TemporaryDirectory() as tmp:
-        sim = simulate_gain_series(Path(tmp) / "gs", rows=args.size, cols=args.size,
-                                   frames=args.frames, dark_frames=args.frames,
-                                   seed=7, progress=False)
+        sim = simulate_gain_series(
+            Path(tmp) / "gs",
+            rows=args.size,
+            cols=args.size,
+            frames=args.frames,
+            dark_frames=args.frames,
+            seed=7,
+            progress=False,
+        )
         viewer = napari.Viewer(show=True)
         widget = CalibrateWidget(viewer)
         viewer.window.add_dock_widget(widget, name="Calibrate")
@@ -79,21 +87,31 @@ def main() -> None:
         elapsed = time.perf_counter() - t0
         timer.stop()
         gaps = np.diff(ticks)
-        print(f"{args.size} x {args.size} px, 5 set-points x {args.frames} frames: "
-              f"{widget.status.value[:60]}")
-        print(f"run {elapsed:.1f} s; {len(ticks)} ticks of a 20 ms timer "
-              f"({len(ticks) / (elapsed / 0.02):.0%} of those due); gaps: median "
-              f"{1000 * np.median(gaps):.0f} ms, 99th percentile "
-              f"{1000 * np.percentile(gaps, 99):.0f} ms, longest {1000 * gaps.max():.0f} ms")
+        print(
+            f"{args.size} x {args.size} px, 5 set-points x {args.frames} frames: "
+            f"{widget.status.value[:60]}"
+        )
+        print(
+            f"run {elapsed:.1f} s; {len(ticks)} ticks of a 20 ms timer "
+            f"({len(ticks) / (elapsed / 0.02):.0%} of those due); gaps: median "
+            f"{1000 * np.median(gaps):.0f} ms, 99th percentile "
+            f"{1000 * np.percentile(gaps, 99):.0f} ms, longest {1000 * gaps.max():.0f} ms"
+        )
         worst = int(np.argmax(gaps))
-        print(f"the longest gap began {ticks[worst] - t0:.1f} s into the run; the worker "
-              f"was done and the layers began at {adding:.1f} s")
+        print(
+            f"the longest gap began {ticks[worst] - t0:.1f} s into the run; the worker "
+            f"was done and the layers began at {adding:.1f} s"
+        )
         first = added[0][0] if added else elapsed
         during = gaps[np.asarray(ticks[1:]) - t0 <= first]
-        print(f"while the worker ran ({first:.1f} s): longest gap {1000 * during.max():.0f} "
-              f"ms, 99th percentile {1000 * np.percentile(during, 99):.0f} ms")
-        print("layers added (s into the run, s each): "
-              + ", ".join(f"{a:.1f}/{b:.2f}" for a, b in added))
+        print(
+            f"while the worker ran ({first:.1f} s): longest gap {1000 * during.max():.0f} "
+            f"ms, 99th percentile {1000 * np.percentile(during, 99):.0f} ms"
+        )
+        print(
+            "layers added (s into the run, s each): "
+            + ", ".join(f"{a:.1f}/{b:.2f}" for a, b in added)
+        )
         viewer.close()
 
 

@@ -27,10 +27,10 @@ from emccdcal.calibration import calibrate
 from emccdcal.simulate.series import simulate_gain_series
 
 CAMERAS = {
-    "ProEM-like (3.859 e-/ADU, 15.5 ADU)": dict(e_per_adu=3.859, read_noise=15.5,
-                                                offset=587.7, adc_bits=16),
-    "16-bit (12 e-/ADU, 40 ADU)": dict(e_per_adu=12.0, read_noise=40.0, offset=500.0,
-                                       adc_bits=16),
+    "ProEM-like (3.859 e-/ADU, 15.5 ADU)": dict(
+        e_per_adu=3.859, read_noise=15.5, offset=587.7, adc_bits=16
+    ),
+    "16-bit (12 e-/ADU, 40 ADU)": dict(e_per_adu=12.0, read_noise=40.0, offset=500.0, adc_bits=16),
 }
 TARGETS = (2.0, 1.0, 0.5)
 
@@ -39,8 +39,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args()
-    print("| camera | target | light (e-) | frames 1x/5x/25x/100x/300x | darks per set-point "
-          "| plan (s) | predicted | reported / predicted | scatter / predicted | coverage |")
+    print(
+        "| camera | target | light (e-) | frames 1x/5x/25x/100x/300x | darks per set-point "
+        "| plan (s) | predicted | reported / predicted | scatter / predicted | coverage |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for name, cam in CAMERAS.items():
         for target in TARGETS:
@@ -49,13 +51,20 @@ def main() -> None:
             took = time.perf_counter() - t0
             with tempfile.TemporaryDirectory() as tmp:
                 sim = simulate_gain_series(
-                    tmp, setpoints=[a.setpoint for a in p.acquisitions],
+                    tmp,
+                    setpoints=[a.setpoint for a in p.acquisitions],
                     em_gain=[a.em_gain for a in p.acquisitions],
                     photoelectrons=p.photoelectrons,
-                    frames=[a.frames for a in p.acquisitions], dark_frames=p.dark_frames,
-                    seed=args.seed, rows=16, cols=16, offset_drop=0.0,
-                    e_per_adu=cam["e_per_adu"], read_noise=cam["read_noise"],
-                    offset=cam["offset"])
+                    frames=[a.frames for a in p.acquisitions],
+                    dark_frames=p.dark_frames,
+                    seed=args.seed,
+                    rows=16,
+                    cols=16,
+                    offset_drop=0.0,
+                    e_per_adu=cam["e_per_adu"],
+                    read_noise=cam["read_noise"],
+                    offset=cam["offset"],
+                )
                 ds = calibrate(sim.manifest, method="gs", checks=False)
             reported, scatter, covered = [], [], []
             for a in p.acquisitions[1:]:
@@ -69,10 +78,13 @@ def main() -> None:
             def span(x):
                 return f"{min(x):.3f}–{max(x):.3f}"
 
-            print(f"| {name} | {target:g} % | {p.photoelectrons:.0f} | "
-                  + "/".join(str(a.frames) for a in p.acquisitions)
-                  + f" | {p.dark_frames} | {took:.2f} | {p.predicted_se:.3f} % | "
-                  f"{span(reported)} | {span(scatter)} | {np.mean(covered):.3f} |", flush=True)
+            print(
+                f"| {name} | {target:g} % | {p.photoelectrons:.0f} | "
+                + "/".join(str(a.frames) for a in p.acquisitions)
+                + f" | {p.dark_frames} | {took:.2f} | {p.predicted_se:.3f} % | "
+                f"{span(reported)} | {span(scatter)} | {np.mean(covered):.3f} |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

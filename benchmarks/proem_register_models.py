@@ -29,10 +29,13 @@ def manifest(data: Path, directory: Path) -> Path:
     """The gain series' manifest: its stacks, dark maps and the authors' φ map."""
     lines = [f'e_per_adu = "{data}/gain-GS/ADU_map.tif"']
     for g in SETPOINTS:
-        lines += ["[[acquisition]]", f'frames = "{data}/gain-GS/{g}x-gain.tif"',
-                  f"em_gain_setpoint = {g}",
-                  f'offset = "{data}/gain-GS/{g}x-gain_no-signal_S0.tif"',
-                  f'read_noise = "{data}/gain-GS/{g}x-gain_no-signal_sigma.tif"']
+        lines += [
+            "[[acquisition]]",
+            f'frames = "{data}/gain-GS/{g}x-gain.tif"',
+            f"em_gain_setpoint = {g}",
+            f'offset = "{data}/gain-GS/{g}x-gain_no-signal_S0.tif"',
+            f'read_noise = "{data}/gain-GS/{g}x-gain_no-signal_sigma.tif"',
+        ]
     path = directory / "gs.toml"
     path.write_text("\n".join(lines) + "\n")
     return path
@@ -45,24 +48,33 @@ def main(data: Path) -> None:
         for model in ("gamma", "cascade"):
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                results[model] = calibrate(path, "gs", em_model=model,
-                                           stages=536 if model == "cascade" else None)
+                results[model] = calibrate(
+                    path, "gs", em_model=model, stages=536 if model == "cascade" else None
+                )
             misfits = [str(w.message).split(";")[0] for w in caught if "misfit" in str(w.message)]
-            print(f"{model}: E = {np.median(results[model].photoelectrons.values):.3f} e- "
-                  f"(median); misfit warnings: {misfits or 'none'}")
-    print(f"{'set-point':>9} | {'g gamma':>9} {'g cascade':>9} {'ratio':>7} | "
-          f"{'loglik gamma':>13} {'loglik cascade':>14} {'Δ':>7} | "
-          f"{'p<0.01 gamma':>12} {'cascade':>7} | {'median p gamma':>14} {'cascade':>7}")
+            print(
+                f"{model}: E = {np.median(results[model].photoelectrons.values):.3f} e- "
+                f"(median); misfit warnings: {misfits or 'none'}"
+            )
+    print(
+        f"{'set-point':>9} | {'g gamma':>9} {'g cascade':>9} {'ratio':>7} | "
+        f"{'loglik gamma':>13} {'loglik cascade':>14} {'Δ':>7} | "
+        f"{'p<0.01 gamma':>12} {'cascade':>7} | {'median p gamma':>14} {'cascade':>7}"
+    )
     gam, cas = results["gamma"], results["cascade"]
     for i, sp in enumerate(gam.setpoint.values):
         g0, g1 = (float(np.median(r.em_gain.values[i])) for r in (gam, cas))
         ll0, ll1 = (float(r.acquisition_loglik.values[i].sum()) for r in (gam, cas))
         p0, p1 = (r.gof_pvalue.values[i].ravel() for r in (gam, cas))
-        print(f"{sp:>8g}x | {g0:>9.4f} {g1:>9.4f} {g1 / g0:>7.4f} | {ll0:>13.2f} {ll1:>14.2f} "
-              f"{ll1 - ll0:>7.2f} | {int((p0 < 0.01).sum()):>10d}/9 {int((p1 < 0.01).sum()):>5d}/9 | "
-              f"{np.median(p0):>14.2g} {np.median(p1):>7.2g}")
-    print(f"total log-likelihood: gamma {float(gam.loglik.values.sum()):.2f}, "
-          f"cascade {float(cas.loglik.values.sum()):.2f}")
+        print(
+            f"{sp:>8g}x | {g0:>9.4f} {g1:>9.4f} {g1 / g0:>7.4f} | {ll0:>13.2f} {ll1:>14.2f} "
+            f"{ll1 - ll0:>7.2f} | {int((p0 < 0.01).sum()):>10d}/9 {int((p1 < 0.01).sum()):>5d}/9 | "
+            f"{np.median(p0):>14.2g} {np.median(p1):>7.2g}"
+        )
+    print(
+        f"total log-likelihood: gamma {float(gam.loglik.values.sum()):.2f}, "
+        f"cascade {float(cas.loglik.values.sum()):.2f}"
+    )
 
 
 if __name__ == "__main__":

@@ -33,8 +33,10 @@ from emccdcal.simulate.series import simulate_intensity_series
 
 
 def line(case, what, est, se, truth, bounds):
-    print(f"| {case} | {what} | {coverage(est, se, truth):.3f} "
-          f"| {coverage(est, se, truth, bounds):.3f} |")
+    print(
+        f"| {case} | {what} | {coverage(est, se, truth):.3f} "
+        f"| {coverage(est, se, truth, bounds):.3f} |"
+    )
 
 
 def main():
@@ -49,24 +51,58 @@ def main():
         seconds = time.perf_counter() - t0
         for sp, g in zip(cam["setpoints"][1:], cam["em_gain"][1:]):
             s = ds.sel(setpoint=sp)
-            line('"other" camera, gs', f"em_gain {sp}x", s.em_gain.values, s.em_gain_se.values,
-                 g, result_bounds(ds, "em_gain", setpoint=sp))
-        line('"other" camera, gs', "photoelectrons", ds.photoelectrons.values,
-             ds.photoelectrons_se.values, cam["photoelectrons"],
-             result_bounds(ds, "photoelectrons"))
+            line(
+                '"other" camera, gs',
+                f"em_gain {sp}x",
+                s.em_gain.values,
+                s.em_gain_se.values,
+                g,
+                result_bounds(ds, "em_gain", setpoint=sp),
+            )
+        line(
+            '"other" camera, gs',
+            "photoelectrons",
+            ds.photoelectrons.values,
+            ds.photoelectrons_se.values,
+            cam["photoelectrons"],
+            result_bounds(ds, "photoelectrons"),
+        )
 
-        sim = simulate_intensity_series(Path(tmp) / "low", levels=(0.3,), rows=16, cols=16,
-                                        frames=200, dark_frames=200, e_per_adu=0.5,
-                                        read_noise=1.5, offset=100.0, seed=5)
+        sim = simulate_intensity_series(
+            Path(tmp) / "low",
+            levels=(0.3,),
+            rows=16,
+            cols=16,
+            frames=200,
+            dark_frames=200,
+            e_per_adu=0.5,
+            read_noise=1.5,
+            offset=100.0,
+            seed=5,
+        )
         low = calibrate(sim.manifest, "is-adu", intervals="profile", checks=False)
         case = "low-noise camera, is-adu, 0.3 e⁻/frame"
-        line(case, "e_per_adu", low.e_per_adu.values, low.e_per_adu_se.values, 0.5,
-             result_bounds(low, "e_per_adu"))
-        line(case, "photoelectrons", low.photoelectrons.values, low.photoelectrons_se.values,
-             0.3, result_bounds(low, "photoelectrons"))
-        print(f"\n`gs` with profile bounds on {ds.em_gain.shape[1] * ds.em_gain.shape[2]} "
-              f"pixels: {seconds:.0f} s; is-adu converged in "
-              f"{float(low.converged.mean()):.1%} of {low.converged.size} pixels")
+        line(
+            case,
+            "e_per_adu",
+            low.e_per_adu.values,
+            low.e_per_adu_se.values,
+            0.5,
+            result_bounds(low, "e_per_adu"),
+        )
+        line(
+            case,
+            "photoelectrons",
+            low.photoelectrons.values,
+            low.photoelectrons_se.values,
+            0.3,
+            result_bounds(low, "photoelectrons"),
+        )
+        print(
+            f"\n`gs` with profile bounds on {ds.em_gain.shape[1] * ds.em_gain.shape[2]} "
+            f"pixels: {seconds:.0f} s; is-adu converged in "
+            f"{float(low.converged.mean()):.1%} of {low.converged.size} pixels"
+        )
 
 
 if __name__ == "__main__":

@@ -41,14 +41,18 @@ def profile(path, truth=None, **kw):
     best = max(ll.values())
     ref = runs[536]
     setpoints = ref.setpoint.values[1:]
-    head = f"{'stages':>6} | {'Δ loglik':>9} | " + " ".join(f"{f'g {s:g}x / 536':>12}" for s in setpoints)
+    head = f"{'stages':>6} | {'Δ loglik':>9} | " + " ".join(
+        f"{f'g {s:g}x / 536':>12}" for s in setpoints
+    )
     if truth is not None:
         head += " | " + " ".join(f"{f'{s:g}x vs truth':>12}" for s in setpoints)
     print(head)
     for n, r in runs.items():
         g = np.median(r.em_gain.values[1:], axis=(1, 2))
         g0 = np.median(ref.em_gain.values[1:], axis=(1, 2))
-        line = f"{n:>6} | {ll[n] - best:>9.2f} | " + " ".join(f"{x:>+11.3f}%" for x in 100 * (g / g0 - 1))
+        line = f"{n:>6} | {ll[n] - best:>9.2f} | " + " ".join(
+            f"{x:>+11.3f}%" for x in 100 * (g / g0 - 1)
+        )
         if truth is not None:
             line += " | " + " ".join(f"{x:>+11.3f}%" for x in 100 * (g / truth - 1))
         print(line)
@@ -62,8 +66,10 @@ def timing(path, repeat=3, **kw):
             quiet(path, "gs", em_model=model, **kw)
             times[model].append(time.perf_counter() - t0)
     g, c = (float(np.median(times[m])) for m in ("gamma", "cascade"))
-    print(f"gs wall time, median of {repeat}: gamma {g:.2f} s, cascade (default) {c:.2f} s, "
-          f"ratio {c / g:.2f}")
+    print(
+        f"gs wall time, median of {repeat}: gamma {g:.2f} s, cascade (default) {c:.2f} s, "
+        f"ratio {c / g:.2f}"
+    )
 
 
 def main(data: Path) -> None:

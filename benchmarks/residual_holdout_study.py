@@ -52,17 +52,26 @@ def fit_series(stacks, manifest, positions, split, image_half):
 
     def fit(sp, **kw):
         a = acqs[sp]
-        return bead_fit.fit_beads(stacks[sp], positions, offset=a.offset,
-                                  read_noise=a.read_noise, e_per_adu=PHI, em_gain=GAINS[sp],
-                                  em_model=model, residual_split=split,
-                                  offset_se=a.read_noise / np.sqrt(a.dark_frames), **kw)
+        return bead_fit.fit_beads(
+            stacks[sp],
+            positions,
+            offset=a.offset,
+            read_noise=a.read_noise,
+            e_per_adu=PHI,
+            em_gain=GAINS[sp],
+            em_model=model,
+            residual_split=split,
+            offset_se=a.read_noise / np.sqrt(a.dark_frames),
+            **kw,
+        )
 
     first = {sp: fit(sp) for sp in stacks}
     widths, widths_se = bead_fit.shared_widths(list(first.values()), with_se=True)
     second = {sp: fit(sp, fixed_width=widths, fixed_width_se=widths_se) for sp in stacks}
     image = bead_fit.residual_image(list(second.values()), half=image_half)
-    third = {sp: fit(sp, fixed_width=widths, fixed_width_se=widths_se, residual=image)
-             for sp in stacks}
+    third = {
+        sp: fit(sp, fixed_width=widths, fixed_width_se=widths_se, residual=image) for sp in stacks
+    }
     return third, image
 
 
@@ -71,24 +80,28 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=8)
     ap.add_argument("--first-seed", type=int, default=1)
     ap.add_argument("--frames", type=int, default=500)
-    ap.add_argument("--halo", action="store_true",
-                    help="also the halo that appears halfway through every acquisition")
+    ap.add_argument(
+        "--halo",
+        action="store_true",
+        help="also the halo that appears halfway through every acquisition",
+    )
     args = ap.parse_args()
     scores: dict = {}
     t0 = time.perf_counter()
 
     def add(name, sp, m):
         scores.setdefault(name, {}).setdefault(sp, []).append(
-            (m["chi2_per_pixel"], m["chi2_per_pixel_se"]))
+            (m["chi2_per_pixel"], m["chi2_per_pixel_se"])
+        )
 
     with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
         warnings.simplefilter("ignore")
         for seed in range(args.first_seed, args.first_seed + args.seeds):
-            sim = simulate_beads(Path(tmp) / f"g{seed}", seed=seed, frames=args.frames,
-                                 multiplication="gamma")
+            sim = simulate_beads(
+                Path(tmp) / f"g{seed}", seed=seed, frames=args.frames, multiplication="gamma"
+            )
             manifest = read_manifest(sim.manifest)
-            positions = np.array([[round(b["row"]), round(b["col"])]
-                                  for b in sim.truth["beads"]])
+            positions = np.array([[round(b["row"]), round(b["col"])] for b in sim.truth["beads"]])
             stacks = {a.em_gain_setpoint: a.frames() for a in manifest.acquisitions}
             third, image = fit_series(stacks, manifest, positions, "alternate", None)
             for sp, f in third.items():
@@ -98,24 +111,35 @@ def main() -> None:
                 add("held out, image exact", sp, bead_fit.psf_mismatch(f, half=1))
                 add("held out", sp, bead_fit.psf_mismatch(f, half=1, image=image))
             if args.halo:
-                later = simulate_beads(Path(tmp) / f"h{seed}", seed=seed,  # the same camera
-                                       frames=args.frames, multiplication="gamma",
-                                       positions=[[b["row"], b["col"]]
-                                                  for b in sim.truth["beads"]],
-                                       halo=0.2)
+                later = simulate_beads(
+                    Path(tmp) / f"h{seed}",
+                    seed=seed,  # the same camera
+                    frames=args.frames,
+                    multiplication="gamma",
+                    positions=[[b["row"], b["col"]] for b in sim.truth["beads"]],
+                    halo=0.2,
+                )
                 half = args.frames // 2
-                mixed = {a.em_gain_setpoint: np.concatenate([stacks[a.em_gain_setpoint][:half],
-                                                             a.frames()[half:]])
-                         for a in read_manifest(later.manifest).acquisitions}
+                mixed = {
+                    a.em_gain_setpoint: np.concatenate(
+                        [stacks[a.em_gain_setpoint][:half], a.frames()[half:]]
+                    )
+                    for a in read_manifest(later.manifest).acquisitions
+                }
                 for split in ("time", "alternate"):
                     third, image = fit_series(mixed, manifest, positions, split, 0)
                     for sp, f in third.items():
-                        add(f"halo from mid-way, split {split}", sp,
-                            bead_fit.psf_mismatch(f, half=1, image=image))
+                        add(
+                            f"halo from mid-way, split {split}",
+                            sp,
+                            bead_fit.psf_mismatch(f, half=1, image=image),
+                        )
             print(f"seed {seed} done ({time.perf_counter() - t0:.0f} s)", flush=True)
-    print(f"\n{args.seeds} seeds x 10 beads of 5000 e-, {args.frames} frames per set-point; "
-          "residual model's chi2 per pixel: mean over seeds (SD over seeds; sampling SE "
-          "of one seed's value under a right model)")
+    print(
+        f"\n{args.seeds} seeds x 10 beads of 5000 e-, {args.frames} frames per set-point; "
+        "residual model's chi2 per pixel: mean over seeds (SD over seeds; sampling SE "
+        "of one seed's value under a right model)"
+    )
     sps = sorted(next(iter(scores.values())))
     print(f"{'score':>36} | " + " | ".join(f"{sp:>17g}x" for sp in sps))
     for name, per in scores.items():

@@ -23,9 +23,17 @@ import emccdcal
 from emccdcal import result
 
 work = Path(tempfile.mkdtemp(prefix="emccdcal-gallery-"))
-sim = emccdcal.simulate_beads(work / "beads", beads=4, photoelectrons=3000.0, rows=48,
-                              cols=48, frames=20, dark_frames=200, setpoints=(1, 10, 100),
-                              seed=5)
+sim = emccdcal.simulate_beads(
+    work / "beads",
+    beads=4,
+    photoelectrons=3000.0,
+    rows=48,
+    cols=48,
+    frames=20,
+    dark_frames=200,
+    setpoints=(1, 10, 100),
+    seed=5,
+)
 truth = work / "beads" / "truth_calibration.nc"
 
 # %%
@@ -37,16 +45,19 @@ result.save(nominal, work / "nominal")
 
 # %%
 # Validate both; the ranking puts the most consistent first.
-doc = emccdcal.validate(sim.manifest, [str(truth), str(work / "nominal")],
-                        out=work / "validation")
+doc = emccdcal.validate(sim.manifest, [str(truth), str(work / "nominal")], out=work / "validation")
+
+
 def name(entry):
     return "nominal" if "nominal" in entry["file"] else "truth"
 
 
 print("ranking:", ["nominal" if "nominal" in f else "truth" for f in doc["ranking"]])
 for entry in doc["calibrations"]:
-    print(f"{name(entry):>8}: spread of the beads' mean intensities over the set-points "
-          f"{entry['sigma_means_incl_1x']:.4f}")
+    print(
+        f"{name(entry):>8}: spread of the beads' mean intensities over the set-points "
+        f"{entry['sigma_means_incl_1x']:.4f}"
+    )
 
 # %%
 # Every bead's mean intensity at every set-point, relative to its own mean, under each

@@ -21,14 +21,17 @@ import emccdcal
 work = Path(tempfile.mkdtemp(prefix="emccdcal-gallery-"))
 camera = dict(rows=6, cols=6, e_per_adu=3.859)
 adu = emccdcal.simulate_intensity_series(work / "adu", frames=1000, seed=1, **camera)
-gs = emccdcal.simulate_gain_series(work / "gs", frames=1500, setpoints=[1, 25, 300], seed=2,
-                                   **camera)
+gs = emccdcal.simulate_gain_series(
+    work / "gs", frames=1500, setpoints=[1, 25, 300], seed=2, **camera
+)
 
 # %%
 # Step 1: φ per pixel from the 1× intensity series, one intensity per level.
 phi = emccdcal.calibrate(adu.manifest, method="is-adu", out=work / "out-adu")
-print(f"e_per_adu: median {float(phi.e_per_adu.median()):.4f} e-/ADU "
-      f"(truth {adu.truth['e_per_adu']}), median SE {float(phi.e_per_adu_se.median()):.4f}")
+print(
+    f"e_per_adu: median {float(phi.e_per_adu.median()):.4f} e-/ADU "
+    f"(truth {adu.truth['e_per_adu']}), median SE {float(phi.e_per_adu_se.median()):.4f}"
+)
 
 # %%
 # Step 2: the gains, with φ taken from step 1's result, its error included.
@@ -36,8 +39,10 @@ chained = emccdcal.calibrate(gs.manifest, method="gs", e_per_adu=work / "out-adu
 print(chained.attrs["e_per_adu_source"])
 exact = emccdcal.calibrate(gs.manifest, method="gs", e_per_adu=3.859)  # φ known exactly
 for sp in chained.setpoint.values[1:]:
-    print(f"{sp:>4g}x: gain SE with φ's error {float(chained.em_gain_se.sel(setpoint=sp).median()):.3f}"
-          f", with φ exact {float(exact.em_gain_se.sel(setpoint=sp).median()):.3f}")
+    print(
+        f"{sp:>4g}x: gain SE with φ's error {float(chained.em_gain_se.sel(setpoint=sp).median()):.3f}"
+        f", with φ exact {float(exact.em_gain_se.sel(setpoint=sp).median()):.3f}"
+    )
 
 # %%
 # The photon-transfer view of step 1: every level's variance against its mean, per
@@ -48,12 +53,12 @@ m = emccdcal.read_manifest(adu.manifest)
 fig, ax = plt.subplots(figsize=(5, 3.6), constrained_layout=True)
 for a in m.acquisitions:
     frames = load_stack(a.frames_path).astype(float) - a.offset
-    ax.plot(frames.mean(axis=0).ravel(), frames.var(axis=0).ravel(), ".", ms=3,
-            label=a.level)
+    ax.plot(frames.mean(axis=0).ravel(), frames.var(axis=0).ravel(), ".", ms=3, label=a.level)
 mean = np.linspace(0, ax.get_xlim()[1], 50)
 noise2 = float(np.median(m.acquisitions[0].read_noise)) ** 2
-ax.plot(mean, noise2 + mean / float(phi.e_per_adu.median()), "k-", lw=1,
-        label="read noise² + mean/φ")
+ax.plot(
+    mean, noise2 + mean / float(phi.e_per_adu.median()), "k-", lw=1, label="read noise² + mean/φ"
+)
 ax.set(xlabel="mean − offset (ADU)", ylabel="variance (ADU²)")
 ax.legend(fontsize=7, ncol=2)
 plt.show()

@@ -24,8 +24,9 @@ from emccdcal import cli
 work = Path(tempfile.mkdtemp(prefix="emccdcal-gallery-"))
 camera = dict(rows=8, cols=8, e_per_adu=3.859)
 adu = emccdcal.simulate_intensity_series(work / "adu", frames=800, seed=21, **camera)
-gs = emccdcal.simulate_gain_series(work / "gs", frames=1000, setpoints=[1, 10, 100], seed=22,
-                                   **camera)
+gs = emccdcal.simulate_gain_series(
+    work / "gs", frames=1000, setpoints=[1, 10, 100], seed=22, **camera
+)
 emccdcal.calibrate(adu.manifest, method="is-adu", out=work / "out-adu")
 emccdcal.calibrate(gs.manifest, method="gs", e_per_adu=work / "out-adu", out=work / "out-gs")
 pair = f"{work}/out-adu,{work}/out-gs"  # φ from one result, the gains from the other
@@ -33,8 +34,23 @@ pair = f"{work}/out-adu,{work}/out-gs"  # φ from one result, the gains from the
 # %%
 # Export the numbers Picasso reads at the 100× set-point (the pair of results: φ from
 # one, the gain from the other).
-assert cli.main(["export", pair, "--to", "picasso", "--setpoint", "100", "--pixel-size", "107",
-                 "-o", f"{work}/picasso"]) == 0
+assert (
+    cli.main(
+        [
+            "export",
+            pair,
+            "--to",
+            "picasso",
+            "--setpoint",
+            "100",
+            "--pixel-size",
+            "107",
+            "-o",
+            f"{work}/picasso",
+        ]
+    )
+    == 0
+)
 config = work / "picasso" / "picasso-config.yaml"
 print(config.read_text())
 

@@ -22,20 +22,49 @@ import emccdcal
 from emccdcal import cli
 
 work = Path(tempfile.mkdtemp(prefix="emccdcal-gallery-"))
-sim = emccdcal.simulate_gain_series(work / "gs", rows=8, cols=8, frames=1000, setpoints=[1, 25, 300],
-                                    e_per_adu=3.859, seed=11)
-assert cli.main(["calibrate", str(sim.manifest), "--method", "gs", "--e-per-adu", "3.859",
-                 "-o", f"{work}/out-gs", "--quiet"]) == 0
+sim = emccdcal.simulate_gain_series(
+    work / "gs", rows=8, cols=8, frames=1000, setpoints=[1, 25, 300], e_per_adu=3.859, seed=11
+)
+assert (
+    cli.main(
+        [
+            "calibrate",
+            str(sim.manifest),
+            "--method",
+            "gs",
+            "--e-per-adu",
+            "3.859",
+            "-o",
+            f"{work}/out-gs",
+            "--quiet",
+        ]
+    )
+    == 0
+)
 true_gain = {a["em_gain_setpoint"]: a["em_gain"] for a in sim.truth["acquisitions"]}[300]
-darks = emccdcal.simulate_frames(0.05, em_gain=true_gain, e_per_adu=3.859, frames=2000,
-                                 rows=8, cols=8, seed=12)
+darks = emccdcal.simulate_frames(
+    0.05, em_gain=true_gain, e_per_adu=3.859, frames=2000, rows=8, cols=8, seed=12
+)
 tifffile.imwrite(work / "darks-300x.tif", darks)
 print(f"true gain at 300x: {true_gain:.2f}")
 
 # %%
 # The check, against the calibration (φ comes from it): one line, and the verdict.
-assert cli.main(["gain-check", f"{work}/darks-300x.tif", "--calibration", f"{work}/out-gs",
-                 "--setpoint", "300", "-o", f"{work}/check"]) == 0
+assert (
+    cli.main(
+        [
+            "gain-check",
+            f"{work}/darks-300x.tif",
+            "--calibration",
+            f"{work}/out-gs",
+            "--setpoint",
+            "300",
+            "-o",
+            f"{work}/check",
+        ]
+    )
+    == 0
+)
 
 # %%
 # What it fitted: the pooled histogram of the darks (offset removed) on a log scale,
@@ -48,6 +77,10 @@ ds = emccdcal.load_result(work / "out-gs")
 excess = (darks - ds.offset.sel(setpoint=300).values).ravel()
 fig, ax = plt.subplots(figsize=(6, 3.4), constrained_layout=True)
 ax.hist(excess, bins=np.arange(-80, excess.max() + 8, 8), color="0.6")
-ax.set(yscale="log", xlabel="counts − offset (ADU)", ylabel="frames × pixels",
-       title=f"em_gain {record['em_gain']:.1f} ± {record['em_gain_se']:.1f} from the darks")
+ax.set(
+    yscale="log",
+    xlabel="counts − offset (ADU)",
+    ylabel="frames × pixels",
+    title=f"em_gain {record['em_gain']:.1f} ± {record['em_gain_se']:.1f} from the darks",
+)
 plt.show()

@@ -17,8 +17,9 @@ import matplotlib.pyplot as plt
 import emccdcal
 
 work = Path(tempfile.mkdtemp(prefix="emccdcal-gallery-"))
-sim = emccdcal.simulate_gain_series(work / "gs", rows=8, cols=8, frames=1500,
-                                    setpoints=[1, 10, 50, 200], e_per_adu=4.0, seed=7)
+sim = emccdcal.simulate_gain_series(
+    work / "gs", rows=8, cols=8, frames=1500, setpoints=[1, 10, 50, 200], e_per_adu=4.0, seed=7
+)
 print(sim.manifest.read_text())
 
 # %%
@@ -34,8 +35,10 @@ truth = {a["em_gain_setpoint"]: a["em_gain"] for a in sim.truth["acquisitions"]}
 for sp in ds.setpoint.values:
     g = ds.em_gain.sel(setpoint=sp)
     se = ds.em_gain_se.sel(setpoint=sp)
-    print(f"{sp:>5g}x  truth {truth[sp]:8.3f}  median {float(g.median()):8.3f}"
-          f"  spread {float(g.std()):.3f}  median SE {float(se.median()):.3f}")
+    print(
+        f"{sp:>5g}x  truth {truth[sp]:8.3f}  median {float(g.median()):8.3f}"
+        f"  spread {float(g.std()):.3f}  median SE {float(se.median()):.3f}"
+    )
 
 # %%
 # The maps: the gain at the highest set-point and its standard error, pixel by pixel.
@@ -51,8 +54,9 @@ plt.show()
 # The gain against the set-point: the camera's setting is not the true gain.
 fig, ax = plt.subplots(figsize=(5, 3.4), constrained_layout=True)
 median = ds.em_gain.median(dim=("row", "col"))
-ax.errorbar(ds.setpoint, median, yerr=ds.em_gain_se.median(dim=("row", "col")), fmt="o",
-            label="estimate")
+ax.errorbar(
+    ds.setpoint, median, yerr=ds.em_gain_se.median(dim=("row", "col")), fmt="o", label="estimate"
+)
 ax.plot(list(truth), list(truth.values()), "x", label="truth")
 ax.set(xscale="log", yscale="log", xlabel="em_gain_setpoint", ylabel="em_gain")
 ax.legend()

@@ -15,18 +15,35 @@ import numpy as np
 import emccdcal
 
 light, gain, phi, offset, sigma = 30.0, 5.0, 3.859, 587.7, 15.5  # e-, -, e-/ADU, ADU, ADU
-frames = emccdcal.simulate_frames(light, em_gain=gain, e_per_adu=phi, offset=offset,
-                                  read_noise=sigma, frames=20000, rows=1, cols=1, seed=4)
+frames = emccdcal.simulate_frames(
+    light,
+    em_gain=gain,
+    e_per_adu=phi,
+    offset=offset,
+    read_noise=sigma,
+    frames=20000,
+    rows=1,
+    cols=1,
+    seed=4,
+)
 counts = frames.ravel()
 print(f"{counts.size} frames, counts {counts.min()}–{counts.max()} ADU")
 
 # %%
 # The model's probabilities of every count seen, under both register models.
 s = np.arange(counts.min(), counts.max() + 1)
-exact = emccdcal.noise.pmf(s, photoelectrons=light, em_gain=gain, e_per_adu=phi,
-                           offset=offset, read_noise=sigma)
-gamma = emccdcal.noise.pmf(s, photoelectrons=light, em_gain=gain, e_per_adu=phi,
-                           offset=offset, read_noise=sigma, em_model="gamma")
+exact = emccdcal.noise.pmf(
+    s, photoelectrons=light, em_gain=gain, e_per_adu=phi, offset=offset, read_noise=sigma
+)
+gamma = emccdcal.noise.pmf(
+    s,
+    photoelectrons=light,
+    em_gain=gain,
+    e_per_adu=phi,
+    offset=offset,
+    read_noise=sigma,
+    em_model="gamma",
+)
 observed = np.bincount(counts - s[0], minlength=s.size) / counts.size
 for name, p in (("cascade", exact), ("gamma", gamma)):
     ll = float(np.sum(np.log(p[counts - s[0]])))

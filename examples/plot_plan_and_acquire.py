@@ -23,22 +23,66 @@ import emccdcal
 from emccdcal import cli
 
 work = Path(tempfile.mkdtemp(prefix="emccdcal-gallery-"))
-assert cli.main(["plan", "--e-per-adu", "3.9", "--read-noise", "15.5", "--offset", "590",
-                 "--target-se", "2", "-o", f"{work}/plan"]) == 0
+assert (
+    cli.main(
+        [
+            "plan",
+            "--e-per-adu",
+            "3.9",
+            "--read-noise",
+            "15.5",
+            "--offset",
+            "590",
+            "--target-se",
+            "2",
+            "-o",
+            f"{work}/plan",
+        ]
+    )
+    == 0
+)
 
 # %%
 # Record it: a 16 × 16 px region of the simulated camera, every set-point of the plan
 # with its dark stack, into OME-Zarr files that record their settings.
-assert cli.main(["acquire", f"{work}/plan/plan.toml", "-o", f"{work}/session", "--simulated",
-                 "--seed", "3", "--roi", "0,0,16,16", "--quiet"]) == 0
+assert (
+    cli.main(
+        [
+            "acquire",
+            f"{work}/plan/plan.toml",
+            "-o",
+            f"{work}/session",
+            "--simulated",
+            "--seed",
+            "3",
+            "--roi",
+            "0,0,16,16",
+            "--quiet",
+        ]
+    )
+    == 0
+)
 print(sorted(p.name for p in (work / "session").iterdir()))
 
 # %%
 # ``scan`` groups the files by the settings they record and writes the manifest;
 # ``calibrate`` fits the gain series with φ known.
 assert cli.main(["scan", f"{work}/session", "-o", f"{work}/session/manifest.toml"]) == 0
-assert cli.main(["calibrate", f"{work}/session/manifest.toml", "--method", "gs",
-                 "--e-per-adu", "3.9", "-o", f"{work}/out-session"]) == 0
+assert (
+    cli.main(
+        [
+            "calibrate",
+            f"{work}/session/manifest.toml",
+            "--method",
+            "gs",
+            "--e-per-adu",
+            "3.9",
+            "-o",
+            f"{work}/out-session",
+        ]
+    )
+    == 0
+)
 
 # %%
 # The plan promised a standard error of the gain per pixel; the calibration reports

@@ -7,15 +7,33 @@ from pathlib import Path
 
 import numpy as np
 
-SPE_FORMATS = {np.dtype("uint16"): "MonochromeUnsigned16", np.dtype("uint32"): "MonochromeUnsigned32",
-               np.dtype("float32"): "MonochromeFloating32"}
+SPE_FORMATS = {
+    np.dtype("uint16"): "MonochromeUnsigned16",
+    np.dtype("uint32"): "MonochromeUnsigned32",
+    np.dtype("float32"): "MonochromeFloating32",
+}
 
 
-def write_spe(path, frames, *, em_gain=None, analog_gain="High", quality="ElectronMultiplied",
-              speed_mhz=10.0, bit_depth=16,
-              exposure_ms=10.0, temperature=-70.0, serial="12345678", model="ProEM+: 512B",
-              roi=(0, 0), binning=(1, 1), frame_metadata=True, footer_offset=None,
-              stride=None, xml_text=None) -> Path:
+def write_spe(
+    path,
+    frames,
+    *,
+    em_gain=None,
+    analog_gain="High",
+    quality="ElectronMultiplied",
+    speed_mhz=10.0,
+    bit_depth=16,
+    exposure_ms=10.0,
+    temperature=-70.0,
+    serial="12345678",
+    model="ProEM+: 512B",
+    roi=(0, 0),
+    binning=(1, 1),
+    frame_metadata=True,
+    footer_offset=None,
+    stride=None,
+    xml_text=None,
+) -> Path:
     """An SPE 3.0 file as LightField writes it (Princeton Instruments document 4411-0140):
     a 4100-byte header, the frames, each followed by a 64-bit time stamp and a 64-bit
     frame counter when ``frame_metadata``, and the XML footer. ``footer_offset``,
@@ -33,8 +51,12 @@ def write_spe(path, frames, *, em_gain=None, analog_gain="High", quality="Electr
             body += struct.pack("<qq", 1_000_000 * i + 17, i + 1)  # time stamp, counter
     header = bytearray(4100)
     struct.pack_into("<H", header, 42, width)
-    struct.pack_into("<h", header, 108, {"MonochromeUnsigned16": 3, "MonochromeUnsigned32": 8,
-                                         "MonochromeFloating32": 0}[fmt])
+    struct.pack_into(
+        "<h",
+        header,
+        108,
+        {"MonochromeUnsigned16": 3, "MonochromeUnsigned32": 8, "MonochromeFloating32": 0}[fmt],
+    )
     struct.pack_into("<H", header, 656, height)
     struct.pack_into("<i", header, 1446, n)
     struct.pack_into("<f", header, 1992, 3.0)
@@ -42,13 +64,16 @@ def write_spe(path, frames, *, em_gain=None, analog_gain="High", quality="Electr
     footer_at = 4100 + len(body)
     struct.pack_into("<Q", header, 678, footer_at if footer_offset is None else footer_offset)
     gain = "" if em_gain is None else f"<EMGain>{em_gain:g}</EMGain>"
-    xml = xml_text if xml_text is not None else f"""<?xml version="1.0" encoding="utf-8"?>
+    xml = (
+        xml_text
+        if xml_text is not None
+        else f"""<?xml version="1.0" encoding="utf-8"?>
 <SpeFormat version="3.0" xmlns="http://www.princetoninstruments.com/spe/2009">
   <DataFormat>
     <DataBlock type="Frame" version="3.0" count="{n}" pixelFormat="{fmt}" size="{frame_bytes}" stride="{real_stride if stride is None else stride}">
       <DataBlock type="Region" version="3.0" count="1" pixelFormat="{fmt}" size="{frame_bytes}" stride="{frame_bytes}" calibrations="1" width="{width}" height="{height}" />
     </DataBlock>
-    {'<MetaBlock type="TimeStamp" event="ExposureStarted" version="3.0" resolution="1000000" bitDepth="64" /><MetaBlock type="FrameTrackingNumber" version="3.0" bitDepth="64" />' if frame_metadata else ''}
+    {'<MetaBlock type="TimeStamp" event="ExposureStarted" version="3.0" resolution="1000000" bitDepth="64" /><MetaBlock type="FrameTrackingNumber" version="3.0" bitDepth="64" />' if frame_metadata else ""}
   </DataFormat>
   <Calibrations>
     <SensorMapping id="1" x="{roi[0]}" y="{roi[1]}" width="{width * binning[0]}" height="{height * binning[1]}" xBinning="{binning[0]}" yBinning="{binning[1]}" />
@@ -64,22 +89,42 @@ def write_spe(path, frames, *, em_gain=None, analog_gain="High", quality="Electr
     </Experiment>
   </Origin></DataHistory></DataHistories>
 </SpeFormat>"""
+    )
     path = Path(path)
     path.write_bytes(bytes(header) + bytes(body) + xml.encode("utf-8"))
     return path
 
 
-def write_fits(path, frames, *, em_gain=None, exposure_s=0.01, temperature=-70.0,
-               readtime=1e-7, preamp=2.0, serial="X-1234", head="DU897_BV", binning=(1, 1),
-               amplifier="Electron Multiplying"):
+def write_fits(
+    path,
+    frames,
+    *,
+    em_gain=None,
+    exposure_s=0.01,
+    temperature=-70.0,
+    readtime=1e-7,
+    preamp=2.0,
+    serial="X-1234",
+    head="DU897_BV",
+    binning=(1, 1),
+    amplifier="Electron Multiplying",
+):
     """A FITS stack with the cards Andor Solis writes; uint16 counts are stored as int16
     with BZERO = 32768, as the standard requires (astropy does that by itself)."""
     from astropy.io import fits
 
     hdu = fits.PrimaryHDU(np.asarray(frames))
-    cards = {"EXPOSURE": exposure_s, "TEMP": temperature, "READTIME": readtime,
-             "PREAMP": preamp, "OUTPTAMP": amplifier, "SERNO": serial, "HEAD": head, "HBIN": binning[0],
-             "VBIN": binning[1]}
+    cards = {
+        "EXPOSURE": exposure_s,
+        "TEMP": temperature,
+        "READTIME": readtime,
+        "PREAMP": preamp,
+        "OUTPTAMP": amplifier,
+        "SERNO": serial,
+        "HEAD": head,
+        "HBIN": binning[0],
+        "VBIN": binning[1],
+    }
     if em_gain is not None:
         cards["GAIN"] = em_gain
     for key, value in cards.items():
@@ -93,8 +138,9 @@ def write_zarr(path, frames, *, em_gain=None, **settings):
     import zarr
 
     frames = np.asarray(frames)
-    z = zarr.open(str(path), mode="w", shape=frames.shape, dtype=frames.dtype,
-                  chunks=(1,) + frames.shape[1:])
+    z = zarr.open(
+        str(path), mode="w", shape=frames.shape, dtype=frames.dtype, chunks=(1,) + frames.shape[1:]
+    )
     z[:] = frames
     if em_gain is not None:
         settings["em_gain_setpoint"] = em_gain
@@ -102,23 +148,46 @@ def write_zarr(path, frames, *, em_gain=None, **settings):
     return Path(path)
 
 
-def micromanager_properties(style="andor", *, em_gain=300, readout="17.000 MHz",
-                            temperature=-70, exposure_ms=10.0, preamp="Gain 2", roi="0-0-6-5"):
+def micromanager_properties(
+    style="andor",
+    *,
+    em_gain=300,
+    readout="17.000 MHz",
+    temperature=-70,
+    exposure_ms=10.0,
+    preamp="Gain 2",
+    roi="0-0-6-5",
+):
     """One frame's Micro-Manager properties as an Andor or a Photometrics camera writes them."""
     if style == "andor":
-        return {"Camera": "Andor", "Andor-Gain": str(em_gain), "Andor-EMSwitch": "On",
-                "Andor-Pre-Amp-Gain": preamp, "Andor-ReadoutMode": readout,
-                "Andor-Output_Amplifier": "Electron Multiplying",
-                "Andor-CCDTemperature": str(temperature),
-                "Andor-Camera": "| iXon Ultra 897 | DU897_BV | 9876 |",
-                "Exposure-ms": str(exposure_ms), "BitDepth": "16", "ROI": roi,
-                "Binning": "1"}
-    return {"Camera": "Photometrics", "Photometrics-MultiplierGain": str(em_gain),
-            "Photometrics-Gain": "1", "Photometrics-ReadoutRate": readout,
-            "Photometrics-Port": "Multiplication gain",
-            "Photometrics-BitDepth": "16", "Photometrics-CCDTemperature": str(temperature),
-            "Photometrics-SerialNumber": "A17C", "Photometrics-ChipName": "Evolve512",
-            "Exposure-ms": str(exposure_ms), "ROI": roi, "Binning": "1x1"}
+        return {
+            "Camera": "Andor",
+            "Andor-Gain": str(em_gain),
+            "Andor-EMSwitch": "On",
+            "Andor-Pre-Amp-Gain": preamp,
+            "Andor-ReadoutMode": readout,
+            "Andor-Output_Amplifier": "Electron Multiplying",
+            "Andor-CCDTemperature": str(temperature),
+            "Andor-Camera": "| iXon Ultra 897 | DU897_BV | 9876 |",
+            "Exposure-ms": str(exposure_ms),
+            "BitDepth": "16",
+            "ROI": roi,
+            "Binning": "1",
+        }
+    return {
+        "Camera": "Photometrics",
+        "Photometrics-MultiplierGain": str(em_gain),
+        "Photometrics-Gain": "1",
+        "Photometrics-ReadoutRate": readout,
+        "Photometrics-Port": "Multiplication gain",
+        "Photometrics-BitDepth": "16",
+        "Photometrics-CCDTemperature": str(temperature),
+        "Photometrics-SerialNumber": "A17C",
+        "Photometrics-ChipName": "Evolve512",
+        "Exposure-ms": str(exposure_ms),
+        "ROI": roi,
+        "Binning": "1x1",
+    }
 
 
 def write_micromanager_tiff(path, frames, *, em_gain=None, style="andor", ome=True, **kw):
@@ -128,8 +197,13 @@ def write_micromanager_tiff(path, frames, *, em_gain=None, style="andor", ome=Tr
     import tifffile
 
     base = micromanager_properties(style, em_gain=300 if em_gain is None else em_gain, **kw)
-    tifffile.imwrite(path, np.asarray(frames), ome=ome, photometric="minisblack",
-                     extratags=[(51123, "s", 0, json.dumps(base), False)])
+    tifffile.imwrite(
+        path,
+        np.asarray(frames),
+        ome=ome,
+        photometric="minisblack",
+        extratags=[(51123, "s", 0, json.dumps(base), False)],
+    )
     return Path(path)
 
 
@@ -151,9 +225,9 @@ def multi_frame_sif(src, dst, frames):
     match = list(re.finditer(rb"(6554[13] -?\d+ -?\d+ -?\d+ -?\d+) 1 1 \d+ \d+", raw[:offset]))[-1]
     n = len(frames)
     structure = match.group(1) + f" {n} 1 {image * n} {image}".encode()
-    tail = raw[match.end():offset]
+    tail = raw[match.end() : offset]
     subimage = tail[: tail.index(b"\n", 1) + 1]
     stamps = b"".join(f"{1000 * k}\n".encode() for k in range(n))
-    header = raw[:match.start()] + structure + subimage + stamps + b"0\n"
-    Path(dst).write_bytes(header + frames.tobytes() + raw[offset + 4 * image:])
+    header = raw[: match.start()] + structure + subimage + stamps + b"0\n"
+    Path(dst).write_bytes(header + frames.tobytes() + raw[offset + 4 * image :])
     return Path(dst)

@@ -15,7 +15,9 @@ from pathlib import Path
 import pytest
 
 #: The one place the real data's path is spelled.
-REAL_DATA = (Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "lanl-proem").resolve()
+REAL_DATA = (
+    Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "lanl-proem"
+).resolve()
 
 #: Gain set-points of the real gain series; levels of the real 1x intensity series.
 REAL_SETPOINTS = (1, 5, 25, 100, 300)
@@ -27,15 +29,18 @@ REAL_LEVELS = tuple(range(1, 7))
 try:
     from hypothesis import settings as _hypothesis_settings
 
-    _hypothesis_settings.register_profile("emccdcal", derandomize=True, deadline=None,
-                                          print_blob=True)
+    _hypothesis_settings.register_profile(
+        "emccdcal", derandomize=True, deadline=None, print_blob=True
+    )
     _hypothesis_settings.load_profile("emccdcal")
 except ImportError:  # hypothesis is a test dependency; without it those tests fail to import
     pass
 
 
 def pytest_configure(config):
-    config.addinivalue_line("markers", "real_data: needs ../shared/data/lanl-proem (skipped where absent)")
+    config.addinivalue_line(
+        "markers", "real_data: needs ../shared/data/lanl-proem (skipped where absent)"
+    )
 
 
 #: Test files that run the verbs end to end (simulated or real stacks through files,
@@ -43,13 +48,29 @@ def pytest_configure(config):
 #: ``make test-fast`` runs the library's own tests (models, fits, readers, the command
 #: line's parsing) and ``make test`` everything. A test elsewhere that takes more than
 #: about 2 s carries ``@pytest.mark.slow`` itself.
-END_TO_END = frozenset({
-    "test_acquire.py", "test_audit.py", "test_browser.py", "test_chaining.py",
-    "test_export.py", "test_faults.py", "test_first_calibration.py", "test_formats.py",
-    "test_fuzz.py", "test_gain_check.py", "test_guarantees.py", "test_napari.py",
-    "test_new_user.py", "test_plan.py", "test_plugins.py", "test_reliability.py",
-    "test_report.py", "test_streaming.py", "test_validation.py",
-})
+END_TO_END = frozenset(
+    {
+        "test_acquire.py",
+        "test_audit.py",
+        "test_browser.py",
+        "test_chaining.py",
+        "test_export.py",
+        "test_faults.py",
+        "test_first_calibration.py",
+        "test_formats.py",
+        "test_fuzz.py",
+        "test_gain_check.py",
+        "test_guarantees.py",
+        "test_napari.py",
+        "test_new_user.py",
+        "test_plan.py",
+        "test_plugins.py",
+        "test_reliability.py",
+        "test_report.py",
+        "test_streaming.py",
+        "test_validation.py",
+    }
+)
 
 
 def pytest_collection_modifyitems(config, items):
@@ -78,16 +99,23 @@ def write_real_manifest(directory, kind, *, setpoints=REAL_SETPOINTS):
     if kind == "gs":
         lines.append(f'e_per_adu = "{REAL_DATA}/gain-GS/ADU_map.tif"')
         for g in setpoints:
-            lines += ["[[acquisition]]", f'frames = "{REAL_DATA}/gain-GS/{g}x-gain.tif"',
-                      f"em_gain_setpoint = {g}",
-                      f'offset = "{REAL_DATA}/gain-GS/{g}x-gain_no-signal_S0.tif"',
-                      f'read_noise = "{REAL_DATA}/gain-GS/{g}x-gain_no-signal_sigma.tif"']
+            lines += [
+                "[[acquisition]]",
+                f'frames = "{REAL_DATA}/gain-GS/{g}x-gain.tif"',
+                f"em_gain_setpoint = {g}",
+                f'offset = "{REAL_DATA}/gain-GS/{g}x-gain_no-signal_S0.tif"',
+                f'read_noise = "{REAL_DATA}/gain-GS/{g}x-gain_no-signal_sigma.tif"',
+            ]
     elif kind == "adu":
         for level in REAL_LEVELS:
-            lines += ["[[acquisition]]", f'frames = "{REAL_DATA}/ADU/1x-gain_level-0{level}.tif"',
-                      "em_gain_setpoint = 1", f'level = "L{level}"',
-                      f'offset = "{REAL_DATA}/ADU/1x-gain_no-signal_S0.tif"',
-                      f'read_noise = "{REAL_DATA}/ADU/1x-gain_no-signal_sigma.tif"']
+            lines += [
+                "[[acquisition]]",
+                f'frames = "{REAL_DATA}/ADU/1x-gain_level-0{level}.tif"',
+                "em_gain_setpoint = 1",
+                f'level = "L{level}"',
+                f'offset = "{REAL_DATA}/ADU/1x-gain_no-signal_S0.tif"',
+                f'read_noise = "{REAL_DATA}/ADU/1x-gain_no-signal_sigma.tif"',
+            ]
     else:
         raise ValueError(f"unknown kind {kind!r}")
     path = Path(directory) / f"{kind}.toml"
@@ -116,6 +144,13 @@ def demo_run(tmp_path_factory):
     printed = io.StringIO()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # chance non-stationarity findings of tiny series
-        run = run_demo(tmp_path_factory.mktemp("demo") / "demo", rows=DEMO_ROWS,
-                       cols=DEMO_COLS, frames=DEMO_FRAMES, seed=5, report=True, out=printed)
+        run = run_demo(
+            tmp_path_factory.mktemp("demo") / "demo",
+            rows=DEMO_ROWS,
+            cols=DEMO_COLS,
+            frames=DEMO_FRAMES,
+            seed=5,
+            report=True,
+            out=printed,
+        )
     return run, printed.getvalue()

@@ -20,16 +20,32 @@ def main(movie_path, gradient, cameras):
     movie, info = io.load_movie(movie_path)
     for camera in cameras:
         entry = picasso.CONFIG["Cameras"][camera]
-        camera_info = {"Baseline": entry["Baseline"], "Sensitivity": entry["Sensitivity"],
-                       "Gain": entry["DefaultGain"], "Qe": 1,
-                       "Pixelsize": entry.get("Pixelsize", 130)}
+        camera_info = {
+            "Baseline": entry["Baseline"],
+            "Sensitivity": entry["Sensitivity"],
+            "Gain": entry["DefaultGain"],
+            "Qe": 1,
+            "Pixelsize": entry.get("Pixelsize", 130),
+        }
         locs, _ = localize.localize(
-            movie, camera_info=camera_info,
+            movie,
+            camera_info=camera_info,
             identification_parameters={"Min. Net Gradient": gradient, "Box Size": 7},
-            fitting_method="gaussmle", return_info=True)
-        print(json.dumps({"camera": camera, "camera_info": camera_info,
-                          "frame": locs["frame"].tolist(), "x": locs["x"].tolist(),
-                          "y": locs["y"].tolist(), "photons": locs["photons"].tolist()}))
+            fitting_method="gaussmle",
+            return_info=True,
+        )
+        print(
+            json.dumps(
+                {
+                    "camera": camera,
+                    "camera_info": camera_info,
+                    "frame": locs["frame"].tolist(),
+                    "x": locs["x"].tolist(),
+                    "y": locs["y"].tolist(),
+                    "photons": locs["photons"].tolist(),
+                }
+            )
+        )
 
 
 if __name__ == "__main__":

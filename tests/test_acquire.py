@@ -51,8 +51,23 @@ def _calibrated_gains(tmp_path, session_dir):
     manifest = tmp_path / "manifest.toml"
     assert cli.main(["scan", str(session_dir), "-o", str(manifest), "-q"]) == 0
     out = tmp_path / "cal"
-    assert cli.main(["calibrate", str(manifest), "--method", "gs", "--e-per-adu",
-                     str(PROEM["e_per_adu"]), "-o", str(out), "-q", "--no-checks"]) == 0
+    assert (
+        cli.main(
+            [
+                "calibrate",
+                str(manifest),
+                "--method",
+                "gs",
+                "--e-per-adu",
+                str(PROEM["e_per_adu"]),
+                "-o",
+                str(out),
+                "-q",
+                "--no-checks",
+            ]
+        )
+        == 0
+    )
     from emccdcal.result import load
 
     return load(out)
@@ -64,8 +79,23 @@ def test_plan_acquire_scan_calibrate_recovers_the_simulated_truth(tmp_path, caps
     the camera's truth (truth.json) within their standard errors, pixel by pixel."""
     plan_path = _plan_file(tmp_path)
     session_dir = tmp_path / "session"
-    assert cli.main(["acquire", str(plan_path), "-o", str(session_dir), "--simulated",
-                     "--seed", "4", "--roi", "8,8,32,24", "-q"]) == 0
+    assert (
+        cli.main(
+            [
+                "acquire",
+                str(plan_path),
+                "-o",
+                str(session_dir),
+                "--simulated",
+                "--seed",
+                "4",
+                "--roi",
+                "8,8,32,24",
+                "-q",
+            ]
+        )
+        == 0
+    )
     truth = json.loads((session_dir / "truth.json").read_text())
     assert truth["kind"] == "gain-series" and truth["roi"] == [8, 8, 32, 24]
     ds = _calibrated_gains(tmp_path, session_dir)
@@ -88,20 +118,48 @@ def test_democamera_records_settings_and_frames_scan_reads_back(tmp_path):
     config = tmp_path / "demo.cfg"
     config.write_text(DEMO_CONFIG)
     plan_path = tmp_path / "plan.toml"
-    plan_path.write_text(plan_text(plan(method="gs", setpoints=[1, 2], target_se=5,
-                                        e_per_adu=1.0, read_noise=2.5, offset=600,
-                                        adc_bits=16)))
+    plan_path.write_text(
+        plan_text(
+            plan(
+                method="gs",
+                setpoints=[1, 2],
+                target_se=5,
+                e_per_adu=1.0,
+                read_noise=2.5,
+                offset=600,
+                adc_bits=16,
+            )
+        )
+    )
     session_dir = tmp_path / "session"
-    code = cli.main(["acquire", str(plan_path), "-o", str(session_dir), "--mm-config",
-                     str(config), "--gain-property", "Gain", "--no-light-check",
-                     "--roi", "16,32,128,64", "-q"])
+    code = cli.main(
+        [
+            "acquire",
+            str(plan_path),
+            "-o",
+            str(session_dir),
+            "--mm-config",
+            str(config),
+            "--gain-property",
+            "Gain",
+            "--no-light-check",
+            "--roi",
+            "16,32,128,64",
+            "-q",
+        ]
+    )
     assert code == 0
     found = scan(session_dir)
     assert [f.setpoint for f in found.signal] == [1.0, 2.0]
     for f in found.signal:
         s = f.settings
         assert (s.em_gain_setpoint, s.model, s.exposure_ms, s.roi, s.adc_bits) == (
-            f.setpoint, "DemoCamera-MultiMode", 1.0, (16, 32, 128, 64), 16)
+            f.setpoint,
+            "DemoCamera-MultiMode",
+            1.0,
+            (16, 32, 128, 64),
+            16,
+        )
         frames = np.asarray(load_stack(f.path)[...])
         assert frames.shape == (50, 64, 128) and frames.dtype == np.uint16
         assert frames.std(axis=0).min() > 0 and 50 < frames.mean() < 1000  # Noise mode
@@ -121,12 +179,20 @@ def test_a_light_off_the_plan_stops_and_resume_completes(tmp_path):
     out = tmp_path / "session"
     bright = lambda core, stack: core.setProperty("Camera", "Light", 1.6 * stack.photoelectrons)  # noqa: E731
     with pytest.raises(AcquireError, match=r"1x-gain .*the light is .*\(\+6\d %"):
-        acquire(plan_path, out, simulated_seed=3, roi=(0, 0, 16, 16), set_light=bright,
-                progress_bars=False)
+        acquire(
+            plan_path,
+            out,
+            simulated_seed=3,
+            roi=(0, 0, 16, 16),
+            set_light=bright,
+            progress_bars=False,
+        )
     state = Session.load(out).state
     assert "the light is" in state["status"]
     assert [(s["name"], s["frames"], s["done"]) for s in state["stacks"][:2]] == [
-        ("1x-dark", 50, True), ("1x-gain", 0, False)]
+        ("1x-dark", 50, True),
+        ("1x-gain", 0, False),
+    ]
     assert not (out / "1x-gain.ome.zarr").exists()
     assert load_stack(out / "1x-dark.ome.zarr").shape == (50, 16, 16)
     with pytest.raises(Exception, match="region"):  # the same camera and region only
@@ -139,14 +205,16 @@ def test_a_light_off_the_plan_stops_and_resume_completes(tmp_path):
     group.attrs["multiscales"] = [{"version": "0.4", "datasets": [{"path": "0"}]}]
     group.create_array("0", data=theirs)
     with pytest.raises(AcquireError, match="not the stack this session recorded"):
-        acquire(plan_path, out, simulated_seed=3, roi=(0, 0, 16, 16), resume=True,
-                progress_bars=False)
+        acquire(
+            plan_path, out, simulated_seed=3, roi=(0, 0, 16, 16), resume=True, progress_bars=False
+        )
     assert np.array_equal(np.asarray(load_stack(out / "1x-gain.ome.zarr")[...]), theirs)
     import shutil
 
     shutil.rmtree(out / "1x-gain.ome.zarr")
-    session = acquire(plan_path, out, simulated_seed=3, roi=(0, 0, 16, 16), resume=True,
-                      progress_bars=False)
+    session = acquire(
+        plan_path, out, simulated_seed=3, roi=(0, 0, 16, 16), resume=True, progress_bars=False
+    )
     assert session.state["status"] == "complete" and session.state["runs"] == 3
     assert [s.frames for s in session.stacks] == [s.planned_frames for s in session.stacks]
 
@@ -162,8 +230,7 @@ def test_an_occupied_folder_and_another_plan_are_refused(tmp_path):
     acquire(plan_path, out, simulated_seed=1, roi=(0, 0, 8, 8), progress_bars=False)
     other = _plan_file(tmp_path, setpoints=(1, 25), name="other.toml")
     with pytest.raises(Exception, match="another plan"):
-        acquire(other, out, simulated_seed=1, roi=(0, 0, 8, 8), resume=True,
-                progress_bars=False)
+        acquire(other, out, simulated_seed=1, roi=(0, 0, 8, 8), resume=True, progress_bars=False)
     with pytest.raises(OptionError, match="gain-series plan"):
         acquire(_plan_is(tmp_path), tmp_path / "is", simulated_seed=1, stop_at_target=True)
 
@@ -178,11 +245,23 @@ def _plan_is(tmp_path):
 def test_ctrl_c_keeps_what_was_recorded_and_resume_goes_on(tmp_path):
     """Ctrl-C in the middle of a stack: exit 130 with what was kept; the stack is a valid,
     shorter one that scan and the readers take; --resume records the rest."""
-    plan_path = _plan_file(tmp_path, setpoints=(1, 5),
-                           edit={"dark_frames = 50 ": "dark_frames = 6000 "})
+    plan_path = _plan_file(
+        tmp_path, setpoints=(1, 5), edit={"dark_frames = 50 ": "dark_frames = 6000 "}
+    )
     out = tmp_path / "session"
-    cmd = [sys.executable, "-m", "emccdcal", "acquire", str(plan_path), "-o", str(out),
-           "--simulated", "--seed", "8", "-q"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "emccdcal",
+        "acquire",
+        str(plan_path),
+        "-o",
+        str(out),
+        "--simulated",
+        "--seed",
+        "8",
+        "-q",
+    ]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:  # until the first chunk of the first dark is kept
@@ -211,12 +290,21 @@ def test_stop_at_target_ends_a_set_point_when_its_running_fit_is_precise(tmp_pat
     """A plan asking far more frames than its target needs: with --stop-at-target each
     multiplied set-point ends at the first running fit that reaches the target, and the
     calibration of what was recorded reports about the precision the running fit saw."""
-    plan_path = _plan_file(tmp_path, setpoints=(1, 25), target=1.0,
-                           edit={"frames = 50\nassumed_em_gain = 25.0":
-                                 "frames = 1000\nassumed_em_gain = 25.0"})
+    plan_path = _plan_file(
+        tmp_path,
+        setpoints=(1, 25),
+        target=1.0,
+        edit={"frames = 50\nassumed_em_gain = 25.0": "frames = 1000\nassumed_em_gain = 25.0"},
+    )
     out = tmp_path / "session"
-    session = acquire(plan_path, out, simulated_seed=6, roi=(0, 0, 16, 16),
-                      stop_at_target=True, progress_bars=False)
+    session = acquire(
+        plan_path,
+        out,
+        simulated_seed=6,
+        roi=(0, 0, 16, 16),
+        stop_at_target=True,
+        progress_bars=False,
+    )
     light = session.stacks[-1]
     assert light.name == "25x-gain" and light.frames < 1000
     assert light.reached_se <= 1.0
@@ -241,8 +329,11 @@ def test_the_light_check_stops_a_saturating_light_not_a_few_hot_values():
     frames[0, :3, 0] = 65535  # 3 of 20480 values
     _check_light(ctx, stack, frames)
     frames[:, :8] = 65535
-    with pytest.raises(AcquireError, match=r"25 % of the first 20 frames' pixels are at the "
-                                           r"ADC's limit \(65535 ADU\)"):
+    with pytest.raises(
+        AcquireError,
+        match=r"25 % of the first 20 frames' pixels are at the "
+        r"ADC's limit \(65535 ADU\)",
+    ):
         _check_light(ctx, stack, frames)
 
 
@@ -271,11 +362,11 @@ def test_stacks_are_written_band_by_band_and_continued_at_any_frame(tmp_path):
     writer = StackWriter(path, shape, np.uint16, ours, owner=owner)
     chunk = writer.chunk_frames
     assert len(frames) > 3 * chunk > chunk > 1
-    record(writer, frames[:chunk + 7])
+    record(writer, frames[: chunk + 7])
     assert (path / "0" / "c" / "0" / "1" / "0").stat().st_size == chunk * 64 * 1200 * 2
     resumed = StackWriter(path, shape, np.uint16, ours, owner=owner, frames=chunk + 5)
     assert resumed.frames == chunk + 5
-    record(resumed, frames[chunk + 5:])
+    record(resumed, frames[chunk + 5 :])
     assert np.array_equal(np.asarray(load_stack(path)[...]), frames)
     with pytest.raises(InputError, match="not the stack this session recorded"):
         StackWriter(path, shape, np.uint16, ours, owner="another writer", frames=chunk)
@@ -288,8 +379,14 @@ def _stopped_at_the_first_light(plan_path, out, *, seed):
     """A session stopped by a lamp 60 % too bright: its first dark recorded, no light."""
     bright = lambda core, stack: core.setProperty("Camera", "Light", 1.6 * stack.photoelectrons)  # noqa: E731
     with pytest.raises(AcquireError):
-        acquire(plan_path, out, simulated_seed=seed, roi=(0, 0, 8, 8), set_light=bright,
-                progress_bars=False)
+        acquire(
+            plan_path,
+            out,
+            simulated_seed=seed,
+            roi=(0, 0, 8, 8),
+            set_light=bright,
+            progress_bars=False,
+        )
 
 
 def test_a_session_record_never_supplies_a_path(tmp_path):
@@ -301,18 +398,19 @@ def test_a_session_record_never_supplies_a_path(tmp_path):
     record = out / "session.json"
     good = record.read_text()
     for change, words in (
-            (lambda s: s["stacks"][1].update(file="../escaped.ome.zarr"), "not a session"),
-            (lambda s: s["stacks"][1].update(file=str(tmp_path / "abs.ome.zarr")),
-             "not a session"),
-            (lambda s: s.pop("stacks"), "not a session"),
-            (lambda s: s["stacks"][0].update(frames="50"), "frames is '50'"),
-            (lambda s: s["stacks"][0].update(done="yes"), "done is 'yes'")):
+        (lambda s: s["stacks"][1].update(file="../escaped.ome.zarr"), "not a session"),
+        (lambda s: s["stacks"][1].update(file=str(tmp_path / "abs.ome.zarr")), "not a session"),
+        (lambda s: s.pop("stacks"), "not a session"),
+        (lambda s: s["stacks"][0].update(frames="50"), "frames is '50'"),
+        (lambda s: s["stacks"][0].update(done="yes"), "done is 'yes'"),
+    ):
         state = json.loads(good)
         change(state)
         record.write_text(json.dumps(state))
         with pytest.raises(Exception, match=words):
-            acquire(plan_path, out, simulated_seed=3, roi=(0, 0, 8, 8), resume=True,
-                    progress_bars=False)
+            acquire(
+                plan_path, out, simulated_seed=3, roi=(0, 0, 8, 8), resume=True, progress_bars=False
+            )
     assert not (tmp_path / "escaped.ome.zarr").exists()
     assert not (tmp_path / "abs.ome.zarr").exists()
 
@@ -320,23 +418,45 @@ def test_a_session_record_never_supplies_a_path(tmp_path):
 def test_a_refused_option_leaves_nothing_and_a_killed_store_is_redone(tmp_path, capsys):
     plan_path = _plan_file(tmp_path, setpoints=(1, 5))
     out = tmp_path / "session"
-    code = cli.main(["acquire", str(plan_path), "-o", str(out), "--simulated", "--seed", "2",
-                     "--camera", "Nope", "-q"])
+    code = cli.main(
+        [
+            "acquire",
+            str(plan_path),
+            "-o",
+            str(out),
+            "--simulated",
+            "--seed",
+            "2",
+            "--camera",
+            "Nope",
+            "-q",
+        ]
+    )
     assert code == 2 and "no camera 'Nope'" in capsys.readouterr().err
     assert not out.exists() or not any(out.iterdir())  # the corrected command may start
-    assert cli.main(["acquire", str(plan_path), "-o", str(out), "--simulated", "--seed",
-                     "-5", "-q"]) == 2
+    assert (
+        cli.main(["acquire", str(plan_path), "-o", str(out), "--simulated", "--seed", "-5", "-q"])
+        == 2
+    )
     capsys.readouterr()
     # a run killed while creating its first light stack's store: metadata, no frame
     _stopped_at_the_first_light(plan_path, out, seed=2)
     begun = out / "1x-gain.ome.zarr"
     begun.mkdir()  # the group's one metadata write, the session's marker in it
-    (begun / "zarr.json").write_text(json.dumps({
-        "zarr_format": 3, "node_type": "group",
-        "attributes": {"emccdcal_acquisition": {"dark": False, "planned_frames": 50}}}))
+    (begun / "zarr.json").write_text(
+        json.dumps(
+            {
+                "zarr_format": 3,
+                "node_type": "group",
+                "attributes": {"emccdcal_acquisition": {"dark": False, "planned_frames": 50}},
+            }
+        )
+    )
     # resumed without saying which camera: the session says it was the simulated one
-    assert cli.main(["acquire", str(plan_path), "-o", str(out), "--resume", "--roi",
-                     "0,0,8,8", "-q"]) == 0, capsys.readouterr().err
+    assert (
+        cli.main(["acquire", str(plan_path), "-o", str(out), "--resume", "--roi", "0,0,8,8", "-q"])
+        == 0
+    ), capsys.readouterr().err
     assert Session.load(out).state["status"] == "complete"
     assert load_stack(begun).shape[0] == Session.load(out).stacks[1].planned_frames
 
@@ -346,8 +466,15 @@ def test_saturation_is_judged_by_the_cameras_own_bit_depth(tmp_path):
     plan_path = _plan_file(tmp_path, setpoints=(1, 5), edit={"adc_bits = 16": "adc_bits = 20"})
     bright = lambda core, stack: core.setProperty("Camera", "Light", 1e6)  # noqa: E731
     with pytest.raises(AcquireError, match="ADC's limit \\(65535 ADU\\)"):
-        acquire(plan_path, tmp_path / "s", simulated_seed=4, roi=(0, 0, 8, 8),
-                set_light=bright, light_tolerance=None, progress_bars=False)
+        acquire(
+            plan_path,
+            tmp_path / "s",
+            simulated_seed=4,
+            roi=(0, 0, 8, 8),
+            set_light=bright,
+            light_tolerance=None,
+            progress_bars=False,
+        )
 
 
 def test_plan_check_refuses_light_past_the_adc(tmp_path, capsys):
@@ -398,15 +525,17 @@ def test_an_empty_store_someone_else_made_is_never_removed(tmp_path):
         meta = {"zarr_format": 3, "node_type": "group", "attributes": attributes}
         (theirs / "zarr.json").write_text(_json.dumps(meta))
         with pytest.raises(AcquireError, match="not the stack this session recorded"):
-            acquire(plan_path, out, simulated_seed=2, roi=(0, 0, 8, 8), resume=True,
-                    progress_bars=False)
+            acquire(
+                plan_path, out, simulated_seed=2, roi=(0, 0, 8, 8), resume=True, progress_bars=False
+            )
         assert _json.loads((theirs / "zarr.json").read_text()) == meta
     # a Zarr v2 group (acquire writes v3 only): never this session's
     (theirs / "zarr.json").unlink()
     (theirs / ".zgroup").write_text('{"zarr_format": 2}')
     with pytest.raises(AcquireError, match="not the stack this session recorded"):
-        acquire(plan_path, out, simulated_seed=2, roi=(0, 0, 8, 8), resume=True,
-                progress_bars=False)
+        acquire(
+            plan_path, out, simulated_seed=2, roi=(0, 0, 8, 8), resume=True, progress_bars=False
+        )
     assert (theirs / ".zgroup").read_text() == '{"zarr_format": 2}'
 
 
@@ -447,8 +576,10 @@ def test_byte_flips_of_a_session_and_its_plan_are_refused_or_harmless(tmp_path):
         session = Session.load(out, read_plan(own))
         assert all((out / s.file).resolve().parent == out.resolve() for s in session.stacks)
 
-    totals = {"session.json": _flips(out / "session.json", 150, 1, load_session),
-              "plan.toml": _flips(own, 150, 2, lambda: read_plan(own))}
+    totals = {
+        "session.json": _flips(out / "session.json", 150, 1, load_session),
+        "plan.toml": _flips(own, 150, 2, lambda: read_plan(own)),
+    }
     print("byte flips (refused, loaded):", totals)
     assert all(sum(c.values()) == 150 for c in totals.values())
     assert {p.name for p in out.iterdir()} == inside and not list(tmp_path.glob("*.zarr"))
@@ -460,8 +591,20 @@ def test_sigkill_of_acquire_at_random_moments_resumes_to_a_complete_session(tmp_
     written, the record saved): the next run (`--resume` where a session was recorded)
     always goes on, and the session ends complete with every stack its planned length."""
     plan_path = _plan_file(tmp_path, setpoints=(1, 5))
-    base = [sys.executable, "-m", "emccdcal", "acquire", str(plan_path), "--simulated",
-            "--seed", "4", "--roi", "0,0,8,8", "-q", "-o"]
+    base = [
+        sys.executable,
+        "-m",
+        "emccdcal",
+        "acquire",
+        str(plan_path),
+        "--simulated",
+        "--seed",
+        "4",
+        "--roi",
+        "0,0,8,8",
+        "-q",
+        "-o",
+    ]
     t0 = time.perf_counter()
     subprocess.run(base + [str(tmp_path / "whole")], check=True, capture_output=True)
     whole = time.perf_counter() - t0
@@ -489,7 +632,8 @@ def test_sigkill_of_acquire_at_random_moments_resumes_to_a_complete_session(tmp_
     for s in stacks:
         assert load_stack(out / s.file).shape[0] == s.planned_frames == s.frames
     assert sorted(p.name for p in out.iterdir()) == sorted(
-        p.name for p in (tmp_path / "whole").iterdir())
+        p.name for p in (tmp_path / "whole").iterdir()
+    )
 
 
 def test_a_store_killed_in_a_metadata_write_is_begun_but_empty(tmp_path):
@@ -508,14 +652,19 @@ def test_a_store_killed_in_a_metadata_write_is_begun_but_empty(tmp_path):
 
     ours = json.dumps({"zarr_format": 3, "node_type": "group", "attributes": {"mine": {}}})
     theirs = json.dumps({"zarr_format": 3, "node_type": "group", "attributes": {}})
-    killed = store("killed.zarr", {"zarr.json": ours, "zarr.ab12.partial": ours[:40],
-                                   "0/zarr.cd34.partial": ""})
+    killed = store(
+        "killed.zarr",
+        {"zarr.json": ours, "zarr.ab12.partial": ours[:40], "0/zarr.cd34.partial": ""},
+    )
     assert begun_but_empty(killed, "mine")
     assert begun_but_empty(store("first.zarr", {"zarr.ef56.partial": ours}), "mine")
     assert not begun_but_empty(store("cut.zarr", {"zarr.ef56.partial": ours[:30]}), "mine")
-    assert not begun_but_empty(store("other.zarr", {"zarr.json": theirs,
-                                                    "0/zarr.x.partial": ""}), "mine")
-    assert not begun_but_empty(store("frames.zarr", {"zarr.json": ours, "0/zarr.json": "{}",
-                                                     "0/c/0/0/0": "data"}), "mine")
-    assert not begun_but_empty(store("chunk.zarr", {"zarr.json": ours,
-                                                    "0/c/0/0/0.a1.partial": "d"}), "mine")
+    assert not begun_but_empty(
+        store("other.zarr", {"zarr.json": theirs, "0/zarr.x.partial": ""}), "mine"
+    )
+    assert not begun_but_empty(
+        store("frames.zarr", {"zarr.json": ours, "0/zarr.json": "{}", "0/c/0/0/0": "data"}), "mine"
+    )
+    assert not begun_but_empty(
+        store("chunk.zarr", {"zarr.json": ours, "0/c/0/0/0.a1.partial": "d"}), "mine"
+    )

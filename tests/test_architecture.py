@@ -63,8 +63,22 @@ def _top(module):
 
 @pytest.mark.parametrize("sub", sorted(ALLOWED))
 def test_imports_run_one_way(sub):
-    allowed = ALLOWED[sub] | {sub, "errors", "defaults", "identity", "_files", "_util", "_output", "_optimize", "_roots", "_chebyshev", "_xp", "plugins", "",
-                              "__version__"}
+    allowed = ALLOWED[sub] | {
+        sub,
+        "errors",
+        "defaults",
+        "identity",
+        "_files",
+        "_util",
+        "_output",
+        "_optimize",
+        "_roots",
+        "_chebyshev",
+        "_xp",
+        "plugins",
+        "",
+        "__version__",
+    }
     for path in (SRC / sub).rglob("*.py"):
         bad = {m for m in _imports(path) if _top(m) not in allowed}
         assert not bad, f"{path.relative_to(SRC)} imports {sorted(bad)}"
@@ -82,8 +96,10 @@ def test_numerics_import_no_argparse_or_pyplot():
 
 
 def test_import_is_lazy_and_names_resolve():
-    code = ("import sys, emccdcal; print(sorted(m for m in ('numpy', 'xarray', 'matplotlib') "
-            "if m in sys.modules))")
+    code = (
+        "import sys, emccdcal; print(sorted(m for m in ('numpy', 'xarray', 'matplotlib') "
+        "if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
     for name in emccdcal.__all__:
@@ -146,11 +162,13 @@ def test_every_reader_registers_itself_once():
     from emccdcal import plugins
     from emccdcal.data import stacks
 
-    modules = {p.stem for p in (SRC / "data").glob("*.py")
-               if "\nSUFFIXES = " in p.read_text()}
+    modules = {p.stem for p in (SRC / "data").glob("*.py") if "\nSUFFIXES = " in p.read_text()}
     readers = plugins.load(plugins.READERS)
-    own = {r.__name__.rsplit(".", 1)[-1] for r in readers.values()
-           if r.__name__.startswith("emccdcal.")}
+    own = {
+        r.__name__.rsplit(".", 1)[-1]
+        for r in readers.values()
+        if r.__name__.startswith("emccdcal.")
+    }
     assert modules == own
     suffixes = [s for r in readers.values() for s in r.SUFFIXES]
     assert tuple(suffixes) == stacks.STACK_SUFFIXES and len(set(suffixes)) == len(suffixes)
@@ -203,27 +221,34 @@ def test_modules_needing_an_extra_are_left_out_of_collection_without_it():
     import importlib.util
     import re
 
-    spec = importlib.util.spec_from_file_location("root_conftest",
-                                                  _source_tree() / "conftest.py")
+    spec = importlib.util.spec_from_file_location("root_conftest", _source_tree() / "conftest.py")
     root_conftest = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(root_conftest)
     requires = importlib.metadata.requires("emccdcal") or []
-    core = {re.split(r"[<>=;\[ ]", r, maxsplit=1)[0].lower().replace("-", "_")
-            for r in requires if "extra ==" not in r}
+    core = {
+        re.split(r"[<>=;\[ ]", r, maxsplit=1)[0].lower().replace("-", "_")
+        for r in requires
+        if "extra ==" not in r
+    }
     core |= {"yaml", "tomllib", "tomli", "tomli_w"}  # import names of core distributions
     stdlib = set(sys.stdlib_module_names)
     for path in SRC.rglob("*.py"):
         tree = _tree(path)
-        top = {a.name.split(".")[0] for n in tree.body if isinstance(n, ast.Import)
-               for a in n.names}
-        top |= {n.module.split(".")[0] for n in tree.body
-                if isinstance(n, ast.ImportFrom) and n.module and not n.level}
+        top = {
+            a.name.split(".")[0] for n in tree.body if isinstance(n, ast.Import) for a in n.names
+        }
+        top |= {
+            n.module.split(".")[0]
+            for n in tree.body
+            if isinstance(n, ast.ImportFrom) and n.module and not n.level
+        }
         optional = top - stdlib - core - {"emccdcal", "__future__"}
         key = path.relative_to(SRC.parents[1]).as_posix()
         if optional:
             assert key in root_conftest._OPTIONAL, (
                 f"{key} imports {sorted(optional)} at module level: add it to the root "
-                "conftest's _OPTIONAL (or import them inside the functions that need them)")
+                "conftest's _OPTIONAL (or import them inside the functions that need them)"
+            )
             assert set(root_conftest._OPTIONAL[key]) >= optional, key
 
 
@@ -242,14 +267,19 @@ def test_no_register_model_is_named_outside_model_and_defaults():
         if rel.startswith("model/") or rel == "defaults.py":
             continue
         tree = _tree(path)
-        docstrings = {id(n.body[0].value) for n in ast.walk(tree)
-                      if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef,
-                                        ast.AsyncFunctionDef))
-                      and n.body and isinstance(n.body[0], ast.Expr)
-                      and isinstance(n.body[0].value, ast.Constant)}
-        found += [f"{rel}:{n.lineno}" for n in ast.walk(tree)
-                  if isinstance(n, ast.Constant) and n.value in EM_MODELS
-                  and id(n) not in docstrings]
+        docstrings = {
+            id(n.body[0].value)
+            for n in ast.walk(tree)
+            if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef, ast.AsyncFunctionDef))
+            and n.body
+            and isinstance(n.body[0], ast.Expr)
+            and isinstance(n.body[0].value, ast.Constant)
+        }
+        found += [
+            f"{rel}:{n.lineno}"
+            for n in ast.walk(tree)
+            if isinstance(n, ast.Constant) and n.value in EM_MODELS and id(n) not in docstrings
+        ]
     assert not found, found
 
 
@@ -258,8 +288,16 @@ def test_the_engine_has_one_door():
     fit or splits a parameter's name at ``[``: every fit and every expected information
     goes through :class:`emccdcal.fit.series.SeriesLikelihood` (the layouts module's
     method rules, ``check_options`` and ``select_acquisitions``, stay public)."""
-    private = {"build_layout", "layout_of", "AcquisitionBlock", "Layout", "Series",
-               "acquisition_estimates", "expected_information", "e_per_adu_sensitivity"}
+    private = {
+        "build_layout",
+        "layout_of",
+        "AcquisitionBlock",
+        "Layout",
+        "Series",
+        "acquisition_estimates",
+        "expected_information",
+        "e_per_adu_sensitivity",
+    }
     found = []
     for path in SRC.rglob("*.py"):
         rel = path.relative_to(SRC).as_posix()
@@ -270,15 +308,28 @@ def test_the_engine_has_one_door():
                 name = f.attr if isinstance(f, ast.Attribute) else getattr(f, "id", None)
                 # a bare name (imported) has no owner; a method of an object is not flagged
                 owner = getattr(f.value, "id", "") if isinstance(f, ast.Attribute) else None
-                if not inside and owner in (None, "engine", "layouts") and (
-                        name in private or (owner == "engine" and name == "fit")):
+                if (
+                    not inside
+                    and owner in (None, "engine", "layouts")
+                    and (name in private or (owner == "engine" and name == "fit"))
+                ):
                     found.append(f"{rel}:{node.lineno} calls {name}")
-                if (name in ("partition", "split") and node.args
-                        and isinstance(node.args[0], ast.Constant) and node.args[0].value == "["):
+                if (
+                    name in ("partition", "split")
+                    and node.args
+                    and isinstance(node.args[0], ast.Constant)
+                    and node.args[0].value == "["
+                ):
                     found.append(f"{rel}:{node.lineno} splits a name at '['")
-            if not inside and isinstance(node, ast.ImportFrom) and node.module and (
+            if (
+                not inside
+                and isinstance(node, ast.ImportFrom)
+                and node.module
+                and (
                     node.module.endswith("fit.engine")
-                    or (node.module.endswith("fit") and "engine" in {a.name for a in node.names})):
+                    or (node.module.endswith("fit") and "engine" in {a.name for a in node.names})
+                )
+            ):
                 found.append(f"{rel}:{node.lineno} imports the engine")
     assert not found, found
 
@@ -292,17 +343,26 @@ def test_the_end_to_end_files_named_for_the_fast_loop_exist():
     assert END_TO_END <= here, sorted(END_TO_END - here)
 
 
-def test_the_code_is_clean_under_the_linter():
-    """``ruff check`` (configured in pyproject.toml) finds nothing in the package, the
-    tests or the benchmarks: CI runs the suite, so the suite runs the linter."""
+LINTED = ["src", "tests", "benchmarks", "examples", "docs/conf.py"]
+
+
+@pytest.mark.parametrize("command", [["check"], ["format", "--check"]], ids=" ".join)
+def test_the_code_is_clean_under_the_linter_and_the_formatter(command):
+    """``ruff check`` and ``ruff format --check`` (configured in pyproject.toml) find
+    nothing in the package, the tests, the benchmarks or the docs' code: CI runs the
+    suite, so the suite runs both."""
     import subprocess
     import sys
 
     pytest.importorskip("ruff")
     root = _source_tree()
-    res = subprocess.run([sys.executable, "-m", "ruff", "check", "--no-cache", "src", "tests",
-                          "benchmarks"], cwd=root, capture_output=True, text=True)
-    assert res.returncode == 0, res.stdout[-3000:]
+    res = subprocess.run(
+        [sys.executable, "-m", "ruff", *command, "--no-cache", *LINTED],
+        cwd=root,
+        capture_output=True,
+        text=True,
+    )
+    assert res.returncode == 0, (res.stdout + res.stderr)[-3000:]
 
 
 @pytest.mark.slow
@@ -310,8 +370,12 @@ def test_the_public_api_type_checks(tmp_path):
     """``mypy`` (configured in pyproject.toml: the stub of emccdcal's names and the modules
     they come from) finds nothing."""
     pytest.importorskip("mypy")
-    res = subprocess.run([sys.executable, "-m", "mypy", "--cache-dir", str(tmp_path)],
-                         cwd=_source_tree(), capture_output=True, text=True)
+    res = subprocess.run(
+        [sys.executable, "-m", "mypy", "--cache-dir", str(tmp_path)],
+        cwd=_source_tree(),
+        capture_output=True,
+        text=True,
+    )
     assert res.returncode == 0, res.stdout[-3000:]
 
 

@@ -33,8 +33,16 @@ def _offset_map():
 
 def _stack(g, seed, frames=FRAMES, **kw):
     scene = bead_scene(TRUE_POS, N_TRUE, WIDTH, BACKGROUND, *SHAPE)
-    return simulate_frames(scene, em_gain=g, e_per_adu=PHI, offset=_offset_map(),
-                           read_noise=SIGMA, frames=frames, seed=seed, **kw)
+    return simulate_frames(
+        scene,
+        em_gain=g,
+        e_per_adu=PHI,
+        offset=_offset_map(),
+        read_noise=SIGMA,
+        frames=frames,
+        seed=seed,
+        **kw,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -44,8 +52,18 @@ def fitted():
     for g, seed in ((1.0, 11), (4.78, 12), (261.6, 13)):
         frames = _stack(g, seed)
         pos = np.rint(TRUE_POS).astype(int)
-        out[g] = (frames, bead_fit.fit_beads(frames, pos, offset=_offset_map(),
-                                          read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=g, em_model=GAMMA))
+        out[g] = (
+            frames,
+            bead_fit.fit_beads(
+                frames,
+                pos,
+                offset=_offset_map(),
+                read_noise=SIGMA_DARK,
+                e_per_adu=PHI,
+                em_gain=g,
+                em_model=GAMMA,
+            ),
+        )
     return out
 
 
@@ -79,10 +97,24 @@ def test_faint_beads_at_1x_converge_and_stay_unbiased():
     bead's frames every frame converges and the mean is the truth's."""
     n_true, width, background = 1000.0, 1.4, 15.0
     scene = bead_scene(TRUE_POS, n_true, width, background, *SHAPE)
-    frames = simulate_frames(scene, em_gain=1.0, e_per_adu=PHI, offset=_offset_map(),
-                             read_noise=SIGMA, frames=FRAMES, seed=21)
-    fit = bead_fit.fit_beads(frames, np.rint(TRUE_POS).astype(int), offset=_offset_map(),
-                             read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0, em_model=GAMMA)
+    frames = simulate_frames(
+        scene,
+        em_gain=1.0,
+        e_per_adu=PHI,
+        offset=_offset_map(),
+        read_noise=SIGMA,
+        frames=FRAMES,
+        seed=21,
+    )
+    fit = bead_fit.fit_beads(
+        frames,
+        np.rint(TRUE_POS).astype(int),
+        offset=_offset_map(),
+        read_noise=SIGMA_DARK,
+        e_per_adu=PHI,
+        em_gain=1.0,
+        em_model=GAMMA,
+    )
     ok = fit.converged
     assert ok.mean() >= 0.99
     N, se = fit.intensity[ok], fit.intensity_se[ok]
@@ -93,9 +125,16 @@ def test_faint_beads_at_1x_converge_and_stay_unbiased():
     assert np.ptp(fit.params[..., 2], axis=1) == pytest.approx(0.0, abs=1e-12)
     np.testing.assert_allclose(fit.params[:, 0, 2], width, rtol=0.05)
     # held fixed where given (e.g. pooled over set-points): the intensities follow it
-    wider = bead_fit.fit_beads(frames, fit.positions, offset=_offset_map(),
-                               read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0,
-                               fixed_width=fit.params[:, 0, 2] * 1.05, em_model=GAMMA)
+    wider = bead_fit.fit_beads(
+        frames,
+        fit.positions,
+        offset=_offset_map(),
+        read_noise=SIGMA_DARK,
+        e_per_adu=PHI,
+        em_gain=1.0,
+        fixed_width=fit.params[:, 0, 2] * 1.05,
+        em_model=GAMMA,
+    )
     np.testing.assert_allclose(wider.params[:, 0, 2], fit.params[:, 0, 2] * 1.05)
     assert wider.intensity[ok].mean() > N.mean()
 
@@ -103,18 +142,32 @@ def test_faint_beads_at_1x_converge_and_stay_unbiased():
 @pytest.mark.slow
 def test_a_background_per_frame_where_asked(fitted):
     frames, shared = fitted[261.6]
-    fit = bead_fit.fit_beads(frames[:60], shared.positions, offset=_offset_map(),
-                             read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=261.6,
-                             background="frame", em_model=GAMMA)
+    fit = bead_fit.fit_beads(
+        frames[:60],
+        shared.positions,
+        offset=_offset_map(),
+        read_noise=SIGMA_DARK,
+        e_per_adu=PHI,
+        em_gain=261.6,
+        background="frame",
+        em_model=GAMMA,
+    )
     assert fit.converged.all()
     assert np.ptp(fit.params[..., 4], axis=1).min() > 0  # one per frame
     assert np.ptp(fit.params[..., 2], axis=1).max() == pytest.approx(0.0, abs=1e-12)
     assert fit.params[..., 4].mean() == pytest.approx(BACKGROUND, abs=1.0)
     assert fit.intensity.mean() == pytest.approx(N_TRUE, rel=0.01)
     with pytest.raises(ValueError, match="background must be 'shared' or 'frame'"):
-        bead_fit.fit_beads(frames[:5], shared.positions, offset=_offset_map(),
-                           read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=261.6,
-                           background="pixel", em_model=GAMMA)
+        bead_fit.fit_beads(
+            frames[:5],
+            shared.positions,
+            offset=_offset_map(),
+            read_noise=SIGMA_DARK,
+            e_per_adu=PHI,
+            em_gain=261.6,
+            background="pixel",
+            em_model=GAMMA,
+        )
 
 
 @pytest.mark.slow
@@ -136,8 +189,8 @@ def test_fit_is_the_maximum_of_the_exact_likelihood(fitted):
     h = bead_fit.DEFAULT_HALF_SIZE
     b = 1
     r, c = fit.positions[b]
-    box = np.asarray(frames[:, r - h:r + h + 1, c - h:c + h + 1])
-    off = _offset_map()[r - h:r + h + 1, c - h:c + h + 1]
+    box = np.asarray(frames[:, r - h : r + h + 1, c - h : c + h + 1])
+    off = _offset_map()[r - h : r + h + 1, c - h : c + h + 1]
     rows = np.arange(r - h, r + h + 1)
     cols = np.arange(c - h, c + h + 1)
 
@@ -171,8 +224,15 @@ def test_fit_is_the_maximum_of_the_exact_likelihood(fitted):
 @pytest.mark.slow
 def test_wrong_gain_scales_the_intensities(fitted):
     frames, right = fitted[4.78]
-    wrong = bead_fit.fit_beads(frames, right.positions, offset=_offset_map(),
-                            read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.1 * 4.78, em_model=GAMMA)
+    wrong = bead_fit.fit_beads(
+        frames,
+        right.positions,
+        offset=_offset_map(),
+        read_noise=SIGMA_DARK,
+        e_per_adu=PHI,
+        em_gain=1.1 * 4.78,
+        em_model=GAMMA,
+    )
     ok = right.converged & wrong.converged
     ratio = wrong.intensity[ok].mean() / right.intensity[ok].mean()
     assert ratio == pytest.approx(1 / 1.1, rel=0.01)
@@ -193,11 +253,20 @@ def test_saturated_counts_are_left_out():
     pos = np.rint(TRUE_POS).astype(int)
     adc_max = int(np.percentile(frames, 99.9))
     clipped = np.minimum(frames, adc_max)
-    fit = bead_fit.fit_beads(clipped, pos, offset=_offset_map(), read_noise=SIGMA_DARK,
-                          e_per_adu=PHI, em_gain=22.95, adc_max=adc_max, em_model=GAMMA)
+    fit = bead_fit.fit_beads(
+        clipped,
+        pos,
+        offset=_offset_map(),
+        read_noise=SIGMA_DARK,
+        e_per_adu=PHI,
+        em_gain=22.95,
+        adc_max=adc_max,
+        em_model=GAMMA,
+    )
     h = bead_fit.DEFAULT_HALF_SIZE
-    in_boxes = sum(int((clipped[:, r - h:r + h + 1, c - h:c + h + 1] >= adc_max).sum())
-                   for r, c in pos)
+    in_boxes = sum(
+        int((clipped[:, r - h : r + h + 1, c - h : c + h + 1] >= adc_max).sum()) for r, c in pos
+    )
     assert fit.n_saturated == in_boxes > 0
     assert fit.converged.mean() > 0.9
     assert np.mean(fit.intensity[fit.converged]) == pytest.approx(N_TRUE, rel=0.03)
@@ -205,14 +274,18 @@ def test_saturated_counts_are_left_out():
 
 def test_bad_input():
     frames = _stack(1.0, 6, frames=5)
-    kw = dict(offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0,
-              em_model=GAMMA)
+    kw = dict(
+        offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0, em_model=GAMMA
+    )
     with pytest.raises(ValueError, match=r"bead at \(row 2, col 20\) is closer than half_size"):
         bead_fit.fit_beads(frames, [[2, 20]], **kw)
     phi = np.full(SHAPE, PHI)
     phi[22, 25] = np.nan
-    with pytest.raises(ValueError, match=r"e_per_adu is not finite > 0 in the box of the bead "
-                                         r"at \(row 23, col 24\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"e_per_adu is not finite > 0 in the box of the bead "
+        r"at \(row 23, col 24\)",
+    ):
         bead_fit.fit_beads(frames, [[8, 10], [23, 24]], **(kw | {"e_per_adu": phi}))
     with pytest.raises(ValueError, match="em_gain"):
         bead_fit.fit_beads(frames, [[8, 10]], **(kw | {"em_gain": 0.5}))
@@ -232,15 +305,22 @@ def test_bead_fits_under_the_exact_register():
     data."""
     frames = _stack(4.78, 14, frames=150, multiplication="cascade", stages=536)
     pos = np.rint(TRUE_POS).astype(int)
-    fit = bead_fit.fit_beads(frames, pos, offset=_offset_map(), read_noise=SIGMA_DARK,
-                             e_per_adu=PHI, em_gain=4.78,
-                             em_model=noise.EMModel("cascade", 536))
+    fit = bead_fit.fit_beads(
+        frames,
+        pos,
+        offset=_offset_map(),
+        read_noise=SIGMA_DARK,
+        e_per_adu=PHI,
+        em_gain=4.78,
+        em_model=noise.EMModel("cascade", 536),
+    )
     ok = fit.converged
     assert ok.mean() > 0.98
     N = fit.intensity[ok]
     assert abs(N.mean() - N_TRUE) < 4 * N.std(ddof=1) / math.sqrt(N.size)
     assert np.sqrt(np.mean(fit.intensity_se[ok] ** 2)) / N.std(ddof=1) == pytest.approx(
-        1.0, abs=0.15)
+        1.0, abs=0.15
+    )
 
 
 # --------------------------------------------------------------------------------------
@@ -285,9 +365,17 @@ def test_residual_pass_on_gaussian_beads_changes_nothing(fitted):
         image = bead_fit.residual_image(fits, per_bead=per_bead)
         assert len(image) == (3 if per_bead else 1)
         frames, before = fitted[261.6]
-        after = bead_fit.fit_beads(frames, before.positions, offset=_offset_map(),
-                                   read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=261.6,
-                                   fixed_width=before.params[:, 0, 2], residual=image, em_model=GAMMA)
+        after = bead_fit.fit_beads(
+            frames,
+            before.positions,
+            offset=_offset_map(),
+            read_noise=SIGMA_DARK,
+            e_per_adu=PHI,
+            em_gain=261.6,
+            fixed_width=before.params[:, 0, 2],
+            residual=image,
+            em_model=GAMMA,
+        )
         assert after.converged.all()
         diff = after.intensity.mean(axis=1) / before.intensity.mean(axis=1) - 1
         sem = before.intensity.std(axis=1, ddof=1) / math.sqrt(FRAMES) / N_TRUE
@@ -304,21 +392,52 @@ def test_residual_image_describes_a_psf_with_a_halo():
     pos = np.rint(TRUE_POS).astype(int)
     fits, stacks = [], {}
     for g, seed in ((1.0, 31), (261.6, 32)):
-        stacks[g] = simulate_frames(scene, em_gain=g, e_per_adu=PHI, offset=_offset_map(),
-                                    read_noise=SIGMA, frames=FRAMES, seed=seed)
-        fits.append(bead_fit.fit_beads(stacks[g], pos, offset=_offset_map(),
-                                       read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=g, em_model=GAMMA))
+        stacks[g] = simulate_frames(
+            scene,
+            em_gain=g,
+            e_per_adu=PHI,
+            offset=_offset_map(),
+            read_noise=SIGMA,
+            frames=FRAMES,
+            seed=seed,
+        )
+        fits.append(
+            bead_fit.fit_beads(
+                stacks[g],
+                pos,
+                offset=_offset_map(),
+                read_noise=SIGMA_DARK,
+                e_per_adu=PHI,
+                em_gain=g,
+                em_model=GAMMA,
+            )
+        )
     assert bead_fit.psf_mismatch(fits[1])["chi2_per_pixel"] > 2.0
     widths = bead_fit.shared_widths(fits)
     image = bead_fit.residual_image(fits)
-    second = [bead_fit.fit_beads(stacks[g], pos, offset=_offset_map(), read_noise=SIGMA_DARK,
-                                 e_per_adu=PHI, em_gain=g, fixed_width=widths, residual=image, em_model=GAMMA)
-              for g in (1.0, 261.6)]
+    second = [
+        bead_fit.fit_beads(
+            stacks[g],
+            pos,
+            offset=_offset_map(),
+            read_noise=SIGMA_DARK,
+            e_per_adu=PHI,
+            em_gain=g,
+            fixed_width=widths,
+            residual=image,
+            em_model=GAMMA,
+        )
+        for g in (1.0, 261.6)
+    ]
     assert all(f.converged.all() for f in second)
     assert bead_fit.psf_mismatch(second[1])["chi2_per_pixel"] < 1.3
     ratio = second[1].intensity.mean() / second[0].intensity.mean()
-    err = math.hypot(*(f.intensity.std(ddof=1) / math.sqrt(f.intensity.size)
-                       / f.intensity.mean() for f in second))
+    err = math.hypot(
+        *(
+            f.intensity.std(ddof=1) / math.sqrt(f.intensity.size) / f.intensity.mean()
+            for f in second
+        )
+    )
     assert abs(ratio - 1) < 4 * err
 
 
@@ -331,18 +450,39 @@ def test_offset_map_error_of_the_mean_intensity(fitted):
     r, c = fit.positions[0]
     one = np.zeros(SHAPE)
     one[r, c] = 1.0  # ADU
-    base = bead_fit.fit_beads(frames, fit.positions, offset=_offset_map(),
-                              read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0,
-                              offset_se=one, em_model=GAMMA)
-    shifted = bead_fit.fit_beads(frames, fit.positions, offset=_offset_map() + one,
-                                 read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0, em_model=GAMMA)
+    base = bead_fit.fit_beads(
+        frames,
+        fit.positions,
+        offset=_offset_map(),
+        read_noise=SIGMA_DARK,
+        e_per_adu=PHI,
+        em_gain=1.0,
+        offset_se=one,
+        em_model=GAMMA,
+    )
+    shifted = bead_fit.fit_beads(
+        frames,
+        fit.positions,
+        offset=_offset_map() + one,
+        read_noise=SIGMA_DARK,
+        e_per_adu=PHI,
+        em_gain=1.0,
+        em_model=GAMMA,
+    )
     moved = shifted.intensity.mean(axis=1) - base.intensity.mean(axis=1)
     assert abs(moved[0]) == pytest.approx(base.intensity_offset_se[0], rel=0.05)
     assert base.intensity_offset_se[1:] == pytest.approx(0.0)
     # 2000 dark frames: every pixel's offset known to 15.5/sqrt(2000) ADU
-    full = bead_fit.fit_beads(frames, fit.positions, offset=_offset_map(),
-                              read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0,
-                              offset_se=SIGMA / math.sqrt(2000), em_model=GAMMA)
+    full = bead_fit.fit_beads(
+        frames,
+        fit.positions,
+        offset=_offset_map(),
+        read_noise=SIGMA_DARK,
+        e_per_adu=PHI,
+        em_gain=1.0,
+        offset_se=SIGMA / math.sqrt(2000),
+        em_model=GAMMA,
+    )
     rel = full.intensity_offset_se / N_TRUE
     assert np.all((rel > 0.0005) & (rel < 0.01))
 
@@ -357,9 +497,15 @@ def test_the_error_of_a_beads_shared_parameters_is_in_its_mean():
     z_scatter, z_full = [], []
     pos = np.rint(TRUE_POS).astype(int)
     for seed in range(30):
-        fit = bead_fit.fit_beads(_stack(1.0, 500 + seed, frames=60), pos,
-                                 offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI,
-                                 em_gain=1.0, em_model=GAMMA)
+        fit = bead_fit.fit_beads(
+            _stack(1.0, 500 + seed, frames=60),
+            pos,
+            offset=_offset_map(),
+            read_noise=SIGMA_DARK,
+            e_per_adu=PHI,
+            em_gain=1.0,
+            em_model=GAMMA,
+        )
         for b in range(3):
             N = fit.intensity[b][fit.converged[b]]
             scatter = N.std(ddof=1) / math.sqrt(N.size)
@@ -375,14 +521,16 @@ def test_a_held_widths_error_enters_the_mean_as_its_linear_response():
     shared SE gains |d mean(N)/dw|·SE, and that slope is the refit's (finite difference)."""
     frames = _stack(1.0, 7, frames=100)
     pos = np.rint(TRUE_POS).astype(int)
-    kw = dict(offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0,
-              em_model=GAMMA)
+    kw = dict(
+        offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=1.0, em_model=GAMMA
+    )
     width, step = np.full(3, WIDTH), 0.002
     held = bead_fit.fit_beads(frames, pos, fixed_width=width, **kw)
-    known = bead_fit.fit_beads(frames, pos, fixed_width=width,
-                               fixed_width_se=np.array([0.01, 0.0, 0.0]), **kw)
+    known = bead_fit.fit_beads(
+        frames, pos, fixed_width=width, fixed_width_se=np.array([0.01, 0.0, 0.0]), **kw
+    )
     moved = bead_fit.fit_beads(frames, pos, fixed_width=width + step, **kw)
-    mean = (lambda f: np.array([f.intensity[b][f.converged[b]].mean() for b in range(3)]))
+    mean = lambda f: np.array([f.intensity[b][f.converged[b]].mean() for b in range(3)])
     slope = (mean(moved) - mean(held)) / step  # e- per pixel of width, about N/w
     added = np.sqrt(known.intensity_shared_se**2 - held.intensity_shared_se**2)
     assert added[0] == pytest.approx(abs(slope[0]) * 0.01, rel=0.02)
@@ -396,12 +544,19 @@ def test_residual_is_per_unit_intensity_of_the_frames_it_averages():
     params = np.zeros((B, F, 5))
     params[..., :3] = [10.0, 10.0, 1.3]
     params[0, :, 3] = [1000.0] * 5 + [1e-3] * 5
-    fit = bead_fit.BeadFits(positions=np.array([[10, 10]]), params=params,
-                            se=np.ones((B, F, 5)), loglik=np.zeros((B, F)),
-                            converged=np.ones((B, F), bool), iterations=np.ones((B, 3), int), retabulated=0,
-                            n_saturated=0, residual=np.full((B, n, n), 10.0),
-                            residual_se=np.full((B, n, n), 1.0),
-                            intensity_offset_se=np.zeros(B))
+    fit = bead_fit.BeadFits(
+        positions=np.array([[10, 10]]),
+        params=params,
+        se=np.ones((B, F, 5)),
+        loglik=np.zeros((B, F)),
+        converged=np.ones((B, F), bool),
+        iterations=np.ones((B, 3), int),
+        retabulated=0,
+        n_saturated=0,
+        residual=np.full((B, n, n), 10.0),
+        residual_se=np.full((B, n, n), 1.0),
+        intensity_offset_se=np.zeros(B),
+    )
     assert bead_fit.psf_mismatch(fit)["missed_fraction"] == pytest.approx(81 * 10 / 1000)
     image = bead_fit.residual_image([fit], per_bead=True)
     R = image.evaluate(np.zeros(1, int), np.zeros((1, 1)), np.zeros((1, 1)))[0]
@@ -423,13 +578,24 @@ def test_a_residual_images_variance_is_its_sampling_variance():
     def fit_with_noise():
         r = rng.normal(0.0, 1.0, (2, B, n, n)) * se
         return bead_fit.BeadFits(
-            positions=pos, params=params, se=np.ones((B, F, 5)), loglik=np.zeros((B, F)),
-            converged=np.ones((B, F), bool), iterations=np.ones((B, 3), int), retabulated=0,
-            n_saturated=0, residual=r[0], residual_se=se, intensity_offset_se=np.zeros(B),
-            residual_halves=r, residual_halves_se=np.stack([se, se]))
+            positions=pos,
+            params=params,
+            se=np.ones((B, F, 5)),
+            loglik=np.zeros((B, F)),
+            converged=np.ones((B, F), bool),
+            iterations=np.ones((B, 3), int),
+            retabulated=0,
+            n_saturated=0,
+            residual=r[0],
+            residual_se=se,
+            intensity_offset_se=np.zeros(B),
+            residual_halves=r,
+            residual_halves_se=np.stack([se, se]),
+        )
 
-    images = [bead_fit.residual_image([fit_with_noise(), fit_with_noise()], half=0)
-              for _ in range(400)]
+    images = [
+        bead_fit.residual_image([fit_with_noise(), fit_with_noise()], half=0) for _ in range(400)
+    ]
     variance = images[0].variance
     used = variance > 0
     ratio = np.var([im.values for im in images], axis=0)[used] / variance[used]
@@ -438,11 +604,13 @@ def test_a_residual_images_variance_is_its_sampling_variance():
     dy = (pos[0, 0] + local - 10.2)[:, None] * np.ones(n)
     dx = np.ones(n)[:, None] * (pos[0, 1] + local - 10.3)
     at_pixels = np.var([im.evaluate(np.zeros(n, int), dy, dx)[0] for im in images], axis=0)
-    assert np.median(at_pixels / images[0].variance_at(np.zeros(n, int), dy, dx)) \
-        == pytest.approx(1.0, abs=0.1)
+    assert np.median(at_pixels / images[0].variance_at(np.zeros(n, int), dy, dx)) == pytest.approx(
+        1.0, abs=0.1
+    )
     # two fits pooled: the image's variance is half a single residual's, per unit N
-    assert np.median(images[0].variance_at(np.zeros(n, int), dy, dx)
-                     / (se[0] / 1000.0) ** 2) == pytest.approx(0.5, abs=0.1)
+    assert np.median(
+        images[0].variance_at(np.zeros(n, int), dy, dx) / (se[0] / 1000.0) ** 2
+    ) == pytest.approx(0.5, abs=0.1)
     with pytest.raises(ValueError, match="half must be"):
         bead_fit.residual_image([fit_with_noise()], half=2)
 
@@ -457,26 +625,40 @@ def test_a_residual_image_is_scored_on_frames_it_was_not_built_on(fitted):
     fits = [fitted[g][1] for g in (1.0, 4.78, 261.6)]
     image = bead_fit.residual_image(fits, half=0)
     frames, before = fitted[261.6]
-    kw = dict(offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=261.6,
-              em_model=GAMMA)
-    after = bead_fit.fit_beads(frames, before.positions, fixed_width=before.params[:, 0, 2],
-                               residual=image, **kw)
+    kw = dict(
+        offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=261.6, em_model=GAMMA
+    )
+    after = bead_fit.fit_beads(
+        frames, before.positions, fixed_width=before.params[:, 0, 2], residual=image, **kw
+    )
     held_out = bead_fit.psf_mismatch(after, half=1, image=image)
     assert abs(held_out["chi2_per_pixel"] - 1.0) < 3 * held_out["chi2_per_pixel_se"]
 
     halo = bead_scene(TRUE_POS, N_TRUE, WIDTH, BACKGROUND, *SHAPE, halo=0.2, halo_width=3.0)
-    later = simulate_frames(halo, em_gain=261.6, e_per_adu=PHI, offset=_offset_map(),
-                            read_noise=SIGMA, frames=FRAMES // 4, seed=33)
+    later = simulate_frames(
+        halo,
+        em_gain=261.6,
+        e_per_adu=PHI,
+        offset=_offset_map(),
+        read_noise=SIGMA,
+        frames=FRAMES // 4,
+        seed=33,
+    )
     stack = np.concatenate([frames[: FRAMES // 4], later])  # 150 frames: the halo at 5+ SE
     chi2 = {}
     for split in ("time", "alternate"):
         gauss = bead_fit.fit_beads(stack, before.positions, residual_split=split, **kw)
         image = bead_fit.residual_image([gauss], half=0)
-        third = bead_fit.fit_beads(stack, before.positions, residual=image,
-                                   fixed_width=gauss.params[:, 0, 2], residual_split=split,
-                                   **kw)
+        third = bead_fit.fit_beads(
+            stack,
+            before.positions,
+            residual=image,
+            fixed_width=gauss.params[:, 0, 2],
+            residual_split=split,
+            **kw,
+        )
         chi2[split] = bead_fit.psf_mismatch(third, half=1, image=image)["chi2_per_pixel"]
-    assert chi2["time"] > 2.0          # validate's PSF_CHI2: flagged
+    assert chi2["time"] > 2.0  # validate's PSF_CHI2: flagged
     assert chi2["alternate"] < 1.5
     with pytest.raises(ValueError, match="split must be"):
         bead_fit.fit_beads(frames, before.positions, residual_split="random", **kw)

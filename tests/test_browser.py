@@ -102,15 +102,17 @@ def test_demo_report_renders_in_chromium(browser, demo_run, tmp_path):
     run, _ = demo_run
     found = check_in_browser(run["report"], tmp_path, "demo-report")
     assert {"fig-result-1-histograms", "fig-result-2-photon-transfer", "fig-gain"} <= {
-        i["figure"] for i in found["images"]}
+        i["figure"] for i in found["images"]
+    }
 
 
 @pytest.mark.real_data
 def test_real_proem_report_renders_in_chromium(browser, tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the camera's read noise grows with set-point
-        calibrate(write_real_manifest(tmp_path, "adu"), "is-adu", out=tmp_path / "is-adu",
-                  checks=False)  # the slow part; gs keeps its data-quality checks
+        calibrate(
+            write_real_manifest(tmp_path, "adu"), "is-adu", out=tmp_path / "is-adu", checks=False
+        )  # the slow part; gs keeps its data-quality checks
         # the paper's gamma model, whose 5x misfit the report must show
         calibrate(write_real_manifest(tmp_path, "gs"), "gs", out=tmp_path / "gs", em_model="gamma")
         path = report_html.write_report([tmp_path / "is-adu", tmp_path / "gs"], tmp_path / "r.html")

@@ -52,12 +52,16 @@ ADU_REFERENCE = {(0, 0): 3.84163, (1, 1): 3.94014, (2, 2): 3.97789}
 # emccdcal's own numbers as docs/validation.md prints them (E; g at 5, 25, 100, 300x):
 # the reproduction must stay at these digits.
 GS_DOCUMENTED = {
-    "gs": {(0, 0): "370.67 4.7836 22.9497 90.0552 261.5464",
-           (1, 1): "373.46 4.7435 22.8280 89.4073 259.9281",
-           (2, 2): "372.78 4.7750 22.9013 89.5758 260.7606"},
-    "gs-no1x": {(0, 0): "380.47 4.6606 22.3595 87.7394 254.8206",
-                (1, 1): "378.47 4.6809 22.5266 88.2269 256.4965",
-                (2, 2): "382.75 4.6508 22.3054 87.2449 253.9753"},
+    "gs": {
+        (0, 0): "370.67 4.7836 22.9497 90.0552 261.5464",
+        (1, 1): "373.46 4.7435 22.8280 89.4073 259.9281",
+        (2, 2): "372.78 4.7750 22.9013 89.5758 260.7606",
+    },
+    "gs-no1x": {
+        (0, 0): "380.47 4.6606 22.3595 87.7394 254.8206",
+        (1, 1): "378.47 4.6809 22.5266 88.2269 256.4965",
+        (2, 2): "382.75 4.6508 22.3054 87.2449 253.9753",
+    },
 }
 # Largest relative difference from the reference that docs/validation.md measured: the
 # reference's gs numbers come from the authors' grid model, 3.5e-4 from the exact one at
@@ -77,15 +81,21 @@ def test_real_gain_series_reproduces_reference(tmp_path, method, reference):
     # the reference's own printed digits (five figures) add up to 1.4e-5 relative
     rtol = REFERENCE_AGREEMENT[method] + 1.5e-5
     for (r, c), (E, *gains) in reference.items():
-        ours = np.r_[ds.photoelectrons.values[r, c],
-                     ds.em_gain.sel(setpoint=[5, 25, 100, 300]).values[:, r, c]]
+        ours = np.r_[
+            ds.photoelectrons.values[r, c],
+            ds.em_gain.sel(setpoint=[5, 25, 100, 300]).values[:, r, c],
+        ]
         np.testing.assert_allclose(ours, [E, *gains], rtol=rtol)
         # our documented numbers, to their last printed digit
         printed = GS_DOCUMENTED[method][r, c].split()
         half_ulp = np.array([0.5 * 10.0 ** -len(v.partition(".")[2]) for v in printed])
-        np.testing.assert_array_less(np.abs(ours - np.array(printed, float)), half_ulp + 1e-6 * ours)
-    means = {"gs": (370.44, 4.7826, 22.968, 89.966, 261.69),
-             "gs-no1x": (381.55, 4.6437, 22.301, 87.352, 254.08)}[method]
+        np.testing.assert_array_less(
+            np.abs(ours - np.array(printed, float)), half_ulp + 1e-6 * ours
+        )
+    means = {
+        "gs": (370.44, 4.7826, 22.968, 89.966, 261.69),
+        "gs-no1x": (381.55, 4.6437, 22.301, 87.352, 254.08),
+    }[method]
     # the means over nine pixels agree to the reference's printed digits (gs 300x: 4e-5)
     assert float(ds.photoelectrons.mean()) == pytest.approx(means[0], rel=1e-4)
     np.testing.assert_allclose(
@@ -108,8 +118,10 @@ def test_real_gain_series_goodness_of_fit_flags_5x(tmp_path):
     assert p.dims == ("setpoint", "row", "col") and p.attrs["units"] == "1"
     assert float((p.sel(setpoint=5) < 0.05).mean()) >= 0.7  # 7 of 9 (5 % expected)
     assert float((p.sel(setpoint=[25, 100, 300]) < 0.01).mean()) < 0.2
-    assert any("set-point 5x" in w and "misfit" in w and "doubtful" in w
-               and "--em-model cascade" in w for w in ds.attrs["warnings"])
+    assert any(
+        "set-point 5x" in w and "misfit" in w and "doubtful" in w and "--em-model cascade" in w
+        for w in ds.attrs["warnings"]
+    )
     assert not any("set-point 300x" in w for w in ds.attrs["warnings"])
 
 
@@ -127,8 +139,17 @@ def test_real_adu_series_reproduces_reference(tmp_path):
 @needs_real
 def test_real_data_cli_writes_result(tmp_path, capsys):
     out = tmp_path / "out"
-    code = cli.main(["calibrate", str(_real_manifest(tmp_path, "gs")), "--method", "gs",
-                     "-o", str(out), "--quiet"])
+    code = cli.main(
+        [
+            "calibrate",
+            str(_real_manifest(tmp_path, "gs")),
+            "--method",
+            "gs",
+            "-o",
+            str(out),
+            "--quiet",
+        ]
+    )
     assert code == 0
     ds = result.load(out)
     assert ds.attrs["method"] == "gs"
@@ -136,8 +157,13 @@ def test_real_data_cli_writes_result(tmp_path, capsys):
     assert summary["method"] == "gs"
     # data-quality checks ride along: per acquisition, with the findings as warnings
     quality = summary["quality"]
-    assert set(quality["acquisitions"]) == {"1x-gain", "5x-gain", "25x-gain", "100x-gain",
-                                            "300x-gain"}
+    assert set(quality["acquisitions"]) == {
+        "1x-gain",
+        "5x-gain",
+        "25x-gain",
+        "100x-gain",
+        "300x-gain",
+    }
     assert any("read noise" in w for w in summary["warnings"])
     assert json.loads(ds.attrs["quality"]) == quality
 
@@ -183,13 +209,21 @@ def _calibrate(manifest, method, all_converged=True, options=None):
 def test_small_gain_series_recovers_truth_fast(tmp_path):
     """The fast loop's check of ``gs`` numbers: 256 pixels of the paper's camera, the
     pixel-mean of E and of every gain within 3 of its standard errors of the truth."""
-    sim = simulate_gain_series(tmp_path, rows=16, cols=16, frames=1500, dark_frames=500,
-                               seed=20261126)
+    sim = simulate_gain_series(
+        tmp_path, rows=16, cols=16, frames=1500, dark_frames=500, seed=20261126
+    )
     ds = _calibrate(sim.manifest, "gs")
     acqs = sim.truth["acquisitions"]
     checks = [("E", ds.photoelectrons.values, acqs[0]["photoelectrons"])]
-    checks += [(f"g({a['em_gain_setpoint']:g}x)", ds.em_gain.sel(setpoint=a["em_gain_setpoint"]).values,
-                a["em_gain"]) for a in acqs if a["em_gain_setpoint"] != 1]
+    checks += [
+        (
+            f"g({a['em_gain_setpoint']:g}x)",
+            ds.em_gain.sel(setpoint=a["em_gain_setpoint"]).values,
+            a["em_gain"],
+        )
+        for a in acqs
+        if a["em_gain_setpoint"] != 1
+    ]
     for what, estimate, value in checks:
         estimate = np.ravel(estimate)
         sem = estimate.std(ddof=1) / np.sqrt(estimate.size)
@@ -235,16 +269,29 @@ def test_gain_series_recovers_truth(camera, method):
     centre = np.median if method in ("gs-hierarchical", "mv-gain") else np.mean
     for sp, g in zip(cam["setpoints"][1:], cam["em_gain"][1:]):
         sel = ds.sel(setpoint=sp)
-        _check(sel.em_gain.values, sel.em_gain_se.values, g, f"{name} {method} g({sp}x)",
-               centre, result_bounds(ds, "em_gain", setpoint=sp), undefined=-np.inf)
+        _check(
+            sel.em_gain.values,
+            sel.em_gain_se.values,
+            g,
+            f"{name} {method} g({sp}x)",
+            centre,
+            result_bounds(ds, "em_gain", setpoint=sp),
+            undefined=-np.inf,
+        )
     E = cam["photoelectrons"]
     if ds.photoelectrons.ndim == 2:
         _check(ds.photoelectrons.values, ds.photoelectrons_se.values, E, f"{name} {method} E")
     else:
         for i, sp in enumerate(ds.setpoint.values):
-            _check(ds.photoelectrons.values[i], ds.photoelectrons_se.values[i], E,
-                   f"{name} {method} E({sp}x)", centre,
-                   result_bounds(ds, "photoelectrons", setpoint=sp), undefined=np.inf)
+            _check(
+                ds.photoelectrons.values[i],
+                ds.photoelectrons_se.values[i],
+                E,
+                f"{name} {method} E({sp}x)",
+                centre,
+                result_bounds(ds, "photoelectrons", setpoint=sp),
+                undefined=np.inf,
+            )
 
 
 @pytest.mark.slow
@@ -253,12 +300,25 @@ def test_adu_series_recovers_truth(camera, method):
     name, cam, manifests = camera
     ds = _calibrate(manifests["adu"], method)
     centre = np.median if method.startswith("mv") else np.mean  # see the gain-series test
-    _check(ds.e_per_adu.values, ds.e_per_adu_se.values, cam["e_per_adu"], f"{name} {method} phi",
-           centre=centre, bounds=result_bounds(ds, "e_per_adu"), undefined=np.inf)
+    _check(
+        ds.e_per_adu.values,
+        ds.e_per_adu_se.values,
+        cam["e_per_adu"],
+        f"{name} {method} phi",
+        centre=centre,
+        bounds=result_bounds(ds, "e_per_adu"),
+        undefined=np.inf,
+    )
     for i, E in enumerate(cam["levels"]):
-        _check(ds.photoelectrons.values[i], ds.photoelectrons_se.values[i], E,
-               f"{name} {method} E(level {i})", centre=centre,
-               bounds=result_bounds(ds, "photoelectrons", level=ds.level.values[i]), undefined=np.inf)
+        _check(
+            ds.photoelectrons.values[i],
+            ds.photoelectrons_se.values[i],
+            E,
+            f"{name} {method} E(level {i})",
+            centre=centre,
+            bounds=result_bounds(ds, "photoelectrons", level=ds.level.values[i]),
+            undefined=np.inf,
+        )
 
 
 @pytest.mark.slow
@@ -268,13 +328,25 @@ def test_gain_intensity_series_recovers_truth(camera, method):
     ds = _calibrate(manifests["isg"], method)
     centre = np.median if method.startswith("mv") else np.mean  # see the gain-series test
     sel = ds.sel(setpoint=cam["is_gain_setpoint"])
-    _check(sel.em_gain.values, sel.em_gain_se.values, cam["is_gain"], f"{name} {method} g",
-           centre=centre, bounds=result_bounds(ds, "em_gain", setpoint=cam["is_gain_setpoint"]),
-           undefined=-np.inf)
+    _check(
+        sel.em_gain.values,
+        sel.em_gain_se.values,
+        cam["is_gain"],
+        f"{name} {method} g",
+        centre=centre,
+        bounds=result_bounds(ds, "em_gain", setpoint=cam["is_gain_setpoint"]),
+        undefined=-np.inf,
+    )
     for i, E in enumerate(cam["is_gain_levels"]):
-        _check(ds.photoelectrons.values[i], ds.photoelectrons_se.values[i], E,
-               f"{name} {method} E(level {i})", centre=centre,
-               bounds=result_bounds(ds, "photoelectrons", level=ds.level.values[i]), undefined=np.inf)
+        _check(
+            ds.photoelectrons.values[i],
+            ds.photoelectrons_se.values[i],
+            E,
+            f"{name} {method} E(level {i})",
+            centre=centre,
+            bounds=result_bounds(ds, "photoelectrons", level=ds.level.values[i]),
+            undefined=np.inf,
+        )
 
 
 @pytest.mark.slow
@@ -290,11 +362,20 @@ def test_hierarchical_shrinks_a_differing_illumination(tmp_path):
     cam = CAMERAS["paper"]
     factors = np.array([1.0, 1.04, 0.98, 1.02, 0.96])
     sim = simulate_gain_series(
-        tmp_path, setpoints=cam["setpoints"], em_gain=cam["em_gain"],
-        photoelectrons=list(cam["photoelectrons"] * factors), rows=ROWS, cols=COLS,
-        frames=FRAMES, dark_frames=10, e_per_adu=cam["e_per_adu"],
-        read_noise=cam["read_noise"], offset=cam["offset"], seed=31,
-        multiplication=STUDY_REGISTER)
+        tmp_path,
+        setpoints=cam["setpoints"],
+        em_gain=cam["em_gain"],
+        photoelectrons=list(cam["photoelectrons"] * factors),
+        rows=ROWS,
+        cols=COLS,
+        frames=FRAMES,
+        dark_frames=10,
+        e_per_adu=cam["e_per_adu"],
+        read_noise=cam["read_noise"],
+        offset=cam["offset"],
+        seed=31,
+        multiplication=STUDY_REGISTER,
+    )
     ds = _calibrate(truth_manifest(sim, cam["read_noise"], STUDY_REGISTER), "gs-hierarchical")
     true_5x, shared = cam["photoelectrons"] * factors[1], cam["photoelectrons"]
     E_5x = ds.photoelectrons.sel(setpoint=5).values.ravel()
@@ -326,8 +407,14 @@ def test_result_does_not_depend_on_blocks_or_threads(tmp_path, method):
     np.testing.assert_array_equal(default.converged.values, small.converged.values)
     for name in default.data_vars:
         if np.issubdtype(default[name].dtype, np.floating):
-            np.testing.assert_allclose(small[name].values, default[name].values, rtol=1e-7,
-                                       atol=1e-12, equal_nan=True, err_msg=name)
+            np.testing.assert_allclose(
+                small[name].values,
+                default[name].values,
+                rtol=1e-7,
+                atol=1e-12,
+                equal_nan=True,
+                err_msg=name,
+            )
 
 
 def test_a_calibration_through_the_array_api_standard_is_numpys(tmp_path):
@@ -341,14 +428,21 @@ def test_a_calibration_through_the_array_api_standard_is_numpys(tmp_path):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             ref = calibrate(sim.manifest, "gs", checks=False, em_model=em_model)
-            strict = calibrate(sim.manifest, "gs", checks=False, em_model=em_model,
-                               device="array-api-strict")
+            strict = calibrate(
+                sim.manifest, "gs", checks=False, em_model=em_model, device="array-api-strict"
+            )
         assert (ref.attrs["device"], strict.attrs["device"]) == ("cpu", "array-api-strict")
         assert strict.converged.values.all()
         for name in ref.data_vars:
             if np.issubdtype(ref[name].dtype, np.floating):
-                np.testing.assert_allclose(strict[name].values, ref[name].values, rtol=1e-10,
-                                           atol=0, equal_nan=True, err_msg=name)
+                np.testing.assert_allclose(
+                    strict[name].values,
+                    ref[name].values,
+                    rtol=1e-10,
+                    atol=0,
+                    equal_nan=True,
+                    err_msg=name,
+                )
 
 
 @pytest.mark.parametrize("em_model", ["cascade", "gamma"])
@@ -368,8 +462,9 @@ def test_a_calibration_on_a_gpu_is_the_cpus(tmp_path, em_model):
     np.testing.assert_array_equal(gpu.converged.values, cpu.converged.values)
     for name in cpu.data_vars:
         if np.issubdtype(cpu[name].dtype, np.floating):
-            np.testing.assert_allclose(gpu[name].values, cpu[name].values, rtol=1e-9,
-                                       atol=0, equal_nan=True, err_msg=name)
+            np.testing.assert_allclose(
+                gpu[name].values, cpu[name].values, rtol=1e-9, atol=0, equal_nan=True, err_msg=name
+            )
 
 
 @pytest.mark.slow
@@ -389,7 +484,8 @@ def test_the_register_length_profiled_on_the_real_camera(tmp_path, capsys):
     best = int(grid[np.argmax(delta)])
     assert int(auto.attrs["register_stages"]) == best
     assert auto.attrs["register_stages_source"].startswith(
-        f"profile likelihood over 128-4096 stages on 9 pixels: maximum at {best}, ")
+        f"profile likelihood over 128-4096 stages on 9 pixels: maximum at {best}, "
+    )
     assert delta[list(grid).index(128)] < -1.92  # a 128-stage register is excluded
     np.testing.assert_allclose(auto.em_gain.values, default.em_gain.values, rtol=2e-3)
     # only where a length enters, and only for the cascade
@@ -399,6 +495,7 @@ def test_the_register_length_profiled_on_the_real_camera(tmp_path, capsys):
         calibrate(manifest, "mv-gain", stages="auto")
     with pytest.raises(OptionError, match="every acquisition is at EM gain set-point 1"):
         calibrate(_real_manifest(tmp_path, "adu"), "is-adu", stages="auto")
-    assert cli.main(["calibrate", str(manifest), "--stages", "sixty", "-o",
-                     str(tmp_path / "x")]) == 2
+    assert (
+        cli.main(["calibrate", str(manifest), "--stages", "sixty", "-o", str(tmp_path / "x")]) == 2
+    )
     assert "--stages: expected an integer, got 'sixty'" in capsys.readouterr().err

@@ -17,8 +17,9 @@ from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_se
 def series(tmp_path_factory):
     base = tmp_path_factory.mktemp("errors")
     gs = simulate_gain_series(base / "gs", rows=6, cols=6, frames=1000, seed=3)
-    adu = simulate_intensity_series(base / "adu", rows=6, cols=6, frames=1000, seed=4,
-                                    levels=(2000, 8000))
+    adu = simulate_intensity_series(
+        base / "adu", rows=6, cols=6, frames=1000, seed=4, levels=(2000, 8000)
+    )
     return gs, adu
 
 
@@ -71,13 +72,24 @@ def test_unknown_method(series):
         calibrate(gs.manifest, "gs2")
 
 
-@pytest.mark.parametrize("method,options,message", [
-    ("gs", {"mu_sd": 4.0}, "gs takes no options"),
-    ("gs-hierarchical", {"mu_sdev": 4.0}, "unknown gs-hierarchical option.*'mu_sdev'.*known: mu_sd"),
-    ("gs-hierarchical", {"sigma_sd": -1.0}, "sigma_sd must be a positive number of photoelectrons"),
-    ("gs-hierarchical", {"mu_sd": "wide"}, "mu_sd must be a positive number"),
-    ("gs-hierarchical", {"centre": "pixel"}, "unknown hierarchical centre 'pixel'"),
-])
+@pytest.mark.parametrize(
+    "method,options,message",
+    [
+        ("gs", {"mu_sd": 4.0}, "gs takes no options"),
+        (
+            "gs-hierarchical",
+            {"mu_sdev": 4.0},
+            "unknown gs-hierarchical option.*'mu_sdev'.*known: mu_sd",
+        ),
+        (
+            "gs-hierarchical",
+            {"sigma_sd": -1.0},
+            "sigma_sd must be a positive number of photoelectrons",
+        ),
+        ("gs-hierarchical", {"mu_sd": "wide"}, "mu_sd must be a positive number"),
+        ("gs-hierarchical", {"centre": "pixel"}, "unknown hierarchical centre 'pixel'"),
+    ],
+)
 def test_bad_method_options(series, method, options, message):
     gs, _ = series
     with pytest.raises(MethodError, match=message):
@@ -92,8 +104,22 @@ def test_cli_hyperprior_options_are_used_and_recorded(series, tmp_path):
 
     gs, _ = series
     out = tmp_path / "hier"
-    argv = ["calibrate", str(gs.manifest), "-m", "gs-hierarchical", "-o", str(out), "--quiet",
-            "--no-checks", "--mu-sd", "5", "--sigma-sd", "2.5", "--prior-centre", "setpoint"]
+    argv = [
+        "calibrate",
+        str(gs.manifest),
+        "-m",
+        "gs-hierarchical",
+        "-o",
+        str(out),
+        "--quiet",
+        "--no-checks",
+        "--mu-sd",
+        "5",
+        "--sigma-sd",
+        "2.5",
+        "--prior-centre",
+        "setpoint",
+    ]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         assert cli.main(argv) == 0
@@ -103,7 +129,9 @@ def test_cli_hyperprior_options_are_used_and_recorded(series, tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         default = calibrate(gs.manifest, "gs-hierarchical", checks=False)
-    assert float(ds.hyper_sd_photoelectrons.median()) < float(default.hyper_sd_photoelectrons.median())
+    assert float(ds.hyper_sd_photoelectrons.median()) < float(
+        default.hyper_sd_photoelectrons.median()
+    )
     assert cli.main(argv[:-6] + ["-m", "gs", "--mu-sd", "5"]) == 2  # gs takes no hyperprior
 
 
@@ -112,7 +140,9 @@ def test_cli_errors_are_one_line_exit_2(series, tmp_path, capsys):
     code = cli.main(["calibrate", str(tmp_path / "missing.toml"), "-o", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip()
     assert code == 2 and "\n" not in err and "missing.toml" in err
-    code = cli.main(["calibrate", str(gs.manifest), "--method", "is-adu", "-o", str(tmp_path / "o")])
+    code = cli.main(
+        ["calibrate", str(gs.manifest), "--method", "is-adu", "-o", str(tmp_path / "o")]
+    )
     err = capsys.readouterr().err.strip()
     assert code == 2 and "\n" not in err and "is-adu" in err
     assert cli.main(["calibrate", str(gs.manifest), "--method", "nonsense", "-o", "x"]) == 2
@@ -121,8 +151,9 @@ def test_cli_errors_are_one_line_exit_2(series, tmp_path, capsys):
 
 def test_saturated_frames_are_excluded_counted_and_warned(tmp_path):
     # A 15-bit ADC saturates part of the 300x data (mean ≈ 29 000 ADU, SD ≈ 2 100 ADU).
-    gs = simulate_gain_series(tmp_path / "sat", rows=4, cols=4, frames=2000, seed=5,
-                              adc_bits=15, setpoints=(1, 25, 300))
+    gs = simulate_gain_series(
+        tmp_path / "sat", rows=4, cols=4, frames=2000, seed=5, adc_bits=15, setpoints=(1, 25, 300)
+    )
     with pytest.warns(UserWarning, match="ADC maximum"):
         ds = calibrate(gs.manifest, "gs")
     n_sat = ds.n_saturated.sel(setpoint=300).values
@@ -138,8 +169,13 @@ def test_a_pixel_that_cannot_converge_is_flagged(series, tmp_path):
     data[:, 2, 3] = int(round(float(np.median(data[:, 0, 0])) / 10))
     bad = tmp_path / "25x-bad.tif"
     tifffile.imwrite(bad, data, photometric="minisblack")
-    path = _edit(gs.manifest, tmp_path, 'frames = "gain-GS/25x-gain.tif"',
-                 f'frames = "{bad}"', name="bad.toml")
+    path = _edit(
+        gs.manifest,
+        tmp_path,
+        'frames = "gain-GS/25x-gain.tif"',
+        f'frames = "{bad}"',
+        name="bad.toml",
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         ds = calibrate(path, "gs")
@@ -154,8 +190,11 @@ def test_a_scheduler_that_is_no_address_is_one_line(series):
     traceback from inside the client."""
     pytest.importorskip("distributed")
     gs, _ = series
-    with pytest.raises(OptionError, match=r"scheduler 'synchronous': no Dask scheduler "
-                                          r"reached .*tcp://HOST:PORT"):
+    with pytest.raises(
+        OptionError,
+        match=r"scheduler 'synchronous': no Dask scheduler "
+        r"reached .*tcp://HOST:PORT",
+    ):
         calibrate(gs.manifest, "gs", scheduler="synchronous")
     with pytest.raises(OptionError, match=r"scheduler 'tcp://127.0.0.1:9': no Dask"):
         calibrate(gs.manifest, "gs", scheduler="tcp://127.0.0.1:9")  # nobody listens
@@ -190,11 +229,11 @@ def test_blocks_on_a_gpu_fill_a_share_of_its_free_memory():
     from emccdcal.calibration import DEFAULT_BLOCK, _blocks_for
 
     assert DEFAULT_BLOCK == 128
-    assert _blocks_for(None, 128, 1024) == (128, 1024)           # the CPU
-    assert _blocks_for(80 * 2**30, 128, 1024) == (1280, 1280)    # 20 GiB / 16 MiB
-    assert _blocks_for(2**40, 128, 1024) == (8192, 8192)         # capped
-    assert _blocks_for(2**30, 128, 1024) == (128, 1024)          # a small card
-    assert _blocks_for(80 * 2**30, 64, 1024) == (64, 1024)       # the caller's choice
+    assert _blocks_for(None, 128, 1024) == (128, 1024)  # the CPU
+    assert _blocks_for(80 * 2**30, 128, 1024) == (1280, 1280)  # 20 GiB / 16 MiB
+    assert _blocks_for(2**40, 128, 1024) == (8192, 8192)  # capped
+    assert _blocks_for(2**30, 128, 1024) == (128, 1024)  # a small card
+    assert _blocks_for(80 * 2**30, 64, 1024) == (64, 1024)  # the caller's choice
 
 
 def test_every_verb_with_a_device_refuses_one_that_is_not_there(series):
@@ -208,12 +247,9 @@ def test_every_verb_with_a_device_refuses_one_that_is_not_there(series):
     gs, _ = series
     calls = {
         "calibrate": lambda device: calibrate(gs.manifest, "gs", device=device),
-        "posterior": lambda device: sample_posterior(gs.manifest, "gs", [(0, 0)],
-                                                     device=device),
-        "plan": lambda device: plan(e_per_adu=3.859, read_noise=15.5, offset=500.0,
-                                    device=device),
-        "gain-check": lambda device: check_gain([np.zeros((10, 2, 2))], 3.859,
-                                                device=device),
+        "posterior": lambda device: sample_posterior(gs.manifest, "gs", [(0, 0)], device=device),
+        "plan": lambda device: plan(e_per_adu=3.859, read_noise=15.5, offset=500.0, device=device),
+        "gain-check": lambda device: check_gain([np.zeros((10, 2, 2))], 3.859, device=device),
     }
     offering = set()
     for verb in cli.VERBS:

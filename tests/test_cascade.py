@@ -115,7 +115,9 @@ def _pmf_by_recursion(m, p, stages, size):
     return P
 
 
-@pytest.mark.parametrize("m, g, stages, size", [(3, 1.3**10, 10, 3 * 2**10 + 1), (1, 5.0, 536, 320), (4, 5.0, 536, 500)])
+@pytest.mark.parametrize(
+    "m, g, stages, size", [(3, 1.3**10, 10, 3 * 2**10 + 1), (1, 5.0, 536, 320), (4, 5.0, 536, 500)]
+)
 def test_output_pmf_matches_stage_recursion(m, g, stages, size):
     expected = _pmf_by_recursion(m, float(stage_probability(g, stages)), stages, size)
     x, p = output_pmf(m, g, stages)
@@ -163,7 +165,9 @@ def test_indexed_search_equals_binary_search(g, m):
             1.0 - rng.random(1000) * 1e-12,  # far upper tail
         )
     )
-    np.testing.assert_array_equal(cascade._invert(cdf, guide, u), np.searchsorted(cdf, u, side="right"))
+    np.testing.assert_array_equal(
+        cascade._invert(cdf, guide, u), np.searchsorted(cdf, u, side="right")
+    )
 
 
 # --------------------------------------------------------------------------------------
@@ -217,7 +221,10 @@ def test_samplers_agree_on_mixed_input():
         assert abs(z.mean()) < 4 / np.sqrt(z.size)
         se_var = np.std(z**2) / np.sqrt(z.size)  # standard error of the mean of z²
         assert z.var() == pytest.approx(1.0, abs=4 * se_var)
-    assert stats.ks_2samp((a - 100 * n)[n > 0] / sd[n > 0], (b - 100 * n)[n > 0] / sd[n > 0]).pvalue > 1e-3
+    assert (
+        stats.ks_2samp((a - 100 * n)[n > 0] / sd[n > 0], (b - 100 * n)[n > 0] / sd[n > 0]).pvalue
+        > 1e-3
+    )
 
 
 def test_large_inputs_use_whole_blocks(monkeypatch):
@@ -245,7 +252,9 @@ def test_gain_one_is_identity_and_pn_limit(method):
     # p → 0: the cascade tends to no multiplication (Poisson–normal), F² → 1.
     E = 30.0
     x = sample_cascade(np.random.default_rng(1).poisson(E, 200_000), 1.001, 536, 2, method=method)
-    assert x.var() / (1.001**2 * E) == pytest.approx(float(excess_noise_factor(1.001, 536)), abs=0.01)
+    assert x.var() / (1.001**2 * E) == pytest.approx(
+        float(excess_noise_factor(1.001, 536)), abs=0.01
+    )
     assert float(excess_noise_factor(1.001, 536)) == pytest.approx(1.0, abs=2e-3)
     assert sample_gamma(n, 1.0, 0).tolist() == n.astype(float).tolist()
 

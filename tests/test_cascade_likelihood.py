@@ -56,7 +56,7 @@ def compound_poisson_pmf(E, q, x_max):
     Y = q.size - 1
     for x in range(1, x_max + 1):
         m = min(x, Y)
-        P[x] = E / x * np.dot(yq[1:m + 1], P[x - 1::-1][:m])
+        P[x] = E / x * np.dot(yq[1 : m + 1], P[x - 1 :: -1][:m])
         if P[x] > 1e250:
             P[: x + 1] *= 1e-250
     return P / P.sum()
@@ -72,8 +72,9 @@ def integer_electron_logpmf(E, g, phi, S0, sigma, N):
     P = compound_poisson_pmf(E, q, x_max)
     k = np.arange(int(np.floor(S0 - 14 * sigma)), int(np.ceil(S0 + x_max / phi)) + 1)
     x = np.flatnonzero(P > 0)
-    f = np.array([np.sum(P[x] * np.exp(-0.5 * ((kk - S0 - x / phi) / sigma) ** 2))
-                  for kk in k]) / (sigma * np.sqrt(2 * np.pi))
+    f = np.array([np.sum(P[x] * np.exp(-0.5 * ((kk - S0 - x / phi) / sigma) ** 2)) for kk in k]) / (
+        sigma * np.sqrt(2 * np.pi)
+    )
     return k, np.log(f / f.sum())
 
 
@@ -131,8 +132,7 @@ def _compare_with_quadrature(mp, E, g, phi, sigma, N):
 
     from emccdcal.model import _engine
 
-    rows = noise.EMModel("cascade", N).register.rows(np.array([E]), np.array([g]),
-                                                     np.array([phi]))
+    rows = noise.EMModel("cascade", N).register.rows(np.array([E]), np.array([g]), np.array([phi]))
     one = lambda x: np.array([float(x)])  # noqa: E731
     # counts at about 1, 1e-6 and 1e-9 of the peak, above the mean
     mean = S0 + E * g / phi
@@ -173,17 +173,19 @@ def test_single_electron_pmf_agrees_with_emccd_detect():
 def test_register_transform_moments_and_derivatives():
     g, N = np.array([5.0, 300.0]), 536
     t = cascade.register_transform(np.zeros(2), g, N, order=2)
-    assert np.allclose(t["u"], g, rtol=1e-12)                         # mean output
+    assert np.allclose(t["u"], g, rtol=1e-12)  # mean output
     assert np.allclose(t["uu"] / g**2, cascade.excess_noise_factor(g, N), rtol=1e-12)
     u = np.array([[0.01j, 0.05 + 0.02j], [0.001j, 0.002 + 0.0005j]])
     d = cascade.register_transform(u, g, N, order=2, cic=True)
     h = 1e-6
     for prefix in ("", "cic_"):
         for var, shift in (("u", (h, 0.0)), ("g", (0.0, h))):
-            up = cascade.register_transform(u + shift[0], g * np.exp(shift[1]), N, order=1,
-                                            cic=True)
-            dn = cascade.register_transform(u - shift[0], g * np.exp(-shift[1]), N, order=1,
-                                            cic=True)
+            up = cascade.register_transform(
+                u + shift[0], g * np.exp(shift[1]), N, order=1, cic=True
+            )
+            dn = cascade.register_transform(
+                u - shift[0], g * np.exp(-shift[1]), N, order=1, cic=True
+            )
             fd = (up[prefix + "v"] - dn[prefix + "v"]) / (2 * h)
             assert np.allclose(fd, d[prefix + var], rtol=1e-6, atol=1e-9)
             for first in ("u", "g"):
@@ -202,9 +204,17 @@ def _rows(gain, spread, reach, rows=128, freqs=33, seed=0):
     return 1j * theta, g
 
 
-@pytest.mark.parametrize("gain, spread, reach, rows, tabulated", [
-    (1.05, 0.01, 0.5, 128, True), (5.0, 0.03, 0.5, 128, True), (300.0, 0.03, 0.6, 128, True),
-    (25.0, 0.0, 1.0, 128, True), (90.0, 0.3, 3.0, 512, True), (3000.0, 0.03, 20.0, 512, False)])
+@pytest.mark.parametrize(
+    "gain, spread, reach, rows, tabulated",
+    [
+        (1.05, 0.01, 0.5, 128, True),
+        (5.0, 0.03, 0.5, 128, True),
+        (300.0, 0.03, 0.6, 128, True),
+        (25.0, 0.0, 1.0, 128, True),
+        (90.0, 0.3, 3.0, 512, True),
+        (3000.0, 0.03, 20.0, 512, False),
+    ],
+)
 def test_tabulated_transform_is_the_recursion(gain, spread, reach, rows, tabulated):
     """A block's transform from its Chebyshev table equals the stage recursion to about
     the recursion's own round-off (N·ε of the largest value), every derivative and the
@@ -248,8 +258,12 @@ def test_tables_are_kept_within_a_scope_and_only_there(monkeypatch):
         cascade.register_transform(u[:100], g[:100] * 1.01, 536)
     assert len(builds) == 3
     np.testing.assert_allclose(inside["v"], first["v"], rtol=0, atol=1e-13)
-    np.testing.assert_allclose(again["g"], cascade._register_transform(
-        np, u[:100], g[:100] * 1.01, 536, 1, False, True)["g"], rtol=0, atol=1e-13)
+    np.testing.assert_allclose(
+        again["g"],
+        cascade._register_transform(np, u[:100], g[:100] * 1.01, 536, 1, False, True)["g"],
+        rtol=0,
+        atol=1e-13,
+    )
     small = cascade.register_transform(u[:2, :5], g[:2], 536)
     direct = cascade._register_transform(np, u[:2, :5], g[:2], 536, 1, False, True)
     assert all(np.array_equal(small[k], direct[k]) for k in direct)
@@ -261,13 +275,18 @@ def test_register_transform_runs_on_the_array_api_standard():
     namespace's arrays, the same numbers as NumPy's."""
     xs = pytest.importorskip("array_api_strict")
     u, g = _rows(300.0, 0.03, 0.6)
-    cases = [(u, g), (u[:2, :5], g[:2]), (np.full((3, 4), 1e-4), g[:3]),
-             (np.zeros(2), np.array([5.0, 300.0]))]  # a table, the recursion, a tilt, 1-D
+    cases = [
+        (u, g),
+        (u[:2, :5], g[:2]),
+        (np.full((3, 4), 1e-4), g[:3]),
+        (np.zeros(2), np.array([5.0, 300.0])),
+    ]  # a table, the recursion, a tilt, 1-D
     for uu, gg in cases:
         for order, cic, by_u in ((0, False, True), (1, False, False), (2, True, True)):
             want = cascade.register_transform(uu, gg, 536, order=order, cic=cic, by_u=by_u)
-            got = cascade.register_transform(xs.asarray(uu), xs.asarray(gg), 536,
-                                             order=order, cic=cic, by_u=by_u)
+            got = cascade.register_transform(
+                xs.asarray(uu), xs.asarray(gg), 536, order=order, cic=cic, by_u=by_u
+            )
             assert got.keys() == want.keys()
             for key, value in got.items():
                 assert isinstance(value, type(xs.asarray(0.0)))
@@ -277,8 +296,7 @@ def test_register_transform_runs_on_the_array_api_standard():
 @pytest.mark.slow
 def test_logpmf_grad_matches_finite_differences():
     counts = np.array([700, 1100, 1500])
-    base = dict(photoelectrons=370.0, em_gain=5.0, e_per_adu=3.859, offset=587.0,
-                read_noise=15.5)
+    base = dict(photoelectrons=370.0, em_gain=5.0, e_per_adu=3.859, offset=587.0, read_noise=15.5)
     model = dict(em_model=noise.EMModel("cascade", 536), register_cic=0.1)
     _, grad = noise.logpmf_grad(counts, **base, **model)
     for name in list(base) + ["register_cic"]:
@@ -300,8 +318,10 @@ def test_cascade_moments_and_the_gamma_limit_at_one():
     F2 = cascade.excess_noise_factor(5.0, 536)
     assert abs(var - (15.5**2 + 370.0 * 25.0 * F2 / 3.859**2)) < 1e-4
     # g = 1 is no multiplication under either model
-    assert np.allclose(noise.logpmf(counts[:50], 3.0, 1.0, 0.5, 300.0, 2.0, em_model="cascade"),
-                       noise.logpmf(counts[:50], 3.0, 1.0, 0.5, 300.0, 2.0, em_model="gamma"))
+    assert np.allclose(
+        noise.logpmf(counts[:50], 3.0, 1.0, 0.5, 300.0, 2.0, em_model="cascade"),
+        noise.logpmf(counts[:50], 3.0, 1.0, 0.5, 300.0, 2.0, em_model="gamma"),
+    )
 
 
 def test_em_model_arguments_are_checked():
@@ -322,13 +342,17 @@ def test_em_model_arguments_are_checked():
     assert choose() == (cascade, "default")
     assert choose(stages=604) == (noise.EMModel("cascade", 604), "given")
     assert choose(stages=604, manifest_model="gamma")[0] == noise.EMModel("cascade", 604)
-    assert choose("gamma", manifest_model="cascade", manifest_stages=604) == (noise.EMModel("gamma"), "")
+    assert choose("gamma", manifest_model="cascade", manifest_stages=604) == (
+        noise.EMModel("gamma"),
+        "",
+    )
     assert choose(manifest_model="gamma") == (noise.EMModel("gamma"), "")
     assert choose("cascade", manifest_stages=604) == (noise.EMModel("cascade", 604), "manifest")
     assert choose(manifest_stages=591, camera_model="iXon Ultra 888")[1] == "manifest"
     assert choose(camera_model="iXon Ultra 888") == (
         noise.EMModel("cascade", 604),
-        "camera model 'iXon Ultra 888': Andor iXon Ultra 888, a CCD201-20 sensor")
+        "camera model 'iXon Ultra 888': Andor iXon Ultra 888, a CCD201-20 sensor",
+    )
     assert choose(camera_model="ProEM+: 512B eXcelon") == (cascade, "default")
     assert choose(noise.EMModel("cascade", 604)) == (noise.EMModel("cascade", 604), "given")
     with pytest.raises(OptionError, match="disagrees"):
@@ -359,8 +383,7 @@ def _chi2_pvalue(counts, p_model, support):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("g, E, N, n_draws", [(4.78, 20.0, 536, 200_000),
-                                               (25.0, 5.0, 64, 400_000)])
+@pytest.mark.parametrize("g, E, N, n_draws", [(4.78, 20.0, 536, 200_000), (25.0, 5.0, 64, 400_000)])
 def test_stage_by_stage_register_fits_the_cascade_not_the_gamma(g, E, N, n_draws):
     # The gamma model's misfit shrinks with the gain and the stages: 2e5 draws reject it
     # at 5x on 536 stages; at 25x that takes 1.3e6 (its χ² noncentrality is 3e-4 per
@@ -385,9 +408,21 @@ def test_stage_by_stage_register_fits_the_cascade_not_the_gamma(g, E, N, n_draws
 def cascade_series(tmp_path_factory):
     base = tmp_path_factory.mktemp("cascade-gs")
     sim = simulate_gain_series(
-        base, setpoints=(1, 5, 25, 100, 300), em_gain=(1, 4.78, 22.95, 90.06, 261.6),
-        photoelectrons=370.0, seed=3, rows=8, cols=16, frames=2000, dark_frames=10,
-        e_per_adu=3.859, read_noise=15.5, offset=587.7, multiplication="cascade", stages=536)
+        base,
+        setpoints=(1, 5, 25, 100, 300),
+        em_gain=(1, 4.78, 22.95, 90.06, 261.6),
+        photoelectrons=370.0,
+        seed=3,
+        rows=8,
+        cols=16,
+        frames=2000,
+        dark_frames=10,
+        e_per_adu=3.859,
+        read_noise=15.5,
+        offset=587.7,
+        multiplication="cascade",
+        stages=536,
+    )
     return sim, truth_manifest(sim, 15.5)
 
 
@@ -410,9 +445,9 @@ def test_gs_with_the_cascade_recovers_the_gains_the_gamma_model_misses(cascade_s
     for a, g in enumerate(true_g[1:], start=1):
         est = exact.em_gain.values[a].ravel()
         sem = est.std(ddof=1) / np.sqrt(est.size)
-        assert abs(est.mean() - g) < 3 * sem                                 # unbiased
+        assert abs(est.mean() - g) < 3 * sem  # unbiased
         biased = gamma.em_gain.values[a].ravel()
-        assert biased.mean() < g - 3 * sem                                   # the gamma's bias
+        assert biased.mean() < g - 3 * sem  # the gamma's bias
     # the goodness of fit: the gamma model misfits 5x and says what to try
     assert any("5x" in w and "cascade" in w for w in gamma_warnings)
     assert not any("misfit" in w for w in exact_warnings)
@@ -450,13 +485,32 @@ def test_engine_gradient_and_observed_information_under_the_cascade():
     from emccdcal.fit import engine
     from emccdcal.simulate.camera import simulate_frames
 
-    frames = simulate_frames(370.0, 4.78, 3.859, 587.0, 15.5, frames=1500, rows=2, cols=3,
-                             seed=5, multiplication="cascade", stages=536)
+    frames = simulate_frames(
+        370.0,
+        4.78,
+        3.859,
+        587.0,
+        15.5,
+        frames=1500,
+        rows=2,
+        cols=3,
+        seed=5,
+        multiplication="cascade",
+        stages=536,
+    )
     h = stats.histograms(frames)
     P = h.n.size
-    acq = engine.AcquisitionBlock(h.values, h.counts, np.full(P, 587.0), np.full(P, 15.5),
-                                  False, h.mean, h.var, h.n,
-                                  em_model=noise.EMModel("cascade", 536))
+    acq = engine.AcquisitionBlock(
+        h.values,
+        h.counts,
+        np.full(P, 587.0),
+        np.full(P, 15.5),
+        False,
+        h.mean,
+        h.var,
+        h.n,
+        em_model=noise.EMModel("cascade", 536),
+    )
     coords = [np.full(P, np.log(372.0)), np.full(P, -np.log(3.85)), np.full(P, np.log(4.75))]
     ll, grad, obs, _, _ = engine._acquisition_terms(acq, coords, 2)
     step = 1e-5
@@ -469,8 +523,15 @@ def test_engine_gradient_and_observed_information_under_the_cascade():
         # the observed information is minus the derivative of the gradient
         assert np.allclose(-(lp[1] - lm[1]) / (2 * step), obs[:, :, i], rtol=1e-4, atol=1e-2)
     # and the log-likelihood is that of the public noise model
-    ref = [np.sum(h.counts[p] * noise.logpmf(h.values[p], 372.0, 4.75, 3.85, 587.0, 15.5,
-                                              em_model=noise.EMModel("cascade", 536))) for p in range(P)]
+    ref = [
+        np.sum(
+            h.counts[p]
+            * noise.logpmf(
+                h.values[p], 372.0, 4.75, 3.85, 587.0, 15.5, em_model=noise.EMModel("cascade", 536)
+            )
+        )
+        for p in range(P)
+    ]
     assert np.allclose(ll, ref, rtol=1e-10)
 
 
@@ -482,8 +543,9 @@ def test_mv_gain_with_the_exact_excess_noise_factor():
     F2 = np.where(g == 1, 1.0, cascade.excess_noise_factor(g, N))
     mean = (s0 + g * E / phi)[:, None]
     var = (sigma**2 + F2 * E * (g / phi) ** 2)[:, None]
-    exact = fit_mv_gain(mean, var, s0, sigma, 5000, phi, [1, 5, 25, 300],
-                        em_model=noise.EMModel("cascade", N))
+    exact = fit_mv_gain(
+        mean, var, s0, sigma, 5000, phi, [1, 5, 25, 300], em_model=noise.EMModel("cascade", N)
+    )
     gamma = fit_mv_gain(mean, var, s0, sigma, 5000, phi, [1, 5, 25, 300])
     np.testing.assert_allclose(exact.em_gain[:, 0], g, rtol=1e-10)
     np.testing.assert_allclose(exact.photoelectrons[:, 0], E, rtol=1e-10)
@@ -500,8 +562,20 @@ def test_command_line_takes_the_model(cascade_series, tmp_path):
     out = tmp_path / "out"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        code = main(["calibrate", str(manifest), "--em-model", "cascade", "--stages", "604",
-                     "--no-checks", "-q", "-o", str(out)])
+        code = main(
+            [
+                "calibrate",
+                str(manifest),
+                "--em-model",
+                "cascade",
+                "--stages",
+                "604",
+                "--no-checks",
+                "-q",
+                "-o",
+                str(out),
+            ]
+        )
     assert code == 0
     summary = json.loads((out / "summary.json").read_text())
     assert (summary["em_model"], summary["register_stages"]) == ("cascade", 604)

@@ -38,8 +38,12 @@ def test_sensitivity_is_the_derivative_of_the_refit(series):
 
     m = quiet(read_manifest, gs.manifest)
     hists = [stats.histograms(np.asarray(a.frames()), adc_max=m.adc_max) for a in m.acquisitions]
-    models = [AcquisitionModel(a.em_gain_setpoint, a.offset.ravel(), a.read_noise.ravel(),
-                               EMModel("gamma")) for a in m.acquisitions]
+    models = [
+        AcquisitionModel(
+            a.em_gain_setpoint, a.offset.ravel(), a.read_noise.ravel(), EMModel("gamma")
+        )
+        for a in m.acquisitions
+    ]
 
     def fit(phi):
         lik = SeriesLikelihood("gs", models, hists, e_per_adu=phi)
@@ -67,8 +71,11 @@ def test_chained_result_gives_phi_and_its_error_to_the_gains(series):
     np.testing.assert_allclose(chained.em_gain, fixed.em_gain, rtol=1e-12)
     np.testing.assert_allclose(chained.photoelectrons, fixed.photoelectrons, rtol=1e-12)
     rel_phi = (adu.e_per_adu_se / adu.e_per_adu).values
-    E, se_E, se_E0 = (chained.photoelectrons.values, chained.photoelectrons_se.values,
-                      fixed.photoelectrons_se.values)
+    E, se_E, se_E0 = (
+        chained.photoelectrons.values,
+        chained.photoelectrons_se.values,
+        fixed.photoelectrons_se.values,
+    )
     # E moves with φ one for one: its variance gains (E · SE(φ)/φ)², to a few per cent
     np.testing.assert_allclose(se_E**2 - se_E0**2, (E * rel_phi) ** 2, rtol=0.1)
     assert np.all(chained.em_gain_se >= fixed.em_gain_se - 1e-12)
@@ -80,8 +87,9 @@ def test_chained_result_gives_phi_and_its_error_to_the_gains(series):
 
 def test_manifest_names_a_result_and_the_cli_takes_one(series, tmp_path, capsys):
     d, _, gs = series
-    text = gs.manifest.read_text().replace("e_per_adu = 3.859",
-                                           f'e_per_adu = "{d / "out-adu" / "calibration.nc"}"')
+    text = gs.manifest.read_text().replace(
+        "e_per_adu = 3.859", f'e_per_adu = "{d / "out-adu" / "calibration.nc"}"'
+    )
     manifest = gs.manifest.with_name("chained.toml")
     manifest.write_text(text)
     ds = quiet(calibrate, manifest, "gs")
@@ -91,8 +99,22 @@ def test_manifest_names_a_result_and_the_cli_takes_one(series, tmp_path, capsys)
     np.testing.assert_allclose(ds.e_per_adu_se, load_result(d / "out-adu").e_per_adu_se)
     for name in ("em_gain_se", "photoelectrons_se", "e_per_adu"):
         np.testing.assert_allclose(ds[name], direct[name], rtol=1e-12)
-    assert cli.main(["calibrate", str(gs.manifest), "-m", "gs", "-o", str(tmp_path / "o"),
-                     "--e-per-adu", str(d / "out-adu"), "-q"]) == 0
+    assert (
+        cli.main(
+            [
+                "calibrate",
+                str(gs.manifest),
+                "-m",
+                "gs",
+                "-o",
+                str(tmp_path / "o"),
+                "--e-per-adu",
+                str(d / "out-adu"),
+                "-q",
+            ]
+        )
+        == 0
+    )
 
 
 def test_what_cannot_be_chained_is_refused(series, tmp_path):
@@ -114,8 +136,11 @@ def test_a_quoted_number_in_the_manifest_is_not_a_path(series):
     _, _, gs = series
     bad = gs.manifest.with_name("quoted.toml")
     bad.write_text(gs.manifest.read_text().replace("e_per_adu = 3.859", 'e_per_adu = "3.859"'))
-    with pytest.raises(ManifestError, match=r'e_per_adu = "3.859" is a string, which names a '
-                                            r"map file; write the number without quotes"):
+    with pytest.raises(
+        ManifestError,
+        match=r'e_per_adu = "3.859" is a string, which names a '
+        r"map file; write the number without quotes",
+    ):
         quiet(calibrate, bad, "gs")
 
 
@@ -138,8 +163,9 @@ def test_a_larger_region_chains_into_a_crop_of_it(tmp_path):
     adu.manifest.write_text("origin = [0, 0]\n" + manifest)
     big = quiet(calibrate, adu.manifest, "is-adu", out=tmp_path / "big")
     assert list(big.attrs["sensor_origin"]) == [0, 0]
-    gs = simulate_gain_series(tmp_path / "gs", rows=4, cols=4, frames=400, seed=6,
-                              setpoints=(1, 25))
+    gs = simulate_gain_series(
+        tmp_path / "gs", rows=4, cols=4, frames=400, seed=6, setpoints=(1, 25)
+    )
     text = gs.manifest.read_text()
     inside = gs.manifest.with_name("inside.toml")
     inside.write_text("origin = [1, 2]\n" + text)
@@ -149,9 +175,12 @@ def test_a_larger_region_chains_into_a_crop_of_it(tmp_path):
     assert list(ds.attrs["sensor_origin"]) == [1, 2]
     outside = gs.manifest.with_name("outside.toml")
     outside.write_text("origin = [4, 6]\n" + text)
-    with pytest.raises(OptionError, match=r"covers sensor rows 0–5, cols 0–7; the manifest "
-                                          r"needs sensor rows 4–7, cols 6–9: rows 6–7; cols "
-                                          r"8–9 missing"):
+    with pytest.raises(
+        OptionError,
+        match=r"covers sensor rows 0–5, cols 0–7; the manifest "
+        r"needs sensor rows 4–7, cols 6–9: rows 6–7; cols "
+        r"8–9 missing",
+    ):
         quiet(calibrate, outside, "gs", e_per_adu=tmp_path / "big")
     with pytest.raises(OptionError, match=r"where they lie on the sensor is not known"):
         quiet(calibrate, gs.manifest, "gs", e_per_adu=tmp_path / "big")

@@ -16,10 +16,11 @@ HEAVY = ("numpy", "scipy", "xarray", "matplotlib", "tifffile", "pandas")
 
 
 def _imported_after(argv):
-    code = (f"import sys; from emccdcal.cli import main; main({argv!r}); "
-            f"print(sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY!r})))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True)
+    code = (
+        f"import sys; from emccdcal.cli import main; main({argv!r}); "
+        f"print(sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY!r})))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return out.stdout.strip().splitlines()[-1]
 
 
@@ -31,12 +32,13 @@ def test_help_and_version_import_no_numerics(argv):
 def test_every_verbs_help_imports_no_numerics():
     """Choices and defaults come from emccdcal.defaults: `VERB --help` answers at once
     (calibrate --help took 3 s when it imported the engine and xarray)."""
-    code = ("import sys; from emccdcal.cli import main, VERBS\n"
-            "for verb in VERBS:\n"
-            "    try:\n        main([verb, '--help'])\n    except SystemExit:\n        pass\n"
-            f"print(sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY!r})))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True)
+    code = (
+        "import sys; from emccdcal.cli import main, VERBS\n"
+        "for verb in VERBS:\n"
+        "    try:\n        main([verb, '--help'])\n    except SystemExit:\n        pass\n"
+        f"print(sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY!r})))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip().splitlines()[-1] == "[]"
 
 
@@ -50,8 +52,9 @@ def test_help_lists_every_verb(capsys):
 @pytest.mark.parametrize("verb", list(cli.VERBS))
 def test_every_verb_help_prints_under_a_cp1252_console(verb):
     env = dict(os.environ, PYTHONIOENCODING="cp1252")
-    out = subprocess.run([sys.executable, "-m", "emccdcal", verb, "--help"], env=env,
-                         capture_output=True)
+    out = subprocess.run(
+        [sys.executable, "-m", "emccdcal", verb, "--help"], env=env, capture_output=True
+    )
     assert out.returncode == 0, out.stderr.decode("cp1252", "replace")
     assert b"usage: emccdcal " + verb.encode() in out.stdout
 
@@ -104,8 +107,19 @@ def test_options_are_spelled_alike_across_verbs():
     for verb in cli.VERBS:
         sub = cli.build_parser(verb)._subparsers._group_actions[0].choices[verb]
         parser_of[verb] = {s for a in sub._actions for s in a.option_strings}
-    writes = {"demo", "simulate", "calibrate", "posterior", "report", "validate", "cots",
-              "export", "apply", "gain-curve", "gain-check"}
+    writes = {
+        "demo",
+        "simulate",
+        "calibrate",
+        "posterior",
+        "report",
+        "validate",
+        "cots",
+        "export",
+        "apply",
+        "gain-curve",
+        "gain-check",
+    }
     for verb in writes - {"simulate"}:
         assert {"-o", "--out"} <= parser_of[verb], verb
     for verb in cli.VERBS:
@@ -126,8 +140,19 @@ def test_simulate_kinds_take_out_and_quiet():
 
 @pytest.mark.slow
 def test_simulate_takes_its_output_as_a_word_or_with_o(tmp_path, capsys):
-    opts = ["--rows", "2", "--cols", "2", "--frames", "10", "--setpoints", "1,5", "--seed",
-            "1", "-q"]
+    opts = [
+        "--rows",
+        "2",
+        "--cols",
+        "2",
+        "--frames",
+        "10",
+        "--setpoints",
+        "1,5",
+        "--seed",
+        "1",
+        "-q",
+    ]
     assert cli.main(["simulate", "gain-series", str(tmp_path / "a"), *opts]) == 0
     assert cli.main(["simulate", "gain-series", "-o", str(tmp_path / "b"), *opts]) == 0
     for name in ("gain-GS/5x-gain.tif", "truth.json"):
@@ -137,8 +162,10 @@ def test_simulate_takes_its_output_as_a_word_or_with_o(tmp_path, capsys):
     capsys.readouterr()
     assert cli.main(["simulate", "gain-series", *opts]) == 2
     assert "OUT or -o OUT" in capsys.readouterr().err
-    assert cli.main(["simulate", "gain-series", str(tmp_path / "c"), "-o",
-                     str(tmp_path / "d"), *opts]) == 2
+    assert (
+        cli.main(["simulate", "gain-series", str(tmp_path / "c"), "-o", str(tmp_path / "d"), *opts])
+        == 2
+    )
 
 
 def _all_parsers(parser):
@@ -164,8 +191,7 @@ def test_help_texts_read_as_written(verb):
         assert "%%" not in text, parser.prog
         assert "(default [" not in text, parser.prog
         for action in parser._actions:
-            if not action.option_strings and action.dest not in ("help",) and \
-                    not action.choices:
+            if not action.option_strings and action.dest not in ("help",) and not action.choices:
                 assert action.help, f"{parser.prog}: {action.dest} has no help"
 
 
@@ -173,8 +199,10 @@ def test_validate_and_cots_expect_the_same_spot_width():
     """One default for the PSF's expected width (px), whichever verb fits the beads."""
     from emccdcal.model.psf import DEFAULT_WIDTH
 
-    argv = {"validate": ["validate", "m.toml", "--calibration", "c.nc", "-o", "o"],
-            "cots": ["cots", "m.toml", "-o", "o"]}
+    argv = {
+        "validate": ["validate", "m.toml", "--calibration", "c.nc", "-o", "o"],
+        "cots": ["cots", "m.toml", "-o", "o"],
+    }
     widths = {verb: cli.build_parser(verb).parse_args(args).width for verb, args in argv.items()}
     assert widths == {"validate": DEFAULT_WIDTH, "cots": DEFAULT_WIDTH}
 
@@ -184,9 +212,20 @@ def test_a_closed_pipe_ends_quietly(tmp_path):
     from emccdcal.export import database
 
     database._connect(tmp_path / "cal.sqlite", write=True).close()  # an empty database
-    proc = subprocess.Popen([sys.executable, "-m", "emccdcal", "db", "list", "--json",
-                             "--db", str(tmp_path / "cal.sqlite")],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "emccdcal",
+            "db",
+            "list",
+            "--json",
+            "--db",
+            str(tmp_path / "cal.sqlite"),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
     proc.stdout.close()  # the reader goes away before the first line
     err = proc.stderr.read().decode()
     assert proc.wait(60) == 0 and "Traceback" not in err and "BrokenPipe" not in err, err

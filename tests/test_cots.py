@@ -33,9 +33,16 @@ def _spot_stack(seed, frames=200, gain=G_TRUE, size=10, spot=SPOT):
     low: docs/cots.md)."""
     c = np.arange(size) - (size - 1) / 2
     photo = psf.spot_image(list(spot), c, c)
-    return simulate_frames(photo, em_gain=gain, e_per_adu=1.0, offset=S0_TRUE,
-                                    read_noise=0.01, frames=frames, seed=seed,
-                           multiplication="gamma")
+    return simulate_frames(
+        photo,
+        em_gain=gain,
+        e_per_adu=1.0,
+        offset=S0_TRUE,
+        read_noise=0.01,
+        frames=frames,
+        seed=seed,
+        multiplication="gamma",
+    )
 
 
 @pytest.fixture(scope="module")
@@ -95,12 +102,19 @@ def test_a_read_noise_dominated_spot_is_unbiased():
     photo = psf.spot_image([0.2, -0.1, 1.3, 5000.0, 10.0], c, c)
     gains, ses = [], []
     for seed in range(4):  # the mean's SE ~0.6 %: dropping G <= 0 frames would be 8 SE
-        stack = simulate_frames(photo, em_gain=1.3, e_per_adu=1.0, offset=580.0,
-                                read_noise=15.5, frames=800, seed=200 + seed,
-                                multiplication="gamma")
+        stack = simulate_frames(
+            photo,
+            em_gain=1.3,
+            e_per_adu=1.0,
+            offset=580.0,
+            read_noise=15.5,
+            frames=800,
+            seed=200 + seed,
+            multiplication="gamma",
+        )
         r = cots.cots_spot(stack, read_noise=15.5)
         raw = r.frame_gain + r.frame_bias[:, 0]
-        assert np.any(r.usable & (raw <= 0))   # frames at or below zero are kept
+        assert np.any(r.usable & (raw <= 0))  # frames at or below zero are kept
         assert r.n_used >= 0.99 * r.n_frames
         gains.append(r.gain)
         ses.append(r.gain_se)
@@ -145,8 +159,12 @@ def test_variance_fit_finds_the_nelder_mead_minimum():
             v = 2 * (a[0] * expected[f] - a[1])
             return np.inf if np.any(v <= 0) else np.sum(np.log(v) + r2 / v)
 
-        nm = optimize.minimize(objective, alpha[f] * [1.1, 0.9], method="Nelder-Mead",
-                               options={"xatol": 1e-8, "fatol": 1e-10, "maxiter": 20000})
+        nm = optimize.minimize(
+            objective,
+            alpha[f] * [1.1, 0.9],
+            method="Nelder-Mead",
+            options={"xatol": 1e-8, "fatol": 1e-10, "maxiter": 20000},
+        )
         assert objective(alpha[f]) <= nm.fun + 1e-7
         np.testing.assert_allclose(nm.x, alpha[f], rtol=1e-3, atol=1e-3 * abs(alpha[f, 1]))
 
@@ -169,9 +187,16 @@ def test_roi_follows_a_moving_spot():
     """A spot 2.4 px off the ROI centre: the ROI is moved and the gain still recovered."""
     c = np.arange(16) - 7.5
     photo = psf.spot_image([2.4, -1.6, 1.3, 5000.0, 20.0], c, c)
-    stack = simulate_frames(photo, em_gain=G_TRUE, e_per_adu=1.0, offset=S0_TRUE,
-                                     read_noise=0.01, frames=60, seed=5,
-                           multiplication="gamma")
+    stack = simulate_frames(
+        photo,
+        em_gain=G_TRUE,
+        e_per_adu=1.0,
+        offset=S0_TRUE,
+        read_noise=0.01,
+        frames=60,
+        seed=5,
+        multiplication="gamma",
+    )
     r = cots.cots_spot(stack, roi=(3, 3, 10, 10))
     assert np.all(r.frame_shift[r.usable] == [-2, 2])
     assert np.all(np.abs(r.frame_params[r.usable, :2]) <= 1.0)
@@ -203,8 +228,17 @@ BEADS = ((12, 12), (12, 31), (31, 21))
 PHI = 3.859
 
 
-def _write_beads(d, *, setpoints=(1, 100, 300), frames=60, e_per_adu=True, beads=BEADS,
-                 seed=0, shape=(44, 44), multiplication="gamma"):
+def _write_beads(
+    d,
+    *,
+    setpoints=(1, 100, 300),
+    frames=60,
+    e_per_adu=True,
+    beads=BEADS,
+    seed=0,
+    shape=(44, 44),
+    multiplication="gamma",
+):
     """Bead stacks (gamma EM unless said, negligible read noise) and their manifest, which
     names the register simulated; returns its path."""
     d.mkdir(parents=True, exist_ok=True)
@@ -213,16 +247,29 @@ def _write_beads(d, *, setpoints=(1, 100, 300), frames=60, e_per_adu=True, beads
     photo = np.full(shape, 20.0)
     for y, x in beads:
         photo = photo + psf.spot_image(
-            [x + rng.uniform(-0.3, 0.3), y + rng.uniform(-0.3, 0.3), 1.3, 3000.0, 0.0], r, c)
+            [x + rng.uniform(-0.3, 0.3), y + rng.uniform(-0.3, 0.3), 1.3, 3000.0, 0.0], r, c
+        )
     lines = [f'em_model = "{multiplication}"']  # the register these frames were simulated with
     lines += [f"e_per_adu = {PHI}"] if e_per_adu else []
     for i, sp in enumerate(setpoints):
-        stack = simulate_frames(photo, em_gain=sp, e_per_adu=PHI, offset=S0_TRUE,
-                                         read_noise=0.01, frames=frames, seed=seed * 10 + i,
-                                multiplication=multiplication)
+        stack = simulate_frames(
+            photo,
+            em_gain=sp,
+            e_per_adu=PHI,
+            offset=S0_TRUE,
+            read_noise=0.01,
+            frames=frames,
+            seed=seed * 10 + i,
+            multiplication=multiplication,
+        )
         tifffile.imwrite(d / f"beads_{sp}x.tif", stack)
-        lines += ["[[acquisition]]", f'frames = "beads_{sp}x.tif"', f"em_gain_setpoint = {sp}",
-                  f"offset = {S0_TRUE}", "read_noise = 0.01"]
+        lines += [
+            "[[acquisition]]",
+            f'frames = "beads_{sp}x.tif"',
+            f"em_gain_setpoint = {sp}",
+            f"offset = {S0_TRUE}",
+            "read_noise = 0.01",
+        ]
     path = d / "manifest.toml"
     path.write_text("\n".join(lines) + "\n")
     return path
@@ -246,9 +293,14 @@ def test_manifest_result_contract(bead_run):
     assert ds.setpoint.values.tolist() == [1.0, 100.0, 300.0]
     assert ds.sizes["bead"] == 3
     assert sorted(zip(ds.bead_row.values.tolist(), ds.bead_col.values.tolist())) == sorted(BEADS)
-    for name, units in (("cots_gain_adu_per_e", "ADU/e-"), ("cots_offset_se", "ADU"),
-                        ("cots_em_gain", "1"), ("bead_row", "pixel"), ("em_gain", "1"),
-                        ("photoelectrons", "e-")):
+    for name, units in (
+        ("cots_gain_adu_per_e", "ADU/e-"),
+        ("cots_offset_se", "ADU"),
+        ("cots_em_gain", "1"),
+        ("bead_row", "pixel"),
+        ("em_gain", "1"),
+        ("photoelectrons", "e-"),
+    ):
         assert ds[name].attrs["units"] == units
     # 1x: no multiplication, everywhere; COTS values only in the beads' 9x9 ROIs
     assert np.all(ds.em_gain.sel(setpoint=1).values == 1)
@@ -296,8 +348,9 @@ def test_an_exact_register_is_read_through_its_own_excess_noise(tmp_path):
     correction). The result records its register."""
     from emccdcal.model.cascade import excess_noise_factor
 
-    manifest = _write_beads(tmp_path / "beads", setpoints=(5, 25), frames=120,
-                            multiplication="cascade", seed=3)
+    manifest = _write_beads(
+        tmp_path / "beads", setpoints=(5, 25), frames=120, multiplication="cascade", seed=3
+    )
     exact = cots_calibrate(manifest)  # the manifest's register: the cascade
     paper = cots_calibrate(manifest, em_model="gamma")
     assert exact.attrs["em_model"] == "cascade" and exact.attrs["register_stages"] == 536
@@ -309,8 +362,9 @@ def test_an_exact_register_is_read_through_its_own_excess_noise(tmp_path):
         g_gamma = paper.cots_em_gain.sel(setpoint=sp).values
         # the same slope, but for the bias correction's cumulants (c3 2.98 against 3)
         np.testing.assert_allclose(2 * g_gamma, g * excess_noise_factor(g, 536), rtol=1e-3)
-        np.testing.assert_allclose(exact.cots_offset.sel(setpoint=sp),
-                                   paper.cots_offset.sel(setpoint=sp), rtol=1e-3)
+        np.testing.assert_allclose(
+            exact.cots_offset.sel(setpoint=sp), paper.cots_offset.sel(setpoint=sp), rtol=1e-3
+        )
     low = paper.cots_em_gain.sel(setpoint=5.0).values.mean() / 5.0 - 1
     assert -0.14 < low < -0.06
 
@@ -319,8 +373,13 @@ def test_an_exact_register_is_read_through_its_own_excess_noise(tmp_path):
 def test_on_simulated_beads(tmp_path):
     """End to end on the project's own bead simulator (gamma EM), at the highest gains."""
     fn = simulate_beads
-    wanted = {"frames": 100, "seed": 11, "multiplication": "gamma", "beads": 4,
-              "setpoints": (1, 100, 300)}
+    wanted = {
+        "frames": 100,
+        "seed": 11,
+        "multiplication": "gamma",
+        "beads": 4,
+        "setpoints": (1, 100, 300),
+    }
     kwargs = {k: v for k, v in wanted.items() if k in inspect.signature(fn).parameters}
     fn(tmp_path / "beads", **kwargs)
     ds = cots_calibrate(tmp_path / "beads" / "manifest.toml", em_model="gamma")

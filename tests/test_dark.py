@@ -166,17 +166,29 @@ def test_fit_dark_removes_the_multiplied_events_from_the_read_noise():
     from emccdcal.data.dark import fit_dark
     from emccdcal.simulate.camera import simulate_frames
 
-    dark = simulate_frames(0.0, 400.0, 5.2, 500.0, 15.4, frames=2000, rows=8, cols=8,
-                           cic=0.02, multiplication="cascade", stages=604, seed=11)
+    dark = simulate_frames(
+        0.0,
+        400.0,
+        5.2,
+        500.0,
+        15.4,
+        frames=2000,
+        rows=8,
+        cols=8,
+        cic=0.02,
+        multiplication="cascade",
+        stages=604,
+        seed=11,
+    )
     truth = np.sqrt(15.4**2 + 1 / 12)
     fit = fit_dark(dark)
     plain_offset, plain_sd = maps_from_dark(dark)
     assert fit.converged.all()
     assert abs(fit.read_noise.mean() / truth - 1) < 0.01
-    assert plain_sd.mean() / truth - 1 > 0.2                    # what the events do to it
+    assert plain_sd.mean() / truth - 1 > 0.2  # what the events do to it
     assert abs(fit.offset.mean() - 500.0) < 0.1 < plain_offset.mean() - 500.0
     assert abs(np.mean(fit.event_rate) / 0.02 - 1) < 0.15
-    assert abs(fit.event_scale / (400.0 / 5.2) - 1) < 0.1      # g/φ, ADU per electron
+    assert abs(fit.event_scale / (400.0 / 5.2) - 1) < 0.1  # g/φ, ADU per electron
 
 
 def test_fit_dark_without_events_is_the_plain_mean_and_sd():
@@ -201,12 +213,25 @@ def test_a_calibration_with_dark_stacks_at_gain_uses_the_fitted_maps(tmp_path):
     from emccdcal import calibrate
     from emccdcal.simulate.series import simulate_gain_series
 
-    sim = simulate_gain_series(tmp_path, setpoints=(1, 400), em_gain=(1, 380.0), rows=6,
-                               cols=6, frames=300, dark_frames=2000, seed=4, cic=0.02,
-                               e_per_adu=5.2, read_noise=15.4)
+    sim = simulate_gain_series(
+        tmp_path,
+        setpoints=(1, 400),
+        em_gain=(1, 380.0),
+        rows=6,
+        cols=6,
+        frames=300,
+        dark_frames=2000,
+        seed=4,
+        cic=0.02,
+        e_per_adu=5.2,
+        read_noise=15.4,
+    )
     text = sim.manifest.read_text()
-    text = re.sub(r'offset = ".*"\nread_noise = ".*"\ndark_frames = .*\n# dark = (".*")  .*',
-                  r"dark = \1", text)
+    text = re.sub(
+        r'offset = ".*"\nread_noise = ".*"\ndark_frames = .*\n# dark = (".*")  .*',
+        r"dark = \1",
+        text,
+    )
     manifest = sim.manifest.with_name("darks.toml")
     manifest.write_text(text)
     with warnings.catch_warnings():

@@ -42,40 +42,37 @@ pytestmark = pytest.mark.skipif(not (ROOT / "docs").is_dir(), reason="not a sour
 # Commands that cannot run in a test, each with the reason; a key is the start of the
 # command as the page writes it (after any "$ ").
 NOT_RUN = {
-    "make ": "the Makefile's own targets: CI runs `make test` and `make docs`, "
-             "test_cli the demo",
+    "make ": "the Makefile's own targets: CI runs `make test` and `make docs`, test_cli the demo",
     "pip install": "an install from the package index",
     "emccdcal calibrate gs/manifest.toml -m gs -o out --scheduler tcp://": "a Dask "
-        "cluster at a named host (tests/test_streaming.py starts a local one)",
+    "cluster at a named host (tests/test_streaming.py starts a local one)",
     "emccdcal calibrate gs/manifest.toml -m gs -o out --device cuda": "an NVIDIA GPU",
     "emccdcal validate BEAD_MANIFEST": "the command's synopsis, with placeholders",
     "emccdcal calibrate session/manifest.toml --method gs --e-per-adu RESULT": "a "
-        "placeholder (RESULT) for the user's own φ",
+    "placeholder (RESULT) for the user's own φ",
     "emccdcal db list [--camera": "the command's synopsis ([optional] options)",
     "emccdcal db relocate 7 /new/place/out-gs": "a path that stands for the user's",
     "emccdcal posterior: refused": "a message the command prints, not a command",
     "emccdcal export out-em17 out-em10 out-conv3": "three read-out modes' calibrations "
-        "(tests/test_export.py merges them)",
+    "(tests/test_export.py merges them)",
     "emccdcal report out-*/ --validation beads-out/": "a shell glob over the user's results",
     "echo $?": "the shell's, after the command above it",
     "emccdcal validate beads/manifest.toml": "calibrations of the beads' 64 × 64 sensor, "
-        "minutes here; the gallery's bead example and tests/test_validation.py run it",
-    "emccdcal db add out-gs                          # serial and read-out from the stacks'":
-        "stacks that record a camera serial (tests/test_export.py reads them from camera "
-        "files); the world's simulated stacks record none",
+    "minutes here; the gallery's bead example and tests/test_validation.py run it",
+    "emccdcal db add out-gs                          # serial and read-out from the stacks'": "stacks that record a camera serial (tests/test_export.py reads them from camera "
+    "files); the world's simulated stacks record none",
 }
 
 # Python blocks that cannot run, by their first line, each with the reason.
 NOT_RUN_PYTHON = {
     "from dask_jobqueue import SLURMCluster": "a SLURM cluster's batch system",
     "from emccdcal.data import stats": "a call's signature, each argument explained in "
-        "its comment (tests/test_gof.py calls it)",
+    "its comment (tests/test_gof.py calls it)",
 }
 
 # Commands run in another form here: a real camera's recording by the simulated camera.
 STAND_IN = {
-    "emccdcal acquire plan/plan.toml -o session/ --mm-config MMConfig.cfg --camera Andor":
-        "emccdcal acquire plan/plan.toml -o session/ --simulated --seed 1 --roi 0,0,16,16",
+    "emccdcal acquire plan/plan.toml -o session/ --mm-config MMConfig.cfg --camera Andor": "emccdcal acquire plan/plan.toml -o session/ --simulated --seed 1 --roi 0,0,16,16",
 }
 
 
@@ -111,8 +108,7 @@ def examples(page: Path) -> list[tuple[int, str, str]]:
 def _stand_in(command: str) -> str:
     """The command as it runs here: itself, or its stand-in (a simulated camera for a
     real one)."""
-    return next((other for key, other in STAND_IN.items() if command.startswith(key)),
-                command)
+    return next((other for key, other in STAND_IN.items() if command.startswith(key)), command)
 
 
 def _not_run(command: str) -> str | None:
@@ -146,8 +142,12 @@ def _run(*argv) -> None:
 def _manifest_at(src: Path, dst: Path) -> None:
     """A copy of the manifest ``src`` written at ``dst``, its paths made relative to it."""
     rel = os.path.relpath(src.parent, dst.parent)
-    text = re.sub(r'^(\s*(?:frames|offset|read_noise|dark) = ")', rf'\g<1>{rel}/',
-                  src.read_text(encoding="utf-8"), flags=re.M)
+    text = re.sub(
+        r'^(\s*(?:frames|offset|read_noise|dark) = ")',
+        rf"\g<1>{rel}/",
+        src.read_text(encoding="utf-8"),
+        flags=re.M,
+    )
     dst.write_text(text, encoding="utf-8")
 
 
@@ -156,20 +156,70 @@ def world(tmp_path_factory):
     """The files and results the docs' examples name, on a small simulated camera."""
     w = tmp_path_factory.mktemp("docs-world")
     small = ["--rows", ROWS, "--cols", COLS, "--frames", FRAMES]
-    _run("simulate", "intensity-series", "-o", w / "adu", "--seed", 1, *small,
-         "--levels", "2000,8000,32000")
-    _run("simulate", "gain-series", "-o", w / "gs", "--seed", 2, *small,
-         "--setpoints", "1,5,25,50,100,300", "--cic", "0.05")  # events in the darks
+    _run(
+        "simulate",
+        "intensity-series",
+        "-o",
+        w / "adu",
+        "--seed",
+        1,
+        *small,
+        "--levels",
+        "2000,8000,32000",
+    )
+    _run(
+        "simulate",
+        "gain-series",
+        "-o",
+        w / "gs",
+        "--seed",
+        2,
+        *small,
+        "--setpoints",
+        "1,5,25,50,100,300",
+        "--cic",
+        "0.05",
+    )  # events in the darks
     _run("calibrate", w / "adu/manifest.toml", "--method", "is-adu", "-o", w / "out-adu", "-q")
-    _run("calibrate", w / "gs/manifest.toml", "--method", "gs", "--e-per-adu", w / "out-adu",
-         "-o", w / "out-gs", "-q")
+    _run(
+        "calibrate",
+        w / "gs/manifest.toml",
+        "--method",
+        "gs",
+        "--e-per-adu",
+        w / "out-adu",
+        "-o",
+        w / "out-gs",
+        "-q",
+    )
     for s in (5, 25, 100, 300):  # is-gain results, one set-point each
-        _run("simulate", "intensity-series", "-o", w / f"is-{s}", "--seed", 10 + s,
-             "--setpoint", s, "--levels", "20,40,80", *small)
-        _run("calibrate", w / f"is-{s}/manifest.toml", "--method", "is-gain", "--e-per-adu",
-             w / "out-adu", "-o", w / f"out-g{s}", "-q")
-    _run("simulate", "gain-series", "-o", w / "gs3", "--seed", 3, *small,
-         "--setpoints", "1,25,300")  # three set-points: the posterior's example, quicker
+        _run(
+            "simulate",
+            "intensity-series",
+            "-o",
+            w / f"is-{s}",
+            "--seed",
+            10 + s,
+            "--setpoint",
+            s,
+            "--levels",
+            "20,40,80",
+            *small,
+        )
+        _run(
+            "calibrate",
+            w / f"is-{s}/manifest.toml",
+            "--method",
+            "is-gain",
+            "--e-per-adu",
+            w / "out-adu",
+            "-o",
+            w / f"out-g{s}",
+            "-q",
+        )
+    _run(
+        "simulate", "gain-series", "-o", w / "gs3", "--seed", 3, *small, "--setpoints", "1,25,300"
+    )  # three set-points: the posterior's example, quicker
     for name, src in (("manifest.toml", "gs"), ("gain.toml", "gs3"), ("adu.toml", "adu")):
         _manifest_at(w / src / "manifest.toml", w / name)
     shutil.copytree(w / "out-gs", w / "OUT")
@@ -186,15 +236,42 @@ def world(tmp_path_factory):
     (w / "session").mkdir()  # a folder of camera files for scan
     for f in (w / "gs/gain-GS").glob("*.tif"):
         shutil.copy(f, w / "session" / f.name)
-    _run("simulate", "beads", "-o", w / "beads", "--seed", 5, "--beads", 4, "--rows", 48,
-         "--cols", 48, "--frames", 30, "--dark-frames", 100)
+    _run(
+        "simulate",
+        "beads",
+        "-o",
+        w / "beads",
+        "--seed",
+        5,
+        "--beads",
+        4,
+        "--rows",
+        48,
+        "--cols",
+        48,
+        "--frames",
+        30,
+        "--dark-frames",
+        100,
+    )
     home = w / "home"
     (home / ".picasso").mkdir(parents=True)
     _run("export", w / "out-gs", "--to", "picasso", "--setpoint", 300, "-o", w / "picasso")
     shutil.copy(w / "picasso/picasso-config.yaml", home / ".picasso/config.yaml")
     db = ["--db", home / "calibrations.sqlite"]  # the camera's calibrations, 12345
-    _run("calibrate", w / "gs/manifest.toml", "--method", "gs", "--e-per-adu", w / "out-adu",
-         "--em-model", "gamma", "-o", w / "out-gamma", "-q")  # an earlier calibration
+    _run(
+        "calibrate",
+        w / "gs/manifest.toml",
+        "--method",
+        "gs",
+        "--e-per-adu",
+        w / "out-adu",
+        "--em-model",
+        "gamma",
+        "-o",
+        w / "out-gamma",
+        "-q",
+    )  # an earlier calibration
     readout = ["--readout", "Electron Multiplying, 10 MHz, analog gain 2"]  # as the docs'
     for name in ("out-adu", "out-g5", "out-g25", "out-g100", "out-g300", "out-gamma"):
         _run("db", "add", w / name, "--camera", "12345", *readout, *db)
@@ -205,8 +282,11 @@ def _small(argv: list[str]) -> list[str]:
     """A ``simulate`` command made small where it names no size."""
     if argv[:1] != ["simulate"]:
         return argv
-    size = (("--frames", 30), ("--dark-frames", 100)) if argv[1:2] == ["beads"] else \
-        (("--frames", FRAMES), ("--rows", ROWS), ("--cols", COLS))
+    size = (
+        (("--frames", 30), ("--dark-frames", 100))
+        if argv[1:2] == ["beads"]
+        else (("--frames", FRAMES), ("--rows", ROWS), ("--cols", COLS))
+    )
     return argv + [str(v) for flag, value in size if flag not in argv for v in (flag, value)]
 
 
@@ -226,8 +306,7 @@ def _shell(command: str) -> list[str]:
 
 @pytest.mark.docs_examples
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
-def test_the_examples_of_a_page_run_as_written(page, world, tmp_path, monkeypatch, capsys,
-                                                request):
+def test_the_examples_of_a_page_run_as_written(page, world, tmp_path, monkeypatch, capsys, request):
     items = examples(page)
     if not items:
         pytest.skip(f"{page.name} has no example")
@@ -263,8 +342,7 @@ def test_the_examples_of_a_page_run_as_written(page, world, tmp_path, monkeypatc
         db_used |= argv[0] == "db" or "--camera" in argv
         out = _output(argv)
         if out is not None and out not in made:  # the page makes it: not the world's copy
-            shutil.rmtree(out, ignore_errors=True) if out.is_dir() else out.unlink(
-                missing_ok=True)
+            shutil.rmtree(out, ignore_errors=True) if out.is_dir() else out.unlink(missing_ok=True)
             made.add(out)
         t0 = time.perf_counter()
         code = cli.main(argv)

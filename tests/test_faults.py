@@ -40,8 +40,10 @@ def _same(a, b) -> bool:
             if {x: str(y) for x, y in a[k].items()} != {x: str(y) for x, y in b[k].items()}:
                 return False
         elif a[k].shape != b[k].shape or not (
-                np.array_equal(a[k], b[k]) if a[k].dtype.kind in "OUSb"
-                else np.array_equal(a[k], b[k], equal_nan=True)):
+            np.array_equal(a[k], b[k])
+            if a[k].dtype.kind in "OUSb"
+            else np.array_equal(a[k], b[k], equal_nan=True)
+        ):
             return False
     return True
 
@@ -86,9 +88,23 @@ def test_many_byte_flips_are_detected_or_harmless(tmp_path):
 # --------------------------------------------------------------------------------------
 # Hostile metadata
 # --------------------------------------------------------------------------------------
-_HOSTILE = st.text(alphabet=st.characters(blacklist_categories=("Cs",)), max_size=40) | \
-    st.sampled_from(["../../../ESC", "a\nb = 1", 'x"\n[[acquisition]]', "\x00\x1b[2J", "/",
-                     "..", ".", "", "\r\n# ok", "C:\\Windows", "a/../../b"])
+_HOSTILE = st.text(
+    alphabet=st.characters(blacklist_categories=("Cs",)), max_size=40
+) | st.sampled_from(
+    [
+        "../../../ESC",
+        "a\nb = 1",
+        'x"\n[[acquisition]]',
+        "\x00\x1b[2J",
+        "/",
+        "..",
+        ".",
+        "",
+        "\r\n# ok",
+        "C:\\Windows",
+        "a/../../b",
+    ]
+)
 
 
 @settings(max_examples=300, deadline=None)
@@ -102,24 +118,33 @@ def test_text_from_files_never_escapes(text):
     assert tomllib.loads(line + "\nk = 1") == {"k": 1}
 
 
-_FIELDS = [("spe", "serial"), ("spe", "analog_gain"), ("spe", "model"),
-           ("zarr", "serial"), ("zarr", "analog_gain"), ("zarr", "model"),
-           ("micromanager", "analog_gain")]
+_FIELDS = [
+    ("spe", "serial"),
+    ("spe", "analog_gain"),
+    ("spe", "model"),
+    ("zarr", "serial"),
+    ("zarr", "analog_gain"),
+    ("zarr", "model"),
+    ("micromanager", "analog_gain"),
+]
 
 
 def _hostile_file(folder, name, fmt, field, hostile, frames, em_gain):
     from camera_files import write_micromanager_tiff, write_zarr
 
     if fmt == "spe":  # as the XML holds it: the reader gets the quote back
-        kw = {"serial": "S", "analog_gain": "High", "model": "M",
-              field: hostile.replace('"', "&quot;")}
+        kw = {
+            "serial": "S",
+            "analog_gain": "High",
+            "model": "M",
+            field: hostile.replace('"', "&quot;"),
+        }
         write_spe(folder / f"{name}.spe", frames, em_gain=em_gain, **kw)
     elif fmt == "zarr":
         pytest.importorskip("zarr")
         write_zarr(folder / f"{name}.zarr", frames, em_gain=em_gain, **{field: hostile})
     else:
-        write_micromanager_tiff(folder / f"{name}.ome.tif", frames, em_gain=em_gain,
-                                preamp=hostile)
+        write_micromanager_tiff(folder / f"{name}.ome.tif", frames, em_gain=em_gain, preamp=hostile)
 
 
 @pytest.mark.parametrize("fmt,field", _FIELDS)
@@ -132,9 +157,15 @@ def test_hostile_metadata_through_scan(tmp_path, capsys, fmt, field):
     folder.mkdir()
     hostile = '../..\n skip_frames = 25\n[x]\n"\t#'
     for i, name in enumerate(("1x-gain", "1x-gain_dark")):
-        frames = simulate_frames(np.full((4, 4), 0.0 if "dark" in name else 400.0),
-                                 em_gain=1.0, e_per_adu=PHI, offset=OFFSET,
-                                 read_noise=SIGMA, frames=60, seed=i)
+        frames = simulate_frames(
+            np.full((4, 4), 0.0 if "dark" in name else 400.0),
+            em_gain=1.0,
+            e_per_adu=PHI,
+            offset=OFFSET,
+            read_noise=SIGMA,
+            frames=60,
+            seed=i,
+        )
         _hostile_file(folder, name, fmt, field, hostile, frames, 1)
     assert cli.main(["scan", str(folder), "-q"]) == 0
     doc = tomllib.loads((folder / "manifest.toml").read_text())
@@ -184,8 +215,9 @@ def test_sigkill_of_calibrate_apply_and_export_loses_nothing(tmp_path):
     from emccdcal.simulate.series import simulate_gain_series
 
     rng = np.random.default_rng(7)
-    sim = simulate_gain_series(tmp_path / "gs", setpoints=(1, 5, 100), rows=8, cols=8,
-                               frames=600, dark_frames=300, seed=5)
+    sim = simulate_gain_series(
+        tmp_path / "gs", setpoints=(1, 5, 100), rows=8, cols=8, frames=600, dark_frames=300, seed=5
+    )
     out = tmp_path / "out"
     calibrate(sim.manifest, "gs", out=out, progress=False)
     nc = out / result.CALIBRATION_FILE
@@ -194,24 +226,49 @@ def test_sigkill_of_calibrate_apply_and_export_loses_nothing(tmp_path):
 
     def calibrate_ok():
         ds = result.load(out)  # never half-written; old, or a complete new one
-        assert file_sha256(nc) == old or np.allclose(ds.em_gain, reference.em_gain,
-                                                      equal_nan=True)
+        assert file_sha256(nc) == old or np.allclose(ds.em_gain, reference.em_gain, equal_nan=True)
         assert (out / result.SUMMARY_FILE).is_file()
 
     totals = {}
     totals["calibrate"] = _kill_at_random(
         ["calibrate", sim.manifest, "--method", "gs", "-o", out, "--overwrite", "-q"],
-        4, calibrate_ok, rng)
+        4,
+        calibrate_ok,
+        rng,
+    )
 
     res = true_result(tmp_path / "r")
     movie = tmp_path / "m.tif"
-    tifffile.imwrite(movie, simulate_frames(np.full(SHAPE, 30.0), em_gain=90.06,
-                                            e_per_adu=PHI, offset=OFFSET, read_noise=SIGMA,
-                                            frames=3000, seed=1))
+    tifffile.imwrite(
+        movie,
+        simulate_frames(
+            np.full(SHAPE, 30.0),
+            em_gain=90.06,
+            e_per_adu=PHI,
+            offset=OFFSET,
+            read_noise=SIGMA,
+            frames=3000,
+            seed=1,
+        ),
+    )
     before_movie = file_sha256(movie)
     converted = tmp_path / "e.tif"
-    subprocess.run([sys.executable, "-m", "emccdcal", "apply", res, movie, "--setpoint", "100",
-                    "-o", converted, "-q"], check=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "emccdcal",
+            "apply",
+            res,
+            movie,
+            "--setpoint",
+            "100",
+            "-o",
+            converted,
+            "-q",
+        ],
+        check=True,
+    )
     first = tifffile.imread(converted)
 
     def apply_ok():
@@ -220,10 +277,28 @@ def test_sigkill_of_calibrate_apply_and_export_loses_nothing(tmp_path):
 
     totals["apply"] = _kill_at_random(
         ["apply", res, movie, "--setpoint", "100", "-o", converted, "--overwrite", "-q"],
-        4, apply_ok, rng)
+        4,
+        apply_ok,
+        rng,
+    )
     exported = tmp_path / "exp"
-    subprocess.run([sys.executable, "-m", "emccdcal", "export", res, "--to", "pyme",
-                    "--setpoint", "100", "-o", exported, "-q"], check=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "emccdcal",
+            "export",
+            res,
+            "--to",
+            "pyme",
+            "--setpoint",
+            "100",
+            "-o",
+            exported,
+            "-q",
+        ],
+        check=True,
+    )
     files = {p.name: file_sha256(p) for p in exported.iterdir()}
 
     def export_ok():
@@ -231,13 +306,31 @@ def test_sigkill_of_calibrate_apply_and_export_loses_nothing(tmp_path):
         assert now == files  # the same content: all old, or all (identical) new
 
     totals["export"] = _kill_at_random(
-        ["export", res, "--to", "pyme", "--setpoint", "100", "-o", exported, "--overwrite",
-         "-q"], 4, export_ok, rng)
+        ["export", res, "--to", "pyme", "--setpoint", "100", "-o", exported, "--overwrite", "-q"],
+        4,
+        export_ok,
+        rng,
+    )
     print("kills (killed, finished first):", totals)
     assert sum(k for k, _ in totals.values()) >= 6  # most runs were really killed
     # the next run cleans what the killed ones left
-    subprocess.run([sys.executable, "-m", "emccdcal", "apply", res, movie, "--setpoint", "100",
-                    "-o", converted, "-q", "--overwrite"], check=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "emccdcal",
+            "apply",
+            res,
+            movie,
+            "--setpoint",
+            "100",
+            "-o",
+            converted,
+            "-q",
+            "--overwrite",
+        ],
+        check=True,
+    )
     assert not [p.name for p in tmp_path.iterdir() if ".tmp" in p.name or "partial" in p.name]
 
 
@@ -245,20 +338,37 @@ def test_sigkill_of_calibrate_apply_and_export_loses_nothing(tmp_path):
 def test_runs_at_once_into_one_output(tmp_path):
     from emccdcal.simulate.series import simulate_gain_series
 
-    sim = simulate_gain_series(tmp_path / "gs", setpoints=(1, 5), rows=8, cols=8,
-                               frames=600, dark_frames=300, seed=5)
+    sim = simulate_gain_series(
+        tmp_path / "gs", setpoints=(1, 5), rows=8, cols=8, frames=600, dark_frames=300, seed=5
+    )
     outcomes = []
     for trial in range(2):
         out = tmp_path / f"out{trial}"
-        procs = [subprocess.Popen([sys.executable, "-m", "emccdcal", "calibrate",
-                                   str(sim.manifest), "--method", "gs", "-o", str(out), "-q"],
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-                 for _ in range(2)]
+        procs = [
+            subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "emccdcal",
+                    "calibrate",
+                    str(sim.manifest),
+                    "--method",
+                    "gs",
+                    "-o",
+                    str(out),
+                    "-q",
+                ],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+            for _ in range(2)
+        ]
         codes = [(p.wait(), p.stderr.read()) for p in procs]
         outcomes.append(sorted(c for c, _ in codes))
         assert sorted(c for c, _ in codes) == [0, 2], codes
         loser = next(e for c, e in codes if c == 2)
-        assert ("another emccdcal run is writing it" in loser or "holds" in loser), loser
+        assert "another emccdcal run is writing it" in loser or "holds" in loser, loser
         assert loser.count("\n") == 1
         result.load(out)
         assert not (out / ".emccdcal-lock").exists()
@@ -303,32 +413,61 @@ def test_sigkill_of_gain_check_plan_and_db_add_loses_nothing(tmp_path):
     rng = np.random.default_rng(11)
     totals = {}
     darks = tmp_path / "darks.tif"
-    tifffile.imwrite(darks, simulate_frames(np.full(SHAPE, 0.05), em_gain=GAINS[100.0],
-                                            e_per_adu=PHI, offset=OFFSET, read_noise=SIGMA,
-                                            frames=1500, seed=2))
+    tifffile.imwrite(
+        darks,
+        simulate_frames(
+            np.full(SHAPE, 0.05),
+            em_gain=GAINS[100.0],
+            e_per_adu=PHI,
+            offset=OFFSET,
+            read_noise=SIGMA,
+            frames=1500,
+            seed=2,
+        ),
+    )
     checked = tmp_path / "check"
     argv = ["gain-check", darks, "--e-per-adu", PHI, "--setpoint", 100, "-q"]
-    subprocess.run([sys.executable, "-m", "emccdcal", *map(str, argv), "-o", checked],
-                   check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(
+        [sys.executable, "-m", "emccdcal", *map(str, argv), "-o", checked],
+        check=True,
+        stdout=subprocess.DEVNULL,
+    )
+
     def fingerprint():  # the figure's bytes vary from run to run (SVG ids): whole, though
-        return {p.name: (p.read_bytes().rstrip().endswith(b"</svg>") if p.suffix == ".svg"
-                         else file_sha256(p))
-                for p in checked.iterdir() if not p.name.startswith(".")}
+        return {
+            p.name: (
+                p.read_bytes().rstrip().endswith(b"</svg>")
+                if p.suffix == ".svg"
+                else file_sha256(p)
+            )
+            for p in checked.iterdir()
+            if not p.name.startswith(".")
+        }
 
     files = fingerprint()
 
     def check_ok():
         assert fingerprint() == files  # old and new are alike; a torn file differs
 
-    totals["gain-check"] = _kill_at_random([*argv, "-o", checked, "--overwrite"], 3, check_ok,
-                                           rng)
+    totals["gain-check"] = _kill_at_random([*argv, "-o", checked, "--overwrite"], 3, check_ok, rng)
     planned = tmp_path / "plan.toml"
-    argv = ["plan", "--e-per-adu", "3.859", "--read-noise", "15.5", "--offset", "588", "-q",
-            "-o", planned]
+    argv = [
+        "plan",
+        "--e-per-adu",
+        "3.859",
+        "--read-noise",
+        "15.5",
+        "--offset",
+        "588",
+        "-q",
+        "-o",
+        planned,
+    ]
     subprocess.run([sys.executable, "-m", "emccdcal", *argv], check=True)
     plan_bytes = planned.read_bytes()
-    totals["plan"] = _kill_at_random([*argv, "--overwrite"], 3,
-                                     lambda: planned.read_bytes() == plan_bytes or 1 / 0, rng)
+    totals["plan"] = _kill_at_random(
+        [*argv, "--overwrite"], 3, lambda: planned.read_bytes() == plan_bytes or 1 / 0, rng
+    )
     db = tmp_path / "c.sqlite"
     res = true_result(tmp_path / "r")
     from emccdcal.export import database
@@ -339,13 +478,30 @@ def test_sigkill_of_gain_check_plan_and_db_add_loses_nothing(tmp_path):
         if found:
             database.remove(found[0].id, db=db)
 
-    totals["db add"] = _kill_at_random(["db", "add", res, "--camera", "SIM-1", "--db", db, "-q"],
-                                       3, db_ok, rng)
+    totals["db add"] = _kill_at_random(
+        ["db", "add", res, "--camera", "SIM-1", "--db", db, "-q"], 3, db_ok, rng
+    )
     print("kills (killed, finished first):", totals)
     assert sum(k for k, _ in totals.values()) >= 4
     # the next runs clean what the killed ones left
-    for again in (["gain-check", darks, "--e-per-adu", PHI, "--setpoint", 100, "-q", "-o",
-                   checked, "--overwrite"], [*argv, "--overwrite"]):
-        subprocess.run([sys.executable, "-m", "emccdcal", *map(str, again)], check=True,
-                       stdout=subprocess.DEVNULL)
+    for again in (
+        [
+            "gain-check",
+            darks,
+            "--e-per-adu",
+            PHI,
+            "--setpoint",
+            100,
+            "-q",
+            "-o",
+            checked,
+            "--overwrite",
+        ],
+        [*argv, "--overwrite"],
+    ):
+        subprocess.run(
+            [sys.executable, "-m", "emccdcal", *map(str, again)],
+            check=True,
+            stdout=subprocess.DEVNULL,
+        )
     assert not [p.name for p in tmp_path.rglob("*") if ".tmp" in p.name]

@@ -29,12 +29,29 @@ def test_from_camera_folders_to_photons_in_picasso(real_data, tmp_path, capsys):
     assert _run(capsys, "scan", adu)[0] == 0
     assert _run(capsys, "scan", gs)[0] == 0
     # 2. phi from the 1x intensity series
-    code, out, _ = _run(capsys, "calibrate", adu / "manifest.toml", "--method", "is-adu",
-                        "-o", tmp_path / "out-adu", "-q")
+    code, out, _ = _run(
+        capsys,
+        "calibrate",
+        adu / "manifest.toml",
+        "--method",
+        "is-adu",
+        "-o",
+        tmp_path / "out-adu",
+        "-q",
+    )
     assert code == 0
     # 3. the gains with that phi, under the default register model: no misfit warning
-    code, out, err = _run(capsys, "calibrate", gs / "manifest.toml", "--method", "gs",
-                          "--e-per-adu", tmp_path / "out-adu", "-o", tmp_path / "out-gs")
+    code, out, err = _run(
+        capsys,
+        "calibrate",
+        gs / "manifest.toml",
+        "--method",
+        "gs",
+        "--e-per-adu",
+        tmp_path / "out-adu",
+        "-o",
+        tmp_path / "out-gs",
+    )
     assert code == 0
     assert "method gs (cascade register)" in out
     assert "register length: 536 stages (default)" in out
@@ -43,25 +60,51 @@ def test_from_camera_folders_to_photons_in_picasso(real_data, tmp_path, capsys):
     gain_300 = float(np.median(ds.em_gain.sel(setpoint=300).values))
     assert 255 < gain_300 < 270  # the paper's 261.6 under its gamma model, +0.2 % exact
     # 4. export to Picasso at the movies' set-point
-    assert _run(capsys, "export", tmp_path / "out-gs", "--to", "picasso", "--setpoint", 300,
-                "-o", tmp_path / "picasso", "-q")[0] == 0
+    assert (
+        _run(
+            capsys,
+            "export",
+            tmp_path / "out-gs",
+            "--to",
+            "picasso",
+            "--setpoint",
+            300,
+            "-o",
+            tmp_path / "picasso",
+            "-q",
+        )[0]
+        == 0
+    )
     config = tmp_path / "picasso" / "picasso-config.yaml"
     # 5. the audit of that export agrees ...
-    code, out, _ = _run(capsys, "audit", config, "--calibration", tmp_path / "out-gs",
-                        "--setpoint", 300)
+    code, out, _ = _run(
+        capsys, "audit", config, "--calibration", tmp_path / "out-gs", "--setpoint", 300
+    )
     assert code == 0 and "  OK: photons within 2 %" in out
     # ... and of a config with its Sensitivity 10 % off: exit 1, the field and the bias
     text = config.read_text()
     sens = float(re.search(r'"Sensitivity": ([0-9.]+)', text).group(1))
     off = tmp_path / "config-off.yaml"
     off.write_text(text.replace(f'"Sensitivity": {sens}', f'"Sensitivity": {sens * 1.1:.4f}'))
-    code, out, _ = _run(capsys, "audit", off, "--calibration", tmp_path / "out-gs",
-                        "--setpoint", 300)
+    code, out, _ = _run(
+        capsys, "audit", off, "--calibration", tmp_path / "out-gs", "--setpoint", 300
+    )
     assert code == 1
     assert re.search(r"OFF: photons \+10\.0 % \(most of it Sensitivity\)", out)
     # 6. photons of a movie at 300x (the gain series' own stack stands in for one)
-    code, out, _ = _run(capsys, "apply", tmp_path / "out-gs", gs / "300x-gain.tif",
-                        "--setpoint", 300, "--qe", 0.9, "-o", tmp_path / "photons.tif", "-q")
+    code, out, _ = _run(
+        capsys,
+        "apply",
+        tmp_path / "out-gs",
+        gs / "300x-gain.tif",
+        "--setpoint",
+        300,
+        "--qe",
+        0.9,
+        "-o",
+        tmp_path / "photons.tif",
+        "-q",
+    )
     assert code == 0
     photons = tifffile.imread(tmp_path / "photons.tif")
     raw = tifffile.imread(gs / "300x-gain.tif").astype(float)

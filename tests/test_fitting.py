@@ -32,10 +32,18 @@ def _block(case, frames=3000, pixels=3, seed=7):
     h = stats.histograms(data)
     P = h.n.size
     return engine.AcquisitionBlock(
-        values=h.values, counts=h.counts, offset=np.full(P, S0), read_noise=np.full(P, sigma),
-        poisson_normal=g == 1.0, mean=h.mean, var=h.var, n=h.n,
-        offset_var=np.full(P, 1.0), read_noise_var=np.full(P, 0.5),
-        em_model=noise.EMModel("gamma"))
+        values=h.values,
+        counts=h.counts,
+        offset=np.full(P, S0),
+        read_noise=np.full(P, sigma),
+        poisson_normal=g == 1.0,
+        mean=h.mean,
+        var=h.var,
+        n=h.n,
+        offset_var=np.full(P, 1.0),
+        read_noise_var=np.full(P, 0.5),
+        em_model=noise.EMModel("gamma"),
+    )
 
 
 def _log_params(case, P, shift=(0.01, -0.02)):
@@ -53,9 +61,15 @@ def test_loglik_is_that_of_the_public_noise_model(case):
     E, g, phi, S0, sigma = CASES[case]
     ref_g = 1.0 if g == 1.0 else np.exp(log_scale[0]) * phi
     ref_phi = 1.0 / np.exp(log_scale[0]) if g == 1.0 else phi
-    ref = [np.sum(acq.counts[p] * noise.logpmf(acq.values[p], np.exp(log_e[p]), ref_g, ref_phi,
-                                                S0, sigma, em_model="gamma"))
-           for p in range(acq.n.size)]
+    ref = [
+        np.sum(
+            acq.counts[p]
+            * noise.logpmf(
+                acq.values[p], np.exp(log_e[p]), ref_g, ref_phi, S0, sigma, em_model="gamma"
+            )
+        )
+        for p in range(acq.n.size)
+    ]
     np.testing.assert_allclose(loglik, ref, rtol=1e-11)
 
 
@@ -71,10 +85,11 @@ def test_gradient_and_observed_information_are_the_derivatives(case):
 
     steps = [(h, 0.0), (0.0, h)]
     for i, (de, ds) in enumerate(steps):
-        ll_plus, ll_minus = (engine._acquisition_terms(acq, [log_e + s * de, log_scale + s * ds], 0)[0]
-                             for s in (1, -1))
-        np.testing.assert_allclose(grad[:, i], (ll_plus - ll_minus) / (2 * h), rtol=1e-5,
-                                   atol=1e-4)
+        ll_plus, ll_minus = (
+            engine._acquisition_terms(acq, [log_e + s * de, log_scale + s * ds], 0)[0]
+            for s in (1, -1)
+        )
+        np.testing.assert_allclose(grad[:, i], (ll_plus - ll_minus) / (2 * h), rtol=1e-5, atol=1e-4)
         g_plus, g_minus = terms(de, ds)[1], terms(-de, -ds)[1]
         hess_col = (g_plus - g_minus) / (2 * h)  # d grad / d u_i
         scale = np.abs(obs).max()
@@ -96,14 +111,16 @@ def test_map_cross_terms_are_outer_products_of_the_scores(case):
         h = 1e-3
         pv = []
         for sign in (1, -1):
-            shifted = engine.AcquisitionBlock(**{**acq.__dict__,
-                                                  field: getattr(acq, field) + sign * h})
+            shifted = engine.AcquisitionBlock(
+                **{**acq.__dict__, field: getattr(acq, field) + sign * h}
+            )
             pv.append(engine._ModelAtData(shifted, rows).pv)
         dp = (pv[0] - pv[1]) / (2 * h)
         for i, name in enumerate(("photoelectrons", "scale")):
             ref = np.sum(w * model.scores[name] * dp, axis=1) * factor[:, i]
-            np.testing.assert_allclose(cross[:, i, m], ref, rtol=1e-5,
-                                       atol=1e-8 * np.abs(ref).max())
+            np.testing.assert_allclose(
+                cross[:, i, m], ref, rtol=1e-5, atol=1e-8 * np.abs(ref).max()
+            )
 
 
 @pytest.mark.parametrize("n,m", [(64, 20), (64, 33), (63, 32), (100, 7)])
@@ -113,5 +130,6 @@ def test_spectrum_dot_is_the_window_summed_against_weights(n, m):
     weights = rng.normal(size=(3, n))
     spec = noise.Spectrum(spectrum, n)
     direct = np.sum(weights * spec.window(), axis=1)
-    np.testing.assert_allclose(spec.dot(noise.Spectrum.weights_spectrum(weights, m)), direct,
-                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        spec.dot(noise.Spectrum.weights_spectrum(weights, m)), direct, rtol=1e-12, atol=1e-12
+    )

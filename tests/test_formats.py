@@ -37,13 +37,34 @@ def test_spe3_frames_are_found_through_the_stride(tmp_path, metadata):
 
 
 def test_spe3_settings(tmp_path):
-    path = write_spe(tmp_path / "s.spe", _frames(), em_gain=25, analog_gain="Low",
-                     speed_mhz=10, bit_depth=16, exposure_ms=30, temperature=-65.5,
-                     serial="0512", model="ProEM-HS: 512BX3", roi=(100, 200), binning=(1, 1))
+    path = write_spe(
+        tmp_path / "s.spe",
+        _frames(),
+        em_gain=25,
+        analog_gain="Low",
+        speed_mhz=10,
+        bit_depth=16,
+        exposure_ms=30,
+        temperature=-65.5,
+        serial="0512",
+        model="ProEM-HS: 512BX3",
+        roi=(100, 200),
+        binning=(1, 1),
+    )
     s = stack_settings(path)
-    assert (s.em_gain_setpoint, s.analog_gain, s.readout_rate_mhz, s.adc_bits) == (25, "Low", 10, 16)
+    assert (s.em_gain_setpoint, s.analog_gain, s.readout_rate_mhz, s.adc_bits) == (
+        25,
+        "Low",
+        10,
+        16,
+    )
     assert s.amplifier == "ElectronMultiplied"  # LightField's Adc/Quality: the output port
-    assert (s.exposure_ms, s.temperature_c, s.serial, s.model) == (30, -65.5, "0512", "ProEM-HS: 512BX3")
+    assert (s.exposure_ms, s.temperature_c, s.serial, s.model) == (
+        30,
+        -65.5,
+        "0512",
+        "ProEM-HS: 512BX3",
+    )
     assert s.roi == (100, 200, 6, 5) and s.binning == (1, 1)
     assert stack_settings(tmp_path / "s.spe").known()["em_gain_setpoint"] == 25
     tif = tmp_path / "t.tif"
@@ -71,17 +92,23 @@ def test_spe2_header(tmp_path):
     assert s.em_gain_setpoint is None  # SPE 2.x has no field for it
 
 
-@pytest.mark.parametrize("damage, message", [
-    (dict(truncate=4500), r"footer offset 4632 is outside the file \(4500 bytes\): damaged or "
-                          r"truncated"),
-    (dict(truncate=6000), r"XML footer is not valid XML"),
-    (dict(footer_offset=10**9), r"footer offset 1000000000 is outside the file"),
-    (dict(stride=10), r"frame stride 10 bytes is smaller than a frame of 5 × 6"),
-    (dict(stride=4000), r"truncated: the SPE 3.0 footer describes 7 frames of 4000 bytes"),
-    (dict(xml_text="<SpeFormat><DataFormat>"), r"XML footer is not valid XML"),
-    (dict(xml_text="<SpeFormat/>"), r"no DataFormat/DataBlock of type 'Frame'"),
-    (dict(header=b"\x00\x00"), r"not an SPE file \(no 0x5555 at byte 4098\)"),
-])
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        (
+            dict(truncate=4500),
+            r"footer offset 4632 is outside the file \(4500 bytes\): damaged or "
+            r"truncated",
+        ),
+        (dict(truncate=6000), r"XML footer is not valid XML"),
+        (dict(footer_offset=10**9), r"footer offset 1000000000 is outside the file"),
+        (dict(stride=10), r"frame stride 10 bytes is smaller than a frame of 5 × 6"),
+        (dict(stride=4000), r"truncated: the SPE 3.0 footer describes 7 frames of 4000 bytes"),
+        (dict(xml_text="<SpeFormat><DataFormat>"), r"XML footer is not valid XML"),
+        (dict(xml_text="<SpeFormat/>"), r"no DataFormat/DataBlock of type 'Frame'"),
+        (dict(header=b"\x00\x00"), r"not an SPE file \(no 0x5555 at byte 4098\)"),
+    ],
+)
 def test_damaged_spe_is_one_line_naming_the_file(tmp_path, damage, message):
     damage = dict(damage)
     truncate, header = damage.pop("truncate", None), damage.pop("header", None)
@@ -100,12 +127,17 @@ def test_damaged_spe_is_one_line_naming_the_file(tmp_path, damage, message):
 @pytest.fixture(scope="module")
 def series(tmp_path_factory):
     d = tmp_path_factory.mktemp("formats")
-    return simulate_gain_series(d / "gs", rows=4, cols=6, frames=800, seed=11,
-                                setpoints=(1, 25, 300))
+    return simulate_gain_series(
+        d / "gs", rows=4, cols=6, frames=800, seed=11, setpoints=(1, 25, 300)
+    )
 
 
-WRITERS = {".spe": write_spe, ".fits": write_fits, ".zarr": write_zarr,
-           ".ome.tif": write_micromanager_tiff}
+WRITERS = {
+    ".spe": write_spe,
+    ".fits": write_fits,
+    ".zarr": write_zarr,
+    ".ome.tif": write_micromanager_tiff,
+}
 
 
 def _as_spe(series, name, *, gains=None, suffix=".spe"):
@@ -123,8 +155,9 @@ def _as_spe(series, name, *, gains=None, suffix=".spe"):
     return path
 
 
-@pytest.mark.parametrize("suffix", [".spe", ".fits", pytest.param(".zarr", marks=pytest.mark.slow),
-                                    ".ome.tif"])
+@pytest.mark.parametrize(
+    "suffix", [".spe", ".fits", pytest.param(".zarr", marks=pytest.mark.slow), ".ome.tif"]
+)
 def test_same_series_in_another_format_calibrates_identically(series, suffix, tmp_path):
     other = _as_spe(series, f"other{suffix}.toml", suffix=suffix)
     a = quiet(calibrate, series.manifest, "gs", tile_pixels=12)
@@ -134,19 +167,33 @@ def test_same_series_in_another_format_calibrates_identically(series, suffix, tm
     assert "camera" not in a.attrs  # plain TIFFs record no camera
     if suffix == ".spe":  # what the files record: the identity the database keys on
         assert json.loads(b.attrs["camera"]) == {
-            "serial": "12345678", "model": "ProEM+: 512B", "amplifier": "ElectronMultiplied",
-            "readout_rate_mhz": 10.0, "analog_gain": "High", "adc_bits": 16}
+            "serial": "12345678",
+            "model": "ProEM+: 512B",
+            "amplifier": "ElectronMultiplied",
+            "readout_rate_mhz": 10.0,
+            "analog_gain": "High",
+            "adc_bits": 16,
+        }
         result.save(b, tmp_path / "res")
         e = database.add(tmp_path / "res", db=tmp_path / "db.sqlite")
-        assert (e.camera, e.readout) == ("12345678",
-                                      "ElectronMultiplied, 10 MHz, analog gain High, 16-bit")
+        assert (e.camera, e.readout) == (
+            "12345678",
+            "ElectronMultiplied, 10 MHz, analog gain High, 16-bit",
+        )
         assert sorted(e.gains) == [25.0, 300.0]
 
 
 def test_fits_stack_is_read_by_sections_with_its_settings(tmp_path):
     data = _frames()
-    path = write_fits(tmp_path / "s.fits", data, em_gain=200, exposure_s=0.03,
-                      temperature=-80, readtime=1e-7, binning=(2, 2))
+    path = write_fits(
+        tmp_path / "s.fits",
+        data,
+        em_gain=200,
+        exposure_s=0.03,
+        temperature=-80,
+        readtime=1e-7,
+        binning=(2, 2),
+    )
     assert stack_header(path) == ((7, 5, 6), np.dtype("uint16"))
     np.testing.assert_array_equal(np.asarray(load_stack(path)), data)
     np.testing.assert_array_equal(read_band(path, 1, 3, 4), data[4:, 1:3])
@@ -162,8 +209,11 @@ def test_fits_stack_is_read_by_sections_with_its_settings(tmp_path):
 
 def test_setpoint_disagreeing_with_the_file_is_said(series):
     spe = _as_spe(series, "spe-wrong.toml", gains={25: 50})
-    with pytest.warns(UserWarning, match=r"acquisition 2 \(25x\): the manifest says EM gain "
-                                         r"set-point 25, but '.*25x-gain\.spe' records 50"):
+    with pytest.warns(
+        UserWarning,
+        match=r"acquisition 2 \(25x\): the manifest says EM gain "
+        r"set-point 25, but '.*25x-gain\.spe' records 50",
+    ):
         read_manifest(spe)
 
 
@@ -175,8 +225,9 @@ def test_unsupported_suffix_lists_the_readable_ones(tmp_path):
 
 def test_zarr_store_with_its_settings(tmp_path):
     data = _frames()
-    path = write_zarr(tmp_path / "s.zarr", data, em_gain=100, readout_rate_mhz=10.0,
-                      roi=[0, 0, 6, 5])
+    path = write_zarr(
+        tmp_path / "s.zarr", data, em_gain=100, readout_rate_mhz=10.0, roi=[0, 0, 6, 5]
+    )
     assert stack_header(path) == ((7, 5, 6), np.dtype("uint16"))
     np.testing.assert_array_equal(read_band(path, 2, 4, 1), data[1:, 2:4])
     s = stack_settings(path)
@@ -186,14 +237,20 @@ def test_zarr_store_with_its_settings(tmp_path):
         stack_settings(bad)
 
 
-@pytest.mark.parametrize("style, model, serial, analog, amplifier", [
-    ("andor", "DU897_BV", "9876", "Gain 2", "Electron Multiplying"),
-    ("photometrics", "Evolve512", "A17C", "1", "Multiplication gain")])
-def test_micromanager_properties_are_the_settings(tmp_path, style, model, serial, analog,
-                                                  amplifier):
+@pytest.mark.parametrize(
+    "style, model, serial, analog, amplifier",
+    [
+        ("andor", "DU897_BV", "9876", "Gain 2", "Electron Multiplying"),
+        ("photometrics", "Evolve512", "A17C", "1", "Multiplication gain"),
+    ],
+)
+def test_micromanager_properties_are_the_settings(
+    tmp_path, style, model, serial, analog, amplifier
+):
     data = _frames()
-    path = write_micromanager_tiff(tmp_path / "mm.ome.tif", data, em_gain=200, style=style,
-                                   readout="10 MHz", temperature=-80)
+    path = write_micromanager_tiff(
+        tmp_path / "mm.ome.tif", data, em_gain=200, style=style, readout="10 MHz", temperature=-80
+    )
     np.testing.assert_array_equal(np.asarray(load_stack(path)), data)
     s = stack_settings(path)
     assert (s.em_gain_setpoint, s.readout_rate_mhz, s.temperature_c) == (200, 10, -80)
@@ -216,8 +273,11 @@ def test_settings_changing_within_a_stack_are_refused():
         return SimpleNamespace(tags={micromanager.TAG: SimpleNamespace(value=md)})
 
     tif = SimpleNamespace(pages=[page("17.000 MHz")] * 6 + [page("10.000 MHz")])
-    with pytest.raises(InputError, match=r"'mm\.tif': the camera's readout_rate_mhz changes "
-                                         r"within the stack \(17\.0 in its first frame, 10\.0"):
+    with pytest.raises(
+        InputError,
+        match=r"'mm\.tif': the camera's readout_rate_mhz changes "
+        r"within the stack \(17\.0 in its first frame, 10\.0",
+    ):
         micromanager.stack_settings("mm.tif", tif)
     tif.pages[-1] = page("17.000 MHz")
     assert micromanager.stack_settings("mm.tif", tif).readout_rate_mhz == 17.0
@@ -237,14 +297,23 @@ def test_recorded_regions_place_the_stacks_on_the_sensor(series):
 SIF = Path(__file__).parent / "data" / "sif"
 
 
-@pytest.mark.parametrize("name, shape, gain, binning, temperature", [
-    ("image.sif", (1, 512, 512), 1000, (1, 1), -100), ("test.sif", (1, 256, 256), 56, (2, 2), None)])
+@pytest.mark.parametrize(
+    "name, shape, gain, binning, temperature",
+    [
+        ("image.sif", (1, 512, 512), 1000, (1, 1), -100),
+        ("test.sif", (1, 256, 256), 56, (2, 2), None),
+    ],
+)
 def test_real_andor_sif_files(name, shape, gain, binning, temperature):
     path = SIF / name
     assert stack_header(path)[0] == shape
     s = stack_settings(path)
     assert (s.em_gain_setpoint, s.binning, s.temperature_c, s.model) == (
-        gain, binning, temperature, "DU897_BV")
+        gain,
+        binning,
+        temperature,
+        "DU897_BV",
+    )
     assert s.readout_rate_mhz == pytest.approx(10.0)
     band = read_band(path, 10, 12)
     np.testing.assert_array_equal(band, np.asarray(load_stack(path))[:, 10:12])
@@ -254,7 +323,8 @@ def test_real_andor_sif_files(name, shape, gain, binning, temperature):
 def test_one_frame_sif_in_a_manifest_is_refused_in_one_line(tmp_path):
     (tmp_path / "m.toml").write_text(
         f'[[acquisition]]\nframes = "{SIF / "image.sif"}"\nem_gain_setpoint = 1000\n'
-        "offset = 100.0\nread_noise = 10.0\n")
+        "offset = 100.0\nread_noise = 10.0\n"
+    )
     with pytest.raises(EmccdcalError, match=r"image\.sif' has 1 frame: a histogram"):
         quiet(read_manifest, tmp_path / "m.toml")
 
@@ -283,12 +353,16 @@ def test_binning_travels_with_the_result_and_must_match(series, tmp_path):
     spe = _as_spe(series, "binned.toml")
     assert quiet(read_manifest, spe).binning == (1, 1)
     adu_like = quiet(calibrate, spe, "gs", out=tmp_path / "r")
-    assert list(adu_like.attrs["binning"]) == [1, 1] and list(adu_like.attrs["sensor_origin"]) == [0, 0]
+    assert list(adu_like.attrs["binning"]) == [1, 1] and list(adu_like.attrs["sensor_origin"]) == [
+        0,
+        0,
+    ]
     # an is-adu result of 2 × 2 binned pixels cannot give φ to unbinned ones
     from emccdcal.simulate.series import simulate_intensity_series
 
-    adu = simulate_intensity_series(tmp_path / "adu", rows=4, cols=6, frames=300, seed=3,
-                                    levels=(2000, 8000, 32000))
+    adu = simulate_intensity_series(
+        tmp_path / "adu", rows=4, cols=6, frames=300, seed=3, levels=(2000, 8000, 32000)
+    )
     text = adu.manifest.read_text()
     for tif in re.findall(r'frames = "([^"]+\.tif)"', text):
         src = adu.manifest.parent / tif

@@ -31,9 +31,12 @@ from emccdcal.data.stacks import _layout, read_band
 from emccdcal.errors import EmccdcalError
 
 ROWS, COLS, FRAMES = 3, 4, 12
-FUZZ = settings(max_examples=int(os.environ.get("FUZZ_EXAMPLES", 700)), deadline=None,
-                derandomize=not os.environ.get("FUZZ_EXAMPLES"),
-                suppress_health_check=[HealthCheck.too_slow])
+FUZZ = settings(
+    max_examples=int(os.environ.get("FUZZ_EXAMPLES", 700)),
+    deadline=None,
+    derandomize=not os.environ.get("FUZZ_EXAMPLES"),
+    suppress_health_check=[HealthCheck.too_slow],
+)
 
 MANIFEST = """\
 e_per_adu = 3.859
@@ -66,10 +69,12 @@ def clean(tmp_path_factory):
     d = tmp_path_factory.mktemp("clean")
     tifffile.imwrite(d / "1x.tif", _frames(1, 600, 700), photometric="minisblack")
     np.save(d / "25x.npy", _frames(2, 600, 4000))
-    tifffile.imwrite(d / "S0.tif", np.full((ROWS, COLS), 588.5, np.float32),
-                     photometric="minisblack")
-    tifffile.imwrite(d / "sigma.tif", np.full((ROWS, COLS), 15.2, np.float32),
-                     photometric="minisblack")
+    tifffile.imwrite(
+        d / "S0.tif", np.full((ROWS, COLS), 588.5, np.float32), photometric="minisblack"
+    )
+    tifffile.imwrite(
+        d / "sigma.tif", np.full((ROWS, COLS), 15.2, np.float32), photometric="minisblack"
+    )
     (d / "manifest.toml").write_text(MANIFEST)
     return d, _read(d / "manifest.toml")
 
@@ -79,14 +84,23 @@ def _read(path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a damaged page index read in full warns
         m = read_manifest(path)
-        return [(a.em_gain_setpoint, a.skip_frames, np.array(a.offset), np.array(a.read_noise),
-                 read_band(a.frames_path, 0, ROWS, a.skip_frames)) for a in m.acquisitions]
+        return [
+            (
+                a.em_gain_setpoint,
+                a.skip_frames,
+                np.array(a.offset),
+                np.array(a.read_noise),
+                read_band(a.frames_path, 0, ROWS, a.skip_frames),
+            )
+            for a in m.acquisitions
+        ]
 
 
 def _same(a, b) -> bool:
     return len(a) == len(b) and all(
         x[0] == y[0] and x[1] == y[1] and all(np.array_equal(u, v) for u, v in zip(x[2:], y[2:]))
-        for x, y in zip(a, b))
+        for x, y in zip(a, b)
+    )
 
 
 def _outcome(folder: Path, damaged: str):
@@ -117,8 +131,10 @@ def test_damaged_file_gives_the_clean_result_or_one_clear_error(clean, name, dat
     folder, expected = clean
     original = (folder / name).read_bytes()
     damaged = bytearray(original)
-    flips = data.draw(st.lists(st.tuples(st.integers(0, len(original) - 1),
-                                         st.integers(1, 255)), max_size=3), label="flips")
+    flips = data.draw(
+        st.lists(st.tuples(st.integers(0, len(original) - 1), st.integers(1, 255)), max_size=3),
+        label="flips",
+    )
     for at, xor in flips:
         damaged[at] ^= xor
     cut = data.draw(st.one_of(st.none(), st.integers(0, len(original))), label="truncate at")
@@ -143,18 +159,34 @@ def test_damaged_file_gives_the_clean_result_or_one_clear_error(clean, name, dat
         shape, dtype, *_ = _layout(folder / name)
         values = np.frombuffer(bytes(raw[lo:hi]), dtype=dtype).reshape(shape)
         if field == 4:  # the frames from skip_frames on
-            values = values[expected[a][1]:]
+            values = values[expected[a][1] :]
         expected = list(expected)
-        expected[a] = tuple(values.astype(old.dtype) if i == field else v
-                            for i, v in enumerate(expected[a]))
+        expected[a] = tuple(
+            values.astype(old.dtype) if i == field else v for i, v in enumerate(expected[a])
+        )
     assert _same(got, expected), f"silently different result after {flips}, cut {cut}"
 
 
-KEYS = ["e_per_adu", "adc_bits", "name", "frames", "em_gain_setpoint", "offset",
-        "read_noise", "skip_frames", "dark", "dark_frames", "level", "acquisition"]
+KEYS = [
+    "e_per_adu",
+    "adc_bits",
+    "name",
+    "frames",
+    "em_gain_setpoint",
+    "offset",
+    "read_noise",
+    "skip_frames",
+    "dark",
+    "dark_frames",
+    "level",
+    "acquisition",
+]
 VALUES = st.one_of(
-    st.integers(-10**6, 10**6), st.floats(allow_nan=True, allow_infinity=True),
-    st.booleans(), st.text(max_size=12), st.sampled_from(['"1x.tif"', '"S0.tif"', '"nope.tif"']),
+    st.integers(-(10**6), 10**6),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.booleans(),
+    st.text(max_size=12),
+    st.sampled_from(['"1x.tif"', '"S0.tif"', '"nope.tif"']),
     st.lists(st.integers(-3, 3), max_size=3),
 )
 
@@ -173,11 +205,30 @@ def _toml_value(v):
 
 @pytest.mark.slow
 @FUZZ
-@given(lines=st.lists(st.one_of(
-    st.tuples(st.sampled_from(KEYS), VALUES).map(lambda kv: f"{kv[0]} = {_toml_value(kv[1])}"),
-    st.sampled_from(["[[acquisition]]", "[acquisition]", "[[dark]]", "", "# c", "x =", "= 3",
-                     '"unterminated', "[[acquisition]]\nframes = \"1x.tif\"\nem_gain_setpoint = 1"]),
-    st.text(max_size=20)), max_size=12))
+@given(
+    lines=st.lists(
+        st.one_of(
+            st.tuples(st.sampled_from(KEYS), VALUES).map(
+                lambda kv: f"{kv[0]} = {_toml_value(kv[1])}"
+            ),
+            st.sampled_from(
+                [
+                    "[[acquisition]]",
+                    "[acquisition]",
+                    "[[dark]]",
+                    "",
+                    "# c",
+                    "x =",
+                    "= 3",
+                    '"unterminated',
+                    '[[acquisition]]\nframes = "1x.tif"\nem_gain_setpoint = 1',
+                ]
+            ),
+            st.text(max_size=20),
+        ),
+        max_size=12,
+    )
+)
 def test_random_toml_gives_a_manifest_or_one_clear_error(clean, lines):
     folder, _ = clean
     with tempfile.TemporaryDirectory() as tmp:
@@ -224,12 +275,18 @@ def test_truncated_stack_names_manifest_acquisition_and_file(clean, tmp_path, ca
 def test_stack_cut_to_one_frame_and_one_frame_stacks(clean, tmp_path):
     d = _copy(clean, tmp_path)
     tifffile.imwrite(d / "1x.tif", _frames(1, 600, 700)[0], photometric="minisblack")
-    with pytest.raises(EmccdcalError, match=r"acquisition 1 .*holds one image of 3 × 4 "
-                                            r"pixels, not a stack of frames"):
+    with pytest.raises(
+        EmccdcalError,
+        match=r"acquisition 1 .*holds one image of 3 × 4 "
+        r"pixels, not a stack of frames",
+    ):
         read_manifest(d / "manifest.toml")
     tifffile.imwrite(d / "1x.tif", _frames(1, 600, 700)[:1], photometric="minisblack")
-    with pytest.raises(EmccdcalError, match=r"acquisition 1 .*has 1 frame: a histogram of "
-                                            r"a pixel's counts needs at least 2"):
+    with pytest.raises(
+        EmccdcalError,
+        match=r"acquisition 1 .*has 1 frame: a histogram of "
+        r"a pixel's counts needs at least 2",
+    ):
         read_manifest(d / "manifest.toml")
 
 
@@ -254,17 +311,26 @@ def test_tifffile_log_lines_do_not_reach_the_terminal(clean, tmp_path, capfd):
 # --------------------------------------------------------------------------------------
 # The newer inputs: plan files, session records, Zarr settings, tools' settings files
 # --------------------------------------------------------------------------------------
-NEWER = settings(max_examples=int(os.environ.get("FUZZ_EXAMPLES", 150)), deadline=None,
-                 derandomize=not os.environ.get("FUZZ_EXAMPLES"),
-                 suppress_health_check=[HealthCheck.too_slow,
-                                        HealthCheck.function_scoped_fixture])
+NEWER = settings(
+    max_examples=int(os.environ.get("FUZZ_EXAMPLES", 150)),
+    deadline=None,
+    derandomize=not os.environ.get("FUZZ_EXAMPLES"),
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+)
 #: JSON-like values of every kind, nested a little.
 JSONISH = st.recursive(
-    st.one_of(st.none(), st.booleans(), st.integers(-10**30, 10**30),
-              st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=12)),
-    lambda inner: st.one_of(st.lists(inner, max_size=4),
-                            st.dictionaries(st.text(max_size=8), inner, max_size=4)),
-    max_leaves=12)
+    st.one_of(
+        st.none(),
+        st.booleans(),
+        st.integers(-(10**30), 10**30),
+        st.floats(allow_nan=True, allow_infinity=True),
+        st.text(max_size=12),
+    ),
+    lambda inner: st.one_of(
+        st.lists(inner, max_size=4), st.dictionaries(st.text(max_size=8), inner, max_size=4)
+    ),
+    max_leaves=12,
+)
 
 
 def _one_clear_error(exc, name):
@@ -277,17 +343,47 @@ def a_plan(tmp_path_factory):
     from emccdcal.acquire.plan import plan, plan_text
 
     d = tmp_path_factory.mktemp("plan")
-    text = plan_text(plan(method="gs", e_per_adu=3.9, read_noise=15.0, offset=600.0,
-                          setpoints=[1, 5, 25], target_se=2.0))
+    text = plan_text(
+        plan(
+            method="gs",
+            e_per_adu=3.9,
+            read_noise=15.0,
+            offset=600.0,
+            setpoints=[1, 5, 25],
+            target_se=2.0,
+        )
+    )
     (d / "plan.toml").write_text(text)
     return d, text
 
 
 @NEWER
-@given(edits=st.lists(st.tuples(st.integers(0, 200), st.sampled_from(
-    ["", "x", "= 3", "[[acquisition]]", "frames = -1", "frames = 99999999999999999999",
-     "em_gain_setpoint = 1", "photoelectrons = 1e300", "camera = \"abc\"", "acquisition = [1,2]",
-     "adc_bits = \"16\"", "e_per_adu = nan", "[camera]", "stages = 100000000"])), max_size=4))
+@given(
+    edits=st.lists(
+        st.tuples(
+            st.integers(0, 200),
+            st.sampled_from(
+                [
+                    "",
+                    "x",
+                    "= 3",
+                    "[[acquisition]]",
+                    "frames = -1",
+                    "frames = 99999999999999999999",
+                    "em_gain_setpoint = 1",
+                    "photoelectrons = 1e300",
+                    'camera = "abc"',
+                    "acquisition = [1,2]",
+                    'adc_bits = "16"',
+                    "e_per_adu = nan",
+                    "[camera]",
+                    "stages = 100000000",
+                ]
+            ),
+        ),
+        max_size=4,
+    )
+)
 def test_edited_plans_predict_or_give_one_clear_error(a_plan, edits):
     from emccdcal.acquire.plan import read_plan
 
@@ -307,10 +403,16 @@ def test_edited_plans_predict_or_give_one_clear_error(a_plan, edits):
 
 
 @NEWER
-@given(state=st.dictionaries(st.sampled_from(["stacks", "runs", "plan_sha256", "status",
-                                              "simulated", "roi"]), JSONISH, max_size=6),
-       stack=st.dictionaries(st.sampled_from(["name", "file", "frames", "done", "reached_se"]),
-                             JSONISH, max_size=5))
+@given(
+    state=st.dictionaries(
+        st.sampled_from(["stacks", "runs", "plan_sha256", "status", "simulated", "roi"]),
+        JSONISH,
+        max_size=6,
+    ),
+    stack=st.dictionaries(
+        st.sampled_from(["name", "file", "frames", "done", "reached_se"]), JSONISH, max_size=5
+    ),
+)
 def test_session_records_load_or_give_one_clear_error(a_plan, state, stack):
     import json
 
@@ -319,8 +421,10 @@ def test_session_records_load_or_give_one_clear_error(a_plan, state, stack):
 
     folder, _ = a_plan
     plan = read_plan(folder / "plan.toml")
-    good = [{"name": s.name, "file": s.file, "frames": 0, "done": False, "reached_se": None}
-            for s in stacks_of(plan)]
+    good = [
+        {"name": s.name, "file": s.file, "frames": 0, "done": False, "reached_se": None}
+        for s in stacks_of(plan)
+    ]
     good[0].update(stack)
     state.setdefault("stacks", good)
     with tempfile.TemporaryDirectory() as tmp:
@@ -338,9 +442,24 @@ def test_session_records_load_or_give_one_clear_error(a_plan, state, stack):
 
 
 @NEWER
-@given(record=st.dictionaries(st.sampled_from(
-    ["em_gain_setpoint", "adc_bits", "roi", "binning", "serial", "readout_rate_mhz",
-     "temperature_c", "exposure_ms"]), JSONISH, max_size=5))
+@given(
+    record=st.dictionaries(
+        st.sampled_from(
+            [
+                "em_gain_setpoint",
+                "adc_bits",
+                "roi",
+                "binning",
+                "serial",
+                "readout_rate_mhz",
+                "temperature_c",
+                "exposure_ms",
+            ]
+        ),
+        JSONISH,
+        max_size=5,
+    )
+)
 def test_zarr_settings_are_typed_or_one_clear_error(record):
     from emccdcal.data.settings import CameraSettings
 

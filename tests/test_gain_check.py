@@ -19,8 +19,19 @@ PHI, OFFSET, SIGMA = 3.859, 500.0, 15.5
 
 
 def _darks(g, *, seed, frames=2000, size=16, cic=0.01, multiplication="cascade"):
-    return simulate_frames(0.0, g, PHI, OFFSET, SIGMA, frames=frames, rows=size, cols=size,
-                           cic=cic, multiplication=multiplication, seed=seed)
+    return simulate_frames(
+        0.0,
+        g,
+        PHI,
+        OFFSET,
+        SIGMA,
+        frames=frames,
+        rows=size,
+        cols=size,
+        cic=cic,
+        multiplication=multiplication,
+        seed=seed,
+    )
 
 
 @pytest.mark.parametrize("g, model", [(300.0, "cascade"), (100.0, "cascade"), (300.0, "gamma")])
@@ -29,8 +40,9 @@ def test_the_gain_of_simulated_darks_within_its_standard_error(g, model):
     """Known truth: the exact register's darks (and gamma darks under the gamma model),
     the gain within 3 SE; the SE what the events allow (about 1/√events at high gain)."""
     darks = _darks(g, seed=11, multiplication=model)
-    check = check_gain([darks], PHI, setpoint=g, em_model=model,
-                       stages=536 if model == "cascade" else None)
+    check = check_gain(
+        [darks], PHI, setpoint=g, em_model=model, stages=536 if model == "cascade" else None
+    )
     assert abs(check.em_gain - g) < 3 * check.em_gain_se
     assert check.pixels == 256 and check.frames == 2000
     assert check.events == pytest.approx(256 * 2000 * 0.01, rel=0.15)
@@ -74,8 +86,9 @@ def test_a_gain_the_darks_do_not_determine_is_refused_with_what_would(monkeypatc
     determine it, never a number whose ± reads as "agrees" with any calibration."""
     from emccdcal.fit import darkgain
 
-    darks = simulate_frames(0.0, 50.0, PHI, OFFSET, 25.9, frames=1000, rows=32, cols=32,
-                            cic=0.01, seed=1)
+    darks = simulate_frames(
+        0.0, 50.0, PHI, OFFSET, 25.9, frames=1000, rows=32, cols=32, cic=0.01, seed=1
+    )
     check = check_gain([darks], PHI)
     assert 0.1 < check.relative_se < darkgain.MAX_RELATIVE_SE
     monkeypatch.setattr(darkgain, "MAX_RELATIVE_SE", 0.1)
@@ -91,35 +104,73 @@ def calibrated(tmp_path_factory):
     """A simulated gain series (charge in its darks) calibrated by gs: (folder, result)."""
     out = tmp_path_factory.mktemp("gaincheck")
     series = out / "series"
-    assert cli.main(["simulate", "gain-series", "-o", str(series), "--rows", "16", "--cols",
-                     "16", "--frames", "400", "--dark-frames", "3000", "--cic", "0.02",
-                     "--setpoints", "1,100,300", "--em-gain", "1,95,310", "--seed", "4",
-                     "-q"]) == 0
+    assert (
+        cli.main(
+            [
+                "simulate",
+                "gain-series",
+                "-o",
+                str(series),
+                "--rows",
+                "16",
+                "--cols",
+                "16",
+                "--frames",
+                "400",
+                "--dark-frames",
+                "3000",
+                "--cic",
+                "0.02",
+                "--setpoints",
+                "1,100,300",
+                "--em-gain",
+                "1,95,310",
+                "--seed",
+                "4",
+                "-q",
+            ]
+        )
+        == 0
+    )
     result = out / "cal"
-    assert cli.main(["calibrate", str(series / "manifest.toml"), "-o", str(result),
-                     "--no-checks", "-q"]) == 0
+    assert (
+        cli.main(
+            ["calibrate", str(series / "manifest.toml"), "-o", str(result), "--no-checks", "-q"]
+        )
+        == 0
+    )
     return series, next(result.glob("*.nc"))
 
 
 @pytest.mark.slow
-def test_darks_of_a_calibrated_series_agree_and_a_fallen_gain_is_flagged(calibrated, tmp_path,
-                                                                         capsys):
+def test_darks_of_a_calibrated_series_agree_and_a_fallen_gain_is_flagged(
+    calibrated, tmp_path, capsys
+):
     """The darks of the simulated series give the gain its gs calibration found (within
     the combined SE, exit 0); darks of the camera after its gain fell 5 % are flagged
     (exit 1, "below its calibration")."""
     series, result = calibrated
     dark = series / "gain-GS" / "300x-gain_no-signal.tif"
-    code = cli.main(["gain-check", str(dark), "--setpoint", "300", "--calibration",
-                     str(result), "--json", "-q"])
+    code = cli.main(
+        ["gain-check", str(dark), "--setpoint", "300", "--calibration", str(result), "--json", "-q"]
+    )
     record = json.loads(capsys.readouterr().out)
     assert code == 0, record
-    assert {"em_gain", "em_gain_se", "setpoint", "events", "event_rate", "e_per_adu",
-            "em_model"} <= set(record)
+    assert {
+        "em_gain",
+        "em_gain_se",
+        "setpoint",
+        "events",
+        "event_rate",
+        "e_per_adu",
+        "em_model",
+    } <= set(record)
     assert abs(record["calibration"]["z"]) < 3 and record["setpoint"] == 300
     fallen = tmp_path / "fallen.tif"
     tifffile.imwrite(fallen, _darks(0.95 * 310, seed=9, frames=3000, cic=0.02))
-    code = cli.main(["gain-check", str(fallen), "--setpoint", "300", "--calibration",
-                     str(result), "-q"])
+    code = cli.main(
+        ["gain-check", str(fallen), "--setpoint", "300", "--calibration", str(result), "-q"]
+    )
     printed = capsys.readouterr().out
     assert code == 1 and "below its calibration" in printed and "recalibrate" in printed
 
@@ -129,25 +180,33 @@ def test_darks_of_a_calibrated_series_agree_and_a_fallen_gain_is_flagged(calibra
     database.add(result, db=db, camera="SIM-1", date="2026-01-10")
     common = ["--setpoint", "300", "--camera", "SIM-1", "--db", str(db), "--record"]
     out = tmp_path / "check"
-    assert cli.main(["gain-check", str(dark), *common, "--date", "2026-02-01", "-o",
-                     str(out), "-q"]) == 0
+    assert (
+        cli.main(["gain-check", str(dark), *common, "--date", "2026-02-01", "-o", str(out), "-q"])
+        == 0
+    )
     record = json.loads((out / "gain-check.json").read_text())
     assert record["calibration"]["changed"] is False and (out / "gain-check.png").is_file()
     assert cli.main(["gain-check", str(fallen), *common, "--date", "2026-03-01", "-q"]) == 1
     checks = database.checks(db=db, camera="SIM-1")
     assert [c.date[:10] for c in checks] == ["2026-02-01", "2026-03-01"]
     capsys.readouterr()
-    assert cli.main(["db", "--db", str(db), "compare", "--camera", "SIM-1", "-o",
-                     str(tmp_path / "history")]) == 1
+    assert (
+        cli.main(
+            ["db", "--db", str(db), "compare", "--camera", "SIM-1", "-o", str(tmp_path / "history")]
+        )
+        == 1
+    )
     captured = capsys.readouterr()
     assert "gain check of 2026-03-01" in captured.err and "below its calibration" in captured.err
-    assert "2026-02-01" in captured.out and (tmp_path / "history" / "gain-history-SIM-1.png").is_file()
+    assert (
+        "2026-02-01" in captured.out and (tmp_path / "history" / "gain-history-SIM-1.png").is_file()
+    )
 
     # The HTML report of the calibration shows the camera's history from the database.
     from emccdcal.report.html import build_report
 
     page = build_report([result], db=db, camera="SIM-1")
-    history = page[page.index('<section id="history">'):page.index('<section id="provenance">')]
+    history = page[page.index('<section id="history">') : page.index('<section id="provenance">')]
     assert "calibration (this result)" in history and history.count("gain check") >= 2
     assert "gain check of 2026-03-01" in history and 'id="figures-history-1"' in history
     assert "data:image/png;base64," in history
@@ -156,10 +215,16 @@ def test_darks_of_a_calibrated_series_agree_and_a_fallen_gain_is_flagged(calibra
 # --------------------------------------------------------------------------------------
 # The tables of a shared register against the exact model
 # --------------------------------------------------------------------------------------
-@pytest.mark.parametrize("model, g, rate, cic, per_pixel", [
-    ("cascade", 300.0, 0.01, 0.0, False), ("gamma", 300.0, 0.01, 0.0, False),
-    ("cascade", 50.0, 0.02, 0.005, False), ("cascade", 1000.0, 0.01, 0.0, False),
-    ("cascade", 200.0, 0.3, 0.0, True)])
+@pytest.mark.parametrize(
+    "model, g, rate, cic, per_pixel",
+    [
+        ("cascade", 300.0, 0.01, 0.0, False),
+        ("gamma", 300.0, 0.01, 0.0, False),
+        ("cascade", 50.0, 0.02, 0.005, False),
+        ("cascade", 1000.0, 0.01, 0.0, False),
+        ("cascade", 200.0, 0.3, 0.0, True),
+    ],
+)
 def test_shared_register_tables_match_the_exact_model(model, g, rate, cic, per_pixel):
     """Pixels of their own offsets and read noises (14-17 ADU) sharing one register: ln p
     within 1e-5 of the window engine's wherever p is above 1e-10 of its peak (1e-6 above
@@ -173,18 +238,29 @@ def test_shared_register_tables_match_the_exact_model(model, g, rate, cic, per_p
     E = rng.uniform(0.5 * rate, 1.5 * rate, P) if per_pixel else None
     register = noise.as_em_model(model).register
     shared = ("ln_gain",) + (("register_cic",) if cic else ()) + (() if per_pixel else ("ln_rate",))
-    table = SharedRegister(register, g, PHI, sigma, rate=E.max() if per_pixel else rate,
-                           register_cic=cic, per_pixel_rate=per_pixel, shared=shared)
+    table = SharedRegister(
+        register,
+        g,
+        PHI,
+        sigma,
+        rate=E.max() if per_pixel else rate,
+        register_cic=cic,
+        per_pixel_rate=per_pixel,
+        shared=shared,
+    )
     theta = g / PHI  # one electron's mean output, ADU
-    values = (np.floor(S0)[:, None] + np.r_[np.arange(-100, 100, 7),
-                                            np.arange(100, 25 * theta, theta / 3)]).astype(np.int64)
+    values = (
+        np.floor(S0)[:, None]
+        + np.r_[np.arange(-100, 100, 7), np.arange(100, 25 * theta, theta / 3)]
+    ).astype(np.int64)
     with np.errstate(divide="ignore"):  # 0 below round-off, far outside what is compared
         ours = np.log(table.pmf(values, S0, sigma, E))
     rate_ = E[:, None] if per_pixel else rate
 
     def exact(g_=g, S0_=S0):
-        return noise.logpmf(values, rate_, g_, PHI, S0_[:, None], sigma[:, None],
-                            em_model=model, register_cic=cic)
+        return noise.logpmf(
+            values, rate_, g_, PHI, S0_[:, None], sigma[:, None], em_model=model, register_cic=cic
+        )
 
     ref = exact()
     peak = ref.max(axis=1, keepdims=True)
@@ -195,8 +271,9 @@ def test_shared_register_tables_match_the_exact_model(model, g, rate, cic, per_p
     assert not floored.any()
     names = table.coordinates()
     for column, fd in (
-            ("ln_gain", (exact(g_=g * np.exp(1e-5)) - exact(g_=g * np.exp(-1e-5))) / 2e-5),
-            ("offset", (exact(S0_=S0 + 1e-4) - exact(S0_=S0 - 1e-4)) / 2e-4)):
+        ("ln_gain", (exact(g_=g * np.exp(1e-5)) - exact(g_=g * np.exp(-1e-5))) / 2e-5),
+        ("offset", (exact(S0_=S0 + 1e-4) - exact(S0_=S0 - 1e-4)) / 2e-4),
+    ):
         want = (fd * inside).sum(axis=1)
         got = grad[:, names.index(column)]
         assert np.max(np.abs(got - want)) < 1e-4 * np.max(np.abs(want)), column
@@ -205,16 +282,30 @@ def test_shared_register_tables_match_the_exact_model(model, g, rate, cic, per_p
 def test_register_cic_is_simulated_and_fitted():
     """Charge made inside the register (entering at a random stage): the simulator makes
     it, and gain-check fits it; a check that assumes none reads the gain low."""
-    darks = simulate_frames(0.0, 300.0, PHI, OFFSET, SIGMA, frames=1000, rows=40, cols=40,
-                            cic=0.01, register_cic=0.01, seed=2)
+    darks = simulate_frames(
+        0.0,
+        300.0,
+        PHI,
+        OFFSET,
+        SIGMA,
+        frames=1000,
+        rows=40,
+        cols=40,
+        cic=0.01,
+        register_cic=0.01,
+        seed=2,
+    )
     check = check_gain([darks], PHI, fit_register_cic=True)
     assert abs(check.em_gain - 300) < 3 * check.em_gain_se
     assert abs(check.register_cic - 0.01) < 3 * check.register_cic_se
     assert check.as_dict()["register_cic_se"] == check.register_cic_se
     ignored = check_gain([darks], PHI)
     assert 300 - ignored.em_gain > 3 * ignored.em_gain_se
-    with pytest.raises(InputError, match=r"not a parameter of the gamma register model: "
-                       r"use one that has it \(cascade\)"):
+    with pytest.raises(
+        InputError,
+        match=r"not a parameter of the gamma register model: "
+        r"use one that has it \(cascade\)",
+    ):
         check_gain([darks], PHI, em_model="gamma", fit_register_cic=True)
 
 
@@ -241,9 +332,20 @@ def test_emccd_detect_darks_give_its_gain():
     detect = pytest.importorskip("emccd_detect.emccd_detect")
     np.random.seed(7)  # noqa: NPY002  (emccd-detect draws from NumPy's global generator)
     camera = detect.EMCCDDetectBase(
-        em_gain=400.0, full_well_image=1e5, full_well_serial=9e4, dark_current=0.0,
-        cic=0.005, read_noise=80.0, bias=2000.0, qe=0.9, cr_rate=0.0, pixel_pitch=13e-6,
-        eperdn=4.0, nbits=16, numel_gain_register=604)
+        em_gain=400.0,
+        full_well_image=1e5,
+        full_well_serial=9e4,
+        dark_current=0.0,
+        cic=0.005,
+        read_noise=80.0,
+        bias=2000.0,
+        qe=0.9,
+        cr_rate=0.0,
+        pixel_pitch=13e-6,
+        eperdn=4.0,
+        nbits=16,
+        numel_gain_register=604,
+    )
     # independent pixels (no traps, no fixed pattern): frames simulated as one tall frame
     darks = camera.sim_sub_frame(np.zeros((2000 * 16, 16)), 0.0).reshape(2000, 16, 16)
     check = check_gain([darks.astype(np.uint16)], 4.0, stages=604)

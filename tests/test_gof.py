@@ -19,16 +19,18 @@ pvalues = partial(gof.gof_pvalues, em_model="gamma")
 
 
 def _sim(E, g, *, frames, rows, cols, seed, mult="gamma"):
-    fr = simulate_frames(E, g, PHI, S0, SIG, frames=frames, rows=rows, cols=cols,
-                                  multiplication=mult, seed=seed)
+    fr = simulate_frames(
+        E, g, PHI, S0, SIG, frames=frames, rows=rows, cols=cols, multiplication=mult, seed=seed
+    )
     return stats.histograms(fr)
 
 
 # --------------------------------------------------------------------------------------
 # Null distribution: the true model on its own data gives uniform p-values
 # --------------------------------------------------------------------------------------
-@pytest.mark.parametrize("E, g, seed", [(30.0, 100.0, 3), (20.0, 5.0, 4), (50.0, 1.0, 5),
-                                        (0.3, 300.0, 6)])
+@pytest.mark.parametrize(
+    "E, g, seed", [(30.0, 100.0, 3), (20.0, 5.0, 4), (50.0, 1.0, 5), (0.3, 300.0, 6)]
+)
 def test_true_model_gives_uniform_pvalues(E, g, seed):
     h = _sim(E, g, frames=2000, rows=20, cols=20, seed=seed)
     p, chi2, dof = pvalues(h, E, g, PHI, S0, RN, n_fitted_params=0)
@@ -45,7 +47,7 @@ def test_true_model_gives_uniform_pvalues(E, g, seed):
 def test_wrong_parameters_are_flagged():
     h = _sim(30.0, 100.0, frames=2000, rows=4, cols=4, seed=7)
     p_off = pvalues(h, 30.0, 100.0, PHI, S0 + 60.0, RN)[0]  # offset 0.3 SD off
-    p_gain = pvalues(h, 30.0, 80.0, PHI, S0, RN)[0]         # gain 20 % low
+    p_gain = pvalues(h, 30.0, 80.0, PHI, S0, RN)[0]  # gain 20 % low
     assert np.all(p_off < 1e-3)
     assert np.all(p_gain < 1e-3)
 
@@ -60,8 +62,7 @@ def _reference_chi2(values, counts, E, g, phi, s0, sigma, K):
     cdf = np.cumsum(pm) / pm.sum()
     edges = grid[np.searchsorted(cdf, np.arange(1, K) / K)]
     probs = np.diff(np.r_[0.0, cdf[edges - grid[0]], 1.0])
-    obs = np.bincount(np.searchsorted(edges, values, side="left"), weights=counts,
-                      minlength=K)
+    obs = np.bincount(np.searchsorted(edges, values, side="left"), weights=counts, minlength=K)
     n = counts.sum()
     return np.sum((obs - n * probs) ** 2 / (n * probs))
 
@@ -101,13 +102,18 @@ def test_vectorised_mixed_pixels_and_blocks_match_separate_calls(monkeypatch):
 
     (va, ca), (vb, cb) = pad(ha), pad(hb)
     mixed = engine.AcquisitionBlock(
-        values=np.concatenate([va, vb]), counts=np.concatenate([ca, cb]),
-        offset=np.full(6, S0), read_noise=np.full(6, RN), poisson_normal=False,
-        mean=np.r_[ha.mean, hb.mean], var=np.r_[ha.var, hb.var], n=np.r_[ha.n, hb.n])
+        values=np.concatenate([va, vb]),
+        counts=np.concatenate([ca, cb]),
+        offset=np.full(6, S0),
+        read_noise=np.full(6, RN),
+        poisson_normal=False,
+        mean=np.r_[ha.mean, hb.mean],
+        var=np.r_[ha.var, hb.var],
+        n=np.r_[ha.n, hb.n],
+    )
     E = np.r_[np.full(3, 50.0), np.full(3, 5.0)]
     g = np.r_[np.ones(3), np.full(3, 300.0)]
-    sep = np.r_[pvalues(ha, 50.0, 1.0, PHI, S0, RN)[1],
-                pvalues(hb, 5.0, 300.0, PHI, S0, RN)[1]]
+    sep = np.r_[pvalues(ha, 50.0, 1.0, PHI, S0, RN)[1], pvalues(hb, 5.0, 300.0, PHI, S0, RN)[1]]
     together = pvalues(mixed, E, g, PHI, S0, RN)[1]
     np.testing.assert_allclose(together, sep, rtol=1e-9)
     monkeypatch.setattr(gof, "_BLOCK_ELEMENTS", 1)  # one pixel per block
@@ -121,8 +127,9 @@ def test_outliers_land_in_the_tail_bins():
     # Add a far outlier (a cosmic ray, 60000 ADU) and a frame at count 0 to pixel 0.
     v = np.concatenate([[[0], [0]], h.values, [[60000], [60000]]], axis=1)
     c = np.concatenate([[[1.0], [0.0]], h.counts, [[1.0], [0.0]]], axis=1)
-    blk = engine.AcquisitionBlock(v, c, np.full(2, S0), np.full(2, RN), False,
-                                   h.mean, h.var, h.n + np.array([2, 0]))
+    blk = engine.AcquisitionBlock(
+        v, c, np.full(2, S0), np.full(2, RN), False, h.mean, h.var, h.n + np.array([2, 0])
+    )
     p, chi2, _ = pvalues(blk, 30.0, 100.0, PHI, S0, RN)
     assert np.isfinite(chi2).all()
     assert chi2[1] == base[1]
@@ -154,8 +161,9 @@ LOG_B = {k: np.log(v) for k, v in layouts.BOUNDS.items()}
 
 def _block(h, pn):
     P = h.n.size
-    return engine.AcquisitionBlock(h.values, h.counts, np.full(P, S0), np.full(P, RN), pn,
-                                    h.mean, h.var, h.n)
+    return engine.AcquisitionBlock(
+        h.values, h.counts, np.full(P, S0), np.full(P, RN), pn, h.mean, h.var, h.n
+    )
 
 
 def _gain_series_fit(h1, h_em):
@@ -163,18 +171,22 @@ def _gain_series_fit(h1, h_em):
     gamma (PGN) model and φ fixed at its true value: x = [ln E, ln g]."""
     P = h1.n.size
     M = np.zeros((2, 3, 2))
-    M[:, 0, 0] = 1.0   # ln E shared by both acquisitions
-    M[1, 1, 1] = 1.0   # ln g of the EM acquisition (1× has g = 1)
+    M[:, 0, 0] = 1.0  # ln E shared by both acquisitions
+    M[1, 1, 1] = 1.0  # ln g of the EM acquisition (1× has g = 1)
     C = np.zeros((P, 2, 3))
     C[:, :, 2] = np.log(PHI)
     layout = engine.Layout(
         ["ln_photoelectrons", "ln_em_gain"],
         np.r_[LOG_B["photoelectrons"][0], LOG_B["em_gain"][0]],
-        np.r_[LOG_B["photoelectrons"][1], LOG_B["em_gain"][1]], M, C)
+        np.r_[LOG_B["photoelectrons"][1], LOG_B["em_gain"][1]],
+        M,
+        C,
+    )
     E0 = (h1.mean - S0) * PHI
     g0 = (h_em.mean - S0) * PHI / E0
-    res = engine.fit(layout, [_block(h1, True), _block(h_em, False)],
-                      np.stack([np.log(E0), np.log(g0)], axis=1))
+    res = engine.fit(
+        layout, [_block(h1, True), _block(h_em, False)], np.stack([np.log(E0), np.log(g0)], axis=1)
+    )
     assert res.converged.all()
     return np.exp(res.x[:, 0]), np.exp(res.x[:, 1])
 
@@ -221,9 +233,9 @@ def test_misfit_warnings_fire_only_for_systematic_excess():
     rng = np.random.default_rng(1)
     uniform = rng.uniform(size=10000)
     bad = uniform.copy()
-    bad[:500] = 1e-4            # 5 % of pixels misfit (+ 1 % by chance)
+    bad[:500] = 1e-4  # 5 % of pixels misfit (+ 1 % by chance)
     slight = uniform.copy()
-    slight[:60] = 1e-4          # 1.6 %: significant on 10000 pixels, but below 2·alpha
+    slight[:60] = 1e-4  # 1.6 %: significant on 10000 pixels, but below 2·alpha
     with_nan = np.r_[bad, np.full(100, np.nan)]
     msgs = gof.misfit_warnings({"5x": bad, "300x": uniform, "25x": slight}, alpha=0.01)
     assert len(msgs) == 1 and msgs[0].startswith("set-point 5x:")

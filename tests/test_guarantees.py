@@ -49,8 +49,15 @@ def _refused(code, err, *words):
 
 
 def _frames(setpoint, n=12, seed=1):
-    return simulate_frames(np.full(SHAPE, 30.0), em_gain=GAINS[setpoint], e_per_adu=PHI,
-                           offset=OFFSET, read_noise=SIGMA, frames=n, seed=seed)
+    return simulate_frames(
+        np.full(SHAPE, 30.0),
+        em_gain=GAINS[setpoint],
+        e_per_adu=PHI,
+        offset=OFFSET,
+        read_noise=SIGMA,
+        frames=n,
+        seed=seed,
+    )
 
 
 def _parsers() -> dict:
@@ -77,17 +84,25 @@ def _dests(parser) -> set:
 def camera_a(tmp_path_factory):
     """A calibration of camera CAM-A (10 MHz, 16 bits), and frames of camera CAM-B."""
     d = tmp_path_factory.mktemp("identity")
-    cal = true_result(d / "cal", camera={"serial": "CAM-A", "readout_rate_mhz": 10.0,
-                                          "adc_bits": 16})
+    cal = true_result(
+        d / "cal", camera={"serial": "CAM-A", "readout_rate_mhz": 10.0, "adc_bits": 16}
+    )
     ds = result.load(cal)  # the same calibration, as an is-adu result φ can come from
     ds.attrs["method"] = "is-adu"
     result.save(ds, d / "phi")
-    files = {sp: write_spe(d / f"b{sp:g}.spe", _frames(sp), em_gain=sp, serial="CAM-B")
-             for sp in (1.0, 100.0)}
+    files = {
+        sp: write_spe(d / f"b{sp:g}.spe", _frames(sp), em_gain=sp, serial="CAM-B")
+        for sp in (1.0, 100.0)
+    }
     lines = []
     for sp, f in files.items():
-        lines += ["[[acquisition]]", f'frames = "{f.name}"', f"em_gain_setpoint = {sp:g}",
-                  f"offset = {OFFSET}", f"read_noise = {SIGMA}"]
+        lines += [
+            "[[acquisition]]",
+            f'frames = "{f.name}"',
+            f"em_gain_setpoint = {sp:g}",
+            f"offset = {OFFSET}",
+            f"read_noise = {SIGMA}",
+        ]
     (d / "b.toml").write_text("\n".join(lines) + "\n")
     return {"cal": cal, "phi": d / "phi", "frames": files, "manifest": d / "b.toml", "dir": d}
 
@@ -99,11 +114,25 @@ def camera_a(tmp_path_factory):
 #: calibration and CAM-B's frames.
 IDENTITY_PROBES = {
     "apply": lambda c, o: ["apply", c["cal"], c["frames"][100.0], "-o", o / "e.tif"],
-    "gain-check": lambda c, o: ["gain-check", c["frames"][100.0], "--calibration", c["cal"],
-                                "--setpoint", 100],
+    "gain-check": lambda c, o: [
+        "gain-check",
+        c["frames"][100.0],
+        "--calibration",
+        c["cal"],
+        "--setpoint",
+        100,
+    ],
     "validate": lambda c, o: ["validate", c["manifest"], "-c", c["cal"], "-o", o / "v"],
-    "calibrate": lambda c, o: ["calibrate", c["manifest"], "--method", "gs", "--e-per-adu",
-                               c["phi"], "-o", o / "g"],
+    "calibrate": lambda c, o: [
+        "calibrate",
+        c["manifest"],
+        "--method",
+        "gs",
+        "--e-per-adu",
+        c["phi"],
+        "-o",
+        o / "g",
+    ],
 }
 #: Verbs that take a calibration but no frames to check it against, and why.
 NO_FRAMES = {
@@ -116,7 +145,7 @@ NO_FRAMES = {
     "acquire": "--camera names a Micro-Manager device: no calibration",
     "simulate": "--camera names the simulated camera: no calibration",
     "audit": "a tool's settings file records no camera identity to check, only a name "
-             "its user typed; the set-point is checked",
+    "its user typed; the set-point is checked",
 }
 CALIBRATION_DESTS = {"results", "calibration", "e_per_adu", "camera"}
 
@@ -124,8 +153,10 @@ CALIBRATION_DESTS = {"results", "calibration", "e_per_adu", "camera"}
 def test_every_verb_taking_a_calibration_is_probed_for_identity():
     takes = {v for v, p in _parsers().items() if _dests(p) & CALIBRATION_DESTS}
     unknown = takes - set(IDENTITY_PROBES) - set(NO_FRAMES)
-    assert not unknown, (f"{sorted(unknown)} take a calibration: give each an identity "
-                         "probe (or a reason it meets no frames)")
+    assert not unknown, (
+        f"{sorted(unknown)} take a calibration: give each an identity "
+        "probe (or a reason it meets no frames)"
+    )
     assert set(IDENTITY_PROBES) <= takes
 
 
@@ -133,8 +164,7 @@ def test_every_verb_taking_a_calibration_is_probed_for_identity():
 def test_a_calibration_is_refused_on_another_cameras_frames(verb, camera_a, tmp_path, capsys):
     argv = IDENTITY_PROBES[verb](camera_a, tmp_path)
     code, _, err = _run(capsys, *argv)
-    _refused(code, err, "camera serial 'CAM-B' (calibration: 'CAM-A')",
-             "--accept-mismatch serial")
+    _refused(code, err, "camera serial 'CAM-B' (calibration: 'CAM-A')", "--accept-mismatch serial")
     assert not any(tmp_path.iterdir())  # refused before anything was written
 
 
@@ -153,8 +183,9 @@ def test_darks_pooled_are_of_one_setpoint_and_each_given_once(camera_a, tmp_path
 def test_frames_that_record_no_identity_are_said(camera_a, tmp_path, capsys):
     plain = tmp_path / "plain.tif"
     tifffile.imwrite(plain, _frames(100.0))
-    code, _, err = _run(capsys, "apply", camera_a["cal"], plain, "--setpoint", 100, "-o",
-                        tmp_path / "e.tif", "-q")
+    code, _, err = _run(
+        capsys, "apply", camera_a["cal"], plain, "--setpoint", 100, "-o", tmp_path / "e.tif", "-q"
+    )
     assert code == 0
     assert "could not check" in err and "the frames record none of it" in err, err
 
@@ -190,8 +221,11 @@ def test_every_path_a_verb_is_given_is_registered_as_an_input():
                 values.setdefault(action.dest, Path(f"{verb}-out"))
                 continue
             kind = action.type
-            if kind is Path or getattr(kind, "__name__", "") == "number_or_path" or \
-                    action.dest in ("results", "calibration"):
+            if (
+                kind is Path
+                or getattr(kind, "__name__", "") == "number_or_path"
+                or action.dest in ("results", "calibration")
+            ):
                 value = Path(f"{verb}-{action.dest}")
                 expected.add(value)
                 values[action.dest] = [value] if action.nargs in ("+", "*") else value
@@ -212,29 +246,73 @@ def _db(path):
 #: Each verb asked to write over (or inside) one of its inputs, with the input that must
 #: come out unchanged.
 OVERWRITE_PROBES = {
-    "plan": lambda c, t: (["plan", "--check", c["plan"], "-o", c["plan"], "--overwrite"],
-                          c["plan"]),
-    "report": lambda c, t: (["report", c["cal"], "--db", c["db"], "-o", c["db"],
-                             "--overwrite"], c["db"]),  # a database named db.html
-    "apply": lambda c, t: (["apply", c["cal"], c["movie"], "--setpoint", 100, "-o",
-                            c["movie"], "--overwrite"], c["movie"]),
-    "gain-check": lambda c, t: (["gain-check", c["store"], "--e-per-adu", PHI, "--setpoint",
-                                 100, "-o", c["store"] / "check"], c["store"] / ".zattrs"),
-    "calibrate": lambda c, t: (["calibrate", c["manifest"], "--method", "gs", "--e-per-adu",
-                                c["plain_phi"], "-o", c["plain_phi"], "--overwrite"],
-                               c["plain_phi"] / result.CALIBRATION_FILE),
-    "validate": lambda c, t: (["validate", c["manifest"], "-c", c["named"], "-o",
-                               c["named"].parent, "--overwrite"], c["named"]),
-    "gain-curve": lambda c, t: (["gain-curve", c["curve"], "-o", c["curve"].parent,
-                                 "--overwrite"], c["curve"]),
+    "plan": lambda c, t: (
+        ["plan", "--check", c["plan"], "-o", c["plan"], "--overwrite"],
+        c["plan"],
+    ),
+    "report": lambda c, t: (
+        ["report", c["cal"], "--db", c["db"], "-o", c["db"], "--overwrite"],
+        c["db"],
+    ),  # a database named db.html
+    "apply": lambda c, t: (
+        ["apply", c["cal"], c["movie"], "--setpoint", 100, "-o", c["movie"], "--overwrite"],
+        c["movie"],
+    ),
+    "gain-check": lambda c, t: (
+        [
+            "gain-check",
+            c["store"],
+            "--e-per-adu",
+            PHI,
+            "--setpoint",
+            100,
+            "-o",
+            c["store"] / "check",
+        ],
+        c["store"] / ".zattrs",
+    ),
+    "calibrate": lambda c, t: (
+        [
+            "calibrate",
+            c["manifest"],
+            "--method",
+            "gs",
+            "--e-per-adu",
+            c["plain_phi"],
+            "-o",
+            c["plain_phi"],
+            "--overwrite",
+        ],
+        c["plain_phi"] / result.CALIBRATION_FILE,
+    ),
+    "validate": lambda c, t: (
+        ["validate", c["manifest"], "-c", c["named"], "-o", c["named"].parent, "--overwrite"],
+        c["named"],
+    ),
+    "gain-curve": lambda c, t: (
+        ["gain-curve", c["curve"], "-o", c["curve"].parent, "--overwrite"],
+        c["curve"],
+    ),
 }
 
 
 @pytest.fixture()
 def inputs(camera_a, tmp_path):
     plan = tmp_path / "plan.toml"
-    assert cli.main(["plan", "--e-per-adu", "3.9", "--read-noise", "15", "--offset", "600",
-                     "-o", str(plan), "-q"]) in (0, 1)
+    assert cli.main(
+        [
+            "plan",
+            "--e-per-adu",
+            "3.9",
+            "--read-noise",
+            "15",
+            "--offset",
+            "600",
+            "-o",
+            str(plan),
+            "-q",
+        ]
+    ) in (0, 1)
     plan.write_text(plan.read_text() + "# my notes\n")
     movie = tmp_path / "movie.tif"
     tifffile.imwrite(movie, _frames(100.0))
@@ -249,22 +327,32 @@ def inputs(camera_a, tmp_path):
     named = tmp_path / "v" / "validation.json"  # a result named as validate's output
     named.parent.mkdir()
     true_result(tmp_path / "w").rename(named)
-    return {"named": named, **camera_a, "plan": plan, "db": _db(tmp_path / "db.html"), "movie": movie,
-            "store": store, "plain": plain, "plain_phi": tmp_path / "plain-phi",
-            "curve": curve}
+    return {
+        "named": named,
+        **camera_a,
+        "plan": plan,
+        "db": _db(tmp_path / "db.html"),
+        "movie": movie,
+        "store": store,
+        "plain": plain,
+        "plain_phi": tmp_path / "plain-phi",
+        "curve": curve,
+    }
 
 
 def test_every_writing_verb_is_probed(tmp_path):
     writes = {v for v, p in _parsers().items() if _dests(p) & set(cli.OUTPUT_DESTS)}
-    elsewhere = {"demo": "writes only what it simulates, into a new folder",
-                 "simulate": "reads nothing",
-                 "acquire": "its plan and configuration are inputs (tests/test_acquire.py)",
-                 "posterior": "its manifest is an input like calibrate's",
-                 "scan": "writes a manifest beside the files it lists (tests/test_scan.py)",
-                 "cots": "its manifest is an input like calibrate's",
-                 "export": "its calibration is an input like apply's",
-                 "db": "compare's figure; the database is opened read-only",
-                 "check": "its manifest is an input like calibrate's"}
+    elsewhere = {
+        "demo": "writes only what it simulates, into a new folder",
+        "simulate": "reads nothing",
+        "acquire": "its plan and configuration are inputs (tests/test_acquire.py)",
+        "posterior": "its manifest is an input like calibrate's",
+        "scan": "writes a manifest beside the files it lists (tests/test_scan.py)",
+        "cots": "its manifest is an input like calibrate's",
+        "export": "its calibration is an input like apply's",
+        "db": "compare's figure; the database is opened read-only",
+        "check": "its manifest is an input like calibrate's",
+    }
     unknown = writes - set(OVERWRITE_PROBES) - set(elsewhere)
     assert not unknown, f"{sorted(unknown)} write: give each an overwrite probe"
 
@@ -282,8 +370,15 @@ def test_no_verb_writes_over_what_it_read(verb, inputs, tmp_path, capsys):
 # 3. Every file a user hands in is read within bounds
 # --------------------------------------------------------------------------------------
 #: Calls that parse a user's file, allowed only in emccdcal._files.
-_PARSERS = {("tomllib", "loads"), ("tomllib", "load"), ("yaml", "safe_load"), ("yaml", "load"),
-            ("ET", "parse"), ("ET", "fromstring"), ("json", "load")}
+_PARSERS = {
+    ("tomllib", "loads"),
+    ("tomllib", "load"),
+    ("yaml", "safe_load"),
+    ("yaml", "load"),
+    ("ET", "parse"),
+    ("ET", "fromstring"),
+    ("json", "load"),
+}
 
 
 def test_every_loader_of_a_user_file_is_bounded():
@@ -300,28 +395,39 @@ def test_every_loader_of_a_user_file_is_bounded():
             name = owner.id if isinstance(owner, ast.Name) else None
             assert (name, node.func.attr) not in _PARSERS, (
                 f"{path.relative_to(SRC)}:{node.lineno}: {name}.{node.func.attr}: read user "
-                "files through emccdcal._files")
+                "files through emccdcal._files"
+            )
             if (name, node.func.attr) == ("json", "loads") and node.args:
                 inner = ast.unparse(node.args[0])
                 assert "read_text" not in inner and "read_bytes" not in inner, (
-                    f"{path.relative_to(SRC)}:{node.lineno}: JSON from a file: use "
-                    "_files.load_json")
+                    f"{path.relative_to(SRC)}:{node.lineno}: JSON from a file: use _files.load_json"
+                )
         text = path.read_text()
         if "loadmat(" in text:
             assert "check_mat(" in text, f"{path.relative_to(SRC)}: loadmat without check_mat"
 
 
-BOMB = "\n".join(["a: &a [x, x, x, x, x, x, x, x, x]"] + [
-    f"{chr(98 + i)}: &{chr(98 + i)} [" + ", ".join([f"*{chr(97 + i)}"] * 9) + "]"
-    for i in range(9)]) + "\n"
+BOMB = (
+    "\n".join(
+        ["a: &a [x, x, x, x, x, x, x, x, x]"]
+        + [
+            f"{chr(98 + i)}: &{chr(98 + i)} [" + ", ".join([f"*{chr(97 + i)}"] * 9) + "]"
+            for i in range(9)
+        ]
+    )
+    + "\n"
+)
 
 
-@pytest.mark.parametrize("content, words", [
-    (BOMB, "YAML aliases"),
-    ("[" * 5000 + "]" * 5000, "nested"),
-    ('{"Cameras": {"x": {"Sensitivity": ' + "9" * 400 + "}}}", "64 bits"),
-    ('{"Cameras": {"x": {"Sensitivity": NaN}}}', "not a number JSON allows"),
-])
+@pytest.mark.parametrize(
+    "content, words",
+    [
+        (BOMB, "YAML aliases"),
+        ("[" * 5000 + "]" * 5000, "nested"),
+        ('{"Cameras": {"x": {"Sensitivity": ' + "9" * 400 + "}}}", "64 bits"),
+        ('{"Cameras": {"x": {"Sensitivity": NaN}}}', "not a number JSON allows"),
+    ],
+)
 def test_audit_refuses_hostile_settings_quickly(content, words, camera_a, tmp_path, capsys):
     f = tmp_path / "config.yaml"
     f.write_text(content)
@@ -345,17 +451,18 @@ def test_a_mat_bomb_is_refused_before_it_inflates(camera_a, tmp_path, capsys):
 def test_fifos_devices_and_folders_are_refused_before_opening(verb, camera_a, tmp_path, capsys):
     fifo = tmp_path / "pipe"
     os.mkfifo(fifo)
-    tail = ([] if verb == "plan" else ["--calibration", camera_a["cal"], "--setpoint", 100])
+    tail = [] if verb == "plan" else ["--calibration", camera_a["cal"], "--setpoint", 100]
     head = ["plan", "--check"] if verb == "plan" else ["audit"]
-    for target, words in ((fifo, "FIFO"), (Path("/dev/zero"), "a device"),
-                          (tmp_path, "a folder")):
+    for target, words in ((fifo, "FIFO"), (Path("/dev/zero"), "a device"), (tmp_path, "a folder")):
         code, _, err = _run(capsys, *head, target, *tail)
         _refused(code, err, words)
 
 
 def test_a_plan_with_huge_or_deep_values_is_one_line(tmp_path, capsys):
-    for text, words in (("x = " + "9" * 5000 + "\n", "not a readable plan"),
-                        ("x = " + "[" * 3000 + "]" * 3000 + "\n", "nested")):
+    for text, words in (
+        ("x = " + "9" * 5000 + "\n", "not a readable plan"),
+        ("x = " + "[" * 3000 + "]" * 3000 + "\n", "nested"),
+    ):
         f = tmp_path / "p.toml"
         f.write_text(text)
         _refused(*_run(capsys, "plan", "--check", f)[::2], words)
@@ -383,11 +490,14 @@ def test_a_serial_is_not_mathematics_in_a_figure(tmp_path, capsys):
     serial = "SN$\\x$42"
     db = tmp_path / "c.sqlite"
     for i, date in enumerate(("2026-01-01", "2026-02-01")):
-        database.add(true_result(tmp_path / f"r{i}", camera={"serial": serial}, seed=i,
-                                 spread=0.01),
-                     db=db, date=date)
-    code, _, err = _run(capsys, "db", "compare", "--camera", serial, "--db", db, "-o",
-                        tmp_path / "fig", "-q")
+        database.add(
+            true_result(tmp_path / f"r{i}", camera={"serial": serial}, seed=i, spread=0.01),
+            db=db,
+            date=date,
+        )
+    code, _, err = _run(
+        capsys, "db", "compare", "--camera", serial, "--db", db, "-o", tmp_path / "fig", "-q"
+    )
     assert code in (0, 1), err
     assert list((tmp_path / "fig").glob("gain-history-*.png"))
 
@@ -397,8 +507,20 @@ def test_a_tool_files_camera_name_is_one_escaped_line(camera_a, tmp_path, capsys
 
     name = "cam\nOK: photons within 2 %\x1b[31m"
     f = tmp_path / "config.yaml"
-    f.write_text(yaml.safe_dump({"Cameras": {name: {
-        "Baseline": OFFSET, "Sensitivity": PHI, "Gain": GAINS[100.0], "Quantum Efficiency": 1}}}))
+    f.write_text(
+        yaml.safe_dump(
+            {
+                "Cameras": {
+                    name: {
+                        "Baseline": OFFSET,
+                        "Sensitivity": PHI,
+                        "Gain": GAINS[100.0],
+                        "Quantum Efficiency": 1,
+                    }
+                }
+            }
+        )
+    )
     _, out, _ = _run(capsys, "audit", f, "--calibration", camera_a["cal"], "--setpoint", 100)
     assert "\x1b" not in out
     assert not any(line.startswith("OK: photons") for line in out.splitlines())
@@ -417,15 +539,19 @@ def test_reading_never_creates_or_changes_a_database(camera_a, tmp_path, capsys)
     notes.write_text("")
     for db in (foreign, notes):
         before = file_sha256(db)
-        for argv in (["db", "list", "--db", db], ["db", "add", camera_a["cal"], "--db", db],
-                     ["report", camera_a["cal"], "--db", db, "-o", tmp_path / "r.html"]):
+        for argv in (
+            ["db", "list", "--db", db],
+            ["db", "add", camera_a["cal"], "--db", db],
+            ["report", camera_a["cal"], "--db", db, "-o", tmp_path / "r.html"],
+        ):
             code, _, err = _run(capsys, *argv)
-            _refused(code, err, "not a calibration database" if db == notes else
-                     "another program")
+            _refused(code, err, "not a calibration database" if db == notes else "another program")
         assert file_sha256(db) == before
     typo = tmp_path / "no" / "such" / "cal.sqlite"
-    for argv in (["db", "list", "--db", typo], ["report", camera_a["cal"], "--db", typo,
-                                                  "-o", tmp_path / "r2.html"]):
+    for argv in (
+        ["db", "list", "--db", typo],
+        ["report", camera_a["cal"], "--db", typo, "-o", tmp_path / "r2.html"],
+    ):
         _refused(*_run(capsys, *argv)[::2], "no calibration database here")
     assert not (tmp_path / "no").exists()
 
@@ -440,8 +566,10 @@ def _audit(capsys, camera_a, path):
 def test_audit_skips_commented_macro_lines(camera_a, tmp_path, capsys):
     macro = tmp_path / "camera.ijm"
     good = f'run("Camera setup", "offset={OFFSET} photons2adu={PHI} isemgain=true gainem=90.06");'
-    macro.write_text('// run("Camera setup", "offset=1 photons2adu=9 isemgain=false");\n'
-                     f"{good}\n/* {good.replace('90.06', '5')} */\n")
+    macro.write_text(
+        '// run("Camera setup", "offset=1 photons2adu=9 isemgain=false");\n'
+        f"{good}\n/* {good.replace('90.06', '5')} */\n"
+    )
     code, out, err = _audit(capsys, camera_a, macro)
     assert code == 0 and "photons2adu  4" in out.replace("4.0", "4"), out + err
     macro.write_text(good + "\n" + good.replace("90.06", "300") + "\n")
@@ -457,8 +585,10 @@ def test_audit_never_takes_an_expression_for_a_number(camera_a, tmp_path, capsys
 @pytest.mark.parametrize("qe", ["NaN", "-0.9", "90", "true"])
 def test_audit_refuses_a_quantum_efficiency_outside_0_1(qe, camera_a, tmp_path, capsys):
     f = tmp_path / "config.yaml"
-    f.write_text(f"Cameras:\n  cam:\n    Baseline: {OFFSET}\n    Sensitivity: {PHI}\n"
-                 f"    Gain: 90.06\n    Quantum Efficiency: {qe}\n")
+    f.write_text(
+        f"Cameras:\n  cam:\n    Baseline: {OFFSET}\n    Sensitivity: {PHI}\n"
+        f"    Gain: 90.06\n    Quantum Efficiency: {qe}\n"
+    )
     _refused(*_audit(capsys, camera_a, f)[::2], "Quantum Efficiency")
 
 
@@ -468,13 +598,16 @@ def test_audit_refuses_a_quantum_efficiency_outside_0_1(qe, camera_a, tmp_path, 
 PLAN = ["plan", "--e-per-adu", "3.9", "--read-noise", "15", "--offset", "600", "-q"]
 
 
-@pytest.mark.parametrize("change, words", [
-    (("--e-per-adu", "1e-300"), "--e-per-adu 1e-300 is outside"),
-    (("--read-noise", "1e-300"), "--read-noise 1e-300 is outside"),
-    (("--stages", "100000000"), "--stages 1e+08 is outside"),
-    (("--target-se", "1e-9"), "--target-se 1e-09 is outside"),
-    (("--offset", "1e302"), "--offset 1e+302 is outside"),  # was "negative"
-])
+@pytest.mark.parametrize(
+    "change, words",
+    [
+        (("--e-per-adu", "1e-300"), "--e-per-adu 1e-300 is outside"),
+        (("--read-noise", "1e-300"), "--read-noise 1e-300 is outside"),
+        (("--stages", "100000000"), "--stages 1e+08 is outside"),
+        (("--target-se", "1e-9"), "--target-se 1e-09 is outside"),
+        (("--offset", "1e302"), "--offset 1e+302 is outside"),  # was "negative"
+    ],
+)
 def test_a_number_out_of_range_is_refused_before_any_work(change, words, capsys):
     argv = list(PLAN)
     if change[0] in argv:
@@ -486,9 +619,16 @@ def test_a_number_out_of_range_is_refused_before_any_work(change, words, capsys)
     assert time.perf_counter() - t0 < 20  # it ran past 120 s
 
 
-_NUMERIC_TYPES = {float, int, _common.positive_float, _common.positive_int,
-                  _common.nonnegative_int, _common.number_list,
-                  _common.number_or_path, _common.stages_or_auto}
+_NUMERIC_TYPES = {
+    float,
+    int,
+    _common.positive_float,
+    _common.positive_int,
+    _common.nonnegative_int,
+    _common.number_list,
+    _common.number_or_path,
+    _common.stages_or_auto,
+}
 
 
 def _numeric_options():
@@ -540,16 +680,17 @@ def test_a_bead_width_out_of_range_is_refused(tmp_path, capsys):
     from test_cots import _write_beads
 
     manifest = _write_beads(tmp_path / "beads", setpoints=(1, 300), frames=40)
-    _refused(*_run(capsys, "cots", manifest, "-o", tmp_path / "o", "--width", "1e300")[::2],
-             "--width 1e+300 is outside")
+    _refused(
+        *_run(capsys, "cots", manifest, "-o", tmp_path / "o", "--width", "1e300")[::2],
+        "--width 1e+300 is outside",
+    )
 
 
 # --------------------------------------------------------------------------------------
 # A full disk is one line, and loses nothing already written
 # --------------------------------------------------------------------------------------
 @pytest.mark.parametrize("verb", ["report", "gain-check"])
-def test_a_full_disk_is_one_line_and_loses_nothing(verb, camera_a, tmp_path, capsys,
-                                                   monkeypatch):
+def test_a_full_disk_is_one_line_and_loses_nothing(verb, camera_a, tmp_path, capsys, monkeypatch):
     import errno
 
     import emccdcal._output as output
@@ -563,11 +704,23 @@ def test_a_full_disk_is_one_line_and_loses_nothing(verb, camera_a, tmp_path, cap
     monkeypatch.setattr(output.os, "fsync", full)  # the disk fills as the file is flushed
     darks = tmp_path / "darks.tif"
     if verb == "gain-check":  # clock-induced charge only, at 100x
-        tifffile.imwrite(darks, simulate_frames(np.full(SHAPE, 0.05), em_gain=GAINS[100.0],
-                                                e_per_adu=PHI, offset=OFFSET, read_noise=SIGMA,
-                                                frames=1500, seed=2))
-    argv = (["report", camera_a["cal"], "-o", out / "r.html"] if verb == "report" else
-            ["gain-check", darks, "--e-per-adu", PHI, "--setpoint", 100, "-o", out, "-q"])
+        tifffile.imwrite(
+            darks,
+            simulate_frames(
+                np.full(SHAPE, 0.05),
+                em_gain=GAINS[100.0],
+                e_per_adu=PHI,
+                offset=OFFSET,
+                read_noise=SIGMA,
+                frames=1500,
+                seed=2,
+            ),
+        )
+    argv = (
+        ["report", camera_a["cal"], "-o", out / "r.html"]
+        if verb == "report"
+        else ["gain-check", darks, "--e-per-adu", PHI, "--setpoint", 100, "-o", out, "-q"]
+    )
     code, _, err = _run(capsys, *argv)
     _refused(code, err, "No space left on device")
     assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]
@@ -577,10 +730,17 @@ def test_zarr_settings_of_the_wrong_type_are_one_line(tmp_path):
     from emccdcal.data.stacks import stack_settings
     from emccdcal.errors import InputError
 
-    for key, value in (("adc_bits", "16"), ("em_gain_setpoint", "abc"), ("roi", "abcd"),
-                       ("binning", [2]), ("binning", [0, 0]), ("binning", [-1, 2])):
-        store = write_zarr(tmp_path / f"{key}{len(str(value))}.zarr", _frames(100.0),
-                           **{key: value})
+    for key, value in (
+        ("adc_bits", "16"),
+        ("em_gain_setpoint", "abc"),
+        ("roi", "abcd"),
+        ("binning", [2]),
+        ("binning", [0, 0]),
+        ("binning", [-1, 2]),
+    ):
+        store = write_zarr(
+            tmp_path / f"{key}{len(str(value))}.zarr", _frames(100.0), **{key: value}
+        )
         with pytest.raises(InputError, match=f"camera setting {key}"):
             stack_settings(store)
 
@@ -596,5 +756,8 @@ def test_gain_check_given_a_map_names_the_file(tmp_path, capsys):
     """An offset map given as darks once said 'dark stack must be 3-D' without the file."""
     path = tmp_path / "300x-gain_no-signal_S0.tif"
     tifffile.imwrite(path, np.full((3, 3), 600.0, dtype=np.float32))
-    _refused(*_run(capsys, "gain-check", path, "--e-per-adu", "3.8", "--setpoint", "300")[::2],
-             str(path), "not a 3-D")
+    _refused(
+        *_run(capsys, "gain-check", path, "--e-per-adu", "3.8", "--setpoint", "300")[::2],
+        str(path),
+        "not a 3-D",
+    )

@@ -17,8 +17,9 @@ from emccdcal.simulate.series import simulate_gain_series
 
 @pytest.fixture(scope="module")
 def gain_series(tmp_path_factory):
-    return simulate_gain_series(tmp_path_factory.mktemp("gs"), rows=3, cols=3, frames=500,
-                                seed=4, progress=False)
+    return simulate_gain_series(
+        tmp_path_factory.mktemp("gs"), rows=3, cols=3, frames=500, seed=4, progress=False
+    )
 
 
 def _layout_and_fit(manifest, method, phi):
@@ -28,14 +29,20 @@ def _layout_and_fit(manifest, method, phi):
 def _layout_and_fit_acquisitions(acqs, method, phi, dark_frames=None):
     hists = [pixel_stats.histograms(a.frames()) for a in acqs]
     dark_frames = [None] * len(acqs) if dark_frames is None else dark_frames
-    models = [AcquisitionModel(a.em_gain_setpoint, a.offset.ravel(), a.read_noise.ravel(),
-                               EMModel("gamma"), n) for a, n in zip(acqs, dark_frames)]
+    models = [
+        AcquisitionModel(
+            a.em_gain_setpoint, a.offset.ravel(), a.read_noise.ravel(), EMModel("gamma"), n
+        )
+        for a, n in zip(acqs, dark_frames)
+    ]
     lik = SeriesLikelihood(method, models, hists, e_per_adu=phi, options={})
     return lik.layout, lik.blocks, lik.fit()
 
 
 def test_bounds_are_where_the_deviance_reaches_the_quantile(gain_series):
-    layout, blocks, fit = _layout_and_fit(gain_series.manifest, "gs", gain_series.truth["e_per_adu"])
+    layout, blocks, fit = _layout_and_fit(
+        gain_series.manifest, "gs", gain_series.truth["e_per_adu"]
+    )
     assert fit.converged.all()
     target = stats.chi2.ppf(0.95, 1)
     for j in (0, layout.n_free - 1):  # ln E and ln g at the highest set-point
@@ -55,14 +62,16 @@ def test_bounds_include_the_errors_of_the_maps(gain_series):
     """Maps from few dark frames: the profile interval of a well-determined parameter is
     the Wald interval of the SE that includes the maps' errors, not the conditional one."""
     acqs = read_manifest(gain_series.manifest).acquisitions
-    layout, blocks, fit = _layout_and_fit_acquisitions(acqs, "gs", gain_series.truth["e_per_adu"],
-                                                       dark_frames=[10] * len(acqs))
+    layout, blocks, fit = _layout_and_fit_acquisitions(
+        acqs, "gs", gain_series.truth["e_per_adu"], dark_frames=[10] * len(acqs)
+    )
     conditional = np.linalg.inv(engine._evaluate(layout, blocks, fit.x, 2)[4])
     j = 0  # ln E, whose variance the error of the 1× offset map more than doubles here
     assert np.all(fit.cov[:, j, j] > 2 * conditional[:, j, j])
     lower, upper = engine.profile_bounds(layout, blocks, fit, j)
-    np.testing.assert_allclose((upper - lower) / (2 * 1.959964 * np.sqrt(fit.cov[:, j, j])),
-                               1.0, atol=0.03)
+    np.testing.assert_allclose(
+        (upper - lower) / (2 * 1.959964 * np.sqrt(fit.cov[:, j, j])), 1.0, atol=0.03
+    )
 
 
 @pytest.mark.slow
@@ -77,8 +86,16 @@ def test_calibrate_writes_bounds_on_the_estimate_dims(gain_series):
     assert np.all(np.isnan(ds.em_gain_lower.sel(setpoint=1)))  # 1× is fixed
     for name in ("em_gain", "photoelectrons"):
         est = ds[name].values[..., 1:, :, :] if name == "em_gain" else ds[name].values
-        lo = ds[f"{name}_lower"].values[..., 1:, :, :] if name == "em_gain" else ds[f"{name}_lower"].values
-        hi = ds[f"{name}_upper"].values[..., 1:, :, :] if name == "em_gain" else ds[f"{name}_upper"].values
+        lo = (
+            ds[f"{name}_lower"].values[..., 1:, :, :]
+            if name == "em_gain"
+            else ds[f"{name}_lower"].values
+        )
+        hi = (
+            ds[f"{name}_upper"].values[..., 1:, :, :]
+            if name == "em_gain"
+            else ds[f"{name}_upper"].values
+        )
         assert np.all(lo < est) and np.all(est < hi)
     assert ds.attrs["intervals"].startswith("profile")
 
@@ -94,9 +111,20 @@ def test_profile_bounds_where_the_information_is_nearly_singular(tmp_path):
     """A set-point whose own data hardly see E (10× on a noisy camera): the profile
     deviance is flat over a decade of E and then rises as a wall where the gain reaches
     its bound of 1. The bounds must still be found (no NaN), on the quantile or at g = 1."""
-    sim = simulate_gain_series(tmp_path, setpoints=(1, 10), em_gain=(1, 9.1), photoelectrons=60.0,
-                               rows=4, cols=4, frames=2000, e_per_adu=12.0, read_noise=40.0,
-                               offset=1000.0, seed=3, progress=False)
+    sim = simulate_gain_series(
+        tmp_path,
+        setpoints=(1, 10),
+        em_gain=(1, 9.1),
+        photoelectrons=60.0,
+        rows=4,
+        cols=4,
+        frames=2000,
+        e_per_adu=12.0,
+        read_noise=40.0,
+        offset=1000.0,
+        seed=3,
+        progress=False,
+    )
     acqs = read_manifest(sim.manifest).acquisitions[1:]  # the 10× acquisition alone
     layout, blocks, fit = _layout_and_fit_acquisitions(acqs, "gs-no1x", 12.0)
     # Where the excess variance is below what a gain of 1 gives the optimum is at g = 1:
@@ -131,8 +159,9 @@ def test_hierarchical_intervals_are_those_of_each_set_point_alone(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         # the gamma register, as the likelihoods made below
-        ds = calibrate(sim.manifest, "gs-hierarchical", checks=False, map_errors=False,
-                       em_model="gamma")
+        ds = calibrate(
+            sim.manifest, "gs-hierarchical", checks=False, map_errors=False, em_model="gamma"
+        )
     assert ds.attrs["intervals"].startswith("95 %, of the same model without the prior")
     acqs = read_manifest(sim.manifest).acquisitions
     phi = sim.truth["e_per_adu"]

@@ -212,13 +212,16 @@ def test_integer_valued_float_and_signed_data_are_accepted(files):
 
 def test_read_noise_growth_warns(files):
     imwrite(files / "data/hi_sigma.tif", np.full(SHAPE, 23.3, np.float32))
-    text = ONE_1X + """
+    text = (
+        ONE_1X
+        + """
 [[acquisition]]
 frames = "data/5x.tif"
 em_gain_setpoint = 300
 offset = 566
 read_noise = "data/hi_sigma.tif"
 """
+    )
     with pytest.warns(errors.ReadNoiseGrowthWarning, match="clock-induced charge"):
         m = read_manifest(write(files, text))
     assert len(m.warnings) == 1
@@ -234,13 +237,16 @@ def test_a_dark_used_twice_is_reduced_once(files, monkeypatch):
         return real(stack_, *args, **kw)
 
     monkeypatch.setattr(manifest_module, "read_out_maps", counting)
-    text = GOOD + """
+    text = (
+        GOOD
+        + """
 [[acquisition]]
 frames = "data/1x.tif"
 em_gain_setpoint = 5
 dark = "data/dark5x.tif"
 level = "L1"
 """.replace("data/1x.tif", "data/other.tif")
+    )
     imwrite(files / "data/other.tif", stack(9))
     m = read_manifest(write(files, text))
     assert len(calls) == 1
@@ -384,8 +390,9 @@ def test_dark_of_different_shape(files):
     assert "dark5x.tif" in msg and "(3, 3)" in msg and "(3, 4)" in msg
 
 
-@pytest.mark.parametrize("key, file", [("offset", "1x_S0.tif"), ("read_noise", "1x_sigma.tif"),
-                                       ("e_per_adu", "phi.tif")])
+@pytest.mark.parametrize(
+    "key, file", [("offset", "1x_S0.tif"), ("read_noise", "1x_sigma.tif"), ("e_per_adu", "phi.tif")]
+)
 def test_map_of_wrong_shape(files, key, file):
     imwrite(files / "data" / file, np.ones((4, 3), np.float32))
     msg = error_of(write(files, GOOD))

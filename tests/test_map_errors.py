@@ -20,8 +20,11 @@ DARK_FRAMES = 60
 def _dark_manifest(sim):
     """The simulated manifest with each acquisition's dark stack instead of its maps."""
     text = sim.manifest.read_text()
-    text = re.sub(r'offset = "[^"]+"\nread_noise = "[^"]+"\ndark_frames = .*\n# dark = "([^"]+)".*',
-                  r'dark = "\1"', text)
+    text = re.sub(
+        r'offset = "[^"]+"\nread_noise = "[^"]+"\ndark_frames = .*\n# dark = "([^"]+)".*',
+        r'dark = "\1"',
+        text,
+    )
     path = sim.outdir / "manifest-dark.toml"
     path.write_text(text)
     return path
@@ -41,8 +44,15 @@ def _run(manifest, method, map_errors):
 
 @pytest.fixture(scope="module")
 def gain_series(tmp_path_factory):
-    sim = simulate_gain_series(tmp_path_factory.mktemp("gs"), rows=32, cols=32, frames=1000,
-                               dark_frames=DARK_FRAMES, seed=8, progress=False)
+    sim = simulate_gain_series(
+        tmp_path_factory.mktemp("gs"),
+        rows=32,
+        cols=32,
+        frames=1000,
+        dark_frames=DARK_FRAMES,
+        seed=8,
+        progress=False,
+    )
     return sim, _dark_manifest(sim)
 
 
@@ -77,8 +87,9 @@ def test_gain_series_coverage_with_map_errors(gain_series):
 @pytest.mark.slow
 def test_shared_dark_of_an_intensity_series(tmp_path):
     """Six levels share one dark stack: their map errors are one draw, not six."""
-    sim = simulate_intensity_series(tmp_path, rows=32, cols=32, frames=1000,
-                                    dark_frames=DARK_FRAMES, seed=9, progress=False)
+    sim = simulate_intensity_series(
+        tmp_path, rows=32, cols=32, frames=1000, dark_frames=DARK_FRAMES, seed=9, progress=False
+    )
     manifest = _dark_manifest(sim)
     full = _run(manifest, "is-adu", True)
     conditional = _run(manifest, "is-adu", False)

@@ -56,8 +56,9 @@ def test_mv_adu_image_shaped_pixels_equal_flat():
     var = var * rng.uniform(0.97, 1.03, size=var.shape)
     offset = np.full((4, 3), S0)
     img = fit_mv_adu(mean, var, offset, SIGMA, [1000, 2000, 3000, 4000, 5000])
-    flat = fit_mv_adu(mean.reshape(5, 12), var.reshape(5, 12), S0, SIGMA,
-                      [1000, 2000, 3000, 4000, 5000])
+    flat = fit_mv_adu(
+        mean.reshape(5, 12), var.reshape(5, 12), S0, SIGMA, [1000, 2000, 3000, 4000, 5000]
+    )
     assert img.e_per_adu.shape == (4, 3) and img.photoelectrons.shape == (5, 4, 3)
     np.testing.assert_allclose(img.e_per_adu.ravel(), flat.e_per_adu)
     np.testing.assert_allclose(img.e_per_adu_se.ravel(), flat.e_per_adu_se)
@@ -111,11 +112,14 @@ N_FRAMES = 1000
 def adu_series():
     rng = np.random.default_rng(20210917)
     levels = np.array([20.0, 60.0, 150.0, 400.0, 1000.0, 2500.0])  # E, e⁻
-    mean, var = zip(*(
-        sample_moments(rng, np.full(P, S0 + E / PHI), np.full(P, SIGMA**2 + E / PHI**2),
-                       N_FRAMES)
-        for E in levels
-    ))
+    mean, var = zip(
+        *(
+            sample_moments(
+                rng, np.full(P, S0 + E / PHI), np.full(P, SIGMA**2 + E / PHI**2), N_FRAMES
+            )
+            for E in levels
+        )
+    )
     return levels, np.array(mean), np.array(var)
 
 
@@ -159,11 +163,17 @@ def gain_series():
     offsets = np.array([100.0, 99.0, 97.0, 95.0, 93.0])  # offset drifts with set-point
     sigmas = np.array([10.0, 10.0, 10.5, 11.0, 14.0])
     F2 = np.where(GAINS == 1, 1.0, 2.0)
-    mean, var = zip(*(
-        sample_moments(rng, np.full(P, s0 + g * E_GS / PHI),
-                       np.full(P, s**2 + f * E_GS * (g / PHI) ** 2), N_FRAMES)
-        for g, s0, s, f in zip(GAINS, offsets, sigmas, F2)
-    ))
+    mean, var = zip(
+        *(
+            sample_moments(
+                rng,
+                np.full(P, s0 + g * E_GS / PHI),
+                np.full(P, s**2 + f * E_GS * (g / PHI) ** 2),
+                N_FRAMES,
+            )
+            for g, s0, s, f in zip(GAINS, offsets, sigmas, F2)
+        )
+    )
     return np.array(mean), np.array(var), offsets[:, None], sigmas[:, None]
 
 
@@ -185,8 +195,7 @@ def test_mv_gain_propagates_phi_uncertainty(gain_series):
     rng = np.random.default_rng(7)
     rel = 0.02  # 2 % uncertain φ, different in every pixel
     phi_hat = PHI * (1 + rel * rng.standard_normal(P))
-    fit = fit_mv_gain(mean, var, offsets, sigmas, N_FRAMES, phi_hat, GAINS,
-                      e_per_adu_se=rel * PHI)
+    fit = fit_mv_gain(mean, var, offsets, sigmas, N_FRAMES, phi_hat, GAINS, e_per_adu_se=rel * PHI)
     without = fit_mv_gain(mean, var, offsets, sigmas, N_FRAMES, phi_hat, GAINS)
     assert np.all(fit.em_gain_se[1:] > without.em_gain_se[1:])
     for k in range(1, GAINS.size):
@@ -197,11 +206,17 @@ def test_mv_gain_propagates_phi_uncertainty(gain_series):
 def test_mv_gain_intensity_series_at_gain():
     rng = np.random.default_rng(3)
     g, levels = 20.0, np.array([5.0, 15.0, 40.0, 100.0])
-    mean, var = zip(*(
-        sample_moments(rng, np.full(P, S0 + g * E / PHI),
-                       np.full(P, SIGMA**2 + 2 * E * (g / PHI) ** 2), N_FRAMES)
-        for E in levels
-    ))
+    mean, var = zip(
+        *(
+            sample_moments(
+                rng,
+                np.full(P, S0 + g * E / PHI),
+                np.full(P, SIGMA**2 + 2 * E * (g / PHI) ** 2),
+                N_FRAMES,
+            )
+            for E in levels
+        )
+    )
     fit = fit_mv_gain(np.array(mean), np.array(var), S0, SIGMA, N_FRAMES, PHI, [g] * 4)
     assert fit.setpoints.tolist() == [g] and fit.dof.tolist() == [3]
     assert abs(fit.em_gain[0].mean() - g) < 3 * np.sqrt(np.mean(fit.em_gain_se[0] ** 2) / P)
@@ -386,19 +401,30 @@ def test_mv_gain_bounds_where_the_excess_variance_is_not_seen():
     P, n, phi, s0, sigma, E, g = 4000, 2000, 12.0, 1000.0, 40.0, 60.0, 9.1
     x = g * E / phi
     v = sigma**2 + 2 * E * (g / phi) ** 2
-    mean = np.stack([s0 + E / phi + rng.normal(0, np.sqrt((sigma**2 + E / phi**2) / n), P),
-                     s0 + x + rng.normal(0, np.sqrt(v / n), P)])
-    var = np.stack([np.full(P, sigma**2 + E / phi**2),
-                    v + rng.normal(0, v * np.sqrt(2 / (n - 1)), P)])
+    mean = np.stack(
+        [
+            s0 + E / phi + rng.normal(0, np.sqrt((sigma**2 + E / phi**2) / n), P),
+            s0 + x + rng.normal(0, np.sqrt(v / n), P),
+        ]
+    )
+    var = np.stack(
+        [np.full(P, sigma**2 + E / phi**2), v + rng.normal(0, v * np.sqrt(2 / (n - 1)), P)]
+    )
     fit = fit_mv_gain(mean, var, s0, sigma, n, phi, [1, 10])
     undefined = ~np.isfinite(fit.em_gain[1])
     assert 0.02 < undefined.mean() < 0.2
     ok = ~undefined
-    assert np.all((fit.em_gain_lower[1][ok] <= fit.em_gain[1][ok])
-                  & (fit.em_gain[1][ok] <= fit.em_gain_upper[1][ok]))
-    assert np.all((fit.photoelectrons_lower[1][ok] <= fit.photoelectrons[1][ok])
-                  & (fit.photoelectrons[1][ok] <= fit.photoelectrons_upper[1][ok]))
-    for lo, hi, truth in ((fit.em_gain_lower[1], fit.em_gain_upper[1], g),
-                          (fit.photoelectrons_lower[1], fit.photoelectrons_upper[1], E)):
+    assert np.all(
+        (fit.em_gain_lower[1][ok] <= fit.em_gain[1][ok])
+        & (fit.em_gain[1][ok] <= fit.em_gain_upper[1][ok])
+    )
+    assert np.all(
+        (fit.photoelectrons_lower[1][ok] <= fit.photoelectrons[1][ok])
+        & (fit.photoelectrons[1][ok] <= fit.photoelectrons_upper[1][ok])
+    )
+    for lo, hi, truth in (
+        (fit.em_gain_lower[1], fit.em_gain_upper[1], g),
+        (fit.photoelectrons_lower[1], fit.photoelectrons_upper[1], E),
+    ):
         assert 0.93 <= np.mean((lo <= truth) & (truth <= hi)) <= 0.97
     assert np.isnan(fit.em_gain_lower[0]).all()  # g at 1× is fixed

@@ -27,8 +27,9 @@ from camera_files import write_fits, write_micromanager_tiff, write_spe, write_z
 from emccdcal import cli  # noqa: E402
 from emccdcal.data.stacks import load_stack  # noqa: E402
 
-pytestmark = pytest.mark.skipif(shutil.which("Xvfb") is None,
-                                reason="no Xvfb on this machine (Debian package 'xvfb')")
+pytestmark = pytest.mark.skipif(
+    shutil.which("Xvfb") is None, reason="no Xvfb on this machine (Debian package 'xvfb')"
+)
 DOC_FIGURES = Path(__file__).resolve().parents[1] / "docs" / "figures" / "napari"
 
 
@@ -36,9 +37,12 @@ DOC_FIGURES = Path(__file__).resolve().parents[1] / "docs" / "figures" / "napari
 def display():
     """An X server of our own (Xvfb, no TCP) for the session's Qt application."""
     read, write = os.pipe()
-    server = subprocess.Popen(["Xvfb", "-displayfd", str(write), "-screen", "0",
-                               "1400x1000x24", "-nolisten", "tcp"], pass_fds=[write],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    server = subprocess.Popen(
+        ["Xvfb", "-displayfd", str(write), "-screen", "0", "1400x1000x24", "-nolisten", "tcp"],
+        pass_fds=[write],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     os.close(write)
     with os.fdopen(read) as f:
         number = f.readline().strip()
@@ -50,10 +54,17 @@ def display():
     # Qt aborts the process when its platform plugin cannot load (missing xcb libraries):
     # try it in a child first, so that such a machine skips instead of losing a worker.
     probe = subprocess.run(
-        [sys.executable, "-c", "from qtpy.QtWidgets import QApplication\n"
-         "from qtpy.QtGui import QOpenGLContext\napp = QApplication([])\n"
-         "assert QOpenGLContext().create(), 'no OpenGL context'"],
-        capture_output=True, text=True, timeout=120)
+        [
+            sys.executable,
+            "-c",
+            "from qtpy.QtWidgets import QApplication\n"
+            "from qtpy.QtGui import QOpenGLContext\napp = QApplication([])\n"
+            "assert QOpenGLContext().create(), 'no OpenGL context'",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     if probe.returncode != 0:
         server.terminate()
         server.wait(10)
@@ -91,26 +102,30 @@ def _screenshot(viewer, name, tmp_path):
 # Manifest and discovery; nothing imported by the package or the command line
 # --------------------------------------------------------------------------------------
 def test_the_manifest_is_valid_and_napari_finds_the_plugin():
-    run = subprocess.run([sys.executable, "-m", "npe2", "validate", "emccdcal"],
-                         capture_output=True, text=True)
+    run = subprocess.run(
+        [sys.executable, "-m", "npe2", "validate", "emccdcal"], capture_output=True, text=True
+    )
     assert run.returncode == 0 and "valid" in run.stdout, run.stdout + run.stderr
     from npe2 import PluginManager
 
     manager = PluginManager()
     manager.discover()
     assert "emccdcal" in manager.iter_manifests() or "emccdcal" in {
-        m.name for m in manager.iter_manifests()}
+        m.name for m in manager.iter_manifests()
+    }
     widgets = {w.display_name for w in manager.iter_widgets()}
     assert {"Calibrate", "Counts to photoelectrons", "Gain check (dark frames)"} <= widgets
 
 
 def test_emccdcal_and_its_command_line_never_import_napari_or_qt():
-    code = ("import sys, emccdcal, emccdcal.cli\n"
-            "from emccdcal import calibrate, load_result\n"
-            "try:\n    emccdcal.cli.main(['gain-check', '--help'])\nexcept SystemExit:\n    pass\n"
-            "bad = [m for m in sys.modules if m.split('.')[0] in "
-            "('napari', 'PyQt6', 'PyQt5', 'PySide6', 'qtpy', 'magicgui', 'vispy')]\n"
-            "assert not bad, bad\n")
+    code = (
+        "import sys, emccdcal, emccdcal.cli\n"
+        "from emccdcal import calibrate, load_result\n"
+        "try:\n    emccdcal.cli.main(['gain-check', '--help'])\nexcept SystemExit:\n    pass\n"
+        "bad = [m for m in sys.modules if m.split('.')[0] in "
+        "('napari', 'PyQt6', 'PyQt5', 'PySide6', 'qtpy', 'magicgui', 'vispy')]\n"
+        "assert not bad, bad\n"
+    )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr[-2000:]
 
@@ -133,8 +148,7 @@ def test_the_reader_opens_each_format_lazily_with_its_settings(kind, tmp_path):
     elif kind == "sif":
         path = Path(__file__).with_name("data") / "sif" / "test.sif"
     elif kind == "ome.tif":
-        path = write_micromanager_tiff(tmp_path / "s.ome.tif", data, em_gain=300,
-                                       roi="64-32-10-8")
+        path = write_micromanager_tiff(tmp_path / "s.ome.tif", data, em_gain=300, roi="64-32-10-8")
     elif kind == "fits":
         pytest.importorskip("astropy")
         path = write_fits(tmp_path / "s.fits", data, em_gain=300)
@@ -178,7 +192,8 @@ def _wait(qtbot, widget, timeout=180_000):
 
 @pytest.mark.slow
 def test_the_calibrate_widget_matches_the_command_line_and_keeps_the_viewer_drawing(
-        sample, make_napari_viewer, qtbot, tmp_path):
+    sample, make_napari_viewer, qtbot, tmp_path
+):
     """The sample data calibrated by the widget: the layers hold the command line's
     numbers; the event loop keeps running while the worker fits (a timer's ticks); the
     report and a Picasso file written from the widget."""
@@ -207,8 +222,9 @@ def test_the_calibrate_widget_matches_the_command_line_and_keeps_the_viewer_draw
     # the worker's run: until its result reaches the viewer (the result's layers then
     # take napari a moment each to draw, under software OpenGL up to a second: drawing,
     # not the widget's work)
-    qtbot.waitUntil(lambda: bool(ended) or widget.status.value.startswith("error"),
-                    timeout=180_000)  # (the status may say "adding" before the signal)
+    qtbot.waitUntil(
+        lambda: bool(ended) or widget.status.value.startswith("error"), timeout=180_000
+    )  # (the status may say "adding" before the signal)
     timer.stop()
     assert ended, widget.status.value
     elapsed = ended[0] - t0
@@ -217,9 +233,11 @@ def test_the_calibrate_widget_matches_the_command_line_and_keeps_the_viewer_draw
     assert widget.status.value.startswith("done"), widget.status.value
     # the viewer's event loop ran throughout: ticks every 20 ms, no gap of a second
     gaps = np.diff(ticks)
-    print(f"event loop during the run: {len(ticks)} ticks in {elapsed:.1f} s, longest gap "
-          f"{1000 * gaps.max():.0f} ms (at {ticks[int(np.argmax(gaps))] - t0:.1f} s), median "
-          f"{1000 * np.median(gaps):.0f} ms")
+    print(
+        f"event loop during the run: {len(ticks)} ticks in {elapsed:.1f} s, longest gap "
+        f"{1000 * gaps.max():.0f} ms (at {ticks[int(np.argmax(gaps))] - t0:.1f} s), median "
+        f"{1000 * np.median(gaps):.0f} ms"
+    )
     assert len(ticks) > 0.5 * elapsed / 0.02 and gaps.max() < 1.0
     ours, theirs = load_result(widget.result), load_result(cli_result)
     for s in (5, 25, 100, 300):
@@ -306,8 +324,9 @@ def test_the_apply_widget_gives_what_apply_gives(sample, make_napari_viewer, tmp
     _, _, result = sample
     movie = write_micromanager_tiff(
         tmp_path / "movie.ome.tif",
-        simulate_frames(40.0, 260.0, 3.859, 560.0, 15.5, frames=20, rows=32, cols=32,
-                        seed=3), em_gain=300)
+        simulate_frames(40.0, 260.0, 3.859, 560.0, 15.5, frames=20, rows=32, cols=32, seed=3),
+        em_gain=300,
+    )
     viewer = make_napari_viewer()
     (layer,) = viewer.open(str(movie), plugin="emccdcal")
     widget = ApplyWidget(viewer)
@@ -320,8 +339,9 @@ def test_the_apply_widget_gives_what_apply_gives(sample, make_napari_viewer, tmp
         assert out.name == f"movie.ome.tif ({suffix})", widget.status.value
         args = ["apply", str(result), str(movie), "-o", str(tmp_path / f"{suffix}.tif"), "-q"]
         assert cli.main(args + ([] if qe is None else ["--qe", str(qe)])) == 0
-        np.testing.assert_array_equal(np.asarray(out.data),
-                                      tifffile.imread(tmp_path / f"{suffix}.tif"))
+        np.testing.assert_array_equal(
+            np.asarray(out.data), tifffile.imread(tmp_path / f"{suffix}.tif")
+        )
 
 
 @pytest.mark.slow
@@ -330,8 +350,9 @@ def test_the_gain_check_widget_on_a_dark_layer(sample, make_napari_viewer, qtbot
 
     _, manifest, result = sample
     viewer = make_napari_viewer()
-    (layer,) = viewer.open(str(manifest.parent / "gain-GS" / "300x-gain_no-signal.tif"),
-                           plugin="emccdcal")
+    (layer,) = viewer.open(
+        str(manifest.parent / "gain-GS" / "300x-gain_no-signal.tif"), plugin="emccdcal"
+    )
     widget = GainCheckWidget(viewer)
     viewer.window.add_dock_widget(widget, name="Gain check")
     widget.reset_choices()
@@ -363,8 +384,11 @@ def test_every_widget_error_path_is_one_line_on_the_widget(sample, make_napari_v
     check.result.line_edit.value, check.setpoint.value = "", "300"
     check.button.native.click()
     assert check.status.value == "error: give e-/ADU or a calibration of the camera"
-    camera = viewer.add_image(np.full((30, 32, 32), 600, np.uint16), name="cam-b",
-                              metadata={"camera": {"serial": "CAM-B"}})
+    camera = viewer.add_image(
+        np.full((30, 32, 32), 600, np.uint16),
+        name="cam-b",
+        metadata={"camera": {"serial": "CAM-B"}},
+    )
     check.reset_choices()
     check.layer.value, check.result.value = camera, result
     check.button.native.click()  # the sample's calibration records no camera: said
@@ -379,12 +403,12 @@ def test_every_widget_error_path_is_one_line_on_the_widget(sample, make_napari_v
     convert.reset_choices()
     convert.layer.value, convert.result.value = plain, result
     convert.button.native.click()
-    assert convert.status.value.startswith("error:") and "'set-point' field" in \
-        convert.status.value, convert.status.value
+    assert (
+        convert.status.value.startswith("error:") and "'set-point' field" in convert.status.value
+    ), convert.status.value
 
 
-def test_every_widget_taking_a_calibration_checks_the_camera(make_napari_viewer, qtbot,
-                                                            tmp_path):
+def test_every_widget_taking_a_calibration_checks_the_camera(make_napari_viewer, qtbot, tmp_path):
     """The identity guarantee holds in the plugin as on the command line: each widget with
     a calibration field refuses CAM-A's calibration on a layer of CAM-B's frames (a new
     widget with a calibration field and no probe here fails)."""
@@ -396,17 +420,23 @@ def test_every_widget_taking_a_calibration_checks_the_camera(make_napari_viewer,
     from emccdcal.napari import _widgets
 
     cal = true_result(tmp_path / "cal", camera={"serial": "CAM-A"})
-    takes = {name for name, cls in inspect.getmembers(_widgets, inspect.isclass)
-             if issubclass(cls, Container) and cls.__module__ == _widgets.__name__
-             and "result" in inspect.getsource(cls.__init__)}
+    takes = {
+        name
+        for name, cls in inspect.getmembers(_widgets, inspect.isclass)
+        if issubclass(cls, Container)
+        and cls.__module__ == _widgets.__name__
+        and "result" in inspect.getsource(cls.__init__)
+    }
     probes = {"ApplyWidget": "button", "GainCheckWidget": "button"}
     # the Calibrate widget's calibration is φ for a series, checked by calibrate itself
     # (tests/test_guarantees.py probes calibrate)
     assert takes - {"CalibrateWidget"} == set(probes), takes
     viewer = make_napari_viewer()
-    frames = viewer.add_image(np.full((30, 8, 8), 600, np.uint16), name="cam-b",
-                              metadata={"camera": {"serial": "CAM-B"},
-                                        "emccdcal": {"em_gain_setpoint": 100.0}})
+    frames = viewer.add_image(
+        np.full((30, 8, 8), 600, np.uint16),
+        name="cam-b",
+        metadata={"camera": {"serial": "CAM-B"}, "emccdcal": {"em_gain_setpoint": 100.0}},
+    )
     for name, button in probes.items():
         widget = getattr(_widgets, name)(viewer)
         widget.reset_choices()
@@ -415,5 +445,7 @@ def test_every_widget_taking_a_calibration_checks_the_camera(make_napari_viewer,
         getattr(widget, button).native.click()
         _wait(qtbot, widget)
         assert widget.status.value.startswith("error:"), (name, widget.status.value)
-        assert "CAM-B" in widget.status.value and "CAM-A" in widget.status.value, \
-            (name, widget.status.value)
+        assert "CAM-B" in widget.status.value and "CAM-A" in widget.status.value, (
+            name,
+            widget.status.value,
+        )

@@ -29,23 +29,37 @@ def series(tmp_path_factory):
     """A simulated gain series and the φ (with its SE) is-adu measures on the same camera."""
     d = tmp_path_factory.mktemp("phi")
     gs = simulate_gain_series(d / "gs", rows=8, cols=8, frames=1500, seed=4, progress=False)
-    adu = simulate_intensity_series(d / "adu", rows=8, cols=8, frames=1500, seed=5,
-                                    progress=False)
-    assert cli.main(["calibrate", str(adu.manifest), "--method", "is-adu", "-o",
-                     str(d / "phi"), "-q"]) == 0
+    adu = simulate_intensity_series(d / "adu", rows=8, cols=8, frames=1500, seed=5, progress=False)
+    assert (
+        cli.main(["calibrate", str(adu.manifest), "--method", "is-adu", "-o", str(d / "phi"), "-q"])
+        == 0
+    )
     ds = result.load(d / "phi")
     return gs, float(ds.e_per_adu.median()), float(ds.e_per_adu_se.median())
 
 
-@pytest.mark.parametrize("factor, words", [("inverse", "it looks like ADU/e-"),
-                                           (2.0, "times what this 1x"), (0.5, "times what this 1x")])
-def test_a_phi_the_data_contradict_is_refused_before_fitting(series, factor, words, tmp_path,
-                                                             capsys):
+@pytest.mark.parametrize(
+    "factor, words",
+    [("inverse", "it looks like ADU/e-"), (2.0, "times what this 1x"), (0.5, "times what this 1x")],
+)
+def test_a_phi_the_data_contradict_is_refused_before_fitting(
+    series, factor, words, tmp_path, capsys
+):
     gs, phi, _ = series
     given = 1 / phi if factor == "inverse" else phi * factor
     t0 = time.perf_counter()
-    code, _, err = _run(capsys, "calibrate", gs.manifest, "--method", "gs", "--e-per-adu",
-                        f"{given:.5g}", "-o", tmp_path / "out", "-q")
+    code, _, err = _run(
+        capsys,
+        "calibrate",
+        gs.manifest,
+        "--method",
+        "gs",
+        "--e-per-adu",
+        f"{given:.5g}",
+        "-o",
+        tmp_path / "out",
+        "-q",
+    )
     assert code == 2 and words in err and "--accept-phi" in err, err
     assert err.count("\n") == 1
     assert not (tmp_path / "out" / result.CALIBRATION_FILE).exists()
@@ -56,18 +70,39 @@ def test_the_true_phi_and_three_standard_errors_either_side_are_accepted(series)
     gs, phi, se = series
     manifest = _load(gs.manifest)
     for given in (gs.truth["e_per_adu"], phi, phi - 3 * se, phi + 3 * se):
-        check_e_per_adu(np.full(manifest.shape, given), None, "given", manifest.acquisitions,
-                        "gs")
+        check_e_per_adu(np.full(manifest.shape, given), None, "given", manifest.acquisitions, "gs")
 
 
 def test_accept_phi_lets_it_through_and_gs_no1x_says_it_is_unchecked(series, tmp_path, capsys):
     gs, phi, _ = series
-    code, _, err = _run(capsys, "calibrate", gs.manifest, "--method", "gs", "--e-per-adu",
-                        f"{2 * phi:.5g}", "--accept-phi", "-o", tmp_path / "a", "-q",
-                        "--no-checks")
+    code, _, err = _run(
+        capsys,
+        "calibrate",
+        gs.manifest,
+        "--method",
+        "gs",
+        "--e-per-adu",
+        f"{2 * phi:.5g}",
+        "--accept-phi",
+        "-o",
+        tmp_path / "a",
+        "-q",
+        "--no-checks",
+    )
     assert code == 0, err
-    code, _, err = _run(capsys, "calibrate", gs.manifest, "--method", "gs-no1x", "--e-per-adu",
-                        f"{phi:.5g}", "-o", tmp_path / "b", "-q", "--no-checks")
+    code, _, err = _run(
+        capsys,
+        "calibrate",
+        gs.manifest,
+        "--method",
+        "gs-no1x",
+        "--e-per-adu",
+        f"{phi:.5g}",
+        "-o",
+        tmp_path / "b",
+        "-q",
+        "--no-checks",
+    )
     assert code == 0 and err.count("could not be checked against the data") == 1, err
 
 
@@ -75,8 +110,18 @@ def test_accept_phi_lets_it_through_and_gs_no1x_says_it_is_unchecked(series, tmp
 def test_the_real_gain_series_refuses_a_phi_in_other_units(real_data, tmp_path, capsys):
     manifest = write_real_manifest(tmp_path, "gs")
     for given, words in ((0.2586, "ADU/e-"), (2 * 3.859, "2 times"), (3.859 / 2, "0.501 times")):
-        code, _, err = _run(capsys, "calibrate", manifest, "--method", "gs", "--e-per-adu",
-                            given, "-o", tmp_path / "out", "-q")
+        code, _, err = _run(
+            capsys,
+            "calibrate",
+            manifest,
+            "--method",
+            "gs",
+            "--e-per-adu",
+            given,
+            "-o",
+            tmp_path / "out",
+            "-q",
+        )
         assert code == 2 and words in err, err
     m = _load(manifest)
     for given in (3.8669, 3.8669 * 0.97, 3.8669 * 1.03):  # is-adu's phi, 3 % either side
@@ -91,19 +136,41 @@ def test_apply_and_gain_check_read_the_set_point_from_the_file_name(series, tmp_
 
     gs, _, _ = series
     out = tmp_path / "cal"
-    assert cli.main(["calibrate", str(gs.manifest), "--method", "gs", "-o", str(out), "-q",
-                     "--no-checks"]) == 0
+    assert (
+        cli.main(
+            ["calibrate", str(gs.manifest), "--method", "gs", "-o", str(out), "-q", "--no-checks"]
+        )
+        == 0
+    )
     g300 = gs.truth["acquisitions"][-1]["em_gain"]
     movie = tmp_path / "movie-300x.tif"
-    tifffile.imwrite(movie, simulate_frames(np.full((8, 8), 50.0), em_gain=g300,
-                                            e_per_adu=gs.truth["e_per_adu"], offset=590.0,
-                                            read_noise=15.5, frames=10, seed=1))
+    tifffile.imwrite(
+        movie,
+        simulate_frames(
+            np.full((8, 8), 50.0),
+            em_gain=g300,
+            e_per_adu=gs.truth["e_per_adu"],
+            offset=590.0,
+            read_noise=15.5,
+            frames=10,
+            seed=1,
+        ),
+    )
     code, _, err = _run(capsys, "apply", out, movie, "-o", tmp_path / "e.tif", "-q")
     assert code == 0, err
     darks = tmp_path / "darks-300x.tif"
-    tifffile.imwrite(darks, simulate_frames(np.full((8, 8), 0.05), em_gain=g300,
-                                            e_per_adu=gs.truth["e_per_adu"], offset=590.0,
-                                            read_noise=15.5, frames=2000, seed=2))
+    tifffile.imwrite(
+        darks,
+        simulate_frames(
+            np.full((8, 8), 0.05),
+            em_gain=g300,
+            e_per_adu=gs.truth["e_per_adu"],
+            offset=590.0,
+            read_noise=15.5,
+            frames=2000,
+            seed=2,
+        ),
+    )
     code, out_text, err = _run(capsys, "gain-check", darks, "--calibration", out)
     assert "set-point 300" in out_text and "give --setpoint" not in err, err
     # a name stating one set-point and --setpoint another: refused
@@ -144,8 +211,9 @@ def test_xarray_opens_a_result_with_no_engine_named_and_refuses_a_damaged_one(tm
 # Errors that point to the fix; docs that work as written
 # --------------------------------------------------------------------------------------
 def test_errors_name_the_command_that_fixes_them(series, tmp_path, capsys):
-    adu = simulate_intensity_series(tmp_path / "adu", rows=4, cols=4, frames=200, seed=1,
-                                    progress=False)
+    adu = simulate_intensity_series(
+        tmp_path / "adu", rows=4, cols=4, frames=200, seed=1, progress=False
+    )
     code, _, err = _run(capsys, "calibrate", adu.manifest, "-o", tmp_path / "o")
     assert code == 2 and "--method is-adu" in err, err
     code, _, err = _run(capsys, "calibrate", adu.manifest.parent, "-o", tmp_path / "o")
@@ -193,14 +261,21 @@ def test_a_drift_warning_quotes_the_light_the_fit_found_and_what_to_do(tmp_path)
 
     from emccdcal import calibrate
 
-    sim = simulate_gain_series(tmp_path / "gs", setpoints=(1, 5, 25), rows=6, cols=6,
-                               frames=1500, seed=6, drift=0.08, progress=False)
+    sim = simulate_gain_series(
+        tmp_path / "gs",
+        setpoints=(1, 5, 25),
+        rows=6,
+        cols=6,
+        frames=1500,
+        seed=6,
+        drift=0.08,
+        progress=False,
+    )
     truth = {a["em_gain_setpoint"]: a["em_gain"] for a in sim.truth["acquisitions"]}
     for method in ("gs", "gs-no1x"):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            ds = calibrate(sim.manifest, method, e_per_adu=sim.truth["e_per_adu"],
-                           progress=False)
+            ds = calibrate(sim.manifest, method, e_per_adu=sim.truth["e_per_adu"], progress=False)
         drifts = [str(w.message) for w in caught if "drifts by" in str(w.message)]
         assert len(drifts) == ds.setpoint.size, [str(w.message) for w in caught]
         fitted = float(ds.photoelectrons.where(ds.converged).median())
@@ -213,12 +288,16 @@ def test_a_drift_warning_quotes_the_light_the_fit_found_and_what_to_do(tmp_path)
                 assert "a drift does not move: the result stands" in text, text
                 assert abs(bias_seen) <= rse, (sp, bias_seen, rse)
                 continue
-            quoted = float(re.search(r"acquisition's ([\d.e+]+) e⁻ per pixel and frame "
-                                     r"\(as fitted\)", text).group(1))
+            quoted = float(
+                re.search(
+                    r"acquisition's ([\d.e+]+) e⁻ per pixel and frame "
+                    r"\(as fitted\)",
+                    text,
+                ).group(1)
+            )
             assert quoted == pytest.approx(fitted, rel=1e-3), text
             bias = float(re.search(r"biased by about ([-+][\d.e]+) %", text).group(1))
-            times = float(re.search(r"that is ([\d.e+]+) times its standard error",
-                                    text).group(1))
+            times = float(re.search(r"that is ([\d.e+]+) times its standard error", text).group(1))
             assert times == pytest.approx(abs(bias) / (100 * rse), rel=0.1), text
             assert bias / 100 == pytest.approx(bias_seen, abs=2 * rse)  # the bias is real
             assert ("the result stands" in text) == (times < 1), text
@@ -231,8 +310,15 @@ def test_the_gain_check_figure_shows_the_datas_range_and_its_whole_title(tmp_pat
     from emccdcal.report.figures import gain_check_figure, save_figure
     from emccdcal.simulate.camera import simulate_frames
 
-    darks = simulate_frames(np.full((12, 12), 0.05), em_gain=261.6, e_per_adu=3.859,
-                            offset=590.0, read_noise=15.5, frames=1000, seed=3)
+    darks = simulate_frames(
+        np.full((12, 12), 0.05),
+        em_gain=261.6,
+        e_per_adu=3.859,
+        offset=590.0,
+        read_noise=15.5,
+        frames=1000,
+        seed=3,
+    )
     check = check_gain([darks], 3.859, setpoint=300, histogram=True, progress_bars=False)
     fig = gain_check_figure(check)
     ax = fig.axes[0]
@@ -264,10 +350,24 @@ def test_a_1x_result_is_listed_with_the_register_it_was_fitted_with(tmp_path):
     """db compare once listed an is-adu result fitted with the cascade as 'gamma'."""
     from emccdcal.result import load_calibration
 
-    adu = simulate_intensity_series(tmp_path / "adu", rows=3, cols=3, frames=200, seed=2,
-                                    progress=False)
-    assert cli.main(["calibrate", str(adu.manifest), "--method", "is-adu", "-o",
-                     str(tmp_path / "phi"), "-q", "--no-checks"]) == 0
+    adu = simulate_intensity_series(
+        tmp_path / "adu", rows=3, cols=3, frames=200, seed=2, progress=False
+    )
+    assert (
+        cli.main(
+            [
+                "calibrate",
+                str(adu.manifest),
+                "--method",
+                "is-adu",
+                "-o",
+                str(tmp_path / "phi"),
+                "-q",
+                "--no-checks",
+            ]
+        )
+        == 0
+    )
     assert load_calibration(tmp_path / "phi").em_model.name == "cascade"
 
 
@@ -309,11 +409,14 @@ def test_a_misfit_says_the_estimates_are_doubtful_and_where_to_look(tmp_path, mo
     from emccdcal import calibrate
     from emccdcal.fit import gof
 
-    sim = simulate_gain_series(tmp_path / "gs", setpoints=(1, 5), rows=3, cols=3,
-                               frames=300, seed=2, progress=False)
-    monkeypatch.setattr(gof, "misfit_warnings",
-                        lambda p, kind: [f"{kind} 5x: 9 of 9 pixels (100.0 %) misfit the noise "
-                                         "model at p < 0.01"])
+    sim = simulate_gain_series(
+        tmp_path / "gs", setpoints=(1, 5), rows=3, cols=3, frames=300, seed=2, progress=False
+    )
+    monkeypatch.setattr(
+        gof,
+        "misfit_warnings",
+        lambda p, kind: [f"{kind} 5x: 9 of 9 pixels (100.0 %) misfit the noise model at p < 0.01"],
+    )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         calibrate(sim.manifest, "gs", e_per_adu=sim.truth["e_per_adu"], progress=False)

@@ -88,20 +88,33 @@ def test_gain_one_is_not_the_gamma_model():
 def test_exact_poisson_normal_reference_values():
     k = [90, 100, 103, 110, 130]
     ref = [1.7503385211e-2, 3.8157156576e-2, 3.9728330371e-2, 3.0847696938e-2, 1.0291887305e-3]
-    np.testing.assert_allclose(noise.pmf(k, 10.0, 1.0, 3.5, 100.0, 10.0, em_model="gamma"), ref, rtol=1e-9)
+    np.testing.assert_allclose(
+        noise.pmf(k, 10.0, 1.0, 3.5, 100.0, 10.0, em_model="gamma"), ref, rtol=1e-9
+    )
 
 
 @pytest.mark.parametrize(
     "g,k,ref",
     [
-        (25.0, [80, 100, 120, 150, 200, 400],
-         [8.1441195614e-6, 4.9031306776e-4, 3.8344369644e-3, 1.1530499396e-2, 6.9196206859e-3,
-          9.0856854491e-8]),
+        (
+            25.0,
+            [80, 100, 120, 150, 200, 400],
+            [
+                8.1441195614e-6,
+                4.9031306776e-4,
+                3.8344369644e-3,
+                1.1530499396e-2,
+                6.9196206859e-3,
+                9.0856854491e-8,
+            ],
+        ),
         (100.0, [100, 200, 400], [2.2832978121e-5, 1.2559545933e-3, 2.9305642395e-3]),
     ],
 )
 def test_pgn_reference_values(g, k, ref):
-    np.testing.assert_allclose(noise.pmf(k, 10.0, g, 3.5, 100.0, 10.0, em_model="gamma"), ref, rtol=1e-9)
+    np.testing.assert_allclose(
+        noise.pmf(k, 10.0, g, 3.5, 100.0, 10.0, em_model="gamma"), ref, rtol=1e-9
+    )
 
 
 # ---------------------------------------------------------------------- case 7
@@ -121,16 +134,26 @@ def test_poisson_gamma_identities():
     assert total == pytest.approx(0.39346934029, abs=1e-10)
     # only g/φ matters for the EM data
     k = support(E, g, phi, S0, SIGMA)
-    np.testing.assert_allclose(noise.logpmf(k, E, g, phi, S0, SIGMA, em_model="gamma"),
-                               noise.logpmf(k, E, 2 * g, 2 * phi, S0, SIGMA, em_model="gamma"), atol=1e-12)
+    np.testing.assert_allclose(
+        noise.logpmf(k, E, g, phi, S0, SIGMA, em_model="gamma"),
+        noise.logpmf(k, E, 2 * g, 2 * phi, S0, SIGMA, em_model="gamma"),
+        atol=1e-12,
+    )
 
 
 # ---------------------------------------------------------------------- case 8
 PARAMS = ("photoelectrons", "em_gain", "e_per_adu", "offset", "read_noise")
 
 
-@pytest.mark.parametrize("point", [(12.0, 37.0, 3.6, 500.0, 12.0), (12.0, 1.0, 3.6, 500.0, 12.0),
-                                   (0.3, 2.0, 0.5, 20.0, 0.8), (4000.0, 1.0, 20.0, 50.0, 3.0)])
+@pytest.mark.parametrize(
+    "point",
+    [
+        (12.0, 37.0, 3.6, 500.0, 12.0),
+        (12.0, 1.0, 3.6, 500.0, 12.0),
+        (0.3, 2.0, 0.5, 20.0, 0.8),
+        (4000.0, 1.0, 20.0, 50.0, 3.0),
+    ],
+)
 def test_gradients_match_finite_differences(point):
     k = support(*point, width=4)[:: max(1, support(*point, width=4).size // 25)]
     _, grad = noise.logpmf_grad(k, *point, em_model="gamma")
@@ -145,7 +168,9 @@ def test_gradients_match_finite_differences(point):
             up, down = list(point), list(point)
             up[i] += step
             down[i] -= step
-            return (noise.logpmf(k, *up, em_model="gamma") - noise.logpmf(k, *down, em_model="gamma")) / (2 * step)
+            return (
+                noise.logpmf(k, *up, em_model="gamma") - noise.logpmf(k, *down, em_model="gamma")
+            ) / (2 * step)
 
         estimate = (4 * fd(h / 2) - fd(h)) / 3
         scale = np.max(np.abs(estimate)) + 1e-12
@@ -165,8 +190,9 @@ def test_derivative_identity_in_photoelectrons():
     conv = np.convolve(p, h)[: k.size]
     # the exponential's continuous shift is approximated by bins: compare away from S0
     sel = (k > 1000) & (k < 2500)
-    np.testing.assert_allclose((p * grad["photoelectrons"])[sel], (conv - p)[sel],
-                               rtol=2e-3, atol=1e-9)
+    np.testing.assert_allclose(
+        (p * grad["photoelectrons"])[sel], (conv - p)[sel], rtol=2e-3, atol=1e-9
+    )
 
 
 # ---------------------------------------------------------------------- accuracy spec
@@ -200,7 +226,9 @@ def test_logpmf_against_independent_high_precision(case):
     ours = noise.logpmf(pick, *case, em_model="gamma")
     from emccdcal.model import _engine
 
-    rows = noise.EMModel("gamma").register.rows(np.array([E]), np.array([float(g)]), np.array([phi]))
+    rows = noise.EMModel("gamma").register.rows(
+        np.array([E]), np.array([float(g)]), np.array([phi])
+    )
     lz = _engine.log_normaliser(rows, np.array([s0]), np.array([sigma]))[0][0]
     ref = np.array([float(mp.log(density(int(v), E, g, phi, s0, sigma))) for v in pick]) - lz
     assert np.max(np.abs(ours - ref)) < 1e-8
@@ -287,4 +315,6 @@ def test_broadcasting():
     assert out.shape == (2, 3)
     for i in range(2):
         for j in range(3):
-            assert out[i, j] == pytest.approx(noise.logpmf(k[i, 0], E[j], 25.0, 3.5, 100.0, 10.0, em_model="gamma"))
+            assert out[i, j] == pytest.approx(
+                noise.logpmf(k[i, 0], E[j], 25.0, 3.5, 100.0, 10.0, em_model="gamma")
+            )

@@ -35,7 +35,9 @@ def test_logpmf_rows_matches_logpmf_and_gradient():
     row = rng.integers(0, U, 400)
     k = _counts(rng, E[row], g[row], phi[row], S0[row], sigma[row], spread=1.5)
     lp, dE = noise.logpmf_rows(k, row, E, g, phi, S0, sigma, grad=True, em_model="gamma")
-    ref, rgrad = noise.logpmf_grad(k, E[row], g[row], phi[row], S0[row], sigma[row], em_model="gamma")
+    ref, rgrad = noise.logpmf_grad(
+        k, E[row], g[row], phi[row], S0[row], sigma[row], em_model="gamma"
+    )
     np.testing.assert_allclose(lp, ref, rtol=0, atol=1e-9)
     np.testing.assert_allclose(dE, rgrad["photoelectrons"], rtol=1e-7, atol=1e-10)
 
@@ -50,15 +52,18 @@ def test_logpmf_rows_chunks_give_the_same_values(monkeypatch):
     whole = noise.logpmf_rows(k, row, E, g, phi, S0, sigma, em_model="gamma")
     monkeypatch.setattr(noise, "_ROWS_POINTS", 1)  # one row per batch
     # the same numbers up to FFT round-off (batch shapes differ)
-    np.testing.assert_allclose(noise.logpmf_rows(k, row, E, g, phi, S0, sigma, em_model="gamma"), whole,
-                               rtol=0, atol=1e-11)
+    np.testing.assert_allclose(
+        noise.logpmf_rows(k, row, E, g, phi, S0, sigma, em_model="gamma"), whole, rtol=0, atol=1e-11
+    )
 
 
 def test_logpmf_rows_bad_input():
     with pytest.raises(ValueError, match="row must hold integer indices"):
         noise.logpmf_rows([600], [2], [10.0, 20.0], 1.0, PHI, 587.0, 15.0, em_model="gamma")
     with pytest.raises(ValueError, match="one value per row"):
-        noise.logpmf_rows([600], [0], [10.0, 20.0], [1.0, 1.0, 1.0], PHI, 587.0, 15.0, em_model="gamma")
+        noise.logpmf_rows(
+            [600], [0], [10.0, 20.0], [1.0, 1.0, 1.0], PHI, 587.0, 15.0, em_model="gamma"
+        )
     with pytest.raises(ValueError, match="row has 2 entries"):
         noise.logpmf_rows([600], [0, 0], [10.0], 1.0, PHI, 587.0, 15.0, em_model="gamma")
     with pytest.raises(ValueError, match="em_gain"):
@@ -69,12 +74,12 @@ def test_logpmf_rows_bad_input():
 @pytest.mark.parametrize(
     "gains, e_lo, ratio",
     [
-        ([1.0], 100.0, 3.0),            # 1×, bright pixels, 16 nodes
-        ([4.78, 22.95], 200.0, 3.5),   # low gain, 16 nodes
-        ([90.06, 261.6], 2.0, 20.0),   # high gain, dim pixels, 24 nodes
-        ([1.0, 261.6], 0.0, 40.0),     # from E = 0 (the table minimum): in ln E
-        ([22.95, 4.78], 0.5, 120.0),   # wider than a factor 40: in ln E, 32 nodes
-        ([90.06], 0.0, 500.0),         # E = 0.001 … 500
+        ([1.0], 100.0, 3.0),  # 1×, bright pixels, 16 nodes
+        ([4.78, 22.95], 200.0, 3.5),  # low gain, 16 nodes
+        ([90.06, 261.6], 2.0, 20.0),  # high gain, dim pixels, 24 nodes
+        ([1.0, 261.6], 0.0, 40.0),  # from E = 0 (the table minimum): in ln E
+        ([22.95, 4.78], 0.5, 120.0),  # wider than a factor 40: in ln E, 32 nodes
+        ([90.06], 0.0, 500.0),  # E = 0.001 … 500
     ],
 )
 def test_table_matches_exact_model(gains, e_lo, ratio):
@@ -97,8 +102,12 @@ def test_table_matches_exact_model(gains, e_lo, ratio):
     assert np.max(np.abs(d1 - rgrad["photoelectrons"]) / scale) < 1e-5
     # second derivative against central differences of the exact first derivative
     h = 1e-4 * np.maximum(E, 1.0)
-    up = noise.logpmf_grad(k, E + h, g[pix], phi[pix], S0[pix], sigma[pix], em_model="gamma")[1]["photoelectrons"]
-    dn = noise.logpmf_grad(k, E - h, g[pix], phi[pix], S0[pix], sigma[pix], em_model="gamma")[1]["photoelectrons"]
+    up = noise.logpmf_grad(k, E + h, g[pix], phi[pix], S0[pix], sigma[pix], em_model="gamma")[1][
+        "photoelectrons"
+    ]
+    dn = noise.logpmf_grad(k, E - h, g[pix], phi[pix], S0[pix], sigma[pix], em_model="gamma")[1][
+        "photoelectrons"
+    ]
     num = (up - dn) / (2 * h)
     assert np.median(np.abs(d2 - num) / (np.abs(num) + 1e-12)) < 1e-4
     assert np.max(np.abs(d2 - num) / (np.abs(num) + scale / np.maximum(E, 1.0))) < 1e-2
@@ -108,7 +117,9 @@ def test_table_subsets_clamping_and_new_ranges():
     counts = np.array([700, 720, 3000, 3100])
     pixel = np.array([0, 0, 1, 1])
     g = np.array([1.0, 25.0])
-    table = noise.LogpmfTable(counts, pixel, [100.0, 50.0], [200.0, 150.0], g, PHI, 587.0, 15.5, em_model="gamma")
+    table = noise.LogpmfTable(
+        counts, pixel, [100.0, 50.0], [200.0, 150.0], g, PHI, 587.0, 15.5, em_model="gamma"
+    )
     assert table.degree.tolist() == [16, 16] and not table.log.any()
     lo, hi = table.e_range
     np.testing.assert_allclose(lo, [100.0, 50.0])
@@ -122,12 +133,17 @@ def test_table_subsets_clamping_and_new_ranges():
     lp, _, _, out = table.evaluate(np.array([90.0, 300.0]), index=np.array([0, 2]))
     assert out.tolist() == [True, True]
     np.testing.assert_allclose(
-        lp, noise.logpmf([700, 3000], [100.0, 150.0], [1.0, 25.0], PHI, 587.0, 15.5, em_model="gamma"), atol=1e-8)
+        lp,
+        noise.logpmf([700, 3000], [100.0, 150.0], [1.0, 25.0], PHI, 587.0, 15.5, em_model="gamma"),
+        atol=1e-8,
+    )
     # widen pixel 1 and evaluate there exactly
     table.set_range([1], 100.0, 400.0)
     lp, _, _, out = table.evaluate(np.array([300.0]), index=np.array([2]))
     assert not out.any()
-    np.testing.assert_allclose(lp, noise.logpmf(3000, 300.0, 25.0, PHI, 587.0, 15.5, em_model="gamma"), atol=1e-8)
+    np.testing.assert_allclose(
+        lp, noise.logpmf(3000, 300.0, 25.0, PHI, 587.0, 15.5, em_model="gamma"), atol=1e-8
+    )
     # pixel 0 untouched
     np.testing.assert_allclose(table.e_range[0], [100.0, 100.0])
 

@@ -29,17 +29,27 @@ def test_rows_reach_their_own_maxima_and_stop_on_bounds():
     M = rng.normal(size=(P, 3, 3))
     curvature = M @ np.swapaxes(M, 1, 2) + 0.5 * np.eye(3)
     upper = np.array([np.inf, 1.0, np.inf])
-    opt = maximize(_quadratic(centre, curvature), np.zeros((P, 3)), lower=-np.inf,
-                   upper=upper, tol=1e-12, max_step=np.inf)
+    opt = maximize(
+        _quadratic(centre, curvature),
+        np.zeros((P, 3)),
+        lower=-np.inf,
+        upper=upper,
+        tol=1e-12,
+        max_step=np.inf,
+    )
     assert opt.done.all() and not opt.stuck.any()
     # The reference: the same problem by a dense solver with the bound as a constraint.
     from scipy.optimize import minimize
 
     for p in range(P):
-        ref = minimize(lambda x: 0.5 * (x - centre[p]) @ curvature[p] @ (x - centre[p]),
-                       np.zeros(3), jac=lambda x: curvature[p] @ (x - centre[p]),
-                       bounds=[(None, None), (None, 1.0), (None, None)], method="L-BFGS-B",
-                       options={"ftol": 1e-15, "gtol": 1e-12})
+        ref = minimize(
+            lambda x: 0.5 * (x - centre[p]) @ curvature[p] @ (x - centre[p]),
+            np.zeros(3),
+            jac=lambda x: curvature[p] @ (x - centre[p]),
+            bounds=[(None, None), (None, 1.0), (None, None)],
+            method="L-BFGS-B",
+            options={"ftol": 1e-15, "gtol": 1e-12},
+        )
         np.testing.assert_allclose(opt.x[p], ref.x, atol=1e-5)
     held = centre[:, 1] > 1.0
     assert held.any() and np.all(opt.x[held, 1] == 1.0)
@@ -69,8 +79,16 @@ def test_stuck_rows_count_as_done_only_below_stuck_tol():
 
     # the undamped step there promises ½·1·1 = 0.5
     for stuck_tol, stuck in ((0.0, True), (1.0, False), (0.1, True)):
-        res = maximize(evaluate, np.zeros((1, 1)), lower=-np.inf, upper=np.inf, tol=1e-12,
-                       accept_rtol=0.0, stuck_tol=stuck_tol, max_step=np.inf)
+        res = maximize(
+            evaluate,
+            np.zeros((1, 1)),
+            lower=-np.inf,
+            upper=np.inf,
+            tol=1e-12,
+            accept_rtol=0.0,
+            stuck_tol=stuck_tol,
+            max_step=np.inf,
+        )
         assert res.stuck[0] == stuck and res.done[0] == (not stuck)
         assert res.x[0, 0] == 0.0
 
@@ -84,10 +102,15 @@ def test_rtol_stops_on_a_fraction_of_the_objective():
         return obj - 1e6, g, info
 
     # the first step promises ½ (of 1e6): stop at once with rtol 1e-3, not with 1e-15
-    assert maximize(offset, np.zeros((1, 1)), lower=-np.inf, upper=np.inf, tol=0.0,
-                    rtol=1e-3).iterations[0] == 0
-    assert maximize(offset, np.zeros((1, 1)), lower=-np.inf, upper=np.inf, tol=0.0,
-                    rtol=1e-15).x[0, 0] == pytest.approx(1.0, abs=1e-6)
+    assert (
+        maximize(
+            offset, np.zeros((1, 1)), lower=-np.inf, upper=np.inf, tol=0.0, rtol=1e-3
+        ).iterations[0]
+        == 0
+    )
+    assert maximize(offset, np.zeros((1, 1)), lower=-np.inf, upper=np.inf, tol=0.0, rtol=1e-15).x[
+        0, 0
+    ] == pytest.approx(1.0, abs=1e-6)
 
 
 def test_a_structured_step_gives_the_dense_step():
@@ -108,8 +131,15 @@ def test_a_structured_step_gives_the_dense_step():
     A = info[1] + 0.1 * np.diag(np.diag(info[1]))
     np.testing.assert_allclose(d[1], np.linalg.solve(A, grad[1]), rtol=1e-12)
     centre = rng.normal(size=(4, 3))
-    a = maximize(_quadratic(centre, info), np.zeros((4, 3)), lower=-np.inf, upper=np.inf,
-                 tol=1e-12, step=step, max_step=np.inf)
+    a = maximize(
+        _quadratic(centre, info),
+        np.zeros((4, 3)),
+        lower=-np.inf,
+        upper=np.inf,
+        tol=1e-12,
+        step=step,
+        max_step=np.inf,
+    )
     np.testing.assert_allclose(a.x, centre, atol=1e-6)
     assert calls
 
@@ -124,7 +154,7 @@ ITERATIONS = {
     ("model/cascade.py", "_register_transform"): "the register's recursion, stage by stage",
     ("model/cascade.py", "_pgf_minus_one"): "the register's recursion, stage by stage",
     ("model/cascade.py", "_build_table"): "a table's axes refined until its coefficients "
-                                          "converge (Chebyshev interpolation)",
+    "converge (Chebyshev interpolation)",
     ("model/cascade.py", "_sample_stages"): "one binomial draw per stage",
     ("model/cascade.py", "sample_register_cic"): "electrons leaving the register by stage",
     ("model/cascade.py", "_invert"): "a guide table's forward steps (sampling)",
@@ -137,19 +167,30 @@ ITERATIONS = {
     ("fit/mv.py", "_fit_line"): "a fixed number of re-weightings (weighted least squares)",
     ("fit/darkgain.py", "_core_start"): "two trimmed-moment passes: a start",
     ("fit/engine.py", "profile_bounds"): "the profile deviance's level: every evaluation is a "
-                                          "constrained refit, whose own warm starts the steps keep",
+    "constrained refit, whose own warm starts the steps keep",
     ("fit/posterior.py", "_sample_pixel"): "Markov chains run on until they converge",
     ("beads/validation.py", "blinking_level"): "EM iterations of a two-level mixture",
     ("beads/cots.py", "_pseudo_true"): "a 2-D system per frame, halved steps keeping v* > 0",
-    ("beads/cots.py", "_corrected_truth"): "a 2-D chord-Newton system, frames left out between tries",
+    (
+        "beads/cots.py",
+        "_corrected_truth",
+    ): "a 2-D chord-Newton system, frames left out between tries",
     ("beads/cots.py", "_recentred_fit"): "moving each frame's box onto its spot",
     ("acquire/plan.py", "_allocate"): "greedy allocation of frames, then its trim",
     ("acquire/plan.py", "_brightest"): "doubling to a bracket that _roots.bisect then narrows",
     ("simulate/beads.py", "_place_beads"): "rejection sampling of positions",
 }
 #: Where such loops are plumbing, not numerics (files, locks, queues, devices, parsing).
-_PLUMBING = ("_files.py", "_output.py", "_util.py", "acquire/devices.py", "acquire/mm.py",
-             "acquire/record.py", "data/quality.py", "data/stacks.py")
+_PLUMBING = (
+    "_files.py",
+    "_output.py",
+    "_util.py",
+    "acquire/devices.py",
+    "acquire/mm.py",
+    "acquire/record.py",
+    "data/quality.py",
+    "data/stacks.py",
+)
 
 
 def _iteration_loops():
@@ -162,9 +203,12 @@ def _iteration_loops():
             if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
                 name = f"{where}.{child.name}" if where else child.name
             repeats = isinstance(child, ast.While) or (
-                isinstance(child, ast.For) and isinstance(child.target, ast.Name)
-                and child.target.id.startswith("_") and isinstance(child.iter, ast.Call)
-                and getattr(child.iter.func, "id", None) == "range")
+                isinstance(child, ast.For)
+                and isinstance(child.target, ast.Name)
+                and child.target.id.startswith("_")
+                and isinstance(child.iter, ast.Call)
+                and getattr(child.iter.func, "id", None) == "range"
+            )
             if repeats:
                 found.append((path, name, child.lineno))
             visit(child, path, name)
@@ -179,9 +223,11 @@ def test_every_iteration_loop_is_the_optimizers_the_root_finders_or_named():
     _optimize; any other repeating loop in the numerics is named in ITERATIONS with why."""
     loops = _iteration_loops()
     assert {("_roots.py", "bisect"), ("_optimize.py", "maximize")} <= {f[:2] for f in loops}
-    unnamed = [f"{path}:{line} in {where}" for path, where, line in loops
-               if path not in ("_roots.py", "_optimize.py", *_PLUMBING)
-               and (path, where) not in ITERATIONS]
+    unnamed = [
+        f"{path}:{line} in {where}"
+        for path, where, line in loops
+        if path not in ("_roots.py", "_optimize.py", *_PLUMBING) and (path, where) not in ITERATIONS
+    ]
     assert not unnamed, unnamed
     stale = set(ITERATIONS) - {f[:2] for f in loops}
     assert not stale, stale
@@ -212,10 +258,14 @@ def test_chebyshev_tables_interpolate_to_round_off_and_say_when_they_do():
     rng = np.random.default_rng(3)
     x = rng.uniform(*xr, 40)
     y = rng.uniform(*yr, (40, 7))
-    for n_x, n_y, resolved in ((5, 9, (False, False)), (17, 33, (True, False)),
-                               (17, 65, (True, True))):
-        nodes = np.meshgrid(_chebyshev.lobatto(n_x, *xr), _chebyshev.lobatto(n_y, *yr),
-                            indexing="ij")
+    for n_x, n_y, resolved in (
+        (5, 9, (False, False)),
+        (17, 33, (True, False)),
+        (17, 65, (True, True)),
+    ):
+        nodes = np.meshgrid(
+            _chebyshev.lobatto(n_x, *xr), _chebyshev.lobatto(n_y, *yr), indexing="ij"
+        )
         coef = _chebyshev.coefficients(f(*nodes))
         assert _chebyshev.resolved(coef, 1e-13) == resolved
         got = _chebyshev.evaluate_rows(coef, xr, yr, x, y)

@@ -27,11 +27,18 @@ def test_a_gain_series_recorded_as_planned_reaches_the_predicted_precision(tmp_p
     p = plan(method="gs", setpoints=SETPOINTS, target_se=1.0, **PROEM)
     assert p.reached and p.predicted_se <= 1.0
     sim = simulate_gain_series(
-        tmp_path / "sim", setpoints=[a.setpoint for a in p.acquisitions],
-        em_gain=[a.em_gain for a in p.acquisitions], photoelectrons=p.photoelectrons,
-        frames=[a.frames for a in p.acquisitions], dark_frames=p.dark_frames, seed=11,
-        rows=16, cols=16, offset_drop=0.0, **{k: PROEM[k] for k in
-                                               ("e_per_adu", "read_noise", "offset")})
+        tmp_path / "sim",
+        setpoints=[a.setpoint for a in p.acquisitions],
+        em_gain=[a.em_gain for a in p.acquisitions],
+        photoelectrons=p.photoelectrons,
+        frames=[a.frames for a in p.acquisitions],
+        dark_frames=p.dark_frames,
+        seed=11,
+        rows=16,
+        cols=16,
+        offset_drop=0.0,
+        **{k: PROEM[k] for k in ("e_per_adu", "read_noise", "offset")},
+    )
     ds = calibrate(sim.manifest, method="gs", checks=False)
     covered = []
     for a in p.acquisitions[1:]:
@@ -49,8 +56,9 @@ def test_a_plan_through_the_array_api_standard_is_numpys():
     (a pretend device: nothing outside the standard passes) is NumPy's: the same plan."""
     pytest.importorskip("array_api_strict")
     here = plan(method="gs", setpoints=SETPOINTS, target_se=1.0, **PROEM)
-    there = plan(method="gs", setpoints=SETPOINTS, target_se=1.0, device="array-api-strict",
-                 **PROEM)
+    there = plan(
+        method="gs", setpoints=SETPOINTS, target_se=1.0, device="array-api-strict", **PROEM
+    )
     assert plan_text(there) == plan_text(here)
 
 
@@ -65,10 +73,16 @@ def test_the_plan_is_least_cost_and_within_the_papers_frames():
     tight = plan(method="gs", setpoints=SETPOINTS, target_se=0.25, **PROEM)
     assert 3.0 < tight.total_frames / p.total_frames < 5.0
     # the same stacks with a fifth fewer light frames each: above the target
-    fewer = predict("gs", [a.setpoint for a in p.acquisitions],
-                    [a.em_gain for a in p.acquisitions],
-                    [a.photoelectrons for a in p.acquisitions],
-                    [int(0.8 * a.frames) for a in p.acquisitions], p.dark_frames, p.camera, 0.5)
+    fewer = predict(
+        "gs",
+        [a.setpoint for a in p.acquisitions],
+        [a.em_gain for a in p.acquisitions],
+        [a.photoelectrons for a in p.acquisitions],
+        [int(0.8 * a.frames) for a in p.acquisitions],
+        p.dark_frames,
+        p.camera,
+        0.5,
+    )
     assert not fewer.reached and fewer.predicted_se > p.predicted_se
 
 
@@ -81,16 +95,25 @@ def test_the_light_stays_clear_of_the_adc_and_darks_matter():
     f2 = excess_noise_factor(g, em_model=EMModel("cascade", 536))
     sd = np.sqrt(f2 * E * (g / phi) ** 2 + PROEM["read_noise"] ** 2)
     assert PROEM["offset"] + E * g / phi + 6 * sd <= 0.9 * 65535
-    small = plan(method="gs", setpoints=SETPOINTS, target_se=0.5, **(PROEM | {"adc_bits": 14,
-                                                                              "offset": 100}))
+    small = plan(
+        method="gs", setpoints=SETPOINTS, target_se=0.5, **(PROEM | {"adc_bits": 14, "offset": 100})
+    )
     assert small.photoelectrons < E / 3
     # a register well of 80 000 e- (data sheet) caps the multiplied charge at 300x
     capped = plan(method="gs", setpoints=SETPOINTS, target_se=0.5, register_well=8e4, **PROEM)
     assert capped.photoelectrons * 300 <= 0.9 * 8e4
     adu = plan(method="is-adu", target_se=1.0, pixel_well=1e5, **PROEM)
     assert max(a.photoelectrons for a in adu.acquisitions) <= 0.9 * 1e5
-    few_darks = predict("gs", SETPOINTS, [a.em_gain for a in p.acquisitions],
-                        [E] * 5, [a.frames for a in p.acquisitions], 50, p.camera, 0.5)
+    few_darks = predict(
+        "gs",
+        SETPOINTS,
+        [a.em_gain for a in p.acquisitions],
+        [E] * 5,
+        [a.frames for a in p.acquisitions],
+        50,
+        p.camera,
+        0.5,
+    )
     assert few_darks.predicted_se > 1.2 * p.predicted_se
 
 
@@ -105,8 +128,26 @@ def test_intensity_series_plans_target_their_own_estimate():
 
 def test_plan_toml_round_trips_and_an_edit_is_predicted_again(tmp_path, capsys):
     out = tmp_path / "session"
-    assert cli.main(["plan", "--e-per-adu", "3.859", "--read-noise", "15.5", "--offset",
-                     "587.7", "--target-se", "1", "--frame-rate", "50", "-o", str(out)]) == 0
+    assert (
+        cli.main(
+            [
+                "plan",
+                "--e-per-adu",
+                "3.859",
+                "--read-noise",
+                "15.5",
+                "--offset",
+                "587.7",
+                "--target-se",
+                "1",
+                "--frame-rate",
+                "50",
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "target 1 % reached" in printed and "min at 50 Hz" in printed
     text = (out / "plan.toml").read_text()
@@ -115,11 +156,17 @@ def test_plan_toml_round_trips_and_an_edit_is_predicted_again(tmp_path, capsys):
     # a person halves the 5x stack: the check predicts more error there, and says so
     edited = tmp_path / "edited.toml"
     frames_5x = again.acquisitions[1].frames
-    edited.write_text(text.replace(f"em_gain_setpoint = 5.0\nframes = {frames_5x}\n",
-                                   f"em_gain_setpoint = 5.0\nframes = {frames_5x // 2}\n"))
+    edited.write_text(
+        text.replace(
+            f"em_gain_setpoint = 5.0\nframes = {frames_5x}\n",
+            f"em_gain_setpoint = 5.0\nframes = {frames_5x // 2}\n",
+        )
+    )
     worse = read_plan(edited)
-    assert worse.acquisitions[1].predicted_se["em_gain"] > \
-        1.05 * again.acquisitions[1].predicted_se["em_gain"]  # E's shared error stays
+    assert (
+        worse.acquisitions[1].predicted_se["em_gain"]
+        > 1.05 * again.acquisitions[1].predicted_se["em_gain"]
+    )  # E's shared error stays
     assert cli.main(["plan", "--check", str(edited)]) == 0
     assert "target 1 % NOT reached: record more frames" in capsys.readouterr().out
     bad = tmp_path / "bad.toml"
@@ -129,8 +176,21 @@ def test_plan_toml_round_trips_and_an_edit_is_predicted_again(tmp_path, capsys):
 
 
 def test_an_unreachable_target_says_so_and_exits_1(capsys):
-    code = cli.main(["plan", "--e-per-adu", "3.859", "--read-noise", "15.5", "--offset",
-                     "587.7", "--target-se", "0.1", "--max-frames", "2000"])
+    code = cli.main(
+        [
+            "plan",
+            "--e-per-adu",
+            "3.859",
+            "--read-noise",
+            "15.5",
+            "--offset",
+            "587.7",
+            "--target-se",
+            "0.1",
+            "--max-frames",
+            "2000",
+        ]
+    )
     assert code == 1
     out = capsys.readouterr().out
     assert "NOT reached within 2000 frames per stack" in out
@@ -145,8 +205,22 @@ def test_an_earlier_result_describes_the_camera(tmp_path, capsys):
     from emccdcal.acquire.plan import camera_of
 
     result = true_result(tmp_path / "res")
-    assert camera_of(result) == pytest.approx({"e_per_adu": PHI, "offset": OFFSET,
-                                               "read_noise": SIGMA})
-    assert cli.main(["plan", "--e-per-adu", str(result), "--target-se", "1", "-q",
-                     "-o", str(tmp_path / "p.toml")]) == 0
+    assert camera_of(result) == pytest.approx(
+        {"e_per_adu": PHI, "offset": OFFSET, "read_noise": SIGMA}
+    )
+    assert (
+        cli.main(
+            [
+                "plan",
+                "--e-per-adu",
+                str(result),
+                "--target-se",
+                "1",
+                "-q",
+                "-o",
+                str(tmp_path / "p.toml"),
+            ]
+        )
+        == 0
+    )
     assert read_plan(tmp_path / "p.toml").camera["e_per_adu"] == pytest.approx(PHI)

@@ -82,14 +82,14 @@ TOOL = Tool("toyloc", "ToyLoc", write, read,
             lambda path, text, doc: isinstance(doc, dict) and "toyloc" in doc)
 '''
 
-ENTRY_POINTS = '''
+ENTRY_POINTS = """
 [emccdcal.readers]
 rawx = emccdcal_toy.rawx
 
 [emccdcal.tools]
 toyloc = emccdcal_toy.toyloc:TOOL
 broken = emccdcal_toy.missing:TOOL
-'''
+"""
 
 
 @pytest.fixture(scope="module")
@@ -109,16 +109,23 @@ def plugin(tmp_path_factory):
 
 
 def _run(plugin, *args):
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
-        [str(plugin), *filter(None, [os.environ.get("PYTHONPATH")])])}
-    return subprocess.run([sys.executable, "-m", "emccdcal", *map(str, args)],
-                          capture_output=True, text=True, env=env, timeout=300)
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(plugin), *filter(None, [os.environ.get("PYTHONPATH")])]),
+    }
+    return subprocess.run(
+        [sys.executable, "-m", "emccdcal", *map(str, args)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
 
 
-def test_a_plugin_reader_and_tool_are_used_by_scan_calibrate_export_and_audit(plugin,
-                                                                             tmp_path):
-    sim = simulate_gain_series(tmp_path / "gs", rows=3, cols=4, frames=400, seed=21,
-                               setpoints=(1, 25), progress=False)
+def test_a_plugin_reader_and_tool_are_used_by_scan_calibrate_export_and_audit(plugin, tmp_path):
+    sim = simulate_gain_series(
+        tmp_path / "gs", rows=3, cols=4, frames=400, seed=21, setpoints=(1, 25), progress=False
+    )
     sys.path.insert(0, str(plugin))
     try:
         from emccdcal_toy import rawx
@@ -140,12 +147,25 @@ def test_a_plugin_reader_and_tool_are_used_by_scan_calibrate_export_and_audit(pl
     assert "set-points recorded in the files" in manifest
 
     result = tmp_path / "result"
-    done = _run(plugin, "calibrate", session / "manifest.toml", "-m", "gs", "--e-per-adu",
-                sim.truth["e_per_adu"], "--em-model", "gamma", "-o", result, "-q")
+    done = _run(
+        plugin,
+        "calibrate",
+        session / "manifest.toml",
+        "-m",
+        "gs",
+        "--e-per-adu",
+        sim.truth["e_per_adu"],
+        "--em-model",
+        "gamma",
+        "-o",
+        result,
+        "-q",
+    )
     assert done.returncode == 0, done.stderr
     reference = tmp_path / "reference"
-    done = _run(plugin, "calibrate", sim.manifest, "-m", "gs", "--em-model", "gamma", "-o",
-                reference, "-q")
+    done = _run(
+        plugin, "calibrate", sim.manifest, "-m", "gs", "--em-model", "gamma", "-o", reference, "-q"
+    )
     assert done.returncode == 0, done.stderr
     from emccdcal import load_result
 
@@ -157,8 +177,10 @@ def test_a_plugin_reader_and_tool_are_used_by_scan_calibrate_export_and_audit(pl
     assert done.returncode == 0, done.stderr
     assert (out / "toyloc.json").is_file()
     # the broken plug-in is named, left out, and stops nothing
-    assert ("plug-in 'broken' (emccdcal_toy.missing:TOOL, package 'emccdcal-toy') of "
-            "emccdcal.tools could not be loaded: ModuleNotFoundError") in done.stderr
+    assert (
+        "plug-in 'broken' (emccdcal_toy.missing:TOOL, package 'emccdcal-toy') of "
+        "emccdcal.tools could not be loaded: ModuleNotFoundError"
+    ) in done.stderr
     assert done.stderr.count("left out") == 1
 
     done = _run(plugin, "audit", out / "toyloc.json", "--calibration", result)
@@ -170,9 +192,23 @@ def test_a_plugin_reader_and_tool_are_used_by_scan_calibrate_export_and_audit(pl
 def test_without_the_plugin_its_files_and_tool_are_unknown(plugin, tmp_path):
     """The same commands without the package on the path: emccdcal knows neither."""
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    done = subprocess.run([sys.executable, "-m", "emccdcal", "export", tmp_path, "--to",
-                           "toyloc", "-o", tmp_path / "x"], capture_output=True, text=True,
-                          env=env, timeout=120)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "emccdcal",
+            "export",
+            tmp_path,
+            "--to",
+            "toyloc",
+            "-o",
+            tmp_path / "x",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
     assert done.returncode == 2 and "invalid choice: 'toyloc'" in done.stderr
 
 
@@ -186,11 +222,16 @@ def test_napari_reads_what_the_packages_own_readers_read():
     import emccdcal
     from emccdcal import plugins
 
-    manifest = yaml.safe_load((Path(emccdcal.__file__).parent / "napari" / "napari.yaml")
-                              .read_text())
+    manifest = yaml.safe_load(
+        (Path(emccdcal.__file__).parent / "napari" / "napari.yaml").read_text()
+    )
     patterns = manifest["contributions"]["readers"][0]["filename_patterns"]
-    own = {s for r in plugins.load(plugins.READERS).values()
-           if r.__name__.startswith("emccdcal.") for s in r.SUFFIXES}
+    own = {
+        s
+        for r in plugins.load(plugins.READERS).values()
+        if r.__name__.startswith("emccdcal.")
+        for s in r.SUFFIXES
+    }
     assert {p.removeprefix("*").lower() for p in patterns} == own
 
 

@@ -55,7 +55,9 @@ def test_adu_pixel_posterior_matches_engine(adu_run):
 @needs_real
 def test_adu_pixel_diagnostics_meet_the_criteria(adu_run):
     ds, engine, _ = adu_run
-    assert ds.parameter.values.tolist() == ["e_per_adu"] + [f"photoelectrons[L{i}]" for i in range(1, 7)]
+    assert ds.parameter.values.tolist() == ["e_per_adu"] + [
+        f"photoelectrons[L{i}]" for i in range(1, 7)
+    ]
     assert np.all(ds.ess.values >= 1000)
     kept = ds.n_steps.values[0] - ds.burn.values[0]
     assert kept >= posterior.MIN_LENGTH_TAUS * ds.autocorr_time.values[0].max()
@@ -82,8 +84,19 @@ def test_outputs_are_written(adu_run):
     (px,) = summary["pixels"]
     assert (px["row"], px["col"]) == (1, 1)
     phi = px["parameters"]["e_per_adu"]
-    for key in ("median", "sd", "q16", "q84", "q025", "q975", "ess", "autocorr_time",
-                "acceptance", "mle", "mle_se"):
+    for key in (
+        "median",
+        "sd",
+        "q16",
+        "q84",
+        "q025",
+        "q975",
+        "ess",
+        "autocorr_time",
+        "acceptance",
+        "mle",
+        "mle_se",
+    ):
         assert isinstance(phi[key], float), key
     assert phi["units"] == "e-/ADU"
     with xr.open_dataset(out / posterior.POSTERIOR_FILE, engine="h5netcdf") as back:
@@ -115,8 +128,9 @@ def test_unconverged_chain_is_refused(adu_manifest):
 def test_refusal_is_reproducible_with_the_seed(adu_manifest):
     def message(seed):
         with pytest.raises(NotConvergedError) as err:
-            posterior.sample_posterior(adu_manifest, "is-adu", [(2, 2)], n_steps=30,
-                                       max_steps=30, seed=seed)
+            posterior.sample_posterior(
+                adu_manifest, "is-adu", [(2, 2)], n_steps=30, max_steps=30, seed=seed
+            )
         return str(err.value)
 
     assert message(3) == message(3)
@@ -132,8 +146,9 @@ def test_the_posterior_through_the_array_api_standard_is_numpys(adu_manifest):
 
     def message(device):
         with pytest.raises(NotConvergedError) as err:
-            posterior.sample_posterior(adu_manifest, "is-adu", [(2, 2)], n_steps=30,
-                                       max_steps=30, seed=3, device=device)
+            posterior.sample_posterior(
+                adu_manifest, "is-adu", [(2, 2)], n_steps=30, max_steps=30, seed=3, device=device
+            )
         return str(err.value)
 
     assert message("array-api-strict") == message("cpu")
@@ -141,8 +156,23 @@ def test_the_posterior_through_the_array_api_standard_is_numpys(adu_manifest):
 
 @needs_real
 def test_cli_refusal_exit_code(adu_manifest, tmp_path, capsys):
-    args = _parse(["posterior", str(adu_manifest), "--method", "is-adu", "--pixel", "0,2",
-                   "-o", str(tmp_path / "o"), "--steps", "20", "--max-steps", "20", "--quiet"])
+    args = _parse(
+        [
+            "posterior",
+            str(adu_manifest),
+            "--method",
+            "is-adu",
+            "--pixel",
+            "0,2",
+            "-o",
+            str(tmp_path / "o"),
+            "--steps",
+            "20",
+            "--max-steps",
+            "20",
+            "--quiet",
+        ]
+    )
     assert args.func(args) == 1
     err = capsys.readouterr().err
     assert err.startswith("emccdcal posterior: refused:") and err.count("\n") == 1
@@ -170,26 +200,32 @@ def test_parse_pixel():
 
 
 @needs_real
-@pytest.mark.parametrize("method, kwargs, match", [
-    ("gs", {"e_per_adu": 3.9}, "one acquisition per set-point"),
-    ("is-gain", {}, "needs e_per_adu"),
-    ("mv-adu", {}, "likelihood method"),
-    ("bogus", {}, "likelihood method"),
-])
+@pytest.mark.parametrize(
+    "method, kwargs, match",
+    [
+        ("gs", {"e_per_adu": 3.9}, "one acquisition per set-point"),
+        ("is-gain", {}, "needs e_per_adu"),
+        ("mv-adu", {}, "likelihood method"),
+        ("bogus", {}, "likelihood method"),
+    ],
+)
 def test_method_the_manifest_cannot_support(adu_manifest, method, kwargs, match):
     with pytest.raises(MethodError, match=match):
         posterior.sample_posterior(adu_manifest, method, [(1, 1)], **kwargs)
 
 
 @needs_real
-@pytest.mark.parametrize("kwargs, match", [
-    ({"n_walkers": 10}, "n_walkers must be even and at least 14"),
-    ({"n_walkers": 33}, "n_walkers must be even"),
-    ({"prior": "jeffreys"}, "unknown prior"),
-    ({"max_steps": 0}, "max_steps must be an integer"),
-    ({"n_steps": 2.5}, "n_steps must be an integer"),
-    ({"e_per_adu": -1.0}, "e_per_adu must be positive"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"n_walkers": 10}, "n_walkers must be even and at least 14"),
+        ({"n_walkers": 33}, "n_walkers must be even"),
+        ({"prior": "jeffreys"}, "unknown prior"),
+        ({"max_steps": 0}, "max_steps must be an integer"),
+        ({"n_steps": 2.5}, "n_steps must be an integer"),
+        ({"e_per_adu": -1.0}, "e_per_adu must be positive"),
+    ],
+)
 def test_bad_options(adu_manifest, kwargs, match):
     with pytest.raises(ValueError, match=match):
         posterior.sample_posterior(adu_manifest, "is-adu", [(1, 1)], **kwargs)
@@ -199,10 +235,22 @@ def test_bad_options(adu_manifest, kwargs, match):
 def test_cli_bad_pixel_is_one_line_and_exit_2(adu_manifest, tmp_path, capsys):
     from emccdcal.cli import main
 
-    for pixel, message in (("1-1", "malformed pixel '1-1'"),
-                           ("9,9", "outside the array of shape 3x3")):
-        code = main(["posterior", str(adu_manifest), "--method", "is-adu", "--pixel", pixel,
-                     "-o", str(tmp_path)])
+    for pixel, message in (
+        ("1-1", "malformed pixel '1-1'"),
+        ("9,9", "outside the array of shape 3x3"),
+    ):
+        code = main(
+            [
+                "posterior",
+                str(adu_manifest),
+                "--method",
+                "is-adu",
+                "--pixel",
+                pixel,
+                "-o",
+                str(tmp_path),
+            ]
+        )
         err = capsys.readouterr().err
         assert code == 2 and message in err and len(err.strip().splitlines()) == 1
 

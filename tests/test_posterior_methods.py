@@ -28,23 +28,45 @@ def series(tmp_path_factory):
     base = tmp_path_factory.mktemp("series")
     # 60 e- (not the paper's 370): the likelihood's cost is the FFT windows that cover the
     # counts, and what is tested, the sampler against the engine, does not depend on it
-    gs = simulate_gain_series(base / "gs", rows=2, cols=2, frames=1000, setpoints=(1, 25, 300),
-                              photoelectrons=60.0, seed=21, progress=False)
-    isg = simulate_intensity_series(base / "isg", rows=2, cols=2, frames=1000, setpoint=25,
-                                    em_gain=22.95, levels=(50, 200, 800), seed=22,
-                                    progress=False)
+    gs = simulate_gain_series(
+        base / "gs",
+        rows=2,
+        cols=2,
+        frames=1000,
+        setpoints=(1, 25, 300),
+        photoelectrons=60.0,
+        seed=21,
+        progress=False,
+    )
+    isg = simulate_intensity_series(
+        base / "isg",
+        rows=2,
+        cols=2,
+        frames=1000,
+        setpoint=25,
+        em_gain=22.95,
+        levels=(50, 200, 800),
+        seed=22,
+        progress=False,
+    )
     return {"gs": gs.manifest, "isg": isg.manifest}
 
 
 def _engine(manifest, method):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return calibrate(manifest, method, checks=False, map_errors=False,  # as the posterior
-                         em_model=MODEL)
+        return calibrate(
+            manifest,
+            method,
+            checks=False,
+            map_errors=False,  # as the posterior
+            em_model=MODEL,
+        )
 
 
-@pytest.mark.parametrize("method, source", [("is-gain", "isg"), ("gs-no1x", "gs"),
-                                            ("gs-hierarchical", "gs")])
+@pytest.mark.parametrize(
+    "method, source", [("is-gain", "isg"), ("gs-no1x", "gs"), ("gs-hierarchical", "gs")]
+)
 def test_posterior_agrees_with_the_engine(series, method, source):
     """Median within a quarter of a posterior SD of the estimate, SD within 20 % of the SE
     (the hierarchical MAP within half an SD, and not by SD: its SE is a sandwich, not a
@@ -52,8 +74,9 @@ def test_posterior_agrees_with_the_engine(series, method, source):
     manifest = series[source]
     # an effective sample of 400 puts the median within 0.06 posterior SD and the SD
     # within 4 % (Monte Carlo errors), far inside what is asserted
-    ds = posterior.sample_posterior(manifest, method, [PIXEL], seed=1, em_model=MODEL,
-                                    n_steps=500, min_ess=MIN_ESS)
+    ds = posterior.sample_posterior(
+        manifest, method, [PIXEL], seed=1, em_model=MODEL, n_steps=500, min_ess=MIN_ESS
+    )
     engine = _engine(manifest, method)
     assert ds.attrs["em_model"] == engine.attrs["em_model"] == MODEL
     assert np.all(ds.ess.values >= MIN_ESS)
@@ -63,8 +86,11 @@ def test_posterior_agrees_with_the_engine(series, method, source):
     for name in gains:
         q = ds.sel(parameter=name).isel(pixel=0)
         # "em_gain[300x]", or plain "em_gain" where the method has one set-point
-        setpoint = (float(name.split("[")[1].rstrip("x]")) if "[" in name
-                    else float(engine.setpoint.values[-1]))
+        setpoint = (
+            float(name.split("[")[1].rstrip("x]"))
+            if "[" in name
+            else float(engine.setpoint.values[-1])
+        )
         est = float(engine.em_gain.sel(setpoint=setpoint).values[PIXEL])
         se = float(engine.em_gain_se.sel(setpoint=setpoint).values[PIXEL])
         assert float(q.mle) == pytest.approx(est, rel=1e-5)
@@ -79,12 +105,32 @@ def test_cli_writes_the_posterior(tmp_path, capsys):
     # a small series (the cost of a step is the FFT windows that cover its counts) under
     # the exact register (the default model, whose choice calibrate's tests and
     # choose_em_model's examples show), 64 stages long to keep its sampling short
-    gs = simulate_gain_series(tmp_path / "gs", rows=2, cols=2, frames=300,
-                              setpoints=(1, 5, 25), photoelectrons=50.0, seed=23,
-                              progress=False)
+    gs = simulate_gain_series(
+        tmp_path / "gs",
+        rows=2,
+        cols=2,
+        frames=300,
+        setpoints=(1, 5, 25),
+        photoelectrons=50.0,
+        seed=23,
+        progress=False,
+    )
     out = tmp_path / "post"
-    code = cli.main(["posterior", str(gs.manifest), "--method", "gs", "--pixel", "1,0",
-                     "--stages", "64", "-o", str(out), "--quiet"])
+    code = cli.main(
+        [
+            "posterior",
+            str(gs.manifest),
+            "--method",
+            "gs",
+            "--pixel",
+            "1,0",
+            "--stages",
+            "64",
+            "-o",
+            str(out),
+            "--quiet",
+        ]
+    )
     assert code == 0
     summary = json.loads((out / posterior.SUMMARY_FILE).read_text())
     assert summary["method"] == "gs"

@@ -146,7 +146,7 @@ def test_drift_test_needs_significance_and_size():
     r = drift_test(clear)
     assert r["drifts"] and r["drift_pct"] == pytest.approx(-0.5, abs=4 * r["drift_pct_se"])
     with pytest.raises(ValueError, match="too few frames for the drift test"):
-        drift_test(clear[:MIN_FRAMES - 1])
+        drift_test(clear[: MIN_FRAMES - 1])
     with pytest.raises(ValueError, match="alpha"):
         drift_test(clear, alpha=0)
 
@@ -271,27 +271,33 @@ def test_drifting_series_flagged_and_steady_not(tmp_path):
     # what the drift does to the estimate, at the acquisition's own level: the true E is
     # 370 e⁻, read roughly from the counts' moments (at 1× the excess variance is a tenth
     # of the read noise's): g +E·d²/24 ≈ +3.9 %, φ at 1× −E·d²/12 ≈ −7.7 %
-    found = re.findall(r"(EM gain g|φ \(e⁻/ADU\)) is biased by about ([-+][\d.]+) % at this "
-                       r"acquisition's ([\d.]+) e⁻ per pixel and frame", joined)
+    found = re.findall(
+        r"(EM gain g|φ \(e⁻/ADU\)) is biased by about ([-+][\d.]+) % at this "
+        r"acquisition's ([\d.]+) e⁻ per pixel and frame",
+        joined,
+    )
     assert sorted(w for w, _, _ in found) == ["EM gain g", "φ (e⁻/ADU)"]
     for what, bias, level in found:
         assert float(level) == pytest.approx(370, rel=0.3)
         d = drifting["acquisitions"]["25x" if what == "EM gain g" else "1x"]["drift"]
-        expect = 100 * float(level) * (d["drift_pct"] / 100) ** 2 / (24 if what == "EM gain g"
-                                                                     else -12)
+        expect = (
+            100 * float(level) * (d["drift_pct"] / 100) ** 2 / (24 if what == "EM gain g" else -12)
+        )
         assert float(bias) == pytest.approx(expect, rel=0.03)
     assert "1000 e⁻" not in joined and "d²" not in joined  # no one else's numbers
     with_tests = check_manifest(read(_sim(tmp_path, "drift", drift=0.05)), unit_root_tests=True)
-    assert all(a["stationarity"]["kpss_rejects_stationarity"]
-               for a in with_tests["acquisitions"].values())
+    assert all(
+        a["stationarity"]["kpss_rejects_stationarity"] for a in with_tests["acquisitions"].values()
+    )
     assert with_tests["warnings"] == drifting["warnings"]  # reported, never findings
     assert "KPSS p" in format_report(with_tests) and "KPSS p" not in format_report(drifting)
 
 
 def test_saturated_frames_counted(tmp_path):
     # 450 e⁻ at 300x: a mean of 31 000 ADU, a fifth of the values above 15 bits
-    m = read(_sim(tmp_path, "sat", setpoints=(1, 300), adc_bits=15, frames=200,
-                  photoelectrons=450.0))
+    m = read(
+        _sim(tmp_path, "sat", setpoints=(1, 300), adc_bits=15, frames=200, photoelectrons=450.0)
+    )
     assert m.adc_max == 2**15 - 1
     rep = check_manifest(m)
     by_sp = {a.em_gain_setpoint: a for a in m.acquisitions}
@@ -419,8 +425,13 @@ def test_real_gain_series_findings(real_report):
         "300x-gain": "lower",
     }
     # linear drift over each acquisition, % of the offset-subtracted level (regression guard)
-    expected = {"1x-gain": 0.87, "5x-gain": 0.51, "25x-gain": -0.16, "100x-gain": 0.00,
-                "300x-gain": -0.68}
+    expected = {
+        "1x-gain": 0.87,
+        "5x-gain": 0.51,
+        "25x-gain": -0.16,
+        "100x-gain": 0.00,
+        "300x-gain": -0.68,
+    }
     for k, v in expected.items():
         assert st[k]["drift_pct"] == pytest.approx(v, abs=0.01), k
         assert acqs[k]["drift"]["drift_pct"] == pytest.approx(v, abs=0.01), k
@@ -455,8 +466,7 @@ def test_summary_of_a_file_by_bands_is_the_summary_of_the_stack(tmp_path, monkey
     a = StackSummary.of_file(path, 5, 4095, third=True)
     b = StackSummary.of(data[5:], 4095, third=True)
     for name in ("frame_sums", "frame_saturated", "mean", "sd", "n_saturated", "m3"):
-        np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-12,
-                                   err_msg=name)
+        np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-12, err_msg=name)
     assert a.saturation()["n_values"] == 1
 
 
@@ -468,8 +478,7 @@ def test_the_steady_column_gives_its_reason(real_report):
     rows = {line.split()[0]: line for line in text.splitlines() if "x-gain " in line}
     assert "+0.87 ± 0.30" in rows["1x-gain"] and "yes: p ≥ 0.002" in rows["1x-gain"]
     assert "+0.51 ± 0.13" in rows["5x-gain"] and " NO " in rows["5x-gain"]
-    small = {**real_report["acquisitions"]["5x-gain"]["drift"], "drift_pct": 0.05,
-             "drifts": False}
+    small = {**real_report["acquisitions"]["5x-gain"]["drift"], "drift_pct": 0.05, "drifts": False}
     from emccdcal.data.quality import _steady_cell
 
     assert _steady_cell(small) == "yes: < 0.1 %"  # significant, but below the size threshold
@@ -480,25 +489,51 @@ def test_every_finding_says_whether_the_result_stands_and_what_fixes_it():
     (a new user once read a drift warning that said neither)."""
     from emccdcal.data.quality import _findings
 
-    a = {"name": "L6", "em_gain_setpoint": 1.0, "level": "L6", "frames": "a.tif",
-         "skip_frames": 2, "n_frames": 500,
-         "drift": {"drifts": True, "drift_pct": 0.26, "drift_pct_se": 0.01, "pvalue": 1e-9},
-         "photoelectrons_estimate": 6.7e4, "photoelectrons_source": "fit",
-         "estimate_relative_se": 0.011,
-         "offset": {"above_data": True, "n_below_offset": 9, "n_pixels": 9},
-         "multiplication": {"multiplied": True, "R": 1.5, "R_se": 0.02, "n_pixels": 9},
-         "frames_defective": {"n_constant": 2, "constant": [0, 1], "n_repeated": 1,
-                              "repeated": [200]},
-         "saturation": {"n_values": 5, "adc_max": 65535, "fraction": 0.01, "n_frames": 5,
-                        "n_pixels": 1, "pixels": [[0, 0]]},
-         "pixels": {"n_hot": 1, "hot": [[1, 1]], "n_dead": 0, "dead": [], "k": 6.0,
-                    "robust_sd": 2.0, "n_stuck": 1, "stuck": [[2, 2]]}}
+    a = {
+        "name": "L6",
+        "em_gain_setpoint": 1.0,
+        "level": "L6",
+        "frames": "a.tif",
+        "skip_frames": 2,
+        "n_frames": 500,
+        "drift": {"drifts": True, "drift_pct": 0.26, "drift_pct_se": 0.01, "pvalue": 1e-9},
+        "photoelectrons_estimate": 6.7e4,
+        "photoelectrons_source": "fit",
+        "estimate_relative_se": 0.011,
+        "offset": {"above_data": True, "n_below_offset": 9, "n_pixels": 9},
+        "multiplication": {"multiplied": True, "R": 1.5, "R_se": 0.02, "n_pixels": 9},
+        "frames_defective": {
+            "n_constant": 2,
+            "constant": [0, 1],
+            "n_repeated": 1,
+            "repeated": [200],
+        },
+        "saturation": {
+            "n_values": 5,
+            "adc_max": 65535,
+            "fraction": 0.01,
+            "n_frames": 5,
+            "n_pixels": 1,
+            "pixels": [[0, 0]],
+        },
+        "pixels": {
+            "n_hot": 1,
+            "hot": [[1, 1]],
+            "n_dead": 0,
+            "dead": [],
+            "k": 6.0,
+            "robust_sd": 2.0,
+            "n_stuck": 1,
+            "stuck": [[2, 2]],
+        },
+    }
     found = _findings(a)
     assert len(found) == 8, found
     for text in found:
         assert "stand" in text, text  # "the result stands", "does not stand" ...
-        assert any(fix in text for fix in ("calibrate again", "record again", "do not use",
-                                           "no result")), text
+        assert any(
+            fix in text for fix in ("calibrate again", "record again", "do not use", "no result")
+        ), text
     drift, offset, multiplied, constant, repeated, saturated, hot, stuck = found
     assert "φ pools every level" in drift and "3.4 times its standard error" in drift
     assert "may not stand" in drift and 'level = "L6"' in drift

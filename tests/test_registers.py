@@ -105,8 +105,13 @@ def test_its_pmf_is_the_poisson_sum(noiseless):
 def test_its_gradient_is_the_derivative(noiseless):
     k = np.array([500, 540, 560, 600, 650])
     _, grad = noise.logpmf_grad(k, E, G, PHI, S0, SIGMA, em_model=noiseless)
-    for name, value in (("photoelectrons", E), ("em_gain", G), ("e_per_adu", PHI),
-                        ("offset", S0), ("read_noise", SIGMA)):
+    for name, value in (
+        ("photoelectrons", E),
+        ("em_gain", G),
+        ("e_per_adu", PHI),
+        ("offset", S0),
+        ("read_noise", SIGMA),
+    ):
         h = 1e-5 * value
         args = dict(photoelectrons=E, em_gain=G, e_per_adu=PHI, offset=S0, read_noise=SIGMA)
         up = noise.logpmf(k, **{**args, name: value + h}, em_model=noiseless)
@@ -125,12 +130,22 @@ def test_goodness_of_fit_and_the_fit_engine_use_it(noiseless):
     assert np.all(p_gamma < 1e-6)  # the gamma model's excess noise does not
     P = h.n.size
     block = engine.AcquisitionBlock(
-        values=h.values, counts=h.counts, offset=np.full(P, S0), read_noise=np.full(P, SIGMA),
-        poisson_normal=False, mean=h.mean, var=h.var, n=h.n, em_model=noiseless)
+        values=h.values,
+        counts=h.counts,
+        offset=np.full(P, S0),
+        read_noise=np.full(P, SIGMA),
+        poisson_normal=False,
+        mean=h.mean,
+        var=h.var,
+        n=h.n,
+        em_model=noiseless,
+    )
     coords = [np.full(P, np.log(E)), np.full(P, np.log(G / PHI))]
     loglik = engine._acquisition_terms(block, coords, 0)[0]
-    ref = [np.sum(h.counts[i] * noise.logpmf(h.values[i], E, G, PHI, S0, SIGMA,
-                                             em_model=noiseless)) for i in range(P)]
+    ref = [
+        np.sum(h.counts[i] * noise.logpmf(h.values[i], E, G, PHI, S0, SIGMA, em_model=noiseless))
+        for i in range(P)
+    ]
     np.testing.assert_allclose(loglik, ref, rtol=1e-11)
 
 
@@ -178,7 +193,10 @@ def test_the_packages_own_registers_are_its_entry_points():
 
     from emccdcal import defaults
 
-    own = {ep.name for ep in importlib.metadata.entry_points(group=plugins.REGISTERS)
-           if ep.dist.name == "emccdcal"}
+    own = {
+        ep.name
+        for ep in importlib.metadata.entry_points(group=plugins.REGISTERS)
+        if ep.dist.name == "emccdcal"
+    }
     assert own == set(defaults.EM_MODELS) <= set(noise.EM_MODELS)
     assert defaults.DEFAULT_EM_MODEL in own and defaults.PAPER_EM_MODEL in own

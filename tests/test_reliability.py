@@ -37,8 +37,15 @@ from emccdcal.simulate.camera import simulate_frames
 
 
 def _movie(path, frames=40, seed=1, g=90.06):
-    stack = simulate_frames(np.full(SHAPE, 30.0), em_gain=g, e_per_adu=PHI, offset=OFFSET,
-                            read_noise=SIGMA, frames=frames, seed=seed)
+    stack = simulate_frames(
+        np.full(SHAPE, 30.0),
+        em_gain=g,
+        e_per_adu=PHI,
+        offset=OFFSET,
+        read_noise=SIGMA,
+        frames=frames,
+        seed=seed,
+    )
     tifffile.imwrite(path, stack)
     return path
 
@@ -90,12 +97,15 @@ def test_apply_replaces_its_own_output_only_when_asked(tmp_path, capsys):
         code, _, err = _run(capsys, "apply", res, movie, "--setpoint", 100, "-o", out)
         _one_line_error(code, err)
         assert "--overwrite" in err
-        assert _run(capsys, "apply", res, movie, "--setpoint", 100, "-o", out, "-q",
-                    "--overwrite")[0] == 0
+        assert (
+            _run(capsys, "apply", res, movie, "--setpoint", 100, "-o", out, "-q", "--overwrite")[0]
+            == 0
+        )
     # a store it wrote, with a foreign file put inside, is no longer its to remove
     (tmp_path / "e.zarr" / "mine.txt").write_text("keep")
-    code, _, err = _run(capsys, "apply", res, movie, "--setpoint", 100, "-o",
-                        tmp_path / "e.zarr", "--overwrite")
+    code, _, err = _run(
+        capsys, "apply", res, movie, "--setpoint", 100, "-o", tmp_path / "e.zarr", "--overwrite"
+    )
     _one_line_error(code, err)
     assert (tmp_path / "e.zarr" / "mine.txt").read_text() == "keep"
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
@@ -108,8 +118,9 @@ def test_a_killed_runs_temporary_files_are_removed_by_the_next(tmp_path, capsys)
     left.write_bytes(b"half")
     foreign = tmp_path / ".e.tif.notes"
     foreign.write_text("mine")
-    assert _run(capsys, "apply", res, movie, "--setpoint", 100, "-o", tmp_path / "e.tif",
-                "-q")[0] == 0
+    assert (
+        _run(capsys, "apply", res, movie, "--setpoint", 100, "-o", tmp_path / "e.tif", "-q")[0] == 0
+    )
     assert not left.exists() and foreign.read_text() == "mine"
 
 
@@ -119,11 +130,14 @@ def test_a_killed_runs_temporary_files_are_removed_by_the_next(tmp_path, capsys)
 def test_a_serial_is_never_a_path(tmp_path, capsys):
     db = tmp_path / "cal.sqlite"
     for i, days in enumerate((1, 40)):
-        database.add(true_result(tmp_path / f"r{i}", seed=i, spread=0.001), db=db,
-                     camera="../../../ESC", date=f"2026-0{i + 1}-{days % 28 + 1:02d}")
+        database.add(
+            true_result(tmp_path / f"r{i}", seed=i, spread=0.001),
+            db=db,
+            camera="../../../ESC",
+            date=f"2026-0{i + 1}-{days % 28 + 1:02d}",
+        )
     figs = tmp_path / "lab" / "figs"
-    code, _, err = _run(capsys, "db", "--db", db, "compare", "--camera", "../../../ESC",
-                        "-o", figs)
+    code, _, err = _run(capsys, "db", "--db", db, "compare", "--camera", "../../../ESC", "-o", figs)
     assert code in (0, 1), err
     written = [p for p in tmp_path.rglob("*.png")]
     assert written and all(p.parent == figs for p in written), written
@@ -135,10 +149,14 @@ def test_a_setting_with_a_newline_stays_a_comment(tmp_path, capsys):
     folder.mkdir()
     rng = np.random.default_rng(0)
     for name, g in (("1x-gain", 1), ("1x-gain_dark", 1), ("5x-gain", 5), ("5x-gain_dark", 5)):
-        write_spe(folder / f"{name}.spe", rng.integers(500, 600, (30, 4, 4), dtype=np.uint16),
-                  em_gain=g, analog_gain="High\nskip_frames = 290\n#",
-                  # as the file's XML holds it: the reader gets the quotes back
-                  serial="x&quot; \n[[acquisition]]\nframes = &quot;../../etc/passwd")
+        write_spe(
+            folder / f"{name}.spe",
+            rng.integers(500, 600, (30, 4, 4), dtype=np.uint16),
+            em_gain=g,
+            analog_gain="High\nskip_frames = 290\n#",
+            # as the file's XML holds it: the reader gets the quotes back
+            serial="x&quot; \n[[acquisition]]\nframes = &quot;../../etc/passwd",
+        )
     assert _run(capsys, "scan", folder, "-q")[0] == 0
     text = (folder / "manifest.toml").read_text()
     doc = tomllib.loads(text)
@@ -146,8 +164,10 @@ def test_a_setting_with_a_newline_stays_a_comment(tmp_path, capsys):
     assert len(doc["acquisition"]) == 2
     assert all("skip_frames" not in a for a in doc["acquisition"])
     assert all(Path(a["frames"]).parent == Path(".") for a in doc["acquisition"])
-    assert all(not line.strip() or line.startswith(("#", "[[")) or " = " in line
-               for line in text.splitlines())
+    assert all(
+        not line.strip() or line.startswith(("#", "[[")) or " = " in line
+        for line in text.splitlines()
+    )
 
 
 def test_toml_and_comment_writers_round_trip_any_text():
@@ -164,8 +184,9 @@ def test_overwrite_keeps_the_old_result_when_the_new_run_fails(tmp_path, monkeyp
     from emccdcal import calibrate, calibration
     from emccdcal.simulate.series import simulate_gain_series
 
-    sim = simulate_gain_series(tmp_path / "gs", setpoints=(1, 5), rows=4, cols=4,
-                               frames=200, dark_frames=200, seed=3)
+    sim = simulate_gain_series(
+        tmp_path / "gs", setpoints=(1, 5), rows=4, cols=4, frames=200, dark_frames=200, seed=3
+    )
     out = tmp_path / "out"
     calibrate(sim.manifest, "gs", out=out, progress=False)
     before = file_sha256(out / result.CALIBRATION_FILE)
@@ -185,31 +206,53 @@ def test_overwrite_keeps_the_old_result_when_the_new_run_fails(tmp_path, monkeyp
 # --------------------------------------------------------------------------------------
 def _camera_result(path, **camera):
     ds = result.load(true_result(path / "src"))
-    ds.attrs["camera"] = json.dumps({"serial": "A1", "readout_rate_mhz": 10.0,
-                                     "analog_gain": "High", "adc_bits": 16, **camera})
+    ds.attrs["camera"] = json.dumps(
+        {"serial": "A1", "readout_rate_mhz": 10.0, "analog_gain": "High", "adc_bits": 16, **camera}
+    )
     ds.attrs["binning"] = np.array([1, 1])
     return _resave(ds, path / "cal")
 
 
 def test_apply_refuses_another_camera_or_binning(tmp_path, capsys):
     res = _camera_result(tmp_path)
-    frames = simulate_frames(np.full(SHAPE, 30.0), em_gain=90.06, e_per_adu=PHI, offset=OFFSET,
-                             read_noise=SIGMA, frames=10, seed=1)
-    binned = write_spe(tmp_path / "binned.spe", frames, em_gain=100, serial="A1",
-                       binning=(2, 2))
+    frames = simulate_frames(
+        np.full(SHAPE, 30.0),
+        em_gain=90.06,
+        e_per_adu=PHI,
+        offset=OFFSET,
+        read_noise=SIGMA,
+        frames=10,
+        seed=1,
+    )
+    binned = write_spe(tmp_path / "binned.spe", frames, em_gain=100, serial="A1", binning=(2, 2))
     code, _, err = _run(capsys, "apply", res, binned, "-o", tmp_path / "b.tif")
     _one_line_error(code, err)
     assert "binning 2x2 (calibration: 1x1)" in err
-    other = write_spe(tmp_path / "other.spe", frames, em_gain=100, serial="B2",
-                      speed_mhz=1.0, analog_gain="Low", bit_depth=12)
+    other = write_spe(
+        tmp_path / "other.spe",
+        frames,
+        em_gain=100,
+        serial="B2",
+        speed_mhz=1.0,
+        analog_gain="Low",
+        bit_depth=12,
+    )
     code, _, err = _run(capsys, "apply", res, other, "-o", tmp_path / "o.tif")
     _one_line_error(code, err)
     for what in ("serial", "read-out rate", "analog", "ADC bits"):
         assert what in err
     same = write_spe(tmp_path / "same.spe", frames, em_gain=100, serial="A1")
     assert _run(capsys, "apply", res, same, "-o", tmp_path / "s.tif", "-q")[0] == 0
-    args = ["--accept-mismatch", "serial", "--accept-mismatch", "readout_rate_mhz",
-            "--accept-mismatch", "analog_gain", "--accept-mismatch", "adc_bits"]
+    args = [
+        "--accept-mismatch",
+        "serial",
+        "--accept-mismatch",
+        "readout_rate_mhz",
+        "--accept-mismatch",
+        "analog_gain",
+        "--accept-mismatch",
+        "adc_bits",
+    ]
     assert _run(capsys, "apply", res, other, "-o", tmp_path / "o.tif", "-q", *args)[0] == 0
 
 
@@ -240,9 +283,16 @@ def test_a_flipped_exponent_bit_is_found(tmp_path):
         result.load(res)
 
 
-@pytest.mark.parametrize("name,value", [("em_gain", -5.0), ("em_gain", np.inf),
-                                        ("e_per_adu", 0.0), ("e_per_adu", -1.0),
-                                        ("read_noise", 0.0)])
+@pytest.mark.parametrize(
+    "name,value",
+    [
+        ("em_gain", -5.0),
+        ("em_gain", np.inf),
+        ("e_per_adu", 0.0),
+        ("e_per_adu", -1.0),
+        ("read_noise", 0.0),
+    ],
+)
 def test_values_no_calibration_can_have_are_refused(tmp_path, name, value):
     ds = result.load(true_result(tmp_path / "r"))
     if name == "em_gain":
@@ -258,8 +308,16 @@ def test_apply_refuses_a_calibration_with_no_converged_pixel(tmp_path, capsys):
     ds = result.load(true_result(tmp_path / "r"))
     ds["converged"][:] = False
     path = _resave(ds, tmp_path / "none")
-    code, _, err = _run(capsys, "apply", path, _movie(tmp_path / "m.tif"), "--setpoint", 100,
-                        "-o", tmp_path / "e.tif")
+    code, _, err = _run(
+        capsys,
+        "apply",
+        path,
+        _movie(tmp_path / "m.tif"),
+        "--setpoint",
+        100,
+        "-o",
+        tmp_path / "e.tif",
+    )
     _one_line_error(code, err)
     assert "converged" in err and not (tmp_path / "e.tif").exists()
 
@@ -288,9 +346,24 @@ def test_a_second_run_into_a_locked_output_gets_one_line(tmp_path):
     res = true_result(tmp_path / "r")
     out = tmp_path / "exp"
     with Output(out, names=("picasso-config.yaml",)):
-        run = subprocess.run([sys.executable, "-m", "emccdcal", "export", str(res), "--to",
-                              "picasso", "--setpoint", "100", "-o", str(out)],
-                             capture_output=True, text=True, timeout=120)
+        run = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "emccdcal",
+                "export",
+                str(res),
+                "--to",
+                "picasso",
+                "--setpoint",
+                "100",
+                "-o",
+                str(out),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
     _one_line_error(run.returncode, run.stderr)
     assert "another emccdcal run is writing it" in run.stderr
     assert f"process {os.getpid()}" in run.stderr
@@ -326,9 +399,11 @@ def test_bad_outputs_and_inputs_are_one_line(tmp_path, capsys, monkeypatch):
     ds = result.load(res)
     ds.attrs["camera"] = "{not json"
     bad = _resave(ds, tmp_path / "badcam")
-    for argv in (("export", bad, "--to", "json", "-o", tmp_path / "x"),
-                 ("gain-curve", bad, "-o", tmp_path / "y"),
-                 ("db", "--db", tmp_path / "d.sqlite", "add", bad)):
+    for argv in (
+        ("export", bad, "--to", "json", "-o", tmp_path / "x"),
+        ("gain-curve", bad, "-o", tmp_path / "y"),
+        ("db", "--db", tmp_path / "d.sqlite", "add", bad),
+    ):
         code, _, err = _run(capsys, *argv)
         _one_line_error(code, err)
     monkeypatch.delenv("EMCCDCAL_DB", raising=False)
@@ -343,9 +418,22 @@ def test_a_damaged_header_is_one_line_without_a_leaked_traceback(tmp_path):
     data = bytearray(res.read_bytes())
     data[0:8] = b"\x00" * 8  # the HDF5 signature
     res.write_bytes(bytes(data))
-    run = subprocess.run([sys.executable, "-m", "emccdcal", "export", str(res), "--to",
-                          "json", "-o", str(tmp_path / "x")], capture_output=True, text=True,
-                         timeout=120)
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "emccdcal",
+            "export",
+            str(res),
+            "--to",
+            "json",
+            "-o",
+            str(tmp_path / "x"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     _one_line_error(run.returncode, run.stderr)
 
 
@@ -356,8 +444,12 @@ def test_scan_skips_a_pipe_instead_of_blocking(tmp_path, capsys):
     folder = tmp_path / "s"
     folder.mkdir()
     os.mkfifo(folder / "5x-gain.tif")
-    run = subprocess.run([sys.executable, "-m", "emccdcal", "scan", str(folder)],
-                         capture_output=True, text=True, timeout=60)
+    run = subprocess.run(
+        [sys.executable, "-m", "emccdcal", "scan", str(folder)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     _one_line_error(run.returncode, run.stderr)
     assert "no stack" in run.stderr
 
@@ -365,8 +457,18 @@ def test_scan_skips_a_pipe_instead_of_blocking(tmp_path, capsys):
 def test_paths_with_a_comma_dates_in_the_future_and_far_predictions(tmp_path, capsys):
     res = true_result(tmp_path / "a,b")
     assert _run(capsys, "export", res.parent, "--to", "json", "-o", tmp_path / "j", "-q")[0] == 0
-    code, _, err = _run(capsys, "db", "add", res, "--db", tmp_path / "d.sqlite",
-                        "--camera", "S1", "--date", "9999-12-31")
+    code, _, err = _run(
+        capsys,
+        "db",
+        "add",
+        res,
+        "--db",
+        tmp_path / "d.sqlite",
+        "--camera",
+        "S1",
+        "--date",
+        "9999-12-31",
+    )
     _one_line_error(code, err)
     assert "future" in err
     code, _, err = _run(capsys, "gain-curve", res, "-o", tmp_path / "c", "--predict", "1e300")
@@ -380,8 +482,9 @@ def test_apply_refuses_counts_no_camera_gives(tmp_path, capsys):
         stack[3, 1, 1] = bad
         movie = tmp_path / "f.tif"
         tifffile.imwrite(movie, stack)
-        code, _, err = _run(capsys, "apply", res, movie, "--setpoint", 100, "-o",
-                            tmp_path / "e.tif")
+        code, _, err = _run(
+            capsys, "apply", res, movie, "--setpoint", 100, "-o", tmp_path / "e.tif"
+        )
         _one_line_error(code, err)
         assert "frame 3" in err
     assert not (tmp_path / "e.tif").exists()
@@ -397,8 +500,9 @@ def test_db_options_after_the_action_remove_and_relocate(tmp_path, capsys):
     (tmp_path / "r").rename(moved)
     assert _run(capsys, "db", "relocate", entry["id"], moved, "--db", db, "-q")[0] == 0
     assert database.find("S1", 100, db=db).path == str((moved / "calibration.nc").resolve())
-    code, _, err = _run(capsys, "db", "relocate", entry["id"], true_result(tmp_path / "o"),
-                        "--db", db)
+    code, _, err = _run(
+        capsys, "db", "relocate", entry["id"], true_result(tmp_path / "o"), "--db", db
+    )
     _one_line_error(code, err)
     assert _run(capsys, "db", "remove", entry["id"], "--db", db, "-q")[0] == 0
     assert database.entries(db=db) == [] and (moved / "calibration.nc").is_file()
@@ -407,8 +511,9 @@ def test_db_options_after_the_action_remove_and_relocate(tmp_path, capsys):
 def test_check_flags_constant_and_repeated_frames(tmp_path, capsys):
     from emccdcal.simulate.series import simulate_gain_series
 
-    sim = simulate_gain_series(tmp_path / "gs", setpoints=(1, 5), rows=4, cols=4,
-                               frames=300, dark_frames=200, seed=3)
+    sim = simulate_gain_series(
+        tmp_path / "gs", setpoints=(1, 5), rows=4, cols=4, frames=300, dark_frames=200, seed=3
+    )
     frames_file = sim.outdir / sim.truth["acquisitions"][1]["frames"]
     stack = tifffile.imread(frames_file)
     stack[100:150] = 0
@@ -434,9 +539,11 @@ def test_output_refusals_are_found_before_computing(tmp_path):
 
 def test_a_result_given_twice_is_refused_everywhere(tmp_path, capsys):
     res = true_result(tmp_path / "r")
-    for argv in (("report", res, res.parent, "-o", tmp_path / "rep.html"),
-                 ("export", f"{res},{res.parent}", "--to", "json", "-o", tmp_path / "x"),
-                 ("gain-curve", res, res, "-o", tmp_path / "c")):
+    for argv in (
+        ("report", res, res.parent, "-o", tmp_path / "rep.html"),
+        ("export", f"{res},{res.parent}", "--to", "json", "-o", tmp_path / "x"),
+        ("gain-curve", res, res, "-o", tmp_path / "c"),
+    ):
         code, _, err = _run(capsys, *argv)
         _one_line_error(code, err)
         assert "twice" in err
@@ -444,8 +551,16 @@ def test_a_result_given_twice_is_refused_everywhere(tmp_path, capsys):
         from emccdcal.beads.validation import validate
         from emccdcal.simulate.beads import TRUTH_CALIBRATION_FILE, simulate_beads
 
-        sim = simulate_beads(tmp_path / "beads", beads=2, rows=40, cols=40, frames=20,
-                             dark_frames=50, seed=1, setpoints=(1, 5))
+        sim = simulate_beads(
+            tmp_path / "beads",
+            beads=2,
+            rows=40,
+            cols=40,
+            frames=20,
+            dark_frames=50,
+            seed=1,
+            setpoints=(1, 5),
+        )
         truth = sim.outdir / TRUTH_CALIBRATION_FILE
         validate(sim.manifest, [truth, truth], progress=False)
 
@@ -454,19 +569,32 @@ def test_a_database_on_read_only_storage_can_be_listed(tmp_path, capsys, monkeyp
     db = tmp_path / "d.sqlite"
     database.add(true_result(tmp_path / "r"), db=db, camera="S1", date="2025-01-02")
     real = os.access
-    monkeypatch.setattr(os, "access", lambda p, mode: False if mode == os.W_OK
-                        else real(p, mode))  # as on read-only storage (root writes anyway)
+    monkeypatch.setattr(
+        os, "access", lambda p, mode: False if mode == os.W_OK else real(p, mode)
+    )  # as on read-only storage (root writes anyway)
     code, out, err = _run(capsys, "db", "list", "--db", db)
     assert code == 0 and "S1" in out, err
-    code, _, err = _run(capsys, "db", "add", true_result(tmp_path / "r2", seed=3), "--db", db,
-                        "--camera", "S1")
+    code, _, err = _run(
+        capsys, "db", "add", true_result(tmp_path / "r2", seed=3), "--db", db, "--camera", "S1"
+    )
     _one_line_error(code, err)
     assert "cannot be written" in err and "read-only" in err
 
 
 def test_demo_refuses_an_earlier_demo_unless_overwrite(tmp_path, capsys):
-    argv = ("demo", "-o", tmp_path / "d", "--rows", 4, "--cols", 4, "--frames", 300, "-q",
-            "--no-report")
+    argv = (
+        "demo",
+        "-o",
+        tmp_path / "d",
+        "--rows",
+        4,
+        "--cols",
+        4,
+        "--frames",
+        300,
+        "-q",
+        "--no-report",
+    )
     assert _run(capsys, *argv)[0] == 0
     code, _, err = _run(capsys, *argv)
     _one_line_error(code, err)
@@ -477,17 +605,21 @@ def test_demo_refuses_an_earlier_demo_unless_overwrite(tmp_path, capsys):
 def test_float_frames_of_integer_counts_calibrate_and_bad_ones_are_named(tmp_path, capsys):
     from emccdcal.simulate.series import simulate_gain_series
 
-    sim = simulate_gain_series(tmp_path / "gs", setpoints=(1, 5), rows=4, cols=4,
-                               frames=200, dark_frames=200, seed=3)
+    sim = simulate_gain_series(
+        tmp_path / "gs", setpoints=(1, 5), rows=4, cols=4, frames=200, dark_frames=200, seed=3
+    )
     frames_file = sim.outdir / sim.truth["acquisitions"][1]["frames"]
     stack = tifffile.imread(frames_file).astype(np.float64)
     tifffile.imwrite(frames_file, stack, photometric="minisblack")
-    assert _run(capsys, "calibrate", sim.manifest, "--method", "gs", "-o", tmp_path / "o",
-                "-q")[0] == 0  # checks on: float64 integer counts are counts
+    assert (
+        _run(capsys, "calibrate", sim.manifest, "--method", "gs", "-o", tmp_path / "o", "-q")[0]
+        == 0
+    )  # checks on: float64 integer counts are counts
     stack[7, 1, 1] += 0.5
     tifffile.imwrite(frames_file, stack, photometric="minisblack")
-    code, _, err = _run(capsys, "calibrate", sim.manifest, "--method", "gs", "-o",
-                        tmp_path / "o2", "--no-checks")
+    code, _, err = _run(
+        capsys, "calibrate", sim.manifest, "--method", "gs", "-o", tmp_path / "o2", "--no-checks"
+    )
     _one_line_error(code, err)
     assert frames_file.name in err and "not integer" in err
 
@@ -498,11 +630,17 @@ def test_a_result_emccdcal_makes_always_loads(tmp_path):
     g[2, 1, 1] = -5.0  # a fit gone wrong at one converged pixel
     with pytest.warns(UserWarning, match="1 pixel.*marked not converged"):
         made = result.make_dataset(
-            method="gs", setpoints=ds.setpoint.values, e_per_adu=ds.e_per_adu.values,
-            e_per_adu_se=ds.e_per_adu_se.values, em_gain=g, em_gain_se=ds.em_gain_se.values,
+            method="gs",
+            setpoints=ds.setpoint.values,
+            e_per_adu=ds.e_per_adu.values,
+            e_per_adu_se=ds.e_per_adu_se.values,
+            em_gain=g,
+            em_gain_se=ds.em_gain_se.values,
             photoelectrons=ds.photoelectrons.values,
-            photoelectrons_se=ds.photoelectrons_se.values, converged=True,
-            manifest_hash="0" * 64)
+            photoelectrons_se=ds.photoelectrons_se.values,
+            converged=True,
+            manifest_hash="0" * 64,
+        )
     assert not made.converged.values[1, 1]
     assert int(made.converged.values.sum()) == made.converged.size - 1
     result.save(made, tmp_path / "made")

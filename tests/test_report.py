@@ -40,30 +40,54 @@ def write_validation(d, setpoints=(1, 5, 25), n_beads=3, frames=200, seed=0):
     cals, cubes = [], []
     for file, sc in scale.items():
         cube = truth[:, None, None] * np.array(sc)[None, :, None] + rng.normal(
-            0, 30, (n_beads, len(setpoints), frames))
+            0, 30, (n_beads, len(setpoints), frames)
+        )
         cubes.append(cube)
         beads = []
         for b in range(n_beads):
             means = {str(s): float(cube[b, j].mean()) for j, s in enumerate(setpoints)}
-            ses = {str(s): float(cube[b, j].std(ddof=1) / np.sqrt(frames))
-                   for j, s in enumerate(setpoints)}
+            ses = {
+                str(s): float(cube[b, j].std(ddof=1) / np.sqrt(frames))
+                for j, s in enumerate(setpoints)
+            }
             rel = np.array(list(means.values())) / means["1"]
-            beads.append({"row": 10.0 + b, "col": 20.0 + b, "mean_intensity": means,
-                          "mean_intensity_se": ses, "sigma_means_incl_1x": float(rel.std(ddof=1)),
-                          "sigma_means_excl_1x": float(rel[1:].std(ddof=1))})
-        cals.append({"file": file, "method": "gs" if file == "A.nc" else "mv-gain",
-                     "beads": beads,
-                     "sigma_means_incl_1x": float(np.mean([b["sigma_means_incl_1x"] for b in beads])),
-                     "sigma_means_excl_1x": float(np.mean([b["sigma_means_excl_1x"] for b in beads]))})
+            beads.append(
+                {
+                    "row": 10.0 + b,
+                    "col": 20.0 + b,
+                    "mean_intensity": means,
+                    "mean_intensity_se": ses,
+                    "sigma_means_incl_1x": float(rel.std(ddof=1)),
+                    "sigma_means_excl_1x": float(rel[1:].std(ddof=1)),
+                }
+            )
+        cals.append(
+            {
+                "file": file,
+                "method": "gs" if file == "A.nc" else "mv-gain",
+                "beads": beads,
+                "sigma_means_incl_1x": float(np.mean([b["sigma_means_incl_1x"] for b in beads])),
+                "sigma_means_excl_1x": float(np.mean([b["sigma_means_excl_1x"] for b in beads])),
+            }
+        )
     # what validate found about the bead data (validation.data_checks)
     cals[1]["blinking"] = {"frames_off": {"1": 3, "5": 0, "25": 0}, "beads": 1, "modelled": True}
-    (d / "validation.json").write_text(json.dumps({"calibrations": cals,
-                                                   "ranking": ["A.nc", "B.nc"]}))
-    write_netcdf(xr.Dataset(
-        {"intensity": (("calibration", "bead", "setpoint", "frame"), np.stack(cubes),
-                       {"units": "e-"})},
-        coords={"calibration": list(scale), "setpoint": np.array(setpoints, float)}),
-        d / "intensities.nc")
+    (d / "validation.json").write_text(
+        json.dumps({"calibrations": cals, "ranking": ["A.nc", "B.nc"]})
+    )
+    write_netcdf(
+        xr.Dataset(
+            {
+                "intensity": (
+                    ("calibration", "bead", "setpoint", "frame"),
+                    np.stack(cubes),
+                    {"units": "e-"},
+                )
+            },
+            coords={"calibration": list(scale), "setpoint": np.array(setpoints, float)},
+        ),
+        d / "intensities.nc",
+    )
     return d, np.stack(cubes)
 
 
@@ -101,8 +125,10 @@ def _check_units(fig):
 # --------------------------------------------------------------------------------------
 def test_histogram_figure_shows_the_pixels_counts_and_its_fitted_pmf(loaded, runs):
     ds = loaded["gs"]
-    stacks = sorted((runs[1]["outdir"] / "gain-series").glob("gain-GS/*x-gain.tif"),
-                    key=lambda p: float(p.name.split("x")[0]))
+    stacks = sorted(
+        (runs[1]["outdir"] / "gain-series").glob("gain-GS/*x-gain.tif"),
+        key=lambda p: float(p.name.split("x")[0]),
+    )
     fig = figures.histogram_figure(ds, PIXEL)
     axes = _visible_axes(fig)
     assert len(axes) == 5
@@ -120,11 +146,15 @@ def test_histogram_figure_shows_the_pixels_counts_and_its_fitted_pmf(loaded, run
         (line,) = ax.lines
         k = line.get_xdata()
         assert ds.attrs["em_model"] == "cascade"
-        p = noise.pmf(k, float(ds.photoelectrons[r, c]),
-                      float(ds.em_gain.sel(setpoint=sp)[r, c]), float(ds.e_per_adu[r, c]),
-                      float(ds.offset.sel(setpoint=sp)[r, c]),
-                      float(ds.read_noise.sel(setpoint=sp)[r, c]),
-                      em_model=noise.EMModel.from_attrs(ds.attrs))
+        p = noise.pmf(
+            k,
+            float(ds.photoelectrons[r, c]),
+            float(ds.em_gain.sel(setpoint=sp)[r, c]),
+            float(ds.e_per_adu[r, c]),
+            float(ds.offset.sel(setpoint=sp)[r, c]),
+            float(ds.read_noise.sel(setpoint=sp)[r, c]),
+            em_model=noise.EMModel.from_attrs(ds.attrs),
+        )
         np.testing.assert_allclose(line.get_ydata(), p, rtol=1e-9)
         # ... and it describes the data: its mean within 4 SE of the counts' mean
         w = p / p.sum()
@@ -142,7 +172,10 @@ def test_photon_transfer_points_and_lines(loaded, runs):
     points = [ln for ln in ax.lines if ln.get_marker() == "o"]
     x, y = points[0].get_xdata(), points[0].get_ydata()
     levels = [str(v) for v in ds.level.values]
-    files = {a.level: a.frames_path for a in read_manifest(runs[1]["outdir"] / "adu-series" / "manifest.toml").acquisitions}
+    files = {
+        a.level: a.frames_path
+        for a in read_manifest(runs[1]["outdir"] / "adu-series" / "manifest.toml").acquisitions
+    }
     for i, lev in enumerate(levels):
         counts = tifffile.imread(files[lev])[:, r, c].astype(float)
         s0 = float(ds.offset.sel(level=lev)[r, c])
@@ -170,7 +203,8 @@ def test_estimates_figure_compares_methods(loaded):
     _check_units(fig)
     axes = _visible_axes(fig)
     assert [ax.get_title() for ax in axes] == ["ADU conversion factor φ"] + [
-        f"EM gain at set-point {s}×" for s in (5, 25, 100, 300)]
+        f"EM gain at set-point {s}×" for s in (5, 25, 100, 300)
+    ]
     # φ: is-adu and mv-adu (gs holds φ fixed); each histogram holds every converged pixel
     assert len(axes[0].patches) == 2
     legend = [t.get_text() for t in axes[0].get_legend().get_texts()]
@@ -188,7 +222,9 @@ def test_maps_figure_draws_the_result_in_sensor_orientation(loaded):
     images = {ax.get_title(): ax.images[0].get_array() for ax in _visible_axes(fig) if ax.images}
     np.testing.assert_array_equal(images["g at 5×"], ds.em_gain.sel(setpoint=5).values)
     assert images["g at 5×"].shape == (ROWS, COLS)
-    np.testing.assert_array_equal(images["gof p-value, 300×"], ds.gof_pvalue.sel(setpoint=300).values)
+    np.testing.assert_array_equal(
+        images["gof p-value, 300×"], ds.gof_pvalue.sel(setpoint=300).values
+    )
     assert f"converged: {int(ds.converged.sum())}/{ROWS * COLS}" in images
     assert "φ (given, not fitted)" in images  # gs holds φ
     # one dark for every level of the 1× series: one map, not six copies
@@ -231,12 +267,18 @@ def test_bead_figures_follow_the_validation_contract(tmp_path):
     ax, ax2 = _visible_axes(fig)
     doc = json.loads((d / "validation.json").read_text())
     for line, cal in zip([ln for ln in ax.lines if ln.get_marker() == "o"], doc["calibrations"]):
-        rel = np.array([[b["mean_intensity"][k] / b["mean_intensity"]["1"] for k in ("1", "5", "25")]
-                        for b in cal["beads"]])
+        rel = np.array(
+            [
+                [b["mean_intensity"][k] / b["mean_intensity"]["1"] for k in ("1", "5", "25")]
+                for b in cal["beads"]
+            ]
+        )
         np.testing.assert_allclose(line.get_ydata(), rel.mean(axis=0))
     bars = [p.get_height() for p in ax2.patches]
-    assert bars == pytest.approx([c["sigma_means_incl_1x"] for c in doc["calibrations"]]
-                                 + [c["sigma_means_excl_1x"] for c in doc["calibrations"]])
+    assert bars == pytest.approx(
+        [c["sigma_means_incl_1x"] for c in doc["calibrations"]]
+        + [c["sigma_means_excl_1x"] for c in doc["calibrations"]]
+    )
     # a bead without data at a set-point (null) is left out of that set-point only
     doc["calibrations"][0]["beads"][0]["mean_intensity"]["25"] = None
     (d / "validation.json").write_text(json.dumps(doc))
@@ -244,7 +286,8 @@ def test_bead_figures_follow_the_validation_contract(tmp_path):
     line = next(ln for ln in ax.lines if ln.get_marker() == "o")
     beads = doc["calibrations"][0]["beads"][1:]
     assert line.get_ydata()[2] == pytest.approx(
-        np.mean([b["mean_intensity"]["25"] / b["mean_intensity"]["1"] for b in beads]))
+        np.mean([b["mean_intensity"]["25"] / b["mean_intensity"]["1"] for b in beads])
+    )
     # frames whose fit did not converge are not shown
     ds = read_netcdf(d / "intensities.nc")
     ds["converged"] = xr.ones_like(ds.intensity, dtype=bool)
@@ -299,8 +342,9 @@ def full_report(runs):
     return runs[1]["report"].read_text(encoding="utf-8")
 
 
-def test_demo_writes_a_self_contained_report_with_every_section_and_figure(full_report, runs,
-                                                                          demo_run):
+def test_demo_writes_a_self_contained_report_with_every_section_and_figure(
+    full_report, runs, demo_run
+):
     text = full_report
     run = runs[1]
     assert run["report"] == run["outdir"] / "report.html"
@@ -310,8 +354,11 @@ def test_demo_writes_a_self_contained_report_with_every_section_and_figure(full_
     for sid in ("summary", "warnings", "gof", "figures", "provenance"):
         assert sid in p.ids
     assert "validation" not in p.ids  # no validation input: no such section
-    want = [f"fig-result-{i}-{k}" for i in (1, 2)
-            for k in ("histograms", "histograms-log", "photon-transfer", "maps")]
+    want = [
+        f"fig-result-{i}-{k}"
+        for i in (1, 2)
+        for k in ("histograms", "histograms-log", "photon-transfer", "maps")
+    ]
     want += ["fig-estimates", "fig-gain", "fig-gain-curve"]
     assert set(want) <= set(p.ids)
     assert len(p.imgs) == len(want)
@@ -358,14 +405,21 @@ def test_report_leaves_out_raw_data_figures_when_manifest_is_gone(loaded, tmp_pa
     assert len(msgs) == 3  # one per reason, not one per figure
     assert "no-such-dir/validation.json: no such file" in msgs[0]
     assert msgs[1].startswith("left out 3 figure(s) (result 1 (mv-adu): counts and fitted pmf; ")
-    assert msgs[1].endswith("gone/manifest.toml: manifest of the mv-adu result not found "
-                            "(moved or deleted?); the raw data cannot be read")
+    assert msgs[1].endswith(
+        "gone/manifest.toml: manifest of the mv-adu result not found "
+        "(moved or deleted?); the raw data cannot be read"
+    )
     assert "EM gain above 1×" in msgs[2]
     p = _Parse()
     p.feed(text)
     assert "fig-result-1-histograms" not in p.ids and "fig-result-1-photon-transfer" not in p.ids
-    assert {"fig-result-1-maps", "fig-estimates", "validation", "fig-validation-1-intensities",
-            "fig-validation-1-consistency"} <= set(p.ids)
+    assert {
+        "fig-result-1-maps",
+        "fig-estimates",
+        "validation",
+        "fig-validation-1-intensities",
+        "fig-validation-1-consistency",
+    } <= set(p.ids)
     assert "not found (moved or deleted?)" in text and "Left out of this report" in text
     # validation: ranking table (A.nc first), what it found of the data, the files' hashes
     assert text.index("A.nc") < text.index("B.nc")
@@ -387,13 +441,26 @@ def test_report_cli_quiet_warns_once_and_rejects_bad_inputs(loaded, tmp_path, ca
     moved.attrs["manifest_path"] = str(tmp_path / "nowhere.toml")
     result.save(moved, tmp_path / "res")
     out = tmp_path / "r.html"
-    assert cli.main(["report", str(tmp_path / "res"), "-o", str(out), "--quiet",
-                     "--figures-dir", str(tmp_path / "figs")]) == 0
+    assert (
+        cli.main(
+            [
+                "report",
+                str(tmp_path / "res"),
+                "-o",
+                str(out),
+                "--quiet",
+                "--figures-dir",
+                str(tmp_path / "figs"),
+            ]
+        )
+        == 0
+    )
     o, e = capsys.readouterr()
     assert o == "" and e.count("nowhere.toml") == 1 and e.startswith("warning: ")
     assert 'id="summary"' in out.read_text()
     assert sorted(p.name for p in (tmp_path / "figs").iterdir()) == [
-        f"fig-{n}.{x}" for n in ("estimates", "result-1-maps") for x in ("png", "svg")]
+        f"fig-{n}.{x}" for n in ("estimates", "result-1-maps") for x in ("png", "svg")
+    ]
     assert oct(out.stat().st_mode & 0o777) == "0o644"
     # not ours / not NetCDF / incompatible version / missing: one line, exit code 2
     (tmp_path / "text.nc").write_text("hello")
@@ -401,10 +468,12 @@ def test_report_cli_quiet_warns_once_and_rejects_bad_inputs(loaded, tmp_path, ca
     future = loaded["gs"].copy()
     future.attrs["emccdcal_version"] = "9.0.0"
     write_netcdf(future, tmp_path / "future.nc")
-    for name, msg in (("text.nc", "not an emccdcal result file"),
-                      ("other.nc", "not an emccdcal calibration result"),
-                      ("future.nc", "written by emccdcal 9.0.0, which is not compatible"),
-                      ("missing.nc", "no such file")):
+    for name, msg in (
+        ("text.nc", "not an emccdcal result file"),
+        ("other.nc", "not an emccdcal calibration result"),
+        ("future.nc", "written by emccdcal 9.0.0, which is not compatible"),
+        ("missing.nc", "no such file"),
+    ):
         assert cli.main(["report", str(tmp_path / name), "-o", str(tmp_path / "x.html")]) == 2
         o, e = capsys.readouterr()
         assert e.count("\n") == 1 and name in e and msg in e, e
@@ -416,8 +485,19 @@ def test_report_cli_quiet_warns_once_and_rejects_bad_inputs(loaded, tmp_path, ca
 @pytest.mark.slow
 def test_calibrate_report_flag_writes_report_beside_result(runs, tmp_path, capsys):
     manifest = runs[1]["outdir"] / "adu-series" / "manifest.toml"
-    code = cli.main(["calibrate", str(manifest), "--method", "mv-adu", "-o", str(tmp_path / "o"),
-                     "--report", "--quiet", "--no-checks"])
+    code = cli.main(
+        [
+            "calibrate",
+            str(manifest),
+            "--method",
+            "mv-adu",
+            "-o",
+            str(tmp_path / "o"),
+            "--report",
+            "--quiet",
+            "--no-checks",
+        ]
+    )
     assert code == 0
     text = (tmp_path / "o" / "report.html").read_text()
     assert 'id="fig-result-1-photon-transfer"' in text and 'id="provenance"' in text
@@ -432,8 +512,9 @@ def test_summary_says_what_the_standard_errors_include(tmp_path):
     from emccdcal.report.html import write_report
     from emccdcal.simulate.series import simulate_gain_series
 
-    sim = simulate_gain_series(tmp_path / "gs", rows=2, cols=2, frames=300, setpoints=(1, 100),
-                               seed=3, progress=False)
+    sim = simulate_gain_series(
+        tmp_path / "gs", rows=2, cols=2, frames=300, setpoints=(1, 100), seed=3, progress=False
+    )
     calibrate(sim.manifest, "gs", out=tmp_path / "out", intervals="profile", checks=False)
     html = write_report([tmp_path / "out"], tmp_path / "r.html").read_text()
     assert "Standard errors include the errors of the offset and read-noise maps" in html

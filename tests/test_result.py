@@ -45,8 +45,12 @@ def gs_dataset(**overrides):
         manifest_path="/data/run/manifest.toml",
         extra={
             "offset": (("setpoint", "row", "col"), rng.normal(580, 5, (5, R, C)), "ADU"),
-            "n_saturated": (("setpoint", "row", "col"), np.zeros((5, R, C), np.int64), "1",
-                            "frames at the ADC maximum, excluded"),
+            "n_saturated": (
+                ("setpoint", "row", "col"),
+                np.zeros((5, R, C), np.int64),
+                "1",
+                "frames at the ADC maximum, excluded",
+            ),
         },
         attrs={"skip_frames": 1000, "fixed_e_per_adu": True},
     )
@@ -115,19 +119,35 @@ def test_loglik_absent_is_nan_and_levels_dims():
 
 def test_photoelectrons_dims_rule():
     E3 = np.full((5, R, C), 40.0)
-    base = dict(method="is-gain", e_per_adu=3.8, e_per_adu_se=0.0, converged=True,
-                manifest_hash=HASH, photoelectrons_se=1.0)
+    base = dict(
+        method="is-gain",
+        e_per_adu=3.8,
+        e_per_adu_se=0.0,
+        converged=True,
+        manifest_hash=HASH,
+        photoelectrons_se=1.0,
+    )
     ds = make_dataset(setpoints=SETPOINTS, photoelectrons=E3, **base)
     assert ds.photoelectrons.dims == ("setpoint", "row", "col")
     # both coordinates given: a 3-D array is ambiguous unless the dims are named
     with pytest.raises(ValueError, match="pass photoelectrons_dims"):
         make_dataset(setpoints=SETPOINTS, levels=list("abcde"), photoelectrons=E3, **base)
-    ds = make_dataset(setpoints=SETPOINTS, levels=list("abcde"), photoelectrons=E3,
-                      photoelectrons_dims=("level", "row", "col"), **base)
+    ds = make_dataset(
+        setpoints=SETPOINTS,
+        levels=list("abcde"),
+        photoelectrons=E3,
+        photoelectrons_dims=("level", "row", "col"),
+        **base,
+    )
     assert ds.photoelectrons.dims == ("level", "row", "col")
     E4 = np.full((5, 2, R, C), 40.0)
-    ds = make_dataset(setpoints=SETPOINTS, levels=["a", "b"], photoelectrons=E4,
-                      photoelectrons_dims=("setpoint", "level", "row", "col"), **base)
+    ds = make_dataset(
+        setpoints=SETPOINTS,
+        levels=["a", "b"],
+        photoelectrons=E4,
+        photoelectrons_dims=("setpoint", "level", "row", "col"),
+        **base,
+    )
     assert ds.photoelectrons_se.shape == (5, 2, R, C)
     with pytest.raises(ValueError, match="conflicting sizes for dimension 'setpoint'"):
         make_dataset(setpoints=SETPOINTS, photoelectrons=E3[:4], **base)
@@ -146,8 +166,10 @@ def test_photoelectrons_dims_rule():
         ({"attrs": {"method": "x"}}, "cannot be replaced"),
         ({"attrs": {"bad": {"a": 1}}}, "attribute 'bad'"),
         ({"extra": {"e_per_adu": (("row", "col"), np.ones((R, C)), "1")}}, "clashes"),
-        ({"extra": {"offset": (("setpoint", "row", "col"), np.ones((2, R, C)), "ADU")}},
-         "sizes for dimension 'setpoint'.*'offset'"),
+        (
+            {"extra": {"offset": (("setpoint", "row", "col"), np.ones((2, R, C)), "ADU")}},
+            "sizes for dimension 'setpoint'.*'offset'",
+        ),
         ({"extra": {"offset": (("row", "col"), np.ones((R, C)))}}, "must be"),
         ({"em_gain_se": None}, "together"),
     ],
@@ -195,8 +217,15 @@ def test_summary_keys_and_converged_only():
     assert s["pixels"] == {"total": R * C, "converged": R * C - 1, "rows": R, "cols": C}
     assert "converged" in s["statistics_over"]
     params = s["parameters"]
-    assert set(params) == {"e_per_adu", "adu_per_e", "em_gain", "photoelectrons", "loglik",
-                           "offset", "n_saturated"}
+    assert set(params) == {
+        "e_per_adu",
+        "adu_per_e",
+        "em_gain",
+        "photoelectrons",
+        "loglik",
+        "offset",
+        "n_saturated",
+    }
     assert list(params["em_gain"]["by_setpoint"]) == ["1", "5", "25", "100", "300"]
     assert list(params["offset"]["by_setpoint"]) == ["1", "5", "25", "100", "300"]
     conv = ds.converged.values
@@ -239,8 +268,10 @@ def test_summary_levels_and_missing_values():
 def test_round_trip(tmp_path):
     ds = gs_dataset()
     paths = save(ds, tmp_path / "out" / "nested", seconds=1.25)
-    assert paths == {"calibration": tmp_path / "out/nested/calibration.nc",
-                     "summary": tmp_path / "out/nested/summary.json"}
+    assert paths == {
+        "calibration": tmp_path / "out/nested/calibration.nc",
+        "summary": tmp_path / "out/nested/summary.json",
+    }
     back = load(paths["calibration"])
     xr.testing.assert_identical(back, ds)  # values, dims, coords, attrs (units) alike
     assert back.converged.dtype == bool
@@ -362,8 +393,18 @@ def test_docs_results_md_names_every_standard_variable():
 
     doc = Path(__file__).parents[1] / "docs" / "results.md"
     text = doc.read_text(encoding="utf-8")
-    for name in ("e_per_adu", "adu_per_e", "em_gain", "photoelectrons", "loglik",
-                 "converged", "setpoint", "level", "calibration.nc", "summary.json"):
+    for name in (
+        "e_per_adu",
+        "adu_per_e",
+        "em_gain",
+        "photoelectrons",
+        "loglik",
+        "converged",
+        "setpoint",
+        "level",
+        "calibration.nc",
+        "summary.json",
+    ):
         assert f"`{name}" in text, name
     for units in set(result.UNITS.values()):
         assert f"`{units}`" in text, units

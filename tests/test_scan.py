@@ -19,8 +19,9 @@ from emccdcal.simulate.series import simulate_gain_series
 @pytest.fixture(scope="module")
 def series(tmp_path_factory):
     d = tmp_path_factory.mktemp("scan")
-    return simulate_gain_series(d / "gs", rows=4, cols=5, frames=600, seed=21,
-                                setpoints=(1, 25, 300))
+    return simulate_gain_series(
+        d / "gs", rows=4, cols=5, frames=600, seed=21, setpoints=(1, 25, 300)
+    )
 
 
 def _session(series, folder, suffix, *, readout=lambda sp: 10.0):
@@ -56,18 +57,23 @@ def test_scanned_session_calibrates_as_the_written_manifest(series, tmp_path, su
     written = quiet(calibrate, series.manifest, "gs")
     # the same frames; the maps from the same darks (here reduced by the reader)
     np.testing.assert_allclose(scanned.em_gain.values, written.em_gain.values, rtol=1e-6)
-    np.testing.assert_allclose(scanned.photoelectrons.values, written.photoelectrons.values,
-                               rtol=1e-6)
+    np.testing.assert_allclose(
+        scanned.photoelectrons.values, written.photoelectrons.values, rtol=1e-6
+    )
     # an existing manifest is kept unless told
     assert cli.main(["scan", str(folder)]) == 2
     assert "exists; pass --overwrite" in capsys.readouterr().err
 
 
 def test_readout_rate_changing_mid_series_is_refused(series, tmp_path):
-    folder = _session(series, tmp_path / "session", ".spe",
-                      readout=lambda sp: 5.0 if sp == 300 else 10.0)
-    with pytest.raises(InputError, match=r"readout rate \(MHz\) 5(\.0)? in '.*-2100\.spe' "
-                                         r"but 10(\.0)? in '.*': a series is taken with one"):
+    folder = _session(
+        series, tmp_path / "session", ".spe", readout=lambda sp: 5.0 if sp == 300 else 10.0
+    )
+    with pytest.raises(
+        InputError,
+        match=r"readout rate \(MHz\) 5(\.0)? in '.*-2100\.spe' "
+        r"but 10(\.0)? in '.*': a series is taken with one",
+    ):
         scan(folder)
 
 
@@ -94,29 +100,40 @@ def test_sessions_that_cannot_be_scanned(tmp_path):
         scan(empty)
     nameless = tmp_path / "nameless"
     nameless.mkdir()
-    tifffile.imwrite(nameless / "stack.tif", np.zeros((3, 2, 2), np.uint16), photometric="minisblack")
+    tifffile.imwrite(
+        nameless / "stack.tif", np.zeros((3, 2, 2), np.uint16), photometric="minisblack"
+    )
     with pytest.raises(InputError, match=r"stack\.tif': no EM gain set-point"):
         scan(nameless)
     nodark = tmp_path / "nodark"
     nodark.mkdir()
     tifffile.imwrite(nodark / "5x.tif", np.ones((3, 2, 2), np.uint16), photometric="minisblack")
-    with pytest.raises(InputError, match=r"no dark at set-point 5: name a dark stack with its "
-                       r"set-point and 'dark' \(e\.g\. '5x-dark\.tif'\), or an offset and a "
-                       r"read-noise map \('5x_S0\.tif' and '5x_sigma\.tif'\); or write the "
-                       r"manifest by hand, each acquisition with dark = "):
+    with pytest.raises(
+        InputError,
+        match=r"no dark at set-point 5: name a dark stack with its "
+        r"set-point and 'dark' \(e\.g\. '5x-dark\.tif'\), or an offset and a "
+        r"read-noise map \('5x_S0\.tif' and '5x_sigma\.tif'\); or write the "
+        r"manifest by hand, each acquisition with dark = ",
+    ):
         scan(nodark)
     # maps seen but not usable are named in that one message, each with its reason
     tifffile.imwrite(nodark / "5x_S0.tif", np.full((2, 2), 100, np.float32))
     tifffile.imwrite(nodark / "25x_sigma.tif", np.full((2, 2), 3, np.float32))
     tifffile.imwrite(nodark / "5x_sigma.tif", np.full((3, 3), 3, np.float32))
-    with pytest.raises(InputError, match=r"seen and not used: 25x_sigma\.tif \(a map at "
-                       r"set-point 25, where no illuminated stack is\), 5x_sigma\.tif \(a 3 × "
-                       r"3 px map; the frames are 2 × 2 px\), 5x_S0\.tif \(no read-noise map "
-                       r"at set-point 5 to pair it with\)"):
+    with pytest.raises(
+        InputError,
+        match=r"seen and not used: 25x_sigma\.tif \(a map at "
+        r"set-point 25, where no illuminated stack is\), 5x_sigma\.tif \(a 3 × "
+        r"3 px map; the frames are 2 × 2 px\), 5x_S0\.tif \(no read-noise map "
+        r"at set-point 5 to pair it with\)",
+    ):
         scan(nodark)
     # a folder of sessions: the message names the subfolders to scan
-    with pytest.raises(InputError, match=r"no stack of frames .*; its subfolders nameless, "
-                                         r"nodark hold some: scan each"):
+    with pytest.raises(
+        InputError,
+        match=r"no stack of frames .*; its subfolders nameless, "
+        r"nodark hold some: scan each",
+    ):
         scan(tmp_path)
 
 
@@ -125,10 +142,14 @@ def test_dark_stacks_are_preferred_to_maps_and_the_maps_are_listed(series, tmp_p
     folder = series.manifest.parent / "gain-GS"
     session = scan(folder)
     assert {sp: d.path.name for sp, d in session.darks.items()} == {
-        1: "1x-gain_no-signal.tif", 25: "25x-gain_no-signal.tif", 300: "300x-gain_no-signal.tif"}
+        1: "1x-gain_no-signal.tif",
+        25: "25x-gain_no-signal.tif",
+        300: "300x-gain_no-signal.tif",
+    }
     skipped = dict(session.skipped)
-    assert skipped["25x-gain_no-signal_S0.tif"] == ("the dark stack 25x-gain_no-signal.tif "
-                                                    "at set-point 25 is used instead")
+    assert skipped["25x-gain_no-signal_S0.tif"] == (
+        "the dark stack 25x-gain_no-signal.tif at set-point 25 is used instead"
+    )
     assert len(skipped) == 6
     # without the stacks, the maps are the darks: the manifest names them
     maps_only = tmp_path / "maps"
@@ -138,9 +159,11 @@ def test_dark_stacks_are_preferred_to_maps_and_the_maps_are_listed(series, tmp_p
             (maps_only / tif.name).write_bytes(tif.read_bytes())
     assert cli.main(["scan", str(maps_only), "-o", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
-    assert out.startswith("gain-series: 3 set-points (1, 25, 300); darks: 3 offset/read-noise "
-                          "map pair(s)\nused:\n  1x-gain.tif (set-point 1, name); offset "
-                          "1x-gain_no-signal_S0.tif, read noise 1x-gain_no-signal_sigma.tif\n")
+    assert out.startswith(
+        "gain-series: 3 set-points (1, 25, 300); darks: 3 offset/read-noise "
+        "map pair(s)\nused:\n  1x-gain.tif (set-point 1, name); offset "
+        "1x-gain_no-signal_S0.tif, read noise 1x-gain_no-signal_sigma.tif\n"
+    )
     text = (tmp_path / "out" / "manifest.toml").read_text()  # -o a folder, as every verb's
     assert text.count("offset = ") == 3 and "dark = " not in text
     assert "taken as exact; add dark_frames = N" in text
@@ -164,21 +187,27 @@ def test_the_papers_folders_scan_as_they_are(real_data, tmp_path, capsys):
     assert cli.main(["scan", str(tmp_path / "ADU")]) == 0
     out = capsys.readouterr().out
     # one line per level, never "set-point(s) 1, 1, 1, 1, 1, 1"
-    assert out.startswith("intensity-series: 6 levels at set-point 1; darks: 1 offset/"
-                          "read-noise map pair(s)\n")
+    assert out.startswith(
+        "intensity-series: 6 levels at set-point 1; darks: 1 offset/read-noise map pair(s)\n"
+    )
     assert cli.main(["scan", str(tmp_path / "gain-GS")]) == 0
     out = capsys.readouterr().out
-    assert out.startswith("gain-series: 5 set-points (1, 5, 25, 100, 300); darks: 5 "
-                          "offset/read-noise map pair(s)\n")
+    assert out.startswith(
+        "gain-series: 5 set-points (1, 5, 25, 100, 300); darks: 5 offset/read-noise map pair(s)\n"
+    )
     assert "skipped:\n  ADU_map.tif: a map named for e⁻/ADU, not a dark" in out
     text = (tmp_path / "gain-GS" / "manifest.toml").read_text()
     assert '# e_per_adu = "ADU_map.tif"' in text
     # the scanned manifests calibrate as the hand-written ones, to the bit
     for kind, folder, method in (("adu", "ADU", "is-adu"), ("gs", "gain-GS", "gs")):
-        extra = ({"e_per_adu": tifffile.imread(tmp_path / "gain-GS" / "ADU_map.tif")}
-                 if kind == "gs" else {})
-        scanned = quiet(calibrate, tmp_path / folder / "manifest.toml", method,
-                        em_model="gamma", **extra)
+        extra = (
+            {"e_per_adu": tifffile.imread(tmp_path / "gain-GS" / "ADU_map.tif")}
+            if kind == "gs"
+            else {}
+        )
+        scanned = quiet(
+            calibrate, tmp_path / folder / "manifest.toml", method, em_model="gamma", **extra
+        )
         written = quiet(calibrate, write_real_manifest(tmp_path, kind), method, em_model="gamma")
         for name in ("em_gain", "photoelectrons", "e_per_adu"):
             np.testing.assert_array_equal(scanned[name].values, written[name].values)

@@ -73,8 +73,12 @@ def test_frame_moments_match_model(g, multiplication, f2):
 
 @pytest.mark.parametrize(
     "E, g, phi, S0, sigma",
-    [(370.0, 1.0, PHI, 587.7, SIGMA), (370.0, 4.78, PHI, 583.9, SIGMA), (60.0, 9.1, 12.0, 990.0, 40.0),
-     (2.0, 261.6, PHI, 566.2, SIGMA)],
+    [
+        (370.0, 1.0, PHI, 587.7, SIGMA),
+        (370.0, 4.78, PHI, 583.9, SIGMA),
+        (60.0, 9.1, 12.0, 990.0, 40.0),
+        (2.0, 261.6, PHI, 566.2, SIGMA),
+    ],
 )
 def test_gamma_counts_follow_noise_model_pmf(E, g, phi, S0, sigma):
     """Chi-square of the simulated histogram against emccdcal.noise.pmf (≤ 60 equiprobable bins).
@@ -85,11 +89,15 @@ def test_gamma_counts_follow_noise_model_pmf(E, g, phi, S0, sigma):
 
     from emccdcal.model import noise
 
-    c = simulate_frames(E, g, phi, S0, sigma, frames=1000, rows=16, cols=16, seed=21,
-                        multiplication="gamma").ravel().astype(int)
+    c = (
+        simulate_frames(
+            E, g, phi, S0, sigma, frames=1000, rows=16, cols=16, seed=21, multiplication="gamma"
+        )
+        .ravel()
+        .astype(int)
+    )
     ks = np.arange(c.min() - 50, c.max() + 51)
-    cdf = np.cumsum(noise.pmf(ks, E, g, phi, S0, math.sqrt(sigma**2 + 1 / 12),
-                            em_model="gamma"))
+    cdf = np.cumsum(noise.pmf(ks, E, g, phi, S0, math.sqrt(sigma**2 + 1 / 12), em_model="gamma"))
     # bin i holds ks[edges[i-1]] < k <= ks[edges[i]] (narrow pmfs give fewer than 60 bins)
     edges = np.unique(np.searchsorted(cdf, np.linspace(0, 1, 61)[1:-1]))
     observed = np.bincount(np.searchsorted(ks[edges], c, side="left"), minlength=edges.size + 1)
@@ -145,7 +153,9 @@ def test_cic_in_signal_and_darks(multiplication):
     dark = simulate_frames(0.0, g, PHI, S0, SIGMA, seed=5, **kw)
     _check_moments(dark, S0 + g * c / PHI, SIGMA**2 + 1 / 12 + f2 * c * (g / PHI) ** 2)
     signal = simulate_frames(E, g, PHI, S0, SIGMA, seed=6, **kw)
-    _check_moments(signal, S0 + g * (E + c) / PHI, SIGMA**2 + 1 / 12 + f2 * (E + c) * (g / PHI) ** 2)
+    _check_moments(
+        signal, S0 + g * (E + c) / PHI, SIGMA**2 + 1 / 12 + f2 * (E + c) * (g / PHI) ** 2
+    )
     # CIC is multiplied: at 1× the same charge shifts the dark mean by c/φ only.
     dark1 = simulate_frames(0.0, 1.0, PHI, S0, SIGMA, seed=5, **kw)
     _check_moments(dark1, S0 + c / PHI, SIGMA**2 + 1 / 12 + c / PHI**2)
@@ -228,7 +238,9 @@ def test_simulate_frames_bad_input(kwargs, name):
 @pytest.fixture(scope="module")
 def gain_series(tmp_path_factory):
     out = tmp_path_factory.mktemp("gs")
-    return simulate_gain_series(out, rows=6, cols=5, frames=400, dark_frames=300, seed=123, cic=0.02)
+    return simulate_gain_series(
+        out, rows=6, cols=5, frames=400, dark_frames=300, seed=123, cic=0.02
+    )
 
 
 def _manifest(path):
@@ -266,11 +278,17 @@ def test_gain_series_files(gain_series):
         s = t["em_gain_setpoint"]
         assert t["offset"] == pytest.approx(offset_at_setpoint(s, 587.7, 8.68))
         exp_dark_sd = math.sqrt(t["expected"]["dark_variance"])
-        assert abs(np.mean(off - pattern) - t["expected"]["dark_mean"]) < 4 * exp_dark_sd / math.sqrt(dark.size)
-        assert np.mean(sd**2) == pytest.approx(exp_dark_sd**2, rel=4 * math.sqrt(2 / dark.size) * 1.3)
+        assert abs(
+            np.mean(off - pattern) - t["expected"]["dark_mean"]
+        ) < 4 * exp_dark_sd / math.sqrt(dark.size)
+        assert np.mean(sd**2) == pytest.approx(
+            exp_dark_sd**2, rel=4 * math.sqrt(2 / dark.size) * 1.3
+        )
         # signal mean against truth
         m = stack.astype(float).mean() - pattern.mean()
-        assert abs(m - t["expected"]["mean"]) < 4.5 * math.sqrt(t["expected"]["variance"] / stack.size)
+        assert abs(m - t["expected"]["mean"]) < 4.5 * math.sqrt(
+            t["expected"]["variance"] / stack.size
+        )
     assert set(res.files) >= {res.manifest, res.truth_path}
     assert all(p.exists() for p in res.files)
     assert not [p for p in res.outdir.rglob(".*")]  # no temporary files left behind
@@ -303,7 +321,14 @@ def test_gain_series_options(tmp_path):
     dark_means = [tifffile.imread(tmp_path / a["offset_map"]).mean() for a in t["acquisitions"]]
     np.testing.assert_allclose(dark_means, 500.0, atol=4 * SIGMA / math.sqrt(9 * 2000))
     res2 = simulate_gain_series(
-        tmp_path / "b", setpoints=[5, 25], em_gain=[4.0, 20.0], offsets=[590, 580], rows=2, cols=2, frames=5, seed=1
+        tmp_path / "b",
+        setpoints=[5, 25],
+        em_gain=[4.0, 20.0],
+        offsets=[590, 580],
+        rows=2,
+        cols=2,
+        frames=5,
+        seed=1,
     )
     assert [a["em_gain"] for a in res2.truth["acquisitions"]] == [4.0, 20.0]
     assert [a["offset"] for a in res2.truth["acquisitions"]] == [590.0, 580.0]
@@ -311,9 +336,19 @@ def test_gain_series_options(tmp_path):
 
 def test_gain_series_illumination_per_setpoint(tmp_path):
     """One E per set-point: recorded in truth.json, and seen in the frames' means."""
-    res = simulate_gain_series(tmp_path, setpoints=[1, 10], em_gain=[1.0, 10.0],
-                               photoelectrons=[200.0, 400.0], rows=4, cols=4, frames=400,
-                               offset=500.0, offset_drop=0.0, offset_spread=0.0, seed=3)
+    res = simulate_gain_series(
+        tmp_path,
+        setpoints=[1, 10],
+        em_gain=[1.0, 10.0],
+        photoelectrons=[200.0, 400.0],
+        rows=4,
+        cols=4,
+        frames=400,
+        offset=500.0,
+        offset_drop=0.0,
+        offset_spread=0.0,
+        seed=3,
+    )
     acqs = res.truth["acquisitions"]
     assert [a["photoelectrons"] for a in acqs] == [200.0, 400.0]
     phi = res.truth["e_per_adu"]
@@ -322,12 +357,21 @@ def test_gain_series_illumination_per_setpoint(tmp_path):
         expected = a["photoelectrons"] * a["em_gain"] / phi
         assert signal == pytest.approx(expected, rel=0.02), a["label"]
     with pytest.raises(ValueError, match="photoelectrons has 3 value"):
-        simulate_gain_series(tmp_path / "b", setpoints=[1, 10], photoelectrons=[1.0, 2.0, 3.0],
-                             rows=2, cols=2, frames=2, seed=1)
+        simulate_gain_series(
+            tmp_path / "b",
+            setpoints=[1, 10],
+            photoelectrons=[1.0, 2.0, 3.0],
+            rows=2,
+            cols=2,
+            frames=2,
+            seed=1,
+        )
 
 
 def test_gain_series_reproducible(tmp_path):
-    kw = dict(rows=4, cols=3, frames=30, dark_frames=10, multiplication="cascade", cic=0.1, drift=0.05)
+    kw = dict(
+        rows=4, cols=3, frames=30, dark_frames=10, multiplication="cascade", cic=0.1, drift=0.05
+    )
     a = simulate_gain_series(tmp_path / "a", seed=5, **kw)
     b = simulate_gain_series(tmp_path / "b", seed=5, **kw)
     c = simulate_gain_series(tmp_path / "c", seed=6, **kw)
@@ -342,8 +386,12 @@ def test_gain_series_reproducible(tmp_path):
 
 def test_unseeded_run_records_its_seed(tmp_path):
     a = simulate_gain_series(tmp_path / "a", setpoints=[1, 5], rows=2, cols=2, frames=10)
-    b = simulate_gain_series(tmp_path / "b", setpoints=[1, 5], rows=2, cols=2, frames=10, seed=a.truth["seed"])
-    assert (a.outdir / "gain-GS/5x-gain.tif").read_bytes() == (b.outdir / "gain-GS/5x-gain.tif").read_bytes()
+    b = simulate_gain_series(
+        tmp_path / "b", setpoints=[1, 5], rows=2, cols=2, frames=10, seed=a.truth["seed"]
+    )
+    assert (a.outdir / "gain-GS/5x-gain.tif").read_bytes() == (
+        b.outdir / "gain-GS/5x-gain.tif"
+    ).read_bytes()
 
 
 def test_intensity_series_files(tmp_path):
@@ -361,9 +409,18 @@ def test_intensity_series_files(tmp_path):
         stack = tifffile.imread(tmp_path / a["frames"])
         assert stack.shape == (300, 4, 4)
         m = stack.astype(float).mean()
-        assert abs(m - t["expected"]["mean"]) < 0.5 + 4.5 * math.sqrt(t["expected"]["variance"] / stack.size)
+        assert abs(m - t["expected"]["mean"]) < 0.5 + 4.5 * math.sqrt(
+            t["expected"]["variance"] / stack.size
+        )
     res2 = simulate_intensity_series(
-        tmp_path / "g", levels=[10, 20], labels=["lo", "hi"], setpoint=100, rows=2, cols=2, frames=5, seed=1
+        tmp_path / "g",
+        levels=[10, 20],
+        labels=["lo", "hi"],
+        setpoint=100,
+        rows=2,
+        cols=2,
+        frames=5,
+        seed=1,
     )
     doc2 = _manifest(res2.manifest)
     assert doc2["e_per_adu"] == pytest.approx(3.859)
@@ -430,8 +487,29 @@ def test_cli_bad_options(tmp_path, capsys, argv):
 
 def test_cli_gain_series(tmp_path, capsys):
     out = tmp_path / "gs"
-    argv = ["simulate", "gain-series", "-o", str(out), "--rows", "3", "--cols", "4", "--frames", "20"]
-    argv += ["--setpoints", "1,5,25", "--em-gain", "1,4.5,20", "--multiplication", "cascade", "--seed", "7", "--quiet"]
+    argv = [
+        "simulate",
+        "gain-series",
+        "-o",
+        str(out),
+        "--rows",
+        "3",
+        "--cols",
+        "4",
+        "--frames",
+        "20",
+    ]
+    argv += [
+        "--setpoints",
+        "1,5,25",
+        "--em-gain",
+        "1,4.5,20",
+        "--multiplication",
+        "cascade",
+        "--seed",
+        "7",
+        "--quiet",
+    ]
     assert cli.main(argv) == 0
     captured = capsys.readouterr()
     assert str(out / "manifest.toml") in captured.out and captured.err == ""
@@ -443,7 +521,18 @@ def test_cli_gain_series(tmp_path, capsys):
 
 def test_cli_intensity_series_progress_on_stderr(tmp_path, capsys):
     out = tmp_path / "is"
-    argv = ["simulate", "intensity-series", "-o", str(out), "--rows", "2", "--cols", "2", "--frames", "10"]
+    argv = [
+        "simulate",
+        "intensity-series",
+        "-o",
+        str(out),
+        "--rows",
+        "2",
+        "--cols",
+        "2",
+        "--frames",
+        "10",
+    ]
     argv += ["--levels", "100,200", "--setpoint", "25", "--seed", "1"]
     assert cli.main(argv) == 0
     captured = capsys.readouterr()
@@ -454,7 +543,17 @@ def test_cli_intensity_series_progress_on_stderr(tmp_path, capsys):
 
 def test_console_entry_point(tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "emccdcal", "simulate", "gain-series", "-o", str(tmp_path), "--frames", "0"],
+        [
+            sys.executable,
+            "-m",
+            "emccdcal",
+            "simulate",
+            "gain-series",
+            "-o",
+            str(tmp_path),
+            "--frames",
+            "0",
+        ],
         capture_output=True,
         text=True,
     )
@@ -487,8 +586,24 @@ def test_demo_calibrates_and_recovers_truth(tmp_path):
 
 @pytest.mark.slow
 def test_demo_cli(tmp_path, capsys):
-    assert cli.main(["demo", "-o", str(tmp_path / "d"), "--rows", "2", "--cols", "2", "--frames", "500",
-                     "--quiet", "--no-report"]) == 0
+    assert (
+        cli.main(
+            [
+                "demo",
+                "-o",
+                str(tmp_path / "d"),
+                "--rows",
+                "2",
+                "--cols",
+                "2",
+                "--frames",
+                "500",
+                "--quiet",
+                "--no-report",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "em_gain at 300x" in out and "e_per_adu" in out
     assert (tmp_path / "d" / "gain-series" / "manifest.toml").exists()
@@ -512,9 +627,17 @@ def test_docstring_examples():
 @pytest.fixture(scope="module")
 def bead_movies(tmp_path_factory):
     out = tmp_path_factory.mktemp("beads")
-    return simulate_beads(out, beads=3, photoelectrons=[4000, 5000, 6000], rows=40,
-                                   cols=36, frames=150, dark_frames=200, setpoints=[1, 25],
-                                   seed=9)
+    return simulate_beads(
+        out,
+        beads=3,
+        photoelectrons=[4000, 5000, 6000],
+        rows=40,
+        cols=36,
+        frames=150,
+        dark_frames=200,
+        setpoints=[1, 25],
+        seed=9,
+    )
 
 
 def test_bead_scene_is_the_psf_model():
@@ -565,8 +688,15 @@ def test_bead_files_truth_and_true_calibration(bead_movies):
 
 
 def test_beads_reproducible_and_options(tmp_path):
-    kw = dict(beads=2, rows=30, cols=30, frames=5, dark_frames=4, setpoints=[1, 5],
-              multiplication="cascade")
+    kw = dict(
+        beads=2,
+        rows=30,
+        cols=30,
+        frames=5,
+        dark_frames=4,
+        setpoints=[1, 5],
+        multiplication="cascade",
+    )
     a = simulate_beads(tmp_path / "a", seed=3, **kw)
     b = simulate_beads(tmp_path / "b", seed=3, **kw)
     for rel in ("beads/5x-beads.tif", "beads/1x-beads_no-signal.tif", "truth.json"):
@@ -585,9 +715,33 @@ def test_beads_reproducible_and_options(tmp_path):
 
 def test_cli_beads(tmp_path, capsys):
     out = tmp_path / "b"
-    argv = ["simulate", "beads", "-o", str(out), "--beads", "2", "--rows", "30", "--cols", "30",
-            "--frames", "4", "--dark-frames", "3", "--setpoints", "1,100", "--width", "1.5",
-            "--background", "5", "--photoelectrons", "3000", "--seed", "2", "--quiet"]
+    argv = [
+        "simulate",
+        "beads",
+        "-o",
+        str(out),
+        "--beads",
+        "2",
+        "--rows",
+        "30",
+        "--cols",
+        "30",
+        "--frames",
+        "4",
+        "--dark-frames",
+        "3",
+        "--setpoints",
+        "1,100",
+        "--width",
+        "1.5",
+        "--background",
+        "5",
+        "--photoelectrons",
+        "3000",
+        "--seed",
+        "2",
+        "--quiet",
+    ]
     assert cli.main(argv) == 0
     captured = capsys.readouterr()
     assert "truth_calibration.nc" in captured.out and captured.err == ""
@@ -600,10 +754,35 @@ def test_cli_beads(tmp_path, capsys):
 
 def test_cli_beads_that_blink_have_a_halo_and_a_repeated_setpoint(tmp_path):
     out = tmp_path / "b"
-    argv = ["simulate", "beads", "-o", str(out), "--beads", "2", "--rows", "30", "--cols", "30",
-            "--frames", "200", "--dark-frames", "3", "--setpoints", "1,100", "--seed", "2",
-            "--blinking", "0.3", "--blink-frames", "4", "--halo", "0.2", "--repeat", "1",
-            "--quiet"]
+    argv = [
+        "simulate",
+        "beads",
+        "-o",
+        str(out),
+        "--beads",
+        "2",
+        "--rows",
+        "30",
+        "--cols",
+        "30",
+        "--frames",
+        "200",
+        "--dark-frames",
+        "3",
+        "--setpoints",
+        "1,100",
+        "--seed",
+        "2",
+        "--blinking",
+        "0.3",
+        "--blink-frames",
+        "4",
+        "--halo",
+        "0.2",
+        "--repeat",
+        "1",
+        "--quiet",
+    ]
     assert cli.main(argv) == 0
     truth = json.loads((out / "truth.json").read_text())
     assert truth["halo"] == 0.2 and truth["halo_width"] == pytest.approx(3 * 1.3)
@@ -628,11 +807,20 @@ def test_one_camera_object_serves_every_simulator(tmp_path):
 
     cam = Camera(rows=3, cols=4, frames=20, e_per_adu=5.2, read_noise=15.4)
     a = simulate_gain_series(tmp_path / "a", camera=cam, setpoints=(1, 5), seed=1)
-    b = simulate_gain_series(tmp_path / "b", setpoints=(1, 5), seed=1, rows=3, cols=4,
-                             frames=20, e_per_adu=5.2, read_noise=15.4)
+    b = simulate_gain_series(
+        tmp_path / "b",
+        setpoints=(1, 5),
+        seed=1,
+        rows=3,
+        cols=4,
+        frames=20,
+        e_per_adu=5.2,
+        read_noise=15.4,
+    )
     assert a.truth["options"] == b.truth["options"]
-    assert ((a.outdir / "gain-GS/5x-gain.tif").read_bytes()
-            == (b.outdir / "gain-GS/5x-gain.tif").read_bytes())
+    assert (a.outdir / "gain-GS/5x-gain.tif").read_bytes() == (
+        b.outdir / "gain-GS/5x-gain.tif"
+    ).read_bytes()
     c = simulate_intensity_series(tmp_path / "c", camera=cam, cic=0.5, levels=(100,), seed=2)
     assert c.truth["cic"] == 0.5 and c.truth["e_per_adu"] == 5.2  # one field replaced
     with pytest.raises(OptionError, match="did you mean 'rows'"):

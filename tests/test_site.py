@@ -35,13 +35,22 @@ ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 SITE = Path(os.environ.get("EMCCDCAL_SITE", DOCS / "_build" / "html"))
 # The workflows the gallery shows, each a script executed when the site is built.
-GALLERY = ["plot_gain_series", "plot_chained_phi", "plot_noise_model", "plot_plan_and_acquire",
-           "plot_gain_from_darks", "plot_export_and_audit", "plot_bead_validation"]
+GALLERY = [
+    "plot_gain_series",
+    "plot_chained_phi",
+    "plot_noise_model",
+    "plot_plan_and_acquire",
+    "plot_gain_from_darks",
+    "plot_export_and_audit",
+    "plot_bead_validation",
+]
 
-needs_source = pytest.mark.skipif(not (DOCS / "conf.py").exists(),
-                                  reason="not a source tree (an installed package)")
-needs_site = pytest.mark.skipif(not (SITE / "index.html").exists(),
-                                reason=f"the site is not built ({SITE}; make docs)")
+needs_source = pytest.mark.skipif(
+    not (DOCS / "conf.py").exists(), reason="not a source tree (an installed package)"
+)
+needs_site = pytest.mark.skipif(
+    not (SITE / "index.html").exists(), reason=f"the site is not built ({SITE}; make docs)"
+)
 
 
 def _api_names() -> set[str]:
@@ -62,8 +71,11 @@ def _api_names() -> set[str]:
 @needs_source
 def test_the_api_page_names_every_public_name():
     documented = _api_names()
-    missing = [n for n in emccdcal.__all__ if n not in documented
-               and not (n == "noise" and "model.noise" in documented)]
+    missing = [
+        n
+        for n in emccdcal.__all__
+        if n not in documented and not (n == "noise" and "model.noise" in documented)
+    ]
     assert not missing, f"docs/api.rst leaves out {missing}"
     assert "EmccdcalError" in documented and "calibrate" in documented
 
@@ -139,13 +151,19 @@ def site_in_browser(tmp_path_factory):
     and the address it was served at."""
     if chromium.CHROMIUM is None:
         pytest.skip(chromium.NOT_HERE)
-    pages = sorted(p.relative_to(SITE).as_posix() for p in SITE.rglob("*.html")
-                   if "_sources" not in p.parts)
+    pages = sorted(
+        p.relative_to(SITE).as_posix() for p in SITE.rglob("*.html") if "_sources" not in p.parts
+    )
     server = _serve(SITE, HARNESS % json.dumps(["/" + p for p in pages]))
     try:
         base = f"http://127.0.0.1:{server.server_address[1]}"
-        dom = chromium.run(tmp_path_factory.mktemp("site"), "--virtual-time-budget=120000",
-                           "--dump-dom", f"{base}/__harness__", timeout=300)
+        dom = chromium.run(
+            tmp_path_factory.mktemp("site"),
+            "--virtual-time-budget=120000",
+            "--dump-dom",
+            f"{base}/__harness__",
+            timeout=300,
+        )
     finally:
         server.shutdown()
     m = re.search(r'<pre id="probe-result">(.*?)</pre>', dom, re.DOTALL)
@@ -183,8 +201,11 @@ def test_every_internal_link_of_the_site_resolves(site_in_browser):
                 target, path = target / "index.html", path.rstrip("/") + "/index.html"
             if not target.is_file():
                 broken.append((page, href, "no such file"))
-            elif parts.fragment and path in found and \
-                    unquote(parts.fragment) not in found[path]["ids"]:
+            elif (
+                parts.fragment
+                and path in found
+                and unquote(parts.fragment) not in found[path]["ids"]
+            ):
                 broken.append((page, href, "no such anchor"))
     assert not broken, broken[:20]
 

@@ -158,8 +158,11 @@ def test_bad_adc_max(adc_max):
 
 @settings(max_examples=40, deadline=None)
 @given(
-    arrays(np.uint16, st.tuples(st.integers(0, 12), st.integers(1, 3), st.integers(1, 4)),
-           elements=st.integers(0, 20)),
+    arrays(
+        np.uint16,
+        st.tuples(st.integers(0, 12), st.integers(1, 3), st.integers(1, 4)),
+        elements=st.integers(0, 20),
+    ),
     st.one_of(st.none(), st.integers(1, 21)),
     st.integers(1, 13),
 )

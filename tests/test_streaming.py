@@ -24,10 +24,12 @@ from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_se
 @pytest.fixture(scope="module")
 def series(tmp_path_factory):
     base = tmp_path_factory.mktemp("streaming")
-    gs = simulate_gain_series(base / "gs", rows=12, cols=10, frames=300, seed=7,
-                              setpoints=(1, 5, 25, 100))
-    adu = simulate_intensity_series(base / "adu", rows=12, cols=10, frames=300, seed=8,
-                                    levels=(2000, 8000, 32000))
+    gs = simulate_gain_series(
+        base / "gs", rows=12, cols=10, frames=300, seed=7, setpoints=(1, 5, 25, 100)
+    )
+    adu = simulate_intensity_series(
+        base / "adu", rows=12, cols=10, frames=300, seed=8, levels=(2000, 8000, 32000)
+    )
     return gs.manifest, adu.manifest
 
 
@@ -36,8 +38,9 @@ def long_run(tmp_path_factory):
     """A series whose calibration, one row per tile, takes a few seconds: long enough to
     be interrupted after its first tiles, whatever the machine's speed."""
     base = tmp_path_factory.mktemp("long")
-    return simulate_gain_series(base / "gs", rows=12, cols=10, frames=1000, seed=9,
-                                setpoints=(1, 5, 25, 100)).manifest
+    return simulate_gain_series(
+        base / "gs", rows=12, cols=10, frames=1000, seed=9, setpoints=(1, 5, 25, 100)
+    ).manifest
 
 
 def _assert_same(a, b, rtol=1e-12):
@@ -55,20 +58,29 @@ def _assert_same(a, b, rtol=1e-12):
 
 # gs-hierarchical under the gamma model, 4x cheaper: the tiling is the same for both
 # models, and gs shows the default (the exact register) does not depend on it either
-@pytest.mark.parametrize("method, which, model", [
-    ("gs", 0, None), ("is-adu", 1, None), ("mv-gain", 0, None),
-    pytest.param("gs-hierarchical", 0, "gamma", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "method, which, model",
+    [
+        ("gs", 0, None),
+        ("is-adu", 1, None),
+        ("mv-gain", 0, None),
+        pytest.param("gs-hierarchical", 0, "gamma", marks=pytest.mark.slow),
+    ],
+)
 def test_tiles_and_workers_do_not_change_the_result(series, method, which, model):
     manifest = series[which]
-    one = quiet(calibrate, manifest, method, block_size=8, tile_pixels=120, workers=1,
-                em_model=model)
-    many = quiet(calibrate, manifest, method, block_size=8, tile_pixels=16, workers=2,
-                 em_model=model)
+    one = quiet(
+        calibrate, manifest, method, block_size=8, tile_pixels=120, workers=1, em_model=model
+    )
+    many = quiet(
+        calibrate, manifest, method, block_size=8, tile_pixels=16, workers=2, em_model=model
+    )
     _assert_same(one, many)
     if method == "gs-hierarchical":  # three fits in one: the two runs above suffice
         return
-    rows = quiet(calibrate, manifest, method, block_size=8, tile_pixels=10, workers=3,
-                 em_model=model)
+    rows = quiet(
+        calibrate, manifest, method, block_size=8, tile_pixels=10, workers=3, em_model=model
+    )
     _assert_same(one, rows)
 
 
@@ -76,11 +88,24 @@ def test_tiles_and_workers_do_not_change_the_result(series, method, which, model
 def test_a_dask_cluster_on_localhost_gives_the_local_result(series):
     distributed = pytest.importorskip("distributed")
     local = quiet(calibrate, series[0], "gs", block_size=16, tile_pixels=32)
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  host="127.0.0.1", dashboard_address=None) as cluster, \
-            distributed.Client(cluster) as client:
-        remote = quiet(calibrate, series[0], "gs", block_size=16, tile_pixels=32,
-                        scheduler=client.scheduler.address)
+    with (
+        distributed.LocalCluster(
+            n_workers=2,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=None,
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        remote = quiet(
+            calibrate,
+            series[0],
+            "gs",
+            block_size=16,
+            tile_pixels=32,
+            scheduler=client.scheduler.address,
+        )
         assert len(client.scheduler_info()["workers"]) == 2
     _assert_same(local, remote)
 
@@ -90,8 +115,16 @@ def test_local_processes_give_the_local_result(series, tmp_path):
     """``scheduler="processes"``: the tiles in two spawned processes, one thread each,
     written and resumable as any run; the numbers those of the threads here."""
     local = quiet(calibrate, series[0], "gs", block_size=16, tile_pixels=32)
-    apart = quiet(calibrate, series[0], "gs", block_size=16, tile_pixels=32,
-                  scheduler="processes", workers=2, out=tmp_path / "out")
+    apart = quiet(
+        calibrate,
+        series[0],
+        "gs",
+        block_size=16,
+        tile_pixels=32,
+        scheduler="processes",
+        workers=2,
+        out=tmp_path / "out",
+    )
     _assert_same(local, apart)
     assert (tmp_path / "out" / "calibration.nc").is_file()
 
@@ -131,9 +164,14 @@ def test_an_unwritable_output_is_found_before_any_computing(series, tmp_path, ca
 def _run(argv, **kw):
     # A shell without job control starts background jobs with SIGINT ignored, and Python
     # then installs no KeyboardInterrupt handler: give the child the default back.
-    return subprocess.Popen([sys.executable, "-m", "emccdcal", *argv], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL), **kw)
+    return subprocess.Popen(
+        [sys.executable, "-m", "emccdcal", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        **kw,
+    )
 
 
 def _wait_for_tiles(out, n, proc, timeout=120):
@@ -178,7 +216,8 @@ def test_a_killed_run_resumes_to_the_uninterrupted_result(long_run, tmp_path):
     a, b = result.load(whole), result.load(out)
     row, col = divmod(first_pixel, a.sizes["col"])
     assert float(b.photoelectrons[row, col]) == pytest.approx(
-        1.5 * float(a.photoelectrons[row, col]), rel=1e-12)  # the kept tile was used
+        1.5 * float(a.photoelectrons[row, col]), rel=1e-12
+    )  # the kept tile was used
     b["photoelectrons"][row, col] = a.photoelectrons[row, col]
     b.attrs["quality"] = a.attrs["quality"]  # its findings quote the light the doctored tile moved
     _assert_same(a, b)
@@ -190,8 +229,19 @@ def test_a_killed_run_resumes_to_the_uninterrupted_result(long_run, tmp_path):
 @pytest.mark.slow
 def test_ctrl_c_says_what_is_kept_and_exits_130(long_run, tmp_path):
     out = tmp_path / "out"
-    proc = _run(["calibrate", str(long_run), "-q", "--tile-pixels", "10", "--block-size", "8",
-                 "-o", str(out)])
+    proc = _run(
+        [
+            "calibrate",
+            str(long_run),
+            "-q",
+            "--tile-pixels",
+            "10",
+            "--block-size",
+            "8",
+            "-o",
+            str(out),
+        ]
+    )
     _wait_for_tiles(out, 1, proc)
     assert proc.poll() is None, "the run ended before it could be interrupted"
     proc.send_signal(signal.SIGINT)
@@ -203,8 +253,9 @@ def test_ctrl_c_says_what_is_kept_and_exits_130(long_run, tmp_path):
 
 @pytest.mark.slow
 def test_bad_pixels_are_left_out_named_and_the_run_completes(tmp_path):
-    sim = simulate_gain_series(tmp_path / "gs", rows=32, cols=32, frames=100, seed=3,
-                               setpoints=(1, 5, 25))
+    sim = simulate_gain_series(
+        tmp_path / "gs", rows=32, cols=32, frames=100, seed=3, setpoints=(1, 5, 25)
+    )
     stacks = {s: sim.outdir / f"gain-GS/{s}x-gain.tif" for s in ("1", "25")}
     data = tifffile.imread(stacks["25"])
     data[:, 3, 4] = 65535  # saturated in every frame of one stack
@@ -213,8 +264,9 @@ def test_bad_pixels_are_left_out_named_and_the_run_completes(tmp_path):
     data[:, 9, 2] = 0  # dead: never changes
     tifffile.imwrite(stacks["1"], data)
     with pytest.warns(UserWarning) as caught:
-        ds = calibrate(sim.manifest, "gs", out=tmp_path / "out", checks=False,
-                       tile_pixels=256)  # four tiles
+        ds = calibrate(
+            sim.manifest, "gs", out=tmp_path / "out", checks=False, tile_pixels=256
+        )  # four tiles
     text = [str(w.message) for w in caught]
     left_out = [t for t in text if "left out" in t]
     assert len(left_out) == 1 and "2 of 1024 pixel(s)" in left_out[0]
@@ -244,10 +296,20 @@ def test_the_check_verb_reads_in_bands_and_agrees_with_the_calibration(series):
     fitted = float(ds.photoelectrons.where(ds.converged).median())
 
     def without_light(acqs):  # calibrate's findings quote the light its fit found
-        return {k: {f: v for f, v in a.items()
-                    if f not in ("photoelectrons_estimate", "photoelectrons_source",
-                                 "drift_absorbed", "estimate_relative_se")}
-                for k, a in acqs.items()}
+        return {
+            k: {
+                f: v
+                for f, v in a.items()
+                if f
+                not in (
+                    "photoelectrons_estimate",
+                    "photoelectrons_source",
+                    "drift_absorbed",
+                    "estimate_relative_se",
+                )
+            }
+            for k, a in acqs.items()
+        }
 
     assert without_light(calibrated) == without_light(report["acquisitions"])
     for a in calibrated.values():
@@ -265,8 +327,7 @@ def test_no_temporary_files_are_left(series, tmp_path):
 
 @pytest.mark.parametrize("kind", ["tif", "npy-big-endian"])
 @pytest.mark.parametrize("per_call", [1, 3, 100])
-def test_read_band_reads_exactly_the_rows_of_the_memory_map(tmp_path, kind, per_call,
-                                                             monkeypatch):
+def test_read_band_reads_exactly_the_rows_of_the_memory_map(tmp_path, kind, per_call, monkeypatch):
     from emccdcal.data import stacks
     from emccdcal.data.stacks import load_stack, read_band
 
@@ -280,7 +341,7 @@ def test_read_band_reads_exactly_the_rows_of_the_memory_map(tmp_path, kind, per_
         np.save(path, data.astype(">u2"))
     for rows, skip in (((0, 5), 0), ((1, 3), 2), ((4, 5), 6)):
         band = read_band(path, *rows, skip)
-        np.testing.assert_array_equal(band, np.asarray(load_stack(path))[skip:, rows[0]:rows[1]])
+        np.testing.assert_array_equal(band, np.asarray(load_stack(path))[skip:, rows[0] : rows[1]])
         assert band.dtype == load_stack(path).dtype
 
 
@@ -301,9 +362,11 @@ def test_read_band_of_a_truncated_stack_is_one_clear_error(tmp_path):
     full = tmp_path / "full.tif"
     tifffile.imwrite(full, np.zeros((50, 8, 8), np.uint16))
     whole = (path.stat().st_size - _raw_layout(full)[2]) // (8 * 8 * 2)
-    assert str(exc.value).endswith(f"truncated: its header describes 50 × 8 × 8 values of 2 "
-                                   f"bytes from byte 256, 6656 bytes, but the file has "
-                                   f"{path.stat().st_size}: {whole} whole frame(s) of 50")
+    assert str(exc.value).endswith(
+        f"truncated: its header describes 50 × 8 × 8 values of 2 "
+        f"bytes from byte 256, 6656 bytes, but the file has "
+        f"{path.stat().st_size}: {whole} whole frame(s) of 50"
+    )
 
 
 def test_removing_a_run_removes_only_what_a_run_wrote(tmp_path):
@@ -317,7 +380,9 @@ def test_removing_a_run_removes_only_what_a_run_wrote(tmp_path):
     (users / "fingerprint.json").write_text("{}")  # not emccdcal's
     remove_run(users.parent)
     assert sorted(p.name for p in users.iterdir()) == [
-        "fingerprint.json", "tile-pixels-000000000-000000010.npz"]
+        "fingerprint.json",
+        "tile-pixels-000000000-000000010.npz",
+    ]
     out = tmp_path / "out"
     store = RunStore(out, {"emccdcal_version": "test", "method": "gs"})
     store.save_tile("pixels-000000000-000000010", {"x": np.zeros(3)})

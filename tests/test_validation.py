@@ -26,17 +26,34 @@ POSITIONS = [[9.3, 10.6], [21.7, 28.2], [10.4, 30.8]]
 SHORT = 64
 
 
-def _result(path, *, method, setpoints, gains, phi=PHI, shape=SHAPE, origin=(0, 0),
-            converged=True, stages=None):
+def _result(
+    path,
+    *,
+    method,
+    setpoints,
+    gains,
+    phi=PHI,
+    shape=SHAPE,
+    origin=(0, 0),
+    converged=True,
+    stages=None,
+):
     """A result of these numbers (with a cascade of ``stages``, else no register named)."""
     from emccdcal.model.noise import EMModel
 
     R, C = shape
     ds = result.make_dataset(
-        method=method, setpoints=setpoints, e_per_adu=phi, e_per_adu_se=0.0,
+        method=method,
+        setpoints=setpoints,
+        e_per_adu=phi,
+        e_per_adu_se=0.0,
         em_gain=np.broadcast_to(np.array(gains, float)[:, None, None], (len(setpoints), R, C)),
-        em_gain_se=0.0, photoelectrons=np.zeros(shape), photoelectrons_se=0.0,
-        converged=converged, manifest_hash="0" * 64, origin=origin,
+        em_gain_se=0.0,
+        photoelectrons=np.zeros(shape),
+        photoelectrons_se=0.0,
+        converged=converged,
+        manifest_hash="0" * 64,
+        origin=origin,
         attrs=EMModel("cascade", stages).attrs if stages else None,
     )
     result.save(ds, path)
@@ -46,22 +63,34 @@ def _result(path, *, method, setpoints, gains, phi=PHI, shape=SHAPE, origin=(0, 
 @pytest.fixture(scope="module")
 def beads_data(tmp_path_factory):
     d = tmp_path_factory.mktemp("beads")
-    sim = simulate_beads(d / "sim", positions=POSITIONS, rows=SHAPE[0], cols=SHAPE[1],
-                         frames=80, dark_frames=300, setpoints=SETPOINTS, seed=42,
-                         stages=SHORT)
+    sim = simulate_beads(
+        d / "sim",
+        positions=POSITIONS,
+        rows=SHAPE[0],
+        cols=SHAPE[1],
+        frames=80,
+        dark_frames=300,
+        setpoints=SETPOINTS,
+        seed=42,
+        stages=SHORT,
+    )
     cal = {
         "truth": d / "sim" / "truth_calibration.nc",
-        "wrong": _result(d / "wrong", method="gs", setpoints=SETPOINTS,
-                         gains=[1.0, 1.1 * GAINS[1]], stages=SHORT),
+        "wrong": _result(
+            d / "wrong", method="gs", setpoints=SETPOINTS, gains=[1.0, 1.1 * GAINS[1]], stages=SHORT
+        ),
         "adu": _result(d / "adu", method="is-adu", setpoints=[1.0], gains=[1.0]),
-        "g25": _result(d / "g25", method="is-gain", setpoints=[25.0], gains=[GAINS[1]],
-                       stages=SHORT),
+        "g25": _result(
+            d / "g25", method="is-gain", setpoints=[25.0], gains=[GAINS[1]], stages=SHORT
+        ),
     }
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         doc = validation.validate(
-            sim.manifest, [str(cal["truth"]), str(cal["wrong"]), f"{cal['adu']},{cal['g25']}"],
-            out=d / "val")
+            sim.manifest,
+            [str(cal["truth"]), str(cal["wrong"]), f"{cal['adu']},{cal['g25']}"],
+            out=d / "val",
+        )
     return sim, cal, doc, d / "val"
 
 
@@ -70,8 +99,13 @@ def beads_data(tmp_path_factory):
 # --------------------------------------------------------------------------------------
 @pytest.mark.parametrize("scale", [1.0, 5000.0])
 def test_metric_case_14(scale):
-    means = {1: 1.00 * scale, 5: 1.10 * scale, 25: 0.99 * scale, 100: 1.01 * scale,
-             300: 1.00 * scale}
+    means = {
+        1: 1.00 * scale,
+        5: 1.10 * scale,
+        25: 0.99 * scale,
+        100: 1.01 * scale,
+        300: 1.00 * scale,
+    }
     incl, excl = validation.consistency(means)
     assert incl == pytest.approx(0.040497, abs=5e-7)
     assert excl == pytest.approx(0.043875, abs=5e-7)
@@ -100,14 +134,23 @@ def test_validation_json_schema_and_ranking(beads_data):
     assert on_disk["calibrations"] == doc["calibrations"]
     assert doc["ddof"] == 0
     assert [c["file"] for c in doc["calibrations"]] == [
-        str(cal["truth"]), str(cal["wrong"]), f"{cal['adu']},{cal['g25']}"]
+        str(cal["truth"]),
+        str(cal["wrong"]),
+        f"{cal['adu']},{cal['g25']}",
+    ]
     assert [c["method"] for c in doc["calibrations"]] == ["truth", "gs", "is-adu+is-gain"]
     for c in doc["calibrations"]:
         assert {"file", "method", "beads", "sigma_means_incl_1x", "sigma_means_excl_1x"} <= set(c)
         assert len(c["beads"]) == 3
         for b in c["beads"]:
-            assert {"row", "col", "mean_intensity", "mean_intensity_se", "sigma_means_incl_1x",
-                    "sigma_means_excl_1x"} <= set(b)
+            assert {
+                "row",
+                "col",
+                "mean_intensity",
+                "mean_intensity_se",
+                "sigma_means_incl_1x",
+                "sigma_means_excl_1x",
+            } <= set(b)
             assert list(b["mean_intensity"]) == ["1", "25"] == list(b["mean_intensity_se"])
             assert isinstance(b["row"], int) and isinstance(b["col"], int)
             # the offset maps (300 dark frames) add an error that frames do not average;
@@ -129,7 +172,8 @@ def test_validation_json_schema_and_ranking(beads_data):
         # other set-points' gains move a little
         assert bw["mean_intensity"]["1"] == pytest.approx(bt["mean_intensity"]["1"], rel=1e-3)
         assert bw["mean_intensity"]["25"] / bt["mean_intensity"]["25"] == pytest.approx(
-            1 / 1.1, rel=0.01)
+            1 / 1.1, rel=0.01
+        )
         assert bt["mean_intensity"]["25"] == pytest.approx(5000.0, rel=0.02)
     assert doc["ranking"][-1] == str(cal["wrong"])
     assert wrong["sigma_means_incl_1x"] > 0.03 > truth["sigma_means_incl_1x"]
@@ -141,7 +185,8 @@ def test_validation_json_schema_and_ranking(beads_data):
     assert b["sigma_means_incl_1x"] == pytest.approx(validation.consistency(m)[0])
     assert b["sigma_means_incl_1x_ddof1"] == pytest.approx(validation.consistency(m, ddof=1)[0])
     assert wrong["sigma_means_incl_1x"] == pytest.approx(
-        np.mean([x["sigma_means_incl_1x"] for x in wrong["beads"]]))
+        np.mean([x["sigma_means_incl_1x"] for x in wrong["beads"]])
+    )
 
 
 def test_intensities_file(beads_data):
@@ -174,8 +219,11 @@ def test_load_calibration_groups(tmp_path):
         c = result.load_calibration(f"{adu},{g5},{g25}", SHAPE)
     assert c.method == "is-adu+is-gain" and c.setpoints == (1.0, 5.0, 25.0)
     assert np.all(c.e_per_adu == 3.9) and np.all(c.gain(25) == 22.95) and np.all(c.gain(1) == 1)
-    with pytest.raises(ValueError, match=r"set-point 100x is missing .*\(it has "
-                                         r"1x, 5x, 25x\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"set-point 100x is missing .*\(it has "
+        r"1x, 5x, 25x\)",
+    ):
         c.gain(100)
     other = _result(tmp_path / "g5b", method="is-gain", setpoints=[5.0], gains=[4.7])
     with pytest.raises(ValueError, match="set-point 5x is in both"):
@@ -186,20 +234,26 @@ def test_load_calibration_groups(tmp_path):
     # non-converged pixels are missing values
     mask = np.ones(SHAPE, bool)
     mask[3, 4] = False
-    part = _result(tmp_path / "part", method="gs", setpoints=[1.0, 5.0], gains=[1.0, 4.78],
-                   converged=mask)
+    part = _result(
+        tmp_path / "part", method="gs", setpoints=[1.0, 5.0], gains=[1.0, 4.78], converged=mask
+    )
     c = result.load_calibration(part)
     assert np.isnan(c.gain(5)[3, 4]) and np.isnan(c.e_per_adu[3, 4])
 
 
 def test_calibration_of_another_sensor_or_region(tmp_path):
-    small = _result(tmp_path / "small", method="gs", setpoints=[1.0, 25.0], gains=GAINS,
-                    shape=(16, 16))
-    with pytest.raises(ValueError, match=r"small/calibration.nc: calibration covers rows 0–15 "
-                                         r"and columns 0–15, but the bead frames are 32×40"):
+    small = _result(
+        tmp_path / "small", method="gs", setpoints=[1.0, 25.0], gains=GAINS, shape=(16, 16)
+    )
+    with pytest.raises(
+        ValueError,
+        match=r"small/calibration.nc: calibration covers rows 0–15 "
+        r"and columns 0–15, but the bead frames are 32×40",
+    ):
         result.load_calibration(small, SHAPE, of="the bead frames")
-    moved = _result(tmp_path / "moved", method="gs", setpoints=[1.0, 25.0], gains=GAINS,
-                    origin=(4, 0))
+    moved = _result(
+        tmp_path / "moved", method="gs", setpoints=[1.0, 25.0], gains=GAINS, origin=(4, 0)
+    )
     with pytest.raises(ValueError, match="rows 4–35"):
         result.load_calibration(moved, SHAPE)
     with pytest.raises(FileNotFoundError, match="nope.nc"):
@@ -221,12 +275,19 @@ def test_cli_bad_input_is_one_line(beads_data, tmp_path, capsys):
     cases = [
         ((missing,), "set-point 25x is missing from this calibration"),
         ((tmp_path / "absent.nc",), "absent.nc: no such file"),
-        ((_result(tmp_path / "small", method="gs", setpoints=SETPOINTS, gains=GAINS,
-                  shape=(8, 8)),), "but the bead frames are 32×40"),
+        (
+            (
+                _result(
+                    tmp_path / "small", method="gs", setpoints=SETPOINTS, gains=GAINS, shape=(8, 8)
+                ),
+            ),
+            "but the bead frames are 32×40",
+        ),
     ]
     for cals, message in cases:
-        code, io_ = _cli(capsys, sim.manifest, "--calibration", *cals, "-o", tmp_path / "o",
-                         "--quiet")
+        code, io_ = _cli(
+            capsys, sim.manifest, "--calibration", *cals, "-o", tmp_path / "o", "--quiet"
+        )
         assert code == 2
         lines = io_.err.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("emccdcal validate: error: ")
@@ -235,24 +296,58 @@ def test_cli_bad_input_is_one_line(beads_data, tmp_path, capsys):
 
 
 def test_no_beads_and_beads_at_the_edge(tmp_path, capsys):
-    empty = simulate_beads(tmp_path / "empty", beads=0, rows=24, cols=24, frames=20,
-                           dark_frames=50, setpoints=SETPOINTS, seed=1)
+    empty = simulate_beads(
+        tmp_path / "empty",
+        beads=0,
+        rows=24,
+        cols=24,
+        frames=20,
+        dark_frames=50,
+        setpoints=SETPOINTS,
+        seed=1,
+    )
     truth = tmp_path / "empty" / "truth_calibration.nc"
     code, io_ = _cli(capsys, empty.manifest, "-c", truth, "-o", tmp_path / "o", "-q")
     assert code == 2 and "no beads found" in io_.err and "25x-beads.tif" in io_.err
     # one bead at the edge (skipped with a warning), one inside
-    edge = simulate_beads(tmp_path / "edge", positions=[[2.2, 12.0], [12.4, 11.7]], rows=24,
-                          cols=24, frames=20, dark_frames=50, setpoints=SETPOINTS, seed=2)
+    edge = simulate_beads(
+        tmp_path / "edge",
+        positions=[[2.2, 12.0], [12.4, 11.7]],
+        rows=24,
+        cols=24,
+        frames=20,
+        dark_frames=50,
+        setpoints=SETPOINTS,
+        seed=2,
+    )
     truth = tmp_path / "edge" / "truth_calibration.nc"
-    with pytest.warns(UserWarning, match=r"skipped 1 bead\(s\) closer than 4 px to the frame's "
-                                         r"edge at \(row, col\) \(2, 12\)"):
+    with pytest.warns(
+        UserWarning,
+        match=r"skipped 1 bead\(s\) closer than 4 px to the frame's "
+        r"edge at \(row, col\) \(2, 12\)",
+    ):
         doc = validation.validate(edge.manifest, [truth])
     assert [(b["row"], b["col"]) for b in doc["calibrations"][0]["beads"]] == [(12, 12)]
     # only a bead at the edge: nothing left to fit
-    only = simulate_beads(tmp_path / "only", positions=[[12.0, 1.6]], rows=24, cols=24,
-                          frames=20, dark_frames=50, setpoints=SETPOINTS, seed=3)
-    code, io_ = _cli(capsys, only.manifest, "-c", tmp_path / "only" / "truth_calibration.nc",
-                     "-o", tmp_path / "o", "-q")
+    only = simulate_beads(
+        tmp_path / "only",
+        positions=[[12.0, 1.6]],
+        rows=24,
+        cols=24,
+        frames=20,
+        dark_frames=50,
+        setpoints=SETPOINTS,
+        seed=3,
+    )
+    code, io_ = _cli(
+        capsys,
+        only.manifest,
+        "-c",
+        tmp_path / "only" / "truth_calibration.nc",
+        "-o",
+        tmp_path / "o",
+        "-q",
+    )
     assert code == 2 and "all 1 bead(s) found are at the edge" in io_.err
 
 
@@ -260,8 +355,7 @@ def test_bead_with_missing_calibration_pixels_is_left_out(beads_data, tmp_path):
     sim, _, _, _ = beads_data
     mask = np.ones(SHAPE, bool)
     mask[22, 28] = False  # inside the box of the bead at (22, 28)
-    part = _result(tmp_path / "part", method="gs", setpoints=SETPOINTS, gains=GAINS,
-                   converged=mask)
+    part = _result(tmp_path / "part", method="gs", setpoints=SETPOINTS, gains=GAINS, converged=mask)
     with pytest.warns(UserWarning, match=r"in the box of 1 bead\(s\) at \(row, col\) \(22, 28\)"):
         doc = validation.validate(sim.manifest, [part])
     c = doc["calibrations"][0]
@@ -280,7 +374,8 @@ def test_cli_writes_files_and_figures(beads_data, tmp_path, capsys):
     assert (out / "validation.json").is_file() and (out / "intensities.nc").is_file()
     assert (out / "bead_consistency.png").is_file()
     assert sorted(p.name for p in out.glob("bead_intensities_*.png")) == [
-        f"bead_intensities_{i}.png" for i in range(3)]
+        f"bead_intensities_{i}.png" for i in range(3)
+    ]
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary files
 
 
@@ -311,12 +406,26 @@ def test_intensity_trend_finds_a_fade_and_nothing_else():
 
 @pytest.mark.slow
 def test_bleaching_is_detected_and_corrected_so_the_ranking_holds(tmp_path):
-    sim = simulate_beads(tmp_path / "sim", beads=8, frames=300, dark_frames=300,
-                         setpoints=(1, 5, 25), bleaching=0.02, seed=8, stages=SHORT)
+    sim = simulate_beads(
+        tmp_path / "sim",
+        beads=8,
+        frames=300,
+        dark_frames=300,
+        setpoints=(1, 5, 25),
+        bleaching=0.02,
+        seed=8,
+        stages=SHORT,
+    )
     truth = tmp_path / "sim" / "truth_calibration.nc"
     gains = [1.0, 4.78, 0.98 * 22.95]  # 25x gain 2 % low: its beads 2 % bright
-    wrong = _result(tmp_path / "wrong", method="gs", setpoints=[1.0, 5.0, 25.0], gains=gains,
-                    shape=(64, 64), stages=SHORT)
+    wrong = _result(
+        tmp_path / "wrong",
+        method="gs",
+        setpoints=[1.0, 5.0, 25.0],
+        gains=gains,
+        shape=(64, 64),
+        stages=SHORT,
+    )
     fits = validation.fit_validation(sim.manifest, [str(truth), str(wrong)])
     docs = {}
     for action in ("warn", "correct"):  # one fit, compared both ways
@@ -334,8 +443,7 @@ def test_bleaching_is_detected_and_corrected_so_the_ranking_holds(tmp_path):
     t = docs["correct"]["calibrations"][0]
     rel = np.array([b["mean_intensity"]["25"] / b["mean_intensity"]["1"] for b in t["beads"]])
     # its error: the beads' scatter, and the fade's rate over the 600 frames between them
-    err = math.hypot(rel.std(ddof=1) / math.sqrt(rel.size),
-                     600 * t["intensity_trend"]["rate_se"])
+    err = math.hypot(rel.std(ddof=1) / math.sqrt(rel.size), 600 * t["intensity_trend"]["rate_se"])
     assert abs(rel.mean() - 1) < 3 * err
 
 
@@ -345,8 +453,9 @@ def test_a_group_takes_the_register_model_of_its_gain_members(tmp_path):
     g25 = _result(tmp_path / "g25", method="is-gain", setpoints=[25.0], gains=[22.95])
     for f, model in ((adu, "gamma"), (g5, "cascade"), (g25, "cascade")):
         ds = result.load(f)
-        ds.attrs.update({"em_model": model} | ({"register_stages": 536} if model == "cascade"
-                                               else {}))
+        ds.attrs.update(
+            {"em_model": model} | ({"register_stages": 536} if model == "cascade" else {})
+        )
         result.save(ds, f.parent)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -371,7 +480,7 @@ def test_blinking_level_finds_off_frames_and_nothing_else():
     on = np.ones((4, 300), bool)
     for k in range(4):
         for start in rng.choice(290, 12, replace=False):
-            on[k, start:start + 5] = False
+            on[k, start : start + 5] = False
     N = np.where(on, 3000.0, 0.0) + se[:4] * rng.standard_normal((4, 300))
     b = validation.blinking_level(N, se[:4])
     assert b["detected"].all()
@@ -384,11 +493,25 @@ def test_blinking_level_finds_off_frames_and_nothing_else():
 def test_blinking_beads_are_taken_at_their_on_level(tmp_path):
     """Beads off in 10 % of frames, in runs of 5: a different fraction at each set-point,
     which the plain means take for a gain error; the mixture's on level does not."""
-    sim = simulate_beads(tmp_path / "sim", beads=6, frames=200, dark_frames=300,
-                         setpoints=(1, 25), blinking=0.1, seed=8, stages=SHORT)
+    sim = simulate_beads(
+        tmp_path / "sim",
+        beads=6,
+        frames=200,
+        dark_frames=300,
+        setpoints=(1, 25),
+        blinking=0.1,
+        seed=8,
+        stages=SHORT,
+    )
     truth = tmp_path / "sim" / "truth_calibration.nc"
-    wrong = _result(tmp_path / "wrong", method="gs", setpoints=[1.0, 25.0],
-                    gains=[1.0, 0.98 * 22.95], shape=(64, 64), stages=SHORT)
+    wrong = _result(
+        tmp_path / "wrong",
+        method="gs",
+        setpoints=[1.0, 25.0],
+        gains=[1.0, 0.98 * 22.95],
+        shape=(64, 64),
+        stages=SHORT,
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # each document below warns of the blinking
         fits = validation.fit_validation(sim.manifest, [str(truth), str(wrong)])
@@ -402,12 +525,13 @@ def test_blinking_beads_are_taken_at_their_on_level(tmp_path):
         assert abs(found - off_true) <= 0.02 * off_true
     ignored = {c["file"]: c for c in docs["ignore"]["calibrations"]}
     modelled = {c["file"]: c for c in docs["model"]["calibrations"]}
-    assert ignored[str(truth)]["sigma_means_incl_1x"] > 0.01   # blinking dominates
+    assert ignored[str(truth)]["sigma_means_incl_1x"] > 0.01  # blinking dominates
     assert modelled[str(truth)]["sigma_means_incl_1x"] < 0.005
     assert docs["model"]["ranking"][0] == str(truth)
     # the 2 % gain error, seen through the blinking: 25x/1x = 1/0.98 for every bead
-    rel = [b["mean_intensity"]["25"] / b["mean_intensity"]["1"]
-           for b in modelled[str(wrong)]["beads"]]
+    rel = [
+        b["mean_intensity"]["25"] / b["mean_intensity"]["1"] for b in modelled[str(wrong)]["beads"]
+    ]
     assert np.mean(rel) == pytest.approx(1 / 0.98, abs=0.006)
     table = validation.format_table(docs["model"])
     assert re.search(r"6 bead\(s\) blinking, \d+ frame\(s\) off \(on level taken\)", table)
@@ -421,14 +545,29 @@ def test_blinking_beads_are_taken_at_their_on_level(tmp_path):
 def test_residual_psf_pass_on_beads_with_a_halo(tmp_path):
     """Beads whose PSF has a halo: validate says the Gaussian does not describe them, and
     with --psf residual fits a third pass whose model does; the truth stays first."""
-    sim = simulate_beads(tmp_path / "sim", beads=6, frames=200, dark_frames=300,
-                         setpoints=(1, 25), halo=0.2, seed=9, stages=SHORT)
+    sim = simulate_beads(
+        tmp_path / "sim",
+        beads=6,
+        frames=200,
+        dark_frames=300,
+        setpoints=(1, 25),
+        halo=0.2,
+        seed=9,
+        stages=SHORT,
+    )
     truth = tmp_path / "sim" / "truth_calibration.nc"
-    wrong = _result(tmp_path / "wrong", method="gs", setpoints=[1.0, 25.0],
-                    gains=[1.0, 0.98 * 22.95], shape=(64, 64), stages=SHORT)
+    wrong = _result(
+        tmp_path / "wrong",
+        method="gs",
+        setpoints=[1.0, 25.0],
+        gains=[1.0, 0.98 * 22.95],
+        shape=(64, 64),
+        stages=SHORT,
+    )
     with pytest.warns(UserWarning, match=r"does not describe .* residual image was added"):
-        doc = validation.validate(sim.manifest, [str(truth), str(wrong)], psf="residual",
-                                  out=tmp_path / "val")
+        doc = validation.validate(
+            sim.manifest, [str(truth), str(wrong)], psf="residual", out=tmp_path / "val"
+        )
     c = doc["calibrations"][0]
     assert c["psf"] == "residual"
     assert c["psf_mismatch"]["gaussian"]["25"]["chi2_per_pixel"] > 2.0
@@ -437,8 +576,10 @@ def test_residual_psf_pass_on_beads_with_a_halo(tmp_path):
     held_out = c["psf_mismatch"]["residual"]["25"]
     assert abs(held_out["chi2_per_pixel"] - 1) < 4 * held_out["chi2_per_pixel_se"]
     assert doc["ranking"][0] == str(truth)
-    assert json.loads((tmp_path / "val" / "validation.json").read_text())["calibrations"][0][
-        "psf"] == "residual"
+    assert (
+        json.loads((tmp_path / "val" / "validation.json").read_text())["calibrations"][0]["psf"]
+        == "residual"
+    )
     with pytest.raises(ValueError, match="psf must be"):
         validation.validate(sim.manifest, [str(truth)], psf="airy")
     with pytest.raises(ValueError, match="psf_split must be"):
@@ -450,9 +591,17 @@ def test_a_repeated_set_point_joins_the_trend_and_is_checked(tmp_path):
     """1x recorded again at the end of a bleaching series: its frames pool with the
     first 1x acquisition's, the fade is measured across the whole series, and after the
     correction the two 1x acquisitions agree."""
-    sim = simulate_beads(tmp_path / "sim", beads=6, frames=200, dark_frames=300,
-                         setpoints=(1, 25), repeat=1, bleaching=0.03, seed=12,
-                         stages=SHORT)
+    sim = simulate_beads(
+        tmp_path / "sim",
+        beads=6,
+        frames=200,
+        dark_frames=300,
+        setpoints=(1, 25),
+        repeat=1,
+        bleaching=0.03,
+        seed=12,
+        stages=SHORT,
+    )
     names = [a["name"] for a in sim.truth["acquisitions"]]
     assert names == ["1x", "25x", "1x-repeat"]
     truth = tmp_path / "sim" / "truth_calibration.nc"
@@ -467,9 +616,11 @@ def test_a_repeated_set_point_joins_the_trend_and_is_checked(tmp_path):
     assert later["acquisition"] == "1x-repeat" and abs(later["z"]) < 4
     assert set(c["psf_mismatch"]["gaussian"]) == {"1", "25", "1#2"}
     assert c["sigma_means_incl_1x"] < 0.005
-    assert re.search(r"intensity trend -\d\.\d\d % over the series \(z \d+\.\d, corrected\)\n"
-                     r" +1x recorded again: \d\.\d{4} ± \d\.\d{4} of the first",
-                     validation.format_table(doc))
+    assert re.search(
+        r"intensity trend -\d\.\d\d % over the series \(z \d+\.\d, corrected\)\n"
+        r" +1x recorded again: \d\.\d{4} ± \d\.\d{4} of the first",
+        validation.format_table(doc),
+    )
     ds = xr.open_dataset(tmp_path / "val" / "intensities.nc", engine="h5netcdf")
     acq = ds["acquisition"].sel(setpoint=1.0).values
     assert list(acq[:200]) == ["1x"] * 200 and list(acq[200:]) == ["1x-repeat"] * 200
@@ -483,15 +634,21 @@ def test_repeats_warn_when_the_beads_changed_between_acquisitions():
 
     a1, a25, a1b = Acq("1x", 100), Acq("25x", 100), Acq("1x-again", 100)
     slot = validation._Slot
-    layout = [slot(0, 1.0, a1, 0, "1", 0), slot(1, 25.0, a25, 0, "25", 100),
-              slot(0, 1.0, a1b, 100, "1#2", 200)]
+    layout = [
+        slot(0, 1.0, a1, 0, "1", 0),
+        slot(1, 25.0, a25, 0, "25", 100),
+        slot(0, 1.0, a1b, 100, "1#2", 200),
+    ]
     rng = np.random.default_rng(2)
     I = 5000.0 * (1 + 0.01 * rng.standard_normal((8, 2, 200)))
     off = np.zeros(I.shape, bool)
     rep = validation._repeats(type("Cal", (), {"label": "c"}), layout, ["1", "25"], I, off)
     assert abs(rep[0]["later"][0]["z"]) < 4
     I[:, 0, 100:] *= 0.97  # 3 % of the light lost between the acquisitions
-    with pytest.warns(UserWarning, match=r"changed by -3\.\d\d % between acquisitions '1x' "
-                                         r"and '1x-again'"):
+    with pytest.warns(
+        UserWarning,
+        match=r"changed by -3\.\d\d % between acquisitions '1x' "
+        r"and '1x-again'",
+    ):
         rep = validation._repeats(type("Cal", (), {"label": "c"}), layout, ["1", "25"], I, off)
     assert rep[0]["later"][0]["ratio"] == pytest.approx(0.97, abs=0.002)

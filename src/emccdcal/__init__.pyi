@@ -21,4 +21,25 @@ from .simulate.series import simulate_gain_series as simulate_gain_series
 from .simulate.series import simulate_intensity_series as simulate_intensity_series
 
 __version__: str
-__all__ = ["__version__", "cots", "validate", "calibrate", "read_manifest", "check", "EmccdcalError", "fit_gain_curve", "apply_calibration", "export_calibration", "sample_posterior", "noise", "write_report", "load_result", "load_calibration", "simulate_beads", "Camera", "simulate_frames", "simulate_gain_series", "simulate_intensity_series"]
+__all__ = [
+    "__version__",
+    "cots",
+    "validate",
+    "calibrate",
+    "read_manifest",
+    "check",
+    "EmccdcalError",
+    "fit_gain_curve",
+    "apply_calibration",
+    "export_calibration",
+    "sample_posterior",
+    "noise",
+    "write_report",
+    "load_result",
+    "load_calibration",
+    "simulate_beads",
+    "Camera",
+    "simulate_frames",
+    "simulate_gain_series",
+    "simulate_intensity_series",
+]

@@ -48,7 +48,7 @@ def _transform_matrix(n: int) -> np.ndarray:
     m = np.cos(np.pi * np.outer(j, j) / (n - 1)) * (2.0 / (n - 1))
     m[:, 0] *= 0.5  # the end points count half (the trapezoidal rule of the cosine sum)
     m[:, -1] *= 0.5
-    m[0] *= 0.5     # and so do the first and last coefficients
+    m[0] *= 0.5  # and so do the first and last coefficients
     m[-1] *= 0.5
     m.flags.writeable = False
     return m
@@ -58,8 +58,9 @@ def coefficients(values):
     """Chebyshev coefficients (n_x, n_y) of values on the Lobatto grid (n_x, n_y) (axis 0
     along x, axis 1 along y, each from its upper end down); any array namespace."""
     xp = _xp.namespace(values)
-    cx, cy = _xp.like(values, _transform_matrix(values.shape[0]),
-                      _transform_matrix(values.shape[1]).T)
+    cx, cy = _xp.like(
+        values, _transform_matrix(values.shape[0]), _transform_matrix(values.shape[1]).T
+    )
     dtype = values.dtype
     return xp.astype(cx, dtype) @ values @ xp.astype(cy, dtype)
 
@@ -114,5 +115,5 @@ def evaluate_rows(coef, x_range, y_range, x, y):
     """
     xp = _xp.namespace(coef, x, y)
     # Along x once per row (the rows' own coefficients in y), then along y per point.
-    by_row = _clenshaw(xp, coef[:, :, None], _unit(x, *x_range))     # (n_y, P)
-    return _clenshaw(xp, by_row[:, :, None], _unit(y, *y_range))     # (P, M)
+    by_row = _clenshaw(xp, coef[:, :, None], _unit(x, *x_range))  # (n_y, P)
+    return _clenshaw(xp, by_row[:, :, None], _unit(y, *y_range))  # (P, M)

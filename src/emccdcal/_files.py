@@ -27,8 +27,21 @@ from pathlib import Path
 
 from .errors import InputError
 
-__all__ = ["read_bytes", "read_text", "load_json", "load_toml", "load_yaml", "load_xml",
-           "check_tree", "check_mat", "MAX_TEXT_BYTES", "MAX_MAT_BYTES", "MAX_DEPTH", "MAX_YAML_ALIASES", "MAX_INTEGER"]
+__all__ = [
+    "read_bytes",
+    "read_text",
+    "load_json",
+    "load_toml",
+    "load_yaml",
+    "load_xml",
+    "check_tree",
+    "check_mat",
+    "MAX_TEXT_BYTES",
+    "MAX_MAT_BYTES",
+    "MAX_DEPTH",
+    "MAX_YAML_ALIASES",
+    "MAX_INTEGER",
+]
 
 #: Largest text file read (a manifest, a plan, a tool's settings are kilobytes).
 MAX_TEXT_BYTES = 8 << 20
@@ -72,8 +85,9 @@ def read_bytes(path, *, what: str = "file", max_bytes: int = MAX_TEXT_BYTES) -> 
     if not stat.S_ISREG(info.st_mode):
         raise InputError(f"'{path}': is {_kind(info.st_mode)}, not a {what}")
     if info.st_size > max_bytes:
-        raise InputError(f"'{path}': {info.st_size} bytes, more than a {what} holds "
-                         f"({max_bytes} at most)")
+        raise InputError(
+            f"'{path}': {info.st_size} bytes, more than a {what} holds ({max_bytes} at most)"
+        )
     # O_NONBLOCK: were it swapped for a FIFO since the check, opening does not wait
     try:
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
@@ -94,8 +108,7 @@ def read_text(path, *, what: str = "file", max_bytes: int = MAX_TEXT_BYTES) -> s
     try:
         return raw.decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise InputError(f"'{path}': not UTF-8 text (byte {exc.start}); a {what} is "
-                         "text") from None
+        raise InputError(f"'{path}': not UTF-8 text (byte {exc.start}); a {what} is text") from None
 
 
 def check_tree(doc, path, *, max_depth: int = MAX_DEPTH, finite: bool = True):
@@ -116,8 +129,9 @@ def check_tree(doc, path, *, max_depth: int = MAX_DEPTH, finite: bool = True):
         elif isinstance(node, bool):
             continue
         elif isinstance(node, int) and abs(node) > MAX_INTEGER:
-            raise InputError(f"'{path}': a whole number of {len(str(abs(node)))} digits, "
-                             "beyond 64 bits")
+            raise InputError(
+                f"'{path}': a whole number of {len(str(abs(node)))} digits, beyond 64 bits"
+            )
         elif finite and isinstance(node, float) and not math.isfinite(node):
             raise InputError(f"'{path}': a number that is not finite ({node!r})")
     return doc
@@ -186,8 +200,9 @@ def load_yaml(path, *, what: str = "YAML file", text: str | None = None):
             if self.check_event(yaml.AliasEvent):
                 self.aliases += 1
                 if self.aliases > MAX_YAML_ALIASES:
-                    raise InputError(f"'{path}': more than {MAX_YAML_ALIASES} YAML aliases "
-                                     "(an expansion bomb?)")
+                    raise InputError(
+                        f"'{path}': more than {MAX_YAML_ALIASES} YAML aliases (an expansion bomb?)"
+                    )
             depth = getattr(self, "_depth", 0) + 1
             if depth > MAX_DEPTH:
                 raise InputError(f"'{path}': nested more than {MAX_DEPTH} levels deep")
@@ -251,8 +266,8 @@ def check_mat(path, *, max_bytes: int = MAX_MAT_BYTES) -> None:
         return
     total, at = 0, 128
     while at + 8 <= len(raw):
-        kind, size = struct.unpack(order + "II", raw[at:at + 8])
-        body = raw[at + 8:at + 8 + size]
+        kind, size = struct.unpack(order + "II", raw[at : at + 8])
+        body = raw[at + 8 : at + 8 + size]
         if kind == 15:  # miCOMPRESSED: count what it inflates to, never more than allowed
             inflate = zlib.decompressobj()
             try:
@@ -264,6 +279,8 @@ def check_mat(path, *, max_bytes: int = MAX_MAT_BYTES) -> None:
         else:
             total += size
         if total > max_bytes:
-            raise InputError(f"'{path}': its variables hold more than {max_bytes >> 20} MiB "
-                             "once decompressed; a settings file is kilobytes")
+            raise InputError(
+                f"'{path}': its variables hold more than {max_bytes >> 20} MiB "
+                "once decompressed; a settings file is kilobytes"
+            )
         at += 8 + size + (-size % 8 if kind != 15 else 0)

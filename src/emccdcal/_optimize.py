@@ -92,9 +92,23 @@ def dense_step(info, grad, damping, held):
     return solve(A, grad)
 
 
-def maximize(evaluate, x0, *, lower, upper, tol, rtol=0.0, max_iter=100, max_step=1.0,
-             accept_rtol=1e-12, max_damping=1e8, stuck_tol=0.0, step=dense_step,
-             decrement=None, progress=None):
+def maximize(
+    evaluate,
+    x0,
+    *,
+    lower,
+    upper,
+    tol,
+    rtol=0.0,
+    max_iter=100,
+    max_step=1.0,
+    accept_rtol=1e-12,
+    max_damping=1e8,
+    stuck_tol=0.0,
+    step=dense_step,
+    decrement=None,
+    progress=None,
+):
     """Maximise independent per-row objectives by damped Newton steps.
 
     Parameters
@@ -155,8 +169,7 @@ def maximize(evaluate, x0, *, lower, upper, tol, rtol=0.0, max_iter=100, max_ste
         # A parameter at its bound whose gradient points outwards stays there, and the
         # step is solved in the others (an active-set step): clipping a full step would
         # leave them moving as though it had moved too, and stall on the bound.
-        return (((x[rows] <= lower[rows]) & (g < 0))
-                | ((x[rows] >= upper[rows]) & (g > 0)))
+        return ((x[rows] <= lower[rows]) & (g < 0)) | ((x[rows] >= upper[rows]) & (g > 0))
 
     for _ in range(max_iter):
         active = np.flatnonzero(~done)
@@ -164,16 +177,15 @@ def maximize(evaluate, x0, *, lower, upper, tol, rtol=0.0, max_iter=100, max_ste
             break
         g = grad[active]
         x_a, lo, hi = x[active], lower[active], upper[active]
-        d = np.clip(step(info[active], g, damping[active], held(active, g)),
-                    -max_step, max_step)
+        d = np.clip(step(info[active], g, damping[active], held(active, g)), -max_step, max_step)
         x_new = np.clip(x_a + d, lo, hi)
         d = x_new - x_a
         # A step that promises less than the tolerance is not worth its evaluation (the
         # objective's round-off could even refuse it): the row is done.
-        promise = (0.5 * np.einsum("pf,pf->p", g, d) if decrement is None
-                   else decrement(g, d))
-        small = ((np.abs(promise) < tol + rtol * np.abs(obj[active]))
-                 | (np.max(np.abs(d), axis=1, initial=0.0) < 1e-10))
+        promise = 0.5 * np.einsum("pf,pf->p", g, d) if decrement is None else decrement(g, d)
+        small = (np.abs(promise) < tol + rtol * np.abs(obj[active])) | (
+            np.max(np.abs(d), axis=1, initial=0.0) < 1e-10
+        )
         done[active[small]] = True
         move = ~small
         active, x_new = active[move], x_new[move]
@@ -205,8 +217,9 @@ def maximize(evaluate, x0, *, lower, upper, tol, rtol=0.0, max_iter=100, max_ste
 def diagonal_damped(H, damping):
     """``H + λ·diag H`` for a stack of square matrices and one λ per leading index."""
     d = np.einsum("...ii->...i", H)
-    return H + (damping.reshape(damping.shape + (1,) * (d.ndim - damping.ndim)) * d)[..., None] \
-        * np.eye(H.shape[-1])
+    return H + (damping.reshape(damping.shape + (1,) * (d.ndim - damping.ndim)) * d)[
+        ..., None
+    ] * np.eye(H.shape[-1])
 
 
 def schur(H, shared, own, damping=None, free_s=None, free_o=None):
@@ -241,16 +254,20 @@ def schur(H, shared, own, damping=None, free_s=None, free_o=None):
         Hff, Hss = diagonal_damped(Hff, damping), diagonal_damped(Hss, damping)
     if free_o is not None:
         fixed = ~free_o
-        Hff = np.where(fixed[..., :, None] | fixed[..., None, :], 0.0, Hff) \
+        Hff = (
+            np.where(fixed[..., :, None] | fixed[..., None, :], 0.0, Hff)
             + fixed[..., :, None] * eye_f
+        )
         Hsf = np.where(free_o[..., None, :], Hsf, 0.0)
     Hff = Hff + 1e-12 * (1.0 + np.abs(Hff).max(axis=(-1, -2), keepdims=True)) * eye_f
     Hff_inv = np.linalg.inv(Hff)
     S = Hss - np.einsum("bfkj,bflj->bkl", Hsf @ Hff_inv, Hsf)
     if free_s is not None:
         fixed_s = ~free_s
-        S = np.where(fixed_s[:, :, None] | fixed_s[:, None, :], 0.0, S) \
+        S = (
+            np.where(fixed_s[:, :, None] | fixed_s[:, None, :], 0.0, S)
             + fixed_s[:, :, None] * eye_k
+        )
     S = S + 1e-12 * (1.0 + np.abs(S).max(axis=(-1, -2), keepdims=True)) * eye_k
     return S, Hff_inv, Hsf
 
@@ -269,8 +286,9 @@ class ArrowLayout:
     def pack(self, p):
         """(b·F, D) part rows → (b, k + F·f) rows (shared columns from part 0)."""
         pb = p.reshape(-1, self.F, self.D)
-        return np.concatenate([pb[:, 0, self.shared],
-                               pb[..., self.own].reshape(len(pb), -1)], axis=1)
+        return np.concatenate(
+            [pb[:, 0, self.shared], pb[..., self.own].reshape(len(pb), -1)], axis=1
+        )
 
     def unpack(self, x, template):
         """(b, k + F·f) rows into a copy of the (b·F, D) part rows ``template``."""
@@ -282,8 +300,9 @@ class ArrowLayout:
     def gradient(self, grad):
         """(b·F, D) part gradients → (b, k + F·f)."""
         gb = grad.reshape(-1, self.F, self.D)
-        return np.concatenate([gb[..., self.shared].sum(axis=1),
-                               gb[..., self.own].reshape(len(gb), -1)], axis=1)
+        return np.concatenate(
+            [gb[..., self.shared].sum(axis=1), gb[..., self.own].reshape(len(gb), -1)], axis=1
+        )
 
     def decrement(self, grad, step):
         """What a step promises (:func:`maximize`'s ``decrement``): the shared

@@ -51,10 +51,26 @@ try:  # POSIX; elsewhere the lock is an exclusively created file
 except ImportError:  # pragma: no cover - Windows
     fcntl = None
 
-__all__ = ["atomic_write", "atomic_write_text", "file_sha256", "Output", "OutputError",
-           "staged", "remove_leftovers", "given_inputs", "slug", "comment", "toml_line", "plain_text",
-           "escape_controls", "STORE_MARKER",
-           "write_netcdf", "read_netcdf", "verify_checksum", "CHECKSUM_BLOCK"]
+__all__ = [
+    "atomic_write",
+    "atomic_write_text",
+    "file_sha256",
+    "Output",
+    "OutputError",
+    "staged",
+    "remove_leftovers",
+    "given_inputs",
+    "slug",
+    "comment",
+    "toml_line",
+    "plain_text",
+    "escape_controls",
+    "STORE_MARKER",
+    "write_netcdf",
+    "read_netcdf",
+    "verify_checksum",
+    "CHECKSUM_BLOCK",
+]
 
 #: The file inside a store (a directory written as one output, e.g. ``.zarr``) that says
 #: emccdcal wrote it and lists its files.
@@ -155,8 +171,10 @@ def atomic_write(path, write: Callable[[str], object], *, durable: bool = True) 
             os.replace(tmp, path)
     except OSError as exc:  # a full disk, a quota, storage gone read-only: one line
         tmp.unlink(missing_ok=True)
-        raise OutputError(f"{path}: cannot be written ({_reason(exc)}); any earlier file of "
-                          "that name is as it was") from None
+        raise OutputError(
+            f"{path}: cannot be written ({_reason(exc)}); any earlier file of "
+            "that name is as it was"
+        ) from None
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -165,8 +183,9 @@ def atomic_write(path, write: Callable[[str], object], *, durable: bool = True) 
 
 def atomic_write_text(path, text: str, *, durable: bool = True) -> Path:
     """:func:`atomic_write` of a text file (UTF-8)."""
-    return atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"),
-                        durable=durable)
+    return atomic_write(
+        path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"), durable=durable
+    )
 
 
 def file_sha256(path) -> str:
@@ -223,8 +242,7 @@ def _is_our_partial(folder: Path) -> bool:
     """A ``.partial`` directory :meth:`Output.store` made: its marker says so, and it
     holds nothing but the marker and the content folder the writer was given."""
     try:
-        marked = _files.load_json(folder / STORE_MARKER, what="store marker").get(
-            "partial") is True
+        marked = _files.load_json(folder / STORE_MARKER, what="store marker").get("partial") is True
     except (InputError, AttributeError):
         return False
     return marked and {p.name for p in folder.iterdir()} <= {STORE_MARKER, _PARTIAL_CONTENT}
@@ -237,8 +255,7 @@ def _remove_ours(path: Path) -> None:
     or content is left alone."""
     if path.is_dir() and not path.is_symlink():
         kind = re.search(r"\.[0-9a-f]{12}\.(partial|old)$", path.name)
-        if kind and (_is_our_partial(path) if kind.group(1) == "partial"
-                     else _is_our_store(path)):
+        if kind and (_is_our_partial(path) if kind.group(1) == "partial" else _is_our_store(path)):
             shutil.rmtree(path, ignore_errors=True)
     elif re.search(r"\.[0-9a-f]{12}\.tmp", path.name):  # only files are written as .tmp
         path.unlink(missing_ok=True)
@@ -247,8 +264,11 @@ def _remove_ours(path: Path) -> None:
 #: What a file emccdcal wrote holds besides a result's checksum block (:data:`_MAGIC`):
 #: a summary's version key, a report's generator tag (in reports before it, a
 #: provenance row).
-_SIGNATURES = (b'"emccdcal_version"', b'<meta name="generator" content="emccdcal',
-               b"<td>written by emccdcal</td>")
+_SIGNATURES = (
+    b'"emccdcal_version"',
+    b'<meta name="generator" content="emccdcal',
+    b"<td>written by emccdcal</td>",
+)
 
 
 def written_by_emccdcal(path) -> bool:
@@ -358,8 +378,9 @@ class _Lock:
                     self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o666)
                     break
                 # never through a link: the lock is truncated, and removed at the end
-                fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0),
-                             0o666)
+                fd = os.open(
+                    self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o666
+                )
                 try:
                     fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 except BlockingIOError:
@@ -368,7 +389,8 @@ class _Lock:
                     raise OutputError(
                         f"{self.output}: another emccdcal run is writing it"
                         + (f" (process {holder})" if holder.isdigit() else "")
-                        + "; wait for it to finish or choose another output") from None
+                        + "; wait for it to finish or choose another output"
+                    ) from None
                 # The holder before us may have removed the file between our open and
                 # our lock: then the lock is on a file nobody else will find.
                 try:
@@ -382,15 +404,19 @@ class _Lock:
             if held_by and not held_by.isdigit():  # a lock holds a process id, or nothing
                 os.close(self.fd)
                 self.fd = None
-                raise OutputError(f"{self.path}: a file emccdcal did not write stands where "
-                                  "its lock goes; it is left as it is: move it, or choose "
-                                  "another output")
+                raise OutputError(
+                    f"{self.path}: a file emccdcal did not write stands where "
+                    "its lock goes; it is left as it is: move it, or choose "
+                    "another output"
+                )
             os.ftruncate(self.fd, 0)
             os.write(self.fd, str(os.getpid()).encode())
             _HELD[key] = [self.fd, 1]
         except FileExistsError:  # pragma: no cover - Windows
-            raise OutputError(f"{self.output}: another emccdcal run is writing it (or one "
-                              f"was killed: then remove {self.path})") from None
+            raise OutputError(
+                f"{self.output}: another emccdcal run is writing it (or one "
+                f"was killed: then remove {self.path})"
+            ) from None
         except OSError as exc:
             raise OutputError(f"{self.what} ({_reason(exc)})") from None
 
@@ -447,9 +473,17 @@ class Output:
         emccdcal did not write).
     """
 
-    def __init__(self, path, *, kind: str = "folder", inputs: Iterable = (),
-                 overwrite: bool = False, names: Iterable[str] = (), stage: bool = True,
-                 what: str | None = None):
+    def __init__(
+        self,
+        path,
+        *,
+        kind: str = "folder",
+        inputs: Iterable = (),
+        overwrite: bool = False,
+        names: Iterable[str] = (),
+        stage: bool = True,
+        what: str | None = None,
+    ):
         if kind not in ("folder", "file", "store"):
             raise ValueError(f"unknown output kind {kind!r}")
         self.path, self.kind, self.overwrite = Path(path), kind, overwrite
@@ -457,8 +491,9 @@ class Output:
         self._inputs = [Path(p) for p in (*inputs, *_GIVEN_INPUTS.get())]
         self._what = what or str(self.path)
         self._noun = {"folder": "directory", "file": "file", "store": "store"}[kind]
-        self._staging = (_Staging(self.path, single_file=kind == "file")
-                         if stage and kind != "store" else None)
+        self._staging = (
+            _Staging(self.path, single_file=kind == "file") if stage and kind != "store" else None
+        )
         self._lock = None
         self._created: list[Path] = []
         self._token = None
@@ -473,10 +508,10 @@ class Output:
         try:
             folder.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise OutputError(f"{self._what}: cannot write the output {self._noun} "
-                              f"({_reason(exc)})") from None
-        lock = (folder / _LOCK if self.kind == "folder"
-                else folder / f".{self.path.name}{_LOCK}")
+            raise OutputError(
+                f"{self._what}: cannot write the output {self._noun} ({_reason(exc)})"
+            ) from None
+        lock = folder / _LOCK if self.kind == "folder" else folder / f".{self.path.name}{_LOCK}"
         self._lock = _Lock(lock, self._what, f"{self._what}: cannot write the output {self._noun}")
         self._lock.acquire()  # also the check that the output can be written
         try:
@@ -518,29 +553,39 @@ class Output:
                 hit = _same(self.path, p) or (self.kind == "store" and _is_inside(p, self.path))
             # nothing is written inside an input store (a folder read as one file: .zarr);
             # a plain folder given as input (scan's) may hold the output
-            hit = hit or (p.is_dir() and p.suffix.lower() == ".zarr" and (
-                _same(self.path, p) or _is_inside(self.path, p)))
+            hit = hit or (
+                p.is_dir()
+                and p.suffix.lower() == ".zarr"
+                and (_same(self.path, p) or _is_inside(self.path, p))
+            )
             if hit:
-                raise OutputError(f"{self._what}: would write over {p}, an input of this "
-                                  "run; choose another output")
+                raise OutputError(
+                    f"{self._what}: would write over {p}, an input of this "
+                    "run; choose another output"
+                )
 
     def _check_existing(self) -> None:
         p = self.path
         if self.kind == "folder":
             there = [n for n in self.names if (p / n).exists()]
             if there and not self.overwrite:
-                raise OutputError(f"{self._what}: holds {', '.join(there)} of an earlier run; "
-                                  "pass --overwrite to replace them, or choose another folder")
+                raise OutputError(
+                    f"{self._what}: holds {', '.join(there)} of an earlier run; "
+                    "pass --overwrite to replace them, or choose another folder"
+                )
             return
         if not (p.exists() or p.is_symlink()):
             return
         if not self.overwrite:
-            raise OutputError(f"{self._what}: exists; pass --overwrite to replace it, or "
-                              "choose another name")
+            raise OutputError(
+                f"{self._what}: exists; pass --overwrite to replace it, or choose another name"
+            )
         if p.is_dir() and not (self.kind == "store" and _is_our_store(p)):
-            raise OutputError(f"{self._what}: is a folder emccdcal did not write (or holds "
-                              "files it did not write); --overwrite never removes such a "
-                              "folder: remove it yourself or choose another name")
+            raise OutputError(
+                f"{self._what}: is a folder emccdcal did not write (or holds "
+                "files it did not write); --overwrite never removes such a "
+                "folder: remove it yourself or choose another name"
+            )
 
     # ---- while running -----------------------------------------------------------------
     def store(self) -> Path:
@@ -590,8 +635,9 @@ class Output:
             for final in self._staging.files:
                 for p in self._inputs:
                     if _same(final, p):
-                        raise OutputError(f"{final}: is {p}, an input of this run; choose "
-                                          "another output")
+                        raise OutputError(
+                            f"{final}: is {p}, an input of this run; choose another output"
+                        )
                 if final.is_dir():
                     raise OutputError(f"{final}: is a folder; it is not replaced by a file")
                 if final.exists() and not self.overwrite:
@@ -603,8 +649,10 @@ class Output:
             (content / STORE_MARKER).write_text(json.dumps({"files": files}))
             if self.path.is_dir() and not self.path.is_symlink():
                 if not _is_our_store(self.path):  # something was put there meanwhile
-                    raise OutputError(f"{self._what}: files that emccdcal did not write "
-                                      "appeared in it during the run; it is left as it is")
+                    raise OutputError(
+                        f"{self._what}: files that emccdcal did not write "
+                        "appeared in it during the run; it is left as it is"
+                    )
                 self._old_store = _temporary(self.path, "old")
                 os.replace(self.path, self._old_store)
             elif self.path.exists() or self.path.is_symlink():
@@ -663,14 +711,18 @@ def verify_checksum(path, what: str = "result") -> str:
                 whole.update(block)
     except OSError as exc:
         raise InputError(f"{p}: cannot be read ({_reason(exc)})") from None
-    recorded = head[len(_MAGIC):len(_MAGIC) + 64]
+    recorded = head[len(_MAGIC) : len(_MAGIC) + 64]
     if len(head) < CHECKSUM_BLOCK or not head.startswith(_MAGIC):
-        raise InputError(f"{p}: not an emccdcal {what} file, or damaged (it does not begin "
-                         "with emccdcal's checksum block; files of earlier emccdcal "
-                         f"versions have none): make the {what} again")
+        raise InputError(
+            f"{p}: not an emccdcal {what} file, or damaged (it does not begin "
+            "with emccdcal's checksum block; files of earlier emccdcal "
+            f"versions have none): make the {what} again"
+        )
     if recorded != digest.hexdigest().encode():
-        raise InputError(f"{p}: damaged: its bytes do not match the checksum it was written "
-                         f"with; make the {what} again or restore it from a copy")
+        raise InputError(
+            f"{p}: damaged: its bytes do not match the checksum it was written "
+            f"with; make the {what} again or restore it from a copy"
+        )
     return whole.hexdigest()
 
 
@@ -707,8 +759,15 @@ def read_netcdf(path, *, what: str = "result") -> xarray.Dataset:
         try:
             with xr.open_dataset(p, engine="h5netcdf") as f:
                 ds = f.load()
-        except (OSError, ValueError, TypeError, KeyError, RuntimeError, AttributeError,
-                IndexError) as exc:
+        except (
+            OSError,
+            ValueError,
+            TypeError,
+            KeyError,
+            RuntimeError,
+            AttributeError,
+            IndexError,
+        ) as exc:
             error = f"{exc.__class__.__name__}: {' '.join(str(exc).split())}"
             failed.append(True)
     if error is not None:
@@ -740,8 +799,7 @@ def slug(text, *, fallback: str = "unnamed") -> str:
 
 
 #: Characters a terminal acts on (all but tab and line feed) and those that reorder text.
-_CONTROLS = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u2028\u2029\u202a-\u202e"
-                       "\u2066-\u2069]")
+_CONTROLS = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u2028\u2029\u202a-\u202e\u2066-\u2069]")
 
 
 def escape_controls(text: str) -> str:

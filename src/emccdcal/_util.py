@@ -38,8 +38,14 @@ __all__ = [
 # --------------------------------------------------------------------------------------
 # Progress
 # --------------------------------------------------------------------------------------
-def progress(iterable: Iterable | None = None, *, enabled, desc: str, unit: str = "it",
-             total: int | None = None):
+def progress(
+    iterable: Iterable | None = None,
+    *,
+    enabled,
+    desc: str,
+    unit: str = "it",
+    total: int | None = None,
+):
     """A progress bar on stderr (tqdm), or a silent stand-in when ``enabled`` is false.
 
     Use it as an iterable wrapper or, with ``iterable=None``, as a bar to ``update(n)``
@@ -154,8 +160,15 @@ def check_int(name: str, value, *, minimum: int | None = 1, maximum: int | None 
     return int(out)
 
 
-def check_number(name: str, value, *, positive: bool = False, minimum: float | None = None,
-                 maximum: float | None = None, scalar: bool = True):
+def check_number(
+    name: str,
+    value,
+    *,
+    positive: bool = False,
+    minimum: float | None = None,
+    maximum: float | None = None,
+    scalar: bool = True,
+):
     """``value`` as a finite float (or float array) within its range, or an :class:`OptionError`.
 
     Parameters
@@ -203,10 +216,17 @@ def within_bounds(name: str, arr, value, *, label: str | None = None) -> None:
         return
     low, high, unit = BOUNDS[name]
     if not np.all((arr >= low) & (arr <= high)):
-        shown = value if np.ndim(value) == 0 else f"a map spanning {np.min(arr):g} to {np.max(arr):g}"
-        raise OptionError(f"{label or name} {shown} is outside {low:g} to {high:g}"
-                          + (f" {unit}, the range it is taken as meant in (a value in "
-                             "another unit?)" if unit else ""))
+        shown = (
+            value if np.ndim(value) == 0 else f"a map spanning {np.min(arr):g} to {np.max(arr):g}"
+        )
+        raise OptionError(
+            f"{label or name} {shown} is outside {low:g} to {high:g}"
+            + (
+                f" {unit}, the range it is taken as meant in (a value in another unit?)"
+                if unit
+                else ""
+            )
+        )
 
 
 def nanmedian(values, axis=None):
@@ -249,8 +269,9 @@ def e_per_adu_map(value, shape) -> np.ndarray | None:
     try:
         arr = np.broadcast_to(np.asarray(value, dtype=float), tuple(shape)).astype(float)
     except (TypeError, ValueError):
-        raise OptionError(f"e_per_adu must be a number or a {tuple(shape)} map (e-/ADU), "
-                          f"got {value!r}") from None
+        raise OptionError(
+            f"e_per_adu must be a number or a {tuple(shape)} map (e-/ADU), got {value!r}"
+        ) from None
     if isinstance(value, (bool, np.bool_)) or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
         raise OptionError("e_per_adu must be positive and finite (e-/ADU)")
     return arr
@@ -292,11 +313,14 @@ def parse_region(text) -> tuple[slice, slice]:
     try:
         if len(parts) != 2 or any(part.count(":") != 1 for part in parts):
             raise ValueError
-        rows, cols = (tuple(int(v) if v.strip() else None for v in part.split(":"))
-                      for part in parts)
+        rows, cols = (
+            tuple(int(v) if v.strip() else None for v in part.split(":")) for part in parts
+        )
     except ValueError:
-        raise OptionError(f"malformed region {text!r}: expected rows and columns as "
-                          "R0:R1,C0:C1, e.g. 0:8,: for the first 8 rows") from None
+        raise OptionError(
+            f"malformed region {text!r}: expected rows and columns as "
+            "R0:R1,C0:C1, e.g. 0:8,: for the first 8 rows"
+        ) from None
     return slice(*rows), slice(*cols)
 
 

@@ -35,5 +35,4 @@ class EmccdcalBackend(BackendEntrypoint):
         import xarray as xr
 
         verify_checksum(filename_or_obj)
-        return xr.open_dataset(filename_or_obj, engine="h5netcdf",
-                               drop_variables=drop_variables)
+        return xr.open_dataset(filename_or_obj, engine="h5netcdf", drop_variables=drop_variables)

@@ -21,10 +21,23 @@ from array_api_compat import array_namespace, device, is_array_api_obj, is_numpy
 from . import defaults
 from .errors import OptionError
 
-__all__ = ["namespace", "asarrays", "device", "is_complex", "DEVICES",
-           "resolve", "computing_on", "engine", "free_bytes", "on", "like", "to_numpy",
-           "bincount",
-           "rfft", "irfft"]
+__all__ = [
+    "namespace",
+    "asarrays",
+    "device",
+    "is_complex",
+    "DEVICES",
+    "resolve",
+    "computing_on",
+    "engine",
+    "free_bytes",
+    "on",
+    "like",
+    "to_numpy",
+    "bincount",
+    "rfft",
+    "irfft",
+]
 
 
 def namespace(*arrays):
@@ -65,8 +78,10 @@ def resolve(device: str | None):
         try:
             import array_api_strict
         except ImportError:
-            raise OptionError("device 'array-api-strict' needs the package array-api-strict "
-                              "(pip install array-api-strict)") from None
+            raise OptionError(
+                "device 'array-api-strict' needs the package array-api-strict "
+                "(pip install array-api-strict)"
+            ) from None
         # A device of its own that is not the CPU: its arrays refuse to become NumPy's,
         # as a GPU's do, so nothing outside the standard passes unnoticed.
         return array_api_strict, array_api_strict.Device("device1")
@@ -95,8 +110,10 @@ def _cuda():
             return xp, torch.device("cuda")
     except ImportError:
         pass
-    raise OptionError("device 'cuda': no GPU found through CuPy or PyTorch (install the "
-                      "extra 'gpu' and check that the NVIDIA driver sees the card)")
+    raise OptionError(
+        "device 'cuda': no GPU found through CuPy or PyTorch (install the "
+        "extra 'gpu' and check that the NVIDIA driver sees the card)"
+    )
 
 
 @contextlib.contextmanager
@@ -174,8 +191,9 @@ def bincount(xp, index, weights, minlength: int):
         import torch
 
         return torch.bincount(index, weights=weights, minlength=minlength)
-    out = np.bincount(to_numpy(index), weights=None if weights is None else to_numpy(weights),
-                      minlength=minlength)
+    out = np.bincount(
+        to_numpy(index), weights=None if weights is None else to_numpy(weights), minlength=minlength
+    )
     return xp.asarray(out, device=device(index))
 
 

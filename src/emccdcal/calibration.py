@@ -46,8 +46,17 @@ from .runstore import RESULT_FILES, RunInterrupted, RunStore, remove_run
 if TYPE_CHECKING:
     import xarray
 
-__all__ = ["METHODS", "INTERVALS", "DEFAULT_BLOCK", "DEFAULT_TILE_PIXELS", "TileJob",
-           "calibrate", "plan_tiles", "run_tile", "format_summary"]
+__all__ = [
+    "METHODS",
+    "INTERVALS",
+    "DEFAULT_BLOCK",
+    "DEFAULT_TILE_PIXELS",
+    "TileJob",
+    "calibrate",
+    "plan_tiles",
+    "run_tile",
+    "format_summary",
+]
 
 #: Methods that hold φ (e⁻/ADU) fixed at a given value, and those that estimate it.
 ESTIMATE_E_PER_ADU = ("mv-adu", "is-adu")
@@ -153,9 +162,12 @@ def run_tile(job: TileJob, progress=None) -> dict:
     def read(a):
         path, skip = job.frames[a]
         band = read_band(path, r0, r1, skip)
-        own = band.reshape(band.shape[0], 1, -1)[:, :, p0 - r0 * job.cols:p1 - r0 * job.cols]
-        q = (quality.band_statistics(own, job.adc_max, third=job.setpoints[a] == 1)
-             if job.checks else None)
+        own = band.reshape(band.shape[0], 1, -1)[:, :, p0 - r0 * job.cols : p1 - r0 * job.cols]
+        q = (
+            quality.band_statistics(own, job.adc_max, third=job.setpoints[a] == 1)
+            if job.checks
+            else None
+        )
         # The likelihood methods histogram each block's pixels as they fit it (the
         # threads then share the work evenly); the mean–variance methods need moments.
         data = _histograms(job, a, own) if mean_variance else own
@@ -196,14 +208,18 @@ def _histograms(job, a, frames):
 def _bounds_of(method, intervals):
     """Interval bounds of a likelihood result: (kind, description), or None."""
     if intervals == "profile":
-        return ("profile-likelihood",
-                "profile likelihood, 95 %, widened by the errors of the offset and "
-                "read-noise maps where the standard errors include them")
+        return (
+            "profile-likelihood",
+            "profile likelihood, 95 %, widened by the errors of the offset and "
+            "read-noise maps where the standard errors include them",
+        )
     if method == "gs-hierarchical":
-        return ("unpooled",
-                "95 %, of the same model without the prior (each set-point its own E): "
-                "Wald on the log scale, profile likelihood where that is unreliable; "
-                "the MAP's own ± 1.96 SE reflect its shrinkage")
+        return (
+            "unpooled",
+            "95 %, of the same model without the prior (each set-point its own E): "
+            "Wald on the log scale, profile likelihood where that is unreliable; "
+            "the MAP's own ± 1.96 SE reflect its shrinkage",
+        )
     return None
 
 
@@ -211,27 +227,56 @@ def _fit_pixels(job, frames, usable, progress=None):
     """The likelihood fit of the pixels ``usable`` of a tile, from each acquisition's
     ``frames`` (F, 1, P); NaN (not converged) elsewhere."""
     P, A = job.n_pixels, len(frames)
-    out = {k: np.full((P, A), np.nan) for k in (
-        "photoelectrons", "photoelectrons_se", "em_gain", "em_gain_se", "e_per_adu",
-        "e_per_adu_se", "gof_pvalue", "acquisition_loglik")}
-    out.update(loglik=np.full(P, np.nan), converged=np.zeros(P, dtype=bool),
-               n_floored=np.zeros(P, dtype=np.int64), iterations=np.zeros(P, dtype=np.int64))
+    out = {
+        k: np.full((P, A), np.nan)
+        for k in (
+            "photoelectrons",
+            "photoelectrons_se",
+            "em_gain",
+            "em_gain_se",
+            "e_per_adu",
+            "e_per_adu_se",
+            "gof_pvalue",
+            "acquisition_loglik",
+        )
+    }
+    out.update(
+        loglik=np.full(P, np.nan),
+        converged=np.zeros(P, dtype=bool),
+        n_floored=np.zeros(P, dtype=np.int64),
+        iterations=np.zeros(P, dtype=np.int64),
+    )
     if job.method == "gs-hierarchical":
-        out.update(hyper_photoelectrons=np.full(P, np.nan),
-                   hyper_sd_photoelectrons=np.full(P, np.nan))
+        out.update(
+            hyper_photoelectrons=np.full(P, np.nan), hyper_sd_photoelectrons=np.full(P, np.nan)
+        )
 
     def fit_block(idx):
-        models = [AcquisitionModel(sp, job.offsets[a, idx], job.read_noise[a, idx],
-                                   job.em_model, job.dark_frames[a], job.map_groups[a])
-                  for a, sp in enumerate(job.setpoints)]
+        models = [
+            AcquisitionModel(
+                sp,
+                job.offsets[a, idx],
+                job.read_noise[a, idx],
+                job.em_model,
+                job.dark_frames[a],
+                job.map_groups[a],
+            )
+            for a, sp in enumerate(job.setpoints)
+        ]
         sub = lambda v: None if v is None else v[idx]  # noqa: E731
         with _xp.computing_on(job.device):  # the histograms, the fit and its checks
             hists = [_histograms(job, a, f[:, :, idx]) for a, f in enumerate(frames)]
-            return idx, fit_series(job.method, models, hists, e_per_adu=sub(job.e_per_adu),
-                                   e_per_adu_se=sub(job.e_per_adu_se), options=job.options,
-                                   intervals=job.intervals)
+            return idx, fit_series(
+                job.method,
+                models,
+                hists,
+                e_per_adu=sub(job.e_per_adu),
+                e_per_adu_se=sub(job.e_per_adu_se),
+                options=job.options,
+                intervals=job.intervals,
+            )
 
-    chunks = [usable[s:s + job.block_size] for s in range(0, usable.size, job.block_size)]
+    chunks = [usable[s : s + job.block_size] for s in range(0, usable.size, job.block_size)]
     # Blocks are independent: threads overlap them (NumPy and the FFT release the GIL),
     # and the result does not depend on how many there are.
     with ThreadPoolExecutor(max_workers=max(1, job.threads)) as pool:
@@ -279,8 +324,9 @@ def _execute(jobs, scheduler, progress, workers=1):
     try:
         from distributed import Client, as_completed
     except ImportError:
-        raise OptionError("running on a Dask cluster needs the 'dask' extra: "
-                          "pip install 'emccdcal[dask]'") from None
+        raise OptionError(
+            "running on a Dask cluster needs the 'dask' extra: pip install 'emccdcal[dask]'"
+        ) from None
     if isinstance(scheduler, Client):
         client = scheduler
     else:
@@ -290,8 +336,10 @@ def _execute(jobs, scheduler, progress, workers=1):
             _reach(scheduler)
             client = Client(scheduler, timeout="30s", set_as_default=False)
         except (ValueError, TypeError, OSError) as exc:  # not an address, or no one there
-            raise OptionError(f"scheduler {scheduler!r}: no Dask scheduler reached "
-                              f"({one_line(exc)}); give its address, tcp://HOST:PORT") from None
+            raise OptionError(
+                f"scheduler {scheduler!r}: no Dask scheduler reached "
+                f"({one_line(exc)}); give its address, tcp://HOST:PORT"
+            ) from None
     try:
         futures = {client.submit(run_tile, job, pure=False): job for job in jobs}
         yield from _as_finished(futures, as_completed, progress)
@@ -354,8 +402,9 @@ def _run_tiles(jobs, store, scheduler, progress, method, workers=1):
     bar = progress_bar(enabled=progress, desc=f"calibrating ({method})", unit="px", total=total)
     bar.update(sum(job.n_pixels for job in jobs if job.key in done))
     try:
-        for job, arrays in _execute([j for j in jobs if j.key not in done], scheduler,
-                                    bar.update, workers):
+        for job, arrays in _execute(
+            [j for j in jobs if j.key not in done], scheduler, bar.update, workers
+        ):
             if store is not None:
                 store.save_tile(job.key, arrays)
             done[job.key] = arrays
@@ -364,7 +413,8 @@ def _run_tiles(jobs, store, scheduler, progress, method, workers=1):
             raise
         raise RunInterrupted(
             f"interrupted: {len(store.tiles())} of {len(jobs)} tiles kept in {store.out}; "
-            "run the same command with --resume to continue") from None
+            "run the same command with --resume to continue"
+        ) from None
     finally:
         bar.close()
     return [done[job.key] for job in jobs]
@@ -396,51 +446,74 @@ class StageProfile:
         the data bound the length at all."""
         delta = self.loglik - self.loglik.max()
         within = [n for n, d in zip(self.stages, delta) if d > -1.92]
-        source = (f"profile likelihood over {self.stages[0]}-{self.stages[-1]} stages on "
-                  f"{self.pixels} pixels: maximum at {self.best}, {min(within)}-{max(within)} "
-                  "within 95 %")
+        source = (
+            f"profile likelihood over {self.stages[0]}-{self.stages[-1]} stages on "
+            f"{self.pixels} pixels: maximum at {self.best}, {min(within)}-{max(within)} "
+            "within 95 %"
+        )
         if max(within) == self.stages[-1]:
             source += " (no upper bound in the data: longer registers fit as well)"
-        return {"register_stages_source": source,
-                "register_stages_grid": np.array(self.stages, dtype=np.int64),
-                "register_stages_profile": delta}
+        return {
+            "register_stages_source": source,
+            "register_stages_grid": np.array(self.stages, dtype=np.int64),
+            "register_stages_profile": delta,
+        }
 
 
 def _profile_stages(tile_job, n_pixels, model, method, used, progress):
     """``(EMModel at the best length, StageProfile)``: the method fitted to the middle
     :data:`PROFILE_PIXELS` pixels at every length of :data:`STAGE_GRID`."""
     if not model.register.uses_stages:
-        raise OptionError(f"stages='auto' profiles the cascade register's length; the {model} "
-                          "model has none")
+        raise OptionError(
+            f"stages='auto' profiles the cascade register's length; the {model} model has none"
+        )
     if method.startswith("mv-"):
         raise MethodError(f"stages='auto' needs a likelihood: {method} has none")
     if all(a.em_gain_setpoint == 1 for a in used):
-        raise OptionError("stages='auto': every acquisition is at EM gain set-point 1, "
-                          "where the register's length does not enter the likelihood")
+        raise OptionError(
+            "stages='auto': every acquisition is at EM gain set-point 1, "
+            "where the register's length does not enter the likelihood"
+        )
     n = min(PROFILE_PIXELS, n_pixels)
     p0 = (n_pixels - n) // 2
     logliks = []
-    for stages in progress_bar(STAGE_GRID, enabled=progress, desc="profiling register length",
-                               unit="length"):
-        job = replace(tile_job(p0, p0 + n, noise.EMModel(model.name, stages)), checks=False,
-                      intervals="wald")
+    for stages in progress_bar(
+        STAGE_GRID, enabled=progress, desc="profiling register length", unit="length"
+    ):
+        job = replace(
+            tile_job(p0, p0 + n, noise.EMModel(model.name, stages)), checks=False, intervals="wald"
+        )
         logliks.append(run_tile(job)["loglik"])
     logliks = np.array(logliks)
     ok = np.all(np.isfinite(logliks), axis=0)
     if not ok.any():
-        raise InputError(f"stages='auto': none of the {n} profiled pixels converged at every "
-                         f"register length ({STAGE_GRID[0]}-{STAGE_GRID[-1]}); give --stages N")
+        raise InputError(
+            f"stages='auto': none of the {n} profiled pixels converged at every "
+            f"register length ({STAGE_GRID[0]}-{STAGE_GRID[-1]}); give --stages N"
+        )
     profile = StageProfile(STAGE_GRID, logliks[:, ok].sum(axis=1), int(ok.sum()))
     return noise.EMModel(model.name, profile.best), profile
 
 
-def _fingerprint(manifest, used, method, options, intervals, checks, map_errors, phi_map, phi_se,
-                 tiling, em_model):
+def _fingerprint(
+    manifest,
+    used,
+    method,
+    options,
+    intervals,
+    checks,
+    map_errors,
+    phi_map,
+    phi_se,
+    tiling,
+    em_model,
+):
     """What a calibration's result depends on, to refuse resuming a different run."""
     files = {}
     paths = [manifest.path] + [a.frames_path for a in manifest.acquisitions]
-    sources = [manifest.e_per_adu_source] + [s for a in manifest.acquisitions
-                                              for s in (a.offset_source, a.read_noise_source)]
+    sources = [manifest.e_per_adu_source] + [
+        s for a in manifest.acquisitions for s in (a.offset_source, a.read_noise_source)
+    ]
     paths += [s.path for s in sources if s is not None and s.path is not None]
     for p in paths:
         st = Path(p).stat()
@@ -606,17 +679,22 @@ def calibrate(
     if intervals not in INTERVALS:
         raise OptionError(f"unknown intervals {intervals!r}; choose one of {', '.join(INTERVALS)}")
     if intervals == "profile" and method.startswith("mv-"):
-        raise MethodError(f"{method} has no likelihood: profile intervals need a "
-                          f"likelihood method ({method} results always carry Fieller bounds)")
+        raise MethodError(
+            f"{method} has no likelihood: profile intervals need a "
+            f"likelihood method ({method} results always carry Fieller bounds)"
+        )
     if e_per_adu is not None and method in ESTIMATE_E_PER_ADU:
-        raise OptionError(f"{method} estimates e_per_adu itself: a given e_per_adu is for "
-                          f"the methods that hold it fixed ({', '.join(FIXED_E_PER_ADU)})")
+        raise OptionError(
+            f"{method} estimates e_per_adu itself: a given e_per_adu is for "
+            f"the methods that hold it fixed ({', '.join(FIXED_E_PER_ADU)})"
+        )
     block_size = check_int("block_size", block_size)
     tile_pixels = check_int("tile_pixels", tile_pixels)
     workers = os.cpu_count() if workers is None else check_int("workers", workers)
     # an unknown device, or one whose library is missing: one line now
-    block_size, tile_pixels = _blocks_for(_xp.free_bytes(*_xp.resolve(device)), block_size,
-                                          tile_pixels)
+    block_size, tile_pixels = _blocks_for(
+        _xp.free_bytes(*_xp.resolve(device)), block_size, tile_pixels
+    )
     # Every warning of the run (manifest, saturation, convergence, misfit) is recorded in
     # the result and issued again to the caller.
     # The output is locked, and checked, for the whole run (the tiles are kept as they
@@ -624,11 +702,28 @@ def calibrate(
     target = None if out is None else Output(out, kind="folder", stage=False)
     with target or contextlib.nullcontext():
         ds = result.run_recorded(
-            lambda: _run_calibration(manifest, method, e_per_adu, target, resume, overwrite,
-                                     block_size, tile_pixels, scheduler, options, progress,
-                                     workers, checks, map_errors, intervals, em_model, stages,
-                                     accept_mismatch=accept_mismatch, accept_phi=accept_phi,
-                                     device=device),
+            lambda: _run_calibration(
+                manifest,
+                method,
+                e_per_adu,
+                target,
+                resume,
+                overwrite,
+                block_size,
+                tile_pixels,
+                scheduler,
+                options,
+                progress,
+                workers,
+                checks,
+                map_errors,
+                intervals,
+                em_model,
+                stages,
+                accept_mismatch=accept_mismatch,
+                accept_phi=accept_phi,
+                device=device,
+            ),
         )
         if out is not None:
             result.save(ds, out, seconds=ds.attrs["seconds"], stale=RESULT_FILES)
@@ -684,7 +779,9 @@ def _warn_gain_order(ds) -> None:
                 f"{sp[hi]:g}; it rises with the set-point on every camera: are the "
                 "set-points of those acquisitions swapped? If so, their gains are each "
                 "other's: correct their em_gain_setpoint in the manifest and calibrate "
-                "again", stacklevel=4)
+                "again",
+                stacklevel=4,
+            )
 
 
 def _require_convergence(ds, method) -> None:
@@ -695,7 +792,8 @@ def _require_convergence(ds, method) -> None:
         raise MethodError(
             f"method {method}: only {ok} of {total} pixels converged, so there is no "
             "calibration to report (nothing was written); check the offset and read-noise "
-            "maps against the data, the set-points and whether the method suits the data")
+            "maps against the data, the set-points and whether the method suits the data"
+        )
 
 
 def _input_files(manifest, used, phi_source) -> list[Path]:
@@ -707,15 +805,38 @@ def _input_files(manifest, used, phi_source) -> list[Path]:
     return files
 
 
-def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, block_size,
-                     tile_pixels, scheduler, options, progress, workers, checks, map_errors,
-                     intervals, em_model=None, stages=None, *, accept_mismatch=(),
-                     accept_phi=False, device=None):
+def _run_calibration(
+    manifest,
+    method,
+    e_per_adu,
+    target,
+    resume,
+    overwrite,
+    block_size,
+    tile_pixels,
+    scheduler,
+    options,
+    progress,
+    workers,
+    checks,
+    map_errors,
+    intervals,
+    em_model=None,
+    stages=None,
+    *,
+    accept_mismatch=(),
+    accept_phi=False,
+    device=None,
+):
     manifest = _load(manifest)
     auto = isinstance(stages, str) and stages == "auto"
     model, stages_source = noise.choose_em_model(
-        em_model, None if auto else stages, manifest_model=manifest.em_model,
-        manifest_stages=manifest.register_stages, camera_model=manifest.camera.get("model"))
+        em_model,
+        None if auto else stages,
+        manifest_model=manifest.em_model,
+        manifest_stages=manifest.register_stages,
+        camera_model=manifest.camera.get("model"),
+    )
     acqs = manifest.acquisitions
     rows, cols = manifest.shape
     phi_map, phi_se, phi_source = _e_per_adu_inputs(manifest, e_per_adu, accept_mismatch)
@@ -733,18 +854,30 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
     def tile_job(p0, p1, model):
         px = slice(p0, p1)
         return TileJob(
-            pixels=(p0, p1), cols=cols, method=method,
+            pixels=(p0, p1),
+            cols=cols,
+            method=method,
             frames=tuple((str(a.frames_path), int(a.skip_frames)) for a in used),
             setpoints=tuple(float(a.em_gain_setpoint) for a in used),
-            labels=tuple(_labels(used)), offsets=offsets[:, px], read_noise=read_noise[:, px],
+            labels=tuple(_labels(used)),
+            offsets=offsets[:, px],
+            read_noise=read_noise[:, px],
             e_per_adu=None if phi is None or method.startswith("mv-") else phi[px],
-            e_per_adu_se=(None if phi_se_flat is None or method.startswith("mv-")
-                          else phi_se_flat[px]),
-            dark_frames=tuple(dark_frames), map_groups=tuple(map_groups),
-            adc_max=int(manifest.adc_max), options=options, intervals=intervals,
-            block_size=block_size, threads=workers if scheduler is None else 1,
-            checks=bool(checks), fft_threads=_fft_threads(scheduler, workers),
-            em_model=model, device=device)
+            e_per_adu_se=(
+                None if phi_se_flat is None or method.startswith("mv-") else phi_se_flat[px]
+            ),
+            dark_frames=tuple(dark_frames),
+            map_groups=tuple(map_groups),
+            adc_max=int(manifest.adc_max),
+            options=options,
+            intervals=intervals,
+            block_size=block_size,
+            threads=workers if scheduler is None else 1,
+            checks=bool(checks),
+            fft_threads=_fft_threads(scheduler, workers),
+            em_model=model,
+            device=device,
+        )
 
     # where the register's length came from, as the result records it
     register_attrs = {"register_stages_source": stages_source} if stages_source else {}
@@ -754,9 +887,24 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
     store = None
     if target is not None:  # an input, or an occupied output, is found before computing
         target.refuse_inputs(_input_files(manifest, used, phi_source), names=RESULT_FILES)
-        store = RunStore(target.path, _fingerprint(
-            manifest, used, method, options, intervals, checks, map_errors, phi_map, phi_se,
-            (block_size, tiles[0][1] - tiles[0][0]), model), resume=resume, overwrite=overwrite)
+        store = RunStore(
+            target.path,
+            _fingerprint(
+                manifest,
+                used,
+                method,
+                options,
+                intervals,
+                checks,
+                map_errors,
+                phi_map,
+                phi_se,
+                (block_size, tiles[0][1] - tiles[0][0]),
+                model,
+            ),
+            resume=resume,
+            overwrite=overwrite,
+        )
     jobs = [tile_job(p0, p1, model) for p0, p1 in tiles]
     parts = _run_tiles(jobs, store, scheduler, progress, method, workers)
     arrays = _joined(parts)  # parts keep the data-quality statistics, checked once fitted
@@ -764,10 +912,12 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
     if method.startswith("mv-"):
         ds = _mv_dataset(method, manifest, used, arrays, phi_map, phi_se, model)
     else:
-        ds = _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, options,
-                                 intervals, model, se_note)
-    _record_provenance(ds, method, manifest, model, register_attrs, device, phi_source,
-                       phi_se is not None)
+        ds = _likelihood_dataset(
+            method, manifest, used, arrays, offsets, read_noise, options, intervals, model, se_note
+        )
+    _record_provenance(
+        ds, method, manifest, model, register_attrs, device, phi_source, phi_se is not None
+    )
     if checks:  # the findings quote the light this fit found, not a rough guess of it
         report, messages = _quality(manifest, used, parts, tiles, _fitted_light(ds, used))
         for w in messages:
@@ -783,8 +933,10 @@ def _run_calibration(manifest, method, e_per_adu, target, resume, overwrite, blo
 def _joined(parts) -> dict:
     """The tiles' per-pixel arrays joined, each moved out of ``parts`` (one copy at a
     time); the data-quality statistics stay in ``parts``."""
-    return {key: np.concatenate([p.pop(key) for p in parts])
-            for key in [k for k in parts[0] if not k.startswith(_QUALITY)]}
+    return {
+        key: np.concatenate([p.pop(key) for p in parts])
+        for key in [k for k in parts[0] if not k.startswith(_QUALITY)]
+    }
 
 
 def _used_acquisitions(method, acqs, phi_given: bool) -> list:
@@ -797,8 +949,9 @@ def _used_acquisitions(method, acqs, phi_given: bool) -> list:
     return [acqs[i] for i in idx]
 
 
-def _record_provenance(ds, method, manifest, model, register_attrs, device, phi_source,
-                       phi_has_se: bool) -> None:
+def _record_provenance(
+    ds, method, manifest, model, register_attrs, device, phi_source, phi_has_se: bool
+) -> None:
     """Write into ``ds.attrs`` what the numbers came from: the register model, the device,
     the camera's identity, where φ came from."""
     if method != "mv-adu":  # the register model of the likelihood, or mv-gain's F²
@@ -813,7 +966,8 @@ def _record_provenance(ds, method, manifest, model, register_attrs, device, phi_
     if phi_has_se:
         ds.attrs["standard_errors"] += (
             f"; and the error of e_per_adu ({phi_source}): it moves every E and g of a pixel "
-            "together (delta method through the likelihood, or the photon-transfer formulas)")
+            "together (delta method through the likelihood, or the photon-transfer formulas)"
+        )
 
 
 def _warn_saturated_and_unusable(manifest, used, arrays):
@@ -826,7 +980,9 @@ def _warn_saturated_and_unusable(manifest, used, arrays):
                 f"({manifest.adc_max} ADU) in {int((n_sat > 0).sum())} pixel(s) were "
                 "excluded from the fit, so those pixels' gain and light read low; the other "
                 "pixels' results stand; lower the light (or the EM gain) and record again "
-                "for these", stacklevel=3)
+                "for these",
+                stacklevel=3,
+            )
     bad = np.flatnonzero(~arrays["usable"])
     if bad.size:
         where = ", ".join(f"({p // cols}, {p % cols})" for p in bad[:5])
@@ -835,7 +991,8 @@ def _warn_saturated_and_unusable(manifest, used, arrays):
             f"that never change, in some acquisition (saturated, dead or stuck): {where}"
             f"{', ...' if bad.size > 5 else ''}; they are left out (NaN, converged = False), "
             "and the other pixels' results stand",
-            stacklevel=3)
+            stacklevel=3,
+        )
 
 
 def _fitted_light(ds, used) -> list:
@@ -875,9 +1032,13 @@ def _fitted_light(ds, used) -> list:
             rse = median_at(f"{what}_se", a) / median_at(what, a)
         except (KeyError, ValueError):
             rse = math.nan
-        out.append({"photoelectrons": light,
-                    "absorbed": not (pinned or (phi_given and a.em_gain_setpoint == 1)),
-                    "relative_se": rse if math.isfinite(rse) and rse > 0 else None})
+        out.append(
+            {
+                "photoelectrons": light,
+                "absorbed": not (pinned or (phi_given and a.em_gain_setpoint == 1)),
+                "relative_se": rse if math.isfinite(rse) and rse > 0 else None,
+            }
+        )
     return out
 
 
@@ -893,7 +1054,7 @@ def _quality(manifest, used, parts, tiles, fitted=None):
         summary = quality.StackSummary(acq.n_frames, manifest.shape, manifest.adc_max)
         for (p0, _), part in zip(tiles, parts):
             prefix = f"{_QUALITY}{a}_"
-            summary.add(p0, {k[len(prefix):]: v for k, v in part.items() if k.startswith(prefix)})
+            summary.add(p0, {k[len(prefix) :]: v for k, v in part.items() if k.startswith(prefix)})
         summaries.append(summary)
     sub = copy.copy(manifest)
     sub.acquisitions = list(used)
@@ -925,9 +1086,12 @@ def check_e_per_adu(phi_map, phi_se, source, used, method) -> None:
 
     unit = next((a for a in used if a.em_gain_setpoint == 1), None)
     if unit is None:
-        warnings.warn(f"{method}: e_per_adu ({source or 'given'}) could not be checked against "
-                      "the data (no 1x acquisition): make sure it is in e-/ADU and of this "
-                      "read-out mode", stacklevel=3)
+        warnings.warn(
+            f"{method}: e_per_adu ({source or 'given'}) could not be checked against "
+            "the data (no 1x acquisition): make sure it is in e-/ADU and of this "
+            "read-out mode",
+            stacklevel=3,
+        )
         return
     rows, cols = unit.offset.shape
     k = max(1, min(rows, PHI_CHECK_PIXELS // cols))
@@ -935,12 +1099,16 @@ def check_e_per_adu(phi_map, phi_se, source, used, method) -> None:
     stop = min(unit.n_frames_total, unit.skip_frames + PHI_CHECK_FRAMES)
     frames = read_band(unit.frames_path, r0, r0 + k, unit.skip_frames, stop)
     band = slice(r0, r0 + k)
-    found, rel = mv.photon_transfer_e_per_adu(frames, unit.offset[band], unit.read_noise[band],
-                                              dark_frames=unit.dark_frames)
+    found, rel = mv.photon_transfer_e_per_adu(
+        frames, unit.offset[band], unit.read_noise[band], dark_frames=unit.dark_frames
+    )
     given = float(nanmedian(phi_map[band]))
     if not math.isfinite(found) or rel > 0.5:
-        warnings.warn(f"{unit.frames_path}: too little light above the read noise to check "
-                      f"e_per_adu {given:.4g} ({source or 'given'}) against it", stacklevel=3)
+        warnings.warn(
+            f"{unit.frames_path}: too little light above the read noise to check "
+            f"e_per_adu {given:.4g} ({source or 'given'}) against it",
+            stacklevel=3,
+        )
         return
     if phi_se is not None:
         rel = math.hypot(rel, float(nanmedian((phi_se / phi_map)[band])))
@@ -949,13 +1117,17 @@ def check_e_per_adu(phi_map, phi_se, source, used, method) -> None:
     if abs(z) <= PHI_Z:
         return
     inverse = abs(math.log(given * found)) < abs(math.log(given / found))
-    hint = (f"it looks like ADU/e- (1/{given:.4g} = {1 / given:.4g} e-/ADU): give e-/ADU"
-            if inverse else "is it in e-/ADU, and of this camera's read-out mode?")
+    hint = (
+        f"it looks like ADU/e- (1/{given:.4g} = {1 / given:.4g} e-/ADU): give e-/ADU"
+        if inverse
+        else "is it in e-/ADU, and of this camera's read-out mode?"
+    )
     raise InputError(
         f"{unit.frames_path}: e_per_adu {given:.4g} e-/ADU ({source or 'given'}) is "
         f"{given / found:.3g} times what this 1x acquisition's photon transfer says "
         f"({found:.4g} ± {100 * rel:.2g} %, {abs(z):.0f} SE off); {hint} (--accept-phi "
-        "to use it all the same)")
+        "to use it all the same)"
+    )
 
 
 def _e_per_adu_inputs(manifest, e_per_adu, accept_mismatch=()):
@@ -976,20 +1148,27 @@ def _e_per_adu_inputs(manifest, e_per_adu, accept_mismatch=()):
 
         path = Path(e_per_adu)
         if not is_result_path(path):
-            raise OptionError(f"e_per_adu '{path}' is not a calibration result (a .nc file or "
-                              "a result directory); give a number, a map or a result")
+            raise OptionError(
+                f"e_per_adu '{path}' is not a calibration result (a .nc file or "
+                "a result directory); give a number, a map or a result"
+            )
         ds = result.load(path)
         if ds.attrs.get("method") not in ("is-adu", "mv-adu"):
-            raise OptionError(f"e_per_adu from '{path}': a {ds.attrs.get('method')} result "
-                              "does not estimate e_per_adu; chain an is-adu or mv-adu result")
+            raise OptionError(
+                f"e_per_adu from '{path}': a {ds.attrs.get('method')} result "
+                "does not estimate e_per_adu; chain an is-adu or mv-adu result"
+            )
         phi = np.asarray(ds.e_per_adu.values, dtype=float)
         se = np.asarray(ds.e_per_adu_se.values, dtype=float)
         ok = np.asarray(ds.converged.values, dtype=bool)
         binning = ds.attrs.get("binning")
-        identity.check({**result.camera_of(ds, path),
-                        **({} if binning is None else {"binning": binning})},
-                       {manifest.path: manifest.identity()}, label=f"e_per_adu from '{path}'",
-                       accept=accept_mismatch, what="frames of the manifest")
+        identity.check(
+            {**result.camera_of(ds, path), **({} if binning is None else {"binning": binning})},
+            {manifest.path: manifest.identity()},
+            label=f"e_per_adu from '{path}'",
+            accept=accept_mismatch,
+            what="frames of the manifest",
+        )
         crop = _crop_to(manifest, path, phi.shape, ds.attrs.get("sensor_origin"))
         phi, se, ok = phi[crop], se[crop], ok[crop]
         ok &= np.isfinite(phi) & (phi > 0)
@@ -1009,18 +1188,22 @@ def _crop_to(manifest, path, shape, origin):
             raise OptionError(
                 f"e_per_adu from '{path}': its pixels {shape} are not the manifest's {want}, "
                 "and where they lie on the sensor is not known (give 'origin' in the "
-                "manifests, or files that record their region)")
+                "manifests, or files that record their region)"
+            )
         return slice(None), slice(None)
     (r0, c0), (m0, n0) = (int(v) for v in origin), manifest.origin
     top, left = m0 - r0, n0 - c0
     if top < 0 or left < 0 or top + want[0] > shape[0] or left + want[1] > shape[1]:
         rows = sorted(set(range(m0, m0 + want[0])) - set(range(r0, r0 + shape[0])))
         cols = sorted(set(range(n0, n0 + want[1])) - set(range(c0, c0 + shape[1])))
-        missing = "; ".join(f"{what} {v[0]}–{v[-1]}" for what, v in (("rows", rows), ("cols", cols)) if v)
+        missing = "; ".join(
+            f"{what} {v[0]}–{v[-1]}" for what, v in (("rows", rows), ("cols", cols)) if v
+        )
         raise OptionError(
             f"e_per_adu from '{path}' covers sensor rows {r0}–{r0 + shape[0] - 1}, cols "
             f"{c0}–{c0 + shape[1] - 1}; the manifest needs {manifest.rows_cols}: {missing} "
-            "missing")
+            "missing"
+        )
     return slice(top, top + want[0]), slice(left, left + want[1])
 
 
@@ -1041,18 +1224,19 @@ def _map_error_sources(used, map_errors):
     """Dark-frame counts and sharing groups of the maps, and a note for the result."""
     dark_frames = [a.dark_frames if map_errors else None for a in used]
     # Acquisitions whose maps come from one file (or one dark stack) share their errors.
-    groups = [a.offset_source if a.offset_source.kind != "value" else i
-              for i, a in enumerate(used)]
+    groups = [a.offset_source if a.offset_source.kind != "value" else i for i, a in enumerate(used)]
     known = [f"{a.name}: {n} dark frames" for a, n in zip(used, dark_frames) if n is not None]
     exact = [a.name for a, n in zip(used, dark_frames) if n is None]
     if not map_errors:
         note = "conditional on the offset and read-noise maps (map errors not included)"
     elif not known:
-        note = ("conditional on the offset and read-noise maps (no dark-frame counts known; "
-                "give 'dark' stacks or 'dark_frames' in the manifest to include their errors)")
+        note = (
+            "conditional on the offset and read-noise maps (no dark-frame counts known; "
+            "give 'dark' stacks or 'dark_frames' in the manifest to include their errors)"
+        )
     else:
         note = "include the errors of the offset and read-noise maps (" + "; ".join(known)
-        note += (f"; taken as exact: {', '.join(exact)})" if exact else ")")
+        note += f"; taken as exact: {', '.join(exact)})" if exact else ")"
     return dark_frames, groups, note
 
 
@@ -1062,11 +1246,16 @@ def _warn_fit_problems(method, used, arrays, model) -> None:
     converged, gof_p = arrays["converged"], arrays["gof_pvalue"]
     not_conv = int((~converged & arrays["usable"]).sum())
     if not_conv:
-        warnings.warn(f"{method}: {not_conv} of {int(arrays['usable'].sum())} fitted pixel(s) "
-                      "did not converge (converged = False): their numbers are not estimates "
-                      "and must not be used; the converged pixels' results stand", stacklevel=4)
+        warnings.warn(
+            f"{method}: {not_conv} of {int(arrays['usable'].sum())} fitted pixel(s) "
+            "did not converge (converged = False): their numbers are not estimates "
+            "and must not be used; the converged pixels' results stand",
+            stacklevel=4,
+        )
     kind = "level" if method.startswith("is-") else "set-point"
-    keys = _labels(used) if kind == "level" else [result.format_setpoint(s) + "x" for s in setpoints]
+    keys = (
+        _labels(used) if kind == "level" else [result.format_setpoint(s) + "x" for s in setpoints]
+    )
     multiplied = [k for k, sp in zip(keys, setpoints) if sp != 1]
     for w in gof.misfit_warnings(dict(zip(keys, gof_p.T)), kind=kind):
         hint = model.register.misfit_hint
@@ -1075,15 +1264,18 @@ def _warn_fit_problems(method, used, arrays, model) -> None:
             # is 2, an exact register's below it, most at low gain).
             w += "; " + hint
         else:
-            w += (": the estimates there are doubtful; the checks' findings (or 'emccdcal "
-                  "check MANIFEST') name a cause to fix (drift, saturation, offset or "
-                  "read-noise maps of another mode, a mislabelled set-point); where they name "
-                  "none, leave that acquisition out of the manifest and compare")
+            w += (
+                ": the estimates there are doubtful; the checks' findings (or 'emccdcal "
+                "check MANIFEST') name a cause to fix (drift, saturation, offset or "
+                "read-noise maps of another mode, a mislabelled set-point); where they name "
+                "none, leave that acquisition out of the manifest and compare"
+            )
         warnings.warn(w, stacklevel=4)
 
 
-def _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, options,
-                        intervals, model, se_note):
+def _likelihood_dataset(
+    method, manifest, used, arrays, offsets, read_noise, options, intervals, model, se_note
+):
     """The result of a likelihood method from the per-pixel arrays of every tile."""
     rows, cols = manifest.shape
     setpoints = np.array([a.em_gain_setpoint for a in used])
@@ -1099,50 +1291,98 @@ def _likelihood_dataset(method, manifest, used, arrays, offsets, read_noise, opt
         "n_saturated": ((per_acq_dim, "row", "col"), grid(arrays["n_saturated"]), "1"),
         "n_floored": (("row", "col"), grid(arrays["n_floored"]), "1"),
         "iterations": (("row", "col"), grid(arrays["iterations"]), "1"),
-        "gof_pvalue": ((per_acq_dim, "row", "col"), grid(gof_p), "1",
-                       "p-value of the binned chi-square goodness-of-fit test"),
-        "acquisition_loglik": ((per_acq_dim, "row", "col"), grid(arrays["acquisition_loglik"]),
-                               "nats", "each acquisition's part of loglik"),
+        "gof_pvalue": (
+            (per_acq_dim, "row", "col"),
+            grid(gof_p),
+            "1",
+            "p-value of the binned chi-square goodness-of-fit test",
+        ),
+        "acquisition_loglik": (
+            (per_acq_dim, "row", "col"),
+            grid(arrays["acquisition_loglik"]),
+            "nats",
+            "each acquisition's part of loglik",
+        ),
     }
     if any(a.dark_event_rate is not None for a in used):  # darks fitted with their events
-        rates = np.stack([np.full((rows, cols), np.nan) if a.dark_event_rate is None
-                          else a.dark_event_rate for a in used])
-        extra["dark_event_rate"] = ((per_acq_dim, "row", "col"), rates, "e-",
-                                    "multiplied electrons per pixel per frame in the dark "
-                                    "stack (clock-induced charge, dark current)")
+        rates = np.stack(
+            [
+                np.full((rows, cols), np.nan) if a.dark_event_rate is None else a.dark_event_rate
+                for a in used
+            ]
+        )
+        extra["dark_event_rate"] = (
+            (per_acq_dim, "row", "col"),
+            rates,
+            "e-",
+            "multiplied electrons per pixel per frame in the dark "
+            "stack (clock-induced charge, dark current)",
+        )
     fixed_phi_se = grid(est["e_per_adu_se"][:, 0])  # NaN unless φ came with its error
-    common = dict(loglik=grid(loglik), converged=grid(converged),
-                  manifest_hash=manifest.content_hash,
-                  manifest_path=str(manifest.path.resolve()), extra=extra)
+    common = dict(
+        loglik=grid(loglik),
+        converged=grid(converged),
+        manifest_hash=manifest.content_hash,
+        manifest_path=str(manifest.path.resolve()),
+        extra=extra,
+    )
     if method == "is-adu":
         ds = result.make_dataset(
-            method=method, setpoints=[1.0], levels=labels,
-            e_per_adu=grid(est["e_per_adu"][:, 0]), e_per_adu_se=grid(est["e_per_adu_se"][:, 0]),
-            em_gain=np.ones((1, rows, cols)), em_gain_se=np.zeros((1, rows, cols)),
-            photoelectrons=grid(est["photoelectrons"]), photoelectrons_se=grid(est["photoelectrons_se"]),
-            photoelectrons_dims=("level", "row", "col"), **common,
+            method=method,
+            setpoints=[1.0],
+            levels=labels,
+            e_per_adu=grid(est["e_per_adu"][:, 0]),
+            e_per_adu_se=grid(est["e_per_adu_se"][:, 0]),
+            em_gain=np.ones((1, rows, cols)),
+            em_gain_se=np.zeros((1, rows, cols)),
+            photoelectrons=grid(est["photoelectrons"]),
+            photoelectrons_se=grid(est["photoelectrons_se"]),
+            photoelectrons_dims=("level", "row", "col"),
+            **common,
         )
     elif method == "is-gain":
         ds = result.make_dataset(
-            method=method, setpoints=[float(setpoints[0])], levels=labels,
-            e_per_adu=grid(est["e_per_adu"][:, 0]), e_per_adu_se=fixed_phi_se,
-            em_gain=grid(est["em_gain"][:, :1]), em_gain_se=grid(est["em_gain_se"][:, :1]),
-            photoelectrons=grid(est["photoelectrons"]), photoelectrons_se=grid(est["photoelectrons_se"]),
-            photoelectrons_dims=("level", "row", "col"), **common,
+            method=method,
+            setpoints=[float(setpoints[0])],
+            levels=labels,
+            e_per_adu=grid(est["e_per_adu"][:, 0]),
+            e_per_adu_se=fixed_phi_se,
+            em_gain=grid(est["em_gain"][:, :1]),
+            em_gain_se=grid(est["em_gain_se"][:, :1]),
+            photoelectrons=grid(est["photoelectrons"]),
+            photoelectrons_se=grid(est["photoelectrons_se"]),
+            photoelectrons_dims=("level", "row", "col"),
+            **common,
         )
     else:
         shared = method in ("gs", "gs-no1x")
         if method == "gs-hierarchical":
-            extra["hyper_photoelectrons"] = (("row", "col"), grid(arrays["hyper_photoelectrons"]), "e-")
-            extra["hyper_sd_photoelectrons"] = (("row", "col"), grid(arrays["hyper_sd_photoelectrons"]), "e-")
+            extra["hyper_photoelectrons"] = (
+                ("row", "col"),
+                grid(arrays["hyper_photoelectrons"]),
+                "e-",
+            )
+            extra["hyper_sd_photoelectrons"] = (
+                ("row", "col"),
+                grid(arrays["hyper_sd_photoelectrons"]),
+                "e-",
+            )
         ds = result.make_dataset(
-            method=method, setpoints=[float(s) for s in setpoints],
-            e_per_adu=grid(est["e_per_adu"][:, 0]), e_per_adu_se=fixed_phi_se,
-            em_gain=grid(est["em_gain"]), em_gain_se=grid(est["em_gain_se"]),
-            photoelectrons=grid(est["photoelectrons"][:, 0]) if shared else grid(est["photoelectrons"]),
-            photoelectrons_se=grid(est["photoelectrons_se"][:, 0]) if shared else grid(est["photoelectrons_se"]),
+            method=method,
+            setpoints=[float(s) for s in setpoints],
+            e_per_adu=grid(est["e_per_adu"][:, 0]),
+            e_per_adu_se=fixed_phi_se,
+            em_gain=grid(est["em_gain"]),
+            em_gain_se=grid(est["em_gain_se"]),
+            photoelectrons=grid(est["photoelectrons"][:, 0])
+            if shared
+            else grid(est["photoelectrons"]),
+            photoelectrons_se=grid(est["photoelectrons_se"][:, 0])
+            if shared
+            else grid(est["photoelectrons_se"]),
             photoelectrons_dims=("row", "col") if shared else ("setpoint", "row", "col"),
-            attrs={"options": json.dumps(options)} if options else None, **common,
+            attrs={"options": json.dumps(options)} if options else None,
+            **common,
         )
     bounds = _bounds_of(method, intervals)
     if bounds is not None:
@@ -1169,10 +1409,14 @@ def _add_interval_vars(ds, bounds, kind, description):
     for name, pair in bounds.items():
         da = ds[name]
         for side, arr in zip(("lower", "upper"), pair):
-            ds[f"{name}_{side}"] = (da.dims, np.asarray(arr), {
-                "units": da.attrs["units"],
-                "long_name": f"{side} bound of the 95 % {kind} interval of {name}",
-            })
+            ds[f"{name}_{side}"] = (
+                da.dims,
+                np.asarray(arr),
+                {
+                    "units": da.attrs["units"],
+                    "long_name": f"{side} bound of the 95 % {kind} interval of {name}",
+                },
+            )
     ds.attrs["intervals"] = description
 
 
@@ -1183,48 +1427,71 @@ def _mv_dataset(method, manifest, used, arrays, phi_map, phi_se=None, model=None
     read_noise = np.stack([a.read_noise.reshape(-1) for a in used])
     usable = arrays["usable"]
     # Left-out pixels (no usable frames) get no moments: NaN estimates, not converged.
-    mean, var, n = (np.where(usable, arrays[k].T, np.nan if k != "n" else 0)
-                    for k in ("mean", "var", "n"))
+    mean, var, n = (
+        np.where(usable, arrays[k].T, np.nan if k != "n" else 0) for k in ("mean", "var", "n")
+    )
     grid = lambda a: np.asarray(a).reshape(np.shape(a)[:-1] + (rows, cols))  # noqa: E731
     labels = _labels(used)
     setpoints = [a.em_gain_setpoint for a in used]
     if method == "mv-adu":
         fit = mv.fit_mv_adu(mean, var, offsets, read_noise, n)
         ds = result.make_dataset(
-            method=method, setpoints=[1.0], levels=labels,
-            e_per_adu=grid(fit.e_per_adu), e_per_adu_se=grid(fit.e_per_adu_se),
-            em_gain=np.ones((1, rows, cols)), em_gain_se=np.zeros((1, rows, cols)),
-            photoelectrons=grid(fit.photoelectrons), photoelectrons_se=grid(fit.photoelectrons_se),
+            method=method,
+            setpoints=[1.0],
+            levels=labels,
+            e_per_adu=grid(fit.e_per_adu),
+            e_per_adu_se=grid(fit.e_per_adu_se),
+            em_gain=np.ones((1, rows, cols)),
+            em_gain_se=np.zeros((1, rows, cols)),
+            photoelectrons=grid(fit.photoelectrons),
+            photoelectrons_se=grid(fit.photoelectrons_se),
             photoelectrons_dims=("level", "row", "col"),
-            converged=grid(fit.valid & usable), manifest_hash=manifest.content_hash,
+            converged=grid(fit.valid & usable),
+            manifest_hash=manifest.content_hash,
             manifest_path=str(manifest.path.resolve()),
         )
         bounds = {"e_per_adu": (grid(fit.e_per_adu_lower), grid(fit.e_per_adu_upper))}
     else:
         phi = phi_map.ravel()
-        fit = mv.fit_mv_gain(mean, var, offsets, read_noise, n, phi, np.asarray(setpoints),
-                             e_per_adu_se=None if phi_se is None else phi_se.ravel(),
-                             em_model=model)
+        fit = mv.fit_mv_gain(
+            mean,
+            var,
+            offsets,
+            read_noise,
+            n,
+            phi,
+            np.asarray(setpoints),
+            e_per_adu_se=None if phi_se is None else phi_se.ravel(),
+            em_model=model,
+        )
         by_level = len(set(setpoints)) == 1 and len(setpoints) > 1
         ds = result.make_dataset(
-            method=method, setpoints=[float(s) for s in fit.setpoints],
+            method=method,
+            setpoints=[float(s) for s in fit.setpoints],
             levels=labels if by_level else None,
             e_per_adu=phi_map,
             e_per_adu_se=np.full((rows, cols), np.nan) if phi_se is None else phi_se,
-            em_gain=grid(fit.em_gain), em_gain_se=grid(fit.em_gain_se),
-            photoelectrons=grid(fit.photoelectrons), photoelectrons_se=grid(fit.photoelectrons_se),
+            em_gain=grid(fit.em_gain),
+            em_gain_se=grid(fit.em_gain_se),
+            photoelectrons=grid(fit.photoelectrons),
+            photoelectrons_se=grid(fit.photoelectrons_se),
             photoelectrons_dims=(("level" if by_level else "setpoint"), "row", "col"),
-            converged=grid((np.all(fit.valid, axis=0) if np.ndim(fit.valid) > 1 else fit.valid)
-                           & usable),
-            manifest_hash=manifest.content_hash, manifest_path=str(manifest.path.resolve()),
+            converged=grid(
+                (np.all(fit.valid, axis=0) if np.ndim(fit.valid) > 1 else fit.valid) & usable
+            ),
+            manifest_hash=manifest.content_hash,
+            manifest_path=str(manifest.path.resolve()),
         )
         bounds = {"em_gain": (grid(fit.em_gain_lower), grid(fit.em_gain_upper))}
     bounds["photoelectrons"] = grid(fit.photoelectrons_lower), grid(fit.photoelectrons_upper)
     # Ratios of sample moments: Fieller bounds, valid where the slope is poorly determined
     # (and defined where the estimate is not), unlike estimate ± 1.96 SE.
-    _add_interval_vars(ds, bounds, "Fieller",
-                       "Fieller, 95 %, from the photon-transfer fit, conditional on the "
-                       "offset/read-noise maps")
+    _add_interval_vars(
+        ds,
+        bounds,
+        "Fieller",
+        "Fieller, 95 %, from the photon-transfer fit, conditional on the offset/read-noise maps",
+    )
     ds.attrs["standard_errors"] = "from the photon-transfer fit, conditional on the offset maps"
     return ds
 
@@ -1233,16 +1500,20 @@ def format_summary(ds):
     """A short human-readable table of a calibration (median over converged pixels)."""
     ok = ds.converged.values
     model = noise.EMModel.from_attrs(ds.attrs)
-    lines = [f"method {ds.attrs['method']}" + (f" ({model.name} register)" if model else "")
-             + f": {int(ok.sum())}/{ok.size} pixels converged, "
-             f"{ds.attrs.get('seconds', float('nan')):.1f} s; medians over those"]
+    lines = [
+        f"method {ds.attrs['method']}"
+        + (f" ({model.name} register)" if model else "")
+        + f": {int(ok.sum())}/{ok.size} pixels converged, "
+        f"{ds.attrs.get('seconds', float('nan')):.1f} s; medians over those"
+    ]
     if not ok.any():
         return lines[0].replace("; medians over those", "; no estimate to show")
     multiplied = any(float(sp) != 1.0 for sp in ds.setpoint.values)
     if model is not None and model.register.uses_stages and multiplied:
         source = ds.attrs.get("register_stages_source")
-        lines.append(f"  register length: {model.stages} stages"
-                     + (f" ({source})" if source else ""))
+        lines.append(
+            f"  register length: {model.stages} stages" + (f" ({source})" if source else "")
+        )
 
     def med(v):
         return nanmedian(np.asarray(v)[..., ok], axis=-1)
@@ -1250,13 +1521,21 @@ def format_summary(ds):
     phi, phi_se = med(ds.e_per_adu.values), med(ds.e_per_adu_se.values)
     chained = ds.attrs.get("e_per_adu_result")
     if np.isfinite(phi_se) and phi_se > 0:
-        how = ("" if ds.attrs["method"] in ESTIMATE_E_PER_ADU else
-               f"; from {chained}" if chained else "; given with its SE")
-        lines.append(f"  e_per_adu  {phi:.4f} ± {phi_se:.4f} e-/ADU (adu_per_e "
-                     f"{1 / phi:.4f} ADU/e-{how})")
+        how = (
+            ""
+            if ds.attrs["method"] in ESTIMATE_E_PER_ADU
+            else f"; from {chained}"
+            if chained
+            else "; given with its SE"
+        )
+        lines.append(
+            f"  e_per_adu  {phi:.4f} ± {phi_se:.4f} e-/ADU (adu_per_e {1 / phi:.4f} ADU/e-{how})"
+        )
     else:
-        lines.append(f"  e_per_adu  {phi:.4f} e-/ADU, fixed (given without an error; "
-                     f"adu_per_e {1 / phi:.4f} ADU/e-)")
+        lines.append(
+            f"  e_per_adu  {phi:.4f} e-/ADU, fixed (given without an error; "
+            f"adu_per_e {1 / phi:.4f} ADU/e-)"
+        )
     for i, sp in enumerate(ds.setpoint.values):
         g, se = med(ds.em_gain.values[i]), med(ds.em_gain_se.values[i])
         if float(sp) == 1.0:  # no multiplication: g = 1 by the model, not estimated
@@ -1265,11 +1544,15 @@ def format_summary(ds):
             lines.append(f"  em_gain at {result.format_setpoint(sp)}x: {g:.4f} ± {se:.4f}")
     pe = ds.photoelectrons
     if pe.ndim == 2:
-        lines.append(f"  photoelectrons {med(pe.values):.2f} ± {med(ds.photoelectrons_se.values):.2f} e-")
+        lines.append(
+            f"  photoelectrons {med(pe.values):.2f} ± {med(ds.photoelectrons_se.values):.2f} e-"
+        )
     else:
         dim = pe.dims[0]
         for i, lab in enumerate(pe[dim].values):
-            lines.append(f"  photoelectrons [{dim} {lab}] {med(pe.values[i]):.2f} ± "
-                         f"{med(ds.photoelectrons_se.values[i]):.2f} e-")
+            lines.append(
+                f"  photoelectrons [{dim} {lab}] {med(pe.values[i]):.2f} ± "
+                f"{med(ds.photoelectrons_se.values[i]):.2f} e-"
+            )
     lines.append("  (± the per-pixel standard error, median over pixels; docs/results.md)")
     return "\n".join(lines)

@@ -102,15 +102,36 @@ BOUNDS = {
 #: The quantity (a key of :data:`BOUNDS`) of each command-line option whose name is not
 #: one; the command line checks every numeric option against its range before any work.
 OPTION_QUANTITY = {
-    "pixel_well": "well", "register_well": "well", "light_tolerance": "percent",
-    "drift_threshold": "percent", "tolerance": "percent", "drift_alpha": "probability",
-    "tile_pixels": "pixels", "block_size": "pixels", "mu_sd": "prior_sd",
-    "sigma_sd": "prior_sd", "max_steps": "steps", "k": "sds", "snr": "sds", "z": "sds",
-    "threshold": "sds", "min_separation": "distance", "margin": "distance",
-    "halo_width": "width", "blink_frames": "frames", "detect_setpoint": "setpoint",
-    "repeat": "setpoint", "predict": "setpoint", "levels": "photoelectrons",
-    "offsets": "offset", "offset_tolerance": "offset_spread", "bleaching": "fraction",
-    "halo": "fraction", "blinking": "fraction", "drift": "fraction", "max_age": "days",
+    "pixel_well": "well",
+    "register_well": "well",
+    "light_tolerance": "percent",
+    "drift_threshold": "percent",
+    "tolerance": "percent",
+    "drift_alpha": "probability",
+    "tile_pixels": "pixels",
+    "block_size": "pixels",
+    "mu_sd": "prior_sd",
+    "sigma_sd": "prior_sd",
+    "max_steps": "steps",
+    "k": "sds",
+    "snr": "sds",
+    "z": "sds",
+    "threshold": "sds",
+    "min_separation": "distance",
+    "margin": "distance",
+    "halo_width": "width",
+    "blink_frames": "frames",
+    "detect_setpoint": "setpoint",
+    "repeat": "setpoint",
+    "predict": "setpoint",
+    "levels": "photoelectrons",
+    "offsets": "offset",
+    "offset_tolerance": "offset_spread",
+    "bleaching": "fraction",
+    "halo": "fraction",
+    "blinking": "fraction",
+    "drift": "fraction",
+    "max_age": "days",
 }
 
 #: The record of an acquisition session in its folder (``acquire`` writes, ``scan`` reads).
@@ -119,10 +140,15 @@ SESSION_FILE = "session.json"
 # -- using a calibration (emccdcal.result, emccdcal.export) -----------------------------
 #: What must agree between a calibration and the frames it is used on (where both
 #: record it), with how to name it.
-IDENTITY_FIELDS = {"serial": "camera serial", "model": "camera model",
-                   "amplifier": "output amplifier", "readout_rate_mhz": "read-out rate (MHz)",
-                   "analog_gain": "analog (pre-amplifier) gain", "adc_bits": "ADC bits",
-                   "binning": "binning"}
+IDENTITY_FIELDS = {
+    "serial": "camera serial",
+    "model": "camera model",
+    "amplifier": "output amplifier",
+    "readout_rate_mhz": "read-out rate (MHz)",
+    "analog_gain": "analog (pre-amplifier) gain",
+    "adc_bits": "ADC bits",
+    "binning": "binning",
+}
 #: Relative photon bias beyond which an audit says a tool's numbers are off.
 AUDIT_TOLERANCE = 0.02
 #: Photon-counting threshold of ``apply``, in read-noise standard deviations.

@@ -28,8 +28,15 @@ from pathlib import Path
 from .defaults import IDENTITY_FIELDS
 from .errors import InputError, OptionError, spelled
 
-__all__ = ["IDENTITY_FIELDS", "ACCEPTABLE", "IdentityWarning", "mismatches", "of_frames",
-           "check", "recorded"]
+__all__ = [
+    "IDENTITY_FIELDS",
+    "ACCEPTABLE",
+    "IdentityWarning",
+    "mismatches",
+    "of_frames",
+    "check",
+    "recorded",
+]
 
 #: What ``--accept-mismatch`` takes: the identity fields and the set-point.
 ACCEPTABLE = (*IDENTITY_FIELDS, "setpoint")
@@ -63,8 +70,9 @@ def _accepted(accept) -> set:
     accept = set(accept)
     unknown = accept - set(ACCEPTABLE)
     if unknown:
-        raise OptionError(f"--accept-mismatch takes {', '.join(ACCEPTABLE)}; got "
-                          f"{', '.join(sorted(unknown))}")
+        raise OptionError(
+            f"--accept-mismatch takes {', '.join(ACCEPTABLE)}; got {', '.join(sorted(unknown))}"
+        )
     return accept
 
 
@@ -89,11 +97,11 @@ def mismatches(expected: Mapping, found: Mapping, *, accept=()) -> dict[str, str
 def recorded(settings) -> dict:
     """The identity fields and the set-point a file's settings record (a
     :class:`~emccdcal.data.settings.CameraSettings` or a mapping), None left out."""
-    get = settings.get if isinstance(settings, Mapping) else (
-        lambda k: getattr(settings, k, None))
+    get = settings.get if isinstance(settings, Mapping) else (lambda k: getattr(settings, k, None))
     found = {k: _value(k, get(k)) for k in IDENTITY_FIELDS}
-    found["setpoint"] = _value("setpoint", get("em_gain_setpoint") if get("setpoint") is None
-                               else get("setpoint"))
+    found["setpoint"] = _value(
+        "setpoint", get("em_gain_setpoint") if get("setpoint") is None else get("setpoint")
+    )
     return {k: v for k, v in found.items() if v is not None}
 
 
@@ -146,14 +154,22 @@ def of_frames(frames: Mapping, *, what: str = "frames", setpoints: bool = True) 
                 raise InputError(
                     f"{path}: {name} {_shown(value)}, but {first[key]} records "
                     f"{_shown(joint[key])}: {what} of one camera, read-out state and "
-                    "set-point are pooled, never several")
+                    "set-point are pooled, never several"
+                )
             joint.setdefault(key, value)
             first.setdefault(key, path)
     return joint
 
 
-def check(calibration: Mapping | None, frames: Mapping, *, label: str = "the calibration",
-          setpoint=None, accept=(), what: str = "frames") -> dict:
+def check(
+    calibration: Mapping | None,
+    frames: Mapping,
+    *,
+    label: str = "the calibration",
+    setpoint=None,
+    accept=(),
+    what: str = "frames",
+) -> dict:
     """Refuse ``frames`` that a calibration does not hold for; warn where it cannot tell.
 
     Parameters
@@ -199,28 +215,41 @@ def check(calibration: Mapping | None, frames: Mapping, *, label: str = "the cal
         for path, settings in _items(frames):
             found = recorded(settings).get("setpoint")
             if found is not None and given is not None and found != given:
-                raise InputError(f"{path}: records EM-gain set-point {found:g}, used at "
-                                 f"{given:g}; give the set-point of these frames (or, if "
-                                 f"the file is wrong: {option} setpoint)")
+                raise InputError(
+                    f"{path}: records EM-gain set-point {found:g}, used at "
+                    f"{given:g}; give the set-point of these frames (or, if "
+                    f"the file is wrong: {option} setpoint)"
+                )
     if calibration is None:
         return joint
     expected = {k: v for k, v in recorded(calibration).items() if k != "setpoint"}
     differ = mismatches(expected, joint, accept=accept)
     if differ:
-        raise InputError(f"{first}: not what {label} calibrated: {'; '.join(differ.values())}"
-                         "; a calibration holds for one camera and read-out state (if you "
-                         f"know better: {' '.join(f'{option} {k}' for k in differ)})")
+        raise InputError(
+            f"{first}: not what {label} calibrated: {'; '.join(differ.values())}"
+            "; a calibration holds for one camera and read-out state (if you "
+            f"know better: {' '.join(f'{option} {k}' for k in differ)})"
+        )
     unchecked = []
-    for side, have, lack in ((f"the {what} record", expected, joint),
-                             (f"{label} records", joint, expected)):
-        fields = [IDENTITY_FIELDS[k] for k in IDENTITY_FIELDS
-                  if k in have and k not in lack and k not in accept]
+    for side, have, lack in (
+        (f"the {what} record", expected, joint),
+        (f"{label} records", joint, expected),
+    ):
+        fields = [
+            IDENTITY_FIELDS[k]
+            for k in IDENTITY_FIELDS
+            if k in have and k not in lack and k not in accept
+        ]
         if fields and not any(k in lack for k in IDENTITY_FIELDS):
             unchecked.append(f"{side} none of it")
         elif fields:
             unchecked.append(f"{side} no {', '.join(fields)}")
     if unchecked:
-        warnings.warn(f"{first}: could not check that these {what} are of the camera and "
-                      f"read-out state {label} calibrated ({'; '.join(unchecked)}): make "
-                      "sure they are", IdentityWarning, stacklevel=2)
+        warnings.warn(
+            f"{first}: could not check that these {what} are of the camera and "
+            f"read-out state {label} calibrated ({'; '.join(unchecked)}): make "
+            "sure they are",
+            IdentityWarning,
+            stacklevel=2,
+        )
     return joint

@@ -45,9 +45,11 @@ TOOLS = "emccdcal.tools"
 REGISTERS = "emccdcal.registers"
 
 #: What an entry point of each group must have.
-_REQUIRED = {READERS: ("SUFFIXES", "header", "settings"),
-             TOOLS: ("name", "title", "write", "read", "recognizes"),
-             REGISTERS: ("name", "uses_stages", "rows", "excess_noise_factor")}
+_REQUIRED = {
+    READERS: ("SUFFIXES", "header", "settings"),
+    TOOLS: ("name", "title", "write", "read", "recognizes"),
+    REGISTERS: ("name", "uses_stages", "rows", "excess_noise_factor"),
+}
 
 
 @dataclass(frozen=True)
@@ -97,10 +99,14 @@ def names(group: str) -> tuple[str, ...]:
 def _entry_points(group: str) -> list:
     """A group's entry points: emccdcal's own, then the others by package; by name."""
     found = importlib.metadata.entry_points(group=group)
-    own = sorted((ep for ep in found if ep.dist is not None and ep.dist.name == "emccdcal"),
-                 key=lambda ep: ep.name)
-    others = sorted((ep for ep in found if ep not in own),
-                    key=lambda ep: (ep.dist.name if ep.dist else "", ep.name))
+    own = sorted(
+        (ep for ep in found if ep.dist is not None and ep.dist.name == "emccdcal"),
+        key=lambda ep: ep.name,
+    )
+    others = sorted(
+        (ep for ep in found if ep not in own),
+        key=lambda ep: (ep.dist.name if ep.dist else "", ep.name),
+    )
     return own + others
 
 
@@ -110,8 +116,11 @@ def load(group: str) -> dict:
     out: dict = {}
     suffixes: set = set()
     for ep in _entry_points(group):
-        where = (f"plug-in '{ep.name}' ({ep.value}"
-                 + (f", package '{ep.dist.name}'" if ep.dist else "") + f") of {group}")
+        where = (
+            f"plug-in '{ep.name}' ({ep.value}"
+            + (f", package '{ep.dist.name}'" if ep.dist else "")
+            + f") of {group}"
+        )
         try:
             obj = ep.load()
         except Exception as exc:  # noqa: BLE001 - another package's error, in one line

@@ -283,7 +283,9 @@ def make_dataset(
     pix = _PIXEL_DIMS
     phi, phi_se = full(e_per_adu, pix), full(e_per_adu_se, pix)
     variables: dict[str, tuple[tuple[str, ...], np.ndarray]] = {
-        "e_per_adu": (pix, phi), "e_per_adu_se": (pix, phi_se)}
+        "e_per_adu": (pix, phi),
+        "e_per_adu_se": (pix, phi_se),
+    }
     if em_gain is not None or em_gain_se is not None:
         if em_gain is None or em_gain_se is None:
             raise ValueError("em_gain and em_gain_se must be given together")
@@ -301,31 +303,40 @@ def make_dataset(
             raise ValueError("converged must be boolean (or 0/1)")
         conv = conv.astype(bool)
     variables["converged"] = (pix, np.full((R, C), bool(conv)) if conv.ndim == 0 else conv)
-    labelled = {name: (dims, arr, _variable_attrs(name)) for name, (dims, arr) in
-                variables.items()}
+    labelled = {name: (dims, arr, _variable_attrs(name)) for name, (dims, arr) in variables.items()}
     labelled.update(_extra_variables(extra, set(variables)))
     r0, c0 = (int(v) for v in origin)
     coords = {"row": np.arange(r0, r0 + R), "col": np.arange(c0, c0 + C), **coords}
     try:  # xarray checks that every variable's shape fits its dims and the others
-        ds = xr.Dataset(labelled, coords={
-            name: (name, values, {"units": UNITS[name], "long_name": LONG_NAMES[name]})
-            for name, values in coords.items()},
-            attrs=_dataset_attrs(method, manifest_hash, manifest_path, attrs))
+        ds = xr.Dataset(
+            labelled,
+            coords={
+                name: (name, values, {"units": UNITS[name], "long_name": LONG_NAMES[name]})
+                for name, values in coords.items()
+            },
+            attrs=_dataset_attrs(method, manifest_hash, manifest_path, attrs),
+        )
     except ValueError as exc:
         raise ValueError(f"make_dataset: {one_line(exc)}") from exc
     with np.errstate(divide="ignore", invalid="ignore"):
-        ds = ds.assign(adu_per_e=(pix, 1.0 / phi, _variable_attrs("adu_per_e")),
-                       adu_per_e_se=(pix, phi_se / phi**2, _variable_attrs("adu_per_e_se")))
+        ds = ds.assign(
+            adu_per_e=(pix, 1.0 / phi, _variable_attrs("adu_per_e")),
+            adu_per_e_se=(pix, phi_se / phi**2, _variable_attrs("adu_per_e_se")),
+        )
     if "em_gain" in ds and 1.0 in ds["setpoint"].values:  # 1x: no multiplication
         g1, s1 = ds["em_gain"].sel(setpoint=1.0), ds["em_gain_se"].sel(setpoint=1.0)
         if not (np.all(np.isnan(g1) | (g1 == 1.0)) and np.all(np.isnan(s1) | (s1 == 0.0))):
             raise ValueError(
-                "em_gain at set-point 1 must be 1 with standard error 0 (no multiplication)")
+                "em_gain at set-point 1 must be 1 with standard error 0 (no multiplication)"
+            )
     impossible, first = _impossible(ds)
     if impossible.any():  # never a result that its own readers would refuse
         ds["converged"].values[impossible] = False
-        warnings.warn(f"{int(impossible.sum())} pixel(s) fitted to values no calibration can "
-                      f"have ({first}) are marked not converged", stacklevel=2)
+        warnings.warn(
+            f"{int(impossible.sum())} pixel(s) fitted to values no calibration can "
+            f"have ({first}) are marked not converged",
+            stacklevel=2,
+        )
     return ds
 
 
@@ -359,37 +370,46 @@ def _photoelectron_dims(E, given, coords) -> tuple[str, ...]:
             raise ValueError(f"photoelectrons_dims must end in ('row', 'col'); got {dims}")
         unknown = [d for d in dims[:-2] if d not in coords]
         if unknown:
-            raise ValueError(f"photoelectrons_dims names {unknown}, which need the matching "
-                             "setpoints/levels argument")
+            raise ValueError(
+                f"photoelectrons_dims names {unknown}, which need the matching "
+                "setpoints/levels argument"
+            )
         return dims
     if E.ndim == 2:
         return _PIXEL_DIMS
     if E.ndim == 3 and len(coords) == 1:
         return tuple(coords) + _PIXEL_DIMS
     given_text = {k: "given" if k in coords else "not given" for k in ("setpoint", "level")}
-    raise ValueError(f"cannot tell the dims of photoelectrons with shape {E.shape} (setpoints "
-                     f"{given_text['setpoint']}, levels {given_text['level']}); pass "
-                     "photoelectrons_dims")
+    raise ValueError(
+        f"cannot tell the dims of photoelectrons with shape {E.shape} (setpoints "
+        f"{given_text['setpoint']}, levels {given_text['level']}); pass "
+        "photoelectrons_dims"
+    )
 
 
 def _variable_attrs(name, units=None, long_name=None) -> dict:
     """``units`` and ``long_name`` of a variable: the names table's unless given."""
     base = name.removesuffix("_se")
     if long_name is None:
-        long_name = (("standard error of " + LONG_NAMES[base]) if name.endswith("_se")
-                     else LONG_NAMES[name])
+        long_name = (
+            ("standard error of " + LONG_NAMES[base]) if name.endswith("_se") else LONG_NAMES[name]
+        )
     return {"units": UNITS[base] if units is None else units, "long_name": long_name}
 
 
 def _extra_variables(extra, standard) -> dict:
     """A method's own variables, ``name -> (dims, array, units[, long_name])``."""
-    reserved = (set(UNITS) - {"offset", "read_noise"}) | standard | {
-        f"{v}_se" for v in ("e_per_adu", "adu_per_e", "em_gain", "photoelectrons")}
+    reserved = (
+        (set(UNITS) - {"offset", "read_noise"})
+        | standard
+        | {f"{v}_se" for v in ("e_per_adu", "adu_per_e", "em_gain", "photoelectrons")}
+    )
     out = {}
     for name, spec in (extra or {}).items():
         if name in reserved:
-            raise ValueError(f"extra variable {name!r} clashes with a standard variable or "
-                             "coordinate")
+            raise ValueError(
+                f"extra variable {name!r} clashes with a standard variable or coordinate"
+            )
         if not isinstance(spec, tuple) or len(spec) not in (3, 4):
             raise ValueError(f"extra[{name!r}] must be (dims, array, units[, long_name])")
         if not isinstance(spec[2], str):
@@ -495,8 +515,11 @@ def summarize(ds: xr.Dataset, seconds: float | None = None) -> dict:
         name = str(key)
         # Standard errors and interval bounds belong to a parameter, not beside it (an
         # average of bounds that may be infinite says nothing).
-        if (name == "converged" or name.endswith(("_se", "_lower", "_upper"))
-                or da.dtype.kind not in "iuf"):
+        if (
+            name == "converged"
+            or name.endswith(("_se", "_lower", "_upper"))
+            or da.dtype.kind not in "iuf"
+        ):
             continue
         if not set(_PIXEL_DIMS) <= set(da.dims):
             continue
@@ -552,8 +575,7 @@ def run_recorded(build, out=None) -> xr.Dataset:
     return ds
 
 
-def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None,
-         stale=()) -> dict[str, Path]:
+def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None, stale=()) -> dict[str, Path]:
     """Write ``calibration.nc`` and ``summary.json`` into ``out_dir`` as one set.
 
     Both are written to temporary files in ``out_dir`` first; only then is each renamed
@@ -587,10 +609,14 @@ def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None,
 
     summary = summarize(ds, seconds=seconds)
     text = json.dumps(summary, indent=2, allow_nan=False) + "\n"
-    written = publish(out_dir, {
-        CALIBRATION_FILE: lambda p: write_netcdf(ds, p),
-        SUMMARY_FILE: lambda p: Path(p).write_text(text, encoding="utf-8"),
-    }, stale=stale)
+    written = publish(
+        out_dir,
+        {
+            CALIBRATION_FILE: lambda p: write_netcdf(ds, p),
+            SUMMARY_FILE: lambda p: Path(p).write_text(text, encoding="utf-8"),
+        },
+        stale=stale,
+    )
     return {"calibration": written[CALIBRATION_FILE], "summary": written[SUMMARY_FILE]}
 
 
@@ -617,18 +643,25 @@ def _impossible(ds: xr.Dataset):
             mask |= wrong.reshape(-1, *ok.shape).any(axis=0)
             if first is None:
                 at = np.argwhere(wrong)[0]
-                first = (f"{name} is {values[tuple(at)]!r} at index "
-                         f"{tuple(int(i) for i in at)} of a converged pixel")
+                first = (
+                    f"{name} is {values[tuple(at)]!r} at index "
+                    f"{tuple(int(i) for i in at)} of a converged pixel"
+                )
 
     def positive(v):
         return np.isfinite(v) & (v > 0)
 
-    rules = {"e_per_adu": positive, "em_gain": positive, "read_noise": positive,
-             "offset": np.isfinite}
+    rules = {
+        "e_per_adu": positive,
+        "em_gain": positive,
+        "read_noise": positive,
+        "offset": np.isfinite,
+    }
     for name in ds.data_vars:
         name = str(name)
         rule = rules.get(name) or (
-            (lambda v: np.isnan(v) | (v >= 0)) if name.endswith("_se") else None)
+            (lambda v: np.isnan(v) | (v >= 0)) if name.endswith("_se") else None
+        )
         if rule is not None:
             where_bad(name, rule)
     return mask, first
@@ -638,6 +671,7 @@ def _check_domain(ds: xr.Dataset, p: Path) -> None:
     """The rules every result obeys, checked once for every reader: coordinates, and the
     estimates of converged pixels (:func:`_impossible`). :func:`make_dataset` keeps them
     too, so a result emccdcal wrote always loads."""
+
     def bad(text):
         return InputError(f"{p}: not a valid result: {text}")
 
@@ -737,9 +771,14 @@ def pixel_statistics(values) -> dict:
     values = np.asarray(values, dtype=float).ravel()
     finite = values[np.isfinite(values)]
     spread = _robust_sd(finite)
-    return {"median": float(np.median(finite)) if finite.size else None, "spread": spread,
-            "se_of_median": None if spread is None else math.sqrt(math.pi / 2) * spread
-            / math.sqrt(finite.size), "n": int(finite.size)}
+    return {
+        "median": float(np.median(finite)) if finite.size else None,
+        "spread": spread,
+        "se_of_median": None
+        if spread is None
+        else math.sqrt(math.pi / 2) * spread / math.sqrt(finite.size),
+        "n": int(finite.size),
+    }
 
 
 @dataclass(frozen=True)
@@ -820,7 +859,8 @@ class Calibration:
         return OptionError(
             f"{self.label}: {what}set-point {format_setpoint(setpoint)}x is missing from this "
             f"calibration (it has {have}); add a result that has it, e.g. "
-            "adu.nc,gain5x.nc,... (or predict it: emccdcal gain-curve)")
+            "adu.nc,gain5x.nc,... (or predict it: emccdcal gain-curve)"
+        )
 
     def gain(self, setpoint) -> np.ndarray:
         """Gain map at a set-point (1 at set-point 1).
@@ -858,7 +898,8 @@ class Calibration:
             have = ", ".join(format_setpoint(v) + "x" for v in sorted(self.offset)) or "none"
             raise OptionError(
                 f"{self.label}: no offset recorded at set-point {format_setpoint(s)}x "
-                f"(offsets at: {have}); give the offset of the camera at that set-point")
+                f"(offsets at: {have}); give the offset of the camera at that set-point"
+            )
         return self.offset[s], self.read_noise.get(s, np.full_like(self.offset[s], np.nan))
 
     def identity(self) -> dict:
@@ -869,11 +910,17 @@ class Calibration:
         """What a file made from this calibration records of where it came from."""
         from . import __version__
 
-        doc = {"emccdcal_version": __version__, "method": self.method,
-               "created": self.created, "em_model": str(self.em_model),
-               "results": [{"file": str(f), "sha256": h} for f, h in zip(self.files, self.sha256)]}
+        doc = {
+            "emccdcal_version": __version__,
+            "method": self.method,
+            "created": self.created,
+            "em_model": str(self.em_model),
+            "results": [{"file": str(f), "sha256": h} for f, h in zip(self.files, self.sha256)],
+        }
         if self.predicted:
-            doc["predicted_gains"] = [{"setpoint": s, **p} for s, p in sorted(self.predicted.items())]
+            doc["predicted_gains"] = [
+                {"setpoint": s, **p} for s, p in sorted(self.predicted.items())
+            ]
         return doc
 
 
@@ -886,8 +933,7 @@ def identity_attrs(manifest) -> dict:
     """The attributes by which every result knows the camera, read-out state and pixels it
     holds for: ``camera`` (JSON), ``binning`` and ``sensor_origin``, as far as the
     manifest's frames record them."""
-    attrs: dict[str, object] = (
-        {"camera": json.dumps(manifest.camera)} if manifest.camera else {})
+    attrs: dict[str, object] = {"camera": json.dumps(manifest.camera)} if manifest.camera else {}
     if manifest.origin is not None:
         attrs["sensor_origin"] = np.array(manifest.origin, dtype=np.int64)
     if manifest.binning is not None:
@@ -974,15 +1020,24 @@ def _members_em_model(label, loaded):
     default."""
     from .model.noise import EMModel
 
-    models = {EMModel.from_attrs(ds.attrs) for _, ds in loaded
-              if "em_gain" in ds and np.any(ds["setpoint"].values != 1)} - {None}
+    models = {
+        EMModel.from_attrs(ds.attrs)
+        for _, ds in loaded
+        if "em_gain" in ds and np.any(ds["setpoint"].values != 1)
+    } - {None}
     if len(models) > 1:
-        raise OptionError(f"{label}: its members were fitted with different EM register "
-                          f"models ({', '.join(sorted(map(str, models)))}); group results "
-                          "of one model")
+        raise OptionError(
+            f"{label}: its members were fitted with different EM register "
+            f"models ({', '.join(sorted(map(str, models)))}); group results "
+            "of one model"
+        )
     if not models:  # 1x only (is-adu): the model it was fitted with, else the default's
-        models = {next((m for m in (EMModel.from_attrs(ds.attrs) for _, ds in loaded) if m),
-                       EMModel(defaults.DEFAULT_EM_MODEL))}
+        models = {
+            next(
+                (m for m in (EMModel.from_attrs(ds.attrs) for _, ds in loaded) if m),
+                EMModel(defaults.DEFAULT_EM_MODEL),
+            )
+        }
     return models.pop()
 
 
@@ -1054,8 +1109,10 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
         recorded = camera_of(ds, f)
         differ = identity.mismatches(camera, recorded)
         if differ:
-            raise OptionError(f"{label}: {f} is of another camera or read-out state than "
-                              f"the members before it: {'; '.join(differ.values())}")
+            raise OptionError(
+                f"{label}: {f} is of another camera or read-out state than "
+                f"the members before it: {'; '.join(differ.values())}"
+            )
         camera.update({k: v for k, v in recorded.items() if k not in camera})
         if "em_gain" not in ds:
             continue
@@ -1082,19 +1139,35 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
             stacklevel=2,
         )
     model = _members_em_model(label, loaded)
-    origins = {tuple(int(v) for v in ds.attrs["sensor_origin"]) for _, ds in loaded
-               if "sensor_origin" in ds.attrs}
-    binnings = {tuple(int(v) for v in np.atleast_1d(ds.attrs["binning"])) for _, ds in loaded
-                if "binning" in ds.attrs}
+    origins = {
+        tuple(int(v) for v in ds.attrs["sensor_origin"])
+        for _, ds in loaded
+        if "sensor_origin" in ds.attrs
+    }
+    binnings = {
+        tuple(int(v) for v in np.atleast_1d(ds.attrs["binning"]))
+        for _, ds in loaded
+        if "binning" in ds.attrs
+    }
     if len(binnings) > 1:
-        raise OptionError(f"{label}: its members were read out with different binnings "
-                          f"({', '.join('x'.join(map(str, b)) for b in sorted(binnings))})")
+        raise OptionError(
+            f"{label}: its members were read out with different binnings "
+            f"({', '.join('x'.join(map(str, b)) for b in sorted(binnings))})"
+        )
     return Calibration(
-        label=label, files=tuple(f for f, _ in loaded), method="+".join(dict.fromkeys(methods)),
-        e_per_adu=phi, e_per_adu_se=masked(loaded[i_phi][1], "e_per_adu_se"),
-        em_gain=gains, em_gain_se=gains_se, offset=offsets, read_noise=read_noise,
-        em_model=model, camera=camera,
+        label=label,
+        files=tuple(f for f, _ in loaded),
+        method="+".join(dict.fromkeys(methods)),
+        e_per_adu=phi,
+        e_per_adu_se=masked(loaded[i_phi][1], "e_per_adu_se"),
+        em_gain=gains,
+        em_gain_se=gains_se,
+        offset=offsets,
+        read_noise=read_noise,
+        em_model=model,
+        camera=camera,
         origin=origins.pop() if len(origins) == 1 else None,
         binning=binnings.pop() if binnings else None,
         created=max(str(ds.attrs.get("created", "")) for _, ds in loaded),
-        sha256=tuple(ds.encoding["sha256"] for _, ds in loaded))
+        sha256=tuple(ds.encoding["sha256"] for _, ds in loaded),
+    )

@@ -76,18 +76,27 @@ class RunStore:
         elif resume:
             if not unfinished:
                 what = "a finished result" if finished else "no interrupted run"
-                raise OptionError(f"{self.out}: nothing to resume ({what} there); run without "
-                                  "--resume" + (" and with --overwrite" if finished else ""))
+                raise OptionError(
+                    f"{self.out}: nothing to resume ({what} there); run without "
+                    "--resume" + (" and with --overwrite" if finished else "")
+                )
             self._check_same_run()
         elif finished or unfinished:
-            what = (f"an interrupted run ({len(self.tiles())} tile(s) kept)" if unfinished
-                    else f"a finished result ({', '.join(finished)})")
-            raise OptionError(f"{self.out} holds {what}: pass --resume to continue an "
-                              "interrupted run or --overwrite to replace it")
+            what = (
+                f"an interrupted run ({len(self.tiles())} tile(s) kept)"
+                if unfinished
+                else f"a finished result ({', '.join(finished)})"
+            )
+            raise OptionError(
+                f"{self.out} holds {what}: pass --resume to continue an "
+                "interrupted run or --overwrite to replace it"
+            )
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self._remove_temporaries()
-        atomic_write(self.run_dir / _FINGERPRINT,
-                     lambda p: Path(p).write_text(json.dumps(self.fingerprint, indent=1)))
+        atomic_write(
+            self.run_dir / _FINGERPRINT,
+            lambda p: Path(p).write_text(json.dumps(self.fingerprint, indent=1)),
+        )
 
     # ---- opening ---------------------------------------------------------------------
     def _check_writable(self) -> None:
@@ -97,8 +106,9 @@ class RunStore:
             with tempfile.TemporaryFile(dir=self.out):
                 pass
         except OSError as exc:
-            raise EmccdcalError(f"{self.out}: cannot write the output directory: "
-                                f"{one_line(exc)}") from None
+            raise EmccdcalError(
+                f"{self.out}: cannot write the output directory: {one_line(exc)}"
+            ) from None
         if not self.out.is_dir():  # pragma: no cover - mkdir would have failed
             raise EmccdcalError(f"{self.out}: not a directory")
 
@@ -106,14 +116,18 @@ class RunStore:
         try:
             old = _files.load_json(self.run_dir / _FINGERPRINT, what="run fingerprint")
         except InputError as exc:
-            raise EmccdcalError(f"{self.run_dir / _FINGERPRINT}: unreadable "
-                                f"({one_line(exc)}); pass --overwrite to start again") from None
+            raise EmccdcalError(
+                f"{self.run_dir / _FINGERPRINT}: unreadable "
+                f"({one_line(exc)}); pass --overwrite to start again"
+            ) from None
         changed = _differences(old, self.fingerprint)
         if changed:
-            raise OptionError(f"{self.out}: cannot resume, the run differs from the interrupted "
-                              f"one in {'; '.join(changed[:4])}"
-                              + (f" and {len(changed) - 4} more" if len(changed) > 4 else "")
-                              + "; pass --overwrite to start again")
+            raise OptionError(
+                f"{self.out}: cannot resume, the run differs from the interrupted "
+                f"one in {'; '.join(changed[:4])}"
+                + (f" and {len(changed) - 4} more" if len(changed) > 4 else "")
+                + "; pass --overwrite to start again"
+            )
 
     def _remove_temporaries(self) -> None:
         """Temporary files of a run that was killed while writing (``atomic_write``'s)."""
@@ -134,6 +148,7 @@ class RunStore:
 
     def save_tile(self, key: str, arrays: dict) -> None:
         """Keep one finished tile (a dict of arrays), atomically."""
+
         def write(path):
             with open(path, "wb") as fh:
                 np.savez(fh, **arrays)

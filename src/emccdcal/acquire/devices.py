@@ -68,9 +68,11 @@ class SimulatedEMCCD(CameraDevice):
         self.camera, self.shutter, self.seed = camera, shutter, int(seed)
         pattern_seed, frame_seed = np.random.SeedSequence(self.seed).spawn(2)
         self.offset_pattern = np.random.default_rng(pattern_seed).normal(
-            0.0, camera.offset_spread, camera.shape)
-        self._frame_seeds = np.random.SeedSequence(frame_seed.entropy,
-                                                   spawn_key=(*frame_seed.spawn_key, run))
+            0.0, camera.offset_spread, camera.shape
+        )
+        self._frame_seeds = np.random.SeedSequence(
+            frame_seed.entropy, spawn_key=(*frame_seed.spawn_key, run)
+        )
         self._exposure_ms, self._setpoint, self._light = 10.0, 1.0, 0.0
         self._roi: tuple[int, int, int, int] | None = None
         self.sequence_thread: threading.Thread | None = None
@@ -146,8 +148,9 @@ class SimulatedEMCCD(CameraDevice):
     def set_roi(self, x: int, y: int, width: int, height: int) -> None:
         rows, cols = self.camera.shape
         if x < 0 or y < 0 or width <= 0 or height <= 0 or x + width > cols or y + height > rows:
-            raise ValueError(f"region ({x}, {y}, {width}, {height}) is not on the "
-                             f"{cols} × {rows} px sensor")
+            raise ValueError(
+                f"region ({x}, {y}, {width}, {height}) is not on the {cols} × {rows} px sensor"
+            )
         self._roi = (int(x), int(y), int(width), int(height))
 
     def clear_roi(self) -> None:
@@ -158,19 +161,25 @@ class SimulatedEMCCD(CameraDevice):
         # sequence waits for only two seconds: record it, so that it can be waited for.
         self.sequence_thread = threading.current_thread()
         x, y, w, h = self.get_roi()
-        offset = np.clip(self.offset_of(self._setpoint)
-                         + self.offset_pattern[y:y + h, x:x + w], 0.0, None)
+        offset = np.clip(
+            self.offset_of(self._setpoint) + self.offset_pattern[y : y + h, x : x + w], 0.0, None
+        )
         light = self._light if self.shutter.get_open() else 0.0
         gain = self.true_em_gain(self._setpoint)
         batch = max(1, _BATCH_VALUES // (w * h))
         done = 0
         while n is None or done < n:
             k = batch if n is None else min(batch, n - done)
-            frames = simulate_frames(light, em_gain=gain, offset=offset, frames=k,
-                                     adc_bits=self.camera.adc_bits,
-                                     seed=self._frame_seeds.spawn(1)[0],
-                                     cascade_method=self.camera.cascade_method,
-                                     **self.camera.register())
+            frames = simulate_frames(
+                light,
+                em_gain=gain,
+                offset=offset,
+                frames=k,
+                adc_bits=self.camera.adc_bits,
+                seed=self._frame_seeds.spawn(1)[0],
+                cascade_method=self.camera.cascade_method,
+                **self.camera.register(),
+            )
             for frame in frames:
                 buffer = get_buffer((h, w), np.uint16)
                 buffer[:] = frame

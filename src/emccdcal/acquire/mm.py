@@ -14,14 +14,30 @@ from pathlib import Path
 from .._util import one_line
 from ..errors import EmccdcalError, InputError, OptionError
 
-__all__ = ["AcquireError", "Interrupted", "GAIN_PROPERTIES", "gain_property", "set_gain",
-           "camera_properties", "simulated_core", "config_core", "sequence", "prepare",
-           "release"]
+__all__ = [
+    "AcquireError",
+    "Interrupted",
+    "GAIN_PROPERTIES",
+    "gain_property",
+    "set_gain",
+    "camera_properties",
+    "simulated_core",
+    "config_core",
+    "sequence",
+    "prepare",
+    "release",
+]
 
 #: The EM-gain property of each Micro-Manager device adapter (by its library name);
 #: others: the standard property ``EMGain`` where the camera has it.
-GAIN_PROPERTIES = {"Andor": "Gain", "AndorSDK3": "Gain", "PVCAM": "MultiplierGain",
-                   "PICAM": "MultiplierGain", "PrincetonInstruments": "MultiplierGain"}
+GAIN_PROPERTIES = {
+    "Andor": "Gain",
+    "AndorSDK3": "Gain",
+    "PVCAM": "MultiplierGain",
+    "PICAM": "MultiplierGain",
+    "PrincetonInstruments": "MultiplierGain",
+}
+
 
 class AcquireError(EmccdcalError, RuntimeError):
     """The recording stopped: the camera, the light, or the session (one line)."""
@@ -50,9 +66,11 @@ def gain_property(core, camera: str, override: str | None = None) -> str:
     library = _name(core.getDeviceLibrary(camera))
     prop = override or GAIN_PROPERTIES.get(library, "EMGain")
     if prop not in names:
-        raise OptionError(f"camera '{camera}' (adapter {library}) has no property '{prop}' "
-                          "for its EM gain: name it with --gain-property (its properties: "
-                          f"{', '.join(sorted(names))})")
+        raise OptionError(
+            f"camera '{camera}' (adapter {library}) has no property '{prop}' "
+            "for its EM gain: name it with --gain-property (its properties: "
+            f"{', '.join(sorted(names))})"
+        )
     return prop
 
 
@@ -83,8 +101,13 @@ def camera_properties(core, camera: str) -> dict:
         except Exception:  # noqa: BLE001 - a property that cannot be read is not recorded
             continue
     x, y, w, h = core.getROI()
-    props.update({"Exposure-ms": float(core.getExposure()), "ROI": f"{x}-{y}-{w}-{h}",
-                  "BitDepth": int(core.getImageBitDepth())})
+    props.update(
+        {
+            "Exposure-ms": float(core.getExposure()),
+            "ROI": f"{x}-{y}-{w}-{h}",
+            "BitDepth": int(core.getImageBitDepth()),
+        }
+    )
     binning = props.get(f"{camera}-Binning")
     if binning is not None:
         props["Binning"] = binning
@@ -139,9 +162,13 @@ def sequence(core, n: int, stop: threading.Event, what: str):
                 overflow = getattr(core, "isBufferOverflowed", lambda: False)()
                 raise AcquireError(
                     f"{what}: the camera stopped after {got} of {n} frames"
-                    + (": Micro-Manager's buffer overflowed (frames came faster than they "
-                       "were written; a smaller --roi, a slower frame rate or a faster disk)"
-                       if overflow else ""))
+                    + (
+                        ": Micro-Manager's buffer overflowed (frames came faster than they "
+                        "were written; a smaller --roi, a slower frame rate or a faster disk)"
+                        if overflow
+                        else ""
+                    )
+                )
             else:
                 time.sleep(0.0002)
     finally:
@@ -155,15 +182,18 @@ def prepare(core, camera, roi) -> None:
         core.setCameraDevice(camera)
     except Exception as exc:  # noqa: BLE001 - the core's own error, in one line
         loaded = ", ".join(str(d) for d in core.getLoadedDevices())
-        raise OptionError(f"no camera '{camera}' in the configuration (its devices: "
-                          f"{loaded or 'none'}): {one_line(exc)}") from None
+        raise OptionError(
+            f"no camera '{camera}' in the configuration (its devices: "
+            f"{loaded or 'none'}): {one_line(exc)}"
+        ) from None
     core.setAutoShutter(False)
     if roi is not None:
         try:
             core.setROI(*[int(v) for v in roi])
         except Exception as exc:  # noqa: BLE001 - the adapter's own error, in one line
-            raise OptionError(f"camera '{camera}' refused the region {tuple(roi)}: "
-                              f"{one_line(exc)}") from None
+            raise OptionError(
+                f"camera '{camera}' refused the region {tuple(roi)}: {one_line(exc)}"
+            ) from None
 
 
 def release(core, *, unload: bool) -> None:

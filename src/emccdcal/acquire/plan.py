@@ -45,9 +45,18 @@ from ..errors import OptionError
 from ..fit.series import AcquisitionModel, SeriesLikelihood
 from ..model import noise
 
-__all__ = ["Plan", "Acquisition", "plan", "predict", "plan_text", "read_plan", "camera_of",
-           "PLAN_METHODS",
-           "ADC_FILL", "ADC_MARGIN_SD"]
+__all__ = [
+    "Plan",
+    "Acquisition",
+    "plan",
+    "predict",
+    "plan_text",
+    "read_plan",
+    "camera_of",
+    "PLAN_METHODS",
+    "ADC_FILL",
+    "ADC_MARGIN_SD",
+]
 
 #: The methods a plan is made for.
 PLAN_METHODS = defaults.PLAN_METHODS
@@ -178,13 +187,17 @@ class _Design:
         self.setpoints, self.gains, self.light = list(setpoints), list(gains), photoelectrons
         P, A = photoelectrons.shape
         phi, sigma, s0 = camera["e_per_adu"], camera["read_noise"], camera["offset"]
-        models = [AcquisitionModel(s, np.full(P, s0), np.full(P, sigma), model)
-                  for s in setpoints]
+        models = [AcquisitionModel(s, np.full(P, s0), np.full(P, sigma), model) for s in setpoints]
         self.likelihood = SeriesLikelihood(method, models, e_per_adu=phi)
-        x = self.likelihood.point({"photoelectrons": photoelectrons,
-                                   "em_gain": np.asarray(gains, float), "e_per_adu": phi})
+        x = self.likelihood.point(
+            {
+                "photoelectrons": photoelectrons,
+                "em_gain": np.asarray(gains, float),
+                "e_per_adu": phi,
+            }
+        )
         self.info, self.cross = self.likelihood.expected_information(x)
-        self.sigma2 = sigma ** 2
+        self.sigma2 = sigma**2
         # parameters each acquisition informs (an empty level's E is not estimated)
         self.informs = self.likelihood.informs  # (A, F)
 
@@ -194,7 +207,7 @@ class _Design:
         With ``level``, of that candidate light only (P = 1)."""
         info, crosses = self.info, self.cross
         if level is not None:
-            info, crosses = info[level:level + 1], crosses[level:level + 1]
+            info, crosses = info[level : level + 1], crosses[level : level + 1]
         H = np.einsum("ca,paij->cpij", frames, info)
         F = H.shape[-1]
         active = (frames[:, :, None] > 0) & self.informs[None]  # (C, A, F)
@@ -233,7 +246,7 @@ def _allocate(design, p, targets, target, max_frames, dark_cost):
     state = np.full(A + 1, float(_FIRST_FRAMES))  # light frames of each stack, then darks
     floor = state.copy()
     if design.method != "gs":  # an intensity series starts at its brightest level only
-        state[:A - 1] = floor[:A] = 0.0
+        state[: A - 1] = floor[:A] = 0.0
     cost = np.r_[np.ones(A), dark_cost]
     cap = np.inf if max_frames is None else float(max_frames)
 
@@ -257,10 +270,11 @@ def _allocate(design, p, targets, target, max_frames, dark_cost):
         w, s = worst(trial)
         e0 = excess(np.nan_to_num(se, nan=1e9))[0]
         gain_per_frame = (e0 - excess(np.nan_to_num(s, nan=1e9))) / (
-            np.maximum((trial - state[None]) @ cost, 1e-9))
+            np.maximum((trial - state[None]) @ cost, 1e-9)
+        )
         gain_per_frame[~moved] = -np.inf
         pick = int(np.argmax(gain_per_frame))
-        state, now, se = trial[pick], w[pick:pick + 1], s[pick:pick + 1]
+        state, now, se = trial[pick], w[pick : pick + 1], s[pick : pick + 1]
     # Trim: take back frames the greedy steps overshot, largest saving first.
     for _ in range(200):
         if now[0] > target:
@@ -273,7 +287,7 @@ def _allocate(design, p, targets, target, max_frames, dark_cost):
         if not ok.any():
             break
         pick = int(np.argmax(np.where(ok, cut * cost, -1)))
-        state, now, se = trial[pick], w[pick:pick + 1], s[pick:pick + 1]
+        state, now, se = trial[pick], w[pick : pick + 1], s[pick : pick + 1]
     return state[:A], state[A], float(now[0])
 
 
@@ -281,9 +295,11 @@ def _offset_within_adc(camera) -> None:
     """An offset at or past the ADC's last count leaves no room for any light."""
     top = 2 ** camera["adc_bits"] - 1
     if camera["offset"] >= top:
-        raise OptionError(f"offset {camera['offset']:g} ADU is at or past the ADC's last count "
-                          f"{top} ({camera['adc_bits']} bits): is it in ADU, and the bits "
-                          "the camera's?")
+        raise OptionError(
+            f"offset {camera['offset']:g} ADU is at or past the ADC's last count "
+            f"{top} ({camera['adc_bits']} bits): is it in ADU, and the bits "
+            "the camera's?"
+        )
 
 
 def _within_adc(setpoints, gains, light, camera) -> None:
@@ -296,7 +312,8 @@ def _within_adc(setpoints, gains, light, camera) -> None:
             raise OptionError(
                 f"{E:g} e- per pixel per frame at set-point {s:g} (gain {g:g}) is a mean "
                 f"count of {mean:.4g} ADU, past the ADC's {top} ({camera['adc_bits']} bits): "
-                "those frames saturate; less light")
+                "those frames saturate; less light"
+            )
 
 
 def _brightest(setpoint_gain, camera, model) -> float:
@@ -309,7 +326,7 @@ def _brightest(setpoint_gain, camera, model) -> float:
     pixel_well, register_well = camera.get("pixel_well"), camera.get("register_well")
 
     def fits(E):
-        sd_adu = math.sqrt(f2 * E * setpoint_gain ** 2 / phi ** 2 + sigma ** 2)
+        sd_adu = math.sqrt(f2 * E * setpoint_gain**2 / phi**2 + sigma**2)
         ok = s0 + E * setpoint_gain / phi + ADC_MARGIN_SD * sd_adu <= top
         if pixel_well:
             ok = ok and E + ADC_MARGIN_SD * math.sqrt(E) <= ADC_FILL * pixel_well
@@ -322,17 +339,33 @@ def _brightest(setpoint_gain, camera, model) -> float:
         raise OptionError(
             f"even 1 e- per pixel per frame at gain {setpoint_gain:g} leaves the ADC's "
             f"range ({camera['adc_bits']} bits, offset {s0:g} ADU, {phi:g} e-/ADU) or a "
-            "full well given: leave out the highest set-point")
+            "full well given: leave out the highest set-point"
+        )
     lo, hi = 1.0, 2.0
     while fits(hi):
         lo, hi = hi, hi * 2.0
     return _roots.bisect(lambda x: not fits(x), lo, hi, 60, geometric=True)[0]
 
 
-def plan(*, method="gs", e_per_adu, read_noise, offset, adc_bits=16, setpoints=(1, 5, 25, 100, 300),
-         em_gain=None, setpoint=None, target_se=0.5, em_model=defaults.DEFAULT_EM_MODEL,
-         stages=None, pixel_well=None, register_well=None, max_frames=None, frame_rate_hz=None,
-         device=None) -> Plan:
+def plan(
+    *,
+    method="gs",
+    e_per_adu,
+    read_noise,
+    offset,
+    adc_bits=16,
+    setpoints=(1, 5, 25, 100, 300),
+    em_gain=None,
+    setpoint=None,
+    target_se=0.5,
+    em_model=defaults.DEFAULT_EM_MODEL,
+    stages=None,
+    pixel_well=None,
+    register_well=None,
+    max_frames=None,
+    frame_rate_hz=None,
+    device=None,
+) -> Plan:
     """The acquisition that reaches ``target_se`` with the fewest frames.
 
     Parameters
@@ -383,14 +416,18 @@ def plan(*, method="gs", e_per_adu, read_noise, offset, adc_bits=16, setpoints=(
     """
     if method not in PLAN_METHODS:
         raise OptionError(f"a plan is for one of {', '.join(PLAN_METHODS)}; got {method!r}")
-    camera = {"e_per_adu": check_number("e_per_adu", e_per_adu, positive=True),
-              "read_noise": check_number("read_noise", read_noise, positive=True),
-              "offset": check_number("offset", offset, minimum=0.0),
-              "adc_bits": check_int("adc_bits", adc_bits, minimum=2, maximum=32),
-              "pixel_well": None if pixel_well is None
-              else check_number("pixel_well", pixel_well, positive=True),
-              "register_well": None if register_well is None
-              else check_number("register_well", register_well, positive=True)}
+    camera = {
+        "e_per_adu": check_number("e_per_adu", e_per_adu, positive=True),
+        "read_noise": check_number("read_noise", read_noise, positive=True),
+        "offset": check_number("offset", offset, minimum=0.0),
+        "adc_bits": check_int("adc_bits", adc_bits, minimum=2, maximum=32),
+        "pixel_well": None
+        if pixel_well is None
+        else check_number("pixel_well", pixel_well, positive=True),
+        "register_well": None
+        if register_well is None
+        else check_number("register_well", register_well, positive=True),
+    }
     _offset_within_adc(camera)
     target = check_number("target_se", target_se, positive=True)
     if max_frames is not None:
@@ -399,24 +436,34 @@ def plan(*, method="gs", e_per_adu, read_noise, offset, adc_bits=16, setpoints=(
         frame_rate_hz = check_number("frame_rate", frame_rate_hz, positive=True)
     model = noise.choose_em_model(em_model, stages)[0]
     _xp.resolve(device)  # an unknown or missing device: one line before any work
-    camera |= {"em_model": model.name,
-               "stages": model.stages if model.register.uses_stages else None}
+    camera |= {
+        "em_model": model.name,
+        "stages": model.stages if model.register.uses_stages else None,
+    }
     sps = sorted({check_number("setpoints", s, minimum=1.0) for s in np.atleast_1d(setpoints)})
 
     if method == "gs":
         if 1.0 not in sps or len(sps) < 2:
-            raise OptionError("a gain series needs 1x (it anchors the light) and at least "
-                              f"one set-point above it; got {', '.join(f'{s:g}' for s in sps)}")
+            raise OptionError(
+                "a gain series needs 1x (it anchors the light) and at least "
+                f"one set-point above it; got {', '.join(f'{s:g}' for s in sps)}"
+            )
         gains = _assumed(em_gain, sps)
         top = _brightest(max(gains), camera, model)
         light = top * _GS_FRACTIONS[:, None] * np.ones(len(sps))
         lab_setpoints = sps
     else:
-        s = 1.0 if method == "is-adu" else check_number(
-            "setpoint", setpoint if setpoint is not None else max(sps), minimum=1.0)
+        s = (
+            1.0
+            if method == "is-adu"
+            else check_number(
+                "setpoint", setpoint if setpoint is not None else max(sps), minimum=1.0
+            )
+        )
         if method == "is-gain" and s == 1:
-            raise OptionError("is-gain is an intensity series at a set-point above 1x: "
-                              "give --setpoint G")
+            raise OptionError(
+                "is-gain is an intensity series at a set-point above 1x: give --setpoint G"
+            )
         (g,) = _assumed(em_gain, [s])
         gains = [g] * len(_IS_FRACTIONS)
         top = _brightest(g, camera, model)
@@ -466,9 +513,14 @@ def camera_of(result) -> dict:
 
     cal = result if isinstance(result, Calibration) else load_calibration(result)
     offset, sigma = cal.dark(1.0 if 1.0 in cal.offset or not cal.offset else min(cal.offset))
-    return {name: pixel_statistics(values)["median"]
-            for name, values in (("e_per_adu", cal.e_per_adu), ("offset", offset),
-                                 ("read_noise", sigma))}
+    return {
+        name: pixel_statistics(values)["median"]
+        for name, values in (
+            ("e_per_adu", cal.e_per_adu),
+            ("offset", offset),
+            ("read_noise", sigma),
+        )
+    }
 
 
 def _assumed(em_gain, setpoints):
@@ -476,14 +528,26 @@ def _assumed(em_gain, setpoints):
         return [float(s) for s in setpoints]
     values = list(np.atleast_1d(em_gain))
     if len(values) != len(setpoints):
-        raise OptionError(f"--em-gain has {len(values)} value(s) for {len(setpoints)} "
-                          "set-point(s)")
-    return [1.0 if s == 1 else check_number("em_gain", g, minimum=1.0)
-            for s, g in zip(setpoints, values)]
+        raise OptionError(f"--em-gain has {len(values)} value(s) for {len(setpoints)} set-point(s)")
+    return [
+        1.0 if s == 1 else check_number("em_gain", g, minimum=1.0)
+        for s, g in zip(setpoints, values)
+    ]
 
 
-def predict(method, setpoints, gains, photoelectrons, frames, dark_frames, camera,
-            target_se=float("nan"), *, frame_rate_hz=None, max_frames=None) -> Plan:
+def predict(
+    method,
+    setpoints,
+    gains,
+    photoelectrons,
+    frames,
+    dark_frames,
+    camera,
+    target_se=float("nan"),
+    *,
+    frame_rate_hz=None,
+    max_frames=None,
+) -> Plan:
     """The precision a given acquisition will reach: the :class:`Plan` of exactly these
     stacks (what :func:`plan` returns for its choice, and what a hand-edited plan is
     checked with).
@@ -501,8 +565,9 @@ def predict(method, setpoints, gains, photoelectrons, frames, dark_frames, camer
     model = _camera_model(camera)
     light = np.asarray(photoelectrons, float)[None, :]
     design = _Design(method, setpoints, gains, light, camera, model)
-    return _plan_of(design, 0, np.asarray(frames, float), dark_frames, target_se,
-                    frame_rate_hz, max_frames)
+    return _plan_of(
+        design, 0, np.asarray(frames, float), dark_frames, target_se, frame_rate_hz, max_frames
+    )
 
 
 def dark_limited(p: Plan) -> float | None:
@@ -512,9 +577,15 @@ def dark_limited(p: Plan) -> float | None:
     a = p.acquisitions
 
     def worst(light_factor, darks):
-        return predict(p.method, [x.setpoint for x in a], [x.em_gain for x in a],
-                       [x.photoelectrons for x in a],
-                       [light_factor * x.frames for x in a], darks, p.camera).predicted_se
+        return predict(
+            p.method,
+            [x.setpoint for x in a],
+            [x.em_gain for x in a],
+            [x.photoelectrons for x in a],
+            [light_factor * x.frames for x in a],
+            darks,
+            p.camera,
+        ).predicted_se
 
     exact = worst(1, 10**9)
     if exact <= p.target_se and worst(10, p.dark_frames) > p.target_se:
@@ -525,28 +596,44 @@ def dark_limited(p: Plan) -> float | None:
 def _plan_of(design, level, frames, dark_frames, target_se, frame_rate_hz, max_frames):
     """The :class:`Plan` of ``frames`` (A,) at the design's candidate light ``level``;
     stacks of no frames are left out."""
-    cov = design.covariance(np.asarray(frames, float)[None], np.array([float(dark_frames)]),
-                            level=level)[0, 0]
+    cov = design.covariance(
+        np.asarray(frames, float)[None], np.array([float(dark_frames)]), level=level
+    )[0, 0]
     lik = design.likelihood
     acqs = []
-    for a, (s, g, E, n) in enumerate(zip(design.setpoints, design.gains,
-                                         design.light[level], frames)):
+    for a, (s, g, E, n) in enumerate(
+        zip(design.setpoints, design.gains, design.light[level], frames)
+    ):
         if n <= 0:
             continue
         mine = {}
         for quantity in ("em_gain", "photoelectrons", "e_per_adu"):
             j = lik.index(quantity, a)
             # a gain is a multiplied stack's; a shared E is reported with the 1× stack
-            if j is None or (quantity == "em_gain" and s == 1) or (
-                    quantity == "photoelectrons" and lik.parameters[j].acquisition is None
-                    and s != 1):
+            if (
+                j is None
+                or (quantity == "em_gain" and s == 1)
+                or (
+                    quantity == "photoelectrons"
+                    and lik.parameters[j].acquisition is None
+                    and s != 1
+                )
+            ):
                 continue
             mine[quantity] = float(100.0 * math.sqrt(cov[j, j]))
         acqs.append(Acquisition(float(s), float(E), int(n), float(g), mine))
     worst = float(np.max(_relative_se(cov, _targets(design))))
-    return Plan(design.method, tuple(acqs), int(dark_frames), float(target_se), worst,
-                bool(worst <= target_se * (1 + 1e-9)), dict(design.camera), frame_rate_hz,
-                max_frames)
+    return Plan(
+        design.method,
+        tuple(acqs),
+        int(dark_frames),
+        float(target_se),
+        worst,
+        bool(worst <= target_se * (1 + 1e-9)),
+        dict(design.camera),
+        frame_rate_hz,
+        max_frames,
+    )
 
 
 # --------------------------------------------------------------------------------------
@@ -569,22 +656,30 @@ def plan_text(p: Plan) -> str:
 
     cam = p.camera
     worst = {"gs": "em_gain", "is-gain": "em_gain", "is-adu": "e_per_adu"}[p.method]
-    out = [f"# Written by emccdcal {__version__} (emccdcal plan): the acquisition that reaches "
-           f"the target at least cost,",
-           "# predicted from the Fisher information of the likelihood the calibration uses.",
-           "# Edit the frames or the light and run `emccdcal plan --check` on the file to see "
-           "what they give.",
-           line("method", p.method)]
+    out = [
+        f"# Written by emccdcal {__version__} (emccdcal plan): the acquisition that reaches "
+        f"the target at least cost,",
+        "# predicted from the Fisher information of the likelihood the calibration uses.",
+        "# Edit the frames or the light and run `emccdcal plan --check` on the file to see "
+        "what they give.",
+        line("method", p.method),
+    ]
     if p.method == "gs":
-        out.append(line("photoelectrons", p.photoelectrons,
-                        "e- per pixel per frame to set the light to (at 1x)"))
+        out.append(
+            line(
+                "photoelectrons",
+                p.photoelectrons,
+                "e- per pixel per frame to set the light to (at 1x)",
+            )
+        )
         out.append(line("dark_frames", p.dark_frames, "per set-point, shutter closed"))
     else:
         out.append(line("em_gain_setpoint", p.acquisitions[0].setpoint))
         out.append(line("dark_frames", p.dark_frames, "one dark stack, shutter closed"))
     if p.target_se == p.target_se:  # a target was set (TOML has no NaN a reader takes)
-        out.append(line("target_se", p.target_se,
-                        f"percent: relative SE per pixel of every {worst}"))
+        out.append(
+            line("target_se", p.target_se, f"percent: relative SE per pixel of every {worst}")
+        )
     out.append(line(f"predicted_{worst}_se", p.predicted_se, "percent, per pixel (worst)"))
     if p.target_se == p.target_se:
         out.append(line("reached", p.reached))
@@ -594,12 +689,15 @@ def plan_text(p: Plan) -> str:
         out.append(line("seconds", p.seconds, "to record it all at that rate"))
     if p.max_frames is not None:
         out.append(line("max_frames", p.max_frames, "per stack"))
-    out += ["", "[camera]  # what the plan assumed",
-            line("e_per_adu", cam["e_per_adu"], "e-/ADU"),
-            line("read_noise", cam["read_noise"], "ADU"),
-            line("offset", cam["offset"], "ADU"),
-            line("adc_bits", cam["adc_bits"]),
-            line("em_model", cam["em_model"])]
+    out += [
+        "",
+        "[camera]  # what the plan assumed",
+        line("e_per_adu", cam["e_per_adu"], "e-/ADU"),
+        line("read_noise", cam["read_noise"], "ADU"),
+        line("offset", cam["offset"], "ADU"),
+        line("adc_bits", cam["adc_bits"]),
+        line("em_model", cam["em_model"]),
+    ]
     if cam.get("stages") is not None:
         out.append(line("stages", cam["stages"]))
     for well in ("pixel_well", "register_well"):
@@ -648,17 +746,22 @@ def read_plan(path) -> Plan:
         if method not in PLAN_METHODS:
             raise OptionError(f"method {method!r} is not one of {', '.join(PLAN_METHODS)}")
         cam = dict(need(doc, "camera", "the plan"))
-        camera = {"e_per_adu": check_number("e_per_adu", need(cam, "e_per_adu", "[camera]"),
-                                            positive=True),
-                  "read_noise": check_number("read_noise",
-                                             need(cam, "read_noise", "[camera]"), positive=True),
-                  "offset": check_number("offset", need(cam, "offset", "[camera]"), minimum=0),
-                  "adc_bits": check_int("adc_bits", need(cam, "adc_bits", "[camera]"),
-                                        minimum=2, maximum=32),
-                  "em_model": str(cam.get("em_model", defaults.DEFAULT_EM_MODEL)),
-                  "stages": cam.get("stages"),
-                  "pixel_well": cam.get("pixel_well"),
-                  "register_well": cam.get("register_well")}
+        camera = {
+            "e_per_adu": check_number(
+                "e_per_adu", need(cam, "e_per_adu", "[camera]"), positive=True
+            ),
+            "read_noise": check_number(
+                "read_noise", need(cam, "read_noise", "[camera]"), positive=True
+            ),
+            "offset": check_number("offset", need(cam, "offset", "[camera]"), minimum=0),
+            "adc_bits": check_int(
+                "adc_bits", need(cam, "adc_bits", "[camera]"), minimum=2, maximum=32
+            ),
+            "em_model": str(cam.get("em_model", defaults.DEFAULT_EM_MODEL)),
+            "stages": cam.get("stages"),
+            "pixel_well": cam.get("pixel_well"),
+            "register_well": cam.get("register_well"),
+        }
         _offset_within_adc(camera)
         model = _camera_model(camera)
         camera["stages"] = model.stages if model.register.uses_stages else None
@@ -666,25 +769,40 @@ def read_plan(path) -> Plan:
         rows = doc.get(table) or []
         if not rows:
             raise OptionError(f"no [[{table}]] tables")
-        frames = [check_int("frames", need(r, "frames", f"[[{table}]]"), minimum=2)
-                  for r in rows]
+        frames = [check_int("frames", need(r, "frames", f"[[{table}]]"), minimum=2) for r in rows]
         if method == "gs":
-            light = [check_number("photoelectrons", need(doc, "photoelectrons", "the plan"),
-                                  positive=True)] * len(rows)
-            sps = [check_number("em_gain_setpoint",
-                                need(r, "em_gain_setpoint", "[[acquisition]]"), minimum=1.0)
-                   for r in rows]
+            light = [
+                check_number(
+                    "photoelectrons", need(doc, "photoelectrons", "the plan"), positive=True
+                )
+            ] * len(rows)
+            sps = [
+                check_number(
+                    "em_gain_setpoint", need(r, "em_gain_setpoint", "[[acquisition]]"), minimum=1.0
+                )
+                for r in rows
+            ]
         else:
             s = check_number("em_gain_setpoint", doc.get("em_gain_setpoint", 1.0), minimum=1.0)
-            light = [check_number("photoelectrons", need(r, "photoelectrons", "[[level]]"),
-                                  positive=True) for r in rows]
+            light = [
+                check_number(
+                    "photoelectrons", need(r, "photoelectrons", "[[level]]"), positive=True
+                )
+                for r in rows
+            ]
             sps = [s] * len(rows)
-        gains = [1.0 if s == 1 else check_number("assumed_em_gain",
-                                                 r.get("assumed_em_gain", s), minimum=1.0)
-                 for s, r in zip(sps, rows)]
+        gains = [
+            1.0
+            if s == 1
+            else check_number("assumed_em_gain", r.get("assumed_em_gain", s), minimum=1.0)
+            for s, r in zip(sps, rows)
+        ]
         dark = check_int("dark_frames", need(doc, "dark_frames", "the plan"), minimum=2)
-        target = (float("nan") if doc.get("target_se") is None
-                  else check_number("target_se", doc["target_se"], positive=True))
+        target = (
+            float("nan")
+            if doc.get("target_se") is None
+            else check_number("target_se", doc["target_se"], positive=True)
+        )
         rate = doc.get("frame_rate_hz")
         rate = None if rate is None else check_number("frame_rate_hz", rate, positive=True)
         most = doc.get("max_frames")
@@ -692,7 +810,17 @@ def read_plan(path) -> Plan:
         if len(set(sps)) < len(sps) and method == "gs":
             raise OptionError("a set-point is listed twice among the [[acquisition]] tables")
         _within_adc(sps, gains, light, camera)
-        return predict(method, sps, gains, light, frames, dark, camera, target,
-                       frame_rate_hz=rate, max_frames=most)
+        return predict(
+            method,
+            sps,
+            gains,
+            light,
+            frames,
+            dark,
+            camera,
+            target,
+            frame_rate_hz=rate,
+            max_frames=most,
+        )
     except OptionError as exc:
         raise InputError(f"'{path}': {exc}") from None

@@ -43,19 +43,41 @@ from pathlib import Path
 import numpy as np
 
 from .. import _files
-from .._output import (Output, OutputError, atomic_write, atomic_write_text,
-                       remove_leftovers)
+from .._output import Output, OutputError, atomic_write, atomic_write_text, remove_leftovers
 from .._util import check_number, one_line, progress
 from ..data import zarrs
 from ..errors import InputError, OptionError
-from .mm import (GAIN_PROPERTIES, AcquireError, Interrupted, camera_properties, config_core,
-                 gain_property, prepare, release, sequence, set_gain, simulated_core)
+from .mm import (
+    GAIN_PROPERTIES,
+    AcquireError,
+    Interrupted,
+    camera_properties,
+    config_core,
+    gain_property,
+    prepare,
+    release,
+    sequence,
+    set_gain,
+    simulated_core,
+)
 from .plan import Plan, plan_text, read_plan
 from .session import SESSION_FILE, Session, Stack, new_state, plan_sha
 
-__all__ = ["acquire", "AcquireError", "Interrupted", "Session", "gain_property",
-           "camera_properties", "simulated_core", "config_core", "GAIN_PROPERTIES",
-           "CHECK_FRAMES", "LIGHT_TOLERANCE", "SAMPLE_PIXELS", "SESSION_FILE"]
+__all__ = [
+    "acquire",
+    "AcquireError",
+    "Interrupted",
+    "Session",
+    "gain_property",
+    "camera_properties",
+    "simulated_core",
+    "config_core",
+    "GAIN_PROPERTIES",
+    "CHECK_FRAMES",
+    "LIGHT_TOLERANCE",
+    "SAMPLE_PIXELS",
+    "SESSION_FILE",
+]
 
 #: Frames at the start of each light stack checked against the plan before any is kept.
 CHECK_FRAMES = 20
@@ -126,9 +148,15 @@ def _attrs(ctx: _Context, stack: Stack) -> dict:
 
     props = camera_properties(ctx.core, ctx.camera)
     settings = dataclasses.replace(settings_of(props), em_gain_setpoint=float(stack.setpoint))
-    return {"emccdcal": settings.known(), "micromanager": props,
-            _MARKER: {"dark": stack.dark, "planned_frames": stack.planned_frames,
-                                     "photoelectrons": stack.photoelectrons}}
+    return {
+        "emccdcal": settings.known(),
+        "micromanager": props,
+        _MARKER: {
+            "dark": stack.dark,
+            "planned_frames": stack.planned_frames,
+            "photoelectrons": stack.photoelectrons,
+        },
+    }
 
 
 class _Writing:
@@ -142,14 +170,16 @@ class _Writing:
         if stack.frames == 0 and zarrs.begun_but_empty(path, _MARKER):
             shutil.rmtree(path)  # a store this stack began when the run was killed: redone
         try:  # a resume continues only a stack this session wrote
-            self.writer = (zarrs.StackWriter(*self._args, owner=_MARKER, frames=stack.frames)
-                           if path.exists() else None)  # else made with the first frames kept
+            self.writer = (
+                zarrs.StackWriter(*self._args, owner=_MARKER, frames=stack.frames)
+                if path.exists()
+                else None
+            )  # else made with the first frames kept
         except InputError as exc:
             raise AcquireError(str(exc)) from None
         self._queue: queue.Queue = queue.Queue(maxsize=_QUEUED_BATCHES)
         self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name=f"write {stack.name}",
-                                        daemon=True)
+        self._thread = threading.Thread(target=self._run, name=f"write {stack.name}", daemon=True)
         self._thread.start()
 
     def put(self, batch: zarrs.Batch) -> None:
@@ -175,8 +205,9 @@ class _Writing:
         self._queue.put(None)
         self._thread.join()
         if self._error is not None:
-            raise AcquireError(f"'{self._args[0]}': writing failed: "
-                               f"{one_line(self._error)}") from None
+            raise AcquireError(
+                f"'{self._args[0]}': writing failed: {one_line(self._error)}"
+            ) from None
 
 
 def _start_stack(ctx: _Context, stack: Stack):
@@ -230,8 +261,10 @@ def _record_stack(ctx: _Context, stack: Stack, bar) -> None:
                 if target and kept + n >= next_fit:
                     next_fit += every
                     stack.reached_se = _running_se(ctx, stack, sample_frames)
-                    bar.set_postfix_str(f"{stack.name}: SE {stack.reached_se:.2f} % "
-                                        f"(target {ctx.plan.target_se:g} %)")
+                    bar.set_postfix_str(
+                        f"{stack.name}: SE {stack.reached_se:.2f} % "
+                        f"(target {ctx.plan.target_se:g} %)"
+                    )
                     if stack.reached_se <= ctx.plan.target_se:
                         break
         if batches[0].count and checked:
@@ -246,9 +279,11 @@ def _record_stack(ctx: _Context, stack: Stack, bar) -> None:
             writing.close()
     if ctx.stop.is_set():
         ctx.session.save()
-        raise Interrupted(f"interrupted: {stack.name} holds {stack.frames} of "
-                          f"{stack.planned_frames} frames, kept in '{path}'; continue with "
-                          "--resume")
+        raise Interrupted(
+            f"interrupted: {stack.name} holds {stack.frames} of "
+            f"{stack.planned_frames} frames, kept in '{path}'; continue with "
+            "--resume"
+        )
     if target and (stack.reached_se is None or stack.reached_se > ctx.plan.target_se):
         stack.reached_se = _running_se(ctx, stack, sample_frames)
 
@@ -276,13 +311,19 @@ def _dark_of(ctx: _Context, setpoint: float):
     _finish(ctx)  # the dark may be the stack just recorded
     if ctx.darks is None:
         ctx.darks = {}
-    stack = next(s for s in ctx.session.stacks if s.dark and
-                 (s.setpoint == setpoint or ctx.plan.method != "gs"))
+    stack = next(
+        s
+        for s in ctx.session.stacks
+        if s.dark and (s.setpoint == setpoint or ctx.plan.method != "gs")
+    )
     if stack.name not in ctx.darks:
         total, n, sample = None, 0, []
         for block in zarrs.read_chunks(ctx.session.folder / stack.file):
-            total = block.sum(axis=0, dtype=np.float64) if total is None else \
-                total + block.sum(axis=0, dtype=np.float64)
+            total = (
+                block.sum(axis=0, dtype=np.float64)
+                if total is None
+                else total + block.sum(axis=0, dtype=np.float64)
+            )
             n += block.shape[0]
             sample.append(block.reshape(block.shape[0], 1, -1)[:, :, ctx.sample])
         ctx.darks[stack.name] = (total / n, np.concatenate(sample))
@@ -308,9 +349,11 @@ def _check_light(ctx: _Context, stack: Stack, frames: np.ndarray) -> None:
     saturated = float(np.mean(frames >= adc_max))
     where = f"{stack.name} (set-point {stack.setpoint:g})"
     if saturated > SATURATED_LIMIT:
-        raise AcquireError(f"{where}: {100 * saturated:.2g} % of the first {len(frames)} "
-                           f"frames' pixels are at the ADC's limit ({adc_max} ADU): dim the "
-                           "light, then --resume")
+        raise AcquireError(
+            f"{where}: {100 * saturated:.2g} % of the first {len(frames)} "
+            f"frames' pixels are at the ADC's limit ({adc_max} ADU): dim the "
+            "light, then --resume"
+        )
     if ctx.light_tolerance is None:
         return
     dark_mean, _ = _dark_of(ctx, stack.setpoint)
@@ -322,7 +365,8 @@ def _check_light(ctx: _Context, stack: Stack, frames: np.ndarray) -> None:
             f"{where}: the light is {measured:.4g} e- per pixel per frame (first "
             f"{len(frames)} frames, at the assumed gain {gain:g} and {cam['e_per_adu']:g} "
             f"e-/ADU), the plan's {stack.photoelectrons:.4g} ({100 * off:+.0f} %, more than "
-            f"the {100 * ctx.light_tolerance:g} % allowed): set the light, then --resume")
+            f"the {100 * ctx.light_tolerance:g} % allowed): set the light, then --resume"
+        )
 
 
 def _running_se(ctx: _Context, stack: Stack, sample_frames: list) -> float:
@@ -336,8 +380,9 @@ def _running_se(ctx: _Context, stack: Stack, sample_frames: list) -> float:
     _finish(ctx)
     if ctx.unit_frames is None:
         unit = next(s for s in ctx.session.stacks if not s.dark and s.setpoint == 1)
-        ctx.unit_frames = np.concatenate(list(zarrs.read_chunks(ctx.session.folder / unit.file,
-                                                           ctx.sample)))
+        ctx.unit_frames = np.concatenate(
+            list(zarrs.read_chunks(ctx.session.folder / unit.file, ctx.sample))
+        )
     frames = [ctx.unit_frames, np.stack(sample_frames)[:, None, :]]
     adc_max = _adc_max(ctx, ctx.unit_frames.dtype)
     model = ctx.plan.em_model
@@ -345,8 +390,11 @@ def _running_se(ctx: _Context, stack: Stack, sample_frames: list) -> float:
     for sp in (1.0, stack.setpoint):
         dark = _dark_of(ctx, sp)[1]
         offset, read_noise, _ = read_out_maps(dark, sp, adc_max=adc_max)  # as calibrate's
-        models.append(AcquisitionModel(sp, offset.ravel(), read_noise.ravel(), model,
-                                       dark_frames=dark.shape[0]))
+        models.append(
+            AcquisitionModel(
+                sp, offset.ravel(), read_noise.ravel(), model, dark_frames=dark.shape[0]
+            )
+        )
     hists = [stats.histograms(f, adc_max=adc_max) for f in frames]
     est = fit_series("gs", models, hists, e_per_adu=float(cam["e_per_adu"]), gof_test=False)
     rel = est["em_gain_se"][:, 1] / est["em_gain"][:, 1]
@@ -357,10 +405,21 @@ def _running_se(ctx: _Context, stack: Stack, sample_frames: list) -> float:
 # --------------------------------------------------------------------------------------
 # The verb
 # --------------------------------------------------------------------------------------
-def acquire(plan, out, *, core=None, camera: str | None = None, simulated_seed=None,
-            roi=None, gain_prop: str | None = None,
-            light_tolerance: float | None = LIGHT_TOLERANCE, stop_at_target: bool = False,
-            resume: bool = False, set_light=None, progress_bars: bool = True) -> Session:
+def acquire(
+    plan,
+    out,
+    *,
+    core=None,
+    camera: str | None = None,
+    simulated_seed=None,
+    roi=None,
+    gain_prop: str | None = None,
+    light_tolerance: float | None = LIGHT_TOLERANCE,
+    stop_at_target: bool = False,
+    resume: bool = False,
+    set_light=None,
+    progress_bars: bool = True,
+) -> Session:
     """Record ``plan`` into the session folder ``out``.
 
     Parameters
@@ -412,8 +471,10 @@ def acquire(plan, out, *, core=None, camera: str | None = None, simulated_seed=N
         plan = read_plan(plan_path)
     text = plan_text(plan)
     if stop_at_target and plan.method != "gs":
-        raise OptionError("stop-at-target is for a gain-series plan (its target is per "
-                          "set-point); an intensity series records its planned frames")
+        raise OptionError(
+            "stop-at-target is for a gain-series plan (its target is per "
+            "set-point); an intensity series records its planned frames"
+        )
     if light_tolerance is not None:
         light_tolerance = check_number("light tolerance", light_tolerance, positive=True)
     out = Path(out)
@@ -425,11 +486,22 @@ def acquire(plan, out, *, core=None, camera: str | None = None, simulated_seed=N
         for name in _SESSION_FILES:  # the temporary files of a killed run, ours to remove
             remove_leftovers(out / name)
         try:
-            _record(session, out, plan, core, camera, roi, simulated_seed, gain_prop,
-                    set_light, light_tolerance, stop_at_target, progress_bars)
+            _record(
+                session,
+                out,
+                plan,
+                core,
+                camera,
+                roi,
+                simulated_seed,
+                gain_prop,
+                set_light,
+                light_tolerance,
+                stop_at_target,
+                progress_bars,
+            )
         except BaseException:
-            if not resume and not any(s.frames or (out / s.file).exists()
-                                      for s in session.stacks):
+            if not resume and not any(s.frames or (out / s.file).exists() for s in session.stacks):
                 _discard(out)  # refused before recording: what it wrote goes
             raise
     # The core made here is garbage now: collected in this thread, not by a daemon
@@ -452,8 +524,20 @@ def _discard(out: Path) -> None:
         (out / name).unlink(missing_ok=True)
 
 
-def _record(session, out, plan, core, camera, roi, simulated_seed, gain_prop, set_light,
-            light_tolerance, stop_at_target, progress_bars) -> None:
+def _record(
+    session,
+    out,
+    plan,
+    core,
+    camera,
+    roi,
+    simulated_seed,
+    gain_prop,
+    set_light,
+    light_tolerance,
+    stop_at_target,
+    progress_bars,
+) -> None:
     """Record a session's stacks (:func:`acquire`, its parameters)."""
     run = session.state["runs"] - 1
     device = None
@@ -469,11 +553,23 @@ def _record(session, out, plan, core, camera, roi, simulated_seed, gain_prop, se
             set_light = set_light or _simulated_light(camera)
             _write_truth(out, plan, device, session)
         elif plan.method != "gs" and set_light is None:
-            raise OptionError("an intensity-series plan changes the light between "
-                              "levels: give set_light (the command line asks at each)")
+            raise OptionError(
+                "an intensity-series plan changes the light between "
+                "levels: give set_light (the command line asks at each)"
+            )
         with _sigint_flag() as stop:
-            ctx = _Context(core, camera, prop, plan, session, stop, light_tolerance,
-                           stop_at_target, set_light, progress_bars)
+            ctx = _Context(
+                core,
+                camera,
+                prop,
+                plan,
+                session,
+                stop,
+                light_tolerance,
+                stop_at_target,
+                set_light,
+                progress_bars,
+            )
             _run(ctx)
     finally:
         release(core, unload=device is not None)
@@ -487,31 +583,41 @@ def _open_session(out, plan, text, resume, core, camera, roi, seed) -> Session:
             raise OutputError(f"{out}: no session to resume ({SESSION_FILE} is missing)")
         recorded = _files.load_json(out / SESSION_FILE, what="session record")
         if not isinstance(recorded, dict) or recorded.get("plan_sha256") != plan_sha(text):
-            raise OutputError(f"{out}: its session recorded another plan; resume it with "
-                              "its own plan.toml")
+            raise OutputError(
+                f"{out}: its session recorded another plan; resume it with its own plan.toml"
+            )
         session = Session.load(out, plan)
         sim = session.state.get("simulated")
         if (sim is None) != (seed is None) or (sim and sim.get("seed") != seed):
-            raise OutputError(f"{out}: recorded with "
-                              + ("the simulated camera (seed "
-                                 f"{sim['seed']})" if sim else "a real camera")
-                              + ": resume it with the same camera")
+            raise OutputError(
+                f"{out}: recorded with "
+                + (f"the simulated camera (seed {sim['seed']})" if sim else "a real camera")
+                + ": resume it with the same camera"
+            )
         recorded_roi = session.state.get("roi")
         if (None if roi is None else list(roi)) != recorded_roi:
-            raise OutputError(f"{out}: recorded with region {recorded_roi}: resume it with "
-                              "the same --roi")
+            raise OutputError(
+                f"{out}: recorded with region {recorded_roi}: resume it with the same --roi"
+            )
         session.state["runs"] = session.state.get("runs", 1) + 1
         session.state["status"] = "recording"
         session.save()
         return session
     taken = [p.name for p in out.iterdir() if not p.name.startswith(".")]
     if taken:
-        raise OutputError(f"{out}: not empty ({', '.join(sorted(taken)[:3])}"
-                          f"{', …' if len(taken) > 3 else ''}): a session is recorded into a "
-                          "new folder (or --resume one)")
+        raise OutputError(
+            f"{out}: not empty ({', '.join(sorted(taken)[:3])}"
+            f"{', …' if len(taken) > 3 else ''}): a session is recorded into a "
+            "new folder (or --resume one)"
+        )
     atomic_write_text(out / "plan.toml", text)
-    state = new_state(plan, text, camera or (core.getCameraDevice() if core else "Camera"),
-                       roi, None if seed is None else {"seed": int(seed)})
+    state = new_state(
+        plan,
+        text,
+        camera or (core.getCameraDevice() if core else "Camera"),
+        roi,
+        None if seed is None else {"seed": int(seed)},
+    )
     session = Session(out, state)
     session.save()
     return session
@@ -548,16 +654,23 @@ def _simulated_camera(plan: Plan):
     from .devices import SENSOR_SHAPE
 
     cam, model = plan.camera, plan.em_model
-    return Camera(rows=SENSOR_SHAPE[0], cols=SENSOR_SHAPE[1], frames=2,
-                  e_per_adu=cam["e_per_adu"], read_noise=cam["read_noise"],
-                  offset=cam["offset"], adc_bits=min(16, int(cam["adc_bits"])),
-                  multiplication=model.name,  # the simulator samples the named register
-                  stages=model.stages if model.register.uses_stages else Camera.stages)
+    return Camera(
+        rows=SENSOR_SHAPE[0],
+        cols=SENSOR_SHAPE[1],
+        frames=2,
+        e_per_adu=cam["e_per_adu"],
+        read_noise=cam["read_noise"],
+        offset=cam["offset"],
+        adc_bits=min(16, int(cam["adc_bits"])),
+        multiplication=model.name,  # the simulator samples the named register
+        stages=model.stages if model.register.uses_stages else Camera.stages,
+    )
 
 
 def _simulated_light(camera):
     def set_light(core, stack):
         core.setProperty(camera, "Light", float(stack.photoelectrons))
+
     return set_light
 
 
@@ -574,15 +687,26 @@ def _write_truth(out: Path, plan: Plan, device, session: Session) -> None:
         if s.dark:
             continue
         d = dark.get(s.setpoint) or next(iter(dark.values()))
-        acqs.append({"label": s.name, "frames": s.file, "dark": d.file,
-                     "frames_n": s.planned_frames, "dark_frames_n": d.planned_frames,
-                     "setpoint": s.setpoint, "em_gain": device.true_em_gain(s.setpoint),
-                     "photoelectrons": s.photoelectrons, "offset": device.offset_of(s.setpoint)})
+        acqs.append(
+            {
+                "label": s.name,
+                "frames": s.file,
+                "dark": d.file,
+                "frames_n": s.planned_frames,
+                "dark_frames_n": d.planned_frames,
+                "setpoint": s.setpoint,
+                "em_gain": device.true_em_gain(s.setpoint),
+                "photoelectrons": s.photoelectrons,
+                "offset": device.offset_of(s.setpoint),
+            }
+        )
     kind = "gain-series" if plan.method == "gs" else "intensity-series"
     opts = dataclasses.asdict(device.camera) | {"seed": device.seed}
     pattern_file = _TRUTH_PATTERN
-    atomic_write(out / pattern_file, lambda tmp: tifffile.imwrite(
-        tmp, device.offset_pattern.astype(np.float32)))
+    atomic_write(
+        out / pattern_file,
+        lambda tmp: tifffile.imwrite(tmp, device.offset_pattern.astype(np.float32)),
+    )
     truth = truth_document(kind, device.camera, opts, acqs, pattern_file)
     truth["roi"] = session.state.get("roi")
     atomic_write_text(out / "truth.json", json.dumps(truth, indent=2) + "\n")

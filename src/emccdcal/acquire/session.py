@@ -49,16 +49,28 @@ def stacks_of(plan: Plan) -> list[Stack]:
     if plan.method == "gs":
         for a in plan.acquisitions:
             sp = format_setpoint(a.setpoint)
-            out.append(Stack(f"{sp}x-dark", f"{sp}x-dark.ome.zarr", True, a.setpoint, 0.0,
-                             plan.dark_frames))
-            out.append(Stack(f"{sp}x-gain", f"{sp}x-gain.ome.zarr", False, a.setpoint,
-                             a.photoelectrons, a.frames))
+            out.append(
+                Stack(
+                    f"{sp}x-dark", f"{sp}x-dark.ome.zarr", True, a.setpoint, 0.0, plan.dark_frames
+                )
+            )
+            out.append(
+                Stack(
+                    f"{sp}x-gain",
+                    f"{sp}x-gain.ome.zarr",
+                    False,
+                    a.setpoint,
+                    a.photoelectrons,
+                    a.frames,
+                )
+            )
     else:
         sp = plan.acquisitions[0].setpoint
         out.append(Stack("dark", "dark.ome.zarr", True, sp, 0.0, plan.dark_frames))
         for i, a in enumerate(plan.acquisitions, start=1):
-            out.append(Stack(f"level-{i}", f"level-{i}.ome.zarr", False, sp,
-                             a.photoelectrons, a.frames))
+            out.append(
+                Stack(f"level-{i}", f"level-{i}.ome.zarr", False, sp, a.photoelectrons, a.frames)
+            )
     return out
 
 
@@ -66,8 +78,10 @@ def _progress_of(stack: Stack, rec) -> None:
     """Set ``stack``'s progress (frames, done, reached SE) from its record, checked; the
     record must name the same stack."""
     if not isinstance(rec, dict) or rec.get("name") != stack.name or rec.get("file") != stack.file:
-        raise ValueError(f"stack {stack.name!r} is recorded as "
-                         f"{rec.get('name') if isinstance(rec, dict) else rec!r}")
+        raise ValueError(
+            f"stack {stack.name!r} is recorded as "
+            f"{rec.get('name') if isinstance(rec, dict) else rec!r}"
+        )
     frames, done, se = rec.get("frames", 0), rec.get("done", False), rec.get("reached_se")
     if isinstance(frames, bool) or not isinstance(frames, int) or not 0 <= frames <= 10**9:
         raise ValueError(f"{stack.name}: frames is {frames!r}")
@@ -120,8 +134,9 @@ class Session:
         if every and now - self._saved < every:
             return
         self.state["stacks"] = [dataclasses.asdict(s) for s in self.stacks]
-        atomic_write_text(self.folder / SESSION_FILE, json.dumps(self.state, indent=2) + "\n",
-                          durable=not every)
+        atomic_write_text(
+            self.folder / SESSION_FILE, json.dumps(self.state, indent=2) + "\n", durable=not every
+        )
         self._saved = now
 
 
@@ -132,7 +147,13 @@ def plan_sha(text: str) -> str:
 def new_state(plan: Plan, text: str, camera: str, roi, simulated: dict | None) -> dict:
     from .. import __version__
 
-    return {"emccdcal_version": __version__, "plan_sha256": plan_sha(text),
-            "camera": camera, "roi": None if roi is None else list(roi),
-            "simulated": simulated, "runs": 1, "status": "recording",
-            "stacks": [dataclasses.asdict(s) for s in stacks_of(plan)]}
+    return {
+        "emccdcal_version": __version__,
+        "plan_sha256": plan_sha(text),
+        "camera": camera,
+        "roi": None if roi is None else list(roi),
+        "simulated": simulated,
+        "runs": 1,
+        "status": "recording",
+        "stacks": [dataclasses.asdict(s) for s in stacks_of(plan)],
+    }

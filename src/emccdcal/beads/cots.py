@@ -159,8 +159,9 @@ def gaussian_mask_fit(roi, *, width=DEFAULT_WIDTH, init=None, max_iter=200, tol=
     """
     data = np.asarray(roi, dtype=float)
     if data.ndim != 3 or min(data.shape[1:]) < 3:
-        raise OptionError(f"gaussian_mask_fit needs a (frames, h, w) stack with h, w >= 3, "
-                         f"got shape {data.shape}")
+        raise OptionError(
+            f"gaussian_mask_fit needs a (frames, h, w) stack with h, w >= 3, got shape {data.shape}"
+        )
     F, h, w = data.shape
     rows, cols = _coords(h), _coords(w)
     if init is None:
@@ -183,17 +184,28 @@ def gaussian_mask_fit(roi, *, width=DEFAULT_WIDTH, init=None, max_iter=200, tol=
     def evaluate(idx, qq):  # −½ SSR, its gradient Jᵀr and Gauss–Newton's JᵀJ
         e, j = model(qq, True)
         r = flat[idx] - e
-        return (-0.5 * np.sum(r * r, axis=1), np.einsum("fni,fn->fi", j, r),
-                np.einsum("fni,fnk->fik", j, j))
+        return (
+            -0.5 * np.sum(r * r, axis=1),
+            np.einsum("fni,fn->fi", j, r),
+            np.einsum("fni,fnk->fik", j, j),
+        )
 
     unbounded = np.full(5, np.inf)
-    opt = maximize(evaluate, q, lower=-unbounded, upper=unbounded, tol=0.0, rtol=tol,
-                   max_iter=max_iter, max_step=np.inf, accept_rtol=0.0)
+    opt = maximize(
+        evaluate,
+        q,
+        lower=-unbounded,
+        upper=unbounded,
+        tol=0.0,
+        rtol=tol,
+        max_iter=max_iter,
+        max_step=np.inf,
+        accept_rtol=0.0,
+    )
     q, ssr, done = opt.x, -2.0 * opt.objective, opt.done
     params = _to_params(q)
     e, jac = psf.spot_image(params, rows, cols, jacobian=True)
-    converged = (done & np.all(np.isfinite(params), axis=1) & (params[:, 2] > 0)
-                 & np.isfinite(ssr))
+    converged = done & np.all(np.isfinite(params), axis=1) & (params[:, 2] > 0) & np.isfinite(ssr)
     return SpotFit(params=params, expected=e, jacobian=jac, converged=converged)
 
 
@@ -258,8 +270,9 @@ def _start(r2, expected, leverage, gain0, offset0):
     return np.stack([np.full(F, g), g * s0_f], axis=1)
 
 
-def fit_variance_model(counts, expected, *, leverage=None, gain0=None, offset0=None,
-                       max_iter=100, tol=1e-12):
+def fit_variance_model(
+    counts, expected, *, leverage=None, gain0=None, offset0=None, max_iter=100, tol=1e-12
+):
     """Fit COTS's variance model to every frame: ``v_i = 2·G·(E_i − S0)``.
 
     Minimises ``L(G, H) = Σ_i [ln v_i + (S_i − E_i)²/v_i]`` with ``v_i = 2 (G·E_i − H)``
@@ -310,8 +323,15 @@ def fit_variance_model(counts, expected, *, leverage=None, gain0=None, offset0=N
 
     unbounded = np.full(2, np.inf)
     with np.errstate(divide="ignore", invalid="ignore"):  # trials outside v > 0
-        opt = maximize(evaluate, alpha, lower=-unbounded, upper=unbounded, tol=0.5 * tol,
-                       max_iter=max_iter, max_step=np.inf)
+        opt = maximize(
+            evaluate,
+            alpha,
+            lower=-unbounded,
+            upper=unbounded,
+            tol=0.5 * tol,
+            max_iter=max_iter,
+            max_step=np.inf,
+        )
     alpha, obj, conv = opt.x, -opt.objective, opt.done
     # G ≤ 0 is a frame's noisy estimate, not a failure: leaving such frames out biases the
     # average up (+4 % at 5× with read noise dominating; docs/cots.md)
@@ -346,8 +366,7 @@ def _hat_moments(expected, hat, read_var):
     n = e.shape[1]
     m_mat = np.eye(n)[None] - hat
     out = {"read_var": np.broadcast_to(read_var, e.shape).astype(float)}
-    for name, x in (("mm", m_mat**2), ("ff", hat**2), ("mf", m_mat * hat),
-                    ("mmf", m_mat**2 * hat)):
+    for name, x in (("mm", m_mat**2), ("ff", hat**2), ("mf", m_mat * hat), ("mmf", m_mat**2 * hat)):
         out[name + "_e"] = np.einsum("fij,fj->fi", x, e)
         out[name + "_1"] = x.sum(axis=2)
     out["mmf_s"] = np.einsum("fij,fj->fi", m_mat**2 * hat, out["read_var"])
@@ -394,11 +413,11 @@ def _expected_score(ast, e, moments):
     iv4 = iv2 * iv2
     s_u = iv - m * iv2 + 4 * gs * t * iv3 + 4 * gs**2 * (d * iv3 - 3 * erd * iv4)
     s_e1 = -2 * t * iv2 + 4 * gs * (-d * iv2 + 2 * erd * iv3)
-    score = np.stack([2 * np.sum(s_u * e, axis=1) + s_e1.sum(axis=1),
-                      -2 * np.sum(s_u, axis=1)], axis=1)
+    score = np.stack(
+        [2 * np.sum(s_u * e, axis=1) + s_e1.sum(axis=1), -2 * np.sum(s_u, axis=1)], axis=1
+    )
     # derivatives by v* (which moves with α* as ∂v*/∂α* = (2E, −2)) and by G* itself
-    du_dv = 2 * m * iv3 - iv2 - 12 * gs * t * iv4 + 4 * gs**2 * (
-        -3 * d * iv4 + 12 * erd * iv4 * iv)
+    du_dv = 2 * m * iv3 - iv2 - 12 * gs * t * iv4 + 4 * gs**2 * (-3 * d * iv4 + 12 * erd * iv4 * iv)
     du_dg = 4 * t * iv3 + 8 * gs * (d * iv3 - 3 * erd * iv4)
     de_dv = 4 * t * iv3 + 4 * gs * (2 * d * iv3 - 6 * erd * iv4)
     de_dg = 4 * (-d * iv2 + 2 * erd * iv3)
@@ -454,8 +473,7 @@ def _pseudo_true(mom, e, alpha, cumulants, start=None, max_iter=50):
                 break
             t[bad] *= 0.5
         ast = trial
-        ok = np.all(np.abs(t[:, None] * step) <= 1e-10 * (np.abs(ast) + np.abs(ast[:, :1])),
-                    axis=1)
+        ok = np.all(np.abs(t[:, None] * step) <= 1e-10 * (np.abs(ast) + np.abs(ast[:, :1])), axis=1)
         if ok.all():
             break
     return ast + _small_sample_bias(e, alpha, mom["read_var"], cumulants), ast, ok
@@ -532,8 +550,9 @@ def register_cumulants(register, gain, e_per_adu):
     return (float(2.0 * g * mu[2] / mu[1] ** 2), float(4.0 * g**2 * mu[3] / mu[1] ** 3))
 
 
-def variance_bias_covariance(expected, jacobian, alpha, *, read_noise=0.0,
-                             cumulants=GAMMA_CUMULANTS):
+def variance_bias_covariance(
+    expected, jacobian, alpha, *, read_noise=0.0, cumulants=GAMMA_CUMULANTS
+):
     """Bias and sandwich covariance of the per-frame variance fit (G, H).
 
     The fitted E_i come from the same counts as the residuals, so the residuals are
@@ -573,8 +592,7 @@ def variance_bias_covariance(expected, jacobian, alpha, *, read_noise=0.0,
     e = np.asarray(expected, float).reshape(len(expected), -1)
     alpha = np.broadcast_to(np.asarray(alpha, float), (len(e), 2)).copy()
     read_var = np.square(np.asarray(read_noise, float))
-    read_var = np.broadcast_to(read_var.reshape(len(e), -1) if read_var.ndim else read_var,
-                               e.shape)
+    read_var = np.broadcast_to(read_var.reshape(len(e), -1) if read_var.ndim else read_var, e.shape)
     qh = _thin_q(jacobian)
     mom = _hat_moments(e, qh @ np.swapaxes(qh, 1, 2), read_var)
     fit_point = _pseudo_true(mom, e, alpha, cumulants)[0]
@@ -669,8 +687,12 @@ def _recentred_fit(stack, roi, width, init):
     left = np.full(F, left0, dtype=np.int64)
     data = _extract(stack, top, left, h, w)
     fit = gaussian_mask_fit(data, width=width, init=init)
-    params, expected, jac, conv = (fit.params.copy(), fit.expected.copy(),
-                                   fit.jacobian.copy(), fit.converged.copy())
+    params, expected, jac, conv = (
+        fit.params.copy(),
+        fit.expected.copy(),
+        fit.jacobian.copy(),
+        fit.converged.copy(),
+    )
     lost = np.zeros(F, bool)
     for _ in range(MAX_RECENTRE):
         move = conv & ~lost & np.any(np.abs(params[:, :2]) > 1.0, axis=1)
@@ -694,8 +716,11 @@ def _recentred_fit(stack, roi, width, init):
         params[idx], expected[idx] = refit.params, refit.expected
         jac[idx], conv[idx] = refit.jacobian, refit.converged
     half = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
-    off = np.where(lost, np.any(np.abs(params[:, :2]) > half, axis=1),
-                   np.any(np.abs(params[:, :2]) > 1.0, axis=1))
+    off = np.where(
+        lost,
+        np.any(np.abs(params[:, :2]) > half, axis=1),
+        np.any(np.abs(params[:, :2]) > 1.0, axis=1),
+    )
     data = _extract(stack, top, left, h, w)
     shift = np.stack([top - top0, left - left0], axis=1)
     return data, SpotFit(params, expected, jac, conv & ~off), shift
@@ -712,8 +737,10 @@ def _spot_inputs(stack, roi, register, e_per_adu, read_noise):
         raise OptionError(f"COTS needs at least {MIN_FRAMES} frames of the spot, got {F}")
     top, left, h, w = (0, 0, R, C) if roi is None else (int(v) for v in roi)
     if top < 0 or left < 0 or top + h > R or left + w > C or min(h, w) < 3:
-        raise OptionError(f"ROI (top {top}, left {left}, {h}×{w}) does not fit in the "
-                         f"{R}×{C} frames (or is smaller than 3×3)")
+        raise OptionError(
+            f"ROI (top {top}, left {left}, {h}×{w}) does not fit in the "
+            f"{R}×{C} frames (or is smaller than 3×3)"
+        )
     if register is not None and not (e_per_adu is not None and e_per_adu > 0):
         raise OptionError("COTS: a register model needs e_per_adu (e-/ADU) to know its gain")
     noise_map = np.broadcast_to(np.asarray(read_noise, float), (R, C))
@@ -722,8 +749,20 @@ def _spot_inputs(stack, roi, register, e_per_adu, read_noise):
     return stack.astype(float, copy=False), (top, left, h, w), noise_map
 
 
-def cots_spot(stack, *, roi=None, width=DEFAULT_WIDTH, init=None, gain0=None, offset0=None,
-              exclude=None, adc_max=None, read_noise=0.0, register=None, e_per_adu=None):
+def cots_spot(
+    stack,
+    *,
+    roi=None,
+    width=DEFAULT_WIDTH,
+    init=None,
+    gain0=None,
+    offset0=None,
+    exclude=None,
+    adc_max=None,
+    read_noise=0.0,
+    register=None,
+    e_per_adu=None,
+):
     """Calibration-on-the-spot on the frames of one isolated spot.
 
     Parameters
@@ -779,8 +818,7 @@ def cots_spot(stack, *, roi=None, width=DEFAULT_WIDTH, init=None, gain0=None, of
     >>> bool(abs(r.gain - 5.0) < 4 * r.gain_se), bool(abs(r.offset - 100.0) < 4 * r.offset_se)
     (True, True)
     """
-    stack, (top, left, h, w), noise_map = _spot_inputs(stack, roi, register, e_per_adu,
-                                                        read_noise)
+    stack, (top, left, h, w), noise_map = _spot_inputs(stack, roi, register, e_per_adu, read_noise)
     F, R, C = stack.shape
     data, fit, shift = _recentred_fit(stack, (top, left, h, w), width, init)
     usable = fit.converged.copy()
@@ -804,16 +842,21 @@ def cots_spot(stack, *, roi=None, width=DEFAULT_WIDTH, init=None, gain0=None, of
 
     idx = np.flatnonzero(usable)
     need(idx, "fit of the spot")
-    read_var = _extract(np.broadcast_to(noise_map**2, (F, R, C)), top + shift[:, 0],
-                        left + shift[:, 1], h, w).reshape(F, n)  # follows the ROI
+    read_var = _extract(
+        np.broadcast_to(noise_map**2, (F, R, C)), top + shift[:, 0], left + shift[:, 1], h, w
+    ).reshape(F, n)  # follows the ROI
     mom, leverage = _frame_hat_moments(expected, jac, idx, read_var)
     alpha = np.full((F, 2), np.nan)
-    a, ok = fit_variance_model(counts[idx], expected[idx], leverage=leverage[idx],
-                               gain0=gain0, offset0=offset0)
+    a, ok = fit_variance_model(
+        counts[idx], expected[idx], leverage=leverage[idx], gain0=gain0, offset0=offset0
+    )
     alpha[idx] = a
     usable[idx[~ok]] = False
-    cumulants = GAMMA_CUMULANTS if register is None or not ok.any() else register_cumulants(
-        register, np.mean(a[ok, 0]), e_per_adu)
+    cumulants = (
+        GAMMA_CUMULANTS
+        if register is None or not ok.any()
+        else register_cumulants(register, np.mean(a[ok, 0]), e_per_adu)
+    )
     a_c, d_inv, fit_point = _corrected_truth(alpha, usable, mom, expected, need, cumulants)
     idx = np.flatnonzero(usable)
     truth = np.tile(a_c, (idx.size, 1))
@@ -822,8 +865,14 @@ def cots_spot(stack, *, roi=None, width=DEFAULT_WIDTH, init=None, gain0=None, of
     cov = np.full((F, 2, 2), np.nan)
     for lo in range(0, idx.size, _CHUNK):
         ch = slice(lo, lo + _CHUNK)
-        raw_cov = _covariance(expected[idx][ch], _thin_q(jac[idx[ch]]), truth[ch],
-                              fit_point[ch], read_var[idx[ch]], cumulants)
+        raw_cov = _covariance(
+            expected[idx][ch],
+            _thin_q(jac[idx[ch]]),
+            truth[ch],
+            fit_point[ch],
+            read_var[idx[ch]],
+            cumulants,
+        )
         cov[idx[ch]] = d_inv @ raw_cov @ d_inv.T
     if not (np.all(np.isfinite(cov[idx])) and np.all(cov[idx, 0, 0] > 0)):
         raise OptionError("COTS: the covariance of the variance fit is not finite")
@@ -841,7 +890,7 @@ def cots_spot(stack, *, roi=None, width=DEFAULT_WIDTH, init=None, gain0=None, of
     cov_gs0 = float(sig[0] @ grad)
     emp = d_inv @ np.cov(alpha[idx].T) @ d_inv.T / k
     var_s0_emp = float(grad @ emp @ grad)
-    roi0 = stack[idx, top:top + h, left:left + w]
+    roi0 = stack[idx, top : top + h, left : left + w]
     return CotsSpot(
         gain=float(g_bar),
         gain_se=float(np.sqrt(var_g)),
@@ -871,12 +920,11 @@ def _frame_hat_moments(expected, jac, idx, read_var):
     """Hat-matrix moments (:func:`_hat_moments`) and leverages of the frames ``idx``, a
     chunk of frames at a time (n × n per frame); NaN for the other frames."""
     F, n = expected.shape
-    names = [a + b for a in ("mm", "ff", "mf", "mmf") for b in ("_e", "_1")] + [
-        "read_var", "mmf_s"]
+    names = [a + b for a in ("mm", "ff", "mf", "mmf") for b in ("_e", "_1")] + ["read_var", "mmf_s"]
     mom = {k: np.full((F, n), np.nan) for k in names}
     leverage = np.full((F, n), np.nan)
     for lo in range(0, idx.size, _CHUNK):
-        ch = idx[lo:lo + _CHUNK]
+        ch = idx[lo : lo + _CHUNK]
         qh = _thin_q(jac[ch])
         hat = qh @ np.swapaxes(qh, 1, 2)
         leverage[ch] = np.einsum("fii->fi", hat)
@@ -903,8 +951,9 @@ def _corrected_truth(alpha, usable, mom, expected, need, cumulants):
         warm = {}
 
         def predicted(point, sub=sub, e_u=e_u, warm=warm):
-            out, root, _ = _pseudo_true(sub, e_u, np.tile(point, (len(e_u), 1)), cumulants,
-                                        start=warm.get("root"))
+            out, root, _ = _pseudo_true(
+                sub, e_u, np.tile(point, (len(e_u), 1)), cumulants, start=warm.get("root")
+            )
             warm["root"] = root  # the root at a nearby point: a warm start
             return out.mean(axis=0)
 
@@ -934,9 +983,12 @@ def _corrected_truth(alpha, usable, mom, expected, need, cumulants):
             break
         usable[idx[bad]] = False
     if not (np.all(np.isfinite(a_c)) and a_c[0] > 0) or bad.any():
-        raise OptionError("COTS: the bias correction of the variance fit did not converge "
-                          f"(corrected G = {a_c[0]:.4g} ADU/e-); too few pixels with signal?")
+        raise OptionError(
+            "COTS: the bias correction of the variance fit did not converge "
+            f"(corrected G = {a_c[0]:.4g} ADU/e-); too few pixels with signal?"
+        )
     d_inv = np.linalg.inv(jacobian_of_predicted(a_c))
-    fit_point = _pseudo_true(sub, e_u, np.tile(a_c, (idx.size, 1)), cumulants,
-                             start=warm.get("root"))[0]
+    fit_point = _pseudo_true(
+        sub, e_u, np.tile(a_c, (idx.size, 1)), cumulants, start=warm.get("root")
+    )[0]
     return a_c, d_inv, fit_point

@@ -37,8 +37,16 @@ def _phi_map(manifest):
     return e_per_adu_map(manifest.e_per_adu, manifest.shape)
 
 
-def cots_calibrate(manifest, *, half_size=DEFAULT_HALF_SIZE, width=DEFAULT_WIDTH,
-                   em_model=None, stages=None, progress=False, out=None) -> xarray.Dataset:
+def cots_calibrate(
+    manifest,
+    *,
+    half_size=DEFAULT_HALF_SIZE,
+    width=DEFAULT_WIDTH,
+    em_model=None,
+    stages=None,
+    progress=False,
+    out=None,
+) -> xarray.Dataset:
     """COTS on every bead of a bead manifest, as a calibration result.
 
     Beads are found once, with :func:`emccdcal.model.psf.find_beads` on the offset-subtracted
@@ -90,15 +98,20 @@ def cots_calibrate(manifest, *, half_size=DEFAULT_HALF_SIZE, width=DEFAULT_WIDTH
         :data:`MIN_FRAMES` frames; no beads found. One line naming the file.
     """
     return result.run_recorded(
-        lambda: _cots_calibrate(manifest, half_size, width, em_model, stages, progress), out)
+        lambda: _cots_calibrate(manifest, half_size, width, em_model, stages, progress), out
+    )
 
 
 def _cots_calibrate(manifest, half_size, width, em_model, stages, progress):
     if not isinstance(manifest, Manifest):
         manifest = read_manifest(manifest)
     model, stages_source = noise.choose_em_model(
-        em_model, stages, manifest_model=manifest.em_model,
-        manifest_stages=manifest.register_stages, camera_model=manifest.camera.get("model"))
+        em_model,
+        stages,
+        manifest_model=manifest.em_model,
+        manifest_stages=manifest.register_stages,
+        camera_model=manifest.camera.get("model"),
+    )
     half_size = int(half_size)
     if half_size < 1:
         raise OptionError(f"half_size must be a positive integer (pixel), got {half_size}")
@@ -119,10 +132,12 @@ def _cots_calibrate(manifest, half_size, width, em_model, stages, progress):
     ref = max(em, key=lambda a: a.em_gain_setpoint)
     beads = _find_beads(ref, width, half_size)
     setpoints = list(manifest.setpoints)
-    spots = _fit_spots(manifest, em, beads, setpoints, half_size, width, phi, model.register,
-                       progress)
-    maps, table, ok_bead = _estimates(spots, beads, setpoints, phi, manifest.shape, half_size,
-                                      model.register)
+    spots = _fit_spots(
+        manifest, em, beads, setpoints, half_size, width, phi, model.register, progress
+    )
+    maps, table, ok_bead = _estimates(
+        spots, beads, setpoints, phi, manifest.shape, half_size, model.register
+    )
     if not ok_bead.any():
         raise InputError(
             f"{manifest.path}: COTS gave no usable estimate for any of the {len(beads)} "
@@ -130,7 +145,7 @@ def _cots_calibrate(manifest, half_size, width, em_model, stages, progress):
         )
     converged = np.zeros(manifest.shape, bool)
     for r, c in beads[ok_bead]:
-        converged[r - half_size:r + half_size + 1, c - half_size:c + half_size + 1] = True
+        converged[r - half_size : r + half_size + 1, c - half_size : c + half_size + 1] = True
     return result.make_dataset(
         method="cots",
         setpoints=[float(s) for s in setpoints],
@@ -145,9 +160,14 @@ def _cots_calibrate(manifest, half_size, width, em_model, stages, progress):
         manifest_hash=manifest.content_hash,
         manifest_path=str(manifest.path.resolve()),
         extra=_bead_variables(beads, table),
-        attrs={**result.identity_attrs(manifest), "half_size": half_size, "width": float(width),
-               "bead_frames": str(ref.frames_path), **model.attrs,
-               **({"register_stages_source": stages_source} if stages_source else {})},
+        attrs={
+            **result.identity_attrs(manifest),
+            "half_size": half_size,
+            "width": float(width),
+            "bead_frames": str(ref.frames_path),
+            **model.attrs,
+            **({"register_stages_source": stages_source} if stages_source else {}),
+        },
     )
 
 
@@ -171,8 +191,7 @@ def _find_beads(ref, width, half_size) -> np.ndarray:
     return found.positions
 
 
-def _fit_spots(manifest, em, beads, setpoints, half_size, width, phi, register,
-               progress) -> dict:
+def _fit_spots(manifest, em, beads, setpoints, half_size, width, phi, register, progress) -> dict:
     """COTS on every bead of every multiplied acquisition: per set-point index, a list of
     (bead index, :class:`~emccdcal.beads.cots.CotsSpot`, the offset map in the bead's box).
     The bias correction takes the darks' read noise and the ``register``'s cumulants."""
@@ -180,8 +199,7 @@ def _fit_spots(manifest, em, beads, setpoints, half_size, width, phi, register,
     size = 2 * half_size + 1
     margin = size  # the ROI may follow the spot this far
     per_sp: dict[int, list] = {}
-    with progress_bar(enabled=progress, desc="cots", unit="fit", total=len(beads) * len(em)) \
-            as bar:
+    with progress_bar(enabled=progress, desc="cots", unit="fit", total=len(beads) * len(em)) as bar:
         for a in em:
             si = setpoints.index(a.em_gain_setpoint)
             frames = a.frames()
@@ -192,9 +210,15 @@ def _fit_spots(manifest, em, beads, setpoints, half_size, width, phi, register,
                 box = np.asarray(frames[:, r0:r1, c0:c1])
                 roi = (r - half_size - r0, c - half_size - c0, size, size)
                 try:
-                    spot = cots_spot(box, roi=roi, width=width, adc_max=manifest.adc_max,
-                                     read_noise=a.read_noise[r0:r1, c0:c1],
-                                     register=register, e_per_adu=phi[r, c])
+                    spot = cots_spot(
+                        box,
+                        roi=roi,
+                        width=width,
+                        adc_max=manifest.adc_max,
+                        read_noise=a.read_noise[r0:r1, c0:c1],
+                        register=register,
+                        e_per_adu=phi[r, c],
+                    )
                 except ValueError as exc:
                     warnings.warn(f"{a.frames_path}: bead at ({r}, {c}): {exc}", stacklevel=4)
                     spot = None
@@ -205,16 +229,26 @@ def _fit_spots(manifest, em, beads, setpoints, half_size, width, phi, register,
                         stacklevel=4,
                     )
                 if spot is not None:
-                    dark = a.offset[r - half_size:r + half_size + 1,
-                                    c - half_size:c + half_size + 1]
+                    dark = a.offset[
+                        r - half_size : r + half_size + 1, c - half_size : c + half_size + 1
+                    ]
                     per_sp.setdefault(si, []).append((bi, spot, dark))
                 bar.update(1)
     return per_sp
 
 
 #: Per-bead estimates in the table of :func:`_estimates`.
-_TABLE_KEYS = ("gain", "gain_se", "offset", "offset_se", "em_gain", "em_gain_se", "spot_e",
-               "width", "used")
+_TABLE_KEYS = (
+    "gain",
+    "gain_se",
+    "offset",
+    "offset_se",
+    "em_gain",
+    "em_gain_se",
+    "spot_e",
+    "width",
+    "used",
+)
 
 
 def _estimates(per_sp, beads, setpoints, phi, shape, half_size, register):
@@ -224,8 +258,10 @@ def _estimates(per_sp, beads, setpoints, phi, shape, half_size, register):
     multiplied set-point. The gain is the ``register``'s (:func:`register_gain`)."""
     S, B = len(setpoints), len(beads)
     table = {k: np.full((B, S), np.nan) for k in _TABLE_KEYS}
-    maps = {k: np.full((S,) + tuple(shape), np.nan)
-            for k in ("em_gain", "em_gain_se", "photoelectrons", "photoelectrons_se")}
+    maps = {
+        k: np.full((S,) + tuple(shape), np.nan)
+        for k in ("em_gain", "em_gain_se", "photoelectrons", "photoelectrons_se")
+    }
     ok_bead = np.ones(B, bool)
     for si, sp in enumerate(setpoints):
         if sp == 1:
@@ -240,11 +276,13 @@ def _estimates(per_sp, beads, setpoints, phi, shape, half_size, register):
                 continue
             r, c = beads[bi]
             g, g_se, s0, s0_se, spot_e, wid, used, pe_b, pe_b_se = _combine(
-                by_bead[bi], lambda G, se, phi_rc=phi[r, c]: register_gain(register, G, se,
-                                                                            phi_rc))
-            sl = np.s_[r - half_size:r + half_size + 1, c - half_size:c + half_size + 1]
-            for key, value in zip(_TABLE_KEYS, (g, g_se, s0, s0_se, g * phi[r, c],
-                                                g_se * phi[r, c], spot_e, wid, used)):
+                by_bead[bi], lambda G, se, phi_rc=phi[r, c]: register_gain(register, G, se, phi_rc)
+            )
+            sl = np.s_[r - half_size : r + half_size + 1, c - half_size : c + half_size + 1]
+            for key, value in zip(
+                _TABLE_KEYS,
+                (g, g_se, s0, s0_se, g * phi[r, c], g_se * phi[r, c], spot_e, wid, used),
+            ):
                 table[key][bi, si] = value
             maps["em_gain"][si][sl] = g * phi[sl]
             maps["em_gain_se"][si][sl] = g_se * phi[sl]
@@ -257,26 +295,62 @@ def _bead_variables(beads, table) -> dict:
     """The per-bead variables of a COTS result (``make_dataset``'s ``extra``)."""
     bead_dims = ("bead", "setpoint")
     return {
-        "bead_row": (("bead",), beads[:, 0].astype(np.int64), "pixel",
-                     "sensor row of the bead's brightest pixel (ROI centre)"),
-        "bead_col": (("bead",), beads[:, 1].astype(np.int64), "pixel",
-                     "sensor column of the bead's brightest pixel (ROI centre)"),
-        "cots_gain_adu_per_e": (bead_dims, table["gain"], "ADU/e-",
-                                "COTS system gain G (counts per photoelectron)"),
-        "cots_gain_adu_per_e_se": (bead_dims, table["gain_se"], "ADU/e-",
-                                   "standard error of the COTS system gain G"),
+        "bead_row": (
+            ("bead",),
+            beads[:, 0].astype(np.int64),
+            "pixel",
+            "sensor row of the bead's brightest pixel (ROI centre)",
+        ),
+        "bead_col": (
+            ("bead",),
+            beads[:, 1].astype(np.int64),
+            "pixel",
+            "sensor column of the bead's brightest pixel (ROI centre)",
+        ),
+        "cots_gain_adu_per_e": (
+            bead_dims,
+            table["gain"],
+            "ADU/e-",
+            "COTS system gain G (counts per photoelectron)",
+        ),
+        "cots_gain_adu_per_e_se": (
+            bead_dims,
+            table["gain_se"],
+            "ADU/e-",
+            "standard error of the COTS system gain G",
+        ),
         "cots_offset": (bead_dims, table["offset"], "ADU", "COTS offset S0"),
-        "cots_offset_se": (bead_dims, table["offset_se"], "ADU",
-                           "standard error of the COTS offset S0"),
-        "cots_em_gain": (bead_dims, table["em_gain"], "1",
-                         "COTS EM gain g = G * e_per_adu at the bead's pixel"),
-        "cots_em_gain_se": (bead_dims, table["em_gain_se"], "1",
-                            "standard error of the COTS EM gain g"),
-        "cots_spot_photoelectrons": (bead_dims, table["spot_e"], "e-",
-                                     "mean fitted spot total N/G per frame"),
+        "cots_offset_se": (
+            bead_dims,
+            table["offset_se"],
+            "ADU",
+            "standard error of the COTS offset S0",
+        ),
+        "cots_em_gain": (
+            bead_dims,
+            table["em_gain"],
+            "1",
+            "COTS EM gain g = G * e_per_adu at the bead's pixel",
+        ),
+        "cots_em_gain_se": (
+            bead_dims,
+            table["em_gain_se"],
+            "1",
+            "standard error of the COTS EM gain g",
+        ),
+        "cots_spot_photoelectrons": (
+            bead_dims,
+            table["spot_e"],
+            "e-",
+            "mean fitted spot total N/G per frame",
+        ),
         "cots_width": (bead_dims, table["width"], "pixel", "mean fitted PSF standard deviation"),
-        "cots_frames_used": (bead_dims, table["used"], "1",
-                             "frames whose fits were usable (NaN: bead not analysed)"),
+        "cots_frames_used": (
+            bead_dims,
+            table["used"],
+            "1",
+            "frames whose fits were usable (NaN: bead not analysed)",
+        ),
     }
 
 
@@ -339,8 +413,10 @@ def _combine(pairs, gain_of):
         s0_se = float(1 / np.sqrt(ws.sum()))
         n = np.array([s.n_used for s in spots], float)
         mean_excess = np.sum([x * k for x, k in zip(excess, n)], axis=0) / n.sum()
-        mean_se = np.sqrt(np.sum([(s.mean_counts_se * k) ** 2 for s, k in zip(spots, n)],
-                                 axis=0)) / n.sum()
+        mean_se = (
+            np.sqrt(np.sum([(s.mean_counts_se * k) ** 2 for s, k in zip(spots, n)], axis=0))
+            / n.sum()
+        )
         spot_counts = float(np.sum([s.spot_counts * k for s, k in zip(spots, n)]) / n.sum())
         wid = float(np.sum([s.width * k for s, k in zip(spots, n)]) / n.sum())
         used = int(n.sum())
@@ -353,10 +429,14 @@ def _combine(pairs, gain_of):
 def format_summary(ds) -> str:
     """Per set-point: the bead-mean EM gain g ± its SE, and the bead-mean G and S0."""
     model = noise.EMModel.from_attrs(ds.attrs)
-    lines = [(f"method cots: {int(np.isfinite(ds.bead_row.values).sum())} bead(s), "
-              f"{ds.attrs.get('seconds', float('nan')):.1f} s, e_per_adu "
-              f"{float(np.nanmedian(ds.e_per_adu.values)):.4f} e-/ADU"
-              + ("" if model is None else f", register {model}"))]
+    lines = [
+        (
+            f"method cots: {int(np.isfinite(ds.bead_row.values).sum())} bead(s), "
+            f"{ds.attrs.get('seconds', float('nan')):.1f} s, e_per_adu "
+            f"{float(np.nanmedian(ds.e_per_adu.values)):.4f} e-/ADU"
+            + ("" if model is None else f", register {model}")
+        )
+    ]
     for si, sp in enumerate(ds.setpoint.values):
         label = result.format_setpoint(sp)
         if sp == 1:
@@ -379,5 +459,3 @@ def format_summary(ds) -> str:
             f"beads {sd:.2g}); G {G:.4g} ADU/e-, S0 {s0:.5g} ADU"
         )
     return "\n".join(lines)
-
-

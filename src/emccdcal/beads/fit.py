@@ -225,12 +225,19 @@ def mean_image(frames, offset, *, chunk_frames=256) -> np.ndarray:
         raise OptionError("mean_image needs at least one frame")
     total = np.zeros(frames.shape[1:])
     for f0 in range(0, n, chunk_frames):
-        total += np.asarray(frames[f0:f0 + chunk_frames]).sum(axis=0, dtype=np.float64)
+        total += np.asarray(frames[f0 : f0 + chunk_frames]).sum(axis=0, dtype=np.float64)
     return total / n - np.asarray(offset, dtype=float)
 
 
-def detect_beads(frames, offset, *, width=DEFAULT_WIDTH, half_size=DEFAULT_HALF_SIZE,
-                 min_separation=None, snr=8.0) -> psf.BeadSearch:
+def detect_beads(
+    frames,
+    offset,
+    *,
+    width=DEFAULT_WIDTH,
+    half_size=DEFAULT_HALF_SIZE,
+    min_separation=None,
+    snr=8.0,
+) -> psf.BeadSearch:
     """Find isolated beads on the offset-subtracted mean image of a stack.
 
     Parameters
@@ -249,8 +256,13 @@ def detect_beads(frames, offset, *, width=DEFAULT_WIDTH, half_size=DEFAULT_HALF_
     emccdcal.model.psf.BeadSearch
         Accepted positions and the candidates rejected at the edge or for crowding.
     """
-    return psf.find_beads(mean_image(frames, offset), width=width, half_size=half_size,
-                          min_separation=min_separation, snr=snr)
+    return psf.find_beads(
+        mean_image(frames, offset),
+        width=width,
+        half_size=half_size,
+        min_separation=min_separation,
+        snr=snr,
+    )
 
 
 # --------------------------------------------------------------------------------------
@@ -301,9 +313,17 @@ def _fit_rows(objective, p0, lower, upper, *, tol, max_iter):
     semi-definite curvature ``H (m, 5, 5)``. Returns the parameters and the per-row
     iterations.
     """
-    opt = maximize(lambda rows, p: _evaluate_rows(objective, p, rows), p0, lower=lower,
-                   upper=upper, tol=tol, max_iter=max_iter, max_step=np.inf,
-                   accept_rtol=1e-10, stuck_tol=_STUCK_DECREMENT)
+    opt = maximize(
+        lambda rows, p: _evaluate_rows(objective, p, rows),
+        p0,
+        lower=lower,
+        upper=upper,
+        tol=tol,
+        max_iter=max_iter,
+        max_step=np.inf,
+        accept_rtol=1e-10,
+        stuck_tol=_STUCK_DECREMENT,
+    )
     return opt.x, opt.iterations
 
 
@@ -323,12 +343,20 @@ def _joint_fit(objective, p, layout, *, tol, max_iter, beads=None):
     def evaluate(local, x):
         rows = rows_of[beads[local]].ravel()
         ll, grad, H = _evaluate_rows(objective, layout.unpack(x, template[rows]), rows)
-        return (ll.reshape(-1, F).sum(axis=1), layout.gradient(grad),
-                H.reshape(-1, F, _NP, _NP))
+        return (ll.reshape(-1, F).sum(axis=1), layout.gradient(grad), H.reshape(-1, F, _NP, _NP))
 
-    opt = maximize(evaluate, layout.pack(p[rows_of[beads].ravel()]), lower=layout.lower,
-                   upper=layout.upper, tol=tol, max_iter=max_iter, max_step=np.inf,
-                   accept_rtol=1e-10, stuck_tol=_STUCK_DECREMENT, step=layout.step)
+    opt = maximize(
+        evaluate,
+        layout.pack(p[rows_of[beads].ravel()]),
+        lower=layout.lower,
+        upper=layout.upper,
+        tol=tol,
+        max_iter=max_iter,
+        max_step=np.inf,
+        accept_rtol=1e-10,
+        stuck_tol=_STUCK_DECREMENT,
+        step=layout.step,
+    )
     rows = rows_of[beads].ravel()
     p = p.copy()
     p[rows] = layout.unpack(opt.x, template[rows])
@@ -343,16 +371,22 @@ def _joint_fit(objective, p, layout, *, tol, max_iter, beads=None):
 def _box_slices(positions, half_size, shape):
     R, C = shape
     pos = np.asarray(positions, dtype=int).reshape(-1, 2)
-    bad = (pos[:, 0] < half_size) | (pos[:, 1] < half_size) | \
-        (pos[:, 0] >= R - half_size) | (pos[:, 1] >= C - half_size)
+    bad = (
+        (pos[:, 0] < half_size)
+        | (pos[:, 1] < half_size)
+        | (pos[:, 0] >= R - half_size)
+        | (pos[:, 1] >= C - half_size)
+    )
     if bad.any():
         r, c = pos[np.argmax(bad)]
         raise OptionError(
             f"bead at (row {r}, col {c}) is closer than half_size = {half_size} px to the "
             f"edge of the {R}×{C} frame; its box does not fit"
         )
-    return pos, [(slice(r - half_size, r + half_size + 1), slice(c - half_size, c + half_size + 1))
-                 for r, c in pos]
+    return pos, [
+        (slice(r - half_size, r + half_size + 1), slice(c - half_size, c + half_size + 1))
+        for r, c in pos
+    ]
 
 
 def _pixel_map(name, value, shape, boxes, pos, *, positive=False, at_least=None):
@@ -360,7 +394,9 @@ def _pixel_map(name, value, shape, boxes, pos, *, positive=False, at_least=None)
     try:
         arr = np.broadcast_to(np.asarray(value, dtype=float), shape)
     except ValueError:
-        raise OptionError(f"{name} has shape {np.shape(value)}; expected the frame shape {shape}") from None
+        raise OptionError(
+            f"{name} has shape {np.shape(value)}; expected the frame shape {shape}"
+        ) from None
     out = np.stack([arr[rs, cs].ravel() for rs, cs in boxes]) if boxes else np.zeros((0, 1))
     bad = ~np.isfinite(out)
     if positive:
@@ -376,11 +412,26 @@ def _pixel_map(name, value, shape, boxes, pos, *, positive=False, at_least=None)
     return out
 
 
-def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
-              half_size=DEFAULT_HALF_SIZE, width=DEFAULT_WIDTH, adc_max=None,
-              max_iter=60, em_model=None, fixed_width=None, fixed_width_se=None,
-              background="shared", residual=None, offset_se=None,
-              residual_split="alternate") -> BeadFits:
+def fit_beads(
+    frames,
+    positions,
+    *,
+    offset,
+    read_noise,
+    e_per_adu,
+    em_gain,
+    half_size=DEFAULT_HALF_SIZE,
+    width=DEFAULT_WIDTH,
+    adc_max=None,
+    max_iter=60,
+    em_model=None,
+    fixed_width=None,
+    fixed_width_se=None,
+    background="shared",
+    residual=None,
+    offset_se=None,
+    residual_split="alternate",
+) -> BeadFits:
     """Fit every bead in every frame of one acquisition by maximum likelihood: the bead's
     position, width and background shared by its frames, each frame's intensity.
 
@@ -441,7 +492,9 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         a gain below 1, or a stack that is not (frames, rows, cols).
     """
     if np.ndim(frames) != 3:
-        raise OptionError(f"frames must be a (frames, rows, cols) stack, got shape {np.shape(frames)}")
+        raise OptionError(
+            f"frames must be a (frames, rows, cols) stack, got shape {np.shape(frames)}"
+        )
     half_size = int(half_size)
     if half_size < 2:
         raise OptionError(f"half_size must be at least 2 px, got {half_size}")
@@ -453,28 +506,33 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         raise OptionError(f"background must be 'shared' or 'frame', got {background!r}")
     frame_halves(0, residual_split)  # checks the name
     if residual is not None and len(residual) not in (1, B):
-        raise OptionError(f"the residual image has {len(residual)} images; expected 1 or one "
-                          f"per bead ({B})")
+        raise OptionError(
+            f"the residual image has {len(residual)} images; expected 1 or one per bead ({B})"
+        )
     if fixed_width is not None:
         fixed = np.broadcast_to(np.asarray(fixed_width, dtype=float), (B,)).copy()
         if not np.all((fixed > lower[2]) & (fixed < upper[2])):
-            raise OptionError(f"fixed_width must be between {lower[2]:g} and {upper[2]:g} px "
-                              f"for a box of half-size {half_size}; got {fixed.tolist()}")
+            raise OptionError(
+                f"fixed_width must be between {lower[2]:g} and {upper[2]:g} px "
+                f"for a box of half-size {half_size}; got {fixed.tolist()}"
+            )
     n = 2 * half_size + 1
     S0 = _pixel_map("offset", offset, (R, C), boxes, pos)
     sigma = _pixel_map("read_noise", read_noise, (R, C), boxes, pos, positive=True)
     phi = _pixel_map("e_per_adu", e_per_adu, (R, C), boxes, pos, positive=True)
     g = _pixel_map("em_gain", em_gain, (R, C), boxes, pos, at_least=1.0)
-    s0_se = _pixel_map("offset_se", 0.0 if offset_se is None else offset_se, (R, C), boxes,
-                       pos, at_least=0.0)
+    s0_se = _pixel_map(
+        "offset_se", 0.0 if offset_se is None else offset_se, (R, C), boxes, pos, at_least=0.0
+    )
     if B == 0 or F == 0:
         return _no_fits(pos, F, n, residual_split)
     counts, weight, n_sat = _box_counts(frames, boxes, adc_max)
 
     box = _Boxes(counts, weight, S0, sigma, phi, g, half_size, residual)
     # 0: each bead's mean image (Gaussian approximation): its shape
-    p_bead, it_mean = _fit_rows(box.objective_mean, box.start(width), lower, upper,
-                                tol=5e-7, max_iter=max_iter)
+    p_bead, it_mean = _fit_rows(
+        box.objective_mean, box.start(width), lower, upper, tol=5e-7, max_iter=max_iter
+    )
     # 1: every frame, Gaussian approximation, the bead's shape shared. Position, width (and
     # background) are the bead's own, the same in every frame; the intensity changes from
     # frame to frame (the module's notes say why).
@@ -482,29 +540,37 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         p_bead[:, 2] = fixed
     shared, frame = _shared_and_frame(fixed_width is not None, background)
     layout = ArrowLayout(F, _NP, shared, frame, lower, upper)
-    p1, _, it_gauss = _joint_fit(box.objective_gauss, box.frame_start(p_bead, background),
-                                 layout, tol=5e-5, max_iter=max_iter)
+    p1, _, it_gauss = _joint_fit(
+        box.objective_gauss,
+        box.frame_start(p_bead, background),
+        layout,
+        tol=5e-5,
+        max_iter=max_iter,
+    )
     # 2: the exact likelihood through per-pixel tables of ln p(S | E)
     box.tabulate(p1, em_model or noise.EMModel())
-    p2, conv_b, it_exact, E_all, info_all, outside, retab = _fit_exact(box, p1, layout,
-                                                                       max_iter)
+    p2, conv_b, it_exact, E_all, info_all, outside, retab = _fit_exact(box, p1, layout, max_iter)
     # the standard errors from the joint information, and what the model misses
     ll2, grad, H = _evaluate_rows(box.objective_exact, p2, np.arange(B * F))
     pb, Hb = p2.reshape(B, F, _NP), H.reshape(B, F, _NP, _NP)
     arrow = schur(Hb, shared, frame)  # S, H_ff⁻¹, H_sf: the errors and responses below
     se, sensitivity, shared_cov = _joint_errors(arrow, shared, frame)
     frame_ok = np.all(np.isfinite(Hb), axis=(2, 3)) & (Hb[..., 3, 3] > 0)
-    inside = np.all((pb[..., :3] > lower[:3] + 1e-9) & (pb[..., :3] < upper[:3] - 1e-9),
-                    axis=2)
-    converged = (conv_b[:, None] & frame_ok & inside & ~outside.reshape(B, F)
-                 & np.isfinite(ll2.reshape(B, F)))
+    inside = np.all((pb[..., :3] > lower[:3] + 1e-9) & (pb[..., :3] < upper[:3] - 1e-9), axis=2)
+    converged = (
+        conv_b[:, None]
+        & frame_ok
+        & inside
+        & ~outside.reshape(B, F)
+        & np.isfinite(ll2.reshape(B, F))
+    )
     width_var = np.zeros(B)  # the held width's own error, where given
     if fixed_width is not None and fixed_width_se is not None:
         width_se = np.broadcast_to(np.asarray(fixed_width_se, dtype=float), (B,))
-        width_var = (_width_effect(Hb, arrow, shared_cov, shared, frame, converged)
-                     * width_se) ** 2
+        width_var = (_width_effect(Hb, arrow, shared_cov, shared, frame, converged) * width_se) ** 2
     r_mean, r_var, half_mean, half_var, W = _mean_residual(
-        box, p2, E_all, info_all, converged, residual_split, (s0_se / box.theta) ** 2)
+        box, p2, E_all, info_all, converged, residual_split, (s0_se / box.theta) ** 2
+    )
     n_offset_se = _offset_error(box, pb, converged, sorted(shared + frame), W, s0_se)
     params = p2.copy()
     params[:, 0] += np.repeat(pos[:, 1], F)
@@ -524,8 +590,7 @@ def fit_beads(frames, positions, *, offset, read_noise, e_per_adu, em_gain,
         residual_halves_se=np.sqrt(half_var).reshape(2, B, n, n),
         residual_split=residual_split,
         intensity_offset_se=np.where(converged.any(axis=1), n_offset_se, np.nan),
-        intensity_shared_se=_shared_error_of_mean(sensitivity, shared_cov, converged,
-                                                  width_var),
+        intensity_shared_se=_shared_error_of_mean(sensitivity, shared_cov, converged, width_var),
     )
 
 
@@ -534,10 +599,23 @@ def _no_fits(pos, F, n, residual_split) -> BeadFits:
     B = len(pos)
     empty = np.zeros((B, F, _NP))
     none = np.full((B, n, n), np.nan)
-    return BeadFits(pos, empty, empty.copy(), np.zeros((B, F)), np.zeros((B, F), bool),
-                    np.zeros((B, 3), int), 0, 0, none, none.copy(), np.full(B, np.nan),
-                    np.full(B, np.nan), np.stack([none, none]), np.stack([none, none]),
-                    residual_split)
+    return BeadFits(
+        pos,
+        empty,
+        empty.copy(),
+        np.zeros((B, F)),
+        np.zeros((B, F), bool),
+        np.zeros((B, 3), int),
+        0,
+        0,
+        none,
+        none.copy(),
+        np.full(B, np.nan),
+        np.full(B, np.nan),
+        np.stack([none, none]),
+        np.stack([none, none]),
+        residual_split,
+    )
 
 
 def _box_counts(frames, boxes, adc_max):
@@ -581,20 +659,19 @@ class _Boxes:
         self.B, self.F, self.npix, self.M = B, F, npix, B * F
         self.counts, self.S0, self.sigma, self.phi, self.g = counts, S0, sigma, phi, g
         pn = g == 1.0
-        self.theta = np.where(pn, 1.0 / phi, g / phi)          # ADU per e⁻, (B, npix)
+        self.theta = np.where(pn, 1.0 / phi, g / phi)  # ADU per e⁻, (B, npix)
         self.f2 = np.where(pn, 1.0, 2.0)
-        self.var_read = (sigma / self.theta) ** 2               # e⁻², (B, npix)
-        self.y = (counts - S0[:, None, :]) / self.theta[:, None, :]   # e⁻, (B, F, npix)
+        self.var_read = (sigma / self.theta) ** 2  # e⁻², (B, npix)
+        self.y = (counts - S0[:, None, :]) / self.theta[:, None, :]  # e⁻, (B, F, npix)
         self.weight = weight
         self.y_m, self.w_m = self.y.reshape(self.M, npix), weight.reshape(self.M, npix)
-        self.ybar = self.y.mean(axis=1)                          # (B, npix)
+        self.ybar = self.y.mean(axis=1)  # (B, npix)
         self.bead_of = np.repeat(np.arange(B), F)
         self.local = np.arange(-half_size, half_size + 1, dtype=float)
         yy, xx = np.meshgrid(self.local, self.local, indexing="ij")
         self.yy, self.xx = yy.ravel(), xx.ravel()
         self.residual = residual
-        self.image_of = (np.zeros(B, int) if residual is None or len(residual) == 1
-                         else np.arange(B))
+        self.image_of = np.zeros(B, int) if residual is None or len(residual) == 1 else np.arange(B)
         self.table = None
 
     def model(self, p, beads):
@@ -602,8 +679,9 @@ class _Boxes:
         img, jac = psf.spot_image(p, self.local, self.local, jacobian=True)
         E, J = img.reshape(len(p), self.npix), jac.reshape(len(p), self.npix, _NP)
         if self.residual is not None:
-            Rv, R_dy, R_dx = self.residual.evaluate(self.image_of[beads],
-                                                    self.yy - p[:, 1:2], self.xx - p[:, 0:1])
+            Rv, R_dy, R_dx = self.residual.evaluate(
+                self.image_of[beads], self.yy - p[:, 1:2], self.xx - p[:, 0:1]
+            )
             N = p[:, 3:4]
             E = E + N * Rv
             J[..., 3] += Rv
@@ -625,16 +703,16 @@ class _Boxes:
         N0 = np.maximum(excess.sum(axis=1), 1.0)
         cx = np.clip((excess * self.xx).sum(axis=1) / N0, -1.0, 1.0)
         cy = np.clip((excess * self.yy).sum(axis=1) / N0, -1.0, 1.0)
-        return np.stack([cx, cy, np.full(self.B, float(width)), N0, np.maximum(b0, 0.0)],
-                        axis=1)
+        return np.stack([cx, cy, np.full(self.B, float(width)), N0, np.maximum(b0, 0.0)], axis=1)
 
     def frame_start(self, p_bead, background):
         """Every frame's row: the bead's shape, with the intensity and background from
         least squares on that shape (a shared background the mean over frames)."""
         B, F = self.B, self.F
         p1 = np.repeat(p_bead, F, axis=0)
-        unit, _ = self.model(np.concatenate([p_bead[:, :3], np.ones((B, 1)),
-                                             np.zeros((B, 1))], axis=1), np.arange(B))
+        unit, _ = self.model(
+            np.concatenate([p_bead[:, :3], np.ones((B, 1)), np.zeros((B, 1))], axis=1), np.arange(B)
+        )
         for b in range(B):
             X = np.stack([unit[b], np.ones(self.npix)], axis=1)
             coef = np.linalg.lstsq(X, self.y[b].T, rcond=None)[0]  # (2, F)
@@ -647,8 +725,7 @@ class _Boxes:
     def objective_mean(self, p, s):
         """Each bead's mean image under the Gaussian approximation (rows: beads)."""
         E, J = self.model(p, s)
-        ll, d1, info = _gaussian_terms(E, self.ybar[s], self.var_read[s], self.f2[s],
-                                       1.0 / self.F)
+        ll, d1, info = _gaussian_terms(E, self.ybar[s], self.var_read[s], self.f2[s], 1.0 / self.F)
         return ll.sum(axis=1), np.einsum("mk,mki->mi", d1, J), self._curvature(info, J)
 
     def objective_gauss(self, p, s):
@@ -657,8 +734,11 @@ class _Boxes:
         E, J = self.model(p, b)
         ll, d1, info = _gaussian_terms(E, self.y_m[s], self.var_read[b], self.f2[b])
         w = self.w_m[s]
-        return ((w * ll).sum(axis=1), np.einsum("mk,mki->mi", w * d1, J),
-                self._curvature(w * info, J))
+        return (
+            (w * ll).sum(axis=1),
+            np.einsum("mk,mki->mi", w * d1, J),
+            self._curvature(w * info, J),
+        )
 
     def tabulate(self, p, em_model):
         """Tables of the exact ln p(S | E) of every pixel over the range of E that the
@@ -667,10 +747,16 @@ class _Boxes:
         E1 = self.model(p, self.bead_of)[0].reshape(B, F, npix)
         lo, hi = _pad_range(E1.min(axis=1), E1.max(axis=1))
         self.table = noise.LogpmfTable(
-            self.counts.reshape(-1), np.repeat(np.arange(B), F * npix) * npix
-            + np.tile(np.arange(npix), self.M),
-            lo.ravel(), hi.ravel(), self.g.ravel(), self.phi.ravel(), self.S0.ravel(),
-            self.sigma.ravel(), em_model=em_model)
+            self.counts.reshape(-1),
+            np.repeat(np.arange(B), F * npix) * npix + np.tile(np.arange(npix), self.M),
+            lo.ravel(),
+            hi.ravel(),
+            self.g.ravel(),
+            self.phi.ravel(),
+            self.S0.ravel(),
+            self.sigma.ravel(),
+            em_model=em_model,
+        )
 
     def exact_terms(self, p, s):
         """E, J, ln p and its first two E-derivatives, and the pixels outside their
@@ -685,8 +771,11 @@ class _Boxes:
         """Every frame under the exact likelihood (rows: bead-frames)."""
         _, J, lp, d1, d2, _ = self.exact_terms(p, s)
         w = self.w_m[s]
-        return ((w * lp).sum(axis=1), np.einsum("mk,mki->mi", w * d1, J),
-                self._curvature(w * np.maximum(-d2, 0.0), J))
+        return (
+            (w * lp).sum(axis=1),
+            np.einsum("mk,mki->mi", w * d1, J),
+            self._curvature(w * np.maximum(-d2, 0.0), J),
+        )
 
     def all_terms(self, p):
         """Every row's E, its information −∂² ln p/∂E² and the weighted pixels outside
@@ -709,8 +798,9 @@ def _fit_exact(box, p, layout, max_iter, rounds=5):
     every row's E and information at the end, the rows with a pixel still outside, and
     the pixels re-tabulated."""
     B, F, npix = box.B, box.F, box.npix
-    p, converged, iterations = _joint_fit(box.objective_exact, p, layout, tol=5e-8,
-                                          max_iter=max_iter)
+    p, converged, iterations = _joint_fit(
+        box.objective_exact, p, layout, tol=5e-8, max_iter=max_iter
+    )
     retab = 0
     for round_ in range(rounds):  # the last round only evaluates
         E_all, info_all, out_px = box.all_terms(p)
@@ -725,13 +815,15 @@ def _fit_exact(box, p, layout, max_iter, rounds=5):
         np.minimum.at(need_lo, pix, E_all[out_px])
         np.maximum.at(need_hi, pix, E_all[out_px])
         px = np.unique(pix)
-        new_lo, new_hi = _pad_range(np.minimum(e_lo[px], need_lo[px]),
-                                    np.maximum(e_hi[px], need_hi[px]))
+        new_lo, new_hi = _pad_range(
+            np.minimum(e_lo[px], need_lo[px]), np.maximum(e_hi[px], need_hi[px])
+        )
         box.table.set_range(px, new_lo, new_hi)
         retab += px.size
         redo = outside.reshape(B, F).any(axis=1)
-        p, conv_r, it_r = _joint_fit(box.objective_exact, p, layout, tol=5e-8,
-                                     max_iter=max_iter, beads=redo)
+        p, conv_r, it_r = _joint_fit(
+            box.objective_exact, p, layout, tol=5e-8, max_iter=max_iter, beads=redo
+        )
         converged = np.where(redo, conv_r, converged)
         iterations = iterations + it_r
     return p, converged, iterations, E_all, info_all, outside, retab
@@ -800,16 +892,17 @@ def _width_effect(Hb, arrow, shared_cov, shared, frame, converged, width=2):
     ``shared_cov`` = S⁻¹ first, then each frame's own)."""
     _, Hff_inv, Hsf = arrow
     with np.errstate(invalid="ignore", divide="ignore"):
-        r_s = -Hb[..., shared, width].sum(axis=1)          # (B, k)
-        r_f = -Hb[..., frame, width]                        # (B, F, f)
-        x_s = np.einsum("bkl,bl->bk", shared_cov,
-                        r_s - np.einsum("bfkj,bfj->bk", Hsf @ Hff_inv, r_f))
-        x_f = np.einsum("bfij,bfj->bfi", Hff_inv,
-                        r_f - np.einsum("bfkj,bk->bfj", Hsf, x_s))
-        d = x_f[..., frame.index(3)]                        # dN̂_f/dw
+        r_s = -Hb[..., shared, width].sum(axis=1)  # (B, k)
+        r_f = -Hb[..., frame, width]  # (B, F, f)
+        x_s = np.einsum(
+            "bkl,bl->bk", shared_cov, r_s - np.einsum("bfkj,bfj->bk", Hsf @ Hff_inv, r_f)
+        )
+        x_f = np.einsum("bfij,bfj->bfi", Hff_inv, r_f - np.einsum("bfkj,bk->bfj", Hsf, x_s))
+        d = x_f[..., frame.index(3)]  # dN̂_f/dw
         n = converged.sum(axis=1)
-        return np.where(n > 0, np.sum(np.where(converged, d, 0.0), axis=1)
-                        / np.maximum(n, 1), np.nan)
+        return np.where(
+            n > 0, np.sum(np.where(converged, d, 0.0), axis=1) / np.maximum(n, 1), np.nan
+        )
 
 
 def _mean_residual(box, p, E_all, info_all, converged, split, offset_var):
@@ -829,8 +922,9 @@ def _mean_residual(box, p, E_all, info_all, converged, split, offset_var):
         with np.errstate(invalid="ignore", divide="ignore"):
             r = np.where(sel, resid, 0.0)
             mean = r.sum(axis=1) / count
-            var = (np.where(sel, (r - mean[:, None]) ** 2, 0.0).sum(axis=1)
-                   / (count - 1) / count) + offset_var
+            var = (
+                np.where(sel, (r - mean[:, None]) ** 2, 0.0).sum(axis=1) / (count - 1) / count
+            ) + offset_var
         return np.where(count > 1, mean, np.nan), np.where(count > 1, var, np.nan)
 
     r_mean, r_var = mean_var(use)
@@ -863,7 +957,7 @@ def _offset_error(box, pb, converged, fitted, W, s0_se):
     with np.errstate(invalid="ignore", divide="ignore"):
         p_mean = pb[:, 0].copy()
         p_mean[:, 3:] = np.nanmean(np.where(converged[..., None], pb[..., 3:], np.nan), axis=1)
-        J = box.model(p_mean, np.arange(box.B))[1][..., fitted]       # (B, npix, k)
+        J = box.model(p_mean, np.arange(box.B))[1][..., fitted]  # (B, npix, k)
         JW = np.swapaxes(J, 1, 2) * W[:, None, :]
         A = np.nan_to_num(JW @ J) + 1e-12 * np.eye(len(fitted))
         coef = np.linalg.solve(A, np.nan_to_num(JW))[:, fitted.index(3)]
@@ -883,13 +977,16 @@ def shared_widths(fits, *, with_se: bool = False):
     own error still moves every set-point's intensity against the truth: pass its SE to
     :func:`fit_beads` (``fixed_width_se``) to count it.
     """
-    w = np.stack([f.params[:, 0, 2] for f in fits])         # (A, B)
+    w = np.stack([f.params[:, 0, 2] for f in fits])  # (A, B)
     se = np.stack([f.se[:, 0, 2] for f in fits])
     ok = np.stack([f.converged.any(axis=1) for f in fits]) & np.isfinite(se) & (se > 0)
     weight = np.where(ok, 1.0 / np.where(ok, se, 1.0) ** 2, 0.0)
     total = weight.sum(axis=0)
-    width = np.where(total > 0, (weight * np.where(ok, w, 0.0)).sum(axis=0)
-                     / np.where(total > 0, total, 1.0), np.nan)
+    width = np.where(
+        total > 0,
+        (weight * np.where(ok, w, 0.0)).sum(axis=0) / np.where(total > 0, total, 1.0),
+        np.nan,
+    )
     if not with_se:
         return width
     return width, np.where(total > 0, 1.0 / np.sqrt(np.where(total > 0, total, 1.0)), np.nan)
@@ -950,13 +1047,12 @@ def residual_image(fits, *, oversample=4, per_bead=True, half=None) -> psf.Resid
     fits = list(fits)
     B, n = fits[0].residual.shape[:2]
     h = n // 2
-    c = int(np.ceil((h + 1.5) * q))                 # nodes from the centre to the edge
+    c = int(np.ceil((h + 1.5) * q))  # nodes from the centre to the edge
     G = 2 * c + 1
     K = B if per_bead else 1
-    samples = [[] for _ in range(K)]                # (node row, node col, weight, value)
+    samples = [[] for _ in range(K)]  # (node row, node col, weight, value)
     for fit in fits:
-        if fit.residual.shape[:2] != (B, n) or not np.array_equal(fit.positions,
-                                                                  fits[0].positions):
+        if fit.residual.shape[:2] != (B, n) or not np.array_equal(fit.positions, fits[0].positions):
             raise OptionError("residual_image needs fits of the same beads and box size")
         resid, resid_se = _residual_of(fit, half)
         for b in range(B):
@@ -967,16 +1063,17 @@ def residual_image(fits, *, oversample=4, per_bead=True, half=None) -> psf.Resid
             good = np.isfinite(r) & np.isfinite(se) & (se > 0)
             dy, dx = _box_offsets(fit, b, n)
             samples[b if per_bead else 0].append(
-                (dy[good] * q + c, dx[good] * q + c, 1.0 / se[good] ** 2, r[good]))
+                (dy[good] * q + c, dx[good] * q + c, 1.0 / se[good] ** 2, r[good])
+            )
     values, variance = np.zeros((2, K, G, G))
     for k, parts in enumerate(samples):
         if not parts:
             continue
         gy, gx, w, r = (np.concatenate(p) for p in zip(*parts))
-        a, bb = _spread(gy, G, q / 4.0), _spread(gx, G, q / 4.0)   # (samples, G) each
+        a, bb = _spread(gy, G, q / 4.0), _spread(gx, G, q / 4.0)  # (samples, G) each
         num = a.T @ ((w * r)[:, None] * bb)
         den = a.T @ (w[:, None] * bb)
-        var_num = (a**2).T @ (w[:, None] * bb**2)   # Var(w r) = w, for w = 1/SE²
+        var_num = (a**2).T @ (w[:, None] * bb**2)  # Var(w r) = w, for w = 1/SE²
         keep = den > 1e-3 * den.max()
         safe = np.where(keep, den, 1.0)
         values[k] = np.where(keep, num / safe, 0.0)
@@ -999,8 +1096,7 @@ def _spread(g, size, sd):
     for shift, weight in ((0, 1.0 - frac), (1, frac)):
         d = nodes[None, :] - (low + shift)[:, None]
         inside = np.abs(d) <= radius
-        out += weight[:, None] * np.where(inside, kernel[np.clip(d + radius, 0, 2 * radius)],
-                                          0.0)
+        out += weight[:, None] * np.where(inside, kernel[np.clip(d + radius, 0, 2 * radius)], 0.0)
     return out
 
 
@@ -1009,8 +1105,10 @@ def _box_offsets(fit, b, n):
     shared position), pixel, shape (n, n) each: where its residual image is read."""
     x0, y0 = fit.params[b, np.argmax(fit.converged[b]), :2]
     local = np.arange(n) - n // 2
-    return ((fit.positions[b, 0] + local - y0)[:, None] * np.ones(n),
-            np.ones(n)[:, None] * (fit.positions[b, 1] + local - x0))
+    return (
+        (fit.positions[b, 0] + local - y0)[:, None] * np.ones(n),
+        np.ones(n)[:, None] * (fit.positions[b, 1] + local - x0),
+    )
 
 
 def _residual_of(fit, half):
@@ -1054,8 +1152,7 @@ def psf_mismatch(fit, *, half=None, image=None) -> dict:
         r, var = resid[b], resid_se[b] ** 2
         if image is not None and N > 0:
             dy, dx = _box_offsets(fit, b, n)
-            var = var + N**2 * image.variance_at(
-                np.full(n, b if len(image) > 1 else 0), dy, dx)
+            var = var + N**2 * image.variance_at(np.full(n, b if len(image) > 1 else 0), dy, dx)
         good = np.isfinite(r) & np.isfinite(var) & (var > 0)
         if not N > 0 or not good.any():
             continue
@@ -1063,11 +1160,15 @@ def psf_mismatch(fit, *, half=None, image=None) -> dict:
         pixels.append(int(good.sum()))
         missed.append(float(r[good].sum() / N))
         absolute.append(float(np.abs(r[good]).sum() / N))
-    mean = (lambda v: float(np.mean(v)) if v else float("nan"))
-    return {"chi2_per_pixel": mean(chi2),
-            "chi2_per_pixel_se": (float(np.sqrt(np.sum(2.0 / np.array(pixels)))
-                                        / len(pixels)) if pixels else float("nan")),
-            "missed_fraction": mean(missed), "abs_fraction": mean(absolute)}
+    mean = lambda v: float(np.mean(v)) if v else float("nan")
+    return {
+        "chi2_per_pixel": mean(chi2),
+        "chi2_per_pixel_se": (
+            float(np.sqrt(np.sum(2.0 / np.array(pixels))) / len(pixels)) if pixels else float("nan")
+        ),
+        "missed_fraction": mean(missed),
+        "abs_fraction": mean(absolute),
+    }
 
 
 def _pad_range(lo, hi):

@@ -173,12 +173,12 @@ def _acquisitions_by_setpoint(manifest):
 class _Slot(NamedTuple):
     """Where one acquisition's frames go in the (set-point, frame) arrays."""
 
-    row: int        # the row of its set-point
+    row: int  # the row of its set-point
     setpoint: float
-    acq: object     # the manifest's Acquisition
-    first: int      # its first column: a repeated set-point's frames follow the earlier ones
-    key: str        # label: the set-point, "#2" for its second acquisition …
-    start: int      # frames recorded before it in the series
+    acq: object  # the manifest's Acquisition
+    first: int  # its first column: a repeated set-point's frames follow the earlier ones
+    key: str  # label: the set-point, "#2" for its second acquisition …
+    start: int  # frames recorded before it in the series
 
 
 def _frame_layout(manifest, acqs):
@@ -202,7 +202,7 @@ def _frame_times(layout, S, F):
     times = np.zeros((S, F))
     for slot in layout:
         n = slot.acq.n_frames
-        times[slot.row, slot.first:slot.first + n] = slot.start + np.arange(n)
+        times[slot.row, slot.first : slot.first + n] = slot.start + np.arange(n)
     return times
 
 
@@ -243,16 +243,26 @@ def intensity_trend(N, se, times, *, z_detect=TREND_Z) -> dict:
         x, yc = t - tbar, y - ybar
         sxx = float((w * x * x).sum())
     if sxx <= 0:
-        return {"rate_per_frame": None, "rate_se": None, "z": None, "fade_over_series": None,
-                "detected": False}
+        return {
+            "rate_per_frame": None,
+            "rate_se": None,
+            "z": None,
+            "fade_over_series": None,
+            "detected": False,
+        }
     k = -float((w * x * yc).sum()) / sxx
     chi2 = float((w * (yc + k * x) ** 2).sum())
     dof = int((w > 0).sum()) - int(use.sum()) - 1
     rate_se = math.sqrt(max(1.0, chi2 / dof) / sxx) if dof > 0 else math.sqrt(1 / sxx)
     span = float(np.nanmax(times) - np.nanmin(times))
     z = k / rate_se
-    return {"rate_per_frame": k, "rate_se": rate_se, "z": z,
-            "fade_over_series": -math.expm1(-k * span), "detected": bool(abs(z) > z_detect)}
+    return {
+        "rate_per_frame": k,
+        "rate_se": rate_se,
+        "z": z,
+        "fade_over_series": -math.expm1(-k * span),
+        "detected": bool(abs(z) > z_detect),
+    }
 
 
 def blinking_level(N, se, *, lr_detect=BLINK_LR, iterations=200) -> dict:
@@ -306,7 +316,7 @@ def blinking_level(N, se, *, lr_detect=BLINK_LR, iterations=200) -> dict:
         return l_mix, np.where(ok, np.exp(l_off - l_mix), 0.0)
 
     with np.errstate(invalid="ignore", divide="ignore"):
-        m1 = (w * x).sum(axis=-1) / w.sum(axis=-1)       # one level: weighted ML mean
+        m1 = (w * x).sum(axis=-1) / w.sum(axis=-1)  # one level: weighted ML mean
         ll_one = np.where(ok, -0.5 * w * (x - m1[..., None]) ** 2, 0.0).sum(axis=-1)
         m, f = m1.copy(), np.full(m1.shape, 0.1)
         for _ in range(iterations):
@@ -317,9 +327,14 @@ def blinking_level(N, se, *, lr_detect=BLINK_LR, iterations=200) -> dict:
         lr = 2.0 * (np.where(ok, l_mix, 0.0).sum(axis=-1) - ll_one)
         detected = np.isfinite(lr) & (lr > lr_detect) & (n > 1)
     on_level = _on_level(np.where(ok, N, np.nan), r)
-    return {"on_level": on_level, "off_fraction": np.where(detected, f, 0.0), "lr": lr,
-            "detected": detected, "off_probability": np.where(detected[..., None], r, 0.0),
-            "off": detected[..., None] & (r > 0.5)}
+    return {
+        "on_level": on_level,
+        "off_fraction": np.where(detected, f, 0.0),
+        "lr": lr,
+        "detected": detected,
+        "off_probability": np.where(detected[..., None], r, 0.0),
+        "off": detected[..., None] & (r > 0.5),
+    }
 
 
 def _on_level(N, off_probability):
@@ -332,11 +347,19 @@ def _on_level(N, off_probability):
 def _detect(manifest, acqs, setpoint, width, half_size, min_separation, snr):
     s = max(acqs) if setpoint is None else float(setpoint)
     if s not in acqs:
-        raise OptionError(f"{manifest.path}: no acquisition at set-point "
-                         f"{result.format_setpoint(s)}x to detect the beads on")
+        raise OptionError(
+            f"{manifest.path}: no acquisition at set-point "
+            f"{result.format_setpoint(s)}x to detect the beads on"
+        )
     acq = acqs[s][0]
-    found = bead_fit.detect_beads(acq.frames(), acq.offset, width=width, half_size=half_size,
-                                min_separation=min_separation, snr=snr)
+    found = bead_fit.detect_beads(
+        acq.frames(),
+        acq.offset,
+        width=width,
+        half_size=half_size,
+        min_separation=min_separation,
+        snr=snr,
+    )
     where = f"{acq.frames_path} (mean image, threshold {found.threshold:.4g} ADU above background)"
     if len(found.at_edge):
         warnings.warn(
@@ -399,10 +422,23 @@ class _Fitted:
     mismatch: list
 
 
-def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WIDTH,
-             half_size=bead_fit.DEFAULT_HALF_SIZE, min_separation=None, snr=8.0,
-             detect_setpoint=None, progress=False, bleaching="correct", psf="gaussian",
-             blinking="model", psf_split="alternate", accept_mismatch=()) -> dict:
+def validate(
+    bead_manifest,
+    calibrations,
+    *,
+    out=None,
+    width=bead_fit.DEFAULT_WIDTH,
+    half_size=bead_fit.DEFAULT_HALF_SIZE,
+    min_separation=None,
+    snr=8.0,
+    detect_setpoint=None,
+    progress=False,
+    bleaching="correct",
+    psf="gaussian",
+    blinking="model",
+    psf_split="alternate",
+    accept_mismatch=(),
+) -> dict:
     """Fit the beads under each calibration and compare their intensities across set-points.
 
     Parameters
@@ -469,16 +505,26 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
         and crowding checks). All checked before any fitting.
     """
     _check_actions(bleaching, blinking)
-    fits = fit_validation(bead_manifest, calibrations, width=width, half_size=half_size,
-                          min_separation=min_separation, snr=snr,
-                          detect_setpoint=detect_setpoint, progress=progress, psf=psf,
-                          psf_split=psf_split, accept_mismatch=accept_mismatch)
+    fits = fit_validation(
+        bead_manifest,
+        calibrations,
+        width=width,
+        half_size=half_size,
+        min_separation=min_separation,
+        snr=snr,
+        detect_setpoint=detect_setpoint,
+        progress=progress,
+        psf=psf,
+        psf_split=psf_split,
+        accept_mismatch=accept_mismatch,
+    )
     doc = validation_document(fits, bleaching=bleaching, blinking=blinking)
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        ds = _intensities_dataset(fits.cals, fits.setpoints, fits.positions, fits.fitted,
-                                  fits.manifest, fits.layout)
+        ds = _intensities_dataset(
+            fits.cals, fits.setpoints, fits.positions, fits.fitted, fits.manifest, fits.layout
+        )
         atomic_write(out / INTENSITIES_FILE, lambda p: write_netcdf(ds, p))
         text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
         atomic_write_text(out / VALIDATION_FILE, text)
@@ -487,11 +533,9 @@ def validate(bead_manifest, calibrations, *, out=None, width=bead_fit.DEFAULT_WI
 
 def _check_actions(bleaching, blinking) -> None:
     if bleaching not in TREND_ACTIONS:
-        raise OptionError(f"bleaching must be one of {', '.join(TREND_ACTIONS)}; got "
-                          f"{bleaching!r}")
+        raise OptionError(f"bleaching must be one of {', '.join(TREND_ACTIONS)}; got {bleaching!r}")
     if blinking not in BLINK_ACTIONS:
-        raise OptionError(f"blinking must be one of {', '.join(BLINK_ACTIONS)}; got "
-                          f"{blinking!r}")
+        raise OptionError(f"blinking must be one of {', '.join(BLINK_ACTIONS)}; got {blinking!r}")
 
 
 @dataclass
@@ -512,10 +556,20 @@ class BeadFits:
     psf_split: str = "alternate"
 
 
-def fit_validation(bead_manifest, calibrations, *, width=bead_fit.DEFAULT_WIDTH,
-                   half_size=bead_fit.DEFAULT_HALF_SIZE, min_separation=None, snr=8.0,
-                   detect_setpoint=None, progress=False, psf="gaussian",
-                   psf_split="alternate", accept_mismatch=()) -> BeadFits:
+def fit_validation(
+    bead_manifest,
+    calibrations,
+    *,
+    width=bead_fit.DEFAULT_WIDTH,
+    half_size=bead_fit.DEFAULT_HALF_SIZE,
+    min_separation=None,
+    snr=8.0,
+    detect_setpoint=None,
+    progress=False,
+    psf="gaussian",
+    psf_split="alternate",
+    accept_mismatch=(),
+) -> BeadFits:
     """The fitting half of :func:`validate` (same parameters): find the beads and fit
     them under every calibration. :func:`validation_document` then compares them, as
     often as asked (bleaching corrected or not, blinking modelled or not), without
@@ -524,35 +578,64 @@ def fit_validation(bead_manifest, calibrations, *, width=bead_fit.DEFAULT_WIDTH,
     if psf not in PSF_MODELS:
         raise OptionError(f"psf must be one of {', '.join(PSF_MODELS)}; got {psf!r}")
     if psf_split not in bead_fit.RESIDUAL_SPLITS:
-        raise OptionError(f"psf_split must be one of {', '.join(bead_fit.RESIDUAL_SPLITS)}; "
-                          f"got {psf_split!r}")
-    manifest = bead_manifest if isinstance(bead_manifest, Manifest) \
-        else read_manifest(bead_manifest)
+        raise OptionError(
+            f"psf_split must be one of {', '.join(bead_fit.RESIDUAL_SPLITS)}; got {psf_split!r}"
+        )
+    manifest = (
+        bead_manifest if isinstance(bead_manifest, Manifest) else read_manifest(bead_manifest)
+    )
     if not calibrations:
         raise OptionError("give at least one calibration to validate")
     acqs = _acquisitions_by_setpoint(manifest)
     setpoints = list(acqs)
-    cals = [result.load_calibration(c, manifest.shape, of="the bead frames")
-            for c in calibrations]
+    cals = [result.load_calibration(c, manifest.shape, of="the bead frames") for c in calibrations]
     seen: dict = {}
     for cal in cals:  # a calibration given twice would be ranked against itself
         if cal.sha256 in seen:
-            raise OptionError(f"calibration {cal.label} is given twice (also as "
-                              f"{seen[cal.sha256]}); give each once")
+            raise OptionError(
+                f"calibration {cal.label} is given twice (also as "
+                f"{seen[cal.sha256]}); give each once"
+            )
         seen[cal.sha256] = cal.label
     for cal in cals:
-        identity.check(cal.identity(), {manifest.path: manifest.identity()}, label=cal.label,
-                       accept=accept_mismatch, what="bead frames")
+        identity.check(
+            cal.identity(),
+            {manifest.path: manifest.identity()},
+            label=cal.label,
+            accept=accept_mismatch,
+            what="bead frames",
+        )
         for s in setpoints:
             cal.gain(s)  # raises for a missing set-point, before any fitting
-    found, det_acq = _detect(manifest, acqs, detect_setpoint, width, half_size,
-                             min_separation, snr)
+    found, det_acq = _detect(manifest, acqs, detect_setpoint, width, half_size, min_separation, snr)
     positions = found.positions
     layout = _frame_layout(manifest, acqs)
-    fitted = _fit_all(manifest, cals, setpoints, positions, layout, acqs, width=width,
-                      half_size=half_size, psf=psf, psf_split=psf_split, progress=progress)
-    return BeadFits(manifest, cals, setpoints, positions, fitted, layout, det_acq,
-                    half_size, psf, time.perf_counter() - t0, psf_split)
+    fitted = _fit_all(
+        manifest,
+        cals,
+        setpoints,
+        positions,
+        layout,
+        acqs,
+        width=width,
+        half_size=half_size,
+        psf=psf,
+        psf_split=psf_split,
+        progress=progress,
+    )
+    return BeadFits(
+        manifest,
+        cals,
+        setpoints,
+        positions,
+        fitted,
+        layout,
+        det_acq,
+        half_size,
+        psf,
+        time.perf_counter() - t0,
+        psf_split,
+    )
 
 
 def validation_document(fits: BeadFits, *, bleaching="correct", blinking="model") -> dict:
@@ -560,14 +643,37 @@ def validation_document(fits: BeadFits, *, bleaching="correct", blinking="model"
     comparing half of :func:`validate`; ``bleaching`` and ``blinking`` as there), with
     its warnings."""
     _check_actions(bleaching, blinking)
-    return _summarise(fits.manifest, fits.cals, fits.setpoints, fits.positions, fits.fitted,
-                      fits.layout, fits.detected_on, fits.half_size, fits.seconds,
-                      bleaching=bleaching, blinking=blinking, psf=fits.psf,
-                      psf_split=fits.psf_split)
+    return _summarise(
+        fits.manifest,
+        fits.cals,
+        fits.setpoints,
+        fits.positions,
+        fits.fitted,
+        fits.layout,
+        fits.detected_on,
+        fits.half_size,
+        fits.seconds,
+        bleaching=bleaching,
+        blinking=blinking,
+        psf=fits.psf,
+        psf_split=fits.psf_split,
+    )
 
 
-def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_size, psf,
-             psf_split, progress) -> _Fitted:
+def _fit_all(
+    manifest,
+    cals,
+    setpoints,
+    positions,
+    layout,
+    acqs,
+    *,
+    width,
+    half_size,
+    psf,
+    psf_split,
+    progress,
+) -> _Fitted:
     """Fit the beads of every acquisition under every calibration: with the width free,
     again with each bead's width pooled over set-points, and (``psf`` other than
     "gaussian") a third time with the residual image added, the image built on one half
@@ -591,28 +697,49 @@ def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_
         acq, g = layout[j].acq, cal.gain(layout[j].setpoint)
         boxes = [_boxes_bytes(m, positions[ok], half_size) for m in (cal.e_per_adu, g)]
         extras = [None if x is None else x.tobytes() for x in (fixed, fixed_se)]
-        key = (j, positions[ok].tobytes(), *boxes, cal.em_model, *extras,
-               None if residual is None else residual.values.tobytes(), psf_split)
+        key = (
+            j,
+            positions[ok].tobytes(),
+            *boxes,
+            cal.em_model,
+            *extras,
+            None if residual is None else residual.values.tobytes(),
+            psf_split,
+        )
         if key not in cache:
             # the offset map's own error: the dark frames' SD over their square root
-            offset_se = None if not acq.dark_frames else \
-                np.asarray(acq.read_noise) / math.sqrt(acq.dark_frames)
+            offset_se = (
+                None
+                if not acq.dark_frames
+                else np.asarray(acq.read_noise) / math.sqrt(acq.dark_frames)
+            )
             cache[key] = bead_fit.fit_beads(
-                acq.frames(), positions[ok], offset=acq.offset, read_noise=acq.read_noise,
-                e_per_adu=cal.e_per_adu, em_gain=g, half_size=half_size, width=width,
-                adc_max=manifest.adc_max, em_model=cal.em_model, fixed_width=fixed,
-                fixed_width_se=fixed_se, residual=residual, offset_se=offset_se,
-                residual_split=psf_split)
+                acq.frames(),
+                positions[ok],
+                offset=acq.offset,
+                read_noise=acq.read_noise,
+                e_per_adu=cal.e_per_adu,
+                em_gain=g,
+                half_size=half_size,
+                width=width,
+                adc_max=manifest.adc_max,
+                em_model=cal.em_model,
+                fixed_width=fixed,
+                fixed_width_se=fixed_se,
+                residual=residual,
+                offset_se=offset_se,
+                residual_split=psf_split,
+            )
         return cache[key]
 
     passes = 2 if psf == "gaussian" else 3
     mismatch = []
-    with progress_bar(enabled=progress, desc="fitting beads", unit="stack",
-                      total=passes * len(cals) * A) as bar:
+    with progress_bar(
+        enabled=progress, desc="fitting beads", unit="stack", total=passes * len(cals) * A
+    ) as bar:
         for ci, cal in enumerate(cals):
             ok = _usable_beads(cal, setpoints, positions, half_size)
-            fits, found = _passes(functools.partial(fit_at, cal), cal.method, ok, layout,
-                                  psf, bar)
+            fits, found = _passes(functools.partial(fit_at, cal), cal.method, ok, layout, psf, bar)
             mismatch.append(found)
             idx = np.flatnonzero(ok)
             for slot, fit in zip(layout, fits):
@@ -624,13 +751,17 @@ def _fit_all(manifest, cals, setpoints, positions, layout, acqs, *, width, half_
                 conv[at] = fit.converged
                 frames_used = fit.converged.sum(axis=1)
                 offset_var[ci, idx, slot.row] += (
-                    frames_used * np.nan_to_num(fit.intensity_offset_se)) ** 2
+                    frames_used * np.nan_to_num(fit.intensity_offset_se)
+                ) ** 2
                 shared_var[ci, idx, slot.row] += (
-                    frames_used * np.nan_to_num(fit.intensity_shared_se)) ** 2
+                    frames_used * np.nan_to_num(fit.intensity_shared_se)
+                ) ** 2
                 if fit.n_saturated and ci == 0:
-                    warnings.warn(f"{slot.acq.frames_path}: {fit.n_saturated} count(s) at the ADC "
-                                  "maximum in the bead boxes were left out of the fits",
-                                  stacklevel=2)
+                    warnings.warn(
+                        f"{slot.acq.frames_path}: {fit.n_saturated} count(s) at the ADC "
+                        "maximum in the bead boxes were left out of the fits",
+                        stacklevel=2,
+                    )
 
     with np.errstate(invalid="ignore", divide="ignore"):
         offset_se = np.sqrt(offset_var) / conv.sum(axis=3)
@@ -655,8 +786,7 @@ def _passes(fit_at, method, ok, layout, psf, bar):
     fits = []
     for j, slot in enumerate(layout):
         bar.set_postfix_str(f"{method} {slot.key}x")
-        fits.append(fit_at(j, ok, widths, fixed_se=widths_se)
-                    if widths is not None else first[j])
+        fits.append(fit_at(j, ok, widths, fixed_se=widths_se) if widths is not None else first[j])
         bar.update(1)
     gaussian = [bead_fit.psf_mismatch(f) for f in fits]
     if psf != "gaussian":  # the paper's second pass: the residual image added,
@@ -668,8 +798,10 @@ def _passes(fit_at, method, ok, layout, psf, bar):
             fits.append(fit_at(j, ok, widths, image, fixed_se=widths_se))
             bar.update(1)
     return fits, {"gaussian": gaussian} | (
-        {} if psf == "gaussian" else
-        {psf: [bead_fit.psf_mismatch(f, half=1, image=image) for f in fits]})
+        {}
+        if psf == "gaussian"
+        else {psf: [bead_fit.psf_mismatch(f, half=1, image=image) for f in fits]}
+    )
 
 
 def _usable_beads(cal, setpoints, positions, half_size) -> np.ndarray:
@@ -691,24 +823,59 @@ def _usable_beads(cal, setpoints, positions, half_size) -> np.ndarray:
 
 def _boxes_bytes(m, positions, half_size):
     return b"".join(
-        np.ascontiguousarray(m[r - half_size:r + half_size + 1, c - half_size:c + half_size + 1])
-        .tobytes() for r, c in positions)
+        np.ascontiguousarray(
+            m[r - half_size : r + half_size + 1, c - half_size : c + half_size + 1]
+        ).tobytes()
+        for r, c in positions
+    )
 
 
-def _summarise(manifest, cals, setpoints, positions, fitted, layout, det_acq, half_size,
-               seconds, *, bleaching, blinking, psf, psf_split="alternate") -> dict:
+def _summarise(
+    manifest,
+    cals,
+    setpoints,
+    positions,
+    fitted,
+    layout,
+    det_acq,
+    half_size,
+    seconds,
+    *,
+    bleaching,
+    blinking,
+    psf,
+    psf_split="alternate",
+) -> dict:
     """The content of ``validation.json``: per calibration its beads' mean intensities at
     every set-point and the consistency metric, ranked (most consistent first)."""
     keys = [result.format_setpoint(s) for s in setpoints]
     times = _frame_times(layout, len(setpoints), fitted.conv.shape[-1])
     entries = []
     for ci, cal in enumerate(cals):  # a loop, not a comprehension: warnings' stack levels
-        entries.append(_calibration_entry(cal, ci, keys, setpoints, positions, fitted,
-                                          layout, times, bleaching=bleaching,
-                                          blinking=blinking, psf=psf))
-    order = sorted(range(len(entries)), key=lambda i: (
-        entries[i]["sigma_means_incl_1x"] is None,
-        entries[i]["sigma_means_incl_1x"] if entries[i]["sigma_means_incl_1x"] is not None else 0.0))
+        entries.append(
+            _calibration_entry(
+                cal,
+                ci,
+                keys,
+                setpoints,
+                positions,
+                fitted,
+                layout,
+                times,
+                bleaching=bleaching,
+                blinking=blinking,
+                psf=psf,
+            )
+        )
+    order = sorted(
+        range(len(entries)),
+        key=lambda i: (
+            entries[i]["sigma_means_incl_1x"] is None,
+            entries[i]["sigma_means_incl_1x"]
+            if entries[i]["sigma_means_incl_1x"] is not None
+            else 0.0,
+        ),
+    )
     from .. import __version__
 
     return {
@@ -723,8 +890,13 @@ def _summarise(manifest, cals, setpoints, positions, fitted, layout, det_acq, ha
             "calibration's value is the mean over its beads."
         ),
         "setpoints": keys,
-        "units": {"mean_intensity": "e- per frame (whole bead)", "mean_intensity_se": "e-",
-                  "sigma_means": "1 (fraction of the 1x mean)", "row": "pixel", "col": "pixel"},
+        "units": {
+            "mean_intensity": "e- per frame (whole bead)",
+            "mean_intensity_se": "e-",
+            "sigma_means": "1 (fraction of the 1x mean)",
+            "row": "pixel",
+            "col": "pixel",
+        },
         "bead_manifest": str(manifest.path),
         "bead_manifest_sha256": manifest.content_hash,
         "detected_on": str(det_acq.frames_path),
@@ -739,21 +911,28 @@ def _summarise(manifest, cals, setpoints, positions, fitted, layout, det_acq, ha
 def held_out_description(split) -> dict:
     """What a residual image was built on and what scored it (``validation.json``'s
     ``psf_held_out``)."""
-    built, scored = {"alternate": ("even frames", "odd frames"),
-                     "time": ("first half of the frames", "second half of the frames")}[split]
-    return {"split": split, "image_built_on": built, "scored_on": scored,
-            "note": "the residual model's chi2_per_pixel is on frames the image has not "
-                    "seen, its own sampling variance included: about 1 (± chi2_per_pixel_se) "
-                    "where it describes the spot"}
+    built, scored = {
+        "alternate": ("even frames", "odd frames"),
+        "time": ("first half of the frames", "second half of the frames"),
+    }[split]
+    return {
+        "split": split,
+        "image_built_on": built,
+        "scored_on": scored,
+        "note": "the residual model's chi2_per_pixel is on frames the image has not "
+        "seen, its own sampling variance included: about 1 (± chi2_per_pixel_se) "
+        "where it describes the spot",
+    }
 
 
-def _calibration_entry(cal, ci, keys, setpoints, positions, fitted, layout, times, *,
-                       bleaching, blinking, psf) -> dict:
+def _calibration_entry(
+    cal, ci, keys, setpoints, positions, fitted, layout, times, *, bleaching, blinking, psf
+) -> dict:
     """One calibration's part of ``validation.json``, with its warnings: blinking, the
     trend within acquisitions (corrected or not), the beads' means, the frames whose fits
     converged, the PSF checks and repeated set-points."""
     conv = fitted.conv[ci]
-    I = np.where(conv, fitted.arr["intensity"][ci], np.nan)           # (B, S, F)
+    I = np.where(conv, fitted.arr["intensity"][ci], np.nan)  # (B, S, F)
     I_se = np.where(conv, fitted.arr_se["intensity"][ci], np.nan)
     blink = blinking_level(I, I_se)
     off = blink["off"]
@@ -761,12 +940,16 @@ def _calibration_entry(cal, ci, keys, setpoints, positions, fitted, layout, time
     if n_off.any():
         warnings.warn(
             f"{cal.label}: {int(blink['detected'].any(axis=1).sum())} bead(s) switch off in "
-            "some frames (blinking: " + ", ".join(
-                f"{int(n)} frame(s) at {k}x" for k, n in zip(keys, n_off.sum(axis=0)) if n)
-            + "); " + ("their mean intensities are the 'on' level of a two-level mixture"
-                       if blinking == "model" else
-                       "ignored (--blinking ignore): the off frames lower their means"),
-            stacklevel=4)
+            "some frames (blinking: "
+            + ", ".join(f"{int(n)} frame(s) at {k}x" for k, n in zip(keys, n_off.sum(axis=0)) if n)
+            + "); "
+            + (
+                "their mean intensities are the 'on' level of a two-level mixture"
+                if blinking == "model"
+                else "ignored (--blinking ignore): the off frames lower their means"
+            ),
+            stacklevel=4,
+        )
     trend = intensity_trend(np.where(off, np.nan, I), np.where(off, np.nan, I_se), times)
     trend["corrected"] = bool(trend["detected"] and bleaching == "correct")
     if trend["detected"]:
@@ -775,9 +958,14 @@ def _calibration_entry(cal, ci, keys, setpoints, positions, fitted, layout, time
             f"{'falls' if trend['rate_per_frame'] > 0 else 'rises'} within the acquisitions "
             f"({100 * trend['fade_over_series']:+.2f} % over the series, {trend['z']:.1f} "
             "standard errors: bleaching or a drifting illumination); "
-            + ("corrected before the set-points are compared" if trend["corrected"] else
-               "not corrected (--bleaching warn): it adds to the differences between "
-               "set-points"), stacklevel=4)
+            + (
+                "corrected before the set-points are compared"
+                if trend["corrected"]
+                else "not corrected (--bleaching warn): it adds to the differences between "
+                "set-points"
+            ),
+            stacklevel=4,
+        )
     if trend["corrected"]:
         I = I * np.exp(trend["rate_per_frame"] * times)[None]
     beads = _bead_entries(I, blink, blinking, keys, setpoints, positions, fitted, ci)
@@ -800,14 +988,22 @@ def _calibration_entry(cal, ci, keys, setpoints, positions, fitted, layout, time
             "modelled": blinking == "model",
         },
         "repeats": _repeats(cal, layout, keys, I, off),
-        "intensity_trend": {k: (finite_or_none(v) if isinstance(v, float) else v)
-                            for k, v in trend.items()},
+        "intensity_trend": {
+            k: (finite_or_none(v) if isinstance(v, float) else v) for k, v in trend.items()
+        },
         "beads": beads,
-        **{name: avg(name) for name in ("sigma_means_incl_1x", "sigma_means_excl_1x",
-                                        "sigma_means_incl_1x_ddof1",
-                                        "sigma_means_excl_1x_ddof1")},
-        "beads_used": int(np.sum(np.isfinite(np.array(
-            [b["sigma_means_incl_1x"] for b in beads], dtype=float)))),
+        **{
+            name: avg(name)
+            for name in (
+                "sigma_means_incl_1x",
+                "sigma_means_excl_1x",
+                "sigma_means_incl_1x_ddof1",
+                "sigma_means_excl_1x_ddof1",
+            )
+        },
+        "beads_used": int(
+            np.sum(np.isfinite(np.array([b["sigma_means_incl_1x"] for b in beads], dtype=float)))
+        ),
     }
 
 
@@ -834,24 +1030,28 @@ def _bead_entries(I, blink, blinking, keys, setpoints, positions, fitted, ci) ->
             y = np.nanmedian(np.where(conv[b], arr["y"][ci, b], np.nan))
             x = np.nanmedian(np.where(conv[b], arr["x"][ci, b], np.nan))
         metric = {d: consistency(dict(zip(setpoints, mean)), ddof=d) for d in (0, 1)}
-        entries.append({
-            "row": int(r),
-            "col": int(c),
-            "mean_intensity": {k: finite_or_none(v) for k, v in zip(keys, mean)},
-            "mean_intensity_se": {k: finite_or_none(v) for k, v in zip(keys, se)},
-            "mean_intensity_se_offset": {k: finite_or_none(v)
-                                         for k, v in zip(keys, offset_se[b])},
-            "mean_intensity_se_shared": {k: finite_or_none(v)
-                                         for k, v in zip(keys, shared_se[b])},
-            "sigma_means_incl_1x": finite_or_none(metric[0][0]),
-            "sigma_means_excl_1x": finite_or_none(metric[0][1]),
-            "sigma_means_incl_1x_ddof1": finite_or_none(metric[1][0]),
-            "sigma_means_excl_1x_ddof1": finite_or_none(metric[1][1]),
-            "frames_used": {k: int(v) for k, v in zip(keys, n)},
-            "frames_off": {k: int(v) for k, v in zip(keys, n_off[b])},
-            "fitted_row": finite_or_none(y),
-            "fitted_col": finite_or_none(x),
-        })
+        entries.append(
+            {
+                "row": int(r),
+                "col": int(c),
+                "mean_intensity": {k: finite_or_none(v) for k, v in zip(keys, mean)},
+                "mean_intensity_se": {k: finite_or_none(v) for k, v in zip(keys, se)},
+                "mean_intensity_se_offset": {
+                    k: finite_or_none(v) for k, v in zip(keys, offset_se[b])
+                },
+                "mean_intensity_se_shared": {
+                    k: finite_or_none(v) for k, v in zip(keys, shared_se[b])
+                },
+                "sigma_means_incl_1x": finite_or_none(metric[0][0]),
+                "sigma_means_excl_1x": finite_or_none(metric[0][1]),
+                "sigma_means_incl_1x_ddof1": finite_or_none(metric[1][0]),
+                "sigma_means_excl_1x_ddof1": finite_or_none(metric[1][1]),
+                "frames_used": {k: int(v) for k, v in zip(keys, n)},
+                "frames_off": {k: int(v) for k, v in zip(keys, n_off[b])},
+                "fitted_row": finite_or_none(y),
+                "fitted_col": finite_or_none(x),
+            }
+        )
     return entries
 
 
@@ -860,52 +1060,69 @@ def _converged_fraction(cal, fitted, ci, keys) -> dict:
     :data:`MIN_CONVERGED`."""
     conv = fitted.conv[ci]
     exists = np.isfinite(fitted.arr["intensity"][ci]) | conv  # frames that were fitted
-    fraction = {k: finite_or_none(conv[:, si][exists[:, si]].mean())
-                if exists[:, si].any() else None for si, k in enumerate(keys)}
+    fraction = {
+        k: finite_or_none(conv[:, si][exists[:, si]].mean()) if exists[:, si].any() else None
+        for si, k in enumerate(keys)
+    }
     low = {k: v for k, v in fraction.items() if v is not None and v < MIN_CONVERGED}
     if low:
         warnings.warn(
             f"{cal.label}: bead fits converged in only "
             + ", ".join(f"{100 * v:.1f} % at {k}x" for k, v in low.items())
             + " of frames; the means are over the others, which can bias them if the "
-            "failures depend on the frames' brightness", stacklevel=5)
+            "failures depend on the frames' brightness",
+            stacklevel=5,
+        )
     return fraction
 
 
 def _poor_fits(per_acquisition) -> dict:
     """χ² per pixel above :data:`PSF_CHI2`, by set-point key."""
-    return {k: m["chi2_per_pixel"] for k, m in per_acquisition.items()
-            if m.get("chi2_per_pixel") is not None and m["chi2_per_pixel"] > PSF_CHI2}
+    return {
+        k: m["chi2_per_pixel"]
+        for k, m in per_acquisition.items()
+        if m.get("chi2_per_pixel") is not None and m["chi2_per_pixel"] > PSF_CHI2
+    }
 
 
 def _psf_document(cal, mismatch, layout, psf) -> dict:
     """The PSF checks of each spot model per acquisition; a warning where the Gaussian
     does not describe the beads' mean images, and where the residual image does not
     describe the frames it was not built on."""
-    doc = {model: {slot.key: {q: finite_or_none(v) for q, v in m.items()}
-                   for slot, m in zip(layout, per_acquisition)}
-           for model, per_acquisition in mismatch.items()}
+    doc = {
+        model: {
+            slot.key: {q: finite_or_none(v) for q, v in m.items()}
+            for slot, m in zip(layout, per_acquisition)
+        }
+        for model, per_acquisition in mismatch.items()
+    }
     poor = _poor_fits(doc["gaussian"])
     held_out = _poor_fits(doc.get(psf, {})) if psf != "gaussian" else {}
     if held_out:
         warnings.warn(
             f"{cal.label}: the residual image does not describe the frames it was not "
-            "built on (held-out chi2 per pixel " + ", ".join(
-                f"{v:.1f} at {k}x" for k, v in held_out.items())
+            "built on (held-out chi2 per pixel "
+            + ", ".join(f"{v:.1f} at {k}x" for k, v in held_out.items())
             + "): the spot's shape differs between the halves of the frames, or from "
             "what the image could learn (--psf-split time tests a change over time)",
-            stacklevel=5)
+            stacklevel=5,
+        )
     if poor:
         warnings.warn(
             f"{cal.label}: the Gaussian spot does not describe the beads' mean images "
-            "(chi2 per pixel " + ", ".join(f"{v:.1f} at {k}x" for k, v in poor.items())
+            "(chi2 per pixel "
+            + ", ".join(f"{v:.1f} at {k}x" for k, v in poor.items())
             + "): the PSF is not Gaussian, or this calibration's pixel-to-pixel error in "
             "e_per_adu or gain puts the same pattern in every frame (then other "
             "calibrations of the same beads score lower); "
-            + ("the residual image was added (--psf " + psf + ")"
-                       if psf != "gaussian" else
-                       "a PSF mismatch can weigh differently at different set-points: "
-                       "try --psf residual"), stacklevel=5)
+            + (
+                "the residual image was added (--psf " + psf + ")"
+                if psf != "gaussian"
+                else "a PSF mismatch can weigh differently at different set-points: "
+                "try --psf residual"
+            ),
+            stacklevel=5,
+        )
     return doc
 
 
@@ -923,8 +1140,10 @@ def _repeats(cal, layout, keys, I, off):
             continue
         with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            means = [np.nanmean(I[:, si, slot.first:slot.first + slot.acq.n_frames], axis=1)
-                     for slot in slots]
+            means = [
+                np.nanmean(I[:, si, slot.first : slot.first + slot.acq.n_frames], axis=1)
+                for slot in slots
+            ]
             later = []
             for slot, m in zip(slots[1:], means[1:]):
                 a = slot.acq
@@ -933,17 +1152,25 @@ def _repeats(cal, layout, keys, I, off):
                 se = float(np.std(r, ddof=1) / np.sqrt(r.size)) if r.size > 1 else math.nan
                 ratio = float(np.mean(r)) if r.size else math.nan
                 z = (ratio - 1) / se if se > 0 else math.nan
-                later.append({"acquisition": a.name, "key": slot.key,
-                              "ratio": finite_or_none(ratio),
-                              "ratio_se": finite_or_none(se), "z": finite_or_none(z),
-                              "beads": int(r.size)})
+                later.append(
+                    {
+                        "acquisition": a.name,
+                        "key": slot.key,
+                        "ratio": finite_or_none(ratio),
+                        "ratio_se": finite_or_none(se),
+                        "z": finite_or_none(z),
+                        "beads": int(r.size),
+                    }
+                )
                 if abs(z) > TREND_Z:
                     warnings.warn(
                         f"{cal.label}: the beads' mean intensity at {key}x changed by "
                         f"{100 * (ratio - 1):+.2f} % between acquisitions "
                         f"'{slots[0].acq.name}' and '{a.name}' ({z:.1f} standard errors), "
                         "beyond the trend within the acquisitions: light lost between "
-                        "them, or a change of focus or illumination", stacklevel=5)
+                        "them, or a change of focus or illumination",
+                        stacklevel=5,
+                    )
         out.append({"setpoint": key, "first": slots[0].acq.name, "later": later})
     return out
 
@@ -956,8 +1183,7 @@ def _intensities_dataset(cals, setpoints, positions, fitted, manifest, layout):
     from .. import __version__
 
     dims = ("calibration", "bead", "setpoint", "frame")
-    units = {"x": "pixel", "y": "pixel", "width": "pixel", "intensity": "e-",
-             "background": "e-"}
+    units = {"x": "pixel", "y": "pixel", "width": "pixel", "intensity": "e-", "background": "e-"}
     long = {
         "x": "fitted bead centre, column (sensor pixel coordinates)",
         "y": "fitted bead centre, row (sensor pixel coordinates)",
@@ -968,41 +1194,71 @@ def _intensities_dataset(cals, setpoints, positions, fitted, manifest, layout):
     data = {}
     for n in ("intensity", "x", "y", "width", "background"):
         data[n] = (dims, arr[n], {"units": units[n], "long_name": long[n]})
-        data[n + "_se"] = (dims, arr_se[n], {"units": units[n],
-                                             "long_name": "standard error of " + long[n]})
-    data["loglik"] = (dims, loglik, {"units": "nat",
-                                     "long_name": "maximised log-likelihood of the bead's box"})
+        data[n + "_se"] = (
+            dims,
+            arr_se[n],
+            {"units": units[n], "long_name": "standard error of " + long[n]},
+        )
+    data["loglik"] = (
+        dims,
+        loglik,
+        {"units": "nat", "long_name": "maximised log-likelihood of the bead's box"},
+    )
     data["converged"] = (dims, conv, {"units": "1", "long_name": "fit converged (usable)"})
     coords = {
-        "calibration": ("calibration", [c.label for c in cals],
-                        {"long_name": "calibration file(s) the beads were fitted under"}),
+        "calibration": (
+            "calibration",
+            [c.label for c in cals],
+            {"long_name": "calibration file(s) the beads were fitted under"},
+        ),
         "method": ("calibration", [c.method for c in cals], {"long_name": "calibration method"}),
         "bead": ("bead", np.arange(len(positions)), {"long_name": "bead index"}),
-        "bead_row": ("bead", positions[:, 0].astype(int),
-                     {"units": "pixel", "long_name": "row of the bead's box centre"}),
-        "bead_col": ("bead", positions[:, 1].astype(int),
-                     {"units": "pixel", "long_name": "column of the bead's box centre"}),
-        "setpoint": ("setpoint", np.array(setpoints, dtype=float),
-                     {"units": "1", "long_name": "EM gain set-point of the camera"}),
-        "frame": ("frame", np.arange(arr["intensity"].shape[-1]),
-                  {"long_name": "frame index within the set-point (a repeated set-point's "
-                                "acquisitions one after another)"}),
-        "acquisition": (("setpoint", "frame"), _acquisition_names(layout, arr),
-                        {"long_name": "the acquisition (manifest name) of each frame"}),
+        "bead_row": (
+            "bead",
+            positions[:, 0].astype(int),
+            {"units": "pixel", "long_name": "row of the bead's box centre"},
+        ),
+        "bead_col": (
+            "bead",
+            positions[:, 1].astype(int),
+            {"units": "pixel", "long_name": "column of the bead's box centre"},
+        ),
+        "setpoint": (
+            "setpoint",
+            np.array(setpoints, dtype=float),
+            {"units": "1", "long_name": "EM gain set-point of the camera"},
+        ),
+        "frame": (
+            "frame",
+            np.arange(arr["intensity"].shape[-1]),
+            {
+                "long_name": "frame index within the set-point (a repeated set-point's "
+                "acquisitions one after another)"
+            },
+        ),
+        "acquisition": (
+            ("setpoint", "frame"),
+            _acquisition_names(layout, arr),
+            {"long_name": "the acquisition (manifest name) of each frame"},
+        ),
     }
-    return xr.Dataset(data, coords=coords, attrs={
-        "emccdcal_version": __version__,
-        "bead_manifest": str(manifest.path),
-        "bead_manifest_sha256": manifest.content_hash,
-        "note": "NaN and converged = 0 where a frame does not exist at a set-point or a bead "
-                "was left out for a calibration",
-    })
+    return xr.Dataset(
+        data,
+        coords=coords,
+        attrs={
+            "emccdcal_version": __version__,
+            "bead_manifest": str(manifest.path),
+            "bead_manifest_sha256": manifest.content_hash,
+            "note": "NaN and converged = 0 where a frame does not exist at a set-point or a bead "
+            "was left out for a calibration",
+        },
+    )
 
 
 def _acquisition_names(layout, arr):
     names = np.full(arr["intensity"].shape[-2:], "", dtype=object)
     for slot in layout:
-        names[slot.row, slot.first:slot.first + slot.acq.n_frames] = slot.acq.name
+        names[slot.row, slot.first : slot.first + slot.acq.n_frames] = slot.acq.name
     return names.astype(str)
 
 
@@ -1041,8 +1297,9 @@ def read_validation(directory):
         if not isinstance(cals, list) or not all("beads" in c for c in cals):
             raise TypeError("'calibrations' must be a list of objects with 'beads'")
     except (ValueError, KeyError, TypeError) as exc:
-        raise OptionError(f"{path}: not a bead-validation file ({exc.__class__.__name__}: "
-                         f"{exc})") from None
+        raise OptionError(
+            f"{path}: not a bead-validation file ({exc.__class__.__name__}: {exc})"
+        ) from None
     ipath = d / INTENSITIES_FILE
     if not ipath.is_file():
         return doc, None
@@ -1052,13 +1309,13 @@ def read_validation(directory):
         if "converged" in f:  # frames whose fit did not converge are not shown
             da = da.where(f["converged"].astype(bool))
     except (ValueError, KeyError, TypeError) as exc:
-        raise OptionError(f"{ipath}: not a readable intensities file ({exc.__class__.__name__}: "
-                         f"{exc})") from None
+        raise OptionError(
+            f"{ipath}: not a readable intensities file ({exc.__class__.__name__}: {exc})"
+        ) from None
     want = ("calibration", "bead", "setpoint", "frame")
     if set(da.dims) != set(want):
         raise OptionError(f"{ipath}: 'intensity' has dims {da.dims}; expected {want}")
     return doc, da.transpose(*want)
-
 
 
 def data_checks(entry) -> list[str]:
@@ -1073,31 +1330,47 @@ def data_checks(entry) -> list[str]:
     out = []
     trend = entry.get("intensity_trend") or {}
     if trend.get("detected"):
-        out.append(f"intensity trend {-100 * trend['fade_over_series']:+.2f} % over the series "
-                   f"(z {trend['z']:.1f}, {'corrected' if trend.get('corrected') else 'not corrected'})")
+        out.append(
+            f"intensity trend {-100 * trend['fade_over_series']:+.2f} % over the series "
+            f"(z {trend['z']:.1f}, {'corrected' if trend.get('corrected') else 'not corrected'})"
+        )
     blink = entry.get("blinking") or {}
     off = sum((blink.get("frames_off") or {}).values())
     if off:
-        out.append(f"{blink['beads']} bead(s) blinking, {off} frame(s) off "
-                   f"({'on level taken' if blink.get('modelled') else 'ignored'})")
+        out.append(
+            f"{blink['beads']} bead(s) blinking, {off} frame(s) off "
+            f"({'on level taken' if blink.get('modelled') else 'ignored'})"
+        )
     for rep in entry.get("repeats") or []:
         for later in rep["later"]:
             if later["ratio"] is not None:
-                out.append(f"{rep['setpoint']}x recorded again: {later['ratio']:.4f} ± "
-                           f"{later['ratio_se'] or float('nan'):.4f} of the first")
+                out.append(
+                    f"{rep['setpoint']}x recorded again: {later['ratio']:.4f} ± "
+                    f"{later['ratio_se'] or float('nan'):.4f} of the first"
+                )
     gauss = (entry.get("psf_mismatch") or {}).get("gaussian") or {}
     chi2 = [m["chi2_per_pixel"] for m in gauss.values() if m.get("chi2_per_pixel") is not None]
     if chi2 and max(chi2) > PSF_CHI2:
-        out.append(f"Gaussian misfits the mean images (chi2/pixel up to {max(chi2):.1f}: "
-                   "PSF, or the calibration's pixel-to-pixel error; "
-                   + ("residual image added)" if entry.get("psf", "gaussian") != "gaussian"
-                      else "Gaussian kept)"))
+        out.append(
+            f"Gaussian misfits the mean images (chi2/pixel up to {max(chi2):.1f}: "
+            "PSF, or the calibration's pixel-to-pixel error; "
+            + (
+                "residual image added)"
+                if entry.get("psf", "gaussian") != "gaussian"
+                else "Gaussian kept)"
+            )
+        )
     model = entry.get("psf", "gaussian")
-    held_out = _poor_fits((entry.get("psf_mismatch") or {}).get(model) or {}) \
-        if model != "gaussian" else {}
+    held_out = (
+        _poor_fits((entry.get("psf_mismatch") or {}).get(model) or {})
+        if model != "gaussian"
+        else {}
+    )
     if held_out:
-        out.append(f"residual image misfits held-out frames (chi2/pixel up to "
-                   f"{max(held_out.values()):.1f})")
+        out.append(
+            f"residual image misfits held-out frames (chi2/pixel up to "
+            f"{max(held_out.values()):.1f})"
+        )
     return out
 
 
@@ -1105,8 +1378,10 @@ def format_table(doc) -> str:
     """The ranking as a short text table (σ of means in % of the 1× mean, ddof = 0)."""
     by_file = {c["file"]: c for c in doc["calibrations"]}
     n_beads = max((len(c["beads"]) for c in doc["calibrations"]), default=0)
-    head = (f"bead validation: {n_beads} beads, set-points {', '.join(doc['setpoints'])} "
-            "(sigma of per-set-point means / 1x mean, ddof 0, mean over beads)")
+    head = (
+        f"bead validation: {n_beads} beads, set-points {', '.join(doc['setpoints'])} "
+        "(sigma of per-set-point means / 1x mean, ddof 0, mean over beads)"
+    )
     lines = [head, f"  {'rank':>4}  {'method':<22} {'incl 1x':>8} {'excl 1x':>8}  file"]
 
     def pct(v):
@@ -1114,7 +1389,9 @@ def format_table(doc) -> str:
 
     for i, f in enumerate(doc["ranking"], start=1):
         c = by_file[f]
-        lines.append(f"  {i:>4}  {c['method']:<22} {pct(c['sigma_means_incl_1x'])} "
-                     f"{pct(c['sigma_means_excl_1x'])}  {f}")
+        lines.append(
+            f"  {i:>4}  {c['method']:<22} {pct(c['sigma_means_incl_1x'])} "
+            f"{pct(c['sigma_means_excl_1x'])}  {f}"
+        )
         lines += [f"{'':8}{check}" for check in data_checks(c)]
     return "\n".join(lines)

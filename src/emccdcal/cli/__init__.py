@@ -112,8 +112,12 @@ def check_numbers(args) -> None:
         values = value if isinstance(value, (list, tuple)) else [value]
         for v in values:
             if isinstance(v, Real) and not isinstance(v, bool):
-                within_bounds(OPTION_QUANTITY.get(dest, dest), np.asarray(float(v)), f"{v:g}",
-                              label=f"--{dest.replace('_', '-')}")
+                within_bounds(
+                    OPTION_QUANTITY.get(dest, dest),
+                    np.asarray(float(v)),
+                    f"{v:g}",
+                    label=f"--{dest.replace('_', '-')}",
+                )
 
 
 def _verb_of(argv: list[str]) -> str | None:

@@ -23,35 +23,61 @@ from pathlib import Path
 from .. import plugins
 from ..defaults import DEFAULT_EM_MODEL
 
-__all__ = ["add_out", "add_overwrite", "add_accept_mismatch", "output", "add_out_or_dir",
-           "output_of", "add_quiet", "add_no_figures",
-           "add_e_per_adu", "positive_float", "positive_int", "number_list", "label_list",
-           "pixel", "recording_warnings", "print_warnings", "add_calibration_source",
-           "calibration_of"]
+__all__ = [
+    "add_out",
+    "add_overwrite",
+    "add_accept_mismatch",
+    "output",
+    "add_out_or_dir",
+    "output_of",
+    "add_quiet",
+    "add_no_figures",
+    "add_e_per_adu",
+    "positive_float",
+    "positive_int",
+    "number_list",
+    "label_list",
+    "pixel",
+    "recording_warnings",
+    "print_warnings",
+    "add_calibration_source",
+    "calibration_of",
+]
 
 
-def add_out(p: argparse.ArgumentParser, what: str = "output directory", required: bool = True,
-            overwrite: bool = True):
+def add_out(
+    p: argparse.ArgumentParser,
+    what: str = "output directory",
+    required: bool = True,
+    overwrite: bool = True,
+):
     p.add_argument("-o", "--out", type=Path, required=required, metavar="OUT", help=what)
     if overwrite:
         add_overwrite(p)
 
 
 def add_overwrite(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace an earlier output of the same names (only once the new one "
-                   "is complete)")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an earlier output of the same names (only once the new one is complete)",
+    )
 
 
 def add_accept_mismatch(p: argparse.ArgumentParser) -> None:
     from ..identity import ACCEPTABLE
 
-    p.add_argument("--accept-mismatch", action="append", default=[], metavar="FIELD",
-                   choices=ACCEPTABLE,
-                   help="let the files differ from the calibration in FIELD (repeatable; "
-                   f"one of {', '.join(ACCEPTABLE)}): by default a calibration is "
-                   "used only on frames of the camera, read-out state and set-point it "
-                   "calibrated")
+    p.add_argument(
+        "--accept-mismatch",
+        action="append",
+        default=[],
+        metavar="FIELD",
+        choices=ACCEPTABLE,
+        help="let the files differ from the calibration in FIELD (repeatable; "
+        f"one of {', '.join(ACCEPTABLE)}): by default a calibration is "
+        "used only on frames of the camera, read-out state and set-point it "
+        "calibrated",
+    )
 
 
 def output(args, path, *, kind: str = "folder", inputs=(), names=(), stage: bool = True):
@@ -60,12 +86,19 @@ def output(args, path, *, kind: str = "folder", inputs=(), names=(), stage: bool
     together when complete (``stage``); ``--overwrite`` from ``args``."""
     from .._output import Output
 
-    return Output(path, kind=kind, inputs=inputs, names=names, stage=stage,
-                  overwrite=bool(getattr(args, "overwrite", False)))
+    return Output(
+        path,
+        kind=kind,
+        inputs=inputs,
+        names=names,
+        stage=stage,
+        overwrite=bool(getattr(args, "overwrite", False)),
+    )
 
 
-def add_out_or_dir(p: argparse.ArgumentParser, what: str, required: bool = True,
-                   overwrite: bool = True) -> None:
+def add_out_or_dir(
+    p: argparse.ArgumentParser, what: str, required: bool = True, overwrite: bool = True
+) -> None:
     """``OUT`` as a positional argument (the verb's original form) or as ``-o OUT``."""
     p.add_argument("dir", nargs="?", type=Path, metavar="OUT", help=f"{what} (or -o OUT)")
     p.add_argument("-o", "--out", type=Path, default=None, help=what)
@@ -98,38 +131,60 @@ def add_e_per_adu(p: argparse.ArgumentParser, *, results: bool = True) -> None:
     """``--e-per-adu``: a number, or (``results``) an is-adu or mv-adu result, which comes
     with ``--accept-mismatch`` (a result is of one camera and read-out state)."""
     if not results:
-        p.add_argument("--e-per-adu", type=positive_float, default=None, metavar="PHI",
-                       help="ADU conversion factor phi, e-/ADU, overriding the manifest's")
+        p.add_argument(
+            "--e-per-adu",
+            type=positive_float,
+            default=None,
+            metavar="PHI",
+            help="ADU conversion factor phi, e-/ADU, overriding the manifest's",
+        )
         return
-    p.add_argument("--e-per-adu", type=number_or_path, default=None, metavar="PHI",
-                   help="ADU conversion factor phi, e-/ADU, overriding the manifest's: a "
-                   "number, or an is-adu or mv-adu result (its directory or calibration.nc), "
-                   "whose phi and standard error per pixel are then used")
+    p.add_argument(
+        "--e-per-adu",
+        type=number_or_path,
+        default=None,
+        metavar="PHI",
+        help="ADU conversion factor phi, e-/ADU, overriding the manifest's: a "
+        "number, or an is-adu or mv-adu result (its directory or calibration.nc), "
+        "whose phi and standard error per pixel are then used",
+    )
     add_accept_mismatch(p)
 
 
 def add_em_model(p: argparse.ArgumentParser, *, auto: bool = True) -> None:
     g = p.add_argument_group("EM register model (docs/cascade.md)")
-    g.add_argument("--em-model", choices=plugins.names(plugins.REGISTERS), default=None,
-                   help="the register in the likelihood: the exact Bernoulli cascade or the "
-                   "paper's gamma approximation, which reproduces the paper's numbers "
-                   f"(default: the manifest's em_model, else {DEFAULT_EM_MODEL})")
-    g.add_argument("--stages", type=stages_or_auto if auto else positive_int, default=None,
-                   metavar="N|auto" if auto else "N",
-                   help="stages of the cascade register (default: the manifest's "
-                   "register_stages, else the length known for the files' camera model, "
-                   "else 536; the gains hardly depend on it)"
-                   + ("; 'auto': the length of largest likelihood, 128 to 4096" if auto else ""))
+    g.add_argument(
+        "--em-model",
+        choices=plugins.names(plugins.REGISTERS),
+        default=None,
+        help="the register in the likelihood: the exact Bernoulli cascade or the "
+        "paper's gamma approximation, which reproduces the paper's numbers "
+        f"(default: the manifest's em_model, else {DEFAULT_EM_MODEL})",
+    )
+    g.add_argument(
+        "--stages",
+        type=stages_or_auto if auto else positive_int,
+        default=None,
+        metavar="N|auto" if auto else "N",
+        help="stages of the cascade register (default: the manifest's "
+        "register_stages, else the length known for the files' camera model, "
+        "else 536; the gains hardly depend on it)"
+        + ("; 'auto': the length of largest likelihood, 128 to 4096" if auto else ""),
+    )
 
 
 def add_device(p) -> None:
     """``--device``: where the likelihood is computed (docs/running.md, "On a GPU")."""
     from ..defaults import DEVICES
 
-    p.add_argument("--device", choices=DEVICES, default="cpu",
-                   help="where the likelihood is computed: the CPU, an NVIDIA GPU (needs the "
-                   "'gpu' extra: CuPy or PyTorch), or array-api-strict (a check of the array "
-                   "API path, slower); default: %(default)s")
+    p.add_argument(
+        "--device",
+        choices=DEVICES,
+        default="cpu",
+        help="where the likelihood is computed: the CPU, an NVIDIA GPU (needs the "
+        "'gpu' extra: CuPy or PyTorch), or array-api-strict (a check of the array "
+        "API path, slower); default: %(default)s",
+    )
 
 
 def stages_or_auto(text: str):
@@ -183,7 +238,8 @@ def number_list(text: str) -> list[float]:
         return [float(p.strip()) for p in text.split(",")]
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"expected comma-separated numbers, got {text!r}") from None
+            f"expected comma-separated numbers, got {text!r}"
+        ) from None
 
 
 def label_list(text: str) -> list[str]:
@@ -230,28 +286,42 @@ def print_warnings(caught) -> None:
         print(f"warning: {comment(message)}", file=sys.stderr)
 
 
-def add_calibration_source(p: argparse.ArgumentParser, *, many: bool = False,
-                           option: bool = False) -> None:
+def add_calibration_source(
+    p: argparse.ArgumentParser, *, many: bool = False, option: bool = False
+) -> None:
     """A calibration from result files (``RESULT``, or ``--calibration RESULT`` with
     ``option``) or from the calibration database (``--db``/``--camera``: its newest
     calibration with the set-point asked for)."""
-    what = ("calibration.nc or its directory; several joined by commas merge (is-adu with "
-            "is-gain results)" + ("; several RESULTs merge alike" if many else ""))
+    what = (
+        "calibration.nc or its directory; several joined by commas merge (is-adu with "
+        "is-gain results)" + ("; several RESULTs merge alike" if many else "")
+    )
     if option:
         p.add_argument("--calibration", dest="results", metavar="RESULT", help=what)
     else:
         p.add_argument("results", nargs="*" if many else "?", metavar="RESULT", help=what)
-    p.add_argument("--gain-curve", type=Path, metavar="FILE",
-                   help="gain-curve.json (emccdcal gain-curve) of the same camera: the gain "
-                   "at a set-point the calibration did not measure")
+    p.add_argument(
+        "--gain-curve",
+        type=Path,
+        metavar="FILE",
+        help="gain-curve.json (emccdcal gain-curve) of the same camera: the gain "
+        "at a set-point the calibration did not measure",
+    )
     g = p.add_argument_group("from the calibration database instead of RESULT")
-    g.add_argument("--camera", metavar="SERIAL",
-                   help="the camera's serial: use its newest calibration at the set-point "
-                   "(or, where none has it, the gain curve of its newest calibration)")
+    g.add_argument(
+        "--camera",
+        metavar="SERIAL",
+        help="the camera's serial: use its newest calibration at the set-point "
+        "(or, where none has it, the gain curve of its newest calibration)",
+    )
     g.add_argument("--readout", metavar="TEXT", help="its read-out state, where it has several")
-    g.add_argument("--db", type=Path, metavar="PATH",
-                   help="database file (default: $EMCCDCAL_DB, else calibrations.sqlite in "
-                   "the user's data directory)")
+    g.add_argument(
+        "--db",
+        type=Path,
+        metavar="PATH",
+        help="database file (default: $EMCCDCAL_DB, else calibrations.sqlite in "
+        "the user's data directory)",
+    )
     add_accept_mismatch(p)
 
 
@@ -261,19 +331,29 @@ def calibration_of(args, setpoint):
     from ..errors import OptionError
     from ..result import load_calibration
 
-    results = args.results if isinstance(args.results, list) else (
-        [] if args.results is None else [args.results])
+    results = (
+        args.results
+        if isinstance(args.results, list)
+        else ([] if args.results is None else [args.results])
+    )
     if args.camera is None:
         if not results:
-            raise OptionError("give a RESULT, or --camera SERIAL (with --setpoint) to use the "
-                              "calibration database")
+            raise OptionError(
+                "give a RESULT, or --camera SERIAL (with --setpoint) to use the "
+                "calibration database"
+            )
         cal = load_calibration(",".join(str(r) for r in results))
         if args.gain_curve is None or setpoint is None:
             return cal
         from ..export.gain_curve import calibration_at, read_gain_curve
 
-        return calibration_at(cal, setpoint, read_gain_curve(args.gain_curve),
-                              source=str(args.gain_curve), accept_mismatch=args.accept_mismatch)
+        return calibration_at(
+            cal,
+            setpoint,
+            read_gain_curve(args.gain_curve),
+            source=str(args.gain_curve),
+            accept_mismatch=args.accept_mismatch,
+        )
     if results or args.gain_curve is not None:
         raise OptionError("give a RESULT (with --gain-curve) or --camera, not both")
     if setpoint is None:

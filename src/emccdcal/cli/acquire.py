@@ -22,33 +22,69 @@ def add_parser(subparsers):
     p.add_argument("plan", type=Path, metavar="PLAN", help="the plan (plan.toml)")
     _common.add_out(p, "the session folder (new, or the one to --resume)", overwrite=False)
     src = p.add_argument_group("the camera (one of)")
-    src.add_argument("--mm-config", type=Path, default=None, metavar="FILE",
-                     help="a Micro-Manager configuration file (device adapters are found "
-                     "as pymmcore-plus finds them: MICROMANAGER_PATH, 'mmcore install')")
-    src.add_argument("--camera", default=None, metavar="LABEL",
-                     help="the camera's device label (default: the configuration's camera)")
-    src.add_argument("--simulated", action="store_true",
-                     help="the built-in simulated EMCCD (the plan's camera; truth.json "
-                     "written beside the stacks)")
-    src.add_argument("--seed", type=_common.nonnegative_int, default=None, metavar="S",
-                     help="seed of the simulated camera (default: one drawn and recorded)")
+    src.add_argument(
+        "--mm-config",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="a Micro-Manager configuration file (device adapters are found "
+        "as pymmcore-plus finds them: MICROMANAGER_PATH, 'mmcore install')",
+    )
+    src.add_argument(
+        "--camera",
+        default=None,
+        metavar="LABEL",
+        help="the camera's device label (default: the configuration's camera)",
+    )
+    src.add_argument(
+        "--simulated",
+        action="store_true",
+        help="the built-in simulated EMCCD (the plan's camera; truth.json "
+        "written beside the stacks)",
+    )
+    src.add_argument(
+        "--seed",
+        type=_common.nonnegative_int,
+        default=None,
+        metavar="S",
+        help="seed of the simulated camera (default: one drawn and recorded)",
+    )
     how = p.add_argument_group("the recording")
-    how.add_argument("--roi", type=_roi, default=None, metavar="X,Y,W,H",
-                     help="a region of the sensor, px (set through the core, recorded in "
-                     "the files)")
-    how.add_argument("--gain-property", default=None, metavar="NAME",
-                     help="the camera's EM-gain property (default by adapter: Andor Gain, "
-                     "PVCAM/PICAM MultiplierGain, else EMGain)")
-    how.add_argument("--light-tolerance", type=_common.positive_float, default=None,
-                     metavar="PERCENT", help="largest difference of the light from the "
-                     "plan's, percent (default 25)")
-    how.add_argument("--no-light-check", action="store_true",
-                     help="record whatever the light (saturation still stops)")
-    how.add_argument("--stop-at-target", action="store_true",
-                     help="end each multiplied set-point when a running fit reaches the "
-                     "plan's target SE (a gain series)")
-    how.add_argument("--resume", action="store_true",
-                     help="continue the session in OUT where it stopped")
+    how.add_argument(
+        "--roi",
+        type=_roi,
+        default=None,
+        metavar="X,Y,W,H",
+        help="a region of the sensor, px (set through the core, recorded in the files)",
+    )
+    how.add_argument(
+        "--gain-property",
+        default=None,
+        metavar="NAME",
+        help="the camera's EM-gain property (default by adapter: Andor Gain, "
+        "PVCAM/PICAM MultiplierGain, else EMGain)",
+    )
+    how.add_argument(
+        "--light-tolerance",
+        type=_common.positive_float,
+        default=None,
+        metavar="PERCENT",
+        help="largest difference of the light from the plan's, percent (default 25)",
+    )
+    how.add_argument(
+        "--no-light-check",
+        action="store_true",
+        help="record whatever the light (saturation still stops)",
+    )
+    how.add_argument(
+        "--stop-at-target",
+        action="store_true",
+        help="end each multiplied set-point when a running fit reaches the "
+        "plan's target SE (a gain series)",
+    )
+    how.add_argument(
+        "--resume", action="store_true", help="continue the session in OUT where it stopped"
+    )
     _common.add_quiet(p)
     p.set_defaults(func=run)
     return p
@@ -71,10 +107,14 @@ def _ask_light(core, stack) -> None:
     if not sys.stdin.isatty():
         from ..errors import OptionError
 
-        raise OptionError("an intensity-series plan needs the light set by hand before each "
-                          "level: run acquire in a terminal")
-    input(f"set the light to {stack.photoelectrons:.4g} e- per pixel per frame for "
-          f"{stack.name}, then press Enter ")
+        raise OptionError(
+            "an intensity-series plan needs the light set by hand before each "
+            "level: run acquire in a terminal"
+        )
+    input(
+        f"set the light to {stack.photoelectrons:.4g} e- per pixel per frame for "
+        f"{stack.name}, then press Enter "
+    )
 
 
 def run(args) -> int:
@@ -88,14 +128,18 @@ def run(args) -> int:
 
         args.simulated = Session.load(Path(args.out)).state.get("simulated") is not None
         if not args.simulated:
-            raise OptionError(f"{args.out} was recorded with a real camera: give its "
-                              "--mm-config FILE to resume")
+            raise OptionError(
+                f"{args.out} was recorded with a real camera: give its --mm-config FILE to resume"
+            )
     if args.simulated == (args.mm_config is not None):
         raise OptionError("give --simulated or --mm-config FILE (a real camera)")
     if args.no_light_check and args.light_tolerance is not None:
         raise OptionError("--light-tolerance and --no-light-check contradict each other")
-    tolerance = (None if args.no_light_check else
-                 (args.light_tolerance / 100 if args.light_tolerance else record.LIGHT_TOLERANCE))
+    tolerance = (
+        None
+        if args.no_light_check
+        else (args.light_tolerance / 100 if args.light_tolerance else record.LIGHT_TOLERANCE)
+    )
     plan = read_plan(args.plan)
     core = seed = None
     if args.simulated:
@@ -103,13 +147,20 @@ def run(args) -> int:
     else:
         core = record.config_core(args.mm_config)
     try:
-        session = record.acquire(plan, args.out, core=core, camera=args.camera,
-                                 simulated_seed=seed, roi=args.roi,
-                                 gain_prop=args.gain_property, light_tolerance=tolerance,
-                                 stop_at_target=args.stop_at_target, resume=args.resume,
-                                 set_light=None if args.simulated or plan.method == "gs"
-                                 else _ask_light,
-                                 progress_bars=not args.quiet)
+        session = record.acquire(
+            plan,
+            args.out,
+            core=core,
+            camera=args.camera,
+            simulated_seed=seed,
+            roi=args.roi,
+            gain_prop=args.gain_property,
+            light_tolerance=tolerance,
+            stop_at_target=args.stop_at_target,
+            resume=args.resume,
+            set_light=None if args.simulated or plan.method == "gs" else _ask_light,
+            progress_bars=not args.quiet,
+        )
     except record.Interrupted as exc:
         raise KeyboardInterrupt(str(exc)) from None
     finally:

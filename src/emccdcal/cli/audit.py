@@ -24,23 +24,44 @@ def add_parser(subparsers):
     )
     p.add_argument("toolfile", type=Path, metavar="TOOLFILE", help="the tool's settings file")
     _common.add_calibration_source(p, option=True)
-    p.add_argument("--setpoint", type=_common.positive_float, metavar="G",
-                   help="EM-gain set-point of the tool's movies (needed where the "
-                   "calibration has several)")
-    p.add_argument("--tool", choices=plugins.names(plugins.TOOLS),
-                   help="the tool (default: recognised from the file)")
-    p.add_argument("--tool-gain", type=_common.positive_float, metavar="G",
-                   help="the EM gain typed into the tool where its file holds none "
-                   "(Picasso; default the set-point)")
-    p.add_argument("--qe", type=_common.positive_float, metavar="Q",
-                   help="the quantum efficiency at the emission wavelength, to check the "
-                   "tool's against")
-    p.add_argument("--tolerance", type=_common.positive_float, metavar="PERCENT",
-                   default=100 * DEFAULT_TOLERANCE,
-                   help="photon bias beyond which the tool is off, %% (default %(default)g)")
-    p.add_argument("--offset-tolerance", type=_common.positive_float, metavar="ADU",
-                   help="baseline error beyond which the tool is off (default: the "
-                   "calibrated offset's spread over pixels plus 1 ADU)")
+    p.add_argument(
+        "--setpoint",
+        type=_common.positive_float,
+        metavar="G",
+        help="EM-gain set-point of the tool's movies (needed where the calibration has several)",
+    )
+    p.add_argument(
+        "--tool",
+        choices=plugins.names(plugins.TOOLS),
+        help="the tool (default: recognised from the file)",
+    )
+    p.add_argument(
+        "--tool-gain",
+        type=_common.positive_float,
+        metavar="G",
+        help="the EM gain typed into the tool where its file holds none "
+        "(Picasso; default the set-point)",
+    )
+    p.add_argument(
+        "--qe",
+        type=_common.positive_float,
+        metavar="Q",
+        help="the quantum efficiency at the emission wavelength, to check the tool's against",
+    )
+    p.add_argument(
+        "--tolerance",
+        type=_common.positive_float,
+        metavar="PERCENT",
+        default=100 * DEFAULT_TOLERANCE,
+        help="photon bias beyond which the tool is off, %% (default %(default)g)",
+    )
+    p.add_argument(
+        "--offset-tolerance",
+        type=_common.positive_float,
+        metavar="ADU",
+        help="baseline error beyond which the tool is off (default: the "
+        "calibrated offset's spread over pixels plus 1 ADU)",
+    )
     _common.add_quiet(p)
     p.set_defaults(func=run)
     return p
@@ -50,10 +71,16 @@ def run(args) -> int:
     from ..export.audit import audit
 
     with _common.recording_warnings() as caught:
-        found = audit(args.toolfile, _common.calibration_of(args, args.setpoint),
-                      setpoint=args.setpoint, tool=args.tool, tool_gain=args.tool_gain,
-                      qe=args.qe, tolerance=args.tolerance / 100,
-                      offset_tolerance=args.offset_tolerance)
+        found = audit(
+            args.toolfile,
+            _common.calibration_of(args, args.setpoint),
+            setpoint=args.setpoint,
+            tool=args.tool,
+            tool_gain=args.tool_gain,
+            qe=args.qe,
+            tolerance=args.tolerance / 100,
+            offset_tolerance=args.offset_tolerance,
+        )
     off = [a for a in found if not a.ok]
     if not args.quiet or off:
         for a in found:

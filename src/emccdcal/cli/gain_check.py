@@ -27,39 +27,86 @@ def add_parser(subparsers):
         "calibration (--calibration RESULT, or --camera SERIAL from the database) beyond "
         "--z combined SEs.",
     )
-    p.add_argument("darks", nargs="+", type=Path, metavar="DARKS",
-                   help="dark stacks of one set-point and read-out mode (any format)")
-    p.add_argument("--e-per-adu", type=_common.number_or_path, default=None, metavar="PHI",
-                   help="ADU conversion factor of the read-out mode, e-/ADU, or a result "
-                   "whose median phi is used (default: the calibration's)")
-    p.add_argument("--setpoint", type=_common.positive_float, default=None, metavar="G",
-                   help="the frames' EM-gain set-point (default: what their file records)")
+    p.add_argument(
+        "darks",
+        nargs="+",
+        type=Path,
+        metavar="DARKS",
+        help="dark stacks of one set-point and read-out mode (any format)",
+    )
+    p.add_argument(
+        "--e-per-adu",
+        type=_common.number_or_path,
+        default=None,
+        metavar="PHI",
+        help="ADU conversion factor of the read-out mode, e-/ADU, or a result "
+        "whose median phi is used (default: the calibration's)",
+    )
+    p.add_argument(
+        "--setpoint",
+        type=_common.positive_float,
+        default=None,
+        metavar="G",
+        help="the frames' EM-gain set-point (default: what their file records)",
+    )
     _common.add_calibration_source(p, option=True)
-    p.add_argument("--z", type=_common.positive_float, default=3.0,
-                   help="flag a difference beyond z combined SEs (default %(default)s)")
-    p.add_argument("--record", action="store_true",
-                   help="add the check to the calibration database (--db), under --camera or "
-                   "the serial the frames record, for 'emccdcal db compare'")
-    p.add_argument("--date", metavar="ISO", help="when the darks were taken, for --record "
-                   "(default: now)")
-    p.add_argument("--target-se", type=_common.positive_float, default=None,
-                   metavar="PERCENT", help="the precision wanted: say how many frames "
-                   "would reach it when the data fall short")
-    p.add_argument("--region", type=_common.region, default=None, metavar="R0:R1,C0:C1",
-                   help="use only these rows and columns (pixels known to be dark: "
-                   "masked rows, overscan or prescan columns), Python slices")
+    p.add_argument(
+        "--z",
+        type=_common.positive_float,
+        default=3.0,
+        help="flag a difference beyond z combined SEs (default %(default)s)",
+    )
+    p.add_argument(
+        "--record",
+        action="store_true",
+        help="add the check to the calibration database (--db), under --camera or "
+        "the serial the frames record, for 'emccdcal db compare'",
+    )
+    p.add_argument(
+        "--date", metavar="ISO", help="when the darks were taken, for --record (default: now)"
+    )
+    p.add_argument(
+        "--target-se",
+        type=_common.positive_float,
+        default=None,
+        metavar="PERCENT",
+        help="the precision wanted: say how many frames would reach it when the data fall short",
+    )
+    p.add_argument(
+        "--region",
+        type=_common.region,
+        default=None,
+        metavar="R0:R1,C0:C1",
+        help="use only these rows and columns (pixels known to be dark: "
+        "masked rows, overscan or prescan columns), Python slices",
+    )
     _common.add_em_model(p, auto=False)
     _common.add_device(p)
-    p.add_argument("--fit-register-cic", action="store_true",
-                   help="fit the clock-induced charge made inside the register (cascade)")
-    p.add_argument("--per-pixel-rate", action="store_true",
-                   help="each pixel its own event rate (default: one shared rate)")
-    p.add_argument("--no-bias-correction", action="store_true",
-                   help="the maximum-likelihood gain itself, without removing the bias that "
-                   "each pixel's own offset and read noise put into it (docs/gain-check.md)")
-    p.add_argument("-o", "--out", type=Path, default=None, metavar="OUT",
-                   help=f"write {RECORD_FILE} and the figure (the pooled histogram of the "
-                   "darks with the fitted model) into this folder")
+    p.add_argument(
+        "--fit-register-cic",
+        action="store_true",
+        help="fit the clock-induced charge made inside the register (cascade)",
+    )
+    p.add_argument(
+        "--per-pixel-rate",
+        action="store_true",
+        help="each pixel its own event rate (default: one shared rate)",
+    )
+    p.add_argument(
+        "--no-bias-correction",
+        action="store_true",
+        help="the maximum-likelihood gain itself, without removing the bias that "
+        "each pixel's own offset and read noise put into it (docs/gain-check.md)",
+    )
+    p.add_argument(
+        "-o",
+        "--out",
+        type=Path,
+        default=None,
+        metavar="OUT",
+        help=f"write {RECORD_FILE} and the figure (the pooled histogram of the "
+        "darks with the fitted model) into this folder",
+    )
     _common.add_overwrite(p)
     _common.add_no_figures(p)
     p.add_argument("--json", action="store_true", help="print the result as JSON")
@@ -81,35 +128,53 @@ def run(args) -> int:
     recorded = [(path, stack_settings(path, setpoint_from_name=True)) for path in args.darks]
     settings = [s for _, s in recorded]
     setpoint = _setpoint(args, settings)
-    calibration = (_common.calibration_of(args, setpoint)
-                   if args.results or args.camera else None)
+    calibration = _common.calibration_of(args, setpoint) if args.results or args.camera else None
     # one camera, read-out state and set-point, and the calibration's
-    identity.check(None if calibration is None else calibration.identity(), recorded,
-                   label="" if calibration is None else calibration.label, setpoint=setpoint,
-                   accept=args.accept_mismatch, what="dark stacks")
+    identity.check(
+        None if calibration is None else calibration.identity(),
+        recorded,
+        label="" if calibration is None else calibration.label,
+        setpoint=setpoint,
+        accept=args.accept_mismatch,
+        what="dark stacks",
+    )
     phi = _phi(args, calibration)
     if args.record or args.date is not None:  # refused now, not after the fit
         _check_record(args, settings)
     bits = {s.adc_bits for s in settings} - {None}
-    outputs = (RECORD_FILE,) + (() if args.no_figures else
-                                (f"{FIGURE_STEM}.png", f"{FIGURE_STEM}.svg"))
-    with _common.output(args, args.out, inputs=args.darks, names=outputs) \
-            if args.out is not None else contextlib.nullcontext():
-        check = check_gain([read_stack(path) for path in args.darks], phi, setpoint=setpoint,
-                           em_model=args.em_model or DEFAULT_EM_MODEL, stages=args.stages,
-                           fit_register_cic=args.fit_register_cic,
-                           pooled_rate=not args.per_pixel_rate,
-                           bias_correction=not args.no_bias_correction,
-                           adc_max=2 ** max(bits) - 1 if bits else None, region=args.region,
-                           histogram=args.out is not None and not args.no_figures,
-                           progress_bars=not (args.quiet or args.json), device=args.device)
+    outputs = (RECORD_FILE,) + (
+        () if args.no_figures else (f"{FIGURE_STEM}.png", f"{FIGURE_STEM}.svg")
+    )
+    with (
+        _common.output(args, args.out, inputs=args.darks, names=outputs)
+        if args.out is not None
+        else contextlib.nullcontext()
+    ):
+        check = check_gain(
+            [read_stack(path) for path in args.darks],
+            phi,
+            setpoint=setpoint,
+            em_model=args.em_model or DEFAULT_EM_MODEL,
+            stages=args.stages,
+            fit_register_cic=args.fit_register_cic,
+            pooled_rate=not args.per_pixel_rate,
+            bias_correction=not args.no_bias_correction,
+            adc_max=2 ** max(bits) - 1 if bits else None,
+            region=args.region,
+            histogram=args.out is not None and not args.no_figures,
+            progress_bars=not (args.quiet or args.json),
+            device=args.device,
+        )
         against = compare(check, calibration, z=args.z) if calibration is not None else None
         record = {**check.as_dict(), **({"calibration": against} if against else {})}
         written = _write(args, check, record) if args.out is not None else []
     recorded = _record(args, check, settings) if args.record else None
     if args.json:
-        print(json.dumps({**record, **({"database_check": recorded.id} if recorded else {})},
-                         indent=2))
+        print(
+            json.dumps(
+                {**record, **({"database_check": recorded.id} if recorded else {})}, indent=2
+            )
+        )
     elif not args.quiet or (against is not None and against["changed"]):
         print(check.summary(None if args.target_se is None else args.target_se / 100))
         if against is not None:
@@ -118,8 +183,10 @@ def run(args) -> int:
             for path in written:
                 print(f"wrote {path}")
             if recorded is not None:
-                print(f"recorded as check {recorded.id} of camera {recorded.camera} in the "
-                      "calibration database")
+                print(
+                    f"recorded as check {recorded.id} of camera {recorded.camera} in the "
+                    "calibration database"
+                )
     return 1 if against is not None and against["changed"] else 0
 
 
@@ -130,8 +197,9 @@ def _setpoint(args, settings):
         return args.setpoint
     recorded = {s.em_gain_setpoint for s in settings}
     if len(recorded) != 1 or None in recorded:
-        raise OptionError(f"the dark stacks record set-point(s) {sorted(map(str, recorded))}: "
-                          "give --setpoint")
+        raise OptionError(
+            f"the dark stacks record set-point(s) {sorted(map(str, recorded))}: give --setpoint"
+        )
     return recorded.pop()
 
 
@@ -147,8 +215,10 @@ def _phi(args, calibration) -> float:
 
         return e_per_adu_of(load_calibration(args.e_per_adu))
     if calibration is None:
-        raise OptionError("give --e-per-adu PHI (or a result), or the calibration: "
-                          "--calibration RESULT or --camera SERIAL")
+        raise OptionError(
+            "give --e-per-adu PHI (or a result), or the calibration: "
+            "--calibration RESULT or --camera SERIAL"
+        )
     from ..export.gain_check import e_per_adu_of
 
     return e_per_adu_of(calibration)
@@ -180,9 +250,11 @@ def _check_record(args, settings) -> None:
         database.past_date(args.date)
     serials = {s.serial for s in settings} - {None}
     if args.camera is None and len(serials) != 1:
-        raise OptionError("--record needs the camera: the dark stacks record "
-                          f"{'no serial' if not serials else 'several serials'}; give "
-                          "--camera SERIAL")
+        raise OptionError(
+            "--record needs the camera: the dark stacks record "
+            f"{'no serial' if not serials else 'several serials'}; give "
+            "--camera SERIAL"
+        )
 
 
 def _record(args, check, settings):
@@ -197,5 +269,4 @@ def _record(args, check, settings):
         found = database.entries(db=args.db, camera=camera) if camera else []
         states = {e.readout for e in found}
         readout = states.pop() if len(states) == 1 else ""
-    return database.add_check(check, camera=camera, readout=readout, date=args.date,
-                              db=args.db)
+    return database.add_check(check, camera=camera, readout=readout, date=args.date, db=args.db)

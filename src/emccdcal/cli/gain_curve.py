@@ -17,11 +17,21 @@ def add_parser(subparsers):
         "export and apply take gain-curve.json (--gain-curve) for a set-point the "
         "calibration did not measure.",
     )
-    p.add_argument("results", nargs="+", type=Path, metavar="RESULT",
-                   help="calibration results (files or directories); their set-points pool")
+    p.add_argument(
+        "results",
+        nargs="+",
+        type=Path,
+        metavar="RESULT",
+        help="calibration results (files or directories); their set-points pool",
+    )
     _common.add_out(p)
-    p.add_argument("--predict", type=_common.number_list, default=[], metavar="G,G,...",
-                   help="set-points to predict (besides the measured ones)")
+    p.add_argument(
+        "--predict",
+        type=_common.number_list,
+        default=[],
+        metavar="G,G,...",
+        help="set-points to predict (besides the measured ones)",
+    )
     _common.add_accept_mismatch(p)
     _common.add_no_figures(p)
     _common.add_quiet(p)
@@ -40,26 +50,35 @@ def run(args) -> int:
 
     out = Path(args.out)
     names = ("gain-curve.csv", "gain-curve.json")
-    with _common.recording_warnings() as caught, \
-            _common.output(args, out, inputs=result_files(args.results), names=names):
+    with (
+        _common.recording_warnings() as caught,
+        _common.output(args, out, inputs=result_files(args.results), names=names),
+    ):
         curve = gain_curve_of(args.results, accept_mismatch=args.accept_mismatch)
         table = curve.predict(sorted(set(curve.setpoints) | set(args.predict)))
-        lines = ["setpoint,gain,se_of_median,lower95,upper95,measured_gain,"
-                 "measured_se_of_median,extrapolated"]
+        lines = [
+            "setpoint,gain,se_of_median,lower95,upper95,measured_gain,"
+            "measured_se_of_median,extrapolated"
+        ]
         for i, s in enumerate(table["setpoint"]):
             at = np.flatnonzero(curve.setpoints == s)
-            meas = (f"{curve.gains[at[0]]:.6g},{curve.gain_se[at[0]]:.4g}" if at.size else ",")
-            lines.append(f"{format_setpoint(s)},{table['gain'][i]:.6g},{table['se_of_median'][i]:.4g},"
-                         f"{table['lower'][i]:.6g},{table['upper'][i]:.6g},{meas},"
-                         f"{str(bool(table['extrapolated'][i])).lower()}")
+            meas = f"{curve.gains[at[0]]:.6g},{curve.gain_se[at[0]]:.4g}" if at.size else ","
+            lines.append(
+                f"{format_setpoint(s)},{table['gain'][i]:.6g},{table['se_of_median'][i]:.4g},"
+                f"{table['lower'][i]:.6g},{table['upper'][i]:.6g},{meas},"
+                f"{str(bool(table['extrapolated'][i])).lower()}"
+            )
         doc = curve.as_dict()
-        written = [atomic_write_text(out / names[0], "\n".join(lines) + "\n"),
-                   atomic_write_text(out / names[1], json.dumps(doc, indent=2) + "\n")]
+        written = [
+            atomic_write_text(out / names[0], "\n".join(lines) + "\n"),
+            atomic_write_text(out / names[1], json.dumps(doc, indent=2) + "\n"),
+        ]
         if not args.no_figures:
             from ..report.figures import gain_curve_figure, save_figure
 
-            written += save_figure(gain_curve_figure(curve, predict=args.predict),
-                                   out / "gain-curve")
+            written += save_figure(
+                gain_curve_figure(curve, predict=args.predict), out / "gain-curve"
+            )
     if not args.quiet:
         print("\n".join(lines))
         for f in written:

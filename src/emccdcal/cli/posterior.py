@@ -19,21 +19,40 @@ def add_parser(subparsers):
         "OUT/posterior_<row>_<col>.png.",
     )
     p.add_argument("manifest", type=Path, help="TOML manifest of the acquisitions")
-    p.add_argument("--method", "-m", required=True, choices=LIKELIHOOD_METHODS,
-                   help="likelihood method")
-    p.add_argument("--pixel", "-p", action="append", required=True, metavar="ROW,COL",
-                   type=_common.pixel, help="pixel to sample (repeatable)")
+    p.add_argument(
+        "--method", "-m", required=True, choices=LIKELIHOOD_METHODS, help="likelihood method"
+    )
+    p.add_argument(
+        "--pixel",
+        "-p",
+        action="append",
+        required=True,
+        metavar="ROW,COL",
+        type=_common.pixel,
+        help="pixel to sample (repeatable)",
+    )
     _common.add_out(p)
     _common.add_e_per_adu(p, results=False)
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--steps", type=int, default=None,
-                   help=f"steps per walker of the first run (default {DEFAULT_FIRST_STEPS})")
-    p.add_argument("--max-steps", type=int, default=DEFAULT_MAX_STEPS,
-                   help=f"steps per walker before refusing an unconverged chain "
-                   f"(default {DEFAULT_MAX_STEPS})")
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help=f"steps per walker of the first run (default {DEFAULT_FIRST_STEPS})",
+    )
+    p.add_argument(
+        "--max-steps",
+        type=int,
+        default=DEFAULT_MAX_STEPS,
+        help=f"steps per walker before refusing an unconverged chain (default {DEFAULT_MAX_STEPS})",
+    )
     p.add_argument("--walkers", type=int, default=None, help="walkers (default max(32, 4F))")
-    p.add_argument("--prior", choices=PRIORS, default="log-uniform",
-                   help="flat in log-parameters (default) or in physical parameters")
+    p.add_argument(
+        "--prior",
+        choices=PRIORS,
+        default="log-uniform",
+        help="flat in log-parameters (default) or in physical parameters",
+    )
     _common.add_no_figures(p)
     _common.add_em_model(p, auto=False)
     _common.add_device(p)
@@ -52,13 +71,23 @@ def run(args) -> int:
     )
 
     try:
-        with _common.output(args, args.out, inputs=[args.manifest],
-                            names=(POSTERIOR_FILE, SUMMARY_FILE)):
+        with _common.output(
+            args, args.out, inputs=[args.manifest], names=(POSTERIOR_FILE, SUMMARY_FILE)
+        ):
             ds = sample_posterior(
-                args.manifest, args.method, args.pixel, e_per_adu=args.e_per_adu,
-                n_walkers=args.walkers, n_steps=args.steps, seed=args.seed,
-                max_steps=args.max_steps, prior=args.prior, out=args.out,
-                progress=not args.quiet, em_model=args.em_model, stages=args.stages,
+                args.manifest,
+                args.method,
+                args.pixel,
+                e_per_adu=args.e_per_adu,
+                n_walkers=args.walkers,
+                n_steps=args.steps,
+                seed=args.seed,
+                max_steps=args.max_steps,
+                prior=args.prior,
+                out=args.out,
+                progress=not args.quiet,
+                em_model=args.em_model,
+                stages=args.stages,
                 device=args.device,
             )
             if not args.no_figures:

@@ -15,22 +15,48 @@ def add_parser(subparsers):
         "with the summary, warnings, goodness of fit, figures and provenance of one or "
         "more calibration results.",
     )
-    p.add_argument("results", nargs="+", type=Path, metavar="RESULT",
-                   help="calibration.nc files or the directories that hold them")
-    _common.add_out(p, "output directory (the report is OUT/report.html), or the .html "
-                    "file to write")
-    p.add_argument("--validation", type=Path, action="append", default=[],
-                   metavar="DIR",
-                   help="a bead-validation directory (emccdcal validate -o DIR); repeatable")
-    p.add_argument("--pixel", type=_common.pixel, metavar="ROW,COL",
-                   help="pixel of the histogram and photon-transfer figures (default: centre)")
-    p.add_argument("--figures-dir", type=Path, metavar="DIR",
-                   help="also write every figure as PNG and SVG into DIR")
-    p.add_argument("--db", type=Path, metavar="PATH",
-                   help="a calibration database: show each result's camera history (its "
-                   "calibrations and gain checks, and what db compare flags)")
-    p.add_argument("--camera", metavar="SERIAL",
-                   help="with --db: the camera's serial where the result records none")
+    p.add_argument(
+        "results",
+        nargs="+",
+        type=Path,
+        metavar="RESULT",
+        help="calibration.nc files or the directories that hold them",
+    )
+    _common.add_out(
+        p, "output directory (the report is OUT/report.html), or the .html file to write"
+    )
+    p.add_argument(
+        "--validation",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="DIR",
+        help="a bead-validation directory (emccdcal validate -o DIR); repeatable",
+    )
+    p.add_argument(
+        "--pixel",
+        type=_common.pixel,
+        metavar="ROW,COL",
+        help="pixel of the histogram and photon-transfer figures (default: centre)",
+    )
+    p.add_argument(
+        "--figures-dir",
+        type=Path,
+        metavar="DIR",
+        help="also write every figure as PNG and SVG into DIR",
+    )
+    p.add_argument(
+        "--db",
+        type=Path,
+        metavar="PATH",
+        help="a calibration database: show each result's camera history (its "
+        "calibrations and gain checks, and what db compare flags)",
+    )
+    p.add_argument(
+        "--camera",
+        metavar="SERIAL",
+        help="with --db: the camera's serial where the result records none",
+    )
     _common.add_quiet(p)
     p.set_defaults(func=run)
     return p
@@ -57,12 +83,21 @@ def run(args) -> int:
     from ..result import result_files
 
     inputs = result_files(args.results)
-    with _common.recording_warnings() as caught, \
-            _common.output(args, out, kind="file", inputs=inputs):
-        path = write_report(args.results, out, validation=args.validation, pixel=args.pixel,
-                            figures_dir=args.figures_dir, progress=not args.quiet,
-                            command=_command(args), db=args.db,
-                            camera=args.camera)
+    with (
+        _common.recording_warnings() as caught,
+        _common.output(args, out, kind="file", inputs=inputs),
+    ):
+        path = write_report(
+            args.results,
+            out,
+            validation=args.validation,
+            pixel=args.pixel,
+            figures_dir=args.figures_dir,
+            progress=not args.quiet,
+            command=_command(args),
+            db=args.db,
+            camera=args.camera,
+        )
     if not args.quiet:
         print(f"wrote {path}")
     _common.print_warnings(caught)

@@ -19,9 +19,13 @@ def add_parser(subparsers):
         "commented manifest (docs/formats.md).",
     )
     p.add_argument("folder", type=Path, metavar="DIR", help="the folder of camera files")
-    _common.add_out(p, "the folder to write manifest.toml into, or the manifest's own "
-                    "name ending in .toml (default DIR/manifest.toml)", required=False,
-                    overwrite=False)
+    _common.add_out(
+        p,
+        "the folder to write manifest.toml into, or the manifest's own "
+        "name ending in .toml (default DIR/manifest.toml)",
+        required=False,
+        overwrite=False,
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing manifest")
     _common.add_quiet(p)
     p.set_defaults(func=run)

@@ -22,57 +22,114 @@ def _camera_options(p: argparse.ArgumentParser, defaults: dict | None = None) ->
 
     d = CAMERA_SIMULATION | (defaults or {})
     cam = p.add_argument_group("camera")
-    cam.add_argument("--rows", type=int, default=d["rows"],
-                     help="frame rows, px (default %(default)s)")
-    cam.add_argument("--cols", type=int, default=d["cols"],
-                     help="frame columns, px (default %(default)s)")
-    cam.add_argument("--frames", type=int, default=d["frames"],
-                     help="frames per stack (default %(default)s)")
-    cam.add_argument("--dark-frames", type=int, default=d["dark_frames"],
-                     help="frames per dark stack (default: "
-                     + ("--frames)" if d["dark_frames"] is None else "%(default)s)"))
-    cam.add_argument("--e-per-adu", type=float, default=d["e_per_adu"],
-                     help="phi, e-/ADU (default %(default)s)")
-    cam.add_argument("--offset", type=float, default=d["offset"],
-                     help="offset at set-point 1, ADU (default %(default)s)")
-    cam.add_argument("--offset-drop", type=float, default=d["offset_drop"],
-                     help="offset drop per decade of set-point, ADU (default %(default)s; "
-                     "0 for none)")
-    cam.add_argument("--offset-spread", type=float, default=d["offset_spread"],
-                     help="SD of the fixed per-pixel offset pattern, ADU (default %(default)s)")
-    cam.add_argument("--read-noise", type=float, default=d["read_noise"],
-                     help="sigma of the Gaussian read-out noise before rounding, ADU "
-                     "(default %(default)s)")
-    cam.add_argument("--multiplication", choices=plugins.names(plugins.REGISTERS), default=d["multiplication"],
-                     help="EM register model: the exact Bernoulli cascade of a real camera, or "
-                     "the paper's gamma approximation (default %(default)s)")
-    cam.add_argument("--stages", type=int, default=d["stages"],
-                     help="cascade stages (default %(default)s)")
-    cam.add_argument("--cascade-method", choices=("pmf", "stages"), default=d["cascade_method"],
-                     help="exact cascade sampler: pmf tables (fast) or stage-by-stage binomials "
-                     "(default %(default)s)")
-    cam.add_argument("--cic", type=float, default=d["cic"],
-                     help="clock-induced charge, e-/px/frame (default %(default)s)")
-    cam.add_argument("--drift", type=float, default=d["drift"],
-                     help="illumination drift, fractional change from first to last frame "
-                     "(default %(default)s)")
-    cam.add_argument("--adc-bits", type=int, default=d["adc_bits"],
-                     help="ADC bits; counts clip at 2^bits-1 (default %(default)s)")
-    p.add_argument("--seed", type=int, default=None,
-                   help="random seed (default: drawn and recorded in truth.json)")
+    cam.add_argument(
+        "--rows", type=int, default=d["rows"], help="frame rows, px (default %(default)s)"
+    )
+    cam.add_argument(
+        "--cols", type=int, default=d["cols"], help="frame columns, px (default %(default)s)"
+    )
+    cam.add_argument(
+        "--frames", type=int, default=d["frames"], help="frames per stack (default %(default)s)"
+    )
+    cam.add_argument(
+        "--dark-frames",
+        type=int,
+        default=d["dark_frames"],
+        help="frames per dark stack (default: "
+        + ("--frames)" if d["dark_frames"] is None else "%(default)s)"),
+    )
+    cam.add_argument(
+        "--e-per-adu", type=float, default=d["e_per_adu"], help="phi, e-/ADU (default %(default)s)"
+    )
+    cam.add_argument(
+        "--offset",
+        type=float,
+        default=d["offset"],
+        help="offset at set-point 1, ADU (default %(default)s)",
+    )
+    cam.add_argument(
+        "--offset-drop",
+        type=float,
+        default=d["offset_drop"],
+        help="offset drop per decade of set-point, ADU (default %(default)s; 0 for none)",
+    )
+    cam.add_argument(
+        "--offset-spread",
+        type=float,
+        default=d["offset_spread"],
+        help="SD of the fixed per-pixel offset pattern, ADU (default %(default)s)",
+    )
+    cam.add_argument(
+        "--read-noise",
+        type=float,
+        default=d["read_noise"],
+        help="sigma of the Gaussian read-out noise before rounding, ADU (default %(default)s)",
+    )
+    cam.add_argument(
+        "--multiplication",
+        choices=plugins.names(plugins.REGISTERS),
+        default=d["multiplication"],
+        help="EM register model: the exact Bernoulli cascade of a real camera, or "
+        "the paper's gamma approximation (default %(default)s)",
+    )
+    cam.add_argument(
+        "--stages", type=int, default=d["stages"], help="cascade stages (default %(default)s)"
+    )
+    cam.add_argument(
+        "--cascade-method",
+        choices=("pmf", "stages"),
+        default=d["cascade_method"],
+        help="exact cascade sampler: pmf tables (fast) or stage-by-stage binomials "
+        "(default %(default)s)",
+    )
+    cam.add_argument(
+        "--cic",
+        type=float,
+        default=d["cic"],
+        help="clock-induced charge, e-/px/frame (default %(default)s)",
+    )
+    cam.add_argument(
+        "--drift",
+        type=float,
+        default=d["drift"],
+        help="illumination drift, fractional change from first to last frame (default %(default)s)",
+    )
+    cam.add_argument(
+        "--adc-bits",
+        type=int,
+        default=d["adc_bits"],
+        help="ADC bits; counts clip at 2^bits-1 (default %(default)s)",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="random seed (default: drawn and recorded in truth.json)",
+    )
     _common.add_quiet(p)
 
 
 def _setpoint_options(p: argparse.ArgumentParser) -> None:
     """Set-points, their true gains and offsets (gain series and beads)."""
-    p.add_argument("--setpoints", type=_common.number_list, default=[1.0, 5.0, 25.0, 100.0, 300.0],
-                   help=f"EM gain set-points, comma-separated (default {_PAPER})")
-    p.add_argument("--em-gain", type=_common.number_list, default=None,
-                   help="true mean EM gain per set-point, comma-separated "
-                   f"(default {_PAPER_GAINS} at the paper's set-points, else the set-point)")
-    p.add_argument("--offsets", type=_common.number_list, default=None,
-                   help="offset per set-point, ADU, comma-separated (overrides "
-                   "--offset/--offset-drop)")
+    p.add_argument(
+        "--setpoints",
+        type=_common.number_list,
+        default=[1.0, 5.0, 25.0, 100.0, 300.0],
+        help=f"EM gain set-points, comma-separated (default {_PAPER})",
+    )
+    p.add_argument(
+        "--em-gain",
+        type=_common.number_list,
+        default=None,
+        help="true mean EM gain per set-point, comma-separated "
+        f"(default {_PAPER_GAINS} at the paper's set-points, else the set-point)",
+    )
+    p.add_argument(
+        "--offsets",
+        type=_common.number_list,
+        default=None,
+        help="offset per set-point, ADU, comma-separated (overrides --offset/--offset-drop)",
+    )
 
 
 def _common_kwargs(args) -> dict:
@@ -87,8 +144,10 @@ def _report(res, what: str) -> None:
     t = res.truth
     a0 = t["acquisitions"][0]
     rows, cols = t["options"]["rows"], t["options"]["cols"]
-    print(f"wrote {what}: {len(t['acquisitions'])} stacks of {a0['n_frames']} frames x "
-          f"{rows}x{cols} px ({t['multiplication']} multiplication, seed {t['seed']})")
+    print(
+        f"wrote {what}: {len(t['acquisitions'])} stacks of {a0['n_frames']} frames x "
+        f"{rows}x{cols} px ({t['multiplication']} multiplication, seed {t['seed']})"
+    )
     print(f"  manifest: {res.manifest}")
     print(f"  truth:    {res.truth_path}")
     print(f"  stacks:   {res.outdir / Path(a0['frames']).parent}{os.sep}")
@@ -103,9 +162,14 @@ def _run_gain_series(args) -> int:
 
     out = _common.output_of(args)
     with _common.output(args, out, names=_SIMULATED):
-        res = simulate_gain_series(out, setpoints=args.setpoints, em_gain=args.em_gain,
-                                   photoelectrons=args.photoelectrons, offsets=args.offsets,
-                                   **_common_kwargs(args))
+        res = simulate_gain_series(
+            out,
+            setpoints=args.setpoints,
+            em_gain=args.em_gain,
+            photoelectrons=args.photoelectrons,
+            offsets=args.offsets,
+            **_common_kwargs(args),
+        )
     _report(res, "gain series")
     return 0
 
@@ -115,9 +179,14 @@ def _run_intensity_series(args) -> int:
 
     out = _common.output_of(args)
     with _common.output(args, out, names=_SIMULATED):
-        res = simulate_intensity_series(out, levels=args.levels, labels=args.labels,
-                                        setpoint=args.setpoint, em_gain=args.em_gain,
-                                        **_common_kwargs(args))
+        res = simulate_intensity_series(
+            out,
+            levels=args.levels,
+            labels=args.labels,
+            setpoint=args.setpoint,
+            em_gain=args.em_gain,
+            **_common_kwargs(args),
+        )
     _report(res, "intensity series")
     return 0
 
@@ -127,14 +196,25 @@ def _run_beads(args) -> int:
 
     out = _common.output_of(args)
     with _common.output(args, out, names=_SIMULATED):
-        res = simulate_beads(out, beads=args.beads, photoelectrons=args.photoelectrons,
-                             width=args.width, background=args.background,
-                             min_separation=args.min_separation, margin=args.margin,
-                             bleaching=args.bleaching, halo=args.halo,
-                             halo_width=args.halo_width, blinking=args.blinking,
-                             blink_frames=args.blink_frames, repeat=args.repeat,
-                             setpoints=args.setpoints, em_gain=args.em_gain,
-                             offsets=args.offsets, **_common_kwargs(args))
+        res = simulate_beads(
+            out,
+            beads=args.beads,
+            photoelectrons=args.photoelectrons,
+            width=args.width,
+            background=args.background,
+            min_separation=args.min_separation,
+            margin=args.margin,
+            bleaching=args.bleaching,
+            halo=args.halo,
+            halo_width=args.halo_width,
+            blinking=args.blinking,
+            blink_frames=args.blink_frames,
+            repeat=args.repeat,
+            setpoints=args.setpoints,
+            em_gain=args.em_gain,
+            offsets=args.offsets,
+            **_common_kwargs(args),
+        )
     _report(res, "bead movies")
     print(f"  true calibration: {res.outdir / TRUTH_CALIBRATION_FILE}")
     return 0
@@ -150,8 +230,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
     def no_kind(args) -> int:
         p.print_usage(sys.stderr)
-        print("emccdcal simulate: error: choose gain-series, intensity-series or beads",
-              file=sys.stderr)
+        print(
+            "emccdcal simulate: error: choose gain-series, intensity-series or beads",
+            file=sys.stderr,
+        )
         return 2
 
     p.set_defaults(func=no_kind)
@@ -166,32 +248,48 @@ def _add_gain_series(kinds) -> None:
     from ..defaults import CAMERA_SIMULATION as _DEFAULTS
 
     gs = kinds.add_parser(
-        "gain-series", help="fixed illumination at several EM gain set-points",
+        "gain-series",
+        help="fixed illumination at several EM gain set-points",
         description="Simulate a gain series: one illumination, several EM gain set-points, "
-        "with a dark stack and offset/read-noise maps per set-point.")
+        "with a dark stack and offset/read-noise maps per set-point.",
+    )
     _common.add_out_or_dir(gs, "output directory (created)")
     _setpoint_options(gs)
-    gs.add_argument("--photoelectrons", type=float, default=_DEFAULTS["photoelectrons"],
-                    help="photoelectrons per pixel per frame, e- (default %(default)s)")
+    gs.add_argument(
+        "--photoelectrons",
+        type=float,
+        default=_DEFAULTS["photoelectrons"],
+        help="photoelectrons per pixel per frame, e- (default %(default)s)",
+    )
     _camera_options(gs)
     gs.set_defaults(func=_run_gain_series)
 
 
 def _add_intensity_series(kinds) -> None:
     is_ = kinds.add_parser(
-        "intensity-series", help="several illumination levels at one EM gain set-point",
+        "intensity-series",
+        help="several illumination levels at one EM gain set-point",
         description="Simulate an intensity series: several illumination levels at one EM gain "
-        "set-point, with one dark stack and its offset/read-noise maps.")
+        "set-point, with one dark stack and its offset/read-noise maps.",
+    )
     _common.add_out_or_dir(is_, "output directory (created)")
-    is_.add_argument("--levels", type=_common.number_list,
-                     default=[2000.0, 4000.0, 8000.0, 16000.0, 32000.0, 64000.0],
-                     help="photoelectrons per pixel per frame of each level, e-, comma-separated "
-                     "(default 2000,4000,8000,16000,32000,64000)")
-    is_.add_argument("--labels", type=_common.label_list, default=None,
-                     help="level labels (default L1,L2,...)")
+    is_.add_argument(
+        "--levels",
+        type=_common.number_list,
+        default=[2000.0, 4000.0, 8000.0, 16000.0, 32000.0, 64000.0],
+        help="photoelectrons per pixel per frame of each level, e-, comma-separated "
+        "(default 2000,4000,8000,16000,32000,64000)",
+    )
+    is_.add_argument(
+        "--labels", type=_common.label_list, default=None, help="level labels (default L1,L2,...)"
+    )
     is_.add_argument("--setpoint", type=float, default=1.0, help="EM gain set-point (default 1)")
-    is_.add_argument("--em-gain", type=float, default=None,
-                     help="true mean EM gain (default: from the set-point)")
+    is_.add_argument(
+        "--em-gain",
+        type=float,
+        default=None,
+        help="true mean EM gain (default: from the set-point)",
+    )
     _camera_options(is_)
     is_.set_defaults(func=_run_intensity_series)
 
@@ -201,40 +299,90 @@ def _add_beads(kinds) -> None:
     from ..defaults import BEAD_SIMULATION as BEAD_DEFAULTS
 
     bd = kinds.add_parser(
-        "beads", help="isolated beads at several EM gain set-points (bead validation)",
+        "beads",
+        help="isolated beads at several EM gain set-points (bead validation)",
         description="Simulate bead movies: isolated emitters with a pixel-integrated Gaussian "
         "PSF on a uniform background at several EM gain set-points, with a dark stack and "
         "offset/read-noise maps per set-point, truth.json and truth_calibration.nc "
-        "(docs/beads.md).")
+        "(docs/beads.md).",
+    )
     _common.add_out_or_dir(bd, "output directory (created)")
-    bd.add_argument("--beads", type=int, default=BEAD_DEFAULTS["beads"],
-                    help="number of beads (default %(default)s)")
-    bd.add_argument("--photoelectrons", type=_common.number_list,
-                    default=[BEAD_DEFAULTS["photoelectrons"]],
-                    help="photoelectrons per bead per frame, e-: one value or one per bead, "
-                    f"comma-separated (default {BEAD_DEFAULTS['photoelectrons']:g})")
-    bd.add_argument("--width", type=float, default=BEAD_DEFAULTS["width"],
-                    help="PSF standard deviation, px (default %(default)s)")
-    bd.add_argument("--background", type=float, default=BEAD_DEFAULTS["background"],
-                    help="uniform background, e-/px/frame (default %(default)s)")
-    bd.add_argument("--min-separation", type=float, default=BEAD_DEFAULTS["min_separation"],
-                    help="least distance between beads, px (default %(default)s)")
-    bd.add_argument("--margin", type=float, default=BEAD_DEFAULTS["margin"],
-                    help="least distance of a bead from the sensor edge, px (default %(default)s)")
-    bd.add_argument("--bleaching", type=float, default=BEAD_DEFAULTS["bleaching"],
-                    help="fraction of the beads' light lost from the first frame of the series "
-                    "to the last, set-points recorded in the order given (default %(default)s)")
-    bd.add_argument("--halo", type=float, default=BEAD_DEFAULTS["halo"],
-                    help="fraction of each bead's light in a wider Gaussian halo: a PSF the "
-                    "bead fits' Gaussian does not describe (default %(default)s)")
-    bd.add_argument("--halo-width", type=float, default=None,
-                    help="the halo's standard deviation, px (default 3 x --width)")
-    bd.add_argument("--blinking", type=float, default=BEAD_DEFAULTS["blinking"],
-                    help="fraction of frames in which each bead is off (default %(default)s)")
-    bd.add_argument("--blink-frames", type=float, default=BEAD_DEFAULTS["blink_frames"],
-                    help="mean length of a bead's off runs, frames (default %(default)s)")
-    bd.add_argument("--repeat", type=float, default=None, metavar="SETPOINT",
-                    help="record this set-point again at the end of the series (e.g. 1)")
+    bd.add_argument(
+        "--beads",
+        type=int,
+        default=BEAD_DEFAULTS["beads"],
+        help="number of beads (default %(default)s)",
+    )
+    bd.add_argument(
+        "--photoelectrons",
+        type=_common.number_list,
+        default=[BEAD_DEFAULTS["photoelectrons"]],
+        help="photoelectrons per bead per frame, e-: one value or one per bead, "
+        f"comma-separated (default {BEAD_DEFAULTS['photoelectrons']:g})",
+    )
+    bd.add_argument(
+        "--width",
+        type=float,
+        default=BEAD_DEFAULTS["width"],
+        help="PSF standard deviation, px (default %(default)s)",
+    )
+    bd.add_argument(
+        "--background",
+        type=float,
+        default=BEAD_DEFAULTS["background"],
+        help="uniform background, e-/px/frame (default %(default)s)",
+    )
+    bd.add_argument(
+        "--min-separation",
+        type=float,
+        default=BEAD_DEFAULTS["min_separation"],
+        help="least distance between beads, px (default %(default)s)",
+    )
+    bd.add_argument(
+        "--margin",
+        type=float,
+        default=BEAD_DEFAULTS["margin"],
+        help="least distance of a bead from the sensor edge, px (default %(default)s)",
+    )
+    bd.add_argument(
+        "--bleaching",
+        type=float,
+        default=BEAD_DEFAULTS["bleaching"],
+        help="fraction of the beads' light lost from the first frame of the series "
+        "to the last, set-points recorded in the order given (default %(default)s)",
+    )
+    bd.add_argument(
+        "--halo",
+        type=float,
+        default=BEAD_DEFAULTS["halo"],
+        help="fraction of each bead's light in a wider Gaussian halo: a PSF the "
+        "bead fits' Gaussian does not describe (default %(default)s)",
+    )
+    bd.add_argument(
+        "--halo-width",
+        type=float,
+        default=None,
+        help="the halo's standard deviation, px (default 3 x --width)",
+    )
+    bd.add_argument(
+        "--blinking",
+        type=float,
+        default=BEAD_DEFAULTS["blinking"],
+        help="fraction of frames in which each bead is off (default %(default)s)",
+    )
+    bd.add_argument(
+        "--blink-frames",
+        type=float,
+        default=BEAD_DEFAULTS["blink_frames"],
+        help="mean length of a bead's off runs, frames (default %(default)s)",
+    )
+    bd.add_argument(
+        "--repeat",
+        type=float,
+        default=None,
+        metavar="SETPOINT",
+        help="record this set-point again at the end of the series (e.g. 1)",
+    )
     _setpoint_options(bd)
     _camera_options(bd, CAMERA_DEFAULTS)
     bd.set_defaults(func=_run_beads)

@@ -27,9 +27,15 @@ from ..errors import InputError
 from ..model import noise
 from . import stats
 
-__all__ = ["as_stack", "maps_from_dark", "fit_dark", "read_out_maps", "DarkFit",
-           "check_read_noise_growth",
-           "DEFAULT_CHUNK_ELEMENTS"]
+__all__ = [
+    "as_stack",
+    "maps_from_dark",
+    "fit_dark",
+    "read_out_maps",
+    "DarkFit",
+    "check_read_noise_growth",
+    "DEFAULT_CHUNK_ELEMENTS",
+]
 
 #: Elements (frames × pixels) converted to float64 at a time when streaming a dark
 #: stack: 2**23 elements = 64 MiB.
@@ -195,8 +201,13 @@ def fit_dark(stack, *, adc_max=None, sample_pixels=64) -> DarkFit:
     if n_far < 10:
         # No events stand out of the read-out's Gaussian (low gain, or none made): what
         # there is hides in its core, and the plain mean and SD are its fit.
-        return DarkFit(plain_offset.reshape(rows, cols), plain_sd.reshape(rows, cols),
-                       np.full((rows, cols), np.nan), 0.0, np.ones((rows, cols), bool))
+        return DarkFit(
+            plain_offset.reshape(rows, cols),
+            plain_sd.reshape(rows, cols),
+            np.full((rows, cols), np.nan),
+            0.0,
+            np.ones((rows, cols), bool),
+        )
     theta0 = max(float(excess.sum() / n_far), 0.1)
     rate0 = np.maximum((h.counts * far).sum(axis=1) / h.n, 1e-4)
     x0 = np.stack([np.log(rate0), S0, np.log(sigma)], axis=1)
@@ -213,8 +224,9 @@ def fit_dark(stack, *, adc_max=None, sample_pixels=64) -> DarkFit:
     lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, grid.size - 1)]
     from scipy.optimize import minimize_scalar
 
-    log_theta = minimize_scalar(lambda v: -profile(v), bounds=(lo, hi), method="bounded",
-                                options={"xatol": 1e-2}).x
+    log_theta = minimize_scalar(
+        lambda v: -profile(v), bounds=(lo, hi), method="bounded", options={"xatol": 1e-2}
+    ).x
     theta = float(np.exp(log_theta))
     x, ok = np.empty_like(x0), np.empty(P, dtype=bool)
     for b in range(0, P, _BLOCK_PIXELS):  # the windows of a block: bounded memory
@@ -307,8 +319,9 @@ def _fit_events(h, x0, theta, max_iter=60):
 
     lower = np.array([_LOG_RATE[0], -np.inf, -np.inf])
     upper = np.array([_LOG_RATE[1], np.inf, np.inf])
-    opt = maximize(evaluate, x0, lower=lower, upper=upper, tol=1e-8, max_iter=max_iter,
-                   accept_rtol=1e-9)
+    opt = maximize(
+        evaluate, x0, lower=lower, upper=upper, tol=1e-8, max_iter=max_iter, accept_rtol=1e-9
+    )
     return opt.x, (opt.done | opt.stuck) & np.all(np.isfinite(opt.x), axis=1)
 
 

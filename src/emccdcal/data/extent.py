@@ -26,6 +26,8 @@ def check_data_fits(path: Path, shape, dtype, offset: int, stride: int | None = 
     if frame:
         step = stride or frame
         whole = f": {max(0, size - offset + step - frame) // step} whole frame(s) of {shape[0]}"
-    raise InputError(f"'{path}': truncated: its header describes {what} values of "
-                     f"{dtype.itemsize} bytes from byte {offset}, {need} bytes, but the file "
-                     f"has {size}{whole}")
+    raise InputError(
+        f"'{path}': truncated: its header describes {what} values of "
+        f"{dtype.itemsize} bytes from byte {offset}, {need} bytes, but the file "
+        f"has {size}{whole}"
+    )

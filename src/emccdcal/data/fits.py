@@ -27,15 +27,24 @@ __all__ = ["SUFFIXES", "FitsStack", "read_header", "header", "open_stack", "sett
 SUFFIXES = (".fits", ".fit", ".fts")
 
 # BITPIX (with BZERO for the unsigned types) → the values' dtype once scaled.
-_TYPES = {(8, 0): "u1", (16, 0): "i2", (16, 32768): "u2", (32, 0): "i4",
-          (32, 2**31): "u4", (-32, 0): "f4", (-64, 0): "f8"}
+_TYPES = {
+    (8, 0): "u1",
+    (16, 0): "i2",
+    (16, 32768): "u2",
+    (32, 0): "i4",
+    (32, 2**31): "u4",
+    (-32, 0): "f4",
+    (-64, 0): "f8",
+}
 
 
 def _fits():
     try:
         from astropy.io import fits
     except ImportError:
-        raise InputError("reading FITS needs the 'fits' extra: pip install 'emccdcal[fits]'") from None
+        raise InputError(
+            "reading FITS needs the 'fits' extra: pip install 'emccdcal[fits]'"
+        ) from None
     return fits
 
 
@@ -54,20 +63,26 @@ def read_header(path: Path):
         raise InputError(f"'{path}': not a FITS file: {exc}") from None
     naxis = int(header.get("NAXIS", 0))
     if naxis not in (2, 3):
-        raise InputError(f"'{path}': FITS primary HDU has {naxis} axes; a stack has 3 "
-                         "(frames, rows, cols) and a map 2")
+        raise InputError(
+            f"'{path}': FITS primary HDU has {naxis} axes; a stack has 3 "
+            "(frames, rows, cols) and a map 2"
+        )
     shape = tuple(int(header[f"NAXIS{k}"]) for k in range(naxis, 0, -1))
     bitpix, bzero = int(header["BITPIX"]), header.get("BZERO", 0)
     key = (bitpix, int(bzero) if float(bzero).is_integer() else -1)
     if key not in _TYPES or float(header.get("BSCALE", 1)) != 1:
-        raise InputError(f"'{path}': FITS data of BITPIX {bitpix}, BZERO {bzero}, BSCALE "
-                         f"{header.get('BSCALE', 1)} are not raw counts")
+        raise InputError(
+            f"'{path}': FITS data of BITPIX {bitpix}, BZERO {bzero}, BSCALE "
+            f"{header.get('BSCALE', 1)} are not raw counts"
+        )
     dtype = np.dtype(_TYPES[key])
     need = info["datLoc"] + int(np.prod(shape)) * abs(bitpix) // 8
     size = path.stat().st_size
     if need > size:
-        raise InputError(f"'{path}': truncated: its header describes {' × '.join(map(str, shape))} "
-                         f"values ending at byte {need}, but the file has {size}")
+        raise InputError(
+            f"'{path}': truncated: its header describes {' × '.join(map(str, shape))} "
+            f"values ending at byte {need}, but the file has {size}"
+        )
     return shape, dtype, _settings(header)
 
 

@@ -56,8 +56,8 @@ __all__ = [
 
 #: The camera settings that identify a camera's read-out state (a calibration holds for
 #: that state only), recorded in results as ``attrs["camera"]``.
-CAMERA_IDENTITY = ("serial", "model", "amplifier", "readout_rate_mhz", "analog_gain",
-                   "adc_bits")
+CAMERA_IDENTITY = ("serial", "model", "amplifier", "readout_rate_mhz", "analog_gain", "adc_bits")
+
 
 # --------------------------------------------------------------------------------------
 # Data classes
@@ -234,12 +234,17 @@ def _origin(r, written, recorded: set, shape):
     """The stacks' sensor origin: the manifest's, else the one the files record."""
     if len(recorded) > 1:
         texts = "; ".join(_region_text(o, shape) for o in sorted(recorded))
-        raise r.error(f"the stacks record different regions of the sensor ({texts}): a "
-                      "calibration needs the same pixels in every acquisition")
+        raise r.error(
+            f"the stacks record different regions of the sensor ({texts}): a "
+            "calibration needs the same pixels in every acquisition"
+        )
     if written is not None:
         if recorded and tuple(written) not in recorded:
-            warnings.warn(f"{r.path}: origin = {list(written)}, but the files record "
-                          f"{list(next(iter(recorded)))}; the manifest's is used", stacklevel=5)
+            warnings.warn(
+                f"{r.path}: origin = {list(written)}, but the files record "
+                f"{list(next(iter(recorded)))}; the manifest's is used",
+                stacklevel=5,
+            )
         return tuple(int(v) for v in written)
     return next(iter(recorded)) if recorded else None
 
@@ -247,8 +252,10 @@ def _origin(r, written, recorded: set, shape):
 def _binning(r, recorded: set):
     """The stacks' (x, y) binning where the files record one; different ones are an error."""
     if len(recorded) > 1:
-        raise r.error(f"the stacks record different binnings ({', '.join(map(str, sorted(recorded)))}): "
-                      "a calibration needs the same pixels in every acquisition")
+        raise r.error(
+            f"the stacks record different binnings ({', '.join(map(str, sorted(recorded)))}): "
+            "a calibration needs the same pixels in every acquisition"
+        )
     return next(iter(recorded)) if recorded else None
 
 
@@ -265,8 +272,12 @@ def _is_number(value) -> bool:
 
 
 def _is_int(value, low=None, high=None) -> bool:
-    return (isinstance(value, int) and not isinstance(value, bool)
-            and (low is None or value >= low) and (high is None or value <= high))
+    return (
+        isinstance(value, int)
+        and not isinstance(value, bool)
+        and (low is None or value >= low)
+        and (high is None or value <= high)
+    )
 
 
 def _is_path(value) -> bool:
@@ -291,8 +302,10 @@ def _map_problem(key: str, value) -> str | None:
             number = float(value)
         except ValueError:
             return None
-        return (f"{key} = \"{value}\" is a string, which names a map file; write the "
-                f"number without quotes: {key} = {number:g}")
+        return (
+            f'{key} = "{value}" is a string, which names a map file; write the '
+            f"number without quotes: {key} = {number:g}"
+        )
     if not _is_number(value):
         return f"'{key}' must be a number or the path of a (rows, cols) map, got {value!r}"
     if not math.isfinite(value):
@@ -330,42 +343,108 @@ class _Key:
 #: The keys of a manifest's top level (docs/manifest.md).
 _TOP_KEYS = (
     _Key("e_per_adu", "e-/ADU", problem=partial(_map_problem, "e_per_adu")),
-    _Key("adc_bits", "bit", problem=lambda v: None if _is_int(v, 1, 32) else
-         f"adc_bits must be an integer from 1 to 32, got {v!r}"),
-    _Key("origin", "pixel", problem=lambda v: None if (
-        isinstance(v, list) and len(v) == 2 and all(_is_int(x, 0) for x in v)) else
-        f"origin must be [row, col], the sensor pixel of the stacks' first pixel "
-        f"(integers >= 0), got {v!r}"),
-    _Key("em_model", "", problem=lambda v: None if v in _em_models() else
-         f"em_model must be one of {', '.join(repr(m) for m in _em_models())}, got {v!r}"),
-    _Key("register_stages", "stages", problem=lambda v: None if _is_int(v, 1, 100000) else
-         f"register_stages must be a whole number of stages (e.g. 536 or 604), got {v!r}"),
-    _Key("acquisition", "", missing="no [[acquisition]] table; a manifest lists at least "
-         "one acquisition", problem=lambda v: None if (
-             isinstance(v, list) and all(isinstance(e, dict) for e in v)) else
-         "'acquisition' must be an array of tables: write each one as [[acquisition]]"),
+    _Key(
+        "adc_bits",
+        "bit",
+        problem=lambda v: (
+            None if _is_int(v, 1, 32) else f"adc_bits must be an integer from 1 to 32, got {v!r}"
+        ),
+    ),
+    _Key(
+        "origin",
+        "pixel",
+        problem=lambda v: (
+            None
+            if (isinstance(v, list) and len(v) == 2 and all(_is_int(x, 0) for x in v))
+            else f"origin must be [row, col], the sensor pixel of the stacks' first pixel "
+            f"(integers >= 0), got {v!r}"
+        ),
+    ),
+    _Key(
+        "em_model",
+        "",
+        problem=lambda v: (
+            None
+            if v in _em_models()
+            else f"em_model must be one of {', '.join(repr(m) for m in _em_models())}, got {v!r}"
+        ),
+    ),
+    _Key(
+        "register_stages",
+        "stages",
+        problem=lambda v: (
+            None
+            if _is_int(v, 1, 100000)
+            else f"register_stages must be a whole number of stages (e.g. 536 or 604), got {v!r}"
+        ),
+    ),
+    _Key(
+        "acquisition",
+        "",
+        missing="no [[acquisition]] table; a manifest lists at least one acquisition",
+        problem=lambda v: (
+            None
+            if (isinstance(v, list) and all(isinstance(e, dict) for e in v))
+            else "'acquisition' must be an array of tables: write each one as [[acquisition]]"
+        ),
+    ),
 )
 
 #: The keys of an ``[[acquisition]]`` table (docs/manifest.md).
 _ACQUISITION_KEYS = (
-    _Key("frames", "", missing="missing 'frames' (the path of the stack of raw counts)",
-         problem=lambda v: None if _is_path(v) else f"'frames' must be a path, got {v!r}"),
-    _Key("em_gain_setpoint", "", problem=_setpoint_problem,
-         missing="missing 'em_gain_setpoint' (the camera's EM gain setting, >= 1)"),
+    _Key(
+        "frames",
+        "",
+        missing="missing 'frames' (the path of the stack of raw counts)",
+        problem=lambda v: None if _is_path(v) else f"'frames' must be a path, got {v!r}",
+    ),
+    _Key(
+        "em_gain_setpoint",
+        "",
+        problem=_setpoint_problem,
+        missing="missing 'em_gain_setpoint' (the camera's EM gain setting, >= 1)",
+    ),
     _Key("offset", "ADU", problem=partial(_map_problem, "offset")),
     _Key("read_noise", "ADU", problem=partial(_map_problem, "read_noise")),
-    _Key("dark", "", problem=lambda v: None if _is_path(v) else
-         f"'dark' must be the path of a dark stack, got {v!r}"),
-    _Key("level", "", problem=lambda v: None if isinstance(v, (str, int))
-         and not isinstance(v, bool) else
-         f"'level' must be a string label (e.g. \"L3\"), got {v!r}"),
-    _Key("skip_frames", "frames", default=0, problem=lambda v: None if _is_int(v, 0) else
-         f"'skip_frames' must be an integer >= 0, got {v!r}"),
-    _Key("name", "", problem=lambda v: None if _is_path(v) else
-         f"'name' must be a non-empty string, got {v!r}"),
-    _Key("dark_frames", "frames", problem=lambda v: None if _is_int(v, 2) else
-         f"'dark_frames' (the number of dark frames the maps were computed from) must "
-         f"be an integer >= 2, got {v!r}"),
+    _Key(
+        "dark",
+        "",
+        problem=lambda v: (
+            None if _is_path(v) else f"'dark' must be the path of a dark stack, got {v!r}"
+        ),
+    ),
+    _Key(
+        "level",
+        "",
+        problem=lambda v: (
+            None
+            if isinstance(v, (str, int)) and not isinstance(v, bool)
+            else f"'level' must be a string label (e.g. \"L3\"), got {v!r}"
+        ),
+    ),
+    _Key(
+        "skip_frames",
+        "frames",
+        default=0,
+        problem=lambda v: (
+            None if _is_int(v, 0) else f"'skip_frames' must be an integer >= 0, got {v!r}"
+        ),
+    ),
+    _Key(
+        "name",
+        "",
+        problem=lambda v: None if _is_path(v) else f"'name' must be a non-empty string, got {v!r}",
+    ),
+    _Key(
+        "dark_frames",
+        "frames",
+        problem=lambda v: (
+            None
+            if _is_int(v, 2)
+            else f"'dark_frames' (the number of dark frames the maps were computed from) must "
+            f"be an integer >= 2, got {v!r}"
+        ),
+    ),
 )
 
 #: Keys allowed at the top level of a manifest.
@@ -485,8 +564,10 @@ def parse_manifest(path) -> ManifestEntries:
     if not path.exists():
         raise ManifestError(describe_missing(path, "manifest file"))
     if path.is_dir():
-        raise ManifestError(f"{path}: is a directory, not a manifest file; 'emccdcal scan "
-                            f"{path}' writes the manifest of a folder of camera files")
+        raise ManifestError(
+            f"{path}: is a directory, not a manifest file; 'emccdcal scan "
+            f"{path}' writes the manifest of a folder of camera files"
+        )
     try:
         raw = _files.read_bytes(path, what="manifest")
         text = raw.decode("utf-8")
@@ -506,8 +587,12 @@ def parse_manifest(path) -> ManifestEntries:
     for e in entries:
         key = e.frames_path.expanduser().resolve()
         if key in seen:
-            raise r.error(f"frames file '{e.frames}' is also acquisition {seen[key]}; each "
-                          "stack may be listed once", e.index, e.label)
+            raise r.error(
+                f"frames file '{e.frames}' is also acquisition {seen[key]}; each "
+                "stack may be listed once",
+                e.index,
+                e.label,
+            )
         seen[key] = e.index
     origin = top["origin"]
     return ManifestEntries(
@@ -529,25 +614,48 @@ def _entry(r: _Reader, i: int, table: dict) -> AcquisitionEntry:
     frames: str = v["frames"]  # required: the key table has refused a table without it
     has_maps = [k for k in ("offset", "read_noise") if v[k] is not None]
     if v["dark"] is not None and has_maps:
-        raise r.error(f"give either 'dark' or 'offset' and 'read_noise', not both (found "
-                      f"'dark' and {', '.join(repr(k) for k in has_maps)})", i, label)
+        raise r.error(
+            f"give either 'dark' or 'offset' and 'read_noise', not both (found "
+            f"'dark' and {', '.join(repr(k) for k in has_maps)})",
+            i,
+            label,
+        )
     if v["dark"] is None and len(has_maps) == 1:
         missing = ({"offset", "read_noise"} - set(has_maps)).pop()
-        raise r.error(f"'{has_maps[0]}' is given but '{missing}' is missing; give both "
-                      "maps, or a 'dark' stack", i, label)
+        raise r.error(
+            f"'{has_maps[0]}' is given but '{missing}' is missing; give both "
+            "maps, or a 'dark' stack",
+            i,
+            label,
+        )
     if v["dark"] is None and not has_maps:
-        raise r.error("no offset and read noise: give 'offset' and 'read_noise' (maps or "
-                      "numbers, ADU) or a 'dark' stack", i, label)
+        raise r.error(
+            "no offset and read noise: give 'offset' and 'read_noise' (maps or "
+            "numbers, ADU) or a 'dark' stack",
+            i,
+            label,
+        )
     if v["dark_frames"] is not None and v["dark"] is not None:
-        raise r.error("'dark_frames' is for offset/read_noise maps; with a 'dark' stack the "
-                      "number of dark frames is the stack's", i, label)
+        raise r.error(
+            "'dark_frames' is for offset/read_noise maps; with a 'dark' stack the "
+            "number of dark frames is the stack's",
+            i,
+            label,
+        )
     return AcquisitionEntry(
-        index=i, label=label, frames=frames, frames_path=r.resolve(frames),
+        index=i,
+        label=label,
+        frames=frames,
+        frames_path=r.resolve(frames),
         name=v["name"] if v["name"] is not None else Path(frames).stem,
-        em_gain_setpoint=float(v["em_gain_setpoint"]), skip_frames=v["skip_frames"],
+        em_gain_setpoint=float(v["em_gain_setpoint"]),
+        skip_frames=v["skip_frames"],
         level=None if v["level"] is None else str(v["level"]),
-        dark_frames=v["dark_frames"], offset=v["offset"], read_noise=v["read_noise"],
-        dark=v["dark"], dark_path=None if v["dark"] is None else r.resolve(v["dark"]),
+        dark_frames=v["dark_frames"],
+        offset=v["offset"],
+        read_noise=v["read_noise"],
+        dark=v["dark"],
+        dark_path=None if v["dark"] is None else r.resolve(v["dark"]),
     )
 
 
@@ -622,44 +730,67 @@ def resolve_manifest(entries: ManifestEntries) -> Manifest:
         hint = f" (adc_bits = {entries.adc_bits}); is adc_bits the camera's ADC resolution?"
     else:
         adc_max = max(default_adc_max(d) for d in dtypes)
-        hint = (f" (default for {', '.join(sorted({str(d) for d in dtypes}))} data); set "
-                "adc_bits in the manifest to the camera's ADC resolution")
+        hint = (
+            f" (default for {', '.join(sorted({str(d) for d in dtypes}))} data); set "
+            "adc_bits in the manifest to the camera's ADC resolution"
+        )
     e_per_adu, e_source = None, None
     if e_result is not None:  # read by the calibration, with its standard errors
         e_source = Source("result", Path(e_result))
     elif entries.e_per_adu is not None:
-        e_per_adu, e_source = _map_from_value(r, None, "", "e_per_adu", entries.e_per_adu,
-                                              shape)
+        e_per_adu, e_source = _map_from_value(r, None, "", "e_per_adu", entries.e_per_adu, shape)
     for a, (_, dtype, _) in zip(acqs, headers):
         if needs_scan(dtype, adc_max):
             try:
-                check_counts(load_stack(a.frames_path), a.frames_path, adc_max=adc_max,
-                             adc_bits_hint=hint)
+                check_counts(
+                    load_stack(a.frames_path), a.frames_path, adc_max=adc_max, adc_bits_hint=hint
+                )
             except InputError as exc:
                 raise r.error(str(exc), a.index, a.label) from None
     maps = _read_out_maps(r, acqs, shape, adc_max, hint)
     acquisitions = [
-        Acquisition(name=a.name, frames_path=a.frames_path,
-                    em_gain_setpoint=a.em_gain_setpoint, level=a.level,
-                    skip_frames=a.skip_frames, offset=m["offset"],
-                    read_noise=m["read_noise"], offset_source=m["offset_source"],
-                    read_noise_source=m["read_noise_source"], n_frames_total=n_total,
-                    dark_frames=dark_frames, dark_event_rate=m["events"])
+        Acquisition(
+            name=a.name,
+            frames_path=a.frames_path,
+            em_gain_setpoint=a.em_gain_setpoint,
+            level=a.level,
+            skip_frames=a.skip_frames,
+            offset=m["offset"],
+            read_noise=m["read_noise"],
+            offset_source=m["offset_source"],
+            read_noise_source=m["read_noise_source"],
+            n_frames_total=n_total,
+            dark_frames=dark_frames,
+            dark_event_rate=m["events"],
+        )
         for a, m, (n_total, _, dark_frames) in zip(acqs, maps, headers)
     ]
-    found = [f"{entries.path}: {msg}" for msg in check_read_noise_growth(
-        [a.em_gain_setpoint for a in acquisitions], [a.read_noise for a in acquisitions])]
+    found = [
+        f"{entries.path}: {msg}"
+        for msg in check_read_noise_growth(
+            [a.em_gain_setpoint for a in acquisitions], [a.read_noise for a in acquisitions]
+        )
+    ]
     for msg in found:
         warnings.warn(msg, ReadNoiseGrowthWarning, stacklevel=3)
     origin, binning, camera = _recorded(r, entries, acquisitions, shape, found)
     levels = tuple(dict.fromkeys(a.level for a in acquisitions if a.level is not None))
     return Manifest(
-        path=entries.path, content_hash=entries.content_hash, e_per_adu=e_per_adu,
-        e_per_adu_source=e_source, acquisitions=acquisitions,
-        shape=(int(shape[0]), int(shape[1])), origin=origin, binning=binning,
-        adc_max=int(adc_max), setpoints=tuple(sorted({a.em_gain_setpoint for a in acqs})),
-        levels=levels, warnings=found, em_model=entries.em_model,
-        register_stages=entries.register_stages, camera=camera,
+        path=entries.path,
+        content_hash=entries.content_hash,
+        e_per_adu=e_per_adu,
+        e_per_adu_source=e_source,
+        acquisitions=acquisitions,
+        shape=(int(shape[0]), int(shape[1])),
+        origin=origin,
+        binning=binning,
+        adc_max=int(adc_max),
+        setpoints=tuple(sorted({a.em_gain_setpoint for a in acqs})),
+        levels=levels,
+        warnings=found,
+        em_model=entries.em_model,
+        register_stages=entries.register_stages,
+        camera=camera,
     )
 
 
@@ -690,27 +821,45 @@ def _stack_headers(r: _Reader, acqs):
         if shape is None:
             shape, first_label = stack_shape[1:], label
         elif stack_shape[1:] != shape:
-            raise r.error(f"frames '{a.frames_path}' have (rows, cols) = {stack_shape[1:]}, "
-                          f"but acquisition 1 ({first_label}) has {shape}; all stacks must "
-                          "cover the same pixels", i, label)
+            raise r.error(
+                f"frames '{a.frames_path}' have (rows, cols) = {stack_shape[1:]}, "
+                f"but acquisition 1 ({first_label}) has {shape}; all stacks must "
+                "cover the same pixels",
+                i,
+                label,
+            )
         n = stack_shape[0]
         if a.skip_frames >= n:
-            raise r.error(f"skip_frames = {a.skip_frames} leaves no frames: "
-                          f"'{a.frames_path}' has {n} frames", i, label)
+            raise r.error(
+                f"skip_frames = {a.skip_frames} leaves no frames: '{a.frames_path}' has {n} frames",
+                i,
+                label,
+            )
         if n - a.skip_frames < 2:
-            raise r.error(f"'{a.frames_path}' has 1 frame"
-                          f"{' after skip_frames' * bool(a.skip_frames)}: a histogram of a "
-                          "pixel's counts needs at least 2 (a calibration, thousands)",
-                          i, label)
+            raise r.error(
+                f"'{a.frames_path}' has 1 frame"
+                f"{' after skip_frames' * bool(a.skip_frames)}: a histogram of a "
+                "pixel's counts needs at least 2 (a calibration, thousands)",
+                i,
+                label,
+            )
         dark_frames = a.dark_frames
         if a.dark is not None:
             dark_shape, _ = _stack_header(r, i, label, a.dark_path, "dark")
             if dark_shape[1:] != shape:
-                raise r.error(f"dark stack '{a.dark_path}' has (rows, cols) = "
-                              f"{dark_shape[1:]}, but the frames are {shape}", i, label)
+                raise r.error(
+                    f"dark stack '{a.dark_path}' has (rows, cols) = "
+                    f"{dark_shape[1:]}, but the frames are {shape}",
+                    i,
+                    label,
+                )
             if dark_shape[0] < 2:
-                raise r.error(f"dark stack '{a.dark_path}' has {dark_shape[0]} frame(s); at "
-                              "least 2 are needed for a read noise", i, label)
+                raise r.error(
+                    f"dark stack '{a.dark_path}' has {dark_shape[0]} frame(s); at "
+                    "least 2 are needed for a read noise",
+                    i,
+                    label,
+                )
             dark_frames = dark_shape[0]
         headers.append((n, dtype, dark_frames))
     return shape, headers
@@ -725,22 +874,32 @@ def _read_out_maps(r: _Reader, acqs, shape, adc_max, hint) -> list[dict]:
         if a.dark is None:
             m: dict = {"events": None}
             for key in ("offset", "read_noise"):
-                m[key], m[key + "_source"] = _map_from_value(r, a.index, a.label, key,
-                                                            getattr(a, key), shape)
+                m[key], m[key + "_source"] = _map_from_value(
+                    r, a.index, a.label, key, getattr(a, key), shape
+                )
         else:
             key = a.dark_path.expanduser().resolve()
             if key not in darks:
                 darks[key] = _reduce_dark(r, a, adc_max, hint)
             offset, read_noise, events = darks[key]
             source = Source("dark", a.dark_path)
-            m = {"offset": offset.copy(), "read_noise": read_noise.copy(), "events": events,
-                 "offset_source": source, "read_noise_source": source}
+            m = {
+                "offset": offset.copy(),
+                "read_noise": read_noise.copy(),
+                "events": events,
+                "offset_source": source,
+                "read_noise_source": source,
+            }
         for key, what in (("offset", "offset"), ("read_noise", "read noise")):
             if np.max(m[key]) >= adc_max:  # maps in other units, or a wrong adc_bits
                 bad = describe_first(m[key], m[key] >= adc_max, 0)
-                raise r.error(f"{what} {bad} ({m[key + '_source']}) is at or above the ADC "
-                              f"maximum {adc_max} ADU{hint}; maps must be in ADU of these "
-                              "frames", a.index, a.label)
+                raise r.error(
+                    f"{what} {bad} ({m[key + '_source']}) is at or above the ADC "
+                    f"maximum {adc_max} ADU{hint}; maps must be in ADU of these "
+                    "frames",
+                    a.index,
+                    a.label,
+                )
         out.append(m)
     return out
 
@@ -756,8 +915,12 @@ def _reduce_dark(r: _Reader, a: AcquisitionEntry, adc_max, hint):
     offset, read_noise, events = read_out_maps(dark, a.em_gain_setpoint, adc_max=adc_max)
     if np.any(read_noise <= 0):
         bad = describe_first(read_noise, read_noise <= 0, 0)
-        raise r.error(f"'{a.dark_path}': dark stack gives read noise {bad} (constant dark "
-                      "counts); read noise must be > 0", a.index, a.label)
+        raise r.error(
+            f"'{a.dark_path}': dark stack gives read noise {bad} (constant dark "
+            "counts); read noise must be > 0",
+            a.index,
+            a.label,
+        )
     return offset, read_noise, events
 
 
@@ -774,17 +937,22 @@ def _recorded(r: _Reader, entries, acquisitions, shape, found: list):
             binnings.add(tuple(settings.binning))
         recorded = settings.em_gain_setpoint
         if recorded is not None and recorded != a.em_gain_setpoint:
-            msg = (f"{entries.path}: acquisition {i} ({a.name}): the manifest says EM gain "
-                   f"set-point {a.em_gain_setpoint:g}, but '{a.frames_path}' records "
-                   f"{recorded:g}")
+            msg = (
+                f"{entries.path}: acquisition {i} ({a.name}): the manifest says EM gain "
+                f"set-point {a.em_gain_setpoint:g}, but '{a.frames_path}' records "
+                f"{recorded:g}"
+            )
             found.append(msg)
             warnings.warn(msg, stacklevel=4)
     try:  # the stacks of one calibration are of one camera and read-out state
         joint = identity.of_frames(recorded_by, what="frames of a manifest", setpoints=False)
     except InputError as exc:
         raise r.error(str(exc)) from None
-    camera = {k: getattr(next(iter(recorded_by.values())), k) for k in CAMERA_IDENTITY
-              if k in joint and all(getattr(s, k) is not None for s in recorded_by.values())}
+    camera = {
+        k: getattr(next(iter(recorded_by.values())), k)
+        for k in CAMERA_IDENTITY
+        if k in joint and all(getattr(s, k) is not None for s in recorded_by.values())
+    }
     return (_origin(r, entries.origin, origins, shape), _binning(r, binnings), camera)
 
 
@@ -799,7 +967,10 @@ def _refuse_copies(r: _Reader, acqs) -> None:
             raise r.error(
                 f"frames '{a.frames_path}' hold the same data as acquisition {b.index}'s "
                 f"('{b.frames_path}'): the same stack under two "
-                f"{'levels' if a.level is not None else 'set-points'}?", a.index, a.label)
+                f"{'levels' if a.level is not None else 'set-points'}?",
+                a.index,
+                a.label,
+            )
         seen[key] = a
 
 
@@ -811,8 +982,11 @@ def is_result_path(path: Path) -> bool:
 def _require_file(r: _Reader, i: int | None, label: str, key: str, written: str) -> None:
     p = r.resolve(written)
     if not p.exists():
-        raise r.error(f"{key} file not found: '{written}' (resolved to "
-                      f"'{p.expanduser().resolve()}')", i, label)
+        raise r.error(
+            f"{key} file not found: '{written}' (resolved to '{p.expanduser().resolve()}')",
+            i,
+            label,
+        )
     try:
         check_readable(p)
     except InputError as exc:
@@ -825,14 +999,20 @@ def _stack_header(r: _Reader, i: int, label: str, p: Path, key: str):
     except InputError as exc:
         raise r.error(str(exc), i, label) from None
     if len(shape) == 2:
-        raise r.error(f"{key} '{p}' holds one image of {shape[0]} × {shape[1]} pixels, not a "
-                      "stack of frames (a stack cut short to its first frame?)", i, label)
+        raise r.error(
+            f"{key} '{p}' holds one image of {shape[0]} × {shape[1]} pixels, not a "
+            "stack of frames (a stack cut short to its first frame?)",
+            i,
+            label,
+        )
     if len(shape) != 3:
-        raise r.error(f"{key} '{p}' is not a 3-D (frames, rows, cols) stack: shape {shape}",
-                      i, label)
+        raise r.error(
+            f"{key} '{p}' is not a 3-D (frames, rows, cols) stack: shape {shape}", i, label
+        )
     if dtype.kind not in "uif":
-        raise r.error(f"{key} '{p}' has unsupported data type {dtype}; expected integer "
-                      "counts", i, label)
+        raise r.error(
+            f"{key} '{p}' has unsupported data type {dtype}; expected integer counts", i, label
+        )
     return shape, dtype
 
 

@@ -26,7 +26,9 @@ TAG = 51123
 
 
 def _number(value):
-    match = re.search(r"[-+]?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?", str(value)) if value is not None else None
+    match = (
+        re.search(r"[-+]?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?", str(value)) if value is not None else None
+    )
     if match is None:
         return None
     number = float(match.group())
@@ -95,11 +97,16 @@ def stack_settings(path, tif) -> CameraSettings:
     last = last_page.tags.get(TAG)
     if last is not None and isinstance(last.value, dict):
         tail = settings_of(last.value)
-        changed = [n for n in CameraSettings.names() if getattr(head, n) != getattr(tail, n)
-                   and n != "temperature_c"]
+        changed = [
+            n
+            for n in CameraSettings.names()
+            if getattr(head, n) != getattr(tail, n) and n != "temperature_c"
+        ]
         if changed:
             n = changed[0]
-            raise InputError(f"'{path}': the camera's {n} changes within the stack "
-                             f"({getattr(head, n)!r} in its first frame, {getattr(tail, n)!r} "
-                             "in its last)")
+            raise InputError(
+                f"'{path}': the camera's {n} changes within the stack "
+                f"({getattr(head, n)!r} in its first frame, {getattr(tail, n)!r} "
+                "in its last)"
+            )
     return head

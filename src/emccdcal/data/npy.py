@@ -48,6 +48,8 @@ def _npy_layout(path: Path):
     # (which moves the data) shows as bytes left over, or missing (_check_data_fits).
     extra = path.stat().st_size - offset - int(np.prod(shape)) * dtype.itemsize
     if extra > 0:
-        raise InputError(f"'{path}': damaged .npy file: {extra} bytes after the "
-                         f"{' × '.join(map(str, shape))} values its header describes")
+        raise InputError(
+            f"'{path}': damaged .npy file: {extra} bytes after the "
+            f"{' × '.join(map(str, shape))} values its header describes"
+        )
     return tuple(shape), dtype, (None if fortran and len(shape) > 1 else offset)

@@ -223,8 +223,13 @@ def drift_test(
         raise InputError(f"too few frames for the drift test: {x.size}, need at least {MIN_FRAMES}")
     d = linear_drift(x, offset=offset)
     drifts = d["drift_pct"] is not None and d["pvalue"] < alpha and abs(d["drift_pct"]) >= threshold
-    return {"n": int(x.size), **d, "alpha": float(alpha), "threshold_pct": float(threshold),
-            "drifts": bool(drifts)}
+    return {
+        "n": int(x.size),
+        **d,
+        "alpha": float(alpha),
+        "threshold_pct": float(threshold),
+        "drifts": bool(drifts),
+    }
 
 
 def stationarity(
@@ -376,8 +381,9 @@ class StackSummary:
     """
 
     def __init__(self, n_frames: int, shape, adc_max: int | None):
-        if adc_max is not None and (isinstance(adc_max, bool) or int(adc_max) != adc_max
-                                    or adc_max < 1):
+        if adc_max is not None and (
+            isinstance(adc_max, bool) or int(adc_max) != adc_max or adc_max < 1
+        ):
             raise InputError(f"adc_max must be a positive integer, got {adc_max!r}")
         self.adc_max = None if adc_max is None else int(adc_max)
         self.n_frames = int(n_frames)
@@ -403,13 +409,16 @@ class StackSummary:
         per_row = max(1, int(stack.shape[0]) * int(stack.shape[2]))
         step = max(1, _CHUNK_ELEMENTS // per_row)
         for r0 in range(0, stack.shape[1], step):
-            out.add(r0 * stack.shape[2],
-                    band_statistics(np.asarray(stack[:, r0:r0 + step]), adc_max, third=third))
+            out.add(
+                r0 * stack.shape[2],
+                band_statistics(np.asarray(stack[:, r0 : r0 + step]), adc_max, third=third),
+            )
         return out
 
     @classmethod
-    def of_file(cls, path, skip_frames: int, adc_max: int | None, *,
-                third: bool = False) -> StackSummary:
+    def of_file(
+        cls, path, skip_frames: int, adc_max: int | None, *, third: bool = False
+    ) -> StackSummary:
         """The summary of a stack file from ``skip_frames`` on, read band by band of rows
         into memory (:func:`emccdcal.data.stacks.read_band`): bounded memory, and no
         mapped pages counted against the process, whatever the stack's size."""
@@ -447,8 +456,9 @@ class StackSummary:
 
     def _complete(self):
         if not self.seen.all():
-            raise ValueError(f"pixels {np.flatnonzero(~self.seen)[:5].tolist()}... "
-                             "were never added")
+            raise ValueError(
+                f"pixels {np.flatnonzero(~self.seen)[:5].tolist()}... were never added"
+            )
 
     def frame_means(self, offset=None) -> np.ndarray:
         """Per-frame mean of the (offset-subtracted) counts over all pixels, ADU
@@ -479,8 +489,12 @@ class StackSummary:
         _, first = np.unique(self.frame_keys, return_index=True)
         repeated = np.setdiff1d(np.arange(self.n_frames), first)
         repeated = repeated[~np.isin(repeated, constant)]  # said once, as constant
-        return {"n_constant": int(constant.size), "constant": constant[:10].tolist(),
-                "n_repeated": int(repeated.size), "repeated": repeated[:10].tolist()}
+        return {
+            "n_constant": int(constant.size),
+            "constant": constant[:10].tolist(),
+            "n_repeated": int(repeated.size),
+            "repeated": repeated[:10].tolist(),
+        }
 
     def offset_position(self, offset) -> dict:
         """Where the offset map lies against the pixels' mean counts: ``n_pixels``,
@@ -488,8 +502,11 @@ class StackSummary:
         ``above_data`` (more than half of them: the offset cannot be this data's)."""
         self._complete()
         below = self.mean < np.broadcast_to(np.asarray(offset, float), self.shape).ravel()
-        return {"n_pixels": int(below.size), "n_below_offset": int(below.sum()),
-                "above_data": bool(2 * below.sum() > below.size)}
+        return {
+            "n_pixels": int(below.size),
+            "n_below_offset": int(below.sum()),
+            "above_data": bool(2 * below.sum() > below.size),
+        }
 
     def multiplication_ratio(self, offset, read_noise) -> dict | None:
         """Whether counts taken as 1× look EM-multiplied, from their first three cumulants.
@@ -510,14 +527,19 @@ class StackSummary:
             return None
         ratio = self.m3[good] * k1[good] / k2[good] ** 2
         r, se = float(ratio.mean()), float(ratio.std(ddof=1) / math.sqrt(ratio.size))
-        return {"R": r, "R_se": se, "n_pixels": int(ratio.size),
-                "multiplied": bool(r > 1.25 and r - 1 > 4 * se)}
+        return {
+            "R": r,
+            "R_se": se,
+            "n_pixels": int(ratio.size),
+            "multiplied": bool(r > 1.25 and r - 1 > 4 * se),
+        }
 
     def defects(self, offset=None, *, k: float = DEFAULT_K) -> dict:
         """As :func:`pixel_defects`."""
         self._complete()
-        return _defects(self.mean.reshape(self.shape), self.sd.reshape(self.shape),
-                        self.n_frames, offset, k)
+        return _defects(
+            self.mean.reshape(self.shape), self.sd.reshape(self.shape), self.n_frames, offset, k
+        )
 
 
 def _frame_keys(flat: np.ndarray) -> np.ndarray:
@@ -527,8 +549,10 @@ def _frame_keys(flat: np.ndarray) -> np.ndarray:
     import zlib
 
     rows = np.ascontiguousarray(flat)
-    crc = [zlib.crc32(rows[i].tobytes()) ^ (zlib.adler32(rows[i].tobytes()) << 32)
-           for i in range(rows.shape[0])]
+    crc = [
+        zlib.crc32(rows[i].tobytes()) ^ (zlib.adler32(rows[i].tobytes()) << 32)
+        for i in range(rows.shape[0])
+    ]
     return np.array(crc, dtype=np.uint64)
 
 
@@ -576,7 +600,7 @@ def band_statistics(band: np.ndarray, adc_max: int | None, *, third: bool = Fals
         m3 = np.zeros(band.shape[1:])
         step = max(1, _CHUNK_ELEMENTS // max(1, mean.size))  # frames converted at a time
         for f0 in range(0, n, step):
-            dev = np.asarray(band[f0:f0 + step], float) - mean
+            dev = np.asarray(band[f0 : f0 + step], float) - mean
             m3 += np.einsum("fij,fij,fij->ij", dev, dev, dev)
         out["m3"] = m3 / n
     return out
@@ -621,8 +645,6 @@ def _defects(mean, sd, n_frames, offset, k) -> dict:
             dead=_pixels(dead),
         )
     return out
-
-
 
 
 def frame_means(stack, offset=None) -> np.ndarray:
@@ -789,7 +811,9 @@ def check_acquisition(
         "frames_defective": summary.frame_defects(),
         "pixels": summary.defects(acq.offset, k=k),
         "offset": summary.offset_position(acq.offset),
-        "multiplication": summary.multiplication_ratio(acq.offset, acq.read_noise) if one_x else None,
+        "multiplication": summary.multiplication_ratio(acq.offset, acq.read_noise)
+        if one_x
+        else None,
     }
 
 
@@ -818,13 +842,15 @@ def offset_from_transfer(acquisitions, summaries) -> dict | None:
     if len(idx) < 4 or summaries[idx[0]].mean.size < 5:
         return None
     x = np.stack([summaries[i].mean - acquisitions[i].offset.ravel() for i in idx], axis=1)
-    y = np.stack([summaries[i].sd ** 2 - acquisitions[i].read_noise.ravel() ** 2
-                  for i in idx], axis=1)
+    y = np.stack(
+        [summaries[i].sd ** 2 - acquisitions[i].read_noise.ravel() ** 2 for i in idx], axis=1
+    )
     scale = np.maximum(np.abs(x).max(axis=1, keepdims=True), 1.0)  # conditioning
     design = np.stack([np.ones_like(x), x / scale, (x / scale) ** 2], axis=2)  # (P, A, 3)
     try:
-        coef = np.linalg.solve(np.einsum("pak,pal->pkl", design, design),
-                               np.einsum("pak,pa->pk", design, y)[..., None])[..., 0]
+        coef = np.linalg.solve(
+            np.einsum("pak,pal->pkl", design, design), np.einsum("pak,pa->pk", design, y)[..., None]
+        )[..., 0]
     except np.linalg.LinAlgError:  # levels that do not differ
         return None
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -834,8 +860,13 @@ def offset_from_transfer(acquisitions, summaries) -> dict | None:
         return None
     med = float(np.median(shift))
     se = _MAD_TO_SD * float(np.median(np.abs(shift - med))) / math.sqrt(shift.size)
-    return {"n_levels": len(idx), "n_pixels": int(shift.size), "shift": med, "shift_se": se,
-            "off": bool(abs(med) > 5 * se and abs(med) > 1.0)}
+    return {
+        "n_levels": len(idx),
+        "n_pixels": int(shift.size),
+        "shift": med,
+        "shift_se": se,
+        "off": bool(abs(med) > 5 * se and abs(med) > 1.0),
+    }
 
 
 def _fmt_pixels(pixels: list, n: int) -> str:
@@ -858,7 +889,7 @@ def _moment_photoelectrons(summary, acq, one_x: bool) -> float | None:
     F²·(mean − S0)²/(var − σ²), F² = 1 at 1× and 2 multiplied (no φ or g needed); for
     saying what a finding does at this acquisition's own level. None where undefined."""
     signal = summary.mean - np.ravel(acq.offset)
-    excess = summary.sd ** 2 - np.ravel(acq.read_noise) ** 2
+    excess = summary.sd**2 - np.ravel(acq.read_noise) ** 2
     ok = (signal > 0) & (excess > 0)
     if not ok.any():
         return None
@@ -879,9 +910,8 @@ def _drift_bias_pct(drift_pct: float, photoelectrons: float, multiplied: bool) -
 
 def _leave_out(a: dict) -> str:
     """How to leave one acquisition out of a calibration (its manifest table)."""
-    which = f"level = \"{a['level']}\"" if a.get("level") else f"frames = \"{a['frames']}\""
-    return (f"delete its [[acquisition]] table ({which}) from the manifest and calibrate "
-            "again")
+    which = f'level = "{a["level"]}"' if a.get("level") else f'frames = "{a["frames"]}"'
+    return f"delete its [[acquisition]] table ({which}) from the manifest and calibrate again"
 
 
 def _drift_effect(a: dict) -> str:
@@ -889,43 +919,68 @@ def _drift_effect(a: dict) -> str:
     d = a["drift"]
     multiplied = a["em_gain_setpoint"] != 1
     E = a.get("photoelectrons_estimate")
-    light = (f"this acquisition's {E:.4g} e⁻ per pixel and frame"
-             + (" (as fitted)" if a.get("photoelectrons_source") == "fit" else "")) if E else ""
+    light = (
+        (
+            f"this acquisition's {E:.4g} e⁻ per pixel and frame"
+            + (" (as fitted)" if a.get("photoelectrons_source") == "fit" else "")
+        )
+        if E
+        else ""
+    )
     if a.get("drift_absorbed") is False:
-        return ("This method takes the estimates here from the acquisition's mean (φ given, "
-                + ("the gain at 1× is 1)" if not multiplied else
-                   "E shared with the 1× light)")
-                + ", which a drift does not move: the result stands, and the drift's spread "
-                "only lowers this acquisition's goodness of fit"
-                + ("" if not multiplied else
-                   ", provided the light's average was the same at every set-point (a source "
-                   "that drifts over the session breaks that: 'calibrate --method "
-                   "gs-hierarchical' fits the light of each set-point)"))
+        return (
+            "This method takes the estimates here from the acquisition's mean (φ given, "
+            + ("the gain at 1× is 1)" if not multiplied else "E shared with the 1× light)")
+            + ", which a drift does not move: the result stands, and the drift's spread "
+            "only lowers this acquisition's goodness of fit"
+            + (
+                ""
+                if not multiplied
+                else ", provided the light's average was the same at every set-point (a source "
+                "that drifts over the session breaks that: 'calibrate --method "
+                "gs-hierarchical' fits the light of each set-point)"
+            )
+        )
     what = "EM gain g" if multiplied else "φ (e⁻/ADU)"
     head = "The estimate is the acquisition's average, and the drift's spread reads as noise: "
     if not E:
-        return (head + f"{what} is biased by an amount that grows with the illumination; "
-                "where that is below the estimate's standard error (the summary's ±) the "
-                "result stands")
+        return (
+            head + f"{what} is biased by an amount that grows with the illumination; "
+            "where that is below the estimate's standard error (the summary's ±) the "
+            "result stands"
+        )
     bias = _drift_bias_pct(d["drift_pct"], E, multiplied)
     head += f"{what} is biased by about {bias:+.2g} % at {light}"
-    fix = ("steady the source (warm it up, stabilise its power) and record again, or leave "
-           "this acquisition out: " + _leave_out(a))
+    fix = (
+        "steady the source (warm it up, stabilise its power) and record again, or leave "
+        "this acquisition out: " + _leave_out(a)
+    )
     rse = a.get("estimate_relative_se")
     if not rse:
-        return (head + "; where that bias is below the estimate's standard error (the "
-                f"summary's ±) the result stands; where not, {fix}")
+        return (
+            head + "; where that bias is below the estimate's standard error (the "
+            f"summary's ±) the result stands; where not, {fix}"
+        )
     times = abs(bias) / (100 * rse)
     se = f"{times:.2g} times its standard error ({100 * rse:.2g} % per pixel)"
     if a.get("level") is not None and not multiplied:
         # φ pools every level of an intensity series: this level biases it by its share
-        return (head + f"; φ pools every level, so its bias is at most that, {se}: "
-                + ("the result stands" if times < 1 else
-                   "the result may not stand: leave this acquisition out to see how far φ "
-                   f"moves ({_leave_out(a)}); if it moves beyond its standard error, steady "
-                   "the source and record again"))
-    return (head + f"; that is {se}, so "
-            + ("the result stands" if times < 1 else f"the result does not stand as it is: {fix}"))
+        return (
+            head
+            + f"; φ pools every level, so its bias is at most that, {se}: "
+            + (
+                "the result stands"
+                if times < 1
+                else "the result may not stand: leave this acquisition out to see how far φ "
+                f"moves ({_leave_out(a)}); if it moves beyond its standard error, steady "
+                "the source and record again"
+            )
+        )
+    return (
+        head
+        + f"; that is {se}, so "
+        + ("the result stands" if times < 1 else f"the result does not stand as it is: {fix}")
+    )
 
 
 def _findings(a: dict) -> list[str]:
@@ -935,14 +990,18 @@ def _findings(a: dict) -> list[str]:
     d = a["drift"]
     out = []
     if d is None:
-        out.append(f"{name}: {a['n_frames']} frames are too few for the drift test "
-                   f"(at least {MIN_FRAMES}); the illumination's steadiness is unchecked: the "
-                   f"result stands if the source was steady; record {MIN_FRAMES} frames or "
-                   "more to check it")
+        out.append(
+            f"{name}: {a['n_frames']} frames are too few for the drift test "
+            f"(at least {MIN_FRAMES}); the illumination's steadiness is unchecked: the "
+            f"result stands if the source was steady; record {MIN_FRAMES} frames or "
+            "more to check it"
+        )
     elif d["drifts"]:
-        out.append(f"{name}: the frame mean drifts by {d['drift_pct']:+.2f} ± "
-                   f"{d['drift_pct_se']:.2f} % over the acquisition (p = {d['pvalue']:.1g}): "
-                   f"the illumination or the EM gain is not steady. {_drift_effect(a)}.")
+        out.append(
+            f"{name}: the frame mean drifts by {d['drift_pct']:+.2f} ± "
+            f"{d['drift_pct_se']:.2f} % over the acquisition (p = {d['pvalue']:.1g}): "
+            f"the illumination or the EM gain is not steady. {_drift_effect(a)}."
+        )
     off = a.get("offset")
     if off and off["above_data"]:
         out.append(
@@ -950,7 +1009,8 @@ def _findings(a: dict) -> list[str]:
             f"{off['n_pixels']} pixels: it cannot be this data's offset (other units, another "
             "camera mode or read-out speed?), and nothing fitted from it stands: record darks "
             "in the read-out mode of these frames, give them as the acquisition's dark (or "
-            "'emccdcal scan' a folder holding both) and calibrate again")
+            "'emccdcal scan' a folder holding both) and calibrate again"
+        )
     mult = a.get("multiplication")
     if mult and mult["multiplied"]:
         out.append(
@@ -960,24 +1020,38 @@ def _findings(a: dict) -> list[str]:
             "data labelled 1×? If so, the result does not stand (φ and every gain scaled by "
             "it are wrong): record the 1× "
             "acquisition with the EM gain off (or give this one its real em_gain_setpoint) "
-            "and calibrate again")
+            "and calibrate again"
+        )
     bad = a.get("frames_defective") or {}
-    for kind, what in (("constant", "have every pixel at one value (e.g. all zero): "
-                        "frames the camera or its software dropped"),
-                       ("repeated", "repeat an earlier frame exactly: frames written twice")):
+    for kind, what in (
+        (
+            "constant",
+            "have every pixel at one value (e.g. all zero): "
+            "frames the camera or its software dropped",
+        ),
+        ("repeated", "repeat an earlier frame exactly: frames written twice"),
+    ):
         if bad.get(f"n_{kind}"):
             shown = ", ".join(map(str, bad[kind])) + (", ..." if bad[f"n_{kind}"] > 10 else "")
             frames = bad[kind]
             # defects only at the start are skipped by the manifest; elsewhere the file
             # must be cut (or recorded again)
-            leading = (len(frames) == bad[f"n_{kind}"] and frames[0] <= 1
-                       and frames == list(range(frames[0], frames[0] + len(frames))))
-            fix = (f"set skip_frames = {a.get('skip_frames', 0) + frames[-1] + 1} in its "
-                   "[[acquisition]] table and calibrate again" if leading else
-                   "remove them from the file (or record again) and calibrate again")
-            out.append(f"{name}: {bad[f'n_{kind}']} of {a['n_frames']} frames {what} "
-                       f"(frames {shown}); they bias every estimate, so the result does not "
-                       f"stand as it is: {fix}")
+            leading = (
+                len(frames) == bad[f"n_{kind}"]
+                and frames[0] <= 1
+                and frames == list(range(frames[0], frames[0] + len(frames)))
+            )
+            fix = (
+                f"set skip_frames = {a.get('skip_frames', 0) + frames[-1] + 1} in its "
+                "[[acquisition]] table and calibrate again"
+                if leading
+                else "remove them from the file (or record again) and calibrate again"
+            )
+            out.append(
+                f"{name}: {bad[f'n_{kind}']} of {a['n_frames']} frames {what} "
+                f"(frames {shown}); they bias every estimate, so the result does not "
+                f"stand as it is: {fix}"
+            )
     sat = a["saturation"]
     if sat["n_values"]:
         out.append(
@@ -1067,9 +1141,16 @@ def check_manifest(
     per_test = drift_alpha / max(1, len(manifest.acquisitions))
     used = []
     for i, acq in enumerate(manifest.acquisitions):
-        summary = (StackSummary.of_file(acq.frames_path, acq.skip_frames, manifest.adc_max,
-                                        third=float(acq.em_gain_setpoint) == 1)
-                   if summaries is None else summaries[i])
+        summary = (
+            StackSummary.of_file(
+                acq.frames_path,
+                acq.skip_frames,
+                manifest.adc_max,
+                third=float(acq.em_gain_setpoint) == 1,
+            )
+            if summaries is None
+            else summaries[i]
+        )
         used.append(summary)
         res = check_acquisition(
             acq,
@@ -1103,7 +1184,8 @@ def check_manifest(
             "about that much (another camera mode's, or none?), which biases φ and E, so the "
             "result does not stand as it is: record darks in the read-out mode of the light "
             "frames, give them as the acquisitions' dark (or 'emccdcal scan' a folder holding "
-            "both) and calibrate again")
+            "both) and calibrate again"
+        )
     growth = check_read_noise_growth(
         [a.em_gain_setpoint for a in manifest.acquisitions],
         [a.read_noise for a in manifest.acquisitions],
@@ -1153,7 +1235,14 @@ def format_report(report: dict) -> str:
     """
     unit_root = any(a["stationarity"] for a in report["acquisitions"].values())
     header: tuple[str, ...] = (
-        "acquisition", "set-pt", "frames", "level ADU", "drift % ± SE", "p", "steady")
+        "acquisition",
+        "set-pt",
+        "frames",
+        "level ADU",
+        "drift % ± SE",
+        "p",
+        "steady",
+    )
     if unit_root:
         header += ("ADF p", "KPSS p")
     header += ("sat. values/frames/px", "hot", "dead", "stuck")
@@ -1166,30 +1255,53 @@ def format_report(report: dict) -> str:
             level, drift, p, steady = "n/a", "n/a", "n/a", "?"
         else:
             level = f"{d['level']:.1f}"
-            drift = ("n/a" if d["drift_pct"] is None
-                     else f"{d['drift_pct']:+.2f} ± {d['drift_pct_se']:.2f}")
+            drift = (
+                "n/a"
+                if d["drift_pct"] is None
+                else f"{d['drift_pct']:+.2f} ± {d['drift_pct_se']:.2f}"
+            )
             p, steady = _p(d["pvalue"]), _steady_cell(d)
-        row: tuple[str, ...] = (name, f"{a['em_gain_setpoint']:g}", str(a["n_frames"]), level,
-                                drift, p, steady)
+        row: tuple[str, ...] = (
+            name,
+            f"{a['em_gain_setpoint']:g}",
+            str(a["n_frames"]),
+            level,
+            drift,
+            p,
+            steady,
+        )
         if unit_root:
-            row += (("n/a", "n/a") if s is None else
-                    (_p(s["adf_pvalue"]), _p(s["kpss_pvalue"], s["kpss_p_bound"])))
-        rows.append(row + (
-            f"{sat['n_values']}/{sat['n_frames']}/{sat['n_pixels']}",
-            str(px["n_hot"]) if px["tested"] else "n/a",
-            str(px["n_dead"]) if px["tested"] else "n/a",
-            str(px["n_stuck"]),
-        ))
+            row += (
+                ("n/a", "n/a")
+                if s is None
+                else (_p(s["adf_pvalue"]), _p(s["kpss_pvalue"], s["kpss_p_bound"]))
+            )
+        rows.append(
+            row
+            + (
+                f"{sat['n_values']}/{sat['n_frames']}/{sat['n_pixels']}",
+                str(px["n_hot"]) if px["tested"] else "n/a",
+                str(px["n_dead"]) if px["tested"] else "n/a",
+                str(px["n_stuck"]),
+            )
+        )
     widths = [max(len(r[i]) for r in rows) for i in range(len(header))]
     lines = [f"Data-quality checks: {report['manifest']} (ADC maximum {report['adc_max']} ADU)"]
     if "drift_alpha" in report:
-        each = next((a["drift"]["alpha"] for a in report["acquisitions"].values()
-                     if a.get("drift")), None)
-        lines.append(f"steady: no drift of at least {_threshold(report)} % significant at a "
-                     f"family-wise {100 * report['drift_alpha']:g} % over the acquisitions"
-                     + ("" if each is None else f" (each p must be below {each:.2g}: "
-                        "a large drift with a large SE can be steady, a smaller precise one "
-                        "not)"))
+        each = next(
+            (a["drift"]["alpha"] for a in report["acquisitions"].values() if a.get("drift")), None
+        )
+        lines.append(
+            f"steady: no drift of at least {_threshold(report)} % significant at a "
+            f"family-wise {100 * report['drift_alpha']:g} % over the acquisitions"
+            + (
+                ""
+                if each is None
+                else f" (each p must be below {each:.2g}: "
+                "a large drift with a large SE can be steady, a smaller precise one "
+                "not)"
+            )
+        )
     for j, r in enumerate(rows):
         cells = [c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths))]
         lines.append("  ".join(cells).rstrip())

@@ -41,17 +41,26 @@ def _word(alternatives: str) -> re.Pattern:
 
 
 #: What a map's name says it holds.
-_MAP_KINDS = {"offset": _word(r"s0|offset|bias|mean"),
-              "read_noise": _word(r"sigma|std|rn|read[-_ ]?noise|noise"),
-              "e_per_adu": _word(r"adu|e[-_]?per[-_]?adu|conversion")}
+_MAP_KINDS = {
+    "offset": _word(r"s0|offset|bias|mean"),
+    "read_noise": _word(r"sigma|std|rn|read[-_ ]?noise|noise"),
+    "e_per_adu": _word(r"adu|e[-_]?per[-_]?adu|conversion"),
+}
 #: Settings that must agree across a session, and how to name them.
-_MUST_AGREE = {"amplifier": "output amplifier", "readout_rate_mhz": "readout rate (MHz)",
-               "analog_gain": "analog gain",
-               "adc_bits": "ADC bits", "binning": "binning", "roi": "region (x, y, w, h)"}
-_DARK_HELP = ("name a dark stack with its set-point and 'dark' (e.g. '{sp}x-dark.tif'), or "
-              "an offset and a read-noise map ('{sp}x_S0.tif' and '{sp}x_sigma.tif'); or "
-              "write the manifest by hand, each acquisition with dark = \"FILE\" or offset = "
-              "\"FILE\" and read_noise = \"FILE\" (docs/manifest.md)")
+_MUST_AGREE = {
+    "amplifier": "output amplifier",
+    "readout_rate_mhz": "readout rate (MHz)",
+    "analog_gain": "analog gain",
+    "adc_bits": "ADC bits",
+    "binning": "binning",
+    "roi": "region (x, y, w, h)",
+}
+_DARK_HELP = (
+    "name a dark stack with its set-point and 'dark' (e.g. '{sp}x-dark.tif'), or "
+    "an offset and a read-noise map ('{sp}x_S0.tif' and '{sp}x_sigma.tif'); or "
+    'write the manifest by hand, each acquisition with dark = "FILE" or offset = '
+    '"FILE" and read_noise = "FILE" (docs/manifest.md)'
+)
 
 
 @dataclass(frozen=True)
@@ -97,20 +106,29 @@ class Session:
         """What was found, used and skipped, one line each (the console's report)."""
         setpoints = sorted({f.setpoint for f in self.signal})
         n_maps = sum(isinstance(d, MapPair) for d in self.darks.values())
-        dark_words = [f"{len(self.darks) - n_maps} dark stack(s)"] if n_maps < len(self.darks) else []
+        dark_words = (
+            [f"{len(self.darks) - n_maps} dark stack(s)"] if n_maps < len(self.darks) else []
+        )
         if n_maps:
             dark_words.append(f"{n_maps} offset/read-noise map pair(s)")
         if self.kind == "gain-series":
-            head = (f"gain-series: {len(setpoints)} set-points "
-                    f"({', '.join(f'{s:g}' for s in setpoints)})")
+            head = (
+                f"gain-series: {len(setpoints)} set-points "
+                f"({', '.join(f'{s:g}' for s in setpoints)})"
+            )
         else:
-            head = (f"intensity-series: {len(self.signal)} levels at set-point "
-                    f"{', '.join(f'{s:g}' for s in setpoints)}")
+            head = (
+                f"intensity-series: {len(self.signal)} levels at set-point "
+                f"{', '.join(f'{s:g}' for s in setpoints)}"
+            )
         lines = [f"{head}; darks: {' and '.join(dark_words)}", "used:"]
         for f in self.signal:
             dark = self.darks[f.setpoint]
-            what = (f"dark {dark.path.name}" if isinstance(dark, ScannedFile) else
-                    f"offset {dark.offset.name}, read noise {dark.read_noise.name}")
+            what = (
+                f"dark {dark.path.name}"
+                if isinstance(dark, ScannedFile)
+                else f"offset {dark.offset.name}, read noise {dark.read_noise.name}"
+            )
             lines.append(f"  {f.path.name} (set-point {f.setpoint:g}, {f.setpoint_rule}); {what}")
         if self.skipped:
             lines.append("skipped:")
@@ -125,9 +143,11 @@ def _setpoint_of(path: Path, settings: CameraSettings):
     setpoint = setpoint_in_name(path)
     if setpoint is not None:
         return setpoint, "name"
-    raise InputError(f"'{path}': no EM gain set-point: the file records none and its name "
-                     "does not say (e.g. '25x-gain' or 'gain_25'); name it so, or write the "
-                     "manifest by hand")
+    raise InputError(
+        f"'{path}': no EM gain set-point: the file records none and its name "
+        "does not say (e.g. '25x-gain' or 'gain_25'); name it so, or write the "
+        "manifest by hand"
+    )
 
 
 def _files(folder: Path):
@@ -138,7 +158,8 @@ def _files(folder: Path):
             continue
         # pipes, devices and dangling links are no camera files (and could block)
         if path.suffix.lower() in STACK_SUFFIXES and (
-                path.is_file() or (path.is_dir() and path.suffix.lower() == ".zarr")):
+            path.is_file() or (path.is_dir() and path.suffix.lower() == ".zarr")
+        ):
             camera.append(path)
         elif path.is_file():
             other.append(path)
@@ -146,9 +167,14 @@ def _files(folder: Path):
 
 
 def _subfolders_with_stacks(folder: Path) -> list[str]:
-    return [d.name for d in sorted(folder.iterdir())
-            if d.is_dir() and not d.name.startswith(".") and d.suffix.lower() != ".zarr"
-            and _files(d)[0]]
+    return [
+        d.name
+        for d in sorted(folder.iterdir())
+        if d.is_dir()
+        and not d.name.startswith(".")
+        and d.suffix.lower() != ".zarr"
+        and _files(d)[0]
+    ]
 
 
 def _refuse_unfinished(folder: Path) -> None:
@@ -166,10 +192,12 @@ def _refuse_unfinished(folder: Path) -> None:
         return  # not a session acquire wrote: the files are scanned as they are
     status = state.get("status") if isinstance(state, dict) else None
     if status not in (None, "complete"):
-        raise InputError(f"{folder}: an acquisition session that has not finished "
-                         f"({comment(str(status))}): its stacks are short of the plan; "
-                         f"finish it with 'emccdcal acquire {folder / 'plan.toml'} -o {folder} "
-                         "--resume'")
+        raise InputError(
+            f"{folder}: an acquisition session that has not finished "
+            f"({comment(str(status))}): its stacks are short of the plan; "
+            f"finish it with 'emccdcal acquire {folder / 'plan.toml'} -o {folder} "
+            "--resume'"
+        )
 
 
 def scan(folder) -> Session:
@@ -195,12 +223,17 @@ def scan(folder) -> Session:
         if len(shape) == 3:
             settings = stack_settings(path)
             setpoint, rule = _setpoint_of(path, settings)
-            stacks.append(ScannedFile(path, tuple(shape), settings,
-                                      bool(_DARK.search(path.stem)), setpoint, rule))
+            stacks.append(
+                ScannedFile(
+                    path, tuple(shape), settings, bool(_DARK.search(path.stem)), setpoint, rule
+                )
+            )
         elif len(shape) == 2:
             maps.append((path, tuple(shape)))
         else:
-            skipped.append((path.name, f"{len(shape)}-dimensional: neither a stack of frames nor a map"))
+            skipped.append(
+                (path.name, f"{len(shape)}-dimensional: neither a stack of frames nor a map")
+            )
     if not stacks:
         inner = _subfolders_with_stacks(folder)
         where = f"; its subfolders {', '.join(inner)} hold some: scan each" if inner else ""
@@ -208,8 +241,10 @@ def scan(folder) -> Session:
     _check_agreement(stacks)
     signal = sorted((f for f in stacks if not f.dark), key=lambda f: (f.setpoint, f.path.name))
     if not signal:
-        raise InputError(f"'{folder}': only darks (names with dark, no-signal, bias or "
-                         "background); no illuminated stack")
+        raise InputError(
+            f"'{folder}': only darks (names with dark, no-signal, bias or "
+            "background); no illuminated stack"
+        )
     _check_one_kind(folder, signal)
     frame = signal[0].shape[1:]
     wanted = {f.setpoint for f in signal}
@@ -217,27 +252,43 @@ def scan(folder) -> Session:
     darks: dict[float, ScannedFile | MapPair] = {}
     for d in sorted((f for f in stacks if f.dark), key=lambda f: f.path.name):
         if d.setpoint not in wanted:
-            skipped.append((d.path.name, f"a dark at set-point {d.setpoint:g}, where no "
-                                    "illuminated stack is"))
+            skipped.append(
+                (d.path.name, f"a dark at set-point {d.setpoint:g}, where no illuminated stack is")
+            )
         elif d.setpoint in darks:
-            skipped.append((d.path.name, f"a second dark at set-point {d.setpoint:g}: "
-                                    f"{darks[d.setpoint].path.name} is used"))
+            skipped.append(
+                (
+                    d.path.name,
+                    f"a second dark at set-point {d.setpoint:g}: "
+                    f"{darks[d.setpoint].path.name} is used",
+                )
+            )
         else:
             darks[d.setpoint] = d
     for sp, pair in pairs.items():
         if sp in darks:
             for p in (pair.offset, pair.read_noise):
-                skipped.append((p.name, f"the dark stack {darks[sp].path.name} at set-point "
-                                   f"{sp:g} is used instead"))
+                skipped.append(
+                    (
+                        p.name,
+                        f"the dark stack {darks[sp].path.name} at set-point {sp:g} is used instead",
+                    )
+                )
         else:
             darks[sp] = pair
     missing = sorted(wanted - set(darks))
     if missing:
-        seen = "; seen and not used: " + ", ".join(f"{name} ({why})" for name, why in skipped) \
-            if skipped else ""
-        raise InputError(f"'{folder}': no dark at set-point "
-                         f"{', '.join(f'{s:g}' for s in missing)}: "
-                         + _DARK_HELP.format(sp=f"{missing[0]:g}") + seen)
+        seen = (
+            "; seen and not used: " + ", ".join(f"{name} ({why})" for name, why in skipped)
+            if skipped
+            else ""
+        )
+        raise InputError(
+            f"'{folder}': no dark at set-point "
+            f"{', '.join(f'{s:g}' for s in missing)}: "
+            + _DARK_HELP.format(sp=f"{missing[0]:g}")
+            + seen
+        )
     if other:
         names = ", ".join(p.name for p in other[:5]) + (", …" if len(other) > 5 else "")
         skipped.append((f"{len(other)} other file(s)", f"not camera files ({names})"))
@@ -250,9 +301,11 @@ def _check_one_kind(folder: Path, signal) -> None:
         by_setpoint.setdefault(f.setpoint, []).append(f)
     if len(by_setpoint) > 1 and any(len(v) > 1 for v in by_setpoint.values()):
         many = [f"{sp:g}" for sp, v in by_setpoint.items() if len(v) > 1]
-        raise InputError(f"'{folder}': several stacks at set-point {', '.join(many)} beside "
-                         "other set-points: a gain series and an intensity series mixed; scan "
-                         "each from its own folder")
+        raise InputError(
+            f"'{folder}': several stacks at set-point {', '.join(many)} beside "
+            "other set-points: a gain series and an intensity series mixed; scan "
+            "each from its own folder"
+        )
 
 
 def _map_pairs(maps, frame, wanted, skipped):
@@ -265,21 +318,36 @@ def _map_pairs(maps, frame, wanted, skipped):
         setpoint = setpoint_in_name(path)
         if kinds == ["e_per_adu"]:
             e_per_adu_map = e_per_adu_map or path
-            skipped.append((path.name, "a map named for e⁻/ADU, not a dark: see the manifest's "
-                                  "commented e_per_adu line"))
+            skipped.append(
+                (
+                    path.name,
+                    "a map named for e⁻/ADU, not a dark: see the manifest's "
+                    "commented e_per_adu line",
+                )
+            )
         elif len(kinds) != 1:
-            skipped.append((path.name, "a map whose name says neither offset (S0, offset, bias, "
-                                  "mean) nor read noise (sigma, std, rn, read-noise)"
-                                  if not kinds else "a map whose name says both "
-                                  + " and ".join(kinds)))
+            skipped.append(
+                (
+                    path.name,
+                    "a map whose name says neither offset (S0, offset, bias, "
+                    "mean) nor read noise (sigma, std, rn, read-noise)"
+                    if not kinds
+                    else "a map whose name says both " + " and ".join(kinds),
+                )
+            )
         elif shape != frame:
-            skipped.append((path.name, f"a {shape[0]} × {shape[1]} px map; the frames are "
-                                  f"{frame[0]} × {frame[1]} px"))
+            skipped.append(
+                (
+                    path.name,
+                    f"a {shape[0]} × {shape[1]} px map; the frames are {frame[0]} × {frame[1]} px",
+                )
+            )
         elif setpoint is None:
             skipped.append((path.name, "a map whose name gives no set-point (e.g. '25x_S0')"))
         elif setpoint not in wanted:
-            skipped.append((path.name, f"a map at set-point {setpoint:g}, where no illuminated "
-                                  "stack is"))
+            skipped.append(
+                (path.name, f"a map at set-point {setpoint:g}, where no illuminated stack is")
+            )
         else:
             found.setdefault(setpoint, {"offset": [], "read_noise": []})[kinds[0]].append(path)
     pairs = {}
@@ -300,11 +368,18 @@ def _rules(stacks, pairs, darks) -> list[str]:
     if any(isinstance(d, ScannedFile) for d in darks.values()):
         rules.append("dark stacks: by name (dark, no-signal, bias or background)")
     if any(isinstance(d, MapPair) for d in darks.values()):
-        rules.append("dark maps: by name (offset: S0, offset, bias or mean; read noise: "
-                     "sigma, std, rn or read-noise), set-points from the names")
-    by_rule = {r: [f.path.name for f in sorted(stacks, key=lambda f: (f.setpoint, f.path.name))
-                   if f.setpoint_rule == r]
-               for r in ("recorded", "name")}
+        rules.append(
+            "dark maps: by name (offset: S0, offset, bias or mean; read noise: "
+            "sigma, std, rn or read-noise), set-points from the names"
+        )
+    by_rule = {
+        r: [
+            f.path.name
+            for f in sorted(stacks, key=lambda f: (f.setpoint, f.path.name))
+            if f.setpoint_rule == r
+        ]
+        for r in ("recorded", "name")
+    }
     if by_rule["recorded"]:
         rules.append("set-points recorded in the files: " + ", ".join(by_rule["recorded"]))
     if by_rule["name"]:
@@ -316,16 +391,21 @@ def _check_agreement(stacks) -> None:
     first = stacks[0]
     for f in stacks[1:]:
         if f.shape[1:] != first.shape[1:]:
-            raise InputError(f"'{f.path}' has frames of {f.shape[1]} × {f.shape[2]} px, but "
-                             f"'{first.path}' {first.shape[1]} × {first.shape[2]}: a session "
-                             "covers one region")
+            raise InputError(
+                f"'{f.path}' has frames of {f.shape[1]} × {f.shape[2]} px, but "
+                f"'{first.path}' {first.shape[1]} × {first.shape[2]}: a session "
+                "covers one region"
+            )
     for name, what in _MUST_AGREE.items():
-        known = [(f, getattr(f.settings, name)) for f in stacks
-                 if getattr(f.settings, name) is not None]
+        known = [
+            (f, getattr(f.settings, name)) for f in stacks if getattr(f.settings, name) is not None
+        ]
         for f, value in known[1:]:
             if value != known[0][1]:
-                raise InputError(f"{what} {value} in '{f.path}' but {known[0][1]} in "
-                                 f"'{known[0][0].path}': a series is taken with one {what}")
+                raise InputError(
+                    f"{what} {value} in '{f.path}' but {known[0][1]} in "
+                    f"'{known[0][0].path}': a series is taken with one {what}"
+                )
 
 
 def _name_of(path: Path) -> str:
@@ -345,28 +425,45 @@ def manifest_text(session: Session, where: Path) -> str:
             return str(path.resolve())
 
     kind = session.kind
-    lines = [comment(f"# {kind} scanned from {session.folder} by emccdcal scan, "
-                     f"{time.strftime('%Y-%m-%d %H:%M', time.localtime())}."),
-             "# Rules used:"] + [comment(f"#   {r}") for r in session.rules]
+    lines = [
+        comment(
+            f"# {kind} scanned from {session.folder} by emccdcal scan, "
+            f"{time.strftime('%Y-%m-%d %H:%M', time.localtime())}."
+        ),
+        "# Rules used:",
+    ] + [comment(f"#   {r}") for r in session.rules]
     lines += [comment(f"# Skipped: {name}: {why}") for name, why in session.skipped]
     if any(isinstance(d, MapPair) for d in session.darks.values()):
-        lines.append("# Offset and read-noise maps are taken as exact; add dark_frames = N "
-                     "to an acquisition whose maps came from N dark frames.")
-    lines.append("# Check it, then: emccdcal calibrate THIS.toml --method "
-                 + ("gs" if kind == "gain-series" else "is-adu") + " -o OUT")
+        lines.append(
+            "# Offset and read-noise maps are taken as exact; add dark_frames = N "
+            "to an acquisition whose maps came from N dark frames."
+        )
+    lines.append(
+        "# Check it, then: emccdcal calibrate THIS.toml --method "
+        + ("gs" if kind == "gain-series" else "is-adu")
+        + " -o OUT"
+    )
     bits = {f.settings.adc_bits for f in session.signal} - {None}
-    bits |= {d.settings.adc_bits for d in session.darks.values()
-             if isinstance(d, ScannedFile)} - {None}
+    bits |= {d.settings.adc_bits for d in session.darks.values() if isinstance(d, ScannedFile)} - {
+        None
+    }
     if len(bits) == 1:
         lines.append(toml_line("adc_bits", int(bits.pop())))
     else:
         lines.append("# adc_bits = 16   # not recorded: the camera's ADC resolution, if known")
     if kind == "gain-series":
         if session.e_per_adu_map is not None:
-            lines.append(comment("# " + toml_line("e_per_adu", rel(session.e_per_adu_map))
-                                 + "   # a map named for e-/ADU in the folder: use it only "
-                                 "if it holds e-/ADU of this camera"))
-        lines.append("# e_per_adu = \"../out-adu\"   # phi from an is-adu result, for the gain methods")
+            lines.append(
+                comment(
+                    "# "
+                    + toml_line("e_per_adu", rel(session.e_per_adu_map))
+                    + "   # a map named for e-/ADU in the folder: use it only "
+                    "if it holds e-/ADU of this camera"
+                )
+            )
+        lines.append(
+            '# e_per_adu = "../out-adu"   # phi from an is-adu result, for the gain methods'
+        )
     for i, f in enumerate(session.signal, start=1):
         lines += ["", "[[acquisition]]"]
         known = f.settings.known()
@@ -374,8 +471,10 @@ def manifest_text(session: Session, where: Path) -> str:
             lines.append(comment("# recorded: " + ", ".join(f"{k} {v}" for k, v in known.items())))
         lines.append(toml_line("name", _name_of(f.path)))
         lines.append(toml_line("frames", rel(f.path)))
-        lines.append(toml_line("em_gain_setpoint", f.setpoint)
-                     + ("" if f.setpoint_rule == "recorded" else "  # from the file name"))
+        lines.append(
+            toml_line("em_gain_setpoint", f.setpoint)
+            + ("" if f.setpoint_rule == "recorded" else "  # from the file name")
+        )
         if kind == "intensity-series":
             lines.append(toml_line("level", f"L{i}"))
         dark = session.darks[f.setpoint]

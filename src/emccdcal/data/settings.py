@@ -74,8 +74,11 @@ class CameraSettings:
 
     def known(self) -> dict:
         """The recorded fields only, as a plain dict (JSON-ready)."""
-        return {k: (list(v) if isinstance(v, tuple) else v)
-                for k, v in asdict(self).items() if v is not None}
+        return {
+            k: (list(v) if isinstance(v, tuple) else v)
+            for k, v in asdict(self).items()
+            if v is not None
+        }
 
     @classmethod
     def names(cls) -> tuple[str, ...]:
@@ -103,8 +106,9 @@ class CameraSettings:
                 continue
             checked = _FIELD_CHECKS[key](value)
             if checked is None:
-                raise InputError(f"'{source}': camera setting {key} = {value!r} is not "
-                                 f"{_FIELD_MEANING[key]}")
+                raise InputError(
+                    f"'{source}': camera setting {key} = {value!r} is not {_FIELD_MEANING[key]}"
+                )
             out[key] = checked
         return cls(**out)
 
@@ -117,12 +121,14 @@ def _number_in(low, high, integral=False):
         if x is None or not low <= x <= high or (integral and x != int(x)):
             return None
         return int(x) if integral else x
+
     return check
 
 
 def _text(value):
-    return str(value) if isinstance(value, (str, int, float)) and not isinstance(value, bool) \
-        else None
+    return (
+        str(value) if isinstance(value, (str, int, float)) and not isinstance(value, bool) else None
+    )
 
 
 def _ints(count, minima):
@@ -134,20 +140,33 @@ def _ints(count, minima):
         if any(v < m or v > 2**31 for v, m in zip(value, minima)):
             return None
         return tuple(int(v) for v in value)
+
     return check
 
 
 _FIELD_CHECKS = {
-    "em_gain_setpoint": _number_in(1.0, 1e5), "analog_gain": _text, "amplifier": _text,
-    "readout_rate_mhz": _number_in(1e-6, 1e4), "adc_bits": _number_in(1, 32, integral=True),
-    "temperature_c": _number_in(-273.15, 200.0), "exposure_ms": _number_in(0.0, 1e9),
-    "serial": _text, "model": _text, "roi": _ints(4, (0, 0, 1, 1)), "binning": _ints(2, (1, 1)),
+    "em_gain_setpoint": _number_in(1.0, 1e5),
+    "analog_gain": _text,
+    "amplifier": _text,
+    "readout_rate_mhz": _number_in(1e-6, 1e4),
+    "adc_bits": _number_in(1, 32, integral=True),
+    "temperature_c": _number_in(-273.15, 200.0),
+    "exposure_ms": _number_in(0.0, 1e9),
+    "serial": _text,
+    "model": _text,
+    "roi": _ints(4, (0, 0, 1, 1)),
+    "binning": _ints(2, (1, 1)),
 }
 _FIELD_MEANING = {
-    "em_gain_setpoint": "a set-point from 1 to 1e5", "analog_gain": "text",
-    "amplifier": "text", "readout_rate_mhz": "a read-out rate in MHz",
-    "adc_bits": "a whole number of bits from 1 to 32", "temperature_c": "a temperature in °C",
-    "exposure_ms": "an exposure in ms", "serial": "text", "model": "text",
+    "em_gain_setpoint": "a set-point from 1 to 1e5",
+    "analog_gain": "text",
+    "amplifier": "text",
+    "readout_rate_mhz": "a read-out rate in MHz",
+    "adc_bits": "a whole number of bits from 1 to 32",
+    "temperature_c": "a temperature in °C",
+    "exposure_ms": "an exposure in ms",
+    "serial": "text",
+    "model": "text",
     "roi": "[x, y, width, height] in whole pixels (width, height >= 1)",
     "binning": "[x, y] whole binning factors >= 1",
 }

@@ -30,7 +30,9 @@ def open_sif(path: Path):
     try:
         data, info = sif_parser.np_open(str(path), lazy="memmap")
     except Exception as exc:  # noqa: BLE001 - a damaged file can break the parser anywhere
-        raise InputError(f"'{path}': not a readable SIF file: {one_line(exc) or type(exc).__name__}") from None
+        raise InputError(
+            f"'{path}': not a readable SIF file: {one_line(exc) or type(exc).__name__}"
+        ) from None
     return data, _settings(info)
 
 

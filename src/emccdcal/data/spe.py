@@ -40,8 +40,13 @@ _PIXEL_FORMATS = {
     "MonochromeFloating32": np.dtype("<f4"),
 }
 # SPE 2.x: data type code at byte 108, frame width at 42, height at 656, frames at 1446.
-_V2_TYPES = {0: np.dtype("<f4"), 1: np.dtype("<i4"), 2: np.dtype("<i2"), 3: np.dtype("<u2"),
-             8: np.dtype("<u4")}
+_V2_TYPES = {
+    0: np.dtype("<f4"),
+    1: np.dtype("<i4"),
+    2: np.dtype("<i2"),
+    3: np.dtype("<u2"),
+    8: np.dtype("<u4"),
+}
 
 
 def read_layout(path: Path):
@@ -66,16 +71,19 @@ def _read_layout(path: Path, resolved: str, size: int, mtime_ns: int):
     with open(resolved, "rb") as fh:
         head = fh.read(HEADER_BYTES)
         if len(head) < HEADER_BYTES:
-            raise InputError(f"'{path}': {size} bytes, too short for an SPE header "
-                             f"({HEADER_BYTES} bytes)")
+            raise InputError(
+                f"'{path}': {size} bytes, too short for an SPE header ({HEADER_BYTES} bytes)"
+            )
         if struct.unpack_from("<H", head, _LASTVALUE_AT)[0] != 0x5555:
             raise InputError(f"'{path}': not an SPE file (no 0x5555 at byte {_LASTVALUE_AT})")
         version = struct.unpack_from("<f", head, _VERSION_AT)[0]
         if version >= 3:
             footer_at = struct.unpack_from("<Q", head, _FOOTER_AT)[0]
             if not HEADER_BYTES <= footer_at < size:
-                raise InputError(f"'{path}': SPE 3.0 footer offset {footer_at} is outside "
-                                 f"the file ({size} bytes): damaged or truncated")
+                raise InputError(
+                    f"'{path}': SPE 3.0 footer offset {footer_at} is outside "
+                    f"the file ({size} bytes): damaged or truncated"
+                )
             fh.seek(footer_at)
             return _layout_v3(path, fh.read(), footer_at)
     return _layout_v2(path, head, size)
@@ -85,39 +93,51 @@ def _layout_v3(path, xml_bytes, footer_at):
     try:
         root = _files.load_xml(path, text=xml_bytes, what="SPE 3.0 XML footer")
     except InputError as exc:
-        raise InputError(f"'{path}': SPE 3.0 XML footer is not valid XML: "
-                         f"{str(exc).split(': ', 1)[-1]}") from None
+        raise InputError(
+            f"'{path}': SPE 3.0 XML footer is not valid XML: {str(exc).split(': ', 1)[-1]}"
+        ) from None
     frame = root.find("{*}DataFormat/{*}DataBlock[@type='Frame']")
     if frame is None:
-        raise InputError(f"'{path}': SPE 3.0 XML footer has no DataFormat/DataBlock of "
-                         "type 'Frame'")
+        raise InputError(
+            f"'{path}': SPE 3.0 XML footer has no DataFormat/DataBlock of type 'Frame'"
+        )
     regions = frame.findall("{*}DataBlock[@type='Region']")
     if len(regions) != 1:
-        raise InputError(f"'{path}': SPE 3.0 frames hold {len(regions)} regions; "
-                         "one region per frame is supported")
+        raise InputError(
+            f"'{path}': SPE 3.0 frames hold {len(regions)} regions; "
+            "one region per frame is supported"
+        )
     try:
         count = int(frame.get("count"))
         stride = int(frame.get("stride"))
         width, height = int(regions[0].get("width")), int(regions[0].get("height"))
         fmt = regions[0].get("pixelFormat") or frame.get("pixelFormat")
     except (TypeError, ValueError):
-        raise InputError(f"'{path}': SPE 3.0 XML footer: the Frame and Region blocks need "
-                         "count, stride, width and height") from None
+        raise InputError(
+            f"'{path}': SPE 3.0 XML footer: the Frame and Region blocks need "
+            "count, stride, width and height"
+        ) from None
     if fmt not in _PIXEL_FORMATS:
-        raise InputError(f"'{path}': SPE 3.0 pixel format {fmt!r} is not supported "
-                         f"({', '.join(_PIXEL_FORMATS)})")
+        raise InputError(
+            f"'{path}': SPE 3.0 pixel format {fmt!r} is not supported ({', '.join(_PIXEL_FORMATS)})"
+        )
     dtype = _PIXEL_FORMATS[fmt]
     frame_bytes = width * height * dtype.itemsize
     if count < 1 or width < 1 or height < 1:
-        raise InputError(f"'{path}': SPE 3.0 XML footer describes {count} frames of "
-                         f"{height} × {width} pixels")
+        raise InputError(
+            f"'{path}': SPE 3.0 XML footer describes {count} frames of {height} × {width} pixels"
+        )
     if stride < frame_bytes:
-        raise InputError(f"'{path}': SPE 3.0 frame stride {stride} bytes is smaller than a "
-                         f"frame of {height} × {width} {fmt} ({frame_bytes} bytes)")
+        raise InputError(
+            f"'{path}': SPE 3.0 frame stride {stride} bytes is smaller than a "
+            f"frame of {height} × {width} {fmt} ({frame_bytes} bytes)"
+        )
     if HEADER_BYTES + count * stride > footer_at:
         whole = (footer_at - HEADER_BYTES) // stride
-        raise InputError(f"'{path}': truncated: the SPE 3.0 footer describes {count} frames "
-                         f"of {stride} bytes but {whole} fit before it")
+        raise InputError(
+            f"'{path}': truncated: the SPE 3.0 footer describes {count} frames "
+            f"of {stride} bytes but {whole} fit before it"
+        )
     return (count, height, width), dtype, HEADER_BYTES, stride, _settings_v3(root)
 
 
@@ -150,8 +170,11 @@ def _settings_v3(root) -> CameraSettings:
         amplifier=_text(root, cam + "/{*}Adc/{*}Quality"),
         readout_rate_mhz=_number(root, cam + "/{*}Adc/{*}Speed"),
         adc_bits=None if bits is None else int(bits),
-        temperature_c=(reading if reading is not None
-                       else _number(root, cam + "/{*}Sensor/{*}Temperature/{*}SetPoint")),
+        temperature_c=(
+            reading
+            if reading is not None
+            else _number(root, cam + "/{*}Sensor/{*}Temperature/{*}SetPoint")
+        ),
         exposure_ms=_number(root, cam + "/{*}ShutterTiming/{*}ExposureTime"),
         serial=None if system is None else system.get("serialNumber"),
         model=None if system is None else system.get("model"),
@@ -169,8 +192,9 @@ def _layout_v2(path, head, size):
     height = struct.unpack_from("<H", head, 656)[0]
     count = struct.unpack_from("<i", head, 1446)[0]
     if count < 1 or width < 1 or height < 1:
-        raise InputError(f"'{path}': SPE 2.x header describes {count} frames of "
-                         f"{height} × {width} pixels")
+        raise InputError(
+            f"'{path}': SPE 2.x header describes {count} frames of {height} × {width} pixels"
+        )
     exposure_s = struct.unpack_from("<f", head, 10)[0]
     temperature = struct.unpack_from("<f", head, 36)[0]
     bits = struct.unpack_from("<h", head, 194)[0]

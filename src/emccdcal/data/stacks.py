@@ -51,8 +51,9 @@ _SCAN_ELEMENTS = 2**23
 _READ_BYTES = 2**24
 
 
-def read_band(path, first_row: int, stop_row: int, skip_frames: int = 0,
-              stop_frame: int | None = None) -> np.ndarray:
+def read_band(
+    path, first_row: int, stop_row: int, skip_frames: int = 0, stop_frame: int | None = None
+) -> np.ndarray:
     """Rows ``first_row:stop_row`` of every frame from ``skip_frames`` on (up to
     ``stop_frame``, exclusive, where given), read into memory.
 
@@ -87,12 +88,13 @@ def read_band(path, first_row: int, stop_row: int, skip_frames: int = 0,
     fd = os.open(path, os.O_RDONLY)
     try:
         for i in range(0, out.shape[0], per_call):
-            part = flat[i:i + per_call]
+            part = flat[i : i + per_call]
             at = offset + (skip_frames + i) * stride + first_row * row_bytes
             got = os.preadv(fd, [part], at)
             if got != part.nbytes:
-                raise InputError(f"'{path}': file ends inside frame "
-                                 f"{skip_frames + i + got // want}: truncated")
+                raise InputError(
+                    f"'{path}': file ends inside frame {skip_frames + i + got // want}: truncated"
+                )
     finally:
         os.close(fd)
     return out
@@ -126,8 +128,10 @@ def _layout(path: Path):
 #: How a file's name states its EM-gain set-point where the file records none
 #: (``25x-gain.tif``, ``gain_25.tif``): the one rule of ``scan``, ``apply``, ``gain-check``
 #: and the napari reader.
-SETPOINT_IN_NAME = (re.compile(r"(?<![\d.])(\d+(?:\.\d+)?)\s*x(?![a-z])", re.IGNORECASE),
-                    re.compile(r"gain[-_ ]?(\d+(?:\.\d+)?)", re.IGNORECASE))
+SETPOINT_IN_NAME = (
+    re.compile(r"(?<![\d.])(\d+(?:\.\d+)?)\s*x(?![a-z])", re.IGNORECASE),
+    re.compile(r"gain[-_ ]?(\d+(?:\.\d+)?)", re.IGNORECASE),
+)
 
 
 def setpoint_in_name(path) -> float | None:
@@ -167,8 +171,11 @@ def stack_settings(path, *, setpoint_from_name: bool = False) -> CameraSettings:
 #: back to back) and ``settings(path)`` (:class:`CameraSettings`); where ``header`` can
 #: give no offset, also ``open_stack(path)`` (a lazy array). A new format is a module
 #: and its entry point: nothing else lists formats.
-_READERS = {suffix: reader for reader in plugins.load(plugins.READERS).values()
-            for suffix in reader.SUFFIXES}
+_READERS = {
+    suffix: reader
+    for reader in plugins.load(plugins.READERS).values()
+    for suffix in reader.SUFFIXES
+}
 #: File name suffixes of stacks and maps that can be read.
 STACK_SUFFIXES = tuple(_READERS)
 
@@ -179,10 +186,14 @@ def _reader(path: Path):
         return _READERS[path.suffix.lower()]
     except KeyError:
         if not _READERS:  # the entry points are in the installed package's metadata
-            raise InputError(f"'{path}': no reader is registered: emccdcal's entry points "
-                             "are missing (install it: pip install -e .)") from None
-        raise InputError(f"'{path}': unsupported file type '{path.suffix}' "
-                         f"(supported: {', '.join(STACK_SUFFIXES)})") from None
+            raise InputError(
+                f"'{path}': no reader is registered: emccdcal's entry points "
+                "are missing (install it: pip install -e .)"
+            ) from None
+        raise InputError(
+            f"'{path}': unsupported file type '{path.suffix}' "
+            f"(supported: {', '.join(STACK_SUFFIXES)})"
+        ) from None
 
 
 def describe_missing(path: Path, what: str = "file") -> str:
@@ -220,10 +231,19 @@ def load_stack(path: Path) -> np.ndarray:
             return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape)
         if offset is not None:  # frames with metadata between them: a strided view
             frame = int(np.prod(shape[1:])) * dtype.itemsize
-            raw = np.memmap(path, dtype=np.uint8, mode="r", offset=offset,
-                            shape=((shape[0] - 1) * stride + frame,))
-            return np.ndarray(shape, dtype=dtype, buffer=raw,
-                              strides=(stride, shape[2] * dtype.itemsize, dtype.itemsize))
+            raw = np.memmap(
+                path,
+                dtype=np.uint8,
+                mode="r",
+                offset=offset,
+                shape=((shape[0] - 1) * stride + frame,),
+            )
+            return np.ndarray(
+                shape,
+                dtype=dtype,
+                buffer=raw,
+                strides=(stride, shape[2] * dtype.itemsize, dtype.itemsize),
+            )
         return _reader(path).open_stack(path)
     except InputError:
         raise
@@ -446,5 +466,3 @@ def read_map(
             f"'{path}': {name} map must be >= 0 everywhere ({describe_first(data, data < 0, 0)})"
         )
     return data
-
-

@@ -135,7 +135,7 @@ def _block_histograms(block: np.ndarray, adc_max: int | None):
     run_value = xp.astype(xp.take(xp.reshape(s, (-1,)), run_pos), xp.int64)
     # A run ends where the next one starts, or at the end of its row's usable values.
     last = xp.ones(1, dtype=xp.bool, device=dev)
-    last_of_row = xp.concat([run_row[1:] != run_row[:-1], last])[:run_row.shape[0]]
+    last_of_row = xp.concat([run_row[1:] != run_row[:-1], last])[: run_row.shape[0]]
     row_end = run_row * n_frames + xp.take(n_used, run_row)
     run_end = xp.where(last_of_row, row_end, xp.concat([run_pos[1:], run_pos[-1:]]))
     run_len = xp.astype(run_end - run_pos, xp.float64)

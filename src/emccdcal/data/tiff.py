@@ -38,9 +38,13 @@ def header(path: Path):
     image series. A damaged metadata tag is warned about once per file version."""
     shape, dtype, offset, log = _tiff_layout(path)
     if log and _first_time(path):  # e.g. a damaged metadata tag: the frames are sound
-        warnings.warn(f"'{path}': damaged TIFF: {log[0]}"
-                      f"{f' (and {len(log) - 1} more)' if len(log) > 1 else ''}; its frames "
-                      "were read in full", InputWarning, stacklevel=4)
+        warnings.warn(
+            f"'{path}': damaged TIFF: {log[0]}"
+            f"{f' (and {len(log) - 1} more)' if len(log) > 1 else ''}; its frames "
+            "were read in full",
+            InputWarning,
+            stacklevel=4,
+        )
     return shape, dtype, offset, None
 
 
@@ -138,8 +142,7 @@ def _tiff_layout_cached(path: str, size: int, mtime_ns: int):
         if broken and offset is not None:  # say so when it is a truncation
             check_data_fits(Path(path), shape, dtype, offset)
         if broken:
-            raise InputError(f"'{path}': damaged TIFF: {broken[0]}; its frames cannot all "
-                             "be found")
+            raise InputError(f"'{path}': damaged TIFF: {broken[0]}; its frames cannot all be found")
         if offset is not None:
             _check_strips(path, tif, pages=[0])
             if len(shape) == 3:
@@ -157,19 +160,31 @@ def _check_strips(path, tif, pages=None) -> None:
     for i in range(len(tif.pages)) if pages is None else pages:
         page = tif.pages[i]
         n_tags = len(page.tags)
-        spans.append((page.offset, page.offset + fmt.tagnosize + n_tags * fmt.tagsize
-                      + fmt.offsetsize, f"page {i}'s tag list"))
+        spans.append(
+            (
+                page.offset,
+                page.offset + fmt.tagnosize + n_tags * fmt.tagsize + fmt.offsetsize,
+                f"page {i}'s tag list",
+            )
+        )
         for tag in page.tags.values():
             if tag.valuebytecount > fmt.tagoffsetthreshold:  # stored outside the list
-                spans.append((tag.valueoffset, tag.valueoffset + tag.valuebytecount,
-                              f"page {i}'s {tag.name}"))
-        spans += [(o, o + c, f"page {i}'s data")
-                  for o, c in zip(page.dataoffsets, page.databytecounts) if c]
+                spans.append(
+                    (
+                        tag.valueoffset,
+                        tag.valueoffset + tag.valuebytecount,
+                        f"page {i}'s {tag.name}",
+                    )
+                )
+        spans += [
+            (o, o + c, f"page {i}'s data")
+            for o, c in zip(page.dataoffsets, page.databytecounts)
+            if c
+        ]
     spans.sort()
     for (_, end, what), (start, _, other) in zip(spans, spans[1:]):
         if start < end and "data" in what + other:
-            raise InputError(f"'{path}': damaged TIFF: {what} and {other} overlap "
-                             f"(byte {start})")
+            raise InputError(f"'{path}': damaged TIFF: {what} and {other} overlap (byte {start})")
 
 
 def _check_page_index(path, tif, shape, dtype, offset) -> None:
@@ -187,11 +202,15 @@ def _check_page_index(path, tif, shape, dtype, offset) -> None:
     elif n == shape[0]:
         checked = sorted({0, 1, n - 1})
     else:
-        raise InputError(f"'{path}': damaged TIFF: its first page describes {shape[0]} "
-                         f"frames but the file has {n} pages")
+        raise InputError(
+            f"'{path}': damaged TIFF: its first page describes {shape[0]} "
+            f"frames but the file has {n} pages"
+        )
     for i in checked:
         found = pages[i].dataoffsets[0] if pages[i].dataoffsets else None
         if found != offset + i * frame:
-            raise InputError(f"'{path}': damaged TIFF: frame {i}'s data are at byte "
-                             f"{found}, not at {offset + i * frame} where its first page "
-                             "puts them")
+            raise InputError(
+                f"'{path}': damaged TIFF: frame {i}'s data are at byte "
+                f"{found}, not at {offset + i * frame} where its first page "
+                "puts them"
+            )

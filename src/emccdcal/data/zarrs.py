@@ -22,8 +22,18 @@ from .._util import one_line
 from ..errors import InputError
 from .settings import CameraSettings
 
-__all__ = ["SUFFIXES", "ATTRIBUTE", "open_array", "header", "open_stack", "settings",
-           "StackWriter", "Batch", "read_chunks", "begun_but_empty"]
+__all__ = [
+    "SUFFIXES",
+    "ATTRIBUTE",
+    "open_array",
+    "header",
+    "open_stack",
+    "settings",
+    "StackWriter",
+    "Batch",
+    "read_chunks",
+    "begun_but_empty",
+]
 
 #: File name suffixes of this format.
 SUFFIXES = (".zarr",)
@@ -42,7 +52,9 @@ def _open(path: Path):
     try:
         import zarr
     except ImportError:
-        raise InputError("reading Zarr needs the 'zarr' extra: pip install 'emccdcal[zarr]'") from None
+        raise InputError(
+            "reading Zarr needs the 'zarr' extra: pip install 'emccdcal[zarr]'"
+        ) from None
     try:
         node = zarr.open(str(path), mode="r")
     except Exception as exc:  # noqa: BLE001 - a damaged store can fail anywhere
@@ -51,13 +63,15 @@ def _open(path: Path):
         return node, {}
     image = _image_path(node)
     if image is None:
-        raise InputError(f"'{path}': a Zarr group that is not an OME-Zarr image; point "
-                         "at the stack's array")
+        raise InputError(
+            f"'{path}': a Zarr group that is not an OME-Zarr image; point at the stack's array"
+        )
     try:
         return node[image], dict(node.attrs)
     except Exception as exc:  # noqa: BLE001 - a damaged store can fail anywhere
-        raise InputError(f"'{path}': its OME-Zarr image '{image}' cannot be read: "
-                         f"{one_line(exc)}") from None
+        raise InputError(
+            f"'{path}': its OME-Zarr image '{image}' cannot be read: {one_line(exc)}"
+        ) from None
 
 
 def _image_path(group) -> str | None:
@@ -84,8 +98,10 @@ def settings(path: Path) -> CameraSettings:
         return settings_of(group["micromanager"])
     unknown = sorted(set(recorded) - set(CameraSettings.names()))
     if unknown:
-        raise InputError(f"'{path}': unknown camera setting(s) {', '.join(unknown)} in its "
-                         f"'{ATTRIBUTE}' attribute (known: {', '.join(CameraSettings.names())})")
+        raise InputError(
+            f"'{path}': unknown camera setting(s) {', '.join(unknown)} in its "
+            f"'{ATTRIBUTE}' attribute (known: {', '.join(CameraSettings.names())})"
+        )
     return CameraSettings.from_record(recorded, path)
 
 
@@ -124,8 +140,9 @@ class StackWriter:
     when the run was killed) are dropped first.
     """
 
-    def __init__(self, path: Path, shape, dtype, attrs: dict, *, owner: str,
-                 frames: int | None = None):
+    def __init__(
+        self, path: Path, shape, dtype, attrs: dict, *, owner: str, frames: int | None = None
+    ):
         import zarr
 
         self.path = path
@@ -135,20 +152,47 @@ class StackWriter:
             # the attributes (the session's marker among them) in the group's first and
             # only metadata write: zarr's attrs.update writes one key at a time, and a
             # run killed between two keys left a store that was no longer known as ours
-            group = zarr.open_group(str(path), mode="w-", zarr_format=3, attributes={
-                "ome": {"version": "0.5", "multiscales": [{
-                    "name": path.name,
-                    "axes": [{"name": "t", "type": "time"}, {"name": "y", "type": "space"},
-                             {"name": "x", "type": "space"}],
-                    "datasets": [{"path": "0", "coordinateTransformations": [
-                        {"type": "scale", "scale": [1.0, 1.0, 1.0]}]}]}]},
-                owner: {}, **attrs})
+            group = zarr.open_group(
+                str(path),
+                mode="w-",
+                zarr_format=3,
+                attributes={
+                    "ome": {
+                        "version": "0.5",
+                        "multiscales": [
+                            {
+                                "name": path.name,
+                                "axes": [
+                                    {"name": "t", "type": "time"},
+                                    {"name": "y", "type": "space"},
+                                    {"name": "x", "type": "space"},
+                                ],
+                                "datasets": [
+                                    {
+                                        "path": "0",
+                                        "coordinateTransformations": [
+                                            {"type": "scale", "scale": [1.0, 1.0, 1.0]}
+                                        ],
+                                    }
+                                ],
+                            }
+                        ],
+                    },
+                    owner: {},
+                    **attrs,
+                },
+            )
             # chunks of a band of rows: calibrate reads a stack by bands of rows
-            self.array = group.create_array("0", shape=(0, h, w), dtype=dtype,
-                                            chunks=(self.chunk_frames, min(h, _CHUNK_ROWS), w),
-                                            compressors=None, fill_value=0,
-                                            dimension_names=("t", "y", "x"),
-                                            config=_WRITE_CONFIG)
+            self.array = group.create_array(
+                "0",
+                shape=(0, h, w),
+                dtype=dtype,
+                chunks=(self.chunk_frames, min(h, _CHUNK_ROWS), w),
+                compressors=None,
+                fill_value=0,
+                dimension_names=("t", "y", "x"),
+                config=_WRITE_CONFIG,
+            )
         else:  # a resume: only a stack this session wrote, only frames beyond its record
             try:
                 group = zarr.open_group(str(path), mode="r+")
@@ -157,11 +201,15 @@ class StackWriter:
             except Exception:  # noqa: BLE001 - whatever is there, it is not our stack
                 ours = False
             if not ours or self.array.shape[0] < frames:
-                raise InputError(f"'{path}': not the stack this session recorded (or "
-                                   f"fewer than its {frames} frames); it is left as it is")
+                raise InputError(
+                    f"'{path}': not the stack this session recorded (or "
+                    f"fewer than its {frames} frames); it is left as it is"
+                )
             if tuple(self.array.shape[1:]) != (h, w):
-                raise InputError(f"'{path}': frames of {self.array.shape[1]} × "
-                                   f"{self.array.shape[2]} px, but the camera gives {h} × {w}")
+                raise InputError(
+                    f"'{path}': frames of {self.array.shape[1]} × "
+                    f"{self.array.shape[2]} px, but the camera gives {h} × {w}"
+                )
             if self.array.shape[0] > frames:  # a batch written when the run was killed
                 self.array.resize((frames, h, w))
 
@@ -197,7 +245,7 @@ class StackWriter:
             return
         self.array.resize((start + count, *rest))
         for (top, bottom), band in zip(batch.rows, batch.bands):
-            self.array[start:start + count, top:bottom] = band[:count, :bottom - top]
+            self.array[start : start + count, top:bottom] = band[:count, : bottom - top]
 
     def _chunk_folder(self) -> Path | None:
         """Where the array's chunk files are, if its chunks are plain little-endian bytes
@@ -205,8 +253,11 @@ class StackWriter:
         import zarr
 
         array = self.array
-        plain = (array.metadata.zarr_format == 3 and array.dtype.str[0] in "<|"
-                 and array.metadata.codecs == (zarr.codecs.BytesCodec(endian="little"),))
+        plain = (
+            array.metadata.zarr_format == 3
+            and array.dtype.str[0] in "<|"
+            and array.metadata.codecs == (zarr.codecs.BytesCodec(endian="little"),)
+        )
         store = array.store_path.store
         if not plain or not isinstance(store, zarr.storage.LocalStore):
             return None
@@ -229,13 +280,18 @@ class Batch:
 
     def add(self, frame: np.ndarray) -> None:
         for (top, bottom), band in zip(self.rows, self.bands):
-            band[self.count, :bottom - top] = frame[top:bottom]
+            band[self.count, : bottom - top] = frame[top:bottom]
         self.count += 1
 
     def frames(self) -> np.ndarray:
         """The frames added, (count, rows, cols)."""
-        return np.concatenate([band[:self.count, :bottom - top]
-                               for (top, bottom), band in zip(self.rows, self.bands)], axis=1)
+        return np.concatenate(
+            [
+                band[: self.count, : bottom - top]
+                for (top, bottom), band in zip(self.rows, self.bands)
+            ],
+            axis=1,
+        )
 
 
 def read_chunks(path: Path, pixels=None):
@@ -246,7 +302,7 @@ def read_chunks(path: Path, pixels=None):
     arr = zarr.open_group(str(path), mode="r")["0"]
     step = arr.chunks[0]
     for start in range(0, arr.shape[0], step):
-        block = arr[start:start + step]
+        block = arr[start : start + step]
         yield block if pixels is None else block.reshape(block.shape[0], 1, -1)[:, :, pixels]
 
 
@@ -271,8 +327,7 @@ def begun_but_empty(path: Path, owner: str) -> bool:
     # killed before the group's metadata was in place: folders only, or its write
     # interrupted (never Zarr v2's files: ours are v3)
     written = [f for f in files if f.parent == path and _metadata_in_writing(f)]
-    return len(written) == len(files) and (not files or any(_marked(f, owner)
-                                                            for f in written))
+    return len(written) == len(files) and (not files or any(_marked(f, owner) for f in written))
 
 
 def _metadata_in_writing(item: Path) -> bool:
@@ -287,4 +342,3 @@ def _marked(item: Path, owner: str) -> bool:
     except (InputError, AttributeError):
         return False
     return owner in attrs  # else another hand's group (its attributes none or others)
-

@@ -36,8 +36,15 @@ from ..errors import InputError, OptionError
 from ..result import Calibration, format_setpoint, load_calibration
 from .tools import camera_values, pick_setpoint
 
-__all__ = ["TOOL_NAMES", "Field", "Reading", "Audit", "read_tool_file", "audit",  # noqa: F822
-           "DEFAULT_TOLERANCE"]  # (TOOL_NAMES from the plug-ins, by the module's __getattr__)
+__all__ = [
+    "TOOL_NAMES",  # noqa: F822 (from the plug-ins, by __getattr__)
+    "Field",
+    "Reading",
+    "Audit",
+    "read_tool_file",
+    "audit",
+    "DEFAULT_TOLERANCE",
+]  # (TOOL_NAMES from the plug-ins, by the module's __getattr__)
 
 #: The photon bias beyond which an audit says "off", as a fraction.
 DEFAULT_TOLERANCE = defaults.AUDIT_TOLERANCE
@@ -52,6 +59,7 @@ def __getattr__(name):
     if name == "TOOL_NAMES":  # the tools an audit reads: --tool's name → the tool's own
         return {n: t.title for n, t in _readable().items()}
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 #: What a field can stand for: the calibrated quantity, its unit, how to say it.
 _QUANTITIES = {
@@ -114,18 +122,28 @@ class Audit:
         """The audit as the console shows it."""
         r = self.reading
         # where and the rows quote the tool's file: data, each on its one line
-        out = [f"{_readable()[r.tool].title}: {comment(r.where)} "
-               f"(set-point {format_setpoint(self.setpoint)}x)"]
+        out = [
+            f"{_readable()[r.tool].title}: {comment(r.where)} "
+            f"(set-point {format_setpoint(self.setpoint)}x)"
+        ]
         width = max(len(row["field"]) for row in self.rows)
         for row in self.rows:
             out.append(f"  {comment(row['field']):<{width}}  {comment(row['text'])}")
-        out.append(f"  photons: {r.formula} = {r.pe_per_adu:.6g} e-/ADU against the "
-                   f"calibrated phi/g = {self.calibrated_pe_per_adu:.6g}: "
-                   f"{100 * self.photon_bias:+.2f} %")
+        out.append(
+            f"  photons: {r.formula} = {r.pe_per_adu:.6g} e-/ADU against the "
+            f"calibrated phi/g = {self.calibrated_pe_per_adu:.6g}: "
+            f"{100 * self.photon_bias:+.2f} %"
+        )
         verdict = "OK" if self.ok else "OFF"
-        out.append(f"  {verdict}: " + ("; ".join(self.problems) if self.problems else
-                   f"photons within {100 * self.tolerance:g} %, baseline within "
-                   f"{self.offset_tolerance:.3g} ADU"))
+        out.append(
+            f"  {verdict}: "
+            + (
+                "; ".join(self.problems)
+                if self.problems
+                else f"photons within {100 * self.tolerance:g} %, baseline within "
+                f"{self.offset_tolerance:.3g} ADU"
+            )
+        )
         return out
 
 
@@ -155,8 +173,7 @@ def _qe(value, what, path):
     """A quantum efficiency: a number in (0, 1] (a percentage or a sign error refused)."""
     x = _number(value, what, path)
     if not 0 < x <= 1:
-        raise InputError(f"'{path}': {what} is {value!r}; a quantum efficiency lies in "
-                         "(0, 1]")
+        raise InputError(f"'{path}': {what} is {value!r}; a quantum efficiency lies in (0, 1]")
     return x
 
 
@@ -223,9 +240,11 @@ def _guess_tool(path: Path, text: str | None, doc) -> str:
     for name, tool in readable.items():
         if tool.recognizes is not None and tool.recognizes(path, text, doc):
             return name
-    raise InputError(f"'{path}': not a camera file of a tool emccdcal knows "
-                     f"({', '.join(t.title for t in readable.values())}); give --tool NAME "
-                     "if it is one")
+    raise InputError(
+        f"'{path}': not a camera file of a tool emccdcal knows "
+        f"({', '.join(t.title for t in readable.values())}); give --tool NAME "
+        "if it is one"
+    )
 
 
 def read_tool_file(path, *, tool=None, setpoint=1.0, tool_gain=None) -> list[Reading]:
@@ -294,22 +313,26 @@ def _compare(reading: Reading, values: dict, setpoint, tolerance, offset_toleran
     # pixels of g/φ, one holding φ and g against their medians, so that a file whose
     # every row agrees reads no photon bias
     combined = any(f.quantity == "adu_per_e_total" for f in reading.fields)
-    pe_per_adu = (1.0 / truth["adu_per_e_total"] if combined
-                  else truth["e_per_adu"] / truth["em_gain"])
+    pe_per_adu = (
+        1.0 / truth["adu_per_e_total"] if combined else truth["e_per_adu"] / truth["em_gain"]
+    )
     rows = []
     for f in reading.fields:
         row = {"field": f.name}
         note = f" ({f.note})" if f.note else ""
         if f.quantity == "offset":
             diff = f.value - truth["offset"]
-            row["text"] = (f"{f.value:.6g} ADU; calibrated offset {truth['offset']:.6g} ADU: "
-                           f"{diff:+.3g} ADU ({-diff * pe_per_adu:+.3g} e- per pixel and frame)"
-                           + note)
+            row["text"] = (
+                f"{f.value:.6g} ADU; calibrated offset {truth['offset']:.6g} ADU: "
+                f"{diff:+.3g} ADU ({-diff * pe_per_adu:+.3g} e- per pixel and frame)" + note
+            )
         elif f.quantity in _QUANTITIES:
             unit, what = _QUANTITIES[f.quantity]
             rel = f.value / truth[f.quantity] - 1
-            row["text"] = (f"{f.value:.6g} {unit}".rstrip() + f"; calibrated {what} "
-                           f"{truth[f.quantity]:.6g}: {100 * rel:+.2f} %{note}")
+            row["text"] = (
+                f"{f.value:.6g} {unit}".rstrip() + f"; calibrated {what} "
+                f"{truth[f.quantity]:.6g}: {100 * rel:+.2f} %{note}"
+            )
         else:  # a number of the tool's that no calibrated quantity stands for alone
             row["text"] = f"{f.value:.6g} (compared only in the photons){note}"
         rows.append(row)
@@ -324,25 +347,46 @@ def _compare(reading: Reading, values: dict, setpoint, tolerance, offset_toleran
     offset_error = None if reading.baseline is None else reading.baseline - truth["offset"]
     problems = []
     if abs(bias) > tolerance:
-        worst = max((f for f in reading.fields if f.quantity in ("e_per_adu", "em_gain",
-                                                                  "adu_per_e_total")),
-                    key=lambda f: abs(math.log(f.value / truth[f.quantity])), default=None)
+        worst = max(
+            (
+                f
+                for f in reading.fields
+                if f.quantity in ("e_per_adu", "em_gain", "adu_per_e_total")
+            ),
+            key=lambda f: abs(math.log(f.value / truth[f.quantity])),
+            default=None,
+        )
         name = f" (most of it {worst.name})" if worst is not None else ""
-        problems.append(f"photons {100 * bias:+.1f} %{name}, beyond {100 * tolerance:g} %: "
-                        f"{reading.formula} should be {pe_per_adu:.6g} e-/ADU")
+        problems.append(
+            f"photons {100 * bias:+.1f} %{name}, beyond {100 * tolerance:g} %: "
+            f"{reading.formula} should be {pe_per_adu:.6g} e-/ADU"
+        )
     if offset_error is not None and abs(offset_error) > tol_offset:
         base = next(f.name for f in reading.fields if f.quantity == "offset")
-        problems.append(f"{base} {offset_error:+.3g} ADU from the calibrated offset "
-                        f"{truth['offset']:.6g} ADU, beyond {tol_offset:.3g} ADU")
+        problems.append(
+            f"{base} {offset_error:+.3g} ADU from the calibrated offset "
+            f"{truth['offset']:.6g} ADU, beyond {tol_offset:.3g} ADU"
+        )
     if qe is not None and reading.qe is not None and abs(reading.qe / qe - 1) > tolerance:
-        problems.append(f"QE {reading.qe:g} but {qe:g} given: photons "
-                        f"{100 * (qe / reading.qe - 1):+.1f} %")
-    return Audit(reading, setpoint, rows, pe_per_adu, bias, offset_error, tol_offset, tolerance,
-                 problems)
+        problems.append(
+            f"QE {reading.qe:g} but {qe:g} given: photons {100 * (qe / reading.qe - 1):+.1f} %"
+        )
+    return Audit(
+        reading, setpoint, rows, pe_per_adu, bias, offset_error, tol_offset, tolerance, problems
+    )
 
 
-def audit(toolfile, calibration, *, setpoint=None, tool=None, tool_gain=None, qe=None,
-          tolerance=DEFAULT_TOLERANCE, offset_tolerance=None) -> list[Audit]:
+def audit(
+    toolfile,
+    calibration,
+    *,
+    setpoint=None,
+    tool=None,
+    tool_gain=None,
+    qe=None,
+    tolerance=DEFAULT_TOLERANCE,
+    offset_tolerance=None,
+) -> list[Audit]:
     """Compare a localization tool's camera numbers with a calibration.
 
     Parameters
@@ -376,8 +420,9 @@ def audit(toolfile, calibration, *, setpoint=None, tool=None, tool_gain=None, qe
     cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
     s = pick_setpoint(cal, setpoint)
     values = camera_values(cal, s)
-    readings = _matching(read_tool_file(toolfile, tool=tool, setpoint=s, tool_gain=tool_gain),
-                         cal.camera)
+    readings = _matching(
+        read_tool_file(toolfile, tool=tool, setpoint=s, tool_gain=tool_gain), cal.camera
+    )
     return [_compare(r, values, s, tolerance, offset_tolerance, qe) for r in readings]
 
 
@@ -393,13 +438,19 @@ def _matching(readings, camera: dict):
         wanted.append(lambda where, a=str(amplifier): a in where.split(" > "))
     rate = camera.get("readout_rate_mhz")
     if rate is not None:
-        wanted.append(lambda where, r=float(rate): any(
-            abs(float(m) - r) < 1e-6 for m in re.findall(r"([0-9.]+)\s*MHz", where)))
+        wanted.append(
+            lambda where, r=float(rate): any(
+                abs(float(m) - r) < 1e-6 for m in re.findall(r"([0-9.]+)\s*MHz", where)
+            )
+        )
     analog = camera.get("analog_gain")
     if analog is not None:
         number = re.findall(r"[0-9.]+", str(analog))
-        wanted.append(lambda where, n=number: bool(n) and any(
-            n[0] == m for m in re.findall(r"[Gg]ain\s*([0-9.]+)", where)))
+        wanted.append(
+            lambda where, n=number: (
+                bool(n) and any(n[0] == m for m in re.findall(r"[Gg]ain\s*([0-9.]+)", where))
+            )
+        )
     chosen = readings
     for w in wanted:
         narrowed = [r for r in chosen if w(r.where)]

@@ -48,9 +48,24 @@ from .._output import file_sha256
 from ..errors import EmccdcalError, InputError, OptionError
 from ..result import format_setpoint, load, load_calibration, pixel_statistics, summarize
 
-__all__ = ["default_path", "add", "add_check", "remove", "relocate", "entries", "entry",
-           "checks", "find", "calibration", "compare", "readout_text", "past_date", "Entry",
-           "CheckEntry", "Finding"]
+__all__ = [
+    "default_path",
+    "add",
+    "add_check",
+    "remove",
+    "relocate",
+    "entries",
+    "entry",
+    "checks",
+    "find",
+    "calibration",
+    "compare",
+    "readout_text",
+    "past_date",
+    "Entry",
+    "CheckEntry",
+    "Finding",
+]
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS calibration (
@@ -126,17 +141,23 @@ def _connect(db, *, write: bool = False) -> sqlite3.Connection:
         _require_ours(path)
     if not write:
         if not exists:
-            raise InputError(f"{path}: no calibration database here ('emccdcal db add RESULT "
-                             "--db PATH' creates one); give --db PATH or set EMCCDCAL_DB")
+            raise InputError(
+                f"{path}: no calibration database here ('emccdcal db add RESULT "
+                "--db PATH' creates one); give --db PATH or set EMCCDCAL_DB"
+            )
         return _read_only(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise InputError(f"{path.parent}: cannot create the calibration database's folder "
-                         f"({exc.strerror or exc}); give --db PATH or set EMCCDCAL_DB") from None
+        raise InputError(
+            f"{path.parent}: cannot create the calibration database's folder "
+            f"({exc.strerror or exc}); give --db PATH or set EMCCDCAL_DB"
+        ) from None
     if not os.access(path.parent, os.W_OK) or (exists and not os.access(path, os.W_OK)):
-        raise InputError(f"{path}: the calibration database cannot be written here (read-only "
-                         "file or folder); give --db PATH or set EMCCDCAL_DB")
+        raise InputError(
+            f"{path}: the calibration database cannot be written here (read-only "
+            "file or folder); give --db PATH or set EMCCDCAL_DB"
+        )
     if not exists:
         _create(path)
     try:
@@ -160,8 +181,10 @@ def _opened(db, *, write: bool = False):
         raise
     except (sqlite3.DatabaseError, ValueError) as exc:  # ValueError: text, JSON, numbers
         path = Path(db) if db is not None else default_path()
-        raise InputError(f"{path}: the calibration database cannot be read ({exc}): damaged? "
-                         "restore it from a copy, or give --db a new path") from None
+        raise InputError(
+            f"{path}: the calibration database cannot be read ({exc}): damaged? "
+            "restore it from a copy, or give --db a new path"
+        ) from None
     finally:
         con.close()
 
@@ -194,20 +217,25 @@ def _require_ours(path: Path) -> None:
     with open(path, "rb") as f:
         header = f.read(16)
     if header != b"SQLite format 3\x00":
-        raise InputError(f"{path}: not a calibration database (not an SQLite file); give "
-                         "--db a new path or an emccdcal database")
+        raise InputError(
+            f"{path}: not a calibration database (not an SQLite file); give "
+            "--db a new path or an emccdcal database"
+        )
     try:
         con = _read_only(path)
         try:
-            tables = {r[0] for r in con.execute(
-                "SELECT name FROM sqlite_master WHERE type = 'table'")}
+            tables = {
+                r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type = 'table'")
+            }
         finally:
             con.close()
     except (sqlite3.DatabaseError, ValueError) as exc:  # ValueError: undecodable text
         raise InputError(f"{path}: not a usable calibration database ({exc})") from None
     if not _TABLES <= tables:
-        raise InputError(f"{path}: an SQLite file of another program (no emccdcal "
-                         "calibration tables); left as it is: give --db a new path")
+        raise InputError(
+            f"{path}: an SQLite file of another program (no emccdcal "
+            "calibration tables); left as it is: give --db a new path"
+        )
 
 
 def _read_only(path: Path) -> sqlite3.Connection:
@@ -216,8 +244,9 @@ def _read_only(path: Path) -> sqlite3.Connection:
     writable = os.access(path.parent, os.W_OK) and os.access(path, os.W_OK)
     mode = "ro" if writable else "ro&immutable=1"
     try:
-        con = sqlite3.connect(f"{path.resolve().as_uri()}?mode={mode}", uri=True,
-                              isolation_level=None, timeout=60)
+        con = sqlite3.connect(
+            f"{path.resolve().as_uri()}?mode={mode}", uri=True, isolation_level=None, timeout=60
+        )
     except sqlite3.DatabaseError as exc:
         raise InputError(f"{path}: not a usable calibration database ({exc})") from None
     con.row_factory = sqlite3.Row
@@ -249,8 +278,10 @@ class Entry:
 
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
-        d["gains"] = {format_setpoint(s): {"median": m, "se_of_median": se, "n": n}
-                      for s, (m, se, n) in sorted(self.gains.items())}
+        d["gains"] = {
+            format_setpoint(s): {"median": m, "se_of_median": se, "n": n}
+            for s, (m, se, n) in sorted(self.gains.items())
+        }
         return d
 
 
@@ -304,8 +335,9 @@ def _iso_date(text) -> str:
     try:
         when = _parse(text)
     except ValueError:
-        raise OptionError(f"date must be ISO 8601 (2026-11-25 or 2026-11-25T12:00:00Z), "
-                          f"got {text!r}") from None
+        raise OptionError(
+            f"date must be ISO 8601 (2026-11-25 or 2026-11-25T12:00:00Z), got {text!r}"
+        ) from None
     if when.tzinfo is None:
         when = when.replace(tzinfo=_dt.timezone.utc)
     return when.astimezone(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
@@ -352,8 +384,9 @@ def add(result, *, db=None, camera=None, readout=None, date=None, note="") -> En
     cal = load_calibration(result)
     serial = camera or cal.camera.get("serial")
     if not serial:
-        raise OptionError(f"{cal.label}: its files record no camera serial number; give "
-                          "--camera SERIAL")
+        raise OptionError(
+            f"{cal.label}: its files record no camera serial number; give --camera SERIAL"
+        )
     readout = readout_text(cal.camera) if readout is None else str(readout)
     when = past_date(date or cal.created or _dt.datetime.now(_dt.timezone.utc).isoformat())
     digest = ",".join(cal.sha256)
@@ -377,10 +410,23 @@ def add(result, *, db=None, camera=None, readout=None, date=None, note="") -> En
             cur = con.execute(
                 "INSERT INTO calibration (camera, readout, date, added, method, em_model, path, "
                 "sha256, note, summary) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (str(serial), readout, when, added, cal.method, str(cal.em_model), path, digest,
-                 note, json.dumps(summary, allow_nan=False)))
-            con.executemany("INSERT INTO gain VALUES (?, ?, ?, ?, ?)",
-                            [(cur.lastrowid, s, m, se, n) for s, (m, se, n) in gains.items()])
+                (
+                    str(serial),
+                    readout,
+                    when,
+                    added,
+                    cal.method,
+                    str(cal.em_model),
+                    path,
+                    digest,
+                    note,
+                    json.dumps(summary, allow_nan=False),
+                ),
+            )
+            con.executemany(
+                "INSERT INTO gain VALUES (?, ?, ?, ?, ?)",
+                [(cur.lastrowid, s, m, se, n) for s, (m, se, n) in gains.items()],
+            )
             con.execute("COMMIT")
             return entry(cur.lastrowid, db=db)
         except BaseException:
@@ -412,8 +458,10 @@ def add_check(check, *, camera, readout="", date=None, note="", db=None) -> Chec
     CheckEntry
     """
     if not camera:
-        raise OptionError("a gain check is recorded under its camera's serial: give --camera "
-                          "SERIAL (the dark frames record none)")
+        raise OptionError(
+            "a gain check is recorded under its camera's serial: give --camera "
+            "SERIAL (the dark frames record none)"
+        )
     if check.setpoint is None:
         raise OptionError("the gain check has no set-point: give it")
     now = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
@@ -423,9 +471,20 @@ def add_check(check, *, camera, readout="", date=None, note="", db=None) -> Chec
         cur = con.execute(
             "INSERT INTO gain_check (camera, readout, date, added, setpoint, em_gain, se, "
             "em_model, events, note, record) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-            (str(camera), str(readout), when, now, float(check.setpoint), float(check.em_gain),
-             float(check.em_gain_se), str(check.em_model), float(check.events), str(note),
-             json.dumps(record, allow_nan=False)))
+            (
+                str(camera),
+                str(readout),
+                when,
+                now,
+                float(check.setpoint),
+                float(check.em_gain),
+                float(check.em_gain_se),
+                str(check.em_model),
+                float(check.events),
+                str(note),
+                json.dumps(record, allow_nan=False),
+            ),
+        )
         row = cur.lastrowid
     return checks(db=db, camera=camera, where_id=row)[0]
 
@@ -439,13 +498,20 @@ def checks(*, db=None, camera=None, readout=None, where_id=None) -> list[CheckEn
             args.append(value)
     with _opened(db) as con:
         try:
-            rows = con.execute("SELECT * FROM gain_check " + (
-                "WHERE " + " AND ".join(clauses) if clauses else "") + " ORDER BY date, id",
-                args).fetchall()
+            rows = con.execute(
+                "SELECT * FROM gain_check "
+                + ("WHERE " + " AND ".join(clauses) if clauses else "")
+                + " ORDER BY date, id",
+                args,
+            ).fetchall()
         except sqlite3.OperationalError:  # a read-only database of a version without checks
             rows = []
-        return [CheckEntry(**{k: r[k] for k in r.keys() if k != "record"},
-                           record=json.loads(r["record"])) for r in rows]
+        return [
+            CheckEntry(
+                **{k: r[k] for k in r.keys() if k != "record"}, record=json.loads(r["record"])
+            )
+            for r in rows
+        ]
 
 
 def remove(entry_id: int, *, db=None) -> Entry:
@@ -463,8 +529,10 @@ def relocate(entry_id: int, result, *, db=None) -> Entry:
     digest = ",".join(cal.sha256)
     with _opened(db, write=True) as con:
         if _one(con, entry_id, db).sha256 != digest:
-            raise OptionError(f"{cal.label}: not the result of entry {entry_id} (its content "
-                              "differs from the one added)")
+            raise OptionError(
+                f"{cal.label}: not the result of entry {entry_id} (its content "
+                "differs from the one added)"
+            )
         path = _stored_paths(cal.files, db)
         con.execute("UPDATE calibration SET path = ? WHERE id = ?", (path, int(entry_id)))
     return entry(entry_id, db=db)
@@ -485,15 +553,13 @@ def _stored_paths(files, db) -> str:
 
 def _found_paths(stored: str, db) -> str:
     home = _home(db)
-    return ",".join(str(home / p) if not Path(p).is_absolute() else p
-                    for p in stored.split(","))
+    return ",".join(str(home / p) if not Path(p).is_absolute() else p for p in stored.split(","))
 
 
 def _one(con, entry_id, db) -> Entry:
     found = _entries(con, db, "WHERE id = ?", (int(entry_id),))
     if not found:
-        raise OptionError(f"no entry {entry_id} in the calibration database "
-                          f"{db or default_path()}")
+        raise OptionError(f"no entry {entry_id} in the calibration database {db or default_path()}")
     return found[0]
 
 
@@ -501,8 +567,12 @@ def _entries(con, db, where="", args=()) -> list[Entry]:
     rows = con.execute(f"SELECT * FROM calibration {where} ORDER BY date, id", args).fetchall()
     out = []
     for r in rows:
-        gains = {g["setpoint"]: (g["median"], g["se"], g["n"]) for g in con.execute(
-            "SELECT * FROM gain WHERE calibration_id = ? ORDER BY setpoint", (r["id"],))}
+        gains = {
+            g["setpoint"]: (g["median"], g["se"], g["n"])
+            for g in con.execute(
+                "SELECT * FROM gain WHERE calibration_id = ? ORDER BY setpoint", (r["id"],)
+            )
+        }
         fields = {k: r[k] for k in r.keys() if k != "summary"}
         out.append(Entry(**{**fields, "path": _found_paths(r["path"], db)}, gains=gains))
     return out
@@ -526,8 +596,9 @@ def entry(entry_id: int, *, db=None, with_summary: bool = False):
     with _opened(db) as con:
         found = _one(con, entry_id, db)
         if with_summary:
-            summary = con.execute("SELECT summary FROM calibration WHERE id = ?",
-                                  (int(entry_id),)).fetchone()[0]
+            summary = con.execute(
+                "SELECT summary FROM calibration WHERE id = ?", (int(entry_id),)
+            ).fetchone()[0]
             return found, json.loads(summary)
         return found
 
@@ -542,12 +613,13 @@ def find(camera, setpoint, *, db=None, readout=None) -> Entry:
         result file that is missing or changed since it was added.
     """
     s = float(setpoint)
-    found = [e for e in entries(db=db, camera=camera, readout=readout)
-             if s == 1.0 or s in e.gains]
+    found = [e for e in entries(db=db, camera=camera, readout=readout) if s == 1.0 or s in e.gains]
     if not found:
-        raise OptionError(f"the calibration database has no calibration of camera {camera}"
-                          f"{'' if readout is None else f' ({readout})'} at set-point "
-                          f"{format_setpoint(s)}x")
+        raise OptionError(
+            f"the calibration database has no calibration of camera {camera}"
+            f"{'' if readout is None else f' ({readout})'} at set-point "
+            f"{format_setpoint(s)}x"
+        )
     return _checked(_one_state(found, camera)[-1])
 
 
@@ -574,20 +646,25 @@ def calibration(camera, setpoint, *, db=None, readout=None):
         return load_calibration(find(camera, s, db=db, readout=readout).path)
     curved = [e for e in every if len(e.gains) >= 2]
     if not curved:
-        raise OptionError(f"the calibration database has no calibration of camera {camera} "
-                          f"at set-point {format_setpoint(s)}x, and none with two or more "
-                          "multiplied set-points whose gain curve could predict it")
+        raise OptionError(
+            f"the calibration database has no calibration of camera {camera} "
+            f"at set-point {format_setpoint(s)}x, and none with two or more "
+            "multiplied set-points whose gain curve could predict it"
+        )
     newest = _checked(_one_state(curved, camera)[-1])
     cal = load_calibration(newest.path)
-    return calibration_at(cal, s, gain_curve_of([cal]),
-                          source=f"of database entry {newest.id} ({newest.date[:10]})")
+    return calibration_at(
+        cal, s, gain_curve_of([cal]), source=f"of database entry {newest.id} ({newest.date[:10]})"
+    )
 
 
 def _one_state(found: list, camera) -> list:
     states = {e.readout for e in found}
     if len(states) > 1:
-        raise OptionError(f"camera {camera} has calibrations in several read-out states "
-                          f"({'; '.join(sorted(states))}); give --readout")
+        raise OptionError(
+            f"camera {camera} has calibrations in several read-out states "
+            f"({'; '.join(sorted(states))}); give --readout"
+        )
     return found
 
 
@@ -596,8 +673,10 @@ def _checked(newest: Entry) -> Entry:
     files = newest.path.split(",")
     digests = [file_sha256(f) if Path(f).is_file() else None for f in files]
     if ",".join(str(d) for d in digests) != newest.sha256:
-        raise OptionError(f"entry {newest.id}: its result {newest.path} is missing or has "
-                          "changed since it was added to the database")
+        raise OptionError(
+            f"entry {newest.id}: its result {newest.path} is missing or has "
+            "changed since it was added to the database"
+        )
     return newest
 
 
@@ -652,9 +731,16 @@ def _age(found, camera, max_age_days, now) -> list[Finding]:
         when = _parse(_iso_date(now or _dt.datetime.now(_dt.timezone.utc).isoformat()))
         age = (when - _parse(newest.date)).total_seconds() / 86400
         if age > max_age_days:
-            findings.append(Finding("age", None, (
-                f"camera {camera}: the newest calibration (entry {newest.id}, {newest.date[:10]}) "
-                f"is {age:.0f} days old, more than {max_age_days:g}; recalibrate")))
+            findings.append(
+                Finding(
+                    "age",
+                    None,
+                    (
+                        f"camera {camera}: the newest calibration (entry {newest.id}, {newest.date[:10]}) "
+                        f"is {age:.0f} days old, more than {max_age_days:g}; recalibrate"
+                    ),
+                )
+            )
     return findings
 
 
@@ -670,11 +756,18 @@ def _changes(found, camera, z) -> list[Finding]:
         se = math.hypot(se_new or 0.0, se_old or 0.0)
         change = g_new / g_old - 1
         if se > 0 and abs(g_new - g_old) > z * se:
-            findings.append(Finding("change", s, (
-                f"camera {camera} at {format_setpoint(s)}x: gain {g_new:.4g} (entry "
-                f"{newest.id}, {newest.date[:10]}) against {g_old:.4g} (entry {prev.id}, "
-                f"{prev.date[:10]}): {change:+.2%}, {abs(g_new - g_old) / se:.1f} standard "
-                "errors; the register may have aged: use the newest calibration")))
+            findings.append(
+                Finding(
+                    "change",
+                    s,
+                    (
+                        f"camera {camera} at {format_setpoint(s)}x: gain {g_new:.4g} (entry "
+                        f"{newest.id}, {newest.date[:10]}) against {g_old:.4g} (entry {prev.id}, "
+                        f"{prev.date[:10]}): {change:+.2%}, {abs(g_new - g_old) / se:.1f} standard "
+                        "errors; the register may have aged: use the newest calibration"
+                    ),
+                )
+            )
     return findings
 
 
@@ -684,8 +777,11 @@ def _checks_against(found, checked, camera, z) -> list[Finding]:
     findings = []
     for s in sorted({c.setpoint for c in checked}):
         check = [c for c in checked if c.setpoint == s][-1]
-        before = [e for e in found if s in e.gains and e.register == check.register
-                  and e.date <= check.date]
+        before = [
+            e
+            for e in found
+            if s in e.gains and e.register == check.register and e.date <= check.date
+        ]
         if not before:
             continue
         cal = before[-1]
@@ -693,12 +789,19 @@ def _checks_against(found, checked, camera, z) -> list[Finding]:
         se = math.hypot(check.se, se_cal or 0.0)
         if se > 0 and abs(check.em_gain - g_cal) > z * se:
             side = "below" if check.em_gain < g_cal else "above"
-            findings.append(Finding("check", s, (
-                f"camera {camera} at {format_setpoint(s)}x: the gain check of "
-                f"{check.date[:10]} (check {check.id}) finds the gain "
-                f"{abs(check.em_gain / g_cal - 1):.1%} {side} its calibration of "
-                f"{cal.date[:10]} (entry {cal.id}), {abs(check.em_gain - g_cal) / se:.1f} "
-                "standard errors: recalibrate")))
+            findings.append(
+                Finding(
+                    "check",
+                    s,
+                    (
+                        f"camera {camera} at {format_setpoint(s)}x: the gain check of "
+                        f"{check.date[:10]} (check {check.id}) finds the gain "
+                        f"{abs(check.em_gain / g_cal - 1):.1%} {side} its calibration of "
+                        f"{cal.date[:10]} (entry {cal.id}), {abs(check.em_gain - g_cal) / se:.1f} "
+                        "standard errors: recalibrate"
+                    ),
+                )
+            )
     return findings
 
 
@@ -710,15 +813,23 @@ def _trends(found, checked, camera, z, min_points=3) -> list[Finding]:
     findings = []
     register = found[-1].register
     for s in sorted({s for e in found for s in e.gains} | {c.setpoint for c in checked}):
-        points = [(e.date, e.gains[s][0], e.gains[s][1]) for e in found
-                  if s in e.gains and e.register == register]
-        points += [(c.date, c.em_gain, c.se) for c in checked
-                   if c.setpoint == s and c.register == register]
+        points = [
+            (e.date, e.gains[s][0], e.gains[s][1])
+            for e in found
+            if s in e.gains and e.register == register
+        ]
+        points += [
+            (c.date, c.em_gain, c.se) for c in checked if c.setpoint == s and c.register == register
+        ]
         points = [(when, g, se) for when, g, se in points if se and se > 0]
         if len(points) < min_points:
             continue
-        years = np.array([(_parse(when) - _parse(points[0][0])).total_seconds()
-                          / (365.25 * 86400) for when, _, _ in sorted(points)])
+        years = np.array(
+            [
+                (_parse(when) - _parse(points[0][0])).total_seconds() / (365.25 * 86400)
+                for when, _, _ in sorted(points)
+            ]
+        )
         if np.ptp(years) <= 0:
             continue
         y = np.log([g for _, g, _ in sorted(points)])
@@ -728,10 +839,16 @@ def _trends(found, checked, camera, z, min_points=3) -> list[Finding]:
         slope = float((cov @ (X.T @ (w * y)))[1])
         slope_se = math.sqrt(cov[1, 1])
         if abs(slope) > z * slope_se:
-            findings.append(Finding("trend", s, (
-                f"camera {camera} at {format_setpoint(s)}x: the gain drifts by "
-                f"{math.expm1(slope):+.1%} a year over {len(points)} calibrations and checks "
-                f"since {sorted(points)[0][0][:10]} ({abs(slope) / slope_se:.1f} standard "
-                "errors of the slope): recalibrate, and check more often")))
+            findings.append(
+                Finding(
+                    "trend",
+                    s,
+                    (
+                        f"camera {camera} at {format_setpoint(s)}x: the gain drifts by "
+                        f"{math.expm1(slope):+.1%} a year over {len(points)} calibrations and checks "
+                        f"since {sorted(points)[0][0][:10]} ({abs(slope) / slope_se:.1f} standard "
+                        "errors of the slope): recalibrate, and check more often"
+                    ),
+                )
+            )
     return findings
-

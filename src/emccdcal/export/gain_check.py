@@ -48,16 +48,22 @@ def compare(check, calibration, *, z: float = 3.0) -> dict:
         raise InputError("the set-point of the dark frames is not known: give it")
     if check.setpoint not in cal.em_gain:
         have = ", ".join(f"{s:g}" for s in sorted(cal.em_gain))
-        raise InputError(f"the calibration has no gain at set-point {check.setpoint:g} "
-                         f"(it has {have})")
+        raise InputError(
+            f"the calibration has no gain at set-point {check.setpoint:g} (it has {have})"
+        )
     stats_ = pixel_statistics(cal.em_gain[check.setpoint])
     g_cal, se_cal = stats_["median"], stats_["se_of_median"] or 0.0
     combined = math.hypot(check.em_gain_se, se_cal)
     diff = check.em_gain - g_cal
-    return {"calibrated_em_gain": g_cal, "calibrated_em_gain_se": se_cal,
-            "calibrated": cal.created[:10], "difference_percent": 100.0 * diff / g_cal,
-            "difference_se_percent": 100.0 * combined / g_cal, "z": diff / combined,
-            "changed": bool(abs(diff) > z * combined)}
+    return {
+        "calibrated_em_gain": g_cal,
+        "calibrated_em_gain_se": se_cal,
+        "calibrated": cal.created[:10],
+        "difference_percent": 100.0 * diff / g_cal,
+        "difference_se_percent": 100.0 * combined / g_cal,
+        "z": diff / combined,
+        "changed": bool(abs(diff) > z * combined),
+    }
 
 
 def verdict(comparison: dict) -> str:
@@ -66,10 +72,14 @@ def verdict(comparison: dict) -> str:
     c = comparison
     diff = f"{c['difference_percent']:+.2g} ± {c['difference_se_percent']:.2g} %"
     if not c["changed"]:
-        return (f"agrees with its calibration of {c['calibrated']} "
-                f"({c['calibrated_em_gain']:.4g}): {diff}")
+        return (
+            f"agrees with its calibration of {c['calibrated']} "
+            f"({c['calibrated_em_gain']:.4g}): {diff}"
+        )
     side = "above" if c["difference_percent"] > 0 else "below"
-    return (f"the gain is {abs(c['difference_percent']):.2g} ± "
-            f"{c['difference_se_percent']:.2g} % {side} its calibration of "
-            f"{c['calibrated']} ({c['calibrated_em_gain']:.4g}, z = {c['z']:+.1f}): "
-            "recalibrate")
+    return (
+        f"the gain is {abs(c['difference_percent']):.2g} ± "
+        f"{c['difference_se_percent']:.2g} % {side} its calibration of "
+        f"{c['calibrated']} ({c['calibrated_em_gain']:.4g}, z = {c['z']:+.1f}): "
+        "recalibrate"
+    )

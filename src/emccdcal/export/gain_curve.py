@@ -37,11 +37,16 @@ import numpy as np
 from .. import _files
 from ..errors import InputError, OptionError
 from ..identity import mismatches as identity_mismatches
-from ..result import (Calibration, format_setpoint, load_calibration,
-                      pixel_statistics)
+from ..result import Calibration, format_setpoint, load_calibration, pixel_statistics
 
-__all__ = ["GainCurve", "fit_gain_curve", "measured_gains", "gain_curve_of",
-           "read_gain_curve", "calibration_at"]
+__all__ = [
+    "GainCurve",
+    "fit_gain_curve",
+    "measured_gains",
+    "gain_curve_of",
+    "read_gain_curve",
+    "calibration_at",
+]
 
 _Z95 = 1.959963984540054
 
@@ -72,27 +77,34 @@ def measured_gains(calibrations, *, accept_mismatch=()) -> list[tuple[float, flo
             if "em_gain" not in cal:
                 continue
             ok = cal["converged"].values.astype(bool)
-            maps = {float(s): np.where(ok, cal["em_gain"].sel(setpoint=s).values, np.nan)
-                    for s in cal["setpoint"].values}
+            maps = {
+                float(s): np.where(ok, cal["em_gain"].sel(setpoint=s).values, np.nan)
+                for s in cal["setpoint"].values
+            }
             label = str(cal.attrs.get("method", f"result {i + 1}"))
         else:
             cal = cal if isinstance(cal, Calibration) else load_calibration(cal)
             for f, digest in zip(cal.files, cal.sha256):
                 if digest in seen:
-                    raise OptionError(f"{f} is given twice (also as {seen[digest]}): each "
-                                      "result would be counted twice; give it once")
+                    raise OptionError(
+                        f"{f} is given twice (also as {seen[digest]}): each "
+                        "result would be counted twice; give it once"
+                    )
                 seen[digest] = f
             if identity is None:
                 identity = (cal.label, cal.identity())
             differ = identity_mismatches(identity[1], cal.identity(), accept=accept_mismatch)
             if differ:
-                raise OptionError(f"{cal.label} is of another camera or read-out state than "
-                                  f"{identity[0]}: {'; '.join(differ.values())}; a gain curve "
-                                  "is of one camera (--accept-mismatch "
-                                  f"{' '.join(differ)} if you know better)")
+                raise OptionError(
+                    f"{cal.label} is of another camera or read-out state than "
+                    f"{identity[0]}: {'; '.join(differ.values())}; a gain curve "
+                    "is of one camera (--accept-mismatch "
+                    f"{' '.join(differ)} if you know better)"
+                )
             maps, label = {s: cal.gain(s) for s in cal.setpoints}, cal.label
-        points += [p for s, m in maps.items() if s != 1.0
-                   for p in [_point(s, m, label)] if p is not None]
+        points += [
+            p for s, m in maps.items() if s != 1.0 for p in [_point(s, m, label)] if p is not None
+        ]
     return points
 
 
@@ -133,14 +145,19 @@ class GainCurve:
 
     def as_dict(self) -> dict:
         """The curve as ``gain-curve.json`` holds it (JSON-ready; :func:`read_gain_curve`)."""
-        return {"model": f"ln g = sum_k b_k (ln setpoint)^k, k <= {self.degree}",
-                "coefficients": self.coef.tolist(), "covariance": self.cov.tolist(),
-                "chi2": self.chi2, "dof": self.dof,
-                "measured": [{"setpoint": float(s), "gain": float(g), "se_of_median": float(e)}
-                             for s, g, e in zip(self.setpoints, self.gains, self.gain_se)],
-                "camera": {k: (list(v) if isinstance(v, tuple) else v)
-                           for k, v in self.camera.items()},
-                "results": list(self.results)}
+        return {
+            "model": f"ln g = sum_k b_k (ln setpoint)^k, k <= {self.degree}",
+            "coefficients": self.coef.tolist(),
+            "covariance": self.cov.tolist(),
+            "chi2": self.chi2,
+            "dof": self.dof,
+            "measured": [
+                {"setpoint": float(s), "gain": float(g), "se_of_median": float(e)}
+                for s, g, e in zip(self.setpoints, self.gains, self.gain_se)
+            ],
+            "camera": {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.camera.items()},
+            "results": list(self.results),
+        }
 
     def predict(self, setpoints) -> dict:
         """Gain at any set-points, with SE and the 95 % band.
@@ -162,12 +179,19 @@ class GainCurve:
             gain, upper = np.exp(y), np.exp(y + _Z95 * sd)
         far = ~(np.isfinite(gain) & np.isfinite(upper) & np.isfinite(s))
         if far.any():
-            raise OptionError(f"set-point {s[far][0]:g} is too far from the measured ones "
-                              f"({self.setpoints.min():g}-{self.setpoints.max():g}) to "
-                              "predict: the curve's band there is not finite")
-        return {"setpoint": s, "gain": gain, "se_of_median": gain * sd,
-                "lower": np.exp(y - _Z95 * sd), "upper": upper,
-                "extrapolated": (s < self.setpoints.min()) | (s > self.setpoints.max())}
+            raise OptionError(
+                f"set-point {s[far][0]:g} is too far from the measured ones "
+                f"({self.setpoints.min():g}-{self.setpoints.max():g}) to "
+                "predict: the curve's band there is not finite"
+            )
+        return {
+            "setpoint": s,
+            "gain": gain,
+            "se_of_median": gain * sd,
+            "lower": np.exp(y - _Z95 * sd),
+            "upper": upper,
+            "extrapolated": (s < self.setpoints.min()) | (s > self.setpoints.max()),
+        }
 
 
 def _rises(coef, lo, hi) -> bool:
@@ -191,26 +215,36 @@ def fit_gain_curve(points) -> GainCurve:
     s = np.array([p[0] for p in pts], dtype=float)
     if len(set(s)) < 2:
         have = ", ".join(format_setpoint(v) + "x" for v in sorted(set(s))) or "none"
-        raise OptionError("a gain curve needs gains at two or more multiplied set-points "
-                          f"(have {have})")
+        raise OptionError(
+            f"a gain curve needs gains at two or more multiplied set-points (have {have})"
+        )
     g = np.array([p[1] for p in pts], dtype=float)
     se = np.array([p[2] for p in pts], dtype=float)
     x, y, w = np.log(s), np.log(g), (g / se) ** 2
-    for degree in ((2, 1) if len(set(s)) >= 4 else (1,)):
+    for degree in (2, 1) if len(set(s)) >= 4 else (1,):
         X = np.vander(x, degree + 1, increasing=True)
         A = X.T @ (w[:, None] * X)
         coef = np.linalg.solve(A, X.T @ (w * y))
         if _rises(coef, x.min(), x.max()):
             break
     else:
-        raise OptionError("the measured gains do not rise with the set-point: "
-                          + ", ".join(f"{format_setpoint(a)}x: {b:.4g}" for a, b in zip(s, g)))
+        raise OptionError(
+            "the measured gains do not rise with the set-point: "
+            + ", ".join(f"{format_setpoint(a)}x: {b:.4g}" for a, b in zip(s, g))
+        )
     resid = y - X @ coef
-    chi2 = float(np.sum(w * resid ** 2))
+    chi2 = float(np.sum(w * resid**2))
     dof = len(s) - degree - 1
     scale = max(1.0, chi2 / dof) if dof > 0 else 1.0
-    return GainCurve(setpoints=s, gains=g, gain_se=se, coef=coef,
-                     cov=np.linalg.inv(A) * scale, chi2=chi2, dof=dof)
+    return GainCurve(
+        setpoints=s,
+        gains=g,
+        gain_se=se,
+        coef=coef,
+        cov=np.linalg.inv(A) * scale,
+        chi2=chi2,
+        dof=dof,
+    )
 
 
 def gain_curve_of(results, *, accept_mismatch=()) -> GainCurve:
@@ -219,9 +253,12 @@ def gain_curve_of(results, *, accept_mismatch=()) -> GainCurve:
     cals = [r if isinstance(r, Calibration) else load_calibration(r) for r in results]
     curve = fit_gain_curve(measured_gains(cals, accept_mismatch=accept_mismatch))
     return dataclasses.replace(
-        curve, camera=cals[0].identity(),
-        results=tuple({"file": str(f), "sha256": h} for c in cals
-                      for f, h in zip(c.files, c.sha256)))
+        curve,
+        camera=cals[0].identity(),
+        results=tuple(
+            {"file": str(f), "sha256": h} for c in cals for f, h in zip(c.files, c.sha256)
+        ),
+    )
 
 
 def read_gain_curve(path) -> GainCurve:
@@ -245,18 +282,30 @@ def read_gain_curve(path) -> GainCurve:
     except OSError as exc:
         raise InputError(f"{path}: cannot read the gain curve ({exc.strerror or exc})") from None
     except (ValueError, KeyError, TypeError):
-        raise InputError(f"{path}: not a gain curve written by emccdcal gain-curve (or one "
-                         "from before it recorded its measured points): run gain-curve "
-                         "again") from None
+        raise InputError(
+            f"{path}: not a gain curve written by emccdcal gain-curve (or one "
+            "from before it recorded its measured points): run gain-curve "
+            "again"
+        ) from None
     if coef.ndim != 1 or cov.shape != (coef.size, coef.size) or setpoints.size < 2:
-        raise InputError(f"{path}: a damaged gain curve (coefficients {coef.shape}, "
-                         f"covariance {cov.shape}, {setpoints.size} measured points)")
+        raise InputError(
+            f"{path}: a damaged gain curve (coefficients {coef.shape}, "
+            f"covariance {cov.shape}, {setpoints.size} measured points)"
+        )
     camera = doc.get("camera") or {}
     if "binning" in camera:
         camera["binning"] = tuple(camera["binning"])
-    return GainCurve(setpoints=setpoints, gains=gains, gain_se=se, coef=coef, cov=cov,
-                     chi2=float(doc.get("chi2", math.nan)), dof=int(doc.get("dof", 0)),
-                     camera=camera, results=tuple(doc.get("results", ())))
+    return GainCurve(
+        setpoints=setpoints,
+        gains=gains,
+        gain_se=se,
+        coef=coef,
+        cov=cov,
+        chi2=float(doc.get("chi2", math.nan)),
+        dof=int(doc.get("dof", 0)),
+        camera=camera,
+        results=tuple(doc.get("results", ())),
+    )
 
 
 def _nearest(setpoints, s):
@@ -264,8 +313,9 @@ def _nearest(setpoints, s):
     return min(setpoints, key=lambda v: (abs(math.log(v / s)), v)) if setpoints else None
 
 
-def calibration_at(cal: Calibration, setpoint, curve: GainCurve, *, source: str,
-                   accept_mismatch=()) -> Calibration:
+def calibration_at(
+    cal: Calibration, setpoint, curve: GainCurve, *, source: str, accept_mismatch=()
+) -> Calibration:
     """The calibration with a gain at a set-point it did not measure, from a gain curve.
 
     The gain map is the nearest measured set-point's (on a log scale) scaled to the
@@ -300,9 +350,11 @@ def calibration_at(cal: Calibration, setpoint, curve: GainCurve, *, source: str,
         return cal
     differ = identity_mismatches(cal.identity(), curve.camera, accept=accept_mismatch)
     if differ:
-        raise OptionError(f"{source}: the gain curve is of another camera or read-out state "
-                          f"than {cal.label}: {'; '.join(differ.values())} (--accept-mismatch "
-                          f"{' '.join(differ)} if you know better)")
+        raise OptionError(
+            f"{source}: the gain curve is of another camera or read-out state "
+            f"than {cal.label}: {'; '.join(differ.values())} (--accept-mismatch "
+            f"{' '.join(differ)} if you know better)"
+        )
     p = curve.predict([s])
     gain, se = float(p["gain"][0]), float(p["se_of_median"][0])
     extrapolated = bool(p["extrapolated"][0])
@@ -315,24 +367,42 @@ def calibration_at(cal: Calibration, setpoint, curve: GainCurve, *, source: str,
         gain_map = base * (gain / np.nanmedian(base))
         rel_se = np.hypot(se / gain, cal.gain_se(near) / base)
     dark = _nearest(list(cal.offset), s)
-    record = {"gain": gain, "se_of_median": se, "extrapolated": extrapolated,
-              "curve": source, "map_from_setpoint": near, "dark_setpoint": dark}
+    record = {
+        "gain": gain,
+        "se_of_median": se,
+        "extrapolated": extrapolated,
+        "curve": source,
+        "map_from_setpoint": near,
+        "dark_setpoint": dark,
+    }
     lo, hi = curve.setpoints.min(), curve.setpoints.max()
-    where = (f"extrapolated beyond the measured {format_setpoint(lo)}x-{format_setpoint(hi)}x:"
-             f" check it with a calibration at {format_setpoint(s)}x" if extrapolated else
-             f"within the measured {format_setpoint(lo)}x-{format_setpoint(hi)}x")
-    warnings.warn(f"{cal.label}: set-point {format_setpoint(s)}x was not calibrated; its gain "
-                  f"{gain:.4g} ± {se:.2g} (standard error of the sensor's gain) is predicted "
-                  f"by the gain curve {source}, {where}"
-                  + ("" if dark is None or dark == s else
-                     f"; offset and read noise from the {format_setpoint(dark)}x darks"),
-                  stacklevel=2)
+    where = (
+        f"extrapolated beyond the measured {format_setpoint(lo)}x-{format_setpoint(hi)}x:"
+        f" check it with a calibration at {format_setpoint(s)}x"
+        if extrapolated
+        else f"within the measured {format_setpoint(lo)}x-{format_setpoint(hi)}x"
+    )
+    warnings.warn(
+        f"{cal.label}: set-point {format_setpoint(s)}x was not calibrated; its gain "
+        f"{gain:.4g} ± {se:.2g} (standard error of the sensor's gain) is predicted "
+        f"by the gain curve {source}, {where}"
+        + (
+            ""
+            if dark is None or dark == s
+            else f"; offset and read noise from the {format_setpoint(dark)}x darks"
+        ),
+        stacklevel=2,
+    )
     offset, read_noise = dict(cal.offset), dict(cal.read_noise)
     if dark is not None:
         offset[s], read_noise[s] = cal.offset[dark], cal.read_noise.get(dark)
         if read_noise[s] is None:
             del read_noise[s]
     return dataclasses.replace(
-        cal, em_gain={**cal.em_gain, s: gain_map},
+        cal,
+        em_gain={**cal.em_gain, s: gain_map},
         em_gain_se={**cal.em_gain_se, s: gain_map * rel_se},
-        offset=offset, read_noise=read_noise, predicted={**cal.predicted, s: record})
+        offset=offset,
+        read_noise=read_noise,
+        predicted={**cal.predicted, s: record},
+    )

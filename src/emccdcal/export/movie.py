@@ -44,11 +44,15 @@ _BLOCK_BYTES = 16 << 20
 
 def _movie_setpoint(movie: Path, recorded, given) -> float:
     if given is None and recorded is None:
-        raise OptionError(f"{movie}: the file records no EM gain set-point and its name states "
-                          f"none (such as '300x'); give {spelled('--setpoint G')}")
+        raise OptionError(
+            f"{movie}: the file records no EM gain set-point and its name states "
+            f"none (such as '300x'); give {spelled('--setpoint G')}"
+        )
     if given is not None and recorded is not None and float(given) != recorded:
-        raise OptionError(f"{movie}: set-point {format_setpoint(given)} given, but the file "
-                          f"records {format_setpoint(recorded)}")
+        raise OptionError(
+            f"{movie}: set-point {format_setpoint(given)} given, but the file "
+            f"records {format_setpoint(recorded)}"
+        )
     return float(recorded if given is None else given)
 
 
@@ -60,23 +64,40 @@ def _region(cal: Calibration, movie: Path, roi, shape) -> tuple[slice, slice]:
     R, C = cal.shape
     if roi is None or cal.origin is None:
         if (rows, cols) != (R, C):
-            unknown = ("the movie records no region" if roi is None else
-                       "the calibration does not know its place on the sensor")
+            unknown = (
+                "the movie records no region"
+                if roi is None
+                else "the calibration does not know its place on the sensor"
+            )
             raise InputError(
                 f"{movie}: its {rows}×{cols} frames are not the calibration's {R}×{C} pixels "
-                f"({cal.label}), and {unknown} to place them by")
+                f"({cal.label}), and {unknown} to place them by"
+            )
         return slice(0, R), slice(0, C)
     r0, c0 = roi[1] - cal.origin[0], roi[0] - cal.origin[1]
     if r0 < 0 or c0 < 0 or r0 + rows > R or c0 + cols > C:
-        raise InputError(f"{movie}: its {rows}×{cols} frames at sensor row {roi[1]}, column "
-                         f"{roi[0]} are not inside the calibration's {R}×{C} pixels at row "
-                         f"{cal.origin[0]}, column {cal.origin[1]} ({cal.label})")
+        raise InputError(
+            f"{movie}: its {rows}×{cols} frames at sensor row {roi[1]}, column "
+            f"{roi[0]} are not inside the calibration's {R}×{C} pixels at row "
+            f"{cal.origin[0]}, column {cal.origin[1]} ({cal.label})"
+        )
     return slice(r0, r0 + rows), slice(c0, c0 + cols)
 
 
-def apply(calibration, movie, out, *, setpoint=None, photon_counting=False,
-          threshold=DEFAULT_THRESHOLD, output_format=None, progress_bar=True,
-          overwrite=False, accept_mismatch=(), qe=None) -> Path:
+def apply(
+    calibration,
+    movie,
+    out,
+    *,
+    setpoint=None,
+    photon_counting=False,
+    threshold=DEFAULT_THRESHOLD,
+    output_format=None,
+    progress_bar=True,
+    overwrite=False,
+    accept_mismatch=(),
+    qe=None,
+) -> Path:
     """Convert a movie to photoelectrons (or photons, or photon counts) per pixel per
     frame.
 
@@ -123,26 +144,50 @@ def apply(calibration, movie, out, *, setpoint=None, photon_counting=False,
         pixel with a usable calibration.
     """
     movie, out = Path(movie), Path(out)
-    fmt = output_format or ("zarr" if out.suffix.lower() == ".zarr" else
-                            "tiff" if out.suffix.lower() in (".tif", ".tiff") else None)
+    fmt = output_format or (
+        "zarr"
+        if out.suffix.lower() == ".zarr"
+        else "tiff"
+        if out.suffix.lower() in (".tif", ".tiff")
+        else None
+    )
     if fmt not in OUTPUT_FORMATS:
-        raise OptionError(f"{out}: write .tif/.tiff or .zarr (or give the format: "
-                          f"{', '.join(OUTPUT_FORMATS)})")
+        raise OptionError(
+            f"{out}: write .tif/.tiff or .zarr (or give the format: {', '.join(OUTPUT_FORMATS)})"
+        )
     if photon_counting and not (threshold > 0 and math.isfinite(threshold)):
         raise OptionError(f"--threshold is in read-noise SDs and positive; got {threshold}")
     if qe is not None:
         if not (isinstance(qe, (int, float)) and 0 < qe <= 1):
-            raise OptionError(f"--qe is the quantum efficiency, photoelectrons per photon "
-                              f"(0 < QE <= 1, e.g. 0.9 for 90 %); got {qe!r}")
+            raise OptionError(
+                f"--qe is the quantum efficiency, photoelectrons per photon "
+                f"(0 < QE <= 1, e.g. 0.9 for 90 %); got {qe!r}"
+            )
         if photon_counting:
-            raise OptionError("--qe gives photons from photoelectrons; photon counting gives "
-                              "0/1 events, which a QE does not scale: give one of them")
+            raise OptionError(
+                "--qe gives photons from photoelectrons; photon counting gives "
+                "0/1 events, which a QE does not scale: give one of them"
+            )
     cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
-    target = Output(out, kind="store" if fmt == "zarr" else "file",
-                    inputs=[movie, *cal.files], overwrite=overwrite)
+    target = Output(
+        out,
+        kind="store" if fmt == "zarr" else "file",
+        inputs=[movie, *cal.files],
+        overwrite=overwrite,
+    )
     with target:
-        _apply(cal, movie, target, setpoint, photon_counting, threshold, fmt, progress_bar,
-               accept_mismatch, qe)
+        _apply(
+            cal,
+            movie,
+            target,
+            setpoint,
+            photon_counting,
+            threshold,
+            fmt,
+            progress_bar,
+            accept_mismatch,
+            qe,
+        )
     return out
 
 
@@ -153,7 +198,7 @@ class Conversion:
     counting; with the metadata recorded beside the output (:func:`conversion`)."""
 
     offset: np.ndarray  # ADU, float32, the movie's (rows, cols)
-    scale: np.ndarray   # e- (or photons) per ADU, float32
+    scale: np.ndarray  # e- (or photons) per ADU, float32
     tau: np.ndarray | None  # ADU, float32: the photon-counting threshold
     meta: dict
 
@@ -166,8 +211,18 @@ class Conversion:
         return signal * self.scale
 
 
-def conversion(cal, source, settings, shape, *, setpoint=None, photon_counting=False,
-               threshold=DEFAULT_THRESHOLD, accept_mismatch=(), qe=None) -> Conversion:
+def conversion(
+    cal,
+    source,
+    settings,
+    shape,
+    *,
+    setpoint=None,
+    photon_counting=False,
+    threshold=DEFAULT_THRESHOLD,
+    accept_mismatch=(),
+    qe=None,
+) -> Conversion:
     """The :class:`Conversion` of frames of ``shape`` (frames, rows, cols) from
     ``source`` (a file, or a name for the messages) whose file recorded ``settings``
     (:class:`~emccdcal.data.settings.CameraSettings`), by the calibration ``cal``; the
@@ -175,57 +230,83 @@ def conversion(cal, source, settings, shape, *, setpoint=None, photon_counting=F
     frames, rows, cols = shape
     if frames == 0 or rows == 0 or cols == 0:
         raise InputError(f"{source}: holds no frames (shape {shape})")
-    identity.check(cal.identity(), {source: settings}, label=cal.label, accept=accept_mismatch,
-                   what="frames")
+    identity.check(
+        cal.identity(), {source: settings}, label=cal.label, accept=accept_mismatch, what="frames"
+    )
     s = _movie_setpoint(source, settings.em_gain_setpoint, setpoint)
     rr, cc = _region(cal, source, settings.roi, (rows, cols))
     scale = (cal.e_per_adu / cal.gain(s))[rr, cc]
     offset, sigma = (m[rr, cc] for m in cal.dark(s))
     bad = ~(np.isfinite(offset) & np.isfinite(scale))
     if bad.all():
-        raise InputError(f"{source}: none of its {rows}×{cols} pixels has a converged "
-                         f"calibration at {format_setpoint(s)}x in {cal.label}; nothing to "
-                         "convert")
-    meta = {"units": "photoelectrons per pixel per frame (e-)" if not photon_counting else
-            "photon counts per pixel per frame (0 or 1)",
-            "source": str(source), "setpoint": s,
-            "formula": "(S - offset) * e_per_adu / em_gain",
-            "emccdcal": cal.provenance(), "uncalibrated_pixels": int(bad.sum()),
-            "axes": "TYX"}
+        raise InputError(
+            f"{source}: none of its {rows}×{cols} pixels has a converged "
+            f"calibration at {format_setpoint(s)}x in {cal.label}; nothing to "
+            "convert"
+        )
+    meta = {
+        "units": "photoelectrons per pixel per frame (e-)"
+        if not photon_counting
+        else "photon counts per pixel per frame (0 or 1)",
+        "source": str(source),
+        "setpoint": s,
+        "formula": "(S - offset) * e_per_adu / em_gain",
+        "emccdcal": cal.provenance(),
+        "uncalibrated_pixels": int(bad.sum()),
+        "axes": "TYX",
+    }
     if qe is not None:  # photons: photoelectrons / QE
         scale = scale / qe
-        meta.update(units="photons per pixel per frame",
-                    formula="(S - offset) * e_per_adu / em_gain / qe", qe=float(qe))
+        meta.update(
+            units="photons per pixel per frame",
+            formula="(S - offset) * e_per_adu / em_gain / qe",
+            qe=float(qe),
+        )
     if bad.any():
-        warnings.warn(f"{source}: {int(bad.sum())} pixel(s) have no converged calibration at "
-                      f"{format_setpoint(s)}x; they are NaN (0 when photon counting)",
-                      stacklevel=3)
+        warnings.warn(
+            f"{source}: {int(bad.sum())} pixel(s) have no converged calibration at "
+            f"{format_setpoint(s)}x; they are NaN (0 when photon counting)",
+            stacklevel=3,
+        )
     tau = None
     if photon_counting:
         tau = (threshold * sigma).astype(np.float32)
         efficiency = float(np.nanmedian(np.exp(-threshold * sigma * scale)))
-        meta.update(formula=f"1 if S - offset > {threshold:g} * read_noise else 0",
-                    threshold_read_noise_sd=threshold,
-                    single_electron_efficiency=efficiency)
+        meta.update(
+            formula=f"1 if S - offset > {threshold:g} * read_noise else 0",
+            threshold_read_noise_sd=threshold,
+            single_electron_efficiency=efficiency,
+        )
         if efficiency < 0.9:
-            warnings.warn(f"{source}: at {format_setpoint(s)}x one photoelectron clears the "
-                          f"{threshold:g}-sigma threshold in only {efficiency:.0%} of cases "
-                          "(g/phi is too small against the read noise for photon counting), "
-                          "so the counts miss that many photons: record at a higher EM gain, "
-                          "or convert without --photon-counting",
-                          stacklevel=3)
+            warnings.warn(
+                f"{source}: at {format_setpoint(s)}x one photoelectron clears the "
+                f"{threshold:g}-sigma threshold in only {efficiency:.0%} of cases "
+                "(g/phi is too small against the read noise for photon counting), "
+                "so the counts miss that many photons: record at a higher EM gain, "
+                "or convert without --photon-counting",
+                stacklevel=3,
+            )
     return Conversion(offset.astype(np.float32), scale.astype(np.float32), tau, meta)
 
 
-def _apply(cal, movie, target, setpoint, photon_counting, threshold, fmt, progress_bar,
-           accept_mismatch, qe):
+def _apply(
+    cal, movie, target, setpoint, photon_counting, threshold, fmt, progress_bar, accept_mismatch, qe
+):
     shape, dtype = stack_header(movie)
     if len(shape) != 3:
         raise InputError(f"{movie}: a movie is a stack of frames; this file holds shape {shape}")
     frames, rows, cols = shape
-    convert = conversion(cal, movie, stack_settings(movie, setpoint_from_name=True), shape,
-                         setpoint=setpoint, photon_counting=photon_counting, threshold=threshold,
-                         accept_mismatch=accept_mismatch, qe=qe)
+    convert = conversion(
+        cal,
+        movie,
+        stack_settings(movie, setpoint_from_name=True),
+        shape,
+        setpoint=setpoint,
+        photon_counting=photon_counting,
+        threshold=threshold,
+        accept_mismatch=accept_mismatch,
+        qe=qe,
+    )
     out_dtype = np.uint8 if photon_counting else np.float32
     meta = convert.meta
     per_block = max(1, _BLOCK_BYTES // (rows * cols * max(dtype.itemsize, 4)))
@@ -238,13 +319,15 @@ def _apply(cal, movie, target, setpoint, photon_counting, threshold, fmt, progre
             yield convert(raw)
             bar.update(raw.shape[0])
 
-    with progress(total=frames, enabled=progress_bar, desc=f"apply {movie.name}",
-                  unit="frame") as bar:
+    with progress(
+        total=frames, enabled=progress_bar, desc=f"apply {movie.name}", unit="frame"
+    ) as bar:
         if fmt == "tiff":
             _write_tiff(target.path, blocks(bar), (frames, rows, cols), out_dtype, meta)
         else:
-            _write_zarr(target.store(), blocks(bar), (frames, rows, cols), out_dtype, meta,
-                        per_block)
+            _write_zarr(
+                target.store(), blocks(bar), (frames, rows, cols), out_dtype, meta, per_block
+            )
 
 
 def _check_counts(movie: Path, raw: np.ndarray, first: int) -> None:
@@ -253,8 +336,10 @@ def _check_counts(movie: Path, raw: np.ndarray, first: int) -> None:
         wrong = ~(np.isfinite(raw) & (raw >= 0))
     if wrong.any():
         i = first + int(np.flatnonzero(wrong.any(axis=(1, 2)))[0])
-        raise InputError(f"{movie}: frame {i} holds counts that are negative or not finite; "
-                         "raw camera counts are neither")
+        raise InputError(
+            f"{movie}: frame {i} holds counts that are negative or not finite; "
+            "raw camera counts are neither"
+        )
 
 
 def _write_tiff(out: Path, blocks, shape, dtype, meta) -> None:
@@ -268,8 +353,7 @@ def _write_tiff(out: Path, blocks, shape, dtype, meta) -> None:
         # One grey-scale image per frame (never RGB, whatever the last axis), the axes
         # named, so that Fiji and napari open a time series.
         with tifffile.TiffWriter(tmp, bigtiff=True) as tw:
-            tw.write(frames(), shape=shape, dtype=dtype, metadata=meta,
-                     photometric="minisblack")
+            tw.write(frames(), shape=shape, dtype=dtype, metadata=meta, photometric="minisblack")
 
     atomic_write(out, write)
 
@@ -280,10 +364,11 @@ def _write_zarr(store: Path, blocks, shape, dtype, meta, per_block) -> None:
         import zarr
     except ImportError:
         raise OptionError("writing .zarr needs zarr: pip install 'emccdcal[zarr]'") from None
-    z = zarr.open_array(str(store), mode="w", shape=shape, dtype=dtype,
-                        chunks=(per_block, shape[1], shape[2]))
+    z = zarr.open_array(
+        str(store), mode="w", shape=shape, dtype=dtype, chunks=(per_block, shape[1], shape[2])
+    )
     z.attrs.update(json.loads(json.dumps(meta)))
     at = 0
     for block in blocks:
-        z[at:at + block.shape[0]] = block.astype(dtype, copy=False)
+        z[at : at + block.shape[0]] = block.astype(dtype, copy=False)
         at += block.shape[0]

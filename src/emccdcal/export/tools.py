@@ -34,8 +34,14 @@ from ..errors import OptionError
 from ..result import Calibration, format_setpoint, load_calibration, pixel_statistics
 
 # TOOLS comes from the plug-ins, by the module's __getattr__
-__all__ = ["TOOLS", "export", "export_modes", "camera_values", "readout_mode",  # noqa: F822
-           "MODE_FIELDS"]
+__all__ = [
+    "TOOLS",  # noqa: F822 (from the plug-ins, by __getattr__)
+    "export",
+    "export_modes",
+    "camera_values",
+    "readout_mode",
+    "MODE_FIELDS",
+]
 
 
 def __getattr__(name):
@@ -62,8 +68,10 @@ def pick_setpoint(cal: Calibration, setpoint=None) -> float:
     multiplied = [s for s in cal.setpoints if s != 1.0]
     if len(multiplied) > 1:
         have = ", ".join(format_setpoint(s) + "x" for s in cal.setpoints)
-        raise OptionError(f"{cal.label}: has set-points {have}; a tool takes the gain of one: "
-                          "give --setpoint G (the set-point the movies were recorded at)")
+        raise OptionError(
+            f"{cal.label}: has set-points {have}; a tool takes the gain of one: "
+            "give --setpoint G (the set-point the movies were recorded at)"
+        )
     return multiplied[0] if multiplied else 1.0
 
 
@@ -80,20 +88,31 @@ def camera_values(cal: Calibration, setpoint: float) -> dict:
     """
     phi, gain = cal.e_per_adu, cal.gain(setpoint)
     offset, sigma = cal.dark(setpoint)
-    values = {"e_per_adu": phi, "em_gain": gain, "adu_per_e_total": gain / phi,
-              "offset": offset, "read_noise": sigma, "read_noise_e": sigma * phi}
+    values = {
+        "e_per_adu": phi,
+        "em_gain": gain,
+        "adu_per_e_total": gain / phi,
+        "offset": offset,
+        "read_noise": sigma,
+        "read_noise_e": sigma * phi,
+    }
     out = {k: pixel_statistics(v) for k, v in values.items()}
     for name, stats in out.items():
         if stats["median"] is None or not math.isfinite(stats["median"]):
-            raise OptionError(f"{cal.label}: no converged pixel has a finite {name} at "
-                              f"set-point {format_setpoint(setpoint)}x")
+            raise OptionError(
+                f"{cal.label}: no converged pixel has a finite {name} at "
+                f"set-point {format_setpoint(setpoint)}x"
+            )
     return out
 
 
 #: The camera settings that make a read-out mode, with the Micro-Manager property names
 #: of Andor's adapter, which Picasso matches its ``Sensitivity Categories`` against.
-MODE_FIELDS = {"amplifier": "Output_Amplifier", "readout_rate_mhz": "ReadoutMode",
-               "analog_gain": "Pre-Amp-Gain"}
+MODE_FIELDS = {
+    "amplifier": "Output_Amplifier",
+    "readout_rate_mhz": "ReadoutMode",
+    "analog_gain": "Pre-Amp-Gain",
+}
 
 
 def readout_mode(cal: Calibration) -> tuple:
@@ -119,22 +138,30 @@ def _provenance(cal: Calibration, setpoint=None, qe=None) -> dict:
 def _comment_lines(cal, setpoint, values, qe, prefix) -> str:
     """Provenance and the pixels' spread, as comment lines of a text format."""
     p = _provenance(cal, setpoint, qe)
-    lines = [f"written by emccdcal {p['emccdcal_version']} from {p['method']} "
-             f"({p['em_model']} register), calibration of {p['created']}",
-             f"at EM gain set-point {format_setpoint(setpoint)}x; medians over "
-             f"{values['e_per_adu']['n']} converged pixels (robust spread in brackets):"]
-    for name, unit in (("e_per_adu", "e-/ADU"), ("em_gain", ""), ("offset", "ADU"),
-                       ("read_noise", "ADU")):
+    lines = [
+        f"written by emccdcal {p['emccdcal_version']} from {p['method']} "
+        f"({p['em_model']} register), calibration of {p['created']}",
+        f"at EM gain set-point {format_setpoint(setpoint)}x; medians over "
+        f"{values['e_per_adu']['n']} converged pixels (robust spread in brackets):",
+    ]
+    for name, unit in (
+        ("e_per_adu", "e-/ADU"),
+        ("em_gain", ""),
+        ("offset", "ADU"),
+        ("read_noise", "ADU"),
+    ):
         v = values[name]
         spread = "n/a" if v["spread"] is None else f"{v['spread']:.4g}"
         lines.append(f"  {name} = {v['median']:.6g} {unit} ({spread})")
     lines += [f"result {r['file']} sha256 {r['sha256']}" for r in p["results"]]
     if setpoint in cal.predicted:
         g = cal.predicted[setpoint]
-        lines.append(f"the gain at {format_setpoint(setpoint)}x was not measured: "
-                     f"{g['gain']:.6g} +/- {g['se_of_median']:.2g} (se_of_median) predicted by "
-                     f"the gain curve {g['curve']}; extrapolated = "
-                     f"{str(g['extrapolated']).lower()}")
+        lines.append(
+            f"the gain at {format_setpoint(setpoint)}x was not measured: "
+            f"{g['gain']:.6g} +/- {g['se_of_median']:.2g} (se_of_median) predicted by "
+            f"the gain curve {g['curve']}; extrapolated = "
+            f"{str(g['extrapolated']).lower()}"
+        )
     return "".join(f"{prefix}{comment(line)}\n" for line in lines)  # paths are data
 
 
@@ -180,8 +207,10 @@ def _write_tiff(path: Path, image, description: dict) -> Path:
     import tifffile
 
     data = np.asarray(image, dtype=np.float32)
-    return atomic_write(path, lambda p: tifffile.imwrite(
-        p, data, description=json.dumps(description), metadata=None))
+    return atomic_write(
+        path,
+        lambda p: tifffile.imwrite(p, data, description=json.dumps(description), metadata=None),
+    )
 
 
 def _camera_name(cal: Calibration, name) -> str:
@@ -191,8 +220,9 @@ def _camera_name(cal: Calibration, name) -> str:
     return " ".join(str(p) for p in parts if p) or "EMCCD (emccdcal)"
 
 
-def export(calibration, to: str, out, *, setpoint=None, qe=None, pixel_size_nm=None,
-           camera_name=None) -> list[Path]:
+def export(
+    calibration, to: str, out, *, setpoint=None, qe=None, pixel_size_nm=None, camera_name=None
+) -> list[Path]:
     """Write a calibration in a localization tool's own file.
 
     Parameters
@@ -248,8 +278,9 @@ def export(calibration, to: str, out, *, setpoint=None, qe=None, pixel_size_nm=N
     return tool.write(cal, s, values, out, qe, pixel_size_nm, camera_name)
 
 
-def export_modes(calibrations, to: str, out, *, setpoint=None, qe=None, pixel_size_nm=None,
-                 camera_name=None) -> list[Path]:
+def export_modes(
+    calibrations, to: str, out, *, setpoint=None, qe=None, pixel_size_nm=None, camera_name=None
+) -> list[Path]:
     """Write several calibrations of one camera, one per read-out mode (output amplifier,
     read-out rate, pre-amplifier gain), as one tool file keyed by mode.
 
@@ -272,20 +303,26 @@ def export_modes(calibrations, to: str, out, *, setpoint=None, qe=None, pixel_si
         or a mode its files do not record.
     """
     if to != "picasso":
-        raise OptionError(f"{to} takes one read-out mode per file, and the calibrations "
-                          "given are of several: export each mode on its own (Picasso's "
-                          "config.yaml holds a table of modes)")
+        raise OptionError(
+            f"{to} takes one read-out mode per file, and the calibrations "
+            "given are of several: export each mode on its own (Picasso's "
+            "config.yaml holds a table of modes)"
+        )
     cals = [c if isinstance(c, Calibration) else load_calibration(c) for c in calibrations]
     serials = {c.camera.get("serial") for c in cals}
     if len(serials) > 1:
-        raise OptionError("the calibrations are of different cameras (serials "
-                          f"{', '.join(sorted(map(str, serials)))}); a table of read-out "
-                          "modes is of one camera")
+        raise OptionError(
+            "the calibrations are of different cameras (serials "
+            f"{', '.join(sorted(map(str, serials)))}); a table of read-out "
+            "modes is of one camera"
+        )
     multiplied = sorted({x for c in cals for x in c.setpoints if x != 1.0})
     if setpoint is None and len(multiplied) > 1:
-        raise OptionError("the calibrations have set-points "
-                          + ", ".join(format_setpoint(x) + "x" for x in multiplied)
-                          + "; give --setpoint G (the set-point the movies were recorded at)")
+        raise OptionError(
+            "the calibrations have set-points "
+            + ", ".join(format_setpoint(x) + "x" for x in multiplied)
+            + "; give --setpoint G (the set-point the movies were recorded at)"
+        )
     s = float(setpoint) if setpoint is not None else (multiplied[0] if multiplied else 1.0)
     rows = []  # refused before anything is made
     for c in cals:

@@ -150,30 +150,49 @@ class GainCheck:
     def summary(self, target_se: float | None = None) -> str:
         """One readable line (``gain-check`` without ``--json``); with ``target_se`` (a
         fraction) the frames it needs where this check falls short of it."""
-        text = (f"em_gain {self.em_gain:.4g} ± {self.em_gain_se:.2g} "
-                f"({100 * self.relative_se:.2g} %) at "
-                f"{'an unknown set-point' if self.setpoint is None else f'set-point {self.setpoint:g}'}, from "
-                f"{self.events:.0f} events ({self.pixels} px × {self.frames} frames, "
-                f"{self.event_rate:.3g} e-/px/frame; {self.em_model}, phi "
-                f"{self.e_per_adu:.4g} e-/ADU)")
+        text = (
+            f"em_gain {self.em_gain:.4g} ± {self.em_gain_se:.2g} "
+            f"({100 * self.relative_se:.2g} %) at "
+            f"{'an unknown set-point' if self.setpoint is None else f'set-point {self.setpoint:g}'}, from "
+            f"{self.events:.0f} events ({self.pixels} px × {self.frames} frames, "
+            f"{self.event_rate:.3g} e-/px/frame; {self.em_model}, phi "
+            f"{self.e_per_adu:.4g} e-/ADU)"
+        )
         if target_se is not None and self.relative_se > target_se:
-            text += (f"; {100 * target_se:g} % needs about {self.frames_for(target_se)} "
-                     "frames of these pixels")
+            text += (
+                f"; {100 * target_se:g} % needs about {self.frames_for(target_se)} "
+                "frames of these pixels"
+            )
         return text
 
     def as_dict(self) -> dict:
         """The JSON record (``gain-check --json``): plain numbers and text."""
-        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-                for k, v in asdict(self).items() if k != "histogram"}
+        return {
+            k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+            for k, v in asdict(self).items()
+            if k != "histogram"
+        }
 
 
-def check_gain(darks, e_per_adu: float, *, setpoint: float | None = None,
-               em_model=DEFAULT_EM_MODEL, stages: int | None = None,
-               register_cic: float = 0.0,
-               fit_register_cic: bool = False, pooled_rate: bool = True,
-               adc_max: int | None = None, region=None, bias_correction: bool = True,
-               histogram: bool = False, tol: float = 1e-3, max_passes: int = 60,
-               progress_bars: bool = False, device: str | None = None) -> GainCheck:
+def check_gain(
+    darks,
+    e_per_adu: float,
+    *,
+    setpoint: float | None = None,
+    em_model=DEFAULT_EM_MODEL,
+    stages: int | None = None,
+    register_cic: float = 0.0,
+    fit_register_cic: bool = False,
+    pooled_rate: bool = True,
+    adc_max: int | None = None,
+    region=None,
+    bias_correction: bool = True,
+    histogram: bool = False,
+    tol: float = 1e-3,
+    max_passes: int = 60,
+    progress_bars: bool = False,
+    device: str | None = None,
+) -> GainCheck:
     """The EM gain of dark frames by maximum likelihood (module docstring).
 
     Parameters
@@ -239,10 +258,14 @@ def check_gain(darks, e_per_adu: float, *, setpoint: float | None = None,
     """
     model = noise.choose_em_model(em_model, stages)[0]
     if fit_register_cic and "register_cic" not in model.register.parameters:
-        raise InputError(f"register_cic is not a parameter of the {model.name} register "
-                         "model: use one that has it (" + ", ".join(
-                             n for n in noise.EM_MODELS
-                             if "register_cic" in noise.EMModel(n).register.parameters) + ")")
+        raise InputError(
+            f"register_cic is not a parameter of the {model.name} register "
+            "model: use one that has it ("
+            + ", ".join(
+                n for n in noise.EM_MODELS if "register_cic" in noise.EMModel(n).register.parameters
+            )
+            + ")"
+        )
     phi = float(e_per_adu)
     if not (math.isfinite(phi) and phi > 0):
         raise InputError(f"e_per_adu must be a positive number, got {e_per_adu!r}")
@@ -251,8 +274,9 @@ def check_gain(darks, e_per_adu: float, *, setpoint: float | None = None,
     bar = progress(None, enabled=progress_bars, desc="gain-check", unit="pass")
     try:
         with _xp.computing_on(device):
-            sample = _Fit(model, phi, data.whole_sample(), fit_register_cic, pooled_rate,
-                          on_pass=bar.update)
+            sample = _Fit(
+                model, phi, data.whole_sample(), fit_register_cic, pooled_rate, on_pass=bar.update
+            )
             x0 = data.start(phi, register_cic, fit_register_cic)
             xs = sample.solve(x0[data.sample], tol, max_passes)
             fit = _Fit(model, phi, data, fit_register_cic, pooled_rate, on_pass=bar.update)
@@ -277,15 +301,24 @@ def check_gain(darks, e_per_adu: float, *, setpoint: float | None = None,
         j = names.index("register_cic")
         cic, cic_se = _CIC_UNIT * float(shared[j]), _CIC_UNIT * math.sqrt(cov[j, j])
     check = GainCheck(
-        em_gain=g, em_gain_se=float(g * math.sqrt(cov[k, k])),
-        setpoint=None if setpoint is None else float(setpoint), e_per_adu=phi,
-        em_model=model.label, events=float(np.sum(rate * data.n)),
-        event_rate=float(np.median(rate)), register_cic=cic, register_cic_se=cic_se,
-        pixels=int(data.n.size), frames=data.frames, passes=passes,
+        em_gain=g,
+        em_gain_se=float(g * math.sqrt(cov[k, k])),
+        setpoint=None if setpoint is None else float(setpoint),
+        e_per_adu=phi,
+        em_model=model.label,
+        events=float(np.sum(rate * data.n)),
+        event_rate=float(np.median(rate)),
+        register_cic=cic,
+        register_cic_se=cic_se,
+        pixels=int(data.n.size),
+        frames=data.frames,
+        passes=passes,
         read_noise=float(np.median(np.exp(x[:, 1]))),
         em_gain_mle=float(math.exp(mle[k])),
         bias_correction="half-sample jackknife" if bias_correction else "none",
-        device=device or "cpu", histogram=fit.histogram(x) if histogram else {})
+        device=device or "cpu",
+        histogram=fit.histogram(x) if histogram else {},
+    )
     if not check.relative_se <= MAX_RELATIVE_SE:
         raise InputError(_undetermined(check))
     return check
@@ -294,15 +327,19 @@ def check_gain(darks, e_per_adu: float, *, setpoint: float | None = None,
 def _undetermined(check) -> str:
     """Why a check's gain is not determined, and what would determine it."""
     frames = check.frames_for(0.02)
-    remedy = (f"a 2 % check needs about {frames} frames of these pixels" if
-              frames <= 100 * check.frames else
-              "more frames will hardly do: take the darks at a higher EM gain")
-    return (f"these dark frames do not determine the EM gain: {check.em_gain:.3g} ± "
-            f"{check.em_gain_se:.2g} ({100 * check.relative_se:.0f} %) from "
-            f"{check.events:.0f} events ({check.pixels} px × {check.frames} frames); an "
-            f"event's scale (g/φ = {check.em_gain / check.e_per_adu:.3g} ADU) is lost in "
-            f"the read noise ({check.read_noise:.3g} ADU) or the events are too few: "
-            f"{remedy}")
+    remedy = (
+        f"a 2 % check needs about {frames} frames of these pixels"
+        if frames <= 100 * check.frames
+        else "more frames will hardly do: take the darks at a higher EM gain"
+    )
+    return (
+        f"these dark frames do not determine the EM gain: {check.em_gain:.3g} ± "
+        f"{check.em_gain_se:.2g} ({100 * check.relative_se:.0f} %) from "
+        f"{check.events:.0f} events ({check.pixels} px × {check.frames} frames); an "
+        f"event's scale (g/φ = {check.em_gain / check.e_per_adu:.3g} ADU) is lost in "
+        f"the read noise ({check.read_noise:.3g} ADU) or the events are too few: "
+        f"{remedy}"
+    )
 
 
 def _half_sample_bias(sample, xs, data, tol, max_passes):
@@ -313,8 +350,9 @@ def _half_sample_bias(sample, xs, data, tol, max_passes):
     whole = xs[0, sample.shared]
     halves = []
     for part in (data.half(0), data.half(1)):
-        sub = _Fit(sample.model, sample.phi, part, sample.fit_cic, sample.pooled,
-                   on_pass=sample.on_pass)
+        sub = _Fit(
+            sample.model, sample.phi, part, sample.fit_cic, sample.pooled, on_pass=sample.on_pass
+        )
         halves.append(sub.shared_estimates(sub.solve(xs, tol, max_passes))[0])
         sample.passes += sub.passes
     return 0.5 * (halves[0] + halves[1]) - whole
@@ -345,8 +383,9 @@ class _Region:
             raise InputError("a region's rows and columns are ranges without a step")
         rows, cols = (range(*part.indices(int(n))) for part, n in zip(region, stack.shape[1:]))
         if not rows or not cols:
-            raise InputError(f"the region holds no pixels of a {stack.shape[1]} × "
-                             f"{stack.shape[2]} px frame")
+            raise InputError(
+                f"the region holds no pixels of a {stack.shape[1]} × {stack.shape[2]} px frame"
+            )
         self.stack, self.top, self.cols = stack, rows.start, slice(cols.start, cols.stop)
         self.shape = (int(stack.shape[0]), len(rows), len(cols))
         self.dtype = stack.dtype
@@ -354,7 +393,7 @@ class _Region:
     def __getitem__(self, key):
         """``[:, r0:r1, :]`` of the region (what the bands read)."""
         frames, rows, _ = key
-        return self.stack[frames, self.top + rows.start:self.top + rows.stop, self.cols]
+        return self.stack[frames, self.top + rows.start : self.top + rows.stop, self.cols]
 
 
 class _Data:
@@ -400,12 +439,15 @@ class _Data:
                 split = (h.part(chosen),) + split[1:]
             if every and self.halves:  # the sample's pixels usable in each half too
                 flat = block.reshape(block.shape[0], -1)[:, h.used][:, chosen]
-                halves = [_usable(flat[:half, None, :], self.adc_max),
-                          _usable(flat[half:, None, :], self.adc_max)]
+                halves = [
+                    _usable(flat[:half, None, :], self.adc_max),
+                    _usable(flat[half:, None, :], self.adc_max),
+                ]
                 keep = halves[0].used & halves[1].used
                 chosen = chosen[keep]
-                split = (h.part(chosen),) + tuple(x.part(np.flatnonzero(keep[x.used]))
-                                                  for x in halves)
+                split = (h.part(chosen),) + tuple(
+                    x.part(np.flatnonzero(keep[x.used])) for x in halves
+                )
             return h, chosen, split
 
         yield from ordered_map(histograms, range(0, self.rows, band), min(2, _threads()))
@@ -450,19 +492,23 @@ class _Data:
                 f"only {max(events, 0):.0f} dark counts stand out of the read noise "
                 f"(beyond 4 σ, more than its Gaussian puts there; at least {MIN_EVENTS} are "
                 "needed): the EM gain is too low for a check from dark frames, or the "
-                "frames too few")
+                "frames too few"
+            )
         theta = max(k3 / (3.0 * k2), 1.5 / phi)
         rate = float(np.clip(math.log(k2 / self.n.size / (2.0 * theta**2)), *_LOG_RATE))
         own = np.concatenate(own)
         P = own.shape[0]
         cic = max(register_cic, 1e-3) if fit_register_cic else register_cic
-        return np.column_stack([own, np.full(P, rate), np.full(P, math.log(theta * phi)),
-                                np.full(P, cic / _CIC_UNIT)])
+        return np.column_stack(
+            [own, np.full(P, rate), np.full(P, math.log(theta * phi)), np.full(P, cic / _CIC_UNIT)]
+        )
 
 
 def _threads() -> int:
-    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
-               else (os.cpu_count() or 1))
+    return max(
+        1,
+        len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1),
+    )
 
 
 class _Memory:
@@ -482,8 +528,9 @@ def _usable(block, adc_max):
     h = stats.histograms(block, adc_max=adc_max)
     use = (h.n >= 2) & (h.max > h.min)
     k = int(np.max(np.sum(h.counts[use] > 0, axis=1), initial=1))
-    return _Histograms(h.values[use, :k].astype(np.int32),
-                       h.counts[use, :k].astype(np.float32), h.n[use], use)
+    return _Histograms(
+        h.values[use, :k].astype(np.int32), h.counts[use, :k].astype(np.float32), h.n[use], use
+    )
 
 
 def _core_start(h, values, counts, half_width=2.5):
@@ -506,9 +553,9 @@ def _core_start(h, values, counts, half_width=2.5):
 
 @dataclass
 class _Histograms:
-    values: np.ndarray   # (P, K) int32, ADU
-    counts: np.ndarray   # (P, K) float32
-    n: np.ndarray        # (P,)
+    values: np.ndarray  # (P, K) int32, ADU
+    counts: np.ndarray  # (P, K) float32
+    n: np.ndarray  # (P,)
     used: np.ndarray = None  # which pixels of the block read these are (bool)
 
     def part(self, index):
@@ -520,8 +567,9 @@ class _Histograms:
 
     @staticmethod
     def empty():
-        return _Histograms(np.zeros((0, 1), np.int32), np.zeros((0, 1), np.float32),
-                           np.zeros(0, np.int64))
+        return _Histograms(
+            np.zeros((0, 1), np.int32), np.zeros((0, 1), np.float32), np.zeros(0, np.int64)
+        )
 
 
 # --------------------------------------------------------------------------------------
@@ -539,12 +587,16 @@ class _Fit:
         self.fit_cic, self.pooled = fit_cic, pooled
         c = self.column
         self.own = [c("offset"), c("ln_read_noise")] + ([] if pooled else [c("ln_rate")])
-        self.shared = [c("ln_gain")] + ([c("register_cic")] if fit_cic else []) + (
-            [c("ln_rate")] if pooled else [])
+        self.shared = (
+            [c("ln_gain")]
+            + ([c("register_cic")] if fit_cic else [])
+            + ([c("ln_rate")] if pooled else [])
+        )
         lower = np.array([-np.inf, math.log(MIN_READ_NOISE), _LOG_RATE[0], math.log(1.01), 0.0])
         upper = np.array([np.inf, np.inf, _LOG_RATE[1], math.log(1e5), np.inf])
-        self.layout = ArrowLayout(data.n.size, len(self._COLUMNS), self.shared, self.own,
-                                  lower, upper)
+        self.layout = ArrowLayout(
+            data.n.size, len(self._COLUMNS), self.shared, self.own, lower, upper
+        )
         self.template = np.zeros((data.n.size, len(self._COLUMNS)))
         self.passes, self.on_pass, self._last = 0, on_pass, None
 
@@ -561,16 +613,32 @@ class _Fit:
             k = len(self.shared)
             lower, upper = self.layout.lower.copy(), self.layout.upper.copy()
             lower[:k] = upper[:k] = packed[0, :k]
-            packed = maximize(self.evaluate, packed, lower=lower, upper=upper, tol=tol,
-                              max_iter=own_first, accept_rtol=1e-12, step=self.layout.step,
-                              decrement=self.layout.decrement).x
-        opt = maximize(self.evaluate, packed, lower=self.layout.lower,
-                       upper=self.layout.upper, tol=tol, max_iter=max_passes,
-                       accept_rtol=1e-12, step=self.layout.step,
-                       decrement=self.layout.decrement)
+            packed = maximize(
+                self.evaluate,
+                packed,
+                lower=lower,
+                upper=upper,
+                tol=tol,
+                max_iter=own_first,
+                accept_rtol=1e-12,
+                step=self.layout.step,
+                decrement=self.layout.decrement,
+            ).x
+        opt = maximize(
+            self.evaluate,
+            packed,
+            lower=self.layout.lower,
+            upper=self.layout.upper,
+            tol=tol,
+            max_iter=max_passes,
+            accept_rtol=1e-12,
+            step=self.layout.step,
+            decrement=self.layout.decrement,
+        )
         if not opt.done[0]:
-            raise NotConvergedError(f"the gain did not settle in {self.passes} passes over "
-                                    "the pixels")
+            raise NotConvergedError(
+                f"the gain did not settle in {self.passes} passes over the pixels"
+            )
         return self.layout.unpack(opt.x, self.template)
 
     def shared_estimates(self, x):
@@ -584,15 +652,22 @@ class _Fit:
     def tables(self, x, per_pixel_rates=None):
         """The shared register's tables at the shared values of ``x`` (pixel rows)."""
         c = self.column
-        names = ("ln_gain",) + (("register_cic",) if self.fit_cic else ()) + (
-            ("ln_rate",) if self.pooled else ())
+        names = (
+            ("ln_gain",)
+            + (("register_cic",) if self.fit_cic else ())
+            + (("ln_rate",) if self.pooled else ())
+        )
         rate = np.exp(x[:, c("ln_rate")])
         return SharedRegister(
-            self.model.register, math.exp(x[0, c("ln_gain")]), self.phi,
+            self.model.register,
+            math.exp(x[0, c("ln_gain")]),
+            self.phi,
             np.exp(x[:, c("ln_read_noise")]),
             rate=float(rate[0] if self.pooled else rate.max()),
             register_cic=_CIC_UNIT * float(x[0, c("register_cic")]),
-            per_pixel_rate=not self.pooled, shared=names)
+            per_pixel_rate=not self.pooled,
+            shared=names,
+        )
 
     def evaluate(self, rows, packed):
         """The optimizer's objective: the whole sensor's log-likelihood, its gradient
@@ -608,8 +683,11 @@ class _Fit:
         x = self.layout.unpack(packed, self.template)
         table = self.tables(x)
         # the tables' columns → this fit's: own (offset, ln σ[, ln E]) then the shared
-        to = [self.column("offset"), self.column("ln_read_noise")] + (
-            [] if self.pooled else [self.column("ln_rate")]) + [self.column(n) for n in table.shared]
+        to = (
+            [self.column("offset"), self.column("ln_read_noise")]
+            + ([] if self.pooled else [self.column("ln_rate")])
+            + [self.column(n) for n in table.shared]
+        )
         scale = np.ones(len(to))
         if self.fit_cic:
             scale[len(to) - len(table.shared) + table.shared.index("register_cic")] = _CIC_UNIT
@@ -627,8 +705,9 @@ class _Fit:
         def block(item):  # blocks are independent: threads overlap them (NumPy frees the GIL)
             sl, h = item
             rates = None if self.pooled else np.exp(x[sl, self.column("ln_rate")])
-            ll, g_, outer, _ = table.evaluate(h.values, h.counts, x[sl, 0], sigma[sl], rates,
-                                              outer=not self.pooled, xp=where)
+            ll, g_, outer, _ = table.evaluate(
+                h.values, h.counts, x[sl, 0], sigma[sl], rates, outer=not self.pooled, xp=where
+            )
             if self.pooled:
                 outer = h.n[:, None, None] * expected[table.classes(sigma[sl])]
             grad[sl, to] = g_ * scale
@@ -667,9 +746,13 @@ class _Fit:
         offsets = np.arange(lo, lo + observed.size)
         pick = np.unique(np.linspace(0, P - 1, min(P, _FIGURE_PIXELS)).astype(int))
         rates = None if self.pooled else np.exp(x[pick, self.column("ln_rate")])
-        p = self.tables(x).pmf(base[pick, None] + offsets[None, :], x[pick, 0],
-                               np.exp(x[pick, 1]), rates)
+        p = self.tables(x).pmf(
+            base[pick, None] + offsets[None, :], x[pick, 0], np.exp(x[pick, 1]), rates
+        )
         n = self.data.n
         expected = (n[pick, None] * p).sum(axis=0) * (n.sum() / n[pick].sum())
-        return {"offset_adu": offsets.tolist(), "observed": observed.tolist(),
-                "expected": expected.tolist()}
+        return {
+            "offset_adu": offsets.tolist(),
+            "observed": observed.tolist(),
+            "expected": expected.tolist(),
+        }

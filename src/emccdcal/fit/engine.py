@@ -29,9 +29,18 @@ from .. import _xp
 from .._optimize import maximize, solve
 from ..model import noise
 
-__all__ = ["AcquisitionBlock", "FitResult", "Layout", "Parameter", "QUANTITIES", "fit",
-           "objective", "profile_bounds", "e_per_adu_sensitivity",
-           "expected_information"]
+__all__ = [
+    "AcquisitionBlock",
+    "FitResult",
+    "Layout",
+    "Parameter",
+    "QUANTITIES",
+    "fit",
+    "objective",
+    "profile_bounds",
+    "e_per_adu_sensitivity",
+    "expected_information",
+]
 
 # Values whose model probability is below this fraction of the pixel's peak are beyond
 # what the FFT resolves (round-off ~1e-16 of the peak): they count at this floor, with
@@ -90,9 +99,18 @@ class AcquisitionBlock:
         """The block restricted to pixels ``idx``."""
         sub = lambda a: None if a is None else a[idx]  # noqa: E731
         return AcquisitionBlock(
-            sub(self.values), sub(self.counts), self.offset[idx], self.read_noise[idx],
-            self.poisson_normal, sub(self.mean), sub(self.var), sub(self.n),
-            sub(self.offset_var), sub(self.read_noise_var), self.map_group, self.em_model,
+            sub(self.values),
+            sub(self.counts),
+            self.offset[idx],
+            self.read_noise[idx],
+            self.poisson_normal,
+            sub(self.mean),
+            sub(self.var),
+            sub(self.n),
+            sub(self.offset_var),
+            sub(self.read_noise_var),
+            self.map_group,
+            self.em_model,
         )
 
 
@@ -155,8 +173,9 @@ class Layout:
         """The free parameter that sets ``quantity`` of ``acquisition`` (own or shared),
         or, without an acquisition, the shared one; None where the layout fixes it."""
         if acquisition is None:
-            return next((j for j, p in enumerate(self.parameters)
-                         if p == Parameter(quantity)), None)
+            return next(
+                (j for j, p in enumerate(self.parameters) if p == Parameter(quantity)), None
+            )
         moves = np.flatnonzero(self.matrix[acquisition, QUANTITIES.index(quantity)])
         return int(moves[0]) if moves.size == 1 else None
 
@@ -248,15 +267,24 @@ class _ModelAtData:
         # window of bounded size.
         span = last - first + 1
         limit = first - 8 * span - 64 * np.ceil(acq.read_noise).astype(np.int64) - 64
-        hopeless = ((np.minimum(first, lo) < limit)
-                    | (stop - start > 32 * span + 256 * np.ceil(acq.read_noise) + 512))
+        hopeless = (np.minimum(first, lo) < limit) | (
+            stop - start > 32 * span + 256 * np.ceil(acq.read_noise) + 512
+        )
         start = np.where(hopeless, limit, start)
         stop = np.where(hopeless, last + 8 * span + 64, stop)
         n = noise.fast_len(int((stop - start).max()) + 1)
         names = rows.names if names is None else names
-        xp, dev = (_xp.resolve("cpu") if xp is None else xp)
-        p, d1, d2 = noise.window(rows, acq.offset - start, acq.read_noise, n,
-                                 derivs=derivs, second=second, names=names, xp=(xp, dev))
+        xp, dev = _xp.resolve("cpu") if xp is None else xp
+        p, d1, d2 = noise.window(
+            rows,
+            acq.offset - start,
+            acq.read_noise,
+            n,
+            derivs=derivs,
+            second=second,
+            names=names,
+            xp=(xp, dev),
+        )
         P, K = acq.values.shape
         # One flat gather per window (faster than take_along_axis, which rebuilds indices).
         flat = acq.values - start[:, None] + (np.arange(P) * n)[:, None]
@@ -311,8 +339,7 @@ def _acquisition_terms(acq, coords, level, map_cross=False, live=None):
     # The windows and their sums over the data run where the fit computes
     # (_xp.computing_on); what comes back is one number per pixel and sum.
     xp, dev = _xp.engine()
-    model = _ModelAtData(acq, rows, derivs=level >= 1, second=level >= 2, names=names,
-                         xp=(xp, dev))
+    model = _ModelAtData(acq, rows, derivs=level >= 1, second=level >= 2, names=names, xp=(xp, dev))
     pv, low = model.pv, model.low
     counts = _xp.on(xp, dev, acq.counts.astype(float))
     row_sum = lambda a: _xp.to_numpy(xp.sum(a, axis=1))  # noqa: E731
@@ -330,8 +357,7 @@ def _acquisition_terms(acq, coords, level, map_cross=False, live=None):
     # Outer products of the per-frame scores (BHHH): a positive semi-definite estimate of
     # the information from the data points alone, cheap because the histogram is short.
     ws = [w * s / pv for s in scores]
-    outer = {(i, j): row_sum(ws[i] * scores[j])
-             for i in range(L) for j in range(i, len(names))}
+    outer = {(i, j): row_sum(ws[i] * scores[j]) for i in range(L) for j in range(i, len(names))}
     info_k = np.empty((P, L, L))
     for i in range(L):
         for j in range(i, L):
@@ -390,8 +416,9 @@ def _evaluate(layout, blocks, x, level, map_cross=False):
         # those the layout holds fixed need no derivatives.
         j_u = _model_jacobian(jac, a, D)
         live = np.any(j_u != 0, axis=(0, 2))
-        ll, g_u, i_u, nf, cross = _acquisition_terms(acq, coords, level,
-                                                     map_cross and acq.has_map_errors, live)
+        ll, g_u, i_u, nf, cross = _acquisition_terms(
+            acq, coords, level, map_cross and acq.has_map_errors, live
+        )
         per_acq[:, a] = ll
         total += ll
         floored += nf
@@ -432,8 +459,9 @@ def _map_covariance(layout, blocks, x, cov, crosses):
             continue
         j_u = _model_jacobian(jac, a, _native_to_model(logs[:, a], acq)[1])
         sens = np.einsum("pfg,pug,pum->pfm", cov, j_u, cross)  # dx/d(offset, read_noise)
-        var = np.stack([np.zeros(P) if v is None else v
-                        for v in (acq.offset_var, acq.read_noise_var)], axis=1)
+        var = np.stack(
+            [np.zeros(P) if v is None else v for v in (acq.offset_var, acq.read_noise_var)], axis=1
+        )
         key = a if acq.map_group is None else acq.map_group
         total, _ = groups.get(key, (0.0, var))
         groups[key] = (total + sens, var)
@@ -499,8 +527,9 @@ def expected_information(layout, blocks, x):
         support = start[:, None] + np.arange(int((np.ceil(hi) - start).max()) + 1)
         names = rows.names + ("offset", "read_noise")
         # The windows where the fit computes (_xp.computing_on); the sums here, on the host.
-        model = _ModelAtData(replace(acq, values=support), rows, derivs=True, names=names,
-                             xp=_xp.engine())
+        model = _ModelAtData(
+            replace(acq, values=support), rows, derivs=True, names=names, xp=_xp.engine()
+        )
         pv, low = _xp.to_numpy(model.pv), _xp.to_numpy(model.low)
         scores = {nm: _xp.to_numpy(v) for nm, v in model.scores.items()}
         p = np.where(low, 0.0, pv)
@@ -555,8 +584,15 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
             res = _evaluate(layout.subset(rows), [b.take(rows) for b in blocks], x, 1)
         return res[0], res[3], res[4]
 
-    opt = maximize(evaluate, x0, lower=layout.lower, upper=layout.upper, tol=tol,
-                   max_iter=max_iter, progress=progress)
+    opt = maximize(
+        evaluate,
+        x0,
+        lower=layout.lower,
+        upper=layout.upper,
+        tol=tol,
+        max_iter=max_iter,
+        progress=progress,
+    )
     x, iterations = opt.x, opt.iterations
     if not covariance:
         return FitResult(x, None, None, None, iterations, None)
@@ -567,10 +603,12 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
     live = np.isfinite(opt.objective)
     if live.all():
         objective, loglik, per_acq, grad, obs, floored, crosses = _evaluate(
-            layout, blocks, x, 2, map_cross=map_errors)
+            layout, blocks, x, 2, map_cross=map_errors
+        )
     else:
         objective, loglik, per_acq, grad, obs, floored, crosses = _evaluate_rows(
-            layout, blocks, x, live, map_errors)
+            layout, blocks, x, live, map_errors
+        )
     cov, pos_def = _invert(obs)
     # With a prior (the hierarchical MAP) the frequentist covariance of the estimate is the
     # sandwich H⁻¹ I H⁻¹ of the penalised Hessian H and the likelihood's information I;
@@ -603,8 +641,9 @@ def _evaluate_rows(layout, blocks, x, live, map_errors):
     floored = np.zeros(P, dtype=np.int64)
     crosses = None
     if rows.size:
-        part = _evaluate(layout.subset(rows), [b.take(rows) for b in blocks], x[rows], 2,
-                         map_cross=map_errors)
+        part = _evaluate(
+            layout.subset(rows), [b.take(rows) for b in blocks], x[rows], 2, map_cross=map_errors
+        )
         for whole, value in zip((objective, loglik, per_acq, grad, obs, floored), part):
             whole[rows] = value
         if part[6] is not None:
@@ -703,8 +742,9 @@ class _Pinned:
         return value, np.delete(grad, self.j, 1), np.delete(np.delete(hess, self.j, 1), self.j, 2)
 
 
-def profile_bounds(layout, blocks, result, j, *, level=0.95, tol=0.005, xtol=1e-4, max_steps=20,
-                   first_step=1.0):
+def profile_bounds(
+    layout, blocks, result, j, *, level=0.95, tol=0.005, xtol=1e-4, max_steps=20, first_step=1.0
+):
     """Profile-likelihood interval of the free parameter ``x[:, j]`` for every pixel.
 
     The bounds are where the profile deviance ``2 (ℓ̂ − max ℓ | x_j)`` (with a prior: of
@@ -771,7 +811,7 @@ def profile_bounds(layout, blocks, result, j, *, level=0.95, tol=0.005, xtol=1e-
         # (t_out, r_out): nearest point beyond the target (NaN until found).
         # The first step: z·SE, at most first_step (also where the SE is NaN).
         t = np.minimum(np.fmin(z * np.maximum(se[active], 1e-6), first_step), room[active])
-        t_in, r_in = np.zeros(active.size), np.zeros(active.size)    # farthest inside
+        t_in, r_in = np.zeros(active.size), np.zeros(active.size)  # farthest inside
         t_pre, r_pre = np.zeros(active.size), np.zeros(active.size)  # the one before
         t_out, r_out = np.full(active.size, np.nan), np.full(active.size, np.nan)
         last_inside = np.full(active.size, -1)  # which end the last step replaced
@@ -796,17 +836,22 @@ def profile_bounds(layout, blocks, result, j, *, level=0.95, tol=0.005, xtol=1e-
             t_out, r_out = np.where(inside, t_out, t), np.where(inside, r_out, r)
             narrow = ~done & (t_out - t_in < xtol)  # False while t_out is NaN
             bound[active[narrow]] = x_hat[active[narrow], j] + side * 0.5 * (
-                t_in[narrow] + t_out[narrow])
+                t_in[narrow] + t_out[narrow]
+            )
             done |= narrow
             with np.errstate(divide="ignore", invalid="ignore"):
                 # before a bracket: secant through the last two inside points, extending
                 # by a factor 1.2 to 4; inside one: regula falsi, kept off its ends.
                 ext = t_in + (z - r_in) * (t_in - t_pre) / (r_in - r_pre)
-                ext = np.minimum(np.clip(np.nan_to_num(ext, nan=2 * t_in), 1.2 * t_in, 4 * t_in),
-                                 room[active])
+                ext = np.minimum(
+                    np.clip(np.nan_to_num(ext, nan=2 * t_in), 1.2 * t_in, 4 * t_in), room[active]
+                )
                 mid = t_in + (z - r_in) * (t_out - t_in) / (r_out - r_in)
-                mid = np.clip(np.nan_to_num(mid, nan=0.5 * (t_in + t_out)),
-                              t_in + 0.05 * (t_out - t_in), t_out - 0.05 * (t_out - t_in))
+                mid = np.clip(
+                    np.nan_to_num(mid, nan=0.5 * (t_in + t_out)),
+                    t_in + 0.05 * (t_out - t_in),
+                    t_out - 0.05 * (t_out - t_in),
+                )
                 # ... and bisection where the deviance is so lopsided over the bracket (a
                 # wall, or a refit that failed far out) that regula falsi would creep.
                 mid = np.where(r_out - z > 10.0 * (z - r_in), 0.5 * (t_in + t_out), mid)

@@ -40,8 +40,13 @@ from ..defaults import DEFAULT_EM_MODEL
 from ..errors import OptionError
 from ..model import noise
 
-__all__ = ["gof_pvalues", "misfit_warnings", "DEFAULT_MAX_BINS", "DEFAULT_FRAMES_PER_BIN",
-           "DEFAULT_MIN_EXPECTED"]
+__all__ = [
+    "gof_pvalues",
+    "misfit_warnings",
+    "DEFAULT_MAX_BINS",
+    "DEFAULT_FRAMES_PER_BIN",
+    "DEFAULT_MIN_EXPECTED",
+]
 
 #: Largest number of bins per pixel.
 DEFAULT_MAX_BINS = 50
@@ -60,15 +65,26 @@ def _per_pixel(name, value, P):
         return np.full(P, float(arr.ravel()[0]))
     arr = arr.ravel()
     if arr.size != P:
-        raise OptionError(f"{name} must be a scalar or have one value per pixel ({P}), "
-                         f"got {arr.size} values")
+        raise OptionError(
+            f"{name} must be a scalar or have one value per pixel ({P}), got {arr.size} values"
+        )
     return arr.copy()
 
 
-def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, read_noise,
-                *, n_fitted_params=2, max_bins=DEFAULT_MAX_BINS,
-                frames_per_bin=DEFAULT_FRAMES_PER_BIN, min_expected=DEFAULT_MIN_EXPECTED,
-                em_model=DEFAULT_EM_MODEL):
+def gof_pvalues(
+    histograms_block,
+    photoelectrons,
+    em_gain,
+    e_per_adu,
+    offset,
+    read_noise,
+    *,
+    n_fitted_params=2,
+    max_bins=DEFAULT_MAX_BINS,
+    frames_per_bin=DEFAULT_FRAMES_PER_BIN,
+    min_expected=DEFAULT_MIN_EXPECTED,
+    em_model=DEFAULT_EM_MODEL,
+):
     """Binned Pearson χ² goodness-of-fit test of the model for every pixel of one acquisition.
 
     Parameters
@@ -153,8 +169,15 @@ def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, re
     K = np.minimum(int(max_bins), np.floor(n / float(frames_per_bin))).astype(np.int64)
     with np.errstate(invalid="ignore"):
         ok = (
-            np.isfinite(E) & np.isfinite(g) & np.isfinite(phi) & np.isfinite(S0)
-            & np.isfinite(sigma) & (E >= 0) & (g >= 1) & (phi > 0) & (sigma > 0)
+            np.isfinite(E)
+            & np.isfinite(g)
+            & np.isfinite(phi)
+            & np.isfinite(S0)
+            & np.isfinite(sigma)
+            & (E >= 0)
+            & (g >= 1)
+            & (phi > 0)
+            & (sigma > 0)
             & (K >= 2 + np.ceil(n_fitted_params))
         )
     chi2 = np.full(P, np.nan)
@@ -184,8 +207,17 @@ def gof_pvalues(histograms_block, photoelectrons, em_gain, e_per_adu, offset, re
             sel = order[i0:i1]
             r = pos[sel]
             c, d = _block_chi2(
-                values[sel], counts[sel], n[sel], K[sel], rows.take(r), S0[sel], sigma[sel],
-                start[r], length[r], float(n_fitted_params), float(min_expected),
+                values[sel],
+                counts[sel],
+                n[sel],
+                K[sel],
+                rows.take(r),
+                S0[sel],
+                sigma[sel],
+                start[r],
+                length[r],
+                float(n_fitted_params),
+                float(min_expected),
             )
             chi2[sel], dof[sel] = c, d
             i0 = i1
@@ -219,7 +251,8 @@ def _block_chi2(values, counts, n, K, rows, S0, sigma, start, length, s, min_exp
     exists = np.arange(Kmax)[None, :] < K[:, None]
     after_last = np.arange(Kmax)[None, :] > (K - 1)[:, None]
     real_edge, target, exists, after_last, rows_i, n_, K_, counts, values, start = _xp.on(
-        xp, dev, real_edge, target, exists, after_last, rows_, n, K, counts, values, start)
+        xp, dev, real_edge, target, exists, after_last, rows_, n, K, counts, values, start
+    )
     # Row-offset trick: one searchsorted over all pixels (cdf ∈ [0, 1], rows 2 apart).
     rows_f = xp.astype(rows_i, xp.float64)
     flat_cdf = xp.reshape(cdf + 2.0 * rows_f, (-1,))
@@ -239,8 +272,9 @@ def _block_chi2(values, counts, n, K, rows, S0, sigma, start, length, s, min_exp
     trailing = (xp.flip(xp.cumulative_prod(run, axis=1), axis=1) != 0) & exists
     keep = ~small[:, :-1] & ~trailing[:, 1:] & real_edge  # edge between bin i and i+1
     keep_i = xp.astype(keep, xp.int64)
-    merged_id = xp.concat([xp.zeros((P, 1), dtype=xp.int64, device=dev),
-                           xp.cumulative_sum(keep_i, axis=1)], axis=1)  # (P, Kmax)
+    merged_id = xp.concat(
+        [xp.zeros((P, 1), dtype=xp.int64, device=dev), xp.cumulative_sum(keep_i, axis=1)], axis=1
+    )  # (P, Kmax)
     K_eff = xp.sum(keep_i, axis=1) + 1
 
     # Observed: the (unmerged) bin of every histogram value, by one searchsorted with
@@ -252,11 +286,15 @@ def _block_chi2(values, counts, n, K, rows, S0, sigma, start, length, s, min_exp
     b = xp.reshape(b, tuple(values.shape)) - rows_i * (Kmax - 1)
     b = xp.minimum(b, K_[:, None] - 1)
     mb = xp.take_along_axis(merged_id, b, axis=1)
-    observed = _xp.bincount(xp, xp.reshape(mb + rows_i * Kmax, (-1,)),
-                            xp.reshape(counts, (-1,)), P * Kmax)
-    expected = _xp.bincount(xp, xp.reshape(merged_id + rows_i * Kmax, (-1,)),
-                            xp.reshape(xp.where(exists, prob, 0.0) * n_[:, None], (-1,)),
-                            P * Kmax)
+    observed = _xp.bincount(
+        xp, xp.reshape(mb + rows_i * Kmax, (-1,)), xp.reshape(counts, (-1,)), P * Kmax
+    )
+    expected = _xp.bincount(
+        xp,
+        xp.reshape(merged_id + rows_i * Kmax, (-1,)),
+        xp.reshape(xp.where(exists, prob, 0.0) * n_[:, None], (-1,)),
+        P * Kmax,
+    )
     observed, expected = xp.reshape(observed, (P, Kmax)), xp.reshape(expected, (P, Kmax))
     used = xp.arange(Kmax, device=dev)[None, :] < K_eff[:, None]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -266,8 +304,9 @@ def _block_chi2(values, counts, n, K, rows, S0, sigma, start, length, s, min_exp
     return _xp.to_numpy(chi2), _xp.to_numpy(dof)
 
 
-def misfit_warnings(pvalues_by_acquisition, alpha=0.01, *, threshold=1e-3, min_ratio=2.0,
-                    kind="set-point"):
+def misfit_warnings(
+    pvalues_by_acquisition, alpha=0.01, *, threshold=1e-3, min_ratio=2.0, kind="set-point"
+):
     """Warnings for the acquisitions where the model misfits systematically.
 
     Under a correct model the per-pixel p-values are uniform, so about a fraction

@@ -98,17 +98,17 @@ def select_acquisitions(method, setpoints, levels, has_e_per_adu):
         if np.any(sp != 1):
             bad = sorted({float(v) for v in sp[sp != 1]})
             raise MethodError(
-                "is-adu needs 1x (EM gain off) data only; the manifest has set-points "
-                f"{_fmt(bad)}"
+                f"is-adu needs 1x (EM gain off) data only; the manifest has set-points {_fmt(bad)}"
             )
         return idx
     if not has_e_per_adu:
         levels = method.startswith("gs") and sp.size > 1 and np.all(sp == 1)
         raise MethodError(
             f"{method} is for a gain series, and this manifest is an intensity series at "
-             "1x: calibrate phi from it with --method is-adu" if levels else
-             f"{method} needs e_per_adu (e-/ADU): set it in the manifest or pass "
-             "--e-per-adu (calibrate it first with is-adu)"
+            "1x: calibrate phi from it with --method is-adu"
+            if levels
+            else f"{method} needs e_per_adu (e-/ADU): set it in the manifest or pass "
+            "--e-per-adu (calibrate it first with is-adu)"
         )
     if method == "is-gain":
         gains = np.unique(sp)
@@ -148,13 +148,17 @@ def check_options(method, options):
     options = dict(options or {})
     if method != "gs-hierarchical":
         if options:
-            raise MethodError(f"{method} takes no options (given: {', '.join(map(str, options))}); "
-                              "only gs-hierarchical does")
+            raise MethodError(
+                f"{method} takes no options (given: {', '.join(map(str, options))}); "
+                "only gs-hierarchical does"
+            )
         return options
     unknown = sorted(set(options) - set(HIERARCHICAL_DEFAULTS))
     if unknown:
-        raise MethodError(f"unknown gs-hierarchical option(s) {', '.join(map(repr, unknown))}; "
-                          f"known: {', '.join(HIERARCHICAL_DEFAULTS)}")
+        raise MethodError(
+            f"unknown gs-hierarchical option(s) {', '.join(map(repr, unknown))}; "
+            f"known: {', '.join(HIERARCHICAL_DEFAULTS)}"
+        )
     out = {**HIERARCHICAL_DEFAULTS, **options}
     for key in ("mu_sd", "sigma_sd"):
         try:
@@ -162,8 +166,10 @@ def check_options(method, options):
         except (TypeError, ValueError):
             out[key] = float("nan")
         if not (np.isfinite(out[key]) and out[key] > 0):
-            raise MethodError(f"gs-hierarchical option {key} must be a positive number of "
-                              f"photoelectrons (e-); got {options[key]!r}")
+            raise MethodError(
+                f"gs-hierarchical option {key} must be a positive number of "
+                f"photoelectrons (e-); got {options[key]!r}"
+            )
     if out["centre"] not in ("gs", "setpoint"):
         raise MethodError(f"unknown hierarchical centre {out['centre']!r}; use 'gs' or 'setpoint'")
     return out
@@ -237,8 +243,7 @@ def layout_of(method, setpoints, e_per_adu, n_pixels):
     if method != "is-adu":
         const[:, :, 2] = np.log(e_per_adu)[:, None]
     if method in ("is-adu", "is-gain"):
-        return _intensity_layout("e_per_adu" if method == "is-adu" else "em_gain", sp.size,
-                                 const)
+        return _intensity_layout("e_per_adu" if method == "is-adu" else "em_gain", sp.size, const)
     if method in ("gs", "gs-no1x"):
         return _gain_series_layout(sp, const)
     raise MethodError(f"method {method!r} has no layout without its data")
@@ -263,18 +268,20 @@ def build_layout(method, series, options=None):
         signal = np.stack([_signal(b) for b in blocks])
         excess = np.stack([np.maximum(b.var - b.read_noise**2, 1e-6) for b in blocks])
         phi0 = signal.sum(axis=0) / excess.sum(axis=0)  # photon transfer through origin
-        x0 = np.column_stack([_clip_log(phi0, "e_per_adu")]
-                             + [_clip_log(e, "photoelectrons") for e in signal * phi0])
+        x0 = np.column_stack(
+            [_clip_log(phi0, "e_per_adu")] + [_clip_log(e, "photoelectrons") for e in signal * phi0]
+        )
         return layout_of(method, sp, phi, P), x0
 
     if method == "is-gain":
-        theta = np.stack([
-            np.maximum(b.var - b.read_noise**2, 1e-6) / (2.0 * _signal(b)) for b in blocks
-        ])
+        theta = np.stack(
+            [np.maximum(b.var - b.read_noise**2, 1e-6) / (2.0 * _signal(b)) for b in blocks]
+        )
         g0 = np.exp(np.median(np.log(theta), axis=0)) * phi
         E0 = np.stack([_signal(b) * phi / g0 for b in blocks])
-        x0 = np.column_stack([_clip_log(g0, "em_gain")]
-                             + [_clip_log(e, "photoelectrons") for e in E0])
+        x0 = np.column_stack(
+            [_clip_log(g0, "em_gain")] + [_clip_log(e, "photoelectrons") for e in E0]
+        )
         return layout_of(method, sp, phi, P), x0
 
     # Gain series: E from the 1× acquisition where there is one, else from the shapes.
@@ -319,8 +326,12 @@ def build_layout(method, series, options=None):
         layout = HierarchicalLayout(
             parameters=[Parameter("photoelectrons", a) for a in range(A)]
             + [Parameter("em_gain", a) for a in em],
-            lower=np.r_[np.full(A, log_b["photoelectrons"][0]), np.full(em.size, log_b["em_gain"][0])],
-            upper=np.r_[np.full(A, log_b["photoelectrons"][1]), np.full(em.size, log_b["em_gain"][1])],
+            lower=np.r_[
+                np.full(A, log_b["photoelectrons"][0]), np.full(em.size, log_b["em_gain"][0])
+            ],
+            upper=np.r_[
+                np.full(A, log_b["photoelectrons"][1]), np.full(em.size, log_b["em_gain"][1])
+            ],
             matrix=M,
             constant=const,
             centre=centre,
@@ -366,11 +377,20 @@ class HierarchicalLayout(Layout):
         centre_fit = None
         if self.centre_fit is not None:
             lay, res = self.centre_fit
-            centre_fit = (lay.subset(idx), engine.FitResult(
-                res.x[idx], res.cov[idx], res.loglik[idx], res.converged[idx],
-                res.iterations[idx], res.n_floored[idx]))
-        return replace(self, constant=self.constant[idx], centre=self.centre[idx],
-                       centre_fit=centre_fit)
+            centre_fit = (
+                lay.subset(idx),
+                engine.FitResult(
+                    res.x[idx],
+                    res.cov[idx],
+                    res.loglik[idx],
+                    res.converged[idx],
+                    res.iterations[idx],
+                    res.n_floored[idx],
+                ),
+            )
+        return replace(
+            self, constant=self.constant[idx], centre=self.centre[idx], centre_fit=centre_fit
+        )
 
     def estimator_covariance(self, blocks, x, h_inv):
         """Covariance of the MAP as a function of the data, the prior's centre included.
@@ -390,8 +410,10 @@ class HierarchicalLayout(Layout):
         if self.centre_fit is not None:
             E = np.exp(x[:, :A])
             mu, d, r, _ = self._penalty(E)
-            M = (np.eye(A)[None] / r[:, None, None]
-                 - np.einsum("pa,pb->pab", d, d) / r[:, None, None] ** 3) / self.sigma_sd
+            M = (
+                np.eye(A)[None] / r[:, None, None]
+                - np.einsum("pa,pb->pab", d, d) / r[:, None, None] ** 3
+            ) / self.sigma_sd
             q_mumu = -1.0 / self.mu_sd**2 - M.sum(axis=(1, 2))
             dmu_dc = (1.0 / self.mu_sd**2) / -q_mumu  # the profiled μ follows its centre
             b_vec[:, :A] = M.sum(axis=2) * dmu_dc[:, None] * E  # ∂(∂Q/∂ln E)/∂c
@@ -435,11 +457,13 @@ class HierarchicalLayout(Layout):
         mu, d, r, value = self._penalty(E)
         a2, b = self.mu_sd**2, self.sigma_sd
         # Second derivatives of Q(μ, E) = −(μ−c)²/2a² − ‖E − μ‖/b.
-        M = (np.eye(A)[None] / r[:, None, None]
-             - np.einsum("pa,pb->pab", d, d) / r[:, None, None] ** 3) / b
+        M = (
+            np.eye(A)[None] / r[:, None, None]
+            - np.einsum("pa,pb->pab", d, d) / r[:, None, None] ** 3
+        ) / b
         Q_E = -d / (b * r[:, None])
         Q_EE = -M
-        Q_Emu = M.sum(axis=2)                      # ∂²Q/∂E∂μ
+        Q_Emu = M.sum(axis=2)  # ∂²Q/∂E∂μ
         Q_mumu = -1.0 / a2 - M.sum(axis=(1, 2))
         # Profile over μ: Hessian is the Schur complement (envelope theorem for the gradient).
         H_E = Q_EE - np.einsum("pa,pb->pab", Q_Emu, Q_Emu) / Q_mumu[:, None, None]
@@ -489,8 +513,9 @@ def acquisition_bounds(layout, blocks, fit, level=0.95):
         ``<name>_lower`` and ``<name>_upper`` (P, A) for ``photoelectrons``, ``em_gain``
         and ``e_per_adu``; NaN where the quantity is fixed by the layout.
     """
-    bounds = [engine.profile_bounds(layout, blocks, fit, j, level=level)
-              for j in range(layout.n_free)]
+    bounds = [
+        engine.profile_bounds(layout, blocks, fit, j, level=level) for j in range(layout.n_free)
+    ]
     return _bounds_of_x(layout, *(np.column_stack(b) for b in zip(*bounds)))
 
 
@@ -522,8 +547,13 @@ def unpooled_bounds(layout, blocks, fit, level=0.95, weak_se=0.1):
         own = np.flatnonzero(np.any(layout.matrix[a] != 0, axis=0))
         if np.any(np.delete(layout.matrix, a, axis=0)[:, :, own]):
             raise OptionError("unpooled bounds need parameters of one acquisition each")
-        alone = Layout([layout.parameters[f] for f in own], layout.lower[own], layout.upper[own],
-                       layout.matrix[a : a + 1][:, :, own], layout.constant[:, a : a + 1])
+        alone = Layout(
+            [layout.parameters[f] for f in own],
+            layout.lower[own],
+            layout.upper[own],
+            layout.matrix[a : a + 1][:, :, own],
+            layout.constant[:, a : a + 1],
+        )
         free = engine.fit(alone, [block], fit.x[:, own])
         se = np.sqrt(np.einsum("pff->pf", free.cov))
         lower[:, own] = np.clip(free.x - z * se, alone.lower, alone.upper)
@@ -532,11 +562,18 @@ def unpooled_bounds(layout, blocks, fit, level=0.95, weak_se=0.1):
         for k, f in enumerate(own):
             rows = np.flatnonzero(weak[:, k])
             if rows.size:
-                start = engine.FitResult(free.x[rows], free.cov[rows], free.loglik[rows],
-                                          free.converged[rows], free.iterations[rows],
-                                          free.n_floored[rows], objective=free.objective[rows])
+                start = engine.FitResult(
+                    free.x[rows],
+                    free.cov[rows],
+                    free.loglik[rows],
+                    free.converged[rows],
+                    free.iterations[rows],
+                    free.n_floored[rows],
+                    objective=free.objective[rows],
+                )
                 lower[rows, f], upper[rows, f] = engine.profile_bounds(
-                    alone.subset(rows), [block.take(rows)], start, k, level=level)
+                    alone.subset(rows), [block.take(rows)], start, k, level=level
+                )
     return _bounds_of_x(layout, lower, upper)
 
 
@@ -544,8 +581,11 @@ def _bounds_of_x(layout, lower, upper):
     """Bounds on the free parameters (P, F) as bounds of every quantity that is one of
     them alone (a unit row of the layout's matrix): ``<name>_lower/_upper`` (P, A)."""
     P, A = lower.shape[0], layout.matrix.shape[0]
-    out = {f"{n}_{s}": np.full((P, A), np.nan) for n in ("photoelectrons", "em_gain", "e_per_adu")
-           for s in ("lower", "upper")}
+    out = {
+        f"{n}_{s}": np.full((P, A), np.nan)
+        for n in ("photoelectrons", "em_gain", "e_per_adu")
+        for s in ("lower", "upper")
+    }
     for j in range(layout.n_free):
         for a, k in zip(*np.nonzero(layout.matrix[:, :, j] == 1.0)):
             if np.count_nonzero(layout.matrix[a, k]) != 1:

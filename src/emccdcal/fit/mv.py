@@ -329,8 +329,9 @@ def _intensity(x, line, scale):
 def _intensity_bounds(x, line, scale):
     """Fieller bounds of E_i = scale·x_i/β (numerator and slope correlated through x_i)."""
     cov_xb = line.dbeta_dx * line.var_x  # Cov(x_i, β) = ∂β/∂x_i · Var(x_i)
-    return fieller_interval(scale * x, line.beta, scale**2 * line.var_x, line.var_beta,
-                            scale * cov_xb)
+    return fieller_interval(
+        scale * x, line.beta, scale**2 * line.var_x, line.var_beta, scale * cov_xb
+    )
 
 
 def _positive_or_nan(beta):
@@ -371,8 +372,9 @@ def fieller_interval(a, b, var_a, var_b, cov_ab=0.0, *, z=_Z95):
     >>> round(float(lo), 2), float(hi)  # 10/(0.1 + 1.96·0.1) and beyond
     (33.78, inf)
     """
-    a, b, var_a, var_b, cov_ab = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in
-                                                       (a, b, var_a, var_b, cov_ab)))
+    a, b, var_a, var_b, cov_ab = np.broadcast_arrays(
+        *(np.asarray(v, dtype=float) for v in (a, b, var_a, var_b, cov_ab))
+    )
     z2 = z * z
     # (b² − z²V_b)·R² − 2(ab − z²C)·R + (a² − z²V_a) ≤ 0
     qa = b * b - z2 * var_b
@@ -468,8 +470,14 @@ def fit_mv_adu(
     """
     x, y, read_var, n_arr, sample_var = _moments(mean, var, offset, read_noise, n)
     line = _fit_line(
-        x, y, read_var, n_arr, sample_var,
-        intercept=intercept, weighted=weighted, iterations=int(iterations),
+        x,
+        y,
+        read_var,
+        n_arr,
+        sample_var,
+        intercept=intercept,
+        weighted=weighted,
+        iterations=int(iterations),
     )
     phi_lower, phi_upper = fieller_interval(1.0, line.beta, 0.0, line.var_beta)
     E_lower, E_upper = _intensity_bounds(x, line, 1.0)
@@ -481,8 +489,9 @@ def fit_mv_adu(
     E_se = np.sqrt(var_E)
     valid = np.isfinite(phi) & np.isfinite(phi_se) & np.all(np.isfinite(E_se), axis=0)
     dof = x.shape[0] - (2 if intercept else 1)
-    return MVADUFit(phi, phi_se, E, E_se, line.chi2, dof, valid,
-                    phi_lower, phi_upper, E_lower, E_upper)
+    return MVADUFit(
+        phi, phi_se, E, E_se, line.chi2, dof, valid, phi_lower, phi_upper, E_lower, E_upper
+    )
 
 
 def fit_mv_gain(
@@ -599,12 +608,19 @@ def fit_mv_gain(
             E_upper[rows] = E[rows] + _Z95 * E_se[rows]
             continue
         line = _fit_line(
-            xs, y[rows], read_var[rows], n_arr[rows], sample_var[rows],
-            intercept=intercept, weighted=weighted, iterations=int(iterations),
+            xs,
+            y[rows],
+            read_var[rows],
+            n_arr[rows],
+            sample_var[rows],
+            intercept=intercept,
+            weighted=weighted,
+            iterations=int(iterations),
         )
         # g = β/(2/φ): the slope's interval scaled, widened by φ's error if given
-        g_lower[k], g_upper[k] = fieller_interval(line.beta, 2.0 / phi, line.var_beta,
-                                                  4.0 * phi_var / phi**4)
+        g_lower[k], g_upper[k] = fieller_interval(
+            line.beta, 2.0 / phi, line.var_beta, 4.0 * phi_var / phi**4
+        )
         E_lower[rows], E_upper[rows] = _intensity_bounds(xs, line, 2.0)
         beta = _positive_or_nan(line.beta)
         line = line._replace(beta=beta)
@@ -629,12 +645,12 @@ def fit_mv_gain(
                 ratio = np.where(same, 1.0, g_gamma / g[k])
             E[rows], E_se[rows] = E[rows] * ratio, E_se[rows] * ratio
             E_lower[rows], E_upper[rows] = E_lower[rows] * ratio, E_upper[rows] * ratio
-    valid = (
-        np.all(np.isfinite(g) & np.isfinite(g_se), axis=0)
-        & np.all(np.isfinite(E) & np.isfinite(E_se), axis=0)
+    valid = np.all(np.isfinite(g) & np.isfinite(g_se), axis=0) & np.all(
+        np.isfinite(E) & np.isfinite(E_se), axis=0
     )
-    return MVGainFit(setpoints, g, g_se, E, E_se, chi2, dof, valid,
-                     g_lower, g_upper, E_lower, E_upper)
+    return MVGainFit(
+        setpoints, g, g_se, E, E_se, chi2, dof, valid, g_lower, g_upper, E_lower, E_upper
+    )
 
 
 def mean_ratio_gains(mean, var, offset, n, setpoint) -> MeanRatioGains:
@@ -755,10 +771,10 @@ def photon_transfer_e_per_adu(frames, offset, read_noise, *, dark_frames=None):
     a = float(np.sum(mean - offset))
     b = float(np.sum(v - s2))
     var_a = float(np.sum(v / n))
-    var_b = float(np.sum(2 * v ** 2 / (n - 1)))
+    var_b = float(np.sum(2 * v**2 / (n - 1)))
     if dark_frames:
         var_a += float(np.sum(s2 / dark_frames))
-        var_b += float(np.sum(2 * s2 ** 2 / dark_frames))
+        var_b += float(np.sum(2 * s2**2 / dark_frames))
     if not (a > 0 and b > 0):
         return math.nan, math.inf
-    return a / b, math.sqrt(var_a / a ** 2 + var_b / b ** 2)
+    return a / b, math.sqrt(var_a / a**2 + var_b / b**2)

@@ -97,8 +97,9 @@ def _check_pixels(pixels, shape):
     for p in pixels:
         if isinstance(p, str):
             p = parse_pixel(p)
-        if (len(p) != 2 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool)
-                                   for v in p)):
+        if len(p) != 2 or not all(
+            isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in p
+        ):
             raise OptionError(f"malformed pixel {p!r}: expected (row, col) integers")
         row, col = int(p[0]), int(p[1])
         if not (0 <= row < shape[0] and 0 <= col < shape[1]):
@@ -117,7 +118,7 @@ def _pixel_series(manifest, used, method, row, col, phi_map, options, em_model):
     """The method's likelihood of one pixel (the calibrate pipeline, P = 1)."""
     hists, models = [], []
     for acq in used:
-        frames = acq.frames()[:, row:row + 1, col:col + 1]
+        frames = acq.frames()[:, row : row + 1, col : col + 1]
         h = stats.histograms(frames, adc_max=manifest.adc_max)
         if int(h.n_saturated.sum()):
             warnings.warn(
@@ -126,10 +127,18 @@ def _pixel_series(manifest, used, method, row, col, phi_map, options, em_model):
                 stacklevel=3,
             )
         if np.any(h.n < 2):
-            raise OptionError(f"{acq.frames_path}: fewer than 2 usable frames at pixel ({row}, {col})")
+            raise OptionError(
+                f"{acq.frames_path}: fewer than 2 usable frames at pixel ({row}, {col})"
+            )
         hists.append(h)
-        models.append(AcquisitionModel(acq.em_gain_setpoint, acq.offset[row, col:col + 1],
-                                       acq.read_noise[row, col:col + 1], em_model))
+        models.append(
+            AcquisitionModel(
+                acq.em_gain_setpoint,
+                acq.offset[row, col : col + 1],
+                acq.read_noise[row, col : col + 1],
+                em_model,
+            )
+        )
     phi = None if phi_map is None else np.array([phi_map[row, col]])
     return SeriesLikelihood(method, models, hists, e_per_adu=phi, options=options)
 
@@ -201,13 +210,15 @@ def _diagnose(sampler, min_ess):
         if kept < MIN_LENGTH_TAUS * tau.max():
             problems.append(
                 f"kept chain of {kept} steps is shorter than {MIN_LENGTH_TAUS:g} autocorrelation "
-                f"times ({MIN_LENGTH_TAUS * tau.max():.0f} steps)")
+                f"times ({MIN_LENGTH_TAUS * tau.max():.0f} steps)"
+            )
         if np.any(ess < min_ess):
             problems.append(f"effective sample size {ess.min():.0f} < {min_ess}")
     if not (ACCEPTANCE[0] <= acc <= ACCEPTANCE[1]):
         problems.append(f"acceptance fraction {acc:.3f} outside [{ACCEPTANCE[0]}, {ACCEPTANCE[1]}]")
-    return dict(total=total, burn=burn, kept=kept, tau=tau, ess=ess, acceptance=acc,
-                problems=problems)
+    return dict(
+        total=total, burn=burn, kept=kept, tau=tau, ess=ess, acceptance=acc, problems=problems
+    )
 
 
 def _integrated_time(chain):
@@ -237,15 +248,19 @@ def _moves():
     return [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
 
 
-def _sample_pixel(logp, x_hat, cov, n_walkers, first_steps, max_steps, min_ess, rng, progress,
-                  where):
+def _sample_pixel(
+    logp, x_hat, cov, n_walkers, first_steps, max_steps, min_ess, rng, progress, where
+):
     import emcee
 
     F = x_hat.size
     sd = np.sqrt(np.diag(cov)) if np.all(np.isfinite(cov)) else None
     if sd is None or not np.all(sd > 0):
-        warnings.warn(f"{where}: the observed information is not positive definite at the "
-                      "maximum; walkers start in a tiny isotropic ball", stacklevel=3)
+        warnings.warn(
+            f"{where}: the observed information is not positive definite at the "
+            "maximum; walkers start in a tiny isotropic ball",
+            stacklevel=3,
+        )
         start = x_hat + 1e-4 * rng.standard_normal((n_walkers, F))
     else:
         # A ball shaped like the Laplace approximation, shrunk by INIT_SCALE.
@@ -262,14 +277,16 @@ def _sample_pixel(logp, x_hat, cov, n_walkers, first_steps, max_steps, min_ess, 
             return sampler, d
         if sampler.iteration >= max_steps:
             break
-        target = min(max_steps, max(_needed_steps(d, n_walkers, min_ess),
-                                    int(1.5 * sampler.iteration)))
+        target = min(
+            max_steps, max(_needed_steps(d, n_walkers, min_ess), int(1.5 * sampler.iteration))
+        )
         sampler.run_mcmc(None, target - sampler.iteration, progress=progress)
     acc_bad = any(p.startswith("acceptance") for p in d["problems"])
     advice = (
         "the posterior may be multimodal or pressed against a bound; check the maximum-"
-        "likelihood fit, or try more walkers (n_walkers / --walkers)" if acc_bad else
-        f"raise max_steps (--max-steps, now {max_steps}) to about "
+        "likelihood fit, or try more walkers (n_walkers / --walkers)"
+        if acc_bad
+        else f"raise max_steps (--max-steps, now {max_steps}) to about "
         f"{_needed_steps(d, n_walkers, min_ess)} or use more walkers (n_walkers / --walkers, "
         f"now {n_walkers})"
     )
@@ -377,13 +394,19 @@ def sample_posterior(
         manifest = read_manifest(manifest)
     pixels = _check_pixels(pixels, manifest.shape)
     model, stages_source = noise.choose_em_model(
-        em_model, stages, manifest_model=manifest.em_model,
-        manifest_stages=manifest.register_stages, camera_model=manifest.camera.get("model"))
-    phi_map = e_per_adu_map(e_per_adu if e_per_adu is not None else manifest.e_per_adu,
-                            manifest.shape)
+        em_model,
+        stages,
+        manifest_model=manifest.em_model,
+        manifest_stages=manifest.register_stages,
+        camera_model=manifest.camera.get("model"),
+    )
+    phi_map = e_per_adu_map(
+        e_per_adu if e_per_adu is not None else manifest.e_per_adu, manifest.shape
+    )
     acqs = manifest.acquisitions
     idx = layouts.select_acquisitions(
-        method, [a.em_gain_setpoint for a in acqs], [a.level for a in acqs], phi_map is not None)
+        method, [a.em_gain_setpoint for a in acqs], [a.level for a in acqs], phi_map is not None
+    )
     used = [acqs[i] for i in idx]
 
     per_pixel = []
@@ -397,35 +420,62 @@ def sample_posterior(
         F = len(lik.parameters)
         W = int(n_walkers) if n_walkers is not None else max(32, 4 * F)
         if W < 2 * F or W % 2:
-            raise OptionError(f"n_walkers must be even and at least {2 * F} (twice the {F} free "
-                             f"parameters of {method}), got {n_walkers}")
+            raise OptionError(
+                f"n_walkers must be even and at least {2 * F} (twice the {F} free "
+                f"parameters of {method}), got {n_walkers}"
+            )
         with _xp.computing_on(device):
             fit = lik.fit()
         if not fit.converged[0]:
-            warnings.warn(f"{where}: the maximum-likelihood fit did not converge; "
-                          "sampling starts from its last point", stacklevel=2)
+            warnings.warn(
+                f"{where}: the maximum-likelihood fit did not converge; "
+                "sampling starts from its last point",
+                stacklevel=2,
+            )
         x_hat, cov = fit.x[0], fit.cov[0]
         rng = np.random.default_rng(np.random.SeedSequence([int(seed), row, col]))
         logp = _LogPosterior(lik, prior)
         first = DEFAULT_FIRST_STEPS if n_steps is None else int(n_steps)
         with _xp.computing_on(device):
-            sampler, d = _sample_pixel(logp, x_hat, cov, W, first, int(max_steps),
-                                       int(min_ess), rng, progress, where)
+            sampler, d = _sample_pixel(
+                logp, x_hat, cov, W, first, int(max_steps), int(min_ess), rng, progress, where
+            )
         thin = max(1, int(np.floor(d["tau"].min() / 2)))
         chain = sampler.get_chain(discard=d["burn"], thin=thin, flat=True)
         lp = sampler.get_log_prob(discard=d["burn"], thin=thin, flat=True)
         mle_se = np.exp(x_hat) * np.sqrt(np.where(np.isfinite(np.diag(cov)), np.diag(cov), np.nan))
-        per_pixel.append(dict(row=row, col=col, samples=np.exp(chain), log_posterior=lp,
-                              diag=d, thin=thin, n_walkers=W, mle=np.exp(x_hat), mle_se=mle_se,
-                              mle_converged=bool(fit.converged[0]),
-                              seconds=time.perf_counter() - t_pixel))
+        per_pixel.append(
+            dict(
+                row=row,
+                col=col,
+                samples=np.exp(chain),
+                log_posterior=lp,
+                diag=d,
+                thin=thin,
+                n_walkers=W,
+                mle=np.exp(x_hat),
+                mle_se=mle_se,
+                mle_converged=bool(fit.converged[0]),
+                seconds=time.perf_counter() - t_pixel,
+            )
+        )
 
-    ds = _posterior_dataset(per_pixel, names, units, {
-        "method": method, "prior": prior, "seed": int(seed), "min_ess": int(min_ess),
-        "max_steps": int(max_steps), "manifest_hash": manifest.content_hash,
-        "manifest_path": str(manifest.path), "sampler": SAMPLER,
-        "prior_description": _prior_text(prior),
-    })
+    ds = _posterior_dataset(
+        per_pixel,
+        names,
+        units,
+        {
+            "method": method,
+            "prior": prior,
+            "seed": int(seed),
+            "min_ess": int(min_ess),
+            "max_steps": int(max_steps),
+            "manifest_hash": manifest.content_hash,
+            "manifest_path": str(manifest.path),
+            "sampler": SAMPLER,
+            "prior_description": _prior_text(prior),
+        },
+    )
     ds.attrs["seconds"] = time.perf_counter() - t0
     ds.attrs.update(model.attrs, device=device or "cpu")
     if stages_source:
@@ -443,12 +493,18 @@ def _check_sampling(prior, method, max_steps, min_ess, n_steps) -> None:
         raise MethodError(
             f"posterior sampling needs a likelihood method ({', '.join(layouts.LIKELIHOOD_METHODS)})"
             f"; {method!r} is not one"
-            + (" (the mean-variance methods have no likelihood)" if str(method).startswith("mv-") else "")
+            + (
+                " (the mean-variance methods have no likelihood)"
+                if str(method).startswith("mv-")
+                else ""
+            )
         )
     for name, v, lo in (("max_steps", max_steps, 10), ("min_ess", min_ess, 1)):
         if isinstance(v, bool) or int(v) != v or v < lo:
             raise OptionError(f"{name} must be an integer >= {lo}, got {v!r}")
-    if n_steps is not None and (isinstance(n_steps, bool) or int(n_steps) != n_steps or n_steps < 10):
+    if n_steps is not None and (
+        isinstance(n_steps, bool) or int(n_steps) != n_steps or n_steps < 10
+    ):
         raise OptionError(f"n_steps must be an integer >= 10, got {n_steps!r}")
 
 
@@ -462,27 +518,38 @@ def _posterior_dataset(per_pixel, names, units, attrs) -> xarray.Dataset:
     samples = np.full((Pn, n_draw, F), np.nan)
     logpost = np.full((Pn, n_draw), np.nan)
     for i, p in enumerate(per_pixel):
-        samples[i, :p["samples"].shape[0]] = p["samples"]
-        logpost[i, :p["log_posterior"].shape[0]] = p["log_posterior"]
+        samples[i, : p["samples"].shape[0]] = p["samples"]
+        logpost[i, : p["log_posterior"].shape[0]] = p["log_posterior"]
     qs = {k: np.nanquantile(samples, q, axis=1) for k, q in _QUANTILES.items()}
     pdim, pf = ("pixel",), ("pixel", "parameter")
     col = lambda key: np.array([p[key] for p in per_pixel])  # noqa: E731
     dcol = lambda key: np.array([p["diag"][key] for p in per_pixel])  # noqa: E731
     return xr.Dataset(
         {
-            "samples": (("pixel", "draw", "parameter"), samples,
-                        {"long_name": "posterior draws (burn-in discarded, thinned)",
-                         "units": "per parameter: see the 'units' coordinate "
-                                  "(e_per_adu e-/ADU, photoelectrons e-, em_gain 1)"}),
+            "samples": (
+                ("pixel", "draw", "parameter"),
+                samples,
+                {
+                    "long_name": "posterior draws (burn-in discarded, thinned)",
+                    "units": "per parameter: see the 'units' coordinate "
+                    "(e_per_adu e-/ADU, photoelectrons e-, em_gain 1)",
+                },
+            ),
             "log_posterior": (("pixel", "draw"), logpost, {"units": "nats"}),
             **{k: (pf, v, {"long_name": f"posterior {k}"}) for k, v in qs.items()},
             "sd": (pf, np.nanstd(samples, axis=1, ddof=1), {"long_name": "posterior SD"}),
             "ess": (pf, dcol("ess"), {"long_name": "effective sample size", "units": "1"}),
-            "autocorr_time": (pf, dcol("tau"), {"long_name": "integrated autocorrelation time",
-                                                "units": "steps"}),
+            "autocorr_time": (
+                pf,
+                dcol("tau"),
+                {"long_name": "integrated autocorrelation time", "units": "steps"},
+            ),
             "mle": (pf, col("mle"), {"long_name": "engine's maximum-likelihood estimate"}),
-            "mle_se": (pf, col("mle_se"), {"long_name": "engine's standard error "
-                                                        "(inverse observed information)"}),
+            "mle_se": (
+                pf,
+                col("mle_se"),
+                {"long_name": "engine's standard error (inverse observed information)"},
+            ),
             "acceptance": (pdim, dcol("acceptance"), {"long_name": "mean acceptance fraction"}),
             "n_steps": (pdim, dcol("total"), {"units": "steps per walker"}),
             "burn": (pdim, dcol("burn"), {"units": "steps per walker"}),
@@ -490,12 +557,18 @@ def _posterior_dataset(per_pixel, names, units, attrs) -> xarray.Dataset:
             "n_draws": (pdim, np.array([p["samples"].shape[0] for p in per_pixel])),
             "n_walkers": (pdim, col("n_walkers")),
             "mle_converged": (pdim, col("mle_converged")),
-            "seconds": (pdim, col("seconds"), {"long_name": "wall time of the pixel",
-                                               "units": "s"}),
+            "seconds": (
+                pdim,
+                col("seconds"),
+                {"long_name": "wall time of the pixel", "units": "s"},
+            ),
         },
         coords={
-            "pixel": np.arange(Pn), "row": ("pixel", col("row")), "col": ("pixel", col("col")),
-            "parameter": names, "units": ("parameter", units),
+            "pixel": np.arange(Pn),
+            "row": ("pixel", col("row")),
+            "col": ("pixel", col("col")),
+            "parameter": names,
+            "units": ("parameter", units),
         },
         attrs=attrs,
     )
@@ -503,10 +576,14 @@ def _posterior_dataset(per_pixel, names, units, attrs) -> xarray.Dataset:
 
 def _prior_text(prior):
     if prior == "uniform":
-        return ("flat in the physical parameters (e_per_adu, photoelectrons, em_gain) inside "
-                "emccdcal.fit.layouts.BOUNDS, zero outside; plus the layout's own prior if any")
-    return ("flat in the log of every free parameter (p(theta) ~ 1/theta) inside "
-            "emccdcal.fit.layouts.BOUNDS, zero outside; plus the layout's own prior if any")
+        return (
+            "flat in the physical parameters (e_per_adu, photoelectrons, em_gain) inside "
+            "emccdcal.fit.layouts.BOUNDS, zero outside; plus the layout's own prior if any"
+        )
+    return (
+        "flat in the log of every free parameter (p(theta) ~ 1/theta) inside "
+        "emccdcal.fit.layouts.BOUNDS, zero outside; plus the layout's own prior if any"
+    )
 
 
 # --------------------------------------------------------------------------------------
@@ -514,8 +591,18 @@ def _prior_text(prior):
 # --------------------------------------------------------------------------------------
 def summary(ds):
     """The ``posterior.json`` content of a :func:`sample_posterior` result (a dict)."""
-    stats_keys = ("median", "sd", "q16", "q84", "q025", "q975", "ess", "autocorr_time",
-                  "mle", "mle_se")
+    stats_keys = (
+        "median",
+        "sd",
+        "q16",
+        "q84",
+        "q025",
+        "q975",
+        "ess",
+        "autocorr_time",
+        "mle",
+        "mle_se",
+    )
     pixels = []
     for i in range(ds.sizes["pixel"]):
         params = {}
@@ -525,26 +612,40 @@ def summary(ds):
                 entry[k] = finite_or_none(ds[k].values[i, j])
             entry["acceptance"] = finite_or_none(ds.acceptance.values[i])
             params[name] = entry
-        pixels.append({
-            "row": int(ds.row.values[i]), "col": int(ds.col.values[i]),
-            "acceptance": finite_or_none(ds.acceptance.values[i]),
-            "n_walkers": int(ds.n_walkers.values[i]), "n_steps": int(ds.n_steps.values[i]),
-            "burn": int(ds.burn.values[i]), "thin": int(ds["thin"].values[i]),
-            "n_draws": int(ds.n_draws.values[i]),
-            "mle_converged": bool(ds.mle_converged.values[i]),
-            "seconds": finite_or_none(ds.seconds.values[i]),
-            "parameters": params,
-        })
+        pixels.append(
+            {
+                "row": int(ds.row.values[i]),
+                "col": int(ds.col.values[i]),
+                "acceptance": finite_or_none(ds.acceptance.values[i]),
+                "n_walkers": int(ds.n_walkers.values[i]),
+                "n_steps": int(ds.n_steps.values[i]),
+                "burn": int(ds.burn.values[i]),
+                "thin": int(ds["thin"].values[i]),
+                "n_draws": int(ds.n_draws.values[i]),
+                "mle_converged": bool(ds.mle_converged.values[i]),
+                "seconds": finite_or_none(ds.seconds.values[i]),
+                "parameters": params,
+            }
+        )
     return {
-        "method": ds.attrs["method"], "prior": ds.attrs["prior"],
-        "prior_description": ds.attrs["prior_description"], "sampler": ds.attrs["sampler"],
-        "seed": ds.attrs["seed"], "min_ess": ds.attrs["min_ess"],
-        "convergence": (f"kept chain >= {MIN_LENGTH_TAUS:g} tau after a burn-in of "
-                        f"{BURN_TAUS:g} tau; ess >= min_ess for every parameter; mean "
-                        f"acceptance in [{ACCEPTANCE[0]}, {ACCEPTANCE[1]}]"),
-        "manifest_hash": ds.attrs["manifest_hash"], "manifest_path": ds.attrs["manifest_path"],
-        **{k: (int(ds.attrs[k]) if k == "register_stages" else str(ds.attrs[k]))
-           for k in ("em_model", "register_stages", "register_stages_source") if k in ds.attrs},
+        "method": ds.attrs["method"],
+        "prior": ds.attrs["prior"],
+        "prior_description": ds.attrs["prior_description"],
+        "sampler": ds.attrs["sampler"],
+        "seed": ds.attrs["seed"],
+        "min_ess": ds.attrs["min_ess"],
+        "convergence": (
+            f"kept chain >= {MIN_LENGTH_TAUS:g} tau after a burn-in of "
+            f"{BURN_TAUS:g} tau; ess >= min_ess for every parameter; mean "
+            f"acceptance in [{ACCEPTANCE[0]}, {ACCEPTANCE[1]}]"
+        ),
+        "manifest_hash": ds.attrs["manifest_hash"],
+        "manifest_path": ds.attrs["manifest_path"],
+        **{
+            k: (int(ds.attrs[k]) if k == "register_stages" else str(ds.attrs[k]))
+            for k in ("em_model", "register_stages", "register_stages_source")
+            if k in ds.attrs
+        },
         "seconds": finite_or_none(ds.attrs.get("seconds", float("nan"))),
         "pixels": pixels,
     }
@@ -573,16 +674,21 @@ def save(ds, out):
 
 def format_summary(ds):
     """Human-readable table: posterior median ± SD against the engine's MLE ± SE."""
-    lines = [f"posterior ({ds.attrs['method']}, prior {ds.attrs['prior']}), "
-             f"{ds.attrs.get('seconds', float('nan')):.1f} s"]
+    lines = [
+        f"posterior ({ds.attrs['method']}, prior {ds.attrs['prior']}), "
+        f"{ds.attrs.get('seconds', float('nan')):.1f} s"
+    ]
     for i in range(ds.sizes["pixel"]):
-        lines.append(f"pixel ({int(ds.row.values[i])}, {int(ds.col.values[i])}): "
-                     f"{int(ds.n_walkers.values[i])} walkers x {int(ds.n_steps.values[i])} steps, "
-                     f"acceptance {float(ds.acceptance.values[i]):.2f}")
+        lines.append(
+            f"pixel ({int(ds.row.values[i])}, {int(ds.col.values[i])}): "
+            f"{int(ds.n_walkers.values[i])} walkers x {int(ds.n_steps.values[i])} steps, "
+            f"acceptance {float(ds.acceptance.values[i]):.2f}"
+        )
         for j, name in enumerate(ds.parameter.values.tolist()):
             lines.append(
                 f"  {name:<22} {ds['median'].values[i, j]:.5g} ± {ds.sd.values[i, j]:.3g} "
                 f"(MLE {ds.mle.values[i, j]:.5g} ± {ds.mle_se.values[i, j]:.3g}) "
                 f"{ds.units.values[j]}  ess {ds.ess.values[i, j]:.0f}  "
-                f"tau {ds.autocorr_time.values[i, j]:.1f}")
+                f"tau {ds.autocorr_time.values[i, j]:.1f}"
+            )
     return "\n".join(lines)

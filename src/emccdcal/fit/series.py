@@ -61,21 +61,32 @@ class AcquisitionModel:
         """The engine's block of this acquisition, with its data where given."""
         sigma2 = self.read_noise**2
         n_dark = self.dark_frames
-        maps = dict(offset=self.offset, read_noise=self.read_noise,
-                    poisson_normal=bool(self.setpoint == 1), map_group=self.map_group,
-                    em_model=self.em_model,
-                    offset_var=None if n_dark is None else sigma2 / n_dark,
-                    read_noise_var=None if n_dark is None else sigma2 / (2.0 * (n_dark - 1)))
+        maps = dict(
+            offset=self.offset,
+            read_noise=self.read_noise,
+            poisson_normal=bool(self.setpoint == 1),
+            map_group=self.map_group,
+            em_model=self.em_model,
+            offset_var=None if n_dark is None else sigma2 / n_dark,
+            read_noise_var=None if n_dark is None else sigma2 / (2.0 * (n_dark - 1)),
+        )
         if histograms is None:
-            return engine.AcquisitionBlock(values=None, counts=None, mean=None, var=None,
-                                           n=None, **maps)
+            return engine.AcquisitionBlock(
+                values=None, counts=None, mean=None, var=None, n=None, **maps
+            )
         h = histograms
         # Only the bins some pixel uses: the block's data, and so its fit, do not depend
         # on which other pixels were histogrammed with it.
         used = (h.counts != 0).any(axis=0)
         width = h.counts.shape[1] - int(np.argmax(used[::-1])) if h.counts.size else 0
-        return engine.AcquisitionBlock(values=h.values[:, :width], counts=h.counts[:, :width],
-                                       mean=h.mean, var=h.var, n=h.n, **maps)
+        return engine.AcquisitionBlock(
+            values=h.values[:, :width],
+            counts=h.counts[:, :width],
+            mean=h.mean,
+            var=h.var,
+            n=h.n,
+            **maps,
+        )
 
 
 class SeriesLikelihood:
@@ -117,8 +128,9 @@ class SeriesLikelihood:
         data = [None] * len(self.models) if histograms is None else list(histograms)
         self.blocks = [m._block(h) for m, h in zip(self.models, data)]
         setpoints = np.array([float(m.setpoint) for m in self.models])
-        phi = None if e_per_adu is None else np.broadcast_to(
-            np.asarray(e_per_adu, dtype=float), (P,))
+        phi = (
+            None if e_per_adu is None else np.broadcast_to(np.asarray(e_per_adu, dtype=float), (P,))
+        )
         self.e_per_adu = phi
         if histograms is None:
             self.layout, self.start = layouts.layout_of(method, setpoints, phi, P), None
@@ -170,8 +182,14 @@ class SeriesLikelihood:
     def take(self, idx) -> SeriesLikelihood:
         """The same likelihood for pixels ``idx`` (repeats allowed)."""
         sub = lambda a: None if a is None else a[idx]  # noqa: E731
-        return self._of(self.method, self.models, [b.take(idx) for b in self.blocks],
-                        self.layout.subset(idx), sub(self.start), sub(self.e_per_adu))
+        return self._of(
+            self.method,
+            self.models,
+            [b.take(idx) for b in self.blocks],
+            self.layout.subset(idx),
+            sub(self.start),
+            sub(self.e_per_adu),
+        )
 
     # ---- evaluation ----------------------------------------------------------------------
     def objective(self, x) -> np.ndarray:
@@ -233,11 +251,15 @@ class SeriesLikelihood:
             e.update(layouts.unpooled_bounds(layout, blocks, fit))
         if gof_test:
             e["gof_pvalue"] = self._gof(fit, e)
-        e.update(loglik=fit.loglik, acquisition_loglik=fit.loglik_per_acquisition,
-                 converged=fit.converged, n_floored=fit.n_floored, iterations=fit.iterations)
+        e.update(
+            loglik=fit.loglik,
+            acquisition_loglik=fit.loglik_per_acquisition,
+            converged=fit.converged,
+            n_floored=fit.n_floored,
+            iterations=fit.iterations,
+        )
         if self.method == "gs-hierarchical":
-            e["hyper_photoelectrons"], e["hyper_sd_photoelectrons"] = \
-                layout.hyperparameters(fit.x)
+            e["hyper_photoelectrons"], e["hyper_sd_photoelectrons"] = layout.hyperparameters(fit.x)
         return e
 
     def _gof(self, fit, e):
@@ -247,19 +269,39 @@ class SeriesLikelihood:
         n_fitted = (touches / np.maximum(touches.sum(axis=0), 1)).sum(axis=1)
         # no test where the fit found no finite likelihood (its parameters fit nothing)
         tested = np.where(np.isfinite(fit.loglik), 1.0, np.nan)
-        return np.stack([
-            gof.gof_pvalues(b, e["photoelectrons"][:, a] * tested, e["em_gain"][:, a],
-                            e["e_per_adu"][:, a], b.offset, b.read_noise,
-                            n_fitted_params=float(n_fitted[a]), em_model=b.em_model)[0]
-            for a, b in enumerate(self.blocks)
-        ], axis=1)
+        return np.stack(
+            [
+                gof.gof_pvalues(
+                    b,
+                    e["photoelectrons"][:, a] * tested,
+                    e["em_gain"][:, a],
+                    e["e_per_adu"][:, a],
+                    b.offset,
+                    b.read_noise,
+                    n_fitted_params=float(n_fitted[a]),
+                    em_model=b.em_model,
+                )[0]
+                for a, b in enumerate(self.blocks)
+            ],
+            axis=1,
+        )
 
 
-def fit_series(method, models, histograms, *, e_per_adu=None, e_per_adu_se=None,
-               options=None, intervals=None, gof_test=True) -> dict:
+def fit_series(
+    method,
+    models,
+    histograms,
+    *,
+    e_per_adu=None,
+    e_per_adu_se=None,
+    options=None,
+    intervals=None,
+    gof_test=True,
+) -> dict:
     """Fit a series and report it: :meth:`SeriesLikelihood.fit`, then
     :meth:`SeriesLikelihood.estimates` (see those for the arguments and the result)."""
     lik = SeriesLikelihood(method, models, histograms, e_per_adu=e_per_adu, options=options)
     with cascade.transform_tables():  # the fit's tables serve its estimates too
-        return lik.estimates(lik.fit(), e_per_adu_se=e_per_adu_se, intervals=intervals,
-                             gof_test=gof_test)
+        return lik.estimates(
+            lik.fit(), e_per_adu_se=e_per_adu_se, intervals=intervals, gof_test=gof_test
+        )

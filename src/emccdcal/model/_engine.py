@@ -78,8 +78,13 @@ def real_cgf(rows, t, shift, sigma):
     """K(t), K'(t), K''(t) of the count at real tilts t (P,), and the tilted photoelectron
     mean and single-electron output (ADU), per row."""
     Ke, dKe, d2Ke, E_t, theta_t = rows.real(t)
-    return (t * shift + 0.5 * (sigma * t) ** 2 + Ke, shift + sigma**2 * t + dKe,
-            sigma**2 + d2Ke, E_t, theta_t)
+    return (
+        t * shift + 0.5 * (sigma * t) ** 2 + Ke,
+        shift + sigma**2 * t + dKe,
+        sigma**2 + d2Ke,
+        E_t,
+        theta_t,
+    )
 
 
 def extent(rows, shift, sigma, tilt=None, width=12.0):
@@ -95,8 +100,9 @@ def extent(rows, shift, sigma, tilt=None, width=12.0):
     _, mu, var, E_t, theta_t = real_cgf(rows, t, shift, sigma)
     sd = np.sqrt(var)
     few = E_t < 80.0
-    lo = np.where(few, np.minimum(mu - width * sd, shift + sigma**2 * t - width * sigma),
-                  mu - width * sd)
+    lo = np.where(
+        few, np.minimum(mu - width * sd, shift + sigma**2 * t - width * sigma), mu - width * sd
+    )
     hi = mu + width * sd + np.where(few & ~rows.pn, 40.0, width) * theta_t + 1.0
     return lo, hi
 
@@ -117,8 +123,9 @@ def alias_count(sigma_min):
     return int(np.floor((np.sqrt(92.0) / sigma_min + np.pi) / (2.0 * np.pi)))
 
 
-def window(rows, shift, sigma, n, *, tilt=None, derivs=False, second=False, names=None,
-           band=None, xp=None):
+def window(
+    rows, shift, sigma, n, *, tilt=None, derivs=False, second=False, names=None, band=None, xp=None
+):
     """Tilted pmf of the counts 0 … n−1 relative to the window start, and derivatives.
 
     Parameters
@@ -192,8 +199,18 @@ def window(rows, shift, sigma, n, *, tilt=None, derivs=False, second=False, name
     if m_hi < full and bool(xp.any(abs(phi[:, -1]) > _EDGE)):
         # The band was a bound's guess: where the transform has not died out at its edge
         # (a tilted window's wide electron distribution), widen it and start again.
-        return window(rows, shift, sigma, n, tilt=tilt, derivs=derivs, second=second,
-                      names=names, band=min(full, 2 * m_hi), xp=(xp, dev))
+        return window(
+            rows,
+            shift,
+            sigma,
+            n,
+            tilt=tilt,
+            derivs=derivs,
+            second=second,
+            names=names,
+            band=min(full, 2 * m_hi),
+            xp=(xp, dev),
+        )
     p = irfft(phi, n)
     d1 = {name: irfft(v, n) for name, v in d1.items()}
     d2 = {key: Spectrum(v, n) for key, v in d2.items()}
@@ -330,8 +347,9 @@ def evaluate(rows, S0, sigma, row, k, grad=False):
             order = np.lexsort((np.abs(k[q] - mean_u[row[q]]), row[q]))
             live, first = np.unique(row[q[order]], return_index=True)
             targets = q[order[first]]
-            tilt_u[live] = rows.take(live).saddlepoint(k[targets].astype(float), S0[live],
-                                                      sigma[live])
+            tilt_u[live] = rows.take(live).saddlepoint(
+                k[targets].astype(float), S0[live], sigma[live]
+            )
         t = tilt_u[live]
         start, length = window_start(rows.take(live), S0[live], sigma[live], t)
         if targets is not None:

@@ -46,8 +46,7 @@ class CascadeRows:
         self.pn = np.zeros(self.gain.shape, dtype=bool)
 
     def take(self, idx):
-        return CascadeRows(self.E[idx], self.scale[idx], self.stages, self.gain[idx],
-                           self.cic[idx])
+        return CascadeRows(self.E[idx], self.scale[idx], self.stages, self.gain[idx], self.cic[idx])
 
     @property
     def has_cic(self) -> bool:
@@ -56,12 +55,10 @@ class CascadeRows:
     @property
     def names(self):
         """Native parameters (``register_cic`` only where it is used)."""
-        return ("photoelectrons", "scale", "em_gain") + (
-            ("register_cic",) if self.has_cic else ())
+        return ("photoelectrons", "scale", "em_gain") + (("register_cic",) if self.has_cic else ())
 
     def _transform(self, u, order, cic, by_u=True):
-        return register_transform(u, self.gain, self.stages, order=order, cic=cic,
-                                  by_u=by_u)
+        return register_transform(u, self.gain, self.stages, order=order, cic=cic, by_u=by_u)
 
     def cgf(self, s, order=0, names=()):
         """``K_X(s)`` (P, M) and its derivatives by ``names`` (without ``scale``, the
@@ -70,8 +67,9 @@ class CascadeRows:
         cic = self.has_cic or "register_cic" in names
         by_u = "scale" in names
         E, scale, gain, cic_rate = _xp.like(s, self.E, self.scale, self.gain, self.cic)
-        T = register_transform(s * scale[:, None], gain, self.stages, order=order, cic=cic,
-                               by_u=by_u)
+        T = register_transform(
+            s * scale[:, None], gain, self.stages, order=order, cic=cic, by_u=by_u
+        )
         Ec, c, g = E[:, None], cic_rate[:, None], gain[:, None]
 
         def mix(key):  # E·v + c·v̄, and likewise for a derivative of v
@@ -85,12 +83,18 @@ class CascadeRows:
             if cic:
                 first["register_cic"] = T["cic_v"]
         if order >= 2:
-            sec = {("photoelectrons", "em_gain"): T["g"] / g,
-                   ("em_gain", "em_gain"): (mix("gg") - mix("g")) / g**2}
+            sec = {
+                ("photoelectrons", "em_gain"): T["g"] / g,
+                ("em_gain", "em_gain"): (mix("gg") - mix("g")) / g**2,
+            }
             if by_u:
-                sec.update({("photoelectrons", "scale"): s * T["u"],
-                            ("scale", "scale"): s * s * mix("uu"),
-                            ("scale", "em_gain"): s * mix("ug") / g})
+                sec.update(
+                    {
+                        ("photoelectrons", "scale"): s * T["u"],
+                        ("scale", "scale"): s * s * mix("uu"),
+                        ("scale", "em_gain"): s * mix("ug") / g,
+                    }
+                )
             if cic:
                 sec[("em_gain", "register_cic")] = T["cic_g"] / g
                 if by_u:
@@ -158,8 +162,9 @@ class CascadeRows:
             return dK - k, d2K
 
         # solved once the miss is below half the tilted distribution's SD
-        return _roots.newton_in_bracket(residual, lo, hi, t, max_iter=100,
-                                        close=lambda miss, d2K: miss < 0.5 * np.sqrt(d2K))
+        return _roots.newton_in_bracket(
+            residual, lo, hi, t, max_iter=100, close=lambda miss, d2K: miss < 0.5 * np.sqrt(d2K)
+        )
 
     def direct_tail(self, sigma):
         """None: every count first gets a (tilted) window."""
@@ -248,8 +253,11 @@ class Cascade:
 
     @staticmethod
     def public_gradients(d, g, phi):
-        return {"em_gain": d["em_gain"], "e_per_adu": -d["scale"] / phi**2,
-                "register_cic": d.get("register_cic", np.zeros(g.shape))}
+        return {
+            "em_gain": d["em_gain"],
+            "e_per_adu": -d["scale"] / phi**2,
+            "register_cic": d.get("register_cic", np.zeros(g.shape)),
+        }
 
 
 _CASCADE_COORDS = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])

@@ -157,7 +157,9 @@ def quadrature_logpdf(k, E, theta, S0, sigma, grad=False):
     Ec, tc, sc = E[:, None], theta[:, None], sigma[:, None]
     u = np.maximum(u, 1e-300)
     z = 2.0 * np.sqrt(Ec * u / tc)
-    log_q = 0.5 * np.log(Ec / (tc * u)) - (np.sqrt(u / tc) - np.sqrt(Ec)) ** 2 + np.log(special.i1e(z))
+    log_q = (
+        0.5 * np.log(Ec / (tc * u)) - (np.sqrt(u / tc) - np.sqrt(Ec)) ** 2 + np.log(special.i1e(z))
+    )
     log_n = -0.5 * ((x - u) / sc) ** 2 - np.log(np.sqrt(2.0 * np.pi) * sc)
     with np.errstate(divide="ignore"):
         log_terms = log_q + log_n + np.log(w)
@@ -197,9 +199,11 @@ class Gamma:
     #: Extra public parameters of the likelihood (none).
     parameters = ()
     description = "gamma (the paper's approximation)"
-    misfit_hint = ("the gamma model of the EM register misfits an exact register's low "
-                   "gains, whose estimates are then doubtful: calibrate again with the "
-                   "cascade model (--em-model cascade, em_model = \"cascade\")")
+    misfit_hint = (
+        "the gamma model of the EM register misfits an exact register's low "
+        "gains, whose estimates are then doubtful: calibrate again with the "
+        'cascade model (--em-model cascade, em_model = "cascade")'
+    )
 
     def __init__(self, stages=None):
         pass
@@ -257,9 +261,11 @@ class Gamma:
     def public_gradients(d, g, phi):
         """∂ log p by ``em_gain`` (NaN at g = 1) and ``e_per_adu`` from the native ones."""
         pn = g == 1.0
-        return {"em_gain": np.where(pn, np.nan, d["scale"] / phi),
-                "e_per_adu": np.where(pn, -d["scale"] / phi**2, -d["scale"] * g / phi**2)}
+        return {
+            "em_gain": np.where(pn, np.nan, d["scale"] / phi),
+            "e_per_adu": np.where(pn, -d["scale"] / phi**2, -d["scale"] * g / phi**2),
+        }
 
 
-_GAMMA_COORDS = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -1.0]])      # ln E, ln(g/φ)
-_PN_COORDS = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])         # ln E, ln(1/φ)
+_GAMMA_COORDS = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -1.0]])  # ln E, ln(g/φ)
+_PN_COORDS = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # ln E, ln(1/φ)

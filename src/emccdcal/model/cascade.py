@@ -93,8 +93,11 @@ DEFAULT_STAGES = defaults.DEFAULT_STAGES
 #: model: ``(key, stages, source)``, the key matched in the model's name without case,
 #: spaces, hyphens or underscores. A sensor or camera not here gets ``DEFAULT_STAGES``.
 KNOWN_REGISTERS = (
-    ("ccd201", 604, "Teledyne e2v CCD201-20, as in the emccd-detect simulator of the Roman "
-                    "Coronagraph"),
+    (
+        "ccd201",
+        604,
+        "Teledyne e2v CCD201-20, as in the emccd-detect simulator of the Roman Coronagraph",
+    ),
     ("ixonultra888", 604, "Andor iXon Ultra 888, a CCD201-20 sensor"),
     ("ixon888", 604, "Andor iXon 888, a CCD201-20 sensor"),
     ("du888", 604, "Andor DU-888 (iXon 888), a CCD201-20 sensor"),
@@ -119,6 +122,7 @@ def known_stages(camera_model) -> tuple[int, str] | None:
         if key in name:
             return stages, source
     return None
+
 
 #: Largest FFT grid (integers) of one pmf table; larger inputs add whole blocks.
 _MAX_GRID = 2**22
@@ -311,11 +315,16 @@ def single_electron_moments(em_gain, stages=DEFAULT_STAGES):
             k1 * a1,
             k2 * a1**2 + k1 * a2,
             k3 * a1**3 + 3.0 * k2 * a1 * a2 + k1 * a3,
-            k4 * a1**4 + 6.0 * k3 * a1**2 * a2 + k2 * (3.0 * a2**2 + 4.0 * a1 * a3)
-            + k1 * a4,
+            k4 * a1**4 + 6.0 * k3 * a1**2 * a2 + k2 * (3.0 * a2**2 + 4.0 * a1 * a3) + k1 * a4,
         )
-    return np.array([k1, k2 + k1**2, k3 + 3 * k2 * k1 + k1**3,
-                     k4 + 4 * k3 * k1 + 3 * k2**2 + 6 * k2 * k1**2 + k1**4])
+    return np.array(
+        [
+            k1,
+            k2 + k1**2,
+            k3 + 3 * k2 * k1 + k1**3,
+            k4 + 4 * k3 * k1 + 3 * k2**2 + 6 * k2 * k1**2 + k1**4,
+        ]
+    )
 
 
 def excess_noise_factor(em_gain, stages=DEFAULT_STAGES):
@@ -373,8 +382,7 @@ def gain_from_gain_f2(gain_times_f2, stages=DEFAULT_STAGES):
 
         def residual(g):
             root = g ** (-1.0 / stages)
-            return (1.0 + 2.0 * (g - 1.0) * root - y,
-                    2.0 * root * (1.0 - (g - 1.0) / (stages * g)))
+            return (1.0 + 2.0 * (g - 1.0) * root - y, 2.0 * root * (1.0 - (g - 1.0) / (stages * g)))
 
         g = _roots.newton(residual, g, floor=1.0, rtol=1e-13, max_iter=50)
         root = g ** (-1.0 / stages)
@@ -426,8 +434,12 @@ def register_transform(u, em_gain, stages=DEFAULT_STAGES, *, order=1, cic=False,
     """
     xp, (u, g) = _xp.asarrays(u, em_gain)
     g = xp.astype(g, xp.float64)
-    if (u.ndim == 2 and _xp.is_complex(xp, u) and g.shape == u.shape[:1]
-            and not bool(xp.any(xp.real(u) != 0.0))):
+    if (
+        u.ndim == 2
+        and _xp.is_complex(xp, u)
+        and g.shape == u.shape[:1]
+        and not bool(xp.any(xp.real(u) != 0.0))
+    ):
         table = _tabulated(xp, xp.imag(u), g, stages, order, cic, by_u)
         if table is not None:
             return table
@@ -442,13 +454,22 @@ def register_transform(u, em_gain, stages=DEFAULT_STAGES, *, order=1, cic=False,
     out = None
     for r in range(0, rows.shape[0], step_rows):
         for c in range(0, rows.shape[1], step_cols):
-            piece = _register_transform(xp, rows[r:r + step_rows, c:c + step_cols],
-                                        g[r:r + step_rows], stages, order, cic, by_u)
+            piece = _register_transform(
+                xp,
+                rows[r : r + step_rows, c : c + step_cols],
+                g[r : r + step_rows],
+                stages,
+                order,
+                cic,
+                by_u,
+            )
             if out is None:
-                out = {k: xp.empty(rows.shape, dtype=v.dtype, device=_xp.device(u))
-                       for k, v in piece.items()}
+                out = {
+                    k: xp.empty(rows.shape, dtype=v.dtype, device=_xp.device(u))
+                    for k, v in piece.items()
+                }
             for k, v in piece.items():
-                out[k][r:r + step_rows, c:c + step_cols] = v
+                out[k][r : r + step_rows, c : c + step_cols] = v
     return {k: xp.reshape(v, u.shape) for k, v in out.items()}
 
 
@@ -512,13 +533,20 @@ class _Table:
         self.coef = {k: _xp.to_numpy(c) for k, c in coef.items()}
 
     def covers(self, stages, x_range, z_range, keys) -> bool:
-        return (stages == self.stages and keys <= self.coef.keys()
-                and self.x_range[0] <= x_range[0] and x_range[1] <= self.x_range[1]
-                and self.z_range[0] <= z_range[0] and z_range[1] <= self.z_range[1])
+        return (
+            stages == self.stages
+            and keys <= self.coef.keys()
+            and self.x_range[0] <= x_range[0]
+            and x_range[1] <= self.x_range[1]
+            and self.z_range[0] <= z_range[0]
+            and z_range[1] <= self.z_range[1]
+        )
 
     def evaluate(self, keys, x, z):
-        return {k: _chebyshev.evaluate_rows(_xp.like(x, self.coef[k]), self.x_range,
-                                            self.z_range, x, z) for k in keys}
+        return {
+            k: _chebyshev.evaluate_rows(_xp.like(x, self.coef[k]), self.x_range, self.z_range, x, z)
+            for k in keys
+        }
 
 
 def _derivative_names(order, by_u) -> tuple[str, ...]:
@@ -554,13 +582,21 @@ def _tabulated(xp, theta, g, stages, order, cic, by_u):
     keys = _transform_keys(order, cic, by_u)
     kept = _SCOPE.get()
     if kept is None:
-        table = _build_table(xp, theta, stages, x_range, z_range, order, cic, by_u,
-                             theta.size // 4)
+        table = _build_table(xp, theta, stages, x_range, z_range, order, cic, by_u, theta.size // 4)
     else:
         table = next((t for t in kept if t.covers(stages, x_range, z_range, keys)), None)
         if table is None:
-            table = _build_table(xp, theta, stages, _widen(x_range, _TABLE_MARGIN[1]),
-                                 _widen(z_range, 0.0), order, cic, by_u, theta.size)
+            table = _build_table(
+                xp,
+                theta,
+                stages,
+                _widen(x_range, _TABLE_MARGIN[1]),
+                _widen(z_range, 0.0),
+                order,
+                cic,
+                by_u,
+                theta.size,
+            )
             if table is not None:
                 kept.append(table)
                 del kept[:-_TABLES_KEPT]
@@ -596,8 +632,10 @@ def _build_table(xp, like, stages, x_range, z_range, order, cic, by_u, budget):
         u, g = _xp.like(like, 1j * zs[None, :] / gs[:, None], gs)
         return _register_transform(xp, u, g, stages, order, cic, by_u)
 
-    n = [1 if x_range[0] == x_range[1] else _TABLE_START[0],
-         1 if z_range[0] == z_range[1] else _TABLE_START[1]]
+    n = [
+        1 if x_range[0] == x_range[1] else _TABLE_START[0],
+        1 if z_range[0] == z_range[1] else _TABLE_START[1],
+    ]
     most_points = _TABLE_POINTS_PER_STAGE * stages
     spent = n[0] * n[1]
     if spent > budget or sum(n) > most_points:
@@ -669,17 +707,17 @@ def _register_transform(xp, u, g, stages, order, cic, by_u):
             vg = d["g"]
             if by_u:
                 vu = d["u"]
-                d["uu"] *= a                 # + 2p·v_u²
+                d["uu"] *= a  # + 2p·v_u²
                 d["uu"] += (vu * vu) * two_p
-            t = p * vg                       # t = p·v_g
+            t = p * vg  # t = p·v_g
             w = v * 2.0
             w += 1.0
-            w += t                           # w = 1 + 2v + p·v_g
-            d["gg"] *= a                     # + 2·v_g·(1 + 2v + p·v_g)
+            w += t  # w = 1 + 2v + p·v_g
+            d["gg"] *= a  # + 2·v_g·(1 + 2v + p·v_g)
             d["gg"] += (vg * w) * 2.0
             if by_u:
-                w += t                       # w = 1 + 2v + 2p·v_g
-                d["ug"] *= a                 # + v_u·(1 + 2v + 2p·v_g)
+                w += t  # w = 1 + 2v + 2p·v_g
+                d["ug"] *= a  # + v_u·(1 + 2v + 2p·v_g)
                 d["ug"] += vu * w
         if order >= 1:
             d["g"] *= a
@@ -691,7 +729,7 @@ def _register_transform(xp, u, g, stages, order, cic, by_u):
         v *= t
     # Derivatives by p → by ln g: dp/d ln g = (1 + p)/N, d²p/d(ln g)² = (1 + p)/N².
     dp = (1.0 + p_row) / stages
-    for src in ([d] + ([sums] if cic else [])):
+    for src in [d] + ([sums] if cic else []):
         if order >= 2:
             src["gg"] = src["gg"] * dp**2 + src["g"] * (dp / stages)
             if by_u:

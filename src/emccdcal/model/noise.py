@@ -148,16 +148,19 @@ class EMModel:
 
     def __post_init__(self):
         if self.name not in _registers():
-            raise OptionError(f"unknown em_model {self.name!r}; choose one of "
-                              f"{', '.join(_registers())}")
+            raise OptionError(
+                f"unknown em_model {self.name!r}; choose one of {', '.join(_registers())}"
+            )
         from .cascade import _check_stages
 
         # A model without stages has one value of them, whatever was passed.
         uses = _registers()[self.name].uses_stages
         object.__setattr__(self, "stages", _check_stages(self.stages) if uses else DEFAULT_STAGES)
         if self.stages > defaults.MAX_STAGES:  # the likelihood's cost grows with them
-            raise OptionError(f"stages must be at most {defaults.MAX_STAGES} (real registers "
-                              f"have 400 to 1100), got {self.stages}")
+            raise OptionError(
+                f"stages must be at most {defaults.MAX_STAGES} (real registers "
+                f"have 400 to 1100), got {self.stages}"
+            )
 
     @property
     def register(self):
@@ -177,8 +180,10 @@ class EMModel:
     def attrs(self) -> dict:
         """The model as a result's attributes: ``em_model``, and ``register_stages`` for
         a model with stages."""
-        return {"em_model": self.name,
-                **({"register_stages": int(self.stages)} if self.register.uses_stages else {})}
+        return {
+            "em_model": self.name,
+            **({"register_stages": int(self.stages)} if self.register.uses_stages else {}),
+        }
 
     @classmethod
     def from_attrs(cls, attrs) -> EMModel | None:
@@ -211,8 +216,9 @@ _WITH_STAGES = "cascade"
 DEFAULT_EM_MODEL = defaults.DEFAULT_EM_MODEL
 
 
-def choose_em_model(em_model=None, stages=None, *, manifest_model=None, manifest_stages=None,
-                    camera_model=None) -> tuple[EMModel, str]:
+def choose_em_model(
+    em_model=None, stages=None, *, manifest_model=None, manifest_stages=None, camera_model=None
+) -> tuple[EMModel, str]:
     """The register model of a run, and where its stages come from.
 
     The model: the caller's ``em_model`` (a name or an :class:`EMModel`), else the
@@ -239,16 +245,23 @@ def choose_em_model(em_model=None, stages=None, *, manifest_model=None, manifest
     from .cascade import known_stages
 
     if isinstance(em_model, EMModel):
-        if stages is not None and (not em_model.register.uses_stages
-                                   or int(stages) != em_model.stages):
+        if stages is not None and (
+            not em_model.register.uses_stages or int(stages) != em_model.stages
+        ):
             raise OptionError(f"stages={stages!r} disagrees with the {em_model} model")
         return em_model, "given" if em_model.register.uses_stages else ""
-    name = as_em_model(em_model or (_WITH_STAGES if stages is not None else None)
-                       or manifest_model or DEFAULT_EM_MODEL).name
+    name = as_em_model(
+        em_model
+        or (_WITH_STAGES if stages is not None else None)
+        or manifest_model
+        or DEFAULT_EM_MODEL
+    ).name
     if not EMModel(name).register.uses_stages:
         if stages is not None:
-            raise OptionError(f"stages are the {_WITH_STAGES} model's: give em_model="
-                              f"'{_WITH_STAGES}' with them (the {name} model has none)")
+            raise OptionError(
+                f"stages are the {_WITH_STAGES} model's: give em_model="
+                f"'{_WITH_STAGES}' with them (the {name} model has none)"
+            )
         return EMModel(name), ""
     if stages is not None:
         return EMModel(name, stages), "given"
@@ -268,8 +281,9 @@ def as_em_model(em_model=defaults.DEFAULT_EM_MODEL) -> EMModel:
     if isinstance(em_model, EMModel):
         return em_model
     if not isinstance(em_model, str):
-        raise OptionError(f"em_model must be one of {', '.join(_registers())} or an "
-                          f"EMModel, got {em_model!r}")
+        raise OptionError(
+            f"em_model must be one of {', '.join(_registers())} or an EMModel, got {em_model!r}"
+        )
     return EMModel(em_model)
 
 
@@ -302,8 +316,9 @@ def mean(photoelectrons, em_gain, e_per_adu, offset, read_noise=1.0):
     return S0 + g * E / phi
 
 
-def variance(photoelectrons, em_gain, e_per_adu, offset, read_noise, *,
-             em_model=defaults.DEFAULT_EM_MODEL):
+def variance(
+    photoelectrons, em_gain, e_per_adu, offset, read_noise, *, em_model=defaults.DEFAULT_EM_MODEL
+):
     """Variance of the count, ADU²: ``σ² + F²E(g/φ)²`` with the register model's F²
     (:func:`excess_noise_factor`: 2 for the gamma model), ``σ² + E/φ²`` at g = 1.
 
@@ -353,8 +368,10 @@ def _model_of(em_model, register_cic=0.0):
     """The checked :class:`EMModel`; register CIC only goes with a model that has it."""
     model = as_em_model(em_model)
     if "register_cic" not in model.register.parameters and np.any(np.asarray(register_cic) != 0):
-        raise OptionError(f"register_cic is a parameter of the cascade model, not of the "
-                          f"{model.name} model: give em_model='cascade' with it")
+        raise OptionError(
+            f"register_cic is a parameter of the cascade model, not of the "
+            f"{model.name} model: give em_model='cascade' with it"
+        )
     return model
 
 
@@ -404,8 +421,17 @@ def _evaluate_public(E, g, phi, S0, sigma, cic, row, k, model, grad=False):
     return logp, grads
 
 
-def logpmf(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, *,
-           em_model=defaults.DEFAULT_EM_MODEL, register_cic=0.0):
+def logpmf(
+    counts,
+    photoelectrons,
+    em_gain,
+    e_per_adu,
+    offset,
+    read_noise,
+    *,
+    em_model=defaults.DEFAULT_EM_MODEL,
+    register_cic=0.0,
+):
     """Natural log of the probability of integer counts under the EMCCD noise model.
 
     Broadcasts like NumPy. ``em_gain == 1`` selects the Poisson–normal model, any other
@@ -466,20 +492,29 @@ def logpmf(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, *,
     0.9561
     """
     model = _model_of(em_model, register_cic)
-    shape, k, row, rows = _prepare(counts, photoelectrons, em_gain, e_per_adu, offset,
-                                   read_noise, register_cic)
+    shape, k, row, rows = _prepare(
+        counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, register_cic
+    )
     logp, _ = _evaluate_public(*rows, row, k, model)
     return logp.reshape(shape)
 
 
 def pmf(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, **model):
     """Probability of integer counts: ``exp(logpmf(...))``; parameters as :func:`logpmf`."""
-    return np.exp(logpmf(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise,
-                         **model))
+    return np.exp(logpmf(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, **model))
 
 
-def logpmf_grad(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, *,
-                em_model=defaults.DEFAULT_EM_MODEL, register_cic=0.0):
+def logpmf_grad(
+    counts,
+    photoelectrons,
+    em_gain,
+    e_per_adu,
+    offset,
+    read_noise,
+    *,
+    em_model=defaults.DEFAULT_EM_MODEL,
+    register_cic=0.0,
+):
     """Log-pmf and its analytic gradient by every parameter.
 
     Parameters are those of :func:`logpmf`.
@@ -495,8 +530,9 @@ def logpmf_grad(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, 
         (em_gain == 1) has no gain parameter: its ``em_gain`` entry is NaN.
     """
     model = _model_of(em_model, register_cic)
-    shape, k, row, rows = _prepare(counts, photoelectrons, em_gain, e_per_adu, offset,
-                                   read_noise, register_cic)
+    shape, k, row, rows = _prepare(
+        counts, photoelectrons, em_gain, e_per_adu, offset, read_noise, register_cic
+    )
     logp, grad = _evaluate_public(*rows, row, k, model, grad=True)
     return logp.reshape(shape), {name: v.reshape(shape) for name, v in grad.items()}
 
@@ -533,8 +569,9 @@ def paper_pmf_grid(photoelectrons, em_gain, e_per_adu, offset, read_noise):
     """
     from scipy import fft, special
 
-    E, g, phi, S0, sigma = (float(v) for v in _check_params(
-        photoelectrons, em_gain, e_per_adu, offset, read_noise))
+    E, g, phi, S0, sigma = (
+        float(v) for v in _check_params(photoelectrons, em_gain, e_per_adu, offset, read_noise)
+    )
     s = np.arange(PAPER_GRID, dtype=float)
     if g == 1:
         with np.errstate(divide="ignore"):
@@ -573,8 +610,18 @@ def paper_logpmf(counts, photoelectrons, em_gain, e_per_adu, offset, read_noise)
 _ROWS_POINTS = 2**22
 
 
-def logpmf_rows(counts, row, photoelectrons, em_gain, e_per_adu, offset, read_noise, *,
-                grad=False, em_model=defaults.DEFAULT_EM_MODEL):
+def logpmf_rows(
+    counts,
+    row,
+    photoelectrons,
+    em_gain,
+    e_per_adu,
+    offset,
+    read_noise,
+    *,
+    grad=False,
+    em_model=defaults.DEFAULT_EM_MODEL,
+):
     """Log-pmf of counts, each under a parameter set picked by index (no broadcasting).
 
     :func:`logpmf` broadcasts its arguments and looks for repeated parameter sets among
@@ -613,12 +660,16 @@ def logpmf_rows(counts, row, photoelectrons, em_gain, e_per_adu, offset, read_no
     """
     k = _check_counts(counts).ravel()
     idx = np.asarray(row).ravel()
-    params = [np.atleast_1d(a).ravel() for a in _check_params(
-        photoelectrons, em_gain, e_per_adu, offset, read_noise)]
+    params = [
+        np.atleast_1d(a).ravel()
+        for a in _check_params(photoelectrons, em_gain, e_per_adu, offset, read_noise)
+    ]
     U = max(a.size for a in params)
     if any(a.size not in (1, U) for a in params):
-        raise OptionError("photoelectrons, em_gain, e_per_adu, offset and read_noise must "
-                         "have one value per row (or a single value)")
+        raise OptionError(
+            "photoelectrons, em_gain, e_per_adu, offset and read_noise must "
+            "have one value per row (or a single value)"
+        )
     E, g, phi, S0, sigma = (np.broadcast_to(a, (U,)) for a in params)
     if idx.shape != k.shape:
         raise OptionError(f"row has {idx.size} entries but counts has {k.size}")
@@ -643,10 +694,11 @@ def logpmf_rows(counts, row, photoelectrons, em_gain, e_per_adu, offset, read_no
     cic = np.zeros(U)
     for a, b in zip(starts[:-1], starts[1:]):
         r = used[a:b]
-        q = order[bounds[a]:bounds[b]]
-        local = np.repeat(np.arange(b - a), np.diff(bounds[a:b + 1]))
-        lp, d = _evaluate_public(E[r], g[r], phi[r], S0[r], sigma[r], cic[r], local, k[q],
-                                 model, grad=grad)
+        q = order[bounds[a] : bounds[b]]
+        local = np.repeat(np.arange(b - a), np.diff(bounds[a : b + 1]))
+        lp, d = _evaluate_public(
+            E[r], g[r], phi[r], S0[r], sigma[r], cic[r], local, k[q], model, grad=grad
+        )
         logp[q] = lp
         if grad:
             dE[q] = d["photoelectrons"]
@@ -720,21 +772,37 @@ class LogpmfTable:
     True
     """
 
-    def __init__(self, counts, pixel, e_lo, e_hi, em_gain, e_per_adu, offset, read_noise, *,
-                 em_model=defaults.DEFAULT_EM_MODEL):
+    def __init__(
+        self,
+        counts,
+        pixel,
+        e_lo,
+        e_hi,
+        em_gain,
+        e_per_adu,
+        offset,
+        read_noise,
+        *,
+        em_model=defaults.DEFAULT_EM_MODEL,
+    ):
         self.em_model = as_em_model(em_model)
         self.counts = _check_counts(counts).ravel()
         self.pixel = np.asarray(pixel).ravel()
         if self.pixel.shape != self.counts.shape:
-            raise OptionError(f"pixel has {self.pixel.size} entries but counts has "
-                             f"{self.counts.size}")
-        params = [np.atleast_1d(a).astype(float).ravel() for a in _check_params(
-            1.0, em_gain, e_per_adu, offset, read_noise)[1:]]
+            raise OptionError(
+                f"pixel has {self.pixel.size} entries but counts has {self.counts.size}"
+            )
+        params = [
+            np.atleast_1d(a).astype(float).ravel()
+            for a in _check_params(1.0, em_gain, e_per_adu, offset, read_noise)[1:]
+        ]
         K = max(a.size for a in params)
         self.em_gain, self.e_per_adu, self.offset, self.read_noise = (
-            np.broadcast_to(a, (K,)).copy() for a in params)
-        if self.pixel.size and (self.pixel.dtype.kind not in "iu" or self.pixel.min() < 0
-                                or self.pixel.max() >= K):
+            np.broadcast_to(a, (K,)).copy() for a in params
+        )
+        if self.pixel.size and (
+            self.pixel.dtype.kind not in "iu" or self.pixel.min() < 0 or self.pixel.max() >= K
+        ):
             raise OptionError(f"pixel must hold integer indices from 0 to {K - 1}")
         self.u_lo = np.zeros(K)
         self.u_hi = np.zeros(K)
@@ -757,8 +825,12 @@ class LogpmfTable:
         pixels = np.atleast_1d(np.asarray(pixels))
         lo = np.broadcast_to(np.asarray(e_lo, float), pixels.shape)
         hi = np.broadcast_to(np.asarray(e_hi, float), pixels.shape)
-        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo >= 0)
-                and np.all(hi > lo)):
+        if not (
+            np.all(np.isfinite(lo))
+            and np.all(np.isfinite(hi))
+            and np.all(lo >= 0)
+            and np.all(hi > lo)
+        ):
             raise OptionError("table ranges must be finite with 0 <= e_lo < e_hi (e-)")
         lo = np.maximum(lo, TABLE_MIN_PHOTOELECTRONS)
         hi = np.maximum(hi, 2.0 * lo)
@@ -769,15 +841,17 @@ class LogpmfTable:
         D = int(self.degree.max())
         if self.coef.shape[0] < D:
             self.coef = np.concatenate(
-                [self.coef, np.zeros((D - self.coef.shape[0], self.coef.shape[1]))])
+                [self.coef, np.zeros((D - self.coef.shape[0], self.coef.shape[1]))]
+            )
         chosen = np.zeros(self.degree.size, dtype=bool)
         chosen[pixels] = True
         q = np.flatnonzero(chosen[self.pixel])
         if q.size == 0:
             return
         # Distinct (pixel, count) pairs; each is tabulated at its pixel's nodes.
-        pair, inv = np.unique(np.stack([self.pixel[q], self.counts[q]]), axis=1,
-                              return_inverse=True)
+        pair, inv = np.unique(
+            np.stack([self.pixel[q], self.counts[q]]), axis=1, return_inverse=True
+        )
         pix, cnt = pair
         coef = np.zeros((self.coef.shape[0], pix.size))
         for d in np.unique(self.degree[pix]):
@@ -791,8 +865,13 @@ class LogpmfTable:
             rows = np.repeat(px_d, d)
             query_row = (first[:, None] * d + np.arange(d)[None, :]).ravel()
             values = logpmf_rows(
-                np.repeat(cnt[sel], d), query_row, nodes_E, self.em_gain[rows],
-                self.e_per_adu[rows], self.offset[rows], self.read_noise[rows],
+                np.repeat(cnt[sel], d),
+                query_row,
+                nodes_E,
+                self.em_gain[rows],
+                self.e_per_adu[rows],
+                self.offset[rows],
+                self.read_noise[rows],
                 em_model=self.em_model,
             ).reshape(sel.size, d)
             # Chebyshev coefficients from values at first-kind nodes (a DCT-II).
@@ -851,8 +930,8 @@ class LogpmfTable:
             ftt += c * S2
             T0, T1, D0, D1, S0_, S1 = T1, T2, D1, D2, S1, S2
         # Chain rule: t = (x − mid)/half with x = √E or ln E.
-        dx = np.where(lg, 1.0 / Ec, 0.5 / u)                  # dx/dE
-        d2x = np.where(lg, -1.0 / Ec**2, -0.25 / u**3)        # d²x/dE²
+        dx = np.where(lg, 1.0 / Ec, 0.5 / u)  # dx/dE
+        d2x = np.where(lg, -1.0 / Ec**2, -0.25 / u**3)  # d²x/dE²
         d1 = ft / half * dx
         d2 = ftt / half**2 * dx**2 + ft / half * d2x
         return f, d1, d2, outside

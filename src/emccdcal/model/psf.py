@@ -29,8 +29,15 @@ from scipy import ndimage, special
 from .. import defaults
 from ..errors import OptionError
 
-__all__ = ["DEFAULT_WIDTH", "PARAMETERS", "pixel_fractions", "spot_image", "ResidualImage", "BeadSearch",
-           "find_beads"]
+__all__ = [
+    "DEFAULT_WIDTH",
+    "PARAMETERS",
+    "pixel_fractions",
+    "spot_image",
+    "ResidualImage",
+    "BeadSearch",
+    "find_beads",
+]
 
 #: Order of the spot parameters: centre column x0 and row y0 (pixel), width s (pixel),
 #: total signal N and background b per pixel (photoelectrons).
@@ -117,7 +124,8 @@ def spot_image(params, rows, cols, *, jacobian=False):
         [
             nn * py[..., :, None] * dpx_dx[..., None, :],
             nn * dpy_dy[..., :, None] * px[..., None, :],
-            nn * (dpy_ds[..., :, None] * px[..., None, :] + py[..., :, None] * dpx_ds[..., None, :]),
+            nn
+            * (dpy_ds[..., :, None] * px[..., None, :] + py[..., :, None] * dpx_ds[..., None, :]),
             shape,
             np.ones_like(shape),
         ],
@@ -162,21 +170,27 @@ class ResidualImage:
         from scipy.interpolate import RectBivariateSpline
 
         self.values = np.asarray(values, float)
-        if self.values.ndim != 3 or self.values.shape[1] != self.values.shape[2] \
-                or self.values.shape[1] < 4:
-            raise OptionError(f"a residual image is (K, G, G) with G >= 4, got shape "
-                              f"{self.values.shape}")
-        self.variance = (np.zeros_like(self.values) if variance is None
-                         else np.asarray(variance, float))
+        if (
+            self.values.ndim != 3
+            or self.values.shape[1] != self.values.shape[2]
+            or self.values.shape[1] < 4
+        ):
+            raise OptionError(
+                f"a residual image is (K, G, G) with G >= 4, got shape {self.values.shape}"
+            )
+        self.variance = (
+            np.zeros_like(self.values) if variance is None else np.asarray(variance, float)
+        )
         if self.variance.shape != self.values.shape or np.any(self.variance < 0):
-            raise OptionError(f"a residual image's variance is non-negative and of the "
-                              f"values' shape {self.values.shape}, got {self.variance.shape}")
+            raise OptionError(
+                f"a residual image's variance is non-negative and of the "
+                f"values' shape {self.values.shape}, got {self.variance.shape}"
+            )
         self.oversample = int(oversample)
         G = self.values.shape[1]
         self.extent = (G - 1) / 2 / self.oversample  # pixel
         nodes = np.linspace(-self.extent, self.extent, G)
-        self._splines = [RectBivariateSpline(nodes, nodes, v, kx=3, ky=3, s=0)
-                         for v in self.values]
+        self._splines = [RectBivariateSpline(nodes, nodes, v, kx=3, ky=3, s=0) for v in self.values]
 
     def __len__(self):
         return len(self.values)
@@ -228,8 +242,9 @@ class ResidualImage:
             sel = inside[rows]
             coords = (np.stack([dy[rows][sel], dx[rows][sel]]) + self.extent) * self.oversample
             part = np.zeros(sel.shape)
-            part[sel] = map_coordinates(self.variance[k if len(self.variance) > 1 else 0],
-                                        coords, order=1, mode="nearest")
+            part[sel] = map_coordinates(
+                self.variance[k if len(self.variance) > 1 else 0], coords, order=1, mode="nearest"
+            )
             out[rows] = part
         return out
 
@@ -293,7 +308,9 @@ def find_beads(image, *, width=1.0, half_size=4, min_separation=None, snr=8.0):
     threshold = level + snr * noise if noise > 0 else np.inf
     # A 3×3 maximum filter keeps two nearby beads apart; noise maxima on one bead's flank
     # are merged into it below because no dip separates them.
-    peaks = (smooth == ndimage.maximum_filter(smooth, size=3, mode="nearest")) & (smooth > threshold)
+    peaks = (smooth == ndimage.maximum_filter(smooth, size=3, mode="nearest")) & (
+        smooth > threshold
+    )
     cand = np.argwhere(peaks)
     height = smooth[tuple(cand.T)] - level
     keep = np.ones(len(cand), bool)
@@ -315,9 +332,15 @@ def find_beads(image, *, width=1.0, half_size=4, min_separation=None, snr=8.0):
     cand, close = cand[keep], close[keep]
     rows, cols = img.shape
     edge = (
-        (cand[:, 0] < half_size) | (cand[:, 1] < half_size)
-        | (cand[:, 0] >= rows - half_size) | (cand[:, 1] >= cols - half_size)
-    ) if len(cand) else np.zeros(0, bool)
+        (
+            (cand[:, 0] < half_size)
+            | (cand[:, 1] < half_size)
+            | (cand[:, 0] >= rows - half_size)
+            | (cand[:, 1] >= cols - half_size)
+        )
+        if len(cand)
+        else np.zeros(0, bool)
+    )
     return BeadSearch(
         positions=cand[~edge & ~close],
         at_edge=cand[edge],

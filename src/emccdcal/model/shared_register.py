@@ -92,12 +92,24 @@ class SharedRegister:
         pooled rate) ``"ln_rate"``.
     """
 
-    def __init__(self, register, em_gain, e_per_adu, read_noise, *, rate, register_cic=0.0,
-                 per_pixel_rate=False, shared=("ln_gain",)):
+    def __init__(
+        self,
+        register,
+        em_gain,
+        e_per_adu,
+        read_noise,
+        *,
+        rate,
+        register_cic=0.0,
+        per_pixel_rate=False,
+        shared=("ln_gain",),
+    ):
         sigma = np.asarray(read_noise, dtype=float)
         if not np.all(sigma >= MIN_READ_NOISE):
-            raise OptionError(f"a read noise below {MIN_READ_NOISE} ADU "
-                              f"({float(np.min(sigma)):.3g}) is outside the tables' range")
+            raise OptionError(
+                f"a read noise below {MIN_READ_NOISE} ADU "
+                f"({float(np.min(sigma)):.3g}) is outside the tables' range"
+            )
         if register_cic and "register_cic" not in register.parameters:
             raise OptionError("register_cic is a parameter of the exact register only")
         self.register, self.g, self.phi = register, float(em_gain), float(e_per_adu)
@@ -121,8 +133,9 @@ class SharedRegister:
 
     # ------------------------------------------------------------------ the tables
     def _grid_index(self, sigma):
-        return np.rint((np.log(np.asarray(sigma, dtype=float) / self._lo) - _CLASS)
-                       / (2 * _CLASS)).astype(np.intp)
+        return np.rint(
+            (np.log(np.asarray(sigma, dtype=float) / self._lo) - _CLASS) / (2 * _CLASS)
+        ).astype(np.intp)
 
     def covers(self, read_noise) -> bool:
         """Whether these read noises lie within the reference read noises' reach."""
@@ -145,7 +158,9 @@ class SharedRegister:
 
     def _build(self):
         n, h = self.n, self.h
-        band = min(n // 2 + 1, int(math.ceil(_BAND / self.class_sigma[0] * n * h / (2 * math.pi))) + 2)
+        band = min(
+            n // 2 + 1, int(math.ceil(_BAND / self.class_sigma[0] * n * h / (2 * math.pi))) + 2
+        )
         omega = 2.0 * math.pi * np.arange(band) / (n * h)
         v, vbar, v_g, vbar_g = self._transforms(omega)
         E, c = self.E, self.c
@@ -169,14 +184,18 @@ class SharedRegister:
             powers = [np.ones_like(v)]
             for _ in range(m_max):
                 powers.append(powers[-1] * v)
-            spectra["value"] = [powers[m] * e_cv - (-1) ** m * math.exp(-c)
-                                for m in range(m_max + 1)]
+            spectra["value"] = [
+                powers[m] * e_cv - (-1) ** m * math.exp(-c) for m in range(m_max + 1)
+            ]
             if "ln_gain" in self.shared:
-                spectra["ln_gain"] = [(m * powers[m - 1] * v_g if m else 0.0) * e_cv
-                                      + powers[m] * e_cv * c * vbar_g for m in range(m_max + 1)]
+                spectra["ln_gain"] = [
+                    (m * powers[m - 1] * v_g if m else 0.0) * e_cv + powers[m] * e_cv * c * vbar_g
+                    for m in range(m_max + 1)
+                ]
             if "register_cic" in self.shared:
-                spectra["register_cic"] = [powers[m] * vbar * e_cv + (-1) ** m * math.exp(-c)
-                                           for m in range(m_max + 1)]
+                spectra["register_cic"] = [
+                    powers[m] * vbar * e_cv + (-1) ** m * math.exp(-c) for m in range(m_max + 1)
+                ]
         # One table of all: a row per (reference read noise, grid point), a column per
         # series term of every part (its value, then h·∂/∂u), so that each count's
         # interpolation gathers two rows
@@ -208,8 +227,8 @@ class SharedRegister:
         from scipy import fft
 
         gauss = np.exp(-0.5 * (self.class_sigma[:, None] * omega[None, :]) ** 2)
-        powers = (-omega**2)[None, :] ** np.arange(terms)[:, None]
-        spec = (np.broadcast_to(spectrum, omega.shape) * np.exp(-1j * omega * self.u0))
+        powers = (-(omega**2))[None, :] ** np.arange(terms)[:, None]
+        spec = np.broadcast_to(spectrum, omega.shape) * np.exp(-1j * omega * self.u0)
         full = powers[:, None, :] * gauss[None, :, :] * spec[None, None, :]
         f = fft.irfft(np.conj(full), n=self.n, axis=-1) / self.h
         d = fft.irfft(np.conj(full * (-1j * omega)), n=self.n, axis=-1)
@@ -219,11 +238,9 @@ class SharedRegister:
     def coordinates(self) -> tuple[str, ...]:
         """The columns of :meth:`evaluate`'s scores: each pixel's own (offset, ln read
         noise[, ln rate]), then the shared parameters in the order given."""
-        return ("offset", "ln_read_noise") + (("ln_rate",) if self.per_pixel else ()) \
-            + self.shared
+        return ("offset", "ln_read_noise") + (("ln_rate",) if self.per_pixel else ()) + self.shared
 
-    def evaluate(self, values, counts, offset, read_noise, rate=None, *, outer=False,
-                 xp=None):
+    def evaluate(self, values, counts, offset, read_noise, rate=None, *, outer=False, xp=None):
         """Log-likelihood and scores of a block of pixels.
 
         Parameters
@@ -253,7 +270,8 @@ class SharedRegister:
         """
         xp, dev = _xp.engine() if xp is None else xp
         p, columns, low = self._derivatives(
-            self._points(values, offset, read_noise, rate, (xp, dev)), xp)
+            self._points(values, offset, read_noise, rate, (xp, dev)), xp
+        )
         counts = _xp.on(xp, dev, np.asarray(counts, dtype=float))
         scores = xp.where(low[..., None], 0.0, columns / p[..., None])
         weighted = scores * counts[..., None]
@@ -283,9 +301,16 @@ class SharedRegister:
         C = self.class_sigma.size
         at = np.unique(np.r_[np.arange(0, C, _INFO_STRIDE), C - 1])
         host = _xp.resolve("cpu")
-        p, columns, low = self._derivatives(self._points(
-            np.broadcast_to(u, (at.size, u.size)), np.zeros(at.size), self.class_sigma[at],
-            None, host), host[0])
+        p, columns, low = self._derivatives(
+            self._points(
+                np.broadcast_to(u, (at.size, u.size)),
+                np.zeros(at.size),
+                self.class_sigma[at],
+                None,
+                host,
+            ),
+            host[0],
+        )
         w = np.where(low, 0.0, _INFO_STRIDE * self.h / p)
         info = np.matmul(np.swapaxes(columns * w[..., None], 1, 2), columns)
         out = np.empty((C,) + info.shape[1:])
@@ -305,8 +330,10 @@ class SharedRegister:
         rates, with ``per_pixel_rate``); below the tables' round-off (about 1e-17 of the
         events' peak) a value may be 0."""
         at = self._points(values, offset, read_noise, rate, _xp.resolve("cpu"))
-        p = at.A + sum(at.weights[..., k] * at.series(first, terms)[0]
-                       for k, (first, terms) in enumerate(self.parts["value"]))
+        p = at.A + sum(
+            at.weights[..., k] * at.series(first, terms)[0]
+            for k, (first, terms) in enumerate(self.parts["value"])
+        )
         return np.maximum(p, 0.0)
 
     def _points(self, values, offset, read_noise, rate, where):
@@ -320,8 +347,13 @@ class SharedRegister:
         cls = self.classes(sigma)
         delta = 0.5 * (sigma**2 - self.class_sigma[cls] ** 2)[:, None]
         S0, sig, delta, first_row = _xp.on(
-            xp, dev, np.asarray(offset, dtype=float)[:, None], sigma[:, None], delta,
-            (cls * self.n)[:, None].astype(np.int64))
+            xp,
+            dev,
+            np.asarray(offset, dtype=float)[:, None],
+            sigma[:, None],
+            delta,
+            (cls * self.n)[:, None].astype(np.int64),
+        )
         E = self.E if rate is None else _xp.on(xp, dev, np.asarray(rate, dtype=float)[:, None])
         u = _xp.on(xp, dev, np.asarray(values, dtype=float)) - S0
         z = u / sig
@@ -338,8 +370,9 @@ class SharedRegister:
         else:
             weights = xp.ones(tuple(u.shape[:1]) + (1, 1), dtype=xp.float64, device=dev)
         s = xp.astype(xp.where(inside, t - left, 0.0), xp.float32)
-        return _Points(self._table_in(xp, dev), self.Q, row, s, inside, delta, A, z, sig, E,
-                       weights)
+        return _Points(
+            self._table_in(xp, dev), self.Q, row, s, inside, delta, A, z, sig, E, weights
+        )
 
     def _derivatives(self, at, xp):
         """p at the points (floored), the derivatives of p by :meth:`coordinates`
@@ -357,10 +390,12 @@ class SharedRegister:
         floor = _FLOOR * P0 / (math.sqrt(2.0 * math.pi) * sig)
         low = (p < floor) | ~xp.isfinite(p)
         p = xp.where(low, floor, p)
-        columns = [A * z / sig - dB_u / self.h,                   # offset
-                   A * (z * z - 1.0) + sig**2 * dB_delta]          # ln σ
+        columns = [
+            A * z / sig - dB_u / self.h,  # offset
+            A * (z * z - 1.0) + sig**2 * dB_delta,
+        ]  # ln σ
         if self.per_pixel:
-            columns.append(-E * A + dB_rate)                       # ln E_i
+            columns.append(-E * A + dB_rate)  # ln E_i
         for name in self.shared:
             part = 0.0
             for k, (first, terms) in enumerate(self.parts[name]):
@@ -408,6 +443,5 @@ class _Points:
             previous, power = power, power * self.delta / (r + 1)
         out = ~self.inside
         if derivatives:
-            return (xp.where(out, 0.0, val), xp.where(out, 0.0, der),
-                    xp.where(out, 0.0, dd))
+            return (xp.where(out, 0.0, val), xp.where(out, 0.0, der), xp.where(out, 0.0, dd))
         return xp.where(out, 0.0, val), None, None

@@ -38,10 +38,20 @@ def result_layers(ds, *, prefix: str = "") -> list[tuple]:
             metadata[axis[0]] = axis[1]
         # a dimensionless map has no unit in its name: "(1)" reads as napari's numbering
         label = f"{prefix}{name}" + ("" if unit == "1" else f" ({unit})")
-        layers.append((data, {"name": label, "colormap": colormap,
-                              "contrast_limits": limits, "visible": False,
-                              "translate": ((0.0,) if data.ndim == 3 else ()) + origin,
-                              "metadata": metadata}, "image"))
+        layers.append(
+            (
+                data,
+                {
+                    "name": label,
+                    "colormap": colormap,
+                    "contrast_limits": limits,
+                    "visible": False,
+                    "translate": ((0.0,) if data.ndim == 3 else ()) + origin,
+                    "metadata": metadata,
+                },
+                "image",
+            )
+        )
 
     if "e_per_adu" in ds:
         add(ds.e_per_adu.values, "phi", "e-/ADU")
@@ -52,11 +62,17 @@ def result_layers(ds, *, prefix: str = "") -> list[tuple]:
     if "photoelectrons" in ds and ds.photoelectrons.ndim == 2:
         add(ds.photoelectrons.values, "intensity", "e-", "inferno")
     axis = "setpoint" if "setpoint" in ds.dims else "level" if "level" in ds.dims else None
-    for var, unit, colormap in (("offset", "ADU", "gray"), ("read_noise", "ADU", "gray"),
-                                ("gof_pvalue", "1", "cividis")):
+    for var, unit, colormap in (
+        ("offset", "ADU", "gray"),
+        ("read_noise", "ADU", "gray"),
+        ("gof_pvalue", "1", "cividis"),
+    ):
         if var in ds:
-            keys = None if axis not in ds[var].dims else (
-                axis, [float(k) if axis == "setpoint" else str(k) for k in ds[axis].values])
+            keys = (
+                None
+                if axis not in ds[var].dims
+                else (axis, [float(k) if axis == "setpoint" else str(k) for k in ds[axis].values])
+            )
             add(ds[var].values, var, unit, colormap, keys)
     if layers:
         layers[1 if len(layers) > 1 else 0][1]["visible"] = True  # φ, or the first gain

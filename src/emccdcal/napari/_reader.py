@@ -32,11 +32,11 @@ def stack_layer(path: Path) -> tuple:
     from ..data.stacks import load_stack, stack_settings
 
     stack = load_stack(path)
-    frames = da.from_array(stack, chunks=(1,) + tuple(stack.shape[1:]), asarray=True,
-                           name=f"emccdcal-{path}")
+    frames = da.from_array(
+        stack, chunks=(1,) + tuple(stack.shape[1:]), asarray=True, name=f"emccdcal-{path}"
+    )
     settings = stack_settings(path, setpoint_from_name=True)
-    metadata = {"emccdcal_path": str(path), "units": "ADU (raw counts)",
-                "camera": settings.known()}
+    metadata = {"emccdcal_path": str(path), "units": "ADU (raw counts)", "camera": settings.known()}
     kwargs = {"name": path.name, "metadata": metadata}
     # where the file records its region of the sensor, the layer lies there (in sensor
     # pixels: a binned pixel spans its bins)

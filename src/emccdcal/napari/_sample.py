@@ -21,13 +21,23 @@ def gain_series(folder=None, *, seed: int = 7) -> list[tuple]:
     from ..simulate.series import simulate_gain_series
     from ._reader import stack_layer
 
-    folder = Path(folder) if folder is not None else Path(
-        tempfile.mkdtemp(prefix="emccdcal-sample-"))
-    sim = simulate_gain_series(folder / "gain-series", rows=SIZE, cols=SIZE, frames=FRAMES,
-                               dark_frames=FRAMES, cic=CIC, seed=seed, progress=False)
+    folder = (
+        Path(folder) if folder is not None else Path(tempfile.mkdtemp(prefix="emccdcal-sample-"))
+    )
+    sim = simulate_gain_series(
+        folder / "gain-series",
+        rows=SIZE,
+        cols=SIZE,
+        frames=FRAMES,
+        dark_frames=FRAMES,
+        cic=CIC,
+        seed=seed,
+        progress=False,
+    )
     layers = []
-    for path in sorted((sim.outdir / "gain-GS").glob("*x-gain.tif"),
-                       key=lambda p: float(p.name.split("x-")[0])):
+    for path in sorted(
+        (sim.outdir / "gain-GS").glob("*x-gain.tif"), key=lambda p: float(p.name.split("x-")[0])
+    ):
         data, kwargs, kind = stack_layer(path)
         kwargs["metadata"]["emccdcal_manifest"] = str(sim.manifest)
         layers.append((data, kwargs, kind))

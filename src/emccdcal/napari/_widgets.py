@@ -16,8 +16,18 @@ import threading
 import warnings
 from pathlib import Path
 
-from magicgui.widgets import (CheckBox, ComboBox, Container, FileEdit, Label, LineEdit,
-                              ProgressBar, PushButton, TextEdit, create_widget)
+from magicgui.widgets import (
+    CheckBox,
+    ComboBox,
+    Container,
+    FileEdit,
+    Label,
+    LineEdit,
+    ProgressBar,
+    PushButton,
+    TextEdit,
+    create_widget,
+)
 from qtpy.QtCore import QObject, QTimer, Signal
 
 from .._output import atomic_write_text
@@ -78,8 +88,7 @@ class _Job:
         self.bar.value, self.status.value = 0, f"{what}…"
         self.cancel_button.enabled = True
         # (an errored handler of our own: napari's default re-raises in the viewer)
-        self.worker = create_worker(run, _start_thread=False,
-                                    _connect={"errored": self._failed})
+        self.worker = create_worker(run, _start_thread=False, _connect={"errored": self._failed})
         self.worker.returned.connect(returned)
         self.worker.finished.connect(lambda: setattr(self.cancel_button, "enabled", False))
         self.worker.start()
@@ -103,20 +112,24 @@ def _status_line(**kw):
 def _reporting(widget, action):
     """A button's handler: ``action()``, an error a user can cause shown on the widget's
     status line (one line, as the command line prints it)."""
+
     def run(*_):
         try:
             with spelling(FIELD_NAMES):
                 action()
         except EmccdcalError as exc:
             widget.status.value = f"error: {exc}"
+
     return run
 
 
 #: The command line's options as the widgets name them, for the library's messages.
-FIELD_NAMES = {"--setpoint G": "the set-point in the 'set-point' field",
-               "--setpoint": "the 'set-point' field",
-               "--accept-mismatch": "(on the command line) --accept-mismatch",
-               "--e-per-adu": "the 'e-/ADU' field"}
+FIELD_NAMES = {
+    "--setpoint G": "the set-point in the 'set-point' field",
+    "--setpoint": "the 'set-point' field",
+    "--accept-mismatch": "(on the command line) --accept-mismatch",
+    "--e-per-adu": "the 'e-/ADU' field",
+}
 
 
 def _field_path(field, what: str) -> Path:
@@ -156,8 +169,9 @@ class CalibrateWidget(Container):
         self.found = TextEdit(label="found", value="")
         self.found.native.setReadOnly(True)
         self.method = ComboBox(label="method", choices=list(METHODS), value="gs")
-        self.em_model = ComboBox(label="register", choices=list(plugins.names(plugins.REGISTERS)),
-                                 value=DEFAULT_EM_MODEL)
+        self.em_model = ComboBox(
+            label="register", choices=list(plugins.names(plugins.REGISTERS)), value=DEFAULT_EM_MODEL
+        )
         self.stages = LineEdit(label="stages", value="")
         self.e_per_adu = LineEdit(label="e-/ADU (or a result)", value="")
         self.out = FileEdit(label="output folder", mode="d")
@@ -168,15 +182,32 @@ class CalibrateWidget(Container):
         self.warnings = TextEdit(label="warnings", value="")
         self.warnings.native.setReadOnly(True)
         self.report_button = PushButton(text="Write the report")
-        self.tool = ComboBox(label="export to", choices=list(plugins.names(plugins.TOOLS)),
-                             value="picasso")
+        self.tool = ComboBox(
+            label="export to", choices=list(plugins.names(plugins.TOOLS)), value="picasso"
+        )
         self.setpoint = LineEdit(label="set-point", value="")
         self.export_button = PushButton(text="Export")
-        super().__init__(widgets=[
-            self.source, self.scan_button, self.found, self.method, self.em_model,
-            self.stages, self.e_per_adu, self.out, self.run_button, self.cancel_button,
-            self.bar, self.status, self.warnings, self.report_button, self.tool,
-            self.setpoint, self.export_button])
+        super().__init__(
+            widgets=[
+                self.source,
+                self.scan_button,
+                self.found,
+                self.method,
+                self.em_model,
+                self.stages,
+                self.e_per_adu,
+                self.out,
+                self.run_button,
+                self.cancel_button,
+                self.bar,
+                self.status,
+                self.warnings,
+                self.report_button,
+                self.tool,
+                self.setpoint,
+                self.export_button,
+            ]
+        )
         self._likelihood = set(LIKELIHOOD_METHODS)
         self.job = _Job(self, self.bar, self.status, self.cancel_button)
         self.result = None  # the result's folder, once a run completed
@@ -201,8 +232,7 @@ class CalibrateWidget(Container):
             return source
         session = scan(source)
         path = out / "manifest.toml"
-        self._write(path, [source], lambda: atomic_write_text(path, manifest_text(session,
-                                                                                  path)))
+        self._write(path, [source], lambda: atomic_write_text(path, manifest_text(session, path)))
         return path
 
     def _out(self) -> Path:
@@ -231,10 +261,13 @@ class CalibrateWidget(Container):
         source = _field_path(self.source, "a folder of camera files or a manifest")
         if source.is_file():
             m = read_manifest(source)
-            lines = [f"manifest: {len(m.acquisitions)} acquisition(s), {m.shape[0]} × "
-                     f"{m.shape[1]} px"]
-            lines += [f"  {a.frames_path.name}: set-point {a.em_gain_setpoint:g}, "
-                      f"{a.n_frames} frames" for a in m.acquisitions]
+            lines = [
+                f"manifest: {len(m.acquisitions)} acquisition(s), {m.shape[0]} × {m.shape[1]} px"
+            ]
+            lines += [
+                f"  {a.frames_path.name}: set-point {a.em_gain_setpoint:g}, {a.n_frames} frames"
+                for a in m.acquisitions
+            ]
         else:
             lines = scan(source).summary()
         self.found.value = "\n".join(lines)
@@ -250,22 +283,29 @@ class CalibrateWidget(Container):
         options = {}
         if method in self._likelihood:
             stages = self.stages.value.strip()
-            options = {"em_model": self.em_model.value,
-                       "stages": int(stages) if stages else None}
+            options = {"em_model": self.em_model.value, "stages": int(stages) if stages else None}
         phi = self.e_per_adu.value.strip()
         e_per_adu = None if not phi else (float(phi) if _is_number(phi) else Path(phi))
 
         def work():
-            return calibrate(manifest, method, out=out, e_per_adu=e_per_adu,
-                             progress=self.job.progress, **options)
+            return calibrate(
+                manifest,
+                method,
+                out=out,
+                e_per_adu=e_per_adu,
+                progress=self.job.progress,
+                **options,
+            )
 
         return self.job.start(work, self._done, f"calibrating ({method})")
 
     def _done(self, ds, caught):
         self.result = Path(self.out.value) / "result"
         self.warnings.value = "\n".join(caught)
-        status = (f"done: {int(ds.converged.sum())} of {ds.converged.size} pixels converged; "
-                  f"{self.result}")
+        status = (
+            f"done: {int(ds.converged.sum())} of {ds.converged.size} pixels converged; "
+            f"{self.result}"
+        )
         if self.viewer is None:
             self.status.value = status
             return
@@ -307,8 +347,12 @@ class CalibrateWidget(Container):
         setpoint = _optional_float(self.setpoint.value, "set-point")
         result = self._need_result()
         out = result.parent / f"export-{self.tool.value}"
-        files = self._write(out, [result], lambda: export(result, self.tool.value, out,
-                                                          setpoint=setpoint), kind="folder")
+        files = self._write(
+            out,
+            [result],
+            lambda: export(result, self.tool.value, out, setpoint=setpoint),
+            kind="folder",
+        )
         self.status.value = "wrote " + ", ".join(str(f) for f in files)
 
 
@@ -373,8 +417,18 @@ class ApplyWidget(Container):
         self.qe = LineEdit(label="QE (photons)", value="")
         self.button = PushButton(text="Convert")
         self.status = _status_line()
-        super().__init__(widgets=[self.layer, self.result, self.camera, self.db,
-                                  self.setpoint, self.qe, self.button, self.status])
+        super().__init__(
+            widgets=[
+                self.layer,
+                self.result,
+                self.camera,
+                self.db,
+                self.setpoint,
+                self.qe,
+                self.button,
+                self.status,
+            ]
+        )
         self.button.changed.connect(_reporting(self, self.convert))
 
     def convert(self):
@@ -382,22 +436,32 @@ class ApplyWidget(Container):
         from ..export.movie import conversion
 
         layer, settings, given, setpoint = _chosen(self, "an image layer of raw counts")
-        cal = _calibration(self.result.line_edit.value, self.camera.value, self.db.value,
-                           setpoint)
+        cal = _calibration(self.result.line_edit.value, self.camera.value, self.db.value, setpoint)
         data = layer.data
         shape = tuple(int(v) for v in data.shape)
         if len(shape) == 2:
             data, shape = data[None], (1,) + shape
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            convert = conversion(cal, layer.name, settings, shape, setpoint=given,
-                                 qe=_optional_float(self.qe.value, "QE"))
+            convert = conversion(
+                cal,
+                layer.name,
+                settings,
+                shape,
+                setpoint=given,
+                qe=_optional_float(self.qe.value, "QE"),
+            )
         unit = "photons" if "qe" in convert.meta else "e-"
-        out = self.viewer.add_image(convert(data), name=f"{layer.name} ({unit})",
-                                    translate=layer.translate, colormap="inferno",
-                                    metadata={"units": convert.meta["units"],
-                                              "emccdcal": json.loads(json.dumps(
-                                                  convert.meta, default=str))})
+        out = self.viewer.add_image(
+            convert(data),
+            name=f"{layer.name} ({unit})",
+            translate=layer.translate,
+            colormap="inferno",
+            metadata={
+                "units": convert.meta["units"],
+                "emccdcal": json.loads(json.dumps(convert.meta, default=str)),
+            },
+        )
         self.status.value = "; ".join([f"added '{out.name}'"] + [str(w.message) for w in caught])
         return out
 
@@ -423,9 +487,21 @@ class GainCheckWidget(Container):
         self.status = _status_line()
         self.answer = TextEdit(label="result", value="")
         self.answer.native.setReadOnly(True)
-        super().__init__(widgets=[self.layer, self.result, self.e_per_adu, self.setpoint,
-                                  self.region, self.fit_cic, self.button,
-                                  self.cancel_button, self.bar, self.status, self.answer])
+        super().__init__(
+            widgets=[
+                self.layer,
+                self.result,
+                self.e_per_adu,
+                self.setpoint,
+                self.region,
+                self.fit_cic,
+                self.button,
+                self.cancel_button,
+                self.bar,
+                self.status,
+                self.answer,
+            ]
+        )
         self.job = _Job(self, self.bar, self.status, self.cancel_button)
         self.button.changed.connect(_reporting(self, self.run))
 
@@ -441,11 +517,17 @@ class GainCheckWidget(Container):
         result = self.result.line_edit.value.strip()
         cal = load_calibration(result) if result not in ("", ".") else None
         if cal is not None and setpoint is None:
-            raise OptionError(f"{layer.name}: the layer records no set-point: type it in "
-                              "the 'set-point' field to compare with the calibration")
-        identity.check(None if cal is None else cal.identity(), [(layer.name, settings)],
-                       label="" if cal is None else cal.label, setpoint=setpoint,
-                       what="dark frames")
+            raise OptionError(
+                f"{layer.name}: the layer records no set-point: type it in "
+                "the 'set-point' field to compare with the calibration"
+            )
+        identity.check(
+            None if cal is None else cal.identity(),
+            [(layer.name, settings)],
+            label="" if cal is None else cal.label,
+            setpoint=setpoint,
+            what="dark frames",
+        )
         phi = _optional_float(self.e_per_adu.value, "e-/ADU")
         if phi is None:
             if cal is None:
@@ -456,10 +538,15 @@ class GainCheckWidget(Container):
         bits = settings.adc_bits
 
         def work():
-            check = check_gain([data], phi, setpoint=setpoint, region=region,
-                               fit_register_cic=self.fit_cic.value,
-                               adc_max=2**bits - 1 if bits else None,
-                               progress_bars=self.job.progress)
+            check = check_gain(
+                [data],
+                phi,
+                setpoint=setpoint,
+                region=region,
+                fit_register_cic=self.fit_cic.value,
+                adc_max=2**bits - 1 if bits else None,
+                progress_bars=self.job.progress,
+            )
             return check, (compare(check, cal) if cal is not None and setpoint else None)
 
         def done(out, caught):

@@ -64,8 +64,10 @@ def corner_figure(ds, pixel=0):
                 ax.set_yticklabels([])
             ax.tick_params(labelsize=6)
     r, c = int(ds.row.values[pixel]), int(ds.col.values[pixel])
-    fig.suptitle(f"{ds.attrs['method']} pixel ({r}, {c}): {n} draws; blue: median and 68 %, "
-                 "red: MLE ± SE", fontsize=9)
+    fig.suptitle(
+        f"{ds.attrs['method']} pixel ({r}, {c}): {n} draws; blue: median and 68 %, red: MLE ± SE",
+        fontsize=9,
+    )
     fig.tight_layout()
     return fig
 

@@ -93,9 +93,19 @@ def _grid(nrows, ncols, size, *, gap=(0.85, 0.95), margins=(0.8, 0.3, 0.65, 0.55
         W = _MIN_WIDTH
     H = top + bottom + nrows * h + (nrows - 1) * gh
     fig = Figure(figsize=(W, H))
-    axes = fig.subplots(nrows, ncols, squeeze=False, gridspec_kw=dict(
-        left=left / W, right=1 - right / W, bottom=bottom / H, top=1 - top / H,
-        wspace=gw / w, hspace=gh / h))
+    axes = fig.subplots(
+        nrows,
+        ncols,
+        squeeze=False,
+        gridspec_kw=dict(
+            left=left / W,
+            right=1 - right / W,
+            bottom=bottom / H,
+            top=1 - top / H,
+            wspace=gw / w,
+            hspace=gh / h,
+        ),
+    )
     return fig, axes
 
 
@@ -207,19 +217,24 @@ def _manifest_of(ds, manifest=None):
     method = ds.attrs.get("method", "?")
     text = str(manifest) if manifest is not None else str(ds.attrs.get("manifest_path", ""))
     if not text:
-        raise DataUnavailable(f"the {method} result records no manifest path, so its raw data "
-                              "cannot be found")
+        raise DataUnavailable(
+            f"the {method} result records no manifest path, so its raw data cannot be found"
+        )
     path = Path(text)
     if not path.is_file():
-        raise DataUnavailable(f"{path}: manifest of the {method} result not found (moved or "
-                              "deleted?); the raw data cannot be read")
+        raise DataUnavailable(
+            f"{path}: manifest of the {method} result not found (moved or "
+            "deleted?); the raw data cannot be read"
+        )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # already reported by the calibration
         m = read_manifest(path)
     want = str(ds.attrs.get("manifest_sha256", ""))
     if want and m.content_hash != want:
-        raise DataUnavailable(f"{path}: manifest has changed since the {method} calibration "
-                              f"(SHA-256 {m.content_hash[:12]}… ≠ {want[:12]}…)")
+        raise DataUnavailable(
+            f"{path}: manifest has changed since the {method} calibration "
+            f"(SHA-256 {m.content_hash[:12]}… ≠ {want[:12]}…)"
+        )
     return m
 
 
@@ -228,28 +243,43 @@ def _pixel_series(ds, pixel, manifest=None):
     m = _manifest_of(ds, manifest)
     r, c = pixel
     if r not in ds["row"].values or c not in ds["col"].values:
-        raise OptionError(f"pixel ({r}, {c}) is not in the result (rows {int(ds.row[0])}–"
-                         f"{int(ds.row[-1])}, cols {int(ds.col[0])}–{int(ds.col[-1])})")
+        raise OptionError(
+            f"pixel ({r}, {c}) is not in the result (rows {int(ds.row[0])}–"
+            f"{int(ds.row[-1])}, cols {int(ds.col[0])}–{int(ds.col[-1])})"
+        )
     out = []
     for acq in m.acquisitions:
         label = acq.level if acq.level is not None else acq.name
         sp = float(acq.em_gain_setpoint)
-        params = {k: _pick(ds, k, label, sp, r, c)
-                  for k in ("photoelectrons", "em_gain", "e_per_adu")}
+        params = {
+            k: _pick(ds, k, label, sp, r, c) for k in ("photoelectrons", "em_gain", "e_per_adu")
+        }
         if any(v is None for v in params.values()):
             continue  # an acquisition the method did not use (e.g. 1× for gs-no1x)
-        h = stats.histograms(acq.frames()[:, r:r + 1, c:c + 1], adc_max=m.adc_max)
+        h = stats.histograms(acq.frames()[:, r : r + 1, c : c + 1], adc_max=m.adc_max)
         if h.n[0] < 2:
             continue  # every frame saturated: nothing to show
         keep = h.counts[0] > 0
         gof = _pick(ds, "gof_pvalue", label, sp, r, c)
-        out.append(_PixelAcq(acq.name, sp, h.values[0][keep], h.counts[0][keep], int(h.n[0]),
-                             float(h.mean[0]), float(h.var[0]), float(acq.offset[r, c]),
-                             float(acq.read_noise[r, c]), params,
-                             np.nan if gof is None else gof))
+        out.append(
+            _PixelAcq(
+                acq.name,
+                sp,
+                h.values[0][keep],
+                h.counts[0][keep],
+                int(h.n[0]),
+                float(h.mean[0]),
+                float(h.var[0]),
+                float(acq.offset[r, c]),
+                float(acq.read_noise[r, c]),
+                params,
+                np.nan if gof is None else gof,
+            )
+        )
     if not out:
-        raise DataUnavailable(f"{m.path}: no acquisition of the manifest matches the "
-                              f"{ds.attrs.get('method')} result")
+        raise DataUnavailable(
+            f"{m.path}: no acquisition of the manifest matches the {ds.attrs.get('method')} result"
+        )
     return out
 
 
@@ -262,8 +292,9 @@ def _model_pmf(a, k, model):
     """The fitted pmf of acquisition ``a`` at integer counts ``k``, or None if unusable."""
     p = a.params
     try:
-        return noise.pmf(k, p["photoelectrons"], p["em_gain"], p["e_per_adu"], a.offset,
-                         a.read_noise, **model)
+        return noise.pmf(
+            k, p["photoelectrons"], p["em_gain"], p["e_per_adu"], a.offset, a.read_noise, **model
+        )
     except ValueError:  # NaN or out-of-range estimates (a pixel that did not converge)
         return None
 
@@ -315,8 +346,14 @@ def histogram_figure(ds, pixel=None, *, log=False, manifest=None, max_bins=80):
         nb = (hi - lo) // w + 1
         binned = np.bincount((a.values - lo) // w, weights=a.counts, minlength=nb)
         edges = lo - 0.5 + w * np.arange(nb + 1)
-        ax.stairs(binned / (a.n * w), edges, fill=True, alpha=0.45, color="C0",
-                  label=f"data ({a.n} frames)")
+        ax.stairs(
+            binned / (a.n * w),
+            edges,
+            fill=True,
+            alpha=0.45,
+            color="C0",
+            label=f"data ({a.n} frames)",
+        )
         pad = 0.1 * (hi - lo + 1)
         k = np.unique(np.linspace(max(0, lo - pad), hi + pad, 1500).round().astype(np.int64))
         p = _model_pmf(a, k, _em_model(ds))
@@ -332,8 +369,11 @@ def histogram_figure(ds, pixel=None, *, log=False, manifest=None, max_bins=80):
             ax.set_yscale("log")
             ax.set_ylim(bottom=0.3 / (a.n * w))
         ax.legend(fontsize=7)
-    fig.suptitle(f"{ds.attrs.get('method')}: counts of pixel (row {pixel[0]}, col {pixel[1]}) "
-                 f"with the fitted pmf{' (log scale)' if log else ''}", fontsize=11)
+    fig.suptitle(
+        f"{ds.attrs.get('method')}: counts of pixel (row {pixel[0]}, col {pixel[1]}) "
+        f"with the fitted pmf{' (log scale)' if log else ''}",
+        fontsize=11,
+    )
     return fig
 
 
@@ -389,31 +429,47 @@ def photon_transfer_figure(ds, pixel=None, *, manifest=None):
         slope = None
         try:
             if s == 1.0:
-                f = mv.fit_mv_adu(mean[sel, None], var[sel, None], s0[sel, None],
-                                  sig[sel, None], n[sel])
+                f = mv.fit_mv_adu(
+                    mean[sel, None], var[sel, None], s0[sel, None], sig[sel, None], n[sel]
+                )
                 slope = 1.0 / float(f.e_per_adu[0])
-                label += (f": mean–variance φ = {float(f.e_per_adu[0]):.4g} ± "
-                          f"{float(f.e_per_adu_se[0]):.2g} e⁻/ADU")
+                label += (
+                    f": mean–variance φ = {float(f.e_per_adu[0]):.4g} ± "
+                    f"{float(f.e_per_adu_se[0]):.2g} e⁻/ADU"
+                )
             elif np.isfinite(phi):
-                f = mv.fit_mv_gain(mean[sel, None], var[sel, None], s0[sel, None],
-                                   sig[sel, None], n[sel], phi, sp[sel])
+                f = mv.fit_mv_gain(
+                    mean[sel, None],
+                    var[sel, None],
+                    s0[sel, None],
+                    sig[sel, None],
+                    n[sel],
+                    phi,
+                    sp[sel],
+                )
                 g = float(f.em_gain[0, 0])
                 slope = 2.0 * g / phi
                 label += f": mean–variance g = {g:.4g} ± {float(f.em_gain_se[0, 0]):.2g}"
         except ValueError:  # no signal above the offset: no line
             pass
         color = f"C{j % 10}"
-        ax.errorbar(xs, ys, xerr=np.sqrt(var[sel] / n[sel]),
-                    yerr=np.sqrt(2 * var[sel] ** 2 / (n[sel] - 1)), fmt="o", ms=4,
-                    color=color, label=label)
+        ax.errorbar(
+            xs,
+            ys,
+            xerr=np.sqrt(var[sel] / n[sel]),
+            yerr=np.sqrt(2 * var[sel] ** 2 / (n[sel] - 1)),
+            fmt="o",
+            ms=4,
+            color=color,
+            label=label,
+        )
         span = np.array([0.7 * xs.min(), 1.4 * xs.max()])
         if slope is not None and np.isfinite(slope):
             ax.plot(span, slope * span, color=color, lw=1.2)
         p = series[np.flatnonzero(sel)[0]].params
         args = (p["photoelectrons"], p["em_gain"], p["e_per_adu"], 0.0, 1.0)  # S0 0, σ 1 ADU
         try:
-            model = ((float(noise.variance(*args, **_em_model(ds))) - 1.0)
-                     / float(noise.mean(*args)))
+            model = (float(noise.variance(*args, **_em_model(ds))) - 1.0) / float(noise.mean(*args))
         except (ValueError, ZeroDivisionError):  # NaN or out-of-range estimates
             model = np.nan
         if np.isfinite(model):
@@ -423,12 +479,20 @@ def photon_transfer_figure(ds, pixel=None, *, manifest=None):
         ax.set_yscale("log")
     ax.plot([], [], color="0.3", lw=1.2, label="solid: mean–variance fit")
     fitted = f" (φ = {phi:.4g} e⁻/ADU)" if _estimated_phi(ds) else ""
-    ax.plot([], [], color="0.3", lw=1.2, ls="--",
-            label=f"dashed: slope of the {ds.attrs.get('method')} fit{fitted}")
+    ax.plot(
+        [],
+        [],
+        color="0.3",
+        lw=1.2,
+        ls="--",
+        label=f"dashed: slope of the {ds.attrs.get('method')} fit{fitted}",
+    )
     ax.set_xlabel("offset-subtracted mean ⟨S⟩ − S0 (ADU)")
     ax.set_ylabel("variance above read noise Var(S) − σ² (ADU²)")
-    ax.set_title(f"{ds.attrs.get('method')}: photon transfer of pixel (row {pixel[0]}, "
-                 f"col {pixel[1]})", fontsize=10)
+    ax.set_title(
+        f"{ds.attrs.get('method')}: photon transfer of pixel (row {pixel[0]}, col {pixel[1]})",
+        fontsize=10,
+    )
     ax.legend(fontsize=7)
     return fig
 
@@ -463,15 +527,22 @@ def estimates_figure(results, *, labels=None):
     results = list(results)
     labels = _labels(results, labels)
     panels = []  # (title, xlabel, setpoint or None, [(label, values)])
-    phis = [(lab, _converged_values(ds["e_per_adu"], _conv(ds)))
-            for lab, ds in zip(labels, results) if _estimated_phi(ds)]
+    phis = [
+        (lab, _converged_values(ds["e_per_adu"], _conv(ds)))
+        for lab, ds in zip(labels, results)
+        if _estimated_phi(ds)
+    ]
     if phis:
         panels.append(("ADU conversion factor φ", f"φ ({E_UNIT}/ADU)", None, phis))
     for s in sorted({s for ds in results for s in _gain_setpoints(ds)}):
-        vals = [(lab, _converged_values(ds["em_gain"].sel(setpoint=s), _conv(ds)))
-                for lab, ds in zip(labels, results) if s in _gain_setpoints(ds)]
-        panels.append((f"EM gain at set-point {format_setpoint(s)}×",
-                       f"true EM gain g {DIMLESS}", s, vals))
+        vals = [
+            (lab, _converged_values(ds["em_gain"].sel(setpoint=s), _conv(ds)))
+            for lab, ds in zip(labels, results)
+            if s in _gain_setpoints(ds)
+        ]
+        panels.append(
+            (f"EM gain at set-point {format_setpoint(s)}×", f"true EM gain g {DIMLESS}", s, vals)
+        )
     if not panels:
         raise DataUnavailable("no result fitted φ or an EM gain: no distributions to show")
     fig, axes = _panels(len(panels), 3)
@@ -484,9 +555,18 @@ def estimates_figure(results, *, labels=None):
             lo, hi = every.min(), every.max()
             edges = np.linspace(lo, hi, nb + 1) if hi > lo else np.array([lo - 0.5, hi + 0.5])
             for j, (lab, v) in enumerate(vals):  # line styles keep coinciding results visible
-                ax.hist(v, bins=edges, histtype="step", lw=1.6, color=f"C{j % 10}",
-                        ls=("-", "--", "-.", ":")[j % 4], label=f"{lab} (n = {v.size})")
-            if s is not None and lo - 0.5 * (hi - lo + 0.1 * hi) <= s <= hi + 0.5 * (hi - lo + 0.1 * hi):
+                ax.hist(
+                    v,
+                    bins=edges,
+                    histtype="step",
+                    lw=1.6,
+                    color=f"C{j % 10}",
+                    ls=("-", "--", "-.", ":")[j % 4],
+                    label=f"{lab} (n = {v.size})",
+                )
+            if s is not None and lo - 0.5 * (hi - lo + 0.1 * hi) <= s <= hi + 0.5 * (
+                hi - lo + 0.1 * hi
+            ):
                 ax.axvline(s, color="k", ls=":", lw=1.2, label=f"set-point {format_setpoint(s)}×")
         ax.set_title(title, fontsize=9)
         ax.set_xlabel(xlabel)
@@ -525,24 +605,53 @@ def maps_figure(ds):
     """
     conv = _conv(ds)
     phi_title = "φ" + ("" if _estimated_phi(ds) else " (given, not fitted)")
-    rows = [[(phi_title, ds["e_per_adu"].transpose("row", "col").values,
-              f"φ ({E_UNIT}/ADU)", "viridis", None),
-             (f"converged: {int(conv.sum())}/{conv.size}", conv.astype(float),
-              "converged (1 = yes)", "RdYlGn", (0, 1))]]
+    rows = [
+        [
+            (
+                phi_title,
+                ds["e_per_adu"].transpose("row", "col").values,
+                f"φ ({E_UNIT}/ADU)",
+                "viridis",
+                None,
+            ),
+            (
+                f"converged: {int(conv.sum())}/{conv.size}",
+                conv.astype(float),
+                "converged (1 = yes)",
+                "RdYlGn",
+                (0, 1),
+            ),
+        ]
+    ]
     if _gain_setpoints(ds):
-        rows.append([(f"g at {format_setpoint(s)}×",
-                      ds["em_gain"].sel(setpoint=s).transpose("row", "col").values,
-                      f"g {DIMLESS}", "viridis", None) for s in _gain_setpoints(ds)])
-    for var, name, unit, cmap in (("offset", "offset S0", "S0 (ADU)", "cividis"),
-                                  ("read_noise", "read noise σ", "σ (ADU)", "cividis")):
+        rows.append(
+            [
+                (
+                    f"g at {format_setpoint(s)}×",
+                    ds["em_gain"].sel(setpoint=s).transpose("row", "col").values,
+                    f"g {DIMLESS}",
+                    "viridis",
+                    None,
+                )
+                for s in _gain_setpoints(ds)
+            ]
+        )
+    for var, name, unit, cmap in (
+        ("offset", "offset S0", "S0 (ADU)", "cividis"),
+        ("read_noise", "read noise σ", "σ (ADU)", "cividis"),
+    ):
         if var in ds:
             maps = _acq_maps(ds, var)
             if all(np.array_equal(a, maps[0][1], equal_nan=True) for _, a in maps):
                 maps = [("every acquisition", maps[0][1])]  # one dark for all (1× series)
             rows.append([(f"{name}, {t}", a, unit, cmap, None) for t, a in maps])
     if "gof_pvalue" in ds:
-        rows.append([(f"gof p-value, {t}", a, f"p {DIMLESS}", "magma", (0, 1))
-                     for t, a in _acq_maps(ds, "gof_pvalue")])
+        rows.append(
+            [
+                (f"gof p-value, {t}", a, f"p {DIMLESS}", "magma", (0, 1))
+                for t, a in _acq_maps(ds, "gof_pvalue")
+            ]
+        )
     ncols = max(len(r) for r in rows)
     packed = []  # short rows share a line
     for r in rows:
@@ -551,8 +660,9 @@ def maps_figure(ds):
         else:
             packed.append(r)
     rows = packed
-    fig, axes = _grid(len(rows), ncols, (2.2, 2.0), gap=(1.35, 0.75),
-                      margins=(0.8, 1.0, 0.65, 0.55))
+    fig, axes = _grid(
+        len(rows), ncols, (2.2, 2.0), gap=(1.35, 0.75), margins=(0.8, 1.0, 0.65, 0.55)
+    )
     r0, r1 = int(ds.row[0]), int(ds.row[-1])
     c0, c1 = int(ds.col[0]), int(ds.col[-1])
     for i, row in enumerate(rows):
@@ -563,9 +673,14 @@ def maps_figure(ds):
                 continue
             title, arr, unit, cmap, lim = row[j]
             vmin, vmax = lim if lim else (None, None)
-            im = ax.imshow(np.asarray(arr, dtype=float), cmap=cmap, vmin=vmin, vmax=vmax,
-                           extent=(c0 - 0.5, c1 + 0.5, r1 + 0.5, r0 - 0.5),
-                           interpolation="nearest")
+            im = ax.imshow(
+                np.asarray(arr, dtype=float),
+                cmap=cmap,
+                vmin=vmin,
+                vmax=vmax,
+                extent=(c0 - 0.5, c1 + 0.5, r1 + 0.5, r0 - 0.5),
+                interpolation="nearest",
+            )
             fig.colorbar(im, ax=ax, label=unit, shrink=0.9)
             ax.set_title(title, fontsize=9)
             ax.set_xlabel("column (px)", fontsize=8)
@@ -599,8 +714,11 @@ def gain_points(ds):
         v = _converged_values(ds[var].sel(setpoint=s), conv)
         return np.median(v) if v.size else np.nan
 
-    return (sp, np.array([median("em_gain", s) for s in sp]),
-            np.array([median("em_gain_se", s) for s in sp]))
+    return (
+        sp,
+        np.array([median("em_gain", s) for s in sp]),
+        np.array([median("em_gain_se", s) for s in sp]),
+    )
 
 
 def gain_figure(results, *, labels=None):
@@ -684,21 +802,50 @@ def gain_curve_figure(curve, *, predict=()):
     pred = [float(s) for s in predict]
     grid = np.geomspace(min([lo / 1.5, *pred]), max([hi * 1.5, *pred]), 200)
     p = curve.predict(grid)
-    ax.fill_between(grid, p["lower"], p["upper"], color="C0", alpha=0.25, lw=0,
-                    label="95 % band")
-    ax.plot(grid, p["gain"], color="C0", lw=1.2,
-            label=f"curve (degree {curve.degree} in ln set-point)")
-    ax.errorbar(curve.setpoints, curve.gains, yerr=curve.gain_se, fmt="o", ms=4, capsize=3,
-                color="k", label="measured (median over pixels)")
+    ax.fill_between(grid, p["lower"], p["upper"], color="C0", alpha=0.25, lw=0, label="95 % band")
+    ax.plot(
+        grid, p["gain"], color="C0", lw=1.2, label=f"curve (degree {curve.degree} in ln set-point)"
+    )
+    ax.errorbar(
+        curve.setpoints,
+        curve.gains,
+        yerr=curve.gain_se,
+        fmt="o",
+        ms=4,
+        capsize=3,
+        color="k",
+        label="measured (median over pixels)",
+    )
     if pred:
         q = curve.predict(pred)
-        ax.errorbar(q["setpoint"], q["gain"], yerr=1.96 * q["se_of_median"], fmt="s", ms=4, capsize=3,
-                    color="C3", label="predicted (95 %)")
+        ax.errorbar(
+            q["setpoint"],
+            q["gain"],
+            yerr=1.96 * q["se_of_median"],
+            fmt="s",
+            ms=4,
+            capsize=3,
+            color="C3",
+            label="predicted (95 %)",
+        )
     at = curve.predict(curve.setpoints)
-    ax2.errorbar(curve.setpoints, 100 * (curve.gains / at["gain"] - 1),
-                 yerr=100 * curve.gain_se / at["gain"], fmt="o", ms=4, capsize=3, color="k")
-    ax2.fill_between(grid, 100 * (p["lower"] / p["gain"] - 1),
-                     100 * (p["upper"] / p["gain"] - 1), color="C0", alpha=0.25, lw=0)
+    ax2.errorbar(
+        curve.setpoints,
+        100 * (curve.gains / at["gain"] - 1),
+        yerr=100 * curve.gain_se / at["gain"],
+        fmt="o",
+        ms=4,
+        capsize=3,
+        color="k",
+    )
+    ax2.fill_between(
+        grid,
+        100 * (p["lower"] / p["gain"] - 1),
+        100 * (p["upper"] / p["gain"] - 1),
+        color="C0",
+        alpha=0.25,
+        lw=0,
+    )
     ax2.axhline(0, color="C0", lw=1)
     for a in (ax, ax2):
         a.set_xscale("log")
@@ -730,11 +877,22 @@ def gain_check_figure(check):
     observed, expected = np.asarray(h["observed"]), np.asarray(h["expected"])
     fig, (ax,) = _panels(1, 1, size=(6.0, 3.4))
     shown = observed > 0
-    ax.step(offsets[shown], observed[shown], where="mid", color="0.4", lw=0.8,
-            label="dark counts, all pixels")
+    ax.step(
+        offsets[shown],
+        observed[shown],
+        where="mid",
+        color="0.4",
+        lw=0.8,
+        label="dark counts, all pixels",
+    )
     keep = expected > 0.1
-    ax.plot(offsets[keep], expected[keep], color="C3", lw=1.2,
-            label=f"fit: g = {check.em_gain:.4g} ± {check.em_gain_se:.2g}")
+    ax.plot(
+        offsets[keep],
+        expected[keep],
+        color="C3",
+        lw=1.2,
+        label=f"fit: g = {check.em_gain:.4g} ± {check.em_gain_se:.2g}",
+    )
     # the read-out alone (no event): what stands above it is the multiplied electrons
     sigma = check.read_noise
     width = float(np.median(np.diff(offsets))) if offsets.size > 1 else 1.0  # ADU a bin
@@ -748,8 +906,11 @@ def gain_check_figure(check):
     ax.set_ylabel("frames × pixels (1)")
     ax.legend(fontsize=7)
     setpoint = "" if check.setpoint is None else f" at set-point {format_setpoint(check.setpoint)}x"
-    ax.set_title(f"EM gain from dark frames{setpoint}: {check.events:.0f} events\n"
-                 f"{check.pixels} px × {check.frames} frames ({check.em_model})", fontsize=9)
+    ax.set_title(
+        f"EM gain from dark frames{setpoint}: {check.events:.0f} events\n"
+        f"{check.pixels} px × {check.frames} frames ({check.em_model})",
+        fontsize=9,
+    )
     return fig
 
 
@@ -791,17 +952,31 @@ def gain_history_figure(found, *, camera="", checks=()):
             if mine:
                 g = np.array([e.gains[s][0] for e in mine])
                 se = np.array([e.gains[s][1] or 0.0 for e in mine])
-                ax.errorbar([when(e.date) for e in mine], 100 * (g / first - 1),
-                            yerr=100 * se / first, fmt="os^v"[k % 4] + "-", ms=4, capsize=3,
-                            label=label)
+                ax.errorbar(
+                    [when(e.date) for e in mine],
+                    100 * (g / first - 1),
+                    yerr=100 * se / first,
+                    fmt="os^v"[k % 4] + "-",
+                    ms=4,
+                    capsize=3,
+                    label=label,
+                )
             theirs = [c for c in checked if c.register == model]
             if theirs:
                 g = np.array([c.em_gain for c in theirs])
                 se = np.array([c.se for c in theirs])
-                ax.errorbar([when(c.date) for c in theirs], 100 * (g / first - 1),
-                            yerr=100 * se / first, fmt="Ds^v"[k % 4], ms=5, mfc="none",
-                            capsize=3, label=f"gain check ({model})" if len(models) > 1
-                            else "gain check (dark frames)")
+                ax.errorbar(
+                    [when(c.date) for c in theirs],
+                    100 * (g / first - 1),
+                    yerr=100 * se / first,
+                    fmt="Ds^v"[k % 4],
+                    ms=5,
+                    mfc="none",
+                    capsize=3,
+                    label=f"gain check ({model})"
+                    if len(models) > 1
+                    else "gain check (dark frames)",
+                )
         if checked or len(models) > 1:
             ax.legend(fontsize=7)
         ax.axhline(0, color="k", lw=0.8, ls=":")
@@ -851,22 +1026,33 @@ def bead_intensity_figure(directory, *, bead=0, bins=40):
     """
     doc, da = read_validation(directory)
     if da is None:
-        raise DataUnavailable(f"{Path(directory) / INTENSITIES_FILE}: no such file; the "
-                              "per-frame bead intensities are needed for their distributions")
+        raise DataUnavailable(
+            f"{Path(directory) / INTENSITIES_FILE}: no such file; the "
+            "per-frame bead intensities are needed for their distributions"
+        )
     cals = doc["calibrations"]
     if not 0 <= bead < da.sizes["bead"]:
         raise OptionError(f"bead {bead} out of range: {da.sizes['bead']} beads")
     fig, axes = _panels(len(cals), 3)
-    sps = (np.asarray(da["setpoint"].values, dtype=float) if "setpoint" in da.coords
-           else np.arange(da.sizes["setpoint"], dtype=float))
+    sps = (
+        np.asarray(da["setpoint"].values, dtype=float)
+        if "setpoint" in da.coords
+        else np.arange(da.sizes["setpoint"], dtype=float)
+    )
     for i, (ax, cal) in enumerate(zip(axes, cals)):
         vals = np.asarray(da.isel(calibration=i, bead=bead).values, dtype=float)  # (S, F)
         fin = vals[np.isfinite(vals)]
         edges = np.histogram_bin_edges(fin, bins=bins) if fin.size else bins
         for j, s in enumerate(sps):
             v = vals[j][np.isfinite(vals[j])]
-            ax.hist(v, bins=edges, histtype="step", lw=1.4, color=f"C{j % 10}",
-                    label=f"{format_setpoint(s)}×: mean {v.mean():.4g}" if v.size else None)
+            ax.hist(
+                v,
+                bins=edges,
+                histtype="step",
+                lw=1.4,
+                color=f"C{j % 10}",
+                label=f"{format_setpoint(s)}×: mean {v.mean():.4g}" if v.size else None,
+            )
             if v.size:
                 ax.axvline(v.mean(), color=f"C{j % 10}", ls="--", lw=0.9)
         b = cal["beads"][bead] if bead < len(cal["beads"]) else {}
@@ -900,8 +1086,7 @@ def bead_consistency_figure(directory):
     """
     doc, _ = read_validation(directory)
     cals = doc["calibrations"]
-    fig, (ax, ax2) = _panels(2, 2, size=(4.3, 3.2), gap=(1.0, 0.95),
-                             margins=(0.8, 0.3, 0.65, 1.05))
+    fig, (ax, ax2) = _panels(2, 2, size=(4.3, 3.2), gap=(1.0, 0.95), margins=(0.8, 0.3, 0.65, 1.05))
     for i, cal in enumerate(cals):
         ratios = {}
         for b in cal["beads"]:
@@ -912,10 +1097,16 @@ def bead_consistency_figure(directory):
                 ratios.setdefault(float(k), []).append(m[k] / m[ref])
         sp = np.array(sorted(ratios))
         r = [np.asarray(ratios[s], dtype=float) for s in sp]
-        ax.errorbar(sp * (1 + 0.03 * (i - (len(cals) - 1) / 2)),  # dodge overlapping bars
-                    np.array([v.mean() for v in r]),
-                    yerr=np.array([v.std(ddof=1) if v.size > 1 else 0.0 for v in r]),
-                    fmt="o-", ms=4, capsize=3, color=f"C{i % 10}", label=_cal_label(cal, i))
+        ax.errorbar(
+            sp * (1 + 0.03 * (i - (len(cals) - 1) / 2)),  # dodge overlapping bars
+            np.array([v.mean() for v in r]),
+            yerr=np.array([v.std(ddof=1) if v.size > 1 else 0.0 for v in r]),
+            fmt="o-",
+            ms=4,
+            capsize=3,
+            color=f"C{i % 10}",
+            label=_cal_label(cal, i),
+        )
     ax.axhline(1.0, color="k", ls=":", lw=1)
     ax.set_xscale("log")
     ax.set_xlabel(f"EM gain set-point {DIMLESS}")
@@ -923,12 +1114,15 @@ def bead_consistency_figure(directory):
     ax.set_title("mean over beads ± SD over beads", fontsize=9)
     ax.legend(fontsize=6)
     pos = np.arange(len(cals))
-    for off, key, lab in ((-0.2, "sigma_means_incl_1x", "with 1×"),
-                          (0.2, "sigma_means_excl_1x", "without 1×")):
+    for off, key, lab in (
+        (-0.2, "sigma_means_incl_1x", "with 1×"),
+        (0.2, "sigma_means_excl_1x", "without 1×"),
+    ):
         vals = [np.nan if c.get(key) is None else float(c[key]) for c in cals]
         ax2.bar(pos + off, vals, width=0.4, label=lab)
-    ax2.set_xticks(pos, [_cal_label(c, i) for i, c in enumerate(cals)], rotation=30,
-                   ha="right", fontsize=7)
+    ax2.set_xticks(
+        pos, [_cal_label(c, i) for i, c in enumerate(cals)], rotation=30, ha="right", fontsize=7
+    )
     ax2.set_xlabel("calibration (method)")
     ax2.set_ylabel(f"σ of means / 1× mean {DIMLESS}")
     ax2.set_title("consistency metric (lower is better)", fontsize=9)
@@ -989,5 +1183,7 @@ def write_validation_figures(out, *, beads=None):
     _, da = read_validation(out)
     n = da.sizes["bead"] if beads is None else min(int(beads), da.sizes["bead"])
     for b in range(n):
-        written.append(save_figure(bead_intensity_figure(out, bead=b), out / f"bead_intensities_{b}")[0])
+        written.append(
+            save_figure(bead_intensity_figure(out, bead=b), out / f"bead_intensities_{b}")[0]
+        )
     return written

@@ -36,8 +36,13 @@ from .series import (
     _write_stacks,
 )
 
-__all__ = ["simulate_beads", "bead_scene", "BEAD_DEFAULTS", "CAMERA_DEFAULTS",
-           "TRUTH_CALIBRATION_FILE"]
+__all__ = [
+    "simulate_beads",
+    "bead_scene",
+    "BEAD_DEFAULTS",
+    "CAMERA_DEFAULTS",
+    "TRUTH_CALIBRATION_FILE",
+]
 
 #: Defaults of the bead simulation (``docs/beads.md``) and its camera, where it differs
 #: from the camera simulator's (declared in :mod:`emccdcal.defaults`).
@@ -92,13 +97,18 @@ def _grid_places(n, rows, cols, min_separation, rng):
         return None
     chosen = rng.choice(len(points), size=n, replace=False)
     # kept in the ranges: clipping only undoes an outward move, so the spacing holds
-    return [(float(np.clip(points[i][0] + rng.uniform(-r_spare, r_spare), *rows)),
-             float(np.clip(points[i][1] + rng.uniform(-c_spare, c_spare), *cols)))
-            for i in chosen]
+    return [
+        (
+            float(np.clip(points[i][0] + rng.uniform(-r_spare, r_spare), *rows)),
+            float(np.clip(points[i][1] + rng.uniform(-c_spare, c_spare), *cols)),
+        )
+        for i in chosen
+    ]
 
 
-def bead_images(positions, photoelectrons, width, rows, cols, *, halo=0.0,
-                halo_width=None) -> np.ndarray:
+def bead_images(
+    positions, photoelectrons, width, rows, cols, *, halo=0.0, halo_width=None
+) -> np.ndarray:
     """Each bead's expected photoelectrons per pixel per frame, e⁻, shape (B, rows, cols).
 
     The PSF is the pixel-integrated Gaussian :func:`emccdcal.model.psf.spot_image` of SD
@@ -114,8 +124,9 @@ def bead_images(positions, photoelectrons, width, rows, cols, *, halo=0.0,
     r, c = np.arange(rows), np.arange(cols)
 
     def gaussian(sd, total):
-        params = np.column_stack([pos[:, 1], pos[:, 0], np.full(len(pos), sd), total,
-                                  np.zeros(len(pos))])
+        params = np.column_stack(
+            [pos[:, 1], pos[:, 0], np.full(len(pos), sd), total, np.zeros(len(pos))]
+        )
         return spot_image(params, r, c)
 
     if halo == 0:
@@ -123,8 +134,9 @@ def bead_images(positions, photoelectrons, width, rows, cols, *, halo=0.0,
     return gaussian(width, (1.0 - halo) * n) + gaussian(halo_width, halo * n)
 
 
-def bead_scene(positions, photoelectrons, width, background, rows, cols, *, halo=0.0,
-               halo_width=None) -> np.ndarray:
+def bead_scene(
+    positions, photoelectrons, width, background, rows, cols, *, halo=0.0, halo_width=None
+) -> np.ndarray:
     """Expected photoelectrons per pixel per frame of a field of beads, e⁻.
 
     ``E_k = Σ_b N_b·P_k(x_b, y_b) + background`` with the PSF of :func:`bead_images`
@@ -161,8 +173,12 @@ def bead_scene(positions, photoelectrons, width, background, rows, cols, *, halo
     >>> round(float(E.sum())), round(float(E[20, 20] / 5000), 4)
     (5000, 0.0753)
     """
-    return bead_images(positions, photoelectrons, width, rows, cols, halo=halo,
-                       halo_width=halo_width).sum(axis=0) + background
+    return (
+        bead_images(
+            positions, photoelectrons, width, rows, cols, halo=halo, halo_width=halo_width
+        ).sum(axis=0)
+        + background
+    )
 
 
 def _blinking(beads, frames, off_fraction, mean_off, rng) -> np.ndarray:
@@ -287,8 +303,7 @@ def simulate_beads(
     # Children 0 … 2A: the stacks; 2A + 1: the placement; 2A + 2: blinking.
     children = np.random.SeedSequence(opts["seed"]).spawn(3 + 2 * n_acqs)
     stack_seeds, place_seed, blink_seed = children[:-2], children[-2], children[-1]
-    pos = _bead_positions(positions, n_beads, shape, edge, sep,
-                          np.random.default_rng(place_seed))
+    pos = _bead_positions(positions, n_beads, shape, edge, sep, np.random.default_rng(place_seed))
     n_beads = len(pos)
     n_values = [photoelectrons] if np.ndim(photoelectrons) == 0 else list(photoelectrons)
     if len(n_values) not in (1, n_beads):
@@ -298,16 +313,27 @@ def simulate_beads(
     n_values = [check_number("photoelectrons", v, minimum=0.0) for v in n_values]
     N = np.broadcast_to(np.array(n_values), (n_beads,)).astype(float)
     h = check_number("halo", halo, minimum=0.0, maximum=1.0)
-    h_sd = 3.0 * s if halo_width is None else check_number("halo_width", halo_width,
-                                                           positive=True)
+    h_sd = 3.0 * s if halo_width is None else check_number("halo_width", halo_width, positive=True)
     images = bead_images(pos, N, s, *shape, halo=h, halo_width=h_sd)
     scene = images.sum(axis=0) + b
     fade = check_number("bleaching", bleaching, minimum=0.0, maximum=0.99)
     off = check_number("blinking", blinking, minimum=0.0, maximum=0.9)
     off_run = check_number("blink_frames", blink_frames, minimum=1.0)
-    opts.update(setpoints=sps, em_gain=gains, beads=n_beads, photoelectrons=n_values, width=s,
-                background=b, min_separation=sep, margin=edge, bleaching=fade, halo=h,
-                halo_width=h_sd if h else None, blinking=off, blink_frames=off_run)
+    opts.update(
+        setpoints=sps,
+        em_gain=gains,
+        beads=n_beads,
+        photoelectrons=n_values,
+        width=s,
+        background=b,
+        min_separation=sep,
+        margin=edge,
+        bleaching=fade,
+        halo=h,
+        halo_width=h_sd if h else None,
+        blinking=off,
+        blink_frames=off_run,
+    )
     acqs = _setpoint_acquisitions("beads/{}-beads", sps, gains, [scene] * len(sps), offsets, opts)
     if repeat is not None:
         again = dict(acqs[sps.index(repeat)])
@@ -316,21 +342,35 @@ def simulate_beads(
             again[key] = again[key].replace("-beads", "-repeat-beads")
         acqs.append(again)
         opts["repeat"] = repeat
-    frames_off = _light_over_series(acqs, images, scene - b, fade, off, off_run,
-                                    opts["frames"], np.random.default_rng(blink_seed))
+    frames_off = _light_over_series(
+        acqs,
+        images,
+        scene - b,
+        fade,
+        off,
+        off_run,
+        opts["frames"],
+        np.random.default_rng(blink_seed),
+    )
     darks = [a | {"frames_n": opts["dark_frames"]} for a in acqs]
 
     outdir = _output_dir(outdir)
-    files, pattern, pattern_file = _write_stacks(outdir, "beads", acqs, darks, camera, opts,
-                                                 progress, stack_seeds)
+    files, pattern, pattern_file = _write_stacks(
+        outdir, "beads", acqs, darks, camera, opts, progress, stack_seeds
+    )
     truth_acqs = [_truth_entry(a, camera, opts) for a in acqs]
     lines = _manifest_lines("beads", acqs, opts)
-    lines[0] = f"# Synthetic bead movies written by emccdcal {__version__} (emccdcal simulate beads)."
+    lines[0] = (
+        f"# Synthetic bead movies written by emccdcal {__version__} (emccdcal simulate beads)."
+    )
     manifest_text = "\n".join(lines) + "\n"
     manifest = outdir / "manifest.toml"
 
-    files.append(_write_truth_calibration(outdir, opts, sps, gains, scene, acqs, pattern,
-                                          manifest, manifest_text))
+    files.append(
+        _write_truth_calibration(
+            outdir, opts, sps, gains, scene, acqs, pattern, manifest, manifest_text
+        )
+    )
     truth = _bead_truth(opts, pos, N, frames_off, pattern_file, truth_acqs)
     truth_path = outdir / "truth.json"
     files.append(atomic_write_text(truth_path, json.dumps(truth, indent=2) + "\n"))
@@ -340,17 +380,23 @@ def simulate_beads(
 
 def _bead_truth(opts, pos, N, frames_off, pattern_file, truth_acqs) -> dict:
     """truth.json's content for :func:`simulate_beads` (the options already checked)."""
-    units = dict(_UNITS) | {"width": "pixel", "background": "e-/px/frame",
-                            "bead photoelectrons": "e-/frame (whole bead)",
-                            "row": "pixel", "col": "pixel"}
+    units = dict(_UNITS) | {
+        "width": "pixel",
+        "background": "e-/px/frame",
+        "bead photoelectrons": "e-/frame (whole bead)",
+        "row": "pixel",
+        "col": "pixel",
+    }
     truth = {
         "kind": "beads",
         "emccdcal_version": __version__,
         "seed": opts["seed"],
         "units": units,
-        "beads": [{"row": float(r), "col": float(c), "photoelectrons": float(n)}
-                  | ({"frames_off": k} if opts["blinking"] > 0 else {})
-                  for (r, c), n, k in zip(pos, N, frames_off)],
+        "beads": [
+            {"row": float(r), "col": float(c), "photoelectrons": float(n)}
+            | ({"frames_off": k} if opts["blinking"] > 0 else {})
+            for (r, c), n, k in zip(pos, N, frames_off)
+        ],
         "width": opts["width"],
         "background": opts["background"],
         "bleaching": opts["bleaching"],
@@ -382,8 +428,10 @@ def _bead_positions(positions, n_beads, shape, margin, min_separation, rng) -> n
         raise OptionError(f"positions must be (beads, 2) rows and columns, got shape {pos.shape}")
     outside = (pos < 0).any(axis=1) | (pos[:, 0] > shape[0] - 1) | (pos[:, 1] > shape[1] - 1)
     if outside.any():
-        raise OptionError(f"bead position {pos[np.argmax(outside)].tolist()} is outside the "
-                          f"{shape[0]}×{shape[1]} sensor")
+        raise OptionError(
+            f"bead position {pos[np.argmax(outside)].tolist()} is outside the "
+            f"{shape[0]}×{shape[1]} sensor"
+        )
     return pos
 
 
@@ -404,8 +452,9 @@ def _light_over_series(acqs, images, beads_light, fade, off, off_run, frames, rn
     return [int(v) for v in (1 - states).sum(axis=1)]
 
 
-def _write_truth_calibration(outdir, opts, sps, gains, scene, acqs, pattern, manifest,
-                             manifest_text):
+def _write_truth_calibration(
+    outdir, opts, sps, gains, scene, acqs, pattern, manifest, manifest_text
+):
     """The true calibration in the result contract (:mod:`emccdcal.result`), written."""
     shape = scene.shape
     ds = result.make_dataset(
@@ -421,19 +470,23 @@ def _write_truth_calibration(outdir, opts, sps, gains, scene, acqs, pattern, man
         manifest_hash=hashlib.sha256(manifest_text.encode("utf-8")).hexdigest(),
         manifest_path=str(manifest.resolve()),
         extra={
-            "offset": (("setpoint", "row", "col"),
-                       np.stack([np.clip(a["offset"] + pattern, 0.0, None)
-                                 for a in acqs[:len(sps)]]),
-                       "ADU", "true offset S0 (set-point level plus the pixel pattern)"),
-            "read_noise": (("setpoint", "row", "col"),
-                           np.full((len(sps),) + shape,
-                                   math.sqrt(opts["read_noise"] ** 2 + 1.0 / 12.0)), "ADU",
-                           "true read noise: SD of dark counts, sqrt(sigma^2 + 1/12)"),
+            "offset": (
+                ("setpoint", "row", "col"),
+                np.stack([np.clip(a["offset"] + pattern, 0.0, None) for a in acqs[: len(sps)]]),
+                "ADU",
+                "true offset S0 (set-point level plus the pixel pattern)",
+            ),
+            "read_noise": (
+                ("setpoint", "row", "col"),
+                np.full((len(sps),) + shape, math.sqrt(opts["read_noise"] ** 2 + 1.0 / 12.0)),
+                "ADU",
+                "true read noise: SD of dark counts, sqrt(sigma^2 + 1/12)",
+            ),
         },
         attrs={
             "note": "true values of a bead simulation (emccdcal simulate beads); "
-                    "photoelectrons is the expected bead scene per pixel per frame, "
-                    "background included, CIC excluded",
+            "photoelectrons is the expected bead scene per pixel per frame, "
+            "background included, CIC excluded",
             "multiplication": opts["multiplication"],
             # the register that made the frames: what a fit under this calibration uses
             **EMModel(opts["multiplication"], opts["stages"]).attrs,

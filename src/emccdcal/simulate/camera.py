@@ -95,8 +95,6 @@ _UNITS = {
 }
 
 
-
-
 @dataclass(frozen=True)
 class Camera:
     """The simulated camera and session: what every acquisition of a simulation shares.
@@ -191,7 +189,9 @@ class Camera:
             if key not in fields:
                 close = difflib.get_close_matches(key, fields, n=1)
                 hint = f"; did you mean {close[0]!r}?" if close else ""
-                raise OptionError(f"unknown camera option {key!r}{hint} (options: {', '.join(fields)})")
+                raise OptionError(
+                    f"unknown camera option {key!r}{hint} (options: {', '.join(fields)})"
+                )
         if camera is not None:
             return dataclasses.replace(camera, **options)
         return cls(**{**(defaults or {}), **options})
@@ -204,20 +204,29 @@ class Camera:
     def register(self) -> dict:
         """The keyword arguments of :func:`simulate_frames` and :func:`expected_moments`
         that describe the camera rather than the acquisition."""
-        return dict(e_per_adu=self.e_per_adu, read_noise=self.read_noise,
-                    multiplication=self.multiplication, stages=self.stages, cic=self.cic)
+        return dict(
+            e_per_adu=self.e_per_adu,
+            read_noise=self.read_noise,
+            multiplication=self.multiplication,
+            stages=self.stages,
+            cic=self.cic,
+        )
 
     def excess_noise_factor(self, em_gain: float) -> float:
         """F² of the register at a true gain: 1 without multiplication, 2 for the gamma
         model, the exact value for the cascade."""
-        return float(EMModel(self.multiplication, self.stages).register.excess_noise_factor(
-            np.asarray(float(em_gain))))
+        return float(
+            EMModel(self.multiplication, self.stages).register.excess_noise_factor(
+                np.asarray(float(em_gain))
+            )
+        )
 
 
 def _multiplication(value) -> str:
     if value not in EM_MODELS:
-        raise OptionError(f"multiplication must be one of {', '.join(map(repr, EM_MODELS))}, "
-                          f"got {value!r}")
+        raise OptionError(
+            f"multiplication must be one of {', '.join(map(repr, EM_MODELS))}, got {value!r}"
+        )
     return value
 
 
@@ -229,8 +238,16 @@ def _cascade_method(value) -> str:
 
 def _shape(rows, cols, *maps) -> tuple[int, int]:
     inferred = next((np.shape(m) for m in maps if np.ndim(m) == 2), None)
-    r = check_int("rows", rows) if rows is not None else (inferred[0] if inferred else _DEFAULTS["rows"])
-    c = check_int("cols", cols) if cols is not None else (inferred[1] if inferred else _DEFAULTS["cols"])
+    r = (
+        check_int("rows", rows)
+        if rows is not None
+        else (inferred[0] if inferred else _DEFAULTS["rows"])
+    )
+    c = (
+        check_int("cols", cols)
+        if cols is not None
+        else (inferred[1] if inferred else _DEFAULTS["cols"])
+    )
     return int(r), int(c)
 
 
@@ -378,8 +395,10 @@ def simulate_frames(
     c_reg = check_number("register_cic", register_cic, minimum=0.0)
     register = EMModel(mult, n_stages).register
     if c_reg and ("register_cic" not in register.parameters or g == 1.0):
-        raise OptionError("register_cic is charge made inside an exact (cascade) register "
-                          "at EM gain: give multiplication='cascade' and em_gain > 1")
+        raise OptionError(
+            "register_cic is charge made inside an exact (cascade) register "
+            "at EM gain: give multiplication='cascade' and em_gain > 1"
+        )
     d = check_number("drift", drift, minimum=-2.0, maximum=2.0)
     bits = check_int("adc_bits", adc_bits, minimum=1, maximum=16)
     _cascade_method(cascade_method)
@@ -387,8 +406,10 @@ def simulate_frames(
 
     adc_max = 2**bits - 1
     if np.max(S0) >= adc_max:
-        raise OptionError(f"offset {float(np.max(S0)):g} ADU is at or above the ADC maximum "
-                          f"{adc_max} ADU of {bits} bits: every count would be clipped to it")
+        raise OptionError(
+            f"offset {float(np.max(S0)):g} ADU is at or above the ADC maximum "
+            f"{adc_max} ADU of {bits} bits: every count would be clipped to it"
+        )
     factors = _drift_factors(n_frames, d)
     parts = []
     for part, fs in varying:

@@ -37,8 +37,7 @@ from .camera import (
     simulate_frames,
 )
 
-__all__ = ["SimulatedSeries", "simulate_gain_series", "simulate_intensity_series",
-           "truth_document"]
+__all__ = ["SimulatedSeries", "simulate_gain_series", "simulate_intensity_series", "truth_document"]
 
 
 @dataclass(frozen=True)
@@ -126,8 +125,16 @@ def _output_dir(outdir) -> Path:
     return outdir
 
 
-def _write_stacks(outdir: Path, kind: str, acqs: list[dict], darks: list[dict], camera: Camera,
-                  opts: dict, progress: bool, seeds) -> tuple[list[Path], np.ndarray, str]:
+def _write_stacks(
+    outdir: Path,
+    kind: str,
+    acqs: list[dict],
+    darks: list[dict],
+    camera: Camera,
+    opts: dict,
+    progress: bool,
+    seeds,
+) -> tuple[list[Path], np.ndarray, str]:
     """Simulate and write the signal stacks ``acqs`` and the dark stacks ``darks``.
 
     ``seeds`` are ``1 + len(acqs) + len(darks)`` children of the run's SeedSequence: the
@@ -218,8 +225,9 @@ def _truth_entry(a: dict, camera: Camera, opts: dict, **extra) -> dict:
     }
 
 
-def truth_document(kind: str, camera: Camera, opts: dict, acqs: list[dict],
-                   pattern_file: str) -> dict:
+def truth_document(
+    kind: str, camera: Camera, opts: dict, acqs: list[dict], pattern_file: str
+) -> dict:
     """The content of ``truth.json``: the camera, and each acquisition of ``acqs`` (dicts
     with label, frames, dark, frames_n, setpoint, em_gain, photoelectrons, offset and,
     where they differ from the camera's, dark_frames_n, offset_map, read_noise_map,
@@ -240,8 +248,13 @@ def truth_document(kind: str, camera: Camera, opts: dict, acqs: list[dict],
             **common,
         )
         d_mean, d_var = expected_moments(0.0, a["em_gain"], offset=a["offset"], frames=2, **common)
-        entry = _truth_entry(a, camera, opts, photoelectrons=a["photoelectrons"],
-                             photoelectrons_with_cic=a["photoelectrons"] + opts["cic"])
+        entry = _truth_entry(
+            a,
+            camera,
+            opts,
+            photoelectrons=a["photoelectrons"],
+            photoelectrons_with_cic=a["photoelectrons"] + opts["cic"],
+        )
         entry["expected"] = {
             "mean": float(mean),
             "variance": float(var),
@@ -271,13 +284,19 @@ def truth_document(kind: str, camera: Camera, opts: dict, acqs: list[dict],
     }
 
 
-def _run_series(outdir, kind: str, acqs: list[dict], darks: list[dict], camera: Camera,
-                opts: dict, progress: bool):
+def _run_series(
+    outdir,
+    kind: str,
+    acqs: list[dict],
+    darks: list[dict],
+    camera: Camera,
+    opts: dict,
+    progress: bool,
+):
     """Simulate and write the stacks of ``acqs`` (signal) and ``darks``; return the result."""
     outdir = _output_dir(outdir)
     seeds = np.random.SeedSequence(opts["seed"]).spawn(1 + len(acqs) + len(darks))
-    files, _, pattern_file = _write_stacks(outdir, kind, acqs, darks, camera, opts, progress,
-                                           seeds)
+    files, _, pattern_file = _write_stacks(outdir, kind, acqs, darks, camera, opts, progress, seeds)
     truth = truth_document(kind, camera, opts, acqs, pattern_file)
     truth_path = outdir / "truth.json"
     files.append(atomic_write_text(truth_path, json.dumps(truth, indent=2) + "\n"))
@@ -313,8 +332,11 @@ def _manifest_lines(kind: str, acqs: list[dict], opts: dict) -> list[str]:
             toml_line("read_noise", str(a["read_noise_map"])),
             toml_line("dark_frames", int(opts["dark_frames"]))
             + "  # the maps' own errors enter the SEs",
-            comment("# " + toml_line("dark", str(a["dark"]))
-                    + "  (the stack the maps were computed from)"),
+            comment(
+                "# "
+                + toml_line("dark", str(a["dark"]))
+                + "  (the stack the maps were computed from)"
+            ),
         ]
     return lines
 
@@ -351,24 +373,29 @@ def _setpoint_acquisitions(stem, setpoints, gains, photoelectrons, offsets, opts
     else:
         offsets = [offsets] if np.ndim(offsets) == 0 else list(offsets)
         if len(offsets) != len(setpoints):
-            raise OptionError(f"offsets has {len(offsets)} value(s) but there are "
-                              f"{len(setpoints)} set-points")
+            raise OptionError(
+                f"offsets has {len(offsets)} value(s) but there are {len(setpoints)} set-points"
+            )
     acqs = []
     for s, g, E, off in zip(setpoints, gains, photoelectrons, offsets):
         lab = _label(s)
         base = stem.format(lab)
-        acqs.append({
-            "label": lab,
-            "setpoint": s,
-            "em_gain": g,
-            "photoelectrons": E,
-            "offset": _setpoint_offset("offsets" if off is not None else "offset", off, s, opts),
-            "frames": f"{base}.tif",
-            "frames_n": opts["frames"],
-            "dark": f"{base}_no-signal.tif",
-            "offset_map": f"{base}_no-signal_S0.tif",
-            "read_noise_map": f"{base}_no-signal_sigma.tif",
-        })
+        acqs.append(
+            {
+                "label": lab,
+                "setpoint": s,
+                "em_gain": g,
+                "photoelectrons": E,
+                "offset": _setpoint_offset(
+                    "offsets" if off is not None else "offset", off, s, opts
+                ),
+                "frames": f"{base}.tif",
+                "frames_n": opts["frames"],
+                "dark": f"{base}_no-signal.tif",
+                "offset_map": f"{base}_no-signal_S0.tif",
+                "read_noise_map": f"{base}_no-signal_sigma.tif",
+            }
+        )
     opts["offsets"] = [a["offset"] for a in acqs]
     return acqs
 
@@ -440,14 +467,14 @@ def simulate_gain_series(
             f"photoelectrons has {len(Es)} value(s) but there are {len(sps)} set-points"
         )
     Es = [check_number("photoelectrons", v, minimum=0.0) for v in Es]
-    opts.update(setpoints=sps, em_gain=gains,
-                photoelectrons=Es[0] if len(set(Es)) == 1 else Es)
+    opts.update(setpoints=sps, em_gain=gains, photoelectrons=Es[0] if len(set(Es)) == 1 else Es)
     acqs = _setpoint_acquisitions("gain-GS/{}-gain", sps, gains, Es, offsets, opts)
     if frames is not None:
         counts = list(frames)
         if len(counts) != len(sps):
-            raise OptionError(f"frames has {len(counts)} value(s) but there are {len(sps)} "
-                              "set-points")
+            raise OptionError(
+                f"frames has {len(counts)} value(s) but there are {len(sps)} set-points"
+            )
         for a, n in zip(acqs, counts):
             a["frames_n"] = check_int("frames", n, minimum=2)
         each = [a["frames_n"] for a in acqs]
@@ -539,4 +566,3 @@ def simulate_intensity_series(
         for lab, E in zip(labs, lv)
     ]
     return _run_series(outdir, "intensity-series", acqs, [dark], camera, opts, progress)
-

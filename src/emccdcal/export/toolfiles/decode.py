@@ -13,10 +13,15 @@ from ..audit import Field, Reading
 
 def write(cal, s, v, out, qe, pixel_size_nm, name):
     """DECODE ``param.yaml``'s ``Camera`` block (release 0.10 layout)."""
-    camera = {"baseline": v["offset"]["median"], "convert2photons": True,
-              "e_per_adu": v["e_per_adu"]["median"], "em_gain": v["em_gain"]["median"],
-              "qe": 1.0 if qe is None else qe, "read_sigma": v["read_noise_e"]["median"],
-              "spur_noise": 0.0}
+    camera = {
+        "baseline": v["offset"]["median"],
+        "convert2photons": True,
+        "e_per_adu": v["e_per_adu"]["median"],
+        "em_gain": v["em_gain"]["median"],
+        "qe": 1.0 if qe is None else qe,
+        "read_sigma": v["read_noise_e"]["median"],
+        "spur_noise": 0.0,
+    }
     if pixel_size_nm is not None:
         camera["px_size"] = [pixel_size_nm, pixel_size_nm]  # nm, x and y
     text = tools._comment_lines(cal, s, v, qe, "# ") + tools._yaml({"Camera": camera})
@@ -38,19 +43,31 @@ def _read_doc(doc, path):
             baseline = audit._number(cam["baseline"], f"{name}: baseline", path)
             fields.insert(0, Field("baseline", baseline, "offset"))
         if "read_sigma" in cam:
-            fields.append(Field("read_sigma", audit._number(cam["read_sigma"], "read_sigma", path),
-                                "read_noise_e"))
+            fields.append(
+                Field(
+                    "read_sigma",
+                    audit._number(cam["read_sigma"], "read_sigma", path),
+                    "read_noise_e",
+                )
+            )
         qe = audit._qe(cam["qe"], f"{name}: qe", path) if cam.get("qe") is not None else None
-        readings.append(Reading("decode", name, tuple(fields), phi / gain,
-                                "e_per_adu / em_gain", baseline, qe))
+        readings.append(
+            Reading("decode", name, tuple(fields), phi / gain, "e_per_adu / em_gain", baseline, qe)
+        )
     if not readings:
-        raise InputError(f"'{path}': no table with e_per_adu and em_gain: not a DECODE "
-                         "camera block")
+        raise InputError(
+            f"'{path}': no table with e_per_adu and em_gain: not a DECODE camera block"
+        )
     return readings
 
 
 TOOL = Tool(
-    "decode", "DECODE", write,
+    "decode",
+    "DECODE",
+    write,
     lambda path, text, doc, setpoint, tool_gain: _read_doc(doc, path),
-    lambda path, text, doc: isinstance(doc, dict) and next(
-        audit._find_tables(doc, ("e_per_adu", "em_gain")), None) is not None)
+    lambda path, text, doc: (
+        isinstance(doc, dict)
+        and next(audit._find_tables(doc, ("e_per_adu", "em_gain")), None) is not None
+    ),
+)

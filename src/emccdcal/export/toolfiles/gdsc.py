@@ -22,18 +22,22 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
     message = {
         "intensityCalibration": {
             "intensityUnit": "COUNT",
-            "countPerPhoton": tools._number(q * v["adu_per_e_total"]["median"])},
-        "cameraCalibration": {"cameraType": "EMCCD",
-                              "readNoise": tools._number(v["read_noise"]["median"]),
-                              "bias": tools._number(v["offset"]["median"]),
-                              "quantumEfficiency": tools._number(q),
-                              # the one free-text field: the provenance (EMCCDs use no model)
-                              "cameraModelName": f"emccdcal {prov['emccdcal_version']} "
-                                                 f"{prov['method']} sha256 {sha}"},
+            "countPerPhoton": tools._number(q * v["adu_per_e_total"]["median"]),
+        },
+        "cameraCalibration": {
+            "cameraType": "EMCCD",
+            "readNoise": tools._number(v["read_noise"]["median"]),
+            "bias": tools._number(v["offset"]["median"]),
+            "quantumEfficiency": tools._number(q),
+            # the one free-text field: the provenance (EMCCDs use no model)
+            "cameraModelName": f"emccdcal {prov['emccdcal_version']} {prov['method']} sha256 {sha}",
+        },
     }
     if pixel_size_nm is not None:
-        message["distanceCalibration"] = {"distanceUnit": "PIXEL",
-                                          "nmPerPixel": tools._number(pixel_size_nm)}
+        message["distanceCalibration"] = {
+            "distanceUnit": "PIXEL",
+            "nmPerPixel": tools._number(pixel_size_nm),
+        }
     return [_write_text(out / "gdsc-calibration.json", json.dumps(message, indent=2) + "\n")]
 
 
@@ -52,8 +56,11 @@ def _read_doc(doc, path):
     cpp = audit._positive(cpp, "countPerPhoton", path)
     qe = get(camera, "quantumEfficiency", "quantum_efficiency")
     qe = 1.0 if qe is None else audit._qe(qe, "quantumEfficiency", path)
-    fields = [Field("countPerPhoton", cpp / qe, "adu_per_e_total",
-                    f"QE x g/phi; divided by its QE {qe:g}")]
+    fields = [
+        Field(
+            "countPerPhoton", cpp / qe, "adu_per_e_total", f"QE x g/phi; divided by its QE {qe:g}"
+        )
+    ]
     baseline = get(camera, "bias")
     if baseline is not None:
         baseline = audit._number(baseline, "bias", path)
@@ -61,12 +68,18 @@ def _read_doc(doc, path):
     noise = get(camera, "readNoise", "read_noise")
     if noise is not None:
         fields.append(Field("readNoise", audit._number(noise, "readNoise", path), "read_noise"))
-    return [Reading("gdsc", "Calibration", tuple(fields), qe / cpp,
-                    "QE / countPerPhoton", baseline, qe)]
+    return [
+        Reading("gdsc", "Calibration", tuple(fields), qe / cpp, "QE / countPerPhoton", baseline, qe)
+    ]
 
 
 TOOL = Tool(
-    "gdsc", "gdsc-smlm", write,
+    "gdsc",
+    "gdsc-smlm",
+    write,
     lambda path, text, doc, setpoint, tool_gain: _read_doc(doc, path),
-    lambda path, text, doc: bool((set(doc) if isinstance(doc, dict) else set())
-                                 & {"intensityCalibration", "intensity_calibration"}))
+    lambda path, text, doc: bool(
+        (set(doc) if isinstance(doc, dict) else set())
+        & {"intensityCalibration", "intensity_calibration"}
+    ),
+)

@@ -23,20 +23,31 @@ def _all_values(cal):
         if s in cal.offset:
             doc[format_setpoint(s)] = tools.camera_values(cal, s)
         else:
-            doc[format_setpoint(s)] = {"e_per_adu": pixel_statistics(cal.e_per_adu),
-                                       "em_gain": pixel_statistics(cal.gain(s))}
+            doc[format_setpoint(s)] = {
+                "e_per_adu": pixel_statistics(cal.e_per_adu),
+                "em_gain": pixel_statistics(cal.gain(s)),
+            }
     return doc
 
 
 def write_json(cal, s, v, out, qe, pixel_size_nm, name):
     """Everything, every set-point, in our own names and units."""
-    doc = {"emccdcal": tools._provenance(cal, None, qe), "camera": cal.camera,
-           "units": {"e_per_adu": "e-/ADU", "em_gain": "1", "adu_per_e_total": "ADU/e-",
-                     "offset": "ADU", "read_noise": "ADU", "read_noise_e": "e-"},
-           "statistics": "median over converged pixels; spread: robust spread 1.4826*MAD; "
-                         "se_of_median: standard error of that median, "
-                         "sqrt(pi/2)*spread/sqrt(n); n pixels (docs/results.md)",
-           "by_setpoint": _all_values(cal)}
+    doc = {
+        "emccdcal": tools._provenance(cal, None, qe),
+        "camera": cal.camera,
+        "units": {
+            "e_per_adu": "e-/ADU",
+            "em_gain": "1",
+            "adu_per_e_total": "ADU/e-",
+            "offset": "ADU",
+            "read_noise": "ADU",
+            "read_noise_e": "e-",
+        },
+        "statistics": "median over converged pixels; spread: robust spread 1.4826*MAD; "
+        "se_of_median: standard error of that median, "
+        "sqrt(pi/2)*spread/sqrt(n); n pixels (docs/results.md)",
+        "by_setpoint": _all_values(cal),
+    }
     if pixel_size_nm is not None:
         doc["pixel_size_nm"] = pixel_size_nm
     return [_write_text(out / "emccdcal-camera.json", json.dumps(doc, indent=2) + "\n")]
@@ -86,8 +97,10 @@ def write_fits(cal, s, v, out, qe, pixel_size_nm, name):
 def write_tiff_maps(cal, s, v, out, qe, pixel_size_nm, name):
     """One float32 TIFF per map, its units and provenance in the description (JSON)."""
     prov = tools._provenance(cal, None, qe)
-    return [tools._write_tiff(out / f"{key}.tif", image, {"quantity": key, "units": unit, **prov})
-            for key, image, unit in _maps(cal)]
+    return [
+        tools._write_tiff(out / f"{key}.tif", image, {"quantity": key, "units": unit, **prov})
+        for key, image, unit in _maps(cal)
+    ]
 
 
 JSON = Tool("json", "emccdcal JSON", write_json, all_setpoints=True)

@@ -24,21 +24,30 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
     stays φ/g (to the 4 decimals), and the file holds exactly what the window shows."""
     g, phi = v["em_gain"]["median"], v["e_per_adu"]["median"]
     gain = max(1, round(g))
-    camera = {"Baseline": round(v["offset"]["median"], 1),
-              "Sensitivity": round(phi * gain / g, 4), "DefaultGain": gain}
+    camera = {
+        "Baseline": round(v["offset"]["median"], 1),
+        "Sensitivity": round(phi * gain / g, 4),
+        "DefaultGain": gain,
+    }
     if pixel_size_nm is not None:
         camera["Pixelsize"] = pixel_size_nm
     # No "Quantum Efficiency": Picasso keys it by emission wavelength and, since 0.6, does
     # not use it; its photons are photoelectrons (`emccdcal apply --qe` gives photons).
-    note = ("# Picasso does not use a quantum efficiency: its photons are photoelectrons;\n"
-            f"# photons = photoelectrons / {qe:g} (the QE given) are not written here.\n"
-            if qe is not None else "")
-    text = (tools._comment_lines(cal, s, v, qe, "# ") + note
-            + f"# Picasso's gain box takes integers: DefaultGain = {gain} for g = {g:.6g}, and\n"
-            + f"# Sensitivity = e_per_adu * {gain} / g, so that Sensitivity / Gain = phi / g.\n"
-            + "# Merge the Cameras entry into ~/.picasso/config.yaml. For the API, give\n"
-            + "# camera_info = {Baseline, Sensitivity, Gain: DefaultGain} to localize().\n"
-            + tools._yaml({"Cameras": {tools._camera_name(cal, name): camera}}))
+    note = (
+        "# Picasso does not use a quantum efficiency: its photons are photoelectrons;\n"
+        f"# photons = photoelectrons / {qe:g} (the QE given) are not written here.\n"
+        if qe is not None
+        else ""
+    )
+    text = (
+        tools._comment_lines(cal, s, v, qe, "# ")
+        + note
+        + f"# Picasso's gain box takes integers: DefaultGain = {gain} for g = {g:.6g}, and\n"
+        + f"# Sensitivity = e_per_adu * {gain} / g, so that Sensitivity / Gain = phi / g.\n"
+        + "# Merge the Cameras entry into ~/.picasso/config.yaml. For the API, give\n"
+        + "# camera_info = {Baseline, Sensitivity, Gain: DefaultGain} to localize().\n"
+        + tools._yaml({"Cameras": {tools._camera_name(cal, name): camera}})
+    )
     return [_write_text(out / "picasso-config.yaml", text)]
 
 
@@ -55,9 +64,11 @@ def write_modes(rows, s, out, pixel_size_nm, name):
     for c in cals:
         missing = [k for k in differ if c.camera.get(k) is None]
         if missing:
-            raise OptionError(f"{c.label}: its files do not record its {', '.join(missing)}; "
-                              "Picasso's table of read-out modes needs it for every "
-                              "calibration")
+            raise OptionError(
+                f"{c.label}: its files do not record its {', '.join(missing)}; "
+                "Picasso's table of read-out modes needs it for every "
+                "calibration"
+            )
     em_gains = [v["em_gain"]["median"] for _, at, v in rows if at != 1.0]
     gain = max(1, round(em_gains[0])) if em_gains else 1
     sensitivity, lines = {}, []
@@ -68,34 +79,55 @@ def write_modes(rows, s, out, pixel_size_nm, name):
         for key in keys[:-1]:
             node = node.setdefault(key, {})
         if keys[-1] in node:
-            raise OptionError(f"{c.label}: a second calibration of read-out mode "
-                              f"{' / '.join(keys)}; give one per mode")
+            raise OptionError(
+                f"{c.label}: a second calibration of read-out mode "
+                f"{' / '.join(keys)}; give one per mode"
+            )
         node[keys[-1]] = round(phi * gain / g, 4)
-        lines.append(f"{' / '.join(keys)}: e_per_adu {phi:.6g}, em_gain {g:.6g} at "
-                     f"{format_setpoint(at)}x, baseline {v['offset']['median']:.1f} ADU, "
-                     f"from {c.label}")
+        lines.append(
+            f"{' / '.join(keys)}: e_per_adu {phi:.6g}, em_gain {g:.6g} at "
+            f"{format_setpoint(at)}x, baseline {v['offset']['median']:.1f} ADU, "
+            f"from {c.label}"
+        )
     baselines = [v["offset"]["median"] for _, _, v in rows]
-    camera = {"Baseline": round(baselines[0], 1), "Sensitivity Categories":
-              [tools.MODE_FIELDS[k] for k in differ], "Sensitivity": sensitivity,
-              "DefaultGain": gain}
+    camera = {
+        "Baseline": round(baselines[0], 1),
+        "Sensitivity Categories": [tools.MODE_FIELDS[k] for k in differ],
+        "Sensitivity": sensitivity,
+        "DefaultGain": gain,
+    }
     if pixel_size_nm is not None:
         camera["Pixelsize"] = pixel_size_nm
-    text = "".join(f"# {comment(line)}\n" for line in [
-        f"written by emccdcal from {len(cals)} calibrations, one per read-out mode, at EM "
-        f"gain set-point {format_setpoint(s)}x (medians over converged pixels):", *lines,
-        *[f"result {r['file']} sha256 {r['sha256']}" for c in cals
-          for r in c.provenance()["results"]]])
-    text += (f"# Keep Picasso's gain at DefaultGain = {gain} in every mode: each Sensitivity\n"
-             "# is e_per_adu * DefaultGain / em_gain of its mode, so Sensitivity / Gain =\n"
-             "# phi / g. The categories are the Micro-Manager properties of Andor's adapter;\n"
-             "# rename them to your camera adapter's (Photometrics: Port, ReadoutRate, Gain).\n")
+    text = "".join(
+        f"# {comment(line)}\n"
+        for line in [
+            f"written by emccdcal from {len(cals)} calibrations, one per read-out mode, at EM "
+            f"gain set-point {format_setpoint(s)}x (medians over converged pixels):",
+            *lines,
+            *[
+                f"result {r['file']} sha256 {r['sha256']}"
+                for c in cals
+                for r in c.provenance()["results"]
+            ],
+        ]
+    )
+    text += (
+        f"# Keep Picasso's gain at DefaultGain = {gain} in every mode: each Sensitivity\n"
+        "# is e_per_adu * DefaultGain / em_gain of its mode, so Sensitivity / Gain =\n"
+        "# phi / g. The categories are the Micro-Manager properties of Andor's adapter;\n"
+        "# rename them to your camera adapter's (Photometrics: Port, ReadoutRate, Gain).\n"
+    )
     if max(baselines) - min(baselines) > 1.0:
-        text += ("# Picasso takes one Baseline per camera; the modes' offsets differ (see\n"
-                 "# above): set the Baseline of the mode you use.\n")
-        warnings.warn(f"the read-out modes' offsets differ ({min(baselines):.1f}-"
-                      f"{max(baselines):.1f} ADU) and Picasso takes one Baseline per camera: "
-                      f"{baselines[0]:.1f} ADU is written; set the one of the mode you use",
-                      stacklevel=3)
+        text += (
+            "# Picasso takes one Baseline per camera; the modes' offsets differ (see\n"
+            "# above): set the Baseline of the mode you use.\n"
+        )
+        warnings.warn(
+            f"the read-out modes' offsets differ ({min(baselines):.1f}-"
+            f"{max(baselines):.1f} ADU) and Picasso takes one Baseline per camera: "
+            f"{baselines[0]:.1f} ADU is written; set the one of the mode you use",
+            stacklevel=3,
+        )
     text += tools._yaml({"Cameras": {tools._camera_name(cals[0], name): camera}})
     return [_write_text(out / "picasso-config.yaml", text)]
 
@@ -106,8 +138,9 @@ def _picasso_qe(value, name, path):
     if value is None:
         return None
     if isinstance(value, dict):
-        values = [audit._qe(v, f"{name}: Quantum Efficiency at {k}", path)
-                  for k, v in value.items()]
+        values = [
+            audit._qe(v, f"{name}: Quantum Efficiency at {k}", path) for k, v in value.items()
+        ]
         return values[0] if len(values) == 1 else None
     return audit._qe(value, f"{name}: Quantum Efficiency", path)
 
@@ -126,26 +159,37 @@ def read(doc, path, setpoint, tool_gain):
         elif gain_key is not None:
             gain, gain_note = audit._positive(cam[gain_key], f"{name}: {gain_key}", path), ""
         else:
-            gain, gain_note = float(setpoint), ("not in the file: the set-point, as typed "
-                                                "into Picasso's EM gain box")
-        baseline = (audit._number(cam["Baseline"], f"{name}: Baseline", path)
-                    if "Baseline" in cam else None)
+            gain, gain_note = (
+                float(setpoint),
+                ("not in the file: the set-point, as typed into Picasso's EM gain box"),
+            )
+        baseline = (
+            audit._number(cam["Baseline"], f"{name}: Baseline", path) if "Baseline" in cam else None
+        )
         qe = _picasso_qe(cam.get("Quantum Efficiency"), name, path)
         for keys, value in audit._leaves(cam["Sensitivity"]):
             where = " > ".join(("Cameras", str(name), "Sensitivity", *keys))
             sens = audit._positive(value, where, path)
-            fields = [Field("Sensitivity", sens, "e_per_adu"),
-                      Field(gain_key or "EM gain", gain, "em_gain", gain_note)]
+            fields = [
+                Field("Sensitivity", sens, "e_per_adu"),
+                Field(gain_key or "EM gain", gain, "em_gain", gain_note),
+            ]
             if baseline is not None:
                 fields.insert(0, Field("Baseline", baseline, "offset"))
-            readings.append(Reading("picasso", where, tuple(fields), sens / gain,
-                                    "Sensitivity / Gain", baseline, qe))
+            readings.append(
+                Reading(
+                    "picasso", where, tuple(fields), sens / gain, "Sensitivity / Gain", baseline, qe
+                )
+            )
     if not readings:
         raise InputError(f"'{path}': no camera of 'Cameras' has a Sensitivity")
     return readings
 
 
 TOOL = Tool(
-    "picasso", "Picasso", write,
+    "picasso",
+    "Picasso",
+    write,
     lambda path, text, doc, setpoint, tool_gain: read(doc, path, setpoint, tool_gain),
-    lambda path, text, doc: "Cameras" in (set(doc) if isinstance(doc, dict) else set()))
+    lambda path, text, doc: "Cameras" in (set(doc) if isinstance(doc, dict) else set()),
+)

@@ -23,22 +23,28 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
     total = v["adu_per_e_total"]["median"]
     flat = (phi / gain) * total  # PYME multiplies (counts − dark) by it: ≈ 1, per pixel
     prov = tools._provenance(cal, s, qe)
-    maps = {"dark": (offset, "ADU"), "variance": ((sigma * phi) ** 2, "e-^2"),
-            "flatfield": (flat, "1")}
+    maps = {
+        "dark": (offset, "ADU"),
+        "variance": ((sigma * phi) ** 2, "e-^2"),
+        "flatfield": (flat, "1"),
+    }
     files = {}
     for key, (image, unit) in maps.items():
         image = np.where(np.isfinite(image), image, np.nanmedian(image))  # PYME needs every pixel
-        files[key] = tools._write_tiff(out / f"pyme-{key}.tif", image,
-                                 {"quantity": f"PYME {key} map", "units": unit, **prov})
-    md = {"Camera.ADOffset": v["offset"]["median"],
-          "Camera.ElectronsPerCount": v["e_per_adu"]["median"],
-          "Camera.TrueEMGain": v["em_gain"]["median"],
-          "Camera.ReadNoise": v["read_noise_e"]["median"],
-          "Camera.NoiseFactor": 1.41 if v["em_gain"]["median"] > 1 else 1.0,
-          # names beside pyme.json, never this machine's absolute paths: the folder moves
-          "Camera.DarkMapID": files["dark"].name,
-          "Camera.VarianceMapID": files["variance"].name,
-          "Camera.FlatfieldMapID": files["flatfield"].name}
+        files[key] = tools._write_tiff(
+            out / f"pyme-{key}.tif", image, {"quantity": f"PYME {key} map", "units": unit, **prov}
+        )
+    md = {
+        "Camera.ADOffset": v["offset"]["median"],
+        "Camera.ElectronsPerCount": v["e_per_adu"]["median"],
+        "Camera.TrueEMGain": v["em_gain"]["median"],
+        "Camera.ReadNoise": v["read_noise_e"]["median"],
+        "Camera.NoiseFactor": 1.41 if v["em_gain"]["median"] > 1 else 1.0,
+        # names beside pyme.json, never this machine's absolute paths: the folder moves
+        "Camera.DarkMapID": files["dark"].name,
+        "Camera.VarianceMapID": files["variance"].name,
+        "Camera.FlatfieldMapID": files["flatfield"].name,
+    }
     if qe is not None:
         md["Camera.QuantumEfficiency"] = qe
     if pixel_size_nm is not None:
@@ -57,24 +63,40 @@ def _read_doc(doc, path):
         raise InputError(f"'{path}': no Camera.ElectronsPerCount: not PYME metadata")
     phi = audit._positive(flat["Camera.ElectronsPerCount"], "Camera.ElectronsPerCount", path)
     gain = audit._positive(flat.get("Camera.TrueEMGain", 1.0), "Camera.TrueEMGain", path)
-    fields = [Field("Camera.ElectronsPerCount", phi, "e_per_adu"),
-              Field("Camera.TrueEMGain", gain, "em_gain")]
+    fields = [
+        Field("Camera.ElectronsPerCount", phi, "e_per_adu"),
+        Field("Camera.TrueEMGain", gain, "em_gain"),
+    ]
     baseline = None
     if "Camera.ADOffset" in flat:
         baseline = audit._number(flat["Camera.ADOffset"], "Camera.ADOffset", path)
         fields.insert(0, Field("Camera.ADOffset", baseline, "offset"))
     if "Camera.ReadNoise" in flat:
-        fields.append(Field("Camera.ReadNoise", audit._number(flat["Camera.ReadNoise"],
-                                                        "Camera.ReadNoise", path), "read_noise_e"))
-    return [Reading("pyme", "metadata", tuple(fields), phi / gain,
-                    "ElectronsPerCount / TrueEMGain", baseline)]
+        fields.append(
+            Field(
+                "Camera.ReadNoise",
+                audit._number(flat["Camera.ReadNoise"], "Camera.ReadNoise", path),
+                "read_noise_e",
+            )
+        )
+    return [
+        Reading(
+            "pyme",
+            "metadata",
+            tuple(fields),
+            phi / gain,
+            "ElectronsPerCount / TrueEMGain",
+            baseline,
+        )
+    ]
 
 
 def _pyme_md(text):
     """PYME's ``.md`` metadata (Python assignments) as a dict: numbers only, never run."""
     found = {}
-    for key, value in re.findall(r"""^\s*md\[\s*['"]([\w.]+)['"]\s*\]\s*=\s*(.*?)\s*(?:#.*)?$""",
-                                 text, flags=re.M):
+    for key, value in re.findall(
+        r"""^\s*md\[\s*['"]([\w.]+)['"]\s*\]\s*=\s*(.*?)\s*(?:#.*)?$""", text, flags=re.M
+    ):
         if not re.fullmatch(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?", value):
             value = f"{value} (an expression, never evaluated)"  # refused as not a number
         found[key] = value
@@ -82,9 +104,17 @@ def _pyme_md(text):
 
 
 TOOL = Tool(
-    "pyme", "PYME", write,
+    "pyme",
+    "PYME",
+    write,
     lambda path, text, doc, setpoint, tool_gain: _read_doc(
-        doc if isinstance(doc, dict) and doc else _pyme_md(text or ""), path),
-    lambda path, text, doc: path.suffix.lower() == ".md" or (
-        isinstance(doc, dict)
-        and "Camera.ElectronsPerCount" in {".".join(k) for k, _ in audit._leaves(doc)}))
+        doc if isinstance(doc, dict) and doc else _pyme_md(text or ""), path
+    ),
+    lambda path, text, doc: (
+        path.suffix.lower() == ".md"
+        or (
+            isinstance(doc, dict)
+            and "Camera.ElectronsPerCount" in {".".join(k) for k, _ in audit._leaves(doc)}
+        )
+    ),
+)

@@ -26,47 +26,53 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
     offset, sigma = cal.dark(s)
     prov = tools._provenance(cal, s, qe)
     mat = out / "smap-correction.mat"
-    maps = {"offsetmap": offset, "gainmap": cal.e_per_adu / cal.gain(s), "varmap": sigma ** 2}
+    maps = {"offsetmap": offset, "gainmap": cal.e_per_adu / cal.gain(s), "varmap": sigma**2}
     content = {k: np.asarray(m, dtype=np.float32) for k, m in maps.items()}
     atomic_write(mat, lambda p: savemat(p, {**content, "emccdcal": json.dumps(prov)}))
-    par = {"EMon": bool(v["em_gain"]["median"] > 1),
-           "emgain": tools._number(v["em_gain"]["median"]),
-           "conversion": tools._number(v["e_per_adu"]["median"]),
-           "offset": tools._number(v["offset"]["median"]),
-           "correctionfile": mat.stem,
-           "comment": f"emccdcal {prov['emccdcal_version']} {prov['method']} "
-                      + " ".join(r["sha256"][:12] for r in prov["results"])}
+    par = {
+        "EMon": bool(v["em_gain"]["median"] > 1),
+        "emgain": tools._number(v["em_gain"]["median"]),
+        "conversion": tools._number(v["e_per_adu"]["median"]),
+        "offset": tools._number(v["offset"]["median"]),
+        "correctionfile": mat.stem,
+        "comment": f"emccdcal {prov['emccdcal_version']} {prov['method']} "
+        + " ".join(r["sha256"][:12] for r in prov["results"]),
+    }
     if pixel_size_nm is not None:
         par["cam_pixelsize_um"] = tools._number(pixel_size_nm / 1000.0)
     else:
-        warnings.warn("SMAP's Camera Manager file holds a pixel size: SMAP's default "
-                      "0.1 µm is written; give --pixel-size NM, or set it in the Camera "
-                      "Manager", stacklevel=3)
+        warnings.warn(
+            "SMAP's Camera Manager file holds a pixel size: SMAP's default "
+            "0.1 µm is written; give --pixel-size NM, or set it in the Camera "
+            "Manager",
+            stacklevel=3,
+        )
     doc = {"loc_cameraSettings": par, "emccdcal": prov}
     cameras = out / "smap-cameras.mat"
     atomic_write(cameras, lambda p: savemat(p, _smap_camera_manager(par)))
-    return [_write_text(out / "smap-camera.json", json.dumps(doc, indent=2) + "\n"), mat,
-            cameras]
+    return [_write_text(out / "smap-camera.json", json.dumps(doc, indent=2) + "\n"), mat, cameras]
 
 
 #: SMAP's Camera Manager parameter table (``CameraManager.m``, ``intpartable``): name,
 #: mode, value of a new camera, conversion SMAP applies to the text. Rows SMAP reads from
 #: the image files ("metadata") are left to them; the others are fixed to our numbers.
-_SMAP_TABLE = (("EMon", "fix", "1", "str2double(X)"),
-               ("cam_pixelsize_um", "fix", "0.1", "str2double(X)"),
-               ("conversion", "fix", "1", "str2double(X)"),
-               ("emgain", "fix", "100", "str2double(X)"),
-               ("offset", "fix", "100", "str2double(X)"),
-               ("roi", "fix", "", "str2num(X)"),
-               ("exposure", "fix", "1", "str2double(X)"),
-               ("timediff", "fix", "1", "str2double(X)"),
-               ("comment", "fix", "settings not initialized", ""),
-               ("numberOfFrames", "metadata", "0", "str2double(X)"),
-               ("Width", "metadata", "0", "str2double(X)"),
-               ("Height", "metadata", "0", "str2double(X)"),
-               ("roimode", "fix", "none", ""),
-               ("correctionfile", "fix", "", ""),
-               ("imagemetadata", "fix", "", ""))
+_SMAP_TABLE = (
+    ("EMon", "fix", "1", "str2double(X)"),
+    ("cam_pixelsize_um", "fix", "0.1", "str2double(X)"),
+    ("conversion", "fix", "1", "str2double(X)"),
+    ("emgain", "fix", "100", "str2double(X)"),
+    ("offset", "fix", "100", "str2double(X)"),
+    ("roi", "fix", "", "str2num(X)"),
+    ("exposure", "fix", "1", "str2double(X)"),
+    ("timediff", "fix", "1", "str2double(X)"),
+    ("comment", "fix", "settings not initialized", ""),
+    ("numberOfFrames", "metadata", "0", "str2double(X)"),
+    ("Width", "metadata", "0", "str2double(X)"),
+    ("Height", "metadata", "0", "str2double(X)"),
+    ("roimode", "fix", "none", ""),
+    ("correctionfile", "fix", "", ""),
+    ("imagemetadata", "fix", "", ""),
+)
 
 
 def _smap_camera_manager(par: dict) -> dict:
@@ -75,29 +81,38 @@ def _smap_camera_manager(par: dict) -> dict:
     one SMAP uses for files whose camera it does not recognise (a camera of another name
     would need an identifying metadata tag, which differs by adapter). Every number is
     fixed (mode ``fix``); the one state matches any file."""
+
     def text(key, value):
         if key == "EMon":
             return "1" if value else "0"
         return value if isinstance(value, str) else repr(float(value))
 
-    values = {key: text(key, par[key]) if key in par else default
-              for key, _, default, _ in _SMAP_TABLE}
+    values = {
+        key: text(key, par[key]) if key in par else default for key, _, default, _ in _SMAP_TABLE
+    }
     cells = lambda rows: np.array(rows, dtype=object)  # noqa: E731 - MATLAB cell arrays
-    table = cells([[key, mode, values[key], "select", "", conversion, ""]
-                   for key, mode, _, conversion in _SMAP_TABLE])
-    state = {"statelist": cells([["State 1"]]), "defpar": cells([["select", ""]]),
-             "par": cells([[key, values[key]] for key, *_ in _SMAP_TABLE])}
-    entry = {"ID": {"name": "Default", "tag": "select", "value": ""}, "par": table,
-             "state": state}
+    table = cells(
+        [
+            [key, mode, values[key], "select", "", conversion, ""]
+            for key, mode, _, conversion in _SMAP_TABLE
+        ]
+    )
+    state = {
+        "statelist": cells([["State 1"]]),
+        "defpar": cells([["select", ""]]),
+        "par": cells([[key, values[key]] for key, *_ in _SMAP_TABLE]),
+    }
+    entry = {"ID": {"name": "Default", "tag": "select", "value": ""}, "par": table, "state": state}
     return {"cameras": entry, "camtab": cells([["Default", "select", ""]])}
 
 
 def _read_doc(doc, path):
-    readings = [_smap_reading(" > ".join(where) or "camera", cam, path)
-                for where, cam in audit._find_tables(doc, ("conversion", "emgain"))]
+    readings = [
+        _smap_reading(" > ".join(where) or "camera", cam, path)
+        for where, cam in audit._find_tables(doc, ("conversion", "emgain"))
+    ]
     if not readings:
-        raise InputError(f"'{path}': no camera settings with conversion and emgain: not "
-                         "SMAP's")
+        raise InputError(f"'{path}': no camera settings with conversion and emgain: not SMAP's")
     return readings
 
 
@@ -107,8 +122,10 @@ def _smap_reading(name, cam: dict, path, gain_note="") -> Reading:
     phi = audit._positive(audit._scalar(cam["conversion"]), f"{name}: conversion", path)
     em = str(audit._scalar(cam.get("EMon", True))).strip().lower() not in ("0", "false", "0.0")
     gain = audit._positive(audit._scalar(cam["emgain"]), f"{name}: emgain", path) if em else 1.0
-    fields = [Field("conversion", phi, "e_per_adu"),
-              Field("emgain", gain, "em_gain", gain_note if em else "EMon false: taken as 1")]
+    fields = [
+        Field("conversion", phi, "e_per_adu"),
+        Field("emgain", gain, "em_gain", gain_note if em else "EMon false: taken as 1"),
+    ]
     baseline = None
     if cam.get("offset") is not None:
         baseline = audit._number(audit._scalar(cam["offset"]), f"{name}: offset", path)
@@ -147,8 +164,10 @@ def _smap_cameras(raw, path, setpoint) -> list[Reading] | None:
             raise InputError(f"'{path}': camera {name!r} has no conversion or emgain row")
         modes = {k: _cell_text(table[rows[k], 1]) for k in wanted}
         if modes["conversion"] == "metadata":
-            raise InputError(f"'{path}': camera {name!r} takes its conversion from the "
-                             "image files' metadata; audit the number those files hold")
+            raise InputError(
+                f"'{path}': camera {name!r} takes its conversion from the "
+                "image files' metadata; audit the number those files hold"
+            )
         dependent = any(m == "state dependent" for m in modes.values())
         for j, state in enumerate(states if dependent else [None]):
             values, note = {}, ""
@@ -165,8 +184,16 @@ def _smap_cameras(raw, path, setpoint) -> list[Reading] | None:
 
 
 TOOL = Tool(
-    "smap", "SMAP", write,
+    "smap",
+    "SMAP",
+    write,
     lambda path, text, doc, setpoint, tool_gain: _read_doc(doc, path),
-    lambda path, text, doc: path.suffix.lower() == ".mat" or (isinstance(doc, dict) and next(
-        audit._find_tables(doc, ("conversion", "emgain")), None) is not None),
-    read_file=lambda path, setpoint: _smap_cameras(audit._mat_raw(path), path, setpoint))
+    lambda path, text, doc: (
+        path.suffix.lower() == ".mat"
+        or (
+            isinstance(doc, dict)
+            and next(audit._find_tables(doc, ("conversion", "emgain")), None) is not None
+        )
+    ),
+    read_file=lambda path, setpoint: _smap_cameras(audit._mat_raw(path), path, setpoint),
+)

@@ -1,5 +1,4 @@
-"""storm-analysis (its analysis ``.xml``): writer and the audit's reader, one plug-in.
-"""
+"""storm-analysis (its analysis ``.xml``): writer and the audit's reader, one plug-in."""
 
 from __future__ import annotations
 
@@ -15,11 +14,13 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
     """storm-analysis parameters (``camera_gain`` is g/φ in ADU per photoelectron, EM gain
     included; ``camera_offset`` ADU)."""
     comment = tools._comment_lines(cal, s, v, qe, "  ").replace("--", "- -")
-    text = ('<?xml version="1.0" encoding="utf-8"?>\n<!--\n' + comment + "-->\n<settings>\n"
-            f'  <camera_gain type="float">{tools._number(v["adu_per_e_total"]["median"])!r}'
-            "</camera_gain>\n"
-            f'  <camera_offset type="float">{tools._number(v["offset"]["median"])!r}'
-            "</camera_offset>\n")
+    text = (
+        '<?xml version="1.0" encoding="utf-8"?>\n<!--\n' + comment + "-->\n<settings>\n"
+        f'  <camera_gain type="float">{tools._number(v["adu_per_e_total"]["median"])!r}'
+        "</camera_gain>\n"
+        f'  <camera_offset type="float">{tools._number(v["offset"]["median"])!r}'
+        "</camera_offset>\n"
+    )
     if pixel_size_nm is not None:
         text += f'  <pixel_size type="float">{tools._number(pixel_size_nm)!r}</pixel_size>\n'
     text += "</settings>\n"
@@ -37,11 +38,15 @@ def _read_xml(path):
     if "camera_offset" in values:
         baseline = audit._number(values["camera_offset"], "camera_offset", path)
         fields.insert(0, Field("camera_offset", baseline, "offset"))
-    return [Reading("storm-analysis", "settings", tuple(fields), 1 / gain, "1 / camera_gain",
-                    baseline)]
+    return [
+        Reading("storm-analysis", "settings", tuple(fields), 1 / gain, "1 / camera_gain", baseline)
+    ]
 
 
 TOOL = Tool(
-    "storm-analysis", "storm-analysis", write,
+    "storm-analysis",
+    "storm-analysis",
+    write,
     lambda path, text, doc, setpoint, tool_gain: _read_xml(path),
-    lambda path, text, doc: path.suffix.lower() == ".xml")
+    lambda path, text, doc: path.suffix.lower() == ".xml",
+)

@@ -17,30 +17,38 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
     """An ImageJ macro line of ThunderSTORM's ``Camera setup`` (``photons2adu`` is φ in
     e⁻/ADU, despite its name)."""
     g = v["em_gain"]["median"]
-    options = [f"offset={tools._number(v['offset']['median'])!r}",
-               f"quantumefficiency={tools._number(1.0 if qe is None else qe)!r}",
-               f"isemgain={'true' if g > 1 else 'false'}",
-               f"photons2adu={tools._number(v['e_per_adu']['median'])!r}",
-               f"gainem={tools._number(g)!r}"]
+    options = [
+        f"offset={tools._number(v['offset']['median'])!r}",
+        f"quantumefficiency={tools._number(1.0 if qe is None else qe)!r}",
+        f"isemgain={'true' if g > 1 else 'false'}",
+        f"photons2adu={tools._number(v['e_per_adu']['median'])!r}",
+        f"gainem={tools._number(g)!r}",
+    ]
     if pixel_size_nm is not None:
         options.append(f"pixelsize={tools._number(pixel_size_nm)!r}")
-    text = (tools._comment_lines(cal, s, v, qe, "// ")
-            + f'run("Camera setup", "{" ".join(options)}");\n')
+    text = (
+        tools._comment_lines(cal, s, v, qe, "// ")
+        + f'run("Camera setup", "{" ".join(options)}");\n'
+    )
     return [_write_text(out / "thunderstorm-camera.ijm", text)]
 
 
 def _read_macro(text, path):
     # comments never run: /* ... */ blocks and // to the end of a line (outside strings)
     code = re.sub(r"/\*.*?\*/", " ", text, flags=re.S)
-    code = "\n".join(re.sub(r'^((?:[^"/]|"[^"]*"|/(?!/))*)//.*$', r"\1", line)
-                     for line in code.splitlines())
+    code = "\n".join(
+        re.sub(r'^((?:[^"/]|"[^"]*"|/(?!/))*)//.*$', r"\1", line) for line in code.splitlines()
+    )
     found = re.findall(r'run\(\s*"Camera setup"\s*,\s*"([^"]*)"', code)
     if not found:
-        raise InputError(f"'{path}': no run(\"Camera setup\", \"...\") line: not a "
-                         "ThunderSTORM camera macro")
+        raise InputError(
+            f'\'{path}\': no run("Camera setup", "...") line: not a ThunderSTORM camera macro'
+        )
     if len(set(found)) > 1:  # each line sets the camera in turn: the last one holds
-        raise InputError(f"'{path}': {len(found)} different Camera setup lines; the macro's "
-                         "camera is ambiguous: audit a macro with one")
+        raise InputError(
+            f"'{path}': {len(found)} different Camera setup lines; the macro's "
+            "camera is ambiguous: audit a macro with one"
+        )
     options = dict(re.findall(r"(\w+)=(\S+)", found[-1]))
     options = {k.lower(): v for k, v in options.items()}
     missing = [k for k in ("offset", "photons2adu") if k not in options]
@@ -50,16 +58,27 @@ def _read_macro(text, path):
     em = options.get("isemgain", "false").lower() == "true"
     gain = audit._positive(options.get("gainem", 1), "gainem", path) if em else 1.0
     baseline = audit._number(options["offset"], "offset", path)
-    fields = (Field("offset", baseline, "offset"),
-              Field("photons2adu", phi, "e_per_adu", "e-/ADU, despite its name"),
-              Field("gainem", gain, "em_gain", "" if em else "isemgain=false: taken as 1"))
-    qe = (audit._qe(options["quantumefficiency"], "quantumefficiency", path)
-          if "quantumefficiency" in options else None)
-    return [Reading("thunderstorm", "Camera setup", fields, phi / gain,
-                    "photons2adu / gainem", baseline, qe)]
+    fields = (
+        Field("offset", baseline, "offset"),
+        Field("photons2adu", phi, "e_per_adu", "e-/ADU, despite its name"),
+        Field("gainem", gain, "em_gain", "" if em else "isemgain=false: taken as 1"),
+    )
+    qe = (
+        audit._qe(options["quantumefficiency"], "quantumefficiency", path)
+        if "quantumefficiency" in options
+        else None
+    )
+    return [
+        Reading(
+            "thunderstorm", "Camera setup", fields, phi / gain, "photons2adu / gainem", baseline, qe
+        )
+    ]
 
 
 TOOL = Tool(
-    "thunderstorm", "ThunderSTORM", write,
+    "thunderstorm",
+    "ThunderSTORM",
+    write,
     lambda path, text, doc, setpoint, tool_gain: _read_macro(text or "", path),
-    lambda path, text, doc: text is not None and "Camera setup" in text and "run(" in text)
+    lambda path, text, doc: text is not None and "Camera setup" in text and "run(" in text,
+)
