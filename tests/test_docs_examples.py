@@ -31,6 +31,7 @@ from pathlib import Path
 import pytest
 import tifffile
 
+import emccdcal
 from emccdcal import cli
 
 import camera_files
@@ -76,33 +77,66 @@ STAND_IN = {
 }
 
 
-def _commands(block: str) -> list[tuple[int, str]]:
-    """``(line offset, command)`` of every emccdcal/make/pip line of a shell block."""
-    out = []
+def _commands(block: str) -> list[tuple[int, str, list[str]]]:
+    """``(line offset, command, shown output)`` of every emccdcal/make/pip line of a shell
+    block; the output is what the block shows after a ``$ `` prompt's command, up to the
+    next prompt."""
+    out: list[tuple[int, str, list[str]]] = []
+    prompt = False
     for i, line in enumerate(block.splitlines()):
         text = line.strip()
         if text.startswith("$ "):
-            text = text[2:]
+            text, prompt = text[2:], True
+        elif prompt and out and not text.startswith("emccdcal"):
+            out[-1][2].append(text)  # what the command above printed
+            continue
         if not text.startswith(("emccdcal", "make ", "pip install", "echo $?")):
             continue
         for part in text.split(" && "):
-            out.append((i, part.strip()))
+            out.append((i, part.strip(), []))
     return out
 
 
-def examples(page: Path) -> list[tuple[int, str, str]]:
-    """``(line, kind, text)`` of the page's examples, in order: kind "shell" (one command)
-    or "python" (a whole block)."""
+def examples(page: Path) -> list[tuple[int, str, str, list[str]]]:
+    """``(line, kind, text, shown output)`` of the page's examples, in order: kind "shell"
+    (one command) or "python" (a whole block)."""
     text = page.read_text(encoding="utf-8")
     found = []
     for m in re.finditer(r"^```([^\n]*)\n(.*?)^```", text, re.M | re.S):
         line = text.count("\n", 0, m.start()) + 2
         lang = m.group(1).strip()
         if lang == "python":
-            found.append((line, "python", m.group(2)))
+            found.append((line, "python", m.group(2), []))
         elif lang in ("sh", "bash", "console", "shell", ""):
-            found += [(line + i, "shell", c) for i, c in _commands(m.group(2))]
+            found += [(line + i, "shell", c, shown) for i, c, shown in _commands(m.group(2))]
     return found
+
+
+def _normal(line: str, numbers: bool) -> str:
+    """A printed line as compared: spaces collapsed, times of day and run times masked,
+    and every number where the data differ from the page's (``numbers`` False)."""
+    line = re.sub(r"\d+(\.\d+)? s\b", "# s", " ".join(line.split()))
+    line = re.sub(r"\d{4}-\d\d-\d\dT[\d:]+Z?", "#", line)
+    line = re.sub(r"/\S*/", "/", line)  # folders of the reader's machine
+    return line if numbers else re.sub(r"[-+]?\d+(\.\d+)?(e[-+]?\d+)?", "#", line)
+
+
+def missing_output(shown: list[str], printed: str, numbers: bool) -> list[str]:
+    """The lines a page shows for a command that it did not print, in order ("…" stands
+    for lines left out)."""
+    got = [_normal(line, numbers) for line in printed.splitlines()]
+    missing, at = [], 0
+    for line in shown:
+        if not line or line == "…":
+            continue
+        # "…" within a line stands for the words left out of it
+        want = re.compile(".*".join(map(re.escape, _normal(line, numbers).split("…"))))
+        hit = next((j for j in range(at, len(got)) if want.fullmatch(got[j])), None)
+        if hit is None:
+            missing.append(line)
+        else:
+            at = hit + 1
+    return missing
 
 
 def _stand_in(command: str) -> str:
@@ -116,8 +150,8 @@ def _not_run(command: str) -> str | None:
 
 
 def test_every_excuse_still_names_a_command_of_the_docs():
-    commands = [c for p in PAGES for _, kind, c in examples(p) if kind == "shell"]
-    blocks = [c.splitlines()[0] for p in PAGES for _, kind, c in examples(p) if kind == "python"]
+    commands = [c for p in PAGES for _, kind, c, _ in examples(p) if kind == "shell"]
+    blocks = [c.splitlines()[0] for p in PAGES for _, kind, c, _ in examples(p) if kind == "python"]
     stale = [key for key in [*NOT_RUN, *STAND_IN] if not any(c.startswith(key) for c in commands)]
     stale += [key for key in NOT_RUN_PYTHON if key not in blocks]
     assert not stale, f"NOT_RUN excuses commands no page shows any more: {stale}"
@@ -255,9 +289,15 @@ def world(tmp_path_factory):
         100,
     )
     home = w / "home"
+    # Picasso's settings as a user typed them: φ and the baseline right, the set-point in
+    # its EM gain box
+    baseline = float(emccdcal.load_result(w / "out-gs").offset.sel(setpoint=300).median())
+    phi = float(emccdcal.load_result(w / "out-adu").e_per_adu.median())
     (home / ".picasso").mkdir(parents=True)
-    _run("export", w / "out-gs", "--to", "picasso", "--setpoint", 300, "-o", w / "picasso")
-    shutil.copy(w / "picasso/picasso-config.yaml", home / ".picasso/config.yaml")
+    (home / ".picasso/config.yaml").write_text(
+        f"Cameras:\n  ProEM:\n    Baseline: {baseline:.1f}\n    Sensitivity: {phi:.4f}\n",
+        encoding="utf-8",
+    )
     db = ["--db", home / "calibrations.sqlite"]  # the camera's calibrations, 12345
     _run(
         "calibrate",
@@ -323,8 +363,8 @@ def test_the_examples_of_a_page_run_as_written(page, world, tmp_path, monkeypatc
     monkeypatch.setenv("EMCCDCAL_DB", str(work / "home" / "calibrations.sqlite"))
     monkeypatch.setenv("MPLBACKEND", "Agg")
     namespace: dict = {}
-    failures, made, seconds, db_used = [], set(), [], False
-    for line, kind, text in items:
+    failures, made, seconds, db_used, code = [], set(), [], False, None
+    for line, kind, text, shown in items:
         where = f"{page.name}:{line}"
         if kind == "python":
             if text.splitlines()[0] in NOT_RUN_PYTHON:
@@ -333,6 +373,10 @@ def test_the_examples_of_a_page_run_as_written(page, world, tmp_path, monkeypatc
                 exec(compile(text, where, "exec"), namespace)
             except Exception as exc:  # noqa: BLE001 - reported with its line
                 failures.append(f"{where}: python block: {type(exc).__name__}: {exc}")
+            continue
+        if text == "echo $?" and shown:  # the exit status the page shows
+            if shown[0] != str(code):
+                failures.append(f"{where}: the command above exited {code}, not {shown[0]}")
             continue
         if _not_run(text):
             continue
@@ -347,7 +391,12 @@ def test_the_examples_of_a_page_run_as_written(page, world, tmp_path, monkeypatc
         t0 = time.perf_counter()
         code = cli.main(argv)
         seconds.append((time.perf_counter() - t0, text))
-        err = capsys.readouterr().err
+        printed = capsys.readouterr()
+        err = printed.err
+        exact = real is not None or argv[0] == "plan"  # the page's own data, or none
+        lost = missing_output(shown, printed.out + printed.err, numbers=exact)
+        if lost:
+            failures.append(f"{where}: `{text}` did not print, as the page shows: {lost}")
         if code not in (0, 1):
             failures.append(f"{where}: `{text}` exited {code}: {err.strip()[-600:]}")
     print("slowest:", *(f"{t:.1f} s {c}" for t, c in sorted(seconds)[::-1][:5]), sep="\n  ")
