@@ -166,11 +166,18 @@ ON_REAL_DATA = {"first-calibration.md", "formats.md"}
 
 ROWS = COLS = 16  # the size the README simulates
 FRAMES = 300
+SMALL = f"--rows {ROWS} --cols {COLS} --frames {FRAMES}"
 
 
-def _run(*argv) -> None:
-    code = cli.main([str(a) for a in argv])
-    assert code == 0, f"making the docs' world: emccdcal {' '.join(map(str, argv))} -> {code}"
+def _run(where: Path, command: str) -> None:
+    """Run an emccdcal command line in ``where``; it must succeed."""
+    here = os.getcwd()
+    os.chdir(where)
+    try:
+        code = cli.main(shlex.split(command))
+    finally:
+        os.chdir(here)
+    assert code == 0, f"making the docs' world: emccdcal {command} -> {code}"
 
 
 def _manifest_at(src: Path, dst: Path) -> None:
@@ -185,75 +192,43 @@ def _manifest_at(src: Path, dst: Path) -> None:
     dst.write_text(text, encoding="utf-8")
 
 
+# The world's results and camera files, made by the command line itself.
+WORLD = (
+    f"""
+simulate intensity-series -o adu --seed 1 {SMALL} --levels 2000,8000,32000
+simulate gain-series -o gs --seed 2 {SMALL} --setpoints 1,5,25,50,100,300 --cic 0.05
+simulate gain-series -o gs3 --seed 3 {SMALL} --setpoints 1,25,300
+calibrate adu/manifest.toml --method is-adu -o out-adu -q
+calibrate gs/manifest.toml --method gs --e-per-adu out-adu -o out-gs -q
+calibrate gs/manifest.toml --method gs --e-per-adu out-adu --em-model gamma -o out-gamma -q
+simulate beads -o beads --seed 5 --beads 4 --rows 48 --cols 48 --frames 30 --dark-frames 100
+"""
+    + "".join(  # is-gain results, one set-point each
+        f"simulate intensity-series -o is-{s} --seed {10 + s} --setpoint {s} --levels 20,40,80 "
+        f"{SMALL}\ncalibrate is-{s}/manifest.toml --method is-gain --e-per-adu out-adu "
+        f"-o out-g{s} -q\n"
+        for s in (5, 25, 100, 300)
+    )
+    + "".join(  # the camera's calibrations in the database, one read-out state
+        f"db add {name} --camera 12345 --readout 'Electron Multiplying, 10 MHz, analog gain 2' "
+        "--db home/calibrations.sqlite\n"
+        for name in ("out-adu", "out-g5", "out-g25", "out-g100", "out-g300", "out-gamma")
+    )
+)
+
+
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
-    """The files and results the docs' examples name, on a small simulated camera."""
+    """The files and results the docs' examples name, on a small simulated camera: gain
+    and intensity series with their results, manifests at the top (manifest.toml,
+    gain.toml with three set-points for the posterior's example, adu.toml), dark stacks
+    and movies that record their set-point (by name, by Micro-Manager's tags, SPE),
+    a folder of camera files, beads, a Picasso configuration typed by hand and a
+    calibration database of camera 12345."""
     w = tmp_path_factory.mktemp("docs-world")
-    small = ["--rows", ROWS, "--cols", COLS, "--frames", FRAMES]
-    _run(
-        "simulate",
-        "intensity-series",
-        "-o",
-        w / "adu",
-        "--seed",
-        1,
-        *small,
-        "--levels",
-        "2000,8000,32000",
-    )
-    _run(
-        "simulate",
-        "gain-series",
-        "-o",
-        w / "gs",
-        "--seed",
-        2,
-        *small,
-        "--setpoints",
-        "1,5,25,50,100,300",
-        "--cic",
-        "0.05",
-    )  # events in the darks
-    _run("calibrate", w / "adu/manifest.toml", "--method", "is-adu", "-o", w / "out-adu", "-q")
-    _run(
-        "calibrate",
-        w / "gs/manifest.toml",
-        "--method",
-        "gs",
-        "--e-per-adu",
-        w / "out-adu",
-        "-o",
-        w / "out-gs",
-        "-q",
-    )
-    for s in (5, 25, 100, 300):  # is-gain results, one set-point each
-        _run(
-            "simulate",
-            "intensity-series",
-            "-o",
-            w / f"is-{s}",
-            "--seed",
-            10 + s,
-            "--setpoint",
-            s,
-            "--levels",
-            "20,40,80",
-            *small,
-        )
-        _run(
-            "calibrate",
-            w / f"is-{s}/manifest.toml",
-            "--method",
-            "is-gain",
-            "--e-per-adu",
-            w / "out-adu",
-            "-o",
-            w / f"out-g{s}",
-            "-q",
-        )
-    _run(
-        "simulate", "gain-series", "-o", w / "gs3", "--seed", 3, *small, "--setpoints", "1,25,300"
-    )  # three set-points: the posterior's example, quicker
+    (w / "home").mkdir()
+    for command in WORLD.strip().splitlines():
+        _run(w, command)
     for name, src in (("manifest.toml", "gs"), ("gain.toml", "gs3"), ("adu.toml", "adu")):
         _manifest_at(w / src / "manifest.toml", w / name)
     shutil.copytree(w / "out-gs", w / "OUT")
@@ -270,51 +245,15 @@ def world(tmp_path_factory):
     (w / "session").mkdir()  # a folder of camera files for scan
     for f in (w / "gs/gain-GS").glob("*.tif"):
         shutil.copy(f, w / "session" / f.name)
-    _run(
-        "simulate",
-        "beads",
-        "-o",
-        w / "beads",
-        "--seed",
-        5,
-        "--beads",
-        4,
-        "--rows",
-        48,
-        "--cols",
-        48,
-        "--frames",
-        30,
-        "--dark-frames",
-        100,
-    )
-    home = w / "home"
     # Picasso's settings as a user typed them: φ and the baseline right, the set-point in
     # its EM gain box
     baseline = float(emccdcal.load_result(w / "out-gs").offset.sel(setpoint=300).median())
     phi = float(emccdcal.load_result(w / "out-adu").e_per_adu.median())
-    (home / ".picasso").mkdir(parents=True)
-    (home / ".picasso/config.yaml").write_text(
+    (w / "home/.picasso").mkdir()
+    (w / "home/.picasso/config.yaml").write_text(
         f"Cameras:\n  ProEM:\n    Baseline: {baseline:.1f}\n    Sensitivity: {phi:.4f}\n",
         encoding="utf-8",
     )
-    db = ["--db", home / "calibrations.sqlite"]  # the camera's calibrations, 12345
-    _run(
-        "calibrate",
-        w / "gs/manifest.toml",
-        "--method",
-        "gs",
-        "--e-per-adu",
-        w / "out-adu",
-        "--em-model",
-        "gamma",
-        "-o",
-        w / "out-gamma",
-        "-q",
-    )  # an earlier calibration
-    readout = ["--readout", "Electron Multiplying, 10 MHz, analog gain 2"]  # as the docs'
-    for name in ("out-adu", "out-g5", "out-g25", "out-g100", "out-g300", "out-gamma"):
-        _run("db", "add", w / name, "--camera", "12345", *readout, *db)
     return w
 
 
