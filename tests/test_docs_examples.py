@@ -283,6 +283,7 @@ def _shell(command: str) -> list[str]:
     return _small([os.path.expanduser(a) for a in argv[1:]])
 
 
+@pytest.mark.slow
 @pytest.mark.docs_examples
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
 def test_the_examples_of_a_page_run_as_written(page, world, tmp_path, monkeypatch, capsys, request):
