@@ -8,7 +8,8 @@ world of simulated data named as the docs name it (``gs/``, ``out-adu``, ``out-g
 passes when it exits 0, or 1 (this command line's "a finding": a strict check, an audit
 that is off, a flagged comparison), never 2 (a refused input or option) or with a
 traceback. ``simulate`` commands get a small ``--frames``/``--rows``/``--cols`` where
-they name none: the docs show the verbs and options, not the data's size.
+they name none (``simulate beads``: one bead on the world's sensor, so that the world's
+calibrations cover it): the docs show the verbs and options, not the data's size.
 
 What cannot run here is listed in ``NOT_RUN`` with the reason (installs, real hardware,
 a cluster, a GPU, placeholders such as ``RESULT``); the list is checked against the
@@ -58,8 +59,6 @@ NOT_RUN = {
     "(tests/test_export.py merges them)",
     "emccdcal report out-*/ --validation beads-out/": "a shell glob over the user's results",
     "echo $?": "the shell's, after the command above it",
-    "emccdcal validate beads/manifest.toml": "calibrations of the beads' 64 × 64 sensor, "
-    "minutes here; the gallery's bead example and tests/test_validation.py run it",
     "emccdcal db add out-gs                          # serial and read-out from the stacks'": "stacks that record a camera serial (tests/test_export.py reads them from camera "
     "files); the world's simulated stacks record none",
 }
@@ -262,7 +261,13 @@ def _small(argv: list[str]) -> list[str]:
     if argv[:1] != ["simulate"]:
         return argv
     size = (
-        (("--frames", 30), ("--dark-frames", 100))
+        (
+            ("--frames", 30),
+            ("--dark-frames", 100),
+            ("--rows", ROWS),
+            ("--cols", COLS),
+            ("--beads", 1),
+        )  # one bead on the world's sensor: its calibrations fit it
         if argv[1:2] == ["beads"]
         else (("--frames", FRAMES), ("--rows", ROWS), ("--cols", COLS))
     )
