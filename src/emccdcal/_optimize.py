@@ -7,7 +7,11 @@ with the row's own information matrix I (observed, expected, or Gauss–Newton's
 damping λ, clips the step to ±``max_step`` per parameter, keeps parameters at a bound
 whose gradient points outwards where they are (an active-set step), and evaluates the
 trial rows only. A trial that does not raise the objective is refused and its damping
-raised tenfold; an accepted one lowers it tenfold. A row is done when its step promises
+raised tenfold. An accepted one lowers it tenfold where it gained at least a quarter of
+what the step's quadratic model promised (½∇ᵀΔ), and raises it tenfold where it gained
+less: an information matrix that understates the curvature along a ridge makes undamped
+steps overshoot back and forth, each gaining a little, and the row would never settle
+(Marquardt's gain-ratio rule). A row is done when its step promises
 less than ``tol + rtol·|objective|`` (the Newton decrement ½∇ᵀΔ), when its step is below
 1e-10 in every parameter, or when no damping up to ``max_damping`` finds a better point
 (stuck, unless an undamped step would gain less than ``stuck_tol``).
@@ -192,12 +196,16 @@ def maximize(
         if active.size:
             res = evaluate(active, x_new)
             better = res[0] >= obj[active] - accept_rtol * np.abs(obj[active])
+            # what the step gained against what its quadratic model promised
+            model = 0.5 * np.einsum("pf,pf->p", g[move], d[move])
+            ratio = (res[0] - obj[active]) / np.where(model > 0, model, np.inf)
             idx = active[better]
             x[idx] = x_new[better]
             obj[idx] = res[0][better]
             grad[idx], info[idx] = res[1][better], res[2][better]
-            damping[idx] = np.maximum(damping[idx] / 10.0, 1e-12)
-            damping[active[~better]] *= 10.0
+            good = better & (ratio >= 0.25)
+            damping[active[good]] = np.maximum(damping[active[good]] / 10.0, 1e-12)
+            damping[active[~good]] *= 10.0
             iterations[active] += 1
         hopeless = active[damping[active] > max_damping]
         done[hopeless] = True
