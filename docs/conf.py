@@ -10,7 +10,6 @@ is fetched from the network: no intersphinx inventory, no remote image or font.
 from __future__ import annotations
 
 import os
-import sys
 from pathlib import Path
 
 import emccdcal
@@ -86,7 +85,5 @@ sphinx_gallery_conf = {
     "abort_on_example_error": True,
 }
 
-# Each gallery script writes its files in a temporary folder of its own; matplotlib draws
-# without a display.
+# Matplotlib draws without a display.
 os.environ.setdefault("MPLBACKEND", "Agg")
-sys.path.insert(0, str(ROOT / "examples"))

@@ -93,9 +93,8 @@ def test_the_gallery_holds_the_seven_workflows():
 
 def _serve(root: Path, harness: str):
     """The site's files on 127.0.0.1 (a free port), and the harness page at /__harness__."""
-    handler = partial(_Site, directory=str(root))
-    handler.func.harness = harness.encode()  # type: ignore[attr-defined]
-    server = ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    _Site.harness = harness.encode()
+    server = ThreadingHTTPServer(("127.0.0.1", 0), partial(_Site, directory=str(root)))
     threading.Thread(target=server.serve_forever, daemon=True).start()
     return server
 
@@ -166,6 +165,7 @@ def site_in_browser(tmp_path_factory):
         )
     finally:
         server.shutdown()
+        server.server_close()
     m = re.search(r'<pre id="probe-result">(.*?)</pre>', dom, re.DOTALL)
     assert m, "the harness did not finish: a page did not load"
     found = json.loads(html.unescape(m.group(1)))
