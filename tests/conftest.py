@@ -9,6 +9,7 @@ cleanly where the data are absent.
 from __future__ import annotations
 
 import io
+import sys
 import warnings
 from pathlib import Path
 
@@ -83,6 +84,15 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "real_data" in item.keywords:
             item.add_marker(skip)
+
+
+def console_script(name: str = "emccdcal") -> str:
+    """The installed command ``name`` of this environment (``emccdcal``, ``dask``), as a
+    user's shell finds it once the environment is active."""
+    path = Path(sys.executable).parent / name
+    if not path.is_file():
+        pytest.skip(f"no '{name}' command beside {sys.executable}")
+    return str(path)
 
 
 def quiet(fn, *args, **kw):

@@ -108,6 +108,15 @@ def test_import_is_lazy_and_names_resolve():
     assert emccdcal.noise.__name__ == "emccdcal.model.noise"
 
 
+@pytest.mark.parametrize("package", sorted(emccdcal._SUBPACKAGES))
+def test_a_fresh_interpreter_reaches_every_subpackage_after_a_bare_import(package):
+    """``import emccdcal; emccdcal.model.noise.pmf(...)`` as a user types it, nothing
+    imported before (the test process has imported them all)."""
+    code = f"import emccdcal; print(emccdcal.{package}.__name__)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.strip() == f"emccdcal.{package}", out.stderr
+
+
 def test_no_public_name_hides_a_module():
     modules = {p.stem for p in SRC.glob("*.py")} | {p.name for p in SRC.iterdir() if p.is_dir()}
     assert not set(emccdcal.__all__) & modules
@@ -137,8 +146,10 @@ def test_atomic_write_uses_the_umask_and_leaves_nothing_on_failure(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt"]
 
 
-def test_dir_shows_the_api_only_and_the_stub_names_it():
-    assert dir(emccdcal) == sorted(emccdcal.__all__)
+def test_dir_shows_the_api_and_its_subpackages_and_the_stub_names_them():
+    assert dir(emccdcal) == sorted({*emccdcal.__all__, *emccdcal._SUBPACKAGES})
+    packages = {p.parent.name for p in SRC.glob("*/__init__.py")}
+    assert emccdcal._SUBPACKAGES == packages - {"cli", "napari"}  # those two: entry points
     stub = ast.parse((SRC / "__init__.pyi").read_text())
     named = {}
     for node in stub.body:
@@ -146,6 +157,8 @@ def test_dir_shows_the_api_only_and_the_stub_names_it():
             for alias in node.names:
                 module = "emccdcal" + ("." + node.module if node.module else "")
                 named[alias.asname or alias.name] = (module, alias.name)
+    for name in emccdcal._SUBPACKAGES:
+        assert named.pop(name) == ("emccdcal", name)
     assert set(named) == set(emccdcal._API)
     for name, (module, attribute) in emccdcal._API.items():
         if attribute is None:  # a module: the stub imports it from its parent

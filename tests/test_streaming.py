@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tifffile
-from conftest import quiet
+from conftest import console_script, quiet
 
 from emccdcal import calibrate, cli, result
 from emccdcal.errors import OptionError
@@ -84,30 +84,133 @@ def test_tiles_and_workers_do_not_change_the_result(series, method, which, model
     _assert_same(one, rows)
 
 
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def dask_cluster(tmp_path_factory):
+    """A Dask cluster started as its documentation says, by the ``dask`` commands of this
+    environment: a scheduler on 127.0.0.1 and two worker processes of one thread each.
+    Nothing of it lives in the test's process; it is stopped at the end."""
+    pytest.importorskip("distributed")
+    dask = console_script("dask")
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    logs = tmp_path_factory.mktemp("dask-logs")
+    commands = [
+        [dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
+        [dask, "worker", address, "--nworkers", "2", "--nthreads", "1", "--no-dashboard"],
+    ]
+    started = []
+    try:
+        for i, command in enumerate(commands):
+            with open(logs / f"{i}.log", "wb") as log:
+                started.append(subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT))
+            if i == 0:
+                _wait_for_port(port, started[0], logs / "0.log")
+        _wait_for_workers(address, 2)
+        yield address
+    finally:
+        for process in reversed(started):
+            process.terminate()
+        for process in reversed(started):
+            try:
+                process.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                process.kill()
+
+
+def _wait_for_port(port, process, log, limit=120.0):
+    import socket
+
+    deadline = time.monotonic() + limit
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            pytest.fail(f"dask scheduler exited: {log.read_text()[-2000:]}")
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1).close()
+            return
+        except OSError:
+            time.sleep(0.2)
+    pytest.fail(f"dask scheduler did not listen within {limit:.0f} s")
+
+
+def _scheduler_state(address, function):
+    """``function(dask_scheduler)`` run on the scheduler, from a client made for it and
+    closed at once (never while a run under test is going)."""
+    import distributed
+
+    with distributed.Client(address, timeout="60s", set_as_default=False) as client:
+        return client.run_on_scheduler(function)
+
+
+def _wait_for_workers(address, n):
+    import distributed
+
+    with distributed.Client(address, timeout="60s", set_as_default=False) as client:
+        client.wait_for_workers(n, timeout=180)
+
+
+# The tiles the scheduler's workers have computed (the prefix counts the tasks that ever
+# reached each state); a lambda, pickled by value: the scheduler cannot import this module
+_tiles_run = lambda dask_scheduler: getattr(  # noqa: E731
+    dask_scheduler.task_prefixes.get("run_tile"), "state_counts", {}
+).get("memory", 0)
+
+
 @pytest.mark.slow
-def test_a_dask_cluster_on_localhost_gives_the_local_result(series):
-    distributed = pytest.importorskip("distributed")
+def test_a_dask_cluster_started_by_the_dask_commands_gives_the_local_result(
+    series, dask_cluster, tmp_path
+):
+    """``emccdcal calibrate --scheduler tcp://...`` from the command line and
+    ``calibrate(scheduler=...)`` in a fresh interpreter, neither holding a client of its
+    own: the tiles run on the cluster and the numbers are the local ones."""
     local = quiet(calibrate, series[0], "gs", block_size=16, tile_pixels=32)
-    with (
-        distributed.LocalCluster(
-            n_workers=2,
-            threads_per_worker=1,
-            processes=True,
-            host="127.0.0.1",
-            dashboard_address=None,
-        ) as cluster,
-        distributed.Client(cluster) as client,
-    ):
-        remote = quiet(
-            calibrate,
-            series[0],
+    tiles = -(-local.sizes["row"] * local.sizes["col"] // 32)
+    before = _scheduler_state(dask_cluster, _tiles_run)
+    cli_out = tmp_path / "cli"
+    run = subprocess.run(
+        [
+            console_script(),
+            "calibrate",
+            str(series[0]),
+            "-m",
             "gs",
-            block_size=16,
-            tile_pixels=32,
-            scheduler=client.scheduler.address,
-        )
-        assert len(client.scheduler_info()["workers"]) == 2
-    _assert_same(local, remote)
+            "-o",
+            str(cli_out),
+            "--block-size",
+            "16",
+            "--tile-pixels",
+            "32",
+            "--scheduler",
+            dask_cluster,
+            "-q",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    after_cli = _scheduler_state(dask_cluster, _tiles_run)
+    assert after_cli - before == tiles  # the scheduler ran every tile
+    py_out = tmp_path / "py"
+    code = (
+        "import emccdcal, sys\n"
+        f"ds = emccdcal.calibrate({str(series[0])!r}, 'gs', block_size=16, tile_pixels=32, "
+        f"scheduler={dask_cluster!r}, out={str(py_out)!r})\n"
+        "assert 'distributed' not in sys.modules or "
+        "not __import__('distributed').client._global_clients\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert _scheduler_state(dask_cluster, _tiles_run) - after_cli == tiles
+    for out in (cli_out, py_out):
+        _assert_same(local, result.load(out), rtol=1e-9)
 
 
 @pytest.mark.slow

@@ -18,6 +18,8 @@ is fast.
 >>> import emccdcal
 >>> emccdcal.calibrate.__module__, emccdcal.noise.__name__
 ('emccdcal.calibration', 'emccdcal.model.noise')
+>>> emccdcal.model.noise is emccdcal.noise  # subpackages, too, on first use
+True
 """
 
 import importlib as _importlib
@@ -53,12 +55,21 @@ _API = {
 
 __all__ = ["__version__", *_API]
 
+#: Subpackages reached as attributes (``emccdcal.model.noise``), imported on first use as
+#: scipy imports its own, so that a fresh interpreter's ``import emccdcal`` reaches them.
+_SUBPACKAGES = frozenset(
+    ("acquire", "beads", "data", "export", "fit", "model", "report", "simulate")
+)
+
 
 def __getattr__(name: str):
-    try:
-        module, attribute = _API[name]
-    except KeyError:
-        raise AttributeError(f"module 'emccdcal' has no attribute {name!r}") from None
+    if name in _SUBPACKAGES:
+        module, attribute = f"emccdcal.{name}", None
+    else:
+        try:
+            module, attribute = _API[name]
+        except KeyError:
+            raise AttributeError(f"module 'emccdcal' has no attribute {name!r}") from None
     value = _importlib.import_module(module)
     if attribute is not None:
         value = getattr(value, attribute)
@@ -67,5 +78,6 @@ def __getattr__(name: str):
 
 
 def __dir__():
-    # the API only: the helpers above are not for users (type checkers read __init__.pyi)
-    return sorted(__all__)
+    # the API and its subpackages: the helpers above are not for users (type checkers
+    # read __init__.pyi)
+    return sorted({*__all__, *_SUBPACKAGES})

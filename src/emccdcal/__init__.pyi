@@ -1,5 +1,13 @@
 # The lazy public API of emccdcal (__init__.py imports each name on first use), spelled
 # out for type checkers and IDEs. Keep it in step with emccdcal._API (a test checks).
+from . import acquire as acquire
+from . import beads as beads
+from . import data as data
+from . import export as export
+from . import fit as fit
+from . import model as model
+from . import report as report
+from . import simulate as simulate
 from .beads.cots_calibration import cots_calibrate as cots
 from .beads.validation import validate as validate
 from .calibration import calibrate as calibrate

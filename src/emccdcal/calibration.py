@@ -342,7 +342,11 @@ def _execute(jobs, scheduler, progress, workers=1):
             ) from None
     try:
         futures = {client.submit(run_tile, job, pure=False): job for job in jobs}
-        yield from _as_finished(futures, as_completed, progress)
+        # as_completed waits on the loop of the client it is given, else on the process's
+        # default client: ours is not one (a caller's may not exist)
+        yield from _as_finished(
+            futures, functools.partial(as_completed, loop=client.loop), progress
+        )
     finally:
         if client is not scheduler:
             client.close()
