@@ -4,7 +4,9 @@ The examples are read from the pages' fenced blocks: in ``sh``/``console``/plain
 each line that starts with ``emccdcal`` (or ``$ emccdcal``), joined ``&&`` commands
 split; every ``python`` block. A page's examples run in order, in a copy of one small
 world of simulated data named as the docs name it (``gs/``, ``out-adu``, ``out-gs``,
-``darks-300x.tif``, ``movie.tif`` …), through ``emccdcal.cli.main`` in-process: a command
+``darks-300x.tif``, ``movie.tif`` …), as a reader runs them: each page in one fresh
+interpreter that has imported nothing (its Python blocks in order), each command through
+the installed ``emccdcal`` command in its own process. A command
 passes when it exits 0, or 1 (this command line's "a finding": a strict check, an audit
 that is off, a flagged comparison), never 2 (a refused input or option) or with a
 traceback. ``simulate`` commands get a small ``--frames``/``--rows``/``--cols`` where
@@ -22,11 +24,13 @@ demos, several reports) are ``make test-docs``, which CI runs beside ``make test
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shlex
 import shutil
-import time
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -36,6 +40,7 @@ import emccdcal
 from emccdcal import cli
 
 import camera_files
+from conftest import console_script
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -298,10 +303,40 @@ def _shell(command: str) -> list[str]:
     return _small([os.path.expanduser(a) for a in argv[1:]])
 
 
+def _steps(page: Path, items, work: Path) -> list[dict]:
+    """The page's examples as the runner's steps (tests/docs_page_runner.py), in order:
+    its Python blocks, and its commands with their arguments as they run here and what
+    each must find removed before it (its output, where the world has a copy)."""
+    steps, made, db_used = [], set(), False
+    for item, (line, kind, text, _) in enumerate(items):
+        where = f"{page.name}:{line}"
+        if kind == "python":
+            if text.splitlines()[0] not in NOT_RUN_PYTHON:
+                steps.append({"item": item, "where": where, "kind": "python", "code": text})
+            continue
+        if text == "echo $?" or _not_run(text):
+            continue
+        argv = _shell(_stand_in(text))
+        reset_db = argv[:2] == ["db", "add"] and not db_used  # the page starts its own
+        db_used |= argv[0] == "db" or "--camera" in argv
+        out = _output(argv)
+        remove = None
+        if out is not None and out not in made:  # the page makes it: not the world's copy
+            remove, made = str(work / out), made | {out}
+        steps.append(
+            {"item": item, "where": where, "kind": "shell", "argv": argv, "remove": remove}
+            | {"reset_db": reset_db}
+        )
+    return steps
+
+
 @pytest.mark.slow
 @pytest.mark.docs_examples
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
-def test_the_examples_of_a_page_run_as_written(page, world, tmp_path, monkeypatch, capsys, request):
+def test_the_examples_of_a_page_run_as_written(page, world, tmp_path, request):
+    """The page's examples as its reader runs them: its Python blocks in order in one
+    fresh interpreter that has imported nothing (tests/docs_page_runner.py), its commands
+    through the installed ``emccdcal`` command, each in its own process."""
     items = examples(page)
     if not items:
         pytest.skip(f"{page.name} has no example")
@@ -313,46 +348,49 @@ def test_the_examples_of_a_page_run_as_written(page, world, tmp_path, monkeypatc
             shutil.copytree(real / name, work / name)
         if page.name == "first-calibration.md":  # its movie is of that camera, at 300x
             shutil.copy(real / "gain-GS/300x-gain.tif", work / "movie.tif")
-    monkeypatch.chdir(work)
-    monkeypatch.setenv("HOME", str(work / "home"))
-    monkeypatch.setenv("EMCCDCAL_DB", str(work / "home" / "calibrations.sqlite"))
-    monkeypatch.setenv("MPLBACKEND", "Agg")
-    namespace: dict = {}
-    failures, made, seconds, db_used, code = [], set(), [], False, None
-    for line, kind, text, shown in items:
+    steps = _steps(page, items, work)
+    files = ("steps.json", "results.json")  # beside the page's folder, not in it
+    (tmp_path / files[0]).write_text(json.dumps(steps), encoding="utf-8")
+    env = {
+        **os.environ,
+        "HOME": str(work / "home"),
+        "EMCCDCAL_DB": str(work / "home" / "calibrations.sqlite"),
+        "MPLBACKEND": "Agg",
+    }
+    for name in ("PYTHONPATH", "PYTHONSTARTUP"):  # nothing of the test's own set-up
+        env.pop(name, None)
+    runner = (Path(__file__).parent / "docs_page_runner.py").read_text(encoding="utf-8")
+    done = subprocess.run(
+        [sys.executable, "-c", runner, *(str(tmp_path / f) for f in files), console_script()],
+        cwd=work,
+        env={**env, "PWD": str(work)},
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, f"the page's runner failed: {done.stderr[-3000:]}"
+    results = {r["item"]: r for r in json.loads((tmp_path / files[1]).read_text())}
+    failures, seconds, code = [], [], None
+    for item, (line, kind, text, shown) in enumerate(items):
         where = f"{page.name}:{line}"
-        if kind == "python":
-            if text.splitlines()[0] in NOT_RUN_PYTHON:
-                continue
-            try:
-                exec(compile(text, where, "exec"), namespace)
-            except Exception as exc:  # noqa: BLE001 - reported with its line
-                failures.append(f"{where}: python block: {type(exc).__name__}: {exc}")
-            continue
         if text == "echo $?" and shown:  # the exit status the page shows
             if shown[0] != str(code):
                 failures.append(f"{where}: the command above exited {code}, not {shown[0]}")
             continue
-        if _not_run(text):
+        if item not in results:  # not run here (NOT_RUN, NOT_RUN_PYTHON)
             continue
+        r = results[item]
+        if kind == "python":
+            if r["error"]:
+                failures.append(f"{where}: python block: {r['error']}")
+            continue
+        code = r["code"]
+        seconds.append((r["seconds"], text))
         argv = _shell(_stand_in(text))
-        if argv[:2] == ["db", "add"] and not db_used:  # the page starts its own database
-            (work / "home" / "calibrations.sqlite").unlink(missing_ok=True)
-        db_used |= argv[0] == "db" or "--camera" in argv
-        out = _output(argv)
-        if out is not None and out not in made:  # the page makes it: not the world's copy
-            shutil.rmtree(out, ignore_errors=True) if out.is_dir() else out.unlink(missing_ok=True)
-            made.add(out)
-        t0 = time.perf_counter()
-        code = cli.main(argv)
-        seconds.append((time.perf_counter() - t0, text))
-        printed = capsys.readouterr()
-        err = printed.err
         exact = real is not None or argv[0] == "plan"  # the page's own data, or none
-        lost = missing_output(shown, printed.out + printed.err, numbers=exact)
+        lost = missing_output(shown, r["out"] + r["err"], numbers=exact)
         if lost:
             failures.append(f"{where}: `{text}` did not print, as the page shows: {lost}")
         if code not in (0, 1):
-            failures.append(f"{where}: `{text}` exited {code}: {err.strip()[-600:]}")
+            failures.append(f"{where}: `{text}` exited {code}: {r['err'].strip()[-600:]}")
     print("slowest:", *(f"{t:.1f} s {c}" for t, c in sorted(seconds)[::-1][:5]), sep="\n  ")
     assert not failures, "\n".join(failures)

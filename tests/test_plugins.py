@@ -179,7 +179,7 @@ def test_a_plugin_reader_and_tool_are_used_by_scan_calibrate_export_and_audit(pl
     # the broken plug-in is named, left out, and stops nothing
     assert (
         "plug-in 'broken' (emccdcal_toy.missing:TOOL, package 'emccdcal-toy') of "
-        "emccdcal.tools could not be loaded: ModuleNotFoundError"
+        "emccdcal.tools: could not be loaded: ModuleNotFoundError"
     ) in done.stderr
     assert done.stderr.count("left out") == 1
 
@@ -245,3 +245,200 @@ def test_without_registered_readers_a_file_says_why(monkeypatch, tmp_path):
     path.write_bytes(b"")
     with pytest.raises(InputError, match="no reader is registered.*pip install -e"):
         stacks._reader(path)
+
+
+# --- broken and partial plug-ins, installed beside a working emccdcal ---------------------
+
+BROKEN = {
+    "half.py": '''
+class Half:
+    """A register model with 4 of its interface's members."""
+    name = "half"
+    uses_stages = False
+
+    def __init__(self, stages):
+        pass
+
+    def rows(self, E, g, phi, cic=None):
+        raise AssertionError("never reached: left out at load")
+
+    def excess_noise_factor(self, g):
+        return 2.0
+''',
+    "boom.py": 'raise RuntimeError("\\x1b[31mred\\x1b[0m\\nsecond line")\n',
+    "tool.py": """
+from emccdcal.plugins import Tool
+
+def write(*args):
+    raise AssertionError("never reached: the name is the package's own")
+
+TOOL = Tool("picasso", "Not Picasso", write)
+NO_WRITE = type("NoWrite", (), {"name": "nowrite", "title": "x", "read": None,
+                                "recognizes": None})()
+""",
+    "reader.py": """
+SUFFIXES = (".tif",)
+
+def header(path):
+    raise AssertionError("never reached: the suffix is taken")
+
+def settings(path):
+    raise AssertionError("never reached")
+""",
+}
+
+BROKEN_ENTRY_POINTS = """
+[emccdcal.registers]
+half = emccdcal_bad.half:Half
+boom = emccdcal_bad.boom:Model
+
+[emccdcal.tools]
+picasso = emccdcal_bad.tool:TOOL
+nowrite = emccdcal_bad.tool:NO_WRITE
+
+[emccdcal.readers]
+tif2 = emccdcal_bad.reader
+"""
+
+
+@pytest.fixture(scope="module")
+def broken(tmp_path_factory):
+    """A folder holding a package of broken and partial plug-ins, and an older
+    ``emccdcal-0.0.1.dist-info`` (no entry points) that stands before the real one."""
+    site = tmp_path_factory.mktemp("broken-site")
+    package = site / "emccdcal_bad"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    for name, text in BROKEN.items():
+        (package / name).write_text(text)
+    info = site / "emccdcal_bad-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: emccdcal-bad\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text(textwrap.dedent(BROKEN_ENTRY_POINTS))
+    stale = site / "emccdcal-0.0.1.dist-info"
+    stale.mkdir()
+    (stale / "METADATA").write_text("Metadata-Version: 2.1\nName: emccdcal\nVersion: 0.0.1\n")
+    return site
+
+
+@pytest.fixture(scope="module")
+def small_series(tmp_path_factory):
+    return simulate_gain_series(
+        tmp_path_factory.mktemp("small"),
+        rows=3,
+        cols=4,
+        frames=300,
+        seed=22,
+        setpoints=(1, 25),
+        progress=False,
+    )
+
+
+def _lines(stderr: str) -> list[str]:
+    return [line for line in stderr.splitlines() if line.strip()]
+
+
+def test_broken_plugins_leave_a_user_who_did_not_ask_for_them_unaffected(
+    broken, small_series, tmp_path
+):
+    """Each broken plug-in is one escaped line naming what is wrong; the built-in
+    readers, tools and models all work (an older emccdcal dist-info on the path hides
+    none of them), and the numbers are those without the broken package."""
+    done = _run(broken, "--version")
+    assert done.stdout.strip() != "emccdcal 0.0.1" and done.returncode == 0
+    out = tmp_path / "with"
+    done = _run(
+        broken,
+        "calibrate",
+        small_series.manifest,
+        "-m",
+        "gs",
+        "--em-model",
+        "gamma",
+        "-o",
+        out,
+        "-q",
+    )
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr and "\x1b" not in done.stderr
+    lines = _lines(done.stderr)
+    assert all(line.startswith("warning: plug-in '") for line in lines), lines
+    half = next(line for line in lines if "'half'" in line)
+    assert "lacks parameters, misfit_hint, description, register_for" in half
+    boom = next(line for line in lines if "'boom'" in line)
+    assert "could not be loaded: RuntimeError: \\u001b[31mred" in boom and "\\n" in boom
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    ref = tmp_path / "without"
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "emccdcal",
+            "calibrate",
+            str(small_series.manifest),
+            "-m",
+            "gs",
+            "--em-model",
+            "gamma",
+            "-o",
+            str(ref),
+            "-q",
+        ],
+        env=env,
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )
+    from emccdcal import load_result
+
+    np.testing.assert_array_equal(load_result(out).em_gain.values, load_result(ref).em_gain.values)
+
+    exported = tmp_path / "picasso"
+    done = _run(broken, "export", out, "--to", "picasso", "-o", exported, "--setpoint", 25)
+    assert done.returncode == 0, done.stderr
+    tool = next(line for line in _lines(done.stderr) if "emccdcal_bad.tool:TOOL" in line)
+    assert "the name is taken" in tool
+    assert "lacks write" in next(line for line in _lines(done.stderr) if "'nowrite'" in line)
+    assert list(exported.iterdir())  # the built-in Picasso wrote
+    done = _run(
+        broken, "scan", small_series.manifest.parent / "gain-GS", "-o", tmp_path / "scan.toml"
+    )
+    assert done.returncode == 0, done.stderr
+    assert "suffix '.tif' is taken" in done.stderr
+
+
+def test_a_partial_register_asked_for_is_refused_in_one_line_before_any_fitting(
+    broken, small_series, tmp_path
+):
+    out = tmp_path / "out"
+    done = _run(
+        broken, "calibrate", small_series.manifest, "-m", "gs", "--em-model", "half", "-o", out
+    )
+    assert done.returncode == 2
+    assert "Traceback" not in done.stderr and not out.exists()
+    error = [line for line in _lines(done.stderr) if not line.startswith("warning:")]
+    assert len(error) == 1, done.stderr
+    assert "register model 'half' was left out" in error[0]
+    assert "lacks parameters, misfit_hint, description, register_for" in error[0]
+    done = _run(
+        broken, "calibrate", small_series.manifest, "-m", "gs", "--em-model", "nothing", "-o", out
+    )
+    assert done.returncode == 2 and "invalid choice: 'nothing'" in done.stderr
+    assert "half" not in done.stderr.split("invalid choice")[1]  # not offered
+
+
+def test_the_python_api_names_what_a_left_out_register_lacks(broken, small_series):
+    code = (
+        "import warnings, emccdcal\n"
+        "warnings.simplefilter('ignore')\n"
+        "try:\n"
+        f"    emccdcal.calibrate({str(small_series.manifest)!r}, 'gs', em_model='half')\n"
+        "except emccdcal.EmccdcalError as e:\n"
+        "    print(e)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(broken)}
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300
+    )
+    assert done.returncode == 0, done.stderr
+    assert "em_model 'half' was left out" in done.stdout and "lacks" in done.stdout

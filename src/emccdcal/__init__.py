@@ -23,12 +23,6 @@ True
 """
 
 import importlib as _importlib
-from importlib import metadata as _metadata
-
-try:
-    __version__ = _metadata.version("emccdcal")
-except _metadata.PackageNotFoundError:  # pragma: no cover - running from a source tree
-    __version__ = "0+unknown"
 
 #: Public name -> (module, attribute); attribute None means the module itself.
 _API = {
@@ -63,6 +57,11 @@ _SUBPACKAGES = frozenset(
 
 
 def __getattr__(name: str):
+    if name == "__version__":  # of the distribution that installed these files
+        from ._dist import version
+
+        globals()[name] = version()
+        return globals()[name]
     if name in _SUBPACKAGES:
         module, attribute = f"emccdcal.{name}", None
     else:

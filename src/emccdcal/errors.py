@@ -27,6 +27,7 @@ __all__ = [
     "Cancelled",
     "InputWarning",
     "ReadNoiseGrowthWarning",
+    "PluginWarning",
 ]
 
 
@@ -72,6 +73,11 @@ class InputWarning(UserWarning):
 
 class ReadNoiseGrowthWarning(UserWarning):
     """The darks' read noise grows with the EM gain set-point (clock-induced charge)."""
+
+
+class PluginWarning(UserWarning):
+    """Another package's plug-in was left out: it could not be loaded, lacks a member of
+    its interface, or takes a name already taken (:mod:`emccdcal.plugins`)."""
 
 
 # The words of the interface that shows a message: the command line's options by default,

@@ -25,9 +25,12 @@ A package adds one in its own ``pyproject.toml``, with nothing changed in emccdc
     toyloc = "mypackage.toyloc:TOOL"
 
 The package's own come first, then the others by package; each package's by name (the
-order in which an audit asks which tool a file is: a tool recognises only its own). One that cannot be loaded, lacks
-what its group asks, or takes a name (or a suffix) already taken is left out with a
-warning naming it: a broken plug-in never stops emccdcal.
+order in which an audit asks which tool a file is: a tool recognises only its own). Each
+is checked against the whole of its group's interface when it is loaded: one that cannot
+be loaded, lacks any member, or takes a name (or a suffix) already taken is left out
+with one line (a :class:`~emccdcal.errors.PluginWarning`) naming what is wrong, is
+offered by no command line, and is named with that reason where a user asks for it. A
+broken plug-in never stops emccdcal, nor fails in the middle of a fit.
 """
 
 from __future__ import annotations
@@ -38,18 +41,75 @@ import warnings
 from dataclasses import dataclass
 from collections.abc import Callable
 
-__all__ = ["READERS", "TOOLS", "REGISTERS", "Tool", "load", "names"]
+__all__ = ["READERS", "TOOLS", "REGISTERS", "Tool", "load", "names", "left_out", "unknown"]
 
 READERS = "emccdcal.readers"
 TOOLS = "emccdcal.tools"
 REGISTERS = "emccdcal.registers"
 
-#: What an entry point of each group must have.
+#: What an entry point of each group must have (a register model: every member of
+#: :class:`emccdcal.model.RegisterModel`, read from the Protocol in :func:`_required`).
 _REQUIRED = {
     READERS: ("SUFFIXES", "header", "settings"),
     TOOLS: ("name", "title", "write", "read", "recognizes"),
-    REGISTERS: ("name", "uses_stages", "rows", "excess_noise_factor"),
 }
+
+#: Members that must be callable where a plug-in has them (None allowed for a tool's
+#: optional ones).
+_CALLABLE = {
+    READERS: ("header", "settings", "open_stack"),
+    TOOLS: ("write", "read", "recognizes", "read_file"),
+}
+
+
+def _required(group: str) -> tuple[str, ...]:
+    if group == REGISTERS:
+        from .model._protocol import RegisterModel
+
+        return _protocol_members(RegisterModel)
+    return _REQUIRED[group]
+
+
+def _protocol_members(protocol) -> tuple[str, ...]:
+    """The members a Protocol declares (its annotations and its own methods and
+    properties), in their order."""
+    declared = [*getattr(protocol, "__annotations__", {})]
+    declared += [n for n in vars(protocol) if not n.startswith("_") and n not in declared]
+    return tuple(declared)
+
+
+def _problems(group: str, obj) -> list[str]:
+    """What makes ``obj`` unfit for ``group``: the members it lacks, then those that
+    should be callable and are not."""
+    missing = [a for a in _required(group) if not hasattr(obj, a)]
+    if missing:
+        return [f"lacks {', '.join(missing)}"]
+    if group == REGISTERS:
+        from .model._protocol import RegisterModel
+
+        methods = [
+            n for n in _protocol_members(RegisterModel) if callable(getattr(RegisterModel, n, None))
+        ]
+        wrong = [n for n in methods if not callable(getattr(obj, n))]
+    else:
+        wrong = [
+            n
+            for n in _CALLABLE[group]
+            if getattr(obj, n, None) is not None and not callable(getattr(obj, n))
+        ]
+        if group == TOOLS:
+            wrong += [n for n in ("write",) if getattr(obj, n) is None]
+    if wrong:
+        return [f"has {', '.join(wrong)} not callable"]
+    if group == READERS:
+        suffixes = obj.SUFFIXES
+        if isinstance(suffixes, str) or not all(
+            isinstance(x, str) and x.startswith(".") and x == x.lower() for x in suffixes
+        ):
+            return ["has SUFFIXES that are not lower-case suffixes such as '.tif'"]
+    elif not isinstance(obj.name, str):
+        return ["has a name that is not text"]
+    return []
 
 
 @dataclass(frozen=True)
@@ -91,30 +151,63 @@ class Tool:
 
 
 def names(group: str) -> tuple[str, ...]:
-    """The names of a group's entry points in their order, without loading any (for a
-    command line's choices; :func:`load` then leaves out a broken one)."""
-    return tuple(ep.name for ep in _entry_points(group))
+    """The names of the plug-ins of a group that loaded and fit its interface, in their
+    order (a command line's choices: never one that would fail when used)."""
+    return tuple(load(group))
+
+
+def left_out(group: str) -> dict[str, str]:
+    """The plug-ins of a group that were left out: name → why (one line)."""
+    load(group)
+    return dict(_LEFT_OUT.get(group, {}))
+
+
+def unknown(group: str, name: str, what: str) -> str:
+    """The message for ``name`` not among a group's plug-ins: the choices, and why it
+    was left out where it was one."""
+    why = left_out(group).get(name)
+    if why is not None:
+        return f"{what} {name!r} was left out: {why}"
+    return f"unknown {what} {name!r}; choose one of {', '.join(names(group))}"
 
 
 def _entry_points(group: str) -> list:
-    """A group's entry points: emccdcal's own, then the others by package; by name."""
-    found = importlib.metadata.entry_points(group=group)
-    own = sorted(
-        (ep for ep in found if ep.dist is not None and ep.dist.name == "emccdcal"),
-        key=lambda ep: ep.name,
-    )
+    """A group's entry points: emccdcal's own (of the distribution that installed these
+    files, whatever other copy stands on the path), then the others by package; by name."""
+    from ._dist import own_distribution
+
+    dist = own_distribution()
+    own = sorted(dist.entry_points.select(group=group) if dist else (), key=lambda ep: ep.name)
     others = sorted(
-        (ep for ep in found if ep not in own),
+        (
+            ep
+            for ep in importlib.metadata.entry_points(group=group)
+            if ep.dist is None or _normal(ep.dist.name) != "emccdcal"
+        ),
         key=lambda ep: (ep.dist.name if ep.dist else "", ep.name),
     )
     return own + others
 
 
+def _normal(name: str) -> str:
+    return name.lower().replace("_", "-").replace(".", "-")
+
+
+#: group → {name: why}, of the plug-ins :func:`load` left out.
+_LEFT_OUT: dict[str, dict[str, str]] = {}
+
+
 @functools.cache
 def load(group: str) -> dict:
-    """Every entry point of ``group`` loaded: name → object, in :func:`names`' order."""
+    """Every entry point of ``group`` loaded and checked against its interface: name →
+    object, in :func:`names`' order. One that cannot be loaded, lacks a member, or takes
+    a name or a suffix already taken is left out, with one :class:`PluginWarning`."""
+    from ._output import comment
+    from .errors import PluginWarning
+
     out: dict = {}
     suffixes: set = set()
+    left = _LEFT_OUT[group] = {}
     for ep in _entry_points(group):
         where = (
             f"plug-in '{ep.name}' ({ep.value}"
@@ -124,23 +217,22 @@ def load(group: str) -> dict:
         try:
             obj = ep.load()
         except Exception as exc:  # noqa: BLE001 - another package's error, in one line
-            _leave_out(f"{where} could not be loaded: {type(exc).__name__}: {exc}")
-            continue
-        missing = [a for a in _REQUIRED[group] if not hasattr(obj, a)]
-        taken = suffixes & set(getattr(obj, "SUFFIXES", ()))
-        if missing:
-            _leave_out(f"{where} lacks {', '.join(missing)}")
-        elif group != READERS and obj.name != ep.name:
-            _leave_out(f"{where} calls itself '{obj.name}'")
-        elif ep.name in out:
-            _leave_out(f"{where}: the name is taken")
-        elif group == READERS and taken:
-            _leave_out(f"{where}: suffix '{sorted(taken)[0]}' is taken")
+            why = f"could not be loaded: {type(exc).__name__}: {exc}"
         else:
-            out[ep.name] = obj
-            suffixes |= set(getattr(obj, "SUFFIXES", ()))
+            problems = _problems(group, obj)
+            taken = suffixes & set(getattr(obj, "SUFFIXES", ())) if not problems else set()
+            if problems:
+                why = problems[0]
+            elif group != READERS and obj.name != ep.name:
+                why = f"calls itself {obj.name!r}"
+            elif ep.name in out:
+                why = "the name is taken"
+            elif group == READERS and taken:
+                why = f"suffix '{sorted(taken)[0]}' is taken"
+            else:
+                out[ep.name] = obj
+                suffixes |= set(getattr(obj, "SUFFIXES", ()))
+                continue
+        left[ep.name] = comment(f"{where}: {why}")  # one line, whatever the package says
+        warnings.warn(f"{left[ep.name]}; left out", PluginWarning, stacklevel=2)
     return out
-
-
-def _leave_out(message: str) -> None:
-    warnings.warn(f"{message}; left out", stacklevel=3)

@@ -7,7 +7,7 @@ implementation inside ``run``, and only the parser of the verb being run is buil
 declared once in :mod:`emccdcal.cli._common`.
 
 Errors: an :class:`emccdcal.errors.EmccdcalError` (bad input) is printed as one line and
-exits 2; any other exception is a bug and shows its traceback. Ctrl-C prints one line
+exits 2, and every warning as one line, ``warning: ...``; any other exception is a bug and shows its traceback. Ctrl-C prints one line
 and exits 130.
 """
 
@@ -17,6 +17,7 @@ import argparse
 import gc
 import importlib
 import sys
+import warnings
 
 from .. import __version__
 from .._output import given_inputs
@@ -163,7 +164,9 @@ def main(argv: list[str] | None = None) -> int:
     sys.stdout = _Escaping(out)
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
-        return _main(argv)
+        with warnings.catch_warnings():
+            warnings.showwarning = _one_line  # those no verb records and prints itself
+            return _main(argv)
     finally:
         sys.stdout = out
         if _verb_of(argv) in _COLLECT_AFTER:
@@ -172,6 +175,14 @@ def main(argv: list[str] | None = None) -> int:
             # interpreter shuts down, aborts the process ("FATAL: exception not
             # rethrown"). Only there: a collection of a large process costs ~0.3 s.
             gc.collect()
+
+
+def _one_line(message, category, filename, lineno, file=None, line=None) -> None:
+    """A warning as the verbs print theirs (:func:`emccdcal.cli._common.print_warnings`):
+    ``warning: ...`` on one escaped line, without the source line that raised it."""
+    from .._output import comment
+
+    print(f"warning: {comment(message)}", file=file or sys.stderr)
 
 
 #: Verbs after which the command line collects garbage at once (they hold a C++ core).

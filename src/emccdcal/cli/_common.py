@@ -151,11 +151,26 @@ def add_e_per_adu(p: argparse.ArgumentParser, *, results: bool = True) -> None:
     add_accept_mismatch(p)
 
 
+def plugin_choice(group: str, what: str) -> dict:
+    """``add_argument`` keywords of an option naming a plug-in of ``group``: the choices
+    are those that loaded and fit their interface; one that was left out is refused with
+    the reason (argparse's "invalid choice" says only what the choices are)."""
+
+    def parse(text: str) -> str:
+        why = plugins.left_out(group).get(text)
+        if why is not None and text not in plugins.names(group):
+            raise argparse.ArgumentTypeError(f"{what} {text!r} was left out: {why}")
+        return text
+
+    parse.__name__ = what  # argparse names the type in its messages
+    return {"type": parse, "choices": plugins.names(group)}
+
+
 def add_em_model(p: argparse.ArgumentParser, *, auto: bool = True) -> None:
     g = p.add_argument_group("EM register model (docs/cascade.md)")
     g.add_argument(
         "--em-model",
-        choices=plugins.names(plugins.REGISTERS),
+        **plugin_choice(plugins.REGISTERS, "register model"),
         default=None,
         help="the register in the likelihood: the exact Bernoulli cascade or the "
         "paper's gamma approximation, which reproduces the paper's numbers "

@@ -32,7 +32,7 @@ def add_parser(subparsers):
     )
     p.add_argument(
         "--tool",
-        choices=plugins.names(plugins.TOOLS),
+        **_common.plugin_choice(plugins.TOOLS, "tool"),
         help="the tool (default: recognised from the file)",
     )
     p.add_argument(

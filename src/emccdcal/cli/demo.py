@@ -35,7 +35,7 @@ def add_parser(subparsers):
     )
     p.add_argument(
         "--multiplication",
-        choices=plugins.names(plugins.REGISTERS),
+        **_common.plugin_choice(plugins.REGISTERS, "register model"),
         default=DEFAULT_EM_MODEL,
         help="EM register of the simulated camera: the exact cascade of a real "
         "camera, or the paper's gamma approximation (default %(default)s)",

@@ -21,7 +21,7 @@ def add_parser(subparsers):
     p.add_argument(
         "--to",
         required=True,
-        choices=plugins.names(plugins.TOOLS),
+        **_common.plugin_choice(plugins.TOOLS, "tool"),
         help="the tool or format (another package's too, emccdcal.plugins)",
     )
     _common.add_out(p)

@@ -67,7 +67,7 @@ def _camera_options(p: argparse.ArgumentParser, defaults: dict | None = None) ->
     )
     cam.add_argument(
         "--multiplication",
-        choices=plugins.names(plugins.REGISTERS),
+        **_common.plugin_choice(plugins.REGISTERS, "register model"),
         default=d["multiplication"],
         help="EM register model: the exact Bernoulli cascade of a real camera, or "
         "the paper's gamma approximation (default %(default)s)",

@@ -148,9 +148,7 @@ class EMModel:
 
     def __post_init__(self):
         if self.name not in _registers():
-            raise OptionError(
-                f"unknown em_model {self.name!r}; choose one of {', '.join(_registers())}"
-            )
+            raise OptionError(plugins.unknown(plugins.REGISTERS, self.name, "em_model"))
         from .cascade import _check_stages
 
         # A model without stages has one value of them, whatever was passed.
