@@ -9,7 +9,10 @@ cleanly where the data are absent.
 from __future__ import annotations
 
 import io
+import signal
+import subprocess
 import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -93,6 +96,47 @@ def console_script(name: str = "emccdcal") -> str:
     if not path.is_file():
         pytest.skip(f"no '{name}' command beside {sys.executable}")
     return str(path)
+
+
+def kill_at_random(argv, n, check, rng):
+    """SIGKILL ``emccdcal argv`` at ``n`` random moments of its run, ``check()`` holding
+    after each; returns (runs killed, runs that finished before their moment). ``argv``
+    may be a function giving each run's (a run that resumes what the killed one left).
+
+    Decided from what happened, never from a timing guess that load could upset: one
+    whole run is timed; each later run is killed after a random delay within that time
+    (past the end of its imports, where a kill tests more than a kill of nothing), and a
+    kill counts only where it landed (the run ended by the signal, not by finishing).
+    A run that finished first (the machine quieter than when timed) narrows the moments
+    to before its own, and another is started: the test ends with ``n`` kills landed
+    (at most ``5 n`` runs), however busy the machine."""
+
+    def command():
+        return [sys.executable, "-m", "emccdcal", *map(str, argv() if callable(argv) else argv)]
+
+    t0 = time.perf_counter()
+    subprocess.run([*command()[:3], "--version"], check=True, stdout=subprocess.DEVNULL)
+    started = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    subprocess.run(command(), check=True, stdout=subprocess.DEVNULL)
+    whole = time.perf_counter() - t0
+    check()
+    low, high = min(started, 0.5 * whole), 0.97 * whole
+    kills = finished = 0
+    while kills < n and kills + finished < 5 * n:
+        delay = rng.uniform(min(low, 0.5 * high), high)
+        proc = subprocess.Popen(command(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(delay)
+        proc.send_signal(signal.SIGKILL)  # a no-op on a process that ended (not yet reaped)
+        if proc.wait() == -signal.SIGKILL:
+            kills += 1
+        else:
+            assert proc.returncode == 0, f"{command()}: exited {proc.returncode} before its kill"
+            finished += 1
+            high = 0.7 * delay
+        check()
+    assert kills == n, f"{command()}: {kills} of {n} kills landed in {kills + finished} runs"
+    return kills, finished
 
 
 def quiet(fn, *args, **kw):

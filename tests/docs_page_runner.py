@@ -45,7 +45,7 @@ def main(steps_file, results_file, command):
             Path(os.environ["EMCCDCAL_DB"]).unlink(missing_ok=True)
         try:
             done = subprocess.run(
-                [command, *step["argv"]],
+                [command, *map(os.path.expanduser, step["argv"])],  # as a shell, "~"
                 capture_output=True,
                 text=True,
                 encoding="utf-8",

@@ -300,7 +300,7 @@ def _output(argv: list[str]) -> Path | None:
 def _shell(command: str) -> list[str]:
     argv = shlex.split(command, comments=True)
     assert argv[0] == "emccdcal", command
-    return _small([os.path.expanduser(a) for a in argv[1:]])
+    return _small(argv[1:])  # "~" is the page's reader's home: the runner expands it
 
 
 def _steps(page: Path, items, work: Path) -> list[dict]:

@@ -27,7 +27,7 @@ from urllib.parse import unquote, urlsplit
 import pytest
 
 import emccdcal
-from emccdcal.cli import build_parser
+from emccdcal.cli import build_parser, reference_parser
 
 import chromium
 
@@ -222,3 +222,32 @@ def test_the_site_documents_every_public_name_and_verb(site_in_browser):
     cli_ids = " ".join(found["/cli.html"]["ids"])
     missing = [v for v in verbs if f"emccdcal-{v}" not in cli_ids and v not in cli_ids]
     assert not missing, missing
+
+
+@pytest.mark.slow
+@needs_site
+def test_the_command_reference_shows_every_verbs_options():
+    """Each verb's section of the built page holds each of its options (the sub-parsers
+    are built for it: a run builds only its own verb's)."""
+    page = html.unescape((SITE / "cli.html").read_text(encoding="utf-8"))
+
+    def text(markup):  # inline markup (the usage's highlighting splits "--" from
+        # "overwrite") goes without a trace, block markup as a space
+        return re.sub(r"<[^>]+>", " ", re.sub(r"</?(span|code|kbd|em|strong)\b[^>]*>", "", markup))
+
+    for needed in ("--e-per-adu", "--setpoint", "--to", "--target-se", "--scheduler"):
+        assert needed in text(page), needed
+    verbs = next(a for a in reference_parser()._actions if a.dest == "verb").choices
+    starts = {verb: page.find(f'<section id="emccdcal-{verb}"') for verb in verbs}
+    assert -1 not in starts.values(), starts
+    for verb, sub in verbs.items():
+        later = [at for at in starts.values() if at > starts[verb]]
+        section = text(page[starts[verb] : min(later, default=len(page))])
+        options = [
+            o
+            for a in sub._actions
+            for o in a.option_strings
+            if o.startswith("--") and o != "--help"
+        ]
+        lost = [o for o in options if o not in section]
+        assert not lost, f"{verb}: {lost}"

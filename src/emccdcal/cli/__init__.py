@@ -23,7 +23,15 @@ from .. import __version__
 from .._output import given_inputs
 from ..errors import EmccdcalError
 
-__all__ = ["main", "build_parser", "VERBS", "paths_given", "check_numbers", "OUTPUT_DESTS"]
+__all__ = [
+    "main",
+    "build_parser",
+    "reference_parser",
+    "VERBS",
+    "paths_given",
+    "check_numbers",
+    "OUTPUT_DESTS",
+]
 
 #: The arguments that name where a verb writes; every other path it is given is an input.
 OUTPUT_DESTS = ("out", "dir")
@@ -57,9 +65,10 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
-def build_parser(verb: str | None = None) -> argparse.ArgumentParser:
-    """The parser of ``emccdcal``; only ``verb``'s own options are built (all with None
-    only as placeholders that list the verbs)."""
+def build_parser(verb: str | None = None, *, every_verb: bool = False) -> argparse.ArgumentParser:
+    """The parser of ``emccdcal``; only ``verb``'s own options are built (with None,
+    placeholders that list the verbs: a run needs its own verb's alone), or every verb's
+    with ``every_verb`` (the command reference, :func:`reference_parser`)."""
     parser = _Parser(
         prog="emccdcal",
         description="Calibrate EMCCD cameras: the ADU conversion factor (e-/ADU) and the true "
@@ -68,11 +77,17 @@ def build_parser(verb: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"emccdcal {__version__}")
     subparsers = parser.add_subparsers(dest="verb", metavar="VERB", parser_class=_Parser)
     for name, text in VERBS.items():
-        if name == verb:
+        if name == verb or every_verb:
             importlib.import_module(f"{__name__}.{name.replace('-', '_')}").add_parser(subparsers)
         else:
             subparsers.add_parser(name, help=text, add_help=False)
     return parser
+
+
+def reference_parser() -> argparse.ArgumentParser:
+    """The parser with every verb's options built: what the command reference
+    (docs/cli.rst) renders, each verb with its options and their defaults."""
+    return build_parser(every_verb=True)
 
 
 def paths_given(args) -> list:

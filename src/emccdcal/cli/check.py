@@ -25,7 +25,7 @@ def add_parser(subparsers):
         type=float,
         default=DEFAULT_DRIFT_THRESHOLD,
         metavar="PCT",
-        help="smallest significant |drift| over an acquisition "
+        help="smallest significant drift (either sign) over an acquisition "
         f"that is a finding, %% of its level (default {DEFAULT_DRIFT_THRESHOLD:g})",
     )
     p.add_argument(

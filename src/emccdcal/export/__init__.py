@@ -8,3 +8,8 @@ photoelectrons, the gain curve, and the calibration database.
 
 Each reads results through :func:`emccdcal.result.load_calibration`.
 """
+
+from .._lazy import submodules as _submodules
+
+# its modules as attributes, imported on first use (as after `import emccdcal`)
+__getattr__, __dir__ = _submodules(__name__, __path__)

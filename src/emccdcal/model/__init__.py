@@ -6,6 +6,11 @@ A register model states what it supplies through :class:`RegisterModel` and its 
 through :class:`RegisterRows` (:mod:`._protocol`); the models known by name are
 :data:`emccdcal.model.noise.EM_MODELS`."""
 
+from .._lazy import submodules as _submodules
+
 from ._protocol import RegisterModel, RegisterRows
 
 __all__ = ["RegisterModel", "RegisterRows"]
+
+# its modules as attributes, imported on first use (as after `import emccdcal`)
+__getattr__, __dir__ = _submodules(__name__, __path__)

@@ -6,3 +6,8 @@
   session writes them (stacks, darks, maps, manifest, truth);
 - :mod:`~emccdcal.simulate.beads`: bead movies for the bead validation.
 """
+
+from .._lazy import submodules as _submodules
+
+# its modules as attributes, imported on first use (as after `import emccdcal`)
+__getattr__, __dir__ = _submodules(__name__, __path__)

@@ -6,3 +6,8 @@ reads), and the :class:`emccdcal.plugins.Tool` that pairs them, registered in
 Each recognises its own files only (by a suffix, or by keys no other tool's file has),
 so the order in which an audit asks does not matter.
 """
+
+from ..._lazy import submodules as _submodules
+
+# its modules as attributes, imported on first use (as after `import emccdcal`)
+__getattr__, __dir__ = _submodules(__name__, __path__)
