@@ -267,3 +267,81 @@ def test_every_verb_with_a_device_refuses_one_that_is_not_there(series):
             with pytest.raises(OptionError, match=f"device '{device}'") as err:
                 call(device)
             assert "\n" not in str(err.value), verb
+
+
+# --- a result that misfits is never a success ---------------------------------------------
+
+
+def _dark_manifest(sim) -> str:
+    """The simulated series' manifest with its dark stacks instead of their maps."""
+    import re
+
+    text = sim.manifest.read_text()
+    text = re.sub(r"^(offset|read_noise|dark_frames) = .*\n", "", text, flags=re.M)
+    return re.sub(r'^# dark = ("[^"]+").*$', r"dark = \1", text, flags=re.M)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("cic", [0.0, 0.05], ids=["no-cic", "cic"])
+def test_a_byte_swapped_dark_is_refused_naming_its_acquisition(tmp_path, capsys, cic):
+    """A 300x dark stack read with the wrong byte order (its counts spread over the whole
+    16-bit range): refused in one line naming the file and the acquisition, before any
+    fit of it (such a dark's noise-model fit ran for minutes, gigabytes deep)."""
+    sim = simulate_gain_series(
+        tmp_path / "gs",
+        rows=4,
+        cols=4,
+        frames=1000,
+        seed=3,
+        setpoints=(1, 100, 300),
+        cic=cic,
+        progress=False,
+    )
+    dark = sim.manifest.parent / "gain-GS/300x-gain_no-signal.tif"
+    tifffile.imwrite(dark, tifffile.imread(dark).byteswap())
+    manifest = sim.manifest.parent / "dark.toml"
+    manifest.write_text(_dark_manifest(sim))
+    import unittest.mock
+
+    from emccdcal.data import dark as dark_module
+
+    real_fit = dark_module.fit_dark
+
+    def fit_dark(stack, **kw):  # decided by what ran: the sound 100x dark is fitted only
+        assert np.median(stack) < 5000, "the byte-swapped dark was fitted"
+        return real_fit(stack, **kw)
+
+    with unittest.mock.patch.object(dark_module, "fit_dark", fit_dark):
+        code = cli.main(["calibrate", str(manifest), "-m", "gs", "-o", str(tmp_path / "o"), "-q"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1, err
+    assert "acquisition 3" in err and "300x-gain_no-signal.tif" in err and "byte-swapped" in err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
+def test_an_acquisition_the_model_misfits_at_most_pixels_ends_with_exit_1(tmp_path, capsys):
+    """The gamma register on an exact register's low gains, 5000 frames: the 2x
+    acquisition misfits at most pixels. The command writes the result but ends with exit
+    1, naming the acquisition and what to check; the exact register's fit stands."""
+    sim = simulate_gain_series(
+        tmp_path / "gs",
+        rows=4,
+        cols=4,
+        frames=5000,
+        seed=4,
+        setpoints=(1, 2, 5, 100),
+        progress=False,
+    )
+    base = ["calibrate", str(sim.manifest), "-m", "gs", "-q", "-o"]
+    code = cli.main([*base, str(tmp_path / "gamma"), "--em-model", "gamma"])
+    err = capsys.readouterr().err.splitlines()
+    assert code == 1
+    assert err[-1].startswith("emccdcal calibrate: the calibration is doubtful: set-point 2x:")
+    assert "check that acquisition's dark or maps" in err[-1]
+    assert not any("stand" in line for line in err)
+    from emccdcal import load_result
+
+    assert load_result(tmp_path / "gamma").attrs["verdict"].startswith("doubtful: set-point 2x")
+    assert cli.main([*base, str(tmp_path / "cascade")]) == 0
+    assert load_result(tmp_path / "cascade").attrs["verdict"] == "stands"

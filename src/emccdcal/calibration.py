@@ -1256,10 +1256,7 @@ def _warn_fit_problems(method, used, arrays, model) -> None:
             "and must not be used; the converged pixels' results stand",
             stacklevel=4,
         )
-    kind = "level" if method.startswith("is-") else "set-point"
-    keys = (
-        _labels(used) if kind == "level" else [result.format_setpoint(s) + "x" for s in setpoints]
-    )
+    kind, keys = _acquisition_keys(method, used)
     multiplied = [k for k, sp in zip(keys, setpoints) if sp != 1]
     for w in gof.misfit_warnings(dict(zip(keys, gof_p.T)), kind=kind):
         hint = model.register.misfit_hint
@@ -1392,7 +1389,33 @@ def _likelihood_dataset(
     if bounds is not None:
         _add_bounds(ds, est, grid, *bounds)
     ds.attrs["standard_errors"] = se_note
+    ds.attrs["verdict"] = _verdict(method, used, gof_p, model)
     return ds
+
+
+def _acquisition_keys(method, used) -> tuple[str, list[str]]:
+    """What the acquisitions are ("level" or "set-point") and their labels in messages."""
+    if method.startswith("is-"):
+        return "level", _labels(used)
+    return "set-point", [result.format_setpoint(a.em_gain_setpoint) + "x" for a in used]
+
+
+def _verdict(method, used, gof_p, model) -> str:
+    """``"stands"``, or ``"doubtful: ..."`` naming each acquisition whose goodness of fit
+    rejects the model at most pixels (:func:`emccdcal.fit.gof.rejected_acquisitions`) and
+    what to check: such a result is never reported as a success."""
+    kind, keys = _acquisition_keys(method, used)
+    rejected = gof.rejected_acquisitions(dict(zip(keys, gof_p.T)), kind=kind)
+    if not rejected:
+        return "stands"
+    check = (
+        "check that acquisition's dark or maps (another read-out mode or speed, a "
+        "byte-swapped or damaged file), its set-point and the data-quality checks' "
+        "findings ('emccdcal check MANIFEST')"
+    )
+    if model.register.misfit_hint:
+        check += "; " + model.register.misfit_hint
+    return "doubtful: " + "; ".join(rejected) + "; " + check
 
 
 def _add_bounds(ds, est, grid, kind, description):

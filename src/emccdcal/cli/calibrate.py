@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from . import _common
@@ -127,6 +128,7 @@ def add_parser(subparsers):
 
 def run(args) -> int:
     from .. import result
+    from .._output import comment
     from ..calibration import calibrate, format_summary
 
     options = {
@@ -171,4 +173,8 @@ def run(args) -> int:
         if args.report:
             print(f"wrote {args.out / REPORT_FILE}")
     _common.print_warnings(caught)
+    verdict = str(ds.attrs.get("verdict", "stands"))
+    if verdict != "stands":  # a finding, after the numbers it is about
+        print(f"emccdcal calibrate: the calibration is {comment(verdict)}", file=sys.stderr)
+        return 1
     return 0

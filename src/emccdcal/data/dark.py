@@ -193,6 +193,7 @@ def fit_dark(stack, *, adc_max=None, sample_pixels=64) -> DarkFit:
     h = stats.histograms(stack, adc_max=adc_max)
     P = h.n.size
     S0, sigma = robust_start(h)
+    check_read_out_spread(sigma, stack.dtype)
     # θ: the mean excess of counts far above the Gaussian (an exponential tail's mean).
     far = h.values > (S0 + 6.0 * sigma)[:, None]
     excess = (h.values - (S0 + 6.0 * sigma)[:, None]) * h.counts * far
@@ -241,7 +242,43 @@ def fit_dark(stack, *, adc_max=None, sample_pixels=64) -> DarkFit:
 _BLOCK_PIXELS = 256
 
 
-def read_out_maps(stack, setpoint, *, adc_max=None):
+#: Largest read-out noise a dark may show, as a fraction of its counts' range (its dtype's):
+#: 1/64, 1024 ADU of a 16-bit camera, is tens of times any camera's. Above it the frames
+#: are not a read-out's (a byte-swapped or otherwise misread file), and the noise model's
+#: windows, which span the read-out's Gaussian, would grow without use.
+MAX_READ_OUT_FRACTION = 1 / 64
+
+#: Largest ratio of a multiplied dark's read-out noise to that of the least multiplied
+#: dark of the same calibration: the read-out's Gaussian does not depend on the EM gain
+#: (its multiplied events sit above the median that the robust width is read below).
+MAX_READ_OUT_GROWTH = 10.0
+
+
+def check_read_out_spread(robust_sd, dtype, reference=None) -> None:
+    """Refuse, before any fit, a dark whose read-out noise (``robust_sd``: each pixel's
+    counts' width below their median, ADU) no read-out has: above
+    :data:`MAX_READ_OUT_FRACTION` of its ``dtype``'s range, or more than
+    :data:`MAX_READ_OUT_GROWTH` times the ``reference`` (the read noise, ADU, of the
+    least multiplied dark of the same camera and mode)."""
+    median = float(np.median(robust_sd))
+    dtype = np.dtype(dtype)
+    span = (np.iinfo(dtype).max - np.iinfo(dtype).min) if dtype.kind in "iu" else 65535.0
+    if median > MAX_READ_OUT_FRACTION * span:
+        raise InputError(
+            f"its counts spread as a read-out noise of {median:.4g} ADU at the median "
+            f"pixel, {median / span:.1%} of the {dtype.name} range: not dark frames as a "
+            "camera reads them out (a byte-swapped or misread file?); check the file"
+        )
+    if reference is not None and median > MAX_READ_OUT_GROWTH * reference:
+        raise InputError(
+            f"its read-out noise, {median:.4g} ADU at the median pixel, is "
+            f"{median / reference:.0f} times that of this calibration's least multiplied "
+            f"dark ({reference:.4g} ADU): not dark frames of the same camera and read-out "
+            "mode (another mode or speed, a byte-swapped or damaged file?); check the file"
+        )
+
+
+def read_out_maps(stack, setpoint, *, adc_max=None, reference_read_noise=None):
     """The offset and read-noise maps (ADU) a calibration uses from a dark stack taken at
     ``setpoint``, and the rate of multiplied events in it (per pixel per frame, None
     where there are none).
@@ -249,7 +286,13 @@ def read_out_maps(stack, setpoint, *, adc_max=None):
     At 1× the dark is read-out noise alone: its mean and SD (:func:`maps_from_dark`). A
     multiplied dark also holds amplified events (spurious charge, dark current), which
     would inflate an SD: there the read-out is fitted apart from them (:func:`fit_dark`).
+    A dark whose read-out noise is implausible (:func:`check_read_out_spread`, against
+    ``reference_read_noise``, ADU, the least multiplied dark's median, where known) is
+    refused before any fit.
     """
+    stack = as_stack(stack, "dark stack")
+    h = stats.histograms(stack[:2000], adc_max=adc_max)  # enough frames for a width
+    check_read_out_spread(robust_start(h)[1], stack.dtype, reference_read_noise)
     if setpoint == 1:
         offset, read_noise = maps_from_dark(stack)
         return offset, read_noise, None
@@ -398,8 +441,7 @@ def check_read_noise_growth(
                 f"{100 * growth:.0f} % above that at set-point {g0:g} ({ref:.1f} ADU): the "
                 "dark frames probably contain clock-induced charge, which the EM register "
                 "multiplies, so this read noise is not pure Gaussian read-out noise. It "
-                "hardly moves a calibration from light of hundreds of e- per pixel (such a "
-                "result stands); for "
+                "hardly moves a calibration from light of hundreds of e- per pixel; for "
                 f"faint signals at {g:g}x (a few e- per pixel, photon counting) take the "
                 f"amplifier's read noise from set-point {g0:g}, {ref:.1f} ADU"
             )

@@ -869,6 +869,12 @@ def _read_out_maps(r: _Reader, acqs, shape, adc_max, hint) -> list[dict]:
     """Each acquisition's offset and read-noise maps (ADU) with their sources, and the
     multiplied events of its dark: from the maps given, or each dark stack reduced once."""
     darks: dict[Path, tuple] = {}
+    # the least multiplied dark first: its read noise is the others' reference
+    for a in sorted((a for a in acqs if a.dark is not None), key=lambda a: a.em_gain_setpoint):
+        key = a.dark_path.expanduser().resolve()
+        if key not in darks:
+            reference = float(np.median(next(iter(darks.values()))[1])) if darks else None
+            darks[key] = _reduce_dark(r, a, adc_max, hint, reference)
     out = []
     for a in acqs:
         if a.dark is None:
@@ -878,10 +884,7 @@ def _read_out_maps(r: _Reader, acqs, shape, adc_max, hint) -> list[dict]:
                     r, a.index, a.label, key, getattr(a, key), shape
                 )
         else:
-            key = a.dark_path.expanduser().resolve()
-            if key not in darks:
-                darks[key] = _reduce_dark(r, a, adc_max, hint)
-            offset, read_noise, events = darks[key]
+            offset, read_noise, events = darks[a.dark_path.expanduser().resolve()]
             source = Source("dark", a.dark_path)
             m = {
                 "offset": offset.copy(),
@@ -904,15 +907,21 @@ def _read_out_maps(r: _Reader, acqs, shape, adc_max, hint) -> list[dict]:
     return out
 
 
-def _reduce_dark(r: _Reader, a: AcquisitionEntry, adc_max, hint):
-    """(offset, read noise, multiplied events or None) of an acquisition's dark stack."""
+def _reduce_dark(r: _Reader, a: AcquisitionEntry, adc_max, hint, reference=None):
+    """(offset, read noise, multiplied events or None) of an acquisition's dark stack;
+    ``reference`` the read noise (ADU) of the calibration's least multiplied dark."""
     assert a.dark_path is not None  # only an acquisition with a dark stack comes here
     try:
         dark = load_stack(a.dark_path)
         check_counts(dark, a.dark_path, adc_max=adc_max, adc_bits_hint=hint)
     except InputError as exc:
         raise r.error(str(exc), a.index, a.label) from None
-    offset, read_noise, events = read_out_maps(dark, a.em_gain_setpoint, adc_max=adc_max)
+    try:
+        offset, read_noise, events = read_out_maps(
+            dark, a.em_gain_setpoint, adc_max=adc_max, reference_read_noise=reference
+        )
+    except InputError as exc:  # an implausible dark: named with its file
+        raise r.error(f"dark '{a.dark_path}': {exc}", a.index, a.label) from None
     if np.any(read_noise <= 0):
         bad = describe_first(read_noise, read_noise <= 0, 0)
         raise r.error(

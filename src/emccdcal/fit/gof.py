@@ -43,6 +43,8 @@ from ..model import noise
 __all__ = [
     "gof_pvalues",
     "misfit_warnings",
+    "rejected_acquisitions",
+    "MOST_PIXELS",
     "DEFAULT_MAX_BINS",
     "DEFAULT_FRAMES_PER_BIN",
     "DEFAULT_MIN_EXPECTED",
@@ -358,5 +360,35 @@ def misfit_warnings(
                 f"{kind} {label}: {k} of {m} pixels ({100 * frac:.1f} %) misfit the noise "
                 f"model at p < {alpha:g} ({100 * alpha:.1f} % expected by chance; "
                 f"binomial p = {binom_p:.2g})"
+            )
+    return out
+
+
+#: Fraction of an acquisition's pixels whose test rejects the model (at p < 0.01) beyond
+#: which the acquisition is misfitted, not its pixels: its estimates are not a result.
+MOST_PIXELS = 0.5
+
+
+def rejected_acquisitions(pvalues_by_acquisition, alpha=0.01, *, kind="set-point") -> list[str]:
+    """The acquisitions whose goodness of fit rejects the model at most of their pixels
+    (more than :data:`MOST_PIXELS` at p < ``alpha``): one line each, in the dict's
+    order. Where the model misfits most pixels the estimates there are not a calibration
+    (a dark of another mode, a misread file, a wrong set-point), however many converged.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> rejected_acquisitions({"5x": rng.uniform(size=100), "300x": np.full(100, 1e-9)})
+    ['set-point 300x: the noise model is rejected at 100 of 100 pixels (p < 0.01)']
+    """
+    out = []
+    for label, pv in pvalues_by_acquisition.items():
+        pv = np.asarray(pv, dtype=float).ravel()
+        pv = pv[np.isfinite(pv)]
+        k = int(np.sum(pv < alpha))
+        if pv.size and k > MOST_PIXELS * pv.size:
+            out.append(
+                f"{kind} {label}: the noise model is rejected at {k} of {pv.size} pixels "
+                f"(p < {alpha:g})"
             )
     return out
