@@ -345,3 +345,30 @@ def test_an_acquisition_the_model_misfits_at_most_pixels_ends_with_exit_1(tmp_pa
     assert load_result(tmp_path / "gamma").attrs["verdict"].startswith("doubtful: set-point 2x")
     assert cli.main([*base, str(tmp_path / "cascade")]) == 0
     assert load_result(tmp_path / "cascade").attrs["verdict"] == "stands"
+
+
+@pytest.mark.slow
+def test_a_run_where_no_pixel_converged_leaves_nothing_to_resume(tmp_path, capsys):
+    """Maps of the 300x acquisition that no data fit (a misread dark's offset and read
+    noise): every pixel fails. Nothing is kept as an 'interrupted run', the output folder
+    the run made is gone, and the rerun says the same thing again."""
+    sim = simulate_gain_series(
+        tmp_path / "gs",
+        rows=4,
+        cols=4,
+        frames=1000,
+        seed=3,
+        setpoints=(1, 100, 300),
+        progress=False,
+    )
+    folder = sim.manifest.parent / "gain-GS"
+    tifffile.imwrite(folder / "300x-gain_no-signal_S0.tif", np.full((4, 4), 13852.0, np.float32))
+    tifffile.imwrite(folder / "300x-gain_no-signal_sigma.tif", np.full((4, 4), 3968.0, np.float32))
+    mine = tmp_path / "mine"
+    mine.mkdir()  # a folder of the user's: kept
+    for out in (tmp_path / "out", tmp_path / "out", mine):
+        argv = ["calibrate", str(sim.manifest), "-m", "gs", "-o", str(out), "-q"]
+        assert cli.main(argv) == 2
+        err = capsys.readouterr().err
+        assert "0 of 16 pixels converged" in err and "interrupted" not in err
+    assert not (tmp_path / "out").exists() and mine.is_dir() and not list(mine.iterdir())

@@ -36,7 +36,7 @@ from ._util import progress as progress_bar
 from .data import quality, stats
 from .data.manifest import Manifest, Source, read_manifest
 from .data.stacks import read_band
-from .errors import InputError, MethodError, OptionError
+from .errors import EmccdcalError, InputError, MethodError, OptionError
 from .fit import gof, layouts, mv
 from .fit.series import AcquisitionModel, fit_series
 from .defaults import DEFAULT_BLOCK, DEFAULT_TILE_PIXELS, INTERVALS, METHODS
@@ -929,7 +929,12 @@ def _run_calibration(
         if report is not None:
             ds.attrs["quality"] = json.dumps(report)
     del parts
-    _require_convergence(ds, method)
+    try:
+        _require_convergence(ds, method)
+    except EmccdcalError:  # every tile done, and no result: nothing is left to resume
+        if store is not None:
+            store.discard()
+        raise
     _warn_gain_order(ds)
     return ds
 

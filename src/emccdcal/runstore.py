@@ -68,6 +68,7 @@ class RunStore:
         self.out = Path(out)
         self.run_dir = self.out / RUN_DIR
         self.fingerprint = json.loads(json.dumps(fingerprint))  # as it reads back
+        self._made_out = not self.out.exists()
         self._check_writable()
         finished = [n for n in RESULT_FILES if (self.out / n).exists()]
         unfinished = (self.run_dir / _FINGERPRINT).is_file()
@@ -97,6 +98,15 @@ class RunStore:
             self.run_dir / _FINGERPRINT,
             lambda p: Path(p).write_text(json.dumps(self.fingerprint, indent=1)),
         )
+
+    def discard(self) -> None:
+        """Remove what this run kept, after a failure that a rerun of the same inputs
+        would repeat (every pixel failed): nothing is left to resume, and the output
+        directory goes too where this run made it and nothing else is in it."""
+        remove_run(self.out)
+        if self._made_out:
+            with contextlib.suppress(OSError):  # not empty: kept
+                self.out.rmdir()
 
     # ---- opening ---------------------------------------------------------------------
     def _check_writable(self) -> None:
