@@ -139,6 +139,28 @@ def kill_at_random(argv, n, check, rng):
     return kills, finished
 
 
+def run_measured(argv, **kw):
+    """``emccdcal argv`` in its own process, as a user runs it: (the completed process,
+    its peak resident memory in bytes). The peak is measured, not guessed: a fresh
+    interpreter waits for the command and reads its child's ``ru_maxrss``."""
+    code = (
+        "import resource, subprocess, sys\n"
+        "done = subprocess.run(sys.argv[1:], capture_output=True, text=True)\n"
+        "sys.stdout.write(done.stdout); sys.stderr.write(done.stderr)\n"
+        "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024, file=sys.stderr)\n"
+        "sys.exit(done.returncode)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code, sys.executable, "-m", "emccdcal", *map(str, argv)],
+        capture_output=True,
+        text=True,
+        **kw,
+    )
+    *lines, peak = done.stderr.rstrip("\n").split("\n")
+    done.stderr = "\n".join(lines) + ("\n" if lines else "")
+    return done, int(peak)
+
+
 def quiet(fn, *args, **kw):
     """``fn(*args, **kw)`` with its warnings silenced (those are not what a test checks)."""
     with warnings.catch_warnings():

@@ -352,3 +352,52 @@ def test_emccd_detect_darks_give_its_gain():
     assert abs(check.em_gain - 400) < 3 * check.em_gain_se
     assert check.relative_se < 0.04
     assert check.event_rate == pytest.approx(0.005, rel=0.15)
+
+
+def test_a_half_lit_movie_without_a_region_is_refused_in_bounded_memory(tmp_path):
+    """The user forgot --region: half the movie is lit. One line naming the file and what
+    to give, under 2 GB (the tables of the lit pixels' read noises took 5.4 GB and more),
+    and with the region the same file checks."""
+    from conftest import run_measured
+
+    light = np.zeros((16, 16))
+    light[:, 8:] = 200.0
+    movie = tmp_path / "movie.tif"
+    tifffile.imwrite(
+        movie,
+        simulate_frames(
+            light,
+            em_gain=262.0,
+            e_per_adu=3.859,
+            offset=566.0,
+            read_noise=15.5,
+            frames=400,
+            seed=1,
+            cic=0.05,
+        ),
+    )
+    base = ["gain-check", movie, "--e-per-adu", 3.859, "--setpoint", 300, "-q"]
+    done, peak = run_measured(base, timeout=300)
+    assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+    assert f"'{movie}': 128 of 256 pixels are not dark" in done.stderr
+    assert "--region" in done.stderr and peak < 2 * 2**30, peak
+    done, peak = run_measured([*base, "--region", "0:16,0:8"], timeout=300)
+    assert done.returncode == 0, done.stderr
+
+
+def test_tables_beyond_their_memory_bound_are_refused_before_they_are_built():
+    from emccdcal.model.noise import EMModel
+    from emccdcal.model.shared_register import SharedRegister
+
+    sigma = np.concatenate([np.full(50, 15.0), np.linspace(1000, 1600, 128)])
+    with pytest.raises(InputError, match=r"read noises span 15 to 1\d+ ADU.*GiB"):
+        SharedRegister(
+            EMModel("cascade").register,
+            262.0,
+            3.859,
+            sigma,
+            rate=0.05,
+            register_cic=0.0,
+            per_pixel_rate=True,
+            shared=("ln_gain",),
+        )

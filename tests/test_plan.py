@@ -224,3 +224,42 @@ def test_an_earlier_result_describes_the_camera(tmp_path, capsys):
         == 0
     )
     assert read_plan(tmp_path / "p.toml").camera["e_per_adu"] == pytest.approx(PHI)
+
+
+@pytest.mark.slow
+def test_a_plan_of_2000_set_points_is_refused_in_bounded_memory(tmp_path):
+    """Its information matrices asked for 60 GiB: one line naming the plan, under 2 GB."""
+    import re
+
+    from conftest import run_measured
+
+    assert (
+        cli.main(
+            [
+                "plan",
+                "--e-per-adu",
+                "3.9",
+                "--read-noise",
+                "15.5",
+                "--offset",
+                "590",
+                "-o",
+                str(tmp_path / "p"),
+                "-q",
+            ]
+        )
+        == 0
+    )
+    head, *acquisitions = (tmp_path / "p/plan.toml").read_text().split("[[acquisition]]")
+    one = acquisitions[-1]
+    text = head + "".join(
+        "[[acquisition]]"
+        + re.sub(r"em_gain_setpoint = [\d.]+", f"em_gain_setpoint = {2.0 + i / 2}", one)
+        for i in range(2000)
+    )
+    path = tmp_path / "many.toml"
+    path.write_text(text)
+    done, peak = run_measured(["plan", "--check", path, "-q"], timeout=300)
+    assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+    assert f"'{path}': a series of 2000 acquisitions: at most 64" in done.stderr
+    assert peak < 2 * 2**30, peak

@@ -54,6 +54,10 @@ MAX_STAGES = 16384
 #: is refused before any work, as a number in another unit or one that would make a
 #: computation run for hours (a read noise of 1e-300 ADU, 10^8 stages, a target SE of
 #: 1e-9 %).
+#: Most acquisitions one fit takes together: the per-pixel information of a series grows
+#: as the cube of their number (2000 set-points asked for 60 GiB); real series have 3–12.
+MAX_ACQUISITIONS = 64
+
 BOUNDS = {
     "e_per_adu": (1e-3, 1e3, "e-/ADU"),
     "read_noise": (1e-3, 1e5, "ADU"),

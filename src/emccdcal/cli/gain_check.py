@@ -121,6 +121,7 @@ def run(args) -> int:
 
     from ..data.stacks import read_stack, stack_settings
     from ..export.gain_check import compare, verdict
+    from ..errors import InputError
     from ..fit.darkgain import check_gain
 
     from .. import identity
@@ -150,21 +151,26 @@ def run(args) -> int:
         if args.out is not None
         else contextlib.nullcontext()
     ):
-        check = check_gain(
-            [read_stack(path) for path in args.darks],
-            phi,
-            setpoint=setpoint,
-            em_model=args.em_model or DEFAULT_EM_MODEL,
-            stages=args.stages,
-            fit_register_cic=args.fit_register_cic,
-            pooled_rate=not args.per_pixel_rate,
-            bias_correction=not args.no_bias_correction,
-            adc_max=2 ** max(bits) - 1 if bits else None,
-            region=args.region,
-            histogram=args.out is not None and not args.no_figures,
-            progress_bars=not (args.quiet or args.json),
-            device=args.device,
-        )
+        stacks = [read_stack(path) for path in args.darks]
+        try:
+            check = check_gain(
+                stacks,
+                phi,
+                setpoint=setpoint,
+                em_model=args.em_model or DEFAULT_EM_MODEL,
+                stages=args.stages,
+                fit_register_cic=args.fit_register_cic,
+                pooled_rate=not args.per_pixel_rate,
+                bias_correction=not args.no_bias_correction,
+                adc_max=2 ** max(bits) - 1 if bits else None,
+                region=args.region,
+                histogram=args.out is not None and not args.no_figures,
+                progress_bars=not (args.quiet or args.json),
+                device=args.device,
+            )
+        except InputError as exc:  # the data as a whole: named by their files
+            names = ", ".join(f"'{path}'" for path in args.darks)
+            raise InputError(f"{names}: {exc}") from None
         against = compare(check, calibration, z=args.z) if calibration is not None else None
         record = {**check.as_dict(), **({"calibration": against} if against else {})}
         written = _write(args, check, record) if args.out is not None else []

@@ -494,9 +494,10 @@ class _Data:
                 "needed): the EM gain is too low for a check from dark frames, or the "
                 "frames too few"
             )
+        own = np.concatenate(own)
+        _refuse_lit(np.exp(own[:, 1]))
         theta = max(k3 / (3.0 * k2), 1.5 / phi)
         rate = float(np.clip(math.log(k2 / self.n.size / (2.0 * theta**2)), *_LOG_RATE))
-        own = np.concatenate(own)
         P = own.shape[0]
         cic = max(register_cic, 1e-3) if fit_register_cic else register_cic
         return np.column_stack(
@@ -520,6 +521,25 @@ class _Memory:
 
     def bands(self):
         return iter(self.parts)
+
+
+def _refuse_lit(read_noise) -> None:
+    """Refuse, before any table is built, pixels that light reaches: the core of their
+    counts spreads more than :data:`emccdcal.data.dark.MAX_READ_OUT_GROWTH` times as wide
+    as the read-out of the darkest tenth of the pixels (a movie's lit part, without
+    ``--region``); their tables would span thousands of read noises, gigabytes deep."""
+    from ..data.dark import MAX_READ_OUT_GROWTH
+
+    reference = float(np.quantile(read_noise, 0.1))
+    lit = read_noise > MAX_READ_OUT_GROWTH * reference
+    if lit.any():
+        raise InputError(
+            f"{int(lit.sum())} of {lit.size} pixels are not dark: their counts spread "
+            f"{float(np.median(read_noise[lit])):.4g} ADU wide about their centre, more "
+            f"than {MAX_READ_OUT_GROWTH:g} times the read noise of the darkest pixels "
+            f"({reference:.4g} ADU): light reaches them; give --region with the "
+            "masked or covered rows only (a region of dark frames)"
+        )
 
 
 def _usable(block, adc_max):

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..defaults import MAX_ACQUISITIONS
+from ..errors import OptionError
 from ..model import cascade, noise
 from . import engine, gof, layouts
 from .engine import QUANTITIES, Parameter
@@ -124,6 +126,11 @@ class SeriesLikelihood:
     def __init__(self, method, models, histograms=None, *, e_per_adu=None, options=None):
         self.method = method
         self.models = list(models)
+        if len(self.models) > MAX_ACQUISITIONS:  # its information grows as their cube
+            raise OptionError(
+                f"a series of {len(self.models)} acquisitions: at most {MAX_ACQUISITIONS} "
+                "(the fit's information matrices grow as the cube of their number)"
+            )
         P = np.shape(self.models[0].offset)[0]
         data = [None] * len(self.models) if histograms is None else list(histograms)
         self.blocks = [m._block(h) for m, h in zip(self.models, data)]

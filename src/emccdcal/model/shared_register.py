@@ -37,7 +37,7 @@ import math
 import numpy as np
 
 from .. import _xp
-from ..errors import OptionError
+from ..errors import InputError, OptionError
 from ._engine import fast_len
 
 __all__ = ["SharedRegister", "MIN_READ_NOISE"]
@@ -54,6 +54,11 @@ _TERMS = 3
 #: Read-noise widths on the left of the offset, and single-electron outputs on the right
 #: of it, that the tables cover (the events' density at 45 outputs is e^-45 of its peak).
 _LEFT_SIGMAS, _RIGHT_OUTPUTS, _RIGHT_SIGMAS = 14.0, 45.0, 14.0
+
+#: Largest memory the tables may take while they are built, bytes; and what they take a
+#: point (a reference read noise's grid point) and column, measured with tracemalloc.
+MAX_TABLE_BYTES = 2**30
+_BYTES_PER_POINT = 40
 #: The Gaussian's transform is below e^-40 beyond ω = √80 / σ: no bin beyond is needed.
 _BAND = math.sqrt(80.0)
 #: The expected information is summed over every 4th grid point, at every 4th
@@ -196,6 +201,7 @@ class SharedRegister:
                 spectra["register_cic"] = [
                     powers[m] * vbar * e_cv + (-1) ** m * math.exp(-c) for m in range(m_max + 1)
                 ]
+        self._check_size(sum(len(specs) for specs in spectra.values()) * _TERMS)
         # One table of all: a row per (reference read noise, grid point), a column per
         # series term of every part (its value, then h·∂/∂u), so that each count's
         # interpolation gathers two rows
@@ -212,6 +218,22 @@ class SharedRegister:
         # counts by 0.001 of its standard error (module docstring), at half the memory
         self.table = table.reshape(2 * self.Q, -1).astype(np.float32)  # (2Q, classes·N)
         self._on_device = {}  # the table where evaluations compute, copied once
+
+    def _check_size(self, columns: int) -> None:
+        """Refuse tables of more than :data:`MAX_TABLE_BYTES` while they are built (about
+        40 bytes a point and column, measured: the transforms, both inverse FFTs and the
+        joined table) before any is: pixels whose read noises span a wide range (light
+        on some of them) need thousands of reference read noises."""
+        points = self._grid.size * self.n
+        need = _BYTES_PER_POINT * columns * points
+        if need > MAX_TABLE_BYTES:
+            raise InputError(
+                f"the pixels' read noises span {self._lo:.4g} to "
+                f"{float(self.class_sigma[-1]):.4g} ADU: the noise model's tables of "
+                f"{self._grid.size} of them would take {need / 2**30:.1f} GiB (at most "
+                f"{MAX_TABLE_BYTES / 2**30:.0f} GiB); fit dark pixels of one read-out "
+                "(a region without light)"
+            )
 
     def _table_in(self, xp, dev):
         """The table as an array of ``xp`` on ``dev`` (copied there once)."""
