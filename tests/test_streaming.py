@@ -497,3 +497,68 @@ def test_removing_a_run_removes_only_what_a_run_wrote(tmp_path):
     (out / RUN_DIR / "tile-mine.npz").write_bytes(b"a user's, named like a tile")
     remove_run(out)
     assert sorted(p.name for p in (out / RUN_DIR).iterdir()) == ["notes.txt", "tile-mine.npz"]
+
+
+def _children(pid: int) -> set[int]:
+    """The processes whose parent is ``pid`` (from /proc: nothing needed beyond Linux)."""
+    found = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # gone meanwhile
+            continue
+        if int(fields[1]) == pid:
+            found.add(int(stat.parent.name))
+    return found
+
+
+def _gone(pids, limit) -> set[int]:
+    """Those of ``pids`` still alive after waiting up to ``limit`` s for them to end."""
+    deadline = time.monotonic() + limit
+    alive = set(pids)
+    while alive and time.monotonic() < deadline:
+        alive = {p for p in alive if Path(f"/proc/{p}").exists() and not _zombie(p)}
+        time.sleep(0.1)
+    return alive
+
+
+def _zombie(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return False
+
+
+@pytest.fixture(scope="module")
+def longer_run(tmp_path_factory):
+    """24 tiles of 10 pixels: two local processes are still busy after the first."""
+    base = tmp_path_factory.mktemp("longer")
+    return simulate_gain_series(
+        base / "gs", rows=24, cols=10, frames=1000, seed=9, setpoints=(1, 5, 25, 100)
+    ).manifest
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc (Linux)")
+@pytest.mark.parametrize("stop", ["ctrl-c", "sigkill"])
+def test_local_processes_stop_with_their_parent(longer_run, tmp_path, stop):
+    """``--scheduler processes``: Ctrl-C stops the run in seconds (it waited a minute
+    for the workers' tiles) with what was kept said, and a parent killed outright takes
+    its workers with it (they ran on, re-parented). Decided from the processes that
+    are there, with bounds of seconds, not from timings."""
+    out = tmp_path / "out"
+    argv = ["calibrate", str(longer_run), "-q", "--tile-pixels", "10", "--block-size", "8"]
+    proc = _run([*argv, "--scheduler", "processes", "--workers", "2", "-o", str(out)])
+    _wait_for_tiles(out, 1, proc, timeout=300)
+    workers = _children(proc.pid)
+    assert len(workers) >= 2, workers  # the two workers (and the resource tracker)
+    assert proc.poll() is None, "the run ended before it could be stopped"
+    if stop == "ctrl-c":
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(timeout=15)
+        err = proc.stderr.read().strip().splitlines()
+        assert code == 130 and len(err) == 1 and "--resume" in err[0], err
+    else:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=15)
+    assert not _gone(workers, 15), "workers outlived their parent"

@@ -369,18 +369,47 @@ LOCAL_PROCESSES = "processes"
 def _in_processes(jobs, progress, workers):
     """The tiles in ``workers`` fresh processes (spawned: nothing inherited but the jobs),
     as they finish. Threads share one interpreter, whose lock the fit's Python steps
-    hold; processes do not, so a sensor's tiles use every core."""
+    hold; processes do not, so a sensor's tiles use every core.
+
+    The workers leave Ctrl-C to this process, which ends them at once (a pool that
+    waited for their tiles took a minute to stop), and each ends itself when this
+    process dies (a SIGKILL here left them running)."""
     import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
 
     context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
-        futures = {pool.submit(run_tile, job): job for job in jobs}
-        try:
-            yield from _as_finished(futures, as_completed, progress)
-        finally:
-            for future in futures:
-                future.cancel()
+    pool = context.Pool(workers, initializer=_worker_start, initargs=(os.getpid(),))
+    try:
+        for index, arrays in pool.imap_unordered(_indexed_tile, enumerate(jobs)):
+            progress(jobs[index].n_pixels)
+            yield jobs[index], arrays
+        pool.close()
+    finally:
+        pool.terminate()  # a no-op once closed and done; else the tiles still running go
+        pool.join()
+
+
+def _indexed_tile(item):
+    """``(index, run_tile(job))`` of ``(index, job)``: which tile finished, in a worker."""
+    index, job = item
+    return index, run_tile(job)
+
+
+def _worker_start(parent: int) -> None:
+    """A tile worker's start: Ctrl-C is its parent's to handle (it ends the workers), and
+    a thread ends the worker within half a second of its parent's death."""
+    import signal
+    import threading
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def watch():
+        import time
+
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="emccdcal-parent-watch", daemon=True).start()
 
 
 def _reach(address) -> None:
