@@ -562,3 +562,63 @@ def test_local_processes_stop_with_their_parent(longer_run, tmp_path, stop):
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=15)
     assert not _gone(workers, 15), "workers outlived their parent"
+
+
+@pytest.fixture
+def listener():
+    """A TCP listener on 127.0.0.1 that is not a Dask scheduler: one that says nothing
+    until asked (a web server), or one that greets with its own banner (an SSH server).
+    Yields a function: the kind → its address."""
+    import socket
+    import threading
+
+    servers, stop = [], threading.Event()
+
+    def serve(server, banner):
+        server.settimeout(0.2)
+        while not stop.is_set():
+            try:
+                conn, _ = server.accept()
+            except TimeoutError:
+                continue
+            with conn:
+                if banner:
+                    conn.sendall(banner)
+                stop.wait(2.0)
+
+    def start(kind):
+        server = socket.socket()
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        servers.append(server)
+        banner = b"SSH-2.0-OpenSSH_9.6\r\n" if kind == "banner" else b""
+        threading.Thread(target=serve, args=(server, banner), daemon=True).start()
+        return f"tcp://127.0.0.1:{server.getsockname()[1]}"
+
+    yield start
+    stop.set()
+    for server in servers:
+        server.close()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["silent", "banner", "inproc", "ws-refused"])
+def test_a_scheduler_that_is_not_dask_is_one_line_in_seconds(series, listener, tmp_path, kind):
+    """What is not a Dask scheduler is refused in one line within 20 s, through the
+    installed command: a listener that says nothing, one that greets as another server
+    (Dask read its bytes as a length of exabytes: 66 lines), an address of another
+    process's memory (inproc://), a WebSocket address where nothing listens."""
+    pytest.importorskip("distributed")
+    address = {
+        "silent": lambda: listener("silent"),
+        "banner": lambda: listener("banner"),
+        "inproc": lambda: "inproc://127.0.0.1/1/1",
+        "ws-refused": lambda: f"ws://127.0.0.1:{_free_port()}",
+    }[kind]()
+    argv = [console_script(), "calibrate", str(series[0]), "-q", "-o", str(tmp_path / "o")]
+    done = subprocess.run(
+        [*argv, "--scheduler", address], capture_output=True, text=True, timeout=20
+    )
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(lines) == 1, done.stderr[-2000:]
+    assert lines[0].startswith(f"emccdcal calibrate: error: scheduler '{address}'"), lines

@@ -412,17 +412,43 @@ def _worker_start(parent: int) -> None:
     threading.Thread(target=watch, name="emccdcal-parent-watch", daemon=True).start()
 
 
+#: Seconds to wait for a scheduler's address to accept a connection, and for its first
+#: bytes: a Dask scheduler sends its handshake at once.
+_REACH_SECONDS = 5.0
+
+
 def _reach(address) -> None:
-    """Raise ValueError or OSError unless ``address`` parses as a Dask address and, over
-    TCP, something listens there (10 s at most)."""
+    """Raise ValueError or OSError unless a Dask scheduler answers at ``address`` (within
+    seconds): a TCP address must accept a connection and send a Dask handshake's first
+    frame (a listener of anything else is refused here, where Dask would read its bytes
+    as a length of exabytes); a WebSocket or TLS one must accept a connection; other
+    schemes (``inproc://``, of one process; ``ucx://``) cannot be reached from here."""
     import socket
+    import struct
 
     from distributed.comm import parse_address, parse_host_port
 
     scheme, location = parse_address(str(address))
-    if scheme in ("tcp", "tls"):
-        host, port = parse_host_port(location)
-        socket.create_connection((host, port), timeout=10).close()
+    if scheme not in ("tcp", "tls", "ws", "wss"):
+        raise ValueError(f"a {scheme}:// address is not one this command can reach")
+    host, port = parse_host_port(location)
+    with socket.create_connection((host, port), timeout=_REACH_SECONDS) as sock:
+        if scheme != "tcp":
+            return
+        head = b""
+        try:
+            while len(head) < 8:
+                more = sock.recv(8 - len(head))
+                if not more:
+                    break
+                head += more
+        except TimeoutError:
+            pass
+    if len(head) < 8:
+        raise ValueError(f"what listens there sent no Dask handshake in {_REACH_SECONDS:g} s")
+    (size,) = struct.unpack("<Q", head)
+    if not 0 < size < 2**20:  # the handshake is a few hundred bytes
+        raise ValueError("what listens there is not a Dask scheduler (not its handshake)")
 
 
 def _run_tiles(jobs, store, scheduler, progress, method, workers=1):
