@@ -664,3 +664,34 @@ def test_a_store_killed_in_a_metadata_write_is_begun_but_empty(tmp_path):
     assert not begun_but_empty(
         store("chunk.zarr", {"zarr.json": ours, "0/c/0/0/0.a1.partial": "d"}), "mine"
     )
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "mkfifo"), reason="no FIFOs here")
+def test_a_fifo_as_the_micro_manager_configuration_is_refused_at_once(tmp_path):
+    """Micro-Manager would wait forever to read a FIFO: refused in one line before any
+    core is made, through the installed command (bounded: it waited forever)."""
+    import os
+
+    from conftest import console_script
+
+    plan_path = _plan_file(tmp_path)
+    fifo = tmp_path / "MMConfig.cfg"
+    os.mkfifo(fifo)
+    done = subprocess.run(
+        [
+            console_script(),
+            "acquire",
+            str(plan_path),
+            "-o",
+            str(tmp_path / "s"),
+            "--mm-config",
+            str(fifo),
+            "-q",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=15,
+    )
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(lines) == 1, done.stderr
+    assert f"'{fifo}': is a FIFO (named pipe), not a Micro-Manager configuration file" in lines[0]

@@ -11,6 +11,7 @@ import threading
 import time
 from pathlib import Path
 
+from .._files import read_bytes
 from .._util import one_line
 from ..errors import EmccdcalError, InputError, OptionError
 
@@ -133,7 +134,9 @@ def simulated_core(camera, *, seed: int, run: int = 0):
 
 
 def config_core(config: Path, adapter_paths=()):
-    """A core with a Micro-Manager configuration file loaded."""
+    """A core with a Micro-Manager configuration file loaded (a regular file of text,
+    checked before Micro-Manager opens it: it would wait forever on a FIFO)."""
+    read_bytes(config, what="Micro-Manager configuration file")
     from pymmcore_plus import CMMCorePlus
 
     core = CMMCorePlus()
