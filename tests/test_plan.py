@@ -3,6 +3,8 @@ information and checked by recording (simulating) exactly what the plan says."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -229,8 +231,6 @@ def test_an_earlier_result_describes_the_camera(tmp_path, capsys):
 @pytest.mark.slow
 def test_a_plan_of_2000_set_points_is_refused_in_bounded_memory(tmp_path):
     """Its information matrices asked for 60 GiB: one line naming the plan, under 2 GB."""
-    import re
-
     from conftest import run_measured
 
     assert (
@@ -263,3 +263,71 @@ def test_a_plan_of_2000_set_points_is_refused_in_bounded_memory(tmp_path):
     assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
     assert f"'{path}': a series of 2000 acquisitions: at most 64" in done.stderr
     assert peak < 2 * 2**30, peak
+
+
+def _plan_doc(tmp_path):
+    assert (
+        cli.main(
+            [
+                "plan",
+                "--e-per-adu",
+                "3.9",
+                "--read-noise",
+                "15.5",
+                "--offset",
+                "590",
+                "-o",
+                str(tmp_path / "p"),
+                "-q",
+            ]
+        )
+        == 0
+    )
+    return (tmp_path / "p/plan.toml").read_text()
+
+
+@pytest.mark.parametrize(
+    "edit, says",
+    [
+        (
+            lambda t: re.sub(r"\[camera\][^\[]*", 'camera = "abc"\n\n', t),
+            "[camera] must be a table",
+        ),
+        (lambda t: re.sub(r"\[camera\][^\[]*", "camera = 5\n\n", t), "[camera] must be a table"),
+        (
+            lambda t: (
+                t.split("[camera]")[0]
+                + "acquisition = [1, 2]\n[camera]"
+                + t.split("[camera]")[1].split("[[acquisition]]")[0]
+            ),
+            "each [[acquisition]] must be a table",
+        ),
+        (lambda t: t.replace("stages = 536", "stages = [1, 2]"), "stages must be an integer"),
+        (
+            lambda t: re.sub(r"^photoelectrons = \S+", "photoelectrons = 1e-300", t, flags=re.M),
+            "determine no estimate",
+        ),
+    ],
+    ids=["camera-text", "camera-number", "acquisition-numbers", "stages-list", "no-light"],
+)
+def test_a_malformed_plan_is_one_line_naming_it(tmp_path, capsys, edit, says):
+    path = tmp_path / "bad.toml"
+    path.write_text(edit(_plan_doc(tmp_path)))
+    capsys.readouterr()
+    assert cli.main(["plan", "--check", str(path), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"'{path}': " in err and says in err, err
+
+
+def test_stop_at_target_without_a_1x_acquisition_is_refused_before_recording(tmp_path, capsys):
+    text = _plan_doc(tmp_path)
+    head, *acquisitions = text.split("[[acquisition]]")
+    path = tmp_path / "no1x.toml"
+    path.write_text(head + "".join("[[acquisition]]" + a for a in acquisitions[1:]))
+    capsys.readouterr()
+    code = cli.main(
+        ["acquire", str(path), "-o", str(tmp_path / "s"), "--simulated", "--stop-at-target", "-q"]
+    )
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "lacks" in err and "1x" in err, err
+    assert not (tmp_path / "s").exists()

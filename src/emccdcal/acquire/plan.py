@@ -745,7 +745,7 @@ def read_plan(path) -> Plan:
         method = need(doc, "method", "the plan")
         if method not in PLAN_METHODS:
             raise OptionError(f"method {method!r} is not one of {', '.join(PLAN_METHODS)}")
-        cam = dict(need(doc, "camera", "the plan"))
+        cam = _table(need(doc, "camera", "the plan"), "[camera]")
         camera = {
             "e_per_adu": check_number(
                 "e_per_adu", need(cam, "e_per_adu", "[camera]"), positive=True
@@ -758,15 +758,24 @@ def read_plan(path) -> Plan:
                 "adc_bits", need(cam, "adc_bits", "[camera]"), minimum=2, maximum=32
             ),
             "em_model": str(cam.get("em_model", defaults.DEFAULT_EM_MODEL)),
-            "stages": cam.get("stages"),
-            "pixel_well": cam.get("pixel_well"),
-            "register_well": cam.get("register_well"),
+            "stages": None
+            if cam.get("stages") is None
+            else check_int("stages", cam["stages"], minimum=1, maximum=defaults.MAX_STAGES),
+            **{
+                well: None
+                if cam.get(well) is None
+                else check_number(well, cam[well], positive=True)
+                for well in ("pixel_well", "register_well")
+            },
         }
         _offset_within_adc(camera)
         model = _camera_model(camera)
         camera["stages"] = model.stages if model.register.uses_stages else None
         table = "acquisition" if method == "gs" else "level"
         rows = doc.get(table) or []
+        if not isinstance(rows, list):
+            raise OptionError(f"{table} must be [[{table}]] tables, not {type(rows).__name__}")
+        rows = [_table(r, f"each [[{table}]]") for r in rows]
         if not rows:
             raise OptionError(f"no [[{table}]] tables")
         frames = [check_int("frames", need(r, "frames", f"[[{table}]]"), minimum=2) for r in rows]
@@ -824,3 +833,15 @@ def read_plan(path) -> Plan:
         )
     except OptionError as exc:
         raise InputError(f"'{path}': {exc}") from None
+    except np.linalg.LinAlgError:  # a light or a frame count that carries no information
+        raise InputError(
+            f"'{path}': its light and frames determine no estimate (the information is "
+            "singular): is the light far too faint, or are the frames too few?"
+        ) from None
+
+
+def _table(value, where: str) -> dict:
+    """A TOML table of a plan, or a one-line error naming where it should be."""
+    if not isinstance(value, dict):
+        raise OptionError(f"{where} must be a table, not {type(value).__name__} {value!r}")
+    return value

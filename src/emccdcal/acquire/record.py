@@ -475,6 +475,11 @@ def acquire(
             "stop-at-target is for a gain-series plan (its target is per "
             "set-point); an intensity series records its planned frames"
         )
+    if stop_at_target and not any(a.setpoint == 1 for a in plan.acquisitions):
+        raise OptionError(
+            "stop-at-target fits each set-point with the 1x acquisition, which this plan "
+            "lacks: add a 1x [[acquisition]] or record without --stop-at-target"
+        )
     if light_tolerance is not None:
         light_tolerance = check_number("light tolerance", light_tolerance, positive=True)
     out = Path(out)
