@@ -281,3 +281,23 @@ def test_files_that_are_no_tools_camera_are_one_line(calibration, tmp_path, caps
     err = capsys.readouterr().err
     assert err.strip().endswith("'four', not a number") and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_a_nul_in_yaml_and_a_smap_state_without_its_table_are_one_line(
+    calibration, tmp_path, capsys
+):
+    """A YAML file holding a NUL (PyYAML refused it while building its reader) and a
+    SMAP camera whose state lacks its parameter table (the reader asked for it): each
+    one line naming the file, exit 2."""
+    nul = tmp_path / "config.yaml"
+    nul.write_bytes(b"Cameras:\n  cam:\n    Baseline: 1\x00\n")
+    mat = tmp_path / "cameras.mat"
+    camera = _smap_camera("iXon", {"conversion": ("state dependent", ""), "emgain": ("fix", "5")})
+    camera["state"] = np.zeros((1, 1), dtype=[("statelist", "O")])
+    camera["state"][0, 0] = (np.array(["default"], dtype=object),)
+    savemat(mat, {"cameras": camera})
+    for path, says in ((nul, "not a readable"), (mat, "SMAP cannot read it (AttributeError")):
+        argv = ["audit", str(path), "--calibration", str(calibration), "--setpoint", "100"]
+        assert cli.main(argv) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and f"'{path}': " in err and says in err, err

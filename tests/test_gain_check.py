@@ -401,3 +401,11 @@ def test_tables_beyond_their_memory_bound_are_refused_before_they_are_built():
             per_pixel_rate=True,
             shared=("ln_gain",),
         )
+
+
+def test_a_stack_of_no_frames_is_one_line(tmp_path, capsys):
+    path = tmp_path / "darks-300x.npy"
+    np.save(path, np.zeros((0, 4, 4), np.uint16))
+    assert cli.main(["gain-check", str(path), "--e-per-adu", "3.9"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"'{path}': holds no frames" in err, err

@@ -276,6 +276,78 @@ TOOL = Tool("picasso", "Not Picasso", write)
 NO_WRITE = type("NoWrite", (), {"name": "nowrite", "title": "x", "read": None,
                                 "recognizes": None})()
 """,
+    "shifted.py": """
+from emccdcal.model._gamma import Gamma
+
+
+class _Plus:
+    \"\"\"Rows whose cumulant generating function is 5 too large: probabilities times e^5.\"\"\"
+
+    def __init__(self, rows):
+        self._rows = rows
+
+    def __getattr__(self, name):
+        return getattr(self._rows, name)
+
+    def take(self, index):
+        return _Plus(self._rows.take(index))
+
+    def cgf(self, s, order=0, names=()):
+        K, *rest = self._rows.cgf(s, order, names)
+        return (K + 5.0, *rest)
+
+
+class Shifted(Gamma):
+    name = "shifted"
+
+    def rows(self, *args, **kwargs):
+        return _Plus(super().rows(*args, **kwargs))
+
+    def rows_at(self, *args, **kwargs):
+        return _Plus(super().rows_at(*args, **kwargs))
+""",
+    "odd.py": """
+# Readers of toy files (.rawy, .rawz: 4 x 3 x 2 uint16 after 16 bytes) that make a
+# mistake each: rawy gives its dtype as text (fine) and no offset, and opens an array of
+# another shape; rawz gives its settings as a dict. A tool whose reader raises.
+import numpy as np
+from emccdcal.data.settings import CameraSettings
+from emccdcal.plugins import Tool
+
+SUFFIXES = (".rawy",)
+
+
+def header(path):
+    return (4, 3, 2), "<u2", None, None
+
+
+def open_stack(path):
+    return np.zeros((2, 3, 4), np.uint16)
+
+
+def settings(path):
+    return CameraSettings()
+
+
+class Z:
+    SUFFIXES = (".rawz",)
+
+    @staticmethod
+    def header(path):
+        return (4, 3, 2), np.dtype("<u2"), 16, None
+
+    @staticmethod
+    def settings(path):
+        return {"em_gain_setpoint": 5}
+
+
+def _read(path, text, doc, setpoint, tool_gain):
+    return doc["raising"]["missing"]
+
+
+RAISING = Tool("raising", "Raising", lambda *a: [], _read,
+               lambda path, text, doc: isinstance(doc, dict) and "raising" in doc)
+""",
     "reader.py": """
 SUFFIXES = (".tif",)
 
@@ -292,12 +364,17 @@ BROKEN_ENTRY_POINTS = """
 half = emccdcal_bad.half:Half
 boom = emccdcal_bad.boom:Model
 
+shifted = emccdcal_bad.shifted:Shifted
+
 [emccdcal.tools]
 picasso = emccdcal_bad.tool:TOOL
 nowrite = emccdcal_bad.tool:NO_WRITE
+raising = emccdcal_bad.odd:RAISING
 
 [emccdcal.readers]
 tif2 = emccdcal_bad.reader
+rawy = emccdcal_bad.odd
+rawz = emccdcal_bad.odd:Z
 """
 
 
@@ -442,3 +519,53 @@ def test_the_python_api_names_what_a_left_out_register_lacks(broken, small_serie
     )
     assert done.returncode == 0, done.stderr
     assert "em_model 'half' was left out" in done.stdout and "lacks" in done.stdout
+
+
+def test_what_a_plugin_gives_is_checked_before_use(broken, small_series, tmp_path):
+    """A register whose distribution sums to e^5 (its gains unmoved, its log-likelihood
+    off by 72 %), a reader whose array has another shape than its header says, one whose
+    settings are a dict, a tool whose reader raises: each one line, exit 2."""
+    done = _run(
+        broken,
+        "calibrate",
+        small_series.manifest,
+        "-m",
+        "gs",
+        "--em-model",
+        "shifted",
+        "-o",
+        tmp_path / "o",
+    )
+    error = [line for line in _lines(done.stderr) if not line.startswith("warning:")]
+    assert done.returncode == 2 and len(error) == 1, done.stderr
+    assert "its distribution of counts sums to 148.413, not 1" in error[0]
+    for suffix, says in (
+        (".rawy", "opens an array of shape (2, 3, 4)"),
+        (".rawz", "gives its settings as dict"),
+    ):
+        path = tmp_path / f"a{suffix}"
+        path.write_bytes(bytes(16 + 4 * 3 * 2 * 2))
+        done = _run(broken, "gain-check", path, "--e-per-adu", 3.9, "--setpoint", 5)
+        error = [line for line in _lines(done.stderr) if not line.startswith("warning:")]
+        assert done.returncode == 2 and len(error) == 1, done.stderr
+        assert f"'{path}': " in error[0] and says in error[0], error
+    settings = tmp_path / "raising.json"
+    settings.write_text('{"raising": {}}')
+    cal = tmp_path / "cal"
+    done = _run(
+        broken,
+        "calibrate",
+        small_series.manifest,
+        "-m",
+        "gs",
+        "--em-model",
+        "gamma",
+        "-o",
+        cal,
+        "-q",
+    )
+    assert done.returncode == 0, done.stderr
+    done = _run(broken, "audit", settings, "--calibration", cal)
+    error = [line for line in _lines(done.stderr) if not line.startswith("warning:")]
+    assert done.returncode == 2 and len(error) == 1, done.stderr
+    assert f"'{settings}': Raising cannot read it (KeyError: 'missing')" in error[0], error

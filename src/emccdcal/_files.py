@@ -212,15 +212,17 @@ def load_yaml(path, *, what: str = "YAML file", text: str | None = None):
             finally:
                 self._depth = depth - 1
 
-    loader = _Bounded(text)
+    loader = None
     try:
+        loader = _Bounded(text)  # its reader refuses a control character at once (a NUL)
         doc = loader.get_single_data()
     except yaml.YAMLError as exc:
         raise InputError(f"'{path}': not a readable {what} ({str(exc).splitlines()[0]})") from None
     except RecursionError:
         raise InputError(f"'{path}': nested more than {MAX_DEPTH} levels deep") from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
     return check_tree(doc, path)
 
 

@@ -14,6 +14,7 @@ them. Counts, offsets and read noise are in ADU. Every problem is an
 from __future__ import annotations
 
 import dataclasses
+import operator
 import os
 import re
 from pathlib import Path
@@ -113,15 +114,35 @@ def _layout(path: Path):
     next; None for a map) of a stack or map, from its header; the data must fit in the
     file."""
     try:
-        shape, dtype, offset, stride = _reader(path).header(path)
+        shape, dtype, offset, stride = _header(_reader(path).header(path))
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 - a damaged file can break a parser anywhere
         raise InputError(f"'{path}': cannot read: {_reason(exc)}") from exc
+    if len(shape) == 3 and shape[0] == 0:
+        raise InputError(f"'{path}': holds no frames (a stack of 0 × {shape[1]} × {shape[2]})")
     if offset is not None and len(shape) == 3 and stride is None:
         stride = shape[1] * shape[2] * dtype.itemsize
     if offset is not None:
         check_data_fits(path, shape, dtype, offset, stride)
+    return shape, dtype, offset, stride
+
+
+def _header(header):
+    """A reader's header (shape, dtype, offset, stride) checked and made exact (a reader
+    may be another package's: its dtype given as text, its numbers as NumPy's); a
+    ValueError, said as the file's, where it is not one."""
+    shape, dtype, offset, stride = header
+    shape = tuple(operator.index(n) for n in shape)
+    if len(shape) not in (2, 3) or min(shape) < 0 or 0 in shape[-2:]:
+        raise ValueError(f"its reader gives the shape {shape}, not (frames,) rows, cols")
+    dtype = np.dtype(dtype)
+    if dtype.kind not in "uif":
+        raise ValueError(f"its reader gives the data type {dtype}, not numbers")
+    offset = None if offset is None else operator.index(offset)
+    stride = None if stride is None else operator.index(stride)
+    if (offset is not None and offset < 0) or (stride is not None and stride <= 0):
+        raise ValueError(f"its reader gives the data offset {offset} and frame stride {stride}")
     return shape, dtype, offset, stride
 
 
@@ -156,7 +177,17 @@ def stack_settings(path, *, setpoint_from_name: bool = False) -> CameraSettings:
     set-point its name states where the file records none (:func:`setpoint_in_name`)."""
     path = check_readable(Path(path))
     _layout(path)  # a readable stack first
-    settings = _reader(path).settings(path)
+    try:
+        settings = _reader(path).settings(path)
+    except InputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a damaged file can break a parser anywhere
+        raise InputError(f"'{path}': cannot read its settings: {_reason(exc)}") from exc
+    if not isinstance(settings, CameraSettings):  # another package's reader, mistaken
+        raise InputError(
+            f"'{path}': its reader gives its settings as {type(settings).__name__}, not "
+            "CameraSettings"
+        )
     if setpoint_from_name and settings.em_gain_setpoint is None:
         named = setpoint_in_name(path)
         if named is not None and named >= 1:
@@ -244,7 +275,13 @@ def load_stack(path: Path) -> np.ndarray:
                 buffer=raw,
                 strides=(stride, shape[2] * dtype.itemsize, dtype.itemsize),
             )
-        return _reader(path).open_stack(path)
+        stack = _reader(path).open_stack(path)
+        if tuple(getattr(stack, "shape", ())) != tuple(shape):
+            raise InputError(
+                f"'{path}': its reader opens an array of shape "
+                f"{tuple(getattr(stack, 'shape', ()))} where its header says {tuple(shape)}"
+            )
+        return stack
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 - a damaged file can break a parser anywhere

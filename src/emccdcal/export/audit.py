@@ -32,7 +32,8 @@ import numpy as np
 
 from .. import _files, defaults, plugins
 from .._output import comment
-from ..errors import InputError, OptionError
+from .._util import one_line
+from ..errors import EmccdcalError, InputError, OptionError
 from ..result import Calibration, format_setpoint, load_calibration
 from .tools import camera_values, pick_setpoint
 
@@ -238,7 +239,7 @@ def _guess_tool(path: Path, text: str | None, doc) -> str:
     """The first registered tool that recognises the file as its own."""
     readable = _readable()
     for name, tool in readable.items():
-        if tool.recognizes is not None and tool.recognizes(path, text, doc):
+        if tool.recognizes is not None and _asking(tool, tool.recognizes, path, text, doc):
             return name
     raise InputError(
         f"'{path}': not a camera file of a tool emccdcal knows "
@@ -280,7 +281,7 @@ def read_tool_file(path, *, tool=None, setpoint=1.0, tool_gain=None) -> list[Rea
         # a tool that reads its own binary files (SMAP's camera manager) is asked first
         for name, t in readable.items():
             if t.read_file is not None and tool in (None, name):
-                found = t.read_file(path, setpoint)
+                found = _asking(t, t.read_file, path, setpoint)
                 if found is not None:
                     return found
         doc = _mat_tree(path)
@@ -288,7 +289,24 @@ def read_tool_file(path, *, tool=None, setpoint=1.0, tool_gain=None) -> list[Rea
         text = _files.read_text(path, what="tool's settings file")
         doc = _parse_text(path, text)
     tool = tool or _guess_tool(path, text, doc)
-    return readable[tool].read(path, text, doc, setpoint, tool_gain)
+    readings = _asking(readable[tool], readable[tool].read, path, text, doc, setpoint, tool_gain)
+    if not isinstance(readings, list) or not all(isinstance(r, Reading) for r in readings):
+        raise InputError(f"'{path}': {readable[tool].title}'s reader gives no list of readings")
+    return readings
+
+
+def _asking(tool, function, path, *args):
+    """``function(path, *args)`` of a tool (its reader, recogniser): what it raises on a
+    file it cannot read (a damaged one, a field it lacks; a plug-in's mistake) is one
+    line naming the file, never a traceback from inside the tool."""
+    try:
+        return function(path, *args)
+    except EmccdcalError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - whatever the file broke, in one line
+        raise InputError(
+            f"'{path}': {tool.title} cannot read it ({type(exc).__name__}: {one_line(exc)})"
+        ) from None
 
 
 def _parse_text(path: Path, text: str):
