@@ -301,3 +301,13 @@ def test_a_nul_in_yaml_and_a_smap_state_without_its_table_are_one_line(
         assert cli.main(argv) == 2
         err = capsys.readouterr().err
         assert len(err.strip().splitlines()) == 1 and f"'{path}': " in err and says in err, err
+
+
+def test_a_field_of_another_magnitude_is_said_in_a_few_digits(calibration, tmp_path, capsys):
+    """A Sensitivity of 1e302 (typed wrong): its difference is "+2.59e+303 %", never
+    three hundred digits."""
+    path = tmp_path / "config.yaml"
+    path.write_text("Cameras:\n  ProEM:\n    Baseline: 566\n    Sensitivity: 1e302\n")
+    cli.main(["audit", str(path), "--calibration", str(calibration), "--setpoint", "100"])
+    out = capsys.readouterr().out
+    assert "e+303 %" in out and max(map(len, out.split())) < 40, out

@@ -372,3 +372,22 @@ def test_a_run_where_no_pixel_converged_leaves_nothing_to_resume(tmp_path, capsy
         err = capsys.readouterr().err
         assert "0 of 16 pixels converged" in err and "interrupted" not in err
     assert not (tmp_path / "out").exists() and mine.is_dir() and not list(mine.iterdir())
+
+
+@pytest.mark.slow
+def test_a_saturated_set_point_is_named_as_saturated(tmp_path, capsys):
+    sim = simulate_gain_series(
+        tmp_path / "gs",
+        rows=4,
+        cols=4,
+        frames=300,
+        seed=3,
+        setpoints=(1, 100, 300),
+        progress=False,
+    )
+    frames = sim.manifest.parent / "gain-GS/300x-gain.tif"
+    tifffile.imwrite(frames, np.full_like(tifffile.imread(frames), 65535))
+    argv = ["calibrate", str(sim.manifest), "-m", "gs", "-o", str(tmp_path / "o"), "-q"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "saturated) in set-point 300x (16 of 16 pixels)" in err and err.count("\n") == 1

@@ -409,3 +409,11 @@ def test_a_stack_of_no_frames_is_one_line(tmp_path, capsys):
     assert cli.main(["gain-check", str(path), "--e-per-adu", "3.9"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"'{path}': holds no frames" in err, err
+
+
+def test_darks_that_record_no_set_point_ask_for_one(tmp_path, capsys):
+    path = tmp_path / "darks.npy"
+    np.save(path, np.zeros((5, 4, 4), np.uint16))
+    assert cli.main(["gain-check", str(path), "--e-per-adu", "3.9"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "record no EM gain set-point" in err and "None" not in err

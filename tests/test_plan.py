@@ -331,3 +331,12 @@ def test_stop_at_target_without_a_1x_acquisition_is_refused_before_recording(tmp
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "lacks" in err and "1x" in err, err
     assert not (tmp_path / "s").exists()
+
+
+def test_a_number_of_thousands_of_digits_is_one_line_without_pythons_advice(tmp_path, capsys):
+    path = tmp_path / "big.toml"
+    path.write_text(_plan_doc(tmp_path).replace("dark_frames = 900", "dark_frames = " + "9" * 5000))
+    capsys.readouterr()
+    assert cli.main(["plan", "--check", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "thousands of digits" in err and "sys." not in err, err

@@ -180,6 +180,8 @@ def load_toml(path, *, what: str = "TOML file", text: str | None = None):
         doc = tomllib.loads(text)
     except (tomllib.TOMLDecodeError, RecursionError, ValueError) as exc:
         reason = " ".join(str(exc).split()) or type(exc).__name__
+        if "integer string conversion" in reason:  # Python's advice is not the user's
+            reason = "a whole number of thousands of digits"
         err = InputError(f"'{path}': not a readable {what} ({reason})")
         err.reason = reason  # the parser's words, for a caller with its own prefix
         raise err from None

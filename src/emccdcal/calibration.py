@@ -850,9 +850,39 @@ def _require_convergence(ds, method) -> None:
     if ok * 2 < total:
         raise MethodError(
             f"method {method}: only {ok} of {total} pixels converged, so there is no "
-            "calibration to report (nothing was written); check the offset and read-noise "
-            "maps against the data, the set-points and whether the method suits the data"
+            "calibration to report (nothing was written); "
+            + (
+                _saturated(ds)
+                or "check the offset and read-noise maps against the data, the set-points "
+                "and whether the method suits the data"
+            )
         )
+
+
+def _saturated(ds) -> str:
+    """What saturation explains of a failure: the acquisitions with counts at the ADC
+    maximum at most of their pixels, and what to do; "" where none has."""
+    if "n_saturated" not in ds:
+        return ""
+    counts = ds["n_saturated"]
+    dim = counts.dims[0]
+    hit = [
+        (label, int((counts.sel({dim: label}).values > 0).sum())) for label in counts[dim].values
+    ]
+    pixels = int(ds.converged.size)
+
+    def name(label):
+        if dim == "setpoint":
+            return f"set-point {result.format_setpoint(label)}x"
+        return f"level {label}"
+
+    named = [f"{name(label)} ({n} of {pixels} pixels)" for label, n in hit if n * 2 > pixels]
+    if not named:
+        return ""
+    return (
+        f"counts at the ADC maximum (saturated) in {', '.join(named)}: lower the light or "
+        "the EM gain there and record it again, or leave it out of the manifest"
+    )
 
 
 def _input_files(manifest, used, phi_source) -> list[Path]:

@@ -202,9 +202,16 @@ def _setpoint(args, settings):
     if args.setpoint is not None:
         return args.setpoint
     recorded = {s.em_gain_setpoint for s in settings}
-    if len(recorded) != 1 or None in recorded:
+    if recorded == {None}:
         raise OptionError(
-            f"the dark stacks record set-point(s) {sorted(map(str, recorded))}: give --setpoint"
+            "the dark stacks record no EM gain set-point (nor do their names state one): "
+            "give --setpoint"
+        )
+    if len(recorded) != 1 or None in recorded:
+        said = ", ".join("none" if g is None else f"{g:g}" for g in sorted(recorded, key=str))
+        raise OptionError(
+            f"the dark stacks record different set-points ({said}): give --setpoint, "
+            "and stacks of one set-point"
         )
     return recorded.pop()
 

@@ -133,7 +133,7 @@ class Audit:
         out.append(
             f"  photons: {r.formula} = {r.pe_per_adu:.6g} e-/ADU against the "
             f"calibrated phi/g = {self.calibrated_pe_per_adu:.6g}: "
-            f"{100 * self.photon_bias:+.2f} %"
+            f"{_percent(self.photon_bias, 2)}"
         )
         verdict = "OK" if self.ok else "OFF"
         out.append(
@@ -233,6 +233,16 @@ def _mat_tree(path):
         return value
 
     return {k: convert(v) for k, v in raw.items() if not k.startswith("__")}
+
+
+def _percent(fraction: float, decimals: int) -> str:
+    """A relative difference as a signed percentage, ``"+4.77 %"``; beyond a million per
+    cent (a number of another unit, or typed wrong) in three significant digits, never
+    three hundred of them."""
+    value = 100 * fraction
+    if abs(value) < 1e6:
+        return f"{value:+.{decimals}f} %"
+    return f"{value:+.3g} %"
 
 
 def _guess_tool(path: Path, text: str | None, doc) -> str:
@@ -349,7 +359,7 @@ def _compare(reading: Reading, values: dict, setpoint, tolerance, offset_toleran
             rel = f.value / truth[f.quantity] - 1
             row["text"] = (
                 f"{f.value:.6g} {unit}".rstrip() + f"; calibrated {what} "
-                f"{truth[f.quantity]:.6g}: {100 * rel:+.2f} %{note}"
+                f"{truth[f.quantity]:.6g}: {_percent(rel, 2)}{note}"
             )
         else:  # a number of the tool's that no calibrated quantity stands for alone
             row["text"] = f"{f.value:.6g} (compared only in the photons){note}"
@@ -357,7 +367,7 @@ def _compare(reading: Reading, values: dict, setpoint, tolerance, offset_toleran
     if reading.qe is not None:
         text = f"{reading.qe:g}: photons = photoelectrons / {reading.qe:g}"
         if qe is not None:
-            text += f"; given QE {qe:g}: {100 * (reading.qe / qe - 1):+.2f} %"
+            text += f"; given QE {qe:g}: {_percent(reading.qe / qe - 1, 2)}"
         rows.append({"field": "QE", "text": text})
     bias = reading.pe_per_adu / pe_per_adu - 1
     spread = values["offset"]["spread"] or 0.0
@@ -376,7 +386,7 @@ def _compare(reading: Reading, values: dict, setpoint, tolerance, offset_toleran
         )
         name = f" (most of it {worst.name})" if worst is not None else ""
         problems.append(
-            f"photons {100 * bias:+.1f} %{name}, beyond {100 * tolerance:g} %: "
+            f"photons {_percent(bias, 1)}{name}, beyond {100 * tolerance:g} %: "
             f"{reading.formula} should be {pe_per_adu:.6g} e-/ADU"
         )
     if offset_error is not None and abs(offset_error) > tol_offset:
@@ -387,7 +397,7 @@ def _compare(reading: Reading, values: dict, setpoint, tolerance, offset_toleran
         )
     if qe is not None and reading.qe is not None and abs(reading.qe / qe - 1) > tolerance:
         problems.append(
-            f"QE {reading.qe:g} but {qe:g} given: photons {100 * (qe / reading.qe - 1):+.1f} %"
+            f"QE {reading.qe:g} but {qe:g} given: photons {_percent(qe / reading.qe - 1, 1)}"
         )
     return Audit(
         reading, setpoint, rows, pe_per_adu, bias, offset_error, tol_offset, tolerance, problems
