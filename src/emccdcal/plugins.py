@@ -41,7 +41,17 @@ import warnings
 from dataclasses import dataclass
 from collections.abc import Callable
 
-__all__ = ["READERS", "TOOLS", "REGISTERS", "Tool", "load", "names", "left_out", "unknown"]
+__all__ = [
+    "READERS",
+    "TOOLS",
+    "REGISTERS",
+    "Tool",
+    "load",
+    "names",
+    "declared",
+    "left_out",
+    "unknown",
+]
 
 READERS = "emccdcal.readers"
 TOOLS = "emccdcal.tools"
@@ -152,8 +162,14 @@ class Tool:
 
 def names(group: str) -> tuple[str, ...]:
     """The names of the plug-ins of a group that loaded and fit its interface, in their
-    order (a command line's choices: never one that would fail when used)."""
+    order (what a command line accepts: never one that would fail when used)."""
     return tuple(load(group))
+
+
+def declared(group: str) -> tuple[str, ...]:
+    """The names of a group's entry points, none loaded (a help text's list, which must
+    not import the plug-ins: :func:`names` says which of them loaded)."""
+    return tuple(dict.fromkeys(ep.name for ep in _entry_points(group)))
 
 
 def left_out(group: str) -> dict[str, str]:

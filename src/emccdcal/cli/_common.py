@@ -152,18 +152,22 @@ def add_e_per_adu(p: argparse.ArgumentParser, *, results: bool = True) -> None:
 
 
 def plugin_choice(group: str, what: str) -> dict:
-    """``add_argument`` keywords of an option naming a plug-in of ``group``: the choices
-    are those that loaded and fit their interface; one that was left out is refused with
-    the reason (argparse's "invalid choice" says only what the choices are)."""
+    """``add_argument`` keywords of an option naming a plug-in of ``group``: it accepts
+    those that loaded and fit their interface (loaded when the option is given, so that
+    ``--help`` imports none), refuses one that was left out with the reason, and lists
+    the declared names in the help."""
 
     def parse(text: str) -> str:
+        if text in plugins.names(group):
+            return text
         why = plugins.left_out(group).get(text)
-        if why is not None and text not in plugins.names(group):
+        if why is not None:
             raise argparse.ArgumentTypeError(f"{what} {text!r} was left out: {why}")
-        return text
+        choices = ", ".join(map(repr, plugins.names(group)))
+        raise argparse.ArgumentTypeError(f"invalid choice: {text!r} (choose from {choices})")
 
     parse.__name__ = what  # argparse names the type in its messages
-    return {"type": parse, "choices": plugins.names(group)}
+    return {"type": parse, "metavar": "{" + ",".join(plugins.declared(group)) + "}"}
 
 
 def add_em_model(p: argparse.ArgumentParser, *, auto: bool = True) -> None:
