@@ -272,6 +272,20 @@ def test_every_verb_with_a_device_refuses_one_that_is_not_there(series):
 # --- a result that misfits is never a success ---------------------------------------------
 
 
+def _small_series(tmp_path, frames=1000, **kw):
+    """A 4 x 4 px gain series at 1x, 100x and 300x (the re-audit's size)."""
+    return simulate_gain_series(
+        tmp_path / "gs",
+        rows=4,
+        cols=4,
+        frames=frames,
+        seed=3,
+        setpoints=(1, 100, 300),
+        progress=False,
+        **kw,
+    )
+
+
 def _dark_manifest(sim) -> str:
     """The simulated series' manifest with its dark stacks instead of their maps."""
     import re
@@ -287,16 +301,7 @@ def test_a_byte_swapped_dark_is_refused_naming_its_acquisition(tmp_path, capsys,
     """A 300x dark stack read with the wrong byte order (its counts spread over the whole
     16-bit range): refused in one line naming the file and the acquisition, before any
     fit of it (such a dark's noise-model fit ran for minutes, gigabytes deep)."""
-    sim = simulate_gain_series(
-        tmp_path / "gs",
-        rows=4,
-        cols=4,
-        frames=1000,
-        seed=3,
-        setpoints=(1, 100, 300),
-        cic=cic,
-        progress=False,
-    )
+    sim = _small_series(tmp_path, cic=cic)
     dark = sim.manifest.parent / "gain-GS/300x-gain_no-signal.tif"
     tifffile.imwrite(dark, tifffile.imread(dark).byteswap())
     manifest = sim.manifest.parent / "dark.toml"
@@ -352,15 +357,7 @@ def test_a_run_where_no_pixel_converged_leaves_nothing_to_resume(tmp_path, capsy
     """Maps of the 300x acquisition that no data fit (a misread dark's offset and read
     noise): every pixel fails. Nothing is kept as an 'interrupted run', the output folder
     the run made is gone, and the rerun says the same thing again."""
-    sim = simulate_gain_series(
-        tmp_path / "gs",
-        rows=4,
-        cols=4,
-        frames=1000,
-        seed=3,
-        setpoints=(1, 100, 300),
-        progress=False,
-    )
+    sim = _small_series(tmp_path)
     folder = sim.manifest.parent / "gain-GS"
     tifffile.imwrite(folder / "300x-gain_no-signal_S0.tif", np.full((4, 4), 13852.0, np.float32))
     tifffile.imwrite(folder / "300x-gain_no-signal_sigma.tif", np.full((4, 4), 3968.0, np.float32))
@@ -376,15 +373,7 @@ def test_a_run_where_no_pixel_converged_leaves_nothing_to_resume(tmp_path, capsy
 
 @pytest.mark.slow
 def test_a_saturated_set_point_is_named_as_saturated(tmp_path, capsys):
-    sim = simulate_gain_series(
-        tmp_path / "gs",
-        rows=4,
-        cols=4,
-        frames=300,
-        seed=3,
-        setpoints=(1, 100, 300),
-        progress=False,
-    )
+    sim = _small_series(tmp_path, frames=300)
     frames = sim.manifest.parent / "gain-GS/300x-gain.tif"
     tifffile.imwrite(frames, np.full_like(tifffile.imread(frames), 65535))
     argv = ["calibrate", str(sim.manifest), "-m", "gs", "-o", str(tmp_path / "o"), "-q"]

@@ -184,3 +184,63 @@ def test_a_larger_region_chains_into_a_crop_of_it(tmp_path):
         quiet(calibrate, outside, "gs", e_per_adu=tmp_path / "big")
     with pytest.raises(OptionError, match=r"where they lie on the sensor is not known"):
         quiet(calibrate, gs.manifest, "gs", e_per_adu=tmp_path / "big")
+
+
+# --- the Python API in one currency ------------------------------------------------------
+
+CURRENCY = """
+import filecmp, json, os, sys, warnings
+warnings.simplefilter("ignore")
+import numpy as np, tifffile
+import emccdcal
+
+sim = emccdcal.simulate_gain_series(
+    "gs", rows=6, cols=6, frames=500, seed=5, setpoints=(1, 5, 25, 100), progress=False
+)
+results = {
+    "written": emccdcal.calibrate(sim.manifest, "gs", out="out"),  # and kept in memory
+    "folder": "out",
+    "memory": emccdcal.calibrate(sim.manifest, "gs"),  # never written
+}
+found = {}
+for name, result in results.items():
+    emccdcal.export_calibration(result, "picasso", f"picasso-{name}", setpoint=25)
+    emccdcal.apply_calibration(
+        result, "gs/gain-GS/25x-gain.tif", f"movie-{name}.tif", setpoint=25, progress_bar=False
+    )
+    curve = emccdcal.fit_gain_curve(result)
+    emccdcal.write_report(result, f"report-{name}.html")
+    found[name] = {
+        "picasso": open(f"picasso-{name}/picasso-config.yaml").read(),
+        "movie": tifffile.imread(f"movie-{name}.tif").tolist(),
+        "curve": curve.predict([50.0])["gain"].tolist(),
+        "report": os.path.getsize(f"report-{name}.html") > 10000,
+    }
+print(json.dumps(found))
+"""
+
+
+@pytest.mark.slow
+def test_the_result_calibrate_returns_goes_into_every_function_that_takes_one(tmp_path):
+    """In a fresh interpreter, the Dataset ``calibrate()`` returns goes as it is into
+    ``export_calibration``, ``apply_calibration``, ``fit_gain_curve`` and
+    ``write_report``: the same files as through the written folder (a result written
+    knows its file: the same provenance too), and, never written, the same numbers."""
+    import json
+    import subprocess
+    import sys
+
+    done = subprocess.run(
+        [sys.executable, "-c", CURRENCY], cwd=tmp_path, capture_output=True, text=True, timeout=600
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    found = json.loads(done.stdout.strip().splitlines()[-1])
+    folder, written, memory = found["folder"], found["written"], found["memory"]
+    assert written == folder  # byte for byte: the file, the movie, the curve, the report
+    assert all(found[k]["report"] for k in found)
+
+    def numbers(text):  # the Picasso file without its provenance comments
+        return [line for line in text.splitlines() if not line.startswith("#")]
+
+    assert numbers(memory["picasso"]) == numbers(folder["picasso"])
+    assert memory["movie"] == folder["movie"] and memory["curve"] == folder["curve"]

@@ -21,7 +21,7 @@ from camera_files import write_spe
 
 from emccdcal import cli, result
 from emccdcal.export import database
-from emccdcal.export.gain_curve import fit_gain_curve, measured_gains
+from emccdcal.export.gain_curve import fit_points, measured_gains
 from emccdcal.export.movie import apply
 from emccdcal.export.tools import TOOLS, export
 from emccdcal.simulate.camera import simulate_frames
@@ -408,7 +408,7 @@ def test_gain_curve_predicts_a_setpoint_not_measured(tmp_path):
         )
         for s in measured
     ]
-    curve = fit_gain_curve(measured_gains(files))
+    curve = fit_points(measured_gains(files))
     assert curve.degree == 2 and curve.dof == 1
     p = curve.predict([50.0, 1000.0])
     for i, s in enumerate((50.0, 1000.0)):
@@ -425,7 +425,7 @@ def test_gain_curve_predicts_a_setpoint_not_measured(tmp_path):
     )
     assert (tmp_path / "gc" / "gain-curve.png").is_file()
     with pytest.raises(ValueError, match="two or more multiplied set-points"):
-        fit_gain_curve(measured_gains(files[:1]))
+        fit_points(measured_gains(files[:1]))
 
 
 # --------------------------------------------------------------------------------------

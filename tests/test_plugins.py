@@ -411,6 +411,11 @@ def small_series(tmp_path_factory):
     )
 
 
+def _calibrate_gamma(site, manifest, out):
+    """``calibrate MANIFEST -m gs --em-model gamma -o OUT -q`` with ``site`` on the path."""
+    return _run(site, "calibrate", manifest, "-m", "gs", "--em-model", "gamma", "-o", out, "-q")
+
+
 def _lines(stderr: str) -> list[str]:
     return [line for line in stderr.splitlines() if line.strip()]
 
@@ -424,18 +429,7 @@ def test_broken_plugins_leave_a_user_who_did_not_ask_for_them_unaffected(
     done = _run(broken, "--version")
     assert done.stdout.strip() != "emccdcal 0.0.1" and done.returncode == 0
     out = tmp_path / "with"
-    done = _run(
-        broken,
-        "calibrate",
-        small_series.manifest,
-        "-m",
-        "gs",
-        "--em-model",
-        "gamma",
-        "-o",
-        out,
-        "-q",
-    )
+    done = _calibrate_gamma(broken, small_series.manifest, out)
     assert done.returncode == 0, done.stderr
     assert "Traceback" not in done.stderr and "\x1b" not in done.stderr
     lines = _lines(done.stderr)
@@ -552,18 +546,7 @@ def test_what_a_plugin_gives_is_checked_before_use(broken, small_series, tmp_pat
     settings = tmp_path / "raising.json"
     settings.write_text('{"raising": {}}')
     cal = tmp_path / "cal"
-    done = _run(
-        broken,
-        "calibrate",
-        small_series.manifest,
-        "-m",
-        "gs",
-        "--em-model",
-        "gamma",
-        "-o",
-        cal,
-        "-q",
-    )
+    done = _calibrate_gamma(broken, small_series.manifest, cal)
     assert done.returncode == 0, done.stderr
     done = _run(broken, "audit", settings, "--calibration", cal)
     error = [line for line in _lines(done.stderr) if not line.startswith("warning:")]

@@ -50,7 +50,7 @@ import numpy as np
 import xarray as xr
 
 from . import defaults, identity
-from ._output import read_netcdf, write_netcdf
+from ._output import file_sha256, read_netcdf, write_netcdf
 from ._util import finite_or_none, format_setpoint, one_line  # noqa: F401 - re-exported
 from .errors import InputError, MissingFileError, OptionError
 
@@ -617,6 +617,10 @@ def save(ds: xr.Dataset, out_dir, *, seconds: float | None = None, stale=()) -> 
         },
         stale=stale,
     )
+    # the result in memory knows its file, as one read from it does: a calibration made
+    # from it records the same provenance (load_calibration)
+    ds.encoding["source"] = str(written[CALIBRATION_FILE])
+    ds.encoding["sha256"] = file_sha256(written[CALIBRATION_FILE])
     return {"calibration": written[CALIBRATION_FILE], "summary": written[SUMMARY_FILE]}
 
 
@@ -717,7 +721,19 @@ def load(path) -> xr.Dataset:
         p = p / CALIBRATION_FILE
     if not p.is_file():
         raise MissingFileError(f"{p}: no such file")
-    ds = read_netcdf(p)
+    return _checked(read_netcdf(p), p)
+
+
+def _checked_in_memory(ds) -> xr.Dataset:
+    """A result in memory (what :func:`emccdcal.calibrate` returns), checked as a file
+    is (:func:`load`)."""
+    if not isinstance(ds, xr.Dataset):
+        raise OptionError(f"a calibration result is an xarray.Dataset, not {type(ds).__name__}")
+    return _checked(ds.copy(), "the result given")
+
+
+def _checked(ds, p) -> xr.Dataset:
+    """``ds`` if it is an emccdcal result this version reads (``p`` names it)."""
     missing_attrs = [a for a in ("method", "emccdcal_version") if a not in ds.attrs]
     if missing_attrs:
         raise InputError(
@@ -964,13 +980,16 @@ def camera_of(ds, path) -> dict:
 
 
 def _members(spec):
+    """The members of a calibration argument: paths (text) and results in memory."""
+    if isinstance(spec, xr.Dataset):
+        return [spec]
     if isinstance(spec, (str, Path)) and "," in str(spec) and Path(spec).exists():
         return [str(spec)]  # a path with a comma in its name
     if isinstance(spec, (list, tuple)):
-        parts = [str(p) for p in spec]
+        parts = [p if isinstance(p, xr.Dataset) else str(p) for p in spec]
     else:
         parts = [p.strip() for p in str(spec).split(",")]
-    parts = [p for p in parts if p]
+    parts = [p for p in parts if isinstance(p, xr.Dataset) or p]
     if not parts:
         raise OptionError(f"empty calibration argument {spec!r}")
     return parts
@@ -995,6 +1014,11 @@ def _load_members(parts, label, shape, of) -> list:
     is given, covering exactly that sensor region."""
     loaded: list = []
     for part in parts:
+        if isinstance(part, xr.Dataset):  # a result in memory: checked as a file is
+            ds = _checked_in_memory(part)
+            # its file, where it was read from one or written to one (its provenance)
+            loaded.append((Path(ds.encoding.get("source", "<the result given>")), ds))
+            continue
         p = Path(part)
         ds = load(p)
         f = p / CALIBRATION_FILE if p.is_dir() else p
@@ -1042,12 +1066,15 @@ def _members_em_model(label, loaded):
 
 
 def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
-    """Read a calibration result, or merge a comma-joined group of them.
+    """A calibration from what a user has: a result file, a result in memory, or a group
+    of them merged; the one door every function that takes a calibration goes through.
 
     Parameters
     ----------
-    spec : str, Path or sequence of them
-        A ``calibration.nc`` file or its directory, or several joined by commas.
+    spec : str, Path, xarray.Dataset, Calibration or sequence of them
+        A ``calibration.nc`` file or its directory, or several joined by commas; a
+        result as :func:`emccdcal.calibrate` or :func:`load` returns it; a
+        :class:`Calibration` (returned as it is, checked against ``shape``).
     shape : (int, int), optional
         The frames' (rows, cols): every file must cover exactly that sensor region
         (``row`` = 0 … rows − 1 and ``col`` = 0 … cols − 1).
@@ -1066,8 +1093,15 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
         with different register models. The message names the file.
     """
 
+    if isinstance(spec, Calibration):
+        if shape is not None and tuple(spec.e_per_adu.shape) != tuple(shape):
+            raise OptionError(
+                f"{spec.source}: calibration of {spec.e_per_adu.shape[0]}×"
+                f"{spec.e_per_adu.shape[1]} px, but {of} are {shape[0]}×{shape[1]}"
+            )
+        return spec
     parts = _members(spec)
-    label = ",".join(parts)
+    label = ",".join(p if isinstance(p, str) else "the result given" for p in parts)
     loaded = _load_members(parts, label, shape, of)
     shapes = {(ds.sizes["row"], ds.sizes["col"]) for _, ds in loaded}
     if len(shapes) > 1:
@@ -1169,5 +1203,5 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
         origin=origins.pop() if len(origins) == 1 else None,
         binning=binnings.pop() if binnings else None,
         created=max(str(ds.attrs.get("created", "")) for _, ds in loaded),
-        sha256=tuple(ds.encoding["sha256"] for _, ds in loaded),
+        sha256=tuple(ds.encoding.get("sha256", "") for _, ds in loaded),
     )

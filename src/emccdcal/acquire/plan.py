@@ -509,9 +509,9 @@ def camera_of(result) -> dict:
     dict
         ``e_per_adu``, ``offset``, ``read_noise``.
     """
-    from ..result import Calibration, load_calibration, pixel_statistics
+    from ..result import load_calibration, pixel_statistics
 
-    cal = result if isinstance(result, Calibration) else load_calibration(result)
+    cal = load_calibration(result)
     offset, sigma = cal.dark(1.0 if 1.0 in cal.offset or not cal.offset else min(cal.offset))
     return {
         name: pixel_statistics(values)["median"]

@@ -45,7 +45,7 @@ def run(args) -> int:
     import numpy as np
 
     from .._output import atomic_write_text
-    from ..export.gain_curve import gain_curve_of
+    from ..export.gain_curve import fit_gain_curve
     from ..result import format_setpoint, result_files
 
     out = Path(args.out)
@@ -54,7 +54,7 @@ def run(args) -> int:
         _common.recording_warnings() as caught,
         _common.output(args, out, inputs=result_files(args.results), names=names),
     ):
-        curve = gain_curve_of(args.results, accept_mismatch=args.accept_mismatch)
+        curve = fit_gain_curve(args.results, accept_mismatch=args.accept_mismatch)
         table = curve.predict(sorted(set(curve.setpoints) | set(args.predict)))
         lines = [
             "setpoint,gain,se_of_median,lower95,upper95,measured_gain,"

@@ -34,7 +34,7 @@ from .. import _files, defaults, plugins
 from .._output import comment
 from .._util import one_line
 from ..errors import EmccdcalError, InputError, OptionError
-from ..result import Calibration, format_setpoint, load_calibration
+from ..result import format_setpoint, load_calibration
 from .tools import camera_values, pick_setpoint
 
 __all__ = [
@@ -421,7 +421,7 @@ def audit(
     ----------
     toolfile : str or Path
         The tool's file (:func:`read_tool_file`).
-    calibration : Calibration, str or Path
+    calibration : xarray.Dataset, Calibration, str or Path
         A calibration, or its result file or directory (several joined by commas).
     setpoint : float, optional
         The EM-gain set-point of the tool's movies (needed where the calibration has
@@ -445,7 +445,7 @@ def audit(
         raise OptionError(f"tolerance is a fraction in (0, 1); got {tolerance}")
     if qe is not None and not (0 < qe <= 1):
         raise OptionError(f"--qe is photoelectrons per photon, in (0, 1]; got {qe}")
-    cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
+    cal = load_calibration(calibration)
     s = pick_setpoint(cal, setpoint)
     values = camera_values(cal, s)
     readings = _matching(

@@ -638,7 +638,7 @@ def calibration(camera, setpoint, *, db=None, readout=None):
     OptionError
         As :func:`find`, or no calibration to predict the set-point from.
     """
-    from .gain_curve import calibration_at, gain_curve_of
+    from .gain_curve import calibration_at, fit_gain_curve
 
     s = float(setpoint)
     every = entries(db=db, camera=camera, readout=readout)
@@ -654,7 +654,7 @@ def calibration(camera, setpoint, *, db=None, readout=None):
     newest = _checked(_one_state(curved, camera)[-1])
     cal = load_calibration(newest.path)
     return calibration_at(
-        cal, s, gain_curve_of([cal]), source=f"of database entry {newest.id} ({newest.date[:10]})"
+        cal, s, fit_gain_curve([cal]), source=f"of database entry {newest.id} ({newest.date[:10]})"
     )
 
 

@@ -41,9 +41,9 @@ def compare(check, calibration, *, z: float = 3.0) -> dict:
         date), ``difference_percent``, ``difference_se_percent``, ``z`` and ``changed``
         (the flag).
     """
-    from ..result import Calibration, load_calibration, pixel_statistics
+    from ..result import load_calibration, pixel_statistics
 
-    cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
+    cal = load_calibration(calibration)
     if check.setpoint is None:
         raise InputError("the set-point of the dark frames is not known: give it")
     if check.setpoint not in cal.em_gain:

@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import xarray as xr
 
 from .. import _files
 from ..errors import InputError, OptionError
@@ -42,8 +43,8 @@ from ..result import Calibration, format_setpoint, load_calibration, pixel_stati
 __all__ = [
     "GainCurve",
     "fit_gain_curve",
+    "fit_points",
     "measured_gains",
-    "gain_curve_of",
     "read_gain_curve",
     "calibration_at",
 ]
@@ -83,9 +84,9 @@ def measured_gains(calibrations, *, accept_mismatch=()) -> list[tuple[float, flo
             }
             label = str(cal.attrs.get("method", f"result {i + 1}"))
         else:
-            cal = cal if isinstance(cal, Calibration) else load_calibration(cal)
+            cal = load_calibration(cal)
             for f, digest in zip(cal.files, cal.sha256):
-                if digest in seen:
+                if digest and digest in seen:
                     raise OptionError(
                         f"{f} is given twice (also as {seen[digest]}): each "
                         "result would be counted twice; give it once"
@@ -202,7 +203,7 @@ def _rises(coef, lo, hi) -> bool:
     return bool(np.all(coef[1] + 2 * coef[2] * x > 0))
 
 
-def fit_gain_curve(points) -> GainCurve:
+def fit_points(points) -> GainCurve:
     """Fit the gain curve to ``(set-point, gain, SE, …)`` points (:func:`measured_gains`).
 
     Raises
@@ -247,11 +248,41 @@ def fit_gain_curve(points) -> GainCurve:
     )
 
 
-def gain_curve_of(results, *, accept_mismatch=()) -> GainCurve:
-    """The gain curve of calibrations (loaded, or result files or directories), with the
-    camera's identity and the results' SHA-256 recorded (see :func:`measured_gains`)."""
-    cals = [r if isinstance(r, Calibration) else load_calibration(r) for r in results]
-    curve = fit_gain_curve(measured_gains(cals, accept_mismatch=accept_mismatch))
+def fit_gain_curve(results, *, accept_mismatch=()) -> GainCurve:
+    """The gain curve of calibration results: the gain as a smooth, rising function of the
+    set-point, fitted to every measured set-point's median gain with its SE, with the
+    camera's identity and the results' SHA-256 recorded.
+
+    Parameters
+    ----------
+    results : xarray.Dataset, Calibration, str or Path, or a sequence of them
+        What :func:`emccdcal.calibrate` or :func:`emccdcal.load_result` returns, a
+        calibration, or result files or folders (:func:`emccdcal.load_calibration`); of
+        one camera and read-out state.
+    accept_mismatch : sequence of str
+        Camera identity fields that may differ between the results.
+
+    Returns
+    -------
+    GainCurve
+        ``gain(setpoint)`` and its SE, the points and the fit's χ².
+
+    Raises
+    ------
+    OptionError
+        Fewer than two multiplied set-points, gains that do not rise with the set-point,
+        results of different cameras.
+
+    Examples
+    --------
+    >>> import emccdcal
+    >>> curve = emccdcal.fit_gain_curve(ds)  # doctest: +SKIP
+    >>> curve.predict([200.0])  # doctest: +SKIP
+    """
+    if isinstance(results, (str, Path, xr.Dataset, Calibration)):
+        results = [results]
+    cals = [load_calibration(r) for r in results]
+    curve = fit_points(measured_gains(cals, accept_mismatch=accept_mismatch))
     return dataclasses.replace(
         curve,
         camera=cals[0].identity(),

@@ -103,7 +103,7 @@ def apply(
 
     Parameters
     ----------
-    calibration : Calibration, str or Path
+    calibration : xarray.Dataset, Calibration, str or Path
         A calibration, or result file(s) for :func:`~emccdcal.result.load_calibration`.
     movie : str or Path
         Any stack emccdcal reads (TIFF, SPE, SIF, FITS, Zarr, .npy), raw counts in ADU.
@@ -168,7 +168,7 @@ def apply(
                 "--qe gives photons from photoelectrons; photon counting gives "
                 "0/1 events, which a QE does not scale: give one of them"
             )
-    cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
+    cal = load_calibration(calibration)
     target = Output(
         out,
         kind="store" if fmt == "zarr" else "file",

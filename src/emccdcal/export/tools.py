@@ -227,7 +227,7 @@ def export(
 
     Parameters
     ----------
-    calibration : Calibration, str or Path
+    calibration : xarray.Dataset, Calibration, str or Path
         A :class:`~emccdcal.result.Calibration`, or a result (file or directory, or
         several joined by commas) to read with :func:`~emccdcal.result.load_calibration`.
     to : str
@@ -267,7 +267,7 @@ def export(
         raise OptionError(f"--qe is photoelectrons per photon, in (0, 1]; got {qe}")
     if pixel_size_nm is not None and not (pixel_size_nm > 0 and math.isfinite(pixel_size_nm)):
         raise OptionError(f"--pixel-size is in nm and positive; got {pixel_size_nm}")
-    cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
+    cal = load_calibration(calibration)
     if tool.all_setpoints:
         s, values = None, None
     else:  # refused before anything is made: no empty folder left behind
@@ -308,7 +308,7 @@ def export_modes(
             "given are of several: export each mode on its own (Picasso's "
             "config.yaml holds a table of modes)"
         )
-    cals = [c if isinstance(c, Calibration) else load_calibration(c) for c in calibrations]
+    cals = [load_calibration(c) for c in calibrations]
     serials = {c.camera.get("serial") for c in cals}
     if len(serials) > 1:
         raise OptionError(

@@ -773,10 +773,10 @@ def gain_figure(results, *, labels=None):
 
 def results_gain_curve_figure(results):
     """:func:`gain_curve_figure` of the gains of result datasets (the report's)."""
-    from ..export.gain_curve import fit_gain_curve, measured_gains
+    from ..export.gain_curve import fit_points, measured_gains
 
     try:
-        curve = fit_gain_curve(measured_gains(results))
+        curve = fit_points(measured_gains(results))
     except OptionError as exc:
         raise DataUnavailable(f"no gain curve: {exc}") from None
     return gain_curve_figure(curve)

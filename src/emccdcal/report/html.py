@@ -86,8 +86,14 @@ def _refuse_twice(files) -> None:
 
 
 def _load_input(item, i):
-    if hasattr(item, "data_vars"):  # an in-memory dataset
-        return _Input(item, None, None, f"result {i + 1} ({item.attrs.get('method', '?')})")
+    if hasattr(item, "data_vars"):  # in memory: its file, where it was read or written
+        source = item.encoding.get("source")
+        return _Input(
+            item,
+            Path(source).resolve() if source else None,
+            item.encoding.get("sha256"),
+            f"result {i + 1} ({item.attrs.get('method', '?')})",
+        )
     ds = result.load(item)
     p = Path(item)
     p = p / result.CALIBRATION_FILE if p.is_dir() else p
@@ -691,8 +697,9 @@ def build_report(
 
     Parameters
     ----------
-    results : sequence of (str, Path or xarray.Dataset)
-        ``calibration.nc`` files (or their directories), or datasets in memory.
+    results : xarray.Dataset, str or Path, or a sequence of them
+        Results as :func:`emccdcal.calibrate` returns them, or ``calibration.nc`` files
+        (or their directories).
     validation : sequence of (str or Path), optional
         Bead-validation directories (``emccdcal validate -o DIR``: ``validation.json``,
         ``intensities.nc``). One without ``validation.json`` is left out with a note.
@@ -730,6 +737,8 @@ def build_report(
     ReportWarning
         For each part left out, once per reason.
     """
+    if isinstance(results, (str, Path)) or hasattr(results, "data_vars"):
+        results = [results]  # one result, as calibrate() returns it or as a path
     if not results:
         raise OptionError("no calibration result given")
     inputs = [_load_input(r, i) for i, r in enumerate(results)]
@@ -816,7 +825,7 @@ def write_report(results, out, **kwargs) -> Path:
 
     Parameters
     ----------
-    results : sequence
+    results : xarray.Dataset, str or Path, or a sequence of them
         As in :func:`build_report`.
     out : str or Path
         The HTML file (its directory is created); an existing directory gets
