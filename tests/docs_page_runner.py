@@ -67,4 +67,5 @@ def main(steps_file, results_file, command):
     Path(results_file).write_text(json.dumps(results), encoding="utf-8")
 
 
-main(*sys.argv[1:4])
+if __name__ == "__main__":  # run as the page's program, never imported
+    main(*sys.argv[1:4])

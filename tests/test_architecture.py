@@ -415,3 +415,40 @@ def _source_tree() -> Path:
     if not (root / "pyproject.toml").is_file():
         pytest.skip("the package is installed, not in its source tree")
     return root
+
+
+def test_every_warning_of_the_package_is_an_emccdcal_warning():
+    """Each ``warnings.warn`` of the package names its category, and that category is an
+    :class:`emccdcal.EmccdcalWarning`: one filter silences them all (a notebook's)."""
+    import importlib
+
+    from emccdcal import errors
+    from emccdcal.errors import EmccdcalWarning
+
+    calls = 0
+    for path in SRC.rglob("*.py"):
+        tree = _tree(path)
+        name = ".".join(("emccdcal", *path.relative_to(SRC).with_suffix("").parts))
+        module = None if "warnings.warn(" not in path.read_text() else importlib.import_module(name)
+        for node in ast.walk(tree):
+            if not (
+                isinstance(node, ast.Call)
+                and isinstance(node.func, ast.Attribute)
+                and node.func.attr == "warn"
+                and isinstance(node.func.value, ast.Name)
+                and node.func.value.id == "warnings"
+            ):
+                continue
+            calls += 1
+            given = (
+                node.args[1]
+                if len(node.args) > 1
+                else next((k.value for k in node.keywords if k.arg == "category"), None)
+            )
+            where = f"{path.relative_to(SRC)}:{node.lineno}"
+            assert given is not None, f"{where}: a warning without its category"
+            if isinstance(given, ast.Name) and given.id != "category":  # re-raised ones pass
+                # at the module's top, or imported where it is used (from emccdcal.errors)
+                category = getattr(module, given.id, None) or getattr(errors, given.id)
+                assert issubclass(category, EmccdcalWarning), where
+    assert calls > 30

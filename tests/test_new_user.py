@@ -89,7 +89,9 @@ def test_accept_phi_lets_it_through_and_gs_no1x_says_it_is_unchecked(series, tmp
         "-q",
         "--no-checks",
     )
-    assert code == 0, err
+    # through, and written; a φ twice the camera's misfits every set-point: doubtful, exit 1
+    assert code == 1 and "the calibration is doubtful" in err, err
+    assert (tmp_path / "a" / "calibration.nc").is_file()
     code, _, err = _run(
         capsys,
         "calibrate",

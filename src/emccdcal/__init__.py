@@ -45,6 +45,7 @@ _API = {
     "fit_gain_curve": ("emccdcal.export.gain_curve", "fit_gain_curve"),
     "noise": ("emccdcal.model.noise", None),
     "EmccdcalError": ("emccdcal.errors", "EmccdcalError"),
+    "EmccdcalWarning": ("emccdcal.errors", "EmccdcalWarning"),
 }
 
 __all__ = ["__version__", *_API]

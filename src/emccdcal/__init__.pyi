@@ -14,6 +14,7 @@ from .calibration import calibrate as calibrate
 from .data.manifest import read_manifest as read_manifest
 from .data.quality import check_manifest as check
 from .errors import EmccdcalError as EmccdcalError
+from .errors import EmccdcalWarning as EmccdcalWarning
 from .export.gain_curve import fit_gain_curve as fit_gain_curve
 from .export.movie import apply as apply_calibration
 from .export.tools import export as export_calibration
@@ -37,6 +38,7 @@ __all__ = [
     "read_manifest",
     "check",
     "EmccdcalError",
+    "EmccdcalWarning",
     "fit_gain_curve",
     "apply_calibration",
     "export_calibration",

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import functools
 import importlib.metadata
-import json
 from pathlib import Path
 from urllib.parse import unquote, urlparse
 
@@ -42,9 +41,14 @@ def _installed_this(dist) -> bool:
                     return True
             except OSError:
                 continue
+    from ._files import load_json
+    from .errors import InputError
+
+    text = dist.read_text("direct_url.json")
     try:  # an editable install: the source tree it points to holds this folder
-        url = json.loads(dist.read_text("direct_url.json") or "{}").get("url", "")
-    except (ValueError, AttributeError):
+        doc = load_json("direct_url.json", what="install record", text=text) if text else {}
+        url = doc.get("url", "") if isinstance(doc, dict) else ""
+    except InputError:
         return False
     parsed = urlparse(url)
     if parsed.scheme != "file":

@@ -36,7 +36,13 @@ from ._util import progress as progress_bar
 from .data import quality, stats
 from .data.manifest import Manifest, Source, read_manifest
 from .data.stacks import read_band
-from .errors import EmccdcalError, InputError, MethodError, OptionError
+from .errors import (
+    DataQualityWarning,
+    FitWarning,
+    InputError,
+    MethodError,
+    OptionError,
+)
 from .fit import gof, layouts, mv
 from .fit.series import AcquisitionModel, fit_series
 from .defaults import DEFAULT_BLOCK, DEFAULT_TILE_PIXELS, INTERVALS, METHODS
@@ -840,14 +846,18 @@ def _warn_gain_order(ds) -> None:
                 "other's: correct their em_gain_setpoint in the manifest and calibrate "
                 "again",
                 stacklevel=4,
+                category=FitWarning,
             )
 
 
-def _require_convergence(ds, method) -> None:
-    """A method that fails for most pixels has no result to give: an error, not numbers."""
+def _require_convergence(ds, method, store=None) -> None:
+    """A method that fails for most pixels has no result to give: an error, not numbers;
+    the run's ``store`` keeps nothing to resume then (every tile is done)."""
     ok = int(ds.converged.values.sum())
     total = int(ds.converged.size)
     if ok * 2 < total:
+        if store is not None:
+            store.discard()
         raise MethodError(
             f"method {method}: only {ok} of {total} pixels converged, so there is no "
             "calibration to report (nothing was written); "
@@ -1010,16 +1020,11 @@ def _run_calibration(
     if checks:  # the findings quote the light this fit found, not a rough guess of it
         report, messages = _quality(manifest, used, parts, tiles, _fitted_light(ds, used))
         for w in messages:
-            warnings.warn(w, stacklevel=2)
+            warnings.warn(w, stacklevel=2, category=DataQualityWarning)
         if report is not None:
             ds.attrs["quality"] = json.dumps(report)
     del parts
-    try:
-        _require_convergence(ds, method)
-    except EmccdcalError:  # every tile done, and no result: nothing is left to resume
-        if store is not None:
-            store.discard()
-        raise
+    _require_convergence(ds, method, store)
     _warn_gain_order(ds)
     return ds
 
@@ -1076,6 +1081,7 @@ def _warn_saturated_and_unusable(manifest, used, arrays):
                 "pixels' results stand; lower the light (or the EM gain) and record again "
                 "for these",
                 stacklevel=3,
+                category=DataQualityWarning,
             )
     bad = np.flatnonzero(~arrays["usable"])
     if bad.size:
@@ -1086,6 +1092,7 @@ def _warn_saturated_and_unusable(manifest, used, arrays):
             f"{', ...' if bad.size > 5 else ''}; they are left out (NaN, converged = False), "
             "and the other pixels' results stand",
             stacklevel=3,
+            category=DataQualityWarning,
         )
 
 
@@ -1185,6 +1192,7 @@ def check_e_per_adu(phi_map, phi_se, source, used, method) -> None:
             "the data (no 1x acquisition): make sure it is in e-/ADU and of this "
             "read-out mode",
             stacklevel=3,
+            category=DataQualityWarning,
         )
         return
     rows, cols = unit.offset.shape
@@ -1202,6 +1210,7 @@ def check_e_per_adu(phi_map, phi_se, source, used, method) -> None:
             f"{unit.frames_path}: too little light above the read noise to check "
             f"e_per_adu {given:.4g} ({source or 'given'}) against it",
             stacklevel=3,
+            category=DataQualityWarning,
         )
         return
     if phi_se is not None:
@@ -1345,6 +1354,7 @@ def _warn_fit_problems(method, used, arrays, model) -> None:
             "did not converge (converged = False): their numbers are not estimates "
             "and must not be used; the converged pixels' results stand",
             stacklevel=4,
+            category=FitWarning,
         )
     kind, keys = _acquisition_keys(method, used)
     multiplied = [k for k, sp in zip(keys, setpoints) if sp != 1]
@@ -1361,7 +1371,7 @@ def _warn_fit_problems(method, used, arrays, model) -> None:
                 "read-noise maps of another mode, a mislabelled set-point); where they name "
                 "none, leave that acquisition out of the manifest and compare"
             )
-        warnings.warn(w, stacklevel=4)
+        warnings.warn(w, stacklevel=4, category=FitWarning)
 
 
 def _likelihood_dataset(

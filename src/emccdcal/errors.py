@@ -25,8 +25,13 @@ __all__ = [
     "MethodError",
     "NotConvergedError",
     "Cancelled",
+    "EmccdcalWarning",
     "InputWarning",
     "ReadNoiseGrowthWarning",
+    "DataQualityWarning",
+    "FitWarning",
+    "ExportWarning",
+    "BeadWarning",
     "PluginWarning",
 ]
 
@@ -67,15 +72,41 @@ class Cancelled(EmccdcalError):
     a graphical front's Cancel button)."""
 
 
-class InputWarning(UserWarning):
-    """A file was read in full despite damage around its data (e.g. a TIFF's page index)."""
+class EmccdcalWarning(UserWarning):
+    """Base class of every warning of emccdcal: ``warnings.simplefilter("ignore",
+    emccdcal.EmccdcalWarning)`` silences them all (each is also in a result's
+    ``warnings`` attribute and its report)."""
 
 
-class ReadNoiseGrowthWarning(UserWarning):
+class InputWarning(EmccdcalWarning):
+    """Something of the input is off but usable: a file read in full despite damage
+    around its data (a TIFF's page index), a manifest and its files that disagree."""
+
+
+class ReadNoiseGrowthWarning(EmccdcalWarning):
     """The darks' read noise grows with the EM gain set-point (clock-induced charge)."""
 
 
-class PluginWarning(UserWarning):
+class DataQualityWarning(EmccdcalWarning):
+    """A finding of the data-quality checks: drift, saturation, pixels left out, a φ
+    that could not be checked against the data."""
+
+
+class FitWarning(EmccdcalWarning):
+    """Of the fit: pixels that did not converge, acquisitions the model misfits, gains
+    that do not rise with the set-point."""
+
+
+class ExportWarning(EmccdcalWarning):
+    """Of a calibration's use: what a tool's file cannot hold, pixels without a
+    calibration, a gain predicted by the gain curve."""
+
+
+class BeadWarning(EmccdcalWarning):
+    """Of the beads: beads left out, blinking, fading, spots the model misfits."""
+
+
+class PluginWarning(EmccdcalWarning):
     """Another package's plug-in was left out: it could not be loaded, lacks a member of
     its interface, or takes a name already taken (:mod:`emccdcal.plugins`)."""
 

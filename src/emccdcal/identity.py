@@ -26,7 +26,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from .defaults import IDENTITY_FIELDS
-from .errors import InputError, OptionError, spelled
+from .errors import EmccdcalWarning, InputError, OptionError, spelled
 
 __all__ = [
     "IDENTITY_FIELDS",
@@ -42,7 +42,7 @@ __all__ = [
 ACCEPTABLE = (*IDENTITY_FIELDS, "setpoint")
 
 
-class IdentityWarning(UserWarning):
+class IdentityWarning(EmccdcalWarning):
     """The identity of frames could not be checked (one side records nothing)."""
 
 

@@ -52,7 +52,7 @@ import xarray as xr
 from . import defaults, identity
 from ._output import file_sha256, read_netcdf, write_netcdf
 from ._util import finite_or_none, format_setpoint, one_line  # noqa: F401 - re-exported
-from .errors import InputError, MissingFileError, OptionError
+from .errors import FitWarning, InputError, InputWarning, MissingFileError, OptionError
 
 __all__ = [
     "UNITS",
@@ -336,6 +336,7 @@ def make_dataset(
             f"{int(impossible.sum())} pixel(s) fitted to values no calibration can "
             f"have ({first}) are marked not converged",
             stacklevel=2,
+            category=FitWarning,
         )
     return ds
 
@@ -1096,7 +1097,7 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
     if isinstance(spec, Calibration):
         if shape is not None and tuple(spec.e_per_adu.shape) != tuple(shape):
             raise OptionError(
-                f"{spec.source}: calibration of {spec.e_per_adu.shape[0]}×"
+                f"{spec.label}: calibration of {spec.e_per_adu.shape[0]}×"
                 f"{spec.e_per_adu.shape[1]} px, but {of} are {shape[0]}×{shape[1]}"
             )
         return spec
@@ -1171,6 +1172,7 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
             f"(median, e-/ADU) than the group's phi from {loaded[i_phi][0].name} "
             f"({np.nanmedian(phi):.4g}); the group uses its phi",
             stacklevel=2,
+            category=InputWarning,
         )
     model = _members_em_model(label, loaded)
     origins = {

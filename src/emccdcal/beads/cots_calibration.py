@@ -17,7 +17,7 @@ from .. import result
 from .._util import check_number, e_per_adu_map
 from .._util import progress as progress_bar
 from ..data.manifest import Manifest, read_manifest
-from ..errors import InputError, ManifestError, OptionError
+from ..errors import BeadWarning, InputError, ManifestError, OptionError
 from ..model import noise, psf
 from .cots import DEFAULT_HALF_SIZE, DEFAULT_WIDTH, MIN_FRAMES, cots_spot
 
@@ -187,6 +187,7 @@ def _find_beads(ref, width, half_size) -> np.ndarray:
             f"{ref.frames_path}: {len(found.at_edge)} bead(s) too near the edge and "
             f"{len(found.too_close)} too close to another were left out",
             stacklevel=4,
+            category=BeadWarning,
         )
     return found.positions
 
@@ -220,13 +221,18 @@ def _fit_spots(manifest, em, beads, setpoints, half_size, width, phi, register, 
                         e_per_adu=phi[r, c],
                     )
                 except ValueError as exc:
-                    warnings.warn(f"{a.frames_path}: bead at ({r}, {c}): {exc}", stacklevel=4)
+                    warnings.warn(
+                        f"{a.frames_path}: bead at ({r}, {c}): {exc}",
+                        stacklevel=4,
+                        category=BeadWarning,
+                    )
                     spot = None
                 if spot is not None and spot.n_saturated:
                     warnings.warn(
                         f"{a.frames_path}: bead at ({r}, {c}): {spot.n_saturated} frame(s) "
                         f"with saturated pixels (>= {manifest.adc_max} ADU) left out",
                         stacklevel=4,
+                        category=BeadWarning,
                     )
                 if spot is not None:
                     dark = a.offset[

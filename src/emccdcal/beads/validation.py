@@ -67,7 +67,7 @@ from .._output import atomic_write, atomic_write_text, read_netcdf, write_netcdf
 from .._util import finite_or_none
 from .._util import progress as progress_bar
 from ..data.manifest import Manifest, read_manifest
-from ..errors import InputError, MissingFileError, OptionError
+from ..errors import BeadWarning, InputError, MissingFileError, OptionError
 from . import fit as bead_fit
 
 __all__ = [
@@ -366,12 +366,14 @@ def _detect(manifest, acqs, setpoint, width, half_size, min_separation, snr):
             f"{acq.frames_path}: skipped {len(found.at_edge)} bead(s) closer than {half_size} px "
             f"to the frame's edge at (row, col) {_pairs(found.at_edge)}",
             stacklevel=3,
+            category=BeadWarning,
         )
     if len(found.too_close):
         warnings.warn(
             f"{acq.frames_path}: skipped {len(found.too_close)} bead(s) with another bead "
             f"inside their fitting box at (row, col) {_pairs(found.too_close)}",
             stacklevel=3,
+            category=BeadWarning,
         )
     if len(found.positions) == 0:
         n_cand = len(found.at_edge) + len(found.too_close)
@@ -761,6 +763,7 @@ def _fit_all(
                         f"{slot.acq.frames_path}: {fit.n_saturated} count(s) at the ADC "
                         "maximum in the bead boxes were left out of the fits",
                         stacklevel=2,
+                        category=BeadWarning,
                     )
 
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -816,6 +819,7 @@ def _usable_beads(cal, setpoints, positions, half_size) -> np.ndarray:
                 f"{result.format_setpoint(s)}x in the box of {int(bad.sum())} bead(s) "
                 f"at (row, col) {_pairs(positions[bad])}; left out for this calibration",
                 stacklevel=3,
+                category=BeadWarning,
             )
         ok &= ~bad
     return ok
@@ -949,6 +953,7 @@ def _calibration_entry(
                 else "ignored (--blinking ignore): the off frames lower their means"
             ),
             stacklevel=4,
+            category=BeadWarning,
         )
     trend = intensity_trend(np.where(off, np.nan, I), np.where(off, np.nan, I_se), times)
     trend["corrected"] = bool(trend["detected"] and bleaching == "correct")
@@ -965,6 +970,7 @@ def _calibration_entry(
                 "set-points"
             ),
             stacklevel=4,
+            category=BeadWarning,
         )
     if trend["corrected"]:
         I = I * np.exp(trend["rate_per_frame"] * times)[None]
@@ -1072,6 +1078,7 @@ def _converged_fraction(cal, fitted, ci, keys) -> dict:
             + " of frames; the means are over the others, which can bias them if the "
             "failures depend on the frames' brightness",
             stacklevel=5,
+            category=BeadWarning,
         )
     return fraction
 
@@ -1106,6 +1113,7 @@ def _psf_document(cal, mismatch, layout, psf) -> dict:
             + "): the spot's shape differs between the halves of the frames, or from "
             "what the image could learn (--psf-split time tests a change over time)",
             stacklevel=5,
+            category=BeadWarning,
         )
     if poor:
         warnings.warn(
@@ -1122,6 +1130,7 @@ def _psf_document(cal, mismatch, layout, psf) -> dict:
                 "try --psf residual"
             ),
             stacklevel=5,
+            category=BeadWarning,
         )
     return doc
 
@@ -1170,6 +1179,7 @@ def _repeats(cal, layout, keys, I, off):
                         "beyond the trend within the acquisitions: light lost between "
                         "them, or a change of focus or illumination",
                         stacklevel=5,
+                        category=BeadWarning,
                     )
         out.append({"setpoint": key, "first": slots[0].acq.name, "later": later})
     return out

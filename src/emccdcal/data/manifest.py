@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import _files, identity
-from ..errors import InputError, ManifestError, OptionError, ReadNoiseGrowthWarning
+from ..errors import InputError, InputWarning, ManifestError, OptionError, ReadNoiseGrowthWarning
 from .dark import check_read_noise_growth, read_out_maps
 from .stacks import (
     check_counts,
@@ -244,6 +244,7 @@ def _origin(r, written, recorded: set, shape):
                 f"{r.path}: origin = {list(written)}, but the files record "
                 f"{list(next(iter(recorded)))}; the manifest's is used",
                 stacklevel=5,
+                category=InputWarning,
             )
         return tuple(int(v) for v in written)
     return next(iter(recorded)) if recorded else None
@@ -952,7 +953,7 @@ def _recorded(r: _Reader, entries, acquisitions, shape, found: list):
                 f"{recorded:g}"
             )
             found.append(msg)
-            warnings.warn(msg, stacklevel=4)
+            warnings.warn(msg, stacklevel=4, category=InputWarning)
     try:  # the stacks of one calibration are of one camera and read-out state
         joint = identity.of_frames(recorded_by, what="frames of a manifest", setpoints=False)
     except InputError as exc:

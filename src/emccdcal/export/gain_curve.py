@@ -36,7 +36,7 @@ import numpy as np
 import xarray as xr
 
 from .. import _files
-from ..errors import InputError, OptionError
+from ..errors import ExportWarning, InputError, OptionError
 from ..identity import mismatches as identity_mismatches
 from ..result import Calibration, format_setpoint, load_calibration, pixel_statistics
 
@@ -423,6 +423,7 @@ def calibration_at(
             else f"; offset and read noise from the {format_setpoint(dark)}x darks"
         ),
         stacklevel=2,
+        category=ExportWarning,
     )
     offset, read_noise = dict(cal.offset), dict(cal.read_noise)
     if dark is not None:

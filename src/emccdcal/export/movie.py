@@ -31,7 +31,7 @@ from .. import defaults, identity
 from .._output import Output, atomic_write
 from .._util import progress
 from ..data.stacks import read_band, stack_header, stack_settings
-from ..errors import InputError, OptionError, spelled
+from ..errors import ExportWarning, InputError, OptionError, spelled
 from ..result import Calibration, format_setpoint, load_calibration
 
 __all__ = ["apply", "conversion", "Conversion", "OUTPUT_FORMATS", "DEFAULT_THRESHOLD"]
@@ -267,6 +267,7 @@ def conversion(
             f"{source}: {int(bad.sum())} pixel(s) have no converged calibration at "
             f"{format_setpoint(s)}x; they are NaN (0 when photon counting)",
             stacklevel=3,
+            category=ExportWarning,
         )
     tau = None
     if photon_counting:
@@ -285,6 +286,7 @@ def conversion(
                 "so the counts miss that many photons: record at a higher EM gain, "
                 "or convert without --photon-counting",
                 stacklevel=3,
+                category=ExportWarning,
             )
     return Conversion(offset.astype(np.float32), scale.astype(np.float32), tau, meta)
 

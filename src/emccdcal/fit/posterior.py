@@ -48,7 +48,7 @@ from .._output import atomic_write, atomic_write_text, write_netcdf
 from .._util import e_per_adu_map, finite_or_none, parse_pixel
 from ..data import stats
 from ..data.manifest import Manifest, read_manifest
-from ..errors import MethodError, NotConvergedError, OptionError
+from ..errors import DataQualityWarning, FitWarning, MethodError, NotConvergedError, OptionError
 from ..model import noise
 from . import layouts
 from .series import AcquisitionModel, SeriesLikelihood
@@ -125,6 +125,7 @@ def _pixel_series(manifest, used, method, row, col, phi_map, options, em_model):
                 f"{acq.frames_path.name}: {int(h.n_saturated.sum())} frame values at the ADC "
                 f"maximum ({manifest.adc_max} ADU) at pixel ({row}, {col}) were excluded",
                 stacklevel=3,
+                category=DataQualityWarning,
             )
         if np.any(h.n < 2):
             raise OptionError(
@@ -260,6 +261,7 @@ def _sample_pixel(
             f"{where}: the observed information is not positive definite at the "
             "maximum; walkers start in a tiny isotropic ball",
             stacklevel=3,
+            category=FitWarning,
         )
         start = x_hat + 1e-4 * rng.standard_normal((n_walkers, F))
     else:
@@ -431,6 +433,7 @@ def sample_posterior(
                 f"{where}: the maximum-likelihood fit did not converge; "
                 "sampling starts from its last point",
                 stacklevel=2,
+                category=FitWarning,
             )
         x_hat, cov = fit.x[0], fit.cov[0]
         rng = np.random.default_rng(np.random.SeedSequence([int(seed), row, col]))

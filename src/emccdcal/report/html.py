@@ -35,7 +35,7 @@ from .._output import atomic_write_text, file_sha256
 from .._util import progress as progress_bar
 from ..beads.validation import data_checks, read_validation
 from ..data import quality
-from ..errors import InputError, OptionError
+from ..errors import EmccdcalWarning, InputError, OptionError
 from ..result import format_setpoint
 from .figures import (
     DataUnavailable,
@@ -62,7 +62,7 @@ SECTION_IDS = ("summary", "warnings", "gof", "figures", "validation", "history",
 REPORT_FILE = "report.html"
 
 
-class ReportWarning(UserWarning):
+class ReportWarning(EmccdcalWarning):
     """Part of the report was left out (its data are missing); the report says why."""
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import warnings
 
 from ..._output import atomic_write_text as _write_text, comment
-from ...errors import InputError, OptionError
+from ...errors import ExportWarning, InputError, OptionError
 from ...plugins import Tool
 from ...result import format_setpoint
 from .. import audit, tools
@@ -127,6 +127,7 @@ def write_modes(rows, s, out, pixel_size_nm, name):
             f"{max(baselines):.1f} ADU) and Picasso takes one Baseline per camera: "
             f"{baselines[0]:.1f} ADU is written; set the one of the mode you use",
             stacklevel=3,
+            category=ExportWarning,
         )
     text += tools._yaml({"Cameras": {tools._camera_name(cals[0], name): camera}})
     return [_write_text(out / "picasso-config.yaml", text)]

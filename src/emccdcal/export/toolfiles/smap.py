@@ -10,7 +10,7 @@ import warnings
 import numpy as np
 
 from ..._output import atomic_write, atomic_write_text as _write_text
-from ...errors import InputError
+from ...errors import ExportWarning, InputError
 from ...plugins import Tool
 from .. import audit, tools
 from ..audit import Field, Reading
@@ -46,6 +46,7 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
             "0.1 µm is written; give --pixel-size NM, or set it in the Camera "
             "Manager",
             stacklevel=3,
+            category=ExportWarning,
         )
     doc = {"loc_cameraSettings": par, "emccdcal": prov}
     cameras = out / "smap-cameras.mat"
