@@ -622,3 +622,4 @@ def test_a_scheduler_that_is_not_dask_is_one_line_in_seconds(series, listener, t
     lines = done.stderr.strip().splitlines()
     assert done.returncode == 2 and len(lines) == 1, done.stderr[-2000:]
     assert lines[0].startswith(f"emccdcal calibrate: error: scheduler '{address}'"), lines
+    assert not (tmp_path / "o").exists()  # refused before the output was begun

@@ -338,13 +338,12 @@ def _execute(jobs, scheduler, progress, workers=1):
     else:
         # Reached before a client is made: a client that fails half-made lingers, and
         # closing it at exit waits a minute. Ours is never the process's default either.
+        _reach_or_refuse(scheduler)
         try:
-            _reach(scheduler)
             client = Client(scheduler, timeout="30s", set_as_default=False)
-        except (ValueError, TypeError, OSError) as exc:  # not an address, or no one there
+        except (ValueError, TypeError, OSError) as exc:  # gone since it was reached
             raise OptionError(
-                f"scheduler {scheduler!r}: no Dask scheduler reached "
-                f"({one_line(exc)}); give its address, tcp://HOST:PORT"
+                f"scheduler {scheduler!r}: no Dask scheduler reached ({one_line(exc)})"
             ) from None
     try:
         futures = {client.submit(run_tile, job, pure=False): job for job in jobs}
@@ -416,6 +415,22 @@ def _worker_start(parent: int) -> None:
         os._exit(1)
 
     threading.Thread(target=watch, name="emccdcal-parent-watch", daemon=True).start()
+
+
+def _reach_or_refuse(scheduler) -> None:
+    """One line (an OptionError) unless a Dask scheduler answers at ``scheduler`` (and
+    the ``dask`` extra is installed): :func:`_reach`."""
+    try:
+        _reach(scheduler)
+    except ImportError:
+        raise OptionError(
+            "running on a Dask cluster needs the 'dask' extra: pip install 'emccdcal[dask]'"
+        ) from None
+    except (ValueError, TypeError, OSError) as exc:  # not an address, or no one there
+        raise OptionError(
+            f"scheduler {scheduler!r}: no Dask scheduler reached "
+            f"({one_line(exc)}); give its address, tcp://HOST:PORT"
+        ) from None
 
 
 #: Seconds to wait for a scheduler's address to accept a connection, and for its first
@@ -984,6 +999,8 @@ def _run_calibration(
         model, profile = _profile_stages(tile_job, rows * cols, model, method, used, progress)
         register_attrs = profile.attrs()
     store = None
+    if isinstance(scheduler, str) and scheduler != LOCAL_PROCESSES:
+        _reach_or_refuse(scheduler)  # before the output is begun
     if target is not None:  # an input, or an occupied output, is found before computing
         target.refuse_inputs(_input_files(manifest, used, phi_source), names=RESULT_FILES)
         store = RunStore(

@@ -82,7 +82,7 @@ class RunStore:
                     "--resume" + (" and with --overwrite" if finished else "")
                 )
             self._check_same_run()
-        elif finished or unfinished:
+        elif finished or (unfinished and self.tiles()):  # a run that kept no tile: anew
             what = (
                 f"an interrupted run ({len(self.tiles())} tile(s) kept)"
                 if unfinished
