@@ -419,7 +419,9 @@ def _worker_start(parent: int) -> None:
 
 def _reach_or_refuse(scheduler) -> None:
     """One line (an OptionError) unless a Dask scheduler answers at ``scheduler`` (and
-    the ``dask`` extra is installed): :func:`_reach`."""
+    the ``dask`` extra is installed), where it is an address: :func:`_reach`."""
+    if not isinstance(scheduler, str) or scheduler == LOCAL_PROCESSES:
+        return  # here, local processes or a client of the caller's
     try:
         _reach(scheduler)
     except ImportError:
@@ -999,8 +1001,7 @@ def _run_calibration(
         model, profile = _profile_stages(tile_job, rows * cols, model, method, used, progress)
         register_attrs = profile.attrs()
     store = None
-    if isinstance(scheduler, str) and scheduler != LOCAL_PROCESSES:
-        _reach_or_refuse(scheduler)  # before the output is begun
+    _reach_or_refuse(scheduler)  # before the output is begun
     if target is not None:  # an input, or an occupied output, is found before computing
         target.refuse_inputs(_input_files(manifest, used, phi_source), names=RESULT_FILES)
         store = RunStore(
@@ -1034,16 +1035,22 @@ def _run_calibration(
     _record_provenance(
         ds, method, manifest, model, register_attrs, device, phi_source, phi_se is not None
     )
-    if checks:  # the findings quote the light this fit found, not a rough guess of it
-        report, messages = _quality(manifest, used, parts, tiles, _fitted_light(ds, used))
-        for w in messages:
-            warnings.warn(w, stacklevel=2, category=DataQualityWarning)
-        if report is not None:
-            ds.attrs["quality"] = json.dumps(report)
+    if checks:
+        _add_findings(ds, manifest, used, parts, tiles)
     del parts
     _require_convergence(ds, method, store)
     _warn_gain_order(ds)
     return ds
+
+
+def _add_findings(ds, manifest, used, parts, tiles) -> None:
+    """The data-quality checks' findings, warned and in ``ds.attrs["quality"]``: they
+    quote the light this fit found, not a rough guess of it."""
+    report, messages = _quality(manifest, used, parts, tiles, _fitted_light(ds, used))
+    for w in messages:
+        warnings.warn(w, stacklevel=3, category=DataQualityWarning)
+    if report is not None:
+        ds.attrs["quality"] = json.dumps(report)
 
 
 def _joined(parts) -> dict:
