@@ -88,38 +88,32 @@ def _protocol_members(protocol) -> tuple[str, ...]:
     return tuple(declared)
 
 
-def _problems(group: str, obj) -> list[str]:
-    """What makes ``obj`` unfit for ``group``: the members it lacks, then those that
-    should be callable and are not."""
+def _problem(group: str, obj) -> str:
+    """What makes ``obj`` unfit for ``group`` ("" where nothing does): the members it
+    lacks, then those that should be callable and are not, then malformed values."""
     missing = [a for a in _required(group) if not hasattr(obj, a)]
     if missing:
-        return [f"lacks {', '.join(missing)}"]
+        return f"lacks {', '.join(missing)}"
     if group == REGISTERS:
         from .model._protocol import RegisterModel
 
-        methods = [
-            n for n in _protocol_members(RegisterModel) if callable(getattr(RegisterModel, n, None))
-        ]
+        methods = [n for n in _required(group) if callable(getattr(RegisterModel, n, None))]
         wrong = [n for n in methods if not callable(getattr(obj, n))]
-    else:
-        wrong = [
-            n
-            for n in _CALLABLE[group]
-            if getattr(obj, n, None) is not None and not callable(getattr(obj, n))
-        ]
-        if group == TOOLS:
-            wrong += [n for n in ("write",) if getattr(obj, n) is None]
+    else:  # a tool's optional members may be None
+        wrong = [n for n in _CALLABLE[group] if not callable(getattr(obj, n, None) or len)]
+        if group == TOOLS and obj.write is None:
+            wrong.append("write")
     if wrong:
-        return [f"has {', '.join(wrong)} not callable"]
+        return f"has {', '.join(wrong)} not callable"
     if group == READERS:
         suffixes = obj.SUFFIXES
         if isinstance(suffixes, str) or not all(
             isinstance(x, str) and x.startswith(".") and x == x.lower() for x in suffixes
         ):
-            return ["has SUFFIXES that are not lower-case suffixes such as '.tif'"]
+            return "has SUFFIXES that are not lower-case suffixes such as '.tif'"
     elif not isinstance(obj.name, str):
-        return ["has a name that is not text"]
-    return []
+        return "has a name that is not text"
+    return ""
 
 
 @dataclass(frozen=True)
@@ -213,6 +207,16 @@ def _normal(name: str) -> str:
 _LEFT_OUT: dict[str, dict[str, str]] = {}
 
 
+def _conflict(group: str, name: str, obj, loaded: dict, suffixes: set) -> str:
+    """How a fit plug-in clashes with those loaded before it ("" where it does not)."""
+    if group != READERS and obj.name != name:
+        return f"calls itself {obj.name!r}"
+    if name in loaded:
+        return "the name is taken"
+    taken = suffixes & set(getattr(obj, "SUFFIXES", ())) if group == READERS else set()
+    return f"suffix '{sorted(taken)[0]}' is taken" if taken else ""
+
+
 @functools.cache
 def load(group: str) -> dict:
     """Every entry point of ``group`` loaded and checked against its interface: name →
@@ -235,17 +239,8 @@ def load(group: str) -> dict:
         except Exception as exc:  # noqa: BLE001 - another package's error, in one line
             why = f"could not be loaded: {type(exc).__name__}: {exc}"
         else:
-            problems = _problems(group, obj)
-            taken = suffixes & set(getattr(obj, "SUFFIXES", ())) if not problems else set()
-            if problems:
-                why = problems[0]
-            elif group != READERS and obj.name != ep.name:
-                why = f"calls itself {obj.name!r}"
-            elif ep.name in out:
-                why = "the name is taken"
-            elif group == READERS and taken:
-                why = f"suffix '{sorted(taken)[0]}' is taken"
-            else:
+            why = _problem(group, obj) or _conflict(group, ep.name, obj, out, suffixes)
+            if not why:
                 out[ep.name] = obj
                 suffixes |= set(getattr(obj, "SUFFIXES", ()))
                 continue

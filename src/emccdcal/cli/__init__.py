@@ -7,8 +7,8 @@ implementation inside ``run``, and only the parser of the verb being run is buil
 declared once in :mod:`emccdcal.cli._common`.
 
 Errors: an :class:`emccdcal.errors.EmccdcalError` (bad input) is printed as one line and
-exits 2, and every warning as one line, ``warning: ...``; any other exception is a bug and shows its traceback. Ctrl-C prints one line
-and exits 130.
+exits 2, and every warning as one line, ``warning: ...``; any other exception is a bug
+and shows its traceback. Ctrl-C prints one line and exits 130.
 """
 
 from __future__ import annotations
