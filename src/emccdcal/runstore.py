@@ -72,6 +72,11 @@ class RunStore:
         self._check_writable()
         finished = [n for n in RESULT_FILES if (self.out / n).exists()]
         unfinished = (self.run_dir / _FINGERPRINT).is_file()
+        if unfinished and not (resume or overwrite) and not self.tiles():
+            # a run that kept no tile (refused before its first): nothing to resume, and
+            # removed where it is ours only (remove_run); one not ours is still refused
+            remove_run(self.out)
+            unfinished = (self.run_dir / _FINGERPRINT).is_file()
         if overwrite:  # the old result stays until the new one is published
             remove_run(self.out)
         elif resume:
@@ -82,7 +87,7 @@ class RunStore:
                     "--resume" + (" and with --overwrite" if finished else "")
                 )
             self._check_same_run()
-        elif finished or (unfinished and self.tiles()):  # a run that kept no tile: anew
+        elif finished or unfinished:
             what = (
                 f"an interrupted run ({len(self.tiles())} tile(s) kept)"
                 if unfinished
