@@ -93,7 +93,7 @@ def acquire_rate(config: Path, plan: Path, out: Path, frames: int, roi=None) -> 
             gain_prop="Gain",
             light_tolerance=None,
             roi=roi,
-            progress_bars=False,
+            progress=False,
         )
         return 4 * frames / (time.perf_counter() - start)
     finally:
@@ -105,7 +105,7 @@ def _peak_rss(plan: Path, out: Path, config: Path) -> float:
         "import resource, sys; from emccdcal.acquire import record; "
         f"core = record.config_core({str(config)!r}); "
         f"record.acquire({str(plan)!r}, {str(out)!r}, core=core, gain_prop='Gain', "
-        "light_tolerance=None, roi=(192, 192, 128, 128), progress_bars=False); "
+        "light_tolerance=None, roi=(192, 192, 128, 128), progress=False); "
         "core.unloadAllDevices(); "
         "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)"
     )

@@ -50,7 +50,7 @@ import sys, time
 from emccdcal.export.movie import apply
 cal, movie, out = sys.argv[1:4]
 t0 = time.perf_counter()
-apply(cal, movie, out, setpoint=100, progress_bar=False)
+apply(cal, movie, out, setpoint=100, progress=False)
 hwm = [l for l in open("/proc/self/status") if l.startswith("VmHWM")][0].split()[1]
 print(f"{time.perf_counter() - t0:.1f} {int(hwm) / 1024:.0f}")
 """

@@ -187,7 +187,7 @@ def test_a_light_off_the_plan_stops_and_resume_completes(tmp_path):
             simulated_seed=3,
             roi=(0, 0, 16, 16),
             set_light=bright,
-            progress_bars=False,
+            progress=False,
         )
     state = Session.load(out).state
     assert "the light is" in state["status"]
@@ -198,7 +198,7 @@ def test_a_light_off_the_plan_stops_and_resume_completes(tmp_path):
     assert not (out / "1x-gain.ome.zarr").exists()
     assert load_stack(out / "1x-dark.ome.zarr").shape == (50, 16, 16)
     with pytest.raises(Exception, match="region"):  # the same camera and region only
-        acquire(plan_path, out, simulated_seed=3, resume=True, progress_bars=False)
+        acquire(plan_path, out, simulated_seed=3, resume=True, progress=False)
     # an OME-Zarr someone put where the session's next stack goes is neither cut nor added to
     import zarr
 
@@ -207,15 +207,13 @@ def test_a_light_off_the_plan_stops_and_resume_completes(tmp_path):
     group.attrs["multiscales"] = [{"version": "0.4", "datasets": [{"path": "0"}]}]
     group.create_array("0", data=theirs)
     with pytest.raises(AcquireError, match="not the stack this session recorded"):
-        acquire(
-            plan_path, out, simulated_seed=3, roi=(0, 0, 16, 16), resume=True, progress_bars=False
-        )
+        acquire(plan_path, out, simulated_seed=3, roi=(0, 0, 16, 16), resume=True, progress=False)
     assert np.array_equal(np.asarray(load_stack(out / "1x-gain.ome.zarr")[...]), theirs)
     import shutil
 
     shutil.rmtree(out / "1x-gain.ome.zarr")
     session = acquire(
-        plan_path, out, simulated_seed=3, roi=(0, 0, 16, 16), resume=True, progress_bars=False
+        plan_path, out, simulated_seed=3, roi=(0, 0, 16, 16), resume=True, progress=False
     )
     assert session.state["status"] == "complete" and session.state["runs"] == 3
     assert [s.frames for s in session.stacks] == [s.planned_frames for s in session.stacks]
@@ -226,13 +224,13 @@ def test_an_occupied_folder_and_another_plan_are_refused(tmp_path):
     (tmp_path / "used").mkdir()
     (tmp_path / "used" / "mine.txt").write_text("a user's file")
     with pytest.raises(Exception, match="not empty"):
-        acquire(plan_path, tmp_path / "used", simulated_seed=1, progress_bars=False)
+        acquire(plan_path, tmp_path / "used", simulated_seed=1, progress=False)
     assert (tmp_path / "used" / "mine.txt").read_text() == "a user's file"
     out = tmp_path / "session"
-    acquire(plan_path, out, simulated_seed=1, roi=(0, 0, 8, 8), progress_bars=False)
+    acquire(plan_path, out, simulated_seed=1, roi=(0, 0, 8, 8), progress=False)
     other = _plan_file(tmp_path, setpoints=(1, 25), name="other.toml")
     with pytest.raises(Exception, match="another plan"):
-        acquire(other, out, simulated_seed=1, roi=(0, 0, 8, 8), resume=True, progress_bars=False)
+        acquire(other, out, simulated_seed=1, roi=(0, 0, 8, 8), resume=True, progress=False)
     with pytest.raises(OptionError, match="gain-series plan"):
         acquire(_plan_is(tmp_path), tmp_path / "is", simulated_seed=1, stop_at_target=True)
 
@@ -305,7 +303,7 @@ def test_stop_at_target_ends_a_set_point_when_its_running_fit_is_precise(tmp_pat
         simulated_seed=6,
         roi=(0, 0, 16, 16),
         stop_at_target=True,
-        progress_bars=False,
+        progress=False,
     )
     light = session.stacks[-1]
     assert light.name == "25x-gain" and light.frames < 1000
@@ -387,7 +385,7 @@ def _stopped_at_the_first_light(plan_path, out, *, seed):
             simulated_seed=seed,
             roi=(0, 0, 8, 8),
             set_light=bright,
-            progress_bars=False,
+            progress=False,
         )
 
 
@@ -410,9 +408,7 @@ def test_a_session_record_never_supplies_a_path(tmp_path):
         change(state)
         record.write_text(json.dumps(state))
         with pytest.raises(Exception, match=words):
-            acquire(
-                plan_path, out, simulated_seed=3, roi=(0, 0, 8, 8), resume=True, progress_bars=False
-            )
+            acquire(plan_path, out, simulated_seed=3, roi=(0, 0, 8, 8), resume=True, progress=False)
     assert not (tmp_path / "escaped.ome.zarr").exists()
     assert not (tmp_path / "abs.ome.zarr").exists()
 
@@ -475,7 +471,7 @@ def test_saturation_is_judged_by_the_cameras_own_bit_depth(tmp_path):
             roi=(0, 0, 8, 8),
             set_light=bright,
             light_tolerance=None,
-            progress_bars=False,
+            progress=False,
         )
 
 
@@ -527,17 +523,13 @@ def test_an_empty_store_someone_else_made_is_never_removed(tmp_path):
         meta = {"zarr_format": 3, "node_type": "group", "attributes": attributes}
         (theirs / "zarr.json").write_text(_json.dumps(meta))
         with pytest.raises(AcquireError, match="not the stack this session recorded"):
-            acquire(
-                plan_path, out, simulated_seed=2, roi=(0, 0, 8, 8), resume=True, progress_bars=False
-            )
+            acquire(plan_path, out, simulated_seed=2, roi=(0, 0, 8, 8), resume=True, progress=False)
         assert _json.loads((theirs / "zarr.json").read_text()) == meta
     # a Zarr v2 group (acquire writes v3 only): never this session's
     (theirs / "zarr.json").unlink()
     (theirs / ".zgroup").write_text('{"zarr_format": 2}')
     with pytest.raises(AcquireError, match="not the stack this session recorded"):
-        acquire(
-            plan_path, out, simulated_seed=2, roi=(0, 0, 8, 8), resume=True, progress_bars=False
-        )
+        acquire(plan_path, out, simulated_seed=2, roi=(0, 0, 8, 8), resume=True, progress=False)
     assert (theirs / ".zgroup").read_text() == '{"zarr_format": 2}'
 
 

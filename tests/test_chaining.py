@@ -206,7 +206,7 @@ found = {}
 for name, result in results.items():
     emccdcal.export_calibration(result, "picasso", f"picasso-{name}", setpoint=25)
     emccdcal.apply_calibration(
-        result, "gs/gain-GS/25x-gain.tif", f"movie-{name}.tif", setpoint=25, progress_bar=False
+        result, "gs/gain-GS/25x-gain.tif", f"movie-{name}.tif", setpoint=25, progress=False
     )
     curve = emccdcal.fit_gain_curve(result)
     emccdcal.write_report(result, f"report-{name}.html")
@@ -215,6 +215,21 @@ for name, result in results.items():
         "movie": tifffile.imread(f"movie-{name}.tif").tolist(),
         "curve": curve.predict([50.0])["gain"].tolist(),
         "report": os.path.getsize(f"report-{name}.html") > 10000,
+    }
+# phi chained as users hold it: the Dataset, the folder it was written to, a Calibration
+adu = emccdcal.simulate_intensity_series("adu", rows=6, cols=6, frames=500, seed=6, progress=False)
+phi = emccdcal.calibrate(adu.manifest, "is-adu", out="adu-out")
+for name, given in {
+    "folder": "adu-out",
+    "written": phi,
+    "memory": emccdcal.calibrate(adu.manifest, "is-adu"),
+    "calibration": emccdcal.load_calibration(phi),
+}.items():
+    chained = emccdcal.calibrate(sim.manifest, "gs-no1x", e_per_adu=given)
+    found.setdefault(name, {})["chained"] = {
+        "em_gain": chained.em_gain.values.tolist(),
+        "em_gain_se": chained.em_gain_se.values.tolist(),
+        "source": chained.attrs["e_per_adu_source"],
     }
 print(json.dumps(found))
 """
@@ -235,12 +250,19 @@ def test_the_result_calibrate_returns_goes_into_every_function_that_takes_one(tm
     )
     assert done.returncode == 0, done.stderr[-3000:]
     found = json.loads(done.stdout.strip().splitlines()[-1])
+    chained = {k: found[k].pop("chained") for k in ("folder", "written", "memory", "calibration")}
     folder, written, memory = found["folder"], found["written"], found["memory"]
     assert written == folder  # byte for byte: the file, the movie, the curve, the report
-    assert all(found[k]["report"] for k in found)
+    assert all(found[k]["report"] for k in ("folder", "written", "memory"))
 
     def numbers(text):  # the Picasso file without its provenance comments
         return [line for line in text.splitlines() if not line.startswith("#")]
 
     assert numbers(memory["picasso"]) == numbers(folder["picasso"])
     assert memory["movie"] == folder["movie"] and memory["curve"] == folder["curve"]
+    # calibrate(e_per_adu=...) takes φ and its error from each as from the folder
+    for k, c in chained.items():
+        assert c["em_gain"] == chained["folder"]["em_gain"], k
+        assert c["em_gain_se"] == chained["folder"]["em_gain_se"], k
+    assert chained["written"]["source"] == "result adu-out/calibration.nc"  # the file it knows
+    assert chained["memory"]["source"] == "given"

@@ -306,7 +306,7 @@ def test_apply_recovers_the_photoelectrons(tmp_path):
     E = np.full(SHAPE, 30.0)
     E[2:5, 3:7] = 200.0
     _movie(tmp_path / "m.tif", E, GAINS[100.0], 400, seed=3)
-    out = apply(res, tmp_path / "m.tif", tmp_path / "e.tif", setpoint=100, progress_bar=False)
+    out = apply(res, tmp_path / "m.tif", tmp_path / "e.tif", setpoint=100, progress=False)
     with tifffile.TiffFile(out) as tif:
         e = tif.asarray()
         meta = json.loads(tif.pages[0].description)
@@ -318,7 +318,7 @@ def test_apply_recovers_the_photoelectrons(tmp_path):
         v = e[:, mask].mean(axis=1)
         assert abs(v.mean() - E[mask][0]) < 3 * v.std(ddof=1) / math.sqrt(v.size)
     zarr = pytest.importorskip("zarr")
-    z = apply(res, tmp_path / "m.tif", tmp_path / "e.zarr", setpoint=100, progress_bar=False)
+    z = apply(res, tmp_path / "m.tif", tmp_path / "e.zarr", setpoint=100, progress=False)
     za = zarr.open_array(str(z), mode="r")
     assert np.array_equal(za[:], e) and za.attrs["units"].startswith("photoelectrons")
 
@@ -334,7 +334,7 @@ def test_apply_photon_counting_and_errors(tmp_path):
             tmp_path / "c.tif",
             setpoint=300,
             photon_counting=True,
-            progress_bar=False,
+            progress=False,
         )
     with tifffile.TiffFile(out) as tif:
         c = tif.asarray()
@@ -364,7 +364,7 @@ def test_apply_photon_counting_and_errors(tmp_path):
     part = stack[:50, 2:6, 3:9]
     write_spe(tmp_path / "m.spe", part, em_gain=300, roi=(23, 12))  # x = col, y = row
     e = tifffile.imread(
-        apply(tmp_path / "placed", tmp_path / "m.spe", tmp_path / "p.tif", progress_bar=False)
+        apply(tmp_path / "placed", tmp_path / "m.spe", tmp_path / "p.tif", progress=False)
     )
     assert np.allclose(e, (part - OFFSET) * PHI / GAINS[300.0], rtol=1e-6)
     with pytest.raises(ValueError, match=r"set-point 100 given, but the file records 300"):
@@ -561,8 +561,8 @@ def test_apply_writes_an_image_series_even_three_pixels_wide_and_photons_with_qe
     tifffile.imwrite(narrow, stack, photometric="minisblack")
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # tifffile's own warnings never reach the user
-        out = apply(res, narrow, tmp_path / "e.tif", setpoint=100, progress_bar=False)
-        photons = apply(res, narrow, tmp_path / "p.tif", setpoint=100, progress_bar=False, qe=0.8)
+        out = apply(res, narrow, tmp_path / "e.tif", setpoint=100, progress=False)
+        photons = apply(res, narrow, tmp_path / "p.tif", setpoint=100, progress=False, qe=0.8)
     with tifffile.TiffFile(out) as tif:
         series = tif.series[0]
         assert series.shape == (50, 3, 3) and series.axes[-2:] == "YX"
@@ -595,14 +595,14 @@ def test_apply_writes_an_image_series_even_three_pixels_wide_and_photons_with_qe
     np.testing.assert_array_equal(tifffile.imread(tmp_path / "c.tif"), p)
     for bad in (0.0, 1.5):
         with pytest.raises(ValueError, match="quantum efficiency"):
-            apply(res, narrow, tmp_path / "x.tif", setpoint=100, progress_bar=False, qe=bad)
+            apply(res, narrow, tmp_path / "x.tif", setpoint=100, progress=False, qe=bad)
     with pytest.raises(ValueError, match="photon counting"):
         apply(
             res,
             narrow,
             tmp_path / "x.tif",
             setpoint=100,
-            progress_bar=False,
+            progress=False,
             qe=0.8,
             photon_counting=True,
         )

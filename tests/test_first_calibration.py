@@ -111,3 +111,59 @@ def test_from_camera_folders_to_photons_in_picasso(real_data, tmp_path, capsys):
     assert photons.shape == raw.shape  # an image series, not RGB
     # (S - S0)·phi/g/QE; the scene's ~371 e- per pixel and frame, /0.9
     assert np.median(photons) == pytest.approx(np.median(ds.photoelectrons.values) / 0.9, rel=0.02)
+
+
+NOTEBOOK = """
+import collections, json, sys, warnings
+import emccdcal
+
+calls = []
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    for call in (
+        lambda: emccdcal.calibrate("ADU/manifest.toml", "is-adu", progress=False),
+        lambda: emccdcal.calibrate("gain-GS/manifest.toml", e_per_adu=phi, progress=False),
+        lambda: emccdcal.calibrate(
+            "gain-GS/manifest.toml", "gs-hierarchical", e_per_adu=phi, progress=False
+        ),
+    ):
+        before = len(caught)
+        ds = call()
+        if ds.attrs["method"] == "is-adu":
+            phi = ds
+        calls.append({
+            "kinds": [w.category.__name__ for w in caught[before:]],
+            "all_ours": all(issubclass(w.category, emccdcal.EmccdcalWarning)
+                            for w in caught[before:]),
+            "kept": len(ds.attrs["warnings"]),
+            "verdict": ds.attrs["verdict"],
+        })
+warnings.simplefilter("ignore", emccdcal.EmccdcalWarning)
+emccdcal.calibrate("gain-GS/manifest.toml", e_per_adu=phi, progress=False)
+print(json.dumps(calls))
+"""
+
+
+def test_a_notebook_sees_one_warning_of_each_kind_and_can_silence_them_all(real_data, tmp_path):
+    """A fresh interpreter calibrates the real series as a notebook would: each call
+    issues at most one warning of each kind (every one in full in the result), all of
+    them emccdcal's; one filter on ``EmccdcalWarning`` silences the package."""
+    import json
+    import subprocess
+    import sys
+
+    for name in ("ADU", "gain-GS"):
+        shutil.copytree(real_data / name, tmp_path / name)
+        assert cli.main(["scan", str(tmp_path / name), "-q"]) == 0
+    done = subprocess.run(
+        [sys.executable, "-c", NOTEBOOK], cwd=tmp_path, capture_output=True, text=True, timeout=600
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    calls = json.loads(done.stdout.strip().splitlines()[-1])
+    for call in calls:
+        assert call["all_ours"] and call["verdict"] == "stands", call
+        assert len(call["kinds"]) == len(set(call["kinds"])), call  # one per kind
+        assert call["kept"] >= len(call["kinds"])
+    assert sum(c["kept"] > len(c["kinds"]) for c in calls), calls  # some were merged
+    # the last call, silenced by the one filter, printed no warning (the others recorded)
+    assert "Warning: " not in done.stderr, done.stderr

@@ -46,21 +46,36 @@ def progress(
     unit: str = "it",
     total: int | None = None,
 ):
-    """A progress bar on stderr (tqdm), or a silent stand-in when ``enabled`` is false.
+    """A progress bar, or a silent stand-in when ``enabled`` is false.
 
-    Use it as an iterable wrapper or, with ``iterable=None``, as a bar to ``update(n)``
-    and ``close()`` (also a context manager). The bar shows a rate and an ETA and is
-    removed when done. ``enabled`` may also be a callable ``enabled(done, total)``, told
-    of every update instead of a bar (a graphical front's progress bar; it may raise
+    The bar is tqdm's: a widget in Jupyter (``tqdm.auto``), a line on a terminal's
+    stderr, nothing where stderr is not a terminal (a pipe, a log file). Use it as an
+    iterable wrapper or, with ``iterable=None``, as a bar to ``update(n)`` and
+    ``close()`` (also a context manager). The bar shows a rate and an ETA and is removed
+    when done. ``enabled`` may also be a callable ``enabled(done, total)``, told of every
+    update instead of a bar (a graphical front's progress bar; it may raise
     :class:`emccdcal.errors.Cancelled` to stop the run).
     """
     if callable(enabled):
         return _Callback(iterable, enabled, total)
     if not enabled:
         return _Silent(iterable)
-    from tqdm import tqdm
+    from tqdm.auto import tqdm
 
-    return tqdm(iterable, desc=desc, unit=unit, total=total, file=sys.stderr, leave=False)
+    return tqdm(
+        iterable, desc=desc, unit=unit, total=total, file=sys.stderr, leave=False, disable=None
+    )
+
+
+def emcee_progress(enabled) -> dict:
+    """emcee's ``run_mcmc`` arguments for the bar :func:`progress` would show."""
+    if not enabled:
+        return {"progress": False}
+    from tqdm.auto import tqdm
+    from tqdm.notebook import tqdm_notebook
+
+    kind = "notebook" if issubclass(tqdm, tqdm_notebook) else True
+    return {"progress": kind, "progress_kwargs": {"disable": None, "leave": False}}
 
 
 class _Silent:

@@ -634,7 +634,7 @@ def calibrate(
     tile_pixels=DEFAULT_TILE_PIXELS,
     scheduler=None,
     options=None,
-    progress=False,
+    progress=True,
     workers=None,
     checks=True,
     map_errors=True,
@@ -654,12 +654,13 @@ def calibrate(
     method : str
         One of :data:`METHODS`: ``mv-adu``, ``mv-gain``, ``is-adu``, ``is-gain``, ``gs``,
         ``gs-no1x``, ``gs-hierarchical``.
-    e_per_adu : float, ndarray (rows, cols), str or Path, optional
+    e_per_adu : float, ndarray (rows, cols), str, Path, xarray.Dataset or Calibration, optional
         φ (e⁻/ADU) overriding the manifest's, for the methods that hold it fixed (an
-        error for ``is-adu`` and ``mv-adu``, which estimate it): a number, a map, or the
-        path of an ``is-adu`` or ``mv-adu`` result (``calibration.nc`` or its directory),
-        whose φ and standard error per pixel are then used: the standard errors of E and
-        g include φ's (:func:`emccdcal.fit.engine.e_per_adu_sensitivity`).
+        error for ``is-adu`` and ``mv-adu``, which estimate it): a number, a map, or an
+        ``is-adu`` or ``mv-adu`` result (what ``calibrate`` returned, its
+        ``calibration.nc`` or directory, or a :class:`emccdcal.Calibration`), whose φ and
+        standard error per pixel are then used: the standard errors of E and g include
+        φ's (the delta method through the likelihood; :doc:`/results`).
     out : str or Path, optional
         Directory to write ``calibration.nc`` and ``summary.json`` into; finished tiles
         are kept there while the run goes on (:mod:`emccdcal.runstore`).
@@ -686,7 +687,8 @@ def calibrate(
         authors' 25 e⁻ by default, for an illumination of about 370 e⁻: scale them in
         proportion to yours), and ``centre`` (``"gs"`` or the authors' ``"setpoint"``).
     progress : bool or callable
-        Show progress bars on stderr; or a callable ``progress(done, total)`` told of the
+        A progress bar (default): in a notebook or on a terminal, none in a pipe; or a
+        callable ``progress(done, total)`` told of the
         pixels done instead (a graphical front's bar), which may raise
         :class:`emccdcal.errors.Cancelled` to stop the run between blocks of pixels.
     workers : int, optional
@@ -1038,6 +1040,7 @@ def _run_calibration(
     if checks:
         _add_findings(ds, manifest, used, parts, tiles)
     del parts
+    ds.attrs.setdefault("verdict", "stands")  # the methods without a goodness of fit
     _require_convergence(ds, method, store)
     _warn_gain_order(ds)
     return ds
@@ -1047,10 +1050,17 @@ def _add_findings(ds, manifest, used, parts, tiles) -> None:
     """The data-quality checks' findings, warned and in ``ds.attrs["quality"]``: they
     quote the light this fit found, not a rough guess of it."""
     report, messages = _quality(manifest, used, parts, tiles, _fitted_light(ds, used))
-    for w in messages:
-        warnings.warn(w, stacklevel=3, category=DataQualityWarning)
+    for w in messages:  # a finding knows its kind (drift, read-noise growth ...)
+        warnings.warn(w, stacklevel=3, category=getattr(w, "category", DataQualityWarning))
     if report is not None:
         ds.attrs["quality"] = json.dumps(report)
+    # a finding after which the result does not stand makes the verdict doubtful: its
+    # subject and what was found (the warning says what to do)
+    doubts = [": ".join(w.split(": ")[:2]) for w in messages if getattr(w, "doubtful", False)]
+    if doubts:
+        before = str(ds.attrs.get("verdict", "stands")).removeprefix("doubtful: ")
+        found = "; ".join(doubts) + " (its warning says what to do)"
+        ds.attrs["verdict"] = "doubtful: " + found + ("" if before == "stands" else "; " + before)
 
 
 def _joined(parts) -> dict:
@@ -1260,9 +1270,10 @@ def check_e_per_adu(phi_map, phi_se, source, used, method) -> None:
 def _e_per_adu_inputs(manifest, e_per_adu, accept_mismatch=()):
     """φ (e⁻/ADU) map, its standard-error map (or None) and where they came from (or None).
 
-    ``e_per_adu`` (else the manifest's) is a number, a (rows, cols) map, or the path of an
-    ``is-adu`` or ``mv-adu`` result (its ``calibration.nc`` or directory): that result's
-    φ and standard error per pixel, NaN where it did not converge.
+    ``e_per_adu`` (else the manifest's) is a number, a (rows, cols) map, or an ``is-adu``
+    or ``mv-adu`` result: its path (``calibration.nc`` or directory), the Dataset
+    :func:`calibrate` returned, or a :class:`emccdcal.Calibration`; of a result, φ and its
+    standard error per pixel, NaN where it did not converge.
     """
     shape = manifest.shape
     if e_per_adu is None:
@@ -1270,6 +1281,50 @@ def _e_per_adu_inputs(manifest, e_per_adu, accept_mismatch=()):
         if source is None or source.kind != "result":
             return e_per_adu_map(manifest.e_per_adu, shape), None, source
         e_per_adu = source.path
+    chained = _phi_result(e_per_adu)
+    if chained is None:
+        return e_per_adu_map(e_per_adu, shape), None, Source("given")
+    label, method, phi, se, ok, identity_of, origin, source = chained
+    if not any(m in ("is-adu", "mv-adu") for m in method.split("+")):
+        raise OptionError(
+            f"e_per_adu from {label}: a {method} result does not estimate e_per_adu; "
+            "chain an is-adu or mv-adu result"
+        )
+    identity.check(
+        identity_of,
+        {manifest.path: manifest.identity()},
+        label=f"e_per_adu from {label}",
+        accept=accept_mismatch,
+        what="frames of the manifest",
+    )
+    crop = _crop_to(manifest, label, phi.shape, origin)
+    phi, se, ok = phi[crop], se[crop], ok[crop]
+    ok &= np.isfinite(phi) & (phi > 0)
+    if not ok.any():
+        raise OptionError(f"e_per_adu from {label}: no pixel of that result converged")
+    return np.where(ok, phi, np.nan), np.where(ok, se, np.nan), source
+
+
+def _phi_result(e_per_adu):
+    """Of a chained φ (a result's path, a result Dataset or a Calibration): a label for
+    messages, its method, the φ, SE and converged maps, its camera identity, its origin on
+    the sensor and its :class:`Source`; None for a number or a map."""
+    import xarray as xr
+
+    if isinstance(e_per_adu, result.Calibration):
+        cal = e_per_adu
+        se = cal.e_per_adu_se if cal.e_per_adu_se is not None else np.full(cal.shape, np.nan)
+        source = Source("result", Path(cal.files[0])) if cal.files else Source("given")
+        return (
+            f"'{cal.label}'",
+            cal.method,
+            np.asarray(cal.e_per_adu, float),
+            np.asarray(se, float),
+            np.isfinite(cal.e_per_adu),
+            cal.identity(),
+            cal.origin,
+            source,
+        )
     if isinstance(e_per_adu, (str, Path)):
         from .data.manifest import is_result_path
 
@@ -1279,41 +1334,36 @@ def _e_per_adu_inputs(manifest, e_per_adu, accept_mismatch=()):
                 f"e_per_adu '{path}' is not a calibration result (a .nc file or "
                 "a result directory); give a number, a map or a result"
             )
-        ds = result.load(path)
-        if ds.attrs.get("method") not in ("is-adu", "mv-adu"):
-            raise OptionError(
-                f"e_per_adu from '{path}': a {ds.attrs.get('method')} result "
-                "does not estimate e_per_adu; chain an is-adu or mv-adu result"
-            )
-        phi = np.asarray(ds.e_per_adu.values, dtype=float)
-        se = np.asarray(ds.e_per_adu_se.values, dtype=float)
-        ok = np.asarray(ds.converged.values, dtype=bool)
-        binning = ds.attrs.get("binning")
-        identity.check(
-            {**result.camera_of(ds, path), **({} if binning is None else {"binning": binning})},
-            {manifest.path: manifest.identity()},
-            label=f"e_per_adu from '{path}'",
-            accept=accept_mismatch,
-            what="frames of the manifest",
-        )
-        crop = _crop_to(manifest, path, phi.shape, ds.attrs.get("sensor_origin"))
-        phi, se, ok = phi[crop], se[crop], ok[crop]
-        ok &= np.isfinite(phi) & (phi > 0)
-        if not ok.any():
-            raise OptionError(f"e_per_adu from '{path}': no pixel of that result converged")
-        phi, se = np.where(ok, phi, np.nan), np.where(ok, se, np.nan)
-        return phi, se, Source("result", path)
-    return e_per_adu_map(e_per_adu, shape), None, Source("given")
+        ds, label, source = result.load(path), f"'{path}'", Source("result", path)
+    elif isinstance(e_per_adu, xr.Dataset):
+        ds = result._checked_in_memory(e_per_adu)
+        saved = e_per_adu.encoding.get("source")  # a result read from or written to a file
+        label = f"'{saved}'" if saved else "the result given"
+        source = Source("result", Path(saved)) if saved else Source("given")
+    else:
+        return None
+    binning = ds.attrs.get("binning")
+    camera = result.camera_of(ds, label)
+    return (
+        label,
+        str(ds.attrs.get("method")),
+        np.asarray(ds.e_per_adu.values, dtype=float),
+        np.asarray(ds.e_per_adu_se.values, dtype=float),
+        np.asarray(ds.converged.values, dtype=bool),
+        {**camera, **({} if binning is None else {"binning": binning})},
+        ds.attrs.get("sensor_origin"),
+        source,
+    )
 
 
-def _crop_to(manifest, path, shape, origin):
+def _crop_to(manifest, label, shape, origin):
     """The part of a result of ``shape`` at sensor ``origin`` that the manifest's pixels
     cover (slices), or an error saying which rows or columns are missing."""
     shape, want = tuple(shape), tuple(manifest.shape)
     if origin is None or manifest.origin is None:
         if shape != want:
             raise OptionError(
-                f"e_per_adu from '{path}': its pixels {shape} are not the manifest's {want}, "
+                f"e_per_adu from {label}: its pixels {shape} are not the manifest's {want}, "
                 "and where they lie on the sensor is not known (give 'origin' in the "
                 "manifests, or files that record their region)"
             )
@@ -1327,7 +1377,7 @@ def _crop_to(manifest, path, shape, origin):
             f"{what} {v[0]}–{v[-1]}" for what, v in (("rows", rows), ("cols", cols)) if v
         )
         raise OptionError(
-            f"e_per_adu from '{path}' covers sensor rows {r0}–{r0 + shape[0] - 1}, cols "
+            f"e_per_adu from {label} covers sensor rows {r0}–{r0 + shape[0] - 1}, cols "
             f"{c0}–{c0 + shape[1] - 1}; the manifest needs {manifest.rows_cols}: {missing} "
             "missing"
         )
@@ -1342,7 +1392,7 @@ def _select_mv(method, setpoints, has_phi):
         return np.arange(sp.size)
     if not has_phi:
         raise MethodError(
-            "mv-gain needs e_per_adu (e-/ADU): set it in the manifest or pass --e-per-adu"
+            "mv-gain needs e_per_adu (e-/ADU): set it in the manifest or give it (e_per_adu=, --e-per-adu)"
         )
     return np.argsort(sp, kind="stable")
 

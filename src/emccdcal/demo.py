@@ -43,7 +43,7 @@ def run_demo(
     frames=5000,
     multiplication=defaults.DEFAULT_EM_MODEL,
     seed=DEMO_SEED,
-    progress=False,
+    progress=True,
     report=False,
     out=None,
     overwrite=False,
@@ -66,7 +66,7 @@ def run_demo(
     seed : int, optional
         Seed of the simulation.
     progress : bool, optional
-        Progress bars on stderr.
+        A progress bar (default): in a notebook or on a terminal; none in a pipe.
     report : bool, optional
         Also write ``DIR/report.html`` of both results (default False here; the
         ``emccdcal demo`` command writes it unless ``--no-report``).

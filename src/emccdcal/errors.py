@@ -29,10 +29,13 @@ __all__ = [
     "InputWarning",
     "ReadNoiseGrowthWarning",
     "DataQualityWarning",
+    "DriftWarning",
     "FitWarning",
     "ExportWarning",
     "BeadWarning",
     "PluginWarning",
+    "Finding",
+    "issue_once_per_kind",
 ]
 
 
@@ -92,6 +95,11 @@ class DataQualityWarning(EmccdcalWarning):
     that could not be checked against the data."""
 
 
+class DriftWarning(DataQualityWarning):
+    """The frame mean of an acquisition drifts: the illumination or the EM gain was not
+    steady while it was recorded."""
+
+
 class FitWarning(EmccdcalWarning):
     """Of the fit: pixels that did not converge, acquisitions the model misfits, gains
     that do not rise with the set-point."""
@@ -109,6 +117,49 @@ class BeadWarning(EmccdcalWarning):
 class PluginWarning(EmccdcalWarning):
     """Another package's plug-in was left out: it could not be loaded, lacks a member of
     its interface, or takes a name already taken (:mod:`emccdcal.plugins`)."""
+
+
+class Finding(str):
+    """A message, with the warning class it is issued as (``category``) and whether it
+    makes the result doubtful (``doubtful``): a check's findings are text (kept in JSON
+    reports) that also know their kind."""
+
+    category: type = EmccdcalWarning
+    doubtful: bool = False
+
+    def __new__(cls, text: str, category: type = EmccdcalWarning, *, doubtful: bool = False):
+        finding = super().__new__(cls, text)
+        finding.category, finding.doubtful = category, doubtful
+        return finding
+
+
+def issue_once_per_kind(caught) -> None:
+    """Issue again the warnings caught during one call, at most one per class.
+
+    The first message of each class is issued as it is; where there were more, it names
+    what else was found of that kind, each of which is in full in the result's
+    ``warnings`` attribute. The warnings are issued from "emccdcal" rather than the
+    caller's line, so that neither a terminal nor a notebook echoes that line.
+    """
+    import warnings
+
+    kinds: dict = {}
+    for w in caught:
+        kinds.setdefault(w.category, dict.fromkeys([]))[str(w.message)] = None
+    for category, messages in kinds.items():
+        first, *more = messages
+        if more:
+            # each message names its subject before its first ": " (an acquisition, a file)
+            subjects = [m.split(": ", 1)[0] for m in more]
+            named = (
+                all(0 < len(s) <= 80 for s in subjects) and first.split(": ", 1)[0] not in subjects
+            )
+            first += (
+                f" (the same kind of finding also for {', '.join(subjects)}"
+                if named
+                else f" (and {len(more)} more of this kind"
+            ) + ": each in full in the result's 'warnings' attribute)"
+        warnings.warn_explicit(first, category, "emccdcal", 0, module="emccdcal")
 
 
 # The words of the interface that shows a message: the command line's options by default,

@@ -53,6 +53,7 @@ from . import defaults, identity
 from ._output import file_sha256, read_netcdf, write_netcdf
 from ._util import finite_or_none, format_setpoint, one_line  # noqa: F401 - re-exported
 from .errors import FitWarning, InputError, InputWarning, MissingFileError, OptionError
+from .errors import issue_once_per_kind
 
 __all__ = [
     "UNITS",
@@ -552,6 +553,23 @@ def summarize(ds: xr.Dataset, seconds: float | None = None) -> dict:
     }
 
 
+def verdict_line(ds: xr.Dataset) -> str:
+    """The one line that says whether a calibration stands, or why it is doubtful and
+    what to check (``ds.attrs["verdict"]``, with its number of warnings).
+
+    >>> import xarray as xr
+    >>> verdict_line(xr.Dataset(attrs={"verdict": "stands", "warnings": ["a", "b"]}))
+    'verdict: the calibration stands; 2 warnings, each saying what it changes'
+    """
+    verdict = str(ds.attrs.get("verdict", "stands"))
+    n = len(np.atleast_1d(ds.attrs.get("warnings", [])))
+    if verdict != "stands":
+        return f"verdict: the calibration is {verdict}"
+    return "verdict: the calibration stands" + (
+        f"; {n} warning{'s' * (n != 1)}, each saying what it changes" if n else ""
+    )
+
+
 # --------------------------------------------------------------------------------------
 # save / load
 # --------------------------------------------------------------------------------------
@@ -559,15 +577,15 @@ def run_recorded(build, out=None) -> xr.Dataset:
     """Build a result, recording its warnings and wall time in it; save it if asked.
 
     Every warning issued while ``build()`` runs goes, each once, into
-    ``ds.attrs["warnings"]`` and is issued again to the caller; the wall time (s) goes
-    into ``ds.attrs["seconds"]``. With ``out`` the result is written by :func:`save`.
+    ``ds.attrs["warnings"]`` and is issued again to the caller, at most one of each kind
+    (:func:`emccdcal.errors.issue_once_per_kind`); the wall time (s) goes into
+    ``ds.attrs["seconds"]``. With ``out`` the result is written by :func:`save`.
     """
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         ds = build()
-    for message, category in dict.fromkeys((str(w.message), w.category) for w in caught):
-        warnings.warn(message, category, stacklevel=3)
+    issue_once_per_kind(caught)
     ds.attrs["warnings"] = list(dict.fromkeys(str(w.message) for w in caught))
     seconds = time.perf_counter() - t0
     ds.attrs["seconds"] = seconds

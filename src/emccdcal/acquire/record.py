@@ -44,7 +44,8 @@ import numpy as np
 
 from .. import _files
 from .._output import Output, OutputError, atomic_write, atomic_write_text, remove_leftovers
-from .._util import check_number, one_line, progress
+from .._util import check_number, one_line
+from .._util import progress as progress_bar
 from ..data import zarrs
 from ..errors import InputError, OptionError
 from .mm import (
@@ -418,7 +419,7 @@ def acquire(
     stop_at_target: bool = False,
     resume: bool = False,
     set_light=None,
-    progress_bars: bool = True,
+    progress: bool = True,
 ) -> Session:
     """Record ``plan`` into the session folder ``out``.
 
@@ -453,8 +454,8 @@ def acquire(
         before a light stack whose light differs from the last one set: needed for an
         intensity series' levels (a gain series' one light is set by hand before the
         recording, and checked). The simulated camera's lamp follows the plan by default.
-    progress_bars : bool
-        Show a progress bar.
+    progress : bool
+        A progress bar (default): in a notebook or on a terminal; none in a pipe.
 
     Returns
     -------
@@ -503,7 +504,7 @@ def acquire(
                 set_light,
                 light_tolerance,
                 stop_at_target,
-                progress_bars,
+                progress,
             )
         except BaseException:
             if not resume and not any(s.frames or (out / s.file).exists() for s in session.stacks):
@@ -541,7 +542,7 @@ def _record(
     set_light,
     light_tolerance,
     stop_at_target,
-    progress_bars,
+    progress,
 ) -> None:
     """Record a session's stacks (:func:`acquire`, its parameters)."""
     run = session.state["runs"] - 1
@@ -573,7 +574,7 @@ def _record(
                 light_tolerance,
                 stop_at_target,
                 set_light,
-                progress_bars,
+                progress,
             )
             _run(ctx)
     finally:
@@ -631,7 +632,7 @@ def _open_session(out, plan, text, resume, core, camera, roi, seed) -> Session:
 def _run(ctx: _Context) -> None:
     todo = [s for s in ctx.session.stacks if not s.done]
     total = sum(s.planned_frames - s.frames for s in todo)
-    bar = progress(enabled=ctx.progress, desc="acquire", unit="frame", total=total)
+    bar = progress_bar(enabled=ctx.progress, desc="acquire", unit="frame", total=total)
     error = None
     try:
         for stack in todo:

@@ -44,7 +44,7 @@ def cots_calibrate(
     width=DEFAULT_WIDTH,
     em_model=None,
     stages=None,
-    progress=False,
+    progress=True,
     out=None,
 ) -> xarray.Dataset:
     """COTS on every bead of a bead manifest, as a calibration result.
@@ -74,7 +74,7 @@ def cots_calibrate(
         The cascade's stages: default the manifest's ``register_stages``, else the camera
         model's where known, else 536.
     progress : bool
-        A progress bar on stderr.
+        A progress bar (default): in a notebook or on a terminal; none in a pipe.
     out : str or Path, optional
         Directory to write ``calibration.nc`` and ``summary.json`` into.
 

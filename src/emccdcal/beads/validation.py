@@ -434,7 +434,7 @@ def validate(
     min_separation=None,
     snr=8.0,
     detect_setpoint=None,
-    progress=False,
+    progress=True,
     bleaching="correct",
     psf="gaussian",
     blinking="model",
@@ -465,7 +465,7 @@ def validate(
     detect_setpoint : float, optional
         Set-point whose mean image the beads are found on (default the highest).
     progress : bool
-        A progress bar on stderr.
+        A progress bar (default): in a notebook or on a terminal; none in a pipe.
     bleaching : {"correct", "warn"}
         What to do where the beads' intensity trends within the acquisitions
         (:func:`intensity_trend`: bleaching, or a drifting illumination): undo it (each
@@ -567,7 +567,7 @@ def fit_validation(
     min_separation=None,
     snr=8.0,
     detect_setpoint=None,
-    progress=False,
+    progress=True,
     psf="gaussian",
     psf_split="alternate",
     accept_mismatch=(),

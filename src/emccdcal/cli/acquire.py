@@ -159,7 +159,7 @@ def run(args) -> int:
             stop_at_target=args.stop_at_target,
             resume=args.resume,
             set_light=None if args.simulated or plan.method == "gs" else _ask_light,
-            progress_bars=not args.quiet,
+            progress=not args.quiet,
         )
     except record.Interrupted as exc:
         raise KeyboardInterrupt(str(exc)) from None

@@ -73,7 +73,7 @@ def run(args) -> int:
             setpoint=args.setpoint,
             photon_counting=args.photon_counting,
             threshold=args.threshold,
-            progress_bar=not args.quiet,
+            progress=not args.quiet,
             overwrite=args.overwrite,
             accept_mismatch=args.accept_mismatch,
             qe=args.qe,

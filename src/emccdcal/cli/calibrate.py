@@ -173,8 +173,11 @@ def run(args) -> int:
         if args.report:
             print(f"wrote {args.out / REPORT_FILE}")
     _common.print_warnings(caught)
-    verdict = str(ds.attrs.get("verdict", "stands"))
-    if verdict != "stands":  # a finding, after the numbers it is about
-        print(f"emccdcal calibrate: the calibration is {comment(verdict)}", file=sys.stderr)
+    # the last line: the verdict, after the numbers and findings it is about
+    line = comment(result.verdict_line(ds))
+    if ds.attrs.get("verdict", "stands") != "stands":
+        print(f"emccdcal calibrate: {line.removeprefix('verdict: ')}", file=sys.stderr)
         return 1
+    if not args.quiet:
+        print(line)
     return 0

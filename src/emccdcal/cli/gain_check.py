@@ -165,7 +165,7 @@ def run(args) -> int:
                 adc_max=2 ** max(bits) - 1 if bits else None,
                 region=args.region,
                 histogram=args.out is not None and not args.no_figures,
-                progress_bars=not (args.quiet or args.json),
+                progress=not (args.quiet or args.json),
                 device=args.device,
             )
         except InputError as exc:  # the data as a whole: named by their files

@@ -38,7 +38,13 @@ import warnings
 import numpy as np
 
 from .. import defaults
-from ..errors import InputError
+from ..errors import (
+    DataQualityWarning,
+    DriftWarning,
+    Finding,
+    InputError,
+    ReadNoiseGrowthWarning,
+)
 from .dark import as_stack, check_read_noise_growth, maps_from_dark
 
 __all__ = [
@@ -914,6 +920,11 @@ def _leave_out(a: dict) -> str:
     return f"delete its [[acquisition]] table ({which}) from the manifest and calibrate again"
 
 
+def _doubtful(text: str) -> Finding:
+    """A finding after which the result does not stand as it is (the verdict says so)."""
+    return Finding(text, DataQualityWarning, doubtful=True)
+
+
 def _drift_effect(a: dict) -> str:
     """What a drift of one acquisition does to the result, whether it stands, and the fix."""
     d = a["drift"]
@@ -998,29 +1009,36 @@ def _findings(a: dict) -> list[str]:
         )
     elif d["drifts"]:
         out.append(
-            f"{name}: the frame mean drifts by {d['drift_pct']:+.2f} ± "
-            f"{d['drift_pct_se']:.2f} % over the acquisition (p = {d['pvalue']:.1g}): "
-            f"the illumination or the EM gain is not steady. {_drift_effect(a)}."
+            Finding(
+                f"{name}: the frame mean drifts by {d['drift_pct']:+.2f} ± "
+                f"{d['drift_pct_se']:.2f} % over the acquisition (p = {d['pvalue']:.1g}): "
+                f"the illumination or the EM gain is not steady. {_drift_effect(a)}.",
+                DriftWarning,
+            )
         )
     off = a.get("offset")
     if off and off["above_data"]:
         out.append(
-            f"{name}: the offset map lies above the mean count of {off['n_below_offset']} of "
-            f"{off['n_pixels']} pixels: it cannot be this data's offset (other units, another "
-            "camera mode or read-out speed?), and nothing fitted from it stands: record darks "
-            "in the read-out mode of these frames, give them as the acquisition's dark (or "
-            "'emccdcal scan' a folder holding both) and calibrate again"
+            _doubtful(
+                f"{name}: the offset map lies above the mean count of {off['n_below_offset']} of "
+                f"{off['n_pixels']} pixels: it cannot be this data's offset (other units, another "
+                "camera mode or read-out speed?), and nothing fitted from it stands: record darks "
+                "in the read-out mode of these frames, give them as the acquisition's dark (or "
+                "'emccdcal scan' a folder holding both) and calibrate again"
+            )
         )
     mult = a.get("multiplication")
     if mult and mult["multiplied"]:
         out.append(
-            f"{name}: the counts look EM-multiplied: their cumulant ratio κ₃κ₁/κ₂² is "
-            f"{mult['R']:.2f} ± {mult['R_se']:.2f} over {mult['n_pixels']} pixels (1 for "
-            "unmultiplied photoelectrons, 1.5 for multiplied ones): was the EM gain on for "
-            "data labelled 1×? If so, the result does not stand (φ and every gain scaled by "
-            "it are wrong): record the 1× "
-            "acquisition with the EM gain off (or give this one its real em_gain_setpoint) "
-            "and calibrate again"
+            _doubtful(
+                f"{name}: the counts look EM-multiplied: their cumulant ratio κ₃κ₁/κ₂² is "
+                f"{mult['R']:.2f} ± {mult['R_se']:.2f} over {mult['n_pixels']} pixels (1 for "
+                "unmultiplied photoelectrons, 1.5 for multiplied ones): was the EM gain on for "
+                "data labelled 1×? If so, the result does not stand (φ and every gain scaled by "
+                "it are wrong): record the 1× "
+                "acquisition with the EM gain off (or give this one its real em_gain_setpoint) "
+                "and calibrate again"
+            )
         )
     bad = a.get("frames_defective") or {}
     for kind, what in (
@@ -1048,9 +1066,11 @@ def _findings(a: dict) -> list[str]:
                 else "remove them from the file (or record again) and calibrate again"
             )
             out.append(
-                f"{name}: {bad[f'n_{kind}']} of {a['n_frames']} frames {what} "
-                f"(frames {shown}); they bias every estimate, so the result does not "
-                f"stand as it is: {fix}"
+                _doubtful(
+                    f"{name}: {bad[f'n_{kind}']} of {a['n_frames']} frames {what} "
+                    f"(frames {shown}); they bias every estimate, so the result does not "
+                    f"stand as it is: {fix}"
+                )
             )
     sat = a["saturation"]
     if sat["n_values"]:
@@ -1178,20 +1198,22 @@ def check_manifest(
     transfer = offset_from_transfer(manifest.acquisitions, used)
     if transfer is not None and transfer["off"]:
         warn.append(
-            f"set-point 1: the photon transfer of its {transfer['n_levels']} levels (variance "
-            f"against mean) reaches zero excess variance {transfer['shift']:+.1f} ± "
-            f"{transfer['shift_se']:.1f} ADU from the offset maps: the offsets are off by "
-            "about that much (another camera mode's, or none?), which biases φ and E, so the "
-            "result does not stand as it is: record darks in the read-out mode of the light "
-            "frames, give them as the acquisitions' dark (or 'emccdcal scan' a folder holding "
-            "both) and calibrate again"
+            _doubtful(
+                f"set-point 1: the photon transfer of its {transfer['n_levels']} levels (variance "
+                f"against mean) reaches zero excess variance {transfer['shift']:+.1f} ± "
+                f"{transfer['shift_se']:.1f} ADU from the offset maps: the offsets are off by "
+                "about that much (another camera mode's, or none?), which biases φ and E, so the "
+                "result does not stand as it is: record darks in the read-out mode of the light "
+                "frames, give them as the acquisitions' dark (or 'emccdcal scan' a folder holding "
+                "both) and calibrate again"
+            )
         )
     growth = check_read_noise_growth(
         [a.em_gain_setpoint for a in manifest.acquisitions],
         [a.read_noise for a in manifest.acquisitions],
         threshold=read_noise_threshold,
     )
-    warn.extend(growth)
+    warn.extend(Finding(g, ReadNoiseGrowthWarning) for g in growth)
     return {
         "manifest": str(manifest.path),
         "adc_max": int(manifest.adc_max),

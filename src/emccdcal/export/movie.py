@@ -29,7 +29,7 @@ import numpy as np
 
 from .. import defaults, identity
 from .._output import Output, atomic_write
-from .._util import progress
+from .._util import progress as progress_bar
 from ..data.stacks import read_band, stack_header, stack_settings
 from ..errors import ExportWarning, InputError, OptionError, spelled
 from ..result import Calibration, format_setpoint, load_calibration
@@ -93,7 +93,7 @@ def apply(
     photon_counting=False,
     threshold=DEFAULT_THRESHOLD,
     output_format=None,
-    progress_bar=True,
+    progress=True,
     overwrite=False,
     accept_mismatch=(),
     qe=None,
@@ -129,6 +129,9 @@ def apply(
         The camera's quantum efficiency at the emission wavelength (photoelectrons per
         photon, 0 < QE ≤ 1): the output is then photons, photoelectrons / QE. Not with
         ``photon_counting``.
+    progress : bool
+        A progress bar over the frames (default): in a notebook or on a terminal; none in
+        a pipe.
 
     Returns
     -------
@@ -184,7 +187,7 @@ def apply(
             photon_counting,
             threshold,
             fmt,
-            progress_bar,
+            progress,
             accept_mismatch,
             qe,
         )
@@ -292,7 +295,7 @@ def conversion(
 
 
 def _apply(
-    cal, movie, target, setpoint, photon_counting, threshold, fmt, progress_bar, accept_mismatch, qe
+    cal, movie, target, setpoint, photon_counting, threshold, fmt, progress, accept_mismatch, qe
 ):
     shape, dtype = stack_header(movie)
     if len(shape) != 3:
@@ -321,8 +324,8 @@ def _apply(
             yield convert(raw)
             bar.update(raw.shape[0])
 
-    with progress(
-        total=frames, enabled=progress_bar, desc=f"apply {movie.name}", unit="frame"
+    with progress_bar(
+        total=frames, enabled=progress, desc=f"apply {movie.name}", unit="frame"
     ) as bar:
         if fmt == "tiff":
             _write_tiff(target.path, blocks(bar), (frames, rows, cols), out_dtype, meta)

@@ -45,7 +45,8 @@ import numpy as np
 
 from .._optimize import ArrowLayout, maximize, schur
 from .. import _xp
-from .._util import ordered_map, progress
+from .._util import ordered_map
+from .._util import progress as progress_bar
 from ..defaults import DEFAULT_EM_MODEL
 from ..data import stats
 from ..data.dark import robust_start
@@ -190,7 +191,7 @@ def check_gain(
     histogram: bool = False,
     tol: float = 1e-3,
     max_passes: int = 60,
-    progress_bars: bool = False,
+    progress: bool = True,
     device: str | None = None,
 ) -> GainCheck:
     """The EM gain of dark frames by maximum likelihood (module docstring).
@@ -235,8 +236,9 @@ def check_gain(
         of their standard errors).
     max_passes : int
         Evaluations of the likelihood before giving up.
-    progress_bars : bool
-        A progress bar over the passes.
+    progress : bool
+        A progress bar over the passes (default): in a notebook or on a terminal; none
+        in a pipe.
 
     device : {"cpu", "cuda", "array-api-strict"}, optional
         Where the tables are evaluated, as :func:`emccdcal.calibrate`'s (the tables are
@@ -271,7 +273,7 @@ def check_gain(
         raise InputError(f"e_per_adu must be a positive number, got {e_per_adu!r}")
     _xp.resolve(device)  # an unknown or missing device: one line before any work
     data = _Data(_select(darks, region), adc_max, halves=bias_correction)
-    bar = progress(None, enabled=progress_bars, desc="gain-check", unit="pass")
+    bar = progress_bar(None, enabled=progress, desc="gain-check", unit="pass")
     try:
         with _xp.computing_on(device):
             sample = _Fit(

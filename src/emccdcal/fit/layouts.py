@@ -107,8 +107,8 @@ def select_acquisitions(method, setpoints, levels, has_e_per_adu):
             f"{method} is for a gain series, and this manifest is an intensity series at "
             "1x: calibrate phi from it with --method is-adu"
             if levels
-            else f"{method} needs e_per_adu (e-/ADU): set it in the manifest or pass "
-            "--e-per-adu (calibrate it first with is-adu)"
+            else f"{method} needs e_per_adu (e-/ADU): set it in the manifest or give it "
+            "(e_per_adu=, --e-per-adu): an is-adu result, say"
         )
     if method == "is-gain":
         gains = np.unique(sp)

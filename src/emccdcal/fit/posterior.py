@@ -45,7 +45,7 @@ import numpy as np
 
 from .. import _xp, defaults
 from .._output import atomic_write, atomic_write_text, write_netcdf
-from .._util import e_per_adu_map, finite_or_none, parse_pixel
+from .._util import e_per_adu_map, emcee_progress, finite_or_none, parse_pixel
 from ..data import stats
 from ..data.manifest import Manifest, read_manifest
 from ..errors import DataQualityWarning, FitWarning, MethodError, NotConvergedError, OptionError
@@ -272,7 +272,7 @@ def _sample_pixel(
     sampler = emcee.EnsembleSampler(n_walkers, F, logp, vectorize=True, moves=_moves())
     sampler.random_state = np.random.RandomState(rng.integers(2**32 - 1)).get_state()
     steps = min(first_steps, max_steps)
-    sampler.run_mcmc(start, steps, progress=progress)
+    sampler.run_mcmc(start, steps, **emcee_progress(progress))
     while True:
         d = _diagnose(sampler, min_ess)
         if not d["problems"]:
@@ -282,7 +282,7 @@ def _sample_pixel(
         target = min(
             max_steps, max(_needed_steps(d, n_walkers, min_ess), int(1.5 * sampler.iteration))
         )
-        sampler.run_mcmc(None, target - sampler.iteration, progress=progress)
+        sampler.run_mcmc(None, target - sampler.iteration, **emcee_progress(progress))
     acc_bad = any(p.startswith("acceptance") for p in d["problems"])
     advice = (
         "the posterior may be multimodal or pressed against a bound; check the maximum-"
@@ -312,7 +312,7 @@ def sample_posterior(
     prior="log-uniform",
     options=None,
     out=None,
-    progress=False,
+    progress=True,
     em_model=None,
     stages=None,
     device=None,
@@ -352,7 +352,7 @@ def sample_posterior(
         Directory to write ``posterior.nc`` and ``posterior.json`` into (corner plots:
         :func:`emccdcal.report.corner.write_corner_figures`).
     progress : bool
-        emcee progress bars on stderr.
+        emcee's progress bars (in a notebook or on a terminal; none in a pipe).
     em_model, stages : optional
         The EM register's model (:func:`emccdcal.calibrate`); default the manifest's,
         else the exact cascade (stages from the manifest, the camera's model or 536;

@@ -545,7 +545,7 @@ class GainCheckWidget(Container):
                 region=region,
                 fit_register_cic=self.fit_cic.value,
                 adc_max=2**bits - 1 if bits else None,
-                progress_bars=self.job.progress,
+                progress=self.job.progress,
             )
             return check, (compare(check, cal) if cal is not None and setpoint else None)
 

@@ -193,6 +193,7 @@ def _summary_html(inp):
         )
     out = [
         f"<h3>{_e(inp.label)}</h3>",
+        f"<p class=verdict><strong>{_e(result.verdict_line(ds))}</strong></p>",
         (
             f"<p>{int(conv.sum())} of {conv.size} pixels converged "
             f"({ds.sizes['row']} × {ds.sizes['col']} px); statistics are over the converged "
@@ -688,7 +689,7 @@ def build_report(
     validation=(),
     pixel=None,
     figures_dir=None,
-    progress=False,
+    progress=True,
     command=None,
     db=None,
     camera=None,
@@ -709,7 +710,8 @@ def build_report(
     figures_dir : str or Path, optional
         Also write every figure there as PNG and SVG (``<figure id>.png``/``.svg``).
     progress : bool, optional
-        A progress bar over the figures on stderr.
+        A progress bar over the figures (default): in a notebook or on a terminal; none
+        in a pipe.
     command : str, optional
         The command line, recorded in the provenance.
     db : str or Path, optional

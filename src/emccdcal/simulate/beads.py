@@ -211,7 +211,7 @@ def simulate_beads(
     em_gain=None,
     offsets=None,
     seed=None,
-    progress=False,
+    progress=True,
     camera: Camera | None = None,
     bleaching=BEAD_DEFAULTS["bleaching"],
     halo=BEAD_DEFAULTS["halo"],

@@ -409,7 +409,7 @@ def simulate_gain_series(
     offsets=None,
     frames=None,
     seed=None,
-    progress=False,
+    progress=True,
     camera: Camera | None = None,
     **camera_options,
 ) -> SimulatedSeries:
@@ -443,7 +443,7 @@ def simulate_gain_series(
         Seed (≥ 0); None draws one, recorded in truth.json. The same seed and options
         give identical files.
     progress : bool, optional
-        Show a progress bar on stderr.
+        A progress bar (default): in a notebook or on a terminal; none in a pipe.
     camera : Camera, optional
         The camera (:class:`~emccdcal.simulate.camera.Camera`: sensor size, frames, φ,
         offset, read noise, register, ADC ...).
@@ -491,7 +491,7 @@ def simulate_intensity_series(
     setpoint=1,
     em_gain=None,
     seed=None,
-    progress=False,
+    progress=True,
     camera: Camera | None = None,
     **camera_options,
 ) -> SimulatedSeries:
