@@ -519,26 +519,47 @@ def test_cli_gain_series(tmp_path, capsys):
     assert tifffile.imread(out / "gain-GS/25x-gain.tif").shape == (20, 3, 4)
 
 
-def test_cli_intensity_series_progress_on_stderr(tmp_path, capsys):
-    out = tmp_path / "is"
-    argv = [
-        "simulate",
-        "intensity-series",
-        "-o",
-        str(out),
-        "--rows",
-        "2",
-        "--cols",
-        "2",
-        "--frames",
-        "10",
-    ]
-    argv += ["--levels", "100,200", "--setpoint", "25", "--seed", "1"]
-    assert cli.main(argv) == 0
-    captured = capsys.readouterr()
-    assert "simulate intensity-series" in captured.err  # tqdm bar
-    assert str(out) in captured.out
-    assert len(_manifest(out / "manifest.toml")["acquisition"]) == 2
+def test_a_progress_bar_on_a_terminal_none_in_a_pipe_nor_with_quiet(tmp_path):
+    """The installed command shows its bar where stderr is a terminal (a pseudo-terminal
+    here), and none where stderr is a pipe or a log file, nor with ``-q``."""
+    import fcntl
+    import os
+    import pty
+    import struct
+    import termios
+
+    from conftest import console_script
+
+    def run(out, *, terminal, quiet=False):
+        argv = [console_script(), "simulate", "intensity-series", "-o", str(tmp_path / out)]
+        argv += ["--rows", "2", "--cols", "2", "--frames", "3000", "--levels", "100,200"]
+        argv += ["--setpoint", "25", "--seed", "1"] + (["-q"] if quiet else [])
+        if not terminal:
+            done = subprocess.run(argv, capture_output=True, text=True, timeout=300)
+            assert done.returncode == 0, done.stderr
+            return done.stderr
+        parent, child = pty.openpty()
+        # a terminal 80 columns wide (a new one has none, and tqdm draws into its width)
+        fcntl.ioctl(child, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))
+        proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=child)
+        os.close(child)
+        seen = b""
+        while True:
+            try:
+                chunk = os.read(parent, 4096)
+            except OSError:  # the child closed the terminal
+                break
+            if not chunk:
+                break
+            seen += chunk
+        os.close(parent)
+        assert proc.wait(timeout=300) == 0
+        return seen.decode(errors="replace")
+
+    assert "simulate intensity-series" in run("tty", terminal=True)  # tqdm's bar
+    assert "simulate intensity-series" not in run("pipe", terminal=False)
+    assert "simulate intensity-series" not in run("quiet", terminal=True, quiet=True)
+    assert len(_manifest(tmp_path / "pipe" / "manifest.toml")["acquisition"]) == 2
 
 
 def test_console_entry_point(tmp_path):

@@ -11,7 +11,15 @@ from . import simulate as simulate
 from .beads.cots_calibration import cots_calibrate as cots
 from .beads.validation import validate as validate
 from .calibration import calibrate as calibrate
+from .acquire.plan import plan as plan
+from .acquire.record import acquire as record
+from .data.manifest import Manifest as Manifest
 from .data.manifest import read_manifest as read_manifest
+from .data.scan import scan_folder as scan
+from .data.settings import CameraSettings as CameraSettings
+from .export.audit import audit as audit
+from .fit.darkgain import check_gain as check_gain
+from .result import Calibration as Calibration
 from .data.quality import check_manifest as check
 from .errors import EmccdcalError as EmccdcalError
 from .errors import EmccdcalWarning as EmccdcalWarning
@@ -36,6 +44,14 @@ __all__ = [
     "validate",
     "calibrate",
     "read_manifest",
+    "scan",
+    "plan",
+    "record",
+    "check_gain",
+    "audit",
+    "Calibration",
+    "Manifest",
+    "CameraSettings",
     "check",
     "EmccdcalError",
     "EmccdcalWarning",

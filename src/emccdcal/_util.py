@@ -38,6 +38,16 @@ __all__ = [
 # --------------------------------------------------------------------------------------
 # Progress
 # --------------------------------------------------------------------------------------
+def install_hint(extra: str) -> str:
+    """How to install an extra, for a message: from the source folder, as the
+    Installation page says (the package is not on an index).
+
+    >>> install_hint("dask")
+    "pip install '.[dask]' in emccdcal's source folder (the docs' Installation page)"
+    """
+    return f"pip install '.[{extra}]' in emccdcal's source folder (the docs' Installation page)"
+
+
 def progress(
     iterable: Iterable | None = None,
     *,

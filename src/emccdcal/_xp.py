@@ -111,8 +111,10 @@ def _cuda():
     except ImportError:
         pass
     raise OptionError(
-        "device 'cuda': no GPU found through CuPy or PyTorch (install the "
-        "extra 'gpu' and check that the NVIDIA driver sees the card)"
+        "device 'cuda': no GPU found through CuPy or PyTorch: install CuPy for the "
+        "card's CUDA (pip install '.[gpu]' in emccdcal's source folder for CUDA 12, "
+        "'.[gpu-cuda13]' for CUDA 13; 'nvidia-smi' shows the version) and check that "
+        "the NVIDIA driver sees the card"
     )
 
 

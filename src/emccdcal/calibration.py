@@ -31,13 +31,15 @@ import numpy as np
 
 from . import __version__, _xp, identity, result
 from ._output import Output
-from ._util import check_int, e_per_adu_map, nanmedian, one_line
+from ._util import check_int, e_per_adu_map, install_hint, nanmedian, one_line
 from ._util import progress as progress_bar
 from .data import quality, stats
 from .data.manifest import Manifest, Source, read_manifest
 from .data.stacks import read_band
 from .errors import (
     DataQualityWarning,
+    LeftOutWarning,
+    SaturationWarning,
     FitWarning,
     InputError,
     MethodError,
@@ -331,7 +333,7 @@ def _execute(jobs, scheduler, progress, workers=1):
         from distributed import Client, as_completed
     except ImportError:
         raise OptionError(
-            "running on a Dask cluster needs the 'dask' extra: pip install 'emccdcal[dask]'"
+            "running on a Dask cluster needs the 'dask' extra: " + install_hint("dask")
         ) from None
     if isinstance(scheduler, Client):
         client = scheduler
@@ -426,7 +428,7 @@ def _reach_or_refuse(scheduler) -> None:
         _reach(scheduler)
     except ImportError:
         raise OptionError(
-            "running on a Dask cluster needs the 'dask' extra: pip install 'emccdcal[dask]'"
+            "running on a Dask cluster needs the 'dask' extra: " + install_hint("dask")
         ) from None
     except (ValueError, TypeError, OSError) as exc:  # not an address, or no one there
         raise OptionError(
@@ -1115,7 +1117,7 @@ def _warn_saturated_and_unusable(manifest, used, arrays):
                 "pixels' results stand; lower the light (or the EM gain) and record again "
                 "for these",
                 stacklevel=3,
-                category=DataQualityWarning,
+                category=SaturationWarning,
             )
     bad = np.flatnonzero(~arrays["usable"])
     if bad.size:
@@ -1126,7 +1128,7 @@ def _warn_saturated_and_unusable(manifest, used, arrays):
             f"{', ...' if bad.size > 5 else ''}; they are left out (NaN, converged = False), "
             "and the other pixels' results stand",
             stacklevel=3,
-            category=DataQualityWarning,
+            category=LeftOutWarning,
         )
 
 

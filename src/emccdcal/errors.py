@@ -30,6 +30,8 @@ __all__ = [
     "ReadNoiseGrowthWarning",
     "DataQualityWarning",
     "DriftWarning",
+    "SaturationWarning",
+    "LeftOutWarning",
     "FitWarning",
     "ExportWarning",
     "BeadWarning",
@@ -98,6 +100,14 @@ class DataQualityWarning(EmccdcalWarning):
 class DriftWarning(DataQualityWarning):
     """The frame mean of an acquisition drifts: the illumination or the EM gain was not
     steady while it was recorded."""
+
+
+class SaturationWarning(DataQualityWarning):
+    """Counts at the ADC's maximum: left out of the fits, so those pixels read low."""
+
+
+class LeftOutWarning(DataQualityWarning):
+    """Pixels left out of the fit (too few usable frames: saturated, dead or stuck)."""
 
 
 class FitWarning(EmccdcalWarning):

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._util import install_hint
 from ..errors import InputError
 from .settings import CameraSettings, recorded_number
 
@@ -42,9 +43,7 @@ def _fits():
     try:
         from astropy.io import fits
     except ImportError:
-        raise InputError(
-            "reading FITS needs the 'fits' extra: pip install 'emccdcal[fits]'"
-        ) from None
+        raise InputError("reading FITS needs the 'fits' extra: " + install_hint("fits")) from None
     return fits
 
 

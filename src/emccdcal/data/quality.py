@@ -44,6 +44,7 @@ from ..errors import (
     Finding,
     InputError,
     ReadNoiseGrowthWarning,
+    SaturationWarning,
 )
 from .dark import as_stack, check_read_noise_growth, maps_from_dark
 
@@ -1075,13 +1076,16 @@ def _findings(a: dict) -> list[str]:
     sat = a["saturation"]
     if sat["n_values"]:
         out.append(
-            f"{name}: {sat['n_values']} saturated pixel-frames (counts ≥ {sat['adc_max']}, "
-            f"{sat['fraction']:.2%} of its pixel-frames) in {sat['n_frames']} frames, "
-            f"{sat['n_pixels']} pixels: {_fmt_pixels(sat['pixels'], sat['n_pixels'])}; "
-            "they are excluded from fits, which cuts the top off those pixels' counts, so "
-            "their photoelectrons and gain read low, the more the more of their frames hit "
-            "the ceiling. Every other pixel's result stands; for these, lower the light (or "
-            "the EM gain) until no frame saturates and record again"
+            Finding(
+                f"{name}: {sat['n_values']} saturated pixel-frames (counts ≥ {sat['adc_max']}, "
+                f"{sat['fraction']:.2%} of its pixel-frames) in {sat['n_frames']} frames, "
+                f"{sat['n_pixels']} pixels: {_fmt_pixels(sat['pixels'], sat['n_pixels'])}; "
+                "they are excluded from fits, which cuts the top off those pixels' counts, so "
+                "their photoelectrons and gain read low, the more the more of their frames hit "
+                "the ceiling. Every other pixel's result stands; for these, lower the light (or "
+                "the EM gain) until no frame saturates and record again",
+                SaturationWarning,
+            )
         )
     px = a["pixels"]
     for kind, what in (("hot", "above"), ("dead", "below")):

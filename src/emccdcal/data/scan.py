@@ -506,3 +506,43 @@ def write_manifest(session: Session, out, *, overwrite: bool = False) -> Path:
     with Output(out, kind="file", inputs=inputs, overwrite=overwrite):
         atomic_write_text(out, manifest_text(session, out))
     return out
+
+
+def scan_folder(folder, out=None, *, overwrite: bool = False) -> Path:
+    """Write the manifest of a folder of camera files, as ``emccdcal scan`` does.
+
+    The folder's stacks are grouped into a gain series or an intensity series by the
+    settings they record (else by their names: the manifest says every rule it used),
+    each paired with its dark; the manifest lists the files used and skipped, and why.
+
+    Parameters
+    ----------
+    folder : str or Path
+        The folder of camera files (not its subfolders).
+    out : str or Path, optional
+        The folder to write ``manifest.toml`` into, or the manifest's own name ending in
+        ``.toml`` (default ``folder/manifest.toml``).
+    overwrite : bool
+        Replace an existing manifest (never one of the folder's camera files).
+
+    Returns
+    -------
+    Path
+        The manifest written, for :func:`emccdcal.calibrate`.
+
+    Raises
+    ------
+    InputError
+        As :func:`scan`: the message names the file and says what to rename or write.
+
+    Examples
+    --------
+    >>> import emccdcal, tempfile
+    >>> work = tempfile.mkdtemp()
+    >>> sim = emccdcal.simulate_gain_series(
+    ...     f"{work}/gs", rows=4, cols=4, frames=200, setpoints=(1, 10), seed=1, progress=False
+    ... )
+    >>> emccdcal.scan(f"{work}/gs/gain-GS", f"{work}/scanned.toml").name
+    'scanned.toml'
+    """
+    return write_manifest(scan(folder), manifest_path(out, folder), overwrite=overwrite)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .._util import one_line
+from .._util import install_hint, one_line
 from ..errors import InputError
 from .settings import CameraSettings, recorded_number
 
@@ -26,7 +26,7 @@ def open_sif(path: Path):
     try:
         import sif_parser
     except ImportError:
-        raise InputError("reading SIF needs the 'sif' extra: pip install 'emccdcal[sif]'") from None
+        raise InputError("reading SIF needs the 'sif' extra: " + install_hint("sif")) from None
     try:
         data, info = sif_parser.np_open(str(path), lazy="memmap")
     except Exception as exc:  # noqa: BLE001 - a damaged file can break the parser anywhere

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import _files
-from .._util import one_line
+from .._util import install_hint, one_line
 from ..errors import InputError
 from .settings import CameraSettings
 
@@ -52,9 +52,7 @@ def _open(path: Path):
     try:
         import zarr
     except ImportError:
-        raise InputError(
-            "reading Zarr needs the 'zarr' extra: pip install 'emccdcal[zarr]'"
-        ) from None
+        raise InputError("reading Zarr needs the 'zarr' extra: " + install_hint("zarr")) from None
     try:
         node = zarr.open(str(path), mode="r")
     except Exception as exc:  # noqa: BLE001 - a damaged store can fail anywhere

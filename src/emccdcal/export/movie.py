@@ -29,6 +29,7 @@ import numpy as np
 
 from .. import defaults, identity
 from .._output import Output, atomic_write
+from .._util import install_hint
 from .._util import progress as progress_bar
 from ..data.stacks import read_band, stack_header, stack_settings
 from ..errors import ExportWarning, InputError, OptionError, spelled
@@ -368,7 +369,7 @@ def _write_zarr(store: Path, blocks, shape, dtype, meta, per_block) -> None:
     try:
         import zarr
     except ImportError:
-        raise OptionError("writing .zarr needs zarr: pip install 'emccdcal[zarr]'") from None
+        raise OptionError("writing .zarr needs zarr: " + install_hint("zarr")) from None
     z = zarr.open_array(
         str(store), mode="w", shape=shape, dtype=dtype, chunks=(per_block, shape[1], shape[2])
     )

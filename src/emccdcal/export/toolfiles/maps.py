@@ -10,6 +10,7 @@ import json
 import numpy as np
 
 from ..._output import atomic_write, atomic_write_text as _write_text
+from ..._util import install_hint
 from ...errors import OptionError
 from ...result import format_setpoint, pixel_statistics
 from ...plugins import Tool
@@ -73,7 +74,7 @@ def write_fits(cal, s, v, out, qe, pixel_size_nm, name):
     try:
         from astropy.io import fits
     except ImportError:
-        raise OptionError("--to fits needs astropy: pip install 'emccdcal[fits]'") from None
+        raise OptionError("--to fits needs astropy: " + install_hint("fits")) from None
     prov = tools._provenance(cal, None, qe)
     primary = fits.PrimaryHDU()
     primary.header["CREATOR"] = f"emccdcal {prov['emccdcal_version']}"
