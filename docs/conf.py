@@ -57,18 +57,22 @@ napoleon_google_docstring = False
 napoleon_numpy_docstring = True
 napoleon_use_rtype = False
 napoleon_preprocess_types = False
+# "ndarray, shape (R, C)" in a docstring's types is words, not a reference to one of the
+# classes' ``shape`` attributes: an ambiguous reference is left as text, unwarned.
+suppress_warnings = ["ref.python"]
 
 html_theme = "pydata_sphinx_theme"
 html_title = f"emccdcal {release}"
 html_static_path = []
 html_theme_options = {
     "navigation_with_keys": False,
-    "header_links_before_dropdown": 4,  # the pages' titles are long
+    "header_links_before_dropdown": 5,  # the five sections, none behind "More"
     "show_toc_level": 2,
     "footer_start": ["copyright"],
     "footer_end": ["sphinx-version"],
 }
 html_show_sourcelink = False
+html_sidebars = {"index": []}  # the landing page: its sections are the top bar
 
 # The gallery: every examples/plot_*.py runs at build time, its figures kept.
 sphinx_gallery_conf = {
@@ -87,3 +91,53 @@ sphinx_gallery_conf = {
 
 # Matplotlib draws without a display.
 os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+# --------------------------------------------------------------------------------------
+# Paths of pages as links. The docstrings and the command line's help name pages as
+# "docs/results.md", which a reader of the source or of ``--help`` can open; on the site
+# each becomes a link to that page, titled with the page's title.
+# --------------------------------------------------------------------------------------
+import re  # noqa: E402
+
+from docutils import nodes  # noqa: E402
+
+_PAGE = re.compile(r"docs/([a-z0-9-]+)\.(?:md|rst)(#[a-z0-9-]+)?")
+
+
+def _page_link(app, docname, match):
+    stem, anchor = match.group(1), match.group(2) or ""
+    if stem not in app.env.all_docs:
+        return None
+    title = app.env.titles[stem].astext()
+    uri = app.builder.get_relative_uri(docname, stem) + anchor
+    return nodes.reference("", title, refuri=uri, internal=True)
+
+
+def _link_page_paths(app, doctree, docname):
+    for text in list(doctree.findall(nodes.Text)):
+        parent = text.parent
+        if isinstance(parent, (nodes.FixedTextElement, nodes.reference)):
+            continue  # a code block shows what a program prints, as it prints it
+        value = str(text)
+        if "docs/" not in value:
+            continue
+        whole = _PAGE.fullmatch(value.strip("`"))
+        if isinstance(parent, nodes.literal) and whole:  # ``docs/x.md``: the link alone
+            link = _page_link(app, docname, whole)
+            if link is not None:
+                parent.parent.replace(parent, link)
+            continue
+        pieces, last = [], 0
+        for match in _PAGE.finditer(value):
+            link = _page_link(app, docname, match)
+            if link is None:
+                continue
+            pieces += [nodes.Text(value[last : match.start()]), link]
+            last = match.end()
+        if pieces:
+            parent.replace(text, [*pieces, nodes.Text(value[last:])])
+
+
+def setup(app):
+    app.connect("doctree-resolved", _link_page_paths)

@@ -2,13 +2,12 @@
 Plan a calibration and record it with a simulated camera
 ========================================================
 
-``emccdcal plan`` computes the frames a target precision needs from the likelihood's
-Fisher information; ``emccdcal acquire`` records the plan through Micro-Manager (here
-its simulated EMCCD, no hardware), ``scan`` turns the recording into a manifest and
-``calibrate`` fits it. These are the command line's verbs, called from Python as
-``emccdcal.cli.main([...])``, which returns the command's exit status: the same words
-a terminal takes. Needs the ``acquire``
-extra (``pip install "emccdcal[acquire]"``).
+:func:`emccdcal.plan` computes the frames a target precision needs from the
+likelihood's Fisher information; :func:`emccdcal.record` records the plan through
+Micro-Manager (here its simulated EMCCD, no hardware), :func:`emccdcal.scan` turns the
+recording into a manifest and :func:`emccdcal.calibrate` fits it: the command line's
+``plan``, ``acquire``, ``scan`` and ``calibrate``. Needs the ``acquire`` extra
+(``pip install '.[acquire]'`` in the source folder).
 """
 
 # %%
@@ -20,74 +19,29 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 
 import emccdcal
-from emccdcal import cli
 
 work = Path(tempfile.mkdtemp(prefix="emccdcal-gallery-"))
-assert (
-    cli.main(
-        [
-            "plan",
-            "--e-per-adu",
-            "3.9",
-            "--read-noise",
-            "15.5",
-            "--offset",
-            "590",
-            "--target-se",
-            "2",
-            "-o",
-            f"{work}/plan",
-        ]
-    )
-    == 0
-)
+plan = emccdcal.plan(e_per_adu=3.9, read_noise=15.5, offset=590, target_se=2)
+for stack in plan.acquisitions:
+    print(f"{stack.setpoint:>5g}x  {stack.frames:5d} frames of {stack.photoelectrons:.0f} e-")
+print(f"darks: {plan.dark_frames} frames per set-point")
 
 # %%
 # Record it: a 16 × 16 px region of the simulated camera, every set-point of the plan
 # with its dark stack, into OME-Zarr files that record their settings.
-assert (
-    cli.main(
-        [
-            "acquire",
-            f"{work}/plan/plan.toml",
-            "-o",
-            f"{work}/session",
-            "--simulated",
-            "--seed",
-            "3",
-            "--roi",
-            "0,0,16,16",
-            "--quiet",
-        ]
-    )
-    == 0
-)
+emccdcal.record(plan, work / "session", simulated_seed=3, roi=(0, 0, 16, 16), progress=False)
 print(sorted(p.name for p in (work / "session").iterdir()))
 
 # %%
 # ``scan`` groups the files by the settings they record and writes the manifest;
 # ``calibrate`` fits the gain series with φ known.
-assert cli.main(["scan", f"{work}/session", "-o", f"{work}/session/manifest.toml"]) == 0
-assert (
-    cli.main(
-        [
-            "calibrate",
-            f"{work}/session/manifest.toml",
-            "--method",
-            "gs",
-            "--e-per-adu",
-            "3.9",
-            "-o",
-            f"{work}/out-session",
-        ]
-    )
-    == 0
-)
+manifest = emccdcal.scan(work / "session")
+ds = emccdcal.calibrate(manifest, method="gs", e_per_adu=3.9)
+print(ds.attrs["verdict"])
 
 # %%
 # The plan promised a standard error of the gain per pixel; the calibration reports
 # the one it reached. Both, per set-point:
-ds = emccdcal.load_result(work / "out-session")
 relative = (ds.em_gain_se / ds.em_gain).median(dim=("row", "col")) * 100
 fig, ax = plt.subplots(figsize=(5, 3.4), constrained_layout=True)
 multiplied = ds.setpoint.values > 1

@@ -42,7 +42,17 @@ __all__ = [
 
 
 class EmccdcalError(Exception):
-    """Base class of the errors a user can cause; the message is one line."""
+    """Base class of the errors a user can cause; the message is one line.
+
+    Examples
+    --------
+    >>> import emccdcal
+    >>> try:
+    ...     emccdcal.calibrate("no-such-manifest.toml")
+    ... except emccdcal.EmccdcalError as error:
+    ...     print(error)
+    manifest file not found: 'no-such-manifest.toml' (resolved to '...')
+    """
 
 
 class OptionError(EmccdcalError, ValueError):
@@ -80,7 +90,16 @@ class Cancelled(EmccdcalError):
 class EmccdcalWarning(UserWarning):
     """Base class of every warning of emccdcal: ``warnings.simplefilter("ignore",
     emccdcal.EmccdcalWarning)`` silences them all (each is also in a result's
-    ``warnings`` attribute and its report)."""
+    ``warnings`` attribute and its report).
+
+    Examples
+    --------
+    >>> import warnings, emccdcal
+    >>> warnings.simplefilter("ignore", emccdcal.EmccdcalWarning)  # all of emccdcal's
+    >>> issubclass(emccdcal.errors.DriftWarning, emccdcal.EmccdcalWarning)
+    True
+    >>> warnings.resetwarnings()
+    """
 
 
 class InputWarning(EmccdcalWarning):

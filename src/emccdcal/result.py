@@ -734,6 +734,20 @@ def load(path) -> xr.Dataset:
         The file is not a NetCDF/HDF5 file, is not an emccdcal result (no ``method`` or
         ``emccdcal_version`` attribute, or a standard variable missing), or was written by
         an incompatible major version of emccdcal. The message names the file.
+
+    Examples
+    --------
+    >>> import tempfile, emccdcal
+    >>> work = tempfile.mkdtemp()
+    >>> sim = emccdcal.simulate_gain_series(
+    ...     f"{work}/gs", rows=4, cols=4, frames=400, setpoints=(1, 10), seed=1, progress=False
+    ... )
+    >>> _ = emccdcal.calibrate(
+    ...     sim.manifest, e_per_adu=sim.truth["e_per_adu"], out=f"{work}/out", progress=False
+    ... )
+    >>> ds = emccdcal.load_result(f"{work}/out")
+    >>> ds.attrs["method"], ds.em_gain.dims
+    ('gs', ('setpoint', 'row', 'col'))
     """
     p = Path(path)
     if p.is_dir():
@@ -860,6 +874,23 @@ class Calibration:
         of the sensor, ``extrapolated``, the ``curve`` it came from and the
         ``dark_setpoint`` whose offset and read noise stand in. Empty for a calibration
         read from results; recorded in :meth:`provenance`.
+
+    Examples
+    --------
+    Every function that takes a calibration (:func:`emccdcal.export_calibration`,
+    :func:`emccdcal.apply_calibration`, :func:`emccdcal.audit`, ``calibrate``'s
+    ``e_per_adu``) also takes the Dataset :func:`emccdcal.calibrate` returns or a result's
+    path: this class is the typed view they all read it through.
+
+    >>> import tempfile, emccdcal
+    >>> sim = emccdcal.simulate_gain_series(
+    ...     tempfile.mkdtemp(), rows=4, cols=4, frames=400, setpoints=(1, 10), seed=1,
+    ...     progress=False,
+    ... )
+    >>> ds = emccdcal.calibrate(sim.manifest, e_per_adu=sim.truth["e_per_adu"], progress=False)
+    >>> cal = emccdcal.load_calibration(ds)
+    >>> cal.method, cal.setpoints, cal.gain(10).shape
+    ('gs', (1.0, 10.0), (4, 4))
     """
 
     label: str
@@ -882,7 +913,7 @@ class Calibration:
     @property
     def setpoints(self) -> tuple:
         """Set-points it has a gain for, 1 included (sorted)."""
-        return tuple(sorted({1.0, *self.em_gain}))
+        return tuple(sorted({1.0, *map(float, self.em_gain)}))
 
     @property
     def shape(self) -> tuple:
@@ -1110,6 +1141,18 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
         A missing or unreadable file, one of another sensor size or region, two members
         giving the same set-point, two members that both measured φ, or members fitted
         with different register models. The message names the file.
+
+    Examples
+    --------
+    >>> import tempfile, emccdcal
+    >>> work = tempfile.mkdtemp()
+    >>> sim = emccdcal.simulate_gain_series(
+    ...     f"{work}/gs", rows=4, cols=4, frames=400, setpoints=(1, 10), seed=1, progress=False
+    ... )
+    >>> ds = emccdcal.calibrate(sim.manifest, e_per_adu=sim.truth["e_per_adu"], progress=False)
+    >>> cal = emccdcal.load_calibration(ds)
+    >>> cal.setpoints, cal.gain(10).shape
+    ((1.0, 10.0), (4, 4))
     """
 
     if isinstance(spec, Calibration):

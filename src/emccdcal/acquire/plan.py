@@ -413,6 +413,15 @@ def plan(
     OptionError
         A parameter out of range, or a camera whose ADC cannot hold one photoelectron at
         the highest set-point.
+
+    Examples
+    --------
+    >>> import emccdcal
+    >>> p = emccdcal.plan(e_per_adu=3.9, read_noise=15.5, offset=590, target_se=2)
+    >>> p.reached, p.predicted_se <= 2
+    (True, True)
+    >>> p.acquisitions[0].setpoint  # 1x first: it anchors the light
+    1.0
     """
     if method not in PLAN_METHODS:
         raise OptionError(f"a plan is for one of {', '.join(PLAN_METHODS)}; got {method!r}")

@@ -466,6 +466,19 @@ def acquire(
     AcquireError
         The light is off the plan's or saturates, or the camera stops (what was recorded
         is kept; ``resume`` continues). :class:`Interrupted` on Ctrl-C.
+
+    Examples
+    --------
+    A plan recorded by the simulated EMCCD (``simulated_seed``), then scanned and
+    calibrated (a real camera: ``core=`` a Micro-Manager core with it loaded):
+
+    >>> import tempfile, emccdcal
+    >>> work = tempfile.mkdtemp()
+    >>> p = emccdcal.plan(e_per_adu=3.9, read_noise=15.5, offset=590, target_se=5)
+    >>> session = emccdcal.record(
+    ...     p, f"{work}/session", simulated_seed=3, roi=(0, 0, 4, 4), progress=False
+    ... )  # doctest: +SKIP
+    >>> manifest = emccdcal.scan(f"{work}/session")  # doctest: +SKIP
     """
     if isinstance(plan, (str, Path)):
         plan_path = Path(plan)

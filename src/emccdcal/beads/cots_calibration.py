@@ -96,6 +96,14 @@ def cots_calibrate(
     emccdcal.InputError
         No ``e_per_adu``; no acquisition above set-point 1; an acquisition with fewer than
         :data:`MIN_FRAMES` frames; no beads found. One line naming the file.
+
+    Examples
+    --------
+    >>> import tempfile, emccdcal
+    >>> beads = emccdcal.simulate_beads(tempfile.mkdtemp(), beads=6, seed=1)  # doctest: +SKIP
+    >>> ds = emccdcal.cots(beads.manifest)  # doctest: +SKIP
+    >>> ds.em_gain.dims  # doctest: +SKIP
+    ('setpoint', 'bead')
     """
     return result.run_recorded(
         lambda: _cots_calibrate(manifest, half_size, width, em_model, stages, progress), out

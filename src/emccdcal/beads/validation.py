@@ -505,6 +505,18 @@ def validate(
         Unknown files, a calibration of another sensor size or region, a set-point of the
         bead data missing from a calibration, no beads found (or none left after the edge
         and crowding checks). All checked before any fitting.
+
+    Examples
+    --------
+    Beads simulated at every set-point of a calibration, tested against it (the gallery
+    has the whole example, with its figures):
+
+    >>> import tempfile, emccdcal
+    >>> work = tempfile.mkdtemp()
+    >>> beads = emccdcal.simulate_beads(f"{work}/beads", beads=6, seed=1)  # doctest: +SKIP
+    >>> found = emccdcal.validate(
+    ...     beads.manifest, [beads.outdir / "truth_calibration.nc"]
+    ... )  # doctest: +SKIP
     """
     _check_actions(bleaching, blinking)
     fits = fit_validation(

@@ -171,7 +171,7 @@ def plugin_choice(group: str, what: str) -> dict:
 
 
 def add_em_model(p: argparse.ArgumentParser, *, auto: bool = True) -> None:
-    g = p.add_argument_group("EM register model (docs/cascade.md)")
+    g = p.add_argument_group("EM register model", "the register in the likelihood: docs/cascade.md")
     g.add_argument(
         "--em-model",
         **plugin_choice(plugins.REGISTERS, "register model"),

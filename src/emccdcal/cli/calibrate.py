@@ -89,7 +89,9 @@ def add_parser(subparsers):
         "mv-adu and mv-gain always write Fieller bounds, gs-hierarchical those "
         "of its model without the prior",
     )
-    prior = p.add_argument_group("gs-hierarchical hyperprior (docs/methods.md)")
+    prior = p.add_argument_group(
+        "gs-hierarchical hyperprior", "the priors of the hierarchical model: docs/methods.md"
+    )
     prior.add_argument(
         "--mu-sd",
         type=float,

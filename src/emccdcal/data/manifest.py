@@ -190,6 +190,17 @@ class Manifest:
     warnings : list of str
         Non-fatal findings (e.g. read noise growing with set-point), also issued with
         :func:`warnings.warn`.
+
+    Examples
+    --------
+    >>> import tempfile, emccdcal
+    >>> sim = emccdcal.simulate_gain_series(
+    ...     tempfile.mkdtemp(), rows=4, cols=6, frames=200, setpoints=(1, 10), seed=1,
+    ...     progress=False,
+    ... )
+    >>> manifest = emccdcal.read_manifest(sim.manifest)
+    >>> manifest.shape, [a.name for a in manifest.acquisitions]
+    ((4, 6), ['1x', '10x'])
     """
 
     path: Path
@@ -714,6 +725,17 @@ def read_manifest(path) -> Manifest:
     Notes
     -----
     The format, with examples and every error message, is in ``docs/manifest.md``.
+
+    Examples
+    --------
+    >>> import tempfile, emccdcal
+    >>> work = tempfile.mkdtemp()
+    >>> sim = emccdcal.simulate_gain_series(
+    ...     f"{work}/gs", rows=4, cols=4, frames=400, setpoints=(1, 10), seed=1, progress=False
+    ... )
+    >>> manifest = emccdcal.read_manifest(sim.manifest)
+    >>> manifest.shape, [a.em_gain_setpoint for a in manifest.acquisitions]
+    ((4, 4), [1.0, 10.0])
     """
     return resolve_manifest(parse_manifest(path))
 

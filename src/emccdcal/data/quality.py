@@ -1124,8 +1124,8 @@ def check_manifest(
 
     Parameters
     ----------
-    manifest : emccdcal.data.manifest.Manifest
-        From :func:`emccdcal.data.manifest.read_manifest`.
+    manifest : str, Path or Manifest
+        The manifest file, or as :func:`emccdcal.read_manifest` returns it.
     k, drift_threshold, unit_root_tests, alpha, regression
         As in :func:`check_acquisition`.
     drift_alpha : float, optional
@@ -1157,9 +1157,24 @@ def check_manifest(
     ------
     ValueError
         From :func:`check_acquisition` (naming the file).
+
+    Examples
+    --------
+    >>> import tempfile, emccdcal
+    >>> work = tempfile.mkdtemp()
+    >>> sim = emccdcal.simulate_gain_series(
+    ...     f"{work}/gs", rows=4, cols=4, frames=400, setpoints=(1, 10), seed=1, progress=False
+    ... )
+    >>> report = emccdcal.check(sim.manifest)
+    >>> sorted(report["acquisitions"]), report["warnings"]
+    (['10x', '1x'], [])
     """
     if not (0 < drift_alpha < 1):
         raise InputError(f"drift_alpha must be between 0 and 1, got {drift_alpha!r}")
+    if not hasattr(manifest, "acquisitions"):  # its file, as every verb takes it
+        from .manifest import read_manifest
+
+        manifest = read_manifest(manifest)
     acqs: dict[str, dict] = {}
     warn: list[str] = []
     per_test = drift_alpha / max(1, len(manifest.acquisitions))

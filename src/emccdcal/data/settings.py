@@ -58,6 +58,16 @@ class CameraSettings:
         the first pixel, y: its row).
     binning : tuple of int
         ``(x, y)`` binning.
+
+    Examples
+    --------
+    What a reader found in a file's header (:func:`emccdcal.data.stacks.stack_settings`),
+    or made by hand:
+
+    >>> from emccdcal import CameraSettings
+    >>> s = CameraSettings(em_gain_setpoint=300, readout_rate_mhz=10.0, adc_bits=16)
+    >>> s.em_gain_setpoint, s.serial is None
+    (300, True)
     """
 
     em_gain_setpoint: float | None = None

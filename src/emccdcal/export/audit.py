@@ -440,6 +440,18 @@ def audit(
     list of Audit
         One per camera entry of the file (read-out modes of a nested table that the
         calibration's recorded read-out state singles out are kept alone).
+
+    Examples
+    --------
+    >>> import tempfile, emccdcal
+    >>> work = tempfile.mkdtemp()
+    >>> sim = emccdcal.simulate_gain_series(
+    ...     f"{work}/gs", rows=4, cols=4, frames=400, setpoints=(1, 10), seed=1, progress=False
+    ... )
+    >>> ds = emccdcal.calibrate(sim.manifest, e_per_adu=sim.truth["e_per_adu"], progress=False)
+    >>> files = emccdcal.export_calibration(ds, "picasso", f"{work}/picasso", setpoint=10)
+    >>> [a.ok for a in emccdcal.audit(files[0], ds, setpoint=10)]
+    [True]
     """
     if not (0 < tolerance < 1):
         raise OptionError(f"tolerance is a fraction in (0, 1); got {tolerance}")

@@ -146,6 +146,22 @@ def apply(
         the calibration's pixels or of another camera or read-out state, an output that
         exists (without ``overwrite``) or is an input, an output format not known, no
         pixel with a usable calibration.
+
+    Examples
+    --------
+    >>> import tempfile, emccdcal
+    >>> work = tempfile.mkdtemp()
+    >>> sim = emccdcal.simulate_gain_series(
+    ...     f"{work}/gs", rows=4, cols=4, frames=400, setpoints=(1, 10), seed=1, progress=False
+    ... )
+    >>> ds = emccdcal.calibrate(sim.manifest, e_per_adu=sim.truth["e_per_adu"], progress=False)
+    >>> out = emccdcal.apply_calibration(
+    ...     ds, sim.outdir / "gain-GS" / "10x-gain.tif", f"{work}/e.tif", setpoint=10,
+    ...     progress=False,
+    ... )
+    >>> import tifffile
+    >>> tifffile.imread(out).shape  # photoelectrons per pixel and frame
+    (400, 4, 4)
     """
     movie, out = Path(movie), Path(out)
     fmt = output_format or (

@@ -258,6 +258,17 @@ def export(
     OptionError
         An unknown tool, a set-point missing from the calibration (or needed and not
         given), a QE outside (0, 1], or no offset recorded at that set-point.
+
+    Examples
+    --------
+    >>> import tempfile, emccdcal
+    >>> work = tempfile.mkdtemp()
+    >>> sim = emccdcal.simulate_gain_series(
+    ...     f"{work}/gs", rows=4, cols=4, frames=400, setpoints=(1, 10), seed=1, progress=False
+    ... )
+    >>> ds = emccdcal.calibrate(sim.manifest, e_per_adu=sim.truth["e_per_adu"], progress=False)
+    >>> [p.name for p in emccdcal.export_calibration(ds, "picasso", f"{work}/p", setpoint=10)]
+    ['picasso-config.yaml']
     """
     registered = plugins.load(plugins.TOOLS)
     if to not in registered:

@@ -257,6 +257,19 @@ def check_gain(
         1.5 ADU, or stacks that differ in their pixels.
     NotConvergedError
         The fit did not settle within ``max_passes``.
+
+    Examples
+    --------
+    Dark frames at 100x of a camera with clock-induced charge (the events the gain is
+    read from):
+
+    >>> import emccdcal
+    >>> darks = emccdcal.simulate_frames(
+    ...     0.05, em_gain=100, frames=2000, rows=8, cols=8, seed=1
+    ... )
+    >>> check = emccdcal.check_gain([darks], e_per_adu=3.859, setpoint=100, progress=False)
+    >>> abs(check.em_gain / 100 - 1) < 4 * check.em_gain_se / 100
+    True
     """
     model = noise.choose_em_model(em_model, stages)[0]
     if fit_register_cic and "register_cic" not in model.register.parameters:

@@ -694,50 +694,8 @@ def build_report(
     db=None,
     camera=None,
 ):
-    """The HTML text of a report of one or more calibration results.
-
-    Parameters
-    ----------
-    results : xarray.Dataset, str or Path, or a sequence of them
-        Results as :func:`emccdcal.calibrate` returns them, or ``calibration.nc`` files
-        (or their directories).
-    validation : sequence of (str or Path), optional
-        Bead-validation directories (``emccdcal validate -o DIR``: ``validation.json``,
-        ``intensities.nc``). One without ``validation.json`` is left out with a note.
-    pixel : (int, int), optional
-        Sensor (row, col) index (pixel) of the single-pixel figures; default the centre
-        (:func:`emccdcal.report.figures.default_pixel`).
-    figures_dir : str or Path, optional
-        Also write every figure there as PNG and SVG (``<figure id>.png``/``.svg``).
-    progress : bool, optional
-        A progress bar over the figures (default): in a notebook or on a terminal; none
-        in a pipe.
-    command : str, optional
-        The command line, recorded in the provenance.
-    db : str or Path, optional
-        A calibration database (:mod:`emccdcal.export.database`): the report then shows
-        the history of each result's camera (its calibrations and gain checks, and the
-        findings of :func:`~emccdcal.export.database.compare`).
-    camera : str, optional
-        The cameras' serial number where their files record none (with ``db``).
-
-    Returns
-    -------
-    str
-        The HTML document.
-
-    Raises
-    ------
-    ValueError
-        An input that is not an emccdcal result or is from an incompatible version
-        (:func:`emccdcal.result.load`, naming the file), or a malformed validation file.
-    FileNotFoundError
-        A result file that does not exist.
-
-    Warns
-    -----
-    ReportWarning
-        For each part left out, once per reason.
+    """The HTML text of a report of one or more calibration results: what
+    :func:`write_report` writes, with the same parameters.
     """
     if isinstance(results, (str, Path)) or hasattr(results, "data_vars"):
         results = [results]  # one result, as calibrate() returns it or as a path
@@ -822,30 +780,95 @@ def build_report(
     )
 
 
-def write_report(results, out, **kwargs) -> Path:
-    """Write the report of :func:`build_report` to ``out``, atomically.
+def write_report(
+    results,
+    out,
+    *,
+    validation=(),
+    pixel=None,
+    figures_dir=None,
+    progress=True,
+    command=None,
+    db=None,
+    camera=None,
+) -> Path:
+    """Write the HTML report of one or more calibration results to ``out``, atomically.
+
+    The report opens with each result's verdict and its medians, then the warnings, the
+    goodness of fit, the figures (maps, histograms against the noise model, the gain
+    curve), the bead validation and the camera's history where given, and the
+    provenance of every input (the report page of the docs shows one).
 
     Parameters
     ----------
     results : xarray.Dataset, str or Path, or a sequence of them
-        As in :func:`build_report`.
+        Results as :func:`emccdcal.calibrate` returns them, or ``calibration.nc`` files
+        (or their directories).
     out : str or Path
         The HTML file (its directory is created); an existing directory gets
         ``report.html`` inside it.
-    **kwargs
-        ``validation``, ``pixel``, ``figures_dir``, ``progress``, ``command``, ``db``,
-        ``camera`` of
-        :func:`build_report`.
+    validation : sequence of (str or Path), optional
+        Bead-validation directories (``emccdcal validate -o DIR``: ``validation.json``,
+        ``intensities.nc``). One without ``validation.json`` is left out with a note.
+    pixel : (int, int), optional
+        Sensor (row, col) index (pixel) of the single-pixel figures; default the centre
+        (:func:`emccdcal.report.figures.default_pixel`).
+    figures_dir : str or Path, optional
+        Also write every figure there as PNG and SVG (``<figure id>.png``/``.svg``).
+    progress : bool, optional
+        A progress bar over the figures (default): in a notebook or on a terminal; none
+        in a pipe.
+    command : str, optional
+        The command line, recorded in the provenance.
+    db : str or Path, optional
+        A calibration database (:mod:`emccdcal.export.database`): the report then shows
+        the history of each result's camera (its calibrations and gain checks, and the
+        findings of :func:`~emccdcal.export.database.compare`).
+    camera : str, optional
+        The cameras' serial number where their files record none (with ``db``).
 
     Returns
     -------
     Path
         The file written.
+
+    Raises
+    ------
+    ValueError
+        An input that is not an emccdcal result or is from an incompatible version
+        (:func:`emccdcal.result.load`, naming the file), or a malformed validation file.
+    FileNotFoundError
+        A result file that does not exist.
+
+    Warns
+    -----
+    ReportWarning
+        For each part left out, once per reason.
+
+    Examples
+    --------
+    >>> import tempfile, emccdcal
+    >>> work = tempfile.mkdtemp()
+    >>> sim = emccdcal.simulate_gain_series(
+    ...     f"{work}/gs", rows=4, cols=4, frames=400, setpoints=(1, 10), seed=1, progress=False
+    ... )
+    >>> ds = emccdcal.calibrate(sim.manifest, e_per_adu=sim.truth["e_per_adu"], progress=False)
+    >>> emccdcal.write_report(ds, f"{work}/report.html", progress=False).name
+    'report.html'
     """
     out = Path(out)
     if out.is_dir():
         out = out / REPORT_FILE
-    text = build_report(results, **kwargs)
+    text = build_report(
+        results,
+        validation=validation,
+        pixel=pixel,
+        figures_dir=figures_dir,
+        progress=progress,
+        command=command,
+        db=db,
+        camera=camera,
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, text)
     return out

@@ -284,6 +284,16 @@ def simulate_beads(
     Returns
     -------
     SimulatedSeries
+
+    Examples
+    --------
+    >>> import tempfile, emccdcal
+    >>> beads = emccdcal.simulate_beads(
+    ...     tempfile.mkdtemp(), beads=3, setpoints=(1, 10), rows=40, cols=40, frames=20,
+    ...     seed=1, progress=False,
+    ... )
+    >>> len(beads.truth["beads"])
+    3
     """
     camera = Camera.of(camera, CAMERA_DEFAULTS, **camera_options)
     opts = _options(camera, seed) | {"setpoints": setpoints, "offsets": offsets}

@@ -137,6 +137,16 @@ class Camera:
         ADC resolution, bits (1–16; 16): counts are clipped to ``[0, 2**adc_bits − 1]``.
     cascade_method : {"pmf", "stages"}
         Exact cascade sampler (:func:`emccdcal.model.cascade.sample_cascade`).
+
+    Examples
+    --------
+    >>> import emccdcal, tempfile
+    >>> camera = emccdcal.Camera(rows=4, cols=8, frames=500, e_per_adu=4.0)
+    >>> camera.shape, round(camera.excess_noise_factor(300), 3)  # F² of a 536-stage register
+    ((4, 8), 1.976)
+    >>> sim = emccdcal.simulate_gain_series(
+    ...     tempfile.mkdtemp(), camera=camera, setpoints=(1, 10), seed=1, progress=False
+    ... )  # doctest: +SKIP
     """
 
     rows: int = _DEFAULTS["rows"]

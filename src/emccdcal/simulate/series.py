@@ -454,6 +454,16 @@ def simulate_gain_series(
     Returns
     -------
     SimulatedSeries
+
+    Examples
+    --------
+    >>> import tempfile, emccdcal
+    >>> sim = emccdcal.simulate_gain_series(
+    ...     tempfile.mkdtemp(), rows=4, cols=4, frames=200, setpoints=(1, 10, 100), seed=1,
+    ...     progress=False,
+    ... )
+    >>> sim.manifest.name, [a["em_gain_setpoint"] for a in sim.truth["acquisitions"]]
+    ('manifest.toml', [1.0, 10.0, 100.0])
     """
     if frames is not None and np.ndim(frames) == 0:  # the camera's own field
         camera_options, frames = camera_options | {"frames": frames}, None
@@ -522,6 +532,17 @@ def simulate_intensity_series(
     Returns
     -------
     SimulatedSeries
+
+    Examples
+    --------
+    >>> import tempfile, emccdcal
+    >>> sim = emccdcal.simulate_intensity_series(
+    ...     tempfile.mkdtemp(), levels=(2000, 8000), rows=4, cols=4, frames=200, seed=1,
+    ...     progress=False,
+    ... )
+    >>> phi = emccdcal.calibrate(sim.manifest, "is-adu", progress=False)
+    >>> phi.e_per_adu.dims, sim.truth["e_per_adu"]
+    (('row', 'col'), 3.859)
     """
     camera = Camera.of(camera, **camera_options)
     opts = _options(camera, seed)
