@@ -51,7 +51,12 @@ pytestmark = pytest.mark.skipif(not (ROOT / "docs").is_dir(), reason="not a sour
 # where the key ends in "$".
 NOT_RUN = {
     "make ": "the Makefile's own targets: CI runs `make test` and `make docs`, test_cli the demo",
-    "pip install": "an install from the package index",
+    "pip install": "an install into the reader's environment",
+    "emccdcal scan session/$": "the example plug-in package installed (tests/test_plugins.py "
+    "builds it from docs/plugins.md and runs these commands)",
+    "emccdcal calibrate session/manifest.toml -o result": "the example plug-in package",
+    "emccdcal export result --to toyloc": "the example plug-in package",
+    "emccdcal audit toyloc/toyloc.json": "the example plug-in package",
     "emccdcal calibrate gs/manifest.toml -m gs -o out --scheduler tcp://": "a Dask "
     "cluster at a named host (tests/test_streaming.py starts a local one)",
     "emccdcal calibrate gs/manifest.toml -m gs -o out --device cuda": "an NVIDIA GPU",
@@ -128,21 +133,27 @@ def _normal(line: str, numbers: bool) -> str:
     return line if numbers else re.sub(r"[-+]?\d+(\.\d+)?(e[-+]?\d+)?", "#", line)
 
 
-def missing_output(shown: list[str], printed: str, numbers: bool) -> list[str]:
+def missing_output(shown: list[str], printed, numbers: bool) -> list[str]:
     """The lines a page shows for a command that it did not print, in order ("…" stands
-    for lines left out)."""
-    got = [_normal(line, numbers) for line in printed.splitlines()]
-    missing, at = [], 0
+    for lines left out). ``printed`` is the text, or the texts of the streams a terminal
+    shows interleaved (stdout, stderr): each shown line is looked for in the order of its
+    own stream, as a terminal keeps each stream's order but not their interleaving."""
+    streams = [printed] if isinstance(printed, str) else list(printed)
+    got = [[_normal(line, numbers) for line in text.splitlines()] for text in streams]
+    at = [0] * len(got)
+    missing = []
     for line in shown:
         if not line or line == "…":
             continue
         # "…" within a line stands for the words left out of it
         want = re.compile(".*".join(map(re.escape, _normal(line, numbers).split("…"))))
-        hit = next((j for j in range(at, len(got)) if want.fullmatch(got[j])), None)
-        if hit is None:
-            missing.append(line)
+        for k, lines in enumerate(got):
+            hit = next((j for j in range(at[k], len(lines)) if want.fullmatch(lines[j])), None)
+            if hit is not None:
+                at[k] = hit + 1
+                break
         else:
-            at = hit + 1
+            missing.append(line)
     return missing
 
 
@@ -173,7 +184,7 @@ def test_every_excuse_still_names_a_command_of_the_docs():
 
 
 # The pages whose commands read the published ProEM folders (ADU/, gain-GS/).
-ON_REAL_DATA = {"first-calibration.md", "formats.md"}
+ON_REAL_DATA = {"first-calibration.md", "formats.md", "index.md"}
 
 
 # --- the world the docs' commands run in -------------------------------------------------
@@ -387,7 +398,7 @@ def test_the_examples_of_a_page_run_as_written(page, world, tmp_path, request):
         seconds.append((r["seconds"], text))
         argv = _shell(_stand_in(text))
         exact = real is not None or argv[0] == "plan"  # the page's own data, or none
-        lost = missing_output(shown, r["out"] + r["err"], numbers=exact)
+        lost = missing_output(shown, (r["out"], r["err"]), numbers=exact)
         if lost:
             failures.append(f"{where}: `{text}` did not print, as the page shows: {lost}")
         if code not in (0, 1):

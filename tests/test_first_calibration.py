@@ -161,7 +161,7 @@ def test_a_notebook_sees_one_warning_of_each_kind_and_can_silence_them_all(real_
     assert done.returncode == 0, done.stderr[-3000:]
     calls = json.loads(done.stdout.strip().splitlines()[-1])
     for call in calls:
-        assert call["all_ours"] and call["verdict"] == "stands", call
+        assert call["all_ours"] and call["verdict"].startswith("stands"), call
         assert len(call["kinds"]) == len(set(call["kinds"])), call  # one per kind
         assert call["kept"] >= len(call["kinds"])
     assert sum(c["kept"] > len(c["kinds"]) for c in calls), calls  # some were merged

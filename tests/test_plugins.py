@@ -14,6 +14,7 @@ import re
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,75 +22,29 @@ import tifffile
 
 from emccdcal.simulate.series import simulate_gain_series
 
-READER = '''
-"""A toy camera format: b"RAWX", then frames, rows, cols (uint32) and the EM-gain
-set-point (float32), then the frames as little-endian uint16."""
-import struct
-import numpy as np
-from emccdcal.data.settings import CameraSettings
-
-SUFFIXES = (".rawx",)
-_HEAD = struct.Struct("<4sIIIf")
+DOCS_PAGE = Path(__file__).resolve().parents[1] / "docs" / "plugins.md"
+if not DOCS_PAGE.is_file():
+    pytest.skip(
+        "the example package is on docs/plugins.md: not a source tree", allow_module_level=True
+    )
 
 
-def write(path, frames, em_gain):
-    with open(path, "wb") as f:
-        f.write(_HEAD.pack(b"RAWX", *frames.shape, em_gain))
-        f.write(frames.astype("<u2").tobytes())
+def _example(path: str) -> str:
+    """The file ``path`` of docs/plugins.md's example package, as the page shows it."""
+    text = DOCS_PAGE.read_text(encoding="utf-8")
+    block = re.search(rf"^```\w+\n# {re.escape(path)}\n(.*?)^```", text, re.M | re.S)
+    assert block, f"docs/plugins.md shows no {path}"
+    return block.group(1)
 
 
-def _head(path):
-    with open(path, "rb") as f:
-        magic, n, rows, cols, gain = _HEAD.unpack(f.read(_HEAD.size))
-    if magic != b"RAWX":
-        raise ValueError("not a RAWX file")
-    return (n, rows, cols), gain
-
-
-def header(path):
-    shape, _ = _head(path)
-    return shape, np.dtype("<u2"), _HEAD.size, None
-
-
-def settings(path):
-    return CameraSettings(em_gain_setpoint=float(_head(path)[1]))
-'''
-
-TOOL = '''
-"""ToyLoc, a localization tool that reads photoelectrons per ADU and a baseline."""
-import json
-from emccdcal.export.audit import Field, Reading
-from emccdcal.plugins import Tool
-
-
-def write(cal, setpoint, values, out, qe, pixel_size_nm, camera_name):
-    path = out / "toyloc.json"
-    pe = values["e_per_adu"]["median"] / values["em_gain"]["median"]
-    path.write_text(json.dumps({"toyloc": {"photoelectrons_per_adu": pe,
-                                           "baseline_adu": values["offset"]["median"]}}))
-    return [path]
-
-
-def read(path, text, doc, setpoint, tool_gain):
-    cam = doc["toyloc"]
-    pe, baseline = float(cam["photoelectrons_per_adu"]), float(cam["baseline_adu"])
-    return [Reading("toyloc", "toyloc", (Field("baseline_adu", baseline, "offset"),
-                                         Field("photoelectrons_per_adu", pe, None)),
-                    pe, "photoelectrons_per_adu", baseline)]
-
-
-TOOL = Tool("toyloc", "ToyLoc", write, read,
-            lambda path, text, doc: isinstance(doc, dict) and "toyloc" in doc)
-'''
-
-ENTRY_POINTS = """
-[emccdcal.readers]
-rawx = emccdcal_toy.rawx
-
-[emccdcal.tools]
-toyloc = emccdcal_toy.toyloc:TOOL
-broken = emccdcal_toy.missing:TOOL
-"""
+READER, TOOL = _example("emccdcal_toy/rawx.py"), _example("emccdcal_toy/toyloc.py")
+_PYPROJECT = _example("emccdcal-toy/pyproject.toml")
+# the entry points pip writes from the page's pyproject.toml, and a broken one of ours
+ENTRY_POINTS = (
+    re.sub(r'\[project\.entry-points\."([\w.]+)"\]', r"[\1]", _PYPROJECT.split("\n\n", 1)[1])
+    .replace('"', "")
+    .replace("toyloc:TOOL\n", "toyloc:TOOL\nbroken = emccdcal_toy.missing:TOOL\n")
+)
 
 
 @pytest.fixture(scope="module")

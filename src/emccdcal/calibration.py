@@ -1056,13 +1056,21 @@ def _add_findings(ds, manifest, used, parts, tiles) -> None:
         warnings.warn(w, stacklevel=3, category=getattr(w, "category", DataQualityWarning))
     if report is not None:
         ds.attrs["quality"] = json.dumps(report)
-    # a finding after which the result does not stand makes the verdict doubtful: its
-    # subject and what was found (the warning says what to do)
-    doubts = [": ".join(w.split(": ")[:2]) for w in messages if getattr(w, "doubtful", False)]
-    if doubts:
-        before = str(ds.attrs.get("verdict", "stands")).removeprefix("doubtful: ")
-        found = "; ".join(doubts) + " (its warning says what to do)"
-        ds.attrs["verdict"] = "doubtful: " + found + ("" if before == "stands" else "; " + before)
+
+    # a finding after which the result does not stand makes the verdict doubtful, one that
+    # asks for a check says so: its subject and what was found (the warning says what to do)
+    def subjects(flag):
+        return [": ".join(w.split(": ")[:2]) for w in messages if getattr(w, flag, False)]
+
+    before = str(ds.attrs.get("verdict", "stands"))
+    if subjects("doubtful"):
+        found = "; ".join(subjects("doubtful")) + " (its warning says what to do)"
+        rest = "" if before == "stands" else "; " + before.removeprefix("doubtful: ")
+        ds.attrs["verdict"] = "doubtful: " + found + rest
+    elif subjects("caution") and before == "stands":  # stands, once a check is made
+        ds.attrs["verdict"] = (
+            "stands; check first " + "; ".join(subjects("caution")) + " (its warning says how)"
+        )
 
 
 def _joined(parts) -> dict:

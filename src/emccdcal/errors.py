@@ -149,34 +149,51 @@ class PluginWarning(EmccdcalWarning):
 
 
 class Finding(str):
-    """A message, with the warning class it is issued as (``category``) and whether it
-    makes the result doubtful (``doubtful``): a check's findings are text (kept in JSON
-    reports) that also know their kind."""
+    """A message, with the warning class it is issued as (``category``), and whether it
+    makes the result doubtful (``doubtful``) or asks for a check before the result is
+    trusted (``caution``): a check's findings are text (kept in JSON reports) that also
+    know their kind and weight."""
 
     category: type = EmccdcalWarning
     doubtful: bool = False
+    caution: bool = False
 
-    def __new__(cls, text: str, category: type = EmccdcalWarning, *, doubtful: bool = False):
+    def __new__(
+        cls,
+        text: str,
+        category: type = EmccdcalWarning,
+        *,
+        doubtful: bool = False,
+        caution: bool = False,
+    ):
         finding = super().__new__(cls, text)
-        finding.category, finding.doubtful = category, doubtful
+        finding.category, finding.doubtful, finding.caution = category, doubtful, caution
         return finding
+
+
+def _weight(message) -> int:
+    """Doubtful findings first, then those that ask for a check, then the rest."""
+    return -2 * bool(getattr(message, "doubtful", False)) - bool(getattr(message, "caution", False))
 
 
 def issue_once_per_kind(caught) -> None:
     """Issue again the warnings caught during one call, at most one per class.
 
-    The first message of each class is issued as it is; where there were more, it names
-    what else was found of that kind, each of which is in full in the result's
+    The weightiest message of each class (a :class:`Finding` that makes the result
+    doubtful, then one that asks for a check) is issued as it is; where there were more,
+    it names what else was found of that kind, each of which is in full in the result's
     ``warnings`` attribute. The warnings are issued from "emccdcal" rather than the
     caller's line, so that neither a terminal nor a notebook echoes that line.
     """
     import warnings
 
     kinds: dict = {}
-    for w in caught:
-        kinds.setdefault(w.category, dict.fromkeys([]))[str(w.message)] = None
-    for category, messages in kinds.items():
-        first, *more = messages
+    for w in caught:  # the text given to warnings.warn (a Finding knows its weight)
+        given = w.message.args[0] if getattr(w.message, "args", None) else w.message
+        kinds.setdefault(w.category, {}).setdefault(str(w.message), given)
+    for category, found in kinds.items():
+        # the weightiest of a kind is the one shown in full
+        first, *more = (str(m) for m in sorted(found.values(), key=_weight))
         if more:
             # each message names its subject before its first ": " (an acquisition, a file)
             subjects = [m.split(": ", 1)[0] for m in more]

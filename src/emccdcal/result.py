@@ -554,8 +554,9 @@ def summarize(ds: xr.Dataset, seconds: float | None = None) -> dict:
 
 
 def verdict_line(ds: xr.Dataset) -> str:
-    """The one line that says whether a calibration stands, or why it is doubtful and
-    what to check (``ds.attrs["verdict"]``, with its number of warnings).
+    """The one line that says whether a calibration stands (or stands once a check is
+    made), or why it is doubtful and what to check (``ds.attrs["verdict"]``, with its
+    number of warnings).
 
     >>> import xarray as xr
     >>> verdict_line(xr.Dataset(attrs={"verdict": "stands", "warnings": ["a", "b"]}))
@@ -563,11 +564,16 @@ def verdict_line(ds: xr.Dataset) -> str:
     """
     verdict = str(ds.attrs.get("verdict", "stands"))
     n = len(np.atleast_1d(ds.attrs.get("warnings", [])))
-    if verdict != "stands":
+    if is_doubtful(ds):
         return f"verdict: the calibration is {verdict}"
-    return "verdict: the calibration stands" + (
+    return f"verdict: the calibration {verdict}" + (
         f"; {n} warning{'s' * (n != 1)}, each saying what it changes" if n else ""
     )
+
+
+def is_doubtful(ds: xr.Dataset) -> bool:
+    """Whether a result's verdict is "doubtful" (the command line then exits 1)."""
+    return str(ds.attrs.get("verdict", "stands")).startswith("doubtful")
 
 
 # --------------------------------------------------------------------------------------

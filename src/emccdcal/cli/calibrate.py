@@ -177,7 +177,7 @@ def run(args) -> int:
     _common.print_warnings(caught)
     # the last line: the verdict, after the numbers and findings it is about
     line = comment(result.verdict_line(ds))
-    if ds.attrs.get("verdict", "stands") != "stands":
+    if result.is_doubtful(ds):
         print(f"emccdcal calibrate: {line.removeprefix('verdict: ')}", file=sys.stderr)
         return 1
     if not args.quiet:

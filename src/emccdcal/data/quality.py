@@ -921,6 +921,12 @@ def _leave_out(a: dict) -> str:
     return f"delete its [[acquisition]] table ({which}) from the manifest and calibrate again"
 
 
+#: How a drift finding says that its bias exceeds the estimate's standard error: of an
+#: estimate pooled over levels (a check to make), or of the acquisition's own.
+_MAY_NOT_STAND = "the result may not stand"
+_DOES_NOT_STAND = "the result does not stand as it is"
+
+
 def _doubtful(text: str) -> Finding:
     """A finding after which the result does not stand as it is (the verdict says so)."""
     return Finding(text, DataQualityWarning, doubtful=True)
@@ -983,7 +989,7 @@ def _drift_effect(a: dict) -> str:
             + (
                 "the result stands"
                 if times < 1
-                else "the result may not stand: leave this acquisition out to see how far φ "
+                else f"{_MAY_NOT_STAND}: leave this acquisition out to see how far φ "
                 f"moves ({_leave_out(a)}); if it moves beyond its standard error, steady "
                 "the source and record again"
             )
@@ -991,7 +997,7 @@ def _drift_effect(a: dict) -> str:
     return (
         head
         + f"; that is {se}, so "
-        + ("the result stands" if times < 1 else f"the result does not stand as it is: {fix}")
+        + ("the result stands" if times < 1 else f"{_DOES_NOT_STAND}: {fix}")
     )
 
 
@@ -1009,12 +1015,15 @@ def _findings(a: dict) -> list[str]:
             "more to check it"
         )
     elif d["drifts"]:
+        effect = _drift_effect(a)
         out.append(
             Finding(
                 f"{name}: the frame mean drifts by {d['drift_pct']:+.2f} ± "
                 f"{d['drift_pct_se']:.2f} % over the acquisition (p = {d['pvalue']:.1g}): "
-                f"the illumination or the EM gain is not steady. {_drift_effect(a)}.",
+                f"the illumination or the EM gain is not steady. {effect}.",
                 DriftWarning,
+                doubtful=_DOES_NOT_STAND in effect,
+                caution=_MAY_NOT_STAND in effect,
             )
         )
     off = a.get("offset")
