@@ -720,7 +720,8 @@ def _check_domain(ds: xr.Dataset, p: Path) -> None:
 
 
 def load(path) -> xr.Dataset:
-    """Read a result written by :func:`save`, checking that it is one.
+    """Read a result that :func:`emccdcal.calibrate` (``out=``) or ``emccdcal calibrate`` wrote,
+    checking that it is one.
 
     Parameters
     ----------
