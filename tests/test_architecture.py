@@ -452,3 +452,116 @@ def test_every_warning_of_the_package_is_an_emccdcal_warning():
                 category = getattr(module, given.id, None) or getattr(errors, given.id)
                 assert issubclass(category, EmccdcalWarning), where
     assert calls > 30
+
+
+def _module_graph() -> dict[str, set[str]]:
+    """Module → the package's modules it imports (at any depth: inside functions too)."""
+    modules = {}
+    for path in SRC.rglob("*.py"):
+        name = ".".join(("emccdcal",) + path.relative_to(SRC).with_suffix("").parts)
+        modules[name.removesuffix(".__init__")] = path
+    graph = {}
+    for name, path in modules.items():
+        deps = set()
+        for imported in _imports(path):
+            parts = imported.split(".")  # "pkg.mod.name": the longest that is a module
+            found = next(
+                (
+                    ".".join(parts[:k])
+                    for k in range(len(parts), 0, -1)
+                    if ".".join(parts[:k]) in modules
+                ),
+                None,
+            )
+            if found is not None and found != name:
+                deps.add(found)
+        graph[name] = deps
+    return graph
+
+
+def test_no_import_goes_round_in_a_circle():
+    """No module reaches itself through the modules it imports (imports inside functions
+    count: a circle broken only by a late import is a circle all the same)."""
+    graph = _module_graph()
+    state, circles = {}, []
+
+    def visit(module, trail):
+        state[module] = "open"
+        for dep in sorted(graph[module]):
+            if state.get(dep) == "open":
+                circles.append(trail[trail.index(dep) :] + [dep])
+            elif dep not in state:
+                visit(dep, [*trail, dep])
+        state[module] = "done"
+
+    for module in sorted(graph):
+        if module not in state:
+            visit(module, [module])
+    assert not circles, circles
+
+
+def _tool_modules():
+    return sorted(p for p in (SRC / "export" / "toolfiles").glob("*.py") if p.name != "__init__.py")
+
+
+@pytest.mark.parametrize("path", _tool_modules(), ids=lambda p: p.stem)
+def test_a_tool_module_uses_the_tool_kit_and_no_private_name(path):
+    """emccdcal's own tools live by the contract a stranger's must: what they need of the
+    package is public (the tool kit, the plug-in's Tool, errors, results), no private
+    module nor private name of another module."""
+    tree = _tree(path)
+    bad = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module != "__future__":
+            module = node.module or ""
+            if any(part.startswith("_") for part in module.split(".")):
+                bad.append(f"from {'.' * node.level}{module} import ...")
+            bad += [f"imports {a.name}" for a in node.names if a.name.startswith("_")]
+        elif isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name):
+            if node.attr.startswith("_") and not node.attr.startswith("__"):
+                bad.append(f"{node.value.id}.{node.attr}")
+    own = {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)}  # its own privates are fine
+    bad = [b for b in bad if b.split(".")[0] not in own or "import" in b]
+    assert not bad, f"{path.name}: {sorted(set(bad))}"
+    assert "toolkit" in {
+        a.name for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) for a in n.names
+    }
+
+
+def test_no_tool_is_named_outside_its_own_module():
+    """Generic code asks a tool (``Tool.write_modes``, ``all_setpoints``), never tests its
+    name: no string constant that is one of emccdcal's own tools' names outside that
+    tool's module and defaults.py (docstrings and the names of extras aside)."""
+    from emccdcal import plugins
+
+    own = {
+        name: tool
+        for name, tool in plugins.load(plugins.TOOLS).items()
+        if tool.write.__module__.startswith("emccdcal.")
+    }
+    homes = {name: tool.write.__module__ for name, tool in own.items()}
+    found = []
+    for path in SRC.rglob("*.py"):
+        module = ".".join(("emccdcal",) + path.relative_to(SRC).with_suffix("").parts)
+        if path.name == "defaults.py":
+            continue
+        tree = _tree(path)
+        docstrings = {
+            id(n.body[0].value)
+            for n in ast.walk(tree)
+            if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef, ast.AsyncFunctionDef))
+            and n.body
+            and isinstance(n.body[0], ast.Expr)
+            and isinstance(n.body[0].value, ast.Constant)
+        }
+        extras = {  # the name of an extra ("fits"), which a tool may share
+            id(a)
+            for n in ast.walk(tree)
+            if isinstance(n, ast.Call) and getattr(n.func, "id", None) == "install_hint"
+            for a in n.args
+        }
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Constant) and id(node) not in docstrings | extras:
+                if node.value in homes and homes[node.value] != module:
+                    found.append(f"{path.relative_to(SRC)}:{node.lineno}: {node.value!r}")
+    assert not found, found

@@ -37,6 +37,9 @@ EM_MODELS = ("gamma", "cascade")
 #: The register model of a run that neither its caller nor its manifest names: the exact
 #: register, a real camera's (``em_model="gamma"`` reproduces the paper's numbers).
 DEFAULT_EM_MODEL = "cascade"
+#: The localization tool a graphical front offers first (the most used of those emccdcal
+#: exports to); any registered tool can be chosen.
+DEFAULT_TOOL = "picasso"
 #: The paper's register approximation, under which its published numbers are reproduced.
 PAPER_EM_MODEL = "gamma"
 #: Stages of the register used by default: Hirsch et al.'s simulations (docs/simulation.md).

@@ -129,11 +129,11 @@ class Tool:
     write : callable
         ``write(calibration, setpoint, values, out, qe, pixel_size_nm, camera_name)`` →
         list of the paths written in the folder ``out``; ``values`` are
-        :func:`emccdcal.export.tools.camera_values` at ``setpoint`` (both None for a
+        :func:`emccdcal.export.toolkit.camera_values` at ``setpoint`` (both None for a
         format of every set-point).
     read : callable or None
         ``read(path, text, doc, setpoint, tool_gain)`` → list of
-        :class:`emccdcal.export.audit.Reading`: the camera entries of the tool's file
+        :class:`emccdcal.export.toolkit.Reading`: the camera entries of the tool's file
         (``text`` its text where it is one, ``doc`` its JSON or YAML where it is one).
     recognizes : callable or None
         ``recognizes(path, text, doc)`` → whether a file is this tool's.
@@ -143,6 +143,15 @@ class Tool:
         ``read_file(path, setpoint)`` → list of readings, or None where the file is not
         one it reads: for a tool whose binary files (a MATLAB ``.mat``) need more than
         their tree of values; asked before the others read such a file.
+    write_modes : callable or None
+        ``write_modes(rows, setpoint, out, pixel_size_nm, camera_name)`` → the paths
+        written, for a tool whose one file holds a table of read-out modes: ``rows`` are
+        ``(calibration, set-point, values)``, one per mode
+        (:func:`emccdcal.export.tools.export_modes`). None: one mode per file.
+
+    The parts a tool's module is made of (:class:`~emccdcal.export.toolkit.Field`,
+    :class:`~emccdcal.export.toolkit.Reading`, the numbers at a set-point, the writers)
+    are in :mod:`emccdcal.export.toolkit`.
     """
 
     name: str
@@ -152,6 +161,7 @@ class Tool:
     recognizes: Callable | None = None
     all_setpoints: bool = False
     read_file: Callable | None = None
+    write_modes: Callable | None = None
 
 
 def names(group: str) -> tuple[str, ...]:

@@ -54,7 +54,8 @@ def add_parser(subparsers):
 
 
 def run(args) -> int:
-    from ..export.tools import export, export_modes, readout_mode
+    from ..export.toolkit import readout_mode
+    from ..export.tools import export, export_modes
     from ..result import load_calibration
 
     options = dict(

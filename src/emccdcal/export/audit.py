@@ -35,7 +35,7 @@ from .._output import comment
 from .._util import one_line
 from ..errors import EmccdcalError, InputError, OptionError
 from ..result import format_setpoint, load_calibration
-from .tools import camera_values, pick_setpoint
+from .toolkit import QUANTITIES, Field, Reading, camera_values, mat_raw, pick_setpoint
 
 __all__ = [
     "TOOL_NAMES",  # noqa: F822 (from the plug-ins, by __getattr__)
@@ -60,45 +60,6 @@ def __getattr__(name):
     if name == "TOOL_NAMES":  # the tools an audit reads: --tool's name → the tool's own
         return {n: t.title for n, t in _readable().items()}
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-#: What a field can stand for: the calibrated quantity, its unit, how to say it.
-_QUANTITIES = {
-    "offset": ("ADU", "offset"),
-    "e_per_adu": ("e-/ADU", "phi"),
-    "em_gain": ("", "EM gain"),
-    "adu_per_e_total": ("ADU/e-", "g/phi"),
-    "read_noise": ("ADU", "read noise"),
-    "read_noise_e": ("e-", "read noise x phi"),
-}
-
-
-@dataclass(frozen=True)
-class Field:
-    """One number of a tool's file: its name there, value, and the calibrated quantity
-    it stands for (a key of ``_QUANTITIES``, or ``"qe"``, or None: not comparable)."""
-
-    name: str
-    value: float
-    quantity: str | None
-    note: str = ""
-
-
-@dataclass(frozen=True)
-class Reading:
-    """One camera entry of a tool's file (one read-out mode of a nested table).
-
-    ``pe_per_adu`` is the photoelectrons per ADU (after the baseline) the tool's fields
-    give together, QE aside; ``baseline`` the ADU it subtracts (None: not in the file).
-    """
-
-    tool: str
-    where: str
-    fields: tuple[Field, ...]
-    pe_per_adu: float
-    formula: str
-    baseline: float | None = None
-    qe: float | None = None
 
 
 @dataclass
@@ -151,77 +112,9 @@ class Audit:
 # --------------------------------------------------------------------------------------
 # Reading the tools' files
 # --------------------------------------------------------------------------------------
-def _number(value, what, path):
-    if isinstance(value, bool):  # YAML's true is not 1
-        raise InputError(f"'{path}': {what} is {value!r}, not a number")
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"'{path}': {what} is {value!r}, not a number") from None
-    if not math.isfinite(x):
-        raise InputError(f"'{path}': {what} is {value!r}, not a finite number")
-    return x
-
-
-def _positive(value, what, path):
-    x = _number(value, what, path)
-    if x <= 0:
-        raise InputError(f"'{path}': {what} is {value!r}; it must be > 0")
-    return x
-
-
-def _qe(value, what, path):
-    """A quantum efficiency: a number in (0, 1] (a percentage or a sign error refused)."""
-    x = _number(value, what, path)
-    if not 0 < x <= 1:
-        raise InputError(f"'{path}': {what} is {value!r}; a quantum efficiency lies in (0, 1]")
-    return x
-
-
-def _leaves(tree, path=()):
-    """(keys, value) of every non-mapping leaf of nested mappings."""
-    if isinstance(tree, dict):
-        for key, value in tree.items():
-            yield from _leaves(value, (*path, str(key)))
-    else:
-        yield path, tree
-
-
-def _find_tables(tree, keys, path=()):
-    """(path, table) of every mapping in ``tree`` holding all of ``keys``."""
-    if isinstance(tree, dict):
-        if all(k in tree for k in keys):
-            yield path, tree
-        for key, value in tree.items():
-            yield from _find_tables(value, keys, (*path, str(key)))
-    elif isinstance(tree, list):
-        for i, value in enumerate(tree):
-            yield from _find_tables(value, keys, (*path, f"[{i}]"))
-
-
-def _scalar(value):
-    """A MATLAB value read by SciPy (an array of one element) as a Python scalar."""
-    arr = np.asarray(value)
-    if arr.size != 1:
-        return value
-    item = arr.reshape(-1)[0]
-    return item.item() if hasattr(item, "item") else item
-
-
-def _mat_raw(path, squeeze=False):
-    """A MATLAB file's variables as SciPy reads them (structs as objects)."""
-    from scipy.io import loadmat
-
-    _files.check_mat(path)
-    try:
-        return loadmat(path, squeeze_me=squeeze, struct_as_record=False)
-    except Exception as exc:  # noqa: BLE001 - a damaged file is one line
-        raise InputError(f"'{path}': not a readable MATLAB file ({exc})") from None
-
-
 def _mat_tree(path):
     """A MATLAB file as nested dicts (structs become dicts)."""
-    raw = _mat_raw(path, squeeze=True)
+    raw = mat_raw(path, squeeze=True)
 
     def convert(value, depth=0):
         if depth > 20:
@@ -335,7 +228,7 @@ def _parse_text(path: Path, text: str):
 # Comparing
 # --------------------------------------------------------------------------------------
 def _compare(reading: Reading, values: dict, setpoint, tolerance, offset_tolerance, qe):
-    truth = {k: values[k]["median"] for k in _QUANTITIES}
+    truth = {k: values[k]["median"] for k in QUANTITIES}
     # photoelectrons per ADU, from the same references as the tool's own rows: a tool
     # holding g/φ as one number (gdsc-smlm, storm-analysis) against the median over
     # pixels of g/φ, one holding φ and g against their medians, so that a file whose
@@ -354,8 +247,8 @@ def _compare(reading: Reading, values: dict, setpoint, tolerance, offset_toleran
                 f"{f.value:.6g} ADU; calibrated offset {truth['offset']:.6g} ADU: "
                 f"{diff:+.3g} ADU ({-diff * pe_per_adu:+.3g} e- per pixel and frame)" + note
             )
-        elif f.quantity in _QUANTITIES:
-            unit, what = _QUANTITIES[f.quantity]
+        elif f.quantity in QUANTITIES:
+            unit, what = QUANTITIES[f.quantity]
             rel = f.value / truth[f.quantity] - 1
             row["text"] = (
                 f"{f.value:.6g} {unit}".rstrip() + f"; calibrated {what} "

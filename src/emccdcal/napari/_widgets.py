@@ -32,7 +32,7 @@ from qtpy.QtCore import QObject, QTimer, Signal
 
 from .._output import atomic_write_text
 from .. import plugins
-from ..defaults import DEFAULT_EM_MODEL
+from ..defaults import DEFAULT_EM_MODEL, DEFAULT_TOOL
 from ..errors import Cancelled, EmccdcalError, OptionError, spelling
 
 __all__ = ["CalibrateWidget", "ApplyWidget", "GainCheckWidget"]
@@ -183,7 +183,9 @@ class CalibrateWidget(Container):
         self.warnings.native.setReadOnly(True)
         self.report_button = PushButton(text="Write the report")
         self.tool = ComboBox(
-            label="export to", choices=list(plugins.names(plugins.TOOLS)), value="picasso"
+            label="export to",
+            choices=list(plugins.names(plugins.TOOLS)),
+            value=DEFAULT_TOOL,
         )
         self.setpoint = LineEdit(label="set-point", value="")
         self.export_button = PushButton(text="Export")

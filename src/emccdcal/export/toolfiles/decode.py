@@ -4,11 +4,10 @@ reader, one plug-in.
 
 from __future__ import annotations
 
-from ..._output import atomic_write_text as _write_text
 from ...errors import InputError
 from ...plugins import Tool
-from .. import audit, tools
-from ..audit import Field, Reading
+from .. import toolkit
+from ..toolkit import Field, Reading
 
 
 def write(cal, s, v, out, qe, pixel_size_nm, name):
@@ -24,33 +23,37 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
     }
     if pixel_size_nm is not None:
         camera["px_size"] = [pixel_size_nm, pixel_size_nm]  # nm, x and y
-    text = tools._comment_lines(cal, s, v, qe, "# ") + tools._yaml({"Camera": camera})
-    return [_write_text(out / "decode-camera.yaml", text)]
+    text = toolkit.comment_lines(cal, s, v, qe, "# ") + toolkit.yaml_text({"Camera": camera})
+    return [toolkit.write_text(out / "decode-camera.yaml", text)]
 
 
 def _read_doc(doc, path):
     readings = []
-    for where, cam in audit._find_tables(doc, ("e_per_adu", "em_gain")):
+    for where, cam in toolkit.find_tables(doc, ("e_per_adu", "em_gain")):
         name = " > ".join(where) or "Camera"
-        phi = audit._positive(cam["e_per_adu"], f"{name}: e_per_adu", path)
+        phi = toolkit.positive(cam["e_per_adu"], f"{name}: e_per_adu", path)
         if cam["em_gain"] is None:
             gain, note = 1.0, "null: DECODE's sCMOS model, no EM gain"
         else:
-            gain, note = audit._positive(cam["em_gain"], f"{name}: em_gain", path), ""
+            gain, note = toolkit.positive(cam["em_gain"], f"{name}: em_gain", path), ""
         fields = [Field("e_per_adu", phi, "e_per_adu"), Field("em_gain", gain, "em_gain", note)]
         baseline = None
         if "baseline" in cam:
-            baseline = audit._number(cam["baseline"], f"{name}: baseline", path)
+            baseline = toolkit.number(cam["baseline"], f"{name}: baseline", path)
             fields.insert(0, Field("baseline", baseline, "offset"))
         if "read_sigma" in cam:
             fields.append(
                 Field(
                     "read_sigma",
-                    audit._number(cam["read_sigma"], "read_sigma", path),
+                    toolkit.number(cam["read_sigma"], "read_sigma", path),
                     "read_noise_e",
                 )
             )
-        qe = audit._qe(cam["qe"], f"{name}: qe", path) if cam.get("qe") is not None else None
+        qe = (
+            toolkit.quantum_efficiency(cam["qe"], f"{name}: qe", path)
+            if cam.get("qe") is not None
+            else None
+        )
         readings.append(
             Reading("decode", name, tuple(fields), phi / gain, "e_per_adu / em_gain", baseline, qe)
         )
@@ -68,6 +71,6 @@ TOOL = Tool(
     lambda path, text, doc, setpoint, tool_gain: _read_doc(doc, path),
     lambda path, text, doc: (
         isinstance(doc, dict)
-        and next(audit._find_tables(doc, ("e_per_adu", "em_gain")), None) is not None
+        and next(toolkit.find_tables(doc, ("e_per_adu", "em_gain")), None) is not None
     ),
 )

@@ -6,29 +6,28 @@ from __future__ import annotations
 
 import json
 
-from ..._output import atomic_write_text as _write_text
 from ...errors import InputError
 from ...plugins import Tool
-from .. import audit, tools
-from ..audit import Field, Reading
+from .. import toolkit
+from ..toolkit import Field, Reading
 
 
 def write(cal, s, v, out, qe, pixel_size_nm, name):
     """gdsc-smlm's ``Calibration`` message as protobuf JSON (``count_per_photon`` is the
     total gain QE·g/φ in counts per photon; ``read_noise`` and ``bias`` in counts)."""
     q = 1.0 if qe is None else qe
-    prov = tools._provenance(cal, s, qe)
+    prov = toolkit.provenance(cal, s, qe)
     sha = ",".join(r["sha256"][:12] for r in prov["results"])
     message = {
         "intensityCalibration": {
             "intensityUnit": "COUNT",
-            "countPerPhoton": tools._number(q * v["adu_per_e_total"]["median"]),
+            "countPerPhoton": toolkit.rounded(q * v["adu_per_e_total"]["median"]),
         },
         "cameraCalibration": {
             "cameraType": "EMCCD",
-            "readNoise": tools._number(v["read_noise"]["median"]),
-            "bias": tools._number(v["offset"]["median"]),
-            "quantumEfficiency": tools._number(q),
+            "readNoise": toolkit.rounded(v["read_noise"]["median"]),
+            "bias": toolkit.rounded(v["offset"]["median"]),
+            "quantumEfficiency": toolkit.rounded(q),
             # the one free-text field: the provenance (EMCCDs use no model)
             "cameraModelName": f"emccdcal {prov['emccdcal_version']} {prov['method']} sha256 {sha}",
         },
@@ -36,9 +35,9 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
     if pixel_size_nm is not None:
         message["distanceCalibration"] = {
             "distanceUnit": "PIXEL",
-            "nmPerPixel": tools._number(pixel_size_nm),
+            "nmPerPixel": toolkit.rounded(pixel_size_nm),
         }
-    return [_write_text(out / "gdsc-calibration.json", json.dumps(message, indent=2) + "\n")]
+    return [toolkit.write_text(out / "gdsc-calibration.json", json.dumps(message, indent=2) + "\n")]
 
 
 def _read_doc(doc, path):
@@ -53,9 +52,9 @@ def _read_doc(doc, path):
     cpp = get(intensity, "countPerPhoton", "count_per_photon")
     if cpp is None:
         raise InputError(f"'{path}': no countPerPhoton: not a gdsc-smlm Calibration")
-    cpp = audit._positive(cpp, "countPerPhoton", path)
+    cpp = toolkit.positive(cpp, "countPerPhoton", path)
     qe = get(camera, "quantumEfficiency", "quantum_efficiency")
-    qe = 1.0 if qe is None else audit._qe(qe, "quantumEfficiency", path)
+    qe = 1.0 if qe is None else toolkit.quantum_efficiency(qe, "quantumEfficiency", path)
     fields = [
         Field(
             "countPerPhoton", cpp / qe, "adu_per_e_total", f"QE x g/phi; divided by its QE {qe:g}"
@@ -63,11 +62,11 @@ def _read_doc(doc, path):
     ]
     baseline = get(camera, "bias")
     if baseline is not None:
-        baseline = audit._number(baseline, "bias", path)
+        baseline = toolkit.number(baseline, "bias", path)
         fields.insert(0, Field("bias", baseline, "offset"))
     noise = get(camera, "readNoise", "read_noise")
     if noise is not None:
-        fields.append(Field("readNoise", audit._number(noise, "readNoise", path), "read_noise"))
+        fields.append(Field("readNoise", toolkit.number(noise, "readNoise", path), "read_noise"))
     return [
         Reading("gdsc", "Calibration", tuple(fields), qe / cpp, "QE / countPerPhoton", baseline, qe)
     ]

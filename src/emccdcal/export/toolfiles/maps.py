@@ -9,12 +9,10 @@ import json
 
 import numpy as np
 
-from ..._output import atomic_write, atomic_write_text as _write_text
-from ..._util import install_hint
 from ...errors import OptionError
 from ...result import format_setpoint, pixel_statistics
 from ...plugins import Tool
-from .. import tools
+from .. import toolkit
 
 
 def _all_values(cal):
@@ -22,7 +20,7 @@ def _all_values(cal):
     doc = {}
     for s in cal.setpoints:
         if s in cal.offset:
-            doc[format_setpoint(s)] = tools.camera_values(cal, s)
+            doc[format_setpoint(s)] = toolkit.camera_values(cal, s)
         else:
             doc[format_setpoint(s)] = {
                 "e_per_adu": pixel_statistics(cal.e_per_adu),
@@ -34,7 +32,7 @@ def _all_values(cal):
 def write_json(cal, s, v, out, qe, pixel_size_nm, name):
     """Everything, every set-point, in our own names and units."""
     doc = {
-        "emccdcal": tools._provenance(cal, None, qe),
+        "emccdcal": toolkit.provenance(cal, None, qe),
         "camera": cal.camera,
         "units": {
             "e_per_adu": "e-/ADU",
@@ -51,7 +49,7 @@ def write_json(cal, s, v, out, qe, pixel_size_nm, name):
     }
     if pixel_size_nm is not None:
         doc["pixel_size_nm"] = pixel_size_nm
-    return [_write_text(out / "emccdcal-camera.json", json.dumps(doc, indent=2) + "\n")]
+    return [toolkit.write_text(out / "emccdcal-camera.json", json.dumps(doc, indent=2) + "\n")]
 
 
 def _maps(cal):
@@ -74,8 +72,8 @@ def write_fits(cal, s, v, out, qe, pixel_size_nm, name):
     try:
         from astropy.io import fits
     except ImportError:
-        raise OptionError("--to fits needs astropy: " + install_hint("fits")) from None
-    prov = tools._provenance(cal, None, qe)
+        raise OptionError("--to fits needs astropy: " + toolkit.install_hint("fits")) from None
+    prov = toolkit.provenance(cal, None, qe)
     primary = fits.PrimaryHDU()
     primary.header["CREATOR"] = f"emccdcal {prov['emccdcal_version']}"
     primary.header["METHOD"] = prov["method"]
@@ -92,14 +90,14 @@ def write_fits(cal, s, v, out, qe, pixel_size_nm, name):
         hdu.header["BUNIT"] = unit
         hdus.append(hdu)
     path = out / "emccdcal-maps.fits"
-    return [atomic_write(path, lambda p: fits.HDUList(hdus).writeto(p))]
+    return [toolkit.write_file(path, lambda p: fits.HDUList(hdus).writeto(p))]
 
 
 def write_tiff_maps(cal, s, v, out, qe, pixel_size_nm, name):
     """One float32 TIFF per map, its units and provenance in the description (JSON)."""
-    prov = tools._provenance(cal, None, qe)
+    prov = toolkit.provenance(cal, None, qe)
     return [
-        tools._write_tiff(out / f"{key}.tif", image, {"quantity": key, "units": unit, **prov})
+        toolkit.write_tiff(out / f"{key}.tif", image, {"quantity": key, "units": unit, **prov})
         for key, image, unit in _maps(cal)
     ]
 

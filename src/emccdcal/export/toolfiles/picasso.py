@@ -6,12 +6,11 @@ from __future__ import annotations
 
 import warnings
 
-from ..._output import atomic_write_text as _write_text, comment
 from ...errors import ExportWarning, InputError, OptionError
 from ...plugins import Tool
 from ...result import format_setpoint
-from .. import audit, tools
-from ..audit import Field, Reading
+from .. import toolkit
+from ..toolkit import Field, Reading
 
 
 def write(cal, s, v, out, qe, pixel_size_nm, name):
@@ -40,15 +39,15 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
         else ""
     )
     text = (
-        tools._comment_lines(cal, s, v, qe, "# ")
+        toolkit.comment_lines(cal, s, v, qe, "# ")
         + note
         + f"# Picasso's gain box takes integers: DefaultGain = {gain} for g = {g:.6g}, and\n"
         + f"# Sensitivity = e_per_adu * {gain} / g, so that Sensitivity / Gain = phi / g.\n"
         + "# Merge the Cameras entry into ~/.picasso/config.yaml. For the API, give\n"
         + "# camera_info = {Baseline, Sensitivity, Gain: DefaultGain} to localize().\n"
-        + tools._yaml({"Cameras": {tools._camera_name(cal, name): camera}})
+        + toolkit.yaml_text({"Cameras": {toolkit.camera_name(cal, name): camera}})
     )
-    return [_write_text(out / "picasso-config.yaml", text)]
+    return [toolkit.write_text(out / "picasso-config.yaml", text)]
 
 
 def write_modes(rows, s, out, pixel_size_nm, name):
@@ -60,7 +59,7 @@ def write_modes(rows, s, out, pixel_size_nm, name):
     amplifier), so Sensitivity / DefaultGain = φ / g in every mode. ``rows``: (calibration,
     set-point used, :func:`camera_values`) per mode."""
     cals = [c for c, _, _ in rows]
-    differ = [k for k in tools.MODE_FIELDS if len({c.camera.get(k) for c in cals}) > 1]
+    differ = [k for k in toolkit.MODE_FIELDS if len({c.camera.get(k) for c in cals}) > 1]
     for c in cals:
         missing = [k for k in differ if c.camera.get(k) is None]
         if missing:
@@ -75,7 +74,7 @@ def write_modes(rows, s, out, pixel_size_nm, name):
     for c, at, v in rows:
         g, phi = v["em_gain"]["median"], v["e_per_adu"]["median"]
         node = sensitivity
-        keys = [tools._mode_key(k, c.camera[k]) for k in differ]
+        keys = [toolkit.mode_key(k, c.camera[k]) for k in differ]
         for key in keys[:-1]:
             node = node.setdefault(key, {})
         if keys[-1] in node:
@@ -92,14 +91,14 @@ def write_modes(rows, s, out, pixel_size_nm, name):
     baselines = [v["offset"]["median"] for _, _, v in rows]
     camera = {
         "Baseline": round(baselines[0], 1),
-        "Sensitivity Categories": [tools.MODE_FIELDS[k] for k in differ],
+        "Sensitivity Categories": [toolkit.MODE_FIELDS[k] for k in differ],
         "Sensitivity": sensitivity,
         "DefaultGain": gain,
     }
     if pixel_size_nm is not None:
         camera["Pixelsize"] = pixel_size_nm
     text = "".join(
-        f"# {comment(line)}\n"
+        f"# {toolkit.comment(line)}\n"
         for line in [
             f"written by emccdcal from {len(cals)} calibrations, one per read-out mode, at EM "
             f"gain set-point {format_setpoint(s)}x (medians over converged pixels):",
@@ -129,8 +128,8 @@ def write_modes(rows, s, out, pixel_size_nm, name):
             stacklevel=3,
             category=ExportWarning,
         )
-    text += tools._yaml({"Cameras": {tools._camera_name(cals[0], name): camera}})
-    return [_write_text(out / "picasso-config.yaml", text)]
+    text += toolkit.yaml_text({"Cameras": {toolkit.camera_name(cals[0], name): camera}})
+    return [toolkit.write_text(out / "picasso-config.yaml", text)]
 
 
 def _picasso_qe(value, name, path):
@@ -140,10 +139,11 @@ def _picasso_qe(value, name, path):
         return None
     if isinstance(value, dict):
         values = [
-            audit._qe(v, f"{name}: Quantum Efficiency at {k}", path) for k, v in value.items()
+            toolkit.quantum_efficiency(v, f"{name}: Quantum Efficiency at {k}", path)
+            for k, v in value.items()
         ]
         return values[0] if len(values) == 1 else None
-    return audit._qe(value, f"{name}: Quantum Efficiency", path)
+    return toolkit.quantum_efficiency(value, f"{name}: Quantum Efficiency", path)
 
 
 def read(doc, path, setpoint, tool_gain):
@@ -158,19 +158,21 @@ def read(doc, path, setpoint, tool_gain):
         if tool_gain is not None:
             gain, gain_note = float(tool_gain), "as given (--tool-gain)"
         elif gain_key is not None:
-            gain, gain_note = audit._positive(cam[gain_key], f"{name}: {gain_key}", path), ""
+            gain, gain_note = toolkit.positive(cam[gain_key], f"{name}: {gain_key}", path), ""
         else:
             gain, gain_note = (
                 float(setpoint),
                 ("not in the file: the set-point, as typed into Picasso's EM gain box"),
             )
         baseline = (
-            audit._number(cam["Baseline"], f"{name}: Baseline", path) if "Baseline" in cam else None
+            toolkit.number(cam["Baseline"], f"{name}: Baseline", path)
+            if "Baseline" in cam
+            else None
         )
         qe = _picasso_qe(cam.get("Quantum Efficiency"), name, path)
-        for keys, value in audit._leaves(cam["Sensitivity"]):
+        for keys, value in toolkit.leaves(cam["Sensitivity"]):
             where = " > ".join(("Cameras", str(name), "Sensitivity", *keys))
-            sens = audit._positive(value, where, path)
+            sens = toolkit.positive(value, where, path)
             fields = [
                 Field("Sensitivity", sens, "e_per_adu"),
                 Field(gain_key or "EM gain", gain, "em_gain", gain_note),
@@ -193,4 +195,5 @@ TOOL = Tool(
     write,
     lambda path, text, doc, setpoint, tool_gain: read(doc, path, setpoint, tool_gain),
     lambda path, text, doc: "Cameras" in (set(doc) if isinstance(doc, dict) else set()),
+    write_modes=write_modes,
 )

@@ -9,11 +9,10 @@ import re
 
 import numpy as np
 
-from ..._output import atomic_write_text as _write_text
 from ...errors import InputError
 from ...plugins import Tool
-from .. import audit, tools
-from ..audit import Field, Reading
+from .. import toolkit
+from ..toolkit import Field, Reading
 
 
 def write(cal, s, v, out, qe, pixel_size_nm, name):
@@ -22,7 +21,7 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
     phi, gain = cal.e_per_adu, cal.gain(s)
     total = v["adu_per_e_total"]["median"]
     flat = (phi / gain) * total  # PYME multiplies (counts − dark) by it: ≈ 1, per pixel
-    prov = tools._provenance(cal, s, qe)
+    prov = toolkit.provenance(cal, s, qe)
     maps = {
         "dark": (offset, "ADU"),
         "variance": ((sigma * phi) ** 2, "e-^2"),
@@ -31,7 +30,7 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
     files = {}
     for key, (image, unit) in maps.items():
         image = np.where(np.isfinite(image), image, np.nanmedian(image))  # PYME needs every pixel
-        files[key] = tools._write_tiff(
+        files[key] = toolkit.write_tiff(
             out / f"pyme-{key}.tif", image, {"quantity": f"PYME {key} map", "units": unit, **prov}
         )
     md = {
@@ -49,33 +48,33 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
         md["Camera.QuantumEfficiency"] = qe
     if pixel_size_nm is not None:
         md["voxelsize.x"] = md["voxelsize.y"] = pixel_size_nm / 1000.0  # µm
-    md = {k: (tools._number(x) if isinstance(x, float) else x) for k, x in md.items()}
+    md = {k: (toolkit.rounded(x) if isinstance(x, float) else x) for k, x in md.items()}
     md["emccdcal.Provenance"] = json.dumps(prov)
     text = json.dumps(md, indent=2, sort_keys=True) + "\n"
-    return [_write_text(out / "pyme.json", text), *files.values()]
+    return [toolkit.write_text(out / "pyme.json", text), *files.values()]
 
 
 def _read_doc(doc, path):
     flat = {}
-    for keys, value in audit._leaves(doc):
+    for keys, value in toolkit.leaves(doc):
         flat[".".join(keys)] = value
     if "Camera.ElectronsPerCount" not in flat:
         raise InputError(f"'{path}': no Camera.ElectronsPerCount: not PYME metadata")
-    phi = audit._positive(flat["Camera.ElectronsPerCount"], "Camera.ElectronsPerCount", path)
-    gain = audit._positive(flat.get("Camera.TrueEMGain", 1.0), "Camera.TrueEMGain", path)
+    phi = toolkit.positive(flat["Camera.ElectronsPerCount"], "Camera.ElectronsPerCount", path)
+    gain = toolkit.positive(flat.get("Camera.TrueEMGain", 1.0), "Camera.TrueEMGain", path)
     fields = [
         Field("Camera.ElectronsPerCount", phi, "e_per_adu"),
         Field("Camera.TrueEMGain", gain, "em_gain"),
     ]
     baseline = None
     if "Camera.ADOffset" in flat:
-        baseline = audit._number(flat["Camera.ADOffset"], "Camera.ADOffset", path)
+        baseline = toolkit.number(flat["Camera.ADOffset"], "Camera.ADOffset", path)
         fields.insert(0, Field("Camera.ADOffset", baseline, "offset"))
     if "Camera.ReadNoise" in flat:
         fields.append(
             Field(
                 "Camera.ReadNoise",
-                audit._number(flat["Camera.ReadNoise"], "Camera.ReadNoise", path),
+                toolkit.number(flat["Camera.ReadNoise"], "Camera.ReadNoise", path),
                 "read_noise_e",
             )
         )
@@ -114,7 +113,7 @@ TOOL = Tool(
         path.suffix.lower() == ".md"
         or (
             isinstance(doc, dict)
-            and "Camera.ElectronsPerCount" in {".".join(k) for k, _ in audit._leaves(doc)}
+            and "Camera.ElectronsPerCount" in {".".join(k) for k, _ in toolkit.leaves(doc)}
         )
     ),
 )

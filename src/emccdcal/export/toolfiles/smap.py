@@ -9,11 +9,10 @@ import warnings
 
 import numpy as np
 
-from ..._output import atomic_write, atomic_write_text as _write_text
 from ...errors import ExportWarning, InputError
 from ...plugins import Tool
-from .. import audit, tools
-from ..audit import Field, Reading
+from .. import toolkit
+from ..toolkit import Field, Reading
 
 
 def write(cal, s, v, out, qe, pixel_size_nm, name):
@@ -24,22 +23,22 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
     from scipy.io import savemat
 
     offset, sigma = cal.dark(s)
-    prov = tools._provenance(cal, s, qe)
+    prov = toolkit.provenance(cal, s, qe)
     mat = out / "smap-correction.mat"
     maps = {"offsetmap": offset, "gainmap": cal.e_per_adu / cal.gain(s), "varmap": sigma**2}
     content = {k: np.asarray(m, dtype=np.float32) for k, m in maps.items()}
-    atomic_write(mat, lambda p: savemat(p, {**content, "emccdcal": json.dumps(prov)}))
+    toolkit.write_file(mat, lambda p: savemat(p, {**content, "emccdcal": json.dumps(prov)}))
     par = {
         "EMon": bool(v["em_gain"]["median"] > 1),
-        "emgain": tools._number(v["em_gain"]["median"]),
-        "conversion": tools._number(v["e_per_adu"]["median"]),
-        "offset": tools._number(v["offset"]["median"]),
+        "emgain": toolkit.rounded(v["em_gain"]["median"]),
+        "conversion": toolkit.rounded(v["e_per_adu"]["median"]),
+        "offset": toolkit.rounded(v["offset"]["median"]),
         "correctionfile": mat.stem,
         "comment": f"emccdcal {prov['emccdcal_version']} {prov['method']} "
         + " ".join(r["sha256"][:12] for r in prov["results"]),
     }
     if pixel_size_nm is not None:
-        par["cam_pixelsize_um"] = tools._number(pixel_size_nm / 1000.0)
+        par["cam_pixelsize_um"] = toolkit.rounded(pixel_size_nm / 1000.0)
     else:
         warnings.warn(
             "SMAP's Camera Manager file holds a pixel size: SMAP's default "
@@ -50,8 +49,12 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
         )
     doc = {"loc_cameraSettings": par, "emccdcal": prov}
     cameras = out / "smap-cameras.mat"
-    atomic_write(cameras, lambda p: savemat(p, _smap_camera_manager(par)))
-    return [_write_text(out / "smap-camera.json", json.dumps(doc, indent=2) + "\n"), mat, cameras]
+    toolkit.write_file(cameras, lambda p: savemat(p, _smap_camera_manager(par)))
+    return [
+        toolkit.write_text(out / "smap-camera.json", json.dumps(doc, indent=2) + "\n"),
+        mat,
+        cameras,
+    ]
 
 
 #: SMAP's Camera Manager parameter table (``CameraManager.m``, ``intpartable``): name,
@@ -110,7 +113,7 @@ def _smap_camera_manager(par: dict) -> dict:
 def _read_doc(doc, path):
     readings = [
         _smap_reading(" > ".join(where) or "camera", cam, path)
-        for where, cam in audit._find_tables(doc, ("conversion", "emgain"))
+        for where, cam in toolkit.find_tables(doc, ("conversion", "emgain"))
     ]
     if not readings:
         raise InputError(f"'{path}': no camera settings with conversion and emgain: not SMAP's")
@@ -120,16 +123,18 @@ def _read_doc(doc, path):
 def _smap_reading(name, cam: dict, path, gain_note="") -> Reading:
     """One SMAP camera (state): ``conversion`` e⁻/ADU, ``emgain``, ``offset`` ADU and
     ``EMon``, as SMAP's CameraConverter uses them."""
-    phi = audit._positive(audit._scalar(cam["conversion"]), f"{name}: conversion", path)
-    em = str(audit._scalar(cam.get("EMon", True))).strip().lower() not in ("0", "false", "0.0")
-    gain = audit._positive(audit._scalar(cam["emgain"]), f"{name}: emgain", path) if em else 1.0
+    phi = toolkit.positive(toolkit.mat_scalar(cam["conversion"]), f"{name}: conversion", path)
+    em = str(toolkit.mat_scalar(cam.get("EMon", True))).strip().lower() not in ("0", "false", "0.0")
+    gain = (
+        toolkit.positive(toolkit.mat_scalar(cam["emgain"]), f"{name}: emgain", path) if em else 1.0
+    )
     fields = [
         Field("conversion", phi, "e_per_adu"),
         Field("emgain", gain, "em_gain", gain_note if em else "EMon false: taken as 1"),
     ]
     baseline = None
     if cam.get("offset") is not None:
-        baseline = audit._number(audit._scalar(cam["offset"]), f"{name}: offset", path)
+        baseline = toolkit.number(toolkit.mat_scalar(cam["offset"]), f"{name}: offset", path)
         fields.insert(0, Field("offset", baseline, "offset"))
     return Reading("smap", name, tuple(fields), phi / gain, "conversion / emgain", baseline)
 
@@ -193,8 +198,8 @@ TOOL = Tool(
         path.suffix.lower() == ".mat"
         or (
             isinstance(doc, dict)
-            and next(audit._find_tables(doc, ("conversion", "emgain")), None) is not None
+            and next(toolkit.find_tables(doc, ("conversion", "emgain")), None) is not None
         )
     ),
-    read_file=lambda path, setpoint: _smap_cameras(audit._mat_raw(path), path, setpoint),
+    read_file=lambda path, setpoint: _smap_cameras(toolkit.mat_raw(path), path, setpoint),
 )

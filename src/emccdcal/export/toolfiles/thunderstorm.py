@@ -6,11 +6,10 @@ from __future__ import annotations
 
 import re
 
-from ..._output import atomic_write_text as _write_text
 from ...errors import InputError
 from ...plugins import Tool
-from .. import audit, tools
-from ..audit import Field, Reading
+from .. import toolkit
+from ..toolkit import Field, Reading
 
 
 def write(cal, s, v, out, qe, pixel_size_nm, name):
@@ -18,19 +17,19 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
     e⁻/ADU, despite its name)."""
     g = v["em_gain"]["median"]
     options = [
-        f"offset={tools._number(v['offset']['median'])!r}",
-        f"quantumefficiency={tools._number(1.0 if qe is None else qe)!r}",
+        f"offset={toolkit.rounded(v['offset']['median'])!r}",
+        f"quantumefficiency={toolkit.rounded(1.0 if qe is None else qe)!r}",
         f"isemgain={'true' if g > 1 else 'false'}",
-        f"photons2adu={tools._number(v['e_per_adu']['median'])!r}",
-        f"gainem={tools._number(g)!r}",
+        f"photons2adu={toolkit.rounded(v['e_per_adu']['median'])!r}",
+        f"gainem={toolkit.rounded(g)!r}",
     ]
     if pixel_size_nm is not None:
-        options.append(f"pixelsize={tools._number(pixel_size_nm)!r}")
+        options.append(f"pixelsize={toolkit.rounded(pixel_size_nm)!r}")
     text = (
-        tools._comment_lines(cal, s, v, qe, "// ")
+        toolkit.comment_lines(cal, s, v, qe, "// ")
         + f'run("Camera setup", "{" ".join(options)}");\n'
     )
-    return [_write_text(out / "thunderstorm-camera.ijm", text)]
+    return [toolkit.write_text(out / "thunderstorm-camera.ijm", text)]
 
 
 def _read_macro(text, path):
@@ -54,17 +53,17 @@ def _read_macro(text, path):
     missing = [k for k in ("offset", "photons2adu") if k not in options]
     if missing:
         raise InputError(f"'{path}': Camera setup without {', '.join(missing)}")
-    phi = audit._positive(options["photons2adu"], "photons2adu", path)
+    phi = toolkit.positive(options["photons2adu"], "photons2adu", path)
     em = options.get("isemgain", "false").lower() == "true"
-    gain = audit._positive(options.get("gainem", 1), "gainem", path) if em else 1.0
-    baseline = audit._number(options["offset"], "offset", path)
+    gain = toolkit.positive(options.get("gainem", 1), "gainem", path) if em else 1.0
+    baseline = toolkit.number(options["offset"], "offset", path)
     fields = (
         Field("offset", baseline, "offset"),
         Field("photons2adu", phi, "e_per_adu", "e-/ADU, despite its name"),
         Field("gainem", gain, "em_gain", "" if em else "isemgain=false: taken as 1"),
     )
     qe = (
-        audit._qe(options["quantumefficiency"], "quantumefficiency", path)
+        toolkit.quantum_efficiency(options["quantumefficiency"], "quantumefficiency", path)
         if "quantumefficiency" in options
         else None
     )
