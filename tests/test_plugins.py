@@ -507,3 +507,43 @@ def test_what_a_plugin_gives_is_checked_before_use(broken, small_series, tmp_pat
     error = [line for line in _lines(done.stderr) if not line.startswith("warning:")]
     assert done.returncode == 2 and len(error) == 1, done.stderr
     assert f"'{settings}': Raising cannot read it (KeyError: 'missing')" in error[0], error
+
+
+def test_a_result_of_a_register_model_not_installed_loads_exports_and_applies(tmp_path):
+    """A result fitted with another package's register model, read where that package is
+    absent: its numbers need no model, so it loads, exports, applies and is reported;
+    what would compute with the register refuses in one line naming the model."""
+    import warnings
+
+    import emccdcal
+    from emccdcal import result
+    from emccdcal.errors import OptionError
+
+    sim = simulate_gain_series(
+        tmp_path / "gs", rows=3, cols=3, frames=300, seed=31, setpoints=(1, 10), progress=False
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ds = emccdcal.calibrate(sim.manifest, e_per_adu=sim.truth["e_per_adu"], progress=False)
+    ds.attrs.update(em_model="someone-elses-register", register_stages=600)
+    result.save(ds, tmp_path / "theirs")
+
+    loaded = emccdcal.load_result(tmp_path / "theirs")
+    cal = emccdcal.load_calibration(loaded)
+    assert str(cal.em_model) == "someone-elses-register (600 stages)"
+    (config,) = emccdcal.export_calibration(cal, "picasso", tmp_path / "p", setpoint=10)
+    assert "someone-elses-register" in config.read_text()  # its provenance, as recorded
+    out = emccdcal.apply_calibration(
+        loaded,
+        sim.outdir / "gain-GS" / "10x-gain.tif",
+        tmp_path / "e.tif",
+        setpoint=10,
+        progress=False,
+    )
+    assert tifffile.imread(out).shape == (300, 3, 3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # figures that need the register are left out
+        report = emccdcal.write_report(loaded, tmp_path / "report.html", progress=False)
+    assert "someone-elses-register (600 stages) (not installed here)" in report.read_text()
+    with pytest.raises(OptionError, match="someone-elses-register.*not installed here"):
+        cal.em_model.register  # noqa: B018 - what computes with it refuses

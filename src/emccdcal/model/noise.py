@@ -64,6 +64,7 @@ from .cascade import DEFAULT_STAGES
 
 __all__ = [
     "EMModel",
+    "RecordedEMModel",
     "as_em_model",
     "choose_em_model",
     "DEFAULT_EM_MODEL",
@@ -189,12 +190,55 @@ class EMModel:
         }
 
     @classmethod
-    def from_attrs(cls, attrs) -> EMModel | None:
+    def from_attrs(cls, attrs) -> EMModel | RecordedEMModel | None:
         """The model a result's attributes record (:attr:`attrs`), or None where they
-        record none (a result without a likelihood, such as ``mv-adu``)."""
+        record none (a result without a likelihood, such as ``mv-adu``).
+
+        A model not installed here (another package's, absent) comes back as a
+        :class:`RecordedEMModel`: the result's numbers need no model, so it still loads,
+        exports and applies; only what computes with the register refuses, naming it.
+        """
         if "em_model" not in attrs:
             return None
-        return cls(str(attrs["em_model"]), int(attrs.get("register_stages", DEFAULT_STAGES)))
+        name, stages = str(attrs["em_model"]), int(attrs.get("register_stages", DEFAULT_STAGES))
+        if name not in _registers():
+            return RecordedEMModel(name, stages)
+        return cls(name, stages)
+
+
+@dataclass(frozen=True)
+class RecordedEMModel:
+    """A register model a result names that is not installed here: its name and stages,
+    as the result recorded them, printed and recorded again; its ``register`` refuses.
+
+    Examples
+    --------
+    >>> m = RecordedEMModel("someone-elses", 600)
+    >>> str(m), m.attrs
+    ('someone-elses (600 stages)', {'em_model': 'someone-elses', 'register_stages': 600})
+    """
+
+    name: str
+    stages: int = DEFAULT_STAGES
+
+    @property
+    def register(self):
+        raise OptionError(
+            f"em_model {self.name!r}, which this result was fitted with, is not installed "
+            "here: its numbers are used as they are (export, apply), and what computes "
+            "with the register needs the package that provides it"
+        )
+
+    def __str__(self) -> str:
+        return f"{self.name} ({self.stages} stages)"
+
+    @property
+    def label(self) -> str:
+        return f"{self.name}, {self.stages} stages"
+
+    @property
+    def attrs(self) -> dict:
+        return {"em_model": self.name, "register_stages": int(self.stages)}
 
 
 #: Register models whose normalisation is being checked (:func:`_check_normalised`).

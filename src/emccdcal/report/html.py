@@ -349,11 +349,13 @@ def _gof_html(inputs):
 
 def _em_model_text(attrs) -> str:
     """The register model of a result, for the provenance table."""
-    from ..model.noise import EMModel
+    from ..model.noise import EMModel, RecordedEMModel
 
     model = EMModel.from_attrs(attrs)
     if model is None:
         return "– (no likelihood)"
+    if isinstance(model, RecordedEMModel):
+        return f"{model} (not installed here)"
     return model.register.description
 
 
