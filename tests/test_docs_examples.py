@@ -79,6 +79,8 @@ NOT_RUN_PYTHON = {
     "from dask_jobqueue import SLURMCluster": "a SLURM cluster's batch system",
     "from emccdcal.data import stats": "a call's signature, each argument explained in "
     "its comment (tests/test_gof.py calls it)",
+    "# tests/test_plugin.py of your package": "a test of the example plug-in package, "
+    "which tests/test_testing.py runs on the page's tool",
 }
 
 # Commands run in another form here: a real camera's recording by the simulated camera.
