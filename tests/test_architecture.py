@@ -565,3 +565,26 @@ def test_no_tool_is_named_outside_its_own_module():
                 if node.value in homes and homes[node.value] != module:
                     found.append(f"{path.relative_to(SRC)}:{node.lineno}: {node.value!r}")
     assert not found, found
+
+
+def test_each_thread_fits_with_its_own_compute_context():
+    """Where a fit computes and on how many FFT threads is a context of its own thread,
+    never module state another thread's fit could change under it (two fits at once
+    on one Dask worker)."""
+    import threading
+
+    from emccdcal import _xp
+
+    seen, ready = {}, threading.Barrier(2)
+
+    def fit(n):
+        with _xp.computing_on("cpu", fft_workers=n):
+            ready.wait(timeout=30)  # both inside their blocks at once
+            seen[n] = _xp.fft_workers()
+
+    threads = [threading.Thread(target=fit, args=(n,)) for n in (1, 3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert seen == {1: 1, 3: 3} and _xp.fft_workers() == -1

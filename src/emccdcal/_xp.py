@@ -67,6 +67,10 @@ def is_complex(xp, array) -> bool:
 DEVICES = defaults.DEVICES
 
 _ENGINE: contextvars.ContextVar = contextvars.ContextVar("engine_namespace", default=None)
+#: Threads of each FFT (scipy.fft's ``workers``; -1: every CPU), in this context: a fit
+#: on several threads, or in a process that runs one task per CPU (a Dask worker), asks
+#: for fewer. A context variable, never module state: each thread's fit its own.
+_FFT_WORKERS: contextvars.ContextVar = contextvars.ContextVar("fft_workers", default=-1)
 
 
 def resolve(device: str | None):
@@ -119,14 +123,23 @@ def _cuda():
 
 
 @contextlib.contextmanager
-def computing_on(device: str | None):
+def computing_on(device: str | None, *, fft_workers: int | None = None):
     """Within this block (this thread), the likelihood's hot path computes on ``device``
-    (:data:`DEVICES`); arrays go there and their per-pixel sums come back to NumPy."""
+    (:data:`DEVICES`); arrays go there and their per-pixel sums come back to NumPy. With
+    ``fft_workers``, each FFT of the block runs on that many threads (:func:`fft_workers`)."""
     token = _ENGINE.set(resolve(device))
+    workers = None if fft_workers is None else _FFT_WORKERS.set(int(fft_workers))
     try:
         yield
     finally:
+        if workers is not None:
+            _FFT_WORKERS.reset(workers)
         _ENGINE.reset(token)
+
+
+def fft_workers() -> int:
+    """Threads of each FFT in this context (scipy.fft's ``workers``; -1: every CPU)."""
+    return _FFT_WORKERS.get()
 
 
 def engine():

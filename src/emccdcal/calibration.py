@@ -159,9 +159,6 @@ def run_tile(job: TileJob, progress=None) -> dict:
         ``gs-hierarchical``. With ``checks``, ``quality<a>_<name>`` are the
         :func:`emccdcal.data.quality.band_statistics` of acquisition ``a``.
     """
-    if job.fft_threads is not None:  # the CPUs this tile's threads leave each FFT
-        with noise.fft_threads(job.fft_threads):
-            return run_tile(replace(job, fft_threads=None), progress)
     p0, p1 = job.pixels
     r0, r1 = p0 // job.cols, -(-p1 // job.cols)  # the rows that hold the tile's pixels
 
@@ -272,7 +269,9 @@ def _fit_pixels(job, frames, usable, progress=None):
             for a, sp in enumerate(job.setpoints)
         ]
         sub = lambda v: None if v is None else v[idx]  # noqa: E731
-        with _xp.computing_on(job.device):  # the histograms, the fit and its checks
+        # the histograms, the fit and its checks, each FFT on the CPUs the tile's
+        # threads leave it
+        with _xp.computing_on(job.device, fft_workers=job.fft_threads):
             hists = [_histograms(job, a, f[:, :, idx]) for a, f in enumerate(frames)]
             return idx, fit_series(
                 job.method,

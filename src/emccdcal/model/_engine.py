@@ -46,10 +46,6 @@ import numpy as np
 
 from .. import _xp
 
-#: Threads of each FFT (scipy.fft's ``workers``; -1: every CPU). A process that already
-#: runs one task per CPU (a Dask worker of a calibration) sets it to 1.
-FFT_WORKERS = -1
-
 #: Native parameters the engine itself adds to every register's: the Gaussian read-out's.
 READOUT = ("offset", "read_noise")
 
@@ -236,7 +232,7 @@ class Spectrum:
     @staticmethod
     def weights_spectrum(weights, m):
         """``rfft`` of a (P, n) weight grid, its first ``m`` bins: shared by every dot."""
-        return _xp.rfft(_xp.namespace(weights), weights, FFT_WORKERS)[:, :m]
+        return _xp.rfft(_xp.namespace(weights), weights, _xp.fft_workers())[:, :m]
 
     def dot(self, weights_hat):
         """``Σ_y w(y) f(y)`` per row, from ``weights_spectrum(w, m)`` (P, m)."""
@@ -256,7 +252,7 @@ def irfft(spectrum, n):
     evaluated at +ω; the bins beyond ``m`` are zero (irfft pads them).
     """
     xp = _xp.namespace(spectrum)
-    return _xp.irfft(xp, xp.conj(spectrum), n, FFT_WORKERS)
+    return _xp.irfft(xp, xp.conj(spectrum), n, _xp.fft_workers())
 
 
 def fast_len(n):

@@ -48,7 +48,6 @@ multiplication; :mod:`._exact`: the exact cascade), reached through
 
 from __future__ import annotations
 
-import contextlib
 import functools
 from dataclasses import dataclass
 
@@ -81,18 +80,6 @@ __all__ = [
 # Also here, for the fits of fit/ and data/ (not the public API): the window engine's
 # ``window``, ``window_extent``, ``fast_len`` and ``Spectrum``, each model's
 # ``EMModel.register`` with its rows, and ``register_groups``.
-
-
-@contextlib.contextmanager
-def fft_threads(n):
-    """Run the window engine's FFTs on ``n`` threads inside the block (scipy.fft's
-    ``workers``; the default, -1, is every CPU). A process that already runs one task
-    per CPU (a Dask worker of a calibration) asks for 1."""
-    previous, _engine.FFT_WORKERS = _engine.FFT_WORKERS, n
-    try:
-        yield
-    finally:
-        _engine.FFT_WORKERS = previous
 
 
 # --------------------------------------------------------------------------------------
