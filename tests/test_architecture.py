@@ -588,3 +588,18 @@ def test_each_thread_fits_with_its_own_compute_context():
     for t in threads:
         t.join()
     assert seen == {1: 1, 3: 3} and _xp.fft_workers() == -1
+
+
+def test_no_module_outside_model_imports_a_register_implementation():
+    """A fit opens the register's tables through the model (``noise.register_tables``),
+    a simulation samples through it: no module outside ``model/`` imports an
+    implementation (``model.cascade``, ``model._exact``, ``model._gamma``)."""
+    implementations = ("emccdcal.model.cascade", "emccdcal.model._exact", "emccdcal.model._gamma")
+    found = {
+        str(path.relative_to(SRC)): sorted(
+            m for m in _imports(path) if m.startswith(implementations)
+        )
+        for path in SRC.rglob("*.py")
+        if path.relative_to(SRC).parts[0] != "model"
+    }
+    assert not {k: v for k, v in found.items() if v}

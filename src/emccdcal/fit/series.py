@@ -24,7 +24,7 @@ import numpy as np
 
 from ..defaults import MAX_ACQUISITIONS
 from ..errors import OptionError
-from ..model import cascade, noise
+from ..model import noise
 from . import engine, gof, layouts
 from .engine import QUANTITIES, Parameter
 
@@ -204,7 +204,7 @@ class SeriesLikelihood:
         maximises."""
         return engine.objective(self.layout, self.blocks, x)
 
-    @cascade.transform_tables()
+    @noise.register_tables()
     def fit(self, **options) -> engine.FitResult:
         """The maximum-likelihood (or, with a prior, MAP) fit of every pixel from the
         method's starting values (:func:`emccdcal.fit.engine.fit`'s options)."""
@@ -216,7 +216,7 @@ class SeriesLikelihood:
         return engine.expected_information(self.layout, self.blocks, x)
 
     # ---- what a calibration reports ------------------------------------------------------
-    @cascade.transform_tables()
+    @noise.register_tables()
     def estimates(self, fit, *, e_per_adu_se=None, intervals=None, gof_test=True) -> dict:
         """E, g and φ of every acquisition with their standard errors, and with them
         each acquisition's goodness of fit, the log-likelihoods and convergence.
@@ -308,7 +308,7 @@ def fit_series(
     """Fit a series and report it: :meth:`SeriesLikelihood.fit`, then
     :meth:`SeriesLikelihood.estimates` (see those for the arguments and the result)."""
     lik = SeriesLikelihood(method, models, histograms, e_per_adu=e_per_adu, options=options)
-    with cascade.transform_tables():  # the fit's tables serve its estimates too
+    with noise.register_tables():  # the fit's tables serve its estimates too
         return lik.estimates(
             lik.fit(), e_per_adu_se=e_per_adu_se, intervals=intervals, gof_test=gof_test
         )

@@ -82,6 +82,16 @@ __all__ = [
 # ``EMModel.register`` with its rows, and ``register_groups``.
 
 
+def register_tables():
+    """Within this block (this thread; also a decorator), the register models keep the
+    tables they build for the likelihood and reuse them (the exact register's transform:
+    :func:`emccdcal.model.cascade.transform_tables`): the door through which a fit opens
+    them, which no module outside ``model/`` opens itself."""
+    from .cascade import transform_tables
+
+    return transform_tables()
+
+
 # --------------------------------------------------------------------------------------
 # Parameter checking
 # --------------------------------------------------------------------------------------

@@ -45,7 +45,7 @@ import numpy as np
 from .. import defaults
 from .._util import check_int, check_map, check_number
 from ..errors import OptionError
-from ..model.cascade import DEFAULT_STAGES
+from ..defaults import DEFAULT_STAGES
 from ..model.noise import EM_MODELS, EMModel
 
 __all__ = [
