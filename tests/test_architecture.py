@@ -603,3 +603,25 @@ def test_no_module_outside_model_imports_a_register_implementation():
         if path.relative_to(SRC).parts[0] != "model"
     }
     assert not {k: v for k, v in found.items() if v}
+
+
+def test_what_a_run_fits_is_decided_in_fit_only():
+    """The acquisitions a method fits, its register model and its options, and the model
+    halves of its acquisitions, are made by ``fit.series`` (``specify``,
+    ``choose_register``, ``acquisition_models``) for every caller: outside ``fit/`` and
+    ``model/`` nothing calls ``choose_em_model`` or ``AcquisitionModel`` or uses
+    ``layouts``."""
+    found = []
+    for path in SRC.rglob("*.py"):
+        if path.relative_to(SRC).parts[0] in ("fit", "model"):
+            continue
+        for node in ast.walk(_tree(path)):
+            if isinstance(node, ast.Call):
+                name = getattr(node.func, "id", None) or getattr(node.func, "attr", None)
+                if name in ("choose_em_model", "AcquisitionModel"):
+                    found.append(f"{path.relative_to(SRC)}:{node.lineno}: {name}(")
+            elif isinstance(node, ast.Attribute) and getattr(node.value, "id", None) == "layouts":
+                found.append(f"{path.relative_to(SRC)}:{node.lineno}: layouts.{node.attr}")
+            elif isinstance(node, ast.ImportFrom) and (node.module or "").endswith("layouts"):
+                found.append(f"{path.relative_to(SRC)}:{node.lineno}: imports layouts")
+    assert not found, found

@@ -45,8 +45,8 @@ from .errors import (
     MethodError,
     OptionError,
 )
-from .fit import gof, layouts, mv
-from .fit.series import AcquisitionModel, fit_series
+from .fit import gof, mv
+from .fit.series import acquisition_models, fit_series, specify
 from .defaults import DEFAULT_BLOCK, DEFAULT_TILE_PIXELS, INTERVALS, METHODS
 from .model import noise
 from .runstore import RESULT_FILES, RunInterrupted, RunStore, remove_run
@@ -257,17 +257,14 @@ def _fit_pixels(job, frames, usable, progress=None):
         )
 
     def fit_block(idx):
-        models = [
-            AcquisitionModel(
-                sp,
-                job.offsets[a, idx],
-                job.read_noise[a, idx],
-                job.em_model,
-                job.dark_frames[a],
-                job.map_groups[a],
-            )
-            for a, sp in enumerate(job.setpoints)
-        ]
+        models = acquisition_models(
+            job.setpoints,
+            job.offsets[:, idx],
+            job.read_noise[:, idx],
+            job.em_model,
+            job.dark_frames,
+            job.map_groups,
+        )
         sub = lambda v: None if v is None else v[idx]  # noqa: E731
         # the histograms, the fit and its checks, each FFT on the CPUs the tile's
         # threads leave it
@@ -949,18 +946,18 @@ def _run_calibration(
 ):
     manifest = _load(manifest)
     auto = isinstance(stages, str) and stages == "auto"
-    model, stages_source = noise.choose_em_model(
-        em_model,
-        None if auto else stages,
-        manifest_model=manifest.em_model,
-        manifest_stages=manifest.register_stages,
-        camera_model=manifest.camera.get("model"),
-    )
-    acqs = manifest.acquisitions
     rows, cols = manifest.shape
     phi_map, phi_se, phi_source = _e_per_adu_inputs(manifest, e_per_adu, accept_mismatch)
-    options = layouts.check_options(method, options)  # before any stack is read
-    used = _used_acquisitions(method, acqs, phi_map is not None)
+    spec = specify(  # before any stack is read
+        manifest,
+        method,
+        phi_given=phi_map is not None,
+        em_model=em_model,
+        stages=None if auto else stages,
+        options=options,
+    )
+    model, stages_source, options = spec.em_model, spec.stages_source, spec.options
+    used = list(spec.acquisitions)
     if phi_map is not None and method not in ("is-adu", "mv-adu") and not accept_phi:
         check_e_per_adu(phi_map, phi_se, phi_source, used, method)
     tiles = plan_tiles(rows * cols, tile_pixels, block_size)
@@ -1079,16 +1076,6 @@ def _joined(parts) -> dict:
         key: np.concatenate([p.pop(key) for p in parts])
         for key in [k for k in parts[0] if not k.startswith(_QUALITY)]
     }
-
-
-def _used_acquisitions(method, acqs, phi_given: bool) -> list:
-    """The manifest's acquisitions that ``method`` fits, in its order."""
-    setpoints = [a.em_gain_setpoint for a in acqs]
-    if method.startswith("mv-"):
-        idx = _select_mv(method, setpoints, phi_given)
-    else:
-        idx = layouts.select_acquisitions(method, setpoints, [a.level for a in acqs], phi_given)
-    return [acqs[i] for i in idx]
 
 
 def _record_provenance(
@@ -1391,19 +1378,6 @@ def _crop_to(manifest, label, shape, origin):
             "missing"
         )
     return slice(top, top + want[0]), slice(left, left + want[1])
-
-
-def _select_mv(method, setpoints, has_phi):
-    sp = np.asarray(setpoints, dtype=float)
-    if method == "mv-adu":
-        if np.any(sp != 1):
-            raise MethodError("mv-adu needs 1x (EM gain off) data only")
-        return np.arange(sp.size)
-    if not has_phi:
-        raise MethodError(
-            "mv-gain needs e_per_adu (e-/ADU): set it in the manifest or give it (e_per_adu=, --e-per-adu)"
-        )
-    return np.argsort(sp, kind="stable")
 
 
 def _map_error_sources(used, map_errors):

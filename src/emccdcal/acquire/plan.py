@@ -42,7 +42,7 @@ import numpy as np
 from .. import _files, _roots, _xp, defaults
 from .._util import check_int, check_number
 from ..errors import OptionError
-from ..fit.series import AcquisitionModel, SeriesLikelihood
+from ..fit.series import SeriesLikelihood, acquisition_models, choose_register
 from ..model import noise
 
 __all__ = [
@@ -166,7 +166,7 @@ class Plan:
 def _camera_model(camera: dict) -> noise.EMModel:
     """The register model of a plan's camera (its ``em_model`` name and ``stages``): the
     one place a plan's text becomes a model."""
-    return noise.choose_em_model(camera["em_model"], camera["stages"])[0]
+    return choose_register(camera["em_model"], camera["stages"])[0]
 
 
 def _nice(n: float) -> int:
@@ -187,7 +187,7 @@ class _Design:
         self.setpoints, self.gains, self.light = list(setpoints), list(gains), photoelectrons
         P, A = photoelectrons.shape
         phi, sigma, s0 = camera["e_per_adu"], camera["read_noise"], camera["offset"]
-        models = [AcquisitionModel(s, np.full(P, s0), np.full(P, sigma), model) for s in setpoints]
+        models = acquisition_models(setpoints, [np.full(P, s0)] * A, [np.full(P, sigma)] * A, model)
         self.likelihood = SeriesLikelihood(method, models, e_per_adu=phi)
         x = self.likelihood.point(
             {
@@ -443,7 +443,7 @@ def plan(
         max_frames = check_int("max_frames", max_frames, minimum=_FIRST_FRAMES)
     if frame_rate_hz is not None:
         frame_rate_hz = check_number("frame_rate", frame_rate_hz, positive=True)
-    model = noise.choose_em_model(em_model, stages)[0]
+    model = choose_register(em_model, stages)[0]
     _xp.resolve(device)  # an unknown or missing device: one line before any work
     camera |= {
         "em_model": model.name,

@@ -375,7 +375,7 @@ def _running_se(ctx: _Context, stack: Stack, sample_frames: list) -> float:
     from the calibration's own likelihood (gs: with the 1× stack and both darks)."""
     from ..data import stats
     from ..data.dark import read_out_maps
-    from ..fit.series import AcquisitionModel, fit_series
+    from ..fit.series import acquisition_models, fit_series
 
     cam = ctx.plan.camera
     _finish(ctx)
@@ -386,16 +386,19 @@ def _running_se(ctx: _Context, stack: Stack, sample_frames: list) -> float:
         )
     frames = [ctx.unit_frames, np.stack(sample_frames)[:, None, :]]
     adc_max = _adc_max(ctx, ctx.unit_frames.dtype)
-    model = ctx.plan.em_model
-    models = []
+    maps, dark_frames = [], []
     for sp in (1.0, stack.setpoint):
         dark = _dark_of(ctx, sp)[1]
         offset, read_noise, _ = read_out_maps(dark, sp, adc_max=adc_max)  # as calibrate's
-        models.append(
-            AcquisitionModel(
-                sp, offset.ravel(), read_noise.ravel(), model, dark_frames=dark.shape[0]
-            )
-        )
+        maps.append((offset.ravel(), read_noise.ravel()))
+        dark_frames.append(dark.shape[0])
+    models = acquisition_models(
+        (1.0, stack.setpoint),
+        [m[0] for m in maps],
+        [m[1] for m in maps],
+        ctx.plan.em_model,
+        dark_frames,
+    )
     hists = [stats.histograms(f, adc_max=adc_max) for f in frames]
     est = fit_series("gs", models, hists, e_per_adu=float(cam["e_per_adu"]), gof_test=False)
     rel = est["em_gain_se"][:, 1] / est["em_gain"][:, 1]

@@ -18,6 +18,7 @@ from .._util import check_number, e_per_adu_map
 from .._util import progress as progress_bar
 from ..data.manifest import Manifest, read_manifest
 from ..errors import BeadWarning, InputError, ManifestError, OptionError
+from ..fit.series import choose_register
 from ..model import noise, psf
 from .cots import DEFAULT_HALF_SIZE, DEFAULT_WIDTH, MIN_FRAMES, cots_spot
 
@@ -113,13 +114,7 @@ def cots_calibrate(
 def _cots_calibrate(manifest, half_size, width, em_model, stages, progress):
     if not isinstance(manifest, Manifest):
         manifest = read_manifest(manifest)
-    model, stages_source = noise.choose_em_model(
-        em_model,
-        stages,
-        manifest_model=manifest.em_model,
-        manifest_stages=manifest.register_stages,
-        camera_model=manifest.camera.get("model"),
-    )
+    model, stages_source = choose_register(em_model, stages, manifest)
     half_size = int(half_size)
     if half_size < 1:
         raise OptionError(f"half_size must be a positive integer (pixel), got {half_size}")

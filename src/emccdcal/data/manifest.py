@@ -673,13 +673,17 @@ def _entry(r: _Reader, i: int, table: dict) -> AcquisitionEntry:
 
 def _register_stages(r, name, stages):
     """The manifest's ``register_stages`` (or None), refused beside a model without them."""
-    from ..model.noise import choose_em_model
+    from ..model.noise import EMModel
 
     if stages is None or name is None:
         return None if stages is None else int(stages)
     try:
-        choose_em_model(name, stages)
-    except OptionError as exc:  # stages given to a model without them
+        if not EMModel(name, stages).register.uses_stages:  # stages of a model without them
+            raise OptionError(
+                f"stages are the cascade model's: the {name} model has none (delete "
+                "register_stages, or give em_model = 'cascade')"
+            )
+    except OptionError as exc:
         raise r.error(f"register_stages: {exc}") from None
     return int(stages)
 

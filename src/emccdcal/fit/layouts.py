@@ -89,6 +89,17 @@ def select_acquisitions(method, setpoints, levels, has_e_per_adu):
     """
     sp = np.asarray(setpoints, dtype=float)
     idx = np.arange(sp.size)
+    if method == "mv-adu":  # the mean–variance methods: their own rules
+        if np.any(sp != 1):
+            raise MethodError("mv-adu needs 1x (EM gain off) data only")
+        return idx
+    if method == "mv-gain":
+        if not has_e_per_adu:
+            raise MethodError(
+                "mv-gain needs e_per_adu (e-/ADU): set it in the manifest or give it "
+                "(e_per_adu=, --e-per-adu)"
+            )
+        return np.argsort(sp, kind="stable")
     if method not in LIKELIHOOD_METHODS:
         raise MethodError(
             f"unknown method {method!r}; choose one of {', '.join(LIKELIHOOD_METHODS)}, "

@@ -49,9 +49,8 @@ from .._util import e_per_adu_map, emcee_progress, finite_or_none, parse_pixel
 from ..data import stats
 from ..data.manifest import Manifest, read_manifest
 from ..errors import DataQualityWarning, FitWarning, MethodError, NotConvergedError, OptionError
-from ..model import noise
 from . import layouts
-from .series import AcquisitionModel, SeriesLikelihood
+from .series import SeriesLikelihood, acquisition_models, specify
 
 if TYPE_CHECKING:
     import xarray
@@ -132,13 +131,11 @@ def _pixel_series(manifest, used, method, row, col, phi_map, options, em_model):
                 f"{acq.frames_path}: fewer than 2 usable frames at pixel ({row}, {col})"
             )
         hists.append(h)
-        models.append(
-            AcquisitionModel(
-                acq.em_gain_setpoint,
-                acq.offset[row, col : col + 1],
-                acq.read_noise[row, col : col + 1],
-                em_model,
-            )
+        models += acquisition_models(
+            [acq.em_gain_setpoint],
+            [acq.offset[row, col : col + 1]],
+            [acq.read_noise[row, col : col + 1]],
+            em_model,
         )
     phi = None if phi_map is None else np.array([phi_map[row, col]])
     return SeriesLikelihood(method, models, hists, e_per_adu=phi, options=options)
@@ -395,21 +392,18 @@ def sample_posterior(
     if not isinstance(manifest, Manifest):
         manifest = read_manifest(manifest)
     pixels = _check_pixels(pixels, manifest.shape)
-    model, stages_source = noise.choose_em_model(
-        em_model,
-        stages,
-        manifest_model=manifest.em_model,
-        manifest_stages=manifest.register_stages,
-        camera_model=manifest.camera.get("model"),
-    )
     phi_map = e_per_adu_map(
         e_per_adu if e_per_adu is not None else manifest.e_per_adu, manifest.shape
     )
-    acqs = manifest.acquisitions
-    idx = layouts.select_acquisitions(
-        method, [a.em_gain_setpoint for a in acqs], [a.level for a in acqs], phi_map is not None
+    spec = specify(
+        manifest,
+        method,
+        phi_given=phi_map is not None,
+        em_model=em_model,
+        stages=stages,
+        options=options,
     )
-    used = [acqs[i] for i in idx]
+    model, stages_source, used = spec.em_model, spec.stages_source, list(spec.acquisitions)
 
     per_pixel = []
     names = units = None

@@ -11,6 +11,11 @@ through :class:`SeriesLikelihood`:
   or none at all where only the model's expected information is wanted (a plan);
 - the method, and φ where the method holds it fixed.
 
+What a run fits is decided here too, once for every caller: :func:`specify` turns a
+manifest and a method into the acquisitions fitted, the register model and the checked
+options; :func:`acquisition_models` makes the model halves; :func:`choose_register`
+the register model of a run. Outside ``fit/`` and ``model/`` no module does any of it itself.
+
 The parameters are named records (:class:`emccdcal.fit.engine.Parameter`), looked up by
 quantity and acquisition (:meth:`SeriesLikelihood.index`), never by parsing a name.
 How the engine's blocks and layouts are built is private to :mod:`emccdcal.fit`.
@@ -28,7 +33,90 @@ from ..model import noise
 from . import engine, gof, layouts
 from .engine import QUANTITIES, Parameter
 
-__all__ = ["AcquisitionModel", "Parameter", "SeriesLikelihood", "fit_series"]
+__all__ = [
+    "AcquisitionModel",
+    "FitSpec",
+    "Parameter",
+    "SeriesLikelihood",
+    "acquisition_models",
+    "fit_series",
+    "choose_register",
+    "specify",
+]
+
+
+@dataclass(frozen=True)
+class FitSpec:
+    """What a run of a method on a manifest fits (:func:`specify`).
+
+    Attributes
+    ----------
+    method : str
+    acquisitions : tuple of emccdcal.data.manifest.Acquisition
+        Those the method fits, in its order.
+    em_model : noise.EMModel
+        The register model.
+    stages_source : str
+        Where its stages came from (:func:`emccdcal.model.noise.choose_em_model`).
+    options : dict or None
+        The method's options, checked.
+    """
+
+    method: str
+    acquisitions: tuple
+    em_model: noise.EMModel
+    stages_source: str
+    options: dict | None
+
+
+def specify(manifest, method, *, phi_given, em_model=None, stages=None, options=None) -> FitSpec:
+    """The fit's specification of a run: the method's options checked, its register model
+    (the caller's, else the manifest's or the camera's, else the default) and the
+    manifest's acquisitions it fits (``phi_given``: whether φ is known to it).
+
+    Raises
+    ------
+    OptionError, MethodError
+        An option, a model or a manifest the method cannot take, in one line.
+    """
+    options = layouts.check_options(method, options)
+    model, source = choose_register(em_model, stages, manifest)
+    acqs = manifest.acquisitions
+    idx = layouts.select_acquisitions(
+        method, [a.em_gain_setpoint for a in acqs], [a.level for a in acqs], phi_given
+    )
+    return FitSpec(method, tuple(acqs[i] for i in idx), model, source, options)
+
+
+def choose_register(em_model=None, stages=None, manifest=None) -> tuple[noise.EMModel, str]:
+    """The register model of a run and where its stages come from: the caller's
+    ``em_model`` (a name or an :class:`~emccdcal.model.noise.EMModel`) and ``stages``,
+    else the manifest's, else its camera's, else the default
+    (:func:`emccdcal.model.noise.choose_em_model`)."""
+    if manifest is None:
+        return noise.choose_em_model(em_model, stages)
+    return noise.choose_em_model(
+        em_model,
+        stages,
+        manifest_model=manifest.em_model,
+        manifest_stages=manifest.register_stages,
+        camera_model=manifest.camera.get("model"),
+    )
+
+
+def acquisition_models(
+    setpoints, offsets, read_noise, em_model, dark_frames=None, map_groups=None
+) -> list:
+    """The model halves of a series' acquisitions over P pixels: per acquisition its
+    set-point, offset and read-noise maps (each (P,), ADU), the register model, the dark
+    frames behind its maps and their group (None: exact maps, each its own)."""
+    n = len(setpoints)
+    dark_frames = [None] * n if dark_frames is None else list(dark_frames)
+    map_groups = [None] * n if map_groups is None else list(map_groups)
+    return [
+        AcquisitionModel(float(s), o, r, em_model, d, g)
+        for s, o, r, d, g in zip(setpoints, offsets, read_noise, dark_frames, map_groups)
+    ]
 
 
 @dataclass(frozen=True)
