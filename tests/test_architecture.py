@@ -56,6 +56,18 @@ def _imports(path):
     return {m for m in found if m.startswith("emccdcal")}
 
 
+def _docstring_ids(tree) -> set[int]:
+    """The ``id`` of every docstring's constant in a syntax tree (text, not code)."""
+    return {
+        id(n.body[0].value)
+        for n in ast.walk(tree)
+        if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef, ast.AsyncFunctionDef))
+        and n.body
+        and isinstance(n.body[0], ast.Expr)
+        and isinstance(n.body[0].value, ast.Constant)
+    }
+
+
 def _top(module):
     parts = module.split(".")
     return parts[1] if len(parts) > 1 else ""
@@ -296,14 +308,7 @@ def test_no_register_model_is_named_outside_model_and_defaults():
         if rel.startswith("model/") or rel == "defaults.py":
             continue
         tree = _tree(path)
-        docstrings = {
-            id(n.body[0].value)
-            for n in ast.walk(tree)
-            if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef, ast.AsyncFunctionDef))
-            and n.body
-            and isinstance(n.body[0], ast.Expr)
-            and isinstance(n.body[0].value, ast.Constant)
-        }
+        docstrings = _docstring_ids(tree)
         found += [
             f"{rel}:{n.lineno}"
             for n in ast.walk(tree)
@@ -546,14 +551,7 @@ def test_no_tool_is_named_outside_its_own_module():
         if path.name == "defaults.py":
             continue
         tree = _tree(path)
-        docstrings = {
-            id(n.body[0].value)
-            for n in ast.walk(tree)
-            if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef, ast.AsyncFunctionDef))
-            and n.body
-            and isinstance(n.body[0], ast.Expr)
-            and isinstance(n.body[0].value, ast.Constant)
-        }
+        docstrings = _docstring_ids(tree)
         extras = {  # the name of an extra ("fits"), which a tool may share
             id(a)
             for n in ast.walk(tree)
