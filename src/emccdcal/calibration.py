@@ -29,12 +29,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import __version__, _xp, identity, result
+from . import __version__, _xp, result
 from ._output import Output
-from ._util import check_int, e_per_adu_map, install_hint, nanmedian, one_line
+from ._util import check_int, install_hint, nanmedian, one_line
 from ._util import progress as progress_bar
 from .data import quality, stats
-from .data.manifest import Manifest, Source, read_manifest
+from .data.manifest import Manifest, read_manifest
 from .data.stacks import read_band
 from .errors import (
     DataQualityWarning,
@@ -47,6 +47,7 @@ from .errors import (
 )
 from .fit import gof, mv
 from .fit.series import acquisition_models, fit_series, specify
+from .given_phi import check_e_per_adu, e_per_adu_inputs
 from .defaults import DEFAULT_BLOCK, DEFAULT_TILE_PIXELS, INTERVALS, METHODS
 from .model import noise
 from .runstore import RESULT_FILES, RunInterrupted, RunStore, remove_run
@@ -947,7 +948,7 @@ def _run_calibration(
     manifest = _load(manifest)
     auto = isinstance(stages, str) and stages == "auto"
     rows, cols = manifest.shape
-    phi_map, phi_se, phi_source = _e_per_adu_inputs(manifest, e_per_adu, accept_mismatch)
+    phi_map, phi_se, phi_source = e_per_adu_inputs(manifest, e_per_adu, accept_mismatch)
     spec = specify(  # before any stack is read
         manifest,
         method,
@@ -1195,189 +1196,6 @@ def _quality(manifest, used, parts, tiles, fitted=None):
         return None, [f"data-quality checks skipped: {exc}"]
     grown = set(manifest.warnings)  # read-noise growth was already reported by the manifest
     return report, [w for w in report["warnings"] if not any(w in g or g in w for g in grown)]
-
-
-def check_e_per_adu(phi_map, phi_se, source, used, method) -> None:
-    """Refuse a given φ that the data contradict, before any fitting.
-
-    The 1× acquisition's photon transfer (:func:`emccdcal.fit.mv.photon_transfer_e_per_adu`,
-    on at most :data:`~emccdcal.defaults.PHI_CHECK_PIXELS` pixels of the sensor's middle
-    rows) gives φ̂ with its SE; the given φ (its median there) is refused where
-    ``|ln(φ / φ̂)|`` exceeds :data:`~emccdcal.defaults.PHI_Z` relative SEs (the SE at
-    least :data:`~emccdcal.defaults.PHI_SYSTEMATIC`, φ's own SE included), naming the
-    inverse where φ·φ̂ is nearer 1. Without a 1× acquisition it is said, once, that φ
-    went unchecked.
-
-    Raises
-    ------
-    InputError
-        One line: both values, the acquisition, and what to do.
-    """
-    from .defaults import PHI_CHECK_FRAMES, PHI_CHECK_PIXELS, PHI_SYSTEMATIC, PHI_Z
-
-    unit = next((a for a in used if a.em_gain_setpoint == 1), None)
-    if unit is None:
-        warnings.warn(
-            f"{method}: e_per_adu ({source or 'given'}) could not be checked against "
-            "the data (no 1x acquisition): make sure it is in e-/ADU and of this "
-            "read-out mode",
-            stacklevel=3,
-            category=DataQualityWarning,
-        )
-        return
-    rows, cols = unit.offset.shape
-    k = max(1, min(rows, PHI_CHECK_PIXELS // cols))
-    r0 = (rows - k) // 2
-    stop = min(unit.n_frames_total, unit.skip_frames + PHI_CHECK_FRAMES)
-    frames = read_band(unit.frames_path, r0, r0 + k, unit.skip_frames, stop)
-    band = slice(r0, r0 + k)
-    found, rel = mv.photon_transfer_e_per_adu(
-        frames, unit.offset[band], unit.read_noise[band], dark_frames=unit.dark_frames
-    )
-    given = float(nanmedian(phi_map[band]))
-    if not math.isfinite(found) or rel > 0.5:
-        warnings.warn(
-            f"{unit.frames_path}: too little light above the read noise to check "
-            f"e_per_adu {given:.4g} ({source or 'given'}) against it",
-            stacklevel=3,
-            category=DataQualityWarning,
-        )
-        return
-    if phi_se is not None:
-        rel = math.hypot(rel, float(nanmedian((phi_se / phi_map)[band])))
-    rel = max(rel, PHI_SYSTEMATIC)
-    z = math.log(given / found) / rel
-    if abs(z) <= PHI_Z:
-        return
-    inverse = abs(math.log(given * found)) < abs(math.log(given / found))
-    hint = (
-        f"it looks like ADU/e- (1/{given:.4g} = {1 / given:.4g} e-/ADU): give e-/ADU"
-        if inverse
-        else "is it in e-/ADU, and of this camera's read-out mode?"
-    )
-    raise InputError(
-        f"{unit.frames_path}: e_per_adu {given:.4g} e-/ADU ({source or 'given'}) is "
-        f"{given / found:.3g} times what this 1x acquisition's photon transfer says "
-        f"({found:.4g} ± {100 * rel:.2g} %, {abs(z):.0f} SE off); {hint} (--accept-phi "
-        "to use it all the same)"
-    )
-
-
-def _e_per_adu_inputs(manifest, e_per_adu, accept_mismatch=()):
-    """φ (e⁻/ADU) map, its standard-error map (or None) and where they came from (or None).
-
-    ``e_per_adu`` (else the manifest's) is a number, a (rows, cols) map, or an ``is-adu``
-    or ``mv-adu`` result: its path (``calibration.nc`` or directory), the Dataset
-    :func:`calibrate` returned, or a :class:`emccdcal.Calibration`; of a result, φ and its
-    standard error per pixel, NaN where it did not converge.
-    """
-    shape = manifest.shape
-    if e_per_adu is None:
-        source = manifest.e_per_adu_source
-        if source is None or source.kind != "result":
-            return e_per_adu_map(manifest.e_per_adu, shape), None, source
-        e_per_adu = source.path
-    chained = _phi_result(e_per_adu)
-    if chained is None:
-        return e_per_adu_map(e_per_adu, shape), None, Source("given")
-    label, method, phi, se, ok, identity_of, origin, source = chained
-    if not any(m in ("is-adu", "mv-adu") for m in method.split("+")):
-        raise OptionError(
-            f"e_per_adu from {label}: a {method} result does not estimate e_per_adu; "
-            "chain an is-adu or mv-adu result"
-        )
-    identity.check(
-        identity_of,
-        {manifest.path: manifest.identity()},
-        label=f"e_per_adu from {label}",
-        accept=accept_mismatch,
-        what="frames of the manifest",
-    )
-    crop = _crop_to(manifest, label, phi.shape, origin)
-    phi, se, ok = phi[crop], se[crop], ok[crop]
-    ok &= np.isfinite(phi) & (phi > 0)
-    if not ok.any():
-        raise OptionError(f"e_per_adu from {label}: no pixel of that result converged")
-    return np.where(ok, phi, np.nan), np.where(ok, se, np.nan), source
-
-
-def _phi_result(e_per_adu):
-    """Of a chained φ (a result's path, a result Dataset or a Calibration): a label for
-    messages, its method, the φ, SE and converged maps, its camera identity, its origin on
-    the sensor and its :class:`Source`; None for a number or a map."""
-    import xarray as xr
-
-    if isinstance(e_per_adu, result.Calibration):
-        cal = e_per_adu
-        se = cal.e_per_adu_se if cal.e_per_adu_se is not None else np.full(cal.shape, np.nan)
-        source = Source("result", Path(cal.files[0])) if cal.files else Source("given")
-        return (
-            f"'{cal.label}'",
-            cal.method,
-            np.asarray(cal.e_per_adu, float),
-            np.asarray(se, float),
-            np.isfinite(cal.e_per_adu),
-            cal.identity(),
-            cal.origin,
-            source,
-        )
-    if isinstance(e_per_adu, (str, Path)):
-        from .data.manifest import is_result_path
-
-        path = Path(e_per_adu)
-        if not is_result_path(path):
-            raise OptionError(
-                f"e_per_adu '{path}' is not a calibration result (a .nc file or "
-                "a result directory); give a number, a map or a result"
-            )
-        ds, label, source = result.load(path), f"'{path}'", Source("result", path)
-    elif isinstance(e_per_adu, xr.Dataset):
-        ds = result._checked_in_memory(e_per_adu)
-        saved = e_per_adu.encoding.get("source")  # a result read from or written to a file
-        label = f"'{saved}'" if saved else "the result given"
-        source = Source("result", Path(saved)) if saved else Source("given")
-    else:
-        return None
-    binning = ds.attrs.get("binning")
-    camera = result.camera_of(ds, label)
-    return (
-        label,
-        str(ds.attrs.get("method")),
-        np.asarray(ds.e_per_adu.values, dtype=float),
-        np.asarray(ds.e_per_adu_se.values, dtype=float),
-        np.asarray(ds.converged.values, dtype=bool),
-        {**camera, **({} if binning is None else {"binning": binning})},
-        ds.attrs.get("sensor_origin"),
-        source,
-    )
-
-
-def _crop_to(manifest, label, shape, origin):
-    """The part of a result of ``shape`` at sensor ``origin`` that the manifest's pixels
-    cover (slices), or an error saying which rows or columns are missing."""
-    shape, want = tuple(shape), tuple(manifest.shape)
-    if origin is None or manifest.origin is None:
-        if shape != want:
-            raise OptionError(
-                f"e_per_adu from {label}: its pixels {shape} are not the manifest's {want}, "
-                "and where they lie on the sensor is not known (give 'origin' in the "
-                "manifests, or files that record their region)"
-            )
-        return slice(None), slice(None)
-    (r0, c0), (m0, n0) = (int(v) for v in origin), manifest.origin
-    top, left = m0 - r0, n0 - c0
-    if top < 0 or left < 0 or top + want[0] > shape[0] or left + want[1] > shape[1]:
-        rows = sorted(set(range(m0, m0 + want[0])) - set(range(r0, r0 + shape[0])))
-        cols = sorted(set(range(n0, n0 + want[1])) - set(range(c0, c0 + shape[1])))
-        missing = "; ".join(
-            f"{what} {v[0]}–{v[-1]}" for what, v in (("rows", rows), ("cols", cols)) if v
-        )
-        raise OptionError(
-            f"e_per_adu from {label} covers sensor rows {r0}–{r0 + shape[0] - 1}, cols "
-            f"{c0}–{c0 + shape[1] - 1}; the manifest needs {manifest.rows_cols}: {missing} "
-            "missing"
-        )
-    return slice(top, top + want[0]), slice(left, left + want[1])
 
 
 def _map_error_sources(used, map_errors):
