@@ -656,3 +656,58 @@ def test_no_module_grows_past_its_room():
     assert not over, f"modules over their length (800, or their OVER_800 ceiling): {over}"
     split = [name for name in OVER_800 if lengths.get(name, 0) <= 800]
     assert not split, f"split, so off the OVER_800 list: {split}"
+
+
+#: Every place in the package that deletes a file or a folder, with what makes it only
+#: ever delete what a run itself created (never an input, never a user's file or folder).
+#: A new deletion fails the test below until it is added here with its reason.
+DELETIONS = {
+    ("_output.py", "atomic_write"): "its own temporary file (a new name of its family)",
+    ("_output.py", "_remove_ours"): "a .partial/.old store only with our marker and "
+    "nothing else inside; a .tmp file only of our temporary family's name",
+    ("_output.py", "_Staging.add"): "the staged temporary a second write of the same file replaces",
+    ("_output.py", "_Staging.discard"): "the staged temporaries of a failed run",
+    ("_output.py", "_Lock.release"): "the lock file this run created exclusively",
+    ("_output.py", "Output._remove_created"): "the folders this run created, and only "
+    "while empty (rmdir)",
+    ("_output.py", "Output._publish"): "the output itself, replaced by --overwrite after "
+    "the checks that it is no input and no folder emccdcal did not write",
+    ("_output.py", "write_netcdf"): "its own temporary body file",
+    ("acquire/record.py", "_Writing.__init__"): "a store only where zarrs.begun_but_empty "
+    "finds it holds no frame and carries this session's marker",
+    ("acquire/record.py", "_discard"): "a new session's record, plan and truth, in a "
+    "folder _open_session found empty, before any stack was recorded",
+    ("cli/db.py", "run"): "a database entry (a row), as `db remove ID` asks; no file",
+    ("demo.py", "run_demo"): "the simulated frames in the temporary folder the demo made",
+    ("export/database.py", "_create"): "its own temporary database (a random name)",
+    ("runstore.py", "RunStore.discard"): "the output folder where this run made it, only "
+    "while empty (rmdir)",
+    ("runstore.py", "publish"): "an earlier run's file of the same set, only where "
+    "written_by_emccdcal says emccdcal wrote it",
+    ("runstore.py", "remove_run"): "tiles and temporaries in a run folder whose "
+    "fingerprint emccdcal wrote, by their names; the folder only while empty",
+}
+
+
+def test_every_deletion_is_of_what_a_run_created():
+    """Enumerates every call that deletes (``unlink``, ``remove``, ``rmtree``, ``rmdir``)
+    in the package: each is in :data:`DELETIONS`, with what keeps it to what the run
+    itself created. A new one is reviewed before it lands; one that went is struck off."""
+    found = set()
+    for path in SRC.rglob("*.py"):
+        module = path.relative_to(SRC).as_posix()
+
+        def visit(node, where):
+            for child in ast.iter_child_nodes(node):
+                if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                    visit(child, [*where, child.name])
+                    continue
+                if isinstance(child, ast.Call):
+                    name = getattr(child.func, "attr", None) or getattr(child.func, "id", None)
+                    if name in ("unlink", "remove", "rmtree", "rmdir", "removedirs"):
+                        found.add((module, ".".join(where)))
+                visit(child, where)
+
+        visit(_tree(path), [])
+    assert found - set(DELETIONS) == set(), f"deletions not reviewed: {found - set(DELETIONS)}"
+    assert set(DELETIONS) - found == set(), f"no longer there: {set(DELETIONS) - found}"
