@@ -142,12 +142,11 @@ def _link_page_paths(app, doctree, docname):
 def _public_names() -> dict:
     """Where each public object is defined -> its public name: a docstring may name
     ``emccdcal.result.load_calibration``, whose page is ``emccdcal.load_calibration``."""
-    names = {}
-    for name, (module, attribute) in emccdcal._API.items():
-        if attribute is not None:
-            names[f"{module}.{attribute}"] = f"emccdcal.{name}"
-            names[attribute] = names.get(attribute, f"emccdcal.{name}")  # a bare name
-    return names
+    return {
+        f"{module}.{attribute}": f"emccdcal.{name}"
+        for name, (module, attribute) in emccdcal._API.items()
+        if attribute is not None
+    }
 
 
 _PUBLIC = _public_names()
@@ -155,9 +154,8 @@ _PUBLIC = _public_names()
 
 def _link_public_names(app, env, node, contnode):
     """A reference to a public object by the module that defines it goes to its page."""
-    target = node.get("reftarget", "")
-    public = _PUBLIC.get(target) or _PUBLIC.get(target.rsplit(".", 1)[-1]) if target else None
-    if node.get("refdomain") != "py" or public is None or public == target:
+    public = _PUBLIC.get(node.get("reftarget", ""))
+    if node.get("refdomain") != "py" or public is None:
         return None
     domain = env.get_domain("py")
     return domain.resolve_xref(

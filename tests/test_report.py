@@ -20,7 +20,7 @@ from conftest import DEMO_COLS as COLS
 from conftest import DEMO_ROWS as ROWS
 
 from emccdcal._output import read_netcdf, write_netcdf
-from emccdcal import calibrate, cli, result
+from emccdcal import calibrate, cli, result, write_report
 from emccdcal.beads import validation
 from emccdcal.data.manifest import read_manifest
 from emccdcal.model import noise
@@ -519,3 +519,20 @@ def test_summary_says_what_the_standard_errors_include(tmp_path):
     html = write_report([tmp_path / "out"], tmp_path / "r.html").read_text()
     assert "Standard errors include the errors of the offset and read-noise maps" in html
     assert "profile likelihood, 95 %" in html
+
+
+def test_write_report_from_python_never_writes_over_a_result_it_reads(runs, tmp_path):
+    """A notebook's ``write_report(ds, path)`` with the result's own file as ``path``
+    (the Dataset as loaded, or the file given): refused, the result intact."""
+    import shutil
+
+    from emccdcal.errors import OptionError
+
+    src = next(iter(runs[0].values()))
+    shutil.copytree(src, tmp_path / "r")
+    nc = tmp_path / "r" / result.CALIBRATION_FILE
+    before = nc.read_bytes()
+    for given in (result.load(nc), nc, tmp_path / "r"):
+        with pytest.raises(OptionError, match="a result this report reads"):
+            write_report(given, nc, progress=False)
+    assert nc.read_bytes() == before

@@ -3,7 +3,8 @@ asks of one? (As :func:`scipy.stats` checks its distributions.)
 
 Each check runs the plug-in through emccdcal's own code, the way a verb would, and raises
 :class:`AssertionError` with one line saying what is wrong; it returns nothing where all
-is well. emccdcal's own plug-ins pass them (its test suite runs them), so a test of a
+is well. A plug-in not installed is registered for the check's duration, in this process
+(a test's, not a thread of a running calibration). emccdcal's own plug-ins pass them (its test suite runs them), so a test of a
 plug-in package can be one line::
 
     from emccdcal.testing import check_register

@@ -100,6 +100,23 @@ def _load_input(item, i):
     return _Input(ds, p.resolve(), ds.encoding["sha256"], f"result {i + 1} ({ds.attrs['method']})")
 
 
+def _refuse_writing_over_a_result(out: Path, results) -> None:
+    """The report is never written over one of the results it reports (a call from
+    Python with the result's own name; the command line's output policy refuses it too)."""
+    from .._output import OutputError, _same
+
+    items = (
+        [results] if isinstance(results, (str, Path)) or hasattr(results, "data_vars") else results
+    )
+    for item in items:
+        if hasattr(item, "data_vars"):
+            given = item.encoding.get("source")
+        else:
+            given = Path(item) / result.CALIBRATION_FILE if Path(item).is_dir() else item
+        if given is not None and Path(given).exists() and _same(out, Path(given)):
+            raise OutputError(f"{out}: is {given}, a result this report reads; choose another name")
+
+
 def _warnings_of(ds):
     w = ds.attrs.get("warnings", [])
     if isinstance(w, str):
@@ -861,6 +878,7 @@ def write_report(
     out = Path(out)
     if out.is_dir():
         out = out / REPORT_FILE
+    _refuse_writing_over_a_result(out, results)
     text = build_report(
         results,
         validation=validation,
