@@ -533,6 +533,6 @@ def test_write_report_from_python_never_writes_over_a_result_it_reads(runs, tmp_
     nc = tmp_path / "r" / result.CALIBRATION_FILE
     before = nc.read_bytes()
     for given in (result.load(nc), nc, tmp_path / "r"):
-        with pytest.raises(OptionError, match="a result this report reads"):
+        with pytest.raises(OptionError, match="an input of this run"):
             write_report(given, nc, progress=False)
     assert nc.read_bytes() == before

@@ -749,9 +749,7 @@ def load(path) -> xr.Dataset:
     >>> sim = emccdcal.simulate_gain_series(
     ...     f"{work}/gs", rows=4, cols=4, frames=400, setpoints=(1, 10), seed=1, progress=False
     ... )
-    >>> _ = emccdcal.calibrate(
-    ...     sim.manifest, e_per_adu=sim.truth["e_per_adu"], out=f"{work}/out", progress=False
-    ... )
+    >>> _ = emccdcal.calibrate(sim.manifest, e_per_adu=3.859, out=f"{work}/out", progress=False)
     >>> ds = emccdcal.load_result(f"{work}/out")
     >>> ds.attrs["method"], ds.em_gain.dims
     ('gs', ('setpoint', 'row', 'col'))
@@ -884,10 +882,8 @@ class Calibration:
 
     Examples
     --------
-    Every function that takes a calibration (:func:`emccdcal.export_calibration`,
-    :func:`emccdcal.apply_calibration`, :func:`emccdcal.audit`, ``calibrate``'s
-    ``e_per_adu``) also takes the Dataset :func:`emccdcal.calibrate` returns or a result's
-    path: this class is the typed view they all read it through.
+    What every function that takes a calibration reads the Dataset of
+    :func:`emccdcal.calibrate`, or a result's path, as:
 
     >>> import tempfile, emccdcal
     >>> sim = emccdcal.simulate_gain_series(
@@ -1015,12 +1011,16 @@ def identity_attrs(manifest) -> dict:
 
 
 def result_files(specs) -> list[Path]:
-    """The result files named by ``specs`` (files, directories, comma-joined groups)."""
+    """The result files named by ``specs`` (files, directories, comma-joined groups, and
+    results in memory that were read or written)."""
     files = []
     for spec in specs:
         for part in _members(spec):
-            p = Path(part)
-            files.append(p / CALIBRATION_FILE if p.is_dir() else p)
+            if isinstance(part, xr.Dataset):  # in memory: the file it was read or written as
+                part = part.encoding.get("source")
+            if part is not None:
+                p = Path(part)
+                files.append(p / CALIBRATION_FILE if p.is_dir() else p)
     return files
 
 

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__, result
-from .._output import atomic_write_text, file_sha256
+from .._output import OutputError, _same, atomic_write_text, file_sha256
 from .._util import progress as progress_bar
 from ..beads.validation import data_checks, read_validation
 from ..data import quality
@@ -98,23 +98,6 @@ def _load_input(item, i):
     p = Path(item)
     p = p / result.CALIBRATION_FILE if p.is_dir() else p
     return _Input(ds, p.resolve(), ds.encoding["sha256"], f"result {i + 1} ({ds.attrs['method']})")
-
-
-def _refuse_writing_over_a_result(out: Path, results) -> None:
-    """The report is never written over one of the results it reports (a call from
-    Python with the result's own name; the command line's output policy refuses it too)."""
-    from .._output import OutputError, _same
-
-    items = (
-        [results] if isinstance(results, (str, Path)) or hasattr(results, "data_vars") else results
-    )
-    for item in items:
-        if hasattr(item, "data_vars"):
-            given = item.encoding.get("source")
-        else:
-            given = Path(item) / result.CALIBRATION_FILE if Path(item).is_dir() else item
-        if given is not None and Path(given).exists() and _same(out, Path(given)):
-            raise OutputError(f"{out}: is {given}, a result this report reads; choose another name")
 
 
 def _warnings_of(ds):
@@ -371,9 +354,8 @@ def _em_model_text(attrs) -> str:
     model = EMModel.from_attrs(attrs)
     if model is None:
         return "– (no likelihood)"
-    if isinstance(model, RecordedEMModel):
-        return f"{model} (not installed here)"
-    return model.register.description
+    installed = not isinstance(model, RecordedEMModel)
+    return model.register.description if installed else f"{model} (not installed here)"
 
 
 def _manifest_status(ds):
@@ -813,10 +795,8 @@ def write_report(
 ) -> Path:
     """Write the HTML report of one or more calibration results to ``out``, atomically.
 
-    The report opens with each result's verdict and its medians, then the warnings, the
-    goodness of fit, the figures (maps, histograms against the noise model, the gain
-    curve), the bead validation and the camera's history where given, and the
-    provenance of every input (the report page of the docs shows one).
+    Each result's verdict and medians first, then the warnings, goodness of fit, figures,
+    bead validation, camera history and the provenance of every input (docs/report.md).
 
     Parameters
     ----------
@@ -878,7 +858,9 @@ def write_report(
     out = Path(out)
     if out.is_dir():
         out = out / REPORT_FILE
-    _refuse_writing_over_a_result(out, results)
+    read = result.result_files(results if isinstance(results, (list, tuple)) else [results])
+    if any(f.exists() and _same(out, f) for f in read):  # never over a result it reads
+        raise OutputError(f"{out}: is a result this report reads, an input of this run")
     text = build_report(
         results,
         validation=validation,
