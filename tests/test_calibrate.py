@@ -445,6 +445,52 @@ def test_a_calibration_through_the_array_api_standard_is_numpys(tmp_path):
                 )
 
 
+def test_a_fit_moves_its_data_to_the_device_once(tmp_path, monkeypatch):
+    """Where the fit computes off the host, the histograms go there once per fit: a
+    namespace wrapper counting what moves from the host sees the data (two arrays per
+    acquisition) once, whether the fit takes 3 iterations or 30; per evaluation only
+    per-pixel vectors move (the parameters, the window starts)."""
+    pytest.importorskip("array_api_strict")
+    from emccdcal import _xp
+    from emccdcal.data import stats
+    from emccdcal.data.manifest import read_manifest
+    from emccdcal.fit.series import SeriesLikelihood, acquisition_models
+    from emccdcal.model.noise import EMModel
+
+    sim = simulate_gain_series(tmp_path, rows=3, cols=4, frames=300, seed=9, progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        m = read_manifest(sim.manifest)
+    hists = [stats.histograms(np.asarray(a.frames()), adc_max=m.adc_max) for a in m.acquisitions]
+    models = acquisition_models(
+        [a.em_gain_setpoint for a in m.acquisitions],
+        [a.offset.ravel() for a in m.acquisitions],
+        [a.read_noise.ravel() for a in m.acquisitions],
+        EMModel("gamma"),
+    )
+    P, A = 12, len(hists)
+    moved = []
+    real_on = _xp.on
+
+    def counting_on(xp, dev, *arrays):
+        if not _xp.is_numpy_namespace(xp):
+            moved.extend(int(np.size(a)) for a in arrays if isinstance(a, np.ndarray))
+        return real_on(xp, dev, *arrays)
+
+    monkeypatch.setattr(_xp, "on", counting_on)
+    data_size = min(h.values.size for h in hists)
+    large = {}
+    for max_iter in (3, 30):
+        lik = SeriesLikelihood("gs", models, hists, e_per_adu=float(sim.truth["e_per_adu"]))
+        moved.clear()
+        with _xp.computing_on("array-api-strict"):
+            fit = lik.fit(max_iter=max_iter, covariance=False)
+        large[max_iter] = sum(n >= data_size for n in moved)
+        assert max(n for n in moved if n < data_size) <= 4 * P  # per-pixel vectors
+    assert int(fit.iterations.max()) > 3  # the long fit did iterate more
+    assert large[3] == large[30] == 2 * A, large
+
+
 @pytest.mark.parametrize("em_model", ["cascade", "gamma"])
 def test_a_calibration_on_a_gpu_is_the_cpus(tmp_path, em_model):
     """Where a GPU is (CuPy or PyTorch with CUDA), a known-truth calibration computed

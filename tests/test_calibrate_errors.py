@@ -242,7 +242,7 @@ def test_every_verb_with_a_device_refuses_one_that_is_not_there(series):
     nor PyTorch finds the same way."""
     from emccdcal.acquire.plan import plan
     from emccdcal.fit.darkgain import check_gain
-    from emccdcal.fit.posterior import sample_posterior
+    from emccdcal import sample_posterior
 
     gs, _ = series
     calls = {

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 from conftest import quiet
 
+import emccdcal
 from emccdcal import calibrate, cli, load_result
-from emccdcal.errors import ManifestError, MethodError, OptionError
-from emccdcal.fit import engine
+from emccdcal.errors import InputError, ManifestError, MethodError, OptionError
+from emccdcal.fit import profile
 from emccdcal.fit.series import AcquisitionModel, SeriesLikelihood
 from emccdcal.model.noise import EMModel
 from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
@@ -50,7 +51,7 @@ def test_sensitivity_is_the_derivative_of_the_refit(series):
         return lik, lik.fit(tol=1e-12)
 
     lik, base = fit(3.859)
-    sens = engine.e_per_adu_sensitivity(lik.layout, lik.blocks, base.x)
+    sens = profile.e_per_adu_sensitivity(lik.layout, lik.blocks, base.x)
     h = 1e-3
     up, down = fit(3.859 * np.exp(h))[1], fit(3.859 * np.exp(-h))[1]
     numeric = (up.x - down.x) / (2 * h)
@@ -266,3 +267,34 @@ def test_the_result_calibrate_returns_goes_into_every_function_that_takes_one(tm
         assert c["em_gain_se"] == chained["folder"]["em_gain_se"], k
     assert chained["written"]["source"] == "result adu-out/calibration.nc"  # the file it knows
     assert chained["memory"]["source"] == "given"
+
+
+@pytest.mark.slow
+def test_the_posterior_takes_a_chained_phi_with_its_error_and_its_checks(series):
+    """The sampler reads φ as calibrate does: a chained result's SE widens the gains'
+    draws as it widens calibrate's SEs, and a φ the data contradict is refused."""
+    d, adu, gs = series
+    pixel, kw = (1, 2), dict(em_model="gamma", seed=3, n_steps=500, min_ess=400, progress=False)
+    chained = quiet(
+        emccdcal.sample_posterior, gs.manifest, "gs", [pixel], e_per_adu=d / "out-adu", **kw
+    )
+    phi = load_result(d / "out-adu").e_per_adu.values
+    fixed = quiet(emccdcal.sample_posterior, gs.manifest, "gs", [pixel], e_per_adu=phi, **kw)
+    engine = quiet(  # without the maps' errors, which the sampler holds exact
+        calibrate, gs.manifest, "gs", e_per_adu=d / "out-adu", em_model="gamma", map_errors=False
+    )
+    assert chained.attrs["e_per_adu_source"].startswith("result ")
+    assert chained.attrs["e_per_adu_se_included"] == 1 and fixed.attrs["e_per_adu_se_included"] == 0
+    for setpoint in (25, 300):  # a gain hardly moves with φ (g ∝ mean ratio), but it may
+        name = f"em_gain[{setpoint}x]"
+        sd = float(chained.sd.sel(parameter=name)[0])
+        se = float(engine.em_gain_se.sel(setpoint=setpoint).values[pixel])
+        assert sd == pytest.approx(se, rel=0.2), (name, sd, se)
+        assert float(chained.mle_se.sel(parameter=name)[0]) == pytest.approx(se, rel=1e-6)
+    # E moves one for one with φ: its draws carry φ's error, as its standard error does
+    for name in [str(p) for p in chained.parameter.values if str(p).startswith("photoelectrons")]:
+        sd, sd_fixed = (float(ds.sd.sel(parameter=name)[0]) for ds in (chained, fixed))
+        se = float(chained.mle_se.sel(parameter=name)[0])
+        assert sd == pytest.approx(se, rel=0.2) and sd > 1.5 * sd_fixed, (name, sd, se, sd_fixed)
+    with pytest.raises(InputError, match="times what this 1x acquisition"):
+        emccdcal.sample_posterior(gs.manifest, "gs", [pixel], e_per_adu=1 / phi, **kw)

@@ -9,7 +9,7 @@ from scipy import stats
 from emccdcal import calibrate
 from emccdcal.data import stats as pixel_stats
 from emccdcal.data.manifest import read_manifest
-from emccdcal.fit import engine
+from emccdcal.fit import engine, profile
 from emccdcal.fit.series import AcquisitionModel, SeriesLikelihood
 from emccdcal.model.noise import EMModel
 from emccdcal.simulate.series import simulate_gain_series
@@ -46,10 +46,10 @@ def test_bounds_are_where_the_deviance_reaches_the_quantile(gain_series):
     assert fit.converged.all()
     target = stats.chi2.ppf(0.95, 1)
     for j in (0, layout.n_free - 1):  # ln E and ln g at the highest set-point
-        lower, upper = engine.profile_bounds(layout, blocks, fit, j)
+        lower, upper = profile.profile_bounds(layout, blocks, fit, j)
         assert np.all(lower < fit.x[:, j]) and np.all(fit.x[:, j] < upper)
         for bound in (lower, upper):
-            pinned = engine._Pinned(layout, j, bound)
+            pinned = profile._Pinned(layout, j, bound)
             refit = engine.fit(pinned, blocks, np.delete(fit.x, j, axis=1))
             np.testing.assert_allclose(2 * (fit.objective - refit.objective), target, atol=0.05)
         # a well-determined parameter: the profile interval is the Wald interval
@@ -68,7 +68,7 @@ def test_bounds_include_the_errors_of_the_maps(gain_series):
     conditional = np.linalg.inv(engine._evaluate(layout, blocks, fit.x, 2)[4])
     j = 0  # ln E, whose variance the error of the 1× offset map more than doubles here
     assert np.all(fit.cov[:, j, j] > 2 * conditional[:, j, j])
-    lower, upper = engine.profile_bounds(layout, blocks, fit, j)
+    lower, upper = profile.profile_bounds(layout, blocks, fit, j)
     np.testing.assert_allclose(
         (upper - lower) / (2 * 1.959964 * np.sqrt(fit.cov[:, j, j])), 1.0, atol=0.03
     )
@@ -136,11 +136,11 @@ def test_profile_bounds_where_the_information_is_nearly_singular(tmp_path):
     assert not fit.converged[at_one].any()
     target = stats.chi2.ppf(0.95, 1)
     for j in (0, 1):
-        lower, upper = engine.profile_bounds(layout, blocks, fit, j)
+        lower, upper = profile.profile_bounds(layout, blocks, fit, j)
         assert np.all(np.isfinite(lower) & np.isfinite(upper))
         assert np.all(upper - lower > 1.0)  # wider than a factor e: E is barely seen
         for bound, edge in ((lower, layout.lower[j]), (upper, layout.upper[j])):
-            pinned = engine._Pinned(layout, j, bound)
+            pinned = profile._Pinned(layout, j, bound)
             # the other parameter started where E·g gives the mean signal
             refit = engine.fit(pinned, blocks, (log_signal - bound)[:, None])
             deviance = 2 * (fit.objective - refit.objective)
@@ -176,7 +176,7 @@ def test_hierarchical_intervals_are_those_of_each_set_point_alone(tmp_path):
             weak = ~(se <= 0.1) | ~fit.converged
             n_weak, n_wald = n_weak + weak.sum(), n_wald + (~weak).sum()
             if weak.any():
-                lo, hi = engine.profile_bounds(layout, blocks, fit, j)
+                lo, hi = profile.profile_bounds(layout, blocks, fit, j)
                 lower[weak], upper[weak] = np.exp(lo[weak]), np.exp(hi[weak])
             got = ds[f"{name}_lower"].sel(setpoint=sp).values.ravel()
             np.testing.assert_allclose(got, lower, rtol=2e-3, err_msg=f"{name} {sp}x")

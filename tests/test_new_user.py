@@ -14,7 +14,8 @@ import tifffile
 from conftest import write_real_manifest
 
 from emccdcal import cli, result
-from emccdcal.calibration import _load, check_e_per_adu
+from emccdcal.calibration import _load
+from emccdcal.fit.series import specify
 from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
 
 
@@ -70,7 +71,7 @@ def test_the_true_phi_and_three_standard_errors_either_side_are_accepted(series)
     gs, phi, se = series
     manifest = _load(gs.manifest)
     for given in (gs.truth["e_per_adu"], phi, phi - 3 * se, phi + 3 * se):
-        check_e_per_adu(np.full(manifest.shape, given), None, "given", manifest.acquisitions, "gs")
+        specify(manifest, "gs", e_per_adu=np.full(manifest.shape, given))  # checked there
 
 
 def test_accept_phi_lets_it_through_and_gs_no1x_says_it_is_unchecked(series, tmp_path, capsys):
@@ -127,7 +128,7 @@ def test_the_real_gain_series_refuses_a_phi_in_other_units(real_data, tmp_path, 
         assert code == 2 and words in err, err
     m = _load(manifest)
     for given in (3.8669, 3.8669 * 0.97, 3.8669 * 1.03):  # is-adu's phi, 3 % either side
-        check_e_per_adu(np.full(m.shape, given), None, "given", m.acquisitions, "gs")
+        specify(m, "gs", e_per_adu=np.full(m.shape, given))
 
 
 # --------------------------------------------------------------------------------------

@@ -7,7 +7,7 @@ import doctest
 import numpy as np
 import pytest
 
-from emccdcal.model import noise
+from emccdcal.model import noise, pointwise
 
 PHI = 3.859
 
@@ -34,7 +34,7 @@ def test_logpmf_rows_matches_logpmf_and_gradient():
     g, phi, S0, sigma = _cases(rng, U, [1.0, 4.78, 22.95, 261.6])
     row = rng.integers(0, U, 400)
     k = _counts(rng, E[row], g[row], phi[row], S0[row], sigma[row], spread=1.5)
-    lp, dE = noise.logpmf_rows(k, row, E, g, phi, S0, sigma, grad=True, em_model="gamma")
+    lp, dE = pointwise.logpmf_rows(k, row, E, g, phi, S0, sigma, grad=True, em_model="gamma")
     ref, rgrad = noise.logpmf_grad(
         k, E[row], g[row], phi[row], S0[row], sigma[row], em_model="gamma"
     )
@@ -49,26 +49,31 @@ def test_logpmf_rows_chunks_give_the_same_values(monkeypatch):
     g, phi, S0, sigma = _cases(rng, U, [1.0, 25.0, 300.0])
     row = np.repeat(np.arange(U), 7)
     k = _counts(rng, E[row], g[row], phi[row], S0[row], sigma[row])
-    whole = noise.logpmf_rows(k, row, E, g, phi, S0, sigma, em_model="gamma")
-    monkeypatch.setattr(noise, "_ROWS_POINTS", 1)  # one row per batch
+    whole = pointwise.logpmf_rows(k, row, E, g, phi, S0, sigma, em_model="gamma")
+    monkeypatch.setattr(pointwise, "_ROWS_POINTS", 1)  # one row per batch
     # the same numbers up to FFT round-off (batch shapes differ)
     np.testing.assert_allclose(
-        noise.logpmf_rows(k, row, E, g, phi, S0, sigma, em_model="gamma"), whole, rtol=0, atol=1e-11
+        pointwise.logpmf_rows(k, row, E, g, phi, S0, sigma, em_model="gamma"),
+        whole,
+        rtol=0,
+        atol=1e-11,
     )
 
 
 def test_logpmf_rows_bad_input():
     with pytest.raises(ValueError, match="row must hold integer indices"):
-        noise.logpmf_rows([600], [2], [10.0, 20.0], 1.0, PHI, 587.0, 15.0, em_model="gamma")
+        pointwise.logpmf_rows([600], [2], [10.0, 20.0], 1.0, PHI, 587.0, 15.0, em_model="gamma")
     with pytest.raises(ValueError, match="one value per row"):
-        noise.logpmf_rows(
+        pointwise.logpmf_rows(
             [600], [0], [10.0, 20.0], [1.0, 1.0, 1.0], PHI, 587.0, 15.0, em_model="gamma"
         )
     with pytest.raises(ValueError, match="row has 2 entries"):
-        noise.logpmf_rows([600], [0, 0], [10.0], 1.0, PHI, 587.0, 15.0, em_model="gamma")
+        pointwise.logpmf_rows([600], [0, 0], [10.0], 1.0, PHI, 587.0, 15.0, em_model="gamma")
     with pytest.raises(ValueError, match="em_gain"):
-        noise.logpmf_rows([600], [0], [10.0], 0.5, PHI, 587.0, 15.0, em_model="gamma")
-    assert noise.logpmf_rows([], [], [10.0], 1.0, PHI, 587.0, 15.0, em_model="gamma").shape == (0,)
+        pointwise.logpmf_rows([600], [0], [10.0], 0.5, PHI, 587.0, 15.0, em_model="gamma")
+    assert pointwise.logpmf_rows([], [], [10.0], 1.0, PHI, 587.0, 15.0, em_model="gamma").shape == (
+        0,
+    )
 
 
 @pytest.mark.parametrize(
@@ -92,8 +97,8 @@ def test_table_matches_exact_model(gains, e_lo, ratio):
     # data drawn anywhere in the range, queried anywhere in the range
     E_data = rng.uniform(lo[pix], hi[pix])
     k = _counts(rng, E_data, g[pix], phi[pix], S0[pix], sigma[pix], spread=0.6)
-    table = noise.LogpmfTable(k, pix, lo, hi, g, phi, S0, sigma, em_model="gamma")
-    E = np.maximum(rng.uniform(lo[pix], hi[pix]), noise.TABLE_MIN_PHOTOELECTRONS)
+    table = pointwise.LogpmfTable(k, pix, lo, hi, g, phi, S0, sigma, em_model="gamma")
+    E = np.maximum(rng.uniform(lo[pix], hi[pix]), pointwise.TABLE_MIN_PHOTOELECTRONS)
     lp, d1, d2, outside = table.evaluate(E)
     assert not outside.any()
     ref, rgrad = noise.logpmf_grad(k, E, g[pix], phi[pix], S0[pix], sigma[pix], em_model="gamma")
@@ -117,7 +122,7 @@ def test_table_subsets_clamping_and_new_ranges():
     counts = np.array([700, 720, 3000, 3100])
     pixel = np.array([0, 0, 1, 1])
     g = np.array([1.0, 25.0])
-    table = noise.LogpmfTable(
+    table = pointwise.LogpmfTable(
         counts, pixel, [100.0, 50.0], [200.0, 150.0], g, PHI, 587.0, 15.5, em_model="gamma"
     )
     assert table.degree.tolist() == [16, 16] and not table.log.any()
@@ -150,11 +155,13 @@ def test_table_subsets_clamping_and_new_ranges():
 
 def test_table_bad_input():
     with pytest.raises(ValueError, match="0 <= e_lo < e_hi"):
-        noise.LogpmfTable([700], [0], [100.0], [50.0], 1.0, PHI, 587.0, 15.5, em_model="gamma")
+        pointwise.LogpmfTable([700], [0], [100.0], [50.0], 1.0, PHI, 587.0, 15.5, em_model="gamma")
     with pytest.raises(ValueError, match="pixel must hold integer indices"):
-        noise.LogpmfTable([700], [3], [10.0], [50.0], 1.0, PHI, 587.0, 15.5, em_model="gamma")
+        pointwise.LogpmfTable([700], [3], [10.0], [50.0], 1.0, PHI, 587.0, 15.5, em_model="gamma")
     with pytest.raises(ValueError, match="pixel has 2 entries"):
-        noise.LogpmfTable([700], [0, 0], [10.0], [50.0], 1.0, PHI, 587.0, 15.5, em_model="gamma")
+        pointwise.LogpmfTable(
+            [700], [0, 0], [10.0], [50.0], 1.0, PHI, 587.0, 15.5, em_model="gamma"
+        )
 
 
 def test_docstring_examples():

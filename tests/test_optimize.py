@@ -182,12 +182,12 @@ ITERATIONS = {
     ("model/cascade.py", "_max_block_exponent"): "counting the table sizes that fit",
     ("model/cascade.py", "_TableCache.get"): "evicting a cache",
     ("model/_engine.py", "evaluate"): "rounds of windows until every count has its value",
-    ("model/noise.py", "logpmf_rows"): "runs of rows within a memory budget",
+    ("model/pointwise.py", "logpmf_rows"): "runs of rows within a memory budget",
     ("model/shared_register.py", "SharedRegister._build"): "the terms of a power series",
     ("fit/gof.py", "gof_pvalues"): "blocks of rows within a memory budget",
     ("fit/mv.py", "_fit_line"): "a fixed number of re-weightings (weighted least squares)",
     ("fit/darkgain.py", "_core_start"): "two trimmed-moment passes: a start",
-    ("fit/engine.py", "profile_bounds"): "the profile deviance's level: every evaluation is a "
+    ("fit/profile.py", "profile_bounds"): "the profile deviance's level: every evaluation is a "
     "constrained refit, whose own warm starts the steps keep",
     ("fit/posterior.py", "_sample_pixel"): "Markov chains run on until they converge",
     ("beads/validation.py", "blinking_level"): "EM iterations of a two-level mixture",

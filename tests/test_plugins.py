@@ -56,6 +56,7 @@ def plugin(tmp_path_factory):
     (package / "__init__.py").write_text("")
     (package / "rawx.py").write_text(READER)
     (package / "toyloc.py").write_text(TOOL)
+    (package / "napari.yaml").write_text(_example("emccdcal_toy/napari.yaml"))
     info = site / "emccdcal_toy-0.1.dist-info"
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: emccdcal-toy\nVersion: 0.1\n")
@@ -188,6 +189,40 @@ def test_napari_reads_what_the_packages_own_readers_read():
         for s in r.SUFFIXES
     }
     assert {p.removeprefix("*").lower() for p in patterns} == own
+
+
+def test_napari_opens_a_plugin_readers_file_through_its_packages_manifest(plugin, tmp_path):
+    """napari's plug-in manager (npe2), in a fresh interpreter with the example package
+    installed, offers emccdcal-toy's manifest (and no other) for a .rawx file, and
+    reading it gives the lazy stack emccdcal's reader makes."""
+    pytest.importorskip("npe2")
+    sys.path.insert(0, str(plugin))
+    try:
+        from emccdcal_toy import rawx
+    finally:
+        sys.path.remove(str(plugin))
+    path = tmp_path / "dark-25.rawx"
+    rawx.write(path, np.arange(2 * 3 * 4, dtype=np.uint16).reshape(2, 3, 4), 25.0)
+    code = (
+        "import sys, npe2\n"
+        "pm = npe2.PluginManager.instance()\n"
+        "pm.discover()\n"
+        "print(sorted({r.plugin_name for r in pm.iter_compatible_readers([sys.argv[1]])}))\n"
+        "data, meta, kind = npe2.read([sys.argv[1]], stack=False)[0]\n"
+        "print(kind, tuple(data.shape), int(data[1].sum()), meta['metadata']['emccdcal_path'])\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(plugin)}
+    done = subprocess.run(
+        [sys.executable, "-c", code, str(path)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr
+    offered, read = done.stdout.splitlines()
+    assert offered == "['emccdcal-toy']"
+    assert read == f"image (2, 3, 4) {sum(range(12, 24))} {path}"
 
 
 def test_without_registered_readers_a_file_says_why(monkeypatch, tmp_path):

@@ -7,6 +7,8 @@ import json
 
 import numpy as np
 import pytest
+
+import emccdcal
 from conftest import write_real_manifest
 
 from emccdcal._util import parse_pixel
@@ -27,7 +29,7 @@ def adu_run(adu_manifest, tmp_path_factory):
     from emccdcal import calibrate
 
     out = tmp_path_factory.mktemp("post")
-    ds = posterior.sample_posterior(adu_manifest, "is-adu", [(1, 1)], seed=0, out=out)
+    ds = emccdcal.sample_posterior(adu_manifest, "is-adu", [(1, 1)], seed=0, out=out)
     engine = calibrate(adu_manifest, "is-adu")
     return ds, engine, out
 
@@ -116,7 +118,7 @@ def test_outputs_are_written(adu_run):
 @needs_real
 def test_unconverged_chain_is_refused(adu_manifest):
     with pytest.raises(NotConvergedError) as err:
-        posterior.sample_posterior(adu_manifest, "is-adu", [(0, 0)], n_steps=40, max_steps=60)
+        emccdcal.sample_posterior(adu_manifest, "is-adu", [(0, 0)], n_steps=40, max_steps=60)
     msg = str(err.value)
     assert "\n" not in msg
     assert "not converged after 60 steps" in msg
@@ -128,7 +130,7 @@ def test_unconverged_chain_is_refused(adu_manifest):
 def test_refusal_is_reproducible_with_the_seed(adu_manifest):
     def message(seed):
         with pytest.raises(NotConvergedError) as err:
-            posterior.sample_posterior(
+            emccdcal.sample_posterior(
                 adu_manifest, "is-adu", [(2, 2)], n_steps=30, max_steps=30, seed=seed
             )
         return str(err.value)
@@ -146,7 +148,7 @@ def test_the_posterior_through_the_array_api_standard_is_numpys(adu_manifest):
 
     def message(device):
         with pytest.raises(NotConvergedError) as err:
-            posterior.sample_posterior(
+            emccdcal.sample_posterior(
                 adu_manifest, "is-adu", [(2, 2)], n_steps=30, max_steps=30, seed=3, device=device
             )
         return str(err.value)
@@ -186,7 +188,7 @@ def test_cli_refusal_exit_code(adu_manifest, tmp_path, capsys):
 @pytest.mark.parametrize("pixel", [(3, 0), (0, 3), (-1, 1)])
 def test_pixel_outside_the_array(adu_manifest, pixel):
     with pytest.raises(ValueError, match=r"outside the array of shape 3x3"):
-        posterior.sample_posterior(adu_manifest, "is-adu", [pixel])
+        emccdcal.sample_posterior(adu_manifest, "is-adu", [pixel])
 
 
 @pytest.mark.parametrize("text", ["1;1", "a,b", "1,2,3", "1", "1.5,2", ""])
@@ -211,7 +213,7 @@ def test_parse_pixel():
 )
 def test_method_the_manifest_cannot_support(adu_manifest, method, kwargs, match):
     with pytest.raises(MethodError, match=match):
-        posterior.sample_posterior(adu_manifest, method, [(1, 1)], **kwargs)
+        emccdcal.sample_posterior(adu_manifest, method, [(1, 1)], **kwargs)
 
 
 @needs_real
@@ -228,7 +230,7 @@ def test_method_the_manifest_cannot_support(adu_manifest, method, kwargs, match)
 )
 def test_bad_options(adu_manifest, kwargs, match):
     with pytest.raises(ValueError, match=match):
-        posterior.sample_posterior(adu_manifest, "is-adu", [(1, 1)], **kwargs)
+        emccdcal.sample_posterior(adu_manifest, "is-adu", [(1, 1)], **kwargs)
 
 
 @needs_real

@@ -9,6 +9,8 @@ import warnings
 import numpy as np
 import pytest
 
+import emccdcal
+
 from emccdcal import calibrate, cli
 from emccdcal.fit import posterior
 from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
@@ -74,7 +76,7 @@ def test_posterior_agrees_with_the_engine(series, method, source):
     manifest = series[source]
     # an effective sample of 400 puts the median within 0.06 posterior SD and the SD
     # within 4 % (Monte Carlo errors), far inside what is asserted
-    ds = posterior.sample_posterior(
+    ds = emccdcal.sample_posterior(
         manifest, method, [PIXEL], seed=1, em_model=MODEL, n_steps=500, min_ess=MIN_ESS
     )
     engine = _engine(manifest, method)

@@ -42,7 +42,7 @@ _API = {
     "simulate_beads": ("emccdcal.simulate.beads", "simulate_beads"),
     "validate": ("emccdcal.beads.validation", "validate"),
     "cots": ("emccdcal.beads.cots_calibration", "cots_calibrate"),
-    "sample_posterior": ("emccdcal.fit.posterior", "sample_posterior"),
+    "sample_posterior": ("emccdcal.sampling", "sample_posterior"),
     "write_report": ("emccdcal.report.html", "write_report"),
     "load_calibration": ("emccdcal.result", "load_calibration"),
     "Calibration": ("emccdcal.result", "Calibration"),

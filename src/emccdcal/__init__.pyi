@@ -26,7 +26,7 @@ from .errors import EmccdcalWarning as EmccdcalWarning
 from .export.gain_curve import fit_gain_curve as fit_gain_curve
 from .export.movie import apply as apply_calibration
 from .export.tools import export as export_calibration
-from .fit.posterior import sample_posterior as sample_posterior
+from .sampling import sample_posterior as sample_posterior
 from .model import noise as noise
 from .report.html import write_report as write_report
 from .result import load as load_result

@@ -47,7 +47,7 @@ from .errors import (
 )
 from .fit import gof, mv
 from .fit.series import acquisition_models, fit_series, specify
-from .given_phi import check_e_per_adu, e_per_adu_inputs
+from .given_phi import e_per_adu_inputs
 from .defaults import DEFAULT_BLOCK, DEFAULT_TILE_PIXELS, INTERVALS, METHODS
 from .model import noise
 from .runstore import RESULT_FILES, RunInterrupted, RunStore, remove_run
@@ -738,7 +738,7 @@ def calibrate(
         state is refused.
     accept_phi : bool
         Use a given φ even where the 1× acquisition's photon transfer says otherwise
-        (:func:`check_e_per_adu`); by default such a φ (in ADU/e⁻, say, or of another
+        (:func:`emccdcal.fit.series.specify`); by default such a φ (in ADU/e⁻, say, or of another
         read-out mode) is refused before any fitting.
     device : {"cpu", "cuda", "array-api-strict"}, optional
         Where the likelihood's windows and sums are computed (docs/running.md): the CPU
@@ -952,21 +952,21 @@ def _run_calibration(
     spec = specify(  # before any stack is read
         manifest,
         method,
-        phi_given=phi_map is not None,
+        e_per_adu=phi_map,
+        e_per_adu_se=phi_se,
+        e_per_adu_source=phi_source,
+        accept_phi=accept_phi,
         em_model=em_model,
         stages=None if auto else stages,
         options=options,
     )
     model, stages_source, options = spec.em_model, spec.stages_source, spec.options
     used = list(spec.acquisitions)
-    if phi_map is not None and method not in ("is-adu", "mv-adu") and not accept_phi:
-        check_e_per_adu(phi_map, phi_se, phi_source, used, method)
     tiles = plan_tiles(rows * cols, tile_pixels, block_size)
     dark_frames, map_groups, se_note = _map_error_sources(used, map_errors)
     offsets = np.stack([a.offset.reshape(-1) for a in used])
     read_noise = np.stack([a.read_noise.reshape(-1) for a in used])
-    phi = None if phi_map is None else phi_map.reshape(-1)
-    phi_se_flat = None if phi_se is None else phi_se.reshape(-1)
+    phi, phi_se_flat = (None if a is None else a.reshape(-1) for a in (phi_map, phi_se))
 
     def tile_job(p0, p1, model):
         px = slice(p0, p1)

@@ -5,91 +5,22 @@ a number (e⁻/ADU), a (rows, cols) map, or an ``is-adu``/``mv-adu`` result (its
 Dataset :func:`emccdcal.calibrate` returned, or a :class:`emccdcal.Calibration`), whose φ
 and standard error per pixel then go into the fit, cropped to the manifest's pixels and
 checked to be of the same camera and read-out state (:func:`e_per_adu_inputs`). Before
-any fitting, a φ the data contradict is refused (:func:`check_e_per_adu`).
+any fitting, the fit's door refuses a φ the data contradict
+(:func:`emccdcal.fit.series.specify`).
 """
 
 from __future__ import annotations
 
-import math
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from . import identity, result
-from ._util import e_per_adu_map, nanmedian
+from ._util import e_per_adu_map
 from .data.manifest import Source
-from .data.stacks import read_band
-from .errors import DataQualityWarning, InputError, OptionError
-from .fit import mv
+from .errors import OptionError
 
-__all__ = ["check_e_per_adu", "e_per_adu_inputs"]
-
-
-def check_e_per_adu(phi_map, phi_se, source, used, method) -> None:
-    """Refuse a given φ that the data contradict, before any fitting.
-
-    The 1× acquisition's photon transfer (:func:`emccdcal.fit.mv.photon_transfer_e_per_adu`,
-    on at most :data:`~emccdcal.defaults.PHI_CHECK_PIXELS` pixels of the sensor's middle
-    rows) gives φ̂ with its SE; the given φ (its median there) is refused where
-    ``|ln(φ / φ̂)|`` exceeds :data:`~emccdcal.defaults.PHI_Z` relative SEs (the SE at
-    least :data:`~emccdcal.defaults.PHI_SYSTEMATIC`, φ's own SE included), naming the
-    inverse where φ·φ̂ is nearer 1. Without a 1× acquisition it is said, once, that φ
-    went unchecked.
-
-    Raises
-    ------
-    InputError
-        One line: both values, the acquisition, and what to do.
-    """
-    from .defaults import PHI_CHECK_FRAMES, PHI_CHECK_PIXELS, PHI_SYSTEMATIC, PHI_Z
-
-    unit = next((a for a in used if a.em_gain_setpoint == 1), None)
-    if unit is None:
-        warnings.warn(
-            f"{method}: e_per_adu ({source or 'given'}) could not be checked against "
-            "the data (no 1x acquisition): make sure it is in e-/ADU and of this "
-            "read-out mode",
-            stacklevel=3,
-            category=DataQualityWarning,
-        )
-        return
-    rows, cols = unit.offset.shape
-    k = max(1, min(rows, PHI_CHECK_PIXELS // cols))
-    r0 = (rows - k) // 2
-    stop = min(unit.n_frames_total, unit.skip_frames + PHI_CHECK_FRAMES)
-    frames = read_band(unit.frames_path, r0, r0 + k, unit.skip_frames, stop)
-    band = slice(r0, r0 + k)
-    found, rel = mv.photon_transfer_e_per_adu(
-        frames, unit.offset[band], unit.read_noise[band], dark_frames=unit.dark_frames
-    )
-    given = float(nanmedian(phi_map[band]))
-    if not math.isfinite(found) or rel > 0.5:
-        warnings.warn(
-            f"{unit.frames_path}: too little light above the read noise to check "
-            f"e_per_adu {given:.4g} ({source or 'given'}) against it",
-            stacklevel=3,
-            category=DataQualityWarning,
-        )
-        return
-    if phi_se is not None:
-        rel = math.hypot(rel, float(nanmedian((phi_se / phi_map)[band])))
-    rel = max(rel, PHI_SYSTEMATIC)
-    z = math.log(given / found) / rel
-    if abs(z) <= PHI_Z:
-        return
-    inverse = abs(math.log(given * found)) < abs(math.log(given / found))
-    hint = (
-        f"it looks like ADU/e- (1/{given:.4g} = {1 / given:.4g} e-/ADU): give e-/ADU"
-        if inverse
-        else "is it in e-/ADU, and of this camera's read-out mode?"
-    )
-    raise InputError(
-        f"{unit.frames_path}: e_per_adu {given:.4g} e-/ADU ({source or 'given'}) is "
-        f"{given / found:.3g} times what this 1x acquisition's photon transfer says "
-        f"({found:.4g} ± {100 * rel:.2g} %, {abs(z):.0f} SE off); {hint} (--accept-phi "
-        "to use it all the same)"
-    )
+__all__ = ["e_per_adu_inputs"]
 
 
 def e_per_adu_inputs(manifest, e_per_adu, accept_mismatch=()):

@@ -105,6 +105,14 @@ def _problem(group: str, obj) -> str:
             wrong.append("write")
     if wrong:
         return f"has {', '.join(wrong)} not callable"
+    if group == REGISTERS:
+        from .model.register import Register
+
+        if isinstance(obj, type) and issubclass(obj, Register):
+            if obj.transform is Register.transform:
+                return "subclasses Register without defining its transform(u, g)"
+            if not obj.name or not obj.description:
+                return "subclasses Register without a name and a description"
     if group == READERS:
         suffixes = obj.SUFFIXES
         if isinstance(suffixes, str) or not all(

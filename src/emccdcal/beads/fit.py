@@ -57,7 +57,7 @@ All beads and frames of an acquisition are fitted together, as arrays of shape
    gives its shape; every frame's N (and b) starts from least squares on that shape;
    then the joint fit below runs on this Gaussian likelihood.
 2. **Exact fit**: the data are fixed, so for every pixel of every frame ln p(S | E) is a
-   smooth function of E alone. :class:`emccdcal.model.noise.LogpmfTable` tabulates it exactly
+   smooth function of E alone. :class:`emccdcal.model.pointwise.LogpmfTable` tabulates it exactly
    (the FFT evaluator of :mod:`emccdcal.model.noise`, each pixel's own parameters) at Chebyshev
    nodes in √E over the range of E the start found for that pixel, widened; values and
    the first two derivatives by E then cost a few dozen operations per pixel. The
@@ -90,7 +90,7 @@ import numpy as np
 from .. import defaults
 from .._optimize import ArrowLayout, maximize, schur
 from ..errors import OptionError
-from ..model import noise, psf
+from ..model import noise, pointwise, psf
 
 __all__ = [
     "DEFAULT_HALF_SIZE",
@@ -746,7 +746,7 @@ class _Boxes:
         B, F, npix = self.B, self.F, self.npix
         E1 = self.model(p, self.bead_of)[0].reshape(B, F, npix)
         lo, hi = _pad_range(E1.min(axis=1), E1.max(axis=1))
-        self.table = noise.LogpmfTable(
+        self.table = pointwise.LogpmfTable(
             self.counts.reshape(-1),
             np.repeat(np.arange(B), F * npix) * npix + np.tile(np.arange(npix), self.M),
             lo.ravel(),

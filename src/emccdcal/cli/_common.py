@@ -127,18 +127,10 @@ def add_no_figures(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-figures", action="store_true", help="do not write the figures")
 
 
-def add_e_per_adu(p: argparse.ArgumentParser, *, results: bool = True) -> None:
-    """``--e-per-adu``: a number, or (``results``) an is-adu or mv-adu result, which comes
-    with ``--accept-mismatch`` (a result is of one camera and read-out state)."""
-    if not results:
-        p.add_argument(
-            "--e-per-adu",
-            type=positive_float,
-            default=None,
-            metavar="PHI",
-            help="ADU conversion factor phi, e-/ADU, overriding the manifest's",
-        )
-        return
+def add_e_per_adu(p: argparse.ArgumentParser) -> None:
+    """``--e-per-adu``: a number, or an is-adu or mv-adu result, which comes with
+    ``--accept-mismatch`` (a result is of one camera and read-out state); and
+    ``--accept-phi``, for a φ the 1x acquisition contradicts."""
     p.add_argument(
         "--e-per-adu",
         type=number_or_path,
@@ -147,6 +139,12 @@ def add_e_per_adu(p: argparse.ArgumentParser, *, results: bool = True) -> None:
         help="ADU conversion factor phi, e-/ADU, overriding the manifest's: a "
         "number, or an is-adu or mv-adu result (its directory or calibration.nc), "
         "whose phi and standard error per pixel are then used",
+    )
+    p.add_argument(
+        "--accept-phi",
+        action="store_true",
+        help="use the given phi even where the 1x acquisition's photon transfer "
+        "contradicts it (by default such a phi, in ADU/e- say, is refused)",
     )
     add_accept_mismatch(p)
 

@@ -33,12 +33,6 @@ def add_parser(subparsers):
     )
     _common.add_out(p, overwrite=False)
     _common.add_e_per_adu(p)
-    p.add_argument(
-        "--accept-phi",
-        action="store_true",
-        help="use the given phi even where the 1x acquisition's photon transfer "
-        "contradicts it (by default such a phi, in ADU/e- say, is refused)",
-    )
     again = p.add_mutually_exclusive_group()
     again.add_argument(
         "--resume",

@@ -32,7 +32,7 @@ def add_parser(subparsers):
         help="pixel to sample (repeatable)",
     )
     _common.add_out(p)
-    _common.add_e_per_adu(p, results=False)
+    _common.add_e_per_adu(p)
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument(
         "--steps",
@@ -63,12 +63,8 @@ def add_parser(subparsers):
 
 def run(args) -> int:
     from ..errors import NotConvergedError
-    from ..fit.posterior import (
-        POSTERIOR_FILE,
-        SUMMARY_FILE,
-        format_summary,
-        sample_posterior,
-    )
+    from ..fit.posterior import POSTERIOR_FILE, SUMMARY_FILE, format_summary
+    from ..sampling import sample_posterior
 
     try:
         with _common.output(
@@ -79,6 +75,8 @@ def run(args) -> int:
                 args.method,
                 args.pixel,
                 e_per_adu=args.e_per_adu,
+                accept_mismatch=args.accept_mismatch,
+                accept_phi=args.accept_phi,
                 n_walkers=args.walkers,
                 n_steps=args.steps,
                 seed=args.seed,

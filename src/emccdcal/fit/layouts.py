@@ -25,7 +25,7 @@ import numpy as np
 
 from .. import _roots, defaults
 from ..errors import MethodError, OptionError
-from . import engine
+from . import engine, profile
 from .engine import Layout, Parameter
 
 __all__ = [
@@ -516,7 +516,7 @@ def acquisition_estimates(layout, x, cov):
 
 
 def acquisition_bounds(layout, blocks, fit, level=0.95):
-    """Profile-likelihood bounds of E, g and φ per acquisition (:func:`engine.profile_bounds`).
+    """Profile-likelihood bounds of E, g and φ per acquisition (:func:`emccdcal.fit.profile.profile_bounds`).
 
     Returns
     -------
@@ -525,7 +525,7 @@ def acquisition_bounds(layout, blocks, fit, level=0.95):
         and ``e_per_adu``; NaN where the quantity is fixed by the layout.
     """
     bounds = [
-        engine.profile_bounds(layout, blocks, fit, j, level=level) for j in range(layout.n_free)
+        profile.profile_bounds(layout, blocks, fit, j, level=level) for j in range(layout.n_free)
     ]
     return _bounds_of_x(layout, *(np.column_stack(b) for b in zip(*bounds)))
 
@@ -582,7 +582,7 @@ def unpooled_bounds(layout, blocks, fit, level=0.95, weak_se=0.1):
                     free.n_floored[rows],
                     objective=free.objective[rows],
                 )
-                lower[rows, f], upper[rows, f] = engine.profile_bounds(
+                lower[rows, f], upper[rows, f] = profile.profile_bounds(
                     alone.subset(rows), [block.take(rows)], start, k, level=level
                 )
     return _bounds_of_x(layout, lower, upper)

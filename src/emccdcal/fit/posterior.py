@@ -58,7 +58,7 @@ if TYPE_CHECKING:
 __all__ = [
     "NotConvergedError",
     "PRIORS",
-    "sample_posterior",
+    "sample_pixels",
     "summary",
     "save",
     "POSTERIOR_FILE",
@@ -295,12 +295,15 @@ def _sample_pixel(
     )
 
 
-def sample_posterior(
+def sample_pixels(
     manifest,
     method,
     pixels,
     *,
     e_per_adu=None,
+    e_per_adu_se=None,
+    e_per_adu_source=None,
+    accept_phi=False,
     n_walkers=None,
     n_steps=None,
     seed=0,
@@ -314,76 +317,21 @@ def sample_posterior(
     stages=None,
     device=None,
 ) -> xarray.Dataset:
-    """MCMC posterior of a method's free parameters for single pixels.
+    """MCMC posterior of a method's free parameters for single pixels, φ given as arrays:
+    :func:`emccdcal.sample_posterior` (which reads a chained φ's result first) says what
+    every parameter means.
 
     Parameters
     ----------
-    manifest : str, Path or :class:`emccdcal.Manifest`
-        The TOML manifest (``docs/manifest.md``).
-    method : str
-        A likelihood method (:data:`emccdcal.fit.layouts.LIKELIHOOD_METHODS`): ``is-adu``,
-        ``is-gain``, ``gs``, ``gs-no1x``, ``gs-hierarchical``.
-    pixels : sequence of (int, int) or str
-        Pixels as (row, col), or ``"ROW,COL"`` strings; duplicates are sampled once.
-    e_per_adu : float or ndarray (rows, cols), optional
-        φ (e⁻/ADU) overriding the manifest's, for the methods that hold it fixed.
-    n_walkers : int, optional
-        Walkers of the ensemble; default ``max(32, 4 F)`` for F free parameters
-        (at least ``2 F``).
-    n_steps : int, optional
-        Steps per walker of the first run (default 1500, at most ``max_steps``); the chain
-        is then extended, as the autocorrelation time asks, up to ``max_steps``.
-    seed : int
-        Seed of every random draw (start ball and sampler); pixel (r, c) uses the stream
-        ``SeedSequence([seed, r, c])``, so its chain does not depend on the other pixels.
-    max_steps : int
-        Steps per walker beyond which an unconverged chain is refused.
-    min_ess : int
-        Effective sample size required of every parameter.
-    prior : {"log-uniform", "uniform"}
-        Flat in the log-parameters (default) or in the physical parameters, inside the
-        method's bounds (see the module docstring).
-    options : dict, optional
-        Method options, as :func:`emccdcal.calibrate`'s.
-    out : str or Path, optional
-        Directory to write ``posterior.nc`` and ``posterior.json`` into (corner plots:
-        :func:`emccdcal.report.corner.write_corner_figures`).
-    progress : bool
-        emcee's progress bars (in a notebook or on a terminal; none in a pipe).
-    em_model, stages : optional
-        The EM register's model (:func:`emccdcal.calibrate`); default the manifest's,
-        else the exact cascade (stages from the manifest, the camera's model or 536;
-        ``"auto"`` is :func:`emccdcal.calibrate`'s only).
-    device : {"cpu", "cuda", "array-api-strict"}, optional
-        Where the likelihood is computed, as :func:`emccdcal.calibrate`'s (the walkers'
-        evaluations are one batch each step).
-
-    Returns
-    -------
-    xarray.Dataset
-        ``samples`` (pixel, draw, parameter) in physical units (the ``units`` coordinate:
-        e⁻/ADU, e⁻ or 1), padded with NaN beyond ``n_draws``; ``log_posterior``
-        (pixel, draw), nats; per (pixel, parameter) ``median``, ``sd``, ``q16``, ``q84``,
-        ``q025``, ``q975``, ``ess``, ``autocorr_time`` (steps), ``mle`` and ``mle_se``
-        (the engine's estimate and delta-method standard error); per pixel
-        ``acceptance``, ``n_steps``, ``burn``, ``thin``, ``n_draws``, ``n_walkers``,
-        ``mle_converged`` and ``seconds`` (wall time: reading, fit and sampling).
-        ``attrs["seconds"]`` is the wall time.
-
-    Raises
-    ------
-    ValueError
-        A pixel outside the array or malformed, bad options, too few frames.
-    emccdcal.MethodError
-        A method the manifest cannot support.
-    NotConvergedError
-        A chain that did not converge within ``max_steps``.
-
-    Examples
-    --------
-    >>> ds = sample_posterior("adu/manifest.toml", "is-adu", [(1, 1)])   # doctest: +SKIP
-    >>> float(ds.median.sel(parameter="e_per_adu")[0])                    # doctest: +SKIP
-    3.94
+    e_per_adu, e_per_adu_se : ndarray (rows, cols), optional
+        A φ the method holds fixed (e⁻/ADU; None: the manifest's) and its standard error
+        (a chained result's, or None): with an SE, each draw is moved as a draw of ln φ
+        from its error moves the estimate (the linear response calibrate's standard
+        errors use), so the samples carry φ's uncertainty as calibrate's SEs do.
+    e_per_adu_source : emccdcal.data.manifest.Source, optional
+        Where that φ came from (for messages and the result's attributes).
+    accept_phi : bool
+        Use a given φ that the 1× acquisition's photon transfer contradicts.
     """
     t0 = time.perf_counter()
     _check_sampling(prior, method, max_steps, min_ess, n_steps)
@@ -392,13 +340,16 @@ def sample_posterior(
     if not isinstance(manifest, Manifest):
         manifest = read_manifest(manifest)
     pixels = _check_pixels(pixels, manifest.shape)
-    phi_map = e_per_adu_map(
-        e_per_adu if e_per_adu is not None else manifest.e_per_adu, manifest.shape
-    )
+    if e_per_adu is None:
+        e_per_adu, e_per_adu_se = manifest.e_per_adu, None
+    phi_map = e_per_adu_map(e_per_adu, manifest.shape)
     spec = specify(
         manifest,
         method,
-        phi_given=phi_map is not None,
+        e_per_adu=phi_map,
+        e_per_adu_se=e_per_adu_se,
+        e_per_adu_source=e_per_adu_source,
+        accept_phi=accept_phi,
         em_model=em_model,
         stages=stages,
         options=options,
@@ -409,53 +360,13 @@ def sample_posterior(
     names = units = None
     for row, col in pixels:
         t_pixel = time.perf_counter()
-        where = f"{method} pixel ({row}, {col})"
         lik = _pixel_series(manifest, used, method, row, col, phi_map, options, model)
         if names is None:
             names, units = _physical_names(lik, used, method)
-        F = len(lik.parameters)
-        W = int(n_walkers) if n_walkers is not None else max(32, 4 * F)
-        if W < 2 * F or W % 2:
-            raise OptionError(
-                f"n_walkers must be even and at least {2 * F} (twice the {F} free "
-                f"parameters of {method}), got {n_walkers}"
-            )
-        with _xp.computing_on(device):
-            fit = lik.fit()
-        if not fit.converged[0]:
-            warnings.warn(
-                f"{where}: the maximum-likelihood fit did not converge; "
-                "sampling starts from its last point",
-                stacklevel=2,
-                category=FitWarning,
-            )
-        x_hat, cov = fit.x[0], fit.cov[0]
-        rng = np.random.default_rng(np.random.SeedSequence([int(seed), row, col]))
-        logp = _LogPosterior(lik, prior)
-        first = DEFAULT_FIRST_STEPS if n_steps is None else int(n_steps)
-        with _xp.computing_on(device):
-            sampler, d = _sample_pixel(
-                logp, x_hat, cov, W, first, int(max_steps), int(min_ess), rng, progress, where
-            )
-        thin = max(1, int(np.floor(d["tau"].min() / 2)))
-        chain = sampler.get_chain(discard=d["burn"], thin=thin, flat=True)
-        lp = sampler.get_log_prob(discard=d["burn"], thin=thin, flat=True)
-        mle_se = np.exp(x_hat) * np.sqrt(np.where(np.isfinite(np.diag(cov)), np.diag(cov), np.nan))
-        per_pixel.append(
-            dict(
-                row=row,
-                col=col,
-                samples=np.exp(chain),
-                log_posterior=lp,
-                diag=d,
-                thin=thin,
-                n_walkers=W,
-                mle=np.exp(x_hat),
-                mle_se=mle_se,
-                mle_converged=bool(fit.converged[0]),
-                seconds=time.perf_counter() - t_pixel,
-            )
-        )
+        phi_se = None if e_per_adu_se is None else e_per_adu_se[row, col]
+        sampling = (n_walkers, n_steps, int(max_steps), int(min_ess), prior, int(seed), progress)
+        per_pixel.append(_sample_one(lik, method, row, col, sampling, device, phi_se))
+        per_pixel[-1]["seconds"] = time.perf_counter() - t_pixel
 
     ds = _posterior_dataset(
         per_pixel,
@@ -475,6 +386,9 @@ def sample_posterior(
     )
     ds.attrs["seconds"] = time.perf_counter() - t0
     ds.attrs.update(model.attrs, device=device or "cpu")
+    if spec.e_per_adu is not None:
+        ds.attrs["e_per_adu_source"] = str(e_per_adu_source or "manifest")
+        ds.attrs["e_per_adu_se_included"] = int(e_per_adu_se is not None)
     if stages_source:
         ds.attrs["register_stages_source"] = stages_source
     if out is not None:
@@ -482,8 +396,71 @@ def sample_posterior(
     return ds
 
 
+def _sample_one(lik, method, row, col, sampling, device, phi_se):
+    """One pixel's maximum-likelihood start, converged chain and summaries (a dict for
+    :func:`_posterior_dataset`); ``sampling`` is (n_walkers, n_steps, max_steps,
+    min_ess, prior, seed, progress)."""
+    n_walkers, n_steps, max_steps, min_ess, prior, seed, progress = sampling
+    where = f"{method} pixel ({row}, {col})"
+    F = len(lik.parameters)
+    W = int(n_walkers) if n_walkers is not None else max(32, 4 * F)
+    if W < 2 * F or W % 2:
+        raise OptionError(
+            f"n_walkers must be even and at least {2 * F} (twice the {F} free "
+            f"parameters of {method}), got {n_walkers}"
+        )
+    with _xp.computing_on(device):
+        fit = lik.fit()
+    if not fit.converged[0]:
+        warnings.warn(
+            f"{where}: the maximum-likelihood fit did not converge; "
+            "sampling starts from its last point",
+            stacklevel=3,
+            category=FitWarning,
+        )
+    x_hat, cov = fit.x[0], fit.cov[0]
+    rng = np.random.default_rng(np.random.SeedSequence([seed, row, col]))
+    logp = _LogPosterior(lik, prior)
+    first = DEFAULT_FIRST_STEPS if n_steps is None else int(n_steps)
+    with _xp.computing_on(device):
+        sampler, d = _sample_pixel(
+            logp, x_hat, cov, W, first, max_steps, min_ess, rng, progress, where
+        )
+    thin = max(1, int(np.floor(d["tau"].min() / 2)))
+    chain = sampler.get_chain(discard=d["burn"], thin=thin, flat=True)
+    lp = sampler.get_log_prob(discard=d["burn"], thin=thin, flat=True)
+    if phi_se is not None and np.isfinite(phi_se):
+        chain, cov = _with_phi_error(lik, fit, chain, cov, phi_se, rng)
+    mle_se = np.exp(x_hat) * np.sqrt(np.where(np.isfinite(np.diag(cov)), np.diag(cov), np.nan))
+    return dict(
+        row=row,
+        col=col,
+        samples=np.exp(chain),
+        log_posterior=lp,
+        diag=d,
+        thin=thin,
+        n_walkers=W,
+        mle=np.exp(x_hat),
+        mle_se=mle_se,
+        mle_converged=bool(fit.converged[0]),
+    )
+
+
+def _with_phi_error(lik, fit, chain, cov, phi_se, rng):
+    """The draws (ln parameters) and the estimate's covariance with a given φ's error:
+    each draw moved by ``J·δ``, δ ~ N(0, (SE/φ)²) a draw of ln φ and J = d x̂/d ln φ
+    (:func:`emccdcal.fit.profile.e_per_adu_sensitivity`), and ``(SE/φ)²·J Jᵀ`` added to
+    the covariance, as calibrate adds it to its standard errors."""
+    from . import profile
+
+    sens = profile.e_per_adu_sensitivity(lik.layout, lik.blocks, fit.x)[0]
+    rel = float(phi_se) / float(lik.e_per_adu[0])
+    shifted = chain + rng.normal(0.0, rel, size=chain.shape[0])[:, None] * sens[None, :]
+    return shifted, cov + rel**2 * np.outer(sens, sens)
+
+
 def _check_sampling(prior, method, max_steps, min_ess, n_steps) -> None:
-    """One line for a sampling option :func:`sample_posterior` cannot take."""
+    """One line for a sampling option :func:`sample_pixels` cannot take."""
     if prior not in PRIORS:
         raise OptionError(f"unknown prior {prior!r}; choose one of {', '.join(PRIORS)}")
     if method not in layouts.LIKELIHOOD_METHODS:
@@ -506,7 +483,7 @@ def _check_sampling(prior, method, max_steps, min_ess, n_steps) -> None:
 
 
 def _posterior_dataset(per_pixel, names, units, attrs) -> xarray.Dataset:
-    """The labelled result of :func:`sample_posterior` from each pixel's draws and
+    """The labelled result of :func:`sample_pixels` from each pixel's draws and
     diagnostics (the pixels' chains padded with NaN to the longest)."""
     import xarray as xr
 
@@ -587,7 +564,7 @@ def _prior_text(prior):
 # Output
 # --------------------------------------------------------------------------------------
 def summary(ds):
-    """The ``posterior.json`` content of a :func:`sample_posterior` result (a dict)."""
+    """The ``posterior.json`` content of a :func:`sample_pixels` result (a dict)."""
     stats_keys = (
         "median",
         "sd",

@@ -23,14 +23,18 @@ How the engine's blocks and layouts are built is private to :mod:`emccdcal.fit`.
 
 from __future__ import annotations
 
+import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
+from .._util import nanmedian
+from ..data.stacks import read_band
 from ..defaults import MAX_ACQUISITIONS
-from ..errors import OptionError
+from ..errors import DataQualityWarning, InputError, OptionError
 from ..model import noise
-from . import engine, gof, layouts
+from . import engine, gof, layouts, mv, profile
 from .engine import QUANTITIES, Parameter
 
 __all__ = [
@@ -60,6 +64,11 @@ class FitSpec:
         Where its stages came from (:func:`emccdcal.model.noise.choose_em_model`).
     options : dict or None
         The method's options, checked.
+    e_per_adu, e_per_adu_se : ndarray (rows, cols) or None
+        The φ the method holds fixed (e⁻/ADU) and its standard error where it came with
+        one (a chained result's); None where φ is not given.
+    e_per_adu_source : emccdcal.data.manifest.Source or None
+        Where the given φ came from.
     """
 
     method: str
@@ -67,25 +76,46 @@ class FitSpec:
     em_model: noise.EMModel
     stages_source: str
     options: dict | None
+    e_per_adu: np.ndarray | None = None
+    e_per_adu_se: np.ndarray | None = None
+    e_per_adu_source: object = None
 
 
-def specify(manifest, method, *, phi_given, em_model=None, stages=None, options=None) -> FitSpec:
+def specify(
+    manifest,
+    method,
+    *,
+    e_per_adu=None,
+    e_per_adu_se=None,
+    e_per_adu_source=None,
+    accept_phi=False,
+    em_model=None,
+    stages=None,
+    options=None,
+) -> FitSpec:
     """The fit's specification of a run: the method's options checked, its register model
-    (the caller's, else the manifest's or the camera's, else the default) and the
-    manifest's acquisitions it fits (``phi_given``: whether φ is known to it).
+    (the caller's, else the manifest's or the camera's, else the default), the manifest's
+    acquisitions it fits, and the φ it is given (a (rows, cols) map in e⁻/ADU, its SE map
+    and where it came from; :func:`emccdcal.given_phi.e_per_adu_inputs` reads a chained
+    result's), checked against the data before any fitting: a φ the 1× acquisition's
+    photon transfer contradicts is refused, unless ``accept_phi``.
 
     Raises
     ------
-    OptionError, MethodError
-        An option, a model or a manifest the method cannot take, in one line.
+    OptionError, MethodError, InputError
+        An option, a model, a manifest or a φ the method cannot take, in one line.
     """
     options = layouts.check_options(method, options)
     model, source = choose_register(em_model, stages, manifest)
     acqs = manifest.acquisitions
+    phi_given = e_per_adu is not None
     idx = layouts.select_acquisitions(
         method, [a.em_gain_setpoint for a in acqs], [a.level for a in acqs], phi_given
     )
-    return FitSpec(method, tuple(acqs[i] for i in idx), model, source, options)
+    used = tuple(acqs[i] for i in idx)
+    if phi_given and method not in ("is-adu", "mv-adu") and not accept_phi:
+        _check_given_phi(e_per_adu, e_per_adu_se, e_per_adu_source, used, method)
+    return FitSpec(method, used, model, source, options, e_per_adu, e_per_adu_se, e_per_adu_source)
 
 
 def choose_register(em_model=None, stages=None, manifest=None) -> tuple[noise.EMModel, str]:
@@ -333,7 +363,7 @@ class SeriesLikelihood:
         layout, blocks = self.layout, self.blocks
         cov = fit.cov
         if e_per_adu_se is not None:  # φ's own error moves every E and g together
-            sens = engine.e_per_adu_sensitivity(layout, blocks, fit.x)
+            sens = profile.e_per_adu_sensitivity(layout, blocks, fit.x)
             rel_var = (np.asarray(e_per_adu_se, float) / self.e_per_adu) ** 2
             cov = cov + rel_var[:, None, None] * sens[:, :, None] * sens[:, None, :]
         e = layouts.acquisition_estimates(layout, fit.x, cov)
@@ -400,3 +430,69 @@ def fit_series(
         return lik.estimates(
             lik.fit(), e_per_adu_se=e_per_adu_se, intervals=intervals, gof_test=gof_test
         )
+
+
+def _check_given_phi(phi_map, phi_se, source, used, method) -> None:
+    """Refuse a given φ that the data contradict, before any fitting.
+
+    The 1× acquisition's photon transfer (:func:`emccdcal.fit.mv.photon_transfer_e_per_adu`,
+    on at most :data:`~emccdcal.defaults.PHI_CHECK_PIXELS` pixels of the sensor's middle
+    rows) gives φ̂ with its SE; the given φ (its median there) is refused where
+    ``|ln(φ / φ̂)|`` exceeds :data:`~emccdcal.defaults.PHI_Z` relative SEs (the SE at
+    least :data:`~emccdcal.defaults.PHI_SYSTEMATIC`, φ's own SE included), naming the
+    inverse where φ·φ̂ is nearer 1. Without a 1× acquisition it is said, once, that φ
+    went unchecked.
+
+    Raises
+    ------
+    InputError
+        One line: both values, the acquisition, and what to do.
+    """
+    from ..defaults import PHI_CHECK_FRAMES, PHI_CHECK_PIXELS, PHI_SYSTEMATIC, PHI_Z
+
+    unit = next((a for a in used if a.em_gain_setpoint == 1), None)
+    if unit is None:
+        warnings.warn(
+            f"{method}: e_per_adu ({source or 'given'}) could not be checked against "
+            "the data (no 1x acquisition): make sure it is in e-/ADU and of this "
+            "read-out mode",
+            stacklevel=4,
+            category=DataQualityWarning,
+        )
+        return
+    rows, cols = unit.offset.shape
+    k = max(1, min(rows, PHI_CHECK_PIXELS // cols))
+    r0 = (rows - k) // 2
+    stop = min(unit.n_frames_total, unit.skip_frames + PHI_CHECK_FRAMES)
+    frames = read_band(unit.frames_path, r0, r0 + k, unit.skip_frames, stop)
+    band = slice(r0, r0 + k)
+    found, rel = mv.photon_transfer_e_per_adu(
+        frames, unit.offset[band], unit.read_noise[band], dark_frames=unit.dark_frames
+    )
+    given = float(nanmedian(phi_map[band]))
+    if not math.isfinite(found) or rel > 0.5:
+        warnings.warn(
+            f"{unit.frames_path}: too little light above the read noise to check "
+            f"e_per_adu {given:.4g} ({source or 'given'}) against it",
+            stacklevel=4,
+            category=DataQualityWarning,
+        )
+        return
+    if phi_se is not None:
+        rel = math.hypot(rel, float(nanmedian((phi_se / phi_map)[band])))
+    rel = max(rel, PHI_SYSTEMATIC)
+    z = math.log(given / found) / rel
+    if abs(z) <= PHI_Z:
+        return
+    inverse = abs(math.log(given * found)) < abs(math.log(given / found))
+    hint = (
+        f"it looks like ADU/e- (1/{given:.4g} = {1 / given:.4g} e-/ADU): give e-/ADU"
+        if inverse
+        else "is it in e-/ADU, and of this camera's read-out mode?"
+    )
+    raise InputError(
+        f"{unit.frames_path}: e_per_adu {given:.4g} e-/ADU ({source or 'given'}) is "
+        f"{given / found:.3g} times what this 1x acquisition's photon transfer says "
+        f"({found:.4g} ± {100 * rel:.2g} %, {abs(z):.0f} SE off); {hint} (--accept-phi "
+        "to use it all the same)"
+    )

@@ -173,14 +173,17 @@ def window(
         m_hi = int(band)
     else:
         m_hi = full if J else min(full, rows.band(E_t, theta_t, sigma, n))
-    omega = 2.0 * np.pi * np.arange(m_hi) / n
     order = 2 if second else 1 if derivs else 0
     phi = 0.0
     d1 = {name: 0.0 for name in names} if derivs else {}
     d2 = {}
-    K_t_dev = _xp.on(xp, dev, K_t)[:, None]
+    # The grid of s = t + iω is made where the transforms run: only t and K(t) (P,) move.
+    K_t_dev, t_dev = _xp.on(xp, dev, K_t, np.asarray(t, dtype=float))
+    K_t_dev = K_t_dev[:, None]
+    t_dev = xp.astype(t_dev, xp.complex128)[:, None]
+    bins = xp.astype(xp.arange(m_hi, device=dev), xp.complex128)
     for j in range(-J, J + 1):
-        s = _xp.on(xp, dev, t[:, None] + 1j * (omega[None, :] + 2.0 * np.pi * j))
+        s = t_dev + 1j * (bins * (2.0 * np.pi) / n + 2.0 * np.pi * j)[None, :]
         K, first, sec = cgf(rows, s, shift, sigma, order, names)
         cf = xp.exp(K - K_t_dev)
         phi = phi + cf

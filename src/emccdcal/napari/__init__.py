@@ -17,3 +17,7 @@ Nothing here is imported by ``import emccdcal`` or the command line (napari and 
 not dependencies of the package); long work runs in a worker thread, so that the viewer
 stays responsive. docs/napari.md shows it.
 """
+
+from ._reader import get_reader
+
+__all__ = ["get_reader"]

@@ -1,4 +1,4 @@
-"""Corner plots of posterior samples (:func:`emccdcal.fit.posterior.sample_posterior`).
+"""Corner plots of posterior samples (:func:`emccdcal.sample_posterior`).
 
 matplotlib's object API only: no pyplot state, safe in scripts, servers and threads.
 """
@@ -21,7 +21,7 @@ def corner_figure(ds, pixel=0):
     Parameters
     ----------
     ds : xarray.Dataset
-        A :func:`~emccdcal.fit.posterior.sample_posterior` result.
+        A :func:`~emccdcal.sample_posterior` result.
     pixel : int
         Index along ``pixel``.
 

@@ -46,7 +46,8 @@ from .. import defaults
 from .._util import check_int, check_map, check_number
 from ..errors import OptionError
 from ..defaults import DEFAULT_STAGES
-from ..model.noise import EM_MODELS, EMModel
+from ..model import noise
+from ..model.noise import EMModel
 
 __all__ = [
     "Camera",
@@ -233,9 +234,10 @@ class Camera:
 
 
 def _multiplication(value) -> str:
-    if value not in EM_MODELS:
+    known = noise.EM_MODELS  # plug-ins included, as they are now
+    if value not in known:
         raise OptionError(
-            f"multiplication must be one of {', '.join(map(repr, EM_MODELS))}, got {value!r}"
+            f"multiplication must be one of {', '.join(map(repr, known))}, got {value!r}"
         )
     return value
 
