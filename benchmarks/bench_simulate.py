@@ -34,8 +34,8 @@ import time
 import numpy as np
 
 from emccdcal import __version__
-from emccdcal.model import cascade
-from emccdcal.model.cascade import sample_cascade
+from emccdcal.model import cascade_sampling
+from emccdcal.model.cascade_sampling import sample_cascade
 from emccdcal.simulate.camera import (
     PAPER_SETPOINTS,
     default_em_gain,
@@ -72,7 +72,7 @@ def machine() -> dict:
 def in_memory(
     multiplication: str, method: str = "pmf", frames: int = FRAMES, gains_only=False
 ) -> float:
-    cascade._TABLES.clear()  # include building the pmf tables
+    cascade_sampling._TABLES.clear()  # include building the pmf tables
     t0 = time.perf_counter()
     for i, s in enumerate(PAPER_SETPOINTS):
         g = default_em_gain(s)
@@ -94,7 +94,7 @@ def in_memory(
 
 def to_disk(multiplication: str) -> tuple[float, int]:
     out = tempfile.mkdtemp(prefix="bench-simulate-")
-    cascade._TABLES.clear()
+    cascade_sampling._TABLES.clear()
     try:
         t0 = time.perf_counter()
         res = simulate_gain_series(out, multiplication=multiplication, seed=1)
@@ -109,7 +109,7 @@ def cascade_only(method: str, frames: int) -> float:
     """Time of the cascade alone (4 gain set-points) for ``frames`` frames."""
     rng = np.random.default_rng(0)
     n = rng.poisson(E, (frames, ROWS, COLS))
-    cascade._TABLES.clear()
+    cascade_sampling._TABLES.clear()
     t0 = time.perf_counter()
     for s in PAPER_SETPOINTS[1:]:
         sample_cascade(n, default_em_gain(s), 536, rng, method=method)

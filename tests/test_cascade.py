@@ -10,17 +10,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import stats
 
-from emccdcal.model import cascade, noise
+from emccdcal.model import cascade, cascade_sampling, noise
 from emccdcal.model.cascade import (
     excess_noise_factor,
     mean_gain,
-    output_pmf,
-    sample_cascade,
-    sample_gamma,
     single_electron_moments,
     single_electron_variance,
     stage_probability,
 )
+from emccdcal.model.cascade_sampling import output_pmf, sample_cascade, sample_gamma
 
 # docs/simulation.md table of F²(g, N), 4 decimals.
 F2_TABLE = {
@@ -154,7 +152,7 @@ def test_single_electron_moments_are_the_exact_pmfs(g):
 
 @pytest.mark.parametrize("g, m", [(5.0, 1), (261.6, 256), (1.01, 3)])
 def test_indexed_search_equals_binary_search(g, m):
-    _, _, cdf, guide = cascade._block_table(float(stage_probability(g, 536)), 536, m)
+    _, _, cdf, guide = cascade_sampling._block_table(float(stage_probability(g, 536)), 536, m)
     rng = np.random.default_rng(0)
     u = np.concatenate(
         (
@@ -166,7 +164,7 @@ def test_indexed_search_equals_binary_search(g, m):
         )
     )
     np.testing.assert_array_equal(
-        cascade._invert(cdf, guide, u), np.searchsorted(cdf, u, side="right")
+        cascade_sampling._invert(cdf, guide, u), np.searchsorted(cdf, u, side="right")
     )
 
 
@@ -229,18 +227,18 @@ def test_samplers_agree_on_mixed_input():
 
 def test_large_inputs_use_whole_blocks(monkeypatch):
     """Inputs beyond the largest table are sums of whole blocks; moments stay exact."""
-    monkeypatch.setattr(cascade, "_MAX_GRID", 2**12)
-    cascade._max_block_exponent.cache_clear()
+    monkeypatch.setattr(cascade_sampling, "_MAX_GRID", 2**12)
+    cascade_sampling._max_block_exponent.cache_clear()
     try:
         p = float(stage_probability(25.0, 536))
-        assert 2 ** cascade._max_block_exponent(p, 536) < 700
+        assert 2 ** cascade_sampling._max_block_exponent(p, 536) < 700
         n = np.full(20_000, 700)
         x = sample_cascade(n, 25.0, 536, 4)
         mu, var = 700 * 25.0, 700 * single_electron_variance(25.0, 536)
         assert x.mean() == pytest.approx(mu, abs=4 * np.sqrt(var / n.size))
         assert x.var() == pytest.approx(var, rel=4 * np.sqrt(2 / n.size))
     finally:
-        cascade._max_block_exponent.cache_clear()
+        cascade_sampling._max_block_exponent.cache_clear()
 
 
 @pytest.mark.parametrize("method", [pytest.param("stages", marks=pytest.mark.slow), "pmf"])
@@ -276,5 +274,9 @@ def test_shapes_zero_inputs_and_reproducibility(method):
 
 
 def test_docstring_examples():
-    result = doctest.testmod(cascade, optionflags=doctest.ELLIPSIS)
-    assert result.attempted > 5 and result.failed == 0
+    attempted = 0
+    for module in (cascade, cascade_sampling):
+        result = doctest.testmod(module, optionflags=doctest.ELLIPSIS)
+        assert result.failed == 0, module.__name__
+        attempted += result.attempted
+    assert attempted > 5

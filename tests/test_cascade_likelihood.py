@@ -26,7 +26,7 @@ import pytest
 
 from emccdcal import calibrate
 from emccdcal.errors import ManifestError, OptionError
-from emccdcal.model import cascade, noise
+from emccdcal.model import cascade, cascade_sampling, noise
 from known_truth import truth_manifest
 from emccdcal.simulate.series import simulate_gain_series
 
@@ -391,7 +391,7 @@ def test_stage_by_stage_register_fits_the_cascade_not_the_gamma(g, E, N, n_draws
     # sampler's cost (draws × stages) small. The exact model must pass both.
     rng = np.random.default_rng(2026)
     phi, S0, sigma = 3.859, 200.0, 4.0
-    electrons = cascade.sample_cascade(rng.poisson(E, n_draws), g, N, rng, method="stages")
+    electrons = cascade_sampling.sample_cascade(rng.poisson(E, n_draws), g, N, rng, method="stages")
     counts = np.rint(S0 + electrons / phi + rng.normal(0.0, sigma, n_draws)).astype(np.int64)
     support = np.arange(counts.min(), counts.max() + 1)
     sd = np.sqrt(sigma**2 + 1 / 12)  # read noise of the rounded counts

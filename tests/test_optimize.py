@@ -177,8 +177,8 @@ ITERATIONS = {
     ("model/cascade.py", "_build_table"): "a table's axes refined until its coefficients "
     "converge (Chebyshev interpolation)",
     ("model/cascade.py", "_sample_stages"): "one binomial draw per stage",
-    ("model/cascade.py", "sample_register_cic"): "electrons leaving the register by stage",
-    ("model/cascade.py", "_invert"): "a guide table's forward steps (sampling)",
+    ("model/cascade_sampling.py", "sample_register_cic"): "electrons leaving the register by stage",
+    ("model/cascade_sampling.py", "_invert"): "a guide table's forward steps (sampling)",
     ("model/cascade.py", "_max_block_exponent"): "counting the table sizes that fit",
     ("model/cascade.py", "_TableCache.get"): "evicting a cache",
     ("model/_engine.py", "evaluate"): "rounds of windows until every count has its value",

@@ -20,10 +20,9 @@ from .cascade import (
     excess_noise_factor,
     gain_from_gain_f2,
     register_transform,
-    sample_cascade,
-    sample_register_cic,
     single_electron_moments,
 )
+from .cascade_sampling import sample_cascade, sample_register_cic
 from .register import Register
 
 
@@ -74,12 +73,12 @@ class Cascade(Register):
 
     def sample(self, electrons, g, rng, method="pmf"):
         """Output electrons (float) of ``electrons`` entering the register at gain g
-        (:func:`emccdcal.model.cascade.sample_cascade`'s ``method``)."""
+        (:func:`emccdcal.model.cascade_sampling.sample_cascade`'s ``method``)."""
         return sample_cascade(electrons, g, self.stages, rng, method=method).astype(float)
 
     def sample_register_cic(self, count, g, rng):
         """Output electrons (float) of ``count`` electrons made inside the register at
-        gain g (:func:`emccdcal.model.cascade.sample_register_cic`)."""
+        gain g (:func:`emccdcal.model.cascade_sampling.sample_register_cic`)."""
         return sample_register_cic(count, g, self.stages, rng).astype(float)
 
     def single_electron_moments(self, g):

@@ -225,7 +225,7 @@ class Gamma:
     @staticmethod
     def sample(electrons, g, rng, **options):
         """Output electrons (float) of ``electrons`` entering the register at gain g."""
-        from .cascade import sample_gamma
+        from .cascade_sampling import sample_gamma
 
         return sample_gamma(electrons, g, rng)
 

@@ -9,7 +9,7 @@ For each pixel and frame t:
    in dark frames and multiplied like photoelectrons);
 2. EM multiplication with true mean gain g (``em_gain``): ``multiplication="cascade"``
    (the default, a real register), the exact Bernoulli cascade of ``stages`` stages
-   (:func:`emccdcal.model.cascade.sample_cascade`, F² < 2), or ``"gamma"``,
+   (:func:`emccdcal.model.cascade_sampling.sample_cascade`, F² < 2), or ``"gamma"``,
    ``X ~ Gamma(shape n, scale g)`` (the paper's model and simulations, excess-noise
    factor F² = 2); at ``em_gain == 1`` no multiplication at all, X = n (the 1× set-point);
 3. read-out: ``counts = round(S0 + X/φ + N(0, σ²))`` clipped to ``[0, 2**adc_bits − 1]``
@@ -137,7 +137,7 @@ class Camera:
     adc_bits : int
         ADC resolution, bits (1–16; 16): counts are clipped to ``[0, 2**adc_bits − 1]``.
     cascade_method : {"pmf", "stages"}
-        Exact cascade sampler (:func:`emccdcal.model.cascade.sample_cascade`).
+        Exact cascade sampler (:func:`emccdcal.model.cascade_sampling.sample_cascade`).
 
     Examples
     --------
@@ -367,7 +367,7 @@ def simulate_frames(
     seed : int, numpy.random.SeedSequence or numpy.random.Generator, optional
         Seed of the random draws; the same seed gives the same stack.
     cascade_method : {"pmf", "stages"}, optional
-        Exact cascade sampler (:func:`emccdcal.model.cascade.sample_cascade`).
+        Exact cascade sampler (:func:`emccdcal.model.cascade_sampling.sample_cascade`).
     callback : callable, optional
         Called with the number of frames done after each chunk (for progress bars).
     varying : sequence of (array_like (rows, cols), array_like (frames,)), optional
@@ -379,7 +379,7 @@ def simulate_frames(
         Clock-induced charge made inside the register, e⁻ per pixel per frame (≥ 0;
         default 0; the cascade only): each electron enters at a uniformly random stage
         and is multiplied by the stages after it
-        (:func:`emccdcal.model.cascade.sample_register_cic`).
+        (:func:`emccdcal.model.cascade_sampling.sample_register_cic`).
 
     Returns
     -------
