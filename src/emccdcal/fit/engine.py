@@ -89,18 +89,19 @@ class AcquisitionBlock:
     em_model: noise.EMModel = noise.EMModel()
     #: The histogram on the device where the fit computes, (xp, dev, values, counts):
     #: moved there once per fit (:meth:`on_device`) and carried along by :meth:`take`.
-    resident: tuple | None = field(default=None, compare=False, repr=False)
+    resident: tuple | None = field(default=None, init=False, compare=False, repr=False)
 
-    def on_device(self, xp, dev):
-        """``(values, counts)`` as arrays of ``xp`` on ``dev`` (counts as floats): moved
-        from the host the first time in a fit, then kept, since the data do not change
-        while the parameters do."""
+    def on_device(self, xp, dev, name):
+        """The block's ``"values"`` or ``"counts"`` (as floats) as an array of ``xp`` on
+        ``dev``: moved from the host the first time in a fit, then kept, since the data
+        do not change while the parameters do."""
         if _xp.is_numpy_namespace(xp):
-            return self.values, self.counts.astype(float)
+            return self.values if name == "values" else self.counts.astype(float)
         if self.resident is None or self.resident[:2] != (xp, dev):
-            values, counts = _xp.on(xp, dev, self.values, self.counts.astype(float))
-            self.resident = (xp, dev, values, counts)
-        return self.resident[2:]
+            counts = None if self.counts is None else self.counts.astype(float)
+            values = _xp.on(xp, dev, self.values)
+            self.resident = (xp, dev, values, None if counts is None else _xp.on(xp, dev, counts))
+        return self.resident[2] if name == "values" else self.resident[3]
 
     @property
     def has_map_errors(self) -> bool:
@@ -114,8 +115,9 @@ class AcquisitionBlock:
         if self.resident is not None:  # the rows taken on the device, no data moved
             xp, dev, values, counts = self.resident
             rows = _xp.on(xp, dev, np.arange(len(self.offset))[idx])
-            resident = (xp, dev, xp.take(values, rows, axis=0), xp.take(counts, rows, axis=0))
-        return AcquisitionBlock(
+            taken = [None if a is None else xp.take(a, rows, axis=0) for a in (values, counts)]
+            resident = (xp, dev, *taken)
+        block = AcquisitionBlock(
             sub(self.values),
             sub(self.counts),
             self.offset[idx],
@@ -128,8 +130,9 @@ class AcquisitionBlock:
             sub(self.read_noise_var),
             self.map_group,
             self.em_model,
-            resident,
         )
+        block.resident = resident
+        return block
 
 
 #: The per-acquisition quantities, in the order of the layouts' log-parameters.
@@ -306,7 +309,7 @@ class _ModelAtData:
         P, K = acq.values.shape
         # One flat gather per window (faster than take_along_axis, which rebuilds indices),
         # its index made where the data are: only the window starts (P,) move.
-        values = acq.on_device(xp, dev)[0]
+        values = acq.on_device(xp, dev, "values")
         origin = _xp.on(xp, dev, (np.arange(P) * n - start).astype(np.int64))
         self.flat = xp.reshape(values + origin[:, None], (-1,))
 
@@ -361,7 +364,7 @@ def _acquisition_terms(acq, coords, level, map_cross=False, live=None):
     xp, dev = _xp.engine()
     model = _ModelAtData(acq, rows, derivs=level >= 1, second=level >= 2, names=names, xp=(xp, dev))
     pv, low = model.pv, model.low
-    counts = acq.on_device(xp, dev)[1]
+    counts = acq.on_device(xp, dev, "counts")
     row_sum = lambda a: _xp.to_numpy(xp.sum(a, axis=1))  # noqa: E731
     loglik = np.where(model.hopeless, -np.inf, row_sum(counts * xp.log(pv)))
     n_floored = row_sum(xp.where(low, counts, 0.0)).astype(np.int64)

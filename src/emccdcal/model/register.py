@@ -254,7 +254,7 @@ class Register:
 
     def window_band(self, E_t, theta_t, sigma, scale, n):
         """DFT bins of a length-``n`` window to evaluate: the read noise's Gaussian factor
-        alone bounds the transform (|M(iω)| ≤ 1 for every register)."""
+        alone bounds the transform (``|M(iω)| ≤ 1`` for every register)."""
         m = int(np.ceil(float((np.sqrt(160.0) / sigma).max()) * n / (2.0 * np.pi))) + 2
         return min(m, n // 2 + 1)
 
