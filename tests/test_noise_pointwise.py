@@ -165,10 +165,10 @@ def test_table_bad_input():
 
 
 def test_docstring_examples():
-    for obj in (noise.logpmf_rows, noise.LogpmfTable):
+    for obj in (pointwise.logpmf_rows, pointwise.LogpmfTable):
         finder = doctest.DocTestFinder()
         runner = doctest.DocTestRunner()
-        for test in finder.find(obj, globs={"np": np, **vars(noise)}):
+        for test in finder.find(obj, globs={"np": np, **vars(pointwise)}):
             runner.run(test)
         assert runner.tries >= 2, f"{obj.__name__}: its examples did not run"
         assert runner.failures == 0

@@ -173,14 +173,14 @@ def test_a_structured_step_gives_the_dense_step():
 ITERATIONS = {
     ("model/cascade.py", "single_electron_moments"): "the register's recursion, stage by stage",
     ("model/cascade.py", "_register_transform"): "the register's recursion, stage by stage",
-    ("model/cascade.py", "_pgf_minus_one"): "the register's recursion, stage by stage",
+    ("model/cascade_sampling.py", "_pgf_minus_one"): "the register's recursion, stage by stage",
     ("model/cascade.py", "_build_table"): "a table's axes refined until its coefficients "
     "converge (Chebyshev interpolation)",
-    ("model/cascade.py", "_sample_stages"): "one binomial draw per stage",
+    ("model/cascade_sampling.py", "_sample_stages"): "one binomial draw per stage",
     ("model/cascade_sampling.py", "sample_register_cic"): "electrons leaving the register by stage",
     ("model/cascade_sampling.py", "_invert"): "a guide table's forward steps (sampling)",
-    ("model/cascade.py", "_max_block_exponent"): "counting the table sizes that fit",
-    ("model/cascade.py", "_TableCache.get"): "evicting a cache",
+    ("model/cascade_sampling.py", "_max_block_exponent"): "counting the table sizes that fit",
+    ("model/cascade_sampling.py", "_TableCache.get"): "evicting a cache",
     ("model/_engine.py", "evaluate"): "rounds of windows until every count has its value",
     ("model/pointwise.py", "logpmf_rows"): "runs of rows within a memory budget",
     ("model/shared_register.py", "SharedRegister._build"): "the terms of a power series",

@@ -181,9 +181,10 @@ def window(
     K_t_dev, t_dev = _xp.on(xp, dev, K_t, np.asarray(t, dtype=float))
     K_t_dev = K_t_dev[:, None]
     t_dev = xp.astype(t_dev, xp.complex128)[:, None]
-    bins = xp.astype(xp.arange(m_hi, device=dev), xp.complex128)
+    # (real arithmetic first: a complex division rounds otherwise, by its reciprocal)
+    omega = xp.arange(m_hi, dtype=xp.float64, device=dev) * (2.0 * np.pi) / n
     for j in range(-J, J + 1):
-        s = t_dev + 1j * (bins * (2.0 * np.pi) / n + 2.0 * np.pi * j)[None, :]
+        s = t_dev + 1j * xp.astype(omega + 2.0 * np.pi * j, xp.complex128)[None, :]
         K, first, sec = cgf(rows, s, shift, sigma, order, names)
         cf = xp.exp(K - K_t_dev)
         phi = phi + cf

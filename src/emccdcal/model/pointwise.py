@@ -179,6 +179,7 @@ class LogpmfTable:
     >>> t = LogpmfTable([700, 3000], [0, 1], [100.0, 100.0], [300.0, 300.0],
     ...                 [1.0, 25.0], [3.859, 3.859], [587.0, 587.0], [15.5, 15.5])
     >>> lp, d1, d2, outside = t.evaluate(np.array([150.0, 200.0]))
+    >>> from emccdcal.model.noise import logpmf
     >>> bool(np.allclose(lp, logpmf([700, 3000], [150.0, 200.0], [1.0, 25.0], 3.859,
     ...                              587.0, 15.5), atol=1e-7))
     True
