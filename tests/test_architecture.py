@@ -177,7 +177,8 @@ def test_atomic_write_uses_the_umask_and_leaves_nothing_on_failure(tmp_path):
 def test_dir_shows_the_api_and_its_subpackages_and_the_stub_names_them():
     assert dir(emccdcal) == sorted({*emccdcal.__all__, *emccdcal._SUBPACKAGES})
     packages = {p.parent.name for p in SRC.glob("*/__init__.py")}
-    assert emccdcal._SUBPACKAGES == packages - {"cli", "napari"}  # those two: entry points
+    # cli and napari: entry points; _output: private helpers
+    assert emccdcal._SUBPACKAGES == packages - {"cli", "napari", "_output"}
     stub = ast.parse((SRC / "__init__.pyi").read_text())
     named = {}
     for node in stub.body:
@@ -643,7 +644,6 @@ OVER_800 = {
     "data/manifest.py": 1068,
     "beads/cots.py": 994,
     "report/html.py": 876,
-    "_output.py": 862,
     "acquire/plan.py": 856,
     "export/database.py": 854,
 }
@@ -664,17 +664,20 @@ def test_no_module_grows_past_its_room():
 #: ever delete what a run itself created (never an input, never a user's file or folder).
 #: A new deletion fails the test below until it is added here with its reason.
 DELETIONS = {
-    ("_output.py", "atomic_write"): "its own temporary file (a new name of its family)",
-    ("_output.py", "_remove_ours"): "a .partial/.old store only with our marker and "
+    ("_output/files.py", "atomic_write"): "its own temporary file (a new name of its family)",
+    ("_output/verb.py", "_remove_ours"): "a .partial/.old store only with our marker and "
     "nothing else inside; a .tmp file only of our temporary family's name",
-    ("_output.py", "_Staging.add"): "the staged temporary a second write of the same file replaces",
-    ("_output.py", "_Staging.discard"): "the staged temporaries of a failed run",
-    ("_output.py", "_Lock.release"): "the lock file this run created exclusively",
-    ("_output.py", "Output._remove_created"): "the folders this run created, and only "
+    (
+        "_output/verb.py",
+        "_Staging.add",
+    ): "the staged temporary a second write of the same file replaces",
+    ("_output/verb.py", "_Staging.discard"): "the staged temporaries of a failed run",
+    ("_output/verb.py", "_Lock.release"): "the lock file this run created exclusively",
+    ("_output/verb.py", "Output._remove_created"): "the folders this run created, and only "
     "while empty (rmdir)",
-    ("_output.py", "Output._publish"): "the output itself, replaced by --overwrite after "
+    ("_output/verb.py", "Output._publish"): "the output itself, replaced by --overwrite after "
     "the checks that it is no input and no folder emccdcal did not write",
-    ("_output.py", "write_netcdf"): "its own temporary body file",
+    ("_output/results.py", "write_netcdf"): "its own temporary body file",
     ("acquire/record.py", "_Writing.__init__"): "a store only where zarrs.begun_but_empty "
     "finds it holds no frame and carries this session's marker",
     ("acquire/record.py", "_discard"): "a new session's record, plan and truth, in a "

@@ -693,7 +693,7 @@ def test_a_bead_width_out_of_range_is_refused(tmp_path, capsys):
 def test_a_full_disk_is_one_line_and_loses_nothing(verb, camera_a, tmp_path, capsys, monkeypatch):
     import errno
 
-    import emccdcal._output as output
+    import emccdcal._output.files as output
 
     def full(*args, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device")

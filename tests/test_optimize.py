@@ -207,7 +207,10 @@ ITERATIONS = {
 #: Where such loops are plumbing, not numerics (files, locks, queues, devices, parsing).
 _PLUMBING = (
     "_files.py",
-    "_output.py",
+    "_output/files.py",
+    "_output/verb.py",
+    "_output/results.py",
+    "_output/text.py",
     "_util.py",
     "acquire/devices.py",
     "acquire/mm.py",

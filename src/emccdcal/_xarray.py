@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from xarray.backends import BackendEntrypoint
 
-from ._output import _MAGIC, verify_checksum
+from ._output.results import _MAGIC, verify_checksum
 
 __all__ = ["EmccdcalBackend"]
 

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__, result
-from .._output import OutputError, _same, atomic_write_text, file_sha256
+from .._output import OutputError, atomic_write_text, file_sha256, same_file
 from .._util import progress as progress_bar
 from ..beads.validation import data_checks, read_validation
 from ..data import quality
@@ -859,7 +859,7 @@ def write_report(
     if out.is_dir():
         out = out / REPORT_FILE
     read = result.result_files(results if isinstance(results, (list, tuple)) else [results])
-    if any(f.exists() and _same(out, f) for f in read):  # never over a result it reads
+    if any(f.exists() and same_file(out, f) for f in read):  # never over a result it reads
         raise OutputError(f"{out}: is a result this report reads, an input of this run")
     text = build_report(
         results,

@@ -1,200 +1,39 @@
-"""Writing files: one policy for every verb that writes, and the text that goes into them.
-
-Every file emccdcal writes goes through :func:`atomic_write` (text through
-:func:`atomic_write_text`): a temporary file beside the target, flushed to disk, then
-renamed over it, so a reader never sees half a file. Every verb's output is opened as an
-:class:`Output`, which applies the rest of the policy in one place:
-
-* **checked before any computing**: the output can be written, is a folder where a folder
-  is meant and a file where a file is, and is none of the run's inputs;
-* **never replaced by accident**: an existing output is refused unless ``overwrite``, and
-  with ``overwrite`` the old output is replaced only when the new one is complete (every
-  file of the run is staged, then renamed into place together);
-* **one run at a time**: a lock held while the verb runs; a second run into the same output
-  gets one line and exit 2;
-* **nothing foreign deleted**: a directory is only removed when it is a store emccdcal
-  wrote (its marker lists every file in it) and holds nothing else; a killed run's
-  temporary files (named by this module, with 48 random bits) are removed by the next run
-  into the same output, and those of a failed run at once.
-
-Result files know themselves: :func:`write_netcdf` puts the SHA-256 of a NetCDF file's
-bytes in a block before them, and :func:`read_netcdf` checks it before parsing anything.
-
-Text taken from a file (a serial, a model, a label) is data: :func:`slug` makes a file
-name of it, :func:`toml_line` writes it as a TOML value, :func:`comment` puts it on one
-comment line.
-"""
+"""A verb's output (:class:`Output`): checked before any computing, never replaced by
+accident, one run at a time, nothing foreign deleted (the package's docstring)."""
 
 from __future__ import annotations
 
 import contextlib
-import contextvars
-import hashlib
 import json
 import os
 import re
-import secrets
 import shutil
-import sys
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from . import _files
-from .errors import InputError, OptionError
+from .. import _files
+from ..errors import InputError
 
 if TYPE_CHECKING:
-    import xarray
+    pass
 
 try:  # POSIX; elsewhere the lock is an exclusively created file
     import fcntl
 except ImportError:  # pragma: no cover - Windows
     fcntl = None
 
-__all__ = [
-    "atomic_write",
-    "atomic_write_text",
-    "file_sha256",
-    "Output",
-    "OutputError",
-    "staged",
-    "remove_leftovers",
-    "given_inputs",
-    "slug",
-    "comment",
-    "toml_line",
-    "plain_text",
-    "escape_controls",
-    "STORE_MARKER",
-    "write_netcdf",
-    "read_netcdf",
-    "verify_checksum",
-    "CHECKSUM_BLOCK",
-]
-
-#: The file inside a store (a directory written as one output, e.g. ``.zarr``) that says
-#: emccdcal wrote it and lists its files.
-STORE_MARKER = ".emccdcal-store.json"
-_LOCK = ".emccdcal-lock"
-_TOKEN = 12  # hex digits of the random part of a temporary name
-
-
-class OutputError(OptionError):
-    """An output that cannot or may not be written (one line naming it)."""
-
-
-def _temporary_pattern(name: str) -> re.Pattern:
-    """Names of the temporary files and directories this module makes for ``name``."""
-    return re.compile(rf"^\.{re.escape(name)}\.[0-9a-f]{{{_TOKEN}}}\.(tmp|partial|old)")
-
-
-def _temporary(path: Path, kind: str) -> Path:
-    # The suffix is kept: writers such as matplotlib and tifffile choose the format by it.
-    suffix = path.suffix if kind == "tmp" else ""
-    return path.parent / f".{path.name}.{secrets.token_hex(_TOKEN // 2)}.{kind}{suffix}"
-
-
-def _umask() -> int:
-    # os.umask can only be read by setting it; this is process-wide but immediate.
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-# --------------------------------------------------------------------------------------
-# One file
-# --------------------------------------------------------------------------------------
-_STAGING: contextvars.ContextVar = contextvars.ContextVar("emccdcal_staging", default=None)
-_GIVEN_INPUTS: contextvars.ContextVar = contextvars.ContextVar("emccdcal_inputs", default=())
-
-
-@contextlib.contextmanager
-def given_inputs(paths: Iterable):
-    """Every :class:`Output` opened inside the block also refuses to write over (or inside
-    a store among) ``paths``: the command line registers every path a verb was given,
-    except its output, so that no verb can write over something it read, whether or not
-    it names it."""
-    token = _GIVEN_INPUTS.set(tuple(Path(p) for p in paths))
-    try:
-        yield
-    finally:
-        _GIVEN_INPUTS.reset(token)
-
-
-def atomic_write(path, write: Callable[[str], object], *, durable: bool = True) -> Path:
-    """Write ``path`` through ``write(tmp)`` to a temporary file beside it, then replace it.
-
-    The temporary file is in the same directory (so the rename is atomic), gets the mode a
-    new file would get (0o666 less the umask: a shared result stays readable by
-    colleagues), is flushed to disk before the rename and removed if anything fails, so a
-    reader never sees a half-written file and an interrupted write leaves any earlier file
-    of the same name intact. The parent directory is created if missing. Inside an
-    :class:`Output` that stages its files, the file is renamed into place only when the
-    whole output is complete.
-
-    Parameters
-    ----------
-    path : str or Path
-        The file to write.
-    write : callable
-        Called with the temporary file's path (str); writes the whole content there.
-    durable : bool
-        Flush the file to disk before the rename (default). Without it the rename is
-        still atomic for any reader, but a power cut may lose the new content: for a
-        record rewritten every second while the disk is busy, whose fsync would wait for
-        the disk (seconds, under gigabytes of other writes).
-
-    Returns
-    -------
-    Path
-        ``path``.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    while True:
-        tmp = _temporary(path, "tmp")
-        try:
-            os.close(os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
-            break
-        except FileExistsError:  # pragma: no cover - 48 random bits
-            continue
-    try:
-        write(str(tmp))
-        os.chmod(tmp, 0o666 & ~_umask())  # some writers recreate the file
-        if durable:
-            with open(tmp, "rb+") as fh:
-                os.fsync(fh.fileno())
-        staging = _STAGING.get()
-        if staging is not None and staging.holds(path):
-            staging.add(path, tmp)
-        else:
-            os.replace(tmp, path)
-    except OSError as exc:  # a full disk, a quota, storage gone read-only: one line
-        tmp.unlink(missing_ok=True)
-        raise OutputError(
-            f"{path}: cannot be written ({_reason(exc)}); any earlier file of "
-            "that name is as it was"
-        ) from None
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
-
-
-def atomic_write_text(path, text: str, *, durable: bool = True) -> Path:
-    """:func:`atomic_write` of a text file (UTF-8)."""
-    return atomic_write(
-        path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"), durable=durable
-    )
-
-
-def file_sha256(path) -> str:
-    """SHA-256 (hex) of a file's bytes, read in 1 MiB blocks (any size, bounded memory)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+from .files import (
+    _GIVEN_INPUTS,
+    _LOCK,
+    _STAGING,
+    STORE_MARKER,
+    OutputError,
+    _reason,
+    _temporary,
+    _temporary_pattern,
+)
+from .results import _MAGIC
 
 
 # --------------------------------------------------------------------------------------
@@ -658,205 +497,3 @@ class Output:
             elif self.path.exists() or self.path.is_symlink():
                 self.path.unlink()
             os.replace(content, self.path)  # the empty .partial is removed on exit
-
-
-def _reason(exc: OSError) -> str:
-    return exc.strerror or " ".join(str(exc).split())
-
-
-# --------------------------------------------------------------------------------------
-# Result files that know themselves
-# --------------------------------------------------------------------------------------
-#: A result file begins with this block (an HDF5 user block, which HDF5 and every NetCDF
-#: reader skip): the magic, then the SHA-256 of every byte after the block.
-CHECKSUM_BLOCK = 512
-_MAGIC = b"emccdcal result file; SHA-256 of the bytes after this 512-byte block: "
-
-
-def write_netcdf(ds: xarray.Dataset, path) -> None:
-    """Write a result dataset as NetCDF-4 (h5netcdf) behind a block holding the SHA-256
-    of the file's bytes. Every result file emccdcal writes goes through this (inside an
-    atomic write), and :func:`read_netcdf` checks the bytes before parsing any of them,
-    so a damaged file is refused, never used, and never parsed (a damaged HDF5 header
-    can send a reader into an endless loop)."""
-    path = Path(path)
-    # A new name of the temporary family of ``path`` (a killed run's is cleaned up by
-    # remove_leftovers): never a file someone else has.
-    body = _temporary(path, "tmp")
-    try:
-        ds.to_netcdf(body, engine="h5netcdf")
-        digest = hashlib.sha256()
-        with open(body, "rb") as src, open(path, "wb") as out:
-            out.write(b" " * CHECKSUM_BLOCK)
-            for block in iter(lambda: src.read(1 << 20), b""):
-                digest.update(block)
-                out.write(block)
-            out.seek(0)
-            out.write((_MAGIC + digest.hexdigest().encode() + b"\n").ljust(CHECKSUM_BLOCK))
-    finally:
-        body.unlink(missing_ok=True)
-
-
-def verify_checksum(path, what: str = "result") -> str:
-    """Raise :class:`~emccdcal.errors.InputError` unless ``path`` begins with the block
-    of :func:`write_netcdf` and its bytes match the SHA-256 written there. Returns the
-    SHA-256 of the whole file (as :func:`file_sha256`, from the same one read)."""
-    p = Path(path)
-    try:
-        with open(p, "rb") as f:
-            head = f.read(CHECKSUM_BLOCK)
-            whole, digest = hashlib.sha256(head), hashlib.sha256()
-            for block in iter(lambda: f.read(1 << 20), b""):
-                digest.update(block)
-                whole.update(block)
-    except OSError as exc:
-        raise InputError(f"{p}: cannot be read ({_reason(exc)})") from None
-    recorded = head[len(_MAGIC) : len(_MAGIC) + 64]
-    if len(head) < CHECKSUM_BLOCK or not head.startswith(_MAGIC):
-        raise InputError(
-            f"{p}: not an emccdcal {what} file, or damaged (it does not begin "
-            "with emccdcal's checksum block; files of earlier emccdcal "
-            f"versions have none): make the {what} again"
-        )
-    if recorded != digest.hexdigest().encode():
-        raise InputError(
-            f"{p}: damaged: its bytes do not match the checksum it was written "
-            f"with; make the {what} again or restore it from a copy"
-        )
-    return whole.hexdigest()
-
-
-@contextlib.contextmanager
-def _quiet_unraisable():
-    # h5netcdf's File.__del__ on a file it failed to open prints "Exception ignored ...
-    # Traceback" to stderr; the failure itself is reported as one line. The caller
-    # appends to the list it is given when the opening failed: only then is the failed
-    # reader collected here (a collection of a large process costs ~0.3 s).
-    import gc
-
-    hook = sys.unraisablehook
-    sys.unraisablehook = lambda unraisable: None
-    failed = []
-    try:
-        yield failed
-    finally:
-        if failed:
-            gc.collect()
-        sys.unraisablehook = hook
-
-
-def read_netcdf(path, *, what: str = "result") -> xarray.Dataset:
-    """A NetCDF file written by :func:`write_netcdf`: its checksum verified
-    (:func:`verify_checksum`), then loaded, the whole file's SHA-256 in
-    ``ds.encoding["sha256"]``; damage is one :class:`~emccdcal.errors.InputError` naming
-    the file."""
-    import xarray as xr
-
-    p = Path(path)
-    sha256 = verify_checksum(p, what)
-    error = None
-    with _quiet_unraisable() as failed:  # until a failed reader is collected
-        try:
-            with xr.open_dataset(p, engine="h5netcdf") as f:
-                ds = f.load()
-        except (
-            OSError,
-            ValueError,
-            TypeError,
-            KeyError,
-            RuntimeError,
-            AttributeError,
-            IndexError,
-        ) as exc:
-            error = f"{exc.__class__.__name__}: {' '.join(str(exc).split())}"
-            failed.append(True)
-    if error is not None:
-        raise InputError(f"{p}: not a readable NetCDF file ({error})")
-    ds.encoding["sha256"] = sha256
-    return ds
-
-
-# --------------------------------------------------------------------------------------
-# Text from files
-# --------------------------------------------------------------------------------------
-def slug(text, *, fallback: str = "unnamed") -> str:
-    """A file-name part made from text a file recorded (a serial, a model, a label).
-
-    Letters, digits, ``-`` and ``_`` are kept; every other run of characters becomes one
-    ``_``; at most 64 characters. Where anything was changed, a short hash of the text is
-    added, so that two different texts never give the same name.
-
-    Examples
-    --------
-    >>> slug("12345678"), slug("ProEM+: 512B"), slug("../../ESC")
-    ('12345678', 'ProEM_512B-...', 'ESC-...')
-    """
-    text = str(text)
-    kept = re.sub(r"[^A-Za-z0-9_-]+", "_", text).strip("_-")[:64] or fallback
-    if kept == text:
-        return kept
-    return f"{kept}-{hashlib.sha256(text.encode('utf-8', 'surrogatepass')).hexdigest()[:8]}"
-
-
-#: Characters a terminal acts on (all but tab and line feed) and those that reorder text.
-_CONTROLS = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u2028\u2029\u202a-\u202e\u2066-\u2069]")
-
-
-def escape_controls(text: str) -> str:
-    r"""``text`` with every character a terminal would act on written as an escape, line
-    breaks kept: what every verb prints passes through it (:func:`emccdcal.cli.main`),
-    so that no text from a file can colour, erase or rewrite the terminal.
-
-    Examples
-    --------
-    >>> escape_controls("OK\x1b[2K\rforged\n")
-    'OK\\x1b[2K\\rforged\n'
-    """
-    return _CONTROLS.sub(lambda m: json.dumps(m.group())[1:-1].replace("\\u00", "\\x"), text)
-
-
-def plain_text(text) -> str:
-    r"""Text from a file as matplotlib draws it literally (a serial ``SN$x$42`` is not
-    mathematics), on one line.
-
-    Examples
-    --------
-    >>> plain_text("SN$\\x$42")
-    'SN\\$\\x\\$42'
-    """
-    return comment(text).replace("$", "\\$")
-
-
-def comment(text) -> str:
-    """Text on one line for a comment (TOML, YAML, a macro) or a terminal's line: line
-    breaks and every other control character written as escapes, so nothing after it can
-    start a new line or drive the terminal.
-
-    Examples
-    --------
-    >>> comment("High\\nskip_frames = 290")
-    'High\\\\nskip_frames = 290'
-    """
-    out = []
-    for ch in str(text):
-        if ch.isprintable() or ch == " ":
-            out.append(ch)
-        else:
-            out.append(json.dumps(ch)[1:-1] if ord(ch) < 0x10000 else f"\\U{ord(ch):08x}")
-    return "".join(out)
-
-
-def toml_line(key: str, value) -> str:
-    """One ``key = value`` line of TOML, written by a TOML writer (``tomli_w``): any
-    text, also with quotes, line breaks or control characters, stays one value.
-
-    Examples
-    --------
-    >>> toml_line("name", 'say "hi"\\nskip_frames = 1')
-    'name = "say \\\\"hi\\\\"\\\\nskip_frames = 1"'
-    """
-    import tomli_w
-
-    if hasattr(value, "item") and not isinstance(value, (str, bytes)):  # NumPy scalars
-        value = value.item()
-    return tomli_w.dumps({key: value}).rstrip("\n")
