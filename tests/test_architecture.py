@@ -637,7 +637,6 @@ def test_what_a_run_fits_is_decided_in_fit_only():
 OVER_800 = {
     "calibration.py": 1560,
     "beads/validation.py": 1419,
-    "data/quality.py": 1367,
     "result.py": 1277,
     "report/figures.py": 1189,
     "beads/fit.py": 1181,

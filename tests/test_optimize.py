@@ -215,7 +215,9 @@ _PLUMBING = (
     "acquire/devices.py",
     "acquire/mm.py",
     "acquire/record.py",
-    "data/quality.py",
+    "data/quality/drift.py",
+    "data/quality/stacks.py",
+    "data/quality/series.py",
     "data/stacks.py",
 )
 

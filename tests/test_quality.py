@@ -462,7 +462,7 @@ def test_summary_of_a_file_by_bands_is_the_summary_of_the_stack(tmp_path, monkey
     data[10, 2, 1] = 4095  # one saturated value (after the skipped frames)
     path = tmp_path / "s.tif"
     tifffile.imwrite(path, data)
-    monkeypatch.setattr(quality, "_CHUNK_ELEMENTS", 55 * 5 * 2)  # bands of two rows
+    monkeypatch.setattr(quality.stacks, "_CHUNK_ELEMENTS", 55 * 5 * 2)  # bands of two rows
     a = StackSummary.of_file(path, 5, 4095, third=True)
     b = StackSummary.of(data[5:], 4095, third=True)
     for name in ("frame_sums", "frame_saturated", "mean", "sd", "n_saturated", "m3"):
@@ -479,7 +479,7 @@ def test_the_steady_column_gives_its_reason(real_report):
     assert "+0.87 ± 0.30" in rows["1x-gain"] and "yes: p ≥ 0.002" in rows["1x-gain"]
     assert "+0.51 ± 0.13" in rows["5x-gain"] and " NO " in rows["5x-gain"]
     small = {**real_report["acquisitions"]["5x-gain"]["drift"], "drift_pct": 0.05, "drifts": False}
-    from emccdcal.data.quality import _steady_cell
+    from emccdcal.data.quality.series import _steady_cell
 
     assert _steady_cell(small) == "yes: < 0.1 %"  # significant, but below the size threshold
 
@@ -487,7 +487,7 @@ def test_the_steady_column_gives_its_reason(real_report):
 def test_every_finding_says_whether_the_result_stands_and_what_fixes_it():
     """A finding that makes a result doubtful says whether to trust it and how to fix it
     (a new user once read a drift warning that said neither)."""
-    from emccdcal.data.quality import _findings
+    from emccdcal.data.quality.series import _findings
 
     a = {
         "name": "L6",
