@@ -24,6 +24,10 @@ from .drift import (
 )
 
 
+#: Elements (frames × pixels) converted to float64 at a time when streaming a stack.
+_CHUNK_ELEMENTS = 2**23
+
+
 # --------------------------------------------------------------------------------------
 # Per-stack checks
 # --------------------------------------------------------------------------------------
@@ -214,10 +218,6 @@ class StackSummary:
         return _defects(
             self.mean.reshape(self.shape), self.sd.reshape(self.shape), self.n_frames, offset, k
         )
-
-
-#: Elements (frames × pixels) converted to float64 at a time when streaming a stack.
-_CHUNK_ELEMENTS = 2**23
 
 
 def _frame_keys(flat: np.ndarray) -> np.ndarray:
