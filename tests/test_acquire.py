@@ -17,7 +17,8 @@ pytest.importorskip("pymmcore_plus", reason="the 'acquire' extra is not installe
 from conftest import kill_at_random  # noqa: E402
 
 from emccdcal import cli  # noqa: E402
-from emccdcal.acquire.plan import plan, plan_text, read_plan  # noqa: E402
+from emccdcal.acquire.plan import plan  # noqa: E402
+from emccdcal.acquire.plan_file import plan_text, read_plan  # noqa: E402
 from emccdcal.acquire.record import AcquireError, Session, acquire  # noqa: E402
 from emccdcal.data.scan import scan  # noqa: E402
 from emccdcal.data.stacks import load_stack, stack_settings  # noqa: E402

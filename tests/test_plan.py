@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from emccdcal import cli
-from emccdcal.acquire.plan import plan, plan_text, predict, read_plan
+from emccdcal.acquire.plan import plan, predict
+from emccdcal.acquire.plan_file import plan_text, read_plan
 from emccdcal.calibration import calibrate
 from emccdcal.errors import InputError
 from emccdcal.model.noise import EMModel, excess_noise_factor

@@ -61,7 +61,8 @@ from .mm import (
     set_gain,
     simulated_core,
 )
-from .plan import Plan, plan_text, read_plan
+from .plan import Plan
+from .plan_file import plan_text, read_plan
 from .session import SESSION_FILE, Session, Stack, new_state, plan_sha
 
 __all__ = [
@@ -429,7 +430,7 @@ def acquire(
     Parameters
     ----------
     plan : path or Plan
-        The plan (``plan.toml``, as :func:`emccdcal.acquire.plan.plan_text` writes it).
+        The plan (``plan.toml``, as :func:`emccdcal.acquire.plan_file.plan_text` writes it).
     out : path
         The session folder (new, or one to ``resume``).
     core : CMMCorePlus, optional

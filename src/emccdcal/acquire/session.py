@@ -16,7 +16,8 @@ from .. import _files, defaults
 from .._output import atomic_write_text
 from .._util import format_setpoint, one_line
 from ..errors import InputError
-from .plan import Plan, read_plan
+from .plan import Plan
+from .plan_file import read_plan
 
 __all__ = ["Stack", "Session", "stacks_of", "plan_sha", "new_state", "SESSION_FILE"]
 

@@ -119,7 +119,7 @@ def _ask_light(core, stack) -> None:
 
 def run(args) -> int:
     from ..acquire import record
-    from ..acquire.plan import read_plan
+    from ..acquire.plan_file import read_plan
     from ..errors import OptionError
 
     if args.resume and not args.simulated and args.mm_config is None:

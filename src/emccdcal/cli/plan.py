@@ -156,7 +156,8 @@ def _camera_from(args):
 
 def run(args) -> int:
     from .._output import atomic_write_text
-    from ..acquire.plan import plan, plan_text, read_plan
+    from ..acquire.plan import plan
+    from ..acquire.plan_file import plan_text, read_plan
 
     if args.check is not None:
         result = read_plan(args.check)
