@@ -643,7 +643,6 @@ OVER_800 = {
     "data/manifest.py": 1068,
     "beads/cots.py": 994,
     "report/html.py": 876,
-    "export/database.py": 854,
 }
 
 
@@ -682,7 +681,7 @@ DELETIONS = {
     "folder _open_session found empty, before any stack was recorded",
     ("cli/db.py", "run"): "a database entry (a row), as `db remove ID` asks; no file",
     ("demo.py", "run_demo"): "the simulated frames in the temporary folder the demo made",
-    ("export/database.py", "_create"): "its own temporary database (a random name)",
+    ("export/_sqlite.py", "_create"): "its own temporary database (a random name)",
     ("runstore.py", "RunStore.discard"): "the output folder where this run made it, only "
     "while empty (rmdir)",
     ("runstore.py", "publish"): "an earlier run's file of the same set, only where "

@@ -209,9 +209,9 @@ def test_validate_and_cots_expect_the_same_spot_width():
 
 def test_a_closed_pipe_ends_quietly(tmp_path):
     """`emccdcal db list --json | head` once printed a BrokenPipeError traceback."""
-    from emccdcal.export import database
+    from emccdcal.export import _sqlite
 
-    database._connect(tmp_path / "cal.sqlite", write=True).close()  # an empty database
+    _sqlite._connect(tmp_path / "cal.sqlite", write=True).close()  # an empty database
     proc = subprocess.Popen(
         [
             sys.executable,

@@ -237,9 +237,9 @@ def test_every_path_a_verb_is_given_is_registered_as_an_input():
 
 
 def _db(path):
-    from emccdcal.export import database
+    from emccdcal.export import _sqlite
 
-    database._connect(path, write=True).close()
+    _sqlite._connect(path, write=True).close()
     return path
 
 
