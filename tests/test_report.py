@@ -26,6 +26,7 @@ from emccdcal.data.manifest import read_manifest
 from emccdcal.model import noise
 from emccdcal.report import figures
 from emccdcal.report import html as report_html
+from emccdcal.report import sections as report_sections
 
 PIXEL = (1, 2)  # not the centre, not on the diagonal
 
@@ -377,14 +378,14 @@ def test_report_summary_and_provenance_hold_the_numbers(full_report, loaded, run
     ds = loaded["is-adu"]
     phi = np.median(ds.e_per_adu.values[ds.converged.values])
     assert "e⁻/ADU" in text and "ADU/e⁻" in text
-    assert f"<td>{report_html._fmt(phi)}</td>" in text
+    assert f"<td>{report_sections._fmt(phi)}</td>" in text
     inv = np.median(ds.adu_per_e.values[ds.converged.values])  # median of 1/φ over pixels
-    assert f"<td>1/φ</td><td>ADU/e⁻</td><td>{report_html._fmt(inv)}</td>" in text
+    assert f"<td>1/φ</td><td>ADU/e⁻</td><td>{report_sections._fmt(inv)}</td>" in text
     gs = loaded["gs"]
     conv = gs.converged.values
     for s in (5, 25, 100, 300):
         g = np.median(gs.em_gain.sel(setpoint=s).values[conv])
-        assert f"<td>{s}×</td><td>{report_html._fmt(g)}</td>" in text
+        assert f"<td>{s}×</td><td>{report_sections._fmt(g)}</td>" in text
     for method in ("is-adu", "gs"):
         f = runs[0][method] / "calibration.nc"
         assert hashlib.sha256(f.read_bytes()).hexdigest() in text
