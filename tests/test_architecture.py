@@ -641,7 +641,6 @@ OVER_800 = {
     "report/figures.py": 1189,
     "beads/fit.py": 1181,
     "data/manifest.py": 1068,
-    "beads/cots.py": 994,
 }
 
 

@@ -191,7 +191,7 @@ ITERATIONS = {
     "constrained refit, whose own warm starts the steps keep",
     ("fit/posterior.py", "_sample_pixel"): "Markov chains run on until they converge",
     ("beads/validation.py", "blinking_level"): "EM iterations of a two-level mixture",
-    ("beads/cots.py", "_pseudo_true"): "a 2-D system per frame, halved steps keeping v* > 0",
+    ("beads/cots_bias.py", "_pseudo_true"): "a 2-D system per frame, halved steps keeping v* > 0",
     (
         "beads/cots.py",
         "_corrected_truth",
