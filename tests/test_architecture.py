@@ -640,7 +640,6 @@ OVER_800 = {
     "result.py": 1277,
     "report/figures.py": 1189,
     "beads/fit.py": 1181,
-    "data/manifest.py": 1068,
 }
 
 

@@ -230,13 +230,13 @@ read_noise = "data/hi_sigma.tif"
 
 def test_a_dark_used_twice_is_reduced_once(files, monkeypatch):
     calls = []
-    real = manifest_module.read_out_maps  # of 1x darks and multiplied darks
+    real = manifest_module.resolve.read_out_maps  # of 1x darks and multiplied darks
 
     def counting(stack_, *args, **kw):
         calls.append(1)
         return real(stack_, *args, **kw)
 
-    monkeypatch.setattr(manifest_module, "read_out_maps", counting)
+    monkeypatch.setattr(manifest_module.resolve, "read_out_maps", counting)
     text = (
         GOOD
         + """
@@ -329,7 +329,7 @@ def test_parsing_opens_no_data_file_and_gives_frozen_entries(files, monkeypatch)
 
 
 def test_the_key_table_gives_the_allowed_keys_and_defaults():
-    keys = {k.name: k for k in manifest_module._ACQUISITION_KEYS}
+    keys = {k.name: k for k in manifest_module.parse._ACQUISITION_KEYS}
     assert tuple(keys) == manifest_module.ACQUISITION_KEYS
     assert keys["skip_frames"].default == 0 and keys["offset"].unit == "ADU"
     assert keys["frames"].missing and keys["em_gain_setpoint"].missing
