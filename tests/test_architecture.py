@@ -638,7 +638,6 @@ OVER_800 = {
     "calibration.py": 1560,
     "beads/validation.py": 1419,
     "result.py": 1277,
-    "report/figures.py": 1189,
     "beads/fit.py": 1181,
 }
 

@@ -18,9 +18,7 @@ from .._output import file_sha256
 from ..beads.validation import data_checks
 from ..data import quality
 from ..result import format_setpoint
-from .figures import (
-    _estimated_phi,
-)
+from .figures.common import _estimated_phi
 
 
 # --------------------------------------------------------------------------------------
