@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from emccdcal.beads import fit as bead_fit
+from emccdcal.beads import psf_check
 from emccdcal.model import noise, psf
 from emccdcal.simulate.beads import bead_scene
 from emccdcal.simulate.camera import simulate_frames
@@ -173,7 +174,7 @@ def test_a_background_per_frame_where_asked(fitted):
 @pytest.mark.slow
 def test_shared_widths_weigh_each_set_point_by_its_precision(fitted):
     fits = [fitted[g][1] for g in (1.0, 4.78, 261.6)]
-    w = bead_fit.shared_widths(fits)
+    w = psf_check.shared_widths(fits)
     per = np.stack([f.params[:, 0, 2] for f in fits])
     se = np.stack([f.se[:, 0, 2] for f in fits])
     np.testing.assert_allclose(w, (per / se**2).sum(0) / (1 / se**2).sum(0))
@@ -358,11 +359,11 @@ def test_residual_pass_on_gaussian_beads_changes_nothing(fitted):
     fits = [fitted[g][1] for g in (1.0, 4.78, 261.6)]
     for f in fits:
         assert f.residual.shape == (3, 9, 9)
-        m = bead_fit.psf_mismatch(f)
+        m = psf_check.psf_mismatch(f)
         assert 0.7 < m["chi2_per_pixel"] < 1.4
         assert abs(m["missed_fraction"]) < 0.01
     for per_bead in (True, False):
-        image = bead_fit.residual_image(fits, per_bead=per_bead)
+        image = psf_check.residual_image(fits, per_bead=per_bead)
         assert len(image) == (3 if per_bead else 1)
         frames, before = fitted[261.6]
         after = bead_fit.fit_beads(
@@ -412,9 +413,9 @@ def test_residual_image_describes_a_psf_with_a_halo():
                 em_model=GAMMA,
             )
         )
-    assert bead_fit.psf_mismatch(fits[1])["chi2_per_pixel"] > 2.0
-    widths = bead_fit.shared_widths(fits)
-    image = bead_fit.residual_image(fits)
+    assert psf_check.psf_mismatch(fits[1])["chi2_per_pixel"] > 2.0
+    widths = psf_check.shared_widths(fits)
+    image = psf_check.residual_image(fits)
     second = [
         bead_fit.fit_beads(
             stacks[g],
@@ -430,7 +431,7 @@ def test_residual_image_describes_a_psf_with_a_halo():
         for g in (1.0, 261.6)
     ]
     assert all(f.converged.all() for f in second)
-    assert bead_fit.psf_mismatch(second[1])["chi2_per_pixel"] < 1.3
+    assert psf_check.psf_mismatch(second[1])["chi2_per_pixel"] < 1.3
     ratio = second[1].intensity.mean() / second[0].intensity.mean()
     err = math.hypot(
         *(
@@ -557,8 +558,8 @@ def test_residual_is_per_unit_intensity_of_the_frames_it_averages():
         residual_se=np.full((B, n, n), 1.0),
         intensity_offset_se=np.zeros(B),
     )
-    assert bead_fit.psf_mismatch(fit)["missed_fraction"] == pytest.approx(81 * 10 / 1000)
-    image = bead_fit.residual_image([fit], per_bead=True)
+    assert psf_check.psf_mismatch(fit)["missed_fraction"] == pytest.approx(81 * 10 / 1000)
+    image = psf_check.residual_image([fit], per_bead=True)
     R = image.evaluate(np.zeros(1, int), np.zeros((1, 1)), np.zeros((1, 1)))[0]
     assert R[0, 0] == pytest.approx(10 / 1000, rel=0.01)
 
@@ -594,7 +595,7 @@ def test_a_residual_images_variance_is_its_sampling_variance():
         )
 
     images = [
-        bead_fit.residual_image([fit_with_noise(), fit_with_noise()], half=0) for _ in range(400)
+        psf_check.residual_image([fit_with_noise(), fit_with_noise()], half=0) for _ in range(400)
     ]
     variance = images[0].variance
     used = variance > 0
@@ -612,7 +613,7 @@ def test_a_residual_images_variance_is_its_sampling_variance():
         images[0].variance_at(np.zeros(n, int), dy, dx) / (se[0] / 1000.0) ** 2
     ) == pytest.approx(0.5, abs=0.1)
     with pytest.raises(ValueError, match="half must be"):
-        bead_fit.residual_image([fit_with_noise()], half=2)
+        psf_check.residual_image([fit_with_noise()], half=2)
 
 
 @pytest.mark.slow
@@ -623,7 +624,7 @@ def test_a_residual_image_is_scored_on_frames_it_was_not_built_on(fitted):
     first half's image never saw, is flagged when the frames are split in time; split
     into even and odd frames, both halves see it and the image learns it."""
     fits = [fitted[g][1] for g in (1.0, 4.78, 261.6)]
-    image = bead_fit.residual_image(fits, half=0)
+    image = psf_check.residual_image(fits, half=0)
     frames, before = fitted[261.6]
     kw = dict(
         offset=_offset_map(), read_noise=SIGMA_DARK, e_per_adu=PHI, em_gain=261.6, em_model=GAMMA
@@ -631,7 +632,7 @@ def test_a_residual_image_is_scored_on_frames_it_was_not_built_on(fitted):
     after = bead_fit.fit_beads(
         frames, before.positions, fixed_width=before.params[:, 0, 2], residual=image, **kw
     )
-    held_out = bead_fit.psf_mismatch(after, half=1, image=image)
+    held_out = psf_check.psf_mismatch(after, half=1, image=image)
     assert abs(held_out["chi2_per_pixel"] - 1.0) < 3 * held_out["chi2_per_pixel_se"]
 
     halo = bead_scene(TRUE_POS, N_TRUE, WIDTH, BACKGROUND, *SHAPE, halo=0.2, halo_width=3.0)
@@ -648,7 +649,7 @@ def test_a_residual_image_is_scored_on_frames_it_was_not_built_on(fitted):
     chi2 = {}
     for split in ("time", "alternate"):
         gauss = bead_fit.fit_beads(stack, before.positions, residual_split=split, **kw)
-        image = bead_fit.residual_image([gauss], half=0)
+        image = psf_check.residual_image([gauss], half=0)
         third = bead_fit.fit_beads(
             stack,
             before.positions,
@@ -657,7 +658,7 @@ def test_a_residual_image_is_scored_on_frames_it_was_not_built_on(fitted):
             residual_split=split,
             **kw,
         )
-        chi2[split] = bead_fit.psf_mismatch(third, half=1, image=image)["chi2_per_pixel"]
+        chi2[split] = psf_check.psf_mismatch(third, half=1, image=image)["chi2_per_pixel"]
     assert chi2["time"] > 2.0  # validate's PSF_CHI2: flagged
     assert chi2["alternate"] < 1.5
     with pytest.raises(ValueError, match="split must be"):

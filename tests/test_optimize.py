@@ -190,7 +190,7 @@ ITERATIONS = {
     ("fit/profile.py", "profile_bounds"): "the profile deviance's level: every evaluation is a "
     "constrained refit, whose own warm starts the steps keep",
     ("fit/posterior.py", "_sample_pixel"): "Markov chains run on until they converge",
-    ("beads/validation.py", "blinking_level"): "EM iterations of a two-level mixture",
+    ("beads/validation/metric.py", "blinking_level"): "EM iterations of a two-level mixture",
     ("beads/cots_bias.py", "_pseudo_true"): "a 2-D system per frame, halved steps keeping v* > 0",
     (
         "beads/cots.py",

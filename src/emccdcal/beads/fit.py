@@ -82,15 +82,25 @@ Coordinates are those of :mod:`emccdcal.model.psf`: pixel (r, c) is centred at i
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from .. import defaults
-from .._optimize import ArrowLayout, maximize, schur
+from .._optimize import ArrowLayout, schur
 from ..errors import OptionError
 from ..model import noise, pointwise, psf
+from .fit_rows import _BATCH_FRAMES, _lower_upper, _evaluate_rows, _fit_rows, _joint_fit
+from .fit_errors import (
+    _NP,
+    RESIDUAL_SPLITS,
+    _joint_errors,
+    _mean_residual,
+    _offset_error,
+    _shared_error_of_mean,
+    _width_effect,
+    frame_halves,
+)
 
 __all__ = [
     "DEFAULT_HALF_SIZE",
@@ -99,9 +109,6 @@ __all__ = [
     "mean_image",
     "detect_beads",
     "fit_beads",
-    "shared_widths",
-    "residual_image",
-    "psf_mismatch",
     "frame_halves",
     "RESIDUAL_SPLITS",
 ]
@@ -110,17 +117,6 @@ __all__ = [
 DEFAULT_HALF_SIZE = defaults.BEAD_HALF_SIZE
 #: Expected spot standard deviation (pixel), used for detection and as a starting value.
 DEFAULT_WIDTH = psf.DEFAULT_WIDTH
-#: How a residual image's frames and those that score it are told apart (:func:`frame_halves`).
-RESIDUAL_SPLITS = ("alternate", "time")
-
-_NP = len(psf.PARAMETERS)
-#: Lower bound of a frame's intensity N (e⁻): a frame held there had no light to fit.
-_MIN_INTENSITY = 1e-3
-#: Frames fitted per batch: bounds the memory of the Jacobians (~1 kB per frame and pixel).
-_BATCH_FRAMES = 4096
-#: A fit that no step improves any more counts as converged if an undamped step would gain
-#: less than this (nats): far below statistical noise, at the exact table's round-off.
-_STUCK_DECREMENT = 1e-3
 
 
 @dataclass(frozen=True)
@@ -282,87 +278,6 @@ def _gaussian_terms(E, y, var_read, f2, var_scale=1.0):
     d1 = r / v + 0.5 * r * r * dv / v**2 - 0.5 * dv / v
     info = 1.0 / v + 0.5 * dv**2 / v**2
     return ll, d1, info
-
-
-# --------------------------------------------------------------------------------------
-# The optimizer over many small problems at once
-# --------------------------------------------------------------------------------------
-def _lower_upper(half_size):
-    h = half_size + 0.5
-    lower = np.array([-h, -h, 0.3, _MIN_INTENSITY, 0.0])
-    upper = np.array([h, h, 3.0 * half_size, np.inf, np.inf])
-    return lower, upper
-
-
-def _evaluate_rows(objective, p_rows, rows):
-    """``objective`` at parameters ``p_rows`` of the rows ``rows``, in batches of
-    :data:`_BATCH_FRAMES`."""
-    ll = np.empty(rows.size)
-    grad = np.empty((rows.size, _NP))
-    H = np.empty((rows.size, _NP, _NP))
-    for a in range(0, rows.size, _BATCH_FRAMES):
-        b = min(rows.size, a + _BATCH_FRAMES)
-        ll[a:b], grad[a:b], H[a:b] = objective(p_rows[a:b], rows[a:b])
-    return ll, grad, H
-
-
-def _fit_rows(objective, p0, lower, upper, *, tol, max_iter):
-    """Maximise ``objective`` for every row of ``p0`` (M, 5) on its own.
-
-    ``objective(p, rows)`` returns ``ll (m,)``, ``grad (m, 5)`` and a positive
-    semi-definite curvature ``H (m, 5, 5)``. Returns the parameters and the per-row
-    iterations.
-    """
-    opt = maximize(
-        lambda rows, p: _evaluate_rows(objective, p, rows),
-        p0,
-        lower=lower,
-        upper=upper,
-        tol=tol,
-        max_iter=max_iter,
-        max_step=np.inf,
-        accept_rtol=1e-10,
-        stuck_tol=_STUCK_DECREMENT,
-    )
-    return opt.x, opt.iterations
-
-
-def _joint_fit(objective, p, layout, *, tol, max_iter, beads=None):
-    """Maximise every bead's summed log-likelihood over its shared parameters and each
-    frame's own (``layout``), Newton steps on each whole bead at once.
-
-    ``p`` is (B·F, 5), bead-major; ``beads`` the beads to fit (default all). Returns the
-    parameters, per-bead convergence and per-bead iterations.
-    """
-    F = layout.F
-    B = len(p) // F
-    beads = np.arange(B) if beads is None else np.flatnonzero(beads)
-    rows_of = np.arange(B * F).reshape(B, F)
-    template = p.copy()
-
-    def evaluate(local, x):
-        rows = rows_of[beads[local]].ravel()
-        ll, grad, H = _evaluate_rows(objective, layout.unpack(x, template[rows]), rows)
-        return (ll.reshape(-1, F).sum(axis=1), layout.gradient(grad), H.reshape(-1, F, _NP, _NP))
-
-    opt = maximize(
-        evaluate,
-        layout.pack(p[rows_of[beads].ravel()]),
-        lower=layout.lower,
-        upper=layout.upper,
-        tol=tol,
-        max_iter=max_iter,
-        max_step=np.inf,
-        accept_rtol=1e-10,
-        stuck_tol=_STUCK_DECREMENT,
-        step=layout.step,
-    )
-    rows = rows_of[beads].ravel()
-    p = p.copy()
-    p[rows] = layout.unpack(opt.x, template[rows])
-    converged, iterations = np.zeros(B, bool), np.zeros(B, int)
-    converged[beads], iterations[beads] = opt.done, opt.iterations
-    return p, converged, iterations
 
 
 # --------------------------------------------------------------------------------------
@@ -827,348 +742,6 @@ def _fit_exact(box, p, layout, max_iter, rounds=5):
         converged = np.where(redo, conv_r, converged)
         iterations = iterations + it_r
     return p, converged, iterations, E_all, info_all, outside, retab
-
-
-def _joint_errors(arrow, shared, frame):
-    """Standard errors (B, F, 5) from each bead's joint information, reduced to its
-    ``arrow`` (:func:`emccdcal._optimize.schur` of the (B, F, 5, 5) information), with
-    what the error of the shared parameters does to each frame's intensity.
-
-    A frame's own parameters: conditional on the shared ones (what scatters from frame to
-    frame); the shared ones' error is common to the bead's frames. A frame at a bound
-    keeps the error its curvature gives: the information is there, only the estimate is
-    clipped. NaN where the information is not positive.
-
-    Returns
-    -------
-    se : (B, F, 5)
-    sensitivity : (B, F, k)
-        ∂N̂_f/∂(shared) = −(H_ff⁻¹ H_fs)[intensity]: how a frame's intensity moves with
-        the shared parameters' estimates (the joint covariance of two frames' N̂ is
-        δ_ff' var_f + d_f S⁻¹ d_f'ᵀ).
-    shared_cov : (B, k, k)
-        S⁻¹, the shared parameters' covariance with every frame's own estimated.
-    """
-    S, Hff_inv, Hsf = arrow
-    B, F = Hff_inv.shape[:2]
-    se = np.full((B, F, _NP), np.nan)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        var_f = np.einsum("bfii->bfi", Hff_inv)
-        se[..., frame] = np.sqrt(np.where(var_f > 0, var_f, np.nan))
-        try:
-            shared_cov = np.linalg.inv(S)
-        except np.linalg.LinAlgError:  # one singular bead: each alone
-            shared_cov = np.stack([_inverse_or_nan(m) for m in S])
-        var_s = np.einsum("bii->bi", shared_cov)
-        se[..., shared] = np.sqrt(np.where(var_s > 0, var_s, np.nan))[:, None, :]
-        intensity = frame.index(3)
-        sensitivity = -np.einsum("bfj,bfkj->bfk", Hff_inv[:, :, intensity, :], Hsf)
-    return se, sensitivity, shared_cov
-
-
-def _inverse_or_nan(m):
-    try:
-        return np.linalg.inv(m)
-    except np.linalg.LinAlgError:
-        return np.full(m.shape, np.nan)
-
-
-def _shared_error_of_mean(sensitivity, shared_cov, converged, width_var=0.0):
-    """Each bead's SE of its mean intensity over its converged frames from its shared
-    parameters' error: √(d̄ S⁻¹ d̄ᵀ + width_var), d̄ the frames' mean sensitivity (e⁻);
-    ``width_var`` that of a held width's error (:func:`_width_effect`), e⁻²."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        n = converged.sum(axis=1)
-        mean_d = np.einsum("bfk,bf->bk", np.nan_to_num(sensitivity), converged) / n[:, None]
-        var = np.einsum("bk,bkl,bl->b", mean_d, shared_cov, mean_d) + width_var
-    return np.where((n > 0) & (var >= 0), np.sqrt(np.maximum(var, 0.0)), np.nan)
-
-
-def _width_effect(Hb, arrow, shared_cov, shared, frame, converged, width=2):
-    """How a bead's mean intensity over its converged frames moves with a held width:
-    d mean(N̂)/dw (e⁻ per pixel of width), from the joint information ``Hb`` (B, F, 5, 5)
-    of all five parameters. The fitted ones follow w by dθ̂/dw = −H_θθ⁻¹ H_θw, solved on
-    the ``arrow`` (:func:`emccdcal._optimize.schur`; the shared parameters by
-    ``shared_cov`` = S⁻¹ first, then each frame's own)."""
-    _, Hff_inv, Hsf = arrow
-    with np.errstate(invalid="ignore", divide="ignore"):
-        r_s = -Hb[..., shared, width].sum(axis=1)  # (B, k)
-        r_f = -Hb[..., frame, width]  # (B, F, f)
-        x_s = np.einsum(
-            "bkl,bl->bk", shared_cov, r_s - np.einsum("bfkj,bfj->bk", Hsf @ Hff_inv, r_f)
-        )
-        x_f = np.einsum("bfij,bfj->bfi", Hff_inv, r_f - np.einsum("bfkj,bk->bfj", Hsf, x_s))
-        d = x_f[..., frame.index(3)]  # dN̂_f/dw
-        n = converged.sum(axis=1)
-        return np.where(
-            n > 0, np.sum(np.where(converged, d, 0.0), axis=1) / np.maximum(n, 1), np.nan
-        )
-
-
-def _mean_residual(box, p, E_all, info_all, converged, split, offset_var):
-    """What the model misses: the mean of data − model over a bead's converged frames
-    (but for frames whose intensity is held at its bound, a bead that was off: their
-    residual is not centred on zero) and its variance, (B, npix) each; the same for
-    each half of the frames (:func:`frame_halves`), (2, B, npix) each; and the mean
-    information per pixel over the frames used. The variances are the frames' scatter
-    over their number plus ``offset_var``, the offset map's own error (e⁻², (B, npix)):
-    the same in every frame, it is in the mean residual whatever the frames."""
-    B, F, npix = box.B, box.F, box.npix
-    use = _residual_frames(converged, p[:, 3].reshape(B, F))[..., None] & (box.weight > 0)
-    resid = (box.y_m - E_all).reshape(B, F, npix)
-
-    def mean_var(sel):
-        count = sel.sum(axis=1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            r = np.where(sel, resid, 0.0)
-            mean = r.sum(axis=1) / count
-            var = (
-                np.where(sel, (r - mean[:, None]) ** 2, 0.0).sum(axis=1) / (count - 1) / count
-            ) + offset_var
-        return np.where(count > 1, mean, np.nan), np.where(count > 1, var, np.nan)
-
-    r_mean, r_var = mean_var(use)
-    halves = [mean_var(use & (frame_halves(F, split) == k)[None, :, None]) for k in (0, 1)]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        W = np.where(use, info_all.reshape(B, F, npix), 0.0).sum(axis=1) / use.sum(axis=1)
-    return r_mean, r_var, np.stack([m for m, _ in halves]), np.stack([v for _, v in halves]), W
-
-
-def frame_halves(n_frames, split="alternate"):
-    """Which half (0 or 1) each frame of an acquisition belongs to, shape (n_frames,).
-
-    ``"alternate"``: even and odd frames (both halves see the same bleaching and drift);
-    ``"time"``: the first and the second half of the acquisition (the second also tests
-    that the spot did not change its shape over time).
-    """
-    if split not in RESIDUAL_SPLITS:
-        raise OptionError(f"split must be one of {', '.join(RESIDUAL_SPLITS)}, got {split!r}")
-    idx = np.arange(n_frames)
-    return idx % 2 if split == "alternate" else (idx >= (n_frames + 1) // 2).astype(int)
-
-
-def _offset_error(box, pb, converged, fitted, W, s0_se):
-    """Standard error of each bead's mean intensity from the offset map's error (e⁻).
-
-    That error is the same in every frame. Its effect on the bead's mean intensity,
-    linearised on the bead's mean frame: δN̄ = a·δy, with a the intensity row of
-    (JᵀWJ)⁻¹JᵀW over the fitted parameters.
-    """
-    with np.errstate(invalid="ignore", divide="ignore"):
-        p_mean = pb[:, 0].copy()
-        p_mean[:, 3:] = np.nanmean(np.where(converged[..., None], pb[..., 3:], np.nan), axis=1)
-        J = box.model(p_mean, np.arange(box.B))[1][..., fitted]  # (B, npix, k)
-        JW = np.swapaxes(J, 1, 2) * W[:, None, :]
-        A = np.nan_to_num(JW @ J) + 1e-12 * np.eye(len(fitted))
-        coef = np.linalg.solve(A, np.nan_to_num(JW))[:, fitted.index(3)]
-        return np.sqrt(np.sum((coef * s0_se / box.theta) ** 2, axis=1))
-
-
-def shared_widths(fits, *, with_se: bool = False):
-    """Each bead's spot width over several acquisitions of it (the set-points of a bead
-    series): the inverse-variance weighted mean of the widths each acquisition's fit
-    found, pixel, shape (B,); with ``with_se`` also its standard error (pixel).
-
-    The PSF is the optics', the same at every set-point; fitted per acquisition, its
-    error moves that acquisition's intensities together (a wider spot, a brighter bead),
-    which compares set-points through their width errors. One width for all set-points
-    takes that error out of the comparison and, at 1×, where the signal-to-noise ratio is
-    lowest, replaces a noisy width by one the multiplied set-points measure well. Its
-    own error still moves every set-point's intensity against the truth: pass its SE to
-    :func:`fit_beads` (``fixed_width_se``) to count it.
-    """
-    w = np.stack([f.params[:, 0, 2] for f in fits])  # (A, B)
-    se = np.stack([f.se[:, 0, 2] for f in fits])
-    ok = np.stack([f.converged.any(axis=1) for f in fits]) & np.isfinite(se) & (se > 0)
-    weight = np.where(ok, 1.0 / np.where(ok, se, 1.0) ** 2, 0.0)
-    total = weight.sum(axis=0)
-    width = np.where(
-        total > 0,
-        (weight * np.where(ok, w, 0.0)).sum(axis=0) / np.where(total > 0, total, 1.0),
-        np.nan,
-    )
-    if not with_se:
-        return width
-    return width, np.where(total > 0, 1.0 / np.sqrt(np.where(total > 0, total, 1.0)), np.nan)
-
-
-def _residual_frames(converged, intensity):
-    """The frames a bead's mean residual is taken over: converged, and with the intensity
-    off its bound (a frame held at N = 0 is not at a stationary point), shape (B, F)."""
-    return converged & (intensity > 2 * _MIN_INTENSITY)
-
-
-def _mean_intensity(fit, b):
-    """Bead ``b``'s mean intensity over the frames of its residual (e⁻), or NaN."""
-    use = _residual_frames(fit.converged[b], fit.intensity[b])
-    return float(fit.intensity[b, use].mean()) if use.any() else math.nan
-
-
-def residual_image(fits, *, oversample=4, per_bead=True, half=None) -> psf.ResidualImage:
-    """The oversampled residual image of a bead series: what the Gaussian spot misses,
-    per unit intensity, from the fits of several acquisitions of the same beads.
-
-    The paper's second pass (Ryan et al. 2021, Methods): the fitted spots are subtracted
-    from the data and the differences kept on a grid finer than the pixels, to be added
-    to the PSF model (:class:`emccdcal.model.psf.ResidualImage`, ``fit_beads(...,
-    residual=)``). Each bead's mean residual (:attr:`BeadFits.residual`) divided by its
-    mean intensity is placed at its pixels' offsets from the bead's fitted centre; the
-    beads' different sub-pixel centres (and the stage's moves between set-points) fill
-    the fine grid. Values are averaged with inverse-variance weights, spread to the four
-    nearest nodes (bilinear weights) and smoothed by normalized convolution with a
-    Gaussian of SD ¼ pixel, which also fills the gaps between samples. The image is
-    linear in the residuals, so its sampling variance follows exactly from theirs
-    (:attr:`ResidualImage.variance`).
-
-    Parameters
-    ----------
-    fits : sequence of BeadFits
-        Fits of the same beads (same ``positions``), e.g. at every set-point, with the
-        Gaussian spot alone.
-    oversample : int
-        Grid nodes per pixel (4).
-    per_bead : bool
-        One image per bead (default: the PSF changes over the field of view, and a bead's
-        own residual is taken at its own centre), or one pooled over all beads.
-    half : {None, 0, 1}
-        Build the image from the residuals of all frames (None) or of one half of them
-        (:attr:`BeadFits.residual_halves`), so that the other half can score it
-        (:func:`psf_mismatch`).
-
-    Returns
-    -------
-    emccdcal.model.psf.ResidualImage
-    """
-    q = int(oversample)
-    if q < 1:
-        raise OptionError(f"oversample must be at least 1, got {oversample}")
-    if half not in (None, 0, 1):
-        raise OptionError(f"half must be None, 0 or 1, got {half!r}")
-    fits = list(fits)
-    B, n = fits[0].residual.shape[:2]
-    h = n // 2
-    c = int(np.ceil((h + 1.5) * q))  # nodes from the centre to the edge
-    G = 2 * c + 1
-    K = B if per_bead else 1
-    samples = [[] for _ in range(K)]  # (node row, node col, weight, value)
-    for fit in fits:
-        if fit.residual.shape[:2] != (B, n) or not np.array_equal(fit.positions, fits[0].positions):
-            raise OptionError("residual_image needs fits of the same beads and box size")
-        resid, resid_se = _residual_of(fit, half)
-        for b in range(B):
-            N = _mean_intensity(fit, b)
-            if not N > 0:
-                continue
-            r, se = resid[b] / N, resid_se[b] / N
-            good = np.isfinite(r) & np.isfinite(se) & (se > 0)
-            dy, dx = _box_offsets(fit, b, n)
-            samples[b if per_bead else 0].append(
-                (dy[good] * q + c, dx[good] * q + c, 1.0 / se[good] ** 2, r[good])
-            )
-    values, variance = np.zeros((2, K, G, G))
-    for k, parts in enumerate(samples):
-        if not parts:
-            continue
-        gy, gx, w, r = (np.concatenate(p) for p in zip(*parts))
-        a, bb = _spread(gy, G, q / 4.0), _spread(gx, G, q / 4.0)  # (samples, G) each
-        num = a.T @ ((w * r)[:, None] * bb)
-        den = a.T @ (w[:, None] * bb)
-        var_num = (a**2).T @ (w[:, None] * bb**2)  # Var(w r) = w, for w = 1/SE²
-        keep = den > 1e-3 * den.max()
-        safe = np.where(keep, den, 1.0)
-        values[k] = np.where(keep, num / safe, 0.0)
-        variance[k] = np.where(keep, var_num / safe**2, 0.0)
-    return psf.ResidualImage(values, q, variance)
-
-
-def _spread(g, size, sd):
-    """Each sample's weights on a line of ``size`` nodes: bilinear to its two nearest
-    nodes, then a Gaussian of SD ``sd`` nodes (truncated at 4 SD and normalised, as
-    :func:`scipy.ndimage.gaussian_filter`), shape (samples, size). The image's smoothing
-    is separable, so a sample's weight at node (i, j) is the product of its two lines'."""
-    radius = int(4.0 * sd + 0.5)
-    kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sd) ** 2)
-    kernel /= kernel.sum()
-    low = np.floor(g).astype(int)
-    frac = g - low
-    out = np.zeros((len(g), size))
-    nodes = np.arange(size)
-    for shift, weight in ((0, 1.0 - frac), (1, frac)):
-        d = nodes[None, :] - (low + shift)[:, None]
-        inside = np.abs(d) <= radius
-        out += weight[:, None] * np.where(inside, kernel[np.clip(d + radius, 0, 2 * radius)], 0.0)
-    return out
-
-
-def _box_offsets(fit, b, n):
-    """Offsets (dy, dx) of bead ``b``'s n × n box pixels from its fitted centre (its
-    shared position), pixel, shape (n, n) each: where its residual image is read."""
-    x0, y0 = fit.params[b, np.argmax(fit.converged[b]), :2]
-    local = np.arange(n) - n // 2
-    return (
-        (fit.positions[b, 0] + local - y0)[:, None] * np.ones(n),
-        np.ones(n)[:, None] * (fit.positions[b, 1] + local - x0),
-    )
-
-
-def _residual_of(fit, half):
-    """The mean residual and its SE of all frames (``half`` None) or of one half."""
-    if half is None:
-        return fit.residual, fit.residual_se
-    return fit.residual_halves[half], fit.residual_halves_se[half]
-
-
-def psf_mismatch(fit, *, half=None, image=None) -> dict:
-    """How far the spot model is from the data of one acquisition, pooled over its beads.
-
-    Parameters
-    ----------
-    fit : BeadFits
-    half : {None, 0, 1}
-        Score the mean residual of all frames (None) or of one half of them
-        (:attr:`BeadFits.residual_halves`): the half a residual image was *not* built on
-        gives a goodness of fit on data the image has not seen.
-    image : emccdcal.model.psf.ResidualImage, optional
-        The residual image in the fitted model, built on other frames: its own sampling
-        variance (:meth:`~emccdcal.model.psf.ResidualImage.variance_at`, times N²) is
-        added to each pixel's, since the image's noise is a difference the held-out
-        frames see. Without it χ² reads about 1 + 1/(frames pooled into the image).
-
-    Returns
-    -------
-    dict
-        ``chi2_per_pixel``: mean over beads of Σ_k (residual_k / SE_k)² / pixels, ≈ 1 when
-        the spot model describes the mean image to within its noise; ``chi2_per_pixel_se``:
-        its sampling SD under a right model, √(2/pixels)/beads summed in quadrature;
-        ``missed_fraction``: mean over beads of Σ_k residual_k / N, the fraction of the
-        bead's intensity the model misses inside its box (signed); ``abs_fraction``: the
-        same of |residual_k|.
-    """
-    resid, resid_se = _residual_of(fit, half)
-    n = resid.shape[1]
-    chi2, pixels, missed, absolute = [], [], [], []
-    for b in range(len(fit.positions)):
-        N = _mean_intensity(fit, b)
-        r, var = resid[b], resid_se[b] ** 2
-        if image is not None and N > 0:
-            dy, dx = _box_offsets(fit, b, n)
-            var = var + N**2 * image.variance_at(np.full(n, b if len(image) > 1 else 0), dy, dx)
-        good = np.isfinite(r) & np.isfinite(var) & (var > 0)
-        if not N > 0 or not good.any():
-            continue
-        chi2.append(float(np.sum(r[good] ** 2 / var[good]) / good.sum()))
-        pixels.append(int(good.sum()))
-        missed.append(float(r[good].sum() / N))
-        absolute.append(float(np.abs(r[good]).sum() / N))
-    mean = lambda v: float(np.mean(v)) if v else float("nan")
-    return {
-        "chi2_per_pixel": mean(chi2),
-        "chi2_per_pixel_se": (
-            float(np.sqrt(np.sum(2.0 / np.array(pixels))) / len(pixels)) if pixels else float("nan")
-        ),
-        "missed_fraction": mean(missed),
-        "abs_fraction": mean(absolute),
-    }
 
 
 def _pad_range(lo, hi):

@@ -154,7 +154,7 @@ class ResidualImage:
         Grid nodes per pixel.
     variance : array_like, shape (K, G, G), optional
         The sampling variance of ``values`` (fraction²), where they were estimated from
-        data (:func:`emccdcal.beads.fit.residual_image`): what a goodness of fit on other
+        data (:func:`emccdcal.beads.psf_check.residual_image`): what a goodness of fit on other
         data must allow for (:meth:`variance_at`). Default 0: the image taken as exact.
 
     Examples
