@@ -383,9 +383,9 @@ def test_load_rejects_non_netcdf_and_missing_files(tmp_path):
 
 
 def test_version_major_parsing():
-    assert result._major("1.2.3") == 1
-    assert result._major("0+unknown") == 0
-    assert result._major("dev") is None
+    assert result.schema._major("1.2.3") == 1
+    assert result.schema._major("0+unknown") == 0
+    assert result.schema._major("dev") is None
 
 
 def test_docs_results_md_names_every_standard_variable():

@@ -7,6 +7,7 @@ from . import export as export
 from . import fit as fit
 from . import model as model
 from . import report as report
+from . import result as result
 from . import simulate as simulate
 from .beads.cots_calibration import cots_calibrate as cots
 from .beads.validation import validate as validate

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from . import identity, result
+from .result.files import _checked_in_memory
 from ._util import e_per_adu_map
 from .data.manifest import Source
 from .errors import OptionError
@@ -92,7 +93,7 @@ def _phi_result(e_per_adu):
             )
         ds, label, source = result.load(path), f"'{path}'", Source("result", path)
     elif isinstance(e_per_adu, xr.Dataset):
-        ds = result._checked_in_memory(e_per_adu)
+        ds = _checked_in_memory(e_per_adu)
         saved = e_per_adu.encoding.get("source")  # a result read from or written to a file
         label = f"'{saved}'" if saved else "the result given"
         source = Source("result", Path(saved)) if saved else Source("given")
