@@ -36,14 +36,14 @@ t0 = time.perf_counter()
 from emccdcal import calibrate, calibration
 manifest, out, em_model, device = sys.argv[1:5]
 fit = [0.0]
-fit_pixels = calibration._fit_pixels
+fit_pixels = calibration.tiles._fit_pixels
 def timed(*args, **kwargs):  # the tiles' fits (one tile at a time here)
     t = time.perf_counter()
     try:
         return fit_pixels(*args, **kwargs)
     finally:
         fit[0] += time.perf_counter() - t
-calibration._fit_pixels = timed
+calibration.tiles._fit_pixels = timed
 ds = calibrate(manifest, "gs", out=out, overwrite=True, em_model=em_model, device=device,
                progress=False)
 print(json.dumps({"wall": time.perf_counter() - t0, "fit": fit[0],

@@ -226,7 +226,8 @@ def test_blocks_on_a_gpu_fill_a_share_of_its_free_memory():
     """On a GPU the default block grows with the card's free memory (a quarter of it,
     at most 8192 pixels, tiles holding whole blocks); the CPU's defaults and a caller's
     own block size stand."""
-    from emccdcal.calibration import DEFAULT_BLOCK, _blocks_for
+    from emccdcal.calibration import DEFAULT_BLOCK
+    from emccdcal.calibration.api import _blocks_for
 
     assert DEFAULT_BLOCK == 128
     assert _blocks_for(None, 128, 1024) == (128, 1024)  # the CPU

@@ -14,7 +14,7 @@ import tifffile
 from conftest import write_real_manifest
 
 from emccdcal import cli, result
-from emccdcal.calibration import _load
+from emccdcal.calibration.tiles import _load
 from emccdcal.fit.series import specify
 from emccdcal.simulate.series import simulate_gain_series, simulate_intensity_series
 

@@ -200,9 +200,14 @@ ITERATIONS = {
     ("acquire/plan.py", "_allocate"): "greedy allocation of frames, then its trim",
     ("acquire/plan.py", "_brightest"): "doubling to a bracket that _roots.bisect then narrows",
     ("simulate/beads.py", "_place_beads"): "rejection sampling of positions",
-    ("calibration.py", "_worker_start.watch"): "a tile worker watching for its parent's death "
-    "(plumbing)",
-    ("calibration.py", "_reach"): "reading a scheduler's first bytes from a socket (plumbing)",
+    (
+        "calibration/schedulers.py",
+        "_worker_start.watch",
+    ): "a tile worker watching for its parent's death (plumbing)",
+    (
+        "calibration/schedulers.py",
+        "_reach",
+    ): "reading a scheduler's first bytes from a socket (plumbing)",
 }
 #: Where such loops are plumbing, not numerics (files, locks, queues, devices, parsing).
 _PLUMBING = (

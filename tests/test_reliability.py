@@ -194,7 +194,7 @@ def test_overwrite_keeps_the_old_result_when_the_new_run_fails(tmp_path, monkeyp
     def interrupted(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(calibration, "_run_tiles", interrupted)
+    monkeypatch.setattr(calibration.api, "_run_tiles", interrupted)
     with pytest.raises(KeyboardInterrupt):
         calibrate(sim.manifest, "gs", out=out, overwrite=True, progress=False)
     assert file_sha256(out / result.CALIBRATION_FILE) == before

@@ -260,7 +260,8 @@ def test_an_unwritable_output_is_found_before_any_computing(series, tmp_path, ca
     def computed(*args, **kwargs):  # decided by what ran, not by how long it took
         raise AssertionError("a tile was computed before the output was found unwritable")
 
-    monkeypatch.setattr(calibration, "run_tile", computed)
+    monkeypatch.setattr(calibration.schedulers, "run_tile", computed)
+    monkeypatch.setattr(calibration.profiling, "run_tile", computed)
     blocker = tmp_path / "a-file"
     blocker.write_text("")
     assert cli.main(["calibrate", str(series[0]), "-o", str(blocker / "out"), "-q"]) == 2

@@ -61,7 +61,18 @@ __all__ = ["__version__", *_API]
 #: Subpackages reached as attributes (``emccdcal.model.noise``), imported on first use as
 #: scipy imports its own, so that a fresh interpreter's ``import emccdcal`` reaches them.
 _SUBPACKAGES = frozenset(
-    ("acquire", "beads", "data", "export", "fit", "model", "report", "result", "simulate")
+    (
+        "acquire",
+        "beads",
+        "calibration",
+        "data",
+        "export",
+        "fit",
+        "model",
+        "report",
+        "result",
+        "simulate",
+    )
 )
 
 

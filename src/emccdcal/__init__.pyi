@@ -2,6 +2,7 @@
 # out for type checkers and IDEs. Keep it in step with emccdcal._API (a test checks).
 from . import acquire as acquire
 from . import beads as beads
+from . import calibration as calibration
 from . import data as data
 from . import export as export
 from . import fit as fit
