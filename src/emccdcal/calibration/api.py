@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import os
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -42,6 +43,31 @@ if TYPE_CHECKING:
 # --------------------------------------------------------------------------------------
 # The calibration
 # --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RunRequest:
+    """What a :func:`calibrate` call asks for, checked (its parameters say what each is):
+    one record for the run instead of twenty arguments."""
+
+    method: str
+    e_per_adu: object
+    resume: bool
+    overwrite: bool
+    block_size: int
+    tile_pixels: int
+    scheduler: object
+    options: dict | None
+    progress: object
+    workers: int
+    checks: bool
+    map_errors: bool
+    intervals: str | None
+    em_model: object
+    stages: object
+    accept_mismatch: tuple
+    accept_phi: bool
+    device: str | None
+
+
 def calibrate(
     manifest,
     method="gs",
@@ -203,31 +229,30 @@ def calibrate(
     # the result and issued again to the caller.
     # The output is locked, and checked, for the whole run (the tiles are kept as they
     # finish, so nothing is staged); the result's files go as one set, the tiles last.
+    run = RunRequest(
+        method,
+        e_per_adu,
+        resume,
+        overwrite,
+        block_size,
+        tile_pixels,
+        scheduler,
+        options,
+        progress,
+        workers,
+        checks,
+        map_errors,
+        intervals,
+        em_model,
+        stages,
+        tuple(accept_mismatch),
+        accept_phi,
+        device,
+    )
     target = None if out is None else Output(out, kind="folder", stage=False)
     with target or contextlib.nullcontext():
         ds = result.run_recorded(
-            lambda: _run_calibration(
-                manifest,
-                method,
-                e_per_adu,
-                target,
-                resume,
-                overwrite,
-                block_size,
-                tile_pixels,
-                scheduler,
-                options,
-                progress,
-                workers,
-                checks,
-                map_errors,
-                intervals,
-                em_model,
-                stages,
-                accept_mismatch=accept_mismatch,
-                accept_phi=accept_phi,
-                device=device,
-            ),
+            lambda: _run_calibration(manifest, run, target),
         )
         if out is not None:
             result.save(ds, out, seconds=ds.attrs["seconds"], stale=RESULT_FILES)
@@ -343,48 +368,28 @@ def _input_files(manifest, used, phi_source) -> list[Path]:
     return files
 
 
-def _run_calibration(
-    manifest,
-    method,
-    e_per_adu,
-    target,
-    resume,
-    overwrite,
-    block_size,
-    tile_pixels,
-    scheduler,
-    options,
-    progress,
-    workers,
-    checks,
-    map_errors,
-    intervals,
-    em_model=None,
-    stages=None,
-    *,
-    accept_mismatch=(),
-    accept_phi=False,
-    device=None,
-):
+def _run_calibration(manifest, run: RunRequest, target):
+    """One calibration, as :func:`calibrate` asked for it (``run``), into ``target`` (an
+    open :class:`~emccdcal._output.Output`, or None for no files)."""
     manifest = _load(manifest)
-    auto = isinstance(stages, str) and stages == "auto"
+    auto = isinstance(run.stages, str) and run.stages == "auto"
     rows, cols = manifest.shape
-    phi_map, phi_se, phi_source = e_per_adu_inputs(manifest, e_per_adu, accept_mismatch)
+    phi_map, phi_se, phi_source = e_per_adu_inputs(manifest, run.e_per_adu, run.accept_mismatch)
     spec = specify(  # before any stack is read
         manifest,
-        method,
+        run.method,
         e_per_adu=phi_map,
         e_per_adu_se=phi_se,
         e_per_adu_source=phi_source,
-        accept_phi=accept_phi,
-        em_model=em_model,
-        stages=None if auto else stages,
-        options=options,
+        accept_phi=run.accept_phi,
+        em_model=run.em_model,
+        stages=None if auto else run.stages,
+        options=run.options,
     )
     model, stages_source, options = spec.em_model, spec.stages_source, spec.options
     used = list(spec.acquisitions)
-    tiles = plan_tiles(rows * cols, tile_pixels, block_size)
-    dark_frames, map_groups, se_note = _map_error_sources(used, map_errors)
+    tiles = plan_tiles(rows * cols, run.tile_pixels, run.block_size)
+    dark_frames, map_groups, se_note = _map_error_sources(used, run.map_errors)
     offsets = np.stack([a.offset.reshape(-1) for a in used])
     read_noise = np.stack([a.read_noise.reshape(-1) for a in used])
     phi, phi_se_flat = (None if a is None else a.reshape(-1) for a in (phi_map, phi_se))
@@ -394,36 +399,38 @@ def _run_calibration(
         return TileJob(
             pixels=(p0, p1),
             cols=cols,
-            method=method,
+            method=run.method,
             frames=tuple((str(a.frames_path), int(a.skip_frames)) for a in used),
             setpoints=tuple(float(a.em_gain_setpoint) for a in used),
             labels=tuple(_labels(used)),
             offsets=offsets[:, px],
             read_noise=read_noise[:, px],
-            e_per_adu=None if phi is None or method.startswith("mv-") else phi[px],
+            e_per_adu=None if phi is None or run.method.startswith("mv-") else phi[px],
             e_per_adu_se=(
-                None if phi_se_flat is None or method.startswith("mv-") else phi_se_flat[px]
+                None if phi_se_flat is None or run.method.startswith("mv-") else phi_se_flat[px]
             ),
             dark_frames=tuple(dark_frames),
             map_groups=tuple(map_groups),
             adc_max=int(manifest.adc_max),
             options=options,
-            intervals=intervals,
-            block_size=block_size,
-            threads=workers if scheduler is None else 1,
-            checks=bool(checks),
-            fft_threads=_fft_threads(scheduler, workers),
+            intervals=run.intervals,
+            block_size=run.block_size,
+            threads=run.workers if run.scheduler is None else 1,
+            checks=bool(run.checks),
+            fft_threads=_fft_threads(run.scheduler, run.workers),
             em_model=model,
-            device=device,
+            device=run.device,
         )
 
     # where the register's length came from, as the result records it
     register_attrs = {"register_stages_source": stages_source} if stages_source else {}
     if auto:
-        model, profile = _profile_stages(tile_job, rows * cols, model, method, used, progress)
+        model, profile = _profile_stages(
+            tile_job, rows * cols, model, run.method, used, run.progress
+        )
         register_attrs = profile.attrs()
     store = None
-    _reach_or_refuse(scheduler)  # before the output is begun
+    _reach_or_refuse(run.scheduler)  # before the output is begun
     if target is not None:  # an input, or an occupied output, is found before computing
         target.refuse_inputs(_input_files(manifest, used, phi_source), names=RESULT_FILES)
         store = RunStore(
@@ -431,36 +438,45 @@ def _run_calibration(
             _fingerprint(
                 manifest,
                 used,
-                method,
+                run.method,
                 options,
-                intervals,
-                checks,
-                map_errors,
+                run.intervals,
+                run.checks,
+                run.map_errors,
                 phi_map,
                 phi_se,
-                (block_size, tiles[0][1] - tiles[0][0]),
+                (run.block_size, tiles[0][1] - tiles[0][0]),
                 model,
             ),
-            resume=resume,
-            overwrite=overwrite,
+            resume=run.resume,
+            overwrite=run.overwrite,
         )
     jobs = [tile_job(p0, p1, model) for p0, p1 in tiles]
-    parts = _run_tiles(jobs, store, scheduler, progress, method, workers)
+    parts = _run_tiles(jobs, store, run.scheduler, run.progress, run.method, run.workers)
     arrays = _joined(parts)  # parts keep the data-quality statistics, checked once fitted
     _warn_saturated_and_unusable(manifest, used, arrays)
-    if method.startswith("mv-"):
-        ds = _mv_dataset(method, manifest, used, arrays, phi_map, phi_se, model)
+    if run.method.startswith("mv-"):
+        ds = _mv_dataset(run.method, manifest, used, arrays, phi_map, phi_se, model)
     else:
         ds = _likelihood_dataset(
-            method, manifest, used, arrays, offsets, read_noise, options, intervals, model, se_note
+            run.method,
+            manifest,
+            used,
+            arrays,
+            offsets,
+            read_noise,
+            options,
+            run.intervals,
+            model,
+            se_note,
         )
     _record_provenance(
-        ds, method, manifest, model, register_attrs, device, phi_source, phi_se is not None
+        ds, run.method, manifest, model, register_attrs, run.device, phi_source, phi_se is not None
     )
-    if checks:
+    if run.checks:
         _add_findings(ds, manifest, used, parts, tiles)
     del parts
     ds.attrs.setdefault("verdict", "stands")  # the methods without a goodness of fit
-    _require_convergence(ds, method, store)
+    _require_convergence(ds, run.method, store)
     _warn_gain_order(ds)
     return ds
