@@ -38,7 +38,8 @@ Property,Core,Shutter,Shutter
 
 
 def _plan(folder: Path, frames: int) -> Path:
-    from emccdcal.acquire.plan import plan_text, predict
+    from emccdcal.acquire.plan import predict
+    from emccdcal.acquire.plan_file import plan_text
 
     p = predict(
         "gs",

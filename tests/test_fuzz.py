@@ -340,7 +340,8 @@ def _one_clear_error(exc, name):
 
 @pytest.fixture(scope="module")
 def a_plan(tmp_path_factory):
-    from emccdcal.acquire.plan import plan, plan_text
+    from emccdcal.acquire.plan import plan
+    from emccdcal.acquire.plan_file import plan_text
 
     d = tmp_path_factory.mktemp("plan")
     text = plan_text(
@@ -385,7 +386,7 @@ def a_plan(tmp_path_factory):
     )
 )
 def test_edited_plans_predict_or_give_one_clear_error(a_plan, edits):
-    from emccdcal.acquire.plan import read_plan
+    from emccdcal.acquire.plan_file import read_plan
 
     folder, text = a_plan
     lines = text.splitlines()
@@ -416,7 +417,7 @@ def test_edited_plans_predict_or_give_one_clear_error(a_plan, edits):
 def test_session_records_load_or_give_one_clear_error(a_plan, state, stack):
     import json
 
-    from emccdcal.acquire.plan import read_plan
+    from emccdcal.acquire.plan_file import read_plan
     from emccdcal.acquire.session import SESSION_FILE, Session, stacks_of
 
     folder, _ = a_plan

@@ -90,6 +90,7 @@ from .. import defaults
 from .._optimize import ArrowLayout, schur
 from ..errors import OptionError
 from ..model import noise, pointwise, psf
+from .psf_check import psf_mismatch, residual_image, shared_widths  # the public names
 from .fit_rows import _BATCH_FRAMES, _lower_upper, _evaluate_rows, _fit_rows, _joint_fit
 from .fit_errors import (
     _NP,
@@ -109,6 +110,9 @@ __all__ = [
     "mean_image",
     "detect_beads",
     "fit_beads",
+    "shared_widths",
+    "residual_image",
+    "psf_mismatch",
     "frame_halves",
     "RESIDUAL_SPLITS",
 ]
