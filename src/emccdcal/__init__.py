@@ -17,7 +17,7 @@ is fast.
 
 >>> import emccdcal
 >>> emccdcal.calibrate.__module__, emccdcal.noise.__name__
-('emccdcal.calibration', 'emccdcal.model.noise')
+('emccdcal.calibration.api', 'emccdcal.model.noise')
 >>> emccdcal.model.noise is emccdcal.noise  # subpackages, too, on first use
 True
 """
