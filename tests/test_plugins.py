@@ -57,6 +57,7 @@ def plugin(tmp_path_factory):
     (package / "rawx.py").write_text(READER)
     (package / "toyloc.py").write_text(TOOL)
     (package / "napari.yaml").write_text(_example("emccdcal_toy/napari.yaml"))
+    (package / "stages.py").write_text(_example("emccdcal_toy/stages.py"))
     info = site / "emccdcal_toy-0.1.dist-info"
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: emccdcal-toy\nVersion: 0.1\n")
@@ -189,6 +190,43 @@ def test_napari_reads_what_the_packages_own_readers_read():
         for s in r.SUFFIXES
     }
     assert {p.removeprefix("*").lower() for p in patterns} == own
+
+
+def test_an_installed_register_model_simulates_and_calibrates_from_the_command_line(
+    plugin, tmp_path
+):
+    """The page's register model (a subclass of Register stating its transform only),
+    installed as its package's entry point, is a choice of ``--multiplication`` and
+    ``--em-model``: a series simulated with it from the command line calibrates with it
+    from the command line, the result standing and every gain within 4 SE of the truth."""
+    series, out = tmp_path / "gs", tmp_path / "out"
+    model = ("poisson-stages", "--stages", "24")
+    done = _run(
+        plugin, "simulate", "gain-series", "-o", series, "--multiplication", *model,
+        "--setpoints", "1,10,60", "--photoelectrons", "40", "--rows", "2", "--cols", "3",
+        "--frames", "400", "--seed", "31", "-q",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    done = _run(plugin, "calibrate", series / "manifest.toml", "-m", "gs", "--em-model", *model,
+                "-o", out, "-q")  # fmt: skip
+    assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
+    code = (
+        "import json, sys, numpy as np, emccdcal\n"
+        "ds = emccdcal.load_result(sys.argv[1])\n"
+        "truth = json.load(open(sys.argv[2]))\n"
+        "want = np.array([a['em_gain'] for a in truth['acquisitions']])[:, None, None]\n"
+        "z = np.abs(ds.em_gain.values - want) / ds.em_gain_se.values\n"
+        "print(ds.attrs['em_model'], ds.attrs['register_stages'], ds.attrs['verdict'],\n"
+        "      bool(np.nanmax(z) < 4))\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(plugin)}
+    read = subprocess.run(
+        [sys.executable, "-c", code, str(out), str(series / "truth.json")],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
+    assert read.stdout.split() == ["poisson-stages", "24", "stands", "True"], read.stderr
 
 
 def test_napari_opens_a_plugin_readers_file_through_its_packages_manifest(plugin, tmp_path):

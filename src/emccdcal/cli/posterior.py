@@ -67,8 +67,12 @@ def run(args) -> int:
     from ..sampling import sample_posterior
 
     try:
+        phi_result = [args.e_per_adu] if isinstance(args.e_per_adu, Path) else []
         with _common.output(
-            args, args.out, inputs=[args.manifest], names=(POSTERIOR_FILE, SUMMARY_FILE)
+            args,
+            args.out,
+            inputs=[args.manifest, *phi_result],  # a chained φ's result is an input too
+            names=(POSTERIOR_FILE, SUMMARY_FILE),
         ):
             ds = sample_posterior(
                 args.manifest,

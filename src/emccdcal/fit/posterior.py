@@ -335,7 +335,6 @@ def sample_pixels(
     """
     t0 = time.perf_counter()
     _check_sampling(prior, method, max_steps, min_ess, n_steps)
-    options = layouts.check_options(method, options)
     _xp.resolve(device)  # an unknown or missing device: one line before any work
     if not isinstance(manifest, Manifest):
         manifest = read_manifest(manifest)
@@ -355,6 +354,7 @@ def sample_pixels(
         options=options,
     )
     model, stages_source, used = spec.em_model, spec.stages_source, list(spec.acquisitions)
+    options = spec.options
 
     per_pixel = []
     names = units = None
@@ -449,14 +449,14 @@ def _sample_one(lik, method, row, col, sampling, device, phi_se):
 def _with_phi_error(lik, fit, chain, cov, phi_se, rng):
     """The draws (ln parameters) and the estimate's covariance with a given φ's error:
     each draw moved by ``J·δ``, δ ~ N(0, (SE/φ)²) a draw of ln φ and J = d x̂/d ln φ
-    (:func:`emccdcal.fit.profile.e_per_adu_sensitivity`), and ``(SE/φ)²·J Jᵀ`` added to
-    the covariance, as calibrate adds it to its standard errors."""
+    (:func:`emccdcal.fit.profile.e_per_adu_sensitivity`), and the covariance as
+    calibrate's (:func:`emccdcal.fit.profile.with_phi_error`)."""
     from . import profile
 
-    sens = profile.e_per_adu_sensitivity(lik.layout, lik.blocks, fit.x)[0]
+    sens = profile.e_per_adu_sensitivity(lik.layout, lik.blocks, fit.x)  # (1, F)
     rel = float(phi_se) / float(lik.e_per_adu[0])
-    shifted = chain + rng.normal(0.0, rel, size=chain.shape[0])[:, None] * sens[None, :]
-    return shifted, cov + rel**2 * np.outer(sens, sens)
+    shifted = chain + rng.normal(0.0, rel, size=chain.shape[0])[:, None] * sens
+    return shifted, profile.with_phi_error(cov[None], sens, [rel])[0]
 
 
 def _check_sampling(prior, method, max_steps, min_ess, n_steps) -> None:

@@ -13,7 +13,7 @@ import numpy as np
 from .._optimize import solve
 from .engine import Layout, _evaluate, _invert, fit
 
-__all__ = ["e_per_adu_sensitivity", "profile_bounds"]
+__all__ = ["e_per_adu_sensitivity", "profile_bounds", "with_phi_error"]
 
 
 @dataclass
@@ -51,6 +51,15 @@ def e_per_adu_sensitivity(layout, blocks, x):
     """
     info = _evaluate(_PhiFree(layout), blocks, np.column_stack([x, np.zeros(len(x))]), 2)[4]
     return -solve(info[:, :-1, :-1], info[:, :-1, -1])
+
+
+def with_phi_error(cov, sens, rel_se):
+    """The covariance (P, F, F) of the estimates with the error of a given φ added: its
+    relative SE ``rel_se`` (P,) moves every E and g of a pixel together by the
+    sensitivity ``sens`` (P, F) (:func:`e_per_adu_sensitivity`), adding
+    ``rel_se²·J Jᵀ``."""
+    rel_var = np.asarray(rel_se, dtype=float) ** 2
+    return cov + rel_var[:, None, None] * sens[:, :, None] * sens[:, None, :]
 
 
 @dataclass

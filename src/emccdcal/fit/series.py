@@ -364,8 +364,8 @@ class SeriesLikelihood:
         cov = fit.cov
         if e_per_adu_se is not None:  # φ's own error moves every E and g together
             sens = profile.e_per_adu_sensitivity(layout, blocks, fit.x)
-            rel_var = (np.asarray(e_per_adu_se, float) / self.e_per_adu) ** 2
-            cov = cov + rel_var[:, None, None] * sens[:, :, None] * sens[:, None, :]
+            rel_se = np.asarray(e_per_adu_se, float) / self.e_per_adu
+            cov = profile.with_phi_error(cov, sens, rel_se)
         e = layouts.acquisition_estimates(layout, fit.x, cov)
         if self.e_per_adu is not None:  # φ given: its error is known only when chained
             se = np.nan if e_per_adu_se is None else np.asarray(e_per_adu_se, float)[:, None]
