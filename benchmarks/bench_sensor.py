@@ -3,8 +3,11 @@
 Simulates a gain series — set-points 1/5/25/100/300, ``--frames`` frames each (uint16
 TIFF), dark maps from 50 dark frames — at each size of ``--sizes`` (square sensors),
 then runs ``emccdcal calibrate --method gs`` (data-quality checks included) in a fresh
-process and reports its wall time, time per pixel and peak resident memory. A streaming
-engine keeps the peak flat and the time per pixel constant.
+process and reports its wall time, time per pixel and peak resident memory: of the
+calling process, and of its largest worker process where the tiles ran in local
+processes (calibrate's default on a large sensor; ``--scheduler threads`` or
+``processes`` chooses). A streaming engine keeps the peak flat and the time per pixel
+constant.
 
 ``--dask N[,M...]`` instead times the same calibration of the first size on a local Dask
 cluster of N (then M ...) single-threaded worker processes, alternating, and prints the
@@ -41,9 +44,9 @@ import resource, sys, time, warnings
 warnings.simplefilter("ignore")
 t0 = time.perf_counter()
 from emccdcal import calibrate
-scheduler = None
-if sys.argv[3] == "processes":
-    scheduler = "processes"
+scheduler = None  # the default: processes for a large sensor, else threads
+if sys.argv[3] in ("processes", "threads"):
+    scheduler = sys.argv[3]
 elif sys.argv[3] != "local":
     from distributed import Client, LocalCluster
     cluster = LocalCluster(n_workers=int(sys.argv[3]), threads_per_worker=1, processes=True,
@@ -56,7 +59,9 @@ calibrate(sys.argv[1], "gs", out=sys.argv[2], overwrite=True, scheduler=schedule
           workers=int(sys.argv[5]) if sys.argv[5] != "-" else None)
 wall = time.perf_counter() - t0
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-print(f"{wall:.2f} {peak:.0f}")
+# the largest local worker process (the default runs a large sensor's tiles in processes)
+worker = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+print(f"{wall:.2f} {peak:.0f} {worker:.0f}")
 """
 
 
@@ -67,8 +72,8 @@ def _time(manifest, out, where="local", em_model="-", workers="-"):
         text=True,
         check=True,
     )
-    wall, peak = res.stdout.split()[-2:]
-    return float(wall), float(peak)
+    wall, peak, worker = res.stdout.split()[-3:]
+    return float(wall), float(peak), float(worker)
 
 
 def main():
@@ -86,6 +91,12 @@ def main():
         "--em-models", default=None, help="register models to compare, e.g. gamma,cascade"
     )
     p.add_argument("--keep", type=Path, default=None, help="keep the simulated data here")
+    p.add_argument(
+        "--scheduler",
+        default="local",
+        choices=("local", "threads", "processes"),
+        help="where the tiles run: calibrate's default (local), or threads or processes",
+    )
     args = p.parse_args()
     from emccdcal.simulate.series import simulate_gain_series
 
@@ -115,7 +126,7 @@ def main():
                 if args.processes
                 else "threads"
             )
-            where = "processes" if args.processes else "local"
+            where = "processes" if args.processes else "threads"
             n = sizes[0]
             times = {c: [] for c in counts}
             for _ in range(2):
@@ -155,11 +166,15 @@ def main():
                     print(f"  {n}x{n} {m:>8}: {t:8.1f} s   ratio {t / ref:5.2f}", flush=True)
             return
         print(f"gs with data-quality checks, {args.frames} frames per set-point")
-        print(f"{'sensor':>10}{'pixels':>9}{'wall s':>9}{'ms/pixel':>10}{'peak MB':>9}")
+        print(
+            f"{'sensor':>10}{'pixels':>9}{'wall s':>9}{'ms/pixel':>10}{'peak MB':>9}"
+            f"{'worker MB':>11}"
+        )
         for n, manifest in manifests.items():
-            wall, peak = _time(manifest, base / f"out-{n}")
+            wall, peak, worker = _time(manifest, base / f"out-{n}", args.scheduler)
             print(
-                f"{n:>6}x{n:<3}{n * n:>9}{wall:>9.1f}{1000 * wall / (n * n):>10.2f}{peak:>9.0f}",
+                f"{n:>6}x{n:<3}{n * n:>9}{wall:>9.1f}{1000 * wall / (n * n):>10.2f}{peak:>9.0f}"
+                f"{worker:>11.0f}",
                 flush=True,
             )
     finally:

@@ -232,6 +232,60 @@ def test_local_processes_give_the_local_result(series, tmp_path):
     assert (tmp_path / "out" / "calibration.nc").is_file()
 
 
+def test_a_large_sensor_goes_to_local_processes_by_default():
+    """Where the caller names no scheduler, a sensor of 4096 pixels or more in at least
+    two tiles per worker runs in local processes (faster than threads on the same
+    cores: docs/benchmarks.md); a small one, one worker, a GPU, or a daemonic process
+    (a pool's worker, which may not start processes) keep threads here; a caller's
+    choice always stands, ``"threads"`` included."""
+    import multiprocessing
+
+    from emccdcal.calibration.schedulers import choose_scheduler
+
+    sensor = 512 * 512
+    assert choose_scheduler(None, sensor, 256, 2, "cpu") == "processes"
+    assert choose_scheduler(None, 64 * 64, 4, 2, None) == "processes"
+    assert choose_scheduler(None, 32 * 32, 4, 2, "cpu") is None  # too small to pay
+    assert choose_scheduler(None, sensor, 3, 2, "cpu") is None  # too few tiles
+    assert choose_scheduler(None, sensor, 256, 1, "cpu") is None
+    assert choose_scheduler(None, sensor, 256, 2, "cuda") is None
+    assert choose_scheduler("threads", sensor, 256, 2, "cpu") is None
+    assert choose_scheduler("tcp://127.0.0.1:8786", sensor, 256, 2, "cpu") == (
+        "tcp://127.0.0.1:8786"
+    )
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        in_a_worker = pool.apply(choose_scheduler, (None, sensor, 256, 2, "cpu"))
+    assert in_a_worker is None
+
+
+@pytest.mark.slow
+def test_a_script_without_a_main_guard_calibrates_in_local_processes(series, tmp_path):
+    """A user's script that calls calibrate at its top level, with no
+    ``if __name__ == "__main__":`` (a notebook exported as a script has none), run in a
+    fresh interpreter with the tiles in two local processes: the workers do not run the
+    script again (a spawned process imports its parent's script first), so it starts
+    once, finishes, and writes the local result."""
+    script = tmp_path / "calibrate_my_camera.py"
+    out = tmp_path / "out"
+    script.write_text(
+        "import warnings\n"
+        "from emccdcal import calibrate\n"
+        "print('script started', flush=True)\n"
+        "warnings.simplefilter('ignore')\n"
+        f"calibrate({str(series[0])!r}, 'gs', block_size=16, tile_pixels=32,\n"
+        f"          scheduler='processes', workers=2, out={str(out)!r}, progress=False)\n"
+        "print('script finished', flush=True)\n"
+    )
+    run = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=120, cwd=tmp_path
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.stdout.count("script started") == 1, run.stdout
+    assert run.stdout.count("script finished") == 1, run.stdout
+    local = quiet(calibrate, series[0], "gs", block_size=16, tile_pixels=32)
+    _assert_same(local, result.load(out))
+
+
 def test_an_occupied_output_is_refused_without_resume_or_overwrite(series, tmp_path, capsys):
     out = tmp_path / "out"
     argv = ["calibrate", str(series[0]), "-o", str(out), "-q", "--no-checks"]

@@ -91,6 +91,8 @@ def resolve(device: str | None):
         return array_api_strict, array_api_strict.Device("device1")
     if device == "cuda":
         return _cuda()
+    if device == "jax":
+        return _jax()
     raise OptionError(f"device {device!r}: expected one of {', '.join(DEVICES)}")
 
 
@@ -120,6 +122,29 @@ def _cuda():
         "'.[gpu-cuda13]' for CUDA 13; 'nvidia-smi' shows the version) and check that "
         "the NVIDIA driver sees the card"
     )
+
+
+def _jax():
+    """JAX's namespace (``jax.numpy``, which follows the array API standard) on its first
+    device: a GPU where JAX has one, else the CPU. The likelihood needs float64, which
+    JAX gives only once asked: this turns on its ``jax_enable_x64`` for the process."""
+    try:
+        import jax
+    except ImportError:
+        raise OptionError(
+            "device 'jax' needs JAX: pip install jax (CPU), or 'jax[cuda12]' for an NVIDIA GPU"
+        ) from None
+    if not jax.config.jax_enable_x64:  # (setting it again would empty JAX's caches)
+        jax.config.update("jax_enable_x64", True)
+    import jax.numpy as xp
+
+    return xp, jax.devices()[0]
+
+
+def compiles_shapes(xp) -> bool:
+    """Whether ``xp`` compiles each operation for each array shape it meets (JAX): work
+    for such a library is best kept to a few shapes."""
+    return xp.__name__.startswith("jax")
 
 
 @contextlib.contextmanager
@@ -159,6 +184,9 @@ def free_bytes(xp, dev) -> int | None:
         import torch
 
         return int(torch.cuda.mem_get_info(dev)[0])
+    if name.startswith("jax") and dev.platform == "gpu":
+        stats = dev.memory_stats() or {}
+        return int(stats.get("bytes_limit", 0) - stats.get("bytes_in_use", 0)) or None
     return None
 
 
@@ -184,6 +212,8 @@ def to_numpy(array) -> np.ndarray:
         return array.get()
     if type(array).__module__.startswith("torch"):
         return array.detach().cpu().numpy()
+    if type(array).__module__.startswith("jax"):
+        return np.asarray(array)
     if type(array).__module__.startswith("array_api_strict"):
         import array_api_strict
 
@@ -206,6 +236,8 @@ def bincount(xp, index, weights, minlength: int):
         import torch
 
         return torch.bincount(index, weights=weights, minlength=minlength)
+    if name.startswith("jax"):
+        return xp.bincount(index, weights=weights, minlength=minlength, length=minlength)
     out = np.bincount(
         to_numpy(index), weights=None if weights is None else to_numpy(weights), minlength=minlength
     )
@@ -221,10 +253,17 @@ def rfft(xp, a, workers):
     return xp.fft.rfft(a, axis=-1)
 
 
-def irfft(xp, a, n: int, workers):
-    """The inverse real FFT of length n along the last axis (SciPy's for NumPy)."""
+def irfft(xp, a, n: int, workers, *, conjugate=False):
+    """The inverse real FFT of length n along the last axis (SciPy's for NumPy), of ``a``
+    or, with ``conjugate``, of its complex conjugate; bins beyond ``a``'s are zero."""
     if is_numpy_namespace(xp):
         from scipy import fft
 
+        if conjugate:
+            # The conjugate written straight into the zero-padded spectrum the FFT
+            # needs: one pass over the bins instead of a conjugate and a padded copy.
+            full = np.zeros(a.shape[:-1] + (n // 2 + 1,), dtype=np.complex128)
+            np.conjugate(a, out=full[..., : a.shape[-1]])
+            return fft.irfft(full, n=n, axis=-1, workers=workers, overwrite_x=True)
         return fft.irfft(a, n=n, axis=-1, workers=workers)
-    return xp.fft.irfft(a, n=n, axis=-1)
+    return xp.fft.irfft(xp.conj(a) if conjugate else a, n=n, axis=-1)

@@ -18,7 +18,7 @@ PLAN_METHODS = ("gs", "is-adu", "is-gain")
 #: Where a fit's likelihood is computed (``calibrate --device``): the CPU (NumPy), an
 #: NVIDIA GPU (CuPy, else PyTorch), or array-api-strict (the CPU through the array API
 #: standard alone: a check that the hot path needs nothing else, slower).
-DEVICES = ("cpu", "cuda", "array-api-strict")
+DEVICES = ("cpu", "cuda", "jax", "array-api-strict")
 #: Interval kinds: ``estimate ± 1.96 SE`` only, or profile-likelihood bounds too.
 INTERVALS = ("wald", "profile")
 #: Pixels fitted together: large enough to amortise Python overhead, small enough that

@@ -34,7 +34,7 @@ from .datasets import (
     _warn_saturated_and_unusable,
 )
 from .profiling import _fingerprint, _profile_stages
-from .schedulers import _reach_or_refuse, _run_tiles
+from .schedulers import _reach_or_refuse, _run_tiles, choose_scheduler
 
 if TYPE_CHECKING:
     import xarray
@@ -126,7 +126,11 @@ def calibrate(
         (``"tcp://host:8786"``) or a client. The workers read the files from the paths of
         the manifest, so these must be shared. ``"processes"``: the tiles in ``workers``
         local processes, one thread each (the cores of a large machine, which threads
-        share less well). Default: here, on ``workers`` threads.
+        share less well); ``"threads"``: here, on ``workers`` threads. Default: local
+        processes where they are faster (a sensor of
+        4096 pixels or more, in at least two tiles per worker, on the CPU:
+        :func:`emccdcal.calibration.schedulers.default_scheduler`), else here, on
+        ``workers`` threads. The result does not depend on where the tiles ran.
     options : dict, optional
         Method options; only ``gs-hierarchical`` takes any (:func:`emccdcal.fit.layouts.check_options`):
         ``mu_sd`` and ``sigma_sd``, the scales of its hyperpriors in photoelectrons (the
@@ -138,8 +142,9 @@ def calibrate(
         pixels done instead (a graphical front's bar), which may raise
         :class:`emccdcal.errors.Cancelled` to stop the run between blocks of pixels.
     workers : int, optional
-        Threads reading and fitting at once within a tile (default: the number of CPUs;
-        1 on a Dask cluster, whose workers run tiles in parallel).
+        Threads reading and fitting at once within a tile, or local processes each
+        fitting a tile (default: the number of CPUs; 1 on a Dask cluster, whose workers
+        run tiles in parallel).
     checks : bool
         Run the data-quality checks (:mod:`emccdcal.data.quality`: drift of the
         illumination, saturation, hot/dead pixels) and store them in the result
@@ -389,6 +394,7 @@ def _run_calibration(manifest, run: RunRequest, target):
     model, stages_source, options = spec.em_model, spec.stages_source, spec.options
     used = list(spec.acquisitions)
     tiles = plan_tiles(rows * cols, run.tile_pixels, run.block_size)
+    scheduler = choose_scheduler(run.scheduler, rows * cols, len(tiles), run.workers, run.device)
     dark_frames, map_groups, se_note = _map_error_sources(used, run.map_errors)
     offsets = np.stack([a.offset.reshape(-1) for a in used])
     read_noise = np.stack([a.read_noise.reshape(-1) for a in used])
@@ -415,9 +421,9 @@ def _run_calibration(manifest, run: RunRequest, target):
             options=options,
             intervals=run.intervals,
             block_size=run.block_size,
-            threads=run.workers if run.scheduler is None else 1,
+            threads=run.workers if scheduler is None else 1,
             checks=bool(run.checks),
-            fft_threads=_fft_threads(run.scheduler, run.workers),
+            fft_threads=_fft_threads(scheduler, run.workers),
             em_model=model,
             device=run.device,
         )
@@ -430,7 +436,7 @@ def _run_calibration(manifest, run: RunRequest, target):
         )
         register_attrs = profile.attrs()
     store = None
-    _reach_or_refuse(run.scheduler)  # before the output is begun
+    _reach_or_refuse(scheduler)  # before the output is begun
     if target is not None:  # an input, or an occupied output, is found before computing
         target.refuse_inputs(_input_files(manifest, used, phi_source), names=RESULT_FILES)
         store = RunStore(
@@ -452,7 +458,7 @@ def _run_calibration(manifest, run: RunRequest, target):
             overwrite=run.overwrite,
         )
     jobs = [tile_job(p0, p1, model) for p0, p1 in tiles]
-    parts = _run_tiles(jobs, store, run.scheduler, run.progress, run.method, run.workers)
+    parts = _run_tiles(jobs, store, scheduler, run.progress, run.method, run.workers)
     arrays = _joined(parts)  # parts keep the data-quality statistics, checked once fitted
     _warn_saturated_and_unusable(manifest, used, arrays)
     if run.method.startswith("mv-"):

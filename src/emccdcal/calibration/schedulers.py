@@ -2,21 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
-from typing import TYPE_CHECKING
-
 
 from .._util import install_hint, one_line
 from .._util import progress as progress_bar
-from ..errors import (
-    OptionError,
-)
+from ..errors import OptionError
 from ..runstore import RunInterrupted
 from .tiles import run_tile
-
-if TYPE_CHECKING:
-    pass
 
 
 def _return_freed_memory() -> None:
@@ -94,6 +88,43 @@ def _as_finished(futures, as_completed, progress):
 
 #: ``scheduler`` that runs the tiles in local processes (one tile each, one thread each).
 LOCAL_PROCESSES = "processes"
+#: ``scheduler`` that runs the tiles here, on threads, whatever the sensor.
+LOCAL_THREADS = "threads"
+#: The smallest sensor (pixels) whose tiles a run sends to local processes by itself:
+#: below it, starting the processes (each imports the package) costs more than the
+#: threads lose (docs/benchmarks.md, "Threads and processes").
+PROCESSES_FROM_PIXELS = 4096
+
+
+def choose_scheduler(scheduler, n_pixels, n_tiles, workers, device):
+    """The scheduler a run uses: the caller's, with :data:`LOCAL_THREADS` as None (here,
+    on threads), or where the caller gave none, :func:`default_scheduler`'s."""
+    if scheduler is None:
+        return default_scheduler(n_pixels, n_tiles, workers, device)
+    if isinstance(scheduler, str) and scheduler == LOCAL_THREADS:
+        return None
+    return scheduler
+
+
+def default_scheduler(n_pixels, n_tiles, workers, device):
+    """Where a run's tiles go when the caller does not say: local processes
+    (:data:`LOCAL_PROCESSES`) where there are at least two tiles for each of two or more
+    workers on a sensor of :data:`PROCESSES_FROM_PIXELS` pixels or more, on the CPU;
+    else threads here (None). Threads hold the interpreter's lock in the fit's Python
+    steps: two reached 0.65 of two cores where two processes reached 0.90. A GPU is
+    one device (its blocks are large already), and a daemonic process (a pool's
+    worker) may not start processes of its own."""
+    import multiprocessing
+
+    if (
+        device not in (None, "cpu")
+        or workers < 2
+        or n_tiles < 2 * workers
+        or n_pixels < PROCESSES_FROM_PIXELS
+        or multiprocessing.current_process().daemon
+    ):
+        return None
+    return LOCAL_PROCESSES
 
 
 def _in_processes(jobs, progress, workers):
@@ -107,7 +138,8 @@ def _in_processes(jobs, progress, workers):
     import multiprocessing
 
     context = multiprocessing.get_context("spawn")
-    pool = context.Pool(workers, initializer=_worker_start, initargs=(os.getpid(),))
+    with _without_main_script():
+        pool = context.Pool(workers, initializer=_worker_start, initargs=(os.getpid(),))
     try:
         for index, arrays in pool.imap_unordered(_indexed_tile, enumerate(jobs)):
             progress(jobs[index].n_pixels)
@@ -116,6 +148,29 @@ def _in_processes(jobs, progress, workers):
     finally:
         pool.terminate()  # a no-op once closed and done; else the tiles still running go
         pool.join()
+
+
+@contextlib.contextmanager
+def _without_main_script():
+    """While the workers are spawned, the caller's script is not theirs to run.
+
+    A spawned process imports the parent's ``__main__`` script before its task; a
+    user's script that calls :func:`~emccdcal.calibrate` at its top level (no
+    ``if __name__ == "__main__":`` guard, as a notebook's exported cells have none)
+    would start the whole calibration again in every worker. The workers need only
+    emccdcal, so a bare ``__main__`` stands in for the script while they start."""
+    import sys
+    import types
+
+    main = sys.modules.get("__main__")
+    sys.modules["__main__"] = types.ModuleType("__main__")
+    try:
+        yield
+    finally:
+        if main is None:
+            del sys.modules["__main__"]
+        else:
+            sys.modules["__main__"] = main
 
 
 def _indexed_tile(item):
@@ -145,7 +200,7 @@ def _worker_start(parent: int) -> None:
 def _reach_or_refuse(scheduler) -> None:
     """One line (an OptionError) unless a Dask scheduler answers at ``scheduler`` (and
     the ``dask`` extra is installed), where it is an address: :func:`_reach`."""
-    if not isinstance(scheduler, str) or scheduler == LOCAL_PROCESSES:
+    if not isinstance(scheduler, str) or scheduler in (LOCAL_PROCESSES, LOCAL_THREADS):
         return  # here, local processes or a client of the caller's
     try:
         _reach(scheduler)

@@ -199,8 +199,9 @@ def add_device(p) -> None:
         choices=DEVICES,
         default="cpu",
         help="where the likelihood is computed: the CPU, an NVIDIA GPU (needs the "
-        "'gpu' extra: CuPy or PyTorch), or array-api-strict (a check of the array "
-        "API path, slower); default: %(default)s",
+        "'gpu' extra: CuPy or PyTorch), JAX's first device (a GPU where JAX has one, "
+        "else the CPU; needs the 'jax' extra), or array-api-strict (a check of the "
+        "array API path, slower); default: %(default)s",
     )
 
 

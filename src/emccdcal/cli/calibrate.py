@@ -59,14 +59,16 @@ def add_parser(subparsers):
         "--workers",
         type=_common.positive_int,
         default=None,
-        help="threads (default: the CPUs; 1 per task on a Dask cluster)",
+        help="threads, or local processes (default: the CPUs; 1 per task on a Dask cluster)",
     )
     execution.add_argument(
         "--scheduler",
         metavar="ADDRESS",
         help="run the tiles on a Dask cluster, e.g. tcp://10.0.0.1:8786 (the "
         "workers read the manifest's paths; needs the 'dask' extra), or "
-        "'processes': in --workers local processes, one thread each",
+        "'processes': in --workers local processes, one thread each; 'threads': "
+        "here, on --workers threads (default: processes for a sensor of 4096 pixels "
+        "or more in two tiles per worker, else threads)",
     )
     _common.add_device(execution)
     p.add_argument(

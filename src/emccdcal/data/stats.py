@@ -129,7 +129,8 @@ def _block_histograms(block: np.ndarray, adc_max: int | None):
     else:  # saturated values sort to the end of each row
         starts = s < adc_max
         n_used = xp.sum(xp.astype(starts, xp.int64), axis=1)
-    starts[:, 1:] = starts[:, 1:] & (s[:, 1:] != s[:, :-1])
+    # (a new array, not written in place: JAX's arrays are immutable)
+    starts = xp.concat([starts[:, :1], starts[:, 1:] & (s[:, 1:] != s[:, :-1])], axis=1)
     run_pos = xp.nonzero(xp.reshape(starts, (-1,)))[0]
     run_row = run_pos // max(n_frames, 1)
     run_value = xp.astype(xp.take(xp.reshape(s, (-1,)), run_pos), xp.int64)

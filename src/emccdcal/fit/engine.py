@@ -599,10 +599,19 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
     FitResult
     """
     P = np.shape(x0)[0]
+    # A library that compiles each array shape it meets (JAX) evaluates every row each
+    # time (the rows that stopped at the last point tried for them): a few shapes
+    # compiled once, not a set for every number of rows still moving.
+    same_shapes = _xp.compiles_shapes(_xp.engine()[0])
+    x_all = np.array(x0, dtype=float)
 
     def evaluate(rows, x):
         if rows.size == P:
             res = _evaluate(layout, blocks, x, 1)
+        elif same_shapes:
+            x_all[rows] = x
+            res = _evaluate(layout, blocks, x_all, 1)
+            return res[0][rows], res[3][rows], res[4][rows]
         else:
             res = _evaluate(layout.subset(rows), [b.take(rows) for b in blocks], x, 1)
         return res[0], res[3], res[4]

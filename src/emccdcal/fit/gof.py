@@ -241,7 +241,8 @@ def _block_chi2(values, counts, n, K, rows, S0, sigma, start, length, s, min_exp
     p = xp.clip(p, min=0.0)  # FFT round-off (~1e-16 of the peak) can be slightly negative
     p = p / xp.sum(p, axis=1, keepdims=True)
     cdf = xp.cumulative_sum(p, axis=1)
-    cdf[:, -1] = 1.0
+    ones = xp.ones((P, 1), dtype=cdf.dtype, device=dev)
+    cdf = xp.concat([cdf[:, :-1], ones], axis=1)  # exactly 1 at the end (a new array: JAX)
 
     # Equiprobable edges: edge j (j = 1 … K−1) is the first window index with cdf ≥ j/K;
     # bin j (0-based) holds indices (edge_j, edge_{j+1}], the first and last bins open.
@@ -264,7 +265,6 @@ def _block_chi2(values, counts, n, K, rows, S0, sigma, start, length, s, min_exp
 
     # Exact probability of every (unmerged) bin.
     cdf_at = xp.take_along_axis(cdf, edge, axis=1)
-    ones = xp.ones((P, 1), dtype=cdf.dtype, device=dev)
     prob = xp.concat([cdf_at, ones], axis=1) - xp.concat([0.0 * ones, cdf_at], axis=1)
 
     # Merge bins expecting fewer than min_expected frames: drop the edge above a small

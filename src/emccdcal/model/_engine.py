@@ -255,8 +255,7 @@ def irfft(spectrum, n):
     The density's DFT is the characteristic function at −ω, the conjugate of the one
     evaluated at +ω; the bins beyond ``m`` are zero (irfft pads them).
     """
-    xp = _xp.namespace(spectrum)
-    return _xp.irfft(xp, xp.conj(spectrum), n, _xp.fft_workers())
+    return _xp.irfft(_xp.namespace(spectrum), spectrum, n, _xp.fft_workers(), conjugate=True)
 
 
 def fast_len(n):

@@ -395,11 +395,12 @@ def register_transform(u, em_gain, stages=DEFAULT_STAGES, *, order=1, cic=False,
         table = _tabulated(xp, xp.imag(u), g, stages, order, cic, by_u)
         if table is not None:
             return table
-    if u.ndim == 0 or u.size <= _CHUNK or g.shape != u.shape[:1]:
+    if not _xp.is_numpy_namespace(xp) or u.ndim == 0 or u.size <= _CHUNK or g.shape != u.shape[:1]:
         return _register_transform(xp, u, g, stages, order, cic, by_u)
     # The recursion runs N times over every element: in pieces that stay in the CPU's
     # cache it runs about three times faster than over the whole array at once (it is
-    # elementwise, so the values are the same to the bit).
+    # elementwise, so the values are the same to the bit). NumPy's only: a GPU runs the
+    # whole array at once, and JAX's arrays are not written into.
     rows = xp.reshape(u, (u.shape[0], -1))
     step_rows = max(1, _CHUNK // rows.shape[1])
     step_cols = min(rows.shape[1], _CHUNK)
@@ -562,7 +563,7 @@ def _tabulated(xp, theta, g, stages, order, cic, by_u):
     if bool(xp.any(zero)):
         for k, v in out.items():
             if "u" not in k.removeprefix("cic_"):
-                v[zero] = 0.0
+                out[k] = xp.where(zero, xp.zeros_like(v), v)
     return out
 
 
@@ -613,15 +614,12 @@ def _build_table(xp, like, stages, x_range, z_range, order, cic, by_u, budget):
 def _interleave(xp, old, new, axis):
     """Values on a refined Lobatto grid: the old points at the even places of ``axis``,
     the new ones at the odd."""
-    shape = list(old.shape)
-    shape[axis] = old.shape[axis] + new.shape[axis]
-    out = xp.empty(tuple(shape), dtype=old.dtype, device=_xp.device(old))
-    even = [slice(None)] * old.ndim
-    odd = list(even)
-    even[axis], odd[axis] = slice(0, None, 2), slice(1, None, 2)
-    out[tuple(even)] = old
-    out[tuple(odd)] = new
-    return out
+    n_old, n_new = old.shape[axis], new.shape[axis]
+    order = np.empty(n_old + n_new, dtype=np.int64)  # place i takes element order[i]
+    order[0::2], order[1::2] = np.arange(n_old), n_old + np.arange(n_new)
+    # a gather, not writes into a new array: JAX's arrays are immutable
+    both = xp.concat([old, new], axis=axis)
+    return xp.take(both, _xp.like(both, order), axis=axis)
 
 
 def _register_transform(xp, u, g, stages, order, cic, by_u):
@@ -679,6 +677,8 @@ def _register_transform(xp, u, g, stages, order, cic, by_u):
         t = p * v
         t += a1
         v *= t
+    # (in place for NumPy; a new array where arrays are immutable, as JAX's)
+    d["v"] = v
     # Derivatives by p → by ln g: dp/d ln g = (1 + p)/N, d²p/d(ln g)² = (1 + p)/N².
     dp = (1.0 + p_row) / stages
     for src in [d] + ([sums] if cic else []):
