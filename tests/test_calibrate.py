@@ -445,6 +445,7 @@ def test_a_calibration_through_the_array_api_standard_is_numpys(tmp_path):
                 )
 
 
+@pytest.mark.slow
 def test_a_calibration_through_jax_on_the_cpu_is_numpys(tmp_path):
     """A real second array library: JAX (``--device jax``, here its CPU), whose arrays
     are immutable, so nothing in the hot path may write into one. A known-truth
@@ -454,7 +455,10 @@ def test_a_calibration_through_jax_on_the_cpu_is_numpys(tmp_path):
     refine, cost it minutes here; that register's transform and windows are compared
     in ``test_the_exact_registers_windows_through_jax_are_numpys``.)"""
     pytest.importorskip("jax")
-    sim = simulate_gain_series(tmp_path, rows=4, cols=4, frames=300, seed=8, progress=False)
+    # two set-points: each acquisition's windows are shapes JAX compiles for, cold
+    sim = simulate_gain_series(
+        tmp_path, rows=4, cols=4, frames=300, seed=8, setpoints=(1, 100), progress=False
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         ref = calibrate(sim.manifest, "gs", checks=False, em_model="gamma", progress=False)
@@ -475,6 +479,7 @@ def test_a_calibration_through_jax_on_the_cpu_is_numpys(tmp_path):
             )
 
 
+@pytest.mark.slow
 def test_the_exact_registers_windows_through_jax_are_numpys():
     """The exact register's transform (its recursion, which NumPy runs in place, and
     its tables) and the windows and derivatives built on it, through JAX, equal
