@@ -53,17 +53,21 @@ def test_the_gain_of_simulated_darks_within_its_standard_error(g, model):
     assert check.frames_for(check.relative_se / 2) == pytest.approx(4 * 2000, rel=0.01)
 
 
-def test_the_gain_check_through_the_array_api_standard_is_numpys():
+@pytest.mark.parametrize(
+    "device, library", [("array-api-strict", "array_api_strict"), ("jax", "jax")]
+)
+def test_the_gain_check_through_the_array_api_standard_is_numpys(device, library):
     """The shared register's tables evaluated on array-api-strict arrays (a pretend
-    device: nothing outside the standard passes, the blocks' threads included) give the
-    gain NumPy's evaluation gives."""
-    pytest.importorskip("array_api_strict")
+    device: nothing outside the standard passes, the blocks' threads included), or
+    through JAX (a real library whose arrays are immutable), give the gain NumPy's
+    evaluation gives."""
+    pytest.importorskip(library)
     darks = _darks(300.0, seed=5, frames=500, size=8)
     here = check_gain([darks], PHI, bias_correction=False)
-    there = check_gain([darks], PHI, bias_correction=False, device="array-api-strict")
+    there = check_gain([darks], PHI, bias_correction=False, device=device)
     assert there.em_gain == pytest.approx(here.em_gain, rel=1e-10)
     assert there.em_gain_se == pytest.approx(here.em_gain_se, rel=1e-10)
-    assert (here.device, there.as_dict()["device"]) == ("cpu", "array-api-strict")
+    assert (here.device, there.as_dict()["device"]) == ("cpu", device)
 
 
 def test_a_region_and_several_stacks_and_too_few_events():

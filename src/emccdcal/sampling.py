@@ -90,7 +90,7 @@ def sample_posterior(
         The EM register's model (:func:`emccdcal.calibrate`); default the manifest's,
         else the exact cascade (stages from the manifest, the camera's model or 536;
         ``"auto"`` is :func:`emccdcal.calibrate`'s only).
-    device : {"cpu", "cuda", "array-api-strict"}, optional
+    device : {"cpu", "cuda", "jax", "array-api-strict"}, optional
         Where the likelihood is computed, as :func:`emccdcal.calibrate`'s (the walkers'
         evaluations are one batch each step).
 

@@ -398,7 +398,7 @@ def plan(
         Most frames of one stack (light or dark).
     frame_rate_hz : float, optional
         For the recording time.
-    device : {"cpu", "cuda", "array-api-strict"}, optional
+    device : {"cpu", "cuda", "jax", "array-api-strict"}, optional
         Where the expected information's windows are computed, as
         :func:`emccdcal.calibrate`'s.
 

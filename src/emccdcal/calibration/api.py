@@ -192,11 +192,13 @@ def calibrate(
         Use a given φ even where the 1× acquisition's photon transfer says otherwise
         (:func:`emccdcal.fit.series.specify`); by default such a φ (in ADU/e⁻, say, or of another
         read-out mode) is refused before any fitting.
-    device : {"cpu", "cuda", "array-api-strict"}, optional
+    device : {"cpu", "cuda", "jax", "array-api-strict"}, optional
         Where the likelihood's windows and sums are computed (docs/running.md): the CPU
         (NumPy, the default); an NVIDIA GPU through CuPy or PyTorch (the extra ``gpu``);
-        or array-api-strict, the CPU through the array API standard alone (a check, not a
-        speed-up). The numbers agree within 1e-9; the result records the device.
+        JAX's first device, its GPU where it has one, else the CPU (the extra ``jax``;
+        double precision is turned on in JAX for the process); or array-api-strict, the
+        CPU through the array API standard alone (a check, not a speed-up). The numbers
+        agree within 1e-9; the result records the device.
 
     Returns
     -------

@@ -240,7 +240,7 @@ def check_gain(
         A progress bar over the passes (default): in a notebook or on a terminal; none
         in a pipe.
 
-    device : {"cpu", "cuda", "array-api-strict"}, optional
+    device : {"cpu", "cuda", "jax", "array-api-strict"}, optional
         Where the tables are evaluated, as :func:`emccdcal.calibrate`'s (the tables are
         built on the host and copied there once).
 
