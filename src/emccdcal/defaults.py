@@ -16,8 +16,9 @@ METHODS = ("mv-adu", "mv-gain") + LIKELIHOOD_METHODS
 #: The methods ``emccdcal plan`` plans an acquisition for (:mod:`emccdcal.acquire.plan`).
 PLAN_METHODS = ("gs", "is-adu", "is-gain")
 #: Where a fit's likelihood is computed (``calibrate --device``): the CPU (NumPy), an
-#: NVIDIA GPU (CuPy, else PyTorch), or array-api-strict (the CPU through the array API
-#: standard alone: a check that the hot path needs nothing else, slower).
+#: NVIDIA GPU (CuPy, else PyTorch), JAX's first device (its GPU, else the CPU), or
+#: array-api-strict (the CPU through the array API standard alone: a check that the hot
+#: path needs nothing else, slower).
 DEVICES = ("cpu", "cuda", "jax", "array-api-strict")
 #: Interval kinds: ``estimate ± 1.96 SE`` only, or profile-likelihood bounds too.
 INTERVALS = ("wald", "profile")

@@ -127,8 +127,8 @@ def calibrate(
         the manifest, so these must be shared. ``"processes"``: the tiles in ``workers``
         local processes, one thread each (the cores of a large machine, which threads
         share less well); ``"threads"``: here, on ``workers`` threads. Default: local
-        processes where they are faster (a sensor of
-        4096 pixels or more, in at least two tiles per worker, on the CPU:
+        processes where they are faster (a sensor of 4096 pixels or more, in at least
+        two tiles per worker, on the CPU:
         :func:`emccdcal.calibration.schedulers.default_scheduler`), else here, on
         ``workers`` threads. The result does not depend on where the tiles ran.
     options : dict, optional
