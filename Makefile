@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 
 DOCS := $(VENV)/.installed-docs
 
-.PHONY: demo test test-fast test-docs bench docs clean
+.PHONY: demo test test-fast test-docs bench docs clean device-wheels
 
 $(CORE): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -50,9 +50,19 @@ $(DOCS): $(CORE)
 docs: $(DOCS)
 	$(BIN)/python -m sphinx -W --keep-going -q -b html docs docs/_build/html
 
+# What the GPU machine (no network) lacks of the core, and emccdcal itself, as wheels in
+# .whl/ for benchmarks/device_check.sh (docs/benchmarks.md, "On a GPU").
+DEVICE_WHEELS := array-api-compat h5netcdf emcee tomli-w
+device-wheels: $(CORE)
+	rm -rf .whl && mkdir -p .whl
+	$(BIN)/python -m pip wheel --quiet --no-deps -w .whl .
+	$(BIN)/python -m pip download --quiet --no-deps --only-binary=:all: \
+		--python-version 3.12 --implementation cp --platform manylinux2014_x86_64 \
+		-d .whl $(DEVICE_WHEELS)
+
 bench: $(STAMP)
 	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done
 
 clean:
-	rm -rf $(VENV) build src/*.egg-info .pytest_cache docs/_build docs/generated \
+	rm -rf $(VENV) build src/*.egg-info .pytest_cache .whl docs/_build docs/generated \
 		docs/auto_examples docs/sg_execution_times.rst
