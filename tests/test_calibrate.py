@@ -451,9 +451,9 @@ def test_a_calibration_through_jax_on_the_cpu_is_numpys(tmp_path):
     are immutable, so nothing in the hot path may write into one. A known-truth
     calibration through it equals NumPy's within 1e-9 relative, every estimate, SE and
     p-value, and the same pixels converge. (The gamma register end to end: JAX compiles
-    each operation for each shape it meets, so the exact register's tables, whose grids
-    refine, cost it minutes here; that register's transform and windows are compared
-    in ``test_the_exact_registers_windows_through_jax_are_numpys``.)"""
+    each operation for each shape it meets, and the exact register's tables, whose grids
+    refine, would add most of a minute of compiling here; that register's transform and
+    windows are compared in ``test_the_exact_registers_windows_through_jax_are_numpys``.)"""
     pytest.importorskip("jax")
     # two set-points: each acquisition's windows are shapes JAX compiles for, cold
     sim = simulate_gain_series(
