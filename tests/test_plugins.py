@@ -66,16 +66,18 @@ def plugin(tmp_path_factory):
 
 
 def _run(plugin, *args):
+    """``python -m emccdcal ARGS`` in a fresh interpreter that has the plug-in package."""
+    return _python(plugin, "-m", "emccdcal", *args)
+
+
+def _python(plugin, *args):
+    """``python ARGS`` in a fresh interpreter with the plug-in package on its path."""
     env = {
         **os.environ,
         "PYTHONPATH": os.pathsep.join([str(plugin), *filter(None, [os.environ.get("PYTHONPATH")])]),
     }
     return subprocess.run(
-        [sys.executable, "-m", "emccdcal", *map(str, args)],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
+        [sys.executable, *map(str, args)], capture_output=True, text=True, env=env, timeout=300
     )
 
 
@@ -219,13 +221,7 @@ def test_an_installed_register_model_simulates_and_calibrates_from_the_command_l
         "print(ds.attrs['em_model'], ds.attrs['register_stages'], ds.attrs['verdict'],\n"
         "      bool(np.nanmax(z) < 4))\n"
     )
-    env = {**os.environ, "PYTHONPATH": str(plugin)}
-    read = subprocess.run(
-        [sys.executable, "-c", code, str(out), str(series / "truth.json")],
-        capture_output=True,
-        text=True,
-        env=env,
-    )
+    read = _python(plugin, "-c", code, out, series / "truth.json")
     assert read.stdout.split() == ["poisson-stages", "24", "stands", "True"], read.stderr
 
 
@@ -249,14 +245,7 @@ def test_napari_opens_a_plugin_readers_file_through_its_packages_manifest(plugin
         "data, meta, kind = npe2.read([sys.argv[1]], stack=False)[0]\n"
         "print(kind, tuple(data.shape), int(data[1].sum()), meta['metadata']['emccdcal_path'])\n"
     )
-    env = {**os.environ, "PYTHONPATH": str(plugin)}
-    done = subprocess.run(
-        [sys.executable, "-c", code, str(path)],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
-    )
+    done = _python(plugin, "-c", code, path)
     assert done.returncode == 0, done.stderr
     offered, read = done.stdout.splitlines()
     assert offered == "['emccdcal-toy']"
