@@ -4,7 +4,10 @@ Written from the model's definition, not from the package's characteristic-funct
 code: a direct Poisson sum for the Poisson–normal model and adaptive quadrature of the
 Bessel form of the Poisson–gamma density (docs/methods.md) for Poisson–gamma–normal.
 Returns the *density at the integer* f(k); the package's pmf divides by Σ_k f(k), which
-differs from 1 only for read noise below ~3 ADU.
+differs from 1 only for read noise below ~3 ADU. Without multiplication and below
+:data:`emccdcal.model.adc.ROUNDING_BELOW` the package's model is the ADC's rounding of the
+analog value (the normal integrated over each integer's bin): :func:`density` returns
+that probability there, summed directly.
 """
 
 from __future__ import annotations
@@ -28,6 +31,20 @@ def density_pn(k, E, phi, S0, sigma):
     for n in range(lo, hi):
         logw = n * mp.log(E) - E - mp.loggamma(n + 1) if E > 0 else (0 if n == 0 else -mp.inf)
         total += mp.exp(logw) * _normal(k - S0 - n / phi, sigma)
+    return total
+
+
+def rounded_pn(k, E, phi, S0, sigma):
+    """Σ_n Pois(n; E) P(k − ½ ≤ S0 + n/φ + σz < k + ½): the rounded Poisson–normal."""
+    E, phi, S0, sigma, k = (mp.mpf(v) for v in (E, phi, S0, sigma, k))
+    centre = phi * (k - S0)
+    lo = int(max(0, min(E - 60 * mp.sqrt(E + 1) - 60, centre - 60 * sigma * phi - phi)))
+    hi = int(max(E + 60 * mp.sqrt(E + 1) + 60, centre + 60 * sigma * phi + phi)) + 1
+    total = mp.mpf(0)
+    for n in range(lo, hi):
+        logw = n * mp.log(E) - E - mp.loggamma(n + 1) if E > 0 else (0 if n == 0 else -mp.inf)
+        x = k - S0 - n / phi
+        total += mp.exp(logw) * (mp.ncdf((x + 0.5) / sigma) - mp.ncdf((x - 0.5) / sigma))
     return total
 
 
@@ -66,7 +83,12 @@ def density_pgn(k, E, g, phi, S0, sigma):
 
 
 def density(k, E, g, phi, S0, sigma):
-    """Density at integer k (mpmath number)."""
+    """Density at integer k (mpmath number); the rounded probability where the package
+    models the rounding."""
+    from emccdcal.model.adc import ROUNDING_BELOW
+
+    if g == 1 and sigma < ROUNDING_BELOW:
+        return rounded_pn(k, E, phi, S0, sigma)
     if g == 1:
         return density_pn(k, E, phi, S0, sigma)
     return density_pgn(k, E, g, phi, S0, sigma)

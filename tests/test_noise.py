@@ -235,13 +235,14 @@ def test_logpmf_against_independent_high_precision(case):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("sigma", [0.7, 1.0, 1.5])
+@pytest.mark.parametrize("sigma", [0.7, 1.5])
 def test_small_read_noise_normaliser_by_direct_sum(sigma):
-    """Σ_k f(k) computed by summing the independent density, against the normaliser."""
+    """Σ_k f(k) computed by summing the independent density, against the normaliser: a
+    multiplied count's density sampled at the integers (the paper's model)."""
     import mpmath as mp
 
-    E, g, phi, s0 = 2.0, 1.0, 0.3, 10.3
-    k = np.arange(0, 80)
+    E, g, phi, s0 = 2.0, 1.5, 1.0, 10.3
+    k = np.arange(0, 110)  # the exponential tail (θ = g/φ = 1.5 ADU) to below 1e-20
     Z = sum(density(int(v), E, g, phi, s0, sigma) for v in k)
     p = noise.pmf(k, E, g, phi, s0, sigma, em_model="gamma")
     assert abs(p.sum() - 1) < 1e-10
@@ -249,6 +250,24 @@ def test_small_read_noise_normaliser_by_direct_sum(sigma):
     keep = ref > 1e-10 * ref.max()
     np.testing.assert_allclose(p[keep], ref[keep], rtol=1e-8)
     assert mp.mpf(Z) != 1  # the normaliser matters at this read noise
+
+
+@pytest.mark.parametrize("sigma", [0.3, 0.7, 1.5])
+def test_the_rounded_poisson_normal_by_direct_sum(sigma):
+    """Below the rounding's switch a 1× count's probabilities are the normal integrated
+    over each integer's bin, summed over the photoelectrons (an independent direct sum):
+    they sum to one with no normaliser, and the variance has the ADC's 1/12."""
+    from reference import rounded_pn
+
+    E, phi, s0 = 2.0, 0.3, 10.3
+    k = np.arange(0, 80)
+    p = noise.pmf(k, E, 1.0, phi, s0, sigma, em_model="gamma")
+    ref = np.array([float(rounded_pn(int(v), E, phi, s0, sigma)) for v in k])
+    keep = ref > 1e-10 * ref.max()
+    np.testing.assert_allclose(p[keep], ref[keep], rtol=1e-8)
+    assert abs(p.sum() - 1) < 1e-12
+    var = float(noise.variance(E, 1.0, phi, s0, sigma, em_model="gamma"))
+    assert var == pytest.approx(sigma**2 + 1 / 12 + E / phi**2)
 
 
 # ---------------------------------------------------------------------- properties

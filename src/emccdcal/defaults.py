@@ -15,6 +15,18 @@ LIKELIHOOD_METHODS = ("is-adu", "is-gain", "gs", "gs-no1x", "gs-hierarchical")
 METHODS = ("mv-adu", "mv-gain") + LIKELIHOOD_METHODS
 #: The methods ``emccdcal plan`` plans an acquisition for (:mod:`emccdcal.acquire.plan`).
 PLAN_METHODS = ("gs", "is-adu", "is-gain")
+#: Kinds of camera a manifest and a result name (``camera_kind``): an EMCCD, and cameras
+#: without an EM register, whose calibration is an intensity series at 1×.
+CAMERA_KINDS = ("emccd", "scmos", "qcmos", "ccd")
+WITHOUT_EM_REGISTER = ("scmos", "qcmos", "ccd")
+
+
+def default_method(camera_kind):
+    """The method a calibration uses when none is named: ``is-adu`` (φ from an intensity
+    series) for a camera without an EM register, else ``gs`` (the gain series)."""
+    return "is-adu" if camera_kind in WITHOUT_EM_REGISTER else "gs"
+
+
 #: Where a fit's likelihood is computed (``calibrate --device``): the CPU (NumPy), an
 #: NVIDIA GPU (CuPy, else PyTorch), JAX's first device (its GPU, else the CPU), or
 #: array-api-strict (the CPU through the array API standard alone: a check that the hot

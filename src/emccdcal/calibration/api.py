@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .. import _xp, result
+from .. import _xp, defaults, result
 from .._output import Output
 from .._util import check_int, nanmedian
 from ..errors import (
@@ -70,7 +70,7 @@ class RunRequest:
 
 def calibrate(
     manifest,
-    method="gs",
+    method=None,
     *,
     e_per_adu=None,
     out=None,
@@ -97,9 +97,10 @@ def calibrate(
     ----------
     manifest : str, Path or :class:`emccdcal.Manifest`
         The TOML manifest (see ``docs/manifest.md``).
-    method : str
+    method : str, optional
         One of :data:`METHODS`: ``mv-adu``, ``mv-gain``, ``is-adu``, ``is-gain``, ``gs``,
-        ``gs-no1x``, ``gs-hierarchical``.
+        ``gs-no1x``, ``gs-hierarchical``. Default: ``is-adu`` for a camera without an EM
+        register (the manifest's ``camera_kind``: sCMOS, qCMOS, CCD), else ``gs``.
     e_per_adu : float, ndarray (rows, cols), str, Path, xarray.Dataset or Calibration, optional
         φ (e⁻/ADU) overriding the manifest's, for the methods that hold it fixed (an
         error for ``is-adu`` and ``mv-adu``, which estimate it): a number, a map, or an
@@ -211,6 +212,9 @@ def calibrate(
     >>> ds.em_gain.sel(setpoint=300).mean().item()                 # doctest: +SKIP
     261.6
     """
+    if method is None:
+        manifest = _load(manifest)
+        method = defaults.default_method(manifest.camera_kind)
     if method not in METHODS:
         raise MethodError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     if intervals not in INTERVALS:

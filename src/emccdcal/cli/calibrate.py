@@ -21,10 +21,11 @@ def add_parser(subparsers):
     p.add_argument(
         "--method",
         "-m",
-        default="gs",
+        default=None,
         choices=METHODS,
         metavar="METHOD",
-        help="which data it suits: gs (default), a gain series with its 1x "
+        help="which data it suits (default: gs, or is-adu where the manifest's "
+        "camera_kind has no EM register): gs, a gain series with its 1x "
         "acquisition and phi known -> the gains; gs-no1x, the same without 1x; "
         "gs-hierarchical, gs with per-set-point light; is-adu, a 1x intensity "
         "series -> phi; is-gain, an intensity series at one set-point, phi known "

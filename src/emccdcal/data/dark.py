@@ -32,6 +32,7 @@ __all__ = [
     "maps_from_dark",
     "fit_dark",
     "read_out_maps",
+    "analog_read_out",
     "DarkFit",
     "check_read_noise_growth",
     "DEFAULT_CHUNK_ELEMENTS",
@@ -295,10 +296,32 @@ def read_out_maps(stack, setpoint, *, adc_max=None, reference_read_noise=None):
     check_read_out_spread(robust_start(h)[1], stack.dtype, reference_read_noise)
     if setpoint == 1:
         offset, read_noise = maps_from_dark(stack)
-        return offset, read_noise, None
+        return (*analog_read_out(stack, offset, read_noise, adc_max=adc_max), None)
     fitted = fit_dark(stack, adc_max=adc_max)
     events = None if fitted.event_scale == 0 else fitted.event_rate
     return fitted.offset, fitted.read_noise, events
+
+
+def analog_read_out(stack, offset, sd, *, adc_max=None):
+    """The offset and read-noise maps (ADU) of a 1× dark stack as the likelihood uses
+    them: where the read noise is below :data:`emccdcal.model.adc.ROUNDING_BELOW`, the
+    offset and the analog σ *before* the ADC's rounding, fitted to each pixel's dark counts
+    as a rounded normal (:func:`emccdcal.model.adc.fit_rounded_normal`); elsewhere the
+    counts' mean and SD (``offset``, ``sd``) as they are."""
+    from ..model import adc
+
+    sheppard = np.sqrt(np.maximum(sd**2 - 1.0 / 12.0, 0.0))
+    small = np.flatnonzero(adc.rounds(True, sheppard).ravel())
+    if small.size == 0:
+        return offset, sd
+    rows, cols = offset.shape
+    frames = np.asarray(stack).reshape(stack.shape[0], -1)[:, small]
+    h = stats.histograms(frames.reshape(frames.shape[0], 1, -1), adc_max=adc_max)
+    mu, sigma, _, ok = adc.fit_rounded_normal(h.values, h.counts, h.mean, np.sqrt(h.var))
+    offset, sd = offset.astype(float).ravel(), sd.astype(float).ravel()
+    offset[small] = np.where(ok, mu, offset[small])
+    sd[small] = np.where(ok, sigma, sheppard.ravel()[small])
+    return offset.reshape(rows, cols), sd.reshape(rows, cols)
 
 
 def take_pixels(h, idx):

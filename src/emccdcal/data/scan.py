@@ -95,6 +95,9 @@ class Session:
     rules: list[str] = field(default_factory=list)
     skipped: list[tuple[str, str]] = field(default_factory=list)
     e_per_adu_map: Path | None = None
+    #: ``"scmos"`` for a folder of Huang's names with no set-point anywhere (a camera
+    #: without an EM register), else None.
+    camera_kind: str | None = None
 
     @property
     def kind(self) -> str:
@@ -137,13 +140,21 @@ class Session:
         return lines
 
 
+#: The rule of a stack of a camera without an EM register: Huang et al.'s (2013) names.
+_NO_REGISTER = "no EM register: no file records or names a set-point (sCMOS/qCMOS names)"
+
+
 def _setpoint_of(path: Path, settings: CameraSettings):
     if settings.em_gain_setpoint is not None:
         return float(settings.em_gain_setpoint), "recorded"
     setpoint = setpoint_in_name(path)
     if setpoint is not None:
         return setpoint, "name"
-    raise InputError(
+    return None, None
+
+
+def _no_setpoint(path: Path) -> InputError:
+    return InputError(
         f"'{path}': no EM gain set-point: the file records none and its name "
         "does not say (e.g. '25x-gain' or 'gain_25'); name it so, or write the "
         "manifest by hand"
@@ -218,11 +229,25 @@ def scan(folder) -> Session:
     _refuse_unfinished(folder)
     camera, other = _files(folder)
     stacks, maps, skipped = [], [], []
-    for path in camera:
-        shape, _ = stack_header(path)
+    found = [(p, stack_header(p)[0]) for p in camera]
+    stack_paths = [p for p, shape in found if len(shape) == 3]
+    settings_of = {p: stack_settings(p) for p in stack_paths}
+    said = {p: _setpoint_of(p, settings_of[p]) for p in stack_paths}
+    # A camera without an EM register (Huang et al.'s dark.tif, int1.tif …): no stack
+    # says a set-point, and one is a dark.
+    no_register = (
+        len(stack_paths) >= 2
+        and all(sp is None for sp, _ in said.values())
+        and any(_DARK.search(p.stem) for p in stack_paths)
+    )
+    for path, shape in found:
         if len(shape) == 3:
-            settings = stack_settings(path)
-            setpoint, rule = _setpoint_of(path, settings)
+            settings = settings_of[path]
+            setpoint, rule = said[path]
+            if setpoint is None and no_register:
+                setpoint, rule = 1.0, "no EM register"
+            elif setpoint is None:
+                raise _no_setpoint(path)
             stacks.append(
                 ScannedFile(
                     path, tuple(shape), settings, bool(_DARK.search(path.stem)), setpoint, rule
@@ -292,7 +317,10 @@ def scan(folder) -> Session:
     if other:
         names = ", ".join(p.name for p in other[:5]) + (", …" if len(other) > 5 else "")
         skipped.append((f"{len(other)} other file(s)", f"not camera files ({names})"))
-    return Session(folder, signal, darks, _rules(stacks, pairs, darks), skipped, e_per_adu_map)
+    rules = _rules(stacks, pairs, darks) + ([_NO_REGISTER] if no_register else [])
+    return Session(
+        folder, signal, darks, rules, skipped, e_per_adu_map, "scmos" if no_register else None
+    )
 
 
 def _check_one_kind(folder: Path, signal) -> None:
@@ -439,10 +467,19 @@ def manifest_text(session: Session, where: Path) -> str:
             "to an acquisition whose maps came from N dark frames."
         )
     lines.append(
-        "# Check it, then: emccdcal calibrate THIS.toml --method "
-        + ("gs" if kind == "gain-series" else "is-adu")
+        "# Check it, then: emccdcal calibrate THIS.toml"
+        + (
+            ""
+            if session.camera_kind
+            else " --method " + ("gs" if kind == "gain-series" else "is-adu")
+        )
         + " -o OUT"
     )
+    if session.camera_kind is not None:
+        lines.append(
+            toml_line("camera_kind", session.camera_kind)
+            + "   # or 'qcmos' or 'ccd': the files do not say; all calibrate alike"
+        )
     bits = {f.settings.adc_bits for f in session.signal} - {None}
     bits |= {d.settings.adc_bits for d in session.darks.values() if isinstance(d, ScannedFile)} - {
         None
@@ -471,10 +508,11 @@ def manifest_text(session: Session, where: Path) -> str:
             lines.append(comment("# recorded: " + ", ".join(f"{k} {v}" for k, v in known.items())))
         lines.append(toml_line("name", _name_of(f.path)))
         lines.append(toml_line("frames", rel(f.path)))
-        lines.append(
-            toml_line("em_gain_setpoint", f.setpoint)
-            + ("" if f.setpoint_rule == "recorded" else "  # from the file name")
-        )
+        if session.camera_kind is None:
+            lines.append(
+                toml_line("em_gain_setpoint", f.setpoint)
+                + ("" if f.setpoint_rule == "recorded" else "  # from the file name")
+            )
         if kind == "intensity-series":
             lines.append(toml_line("level", f"L{i}"))
         dark = session.darks[f.setpoint]

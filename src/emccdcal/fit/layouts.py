@@ -24,8 +24,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .. import _roots, defaults
+from ..model import adc
 from ..errors import MethodError, OptionError
-from . import engine, profile
+from . import comb, engine, profile
 from .engine import Layout, Parameter
 
 __all__ = [
@@ -193,6 +194,12 @@ def _fmt(values):
 # --------------------------------------------------------------------------------------
 # Starting values from moments
 # --------------------------------------------------------------------------------------
+def read_out_variance(acq):
+    """The variance (ADU²) the read-out adds to the counts: σ², and the ADC's 1/12 where
+    the model rounds (there ``read_noise`` is the analog σ, :mod:`emccdcal.model.adc`)."""
+    return acq.read_noise**2 + adc.rounds(acq.poisson_normal, acq.read_noise) / 12.0
+
+
 def _signal(acq):
     """Offset-subtracted mean (ADU), at least a tiny positive value."""
     return np.maximum(acq.mean - acq.offset, 1e-6)
@@ -277,12 +284,13 @@ def build_layout(method, series, options=None):
 
     if method == "is-adu":
         signal = np.stack([_signal(b) for b in blocks])
-        excess = np.stack([np.maximum(b.var - b.read_noise**2, 1e-6) for b in blocks])
+        excess = np.stack([np.maximum(b.var - read_out_variance(b), 1e-6) for b in blocks])
         phi0 = signal.sum(axis=0) / excess.sum(axis=0)  # photon transfer through origin
         x0 = np.column_stack(
             [_clip_log(phi0, "e_per_adu")] + [_clip_log(e, "photoelectrons") for e in signal * phi0]
         )
-        return layout_of(method, sp, phi, P), x0
+        layout = layout_of(method, sp, phi, P)
+        return layout, comb.profile_start(layout, blocks, x0, read_out_variance)
 
     if method == "is-gain":
         theta = np.stack(

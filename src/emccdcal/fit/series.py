@@ -33,8 +33,8 @@ from .._util import nanmedian
 from ..data.stacks import read_band
 from ..defaults import MAX_ACQUISITIONS
 from ..errors import DataQualityWarning, InputError, OptionError
-from ..model import noise
-from . import engine, gof, layouts, mv, profile
+from ..model import adc, noise
+from . import comb, engine, gof, layouts, mv, profile
 from .engine import QUANTITIES, Parameter
 
 __all__ = [
@@ -177,18 +177,35 @@ class AcquisitionModel:
     dark_frames: int | None = None
     map_group: object = None
 
+    def _map_variances(self, pn):
+        """The maps' own variances (ADU²) from ``dark_frames`` n: σ²/n for the offset (a
+        mean's) and σ²/(2(n−1)) for the read noise (an SD's); where the ADC's rounding is
+        in the model (:mod:`emccdcal.model.adc`), the maps are a rounded normal's fit and
+        their variances its inverse Fisher information over n."""
+        n_dark = self.dark_frames
+        if n_dark is None:
+            return dict(offset_var=None, read_noise_var=None)
+        sigma2 = self.read_noise**2
+        offset_var, read_noise_var = sigma2 / n_dark, sigma2 / (2.0 * (n_dark - 1))
+        rounding = adc.rounds(pn, self.read_noise)
+        if rounding.any():
+            cov = np.linalg.inv(adc.information(self.offset[rounding], self.read_noise[rounding]))
+            offset_var = np.where(rounding, 0.0, offset_var)
+            read_noise_var = np.where(rounding, 0.0, read_noise_var)
+            offset_var[rounding] = cov[:, 0, 0] / n_dark
+            read_noise_var[rounding] = cov[:, 1, 1] / n_dark
+        return dict(offset_var=offset_var, read_noise_var=read_noise_var)
+
     def _block(self, histograms=None) -> engine.AcquisitionBlock:
         """The engine's block of this acquisition, with its data where given."""
-        sigma2 = self.read_noise**2
-        n_dark = self.dark_frames
+        pn = bool(self.setpoint == 1)
         maps = dict(
             offset=self.offset,
             read_noise=self.read_noise,
-            poisson_normal=bool(self.setpoint == 1),
+            poisson_normal=pn,
             map_group=self.map_group,
             em_model=self.em_model,
-            offset_var=None if n_dark is None else sigma2 / n_dark,
-            read_noise_var=None if n_dark is None else sigma2 / (2.0 * (n_dark - 1)),
+            **self._map_variances(pn),
         )
         if histograms is None:
             return engine.AcquisitionBlock(
@@ -362,6 +379,8 @@ class SeriesLikelihood:
         """
         layout, blocks = self.layout, self.blocks
         cov = fit.cov
+        if self.method == "is-adu":  # a comb's ripples: the profile's width (fit.comb)
+            cov = comb.ripple_covariance(layout, blocks, fit, layouts.read_out_variance)
         if e_per_adu_se is not None:  # φ's own error moves every E and g together
             sens = profile.e_per_adu_sensitivity(layout, blocks, fit.x)
             rel_se = np.asarray(e_per_adu_se, float) / self.e_per_adu

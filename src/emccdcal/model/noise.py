@@ -57,7 +57,7 @@ import numpy as np
 from .. import defaults, plugins
 from .._util import check_number
 from ..errors import OptionError
-from . import _engine
+from . import _engine, adc
 from ._engine import Spectrum, fast_len, window  # noqa: F401  (for fit/ and data/)
 from ._engine import extent as window_extent  # noqa: F401
 from .cascade import DEFAULT_STAGES
@@ -406,7 +406,9 @@ def variance(
     photoelectrons, em_gain, e_per_adu, offset, read_noise, *, em_model=defaults.DEFAULT_EM_MODEL
 ):
     """Variance of the count, ADU²: ``σ² + F²E(g/φ)²`` with the register model's F²
-    (:func:`excess_noise_factor`: 2 for the gamma model), ``σ² + E/φ²`` at g = 1.
+    (:func:`excess_noise_factor`: 2 for the gamma model), ``σ² + E/φ²`` at g = 1, and
+    the ADC's 1/12 where the model rounds (:mod:`emccdcal.model.adc`: there σ is the
+    analog read noise).
 
     Parameters are those of :func:`mean`, and the register model as in :func:`logpmf`.
 
@@ -417,7 +419,8 @@ def variance(
     """
     E, g, phi, _, sigma = _check_params(photoelectrons, em_gain, e_per_adu, offset, read_noise)
     F2 = excess_noise_factor(g, em_model=em_model)
-    return sigma**2 + np.where(g == 1, E / phi**2, F2 * E * (g / phi) ** 2)
+    rounding = adc.rounds(g == 1, sigma) / 12.0
+    return sigma**2 + rounding + np.where(g == 1, E / phi**2, F2 * E * (g / phi) ** 2)
 
 
 def third_cumulant(photoelectrons, em_gain, e_per_adu, offset, read_noise):

@@ -226,8 +226,10 @@ IDENTITY_FIELDS = defaults.IDENTITY_FIELDS
 def identity_attrs(manifest) -> dict:
     """The attributes by which every result knows the camera, read-out state and pixels it
     holds for: ``camera`` (JSON), ``binning`` and ``sensor_origin``, as far as the
-    manifest's frames record them."""
+    manifest's frames record them, and ``camera_kind`` where the manifest names it."""
     attrs: dict[str, object] = {"camera": json.dumps(manifest.camera)} if manifest.camera else {}
+    if getattr(manifest, "camera_kind", None):
+        attrs["camera_kind"] = manifest.camera_kind
     if manifest.origin is not None:
         attrs["sensor_origin"] = np.array(manifest.origin, dtype=np.int64)
     if manifest.binning is not None:

@@ -11,7 +11,7 @@ from functools import partial
 from pathlib import Path
 
 
-from ... import _files
+from ... import _files, defaults
 from ...errors import InputError, ManifestError, OptionError
 from ..stacks import (
     describe_missing,
@@ -115,6 +115,16 @@ _TOP_KEYS = (
         ),
     ),
     _Key(
+        "camera_kind",
+        "",
+        problem=lambda v: (
+            None
+            if v in defaults.CAMERA_KINDS
+            else f"camera_kind must be one of {', '.join(repr(k) for k in defaults.CAMERA_KINDS)}, "
+            f"got {v!r}"
+        ),
+    ),
+    _Key(
         "em_model",
         "",
         problem=lambda v: (
@@ -156,7 +166,6 @@ _ACQUISITION_KEYS = (
         "em_gain_setpoint",
         "",
         problem=_setpoint_problem,
-        missing="missing 'em_gain_setpoint' (the camera's EM gain setting, >= 1)",
     ),
     _Key("offset", "ADU", problem=partial(_map_problem, "offset")),
     _Key("read_noise", "ADU", problem=partial(_map_problem, "read_noise")),
@@ -295,6 +304,7 @@ class ManifestEntries:
     em_model: str | None
     register_stages: int | None
     acquisitions: tuple[AcquisitionEntry, ...]
+    camera_kind: str | None = None
 
 
 def parse_manifest(path) -> ManifestEntries:
@@ -336,7 +346,10 @@ def parse_manifest(path) -> ManifestEntries:
     top = r.table(doc, _TOP_KEYS)
     if not top["acquisition"]:
         raise r.error(str(_TOP_KEYS[-1].missing))
-    entries = tuple(_entry(r, i, table) for i, table in enumerate(top["acquisition"], 1))
+    kind = top["camera_kind"]
+    if kind in defaults.WITHOUT_EM_REGISTER and top["em_model"] is not None:
+        raise r.error(f"em_model is an EM register's: a camera_kind = {kind!r} has none")
+    entries = tuple(_entry(r, i, table, kind) for i, table in enumerate(top["acquisition"], 1))
     seen: dict[Path, int] = {}
     for e in entries:
         key = e.frames_path.expanduser().resolve()
@@ -358,13 +371,32 @@ def parse_manifest(path) -> ManifestEntries:
         em_model=top["em_model"],
         register_stages=_register_stages(r, top["em_model"], top["register_stages"]),
         acquisitions=entries,
+        camera_kind=kind,
     )
 
 
-def _entry(r: _Reader, i: int, table: dict) -> AcquisitionEntry:
-    """One [[acquisition]] table: the key table's checks, then the rules between keys."""
+def _entry(r: _Reader, i: int, table: dict, kind: str | None = None) -> AcquisitionEntry:
+    """One [[acquisition]] table: the key table's checks, then the rules between keys
+    (a camera without an EM register has every set-point at 1, written or not)."""
     label = f"frames = '{table['frames']}'" if isinstance(table.get("frames"), str) else ""
     v = r.table(table, _ACQUISITION_KEYS, i, label)
+    if kind in defaults.WITHOUT_EM_REGISTER:
+        if v["em_gain_setpoint"] not in (None, 1):
+            raise r.error(
+                f"em_gain_setpoint = {v['em_gain_setpoint']!r}, but a camera_kind = "
+                f"{kind!r} has no EM register: leave it out (or write 1)",
+                i,
+                label,
+            )
+        v["em_gain_setpoint"] = 1.0
+    elif v["em_gain_setpoint"] is None:
+        raise r.error(
+            "missing 'em_gain_setpoint' (the camera's EM gain setting, >= 1; a camera "
+            "without an EM register says so at the top: camera_kind = 'scmos', 'qcmos' "
+            "or 'ccd')",
+            i,
+            label,
+        )
     frames: str = v["frames"]  # required: the key table has refused a table without it
     has_maps = [k for k in ("offset", "read_noise") if v[k] is not None]
     if v["dark"] is not None and has_maps:

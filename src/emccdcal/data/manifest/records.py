@@ -183,6 +183,9 @@ class Manifest:
     #: exact cascade with stages from the camera's model or a stated default).
     em_model: str | None = None
     register_stages: int | None = None
+    #: The kind of camera (``emccd``, ``scmos``, ``qcmos``, ``ccd``): the manifest's
+    #: ``camera_kind``, else None (not said; an EMCCD's calibration is assumed).
+    camera_kind: str | None = None
     #: What every frames file records alike of the camera (``serial``, ``model``,
     #: ``amplifier``, ``readout_rate_mhz``, ``analog_gain``, ``adc_bits``): the identity a calibration
     #: database keys on. A field the files leave out or disagree on is absent.

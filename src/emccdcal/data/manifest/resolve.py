@@ -157,6 +157,7 @@ def resolve_manifest(entries: ManifestEntries) -> Manifest:
         em_model=entries.em_model,
         register_stages=entries.register_stages,
         camera=camera,
+        camera_kind=entries.camera_kind,
     )
 
 
