@@ -212,9 +212,13 @@ def calibrate(
     >>> ds.em_gain.sel(setpoint=300).mean().item()                 # doctest: +SKIP
     261.6
     """
-    if method is None:
-        manifest = _load(manifest)
-        method = defaults.default_method(manifest.camera_kind)
+    if method is None:  # the manifest's camera kind says (its TOML only: no data read yet)
+        kind = getattr(manifest, "camera_kind", None)
+        if not hasattr(manifest, "camera_kind"):
+            from ..data.manifest.parse import parse_manifest
+
+            kind = parse_manifest(manifest).camera_kind
+        method = defaults.default_method(kind)
     if method not in METHODS:
         raise MethodError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     if intervals not in INTERVALS:

@@ -1,34 +1,55 @@
-"""A start for φ that cannot fall into an alias of a resolved photoelectron comb.
+"""φ where a photoelectron comb shows: a start in the likelihood's highest basin, and an
+error as wide as the likelihood says.
 
 Without multiplication a pixel's counts are a comb: peaks 1/φ ADU apart (one per
-photoelectron), each as wide as the read noise. Where the read noise in electrons,
-σφ, is small enough for the comb to show (an ORCA-Quest's 0.27 e⁻; an sCMOS's quietest
-pixels), the likelihood over φ is not one hill: moving φ by a fraction 1/k moves the k-th
-peak onto the (k±1)-th, and near those fractions of the brightest level's photoelectrons
-it has local maxima, each a few hundredths of a nat to hundreds of nats below the true
-one. A start from the moments (the photon transfer through the origin, a few per cent
-off with a few thousand frames) can sit in any of them, and Newton's method converges
-where it starts.
+photoelectron), each as wide as the read noise. Where the read noise in electrons, σφ,
+is small enough for the comb to show (an ORCA-Quest's 0.27 e⁻; an sCMOS's quieter
+pixels), the likelihood over φ is not one hill:
 
-:func:`profile_start` evaluates the likelihood on a grid of φ around the moment start,
-finer than the aliases' spacing and wider than the moments' error, each level's
-photoelectrons following φ through its mean (``E = φ·(⟨S⟩ − S0)``, where the likelihood
-of E is highest for a given φ), and starts each such pixel at the grid's best point.
+- moving φ by a fraction 1/k moves the k-th peak onto the (k±1)-th, so near the
+  fractions of the brightest level's photoelectrons it has local maxima; and counts
+  rounded to integers cannot tell a comb of frequency φ from one of 1 − φ (an sCMOS's
+  φ ≈ 0.46 e⁻/ADU has an alias at 0.54) except through the envelope. A start from the
+  moments (a few per cent off with a few thousand frames) can sit in any basin, and
+  Newton's method converges where it starts;
+- where the comb barely shows (0.35–0.8 e⁻ on an sCMOS), those maxima are ripples a
+  few hundredths to a few nats deep on a broad envelope: the maximum sits on one of
+  them, and the observed information there is the ripple's curvature, up to 40 times
+  what the data hold.
+
+:func:`profile_start` evaluates the likelihood of every level on a grid over φ around
+the moment start, finer than the ripples (1/(4E) of the brightest level's E, and σφ/(2E)
+where the peaks are narrower than their spacing) and wider than the moments' error, each
+level's E following φ through its mean (``E = φ·(⟨S⟩ − S0)``, at which the likelihood
+of E is highest for a given φ, so the grid traces the profile likelihood); the fit
+starts from the grid's best point. The grid's deviance then gives the profile
+likelihood's 95 % set, and its extent over 2·1.96 is the least SE of ln φ the fit
+reports (:func:`ripple_covariance`): where the comb is resolved, or absent, the observed
+information's is the larger and nothing changes.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..model import adc
 from . import engine
+from .engine import Layout
 
-#: A pixel's comb shows where the transform's revival at ω = 2πφ, exp(−2π²(σφ)²) times
-#: the rounding's |sinc(πφ)|, exceeds this fraction of 1/√n (its noise in n frames).
-VISIBLE = 0.05
-#: Grid points per alias spacing (1/E of the brightest level, relative), and at most.
-PER_ALIAS = 4
-MAX_POINTS = 257
+#: A comb whose revival at ω = 2πφ (relative to the transform at 0: exp(−2π²(σφ)²)
+#: times the rounding's |sinc(πφ)|) is below this cannot ripple the likelihood of any
+#: data set (n·r² nats: 1e-11 in 1e5 frames); an EMCCD's 1× comb is far below it.
+RIPPLES = 1e-8
+#: Grid points per ripple (1/E of a level's photoelectrons, relative), and at most.
+PER_RIPPLE = 4
+MAX_POINTS = 1025
+#: Basins of the dimmest level followed through the brighter ones.
+CANDIDATES = 3
+#: The profile likelihood is checked where the observed information of ln φ claims at
+#: most this fraction of the moments' SE (the comb's share of the information).
+CHECK_BELOW = 0.8
 
 
 def revival(phi, sigma, rounding):
@@ -42,60 +63,176 @@ def _revival(block, phi):
     return revival(phi, block.read_noise, adc.rounds(block.poisson_normal, block.read_noise))
 
 
-def visible(blocks, phi):
-    """Pixels (P,) whose comb shows in some level's data at φ (e⁻/ADU)."""
-    out = np.zeros(phi.shape, dtype=bool)
-    for b in blocks:
-        out |= b.poisson_normal & (_revival(b, phi) * np.sqrt(np.maximum(b.n, 1)) > VISIBLE)
-    return out
+@dataclass
+class CombLayout(Layout):
+    """An intensity series' layout (``x = [ln φ, ln E_1 … ln E_A]``) that carries the
+    SE of ln φ its profile likelihood's 95 % set says (NaN where no grid was needed)."""
+
+    phi_profile_se: np.ndarray = None
+
+    def subset(self, idx):
+        return replace(self, constant=self.constant[idx], phi_profile_se=self.phi_profile_se[idx])
 
 
-def profile_start(layout, blocks, x0, read_out_variance, phi_col=0, photoelectron_cols=None):
-    """``x0`` with φ (and the levels' E) moved to the best point of a grid where the
-    comb shows (module docstring); elsewhere unchanged.
+def profile_start(layout, blocks, x0, read_out_variance):
+    """The layout as a :class:`CombLayout` and the start of each pixel whose comb can
+    ripple the likelihood in its highest basin (module docstring); elsewhere ``x0``.
+
+    1. The dimmest level alone (its aliases the widest apart, 1/E) on a grid over φ
+       around the moment start: its best :data:`CANDIDATES` local maxima.
+    2. From each, the brighter levels added one at a time by Newton's method (each φ by
+       then far better known than the next level's aliases where the comb is
+       resolved); the candidate of the highest likelihood of all levels is kept.
+    3. Where its observed information claims more than the moments' (by
+       :data:`CHECK_BELOW`), every level on a grid around it at the ripples' spacing:
+       a better ripple found there is fitted instead, and the grid's deviance gives the
+       profile likelihood's 95 % set, whose extent is the SE's floor.
 
     Parameters
     ----------
     layout : emccdcal.fit.engine.Layout
-        An intensity series' (``x = [ln φ, ln E_1 … ln E_A]``).
+        An intensity series'.
     blocks : list of AcquisitionBlock
     x0 : ndarray, shape (P, F)
         Moment start.
     read_out_variance : callable
         The read-out's variance (ADU²) of a block (:func:`emccdcal.fit.layouts.read_out_variance`).
     """
-    cols = np.arange(1, 1 + len(blocks)) if photoelectron_cols is None else photoelectron_cols
-    phi0 = np.exp(x0[:, phi_col])
-    live = np.flatnonzero(visible(blocks, phi0))
+    P = x0.shape[0]
+    out = CombLayout(**vars(layout), phi_profile_se=np.full(P, np.nan))
+    phi0 = np.exp(x0[:, 0])
+    live = np.flatnonzero(ripples(blocks, phi0))
     if live.size == 0:
-        return x0
-    signal = np.stack([np.maximum(b.mean - b.offset, 1e-6) for b in blocks], axis=1)[live]
-    # the moments' relative error of φ: that of the summed excess variance
-    excess = np.stack([np.maximum(b.var - read_out_variance(b), 1e-6) for b in blocks], 1)
-    excess = excess[live]
-    n = np.stack([np.maximum(b.n, 2) for b in blocks], 1)[live]
-    var = np.stack([b.var for b in blocks], 1)[live]
-    rel = np.sqrt(np.sum(2.0 * var**2 / (n - 1), axis=1)) / excess.sum(axis=1)
-    half = np.clip(5.0 * rel, 0.02, 0.5)
-    E_max = (signal * phi0[live, None]).max(axis=1)
-    step = np.maximum(1.0 / (PER_ALIAS * np.maximum(E_max, 1.0)), 2.0 * half / (MAX_POINTS - 1))
+        return out, x0
+    part = [b.take(live) for b in blocks]
+    sub = layout.subset(live)
+    signal = np.stack([np.maximum(b.mean - b.offset, 1e-6) for b in part], axis=1)
+    rel = moment_se(part, phi0[live], read_out_variance)
+    order = np.argsort(np.median(signal, axis=0), kind="stable")  # dimmest first
+    x, value = None, np.full(live.size, -np.inf)
+    for candidate in _dim_level_candidates(sub, part, x0[live], signal, rel, order[0]):
+        for a in range(2, len(blocks) + 1):
+            use = order[:a]
+            cols = np.r_[0, 1 + use]
+            fitted = engine.fit(
+                _levels(sub, use), [part[i] for i in use], candidate[:, cols], covariance=False
+            )
+            candidate[:, cols] = fitted.x
+        v = engine.objective(sub, part, candidate)
+        better = v > value
+        x = candidate if x is None else np.where(better[:, None], candidate, x)
+        value = np.where(better, v, value)
+    fitted = engine.fit(sub, part, x)
+    se = np.sqrt(np.abs(fitted.cov[:, 0, 0]))
+    check = np.flatnonzero(~(se >= CHECK_BELOW * rel))  # NaN SEs checked too
+    x = fitted.x
+    if check.size:
+        E_max = np.maximum(signal[check].max(axis=1) * np.exp(x[check, 0]), 1.0)
+        ln_phi, v = _path_grid(
+            sub.subset(check), [b.take(check) for b in part], x[check], signal[check],
+            4.0 * rel[check], 1.0 / (PER_RIPPLE * E_max),
+        )  # fmt: skip
+        top = np.argmax(v, axis=1)
+        jump = np.flatnonzero(v[np.arange(check.size), top] > fitted.objective[check] + 1.0)
+        if jump.size:  # a better ripple than the fit's: fit from there
+            idx = check[jump]
+            start = x[idx].copy()
+            start[:, 0] = ln_phi[jump, top[jump]]
+            start[:, 1:] = np.log(signal[idx] * np.exp(start[:, :1]))
+            refit = engine.fit(sub.subset(idx), [b.take(idx) for b in part], start)
+            x[idx] = refit.x
+            fitted.objective[idx] = refit.objective
+        # The deviance of the ripples' envelope (the highest point within a ripple's
+        # spacing): the maximum sits on a ripple's top, the truth anywhere between two,
+        # and over the ripples' tops the deviance is the smooth likelihood's, whose
+        # 95 % set Wilks's theorem gives.
+        from scipy.ndimage import maximum_filter1d
+
+        envelope = maximum_filter1d(v, PER_RIPPLE + 1, axis=1, mode="constant", cval=-np.inf)
+        best = np.maximum(fitted.objective[check], v.max(axis=1))
+        kept = 2.0 * (best[:, None] - envelope) <= _CHI2_95
+        lo = np.minimum(np.where(kept, ln_phi, np.inf).min(axis=1), x[check, 0])
+        hi = np.maximum(np.where(kept, ln_phi, -np.inf).max(axis=1), x[check, 0])
+        profile_se = (hi - lo) / (2.0 * _Z_975)
+        out.phi_profile_se[live[check]] = np.where(kept.any(axis=1), profile_se, np.nan)
+    start = x0.copy()
+    start[live] = x
+    return out, start
+
+
+#: The χ²₁ 95 % quantile and the normal 97.5 % one.
+_CHI2_95, _Z_975 = 3.841458820694124, 1.959963984540054
+
+
+def _path_grid(layout, blocks, x, signal, half, step):
+    """The likelihood of every level along E = φ·signal (the profile likelihood) on a
+    grid of ln φ (P, G) within ±``half`` of ``x``'s at most ``step`` apart, and its values
+    (−inf beyond each pixel's grid)."""
+    step = np.maximum(step, 2.0 * half / (MAX_POINTS - 1))
     points = np.minimum(np.ceil(2.0 * half / step).astype(int) + 1, MAX_POINTS)
-    G = int(points.max())
-    offsets = (np.arange(G)[None, :] - (points[:, None] - 1) / 2.0) * step[:, None]
-    offsets = np.where(np.arange(G)[None, :] < points[:, None], offsets, 0.0)
-    rows = np.repeat(live, G)
-    ln_phi = np.log(phi0[live])[:, None] + offsets  # (L, G)
-    x = np.repeat(x0[live], G, axis=0)
-    x[:, phi_col] = ln_phi.ravel()
-    x[:, cols] = np.log(signal[:, None, :] * np.exp(ln_phi)[..., None]).reshape(-1, len(cols))
-    value = np.empty(rows.size)
-    for chunk in np.array_split(np.arange(rows.size), max(1, rows.size // 4096)):
-        sub = rows[chunk]
-        value[chunk] = engine.objective(layout.subset(sub), [b.take(sub) for b in blocks], x[chunk])
-    value = np.where(np.isfinite(value), value, -np.inf).reshape(live.size, G)
-    best = np.argmax(value, axis=1)
-    out = x0.copy()
-    out[live] = x.reshape(live.size, G, -1)[np.arange(live.size), best]
+    P, G = x.shape[0], int(points.max())
+    grid = np.arange(G)[None, :]
+    ln_phi = x[:, :1] + (grid - (points[:, None] - 1) / 2.0) * step[:, None]
+    inside = np.broadcast_to(grid < points[:, None], ln_phi.shape)
+    trial = np.repeat(x, G, axis=0)
+    trial[:, 0] = ln_phi.ravel()
+    trial[:, 1:] = np.log(signal[:, None, :] * np.exp(ln_phi)[..., None]).reshape(P * G, -1)
+    rows = np.repeat(np.arange(P), G)
+    value = np.full(rows.size, -np.inf)
+    todo = np.flatnonzero(inside.ravel())
+    for chunk in np.array_split(todo, max(1, todo.size // 2048)):
+        r = rows[chunk]
+        value[chunk] = engine.objective(layout.subset(r), [b.take(r) for b in blocks], trial[chunk])
+    return ln_phi, np.where(np.isfinite(value), value, -np.inf).reshape(P, G)
+
+
+def _levels(layout, use):
+    """The intensity layout of the levels ``use`` alone (their columns of E and φ)."""
+    cols = np.r_[0, 1 + use]
+    return Layout(
+        parameters=[layout.parameters[c] for c in cols],
+        lower=layout.lower[cols],
+        upper=layout.upper[cols],
+        matrix=layout.matrix[np.ix_(use, np.arange(layout.matrix.shape[1]), cols)],
+        constant=layout.constant[:, use],
+    )
+
+
+def _dim_level_candidates(layout, blocks, x0, signal, rel, level):
+    """The best :data:`CANDIDATES` local maxima of ``level``'s likelihood alone on a
+    grid over ln φ (E = φ·signal), best first: a list of (P, F) starts.
+
+    More than one, because counts rounded to integers cannot tell a comb of frequency φ
+    from one of 1 − φ (or m ± φ) apart: only the envelope does, which one dim level
+    hardly sees."""
+    one = _levels(layout, np.array([level]))
+    E = np.maximum(signal[:, level] * np.exp(x0[:, 0]), 1.0)
+    half = np.clip(5.0 * rel, 0.02, 0.5)
+    ln_phi, value = _path_grid(
+        one, [blocks[level]], x0[:, [0, 1 + level]], signal[:, [level]], half,
+        1.0 / (PER_RIPPLE * E),
+    )  # fmt: skip
+    P, G = value.shape
+    left = np.concatenate([np.full((P, 1), -np.inf), value[:, :-1]], axis=1)
+    right = np.concatenate([value[:, 1:], np.full((P, 1), -np.inf)], axis=1)
+    peaks = np.where((value >= left) & (value >= right), value, -np.inf)
+    ranked = np.argsort(-peaks, axis=1, kind="stable")[:, :CANDIDATES]
+    out = []
+    for c in range(ranked.shape[1]):
+        pick = np.where(np.isfinite(peaks[np.arange(P), ranked[:, c]]), ranked[:, c], ranked[:, 0])
+        start = x0.copy()
+        start[:, 0] = ln_phi[np.arange(P), pick]
+        start[:, 1:] = np.log(signal * np.exp(start[:, :1]))
+        out.append(start)
+    return out
+
+
+def ripples(blocks, phi):
+    """Pixels (P,) where a level's comb can ripple the likelihood at φ (e⁻/ADU): its
+    revival above :data:`RIPPLES`."""
+    out = np.zeros(phi.shape, dtype=bool)
+    for b in blocks:
+        out |= b.poisson_normal & (_revival(b, phi) > RIPPLES)
     return out
 
 
@@ -108,52 +245,19 @@ def moment_se(blocks, phi, read_out_variance):
     return np.sqrt(np.sum(2.0 * var**2 / (n - 1), axis=1)) / excess.sum(axis=1)
 
 
-#: A comb whose revival is below this cannot ripple the likelihood of any data set
-#: (n·r² nats: 1e-11 in 1e5 frames); an EMCCD's 1× comb is far below it.
-RIPPLES = 1e-8
-#: The observed information of ln φ is checked against the profile likelihood where it
-#: claims at least this factor less variance than the moments' (the comb's share).
-CHECK_BELOW = 0.8
-
-
-def ripple_covariance(layout, blocks, fit, read_out_variance, level=0.95):
-    """The covariance of an intensity series' ``x`` (P, F, F), with ln φ's variance at
-    least what its profile likelihood says, where a comb is in the model.
-
-    A barely visible comb (an sCMOS pixel of ~0.5–0.8 e⁻ read noise) puts ripples on the
-    likelihood over φ, one per 1/E of the brightest level's photoelectrons, hundredths of
-    a nat high: the maximum sits on one of them, and the observed information there is the
-    ripple's curvature, up to 40 times the information the data hold (the profile
-    likelihood's width, which the ripples hardly change). Where the information of ln φ
-    claims more than the moments' (``CHECK_BELOW``), its profile-likelihood interval
-    (:func:`emccdcal.fit.profile.profile_bounds`) is found, and where half its width over
-    the normal quantile exceeds the SE, the variance grows to it along the direction in
-    which the other parameters move with φ (each E with it), as a given φ's error would.
-    Where the comb is resolved, the two agree and nothing changes.
-    """
-    from scipy import stats
-
-    from .profile import profile_bounds
-
-    cov = fit.cov
-    se = np.sqrt(cov[:, 0, 0])
-    phi = np.exp(fit.x[:, 0])
-    comb = np.any([b.poisson_normal & (_revival(b, phi) > RIPPLES) for b in blocks], axis=0)
-    check = comb & np.isfinite(se) & (se < CHECK_BELOW * moment_se(blocks, phi, read_out_variance))
-    idx = np.flatnonzero(check)
+def ripple_covariance(layout, cov):
+    """The covariance of an intensity series' ``x`` (P, F, F) with ln φ's variance at
+    least what its profile likelihood's 95 % set says (:class:`CombLayout`), grown along
+    the direction in which the other parameters move with φ (each E with it), as a
+    given φ's error would; unchanged where the observed information says more."""
+    profile_se = getattr(layout, "phi_profile_se", None)
+    if profile_se is None:
+        return cov
+    grow = np.where(np.isfinite(profile_se), profile_se**2 - cov[:, 0, 0], 0.0)
+    idx = np.flatnonzero(grow > 0)
     if idx.size == 0:
         return cov
-    sub = engine.FitResult(
-        fit.x[idx], cov[idx], fit.loglik[idx], fit.converged[idx], fit.iterations[idx],
-        fit.n_floored[idx], objective=fit.objective[idx],
-    )  # fmt: skip
-    lower, upper = profile_bounds(
-        layout.subset(idx), [b.take(idx) for b in blocks], sub, 0, level=level
-    )
-    half = 0.5 * (upper - lower) / stats.norm.ppf(0.5 + level / 2)
-    grow = np.where(np.isfinite(half), half**2 - cov[idx, 0, 0], 0.0)
-    grow = np.maximum(grow, 0.0)
     b = cov[idx, :, 0] / cov[idx, 0, 0][:, None]  # how x moves with ln φ
     out = cov.copy()
-    out[idx] += grow[:, None, None] * b[:, :, None] * b[:, None, :]
+    out[idx] += grow[idx, None, None] * b[:, :, None] * b[:, None, :]
     return out

@@ -197,7 +197,7 @@ def _fmt(values):
 def read_out_variance(acq):
     """The variance (ADU²) the read-out adds to the counts: σ², and the ADC's 1/12 where
     the model rounds (there ``read_noise`` is the analog σ, :mod:`emccdcal.model.adc`)."""
-    return acq.read_noise**2 + adc.rounds(acq.poisson_normal, acq.read_noise) / 12.0
+    return adc.count_variance(acq.read_noise, acq.poisson_normal)
 
 
 def _signal(acq):
@@ -289,8 +289,7 @@ def build_layout(method, series, options=None):
         x0 = np.column_stack(
             [_clip_log(phi0, "e_per_adu")] + [_clip_log(e, "photoelectrons") for e in signal * phi0]
         )
-        layout = layout_of(method, sp, phi, P)
-        return layout, comb.profile_start(layout, blocks, x0, read_out_variance)
+        return comb.profile_start(layout_of(method, sp, phi, P), blocks, x0, read_out_variance)
 
     if method == "is-gain":
         theta = np.stack(

@@ -83,6 +83,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import OptionError
+from ..model import adc
 
 __all__ = [
     "MVADUFit",
@@ -196,8 +197,11 @@ class MeanRatioGains(NamedTuple):
 # --------------------------------------------------------------------------------------
 # Input checking
 # --------------------------------------------------------------------------------------
-def _moments(mean, var, offset, read_noise, n):
-    """Check and broadcast the per-acquisition moments; return x, y, σ², n (all (A, ...))."""
+def _moments(mean, var, offset, read_noise, n, poisson_normal=True):
+    """Check and broadcast the per-acquisition moments; return x, y, the read-out's
+    variance and n (all (A, ...)). The read-out's variance is σ², and the ADC's 1/12
+    where ``poisson_normal`` acquisitions' σ is the analog read noise
+    (:func:`emccdcal.model.adc.count_variance`)."""
     mean = np.asarray(mean, dtype=float)
     var = np.asarray(var, dtype=float)
     if mean.ndim < 1:
@@ -251,7 +255,8 @@ def _moments(mean, var, offset, read_noise, n):
             f"{np.count_nonzero(x <= 0)} value(s), first at index "
             f"{tuple(int(i) for i in bad)} (acquisition, pixel...)"
         )
-    read_var = out["read_noise"] ** 2
+    pn = np.broadcast_to(np.asarray(poisson_normal).reshape((-1,) + (1,) * (len(shape) - 1)), shape)
+    read_var = adc.count_variance(out["read_noise"], pn)
     return x, var - read_var, read_var, n_arr, var
 
 
@@ -570,9 +575,9 @@ def fit_mv_gain(
     >>> np.round(fit.photoelectrons[:, 0], 6).tolist()
     [40.0, 40.0, 40.0]
     """
-    x, y, read_var, n_arr, sample_var = _moments(mean, var, offset, read_noise, n)
-    A, pixels = x.shape[0], x.shape[1:]
     sp = np.asarray(setpoint, dtype=float)
+    x, y, read_var, n_arr, sample_var = _moments(mean, var, offset, read_noise, n, sp == 1)
+    A, pixels = x.shape[0], x.shape[1:]
     if sp.shape != (A,):
         raise OptionError(
             f"setpoint must have one entry per acquisition, shape ({A},); got {sp.shape}"

@@ -379,8 +379,8 @@ class SeriesLikelihood:
         """
         layout, blocks = self.layout, self.blocks
         cov = fit.cov
-        if self.method == "is-adu":  # a comb's ripples: the profile's width (fit.comb)
-            cov = comb.ripple_covariance(layout, blocks, fit, layouts.read_out_variance)
+        if self.method == "is-adu":  # a comb's ripples: its profile's width (fit.comb)
+            cov = comb.ripple_covariance(layout, cov)
         if e_per_adu_se is not None:  # φ's own error moves every E and g together
             sens = profile.e_per_adu_sensitivity(layout, blocks, fit.x)
             rel_se = np.asarray(e_per_adu_se, float) / self.e_per_adu

@@ -45,7 +45,9 @@ from __future__ import annotations
 import numpy as np
 
 from .. import _xp
-from . import adc
+from .adc import cgf as rounding_cgf
+from .adc import real_cgf as rounding_real_cgf
+from .adc import rounds
 
 #: Native parameters the engine itself adds to every register's: the Gaussian read-out's.
 READOUT = ("offset", "read_noise")
@@ -62,11 +64,11 @@ def cgf(rows, s, shift, sigma, order=0, names=()):
     """K(s) of the count (P, M) relative to the window start, and its derivatives by
     ``names`` (the register's and :data:`READOUT`): ``(K, first, second)``."""
     Ke, first, second = rows.cgf(s, order, tuple(n for n in names if n not in READOUT))
-    rounding = adc.rounds(rows.pn, sigma)
+    rounding = rounds(rows.pn, sigma)
     shift, sigma = _xp.like(s, shift, sigma)
     K = s * shift[:, None] + 0.5 * (sigma[:, None] * s) ** 2 + Ke
     if rounding.any():  # the ADC's rounding: a parameter-free term (docs of :mod:`.adc`)
-        K = K + xp_where_rows(s, rounding, adc.cgf(s))
+        K = K + xp_where_rows(s, rounding, rounding_cgf(s))
     if order >= 1:
         first = {**first, "offset": s, "read_noise": sigma[:, None] * s * s}
     if order >= 2:
@@ -84,9 +86,9 @@ def real_cgf(rows, t, shift, sigma):
     """K(t), K'(t), K''(t) of the count at real tilts t (P,), and the tilted photoelectron
     mean and single-electron output (ADU), per row."""
     Ke, dKe, d2Ke, E_t, theta_t = rows.real(t)
-    rounding = adc.rounds(rows.pn, sigma)
+    rounding = rounds(rows.pn, sigma)
     if rounding.any():
-        Ku, dKu, d2Ku = (np.where(rounding, v, 0.0) for v in adc.real_cgf(t))
+        Ku, dKu, d2Ku = (np.where(rounding, v, 0.0) for v in rounding_real_cgf(t))
         Ke, dKe, d2Ke = Ke + Ku, dKe + dKu, d2Ke + d2Ku
     return (
         t * shift + 0.5 * (sigma * t) ** 2 + Ke,
@@ -113,7 +115,7 @@ def extent(rows, shift, sigma, tilt=None, width=12.0):
     lo = np.where(
         few, np.minimum(mu - width * sd, shift + sigma**2 * t - width * sigma), mu - width * sd
     )
-    lo = lo - adc.rounds(rows.pn, sigma)  # a rounded row's bin reaches ½ below its value
+    lo = lo - rounds(rows.pn, sigma)  # a rounded row's bin reaches ½ below its value
     hi = mu + width * sd + np.where(few & ~rows.pn, 40.0, width) * theta_t + 1.0
     return lo, hi
 
@@ -296,7 +298,7 @@ def log_normaliser(rows, S0, sigma, derivs=False):
     frac = S0 - np.floor(S0)
     K, first, _ = cgf(rows, s, frac, sigma, int(derivs), names)
     # Rounded rows' probabilities sum to one: their transform is zero at 2πj.
-    cf = np.where(adc.rounds(rows.pn, sigma)[:, None], 0.0, np.exp(K))
+    cf = np.where(rounds(rows.pn, sigma)[:, None], 0.0, np.exp(K))
     Z = 1.0 + 2.0 * cf.real.sum(axis=1)
     if derivs:
         grads = {name: 2.0 * (first[name] * cf).real.sum(axis=1) / Z for name in names}

@@ -31,7 +31,15 @@ import numpy as np
 
 from .. import _xp
 
-__all__ = ["ROUNDING_BELOW", "rounds", "cgf", "real_cgf", "rounded_normal", "fit_rounded_normal"]
+__all__ = [
+    "ROUNDING_BELOW",
+    "rounds",
+    "count_variance",
+    "cgf",
+    "real_cgf",
+    "rounded_normal",
+    "fit_rounded_normal",
+]
 
 #: Read noise (ADU) below which a Poisson–normal row's count is modelled with the ADC's
 #: rounding (module docstring).
@@ -42,6 +50,14 @@ def rounds(pn, sigma):
     """Rows whose model includes the rounding: Poisson–normal rows (``pn``) with read
     noise ``sigma`` (ADU) below :data:`ROUNDING_BELOW`."""
     return np.asarray(pn, dtype=bool) & (np.asarray(sigma) < ROUNDING_BELOW)
+
+
+def count_variance(read_noise, poisson_normal):
+    """The variance (ADU²) the read-out adds to the counts, as a dark's counts show it:
+    σ², and the rounding's 1/12 where the model holds σ as the analog read noise (what
+    the localization tools' variance maps hold)."""
+    read_noise = np.asarray(read_noise, dtype=float)
+    return read_noise**2 + rounds(poisson_normal, read_noise) / 12.0
 
 
 def cgf(s):

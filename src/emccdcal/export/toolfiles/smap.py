@@ -10,6 +10,7 @@ import warnings
 import numpy as np
 
 from ...errors import ExportWarning, InputError
+from ...model import adc
 from ...plugins import Tool
 from .. import toolkit
 from ..toolkit import Field, Reading
@@ -25,7 +26,8 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
     offset, sigma = cal.dark(s)
     prov = toolkit.provenance(cal, s, qe)
     mat = out / "smap-correction.mat"
-    maps = {"offsetmap": offset, "gainmap": cal.e_per_adu / cal.gain(s), "varmap": sigma**2}
+    variance = adc.count_variance(sigma, s == 1)  # the dark counts' (σ analog where rounded)
+    maps = {"offsetmap": offset, "gainmap": cal.e_per_adu / cal.gain(s), "varmap": variance}
     content = {k: np.asarray(m, dtype=np.float32) for k, m in maps.items()}
     toolkit.write_file(mat, lambda p: savemat(p, {**content, "emccdcal": json.dumps(prov)}))
     par = {

@@ -12,6 +12,7 @@ import numpy as np
 from ...data import stats
 from ...data.manifest import read_manifest
 from ...errors import OptionError
+from ...model import adc
 from ...fit import mv
 from ...model import noise
 from ...result import format_setpoint
@@ -259,7 +260,7 @@ def photon_transfer_figure(ds, pixel=None, *, manifest=None):
     s0 = np.array([a.offset for a in series])
     sig = np.array([a.read_noise for a in series])
     sp = np.array([a.setpoint for a in series])
-    x, y = mean - s0, var - sig**2
+    x, y = mean - s0, var - adc.count_variance(sig, sp == 1)  # σ analog where rounded
     phi = series[0].params["e_per_adu"]
     for j, s in enumerate(np.unique(sp)):
         sel = sp == s
@@ -306,9 +307,11 @@ def photon_transfer_figure(ds, pixel=None, *, manifest=None):
         if slope is not None and np.isfinite(slope):
             ax.plot(span, slope * span, color=color, lw=1.2)
         p = series[np.flatnonzero(sel)[0]].params
-        args = (p["photoelectrons"], p["em_gain"], p["e_per_adu"], 0.0, 1.0)  # S0 0, σ 1 ADU
+        args = (p["photoelectrons"], p["em_gain"], p["e_per_adu"], 0.0, 10.0)  # S0 0, σ 10 ADU
         try:
-            model = (float(noise.variance(*args, **_em_model(ds))) - 1.0) / float(noise.mean(*args))
+            model = (float(noise.variance(*args, **_em_model(ds))) - 100.0) / float(
+                noise.mean(*args)
+            )
         except (ValueError, ZeroDivisionError):  # NaN or out-of-range estimates
             model = np.nan
         if np.isfinite(model):
