@@ -230,6 +230,36 @@ def _warn_fit_problems(method, used, arrays, model) -> None:
         warnings.warn(w, stacklevel=4, category=FitWarning)
 
 
+def _dark_variables(used, per_acq_dim, shape) -> dict:
+    """What the dark stacks showed besides the maps: the multiplied events' rate of the
+    darks fitted with them, and the random-telegraph pixels of 1× darks tested for them."""
+    out: dict[str, tuple] = {}
+    flags = [a.dark_telegraph for a in used if getattr(a, "dark_telegraph", None) is not None]
+    if flags:
+        out["telegraph"] = (
+            ("row", "col"),
+            np.any(flags, axis=0).astype(np.int8),
+            "1",
+            "1 where a 1x dark holds two offset states (a random-telegraph pixel, "
+            "its offset and read noise one normal's: doubtful)",
+        )
+    if any(a.dark_event_rate is not None for a in used):
+        rates = np.stack(
+            [
+                np.full(shape, np.nan) if a.dark_event_rate is None else a.dark_event_rate
+                for a in used
+            ]
+        )
+        out["dark_event_rate"] = (
+            (per_acq_dim, "row", "col"),
+            rates,
+            "e-",
+            "multiplied electrons per pixel per frame in the dark "
+            "stack (clock-induced charge, dark current)",
+        )
+    return out
+
+
 def _likelihood_dataset(
     method, manifest, used, arrays, offsets, read_noise, options, intervals, model, se_note
 ):
@@ -261,20 +291,7 @@ def _likelihood_dataset(
             "each acquisition's part of loglik",
         ),
     }
-    if any(a.dark_event_rate is not None for a in used):  # darks fitted with their events
-        rates = np.stack(
-            [
-                np.full((rows, cols), np.nan) if a.dark_event_rate is None else a.dark_event_rate
-                for a in used
-            ]
-        )
-        extra["dark_event_rate"] = (
-            (per_acq_dim, "row", "col"),
-            rates,
-            "e-",
-            "multiplied electrons per pixel per frame in the dark "
-            "stack (clock-induced charge, dark current)",
-        )
+    extra.update(_dark_variables(used, per_acq_dim, (rows, cols)))
     fixed_phi_se = grid(est["e_per_adu_se"][:, 0])  # NaN unless φ came with its error
     common = dict(
         loglik=grid(loglik),

@@ -17,15 +17,16 @@ pixels), the likelihood over φ is not one hill:
   them, and the observed information there is the ripple's curvature, up to 40 times
   what the data hold.
 
-:func:`profile_start` evaluates the likelihood of every level on a grid over φ around
-the moment start, finer than the ripples (1/(4E) of the brightest level's E, and σφ/(2E)
-where the peaks are narrower than their spacing) and wider than the moments' error, each
-level's E following φ through its mean (``E = φ·(⟨S⟩ − S0)``, at which the likelihood
-of E is highest for a given φ, so the grid traces the profile likelihood); the fit
-starts from the grid's best point. The grid's deviance then gives the profile
-likelihood's 95 % set, and its extent over 2·1.96 is the least SE of ln φ the fit
-reports (:func:`ripple_covariance`): where the comb is resolved, or absent, the observed
-information's is the larger and nothing changes.
+:func:`profile_start` finds the start in three steps (its docstring): the dimmest
+level's best basins on a grid over φ (its ripples are the widest apart; the φ / 1 − φ
+alias, which it cannot tell apart, stays among its candidates), the brighter levels added one at a time from each, and every level
+on a grid at the ripples' spacing around the best of them, each level's E following φ
+through its mean (``E = φ·(⟨S⟩ − S0)``: along it the likelihood is the profile
+likelihood, checked against refits to 0.01 nats). Where another ripple on that grid rivals
+the fit's (within :data:`RIVAL` nats), the fit's own ripple does not decide φ and its
+curvature is not the error: the SE is that of the parabola through the ripples' tops,
+the smooth likelihood they sit on (:func:`ripple_covariance`). Where the comb is resolved
+(one ripple stands alone) or absent, nothing changes.
 """
 
 from __future__ import annotations
@@ -66,7 +67,8 @@ def _revival(block, phi):
 @dataclass
 class CombLayout(Layout):
     """An intensity series' layout (``x = [ln φ, ln E_1 … ln E_A]``) that carries the
-    SE of ln φ its profile likelihood's 95 % set says (NaN where no grid was needed)."""
+    least SE of ln φ the comb's ripples allow (NaN where the observed information is the
+    error)."""
 
     phi_profile_se: np.ndarray = None
 
@@ -85,8 +87,8 @@ def profile_start(layout, blocks, x0, read_out_variance):
        resolved); the candidate of the highest likelihood of all levels is kept.
     3. Where its observed information claims more than the moments' (by
        :data:`CHECK_BELOW`), every level on a grid around it at the ripples' spacing:
-       a better ripple found there is fitted instead, and the grid's deviance gives the
-       profile likelihood's 95 % set, whose extent is the SE's floor.
+       a better ripple found there (by a nat) is fitted instead, and where rival ripples
+       compete the envelope's SE is the SE's floor (:func:`_envelope_se`).
 
     Parameters
     ----------
@@ -142,26 +144,49 @@ def profile_start(layout, blocks, x0, read_out_variance):
             refit = engine.fit(sub.subset(idx), [b.take(idx) for b in part], start)
             x[idx] = refit.x
             fitted.objective[idx] = refit.objective
-        # The deviance of the ripples' envelope (the highest point within a ripple's
-        # spacing): the maximum sits on a ripple's top, the truth anywhere between two,
-        # and over the ripples' tops the deviance is the smooth likelihood's, whose
-        # 95 % set Wilks's theorem gives.
-        from scipy.ndimage import maximum_filter1d
-
-        envelope = maximum_filter1d(v, PER_RIPPLE + 1, axis=1, mode="constant", cval=-np.inf)
-        best = np.maximum(fitted.objective[check], v.max(axis=1))
-        kept = 2.0 * (best[:, None] - envelope) <= _CHI2_95
-        lo = np.minimum(np.where(kept, ln_phi, np.inf).min(axis=1), x[check, 0])
-        hi = np.maximum(np.where(kept, ln_phi, -np.inf).max(axis=1), x[check, 0])
-        profile_se = (hi - lo) / (2.0 * _Z_975)
-        out.phi_profile_se[live[check]] = np.where(kept.any(axis=1), profile_se, np.nan)
+        out.phi_profile_se[live[check]] = _envelope_se(
+            ln_phi, v, x[check, 0], fitted.objective[check], step_of(E_max, 4.0 * rel[check])
+        )
     start = x0.copy()
     start[live] = x
     return out, start
 
 
-#: The χ²₁ 95 % quantile and the normal 97.5 % one.
-_CHI2_95, _Z_975 = 3.841458820694124, 1.959963984540054
+#: Another ripple within this many nats of the best is a rival (Wilks's 99.9 % is 5.4):
+#: the fit's own ripple is then not what decides φ, and its curvature not the error.
+RIVAL = 10.0
+#: Ripples within this many nats of the best shape the envelope's parabola.
+ENVELOPE = 30.0
+
+
+def step_of(E_max, half):
+    """The grid step (ln φ) :func:`_path_grid` takes for ``E_max`` and ``half``."""
+    return np.maximum(1.0 / (PER_RIPPLE * E_max), 2.0 * half / (MAX_POINTS - 1))
+
+
+def _envelope_se(ln_phi, value, x_fit, fit_value, step):
+    """The SE of ln φ (P,) where rival ripples compete (:data:`RIVAL`): from the
+    curvature of a parabola through the ripples' tops (within :data:`ENVELOPE` nats),
+    the smooth likelihood the ripples sit on; NaN where the fit's ripple stands alone
+    (its observed information is then the error) or the tops make no parabola."""
+    P, G = value.shape
+    left = np.concatenate([np.full((P, 1), -np.inf), value[:, :-1]], axis=1)
+    right = np.concatenate([value[:, 1:], np.full((P, 1), -np.inf)], axis=1)
+    top = (value >= left) & (value >= right) & np.isfinite(value)
+    best = np.maximum(fit_value, np.where(top, value, -np.inf).max(axis=1))
+    away = np.abs(ln_phi - x_fit[:, None]) > 1.5 * step[:, None]
+    rival = np.any(top & away & (best[:, None] - value < RIVAL), axis=1)
+    out = np.full(P, np.nan)
+    for p in np.flatnonzero(rival):
+        use = top[p] & (best[p] - value[p] < ENVELOPE)
+        t, v = ln_phi[p, use] - x_fit[p], value[p, use]
+        t, v = np.r_[t, 0.0], np.r_[v, fit_value[p]]
+        if t.size < 4:
+            continue
+        curvature = np.polyfit(t, v, 2)[0]
+        if curvature < 0:
+            out[p] = 1.0 / np.sqrt(-2.0 * curvature)
+    return out
 
 
 def _path_grid(layout, blocks, x, signal, half, step):
@@ -247,7 +272,7 @@ def moment_se(blocks, phi, read_out_variance):
 
 def ripple_covariance(layout, cov):
     """The covariance of an intensity series' ``x`` (P, F, F) with ln φ's variance at
-    least what its profile likelihood's 95 % set says (:class:`CombLayout`), grown along
+    least the ripples' envelope's (:class:`CombLayout`), grown along
     the direction in which the other parameters move with φ (each E with it), as a
     given φ's error would; unchanged where the observed information says more."""
     profile_se = getattr(layout, "phi_profile_se", None)

@@ -10,9 +10,10 @@ __all__ = ["result_layers"]
 def result_layers(ds, *, prefix: str = "") -> list[tuple]:
     """The maps of a calibration result as layer data ``(array, kwargs, "image")``.
 
-    φ (e-/ADU), the true gain at each multiplied set-point, the intensity (e-), and the
+    φ (e-/ADU), the true gain at each multiplied set-point, the intensity (e-), the
     offset and read noise (ADU) and goodness-of-fit p-value of the acquisitions (one
-    layer each, the acquisitions along its first axis, named in its metadata); each
+    layer each, the acquisitions along its first axis, named in its metadata), and the
+    random-telegraph pixels of a camera without an EM register (1 where found); each
     named with its unit, NaN where a pixel did not converge, contrast from the 1st to
     the 99th percentile, placed at the calibration's sensor origin, hidden but the last.
 
@@ -74,6 +75,8 @@ def result_layers(ds, *, prefix: str = "") -> list[tuple]:
                 else (axis, [float(k) if axis == "setpoint" else str(k) for k in ds[axis].values])
             )
             add(ds[var].values, var, unit, colormap, keys)
+    if "telegraph" in ds:  # random-telegraph pixels of the 1× darks: 1, else 0
+        add(ds.telegraph.values, "telegraph pixels", "1", "red")
     if layers:
         layers[1 if len(layers) > 1 else 0][1]["visible"] = True  # φ, or the first gain
     return layers

@@ -78,6 +78,23 @@ def _row(name, unit, st):
     return [name, unit, _fmt(st["median"]), _fmt(st["se_median"], 2), _fmt(st["sd"], 2), st["n"]]
 
 
+def _telegraph_html(ds) -> list[str]:
+    """A note on the random-telegraph pixels the 1× darks showed, where they were tested."""
+    if "telegraph" not in ds:
+        return []
+    flags = ds["telegraph"].transpose("row", "col").values.astype(bool)
+    where = np.argwhere(flags)[:8]
+    named = ", ".join(f"({int(r)}, {int(c)})" for r, c in where) + (
+        ", …" if flags.sum() > 8 else ""
+    )
+    return [
+        f"<p class=note>Random-telegraph pixels (two offset states in the dark frames, "
+        f"tested at a 1 % false-alarm rate): {int(flags.sum())} of {flags.size}"
+        + (f", at (row, col) {_e(named)}" if flags.any() else "")
+        + "; their offset, read noise and φ are doubtful (variable <code>telegraph</code>).</p>"
+    ]
+
+
 def _summary_html(inp):
     ds = inp.ds
     conv = ds["converged"].transpose("row", "col").values.astype(bool)
@@ -119,6 +136,7 @@ def _summary_html(inp):
             if ds.attrs.get("standard_errors")
             else []
         ),
+        *_telegraph_html(ds),
         *(
             [
                 f"<p class=note>Per-pixel intervals: {_e(ds.attrs['intervals'])} "

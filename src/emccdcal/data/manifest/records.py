@@ -83,6 +83,9 @@ class Acquisition:
         Multiplied electrons per pixel per frame (e⁻) in the dark stack of a multiplied
         acquisition, fitted with its maps (:func:`emccdcal.data.dark.fit_dark`); None for
         maps given as files, 1× darks and darks without events.
+    dark_telegraph : ndarray of bool or None
+        Pixels whose 1× dark stack holds two offset states (random-telegraph pixels,
+        :func:`emccdcal.data.telegraph.telegraph_pixels`); None without a 1× dark stack.
     """
 
     name: str
@@ -97,6 +100,7 @@ class Acquisition:
     n_frames_total: int
     dark_frames: int | None = None
     dark_event_rate: np.ndarray | None = field(default=None, repr=False)
+    dark_telegraph: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def n_frames(self) -> int:

@@ -7,9 +7,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ... import identity
+from ... import defaults, identity
 from ...errors import InputError, InputWarning, ReadNoiseGrowthWarning
 from ..dark import check_read_noise_growth, read_out_maps
+from ..telegraph import telegraph_pixels
 from ..stacks import (
     check_counts,
     content_fingerprint,
@@ -113,7 +114,8 @@ def resolve_manifest(entries: ManifestEntries) -> Manifest:
                 )
             except InputError as exc:
                 raise r.error(str(exc), a.index, a.label) from None
-    maps = _read_out_maps(r, acqs, shape, adc_max, hint)
+    telegraph = entries.camera_kind in defaults.WITHOUT_EM_REGISTER
+    maps = _read_out_maps(r, acqs, shape, adc_max, hint, telegraph)
     acquisitions = [
         Acquisition(
             name=a.name,
@@ -128,6 +130,7 @@ def resolve_manifest(entries: ManifestEntries) -> Manifest:
             n_frames_total=n_total,
             dark_frames=dark_frames,
             dark_event_rate=m["events"],
+            dark_telegraph=m["telegraph"],
         )
         for a, m, (n_total, _, dark_frames) in zip(acqs, maps, headers)
     ]
@@ -232,31 +235,34 @@ def _stack_headers(r: _Reader, acqs):
     return shape, headers
 
 
-def _read_out_maps(r: _Reader, acqs, shape, adc_max, hint) -> list[dict]:
-    """Each acquisition's offset and read-noise maps (ADU) with their sources, and the
-    multiplied events of its dark: from the maps given, or each dark stack reduced once."""
+def _read_out_maps(r: _Reader, acqs, shape, adc_max, hint, telegraph=False) -> list[dict]:
+    """Each acquisition's offset and read-noise maps (ADU) with their sources, the
+    multiplied events of its dark and (with ``telegraph``: a camera without an EM
+    register) its random-telegraph pixels: from the maps given, or each dark stack
+    reduced once."""
     darks: dict[Path, tuple] = {}
     # the least multiplied dark first: its read noise is the others' reference
     for a in sorted((a for a in acqs if a.dark is not None), key=lambda a: a.em_gain_setpoint):
         key = a.dark_path.expanduser().resolve()
         if key not in darks:
             reference = float(np.median(next(iter(darks.values()))[1])) if darks else None
-            darks[key] = _reduce_dark(r, a, adc_max, hint, reference)
+            darks[key] = _reduce_dark(r, a, adc_max, hint, reference, telegraph)
     out = []
     for a in acqs:
         if a.dark is None:
-            m: dict = {"events": None}
+            m: dict = {"events": None, "telegraph": None}
             for key in ("offset", "read_noise"):
                 m[key], m[key + "_source"] = _map_from_value(
                     r, a.index, a.label, key, getattr(a, key), shape
                 )
         else:
-            offset, read_noise, events = darks[a.dark_path.expanduser().resolve()]
+            offset, read_noise, events, telegraph = darks[a.dark_path.expanduser().resolve()]
             source = Source("dark", a.dark_path)
             m = {
                 "offset": offset.copy(),
                 "read_noise": read_noise.copy(),
                 "events": events,
+                "telegraph": telegraph,
                 "offset_source": source,
                 "read_noise_source": source,
             }
@@ -274,9 +280,11 @@ def _read_out_maps(r: _Reader, acqs, shape, adc_max, hint) -> list[dict]:
     return out
 
 
-def _reduce_dark(r: _Reader, a: AcquisitionEntry, adc_max, hint, reference=None):
-    """(offset, read noise, multiplied events or None) of an acquisition's dark stack;
-    ``reference`` the read noise (ADU) of the calibration's least multiplied dark."""
+def _reduce_dark(r: _Reader, a: AcquisitionEntry, adc_max, hint, reference=None, telegraph=False):
+    """(offset, read noise, multiplied events or None, random-telegraph pixels or None)
+    of an acquisition's dark stack; ``reference`` the read noise (ADU) of the
+    calibration's least multiplied dark. With ``telegraph`` a 1× dark is tested for
+    telegraph pixels (:func:`emccdcal.data.telegraph.telegraph_pixels`)."""
     assert a.dark_path is not None  # only an acquisition with a dark stack comes here
     try:
         dark = load_stack(a.dark_path)
@@ -297,7 +305,10 @@ def _reduce_dark(r: _Reader, a: AcquisitionEntry, adc_max, hint, reference=None)
             a.index,
             a.label,
         )
-    return offset, read_noise, events
+    flags = None
+    if telegraph and a.em_gain_setpoint == 1:
+        flags = telegraph_pixels(dark, adc_max=adc_max).flagged.reshape(offset.shape)
+    return offset, read_noise, events, flags
 
 
 def _recorded(r: _Reader, entries, acquisitions, shape, found: list):
