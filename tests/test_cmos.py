@@ -170,3 +170,22 @@ def test_a_calibration_marks_its_telegraph_pixels(tmp_path):
     from emccdcal.report.sections import _telegraph_html
 
     assert f"{int(flags.sum())} of 64" in _telegraph_html(ds)[0]
+
+
+def test_a_movie_of_a_camera_without_an_em_register_converts_at_its_one_setpoint(tmp_path):
+    """``apply`` of a movie that records no set-point, by the calibration of a camera
+    without an EM register (set-point 1): photoelectrons per pixel and frame, the
+    level's within 2 %. An EMCCD's 1× calibration still asks for the movie's set-point."""
+    sim = simulate_cmos_series(
+        tmp_path / "s", kind="qcmos", rows=6, cols=6, frames=600, dark_frames=1200, seed=9,
+        progress=False,
+    )  # fmt: skip
+    ds = emccdcal.calibrate(sim.manifest, progress=False)
+    movie = tmp_path / "movie.tif"
+    tifffile.imwrite(movie, tifffile.imread(sim.outdir / "int3.tif"))
+    out = emccdcal.apply_calibration(ds, movie, tmp_path / "e.tif", progress=False)
+    electrons = tifffile.imread(out)
+    assert electrons.mean() == pytest.approx(sim.truth["levels"]["int3.tif"], rel=0.02)
+    ds.attrs["camera_kind"] = "emccd"
+    with pytest.raises(emccdcal.errors.OptionError, match="give --setpoint G"):
+        emccdcal.apply_calibration(ds, movie, tmp_path / "e2.tif", progress=False)

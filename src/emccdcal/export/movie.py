@@ -43,7 +43,11 @@ DEFAULT_THRESHOLD = defaults.PHOTON_THRESHOLD
 _BLOCK_BYTES = 16 << 20
 
 
-def _movie_setpoint(movie: Path, recorded, given) -> float:
+def _movie_setpoint(movie: Path, recorded, given, no_register=False) -> float:
+    """The movie's set-point: given, recorded, or 1 for a camera without an EM register
+    (``no_register``: the calibration's ``camera_kind`` says so)."""
+    if given is None and recorded is None and no_register:
+        return 1.0
     if given is None and recorded is None:
         raise OptionError(
             f"{movie}: the file records no EM gain set-point and its name states "
@@ -253,7 +257,8 @@ def conversion(
     identity.check(
         cal.identity(), {source: settings}, label=cal.label, accept=accept_mismatch, what="frames"
     )
-    s = _movie_setpoint(source, settings.em_gain_setpoint, setpoint)
+    no_register = cal.camera_kind in defaults.WITHOUT_EM_REGISTER
+    s = _movie_setpoint(source, settings.em_gain_setpoint, setpoint, no_register)
     rr, cc = _region(cal, source, settings.roi, (rows, cols))
     scale = (cal.e_per_adu / cal.gain(s))[rr, cc]
     offset, sigma = (m[rr, cc] for m in cal.dark(s))

@@ -133,6 +133,8 @@ class Calibration:
     em_model: object = None
     camera: dict = field(default_factory=dict)
     origin: tuple | None = None
+    #: The results' ``camera_kind`` (``scmos``, ...), or None where they name none.
+    camera_kind: str | None = None
     binning: tuple | None = None
     created: str = ""
     sha256: tuple = ()
@@ -500,5 +502,8 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
         origin=origins.pop() if len(origins) == 1 else None,
         binning=binnings.pop() if binnings else None,
         created=max(str(ds.attrs.get("created", "")) for _, ds in loaded),
+        camera_kind=next(
+            (str(ds.attrs["camera_kind"]) for _, ds in loaded if "camera_kind" in ds.attrs), None
+        ),
         sha256=tuple(ds.encoding.get("sha256", "") for _, ds in loaded),
     )
