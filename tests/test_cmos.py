@@ -189,3 +189,17 @@ def test_a_movie_of_a_camera_without_an_em_register_converts_at_its_one_setpoint
     ds.attrs["camera_kind"] = "emccd"
     with pytest.raises(emccdcal.errors.OptionError, match="give --setpoint G"):
         emccdcal.apply_calibration(ds, movie, tmp_path / "e2.tif", progress=False)
+
+
+def test_simulate_cmos_writes_a_series_that_names_its_camera(tmp_path):
+    from emccdcal import cli
+
+    out = tmp_path / "sim"
+    argv = ["simulate", "cmos", "-o", str(out), "--camera-kind", "qcmos", "--rows", "3"]
+    assert cli.main([*argv, "--cols", "4", "--frames", "50", "--seed", "2", "-q"]) == 0
+    m = emccdcal.read_manifest(out / "manifest.toml")
+    assert m.camera_kind == "qcmos" and m.shape == (3, 4) and m.setpoints == (1.0,)
+    truth = tifffile.imread(out / "truth-e_per_adu.tif")
+    assert truth.shape == (3, 4) and abs(np.median(truth) / 0.107 - 1) < 0.05
+    # a second run into the same folder is refused without --overwrite
+    assert cli.main([*argv, "--cols", "4", "--frames", "50", "--seed", "2", "-q"]) == 2

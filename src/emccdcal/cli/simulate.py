@@ -1,4 +1,5 @@
-"""``emccdcal simulate gain-series|intensity-series|beads -o OUT``: data with known truth."""
+"""``emccdcal simulate gain-series|intensity-series|beads|cmos -o OUT``: data with known
+truth."""
 
 from __future__ import annotations
 
@@ -220,8 +221,33 @@ def _run_beads(args) -> int:
     return 0
 
 
+def _run_cmos(args) -> int:
+    from ..simulate.cmos import CMOSCamera, simulate_cmos_series
+
+    out = _common.output_of(args)
+    given = {
+        k: getattr(args, k)
+        for k in ("rows", "cols", "frames", "dark_frames", "e_per_adu", "read_noise_e")
+        if getattr(args, k) is not None
+    }
+    camera = CMOSCamera(kind=args.camera_kind, rts_fraction=args.rts_fraction, **given)
+    with _common.output(args, out, names=_SIMULATED):
+        res = simulate_cmos_series(
+            out, camera=camera, levels=args.levels, seed=args.seed, progress=not args.quiet
+        )
+    t = res.truth
+    print(
+        f"wrote a {t['camera']} calibration: dark.tif and {len(t['levels'])} levels of "
+        f"{camera.frames} frames x {camera.rows}x{camera.cols} px (seed {t['seed']})"
+    )
+    print(f"  manifest: {res.manifest}")
+    print(f"  truth:    {res.truth_path} and truth-*.tif")
+    return 0
+
+
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    """Add ``simulate {gain-series,intensity-series,beads}`` to the ``emccdcal`` command line."""
+    """Add ``simulate {gain-series,intensity-series,beads,cmos}`` to the ``emccdcal``
+    command line."""
     p = subparsers.add_parser(
         "simulate",
         help="write synthetic stacks, darks, a manifest and truth.json",
@@ -231,7 +257,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     def no_kind(args) -> int:
         p.print_usage(sys.stderr)
         print(
-            "emccdcal simulate: error: choose gain-series, intensity-series or beads",
+            "emccdcal simulate: error: choose gain-series, intensity-series, beads or cmos",
             file=sys.stderr,
         )
         return 2
@@ -241,7 +267,49 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     _add_gain_series(kinds)
     _add_intensity_series(kinds)
     _add_beads(kinds)
+    _add_cmos(kinds)
     return p
+
+
+def _add_cmos(kinds) -> None:
+    from ..simulate.cmos import PRESETS
+
+    cm = kinds.add_parser(
+        "cmos",
+        help="an sCMOS or qCMOS camera's dark and levels (Huang's protocol)",
+        description="Simulate the calibration of a camera without an EM register: dark.tif and "
+        "int1.tif ... with per-pixel phi, offset and read noise, random-telegraph pixels and "
+        "the ADC's rounding (docs/cmos.md).",
+    )
+    _common.add_out_or_dir(cm, "output directory (created)")
+    cm.add_argument(
+        "--camera-kind", choices=tuple(PRESETS), default="scmos",
+        help="which preset (default %(default)s: an ORCA-Flash-like sCMOS; qcmos: ORCA-Quest-like)",
+    )  # fmt: skip
+    cm.add_argument("--rows", type=int, default=None, help="frame rows, px (default 24)")
+    cm.add_argument("--cols", type=int, default=None, help="frame columns, px (default 24)")
+    cm.add_argument("--frames", type=int, default=None, help="frames per level (default 2000)")
+    cm.add_argument("--dark-frames", type=int, default=None, help="dark frames (default: --frames)")
+    cm.add_argument("--e-per-adu", type=float, default=None, help="median phi, e-/ADU (preset's)")
+    cm.add_argument(
+        "--read-noise-e", type=float, default=None, help="median read noise, e- (preset's)"
+    )
+    cm.add_argument(
+        "--levels", type=_common.number_list, default=None,
+        help="photoelectrons per pixel per frame of each level, e-, comma-separated",
+    )  # fmt: skip
+    cm.add_argument(
+        "--rts-fraction", type=float, default=0.0,
+        help="fraction of random-telegraph pixels (default 0)",
+    )  # fmt: skip
+    cm.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="random seed (default: drawn and recorded in truth.json)",
+    )
+    _common.add_quiet(cm)
+    cm.set_defaults(func=_run_cmos)
 
 
 def _add_gain_series(kinds) -> None:
