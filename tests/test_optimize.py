@@ -191,6 +191,7 @@ ITERATIONS = {
     "constrained refit, whose own warm starts the steps keep",
     ("fit/posterior.py", "_sample_pixel"): "Markov chains run on until they converge",
     ("beads/validation/metric.py", "blinking_level"): "EM iterations of a two-level mixture",
+    ("data/telegraph.py", "_statistic"): "EM iterations of a two-state mixture (a fixed number)",
     ("beads/cots_bias.py", "_pseudo_true"): "a 2-D system per frame, halved steps keeping v* > 0",
     (
         "beads/cots.py",

@@ -19,6 +19,8 @@ PLAN_METHODS = ("gs", "is-adu", "is-gain")
 #: without an EM register, whose calibration is an intensity series at 1×.
 CAMERA_KINDS = ("emccd", "scmos", "qcmos", "ccd")
 WITHOUT_EM_REGISTER = ("scmos", "qcmos", "ccd")
+#: The cameras without an EM register that ``emccdcal simulate cmos`` has presets of.
+SIMULATED_CMOS = ("scmos", "qcmos")
 
 
 def default_method(camera_kind):
@@ -150,6 +152,8 @@ OPTION_QUANTITY = {
     "bleaching": "fraction",
     "halo": "fraction",
     "blinking": "fraction",
+    "rts_fraction": "fraction",
+    "read_noise_e": "read_noise",
     "drift": "fraction",
     "max_age": "days",
 }

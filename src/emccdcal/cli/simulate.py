@@ -272,7 +272,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def _add_cmos(kinds) -> None:
-    from ..simulate.cmos import PRESETS
+    from ..defaults import SIMULATED_CMOS
 
     cm = kinds.add_parser(
         "cmos",
@@ -283,7 +283,7 @@ def _add_cmos(kinds) -> None:
     )
     _common.add_out_or_dir(cm, "output directory (created)")
     cm.add_argument(
-        "--camera-kind", choices=tuple(PRESETS), default="scmos",
+        "--camera-kind", choices=SIMULATED_CMOS, default="scmos",
         help="which preset (default %(default)s: an ORCA-Flash-like sCMOS; qcmos: ORCA-Quest-like)",
     )  # fmt: skip
     cm.add_argument("--rows", type=int, default=None, help="frame rows, px (default 24)")
