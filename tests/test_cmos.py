@@ -203,3 +203,52 @@ def test_simulate_cmos_writes_a_series_that_names_its_camera(tmp_path):
     assert truth.shape == (3, 4) and abs(np.median(truth) / 0.107 - 1) < 0.05
     # a second run into the same folder is refused without --overwrite
     assert cli.main([*argv, "--cols", "4", "--frames", "50", "--seed", "2", "-q"]) == 2
+
+
+def _andor(src, dst, model, frames):
+    """A multi-frame SIF of ``frames`` whose header names another Andor model."""
+    from camera_files import multi_frame_sif
+
+    path = multi_frame_sif(src, dst, frames)
+    raw = path.read_bytes()
+    assert raw.count(b"DU897_BV") >= 1
+    path.write_bytes(raw.replace(b"DU897_BV", model.encode()))
+    return path
+
+
+@pytest.mark.parametrize(
+    "model, kind, gain",
+    [("DU897_BV", "emccd", 56.0), ("DU420_BV", "ccd", None), ("DH734_BV", "iccd", None)],
+)
+def test_andor_files_record_their_kind_and_no_em_gain_without_a_register(
+    tmp_path, model, kind, gain
+):
+    """An iDus's (CCD) and an iStar's (intensified CCD) gain field is not an EM set-point:
+    it was read as one (2.0, 180, 2500 on sif_parser's files). A folder of iDus files
+    scans as a camera without an EM register; an iStar's is refused in one line."""
+    from emccdcal.data.stacks import stack_settings
+    from test_formats import SIF
+
+    pytest.importorskip("sif_parser")
+    rng = np.random.default_rng(1)
+    folder = tmp_path / "session"
+    folder.mkdir()
+    for name, level in (("dark", 0.0), ("int1", 50.0), ("int2", 200.0)):
+        frames = np.rint(100 + level + 2 * rng.standard_normal((3, 256, 256)))
+        _andor(SIF / "test.sif", folder / f"{name}.sif", model, frames)
+    s = stack_settings(folder / "int1.sif")
+    assert (s.camera_kind, s.em_gain_setpoint) == (kind, gain)
+    if kind == "emccd":
+        return
+    if kind == "iccd":
+        with pytest.raises(emccdcal.errors.InputError, match=r"dark\.sif' is of an intensified"):
+            emccdcal.scan(folder)
+        return
+    manifest = emccdcal.scan(folder)
+    assert 'camera_kind = "ccd"   # the files\' model says so' in manifest.read_text()
+    assert emccdcal.read_manifest(manifest).camera_kind == "ccd"
+    wrong = tmp_path / "wrong.toml"
+    wrong.write_text(manifest.read_text().replace('camera_kind = "ccd"', 'camera_kind = "scmos"'))
+    wrong.replace(manifest.parent / "wrong.toml")
+    with pytest.raises(ManifestError, match=r"camera_kind = 'scmos', but .*records a ccd camera"):
+        emccdcal.read_manifest(manifest.parent / "wrong.toml")

@@ -19,6 +19,9 @@ PLAN_METHODS = ("gs", "is-adu", "is-gain")
 #: without an EM register, whose calibration is an intensity series at 1×.
 CAMERA_KINDS = ("emccd", "scmos", "qcmos", "ccd")
 WITHOUT_EM_REGISTER = ("scmos", "qcmos", "ccd")
+#: Kinds a camera file may record: those, and an intensified camera (ICCD), whose gain is
+#: an image intensifier's, which no model here describes.
+RECORDED_KINDS = (*CAMERA_KINDS, "iccd")
 #: The cameras without an EM register that ``emccdcal simulate cmos`` has presets of.
 SIMULATED_CMOS = ("scmos", "qcmos")
 

@@ -25,6 +25,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .. import defaults
 from .._output import Output, atomic_write_text, comment, toml_line
 from ..errors import InputError
 from .settings import CameraSettings
@@ -233,13 +234,24 @@ def scan(folder) -> Session:
     stack_paths = [p for p, shape in found if len(shape) == 3]
     settings_of = {p: stack_settings(p) for p in stack_paths}
     said = {p: _setpoint_of(p, settings_of[p]) for p in stack_paths}
-    # A camera without an EM register (Huang et al.'s dark.tif, int1.tif …): no stack
-    # says a set-point, and one is a dark.
+    # A camera without an EM register: no stack says a set-point, and the files say so
+    # (their models) or one is a dark (Huang et al.'s dark.tif, int1.tif …).
+    kinds = {settings_of[p].camera_kind for p in stack_paths} - {None}
+    if "iccd" in kinds:
+        path = next(p for p in stack_paths if settings_of[p].camera_kind == "iccd")
+        raise InputError(
+            f"'{path}' is of an intensified camera (its model {settings_of[path].model}): its "
+            "gain is an image intensifier's, which no model here describes"
+        )
     no_register = (
         len(stack_paths) >= 2
         and all(sp is None for sp, _ in said.values())
-        and any(_DARK.search(p.stem) for p in stack_paths)
+        and (
+            (len(kinds) == 1 and kinds <= set(defaults.WITHOUT_EM_REGISTER))
+            or (not kinds and any(_DARK.search(p.stem) for p in stack_paths))
+        )
     )
+    kind = next(iter(kinds)) if kinds else "scmos"
     for path, shape in found:
         if len(shape) == 3:
             settings = settings_of[path]
@@ -319,7 +331,7 @@ def scan(folder) -> Session:
         skipped.append((f"{len(other)} other file(s)", f"not camera files ({names})"))
     rules = _rules(stacks, pairs, darks) + ([_NO_REGISTER] if no_register else [])
     return Session(
-        folder, signal, darks, rules, skipped, e_per_adu_map, "scmos" if no_register else None
+        folder, signal, darks, rules, skipped, e_per_adu_map, kind if no_register else None
     )
 
 
@@ -475,10 +487,15 @@ def manifest_text(session: Session, where: Path) -> str:
         )
         + " -o OUT"
     )
+    recorded = {f.settings.camera_kind for f in session.signal} == {session.camera_kind}
     if session.camera_kind is not None:
         lines.append(
             toml_line("camera_kind", session.camera_kind)
-            + "   # or 'qcmos' or 'ccd': the files do not say; all calibrate alike"
+            + (
+                "   # the files' model says so"
+                if recorded
+                else "   # or 'qcmos' or 'ccd': the files do not say; all calibrate alike"
+            )
         )
     bits = {f.settings.adc_bits for f in session.signal} - {None}
     bits |= {d.settings.adc_bits for d in session.darks.values() if isinstance(d, ScannedFile)} - {

@@ -9,6 +9,8 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, fields
 
+from ..defaults import RECORDED_KINDS
+
 __all__ = ["CameraSettings", "recorded_number"]
 
 
@@ -58,6 +60,10 @@ class CameraSettings:
         the first pixel, y: its row).
     binning : tuple of int
         ``(x, y)`` binning.
+    camera_kind : str
+        ``emccd``, ``scmos``, ``qcmos``, ``ccd`` or ``iccd`` where the file's model says it
+        (:data:`emccdcal.defaults.RECORDED_KINDS`); a camera without an EM register records
+        no ``em_gain_setpoint``, whatever its gain field holds.
 
     Examples
     --------
@@ -81,6 +87,7 @@ class CameraSettings:
     model: str | None = None
     roi: tuple[int, int, int, int] | None = None
     binning: tuple[int, int] | None = None
+    camera_kind: str | None = None
 
     def known(self) -> dict:
         """The recorded fields only, as a plain dict (JSON-ready)."""
@@ -166,6 +173,7 @@ _FIELD_CHECKS = {
     "model": _text,
     "roi": _ints(4, (0, 0, 1, 1)),
     "binning": _ints(2, (1, 1)),
+    "camera_kind": lambda v: v if v in RECORDED_KINDS else None,
 }
 _FIELD_MEANING = {
     "em_gain_setpoint": "a set-point from 1 to 1e5",
@@ -179,4 +187,5 @@ _FIELD_MEANING = {
     "model": "text",
     "roi": "[x, y, width, height] in whole pixels (width, height >= 1)",
     "binning": "[x, y] whole binning factors >= 1",
+    "camera_kind": "one of " + ", ".join(RECORDED_KINDS),
 }

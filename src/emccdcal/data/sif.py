@@ -5,6 +5,11 @@ integer counts. Settings it parses: ``GainDAC`` (the EM gain set-point),
 ``PixelReadoutTime`` (s per pixel), ``DetectorTemperature`` (°C; −999 means not
 recorded), ``ExposureTime`` (s), ``DetectorType`` (the model) and ``xbin``/``ybin``;
 Andor's pre-amp gain and serial number are not among them.
+
+The model says the kind of camera (:func:`camera_kind`): an iXon (``DU897``, ``DU888`` …)
+is an EMCCD, an iDus (``DU420`` …) a CCD without an EM register and an iStar (``DH734``
+…) an intensified CCD; for the last two ``GainDAC`` is not an EM gain set-point (an
+iStar's is its intensifier's gain) and is not recorded as one.
 """
 
 from __future__ import annotations
@@ -40,16 +45,43 @@ def _number(info, key):
     return recorded_number(info.get(key))
 
 
+#: Andor's model numbers: iXon (EMCCD) and iDus (CCD) heads, both named ``DU…``.
+_IXON = ("860", "885", "887", "888", "897")
+_IDUS = ("401", "416", "420", "440", "490", "491", "492")
+
+
+def camera_kind(model) -> str | None:
+    """The kind of an Andor camera from its model (``DetectorType``), where the model
+    says it: iXon ``emccd``, iDus ``ccd``, iStar (``DH…``) ``iccd``, Zyla/Sona/Neo/Marana
+    ``scmos``; else None.
+
+    >>> camera_kind("DU897_BV"), camera_kind("DU420A_BEX2-DD"), camera_kind("DH734_18F")
+    ('emccd', 'ccd', 'iccd')
+    """
+    text = str(model or "").upper().replace("-", "")
+    if text.startswith("DH"):
+        return "iccd"
+    if text.startswith("DU"):
+        number = text[2:5]
+        return "emccd" if number in _IXON else "ccd" if number in _IDUS else None
+    if text.startswith(("ZYLA", "SONA", "NEO", "MARANA")):
+        return "scmos"
+    return None
+
+
 def _settings(info) -> CameraSettings:
     readout, temperature = _number(info, "PixelReadoutTime"), _number(info, "DetectorTemperature")
     exposure = _number(info, "ExposureTime")
     xbin, ybin = info.get("xbin"), info.get("ybin")
+    model = None if info.get("DetectorType") is None else str(info["DetectorType"])
+    kind = camera_kind(model)
     return CameraSettings(
-        em_gain_setpoint=_number(info, "GainDAC"),
+        em_gain_setpoint=_number(info, "GainDAC") if kind in (None, "emccd") else None,
+        camera_kind=kind,
         readout_rate_mhz=1e-6 / readout if readout else None,
         temperature_c=None if temperature is None or temperature <= -999 else temperature,
         exposure_ms=None if exposure is None else 1000.0 * exposure,
-        model=None if info.get("DetectorType") is None else str(info["DetectorType"]),
+        model=model,
         binning=None if xbin is None or ybin is None else (int(xbin), int(ybin)),
     )
 

@@ -142,7 +142,7 @@ def resolve_manifest(entries: ManifestEntries) -> Manifest:
     ]
     for msg in found:
         warnings.warn(msg, ReadNoiseGrowthWarning, stacklevel=3)
-    origin, binning, camera = _recorded(r, entries, acquisitions, shape, found)
+    origin, binning, camera, camera_kind = _recorded(r, entries, acquisitions, shape, found)
     levels = tuple(dict.fromkeys(a.level for a in acquisitions if a.level is not None))
     return Manifest(
         path=entries.path,
@@ -160,7 +160,7 @@ def resolve_manifest(entries: ManifestEntries) -> Manifest:
         em_model=entries.em_model,
         register_stages=entries.register_stages,
         camera=camera,
-        camera_kind=entries.camera_kind,
+        camera_kind=camera_kind,
     )
 
 
@@ -340,7 +340,35 @@ def _recorded(r: _Reader, entries, acquisitions, shape, found: list):
         for k in CAMERA_IDENTITY
         if k in joint and all(getattr(s, k) is not None for s in recorded_by.values())
     }
-    return (_origin(r, entries.origin, origins, shape), _binning(r, binnings), camera)
+    kind = _camera_kind(r, entries, recorded_by)
+    return (_origin(r, entries.origin, origins, shape), _binning(r, binnings), camera, kind)
+
+
+def _camera_kind(r: _Reader, entries, recorded_by) -> str | None:
+    """The camera's kind: the manifest's ``camera_kind``, else the one its frames files
+    record; files that record different kinds, or another than the manifest's, and an
+    intensified camera are errors."""
+    kinds = {p: s.camera_kind for p, s in recorded_by.items() if s.camera_kind is not None}
+    if len(set(kinds.values())) > 1:
+        said = "; ".join(f"'{p}' a {k}" for p, k in kinds.items())
+        raise r.error(f"the frames files record different kinds of camera ({said})")
+    recorded = next(iter(kinds.values()), None)
+    given = entries.camera_kind
+    if given is not None and recorded is not None and given != recorded:
+        path = next(iter(kinds))
+        raise r.error(
+            f"camera_kind = {given!r}, but '{path}' records a {recorded} camera (its model "
+            f"{recorded_by[path].model}); correct camera_kind or the files"
+        )
+    kind = given or recorded
+    if kind == "iccd":
+        path = next(iter(kinds), entries.path)
+        raise r.error(
+            f"'{path}' is of an intensified camera (its model {recorded_by[path].model}): "
+            "its gain is an image intensifier's, which no model here describes (emccdcal "
+            "calibrates EM registers and cameras without gain)"
+        )
+    return kind
 
 
 def _refuse_copies(r: _Reader, acqs) -> None:
