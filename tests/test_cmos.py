@@ -252,3 +252,27 @@ def test_andor_files_record_their_kind_and_no_em_gain_without_a_register(
     wrong.replace(manifest.parent / "wrong.toml")
     with pytest.raises(ManifestError, match=r"camera_kind = 'scmos', but .*records a ccd camera"):
         emccdcal.read_manifest(manifest.parent / "wrong.toml")
+
+
+@pytest.mark.parametrize("sigma", [0.45, 0.9, 3.0])
+def test_the_plan_asks_for_the_darks_a_read_noise_variance_needs(sigma):
+    """The dark frames the planner asks for a 3 % SE of σ² give it: the spread over 600
+    simulated pixels of the darks' fitted σ² is 3 % within its own error (a rounded
+    normal's below 2 ADU, which needs more frames than a normal's)."""
+    from emccdcal.acquire.plan import darks_for_read_noise, plan
+
+    n = darks_for_read_noise(sigma, 3.0)
+    rng = np.random.default_rng(int(10 * sigma))
+    offset = 100 + rng.random(600)
+    dark = np.rint(offset + sigma * rng.standard_normal((n, 600))).astype(np.uint16)
+    stack = dark.reshape(n, 20, 30)
+    mu, s = analog_read_out(stack, stack.mean(axis=0), stack.std(axis=0, ddof=1))
+    if not adc.rounds(True, sigma):
+        s = np.sqrt(s**2 - 1 / 12)  # the counts' SD there: the analog σ² is SD² − 1/12
+    spread = np.std(s.ravel() ** 2 / sigma**2 - 1)
+    assert spread == pytest.approx(0.03, rel=0.15)
+    p = plan(
+        method="is-adu", e_per_adu=0.46, read_noise=sigma, offset=100, target_se=5,
+        read_noise_target_se=3.0,
+    )  # fmt: skip
+    assert p.dark_frames >= n and p.read_noise_variance_se <= 3.0

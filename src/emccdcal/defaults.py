@@ -157,6 +157,7 @@ OPTION_QUANTITY = {
     "blinking": "fraction",
     "rts_fraction": "fraction",
     "read_noise_e": "read_noise",
+    "target_read_noise_se": "percent",
     "drift": "fraction",
     "max_age": "days",
 }

@@ -43,7 +43,7 @@ from .. import _roots, _xp, defaults
 from .._util import check_int, check_number
 from ..errors import OptionError
 from ..fit.series import SeriesLikelihood, acquisition_models, choose_register
-from ..model import noise
+from ..model import adc, noise
 
 __all__ = [
     "Plan",
@@ -140,6 +140,12 @@ class Plan:
     def em_model(self) -> noise.EMModel:
         """The register model the plan assumed (its camera's ``em_model`` and ``stages``)."""
         return _camera_model(self.camera)
+
+    @property
+    def read_noise_variance_se(self) -> float:
+        """Predicted relative SE of each pixel's read-noise variance σ² from the dark
+        frames, percent (:func:`read_noise_variance_se`)."""
+        return read_noise_variance_se(self.camera["read_noise"], self.dark_frames)
 
     @property
     def dark_stacks(self) -> int:
@@ -363,6 +369,7 @@ def plan(
     max_frames=None,
     frame_rate_hz=None,
     device=None,
+    read_noise_target_se=None,
 ) -> Plan:
     """The acquisition that reaches ``target_se`` with the fewest frames.
 
@@ -401,6 +408,10 @@ def plan(
     device : {"cpu", "cuda", "jax", "array-api-strict"}, optional
         Where the expected information's windows are computed, as
         :func:`emccdcal.calibrate`'s.
+    read_noise_target_se : float, optional
+        Relative SE per pixel of the read-noise variance σ² from the darks, percent: the
+        dark frames are at least :func:`darks_for_read_noise` (a localization tool's
+        variance map; Huang et al. 2013 record ~20 000 darks or more: 1 % at σ ≥ 2 ADU).
 
     Returns
     -------
@@ -495,6 +506,12 @@ def plan(
                 break
     _, p, frames, dark = best
     frames = np.array([_nice(n) if n > 0 else 0 for n in frames])
+    if read_noise_target_se is not None:
+        needed = darks_for_read_noise(
+            camera["read_noise"],
+            check_number("read_noise_target_se", read_noise_target_se, positive=True),
+        )
+        dark = max(dark, needed)
     dark = _nice(dark)
     if max_frames is not None:
         frames, dark = np.minimum(frames, max_frames), min(dark, max_frames)
@@ -598,6 +615,38 @@ def dark_limited(p: Plan) -> float | None:
     if exact <= p.target_se and worst(10, p.dark_frames) > p.target_se:
         return exact
     return None
+
+
+def read_noise_variance_se(read_noise, dark_frames) -> float:
+    """The relative SE (percent) of a pixel's read-noise variance σ² (ADU²) from
+    ``dark_frames`` dark frames at 1×: sqrt(2/(n − 1)) of a normal's sample variance;
+    below :data:`emccdcal.model.adc.ROUNDING_BELOW` the rounded normal's maximum
+    likelihood (its Fisher information, the worst over where the offset falls between
+    two integers), 2·SE(σ)/σ.
+
+    >>> round(read_noise_variance_se(15.5, 20001), 3)     # Huang et al.'s 20 000 darks
+    1.0
+    """
+    n = max(int(dark_frames), 2)
+    if not adc.rounds(True, read_noise):
+        return 100.0 * math.sqrt(2.0 / (n - 1))
+    return 100.0 * _rounded_variance_se_per_frame(read_noise) / math.sqrt(n)
+
+
+def _rounded_variance_se_per_frame(read_noise) -> float:
+    """√n times the relative SE of a rounded normal's σ² fitted to n counts."""
+    sigma = np.full(3, float(read_noise))
+    var = np.linalg.inv(adc.information(np.array([0.0, 0.25, 0.5]), sigma))[:, 1, 1].max()
+    return 2.0 * math.sqrt(var) / float(read_noise)
+
+
+def darks_for_read_noise(read_noise, target_se) -> int:
+    """The fewest dark frames whose read-noise variance reaches ``target_se`` percent
+    (:func:`read_noise_variance_se`)."""
+    t = float(target_se) / 100.0
+    if not adc.rounds(True, read_noise):
+        return int(math.ceil(2.0 / t**2 + 1.0))
+    return int(math.ceil((_rounded_variance_se_per_frame(read_noise) / t) ** 2))
 
 
 def _plan_of(design, level, frames, dark_frames, target_se, frame_rate_hz, max_frames):

@@ -108,6 +108,15 @@ def add_parser(subparsers):
         "em_gain (of e_per_adu for is-adu), percent (default 0.5)",
     )
     what.add_argument(
+        "--target-read-noise-se",
+        type=_common.positive_float,
+        default=None,
+        metavar="PERCENT",
+        help="relative standard error per pixel of the read-noise variance from the darks, "
+        "percent (a localization tool's variance map; Huang et al. record ~20000 darks: "
+        "1 %%): the dark frames are at least what reaches it",
+    )
+    what.add_argument(
         "--max-frames",
         type=_common.positive_int,
         default=None,
@@ -180,6 +189,7 @@ def run(args) -> int:
             max_frames=args.max_frames,
             frame_rate_hz=args.frame_rate,
             device=args.device,
+            read_noise_target_se=args.target_read_noise_se,
         )
     if not args.quiet:
         print(table(result))
@@ -218,7 +228,8 @@ def table(p) -> str:
     else:
         lines.append(
             f"intensity series at {format_setpoint(p.acquisitions[0].setpoint)}x; "
-            f"dark frames: {p.dark_frames} (one stack, shutter closed)"
+            f"dark frames: {p.dark_frames} (one stack, shutter closed; SE of the read-noise "
+            f"variance {p.read_noise_variance_se:.2f} %)"
         )
         lines.append(f"{'light (e-/px/frame)':>19}  {'frames':>7}  {'SE photoelectrons':>17}")
         for a in p.acquisitions:
