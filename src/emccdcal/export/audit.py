@@ -34,6 +34,7 @@ from .. import _files, defaults, plugins
 from .._output import comment
 from .._util import one_line
 from ..errors import EmccdcalError, InputError, OptionError
+from ..model import adc
 from ..result import format_setpoint, load_calibration
 from .toolkit import QUANTITIES, Field, Reading, camera_values, mat_raw, pick_setpoint
 
@@ -180,13 +181,19 @@ def read_tool_file(path, *, tool=None, setpoint=1.0, tool_gain=None) -> list[Rea
     if tool is not None and tool not in readable:
         raise OptionError(f"unknown tool {tool!r}; one of {', '.join(readable)}")
     text, doc = None, None
-    if path.suffix.lower() == ".mat":
-        # a tool that reads its own binary files (SMAP's camera manager) is asked first
+    if path.suffix.lower() in (".mat", ".tif", ".tiff"):
+        # a tool that reads its own binary files (SMAP's camera manager, gdsc-smlm's
+        # per-pixel camera model) is asked first
         for name, t in readable.items():
             if t.read_file is not None and tool in (None, name):
                 found = _asking(t, t.read_file, path, setpoint)
                 if found is not None:
                     return found
+        if path.suffix.lower() != ".mat":
+            raise InputError(
+                f"'{path}': not a camera model of a tool emccdcal knows (gdsc-smlm's "
+                "per-pixel camera model is the TIFF it reads)"
+            )
         doc = _mat_tree(path)
     elif path.suffix.lower() != ".xml":
         text = _files.read_text(path, what="tool's settings file")
@@ -356,7 +363,63 @@ def audit(
     readings = _matching(
         read_tool_file(toolfile, tool=tool, setpoint=s, tool_gain=tool_gain), cal.camera
     )
-    return [_compare(r, values, s, tolerance, offset_tolerance, qe) for r in readings]
+    audits = [_compare(r, values, s, tolerance, offset_tolerance, qe) for r in readings]
+    for a in audits:
+        if a.reading.maps is not None:
+            _per_pixel(a, cal, s, qe, offset_tolerance)
+    return audits
+
+
+def _per_pixel(a: Audit, cal, s, qe, offset_tolerance) -> None:
+    """Add to ``a`` the comparison of its reading's per-pixel maps with the calibration's,
+    placed by the two sensor origins: the photons, the baseline and the variance of every
+    pixel the calibration converged at, the worst named."""
+    maps, r = a.reading.maps, a.reading
+    rows, cols = maps["offset"].shape
+    r0, c0 = (0, 0)
+    if r.origin is not None and cal.origin is not None:
+        r0, c0 = r.origin[0] - cal.origin[0], r.origin[1] - cal.origin[1]
+    R, C = cal.e_per_adu.shape
+    if r0 < 0 or c0 < 0 or r0 + rows > R or c0 + cols > C:
+        a.problems.append(
+            f"its {rows} x {cols} pixels at sensor (row, col) {r.origin} are not all in the "
+            f"calibration's {R} x {C} at {cal.origin}"
+        )
+        return
+    region = (slice(r0, r0 + rows), slice(c0, c0 + cols))
+    offset, sigma = (m[region] for m in cal.dark(s))
+    gain = ((1.0 if qe is None else qe) * cal.gain(s) / cal.e_per_adu)[region]
+    variance = adc.count_variance(sigma, s == 1)
+    ok = np.isfinite(offset) & np.isfinite(gain) & np.isfinite(variance)
+    photons = np.where(ok, gain / maps["adu_per_e_total"] - 1.0, 0.0)
+    baseline = np.where(ok, maps["offset"] - offset, 0.0)
+    spread = np.where(ok, maps["variance"] / variance - 1.0, 0.0)
+
+    def worst(diff, unit):
+        i = np.unravel_index(int(np.argmax(np.abs(diff))), diff.shape)
+        value = _percent(float(diff[i]), 2) if unit == "%" else f"{float(diff[i]):+.3g} ADU"
+        return f"{value} at (row, col) ({i[0] + r0}, {i[1] + c0})"
+
+    n = int(ok.sum())
+    a.rows += [
+        {"field": "per pixel", "text": f"{n} pixels compared (the calibration's converged ones)"},
+        {"field": "  photons", "text": "worst " + worst(photons, "%")},
+        {"field": "  Bias", "text": "worst " + worst(baseline, "ADU")},
+        {"field": "  Variance", "text": "worst " + worst(spread, "%")},
+    ]
+    off = np.abs(photons) > a.tolerance
+    if off.any():
+        a.problems.append(
+            f"photons beyond {100 * a.tolerance:g} % at {int(off.sum())} of {n} pixels "
+            f"(worst {worst(photons, '%')})"
+        )
+    limit = 1.0 if offset_tolerance is None else offset_tolerance
+    far = np.abs(baseline) > limit
+    if far.any():
+        a.problems.append(
+            f"Bias beyond {limit:g} ADU of the offset at {int(far.sum())} of {n} pixels "
+            f"(worst {worst(baseline, 'ADU')})"
+        )
 
 
 def _matching(readings, camera: dict):

@@ -298,6 +298,11 @@ class Reading:
     formula: str
     baseline: float | None = None
     qe: float | None = None
+    #: Per-pixel maps of a tool that keeps them (a camera model of every pixel):
+    #: ``{"offset": ADU, "adu_per_e_total": QE·g/φ, "variance": ADU²}``, (rows, cols)
+    #: each, and the sensor pixel (row, col) of their first; audited pixel by pixel.
+    maps: dict | None = None
+    origin: tuple | None = None
 
 
 def number(value, what, path):

@@ -1,23 +1,40 @@
-"""gdsc-smlm (its ``intensityCalibration`` JSON): writer and the audit's reader, one
-plug-in.
+"""gdsc-smlm (its ``intensityCalibration`` JSON, and for a camera without an EM register
+its per-pixel camera model): writer and the audit's readers, one plug-in.
+
+gdsc-smlm's per-pixel camera model (its Camera Model Manager) is a float32 ImageJ TIFF of
+three slices, ``Bias`` (counts), ``Gain`` (counts per photon) and ``Variance`` (counts²),
+whose ImageJ calibration's x and y origin place it on the sensor; the calibration JSON
+names it (``cameraModelName``, the file's name without its extension) with
+``cameraType`` ``SCMOS``.
 """
 
 from __future__ import annotations
 
 import json
 
+import numpy as np
+
+from ... import defaults
 from ...errors import InputError
+from ...model import adc
 from ...plugins import Tool
 from .. import toolkit
 from ..toolkit import Field, Reading
 
 
+#: The per-pixel camera model's file (its name is the model's name in gdsc-smlm).
+MODEL_FILE = "gdsc-camera-model.tif"
+_INFO = "Per-pixel camera model data"
+
+
 def write(cal, s, v, out, qe, pixel_size_nm, name):
     """gdsc-smlm's ``Calibration`` message as protobuf JSON (``count_per_photon`` is the
-    total gain QE·g/φ in counts per photon; ``read_noise`` and ``bias`` in counts)."""
+    total gain QE·g/φ in counts per photon; ``read_noise`` and ``bias`` in counts), and
+    for a camera without an EM register its per-pixel camera model (:data:`MODEL_FILE`)."""
     q = 1.0 if qe is None else qe
     prov = toolkit.provenance(cal, s, qe)
     sha = ",".join(r["sha256"][:12] for r in prov["results"])
+    per_pixel = cal.camera_kind in defaults.WITHOUT_EM_REGISTER
     message = {
         "intensityCalibration": {
             "intensityUnit": "COUNT",
@@ -37,7 +54,70 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
             "distanceUnit": "PIXEL",
             "nmPerPixel": toolkit.rounded(pixel_size_nm),
         }
-    return [toolkit.write_text(out / "gdsc-calibration.json", json.dumps(message, indent=2) + "\n")]
+    written = []
+    if per_pixel:
+        camera = message["cameraCalibration"]
+        camera["cameraType"] = "SCMOS"
+        camera["cameraModelName"] = MODEL_FILE.removesuffix(".tif")
+        written.append(_write_model(cal, s, q, out / MODEL_FILE, prov))
+    path = toolkit.write_text(out / "gdsc-calibration.json", json.dumps(message, indent=2) + "\n")
+    return [path, *written]
+
+
+def _write_model(cal, s, q, path, prov):
+    """The per-pixel camera model: Bias (ADU), Gain (QE·g/φ, counts per photon) and
+    Variance (the read-out's, as the dark counts show it: σ² + 1/12 where σ is the analog
+    read noise), float32, with the sensor origin as ImageJ's x/y origin."""
+    import tifffile
+
+    offset, sigma = cal.dark(s)
+    slices = np.stack(
+        [offset, q * cal.gain(s) / cal.e_per_adu, adc.count_variance(sigma, s == 1)]
+    ).astype(np.float32)
+    row, col = cal.origin if cal.origin is not None else (0, 0)
+    metadata = {
+        "axes": "ZYX",  # three slices of one stack, as gdsc-smlm reads them
+        "Labels": ["Bias", "Gain", "Variance"],
+        "Info": _INFO + "\nemccdcal " + json.dumps(prov),
+        "xorigin": col,
+        "yorigin": row,
+    }
+    return toolkit.write_file(
+        path, lambda p: tifffile.imwrite(p, slices, imagej=True, metadata=metadata)
+    )
+
+
+def read_model(path, setpoint):
+    """The audit's reading of a per-pixel camera model TIFF (None: not one)."""
+    import tifffile
+
+    if path.suffix.lower() not in (".tif", ".tiff"):
+        return None
+    with tifffile.TiffFile(path) as tif:
+        meta = tif.imagej_metadata or {}
+        if not str(meta.get("Info", "")).startswith(_INFO):
+            return None
+        data = tif.asarray()
+    if data.ndim != 3 or data.shape[0] != 3:
+        raise InputError(
+            f"'{path}': a camera model has 3 slices (Bias, Gain, Variance); got {data.shape}"
+        )
+    bias, gain, variance = (np.asarray(a, dtype=float) for a in data)
+    if not np.all(np.isfinite(gain) & (gain > 0)):
+        raise InputError(f"'{path}': its Gain slice holds values that are not positive numbers")
+    origin = (int(round(float(meta.get("yorigin", 0)))), int(round(float(meta.get("xorigin", 0)))))
+    median_gain = float(np.median(gain))
+    fields = (
+        Field("Bias (median)", float(np.median(bias)), "offset"),
+        Field("Gain (median)", median_gain, "adu_per_e_total", "counts per photon"),
+    )
+    maps = {"offset": bias, "adu_per_e_total": gain, "variance": variance}
+    return [
+        Reading(
+            "gdsc", "per-pixel camera model", fields, 1.0 / median_gain, "1 / Gain (median)",
+            float(np.median(bias)), None, maps, origin,
+        )
+    ]  # fmt: skip
 
 
 def _read_doc(doc, path):
@@ -81,4 +161,5 @@ TOOL = Tool(
         (set(doc) if isinstance(doc, dict) else set())
         & {"intensityCalibration", "intensity_calibration"}
     ),
+    read_file=read_model,
 )

@@ -203,5 +203,9 @@ TOOL = Tool(
             and next(toolkit.find_tables(doc, ("conversion", "emgain")), None) is not None
         )
     ),
-    read_file=lambda path, setpoint: _smap_cameras(toolkit.mat_raw(path), path, setpoint),
+    read_file=lambda path, setpoint: (
+        _smap_cameras(toolkit.mat_raw(path), path, setpoint)
+        if path.suffix.lower() == ".mat"
+        else None
+    ),
 )
