@@ -84,6 +84,17 @@ def add_parser(subparsers):
     )
     _common.add_em_model(p, auto=False)
     _common.add_device(p)
+    _add_what(p)
+    _common.add_out(
+        p, "the folder to write plan.toml into, or the plan's own .toml path", required=False
+    )
+    _common.add_quiet(p)
+    p.set_defaults(func=run)
+    return p
+
+
+def _add_what(p) -> None:
+    """The calibration's options: its method, the targets and the limits."""
     what = p.add_argument_group("the calibration")
     what.add_argument(
         "--method",
@@ -130,12 +141,6 @@ def add_parser(subparsers):
         metavar="HZ",
         help="frames per second, for the recording time",
     )
-    _common.add_out(
-        p, "the folder to write plan.toml into, or the plan's own .toml path", required=False
-    )
-    _common.add_quiet(p)
-    p.set_defaults(func=run)
-    return p
 
 
 def _camera_from(args):

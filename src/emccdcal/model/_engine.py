@@ -68,7 +68,7 @@ def cgf(rows, s, shift, sigma, order=0, names=()):
     shift, sigma = _xp.like(s, shift, sigma)
     K = s * shift[:, None] + 0.5 * (sigma[:, None] * s) ** 2 + Ke
     if rounding.any():  # the ADC's rounding: a parameter-free term (docs of :mod:`.adc`)
-        K = K + xp_where_rows(s, rounding, rounding_cgf(s))
+        K = K + _where_rows(s, rounding, rounding_cgf(s))
     if order >= 1:
         first = {**first, "offset": s, "read_noise": sigma[:, None] * s * s}
     if order >= 2:
@@ -76,7 +76,7 @@ def cgf(rows, s, shift, sigma, order=0, names=()):
     return K, first, second
 
 
-def xp_where_rows(s, rows, values):
+def _where_rows(s, rows, values):
     """``values`` (P, M) at the rows flagged in ``rows`` (P,), 0 elsewhere."""
     xp = _xp.namespace(s)
     return xp.where(_xp.like(s, rows)[:, None], values, 0.0 + 0j)
