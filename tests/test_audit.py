@@ -57,7 +57,8 @@ def calibration(tmp_path_factory):
 
 @pytest.mark.parametrize("tool", sorted(EXPORTED))
 def test_an_export_agrees_and_ten_percent_off_is_named(calibration, tool, tmp_path, capsys):
-    assert set(EXPORTED) == set(TOOL_NAMES)
+    # smite's file is binary MATLAB: tests/test_cmos.py puts a pixel of it off
+    assert set(EXPORTED) | {"smite"} == set(TOOL_NAMES)
     name, pattern = EXPORTED[tool]
     (path,) = [
         f

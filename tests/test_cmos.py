@@ -307,3 +307,46 @@ def test_gdsc_smlms_per_pixel_camera_model_is_written_and_audited_pixel_by_pixel
     (audit,) = emccdcal.audit(model, ds)
     assert not audit.ok
     assert "at 1 of 30 pixels" in audit.problems[0] and "(2, 3)" in audit.problems[0]
+
+
+@pytest.mark.parametrize("origin", [(0, 0), (0, 10), (10, 0), (5, 5), (3, 100)])
+@pytest.mark.parametrize("shape", [(8, 8), (20, 4)])
+def test_smites_roi_reads_back_as_the_region_meant(origin, shape):
+    """smite takes an ROI whose 2nd and 4th values exceed its 1st and 3rd as the older
+    [YStart, YEnd, XStart, XEnd] and reorders it: the writer's order survives that."""
+    from emccdcal.export.toolfiles.smite import origin_of, roi_of
+
+    roi = roi_of(origin, shape)
+    assert origin_of(roi) == origin
+    y0, x0, y1, x1 = (
+        roi if not (roi[1] > roi[0] and roi[3] > roi[2]) else [roi[0], roi[2], roi[1], roi[3]]
+    )
+    assert (y1 - y0 + 1, x1 - x0 + 1) == shape
+
+
+@pytest.mark.slow
+def test_smites_calibration_file_is_written_and_audited_pixel_by_pixel(tmp_path):
+    from scipy.io import loadmat
+
+    sim = simulate_cmos_series(
+        tmp_path / "s", kind="qcmos", rows=4, cols=5, frames=300, dark_frames=600, seed=4,
+        progress=False,
+    )  # fmt: skip
+    ds = emccdcal.calibrate(sim.manifest, progress=False)
+    (path,) = emccdcal.export_calibration(ds, "smite", tmp_path / "smite")
+    params = loadmat(path, squeeze_me=True, struct_as_record=False)["Params"]
+    np.testing.assert_allclose(params.Gain, 1 / ds.e_per_adu.values, rtol=1e-6)
+    np.testing.assert_allclose(params.CCDOffset, ds.offset.isel(level=0).values, rtol=1e-6)
+    assert list(params.CameraObj.ROI) == [1, 1, 4, 5]
+    (audit,) = emccdcal.audit(path, ds)
+    assert audit.ok and audit.reading.tool == "smite"
+    from scipy.io import savemat
+
+    raw = loadmat(path, squeeze_me=True, struct_as_record=False)["Params"]
+    gain = np.array(raw.Gain, dtype=np.float32)
+    gain[1, 2] *= 1.1
+    fields = {k: getattr(raw, k) for k in ("CCDGain", "CCDOffset", "CCDVar")}
+    savemat(path, {"Params": {**fields, "Gain": gain, "CameraObj": {"ROI": [1, 1, 4, 5]}}})
+    (audit,) = emccdcal.audit(path, ds)
+    assert not audit.ok and "at 1 of 20 pixels" in audit.problems[0]
+    assert "(1, 2)" in audit.problems[0]

@@ -54,7 +54,11 @@ DEFAULT_TOLERANCE = defaults.AUDIT_TOLERANCE
 
 def _readable() -> dict:
     """The registered tools whose files an audit reads (:mod:`emccdcal.plugins`)."""
-    return {n: t for n, t in plugins.load(plugins.TOOLS).items() if t.read is not None}
+    return {
+        n: t
+        for n, t in plugins.load(plugins.TOOLS).items()
+        if t.read is not None or t.read_file is not None
+    }
 
 
 def __getattr__(name):
@@ -184,11 +188,20 @@ def read_tool_file(path, *, tool=None, setpoint=1.0, tool_gain=None) -> list[Rea
     if path.suffix.lower() in (".mat", ".tif", ".tiff"):
         # a tool that reads its own binary files (SMAP's camera manager, gdsc-smlm's
         # per-pixel camera model) is asked first
+        refused = None  # a tool's reason that the file is not its own, for the message
         for name, t in readable.items():
             if t.read_file is not None and tool in (None, name):
-                found = _asking(t, t.read_file, path, setpoint)
+                try:
+                    found = _asking(t, t.read_file, path, setpoint)
+                except InputError as exc:
+                    refused = refused or exc
+                    continue
                 if found is not None:
                     return found
+        if refused is not None and (tool is None or readable[tool].read is None):
+            raise refused
+        if tool is not None and readable[tool].read is None:
+            raise InputError(f"'{path}': not a {readable[tool].title} file")
         if path.suffix.lower() != ".mat":
             raise InputError(
                 f"'{path}': not a camera model of a tool emccdcal knows (gdsc-smlm's "
@@ -404,8 +417,8 @@ def _per_pixel(a: Audit, cal, s, qe, offset_tolerance) -> None:
     a.rows += [
         {"field": "per pixel", "text": f"{n} pixels compared (the calibration's converged ones)"},
         {"field": "  photons", "text": "worst " + worst(photons, "%")},
-        {"field": "  Bias", "text": "worst " + worst(baseline, "ADU")},
-        {"field": "  Variance", "text": "worst " + worst(spread, "%")},
+        {"field": "  baseline", "text": "worst " + worst(baseline, "ADU")},
+        {"field": "  variance", "text": "worst " + worst(spread, "%")},
     ]
     off = np.abs(photons) > a.tolerance
     if off.any():
@@ -417,7 +430,7 @@ def _per_pixel(a: Audit, cal, s, qe, offset_tolerance) -> None:
     far = np.abs(baseline) > limit
     if far.any():
         a.problems.append(
-            f"Bias beyond {limit:g} ADU of the offset at {int(far.sum())} of {n} pixels "
+            f"baseline beyond {limit:g} ADU of the offset at {int(far.sum())} of {n} pixels "
             f"(worst {worst(baseline, 'ADU')})"
         )
 
