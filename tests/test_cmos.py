@@ -133,6 +133,7 @@ def test_a_huang_folder_scans_and_calibrates_with_no_option(tmp_path):
     assert np.max(np.abs(ds.e_per_adu.values / truth - 1)) < 0.02
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["scmos", "qcmos"])
 def test_telegraph_pixels_are_found_at_the_stated_false_alarm_rate(kind):
     """Two offset states 2 read-noise widths apart or more, switching with probability
@@ -172,6 +173,7 @@ def test_a_calibration_marks_its_telegraph_pixels(tmp_path):
     assert f"{int(flags.sum())} of 64" in _telegraph_html(ds)[0]
 
 
+@pytest.mark.slow
 def test_a_movie_of_a_camera_without_an_em_register_converts_at_its_one_setpoint(tmp_path):
     """``apply`` of a movie that records no set-point, by the calibration of a camera
     without an EM register (set-point 1): photoelectrons per pixel and frame, the
@@ -216,6 +218,7 @@ def _andor(src, dst, model, frames):
     return path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "model, kind, gain",
     [("DU897_BV", "emccd", 56.0), ("DU420_BV", "ccd", None), ("DH734_BV", "iccd", None)],

@@ -252,6 +252,7 @@ def test_small_read_noise_normaliser_by_direct_sum(sigma):
     assert mp.mpf(Z) != 1  # the normaliser matters at this read noise
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sigma", [0.3, 0.7, 1.5])
 def test_the_rounded_poisson_normal_by_direct_sum(sigma):
     """Below the rounding's switch a 1× count's probabilities are the normal integrated
