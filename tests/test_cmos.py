@@ -353,3 +353,25 @@ def test_smites_calibration_file_is_written_and_audited_pixel_by_pixel(tmp_path)
     (audit,) = emccdcal.audit(path, ds)
     assert not audit.ok and "at 1 of 20 pixels" in audit.problems[0]
     assert "(1, 2)" in audit.problems[0]
+
+
+@pytest.mark.slow
+def test_smaps_correction_file_is_audited_pixel_by_pixel(tmp_path):
+    from scipy.io import loadmat, savemat
+
+    sim = simulate_cmos_series(
+        tmp_path / "s", kind="scmos", rows=4, cols=5, frames=300, dark_frames=600, seed=6,
+        progress=False,
+    )  # fmt: skip
+    ds = emccdcal.calibrate(sim.manifest, progress=False)
+    files = emccdcal.export_calibration(ds, "smap", tmp_path / "smap")
+    path = next(f for f in files if f.name == "smap-correction.mat")
+    (audit,) = emccdcal.audit(path, ds)
+    assert audit.ok and audit.reading.where == "camera correction"
+    raw = loadmat(path)
+    maps = {k: np.array(raw[k]) for k in ("offsetmap", "gainmap", "varmap")}
+    maps["gainmap"][3, 1] *= 1.1
+    savemat(path, maps)
+    (audit,) = emccdcal.audit(path, ds)
+    assert not audit.ok and "at 1 of 20 pixels" in audit.problems[0]
+    assert "(3, 1)" in audit.problems[0]

@@ -147,6 +147,46 @@ def _cell_text(value) -> str:
     return "" if arr.size == 0 else str(arr.reshape(-1)[0]).strip()
 
 
+def _read_mat(path, setpoint):
+    """SMAP's camera correction file (per pixel) or its Camera Manager's ``cameras.mat``;
+    None for another file."""
+    if path.suffix.lower() != ".mat":
+        return None
+    raw = toolkit.mat_raw(path)
+    if all(k in raw for k in ("offsetmap", "gainmap", "varmap")):
+        return _smap_correction(raw, path)
+    return _smap_cameras(raw, path, setpoint)
+
+
+def _smap_correction(raw, path) -> list[Reading]:
+    """SMAP's camera correction file: ``offsetmap`` (ADU), ``gainmap`` (photons per ADU,
+    φ/g) and ``varmap`` (ADU²), [row, col], read as per-pixel maps (no sensor origin: the
+    maps are taken to be the calibration's pixels)."""
+    maps = {k: np.asarray(raw[k], dtype=float) for k in ("offsetmap", "gainmap", "varmap")}
+    if len({m.shape for m in maps.values()}) != 1 or maps["gainmap"].ndim != 2:
+        raise InputError(f"'{path}': offsetmap, gainmap and varmap are not maps of one shape")
+    gain = maps["gainmap"]
+    if not np.all(np.isfinite(gain) & (gain > 0)):
+        raise InputError(f"'{path}': its gainmap holds values that are not positive numbers")
+    median = float(np.median(gain))
+    baseline = float(np.median(maps["offsetmap"]))
+    fields = (
+        Field("offsetmap (median)", baseline, "offset"),
+        Field("gainmap (median)", 1.0 / median, "adu_per_e_total", "1/gainmap: ADU per e-"),
+    )
+    per_pixel = {
+        "offset": maps["offsetmap"],
+        "adu_per_e_total": 1.0 / gain,
+        "variance": maps["varmap"],
+    }
+    return [
+        Reading(
+            "smap", "camera correction", fields, median, "gainmap (median)", baseline, None,
+            per_pixel, None,
+        )
+    ]  # fmt: skip
+
+
 def _smap_cameras(raw, path, setpoint) -> list[Reading] | None:
     """SMAP's Camera Manager database (``settings/cameras.mat``) as SMAP's
     ``getCameraCalibration`` reads it, or None where ``raw`` is not one. Each camera
@@ -203,9 +243,5 @@ TOOL = Tool(
             and next(toolkit.find_tables(doc, ("conversion", "emgain")), None) is not None
         )
     ),
-    read_file=lambda path, setpoint: (
-        _smap_cameras(toolkit.mat_raw(path), path, setpoint)
-        if path.suffix.lower() == ".mat"
-        else None
-    ),
+    read_file=lambda path, setpoint: _read_mat(path, setpoint),
 )
