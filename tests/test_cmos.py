@@ -18,6 +18,17 @@ from emccdcal.model import adc, noise
 from emccdcal.simulate.cmos import CMOSCamera, simulate_cmos_series
 
 
+def _calibrated(folder, kind, shape, frames, dark_frames, seed, **camera):
+    """A simulated camera of ``kind`` written to ``folder`` and its calibration as a user
+    runs it (``calibrate(manifest)``: the kind says the method); (simulation, result)."""
+    rows, cols = shape
+    sim = simulate_cmos_series(
+        folder, kind=kind, rows=rows, cols=cols, frames=frames, dark_frames=dark_frames,
+        seed=seed, progress=False, **camera,
+    )  # fmt: skip
+    return sim, emccdcal.calibrate(sim.manifest, progress=False)
+
+
 def _z(ds, outdir):
     truth = tifffile.imread(outdir / "truth-e_per_adu.tif")
     return ((ds.e_per_adu.values - truth) / ds.e_per_adu_se.values).ravel()
@@ -70,11 +81,7 @@ def test_a_camera_without_an_em_register_calibrates_with_honest_errors(tmp_path,
     σ ≈ 2.5 ADU) and an sCMOS whose quiet pixels show the comb. Before the comb start and
     the profile's errors, the qCMOS's φ was an alias 7–8 % off at a tenth of its pixels
     (|z| up to 28) and the sCMOS's quiet pixels |z| up to 14."""
-    sim = simulate_cmos_series(
-        tmp_path, kind=kind, rows=12, cols=12, frames=1500, dark_frames=3000, seed=seed,
-        progress=False,
-    )  # fmt: skip
-    ds = emccdcal.calibrate(sim.manifest, progress=False)  # no method: the kind says
+    sim, ds = _calibrated(tmp_path, kind, (12, 12), 1500, 3000, seed)
     assert ds.attrs["method"] == "is-adu" and ds.attrs["camera_kind"] == kind
     z = _z(ds, sim.outdir)
     assert np.all(np.isfinite(z))
@@ -155,11 +162,7 @@ def test_telegraph_pixels_are_found_at_the_stated_false_alarm_rate(kind):
 
 @pytest.mark.slow
 def test_a_calibration_marks_its_telegraph_pixels(tmp_path):
-    sim = simulate_cmos_series(
-        tmp_path, kind="scmos", rows=8, cols=8, frames=400, dark_frames=2000,
-        rts_fraction=0.1, seed=2, progress=False,
-    )  # fmt: skip
-    ds = emccdcal.calibrate(sim.manifest, progress=False)
+    sim, ds = _calibrated(tmp_path, "scmos", (8, 8), 400, 2000, 2, rts_fraction=0.1)
     truth = tifffile.imread(sim.outdir / "truth-rts_step.tif") > 0
     assert truth.sum() >= 3
     flags = ds.telegraph.values.astype(bool)
@@ -178,11 +181,7 @@ def test_a_movie_of_a_camera_without_an_em_register_converts_at_its_one_setpoint
     """``apply`` of a movie that records no set-point, by the calibration of a camera
     without an EM register (set-point 1): photoelectrons per pixel and frame, the
     level's within 2 %. An EMCCD's 1× calibration still asks for the movie's set-point."""
-    sim = simulate_cmos_series(
-        tmp_path / "s", kind="qcmos", rows=6, cols=6, frames=600, dark_frames=1200, seed=9,
-        progress=False,
-    )  # fmt: skip
-    ds = emccdcal.calibrate(sim.manifest, progress=False)
+    sim, ds = _calibrated(tmp_path / "s", "qcmos", (6, 6), 600, 1200, 9)
     movie = tmp_path / "movie.tif"
     tifffile.imwrite(movie, tifffile.imread(sim.outdir / "int3.tif"))
     out = emccdcal.apply_calibration(ds, movie, tmp_path / "e.tif", progress=False)
@@ -286,11 +285,7 @@ def test_gdsc_smlms_per_pixel_camera_model_is_written_and_audited_pixel_by_pixel
     """A camera without an EM register exports gdsc-smlm's per-pixel camera model (Bias,
     Gain, Variance slices, the sensor origin as ImageJ's) and its JSON names it; the audit
     reads it back pixel by pixel: agreeing everywhere, and one pixel's gain 5 % off named."""
-    sim = simulate_cmos_series(
-        tmp_path / "s", kind="scmos", rows=5, cols=6, frames=300, dark_frames=600, seed=3,
-        progress=False,
-    )  # fmt: skip
-    ds = emccdcal.calibrate(sim.manifest, progress=False)
+    sim, ds = _calibrated(tmp_path / "s", "scmos", (5, 6), 300, 600, 3)
     files = emccdcal.export_calibration(ds, "gdsc", tmp_path / "gdsc")
     model = next(f for f in files if f.name == "gdsc-camera-model.tif")
     with tifffile.TiffFile(model) as tif:
@@ -331,11 +326,7 @@ def test_smites_roi_reads_back_as_the_region_meant(origin, shape):
 def test_smites_calibration_file_is_written_and_audited_pixel_by_pixel(tmp_path):
     from scipy.io import loadmat
 
-    sim = simulate_cmos_series(
-        tmp_path / "s", kind="qcmos", rows=4, cols=5, frames=300, dark_frames=600, seed=4,
-        progress=False,
-    )  # fmt: skip
-    ds = emccdcal.calibrate(sim.manifest, progress=False)
+    sim, ds = _calibrated(tmp_path / "s", "qcmos", (4, 5), 300, 600, 4)
     (path,) = emccdcal.export_calibration(ds, "smite", tmp_path / "smite")
     params = loadmat(path, squeeze_me=True, struct_as_record=False)["Params"]
     np.testing.assert_allclose(params.Gain, 1 / ds.e_per_adu.values, rtol=1e-6)
@@ -359,11 +350,7 @@ def test_smites_calibration_file_is_written_and_audited_pixel_by_pixel(tmp_path)
 def test_smaps_correction_file_is_audited_pixel_by_pixel(tmp_path):
     from scipy.io import loadmat, savemat
 
-    sim = simulate_cmos_series(
-        tmp_path / "s", kind="scmos", rows=4, cols=5, frames=300, dark_frames=600, seed=6,
-        progress=False,
-    )  # fmt: skip
-    ds = emccdcal.calibrate(sim.manifest, progress=False)
+    sim, ds = _calibrated(tmp_path / "s", "scmos", (4, 5), 300, 600, 6)
     files = emccdcal.export_calibration(ds, "smap", tmp_path / "smap")
     path = next(f for f in files if f.name == "smap-correction.mat")
     (audit,) = emccdcal.audit(path, ds)
