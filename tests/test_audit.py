@@ -57,8 +57,9 @@ def calibration(tmp_path_factory):
 
 @pytest.mark.parametrize("tool", sorted(EXPORTED))
 def test_an_export_agrees_and_ten_percent_off_is_named(calibration, tool, tmp_path, capsys):
-    # smite's file is binary MATLAB: tests/test_cmos.py puts a pixel of it off
-    assert set(EXPORTED) | {"smite"} == set(TOOL_NAMES)
+    # smite's file (binary MATLAB) and the OME-TIFF of maps: tests/test_cmos.py puts a
+    # pixel of each off
+    assert set(EXPORTED) | {"smite", "ome-tiff"} == set(TOOL_NAMES)
     name, pattern = EXPORTED[tool]
     (path,) = [
         f
@@ -271,7 +272,7 @@ def test_files_that_are_no_tools_camera_are_one_line(calibration, tmp_path, caps
     with pytest.raises(
         InputError,
         match=r"notes\.yaml': not a camera file of a tool "
-        r"emccdcal knows \(DECODE, gdsc-smlm, Picasso",
+        r"emccdcal knows \(DECODE, gdsc-smlm, OME-TIFF maps, Picasso",
     ):
         audit(junk, calibration, setpoint=SETPOINT)
     bad = tmp_path / "config.yaml"

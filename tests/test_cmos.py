@@ -362,3 +362,59 @@ def test_smaps_correction_file_is_audited_pixel_by_pixel(tmp_path):
     (audit,) = emccdcal.audit(path, ds)
     assert not audit.ok and "at 1 of 20 pixels" in audit.problems[0]
     assert "(3, 1)" in audit.problems[0]
+
+
+def test_an_ome_tiff_of_the_maps_with_their_errors_is_written_and_audited(tmp_path):
+    """The plain OME-TIFF: every map with its SE, the channels named, the telegraph mask;
+    the offset's and read noise's SEs honest against the truth; audited pixel by pixel."""
+    import json
+    import xml.etree.ElementTree as ET
+
+    sim, ds = _calibrated(tmp_path / "s", "qcmos", (6, 6), 300, 1500, 3, rts_fraction=0.15)
+    truth = {k: tifffile.imread(sim.outdir / f"truth-{k}.tif") for k in ("offset", "read_noise")}
+    rts = tifffile.imread(sim.outdir / "truth-rts_step.tif") > 0
+    quiet = ~rts & ds.converged.values.astype(bool)
+    for name in ("offset", "read_noise"):  # the maps' own errors, from the dark frames' count
+        z = (ds[name].isel(level=0).values - truth[name]) / ds[f"{name}_se"].isel(level=0).values
+        assert 0.5 < np.sqrt(np.mean(z[quiet] ** 2)) < 1.6, name
+    (path,) = emccdcal.export_calibration(ds, "ome-tiff", tmp_path / "ome")
+    with tifffile.TiffFile(path) as tif:
+        root = ET.fromstring(tif.ome_metadata)
+        data = tif.asarray()
+    names = [c.get("Name") for c in root.iter() if c.tag.endswith("Channel")]
+    described = json.loads(next(e.text for e in root.iter() if e.tag.endswith("Description")))
+    maps = dict(zip(names, data))
+    assert data.shape == (len(names), 6, 6) and described["units"]["read_noise_variance"] == "ADU2"
+    ok = ds.converged.values.astype(bool)
+    np.testing.assert_allclose(maps["e_per_adu"][ok], ds.e_per_adu.values[ok], rtol=1e-6)
+    np.testing.assert_allclose(maps["adu_per_e_se"][ok], ds.adu_per_e_se.values[ok], rtol=1e-5)
+    sigma, sigma_se = ds.read_noise.isel(level=0).values, ds.read_noise_se.isel(level=0).values
+    variance = adc.count_variance(sigma, True)
+    np.testing.assert_allclose(maps["read_noise_variance"][ok], variance[ok], rtol=1e-6)
+    np.testing.assert_allclose(
+        maps["read_noise_variance_se"][ok], (2 * sigma * sigma_se)[ok], rtol=1e-5
+    )
+    np.testing.assert_allclose(
+        maps["read_noise_variance_e"][ok], (variance * ds.e_per_adu.values**2)[ok], rtol=1e-5
+    )
+    assert np.array_equal(maps["telegraph"] == 1, ds.telegraph.values.astype(bool))
+    (audit,) = emccdcal.audit(path, ds)
+    assert audit.ok and audit.reading.tool == "ome-tiff"
+    data[names.index("offset"), 2, 4] += 5.0  # a baseline 5 ADU off at one pixel
+    tifffile.imwrite(path, data, ome=True, metadata={
+        "axes": "CYX", "Channel": {"Name": names}, "Description": json.dumps(described),
+    })  # fmt: skip
+    (audit,) = emccdcal.audit(path, ds)
+    assert not audit.ok and "(2, 4)" in " ".join(audit.problems)
+
+
+def test_decode_takes_an_scmos_as_its_model_without_em_gain(tmp_path):
+    import yaml
+
+    sim, ds = _calibrated(tmp_path / "s", "scmos", (4, 4), 300, 600, 5)
+    (path,) = emccdcal.export_calibration(ds, "decode", tmp_path / "decode")
+    camera = yaml.safe_load(path.read_text())["Camera"]
+    assert camera["em_gain"] is None
+    assert camera["e_per_adu"] == pytest.approx(float(np.median(ds.e_per_adu.values)), rel=1e-6)
+    (audit,) = emccdcal.audit(path, ds)
+    assert audit.ok

@@ -20,6 +20,7 @@ from ..errors import (
     FitWarning,
 )
 from ..fit import gof, mv
+from ..fit.series import map_variances
 from .tiles import _QUALITY, _bounds_of, _labels
 
 if TYPE_CHECKING:
@@ -260,6 +261,23 @@ def _dark_variables(used, per_acq_dim, shape) -> dict:
     return out
 
 
+def _map_errors(used, offsets, read_noise, per_acq_dim, shape) -> dict:
+    """The offset and read-noise maps' standard errors (ADU) per acquisition, from the
+    dark frames behind them (NaN where that count is unknown), where any is known."""
+    if all(a.dark_frames is None for a in used):
+        return {}
+    se = np.full((2, len(used), *shape), np.nan)
+    for i, a in enumerate(used):
+        variances = map_variances(offsets[i], read_noise[i], a.dark_frames, a.em_gain_setpoint == 1)
+        if variances[0] is not None:
+            se[:, i] = np.sqrt(np.stack(variances)).reshape(2, *shape)
+    what = "standard error of the {} map, from the dark frames it was computed from"
+    return {
+        f"{name}_se": ((per_acq_dim, "row", "col"), values, "ADU", what.format(name))
+        for name, values in zip(("offset", "read_noise"), se)
+    }
+
+
 def _likelihood_dataset(
     method, manifest, used, arrays, offsets, read_noise, options, intervals, model, se_note
 ):
@@ -291,6 +309,7 @@ def _likelihood_dataset(
             "each acquisition's part of loglik",
         ),
     }
+    extra.update(_map_errors(used, offsets, read_noise, per_acq_dim, (rows, cols)))
     extra.update(_dark_variables(used, per_acq_dim, (rows, cols)))
     fixed_phi_se = grid(est["e_per_adu_se"][:, 0])  # NaN unless φ came with its error
     common = dict(

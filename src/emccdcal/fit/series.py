@@ -149,6 +149,31 @@ def acquisition_models(
     ]
 
 
+def map_variances(offset, read_noise, dark_frames, poisson_normal):
+    """The offset and read-noise maps' own variances (ADU², each the maps' shape) from
+    the ``dark_frames`` n they were computed from: σ²/n for the offset (a mean's) and
+    σ²/(2(n−1)) for the read noise (an SD's); where the ADC's rounding is in the model
+    (:mod:`emccdcal.model.adc`: a 1× dark's pixels below 2 ADU) the maps are a rounded
+    normal's fit and their variances its inverse Fisher information over n.
+    ``(None, None)`` where n is unknown (maps taken as exact).
+
+    >>> o, r = map_variances(np.array([100.0]), np.array([10.0]), 101, False)
+    >>> float(o[0]), float(r[0])
+    (0.9900990099009901, 0.5)
+    """
+    if dark_frames is None:
+        return None, None
+    offset, read_noise = np.asarray(offset, dtype=float), np.asarray(read_noise, dtype=float)
+    sigma2 = read_noise**2
+    offset_var, read_noise_var = sigma2 / dark_frames, sigma2 / (2.0 * (dark_frames - 1))
+    rounding = adc.rounds(poisson_normal, read_noise) & np.isfinite(offset)
+    if rounding.any():
+        cov = np.linalg.inv(adc.information(offset[rounding], read_noise[rounding]))
+        offset_var[rounding] = cov[:, 0, 0] / dark_frames
+        read_noise_var[rounding] = cov[:, 1, 1] / dark_frames
+    return offset_var, read_noise_var
+
+
 @dataclass(frozen=True)
 class AcquisitionModel:
     """The model half of one acquisition for a block of P pixels.
@@ -177,35 +202,20 @@ class AcquisitionModel:
     dark_frames: int | None = None
     map_group: object = None
 
-    def _map_variances(self, pn):
-        """The maps' own variances (ADU²) from ``dark_frames`` n: σ²/n for the offset (a
-        mean's) and σ²/(2(n−1)) for the read noise (an SD's); where the ADC's rounding is
-        in the model (:mod:`emccdcal.model.adc`), the maps are a rounded normal's fit and
-        their variances its inverse Fisher information over n."""
-        n_dark = self.dark_frames
-        if n_dark is None:
-            return dict(offset_var=None, read_noise_var=None)
-        sigma2 = self.read_noise**2
-        offset_var, read_noise_var = sigma2 / n_dark, sigma2 / (2.0 * (n_dark - 1))
-        rounding = adc.rounds(pn, self.read_noise)
-        if rounding.any():
-            cov = np.linalg.inv(adc.information(self.offset[rounding], self.read_noise[rounding]))
-            offset_var = np.where(rounding, 0.0, offset_var)
-            read_noise_var = np.where(rounding, 0.0, read_noise_var)
-            offset_var[rounding] = cov[:, 0, 0] / n_dark
-            read_noise_var[rounding] = cov[:, 1, 1] / n_dark
-        return dict(offset_var=offset_var, read_noise_var=read_noise_var)
-
     def _block(self, histograms=None) -> engine.AcquisitionBlock:
         """The engine's block of this acquisition, with its data where given."""
         pn = bool(self.setpoint == 1)
+        offset_var, read_noise_var = map_variances(
+            self.offset, self.read_noise, self.dark_frames, pn
+        )
         maps = dict(
             offset=self.offset,
             read_noise=self.read_noise,
             poisson_normal=pn,
             map_group=self.map_group,
             em_model=self.em_model,
-            **self._map_variances(pn),
+            offset_var=offset_var,
+            read_noise_var=read_noise_var,
         )
         if histograms is None:
             return engine.AcquisitionBlock(

@@ -86,6 +86,12 @@ class Calibration:
         Offset S0 and read-noise σ (ADU) per set-point where the results record them:
         from the first member that has the set-point (the median over an intensity
         series' levels).
+    offset_se, read_noise_se : dict of float to ndarray (R, C)
+        Their standard errors (ADU), where the results record them (from the dark
+        frames' count).
+    telegraph : ndarray (R, C) of bool, or None
+        Pixels a member found to hold two offset states (random-telegraph pixels), where
+        a member tested for them.
     em_model : noise.EMModel
         The EM register model the gains were fitted with (the gamma model for results
         that record none).
@@ -130,6 +136,9 @@ class Calibration:
     em_gain_se: dict = field(default_factory=dict)
     offset: dict = field(default_factory=dict)
     read_noise: dict = field(default_factory=dict)
+    offset_se: dict = field(default_factory=dict)
+    read_noise_se: dict = field(default_factory=dict)
+    telegraph: np.ndarray | None = None
     em_model: object = None
     camera: dict = field(default_factory=dict)
     origin: tuple | None = None
@@ -351,6 +360,32 @@ def _members_em_model(label, loaded):
     return models.pop()
 
 
+def _dark_maps(loaded, masked) -> dict:
+    """What the members' dark frames gave, for :class:`Calibration`: per set-point the
+    offset and read-noise maps and their SEs (from the first member that has the
+    set-point; an intensity series' levels merged by their median), and the telegraph
+    pixels any member found."""
+    out: dict[str, dict] = {
+        name: {} for name in ("offset", "read_noise", "offset_se", "read_noise_se")
+    }
+    telegraph = None
+    for _, ds in loaded:
+        if "telegraph" in ds:
+            found = ds["telegraph"].transpose("row", "col").values.astype(bool)
+            telegraph = found if telegraph is None else telegraph | found
+        for name in out:
+            maps, store = masked(ds, name), out[name]
+            if maps is None:
+                continue
+            dim = ds[name].dims[0] if ds[name].ndim == 3 else None
+            at = _acquisition_setpoints(ds, dim) if dim else [1.0]
+            maps = maps if dim else maps[None]
+            for s in dict.fromkeys(at):  # first member first; levels at one set-point merged
+                if np.isfinite(s) and s not in store:
+                    store[s] = np.nanmedian(maps[np.asarray(at) == s], axis=0)
+    return {**out, "telegraph": telegraph}
+
+
 def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
     """A calibration from what a user has: a result file, a result in memory, or a group
     of them merged; the one door every function that takes a calibration goes through.
@@ -423,21 +458,10 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
     gains: dict = {}
     gains_se: dict = {}
     source: dict = {}
-    offsets: dict = {}
-    read_noise: dict = {}
+    dark = _dark_maps(loaded, masked)
     camera: dict = {}
     other_phi = []
     for f, ds in loaded:
-        for name, store in (("offset", offsets), ("read_noise", read_noise)):
-            maps = masked(ds, name)
-            if maps is None:
-                continue
-            dim = ds[name].dims[0] if ds[name].ndim == 3 else None
-            at = _acquisition_setpoints(ds, dim) if dim else [1.0]
-            maps = maps if dim else maps[None]
-            for s in dict.fromkeys(at):  # first member first; levels at one set-point merged
-                if np.isfinite(s) and s not in store:
-                    store[s] = np.nanmedian(maps[np.asarray(at) == s], axis=0)
         recorded = camera_of(ds, f)
         differ = identity.mismatches(camera, recorded)
         if differ:
@@ -495,8 +519,7 @@ def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:
         e_per_adu_se=masked(loaded[i_phi][1], "e_per_adu_se"),
         em_gain=gains,
         em_gain_se=gains_se,
-        offset=offsets,
-        read_noise=read_noise,
+        **dark,
         em_model=model,
         camera=camera,
         origin=origins.pop() if len(origins) == 1 else None,

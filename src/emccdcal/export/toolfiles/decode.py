@@ -1,9 +1,16 @@
 """DECODE (the ``Camera`` table of its parameter ``.yaml``): writer and the audit's
 reader, one plug-in.
+
+DECODE's camera takes one number of each (``baseline`` ADU, ``e_per_adu``, ``em_gain``,
+``read_sigma`` e⁻), no per-pixel maps (its per-pixel read-noise class is marked not
+ready and reads no file): the medians go there. For a camera without an EM register
+``em_gain`` is ``null``, DECODE's sCMOS model (its ``CameraSCMOS``), and the per-pixel
+maps go where tools read them (``--to ome-tiff``, ``gdsc``, ``smap``, ``smite``).
 """
 
 from __future__ import annotations
 
+from ... import defaults
 from ...errors import InputError
 from ...plugins import Tool
 from .. import toolkit
@@ -12,11 +19,12 @@ from ..toolkit import Field, Reading
 
 def write(cal, s, v, out, qe, pixel_size_nm, name):
     """DECODE ``param.yaml``'s ``Camera`` block (release 0.10 layout)."""
+    register = cal.camera_kind not in defaults.WITHOUT_EM_REGISTER
     camera = {
         "baseline": v["offset"]["median"],
         "convert2photons": True,
         "e_per_adu": v["e_per_adu"]["median"],
-        "em_gain": v["em_gain"]["median"],
+        "em_gain": v["em_gain"]["median"] if register else None,
         "qe": 1.0 if qe is None else qe,
         "read_sigma": v["read_noise_e"]["median"],
         "spur_noise": 0.0,
