@@ -158,7 +158,19 @@ def micromanager_properties(
     preamp="Gain 2",
     roi="0-0-6-5",
 ):
-    """One frame's Micro-Manager properties as an Andor or a Photometrics camera writes them."""
+    """One frame's Micro-Manager properties as an Andor, a Photometrics or a Hamamatsu
+    (DCAM: an ORCA-Quest, no EM register) camera writes them."""
+    if style == "hamamatsu":
+        return {
+            "Camera": "HamamatsuHam_DCAM",
+            "HamamatsuHam_DCAM-CameraName": "C15550-20UP",
+            "HamamatsuHam_DCAM-CameraID": "S/N: 000123",
+            "HamamatsuHam_DCAM-ReadoutSpeed": "Ultra quiet",
+            "Exposure-ms": str(exposure_ms),
+            "BitDepth": "16",
+            "ROI": roi,
+            "Binning": "1x1",
+        }
     if style == "andor":
         return {
             "Camera": "Andor",

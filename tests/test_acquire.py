@@ -688,3 +688,36 @@ def test_a_fifo_as_the_micro_manager_configuration_is_refused_at_once(tmp_path):
     lines = done.stderr.strip().splitlines()
     assert done.returncode == 2 and len(lines) == 1, done.stderr
     assert f"'{fifo}': is a FIFO (named pipe), not a Micro-Manager configuration file" in lines[0]
+
+
+@pytest.mark.slow
+def test_plan_acquire_scan_calibrate_an_scmos_with_no_option(tmp_path):
+    """An sCMOS from plan to calibration as a user runs it (installed command line): the
+    plan says the kind, the simulated camera's files record it (its model's name), scan
+    writes a manifest of a camera without an EM register, calibrate needs no method;
+    φ per pixel agrees with the camera's truth within its SEs."""
+    import tifffile
+
+    from emccdcal.result import load
+
+    def run(*argv):
+        done = subprocess.run(
+            [sys.executable, "-m", "emccdcal", *map(str, argv)], capture_output=True, text=True
+        )
+        assert done.returncode == 0, done.stderr
+        return done.stdout
+
+    plan_dir, session, out = tmp_path / "plan", tmp_path / "session", tmp_path / "out"
+    run("plan", "--camera-kind", "scmos", "--e-per-adu", 0.46, "--read-noise", 3.0,
+        "--offset", 100, "--target-se", 5, "--pixel-well", 30000, "-o", plan_dir, "-q")  # fmt: skip
+    assert 'camera_kind = "scmos"' in (plan_dir / "plan.toml").read_text()
+    run("acquire", plan_dir / "plan.toml", "-o", session, "--simulated", "--seed", 5,
+        "--roi", "0,0,10,8", "-q")  # fmt: skip
+    run("scan", session, "-o", tmp_path / "manifest.toml", "-q")
+    assert 'camera_kind = "scmos"' in (tmp_path / "manifest.toml").read_text()
+    run("calibrate", tmp_path / "manifest.toml", "-o", out, "-q", "--no-checks")
+    ds = load(out)
+    assert ds.attrs["method"] == "is-adu" and ds.attrs["camera_kind"] == "scmos"
+    truth = tifffile.imread(session / "truth-e_per_adu.tif")[:8, :10]
+    z = ((ds.e_per_adu.values - truth) / ds.e_per_adu_se.values)[ds.converged.values]
+    assert z.size > 70 and abs(z.mean()) < 0.5 and 0.65 < np.sqrt(np.mean(z**2)) < 1.4

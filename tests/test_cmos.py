@@ -13,7 +13,7 @@ import tifffile
 
 import emccdcal
 from emccdcal.data.dark import analog_read_out
-from emccdcal.errors import ManifestError
+from emccdcal.errors import FitWarning, ManifestError
 from emccdcal.model import adc, noise
 from emccdcal.simulate.cmos import CMOSCamera, simulate_cmos_series
 
@@ -418,3 +418,121 @@ def test_decode_takes_an_scmos_as_its_model_without_em_gain(tmp_path):
     assert camera["e_per_adu"] == pytest.approx(float(np.median(ds.e_per_adu.values)), rel=1e-6)
     (audit,) = emccdcal.audit(path, ds)
     assert audit.ok
+
+
+def _photon_free(folder, kind, shape, frames, seed, exposures=(0.01, 0.5, 1.0, 2.0)):
+    rows, cols = shape
+    return simulate_cmos_series(
+        folder, kind=kind, rows=rows, cols=cols, frames=frames, dark_current=30.0,
+        dark_exposures_s=exposures, seed=seed, progress=False,
+    )  # fmt: skip
+
+
+@pytest.mark.slow
+def test_the_photon_free_path_gives_phi_and_the_dark_current_with_honest_errors(tmp_path):
+    """Darks at four exposures, no light (Diekmann et al. 2022): the thermal signal's
+    growth is the signal; φ and the dark current unbiased with honest SEs."""
+    sim = _photon_free(tmp_path, "scmos", (10, 10), 1000, 21)
+    ds = emccdcal.calibrate(sim.manifest, progress=False)
+    assert ds.attrs["photon_free"] == 1 and ds.dark_current.attrs["units"] == "e-/s"
+    ok = ds.converged.values.astype(bool)
+    assert ok.mean() > 0.95
+    for name in ("e_per_adu", "dark_current"):
+        truth = tifffile.imread(sim.outdir / f"truth-{name}.tif")
+        z = ((ds[name].values - truth) / ds[f"{name}_se"].values)[ok]
+        assert abs(z.mean()) < 0.4 and 0.7 < np.sqrt(np.mean(z**2)) < 1.35, name
+    assert np.mean(ds.dark_current_pvalue.values[ok] < 0.01) <= 0.05  # linear in exposure
+
+
+def test_darks_at_two_exposures_give_the_dark_current_of_a_lit_series(tmp_path):
+    """Two acquisitions whose darks were recorded at 0.01 s and 0.5 s: the dark current
+    from the darks alone (the frames' own signal is not dark)."""
+    sim = _photon_free(tmp_path, "scmos", (6, 6), 600, 22)
+    manifest = tmp_path / "lit.toml"
+    manifest.write_text(
+        'camera_kind = "scmos"\n\n'
+        '[[acquisition]]\nframes = "dark-1s.tif"\ndark = "dark-0.01s.tif"\n'
+        "exposure_s = 1.0\ndark_exposure_s = 0.01\n\n"
+        '[[acquisition]]\nframes = "dark-2s.tif"\ndark = "dark-0.5s.tif"\n'
+        "exposure_s = 2.0\ndark_exposure_s = 0.5\n"
+    )
+    ds = emccdcal.calibrate(manifest, progress=False)
+    assert "photon_free" not in ds.attrs and "dark_current_pvalue" not in ds  # two points
+    truth = tifffile.imread(sim.outdir / "truth-dark_current.tif")
+    ok = ds.converged.values.astype(bool)
+    z = ((ds.dark_current.values - truth) / ds.dark_current_se.values)[ok]
+    assert 0.5 < np.sqrt(np.mean(z**2)) < 1.6
+
+
+def test_a_dark_holding_electrons_under_a_resolved_comb_is_warned(tmp_path):
+    """A qCMOS's reference dark at 0.5 ms with 30 e-/s: about 0.015 e⁻ in it, a fifth of
+    the read-noise variance (0.27 e⁻)², biases φ (docs/cmos.md): said, with the cure."""
+    sim = _photon_free(tmp_path, "qcmos", (4, 4), 400, 23, exposures=(0.0005, 0.5, 1.0))
+    with pytest.warns(FitWarning):
+        ds = emccdcal.calibrate(sim.manifest, progress=False)
+    said = [w for w in ds.attrs["warnings"] if "dark signal" in w]
+    assert len(said) == 1 and "record the dark at a shorter exposure" in said[0]
+
+
+@pytest.mark.parametrize(
+    "extra, says",
+    [
+        ("", "needs 'exposure_s' and 'dark_exposure_s'"),
+        ("exposure_s = 0.5\ndark_exposure_s = 1.0\n", "must be longer than its dark's"),
+        ("exposure_s = -1\n", "'exposure_s' must be a time in seconds > 0"),
+    ],
+)
+def test_a_photon_free_manifest_without_its_exposures_is_one_line(tmp_path, extra, says):
+    manifest = tmp_path / "m.toml"
+    manifest.write_text(
+        'camera_kind = "scmos"\nlight = false\n\n[[acquisition]]\nframes = "a.tif"\n'
+        f'dark = "d.tif"\n{extra}'
+    )
+    with pytest.raises(ManifestError, match=says):
+        emccdcal.read_manifest(manifest)
+
+
+def test_a_micro_manager_folder_of_an_orca_quest_scans_as_a_qcmos_with_its_exposures(tmp_path):
+    """Huang's folder recorded through Micro-Manager's DCAM adapter: the model names the
+    camera a qCMOS, the frames' exposure goes into the manifest, no option is needed."""
+    import tomllib
+
+    from camera_files import write_micromanager_tiff
+
+    sim = simulate_cmos_series(
+        tmp_path / "sim", kind="qcmos", rows=4, cols=5, frames=200, seed=24, progress=False
+    )
+    folder = tmp_path / "session"
+    folder.mkdir()
+    for name in ("dark", "int1", "int2", "int3"):
+        frames = tifffile.imread(sim.outdir / f"{name}.tif")
+        write_micromanager_tiff(
+            folder / f"{name}.ome.tif", frames, style="hamamatsu", exposure_ms=20.0, roi="0-0-5-4"
+        )
+    done = subprocess.run(
+        [sys.executable, "-m", "emccdcal", "scan", str(folder), "-q"],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, done.stderr
+    text = (folder / "manifest.toml").read_text()
+    doc = tomllib.loads(text)
+    assert doc["camera_kind"] == "qcmos" and "the files' model says so" in text
+    assert all(a["exposure_s"] == 0.02 for a in doc["acquisition"])
+    assert all("em_gain_setpoint" not in a for a in doc["acquisition"])
+    ds = emccdcal.calibrate(folder / "manifest.toml", progress=False)
+    assert ds.attrs["method"] == "is-adu" and ds.attrs["camera_kind"] == "qcmos"
+
+
+@pytest.mark.slow
+def test_bright_levels_leave_no_pixel_overconfident(tmp_path):
+    """Levels of thousands of e⁻ (what the planner picks for an sCMOS) on pixels of 0.6–1
+    e⁻: the likelihood's ripples, 1/E apart and a millionth of a nat deep, had given
+    SEs 20 times too small (|z| up to 32); the envelope's fit gives the error."""
+    sim, ds = _calibrated(
+        tmp_path, "scmos", (6, 6), 300, 50, 25, read_noise_e=1.0,
+        levels=(800.0, 6400.0, 26000.0),
+    )  # fmt: skip
+    z = _z(ds, sim.outdir)[ds.converged.values.ravel()]
+    assert z.size > 30 and np.abs(z).max() < 5
+    assert abs(z.mean()) < 0.4 and 0.7 < np.sqrt(np.mean(z**2)) < 1.35

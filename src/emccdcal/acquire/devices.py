@@ -1,6 +1,7 @@
-"""A simulated EMCCD for Micro-Manager: a camera and a shutter made with pymmcore-plus's
-Python device API (``pymmcore_plus.experimental.unicore``), whose frames come from the
-project's simulator (:func:`emccdcal.simulate.camera.simulate_frames`).
+"""A simulated EMCCD, sCMOS and qCMOS for Micro-Manager: a camera and a shutter made with
+pymmcore-plus's Python device API (``pymmcore_plus.experimental.unicore``), whose frames
+come from the project's simulators (:func:`emccdcal.simulate.camera.simulate_frames`,
+:func:`emccdcal.simulate.cmos.simulate_cmos_frames`).
 
 The camera has a settable EM gain (the standard ``EMGain`` property), a lamp
 (``Light``: photoelectrons per pixel per frame while the shutter is open), a region of
@@ -20,8 +21,9 @@ import numpy as np
 from pymmcore_plus.experimental.unicore import CameraDevice, ShutterDevice, pymm_property
 
 from ..simulate.camera import Camera, default_em_gain, offset_at_setpoint, simulate_frames
+from ..simulate.cmos import CMOSCamera, simulate_cmos_frames
 
-__all__ = ["SimulatedShutter", "SimulatedEMCCD", "SENSOR_SHAPE"]
+__all__ = ["SimulatedShutter", "SimulatedEMCCD", "SimulatedCMOS", "SENSOR_SHAPE"]
 
 #: The simulated sensor, rows × cols, px.
 SENSOR_SHAPE = (64, 64)
@@ -179,6 +181,69 @@ class SimulatedEMCCD(CameraDevice):
                 seed=self._frame_seeds.spawn(1)[0],
                 cascade_method=self.camera.cascade_method,
                 **self.camera.register(),
+            )
+            for frame in frames:
+                buffer = get_buffer((h, w), np.uint16)
+                buffer[:] = frame
+                done += 1
+                yield {"ROI-X-start": x, "ROI-Y-start": y}
+
+
+class SimulatedCMOS(SimulatedEMCCD):
+    """An sCMOS or qCMOS (no EM register) whose frames are drawn by
+    :func:`emccdcal.simulate.cmos.simulate_cmos_frames`: per-pixel φ, offset and read
+    noise (its truth, :attr:`maps`), the ADC's rounding. Its EM gain stays at 1.
+
+    Its ``CameraName`` is the model family it is made like (``ORCA-Quest`` for a
+    qCMOS, ``ORCA-Flash4.0`` for an sCMOS, as :data:`emccdcal.simulate.cmos.PRESETS`),
+    marked simulated, so that its files record the kind as such a camera's do.
+    """
+
+    _NAMES = {"qcmos": "ORCA-Quest", "scmos": "ORCA-Flash4.0"}
+
+    def __init__(self, camera: CMOSCamera, shutter: SimulatedShutter, *, seed: int, run: int = 0):
+        CameraDevice.__init__(self)
+        self.camera, self.shutter, self.seed = camera, shutter, int(seed)
+        maps_seed, frame_seed = np.random.SeedSequence(self.seed).spawn(2)
+        self.maps = camera.maps(np.random.default_rng(maps_seed))
+        self._frame_seeds = np.random.SeedSequence(
+            frame_seed.entropy, spawn_key=(*frame_seed.spawn_key, run)
+        )
+        self._exposure_ms, self._setpoint, self._light = 10.0, 1.0, 0.0
+        self._roi = None
+        self.sequence_thread = None
+
+    @staticmethod
+    def true_em_gain(setpoint: float) -> float:
+        return 1.0
+
+    def offset_of(self, setpoint: float) -> float:
+        return float(self.camera.offset)
+
+    def set_em_gain(self, value: float) -> None:
+        if float(value) != 1.0:
+            raise ValueError(f"EM gain {float(value):g}: this camera has no EM register")
+
+    def get_camera_name(self) -> str:
+        return f"{self._NAMES[self.camera.kind]} (emccdcal simulated {self.camera.kind})"
+
+    def start_sequence(self, n, get_buffer):
+        self.sequence_thread = threading.current_thread()
+        x, y, w, h = self.get_roi()
+        maps = {k: v[y : y + h, x : x + w] for k, v in self.maps.items()}
+        light = self._light if self.shutter.get_open() else 0.0
+        rng = np.random.default_rng(self._frame_seeds.spawn(1)[0])
+        batch = max(1, _BATCH_VALUES // (w * h))
+        done = 0
+        while n is None or done < n:
+            k = batch if n is None else min(batch, n - done)
+            frames = simulate_cmos_frames(
+                light,
+                maps,
+                k,
+                rng,
+                adc_bits=self.camera.adc_bits,
+                rts_switch=self.camera.rts_switch,
             )
             for frame in frames:
                 buffer = get_buffer((h, w), np.uint16)

@@ -116,15 +116,19 @@ def camera_properties(core, camera: str) -> dict:
 
 
 def simulated_core(camera, *, seed: int, run: int = 0):
-    """A core with the simulated EMCCD (:mod:`.devices`) as ``Camera`` and its shutter
-    as ``Shutter``: (core, the camera device)."""
+    """A core with the simulated camera (:mod:`.devices`: an EMCCD for a
+    :class:`~emccdcal.simulate.camera.Camera`, an sCMOS or qCMOS for a
+    :class:`~emccdcal.simulate.cmos.CMOSCamera`) as ``Camera`` and its shutter as
+    ``Shutter``: (core, the camera device)."""
     from pymmcore_plus.experimental.unicore import UniMMCore
 
-    from .devices import SimulatedEMCCD, SimulatedShutter
+    from ..simulate.cmos import CMOSCamera
+    from .devices import SimulatedCMOS, SimulatedEMCCD, SimulatedShutter
 
     core = UniMMCore()
     shutter = SimulatedShutter()
-    device = SimulatedEMCCD(camera, shutter, seed=seed, run=run)
+    kind = SimulatedCMOS if isinstance(camera, CMOSCamera) else SimulatedEMCCD
+    device = kind(camera, shutter, seed=seed, run=run)
     core.loadPyDevice("Camera", device)
     core.loadPyDevice("Shutter", shutter)
     core.initializeAllDevices()

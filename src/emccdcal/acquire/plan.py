@@ -35,13 +35,14 @@ True
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .. import _roots, _xp, defaults
 from .._util import check_int, check_number
-from ..errors import OptionError
+from ..errors import InputWarning, OptionError
 from ..fit.series import SeriesLikelihood, acquisition_models, choose_register
 from ..model import adc, noise
 
@@ -351,6 +352,47 @@ def _brightest(setpoint_gain, camera, model) -> float:
     return _roots.bisect(lambda x: not fits(x), lo, hi, 60, geometric=True)[0]
 
 
+#: Read noise (e⁻) below which a 1× count's photon numbers show (the comb's revival
+#: exp(−2π²(σφ)²) above 0.7 %: docs/cmos.md).
+COMB_SHOWS_BELOW_E = 0.5
+
+
+def _warn_where_photon_numbers_show(method, e_per_adu, read_noise) -> None:
+    """A plan of φ for a camera whose read noise resolves photon numbers: its predicted SE
+    is the likelihood's curvature at the planned light, which the comb's ripples can make
+    optimistic at bright levels (where the fit's error is then the envelope's)."""
+    try:
+        sigma_e = float(e_per_adu) * float(read_noise)
+    except (TypeError, ValueError):
+        return  # checked, with its message, below
+    if method == "is-adu" and 0 < sigma_e < COMB_SHOWS_BELOW_E:
+        warnings.warn(
+            f"read noise {sigma_e:.2g} e- resolves photon numbers: the predicted SE of "
+            "e_per_adu is the likelihood's curvature at the planned light, which the "
+            "comb's ripples make optimistic at bright levels (a fit there gets the "
+            "envelope's error); record dim levels too (a few to a few tens of e-, "
+            "docs/cmos.md) and check the plan on a simulation (emccdcal simulate cmos)",
+            InputWarning,
+            stacklevel=3,
+        )
+
+
+def check_camera_kind(kind, method) -> None:
+    """A plan's ``camera_kind``: one of :data:`emccdcal.defaults.CAMERA_KINDS`, and for a
+    camera without an EM register an intensity series at 1× (``is-adu``)."""
+    if kind is None:
+        return
+    if kind not in defaults.CAMERA_KINDS:
+        raise OptionError(
+            f"camera_kind must be one of {', '.join(defaults.CAMERA_KINDS)}; got {kind!r}"
+        )
+    if kind in defaults.WITHOUT_EM_REGISTER and method != "is-adu":
+        raise OptionError(
+            f"a camera_kind = {kind!r} has no EM register: its plan is an intensity series "
+            "at 1x (method is-adu)"
+        )
+
+
 def plan(
     *,
     method="gs",
@@ -370,6 +412,7 @@ def plan(
     frame_rate_hz=None,
     device=None,
     read_noise_target_se=None,
+    camera_kind=None,
 ) -> Plan:
     """The acquisition that reaches ``target_se`` with the fewest frames.
 
@@ -412,6 +455,10 @@ def plan(
         Relative SE per pixel of the read-noise variance σ² from the darks, percent: the
         dark frames are at least :func:`darks_for_read_noise` (a localization tool's
         variance map; Huang et al. 2013 record ~20 000 darks or more: 1 % at σ ≥ 2 ADU).
+    camera_kind : {"emccd", "scmos", "qcmos", "ccd"}, optional
+        The kind of camera, recorded in the plan (``acquire --simulated`` records from a
+        simulated camera of that kind); one without an EM register is planned as an
+        intensity series at 1× (``is-adu``).
 
     Returns
     -------
@@ -434,6 +481,8 @@ def plan(
     """
     if method not in PLAN_METHODS:
         raise OptionError(f"a plan is for one of {', '.join(PLAN_METHODS)}; got {method!r}")
+    check_camera_kind(camera_kind, method)
+    _warn_where_photon_numbers_show(method, e_per_adu, read_noise)
     camera = {
         "e_per_adu": check_number("e_per_adu", e_per_adu, positive=True),
         "read_noise": check_number("read_noise", read_noise, positive=True),
@@ -447,6 +496,7 @@ def plan(
         else check_number("register_well", register_well, positive=True),
     }
     _offset_within_adc(camera)
+    camera["camera_kind"] = camera_kind
     target = check_number("target_se", target_se, positive=True)
     if max_frames is not None:
         max_frames = check_int("max_frames", max_frames, minimum=_FIRST_FRAMES)

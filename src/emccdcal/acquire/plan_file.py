@@ -20,6 +20,7 @@ from .plan import (
     _camera_model,
     _offset_within_adc,
     _within_adc,
+    check_camera_kind,
     predict,
 )
 
@@ -88,6 +89,8 @@ def plan_text(p: Plan) -> str:
         line("adc_bits", cam["adc_bits"]),
         line("em_model", cam["em_model"]),
     ]
+    if cam.get("camera_kind") is not None:
+        out.append(line("camera_kind", cam["camera_kind"]))
     if cam.get("stages") is not None:
         out.append(line("stages", cam["stages"]))
     for well in ("pixel_well", "register_well"):
@@ -158,6 +161,8 @@ def read_plan(path) -> Plan:
                 for well in ("pixel_well", "register_well")
             },
         }
+        camera["camera_kind"] = cam.get("camera_kind")
+        check_camera_kind(camera["camera_kind"], method)
         _offset_within_adc(camera)
         model = _camera_model(camera)
         camera["stages"] = model.stages if model.register.uses_stages else None

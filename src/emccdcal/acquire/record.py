@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import _files
+from .. import _files, defaults
 from .._output import Output, OutputError, atomic_write, atomic_write_text, remove_leftovers
 from .._util import check_number, one_line
 from .._util import progress as progress_bar
@@ -149,7 +149,9 @@ def _attrs(ctx: _Context, stack: Stack) -> dict:
     from ..data.micromanager import settings_of
 
     props = camera_properties(ctx.core, ctx.camera)
-    settings = dataclasses.replace(settings_of(props), em_gain_setpoint=float(stack.setpoint))
+    settings = settings_of(props)
+    if settings.camera_kind not in defaults.WITHOUT_EM_REGISTER:  # the set-point it recorded at
+        settings = dataclasses.replace(settings, em_gain_setpoint=float(stack.setpoint))
     return {
         "emccdcal": settings.known(),
         "micromanager": props,
@@ -537,7 +539,8 @@ def acquire(
 #: The files of a session folder besides its stacks: its record, its plan and the
 #: simulated camera's truth.
 _TRUTH_PATTERN = "truth-offset-pattern.tif"
-_SESSION_FILES = (SESSION_FILE, "plan.toml", "truth.json", _TRUTH_PATTERN)
+_TRUTH_MAPS = tuple(f"truth-{m}.tif" for m in ("e_per_adu", "offset", "read_noise", "rts_step"))
+_SESSION_FILES = (SESSION_FILE, "plan.toml", "truth.json", _TRUTH_PATTERN, *_TRUTH_MAPS)
 
 
 def _discard(out: Path) -> None:
@@ -673,10 +676,24 @@ def _run(ctx: _Context) -> None:
 # The simulated camera's session
 # --------------------------------------------------------------------------------------
 def _simulated_camera(plan: Plan):
+    """The simulated camera a plan describes: an sCMOS or qCMOS where its
+    ``camera_kind`` says so (its per-pixel spreads the kind's preset's), else an EMCCD."""
     from ..simulate.camera import Camera
+    from ..simulate.cmos import PRESETS, CMOSCamera
     from .devices import SENSOR_SHAPE
 
     cam, model = plan.camera, plan.em_model
+    if cam.get("camera_kind") in PRESETS:
+        return CMOSCamera(
+            kind=cam["camera_kind"],
+            rows=SENSOR_SHAPE[0],
+            cols=SENSOR_SHAPE[1],
+            frames=2,
+            e_per_adu=cam["e_per_adu"],
+            read_noise_e=cam["read_noise"] * cam["e_per_adu"],
+            offset=cam["offset"],
+            adc_bits=min(16, int(cam["adc_bits"])),
+        )
     return Camera(
         rows=SENSOR_SHAPE[0],
         cols=SENSOR_SHAPE[1],
@@ -699,8 +716,13 @@ def _simulated_light(camera):
 
 def _write_truth(out: Path, plan: Plan, device, session: Session) -> None:
     """``truth.json`` of the simulated camera, in the form of ``emccdcal simulate``'s
-    (with its sensor-wide offset pattern, ``truth-offset-pattern.tif``)."""
+    (with its sensor-wide offset pattern, ``truth-offset-pattern.tif``; an sCMOS's or
+    qCMOS's per-pixel maps, ``truth-<map>.tif``)."""
     import tifffile
+
+    if hasattr(device, "maps"):
+        _write_cmos_truth(out, device, session)
+        return
 
     from ..simulate.series import truth_document
 
@@ -732,4 +754,26 @@ def _write_truth(out: Path, plan: Plan, device, session: Session) -> None:
     )
     truth = truth_document(kind, device.camera, opts, acqs, pattern_file)
     truth["roi"] = session.state.get("roi")
+    atomic_write_text(out / "truth.json", json.dumps(truth, indent=2) + "\n")
+
+
+def _write_cmos_truth(out: Path, device, session: Session) -> None:
+    """``truth.json`` and the per-pixel maps of a simulated sCMOS or qCMOS (the whole
+    sensor's; the session's ``roi`` places the stacks on it)."""
+    import tifffile
+
+    for name in ("e_per_adu", "offset", "read_noise", "rts_step"):
+        image = device.maps[name].astype(np.float32)
+        atomic_write(out / f"truth-{name}.tif", lambda tmp, im=image: tifffile.imwrite(tmp, im))
+    truth = {
+        "kind": f"{device.camera.kind}-series",
+        "camera": device.camera.kind,
+        "seed": device.seed,
+        "levels": {s.name: s.photoelectrons for s in session.stacks if not s.dark},
+        "maps": {name: f"truth-{name}.tif" for name in ("e_per_adu", "offset", "read_noise")},
+        "units": {"levels": "e-/px/frame", "e_per_adu": "e-/ADU", "offset": "ADU",
+                  "read_noise": "ADU (rms, before the ADC's rounding)"},
+        "options": dataclasses.asdict(device.camera),
+        "roi": session.state.get("roi"),
+    }  # fmt: skip
     atomic_write_text(out / "truth.json", json.dumps(truth, indent=2) + "\n")

@@ -25,6 +25,7 @@ from ..defaults import DEFAULT_BLOCK, DEFAULT_TILE_PIXELS, INTERVALS, METHODS
 from ..runstore import RESULT_FILES, RunStore, remove_run
 from .tiles import ESTIMATE_E_PER_ADU, FIXED_E_PER_ADU, TileJob, _labels, _load, plan_tiles
 from .datasets import (
+    _add_dark_current,
     _add_findings,
     _joined,
     _likelihood_dataset,
@@ -486,6 +487,7 @@ def _run_calibration(manifest, run: RunRequest, target):
             model,
             se_note,
         )
+    _add_dark_current(ds, manifest, used)
     _record_provenance(
         ds, run.method, manifest, model, register_attrs, run.device, phi_source, phi_se is not None
     )

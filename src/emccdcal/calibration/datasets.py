@@ -12,7 +12,8 @@ import numpy as np
 
 from .. import result
 from .._util import nanmedian
-from ..data import quality
+from ..data import dark_current, quality
+from ..data.dark import map_variances
 from ..errors import (
     DataQualityWarning,
     LeftOutWarning,
@@ -20,7 +21,6 @@ from ..errors import (
     FitWarning,
 )
 from ..fit import gof, mv
-from ..fit.series import map_variances
 from .tiles import _QUALITY, _bounds_of, _labels
 
 if TYPE_CHECKING:
@@ -276,6 +276,62 @@ def _map_errors(used, offsets, read_noise, per_acq_dim, shape) -> dict:
         f"{name}_se": ((per_acq_dim, "row", "col"), values, "ADU", what.format(name))
         for name, values in zip(("offset", "read_noise"), se)
     }
+
+
+def _add_dark_current(ds, manifest, used) -> None:
+    """Each pixel's dark current (e⁻/s) into ``ds`` where the series' 1× stacks give two
+    or more exposures (:mod:`emccdcal.data.dark_current`): its darks', and on the
+    photon-free path (``light = false``) every stack's."""
+    if not manifest.light:
+        ds.attrs["photon_free"] = 1  # the levels' photoelectrons are the dark signal's
+    points = dark_current.exposure_points(used, light=manifest.light)
+    se = ds["e_per_adu_se"].values if "e_per_adu_se" in ds else None
+    found = dark_current.dark_current(points, ds["e_per_adu"].values, se)
+    if found is None:
+        return
+    exposures = ", ".join(f"{p.label} at {p.exposure_s:g} s" for p in points)
+    what = {
+        "dark_current": "dark current: phi times the slope of the mean counts against "
+        f"the exposure ({exposures})",
+        "dark_current_se": "standard error of dark_current",
+    }
+    for name, text in what.items():
+        ds[name] = (("row", "col"), np.where(ds["converged"].values, found[name], np.nan))
+        ds[name].attrs.update(units="e-/s", long_name=text)
+    _warn_dark_signal_in_the_dark(ds, used)
+    if found["pvalue"] is not None:
+        ds["dark_current_pvalue"] = (("row", "col"), found["pvalue"])
+        ds["dark_current_pvalue"].attrs.update(
+            units="1",
+            long_name="p-value of the straight line of mean counts against exposure "
+            "(chi-square, points - 2 degrees of freedom): the dark signal linear in "
+            "the exposure and the offset unchanged by it",
+        )
+
+
+def _warn_dark_signal_in_the_dark(ds, used) -> None:
+    """Warn where a 1× dark's own dark signal, λ0 = dark current × its exposure (e⁻),
+    is more than 1 % of the read-noise variance (σφ)² at pixels whose photon numbers
+    show (σφ < 0.5 e⁻): the dark's maps then take the dark's few electrons for read
+    noise, a wrong shape under a resolved comb, and φ is biased (docs/cmos.md)."""
+    rate, phi = ds["dark_current"].values, ds["e_per_adu"].values
+    for a in used:
+        if a.em_gain_setpoint != 1 or a.dark_exposure_s is None:
+            continue
+        lam0, sigma_e = rate * a.dark_exposure_s, a.read_noise * phi
+        with np.errstate(invalid="ignore"):
+            bad = (sigma_e < 0.5) & (lam0 > 0.01 * sigma_e**2)
+        if bad.any():
+            warnings.warn(
+                f"{a.name}: its dark ({a.offset_source}, {a.dark_exposure_s:g} s) holds a "
+                f"median {np.nanmedian(lam0[bad]):.3g} e- of dark signal at {int(bad.sum())} "
+                "pixel(s) whose photon numbers show, over 1 % of their read-noise variance: "
+                "their maps take it for read noise and their e_per_adu is biased; record "
+                "the dark at a shorter exposure",
+                stacklevel=4,
+                category=FitWarning,
+            )
+            return
 
 
 def _likelihood_dataset(

@@ -8,6 +8,7 @@ import numpy as np
 
 from .. import result
 from .._util import nanmedian
+from ..defaults import WITHOUT_EM_REGISTER
 from ..model import noise
 from .tiles import ESTIMATE_E_PER_ADU
 
@@ -19,9 +20,10 @@ def format_summary(ds):
     """A short human-readable table of a calibration (median over converged pixels)."""
     ok = ds.converged.values
     model = noise.EMModel.from_attrs(ds.attrs)
+    register = model is not None and ds.attrs.get("camera_kind") not in WITHOUT_EM_REGISTER
     lines = [
         f"method {ds.attrs['method']}"
-        + (f" ({model.name} register)" if model else "")
+        + (f" ({model.name} register)" if register else "")
         + f": {int(ok.sum())}/{ok.size} pixels converged, "
         f"{ds.attrs.get('seconds', float('nan')):.1f} s; medians over those"
     ]
@@ -73,5 +75,10 @@ def format_summary(ds):
                 f"  photoelectrons [{dim} {lab}] {med(pe.values[i]):.2f} ± "
                 f"{med(ds.photoelectrons_se.values[i]):.2f} e-"
             )
+    if "dark_current" in ds:
+        lines.append(
+            f"  dark_current {med(ds.dark_current.values):.4g} ± "
+            f"{med(ds.dark_current_se.values):.2g} e-/s per pixel"
+        )
     lines.append("  (± the per-pixel standard error, median over pixels; docs/results.md)")
     return "\n".join(lines)

@@ -99,9 +99,17 @@ def _add_what(p) -> None:
     what.add_argument(
         "--method",
         choices=defaults.PLAN_METHODS,
-        default="gs",
+        default=None,
         help="gs: a gain series (phi known); is-adu: an intensity series at "
-        "1x (measures phi); is-gain: one at --setpoint (default gs)",
+        "1x (measures phi); is-gain: one at --setpoint (default gs; is-adu for a "
+        "--camera-kind without an EM register)",
+    )
+    what.add_argument(
+        "--camera-kind",
+        choices=defaults.CAMERA_KINDS,
+        default=None,
+        help="the kind of camera, recorded in the plan (acquire --simulated records from "
+        "a simulated one of that kind; scmos, qcmos and ccd have no EM register)",
     )
     what.add_argument(
         "--setpoint",
@@ -177,8 +185,12 @@ def run(args) -> int:
         result = read_plan(args.check)
     else:
         phi, offset, noise = _camera_from(args)
+        method = args.method
+        if method is None:
+            method = "is-adu" if args.camera_kind in defaults.WITHOUT_EM_REGISTER else "gs"
         result = plan(
-            method=args.method,
+            method=method,
+            camera_kind=args.camera_kind,
             e_per_adu=phi,
             read_noise=noise,
             offset=offset,

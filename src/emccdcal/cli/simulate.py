@@ -227,17 +227,29 @@ def _run_cmos(args) -> int:
     out = _common.output_of(args)
     given = {
         k: getattr(args, k)
-        for k in ("rows", "cols", "frames", "dark_frames", "e_per_adu", "read_noise_e")
+        for k in (
+            "rows", "cols", "frames", "dark_frames", "e_per_adu", "read_noise_e", "dark_current"
+        )
         if getattr(args, k) is not None
-    }
+    }  # fmt: skip
     camera = CMOSCamera(kind=args.camera_kind, rts_fraction=args.rts_fraction, **given)
     with _common.output(args, out, names=_SIMULATED):
         res = simulate_cmos_series(
-            out, camera=camera, levels=args.levels, seed=args.seed, progress=not args.quiet
+            out,
+            camera=camera,
+            levels=args.levels,
+            dark_exposures_s=args.dark_exposures,
+            seed=args.seed,
+            progress=not args.quiet,
         )
     t = res.truth
+    stacks = (
+        f"dark.tif and {len(t['levels'])} levels"
+        if t["exposures_s"] is None
+        else f"darks at {', '.join(f'{x:g}' for x in t['exposures_s'].values())} s, no light,"
+    )
     print(
-        f"wrote a {t['camera']} calibration: dark.tif and {len(t['levels'])} levels of "
+        f"wrote a {t['camera']} calibration: {stacks} of "
         f"{camera.frames} frames x {camera.rows}x{camera.cols} px (seed {t['seed']})"
     )
     print(f"  manifest: {res.manifest}")
@@ -298,6 +310,20 @@ def _add_cmos(kinds) -> None:
         "--levels", type=_common.number_list, default=None,
         help="photoelectrons per pixel per frame of each level, e-, comma-separated",
     )  # fmt: skip
+    cm.add_argument(
+        "--dark-exposures",
+        type=_common.number_list,
+        default=None,
+        metavar="S,S,...",
+        help="the photon-free path: no light, dark stacks at these exposures (s), the "
+        "shortest the others' dark (needs --dark-current)",
+    )
+    cm.add_argument(
+        "--dark-current",
+        type=float,
+        default=None,
+        help="median dark current, e- per pixel per second (default 0)",
+    )
     cm.add_argument(
         "--rts-fraction", type=float, default=0.0,
         help="fraction of random-telegraph pixels (default 0)",

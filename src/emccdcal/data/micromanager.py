@@ -8,7 +8,9 @@ the label being the value of ``Camera``. Andor cameras: ``Gain`` (EM gain), ``EM
 (analog), ``ReadoutRate``, ``BitDepth``, ``CCDTemperature``, ``SerialNumber``,
 ``ChipName``. Other cameras: the standard properties ``EMGain``, ``ReadoutMode``,
 ``CameraName`` (model) and ``CameraID``. Core: ``Exposure-ms``, ``BitDepth``, ``ROI``
-(``"x-y-width-height"``), ``Binning``.
+(``"x-y-width-height"``), ``Binning``. The model names the camera's kind where it says
+it (:func:`emccdcal.data.settings.kind_of_model`: a Hamamatsu ``C15550-20UP`` is an
+ORCA-Quest, a qCMOS), and a camera without an EM register has no EM set-point.
 """
 
 from __future__ import annotations
@@ -17,7 +19,8 @@ import math
 import re
 
 from ..errors import InputError
-from .settings import CameraSettings
+from ..defaults import WITHOUT_EM_REGISTER
+from .settings import CameraSettings, kind_of_model
 
 __all__ = ["TAG", "settings_of", "stack_settings"]
 
@@ -61,6 +64,9 @@ def settings_of(md: dict) -> CameraSettings:
         model = parts[1] if len(parts) >= 3 else None
         serial = parts[2] if len(parts) >= 3 else prop("CameraID")
         model = model or prop("CameraName")
+    kind = kind_of_model(model)
+    if kind in WITHOUT_EM_REGISTER:  # an analog gain field is not an EM set-point
+        em_gain = None
     bits = _number(md.get("BitDepth") or prop("BitDepth"))
     roi = binning = None
     if md.get("ROI"):
@@ -71,6 +77,7 @@ def settings_of(md: dict) -> CameraSettings:
         binning = (values[0], values[-1]) if values else None
     return CameraSettings(
         em_gain_setpoint=em_gain,
+        camera_kind=kind,
         analog_gain=None if analog is None else str(analog),
         amplifier=None if amplifier is None else str(amplifier),
         readout_rate_mhz=rate,

@@ -532,12 +532,18 @@ def manifest_text(session: Session, where: Path) -> str:
             )
         if kind == "intensity-series":
             lines.append(toml_line("level", f"L{i}"))
+        exposure = f.settings.exposure_ms
+        if exposure is not None:
+            lines.append(toml_line("exposure_s", exposure / 1000.0) + "   # recorded")
         dark = session.darks[f.setpoint]
         if isinstance(dark, MapPair):
             lines.append(toml_line("offset", rel(dark.offset)))
             lines.append(toml_line("read_noise", rel(dark.read_noise)))
         else:
             lines.append(toml_line("dark", rel(dark.path)))
+            dark_exposure = dark.settings.exposure_ms
+            if dark_exposure is not None and dark_exposure != exposure:
+                lines.append(toml_line("dark_exposure_s", dark_exposure / 1000.0) + "   # recorded")
     return "\n".join(lines) + "\n"
 
 

@@ -11,7 +11,42 @@ from dataclasses import asdict, dataclass, fields
 
 from ..defaults import RECORDED_KINDS
 
-__all__ = ["CameraSettings", "recorded_number"]
+__all__ = ["CameraSettings", "kind_of_model", "recorded_number"]
+
+#: What a camera's model name says of its kind: the start of its name (upper case,
+#: without spaces, hyphens and dots) and the kind. Andor's model numbers: iXon heads
+#: (``DU897`` …) EMCCDs, iDus heads (``DU420`` …) CCDs, iStar (``DH…``) intensified;
+#: Hamamatsu's from its data sheets: C15550 the ORCA-Quest (qCMOS), C11440/C13440 the
+#: ORCA-Flash4.0, C14440/C15440 the ORCA-Fusion (sCMOS), C9100 the ImagEM (EMCCD).
+_MODEL_KINDS = (
+    *((f"DU{n}", "emccd") for n in ("860", "885", "887", "888", "897")),
+    *((f"DU{n}", "ccd") for n in ("401", "416", "420", "440", "490", "491", "492")),
+    ("DH", "iccd"),
+    ("IXON", "emccd"),
+    ("ISTAR", "iccd"),
+    *((name, "scmos") for name in ("ZYLA", "SONA", "NEO", "MARANA", "BALOR")),
+    ("C15550", "qcmos"),
+    ("ORCAQUEST", "qcmos"),
+    *((name, "scmos") for name in ("C11440", "C13440", "C14440", "C15440")),
+    *((name, "scmos") for name in ("ORCAFLASH", "ORCAFUSION", "ORCALIGHTNING")),
+    ("C9100", "emccd"),
+    ("IMAGEM", "emccd"),
+    *((name, "scmos") for name in ("PRIMEBSI", "PRIME95B", "KINETIX", "PCOEDGE")),
+    *((name, "emccd") for name in ("EVOLVE", "CASCADE")),
+)
+
+
+def kind_of_model(model) -> str | None:
+    """The kind of camera (``emccd``, ``scmos``, ``qcmos``, ``ccd``, ``iccd``) its model
+    name says, or None where it says none.
+
+    >>> kind_of_model("C15550-20UP"), kind_of_model("ORCA-Flash4.0 V3"), kind_of_model("DU897_BV")
+    ('qcmos', 'scmos', 'emccd')
+    >>> kind_of_model("DemoCamera") is None
+    True
+    """
+    text = "".join(c for c in str(model or "").upper() if c not in " -._")
+    return next((kind for start, kind in _MODEL_KINDS if text.startswith(start)), None)
 
 
 def recorded_number(value) -> float | None:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from .._util import install_hint, one_line
 from ..errors import InputError
-from .settings import CameraSettings, recorded_number
+from .settings import CameraSettings, kind_of_model, recorded_number
 
 __all__ = ["SUFFIXES", "open_sif", "header", "open_stack", "settings"]
 
@@ -45,28 +45,15 @@ def _number(info, key):
     return recorded_number(info.get(key))
 
 
-#: Andor's model numbers: iXon (EMCCD) and iDus (CCD) heads, both named ``DU…``.
-_IXON = ("860", "885", "887", "888", "897")
-_IDUS = ("401", "416", "420", "440", "490", "491", "492")
-
-
 def camera_kind(model) -> str | None:
     """The kind of an Andor camera from its model (``DetectorType``), where the model
     says it: iXon ``emccd``, iDus ``ccd``, iStar (``DH…``) ``iccd``, Zyla/Sona/Neo/Marana
-    ``scmos``; else None.
+    ``scmos``; else None (:func:`emccdcal.data.settings.kind_of_model`).
 
     >>> camera_kind("DU897_BV"), camera_kind("DU420A_BEX2-DD"), camera_kind("DH734_18F")
     ('emccd', 'ccd', 'iccd')
     """
-    text = str(model or "").upper().replace("-", "")
-    if text.startswith("DH"):
-        return "iccd"
-    if text.startswith("DU"):
-        number = text[2:5]
-        return "emccd" if number in _IXON else "ccd" if number in _IDUS else None
-    if text.startswith(("ZYLA", "SONA", "NEO", "MARANA")):
-        return "scmos"
-    return None
+    return kind_of_model(model)
 
 
 def _settings(info) -> CameraSettings:

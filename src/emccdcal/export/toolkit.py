@@ -13,7 +13,7 @@ audit, reads such a file back. Both sides need the same few parts, all here and 
 - what an audit reads (:class:`Field`, :class:`Reading`, :data:`QUANTITIES`) and how a
   file's values are checked (:func:`number`, :func:`positive`,
   :func:`quantum_efficiency`) and found (:func:`leaves`, :func:`find_tables`,
-  :func:`mat_raw`, :func:`mat_scalar`, :func:`load_xml`); and :func:`install_hint` for
+  :func:`mat_raw`, :func:`mat_scalar`, :func:`load_xml`, :func:`load_json`); and :func:`install_hint` for
   a tool that needs an extra.
 
 This module imports no tool and no verb: the tools import it, and the verbs
@@ -60,6 +60,7 @@ __all__ = [
     "comment",
     "install_hint",
     "load_xml",
+    "load_json",
     "QUANTITIES",
     "Field",
     "Reading",
@@ -83,6 +84,8 @@ write_file = atomic_write
 #: ``install_hint(extra)``: how a message says to install one of emccdcal's extras.
 #: ``load_xml(path, what=...)``: an XML file's root element, bounded, no entities.
 load_xml = _files.load_xml
+#: ``load_json(path, what=..., text=None)``: a JSON file (or its text), bounded, NaN refused.
+load_json = _files.load_json
 
 
 # --------------------------------------------------------------------------------------

@@ -25,8 +25,12 @@ through its mean (``E = φ·(⟨S⟩ − S0)``: along it the likelihood is the p
 likelihood, checked against refits to 0.01 nats). Where another ripple on that grid rivals
 the fit's (within :data:`RIVAL` nats), the fit's own ripple does not decide φ and its
 curvature is not the error: the SE is that of the parabola through the ripples' tops,
-the smooth likelihood they sit on (:func:`ripple_covariance`). Where the comb is resolved
-(one ripple stands alone) or absent, nothing changes.
+the smooth likelihood they sit on (:func:`ripple_covariance`). Where a level is so
+bright that no grid resolves its ripples (1/E apart: thousands of e⁻), they are a tiny
+fraction of a nat deep yet their curvature is huge, and a fit ends on whichever it
+meets: there the envelope itself is fitted (:func:`_envelope_fit`), its vertex the
+start and its curvature the SE's floor. Where the comb is resolved (one ripple stands
+alone) or absent, nothing changes.
 """
 
 from __future__ import annotations
@@ -40,12 +44,19 @@ from . import engine
 from .engine import Layout
 
 #: A comb whose revival at ω = 2πφ (relative to the transform at 0: exp(−2π²(σφ)²)
-#: times the rounding's |sinc(πφ)|) is below this cannot ripple the likelihood of any
-#: data set (n·r² nats: 1e-11 in 1e5 frames); an EMCCD's 1× comb is far below it.
-RIPPLES = 1e-8
+#: times the rounding's |sinc(πφ)|) is r ripples a level's log-likelihood by about
+#: 2r·√n nats, 1/E apart in ln φ: a curvature up to 2r·√n·(2πE)², which a bright level
+#: makes large from ripples a millionth of a nat deep. Where that can reach this share
+#: of the moments' information of ln φ, the ripples are looked at (an EMCCD's 1× comb,
+#: r ≈ 0, never is).
+RIPPLES = 0.01
 #: Grid points per ripple (1/E of a level's photoelectrons, relative), and at most.
 PER_RIPPLE = 4
 MAX_POINTS = 1025
+#: Grid points over the envelope where a level is so bright that a grid of
+#: :data:`MAX_POINTS` cannot resolve its ripples (they are then a fraction of a nat
+#: deep, their curvature no error): the envelope's parabola needs no more.
+ENVELOPE_POINTS = 33
 #: Basins of the dimmest level followed through the brighter ones.
 CANDIDATES = 3
 #: The profile likelihood is checked where the observed information of ln φ claims at
@@ -88,7 +99,9 @@ def profile_start(layout, blocks, x0, read_out_variance):
     3. Where its observed information claims more than the moments' (by
        :data:`CHECK_BELOW`), every level on a grid around it at the ripples' spacing:
        a better ripple found there (by a nat) is fitted instead, and where rival ripples
-       compete the envelope's SE is the SE's floor (:func:`_envelope_se`).
+       compete the envelope's SE is the SE's floor (:func:`_envelope_se`); where no grid
+       of :data:`MAX_POINTS` resolves the ripples, the envelope's fit
+       (:func:`_envelope_fit`) gives the start and the floor.
 
     Parameters
     ----------
@@ -103,39 +116,46 @@ def profile_start(layout, blocks, x0, read_out_variance):
     P = x0.shape[0]
     out = CombLayout(**vars(layout), phi_profile_se=np.full(P, np.nan))
     phi0 = np.exp(x0[:, 0])
-    live = np.flatnonzero(ripples(blocks, phi0))
+    rel = moment_se(blocks, phi0, read_out_variance)
+    live = np.flatnonzero(ripples(blocks, phi0, rel))
     if live.size == 0:
         return out, x0
     part = [b.take(live) for b in blocks]
     sub = layout.subset(live)
     signal = np.stack([np.maximum(b.mean - b.offset, 1e-6) for b in part], axis=1)
-    rel = moment_se(part, phi0[live], read_out_variance)
-    order = np.argsort(np.median(signal, axis=0), kind="stable")  # dimmest first
-    x, value = None, np.full(live.size, -np.inf)
-    for candidate in _dim_level_candidates(sub, part, x0[live], signal, rel, order[0]):
-        for a in range(2, len(blocks) + 1):
-            use = order[:a]
-            cols = np.r_[0, 1 + use]
-            fitted = engine.fit(
-                _levels(sub, use), [part[i] for i in use], candidate[:, cols], covariance=False
-            )
-            candidate[:, cols] = fitted.x
-        v = engine.objective(sub, part, candidate)
-        better = v > value
-        x = candidate if x is None else np.where(better[:, None], candidate, x)
-        value = np.where(better, v, value)
-    fitted = engine.fit(sub, part, x)
-    se = np.sqrt(np.abs(fitted.cov[:, 0, 0]))
-    check = np.flatnonzero(~(se >= CHECK_BELOW * rel))  # NaN SEs checked too
-    x = fitted.x
+    rel = rel[live]
+    x = x0[live].copy()
+    se, objective = np.full(live.size, np.nan), np.full(live.size, np.nan)
+    # Where no grid resolves the brightest level's ripples, a basin chosen among the
+    # dimmer levels' would be left for the envelope's top anyway (below): go there.
+    coarse = _unresolved(rel, signal.max(axis=1) * phi0[live])
+    fine = np.flatnonzero(~coarse)
+    if fine.size:
+        fitted = _basin_fit(
+            sub.subset(fine), [b.take(fine) for b in part], x[fine], signal[fine], rel[fine]
+        )
+        x[fine], objective[fine] = fitted.x, fitted.objective
+        se[fine] = np.sqrt(np.abs(fitted.cov[:, 0, 0]))
+    E_max = np.maximum(signal.max(axis=1) * np.exp(x[:, 0]), 1.0)
+    # Where no grid resolves the brightest level's ripples (1/E apart), a fit ends on
+    # whichever ripple it meets, on the envelope's flank as well as at its top: the
+    # envelope itself is fitted there (:func:`_envelope_fit`).
+    aliased = coarse | _unresolved(rel, E_max)
+    smooth = np.flatnonzero(aliased)
+    if smooth.size:
+        x[smooth], out.phi_profile_se[live[smooth]] = _envelope_fit(
+            sub.subset(smooth), [b.take(smooth) for b in part], x[smooth], signal[smooth],
+            4.0 * rel[smooth],
+        )  # fmt: skip
+    check = np.flatnonzero(~(se >= CHECK_BELOW * rel) & ~aliased)  # NaN SEs checked too
     if check.size:
-        E_max = np.maximum(signal[check].max(axis=1) * np.exp(x[check, 0]), 1.0)
+        E_max = E_max[check]
         ln_phi, v = _path_grid(
             sub.subset(check), [b.take(check) for b in part], x[check], signal[check],
             4.0 * rel[check], 1.0 / (PER_RIPPLE * E_max),
         )  # fmt: skip
         top = np.argmax(v, axis=1)
-        jump = np.flatnonzero(v[np.arange(check.size), top] > fitted.objective[check] + 1.0)
+        jump = np.flatnonzero(v[np.arange(check.size), top] > objective[check] + 1.0)
         if jump.size:  # a better ripple than the fit's: fit from there
             idx = check[jump]
             start = x[idx].copy()
@@ -143,13 +163,40 @@ def profile_start(layout, blocks, x0, read_out_variance):
             start[:, 1:] = np.log(signal[idx] * np.exp(start[:, :1]))
             refit = engine.fit(sub.subset(idx), [b.take(idx) for b in part], start)
             x[idx] = refit.x
-            fitted.objective[idx] = refit.objective
+            objective[idx] = refit.objective
         out.phi_profile_se[live[check]] = _envelope_se(
-            ln_phi, v, x[check, 0], fitted.objective[check], step_of(E_max, 4.0 * rel[check])
+            ln_phi, v, x[check, 0], objective[check], step_of(E_max, 4.0 * rel[check])
         )
     start = x0.copy()
     start[live] = x
     return out, start
+
+
+def _unresolved(rel, E):
+    """Pixels whose ripples (1/E apart in ln φ) no grid of :data:`MAX_POINTS` over ±4
+    moments' SEs (``rel``) resolves."""
+    return 2.0 * (4.0 * rel) / (MAX_POINTS - 1) > 1.0 / np.maximum(E, 1.0)
+
+
+def _basin_fit(layout, blocks, x0, signal, rel):
+    """Steps 1 and 2 of :func:`profile_start`: the dimmest level's best basins, each
+    followed through the brighter levels, the best of all levels' likelihood fitted."""
+    order = np.argsort(np.median(signal, axis=0), kind="stable")  # dimmest first
+    x, value = None, np.full(x0.shape[0], -np.inf)
+    for candidate in _dim_level_candidates(layout, blocks, x0, signal, rel, order[0]):
+        for a in range(2, len(blocks) + 1):
+            use = order[:a]
+            cols = np.r_[0, 1 + use]
+            fitted = engine.fit(
+                _levels(layout, use), [blocks[i] for i in use], candidate[:, cols],
+                covariance=False,
+            )  # fmt: skip
+            candidate[:, cols] = fitted.x
+        v = engine.objective(layout, blocks, candidate)
+        better = v > value
+        x = candidate if x is None else np.where(better[:, None], candidate, x)
+        value = np.where(better, v, value)
+    return engine.fit(layout, blocks, x)
 
 
 #: Another ripple within this many nats of the best is a rival (Wilks's 99.9 % is 5.4):
@@ -187,6 +234,43 @@ def _envelope_se(ln_phi, value, x_fit, fit_value, step):
         if curvature < 0:
             out[p] = 1.0 / np.sqrt(-2.0 * curvature)
     return out
+
+
+def _envelope_fit(layout, blocks, x, signal, half, rounds=4):
+    """The top of the envelope and its SE of ln φ (P,), where the ripples are too fine
+    for any grid: the likelihood of every level along E = φ·signal on
+    :data:`ENVELOPE_POINTS` points within ±``half`` of the centre, a parabola through
+    those within :data:`ENVELOPE` nats of the best, the centre moved to its vertex (at
+    most ``half`` at a time) until it stays; ``x`` with ln φ at the vertex and every E
+    along the path, and the SE from the parabola's curvature (NaN where it has none)."""
+    x = x.copy()
+    se = np.full(x.shape[0], np.nan)
+    todo = np.arange(x.shape[0])
+    step = 2.0 * half / (ENVELOPE_POINTS - 1)
+    for _ in range(rounds):
+        ln_phi, value = _path_grid(
+            layout.subset(todo), [b.take(todo) for b in blocks], x[todo], signal[todo],
+            half[todo], step[todo],
+        )  # fmt: skip
+        moved = np.zeros(todo.size, dtype=bool)
+        for i, p in enumerate(todo):
+            near = np.isfinite(value[i]) & (value[i] > value[i].max() - ENVELOPE)
+            if near.sum() < 4:
+                continue
+            t = ln_phi[i, near] - x[p, 0]
+            a, b, _ = np.polyfit(t, value[i, near], 2)
+            if a >= 0:  # no top within reach: go to the best point
+                vertex = t[np.argmax(value[i, near])]
+            else:
+                vertex, se[p] = -b / (2.0 * a), 1.0 / np.sqrt(-2.0 * a)
+            vertex = float(np.clip(vertex, -half[p], half[p]))
+            moved[i] = abs(vertex) > 0.25 * half[p] or a >= 0
+            x[p, 0] += vertex
+        x[todo, 1:] = np.log(signal[todo] * np.exp(x[todo, :1]))
+        todo = todo[moved]
+        if todo.size == 0:
+            break
+    return x, se
 
 
 def _path_grid(layout, blocks, x, signal, half, step):
@@ -252,13 +336,16 @@ def _dim_level_candidates(layout, blocks, x0, signal, rel, level):
     return out
 
 
-def ripples(blocks, phi):
-    """Pixels (P,) where a level's comb can ripple the likelihood at φ (e⁻/ADU): its
-    revival above :data:`RIPPLES`."""
-    out = np.zeros(phi.shape, dtype=bool)
+def ripples(blocks, phi, rel):
+    """Pixels (P,) where the levels' combs can ripple the likelihood at φ (e⁻/ADU) into
+    curvature of ln φ beyond :data:`RIPPLES` of the moments' information (``rel``: the
+    moments' relative SE of φ)."""
+    curvature = np.zeros(phi.shape)
     for b in blocks:
-        out |= b.poisson_normal & (_revival(b, phi) > RIPPLES)
-    return out
+        E = phi * np.maximum(b.mean - b.offset, 0.0)
+        bound = 2.0 * _revival(b, phi) * np.sqrt(np.maximum(b.n, 1)) * (2.0 * np.pi * E) ** 2
+        curvature += np.where(b.poisson_normal, bound, 0.0)
+    return curvature > RIPPLES / rel**2
 
 
 def moment_se(blocks, phi, read_out_variance):

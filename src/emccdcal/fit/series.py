@@ -30,10 +30,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._util import nanmedian
+from ..data.dark import map_variances
 from ..data.stacks import read_band
 from ..defaults import MAX_ACQUISITIONS
 from ..errors import DataQualityWarning, InputError, OptionError
-from ..model import adc, noise
+from ..model import noise
 from . import comb, engine, gof, layouts, mv, profile
 from .engine import QUANTITIES, Parameter
 
@@ -147,31 +148,6 @@ def acquisition_models(
         AcquisitionModel(float(s), o, r, em_model, d, g)
         for s, o, r, d, g in zip(setpoints, offsets, read_noise, dark_frames, map_groups)
     ]
-
-
-def map_variances(offset, read_noise, dark_frames, poisson_normal):
-    """The offset and read-noise maps' own variances (ADU², each the maps' shape) from
-    the ``dark_frames`` n they were computed from: σ²/n for the offset (a mean's) and
-    σ²/(2(n−1)) for the read noise (an SD's); where the ADC's rounding is in the model
-    (:mod:`emccdcal.model.adc`: a 1× dark's pixels below 2 ADU) the maps are a rounded
-    normal's fit and their variances its inverse Fisher information over n.
-    ``(None, None)`` where n is unknown (maps taken as exact).
-
-    >>> o, r = map_variances(np.array([100.0]), np.array([10.0]), 101, False)
-    >>> float(o[0]), float(r[0])
-    (0.9900990099009901, 0.5)
-    """
-    if dark_frames is None:
-        return None, None
-    offset, read_noise = np.asarray(offset, dtype=float), np.asarray(read_noise, dtype=float)
-    sigma2 = read_noise**2
-    offset_var, read_noise_var = sigma2 / dark_frames, sigma2 / (2.0 * (dark_frames - 1))
-    rounding = adc.rounds(poisson_normal, read_noise) & np.isfinite(offset)
-    if rounding.any():
-        cov = np.linalg.inv(adc.information(offset[rounding], read_noise[rounding]))
-        offset_var[rounding] = cov[:, 0, 0] / dark_frames
-        read_noise_var[rounding] = cov[:, 1, 1] / dark_frames
-    return offset_var, read_noise_var
 
 
 @dataclass(frozen=True)

@@ -87,6 +87,11 @@ class CMOSCamera:
         Probability per frame that an RTS pixel switches state (0.05).
     adc_bits : int
         ADC resolution, bits (16).
+    dark_current : float
+        Median dark current, e⁻ per pixel per second (0; a series of darks at several
+        exposures, :func:`simulate_cmos_series`'s ``dark_exposures_s``, needs it).
+    dark_current_spread : float
+        SD of the log dark current over the pixels (0.5: a log-normal).
     """
 
     kind: str = "scmos"
@@ -105,6 +110,8 @@ class CMOSCamera:
     rts_step: float = 4.0
     rts_switch: float = 0.05
     adc_bits: int = 16
+    dark_current: float = 0.0
+    dark_current_spread: float = 0.5
 
     def __post_init__(self):
         if self.kind not in PRESETS:
@@ -136,14 +143,23 @@ class CMOSCamera:
             rts_step=check_number("rts_step", values["rts_step"], positive=True),
             rts_switch=check_number("rts_switch", values["rts_switch"], positive=True, maximum=1.0),
             adc_bits=check_int("adc_bits", values["adc_bits"], minimum=1, maximum=16),
+            dark_current=check_number("dark_current", values["dark_current"], minimum=0.0),
+            dark_current_spread=check_number(
+                "dark_current_spread", values["dark_current_spread"], minimum=0.0
+            ),
         )
         for name, value in checked.items():
             object.__setattr__(self, name, value)
 
+    @property
+    def shape(self) -> tuple:
+        """(rows, cols) of the sensor, px."""
+        return (self.rows, self.cols)
+
     def maps(self, rng) -> dict:
         """The per-pixel truth drawn from ``rng``: ``e_per_adu`` (e⁻/ADU), ``offset``
         (ADU), ``read_noise`` (ADU, before rounding), ``rts_step`` (ADU, 0 where the
-        pixel has one offset state)."""
+        pixel has one offset state), ``dark_current`` (e⁻/s)."""
         shape = (self.rows, self.cols)
         phi = self.e_per_adu * (1.0 + self.e_per_adu_spread * rng.standard_normal(shape))
         phi = np.maximum(phi, 0.5 * self.e_per_adu)
@@ -151,11 +167,13 @@ class CMOSCamera:
         sigma_e = self.read_noise_e * np.exp(self.read_noise_spread * rng.standard_normal(shape))
         sigma = np.maximum(sigma_e, self.read_noise_min_e) / phi
         rts = rng.random(shape) < self.rts_fraction
+        spread = np.exp(self.dark_current_spread * rng.standard_normal(shape))
         return dict(
             e_per_adu=phi,
             offset=offset,
             read_noise=sigma,
             rts_step=np.where(rts, self.rts_step * sigma, 0.0),
+            dark_current=self.dark_current * spread,
         )
 
 
@@ -178,8 +196,8 @@ def simulate_cmos_frames(photoelectrons, maps, frames, rng, *, adc_bits=16, rts_
 
     Parameters
     ----------
-    photoelectrons : float
-        E, photoelectrons per pixel per frame (e⁻; 0 for a dark).
+    photoelectrons : float or ndarray (rows, cols)
+        E, photoelectrons per pixel per frame (e⁻; 0 for a dark without dark current).
     maps : dict
         Per-pixel truth, as :meth:`CMOSCamera.maps` draws it.
     frames : int
@@ -189,7 +207,8 @@ def simulate_cmos_frames(photoelectrons, maps, frames, rng, *, adc_bits=16, rts_
         RTS switching probability per frame.
     """
     shape = maps["offset"].shape
-    n = rng.poisson(float(photoelectrons), (frames,) + shape) if photoelectrons else 0.0
+    lam = np.broadcast_to(np.asarray(photoelectrons, dtype=float), shape)
+    n = rng.poisson(lam, (frames,) + shape) if lam.any() else 0.0
     x = (
         maps["offset"]
         + n / maps["e_per_adu"]
@@ -199,8 +218,30 @@ def simulate_cmos_frames(photoelectrons, maps, frames, rng, *, adc_bits=16, rts_
     return np.clip(np.rint(x), 0, 2**adc_bits - 1).astype(np.uint16)
 
 
+def _exposures(camera, dark_exposures_s):
+    """The photon-free series' exposures (s), sorted, or None for a lit series."""
+    if dark_exposures_s is None:
+        return None
+    t = sorted(check_number("dark_exposures_s", x, positive=True) for x in dark_exposures_s)
+    if len(set(t)) < 2:
+        raise OptionError("dark_exposures_s needs two or more different exposures (s)")
+    if camera.dark_current <= 0:
+        raise OptionError(
+            "dark exposures need a camera with a dark current > 0 (dark_current, "
+            "--dark-current: e-/px/s)"
+        )
+    return t
+
+
 def simulate_cmos_series(
-    outdir, *, camera: CMOSCamera | None = None, levels=None, seed=None, progress=True, **options
+    outdir,
+    *,
+    camera: CMOSCamera | None = None,
+    levels=None,
+    dark_exposures_s=None,
+    seed=None,
+    progress=True,
+    **options,
 ) -> SimulatedSeries:
     """Simulate a Huang-protocol calibration of an sCMOS or qCMOS camera on disk.
 
@@ -217,6 +258,11 @@ def simulate_cmos_series(
         The camera; ``options`` are its fields otherwise (``kind="qcmos"``, ...).
     levels : sequence of float, optional
         Photoelectrons per pixel per frame of each level (e⁻; :data:`DEFAULT_LEVELS`).
+    dark_exposures_s : sequence of float, optional
+        The photon-free path (Diekmann et al. 2022): no light; dark stacks
+        ``dark-<t>s.tif`` at these exposures (s), the shortest the others' dark, each
+        with the camera's ``dark_current`` (e⁻/s) times its exposure; the manifest says
+        ``light = false`` and every exposure. ``levels`` is then not used.
     seed : int
         Seed of every draw (truth maps and frames).
     progress : bool
@@ -236,10 +282,14 @@ def simulate_cmos_series(
     seed = check_int(
         "seed", seed if seed is not None else np.random.SeedSequence().entropy % 2**63, minimum=0
     )
-    lv = DEFAULT_LEVELS[camera.kind] if levels is None else tuple(levels)
-    lv = [check_number("levels", x, positive=True) for x in lv]
-    if not lv:
-        raise OptionError("levels must not be empty")
+    exposures = _exposures(camera, dark_exposures_s)
+    if exposures is None:
+        lv = DEFAULT_LEVELS[camera.kind] if levels is None else tuple(levels)
+        lv = [check_number("levels", x, positive=True) for x in lv]
+        if not lv:
+            raise OptionError("levels must not be empty")
+    else:
+        lv = exposures[1:]
     outdir = _output_dir(outdir)
     streams = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(2 + len(lv))]
     maps = camera.maps(streams[0])
@@ -247,9 +297,15 @@ def simulate_cmos_series(
         _write_tiff(outdir / f"truth-{name}.tif", value.astype(np.float32))
         for name, value in maps.items()
     ]
-    stacks = [("dark.tif", 0.0, camera.dark_frames)] + [
-        (f"int{i + 1}.tif", E, camera.frames) for i, E in enumerate(lv)
-    ]
+    if exposures is None:
+        stacks = [("dark.tif", 0.0, camera.dark_frames)] + [
+            (f"int{i + 1}.tif", E, camera.frames) for i, E in enumerate(lv)
+        ]
+    else:  # the thermal signal of each exposure, the shortest the others' dark
+        stacks = [
+            (f"dark-{t:g}s.tif", maps["dark_current"] * t, n)
+            for t, n in zip(exposures, [camera.dark_frames] + [camera.frames] * len(lv))
+        ]
     bar = progress_bar(enabled=progress, desc="simulate", unit="stack", total=len(stacks))
     for (name, E, frames), rng in zip(stacks, streams[1:]):
         data = simulate_cmos_frames(
@@ -264,6 +320,7 @@ def simulate_cmos_series(
         "camera": camera.kind,
         "seed": seed,
         "levels": dict(zip((s[0] for s in stacks[1:]), lv)),
+        "exposures_s": None if exposures is None else dict(zip((s[0] for s in stacks), exposures)),
         "maps": {name: f"truth-{name}.tif" for name in maps},
         "units": {
             "levels": "e-/px/frame",
@@ -271,6 +328,8 @@ def simulate_cmos_series(
             "offset": "ADU",
             "read_noise": "ADU (rms, before the ADC's rounding)",
             "rts_step": "ADU",
+            "dark_current": "e-/px/s",
+            "exposures_s": "s",
         },
         "options": dataclasses.asdict(camera),
     }
@@ -282,10 +341,15 @@ def simulate_cmos_series(
         toml_line("camera_kind", camera.kind),
         toml_line("adc_bits", camera.adc_bits),
     ]
-    for name, _, _ in stacks[1:]:
+    if exposures is not None:
+        lines.append(toml_line("light", False))
+    for i, (name, _, _) in enumerate(stacks[1:], 1):
         stem = name.removesuffix(".tif")
         lines += ["", "[[acquisition]]", toml_line("frames", name), toml_line("level", stem)]
-        lines.append(toml_line("dark", "dark.tif"))
+        lines.append(toml_line("dark", stacks[0][0]))
+        if exposures is not None:
+            lines.append(toml_line("exposure_s", exposures[i]))
+            lines.append(toml_line("dark_exposure_s", exposures[0]))
     manifest = atomic_write_text(outdir / "manifest.toml", "\n".join(lines) + "\n")
     files.append(manifest)
     return SimulatedSeries(outdir, manifest, truth_path, truth, tuple(files))

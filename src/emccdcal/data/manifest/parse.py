@@ -71,6 +71,12 @@ def _map_problem(key: str, value) -> str | None:
     return None
 
 
+def _seconds_problem(key, value) -> str | None:
+    if not _is_number(value) or not math.isfinite(value) or value <= 0:
+        return f"'{key}' must be a time in seconds > 0, got {value!r}"
+    return None
+
+
 def _setpoint_problem(g) -> str | None:
     if not _is_number(g) or not math.isfinite(g):
         return f"'em_gain_setpoint' must be a number >= 1, got {g!r}"
@@ -143,6 +149,17 @@ _TOP_KEYS = (
         ),
     ),
     _Key(
+        "light",
+        "",
+        default=True,
+        problem=lambda v: (
+            None
+            if isinstance(v, bool)
+            else f"light must be true or false (false: every stack is dark, the photon-free "
+            f"path), got {v!r}"
+        ),
+    ),
+    _Key(
         "acquisition",
         "",
         missing="no [[acquisition]] table; a manifest lists at least one acquisition",
@@ -198,6 +215,8 @@ _ACQUISITION_KEYS = (
         "",
         problem=lambda v: None if _is_path(v) else f"'name' must be a non-empty string, got {v!r}",
     ),
+    _Key("exposure_s", "s", problem=partial(_seconds_problem, "exposure_s")),
+    _Key("dark_exposure_s", "s", problem=partial(_seconds_problem, "dark_exposure_s")),
     _Key(
         "dark_frames",
         "frames",
@@ -287,6 +306,8 @@ class AcquisitionEntry:
     read_noise: float | str | None
     dark: str | None
     dark_path: Path | None
+    exposure_s: float | None = None
+    dark_exposure_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -305,6 +326,7 @@ class ManifestEntries:
     register_stages: int | None
     acquisitions: tuple[AcquisitionEntry, ...]
     camera_kind: str | None = None
+    light: bool = True
 
 
 def parse_manifest(path) -> ManifestEntries:
@@ -350,6 +372,9 @@ def parse_manifest(path) -> ManifestEntries:
     if kind in defaults.WITHOUT_EM_REGISTER and top["em_model"] is not None:
         raise r.error(f"em_model is an EM register's: a camera_kind = {kind!r} has none")
     entries = tuple(_entry(r, i, table, kind) for i, table in enumerate(top["acquisition"], 1))
+    if not top["light"]:
+        for e in entries:
+            _check_photon_free(r, e)
     seen: dict[Path, int] = {}
     for e in entries:
         key = e.frames_path.expanduser().resolve()
@@ -372,7 +397,34 @@ def parse_manifest(path) -> ManifestEntries:
         register_stages=_register_stages(r, top["em_model"], top["register_stages"]),
         acquisitions=entries,
         camera_kind=kind,
+        light=top["light"],
     )
+
+
+def _check_photon_free(r: _Reader, e: AcquisitionEntry) -> None:
+    """``light = false`` (the photon-free path): each acquisition is a dark stack at a
+    longer exposure than its dark's, at set-point 1."""
+    if e.em_gain_setpoint != 1:
+        raise r.error(
+            f"light = false (photon-free) needs every stack at set-point 1; this one is at "
+            f"{e.em_gain_setpoint:g}",
+            e.index,
+            e.label,
+        )
+    if e.exposure_s is None or e.dark_exposure_s is None:
+        raise r.error(
+            "light = false (photon-free) needs 'exposure_s' and 'dark_exposure_s' (s): "
+            "the dark signal's growth with exposure is the signal",
+            e.index,
+            e.label,
+        )
+    if e.exposure_s <= e.dark_exposure_s:
+        raise r.error(
+            f"light = false (photon-free): exposure_s = {e.exposure_s:g} s must be longer "
+            f"than its dark's, dark_exposure_s = {e.dark_exposure_s:g} s",
+            e.index,
+            e.label,
+        )
 
 
 def _entry(r: _Reader, i: int, table: dict, kind: str | None = None) -> AcquisitionEntry:
@@ -442,7 +494,17 @@ def _entry(r: _Reader, i: int, table: dict, kind: str | None = None) -> Acquisit
         read_noise=v["read_noise"],
         dark=v["dark"],
         dark_path=None if v["dark"] is None else r.resolve(v["dark"]),
+        exposure_s=None if v["exposure_s"] is None else float(v["exposure_s"]),
+        dark_exposure_s=_dark_exposure(v),
     )
+
+
+def _dark_exposure(v) -> float | None:
+    """The exposure (s) of an acquisition's dark: as written, else the frames' own where
+    the maps come from a dark stack of the same settings."""
+    if v["dark_exposure_s"] is not None:
+        return float(v["dark_exposure_s"])
+    return None if v["exposure_s"] is None else float(v["exposure_s"])
 
 
 def _register_stages(r, name, stages):

@@ -86,6 +86,10 @@ class Acquisition:
     dark_telegraph : ndarray of bool or None
         Pixels whose 1× dark stack holds two offset states (random-telegraph pixels,
         :func:`emccdcal.data.telegraph.telegraph_pixels`); None without a 1× dark stack.
+    exposure_s, dark_exposure_s : float or None
+        The exposure (s) of the frames and of the dark behind the maps (the manifest's
+        ``exposure_s`` and ``dark_exposure_s``, which defaults to ``exposure_s``); None
+        where not given.
     """
 
     name: str
@@ -101,6 +105,8 @@ class Acquisition:
     dark_frames: int | None = None
     dark_event_rate: np.ndarray | None = field(default=None, repr=False)
     dark_telegraph: np.ndarray | None = field(default=None, repr=False)
+    exposure_s: float | None = None
+    dark_exposure_s: float | None = None
 
     @property
     def n_frames(self) -> int:
@@ -190,6 +196,9 @@ class Manifest:
     #: The kind of camera (``emccd``, ``scmos``, ``qcmos``, ``ccd``): the manifest's
     #: ``camera_kind``, else None (not said; an EMCCD's calibration is assumed).
     camera_kind: str | None = None
+    #: False where every stack is dark (``light = false``, the photon-free path: the dark
+    #: signal's growth with exposure is the signal).
+    light: bool = True
     #: What every frames file records alike of the camera (``serial``, ``model``,
     #: ``amplifier``, ``readout_rate_mhz``, ``analog_gain``, ``adc_bits``): the identity a calibration
     #: database keys on. A field the files leave out or disagree on is absent.

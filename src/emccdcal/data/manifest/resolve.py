@@ -131,6 +131,8 @@ def resolve_manifest(entries: ManifestEntries) -> Manifest:
             dark_frames=dark_frames,
             dark_event_rate=m["events"],
             dark_telegraph=m["telegraph"],
+            exposure_s=a.exposure_s,
+            dark_exposure_s=a.dark_exposure_s,
         )
         for a, m, (n_total, _, dark_frames) in zip(acqs, maps, headers)
     ]
@@ -161,6 +163,7 @@ def resolve_manifest(entries: ManifestEntries) -> Manifest:
         register_stages=entries.register_stages,
         camera=camera,
         camera_kind=camera_kind,
+        light=entries.light,
     )
 
 

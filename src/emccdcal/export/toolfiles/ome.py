@@ -26,7 +26,6 @@ import json
 
 import numpy as np
 
-from ... import _files
 from ...errors import InputError
 from ...model import adc
 from ...plugins import Tool
@@ -98,7 +97,12 @@ def write(cal, s, v, out, qe, pixel_size_nm, name):
             metadata[f"PhysicalSize{axis}Unit"] = "nm"
     path = out / FILE
     return [
-        toolkit.write_file(path, lambda p: tifffile.imwrite(p, data, ome=True, metadata=metadata))
+        toolkit.write_file(
+            path,
+            lambda p: tifffile.imwrite(
+                p, data, ome=True, photometric="minisblack", metadata=metadata
+            ),
+        )
     ]
 
 
@@ -110,12 +114,12 @@ def _ome(path):
         xml = tif.ome_metadata
         if not xml:
             return None
-        root = _files.load_xml(path, what="OME-XML", text=xml.encode("utf-8"))
+        root = toolkit.load_xml(path, what="OME-XML", text=xml.encode("utf-8"))
         ns = {"ome": root.tag[1 : root.tag.index("}")]} if root.tag.startswith("{") else {}
         prefix = "ome:" if ns else ""
         text = root.findtext(f".//{prefix}Image/{prefix}Description", namespaces=ns)
         try:
-            described = _files.load_json(path, what="description", text=text or "")
+            described = toolkit.load_json(path, what="description", text=text or "")
         except InputError:  # another OME-TIFF's free text
             return None
         if not isinstance(described, dict) or _MARK not in described:
