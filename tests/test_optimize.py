@@ -185,6 +185,8 @@ ITERATIONS = {
     ("model/pointwise.py", "logpmf_rows"): "runs of rows within a memory budget",
     ("model/shared_register.py", "SharedRegister._build"): "the terms of a power series",
     ("fit/gof.py", "gof_pvalues"): "blocks of rows within a memory budget",
+    ("fit/comb.py", "_envelope_fit"): "a grid moved to its parabola's vertex, a few rounds "
+    "at most (the ripples' envelope)",
     ("fit/mv.py", "_fit_line"): "a fixed number of re-weightings (weighted least squares)",
     ("fit/darkgain.py", "_core_start"): "two trimmed-moment passes: a start",
     ("fit/profile.py", "profile_bounds"): "the profile deviance's level: every evaluation is a "

@@ -123,6 +123,8 @@ BOUNDS = {
     "pixel_size": (1e-3, 1e7, "nm"),
     "tool_gain": (1e-6, 1e6, ""),
     "days": (0.0, 1e6, "days"),
+    "exposure": (1e-9, 1e6, "s"),
+    "dark_current": (0.0, 1e9, "e-/s"),
 }
 #: The quantity (a key of :data:`BOUNDS`) of each command-line option whose name is not
 #: one; the command line checks every numeric option against its range before any work.
@@ -160,6 +162,7 @@ OPTION_QUANTITY = {
     "target_read_noise_se": "percent",
     "drift": "fraction",
     "max_age": "days",
+    "dark_exposures": "exposure",
 }
 
 #: The record of an acquisition session in its folder (``acquire`` writes, ``scan`` reads).
