@@ -163,16 +163,27 @@ class SimulatedEMCCD(CameraDevice):
         # sequence waits for only two seconds: record it, so that it can be waited for.
         self.sequence_thread = threading.current_thread()
         x, y, w, h = self.get_roi()
-        offset = np.clip(
-            self.offset_of(self._setpoint) + self.offset_pattern[y : y + h, x : x + w], 0.0, None
-        )
-        light = self._light if self.shutter.get_open() else 0.0
-        gain = self.true_em_gain(self._setpoint)
+        draw = self._frames((y, x, h, w), self._light if self.shutter.get_open() else 0.0)
         batch = max(1, _BATCH_VALUES // (w * h))
         done = 0
         while n is None or done < n:
-            k = batch if n is None else min(batch, n - done)
-            frames = simulate_frames(
+            for frame in draw(batch if n is None else min(batch, n - done)):
+                buffer = get_buffer((h, w), np.uint16)
+                buffer[:] = frame
+                done += 1
+                yield {"ROI-X-start": x, "ROI-Y-start": y}
+
+    def _frames(self, region, light):
+        """``draw(k)``: the next k frames (k, h, w) of ``region`` (y, x, h, w) at ``light``
+        (photoelectrons per pixel per frame) and the present set-point."""
+        y, x, h, w = region
+        offset = np.clip(
+            self.offset_of(self._setpoint) + self.offset_pattern[y : y + h, x : x + w], 0.0, None
+        )
+        gain = self.true_em_gain(self._setpoint)
+
+        def draw(k):
+            return simulate_frames(
                 light,
                 em_gain=gain,
                 offset=offset,
@@ -182,11 +193,8 @@ class SimulatedEMCCD(CameraDevice):
                 cascade_method=self.camera.cascade_method,
                 **self.camera.register(),
             )
-            for frame in frames:
-                buffer = get_buffer((h, w), np.uint16)
-                buffer[:] = frame
-                done += 1
-                yield {"ROI-X-start": x, "ROI-Y-start": y}
+
+        return draw
 
 
 class SimulatedCMOS(SimulatedEMCCD):
@@ -227,26 +235,10 @@ class SimulatedCMOS(SimulatedEMCCD):
     def get_camera_name(self) -> str:
         return f"{self._NAMES[self.camera.kind]} (emccdcal simulated {self.camera.kind})"
 
-    def start_sequence(self, n, get_buffer):
-        self.sequence_thread = threading.current_thread()
-        x, y, w, h = self.get_roi()
-        maps = {k: v[y : y + h, x : x + w] for k, v in self.maps.items()}
-        light = self._light if self.shutter.get_open() else 0.0
+    def _frames(self, region, light):
+        y, x, h, w = region
+        maps = {name: m[y : y + h, x : x + w] for name, m in self.maps.items()}
         rng = np.random.default_rng(self._frame_seeds.spawn(1)[0])
-        batch = max(1, _BATCH_VALUES // (w * h))
-        done = 0
-        while n is None or done < n:
-            k = batch if n is None else min(batch, n - done)
-            frames = simulate_cmos_frames(
-                light,
-                maps,
-                k,
-                rng,
-                adc_bits=self.camera.adc_bits,
-                rts_switch=self.camera.rts_switch,
-            )
-            for frame in frames:
-                buffer = get_buffer((h, w), np.uint16)
-                buffer[:] = frame
-                done += 1
-                yield {"ROI-X-start": x, "ROI-Y-start": y}
+        return lambda k: simulate_cmos_frames(
+            light, maps, k, rng, adc_bits=self.camera.adc_bits, rts_switch=self.camera.rts_switch
+        )
