@@ -442,6 +442,10 @@ def test_the_photon_free_path_gives_phi_and_the_dark_current_with_honest_errors(
         z = ((ds[name].values - truth) / ds[f"{name}_se"].values)[ok]
         assert abs(z.mean()) < 0.4 and 0.7 < np.sqrt(np.mean(z**2)) < 1.35, name
     assert np.mean(ds.dark_current_pvalue.values[ok] < 0.01) <= 0.05  # linear in exposure
+    from emccdcal.napari._layers import result_layers
+
+    layer = {kw["name"]: data for data, kw, _ in result_layers(ds)}["dark current (e-/s)"]
+    np.testing.assert_array_equal(layer, ds.dark_current.values)
 
 
 def test_darks_at_two_exposures_give_the_dark_current_of_a_lit_series(tmp_path):

@@ -295,12 +295,13 @@ def _add_dark_current(ds, manifest, used) -> None:
         f"the exposure ({exposures})",
         "dark_current_se": "standard error of dark_current",
     }
+    ok = ds["converged"].values
     for name, text in what.items():
-        ds[name] = (("row", "col"), np.where(ds["converged"].values, found[name], np.nan))
+        ds[name] = (("row", "col"), np.where(ok, found[name], np.nan))
         ds[name].attrs.update(units="e-/s", long_name=text)
     _warn_dark_signal_in_the_dark(ds, used)
     if found["pvalue"] is not None:
-        ds["dark_current_pvalue"] = (("row", "col"), found["pvalue"])
+        ds["dark_current_pvalue"] = (("row", "col"), np.where(ok, found["pvalue"], np.nan))
         ds["dark_current_pvalue"].attrs.update(
             units="1",
             long_name="p-value of the straight line of mean counts against exposure "

@@ -75,6 +75,8 @@ def result_layers(ds, *, prefix: str = "") -> list[tuple]:
                 else (axis, [float(k) if axis == "setpoint" else str(k) for k in ds[axis].values])
             )
             add(ds[var].values, var, unit, colormap, keys)
+    if "dark_current" in ds:  # darks at two or more exposures (hot pixels stand out)
+        add(ds.dark_current.values, "dark current", "e-/s", "inferno")
     if "telegraph" in ds:  # random-telegraph pixels of the 1× darks: 1, else 0
         add(ds.telegraph.values, "telegraph pixels", "1", "red")
     if layers:
