@@ -540,3 +540,25 @@ def test_bright_levels_leave_no_pixel_overconfident(tmp_path):
     z = _z(ds, sim.outdir)[ds.converged.values.ravel()]
     assert z.size > 30 and np.abs(z).max() < 5
     assert abs(z.mean()) < 0.4 and 0.7 < np.sqrt(np.mean(z**2)) < 1.35
+
+
+def test_a_folder_of_darks_at_several_exposures_scans_as_the_photon_free_path(tmp_path):
+    """Darks only, their exposures in their names: scan takes the shortest as the others'
+    dark and writes light = false; calibrate then needs no option."""
+    import tomllib
+
+    sim = _photon_free(tmp_path / "darks", "scmos", (4, 4), 300, 26, exposures=(0.01, 1.0, 2.0))
+    manifest = tmp_path / "scanned.toml"
+    done = subprocess.run(
+        [sys.executable, "-m", "emccdcal", "scan", str(sim.outdir), "-o", str(manifest), "-q"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    doc = tomllib.loads(manifest.read_text())
+    assert doc["light"] is False
+    assert [(a["exposure_s"], a["dark_exposure_s"]) for a in doc["acquisition"]] == [
+        (1.0, 0.01),
+        (2.0, 0.01),
+    ]
+    ds = emccdcal.calibrate(manifest, progress=False)
+    assert ds.attrs["photon_free"] == 1 and np.isfinite(ds.dark_current.values).any()

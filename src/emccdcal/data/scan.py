@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import re
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from .. import defaults
@@ -34,6 +34,10 @@ from .stacks import STACK_SUFFIXES, setpoint_in_name, stack_header, stack_settin
 __all__ = ["ScannedFile", "MapPair", "Session", "scan", "manifest_text", "write_manifest"]
 
 _DARK = re.compile(r"dark|no[-_ ]?signal|bias|background", re.IGNORECASE)
+#: An exposure in a file's name (``dark-0.5s``, ``dark_500ms``, ``20us``), and its unit's
+#: seconds.
+_EXPOSURE = re.compile(r"(?<![0-9.])(\d+(?:\.\d+)?)\s*(ms|us|µs|s)(?![a-z])", re.IGNORECASE)
+_EXPOSURE_UNIT = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "µs": 1e-6}
 
 
 def _word(alternatives: str) -> re.Pattern:
@@ -74,6 +78,10 @@ class ScannedFile:
     dark: bool
     setpoint: float
     setpoint_rule: str  # "recorded" or "name"
+    #: The exposure (s) the file records, else the one its name says, else None; and
+    #: which ("recorded" or "name").
+    exposure_s: float | None = None
+    exposure_rule: str | None = None
 
 
 @dataclass(frozen=True)
@@ -99,6 +107,8 @@ class Session:
     #: ``"scmos"`` for a folder of Huang's names with no set-point anywhere (a camera
     #: without an EM register), else None.
     camera_kind: str | None = None
+    #: False for a folder of darks only, at several exposures (the photon-free path).
+    light: bool = True
 
     @property
     def kind(self) -> str:
@@ -152,6 +162,31 @@ def _setpoint_of(path: Path, settings: CameraSettings):
     if setpoint is not None:
         return setpoint, "name"
     return None, None
+
+
+#: The rule of a folder of darks only (Diekmann et al. 2022).
+_PHOTON_FREE = "photon-free: darks only, at several exposures; the shortest is the others' dark"
+
+
+def _exposure_of(path: Path, settings: CameraSettings):
+    """(seconds, rule) of a stack's exposure: recorded, else in its name, else None."""
+    if settings.exposure_ms is not None:
+        return settings.exposure_ms / 1000.0, "recorded"
+    found = _EXPOSURE.search(path.stem)
+    if found is None:
+        return None, None
+    return float(found.group(1)) * _EXPOSURE_UNIT[found.group(2).lower()], "from the file name"
+
+
+def _photon_free(stacks):
+    """A folder of darks only at two or more known exposures: (the shortest, the others
+    as the series' stacks, their dark signal its signal); else None."""
+    if not stacks or not all(f.dark and f.setpoint == 1.0 for f in stacks):
+        return None
+    if any(f.exposure_s is None for f in stacks) or len({f.exposure_s for f in stacks}) < 2:
+        return None
+    ordered = sorted(stacks, key=lambda f: (f.exposure_s, f.path.name))
+    return ordered[0], [replace(f, dark=False) for f in ordered[1:]]
 
 
 def _no_setpoint(path: Path) -> InputError:
@@ -262,9 +297,10 @@ def scan(folder) -> Session:
                 raise _no_setpoint(path)
             stacks.append(
                 ScannedFile(
-                    path, tuple(shape), settings, bool(_DARK.search(path.stem)), setpoint, rule
+                    path, tuple(shape), settings, bool(_DARK.search(path.stem)), setpoint, rule,
+                    *_exposure_of(path, settings),
                 )
-            )
+            )  # fmt: skip
         elif len(shape) == 2:
             maps.append((path, tuple(shape)))
         else:
@@ -276,7 +312,13 @@ def scan(folder) -> Session:
         where = f"; its subfolders {', '.join(inner)} hold some: scan each" if inner else ""
         raise InputError(f"'{folder}': no stack of frames ({', '.join(STACK_SUFFIXES)}){where}")
     _check_agreement(stacks)
-    signal = sorted((f for f in stacks if not f.dark), key=lambda f: (f.setpoint, f.path.name))
+    photon_free = _photon_free(stacks) if no_register else None
+    if photon_free is not None:  # the longer darks are the signal, the shortest their dark
+        stacks = [photon_free[0], *photon_free[1]]
+    signal = sorted(
+        (f for f in stacks if not f.dark),
+        key=lambda f: (f.setpoint, f.exposure_s or 0.0, f.path.name),
+    )
     if not signal:
         raise InputError(
             f"'{folder}': only darks (names with dark, no-signal, bias or "
@@ -330,9 +372,11 @@ def scan(folder) -> Session:
         names = ", ".join(p.name for p in other[:5]) + (", …" if len(other) > 5 else "")
         skipped.append((f"{len(other)} other file(s)", f"not camera files ({names})"))
     rules = _rules(stacks, pairs, darks) + ([_NO_REGISTER] if no_register else [])
+    rules += [_PHOTON_FREE] if photon_free is not None else []
     return Session(
-        folder, signal, darks, rules, skipped, e_per_adu_map, kind if no_register else None
-    )
+        folder, signal, darks, rules, skipped, e_per_adu_map, kind if no_register else None,
+        light=photon_free is None,
+    )  # fmt: skip
 
 
 def _check_one_kind(folder: Path, signal) -> None:
@@ -497,6 +541,8 @@ def manifest_text(session: Session, where: Path) -> str:
                 else "   # or 'qcmos' or 'ccd': the files do not say; all calibrate alike"
             )
         )
+    if not session.light:
+        lines.append(toml_line("light", False) + "   # darks only: the photon-free path")
     bits = {f.settings.adc_bits for f in session.signal} - {None}
     bits |= {d.settings.adc_bits for d in session.darks.values() if isinstance(d, ScannedFile)} - {
         None
@@ -532,18 +578,18 @@ def manifest_text(session: Session, where: Path) -> str:
             )
         if kind == "intensity-series":
             lines.append(toml_line("level", f"L{i}"))
-        exposure = f.settings.exposure_ms
-        if exposure is not None:
-            lines.append(toml_line("exposure_s", exposure / 1000.0) + "   # recorded")
+        if f.exposure_s is not None:
+            lines.append(toml_line("exposure_s", f.exposure_s) + f"   # {f.exposure_rule}")
         dark = session.darks[f.setpoint]
         if isinstance(dark, MapPair):
             lines.append(toml_line("offset", rel(dark.offset)))
             lines.append(toml_line("read_noise", rel(dark.read_noise)))
         else:
             lines.append(toml_line("dark", rel(dark.path)))
-            dark_exposure = dark.settings.exposure_ms
-            if dark_exposure is not None and dark_exposure != exposure:
-                lines.append(toml_line("dark_exposure_s", dark_exposure / 1000.0) + "   # recorded")
+            if dark.exposure_s is not None and dark.exposure_s != f.exposure_s:
+                lines.append(
+                    toml_line("dark_exposure_s", dark.exposure_s) + f"   # {dark.exposure_rule}"
+                )
     return "\n".join(lines) + "\n"
 
 
