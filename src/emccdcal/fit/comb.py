@@ -252,25 +252,39 @@ def _envelope_fit(layout, blocks, x, signal, half, rounds=4):
             layout.subset(todo), [b.take(todo) for b in blocks], x[todo], signal[todo],
             half[todo], step[todo],
         )  # fmt: skip
-        moved = np.zeros(todo.size, dtype=bool)
-        for i, p in enumerate(todo):
-            near = np.isfinite(value[i]) & (value[i] > value[i].max() - ENVELOPE)
-            if near.sum() < 4:
-                continue
-            t = ln_phi[i, near] - x[p, 0]
-            a, b, _ = np.polyfit(t, value[i, near], 2)
-            if a >= 0:  # no top within reach: go to the best point
-                vertex = t[np.argmax(value[i, near])]
-            else:
-                vertex, se[p] = -b / (2.0 * a), 1.0 / np.sqrt(-2.0 * a)
-            vertex = float(np.clip(vertex, -half[p], half[p]))
-            moved[i] = abs(vertex) > 0.25 * half[p] or a >= 0
-            x[p, 0] += vertex
+        near = np.isfinite(value) & (value > value.max(axis=1, keepdims=True) - ENVELOPE)
+        t = np.where(near, ln_phi - x[todo, :1], 0.0)
+        a, b = _parabolas(t, np.where(near, value, 0.0), near)
+        top = (near.sum(axis=1) >= 4) & (a < 0)
+        best = t[np.arange(todo.size), np.argmax(np.where(near, value, -np.inf), axis=1)]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            vertex = np.where(top, -b / (2.0 * a), best)  # no top within reach: the best point
+            se[todo[top]] = 1.0 / np.sqrt(-2.0 * a[top])
+        vertex = np.clip(vertex, -half[todo], half[todo])
+        x[todo, 0] += vertex
+        moved = (np.abs(vertex) > 0.25 * half[todo]) | ~top
         x[todo, 1:] = np.log(signal[todo] * np.exp(x[todo, :1]))
         todo = todo[moved]
         if todo.size == 0:
             break
     return x, se
+
+
+def _parabolas(t, v, use):
+    """Least-squares parabolas ``v ≈ a·t² + b·t + c`` through each row's points ``use``
+    (P, G): (a, b), each (P,); NaN where fewer than three points."""
+    w = use.astype(float)
+    s = [np.sum(w * t**k, axis=1) for k in range(5)]
+    r = [np.sum(w * t**k * v, axis=1) for k in range(3)]
+    m = np.stack(
+        [np.stack([s[4], s[3], s[2]], -1), np.stack([s[3], s[2], s[1]], -1),
+         np.stack([s[2], s[1], s[0]], -1)], axis=-2,
+    )  # fmt: skip
+    ok = use.sum(axis=1) >= 3
+    coef = np.full((t.shape[0], 3), np.nan)
+    if ok.any():
+        coef[ok] = np.linalg.solve(m[ok], np.stack([r[2], r[1], r[0]], -1)[ok][..., None])[..., 0]
+    return coef[:, 0], coef[:, 1]
 
 
 def _path_grid(layout, blocks, x, signal, half, step):
