@@ -67,6 +67,7 @@ __all__ = [
     "number",
     "positive",
     "quantum_efficiency",
+    "per_pixel_reading",
     "leaves",
     "find_tables",
     "mat_raw",
@@ -306,6 +307,33 @@ class Reading:
     #: each, and the sensor pixel (row, col) of their first; audited pixel by pixel.
     maps: dict | None = None
     origin: tuple | None = None
+
+
+def per_pixel_reading(
+    tool, where, path, maps, origin=None, *, names, gain_note="", formula=None, partial=False
+) -> list[Reading]:
+    """The :class:`Reading` of a tool's per-pixel maps, checked: ``maps`` is
+    ``{"offset": ADU, "adu_per_e_total": ADU/e⁻, "variance": ADU²}``, (rows, cols) each;
+    ``names`` the file's names of the offset and the gain, for its fields and messages;
+    ``origin`` the sensor (row, col) of its first pixel, where the file says;
+    ``partial``: NaN (a pixel the file leaves out) allowed in the gain. Its fields are the
+    medians; ``formula`` says how the photons per ADU follow (default 1 / the gain's)."""
+    offset_name, gain_name = names
+    shapes = {np.shape(m) for m in maps.values()}
+    if len(shapes) != 1 or len(next(iter(shapes))) != 2:
+        raise InputError(f"'{path}': its maps ({', '.join(names)} ...) are not maps of one shape")
+    gain = np.asarray(maps["adu_per_e_total"], dtype=float)
+    given = np.isfinite(gain) if partial else np.ones(gain.shape, dtype=bool)
+    if not given.any() or not np.all(np.isfinite(gain[given]) & (gain[given] > 0)):
+        raise InputError(f"'{path}': its {gain_name} holds values that are not positive numbers")
+    median_gain = float(np.median(gain[given]))
+    baseline = float(np.nanmedian(maps["offset"]))
+    fields = (
+        Field(f"{offset_name} (median)", baseline, "offset"),
+        Field(f"{gain_name} (median)", median_gain, "adu_per_e_total", gain_note),
+    )
+    formula = formula or f"1 / {gain_name} (median)"
+    return [Reading(tool, where, fields, 1.0 / median_gain, formula, baseline, None, maps, origin)]
 
 
 def number(value, what, path):

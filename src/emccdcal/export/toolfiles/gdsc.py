@@ -103,21 +103,12 @@ def read_model(path, setpoint):
             f"'{path}': a camera model has 3 slices (Bias, Gain, Variance); got {data.shape}"
         )
     bias, gain, variance = (np.asarray(a, dtype=float) for a in data)
-    if not np.all(np.isfinite(gain) & (gain > 0)):
-        raise InputError(f"'{path}': its Gain slice holds values that are not positive numbers")
     origin = (int(round(float(meta.get("yorigin", 0)))), int(round(float(meta.get("xorigin", 0)))))
-    median_gain = float(np.median(gain))
-    fields = (
-        Field("Bias (median)", float(np.median(bias)), "offset"),
-        Field("Gain (median)", median_gain, "adu_per_e_total", "counts per photon"),
-    )
     maps = {"offset": bias, "adu_per_e_total": gain, "variance": variance}
-    return [
-        Reading(
-            "gdsc", "per-pixel camera model", fields, 1.0 / median_gain, "1 / Gain (median)",
-            float(np.median(bias)), None, maps, origin,
-        )
-    ]  # fmt: skip
+    return toolkit.per_pixel_reading(
+        "gdsc", "per-pixel camera model", path, maps, origin, names=("Bias", "Gain slice"),
+        gain_note="counts per photon",
+    )  # fmt: skip
 
 
 def _read_doc(doc, path):

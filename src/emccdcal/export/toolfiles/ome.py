@@ -31,7 +31,6 @@ from ...model import adc
 from ...plugins import Tool
 from ...result import format_setpoint
 from .. import toolkit
-from ..toolkit import Field, Reading
 
 #: The file written.
 FILE = "emccdcal-maps.ome.tif"
@@ -152,28 +151,16 @@ def read(path, setpoint):
             f"'{path}': its maps are of set-point {format_setpoint(at)}x, "
             f"not {format_setpoint(setpoint)}x"
         )
-    total = image["adu_per_e_total"]
-    ok = np.isfinite(total)
-    if not np.all(total[ok] > 0):
-        raise InputError(f"'{path}': adu_per_e_total holds values that are not positive")
     origin = described.get("sensor_origin")
-    median_total = float(np.nanmedian(total))
-    baseline = float(np.nanmedian(image["offset"]))
-    fields = (
-        Field("offset (median)", baseline, "offset"),
-        Field("adu_per_e_total (median)", median_total, "adu_per_e_total", "g/phi"),
-    )
     maps = {
         "offset": image["offset"],
-        "adu_per_e_total": total,
+        "adu_per_e_total": image["adu_per_e_total"],
         "variance": image["read_noise_variance"],
     }
-    return [
-        Reading(
-            "ome-tiff", "maps", fields, 1.0 / median_total, "1 / adu_per_e_total (median)",
-            baseline, None, maps, None if origin is None else tuple(int(v) for v in origin),
-        )
-    ]  # fmt: skip
+    return toolkit.per_pixel_reading(
+        "ome-tiff", "maps", path, maps, None if origin is None else tuple(map(int, origin)),
+        names=("offset", "adu_per_e_total"), gain_note="g/phi", partial=True,
+    )  # fmt: skip
 
 
 TOOL = Tool("ome-tiff", "OME-TIFF maps", write, None, None, read_file=read)

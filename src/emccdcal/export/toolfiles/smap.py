@@ -163,28 +163,13 @@ def _smap_correction(raw, path) -> list[Reading]:
     φ/g) and ``varmap`` (ADU²), [row, col], read as per-pixel maps (no sensor origin: the
     maps are taken to be the calibration's pixels)."""
     maps = {k: np.asarray(raw[k], dtype=float) for k in ("offsetmap", "gainmap", "varmap")}
-    if len({m.shape for m in maps.values()}) != 1 or maps["gainmap"].ndim != 2:
-        raise InputError(f"'{path}': offsetmap, gainmap and varmap are not maps of one shape")
-    gain = maps["gainmap"]
-    if not np.all(np.isfinite(gain) & (gain > 0)):
-        raise InputError(f"'{path}': its gainmap holds values that are not positive numbers")
-    median = float(np.median(gain))
-    baseline = float(np.median(maps["offsetmap"]))
-    fields = (
-        Field("offsetmap (median)", baseline, "offset"),
-        Field("gainmap (median)", 1.0 / median, "adu_per_e_total", "1/gainmap: ADU per e-"),
-    )
-    per_pixel = {
-        "offset": maps["offsetmap"],
-        "adu_per_e_total": 1.0 / gain,
-        "variance": maps["varmap"],
-    }
-    return [
-        Reading(
-            "smap", "camera correction", fields, median, "gainmap (median)", baseline, None,
-            per_pixel, None,
-        )
-    ]  # fmt: skip
+    with np.errstate(divide="ignore", invalid="ignore"):
+        total = 1.0 / maps["gainmap"]  # gainmap is photons per ADU
+    per_pixel = {"offset": maps["offsetmap"], "adu_per_e_total": total, "variance": maps["varmap"]}
+    return toolkit.per_pixel_reading(
+        "smap", "camera correction", path, per_pixel, names=("offsetmap", "1/gainmap"),
+        gain_note="ADU per e-", formula="gainmap (median)",
+    )  # fmt: skip
 
 
 def _smap_cameras(raw, path, setpoint) -> list[Reading] | None:

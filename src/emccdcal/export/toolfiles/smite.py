@@ -20,7 +20,6 @@ from ...errors import InputError
 from ...model import adc
 from ...plugins import Tool
 from .. import toolkit
-from ..toolkit import Field, Reading
 
 #: The file written.
 FILE = "smite-calibration.mat"
@@ -86,29 +85,15 @@ def read(path, setpoint):
         "adu_per_e_total": np.asarray(params.Gain, dtype=float),
         "variance": np.asarray(params.CCDVar, dtype=float),
     }
-    shapes = {m.shape for m in maps.values()}
-    if len(shapes) != 1 or len(next(iter(shapes))) != 2:
-        raise InputError(f"'{path}': Params.Gain, CCDOffset and CCDVar are not maps of one shape")
-    gain = maps["adu_per_e_total"]
-    if not np.all(np.isfinite(gain) & (gain > 0)):
-        raise InputError(f"'{path}': Params.Gain holds values that are not positive numbers")
     camera = getattr(params, "CameraObj", None)
     try:
         origin = None if camera is None else origin_of(camera.ROI)
     except (AttributeError, InputError) as exc:
         raise InputError(f"'{path}': {exc}") from None
-    median_gain = float(np.median(gain))
-    baseline = float(np.median(maps["offset"]))
-    fields = (
-        Field("CCDOffset (median)", baseline, "offset"),
-        Field("Gain (median)", median_gain, "adu_per_e_total", "ADU per photoelectron"),
-    )
-    return [
-        Reading(
-            "smite", "Params", fields, 1.0 / median_gain, "1 / Gain (median)", baseline,
-            None, maps, origin,
-        )
-    ]  # fmt: skip
+    return toolkit.per_pixel_reading(
+        "smite", "Params", path, maps, origin, names=("CCDOffset", "Gain"),
+        gain_note="ADU per photoelectron",
+    )  # fmt: skip
 
 
 TOOL = Tool(
