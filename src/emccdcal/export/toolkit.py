@@ -10,11 +10,12 @@ audit, reads such a file back. Both sides need the same few parts, all here and 
 - what a file records of where it came from (:func:`provenance`, :func:`comment_lines`,
   :func:`camera_name`, :func:`comment`) and how it writes (:func:`rounded`,
   :func:`yaml_text`, :func:`write_text`, :func:`write_file`, :func:`write_tiff`);
-- what an audit reads (:class:`Field`, :class:`Reading`, :data:`QUANTITIES`) and how a
-  file's values are checked (:func:`number`, :func:`positive`,
-  :func:`quantum_efficiency`) and found (:func:`leaves`, :func:`find_tables`,
-  :func:`mat_raw`, :func:`mat_scalar`, :func:`load_xml`, :func:`load_json`); and :func:`install_hint` for
-  a tool that needs an extra.
+- what an audit reads (:class:`Field`, :class:`Reading`, :data:`QUANTITIES`,
+  :func:`per_pixel_reading` for a tool's per-pixel maps) and how a file's values are
+  checked (:func:`number`, :func:`positive`, :func:`quantum_efficiency`) and found
+  (:func:`leaves`, :func:`find_tables`, :func:`mat_raw`, :func:`mat_scalar`,
+  :func:`load_xml`, :func:`load_json`); and :func:`install_hint` for a tool that needs an
+  extra.
 
 This module imports no tool and no verb: the tools import it, and the verbs
 (:mod:`emccdcal.export.tools`, :mod:`emccdcal.export.audit`) import it and the tools
