@@ -552,15 +552,15 @@ def test_a_fit_moves_its_data_to_the_device_once(tmp_path, monkeypatch):
     monkeypatch.setattr(_xp, "on", counting_on)
     data_size = min(h.values.size for h in hists)
     large = {}
-    for max_iter in (3, 30):
+    for max_iter in (1, 30):
         lik = SeriesLikelihood("gs", models, hists, e_per_adu=float(sim.truth["e_per_adu"]))
         moved.clear()
         with _xp.computing_on("array-api-strict"):
             fit = lik.fit(max_iter=max_iter, covariance=False)
         large[max_iter] = sum(n >= data_size for n in moved)
         assert max(n for n in moved if n < data_size) <= 4 * P  # per-pixel vectors
-    assert int(fit.iterations.max()) > 3  # the long fit did iterate more
-    assert large[3] == large[30] == 2 * A, large
+    assert int(fit.iterations.max()) > 1  # the long fit did iterate more
+    assert large[1] == large[30] == 2 * A, large
 
 
 @pytest.mark.parametrize("em_model", ["cascade", "gamma"])

@@ -355,12 +355,14 @@ def test_an_acquisition_the_model_misfits_at_most_pixels_ends_with_exit_1(tmp_pa
 
 @pytest.mark.slow
 def test_a_run_where_no_pixel_converged_leaves_nothing_to_resume(tmp_path, capsys):
-    """Maps of the 300x acquisition that no data fit (a misread dark's offset and read
-    noise): every pixel fails. Nothing is kept as an 'interrupted run', the output folder
-    the run made is gone, and the rerun says the same thing again."""
+    """Maps of the 300x acquisition that no data fit (a misread dark's offset, above
+    every count, and read noise): every pixel fails. Nothing is kept as an 'interrupted
+    run', the output folder the run made is gone, and the rerun says the same thing
+    again. (Maps that are merely wrong, an offset of 13852 ADU under counts of ~25700,
+    give a maximum the fit reaches and the goodness of fit rejects: a doubtful run.)"""
     sim = _small_series(tmp_path)
     folder = sim.manifest.parent / "gain-GS"
-    tifffile.imwrite(folder / "300x-gain_no-signal_S0.tif", np.full((4, 4), 13852.0, np.float32))
+    tifffile.imwrite(folder / "300x-gain_no-signal_S0.tif", np.full((4, 4), 60000.0, np.float32))
     tifffile.imwrite(folder / "300x-gain_no-signal_sigma.tif", np.full((4, 4), 3968.0, np.float32))
     mine = tmp_path / "mine"
     mine.mkdir()  # a folder of the user's: kept

@@ -512,7 +512,7 @@ def test_engine_gradient_and_observed_information_under_the_cascade():
         em_model=noise.EMModel("cascade", 536),
     )
     coords = [np.full(P, np.log(372.0)), np.full(P, -np.log(3.85)), np.full(P, np.log(4.75))]
-    ll, grad, obs, _, _ = engine._acquisition_terms(acq, coords, 2)
+    ll, grad, obs, *_ = engine._acquisition_terms(acq, coords, 2)
     step = 1e-5
     for i in range(3):
         plus = [c + step * (j == i) for j, c in enumerate(coords)]

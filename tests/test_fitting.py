@@ -77,7 +77,7 @@ def test_loglik_is_that_of_the_public_noise_model(case):
 def test_gradient_and_observed_information_are_the_derivatives(case):
     acq = _block(case)
     log_e, log_scale = _log_params(case, acq.n.size)
-    _, grad, obs, _, _ = engine._acquisition_terms(acq, [log_e, log_scale], 2)
+    _, grad, obs, *_ = engine._acquisition_terms(acq, [log_e, log_scale], 2)
     h = 1e-4
 
     def terms(de, ds):
@@ -94,6 +94,31 @@ def test_gradient_and_observed_information_are_the_derivatives(case):
         hess_col = (g_plus - g_minus) / (2 * h)  # d grad / d u_i
         scale = np.abs(obs).max()
         np.testing.assert_allclose(-obs[:, :, i], hess_col, rtol=1e-4, atol=1e-6 * scale)
+
+
+@pytest.mark.parametrize("case", list(CASES))
+@pytest.mark.parametrize("em_model", ["gamma", "cascade"])
+def test_the_gradient_by_parseval_is_the_scores_sum(case, em_model):
+    """A trial with the information kept gets its gradient from one forward FFT of the
+    weights (Parseval): the same numbers as the sum of the scores' windows at the data,
+    and no information."""
+    acq = _block(case)
+    acq = engine.AcquisitionBlock(**{**acq.__dict__, "em_model": noise.EMModel(em_model)})
+    coords = engine._native_to_model(
+        np.column_stack([np.log(np.full(acq.n.size, c)) for c in _native(case)]), acq
+    )[0]
+    windows = engine._acquisition_terms(acq, coords, 1)
+    parseval = engine._acquisition_terms(acq, coords, 1, information=False)
+    assert parseval.info is None and windows.info is not None
+    np.testing.assert_array_equal(parseval.loglik, windows.loglik)
+    scale = np.abs(windows.grad).max()
+    np.testing.assert_allclose(parseval.grad, windows.grad, rtol=1e-9, atol=1e-11 * scale)
+
+
+def _native(case, shift=(0.01, -0.02, 0.0)):
+    """(E, g, φ) of a case, E and g off the optimum so the gradient is not ~0."""
+    E, g, phi, _, _ = CASES[case]
+    return E * np.exp(shift[0]), g if g == 1.0 else g * np.exp(shift[1]), phi
 
 
 @pytest.mark.parametrize("case", ["1x", "300x"])

@@ -6,7 +6,7 @@ import pathlib
 import numpy as np
 import pytest
 
-from emccdcal._optimize import dense_step, maximize
+from emccdcal._optimize import declined_step, dense_step, maximize
 
 SRC = pathlib.Path(__file__).parents[1] / "src" / "emccdcal"
 
@@ -132,6 +132,62 @@ def test_steps_that_overshoot_a_ridge_are_damped_until_the_row_settles():
     assert opt.done.all() and not opt.stuck.any()
     assert (opt.iterations < 60).all(), opt.iterations
     np.testing.assert_allclose(opt.x, 0.0, atol=1e-5)
+
+
+def _quartic(centre):
+    """Rows ``−Σ (d²/2 + d⁴/12)``, d = x − c: objective, gradient and its exact Hessian
+    (negated), and a record of the rows asked for their information at each call."""
+    asked = []
+
+    def evaluate(rows, x, information=None):
+        asked.append(np.ones(len(rows), bool) if information is None else information.copy())
+        d = x - centre[rows]
+        obj = -np.sum(d**2 / 2 + d**4 / 12, axis=1)
+        return obj, -(d + d**3 / 3), (1.0 + d**2)[:, :, None] * np.eye(d.shape[1])
+
+    return evaluate, asked
+
+
+def test_a_kept_information_is_asked_for_again_only_after_a_step_that_missed():
+    """With ``keep_information`` a row's information is computed at the start and then
+    only at trials after a step that gained other than it promised (by more than half):
+    a row whose curvature hardly changes keeps its first, one far from its maximum gets
+    it anew, and every row reaches its maximum."""
+    centre = np.array([[0.0], [1.0], [-2.0]])
+    x0 = centre + np.array([[0.3], [2.0], [4.0]])  # near, farther, far
+    kept, asked = _quartic(centre)
+    opt = maximize(kept, x0, lower=-10, upper=10, tol=1e-14, max_step=10, keep_information=True)
+    assert opt.done.all()
+    np.testing.assert_allclose(opt.x, centre, atol=1e-6)
+    assert asked[0].all()  # the start
+    trials = np.concatenate(asked[1:])
+    assert 0 < trials.sum() < trials.size  # some trials kept it, some were asked for it
+    # calls with all three rows still moving: the near row never asks again (its
+    # curvature 1 + d² changes by under 10 %), the far one (1 + 16 at its start) does
+    together = [a for a in asked[1:] if a.size == 3]
+    assert together and not any(a[0] for a in together)
+    assert any(a[2] for a in together)
+
+
+def test_the_declined_step_lands_on_a_quadratics_maximum():
+    """A row stopped by a loose tolerance is one undamped step from a quadratic's
+    maximum: :func:`declined_step` takes it (not past a bound it is held at), where the
+    step is no larger than ``largest`` (beyond, the row stays: a flat direction)."""
+    rng = np.random.default_rng(3)
+    P = 20
+    centre = rng.normal(0, 1, (P, 2))
+    M = rng.normal(size=(P, 2, 2))
+    curvature = M @ np.swapaxes(M, 1, 2) + 0.5 * np.eye(2)
+    upper = np.array([np.inf, 0.5])
+    opt = maximize(_quadratic(centre, curvature), centre + 0.3, lower=-np.inf, upper=upper, tol=0.1)
+    free = centre[:, 1] < 0.5
+    assert np.abs(opt.x[free] - centre[free]).max() > 1e-3  # stopped short
+    x = declined_step(opt, -np.inf, upper, largest=1.0)
+    np.testing.assert_allclose(x[free], centre[free], atol=1e-12)
+    assert np.all(x[:, 1] <= 0.5)
+    far = np.abs(opt.x - x).max(axis=1) > 1e-3
+    assert far.any()
+    np.testing.assert_array_equal(declined_step(opt, -np.inf, upper)[far], opt.x[far])
 
 
 def test_a_structured_step_gives_the_dense_step():

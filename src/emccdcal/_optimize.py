@@ -48,6 +48,8 @@ class Optimum:
         Stopped because no damped step improved the objective.
     iterations : ndarray of int, shape (P,)
         Trial evaluations made for the row.
+    grad, info : ndarray, shapes (P, F) and evaluate's info
+        The gradient at ``x`` and the information the last step was solved with.
     """
 
     x: np.ndarray
@@ -55,6 +57,8 @@ class Optimum:
     done: np.ndarray
     stuck: np.ndarray
     iterations: np.ndarray
+    grad: np.ndarray | None = None
+    info: np.ndarray | None = None
 
 
 def solve(A, b):
@@ -112,6 +116,7 @@ def maximize(
     step=dense_step,
     decrement=None,
     progress=None,
+    keep_information=False,
 ):
     """Maximise independent per-row objectives by damped Newton steps.
 
@@ -153,6 +158,16 @@ def maximize(
         the tolerance: by default the Newton decrement ½∇ᵀΔ. A row of many parts (an
         :class:`ArrowLayout`'s) may weigh its parts: :meth:`ArrowLayout.decrement`.
         Called with the number of rows that finished at each iteration.
+    keep_information : bool
+        ``evaluate(rows, x, information)`` takes a third argument, a boolean (n,) of the
+        rows whose information it must return (the others' may be anything, or all of
+        it None where none is asked for; their cost is the objective and gradient
+        alone). A row keeps the information of the last point where it got one while
+        its steps gain what they promised, within half of it (the information is then
+        within a factor 2 of the curvature along the step, and so is the decrement that
+        stops the row), and gets it anew with its next trial after one that did not:
+        an information that stays right (the observed one, near the optimum) spares its
+        cost at the other trials.
 
     Returns
     -------
@@ -165,7 +180,12 @@ def maximize(
     x = np.clip(x, lower, upper)
     damping = np.full(P, 1e-3)
     iterations = np.zeros(P, dtype=int)
-    obj, grad, info = evaluate(np.arange(P), x)
+    # rows whose next trial brings its information (keep_information)
+    fresh = np.zeros(P, dtype=bool)
+    if keep_information:
+        obj, grad, info = evaluate(np.arange(P), x, np.ones(P, dtype=bool))
+    else:
+        obj, grad, info = evaluate(np.arange(P), x)
     stuck = ~np.isfinite(obj)
     done = stuck.copy()
 
@@ -194,7 +214,12 @@ def maximize(
         move = ~small
         active, x_new = active[move], x_new[move]
         if active.size:
-            res = evaluate(active, x_new)
+            if keep_information:
+                res = evaluate(active, x_new, fresh[active])
+                informed = fresh[active]
+            else:
+                res = evaluate(active, x_new)
+                informed = np.ones(active.size, dtype=bool)
             better = res[0] >= obj[active] - accept_rtol * np.abs(obj[active])
             # what the step gained against what its quadratic model promised
             model = 0.5 * np.einsum("pf,pf->p", g[move], d[move])
@@ -202,8 +227,13 @@ def maximize(
             idx = active[better]
             x[idx] = x_new[better]
             obj[idx] = res[0][better]
-            grad[idx], info[idx] = res[1][better], res[2][better]
+            grad[idx] = res[1][better]
+            if res[2] is not None:  # None: no row asked for it
+                info[active[better & informed]] = res[2][better & informed]
             good = better & (ratio >= 0.25)
+            # The information was right along the step where it gained what it promised:
+            # the ratio is 2 - 1/c for an information c times the curvature.
+            fresh[active] = keep_information & ~(better & (np.abs(ratio - 1.0) <= 0.5))
             damping[active[good]] = np.maximum(damping[active[good]] / 10.0, 1e-12)
             damping[active[~good]] *= 10.0
             iterations[active] += 1
@@ -216,7 +246,29 @@ def maximize(
             stuck[hopeless[np.abs(0.5 * np.einsum("pf,pf->p", g, d)) < stuck_tol]] = False
         if progress is not None:
             progress(int(small.sum() + hopeless.size))
-    return Optimum(x, obj, done & ~stuck, stuck, iterations)
+    return Optimum(x, obj, done & ~stuck, stuck, iterations, grad, info)
+
+
+def declined_step(opt, lower, upper, step=dense_step, largest=1e-3):
+    """``opt.x`` with the undamped step each finished row declined (it promised less than
+    the tolerance), not evaluated: the objective gains below the tolerance by it, but
+    with an exact information (Newton's) it lands far nearer the optimum than the point
+    where the decrement stopped the row. Stuck rows stay where they are, and so do rows
+    whose step exceeds ``largest`` in a parameter: a tiny promise with a large step is a
+    flat direction, where an unevaluated step is a guess."""
+    x = opt.x.copy()
+    rows = np.flatnonzero(opt.done)
+    if rows.size == 0:
+        return x
+    P, F = x.shape
+    lower = np.broadcast_to(np.asarray(lower, dtype=float), (P, F))[rows]
+    upper = np.broadcast_to(np.asarray(upper, dtype=float), (P, F))[rows]
+    g, xr = opt.grad[rows], x[rows]
+    held = ((xr <= lower) & (g < 0)) | ((xr >= upper) & (g > 0))
+    d = step(opt.info[rows], g, np.zeros(rows.size), held)
+    small = np.all(np.isfinite(d) & (np.abs(d) <= largest), axis=1)
+    x[rows] = np.clip(xr + np.where(small[:, None], d, 0.0), lower, upper)
+    return x
 
 
 # --------------------------------------------------------------------------------------

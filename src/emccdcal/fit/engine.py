@@ -9,24 +9,30 @@ engine only sees a per-pixel vector ``x`` of free parameters and the layout's ma
 For each acquisition the exact log-likelihood of a pixel is ``Σ_k n_k ln p(k)`` over its
 histogram (:mod:`emccdcal.data.stats`), with ``p`` the noise model of :mod:`emccdcal.model.noise`
 evaluated on one FFT window per pixel, batched over the block. One more inverse FFT per
-parameter gives the scores, hence the gradient and the outer-product information; at
-the end, the observed information needs the second derivatives only summed against the
-data, which one forward FFT of the data's weights gives for every pair (Parseval).
+parameter gives the scores (each value's derivatives), hence the outer-product
+information; the gradient and the second derivatives are needed only summed against
+the data, which one forward FFT of the data's weights gives for every parameter and
+pair (Parseval).
 
-Optimisation is BHHH (the information estimated by the outer product of the per-frame
-scores) with Levenberg–Marquardt damping, vectorised over pixels:
-each iteration evaluates only the pixels that have not converged, there is no Python loop
-over pixels. Standard errors come from the inverse observed information at the optimum.
+Optimisation is Newton's with Levenberg–Marquardt damping
+(:func:`emccdcal._optimize.maximize`), vectorised over pixels: the observed information
+from the start, kept while the steps
+gain what they promised (the trials between need the gradient alone, which the same
+Parseval sum gives), the outer product of the per-frame scores (BHHH) where it is not
+positive definite or a prior's kink makes it change too fast; each iteration evaluates
+only the pixels that have not converged, there is no Python loop over pixels. Standard
+errors come from the inverse observed information at the optimum.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 
 from .. import _xp
-from .._optimize import maximize
+from .._optimize import declined_step, maximize
 from ..model import noise
 
 __all__ = [
@@ -37,7 +43,6 @@ __all__ = [
     "QUANTITIES",
     "fit",
     "objective",
-    "expected_information",
 ]
 
 # Values whose model probability is below this fraction of the pixel's peak are beyond
@@ -55,7 +60,7 @@ class AcquisitionBlock:
     values, counts : ndarray, shape (P, K), or None
         Histogram of each pixel's counts (ADU values, and frames at each; padding has
         count 0), as :class:`emccdcal.data.stats.PixelHistograms`; None in a block of
-        the model alone (:func:`expected_information` needs no data).
+        the model alone (:func:`emccdcal.fit.scores.expected_information` needs no data).
     offset, read_noise : ndarray, shape (P,)
         S0 and σ maps (ADU).
     poisson_normal : bool
@@ -206,6 +211,11 @@ class Layout:
         jac = np.broadcast_to(self.matrix, (x.shape[0],) + self.matrix.shape)
         return logs, jac
 
+    @property
+    def has_prior(self) -> bool:
+        """Whether the layout overrides :meth:`log_prior` (a flat prior does not)."""
+        return type(self).log_prior is not Layout.log_prior
+
     def log_prior(self, x):
         """Log prior density (P,), gradient (P, F) and Hessian (P, F, F); flat here."""
         P, F = x.shape
@@ -256,7 +266,11 @@ class _ModelAtData:
     pv : array, shape (P, K)
         Probabilities at the values, floored at ``_FLOOR`` of the pixel's peak.
     scores : dict or None
-        name -> (P, K) first derivatives of the probability at the values.
+        name -> (P, K) first derivatives of the probability at the values (None without
+        ``score_windows``).
+    first : dict
+        name -> :class:`noise.Spectrum` of the first derivatives, where ``score_windows``
+        is False: only their sums against weights are needed (:meth:`spectral_sums`).
     second : dict
         (name, name) -> :class:`noise.Spectrum` of the second derivatives (upper triangle).
     flat : array of int, shape (P·K,)
@@ -271,7 +285,9 @@ class _ModelAtData:
         Pixels whose parameters are hopelessly far from their data.
     """
 
-    def __init__(self, acq, rows, *, derivs=False, second=False, names=None, xp=None):
+    def __init__(
+        self, acq, rows, *, derivs=False, second=False, names=None, xp=None, score_windows=True
+    ):
         # The model's mass lies within [lo, hi] (eight SDs and the tails, outside of
         # which the pmf is below ~1e-15 of its peak).
         lo, hi = noise.window_extent(rows, acq.offset, acq.read_noise, width=8.0)
@@ -305,6 +321,7 @@ class _ModelAtData:
             second=second,
             names=names,
             xp=(xp, dev),
+            first_spectra=not score_windows,
         )
         P, K = acq.values.shape
         # One flat gather per window (faster than take_along_axis, which rebuilds indices),
@@ -320,38 +337,58 @@ class _ModelAtData:
         floor = _FLOOR * xp.max(p, axis=1, keepdims=True)
         self.low = pv < floor
         self.pv = xp.where(self.low, floor, pv)
-        self.scores = {nm: at_values(d1[nm]) for nm in names} if derivs else None
+        windows = derivs and score_windows
+        self.scores = {nm: at_values(d1[nm]) for nm in names} if windows else None
+        self.first = d1 if derivs and not score_windows else {}
         self.second, self.n, self.hopeless, self.xp = d2, n, hopeless, xp
 
-    def second_sums(self, weights):
-        """``Σ_values weights · ∂²p`` (P,) for every pair in ``second``: one forward FFT
-        of the weights placed on the window grid (values are distinct within a pixel;
-        padding carries weight 0), then a dot with each pair's spectrum."""
-        if not self.second:
+    def spectral_sums(self, weights):
+        """``Σ_values weights · ∂p`` and ``Σ_values weights · ∂²p`` (P,) for every
+        derivative held as a spectrum (``first`` by name, ``second`` by pair): one
+        forward FFT of the weights placed on the window grid (values are distinct within
+        a pixel; padding carries weight 0), then a dot with each spectrum (Parseval)."""
+        spectra = {**self.first, **self.second}
+        if not spectra:
             return {}
         xp = self.xp
         P = self.pv.shape[0]
         grid = _xp.bincount(xp, self.flat, xp.reshape(weights, (-1,)), P * self.n)
         grid = xp.reshape(grid, (P, self.n))
-        m = next(iter(self.second.values())).spectrum.shape[1]
+        m = next(iter(spectra.values())).spectrum.shape[1]
         hat = noise.Spectrum.weights_spectrum(grid, m)
-        return {key: spec.dot(hat) for key, spec in self.second.items()}
+        return {key: spec.dot(hat) for key, spec in spectra.items()}
 
 
-def _acquisition_terms(acq, coords, level, map_cross=False, live=None):
+class _Terms(NamedTuple):
+    """One acquisition's part of the log-likelihood (:func:`_acquisition_terms`), by the
+    model's coordinates (U of them), per pixel (P)."""
+
+    loglik: np.ndarray  # (P,)
+    grad: np.ndarray | None = None  # (P, U), level ≥ 1
+    #: (P, U, U): the outer product of the scores (BHHH) at level 1, None there without
+    #: ``information``; the observed information at level 2
+    info: np.ndarray | None = None
+    n_floored: np.ndarray | None = None  # (P,)
+    cross: np.ndarray | None = None  # (P, U, 2), with map_cross
+    outer: np.ndarray | None = None  # (P, U, U): the outer product's, at level 2
+
+
+def _acquisition_terms(acq, coords, level, map_cross=False, live=None, information=True):
     """Log-likelihood of one acquisition and its derivatives by its model coordinates.
 
     ``coords`` (U, P) are the logarithms of the model's own parameters
     (:func:`_native_to_model`): (ln E, ln scale) of the gamma and Poisson–normal models,
     (ln E, ln(1/φ), ln g) of the cascade. ``level`` 0: value only; 1: gradient and the
-    outer-product (BHHH) information; 2: the observed information instead. With
-    ``map_cross`` (level ≥ 1) also the outer-product cross information of the
-    coordinates with the (offset, read-noise) maps, (P, U, 2), for
-    :func:`_map_covariance`, from the same windows. ``live`` (U,) says which
+    outer-product (BHHH) information; 2: the observed information too. Without
+    ``information`` (level 1) only the gradient, from the weights' spectrum (Parseval:
+    one forward FFT instead of an inverse FFT per coordinate): for a step taken with an
+    information already in hand. With ``map_cross`` (level ≥ 1) also the outer-product
+    cross information of the coordinates with the (offset, read-noise) maps, (P, U, 2),
+    for :func:`_map_covariance`, from the same windows. ``live`` (U,) says which
     coordinates the fit moves (default all): the others' derivatives, which the layout
     multiplies by zero (φ given in a gain series), are returned as zeros uncomputed,
     each one inverse FFT saved.
-    Returns ``(loglik (P,), grad (P, U), info (P, U, U), n_floored (P,), cross)``.
+    Returns :class:`_Terms`.
     """
     values = [np.exp(c) for c in coords]
     U = len(values)
@@ -362,19 +399,33 @@ def _acquisition_terms(acq, coords, level, map_cross=False, live=None):
     # The windows and their sums over the data run where the fit computes
     # (_xp.computing_on); what comes back is one number per pixel and sum.
     xp, dev = _xp.engine()
-    model = _ModelAtData(acq, rows, derivs=level >= 1, second=level >= 2, names=names, xp=(xp, dev))
+    windows = information or level >= 2
+    model = _ModelAtData(
+        acq,
+        rows,
+        derivs=level >= 1,
+        second=level >= 2,
+        names=names,
+        xp=(xp, dev),
+        score_windows=windows,
+    )
     pv, low = model.pv, model.low
     counts = acq.on_device(xp, dev, "counts")
     row_sum = lambda a: _xp.to_numpy(xp.sum(a, axis=1))  # noqa: E731
     loglik = np.where(model.hopeless, -np.inf, row_sum(counts * xp.log(pv)))
     n_floored = row_sum(xp.where(low, counts, 0.0)).astype(np.int64)
     if level == 0:
-        return loglik, None, None, n_floored, None
+        return _Terms(loglik, None, None, n_floored)
     P, L = acq.values.shape[0], kept.size
     # (P, L) columns, also for L = 0 (a layout that moves none of this acquisition's)
     columns = lambda arrays: np.asarray(arrays, dtype=float).reshape(L, P).T  # noqa: E731
     factor = columns([values[i] for i in kept])  # d λ / d ln λ
     w = xp.where(low, 0.0, counts / pv)
+    grad = np.zeros((P, U))
+    if not windows:
+        sums = model.spectral_sums(w)
+        grad[:, kept] = columns([_xp.to_numpy(sums[nm]) for nm in model_names]) * factor
+        return _Terms(loglik, grad, None, n_floored)
     scores = [model.scores[nm] for nm in names]
     grad_k = columns([row_sum(w * s) for s in scores[:L]]) * factor
     # Outer products of the per-frame scores (BHHH): a positive semi-definite estimate of
@@ -390,19 +441,22 @@ def _acquisition_terms(acq, coords, level, map_cross=False, live=None):
         cross = np.zeros((P, U, 2))
         for i, u in enumerate(kept):
             cross[:, u] = np.stack([outer[i, L], outer[i, L + 1]], axis=1) * factor[:, i, None]
-    if level >= 2:
-        sums = {key: _xp.to_numpy(v) for key, v in model.second_sums(w).items()}
-        for i, a in enumerate(model_names):
-            for j, b in enumerate(model_names[i:], start=i):
-                h = (sums[(a, b)] - outer[i, j]) * factor[:, i] * factor[:, j]
-                if i == j:  # d²/d(ln λ)² picks up λ · d/dλ
-                    h = h + grad_k[:, i]
-                info_k[:, i, j] = info_k[:, j, i] = -h
-    grad = np.zeros((P, U))
     grad[:, kept] = grad_k
     info = np.zeros((P, U, U))
     info[:, kept[:, None], kept[None, :]] = info_k
-    return loglik, grad, info, n_floored, cross
+    if level < 2:
+        return _Terms(loglik, grad, info, n_floored, cross)
+    sums = {key: _xp.to_numpy(v) for key, v in model.spectral_sums(w).items()}
+    obs_k = np.empty((P, L, L))
+    for i, a in enumerate(model_names):
+        for j, b in enumerate(model_names[i:], start=i):
+            h = (sums[(a, b)] - outer[i, j]) * factor[:, i] * factor[:, j]
+            if i == j:  # d²/d(ln λ)² picks up λ · d/dλ
+                h = h + grad_k[:, i]
+            obs_k[:, i, j] = obs_k[:, j, i] = -h
+    observed = np.zeros((P, U, U))
+    observed[:, kept[:, None], kept[None, :]] = obs_k
+    return _Terms(loglik, grad, observed, n_floored, cross, info)
 
 
 def _register(acq):
@@ -418,19 +472,24 @@ def _native_to_model(logs, acq):
     return D @ logs.T, D
 
 
-def _evaluate(layout, blocks, x, level, map_cross=False):
+def _evaluate(layout, blocks, x, level, map_cross=False, information=True):
     """Objective (log-likelihood + log prior), gradient and information in ``x``.
 
-    Returns ``(objective, loglik, per_acq, grad, info, n_floored, cross)``; ``cross`` is
-    the list of each acquisition's map cross information (:func:`_acquisition_terms`),
-    or None without ``map_cross`` (only acquisitions whose maps have errors get one).
+    Returns ``(objective, loglik, per_acq, grad, info, n_floored, cross, outer)``:
+    ``info`` the observed information at level 2, the outer product's (BHHH) at level 1
+    (None there without ``information``: the gradient alone); ``outer`` the outer
+    product's at level 2 as well (else None); ``cross`` the list of each acquisition's
+    map cross information (:func:`_acquisition_terms`), or None without ``map_cross``
+    (only acquisitions whose maps have errors get one).
     """
     P, F = x.shape
     logs, jac = layout.native(x)
     total = np.zeros(P)
     per_acq = np.zeros((P, len(blocks)))
     grad = np.zeros((P, F))
-    info = np.zeros((P, F, F))
+    with_info = level >= 2 or (level == 1 and information)
+    info = np.zeros((P, F, F)) if with_info else None
+    outer = np.zeros((P, F, F)) if level >= 2 else None
     floored = np.zeros(P, dtype=np.int64)
     crosses = [] if map_cross else None
     for a, acq in enumerate(blocks):
@@ -439,8 +498,8 @@ def _evaluate(layout, blocks, x, level, map_cross=False):
         # those the layout holds fixed need no derivatives.
         j_u = _model_jacobian(jac, a, D)
         live = np.any(j_u != 0, axis=(0, 2))
-        ll, g_u, i_u, nf, cross = _acquisition_terms(
-            acq, coords, level, map_cross and acq.has_map_errors, live
+        ll, g_u, i_u, nf, cross, outer_u = _acquisition_terms(
+            acq, coords, level, map_cross and acq.has_map_errors, live, information
         )
         per_acq[:, a] = ll
         total += ll
@@ -450,13 +509,19 @@ def _evaluate(layout, blocks, x, level, map_cross=False):
         if level == 0:
             continue
         grad += np.einsum("pu,puf->pf", g_u, j_u)
-        info += np.einsum("puf,puv,pvg->pfg", j_u, i_u, j_u)
+        if with_info:
+            info += np.einsum("puf,puv,pvg->pfg", j_u, i_u, j_u)
+        if outer is not None:
+            outer += np.einsum("puf,puv,pvg->pfg", j_u, outer_u, j_u)
     lp, lp_grad, lp_hess = layout.log_prior(x)
     objective = total + lp
     if level >= 1:
         grad = grad + lp_grad
+    if with_info:
         info = info - lp_hess
-    return objective, total, per_acq, grad, info, floored, crosses
+    if outer is not None:
+        outer = outer - lp_hess
+    return objective, total, per_acq, grad, info, floored, crosses, outer
 
 
 def _model_jacobian(jac, a, D):
@@ -492,77 +557,6 @@ def _map_covariance(layout, blocks, x, cov, crosses):
     for sens, var in groups.values():
         out += np.einsum("pfm,pm,pgm->pfg", sens, var, sens)
     return out
-
-
-def value_scores(layout, blocks, x):
-    """Per-frame scores of each acquisition by ``x``, at every histogram value.
-
-    Returns
-    -------
-    list of (scores (P, K, F), counts (P, K))
-        One pair per acquisition: the derivative of ln p(value) by ``x`` (zero where the
-        value is below the resolvable floor) and the frames at each value.
-    """
-    logs, jac = layout.native(x)
-    out = []
-    for a, acq in enumerate(blocks):
-        coords, D = _native_to_model(logs[:, a], acq)
-        values = [np.exp(c) for c in coords]
-        rows = _register(acq).rows_at(values, acq.poisson_normal)
-        names = rows.names
-        model = _ModelAtData(acq, rows, derivs=True, names=names)
-        d1, pv = model.scores, model.pv
-        u = np.stack([d1[nm] * v[:, None] for nm, v in zip(names, values)], -1)
-        u = np.where(model.low[..., None], 0.0, u / pv[..., None])  # (P, K, U) by coords
-        j_u = _model_jacobian(jac, a, D)
-        out.append((np.einsum("pku,puf->pkf", u, j_u), acq.counts))
-    return out
-
-
-def expected_information(layout, blocks, x):
-    """The Fisher information of one frame of each acquisition at ``x``, and its cross
-    information with the offset and read-noise maps: what :func:`fit` reports at data
-    that follow the model exactly.
-
-    Each is the expectation under the model of the outer product of the per-frame scores,
-    Σ_k p(k) s(k) s(k)ᵀ over every count k the model reaches (the window of the fit),
-    from the same scores the fit uses; N frames carry N times as much. The blocks give
-    the maps and the register; their histograms are not used.
-
-    Returns
-    -------
-    info : ndarray, shape (P, A, F, F)
-        Per frame, of the free parameters ``x``.
-    cross : ndarray, shape (P, A, F, 2)
-        Per frame, of ``x`` with (offset, read noise) in ADU: with ``N`` frames, the
-        estimate moves by ``cov · N · cross`` per ADU of map error.
-    """
-    logs, jac = layout.native(x)
-    P, F = x.shape
-    info = np.zeros((P, len(blocks), F, F))
-    cross = np.zeros((P, len(blocks), F, 2))
-    for a, acq in enumerate(blocks):
-        coords, D = _native_to_model(logs[:, a], acq)
-        values = [np.exp(c) for c in coords]
-        rows = _register(acq).rows_at(values, acq.poisson_normal)
-        lo, hi = noise.window_extent(rows, acq.offset, acq.read_noise, width=8.0)
-        start = np.floor(lo).astype(np.int64)
-        support = start[:, None] + np.arange(int((np.ceil(hi) - start).max()) + 1)
-        names = rows.names + ("offset", "read_noise")
-        # The windows where the fit computes (_xp.computing_on); the sums here, on the host.
-        model = _ModelAtData(
-            replace(acq, values=support), rows, derivs=True, names=names, xp=_xp.engine()
-        )
-        pv, low = _xp.to_numpy(model.pv), _xp.to_numpy(model.low)
-        scores = {nm: _xp.to_numpy(v) for nm, v in model.scores.items()}
-        p = np.where(low, 0.0, pv)
-        scale = np.where(low, 0.0, 1.0 / pv)
-        u = np.stack([scores[nm] * v[:, None] for nm, v in zip(rows.names, values)], -1)
-        s = np.einsum("pku,puf->pkf", u * scale[..., None], _model_jacobian(jac, a, D))
-        m = np.stack([scores["offset"], scores["read_noise"]], -1) * scale[..., None]
-        info[:, a] = np.einsum("pk,pkf,pkg->pfg", p, s, s)
-        cross[:, a] = np.einsum("pk,pkf,pkm->pfm", p, s, m)
-    return info, cross
 
 
 def objective(layout, blocks, x):
@@ -605,16 +599,45 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
     same_shapes = _xp.compiles_shapes(_xp.engine()[0])
     x_all = np.array(x0, dtype=float)
 
-    def evaluate(rows, x):
+    # Newton's steps with the observed information, kept while the steps go well: from
+    # the moments' start they converge in about two trials, where the outer product's
+    # (BHHH) took four, and the trials between need the gradient alone. A prior's
+    # curvature (the hierarchical norm's kink) changes too fast to keep: such a layout
+    # takes BHHH steps with the information anew at every trial.
+    newton = not layout.has_prior
+
+    def at_rows(rows, x, information):
+        """(objective, gradient, information) of ``rows`` at ``x``: Newton's the
+        observed information where it is positive definite, else the outer product's."""
+        level = 2 if information and newton else 1
         if rows.size == P:
-            res = _evaluate(layout, blocks, x, 1)
+            res = _evaluate(layout, blocks, x, level, information=information)
         elif same_shapes:
             x_all[rows] = x
-            res = _evaluate(layout, blocks, x_all, 1)
-            return res[0][rows], res[3][rows], res[4][rows]
+            whole = _evaluate(layout, blocks, x_all, level, information=information)
+            res = [r[rows] if isinstance(r, np.ndarray) else None for r in whole]
         else:
-            res = _evaluate(layout.subset(rows), [b.take(rows) for b in blocks], x, 1)
-        return res[0], res[3], res[4]
+            part = [b.take(rows) for b in blocks]
+            res = _evaluate(layout.subset(rows), part, x, level, information=information)
+        info = res[4]
+        if level == 2:
+            info = np.where(_positive_definite(info)[:, None, None], info, res[7])
+        return res[0], res[3], info
+
+    def evaluate(rows, x, information=None):
+        if information is None:  # BHHH's
+            return at_rows(rows, x, True)
+        if information.all() or not information.any() or same_shapes:
+            return at_rows(rows, x, bool(information.any()))
+        F = x.shape[1]
+        obj, grad = np.empty(rows.size), np.empty((rows.size, F))
+        info = np.full((rows.size, F, F), np.nan)  # only the rows asked for
+        for part, with_info in ((information, True), (~information, False)):
+            idx = np.flatnonzero(part)
+            obj[idx], grad[idx], got = at_rows(rows[idx], x[idx], with_info)
+            if with_info:
+                info[idx] = got
+        return obj, grad, info
 
     opt = maximize(
         evaluate,
@@ -624,8 +647,10 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
         tol=tol,
         max_iter=max_iter,
         progress=progress,
+        keep_information=newton,
     )
-    x, iterations = opt.x, opt.iterations
+    x = declined_step(opt, layout.lower, layout.upper) if newton else opt.x
+    iterations = opt.iterations
     if not covariance:
         return FitResult(x, None, None, None, iterations, None)
     map_errors = any(b.has_map_errors for b in blocks)
@@ -634,7 +659,7 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
     # windows would be the largest of all, for a pixel that is not converged anyway.
     live = np.isfinite(opt.objective)
     if live.all():
-        objective, loglik, per_acq, grad, obs, floored, crosses = _evaluate(
+        objective, loglik, per_acq, grad, obs, floored, crosses, _ = _evaluate(
             layout, blocks, x, 2, map_cross=map_errors
         )
     else:
@@ -688,6 +713,15 @@ def _evaluate_rows(layout, blocks, x, live, map_errors):
                 full[rows] = c
                 crosses.append(full)
     return objective, loglik, per_acq, grad, obs, floored, crosses
+
+
+def _positive_definite(H):
+    """Whether each matrix of a stack (P, F, F) is finite and positive definite."""
+    ok = np.all(np.isfinite(H), axis=(1, 2))
+    pos = np.zeros(H.shape[0], dtype=bool)
+    if ok.any():
+        pos[ok] = np.all(np.linalg.eigvalsh(H[ok]) > 0, axis=1)
+    return pos
 
 
 def _invert(H):

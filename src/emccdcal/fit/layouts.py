@@ -26,7 +26,7 @@ import numpy as np
 from .. import _roots, defaults
 from ..model import adc
 from ..errors import MethodError, OptionError
-from . import comb, engine, profile
+from . import comb, engine, profile, scores
 from .engine import Layout, Parameter
 
 __all__ = [
@@ -436,14 +436,14 @@ class HierarchicalLayout(Layout):
             dmu_dc = (1.0 / self.mu_sd**2) / -q_mumu  # the profiled μ follows its centre
             b_vec[:, :A] = M.sum(axis=2) * dmu_dc[:, None] * E  # ∂(∂Q/∂ln E)/∂c
             c_layout, c_fit = self.centre_fit
-            c_scores = engine.value_scores(c_layout, blocks, c_fit.x)
+            c_scores = scores.value_scores(c_layout, blocks, c_fit.x)
             c_row = np.nan_to_num(c_fit.cov[:, 0, :]) * self.centre[:, None]  # dc per score
         cov = np.zeros((P, F, F))
-        for a, (scores, counts) in enumerate(engine.value_scores(self, blocks, x)):
-            infl = scores
+        for a, (per_value, counts) in enumerate(scores.value_scores(self, blocks, x)):
+            infl = per_value
             if self.centre_fit is not None:
                 dc = np.einsum("pf,pkf->pk", c_row, c_scores[a][0])
-                infl = scores + b_vec[:, None, :] * dc[..., None]
+                infl = per_value + b_vec[:, None, :] * dc[..., None]
             infl = np.einsum("pfg,pkg->pkf", h_inv, infl)
             cov += np.einsum("pk,pkf,pkg->pfg", counts, infl, infl)
         return cov

@@ -33,6 +33,10 @@ class _PhiFree:
         shift[:, :, 2, 0] = 1.0
         return logs, np.concatenate([jac, shift], axis=-1)
 
+    @property
+    def has_prior(self):
+        return self.base.has_prior
+
     def log_prior(self, x):
         value, grad, hess = self.base.log_prior(x[:, :-1])
         P, F = x.shape
@@ -87,6 +91,10 @@ class _Pinned:
     def native(self, x):
         logs, jac = self.base.native(self._full(x))
         return logs, np.delete(jac, self.j, axis=-1)
+
+    @property
+    def has_prior(self):
+        return self.base.has_prior
 
     def log_prior(self, x):
         value, grad, hess = self.base.log_prior(self._full(x))

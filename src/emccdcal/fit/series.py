@@ -35,7 +35,7 @@ from ..data.stacks import read_band
 from ..defaults import MAX_ACQUISITIONS
 from ..errors import DataQualityWarning, InputError, OptionError
 from ..model import noise
-from . import comb, engine, gof, layouts, mv, profile
+from . import comb, engine, gof, layouts, mv, profile, scores
 from .engine import QUANTITIES, Parameter
 
 __all__ = [
@@ -334,7 +334,7 @@ class SeriesLikelihood:
     def expected_information(self, x):
         """Per-frame Fisher information of ``x`` (P, A, F, F) and its cross information
         with the (offset, read noise) maps (P, A, F, 2): from the models alone."""
-        return engine.expected_information(self.layout, self.blocks, x)
+        return scores.expected_information(self.layout, self.blocks, x)
 
     # ---- what a calibration reports ------------------------------------------------------
     @noise.register_tables()

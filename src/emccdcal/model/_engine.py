@@ -137,7 +137,18 @@ def alias_count(sigma_min):
 
 
 def window(
-    rows, shift, sigma, n, *, tilt=None, derivs=False, second=False, names=None, band=None, xp=None
+    rows,
+    shift,
+    sigma,
+    n,
+    *,
+    tilt=None,
+    derivs=False,
+    second=False,
+    names=None,
+    band=None,
+    xp=None,
+    first_spectra=False,
 ):
     """Tilted pmf of the counts 0 … n−1 relative to the window start, and derivatives.
 
@@ -164,6 +175,10 @@ def window(
     xp : (namespace, device), optional
         Where the transforms and FFTs run (:func:`emccdcal._xp.engine`); the windows
         are that namespace's arrays. Default: NumPy.
+    first_spectra : bool
+        Return the first derivatives as :class:`Spectrum` too, untransformed: for sums
+        against weights at the data only (a gradient), one forward FFT of the weights
+        instead of an inverse FFT per derivative.
 
     Returns
     -------
@@ -172,7 +187,7 @@ def window(
         about 1e-16 of ``p.max(axis=1)``.
     d1 : dict
         name -> (P, n) first derivatives (same tilted scale; divide by ``p`` for the
-        derivative of log f).
+        derivative of log f); :class:`Spectrum` with ``first_spectra``.
     d2 : dict
         (name, name) -> second derivatives of f, upper triangle, as :class:`Spectrum`:
         not transformed, because they are only ever summed against weights at the data
@@ -227,9 +242,10 @@ def window(
             names=names,
             band=min(full, 2 * m_hi),
             xp=(xp, dev),
+            first_spectra=first_spectra,
         )
     p = irfft(phi, n)
-    d1 = {name: irfft(v, n) for name, v in d1.items()}
+    d1 = {name: Spectrum(v, n) if first_spectra else irfft(v, n) for name, v in d1.items()}
     d2 = {key: Spectrum(v, n) for key, v in d2.items()}
     return p, d1, d2
 
