@@ -238,11 +238,14 @@ def _block_chi2(values, counts, n, K, rows, S0, sigma, start, length, s, min_exp
     P = values.shape[0]
     L = noise.fast_len(int(length.max()))
     p = noise.window(rows, S0 - start, sigma, L, xp=(xp, dev))[0]
-    p = xp.clip(p, min=0.0)  # FFT round-off (~1e-16 of the peak) can be slightly negative
-    p = p / xp.sum(p, axis=1, keepdims=True)
+    # The CDF unnormalised, its total the window's sum (1 up to round-off): the targets
+    # and the edges' values are scaled by it, not every value of the window. FFT
+    # round-off (~1e-16 of the peak) can make a far tail's value slightly negative: the
+    # CDF wiggles by as much there, within 1e-13 of 0 or of its total, where no edge is
+    # (every edge is 1/K or more in from either end).
     cdf = xp.cumulative_sum(p, axis=1)
+    total = cdf[:, -1:]
     ones = xp.ones((P, 1), dtype=cdf.dtype, device=dev)
-    cdf = xp.concat([cdf[:, :-1], ones], axis=1)  # exactly 1 at the end (a new array: JAX)
 
     # Equiprobable edges: edge j (j = 1 … K−1) is the first window index with cdf ≥ j/K;
     # bin j (0-based) holds indices (edge_j, edge_{j+1}], the first and last bins open.
@@ -259,12 +262,13 @@ def _block_chi2(values, counts, n, K, rows, S0, sigma, start, length, s, min_exp
     # Row-offset trick: one searchsorted over all pixels (cdf ∈ [0, 1], rows 2 apart).
     rows_f = xp.astype(rows_i, xp.float64)
     flat_cdf = xp.reshape(cdf + 2.0 * rows_f, (-1,))
-    edge = xp.searchsorted(flat_cdf, xp.reshape(target + 2.0 * rows_f, (-1,)), side="left")
+    target = xp.reshape(target * total + 2.0 * rows_f, (-1,))
+    edge = xp.searchsorted(flat_cdf, target, side="left")
     edge = xp.reshape(edge, (P, Kmax - 1)) - rows_i * L
     edge = xp.where(real_edge, xp.clip(edge, max=L - 1), L - 1)
 
     # Exact probability of every (unmerged) bin.
-    cdf_at = xp.take_along_axis(cdf, edge, axis=1)
+    cdf_at = xp.take_along_axis(cdf, edge, axis=1) / total
     prob = xp.concat([cdf_at, ones], axis=1) - xp.concat([0.0 * ones, cdf_at], axis=1)
 
     # Merge bins expecting fewer than min_expected frames: drop the edge above a small
