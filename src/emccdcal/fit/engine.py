@@ -16,12 +16,12 @@ pair (Parseval).
 
 Optimisation is Newton's with Levenberg–Marquardt damping
 (:func:`emccdcal._optimize.maximize`), vectorised over pixels: the observed information
-from the start, kept while the steps
-gain what they promised (the trials between need the gradient alone, which the same
-Parseval sum gives), the outer product of the per-frame scores (BHHH) where it is not
-positive definite or a prior's kink makes it change too fast; each iteration evaluates
-only the pixels that have not converged, there is no Python loop over pixels. Standard
-errors come from the inverse observed information at the optimum.
+from the start, kept while the steps gain what they promised (the trials between need
+the gradient alone, which the same Parseval sum gives), the outer product of the
+per-frame scores (BHHH) where it is not positive definite or a prior's kink makes it
+change too fast; each iteration evaluates only the pixels that have not converged,
+there is no Python loop over pixels. Standard errors come from the inverse observed
+information at the optimum.
 """
 
 from __future__ import annotations
@@ -607,8 +607,9 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
     newton = not layout.has_prior
 
     def at_rows(rows, x, information):
-        """(objective, gradient, information) of ``rows`` at ``x``: Newton's the
-        observed information where it is positive definite, else the outer product's."""
+        """(objective, gradient, information) of ``rows`` at ``x``. The information is
+        the observed one where it is positive definite, else the outer product's (for a
+        layout with a prior, always the outer product's); None without ``information``."""
         level = 2 if information and newton else 1
         if rows.size == P:
             res = _evaluate(layout, blocks, x, level, information=information)
@@ -625,7 +626,7 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
         return res[0], res[3], info
 
     def evaluate(rows, x, information=None):
-        if information is None:  # BHHH's
+        if information is None:  # a layout with a prior: every trial brings its own
             return at_rows(rows, x, True)
         if information.all() or not information.any() or same_shapes:
             return at_rows(rows, x, bool(information.any()))
