@@ -114,14 +114,14 @@ def profile_start(layout, blocks, x0, read_out_variance):
         The read-out's variance (ADU²) of a block (:func:`emccdcal.fit.layouts.read_out_variance`).
     """
     P = x0.shape[0]
-    out = CombLayout(**vars(layout), phi_profile_se=np.full(P, np.nan))
+    out = CombLayout(**{**vars(layout), "smooth": False}, phi_profile_se=np.full(P, np.nan))
     phi0 = np.exp(x0[:, 0])
     rel = moment_se(blocks, phi0, read_out_variance)
     live = np.flatnonzero(ripples(blocks, phi0, rel))
     if live.size == 0:
         return out, x0
     part = [b.take(live) for b in blocks]
-    sub = layout.subset(live)
+    sub = replace(layout.subset(live), smooth=False)
     signal = np.stack([np.maximum(b.mean - b.offset, 1e-6) for b in part], axis=1)
     rel = rel[live]
     x = x0[live].copy()
@@ -318,6 +318,7 @@ def _levels(layout, use):
         upper=layout.upper[cols],
         matrix=layout.matrix[np.ix_(use, np.arange(layout.matrix.shape[1]), cols)],
         constant=layout.constant[:, use],
+        smooth=False,
     )
 
 

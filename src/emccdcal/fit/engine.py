@@ -18,10 +18,10 @@ Optimisation is Newton's with Levenberg–Marquardt damping
 (:func:`emccdcal._optimize.maximize`), vectorised over pixels: the observed information
 from the start, kept while the steps gain what they promised (the trials between need
 the gradient alone, which the same Parseval sum gives), the outer product of the
-per-frame scores (BHHH) where it is not positive definite or a prior's kink makes it
-change too fast; each iteration evaluates only the pixels that have not converged,
-there is no Python loop over pixels. Standard errors come from the inverse observed
-information at the optimum.
+per-frame scores (BHHH) where it is not positive definite, or a prior's kink or a
+comb's ripples make it change too fast; each iteration evaluates only the pixels that
+have not converged, there is no Python loop over pixels. Standard errors come from the
+inverse observed information at the optimum.
 """
 
 from __future__ import annotations
@@ -181,6 +181,11 @@ class Layout:
     upper: np.ndarray
     matrix: np.ndarray
     constant: np.ndarray
+    #: False where the likelihood ripples (a photoelectron comb's aliases, 1/E apart in
+    #: ln φ): a kept information, or a step taken unevaluated, could cross to another
+    #: ripple. Such a layout, and one with a prior, steps by the outer product's
+    #: information anew at every trial (:attr:`newton_steps`).
+    smooth: bool = True
 
     def subset(self, idx):
         """The layout restricted to pixels ``idx`` (per-pixel constants follow them)."""
@@ -212,9 +217,11 @@ class Layout:
         return logs, jac
 
     @property
-    def has_prior(self) -> bool:
-        """Whether the layout overrides :meth:`log_prior` (a flat prior does not)."""
-        return type(self).log_prior is not Layout.log_prior
+    def newton_steps(self) -> bool:
+        """Whether :func:`fit` takes Newton's steps with a kept observed information:
+        where the likelihood is :attr:`smooth` and the layout has no prior of its own
+        (the hierarchical norm's curvature changes too fast near its kink)."""
+        return self.smooth and type(self).log_prior is Layout.log_prior
 
     def log_prior(self, x):
         """Log prior density (P,), gradient (P, F) and Hessian (P, F, F); flat here."""
@@ -601,10 +608,10 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
 
     # Newton's steps with the observed information, kept while the steps go well: from
     # the moments' start they converge in about two trials, where the outer product's
-    # (BHHH) took four, and the trials between need the gradient alone. A prior's
-    # curvature (the hierarchical norm's kink) changes too fast to keep: such a layout
-    # takes BHHH steps with the information anew at every trial.
-    newton = not layout.has_prior
+    # (BHHH) took four, and the trials between need the gradient alone. Where a prior's
+    # curvature changes too fast to keep, or the likelihood ripples, a layout takes BHHH
+    # steps with the information anew at every trial (Layout.newton_steps).
+    newton = layout.newton_steps
 
     def at_rows(rows, x, information):
         """(objective, gradient, information) of ``rows`` at ``x``. The information is

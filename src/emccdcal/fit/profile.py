@@ -34,8 +34,8 @@ class _PhiFree:
         return logs, np.concatenate([jac, shift], axis=-1)
 
     @property
-    def has_prior(self):
-        return self.base.has_prior
+    def newton_steps(self):
+        return self.base.newton_steps
 
     def log_prior(self, x):
         value, grad, hess = self.base.log_prior(x[:, :-1])
@@ -93,8 +93,8 @@ class _Pinned:
         return logs, np.delete(jac, self.j, axis=-1)
 
     @property
-    def has_prior(self):
-        return self.base.has_prior
+    def newton_steps(self):
+        return self.base.newton_steps
 
     def log_prior(self, x):
         value, grad, hess = self.base.log_prior(self._full(x))
