@@ -114,11 +114,14 @@ def profile_start(layout, blocks, x0, read_out_variance):
         The read-out's variance (ADU²) of a block (:func:`emccdcal.fit.layouts.read_out_variance`).
     """
     P = x0.shape[0]
-    out = CombLayout(**{**vars(layout), "smooth": False}, phi_profile_se=np.full(P, np.nan))
     phi0 = np.exp(x0[:, 0])
     rel = moment_se(blocks, phi0, read_out_variance)
     live = np.flatnonzero(ripples(blocks, phi0, rel))
-    if live.size == 0:
+    # a block where some pixel's likelihood ripples is fitted by the outer product's
+    # steps (Layout.smooth)
+    smooth = live.size == 0
+    out = CombLayout(**{**vars(layout), "smooth": smooth}, phi_profile_se=np.full(P, np.nan))
+    if smooth:
         return out, x0
     part = [b.take(live) for b in blocks]
     sub = replace(layout.subset(live), smooth=False)
