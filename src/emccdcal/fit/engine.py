@@ -736,10 +736,7 @@ def _invert(H):
     """Inverse of a stack of information matrices and whether each is positive definite."""
     P, F, _ = H.shape
     cov = np.full((P, F, F), np.nan)
-    ok = np.all(np.isfinite(H), axis=(1, 2))
-    eig = np.full((P, F), -1.0)
-    eig[ok] = np.linalg.eigvalsh(H[ok])
-    pos = ok & np.all(eig > 0, axis=1)
+    pos = _positive_definite(H)
     for i in np.flatnonzero(pos):  # one by one: a stack with one singular matrix fails whole
         try:
             cov[i] = np.linalg.inv(H[i])
