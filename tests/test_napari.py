@@ -271,7 +271,9 @@ def test_a_run_cancelled_midway_ends_quietly(sample, make_napari_viewer, qtbot, 
 
 
 @pytest.mark.slow  # the sample data's calibration, built once for the widget tests
-def test_the_calibrate_widget_writes_over_nothing_it_did_not_write(sample, qapp, tmp_path):
+def test_the_calibrate_widget_writes_over_nothing_it_did_not_write(
+    sample, qapp, tmp_path, monkeypatch
+):
     """A folder scanned into an output folder that holds the user's manifest.toml (or
     report.html, or an export): refused with one line, the files untouched; a widget
     without an output folder takes a new temporary one for each run."""
@@ -296,12 +298,14 @@ def test_the_calibrate_widget_writes_over_nothing_it_did_not_write(sample, qapp,
     widget.write_report()  # once written by the widget, it may replace it
     widget.write_report()
     assert "wrote" in widget.status.value
+    import tempfile
+
+    # the widget's own temporary folders, made where this test cleans up
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     fresh = CalibrateWidget()  # no output folder chosen
     first = fresh._out()
     assert first != fresh._out() and first.name.startswith("emccdcal-calibration-")
     # a folder calibrated without an output folder: its manifest and result side by side
-    import tempfile
-
     made = lambda: set(Path(tempfile.gettempdir()).glob("emccdcal-calibration-*"))  # noqa: E731
     before = made()
     run = CalibrateWidget()
