@@ -241,29 +241,36 @@ def test_tabulated_transform_is_the_recursion(gain, spread, reach, rows, tabulat
                 assert np.all(table[key][:, 0] == 0.0)  # at u = 0, exactly
 
 
-def test_tables_are_kept_within_a_scope_and_only_there(monkeypatch):
-    """Within ``transform_tables`` a table serves later calls whose gains it covers
-    (a fit's iterations); outside it each call tabulates its own; a call too small for
-    a table is the recursion itself."""
+def test_tables_are_kept_within_a_scope_and_serve_whoever_comes_next(monkeypatch):
+    """Within ``transform_tables`` a table serves later calls whose gains it covers (a
+    fit's iterations, and the next block's fit): the grid's rectangle that holds a
+    call's gains and frequencies, so that a call's values are the same whatever was
+    tabulated before it. Outside a scope each call tabulates its own; a call too small
+    for a table is the recursion itself."""
     builds = []
     build = cascade._build_table
     monkeypatch.setattr(cascade, "_build_table", lambda *a: builds.append(1) or build(*a))
+    monkeypatch.setattr(cascade, "_KEPT", type(cascade._KEPT)())
     u, g = _rows(300.0, 0.03, 0.6)
     first = cascade.register_transform(u, g, 536)
-    again = cascade.register_transform(u[:100], g[:100] * 1.01, 536)
+    cascade.register_transform(u[:100], g[:100] * 1.01, 536)
     assert len(builds) == 2
     with cascade.transform_tables():
         with cascade.transform_tables():  # nested: the same tables
             inside = cascade.register_transform(u, g, 536)
-        cascade.register_transform(u[:100], g[:100] * 1.01, 536)
+        moved = cascade.register_transform(u[:100], g[:100] * 1.01, 536)
+    with cascade.transform_tables():  # another fit: the tables kept
+        again = cascade.register_transform(u, g, 536)
     assert len(builds) == 3
+    assert all(np.array_equal(again[k], inside[k]) for k in inside)
     np.testing.assert_allclose(inside["v"], first["v"], rtol=0, atol=1e-13)
-    np.testing.assert_allclose(
-        again["g"],
-        cascade._register_transform(np, u[:100], g[:100] * 1.01, 536, 1, False, True)["g"],
-        rtol=0,
-        atol=1e-13,
-    )
+    direct = cascade._register_transform(np, u[:100], g[:100] * 1.01, 536, 1, False, True)
+    np.testing.assert_allclose(moved["g"], direct["g"], rtol=0, atol=1e-13)
+    # the same call in a process that tabulated nothing before: the same numbers
+    monkeypatch.setattr(cascade, "_KEPT", type(cascade._KEPT)())
+    with cascade.transform_tables():
+        alone = cascade.register_transform(u[:100], g[:100] * 1.01, 536)
+    assert all(np.array_equal(alone[k], moved[k]) for k in moved)
     small = cascade.register_transform(u[:2, :5], g[:2], 536)
     direct = cascade._register_transform(np, u[:2, :5], g[:2], 536, 1, False, True)
     assert all(np.array_equal(small[k], direct[k]) for k in direct)

@@ -153,11 +153,38 @@ def test_spectrum_dot_is_the_window_summed_against_weights(n, m):
     rng = np.random.default_rng(n + m)
     spectrum = rng.normal(size=(3, m)) + 1j * rng.normal(size=(3, m))
     weights = rng.normal(size=(3, n))
+    weights[:, ::5] = 0.0  # a histogram's padding, at a position repeated below
     spec = noise.Spectrum(spectrum, n)
     direct = np.sum(weights * spec.window(), axis=1)
-    np.testing.assert_allclose(
-        spec.dot(noise.Spectrum.weights_spectrum(weights, m)), direct, rtol=1e-12, atol=1e-12
-    )
+    index = np.arange(3 * n)
+    index = np.concatenate([index, index[::5]])  # zero weights where values repeat
+    flat = np.concatenate([weights.ravel(), np.zeros(index.size - 3 * n)])
+    for _ in range(2):  # the second time on the grid the first one left behind
+        hat = noise.Spectrum.weights_spectrum(index, flat, (3, n), m)
+        np.testing.assert_allclose(spec.dot(hat), direct, rtol=1e-12, atol=1e-12)
+
+
+def test_the_kept_fft_grids_leave_no_trace_from_call_to_call():
+    """The inverse FFT writes each spectrum into a zero grid kept per thread: calls of
+    any band, length and rows, one after another and on threads at once, give NumPy's
+    transform of the zero-padded conjugate, as a fresh grid would."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from emccdcal import _xp
+
+    rng = np.random.default_rng(5)
+    calls = [(rows, n, m) for rows, n, m in rng.integers([1, 8, 2], [9, 400, 40], (40, 3))]
+
+    def one(call):
+        rows, n, m = (int(v) for v in call)
+        m = min(m, n // 2 + 1)
+        a = rng.normal(size=(rows, m)) + 1j * rng.normal(size=(rows, m))
+        got = _xp.irfft(np, a, n, 1, conjugate=True)
+        return np.abs(got - np.fft.irfft(np.conj(a), n=n)).max()
+
+    assert max(map(one, calls)) < 1e-12
+    with ThreadPoolExecutor(4) as pool:
+        assert max(pool.map(one, calls * 3)) < 1e-12
 
 
 def test_where_the_likelihood_ripples_or_has_a_prior_the_steps_are_the_outer_products():

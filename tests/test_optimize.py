@@ -230,6 +230,7 @@ ITERATIONS = {
     ("model/cascade.py", "single_electron_moments"): "the register's recursion, stage by stage",
     ("model/cascade.py", "_register_transform"): "the register's recursion, stage by stage",
     ("model/cascade_sampling.py", "_pgf_minus_one"): "the register's recursion, stage by stage",
+    ("_chebyshev.py", "evaluate_rows"): "the Chebyshev polynomials' three-term recurrence",
     ("model/cascade.py", "_build_table"): "a table's axes refined until its coefficients "
     "converge (Chebyshev interpolation)",
     ("model/cascade_sampling.py", "_sample_stages"): "one binomial draw per stage",
@@ -364,3 +365,5 @@ def test_chebyshev_tables_interpolate_to_round_off_and_say_when_they_do():
         got = _chebyshev.evaluate_rows(coef, xr, yr, x, y)
         err = np.max(np.abs(got - f(x[:, None], y)))
         assert (err < 1e-13) == all(resolved), err
+        both = _chebyshev.evaluate_rows(np.stack([coef, 2j * coef], axis=-1), xr, yr, x, y)
+        np.testing.assert_allclose(both, np.stack([got, 2j * got], axis=-1), rtol=1e-14)

@@ -100,8 +100,8 @@ def evaluate_rows(coef, x_range, y_range, x, y):
 
     Parameters
     ----------
-    coef : array, shape (n_x, n_y)
-        From :func:`coefficients`.
+    coef : array, shape (n_x, n_y) or (n_x, n_y, k)
+        From :func:`coefficients`; k interpolants on the same grid at once.
     x_range, y_range : (float, float)
         The rectangle's sides.
     x : array, shape (P,)
@@ -111,9 +111,17 @@ def evaluate_rows(coef, x_range, y_range, x, y):
 
     Returns
     -------
-    array, shape (P, M)
+    array, shape (P, M), or (P, M, k)
     """
     xp = _xp.namespace(coef, x, y)
-    # Along x once per row (the rows' own coefficients in y), then along y per point.
-    by_row = _clenshaw(xp, coef[:, :, None], _unit(x, *x_range))  # (n_y, P)
-    return _clenshaw(xp, by_row[:, :, None], _unit(y, *y_range))  # (P, M)
+    stack = coef if coef.ndim == 3 else coef[:, :, None]
+    # Along x once per row (the rows' own coefficients in y), then along y: the
+    # Chebyshev polynomials at every point once, for all k interpolants by one product.
+    by_row = _clenshaw(xp, stack[:, :, :, None], _unit(x, *x_range))  # (n_y, k, P)
+    t = _unit(y, *y_range)
+    basis = [xp.ones_like(t), t][: stack.shape[1]]
+    for _k in range(2, stack.shape[1]):  # T_k = 2t·T_(k−1) − T_(k−2)
+        basis.append(2.0 * t * basis[-1] - basis[-2])
+    basis = xp.astype(xp.stack(basis, axis=-1), by_row.dtype)  # (P, M, n_y)
+    values = basis @ xp.permute_dims(by_row, (2, 0, 1))  # (P, M, k)
+    return values if coef.ndim == 3 else values[:, :, 0]

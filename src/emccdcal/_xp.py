@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import threading
 
 import numpy as np
 from array_api_compat import array_namespace, device, is_array_api_obj, is_numpy_namespace
@@ -36,6 +37,7 @@ __all__ = [
     "to_numpy",
     "bincount",
     "rfft",
+    "scattered_rfft",
     "irfft",
 ]
 
@@ -253,6 +255,27 @@ def rfft(xp, a, workers):
     return xp.fft.rfft(a, axis=-1)
 
 
+def scattered_rfft(xp, index, weights, shape, m: int, workers):
+    """The first ``m`` bins of the real FFT along the last axis of a grid of ``shape``
+    (rows, n) that is zero but for ``weights`` at the flat positions ``index`` (1-D,
+    the same length); positions of non-zero weights are distinct (a histogram's
+    values; its padding, of weight zero, may repeat them)."""
+    if not is_numpy_namespace(xp):
+        grid = bincount(xp, index, weights, shape[0] * shape[1])
+        return rfft(xp, xp.reshape(grid, shape), workers)[:, :m]
+    from scipy import fft
+
+    nonzero = weights != 0
+    index, weights = index[nonzero], weights[nonzero]
+    with _SCRATCH.zeros(shape, np.float64) as grid:
+        flat = grid.reshape(-1)
+        try:
+            flat[index] = weights
+            return fft.rfft(grid, axis=-1, workers=workers)[:, :m]
+        finally:
+            flat[index] = 0.0
+
+
 def irfft(xp, a, n: int, workers, *, conjugate=False):
     """The inverse real FFT of length n along the last axis (SciPy's for NumPy), of ``a``
     or, with ``conjugate``, of its complex conjugate; bins beyond ``a``'s are zero."""
@@ -260,10 +283,50 @@ def irfft(xp, a, n: int, workers, *, conjugate=False):
         from scipy import fft
 
         if conjugate:
-            # The conjugate written straight into the zero-padded spectrum the FFT
-            # needs: one pass over the bins instead of a conjugate and a padded copy.
-            full = np.zeros(a.shape[:-1] + (n // 2 + 1,), dtype=np.complex128)
-            np.conjugate(a, out=full[..., : a.shape[-1]])
-            return fft.irfft(full, n=n, axis=-1, workers=workers, overwrite_x=True)
+            # The conjugate written straight into a zero-padded spectrum kept from call
+            # to call (SciPy's FFT only reads it): the few bins written, not all of them.
+            m = a.shape[-1]
+            with _SCRATCH.zeros(a.shape[:-1] + (n // 2 + 1,), np.complex128) as full:
+                try:
+                    np.conjugate(a, out=full[..., :m])
+                    return fft.irfft(full, n=n, axis=-1, workers=workers)
+                finally:
+                    full[..., :m] = 0.0
         return fft.irfft(a, n=n, axis=-1, workers=workers)
     return xp.fft.irfft(xp.conj(a) if conjugate else a, n=n, axis=-1)
+
+
+class _Scratch(threading.local):
+    """Each thread's zero-filled arrays, one per dtype, kept from call to call.
+
+    The engine's FFTs take grids of thousands of points per pixel of which a few dozen
+    are non-zero (a spectrum's band, a histogram's values): made anew, each costs a pass
+    over all of it, about half as much as the transform; kept, only the entries written
+    are set back to zero (by the caller, before it leaves :meth:`zeros`). Grids above
+    :data:`_SCRATCH_ELEMENTS`, and one asked for while the dtype's is in use, are made
+    anew.
+    """
+
+    def __init__(self):
+        self.arrays, self.busy = {}, set()
+
+    @contextlib.contextmanager
+    def zeros(self, shape, dtype):
+        size = int(np.prod(shape))
+        key = np.dtype(dtype)
+        if size > _SCRATCH_ELEMENTS or key in self.busy:
+            yield np.zeros(shape, dtype)
+            return
+        kept = self.arrays.get(key)
+        if kept is None or kept.size < size:
+            kept = self.arrays[key] = np.zeros(size, dtype)
+        self.busy.add(key)
+        try:
+            yield kept[:size].reshape(shape)
+        finally:
+            self.busy.discard(key)
+
+
+#: Largest grid (elements) a thread keeps: 64 MB of complex numbers.
+_SCRATCH_ELEMENTS = 2**22
+_SCRATCH = _Scratch()

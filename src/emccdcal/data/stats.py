@@ -224,19 +224,17 @@ def histograms(frames, adc_max: int | None = None, *, chunk_pixels: int | None =
     cell = run_row * n_bins + rank
     counts = np.zeros((n_pix, n_bins), dtype=np.float64)
     counts.ravel()[cell] = run_len
-    # Padding repeats the last value of each pixel: every cell takes the value of the last
-    # run at or before it, found by a running maximum of the runs' cell numbers.
-    last_run = np.zeros(n_pix * n_bins, dtype=np.int64)
-    last_run[cell] = np.arange(cell.size)
-    np.maximum.accumulate(last_run, out=last_run)
-    values = (run_value[last_run] if cell.size else last_run).reshape(n_pix, n_bins)
-    values[n_runs == 0] = 0  # no usable frame (the running maximum crossed rows there)
+    # Padding repeats the last value of each pixel (0 for a pixel without a usable frame).
+    values = np.zeros((n_pix, n_bins), dtype=np.int64)
+    values.ravel()[cell] = run_value
+    last_value = np.take_along_axis(values, np.maximum(n_runs - 1, 0)[:, None], axis=1)
+    values = np.where(np.arange(n_bins)[None, :] < n_runs[:, None], values, last_value)
 
+    # The moments from the histogram: sums over its bins (padding counts 0).
     with np.errstate(invalid="ignore", divide="ignore"):
-        total = np.bincount(run_row, weights=run_len * run_value, minlength=n_pix)
-        mean = np.where(n > 0, total / n, np.nan)
-        dev = run_value - mean[run_row]
-        ss = np.bincount(run_row, weights=run_len * dev * dev, minlength=n_pix)
+        mean = np.where(n > 0, np.sum(counts * values, axis=1) / n, np.nan)
+        dev = values - mean[:, None]
+        ss = np.sum(counts * dev * dev, axis=1)
         var = np.where(n > 1, ss / (n - 1), np.nan)
     has = n_runs > 0
     vmin = np.where(has, values[:, 0], 0)

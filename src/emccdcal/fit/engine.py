@@ -359,10 +359,9 @@ class _ModelAtData:
             return {}
         xp = self.xp
         P = self.pv.shape[0]
-        grid = _xp.bincount(xp, self.flat, xp.reshape(weights, (-1,)), P * self.n)
-        grid = xp.reshape(grid, (P, self.n))
         m = next(iter(spectra.values())).spectrum.shape[1]
-        hat = noise.Spectrum.weights_spectrum(grid, m)
+        flat_weights = xp.reshape(weights, (-1,))
+        hat = noise.Spectrum.weights_spectrum(self.flat, flat_weights, (P, self.n), m)
         return {key: spec.dot(hat) for key, spec in spectra.items()}
 
 

@@ -59,6 +59,8 @@ DEFAULT_FRAMES_PER_BIN = 10.0
 DEFAULT_MIN_EXPECTED = 5.0
 #: Elements (pixels × window length) of the pmf evaluated at a time.
 _BLOCK_ELEMENTS = 2**22
+#: Window points summed together on the way to the CDF (:func:`_block_chi2`).
+_CDF_CHUNK = 64
 
 
 def _per_pixel(name, value, P):
@@ -236,16 +238,21 @@ def _block_chi2(values, counts, n, K, rows, S0, sigma, start, length, s, min_exp
     to the block), computed where the fit computes (:func:`emccdcal._xp.engine`)."""
     xp, dev = _xp.engine()
     P = values.shape[0]
-    L = noise.fast_len(int(length.max()))
+    # A window of whole chunks: the CDF is summed chunk by chunk (one fast reduction)
+    # and only within the chunks where the edges fall (a running sum over all of it
+    # took as long as the window's transform).
+    c = _CDF_CHUNK
+    L = c * noise.fast_len(-(-int(length.max()) // c))
     p = noise.window(rows, S0 - start, sigma, L, xp=(xp, dev))[0]
+    B = L // c
     # The CDF unnormalised, its total the window's sum (1 up to round-off): the targets
-    # and the edges' values are scaled by it, not every value of the window. FFT
-    # round-off (~1e-16 of the peak) can make a far tail's value slightly negative: the
-    # CDF wiggles by as much there, within 1e-13 of 0 or of its total, where no edge is
-    # (every edge is 1/K or more in from either end).
-    cdf = xp.cumulative_sum(p, axis=1)
-    total = cdf[:, -1:]
-    ones = xp.ones((P, 1), dtype=cdf.dtype, device=dev)
+    # and the edges' values are scaled by it. FFT round-off (~1e-16 of the peak) can make
+    # a far tail's value slightly negative: the CDF wiggles by as much there, within
+    # 1e-13 of 0 or of its total, where no edge is (every edge is 1/K or more in from
+    # either end).
+    chunk_end = xp.cumulative_sum(xp.sum(xp.reshape(p, (P, B, c)), axis=2), axis=1)
+    total = chunk_end[:, -1:]
+    ones = xp.ones((P, 1), dtype=p.dtype, device=dev)
 
     # Equiprobable edges: edge j (j = 1 … K−1) is the first window index with cdf ≥ j/K;
     # bin j (0-based) holds indices (edge_j, edge_{j+1}], the first and last bins open.
@@ -259,16 +266,30 @@ def _block_chi2(values, counts, n, K, rows, S0, sigma, start, length, s, min_exp
     real_edge, target, exists, after_last, rows_i, n_, K_, counts, values, start = _xp.on(
         xp, dev, real_edge, target, exists, after_last, rows_, n, K, counts, values, start
     )
-    # Row-offset trick: one searchsorted over all pixels (cdf ∈ [0, 1], rows 2 apart).
+    # The chunk of each edge: the first whose end reaches the target, by one
+    # searchsorted over all pixels (row offsets: the CDF lies in [0, 1], rows 2 apart).
     rows_f = xp.astype(rows_i, xp.float64)
-    flat_cdf = xp.reshape(cdf + 2.0 * rows_f, (-1,))
-    target = xp.reshape(target * total + 2.0 * rows_f, (-1,))
-    edge = xp.searchsorted(flat_cdf, target, side="left")
-    edge = xp.reshape(edge, (P, Kmax - 1)) - rows_i * L
-    edge = xp.where(real_edge, xp.clip(edge, max=L - 1), L - 1)
+    target = target * total
+    chunk = xp.searchsorted(
+        xp.reshape(chunk_end + 2.0 * rows_f, (-1,)),
+        xp.reshape(target + 2.0 * rows_f, (-1,)),
+        side="left",
+    )
+    chunk = xp.clip(xp.reshape(chunk, (P, Kmax - 1)) - rows_i * B, max=B - 1)
+    # Within it, the running sum from the previous chunk's end.
+    zero = xp.zeros((P, 1), dtype=p.dtype, device=dev)
+    before = xp.take_along_axis(xp.concat([zero, chunk_end], axis=1), chunk, axis=1)
+    where = (rows_i * B + chunk)[:, :, None] * c + xp.arange(c, device=dev)[None, None, :]
+    inside = xp.take(xp.reshape(p, (-1,)), xp.reshape(where, (-1,)))
+    running = before[:, :, None] + xp.cumulative_sum(xp.reshape(inside, (P, Kmax - 1, c)), axis=2)
+    offset = xp.sum(xp.astype(running < target[:, :, None], xp.int64), axis=2)
+    offset = xp.clip(offset, max=c - 1)  # round-off: the chunk's end, by the chunk's sum
+    edge = chunk * c + offset
+    edge = xp.where(real_edge, edge, L - 1)
 
     # Exact probability of every (unmerged) bin.
-    cdf_at = xp.take_along_axis(cdf, edge, axis=1) / total
+    cdf_at = xp.take_along_axis(running, offset[:, :, None], axis=2)[:, :, 0] / total
+    cdf_at = xp.where(real_edge, cdf_at, 1.0)
     prob = xp.concat([cdf_at, ones], axis=1) - xp.concat([0.0 * ones, cdf_at], axis=1)
 
     # Merge bins expecting fewer than min_expected frames: drop the edge above a small

@@ -267,9 +267,12 @@ class Spectrum:
         return irfft(self.spectrum, self.n)
 
     @staticmethod
-    def weights_spectrum(weights, m):
-        """``rfft`` of a (P, n) weight grid, its first ``m`` bins: shared by every dot."""
-        return _xp.rfft(_xp.namespace(weights), weights, _xp.fft_workers())[:, :m]
+    def weights_spectrum(index, weights, shape, m):
+        """``rfft`` of a weight grid of ``shape`` (P, n), zero but for ``weights`` at the
+        flat positions ``index`` (non-zero ones distinct), its first ``m`` bins: shared
+        by every dot."""
+        xp = _xp.namespace(weights)
+        return _xp.scattered_rfft(xp, index, weights, shape, m, _xp.fft_workers())
 
     def dot(self, weights_hat):
         """``Σ_y w(y) f(y)`` per row, from ``weights_spectrum(w, m)`` (P, m)."""

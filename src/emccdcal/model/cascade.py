@@ -22,9 +22,12 @@ Sampling the register's output and its exact distribution are
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import contextvars
+import math
 import operator
+import threading
 
 import numpy as np
 
@@ -445,35 +448,77 @@ _TABLE_START = (9, 33)
 #: hopeless trial step's enormous window), and the recursion runs instead.
 _TABLE_POINTS_PER_STAGE = 0.25
 
-#: A table kept for reuse (:func:`transform_tables`) spans the rectangle asked for
-#: widened by this fraction of its sides (the gains move as a fit goes on), and at least
-#: this much in ln g.
-_TABLE_MARGIN = (0.25, 0.02)
+#: A table kept for reuse (:func:`transform_tables`) spans a rectangle of a fixed grid
+#: that holds the one asked for: whole cells of this width in ln g, and in g·θ bounds at
+#: whole quarter-octaves (0 stays 0). Which table serves a call then depends on the
+#: call's own gains and frequencies only, whoever built it and whenever.
+_TABLE_CELL = 1.0 / 32.0
 
-#: Tables kept at once in a :func:`transform_tables` scope (oldest dropped first).
-_TABLES_KEPT = 16
+#: Tables kept by a process (the least recently used dropped first): a few thousand
+#: numbers each.
+_TABLES_KEPT = 64
 
-_SCOPE: contextvars.ContextVar = contextvars.ContextVar("transform_tables", default=None)
+#: Nodes of a kept table at most (its build is paid once per process, not per call).
+_KEPT_TABLE_NODES = 2**16
+
+_SCOPE: contextvars.ContextVar = contextvars.ContextVar("transform_tables", default=False)
+_KEPT: collections.OrderedDict = collections.OrderedDict()
+_KEPT_LOCK = threading.Lock()
 
 
 @contextlib.contextmanager
 def transform_tables():
-    """Within this block (on this thread), :func:`register_transform` keeps the tables it
-    builds and reuses them for later calls whose gains and frequencies they cover.
+    """Within this block (on this thread), :func:`register_transform` takes its tables
+    from those the process keeps, over rectangles of a fixed grid of (ln g, g·θ), and
+    keeps those it builds.
 
     A fit evaluates the transform of the same pixels over and over with gains that move a
-    little: one table serves most of its iterations. The scope is what makes that
-    deterministic: a fit's values depend on its own calls only, never on what another
-    fit (another thread, another block) tabulated before.
+    little, and the next block of pixels has gains like this one's: one table serves
+    many iterations and many blocks. The grid is what keeps that deterministic: the table
+    a call uses is the one of the grid's rectangle that holds its gains and frequencies,
+    the same whichever fit (thread, block, tile) built it first.
     """
-    if _SCOPE.get() is not None:  # within an enclosing scope: its tables
+    if _SCOPE.get():  # within an enclosing scope
         yield
         return
-    token = _SCOPE.set([])
+    token = _SCOPE.set(True)
     try:
         yield
     finally:
         _SCOPE.reset(token)
+
+
+def _on_grid(x_range, z_range):
+    """The rectangle of the tables' grid that holds ``x_range`` (ln g; a single gain
+    stays one) and ``z_range`` (g·θ)."""
+    lo, hi = x_range
+    if hi > lo:
+        lo = math.floor(lo / _TABLE_CELL) * _TABLE_CELL
+        hi = max(math.ceil(hi / _TABLE_CELL) * _TABLE_CELL, lo + _TABLE_CELL)
+
+    def quarter_octave(v, up):  # the grid's bound at or beyond v, away from v's inside
+        if v == 0.0:
+            return 0.0
+        e = 4.0 * math.log2(abs(v))
+        e = math.ceil(e) if (v > 0) == up else math.floor(e)
+        return math.copysign(2.0 ** (e / 4.0), v)
+
+    return (lo, hi), (quarter_octave(z_range[0], False), quarter_octave(z_range[1], True))
+
+
+def _kept_table(key, build):
+    """The process's table of ``key``, built by ``build()`` the first time (None too is
+    kept: a rectangle too costly to tabulate stays so)."""
+    with _KEPT_LOCK:
+        if key in _KEPT:
+            _KEPT.move_to_end(key)
+            return _KEPT[key]
+    table = build()  # outside the lock: another thread may build the same, equal table
+    with _KEPT_LOCK:
+        _KEPT[key] = table
+        if len(_KEPT) > _TABLES_KEPT:
+            _KEPT.popitem(last=False)
+    return table
 
 
 class _Table:
@@ -496,10 +541,10 @@ class _Table:
         )
 
     def evaluate(self, keys, x, z):
-        return {
-            k: _chebyshev.evaluate_rows(_xp.like(x, self.coef[k]), self.x_range, self.z_range, x, z)
-            for k in keys
-        }
+        keys = sorted(keys)
+        stack = _xp.like(x, np.stack([self.coef[k] for k in keys], axis=-1))
+        values = _chebyshev.evaluate_rows(stack, self.x_range, self.z_range, x, z)
+        return {k: values[:, :, i] for i, k in enumerate(keys)}
 
 
 def _derivative_names(order, by_u) -> tuple[str, ...]:
@@ -533,26 +578,17 @@ def _tabulated(xp, theta, g, stages, order, cic, by_u):
     x_range = (float(xp.min(x)), float(xp.max(x)))
     z_range = (float(xp.min(z)), float(xp.max(z)))
     keys = _transform_keys(order, cic, by_u)
-    kept = _SCOPE.get()
-    if kept is None:
+    if not _SCOPE.get():
         table = _build_table(xp, theta, stages, x_range, z_range, order, cic, by_u, theta.size // 4)
     else:
-        table = next((t for t in kept if t.covers(stages, x_range, z_range, keys)), None)
-        if table is None:
-            table = _build_table(
-                xp,
-                theta,
-                stages,
-                _widen(x_range, _TABLE_MARGIN[1]),
-                _widen(z_range, 0.0),
-                order,
-                cic,
-                by_u,
-                theta.size,
-            )
-            if table is not None:
-                kept.append(table)
-                del kept[:-_TABLES_KEPT]
+        x_grid, z_grid = _on_grid(x_range, z_range)
+        key = (xp.__name__, str(_xp.device(theta)), stages, x_grid, z_grid, keys)
+        table = _kept_table(
+            key,
+            lambda: _build_table(
+                xp, theta, stages, x_grid, z_grid, order, cic, by_u, _KEPT_TABLE_NODES
+            ),
+        )
     if table is None:
         return None
     out = table.evaluate(keys, x, z)
@@ -565,14 +601,6 @@ def _tabulated(xp, theta, g, stages, order, cic, by_u):
             if "u" not in k.removeprefix("cic_"):
                 out[k] = xp.where(zero, xp.zeros_like(v), v)
     return out
-
-
-def _widen(bounds, at_least):
-    """``bounds`` widened on each side by ``_TABLE_MARGIN[0]`` of its width (and at least
-    ``at_least``); a lower bound of 0 stays (the zero frequency)."""
-    lo, hi = bounds
-    pad = max(_TABLE_MARGIN[0] * (hi - lo), at_least)
-    return (lo - pad if lo != 0.0 else 0.0, hi + pad)
 
 
 def _build_table(xp, like, stages, x_range, z_range, order, cic, by_u, budget):
