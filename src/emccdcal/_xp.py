@@ -276,9 +276,12 @@ def scattered_rfft(xp, index, weights, shape, m: int, workers):
             flat[index] = 0.0
 
 
-def irfft(xp, a, n: int, workers, *, conjugate=False):
+def irfft(xp, a, n: int, workers, *, conjugate=False, single=False):
     """The inverse real FFT of length n along the last axis (SciPy's for NumPy), of ``a``
-    or, with ``conjugate``, of its complex conjugate; bins beyond ``a``'s are zero."""
+    or, with ``conjugate``, of its complex conjugate; bins beyond ``a``'s are zero. With
+    ``single``, in single precision (about half the time; 1e-7 of the largest value)."""
+    if single:
+        a = xp.astype(a, xp.complex64)
     if is_numpy_namespace(xp):
         from scipy import fft
 
@@ -286,7 +289,7 @@ def irfft(xp, a, n: int, workers, *, conjugate=False):
             # The conjugate written straight into a zero-padded spectrum kept from call
             # to call (SciPy's FFT only reads it): the few bins written, not all of them.
             m = a.shape[-1]
-            with _SCRATCH.zeros(a.shape[:-1] + (n // 2 + 1,), np.complex128) as full:
+            with _SCRATCH.zeros(a.shape[:-1] + (n // 2 + 1,), a.dtype) as full:
                 try:
                     np.conjugate(a, out=full[..., :m])
                     return fft.irfft(full, n=n, axis=-1, workers=workers)

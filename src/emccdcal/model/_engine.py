@@ -262,9 +262,9 @@ class Spectrum:
     def __init__(self, spectrum, n):
         self.spectrum, self.n = spectrum, n
 
-    def window(self):
-        """The window itself (P, n)."""
-        return irfft(self.spectrum, self.n)
+    def window(self, single=False):
+        """The window itself (P, n); with ``single``, in single precision."""
+        return irfft(self.spectrum, self.n, single=single)
 
     @staticmethod
     def weights_spectrum(index, weights, shape, m):
@@ -285,13 +285,15 @@ class Spectrum:
         return (xp.real(self.spectrum * weights_hat) @ _xp.like(self.spectrum, c)) / n
 
 
-def irfft(spectrum, n):
-    """The window (P, n) of the first DFT bins (P, m) of the density (m ≤ n//2 + 1).
+def irfft(spectrum, n, single=False):
+    """The window (P, n) of the first DFT bins (P, m) of the density (m ≤ n//2 + 1), in
+    single precision with ``single``.
 
     The density's DFT is the characteristic function at −ω, the conjugate of the one
     evaluated at +ω; the bins beyond ``m`` are zero (irfft pads them).
     """
-    return _xp.irfft(_xp.namespace(spectrum), spectrum, n, _xp.fft_workers(), conjugate=True)
+    xp = _xp.namespace(spectrum)
+    return _xp.irfft(xp, spectrum, n, _xp.fft_workers(), conjugate=True, single=single)
 
 
 def fast_len(n):
