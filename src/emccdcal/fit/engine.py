@@ -642,8 +642,10 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
         the observed one where it is positive definite, else the outer product's (for a
         layout with a prior, always the outer product's); None without ``information``."""
         level = 2 if information and newton else 1
-        # the information here only steers the steps: the final evaluation's is exact
-        how = dict(information=information, steps_only=True)
+        # The information here only steers the steps (the final evaluation's is exact):
+        # from single-precision windows, except where the likelihood ripples, whose
+        # valleys single precision does not resolve.
+        how = dict(information=information, steps_only=layout.smooth)
         if rows.size == P:
             res = _evaluate(layout, blocks, x, level, **how)
         elif same_shapes:
