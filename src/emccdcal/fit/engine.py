@@ -643,9 +643,11 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
         layout with a prior, always the outer product's); None without ``information``."""
         level = 2 if information and newton else 1
         # The information here only steers the steps (the final evaluation's is exact):
-        # from single-precision windows, except where the likelihood ripples, whose
-        # valleys single precision does not resolve.
-        how = dict(information=information, steps_only=layout.smooth)
+        # from single-precision windows where the steps are Newton's (their last one
+        # lands on the optimum whichever path led there); not where the likelihood
+        # ripples (single precision does not resolve its valleys), nor with a prior
+        # (its outer-product steps stop where their path ends).
+        how = dict(information=information, steps_only=newton)
         if rows.size == P:
             res = _evaluate(layout, blocks, x, level, **how)
         elif same_shapes:
