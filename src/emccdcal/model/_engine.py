@@ -60,15 +60,17 @@ _EDGE = float(np.exp(-40.0))
 _MAX_WINDOW = 2**20
 
 
-def cgf(rows, s, shift, sigma, order=0, names=()):
+def cgf(rows, s, shift, sigma, order=0, names=(), same_rows=False):
     """K(s) of the count (P, M) relative to the window start, and its derivatives by
-    ``names`` (the register's and :data:`READOUT`): ``(K, first, second)``."""
+    ``names`` (the register's and :data:`READOUT`): ``(K, first, second)``. With
+    ``same_rows`` every row of ``s`` is the same (an untilted window's frequencies)."""
     Ke, first, second = rows.cgf(s, order, tuple(n for n in names if n not in READOUT))
     rounding = rounds(rows.pn, sigma)
     shift, sigma = _xp.like(s, shift, sigma)
     K = s * shift[:, None] + 0.5 * (sigma[:, None] * s) ** 2 + Ke
     if rounding.any():  # the ADC's rounding: a parameter-free term (docs of :mod:`.adc`)
-        K = K + _where_rows(s, rounding, rounding_cgf(s))
+        # a function of the frequency alone: once for all rows where they share theirs
+        K = K + _where_rows(s, rounding, rounding_cgf(s[:1] if same_rows else s))
     if order >= 1:
         first = {**first, "offset": s, "read_noise": sigma[:, None] * s * s}
     if order >= 2:
@@ -77,7 +79,8 @@ def cgf(rows, s, shift, sigma, order=0, names=()):
 
 
 def _where_rows(s, rows, values):
-    """``values`` (P, M) at the rows flagged in ``rows`` (P,), 0 elsewhere."""
+    """``values`` (P, M), or (1, M) for every row, at the rows flagged in ``rows`` (P,), 0
+    elsewhere."""
     xp = _xp.namespace(s)
     return xp.where(_xp.like(s, rows)[:, None], values, 0.0 + 0j)
 
@@ -215,9 +218,10 @@ def window(
     t_dev = xp.astype(t_dev, xp.complex128)[:, None]
     # (real arithmetic first: a complex division rounds otherwise, by its reciprocal)
     omega = xp.arange(m_hi, dtype=xp.float64, device=dev) * (2.0 * np.pi) / n
+    untilted = not np.any(t)
     for j in range(-J, J + 1):
         s = t_dev + 1j * xp.astype(omega + 2.0 * np.pi * j, xp.complex128)[None, :]
-        K, first, sec = cgf(rows, s, shift, sigma, order, names)
+        K, first, sec = cgf(rows, s, shift, sigma, order, names, same_rows=untilted)
         cf = xp.exp(K - K_t_dev)
         phi = phi + cf
         if derivs:

@@ -47,16 +47,23 @@ class GammaRows:
         sa = s * scale[:, None]
         pn_ = pn[:, None]
         Ec = E[:, None]
-        # M(s) − 1 without cancellation at small s
-        v = xp.where(pn_, xp.expm1(sa), sa / (1.0 - sa))
+        # M(s) − 1 without cancellation at small s (each branch only where rows need it:
+        # a camera without a register has Poisson–normal rows alone)
+        every_pn, no_pn = bool(xp.all(pn)), not bool(xp.any(pn))
+        if every_pn:
+            v = xp.expm1(sa)
+        elif no_pn:
+            v = sa / (1.0 - sa)
+        else:
+            v = xp.where(pn_, xp.expm1(sa), sa / (1.0 - sa))
         if order == 0:
             return Ec * v, {}, {}
-        m = xp.where(pn_, xp.exp(sa), 1.0 / (1.0 - sa))
-        dm = xp.where(pn_, s * m, s * m * m)  # dM/dscale
+        m = 1.0 + v  # e^{sa}, or 1/(1 − sa)
+        dm = s * m if every_pn else xp.where(pn_, s * m, s * m * m)  # dM/dscale
         first = {"photoelectrons": v, "scale": Ec * dm}
         if order == 1:
             return Ec * v, first, {}
-        d2m = xp.where(pn_, s * s * m, 2.0 * s * s * m * m * m)
+        d2m = s * s * m if every_pn else xp.where(pn_, s * s * m, 2.0 * s * s * m * m * m)
         second = {("photoelectrons", "scale"): dm, ("scale", "scale"): Ec * d2m}
         return Ec * v, first, second
 
