@@ -279,8 +279,8 @@ def _block_chi2(values, counts, n, K, rows, S0, sigma, start, length, s, min_exp
     # Within it, the running sum from the previous chunk's end.
     zero = xp.zeros((P, 1), dtype=p.dtype, device=dev)
     before = xp.take_along_axis(xp.concat([zero, chunk_end], axis=1), chunk, axis=1)
-    where = (rows_i * B + chunk)[:, :, None] * c + xp.arange(c, device=dev)[None, None, :]
-    inside = xp.take(xp.reshape(p, (-1,)), xp.reshape(where, (-1,)))
+    positions = (rows_i * B + chunk)[:, :, None] * c + xp.arange(c, device=dev)[None, None, :]
+    inside = xp.take(xp.reshape(p, (-1,)), xp.reshape(positions, (-1,)))
     running = before[:, :, None] + xp.cumulative_sum(xp.reshape(inside, (P, Kmax - 1, c)), axis=2)
     offset = xp.sum(xp.astype(running < target[:, :, None], xp.int64), axis=2)
     offset = xp.clip(offset, max=c - 1)  # round-off: the chunk's end, by the chunk's sum

@@ -530,16 +530,6 @@ class _Table:
         self.stages, self.x_range, self.z_range = stages, x_range, z_range
         self.coef = {k: _xp.to_numpy(c) for k, c in coef.items()}
 
-    def covers(self, stages, x_range, z_range, keys) -> bool:
-        return (
-            stages == self.stages
-            and keys <= self.coef.keys()
-            and self.x_range[0] <= x_range[0]
-            and x_range[1] <= self.x_range[1]
-            and self.z_range[0] <= z_range[0]
-            and z_range[1] <= self.z_range[1]
-        )
-
     def evaluate(self, keys, x, z):
         keys = sorted(keys)
         stack = _xp.like(x, np.stack([self.coef[k] for k in keys], axis=-1))
@@ -569,9 +559,10 @@ def _tabulated(xp, theta, g, stages, order, cic, by_u):
     and agrees with the recursion to about the recursion's own round-off (its last
     coefficients are below ``N·ε`` of its largest). In ``g·θ`` (the argument of the
     gamma approximation's transform) the gain changes the function's shape only, so few
-    points span the gains of a block. Within :func:`transform_tables` tables are kept
-    and reused; elsewhere each call builds its own, where it costs a quarter of the rows
-    or less.
+    points span the gains of a block. Within :func:`transform_tables` the table is the
+    process's over the fixed grid's rectangle that holds the rows (built the first
+    time); elsewhere each call builds its own, where it costs a quarter of the rows or
+    less.
     """
     x = xp.log(g)
     z = theta * g[:, None]
