@@ -231,3 +231,19 @@ def test_where_the_likelihood_ripples_or_has_a_prior_the_steps_are_the_outer_pro
     hierarchical = object.__new__(HierarchicalLayout)  # its data-built fields not needed
     hierarchical.smooth = True
     assert not hierarchical.newton_steps
+
+
+def test_the_information_stack_is_inverted_at_once_as_each_matrix_alone():
+    """The covariances of a block come from one batched inverse: each pixel's the same,
+    bit for bit, as its matrix inverted alone; NaN where the information is not finite
+    and positive definite."""
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(200, 3, 3))
+    H = A @ A.transpose(0, 2, 1) + 0.1 * np.eye(3)
+    H[5] = -H[5]
+    H[7, 0, 0] = np.nan
+    cov, pos = engine._invert(H)
+    assert pos.sum() == 198 and not pos[5] and not pos[7]
+    assert np.isnan(cov[[5, 7]]).all()
+    for i in np.flatnonzero(pos):
+        assert np.array_equal(cov[i], np.linalg.inv(H[i]))

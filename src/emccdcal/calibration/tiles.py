@@ -223,12 +223,10 @@ def _fit_pixels(job, frames, usable, progress=None):
             job.map_groups,
         )
         sub = lambda v: None if v is None else v[idx]  # noqa: E731
-        # a run of pixels (every pixel usable) is a view of the frames, not a copy
-        own = slice(idx[0], idx[-1] + 1) if idx[-1] - idx[0] + 1 == idx.size else idx
         # the histograms, the fit and its checks, each FFT on the CPUs the tile's
         # threads leave it
         with _xp.computing_on(job.device, fft_workers=job.fft_threads):
-            hists = [_histograms(job, a, f[:, :, own]) for a, f in enumerate(frames)]
+            hists = [_histograms(job, a, f[:, :, idx]) for a, f in enumerate(frames)]
             return idx, fit_series(
                 job.method,
                 models,

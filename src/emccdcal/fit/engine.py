@@ -767,9 +767,13 @@ def _invert(H):
     P, F, _ = H.shape
     cov = np.full((P, F, F), np.nan)
     pos = _positive_definite(H)
-    for i in np.flatnonzero(pos):  # one by one: a stack with one singular matrix fails whole
-        try:
-            cov[i] = np.linalg.inv(H[i])
-        except np.linalg.LinAlgError:  # positive eigenvalues, yet numerically singular
-            pos[i] = False
+    if pos.any():
+        try:  # the whole stack at once
+            cov[pos] = np.linalg.inv(H[pos])
+        except np.linalg.LinAlgError:  # one numerically singular matrix fails it whole
+            for i in np.flatnonzero(pos):
+                try:
+                    cov[i] = np.linalg.inv(H[i])
+                except np.linalg.LinAlgError:  # positive eigenvalues, yet singular
+                    pos[i] = False
     return cov, pos

@@ -526,8 +526,8 @@ class _Table:
     NumPy arrays (a few hundred numbers) and given to each caller in its own namespace:
     the same table serves a fit on a device and its checks on the host."""
 
-    def __init__(self, stages, x_range, z_range, coef):
-        self.stages, self.x_range, self.z_range = stages, x_range, z_range
+    def __init__(self, x_range, z_range, coef):
+        self.x_range, self.z_range = x_range, z_range
         self.coef = {k: _xp.to_numpy(c) for k, c in coef.items()}
 
     def evaluate(self, keys, x, z):
@@ -618,7 +618,7 @@ def _build_table(xp, like, stages, x_range, z_range, order, cic, by_u, budget):
         done = [_chebyshev.resolved(c, tol) for c in coef.values()]
         refine = [axis for axis in (0, 1) if not all(d[axis] for d in done)]
         if not refine:
-            return _Table(stages, x_range, z_range, coef)
+            return _Table(x_range, z_range, coef)
         for axis in refine:
             n[axis] = 2 * n[axis] - 1
             nodes = [_chebyshev.lobatto(n[0], *x_range), _chebyshev.lobatto(n[1], *z_range)]
