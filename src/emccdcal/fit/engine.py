@@ -616,8 +616,10 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
         Called with the number of pixels that finished at each iteration.
     covariance : bool
         Compute the covariance, log-likelihoods and convergence at the optimum (the
-        observed information); ``False`` returns the optimum ``x`` only (the other
-        fields None): a starting point for another fit.
+        observed information); ``False`` returns the optimum ``x`` and the objective
+        of the last point the optimiser evaluated (within ``tol`` of the optimum's),
+        the other fields None: a starting point for another fit, or a profile's
+        point, without the final evaluation's transforms.
 
     Returns
     -------
@@ -690,7 +692,7 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
     x = declined_step(opt, layout.lower, layout.upper) if newton else opt.x
     iterations = opt.iterations
     if not covariance:
-        return FitResult(x, None, None, None, iterations, None)
+        return FitResult(x, None, None, None, iterations, None, objective=opt.objective)
     map_errors = any(b.has_map_errors for b in blocks)
     # A pixel whose objective is not finite at its end (its data far from any model the
     # bounds allow, e.g. offsets above every count) has no information to compute: its

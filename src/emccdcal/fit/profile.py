@@ -147,11 +147,11 @@ def profile_bounds(
         layout's bound where the deviance stays below the quantile up to it. NaN where
         not found.
     """
-    from scipy import stats
+    from scipy import special
 
     x_hat, P = result.x, result.x.shape[0]
     se = np.sqrt(np.abs(result.cov[:, j, j]))
-    target = np.full(P, np.sqrt(stats.chi2.ppf(level, 1)))
+    target = np.full(P, np.sqrt(special.chdtri(1, 1 - level)))  # chi2.ppf(level, 1)
     if not hasattr(layout, "estimator_covariance") and not np.any(layout.log_prior(x_hat)[2]):
         conditional, pos_def = _invert(_evaluate(layout, blocks, x_hat, 2)[4])
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -180,7 +180,9 @@ def profile_bounds(
                 break
             value = x_hat[active, j] + side * t
             pinned = _Pinned(layout.subset(active), j, value)
-            fitted = fit(pinned, [b.take(active) for b in blocks], start, max_iter=50)
+            fitted = fit(
+                pinned, [b.take(active) for b in blocks], start, max_iter=50, covariance=False
+            )
             r = np.sqrt(np.maximum(2.0 * (result.objective[active] - fitted.objective), 0.0))
             done = (np.abs(r - z) < tol) | ((t >= room[active]) & (r < z))
             bound[active[done]] = value[done]
