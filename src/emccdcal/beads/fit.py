@@ -610,7 +610,9 @@ class _Boxes:
 
     @staticmethod
     def _curvature(w, J):
-        return np.einsum("mk,mki,mkj->mij", w, J, J)
+        """Σ_k w_k J_ki J_kj per bead (M, P, P): a batched matrix product (a three-operand
+        einsum loops in C without BLAS, ten times slower)."""
+        return np.swapaxes(J * w[:, :, None], 1, 2) @ J
 
     def start(self, width):
         """Each bead's (x, y, s, N, b) from the moments of its mean image."""

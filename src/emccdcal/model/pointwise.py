@@ -262,10 +262,12 @@ class LogpmfTable:
         if q.size == 0:
             return
         # Distinct (pixel, count) pairs; each is tabulated at its pixel's nodes.
-        pair, inv = np.unique(
-            np.stack([self.pixel[q], self.counts[q]]), axis=1, return_inverse=True
+        # (one integer key per pair: np.unique along an axis sorts rows, far slower)
+        span = np.int64(self.counts.max()) + 1 if self.counts.size else np.int64(1)
+        key, inv = np.unique(
+            self.pixel[q].astype(np.int64) * span + self.counts[q], return_inverse=True
         )
-        pix, cnt = pair
+        pix, cnt = key // span, key % span
         coef = np.zeros((self.coef.shape[0], pix.size))
         for d in np.unique(self.degree[pix]):
             sel = np.flatnonzero(self.degree[pix] == d)
