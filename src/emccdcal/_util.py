@@ -254,6 +254,22 @@ def within_bounds(name: str, arr, value, *, label: str | None = None) -> None:
         )
 
 
+def weighted_gram(weights, a, b=None):
+    """``Σ_k w[..., k] · a[..., k, i] · b[..., k, j]`` (..., I, J): stacked Gram matrices
+    of the columns of ``a`` and ``b`` (default ``a``) weighted by ``w`` (an information
+    from per-value scores and counts), as one batched matrix product: a three-operand
+    ``einsum`` loops in C without BLAS, 3–8 times slower for a histogram's K values.
+
+    Examples
+    --------
+    >>> a = np.arange(6.0).reshape(1, 3, 2)
+    >>> weighted_gram(np.array([[1.0, 0.0, 2.0]]), a).tolist()
+    [[[32.0, 40.0], [40.0, 51.0]]]
+    """
+    b = a if b is None else b
+    return np.swapaxes(a * weights[..., None], -1, -2) @ b
+
+
 def nanmedian(values, axis=None):
     """``np.nanmedian``, NaN where a slice holds no number, without NumPy's warning (a
     summary of pixels none of which converged is NaN, not a message about slices).

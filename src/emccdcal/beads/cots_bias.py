@@ -5,8 +5,9 @@ covariance (docs/cots.md)."""
 
 from __future__ import annotations
 
-
 import numpy as np
+
+from .._util import weighted_gram
 
 
 #: (c3, c4) of the gamma register (:func:`register_cumulants`), COTS as published.
@@ -193,8 +194,8 @@ def _covariance(expected, qh, alpha, alpha_fit, read_var, cumulants):
     # Cov(r_i², r_j²) = 2 (MVM)_ij² + Σ_k M_ik² κ4_k M_jk²
     b = 2 * np.swapaxes(cu, 1, 2) @ (mvm**2 @ cu)
     w = np.swapaxes(m2, 1, 2) @ cu  # (F, n, 2): Σ_i M_ik² c_i
-    b += np.einsum("fk,fkj,fkl->fjl", k4, w, w)
-    a = np.einsum("fi,fij,fik->fjk", (2 * m / vs - 1) / vs**2, u, u)
+    b += weighted_gram(k4, w)
+    a = weighted_gram((2 * m / vs - 1) / vs**2, u)
     a_inv = _inv2(a)
     return a_inv @ b @ a_inv
 

@@ -23,6 +23,7 @@ import numpy as np
 
 from .. import defaults
 from .._optimize import maximize
+from .._util import weighted_gram
 from ..errors import InputError
 from ..model import noise
 from . import stats
@@ -380,7 +381,7 @@ def _fit_events(h, x0, theta, max_iter=60):
         pv, s = _model(sub, x, theta[rows], True)
         ll = np.sum(sub.counts * np.log(pv), axis=1)
         grad = np.sum(sub.counts[..., None] * s, axis=1)
-        info = np.einsum("pk,pki,pkj->pij", sub.counts, s, s)
+        info = weighted_gram(sub.counts, s)
         return ll, grad, info
 
     lower = np.array([_LOG_RATE[0], -np.inf, -np.inf])

@@ -24,6 +24,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .. import _roots, defaults
+from .._util import weighted_gram
 from ..model import adc
 from ..errors import MethodError, OptionError
 from . import comb, engine, profile, scores
@@ -444,8 +445,8 @@ class HierarchicalLayout(Layout):
             if self.centre_fit is not None:
                 dc = np.einsum("pf,pkf->pk", c_row, c_scores[a][0])
                 infl = per_value + b_vec[:, None, :] * dc[..., None]
-            infl = np.einsum("pfg,pkg->pkf", h_inv, infl)
-            cov += np.einsum("pk,pkf,pkg->pfg", counts, infl, infl)
+            infl = infl @ np.swapaxes(h_inv, 1, 2)  # Σ_g H⁻¹_fg · infl_kg
+            cov += weighted_gram(counts, infl)
         return cov
 
     def _penalty(self, E):

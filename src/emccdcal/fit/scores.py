@@ -14,6 +14,7 @@ from dataclasses import replace
 import numpy as np
 
 from .. import _xp
+from .._util import weighted_gram
 from ..model import noise
 from .engine import _model_jacobian, _ModelAtData, _native_to_model, _register
 
@@ -41,7 +42,7 @@ def value_scores(layout, blocks, x):
         u = np.stack([d1[nm] * v[:, None] for nm, v in zip(names, values)], -1)
         u = np.where(model.low[..., None], 0.0, u / pv[..., None])  # (P, K, U) by coords
         j_u = _model_jacobian(jac, a, D)
-        out.append((np.einsum("pku,puf->pkf", u, j_u), acq.counts))
+        out.append((u @ j_u, acq.counts))
     return out
 
 
@@ -84,8 +85,8 @@ def expected_information(layout, blocks, x):
         p = np.where(low, 0.0, pv)
         scale = np.where(low, 0.0, 1.0 / pv)
         u = np.stack([scores[nm] * v[:, None] for nm, v in zip(rows.names, values)], -1)
-        s = np.einsum("pku,puf->pkf", u * scale[..., None], _model_jacobian(jac, a, D))
+        s = (u * scale[..., None]) @ _model_jacobian(jac, a, D)
         m = np.stack([scores["offset"], scores["read_noise"]], -1) * scale[..., None]
-        info[:, a] = np.einsum("pk,pkf,pkg->pfg", p, s, s)
-        cross[:, a] = np.einsum("pk,pkf,pkm->pfm", p, s, m)
+        info[:, a] = weighted_gram(p, s)
+        cross[:, a] = weighted_gram(p, s, m)
     return info, cross

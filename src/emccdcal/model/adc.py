@@ -30,6 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import _xp
+from .._util import weighted_gram
 
 __all__ = [
     "ROUNDING_BELOW",
@@ -151,7 +152,7 @@ def fit_rounded_normal(values, counts, mu0, sigma0, max_iter=60):
         score = np.stack([dmu / p, dsig * sigma / p], axis=-1)  # by (μ, ln σ)
         ll = np.sum(c * np.log(p), axis=1)
         grad = np.einsum("pk,pki->pi", c, score)
-        info = np.einsum("pk,pki,pkj->pij", c, score, score)
+        info = weighted_gram(c, score)
         return ll, grad, info
 
     inf = np.full(2, np.inf)
@@ -172,4 +173,4 @@ def information(mu, sigma):
     live = p > 1e-300
     p = np.where(live, p, 1.0)
     g = np.stack([dmu, dsig], axis=-1) * (live / p)[..., None]
-    return np.einsum("pk,pki,pkj->pij", p, g, g)
+    return weighted_gram(p, g)
