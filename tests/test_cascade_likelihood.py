@@ -276,6 +276,23 @@ def test_tables_are_kept_within_a_scope_and_serve_whoever_comes_next(monkeypatch
     assert all(np.array_equal(small[k], direct[k]) for k in direct)
 
 
+def test_a_samplers_likelihood_evaluates_within_the_tables_scope(monkeypatch):
+    """The posterior's sampler calls a pixel's objective thousands of times with moving
+    gains: within the tables' scope they share the kept tables (measured: a cascade
+    posterior of 1035 steps in 29.7 s, 60.0 s when each call tabulated its own)."""
+    from emccdcal.fit import engine
+    from emccdcal.fit.series import AcquisitionModel, SeriesLikelihood
+
+    seen = []
+    monkeypatch.setattr(engine, "objective", lambda *a: seen.append(cascade._SCOPE.get()))
+    models = [
+        AcquisitionModel(s, np.array([100.0]), np.array([5.0]), noise.EMModel("cascade", 536))
+        for s in (1, 10)
+    ]
+    SeriesLikelihood("gs", models, e_per_adu=2.0).objective(np.zeros((1, 2)))
+    assert seen == [True] and not cascade._SCOPE.get()
+
+
 def test_register_transform_runs_on_the_array_api_standard():
     """The transform, its table and its recursion use the array API standard only: on
     array-api-strict arrays (which refuse anything outside it) they return that

@@ -320,6 +320,7 @@ class SeriesLikelihood:
         )
 
     # ---- evaluation ----------------------------------------------------------------------
+    @noise.register_tables()  # a sampler's thousands of calls share the register's tables
     def objective(self, x) -> np.ndarray:
         """Log-likelihood plus the layout's own log prior (P,), nats: what :meth:`fit`
         maximises."""
