@@ -110,19 +110,30 @@ def dask_cluster(tmp_path_factory):
     try:
         for i, command in enumerate(commands):
             with open(logs / f"{i}.log", "wb") as log:
-                started.append(subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT))
+                started.append(
+                    subprocess.Popen(
+                        command, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
+                    )
+                )
             if i == 0:
                 _wait_for_port(port, started[0], logs / "0.log")
         _wait_for_workers(address, 2)
         yield address
     finally:
+        # As a user ends a cluster (Client.shutdown: the scheduler closes its workers and
+        # itself in a fraction of a second); the `dask worker` command then lingered 8 s
+        # before exiting: after a grace period its session (it and its worker processes)
+        # is killed, so that nothing of the cluster outlives the tests.
+        if len(started) == 2:
+            _shutdown(address)
         for process in reversed(started):
             process.terminate()
         for process in reversed(started):
             try:
-                process.wait(timeout=30)
+                process.wait(timeout=2)
             except subprocess.TimeoutExpired:
-                process.kill()
+                os.killpg(process.pid, signal.SIGKILL)
+                process.wait()
 
 
 def _wait_for_port(port, process, log, limit=120.0):
@@ -147,6 +158,16 @@ def _scheduler_state(address, function):
 
     with distributed.Client(address, timeout="60s", set_as_default=False) as client:
         return client.run_on_scheduler(function)
+
+
+def _shutdown(address):
+    import distributed
+
+    try:
+        with distributed.Client(address, timeout="10s", set_as_default=False) as client:
+            client.shutdown()
+    except (OSError, TimeoutError):
+        pass  # the processes are terminated anyway
 
 
 def _wait_for_workers(address, n):
