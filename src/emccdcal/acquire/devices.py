@@ -21,7 +21,7 @@ import numpy as np
 from pymmcore_plus.experimental.unicore import CameraDevice, ShutterDevice, pymm_property
 
 from ..simulate.camera import Camera, default_em_gain, offset_at_setpoint, simulate_frames
-from ..simulate.cmos import CMOSCamera, simulate_cmos_frames
+from ..simulate.cmos import simulate_cmos_frames
 
 __all__ = ["SimulatedShutter", "SimulatedEMCCD", "SimulatedCMOS", "SENSOR_SHAPE"]
 
@@ -68,10 +68,8 @@ class SimulatedEMCCD(CameraDevice):
     def __init__(self, camera: Camera, shutter: SimulatedShutter, *, seed: int, run: int = 0):
         super().__init__()
         self.camera, self.shutter, self.seed = camera, shutter, int(seed)
-        pattern_seed, frame_seed = np.random.SeedSequence(self.seed).spawn(2)
-        self.offset_pattern = np.random.default_rng(pattern_seed).normal(
-            0.0, camera.offset_spread, camera.shape
-        )
+        truth_seed, frame_seed = np.random.SeedSequence(self.seed).spawn(2)
+        self._draw_truth(np.random.default_rng(truth_seed))
         self._frame_seeds = np.random.SeedSequence(
             frame_seed.entropy, spawn_key=(*frame_seed.spawn_key, run)
         )
@@ -80,6 +78,10 @@ class SimulatedEMCCD(CameraDevice):
         self.sequence_thread: threading.Thread | None = None
 
     # ---- the truth -------------------------------------------------------------------
+    def _draw_truth(self, rng) -> None:
+        """The camera's fixed truth, drawn once from its seed: the offset pattern (ADU)."""
+        self.offset_pattern = rng.normal(0.0, self.camera.offset_spread, self.camera.shape)
+
     @staticmethod
     def true_em_gain(setpoint: float) -> float:
         """The camera's true mean EM gain at a set-point (dimensionless)."""
@@ -204,22 +206,16 @@ class SimulatedCMOS(SimulatedEMCCD):
 
     Its ``CameraName`` is the model family it is made like (``ORCA-Quest`` for a
     qCMOS, ``ORCA-Flash4.0`` for an sCMOS, as :data:`emccdcal.simulate.cmos.PRESETS`),
-    marked simulated, so that its files record the kind as such a camera's do.
+    marked simulated, so that its files record the kind as such a camera's do. Its
+    parameters are :class:`SimulatedEMCCD`'s, with an
+    :class:`emccdcal.simulate.cmos.CMOSCamera` as ``camera``.
     """
 
     _NAMES = {"qcmos": "ORCA-Quest", "scmos": "ORCA-Flash4.0"}
 
-    def __init__(self, camera: CMOSCamera, shutter: SimulatedShutter, *, seed: int, run: int = 0):
-        CameraDevice.__init__(self)
-        self.camera, self.shutter, self.seed = camera, shutter, int(seed)
-        maps_seed, frame_seed = np.random.SeedSequence(self.seed).spawn(2)
-        self.maps = camera.maps(np.random.default_rng(maps_seed))
-        self._frame_seeds = np.random.SeedSequence(
-            frame_seed.entropy, spawn_key=(*frame_seed.spawn_key, run)
-        )
-        self._exposure_ms, self._setpoint, self._light = 10.0, 1.0, 0.0
-        self._roi = None
-        self.sequence_thread = None
+    def _draw_truth(self, rng) -> None:
+        """Per-pixel φ, offset, read noise and telegraph states (:attr:`maps`)."""
+        self.maps = self.camera.maps(rng)
 
     @staticmethod
     def true_em_gain(setpoint: float) -> float:
