@@ -263,7 +263,7 @@ class LogpmfTable:
             return
         # Distinct (pixel, count) pairs; each is tabulated at its pixel's nodes.
         # (one integer key per pair: np.unique along an axis sorts rows, far slower)
-        span = np.int64(self.counts.max()) + 1 if self.counts.size else np.int64(1)
+        span = np.int64(self.counts.max()) + 1
         key, inv = np.unique(
             self.pixel[q].astype(np.int64) * span + self.counts[q], return_inverse=True
         )
