@@ -132,7 +132,10 @@ def dask_cluster(tmp_path_factory):
             try:
                 process.wait(timeout=2)
             except subprocess.TimeoutExpired:
-                os.killpg(process.pid, signal.SIGKILL)
+                try:
+                    os.killpg(process.pid, signal.SIGKILL)
+                except ProcessLookupError:  # it and its workers ended meanwhile
+                    pass
                 process.wait()
 
 
