@@ -304,17 +304,30 @@ def _block_chi2(values, counts, n, K, rows, S0, sigma, start, length, s, min_exp
     )  # (P, Kmax)
     K_eff = xp.sum(keep_i, axis=1) + 1
 
-    # Observed: the (unmerged) bin of every histogram value, by one searchsorted with
-    # row offsets; values outside the window go to the open end bins.
+    # Observed, per unmerged bin: the frames at or below each edge, from the running
+    # count over each pixel's sorted values at the position of the edge among them (one
+    # searchsorted of the K edges, row offsets, not of every value among the edges);
+    # values outside the window count in the open end bins.
     y = xp.clip(values - start[:, None], min=0, max=L - 1)
     span = L + 1
-    flat_edge = xp.reshape(edge + span * rows_i, (-1,))
-    b = xp.searchsorted(flat_edge, xp.reshape(y + span * rows_i, (-1,)), side="left")
-    b = xp.reshape(b, tuple(values.shape)) - rows_i * (Kmax - 1)
-    b = xp.minimum(b, K_[:, None] - 1)
-    mb = xp.take_along_axis(merged_id, b, axis=1)
+    K_values = values.shape[1]
+    past_edge = xp.searchsorted(
+        xp.reshape(y + span * rows_i, (-1,)),
+        xp.reshape(edge + span * rows_i, (-1,)),
+        side="right",
+    )
+    frames_to = xp.concat(
+        [xp.zeros(1, dtype=counts.dtype, device=dev), xp.cumulative_sum(xp.reshape(counts, (-1,)))]
+    )
+    row_start = xp.take(frames_to, xp.reshape(rows_i * K_values, (-1,)))[:, None]
+    row_total = xp.take(frames_to, xp.reshape((rows_i + 1) * K_values, (-1,)))[:, None]
+    at_edge = xp.reshape(xp.take(frames_to, past_edge), (P, Kmax - 1)) - row_start
+    cumulative = xp.concat([0.0 * ones, at_edge, row_total - row_start], axis=1)
     observed = _xp.bincount(
-        xp, xp.reshape(mb + rows_i * Kmax, (-1,)), xp.reshape(counts, (-1,)), P * Kmax
+        xp,
+        xp.reshape(merged_id + rows_i * Kmax, (-1,)),
+        xp.reshape(cumulative[:, 1:] - cumulative[:, :-1], (-1,)),
+        P * Kmax,
     )
     expected = _xp.bincount(
         xp,
