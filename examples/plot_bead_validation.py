@@ -22,7 +22,8 @@ import numpy as np
 import emccdcal
 from emccdcal import result
 
-work = Path(tempfile.mkdtemp(prefix="emccdcal-gallery-"))
+scratch = tempfile.TemporaryDirectory(prefix="emccdcal-gallery-")  # removed at the end
+work = Path(scratch.name)
 sim = emccdcal.simulate_beads(
     work / "beads",
     beads=4,

@@ -18,7 +18,8 @@ import numpy as np
 
 import emccdcal
 
-work = Path(tempfile.mkdtemp(prefix="emccdcal-gallery-"))
+scratch = tempfile.TemporaryDirectory(prefix="emccdcal-gallery-")  # removed at the end
+work = Path(scratch.name)
 camera = dict(rows=6, cols=6, e_per_adu=3.859)
 adu = emccdcal.simulate_intensity_series(work / "adu", frames=1000, seed=1, **camera)
 gs = emccdcal.simulate_gain_series(

@@ -20,7 +20,8 @@ import yaml
 
 import emccdcal
 
-work = Path(tempfile.mkdtemp(prefix="emccdcal-gallery-"))
+scratch = tempfile.TemporaryDirectory(prefix="emccdcal-gallery-")  # removed at the end
+work = Path(scratch.name)
 camera = dict(rows=8, cols=8, e_per_adu=3.859)
 adu = emccdcal.simulate_intensity_series(work / "adu", frames=800, seed=21, **camera)
 gs = emccdcal.simulate_gain_series(

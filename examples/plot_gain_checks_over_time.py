@@ -19,7 +19,8 @@ import numpy as np
 
 import emccdcal
 
-work = Path(tempfile.mkdtemp(prefix="emccdcal-gallery-"))
+scratch = tempfile.TemporaryDirectory(prefix="emccdcal-gallery-")  # removed at the end
+work = Path(scratch.name)
 sim = emccdcal.simulate_gain_series(
     work / "gs", rows=8, cols=8, frames=800, setpoints=[1, 300], seed=71, progress=False
 )

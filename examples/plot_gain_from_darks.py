@@ -19,7 +19,8 @@ import numpy as np
 
 import emccdcal
 
-work = Path(tempfile.mkdtemp(prefix="emccdcal-gallery-"))
+scratch = tempfile.TemporaryDirectory(prefix="emccdcal-gallery-")  # removed at the end
+work = Path(scratch.name)
 sim = emccdcal.simulate_gain_series(
     work / "gs", rows=8, cols=8, frames=1000, setpoints=[1, 25, 300], e_per_adu=3.859, seed=11
 )

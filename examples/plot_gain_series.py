@@ -16,7 +16,8 @@ import matplotlib.pyplot as plt
 
 import emccdcal
 
-work = Path(tempfile.mkdtemp(prefix="emccdcal-gallery-"))
+scratch = tempfile.TemporaryDirectory(prefix="emccdcal-gallery-")  # removed at the end
+work = Path(scratch.name)
 sim = emccdcal.simulate_gain_series(
     work / "gs", rows=8, cols=8, frames=1500, setpoints=[1, 10, 50, 200], e_per_adu=4.0, seed=7
 )

@@ -20,7 +20,8 @@ import numpy as np
 
 import emccdcal
 
-work = Path(tempfile.mkdtemp(prefix="emccdcal-gallery-"))
+scratch = tempfile.TemporaryDirectory(prefix="emccdcal-gallery-")  # removed at the end
+work = Path(scratch.name)
 sim = emccdcal.simulate_gain_series(
     work / "gs", rows=6, cols=6, frames=5000, setpoints=[1, 2, 5, 100], seed=61, progress=False
 )

@@ -20,7 +20,8 @@ import tifffile
 
 import emccdcal
 
-work = Path(tempfile.mkdtemp(prefix="emccdcal-gallery-"))
+scratch = tempfile.TemporaryDirectory(prefix="emccdcal-gallery-")  # removed at the end
+work = Path(scratch.name)
 sim = emccdcal.simulate_intensity_series(
     work / "is", rows=8, cols=8, frames=600, e_per_adu=3.859, seed=31, progress=False
 )

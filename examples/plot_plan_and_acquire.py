@@ -20,7 +20,8 @@ import matplotlib.pyplot as plt
 
 import emccdcal
 
-work = Path(tempfile.mkdtemp(prefix="emccdcal-gallery-"))
+scratch = tempfile.TemporaryDirectory(prefix="emccdcal-gallery-")  # removed at the end
+work = Path(scratch.name)
 plan = emccdcal.plan(e_per_adu=3.9, read_noise=15.5, offset=590, target_se=2)
 for stack in plan.acquisitions:
     print(f"{stack.setpoint:>5g}x  {stack.frames:5d} frames of {stack.photoelectrons:.0f} e-")

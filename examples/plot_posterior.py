@@ -17,7 +17,8 @@ import matplotlib.pyplot as plt
 
 import emccdcal
 
-work = Path(tempfile.mkdtemp(prefix="emccdcal-gallery-"))
+scratch = tempfile.TemporaryDirectory(prefix="emccdcal-gallery-")  # removed at the end
+work = Path(scratch.name)
 sim = emccdcal.simulate_intensity_series(
     work / "is",
     levels=(2000, 8000, 32000),

@@ -24,7 +24,8 @@ import emccdcal
 from emccdcal.model import noise
 from emccdcal.simulate.cmos import CMOSCamera, simulate_cmos_series
 
-work = Path(tempfile.mkdtemp(prefix="emccdcal-gallery-"))
+scratch = tempfile.TemporaryDirectory(prefix="emccdcal-gallery-")  # removed at the end
+work = Path(scratch.name)
 camera = CMOSCamera(kind="qcmos", rows=8, cols=8, frames=1500, dark_frames=3000)
 sim = simulate_cmos_series(work / "qcmos", camera=camera, seed=60, progress=False)
 ds = emccdcal.calibrate(sim.manifest, progress=False)
