@@ -13,8 +13,12 @@ darks), calibrates it as a user would (``calibrate(manifest)``: the camera kind 
 - the goodness of fit: the fraction of pixel-levels at p < 0.01;
 - the scatter (SD) of φ/true − 1 of the likelihood and of the least squares.
 
+With ``--by-read-noise`` also φ's coverage by the pixel's true read noise (e⁻), where
+the photon-number comb starts to show.
+
 Run: ``.venv/bin/python benchmarks/cmos_study.py [--size 16] [--frames 1500]
-[--seeds 3]``. Written up in docs/cmos.md.
+[--seeds 3] [--first-seed 0] [--configs scmos:0.3,qcmos:0.27] [--by-read-noise]``.
+Written up in docs/cmos.md.
 """
 
 from __future__ import annotations
@@ -66,7 +70,13 @@ def main():
     ap.add_argument("--size", type=int, default=16)
     ap.add_argument("--frames", type=int, default=1500)
     ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--first-seed", type=int, default=0, help="seeds first … first + seeds − 1")
+    ap.add_argument("--configs", default=None, help="kind:read noise (e-), comma separated")
+    ap.add_argument("--by-read-noise", action="store_true")
     args = ap.parse_args()
+    configs = CONFIGS
+    if args.configs:
+        configs = [(c.split(":")[0], float(c.split(":")[1])) for c in args.configs.split(",")]
     warnings.simplefilter("ignore")
     print(
         f"{args.size}x{args.size} px, {args.frames} frames per level, "
@@ -77,9 +87,10 @@ def main():
         "var: mean z RMS z | GOF<0.01 | SD phi: ML    LSQ   ratio | s"
     )
     print(head)
-    for kind, rn in CONFIGS:
+    for kind, rn in configs:
         z_phi, z_off, z_var, gof, err_ml, err_ls, secs = [], [], [], [], [], [], 0.0
-        for seed in range(args.seeds):
+        noise_e = []
+        for seed in range(args.first_seed, args.first_seed + args.seeds):
             camera = CMOSCamera(
                 kind=kind, rows=args.size, cols=args.size, frames=args.frames,
                 dark_frames=2 * args.frames, read_noise_e=rn,
@@ -99,6 +110,7 @@ def main():
             phi = ds.e_per_adu.values.ravel()
             t = truth["e_per_adu"].ravel()
             z_phi.append((phi - t) / ds.e_per_adu_se.values.ravel())
+            noise_e.append(truth["read_noise"].ravel() * t)  # ADU × e-/ADU
             zo, zv = _maps_z(ds, truth["offset"], truth["read_noise"], 2 * args.frames)
             z_off.append(zo)
             z_var.append(zv)
@@ -115,6 +127,18 @@ def main():
             f"{sd_ml / sd_ls:5.2f} | {secs / args.seeds:5.1f}",
             flush=True,
         )
+        if args.by_read_noise:
+            noise_e = np.concatenate(noise_e)
+            edges = (0.0, 0.35, 0.5, 0.65, 0.8, 1.0, 1.5, np.inf)
+            for lo, hi in zip(edges[:-1], edges[1:]):
+                at = (noise_e >= lo) & (noise_e < hi)
+                if at.any():
+                    print(
+                        f"    read noise {lo:.2f}-{hi:.2f} e-: {at.sum():4d} px, RMS z "
+                        f"{np.sqrt(np.mean(z[at] ** 2)):5.2f}, cover95 "
+                        f"{np.mean(np.abs(z[at]) < 1.96):.3f}",
+                        flush=True,
+                    )
 
 
 if __name__ == "__main__":

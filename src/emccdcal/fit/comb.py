@@ -95,7 +95,8 @@ def profile_start(layout, blocks, x0, read_out_variance):
        around the moment start: its best :data:`CANDIDATES` local maxima.
     2. From each, the brighter levels added one at a time by Newton's method (each φ by
        then far better known than the next level's aliases where the comb is
-       resolved); the candidate of the highest likelihood of all levels is kept.
+       resolved); the candidate of the highest likelihood of all levels is fitted, and
+       from its alias k − φ (:func:`mirror`) too where that is near: the better kept.
     3. Where its observed information claims more than the moments' (by
        :data:`CHECK_BELOW`), every level on a grid around it at the ripples' spacing:
        a better ripple found there (by a nat) is fitted instead, and where rival ripples
@@ -199,7 +200,40 @@ def _basin_fit(layout, blocks, x0, signal, rel):
         better = v > value
         x = candidate if x is None else np.where(better[:, None], candidate, x)
         value = np.where(better, v, value)
+    # The fit from the best, and from its alias where the moments do not rule that out:
+    # only the envelope of every level tells the two apart, and a fit from either ends
+    # at the one it starts nearer.
+    first = engine.fit(layout, blocks, x, covariance=False)
+    x = first.x
+    alias = mirror(np.exp(x[:, 0]))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        near = np.abs(np.log(alias) - x[:, 0]) < MIRROR_WITHIN * rel
+    idx = np.flatnonzero(near)
+    if idx.size:
+        start = x[idx].copy()
+        start[:, 0] = np.log(alias[idx])
+        start[:, 1:] = np.log(signal[idx] * alias[idx, None])
+        other = engine.fit(
+            layout.subset(idx), [b.take(idx) for b in blocks], start, covariance=False
+        )
+        won = other.objective > first.objective[idx]
+        x[idx[won]] = other.x[won]
     return engine.fit(layout, blocks, x)
+
+
+#: A fit's alias (:func:`mirror`) is fitted too where it lies within this many of the
+#: moments' relative SEs of it: the dim level's grid spans ±5 of them about the moments'
+#: start, so a fit that ended at the alias of the truth lies within about ten of it.
+MIRROR_WITHIN = 12.0
+
+
+def mirror(phi):
+    """The nearest alias of a comb of φ e⁻/ADU (P,) sampled at the integers: the counts'
+    frequency φ and k − φ give the same cos 2πφk for every integer count k (k = the
+    nearest integer to 2φ); NaN where there is none (φ < ¼: k = 0)."""
+    k = np.rint(2.0 * phi)
+    with np.errstate(invalid="ignore"):
+        return np.where(k >= 1.0, k - phi, np.nan)
 
 
 #: Another ripple within this many nats of the best is a rival (Wilks's 99.9 % is 5.4):
@@ -207,6 +241,9 @@ def _basin_fit(layout, blocks, x0, signal, rel):
 RIVAL = 10.0
 #: Ripples within this many nats of the best shape the envelope's parabola.
 ENVELOPE = 30.0
+#: A likelihood whose grid a parabola misses nowhere by more than this (half the χ²₁ 95 %
+#: quantile) is one hill: no ripple on it can hold a 95 % interval within itself.
+ONE_HILL = 1.92
 
 
 def step_of(E_max, half):
@@ -215,10 +252,17 @@ def step_of(E_max, half):
 
 
 def _envelope_se(ln_phi, value, x_fit, fit_value, step):
-    """The SE of ln φ (P,) where rival ripples compete (:data:`RIVAL`): from the
-    curvature of a parabola through the ripples' tops (within :data:`ENVELOPE` nats),
-    the smooth likelihood the ripples sit on; NaN where the fit's ripple stands alone
-    (its observed information is then the error) or the tops make no parabola."""
+    """The SE of ln φ (P,) where the fit's ripple does not decide φ: from the curvature
+    of the smooth likelihood the ripples sit on. NaN where the fit's ripple stands alone
+    (its observed information is then the error) or the points make no parabola.
+
+    Where a parabola through every point within :data:`ENVELOPE` nats of the best misses
+    none by more than :data:`ONE_HILL` nats, the likelihood is one hill and that
+    parabola's curvature is the error's floor: there the ripples may be too shallow to
+    make tops between the grid's points, or too few, yet curved enough to be most of the
+    observed information (a comb that barely shows, 0.6–0.8 e⁻ of read noise on an
+    sCMOS). Elsewhere, where rival ripples compete (:data:`RIVAL`), a parabola through
+    the ripples' tops (within :data:`ENVELOPE` nats)."""
     P, G = value.shape
     left = np.concatenate([np.full((P, 1), -np.inf), value[:, :-1]], axis=1)
     right = np.concatenate([value[:, 1:], np.full((P, 1), -np.inf)], axis=1)
@@ -226,16 +270,23 @@ def _envelope_se(ln_phi, value, x_fit, fit_value, step):
     best = np.maximum(fit_value, np.where(top, value, -np.inf).max(axis=1))
     away = np.abs(ln_phi - x_fit[:, None]) > 1.5 * step[:, None]
     rival = np.any(top & away & (best[:, None] - value < RIVAL), axis=1)
+    near = np.isfinite(value) & (best[:, None] - value < ENVELOPE)
     out = np.full(P, np.nan)
-    for p in np.flatnonzero(rival):
-        use = top[p] & (best[p] - value[p] < ENVELOPE)
-        t, v = ln_phi[p, use] - x_fit[p], value[p, use]
-        t, v = np.r_[t, 0.0], np.r_[v, fit_value[p]]
-        if t.size < 4:
-            continue
-        curvature = np.polyfit(t, v, 2)[0]
-        if curvature < 0:
-            out[p] = 1.0 / np.sqrt(-2.0 * curvature)
+    for points, needs_fit in ((top & near, rival), (near, None)):  # the hill overrides
+        # each row's points and the fit's own (at t = 0)
+        t = np.concatenate([np.where(points, ln_phi - x_fit[:, None], 0.0), np.zeros((P, 1))], 1)
+        v = np.concatenate([np.where(points, value, 0.0), fit_value[:, None]], axis=1)
+        use = np.concatenate([points, np.ones((P, 1), dtype=bool)], axis=1)
+        a, b, c = _parabolas(t, v, use)
+        ok = (use.sum(axis=1) >= 4) & (a < 0)
+        if needs_fit is None:  # one hill: no point farther than ONE_HILL from it
+            fitted = a[:, None] * t**2 + b[:, None] * t + c[:, None]
+            with np.errstate(invalid="ignore"):
+                miss = np.max(np.where(use, np.abs(fitted - v), 0.0), axis=1)
+                ok &= miss <= ONE_HILL
+        else:
+            ok &= needs_fit
+        out[ok] = 1.0 / np.sqrt(-2.0 * a[ok])
     return out
 
 
@@ -257,7 +308,7 @@ def _envelope_fit(layout, blocks, x, signal, half, rounds=4):
         )  # fmt: skip
         near = np.isfinite(value) & (value > value.max(axis=1, keepdims=True) - ENVELOPE)
         t = np.where(near, ln_phi - x[todo, :1], 0.0)
-        a, b = _parabolas(t, np.where(near, value, 0.0), near)
+        a, b, _ = _parabolas(t, np.where(near, value, 0.0), near)
         top = (near.sum(axis=1) >= 4) & (a < 0)
         best = t[np.arange(todo.size), np.argmax(np.where(near, value, -np.inf), axis=1)]
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -275,7 +326,7 @@ def _envelope_fit(layout, blocks, x, signal, half, rounds=4):
 
 def _parabolas(t, v, use):
     """Least-squares parabolas ``v ≈ a·t² + b·t + c`` through each row's points ``use``
-    (P, G): (a, b), each (P,); NaN where fewer than three points."""
+    (P, G): (a, b, c), each (P,); NaN where fewer than three distinct points."""
     w = use.astype(float)
     s = [np.sum(w * t**k, axis=1) for k in range(5)]
     r = [np.sum(w * t**k * v, axis=1) for k in range(3)]
@@ -283,11 +334,11 @@ def _parabolas(t, v, use):
         [np.stack([s[4], s[3], s[2]], -1), np.stack([s[3], s[2], s[1]], -1),
          np.stack([s[2], s[1], s[0]], -1)], axis=-2,
     )  # fmt: skip
-    ok = use.sum(axis=1) >= 3
+    ok = (use.sum(axis=1) >= 3) & (np.linalg.det(m) != 0)  # three distinct points
     coef = np.full((t.shape[0], 3), np.nan)
     if ok.any():
         coef[ok] = np.linalg.solve(m[ok], np.stack([r[2], r[1], r[0]], -1)[ok][..., None])[..., 0]
-    return coef[:, 0], coef[:, 1]
+    return coef[:, 0], coef[:, 1], coef[:, 2]
 
 
 def _path_grid(layout, blocks, x, signal, half, step):
