@@ -263,8 +263,8 @@ def _block_chi2(values, counts, n, K, rows, S0, sigma, start, length, s, min_exp
     rows_ = np.arange(P)[:, None]
     exists = np.arange(Kmax)[None, :] < K[:, None]
     after_last = np.arange(Kmax)[None, :] > (K - 1)[:, None]
-    real_edge, target, exists, after_last, rows_i, n_, K_, counts, values, start = _xp.on(
-        xp, dev, real_edge, target, exists, after_last, rows_, n, K, counts, values, start
+    real_edge, target, exists, after_last, rows_i, n_, counts, values, start = _xp.on(
+        xp, dev, real_edge, target, exists, after_last, rows_, n, counts, values, start
     )
     # The chunk of each edge: the first whose end reaches the target, by one
     # searchsorted over all pixels (row offsets: the CDF lies in [0, 1], rows 2 apart).
