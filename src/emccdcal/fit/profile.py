@@ -113,10 +113,13 @@ def profile_bounds(
     maps' errors (and there is no prior), the target grows by the ratio of that variance
     of ``x_j`` to the inverse observed information's, which widens a Gaussian profile to
     exactly ``± z·SE`` and keeps a skewed one's shape. Each side is
-    searched on the signed root deviance r, which is close to linear in x_j: from the
-    Wald bound, secant steps extend outwards until r passes its target, then regula falsi
-    inside the bracket (bisection where r is lopsided over it). Every step refits the
-    other parameters, warm-started from the farthest point found inside.
+    searched on the signed root deviance r, which is close to linear in x_j, by Newton's
+    steps from the Wald bound: r's slope at each refit comes free of another fit, since
+    the profile's derivative is ∂ℓ/∂x_j where the other parameters are at their optimum
+    (the envelope theorem). A step stays within a bracket every refit narrows (before r
+    passes its target: at most four times as far out as the farthest point inside) and
+    must halve r's miss, or the bracket's middle is taken. Every step refits the other
+    parameters, warm-started from the farthest point found inside.
 
     Parameters
     ----------
@@ -166,63 +169,62 @@ def profile_bounds(
         bound[ok & (room <= 0)] = edge
         active = np.flatnonzero(ok & (room > 0))
         z = target[active]
-        # |t| = distance from the optimum; (t_in, r_in): farthest point still inside,
-        # (t_out, r_out): nearest point beyond the target (NaN until found).
-        # The first step: z·SE, at most first_step (also where the SE is NaN).
+        # |t| = distance from the optimum; the bracket (t_in: farthest point with r below
+        # its target; t_out: nearest beyond it, NaN until found). The first step: z·SE, at
+        # most first_step (also where the SE is NaN).
         t = np.minimum(np.fmin(z * np.maximum(se[active], 1e-6), first_step), room[active])
-        t_in, r_in = np.zeros(active.size), np.zeros(active.size)  # farthest inside
-        t_pre, r_pre = np.zeros(active.size), np.zeros(active.size)  # the one before
-        t_out, r_out = np.full(active.size, np.nan), np.full(active.size, np.nan)
-        last_inside = np.full(active.size, -1)  # which end the last step replaced
+        t_in, t_out = np.zeros(active.size), np.full(active.size, np.nan)
+        miss_before = np.full(active.size, np.inf)
         start = np.delete(x_hat[active], j, axis=1)
         for _ in range(max_steps):
             if active.size == 0:
                 break
             value = x_hat[active, j] + side * t
-            pinned = _Pinned(layout.subset(active), j, value)
             fitted = fit(
-                pinned, [b.take(active) for b in blocks], start, max_iter=50, covariance=False
-            )
+                _Pinned(layout.subset(active), j, value), [b.take(active) for b in blocks],
+                start, max_iter=50, covariance=False,
+            )  # fmt: skip
             r = np.sqrt(np.maximum(2.0 * (result.objective[active] - fitted.objective), 0.0))
-            done = (np.abs(r - z) < tol) | ((t >= room[active]) & (r < z))
+            miss = np.abs(r - z)
+            done = (miss < tol) | ((t >= room[active]) & (r < z))
             bound[active[done]] = value[done]
             inside = r < z
-            # Illinois: an end kept twice in a row has its offset from the target halved,
-            # which keeps regula falsi from crawling on a curved r.
-            r_in = np.where(~inside & (last_inside == 0), z - 0.5 * (z - r_in), r_in)
-            r_out = np.where(inside & (last_inside == 1), z + 0.5 * (r_out - z), r_out)
-            last_inside = inside.astype(int)
-            t_pre, r_pre = np.where(inside, t_in, t_pre), np.where(inside, r_in, r_pre)
-            t_in, r_in = np.where(inside, t, t_in), np.where(inside, r, r_in)
-            t_out, r_out = np.where(inside, t_out, t), np.where(inside, r_out, r)
+            t_in, t_out = np.where(inside, t, t_in), np.where(inside, t_out, t)
             narrow = ~done & (t_out - t_in < xtol)  # False while t_out is NaN
             bound[active[narrow]] = x_hat[active[narrow], j] + side * 0.5 * (
                 t_in[narrow] + t_out[narrow]
             )
             done |= narrow
-            with np.errstate(divide="ignore", invalid="ignore"):
-                # before a bracket: secant through the last two inside points, extending
-                # by a factor 1.2 to 4; inside one: regula falsi, kept off its ends.
-                ext = t_in + (z - r_in) * (t_in - t_pre) / (r_in - r_pre)
-                ext = np.minimum(
-                    np.clip(np.nan_to_num(ext, nan=2 * t_in), 1.2 * t_in, 4 * t_in), room[active]
-                )
-                mid = t_in + (z - r_in) * (t_out - t_in) / (r_out - r_in)
-                mid = np.clip(
-                    np.nan_to_num(mid, nan=0.5 * (t_in + t_out)),
-                    t_in + 0.05 * (t_out - t_in),
-                    t_out - 0.05 * (t_out - t_in),
-                )
-                # ... and bisection where the deviance is so lopsided over the bracket (a
-                # wall, or a refit that failed far out) that regula falsi would creep.
-                mid = np.where(r_out - z > 10.0 * (z - r_in), 0.5 * (t_in + t_out), mid)
-            t_new = np.where(np.isfinite(t_out), mid, ext)
+            keep = ~done
+            active, z, r, t, t_in, t_out = (
+                active[keep],
+                z[keep],
+                r[keep],
+                t[keep],
+                t_in[keep],
+                t_out[keep],
+            )
             # Warm start from the farthest point inside: one beyond the target can be far
             # off, with nuisance parameters from which the next fit does not recover.
-            start = np.where(inside[:, None], fitted.x, start)
-            keep = ~done
-            active, t, start, z = active[keep], t_new[keep], start[keep], z[keep]
-            t_in, r_in, t_pre, r_pre = t_in[keep], r_in[keep], t_pre[keep], r_pre[keep]
-            t_out, r_out, last_inside = t_out[keep], r_out[keep], last_inside[keep]
+            start = np.where(inside[:, None], fitted.x, start)[keep]
+            miss, miss_before = miss[keep], miss_before[keep]
+            if active.size == 0:
+                break
+            # dr/dt = −(dℓ/dt)/r, and dℓ/dt = ±∂ℓ/∂x_j at the pinned optimum
+            at = np.insert(fitted.x[keep], j, value[keep], axis=1)
+            grad = _evaluate(
+                layout.subset(active), [b.take(active) for b in blocks], at, 1, information=False
+            )[3][:, j]
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                step = t + (z - r) * r / (-side * grad)
+            bracketed = np.isfinite(t_out)
+            reach = np.where(bracketed, t_out, np.minimum(4.0 * t_in, room[active]))
+            newton = np.isfinite(step) & (step > t_in) & (miss < 0.5 * miss_before)
+            # Newton's step where it stays inside and halves the miss; else the bracket's
+            # middle, or before a bracket the reach (also where Newton's passes it)
+            t = np.where(
+                newton & (step < reach), step, np.where(bracketed, 0.5 * (t_in + t_out), reach)
+            )
+            miss_before = miss
         out.append(bound)
     return out[0], out[1]
