@@ -580,6 +580,43 @@ def test_the_alias_of_a_comb_is_its_nearest_mirror():
         )
 
 
+def test_a_hill_with_ripples_on_it_is_estimated_at_its_top_and_its_width():
+    """A profile likelihood that is one hill (curvature 1/s²) with ripples on it a
+    fraction of an SE apart, each of its own depth up to 0.8 nats (the data's noise):
+    which ripple is highest wanders by about an SE from one camera to the next, the
+    hill's top does not. The envelope's SE is s and its estimate the hill's top, where
+    the ripples are fine on the hill."""
+    from emccdcal.fit import comb
+
+    s, top, spacing = 0.018, 0.004, 0.0025  # ln φ: SE, true top, the ripples' spacing
+    t = np.linspace(-0.072, 0.072, 231)
+    ripple = np.floor(t / spacing + 0.5).astype(int)  # each ripple between two troughs
+    rng = np.random.default_rng(7)
+    depth = rng.uniform(0.0, 0.8, (8, ripple.max() - ripple.min() + 1))[:, ripple - ripple.min()]
+    value = -0.5 * ((t - top) / s) ** 2 + depth * np.cos(2 * np.pi * t / spacing)
+    best = np.argmax(value, axis=1)  # the fit ends on the highest ripple
+    se, vertex = comb._envelope_se(
+        np.broadcast_to(t, value.shape), value, t[best], value[np.arange(8), best],
+        np.full(8, t[1] - t[0]),
+    )  # fmt: skip
+    assert np.ptp(t[best]) > 0.5 * s  # the highest ripple wanders
+    np.testing.assert_allclose(se, s, rtol=0.05)
+    np.testing.assert_allclose(vertex, top, atol=0.1 * s)
+    # a grid as coarse as the ripples' spacing (a resolved comb's aliases, a few per cent
+    # apart): each ripple is a basin of its own, and the fit stays on its own
+    _, vertex = comb._envelope_se(
+        np.broadcast_to(t, value.shape), value, t[best], value[np.arange(8), best],
+        np.full(8, 0.025),
+    )  # fmt: skip
+    assert np.isnan(vertex).all()
+    # ripples deeper than one hill holds (rivals, each a basin of its own): no top
+    deep = -0.5 * ((t - top) / s) ** 2 + 4.0 * np.cos(2 * np.pi * t / 0.02)
+    _, vertex = comb._envelope_se(
+        t[None], deep[None], t[[np.argmax(deep)]], deep.max()[None], np.array([t[1] - t[0]])
+    )
+    assert np.isnan(vertex).all()
+
+
 @pytest.mark.slow
 def test_a_comb_too_faint_for_the_grids_tops_leaves_no_pixel_overconfident(tmp_path):
     """An sCMOS of 0.6 e⁻ median read noise: at its pixels of 0.65–0.8 e⁻ the bright

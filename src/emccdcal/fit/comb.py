@@ -25,7 +25,9 @@ through its mean (``E = φ·(⟨S⟩ − S0)``: along it the likelihood is the p
 likelihood, checked against refits to 0.01 nats). Where another ripple on that grid rivals
 the fit's (within :data:`RIVAL` nats), the fit's own ripple does not decide φ and its
 curvature is not the error: the SE is that of the parabola through the ripples' tops,
-the smooth likelihood they sit on (:func:`ripple_covariance`). Where a level is so
+the smooth likelihood they sit on (:func:`ripple_covariance`); where that likelihood is
+one hill the ripples do not decide the estimate either, and the fit starts at the hill's
+top. Where a level is so
 bright that no grid resolves its ripples (1/E apart: thousands of e⁻), they are a tiny
 fraction of a nat deep yet their curvature is huge, and a fit ends on whichever it
 meets: there the envelope itself is fitted (:func:`_envelope_fit`), its vertex the
@@ -100,7 +102,8 @@ def profile_start(layout, blocks, x0, read_out_variance):
     3. Where its observed information claims more than the moments' (by
        :data:`CHECK_BELOW`), every level on a grid around it at the ripples' spacing:
        a better ripple found there (by a nat) is fitted instead, and where rival ripples
-       compete the envelope's SE is the SE's floor (:func:`_envelope_se`); where no grid
+       compete the envelope's SE is the SE's floor (:func:`_envelope_se`), the start
+       moved to the envelope's top where it is one hill; where no grid
        of :data:`MAX_POINTS` resolves the ripples, the envelope's fit
        (:func:`_envelope_fit`) gives the start and the floor.
 
@@ -168,9 +171,13 @@ def profile_start(layout, blocks, x0, read_out_variance):
             refit = engine.fit(sub.subset(idx), [b.take(idx) for b in part], start)
             x[idx] = refit.x
             objective[idx] = refit.objective
-        out.phi_profile_se[live[check]] = _envelope_se(
+        out.phi_profile_se[live[check]], vertex = _envelope_se(
             ln_phi, v, x[check, 0], objective[check], step_of(E_max, 4.0 * rel[check])
         )
+        hill = np.flatnonzero(np.isfinite(vertex))  # one hill: the fit starts at its top
+        idx = check[hill]
+        x[idx, 0] = vertex[hill]
+        x[idx, 1:] = np.log(signal[idx] * np.exp(x[idx, :1]))
     start = x0.copy()
     start[live] = x
     return out, start
@@ -244,6 +251,11 @@ ENVELOPE = 30.0
 #: A likelihood whose grid a parabola misses nowhere by more than this (half the χ²₁ 95 %
 #: quantile) is one hill: no ripple on it can hold a 95 % interval within itself.
 ONE_HILL = 1.92
+#: The hill's top is the estimate where its ripples lie at most this many of its SEs
+#: apart: the nearest ripple's top (where a fit from it ends) then lies within a quarter
+#: of an SE of it. Farther apart (a resolved comb, its aliases a few per cent apart on a
+#: grid that sees only their envelope) each ripple is a basin of its own.
+HILL_RIPPLES = 0.5
 
 
 def step_of(E_max, half):
@@ -252,17 +264,23 @@ def step_of(E_max, half):
 
 
 def _envelope_se(ln_phi, value, x_fit, fit_value, step):
-    """The SE of ln φ (P,) where the fit's ripple does not decide φ: from the curvature
-    of the smooth likelihood the ripples sit on. NaN where the fit's ripple stands alone
-    (its observed information is then the error) or the points make no parabola.
+    """The SE of ln φ (P,) where the fit's ripple does not decide φ, from the curvature
+    of the smooth likelihood the ripples sit on, and where that likelihood is one hill,
+    its top: ``(se, vertex)``, each (P,). The SE is NaN where the fit's ripple stands
+    alone (its observed information is then the error) or the points make no parabola;
+    the vertex (ln φ) NaN where the likelihood is not one hill.
 
     Where a parabola through every point within :data:`ENVELOPE` nats of the best misses
     none by more than :data:`ONE_HILL` nats, the likelihood is one hill and that
     parabola's curvature is the error's floor: there the ripples may be too shallow to
     make tops between the grid's points, or too few, yet curved enough to be most of the
-    observed information (a comb that barely shows, 0.6–0.8 e⁻ of read noise on an
-    sCMOS). Elsewhere, where rival ripples compete (:data:`RIVAL`), a parabola through
-    the ripples' tops (within :data:`ENVELOPE` nats)."""
+    observed information (a comb that barely shows, 0.5–0.8 e⁻ of read noise on an
+    sCMOS). Its vertex is the estimate where the ripples are fine on it
+    (:data:`HILL_RIPPLES`): which ripple on the hill is highest is then the data's
+    noise, not φ's information, and a fit kept on the highest scatters more than the
+    hill's top.
+    Elsewhere, where rival ripples compete (:data:`RIVAL`), a parabola through the
+    ripples' tops (within :data:`ENVELOPE` nats) gives the SE."""
     P, G = value.shape
     left = np.concatenate([np.full((P, 1), -np.inf), value[:, :-1]], axis=1)
     right = np.concatenate([value[:, 1:], np.full((P, 1), -np.inf)], axis=1)
@@ -271,7 +289,7 @@ def _envelope_se(ln_phi, value, x_fit, fit_value, step):
     away = np.abs(ln_phi - x_fit[:, None]) > 1.5 * step[:, None]
     rival = np.any(top & away & (best[:, None] - value < RIVAL), axis=1)
     near = np.isfinite(value) & (best[:, None] - value < ENVELOPE)
-    out = np.full(P, np.nan)
+    out, vertex = np.full(P, np.nan), np.full(P, np.nan)
     for points, needs_fit in ((top & near, rival), (near, None)):  # the hill overrides
         # each row's points and the fit's own (at t = 0)
         t = np.concatenate([np.where(points, ln_phi - x_fit[:, None], 0.0), np.zeros((P, 1))], 1)
@@ -284,10 +302,17 @@ def _envelope_se(ln_phi, value, x_fit, fit_value, step):
             with np.errstate(invalid="ignore"):
                 miss = np.max(np.where(use, np.abs(fitted - v), 0.0), axis=1)
                 ok &= miss <= ONE_HILL
+            span = np.max(np.where(use, np.abs(t), 0.0), axis=1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                top_at = np.clip(-b / (2.0 * a), -span, span)
+                # ripples at most PER_RIPPLE steps apart (the grid's), fine on the hill
+                fine = PER_RIPPLE * step <= HILL_RIPPLES / np.sqrt(-2.0 * a)
+            on_hill = ok & fine
+            vertex[on_hill] = x_fit[on_hill] + top_at[on_hill]
         else:
             ok &= needs_fit
         out[ok] = 1.0 / np.sqrt(-2.0 * a[ok])
-    return out
+    return out, vertex
 
 
 def _envelope_fit(layout, blocks, x, signal, half, rounds=4):
