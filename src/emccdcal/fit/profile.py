@@ -196,18 +196,12 @@ def profile_bounds(
             )
             done |= narrow
             keep = ~done
-            active, z, r, t, t_in, t_out = (
-                active[keep],
-                z[keep],
-                r[keep],
-                t[keep],
-                t_in[keep],
-                t_out[keep],
-            )
             # Warm start from the farthest point inside: one beyond the target can be far
             # off, with nuisance parameters from which the next fit does not recover.
-            start = np.where(inside[:, None], fitted.x, start)[keep]
-            miss, miss_before = miss[keep], miss_before[keep]
+            start = np.where(inside[:, None], fitted.x, start)
+            active, z, r, t, t_in, t_out, miss, miss_before, start = (
+                a[keep] for a in (active, z, r, t, t_in, t_out, miss, miss_before, start)
+            )
             if active.size == 0:
                 break
             # dr/dt = −(dℓ/dt)/r, and dℓ/dt = ±∂ℓ/∂x_j at the pinned optimum
