@@ -165,9 +165,7 @@ def profile_start(layout, blocks, x0, read_out_variance):
         jump = np.flatnonzero(v[np.arange(check.size), top] > objective[check] + 1.0)
         if jump.size:  # a better ripple than the fit's: fit from there
             idx = check[jump]
-            start = x[idx].copy()
-            start[:, 0] = ln_phi[jump, top[jump]]
-            start[:, 1:] = np.log(signal[idx] * np.exp(start[:, :1]))
+            start = _on_path(x[idx], ln_phi[jump, top[jump]], signal[idx])
             refit = engine.fit(sub.subset(idx), [b.take(idx) for b in part], start)
             x[idx] = refit.x
             objective[idx] = refit.objective
@@ -176,8 +174,7 @@ def profile_start(layout, blocks, x0, read_out_variance):
         )
         hill = np.flatnonzero(np.isfinite(vertex))  # one hill: the fit starts at its top
         idx = check[hill]
-        x[idx, 0] = vertex[hill]
-        x[idx, 1:] = np.log(signal[idx] * np.exp(x[idx, :1]))
+        x[idx] = _on_path(x[idx], vertex[hill], signal[idx])
     start = x0.copy()
     start[live] = x
     return out, start
@@ -217,9 +214,7 @@ def _basin_fit(layout, blocks, x0, signal, rel):
         near = np.abs(np.log(alias) - x[:, 0]) < MIRROR_WITHIN * rel
     idx = np.flatnonzero(near)
     if idx.size:
-        start = x[idx].copy()
-        start[:, 0] = np.log(alias[idx])
-        start[:, 1:] = np.log(signal[idx] * alias[idx, None])
+        start = _on_path(x[idx], np.log(alias[idx]), signal[idx])
         other = engine.fit(
             layout.subset(idx), [b.take(idx) for b in blocks], start, covariance=False
         )
@@ -278,9 +273,8 @@ def _envelope_se(ln_phi, value, x_fit, fit_value, step):
     sCMOS). Its vertex is the estimate where the ripples are fine on it
     (:data:`HILL_RIPPLES`): which ripple on the hill is highest is then the data's
     noise, not φ's information, and a fit kept on the highest scatters more than the
-    hill's top.
-    Elsewhere, where rival ripples compete (:data:`RIVAL`), a parabola through the
-    ripples' tops (within :data:`ENVELOPE` nats) gives the SE."""
+    hill's top. Elsewhere, where rival ripples compete (:data:`RIVAL`), a parabola
+    through the ripples' tops (within :data:`ENVELOPE` nats) gives the SE."""
     P, G = value.shape
     left = np.concatenate([np.full((P, 1), -np.inf), value[:, :-1]], axis=1)
     right = np.concatenate([value[:, 1:], np.full((P, 1), -np.inf)], axis=1)
@@ -340,9 +334,8 @@ def _envelope_fit(layout, blocks, x, signal, half, rounds=4):
             vertex = np.where(top, -b / (2.0 * a), best)  # no top within reach: the best point
             se[todo[top]] = 1.0 / np.sqrt(-2.0 * a[top])
         vertex = np.clip(vertex, -half[todo], half[todo])
-        x[todo, 0] += vertex
+        x[todo] = _on_path(x[todo], x[todo, 0] + vertex, signal[todo])
         moved = (np.abs(vertex) > 0.25 * half[todo]) | ~top
-        x[todo, 1:] = np.log(signal[todo] * np.exp(x[todo, :1]))
         todo = todo[moved]
         if todo.size == 0:
             break
@@ -364,6 +357,15 @@ def _parabolas(t, v, use):
     if ok.any():
         coef[ok] = np.linalg.solve(m[ok], np.stack([r[2], r[1], r[0]], -1)[ok][..., None])[..., 0]
     return coef[:, 0], coef[:, 1], coef[:, 2]
+
+
+def _on_path(x, ln_phi, signal):
+    """``x`` (P, F) with ln φ at ``ln_phi`` (P,) and every level's E where the path takes
+    it, ``E = φ·signal`` (``signal`` (P, A): the levels' mean counts above the offset)."""
+    out = x.copy()
+    out[:, 0] = ln_phi
+    out[:, 1:] = np.log(signal * np.exp(ln_phi)[:, None])
+    return out
 
 
 def _path_grid(layout, blocks, x, signal, half, step):
@@ -423,10 +425,7 @@ def _dim_level_candidates(layout, blocks, x0, signal, rel, level):
     out = []
     for c in range(ranked.shape[1]):
         pick = np.where(np.isfinite(peaks[np.arange(P), ranked[:, c]]), ranked[:, c], ranked[:, 0])
-        start = x0.copy()
-        start[:, 0] = ln_phi[np.arange(P), pick]
-        start[:, 1:] = np.log(signal * np.exp(start[:, :1]))
-        out.append(start)
+        out.append(_on_path(x0, ln_phi[np.arange(P), pick], signal))
     return out
 
 
