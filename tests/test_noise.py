@@ -271,6 +271,28 @@ def test_the_rounded_poisson_normal_by_direct_sum(sigma):
     assert var == pytest.approx(sigma**2 + 1 / 12 + E / phi**2)
 
 
+def test_the_transforms_expm1_keeps_the_digits_exp_minus_one_loses():
+    """e^z − 1 of a transform's arguments z = (t + iω)·c: ``expm1`` where |z| is small,
+    in any order of the columns, ``exp`` elsewhere; as exact as NumPy's complex
+    ``expm1`` everywhere (where ``exp(z) − 1`` is off in the 9th digit), through
+    array-api-strict as through NumPy."""
+    from emccdcal import _xp
+
+    omega = np.linspace(-3.0 * np.pi, np.pi, 401)  # an alias's band and the base band
+    c = np.array([[1e-6], [0.05], [0.5], [2.2]])
+    z = (np.array([[0.0], [1e-3], [0.0], [-0.01]]) + 1j * omega[None, :]) * c
+    shuffled = z[:, np.random.default_rng(3).permutation(omega.size)]
+    for values in (z, shuffled, z.real, z[:, 300:]):
+        want = np.expm1(values)
+        err = np.abs(_xp.expm1(np, values) - want)
+        assert np.all(err <= 4 * np.finfo(float).eps * np.abs(want) + 1e-300)
+    naive = np.abs(np.exp(z) - 1 - np.expm1(z)) / np.maximum(np.abs(np.expm1(z)), 1e-300)
+    assert naive.max() > 1e-10  # what the test would catch
+    strict = pytest.importorskip("array_api_strict")
+    got = _xp.to_numpy(_xp.expm1(strict, strict.asarray(shuffled)))
+    np.testing.assert_allclose(got, np.expm1(shuffled), rtol=4 * np.finfo(float).eps, atol=0)
+
+
 # ---------------------------------------------------------------------- properties
 @settings(max_examples=40, deadline=None)
 @given(

@@ -206,6 +206,30 @@ def like(ref, *arrays):
     return on(namespace(ref), device(ref), *arrays)
 
 
+#: Below this modulus e^z − 1 is taken by ``expm1`` (:func:`expm1`); above it, e^z − 1
+#: loses at most a few units in the last place (|e^z − 1| ≥ 0.49 there on the imaginary
+#: axis, where the transforms' arguments lie).
+EXPM1_BELOW = 0.5
+
+
+def expm1(xp, z, exp_z=None):
+    """e^z − 1 of a complex array ``z`` (..., M) without cancellation where |z| is small.
+
+    A complex ``expm1`` costs about 2.4 times an ``exp`` (NumPy 2.4: 6.7 against 2.8 ms
+    for 128 × 1000), and only near z = 0 does ``exp(z) − 1`` lose digits. A transform's
+    arguments z = s·c (s = t + iω, a column per frequency ω, rising along the last axis)
+    are small only in a run of columns about ω = 0: there, and in every column between
+    the first and last that holds one (so any z is right), ``expm1``; elsewhere ``exp``
+    (``exp_z`` where the caller has it)."""
+    e = (xp.exp(z) if exp_z is None else exp_z) - 1.0
+    small = to_numpy(xp.any(abs(z) < EXPM1_BELOW, axis=tuple(range(z.ndim - 1))))
+    cols = np.flatnonzero(small)
+    if cols.size == 0:
+        return e
+    a, b = int(cols[0]), int(cols[-1]) + 1
+    return xp.concat([e[..., :a], xp.expm1(z[..., a:b]), e[..., b:]], axis=-1)
+
+
 def to_numpy(array) -> np.ndarray:
     """A NumPy array of ``array`` (on the host), whatever its namespace."""
     if isinstance(array, np.ndarray) or np.isscalar(array):

@@ -51,11 +51,11 @@ class GammaRows:
         # a camera without a register has Poisson–normal rows alone)
         every_pn, no_pn = bool(xp.all(pn)), not bool(xp.any(pn))
         if every_pn:
-            v = xp.expm1(sa)
+            v = _xp.expm1(xp, sa)
         elif no_pn:
             v = sa / (1.0 - sa)
         else:
-            v = xp.where(pn_, xp.expm1(sa), sa / (1.0 - sa))
+            v = xp.where(pn_, _xp.expm1(xp, sa), sa / (1.0 - sa))
         if order == 0:
             return Ec * v, {}, {}
         m = 1.0 + v  # e^{sa}, or 1/(1 − sa)

@@ -651,7 +651,7 @@ def _register_transform(xp, u, g, stages, order, cic, by_u):
     p, a1, two_p = full(p_row), full(1.0 + p_row), full(2.0 * p_row)
     u = xp.astype(u, dtype)
     e_u = xp.exp(u)
-    v = xp.where(abs(u) < 1e-3, xp.expm1(u), e_u - 1.0)  # e^u − 1 without cancellation
+    v = _xp.expm1(xp, u, e_u)  # e^u − 1 without cancellation
     out_names = _derivative_names(order, by_u)
     d = {"v": v}
     if order >= 1:
