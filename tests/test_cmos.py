@@ -256,6 +256,45 @@ def test_andor_files_record_their_kind_and_no_em_gain_without_a_register(
         emccdcal.read_manifest(manifest.parent / "wrong.toml")
 
 
+@pytest.mark.parametrize(
+    "model, kind, gain",
+    [
+        ("ProEM-HS: 512BX3", "emccd", 300.0),
+        ("KURO: 2048B", "scmos", None),
+        ("PIXIS: 1024B", "ccd", None),
+        ("PI-MAX4: 1024i", "iccd", None),
+    ],
+)
+def test_spe_files_record_their_kind_and_no_em_gain_without_a_register(
+    tmp_path, model, kind, gain
+):
+    """LightField's SPE files name the camera's model: a ProEM's EM gain is its set-point;
+    a KURO's (sCMOS) or a PIXIS's (CCD) gain field is none, and a folder of their files
+    named as Huang et al. name them scans as a camera without an EM register, with no
+    set-point asked; a PI-MAX's (intensified) is refused in one line."""
+    from camera_files import write_spe
+
+    from emccdcal.data.stacks import stack_settings
+
+    rng = np.random.default_rng(2)
+    folder = tmp_path / "session"
+    folder.mkdir()
+    for name, level in (("dark", 0.0), ("int1", 50.0), ("int2", 200.0)):
+        frames = np.rint(100 + level + 2 * rng.standard_normal((4, 8, 8))).astype(np.uint16)
+        write_spe(folder / f"{name}.spe", frames, em_gain=300, model=model)
+    s = stack_settings(folder / "int1.spe")
+    assert (s.camera_kind, s.em_gain_setpoint, s.model) == (kind, gain, model)
+    if kind == "emccd":
+        return
+    if kind == "iccd":
+        with pytest.raises(emccdcal.errors.InputError, match=r"dark\.spe' is of an intensified"):
+            emccdcal.scan(folder)
+        return
+    manifest = emccdcal.scan(folder)
+    assert f'camera_kind = "{kind}"   # the files\' model says so' in manifest.read_text()
+    assert emccdcal.read_manifest(manifest).camera_kind == kind
+
+
 @pytest.mark.parametrize("sigma", [0.45, 0.9, 3.0])
 def test_the_plan_asks_for_the_darks_a_read_noise_variance_needs(sigma):
     """The dark frames the planner asks for a 3 % SE of σ² give it: the spread over 600

@@ -17,7 +17,10 @@ __all__ = ["CameraSettings", "kind_of_model", "recorded_number"]
 #: without spaces, hyphens and dots) and the kind. Andor's model numbers: iXon heads
 #: (``DU897`` …) EMCCDs, iDus heads (``DU420`` …) CCDs, iStar (``DH…``) intensified;
 #: Hamamatsu's from its data sheets: C15550 the ORCA-Quest (qCMOS), C11440/C13440 the
-#: ORCA-Flash4.0, C14440/C15440 the ORCA-Fusion (sCMOS), C9100 the ImagEM (EMCCD).
+#: ORCA-Flash4.0, C14440/C15440 the ORCA-Fusion (sCMOS), C9100 the ImagEM (EMCCD);
+#: Teledyne Princeton Instruments' (the names LightField writes in an SPE file's
+#: footer, e.g. ``ProEM-HS: 512BX3``): ProEM EMCCDs, PIXIS, PyLoN, BLAZE and SOPHIA CCDs,
+#: PI-MAX intensified, KURO and COSMOS CMOS sensors with an amplifier per pixel.
 _MODEL_KINDS = (
     *((f"DU{n}", "emccd") for n in ("860", "885", "887", "888", "897")),
     *((f"DU{n}", "ccd") for n in ("401", "416", "420", "440", "490", "491", "492")),
@@ -33,6 +36,10 @@ _MODEL_KINDS = (
     ("IMAGEM", "emccd"),
     *((name, "scmos") for name in ("PRIMEBSI", "PRIME95B", "KINETIX", "PCOEDGE")),
     *((name, "emccd") for name in ("EVOLVE", "CASCADE")),
+    ("PROEM", "emccd"),
+    *((name, "ccd") for name in ("PIXIS", "PYLON", "BLAZE", "SOPHIA")),
+    ("PIMAX", "iccd"),
+    *((name, "scmos") for name in ("KURO", "COSMOS")),
 )
 
 
@@ -42,6 +49,8 @@ def kind_of_model(model) -> str | None:
 
     >>> kind_of_model("C15550-20UP"), kind_of_model("ORCA-Flash4.0 V3"), kind_of_model("DU897_BV")
     ('qcmos', 'scmos', 'emccd')
+    >>> kind_of_model("ProEM-HS: 512BX3"), kind_of_model("PIXIS: 1024B"), kind_of_model("KURO: 2048B")
+    ('emccd', 'ccd', 'scmos')
     >>> kind_of_model("DemoCamera") is None
     True
     """

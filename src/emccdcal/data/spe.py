@@ -7,8 +7,10 @@ then (3.0) an XML footer that describes them. LightField can store per-frame met
 not one frame size apart, and a reader that ignores the stride returns shifted frames
 without a word. Here frames are always addressed through the footer's stride.
 
-Only what the file records is returned as :class:`~emccdcal.data.settings.CameraSettings`;
-SPE 2.x has no EM-gain field (give the set-point in the manifest).
+Only what the file records is returned as :class:`~emccdcal.data.settings.CameraSettings`,
+the kind of camera among it where its model says it (a ProEM's, a PIXIS's, a KURO's:
+:func:`~emccdcal.data.settings.kind_of_model`); SPE 2.x has no EM-gain field and no
+model (give the set-point in the manifest).
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import numpy as np
 
 from .. import _files
 from ..errors import InputError
-from .settings import CameraSettings, recorded_number
+from .settings import CameraSettings, kind_of_model, recorded_number
 
 __all__ = ["SUFFIXES", "HEADER_BYTES", "read_layout", "header", "settings"]
 
@@ -156,6 +158,8 @@ def _settings_v3(root) -> CameraSettings:
     bits = _number(root, cam + "/{*}Adc/{*}BitDepth")
     reading = _number(root, cam + "/{*}Sensor/{*}Temperature/{*}Reading")
     system = root.find(exp + "/{*}System/{*}Cameras/{*}Camera")
+    model = None if system is None else system.get("model")
+    kind = kind_of_model(model)
     mapping = root.find("{*}Calibrations/{*}SensorMapping")
     roi = binning = None
     if mapping is not None:
@@ -165,7 +169,11 @@ def _settings_v3(root) -> CameraSettings:
         except (TypeError, ValueError):
             roi = binning = None
     return CameraSettings(
-        em_gain_setpoint=_number(root, cam + "/{*}Adc/{*}EMGain"),
+        # only an EMCCD's gain field is an EM set-point (an intensifier's is not)
+        em_gain_setpoint=_number(root, cam + "/{*}Adc/{*}EMGain")
+        if kind in (None, "emccd")
+        else None,
+        camera_kind=kind,
         analog_gain=_text(root, cam + "/{*}Adc/{*}AnalogGain"),
         amplifier=_text(root, cam + "/{*}Adc/{*}Quality"),
         readout_rate_mhz=_number(root, cam + "/{*}Adc/{*}Speed"),
@@ -177,7 +185,7 @@ def _settings_v3(root) -> CameraSettings:
         ),
         exposure_ms=_number(root, cam + "/{*}ShutterTiming/{*}ExposureTime"),
         serial=None if system is None else system.get("serialNumber"),
-        model=None if system is None else system.get("model"),
+        model=model,
         roi=roi,
         binning=binning,
     )
