@@ -265,9 +265,7 @@ def test_andor_files_record_their_kind_and_no_em_gain_without_a_register(
         ("PI-MAX4: 1024i", "iccd", None),
     ],
 )
-def test_spe_files_record_their_kind_and_no_em_gain_without_a_register(
-    tmp_path, model, kind, gain
-):
+def test_spe_files_record_their_kind_and_no_em_gain_without_a_register(tmp_path, model, kind, gain):
     """LightField's SPE files name the camera's model: a ProEM's EM gain is its set-point;
     a KURO's (sCMOS) or a PIXIS's (CCD) gain field is none, and a folder of their files
     named as Huang et al. name them scans as a camera without an EM register, with no
