@@ -171,9 +171,50 @@ def test_a_calibration_marks_its_telegraph_pixels(tmp_path):
 
     layer = {kw["name"]: data for data, kw, _ in result_layers(ds)}["telegraph pixels"]
     assert np.array_equal(layer == 1, flags & ds.converged.values.astype(bool))
-    from emccdcal.report.sections import _telegraph_html
+    from emccdcal.report.sections import _flags_html
 
-    assert f"{int(flags.sum())} of 64" in _telegraph_html(ds)[0]
+    assert f"{int(flags.sum())} of 64" in _flags_html(ds)[0]
+
+
+@pytest.mark.slow
+def test_a_calibration_marks_its_hot_pixels_where_it_measures_the_dark_current(tmp_path):
+    """Darks at four exposures (the photon-free path) of an sCMOS whose dark current is
+    log-normal, a tenth of its pixels 30 times hotter: each marked (``hot``), few
+    others (a log-normal population of spread 0.5 crosses the threshold at 0.7 %: here
+    0.7 pixels expected), the threshold recorded; the report, napari and the OME-TIFF's
+    masks say which. No dark current measured, no ``hot``."""
+    import xml.etree.ElementTree as ET
+
+    sim = simulate_cmos_series(
+        tmp_path / "s", kind="scmos", rows=10, cols=10, frames=600, dark_current=30.0,
+        dark_exposures_s=(0.01, 0.5, 1.0, 2.0), hot_fraction=0.1, seed=24, progress=False,
+    )  # fmt: skip
+    ds = emccdcal.calibrate(sim.manifest, progress=False)
+    truth = tifffile.imread(sim.outdir / "truth-hot.tif") > 0
+    assert truth.sum() >= 3
+    flags = ds.hot.values.astype(bool)
+    assert flags[truth].all() and flags[~truth].sum() <= 3
+    rate = ds.dark_current.values
+    assert np.nanmedian(rate) < ds.hot.attrs["threshold_e_per_s"] < np.nanmin(rate[flags])
+    from emccdcal.napari._layers import result_layers
+    from emccdcal.report.sections import _flags_html
+
+    layer = {kw["name"]: data for data, kw, _ in result_layers(ds)}["hot pixels"]
+    assert np.array_equal(layer == 1, flags)
+    assert any(
+        "Hot pixels" in note and f"{int(flags.sum())} of 100" in note for note in _flags_html(ds)
+    )
+    (path,) = emccdcal.export_calibration(ds, "ome-tiff", tmp_path / "ome")
+    with tifffile.TiffFile(path) as tif:
+        names = [
+            c.get("Name")
+            for c in ET.fromstring(tif.ome_metadata).iter()
+            if c.tag.endswith("Channel")
+        ]
+        mask = tif.asarray()[names.index("hot")]
+    assert np.array_equal(mask == 1, flags)
+    _, plain = _calibrated(tmp_path / "p", "scmos", (4, 4), 200, 400, 3)
+    assert "hot" not in plain and "dark_current" not in plain
 
 
 @pytest.mark.slow

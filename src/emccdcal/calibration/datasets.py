@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .. import result
+from .. import defaults, result
 from .._util import nanmedian
 from ..data import dark_current, quality
 from ..data.dark import map_variances
@@ -300,6 +300,15 @@ def _add_dark_current(ds, manifest, used) -> None:
         ds[name] = (("row", "col"), np.where(ok, found[name], np.nan))
         ds[name].attrs.update(units="e-/s", long_name=text)
     _warn_dark_signal_in_the_dark(ds, used)
+    hot = dark_current.hot_pixels(ds["dark_current"].values, ds["dark_current_se"].values)
+    if hot is not None:
+        ds["hot"] = (("row", "col"), hot[0].astype(np.int8))
+        ds["hot"].attrs.update(
+            units="1",
+            threshold_e_per_s=hot[1],
+            long_name=f"1 where the dark current exceeds the median pixel's by more than "
+            f"{defaults.DEFAULT_K:g} robust SDs ({hot[1]:.4g} e-/s): a hot pixel",
+        )
     if found["pvalue"] is not None:
         ds["dark_current_pvalue"] = (("row", "col"), np.where(ok, found["pvalue"], np.nan))
         ds["dark_current_pvalue"].attrs.update(

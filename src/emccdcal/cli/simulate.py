@@ -232,7 +232,12 @@ def _run_cmos(args) -> int:
         )
         if getattr(args, k) is not None
     }  # fmt: skip
-    camera = CMOSCamera(kind=args.camera_kind, rts_fraction=args.rts_fraction, **given)
+    camera = CMOSCamera(
+        kind=args.camera_kind,
+        rts_fraction=args.rts_fraction,
+        hot_fraction=args.hot_fraction,
+        **given,
+    )
     with _common.output(args, out, names=_SIMULATED):
         res = simulate_cmos_series(
             out,
@@ -327,6 +332,11 @@ def _add_cmos(kinds) -> None:
     cm.add_argument(
         "--rts-fraction", type=float, default=0.0,
         help="fraction of random-telegraph pixels (default 0)",
+    )  # fmt: skip
+    cm.add_argument(
+        "--hot-fraction", type=float, default=0.0,
+        help="fraction of hot pixels, 30 times the dark current (default 0; needs "
+        "--dark-current)",
     )  # fmt: skip
     cm.add_argument(
         "--seed",

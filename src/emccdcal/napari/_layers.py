@@ -79,6 +79,8 @@ def result_layers(ds, *, prefix: str = "") -> list[tuple]:
         add(ds.dark_current.values, "dark current", "e-/s", "inferno")
     if "telegraph" in ds:  # random-telegraph pixels of the 1× darks: 1, else 0
         add(ds.telegraph.values, "telegraph pixels", "1", "red")
+    if "hot" in ds:  # a dark current far above the median pixel's: 1, else 0
+        add(ds.hot.values, "hot pixels", "1", "red")
     if layers:
         layers[1 if len(layers) > 1 else 0][1]["visible"] = True  # φ, or the first gain
     return layers

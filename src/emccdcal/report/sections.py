@@ -78,21 +78,37 @@ def _row(name, unit, st):
     return [name, unit, _fmt(st["median"]), _fmt(st["se_median"], 2), _fmt(st["sd"], 2), st["n"]]
 
 
-def _telegraph_html(ds) -> list[str]:
-    """A note on the random-telegraph pixels the 1× darks showed, where they were tested."""
-    if "telegraph" not in ds:
-        return []
-    flags = ds["telegraph"].transpose("row", "col").values.astype(bool)
-    where = np.argwhere(flags)[:8]
-    named = ", ".join(f"({int(r)}, {int(c)})" for r, c in where) + (
-        ", …" if flags.sum() > 8 else ""
-    )
-    return [
-        f"<p class=note>Random-telegraph pixels (two offset states in the dark frames, "
-        f"tested at a 1 % false-alarm rate): {int(flags.sum())} of {flags.size}"
-        + (f", at (row, col) {_e(named)}" if flags.any() else "")
-        + "; their offset, read noise and φ are doubtful (variable <code>telegraph</code>).</p>"
-    ]
+#: The per-pixel flags a result may hold: what each means and what follows from it.
+_FLAGS = {
+    "telegraph": (
+        "Random-telegraph pixels (two offset states in the dark frames, tested at a 1 % "
+        "false-alarm rate)",
+        "their offset, read noise and φ are doubtful",
+    ),
+    "hot": (
+        "Hot pixels (a dark current more than five robust SDs above the median pixel's)",
+        "their dark signal adds to every frame's",
+    ),
+}
+
+
+def _flags_html(ds) -> list[str]:
+    """A note on each kind of flagged pixel the darks showed, where they were looked for."""
+    notes = []
+    for name, (what, meaning) in _FLAGS.items():
+        if name not in ds:
+            continue
+        flags = ds[name].transpose("row", "col").values.astype(bool)
+        where = np.argwhere(flags)[:8]
+        named = ", ".join(f"({int(r)}, {int(c)})" for r, c in where) + (
+            ", …" if flags.sum() > 8 else ""
+        )
+        notes.append(
+            f"<p class=note>{what}: {int(flags.sum())} of {flags.size}"
+            + (f", at (row, col) {_e(named)}" if flags.any() else "")
+            + f"; {meaning} (variable <code>{name}</code>).</p>"
+        )
+    return notes
 
 
 def _summary_html(inp):
@@ -136,7 +152,7 @@ def _summary_html(inp):
             if ds.attrs.get("standard_errors")
             else []
         ),
-        *_telegraph_html(ds),
+        *_flags_html(ds),
         *(
             [
                 f"<p class=note>Per-pixel intervals: {_e(ds.attrs['intervals'])} "

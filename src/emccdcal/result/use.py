@@ -92,6 +92,9 @@ class Calibration:
     telegraph : ndarray (R, C) of bool, or None
         Pixels a member found to hold two offset states (random-telegraph pixels), where
         a member tested for them.
+    hot : ndarray (R, C) of bool, or None
+        Pixels a member found hot (a dark current far above the median pixel's), where
+        a member measured the dark current.
     em_model : noise.EMModel
         The EM register model the gains were fitted with (the gamma model for results
         that record none).
@@ -139,6 +142,7 @@ class Calibration:
     offset_se: dict = field(default_factory=dict)
     read_noise_se: dict = field(default_factory=dict)
     telegraph: np.ndarray | None = None
+    hot: np.ndarray | None = None
     em_model: object = None
     camera: dict = field(default_factory=dict)
     origin: tuple | None = None
@@ -364,15 +368,16 @@ def _dark_maps(loaded, masked) -> dict:
     """What the members' dark frames gave, for :class:`Calibration`: per set-point the
     offset and read-noise maps and their SEs (from the first member that has the
     set-point; an intensity series' levels merged by their median), and the telegraph
-    pixels any member found."""
+    and hot pixels any member found."""
     out: dict[str, dict] = {
         name: {} for name in ("offset", "read_noise", "offset_se", "read_noise_se")
     }
-    telegraph = None
+    flags: dict[str, np.ndarray | None] = {"telegraph": None, "hot": None}
     for _, ds in loaded:
-        if "telegraph" in ds:
-            found = ds["telegraph"].transpose("row", "col").values.astype(bool)
-            telegraph = found if telegraph is None else telegraph | found
+        for name, kept in flags.items():
+            if name in ds:
+                found = ds[name].transpose("row", "col").values.astype(bool)
+                flags[name] = found if kept is None else kept | found
         for name in out:
             maps, store = masked(ds, name), out[name]
             if maps is None:
@@ -383,7 +388,7 @@ def _dark_maps(loaded, masked) -> dict:
             for s in dict.fromkeys(at):  # first member first; levels at one set-point merged
                 if np.isfinite(s) and s not in store:
                     store[s] = np.nanmedian(maps[np.asarray(at) == s], axis=0)
-    return {**out, "telegraph": telegraph}
+    return {**out, **flags}
 
 
 def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:

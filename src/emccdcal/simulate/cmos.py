@@ -92,6 +92,11 @@ class CMOSCamera:
         exposures, :func:`simulate_cmos_series`'s ``dark_exposures_s``, needs it).
     dark_current_spread : float
         SD of the log dark current over the pixels (0.5: a log-normal).
+    hot_fraction : float
+        Fraction of hot pixels (0): their dark current is ``hot_factor`` times what the
+        log-normal gave them.
+    hot_factor : float
+        How much a hot pixel's dark current exceeds its draw (30).
     """
 
     kind: str = "scmos"
@@ -112,6 +117,8 @@ class CMOSCamera:
     adc_bits: int = 16
     dark_current: float = 0.0
     dark_current_spread: float = 0.5
+    hot_fraction: float = 0.0
+    hot_factor: float = 30.0
 
     def __post_init__(self):
         if self.kind not in PRESETS:
@@ -147,6 +154,10 @@ class CMOSCamera:
             dark_current_spread=check_number(
                 "dark_current_spread", values["dark_current_spread"], minimum=0.0
             ),
+            hot_fraction=check_number(
+                "hot_fraction", values["hot_fraction"], minimum=0.0, maximum=1.0
+            ),
+            hot_factor=check_number("hot_factor", values["hot_factor"], minimum=1.0),
         )
         for name, value in checked.items():
             object.__setattr__(self, name, value)
@@ -159,7 +170,8 @@ class CMOSCamera:
     def maps(self, rng) -> dict:
         """The per-pixel truth drawn from ``rng``: ``e_per_adu`` (e⁻/ADU), ``offset``
         (ADU), ``read_noise`` (ADU, before rounding), ``rts_step`` (ADU, 0 where the
-        pixel has one offset state), ``dark_current`` (e⁻/s)."""
+        pixel has one offset state), ``dark_current`` (e⁻/s), ``hot`` (1 at a hot pixel,
+        else 0)."""
         shape = (self.rows, self.cols)
         phi = self.e_per_adu * (1.0 + self.e_per_adu_spread * rng.standard_normal(shape))
         phi = np.maximum(phi, 0.5 * self.e_per_adu)
@@ -168,12 +180,15 @@ class CMOSCamera:
         sigma = np.maximum(sigma_e, self.read_noise_min_e) / phi
         rts = rng.random(shape) < self.rts_fraction
         spread = np.exp(self.dark_current_spread * rng.standard_normal(shape))
+        # drawn last, and only where asked: every other draw as without hot pixels
+        hot = rng.random(shape) < self.hot_fraction if self.hot_fraction else np.zeros(shape, bool)
         return dict(
             e_per_adu=phi,
             offset=offset,
             read_noise=sigma,
             rts_step=np.where(rts, self.rts_step * sigma, 0.0),
-            dark_current=self.dark_current * spread,
+            dark_current=self.dark_current * spread * np.where(hot, self.hot_factor, 1.0),
+            hot=hot.astype(float),
         )
 
 
@@ -247,8 +262,9 @@ def simulate_cmos_series(
 
     Writes ``dark.tif`` (``dark_frames`` frames, shutter closed), ``int1.tif`` …
     ``intN.tif`` (one per level), ``truth-e_per_adu.tif``, ``truth-offset.tif``,
-    ``truth-read_noise.tif`` (ADU, before rounding) and ``truth-rts.tif`` (RTS step,
-    ADU; 0 elsewhere), ``truth.json`` and ``manifest.toml``. The manifest names the
+    ``truth-read_noise.tif`` (ADU, before rounding), ``truth-rts_step.tif`` (RTS step,
+    ADU; 0 elsewhere), ``truth-dark_current.tif`` (e⁻/s), ``truth-hot.tif`` (1 at a hot
+    pixel), ``truth.json`` and ``manifest.toml``. The manifest names the
     camera kind and no EM gain: ``emccdcal calibrate manifest.toml`` needs no option.
 
     Parameters
@@ -329,6 +345,7 @@ def simulate_cmos_series(
             "read_noise": "ADU (rms, before the ADC's rounding)",
             "rts_step": "ADU",
             "dark_current": "e-/px/s",
+            "hot": "1 at a hot pixel, else 0",
             "exposures_s": "s",
         },
         "options": dataclasses.asdict(camera),

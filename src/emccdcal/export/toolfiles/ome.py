@@ -17,7 +17,8 @@ the names and units of a result (docs/results.md):
 - each followed by its ``_se`` where the calibration has it (φ's and g's from the fit;
   the offset's and read noise's from the dark frames' count);
 - ``telegraph`` (1 at a random-telegraph pixel, else 0) where the calibration tested
-  for them: the mask a user leaves out of a fit.
+  for them, and ``hot`` (1 at a hot pixel) where it measured the dark current: the
+  masks a user leaves out of a fit.
 """
 
 from __future__ import annotations
@@ -65,8 +66,10 @@ def channels(cal, s) -> list[tuple[str, np.ndarray, str]]:
         variance_e_se = variance_e * np.hypot(variance_se / variance, 2.0 * phi_se / phi)
     out += [("read_noise_variance_e", variance_e, "e-2")]
     out += [("read_noise_variance_e_se", variance_e_se, "e-2")]
-    if cal.telegraph is not None:
-        out += [("telegraph", cal.telegraph.astype(float), "1")]
+    for name in ("telegraph", "hot"):
+        mask = getattr(cal, name)
+        if mask is not None:
+            out += [(name, mask.astype(float), "1")]
     return [(name, image, unit) for name, image, unit in out if image is not None]
 
 
