@@ -160,6 +160,26 @@ def test_telegraph_pixels_are_found_at_the_stated_false_alarm_rate(kind):
     assert found[~truth].mean() <= 0.02
 
 
+@pytest.mark.parametrize("states", [3, 4])
+def test_telegraph_pixels_of_more_than_two_states_are_found_too(states):
+    """Three or four offset states 1.5 read-noise widths apart (where two states that
+    close are found at 0.82–0.86): one normal against two rejects them all the same."""
+    from emccdcal.data.telegraph import telegraph_pixels
+    from emccdcal.simulate.cmos import simulate_cmos_frames
+
+    camera = CMOSCamera(rows=40, cols=40, rts_fraction=0.1, rts_step=1.5, rts_states=states)
+    rng = np.random.default_rng(8)
+    maps = camera.maps(rng)
+    dark = simulate_cmos_frames(
+        0.0, maps, 3000, rng, rts_switch=camera.rts_switch, rts_states=states
+    )
+    found = telegraph_pixels(dark).flagged
+    truth = maps["rts_step"].ravel() > 0
+    assert truth.sum() > 100
+    assert found[truth].mean() >= 0.9
+    assert found[~truth].mean() <= 0.02
+
+
 @pytest.mark.slow
 def test_a_calibration_marks_its_telegraph_pixels(tmp_path):
     sim, ds = _calibrated(tmp_path, "scmos", (8, 8), 400, 2000, 2, rts_fraction=0.1)

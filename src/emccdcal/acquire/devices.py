@@ -236,5 +236,11 @@ class SimulatedCMOS(SimulatedEMCCD):
         maps = {name: m[y : y + h, x : x + w] for name, m in self.maps.items()}
         rng = np.random.default_rng(self._frame_seeds.spawn(1)[0])
         return lambda k: simulate_cmos_frames(
-            light, maps, k, rng, adc_bits=self.camera.adc_bits, rts_switch=self.camera.rts_switch
+            light,
+            maps,
+            k,
+            rng,
+            adc_bits=self.camera.adc_bits,
+            rts_switch=self.camera.rts_switch,
+            rts_states=self.camera.rts_states,
         )

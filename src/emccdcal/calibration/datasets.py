@@ -241,7 +241,7 @@ def _dark_variables(used, per_acq_dim, shape) -> dict:
             ("row", "col"),
             np.any(flags, axis=0).astype(np.int8),
             "1",
-            "1 where a 1x dark holds two offset states (a random-telegraph pixel, "
+            "1 where a 1x dark holds two or more offset states (a random-telegraph pixel, "
             "its offset and read noise one normal's: doubtful)",
         )
     if any(a.dark_event_rate is not None for a in used):

@@ -38,7 +38,7 @@ class TelegraphTest:
     Attributes
     ----------
     flagged : ndarray of bool, shape (P,)
-        Pixels whose dark is two offset states.
+        Pixels whose dark is two (or more) offset states.
     statistic : ndarray, shape (P,)
         Twice the log-likelihood ratio of two normals to one (nats × 2).
     step : ndarray, shape (P,)

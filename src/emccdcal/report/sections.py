@@ -81,7 +81,7 @@ def _row(name, unit, st):
 #: The per-pixel flags a result may hold: what each means and what follows from it.
 _FLAGS = {
     "telegraph": (
-        "Random-telegraph pixels (two offset states in the dark frames, tested at a 1 % "
+        "Random-telegraph pixels (two or more offset states in the dark frames, tested at a 1 % "
         "false-alarm rate)",
         "their offset, read noise and φ are doubtful",
     ),

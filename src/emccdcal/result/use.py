@@ -90,7 +90,7 @@ class Calibration:
         Their standard errors (ADU), where the results record them (from the dark
         frames' count).
     telegraph : ndarray (R, C) of bool, or None
-        Pixels a member found to hold two offset states (random-telegraph pixels), where
+        Pixels a member found to hold two or more offset states (random-telegraph pixels), where
         a member tested for them.
     hot : ndarray (R, C) of bool, or None
         Pixels a member found hot (a dark current far above the median pixel's), where

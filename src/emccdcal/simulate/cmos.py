@@ -9,7 +9,8 @@ conversion factor φ_p (e⁻/ADU) and read noise σ_p (ADU); in frame t
 with E the level's photoelectrons per pixel per frame (a flat field) and, at a
 random-telegraph (RTS) pixel, ``s_t ∈ {0, 1}`` a two-state Markov chain that switches
 with probability ``rts_switch`` per frame and a step ``a_p`` of ``rts_step`` read-noise
-widths (``s_t = 0`` elsewhere). The ADC's rounding is part of the model: the dark
+widths (``s_t = 0`` elsewhere; with ``rts_states`` k > 2, ``s_t ∈ {0 … k − 1}``, each
+switch to one of the others at random). The ADC's rounding is part of the model: the dark
 counts' standard deviation is about sqrt(σ² + 1/12) ADU, not σ.
 
 :func:`simulate_cmos_series` writes what Huang et al.'s protocol (Nat. Methods 10:653,
@@ -82,9 +83,11 @@ class CMOSCamera:
     rts_fraction : float
         Fraction of pixels with a random-telegraph offset (0).
     rts_step : float
-        Step between an RTS pixel's two offset states, in its read-noise widths (4).
+        Step between an RTS pixel's neighbouring offset states, in its read-noise widths (4).
     rts_switch : float
         Probability per frame that an RTS pixel switches state (0.05).
+    rts_states : int
+        Offset states of an RTS pixel, ``rts_step`` apart (2).
     adc_bits : int
         ADC resolution, bits (16).
     dark_current : float
@@ -114,6 +117,7 @@ class CMOSCamera:
     rts_fraction: float = 0.0
     rts_step: float = 4.0
     rts_switch: float = 0.05
+    rts_states: int = 2
     adc_bits: int = 16
     dark_current: float = 0.0
     dark_current_spread: float = 0.5
@@ -149,6 +153,7 @@ class CMOSCamera:
             ),
             rts_step=check_number("rts_step", values["rts_step"], positive=True),
             rts_switch=check_number("rts_switch", values["rts_switch"], positive=True, maximum=1.0),
+            rts_states=check_int("rts_states", values["rts_states"], minimum=2, maximum=8),
             adc_bits=check_int("adc_bits", values["adc_bits"], minimum=1, maximum=16),
             dark_current=check_number("dark_current", values["dark_current"], minimum=0.0),
             dark_current_spread=check_number(
@@ -192,21 +197,28 @@ class CMOSCamera:
         )
 
 
-def _telegraph(frames, rts_step, switch, rng):
-    """The RTS offset (frames, rows, cols), ADU: each RTS pixel's two-state chain, started
-    in its stationary distribution (½, ½)."""
+def _telegraph(frames, rts_step, switch, rng, states=2):
+    """The RTS offset (frames, rows, cols), ADU: each RTS pixel's chain of ``states``
+    offset states, started in its stationary distribution (uniform)."""
     live = np.flatnonzero(rts_step)
     out = np.zeros((frames,) + rts_step.shape)
     if live.size == 0:
         return out
     flips = rng.random((frames, live.size)) < switch
-    flips[0] = rng.random(live.size) < 0.5
-    state = np.cumsum(flips, axis=0) % 2
+    if states == 2:
+        flips[0] = rng.random(live.size) < 0.5
+        state = np.cumsum(flips, axis=0) % 2
+    else:  # a switch goes to one of the other states, each alike
+        jumps = flips * rng.integers(1, states, flips.shape)
+        jumps[0] = rng.integers(0, states, live.size)
+        state = np.cumsum(jumps, axis=0) % states
     out.reshape(frames, -1)[:, live] = state * rts_step.ravel()[live]
     return out
 
 
-def simulate_cmos_frames(photoelectrons, maps, frames, rng, *, adc_bits=16, rts_switch=0.05):
+def simulate_cmos_frames(
+    photoelectrons, maps, frames, rng, *, adc_bits=16, rts_switch=0.05, rts_states=2
+):
     """One stack of raw counts (frames, rows, cols), uint16, ADU (module docstring).
 
     Parameters
@@ -220,6 +232,8 @@ def simulate_cmos_frames(photoelectrons, maps, frames, rng, *, adc_bits=16, rts_
     adc_bits : int
     rts_switch : float
         RTS switching probability per frame.
+    rts_states : int
+        Offset states of an RTS pixel.
     """
     shape = maps["offset"].shape
     lam = np.broadcast_to(np.asarray(photoelectrons, dtype=float), shape)
@@ -229,7 +243,7 @@ def simulate_cmos_frames(photoelectrons, maps, frames, rng, *, adc_bits=16, rts_
         + n / maps["e_per_adu"]
         + maps["read_noise"] * rng.standard_normal((frames,) + shape)
     )
-    x += _telegraph(frames, maps["rts_step"], rts_switch, rng)
+    x += _telegraph(frames, maps["rts_step"], rts_switch, rng, rts_states)
     return np.clip(np.rint(x), 0, 2**adc_bits - 1).astype(np.uint16)
 
 
@@ -325,8 +339,9 @@ def simulate_cmos_series(
     bar = progress_bar(enabled=progress, desc="simulate", unit="stack", total=len(stacks))
     for (name, E, frames), rng in zip(stacks, streams[1:]):
         data = simulate_cmos_frames(
-            E, maps, frames, rng, adc_bits=camera.adc_bits, rts_switch=camera.rts_switch
-        )
+            E, maps, frames, rng, adc_bits=camera.adc_bits, rts_switch=camera.rts_switch,
+            rts_states=camera.rts_states,
+        )  # fmt: skip
         files.append(_write_tiff(outdir / name, data))
         bar.update(1)
     bar.close()

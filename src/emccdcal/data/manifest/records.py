@@ -84,7 +84,7 @@ class Acquisition:
         acquisition, fitted with its maps (:func:`emccdcal.data.dark.fit_dark`); None for
         maps given as files, 1× darks and darks without events.
     dark_telegraph : ndarray of bool or None
-        Pixels whose 1× dark stack holds two offset states (random-telegraph pixels,
+        Pixels whose 1× dark stack holds two or more offset states (random-telegraph pixels,
         :func:`emccdcal.data.telegraph.telegraph_pixels`); None without a 1× dark stack.
     exposure_s, dark_exposure_s : float or None
         The exposure (s) of the frames and of the dark behind the maps (the manifest's
