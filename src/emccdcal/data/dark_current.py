@@ -21,6 +21,7 @@ from scipy import special
 
 from ..defaults import DEFAULT_K
 from .dark import map_variances, maps_from_dark
+from .quality.drift import _MAD_TO_SD
 
 
 @dataclass(frozen=True)
@@ -139,7 +140,7 @@ def hot_pixels(rate, rate_se, k=DEFAULT_K) -> tuple[np.ndarray, float] | None:
     values = rate[finite]
     median = float(np.median(values))
     spread = max(
-        1.482602218505602 * float(np.median(np.abs(values - median))),
+        _MAD_TO_SD * float(np.median(np.abs(values - median))),
         float(np.nanmedian(np.where(finite, rate_se, np.nan))),
     )
     threshold = median + k * spread
