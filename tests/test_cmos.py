@@ -289,27 +289,15 @@ def test_andor_files_record_their_kind_and_no_em_gain_without_a_register(
     """An iDus's (CCD) and an iStar's (intensified CCD) gain field is not an EM set-point:
     it was read as one (2.0, 180, 2500 on sif_parser's files). A folder of iDus files
     scans as a camera without an EM register; an iStar's is refused in one line."""
-    from emccdcal.data.stacks import stack_settings
     from test_formats import SIF
 
     pytest.importorskip("sif_parser")
-    rng = np.random.default_rng(1)
-    folder = tmp_path / "session"
-    folder.mkdir()
-    for name, level in (("dark", 0.0), ("int1", 50.0), ("int2", 200.0)):
-        frames = np.rint(100 + level + 2 * rng.standard_normal((3, 256, 256)))
-        _andor(SIF / "test.sif", folder / f"{name}.sif", model, frames)
-    s = stack_settings(folder / "int1.sif")
-    assert (s.camera_kind, s.em_gain_setpoint) == (kind, gain)
-    if kind == "emccd":
+    manifest = _huang_folder_of(
+        tmp_path / "session", ".sif", (3, 256, 256), 1, kind, gain,
+        lambda path, frames: _andor(SIF / "test.sif", path, model, frames),
+    )  # fmt: skip
+    if manifest is None:
         return
-    if kind == "iccd":
-        with pytest.raises(emccdcal.errors.InputError, match=r"dark\.sif' is of an intensified"):
-            emccdcal.scan(folder)
-        return
-    manifest = emccdcal.scan(folder)
-    assert 'camera_kind = "ccd"   # the files\' model says so' in manifest.read_text()
-    assert emccdcal.read_manifest(manifest).camera_kind == "ccd"
     wrong = tmp_path / "wrong.toml"
     wrong.write_text(manifest.read_text().replace('camera_kind = "ccd"', 'camera_kind = "scmos"'))
     wrong.replace(manifest.parent / "wrong.toml")
@@ -333,25 +321,38 @@ def test_spe_files_record_their_kind_and_no_em_gain_without_a_register(tmp_path,
     set-point asked; a PI-MAX's (intensified) is refused in one line."""
     from camera_files import write_spe
 
+    _huang_folder_of(
+        tmp_path / "session", ".spe", (4, 8, 8), 2, kind, gain,
+        lambda path, frames: write_spe(path, frames.astype(np.uint16), em_gain=300, model=model),
+    )  # fmt: skip
+
+
+def _huang_folder_of(folder, suffix, shape, seed, kind, gain, write):
+    """``dark``, ``int1`` and ``int2`` stacks of ``shape`` written by ``write(path,
+    frames)`` into ``folder``: each records the camera's ``kind`` and ``gain`` (its EM
+    set-point, or None); an EMCCD's folder stops there (None), an intensified camera's
+    is refused by ``scan`` in one line (None), any other scans as a camera without an
+    EM register, the kind from the files' model: its manifest."""
     from emccdcal.data.stacks import stack_settings
 
-    rng = np.random.default_rng(2)
-    folder = tmp_path / "session"
+    rng = np.random.default_rng(seed)
     folder.mkdir()
     for name, level in (("dark", 0.0), ("int1", 50.0), ("int2", 200.0)):
-        frames = np.rint(100 + level + 2 * rng.standard_normal((4, 8, 8))).astype(np.uint16)
-        write_spe(folder / f"{name}.spe", frames, em_gain=300, model=model)
-    s = stack_settings(folder / "int1.spe")
-    assert (s.camera_kind, s.em_gain_setpoint, s.model) == (kind, gain, model)
+        write(folder / f"{name}{suffix}", np.rint(100 + level + 2 * rng.standard_normal(shape)))
+    s = stack_settings(folder / f"int1{suffix}")
+    assert (s.camera_kind, s.em_gain_setpoint) == (kind, gain)
     if kind == "emccd":
-        return
+        return None
     if kind == "iccd":
-        with pytest.raises(emccdcal.errors.InputError, match=r"dark\.spe' is of an intensified"):
+        with pytest.raises(
+            emccdcal.errors.InputError, match=rf"dark\{suffix}' is of an intensified"
+        ):
             emccdcal.scan(folder)
-        return
+        return None
     manifest = emccdcal.scan(folder)
     assert f'camera_kind = "{kind}"   # the files\' model says so' in manifest.read_text()
     assert emccdcal.read_manifest(manifest).camera_kind == kind
+    return manifest
 
 
 @pytest.mark.parametrize("sigma", [0.45, 0.9, 3.0])
