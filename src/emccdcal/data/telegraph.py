@@ -4,20 +4,27 @@ A random-telegraph (RTS) pixel's offset jumps between two (or more) levels as a 
 trap in its amplifier fills and empties (common on sCMOS sensors): its dark counts are a
 mixture of normals of one width, and its offset and read noise, as one normal's, are
 wrong for every frame. Each pixel is tested here: one normal against a mixture of two of
-one width (each component's probabilities at the integers, the read noise widened by the
-ADC's 1/12), by the likelihood ratio, maximised by expectation–maximisation on the
-pixel's histogram. The ratio's distribution without a second state is not χ² (the
-mixture's weight sits on its boundary), but a normal's location and scale do not move
-it: its quantile is found by simulating normal darks of the same number of frames and a
-read noise like the pixels' (seeded: the same data give the same flags), and a pixel is
-flagged where its ratio exceeds the quantile of the stated false-alarm rate.
+one width, each rounded to the integers as the ADC rounds (a component's probability of
+count k its mass within [k − ½, k + ½)), by the likelihood ratio, maximised by
+expectation–maximisation for grouped data (each bin's conditional moments of the
+normal: Dempster, Laird & Rubin 1977) on the pixel's histogram. The ratio's
+distribution without a second state is not χ² (the mixture's weight sits on its
+boundary), but with the rounding modelled a normal's location and scale hardly move it
+(its 99 % quantile 4.6–7.7 from 0.3 to 4 ADU of read noise; a model of densities at the
+integers put it at 25 to 1900 below 1 ADU, which left a fifth of the one-normal pixels
+of a 0.3 e⁻ sCMOS flagged): its quantile is found by simulating normal darks of the same
+number of frames and a read noise like the pixels' (seeded: the same data give the same
+flags), and a pixel is flagged where its ratio exceeds the quantile of the stated
+false-alarm rate.
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import special
 
 from . import stats
 
@@ -55,46 +62,85 @@ class TelegraphTest:
     false_alarm: float
 
 
-def _normal_at(values, mean, sd):
-    z = (values - mean) / sd
-    return np.exp(-0.5 * z * z) / (np.sqrt(2.0 * np.pi) * sd)
+def _binned(values, means, sd):
+    """Each rounded normal's probability of every integer ``values`` (P, K), its mean
+    and its second moment within each integer's bin [k − ½, k + ½), for components of
+    ``means`` (P, J) and one analog width ``sd`` (P,): (P, J, K) each."""
+    s = sd[:, None, None]
+    lo = (values[:, None, :] - 0.5 - means[:, :, None]) / s
+    hi = lo + 1.0 / s
+    mass = special.ndtr(hi) - special.ndtr(lo)
+    dens_lo, dens_hi = np.exp(-0.5 * lo * lo), np.exp(-0.5 * hi * hi)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = (dens_lo - dens_hi) / (np.sqrt(2.0 * np.pi) * mass)
+        spread = (lo * dens_lo - hi * dens_hi) / (np.sqrt(2.0 * np.pi) * mass)
+    tiny = ~(mass > 1e-12)  # far from a component: the bin's middle
+    first = np.where(tiny, values[:, None, :] - means[:, :, None], s * ratio)
+    second = np.where(tiny, first**2, s * s * (1.0 + spread))
+    return mass, means[:, :, None] + first, second
+
+
+def _fit(values, counts, means, weights, sd, iterations, tol=1e-3):
+    """Expectation–maximisation of a mixture of rounded normals of one width over each
+    pixel's histogram (P, K), each pixel until its log-likelihood gains under ``tol``
+    nats in a step: its log-likelihood (P,), means (P, J) and width (P,)."""
+    means, weights, sd = means.copy(), weights.copy(), sd.copy()
+    loglik = np.full(sd.shape, -np.inf)
+    live = np.arange(sd.size)
+    for _ in range(iterations + 1):
+        v, c, m, w, s = values[live], counts[live], means[live], weights[live], sd[live]
+        mass, x1, x2 = _binned(v, m, s)
+        joint = w[:, :, None] * mass
+        total = np.maximum(joint.sum(axis=1, keepdims=True), 1e-300)
+        now = (c * np.log(total[:, 0])).sum(axis=1)  # at the parameters before this step
+        done = now - loglik[live] < tol
+        loglik[live] = now
+        if done.all():
+            break
+        live, v, c, m, joint, total, x1, x2 = (
+            a[~done] for a in (live, v, c, m, joint, total, x1, x2)
+        )
+        r = c[:, None, :] * joint / total  # frames of each bin in each component
+        nj = r.sum(axis=2)
+        n = c.sum(axis=1)
+        weights[live] = np.clip(nj / n[:, None], 1e-6, 1.0)
+        new = (r * x1).sum(axis=2) / np.maximum(nj, 1e-12)
+        # E[(x − m_new)²] from E[(x − m_old)²] and E[x] within each bin
+        shift = (m - new)[:, :, None]
+        within = x2 + 2.0 * shift * (x1 - m[:, :, None]) + shift**2
+        sd[live] = np.sqrt(np.maximum((r * within).sum(axis=(1, 2)) / n, 1e-4))
+        means[live] = new
+    return loglik, means, sd
 
 
 def _statistic(values, counts, iterations=60):
-    """Twice the log-likelihood ratio of a two-state mixture to one normal per pixel,
-    and the states' distance (ADU), from histograms (P, K)."""
+    """Twice the log-likelihood ratio of a two-state mixture to one rounded normal per
+    pixel, and the states' distance (ADU), from histograms (P, K)."""
     counts = counts.astype(float)
     n = counts.sum(axis=1)
     mean = (counts * values).sum(axis=1) / n
     var = (counts * (values - mean[:, None]) ** 2).sum(axis=1) / n
-    sd0 = np.sqrt(var + 1.0 / 12.0)  # the rounding's width, as in both hypotheses
-    ll0 = (
-        counts * np.log(np.maximum(_normal_at(values, mean[:, None], sd0[:, None]), 1e-300))
-    ).sum(1)
+    analog = np.sqrt(np.maximum(var - 1.0 / 12.0, 0.01))  # Sheppard's correction
+    ll0 = _fit(values, counts, mean[:, None], np.ones((n.size, 1)), analog, iterations)[0]
     # start: the halves below and above the mean
     low = values <= mean[:, None]
     w = np.clip((counts * low).sum(axis=1) / n, 0.05, 0.95)
     m1 = (counts * values * low).sum(axis=1) / np.maximum((counts * low).sum(axis=1), 1)
     m2 = (counts * values * ~low).sum(axis=1) / np.maximum((counts * ~low).sum(axis=1), 1)
-    sd = np.sqrt(np.maximum(var / 4.0, 0.05))
-    for _ in range(iterations):
-        width = np.sqrt(sd**2 + 1.0 / 12.0)[:, None]
-        a = w[:, None] * _normal_at(values, m1[:, None], width)
-        b = (1.0 - w)[:, None] * _normal_at(values, m2[:, None], width)
-        total = np.maximum(a + b, 1e-300)
-        ra, rb = counts * a / total, counts * b / total
-        na, nb = ra.sum(axis=1), rb.sum(axis=1)
-        w = np.clip(na / n, 1e-6, 1 - 1e-6)
-        m1 = (ra * values).sum(axis=1) / np.maximum(na, 1e-12)
-        m2 = (rb * values).sum(axis=1) / np.maximum(nb, 1e-12)
-        within = (ra * (values - m1[:, None]) ** 2 + rb * (values - m2[:, None]) ** 2).sum(1) / n
-        sd = np.sqrt(np.maximum(within - 1.0 / 12.0, 0.01))
-    width = np.sqrt(sd**2 + 1.0 / 12.0)[:, None]
-    mix = w[:, None] * _normal_at(values, m1[:, None], width) + (1.0 - w)[:, None] * _normal_at(
-        values, m2[:, None], width
-    )
-    ll1 = (counts * np.log(np.maximum(mix, 1e-300))).sum(axis=1)
-    return np.maximum(2.0 * (ll1 - ll0), 0.0), np.abs(m2 - m1)
+    ll1, means, _ = _fit(
+        values, counts, np.stack([m1, m2], 1), np.stack([w, 1.0 - w], 1),
+        np.sqrt(np.maximum(var / 4.0, 0.01)), iterations,
+    )  # fmt: skip
+    return np.maximum(2.0 * (ll1 - ll0), 0.0), np.abs(means[:, 1] - means[:, 0])
+
+
+@functools.lru_cache(maxsize=16)
+def _null_quantiles(frames, false_alarm, seed) -> tuple:
+    """The null quantile at each of :data:`_NULL_SIGMAS`, simulated from ``seed``: the
+    same for the same arguments, so kept (a session's calibrations share their darks'
+    frame count)."""
+    rng = np.random.default_rng(seed)
+    return tuple(_null_quantile(frames, s, false_alarm, rng) for s in _NULL_SIGMAS)
 
 
 def _null_quantile(frames, sigma, false_alarm, rng):
@@ -135,10 +181,8 @@ def telegraph_pixels(stack, *, false_alarm=FALSE_ALARM, seed=0, adc_max=None) ->
     h = stats.histograms(stack, adc_max=adc_max)
     values = h.values.astype(float)
     statistic, step = _statistic(values, h.counts)
-    rng = np.random.default_rng(seed)
-    frames = int(np.median(h.n))
     sigmas = np.array(_NULL_SIGMAS)
-    quantiles = np.array([_null_quantile(frames, s, false_alarm, rng) for s in sigmas])
+    quantiles = np.array(_null_quantiles(int(np.median(h.n)), float(false_alarm), seed))
     sd = np.sqrt(h.var)
     threshold = np.interp(np.log(sd), np.log(sigmas), quantiles)
     flagged = statistic > threshold
