@@ -34,6 +34,8 @@ __all__ = ["TelegraphTest", "telegraph_pixels", "FALSE_ALARM"]
 FALSE_ALARM = 0.01
 #: Null simulations per read-noise value (the quantile's own error: ~1e-3 at 1 %).
 _NULL_PIXELS = 2000
+#: Pixels tested at a time (the fits hold about 20 arrays of pixels × 2 × counts).
+_BLOCK = 4096
 #: Read noises (ADU) at which the null quantile is simulated; between, interpolated.
 _NULL_SIGMAS = (0.3, 0.5, 0.8, 1.2, 2.0, 4.0)
 
@@ -180,7 +182,12 @@ def telegraph_pixels(stack, *, false_alarm=FALSE_ALARM, seed=0, adc_max=None) ->
     """
     h = stats.histograms(stack, adc_max=adc_max)
     values = h.values.astype(float)
-    statistic, step = _statistic(values, h.counts)
+    # in blocks of pixels: the fits' arrays are (pixels, states, counts) large
+    parts = [
+        _statistic(values[rows], h.counts[rows])
+        for rows in np.array_split(np.arange(values.shape[0]), -(-values.shape[0] // _BLOCK))
+    ]
+    statistic, step = (np.concatenate(p) for p in zip(*parts))
     sigmas = np.array(_NULL_SIGMAS)
     quantiles = np.array(_null_quantiles(int(np.median(h.n)), float(false_alarm), seed))
     sd = np.sqrt(h.var)
