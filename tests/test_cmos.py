@@ -163,6 +163,7 @@ def test_telegraph_pixels_are_found_at_the_stated_false_alarm_rate(kind, read_no
     assert found[~truth].mean() <= 0.02
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("states", [3, 4])
 def test_telegraph_pixels_of_more_than_two_states_are_found_too(states):
     """Three or four offset states 1.5 read-noise widths apart (where two states that
