@@ -158,6 +158,7 @@ OPTION_QUANTITY = {
     "halo": "fraction",
     "blinking": "fraction",
     "rts_fraction": "fraction",
+    "hot_fraction": "fraction",
     "read_noise_e": "read_noise",
     "target_read_noise_se": "percent",
     "drift": "fraction",
