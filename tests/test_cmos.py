@@ -297,7 +297,7 @@ def test_andor_files_record_their_kind_and_no_em_gain_without_a_register(
 
     pytest.importorskip("sif_parser")
     manifest = _huang_folder_of(
-        tmp_path / "session", ".sif", (3, 256, 256), 1, kind, gain,
+        tmp_path / "session", ".sif", (10, 256, 256), 1, kind, gain,
         lambda path, frames: _andor(SIF / "test.sif", path, model, frames),
     )  # fmt: skip
     if manifest is None:

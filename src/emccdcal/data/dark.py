@@ -318,7 +318,7 @@ def analog_read_out(stack, offset, sd, *, adc_max=None):
     rows, cols = offset.shape
     frames = np.asarray(stack).reshape(stack.shape[0], -1)[:, small]
     h = stats.histograms(frames.reshape(frames.shape[0], 1, -1), adc_max=adc_max)
-    mu, sigma, _, ok = adc.fit_rounded_normal(h.values, h.counts, h.mean, np.sqrt(h.var))
+    mu, sigma, ok = adc.fit_rounded_normal(h.values, h.counts, h.mean, np.sqrt(h.var))
     offset, sd = offset.astype(float).ravel(), sd.astype(float).ravel()
     offset[small] = np.where(ok, mu, offset[small])
     sd[small] = np.where(ok, sigma, sheppard.ravel()[small])

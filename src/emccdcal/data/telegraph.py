@@ -137,7 +137,9 @@ def _statistic(values, counts, iterations=60):
         values, counts, np.stack([m1, m2], 1), np.stack([w, 1.0 - w], 1),
         np.sqrt(np.maximum(var / 4.0, 0.01)), iterations,
     )  # fmt: skip
-    return np.maximum(2.0 * (ll1 - ll0), 0.0), np.abs(means[:, 1] - means[:, 0])
+    # fewer than three values: one normal as narrow as they are fits them all (no test)
+    statistic = np.where(np.count_nonzero(counts, axis=1) >= 3, 2.0 * (ll1 - ll0), 0.0)
+    return np.maximum(statistic, 0.0), np.abs(means[:, 1] - means[:, 0])
 
 
 @functools.lru_cache(maxsize=16)
@@ -194,7 +196,7 @@ def telegraph_pixels(stack, *, false_alarm=FALSE_ALARM, seed=0, adc_max=None) ->
     statistic, step = (np.concatenate(p) for p in zip(*parts))
     sigmas = np.array(_NULL_SIGMAS)
     quantiles = np.array(_null_quantiles(int(np.median(h.n)), float(false_alarm), seed))
-    sd = np.sqrt(h.var)
+    sd = np.maximum(np.sqrt(h.var), sigmas[0])  # below the grid: its first quantile
     threshold = np.interp(np.log(sd), np.log(sigmas), quantiles)
     flagged = statistic > threshold
     return TelegraphTest(

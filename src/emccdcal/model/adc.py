@@ -134,15 +134,18 @@ def fit_rounded_normal(values, counts, mu0, sigma0, max_iter=60):
     -------
     mu, sigma : ndarray, shape (P,)
         Offset and analog read noise (ADU).
-    information : ndarray, shape (P, 2, 2)
-        Expected Fisher information of (μ, σ) per frame (ADU⁻²), at the estimate.
     converged : ndarray of bool, shape (P,)
+        False also where a pixel's counts take fewer than three values: no width is
+        best there (the likelihood grows as σ → 0), and the start is returned.
     """
     from .._optimize import maximize
 
     values = np.asarray(values, dtype=float)
     counts = np.asarray(counts, dtype=float)
     start = np.column_stack([mu0, np.log(np.maximum(sigma0**2 - 1.0 / 12.0, 0.01) ** 0.5)])
+    # fewer than three values: the likelihood grows as σ → 0, no width is best
+    fitted = np.flatnonzero(np.count_nonzero(counts > 0, axis=1) >= 3)
+    values, counts = values[fitted], counts[fitted]
 
     def evaluate(rows, x):
         k, c = values[rows], counts[rows]
@@ -157,10 +160,12 @@ def fit_rounded_normal(values, counts, mu0, sigma0, max_iter=60):
 
     inf = np.full(2, np.inf)
     opt = maximize(
-        evaluate, start, lower=-inf, upper=inf, tol=1e-10, max_iter=max_iter, accept_rtol=1e-12
-    )
-    mu, sigma = opt.x[:, 0], np.exp(opt.x[:, 1])
-    return mu, sigma, information(mu, sigma), (opt.done | opt.stuck)
+        evaluate, start[fitted], lower=-inf, upper=inf, tol=1e-10, max_iter=max_iter,
+        accept_rtol=1e-12,
+    )  # fmt: skip
+    x, converged = start.copy(), np.zeros(len(start), dtype=bool)
+    x[fitted], converged[fitted] = opt.x, opt.done | opt.stuck
+    return x[:, 0], np.exp(x[:, 1]), converged
 
 
 def information(mu, sigma):

@@ -114,7 +114,11 @@ def resolve_manifest(entries: ManifestEntries) -> Manifest:
                 )
             except InputError as exc:
                 raise r.error(str(exc), a.index, a.label) from None
-    telegraph = entries.camera_kind in defaults.WITHOUT_EM_REGISTER
+    # what the files' headers say, checked before the darks are read: an error costs
+    # no reduction, and a kind the files record (not only the manifest's) is the kind
+    found: list[str] = []
+    origin, binning, camera, camera_kind = _recorded(r, entries, acqs, shape, found)
+    telegraph = camera_kind in defaults.WITHOUT_EM_REGISTER
     maps = _read_out_maps(r, acqs, shape, adc_max, hint, telegraph)
     acquisitions = [
         Acquisition(
@@ -136,15 +140,15 @@ def resolve_manifest(entries: ManifestEntries) -> Manifest:
         )
         for a, m, (n_total, _, dark_frames) in zip(acqs, maps, headers)
     ]
-    found = [
+    growth = [
         f"{entries.path}: {msg}"
         for msg in check_read_noise_growth(
             [a.em_gain_setpoint for a in acquisitions], [a.read_noise for a in acquisitions]
         )
     ]
-    for msg in found:
+    for msg in growth:
         warnings.warn(msg, ReadNoiseGrowthWarning, stacklevel=3)
-    origin, binning, camera, camera_kind = _recorded(r, entries, acquisitions, shape, found)
+    found = growth + found
     levels = tuple(dict.fromkeys(a.level for a in acquisitions if a.level is not None))
     return Manifest(
         path=entries.path,
