@@ -243,3 +243,30 @@ def multi_frame_sif(src, dst, frames):
     header = raw[: match.start()] + structure + subimage + stamps + b"0\n"
     Path(dst).write_bytes(header + frames.tobytes() + raw[offset + 4 * image :])
     return Path(dst)
+
+
+def write_ome_tiff(path, frames, *, detector_type, model, serial="S1", exposure_ms=50.0):
+    """An OME-TIFF from a writer other than Micro-Manager: no properties tag, its camera
+    only in the OME-XML, as an ``Instrument``'s ``Detector`` (``Type``, ``Model``,
+    ``SerialNumber``) that the channel's ``DetectorSettings`` name, and each plane's
+    ``ExposureTime``."""
+    import tifffile
+
+    frames = np.asarray(frames)
+    tifffile.imwrite(path, frames, ome=True, photometric="minisblack", metadata={"axes": "TYX"})
+    xml = tifffile.TiffFile(path).ome_metadata
+    head, rest = xml.split("<Image ", 1)
+    detector = (
+        f'<Instrument ID="Instrument:0"><Detector ID="Detector:0:0" Type="{detector_type}" '
+        f'Model="{model}" SerialNumber="{serial}"/></Instrument>'
+    )
+    rest = rest.replace("<LightPath/>", '<DetectorSettings ID="Detector:0:0" Binning="1x1"/>'
+                        "<LightPath/>", 1)  # fmt: skip
+    planes = "".join(
+        f'<Plane TheZ="0" TheC="0" TheT="{t}" ExposureTime="{exposure_ms:g}" '
+        'ExposureTimeUnit="ms"/>'
+        for t in range(len(frames))
+    )
+    rest = rest.replace("</Pixels>", planes + "</Pixels>", 1)
+    tifffile.tiffcomment(path, head + detector + "<Image " + rest)
+    return Path(path)

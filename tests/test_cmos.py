@@ -331,6 +331,57 @@ def test_spe_files_record_their_kind_and_no_em_gain_without_a_register(tmp_path,
     )  # fmt: skip
 
 
+@pytest.mark.parametrize(
+    "detector_type, model, kind",
+    [
+        ("CMOS", "C15550-20UP", "qcmos"),  # the model says more than the type
+        ("CMOS", "Camera 7", "scmos"),
+        ("CCD", "Camera 7", "ccd"),
+        ("EMCCD", "Camera 7", "emccd"),
+        ("IntensifiedCCD", "Camera 7", "iccd"),
+    ],
+)
+def test_an_ome_tiff_without_micro_manager_records_its_kind_from_its_detector(
+    tmp_path, detector_type, model, kind
+):
+    """An OME-TIFF of another writer (Bio-Formats, a vendor's export) carries no
+    Micro-Manager properties; its OME-XML's detector says the camera: the model where it
+    is one known, else the detector's type. A folder of them named as Huang et al. name
+    them scans with no set-point asked (an EMCCD's would need one; an intensified
+    camera's is refused)."""
+    from camera_files import write_ome_tiff
+
+    _huang_folder_of(
+        tmp_path / "session", ".ome.tif", (12, 8, 8), 3, kind, None,
+        lambda path, frames: write_ome_tiff(
+            path, frames.astype(np.uint16), detector_type=detector_type, model=model
+        ),
+    )  # fmt: skip
+
+
+def test_a_dark_pixel_of_constant_counts_is_refused_in_one_line(tmp_path):
+    """A pixel whose dark counts never change has no read noise the dark can measure:
+    the manifest is refused, naming the file and the pixel (a rounded normal as narrow
+    as one count fitted it, and its width, 0.037 ADU, was a number of the optimizer's
+    steps, not of the camera)."""
+    from camera_files import write_ome_tiff
+
+    rng = np.random.default_rng(5)
+    folder = tmp_path / "session"
+    folder.mkdir()
+    for name, level in (("dark", 0.0), ("int1", 50.0), ("int2", 200.0)):
+        frames = np.rint(100 + level + 2 * rng.standard_normal((50, 4, 4)))
+        if name == "dark":
+            frames[:, 2, 3] = 101
+        write_ome_tiff(folder / f"{name}.ome.tif", frames.astype(np.uint16),
+                       detector_type="CMOS", model="Camera 7")  # fmt: skip
+    manifest = emccdcal.scan(folder)
+    with pytest.raises(
+        ManifestError, match=r"dark\.ome\.tif': dark stack gives read noise 0.0 at pixel \(2, 3\)"
+    ):
+        emccdcal.read_manifest(manifest)
+
+
 def _huang_folder_of(folder, suffix, shape, seed, kind, gain, write):
     """``dark``, ``int1`` and ``int2`` stacks of ``shape`` written by ``write(path,
     frames)`` into ``folder``: each records the camera's ``kind`` and ``gain`` (its EM

@@ -22,6 +22,7 @@ import numpy as np
 import tifffile
 
 from .._util import one_line
+from ..defaults import WITHOUT_EM_REGISTER
 from ..errors import InputError, InputWarning
 from .extent import check_data_fits
 from .settings import CameraSettings
@@ -49,11 +50,25 @@ def header(path: Path):
 
 
 def settings(path: Path) -> CameraSettings:
-    """The camera settings a Micro-Manager (or OME) TIFF records; none for a plain TIFF."""
-    from . import micromanager
+    """The camera settings a Micro-Manager or OME TIFF records; none for a plain TIFF.
+    Micro-Manager's properties first; what they leave unsaid, the OME-XML's detector."""
+    import dataclasses
+
+    from . import micromanager, ome
 
     with _tifffile_log(path), tifffile.TiffFile(path) as tif:
-        return micromanager.stack_settings(path, tif)
+        recorded = micromanager.stack_settings(path, tif)
+        described = ome.settings_of(tif.ome_metadata) if tif.is_ome else CameraSettings()
+    more = {
+        name: getattr(described, name)
+        for name in CameraSettings.names()
+        if getattr(recorded, name) is None and getattr(described, name) is not None
+    }
+    if not more:
+        return recorded
+    if more.get("camera_kind") in WITHOUT_EM_REGISTER:  # its gain field is no EM set-point
+        more["em_gain_setpoint"] = None
+    return dataclasses.replace(recorded, **more)
 
 
 def open_stack(path: Path) -> np.ndarray:
