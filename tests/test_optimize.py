@@ -250,8 +250,6 @@ ITERATIONS = {
     "constrained refit, whose own warm starts the steps keep",
     ("fit/posterior.py", "_sample_pixel"): "Markov chains run on until they converge",
     ("beads/validation/metric.py", "blinking_level"): "EM iterations of a two-level mixture",
-    ("data/telegraph.py", "_fit"): "EM iterations of a mixture of rounded normals (grouped "
-    "data), each pixel until it gains under a tolerance, at most a fixed number",
     ("beads/cots_bias.py", "_pseudo_true"): "a 2-D system per frame, halved steps keeping v* > 0",
     (
         "beads/cots.py",
