@@ -383,34 +383,35 @@ def _ladder(top) -> np.ndarray:
     return LADDER_FIRST_E * LADDER_RATIO ** np.arange(n)
 
 
-def _climb(design, targets, target, max_frames):
-    """The cheapest ladder for a resolved comb: for each height, every rung with at
-    least :data:`LADDER_FRAMES` frames and those below the top with the frames their
-    next rung needs (:data:`LADDER_Z`), the greedy allocation on top of that; like
-    :func:`plan`'s choice, ``(key, 0, frames, dark)``."""
+def _ladder_floors(design, targets):
+    """The least frames (A,) of each height of a resolved comb's ladder, lowest first:
+    every rung up to the top at least :data:`LADDER_FRAMES`, those below it the frames
+    that put φ within its next rung's ripples (:data:`LADDER_Z`), the rungs above none."""
     rungs = design.light[0]
     A = rungs.size
     # φ's relative SE from one frame of each rung alone (its darks many)
     se = _relative_se(design.covariance(100.0 * np.eye(A), np.full(A, 1e6), level=0)[:, 0],
                       targets)  # fmt: skip
     one_frame = np.nanmax(se, axis=1) / 100.0 * 10.0
-    needs = np.ceil((LADDER_Z * rungs[1:] * one_frame[:-1]) ** 2)
-    best, rises = None, 0
+    needs = np.maximum(np.ceil((LADDER_Z * rungs[1:] * one_frame[:-1]) ** 2), LADDER_FRAMES)
     for height in range(1, A + 1):
-        floor = np.zeros(A)
-        floor[: height - 1] = np.maximum(needs[: height - 1], LADDER_FRAMES)
-        floor[height - 1] = LADDER_FRAMES
-        frames, dark, worst = _allocate(
-            design, 0, targets, target, max_frames, 1, floor=floor, allowed=floor > 0
-        )
-        key = (worst > target, frames.sum() + dark if worst <= target else worst)
+        yield np.r_[needs[: height - 1], LADDER_FRAMES, np.zeros(A - height)]
+
+
+def _cheapest(allocations, target, dark_cost):
+    """The cheapest of ``(p, frames, dark, worst SE)`` allocations, tried in order until
+    the cost has risen twice in a row: ``(p, frames, dark)``."""
+    best, rises = None, 0
+    for p, frames, dark, worst in allocations:
+        total = frames.sum() + dark_cost * dark
+        key = (worst > target, total if worst <= target else worst)
         if best is None or key < best[0]:
-            best, rises = (key, 0, frames, dark), 0
+            best, rises = (key, p, frames, dark), 0
         else:
             rises += 1
             if rises == 2:
                 break
-    return best
+    return best[1:]
 
 
 def check_camera_kind(kind, method) -> None:
@@ -578,20 +579,18 @@ def plan(
         design = _Design(method, lab_setpoints, gains, light, camera, model)
     targets = _targets(design)
     dark_cost = len(sps) if method == "gs" else 1
-    # From the brightest light down, until the cost has risen twice in a row (it falls
-    # with the light per frame wherever the ADC is not in the way).
-    best, rises = (_climb(design, targets, target, max_frames) if comb else None), 0
-    for p in range(light.shape[0] - 1 if best is None else -1, -1, -1):
-        frames, dark, worst = _allocate(design, p, targets, target, max_frames, dark_cost)
-        total = frames.sum() + dark_cost * dark
-        key = (worst > target, total if worst <= target else worst)
-        if best is None or key < best[0]:
-            best, rises = (key, p, frames, dark), 0
-        else:
-            rises += 1
-            if rises == 2:
-                break
-    _, p, frames, dark = best
+    if comb:  # the ladder's heights, lowest first
+        tries = (
+            (0, *_allocate(design, 0, targets, target, max_frames, 1, floor, floor > 0))
+            for floor in _ladder_floors(design, targets)
+        )
+    else:  # from the brightest light down: the cost falls with the light per frame
+        # wherever the ADC is not in the way
+        tries = (
+            (p, *_allocate(design, p, targets, target, max_frames, dark_cost))
+            for p in range(light.shape[0] - 1, -1, -1)
+        )
+    p, frames, dark = _cheapest(tries, target, dark_cost)
     frames = np.array([_nice(n) if n > 0 else 0 for n in frames])
     if read_noise_target_se is not None:
         needed = darks_for_read_noise(
