@@ -246,15 +246,16 @@ def _relative_se(cov, idx):
 
 def _allocate(design, p, targets, target, max_frames, dark_cost, floor=None, allowed=None):
     """Greedy allocation for candidate light ``p``: frames (A,), dark (int), worst SE.
-    ``floor`` (A,): the least frames of each stack (by default of every stack of a gain
-    series, of an intensity series' brightest level); ``allowed`` (A,): the stacks that
-    may have frames at all (by default every one)."""
+    ``floor`` (A + 1,): the least frames of each stack, then of the darks (by default of
+    every stack of a gain series, of an intensity series' brightest level, and
+    _FIRST_FRAMES darks); ``allowed`` (A,): the stacks that may have frames at all (by
+    default every one)."""
     A = design.info.shape[1]
     if floor is None:
-        floor = np.full(A, float(_FIRST_FRAMES))
+        floor = np.full(A + 1, float(_FIRST_FRAMES))
         if design.method != "gs":  # an intensity series starts at its brightest level
             floor[: A - 1] = 0.0
-    state = np.r_[floor, _FIRST_FRAMES].astype(float)  # light frames of each, then darks
+    state = np.asarray(floor, dtype=float)  # light frames of each stack, then darks
     floor = state.copy()
     cost = np.r_[np.ones(A), dark_cost]
     cap = np.full(A + 1, np.inf if max_frames is None else float(max_frames))
@@ -369,11 +370,14 @@ LADDER_RATIO = 3.0
 #: (relative) before the next rung of E e⁻, whose ripples are 1/E apart: the fit climbs
 #: from the dimmest level's basins (emccdcal.fit.comb) and stays on the true ripple.
 LADDER_Z = 3.0
-#: The least frames of a rung: fewer, and the fit's errors exceed the likelihood's
-#: curvature (a simulated qCMOS, 0.27 e⁻, rungs 0.5–13.5 e⁻, 200 px: at 50 frames a
-#: rung the errors were 4–8 times the prediction, at 100 the intervals covered 0.915,
-#: at 200 0.945–0.965 with the SE within 10 % of the prediction; docs/cmos.md).
+#: The least frames of a rung, rungs of a ladder and dark frames: fewer, and the fit's
+#: errors exceed the likelihood's curvature (a simulated qCMOS, 0.27 e⁻, docs/cmos.md:
+#: at 50 frames a rung they were 4–8 times the prediction, at 100 the intervals covered
+#: 0.915; with 50 darks, or a ladder ending at 4.5 e⁻, some pixels ended on an alias of
+#: φ, z up to 22; at 200 frames, 400 darks and four rungs 0.948, RMS z 1.01, |z| ≤ 3.7).
 LADDER_FRAMES = 200
+LADDER_RUNGS = 4
+LADDER_DARKS = 400
 
 
 def _ladder(top) -> np.ndarray:
@@ -384,9 +388,10 @@ def _ladder(top) -> np.ndarray:
 
 
 def _ladder_floors(design, targets):
-    """The least frames (A,) of each height of a resolved comb's ladder, lowest first:
-    every rung up to the top at least :data:`LADDER_FRAMES`, those below it the frames
-    that put φ within its next rung's ripples (:data:`LADDER_Z`), the rungs above none."""
+    """The least frames (A + 1,) of each height of a resolved comb's ladder, lowest
+    first from :data:`LADDER_RUNGS` rungs: every rung up to the top at least
+    :data:`LADDER_FRAMES`, those below it the frames that put φ within its next rung's
+    ripples (:data:`LADDER_Z`), the rungs above none; :data:`LADDER_DARKS` darks."""
     rungs = design.light[0]
     A = rungs.size
     # φ's relative SE from one frame of each rung alone (its darks many)
@@ -394,8 +399,8 @@ def _ladder_floors(design, targets):
                       targets)  # fmt: skip
     one_frame = np.nanmax(se, axis=1) / 100.0 * 10.0
     needs = np.maximum(np.ceil((LADDER_Z * rungs[1:] * one_frame[:-1]) ** 2), LADDER_FRAMES)
-    for height in range(1, A + 1):
-        yield np.r_[needs[: height - 1], LADDER_FRAMES, np.zeros(A - height)]
+    for height in range(min(LADDER_RUNGS, A), A + 1):
+        yield np.r_[needs[: height - 1], LADDER_FRAMES, np.zeros(A - height), LADDER_DARKS]
 
 
 def _cheapest(allocations, target, dark_cost):
@@ -581,7 +586,7 @@ def plan(
     dark_cost = len(sps) if method == "gs" else 1
     if comb:  # the ladder's heights, lowest first
         tries = (
-            (0, *_allocate(design, 0, targets, target, max_frames, 1, floor, floor > 0))
+            (0, *_allocate(design, 0, targets, target, max_frames, 1, floor, floor[:-1] > 0))
             for floor in _ladder_floors(design, targets)
         )
     else:  # from the brightest light down: the cost falls with the light per frame
