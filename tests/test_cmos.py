@@ -163,6 +163,24 @@ def test_telegraph_pixels_are_found_at_the_stated_false_alarm_rate(kind, read_no
     assert found[~truth].mean() <= 0.02
 
 
+def test_the_telegraph_tests_table_is_what_its_simulation_gives():
+    """The null quantiles shipped in a table (benchmarks/telegraph_null_table.py) are
+    that script's simulation, each cell from its own seed: one recomputed alone equals
+    its cell to the last digit, and the test reads the table's row at its frames."""
+    from emccdcal.data import _telegraph_null as table
+    from emccdcal.data import telegraph
+
+    assert table.SIGMAS == telegraph._NULL_SIGMAS
+    i, j = 2, 1
+    rng = np.random.default_rng([table.SEED, i, j])
+    again = telegraph._null_quantile(
+        table.FRAMES[i], table.SIGMAS[j], table.FALSE_ALARM, rng, table.PIXELS
+    )
+    assert again == table.QUANTILES[i][j]
+    telegraph._null_quantiles.cache_clear()
+    assert telegraph._null_quantiles(table.FRAMES[i], 0.01, 0) == table.QUANTILES[i]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("states", [3, 4])
 def test_telegraph_pixels_of_more_than_two_states_are_found_too(states):

@@ -12,13 +12,15 @@ the likelihood ratio on the pixel's histogram: one normal fitted as the dark's m
 fitted to a few counts of a normal's tail would make one-normal pixels' ratios large,
 and a rare state far off still gains at the bound). The ratio's distribution without a second state is
 not χ² (the mixture's weight sits on its boundary), and hardly depends on the read noise
-or the frames once the rounding is modelled (its 99 % quantile 7.7–9.4 from 0.5 to 4 ADU
-and 500 to 20 000 frames, 2.5–5.2 at 0.3 ADU; a model of densities at the integers put
-it at 25 to 1900 below 1 ADU, which left a fifth of the one-normal pixels of a 0.3 e⁻
-sCMOS flagged): its quantile is found by simulating normal darks of the same number of
-frames and a read noise like the pixels' (seeded: the same data give the same flags),
-and a pixel is flagged where its ratio exceeds the quantile of the stated false-alarm
-rate.
+or the frames once the rounding is modelled (its 99 % quantile 8.4–9.8 from 0.8 to 4
+ADU and 100 to 50 000 frames, 0.8–5.9 at 0.3 ADU; a model of densities at the integers
+put it at 25 to 1900 below 1 ADU, which left a fifth of the one-normal pixels of a
+0.3 e⁻ sCMOS flagged): its quantile is that of normal darks of the same number of
+frames and a read noise like the pixels', from a table simulated once at the default
+rate (:mod:`emccdcal.data._telegraph_null`, written by
+``benchmarks/telegraph_null_table.py``), else simulated when asked (seeded: the same
+data give the same flags), and a pixel is flagged where its ratio exceeds the quantile
+of the stated false-alarm rate.
 """
 
 from __future__ import annotations
@@ -29,13 +31,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..model import adc
+from . import _telegraph_null as table
 from . import stats
 
 __all__ = ["TelegraphTest", "telegraph_pixels", "FALSE_ALARM"]
 
 #: Default fraction of one-normal pixels flagged by chance.
 FALSE_ALARM = 0.01
-#: Null simulations per read-noise value (the quantile's own error: ~1e-3 at 1 %).
+#: Null simulations per read-noise value where the table does not serve (the rate's
+#: own error: ~2e-3 at 1 %).
 _NULL_PIXELS = 2000
 #: Pixels tested at a time (a fit holds about 20 arrays of pixels × counts).
 _BLOCK = 4096
@@ -129,20 +133,50 @@ def _statistic(values, counts, iterations=60):
 
 @functools.lru_cache(maxsize=16)
 def _null_quantiles(frames, false_alarm, seed) -> tuple:
-    """The null quantile at each of :data:`_NULL_SIGMAS`, simulated from ``seed``: the
-    same for the same arguments, so kept (a session's calibrations share their darks'
-    frame count)."""
+    """The null quantile at each of :data:`_NULL_SIGMAS`: the shipped table's
+    (:mod:`emccdcal.data._telegraph_null`, interpolated in log frames) at its rate,
+    within its frames and with seed 0; else simulated from ``seed``, the same for the
+    same arguments, so kept (a session's calibrations share their darks' frames)."""
+    if (
+        false_alarm == table.FALSE_ALARM
+        and seed == 0
+        and table.FRAMES[0] <= frames <= table.FRAMES[-1]
+    ):
+        at = np.log(frames)
+        return tuple(
+            float(np.interp(at, np.log(table.FRAMES), column))
+            for column in np.array(table.QUANTILES).T
+        )
     rng = np.random.default_rng(seed)
     return tuple(_null_quantile(frames, s, false_alarm, rng) for s in _NULL_SIGMAS)
 
 
-def _null_quantile(frames, sigma, false_alarm, rng):
+def _null_quantile(frames, sigma, false_alarm, rng, pixels=_NULL_PIXELS):
     """The statistic's (1 − false_alarm) quantile for normal darks of ``frames`` frames
-    and read noise ``sigma`` (ADU), simulated."""
-    offset = 100.0 + rng.random(_NULL_PIXELS)
-    counts = np.rint(offset + sigma * rng.standard_normal((frames, _NULL_PIXELS)))
-    h = stats.histograms(counts.reshape(frames, 1, -1).astype(np.int64))
-    return float(np.quantile(_statistic(h.values.astype(float), h.counts)[0], 1.0 - false_alarm))
+    and read noise ``sigma`` (ADU), simulated on ``pixels`` pixels."""
+    values, counts = _null_histograms(frames, sigma, pixels, rng)
+    parts = [
+        _statistic(values[rows], counts[rows])[0]
+        for rows in np.array_split(np.arange(pixels), -(-pixels // _BLOCK))
+    ]
+    return float(np.quantile(np.concatenate(parts), 1.0 - false_alarm))
+
+
+def _null_histograms(frames, sigma, pixels, rng):
+    """Histograms (values, counts), as :func:`emccdcal.data.stats.histograms` gives
+    them, of ``frames`` rounded normal counts of read noise ``sigma`` (ADU) at each of
+    ``pixels`` pixels of offsets uniform within a count: drawn as multinomials of the
+    rounded normal's probabilities, as the counts' histograms are distributed (memory
+    and time independent of the frames)."""
+    offset = 100.0 + rng.random(pixels)
+    half = int(np.ceil(8.0 * sigma + 2.0))  # the mass beyond: below 1e-15
+    k = np.floor(offset)[:, None] + np.arange(-half, half + 1)[None, :]
+    p = adc.rounded_normal(k, offset[:, None], sigma)
+    counts = rng.multinomial(frames, p / p.sum(axis=1, keepdims=True)).astype(float)
+    # each pixel's observed values first, in order; zero counts after
+    seen = counts > 0
+    order = np.argsort(~seen, axis=1, kind="stable")[:, : int(seen.sum(axis=1).max())]
+    return np.take_along_axis(k, order, axis=1), np.take_along_axis(counts, order, axis=1)
 
 
 def telegraph_pixels(stack, *, false_alarm=FALSE_ALARM, seed=0, adc_max=None) -> TelegraphTest:
@@ -155,7 +189,8 @@ def telegraph_pixels(stack, *, false_alarm=FALSE_ALARM, seed=0, adc_max=None) ->
     false_alarm : float
         Fraction of one-normal pixels flagged by chance (default 1 %).
     seed : int
-        Seed of the null simulation.
+        Seed of the null simulation, where the table does not serve (another
+        ``false_alarm``, frames outside 100–50 000) or a seed other than 0 asks for one.
     adc_max : int, optional
         Counts at or above it are left out.
 
