@@ -1,5 +1,5 @@
 """The random-telegraph test's null quantiles (written by
-benchmarks/telegraph_null_table.py on 2026-11-30 at 1290e4d; do not edit).
+benchmarks/telegraph_null_table.py on 2026-11-30 at 751de73; do not edit).
 
 QUANTILES[i][j]: the (1 − FALSE_ALARM) quantile of twice the log-likelihood ratio of two
 offset states to one (``emccdcal.data.telegraph``) over PIXELS one-normal pixels of
@@ -10,9 +10,9 @@ count; the cell's draws seeded by ``numpy.random.default_rng([SEED, i, j])``.
 FALSE_ALARM = 0.01
 PIXELS = 20000
 SEED = 2026
+# fmt: off
 FRAMES = (100, 150, 200, 300, 500, 700, 1000, 1500, 2000, 3000, 5000, 7000, 10000, 15000, 20000, 30000, 50000)
 SIGMAS = (0.3, 0.5, 0.8, 1.2, 2.0, 4.0)
-# fmt: off
 QUANTILES = (
     (0.7585887245858487, 6.565788977478746, 9.44006378506822, 9.555906221952881, 9.62727582985963, 9.770527904450887),
     (1.157959990093957, 6.779012920580426, 9.30599772279172, 9.341357880215037, 9.402227488547558, 9.550733660415899),
