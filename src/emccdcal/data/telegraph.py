@@ -105,6 +105,15 @@ def _fit_two(values, counts, start, iterations):
     return opt.objective, opt.x
 
 
+def _statistics(values, counts):
+    """:func:`_statistic` of histograms (P, K), :data:`_BLOCK` pixels at a time (a fit's
+    arrays are pixels × counts large): the ratios and the states' distances (P,)."""
+    blocks = np.array_split(np.arange(values.shape[0]), -(-values.shape[0] // _BLOCK))
+    parts = [_statistic(values[rows], counts[rows]) for rows in blocks]
+    statistic, step = (np.concatenate(p) for p in zip(*parts))
+    return statistic, step
+
+
 def _statistic(values, counts, iterations=60):
     """Twice the log-likelihood ratio of a two-state mixture to one rounded normal per
     pixel, and the states' distance (ADU), from histograms (P, K)."""
@@ -154,12 +163,8 @@ def _null_quantiles(frames, false_alarm, seed) -> tuple:
 def _null_quantile(frames, sigma, false_alarm, rng, pixels=_NULL_PIXELS):
     """The statistic's (1 − false_alarm) quantile for normal darks of ``frames`` frames
     and read noise ``sigma`` (ADU), simulated on ``pixels`` pixels."""
-    values, counts = _null_histograms(frames, sigma, pixels, rng)
-    parts = [
-        _statistic(values[rows], counts[rows])[0]
-        for rows in np.array_split(np.arange(pixels), -(-pixels // _BLOCK))
-    ]
-    return float(np.quantile(np.concatenate(parts), 1.0 - false_alarm))
+    statistic = _statistics(*_null_histograms(frames, sigma, pixels, rng))[0]
+    return float(np.quantile(statistic, 1.0 - false_alarm))
 
 
 def _null_histograms(frames, sigma, pixels, rng):
@@ -207,13 +212,7 @@ def telegraph_pixels(stack, *, false_alarm=FALSE_ALARM, seed=0, adc_max=None) ->
     [True, False, False, False]
     """
     h = stats.histograms(stack, adc_max=adc_max)
-    values = h.values.astype(float)
-    # in blocks of pixels: the fits' arrays are (pixels, states, counts) large
-    parts = [
-        _statistic(values[rows], h.counts[rows])
-        for rows in np.array_split(np.arange(values.shape[0]), -(-values.shape[0] // _BLOCK))
-    ]
-    statistic, step = (np.concatenate(p) for p in zip(*parts))
+    statistic, step = _statistics(h.values.astype(float), h.counts)
     sigmas = np.array(_NULL_SIGMAS)
     quantiles = np.array(_null_quantiles(int(np.median(h.n)), float(false_alarm), seed))
     sd = np.maximum(np.sqrt(h.var), sigmas[0])  # below the grid: its first quantile
