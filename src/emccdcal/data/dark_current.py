@@ -21,7 +21,7 @@ from scipy import special
 
 from ..defaults import DEFAULT_K
 from .dark import map_variances, maps_from_dark
-from .quality.drift import _MAD_TO_SD
+from .quality.drift import robust_spread
 
 
 @dataclass(frozen=True)
@@ -137,12 +137,7 @@ def hot_pixels(rate, rate_se, k=DEFAULT_K) -> tuple[np.ndarray, float] | None:
     finite = np.isfinite(rate)
     if finite.sum() < 5:
         return None
-    values = rate[finite]
-    median = float(np.median(values))
-    spread = max(
-        _MAD_TO_SD * float(np.median(np.abs(values - median))),
-        float(np.nanmedian(np.where(finite, rate_se, np.nan))),
-    )
+    median, spread = robust_spread(rate[finite], float(np.nanmedian(rate_se[finite])))
     threshold = median + k * spread
     with np.errstate(invalid="ignore"):
         return finite & (rate > threshold), threshold

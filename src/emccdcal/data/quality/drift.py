@@ -44,6 +44,14 @@ def _pixels(mask: np.ndarray) -> list[list[int]]:
     return [[int(r), int(c)] for r, c in rc]
 
 
+def robust_spread(values, floor: float = 0.0) -> tuple[float, float]:
+    """The median of ``values`` and their robust SD (1.4826 × the median absolute
+    deviation), at least ``floor``: the yardstick hot and dead pixels are measured by
+    (a population of near-equal pixels is not all outliers by its noise)."""
+    median = float(np.median(values))
+    return median, max(_MAD_TO_SD * float(np.median(np.abs(values - median))), floor)
+
+
 def _has_result_object(func) -> bool:
     """Whether a statsmodels test takes ``result_object`` (0.15 warns when it is not given)."""
     import inspect

@@ -16,10 +16,10 @@ from .drift import (
     DEFAULT_K,
     DRIFT_ALPHA,
     MIN_FRAMES,
-    _MAD_TO_SD,
     _MIN_PIXELS_DEFECTS,
     _pixels,
     drift_test,
+    robust_spread,
     stationarity,
 )
 
@@ -307,10 +307,7 @@ def _defects(mean, sd, n_frames, offset, k) -> dict:
     }
     if mean.size < _MIN_PIXELS_DEFECTS:
         return out
-    med = float(np.median(mean))
-    mad_sd = _MAD_TO_SD * float(np.median(np.abs(mean - med)))
-    floor = float(np.median(sd)) / math.sqrt(n_frames)
-    scale = max(mad_sd, floor)
+    med, scale = robust_spread(mean, float(np.median(sd)) / math.sqrt(n_frames))
     out.update(tested=True, robust_sd=scale)
     if scale > 0:
         z = (mean - med) / scale
