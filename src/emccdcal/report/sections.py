@@ -17,6 +17,8 @@ from .. import __version__, result
 from .._output import file_sha256
 from ..beads.validation import data_checks
 from ..data import quality
+from ..data.telegraph import FALSE_ALARM
+from ..defaults import DEFAULT_K
 from ..result import format_setpoint
 from .figures.common import _estimated_phi
 
@@ -81,12 +83,12 @@ def _row(name, unit, st):
 #: The per-pixel flags a result may hold: what each means and what follows from it.
 _FLAGS = {
     "telegraph": (
-        "Random-telegraph pixels (two or more offset states in the dark frames, tested at a 1 % "
-        "false-alarm rate)",
+        "Random-telegraph pixels (two or more offset states in the dark frames, tested at a "
+        f"{100 * FALSE_ALARM:g} % false-alarm rate)",
         "their offset, read noise and φ are doubtful",
     ),
     "hot": (
-        "Hot pixels (a dark current more than five robust SDs above the median pixel's)",
+        f"Hot pixels (a dark current more than {DEFAULT_K:g} robust SDs above the median pixel's)",
         "their dark signal adds to every frame's",
     ),
 }
