@@ -212,10 +212,13 @@ def test_a_calibration_marks_its_telegraph_pixels(tmp_path):
     from emccdcal.napari._layers import result_layers
 
     layer = {kw["name"]: data for data, kw, _ in result_layers(ds)}["telegraph pixels"]
-    assert np.array_equal(layer == 1, flags & ds.converged.values.astype(bool))
+    assert np.array_equal(layer == 1, flags)
     from emccdcal.report.sections import _flags_html
 
-    assert f"{int(flags.sum())} of 64" in _flags_html(ds)[0]
+    assert any(
+        n.startswith("<p class=note>Random-telegraph") and f"{int(flags.sum())} of 64" in n
+        for n in _flags_html(ds)
+    )
 
 
 @pytest.mark.slow
@@ -377,22 +380,66 @@ def test_an_ome_tiff_without_micro_manager_records_its_kind_from_its_detector(
     )  # fmt: skip
 
 
-def test_a_dark_pixel_of_constant_counts_is_refused_in_one_line(tmp_path):
-    """A pixel whose dark counts never change has no read noise the dark can measure:
-    the manifest is refused, naming the file and the pixel (a rounded normal as narrow
-    as one count fitted it, and its width, 0.037 ADU, was a number of the optimizer's
-    steps, not of the camera)."""
-    from camera_files import write_ome_tiff
+def test_a_stuck_dark_pixel_is_left_out_and_marked_and_a_constant_dark_refused(tmp_path):
+    """A pixel whose dark counts never change (dead, or stuck at one value) has no read
+    noise the dark can measure: it is left out of the fit (NaN, not converged) with one
+    warning naming it, marked ``stuck`` in the result, named in the report, shown in
+    napari and carried as a mask by the OME-TIFF export, and the other pixels are fitted
+    as without it. (Until 2026-11-30 it refused the whole manifest; before that a rounded
+    normal as narrow as one count fitted it: 0.037 ADU, a number of the optimizer's.) A
+    dark constant at every pixel is no dark: refused in one line naming the file."""
+    import shutil
+    import xml.etree.ElementTree as ET
 
-    def write(path, frames):
-        if path.name.startswith("dark"):
-            frames[:, 2, 3] = 101
-        write_ome_tiff(path, frames.astype(np.uint16), detector_type="CMOS", model="Camera 7")
+    from emccdcal.errors import LeftOutWarning
+    from emccdcal.napari._layers import result_layers
+    from emccdcal.report.sections import _flags_html
 
-    with pytest.raises(
-        ManifestError, match=r"dark\.ome\.tif': dark stack gives read noise 0.0 at pixel \(2, 3\)"
+    sim = simulate_cmos_series(
+        tmp_path / "clean", kind="scmos", rows=4, cols=4, frames=300, dark_frames=300,
+        seed=12, progress=False,
+    )  # fmt: skip
+    reference = emccdcal.calibrate(sim.manifest, progress=False)
+    folder = tmp_path / "stuck"
+    shutil.copytree(tmp_path / "clean", folder)
+    dark = tifffile.imread(folder / "dark.tif")
+    dark[:, 2, 3] = dark[0, 2, 3]
+    tifffile.imwrite(folder / "dark.tif", dark)
+    with pytest.warns(
+        LeftOutWarning, match=r"1 of 16 pixel.*dark frames that never change.*\(2, 3\)"
     ):
-        _huang_folder_of(tmp_path / "session", ".ome.tif", (50, 4, 4), 5, "scmos", None, write)
+        ds = emccdcal.calibrate(folder / "manifest.toml", progress=False)
+    stuck = np.zeros((4, 4), dtype=np.int8)
+    stuck[2, 3] = 1
+    np.testing.assert_array_equal(ds.stuck.values, stuck)
+    assert not reference.stuck.values.any()
+    assert not ds.converged.values[2, 3] and np.isnan(ds.e_per_adu.values[2, 3])
+    others = stuck == 0
+    np.testing.assert_array_equal(ds.converged.values[others], reference.converged.values[others])
+    np.testing.assert_allclose(
+        ds.e_per_adu.values[others], reference.e_per_adu.values[others], rtol=1e-6
+    )
+    layer = {kw["name"]: data for data, kw, _ in result_layers(ds)}["stuck pixels"]
+    np.testing.assert_array_equal(layer, stuck)
+    assert any(
+        "Stuck pixels" in note and "1 of 16" in note and "(2, 3)" in note
+        for note in _flags_html(ds)
+    )
+    (path,) = emccdcal.export_calibration(ds, "ome-tiff", tmp_path / "ome")
+    with tifffile.TiffFile(path) as tif:
+        names = [
+            c.get("Name")
+            for c in ET.fromstring(tif.ome_metadata).iter()
+            if c.tag.endswith("Channel")
+        ]
+        np.testing.assert_array_equal(tif.asarray()[names.index("stuck")], stuck)
+    assert emccdcal.load_calibration(ds).stuck[2, 3]
+    dark[:] = 101  # a dark constant at every pixel
+    tifffile.imwrite(folder / "dark.tif", dark)
+    with pytest.raises(
+        ManifestError, match=r"dark\.tif': dark stack's counts never change at any pixel"
+    ):
+        emccdcal.read_manifest(folder / "manifest.toml")
 
 
 def _huang_folder_of(folder, suffix, shape, seed, kind, gain, write):

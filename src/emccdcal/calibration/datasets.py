@@ -101,7 +101,8 @@ def _warn_saturated_and_unusable(manifest, used, arrays):
         where = ", ".join(f"({p // cols}, {p % cols})" for p in bad[:5])
         warnings.warn(
             f"{bad.size} of {rows * cols} pixel(s) have fewer than 2 usable frames, or frames "
-            f"that never change, in some acquisition (saturated, dead or stuck): {where}"
+            "or dark frames that never change, in some acquisition (saturated, dead or "
+            f"stuck): {where}"
             f"{', ...' if bad.size > 5 else ''}; they are left out (NaN, converged = False), "
             "and the other pixels' results stand",
             stacklevel=3,
@@ -233,8 +234,18 @@ def _warn_fit_problems(method, used, arrays, model) -> None:
 
 def _dark_variables(used, per_acq_dim, shape) -> dict:
     """What the dark stacks showed besides the maps: the multiplied events' rate of the
-    darks fitted with them, and the random-telegraph pixels of 1× darks tested for them."""
+    darks fitted with them, the stuck pixels of every dark stack and the random-telegraph
+    pixels of 1× darks tested for them."""
     out: dict[str, tuple] = {}
+    stuck = [a.dark_stuck for a in used if getattr(a, "dark_stuck", None) is not None]
+    if stuck:
+        out["stuck"] = (
+            ("row", "col"),
+            np.any(stuck, axis=0).astype(np.int8),
+            "1",
+            "1 where a dark stack's counts never change (a dead or stuck pixel: no read "
+            "noise to measure, left out of the fit)",
+        )
     flags = [a.dark_telegraph for a in used if getattr(a, "dark_telegraph", None) is not None]
     if flags:
         out["telegraph"] = (

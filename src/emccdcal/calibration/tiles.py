@@ -108,7 +108,8 @@ def run_tile(job: TileJob, progress=None) -> dict:
     -------
     dict of ndarray
         Per pixel of the tile (C order), pixels first: ``usable`` (every acquisition has
-        two or more unsaturated frames that are not all equal), ``n_saturated`` (P, A);
+        two or more unsaturated frames that are not all equal, and a read noise above 0:
+        a dark that changes), ``n_saturated`` (P, A);
         for the mean–variance methods the moments ``mean``, ``var``, ``n`` (P, A); for the
         likelihood methods the estimates (``photoelectrons``, ``em_gain``, ``e_per_adu``
         with ``_se`` and bounds, (P, A)), ``loglik``, ``gof_pvalue`` (P, A),
@@ -142,6 +143,7 @@ def run_tile(job: TileJob, progress=None) -> dict:
         for name, value in (q or {}).items():
             out[f"{_QUALITY}{a}_{name}"] = value
     usable = np.all([u for _, (u, _), _ in read_back], axis=0)
+    usable &= np.all(job.read_noise > 0, axis=0)  # a dark that never changes: stuck
     if job.e_per_adu is not None:  # a chained φ is NaN where its own fit failed
         usable &= np.isfinite(job.e_per_adu)
     out["usable"] = usable

@@ -491,7 +491,8 @@ def map_variances(offset, read_noise, dark_frames, poisson_normal):
     offset, read_noise = np.asarray(offset, dtype=float), np.asarray(read_noise, dtype=float)
     sigma2 = read_noise**2
     offset_var, read_noise_var = sigma2 / dark_frames, sigma2 / (2.0 * (dark_frames - 1))
-    rounding = adc.rounds(poisson_normal, read_noise) & np.isfinite(offset)
+    # (a stuck pixel's read noise 0 has no information to invert: its maps are exact)
+    rounding = adc.rounds(poisson_normal, read_noise) & np.isfinite(offset) & (read_noise > 0)
     if rounding.any():
         cov = np.linalg.inv(adc.information(offset[rounding], read_noise[rounding]))
         offset_var[rounding] = cov[:, 0, 0] / dark_frames

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..result.flags import PIXEL_FLAGS
+
 __all__ = ["result_layers"]
 
 
@@ -13,9 +15,10 @@ def result_layers(ds, *, prefix: str = "") -> list[tuple]:
     φ (e-/ADU), the true gain at each multiplied set-point, the intensity (e-), the
     offset and read noise (ADU) and goodness-of-fit p-value of the acquisitions (one
     layer each, the acquisitions along its first axis, named in its metadata), and the
-    random-telegraph pixels of a camera without an EM register (1 where found); each
-    named with its unit, NaN where a pixel did not converge, contrast from the 1st to
-    the 99th percentile, placed at the calibration's sensor origin, hidden but the last.
+    pixels the dark frames flagged (:data:`emccdcal.result.flags.PIXEL_FLAGS`: 1 where
+    found, at every pixel); each named with its unit, the maps NaN where a pixel did not
+    converge, contrast from the 1st to the 99th percentile, placed at the calibration's
+    sensor origin, hidden but the last.
 
     Parameters
     ----------
@@ -28,8 +31,9 @@ def result_layers(ds, *, prefix: str = "") -> list[tuple]:
     ok = ds.converged.values.astype(bool)
     layers = []
 
-    def add(values, name, unit, colormap="viridis", axis=None):
-        data = np.where(ok, np.asarray(values, dtype=float), np.nan)
+    def add(values, name, unit, colormap="viridis", axis=None, everywhere=False):
+        data = np.asarray(values, dtype=float)
+        data = data if everywhere else np.where(ok, data, np.nan)
         finite = data[np.isfinite(data)]
         limits = (np.percentile(finite, [1, 99]) if finite.size else [0.0, 1.0]).tolist()
         if limits[0] == limits[1]:
@@ -77,10 +81,9 @@ def result_layers(ds, *, prefix: str = "") -> list[tuple]:
             add(ds[var].values, var, unit, colormap, keys)
     if "dark_current" in ds:  # darks at two or more exposures (hot pixels stand out)
         add(ds.dark_current.values, "dark current", "e-/s", "inferno")
-    if "telegraph" in ds:  # random-telegraph pixels of the 1× darks: 1, else 0
-        add(ds.telegraph.values, "telegraph pixels", "1", "red")
-    if "hot" in ds:  # a dark current far above the median pixel's: 1, else 0
-        add(ds.hot.values, "hot pixels", "1", "red")
+    for name, flag in PIXEL_FLAGS.items():  # pixels the darks flagged: 1, else 0
+        if name in ds:
+            add(ds[name].values, flag.layer, "1", "red", everywhere=True)
     if layers:
         layers[1 if len(layers) > 1 else 0][1]["visible"] = True  # φ, or the first gain
     return layers

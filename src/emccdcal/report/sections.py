@@ -17,9 +17,8 @@ from .. import __version__, result
 from .._output import file_sha256
 from ..beads.validation import data_checks
 from ..data import quality
-from ..data.telegraph import FALSE_ALARM
-from ..defaults import DEFAULT_K
 from ..result import format_setpoint
+from ..result.flags import PIXEL_FLAGS
 from .figures.common import _estimated_phi
 
 
@@ -80,24 +79,10 @@ def _row(name, unit, st):
     return [name, unit, _fmt(st["median"]), _fmt(st["se_median"], 2), _fmt(st["sd"], 2), st["n"]]
 
 
-#: The per-pixel flags a result may hold: what each means and what follows from it.
-_FLAGS = {
-    "telegraph": (
-        "Random-telegraph pixels (two or more offset states in the dark frames, tested at a "
-        f"{100 * FALSE_ALARM:g} % false-alarm rate)",
-        "their offset, read noise and φ are doubtful",
-    ),
-    "hot": (
-        f"Hot pixels (a dark current more than {DEFAULT_K:g} robust SDs above the median pixel's)",
-        "their dark signal adds to every frame's",
-    ),
-}
-
-
 def _flags_html(ds) -> list[str]:
     """A note on each kind of flagged pixel the darks showed, where they were looked for."""
     notes = []
-    for name, (what, meaning) in _FLAGS.items():
+    for name, (what, meaning, _) in PIXEL_FLAGS.items():
         if name not in ds:
             continue
         flags = ds[name].transpose("row", "col").values.astype(bool)

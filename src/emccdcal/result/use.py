@@ -15,6 +15,7 @@ from .._util import format_setpoint
 
 from .. import defaults, identity
 from ..errors import InputError, InputWarning, OptionError
+from .flags import PIXEL_FLAGS
 from .schema import CALIBRATION_FILE
 from .files import _checked_in_memory, load
 
@@ -89,6 +90,9 @@ class Calibration:
     offset_se, read_noise_se : dict of float to ndarray (R, C)
         Their standard errors (ADU), where the results record them (from the dark
         frames' count).
+    stuck : ndarray (R, C) of bool, or None
+        Pixels whose dark counts never changed in a member's darks (dead or stuck: left
+        out of its fit), where a member reduced dark stacks.
     telegraph : ndarray (R, C) of bool, or None
         Pixels a member found to hold two or more offset states (random-telegraph pixels), where
         a member tested for them.
@@ -141,6 +145,7 @@ class Calibration:
     read_noise: dict = field(default_factory=dict)
     offset_se: dict = field(default_factory=dict)
     read_noise_se: dict = field(default_factory=dict)
+    stuck: np.ndarray | None = None
     telegraph: np.ndarray | None = None
     hot: np.ndarray | None = None
     em_model: object = None
@@ -367,12 +372,12 @@ def _members_em_model(label, loaded):
 def _dark_maps(loaded, masked) -> dict:
     """What the members' dark frames gave, for :class:`Calibration`: per set-point the
     offset and read-noise maps and their SEs (from the first member that has the
-    set-point; an intensity series' levels merged by their median), and the telegraph
-    and hot pixels any member found."""
+    set-point; an intensity series' levels merged by their median), and the pixels any
+    member flagged (:data:`emccdcal.result.flags.PIXEL_FLAGS`)."""
     out: dict[str, dict] = {
         name: {} for name in ("offset", "read_noise", "offset_se", "read_noise_se")
     }
-    flags: dict[str, np.ndarray | None] = {"telegraph": None, "hot": None}
+    flags: dict[str, np.ndarray | None] = dict.fromkeys(PIXEL_FLAGS)
     for _, ds in loaded:
         for name, kept in flags.items():
             if name in ds:
@@ -387,7 +392,9 @@ def _dark_maps(loaded, masked) -> dict:
             maps = maps if dim else maps[None]
             for s in dict.fromkeys(at):  # first member first; levels at one set-point merged
                 if np.isfinite(s) and s not in store:
-                    store[s] = np.nanmedian(maps[np.asarray(at) == s], axis=0)
+                    with warnings.catch_warnings():  # a pixel left out: NaN, not a warning
+                        warnings.filterwarnings("ignore", "All-NaN slice", RuntimeWarning)
+                        store[s] = np.nanmedian(maps[np.asarray(at) == s], axis=0)
     return {**out, **flags}
 
 

@@ -86,6 +86,9 @@ class Acquisition:
     dark_telegraph : ndarray of bool or None
         Pixels whose 1× dark stack holds two or more offset states (random-telegraph pixels,
         :func:`emccdcal.data.telegraph.telegraph_pixels`); None without a 1× dark stack.
+    dark_stuck : ndarray of bool or None
+        Pixels whose dark stack's counts never change (dead, or stuck at one value: read
+        noise 0, which the fit leaves out); None for maps given as files or values.
     exposure_s, dark_exposure_s : float or None
         The exposure (s) of the frames and of the dark behind the maps (the manifest's
         ``exposure_s`` and ``dark_exposure_s``, which defaults to ``exposure_s``); None
@@ -105,6 +108,7 @@ class Acquisition:
     dark_frames: int | None = None
     dark_event_rate: np.ndarray | None = field(default=None, repr=False)
     dark_telegraph: np.ndarray | None = field(default=None, repr=False)
+    dark_stuck: np.ndarray | None = field(default=None, repr=False)
     exposure_s: float | None = None
     dark_exposure_s: float | None = None
 

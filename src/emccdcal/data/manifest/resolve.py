@@ -135,6 +135,7 @@ def resolve_manifest(entries: ManifestEntries) -> Manifest:
             dark_frames=dark_frames,
             dark_event_rate=m["events"],
             dark_telegraph=m["telegraph"],
+            dark_stuck=m["stuck"],
             exposure_s=a.exposure_s,
             dark_exposure_s=a.dark_exposure_s,
         )
@@ -244,9 +245,9 @@ def _stack_headers(r: _Reader, acqs):
 
 def _read_out_maps(r: _Reader, acqs, shape, adc_max, hint, telegraph=False) -> list[dict]:
     """Each acquisition's offset and read-noise maps (ADU) with their sources, the
-    multiplied events of its dark and (with ``telegraph``: a camera without an EM
-    register) its random-telegraph pixels: from the maps given, or each dark stack
-    reduced once."""
+    multiplied events of its dark, its stuck pixels (dark counts that never change: read
+    noise 0) and (with ``telegraph``: a camera without an EM register) its
+    random-telegraph pixels: from the maps given, or each dark stack reduced once."""
     darks: dict[Path, tuple] = {}
     # the least multiplied dark first: its read noise is the others' reference
     for a in sorted((a for a in acqs if a.dark is not None), key=lambda a: a.em_gain_setpoint):
@@ -257,7 +258,7 @@ def _read_out_maps(r: _Reader, acqs, shape, adc_max, hint, telegraph=False) -> l
     out = []
     for a in acqs:
         if a.dark is None:
-            m: dict = {"events": None, "telegraph": None}
+            m: dict = {"events": None, "telegraph": None, "stuck": None}
             for key in ("offset", "read_noise"):
                 m[key], m[key + "_source"] = _map_from_value(
                     r, a.index, a.label, key, getattr(a, key), shape
@@ -270,6 +271,7 @@ def _read_out_maps(r: _Reader, acqs, shape, adc_max, hint, telegraph=False) -> l
                 "read_noise": read_noise.copy(),
                 "events": events,
                 "telegraph": telegraph,
+                "stuck": read_noise <= 0,
                 "offset_source": source,
                 "read_noise_source": source,
             }
@@ -304,11 +306,13 @@ def _reduce_dark(r: _Reader, a: AcquisitionEntry, adc_max, hint, reference=None,
         )
     except InputError as exc:  # an implausible dark: named with its file
         raise r.error(f"dark '{a.dark_path}': {exc}", a.index, a.label) from None
-    if np.any(read_noise <= 0):
-        bad = describe_first(read_noise, read_noise <= 0, 0)
+    # A pixel whose dark counts never change (dead, or stuck at one value) has no read
+    # noise to measure: it is left out of the fit and marked (``stuck``), as a pixel
+    # whose light frames never change is; a dark constant at every pixel is no dark.
+    if np.all(read_noise <= 0):
         raise r.error(
-            f"'{a.dark_path}': dark stack gives read noise {bad} (constant dark "
-            "counts); read noise must be > 0",
+            f"'{a.dark_path}': dark stack's counts never change at any pixel (read noise "
+            "0): not a dark stack of this camera",
             a.index,
             a.label,
         )

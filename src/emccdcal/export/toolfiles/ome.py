@@ -16,9 +16,10 @@ the names and units of a result (docs/results.md):
   hold), in counts and in photoelectrons (× φ²);
 - each followed by its ``_se`` where the calibration has it (φ's and g's from the fit;
   the offset's and read noise's from the dark frames' count);
-- ``telegraph`` (1 at a random-telegraph pixel, else 0) where the calibration tested
-  for them, and ``hot`` (1 at a hot pixel) where it measured the dark current: the
-  masks a user leaves out of a fit.
+- the pixels the darks flagged (:data:`emccdcal.result.flags.PIXEL_FLAGS`, 1 where
+  flagged, else 0): ``stuck`` where the calibration reduced dark stacks, ``telegraph``
+  where it tested for random-telegraph pixels, ``hot`` where it measured the dark
+  current: the masks a user leaves out of a fit.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from ...errors import InputError
 from ...model import adc
 from ...plugins import Tool
 from ...result import format_setpoint
+from ...result.flags import PIXEL_FLAGS
 from .. import toolkit
 
 #: The file written.
@@ -66,7 +68,7 @@ def channels(cal, s) -> list[tuple[str, np.ndarray, str]]:
         variance_e_se = variance_e * np.hypot(variance_se / variance, 2.0 * phi_se / phi)
     out += [("read_noise_variance_e", variance_e, "e-2")]
     out += [("read_noise_variance_e_se", variance_e_se, "e-2")]
-    for name in ("telegraph", "hot"):
+    for name in PIXEL_FLAGS:
         mask = getattr(cal, name)
         if mask is not None:
             out += [(name, mask.astype(float), "1")]
