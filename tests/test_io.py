@@ -517,12 +517,20 @@ def test_bad_scalar_values(files, text, expected):
     assert expected in error_of(write(files, text))
 
 
-def test_constant_dark_pixel_gives_zero_read_noise(files):
+def test_a_constant_dark_pixel_is_marked_stuck_and_a_constant_dark_refused(files):
+    """A pixel whose dark counts never change reads as read noise 0, marked stuck (the
+    fit leaves it out); a dark constant everywhere is refused in one line."""
     data = stack(3, n=50)
     data[:, 1, 1] = 580
     imwrite(files / "data/dark5x.tif", data)
+    (acq,) = [a for a in read_manifest(write(files, GOOD)).acquisitions if a.dark_stuck is not None]
+    assert acq.read_noise[1, 1] == 0 and np.flatnonzero(acq.dark_stuck).tolist() == [
+        1 * SHAPE[1] + 1
+    ]
+    data[:] = 580
+    imwrite(files / "data/dark5x.tif", data)
     msg = error_of(write(files, GOOD))
-    assert "dark5x.tif" in msg and "read noise must be > 0" in msg and "pixel (1, 1)" in msg
+    assert "dark5x.tif" in msg and "counts never change at any pixel" in msg
 
 
 def test_dark_with_one_frame(files):

@@ -25,9 +25,10 @@ through its mean (``E = φ·(⟨S⟩ − S0)``: along it the likelihood is the p
 likelihood, checked against refits to 0.01 nats). Where another ripple on that grid rivals
 the fit's (within :data:`RIVAL` nats), the fit's own ripple does not decide φ and its
 curvature is not the error: the SE is that of the parabola through the ripples' tops,
-the smooth likelihood they sit on (:func:`ripple_covariance`); where that likelihood is
-one hill the ripples do not decide the estimate either, and the fit starts at the hill's
-top. Where a level is so
+the smooth likelihood they sit on (:func:`ripple_covariance`), or the estimate's own
+scatter where that is larger (the highest top among rivals is partly the data's noise:
+a parametric bootstrap, :func:`bootstrap_se`); where that likelihood is one hill the
+ripples do not decide the estimate either, and the fit starts at the hill's top. Where a level is so
 bright that no grid resolves its ripples (1/E apart: thousands of e⁻), they are a tiny
 fraction of a nat deep yet their curvature is huge, and a fit ends on whichever it
 meets: there the envelope itself is fitted (:func:`_envelope_fit`), its vertex the
@@ -102,7 +103,8 @@ def profile_start(layout, blocks, x0, read_out_variance):
     3. Where its observed information claims more than the moments' (by
        :data:`CHECK_BELOW`), every level on a grid around it at the ripples' spacing:
        a better ripple found there (by a nat) is fitted instead, and where rival ripples
-       compete the envelope's SE is the SE's floor (:func:`_envelope_se`), the start
+       compete the envelope's SE, or the estimate's bootstrap SD where larger
+       (:func:`bootstrap_se`), is the SE's floor (:func:`_envelope_se`), the start
        moved to the envelope's top where it is one hill; where no grid
        of :data:`MAX_POINTS` resolves the ripples, the envelope's fit
        (:func:`_envelope_fit`) gives the start and the floor.
@@ -169,12 +171,24 @@ def profile_start(layout, blocks, x0, read_out_variance):
             refit = engine.fit(sub.subset(idx), [b.take(idx) for b in part], start)
             x[idx] = refit.x
             objective[idx] = refit.objective
-        out.phi_profile_se[live[check]], vertex = _envelope_se(
+        envelope, vertex = _envelope_se(
             ln_phi, v, x[check, 0], objective[check], step_of(E_max, 4.0 * rel[check])
         )
         hill = np.flatnonzero(np.isfinite(vertex))  # one hill: the fit starts at its top
         idx = check[hill]
         x[idx] = _on_path(x[idx], vertex[hill], signal[idx])
+        # The estimate a ripple's top among rivals: its SE at least its own scatter.
+        tops = np.flatnonzero(np.isfinite(envelope) & ~np.isfinite(vertex))
+        if tops.size:
+            idx = check[tops]
+            envelope[tops] = np.fmax(
+                envelope[tops],
+                bootstrap_se(
+                    sub.subset(idx), [b.take(idx) for b in part], x[idx], signal[idx],
+                    4.0 * rel[idx], 1.0 / (PER_RIPPLE * E_max[tops]),
+                ),
+            )  # fmt: skip
+        out.phi_profile_se[live[check]] = envelope
     start = x0.copy()
     start[live] = x
     return out, start
@@ -368,10 +382,9 @@ def _on_path(x, ln_phi, signal):
     return out
 
 
-def _path_grid(layout, blocks, x, signal, half, step):
-    """The likelihood of every level along E = φ·signal (the profile likelihood) on a
-    grid of ln φ (P, G) within ±``half`` of ``x``'s at most ``step`` apart, and its values
-    (−inf beyond each pixel's grid)."""
+def _path_points(x, signal, half, step):
+    """The grid of :func:`_path_grid`: ln φ (P, G), which of its points each pixel has
+    (P, G), the points as rows of ``x`` (P·G, F; E along the path) and each row's pixel."""
     step = np.maximum(step, 2.0 * half / (MAX_POINTS - 1))
     points = np.minimum(np.ceil(2.0 * half / step).astype(int) + 1, MAX_POINTS)
     P, G = x.shape[0], int(points.max())
@@ -381,13 +394,129 @@ def _path_grid(layout, blocks, x, signal, half, step):
     trial = np.repeat(x, G, axis=0)
     trial[:, 0] = ln_phi.ravel()
     trial[:, 1:] = np.log(signal[:, None, :] * np.exp(ln_phi)[..., None]).reshape(P * G, -1)
-    rows = np.repeat(np.arange(P), G)
+    return ln_phi, inside, trial, np.repeat(np.arange(P), G)
+
+
+def _in_chunks(todo):
+    """Rows of a grid evaluated at a time (bounded memory)."""
+    return np.array_split(todo, max(1, todo.size // 2048))
+
+
+def _path_grid(layout, blocks, x, signal, half, step):
+    """The likelihood of every level along E = φ·signal (the profile likelihood) on a
+    grid of ln φ (P, G) within ±``half`` of ``x``'s at most ``step`` apart, and its values
+    (−inf beyond each pixel's grid)."""
+    ln_phi, inside, trial, rows = _path_points(x, signal, half, step)
     value = np.full(rows.size, -np.inf)
-    todo = np.flatnonzero(inside.ravel())
-    for chunk in np.array_split(todo, max(1, todo.size // 2048)):
+    for chunk in _in_chunks(np.flatnonzero(inside.ravel())):
         r = rows[chunk]
         value[chunk] = engine.objective(layout.subset(r), [b.take(r) for b in blocks], trial[chunk])
-    return ln_phi, np.where(np.isfinite(value), value, -np.inf).reshape(P, G)
+    return ln_phi, np.where(np.isfinite(value), value, -np.inf).reshape(ln_phi.shape)
+
+
+#: Replicates of :func:`bootstrap_se` (the SD's own relative SE, 1/√(2(B − 1)): 5 %).
+BOOTSTRAP = 200
+#: Each level's replicates range over its counts' span widened by this many of their SDs
+#: on each side (data of 1000 frames or more reach about 3.2 SDs out: the support then
+#: holds all but ~1e-9 of the model's mass).
+SUPPORT_SDS = 3.0
+#: The two paths beside the fit's that a replicate's ln p is interpolated between lie this
+#: many SEs of each level's mean to either side (a replicate's mean is within 4 SEs of
+#: the fit's at all but 6e-5 of the draws; beyond, the parabola extrapolates).
+PATH_SPREAD = 4.0
+
+
+def bootstrap_se(layout, blocks, x, signal, half, step):
+    """The SD of ln φ's estimate (P,) over :data:`BOOTSTRAP` replicates of each pixel's
+    data drawn from its fit (a parametric bootstrap), each estimated as the pixel was.
+
+    Where rival ripples compete, the estimate is the highest of their tops: which one is
+    highest is the data's noise as much as φ's information, so neither a ripple's
+    curvature nor its envelope's is the estimate's scatter. The replicates' counts are
+    drawn, level by level, from the model at ``x`` over each level's support (its
+    counts' span widened by :data:`SUPPORT_SDS` SDs). A replicate's likelihood is taken
+    on the fit's grid of ln φ along its own path, E = φ·(its mean − offset): the ripples
+    lie 1/E apart, and its mean's noise, a fraction of a ripple, moves which one is
+    highest. The model is evaluated once for all replicates, on the grid along the fit's
+    path and along two paths :data:`PATH_SPREAD` SEs of the mean to either side, and a
+    replicate's ln p at each count is the parabola through the three at its own mean
+    (ln p is smooth in E). Its estimate is its grid's best point (refined by the parabola
+    through its neighbours), or the hill's top where :func:`_envelope_se` finds one
+    hill. The draws are seeded by the pixel's own counts: the same data give the same
+    SE, in any tile or block.
+    """
+    P = x.shape[0]
+    support = []
+    for b in blocks:  # each level's support, the same length for every pixel (padded)
+        filled = b.counts > 0
+        lo = np.where(filled, b.values, np.iinfo(np.int64).max).min(axis=1)
+        hi = np.where(filled, b.values, np.iinfo(np.int64).min).max(axis=1)
+        sd = np.sqrt(np.maximum(b.var, 1.0))
+        lo = np.floor(lo - SUPPORT_SDS * sd).astype(np.int64)
+        hi = np.ceil(hi + SUPPORT_SDS * sd).astype(np.int64)
+        K = int((hi - lo).max()) + 1
+        values = np.minimum(lo[:, None] + np.arange(K)[None, :], hi[:, None])
+        support.append(replace(b, values=values, counts=np.zeros(values.shape, dtype=np.int64)))
+    real = [np.diff(s.values, axis=1, prepend=s.values[:, :1] - 1) > 0 for s in support]
+    fitted = engine.logpmf_at_values(layout, support, x)
+    # each level's signal moved by ±h (relative): PATH_SPREAD SEs of its mean
+    h = np.stack(
+        [
+            PATH_SPREAD * np.sqrt(b.var / np.maximum(b.n, 1)) / signal[:, a]
+            for a, b in enumerate(blocks)
+        ],
+        axis=1,
+    )
+    ln_phi, inside, trial, rows = _path_points(x, signal, half, step)
+    G = ln_phi.shape[1]
+    todo = np.flatnonzero(inside.ravel())
+    paths = []  # per shift (−h, 0, +h): per level (P·G, K) ln p
+    for shift in (-1.0, 0.0, 1.0):
+        moved = trial.copy()
+        moved[:, 1:] += np.log1p(shift * h[rows])
+        at = [np.zeros((P * G, s.values.shape[1])) for s in support]
+        for chunk in _in_chunks(todo):
+            r = rows[chunk]
+            got = engine.logpmf_at_values(
+                layout.subset(r), [s.take(r) for s in support], moved[chunk]
+            )
+            for a, lp in enumerate(got):
+                at[a][chunk] = lp
+        paths.append(at)
+    out = np.full(P, np.nan)
+    for p in range(P):
+        rng = np.random.default_rng(np.concatenate([b.counts[p] for b in blocks]).astype(np.int64))
+        value = np.zeros((BOOTSTRAP, G))
+        for a, b in enumerate(blocks):
+            keep = real[a][p]
+            prob = np.where(keep, np.exp(fitted[a][p]), 0.0)
+            draws = rng.multinomial(int(b.n[p]), prob / prob.sum(), size=BOOTSTRAP)
+            mean = draws @ support[a].values[p] / b.n[p]
+            t = ((mean - b.offset[p]) / signal[p, a] - 1.0) / h[p, a]
+            weights = (0.5 * t * (t - 1.0), 1.0 - t**2, 0.5 * t * (t + 1.0))
+            for w, at in zip(weights, paths):
+                lp = at[a][p * G : (p + 1) * G]
+                value += w[:, None] * (draws @ np.where(keep, lp, 0.0).T)
+        value = np.where(inside[p], value, -np.inf)
+        grid = np.broadcast_to(ln_phi[p], value.shape)
+        best = np.argmax(value, axis=1)
+        at_b = np.arange(BOOTSTRAP)
+        left = value[at_b, np.maximum(best - 1, 0)]
+        right = value[at_b, np.minimum(best + 1, G - 1)]
+        top = value[at_b, best]
+        curve = left - 2.0 * top + right
+        with np.errstate(divide="ignore", invalid="ignore"):
+            shift = np.where(
+                np.isfinite(curve) & (curve < 0),
+                np.clip(0.5 * (left - right) / curve, -0.5, 0.5),
+                0.0,
+            )
+        point_step = np.full(BOOTSTRAP, ln_phi[p, 1] - ln_phi[p, 0] if G > 1 else 0.0)
+        estimate = grid[at_b, best] + shift * point_step
+        _, vertex = _envelope_se(grid, value, estimate, top, point_step)
+        estimate = np.where(np.isfinite(vertex), vertex, estimate)
+        out[p] = np.std(estimate, ddof=1)
+    return out
 
 
 def _levels(layout, use):

@@ -590,6 +590,20 @@ def _map_covariance(layout, blocks, x, cov, crosses):
     return out
 
 
+def logpmf_at_values(layout, blocks, x):
+    """ln p of every value each block holds (its counts unused) at ``x`` (P, F): a list
+    of (P, K) arrays, one per acquisition, nats: the model the likelihood sums, at counts
+    a fit has not seen (a parametric bootstrap's, :func:`emccdcal.fit.comb.bootstrap_se`).
+    """
+    logs, _ = layout.native(x)
+    out = []
+    for a, acq in enumerate(blocks):
+        coords, _ = _native_to_model(logs[:, a], acq)
+        rows = _register(acq).rows_at([np.exp(c) for c in coords], acq.poisson_normal)
+        out.append(np.log(_xp.to_numpy(_ModelAtData(acq, rows).pv)))
+    return out
+
+
 def objective(layout, blocks, x):
     """Log-likelihood plus the layout's log prior (P,) at ``x`` (P, F), nats: what
     :func:`fit` maximises."""
