@@ -34,6 +34,20 @@ def _z(ds, outdir):
     return ((ds.e_per_adu.values - truth) / ds.e_per_adu_se.values).ravel()
 
 
+def _exported_channel(ds, name, out):
+    """The channel ``name`` of the maps' OME-TIFF export of ``ds`` (written to ``out``)."""
+    import xml.etree.ElementTree as ET
+
+    (path,) = emccdcal.export_calibration(ds, "ome-tiff", out)
+    with tifffile.TiffFile(path) as tif:
+        names = [
+            c.get("Name")
+            for c in ET.fromstring(tif.ome_metadata).iter()
+            if c.tag.endswith("Channel")
+        ]
+        return tif.asarray()[names.index(name)]
+
+
 def test_the_rounding_switch_is_seamless():
     """Either side of :data:`ROUNDING_BELOW` the two models are one distribution: the
     rounded one with analog σ just below it, and the density at the integers with the
@@ -228,7 +242,6 @@ def test_a_calibration_marks_its_hot_pixels_where_it_measures_the_dark_current(t
     others (a log-normal population of spread 0.5 crosses the threshold at 0.7 %: here
     0.7 pixels expected), the threshold recorded; the report, napari and the OME-TIFF's
     masks say which. No dark current measured, no ``hot``."""
-    import xml.etree.ElementTree as ET
 
     sim = simulate_cmos_series(
         tmp_path / "s", kind="scmos", rows=10, cols=10, frames=600, dark_current=30.0,
@@ -249,15 +262,7 @@ def test_a_calibration_marks_its_hot_pixels_where_it_measures_the_dark_current(t
     assert any(
         "Hot pixels" in note and f"{int(flags.sum())} of 100" in note for note in _flags_html(ds)
     )
-    (path,) = emccdcal.export_calibration(ds, "ome-tiff", tmp_path / "ome")
-    with tifffile.TiffFile(path) as tif:
-        names = [
-            c.get("Name")
-            for c in ET.fromstring(tif.ome_metadata).iter()
-            if c.tag.endswith("Channel")
-        ]
-        mask = tif.asarray()[names.index("hot")]
-    assert np.array_equal(mask == 1, flags)
+    assert np.array_equal(_exported_channel(ds, "hot", tmp_path / "ome") == 1, flags)
     _, plain = _calibrated(tmp_path / "p", "scmos", (4, 4), 200, 400, 3)
     assert "hot" not in plain and "dark_current" not in plain
 
@@ -389,7 +394,6 @@ def test_a_stuck_dark_pixel_is_left_out_and_marked_and_a_constant_dark_refused(t
     normal as narrow as one count fitted it: 0.037 ADU, a number of the optimizer's.) A
     dark constant at every pixel is no dark: refused in one line naming the file."""
     import shutil
-    import xml.etree.ElementTree as ET
 
     from emccdcal.errors import LeftOutWarning
     from emccdcal.napari._layers import result_layers
@@ -425,14 +429,7 @@ def test_a_stuck_dark_pixel_is_left_out_and_marked_and_a_constant_dark_refused(t
         "Stuck pixels" in note and "1 of 16" in note and "(2, 3)" in note
         for note in _flags_html(ds)
     )
-    (path,) = emccdcal.export_calibration(ds, "ome-tiff", tmp_path / "ome")
-    with tifffile.TiffFile(path) as tif:
-        names = [
-            c.get("Name")
-            for c in ET.fromstring(tif.ome_metadata).iter()
-            if c.tag.endswith("Channel")
-        ]
-        np.testing.assert_array_equal(tif.asarray()[names.index("stuck")], stuck)
+    np.testing.assert_array_equal(_exported_channel(ds, "stuck", tmp_path / "ome"), stuck)
     assert emccdcal.load_calibration(ds).stuck[2, 3]
     dark[:] = 101  # a dark constant at every pixel
     tifffile.imwrite(folder / "dark.tif", dark)

@@ -237,24 +237,22 @@ def _dark_variables(used, per_acq_dim, shape) -> dict:
     darks fitted with them, the stuck pixels of every dark stack and the random-telegraph
     pixels of 1× darks tested for them."""
     out: dict[str, tuple] = {}
-    stuck = [a.dark_stuck for a in used if getattr(a, "dark_stuck", None) is not None]
-    if stuck:
-        out["stuck"] = (
-            ("row", "col"),
-            np.any(stuck, axis=0).astype(np.int8),
-            "1",
+    for name, text in (
+        (
+            "stuck",
             "1 where a dark stack's counts never change (a dead or stuck pixel: no read "
             "noise to measure, left out of the fit)",
-        )
-    flags = [a.dark_telegraph for a in used if getattr(a, "dark_telegraph", None) is not None]
-    if flags:
-        out["telegraph"] = (
-            ("row", "col"),
-            np.any(flags, axis=0).astype(np.int8),
-            "1",
+        ),
+        (
+            "telegraph",
             "1 where a 1x dark holds two or more offset states (a random-telegraph pixel, "
             "its offset and read noise one normal's: doubtful)",
-        )
+        ),
+    ):
+        found = [getattr(a, "dark_" + name, None) for a in used]
+        found = [f for f in found if f is not None]
+        if found:
+            out[name] = (("row", "col"), np.any(found, axis=0).astype(np.int8), "1", text)
     if any(a.dark_event_rate is not None for a in used):
         rates = np.stack(
             [
