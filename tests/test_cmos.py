@@ -852,8 +852,9 @@ def test_the_bootstrap_of_rival_ripples_is_the_scatter_of_the_estimate_refitted(
     at the pixel's fit (Poisson, normal, the ADC's rounding: not the engine), each
     fitted as the pixel was. The estimates are a spike at the fit's ripple and wings
     out to twenty ripples, so the slow SD has a sampling error of some 20 % and the
-    fast one of some 10 %: the two agree within 40 %. A bootstrap along one path for every replicate (their means'
-    noise, a fraction of a ripple, left out) gave SDs down to a tenth of this."""
+    fast one of some 10 %: the two agree within 40 %. A bootstrap along one path for
+    every replicate (their means' noise, a fraction of a ripple, left out) gave SDs
+    down to a tenth of this."""
     from emccdcal.data.stats import histograms
     from emccdcal.fit import comb
     from emccdcal.fit.series import AcquisitionModel, SeriesLikelihood

@@ -19,21 +19,22 @@ pixels), the likelihood over φ is not one hill:
 
 :func:`profile_start` finds the start in three steps (its docstring): the dimmest
 level's best basins on a grid over φ (its ripples are the widest apart; the φ / 1 − φ
-alias, which it cannot tell apart, stays among its candidates), the brighter levels added one at a time from each, and every level
-on a grid at the ripples' spacing around the best of them, each level's E following φ
-through its mean (``E = φ·(⟨S⟩ − S0)``: along it the likelihood is the profile
-likelihood, checked against refits to 0.01 nats). Where another ripple on that grid rivals
-the fit's (within :data:`RIVAL` nats), the fit's own ripple does not decide φ and its
-curvature is not the error: the SE is that of the parabola through the ripples' tops,
-the smooth likelihood they sit on (:func:`ripple_covariance`), or the estimate's own
-scatter where that is larger (the highest top among rivals is partly the data's noise:
-a parametric bootstrap, :func:`bootstrap_se`); where that likelihood is one hill the
-ripples do not decide the estimate either, and the fit starts at the hill's top. Where a level is so
-bright that no grid resolves its ripples (1/E apart: thousands of e⁻), they are a tiny
-fraction of a nat deep yet their curvature is huge, and a fit ends on whichever it
-meets: there the envelope itself is fitted (:func:`_envelope_fit`), its vertex the
-start and its curvature the SE's floor. Where the comb is resolved (one ripple stands
-alone) or absent, nothing changes.
+alias, which it cannot tell apart, stays among its candidates), the brighter levels
+added one at a time from each, and every level on a grid at the ripples' spacing around
+the best of them, each level's E following φ through its mean (``E = φ·(⟨S⟩ − S0)``:
+along it the likelihood is the profile likelihood, checked against refits to 0.01 nats).
+Where another ripple on that grid rivals the fit's (within :data:`RIVAL` nats), the
+fit's own ripple does not decide φ and its curvature is not the error: the SE is that of
+the parabola through the ripples' tops, the smooth likelihood they sit on
+(:func:`ripple_covariance`), or the estimate's own scatter where that is larger (the
+highest top among rivals is partly the data's noise: a parametric bootstrap,
+:func:`bootstrap_se`); where that likelihood is one hill the ripples do not decide the
+estimate either, and the fit starts at the hill's top. Where a level is so bright that
+no grid resolves its ripples (1/E apart: thousands of e⁻), they are a tiny fraction of a
+nat deep yet their curvature is huge, and a fit ends on whichever it meets: there the
+envelope itself is fitted (:func:`_envelope_fit`), its vertex the start and its
+curvature the SE's floor. Where the comb is resolved (one ripple stands alone) or
+absent, nothing changes.
 """
 
 from __future__ import annotations
@@ -445,78 +446,72 @@ def bootstrap_se(layout, blocks, x, signal, half, step):
     hill. The draws are seeded by the pixel's own counts: the same data give the same
     SE, in any tile or block.
     """
-    P = x.shape[0]
-    support = []
-    for b in blocks:  # each level's support, the same length for every pixel (padded)
-        filled = b.counts > 0
-        lo = np.where(filled, b.values, np.iinfo(np.int64).max).min(axis=1)
-        hi = np.where(filled, b.values, np.iinfo(np.int64).min).max(axis=1)
-        sd = np.sqrt(np.maximum(b.var, 1.0))
-        lo = np.floor(lo - SUPPORT_SDS * sd).astype(np.int64)
-        hi = np.ceil(hi + SUPPORT_SDS * sd).astype(np.int64)
-        K = int((hi - lo).max()) + 1
-        values = np.minimum(lo[:, None] + np.arange(K)[None, :], hi[:, None])
-        support.append(replace(b, values=values, counts=np.zeros(values.shape, dtype=np.int64)))
-    real = [np.diff(s.values, axis=1, prepend=s.values[:, :1] - 1) > 0 for s in support]
-    fitted = engine.logpmf_at_values(layout, support, x)
-    # each level's signal moved by ±h (relative): PATH_SPREAD SEs of its mean
-    h = np.stack(
+    # one pixel at a time: the model along three paths is (G, K) per level and path
+    return np.array(
         [
-            PATH_SPREAD * np.sqrt(b.var / np.maximum(b.n, 1)) / signal[:, a]
+            _pixel_bootstrap(
+                layout.subset([p]),
+                [b.take([p]) for b in blocks],
+                x[p : p + 1],
+                signal[p : p + 1],
+                half[p : p + 1],
+                step[p : p + 1],
+            )  # fmt: skip
+            for p in range(x.shape[0])
+        ]
+    )
+
+
+def _pixel_bootstrap(layout, blocks, x, signal, half, step) -> float:
+    """:func:`bootstrap_se` of one pixel (every array's first axis of length 1)."""
+    support = []
+    for b in blocks:  # each level's support: its counts' span, widened
+        filled = b.values[0][b.counts[0] > 0]
+        sd = np.sqrt(max(float(b.var[0]), 1.0))
+        lo = int(np.floor(filled.min() - SUPPORT_SDS * sd))
+        hi = int(np.ceil(filled.max() + SUPPORT_SDS * sd))
+        values = np.arange(lo, hi + 1)[None, :]
+        support.append(replace(b, values=values, counts=np.zeros(values.shape, dtype=np.int64)))
+    fitted = [lp[0] for lp in engine.logpmf_at_values(layout, support, x)]
+    # each level's signal moved by ±h (relative): PATH_SPREAD SEs of its mean
+    h = np.array(
+        [
+            PATH_SPREAD * np.sqrt(b.var[0] / max(b.n[0], 1)) / signal[0, a]
             for a, b in enumerate(blocks)
-        ],
-        axis=1,
+        ]
     )
     ln_phi, inside, trial, rows = _path_points(x, signal, half, step)
-    G = ln_phi.shape[1]
-    todo = np.flatnonzero(inside.ravel())
-    paths = []  # per shift (−h, 0, +h): per level (P·G, K) ln p
+    ln_phi, inside = ln_phi[0], inside[0]
+    live = np.flatnonzero(inside)
+    paths = []  # per shift (−h, 0, +h): per level, ln p (G live points, K counts)
     for shift in (-1.0, 0.0, 1.0):
-        moved = trial.copy()
-        moved[:, 1:] += np.log1p(shift * h[rows])
-        at = [np.zeros((P * G, s.values.shape[1])) for s in support]
-        for chunk in _in_chunks(todo):
-            r = rows[chunk]
-            got = engine.logpmf_at_values(
-                layout.subset(r), [s.take(r) for s in support], moved[chunk]
-            )
-            for a, lp in enumerate(got):
-                at[a][chunk] = lp
-        paths.append(at)
-    out = np.full(P, np.nan)
-    for p in range(P):
-        rng = np.random.default_rng(np.concatenate([b.counts[p] for b in blocks]).astype(np.int64))
-        value = np.zeros((BOOTSTRAP, G))
-        for a, b in enumerate(blocks):
-            keep = real[a][p]
-            prob = np.where(keep, np.exp(fitted[a][p]), 0.0)
-            draws = rng.multinomial(int(b.n[p]), prob / prob.sum(), size=BOOTSTRAP)
-            mean = draws @ support[a].values[p] / b.n[p]
-            t = ((mean - b.offset[p]) / signal[p, a] - 1.0) / h[p, a]
-            weights = (0.5 * t * (t - 1.0), 1.0 - t**2, 0.5 * t * (t + 1.0))
-            for w, at in zip(weights, paths):
-                lp = at[a][p * G : (p + 1) * G]
-                value += w[:, None] * (draws @ np.where(keep, lp, 0.0).T)
-        value = np.where(inside[p], value, -np.inf)
-        grid = np.broadcast_to(ln_phi[p], value.shape)
-        best = np.argmax(value, axis=1)
-        at_b = np.arange(BOOTSTRAP)
-        left = value[at_b, np.maximum(best - 1, 0)]
-        right = value[at_b, np.minimum(best + 1, G - 1)]
-        top = value[at_b, best]
-        curve = left - 2.0 * top + right
-        with np.errstate(divide="ignore", invalid="ignore"):
-            shift = np.where(
-                np.isfinite(curve) & (curve < 0),
-                np.clip(0.5 * (left - right) / curve, -0.5, 0.5),
-                0.0,
-            )
-        point_step = np.full(BOOTSTRAP, ln_phi[p, 1] - ln_phi[p, 0] if G > 1 else 0.0)
-        estimate = grid[at_b, best] + shift * point_step
-        _, vertex = _envelope_se(grid, value, estimate, top, point_step)
-        estimate = np.where(np.isfinite(vertex), vertex, estimate)
-        out[p] = np.std(estimate, ddof=1)
-    return out
+        moved = trial[live].copy()
+        moved[:, 1:] += np.log1p(shift * h)
+        r = rows[live]
+        paths.append(engine.logpmf_at_values(layout.subset(r), [s.take(r) for s in support], moved))
+    rng = np.random.default_rng(np.concatenate([b.counts[0] for b in blocks]).astype(np.int64))
+    value = np.zeros((BOOTSTRAP, live.size))
+    for a, b in enumerate(blocks):
+        prob = np.exp(fitted[a])
+        draws = rng.multinomial(int(b.n[0]), prob / prob.sum(), size=BOOTSTRAP)
+        mean = draws @ support[a].values[0] / b.n[0]
+        t = ((mean - b.offset[0]) / signal[0, a] - 1.0) / h[a]
+        weights = (0.5 * t * (t - 1.0), 1.0 - t**2, 0.5 * t * (t + 1.0))
+        for w, path in zip(weights, paths):
+            value += w[:, None] * (draws @ path[a].T)
+    grid = np.broadcast_to(ln_phi[live], value.shape)
+    best = np.argmax(value, axis=1)
+    at = np.arange(BOOTSTRAP)
+    left = value[at, np.maximum(best - 1, 0)]
+    right = value[at, np.minimum(best + 1, live.size - 1)]
+    top = value[at, best]
+    curve = left - 2.0 * top + right
+    with np.errstate(divide="ignore", invalid="ignore"):
+        shift = np.where(curve < 0, np.clip(0.5 * (left - right) / curve, -0.5, 0.5), 0.0)
+    point_step = np.full(BOOTSTRAP, ln_phi[1] - ln_phi[0] if live.size > 1 else 0.0)
+    estimate = grid[at, best] + shift * point_step
+    _, vertex = _envelope_se(grid, value, estimate, top, point_step)
+    return float(np.std(np.where(np.isfinite(vertex), vertex, estimate), ddof=1))
 
 
 def _levels(layout, use):
