@@ -249,8 +249,7 @@ def _dark_variables(used, per_acq_dim, shape) -> dict:
             "its offset and read noise one normal's: doubtful)",
         ),
     ):
-        found = [getattr(a, "dark_" + name, None) for a in used]
-        found = [f for f in found if f is not None]
+        found = [f for a in used if (f := getattr(a, "dark_" + name, None)) is not None]
         if found:
             out[name] = (("row", "col"), np.any(found, axis=0).astype(np.int8), "1", text)
     if any(a.dark_event_rate is not None for a in used):
