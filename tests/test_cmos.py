@@ -431,6 +431,9 @@ def test_a_stuck_dark_pixel_is_left_out_and_marked_and_a_constant_dark_refused(t
     )
     np.testing.assert_array_equal(_exported_channel(ds, "stuck", tmp_path / "ome"), stuck)
     assert emccdcal.load_calibration(ds).stuck[2, 3]
+    # the sampler, asked for that pixel, says so in one line (not a deep OverflowError)
+    with pytest.raises(emccdcal.errors.OptionError, match=r"read noise 0 at pixel \(2, 3\)"):
+        emccdcal.sample_posterior(folder / "manifest.toml", "is-adu", [(2, 3)], seed=0)
     dark[:] = 101  # a dark constant at every pixel
     tifffile.imwrite(folder / "dark.tif", dark)
     with pytest.raises(

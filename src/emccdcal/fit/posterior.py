@@ -130,6 +130,11 @@ def _pixel_series(manifest, used, method, row, col, phi_map, options, em_model):
             raise OptionError(
                 f"{acq.frames_path}: fewer than 2 usable frames at pixel ({row}, {col})"
             )
+        if not acq.read_noise[row, col] > 0:  # a dark that never changes: calibrate's too
+            raise OptionError(
+                f"{acq.read_noise_source}: read noise 0 at pixel ({row}, {col}) (its dark "
+                "counts never change: a stuck pixel, which calibrate leaves out)"
+            )
         hists.append(h)
         models += acquisition_models(
             [acq.em_gain_setpoint],
