@@ -12,12 +12,12 @@ the likelihood ratio on the pixel's histogram: one normal fitted as the dark's m
 fitted to a few counts of a normal's tail would make one-normal pixels' ratios large,
 and a rare state far off still gains at the bound). The ratio's distribution without a
 second state is not χ² (the mixture's weight sits on its boundary), and hardly depends
-on the read noise or the frames once the rounding is modelled (its 99 % quantile
-8.4–9.8 from 0.8 to 4 ADU and 100 to 50 000 frames, 0.8–5.9 at 0.3 ADU; a model of
-densities at the integers put it at 25 to 1900 below 1 ADU, which left a fifth of the
-one-normal pixels of a 0.3 e⁻ sCMOS flagged): its quantile is that of normal darks of the same number of
-frames and a read noise like the pixels', from a table simulated once at the default
-rate (:mod:`emccdcal.data._telegraph_null`, written by
+on the read noise or the frames once the rounding is modelled (its 99 % quantile 8.4–9.8
+from 0.8 to 4 ADU and 100 to 50 000 frames, 0.8–5.9 at 0.3 ADU; a model of densities at
+the integers put it at 25 to 1900 below 1 ADU, which left a fifth of the one-normal
+pixels of a 0.3 e⁻ sCMOS flagged): its quantile is that of normal darks of the same
+number of frames and a read noise like the pixels', from a table simulated once at the
+default rate (:mod:`emccdcal.data._telegraph_null`, written by
 ``benchmarks/telegraph_null_table.py``), else simulated when asked (seeded: the same
 data give the same flags), and a pixel is flagged where its ratio exceeds the quantile
 of the stated false-alarm rate.
