@@ -244,6 +244,7 @@ def _run_cmos(args) -> int:
             camera=camera,
             levels=args.levels,
             dark_exposures_s=args.dark_exposures,
+            exposure_s=args.exposure,
             seed=args.seed,
             progress=not args.quiet,
         )
@@ -322,6 +323,14 @@ def _add_cmos(kinds) -> None:
         metavar="S,S,...",
         help="the photon-free path: no light, dark stacks at these exposures (s), the "
         "shortest the others' dark (needs --dark-current)",
+    )
+    cm.add_argument(
+        "--exposure",
+        type=float,
+        default=None,
+        metavar="S",
+        help="a lit series' exposure (s): the dark current's signal in the dark and every "
+        "level (default: none)",
     )
     cm.add_argument(
         "--dark-current",

@@ -96,7 +96,9 @@ def profile_start(layout, blocks, x0, read_out_variance):
     ripple the likelihood in its highest basin (module docstring); elsewhere ``x0``.
 
     1. The dimmest level alone (its aliases the widest apart, 1/E) on a grid over φ
-       around the moment start: its best :data:`CANDIDATES` local maxima.
+       around the moment start: its best :data:`CANDIDATES` local maxima, each climbed
+       to its basin's top (below one photoelectron the level's hill is narrower than
+       the grid's step).
     2. From each, the brighter levels added one at a time by Newton's method (each φ by
        then far better known than the next level's aliases where the comb is
        resolved); the candidate of the highest likelihood of all levels is fitted, and
@@ -546,10 +548,16 @@ def _dim_level_candidates(layout, blocks, x0, signal, rel, level):
     right = np.concatenate([value[:, 1:], np.full((P, 1), -np.inf)], axis=1)
     peaks = np.where((value >= left) & (value >= right), value, -np.inf)
     ranked = np.argsort(-peaks, axis=1, kind="stable")[:, :CANDIDATES]
+    cols = np.r_[0, 1 + level]
     out = []
     for c in range(ranked.shape[1]):
         pick = np.where(np.isfinite(peaks[np.arange(P), ranked[:, c]]), ranked[:, c], ranked[:, 0])
-        out.append(_on_path(x0, ln_phi[np.arange(P), pick], signal))
+        start = _on_path(x0, ln_phi[np.arange(P), pick], signal)
+        # The grid's point climbed to its basin's top: below one photoelectron a level's
+        # hill (SE ~ σφ/√(n·E)) can be far narrower than the grid's step (a quarter of ln φ)
+        # and its top far from any point, farther than the next level's basins are wide.
+        start[:, cols] = engine.fit(one, [blocks[level]], start[:, cols], covariance=False).x
+        out.append(start)
     return out
 
 

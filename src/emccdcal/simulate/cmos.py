@@ -268,6 +268,7 @@ def simulate_cmos_series(
     camera: CMOSCamera | None = None,
     levels=None,
     dark_exposures_s=None,
+    exposure_s=None,
     seed=None,
     progress=True,
     **options,
@@ -293,6 +294,10 @@ def simulate_cmos_series(
         ``dark-<t>s.tif`` at these exposures (s), the shortest the others' dark, each
         with the camera's ``dark_current`` (e⁻/s) times its exposure; the manifest says
         ``light = false`` and every exposure. ``levels`` is then not used.
+    exposure_s : float, optional
+        A lit series' exposure (s): the dark current's signal, ``dark_current`` times
+        it (e⁻ per pixel per frame), in the dark and in every level (the levels' light
+        as ``levels`` says). None (default): none, whatever the dark current.
     seed : int
         Seed of every draw (truth maps and frames).
     progress : bool
@@ -328,8 +333,11 @@ def simulate_cmos_series(
         for name, value in maps.items()
     ]
     if exposures is None:
-        stacks = [("dark.tif", 0.0, camera.dark_frames)] + [
-            (f"int{i + 1}.tif", E, camera.frames) for i, E in enumerate(lv)
+        thermal = 0.0
+        if exposure_s is not None:
+            thermal = maps["dark_current"] * check_number("exposure_s", exposure_s, positive=True)
+        stacks = [("dark.tif", thermal, camera.dark_frames)] + [
+            (f"int{i + 1}.tif", E + thermal, camera.frames) for i, E in enumerate(lv)
         ]
     else:  # the thermal signal of each exposure, the shortest the others' dark
         stacks = [
@@ -352,6 +360,7 @@ def simulate_cmos_series(
         "seed": seed,
         "levels": dict(zip((s[0] for s in stacks[1:]), lv)),
         "exposures_s": None if exposures is None else dict(zip((s[0] for s in stacks), exposures)),
+        "exposure_s": exposure_s if exposures is None else None,
         "maps": {name: f"truth-{name}.tif" for name in maps},
         "units": {
             "levels": "e-/px/frame",
@@ -362,6 +371,7 @@ def simulate_cmos_series(
             "dark_current": "e-/px/s",
             "hot": "1 at a hot pixel, else 0",
             "exposures_s": "s",
+            "exposure_s": "s",
         },
         "options": dataclasses.asdict(camera),
     }
