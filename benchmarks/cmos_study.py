@@ -73,7 +73,12 @@ def main():
     ap.add_argument("--first-seed", type=int, default=0, help="seeds first … first + seeds − 1")
     ap.add_argument("--configs", default=None, help="kind:read noise (e-), comma separated")
     ap.add_argument("--by-read-noise", action="store_true")
+    ap.add_argument(
+        "--dump", default=None, help="write each pixel's z, read noise (e-), phi, SE and truth "
+        "per configuration to this .npz",
+    )  # fmt: skip
     args = ap.parse_args()
+    dumped = {}
     configs = CONFIGS
     if args.configs:
         configs = [(c.split(":")[0], float(c.split(":")[1])) for c in args.configs.split(",")]
@@ -89,7 +94,7 @@ def main():
     print(head)
     for kind, rn in configs:
         z_phi, z_off, z_var, gof, err_ml, err_ls, secs = [], [], [], [], [], [], 0.0
-        noise_e = []
+        noise_e, phis, ses, truths, seeds = [], [], [], [], []
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             camera = CMOSCamera(
                 kind=kind, rows=args.size, cols=args.size, frames=args.frames,
@@ -109,6 +114,10 @@ def main():
                 }
             phi = ds.e_per_adu.values.ravel()
             t = truth["e_per_adu"].ravel()
+            phis.append(phi)
+            ses.append(ds.e_per_adu_se.values.ravel())
+            truths.append(t)
+            seeds.append(np.full(phi.size, seed))
             z_phi.append((phi - t) / ds.e_per_adu_se.values.ravel())
             noise_e.append(truth["read_noise"].ravel() * t)  # ADU × e-/ADU
             zo, zv = _maps_z(ds, truth["offset"], truth["read_noise"], 2 * args.frames)
@@ -127,6 +136,14 @@ def main():
             f"{sd_ml / sd_ls:5.2f} | {secs / args.seeds:5.1f}",
             flush=True,
         )
+        if args.dump:
+            key = f"{kind}_{rn:g}"
+            for name, values in (
+                ("z", z_phi), ("read_noise_e", noise_e), ("phi", phis), ("phi_se", ses),
+                ("phi_true", truths), ("seed", seeds),
+            ):  # fmt: skip
+                dumped[f"{key}_{name}"] = np.concatenate(values)
+            np.savez(args.dump, **dumped)
         if args.by_read_noise:
             noise_e = np.concatenate(noise_e)
             edges = (0.0, 0.35, 0.5, 0.65, 0.8, 1.0, 1.5, np.inf)
