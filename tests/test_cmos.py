@@ -318,6 +318,9 @@ def test_a_hot_pixel_in_darks_at_one_exposure_is_flagged_as_not_one_normal(tmp_p
     np.testing.assert_allclose(excess[hot], rate[hot] / phi[hot], atol=0.25)
     flagged = emccdcal.read_manifest(out / "manifest.toml").acquisitions[0].dark_telegraph
     assert hot.sum() >= 5 and flagged[hot].mean() >= 0.7 and flagged[~hot].mean() < 0.15
+    # the photon-free path's exposures are its darks': a lit series' exposure refused
+    both = [*argv, "--dark-exposures", "0.1,1", "-o", str(tmp_path / "both"), "-q"]
+    assert cli.main(both) == 2
 
 
 def _andor(src, dst, model, frames):

@@ -554,8 +554,8 @@ def _dim_level_candidates(layout, blocks, x0, signal, rel, level):
         pick = np.where(np.isfinite(peaks[np.arange(P), ranked[:, c]]), ranked[:, c], ranked[:, 0])
         start = _on_path(x0, ln_phi[np.arange(P), pick], signal)
         # The grid's point climbed to its basin's top: below one photoelectron a level's
-        # hill (SE ~ σφ/√(n·E)) can be far narrower than the grid's step (a quarter of ln φ)
-        # and its top far from any point, farther than the next level's basins are wide.
+        # hill in ln φ can be a few per cent wide, the grid's step a quarter, and its top
+        # far from every point: farther than the next level's basins are wide.
         start[:, cols] = engine.fit(one, [blocks[level]], start[:, cols], covariance=False).x
         out.append(start)
     return out

@@ -318,6 +318,10 @@ def simulate_cmos_series(
         "seed", seed if seed is not None else np.random.SeedSequence().entropy % 2**63, minimum=0
     )
     exposures = _exposures(camera, dark_exposures_s)
+    if exposure_s is not None and exposures is not None:
+        raise OptionError(
+            "exposure_s is a lit series' exposure; the photon-free path's are dark_exposures_s"
+        )
     if exposures is None:
         lv = DEFAULT_LEVELS[camera.kind] if levels is None else tuple(levels)
         lv = [check_number("levels", x, positive=True) for x in lv]
