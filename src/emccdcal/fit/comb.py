@@ -556,7 +556,9 @@ def _dim_level_candidates(layout, blocks, x0, signal, rel, level):
         # The grid's point climbed to its basin's top: below one photoelectron a level's
         # hill in ln φ can be a few per cent wide, the grid's step a quarter, and its top
         # far from every point: farther than the next level's basins are wide.
-        start[:, cols] = engine.fit(one, [blocks[level]], start[:, cols], covariance=False).x
+        climbed = engine.fit(one, [blocks[level]], start[:, cols], covariance=False).x
+        kept = np.all(np.isfinite(climbed), axis=1)  # else the grid's point
+        start[np.ix_(kept, cols)] = climbed[kept]
         out.append(start)
     return out
 
