@@ -299,9 +299,9 @@ def test_simulate_cmos_writes_a_series_that_names_its_camera(tmp_path):
 
 def test_a_hot_pixel_in_darks_at_one_exposure_is_flagged_as_not_one_normal(tmp_path):
     """``simulate cmos --exposure`` puts the dark current's signal in the dark and every
-    level; darks at one exposure measure no dark current (no ``hot``), and a hot pixel's
-    dark, a Poisson mixture, fails the telegraph test's one normal (docs/cmos.md, "Hot
-    pixels": 0.86 of them at a median 1.3 e⁻ over eight cameras)."""
+    level; darks at one exposure measure no dark current, and a hot pixel's dark, a
+    Poisson mixture, fails the telegraph test's one normal (docs/cmos.md, "Hot pixels":
+    0.86 of them at a median 1.3 e⁻ over eight cameras)."""
     from emccdcal import cli
 
     out = tmp_path / "sim"
