@@ -174,14 +174,27 @@ def profile_start(layout, blocks, x0, read_out_variance):
             refit = engine.fit(sub.subset(idx), [b.take(idx) for b in part], start)
             x[idx] = refit.x
             objective[idx] = refit.objective
-        envelope, vertex = _envelope_se(
-            ln_phi, v, x[check, 0], objective[check], step_of(E_max, 4.0 * rel[check])
-        )
+        step = step_of(E_max, 4.0 * rel[check])
+        envelope, vertex = _envelope_se(ln_phi, v, x[check, 0], objective[check], step)
+        rival = _rivals(ln_phi, v, x[check, 0], objective[check], step)[2]
+        # Basins too few for an envelope (a resolved comb's, each narrower than the
+        # grid's step, whose tops can hide between its points): every point within reach
+        # climbed, the best basin fitted, the SE reaching the near ones.
+        coarse = np.sum(np.isfinite(v), axis=1) <= FEW_POINTS
+        lone = np.flatnonzero((rival | coarse) & ~np.isfinite(envelope))
+        if lone.size:
+            idx = check[lone]
+            envelope[lone], x[idx], objective[idx] = _rival_reach(
+                sub.subset(idx), [b.take(idx) for b in part], x[idx], signal[idx],
+                ln_phi[lone], v[lone], objective[idx], step[lone], coarse[lone],
+            )  # fmt: skip
         hill = np.flatnonzero(np.isfinite(vertex))  # one hill: the fit starts at its top
         idx = check[hill]
         x[idx] = _on_path(x[idx], vertex[hill], signal[idx])
-        # The estimate a ripple's top among rivals: its SE at least its own scatter.
-        tops = np.flatnonzero(np.isfinite(envelope) & ~np.isfinite(vertex))
+        # The estimate a ripple's top among rivals: its SE at least its own scatter, also
+        # where too few tops make no envelope (a resolved comb's basins a few per cent
+        # apart, as high as each other within a nat).
+        tops = np.flatnonzero((np.isfinite(envelope) | rival) & ~np.isfinite(vertex))
         if tops.size:
             idx = check[tops]
             envelope[tops] = np.fmax(
@@ -275,6 +288,65 @@ def step_of(E_max, half):
     return np.maximum(1.0 / (PER_RIPPLE * E_max), 2.0 * half / (MAX_POINTS - 1))
 
 
+def _rivals(ln_phi, value, x_fit, fit_value, step):
+    """The grid's tops (P, G), the best value (P,: the fit's or a top's) and whether a
+    top away from the fit comes within :data:`RIVAL` nats of it (P,)."""
+    P = value.shape[0]
+    left = np.concatenate([np.full((P, 1), -np.inf), value[:, :-1]], axis=1)
+    right = np.concatenate([value[:, 1:], np.full((P, 1), -np.inf)], axis=1)
+    top = (value >= left) & (value >= right) & np.isfinite(value)
+    best = np.maximum(fit_value, np.where(top, value, -np.inf).max(axis=1))
+    away = np.abs(ln_phi - x_fit[:, None]) > 1.5 * step[:, None]
+    return top, best, np.any(top & away & (best[:, None] - value < RIVAL), axis=1)
+
+
+#: A grid of at most this many points (a comb whose basins lie far apart against the
+#: moments' SE) is climbed from every point within reach: its basins' tops can hide
+#: between its points.
+FEW_POINTS = 33
+#: Half the χ²₁ 95 % quantile: the profile likelihood's 95 % set holds the points within
+#: this many nats of its best.
+PROFILE_95 = 1.92
+
+
+def _rival_reach(layout, blocks, x, signal, ln_phi, value, fit_value, step, every):
+    """Where rival basins are too few to shape an envelope (a resolved comb: two or
+    three basins a few per cent apart, each narrower than the grid's step, so that the
+    grid's values fall short of their tops or miss a top between two points): each
+    rival top, or with ``every`` (P,) each point of the grid within :data:`RIVAL` nats,
+    and the fit itself climbed to its basin's top. Returns the SE of ln φ (P,) such that
+    ±1.96 SEs reach the far edge of the profile likelihood's 95 % set (within
+    :data:`PROFILE_95` nats of the best) in the farthest other basin that holds part of
+    it (NaN where none does: the best basin's curvature is then the error), and ``x``
+    and its objective (P,) at the best basin.
+
+    A parametric bootstrap at the fit cannot see this: replicates drawn at one basin's
+    top rarely prefer the other, however nearly the data tie them."""
+    top, _, _ = _rivals(ln_phi, value, x[:, 0], fit_value, step)
+    away = np.abs(ln_phi - x[:, :1]) > 1.5 * step[:, None]
+    pixel, point = np.nonzero((top | every[:, None]) & away & (fit_value[:, None] - value < RIVAL))
+    x, fit_value = x.copy(), fit_value.copy()
+    reach = np.zeros(x.shape[0])
+    if pixel.size:
+        own = np.unique(pixel)
+        rows = np.concatenate([own, pixel])
+        start = _on_path(x[rows], np.r_[x[own, 0], ln_phi[pixel, point]], signal[rows])
+        climbed = engine.fit(layout.subset(rows), [b.take(rows) for b in blocks], start)
+        top_value = np.where(np.isfinite(climbed.objective), climbed.objective, -np.inf)
+        order = np.lexsort((-top_value, rows))  # each pixel's best basin first
+        best = order[np.r_[True, rows[order][1:] != rows[order][:-1]]]
+        x[rows[best]], fit_value[rows[best]] = climbed.x[best], top_value[best]
+        # each other basin's part of the 95 % set reaches as far as its top and beyond
+        # it as far as its own curvature keeps the likelihood within the set
+        room = PROFILE_95 - (fit_value[rows] - top_value)
+        distance = np.abs(climbed.x[:, 0] - x[rows, 0])
+        with np.errstate(invalid="ignore"):
+            edge = distance + np.sqrt(np.abs(climbed.cov[:, 0, 0]) * 2.0 * np.maximum(room, 0.0))
+        inside = (room >= 0) & np.isfinite(edge) & (distance > 0)
+        np.maximum.at(reach, rows[inside], edge[inside])
+    return np.where(reach > 0, reach / 1.96, np.nan), x, fit_value
+
+
 def _envelope_se(ln_phi, value, x_fit, fit_value, step):
     """The SE of ln φ (P,) where the fit's ripple does not decide φ, from the curvature
     of the smooth likelihood the ripples sit on, and where that likelihood is one hill,
@@ -292,13 +364,8 @@ def _envelope_se(ln_phi, value, x_fit, fit_value, step):
     noise, not φ's information, and a fit kept on the highest scatters more than the
     hill's top. Elsewhere, where rival ripples compete (:data:`RIVAL`), a parabola
     through the ripples' tops (within :data:`ENVELOPE` nats) gives the SE."""
-    P, G = value.shape
-    left = np.concatenate([np.full((P, 1), -np.inf), value[:, :-1]], axis=1)
-    right = np.concatenate([value[:, 1:], np.full((P, 1), -np.inf)], axis=1)
-    top = (value >= left) & (value >= right) & np.isfinite(value)
-    best = np.maximum(fit_value, np.where(top, value, -np.inf).max(axis=1))
-    away = np.abs(ln_phi - x_fit[:, None]) > 1.5 * step[:, None]
-    rival = np.any(top & away & (best[:, None] - value < RIVAL), axis=1)
+    P = value.shape[0]
+    top, best, rival = _rivals(ln_phi, value, x_fit, fit_value, step)
     near = np.isfinite(value) & (best[:, None] - value < ENVELOPE)
     out, vertex = np.full(P, np.nan), np.full(P, np.nan)
     for points, needs_fit in ((top & near, rival), (near, None)):  # the hill overrides
