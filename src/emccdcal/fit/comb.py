@@ -29,7 +29,9 @@ the parabola through the ripples' tops, the smooth likelihood they sit on
 (:func:`ripple_covariance`), or the estimate's own scatter where that is larger (the
 highest top among rivals is partly the data's noise: a parametric bootstrap,
 :func:`bootstrap_se`); where that likelihood is one hill the ripples do not decide the
-estimate either, and the fit starts at the hill's top. Where a level is so bright that
+estimate either, and the fit starts at the hill's top. Where the rivals are a resolved
+comb's few basins, too few for an envelope, the SE reaches every basin within the
+profile likelihood's 95 % set (:func:`_rival_reach`). Where a level is so bright that
 no grid resolves its ripples (1/E apart: thousands of e⁻), they are a tiny fraction of a
 nat deep yet their curvature is huge, and a fit ends on whichever it meets: there the
 envelope itself is fitted (:func:`_envelope_fit`), its vertex the start and its
@@ -108,7 +110,10 @@ def profile_start(layout, blocks, x0, read_out_variance):
        a better ripple found there (by a nat) is fitted instead, and where rival ripples
        compete the envelope's SE, or the estimate's bootstrap SD where larger
        (:func:`bootstrap_se`), is the SE's floor (:func:`_envelope_se`), the start
-       moved to the envelope's top where it is one hill; where no grid
+       moved to the envelope's top where it is one hill; where rival basins are too
+       few for an envelope (or the grid so coarse that tops hide between its points),
+       each is climbed, the best is the start and the SE reaches the profile
+       likelihood's 95 % set in the others (:func:`_rival_reach`); where no grid
        of :data:`MAX_POINTS` resolves the ripples, the envelope's fit
        (:func:`_envelope_fit`) gives the start and the floor.
 
