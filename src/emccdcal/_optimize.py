@@ -72,6 +72,32 @@ def solve(A, b):
         return out
 
 
+def positive_definite(H):
+    """Whether each matrix of a stack (P, F, F) is finite and positive definite."""
+    ok = np.all(np.isfinite(H), axis=(1, 2))
+    pos = np.zeros(H.shape[0], dtype=bool)
+    if ok.any():
+        pos[ok] = np.all(np.linalg.eigvalsh(H[ok]) > 0, axis=1)
+    return pos
+
+
+def invert_information(H):
+    """Inverse of a stack of information matrices and whether each is positive definite."""
+    P, F, _ = H.shape
+    cov = np.full((P, F, F), np.nan)
+    pos = positive_definite(H)
+    if pos.any():
+        try:  # the whole stack at once
+            cov[pos] = np.linalg.inv(H[pos])
+        except np.linalg.LinAlgError:  # one numerically singular matrix fails it whole
+            for i in np.flatnonzero(pos):
+                try:
+                    cov[i] = np.linalg.inv(H[i])
+                except np.linalg.LinAlgError:  # positive eigenvalues, yet singular
+                    pos[i] = False
+    return cov, pos
+
+
 def dense_step(info, grad, damping, held):
     """The damped Newton step ``(I + λ·diag I)⁻¹ ∇`` of every row.
 

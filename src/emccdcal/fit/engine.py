@@ -32,7 +32,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .. import _xp
-from .._optimize import declined_step, maximize
+from .._optimize import declined_step, invert_information, maximize, positive_definite
 from ..model import noise
 
 __all__ = [
@@ -610,7 +610,14 @@ def objective(layout, blocks, x):
     return _evaluate(layout, blocks, x, 0)[0]
 
 
-def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance=True):
+#: Nats: what the exact information's Newton step may still promise where single-precision
+#: steps stopped (within 1.4e-5 SE of the optimum; exact steps land within ~1e-12).
+LANDED = 1e-10
+
+
+def fit(
+    layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance=True, rough_steps=True
+):
     """Maximise the likelihood (times the layout's prior) for every pixel of a block.
 
     Parameters
@@ -634,6 +641,11 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
         of the last point the optimiser evaluated (within ``tol`` of the optimum's),
         the other fields None: a starting point for another fit, or a profile's
         point, without the final evaluation's transforms.
+    rough_steps : bool
+        Steer Newton's steps by single-precision information (half the transforms'
+        time). It is noise where data lie far in the model's tails (an outlier): a row
+        the final, exact evaluation finds not converged, or not within :data:`LANDED`,
+        is fitted again from ``x0`` with the exact information.
 
     Returns
     -------
@@ -652,6 +664,7 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
     # curvature changes too fast to keep, or the likelihood ripples, a layout takes BHHH
     # steps with the information anew at every trial (Layout.newton_steps).
     newton = layout.newton_steps
+    rough = newton and rough_steps
 
     def at_rows(rows, x, information):
         """(objective, gradient, information) of ``rows`` at ``x``. The information is
@@ -663,7 +676,7 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
         # lands on the optimum whichever path led there); not where the likelihood
         # ripples (single precision does not resolve its valleys), nor with a prior
         # (its outer-product steps stop where their path ends).
-        how = dict(information=information, steps_only=newton)
+        how = dict(information=information, steps_only=rough)
         if rows.size == P:
             res = _evaluate(layout, blocks, x, level, **how)
         elif same_shapes:
@@ -675,7 +688,7 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
             res = _evaluate(layout.subset(rows), part, x, level, **how)
         info = res[4]
         if level == 2:
-            info = np.where(_positive_definite(info)[:, None, None], info, res[7])
+            info = np.where(positive_definite(info)[:, None, None], info, res[7])
         return res[0], res[3], info
 
     def evaluate(rows, x, information=None):
@@ -720,7 +733,7 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
         objective, loglik, per_acq, grad, obs, floored, crosses = _evaluate_rows(
             layout, blocks, x, live, map_errors
         )
-    cov, pos_def = _invert(obs)
+    cov, pos_def = invert_information(obs)
     # With a prior (the hierarchical MAP) the frequentist covariance of the estimate is the
     # sandwich H⁻¹ I H⁻¹ of the penalised Hessian H and the likelihood's information I;
     # without one it is H⁻¹ itself.
@@ -737,7 +750,21 @@ def fit(layout, blocks, x0, *, max_iter=100, tol=1e-7, progress=None, covariance
     converged = opt.done & pos_def & (gnorm < 1e-4)
     if progress is not None:
         progress(int((~(opt.done | opt.stuck)).sum()))
-    return FitResult(x, cov, loglik, converged, iterations, floored, per_acq, objective)
+    result = FitResult(x, cov, loglik, converged, iterations, floored, per_acq, objective)
+    # Steered badly by single-precision information (hundreds of times too large where
+    # data lie far in the tails): crawled, or stopped short; exact steps from the start.
+    again = np.flatnonzero(live & (~converged | (0.5 * gnorm > LANDED)) & rough)
+    if again.size:
+        rows = [b.take(again) for b in blocks]
+        x_again = np.asarray(x0)[again]
+        redo = fit(
+            layout.subset(again), rows, x_again, max_iter=max_iter, tol=tol, rough_steps=False
+        )
+        for name in ("x", "cov", "loglik", "converged", "n_floored", "objective"):
+            getattr(result, name)[again] = getattr(redo, name)
+        result.loglik_per_acquisition[again] = redo.loglik_per_acquisition
+        result.iterations[again] += redo.iterations
+    return result
 
 
 def _evaluate_rows(layout, blocks, x, live, map_errors):
@@ -767,29 +794,3 @@ def _evaluate_rows(layout, blocks, x, live, map_errors):
                 full[rows] = c
                 crosses.append(full)
     return objective, loglik, per_acq, grad, obs, floored, crosses
-
-
-def _positive_definite(H):
-    """Whether each matrix of a stack (P, F, F) is finite and positive definite."""
-    ok = np.all(np.isfinite(H), axis=(1, 2))
-    pos = np.zeros(H.shape[0], dtype=bool)
-    if ok.any():
-        pos[ok] = np.all(np.linalg.eigvalsh(H[ok]) > 0, axis=1)
-    return pos
-
-
-def _invert(H):
-    """Inverse of a stack of information matrices and whether each is positive definite."""
-    P, F, _ = H.shape
-    cov = np.full((P, F, F), np.nan)
-    pos = _positive_definite(H)
-    if pos.any():
-        try:  # the whole stack at once
-            cov[pos] = np.linalg.inv(H[pos])
-        except np.linalg.LinAlgError:  # one numerically singular matrix fails it whole
-            for i in np.flatnonzero(pos):
-                try:
-                    cov[i] = np.linalg.inv(H[i])
-                except np.linalg.LinAlgError:  # positive eigenvalues, yet singular
-                    pos[i] = False
-    return cov, pos

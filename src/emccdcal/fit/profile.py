@@ -10,8 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._optimize import solve
-from .engine import Layout, _evaluate, _invert, fit
+from .._optimize import invert_information, solve
+from .engine import Layout, _evaluate, fit
 
 __all__ = ["e_per_adu_sensitivity", "profile_bounds", "with_phi_error"]
 
@@ -156,7 +156,7 @@ def profile_bounds(
     se = np.sqrt(np.abs(result.cov[:, j, j]))
     target = np.full(P, np.sqrt(special.chdtri(1, 1 - level)))  # chi2.ppf(level, 1)
     if not hasattr(layout, "estimator_covariance") and not np.any(layout.log_prior(x_hat)[2]):
-        conditional, pos_def = _invert(_evaluate(layout, blocks, x_hat, 2)[4])
+        conditional, pos_def = invert_information(_evaluate(layout, blocks, x_hat, 2)[4])
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = result.cov[:, j, j] / conditional[:, j, j]
         target *= np.sqrt(np.where(pos_def & np.isfinite(ratio) & (ratio > 1), ratio, 1.0))
