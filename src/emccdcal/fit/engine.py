@@ -638,14 +638,15 @@ def fit(
     covariance : bool
         Compute the covariance, log-likelihoods and convergence at the optimum (the
         observed information); ``False`` returns the optimum ``x`` and the objective
-        of the last point the optimiser evaluated (within ``tol`` of the optimum's),
-        the other fields None: a starting point for another fit, or a profile's
-        point, without the final evaluation's transforms.
+        of the last point the optimiser evaluated (within ``tol`` of the optimum's
+        with exact steps, ``rough_steps``), the other fields None: a starting point
+        for another fit, or a profile's point, without the final evaluation.
     rough_steps : bool
         Steer Newton's steps by single-precision information (half the transforms'
         time). It is noise where data lie far in the model's tails (an outlier): a row
         the final, exact evaluation finds not converged, or not within :data:`LANDED`,
-        is fitted again from ``x0`` with the exact information.
+        is fitted again from ``x0`` with the exact information. Without ``covariance``
+        nothing checks it: a caller whose objective must be the optimum's asks False.
 
     Returns
     -------

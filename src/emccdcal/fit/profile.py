@@ -180,9 +180,11 @@ def profile_bounds(
             if active.size == 0:
                 break
             value = x_hat[active, j] + side * t
+            # exact steps: single-precision ones can crawl short of a pixel's optimum
+            # (an outlier in its tail), and the deviance would read that shortfall
             fitted = fit(
                 _Pinned(layout.subset(active), j, value), [b.take(active) for b in blocks],
-                start, max_iter=50, covariance=False,
+                start, max_iter=50, covariance=False, rough_steps=False,
             )  # fmt: skip
             r = np.sqrt(np.maximum(2.0 * (result.objective[active] - fitted.objective), 0.0))
             miss = np.abs(r - z)
