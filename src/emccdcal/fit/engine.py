@@ -756,11 +756,8 @@ def fit(
     # data lie far in the tails): crawled, or stopped short; exact steps from the start.
     again = np.flatnonzero(live & (~converged | (0.5 * gnorm > LANDED)) & rough)
     if again.size:
-        rows = [b.take(again) for b in blocks]
-        x_again = np.asarray(x0)[again]
-        redo = fit(
-            layout.subset(again), rows, x_again, max_iter=max_iter, tol=tol, rough_steps=False
-        )
+        part, start = [b.take(again) for b in blocks], np.asarray(x0)[again]
+        redo = fit(layout.subset(again), part, start, max_iter=max_iter, tol=tol, rough_steps=False)
         for name in ("x", "cov", "loglik", "converged", "n_floored", "objective"):
             getattr(result, name)[again] = getattr(redo, name)
         result.loglik_per_acquisition[again] = redo.loglik_per_acquisition
