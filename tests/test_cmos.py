@@ -935,11 +935,102 @@ def test_a_comb_too_faint_for_the_grids_tops_leaves_no_pixel_overconfident(tmp_p
     assert np.abs(z).max() < 4.5 and np.sqrt(np.mean(z**2)) < 1.35
 
 
+def _comb_pixels(phi, E, seed, sigma=0.42 / 0.46, frames=1500):
+    """A :class:`~emccdcal.fit.series.SeriesLikelihood` of ``is-adu`` for pixels of an
+    sCMOS whose comb barely shows: φ (e⁻/ADU), levels ``E`` (P, A) e⁻ and read noise σ
+    (ADU), simulated (Poisson, normal, the ADC's rounding: not the engine) and
+    histogrammed."""
+    from emccdcal.data.stats import histograms
+    from emccdcal.fit.series import AcquisitionModel, SeriesLikelihood
+
+    offset = 100.0
+    rng = np.random.default_rng(seed)
+    P = E.shape[0]
+    hists = [
+        histograms(
+            np.rint(
+                offset
+                + rng.poisson(E[:, a], (frames, P)) / phi
+                + sigma * rng.standard_normal((frames, P))
+            ).reshape(frames, 1, P)
+        )
+        for a in range(E.shape[1])
+    ]
+    model = noise.EMModel("cascade")
+    models = [AcquisitionModel(1.0, np.full(P, offset), np.full(P, sigma), model)] * E.shape[1]
+    return SeriesLikelihood("is-adu", models, hists)
+
+
+def _comb_grid(pixels, x):
+    """The profile likelihood of ``pixels`` along E = φ·(mean − offset) on the grid the
+    fit's check takes about ``x`` (±4 moments' SEs, four points a ripple): ln φ and its
+    values (P, G)."""
+    from emccdcal.fit import comb
+
+    signal = np.stack([b.mean - b.offset for b in pixels.blocks], axis=1)
+    rel = comb.moment_se(pixels.blocks, np.exp(x[:, 0]), lambda b: b.read_noise**2 + 1 / 12)
+    E_max = signal.max(axis=1) * np.exp(x[:, 0])
+    step = 1.0 / (comb.PER_RIPPLE * E_max)
+    grid = comb._path_grid(pixels.layout, pixels.blocks, x, signal, 4.0 * rel, step)
+    return signal, rel, step, grid
+
+
+@pytest.mark.slow
+def test_where_rival_ripples_compete_the_estimate_is_the_highest():
+    """Where the comb barely shows (0.42 e⁻ of read noise on an sCMOS of 0.46 e⁻/ADU),
+    the likelihood over φ holds rival ripples within a nat of each other. The estimate is
+    the highest of them, as its bootstrap (which replays the estimate) assumes: no point
+    of the profile likelihood's grid about it is higher. A fit kept on its own ripple
+    unless another was a nat higher stopped below the grid's best at a third of such
+    pixels (up to 0.9 nats), and those estimates scattered more than their SEs said."""
+    pixels = _comb_pixels(0.46, np.tile([20.0, 60.0, 150.0, 400.0], (16, 1)), 5)
+    fit = pixels.fit()
+    _, _, _, (ln_phi, value) = _comb_grid(pixels, fit.x)
+    # the grid's values are the likelihood along the mean's path, at most the profile's
+    assert np.all(value.max(axis=1) <= fit.objective + 1e-6)
+
+
+@pytest.mark.slow
+def test_profile_intervals_where_rival_ripples_compete_are_as_wide_as_the_error():
+    """``intervals="profile"`` where the comb barely shows: the χ²₁ quantile of φ's
+    deviance ends within the estimate's own ripple (bounds a few hundredths of the SE
+    wide, covering 58 % of the truths at 0.35–0.5 e⁻ on an sCMOS), so there the bounds
+    of φ and of every E are the Wald bounds of the widened error on the log scale."""
+    pixels = _comb_pixels(0.46, np.tile([20.0, 60.0, 150.0, 400.0], (8, 1)), 6)
+    fit = pixels.fit()
+    e = pixels.estimates(fit, intervals="profile", gof_test=False)
+    widened = e["e_per_adu_se"][:, 0] > 2 * np.sqrt(fit.cov[:, 0, 0]) * e["e_per_adu"][:, 0]
+    assert widened.sum() >= 4  # the case at hand: the ripples set the error
+    for name in ("e_per_adu", "photoelectrons"):
+        value, se = e[name][widened], e[f"{name}_se"][widened]
+        lower, upper = e[f"{name}_lower"][widened], e[f"{name}_upper"][widened]
+        np.testing.assert_allclose(np.log(upper / value), 1.959964 * se / value, rtol=1e-6)
+        np.testing.assert_allclose(np.log(value / lower), 1.959964 * se / value, rtol=1e-6)
+
+
+def test_the_wald_se_of_heavy_tailed_errors_holds_95_percent_of_them():
+    """The errors of an estimate among rival ripples are a spike and wide wings: ±1.96
+    of their SD holds too few of them, the SE of :func:`emccdcal.fit.comb.wald_se` 95 %;
+    normal errors get their SD."""
+    from emccdcal.fit import comb
+
+    rng = np.random.default_rng(8)
+    B = 20000
+    spike_and_wings = np.where(rng.random(B) < 0.6, 0.05, 1.0) * rng.standard_normal(B)
+    normal = rng.standard_normal(B)
+    errors = np.stack([spike_and_wings, normal])
+    se = comb.wald_se(errors)
+    held = np.mean(np.abs(errors) <= 1.96 * se[:, None], axis=1)
+    by_sd = np.mean(np.abs(errors) <= 1.96 * errors.std(axis=1, ddof=1)[:, None], axis=1)
+    assert by_sd[0] < 0.93 and held[0] == pytest.approx(0.95, abs=0.003)
+    assert se[1] == pytest.approx(np.std(normal, ddof=1), rel=0.02)
+
+
 @pytest.mark.slow
 def test_the_bootstrap_of_rival_ripples_is_the_scatter_of_the_estimate_refitted(monkeypatch):
     """Where rival ripples compete (a pixel of 0.42 e⁻ of read noise on an sCMOS of
-    0.46 e⁻/ADU: its comb barely resolved), the SE of ln φ is at least the estimate's
-    own scatter, which :func:`emccdcal.fit.comb.bootstrap_se` computes from the model
+    0.46 e⁻/ADU: its comb barely resolved), the SE of ln φ holds 95 % of the estimate's
+    own errors, which :func:`emccdcal.fit.comb.bootstrap_errors` draws from the model
     evaluated once for all its replicates. Against the slow way: 48 replicates simulated
     at the pixel's fit (Poisson, normal, the ADC's rounding: not the engine), each
     fitted as the pixel was. The estimates are a spike at the fit's ripple and wings
@@ -947,45 +1038,22 @@ def test_the_bootstrap_of_rival_ripples_is_the_scatter_of_the_estimate_refitted(
     fast one of some 10 %: the two agree within 40 %. A bootstrap along one path for
     every replicate (their means' noise, a fraction of a ripple, left out) gave SDs
     down to a tenth of this."""
-    from emccdcal.data.stats import histograms
     from emccdcal.fit import comb
-    from emccdcal.fit.series import AcquisitionModel, SeriesLikelihood
 
-    offset, sigma, frames = 100.0, 0.42 / 0.46, 1500
-    model = noise.EMModel("cascade")
-
-    def likelihood(phi, E, seed):
-        """Pixels of φ and levels ``E`` (P, 4), simulated and histogrammed."""
-        rng = np.random.default_rng(seed)
-        P = E.shape[0]
-        hists = [
-            histograms(
-                np.rint(
-                    offset
-                    + rng.poisson(E[:, a], (frames, P)) / phi
-                    + sigma * rng.standard_normal((frames, P))
-                ).reshape(frames, 1, P)
-            )
-            for a in range(E.shape[1])
-        ]
-        models = [AcquisitionModel(1.0, np.full(P, offset), np.full(P, sigma), model)] * 4
-        return SeriesLikelihood("is-adu", models, hists)
-
-    pixel = likelihood(0.46, np.array([[20.0, 60.0, 150.0, 400.0]]), 3)
+    pixel = _comb_pixels(0.46, np.array([[20.0, 60.0, 150.0, 400.0]]), 3)
     fit = pixel.fit()
     x = fit.x
-    signal = np.stack([b.mean - b.offset for b in pixel.blocks], axis=1)
-    rel = comb.moment_se(pixel.blocks, np.exp(x[:, 0]), lambda b: b.read_noise**2 + 1 / 12)
-    E_max = signal.max(axis=1) * np.exp(x[:, 0])
-    fast = comb.bootstrap_se(
-        pixel.layout, pixel.blocks, x, signal, 4.0 * rel, 1.0 / (comb.PER_RIPPLE * E_max)
-    )[0]
+    signal, rel, step, _ = _comb_grid(pixel, x)
+    errors = comb.bootstrap_errors(pixel.layout, pixel.blocks, x, signal, 4.0 * rel, step)
+    fast = np.std(errors[0], ddof=1)
     se = float(np.ravel(pixel.estimates(fit)["e_per_adu_se"])[0]) / np.exp(x[0, 0])
-    assert se >= fast  # the pixel's SE holds it
+    assert se >= comb.wald_se(errors)[0] >= fast  # the pixel's SE holds them
     # The replicates' estimates as the pixel's, not their SEs: their own bootstraps (which
     # move an SE's floor, never x) are left out.
-    monkeypatch.setattr(comb, "bootstrap_se", lambda layout, *a: np.zeros(layout.constant.shape[0]))
-    replicates = likelihood(float(np.exp(x[0, 0])), np.repeat(np.exp(x[:, 1:]), 48, axis=0), 4)
+    monkeypatch.setattr(
+        comb, "bootstrap_errors", lambda layout, *a: np.zeros((layout.constant.shape[0], 2))
+    )
+    replicates = _comb_pixels(float(np.exp(x[0, 0])), np.repeat(np.exp(x[:, 1:]), 48, axis=0), 4)
     slow = np.std(replicates.fit(covariance=False).x[:, 0], ddof=1)
     print(f"SD of ln phi: bootstrap {fast:.5f}, refitted {slow:.5f}; the pixel's SE {se:.5f}")
     assert fast == pytest.approx(slow, rel=0.4)

@@ -172,10 +172,16 @@ def _histograms(job, a, frames):
 def _bounds_of(method, intervals):
     """Interval bounds of a likelihood result: (kind, description), or None."""
     if intervals == "profile":
+        comb = (
+            "; Wald on the log scale where rival ripples of the photoelectron comb set "
+            "the error of e_per_adu (their deviance does not follow chi-squared)"
+            if method == "is-adu"
+            else ""
+        )
         return (
             "profile-likelihood",
             "profile likelihood, 95 %, widened by the errors of the offset and "
-            "read-noise maps where the standard errors include them",
+            "read-noise maps where the standard errors include them" + comb,
         )
     if method == "gs-hierarchical":
         return (

@@ -593,7 +593,7 @@ def _map_covariance(layout, blocks, x, cov, crosses):
 def logpmf_at_values(layout, blocks, x):
     """ln p of every value each block holds (its counts unused) at ``x`` (P, F): a list
     of (P, K) arrays, one per acquisition, nats: the model the likelihood sums, at counts
-    a fit has not seen (a parametric bootstrap's, :func:`emccdcal.fit.comb.bootstrap_se`).
+    a fit has not seen (a parametric bootstrap's, :func:`emccdcal.fit.comb.bootstrap_errors`).
     """
     logs, _ = layout.native(x)
     out = []

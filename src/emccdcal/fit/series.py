@@ -377,7 +377,10 @@ class SeriesLikelihood:
             se = np.nan if e_per_adu_se is None else np.asarray(e_per_adu_se, float)[:, None]
             e["e_per_adu_se"] = np.broadcast_to(se, e["e_per_adu"].shape).copy()
         if intervals == "profile":
-            e.update(layouts.acquisition_bounds(layout, blocks, fit))
+            bounds = layouts.acquisition_bounds(layout, blocks, fit)
+            if self.method == "is-adu":  # a comb of rival ripples: its χ²₁ holds one
+                bounds = comb.ripple_bounds(layout, fit.cov, e, bounds)
+            e.update(bounds)
         elif self.method == "gs-hierarchical":
             e.update(layouts.unpooled_bounds(layout, blocks, fit))
         if gof_test:
