@@ -245,9 +245,15 @@ def _plan_is(tmp_path):
 @pytest.mark.slow
 def test_ctrl_c_keeps_what_was_recorded_and_resume_goes_on(tmp_path):
     """Ctrl-C in the middle of a stack: exit 130 with what was kept; the stack is a valid,
-    shorter one that scan and the readers take; --resume records the rest."""
+    shorter one that scan and the readers take; --resume records the rest.
+
+    The signal goes when the first dark's first chunk is on disk: the simulated camera
+    records 6000 frames in about 0.4 s on a fast machine, sooner than session.json (saved
+    once a second while a stack records) shows any, and the first dark is long enough
+    (about 1.3 s there) for the signal to land in it on a busy machine too."""
+    frames = 20000
     plan_path = _plan_file(
-        tmp_path, setpoints=(1, 5), edit={"dark_frames = 50 ": "dark_frames = 6000 "}
+        tmp_path, setpoints=(1, 5), edit={"dark_frames = 50 ": f"dark_frames = {frames} "}
     )
     out = tmp_path / "session"
     cmd = [
@@ -264,26 +270,22 @@ def test_ctrl_c_keeps_what_was_recorded_and_resume_goes_on(tmp_path):
         "-q",
     ]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+    first_chunk = out / "1x-dark.ome.zarr" / "0" / "c" / "0"
     deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:  # until the first chunk of the first dark is kept
-        try:
-            if Session.load(out).stacks[0].frames > 0:
-                break
-        except Exception:  # noqa: BLE001 - not written yet
-            pass
-        time.sleep(0.1)
+    while time.monotonic() < deadline and not first_chunk.exists() and proc.poll() is None:
+        time.sleep(0.002)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err
     assert "interrupted: 1x-dark holds" in err and "--resume" in err
     kept = Session.load(out).stacks[0]
-    assert 0 < kept.frames < 6000 and not kept.done
+    assert 0 < kept.frames < frames and not kept.done
     assert load_stack(out / "1x-dark.ome.zarr").shape[0] == kept.frames
     done = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     stacks = Session.load(out).stacks
     assert [s.frames for s in stacks] == [s.planned_frames for s in stacks]
-    assert load_stack(out / "1x-dark.ome.zarr").shape[0] == 6000
+    assert load_stack(out / "1x-dark.ome.zarr").shape[0] == frames
 
 
 @pytest.mark.slow

@@ -938,7 +938,7 @@ def test_a_comb_too_faint_for_the_grids_tops_leaves_no_pixel_overconfident(tmp_p
 def _comb_pixels(phi, E, seed, sigma=0.42 / 0.46, frames=1500):
     """A :class:`~emccdcal.fit.series.SeriesLikelihood` of ``is-adu`` for pixels of an
     sCMOS whose comb barely shows: φ (e⁻/ADU), levels ``E`` (P, A) e⁻ and read noise σ
-    (ADU), simulated (Poisson, normal, the ADC's rounding: not the engine) and
+    (ADU; one, or one per pixel), simulated (Poisson, normal, the ADC's rounding: not the engine) and
     histogrammed."""
     from emccdcal.data.stats import histograms
     from emccdcal.fit.series import AcquisitionModel, SeriesLikelihood
@@ -946,6 +946,7 @@ def _comb_pixels(phi, E, seed, sigma=0.42 / 0.46, frames=1500):
     offset = 100.0
     rng = np.random.default_rng(seed)
     P = E.shape[0]
+    sigma = np.broadcast_to(np.asarray(sigma, dtype=float), (P,))
     hists = [
         histograms(
             np.rint(
@@ -957,7 +958,7 @@ def _comb_pixels(phi, E, seed, sigma=0.42 / 0.46, frames=1500):
         for a in range(E.shape[1])
     ]
     model = noise.EMModel("cascade")
-    models = [AcquisitionModel(1.0, np.full(P, offset), np.full(P, sigma), model)] * E.shape[1]
+    models = [AcquisitionModel(1.0, np.full(P, offset), sigma.copy(), model)] * E.shape[1]
     return SeriesLikelihood("is-adu", models, hists)
 
 
@@ -973,6 +974,33 @@ def _comb_grid(pixels, x):
     step = 1.0 / (comb.PER_RIPPLE * E_max)
     grid = comb._path_grid(pixels.layout, pixels.blocks, x, signal, 4.0 * rel, step)
     return signal, rel, step, grid
+
+
+def test_a_pixels_likelihood_is_its_own_whatever_pixels_share_its_block():
+    """A qCMOS pixel (0.107 e⁻/ADU) of 3.5 ADU of read noise (0.37 e⁻) at 40 e⁻: its
+    comb shows (revivals of the transform at every 2πφ, e^-2.7 of its peak). Its
+    log-likelihood alone, beside a quieter pixel, and by the direct sum over
+    photoelectron numbers agree. The transform's band had stopped short of the revivals
+    where no pixel in the block needed more: alone, the pixel's likelihood lost its comb
+    (10 nats here; up to 2 at a simulated qCMOS's pixels), beside the quieter one it had it, so
+    a fit's result depended on the pixels fitted with it."""
+    from scipy import stats
+
+    from emccdcal.fit import engine
+
+    phi, E = 0.107, 40.0
+    pixels = _comb_pixels(phi, np.full((2, 1), E), 9, sigma=np.array([3.5, 2.5]))
+    x = np.log([[phi, E], [phi, E]])
+    beside = engine.objective(pixels.layout, pixels.blocks, x)[0]
+    block = pixels.blocks[0].take([0])
+    alone = engine.objective(pixels.layout.subset([0]), [block], x[:1])[0]
+    held = block.counts[0] > 0
+    values, counts = block.values[0][held], block.counts[0][held]
+    k = np.arange(200)
+    density = stats.poisson.pmf(k, E) * stats.norm.pdf(values[:, None], 100.0 + k / phi, 3.5)
+    direct = np.sum(counts * np.log(density.sum(axis=1)))
+    assert alone == pytest.approx(direct, rel=1e-12, abs=1e-9)
+    assert beside == pytest.approx(direct, rel=1e-12, abs=1e-9)
 
 
 @pytest.mark.slow

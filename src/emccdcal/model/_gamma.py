@@ -88,9 +88,11 @@ class GammaRows:
         """Highest rfft bin m beyond which |Φ(2πm/n)| < e^-level, in closed form.
 
         −ln|Φ(ω)| is at least B(ω) = σ²ω²/2 + E·ω²θ²/(1 + ω²θ²) for the PGN, and at least
-        σ²ω²/2 + 2Eψ²ω²/π² for the PN while ωψ ≤ π (1 − cos x ≥ 2x²/π² there; beyond, the
-        Gaussian factor alone). B is increasing, so the ω_c solving B(ω_c) = level bounds
-        the band; for the PGN it is the root of a quadratic in ω².
+        σ²ω²/2 + 2Eψ²ω²/π² for the PN while ωψ ≤ π (1 − cos x ≥ 2x²/π² there). B is
+        increasing, so the ω_c solving B(ω_c) = level bounds the band; for the PGN it is
+        the root of a quadratic in ω². Beyond ωψ = π the PN's Poisson factor revives at
+        every ωψ = 2πk (its photoelectron comb), under the Gaussian factor alone: the band
+        reaches past the last revival above e^-level (:func:`band_limit`).
         """
         return int(band_limit(E_t, theta_t, sigma, self.pn, n, level).max())
 
@@ -131,7 +133,23 @@ def band_limit(E, scale, sigma, pn, n, level=80.0):
         u_pgn = np.where(a > 0, (-b + np.sqrt(b * b + 4.0 * a * level)) / (2.0 * a), level / s2)
         u_pn = level / (s2 + 2.0 * E * t2 / np.pi**2)
     w_pn = np.sqrt(u_pn)
-    w_pn = np.where(w_pn * scale <= np.pi, w_pn, np.sqrt(level / s2))  # Gaussian bound only
+    # Around the PN's revival k (ωψ = 2πk, its comb) −ln|Φ| ≥ σ²ω²/2 + 2Eψ²(ω − ω_k)²/π²,
+    # at least c·ω_k² (c = ab/(a + b) of the two quadratics' a and b): revivals up to the
+    # last with c·ω_k² < level are in the band, each to where its right flank's bound
+    # (σ²ω_k²/2 + 2Eψ²δ²/π², δ = ω − ω_k) reaches the level; never beyond the Gaussian
+    # factor's own bound. Without this, a comb resolved at a bright level (a qCMOS, σ > 3
+    # ADU) lost its revivals, and a pixel's likelihood depended on the pixels beside it
+    # (the band is the widest row's).
+    gaussian = np.sqrt(level / s2)
+    a, b = s2, 2.0 * E * t2 / np.pi**2
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        period = 2.0 * np.pi / scale
+        last = np.floor(np.sqrt(level * (a + b) / (a * b)) / period)
+        w_k = last * period
+        w_rev = w_k + np.sqrt(np.maximum(level - a * w_k**2, 0.0) / b)
+    w_rev = np.where(last >= 1, np.fmin(w_rev, gaussian), 0.0)
+    # beyond ωψ = π, the Gaussian bound only
+    w_pn = np.where(w_pn * scale <= np.pi, np.maximum(w_pn, w_rev), gaussian)
     w = np.where(pn, w_pn, np.sqrt(u_pgn))
     m = np.ceil(w * n / (2.0 * np.pi)).astype(np.int64) + 2
     return np.where(w >= np.pi, n // 2 + 1, np.minimum(m, n // 2 + 1))
