@@ -579,7 +579,7 @@ def _pixel_bootstrap(layout, blocks, x, signal, half, step):
         moved[:, 1:] += np.log1p(shift * h)
         r = rows[live]
         paths.append(engine.logpmf_at_values(layout.subset(r), [s.take(r) for s in support], moved))
-    rng = np.random.default_rng(np.concatenate([b.counts[0] for b in blocks]).astype(np.int64))
+    rng = np.random.default_rng(_seed_of(blocks))
     value = np.zeros((BOOTSTRAP, live.size))
     for a, b in enumerate(blocks):
         prob = np.exp(fitted[a])
@@ -602,6 +602,15 @@ def _pixel_bootstrap(layout, blocks, x, signal, half, step):
     estimate = grid[at, best] + shift * point_step
     _, vertex = _envelope_se(grid, value, estimate, top, point_step)
     return np.where(np.isfinite(vertex), vertex, estimate) - x[0, 0]
+
+
+def _seed_of(blocks):
+    """A seed from one pixel's data (every block's first axis of length 1): its values
+    held and their counts, level by level, not the rows' padding (as wide as the widest
+    pixel's in the block), so that the same data give the same draws in any block."""
+    held = [b.counts[0] > 0 for b in blocks]
+    parts = [np.r_[b.counts[0][h], b.values[0][h]] for b, h in zip(blocks, held)]
+    return np.concatenate(parts).astype(np.int64) % 2**32  # a seed's words: non-negative
 
 
 def _levels(layout, use):
