@@ -533,8 +533,8 @@ def bootstrap_errors(layout, blocks, x, signal, half, step):
     replicate's ln p at each count is the parabola through the three at its own mean
     (ln p is smooth in E). Its estimate is its grid's best point (refined by the parabola
     through its neighbours), or the hill's top where :func:`_envelope_se` finds one
-    hill. The draws are seeded by the pixel's own counts: the same data give the same
-    errors, in any tile or block.
+    hill. The draws are seeded by the pixel's own data (:func:`_seed_of`): the same
+    data give the same errors, in any tile or block.
     """
     # one pixel at a time: the model along three paths is (G, K) per level and path
     return np.stack(
