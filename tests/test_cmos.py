@@ -938,8 +938,8 @@ def test_a_comb_too_faint_for_the_grids_tops_leaves_no_pixel_overconfident(tmp_p
 def _comb_pixels(phi, E, seed, sigma=0.42 / 0.46, frames=1500):
     """A :class:`~emccdcal.fit.series.SeriesLikelihood` of ``is-adu`` for pixels of an
     sCMOS whose comb barely shows: φ (e⁻/ADU), levels ``E`` (P, A) e⁻ and read noise σ
-    (ADU; one, or one per pixel), simulated (Poisson, normal, the ADC's rounding: not the engine) and
-    histogrammed."""
+    (ADU; one, or one per pixel), simulated (Poisson, normal, the ADC's rounding: not
+    the engine) and histogrammed."""
     from emccdcal.data.stats import histograms
     from emccdcal.fit.series import AcquisitionModel, SeriesLikelihood
 
@@ -964,8 +964,9 @@ def _comb_pixels(phi, E, seed, sigma=0.42 / 0.46, frames=1500):
 
 def _comb_grid(pixels, x):
     """The profile likelihood of ``pixels`` along E = φ·(mean − offset) on the grid the
-    fit's check takes about ``x`` (±4 moments' SEs, four points a ripple): ln φ and its
-    values (P, G)."""
+    fit's check takes about ``x`` (±4 moments' SEs, four points a ripple): the levels'
+    signal (P, A), the moments' relative SE and the step (P,), and (ln φ, values), each
+    (P, G)."""
     from emccdcal.fit import comb
 
     signal = np.stack([b.mean - b.offset for b in pixels.blocks], axis=1)
