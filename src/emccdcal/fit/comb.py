@@ -29,15 +29,16 @@ the parabola through the ripples' tops, the smooth likelihood they sit on
 (:func:`ripple_covariance`), or the estimate's own errors' where that is larger (the
 highest top among rivals is partly the data's noise: a parametric bootstrap,
 :func:`bootstrap_errors`, :func:`wald_se`); where that likelihood is one hill the
-ripples do not decide the estimate either, and the fit starts at the hill's top. Where the rivals are a resolved
-comb's few basins, too few for an envelope, the SE reaches every basin within the
-profile likelihood's 95 % set (:func:`_rival_reach`). Where a level is so bright that
-no grid resolves its ripples (1/E apart: thousands of e⁻), they are a tiny fraction of a
-nat deep yet their curvature is huge, and a fit ends on whichever it meets: there the
-envelope itself is fitted (:func:`_envelope_fit`), its vertex the start and its
-curvature the SE's floor. Where the comb is resolved (one ripple stands alone) or
-absent, nothing changes. Where the ripples set the error, profile-likelihood bounds are
-its Wald bounds (:func:`ripple_bounds`): the χ²₁ quantile ends within one ripple.
+ripples do not decide the estimate either, and the fit starts at the hill's top. Where
+the rivals are a resolved comb's few basins, too few for an envelope, the SE reaches
+every basin within the profile likelihood's 95 % set (:func:`_rival_reach`). Where a
+level is so bright that no grid resolves its ripples (1/E apart: thousands of e⁻), they
+are a tiny fraction of a nat deep yet their curvature is huge, and a fit ends on
+whichever it meets: there the envelope itself is fitted (:func:`_envelope_fit`), its
+vertex the start and its curvature the SE's floor. Where the comb is resolved (one
+ripple stands alone) or absent, nothing changes. Where the ripples set the error,
+profile-likelihood bounds are its Wald bounds (:func:`ripple_bounds`): the χ²₁ quantile
+ends within one ripple.
 """
 
 from __future__ import annotations
