@@ -125,6 +125,7 @@ BOUNDS = {
     "days": (0.0, 1e6, "days"),
     "exposure": (1e-9, 1e6, "s"),
     "dark_current": (0.0, 1e9, "e-/s"),
+    "offset_states": (2, 8, "states"),
 }
 #: The quantity (a key of :data:`BOUNDS`) of each command-line option whose name is not
 #: one; the command line checks every numeric option against its range before any work.
@@ -159,6 +160,7 @@ OPTION_QUANTITY = {
     "blinking": "fraction",
     "rts_fraction": "fraction",
     "hot_fraction": "fraction",
+    "rts_states": "offset_states",
     "read_noise_e": "read_noise",
     "target_read_noise_se": "percent",
     "drift": "fraction",

@@ -14,6 +14,7 @@ from .. import defaults, result
 from .._util import nanmedian
 from ..data import dark_current, quality
 from ..data.dark import map_variances
+from ..data.telegraph import MAX_STATES
 from ..errors import (
     DataQualityWarning,
     LeftOutWarning,
@@ -235,7 +236,7 @@ def _warn_fit_problems(method, used, arrays, model) -> None:
 def _dark_variables(used, per_acq_dim, shape) -> dict:
     """What the dark stacks showed besides the maps: the multiplied events' rate of the
     darks fitted with them, the stuck pixels of every dark stack and the random-telegraph
-    pixels of 1× darks tested for them."""
+    pixels of 1× darks tested for them, with their offset states."""
     out: dict[str, tuple] = {}
     for name, text in (
         (
@@ -252,6 +253,16 @@ def _dark_variables(used, per_acq_dim, shape) -> dict:
         found = [f for a in used if (f := getattr(a, "dark_" + name, None)) is not None]
         if found:
             out[name] = (("row", "col"), np.any(found, axis=0).astype(np.int8), "1", text)
+    states = [s for a in used if (s := a.dark_telegraph_states) is not None]
+    if states:
+        out["telegraph_states"] = (
+            ("row", "col"),
+            np.max(states, axis=0).astype(np.int8),
+            "1",
+            "offset states a 1x dark holds: 1 (one normal), or 2 to "
+            f"{MAX_STATES} at a random-telegraph pixel ({MAX_STATES}: that many or more), "
+            "counted by Schwarz's criterion",
+        )
     if any(a.dark_event_rate is not None for a in used):
         rates = np.stack(
             [

@@ -235,6 +235,7 @@ def _run_cmos(args) -> int:
     camera = CMOSCamera(
         kind=args.camera_kind,
         rts_fraction=args.rts_fraction,
+        rts_states=args.rts_states,
         hot_fraction=args.hot_fraction,
         **given,
     )
@@ -341,6 +342,10 @@ def _add_cmos(kinds) -> None:
     cm.add_argument(
         "--rts-fraction", type=float, default=0.0,
         help="fraction of random-telegraph pixels (default 0)",
+    )  # fmt: skip
+    cm.add_argument(
+        "--rts-states", type=int, default=2,
+        help="offset states of a random-telegraph pixel, 4 read-noise widths apart (default 2)",
     )  # fmt: skip
     cm.add_argument(
         "--hot-fraction", type=float, default=0.0,

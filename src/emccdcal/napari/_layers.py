@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..data.telegraph import MAX_STATES
 from ..result.flags import PIXEL_FLAGS
 
 __all__ = ["result_layers"]
@@ -16,7 +17,8 @@ def result_layers(ds, *, prefix: str = "") -> list[tuple]:
     offset and read noise (ADU) and goodness-of-fit p-value of the acquisitions (one
     layer each, the acquisitions along its first axis, named in its metadata), and the
     pixels the dark frames flagged (:data:`emccdcal.result.flags.PIXEL_FLAGS`: 1 where
-    found, at every pixel); each named with its unit, the maps NaN where a pixel did not
+    found, at every pixel) with the random-telegraph pixels' offset states (1 to 4);
+    each named with its unit, the maps NaN where a pixel did not
     converge, contrast from the 1st to the 99th percentile, placed at the calibration's
     sensor origin, hidden but the last.
 
@@ -31,11 +33,12 @@ def result_layers(ds, *, prefix: str = "") -> list[tuple]:
     ok = ds.converged.values.astype(bool)
     layers = []
 
-    def add(values, name, unit, colormap="viridis", axis=None, everywhere=False):
+    def add(values, name, unit, colormap="viridis", axis=None, everywhere=False, limits=None):
         data = np.asarray(values, dtype=float)
         data = data if everywhere else np.where(ok, data, np.nan)
         finite = data[np.isfinite(data)]
-        limits = (np.percentile(finite, [1, 99]) if finite.size else [0.0, 1.0]).tolist()
+        if limits is None:
+            limits = (np.percentile(finite, [1, 99]) if finite.size else [0.0, 1.0]).tolist()
         if limits[0] == limits[1]:
             limits = [limits[0] - 0.5, limits[1] + 0.5]
         metadata = {"units": unit, "variable": name}
@@ -84,6 +87,9 @@ def result_layers(ds, *, prefix: str = "") -> list[tuple]:
     for name, flag in PIXEL_FLAGS.items():  # pixels the darks flagged: 1, else 0
         if name in ds:
             add(ds[name].values, flag.layer, "1", "red", everywhere=True)
+    if "telegraph_states" in ds:  # 1 for one normal, 2–4 at a random-telegraph pixel
+        top = float(MAX_STATES)
+        add(ds.telegraph_states.values, "telegraph states", "1", "plasma", None, True, [1.0, top])
     if layers:
         layers[1 if len(layers) > 1 else 0][1]["visible"] = True  # φ, or the first gain
     return layers

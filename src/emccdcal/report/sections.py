@@ -17,6 +17,7 @@ from .. import __version__, result
 from .._output import file_sha256
 from ..beads.validation import data_checks
 from ..data import quality
+from ..data.telegraph import MAX_STATES
 from ..result import format_setpoint
 from ..result.flags import PIXEL_FLAGS
 from .figures.common import _estimated_phi
@@ -93,9 +94,23 @@ def _flags_html(ds) -> list[str]:
         notes.append(
             f"<p class=note>{what}: {int(flags.sum())} of {flags.size}"
             + (f", at (row, col) {_e(named)}" if flags.any() else "")
+            + (_states_html(ds) if name == "telegraph" and flags.any() else "")
             + f"; {meaning} (variable <code>{name}</code>).</p>"
         )
     return notes
+
+
+def _states_html(ds) -> str:
+    """How many offset states the random-telegraph pixels hold, where counted."""
+    if "telegraph_states" not in ds:
+        return ""
+    states = ds["telegraph_states"].values
+    parts = [
+        f"{k}{' or more' if k == MAX_STATES else ''} at {n} pixels"
+        for k in range(2, MAX_STATES + 1)
+        if (n := int(np.sum(states == k)))
+    ]
+    return " (offset states: " + ", ".join(parts) + "; variable <code>telegraph_states</code>)"
 
 
 def _summary_html(inp):

@@ -96,6 +96,9 @@ class Calibration:
     telegraph : ndarray (R, C) of bool, or None
         Pixels a member found to hold two or more offset states (random-telegraph pixels), where
         a member tested for them.
+    telegraph_states : ndarray (R, C) of int8, or None
+        The offset states the members counted (1 for one normal; 2 to 4, 4 meaning four or
+        more), the most any member counted; where a member tested for them.
     hot : ndarray (R, C) of bool, or None
         Pixels a member found hot (a dark current far above the median pixel's), where
         a member measured the dark current.
@@ -147,6 +150,7 @@ class Calibration:
     read_noise_se: dict = field(default_factory=dict)
     stuck: np.ndarray | None = None
     telegraph: np.ndarray | None = None
+    telegraph_states: np.ndarray | None = None
     hot: np.ndarray | None = None
     em_model: object = None
     camera: dict = field(default_factory=dict)
@@ -373,16 +377,21 @@ def _dark_maps(loaded, masked) -> dict:
     """What the members' dark frames gave, for :class:`Calibration`: per set-point the
     offset and read-noise maps and their SEs (from the first member that has the
     set-point; an intensity series' levels merged by their median), and the pixels any
-    member flagged (:data:`emccdcal.result.flags.PIXEL_FLAGS`)."""
+    member flagged (:data:`emccdcal.result.flags.PIXEL_FLAGS`) with the offset states
+    counted at random-telegraph pixels."""
     out: dict[str, dict] = {
         name: {} for name in ("offset", "read_noise", "offset_se", "read_noise_se")
     }
     flags: dict[str, np.ndarray | None] = dict.fromkeys(PIXEL_FLAGS)
+    states = None
     for _, ds in loaded:
         for name, kept in flags.items():
             if name in ds:
                 found = ds[name].transpose("row", "col").values.astype(bool)
                 flags[name] = found if kept is None else kept | found
+        if "telegraph_states" in ds:
+            counted = ds["telegraph_states"].transpose("row", "col").values.astype(np.int8)
+            states = counted if states is None else np.maximum(states, counted)
         for name in out:
             maps, store = masked(ds, name), out[name]
             if maps is None:
@@ -395,7 +404,7 @@ def _dark_maps(loaded, masked) -> dict:
                     with warnings.catch_warnings():  # a pixel left out: NaN, not a warning
                         warnings.filterwarnings("ignore", "All-NaN slice", RuntimeWarning)
                         store[s] = np.nanmedian(maps[np.asarray(at) == s], axis=0)
-    return {**out, **flags}
+    return {**out, **flags, "telegraph_states": states}
 
 
 def load_calibration(spec, shape=None, *, of="the frames") -> Calibration:

@@ -83,9 +83,10 @@ class Acquisition:
         Multiplied electrons per pixel per frame (e⁻) in the dark stack of a multiplied
         acquisition, fitted with its maps (:func:`emccdcal.data.dark.fit_dark`); None for
         maps given as files, 1× darks and darks without events.
-    dark_telegraph : ndarray of bool or None
-        Pixels whose 1× dark stack holds two or more offset states (random-telegraph pixels,
-        :func:`emccdcal.data.telegraph.telegraph_pixels`); None without a 1× dark stack.
+    dark_telegraph_states : ndarray of int8 or None
+        The offset states of each pixel's 1× dark stack: 1 for one normal, 2 to 4 at a
+        random-telegraph pixel (4: four or more; :func:`emccdcal.data.telegraph.telegraph_pixels`);
+        None without a 1× dark stack tested (a camera with an EM register).
     dark_stuck : ndarray of bool or None
         Pixels whose dark stack's counts never change (dead, or stuck at one value: read
         noise 0, which the fit leaves out); None for maps given as files or values.
@@ -107,10 +108,17 @@ class Acquisition:
     n_frames_total: int
     dark_frames: int | None = None
     dark_event_rate: np.ndarray | None = field(default=None, repr=False)
-    dark_telegraph: np.ndarray | None = field(default=None, repr=False)
+    dark_telegraph_states: np.ndarray | None = field(default=None, repr=False)
     dark_stuck: np.ndarray | None = field(default=None, repr=False)
     exposure_s: float | None = None
     dark_exposure_s: float | None = None
+
+    @property
+    def dark_telegraph(self) -> np.ndarray | None:
+        """Pixels whose 1× dark stack holds two or more offset states (random-telegraph
+        pixels), of bool; None where not tested."""
+        states = self.dark_telegraph_states
+        return None if states is None else states > 1
 
     @property
     def n_frames(self) -> int:

@@ -134,7 +134,7 @@ def resolve_manifest(entries: ManifestEntries) -> Manifest:
             n_frames_total=n_total,
             dark_frames=dark_frames,
             dark_event_rate=m["events"],
-            dark_telegraph=m["telegraph"],
+            dark_telegraph_states=m["telegraph_states"],
             dark_stuck=m["stuck"],
             exposure_s=a.exposure_s,
             dark_exposure_s=a.dark_exposure_s,
@@ -246,8 +246,8 @@ def _stack_headers(r: _Reader, acqs):
 def _read_out_maps(r: _Reader, acqs, shape, adc_max, hint, telegraph=False) -> list[dict]:
     """Each acquisition's offset and read-noise maps (ADU) with their sources, the
     multiplied events of its dark, its stuck pixels (dark counts that never change: read
-    noise 0) and (with ``telegraph``: a camera without an EM register) its
-    random-telegraph pixels: from the maps given, or each dark stack reduced once."""
+    noise 0) and (with ``telegraph``: a camera without an EM register) its pixels'
+    offset states: from the maps given, or each dark stack reduced once."""
     darks: dict[Path, tuple] = {}
     # the least multiplied dark first: its read noise is the others' reference
     for a in sorted((a for a in acqs if a.dark is not None), key=lambda a: a.em_gain_setpoint):
@@ -258,19 +258,19 @@ def _read_out_maps(r: _Reader, acqs, shape, adc_max, hint, telegraph=False) -> l
     out = []
     for a in acqs:
         if a.dark is None:
-            m: dict = {"events": None, "telegraph": None, "stuck": None}
+            m: dict = {"events": None, "telegraph_states": None, "stuck": None}
             for key in ("offset", "read_noise"):
                 m[key], m[key + "_source"] = _map_from_value(
                     r, a.index, a.label, key, getattr(a, key), shape
                 )
         else:
-            offset, read_noise, events, telegraph = darks[a.dark_path.expanduser().resolve()]
+            offset, read_noise, events, states = darks[a.dark_path.expanduser().resolve()]
             source = Source("dark", a.dark_path)
             m = {
                 "offset": offset.copy(),
                 "read_noise": read_noise.copy(),
                 "events": events,
-                "telegraph": telegraph,
+                "telegraph_states": states,
                 "stuck": read_noise <= 0,
                 "offset_source": source,
                 "read_noise_source": source,
@@ -290,10 +290,11 @@ def _read_out_maps(r: _Reader, acqs, shape, adc_max, hint, telegraph=False) -> l
 
 
 def _reduce_dark(r: _Reader, a: AcquisitionEntry, adc_max, hint, reference=None, telegraph=False):
-    """(offset, read noise, multiplied events or None, random-telegraph pixels or None)
-    of an acquisition's dark stack; ``reference`` the read noise (ADU) of the
-    calibration's least multiplied dark. With ``telegraph`` a 1× dark is tested for
-    telegraph pixels (:func:`emccdcal.data.telegraph.telegraph_pixels`)."""
+    """(offset, read noise, multiplied events or None, offset states or None) of an
+    acquisition's dark stack; ``reference`` the read noise (ADU) of the calibration's
+    least multiplied dark. With ``telegraph`` a 1× dark's pixels are tested for two or
+    more offset states, and their states counted
+    (:func:`emccdcal.data.telegraph.telegraph_pixels`)."""
     assert a.dark_path is not None  # only an acquisition with a dark stack comes here
     try:
         dark = load_stack(a.dark_path)
@@ -316,10 +317,10 @@ def _reduce_dark(r: _Reader, a: AcquisitionEntry, adc_max, hint, reference=None,
             a.index,
             a.label,
         )
-    flags = None
+    states = None
     if telegraph and a.em_gain_setpoint == 1:
-        flags = telegraph_pixels(dark, adc_max=adc_max).flagged.reshape(offset.shape)
-    return offset, read_noise, events, flags
+        states = telegraph_pixels(dark, adc_max=adc_max).states.reshape(offset.shape)
+    return offset, read_noise, events, states
 
 
 def _recorded(r: _Reader, entries, acquisitions, shape, found: list):

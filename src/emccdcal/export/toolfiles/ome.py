@@ -19,7 +19,8 @@ the names and units of a result (docs/results.md):
 - the pixels the darks flagged (:data:`emccdcal.result.flags.PIXEL_FLAGS`, 1 where
   flagged, else 0): ``stuck`` where the calibration reduced dark stacks, ``telegraph``
   where it tested for random-telegraph pixels, ``hot`` where it measured the dark
-  current: the masks a user leaves out of a fit.
+  current: the masks a user leaves out of a fit; with ``telegraph`` the offset states
+  counted (``telegraph_states``: 1 for one normal, 2 to 4 at a random-telegraph pixel).
 """
 
 from __future__ import annotations
@@ -72,6 +73,8 @@ def channels(cal, s) -> list[tuple[str, np.ndarray, str]]:
         mask = getattr(cal, name)
         if mask is not None:
             out += [(name, mask.astype(float), "1")]
+    if cal.telegraph_states is not None:
+        out += [("telegraph_states", cal.telegraph_states.astype(float), "1")]
     return [(name, image, unit) for name, image, unit in out if image is not None]
 
 
