@@ -139,11 +139,18 @@ def _fit_states(values, counts, start, iterations):
 
 
 def _statistics(values, counts):
-    """:func:`_statistic` of histograms (P, K), :data:`_BLOCK` pixels at a time (a fit's
-    arrays are pixels × counts large): the ratios and the states' distances (P,), and
-    the two states' log-likelihoods (P,) and parameters (P, 4)."""
-    blocks = np.array_split(np.arange(values.shape[0]), -(-values.shape[0] // _BLOCK))
-    parts = [_statistic(values[rows], counts[rows]) for rows in blocks]
+    """:func:`_statistic` of histograms (P, K): the ratios and the states' distances
+    (P,), and the two states' log-likelihoods (P,) and parameters (P, 4)."""
+    return _blockwise(_statistic, values, counts)
+
+
+def _blockwise(function, *arrays):
+    """``function`` of the rows of ``arrays``, :data:`_BLOCK` at a time (a fit's arrays
+    are pixels × counts large), its outputs (a tuple of arrays or one) joined."""
+    blocks = np.array_split(np.arange(arrays[0].shape[0]), -(-arrays[0].shape[0] // _BLOCK))
+    parts = [function(*(a[rows] for a in arrays)) for rows in blocks]
+    if not isinstance(parts[0], tuple):
+        return np.concatenate(parts)
     return tuple(np.concatenate(p) for p in zip(*parts))
 
 
@@ -338,7 +345,9 @@ def telegraph_pixels(stack, *, false_alarm=FALSE_ALARM, seed=0, adc_max=None) ->
     states = np.ones(flagged.shape, dtype=np.int8)
     rows = np.flatnonzero(flagged)
     if rows.size:
-        states[rows] = _count_states(values[rows], h.counts[rows], loglik[rows], x[rows])
+        states[rows] = _blockwise(
+            _count_states, values[rows], h.counts[rows], loglik[rows], x[rows]
+        )
     return TelegraphTest(
         flagged, statistic, np.where(flagged, step, np.nan), threshold, false_alarm, states
     )
