@@ -308,7 +308,11 @@ class _ModelAtData:
         # The model's mass lies within [lo, hi] (eight SDs and the tails, outside of
         # which the pmf is below ~1e-15 of its peak).
         lo, hi = noise.window_extent(rows, acq.offset, acq.read_noise, width=8.0)
-        lo, hi = np.floor(lo).astype(np.int64), np.ceil(hi).astype(np.int64)
+        # parameters where the model is undefined (a trial step's NaN) are hopeless: said
+        # here, not left to how a CPU casts NaN to an integer (x86 its least, ARM 0)
+        defined = np.isfinite(lo) & np.isfinite(hi)
+        lo = np.floor(np.where(defined, lo, 0.0)).astype(np.int64)
+        hi = np.ceil(np.where(defined, hi, 0.0)).astype(np.int64)
         first, last = acq.values[:, 0], acq.values.max(axis=1)
         # The FFT gives the pmf wrapped with period n: at a datum k, p(k) + Σ p(k ± jn).
         # Those aliases lie beyond [lo, hi] for every datum once n ≥ hi − first and
@@ -321,8 +325,10 @@ class _ModelAtData:
         # window of bounded size.
         span = last - first + 1
         limit = first - 8 * span - 64 * np.ceil(acq.read_noise).astype(np.int64) - 64
-        hopeless = (np.minimum(first, lo) < limit) | (
-            stop - start > 32 * span + 256 * np.ceil(acq.read_noise) + 512
+        hopeless = (
+            ~defined
+            | (np.minimum(first, lo) < limit)
+            | (stop - start > 32 * span + 256 * np.ceil(acq.read_noise) + 512)
         )
         start = np.where(hopeless, limit, start)
         stop = np.where(hopeless, last + 8 * span + 64, stop)
