@@ -118,11 +118,15 @@ def calibrate(
         Replace whatever ``out`` holds of an earlier run. With neither, an ``out`` that
         holds a finished or interrupted run is an error.
     block_size : int
-        Pixels fitted together.
+        Pixels fitted together. The result does not depend on it (to round-off: the
+        FFTs' lengths are a block's), but where a faint photoelectron comb's rival
+        ripples set φ's error (``is-adu`` on an sCMOS's pixels below ~0.7 e⁻), the
+        ripple a pixel's fit ends on can differ by one, a small fraction of its SE
+        (docs/cmos.md).
     tile_pixels : int
         Pixels per tile, rounded to whole rows (at least one row): what is read, fitted
-        and kept at once. Peak memory grows with it, not with the sensor; the result does
-        not depend on it.
+        and kept at once. Peak memory grows with it, not with the sensor; the result
+        does not depend on it but as on ``block_size`` (tiles are whole blocks).
     scheduler : str or distributed.Client, optional
         Run the tiles as tasks on a Dask cluster: the address of its scheduler
         (``"tcp://host:8786"``) or a client. The workers read the files from the paths of
