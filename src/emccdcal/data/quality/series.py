@@ -297,6 +297,14 @@ def _findings(a: dict) -> list[str]:
                 "doubtful: do not use them unless they converged with standard errors like "
                 "their neighbours'"
             )
+    if px.get("n_telegraph"):  # a report of an older version has none
+        out.append(
+            f"{name}: {px['n_telegraph']} random-telegraph pixel(s), mean more than "
+            f"{px['k']:g} robust SDs ({px['robust_sd']:.3g} ADU) from the median: "
+            f"{_fmt_pixels(px['telegraph'], px['n_telegraph'])}; their offset jumps between "
+            "states, so the dark's offset map is not this stack's (variable telegraph); "
+            "these pixels' own results are doubtful, every other pixel's stands"
+        )
     if px["n_stuck"]:
         out.append(
             f"{name}: {px['n_stuck']} stuck pixel(s) whose counts never change: "

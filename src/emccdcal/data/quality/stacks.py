@@ -212,11 +212,18 @@ class StackSummary:
             "multiplied": bool(r > 1.25 and r - 1 > 4 * se),
         }
 
-    def defects(self, offset=None, *, k: float = DEFAULT_K) -> dict:
-        """As :func:`pixel_defects`."""
+    def defects(self, offset=None, *, k: float = DEFAULT_K, telegraph=None) -> dict:
+        """As :func:`pixel_defects`; ``telegraph`` (rows, cols) of bool, the pixels whose
+        dark holds two or more offset states: those hot or dead are listed apart
+        (``n_telegraph``/``telegraph``), their offset is not one number."""
         self._complete()
         return _defects(
-            self.mean.reshape(self.shape), self.sd.reshape(self.shape), self.n_frames, offset, k
+            self.mean.reshape(self.shape),
+            self.sd.reshape(self.shape),
+            self.n_frames,
+            offset,
+            k,
+            telegraph,
         )
 
 
@@ -284,8 +291,9 @@ def band_statistics(band: np.ndarray, adc_max: int | None, *, third: bool = Fals
     return out
 
 
-def _defects(mean, sd, n_frames, offset, k) -> dict:
-    """Hot, dead and stuck pixels from per-pixel means and SDs (:func:`pixel_defects`)."""
+def _defects(mean, sd, n_frames, offset, k, telegraph=None) -> dict:
+    """Hot, dead and stuck pixels from per-pixel means and SDs (:func:`pixel_defects`),
+    random-telegraph pixels (``telegraph``) among the hot and dead listed apart."""
     if not (math.isfinite(k) and k > 0):
         raise InputError(f"k must be a positive number, got {k!r}")
     mean = np.asarray(mean, dtype=np.float64)
@@ -304,6 +312,8 @@ def _defects(mean, sd, n_frames, offset, k) -> dict:
         "dead": [],
         "n_stuck": int(np.count_nonzero(stuck)),
         "stuck": _pixels(stuck),
+        "n_telegraph": 0,
+        "telegraph": [],
     }
     if mean.size < _MIN_PIXELS_DEFECTS:
         return out
@@ -311,13 +321,16 @@ def _defects(mean, sd, n_frames, offset, k) -> dict:
     out.update(tested=True, robust_sd=scale)
     if scale > 0:
         z = (mean - med) / scale
-        hot = z > k
-        dead = z < -k
+        moved = np.zeros(z.shape, dtype=bool) if telegraph is None else np.asarray(telegraph)
+        hot, dead = (z > k) & ~moved, (z < -k) & ~moved
+        moved = moved & (np.abs(z) > k)
         out.update(
             n_hot=int(np.count_nonzero(hot)),
             hot=_pixels(hot),
             n_dead=int(np.count_nonzero(dead)),
             dead=_pixels(dead),
+            n_telegraph=int(np.count_nonzero(moved)),
+            telegraph=_pixels(moved),
         )
     return out
 
@@ -400,8 +413,10 @@ def pixel_defects(stack, offset=None, *, k: float = DEFAULT_K) -> dict:
     dict
         ``k``; ``median_mean`` (ADU), ``robust_sd`` (ADU, None when there are too few
         pixels); ``n_hot``/``hot``, ``n_dead``/``dead``, ``n_stuck``/``stuck`` (counts and
-        [row, col] lists, at most :data:`MAX_LISTED`); ``tested`` (False when fewer than 5
-        pixels: only stuck pixels are then looked for).
+        [row, col] lists, at most :data:`MAX_LISTED`); ``n_telegraph``/``telegraph``
+        (random-telegraph pixels as hot or dead, where a calibration's darks found them;
+        here none); ``tested`` (False when fewer than 5 pixels: only stuck pixels are then
+        looked for).
     """
     stack = as_stack(stack)
     if int(stack.shape[0]) < 2:
@@ -484,7 +499,7 @@ def check_acquisition(
         "stationarity": stat,
         "saturation": summary.saturation(),
         "frames_defective": summary.frame_defects(),
-        "pixels": summary.defects(acq.offset, k=k),
+        "pixels": summary.defects(acq.offset, k=k, telegraph=acq.dark_telegraph),
         "offset": summary.offset_position(acq.offset),
         "multiplication": summary.multiplication_ratio(acq.offset, acq.read_noise)
         if one_x
