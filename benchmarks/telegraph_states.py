@@ -7,16 +7,22 @@ Per camera, k and step: the fraction of the RTS pixels whose states are counted 
 fraction counted more than k, and (per camera) the one-normal pixels counted more than
 two (a flagged one-normal pixel is counted two by construction).
 
+With ``--cost``: what the count adds to the test's time instead (100 × 100 px, 3000
+frames, 1 % and 10 % three-state pixels four widths apart; medians of three runs
+alternating with and without the count, their ratio).
+
 Run: ``.venv/bin/python benchmarks/telegraph_states.py [--seeds 1,2,3] [--frames 3000]``
-(about a minute per seed).
+(about a minute per seed), or ``... --cost`` (half a minute).
 """
 
 from __future__ import annotations
 
 import argparse
+import time
 
 import numpy as np
 
+from emccdcal.data import telegraph
 from emccdcal.data.telegraph import telegraph_pixels
 from emccdcal.simulate.cmos import CMOSCamera, simulate_cmos_frames
 
@@ -45,12 +51,47 @@ def counted(kind, read_noise_e, states, step, seeds, frames):
     return np.concatenate(rts), np.concatenate(normal)
 
 
+def cost() -> None:
+    """The test's time with the count against without it (module docstring)."""
+    count = telegraph._count_states
+    for fraction in (0.01, 0.1):
+        camera = CMOSCamera(rows=100, cols=100, rts_fraction=fraction, rts_states=3)
+        rng = np.random.default_rng(3)
+        maps = camera.maps(rng)
+        dark = simulate_cmos_frames(
+            0.0, maps, 3000, rng, rts_switch=camera.rts_switch, rts_states=3
+        )
+        telegraph_pixels(dark)  # warm: the null table read, the imports done
+        times: dict[str, list] = {"with": [], "without": []}
+        for _ in range(3):
+            for mode in times:
+                telegraph._count_states = count if mode == "with" else _two
+                t0 = time.perf_counter()
+                telegraph_pixels(dark)
+                times[mode].append(time.perf_counter() - t0)
+        telegraph._count_states = count
+        with_, without = (float(np.median(times[m])) for m in ("with", "without"))
+        print(
+            f"{fraction:.0%} three-state pixels: {with_:.2f} s with the count, "
+            f"{without:.2f} s without, ratio {with_ / without:.2f}"
+        )
+
+
+def _two(values, counts, loglik, x):
+    """Every flagged pixel two states: the test without the count."""
+    return np.full(values.shape[0], 2)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", default="1,2,3", help="comma-separated")
     ap.add_argument("--frames", type=int, default=3000)
     ap.add_argument("--steps", default="1.5,2,3,4", help="read-noise widths, comma-separated")
+    ap.add_argument("--cost", action="store_true", help="the count's time instead")
     args = ap.parse_args()
+    if args.cost:
+        cost()
+        return
     seeds = [int(s) for s in args.seeds.split(",")]
     steps = [float(s) for s in args.steps.split(",")]
     head = ", ".join(f"{s:g}" for s in steps)
