@@ -18,9 +18,9 @@ def result_layers(ds, *, prefix: str = "") -> list[tuple]:
     layer each, the acquisitions along its first axis, named in its metadata), and the
     pixels the dark frames flagged (:data:`emccdcal.result.flags.PIXEL_FLAGS`: 1 where
     found, at every pixel) with the random-telegraph pixels' offset states (1 to 4);
-    each named with its unit, the maps NaN where a pixel did not
-    converge, contrast from the 1st to the 99th percentile, placed at the calibration's
-    sensor origin, hidden but the last.
+    each named with its unit, the maps NaN where a pixel did not converge, contrast from
+    the 1st to the 99th percentile, placed at the calibration's sensor origin, hidden but
+    the last.
 
     Parameters
     ----------
