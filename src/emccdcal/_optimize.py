@@ -249,7 +249,8 @@ def maximize(
             better = res[0] >= obj[active] - accept_rtol * np.abs(obj[active])
             # what the step gained against what its quadratic model promised
             model = 0.5 * np.einsum("pf,pf->p", g[move], d[move])
-            ratio = (res[0] - obj[active]) / np.where(model > 0, model, np.inf)
+            with np.errstate(invalid="ignore"):  # −inf (no likelihood) over no promise
+                ratio = (res[0] - obj[active]) / np.where(model > 0, model, np.inf)
             idx = active[better]
             x[idx] = x_new[better]
             obj[idx] = res[0][better]

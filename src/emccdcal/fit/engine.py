@@ -26,6 +26,7 @@ inverse observed information at the optimum.
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
@@ -308,8 +309,7 @@ class _ModelAtData:
         # The model's mass lies within [lo, hi] (eight SDs and the tails, outside of
         # which the pmf is below ~1e-15 of its peak).
         lo, hi = noise.window_extent(rows, acq.offset, acq.read_noise, width=8.0)
-        # parameters where the model is undefined (a trial step's NaN) are hopeless: said
-        # here, not left to how a CPU casts NaN to an integer (x86 its least, ARM 0)
+        # undefined parameters (a trial's NaN) hopeless by this test, not by a CPU's cast
         defined = np.isfinite(lo) & np.isfinite(hi)
         lo = np.floor(np.where(defined, lo, 0.0)).astype(np.int64)
         hi = np.ceil(np.where(defined, hi, 0.0)).astype(np.int64)
@@ -325,27 +325,27 @@ class _ModelAtData:
         # window of bounded size.
         span = last - first + 1
         limit = first - 8 * span - 64 * np.ceil(acq.read_noise).astype(np.int64) - 64
-        hopeless = (
-            ~defined
-            | (np.minimum(first, lo) < limit)
-            | (stop - start > 32 * span + 256 * np.ceil(acq.read_noise) + 512)
-        )
+        hopeless = ~defined | (np.minimum(first, lo) < limit)
+        hopeless |= stop - start > 32 * span + 256 * np.ceil(acq.read_noise) + 512
         start = np.where(hopeless, limit, start)
         stop = np.where(hopeless, last + 8 * span + 64, stop)
         n = noise.fast_len(int((stop - start).max()) + 1)
         names = rows.names if names is None else names
         xp, dev = _xp.resolve("cpu") if xp is None else xp
-        p, d1, d2 = noise.window(
-            rows,
-            acq.offset - start,
-            acq.read_noise,
-            n,
-            derivs=derivs,
-            second=second,
-            names=names,
-            xp=(xp, dev),
-            first_spectra=rough_scores or not score_windows,
-        )
+        # an undefined row's window is NaN and unused (its likelihood −inf): no warning
+        quiet = np.errstate(all="ignore") if not defined.all() else contextlib.nullcontext()
+        with quiet:
+            p, d1, d2 = noise.window(
+                rows,
+                acq.offset - start,
+                acq.read_noise,
+                n,
+                derivs=derivs,
+                second=second,
+                names=names,
+                xp=(xp, dev),
+                first_spectra=rough_scores or not score_windows,
+            )
         P, K = acq.values.shape
         # One flat gather per window (faster than take_along_axis, which rebuilds indices),
         # its index made where the data are: only the window starts (P,) move.
