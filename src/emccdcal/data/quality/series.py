@@ -494,6 +494,9 @@ def format_report(report: dict) -> str:
     if unit_root:
         header += ("ADF p", "KPSS p")
     header += ("sat. values/frames/px", "hot", "dead", "stuck")
+    # random-telegraph pixels beyond k, where a camera's darks found them (not hot or dead)
+    strays = any(a["pixels"].get("n_telegraph") for a in report["acquisitions"].values())
+    header += ("RTS",) if strays else ()
     rows: list[tuple[str, ...]] = [header]
     for name, a in report["acquisitions"].items():
         d, s, sat, px = a.get("drift"), a["stationarity"], a["saturation"], a["pixels"]
@@ -532,6 +535,7 @@ def format_report(report: dict) -> str:
                 str(px["n_dead"]) if px["tested"] else "n/a",
                 str(px["n_stuck"]),
             )
+            + ((str(px.get("n_telegraph", 0)),) if strays else ())
         )
     widths = [max(len(r[i]) for r in rows) for i in range(len(header))]
     lines = [f"Data-quality checks: {report['manifest']} (ADC maximum {report['adc_max']} ADU)"]
