@@ -102,14 +102,7 @@ def _fit_states(values, counts, start, iterations):
     def evaluate(rows, x):
         k, c = values[rows], counts[rows]
         sd = np.exp(x[:, k_states : k_states + 1])
-        # the weights as 1 / Σ_j e^(z_j − z_i), z = (a, 0), the last 1 − the others' sum:
-        # for two states exactly the 1 / (1 + e^(−a)), 1 − w the null table was made with
-        z = np.concatenate([x[:, k_states + 1 :], np.zeros((x.shape[0], 1))], axis=1)
-        w = [
-            1.0 / np.exp(z - z[:, i : i + 1]).sum(axis=1, keepdims=True)
-            for i in range(k_states - 1)
-        ]
-        w.append(1.0 - sum(w[1:], w[0]))
+        w = _weights(x[:, k_states + 1 :])
         fits = [adc.rounded_normal(k, x[:, i : i + 1], sd, derivs=True) for i in range(k_states)]
         p = w[0] * fits[0][0]
         for i in range(1, k_states):
@@ -237,7 +230,7 @@ def _split_heaviest(x, k):
     """A start (P, 2k + 2) of k + 1 states from k states' fit (P, 2k): its heaviest state
     split into two, three quarters of the width either side of its mean."""
     means, sd = x[:, :k], np.exp(x[:, k])
-    weights = _weights(x[:, k + 1 :])
+    weights = np.concatenate(_weights(x[:, k + 1 :]), axis=1)
     h = np.argmax(weights, axis=1)[:, None]
     centre = np.take_along_axis(means, h, 1)
     half = np.take_along_axis(weights, h, 1) / 2.0
@@ -248,9 +241,15 @@ def _split_heaviest(x, k):
 
 
 def _weights(logits):
-    """The k states' weights (P, k) from their logits (P, k − 1), as :func:`_fit_states`."""
+    """The k states' weights, a list of k columns (P, 1), from their logits (P, k − 1)
+    (:func:`_fit_states`): 1 / Σ_j e^(z_j − z_i) with z = (a, 0), the last 1 − the
+    others' sum; for two states exactly the 1 / (1 + e^(−a)) and 1 − w the null table
+    was made with."""
     z = np.concatenate([logits, np.zeros((logits.shape[0], 1))], axis=1)
-    return np.exp(z - np.logaddexp.reduce(z, axis=1, keepdims=True))
+    w = [
+        1.0 / np.exp(z - z[:, i : i + 1]).sum(axis=1, keepdims=True) for i in range(z.shape[1] - 1)
+    ]
+    return w + [1.0 - sum(w[1:], w[0])]
 
 
 def _start(means, sd, weights):

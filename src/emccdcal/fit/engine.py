@@ -652,7 +652,7 @@ def fit(
         time). It is noise where data lie far in the model's tails (an outlier): a row
         the final, exact evaluation finds not converged, or not within :data:`LANDED`,
         is fitted again from ``x0`` with the exact information. Without ``covariance``
-        nothing checks it: a caller whose objective must be the optimum's asks False.
+        nothing checks it: a caller whose objective must be the optimum's passes False.
 
     Returns
     -------
